@@ -1,0 +1,27 @@
+"""jaxshadow: exact, differentiable direct illumination in JAX.
+
+Polygon and linear-light form factors, Phong specular integrals, exact soft shadows, and the
+Mitsuba 3 bridge used as independent ground truth. See DESIGN.md for the conventions.
+"""
+
+from importlib.metadata import PackageNotFoundError, version
+
+from ._linear import linear_irradiance as linear_irradiance
+from ._polygon import form_factor as form_factor
+from ._scene import DirectionalLight as DirectionalLight
+from ._scene import LinearLight as LinearLight
+from ._scene import Material as Material
+from ._scene import PointLight as PointLight
+from ._scene import PolygonLight as PolygonLight
+from ._scene import Scene as Scene
+from ._scene import load_material as load_material
+from ._scene import load_scene as load_scene
+from ._scene import save_scene as save_scene
+from ._scene import scene_from_dict as scene_from_dict
+from ._scene import scene_to_dict as scene_to_dict
+from ._shade import irradiance as irradiance
+
+try:
+    __version__ = version("jaxshadow")
+except PackageNotFoundError:  # pragma: no cover
+    __version__ = "0.0.0"

@@ -1,0 +1,209 @@
+"""Polygons as padded arrays, planes, horizon clipping, and build-time validation.
+
+**Padded polygons.** Every polygon in jaxshadow is a `(K, 3)` array whose trailing slots
+repeat the *first* vertex. With that padding a plain cyclic edge sum over all `K` slots is
+exactly the sum over the polygon's real edges (the padded edges have zero length and every
+contour kernel returns exactly 0 for them, with a zero gradient). No masks, no counts, one
+shape per batch.
+
+**Edge soups.** A planar region is handed to the contour-integral kernels as oriented edges
+`(starts (E, 3), ends (E, 3))`. Horizon clipping produces one (`K + 1` edges: the clipped
+original edges plus the closing edge along the horizon); the shadow code produces others.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+# Relative tolerances used by build-time validation (NumPy, float64).
+PLANARITY_RTOL = 1e-6
+DEGENERACY_RTOL = 1e-9
+
+
+# --------------------------------------------------------------------------------------
+# JAX side
+# --------------------------------------------------------------------------------------
+
+
+def newell_normal(verts: Float[Array, "k 3"]) -> Float[Array, "3"]:
+    """Newell's normal of a (padded) polygon: twice the vector area, right-hand rule."""
+    nxt = jnp.roll(verts, -1, axis=0)
+    return jnp.sum(jnp.cross(verts, nxt), axis=0)
+
+
+def horizon_clip_edges(
+    p: Float[Array, "3"], n: Float[Array, "3"], verts: Float[Array, "k 3"]
+) -> tuple[Float[Array, "k+1 3"], Float[Array, "k+1 3"]]:
+    r"""Clip a padded convex polygon to the closed half-space $n \cdot (x - p) \ge 0$.
+
+    Exact clipping (not a clamp of the integrand): the part of the polygon below the tangent
+    plane of the receiver is cut away. Returns the boundary of the clipped polygon as an edge
+    soup of `K + 1` oriented edges: edge `i` is the part of the original edge `i -> i+1` above
+    the plane (zero-length if none), and the last edge closes the polygon along the horizon from
+    the exit point to the entry point (zero-length when nothing is cut). Orientation is kept.
+
+    **Arguments:** `p (3,)` point on the plane, `n (3,)` plane normal (any length),
+    `verts (K, 3)` padded convex polygon.
+
+    **Returns:** `(starts, ends)`, each `(K + 1, 3)`.
+    """
+    nxt = jnp.roll(verts, -1, axis=0)
+    da = (verts - p) @ n
+    db = (nxt - p) @ n
+    a_in = da >= 0
+    b_in = db >= 0
+    crossing = a_in != b_in
+    den = jnp.where(crossing, da - db, 1.0)
+    t = jnp.where(crossing, da / den, 0.0)
+    x = verts + t[:, None] * (nxt - verts)
+    start = jnp.where(a_in[:, None], verts, x)
+    end = jnp.where(b_in[:, None], nxt, x)
+    # Both endpoints below: collapse the edge onto its start (zero length, zero contribution).
+    keep = a_in | b_in
+    start = jnp.where(keep[:, None], start, verts)
+    end = jnp.where(keep[:, None], end, verts)
+    exiting = (a_in & ~b_in)[:, None]
+    entering = (~a_in & b_in)[:, None]
+    exit_pt = jnp.sum(jnp.where(exiting, x, 0.0), axis=0)
+    entry_pt = jnp.sum(jnp.where(entering, x, 0.0), axis=0)
+    any_cut = jnp.any(exiting) & jnp.any(entering)
+    close_start = jnp.where(any_cut, exit_pt, verts[0])
+    close_end = jnp.where(any_cut, entry_pt, verts[0])
+    starts = jnp.concatenate([start, close_start[None]], axis=0)
+    ends = jnp.concatenate([end, close_end[None]], axis=0)
+    return starts, ends
+
+
+# --------------------------------------------------------------------------------------
+# NumPy side: validation and padding (run at build time, before jit)
+# --------------------------------------------------------------------------------------
+
+
+def is_concrete(x: object) -> bool:
+    """False for JAX tracers (validation is skipped under jit/vmap/grad)."""
+    import jax
+
+    return not isinstance(x, jax.core.Tracer)
+
+
+def check_finite(x: np.ndarray, what: str) -> None:
+    bad = ~np.isfinite(x)
+    if np.any(bad):
+        idx = np.argwhere(bad)[0]
+        raise ValueError(f"{what}: non-finite value {x[tuple(idx)]!r} at index {tuple(idx)}.")
+
+
+def check_vector3(x: object, what: str) -> np.ndarray:
+    a = np.asarray(x, dtype=np.float64)
+    if a.shape != (3,):
+        raise ValueError(f"{what}: expected shape (3,), got {a.shape}.")
+    check_finite(a, what)
+    return a
+
+
+def check_rgb(x: object, what: str, nonnegative: bool = True) -> np.ndarray:
+    """An RGB triple (a scalar is broadcast to grey); finite and, by default, >= 0."""
+    a = np.asarray(x, dtype=np.float64)
+    if a.shape == ():
+        a = np.full(3, float(a))
+    if a.shape != (3,):
+        raise ValueError(f"{what}: expected a scalar or an RGB triple of shape (3,), got {a.shape}.")
+    check_finite(a, what)
+    if nonnegative and np.any(a < 0):
+        i = int(np.argmin(a))
+        raise ValueError(f"{what}: must be >= 0, got {a[i]!r} in channel {'RGB'[i]}.")
+    return a
+
+
+def check_unit_direction(x: object, what: str) -> np.ndarray:
+    a = check_vector3(x, what)
+    if not np.any(a != 0):
+        raise ValueError(f"{what}: a direction must be non-zero, got (0, 0, 0).")
+    return a
+
+
+def check_convex_polygon(verts: object, what: str) -> np.ndarray:
+    """Validate a convex planar polygon and return it as a float64 `(k, 3)` array.
+
+    Errors (each names the offending vertex): wrong shape, NaN/inf, fewer than 3 distinct
+    vertices, repeated vertices, zero area, non-planar (distance to the best plane above
+    `PLANARITY_RTOL` times the polygon's size), non-convex (a turn of the wrong sign, or a
+    polygon that winds more than once).
+    """
+    v = np.asarray(verts, dtype=np.float64)
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise ValueError(f"{what}: vertices must have shape (k, 3), got {v.shape}.")
+    check_finite(v, what)
+    k = v.shape[0]
+    distinct = np.unique(v, axis=0).shape[0] if k else 0
+    if distinct < 3:
+        raise ValueError(
+            f"{what}: a polygon needs at least 3 distinct vertices, got {distinct} "
+            f"(of {k} given)."
+        )
+    size = float(np.max(np.linalg.norm(v - v.mean(axis=0), axis=1)))
+    edges = np.roll(v, -1, axis=0) - v
+    elen = np.linalg.norm(edges, axis=1)
+    for i in range(k):
+        if elen[i] <= DEGENERACY_RTOL * size:
+            raise ValueError(
+                f"{what}: vertices {i} and {(i + 1) % k} coincide (zero-length edge); "
+                "remove the repeated vertex."
+            )
+    normal = np.sum(np.cross(v, np.roll(v, -1, axis=0)), axis=0)
+    area2 = float(np.linalg.norm(normal))
+    if area2 <= DEGENERACY_RTOL * size * size:
+        raise ValueError(f"{what}: zero area (all vertices are collinear).")
+    nhat = normal / area2
+    dist = (v - v.mean(axis=0)) @ nhat
+    worst = int(np.argmax(np.abs(dist)))
+    if abs(dist[worst]) > PLANARITY_RTOL * size:
+        raise ValueError(
+            f"{what}: non-planar polygon: vertex {worst} is {abs(dist[worst]):.3g} from the "
+            f"plane of the polygon (tolerance {PLANARITY_RTOL:g} x size {size:.3g})."
+        )
+    turns = np.cross(edges, np.roll(edges, -1, axis=0)) @ nhat
+    tol = DEGENERACY_RTOL * size * size
+    for i in range(k):
+        if turns[i] < -tol:
+            raise ValueError(
+                f"{what}: non-convex polygon: the turn at vertex {(i + 1) % k} goes the wrong "
+                "way (vertices must be in convex, consistent order)."
+            )
+    # A star polygon turns the same way everywhere but winds more than once.
+    e2 = edges - np.outer(edges @ nhat, nhat)
+    ang = np.arctan2(np.cross(e2, np.roll(e2, -1, axis=0)) @ nhat, np.sum(e2 * np.roll(e2, -1, axis=0), axis=1))
+    winding = float(np.sum(ang)) / (2 * np.pi)
+    if abs(winding - 1.0) > 1e-6:
+        raise ValueError(
+            f"{what}: non-convex polygon: its boundary winds {winding:.3g} times "
+            "(self-intersecting)."
+        )
+    return v
+
+
+def pad_polygon(v: np.ndarray, k: int) -> np.ndarray:
+    """Pad `(j, 3)` vertices to `(k, 3)` by repeating the first vertex."""
+    j = v.shape[0]
+    if j > k:
+        raise ValueError(f"cannot pad a {j}-gon to {k} vertices")
+    return np.concatenate([v, np.repeat(v[:1], k - j, axis=0)], axis=0)
+
+
+def pad_polygons_jax(polys: list, k: int | None = None) -> Array:
+    """Stack polygons of different vertex counts into `(m, K, 3)` with first-vertex padding.
+
+    Works on JAX arrays (differentiable leaves stay differentiable).
+    """
+    if k is None:
+        k = max(int(p.shape[0]) for p in polys)
+    out = []
+    for p in polys:
+        p = jnp.asarray(p)
+        j = p.shape[0]
+        if j < k:
+            p = jnp.concatenate([p, jnp.repeat(p[:1], k - j, axis=0)], axis=0)
+        out.append(p)
+    return jnp.stack(out)

@@ -1,0 +1,98 @@
+r"""Point-to-polygon form factor: Lambert's contour sum (Campbell & Fussell eq. 11, Hottel).
+
+$$F(p, n) = \frac{1}{2\pi} \sum_i \theta_i\, (n \cdot \hat\Gamma_i),\qquad
+\hat\Gamma_i = \frac{(v_i - p) \times (v_{i+1} - p)}{|\cdot|},\quad
+\theta_i = \angle(v_i - p, v_{i+1} - p)$$
+
+over the edges of the visible region (here: the emitter clipped exactly to the receiver's
+horizon). Campbell & Fussell write $\theta_i = \arccos(V_i \cdot V_{i+1})$; we use
+`atan2(|a x b|, a . b)` (accurate at small and near-$\pi$ angles) and fold $\theta/\sin\theta$
+into one smooth factor so that a receiver on the supporting line of an edge has finite
+gradients. Their eq. 11 also writes $V_{i-P_r}$ as the vector *from the vertex to* $P_r$; only
+the overall sign depends on that choice, and we fix it so that $F \ge 0$ for an emitter whose
+vertices run counter-clockwise seen from its lit side (DESIGN.md).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from ._geometry import horizon_clip_edges, newell_normal
+from ._misc import angle_over_sin
+
+
+def edge_term(
+    p: Float[Array, "3"], n: Float[Array, "3"], a: Float[Array, "3"], b: Float[Array, "3"]
+) -> Float[Array, ""]:
+    r"""Signed contribution $\theta\,(n \cdot \hat\Gamma)$ of the oriented edge `a -> b` seen from `p`.
+
+    Exactly zero (with zero gradient) for a zero-length edge, for an edge whose line passes
+    through `p` outside the edge, and (by convention) when `p` lies on the edge itself.
+    """
+    A = a - p
+    B = b - p
+    c = jnp.cross(A, B)
+    s2 = jnp.sum(c * c)
+    d = jnp.dot(A, B)
+    return angle_over_sin(s2, d) * jnp.dot(n, c)
+
+
+def contour_form_factor(
+    p: Float[Array, "3"],
+    n: Float[Array, "3"],
+    starts: Float[Array, "e 3"],
+    ends: Float[Array, "e 3"],
+) -> Float[Array, ""]:
+    r"""Form factor of the planar region bounded by an edge soup (Lambert's contour sum).
+
+    The edges must all lie above the receiver's tangent plane (clip first) and be oriented
+    counter-clockwise seen from the receiver side.
+    """
+    terms = jax.vmap(edge_term, in_axes=(None, None, 0, 0))(p, n, starts, ends)
+    return -jnp.sum(terms) / (2 * jnp.pi)
+
+
+def form_factor_kernel(
+    p: Float[Array, "3"], n: Float[Array, "3"], verts: Float[Array, "k 3"]
+) -> Float[Array, ""]:
+    r"""Unoccluded point-to-polygon form factor $F(p, n)$ (Campbell & Fussell eq. 11).
+
+    The emitter is clipped exactly to the receiver's horizon $n \cdot (x - p) \ge 0$; a
+    receiver behind the emitter or in its plane gets 0.
+
+    **Arguments:** `p (3,)` receiving point (m), `n (3,)` receiver normal (unit length),
+    `verts (K, 3)` padded convex polygon, counter-clockwise seen from its lit side.
+
+    **Returns:** dimensionless $F \in [0, 1]$.
+    """
+    ne = newell_normal(verts)
+    in_front = jnp.dot(ne, p - verts[0]) > 0
+    starts, ends = horizon_clip_edges(p, n, verts)
+    f = contour_form_factor(p, n, starts, ends)
+    return jnp.where(in_front, f, 0.0)
+
+
+@eqx.filter_jit
+def form_factor(
+    points: Float[Array, "N 3"], normals: Float[Array, "N 3"], vertices: Float[Array, "k 3"]
+) -> Float[Array, " N"]:
+    r"""Unoccluded point-to-polygon form factor for a batch of receivers.
+
+    $E = \pi L F$ is the irradiance from a Lambertian emitter of radiance $L$.
+
+    **Arguments:**
+
+    - `points`: `(N, 3)` receiving points (scene units, e.g. m).
+    - `normals`: `(N, 3)` unit receiver normals.
+    - `vertices`: `(k, 3)` convex planar polygon, counter-clockwise seen from the side it
+      emits to (right-hand rule gives the emitting normal).
+
+    **Returns:** `(N,)` form factors (dimensionless), dtype following the inputs.
+    """
+    points = jnp.asarray(points)
+    normals = jnp.asarray(normals)
+    vertices = jnp.asarray(vertices)
+    return jax.vmap(form_factor_kernel, in_axes=(0, 0, None))(points, normals, vertices)

@@ -1,0 +1,391 @@
+"""Scene model: lights, material, occluders as equinox Modules, plus the JSON scene format.
+
+Every float field is a JAX array leaf (differentiable); flags such as a linear light's profile
+are static fields. Validation runs in NumPy when a light is built from concrete values and is
+skipped under `jit`/`grad`/`vmap` (the inverse solvers rebuild lights from traced arrays).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Sequence
+from typing import Any
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ._geometry import (
+    check_convex_polygon,
+    check_finite,
+    check_rgb,
+    check_unit_direction,
+    check_vector3,
+    is_concrete,
+    pad_polygons_jax,
+)
+
+SCENE_FORMAT = "jaxshadow.scene"
+SCENE_VERSION = 1
+
+
+def _leaf(x: Any) -> Array:
+    """Keep JAX arrays (and their dtype) as they are; convert anything else."""
+    return x if isinstance(x, jnp.ndarray) else jnp.asarray(x)
+
+
+def _rgb_leaf(x: Any) -> Array:
+    a = _leaf(x)
+    if a.shape == ():
+        a = jnp.broadcast_to(a, (3,))
+    return a
+
+
+def _all_concrete(*xs: Any) -> bool:
+    return all(is_concrete(x) for x in xs)
+
+
+class PolygonLight(eqx.Module):
+    """A planar convex polygon of uniform radiance (Lambertian emitter).
+
+    **Fields:**
+
+    - `vertices`: `(k, 3)` vertices (m), counter-clockwise seen from the side it emits to
+      (the right-hand-rule normal points into the lit half-space).
+    - `radiance`: `(3,)` RGB radiance $L$ (W m^-2 sr^-1); a scalar is broadcast to grey.
+
+    Irradiance at a receiver is $E = \\pi L F$, $F$ the form factor of the visible part.
+    """
+
+    vertices: Float[Array, "k 3"]
+    radiance: Float[Array, "3"]
+
+    def __init__(self, vertices: Any, radiance: Any = 1.0):
+        if _all_concrete(vertices, radiance):
+            check_convex_polygon(vertices, "PolygonLight")
+            check_rgb(radiance, "PolygonLight.radiance")
+        self.vertices = _leaf(vertices)
+        self.radiance = _rgb_leaf(radiance)
+
+    @property
+    def normal(self) -> Array:
+        """Unit normal of the lit side (right-hand rule of the vertex order)."""
+        v = self.vertices
+        nrm = jnp.sum(jnp.cross(v, jnp.roll(v, -1, axis=0)), axis=0)
+        return nrm / jnp.linalg.norm(nrm)
+
+
+PROFILES = ("isotropic", "cosine")
+
+
+class LinearLight(eqx.Module):
+    """A segment light (a thin tube) with power per unit length $\\Phi$.
+
+    **Fields:**
+
+    - `start`, `end`: `(3,)` endpoints (m).
+    - `power`: `(3,)` RGB power per unit length $\\Phi$ (W/m).
+    - `profile`: `"isotropic"` (per-length intensity $\\Phi/4\\pi$) or `"cosine"` (intensity
+      $\\propto \\cos^m\\beta$, $\\beta$ from the plane perpendicular to the segment, normalised
+      to emit the same $\\Phi$). Static.
+    - `exponent`: the integer $m \\ge 1$ of the cosine profile (closed form for every
+      integer; non-integer $m$ is rejected). Static.
+    """
+
+    start: Float[Array, "3"]
+    end: Float[Array, "3"]
+    power: Float[Array, "3"]
+    profile: str = eqx.field(static=True)
+    exponent: int = eqx.field(static=True)
+
+    def __init__(
+        self,
+        start: Any,
+        end: Any,
+        power: Any = 1.0,
+        profile: str = "isotropic",
+        exponent: int | float = 1,
+    ):
+        if profile not in PROFILES:
+            raise ValueError(f"LinearLight.profile must be one of {PROFILES}, got {profile!r}.")
+        if float(exponent) != int(exponent) or int(exponent) < (1 if profile == "cosine" else 0):
+            raise ValueError(
+                "LinearLight.exponent must be an integer >= 1 for the cosine profile "
+                f"(closed form per integer m), got {exponent!r}."
+            )
+        if _all_concrete(start, end, power):
+            s = check_vector3(start, "LinearLight.start")
+            e = check_vector3(end, "LinearLight.end")
+            check_rgb(power, "LinearLight.power")
+            if np.linalg.norm(e - s) <= 1e-12 * max(1.0, float(np.linalg.norm(s))):
+                raise ValueError("LinearLight: zero-length segment (start == end).")
+        self.start = _leaf(start)
+        self.end = _leaf(end)
+        self.power = _rgb_leaf(power)
+        self.profile = profile
+        self.exponent = int(exponent) if profile == "cosine" else 0
+
+
+class PointLight(eqx.Module):
+    """An isotropic point light. `position (3,)` (m), `intensity (3,)` RGB (W/sr).
+
+    $E = I \\max(0, \\cos\\theta) / r^2$.
+    """
+
+    position: Float[Array, "3"]
+    intensity: Float[Array, "3"]
+
+    def __init__(self, position: Any, intensity: Any = 1.0):
+        if _all_concrete(position, intensity):
+            check_vector3(position, "PointLight.position")
+            check_rgb(intensity, "PointLight.intensity")
+        self.position = _leaf(position)
+        self.intensity = _rgb_leaf(intensity)
+
+
+class DirectionalLight(eqx.Module):
+    """A distant light. `direction (3,)`: the direction light travels (any non-zero length);
+    `irradiance (3,)` RGB (W/m^2) on a surface facing it. $E = E_0 \\max(0, -n\\cdot\\hat d)$."""
+
+    direction: Float[Array, "3"]
+    irradiance: Float[Array, "3"]
+
+    def __init__(self, direction: Any, irradiance: Any = 1.0):
+        if _all_concrete(direction, irradiance):
+            check_unit_direction(direction, "DirectionalLight.direction")
+            check_rgb(irradiance, "DirectionalLight.irradiance")
+        self.direction = _leaf(direction)
+        self.irradiance = _rgb_leaf(irradiance)
+
+
+Light = PolygonLight | LinearLight | PointLight | DirectionalLight
+
+
+class Material(eqx.Module):
+    """Phong material (Poulin eq. 2.1 / 5.14): $L = k_a L_a + k_d/\\pi\\, E + k_s S$.
+
+    `ka`, `kd`, `ks`: `(3,)` RGB coefficients (`kd` is the diffuse albedo, as Mitsuba's
+    `diffuse` reflectance), each >= 0; `exponent`: Phong $n \\ge 0$ (scalar array).
+    """
+
+    ka: Float[Array, "3"]
+    kd: Float[Array, "3"]
+    ks: Float[Array, "3"]
+    exponent: Float[Array, ""]
+
+    def __init__(self, ka: Any = 0.0, kd: Any = 0.5, ks: Any = 0.0, exponent: Any = 1.0):
+        if _all_concrete(ka, kd, ks, exponent):
+            for name, v in (("ka", ka), ("kd", kd), ("ks", ks)):
+                check_rgb(v, f"Material.{name}")
+            e = np.asarray(exponent, dtype=np.float64)
+            if e.shape != ():
+                raise ValueError(f"Material.exponent must be a scalar, got shape {e.shape}.")
+            check_finite(e.reshape(1), "Material.exponent")
+            if e < 0:
+                raise ValueError(f"Material.exponent must be >= 0, got {float(e)!r}.")
+        self.ka = _rgb_leaf(ka)
+        self.kd = _rgb_leaf(kd)
+        self.ks = _rgb_leaf(ks)
+        self.exponent = _leaf(exponent)
+
+
+def _stack_occluders(occluders: Any) -> Array | None:
+    if occluders is None:
+        return None
+    if isinstance(occluders, (np.ndarray, jnp.ndarray)) and not is_concrete(occluders):
+        return occluders  # traced (m, K, 3), already padded
+    if isinstance(occluders, (np.ndarray, jnp.ndarray)):
+        arr = np.asarray(occluders)
+        if arr.ndim == 2:
+            occluders = [occluders]
+        elif arr.ndim != 3 or arr.shape[-1] != 3:
+            raise ValueError(
+                f"Scene.occluders: expected an array (m, k, 3) or a list of (k, 3) polygons, got shape {arr.shape}."
+            )
+        else:
+            occluders = [occluders[i] for i in range(arr.shape[0])]
+    polys = list(occluders)
+    if len(polys) == 0:
+        return None
+    for i, poly in enumerate(polys):
+        if is_concrete(poly):
+            check_convex_polygon(poly, f"Scene.occluders[{i}]")
+    return pad_polygons_jax(polys)
+
+
+class Scene(eqx.Module):
+    """Lights, occluders and ambient radiance.
+
+    **Fields:**
+
+    - `lights`: tuple of `PolygonLight | LinearLight | PointLight | DirectionalLight`.
+    - `occluders`: `(m, K, 3)` convex planar polygons padded by repeating their first vertex,
+      or `None`. Built from a list of `(k_i, 3)` arrays or an `(m, k, 3)` array.
+    - `ambient`: `(3,)` RGB ambient radiance $L_a$ (W m^-2 sr^-1).
+    """
+
+    lights: tuple
+    occluders: Array | None
+    ambient: Float[Array, "3"]
+
+    def __init__(self, lights: Sequence[Any] = (), occluders: Any = None, ambient: Any = 0.0):
+        lights = tuple(lights)
+        for i, light in enumerate(lights):
+            if not isinstance(light, (PolygonLight, LinearLight, PointLight, DirectionalLight)):
+                raise ValueError(
+                    f"Scene.lights[{i}]: expected PolygonLight, LinearLight, PointLight or "
+                    f"DirectionalLight, got {type(light).__name__}."
+                )
+        if is_concrete(ambient):
+            check_rgb(ambient, "Scene.ambient")
+        self.lights = lights
+        self.occluders = _stack_occluders(occluders)
+        self.ambient = _rgb_leaf(ambient)
+
+
+# --------------------------------------------------------------------------------------
+# JSON scene format (versioned)
+# --------------------------------------------------------------------------------------
+
+
+def _tolist(x: Any) -> Any:
+    return np.asarray(x, dtype=np.float64).tolist()
+
+
+def light_to_dict(light: Any) -> dict:
+    if isinstance(light, PolygonLight):
+        return {"type": "polygon", "vertices": _tolist(light.vertices), "radiance": _tolist(light.radiance)}
+    if isinstance(light, LinearLight):
+        d = {
+            "type": "linear",
+            "start": _tolist(light.start),
+            "end": _tolist(light.end),
+            "power": _tolist(light.power),
+            "profile": light.profile,
+        }
+        if light.profile == "cosine":
+            d["exponent"] = light.exponent
+        return d
+    if isinstance(light, PointLight):
+        return {"type": "point", "position": _tolist(light.position), "intensity": _tolist(light.intensity)}
+    if isinstance(light, DirectionalLight):
+        return {
+            "type": "directional",
+            "direction": _tolist(light.direction),
+            "irradiance": _tolist(light.irradiance),
+        }
+    raise TypeError(f"not a light: {type(light).__name__}")
+
+
+_LIGHT_FIELDS = {
+    "polygon": (PolygonLight, ("vertices",), ("radiance",)),
+    "linear": (LinearLight, ("start", "end"), ("power", "profile", "exponent")),
+    "point": (PointLight, ("position",), ("intensity",)),
+    "directional": (DirectionalLight, ("direction",), ("irradiance",)),
+}
+
+
+def light_from_dict(d: dict, where: str = "light") -> Any:
+    if not isinstance(d, dict) or "type" not in d:
+        raise ValueError(f"{where}: expected an object with a 'type' field.")
+    kind = d["type"]
+    if kind not in _LIGHT_FIELDS:
+        raise ValueError(f"{where}: unknown light type {kind!r} (expected one of {sorted(_LIGHT_FIELDS)}).")
+    cls, required, optional = _LIGHT_FIELDS[kind]
+    unknown = set(d) - {"type", *required, *optional}
+    if unknown:
+        raise ValueError(f"{where}: unknown field(s) {sorted(unknown)} for a {kind} light.")
+    missing = [k for k in required if k not in d]
+    if missing:
+        raise ValueError(f"{where}: missing field(s) {missing} for a {kind} light.")
+    kwargs = {k: d[k] for k in (*required, *optional) if k in d}
+    for k, v in list(kwargs.items()):
+        if k not in ("profile", "exponent"):
+            kwargs[k] = np.asarray(v, dtype=np.float64)
+    try:
+        return cls(**kwargs)
+    except ValueError as err:
+        raise ValueError(f"{where}: {err}") from None
+
+
+def material_to_dict(material: Material) -> dict:
+    return {
+        "ka": _tolist(material.ka),
+        "kd": _tolist(material.kd),
+        "ks": _tolist(material.ks),
+        "exponent": float(np.asarray(material.exponent)),
+    }
+
+
+def material_from_dict(d: dict, where: str = "material") -> Material:
+    unknown = set(d) - {"ka", "kd", "ks", "exponent"}
+    if unknown:
+        raise ValueError(f"{where}: unknown field(s) {sorted(unknown)}.")
+    try:
+        return Material(**{k: np.asarray(v, dtype=np.float64) for k, v in d.items()})
+    except ValueError as err:
+        raise ValueError(f"{where}: {err}") from None
+
+
+def scene_to_dict(scene: Scene, material: Material | None = None) -> dict:
+    """The JSON-able dict of a scene (and optionally a material), schema version 1."""
+    out: dict[str, Any] = {
+        "format": SCENE_FORMAT,
+        "version": SCENE_VERSION,
+        "lights": [light_to_dict(light) for light in scene.lights],
+        "occluders": [],
+        "ambient": _tolist(scene.ambient),
+    }
+    if scene.occluders is not None:
+        for poly in np.asarray(scene.occluders, dtype=np.float64):
+            # Drop the first-vertex padding.
+            k = poly.shape[0]
+            while k > 3 and np.array_equal(poly[k - 1], poly[0]):
+                k -= 1
+            out["occluders"].append(poly[:k].tolist())
+    if material is not None:
+        out["material"] = material_to_dict(material)
+    return out
+
+
+def scene_from_dict(d: dict) -> Scene:
+    """Build a Scene from its dict form, with errors naming the offending entry."""
+    if not isinstance(d, dict):
+        raise ValueError("scene: expected a JSON object.")
+    if d.get("format") != SCENE_FORMAT:
+        raise ValueError(f"scene: 'format' must be {SCENE_FORMAT!r}, got {d.get('format')!r}.")
+    if d.get("version") != SCENE_VERSION:
+        raise ValueError(
+            f"scene: unsupported schema version {d.get('version')!r} (this jaxshadow reads {SCENE_VERSION})."
+        )
+    unknown = set(d) - {"format", "version", "lights", "occluders", "ambient", "material"}
+    if unknown:
+        raise ValueError(f"scene: unknown field(s) {sorted(unknown)}.")
+    lights = [light_from_dict(ld, f"scene.lights[{i}]") for i, ld in enumerate(d.get("lights", []))]
+    occl = d.get("occluders") or None
+    if occl is not None:
+        occl = [np.asarray(o, dtype=np.float64) for o in occl]
+    return Scene(lights=lights, occluders=occl, ambient=np.asarray(d.get("ambient", 0.0), dtype=np.float64))
+
+
+def save_scene(scene: Scene, path: str | os.PathLike, material: Material | None = None) -> None:
+    """Write a scene (and optionally a material) to a JSON file (schema version 1)."""
+    with open(path, "w") as f:
+        json.dump(scene_to_dict(scene, material), f, indent=2)
+
+
+def load_scene(path: str | os.PathLike) -> Scene:
+    """Read a scene from a JSON file written by `save_scene` (or by hand, same schema)."""
+    with open(path) as f:
+        return scene_from_dict(json.load(f))
+
+
+def load_material(path: str | os.PathLike) -> Material:
+    """Read the `material` entry of a scene JSON file."""
+    with open(path) as f:
+        d = json.load(f)
+    if "material" not in d:
+        raise ValueError(f"{path}: no 'material' entry.")
+    return material_from_dict(d["material"])
