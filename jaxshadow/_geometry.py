@@ -50,8 +50,8 @@ def horizon_clip_edges(
     **Returns:** `(starts, ends)`, each `(K + 1, 3)`.
     """
     nxt = jnp.roll(verts, -1, axis=0)
-    da = (verts - p) @ n
-    db = (nxt - p) @ n
+    da = (verts - p[None, :]) @ n
+    db = (nxt - p[None, :]) @ n
     a_in = da >= 0
     b_in = db >= 0
     crossing = a_in != b_in

@@ -1,4 +1,4 @@
-"""Point and directional lights (hard-edged, no area): $E = I\cos\theta/r^2$ and $E = E_0 \max(0, -n\cdot\hat d)$."""
+r"""Point and directional lights (hard-edged, no area): $E = I\cos\theta/r^2$ and $E = E_0 \max(0, -n\cdot\hat d)$."""
 
 from __future__ import annotations
 
