@@ -91,8 +91,8 @@ def is_concrete(x: object) -> bool:
 def check_finite(x: np.ndarray, what: str) -> None:
     bad = ~np.isfinite(x)
     if np.any(bad):
-        idx = np.argwhere(bad)[0]
-        raise ValueError(f"{what}: non-finite value {x[tuple(idx)]!r} at index {tuple(idx)}.")
+        idx = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise ValueError(f"{what}: non-finite value {float(x[idx])} at index {idx}.")
 
 
 def check_vector3(x: object, what: str) -> np.ndarray:
@@ -113,7 +113,7 @@ def check_rgb(x: object, what: str, nonnegative: bool = True) -> np.ndarray:
     check_finite(a, what)
     if nonnegative and np.any(a < 0):
         i = int(np.argmin(a))
-        raise ValueError(f"{what}: must be >= 0, got {a[i]!r} in channel {'RGB'[i]}.")
+        raise ValueError(f"{what}: must be >= 0, got {float(a[i])} in channel {'RGB'[i]}.")
     return a
 
 
@@ -197,11 +197,11 @@ def pad_polygons_jax(polys: list, k: int | None = None) -> Array:
 
     Works on JAX arrays (differentiable leaves stay differentiable).
     """
+    polys = [p if isinstance(p, jnp.ndarray) else jnp.asarray(p) for p in polys]
     if k is None:
         k = max(int(p.shape[0]) for p in polys)
     out = []
     for p in polys:
-        p = jnp.asarray(p)
         j = p.shape[0]
         if j < k:
             p = jnp.concatenate([p, jnp.repeat(p[:1], k - j, axis=0)], axis=0)

@@ -195,7 +195,7 @@ def _stack_occluders(occluders: Any) -> Array | None:
     if occluders is None:
         return None
     if isinstance(occluders, (np.ndarray, jnp.ndarray)) and not is_concrete(occluders):
-        return occluders  # traced (m, K, 3), already padded
+        return jnp.asarray(occluders)  # traced (m, K, 3), already padded
     if isinstance(occluders, (np.ndarray, jnp.ndarray)):
         arr = np.asarray(occluders)
         if arr.ndim == 2:

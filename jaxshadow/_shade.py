@@ -13,7 +13,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from ._geometry import pad_polygons_jax
 from ._linear import linear_irradiance_kernel
@@ -124,7 +124,7 @@ def _irradiance_impl(scene: Scene, points: Array, normals: Array) -> Array:
 
 
 def irradiance(
-    scene: Scene, points: Float[Array, "N 3"], normals: Float[Array, "N 3"]
+    scene: Scene, points: Float[ArrayLike, "N 3"], normals: Float[ArrayLike, "N 3"]
 ) -> Float[Array, "N 3"]:
     r"""Direct irradiance $E$ (W/m^2, RGB) at receivers from every light of the scene.
 

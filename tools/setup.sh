@@ -1,0 +1,20 @@
+#!/usr/bin/env bash
+# Set up a fresh machine for jaxshadow: Debian's libllvm19 (Mitsuba's llvm_ad_rgb variant
+# needs it; the preinstalled LLVM aborts on 'fminimum'), a virtualenv in .venv, and the package
+# with its mitsuba and test extras. Idempotent.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+if ! ldconfig -p 2>/dev/null | grep -q 'libLLVM.so.19\|libLLVM-19'; then
+  if command -v apt-get >/dev/null 2>&1; then
+    SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+    $SUDO apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq libllvm19 >/dev/null
+  else
+    echo "warning: cannot install libllvm19 (no apt-get); Mitsuba's llvm variant may not load" >&2
+  fi
+fi
+PY=${PYTHON:-python3}
+[ -x .venv/bin/python ] || "$PY" -m venv .venv
+.venv/bin/python -m pip install -q --upgrade pip
+.venv/bin/python -m pip install -q -e ".[mitsuba,test]"
+echo "jaxshadow set up in .venv"
