@@ -6,6 +6,7 @@ Mitsuba 3 bridge used as independent ground truth. See DESIGN.md for the convent
 
 from importlib.metadata import PackageNotFoundError, version
 
+from ._clip import visible_form_factor as visible_form_factor
 from ._linear import linear_irradiance as linear_irradiance
 from ._polygon import form_factor as form_factor
 from ._scene import DirectionalLight as DirectionalLight
@@ -20,6 +21,11 @@ from ._scene import save_scene as save_scene
 from ._scene import scene_from_dict as scene_from_dict
 from ._scene import scene_to_dict as scene_to_dict
 from ._shade import irradiance as irradiance
+from ._shade import shade as shade
+from ._shade import specular as specular
+from ._spline import shadow_nodes as shadow_nodes
+from ._spline import spline_shadow as spline_shadow
+from ._spline import spline_shadow_faces as spline_shadow_faces
 
 try:
     __version__ = version("jaxshadow")

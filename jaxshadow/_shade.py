@@ -16,11 +16,28 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._geometry import pad_polygons_jax
+from ._clip import (
+    directional_visibility,
+    point_visibility,
+    visible_edges,
+    visible_form_factor_kernel,
+    visible_linear_kernel,
+    visible_segments,
+)
 from ._linear import linear_irradiance_kernel
 from ._misc import safe_normalize
 from ._point import directional_irradiance_kernel, point_irradiance_kernel
 from ._polygon import form_factor_kernel
-from ._scene import DirectionalLight, LinearLight, PointLight, PolygonLight, Scene
+from ._scene import DirectionalLight, LinearLight, Material, PointLight, PolygonLight, Scene
+from ._specular import (
+    DEFAULT_DEGREE,
+    contour_specular_kernel,
+    directional_specular_kernel,
+    point_specular_kernel,
+    polygon_specular_kernel,
+    segment_specular_kernel,
+)
+
 
 
 def check_points_normals(points: Any, normals: Any, what: str = "") -> tuple[Array, Array]:
@@ -61,15 +78,12 @@ def _check_scene(scene: Any, what: str) -> Scene:
     return scene
 
 
-def _require_no_occluders(scene: Scene, what: str) -> None:
-    if scene.occluders is not None:
-        raise NotImplementedError(
-            f"{what}: scenes with occluders (soft shadows) are not supported yet; "
-            "remove the occluders for the unshadowed result."
-        )
+def _stack(lights: list, field: str, dt: Any) -> Array:
+    return jnp.stack([getattr(light, field) for light in lights]).astype(dt)
 
 
 def _group(scene: Scene) -> dict[str, list]:
+    """Lights by kernel: polygon, point, directional, and one group per linear-light exponent."""
     groups: dict[str, list] = {"polygon": [], "point": [], "directional": []}
     for light in scene.lights:
         if isinstance(light, PolygonLight):
@@ -83,43 +97,53 @@ def _group(scene: Scene) -> dict[str, list]:
     return groups
 
 
+def _per_light(kernel: Any, points: Array, normals: Array, *light_args: Array) -> Array:
+    """`kernel(p, n, *light)` over points (inner) and lights (outer): `(L, N)`."""
+    over_points = jax.vmap(kernel, in_axes=(0, 0) + (None,) * len(light_args))
+    return jax.vmap(over_points, in_axes=(None, None) + (0,) * len(light_args))(
+        points, normals, *light_args
+    )
+
+
 @eqx.filter_jit
 def _irradiance_impl(scene: Scene, points: Array, normals: Array) -> Array:
     dt = points.dtype
+    occ = None if scene.occluders is None else scene.occluders.astype(dt)
     total = jnp.zeros(points.shape, dtype=dt)
-    groups = _group(scene)
-    over_points = lambda kern, *in_axes: jax.vmap(kern, in_axes=(0, 0, *in_axes))  # noqa: E731
-    if groups["polygon"]:
-        verts = pad_polygons_jax([light.vertices for light in groups["polygon"]]).astype(dt)
-        rad = jnp.stack([light.radiance for light in groups["polygon"]]).astype(dt)
-        f = jax.vmap(over_points(form_factor_kernel, None), in_axes=(None, None, 0))(
-            points, normals, verts
-        )  # (L, N)
-        total = total + jnp.pi * jnp.einsum("ln,lc->nc", f, rad)
-    for key, lights in groups.items():
-        if not key.startswith("linear-") or not lights:
+    for key, lights in _group(scene).items():
+        if not lights:
             continue
-        m = lights[0].exponent
-        a = jnp.stack([light.start for light in lights]).astype(dt)
-        b = jnp.stack([light.end for light in lights]).astype(dt)
-        phi = jnp.stack([light.power for light in lights]).astype(dt)
-        kern = lambda p, n, a, b: linear_irradiance_kernel(p, n, a, b, m)  # noqa: B023, E731
-        g = jax.vmap(over_points(kern, None, None), in_axes=(None, None, 0, 0))(points, normals, a, b)
-        total = total + jnp.einsum("ln,lc->nc", g, phi)
-    if groups["point"]:
-        x = jnp.stack([light.position for light in groups["point"]]).astype(dt)
-        inten = jnp.stack([light.intensity for light in groups["point"]]).astype(dt)
-        g = jax.vmap(over_points(point_irradiance_kernel, None), in_axes=(None, None, 0))(
-            points, normals, x
-        )
-        total = total + jnp.einsum("ln,lc->nc", g, inten)
-    if groups["directional"]:
-        d = jnp.stack([light.direction for light in groups["directional"]]).astype(dt)
-        e0 = jnp.stack([light.irradiance for light in groups["directional"]]).astype(dt)
-        g = jax.vmap(jax.vmap(directional_irradiance_kernel, in_axes=(0, None)), in_axes=(None, 0))(
-            normals, d
-        )
-        total = total + jnp.einsum("ln,lc->nc", g, e0)
+        if key == "polygon":
+            verts = pad_polygons_jax([light.vertices for light in lights]).astype(dt)
+            if occ is None:
+                kern = form_factor_kernel
+            else:
+                kern = lambda p, n, v: visible_form_factor_kernel(p, n, v, occ)  # noqa: E731
+            g = jnp.pi * _per_light(kern, points, normals, verts)
+            emission = _stack(lights, "radiance", dt)
+        elif key.startswith("linear-"):
+            m = lights[0].exponent
+            if occ is None:
+                kern = lambda p, n, a, b: linear_irradiance_kernel(p, n, a, b, m)  # noqa: B023, E731
+            else:
+                kern = lambda p, n, a, b: visible_linear_kernel(p, n, a, b, m, occ)  # noqa: B023, E731
+            g = _per_light(kern, points, normals, _stack(lights, "start", dt), _stack(lights, "end", dt))
+            emission = _stack(lights, "power", dt)
+        elif key == "point":
+            x = _stack(lights, "position", dt)
+            g = _per_light(point_irradiance_kernel, points, normals, x)
+            if occ is not None:
+                vis = _per_light(lambda p, n, x: point_visibility(p, x, occ), points, normals, x)
+                g = g * vis
+            emission = _stack(lights, "intensity", dt)
+        else:  # directional
+            d = _stack(lights, "direction", dt)
+            g = _per_light(lambda p, n, d: directional_irradiance_kernel(n, d), points, normals, d)
+            if occ is not None:
+                vis = _per_light(lambda p, n, d: directional_visibility(p, d, occ), points, normals, d)
+                g = g * vis
+            emission = _stack(lights, "irradiance", dt)
+        total = total + jnp.einsum("ln,lc->nc", g, emission)
     return total
 
 
@@ -142,5 +166,163 @@ def irradiance(
     """
     scene = _check_scene(scene, "irradiance")
     points, normals = check_points_normals(points, normals, "irradiance")
-    _require_no_occluders(scene, "irradiance")
     return _irradiance_impl(scene, points, normals)
+
+
+def _check_eye(eye: Any, points: Array, what: str) -> Array:
+    eye = eye if isinstance(eye, jnp.ndarray) else jnp.asarray(eye)
+    if eye.shape != (3,) and eye.shape != points.shape:
+        raise ValueError(f"{what}: eye must have shape (3,) or {points.shape}, got {eye.shape}.")
+    if not isinstance(eye, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(eye))):
+        raise ValueError(f"{what}: eye is not finite.")
+    return jnp.broadcast_to(eye.astype(points.dtype), points.shape)
+
+
+def _check_exponent(exponent: Any, dt: Any, what: str) -> Array:
+    e = exponent if isinstance(exponent, jnp.ndarray) else jnp.asarray(exponent)
+    if e.shape != ():
+        raise ValueError(f"{what}: the Phong exponent must be a scalar, got shape {e.shape}.")
+    if not isinstance(e, jax.core.Tracer):
+        v = float(e)
+        if not np.isfinite(v) or v < 0:
+            raise ValueError(f"{what}: the Phong exponent must be finite and >= 0, got {v}.")
+    return e.astype(dt)
+
+
+@eqx.filter_jit
+def _specular_impl(
+    scene: Scene, points: Array, normals: Array, eyes: Array, exponent: Array, method: str, degree: int
+) -> Array:
+    dt = points.dtype
+    occ = None if scene.occluders is None else scene.occluders.astype(dt)
+    opts = dict(method=method, degree=degree)
+    total = jnp.zeros(points.shape, dtype=dt)
+
+    def per_light(kernel: Any, *light_args: Array) -> Array:
+        over_points = jax.vmap(kernel, in_axes=(0, 0, 0) + (None,) * len(light_args))
+        return jax.vmap(over_points, in_axes=(None, None, None) + (0,) * len(light_args))(
+            points, normals, eyes, *light_args
+        )
+
+    for key, lights in _group(scene).items():
+        if not lights:
+            continue
+        if key == "polygon":
+            verts = pad_polygons_jax([light.vertices for light in lights]).astype(dt)
+            if occ is None:
+                kern = lambda p, n, e, v: polygon_specular_kernel(p, n, e, v, exponent, **opts)  # noqa: E731
+            else:
+
+                def kern(p, n, e, v):
+                    starts, ends = visible_edges(p, n, v, occ)
+                    return contour_specular_kernel(p, n, e, starts, ends, exponent, **opts)
+
+            g = per_light(kern, verts)
+            emission = _stack(lights, "radiance", dt)
+        elif key.startswith("linear-"):
+            m = lights[0].exponent
+            prof = None if lights[0].profile == "isotropic" else jnp.asarray(float(m), dt)
+
+            def kern(p, n, e, a, b, prof=prof):
+                if occ is None:
+                    return segment_specular_kernel(p, n, e, a, b, exponent, prof, **opts)
+                sa, sb = visible_segments(p, a, b, occ)
+                piece = lambda x, y: segment_specular_kernel(p, n, e, x, y, exponent, prof, **opts)  # noqa: E731
+                return jnp.sum(jax.vmap(piece)(sa, sb))
+
+            g = per_light(kern, _stack(lights, "start", dt), _stack(lights, "end", dt))
+            emission = _stack(lights, "power", dt)
+        elif key == "point":
+            x = _stack(lights, "position", dt)
+
+            def kern(p, n, e, x):
+                val = point_specular_kernel(p, n, e, x, exponent)
+                return val if occ is None else val * point_visibility(p, x, occ)
+
+            g = per_light(kern, x)
+            emission = _stack(lights, "intensity", dt)
+        else:
+            d = _stack(lights, "direction", dt)
+
+            def kern(p, n, e, d):
+                val = directional_specular_kernel(p, n, e, d, exponent)
+                return val if occ is None else val * directional_visibility(p, d, occ)
+
+            g = per_light(kern, d)
+            emission = _stack(lights, "irradiance", dt)
+        total = total + jnp.einsum("ln,lc->nc", g, emission)
+    return total
+
+
+def specular(
+    scene: Scene,
+    points: Float[ArrayLike, "N 3"],
+    normals: Float[ArrayLike, "N 3"],
+    eye: Float[ArrayLike, "3"] | Float[ArrayLike, "N 3"],
+    exponent: Float[ArrayLike, ""],
+    *,
+    method: str = "chebyshev",
+    degree: int = DEFAULT_DEGREE,
+) -> Float[Array, "N 3"]:
+    r"""Phong specular integral $S$ (RGB) at receivers, shadows included.
+
+    $S = \int L_i(w)\,\frac{n+1}{2\pi}\max(0, w\cdot R)^n\,dw$ over the visible light above the
+    tangent plane, $R = 2(N\cdot V)N - V$, $V$ the unit vector to the eye (Poulin eq. 3.11 for
+    segments, eq. 3.12 for polygons; point and directional lights weight the lobe by
+    $I/r^2$ and $E_0$). Units: W m^-2 sr^-1 times sr, i.e. the radiance a mirror-like
+    $k_s = 1$ surface would reflect.
+
+    **Arguments:**
+
+    - `scene`: a `Scene` (occluders cast exact soft shadows).
+    - `points`, `normals`: `(N, 3)` receivers and their normals.
+    - `eye`: `(3,)` or `(N, 3)` eye position(s).
+    - `exponent`: Phong exponent $n \ge 0$ (scalar array; differentiable).
+    - `method`: `"chebyshev"` (default: Chebyshev fit of the lobe with a cut-off angle) or
+      `"exact"` (recurrence for integer $n$, graded quadrature otherwise). Static.
+    - `degree`: Chebyshev degree (static).
+
+    **Returns:** `(N, 3)`, dtype following `points`.
+    """
+    scene = _check_scene(scene, "specular")
+    points, normals = check_points_normals(points, normals, "specular")
+    if method not in ("chebyshev", "exact"):
+        raise ValueError(f"specular: method must be 'chebyshev' or 'exact', got {method!r}.")
+    eyes = _check_eye(eye, points, "specular")
+    e = _check_exponent(exponent, points.dtype, "specular")
+    return _specular_impl(scene, points, normals, eyes, e, method, int(degree))
+
+
+def shade(
+    scene: Scene,
+    material: Material,
+    points: Float[ArrayLike, "N 3"],
+    normals: Float[ArrayLike, "N 3"],
+    eye: Float[ArrayLike, "3"] | Float[ArrayLike, "N 3"],
+    *,
+    method: str = "chebyshev",
+    degree: int = DEFAULT_DEGREE,
+) -> Float[Array, "N 3"]:
+    r"""Outgoing radiance $L = k_a L_a + \frac{k_d}{\pi} E + k_s S$ per RGB channel (Poulin eq. 5.14).
+
+    `E` from `irradiance`, `S` from `specular` with the material's exponent; shadows included.
+
+    **Arguments:** `scene`, `material` (`Material`), `points`, `normals` `(N, 3)`, `eye` `(3,)`
+    or `(N, 3)`; `method`, `degree` as for `specular`.
+
+    **Returns:** `(N, 3)` radiance (W m^-2 sr^-1).
+    """
+    scene = _check_scene(scene, "shade")
+    if not isinstance(material, Material):
+        raise ValueError(f"shade: expected a jaxshadow.Material, got {type(material).__name__}.")
+    points, normals = check_points_normals(points, normals, "shade")
+    if method not in ("chebyshev", "exact"):
+        raise ValueError(f"shade: method must be 'chebyshev' or 'exact', got {method!r}.")
+    eyes = _check_eye(eye, points, "shade")
+    dt = points.dtype
+    n = _check_exponent(material.exponent, dt, "shade")
+    e = _irradiance_impl(scene, points, normals)
+    s = _specular_impl(scene, points, normals, eyes, n, method, int(degree))
+    ka, kd, ks = (jnp.asarray(k).astype(dt) for k in (material.ka, material.kd, material.ks))
+    la = scene.ambient.astype(dt)
+    return ka[None, :] * la[None, :] + kd[None, :] / jnp.pi * e + ks[None, :] * s

@@ -1,0 +1,476 @@
+r"""Exact visibility: the visible part of a light as a boundary contour (Campbell & Fussell §3.1, §4.2.2).
+
+**Region.** For a receiver $p$ (normal $n$) and a convex polygon light $E$ the visible region,
+in the emitter plane, is
+
+$$R = E_h \setminus \bigcup_j Q_j,\qquad E_h = E \cap \{n\cdot(x-p) \ge 0\},$$
+
+with $Q_j$ the central projection from $p$ onto the emitter plane of the *effective blocker*
+of occluder $j$: the part of it on the lit side of the emitter plane (C&F §4.2.2; the part
+behind $p$ never reaches the emitter). The form factor is Lambert's contour sum over
+$\partial R$ (C&F eq. 11), evaluated by `jaxshadow._polygon.contour_form_factor`.
+
+**Everything is a plane through p.** A direction $r$ from $p$ (towards the emitter plane) is in
+$E_h$ iff $r\cdot N \ge 0$ for the $K$ planes through $p$ and the emitter edges, and for the
+horizon plane $N = n$; it is in $Q_j$ iff $r \cdot N \ge 0$ for the planes through $p$ and the
+occluder's edges (its sign fixed by the side $p$ is on) and for the plane through $p$ and the
+line where the occluder crosses the emitter plane,
+$N_L = h_p\,\mathrm{sgn}(d_o)\,N_o + |d_o|\,N_e$ ($h_p = N_e\cdot(p-e_0)$, $d_o = N_o\cdot(o_0-p)$;
+it says "the ray meets the occluder before the emitter"). These half-spaces come straight from
+the input vertices, so they are as accurate as the data however the regions get clipped;
+unbounded projections (occluders reaching behind $p$) never have to be formed.
+
+**Edge soup.** Candidate edges are the $K+1$ edges of $E_h$ (`horizon_clip_edges`) and, per
+occluder, the $K_o+1$ edges of its effective blocker, clipped in 3-D to the pyramid $(p, E_h)$
+(Cyrus-Beck, fixed shape) and projected onto the emitter plane (reversed: $R$ lies outside
+$Q_j$). Every candidate edge is cut at the parameters where it enters and leaves every other
+region ($2$ per region, so all shapes are static) and each piece is kept by a test of its
+midpoint *against those same parameters* (so splitting and classification never disagree).
+Every crossing vertex is computed once, as the line common to the two planes through $p$
+(cross product of their normals, lower plane id first) met with the emitter plane, so the two
+edges that meet there share bit-identical endpoints and the contour stays closed even at
+grazing crossings (computing each side's parameter separately leaves gaps of order
+$\epsilon/\sin\alpha$ that cost ~1e-5 in float32).
+The region tested is the one on $R$'s side of the edge, one-sidedly: a piece lying on the
+boundary line of another region counts as inside it iff that region's interior is on $R$'s
+side (C&F's "omit degenerate planes" made exact).
+
+**Tie-break (coincident edges).** Two candidate pieces on the same line (normals of their planes
+through $p$ parallel within `64 eps`) that both bound $R$ on the same side describe the same
+boundary piece; exactly one is kept, by priority: the emitter's edges first, then occluders in
+index order. Concretely: an occluder edge lying on an edge of $E_h$, or on an edge of a
+lower-index occluder, is dropped; an emitter edge (or a higher-index occluder edge) under such
+a coincident edge is kept or dropped by the one-sided test alone. Opposite-side coincidences
+(two mesh triangles sharing an edge) drop both, as they should.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from ._geometry import horizon_clip_edges, newell_normal
+from ._linear import linear_irradiance_kernel
+from ._misc import safe_div, safe_normalize
+from ._polygon import edge_term
+
+# Planes through p whose unit normals are parallel within COLLINEAR_EPS * machine epsilon
+# are the same plane: their traces on the emitter plane are one line (coincident edges).
+COLLINEAR_EPS = 64.0
+
+
+def _eps(x: Array) -> float:
+    return float(jnp.finfo(x.dtype).eps)
+
+
+def _edge_planes(p: Array, verts: Array) -> Array:
+    r"""$(v_{i+1}-p) \times (v_i-p)$ for each edge of a padded polygon: the plane through $p$ and
+    edge $i$, oriented so that a polygon that runs counter-clockwise seen from $p$ lies on its
+    positive side. Padded (zero-length) edges give exactly 0."""
+    nxt = jnp.roll(verts, -1, axis=0)
+    real = jnp.any(nxt != verts, axis=1)
+    # Explicit zero: with fused multiply-adds cross(r, r) is not always exactly 0.
+    planes = jnp.cross(nxt - p[None, :], verts - p[None, :])
+    return jnp.where(real[:, None], planes, 0.0)
+
+
+def _occluder_sides(p, occluders):
+    """Newell normals `no`, `d_o = no . (o_0 - p)`, the side sign `s` (+1 when the vertex order
+    runs counter-clockwise seen from p) and `active`: False when p lies in the occluder's plane
+    (within `COLLINEAR_EPS` machine epsilons of its size), where it blocks a zero solid angle."""
+    no = jax.vmap(newell_normal)(occluders)  # (M, 3)
+    rel = occluders - p[None, None, :]
+    d_o = jnp.einsum("mi,mi->m", no, rel[:, 0])
+    size = jnp.max(jnp.abs(rel), axis=(1, 2)) * jnp.max(jnp.abs(no), axis=1)
+    s = jnp.where(d_o < 0, 1.0, -1.0).astype(p.dtype)
+    active = jnp.abs(d_o) > COLLINEAR_EPS * _eps(p) * size
+    return no, d_o, s, active
+
+
+def _occluder_regions(p, occluders, ne, hp):
+    """Per occluder: interior plane normals `(M, Ko+1, 3)` (edges, then the emitter-plane cut),
+    the side sign `s` (+1 when its vertex order runs counter-clockwise seen from p) and an
+    `active` flag (False when p lies in its plane: it blocks a zero solid angle)."""
+    no, d_o, s, active = _occluder_sides(p, occluders)
+    planes = s[:, None, None] * jax.vmap(_edge_planes, in_axes=(None, 0))(p, occluders)
+    n_cut = hp * (-s)[:, None] * no + jnp.abs(d_o)[:, None] * ne[None, :]
+    normals = jnp.concatenate([planes, n_cut[:, None, :]], axis=1)
+    return normals, s, active
+
+
+def _cyrus_beck(p, a, b, normals):
+    """Parameter interval `[t0, t1]` of the segment `a -> b` inside `{x : (x-p).N >= 0}` for all N."""
+    g0 = (a - p) @ normals.T
+    g1 = (b - a) @ normals.T
+    pos = g1 > 0
+    neg = g1 < 0
+    tc = safe_div(-g0, g1)
+    t_lo = jnp.where(pos, tc, 0.0)
+    t_hi = jnp.where(neg, tc, 1.0)
+    i0 = jnp.argmax(t_lo)
+    i1 = jnp.argmin(t_hi)
+    t0 = jnp.maximum(t_lo[i0], 0.0)
+    t1 = jnp.minimum(t_hi[i1], 1.0)
+    const_ok = jnp.all((g1 != 0) | (g0 >= 0))
+    return t0, t1, const_ok & (t1 > t0), i0, i1
+
+
+def _project(p, x, ne, hp):
+    """Central projection from p of x onto the emitter plane (x strictly towards it)."""
+    r = x - p
+    w = -(r @ ne)
+    ok = w > 0
+    scale = jnp.where(ok, hp / jnp.where(ok, w, 1.0), 0.0)
+    return p + scale[..., None] * r
+
+
+def _crossing_point(p, c, ne, hp):
+    """Where the line through p with direction `c` meets the emitter plane (either sign of c)."""
+    den = -jnp.dot(c, ne)
+    ok = den != 0
+    return p + c * jnp.where(ok, hp / jnp.where(ok, den, 1.0), 0.0)
+
+
+def _interval_on_region(p, a, d, n_own, id_own, sigma, normals, ids, valid, tol, ne, hp):
+    """Where the `sigma`-side of the edge `a + t d` is inside one convex region (planes through p).
+
+    Returns `(lo, hi, y_lo, y_hi, const_ok_noncollinear, const_ok_collinear, any_collinear)`;
+    the region contains the one-sided neighbourhood of `a + t d` iff `lo < t < hi` and both
+    `const_ok`. `y_lo`, `y_hi` are the crossing points at `lo`, `hi`, computed from the two
+    planes through p in a canonical order (lower plane id first), so that the two edges meeting
+    there get bit-identical vertices (a consistent contour, however grazing the crossing).
+    """
+    g0 = (a - p) @ normals.T
+    g1 = d @ normals.T
+    un = safe_normalize(normals)
+    uo = safe_normalize(n_own)
+    cr = jnp.cross(uo[None, :], un)
+    collinear = valid & (jnp.sum(cr * cr, axis=-1) <= tol * tol)
+    side_ok = sigma * (un @ uo) > 0
+    generic = valid & ~collinear
+    pos = generic & (g1 > 0)
+    neg = generic & (g1 < 0)
+    tc = safe_div(-g0, g1)
+    t_lo = jnp.where(pos, tc, -jnp.inf)
+    t_hi = jnp.where(neg, tc, jnp.inf)
+    i_lo = jnp.argmax(t_lo)
+    i_hi = jnp.argmin(t_hi)
+    first = (id_own < ids)[:, None]
+    c = jnp.where(first, jnp.cross(n_own[None, :], normals), jnp.cross(normals, n_own[None, :]))
+    const_noncol = jnp.all(~generic | (g1 != 0) | (g0 >= 0))
+    const_col = jnp.all(~collinear | side_ok)
+    y_lo = _crossing_point(p, c[i_lo], ne, hp)
+    y_hi = _crossing_point(p, c[i_hi], ne, hp)
+    return t_lo[i_lo], t_hi[i_hi], y_lo, y_hi, const_noncol, const_col, jnp.any(collinear)
+
+
+def visible_edges(
+    p: Float[Array, "3"],
+    n: Float[Array, "3"],
+    verts: Float[Array, "k 3"],
+    occluders: Float[Array, "m ko 3"],
+) -> tuple[Float[Array, "e 3"], Float[Array, "e 3"]]:
+    r"""Boundary of the visible part of a polygon light, as an oriented edge soup.
+
+    The region is $E_h \setminus \bigcup_j Q_j$ (module docstring): the emitter clipped to the
+    receiver's horizon minus the central projections of the effective blockers. Edges lie in the
+    emitter plane, run counter-clockwise seen from `p` (the convention of
+    `contour_form_factor`), and dropped pieces are zero-length, `start == end` (they contribute
+    0; `visible_form_factor_kernel` masks them, since a fused multiply-add can leave a 1e-18
+    residue in `cross(A, A)`).
+
+    **Arguments:** `p (3,)` receiver, `n (3,)` its normal, `verts (K, 3)` padded convex light
+    (counter-clockwise seen from its lit side), `occluders (M, Ko, 3)` padded convex polygons.
+
+    **Returns:** `(starts, ends)`, each `(E, 3)` with `E = ((K + 1) + M (Ko + 1)) (2 M + 3)`
+    (`E = K + 1` when `M = 0`); all zero-length when `p` is not in front of the light.
+    """
+    dtype = p.dtype
+    tol = COLLINEAR_EPS * _eps(p)
+    m_occ, ko = occluders.shape[0], occluders.shape[1]
+    k = verts.shape[0]
+    e0 = verts[0]
+    ne = newell_normal(verts)
+    hp = jnp.dot(ne, p - e0)
+    in_front = hp > 0
+    if m_occ == 0:
+        starts, ends = horizon_clip_edges(p, n, verts)
+        return jnp.where(in_front, starts, e0[None, :]), jnp.where(in_front, ends, e0[None, :])
+
+    # Region 0: E_h. Its edges and the interior normals of their planes through p.
+    e_starts, e_ends = horizon_clip_edges(p, n, verts)
+    e_normals = jnp.concatenate([_edge_planes(p, verts), n[None, :]], axis=0)  # (K+1, 3)
+
+    # Regions 1..M: effective blockers, their edges clipped to the pyramid (p, E_h).
+    o_normals, s, active = _occluder_regions(p, occluders, ne, hp)
+    o_s, o_e = jax.vmap(horizon_clip_edges, in_axes=(None, None, 0))(
+        e0, ne, occluders
+    )  # (M, Ko+1, 3)
+    cone = e_normals
+
+    def clip_one(a, b, n_q, act):
+        t0, t1, ok, i0, i1 = _cyrus_beck(p, a, b, cone)
+        ok = ok & act
+        # A clipped end is the crossing of this edge's plane with an E_h plane (E_h's plane ids
+        # come first in the canonical order, see _interval_on_region).
+        a2 = jnp.where(
+            t0 > 0, _crossing_point(p, jnp.cross(cone[i0], n_q), ne, hp), _project(p, a, ne, hp)
+        )
+        b2 = jnp.where(
+            t1 < 1, _crossing_point(p, jnp.cross(cone[i1], n_q), ne, hp), _project(p, b, ne, hp)
+        )
+        return jnp.where(ok, a2, e0), jnp.where(ok, b2, e0)
+
+    a2, b2 = jax.vmap(jax.vmap(clip_one, in_axes=(0, 0, 0, None)))(o_s, o_e, o_normals, active)
+    # Reverse: R lies outside Q_j, i.e. on the right of its counter-clockwise-from-p boundary.
+    ccw = (s > 0)[:, None, None]
+    q_starts = jnp.where(ccw, b2, a2)
+    q_ends = jnp.where(ccw, a2, b2)
+
+    # All regions' planes, padded (with zero normals = no constraint) to a common count.
+    n_planes = max(k + 1, ko + 1)
+    reg_normals = jnp.concatenate(
+        [
+            jnp.pad(e_normals, ((0, n_planes - (k + 1)), (0, 0)))[None],
+            jnp.pad(o_normals, ((0, 0), (0, n_planes - (ko + 1)), (0, 0))),
+        ],
+        axis=0,
+    )  # (M+1, P, 3)
+    reg_active = jnp.concatenate([jnp.ones((1,), bool), active])
+    reg_valid = jnp.any(reg_normals != 0, axis=-1) & reg_active[:, None]  # (M+1, P)
+
+    # Candidate edges: (start, end, own plane, sigma, region index).
+    starts = jnp.concatenate([e_starts, q_starts.reshape(-1, 3)], axis=0)
+    ends = jnp.concatenate([e_ends, q_ends.reshape(-1, 3)], axis=0)
+    own = jnp.concatenate([e_normals, o_normals.reshape(-1, 3)], axis=0)
+    sigma = jnp.concatenate(
+        [jnp.ones((k + 1,), dtype), -jnp.ones((m_occ * (ko + 1),), dtype)], axis=0
+    )
+    region = jnp.concatenate(
+        [
+            jnp.zeros((k + 1,), jnp.int32),
+            jnp.repeat(jnp.arange(1, m_occ + 1, dtype=jnp.int32), ko + 1),
+        ]
+    )
+    region_ids = jnp.arange(m_occ + 1, dtype=jnp.int32)
+    # Canonical plane ids (E_h's first), for bit-identical crossing points.
+    reg_ids = jnp.arange((m_occ + 1) * n_planes, dtype=jnp.int32).reshape(m_occ + 1, n_planes)
+    own_id = jnp.concatenate([reg_ids[0, : k + 1], reg_ids[1:, : ko + 1].reshape(-1)])
+
+    def split_edge(a, b, n_own, i_own, sig, reg):
+        lo, hi, y_lo, y_hi, c_nc, c_c, any_c = jax.vmap(
+            _interval_on_region,
+            in_axes=(None, None, None, None, None, None, 0, 0, 0, None, None, None),
+        )(p, a, b - a, n_own, i_own, sig, reg_normals, reg_ids, reg_valid, tol, ne, hp)
+        other = region_ids != reg
+        cuts = jnp.concatenate([jnp.where(other, lo, 0.0), jnp.where(other, hi, 0.0)])
+        cut_pts = jnp.concatenate([y_lo, y_hi], axis=0)
+        cut_pts = jnp.where(
+            (cuts <= 0)[:, None], a[None, :], jnp.where((cuts >= 1)[:, None], b[None, :], cut_pts)
+        )
+        ts_all = jnp.concatenate(
+            [jnp.zeros((1,), dtype), jnp.ones((1,), dtype), jnp.clip(cuts, 0.0, 1.0)]
+        )
+        pts_all = jnp.concatenate([a[None, :], b[None, :], cut_pts], axis=0)
+        order = jnp.argsort(ts_all)
+        ts = ts_all[order]
+        pts = pts_all[order]
+        t0 = ts[:-1]
+        t1 = ts[1:]
+        tm = 0.5 * (t0 + t1)
+        inside = (lo[None, :] < tm[:, None]) & (tm[:, None] < hi[None, :])  # (pieces, M+1)
+        member = inside & (c_nc & c_c & reg_active)[None, :]
+        # Tie-break: a coincident edge of a higher-priority (lower-index) region wins.
+        tie = inside & (c_nc & any_c)[None, :] & (region_ids < reg)[None, :]
+        # The emitter's edges are kept outside every occluder; an occluder's edges already lie
+        # inside E_h (clipped), so only the other occluders and the tie-break remove them.
+        blocked = jnp.any(((member & (region_ids > 0)[None, :]) | tie) & other[None, :], axis=1)
+        keep = ~blocked & (t1 > t0)
+        return jnp.where(keep[:, None], pts[:-1], a[None, :]), jnp.where(
+            keep[:, None], pts[1:], a[None, :]
+        )
+
+    ps, pe = jax.vmap(split_edge)(starts, ends, own, own_id, sigma, region)
+    ps = ps.reshape(-1, 3)
+    pe = pe.reshape(-1, 3)
+    ps = jnp.where(in_front, ps, e0[None, :])
+    pe = jnp.where(in_front, pe, e0[None, :])
+    return ps, pe
+
+
+def visible_form_factor_kernel(
+    p: Float[Array, "3"],
+    n: Float[Array, "3"],
+    verts: Float[Array, "k 3"],
+    occluders: Float[Array, "m ko 3"],
+) -> Float[Array, ""]:
+    r"""Form factor of the visible part of a polygon light (C&F eq. 11 over $\partial R$).
+
+    $E = \pi L F$ with shadows. Exact: no sampling, no tolerance other than the coincident-edge
+    test (module docstring).
+
+    **Arguments:** `p (3,)` receiver (m), `n (3,)` unit normal, `verts (K, 3)` padded convex
+    light, `occluders (M, Ko, 3)` padded convex occluders (M may be 0).
+
+    **Returns:** dimensionless $F \in [0, F_\text{unoccluded}]$.
+    """
+    starts, ends = visible_edges(p, n, verts, occluders)
+    ne = newell_normal(verts)
+    in_front = jnp.dot(ne, p - verts[0]) > 0
+    # Dropped pieces are zero-length; mask them so that they add an exact 0 (a fused
+    # multiply-add can leave cross(A, A) at 1e-18 instead of 0).
+    used = jnp.any(starts != ends, axis=1)
+    terms = jax.vmap(edge_term, in_axes=(None, None, 0, 0))(p, n, starts, ends)
+    f = -jnp.sum(jnp.where(used, terms, 0.0)) / (2 * jnp.pi)
+    return jnp.where(in_front, f, 0.0)
+
+
+@eqx.filter_jit
+def visible_form_factor(
+    points: Float[Array, "N 3"],
+    normals: Float[Array, "N 3"],
+    vertices: Float[Array, "k 3"],
+    occluders: Float[Array, "m ko 3"],
+) -> Float[Array, " N"]:
+    r"""Batched `visible_form_factor_kernel`: shadowed form factors of one polygon light.
+
+    **Arguments:** `points (N, 3)`, unit `normals (N, 3)`, `vertices (k, 3)` convex light
+    (counter-clockwise seen from its lit side), `occluders (m, ko, 3)` padded convex polygons.
+
+    **Returns:** `(N,)` dimensionless form factors ($E = \pi L F$), dtype following the inputs.
+    """
+    return jax.vmap(visible_form_factor_kernel, in_axes=(0, 0, None, None))(
+        points, normals, vertices, occluders
+    )
+
+
+# --------------------------------------------------------------------------------------
+# Segment lights: Poulin §4.2-4.3 (light triangle)
+# --------------------------------------------------------------------------------------
+
+
+def blocked_intervals(
+    p: Float[Array, "3"],
+    a: Float[Array, "3"],
+    b: Float[Array, "3"],
+    occluders: Float[Array, "m ko 3"],
+) -> tuple[Float[Array, " m"], Float[Array, " m"]]:
+    r"""Per occluder, the interval `(lo, hi)` of $t$ for which $a + t(b-a)$ is hidden from `p`.
+
+    The occluder cuts Poulin's light triangle $(p, a, b)$ in a convex set; its shadow on the
+    segment is one interval: the ray $p \to X(t)$ lies in the cone over the occluder
+    (linear in $t$ for each edge plane) and $X(t)$ lies beyond the occluder's plane. Empty
+    intervals have `lo >= hi`.
+    """
+    no, _, s, active = _occluder_sides(p, occluders)
+    planes = s[:, None, None] * jax.vmap(_edge_planes, in_axes=(None, 0))(p, occluders)
+    d = b - a
+
+    def one(pl, nor, o0, sj, act):
+        g0 = (a - p) @ pl.T
+        g1 = d @ pl.T
+        valid = jnp.any(pl != 0, axis=1)
+        pos = valid & (g1 > 0)
+        neg = valid & (g1 < 0)
+        tc = safe_div(-g0, g1)
+        lo = jnp.max(jnp.where(pos, tc, -jnp.inf))
+        hi = jnp.min(jnp.where(neg, tc, jnp.inf))
+        const_ok = jnp.all(~valid | (g1 != 0) | (g0 >= 0))
+        # X(t) strictly behind the occluder plane as seen from p.
+        h0 = -sj * jnp.dot(nor, a - o0)
+        h1 = -sj * jnp.dot(nor, d)
+        tb = safe_div(-h0, h1)
+        lo = jnp.where(h1 > 0, jnp.maximum(lo, tb), lo)
+        hi = jnp.where(h1 < 0, jnp.minimum(hi, tb), hi)
+        const_ok = const_ok & ((h1 != 0) | (h0 > 0)) & act
+        return jnp.where(const_ok, lo, jnp.inf), jnp.where(const_ok, hi, -jnp.inf)
+
+    return jax.vmap(one)(planes, no, occluders[:, 0], s, active)
+
+
+def visible_segments(
+    p: Float[Array, "3"],
+    a: Float[Array, "3"],
+    b: Float[Array, "3"],
+    occluders: Float[Array, "m ko 3"],
+) -> tuple[Float[Array, "s 3"], Float[Array, "s 3"]]:
+    """Visible sub-segments of the segment light `a -> b` seen from `p`: `(2M + 1)` pieces,
+    dropped ones zero-length at `a`. Ordered along the segment."""
+    lo, hi = blocked_intervals(p, a, b, occluders)
+    ts = jnp.sort(
+        jnp.concatenate(
+            [
+                jnp.zeros((1,), p.dtype),
+                jnp.ones((1,), p.dtype),
+                jnp.clip(lo, 0.0, 1.0),
+                jnp.clip(hi, 0.0, 1.0),
+            ]
+        )
+    )
+    t0 = ts[:-1]
+    t1 = ts[1:]
+    tm = 0.5 * (t0 + t1)
+    hidden = jnp.any((lo[None, :] < tm[:, None]) & (tm[:, None] < hi[None, :]), axis=1)
+    keep = ~hidden & (t1 > t0)
+    d = b - a
+    starts = jnp.where(keep[:, None], a[None, :] + t0[:, None] * d[None, :], a[None, :])
+    ends = jnp.where(keep[:, None], a[None, :] + t1[:, None] * d[None, :], a[None, :])
+    return starts, ends
+
+
+def visible_linear_kernel(
+    p: Float[Array, "3"],
+    n: Float[Array, "3"],
+    a: Float[Array, "3"],
+    b: Float[Array, "3"],
+    m: int,
+    occluders: Float[Array, "m ko 3"],
+) -> Float[Array, ""]:
+    r"""$E/\Phi$ (1/m) at `p` from the visible parts of the segment light `a -> b` (profile
+    $\cos^m\beta$, `m` static), Poulin §4.3: the sum of `linear_irradiance_kernel` over the
+    visible sub-segments (each horizon-clipped exactly there)."""
+    starts, ends = visible_segments(p, a, b, occluders)
+    vals = jax.vmap(linear_irradiance_kernel, in_axes=(None, None, 0, 0, None))(
+        p, n, starts, ends, m
+    )
+    return jnp.sum(vals)
+
+
+# --------------------------------------------------------------------------------------
+# Point and directional lights: hard shadows
+# --------------------------------------------------------------------------------------
+
+
+def _ray_blocked(p, r, occluders, limit_point):
+    no, d_o, s, active = _occluder_sides(p, occluders)
+    planes = s[:, None, None] * jax.vmap(_edge_planes, in_axes=(None, 0))(p, occluders)
+    valid = jnp.any(planes != 0, axis=2)
+    in_cone = jnp.all(~valid | (planes @ r > 0), axis=1) & active
+    if limit_point is not None:
+        beyond = -s * jnp.einsum("mi,mi->m", no, limit_point[None, :] - occluders[:, 0]) > 0
+        in_cone = in_cone & beyond
+    return jnp.any(in_cone)
+
+
+def point_visibility(
+    p: Float[Array, "3"], x: Float[Array, "3"], occluders: Float[Array, "m ko 3"]
+) -> Float[Array, ""]:
+    """1 if the segment `p -> x` misses every occluder (interiors; grazing counts as visible),
+    else 0. Gradient zero."""
+    p = jax.lax.stop_gradient(p)
+    x = jax.lax.stop_gradient(x)
+    occluders = jax.lax.stop_gradient(occluders)
+    return jnp.where(_ray_blocked(p, x - p, occluders, x), 0.0, 1.0).astype(p.dtype)
+
+
+def directional_visibility(
+    p: Float[Array, "3"], d: Float[Array, "3"], occluders: Float[Array, "m ko 3"]
+) -> Float[Array, ""]:
+    """1 if the ray from `p` towards the light (against the travel direction `d`) misses every
+    occluder, else 0. Gradient zero."""
+    p = jax.lax.stop_gradient(p)
+    d = jax.lax.stop_gradient(d)
+    occluders = jax.lax.stop_gradient(occluders)
+    return jnp.where(_ray_blocked(p, -d, occluders, None), 0.0, 1.0).astype(p.dtype)
