@@ -15,12 +15,15 @@ vertices run counter-clockwise seen from its lit side (DESIGN.md).
 
 from __future__ import annotations
 
+from typing import Any
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
-from ._geometry import horizon_clip_edges, newell_normal
+from ._geometry import check_convex_polygon, horizon_clip_edges, is_concrete, newell_normal
 from ._misc import angle_over_sin
 
 
@@ -76,6 +79,24 @@ def form_factor_kernel(
 
 
 @eqx.filter_jit
+def _form_factor_batch(points: Array, normals: Array, vertices: Array) -> Array:
+    return jax.vmap(form_factor_kernel, in_axes=(0, 0, None))(points, normals, vertices)
+
+
+def _check_vertices(vertices: Any, dtype: Any) -> Array:
+    """Validate the emitter of `form_factor` (NumPy, when concrete) and cast it to `dtype`."""
+    v = vertices if isinstance(vertices, jnp.ndarray) else jnp.asarray(vertices)
+    if v.ndim != 2 or v.shape[-1] != 3:
+        raise ValueError(f"form_factor: vertices must have shape (k, 3), got {v.shape}.")
+    if v.shape[0] < 3:
+        raise ValueError(f"form_factor: a polygon needs at least 3 vertices, got {v.shape[0]}.")
+    if not (jnp.issubdtype(v.dtype, jnp.floating) or jnp.issubdtype(v.dtype, jnp.integer)):
+        raise ValueError(f"form_factor: vertices must be a real array, got dtype {v.dtype}.")
+    if is_concrete(v):
+        check_convex_polygon(np.asarray(v), "form_factor: vertices")
+    return v.astype(dtype)
+
+
 def form_factor(
     points: Float[Array, "N 3"], normals: Float[Array, "N 3"], vertices: Float[Array, "k 3"]
 ) -> Float[Array, " N"]:
@@ -85,14 +106,19 @@ def form_factor(
 
     **Arguments:**
 
-    - `points`: `(N, 3)` receiving points (scene units, e.g. m).
-    - `normals`: `(N, 3)` unit receiver normals.
+    - `points`: `(N, 3)` receiving points (scene units, e.g. m), floating point.
+    - `normals`: `(N, 3)` receiver normals (normalised here; zero vectors are an error).
     - `vertices`: `(k, 3)` convex planar polygon, counter-clockwise seen from the side it
-      emits to (right-hand rule gives the emitting normal).
+      emits to (right-hand rule gives the emitting normal). Cast to the dtype of `points`.
 
-    **Returns:** `(N,)` form factors (dimensionless), dtype following the inputs.
+    Concrete inputs are validated in NumPy before tracing (shapes, dtypes, NaN/inf, zero
+    normals, non-planar / non-convex / degenerate polygons); `ValueError` names the culprit.
+
+    **Returns:** `(N,)` form factors (dimensionless), dtype following `points`.
     """
-    points = jnp.asarray(points)
-    normals = jnp.asarray(normals)
-    vertices = jnp.asarray(vertices)
-    return jax.vmap(form_factor_kernel, in_axes=(0, 0, None))(points, normals, vertices)
+    # Imported here: _shade imports this module's kernel.
+    from ._shade import check_points_normals
+
+    points, normals = check_points_normals(points, normals, "form_factor")
+    vertices = _check_vertices(vertices, points.dtype)
+    return _form_factor_batch(points, normals, vertices)

@@ -15,7 +15,6 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ._geometry import pad_polygons_jax
 from ._clip import (
     directional_visibility,
     point_visibility,
@@ -24,6 +23,7 @@ from ._clip import (
     visible_linear_kernel,
     visible_segments,
 )
+from ._geometry import pad_polygons_jax
 from ._linear import linear_irradiance_kernel
 from ._misc import safe_normalize
 from ._point import directional_irradiance_kernel, point_irradiance_kernel
@@ -37,7 +37,6 @@ from ._specular import (
     polygon_specular_kernel,
     segment_specular_kernel,
 )
-
 
 
 def check_points_normals(points: Any, normals: Any, what: str = "") -> tuple[Array, Array]:
@@ -227,7 +226,7 @@ def _specular_impl(
                 if occ is None:
                     return segment_specular_kernel(p, n, e, a, b, exponent, prof, **opts)
                 sa, sb = visible_segments(p, a, b, occ)
-                piece = lambda x, y: segment_specular_kernel(p, n, e, x, y, exponent, prof, **opts)  # noqa: E731
+                piece = lambda u, v: segment_specular_kernel(p, n, e, u, v, exponent, prof, **opts)  # noqa: E731
                 return jnp.sum(jax.vmap(piece)(sa, sb))
 
             g = per_light(kern, _stack(lights, "start", dt), _stack(lights, "end", dt))
