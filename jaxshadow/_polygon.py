@@ -23,8 +23,32 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._geometry import check_convex_polygon, horizon_clip_edges, is_concrete, newell_normal
+from ._geometry import check_convex_polygon, is_concrete, newell_normal
 from ._misc import angle_over_sin
+
+
+def _unit3(x: Array, y: Array, z: Array) -> tuple[Array, Array, Array]:
+    """Componentwise `v / |v|` (zero, with zero gradient, for `v = 0`)."""
+    sq = x * x + y * y + z * z
+    ok = sq > 0
+    inv = jnp.where(ok, jax.lax.rsqrt(jnp.where(ok, sq, 1.0)), 0.0)
+    return x * inv, y * inv, z * inv
+
+
+def _edge_term_c(A: tuple, B: tuple, n: tuple) -> Array:
+    r"""$	heta\,(n\cdot\hat\Gamma)$ for edge vectors `A -> B` (seen from the origin), by components.
+
+    Scale-free: `A`, `B` may have any length (callers pass unit vectors, which keeps float32
+    far from under/overflow for tiny or huge scenes).
+    """
+    ax, ay, az = A
+    bx, by, bz = B
+    cx = ay * bz - az * by
+    cy = az * bx - ax * bz
+    cz = ax * by - ay * bx
+    s2 = cx * cx + cy * cy + cz * cz
+    d = ax * bx + ay * by + az * bz
+    return angle_over_sin(s2, d) * (n[0] * cx + n[1] * cy + n[2] * cz)
 
 
 def edge_term(
@@ -35,12 +59,9 @@ def edge_term(
     Exactly zero (with zero gradient) for a zero-length edge, for an edge whose line passes
     through `p` outside the edge, and (by convention) when `p` lies on the edge itself.
     """
-    A = a - p
-    B = b - p
-    c = jnp.cross(A, B)
-    s2 = jnp.sum(c * c)
-    d = jnp.dot(A, B)
-    return angle_over_sin(s2, d) * jnp.dot(n, c)
+    A = _unit3(a[0] - p[0], a[1] - p[1], a[2] - p[2])
+    B = _unit3(b[0] - p[0], b[1] - p[1], b[2] - p[2])
+    return _edge_term_c(A, B, (n[0], n[1], n[2]))
 
 
 def contour_form_factor(
@@ -66,16 +87,47 @@ def form_factor_kernel(
     The emitter is clipped exactly to the receiver's horizon $n \cdot (x - p) \ge 0$; a
     receiver behind the emitter or in its plane gets 0.
 
+    Written component by component with the `K` edges unrolled (K is static): after `vmap`
+    every intermediate is an `(N,)` array and XLA fuses the whole kernel into one loop
+    (`benchmarks/profile_form_factor.py`). Lambert's term is scale-free, so each vertex is
+    turned into a unit direction once; the horizon crossing of edge `a -> b` is the direction
+    $\operatorname{sgn}(h_a)(h_a \hat b - h_b \hat a)$, $h = n\cdot\hat v$ (it lies in the
+    tangent plane, between $\hat a$ and $\hat b$).
+
     **Arguments:** `p (3,)` receiving point (m), `n (3,)` receiver normal (unit length),
     `verts (K, 3)` padded convex polygon, counter-clockwise seen from its lit side.
 
     **Returns:** dimensionless $F \in [0, 1]$.
     """
+    k = verts.shape[0]
     ne = newell_normal(verts)
     in_front = jnp.dot(ne, p - verts[0]) > 0
-    starts, ends = horizon_clip_edges(p, n, verts)
-    f = contour_form_factor(p, n, starts, ends)
-    return jnp.where(in_front, f, 0.0)
+    nc = (n[0], n[1], n[2])
+    dirs = [_unit3(verts[i, 0] - p[0], verts[i, 1] - p[1], verts[i, 2] - p[2]) for i in range(k)]
+    h = [nc[0] * v[0] + nc[1] * v[1] + nc[2] * v[2] for v in dirs]
+    up = [hi >= 0 for hi in h]
+    zero = jnp.zeros_like(h[0])
+    total = zero
+    exit_pt = [zero, zero, zero]
+    entry_pt = [zero, zero, zero]
+    any_exit = jnp.zeros_like(up[0])
+    for i in range(k):
+        j = (i + 1) % k
+        a, b, ha, hb = dirs[i], dirs[j], h[i], h[j]
+        sgn = jnp.where(ha >= 0, 1.0, -1.0)
+        x = tuple(sgn * (ha * bc - hb * ac) for ac, bc in zip(a, b, strict=True))
+        start = tuple(jnp.where(up[i], ac, xc) for ac, xc in zip(a, x, strict=True))
+        end = tuple(jnp.where(up[j], bc, xc) for bc, xc in zip(b, x, strict=True))
+        keep = up[i] | up[j]
+        total = total + jnp.where(keep, _edge_term_c(start, end, nc), 0.0)
+        exiting = up[i] & ~up[j]
+        entering = ~up[i] & up[j]
+        exit_pt = [jnp.where(exiting, xc, e) for xc, e in zip(x, exit_pt, strict=True)]
+        entry_pt = [jnp.where(entering, xc, e) for xc, e in zip(x, entry_pt, strict=True)]
+        any_exit = any_exit | exiting
+    # The closing edge along the horizon, from the exit to the entry crossing.
+    total = total + jnp.where(any_exit, _edge_term_c(tuple(exit_pt), tuple(entry_pt), nc), 0.0)
+    return jnp.where(in_front, -total / (2 * jnp.pi), 0.0)
 
 
 @eqx.filter_jit
