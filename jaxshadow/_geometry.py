@@ -13,6 +13,9 @@ original edges plus the closing edge along the horizon); the shadow code produce
 
 from __future__ import annotations
 
+from typing import Any
+
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -79,6 +82,45 @@ def horizon_clip_edges(
 # --------------------------------------------------------------------------------------
 # NumPy side: validation and padding (run at build time, before jit)
 # --------------------------------------------------------------------------------------
+
+
+@jax.jit
+def _all_good(points: Array, normals: Array) -> Array:
+    finite = jnp.all(jnp.isfinite(points)) & jnp.all(jnp.isfinite(normals))
+    return finite & jnp.all(jnp.any(normals != 0, axis=1))
+
+
+def check_points_normals(points: Any, normals: Any, what: str = "") -> tuple[Array, Array]:
+    """Shape/dtype/value checks shared by every public entry point (NumPy, when concrete).
+
+    Returns JAX arrays; normals are *not* normalised here (the jitted kernels do it, fused).
+    """
+    pre = f"{what}: " if what else ""
+    points = points if isinstance(points, jnp.ndarray) else jnp.asarray(points)
+    normals = normals if isinstance(normals, jnp.ndarray) else jnp.asarray(normals)
+    for name, x in (("points", points), ("normals", normals)):
+        if x.ndim != 2 or x.shape[-1] != 3:
+            raise ValueError(f"{pre}{name} must have shape (N, 3), got {x.shape}.")
+        if not jnp.issubdtype(x.dtype, jnp.floating):
+            raise ValueError(f"{pre}{name} must be a floating-point array, got dtype {x.dtype}.")
+    if points.shape[0] != normals.shape[0]:
+        raise ValueError(
+            f"{pre}points and normals must have the same length, got {points.shape[0]} and {normals.shape[0]}."
+        )
+    if not isinstance(points, jax.core.Tracer) and not isinstance(normals, jax.core.Tracer):
+        # One fused pass decides; the slow NumPy search for the culprit runs only on failure.
+        if not bool(_all_good(points, normals)):
+            pp, nn = np.asarray(points), np.asarray(normals)
+            for name, x in (("points", pp), ("normals", nn)):
+                bad = ~np.isfinite(x)
+                if bad.any():
+                    i = int(np.argwhere(bad.any(axis=1))[0, 0])
+                    raise ValueError(f"{pre}{name}[{i}] is not finite: {x[i].tolist()}.")
+            zero = ~np.any(nn != 0, axis=1)
+            i = int(np.argmax(zero))
+            raise ValueError(f"{pre}normals[{i}] is the zero vector; a normal needs a direction.")
+    return points, normals
+
 
 
 def is_concrete(x: object) -> bool:

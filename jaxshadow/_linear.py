@@ -35,9 +35,11 @@ import math
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
 
-from ._misc import safe_norm
+from ._geometry import check_points_normals, check_vector3, is_concrete
+from ._misc import map_chunks, safe_norm, safe_normalize
 
 
 def cosine_profile_constant(m: int) -> float:
@@ -135,14 +137,43 @@ def linear_irradiance_kernel(
 
 
 @eqx.filter_jit
-def linear_irradiance(
-    points: Float[Array, "N 3"],
-    normals: Float[Array, "N 3"],
-    start: Float[Array, "3"],
-    end: Float[Array, "3"],
-    m: int = 0,
-) -> Float[Array, " N"]:
-    """Batched `linear_irradiance_kernel`: $E/\\Phi$ (1/m) for `(N, 3)` points and normals."""
+def _linear_batch(points: Array, normals: Array, start: Array, end: Array, m: int) -> Array:
+    normals = safe_normalize(normals)
     return jax.vmap(linear_irradiance_kernel, in_axes=(0, 0, None, None, None))(
         points, normals, start, end, m
     )
+
+
+def linear_irradiance(
+    points: Float[ArrayLike, "N 3"],
+    normals: Float[ArrayLike, "N 3"],
+    start: Float[ArrayLike, "3"],
+    end: Float[ArrayLike, "3"],
+    m: int = 0,
+) -> Float[Array, " N"]:
+    r"""Irradiance per unit power $E/\Phi$ (1/m) of a segment light at a batch of receivers.
+
+    **Arguments:**
+
+    - `points`, `normals`: `(N, 3)` receivers (m) and their normals (normalised here).
+    - `start`, `end`: `(3,)` endpoints of the segment (m); cast to the dtype of `points`.
+    - `m`: profile exponent, a Python int: 0 for the isotropic tube, $m \ge 1$ for the
+      $\cos^m$ tube (Poulin §3.2.2).
+
+    **Returns:** `(N,)`; `+inf` for a receiver on the segment itself.
+    """
+    points, normals = check_points_normals(points, normals, "linear_irradiance")
+    if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or m < 0:
+        raise ValueError(f"linear_irradiance: m must be an integer >= 0 (a Python int), got {m!r}.")
+    ends = []
+    for name, x in (("start", start), ("end", end)):
+        x = x if isinstance(x, jnp.ndarray) else jnp.asarray(x)
+        if x.shape != (3,):
+            raise ValueError(f"linear_irradiance: {name}: expected shape (3,), got {x.shape}.")
+        if is_concrete(x):
+            check_vector3(np.asarray(x), f"linear_irradiance: {name}")
+        ends.append(x.astype(points.dtype))
+    a, b = ends
+    if is_concrete(a) and is_concrete(b) and not np.any(np.asarray(a) != np.asarray(b)):
+        raise ValueError("linear_irradiance: zero-length segment (start == end).")
+    return map_chunks(lambda p, n: _linear_batch(p, n, a, b, int(m)), (points, normals))

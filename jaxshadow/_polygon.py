@@ -23,8 +23,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._geometry import check_convex_polygon, is_concrete, newell_normal
-from ._misc import angle_over_sin
+from ._geometry import check_convex_polygon, check_points_normals, is_concrete, newell_normal
+from ._misc import angle_over_sin, map_chunks, safe_normalize
 
 
 def _unit3(x: Array, y: Array, z: Array) -> tuple[Array, Array, Array]:
@@ -132,7 +132,7 @@ def form_factor_kernel(
 
 @eqx.filter_jit
 def _form_factor_batch(points: Array, normals: Array, vertices: Array) -> Array:
-    return jax.vmap(form_factor_kernel, in_axes=(0, 0, None))(points, normals, vertices)
+    return jax.vmap(form_factor_kernel, in_axes=(0, 0, None))(points, safe_normalize(normals), vertices)
 
 
 def _check_vertices(vertices: Any, dtype: Any) -> Array:
@@ -168,9 +168,6 @@ def form_factor(
 
     **Returns:** `(N,)` form factors (dimensionless), dtype following `points`.
     """
-    # Imported here: _shade imports this module's kernel.
-    from ._shade import check_points_normals
-
     points, normals = check_points_normals(points, normals, "form_factor")
     vertices = _check_vertices(vertices, points.dtype)
-    return _form_factor_batch(points, normals, vertices)
+    return map_chunks(lambda p, n: _form_factor_batch(p, n, vertices), (points, normals))

@@ -110,7 +110,10 @@ class LinearLight(eqx.Module):
     ):
         if profile not in PROFILES:
             raise ValueError(f"LinearLight.profile must be one of {PROFILES}, got {profile!r}.")
-        if float(exponent) != int(exponent) or int(exponent) < (1 if profile == "cosine" else 0):
+        ok = isinstance(exponent, (int, float, np.integer, np.floating)) and not isinstance(exponent, bool)
+        if not ok or not np.isfinite(exponent) or float(exponent) != int(exponent) or int(exponent) < (
+            1 if profile == "cosine" else 0
+        ):
             raise ValueError(
                 "LinearLight.exponent must be an integer >= 1 for the cosine profile "
                 f"(closed form per integer m), got {exponent!r}."
@@ -287,6 +290,15 @@ _LIGHT_FIELDS = {
 }
 
 
+def _numeric(v: Any, where: str) -> np.ndarray:
+    """A JSON value as a float64 array, with an error naming the entry (strings, ragged lists)."""
+    try:
+        a = np.asarray(v, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}: expected numbers (a number or nested lists of equal length), got {v!r}.") from None
+    return a
+
+
 def light_from_dict(d: dict, where: str = "light") -> Any:
     if not isinstance(d, dict) or "type" not in d:
         raise ValueError(f"{where}: expected an object with a 'type' field.")
@@ -302,8 +314,12 @@ def light_from_dict(d: dict, where: str = "light") -> Any:
         raise ValueError(f"{where}: missing field(s) {missing} for a {kind} light.")
     kwargs = {k: d[k] for k in (*required, *optional) if k in d}
     for k, v in list(kwargs.items()):
+        if k == "profile" and not isinstance(v, str):
+            raise ValueError(f"{where}: 'profile' must be a string, got {v!r}.")
+        if k == "exponent" and (isinstance(v, bool) or not isinstance(v, (int, float))):
+            raise ValueError(f"{where}: 'exponent' must be a number, got {v!r}.")
         if k not in ("profile", "exponent"):
-            kwargs[k] = np.asarray(v, dtype=np.float64)
+            kwargs[k] = _numeric(v, f"{where}.{k}")
     try:
         return cls(**kwargs)
     except ValueError as err:
@@ -363,11 +379,17 @@ def scene_from_dict(d: dict) -> Scene:
     unknown = set(d) - {"format", "version", "lights", "occluders", "ambient", "material"}
     if unknown:
         raise ValueError(f"scene: unknown field(s) {sorted(unknown)}.")
-    lights = [light_from_dict(ld, f"scene.lights[{i}]") for i, ld in enumerate(d.get("lights", []))]
+    raw_lights = d.get("lights", [])
+    if not isinstance(raw_lights, list):
+        raise ValueError(f"scene: 'lights' must be a list, got {type(raw_lights).__name__}.")
+    lights = [light_from_dict(ld, f"scene.lights[{i}]") for i, ld in enumerate(raw_lights)]
     occl = d.get("occluders") or None
     if occl is not None:
-        occl = [np.asarray(o, dtype=np.float64) for o in occl]
-    return Scene(lights=lights, occluders=occl, ambient=np.asarray(d.get("ambient", 0.0), dtype=np.float64))
+        if not isinstance(occl, list):
+            raise ValueError(f"scene: 'occluders' must be a list of polygons, got {type(occl).__name__}.")
+        occl = [_numeric(o, f"scene.occluders[{i}]") for i, o in enumerate(occl)]
+    ambient = _numeric(d.get("ambient", 0.0), "scene.ambient")
+    return Scene(lights=lights, occluders=occl, ambient=ambient)
 
 
 def save_scene(scene: Scene, path: str | os.PathLike, material: Material | None = None) -> None:
@@ -379,7 +401,11 @@ def save_scene(scene: Scene, path: str | os.PathLike, material: Material | None 
 def load_scene(path: str | os.PathLike) -> Scene:
     """Read a scene from a JSON file written by `save_scene` (or by hand, same schema)."""
     with open(path) as f:
-        return scene_from_dict(json.load(f))
+        try:
+            d = json.load(f)
+        except json.JSONDecodeError as err:
+            raise ValueError(f"{path}: not valid JSON ({err}).") from None
+    return scene_from_dict(d)
 
 
 def load_material(path: str | os.PathLike) -> Material:

@@ -23,9 +23,9 @@ from ._clip import (
     visible_linear_kernel,
     visible_segments,
 )
-from ._geometry import pad_polygons_jax
+from ._geometry import check_points_normals, pad_polygons_jax
 from ._linear import linear_irradiance_kernel
-from ._misc import safe_normalize
+from ._misc import map_chunks, safe_normalize
 from ._point import directional_irradiance_kernel, point_irradiance_kernel
 from ._polygon import form_factor_kernel
 from ._scene import DirectionalLight, LinearLight, Material, PointLight, PolygonLight, Scene
@@ -37,38 +37,6 @@ from ._specular import (
     polygon_specular_kernel,
     segment_specular_kernel,
 )
-
-
-def check_points_normals(points: Any, normals: Any, what: str = "") -> tuple[Array, Array]:
-    """Shape/dtype/value checks shared by every public entry point; normals are normalised."""
-    pre = f"{what}: " if what else ""
-    points = points if isinstance(points, jnp.ndarray) else jnp.asarray(points)
-    normals = normals if isinstance(normals, jnp.ndarray) else jnp.asarray(normals)
-    for name, x in (("points", points), ("normals", normals)):
-        if x.ndim != 2 or x.shape[-1] != 3:
-            raise ValueError(f"{pre}{name} must have shape (N, 3), got {x.shape}.")
-        if not jnp.issubdtype(x.dtype, jnp.floating):
-            raise ValueError(f"{pre}{name} must be a floating-point array, got dtype {x.dtype}.")
-    if points.shape[0] != normals.shape[0]:
-        raise ValueError(
-            f"{pre}points and normals must have the same length, got {points.shape[0]} and {normals.shape[0]}."
-        )
-    if not isinstance(points, jax.core.Tracer):
-        bad = ~np.isfinite(np.asarray(points))
-        if bad.any():
-            i = int(np.argwhere(bad.any(axis=1))[0, 0])
-            raise ValueError(f"{pre}points[{i}] is not finite: {np.asarray(points)[i].tolist()}.")
-    if not isinstance(normals, jax.core.Tracer):
-        nn = np.asarray(normals)
-        bad = ~np.isfinite(nn)
-        if bad.any():
-            i = int(np.argwhere(bad.any(axis=1))[0, 0])
-            raise ValueError(f"{pre}normals[{i}] is not finite: {nn[i].tolist()}.")
-        zero = ~np.any(nn != 0, axis=1)
-        if zero.any():
-            i = int(np.argmax(zero))
-            raise ValueError(f"{pre}normals[{i}] is the zero vector; a normal needs a direction.")
-    return points, safe_normalize(normals)
 
 
 def _check_scene(scene: Any, what: str) -> Scene:
@@ -107,6 +75,7 @@ def _per_light(kernel: Any, points: Array, normals: Array, *light_args: Array) -
 @eqx.filter_jit
 def _irradiance_impl(scene: Scene, points: Array, normals: Array) -> Array:
     dt = points.dtype
+    normals = safe_normalize(normals)
     occ = None if scene.occluders is None else scene.occluders.astype(dt)
     total = jnp.zeros(points.shape, dtype=dt)
     for key, lights in _group(scene).items():
@@ -165,7 +134,7 @@ def irradiance(
     """
     scene = _check_scene(scene, "irradiance")
     points, normals = check_points_normals(points, normals, "irradiance")
-    return _irradiance_impl(scene, points, normals)
+    return map_chunks(lambda p, n: _irradiance_impl(scene, p, n), (points, normals))
 
 
 def _check_eye(eye: Any, points: Array, what: str) -> Array:
@@ -193,6 +162,7 @@ def _specular_impl(
     scene: Scene, points: Array, normals: Array, eyes: Array, exponent: Array, method: str, degree: int
 ) -> Array:
     dt = points.dtype
+    normals = safe_normalize(normals)
     occ = None if scene.occluders is None else scene.occluders.astype(dt)
     opts = dict(method=method, degree=degree)
     total = jnp.zeros(points.shape, dtype=dt)
@@ -289,7 +259,9 @@ def specular(
         raise ValueError(f"specular: method must be 'chebyshev' or 'exact', got {method!r}.")
     eyes = _check_eye(eye, points, "specular")
     e = _check_exponent(exponent, points.dtype, "specular")
-    return _specular_impl(scene, points, normals, eyes, e, method, int(degree))
+    return map_chunks(
+        lambda p, n, v: _specular_impl(scene, p, n, v, e, method, int(degree)), (points, normals, eyes)
+    )
 
 
 def shade(
@@ -320,8 +292,10 @@ def shade(
     eyes = _check_eye(eye, points, "shade")
     dt = points.dtype
     n = _check_exponent(material.exponent, dt, "shade")
-    e = _irradiance_impl(scene, points, normals)
-    s = _specular_impl(scene, points, normals, eyes, n, method, int(degree))
+    e = map_chunks(lambda p, q: _irradiance_impl(scene, p, q), (points, normals))
+    s = map_chunks(
+        lambda p, q, v: _specular_impl(scene, p, q, v, n, method, int(degree)), (points, normals, eyes)
+    )
     ka, kd, ks = (jnp.asarray(k).astype(dt) for k in (material.ka, material.kd, material.ks))
     la = scene.ambient.astype(dt)
     return ka[None, :] * la[None, :] + kd[None, :] / jnp.pi * e + ks[None, :] * s

@@ -16,8 +16,9 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, Float
 
+from ._geometry import check_points_normals
 from ._scene import Scene
-from ._shade import check_points_normals, irradiance
+from ._shade import irradiance
 
 
 def batch_mesh(devices: Any = None) -> Mesh:
