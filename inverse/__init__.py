@@ -1,0 +1,40 @@
+"""inverse: painted targets and the solvers that run jaxshadow backwards.
+
+Material ($k_a, k_d, k_s$, Phong roughness) from painted colours, light placement from painted
+shading, highlights and shadows (Poulin ch. 5), with identifiability reports.
+"""
+
+from importlib.metadata import PackageNotFoundError, version
+
+from ._closed_forms import LightRay as LightRay
+from ._closed_forms import exponent_from_highlight as exponent_from_highlight
+from ._closed_forms import intersect_plane as intersect_plane
+from ._closed_forms import light_from_diffuse_maximum as light_from_diffuse_maximum
+from ._closed_forms import light_from_highlight as light_from_highlight
+from ._closed_forms import light_from_shadow as light_from_shadow
+from ._closed_forms import mirror_direction as mirror_direction
+from ._closed_forms import point_from_shadows as point_from_shadows
+from ._lights import Box as Box
+from ._lights import JointFit as JointFit
+from ._lights import LightFit as LightFit
+from ._lights import LightParametrisation as LightParametrisation
+from ._lights import LightReport as LightReport
+from ._lights import Plane as Plane
+from ._lights import fit_light as fit_light
+from ._lights import fit_light_and_material as fit_light_and_material
+from ._lights import light_loss as light_loss
+from ._lights import rotation_matrix as rotation_matrix
+from ._lights import scene_size as scene_size
+from ._material import MaterialFit as MaterialFit
+from ._material import MaterialReport as MaterialReport
+from ._material import UndeterminedParameterWarning as UndeterminedParameterWarning
+from ._material import bounded_lstsq as bounded_lstsq
+from ._material import fit_material as fit_material
+from ._targets import PaintedTargets as PaintedTargets
+from ._targets import load_targets as load_targets
+from ._targets import save_targets as save_targets
+
+try:
+    __version__ = version("jaxshadow")
+except PackageNotFoundError:  # pragma: no cover
+    __version__ = "0.0.0"
