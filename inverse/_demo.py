@@ -27,15 +27,6 @@ from ._scenes import LIGHT_H, LIGHT_W, demo_configuration, polygon_pose, pose_er
 from ._targets import PaintedTargets
 
 
-def _shadows_supported() -> bool:
-    s = js.Scene([js.PointLight([0.0, 0.0, 2.0])], occluders=[quad([0, 0, 1.0], 0.2, 0.2, (0, 0, 0))])
-    try:
-        js.irradiance(s, np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]))
-    except NotImplementedError:
-        return False
-    return True
-
-
 def _floor_image(scene: Any, material: Any, eye: np.ndarray, res: int, extent: float) -> np.ndarray:
     xs = np.linspace(-extent, extent, res)
     X, Y = np.meshgrid(xs, xs)
@@ -62,13 +53,9 @@ def run_demo(out_dir: str | os.PathLike, progress: bool = True, *, n_points: int
     os.makedirs(out_dir, exist_ok=True)
     say = (lambda msg: print(msg, file=sys.stdout, flush=True)) if progress else (lambda msg: None)
     timings: dict[str, float] = {}
-    occl = _shadows_supported()
+    occl = True
     cfg = demo_configuration(occluders=occl, n_points=n_points, seed=seed, penumbra_fraction=0.3,
                              near_fraction=0.15)
-    if not hasattr(js, "specular"):
-        say("      (this jaxshadow has no js.specular yet: the hidden material is made purely diffuse)")
-        cfg = dataclasses.replace(cfg, material=js.Material(ka=cfg.material.ka, kd=cfg.material.kd, ks=0.0,
-                                                            exponent=cfg.material.exponent))
     say(f"[1/4] scene: quad light, {'one occluder (soft shadow)' if occl else 'no occluder (this jaxshadow has no shadows yet)'}, "
         f"{len(cfg.points)} painted points; scene size {cfg.size:.3f} m")
 

@@ -20,23 +20,14 @@ SpecularFn = Callable[[Any, Array, Array, Array, Array], Array]
 
 def resolve_specular(specular: SpecularFn | None, what: str, required: bool = True) -> SpecularFn | None:
     """`specular` or `js.specular`; a clear error when neither exists and it is `required`."""
-    if specular is not None:
-        return specular
-    fn = getattr(js, "specular", None)
-    if fn is None and required:
-        raise NotImplementedError(
-            f"{what}: this jaxshadow has no js.specular yet; pass specular=<callable with the "
-            "signature of js.specular(scene, points, normals, eye, exponent)>, or fix the "
-            "exponent and a material without a specular term."
-        )
-    return fn
+    return js.specular if specular is None else specular
 
 
 def shade(scene: Any, material: Any, points: Array, normals: Array, eye: Array,
           specular: SpecularFn | None = None, with_specular: bool = True) -> Array:
     """$k_a L_a + k_d/\\pi\\,E + k_s S$ at `(N, 3)` points; `js.shade` when it exists and no
     `specular` override is given. `with_specular=False` drops the $k_s S$ term (static)."""
-    if specular is None and with_specular and hasattr(js, "shade"):
+    if specular is None and with_specular:
         return js.shade(scene, material, points, normals, eye)
     dt = points.dtype
     e = js.irradiance(scene, points, normals)

@@ -79,6 +79,7 @@ def contour_form_factor(
     return -jnp.sum(terms) / (2 * jnp.pi)
 
 
+@jax.custom_jvp
 def form_factor_kernel(
     p: Float[Array, "3"], n: Float[Array, "3"], verts: Float[Array, "k 3"]
 ) -> Float[Array, ""]:
@@ -87,9 +88,12 @@ def form_factor_kernel(
     The emitter is clipped exactly to the receiver's horizon $n \cdot (x - p) \ge 0$; a
     receiver behind the emitter or in its plane gets 0.
 
-    Written component by component with the `K` edges unrolled (K is static): after `vmap`
-    every intermediate is an `(N,)` array and XLA fuses the whole kernel into one loop
-    (`benchmarks/profile_form_factor.py`). Lambert's term is scale-free, so each vertex is
+    Two evaluations of the same formula, both component by component (no length-3 minor
+    axis, which XLA:CPU cannot fuse well): values come from a version with the `K` edges
+    unrolled (after `vmap` all intermediates are `(N,)` arrays fused into one loop: the fast
+    path for millions of receivers), derivatives from a version vectorised over the edges
+    (`(K,)` arrays: the edge code appears once, so second derivatives compile ~10x faster).
+    `tests/test_polygon.py` checks that the two agree. Lambert's term is scale-free, so each vertex is
     turned into a unit direction once; the horizon crossing of edge `a -> b` is the direction
     $\operatorname{sgn}(h_a)(h_a \hat b - h_b \hat a)$, $h = n\cdot\hat v$ (it lies in the
     tangent plane, between $\hat a$ and $\hat b$).
@@ -99,6 +103,16 @@ def form_factor_kernel(
 
     **Returns:** dimensionless $F \in [0, 1]$.
     """
+    return _form_factor_unrolled(p, n, verts)
+
+
+@form_factor_kernel.defjvp
+def _form_factor_jvp(primals, tangents):
+    return jax.jvp(_form_factor_compact, primals, tangents)
+
+
+def _form_factor_unrolled(p: Array, n: Array, verts: Array) -> Array:
+    """`form_factor_kernel` with the edges unrolled (fast values)."""
     k = verts.shape[0]
     ne = newell_normal(verts)
     in_front = jnp.dot(ne, p - verts[0]) > 0
@@ -127,6 +141,33 @@ def form_factor_kernel(
         any_exit = any_exit | exiting
     # The closing edge along the horizon, from the exit to the entry crossing.
     total = total + jnp.where(any_exit, _edge_term_c(tuple(exit_pt), tuple(entry_pt), nc), 0.0)
+    return jnp.where(in_front, -total / (2 * jnp.pi), 0.0)
+
+
+def _form_factor_compact(p: Array, n: Array, verts: Array) -> Array:
+    """`form_factor_kernel` vectorised over the edges (compact program for derivatives)."""
+    ne = newell_normal(verts)
+    in_front = jnp.dot(ne, p - verts[0]) > 0
+    nc = (n[0], n[1], n[2])
+    # Per-vertex unit directions and heights above the tangent plane, one (K,) array per
+    # component; "next" is the same rolled by one (the edge i -> i+1).
+    a = _unit3(verts[:, 0] - p[0], verts[:, 1] - p[1], verts[:, 2] - p[2])
+    b = tuple(jnp.roll(c, -1) for c in a)
+    ha = nc[0] * a[0] + nc[1] * a[1] + nc[2] * a[2]
+    hb = jnp.roll(ha, -1)
+    up_a, up_b = ha >= 0, hb >= 0
+    sgn = jnp.where(up_a, 1.0, -1.0)
+    x = tuple(sgn * (ha * bc - hb * ac) for ac, bc in zip(a, b, strict=True))
+    start = tuple(jnp.where(up_a, ac, xc) for ac, xc in zip(a, x, strict=True))
+    end = tuple(jnp.where(up_b, bc, xc) for bc, xc in zip(b, x, strict=True))
+    terms = jnp.where(up_a | up_b, _edge_term_c(start, end, nc), 0.0)
+    # The closing edge along the horizon, from the exit to the entry crossing.
+    exiting = up_a & ~up_b
+    entering = ~up_a & up_b
+    exit_pt = tuple(jnp.sum(jnp.where(exiting, xc, 0.0)) for xc in x)
+    entry_pt = tuple(jnp.sum(jnp.where(entering, xc, 0.0)) for xc in x)
+    closing = jnp.where(jnp.any(exiting), _edge_term_c(exit_pt, entry_pt, nc), 0.0)
+    total = jnp.sum(terms) + closing
     return jnp.where(in_front, -total / (2 * jnp.pi), 0.0)
 
 

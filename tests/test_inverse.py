@@ -24,49 +24,14 @@ import inverse
 import jaxshadow as js
 from inverse import _lights as L
 from inverse._forward import shade
-from inverse._scenes import demo_configuration, pose_errors, quad
+from inverse._scenes import demo_configuration, pose_errors
 
 DATA = os.path.join(os.path.dirname(__file__), "data")
 NOISE = 0.01  # relative Gaussian noise on the Mitsuba colours
 SPP = 1 << 15
 
 
-def _dev_specular(scene, points, normals, eye, exponent):
-    """Stand-in for `js.specular` until it lands (polygon and point lights, no occluders)."""
-    from jaxshadow._specular import point_specular, polygon_specular
-
-    with jax.numpy_rank_promotion("allow"):  # the kernel module is still in progress
-        return _dev_specular_impl(scene, points, normals, eye, exponent, point_specular, polygon_specular)
-
-
-def _dev_specular_impl(scene, points, normals, eye, exponent, point_specular, polygon_specular):
-    out = jnp.zeros(points.shape, points.dtype)
-    for light in scene.lights:
-        if isinstance(light, js.PolygonLight):
-            f = lambda r, v=light.vertices: polygon_specular(points, normals, eye, v, r, exponent)  # noqa: E731
-            out = out + jax.vmap(f)(light.radiance).T
-        elif isinstance(light, js.PointLight):
-            f = lambda i, x=light.position: point_specular(points, normals, eye, x, i, exponent)  # noqa: E731
-            out = out + jax.vmap(f)(light.intensity).T
-        else:  # pragma: no cover
-            raise NotImplementedError(type(light).__name__)
-    return out
-
-
-SPEC = None if hasattr(js, "specular") else _dev_specular
-
-
-def _shadows_supported() -> bool:
-    s = js.Scene([js.PointLight([0.0, 0.0, 2.0])], occluders=[quad([0, 0, 1.0], 0.2, 0.2, (0, 0, 0))])
-    try:
-        js.irradiance(s, np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]))
-    except NotImplementedError:
-        return False
-    return True
-
-
-SHADOWS = _shadows_supported()
-needs_shadows = pytest.mark.skipif(not SHADOWS, reason="js.irradiance has no occluder support yet")
+SPEC = None  # js.specular
 
 
 def _render(scene, material, pts, nrm, eye):
@@ -421,7 +386,6 @@ def test_loss_gradient_vs_finite_differences_unoccluded(light_config):
     assert _fd_check(cfg.start_scene, tt, material) <= 1e-6
 
 
-@needs_shadows
 def test_loss_gradient_vs_finite_differences_penumbra():
     cfg = demo_configuration(occluders=True, n_points=40, seed=0)
     pen = np.arange(len(cfg.points))[-10:]  # the penumbra points of the configuration
@@ -507,7 +471,6 @@ def test_acceptance_material_from_mitsuba():
 
 
 @pytest.mark.mitsuba
-@needs_shadows
 def test_acceptance_material_from_mitsuba_with_occluders():
     cfg, t = _material_case(True)
     r, errs = _check_material(cfg, t)
@@ -524,7 +487,6 @@ def test_acceptance_undetermined_exponent_from_mitsuba():
 
 
 @pytest.mark.mitsuba
-@needs_shadows
 def test_acceptance_light_from_mitsuba_penumbra():
     cfg, material, t = _light_case()
     assert len(t) <= 50
