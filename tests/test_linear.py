@@ -1,5 +1,6 @@
 """Linear (segment) lights, point and directional lights: closed forms, quadrature, gradients."""
 
+import functools
 import math
 
 import jax
@@ -136,6 +137,11 @@ def test_check_grads_generic(m):
     check_grads(f, tuple(jnp.asarray(x) for x in (p, n, a, b)), order=2, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6)
 
 
+@functools.cache
+def _value_and_grad(m):
+    return jax.jit(jax.value_and_grad(lambda *x: linear_irradiance_kernel(*x, m), argnums=(0, 1, 2, 3)))
+
+
 @pytest.mark.parametrize(
     "p,n",
     [
@@ -149,7 +155,7 @@ def test_check_grads_generic(m):
 @pytest.mark.parametrize("m", [0, 1, 2])
 def test_gradients_finite_at_singular_configurations(p, n, m):
     a, b = jnp.array([0.0, 0.0, 1.0]), jnp.array([0.0, 0.0, 3.0])
-    f = jax.jit(jax.value_and_grad(lambda *x: linear_irradiance_kernel(*x, m), argnums=(0, 1, 2, 3)))
+    f = _value_and_grad(m)
     for dt in (jnp.float32, jnp.float64):
         val, grads = f(*(jnp.asarray(x, dt) for x in (p, n, a, b)))
         assert np.isfinite(float(val))
