@@ -21,10 +21,10 @@ from ._scene import save_scene as save_scene
 from ._scene import scene_from_dict as scene_from_dict
 from ._scene import scene_to_dict as scene_to_dict
 from ._shade import irradiance as irradiance
-from ._sharding import batch_mesh as batch_mesh
-from ._sharding import sharded_irradiance as sharded_irradiance
 from ._shade import shade as shade
 from ._shade import specular as specular
+from ._sharding import batch_mesh as batch_mesh
+from ._sharding import sharded_irradiance as sharded_irradiance
 from ._spline import shadow_nodes as shadow_nodes
 from ._spline import spline_shadow as spline_shadow
 from ._spline import spline_shadow_faces as spline_shadow_faces

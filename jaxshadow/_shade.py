@@ -15,6 +15,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from ._bsp import (
+    capacity_for,
+    culled_form_factor_kernel,
+    max_relevant,
+    select_occluders,
+    with_fallback,
+)
 from ._clip import (
     directional_visibility,
     point_visibility,
@@ -23,7 +30,7 @@ from ._clip import (
     visible_linear_kernel,
     visible_segments,
 )
-from ._geometry import check_points_normals, pad_polygons_jax
+from ._geometry import check_points_normals, is_concrete, pad_polygons_jax
 from ._linear import linear_irradiance_kernel
 from ._misc import map_chunks, safe_normalize
 from ._point import directional_irradiance_kernel, point_irradiance_kernel
@@ -72,8 +79,29 @@ def _per_light(kernel: Any, points: Array, normals: Array, *light_args: Array) -
     )
 
 
+# Occluder culling (`_bsp.py`) pays off from about this many occluders.
+CULL_MIN_OCCLUDERS = 8
+
+
+def _plan_max_active(scene: Scene, points: Array, normals: Array) -> int | None:
+    """Static capacity of the per-receiver occluder list for polygon lights (`_bsp.py`), or
+    None (no culling): few occluders, no polygon light, or traced inputs (count unknown)."""
+    occ = scene.occluders
+    polys = [light.vertices for light in scene.lights if isinstance(light, PolygonLight)]
+    if occ is None or occ.shape[0] < CULL_MIN_OCCLUDERS or not polys:
+        return None
+    if not all(is_concrete(x) for x in (occ, points, normals, *polys)):
+        return None
+    verts = pad_polygons_jax(polys).astype(points.dtype)
+    count = max_relevant(points, normals, verts, occ.astype(points.dtype))
+    cap = capacity_for(count, occ.shape[0])
+    return None if cap >= occ.shape[0] else cap
+
+
 @eqx.filter_jit
-def _irradiance_impl(scene: Scene, points: Array, normals: Array) -> Array:
+def _irradiance_impl(
+    scene: Scene, points: Array, normals: Array, max_active: int | None = None
+) -> Array:
     dt = points.dtype
     normals = safe_normalize(normals)
     occ = None if scene.occluders is None else scene.occluders.astype(dt)
@@ -84,10 +112,16 @@ def _irradiance_impl(scene: Scene, points: Array, normals: Array) -> Array:
         if key == "polygon":
             verts = pad_polygons_jax([light.vertices for light in lights]).astype(dt)
             if occ is None:
-                kern = form_factor_kernel
+                g = _per_light(form_factor_kernel, points, normals, verts)
             else:
                 kern = lambda p, n, v: visible_form_factor_kernel(p, n, v, occ)  # noqa: E731
-            g = jnp.pi * _per_light(kern, points, normals, verts)
+                if max_active is None:
+                    g = _per_light(kern, points, normals, verts)
+                else:
+                    culled = lambda p, n, v: culled_form_factor_kernel(p, n, v, occ, max_active)  # noqa: E731
+                    f, over = _per_light(culled, points, normals, verts)
+                    g = with_fallback(f, over, lambda: _per_light(kern, points, normals, verts))  # noqa: B023
+            g = jnp.pi * g
             emission = _stack(lights, "radiance", dt)
         elif key.startswith("linear-"):
             m = lights[0].exponent
@@ -134,7 +168,8 @@ def irradiance(
     """
     scene = _check_scene(scene, "irradiance")
     points, normals = check_points_normals(points, normals, "irradiance")
-    return map_chunks(lambda p, n: _irradiance_impl(scene, p, n), (points, normals))
+    cap = _plan_max_active(scene, points, normals)
+    return map_chunks(lambda p, n: _irradiance_impl(scene, p, n, cap), (points, normals))
 
 
 def _check_eye(eye: Any, points: Array, what: str) -> Array:
@@ -159,7 +194,14 @@ def _check_exponent(exponent: Any, dt: Any, what: str) -> Array:
 
 @eqx.filter_jit
 def _specular_impl(
-    scene: Scene, points: Array, normals: Array, eyes: Array, exponent: Array, method: str, degree: int
+    scene: Scene,
+    points: Array,
+    normals: Array,
+    eyes: Array,
+    exponent: Array,
+    method: str,
+    degree: int,
+    max_active: int | None = None,
 ) -> Array:
     dt = points.dtype
     normals = safe_normalize(normals)
@@ -186,7 +228,18 @@ def _specular_impl(
                     starts, ends = visible_edges(p, n, v, occ)
                     return contour_specular_kernel(p, n, e, starts, ends, exponent, **opts)
 
-            g = per_light(kern, verts)
+            if occ is None or max_active is None:
+                g = per_light(kern, verts)
+            else:
+
+                def culled(p, n, e, v):
+                    active, _, over = select_occluders(p, n, v, occ, max_active)
+                    starts, ends = visible_edges(p, n, v, active)
+                    val = contour_specular_kernel(p, n, e, starts, ends, exponent, **opts)
+                    return val, over
+
+                f, over = per_light(culled, verts)
+                g = with_fallback(f, over, lambda: per_light(kern, verts))  # noqa: B023
             emission = _stack(lights, "radiance", dt)
         elif key.startswith("linear-"):
             m = lights[0].exponent
@@ -259,8 +312,10 @@ def specular(
         raise ValueError(f"specular: method must be 'chebyshev' or 'exact', got {method!r}.")
     eyes = _check_eye(eye, points, "specular")
     e = _check_exponent(exponent, points.dtype, "specular")
+    cap = _plan_max_active(scene, points, normals)
     return map_chunks(
-        lambda p, n, v: _specular_impl(scene, p, n, v, e, method, int(degree)), (points, normals, eyes)
+        lambda p, n, v: _specular_impl(scene, p, n, v, e, method, int(degree), cap),
+        (points, normals, eyes),
     )
 
 
@@ -292,9 +347,11 @@ def shade(
     eyes = _check_eye(eye, points, "shade")
     dt = points.dtype
     n = _check_exponent(material.exponent, dt, "shade")
-    e = map_chunks(lambda p, q: _irradiance_impl(scene, p, q), (points, normals))
+    cap = _plan_max_active(scene, points, normals)
+    e = map_chunks(lambda p, q: _irradiance_impl(scene, p, q, cap), (points, normals))
     s = map_chunks(
-        lambda p, q, v: _specular_impl(scene, p, q, v, n, method, int(degree)), (points, normals, eyes)
+        lambda p, q, v: _specular_impl(scene, p, q, v, n, method, int(degree), cap),
+        (points, normals, eyes),
     )
     ka, kd, ks = (jnp.asarray(k).astype(dt) for k in (material.ka, material.kd, material.ks))
     la = scene.ambient.astype(dt)

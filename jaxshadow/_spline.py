@@ -94,6 +94,8 @@ $O^*$ (floor region $O_j$), occluder vertices inside $E^*$ ($E_i$) and edge-edge
 
 from __future__ import annotations
 
+from typing import Any
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -241,7 +243,8 @@ def _vertex_terms(rel: Float[Array, "k 3"], normals: Float[Array, "k 3"], coef) 
 
 
 def _concat(*terms: Terms) -> Terms:
-    return tuple(jnp.concatenate(parts, axis=0) for parts in zip(*terms, strict=True))
+    a, b, c, d = (jnp.concatenate(parts, axis=0) for parts in zip(*terms, strict=True))
+    return a, b, c, d
 
 
 def _unoccluded_terms(e_rel: Float[Array, "m 3"]) -> Terms:
@@ -314,7 +317,7 @@ def occluded_integral(
 
 
 def _negate(terms: Terms) -> Terms:
-    return (-terms[0],) + tuple(terms[1:])
+    return -terms[0], terms[1], terms[2], terms[3]
 
 
 def _ccw_seen_from(rel: Float[Array, "k 3"]) -> Bool[Array, ""]:
@@ -499,7 +502,7 @@ def _spline_shadow_faces(emitters: Array, faces: Array, points: Array) -> Array:
     return jax.vmap(spline_shadow_faces_kernel, in_axes=(0, None, None))(points, emitters, faces)
 
 
-def _stack_polygons(polys: object, what: str) -> tuple[Array, list[np.ndarray] | None]:
+def _stack_polygons(polys: Any, what: str) -> tuple[Array, list[np.ndarray] | None]:
     """A `(L, k, 3)` array or a list of `(k_l, 3)` polygons -> padded `(L, K, 3)` JAX array,
     plus the validated NumPy polygons when concrete."""
     if isinstance(polys, (list, tuple)):
