@@ -400,9 +400,6 @@ EXACT_ZERO = {"polygon/edge-line-exact", "polygon/behind"}
 
 # Known defects (strict xfail: fixing them makes the test XPASS and fail; then drop the entry).
 KNOWN = {
-    "float32/polygon/scale-1e-6": "NaN gradient w.r.t. p and vertex 0: the zero-length closing edge at "
-    "|v - p| ~ 1e-6 has (a . b)^2 ~ 1e-24 whose square underflows in angle_over_sin's backward pass; "
-    "fix: normalise a - p and b - p in _polygon.edge_term (scale-free, verified in the report)",
     "float32/occluders-touching": "an occluder 1e-9 above the receiver: float32 visible_form_factor_kernel "
     "ignores one covering the whole light (F = unoccluded 0.239, exact 0) and gives NaN/inf gradients for "
     "it and for one hiding the centre (whose value is right); float64 is exact and finite",
