@@ -50,12 +50,12 @@ def angle_over_sin(s2: Array, c: Array) -> Array:
     inv_s = jax.lax.rsqrt(s2g)
     sg = s2g * inv_s
     acg = jnp.abs(cg)
-    hi = jnp.maximum(sg, acg)
-    t = jnp.minimum(sg, acg) / hi
+    # Select, not min/max: at a tie (45 degrees) min/max would split the derivative.
+    swap = sg > acg
+    t = jnp.where(swap, acg, sg) / jnp.where(swap, sg, acg)
     big = t > _TAN_PI_8
     u = jnp.where(big, (t - 1.0) / (t + 1.0), t)
     base = jnp.where(big, jnp.pi / 4, 0.0)
-    swap = sg > acg
     base = jnp.where(swap, jnp.pi / 2 - base, base)
     u = jnp.where(swap, -u, u)
     neg = cg < 0
