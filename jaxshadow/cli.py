@@ -156,6 +156,9 @@ def cmd_irradiance(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    import jax
+
+    jax.config.update("jax_enable_x64", True)  # the fits run in float64
     try:
         from inverse._demo import run_demo
     except ImportError:
@@ -166,6 +169,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
     try:
         from inverse._cli import fit_command
     except ImportError:

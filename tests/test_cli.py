@@ -1,0 +1,46 @@
+"""The `jaxshadow` command: batched irradiance and the fit command (plumbing; the accuracy of
+the fits against Mitsuba targets is tested in test_inverse.py)."""
+
+import numpy as np
+
+import inverse
+import jaxshadow as js
+from jaxshadow.cli import builtin_scene_path, main
+
+
+def test_irradiance_command_matches_the_library(tmp_path):
+    rng = np.random.default_rng(0)
+    pts = np.c_[rng.uniform(-1, 1, (37, 2)), np.zeros(37)]
+    nrm = np.tile([0.0, 0.0, 1.0], (37, 1))
+    np.savetxt(tmp_path / "pts.csv", np.c_[pts, nrm], delimiter=",")
+    out = tmp_path / "e.npy"
+    rc = main(["irradiance", builtin_scene_path("room"), str(tmp_path / "pts.csv"), "-o", str(out), "--chunk", "16", "--float64"])
+    assert rc == 0
+    got = np.load(out)
+    ref = np.asarray(js.irradiance(js.load_scene(builtin_scene_path("room")), pts, nrm))
+    np.testing.assert_allclose(got, ref, rtol=1e-12)
+
+
+def test_irradiance_command_rejects_bad_points(tmp_path, capsys):
+    np.savetxt(tmp_path / "bad.csv", np.zeros((3, 4)), delimiter=",")
+    try:
+        main(["irradiance", builtin_scene_path("room"), str(tmp_path / "bad.csv"), "-o", str(tmp_path / "o.npy")])
+    except SystemExit as err:
+        assert "expected N rows of 6 columns" in str(err)
+    else:  # pragma: no cover
+        raise AssertionError("bad point file accepted")
+
+
+def test_fit_command_writes_the_fitted_material(tmp_path):
+    scene = js.Scene(js.load_scene(builtin_scene_path("room")).lights[:1], ambient=0.1)
+    js.save_scene(scene, tmp_path / "scene.json")
+    rng = np.random.default_rng(1)
+    p = np.c_[rng.uniform(-1, 1, (20, 2)), np.zeros(20)]
+    n = np.tile([0.0, 0.0, 1.0], (20, 1))
+    eye = np.array([0.3, -1.5, 1.5])
+    truth = js.Material(ka=0.2, kd=[0.5, 0.4, 0.3], ks=0.3, exponent=20.0)
+    inverse.PaintedTargets(p, n, np.asarray(js.shade(scene, truth, p, n, eye)), eye).save(tmp_path / "t.json")
+    assert main(["fit", str(tmp_path / "scene.json"), str(tmp_path / "t.json"), "-o", str(tmp_path / "f.json")]) == 0
+    fitted = js.load_material(tmp_path / "f.json")
+    np.testing.assert_allclose(np.asarray(fitted.kd), [0.5, 0.4, 0.3], atol=1e-6)
+    np.testing.assert_allclose(float(fitted.exponent), 20.0, rtol=1e-5)
