@@ -7,12 +7,12 @@ selection drops blocks nothing on its own (checked one by one against the unoccl
 meshes match the full kernel / the shapely reference of `test_clip.py`.
 """
 
-import math
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from shapes import uv_sphere
 from test_clip import EM, UP, pad, random_scene, reference_ff
 
 from jaxshadow._bsp import (
@@ -136,32 +136,6 @@ def test_touching_and_sliver_occluders():
             assert full == pytest.approx(free, abs=1e-15), name
 
 
-def uv_sphere(centre, radius, n_lat, n_lon):
-    """Closed triangle mesh of a UV sphere with outward (right-hand-rule) normals."""
-    c = np.asarray(centre, np.float64)
-
-    def v(i, j):
-        th = math.pi * i / n_lat
-        ph = 2 * math.pi * j / n_lon
-        return c + radius * np.array(
-            [math.sin(th) * math.cos(ph), math.sin(th) * math.sin(ph), math.cos(th)]
-        )
-
-    tris = []
-    for i in range(n_lat):
-        for j in range(n_lon):
-            a, b, cc, d = v(i, j), v(i + 1, j), v(i + 1, j + 1), v(i, j + 1)
-            if i > 0:
-                tris.append([a, b, d])
-            if i < n_lat - 1:
-                tris.append([b, cc, d])
-    tris = np.array(tris)
-    # Orient outward.
-    out = np.einsum(
-        "ti,ti->t", np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]), tris.mean(1) - c
-    )
-    tris[out < 0] = tris[out < 0][:, ::-1]
-    return tris
 
 
 def test_closed_mesh_front_faces():

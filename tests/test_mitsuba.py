@@ -6,11 +6,12 @@ Seeds are fixed, so the tests are deterministic. Segment lights: Mitsuba has non
 stand-ins of `jaxshadow.mitsuba` carry a stated bias, added to the tolerance.
 """
 
-import math
 import sys
 
 import numpy as np
 import pytest
+from shapes import rotation as _rot
+from shapes import unit as _unit
 
 import jaxshadow as js
 
@@ -34,21 +35,8 @@ def _assert_agree(ours, ref, err, extra=0.0, what=""):
     return float(np.max(np.abs(ours - ref) / np.maximum(err, 1e-30)))
 
 
-def _unit(v):
-    v = np.asarray(v, dtype=np.float64)
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
-def _rot(axis, angle):
-    x, y, z = _unit(axis)
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array(
-        [
-            [c + x * x * (1 - c), x * y * (1 - c) - z * s, x * z * (1 - c) + y * s],
-            [y * x * (1 - c) + z * s, c + y * y * (1 - c), y * z * (1 - c) - x * s],
-            [z * x * (1 - c) - y * s, z * y * (1 - c) + x * s, c + z * z * (1 - c)],
-        ]
-    )
 
 
 def _facing(verts, target):

@@ -13,13 +13,15 @@ receivers are checked to keep their visibility under 1e-3 offsets (`_stable`).
 Run as a script (`python tests/test_shadows_mitsuba.py`) to print max |d|/sigma per scene.
 """
 
-import math
 import sys
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from shapes import rotation as _rot  # noqa: E402
+from shapes import unit as _unit  # noqa: E402
+from shapes import uv_sphere  # noqa: E402
 
 import jaxshadow as js
 from jaxshadow._bsp import capacity_for, max_relevant, visible_form_factor_culled
@@ -51,21 +53,8 @@ def _agree(ours, ref, err, extra=0.0, what=""):
     )
 
 
-def _unit(v):
-    v = np.asarray(v, dtype=np.float64)
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
-def _rot(axis, angle):
-    x, y, z = _unit(axis)
-    c, s = math.cos(angle), math.sin(angle)
-    return np.array(
-        [
-            [c + x * x * (1 - c), x * y * (1 - c) - z * s, x * z * (1 - c) + y * s],
-            [y * x * (1 - c) + z * s, c + y * y * (1 - c), y * z * (1 - c) - x * s],
-            [z * x * (1 - c) - y * s, z * y * (1 - c) + x * s, c + z * z * (1 - c)],
-        ]
-    )
 
 
 def _classes(scene_unocc, scene, p, n):
@@ -212,31 +201,6 @@ def test_mixed_lights_with_occluders():
     _agree(ours, ref, err, extra=bias, what="(ii) mixed lights, stand-in bias allowed")
 
 
-def uv_sphere(centre, radius, n_lat, n_lon):
-    """Closed triangle mesh of a UV sphere with outward (right-hand-rule) normals."""
-    c = np.asarray(centre, np.float64)
-
-    def v(i, j):
-        th = math.pi * i / n_lat
-        ph = 2 * math.pi * j / n_lon
-        return c + radius * np.array(
-            [math.sin(th) * math.cos(ph), math.sin(th) * math.sin(ph), math.cos(th)]
-        )
-
-    tris = []
-    for i in range(n_lat):
-        for j in range(n_lon):
-            a, b, cc, d = v(i, j), v(i + 1, j), v(i + 1, j + 1), v(i, j + 1)
-            if i > 0:
-                tris.append([a, b, d])
-            if i < n_lat - 1:
-                tris.append([b, cc, d])
-    tris = np.array(tris)
-    out = np.einsum(
-        "ti,ti->t", np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]), tris.mean(1) - c
-    )
-    tris[out < 0] = tris[out < 0][:, ::-1]
-    return tris
 
 
 def test_mesh_occluder_sphere():
