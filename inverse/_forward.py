@@ -18,8 +18,8 @@ import jaxshadow as js
 SpecularFn = Callable[[Any, Array, Array, Array, Array], Array]
 
 
-def resolve_specular(specular: SpecularFn | None, what: str, required: bool = True) -> SpecularFn | None:
-    """`specular` or `js.specular`; a clear error when neither exists and it is `required`."""
+def resolve_specular(specular: SpecularFn | None, what: str) -> SpecularFn:
+    """`specular`, or `js.specular` when it is None (`what` names the caller)."""
     return js.specular if specular is None else specular
 
 

@@ -318,7 +318,7 @@ def fit_material(
     if not (0 < n_lo < n_hi and np.isfinite(n_hi)):
         raise ValueError(f"fit_material: n_bounds must satisfy 0 < lower < upper, got {n_bounds}.")
     fit_n = exponent is None
-    spec_fn = resolve_specular(specular, "fit_material", required=fit_n or float(hi[2]) > 0)
+    spec_fn = resolve_specular(specular, "fit_material")
     basis = _Basis(scene, targets, spec_fn)
     y = _np(targets.colours)
     w = _np(targets.weights)
