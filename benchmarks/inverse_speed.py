@@ -1,11 +1,14 @@
 """Speed of the inverse solvers: compile time, time per solve, 64 vectorised starts.
 
 Targets (issue 5): compile <= 5 s, <= 200 ms per solve after compilation, 64 starts <= 2 s with
-<= 8 occluders. Light placement on the demo configuration (quad light, up to 8 occluders when
-this jaxshadow has soft shadows, 48 painted points, diffuse material), the material fit on 20
-points with the roughness searched. Writes benchmarks/results/inverse_speed.json.
+<= 8 occluders. Light placement (position, orientation, size: 8 parameters) on the demo
+configuration (quad light, 48 painted points, diffuse material) with 1 and 8 random occluders,
+timed end to end through `inverse.fit_light` (compile = first call - median later call):
+the default batched LM from 1 start, from 64 starts screened to the 8 best, from all 64 starts,
+and `solver="optimistix"` from 1 start. Then the material fit on 20 points with the roughness
+searched. Writes benchmarks/results/inverse_speed.json.
 
-    .venv/bin/python benchmarks/inverse_speed.py [--occluders 8] [--repeats 5] [--starts 1 64]
+    .venv/bin/python benchmarks/inverse_speed.py [--occluders 1 8] [--repeats 3] [--no-optimistix]
 """
 
 from __future__ import annotations
@@ -25,9 +28,8 @@ import numpy as np  # noqa: E402
 
 import inverse  # noqa: E402
 import jaxshadow as js  # noqa: E402
-from inverse import _lights as L  # noqa: E402
 from inverse._forward import shade  # noqa: E402
-from inverse._scenes import demo_configuration, quad  # noqa: E402
+from inverse._scenes import demo_configuration, pose_errors, quad  # noqa: E402
 
 
 def _block(x):
@@ -46,28 +48,13 @@ def _timed(fn, repeats):
     return first, float(np.median(runs)), runs
 
 
-def _shadows_supported():
-    s = js.Scene([js.PointLight([0.0, 0.0, 2.0])], occluders=[quad([0, 0, 1.0], 0.2, 0.2, (0, 0, 0))])
-    try:
-        js.irradiance(s, np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]]))
-    except NotImplementedError:
-        return False
-    return True
-
-
-def main():
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--occluders", type=int, default=8)
-    ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--starts", type=int, nargs="+", default=[1, 64], help="multistart sizes to time")
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "inverse_speed.json"))
-    args = ap.parse_args()
-    shadows = _shadows_supported()
-    n_occ = args.occluders if shadows else 0
+def _light_problem(n_occ, seed=0):
+    """The demo's quad light (48 painted points, diffuse material, noise-free targets from our
+    model: this measures solver speed, not accuracy) with `n_occ` random 0.2 x 0.2 occluders."""
     cfg = demo_configuration(occluders=False, n_points=48, seed=3)
     occ = None
     if n_occ:
-        rng = np.random.default_rng(0)
+        rng = np.random.default_rng(seed)
         occ = [quad([*rng.uniform(-0.6, 0.6, 2), rng.uniform(0.4, 0.9)], 0.2, 0.2, (0.0, 0.0, rng.uniform(0, 1)))
                for _ in range(n_occ)]
     scene = js.Scene(cfg.scene.lights, occluders=occ, ambient=cfg.scene.ambient)
@@ -77,33 +64,48 @@ def main():
     col = np.asarray(shade(scene, material, jnp.asarray(cfg.points), jnp.asarray(cfg.normals),
                            jnp.asarray(np.broadcast_to(cfg.eye, (n, 3))), with_specular=False))
     targets = inverse.PaintedTargets(cfg.points, cfg.normals, col, cfg.eye)
-    size = inverse.scene_size(start, targets)
-    param = L.LightParametrisation(start.lights[0], 0, ("position", "orientation", "size"), None, size, "sigmoid")
-    setup = L._Setup(param, start, material, targets, None, False)
+    return scene, start, material, targets
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--occluders", type=int, nargs="+", default=[1, 8])
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--full-repeats", type=int, default=1, help="repeats of the (slow) full 64-start solve")
+    ap.add_argument("--no-optimistix", action="store_true", help="skip the optimistix comparison")
+    ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "inverse_speed.json"))
+    args = ap.parse_args()
     results = {"machine": platform.platform(), "cpu_count": os.cpu_count(), "jax": jax.__version__,
-               "backend": jax.default_backend(), "occluders": n_occ, "shadows_supported": shadows,
-               "targets": n, "dtype": "float64"}
-    for S in args.starts:
-        y0 = L.make_starts(param, S, search_radius=0.5, orientation_spread=0.5, size_spread=0.5, seed=0,
-                           dtype=jnp.float64)
-        first, med, runs = _timed(lambda y0=y0: L._multistart_lm(setup, y0, 1e-10, 1e-12, 200), args.repeats)
-        out = L._multistart_lm(setup, y0, 1e-10, 1e-12, 200)
-        results[f"light_lm_{S}_starts"] = {
-            "first_call_s": first, "compile_s": first - med, "solve_s": med, "runs_s": runs,
-            "max_steps_taken": int(np.max(np.asarray(out[3]))), "best_loss": float(np.min(np.asarray(out[1]))),
-        }
-        print(f"light LM, {S:2d} start(s): compile {first - med:6.2f} s, solve {1e3 * med:8.1f} ms")
-    y0 = L.make_starts(param, 64, search_radius=0.5, orientation_spread=0.5, size_spread=0.5, seed=0,
-                       dtype=jnp.float64)
-    first, med, runs = _timed(lambda: L._screen_losses(setup, y0), args.repeats)
-    results["light_screen_64_starts"] = {"first_call_s": first, "compile_s": first - med, "solve_s": med}
-    print(f"screening 64 starts (loss only): compile {first - med:6.2f} s, run {1e3 * med:8.1f} ms")
+               "backend": jax.default_backend(), "targets": 48, "dtype": "float64",
+               "load_average_at_start": os.getloadavg(), "light": {}}
+    cases = [("lm", 1, None, args.repeats), ("lm", 64, 8, args.repeats), ("lm", 64, None, args.full_repeats)]
+    if not args.no_optimistix:
+        cases.append(("optimistix", 1, None, args.repeats))
+    for n_occ in args.occluders:
+        scene, start, material, targets = _light_problem(n_occ)
+        true = np.asarray(scene.lights[0].vertices)
+        for solver, starts, refine, reps in cases:
+            fits = []
+
+            def call(problem=(start, targets, material), solver=solver, starts=starts, refine=refine, fits=fits):
+                fits.append(inverse.fit_light(*problem, starts=starts, refine=refine, solver=solver))
+                return fits[-1].light.vertices
+
+            first, med, runs = _timed(call, reps)
+            fit = fits[-1]
+            err = pose_errors(np.asarray(fit.light.vertices), true)
+            key = f"{solver}/occluders={n_occ}/starts={starts}" + (f"/refine={refine}" if refine else "")
+            results["light"][key] = {
+                "solver": solver, "occluders": n_occ, "starts": starts, "refine": refine,
+                "first_call_s": first, "compile_s": first - med, "solve_s": med, "runs_s": runs,
+                "max_steps_taken": int(np.max(fit.report.num_steps)), "best_loss": fit.report.loss,
+                "position_error_rel": err["position"] / fit.report.scale, "orientation_deg": err["orientation_deg"],
+                "warnings": list(fit.report.warnings),
+            }
+            print(f"{key:45s} compile {first - med:7.2f} s  solve {1e3 * med:9.1f} ms  "
+                  f"steps {int(np.max(fit.report.num_steps)):3d}  pos err {err['position'] / fit.report.scale:.1e}",
+                  flush=True)
     # Material fit (roughness searched): whole call, after a warm-up call.
-    if not hasattr(js, "specular"):
-        print("no js.specular in this jaxshadow: material timings skipped")
-        results["material_fit"] = "skipped: no js.specular"
-        _write(results, args.out)
-        return
     mcfg = demo_configuration(occluders=False, n_points=20, seed=0)
     mcol = np.asarray(shade(mcfg.scene, mcfg.material, jnp.asarray(mcfg.points), jnp.asarray(mcfg.normals),
                             jnp.asarray(np.broadcast_to(mcfg.eye, (20, 3)))))

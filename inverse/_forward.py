@@ -1,8 +1,13 @@
-"""The forward model the solvers fit, through public `jaxshadow` names only.
+"""The forward model the solvers fit.
 
 `js.irradiance`, `js.specular` and `js.shade` (DESIGN.md): $L = k_a L_a + k_d/\\pi\\,E + k_s S$
 (Poulin eq. 5.14). A `specular` callable with the signature of `js.specular` can be passed to
 every solver (tests, or a different lobe); `None` means `js.specular`.
+
+`shade_culled` is the same model with per-receiver occluder culling at a fixed capacity
+(`jaxshadow._bsp`) and *no* fallback: it also returns whether any receiver had more relevant
+occluders than the capacity (then its value is not exact and the solver retries with a larger
+one). The public entry points cull only with concrete lights; inside a fit the light is traced.
 """
 
 from __future__ import annotations
@@ -14,6 +19,8 @@ import jax.numpy as jnp
 from jaxtyping import Array
 
 import jaxshadow as js
+from jaxshadow._shade import _irradiance_impl, _specular_impl
+from jaxshadow._specular import DEFAULT_DEGREE
 
 SpecularFn = Callable[[Any, Array, Array, Array, Array], Array]
 
@@ -37,3 +44,43 @@ def shade(scene: Any, material: Any, points: Array, normals: Array, eye: Array,
         s = fn(scene, points, normals, eye, material.exponent.astype(dt))
         out = out + material.ks.astype(dt)[None, :] * s
     return out
+
+
+def shade_culled(scene: Any, material: Any, points: Array, normals: Array, eye: Array,
+                 specular: SpecularFn | None, with_specular: bool, max_active: int | None) -> tuple[Array, Array]:
+    """`(shade(...), overflow)`; with `max_active` (static int) each receiver sees at most that
+    many occluders per polygon light, and `overflow` (bool scalar) says some receiver had more
+    (the value is then not exact). `max_active=None` or a custom `specular`: the full model and
+    `overflow = False`. Traceable in the scene (no input checks: the caller validated them)."""
+    if max_active is None or scene.occluders is None or (with_specular and specular is not None):
+        return shade(scene, material, points, normals, eye, specular, with_specular), jnp.zeros((), bool)
+    dt = points.dtype
+    e, over = _irradiance_impl(scene, points, normals, max_active, False)
+    out = (material.ka.astype(dt) * scene.ambient.astype(dt))[None, :] + (material.kd.astype(dt) / jnp.pi)[None, :] * e
+    if with_specular:
+        eyes = jnp.broadcast_to(jnp.asarray(eye, dt), points.shape)
+        s, over_s = _specular_impl(scene, points, normals, eyes, material.exponent.astype(dt), "chebyshev",
+                                   DEFAULT_DEGREE, max_active, False)
+        out = out + material.ks.astype(dt)[None, :] * s
+        over = over | over_s
+    return out, over
+
+
+def irradiance_culled(scene: Any, points: Array, normals: Array, max_active: int | None) -> tuple[Array, Array]:
+    """`(js.irradiance(...), overflow)` with the culling of `shade_culled`."""
+    if max_active is None or scene.occluders is None:
+        return js.irradiance(scene, points, normals), jnp.zeros((), bool)
+    return _irradiance_impl(scene, points, normals, max_active, False)
+
+
+def specular_culled(scene: Any, points: Array, normals: Array, eye: Array, exponent: Array,
+                    specular: SpecularFn | None, max_active: int | None) -> tuple[Array, Array]:
+    """`(js.specular(...), overflow)` (or the custom `specular`, uncull'd)."""
+    if max_active is None or scene.occluders is None or specular is not None:
+        fn = resolve_specular(specular, "specular")
+        return fn(scene, points, normals, eye, exponent), jnp.zeros((), bool)
+    dt = points.dtype
+    eyes = jnp.broadcast_to(jnp.asarray(eye, dt), points.shape)
+    return _specular_impl(scene, points, normals, eyes, exponent.astype(dt), "chebyshev", DEFAULT_DEGREE,
+                          max_active, False)
+

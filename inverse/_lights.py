@@ -8,11 +8,19 @@ A point light: its position. Positions are measured in units of the scene size s
 parameter is O(1) for the solver.
 
 The residual is $\\sqrt{w}\\,(L_{model} - L_{painted})$ with the model of `js.shade` (Poulin
-eq. 5.14; soft shadows included when the scene has occluders). Levenberg-Marquardt
-(Optimistix) by default; bounded L-BFGS-B (JAXopt, `inverse/_jaxopt.py`) as the alternative.
-Multistart (Campbell & Fussell §4.4.2): the starting points stratify the search region (a
-scrambled Sobol sequence, one point per cell of a coarse grid in the limit), all solved at once
-under `jax.vmap`; the lowest residual wins.
+eq. 5.14; soft shadows included when the scene has occluders). Multistart (Campbell & Fussell
+§4.4.2): the starting points stratify the search region (a scrambled Sobol sequence, one point
+per cell of a coarse grid in the limit), all solved at once; the lowest residual wins.
+
+Solvers. The default is a Levenberg-Marquardt written for this batch (`inverse/_lm.py`): one
+forward-mode Jacobian per iteration for all starts, and each receiver sees only the occluders
+that can shadow it (`jaxshadow._bsp` culling at a static capacity chosen from the starting
+lights; if the light moves so that some receiver needs more, the solve is repeated with a
+larger capacity, so the result is always that of the full model). `optimistix.LevenbergMarquardt`
+under `jax.vmap` (`solver="optimistix"`) fits the same residual with the full model; it traces the
+shadow kernel several times and transposes its linearisation, which made it ~35 s to compile and
+per-start vmapped branches evaluate both sides (`benchmarks/inverse_speed.py` measures both).
+Bounded L-BFGS-B (JAXopt, `inverse/_jaxopt.py`) is the alternative with hard box bounds.
 """
 
 from __future__ import annotations
@@ -29,8 +37,10 @@ import optimistix as optx
 from jaxtyping import Array, Float
 
 import jaxshadow as js
+from jaxshadow._bsp import capacity_for, max_relevant
 
-from ._forward import SpecularFn, resolve_specular, shade
+from ._forward import SpecularFn, irradiance_culled, shade, shade_culled, specular_culled
+from ._lm import LMResult, batched_levenberg_marquardt
 from ._targets import PaintedTargets
 
 FIT_GROUPS = ("position", "orientation", "size")
@@ -308,23 +318,32 @@ class _Setup(eqx.Module):
     with_specular: bool = eqx.field(static=True)
     project: bool = eqx.field(static=True, default=False)
     fit_exponent: bool = eqx.field(static=True, default=False)
+    # Occluder-culling capacity for the LM's residual (`_forward.shade_culled`); None = full.
+    max_active: int | None = eqx.field(static=True, default=None)
 
 
 def _projected(theta: Array, setup: _Setup) -> tuple[Array, Array, Array]:
     """Variable projection (Golub & Pereyra): for the light in `theta` (and $\\log n$ last when
     fitted), the per-channel coefficients $(k_a, k_d, k_s)$ solved by weighted linear least
     squares (pseudo-inverse, differentiable). Returns `(residual (3N,), k (3, C), exponent)`."""
+    return _projected_flag(theta, setup, None)[:3]
+
+
+def _projected_flag(theta: Array, setup: _Setup, max_active: int | None) -> tuple[Array, Array, Array, Array]:
+    """`_projected` plus the culling overflow flag (`_forward.shade_culled`)."""
     t = setup.targets
     P = setup.param.size
     scene = with_light(setup.scene, setup.param.light_index, setup.param.build(theta[:P]))
     dt = theta.dtype
-    e = js.irradiance(scene, t.points, t.normals) / jnp.pi
+    e, over = irradiance_culled(scene, t.points, t.normals, max_active)
+    e = e / jnp.pi
     amb = jnp.broadcast_to(scene.ambient.astype(dt)[None, :], e.shape)
     n = jnp.exp(theta[P]) if setup.fit_exponent else setup.material.exponent.astype(dt)
     cols = [amb, e]
     if setup.with_specular:
-        fn = resolve_specular(setup.specular, "fit_light")
-        cols.append(fn(scene, t.points, t.normals, t.eye, n))
+        sp, over_s = specular_culled(scene, t.points, t.normals, t.eye, n, setup.specular, max_active)
+        cols.append(sp)
+        over = over | over_s
     X = jnp.stack(cols, axis=-1)  # (N, C, m)
     sw = jnp.sqrt(t.weights)
 
@@ -336,16 +355,28 @@ def _projected(theta: Array, setup: _Setup) -> tuple[Array, Array, Array]:
     r, k = jax.vmap(channel, in_axes=(1, 1, 1), out_axes=(1, 1))(X, t.colours, sw)
     if not setup.with_specular:
         k = jnp.concatenate([k, jnp.zeros((1, 3), dt)], axis=0)
-    return r.reshape(-1), k, n
+    return r.reshape(-1), k, n, over
 
 
 def _residuals(theta: Array, setup: _Setup) -> Array:
+    """Weighted residuals `(3N,)` with the full (uncull'd) model."""
+    return _residuals_flag(theta, setup, None)[0]
+
+
+def _residuals_culled(theta: Array, setup: _Setup) -> tuple[Array, Array]:
+    """Residuals with occluder culling at `setup.max_active` and the overflow flag (the LM)."""
+    return _residuals_flag(theta, setup, setup.max_active)
+
+
+def _residuals_flag(theta: Array, setup: _Setup, max_active: int | None) -> tuple[Array, Array]:
     if setup.project:
-        return _projected(theta, setup)[0]
+        r, _, _, over = _projected_flag(theta, setup, max_active)
+        return r, over
     t = setup.targets
     scene = with_light(setup.scene, setup.param.light_index, setup.param.build(theta))
-    model = shade(scene, setup.material, t.points, t.normals, t.eye, setup.specular, setup.with_specular)
-    return (jnp.sqrt(t.weights) * (model - t.colours)).reshape(-1)
+    model, over = shade_culled(scene, setup.material, t.points, t.normals, t.eye, setup.specular,
+                               setup.with_specular, max_active)
+    return (jnp.sqrt(t.weights) * (model - t.colours)).reshape(-1), over
 
 
 def _loss(theta: Array, setup: _Setup) -> Array:
@@ -354,7 +385,16 @@ def _loss(theta: Array, setup: _Setup) -> Array:
 
 
 @eqx.filter_jit
-def _multistart_lm(setup: _Setup, starts: Array, rtol: float, atol: float, max_steps: int) -> tuple:
+def _multistart_lm(setup: _Setup, starts: Array, rtol: float, atol: float, max_steps: int) -> LMResult:
+    """Levenberg-Marquardt from every start at once (`_lm.batched_levenberg_marquardt`) on the
+    culled residual; `LMResult.flag` is the culling overflow (then retry, `_solve_lm`)."""
+    return batched_levenberg_marquardt(_residuals_culled, starts, setup, rtol=rtol, atol=atol,
+                                       max_steps=max_steps)
+
+
+@eqx.filter_jit
+def _multistart_optx(setup: _Setup, starts: Array, rtol: float, atol: float, max_steps: int) -> tuple:
+    """`optimistix.LevenbergMarquardt` from every start under `jax.vmap` (`solver="optimistix"`)."""
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
 
     def one(y0):
@@ -364,6 +404,48 @@ def _multistart_lm(setup: _Setup, starts: Array, rtol: float, atol: float, max_s
     values, ok, steps = jax.vmap(one)(starts)
     losses = jax.vmap(_loss, in_axes=(0, None))(values, setup)
     return values, losses, ok, steps
+
+
+def _light_vertices(param: LightParametrisation, thetas: Array) -> Array:
+    """`(S, K, 3)` vertices of the polygon light for each row of `thetas (S, >=P)` (concrete)."""
+    build = jax.jit(jax.vmap(lambda th: param.build(th[: param.size]).vertices))
+    return build(thetas)
+
+
+def culling_capacity_for_starts(param: LightParametrisation, scene: js.Scene, targets: PaintedTargets,
+                                starts: Array) -> int | None:
+    """The occluder-culling capacity for an LM from `starts`: enough for every receiver with the
+    light at any start and the other polygon lights where they are (`_forward.culling_capacity`:
+    next power of two, None when culling cannot pay). The light moves during the solve; a
+    receiver that then sees more occluders raises the overflow flag and `_solve_lm` retries."""
+    occ = scene.occluders
+    if occ is None or occ.shape[0] < 4 or param.kind != "polygon":
+        return None
+    others = [np.asarray(light.vertices, np.float64) for i, light in enumerate(scene.lights)
+              if i != param.light_index and isinstance(light, js.PolygonLight)]
+    moving = np.asarray(_light_vertices(param, starts), np.float64)
+    emitters = [*moving, *others]
+    k = max(e.shape[0] for e in emitters)
+    padded = np.stack([np.concatenate([e, np.repeat(e[:1], k - e.shape[0], axis=0)]) for e in emitters])
+    count = max_relevant(np.asarray(targets.points, np.float64), np.asarray(targets.normals, np.float64),
+                         padded, np.asarray(occ, np.float64))
+    cap = capacity_for(count + 1, occ.shape[0])  # one spare: the light moves
+    return None if cap >= occ.shape[0] else cap
+
+
+def _solve_lm(setup: _Setup, starts: Array, rtol: float, atol: float, max_steps: int) -> tuple[LMResult, _Setup, int]:
+    """`_multistart_lm`, retried with twice the culling capacity (at last none) while some
+    receiver overflowed it, so the result is exact. Returns `(result, setup used, retries)`."""
+    retries = 0
+    while True:
+        res = _multistart_lm(setup, starts, rtol, atol, max_steps)
+        if setup.max_active is None or not bool(res.flag):
+            return res, setup, retries
+        assert setup.scene.occluders is not None  # a capacity is only set with occluders
+        m = int(setup.scene.occluders.shape[0])
+        cap = 2 * setup.max_active
+        setup = dataclasses.replace(setup, max_active=None if cap >= m else cap)
+        retries += 1
 
 
 @eqx.filter_jit
@@ -536,8 +618,11 @@ def fit_light(
     - `starts`: number of multistart points (vectorised with `jax.vmap`); 1 = local solve.
     - `refine`: `None` (solve from every start) or k: evaluate the loss at every start and
       solve only from the k best (Campbell & Fussell §4.4.2's screening of a coarse grid).
-    - `solver`: `"lm"` (Optimistix Levenberg-Marquardt) or `"lbfgsb"` (JAXopt L-BFGS-B on
-      $\\tfrac12|r|^2$ with box bounds).
+    - `solver`: `"lm"` (default: Levenberg-Marquardt over all starts at once, `inverse/_lm.py`,
+      with per-receiver occluder culling; exact), `"optimistix"` (`optimistix.LevenbergMarquardt`
+      under `jax.vmap`, the full model; several times slower to compile and to run, see
+      `benchmarks/inverse_speed.py`) or `"lbfgsb"` (JAXopt L-BFGS-B on $\\tfrac12|r|^2$ with
+      box bounds).
     - `search_radius`: half-width of the start region, in units of the scene size.
     - `orientation_spread` (rad), `size_spread` (relative): the start region's other axes.
     - `rtol`, `atol`, `max_steps`: solver tolerances; `seed`: of the start stratification.
@@ -562,8 +647,8 @@ def fit_light(
     unknown = [g for g in fit if g not in FIT_GROUPS]
     if unknown:
         raise ValueError(f"fit_light: unknown fit group(s) {unknown}; choose from {FIT_GROUPS}.")
-    if solver not in ("lm", "lbfgsb"):
-        raise ValueError(f"fit_light: solver must be 'lm' or 'lbfgsb', got {solver!r}.")
+    if solver not in ("lm", "optimistix", "lbfgsb"):
+        raise ValueError(f"fit_light: solver must be 'lm', 'optimistix' or 'lbfgsb', got {solver!r}.")
     if int(starts) < 1:
         raise ValueError(f"fit_light: starts must be >= 1, got {starts}.")
     if material_mode not in ("fixed", "projected"):
@@ -588,12 +673,23 @@ def fit_light(
         names = (*names, "log_n")
         theta_ref = jnp.concatenate([theta_ref, jnp.asarray([np.log(float(material.exponent))], dt)])
     n_screened = int(y0.shape[0])
+    ref_row = 0  # make_starts puts the reference first; screening may drop it
+    initial_loss = None
     if refine is not None and 0 < int(refine) < n_screened:
-        screen = np.asarray(_screen_losses(setup, y0), np.float64)
-        order = np.argsort(np.where(np.isfinite(screen), screen, np.inf), kind="stable")[: int(refine)]
-        y0 = y0[jnp.asarray(np.sort(order))]
+        cap = culling_capacity_for_starts(param, scene, targets, y0) if solver == "lm" else None
+        # Exact: the capacity holds every receiver's relevant occluders at these very lights.
+        screen = np.asarray(_screen_losses(dataclasses.replace(setup, max_active=cap), y0), np.float64)
+        order = np.sort(np.argsort(np.where(np.isfinite(screen), screen, np.inf), kind="stable")[: int(refine)])
+        y0 = y0[jnp.asarray(order)]
+        initial_loss = float(screen[0])
+        ref_row = int(np.searchsorted(order, 0)) if 0 in order else -1
+    retries = 0
     if solver == "lm":
-        values, losses, ok, steps = _multistart_lm(setup, y0, rtol, atol, int(max_steps))
+        setup = dataclasses.replace(setup, max_active=culling_capacity_for_starts(param, scene, targets, y0))
+        res, setup, retries = _solve_lm(setup, y0, rtol, atol, int(max_steps))
+        values, losses, ok, steps = res.values, res.losses, res.converged, res.num_steps
+    elif solver == "optimistix":
+        values, losses, ok, steps = _multistart_optx(setup, y0, rtol, atol, int(max_steps))
     else:
         lo, hi = param.lbfgsb_bounds(dt)
         values, losses, ok, steps = _multistart_lbfgsb(setup, y0, lo, hi, atol, int(max_steps))
@@ -602,9 +698,16 @@ def fit_light(
     losses_ = np.where(np.isfinite(losses), losses, np.inf)
     best = int(np.argmin(losses_))
     theta = jnp.asarray(values[best], dt)
-    initial_loss = float(_loss_jit(setup, theta_ref))
-    r, J = _jacobian(setup, theta)
-    r, J = np.asarray(r, np.float64), np.asarray(J, np.float64)
+    if solver == "lm":
+        # The solver's own residual and Jacobian at the optimum (exact: no culling overflow).
+        r, J = np.asarray(res.residuals[best], np.float64), np.asarray(res.jacobians[best], np.float64)
+        if initial_loss is None and ref_row >= 0:
+            initial_loss = float(res.initial_losses[ref_row])
+    else:
+        r, J = _jacobian(setup, theta)
+        r, J = np.asarray(r, np.float64), np.asarray(J, np.float64)
+    if initial_loss is None:
+        initial_loss = float(_loss_jit(setup, theta_ref))
 
     # Identifiability: SVD of the column-normalised Jacobian, standard errors.
     m = int(np.count_nonzero(np.asarray(targets.weights) > 0))
@@ -631,6 +734,9 @@ def fit_light(
             reps.append(values[i])
     if not ok[best]:
         msgs.append("the best start did not report convergence (max_steps reached?).")
+    if retries:
+        msgs.append(f"the light moved so that some receiver saw more occluders than the culling capacity; "
+                    f"solved again {retries} time(s) with a larger one (the result is exact).")
 
     light = param.build(theta[: param.size])
     new_scene = with_light(scene, light_index, light)
@@ -640,8 +746,12 @@ def fit_light(
         material = js.Material(ka=jnp.asarray(kc[0], dt), kd=jnp.asarray(kc[1], dt), ks=jnp.asarray(kc[2], dt),
                                exponent=jnp.asarray(float(n_fit), dt))
     t = targets
-    model = shade(new_scene, material, t.points, t.normals, t.eye, spec_fn, with_spec)
-    residual = np.asarray(model, np.float64) - np.asarray(t.colours, np.float64)
+    w = np.asarray(t.weights, np.float64)
+    if solver == "lm" and not project and np.all(w > 0):
+        residual = r.reshape(-1, 3) / np.sqrt(w)  # r = sqrt(w) (model - colours)
+    else:
+        model = shade(new_scene, material, t.points, t.normals, t.eye, spec_fn, with_spec)
+        residual = np.asarray(model, np.float64) - np.asarray(t.colours, np.float64)
     met = None if t.tolerance is None else np.all(np.abs(residual) <= np.asarray(t.tolerance), axis=1)
     report = LightReport(
         names=names,
@@ -678,7 +788,14 @@ def _projected_jit(setup: _Setup, theta: Array) -> tuple[Array, Array, Array]:
 
 @eqx.filter_jit
 def _screen_losses(setup: _Setup, starts: Array) -> Array:
-    return jax.vmap(_loss, in_axes=(0, None))(starts, setup)
+    """$\\tfrac12|r|^2$ at every start (culled at `setup.max_active`: the caller sizes it for
+    these starts, so nothing overflows)."""
+
+    def loss(theta: Array) -> Array:
+        r = _residuals_culled(theta, setup)[0]
+        return 0.5 * jnp.sum(r * r)
+
+    return jax.vmap(loss)(starts)
 
 
 def light_loss(scene: js.Scene, targets: PaintedTargets, material: js.Material, light: Any,

@@ -92,17 +92,25 @@ def _plan_max_active(scene: Scene, points: Array, normals: Array) -> int | None:
         return None
     if not all(is_concrete(x) for x in (occ, points, normals, *polys)):
         return None
-    verts = pad_polygons_jax(polys).astype(points.dtype)
-    count = max_relevant(points, normals, verts, occ.astype(points.dtype))
+    with jax.ensure_compile_time_eval():  # concrete inputs closed over by a caller's jit
+        verts = pad_polygons_jax(polys).astype(points.dtype)
+        count = max_relevant(points, normals, verts, occ.astype(points.dtype))
     cap = capacity_for(count, occ.shape[0])
     return None if cap >= occ.shape[0] else cap
 
 
 @eqx.filter_jit
 def _irradiance_impl(
-    scene: Scene, points: Array, normals: Array, max_active: int | None = None
-) -> Array:
+    scene: Scene, points: Array, normals: Array, max_active: int | None = None, fallback: bool = True
+) -> Any:
+    """Irradiance `(N, 3)`. With `max_active` (static) polygon lights see only the occluders that
+    `_bsp.select_occluders` keeps per receiver; a receiver with more relevant occluders than that
+    falls back to the full kernel (`fallback=True`), or (`fallback=False`) the result is
+    `(E, overflow)` and `E` is *not* exact where `overflow` is True: the caller must retry with a
+    larger capacity (the inverse solvers do; a `lax.cond` fallback inside their `vmap` over
+    starts would run both branches every time)."""
     dt = points.dtype
+    overflow = jnp.zeros((), bool)
     normals = safe_normalize(normals)
     occ = None if scene.occluders is None else scene.occluders.astype(dt)
     total = jnp.zeros(points.shape, dtype=dt)
@@ -120,7 +128,10 @@ def _irradiance_impl(
                 else:
                     culled = lambda p, n, v: culled_form_factor_kernel(p, n, v, occ, max_active)  # noqa: E731
                     f, over = _per_light(culled, points, normals, verts)
-                    g = with_fallback(f, over, lambda: _per_light(kern, points, normals, verts))  # noqa: B023
+                    if fallback:
+                        g = with_fallback(f, over, lambda: _per_light(kern, points, normals, verts))  # noqa: B023
+                    else:
+                        g, overflow = f, overflow | jnp.any(over)
             g = jnp.pi * g
             emission = _stack(lights, "radiance", dt)
         elif key.startswith("linear-"):
@@ -146,7 +157,7 @@ def _irradiance_impl(
                 g = g * vis
             emission = _stack(lights, "irradiance", dt)
         total = total + jnp.einsum("ln,lc->nc", g, emission)
-    return total
+    return total if fallback else (total, overflow)
 
 
 def irradiance(
@@ -202,8 +213,11 @@ def _specular_impl(
     method: str,
     degree: int,
     max_active: int | None = None,
-) -> Array:
+    fallback: bool = True,
+) -> Any:
+    """Specular `(N, 3)`; `max_active` and `fallback` as in `_irradiance_impl`."""
     dt = points.dtype
+    overflow = jnp.zeros((), bool)
     normals = safe_normalize(normals)
     occ = None if scene.occluders is None else scene.occluders.astype(dt)
     opts = dict(method=method, degree=degree)
@@ -239,7 +253,10 @@ def _specular_impl(
                     return val, over
 
                 f, over = per_light(culled, verts)
-                g = with_fallback(f, over, lambda: per_light(kern, verts))  # noqa: B023
+                if fallback:
+                    g = with_fallback(f, over, lambda: per_light(kern, verts))  # noqa: B023
+                else:
+                    g, overflow = f, overflow | jnp.any(over)
             emission = _stack(lights, "radiance", dt)
         elif key.startswith("linear-"):
             m = lights[0].exponent
@@ -273,7 +290,7 @@ def _specular_impl(
             g = per_light(kern, d)
             emission = _stack(lights, "irradiance", dt)
         total = total + jnp.einsum("ln,lc->nc", g, emission)
-    return total
+    return total if fallback else (total, overflow)
 
 
 def specular(

@@ -1,0 +1,153 @@
+r"""A batched Levenberg-Marquardt solver for many starts at once (the light-placement multistart).
+
+Why not `optimistix.LevenbergMarquardt` under `jax.vmap`: the residual here is a soft-shadow
+kernel whose forward-mode Jacobian is most of the compile and run time. Optimistix traces the
+residual several times (the linearisation, the accepted-step evaluation, the termination
+test), and under `vmap` its accept/reject branches become selects that evaluate both sides.
+This loop evaluates the residual and its Jacobian exactly once per iteration, for all starts
+together, as one `jax.jacfwd` instance in the program; the first iteration evaluates the
+starts themselves (the state begins at an infinite loss), so nothing is traced twice. Starts
+that have converged are frozen (masked); the loop ends when all have.
+
+The step is the classical damped Gauss-Newton step with Marquardt's diagonal scaling (Moré,
+"The Levenberg-Marquardt algorithm: implementation and theory", 1978: the running maximum of
+the Jacobian's column norms) and Nielsen's update of the damping $\lambda$ (H. B. Nielsen,
+"Damping parameter in Marquardt's method", IMM-REP-1999-05):
+
+$$(J^\top J + \lambda D)\,\delta = -J^\top r,\qquad
+\rho = \frac{f(y) - f(y+\delta)}{-\delta^\top J^\top r - \tfrac12 \delta^\top J^\top J \delta},$$
+
+accepted when $\rho > 10^{-4}$; then $\lambda \leftarrow \lambda \max(\tfrac13, 1-(2\rho-1)^3)$,
+$\nu = 2$, else $\lambda \leftarrow \nu\lambda$, $\nu \leftarrow 2\nu$. A start has converged
+when an accepted step moved every parameter by at most `atol + rtol |y|_inf` *and* changed the
+loss by at most `atol + rtol f` (the Cauchy test Optimistix uses), or when no step can
+decrease the loss any more (the predicted decrease is at round-off level).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float, Int
+
+
+class LMResult(NamedTuple):
+    """Per start: `values (S, P)`, `losses (S,)` ($\\tfrac12|r|^2$), `converged (S,)`,
+    `num_steps (S,)`; `residuals (S, M)` and `jacobians (S, M, P)` at `values`;
+    `initial_losses (S,)` at the starts; `flag` (bool
+    scalar): the residual function's auxiliary flag was raised at some evaluated point (the
+    light-placement fit uses it for a culling overflow)."""
+
+    values: Float[Array, "S P"]
+    losses: Float[Array, " S"]
+    converged: Bool[Array, " S"]
+    num_steps: Int[Array, " S"]
+    residuals: Float[Array, "S M"]
+    jacobians: Float[Array, "S M P"]
+    initial_losses: Float[Array, " S"]
+    flag: Bool[Array, ""]
+
+
+def batched_levenberg_marquardt(
+    fn: Callable[[Array, Any], tuple[Array, Array]],
+    y0: Float[Array, "S P"],
+    args: Any,
+    *,
+    rtol: float,
+    atol: float,
+    max_steps: int,
+    lambda0: float = 1e-3,
+) -> LMResult:
+    """Minimise $\\tfrac12|r(y)|^2$ from every row of `y0` at once (traceable; jit the caller).
+
+    **Arguments:**
+
+    - `fn(y (P,), args) -> (r (M,), flag (bool scalar))`: the residual and a flag that is OR-ed
+      over every evaluation (returned as `LMResult.flag`).
+    - `y0`: `(S, P)` starting points; `args`: passed to `fn`.
+    - `rtol`, `atol`: termination tolerances (module docstring); `max_steps`: iterations after
+      the evaluation of the starts; `lambda0`: initial damping relative to the scaling.
+
+    **Returns:** `LMResult`.
+    """
+    S, P = y0.shape
+    dt = y0.dtype
+
+    def resid_aux(y: Array) -> tuple[Array, tuple[Array, Array]]:
+        r, flag = fn(y, args)
+        return r, (r, flag)
+
+    def rj(ys: Array) -> tuple[Array, Array, Array]:
+        J, (r, flag) = jax.vmap(jax.jacfwd(resid_aux, has_aux=True))(ys)
+        return r, J, flag
+
+    M = jax.eval_shape(lambda y: fn(y, args)[0], y0[0]).shape[0]
+    eps = jnp.finfo(dt).eps
+
+    def cond(state: tuple) -> Array:
+        it, done = state[0], state[8]
+        return (it <= max_steps) & ~jnp.all(done)
+
+    def body(state: tuple) -> tuple:
+        it, y, r, J, f, f0, lam, nu, done, ok, steps, dmax, flag = state
+        init = it == 0
+        g = jnp.einsum("smp,sm->sp", J, r)
+        A = jnp.einsum("smp,smq->spq", J, J)
+        diag = jnp.maximum(dmax, jnp.diagonal(A, axis1=1, axis2=2))
+        scale = jnp.maximum(diag, eps * jnp.max(diag, axis=1, keepdims=True) + jnp.finfo(dt).tiny)
+        Ad = A + (lam[:, None] * scale)[:, :, None] * jnp.eye(P, dtype=dt)[None]
+        delta = -jnp.linalg.solve(Ad, g[..., None])[..., 0]
+        delta = jnp.where(jnp.isfinite(delta) & ~init, delta, 0.0)
+        y_try = y + delta
+        r_t, J_t, flag_t = rj(y_try)
+        f_t = 0.5 * jnp.sum(r_t * r_t, axis=1)
+        pred = -jnp.sum(g * delta, axis=1) - 0.5 * jnp.einsum("sp,spq,sq->s", delta, A, delta)
+        rho = (f - f_t) / jnp.where(pred > 0, pred, 1.0)
+        finite = jnp.isfinite(f_t) & jnp.all(jnp.isfinite(J_t), axis=(1, 2))
+        live = ~done
+        accept = live & finite & (init | ((pred > 0) & (rho > 1e-4)))
+        # Termination (never on the first, evaluation-only iteration).
+        small_step = jnp.max(jnp.abs(delta), axis=1) <= atol + rtol * jnp.max(jnp.abs(y), axis=1)
+        small_f = jnp.abs(f - f_t) <= atol + rtol * f
+        conv = ~init & accept & small_step & small_f
+        stall = ~init & live & ~accept & (pred <= 4 * eps * f)
+        dead = ~init & live & (lam > 1e16)
+        bad_start = init & ~finite  # a start where the model is not finite: nothing to do
+        a = accept[:, None]
+        y = jnp.where(a, y_try, y)
+        r = jnp.where(a, r_t, r)
+        J = jnp.where(a[:, :, None], J_t, J)
+        f = jnp.where(accept, f_t, f)
+        dmax = jnp.where(a, jnp.maximum(dmax, jnp.diagonal(jnp.einsum("smp,smq->spq", J_t, J_t),
+                                                           axis1=1, axis2=2)), dmax)
+        factor = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+        lam = jnp.where(init | ~live, lam, jnp.where(accept, lam * factor, lam * nu))
+        nu = jnp.where(accept, 2.0, jnp.where(live, 2.0 * nu, nu))
+        f0 = jnp.where(init, f_t, f0)
+        newly = conv | stall | dead | bad_start
+        ok = ok | conv | stall
+        steps = steps + (live & ~init).astype(steps.dtype)
+        done = done | (newly & live)
+        flag = flag | jnp.any(flag_t & live)
+        return it + 1, y, r, J, f, f0, lam, nu, done, ok, steps, dmax, flag
+
+    state = (
+        jnp.zeros((), jnp.int32),
+        y0,
+        jnp.zeros((S, M), dt),
+        jnp.zeros((S, M, P), dt),
+        jnp.full((S,), jnp.inf, dt),
+        jnp.full((S,), jnp.inf, dt),
+        jnp.full((S,), lambda0, dt),
+        jnp.full((S,), 2.0, dt),
+        jnp.zeros((S,), bool),
+        jnp.zeros((S,), bool),
+        jnp.zeros((S,), jnp.int32),
+        jnp.zeros((S, P), dt),
+        jnp.zeros((), bool),
+    )
+    _, y, r, J, f, f0, _, _, _, ok, steps, _, flag = jax.lax.while_loop(cond, body, state)
+    return LMResult(y, f, ok, steps, r, J, f0, flag)

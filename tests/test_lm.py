@@ -1,0 +1,131 @@
+"""The batched Levenberg-Marquardt (`inverse/_lm.py`) and the culled light-placement residual.
+
+The solver is checked against SciPy's MINPACK LM on classic test problems from many starts at
+once (an independent implementation), for frozen starts, non-finite starts and the flag; the
+culling with overflow-and-retry against the full model (solutions must agree to round-off).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.optimize
+
+import inverse
+import jaxshadow as js
+from inverse import _lights as L
+from inverse._forward import shade
+from inverse._lm import batched_levenberg_marquardt
+from inverse._scenes import demo_configuration, pose_errors, quad
+
+# Osborne / Meyer-style exponential fit: y = a exp(-b t) + c, with 3 parameters and 20 data.
+T = np.linspace(0.0, 4.0, 20)
+TRUE = np.array([2.0, 1.3, 0.5])
+Y = TRUE[0] * np.exp(-TRUE[1] * T) + TRUE[2] + 0.01 * np.sin(7 * T)  # non-zero residual at the optimum
+
+
+def _exp_resid(y, args):
+    t, obs = args
+    r = y[0] * jnp.exp(-y[1] * t) + y[2] - obs
+    return r, y[0] < 0  # a flag, to check it is OR-ed over the evaluations
+
+
+def _rosenbrock(y, args):
+    return jnp.stack([10.0 * (y[1] - y[0] ** 2), 1.0 - y[0]]), jnp.zeros((), bool)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_lm_matches_minpack_on_exponential_fit(dtype):
+    rng = np.random.default_rng(0)
+    starts = np.concatenate([TRUE[None] * 1.5, TRUE[None] + rng.normal(0, 0.5, (7, 3))]).astype(dtype)
+    args = (jnp.asarray(T, dtype), jnp.asarray(Y, dtype))
+    res = jax.jit(lambda y0: batched_levenberg_marquardt(_exp_resid, y0, args, rtol=1e-10, atol=1e-12,
+                                                         max_steps=200))(jnp.asarray(starts))
+    ref = scipy.optimize.least_squares(lambda y: np.asarray(_exp_resid(y, (T, Y))[0]), TRUE * 1.5,
+                                       method="lm", xtol=1e-15, ftol=1e-15)
+    tol = 1e-8 if dtype == np.float64 else 2e-3
+    for i in range(len(starts)):
+        assert bool(res.converged[i]), i
+        np.testing.assert_allclose(np.asarray(res.values[i]), ref.x, rtol=tol, atol=tol)
+        np.testing.assert_allclose(float(res.losses[i]), 0.5 * np.sum(ref.fun**2), rtol=10 * tol)
+    # The residual and Jacobian returned are those at the solution.
+    J = jax.jacfwd(lambda y: _exp_resid(y, args)[0])(res.values[0])
+    np.testing.assert_allclose(np.asarray(res.jacobians[0]), np.asarray(J), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(res.initial_losses[0]),
+                               0.5 * np.sum(np.asarray(_exp_resid(jnp.asarray(starts[0]), args)[0]) ** 2),
+                               rtol=1e-5)
+    assert res.values.dtype == dtype
+
+
+def test_lm_rosenbrock_and_flags():
+    starts = jnp.array([[-1.2, 1.0], [2.0, -1.0], [0.0, 0.0], [jnp.nan, 0.0]])
+    res = batched_levenberg_marquardt(_rosenbrock, starts, None, rtol=1e-12, atol=1e-14, max_steps=300)
+    for i in range(3):
+        assert bool(res.converged[i])
+        np.testing.assert_allclose(np.asarray(res.values[i]), [1.0, 1.0], atol=1e-8)
+    # A start where the residual is not finite stops at once, not converged, nothing NaN leaks.
+    assert not bool(res.converged[3]) and int(res.num_steps[3]) == 0
+    assert np.all(np.isfinite(np.asarray(res.losses[:3])))
+    # Steps are counted per start (the easy start takes fewer).
+    assert int(res.num_steps[2]) != int(res.num_steps[0]) or int(res.num_steps[1]) != int(res.num_steps[0])
+    # The flag is raised iff some evaluated point raised it.
+    args = (jnp.asarray(T), jnp.asarray(Y))
+    ok = batched_levenberg_marquardt(_exp_resid, jnp.asarray([[2.5, 1.0, 0.4]]), args, rtol=1e-10, atol=1e-12,
+                                     max_steps=100)
+    bad = batched_levenberg_marquardt(_exp_resid, jnp.asarray([[-1.0, 1.0, 0.4]]), args, rtol=1e-10,
+                                      atol=1e-12, max_steps=100)
+    assert not bool(ok.flag) and bool(bad.flag)
+
+
+def test_lm_max_steps_reports_not_converged():
+    res = batched_levenberg_marquardt(_rosenbrock, jnp.array([[-1.2, 1.0]]), None, rtol=1e-12, atol=1e-14,
+                                      max_steps=3)
+    assert not bool(res.converged[0]) and int(res.num_steps[0]) == 3
+
+
+@pytest.fixture(scope="module")
+def occluded_config():
+    """The demo's quad light over 8 occluders, 24 targets, noise-free (solver test, not acceptance)."""
+    cfg = demo_configuration(occluders=False, n_points=24, seed=3)
+    rng = np.random.default_rng(0)
+    occ = [quad([*rng.uniform(-0.6, 0.6, 2), rng.uniform(0.4, 0.9)], 0.2, 0.2, (0.0, 0.0, rng.uniform(0, 1)))
+           for _ in range(8)]
+    scene = js.Scene(cfg.scene.lights, occluders=occ, ambient=cfg.scene.ambient)
+    start = js.Scene(cfg.start_scene.lights, occluders=occ, ambient=cfg.scene.ambient)
+    material = js.Material(ka=cfg.material.ka, kd=cfg.material.kd, ks=0.0, exponent=1.0)
+    n = len(cfg.points)
+    col = np.asarray(shade(scene, material, jnp.asarray(cfg.points), jnp.asarray(cfg.normals),
+                           jnp.asarray(np.broadcast_to(cfg.eye, (n, 3))), with_specular=False))
+    return scene, start, material, inverse.PaintedTargets(cfg.points, cfg.normals, col, cfg.eye), cfg.size
+
+
+def test_culled_residual_equals_full_model(occluded_config):
+    """Where no receiver overflows the capacity, the culled residual and Jacobian are the full
+    model's; with a capacity of 1 (too small here) the flag is raised."""
+    scene, start, material, t, size = occluded_config
+    param = L.LightParametrisation(start.lights[0], 0, ("position", "orientation", "size"), None, size, "sigmoid")
+    setup = L._Setup(param, start, material, t, None, False)
+    y = jnp.asarray(np.random.default_rng(1).normal(0, 0.05, param.size))
+    cap = L.culling_capacity_for_starts(param, start, t, y[None])
+    assert cap is not None and cap < 8
+    full = jax.jit(lambda y: jax.jacfwd(L._residuals)(y, setup))(y)
+    culled_setup = dataclasses.replace(setup, max_active=cap)
+    culled, over = jax.jit(lambda y: jax.jacfwd(L._residuals_culled, has_aux=True)(y, culled_setup))(y)
+    assert not bool(over)
+    np.testing.assert_allclose(np.asarray(culled), np.asarray(full), rtol=1e-12, atol=1e-14)
+    _, over1 = L._residuals_culled(y, dataclasses.replace(setup, max_active=1))
+    assert bool(over1)
+
+
+def test_overflow_retry_gives_the_full_model_solution(occluded_config, monkeypatch):
+    """A capacity that overflows during the solve is doubled until exact; the fit says so."""
+    scene, start, material, t, size = occluded_config
+    monkeypatch.setattr(L, "culling_capacity_for_starts", lambda *a: 1)
+    f = inverse.fit_light(start, t, material, starts=1)
+    assert any("culling capacity" in w for w in f.report.warnings), f.report.warnings
+    err = pose_errors(f.light.vertices, scene.lights[0].vertices)
+    assert err["position"] < 1e-7 * size and f.report.loss < 1e-20
