@@ -109,7 +109,10 @@ def check_points_normals(points: Any, normals: Any, what: str = "") -> tuple[Arr
         )
     if not isinstance(points, jax.core.Tracer) and not isinstance(normals, jax.core.Tracer):
         # One fused pass decides; the slow NumPy search for the culprit runs only on failure.
-        if not bool(_all_good(points, normals)):
+        # Concrete arrays closed over by a caller's jit are still checked: evaluate eagerly.
+        with jax.ensure_compile_time_eval():
+            good = bool(_all_good(points, normals))
+        if not good:
             pp, nn = np.asarray(points), np.asarray(normals)
             for name, x in (("points", pp), ("normals", nn)):
                 bad = ~np.isfinite(x)

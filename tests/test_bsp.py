@@ -15,6 +15,7 @@ import pytest
 from shapes import uv_sphere
 from test_clip import EM, UP, pad, random_scene, reference_ff
 
+import jaxshadow as js
 from jaxshadow._bsp import (
     capacity_for,
     culled_form_factor_kernel,
@@ -236,3 +237,25 @@ def test_float32_follows_dtype():
     assert got.dtype == jnp.float32
     ref = visible_form_factor(jnp.asarray(p), jnp.asarray(n), em, occ)
     np.testing.assert_allclose(np.asarray(got, np.float64), np.asarray(ref), atol=2e-5)
+
+
+def test_public_entry_points_inside_a_callers_jit_with_concrete_inputs():
+    """Receivers and occluders closed over by a user's `jax.jit` are concrete but their jnp
+    results are traced: validation and culling planning must still work (regression: a
+    TracerBoolConversionError), and agree with the eager call."""
+    rng = np.random.default_rng(0)
+    pts = np.c_[rng.uniform(-1, 1, (10, 2)), np.zeros(10)]
+    nrm = np.tile([0.0, 0.0, 1.0], (10, 1))
+    occ = [np.array([[x, y, 0.5], [x + 0.1, y, 0.5], [x + 0.1, y + 0.1, 0.5], [x, y + 0.1, 0.5]])
+           for x in np.linspace(-1, 1, 3) for y in np.linspace(-1, 1, 3)]
+    sq = jnp.array([[-0.5, -0.5, 1.0], [-0.5, 0.5, 1.0], [0.5, 0.5, 1.0], [0.5, -0.5, 1.0]])
+
+    def total(z):
+        s = js.Scene([js.PolygonLight(sq + jnp.array([[0.0, 0.0, 1.0]]) * z, 1.0)], occluders=occ)
+        return js.irradiance(s, jnp.asarray(pts), jnp.asarray(nrm)).sum()
+
+    np.testing.assert_allclose(float(jax.jit(total)(0.1)), float(total(0.1)), rtol=1e-6)
+    s = js.Scene([js.PolygonLight(sq, 1.0)], occluders=occ)
+    eager = js.irradiance(s, pts, nrm)
+    inside = jax.jit(lambda: js.irradiance(s, jnp.asarray(pts), jnp.asarray(nrm)))()
+    np.testing.assert_allclose(np.asarray(inside), np.asarray(eager), rtol=1e-6)
