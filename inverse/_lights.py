@@ -813,13 +813,75 @@ def light_loss(scene: js.Scene, targets: PaintedTargets, material: js.Material, 
 @dataclasses.dataclass(frozen=True)
 class JointFit:
     """`scene`, `material`, `residual (N, 3)`, `report = (LightReport, MaterialReport)` of the
-    last round, `history`: the loss after each half-step."""
+    last round, `history`: the loss after each half-step, `std_errors`: name -> joint standard
+    error (`joint_std_errors`; the two reports' errors are each conditional on the other half)."""
 
     scene: js.Scene
     material: js.Material
     residual: np.ndarray
     report: tuple
     history: tuple
+    std_errors: dict = dataclasses.field(default_factory=dict)
+
+
+def joint_std_errors(param: LightParametrisation, theta: Any, scene: js.Scene, material: js.Material,
+                     targets: PaintedTargets, *, fit_exponent: bool, specular: SpecularFn | None = None,
+                     free_k: Any = None) -> dict:
+    r"""Standard errors of a joint light + material fit, from the Jacobian of the weighted
+    residual in *all* the fitted parameters at once: the light's `theta` (`param.names`), the
+    coefficients $k_a, k_d, k_s$ per channel and, with `fit_exponent`, $\log n$.
+
+    $\hat\sigma^2 (J^\top J)^{-1}$ with $\hat\sigma^2 = |r|^2 / (m - p)$ (Gauss-Markov; a
+    linearisation at the optimum). Coefficients outside `free_k` (a `(3, 3)` bool array, rows
+    `ka, kd, ks`: False at an active bound, or for $k_s$ of a diffuse fit) are held fixed.
+
+    **Returns:** name -> standard error: `"x", "y", "z"` (or `"a", "b"` on a plane) in m,
+    rotations in rad, log sizes, `"ka[r]"` ... `"ks[b]"` and `"n"` (the exponent itself,
+    by the delta method); `inf` for a direction the targets do not determine.
+    """
+    t = targets
+    dt = t.points.dtype
+    P = param.size
+    with_spec = bool(np.any(np.asarray(material.ks) != 0))
+    free = np.ones((3, 3), bool) if free_k is None else np.asarray(free_k, bool)
+    if not with_spec:
+        free[2] = False
+    k0 = np.stack([np.asarray(material.ka, np.float64), np.asarray(material.kd, np.float64),
+                   np.asarray(material.ks, np.float64)])
+    idx = np.flatnonzero(free.reshape(-1))
+    fit_n = bool(fit_exponent and with_spec)
+    n0 = float(material.exponent)
+    phi0 = np.concatenate([np.asarray(theta, np.float64)[:P], k0.reshape(-1)[idx], [np.log(n0)] if fit_n else []])
+
+    def resid(phi: Array) -> Array:
+        k = jnp.asarray(k0, dt).reshape(-1).at[jnp.asarray(idx)].set(phi[P:P + len(idx)]).reshape(3, 3)
+        n = jnp.exp(phi[-1]) if fit_n else jnp.asarray(n0, dt)
+        sc = with_light(scene, param.light_index, param.build(phi[:P]))
+        m = js.Material(ka=k[0], kd=k[1], ks=k[2], exponent=n)
+        model = shade(sc, m, t.points, t.normals, t.eye, specular, with_spec)
+        return (jnp.sqrt(t.weights) * (model - t.colours)).reshape(-1)
+
+    phi = jnp.asarray(phi0, dt)
+    r, J = jax.jit(lambda f: (resid(f), jax.jacfwd(resid)(f)))(phi)
+    r, J = np.asarray(r, np.float64), np.asarray(J, np.float64)
+    m_eff = int(np.count_nonzero(np.asarray(t.weights) > 0))
+    sigma2 = float(r @ r) / max(m_eff - J.shape[1], 1)
+    cn = np.linalg.norm(J, axis=0)
+    Jn = J / np.where(cn > 0, cn, 1.0)
+    _, sv, _ = np.linalg.svd(Jn, full_matrices=False)
+    ok = (cn > 0) & (sv.min() > 1e-10 * sv.max())
+    cov = np.linalg.pinv(Jn.T @ Jn) * sigma2
+    se_all = np.where(ok, np.sqrt(np.maximum(np.diag(cov), 0.0)) / np.where(cn > 0, cn, 1.0), np.inf)
+    names = [*param.names, *[f"{'ka kd ks'.split()[i // 3]}[{'rgb'[i % 3]}]" for i in idx]] + (["log_n"] if fit_n else [])
+    out = {}
+    for nm, se in zip(names, se_all, strict=True):
+        if nm in ("x", "y", "z", "a", "b"):
+            out[nm] = float(se) * float(param.scale)
+        elif nm == "log_n":
+            out["n"] = float(se) * n0
+        else:
+            out[nm] = float(se)
+    return out
 
 
 def fit_light_and_material(
@@ -877,8 +939,14 @@ def fit_light_and_material(
         history.append(0.5 * float(np.sum(mf.report.weights * mf.residual**2)))
         if progress is not None:
             progress(f"  exact bounded material at that light: loss {history[-1]:.4e}  [{time.perf_counter() - t0:.1f} s]")
+        free = np.ones((3, 3), bool)
+        for a in mf.report.active_bounds:  # e.g. "ks[g]>=lower": held at the bound
+            if a.endswith(("lower", "upper")):
+                free["ka kd ks".split().index(a[:2]), "rgb".index(a[3])] = False
+        se = joint_std_errors(lf.parametrisation, lf.report.theta, scene, mf.material, targets,
+                              fit_exponent="exponent" not in mk, specular=specular, free_k=free)
         return JointFit(scene=lf.scene, material=mf.material, residual=mf.residual, report=(lf.report, mf.report),
-                        history=tuple(history))
+                        history=tuple(history), std_errors=se)
     lf = mf = None
     for r in range(int(rounds)):
         kw = dict(lk)

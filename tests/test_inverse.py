@@ -341,6 +341,33 @@ def test_fit_light_projected_material(light_config):
     assert jf.history[-1] < 1e-20
 
 
+def test_joint_std_errors_match_variable_projection(light_config):
+    """Joint light + material standard errors (full Jacobian) against two independent routes:
+    the light's from the variable-projection fit (its reduced Jacobian gives the marginal
+    covariance) and the coefficients' from the material fit at the fitted light (conditional on
+    the light, so never larger than the joint ones)."""
+    cfg, material, t = light_config
+    true_pos = np.array([0.2, 0.1, 1.5])
+    scene = js.Scene([js.PointLight(true_pos, 3.0)], ambient=cfg.scene.ambient)
+    col = _render(scene, material, cfg.points, cfg.normals, cfg.eye)
+    noisy = col * (1 + 0.01 * np.random.default_rng(5).normal(size=col.shape))
+    tt = t.with_colours(noisy)
+    start = js.Scene([js.PointLight([-0.3, 0.5, 1.9], 3.0)], ambient=cfg.scene.ambient)
+    guess = js.Material(ka=0.1, kd=0.9, ks=0.0, exponent=1.0)
+    jf = inverse.fit_light_and_material(start, tt, guess, light_kwargs={"fit": ("position",), "starts": 4},
+                                        material_kwargs={"bounds": ((0, 0, 0), (1, 1, 0))}, specular=SPEC)
+    lrep, mrep = jf.report
+    se = jf.std_errors
+    assert set(se) == {"x", "y", "z", "ka[r]", "ka[g]", "ka[b]", "kd[r]", "kd[g]", "kd[b]"}  # k_s held at 0
+    for nm in ("x", "y", "z"):
+        # equal up to the degrees of freedom: sqrt((90 - 3) / (90 - 9)) = 1.036
+        np.testing.assert_allclose(se[nm], lrep.std_errors[nm] * np.sqrt(87 / 81), rtol=0.01)
+    for nm in ("ka[r]", "kd[g]", "kd[b]"):
+        assert se[nm] >= mrep.std_errors[nm] * (1 - 1e-9) > 0
+    err = np.abs(np.asarray(jf.scene.lights[0].position) - true_pos)
+    assert np.all(err < 6 * np.array([se["x"], se["y"], se["z"]])), (err, se)
+
+
 def test_fit_light_segment(light_config):
     cfg, material, t = light_config
     true = js.LinearLight([-0.3, 0.1, 1.4], [0.4, 0.3, 1.5], power=6.0)
