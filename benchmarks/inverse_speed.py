@@ -122,12 +122,36 @@ def main():
     _write(results, args.out)
 
 
+def _markdown(results):
+    lines = [
+        f"Run: `benchmarks/inverse_speed.py` on {results['machine']} ({results['cpu_count']} cores), jax "
+        f"{results['jax']}, float64, 48 targets, 8 light parameters; load average at start "
+        f"{results['load_average_at_start'][0]:.1f}.",
+        "",
+        "| solver | occluders | starts | compile (s) | solve (ms) | max LM steps | position error / scene |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in results["light"].values():
+        starts = f"{r['starts']}" + (f" -> best {r['refine']}" if r["refine"] else "")
+        lines.append(f"| {r['solver']} | {r['occluders']} | {starts} | {r['compile_s']:.1f} | {1e3 * r['solve_s']:.0f} | "
+                     f"{r['max_steps_taken']} | {r['position_error_rel']:.1e} |")
+    for key, label in (("material_fit_n_searched", "material fit, n searched (20 points)"),
+                       ("material_fit_n_fixed", "material fit, n fixed (20 points)")):
+        if key in results:
+            r = results[key]
+            lines.append(f"| {label} | | | {r['compile_s']:.1f} | {1e3 * r['solve_s']:.0f} | | |")
+    return "\n".join(lines) + "\n"
+
+
 def _write(results, out):
     results["targets_s"] = {"compile": 5.0, "solve": 0.2, "starts_64": 2.0}
     os.makedirs(os.path.dirname(out), exist_ok=True)
     with open(out, "w") as fh:
         json.dump(results, fh, indent=1)
-    print("wrote", out)
+    md = os.path.splitext(out)[0] + ".md"
+    with open(md, "w") as fh:
+        fh.write(_markdown(results))
+    print("wrote", out, "and", md)
 
 
 if __name__ == "__main__":

@@ -319,7 +319,7 @@ def contour_specular_kernel(
     (`start == end`) contribute exactly 0. Arguments and result as `polygon_specular_kernel`.
     """
     _check_method(method, degree)
-    _, R = reflected_direction(p, n, eye)
+    nn, R = reflected_direction(p, n, eye)
     k = exponent + 1.0
     if method == "chebyshev":
         x_cut = cutoff_angle(k, tol)
@@ -339,10 +339,17 @@ def contour_specular_kernel(
             )
         else:
             inner = _lobe_edge_exact(s, rho, k, lo, hi)
-        return jnp.where(ok, outer + inner, 0.0)
+        turn = _azimuth_change(s, rho, ua, ub)  # the whole arc's change of azimuth about R
+        return jnp.where(ok, outer + inner, 0.0), jnp.where(ok, turn, 0.0)
 
-    terms = jax.vmap(edge)(starts - p[None, :], ends - p[None, :])
-    return -jnp.sum(terms) / (2.0 * np.pi)
+    terms, turns = jax.vmap(edge)(starts - p[None, :], ends - p[None, :])
+    # The polar sweep about R counts a region winding once about the R axis as containing R. A
+    # region above the horizon can contain R only when R is (R . N = N . V > 0); when the eye
+    # is behind the tangent plane a winding region contains -R instead, where the lobe is 0:
+    # the sweep then gives (true value - 1), so add the winding back (piecewise constant).
+    winding = jnp.round(lax.stop_gradient(jnp.sum(turns)) / (2.0 * np.pi))
+    minus_r_inside = jnp.where(jnp.dot(nn, R) < 0, winding, 0.0)
+    return -jnp.sum(terms) / (2.0 * np.pi) + minus_r_inside
 
 
 def polygon_specular_kernel(

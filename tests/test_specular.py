@@ -593,3 +593,45 @@ def test_singular_segment_finite(dtype, n):
     assert np.all(np.isfinite(vals)) and np.all(vals >= 0)
     for g in grads:
         assert np.all(np.isfinite(g))
+
+
+def _back_facing_configs(count=8, seed=3):
+    """Eyes behind the receiver's tangent plane (N . V < 0): R points below the horizon."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(count):
+        nrm = np.array([0, 0, 1.0]) + 0.8 * rng.normal(size=3)
+        nrm[2] = abs(nrm[2]) + 0.2
+        nrm /= np.linalg.norm(nrm)
+        p = np.r_[0.3 * rng.normal(size=2), 0.0]
+        v = rng.normal(size=3)
+        v -= (v @ nrm) * nrm
+        v = v / np.linalg.norm(v) - rng.uniform(0.02, 1.0) * nrm
+        out.append((p, nrm, p + 2 * v / np.linalg.norm(v)))
+    # -R exactly at the middle of the light: the lobe misses it entirely (S = 0).
+    d = np.array([0.2, 0.1, 2.0]) / np.linalg.norm([0.2, 0.1, 2.0])
+    nz = np.array([0.0, 0.0, 1.0])
+    r = -d
+    out.append((np.zeros(3), nz, 2 * (2 * (nz @ r) * nz - r)))
+    return out
+
+
+@pytest.mark.parametrize("method", ["exact", "chebyshev"])
+def test_polygon_eye_behind_the_tangent_plane(method):
+    """Regression: with the eye behind the tangent plane, -R can lie inside the light seen from
+    p; the polar sweep about R counted it as a winding and returned S - 1 (S = -1 where the
+    lobe misses the light). Checked against the independent quadrature; S >= 0 up to round-off."""
+    square = np.array([[-1, 1, 2.0], [1, 1, 2], [1, -1, 2], [-1, -1, 2]])
+    cfgs = _back_facing_configs()
+    n_minus_r_inside = 0
+    for p, nrm, eye in cfgs:
+        nn, r = _mirror(p, nrm, eye)
+        assert nn @ (eye - p) < 0
+        hit = p - r * (2.0 - p[2]) / -r[2] if -r[2] > 0 else None  # -R meets the light's plane z = 2
+        n_minus_r_inside += int(hit is not None and np.all(np.abs(hit[:2]) < 1))
+        for n in (1.0, 4.0):
+            ref = reference_polygon(p, nrm, eye, square, n)
+            got = _polygon_batch(method, [x[None] for x in (p, nrm, eye, _pad(square))], n)[0]
+            tol = 1e-12 if method == "exact" else 1e-4 * max(ref, 1e-3)
+            assert abs(got - ref) <= tol and got > -1e-12, (p, nrm, eye, n, got, ref)
+    assert n_minus_r_inside >= 2  # the configurations do exercise the case
