@@ -18,7 +18,12 @@ line where the occluder crosses the emitter plane,
 $N_L = h_p\,\mathrm{sgn}(d_o)\,N_o + |d_o|\,N_e$ ($h_p = N_e\cdot(p-e_0)$, $d_o = N_o\cdot(o_0-p)$;
 it says "the ray meets the occluder before the emitter"). These half-spaces come straight from
 the input vertices, so they are as accurate as the data however the regions get clipped;
-unbounded projections (occluders reaching behind $p$) never have to be formed.
+unbounded projections (occluders reaching behind $p$) never have to be formed. Only the
+directions of these normals matter, so each (and $N_e$ with $h_p$) is brought to order one
+by an exact power of two: the values are unchanged and nothing under- or overflows in float32,
+in the gradients either, for an occluder 1e-9 from $p$. An occluder is ignored when $p$ cannot
+be told apart from its plane (it then blocks a zero solid angle); the test compares the
+heights of its vertices above $p$ with their own rounding-error bounds (`_occluder_sides`).
 
 **Edge soup.** Candidate edges are the $K+1$ edges of $E_h$ (`horizon_clip_edges`) and, per
 occluder, the $K_o+1$ edges of its effective blocker, clipped in 3-D to the pyramid $(p, E_h)$
@@ -76,27 +81,87 @@ def _edge_planes(p: Array, verts: Array) -> Array:
     return jnp.where(real[:, None], planes, 0.0)
 
 
+def _pow2_scale(mag: Array) -> Array:
+    """Power of two `2**-e` with `mag * 2**-e` in [0.5, 1) (1 where `mag` is 0 or not finite),
+    built from the exponent bits so that multiplying by it is exact. No gradient."""
+    mag = jax.lax.stop_gradient(mag)
+    fi = jnp.finfo(mag.dtype)
+    _, e = jnp.frexp(jnp.where((mag > 0) & jnp.isfinite(mag), mag, 1.0))
+    bias = fi.maxexp - 1
+    k = jnp.clip(-e, 2 - bias, bias - 1) + bias  # biased exponent of 2**-e, a normal number
+    int_t = {2: jnp.int16, 4: jnp.int32, 8: jnp.int64}[mag.dtype.itemsize]
+    bits = k.astype(int_t) << int(fi.nmant)
+    return jax.lax.bitcast_convert_type(bits, mag.dtype)
+
+
+def _rescale_rows(x: Array) -> Array:
+    """Each row (a plane normal; only its direction matters) times an exact power of two that
+    brings its largest component into [0.5, 1): nothing under- or overflows downstream
+    (cross products of two normals, their squares in gradients), the values are unchanged."""
+    return x * _pow2_scale(jnp.max(jnp.abs(x), axis=-1, keepdims=True))
+
+
+def _abs_cross(a, b):
+    """Componentwise bound on the terms of `cross(a, b)`: `|a_y b_z| + |a_z b_y|`, ..."""
+    a, b = jnp.abs(a), jnp.abs(b)
+    return jnp.stack(
+        [
+            a[..., 1] * b[..., 2] + a[..., 2] * b[..., 1],
+            a[..., 2] * b[..., 0] + a[..., 0] * b[..., 2],
+            a[..., 0] * b[..., 1] + a[..., 1] * b[..., 0],
+        ],
+        axis=-1,
+    )
+
+
 def _occluder_sides(p, occluders):
-    """Newell normals `no`, `d_o = no . (o_0 - p)`, the side sign `s` (+1 when the vertex order
-    runs counter-clockwise seen from p) and `active`: False when p lies in the occluder's plane
-    (within `COLLINEAR_EPS` machine epsilons of its size), where it blocks a zero solid angle."""
-    no = jax.vmap(newell_normal)(occluders)  # (M, 3)
-    rel = occluders - p[None, None, :]
-    d_o = jnp.einsum("mi,mi->m", no, rel[:, 0])
-    size = jnp.max(jnp.abs(rel), axis=(1, 2)) * jnp.max(jnp.abs(no), axis=1)
+    r"""Per occluder, in the frame of p scaled by an exact power of two $\sigma$ (largest
+    coordinate of $o_i - p$ in [0.5, 1), so that tiny or huge occluders neither under- nor
+    overflow): the Newell normal `no` of the $\sigma(o_i - p)$, `d_o = no . sigma (o_0 - p)`,
+    the side sign `s` (+1 when the vertex order runs counter-clockwise seen from p), `active`,
+    the oriented planes through p and the edges `s (v_{i+1}-p) x (v_i-p)` (each rescaled) and
+    $\sigma$ (`no` is $\sigma^2$, `d_o` $\sigma^3$ times their unscaled values).
+
+    `active` is False when p cannot be told apart from the occluder's plane (it then blocks a
+    zero solid angle): the heights $h_j = $ `no` $\cdot\,\sigma(o_j - p)$ of *all* its
+    vertices must share one sign and each exceed its own rounding-error bound,
+    $|h_j| > \tfrac{K_o + 8}{2}\,\epsilon\,A\cdot|r_j|$ with $r_j = \sigma(o_j - p)$ and
+    $A = \sum_i |r_i| \otimes |r_{i+1}|$ the Newell sum of the absolute values of the terms.
+    With $u = \epsilon/2$ that is $(K_o + 8)\,u$ against the first-order bound
+    $(K_o + 7)\,u\,A\cdot|r_j|$ on the error of $h_j$ ($(K_o + 4)\,u$ for `no` and the dot
+    product, $3u$ for the rounding of $o_j - p$). The bound follows the actual terms: an
+    occluder parallel to a coordinate plane 1e-9 above p is resolved in float32, a tilted one
+    only beyond several $\epsilon$ times its size; p within the thickness of a (tolerated)
+    non-planar occluder, or exactly in its plane, or at a vertex ($h_j = 0$) is inactive."""
+    rel = occluders - p[None, None, :]  # (M, Ko, 3)
+    sigma = _pow2_scale(jnp.max(jnp.abs(rel), axis=(1, 2)))  # (M,)
+    rel = rel * sigma[:, None, None]
+    no = jax.vmap(newell_normal)(rel)  # (M, 3)
+    nxt = jnp.roll(rel, -1, axis=1)
+    bound_no = jnp.sum(_abs_cross(rel, nxt), axis=1)  # (M, 3)
+    # Elementwise products and sums, not einsum: a matrix unit may round its inputs (TF32).
+    h = jnp.sum(no[:, None, :] * rel, axis=-1)  # (M, Ko)
+    err = jnp.sum(bound_no[:, None, :] * jnp.abs(rel), axis=-1)
+    bound = (occluders.shape[1] + 8) / 2 * _eps(p) * err
+    d_o = h[:, 0]
     s = jnp.where(d_o < 0, 1.0, -1.0).astype(p.dtype)
-    active = jnp.abs(d_o) > COLLINEAR_EPS * _eps(p) * size
-    return no, d_o, s, active
+    active = jnp.all(-s[:, None] * h > bound, axis=1)
+    # Planes through p and the edges, from the same scaled differences (a power of two times
+    # `_edge_planes(p, occluders)`); zero for padded (repeated) vertices.
+    real = jnp.any(jnp.roll(occluders, -1, axis=1) != occluders, axis=2)
+    planes = jnp.where(real[..., None], jnp.cross(nxt, rel), 0.0)
+    planes = _rescale_rows(s[:, None, None] * planes)
+    return no, d_o, s, active, planes, sigma
 
 
 def _occluder_regions(p, occluders, ne, hp):
     """Per occluder: interior plane normals `(M, Ko+1, 3)` (edges, then the emitter-plane cut),
     the side sign `s` (+1 when its vertex order runs counter-clockwise seen from p) and an
     `active` flag (False when p lies in its plane: it blocks a zero solid angle)."""
-    no, d_o, s, active = _occluder_sides(p, occluders)
-    planes = s[:, None, None] * jax.vmap(_edge_planes, in_axes=(None, 0))(p, occluders)
-    n_cut = hp * (-s)[:, None] * no + jnp.abs(d_o)[:, None] * ne[None, :]
-    normals = jnp.concatenate([planes, n_cut[:, None, :]], axis=1)
+    no, d_o, s, active, planes, sigma = _occluder_sides(p, occluders)
+    # N_L = h_p sgn(d_o) N_o + |d_o| N_e, with no and d_o in the sigma-scaled frame (hp too).
+    n_cut = (hp * sigma * -s)[:, None] * no + jnp.abs(d_o)[:, None] * ne[None, :]
+    normals = jnp.concatenate([planes, _rescale_rows(n_cut)[:, None, :]], axis=1)
     return normals, s, active
 
 
@@ -127,9 +192,16 @@ def _project(p, x, ne, hp):
 
 
 def _crossing_point(p, c, ne, hp):
-    """Where the line through p with direction `c` meets the emitter plane (either sign of c)."""
+    r"""Where the line through p with direction `c` meets the emitter plane (either sign of c).
+
+    A direction within $\epsilon^2$ (relative) of parallel to that plane meets it farther than
+    $1/\epsilon^2$ times the distance from p to the plane, at infinity for all purposes: it gets
+    `p` (such a point is never the end of a kept piece), so that $1/\mathrm{den}^2$ in the
+    gradient cannot overflow (`c`, `ne` are of order one here)."""
+    c = _rescale_rows(c)  # only its direction matters
     den = -jnp.dot(c, ne)
-    ok = den != 0
+    eps = _eps(c)
+    ok = jnp.abs(den) > eps * eps * jnp.max(jnp.abs(c)) * jnp.max(jnp.abs(ne))
     return p + c * jnp.where(ok, hp / jnp.where(ok, den, 1.0), 0.0)
 
 
@@ -194,6 +266,10 @@ def visible_edges(
     e0 = verts[0]
     ne = newell_normal(verts)
     hp = jnp.dot(ne, p - e0)
+    # Only the direction of ne matters, with hp = ne . (p - e0) scaled alike: an exact power
+    # of two brings ne to order one (small or large lights neither under- nor overflow).
+    e_scale = _pow2_scale(jnp.max(jnp.abs(ne)))
+    ne, hp = ne * e_scale, hp * e_scale
     in_front = hp > 0
     if m_occ == 0:
         starts, ends = horizon_clip_edges(p, n, verts)
@@ -201,7 +277,7 @@ def visible_edges(
 
     # Region 0: E_h. Its edges and the interior normals of their planes through p.
     e_starts, e_ends = horizon_clip_edges(p, n, verts)
-    e_normals = jnp.concatenate([_edge_planes(p, verts), n[None, :]], axis=0)  # (K+1, 3)
+    e_normals = _rescale_rows(jnp.concatenate([_edge_planes(p, verts), n[None, :]], axis=0))
 
     # Regions 1..M: effective blockers, their edges clipped to the pyramid (p, E_h).
     o_normals, s, active = _occluder_regions(p, occluders, ne, hp)
@@ -364,8 +440,7 @@ def blocked_intervals(
     (linear in $t$ for each edge plane) and $X(t)$ lies beyond the occluder's plane. Empty
     intervals have `lo >= hi`.
     """
-    no, _, s, active = _occluder_sides(p, occluders)
-    planes = s[:, None, None] * jax.vmap(_edge_planes, in_axes=(None, 0))(p, occluders)
+    no, _, s, active, planes, _ = _occluder_sides(p, occluders)
     d = b - a
 
     def one(pl, nor, o0, sj, act):
@@ -444,8 +519,7 @@ def visible_linear_kernel(
 
 
 def _ray_blocked(p, r, occluders, limit_point):
-    no, d_o, s, active = _occluder_sides(p, occluders)
-    planes = s[:, None, None] * jax.vmap(_edge_planes, in_axes=(None, 0))(p, occluders)
+    no, _, s, active, planes, _ = _occluder_sides(p, occluders)
     valid = jnp.any(planes != 0, axis=2)
     in_cone = jnp.all(~valid | (planes @ r > 0), axis=1) & active
     if limit_point is not None:

@@ -26,6 +26,19 @@ segment, so a receiver on (or near) the supporting line is exact and smooth: tha
 "on the supporting line" special case, $\int_0^{\mathcal L} (N\cdot L)/(l+b)^2 dl$, as a limit
 rather than a branch. A receiver *on* the segment gets $+\infty$ (the integral diverges) with a
 zero gradient. The segment is clipped exactly to the receiver's horizon first.
+For $m \ge 1$ the same $E$ is evaluated as
+$$E = \frac{C_m \Phi}{d}\Big[\frac{N\cdot h}{d} J_{m+1}
+      + N\cdot u\,\frac{c_A^{m+1} - c_B^{m+1}}{m+1}\Big],\qquad c = \frac{d}{r},\ s = \frac{t}{r},$$
+(since $d^m r^{-(m+1)} = c^{m+1}/d$), with $J_{m+1}$ reduced in $c$ and $s$ only
+($[c^{k-1}s]_A^B / k$, $J_1 = s_B - s_A$, $J_0 = \operatorname{atan2}$ of $\sin$ and $\cos$ of
+$\phi_B - \phi_A$), $s_B - s_A = c_A c_B (t_B - t_A)(t_B + t_A)/(t_B r_A + t_A r_B)$ when the
+foot is outside the segment and $c_A - c_B = c_A (t_B - t_A)(t_B + t_A) / (r_B (r_A + r_B))$
+(no cancellation). Everything inside the bracket is a ratio of order one and the only
+dimensional factor is the overall $1/d$, so neither the value nor its derivatives overflow in
+float32 at small or large scene scales (the direct $r^{-(m+1)}$, about $10^{30}$ at a scale of
+$10^{-6}$ for $m = 4$, overflowed in its derivative; the $m = 0$ quotient above is likewise
+grouped as $\frac{t_B - t_A}{r_A}\,\frac{t_B + t_A}{r_B} / (t_B r_A + t_A r_B)$). A receiver on the supporting line ($d = 0$) gets the
+limit $E = 0$ for $m \ge 1$ (no emission along the axis).
 """
 
 from __future__ import annotations
@@ -74,11 +87,41 @@ def horizon_clip_interval(hn, un, ta, tb):
 def _sin_diff_over_d2(ta, tb, d2, ra, rb):
     r"""$(t_B/r_B - t_A/r_A)/d^2 = J_1/d^2$, stable when the foot is outside the segment."""
     same_side = ta * tb > 0
-    den_stable = jnp.where(same_side, (tb * ra + ta * rb) * ra * rb, 1.0)
-    stable = (tb - ta) * (tb + ta) / den_stable
+    den_stable = jnp.where(same_side, tb * ra + ta * rb, 1.0)
+    ra_s = jnp.where(same_side, ra, 1.0)
+    rb_s = jnp.where(same_side, rb, 1.0)
+    # Grouped so that no intermediate goes beyond (length)^-2 (float32 at small scales).
+    stable = ((tb - ta) / ra_s) * ((tb + ta) / rb_s) / den_stable
     d2_safe = jnp.where(same_side | (d2 == 0), 1.0, d2)
     direct = (tb / rb - ta / ra) / d2_safe
     return jnp.where(same_side, stable, direct)
+
+
+def _cosine_profile_bracket(t0, t1, d, ra, rb, m):
+    r"""For $m \ge 1$ and $d > 0$: $(J_{m+1}, T)$ in the ratios $c = d/r$, $s = t/r$, with
+    $d\,E/(C_m\Phi) = (N\cdot h/d)\,J_{m+1} + N\cdot u\,T$ (module docstring, "Numerics"):
+    $J_{m+1}$ by the reduction formula and
+    $T = (c_A^{m+1} - c_B^{m+1})/(m+1) = (c_A - c_B)\sum_{i=0}^{m} c_A^i c_B^{m-i} / (m+1)$,
+    $c_A - c_B = c_A (t_B - t_A)(t_B + t_A)/(r_B (r_A + r_B))$ (no cancellation). Returns `J`
+    and `T`; every quantity is dimensionless and at most 1 in magnitude (up to a factor 2)."""
+    ca, cb = d / ra, d / rb
+    sa, sb = t0 / ra, t1 / rb
+    k_target = m + 1
+    if k_target % 2 == 0:
+        # J_0 = phi_B - phi_A; both arguments divided by r_A r_B.
+        j = jnp.arctan2(ca * ((t1 - t0) / rb), ca * cb + sa * sb)
+        k0 = 0
+    else:
+        # J_1 = s_B - s_A, by the cancellation-free form when the foot is outside the segment.
+        same_side = t0 * t1 > 0
+        den = jnp.where(same_side, t1 * ra + t0 * rb, 1.0)
+        j = jnp.where(same_side, ca * cb * ((t1 - t0) * (t1 + t0) / den), sb - sa)
+        k0 = 1
+    for k in range(k0 + 2, k_target + 1, 2):
+        j = (cb ** (k - 1) * sb - ca ** (k - 1) * sa) / k + (k - 1) / k * j
+    c_diff = ca * ((t1 - t0) / rb) * ((t1 + t0) / (ra + rb))
+    c_sum = sum(ca**i * cb ** (m - i) for i in range(m + 1))
+    return j, c_diff * c_sum / (m + 1)
 
 
 def linear_irradiance_kernel(
@@ -117,21 +160,10 @@ def linear_irradiance_kernel(
         value = hn * _sin_diff_over_d2(t0, t1, d2, ra, rb) + un * (1.0 / ra - 1.0 / rb)
     else:
         d2_ok = d2 > 0
-        d2_safe = jnp.where(d2_ok, d2, 1.0)
-        d = jnp.sqrt(d2_safe)
-        # J_k by the reduction formula, starting from J_0 or J_1 (parity of k = m + 1).
-        k_target = m + 1
-        if k_target % 2 == 0:
-            j = jnp.arctan2(d * (t1 - t0), d2_safe + t0 * t1)  # J_0 = phi_B - phi_A
-            k0 = 0
-        else:
-            j = d2_safe * _sin_diff_over_d2(t0, t1, d2_safe, ra, rb)  # J_1
-            k0 = 1
-        for k in range(k0 + 2, k_target + 1, 2):
-            boundary = d ** (k - 1) * (t1 / rb**k - t0 / ra**k)
-            j = boundary / k + (k - 1) / k * j
-        tail = d**m * (ra ** (-(m + 1)) - rb ** (-(m + 1))) / (m + 1)
-        value = jnp.where(d2_ok, hn * j / d2_safe + un * tail, 0.0)
+        d = jnp.sqrt(jnp.where(d2_ok, d2, 1.0))
+        hn_hat = hn / d  # N . h / d, in [-1, 1]
+        j, tail = _cosine_profile_bracket(t0, t1, d, ra, rb, m)
+        value = jnp.where(d2_ok, (hn_hat * j + un * tail) / d, 0.0)
     value = cosine_profile_constant(m) * value
     return jnp.where(on_segment, jnp.inf, jnp.where(ok, value, 0.0))
 

@@ -397,6 +397,36 @@ def test_occluder_touching_receiver():
     _check_cases([tri])
 
 
+def test_float32_occluder_1e9_above_receiver():
+    # An occluder parallel to the receiver's plane 1e-9 above p (p off the origin, so o - p is
+    # rounded): float32 tells its side from the rounding-error bound of its vertex heights and
+    # it shadows everything; a tilted occluder whose plane contains p (not representable in
+    # float32: p is within rounding of it) blocks nothing. All kernels; finite gradients.
+    f32 = np.float32
+    p = np.array([0.3, -0.2, 0.0])
+    cover = np.array([[0.2, -0.3, 1e-9], [0.4, -0.3, 1e-9], [0.4, -0.1, 1e-9], [0.2, -0.1, 1e-9]])
+    e1, e2 = np.array([0.6, 0.0, 0.8]), np.array([0.0, 1.0, 0.0])
+    tilted = p + 0.5 * np.array([-e1 - e2, e1 - e2, e1 + e2, e2 - e1])
+    vg = jax.jit(jax.value_and_grad(visible_form_factor_kernel, argnums=(0, 1, 2, 3)))
+    a, b = np.array([-1.0, 0.0, 2.0]), np.array([1.0, 0.1, 2.0])
+    lin = jax.jit(visible_linear_kernel, static_argnums=4)
+    q = jnp.asarray(p, f32)
+    for occ, blocks in ((cover, True), (tilted, False)):
+        o = jnp.asarray(occ[None], f32)
+        val, grads = vg(q, jnp.asarray(UP, f32), jnp.asarray(EM, f32), o)
+        for g in grads:
+            assert np.all(np.isfinite(np.asarray(g)))
+        assert float(point_visibility(q, jnp.array([0.3, -0.2, 2.0], f32), o)) == (not blocks)
+        assert float(directional_visibility(q, jnp.array([0.0, 0.0, -1.0], f32), o)) == (not blocks)
+        e_lin = float(lin(q, jnp.asarray(UP, f32), jnp.asarray(a, f32), jnp.asarray(b, f32), 1, o))
+        if blocks:
+            assert float(val) == 0.0
+            assert e_lin == 0.0
+        else:
+            assert float(val) == pytest.approx(unoccluded(p, UP, EM), rel=2e-6)
+            assert e_lin == pytest.approx(reference_linear(p, UP, a, b, 1, []), rel=2e-6)
+
+
 def test_coincident_occluder_and_emitter_edges():
     # Occluder whose projection from (0,0,0) is exactly the emitter: full umbra.
     occ = np.array([[-0.5, -0.5, 1.0], [-0.5, 0.5, 1], [0.5, 0.5, 1], [0.5, -0.5, 1]])

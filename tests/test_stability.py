@@ -399,13 +399,7 @@ TOL = {"float64": (1e-13, 1e-9), "float32": (2e-6, 2e-4)}
 EXACT_ZERO = {"polygon/edge-line-exact", "polygon/behind"}
 
 # Known defects (strict xfail: fixing them makes the test XPASS and fail; then drop the entry).
-KNOWN = {
-    "float32/occluders-touching": "an occluder 1e-9 above the receiver: float32 visible_form_factor_kernel "
-    "ignores one covering the whole light (F = unoccluded 0.239, exact 0) and gives NaN/inf gradients for "
-    "it and for one hiding the centre (whose value is right); float64 is exact and finite",
-    "float32/linear-m4/scale-1e-6": "NaN gradient: r**-(m+1) ~ 1e30 and its derivative overflow float32; "
-    "fix: write the m >= 1 terms in the ratios d/r, t/r (one overall 1/d)",
-}
+KNOWN: dict[str, str] = {}
 
 
 def _all_row_ids():
@@ -598,9 +592,7 @@ def _touching_cases():
 
 @pytest.mark.slow  # ~45 s per dtype (compilation of the clipping kernel)
 @pytest.mark.skipif(visible_form_factor_kernel is None, reason="jaxshadow/_clip.py absent")
-def test_occluders_touching_the_receiver(dtype, request):
-    if dtype == np.float32:
-        request.applymarker(pytest.mark.xfail(strict=True, reason=KNOWN["float32/occluders-touching"]))
+def test_occluders_touching_the_receiver(dtype):
     failures = []
     for cid, val, ref, unocc, finite in touching_rows(dtype):
         if not finite:
