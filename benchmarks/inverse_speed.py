@@ -73,12 +73,16 @@ def main():
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--full-repeats", type=int, default=1, help="repeats of the (slow) full 64-start solve")
     ap.add_argument("--no-optimistix", action="store_true", help="skip the optimistix comparison")
+    ap.add_argument("--no-full", action="store_true", help="skip the (slow) LM from all 64 starts")
+    ap.add_argument("--no-material", action="store_true", help="skip the material-fit timings")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "inverse_speed.json"))
     args = ap.parse_args()
     results = {"machine": platform.platform(), "cpu_count": os.cpu_count(), "jax": jax.__version__,
                "backend": jax.default_backend(), "targets": 48, "dtype": "float64",
                "load_average_at_start": os.getloadavg(), "light": {}}
-    cases = [("lm", 1, None, args.repeats), ("lm", 64, 8, args.repeats), ("lm", 64, None, args.full_repeats)]
+    cases = [("lm", 1, None, args.repeats), ("lm", 64, 8, args.repeats)]
+    if not args.no_full:
+        cases.append(("lm", 64, None, args.full_repeats))
     if not args.no_optimistix:
         cases.append(("optimistix", 1, None, args.repeats))
     for n_occ in args.occluders:
@@ -105,6 +109,9 @@ def main():
             print(f"{key:45s} compile {first - med:7.2f} s  solve {1e3 * med:9.1f} ms  "
                   f"steps {int(np.max(fit.report.num_steps)):3d}  pos err {err['position'] / fit.report.scale:.1e}",
                   flush=True)
+    if args.no_material:
+        _write(results, args.out)
+        return
     # Material fit (roughness searched): whole call, after a warm-up call.
     mcfg = demo_configuration(occluders=False, n_points=20, seed=0)
     mcol = np.asarray(shade(mcfg.scene, mcfg.material, jnp.asarray(mcfg.points), jnp.asarray(mcfg.normals),
