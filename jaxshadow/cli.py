@@ -179,8 +179,28 @@ def cmd_fit(args: argparse.Namespace) -> int:
     return int(fit_command(args.scene, args.targets, args.output, light=args.light) or 0)
 
 
+def enable_compile_cache(directory: str | None = None) -> str:
+    """Turn on JAX's persistent compilation cache (programs that took >= 1 s to compile are
+    stored on disk and reused by later processes). `directory`: default
+    `$JAX_COMPILATION_CACHE_DIR`, else `~/.cache/jaxshadow/xla`. Returns the directory. The
+    cache is trusted code: keep it private to the user (see JAX's documentation)."""
+    import jax
+
+    d = directory or os.environ.get("JAX_COMPILATION_CACHE_DIR") or os.path.join(
+        os.path.expanduser("~"), ".cache", "jaxshadow", "xla")
+    os.makedirs(d, mode=0o700, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", d)
+    return d
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="jaxshadow", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument(
+        "--compile-cache", default=None, metavar="DIR",
+        help="JAX persistent compilation cache (default: $JAX_COMPILATION_CACHE_DIR, else "
+             "~/.cache/jaxshadow/xla): a second run of the same job skips most XLA compilation",
+    )
+    parser.add_argument("--no-compile-cache", action="store_true", help="do not read or write the cache")
     sub = parser.add_subparsers(dest="cmd", required=True)
     p = sub.add_parser("report", help="irradiance of a built-in scene vs Mitsuba 3, with a plot")
     p.add_argument("--scene", default=None, help="scene JSON (default: the built-in room)")
@@ -210,6 +230,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--light", type=int, default=None, help="also fit the placement of this light")
     p.set_defaults(func=cmd_fit)
     args = parser.parse_args(argv)
+    if not args.no_compile_cache:
+        enable_compile_cache(args.compile_cache)
     try:
         return int(args.func(args) or 0)
     except (ValueError, NotImplementedError, FileNotFoundError) as err:
