@@ -179,9 +179,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
     return int(fit_command(args.scene, args.targets, args.output, light=args.light) or 0)
 
 
-def enable_compile_cache(directory: str | None = None) -> str:
-    """Turn on JAX's persistent compilation cache (programs that took >= 1 s to compile are
-    stored on disk and reused by later processes). `directory`: default
+def enable_compile_cache(directory: str | None = None, min_compile_s: float = 0.2) -> str:
+    """Turn on JAX's persistent compilation cache (programs that took >= `min_compile_s` to
+    compile are stored on disk and reused by later processes). `directory`: default
     `$JAX_COMPILATION_CACHE_DIR`, else `~/.cache/jaxshadow/xla`. Returns the directory. The
     cache is trusted code: keep it private to the user (see JAX's documentation)."""
     import jax
@@ -190,6 +190,7 @@ def enable_compile_cache(directory: str | None = None) -> str:
         os.path.expanduser("~"), ".cache", "jaxshadow", "xla")
     os.makedirs(d, mode=0o700, exist_ok=True)
     jax.config.update("jax_compilation_cache_dir", d)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", min_compile_s)
     return d
 
 

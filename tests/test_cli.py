@@ -49,7 +49,7 @@ def test_fit_command_writes_the_fitted_material(tmp_path):
 
 
 def test_compile_cache_option(tmp_path, monkeypatch):
-    """`--compile-cache DIR` turns on JAX's persistent cache there (programs taking >= 1 s to
+    """`--compile-cache DIR` turns on JAX's persistent cache there (programs taking >= 0.2 s to
     compile are written); the option is reset afterwards so other tests are unaffected."""
     import jax
     from jax.experimental.compilation_cache import compilation_cache
