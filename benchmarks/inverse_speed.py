@@ -28,9 +28,8 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import inverse  # noqa: E402
-import jaxshadow as js  # noqa: E402
 from inverse._forward import shade  # noqa: E402
-from inverse._scenes import demo_configuration, pose_errors, quad  # noqa: E402
+from inverse._scenes import demo_configuration, occluded_light_problem, pose_errors  # noqa: E402
 
 
 def _block(x):
@@ -52,20 +51,7 @@ def _timed(fn, repeats):
 def _light_problem(n_occ, seed=0):
     """The demo's quad light (48 painted points, diffuse material, noise-free targets from our
     model: this measures solver speed, not accuracy) with `n_occ` random 0.2 x 0.2 occluders."""
-    cfg = demo_configuration(occluders=False, n_points=48, seed=3)
-    occ = None
-    if n_occ:
-        rng = np.random.default_rng(seed)
-        occ = [quad([*rng.uniform(-0.6, 0.6, 2), rng.uniform(0.4, 0.9)], 0.2, 0.2, (0.0, 0.0, rng.uniform(0, 1)))
-               for _ in range(n_occ)]
-    scene = js.Scene(cfg.scene.lights, occluders=occ, ambient=cfg.scene.ambient)
-    start = js.Scene(cfg.start_scene.lights, occluders=occ, ambient=cfg.scene.ambient)
-    material = js.Material(ka=cfg.material.ka, kd=cfg.material.kd, ks=0.0, exponent=1.0)
-    n = len(cfg.points)
-    col = np.asarray(shade(scene, material, jnp.asarray(cfg.points), jnp.asarray(cfg.normals),
-                           jnp.asarray(np.broadcast_to(cfg.eye, (n, 3))), with_specular=False))
-    targets = inverse.PaintedTargets(cfg.points, cfg.normals, col, cfg.eye)
-    return scene, start, material, targets
+    return occluded_light_problem(n_occ, n_points=48, seed=seed)[:4]
 
 
 def _child(n_occ, cache_dir):

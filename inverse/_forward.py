@@ -50,17 +50,16 @@ def shade_culled(scene: Any, material: Any, points: Array, normals: Array, eye: 
                  specular: SpecularFn | None, with_specular: bool, max_active: int | None) -> tuple[Array, Array]:
     """`(shade(...), overflow)`; with `max_active` (static int) each receiver sees at most that
     many occluders per polygon light, and `overflow` (bool scalar) says some receiver had more
-    (the value is then not exact). `max_active=None` or a custom `specular`: the full model and
-    `overflow = False`. Traceable in the scene (no input checks: the caller validated them)."""
-    if max_active is None or scene.occluders is None or (with_specular and specular is not None):
+    (the value is then not exact). `max_active=None`: the full model and `overflow = False`; a
+    custom `specular` is evaluated uncull'd. Traceable in the scene (no input checks: the caller
+    validated them)."""
+    if max_active is None or scene.occluders is None:
         return shade(scene, material, points, normals, eye, specular, with_specular), jnp.zeros((), bool)
     dt = points.dtype
-    e, over = _irradiance_impl(scene, points, normals, max_active, False)
+    e, over = irradiance_culled(scene, points, normals, max_active)
     out = (material.ka.astype(dt) * scene.ambient.astype(dt))[None, :] + (material.kd.astype(dt) / jnp.pi)[None, :] * e
     if with_specular:
-        eyes = jnp.broadcast_to(jnp.asarray(eye, dt), points.shape)
-        s, over_s = _specular_impl(scene, points, normals, eyes, material.exponent.astype(dt), "chebyshev",
-                                   DEFAULT_DEGREE, max_active, False)
+        s, over_s = specular_culled(scene, points, normals, eye, material.exponent, specular, max_active)
         out = out + material.ks.astype(dt)[None, :] * s
         over = over | over_s
     return out, over

@@ -143,3 +143,30 @@ def demo_configuration(occluders: bool = True, n_points: int = 40, seed: int = 0
                                   true_light.radiance)
     start_scene = js.Scene([start_light], occluders=occ, ambient=scene.ambient)
     return Configuration(scene, material, pts, nrm, eye, start_scene, size)
+
+
+def occluded_light_problem(n_occluders: int, n_points: int = 48, seed: int = 0) -> tuple:
+    """The demo's quad light and diffuse material with `n_occluders` random 0.2 x 0.2 occluders
+    (heights 0.4-0.9, `seed`) over `n_points` painted points whose colours come from jaxshadow's
+    own model (noise-free: for solver tests and speed benchmarks, never accuracy acceptance).
+
+    **Returns:** `(true scene, start scene, material, PaintedTargets, scene size)`.
+    """
+    import jax.numpy as jnp
+
+    from ._forward import shade
+    from ._targets import PaintedTargets
+
+    cfg = demo_configuration(occluders=False, n_points=n_points, seed=3)
+    occ = None
+    if n_occluders:
+        rng = np.random.default_rng(seed)
+        occ = [quad([*rng.uniform(-0.6, 0.6, 2), rng.uniform(0.4, 0.9)], 0.2, 0.2, (0.0, 0.0, rng.uniform(0, 1)))
+               for _ in range(n_occluders)]
+    scene = js.Scene(cfg.scene.lights, occluders=occ, ambient=cfg.scene.ambient)
+    start = js.Scene(cfg.start_scene.lights, occluders=occ, ambient=cfg.scene.ambient)
+    material = js.Material(ka=cfg.material.ka, kd=cfg.material.kd, ks=0.0, exponent=1.0)
+    n = len(cfg.points)
+    col = np.asarray(shade(scene, material, jnp.asarray(cfg.points), jnp.asarray(cfg.normals),
+                           jnp.asarray(np.broadcast_to(cfg.eye, (n, 3))), with_specular=False))
+    return scene, start, material, PaintedTargets(cfg.points, cfg.normals, col, cfg.eye), cfg.size

@@ -16,11 +16,9 @@ import pytest
 import scipy.optimize
 
 import inverse
-import jaxshadow as js
 from inverse import _lights as L
-from inverse._forward import shade
 from inverse._lm import batched_levenberg_marquardt
-from inverse._scenes import demo_configuration, pose_errors, quad
+from inverse._scenes import occluded_light_problem, pose_errors
 
 # Osborne / Meyer-style exponential fit: y = a exp(-b t) + c, with 3 parameters and 20 data.
 T = np.linspace(0.0, 4.0, 20)
@@ -90,17 +88,7 @@ def test_lm_max_steps_reports_not_converged():
 @pytest.fixture(scope="module")
 def occluded_config():
     """The demo's quad light over 8 occluders, 24 targets, noise-free (solver test, not acceptance)."""
-    cfg = demo_configuration(occluders=False, n_points=24, seed=3)
-    rng = np.random.default_rng(0)
-    occ = [quad([*rng.uniform(-0.6, 0.6, 2), rng.uniform(0.4, 0.9)], 0.2, 0.2, (0.0, 0.0, rng.uniform(0, 1)))
-           for _ in range(8)]
-    scene = js.Scene(cfg.scene.lights, occluders=occ, ambient=cfg.scene.ambient)
-    start = js.Scene(cfg.start_scene.lights, occluders=occ, ambient=cfg.scene.ambient)
-    material = js.Material(ka=cfg.material.ka, kd=cfg.material.kd, ks=0.0, exponent=1.0)
-    n = len(cfg.points)
-    col = np.asarray(shade(scene, material, jnp.asarray(cfg.points), jnp.asarray(cfg.normals),
-                           jnp.asarray(np.broadcast_to(cfg.eye, (n, 3))), with_specular=False))
-    return scene, start, material, inverse.PaintedTargets(cfg.points, cfg.normals, col, cfg.eye), cfg.size
+    return occluded_light_problem(8, n_points=24)
 
 
 def test_culled_residual_equals_full_model(occluded_config):
