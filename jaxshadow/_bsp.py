@@ -1,7 +1,7 @@
 r"""Occluder culling for exact soft shadows: fewer occluders, same result.
 
 `jaxshadow._clip.visible_edges` costs $O(M^2)$ per receiver and light in the number of occluders
-$M$ (its edge soup has $((K+1) + M(K_o+1))(2M+3)$ pieces). Most occluders of a big mesh cannot
+$M$ (its edge soup has $((K+1) + M(K_o+1))(M+1)$ slots). Most occluders of a big mesh cannot
 shadow a given receiver from a given light, so this module finds, exactly or conservatively,
 the ones that can, in two stages. Neither stage ever changes the result beyond rounding: an
 occluder is only removed when it provably blocks a zero solid angle of the light.
@@ -37,7 +37,9 @@ occluder is only removed when it provably blocks a zero solid angle of the light
   fixed `(max_active, Ko, 3)` array padded with *inactive dummies* (all-zero polygons: their
   Newell normal is exactly 0, so the kernel marks them inactive and they contribute exactly
   nothing). Returns an `overflow` flag when more than `max_active` are relevant.
-- `culled_form_factor_kernel(p, n, verts, occluders, max_active)` -> `(F, overflow)`.
+- `culled_form_factor_kernel(p, n, verts, occluders, max_active)` -> `(F, overflow)`: the
+  clipping kernel on the selected occluders, its boundary gathered into `edge_capacity` slots
+  (`_clip.visible_edges_compact`); `overflow` also when the boundary has more edges than that.
 - `with_fallback(culled, overflow, full)`: `lax.cond` at the *batch* level: if any receiver
   overflowed, the full kernel is evaluated (for the whole batch, then used only where
   `overflow`); otherwise it is never run. A receiver with more relevant occluders than
@@ -59,7 +61,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from ._clip import COLLINEAR_EPS, _edge_planes, visible_form_factor_kernel
+from ._clip import (
+    COLLINEAR_EPS,
+    _edge_planes,
+    compact_form_factor_kernel,
+    visible_edges_compact,
+    visible_form_factor_kernel,
+)
 from ._geometry import newell_normal
 
 # --------------------------------------------------------------------------------------
@@ -323,10 +331,41 @@ def culled_form_factor_kernel(
     max_active: int,
     closed: bool = False,
 ) -> tuple[Float[Array, ""], Bool[Array, ""]]:
-    """`visible_form_factor_kernel` on the selected occluders only: `(F, overflow)`. Equal to the
-    full kernel (rounding aside) wherever `overflow` is False."""
+    """`visible_form_factor_kernel` on the selected occluders only, the boundary of the visible
+    region gathered into `edge_capacity(K, Ko, max_active)` slots: `(F, overflow)`. Equal to
+    the full kernel (rounding aside) wherever `overflow` is False."""
     active, _, overflow = select_occluders(p, n, verts, occluders, max_active, closed)
-    return visible_form_factor_kernel(p, n, verts, active), overflow
+    cap = edge_capacity(verts.shape[0], occluders.shape[1], max_active)
+    f, e_over = compact_form_factor_kernel(p, n, verts, active, cap)
+    return f, overflow | e_over
+
+
+def culled_visible_edges(
+    p: Float[Array, "3"],
+    n: Float[Array, "3"],
+    verts: Float[Array, "k 3"],
+    occluders: Float[Array, "m ko 3"],
+    max_active: int,
+    closed: bool = False,
+) -> tuple[Float[Array, "b 3"], Float[Array, "b 3"], Bool[Array, ""]]:
+    """The boundary of the visible region with the selected occluders only, in
+    `edge_capacity(K, Ko, max_active)` slots: `(starts, ends, overflow)` (the edges are exact
+    wherever `overflow` is False)."""
+    active, _, overflow = select_occluders(p, n, verts, occluders, max_active, closed)
+    cap = edge_capacity(verts.shape[0], occluders.shape[1], max_active)
+    starts, ends, e_over = visible_edges_compact(p, n, verts, active, cap)
+    return starts, ends, overflow | e_over
+
+
+def edge_capacity(k: int, ko: int, max_active: int) -> int:
+    """Edge slots for the boundary of the visible region with at most `max_active` occluders:
+    the next power of two >= `(K + 1) + max_active (Ko + 1)`, every candidate edge once (the
+    worst case, `max_active + 1` runs per edge, is far rarer; it overflows and falls back)."""
+    need = (k + 1) + max_active * (ko + 1)
+    cap = 1
+    while cap < need:
+        cap *= 2
+    return cap
 
 
 def with_fallback(culled: Array, overflow: Array, full) -> Array:

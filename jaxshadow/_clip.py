@@ -51,10 +51,12 @@ a coincident edge is kept or dropped by the one-sided test alone. Opposite-side 
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float, Int
 
 from ._geometry import horizon_clip_edges, newell_normal
 from ._linear import linear_irradiance_kernel
@@ -205,14 +207,13 @@ def _crossing_point(p, c, ne, hp):
     return p + c * jnp.where(ok, hp / jnp.where(ok, den, 1.0), 0.0)
 
 
-def _interval_on_region(p, a, d, n_own, id_own, sigma, normals, ids, valid, tol, ne, hp):
+def _interval_on_region(p, a, d, n_own, sigma, normals, valid, tol):
     """Where the `sigma`-side of the edge `a + t d` is inside one convex region (planes through p).
 
-    Returns `(lo, hi, y_lo, y_hi, const_ok_noncollinear, const_ok_collinear, any_collinear)`;
+    Returns `(lo, hi, i_lo, i_hi, const_ok_noncollinear, const_ok_collinear, any_collinear)`;
     the region contains the one-sided neighbourhood of `a + t d` iff `lo < t < hi` and both
-    `const_ok`. `y_lo`, `y_hi` are the crossing points at `lo`, `hi`, computed from the two
-    planes through p in a canonical order (lower plane id first), so that the two edges meeting
-    there get bit-identical vertices (a consistent contour, however grazing the crossing).
+    `const_ok`; `i_lo`, `i_hi` are the planes that cut the edge at `lo` and `hi` (the crossing
+    points there are the lines common to the edge's plane and those, `_decode`).
     """
     g0 = (a - p) @ normals.T
     g1 = d @ normals.T
@@ -229,38 +230,34 @@ def _interval_on_region(p, a, d, n_own, id_own, sigma, normals, ids, valid, tol,
     t_hi = jnp.where(neg, tc, jnp.inf)
     i_lo = jnp.argmax(t_lo)
     i_hi = jnp.argmin(t_hi)
-    first = (id_own < ids)[:, None]
-    c = jnp.where(first, jnp.cross(n_own[None, :], normals), jnp.cross(normals, n_own[None, :]))
     const_noncol = jnp.all(~generic | (g1 != 0) | (g0 >= 0))
     const_col = jnp.all(~collinear | side_ok)
-    y_lo = _crossing_point(p, c[i_lo], ne, hp)
-    y_hi = _crossing_point(p, c[i_hi], ne, hp)
-    return t_lo[i_lo], t_hi[i_hi], y_lo, y_hi, const_noncol, const_col, jnp.any(collinear)
+    return t_lo[i_lo], t_hi[i_hi], i_lo, i_hi, const_noncol, const_col, jnp.any(collinear)
 
 
-def visible_edges(
-    p: Float[Array, "3"],
-    n: Float[Array, "3"],
-    verts: Float[Array, "k 3"],
-    occluders: Float[Array, "m ko 3"],
-) -> tuple[Float[Array, "e 3"], Float[Array, "e 3"]]:
-    r"""Boundary of the visible part of a polygon light, as an oriented edge soup.
+class _Candidates(NamedTuple):
+    """The candidate edges of the boundary of R (module docstring) and the regions' planes."""
 
-    The region is $E_h \setminus \bigcup_j Q_j$ (module docstring): the emitter clipped to the
-    receiver's horizon minus the central projections of the effective blockers. Edges lie in the
-    emitter plane, run counter-clockwise seen from `p` (the convention of
-    `contour_form_factor`), and dropped pieces are zero-length, `start == end` (they contribute
-    0; `visible_form_factor_kernel` masks them, since a fused multiply-add can leave a 1e-18
-    residue in `cross(A, A)`).
+    ne: Array  # (3,) emitter normal, scaled to order one
+    hp: Array  # height of p above the emitter plane, scaled alike
+    in_front: Array  # p strictly in front of the emitter
+    e0: Array  # (3,) the emitter's first vertex (where dropped edges collapse)
+    starts: Array  # (C, 3) candidate edges (E_h's K + 1, then each occluder's Ko + 1)
+    ends: Array  # (C, 3)
+    own: Array  # (C, 3) normal of the plane through p and the candidate's line
+    own_id: Array  # (C,) its plane id (row of `planes`, flattened)
+    sigma: Array  # (C,) +1: R lies on the interior side of `own` (E_h), -1: outside (occluders)
+    region: Array  # (C,) 0 for E_h, j for occluder j
+    planes: Array  # (M + 1, P, 3) each region's interior plane normals, zero-padded
+    reg_valid: Array  # (M + 1, P) real planes of active regions
+    reg_active: Array  # (M + 1,) E_h, and the occluders that are not degenerate seen from p
 
-    **Arguments:** `p (3,)` receiver, `n (3,)` its normal, `verts (K, 3)` padded convex light
-    (counter-clockwise seen from its lit side), `occluders (M, Ko, 3)` padded convex polygons.
 
-    **Returns:** `(starts, ends)`, each `(E, 3)` with `E = ((K + 1) + M (Ko + 1)) (2 M + 3)`
-    (`E = K + 1` when `M = 0`); all zero-length when `p` is not in front of the light.
-    """
+def _candidates(p: Array, n: Array, verts: Array, occluders: Array) -> _Candidates:
+    """E_h's edges and the effective blockers' edges clipped to the pyramid (p, E_h), projected
+    onto the emitter plane and reversed (R lies outside each Q_j), with every region's planes
+    through p. Needs at least one occluder."""
     dtype = p.dtype
-    tol = COLLINEAR_EPS * _eps(p)
     m_occ, ko = occluders.shape[0], occluders.shape[1]
     k = verts.shape[0]
     e0 = verts[0]
@@ -270,10 +267,6 @@ def visible_edges(
     # of two brings ne to order one (small or large lights neither under- nor overflow).
     e_scale = _pow2_scale(jnp.max(jnp.abs(ne)))
     ne, hp = ne * e_scale, hp * e_scale
-    in_front = hp > 0
-    if m_occ == 0:
-        starts, ends = horizon_clip_edges(p, n, verts)
-        return jnp.where(in_front, starts, e0[None, :]), jnp.where(in_front, ends, e0[None, :])
 
     # Region 0: E_h. Its edges and the interior normals of their planes through p.
     e_starts, e_ends = horizon_clip_edges(p, n, verts)
@@ -281,16 +274,14 @@ def visible_edges(
 
     # Regions 1..M: effective blockers, their edges clipped to the pyramid (p, E_h).
     o_normals, s, active = _occluder_regions(p, occluders, ne, hp)
-    o_s, o_e = jax.vmap(horizon_clip_edges, in_axes=(None, None, 0))(
-        e0, ne, occluders
-    )  # (M, Ko+1, 3)
+    o_s, o_e = jax.vmap(horizon_clip_edges, in_axes=(None, None, 0))(e0, ne, occluders)
     cone = e_normals
 
     def clip_one(a, b, n_q, act):
         t0, t1, ok, i0, i1 = _cyrus_beck(p, a, b, cone)
         ok = ok & act
         # A clipped end is the crossing of this edge's plane with an E_h plane (E_h's plane ids
-        # come first in the canonical order, see _interval_on_region).
+        # come first in the canonical order, see `_decode`).
         a2 = jnp.where(
             t0 > 0, _crossing_point(p, jnp.cross(cone[i0], n_q), ne, hp), _project(p, a, ne, hp)
         )
@@ -307,7 +298,7 @@ def visible_edges(
 
     # All regions' planes, padded (with zero normals = no constraint) to a common count.
     n_planes = max(k + 1, ko + 1)
-    reg_normals = jnp.concatenate(
+    planes = jnp.concatenate(
         [
             jnp.pad(e_normals, ((0, n_planes - (k + 1)), (0, 0)))[None],
             jnp.pad(o_normals, ((0, 0), (0, n_planes - (ko + 1)), (0, 0))),
@@ -315,65 +306,194 @@ def visible_edges(
         axis=0,
     )  # (M+1, P, 3)
     reg_active = jnp.concatenate([jnp.ones((1,), bool), active])
-    reg_valid = jnp.any(reg_normals != 0, axis=-1) & reg_active[:, None]  # (M+1, P)
-
-    # Candidate edges: (start, end, own plane, sigma, region index).
-    starts = jnp.concatenate([e_starts, q_starts.reshape(-1, 3)], axis=0)
-    ends = jnp.concatenate([e_ends, q_ends.reshape(-1, 3)], axis=0)
-    own = jnp.concatenate([e_normals, o_normals.reshape(-1, 3)], axis=0)
-    sigma = jnp.concatenate(
-        [jnp.ones((k + 1,), dtype), -jnp.ones((m_occ * (ko + 1),), dtype)], axis=0
-    )
-    region = jnp.concatenate(
-        [
-            jnp.zeros((k + 1,), jnp.int32),
-            jnp.repeat(jnp.arange(1, m_occ + 1, dtype=jnp.int32), ko + 1),
-        ]
-    )
-    region_ids = jnp.arange(m_occ + 1, dtype=jnp.int32)
-    # Canonical plane ids (E_h's first), for bit-identical crossing points.
+    reg_valid = jnp.any(planes != 0, axis=-1) & reg_active[:, None]
     reg_ids = jnp.arange((m_occ + 1) * n_planes, dtype=jnp.int32).reshape(m_occ + 1, n_planes)
-    own_id = jnp.concatenate([reg_ids[0, : k + 1], reg_ids[1:, : ko + 1].reshape(-1)])
+    return _Candidates(
+        ne=ne,
+        hp=hp,
+        in_front=hp > 0,
+        e0=e0,
+        starts=jnp.concatenate([e_starts, q_starts.reshape(-1, 3)], axis=0),
+        ends=jnp.concatenate([e_ends, q_ends.reshape(-1, 3)], axis=0),
+        own=jnp.concatenate([e_normals, o_normals.reshape(-1, 3)], axis=0),
+        own_id=jnp.concatenate([reg_ids[0, : k + 1], reg_ids[1:, : ko + 1].reshape(-1)]),
+        sigma=jnp.concatenate(
+            [jnp.ones((k + 1,), dtype), -jnp.ones((m_occ * (ko + 1),), dtype)], axis=0
+        ),
+        region=jnp.concatenate(
+            [
+                jnp.zeros((k + 1,), jnp.int32),
+                jnp.repeat(jnp.arange(1, m_occ + 1, dtype=jnp.int32), ko + 1),
+            ]
+        ),
+        planes=planes,
+        reg_valid=reg_valid,
+        reg_active=reg_active,
+    )
 
-    def split_edge(a, b, n_own, i_own, sig, reg):
-        lo, hi, y_lo, y_hi, c_nc, c_c, any_c = jax.vmap(
-            _interval_on_region,
-            in_axes=(None, None, None, None, None, None, 0, 0, 0, None, None, None),
-        )(p, a, b - a, n_own, i_own, sig, reg_normals, reg_ids, reg_valid, tol, ne, hp)
+
+def _boundary_runs(
+    p: Array, c: _Candidates, m_occ: int
+) -> tuple[Int[Array, " r"], Int[Array, " r"], Bool[Array, " r"]]:
+    r"""The combinatorial part of `visible_edges`: which pieces of which candidate edges bound R,
+    and what their endpoints are, as integer *endpoint codes* (`_decode` turns them into points).
+
+    Each candidate edge is cut at the parameters where it enters and leaves every other region
+    (2 per region) and each piece is kept by a test of its midpoint against those same
+    parameters (module docstring: one-sided membership, tie-break). Consecutive kept pieces of
+    one edge are merged into a run (Lambert's edge term is additive along a line); a region's
+    interval removes at most one stretch of an edge, so an edge has at most `M + 1` runs.
+
+    Endpoint code `c`: `c < C` is candidate `c`'s start, `C <= c < 2C` candidate `c - C`'s
+    end, and `2C + i P' + j` (`i < j`, `P' = (M + 1) P`) the crossing of planes `i` and `j`
+    (the line common to the two planes through p met with the emitter plane; lower plane id
+    first, so that the two edges meeting there compute the same point).
+
+    Piecewise constant in the inputs (no gradient flows through it): the derivatives come from
+    the geometry `_decode` turns the codes into. `c` is `_candidates(p, n, verts, occluders)`
+    for `m_occ` occluders (computed once and shared with `_decode`).
+
+    **Returns:** `(start_codes, end_codes, valid)`, each `(C (M + 1),)` (`C` candidate edges).
+    """
+    p, c = jax.lax.stop_gradient((p, c))
+    dtype = p.dtype
+    tol = COLLINEAR_EPS * _eps(p)
+    n_cand = c.starts.shape[0]
+    n_pl = c.planes.shape[0] * c.planes.shape[1]
+    n_tab = 2 * n_cand
+    region_ids = jnp.arange(m_occ + 1, dtype=jnp.int32)
+    reg_ids = jnp.arange(n_pl, dtype=jnp.int32).reshape(c.planes.shape[:2])
+
+    def split_edge(ci, a, b, n_own, i_own, sig, reg):
+        lo, hi, i_lo, i_hi, c_nc, c_c, any_c = jax.vmap(
+            _interval_on_region, in_axes=(None, None, None, None, None, 0, 0, None)
+        )(p, a, b - a, n_own, sig, c.planes, c.reg_valid, tol)
         other = region_ids != reg
         cuts = jnp.concatenate([jnp.where(other, lo, 0.0), jnp.where(other, hi, 0.0)])
-        cut_pts = jnp.concatenate([y_lo, y_hi], axis=0)
-        cut_pts = jnp.where(
-            (cuts <= 0)[:, None], a[None, :], jnp.where((cuts >= 1)[:, None], b[None, :], cut_pts)
-        )
+        ids = jnp.concatenate([reg_ids[region_ids, i_lo], reg_ids[region_ids, i_hi]])
+        cut_codes = n_tab + jnp.minimum(i_own, ids) * n_pl + jnp.maximum(i_own, ids)
+        code_a, code_b = ci, n_cand + ci
+        cut_codes = jnp.where(cuts <= 0, code_a, jnp.where(cuts >= 1, code_b, cut_codes))
         ts_all = jnp.concatenate(
             [jnp.zeros((1,), dtype), jnp.ones((1,), dtype), jnp.clip(cuts, 0.0, 1.0)]
         )
-        pts_all = jnp.concatenate([a[None, :], b[None, :], cut_pts], axis=0)
+        codes_all = jnp.concatenate([jnp.stack([code_a, code_b]), cut_codes])
         order = jnp.argsort(ts_all)
         ts = ts_all[order]
-        pts = pts_all[order]
+        codes = codes_all[order]
         t0 = ts[:-1]
-        t1 = ts[1:]
-        tm = 0.5 * (t0 + t1)
+        tm = 0.5 * (t0 + ts[1:])
         inside = (lo[None, :] < tm[:, None]) & (tm[:, None] < hi[None, :])  # (pieces, M+1)
-        member = inside & (c_nc & c_c & reg_active)[None, :]
+        member = inside & (c_nc & c_c & c.reg_active)[None, :]
         # Tie-break: a coincident edge of a higher-priority (lower-index) region wins.
         tie = inside & (c_nc & any_c)[None, :] & (region_ids < reg)[None, :]
         # The emitter's edges are kept outside every occluder; an occluder's edges already lie
         # inside E_h (clipped), so only the other occluders and the tie-break remove them.
         blocked = jnp.any(((member & (region_ids > 0)[None, :]) | tie) & other[None, :], axis=1)
-        keep = ~blocked & (t1 > t0)
-        return jnp.where(keep[:, None], pts[:-1], a[None, :]), jnp.where(
-            keep[:, None], pts[1:], a[None, :]
-        )
+        free = ~blocked
+        n_pieces = free.shape[0]
+        idx = jnp.arange(n_pieces)
+        last = jnp.concatenate([~free[1:], jnp.ones((1,), bool)])  # piece ends its run
+        run_end = jax.lax.cummin(jnp.where(last, idx, n_pieces - 1), reverse=True)
+        begins = free & jnp.concatenate([jnp.ones((1,), bool), ~free[:-1]])
+        keep = begins & (ts[run_end + 1] > t0)
+        end_codes = codes[run_end + 1]
+        (sel,) = jnp.nonzero(keep, size=m_occ + 1, fill_value=0)
+        valid = jnp.arange(m_occ + 1) < jnp.sum(keep)
+        return codes[sel], end_codes[sel], valid
 
-    ps, pe = jax.vmap(split_edge)(starts, ends, own, own_id, sigma, region)
-    ps = ps.reshape(-1, 3)
-    pe = pe.reshape(-1, 3)
-    ps = jnp.where(in_front, ps, e0[None, :])
-    pe = jnp.where(in_front, pe, e0[None, :])
-    return ps, pe
+    sc, ec, valid = jax.vmap(split_edge)(
+        jnp.arange(n_cand, dtype=jnp.int32), c.starts, c.ends, c.own, c.own_id, c.sigma, c.region
+    )
+    return sc.reshape(-1), ec.reshape(-1), valid.reshape(-1) & c.in_front
+
+
+def _decode(p: Array, c: _Candidates, codes: Int[Array, " r"]) -> Float[Array, "r 3"]:
+    """The points of endpoint codes (`_boundary_runs`), differentiable in the geometry `c`."""
+    n_cand = c.starts.shape[0]
+    n_tab = 2 * n_cand
+    planes = c.planes.reshape(-1, 3)
+    n_pl = planes.shape[0]
+    is_tab = codes < n_tab
+    k = jnp.where(is_tab, 0, codes - n_tab)
+    i, j = k // n_pl, k % n_pl
+    cr = jnp.cross(planes[i], planes[j])
+    y = jax.vmap(_crossing_point, in_axes=(None, 0, None, None))(p, cr, c.ne, c.hp)
+    table = jnp.concatenate([c.starts, c.ends], axis=0)
+    return jnp.where(is_tab[:, None], table[jnp.where(is_tab, codes, 0)], y)
+
+
+def _no_occluder_edges(p, n, verts):
+    starts, ends = horizon_clip_edges(p, n, verts)
+    e0 = verts[0]
+    in_front = jnp.dot(newell_normal(verts), p - e0) > 0
+    return jnp.where(in_front, starts, e0[None, :]), jnp.where(in_front, ends, e0[None, :])
+
+
+def visible_edges(
+    p: Float[Array, "3"],
+    n: Float[Array, "3"],
+    verts: Float[Array, "k 3"],
+    occluders: Float[Array, "m ko 3"],
+) -> tuple[Float[Array, "e 3"], Float[Array, "e 3"]]:
+    r"""Boundary of the visible part of a polygon light, as an oriented edge soup.
+
+    The region is $E_h \setminus \bigcup_j Q_j$ (module docstring): the emitter clipped to the
+    receiver's horizon minus the central projections of the effective blockers. Edges lie in the
+    emitter plane, run counter-clockwise seen from `p` (the convention of
+    `contour_form_factor`), and unused slots are zero-length, `start == end` (they contribute
+    0; `visible_form_factor_kernel` masks them, since a fused multiply-add can leave a 1e-18
+    residue in `cross(A, A)`). The combinatorics (`_boundary_runs`) carry no gradient; the
+    derivatives are those of the endpoints, recomputed from the inputs (`_decode`).
+
+    **Arguments:** `p (3,)` receiver, `n (3,)` its normal, `verts (K, 3)` padded convex light
+    (counter-clockwise seen from its lit side), `occluders (M, Ko, 3)` padded convex polygons.
+
+    **Returns:** `(starts, ends)`, each `(E, 3)` with `E = ((K + 1) + M (Ko + 1)) (M + 1)`
+    (`E = K + 1` when `M = 0`); all zero-length when `p` is not in front of the light.
+    """
+    if occluders.shape[0] == 0:
+        return _no_occluder_edges(p, n, verts)
+    c = _candidates(p, n, verts, occluders)
+    sc, ec, valid = _boundary_runs(p, c, occluders.shape[0])
+    return _edges_of(p, c, sc, ec, valid)
+
+
+def _edges_of(p, c, sc, ec, valid):
+    s = _decode(p, c, sc)
+    e = _decode(p, c, ec)
+    return jnp.where(valid[:, None], s, c.e0[None, :]), jnp.where(valid[:, None], e, c.e0[None, :])
+
+
+def visible_edges_compact(
+    p: Float[Array, "3"],
+    n: Float[Array, "3"],
+    verts: Float[Array, "k 3"],
+    occluders: Float[Array, "m ko 3"],
+    capacity: int,
+) -> tuple[Float[Array, "b 3"], Float[Array, "b 3"], Bool[Array, ""]]:
+    r"""`visible_edges` gathered into `capacity` (static int) slots: `(starts, ends, overflow)`.
+
+    The boundary of R usually has far fewer edges than `visible_edges`'s worst-case count; only
+    the used ones have their endpoints computed (and differentiated). `overflow` is True when
+    the boundary has more than `capacity` edges: then only the first `capacity` are returned
+    and the caller must use `visible_edges` instead (or a larger capacity).
+    """
+    if occluders.shape[0] == 0:
+        s, e = _no_occluder_edges(p, n, verts)
+        if s.shape[0] > capacity:
+            raise ValueError(f"visible_edges_compact: capacity {capacity} < {s.shape[0]} emitter edges")
+        pad = capacity - s.shape[0]
+        s = jnp.concatenate([s, jnp.broadcast_to(verts[0], (pad, 3))])
+        e = jnp.concatenate([e, jnp.broadcast_to(verts[0], (pad, 3))])
+        return s, e, jnp.zeros((), bool)
+    c = _candidates(p, n, verts, occluders)
+    sc, ec, valid = _boundary_runs(p, c, occluders.shape[0])
+    count = jnp.sum(valid.astype(jnp.int32))
+    (sel,) = jnp.nonzero(valid, size=capacity, fill_value=0)
+    used = jnp.arange(capacity) < count
+    s, e = _edges_of(p, c, sc[sel], ec[sel], used)
+    return s, e, count > capacity
 
 
 def visible_form_factor_kernel(
@@ -393,6 +513,10 @@ def visible_form_factor_kernel(
     **Returns:** dimensionless $F \in [0, F_\text{unoccluded}]$.
     """
     starts, ends = visible_edges(p, n, verts, occluders)
+    return _contour_sum(p, n, verts, starts, ends)
+
+
+def _contour_sum(p, n, verts, starts, ends):
     ne = newell_normal(verts)
     in_front = jnp.dot(ne, p - verts[0]) > 0
     # Dropped pieces are zero-length; mask them so that they add an exact 0 (a fused
@@ -401,6 +525,19 @@ def visible_form_factor_kernel(
     terms = jax.vmap(edge_term, in_axes=(None, None, 0, 0))(p, n, starts, ends)
     f = -jnp.sum(jnp.where(used, terms, 0.0)) / (2 * jnp.pi)
     return jnp.where(in_front, f, 0.0)
+
+
+def compact_form_factor_kernel(
+    p: Float[Array, "3"],
+    n: Float[Array, "3"],
+    verts: Float[Array, "k 3"],
+    occluders: Float[Array, "m ko 3"],
+    capacity: int,
+) -> tuple[Float[Array, ""], Bool[Array, ""]]:
+    """`visible_form_factor_kernel` over `visible_edges_compact(..., capacity)`: `(F, overflow)`;
+    exact wherever `overflow` is False."""
+    starts, ends, overflow = visible_edges_compact(p, n, verts, occluders, capacity)
+    return _contour_sum(p, n, verts, starts, ends), overflow
 
 
 @eqx.filter_jit

@@ -18,8 +18,8 @@ from jaxtyping import Array, ArrayLike, Float
 from ._bsp import (
     capacity_for,
     culled_form_factor_kernel,
+    culled_visible_edges,
     max_relevant,
-    select_occluders,
     with_fallback,
 )
 from ._clip import (
@@ -247,8 +247,7 @@ def _specular_impl(
             else:
 
                 def culled(p, n, e, v):
-                    active, _, over = select_occluders(p, n, v, occ, max_active)
-                    starts, ends = visible_edges(p, n, v, active)
+                    starts, ends, over = culled_visible_edges(p, n, v, occ, max_active)
                     val = contour_specular_kernel(p, n, e, starts, ends, exponent, **opts)
                     return val, over
 

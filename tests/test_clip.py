@@ -454,7 +454,7 @@ def test_coincident_occluder_and_emitter_edges():
 def test_visible_edges_shapes_and_orientation():
     occ = np.array([[[-0.3, -0.3, 1.0], [0.3, -0.3, 1], [0.3, 0.3, 1], [-0.3, 0.3, 1]]])
     s, e = jax.jit(visible_edges)(jnp.zeros(3), jnp.asarray(UP), jnp.asarray(EM), jnp.asarray(occ))
-    assert s.shape == e.shape == ((4 + 1 + 1 * 5) * (2 * 1 + 3), 3)
+    assert s.shape == e.shape == ((4 + 1 + 1 * 5) * (1 + 1), 3)
     # Signed area (seen from p below, i.e. looking up +z) of the soup = emitter minus hole.
     s2, e2 = np.asarray(s)[:, :2], np.asarray(e)[:, :2]
     area = 0.5 * np.sum(s2[:, 0] * e2[:, 1] - s2[:, 1] * e2[:, 0])
