@@ -385,11 +385,24 @@ def _loss(theta: Array, setup: _Setup) -> Array:
 
 
 @eqx.filter_jit
-def _multistart_lm(setup: _Setup, starts: Array, rtol: float, atol: float, max_steps: int) -> LMResult:
+def _multistart_lm(setup: _Setup, starts: Array, rtol: float, atol: float, max_steps: int,
+                   prune: tuple[int, ...] = (), chunk: int | None = None) -> LMResult:
     """Levenberg-Marquardt from every start at once (`_lm.batched_levenberg_marquardt`) on the
     culled residual; `LMResult.flag` is the culling overflow (then retry, `_solve_lm`)."""
     return batched_levenberg_marquardt(_residuals_culled, starts, setup, rtol=rtol, atol=atol,
-                                       max_steps=max_steps)
+                                       max_steps=max_steps, prune=prune, chunk=chunk)
+
+
+def prune_schedule(n_starts: int, max_steps: int) -> tuple[int, ...]:
+    """Iterations 4, 8, 16, ... (below `max_steps`) at which the worse half of the running starts
+    is abandoned (`_lm`'s successive halving); empty for one start."""
+    if n_starts <= 1:
+        return ()
+    out, it = [], 4
+    while it < max_steps:
+        out.append(it)
+        it *= 2
+    return tuple(out)
 
 
 @eqx.filter_jit
@@ -406,10 +419,11 @@ def _multistart_optx(setup: _Setup, starts: Array, rtol: float, atol: float, max
     return values, losses, ok, steps
 
 
+@eqx.filter_jit
 def _light_vertices(param: LightParametrisation, thetas: Array) -> Array:
-    """`(S, K, 3)` vertices of the polygon light for each row of `thetas (S, >=P)` (concrete)."""
-    build = jax.jit(jax.vmap(lambda th: param.build(th[: param.size]).vertices))
-    return build(thetas)
+    """`(S, K, 3)` vertices of the polygon light for each row of `thetas (S, >=P)` (compiled
+    once per parametrisation shape, not per call)."""
+    return jax.vmap(lambda th: param.build(th[: param.size]).vertices)(thetas)
 
 
 def culling_capacity_for_starts(param: LightParametrisation, scene: js.Scene, targets: PaintedTargets,
@@ -433,12 +447,16 @@ def culling_capacity_for_starts(param: LightParametrisation, scene: js.Scene, ta
     return None if cap >= occ.shape[0] else cap
 
 
-def _solve_lm(setup: _Setup, starts: Array, rtol: float, atol: float, max_steps: int) -> tuple[LMResult, _Setup, int]:
+def _solve_lm(setup: _Setup, starts: Array, rtol: float, atol: float, max_steps: int,
+              prune: tuple[int, ...] = ()) -> tuple[LMResult, _Setup, int]:
     """`_multistart_lm`, retried with twice the culling capacity (at last none) while some
-    receiver overflowed it, so the result is exact. Returns `(result, setup used, retries)`."""
+    receiver overflowed it, so the result is exact. Returns `(result, setup used, retries)`.
+    Several starts are evaluated one at a time (`chunk=1`): finished and abandoned ones cost
+    nothing."""
     retries = 0
+    chunk = 1 if starts.shape[0] > 1 else None
     while True:
-        res = _multistart_lm(setup, starts, rtol, atol, max_steps)
+        res = _multistart_lm(setup, starts, rtol, atol, max_steps, prune, chunk)
         if setup.max_active is None or not bool(res.flag):
             return res, setup, retries
         assert setup.scene.occluders is not None  # a capacity is only set with occluders
@@ -493,7 +511,8 @@ class LightReport:
       `std_errors`: name -> standard error in the parameter's units ($\\hat\\sigma^2
       (J^TJ)^{-1}$); `determined`: name -> bool (False for a null direction of $J$).
     - `targets_met`: `(N,)` bool within the targets' tolerance, or None.
-    - `solver`, `scale`, `warnings`.
+    - `solver`, `scale`, `warnings`; `abandoned (S,)`: starts stopped early by `prune` (their
+      `converged` is False).
     """
 
     names: tuple
@@ -513,13 +532,15 @@ class LightReport:
     solver: str
     scale: float
     warnings: tuple
+    abandoned: np.ndarray | None = None
 
     def __str__(self) -> str:
         ok = int(np.count_nonzero(self.converged))
         lines = [
             f"light fit ({self.solver}): loss {self.initial_loss:.4g} -> {self.loss:.4g}; "
             f"best start {self.best_start} of {len(self.start_losses)} ({ok} converged, "
-            f"{self.n_distinct_minima} distinct minima near the best)"
+            + (f"{int(np.count_nonzero(self.abandoned))} abandoned, " if self.abandoned is not None else "")
+            + f"{self.n_distinct_minima} distinct minima near the best)"
         ]
         for nm, v in zip(self.names, self.theta, strict=True):
             flag = "" if self.determined[nm] else "  UNDETERMINED"
@@ -600,6 +621,7 @@ def fit_light(
     material_mode: str = "fixed",
     fit_exponent: bool = False,
     specular: SpecularFn | None = None,
+    prune: bool = True,
 ) -> LightFit:
     """Place light `light_index` of `scene` so the shading matches painted colours.
 
@@ -633,6 +655,10 @@ def fit_light(
       Whether $k_s$ is used follows `material.ks != 0`.
     - `specular`: a callable like `js.specular` (default `js.specular`); unused when the
       material has $k_s = 0$.
+    - `prune` (`solver="lm"` with several starts): at iterations 4, 8, 16, ... abandon the
+      worse half (by current loss) of the starts still running (successive halving), so the
+      cost follows the promising starts; `LightReport.abandoned` lists them. False: every
+      start runs to convergence or `max_steps`.
 
     **Returns:** `LightFit(scene, light, residual, report, parametrisation)`.
     """
@@ -684,10 +710,13 @@ def fit_light(
         initial_loss = float(screen[0])
         ref_row = int(np.searchsorted(order, 0)) if 0 in order else -1
     retries = 0
+    abandoned = np.zeros(int(y0.shape[0]), bool)
     if solver == "lm":
         setup = dataclasses.replace(setup, max_active=culling_capacity_for_starts(param, scene, targets, y0))
-        res, setup, retries = _solve_lm(setup, y0, rtol, atol, int(max_steps))
+        sched = prune_schedule(int(y0.shape[0]), int(max_steps)) if prune else ()
+        res, setup, retries = _solve_lm(setup, y0, rtol, atol, int(max_steps), sched)
         values, losses, ok, steps = res.values, res.losses, res.converged, res.num_steps
+        abandoned = np.asarray(res.abandoned)
     elif solver == "optimistix":
         values, losses, ok, steps = _multistart_optx(setup, y0, rtol, atol, int(max_steps))
     else:
@@ -771,6 +800,7 @@ def fit_light(
         solver=solver,
         scale=size,
         warnings=tuple(msgs),
+        abandoned=abandoned,
     )
     return LightFit(scene=new_scene, light=light, residual=residual, report=report, parametrisation=param,
                     material=material)

@@ -22,6 +22,13 @@ $\nu = 2$, else $\lambda \leftarrow \nu\lambda$, $\nu \leftarrow 2\nu$. A start 
 when an accepted step moved every parameter by at most `atol + rtol |y|_inf` *and* changed the
 loss by at most `atol + rtol f` (the Cauchy test Optimistix uses), or when no step can
 decrease the loss any more (the predicted decrease is at round-off level).
+
+**Many starts.** With `prune` (iterations, e.g. `(4, 8, 16, 32)`), at each of those
+iterations the worse half of the starts still running (by their current loss) is abandoned:
+successive halving (Jamieson & Talwalkar 2016), so that one hopeless start does not keep the
+whole batch running to `max_steps`. With `chunk`, the starts are evaluated `chunk` at a time
+(`lax.map`), running ones first, and chunks with none running are skipped (`lax.cond`): the
+cost of an iteration follows the number of starts still running instead of the batch size.
 """
 
 from __future__ import annotations
@@ -39,7 +46,7 @@ class LMResult(NamedTuple):
     `num_steps (S,)`; `residuals (S, M)` and `jacobians (S, M, P)` at `values`;
     `initial_losses (S,)` at the starts; `flag` (bool
     scalar): the residual function's auxiliary flag was raised at some evaluated point (the
-    light-placement fit uses it for a culling overflow)."""
+    light-placement fit uses it for a culling overflow); `abandoned (S,)`: stopped by `prune`."""
 
     values: Float[Array, "S P"]
     losses: Float[Array, " S"]
@@ -49,6 +56,7 @@ class LMResult(NamedTuple):
     jacobians: Float[Array, "S M P"]
     initial_losses: Float[Array, " S"]
     flag: Bool[Array, ""]
+    abandoned: Bool[Array, " S"]
 
 
 def batched_levenberg_marquardt(
@@ -60,6 +68,8 @@ def batched_levenberg_marquardt(
     atol: float,
     max_steps: int,
     lambda0: float = 1e-3,
+    prune: tuple[int, ...] = (),
+    chunk: int | None = None,
 ) -> LMResult:
     """Minimise $\\tfrac12|r(y)|^2$ from every row of `y0` at once (traceable; jit the caller).
 
@@ -70,6 +80,9 @@ def batched_levenberg_marquardt(
     - `y0`: `(S, P)` starting points; `args`: passed to `fn`.
     - `rtol`, `atol`: termination tolerances (module docstring); `max_steps`: iterations after
       the evaluation of the starts; `lambda0`: initial damping relative to the scaling.
+    - `prune`: iterations at which the worse half of the running starts is abandoned (module
+      docstring); `chunk`: evaluate the starts this many at a time, skipping finished ones
+      (None: all at once).
 
     **Returns:** `LMResult`.
     """
@@ -80,19 +93,44 @@ def batched_levenberg_marquardt(
         r, flag = fn(y, args)
         return r, (r, flag)
 
-    def rj(ys: Array) -> tuple[Array, Array, Array]:
+    def rj_all(ys: Array) -> tuple[Array, Array, Array]:
         J, (r, flag) = jax.vmap(jax.jacfwd(resid_aux, has_aux=True))(ys)
         return r, J, flag
 
     M = jax.eval_shape(lambda y: fn(y, args)[0], y0[0]).shape[0]
     eps = jnp.finfo(dt).eps
 
+    def rj(ys: Array, need: Array) -> tuple[Array, Array, Array]:
+        """Residuals, Jacobians and flags at `ys`; rows where `need` is False may be zeros."""
+        if chunk is None or chunk >= S:
+            return rj_all(ys)
+        n_chunks = -(-S // chunk)
+        pad = n_chunks * chunk - S
+        order = jnp.argsort(~need, stable=True)  # the needed rows first
+        inv = jnp.argsort(order)
+        ys_o = jnp.concatenate([ys[order], jnp.broadcast_to(ys[:1], (pad, P))])
+        need_o = jnp.concatenate([need[order], jnp.zeros((pad,), bool)])
+
+        def one(a: tuple[Array, Array]) -> tuple[Array, Array, Array]:
+            yc, go = a
+            return jax.lax.cond(
+                go,
+                rj_all,
+                lambda y: (jnp.zeros((chunk, M), dt), jnp.zeros((chunk, M, P), dt), jnp.zeros((chunk,), bool)),
+                yc,
+            )
+
+        r, J, flag = jax.lax.map(one, (ys_o.reshape(n_chunks, chunk, P), jnp.any(need_o.reshape(n_chunks, chunk), axis=1)))
+        return (r.reshape(-1, M)[:S][inv], J.reshape(-1, M, P)[:S][inv], flag.reshape(-1)[:S][inv])
+
+    prune_at = jnp.asarray(sorted(set(int(i) for i in prune)) or [-1], jnp.int32)
+
     def cond(state: tuple) -> Array:
         it, done = state[0], state[8]
         return (it <= max_steps) & ~jnp.all(done)
 
     def body(state: tuple) -> tuple:
-        it, y, r, J, f, f0, lam, nu, done, ok, steps, dmax, flag = state
+        it, y, r, J, f, f0, lam, nu, done, ok, steps, dmax, flag, gone = state
         init = it == 0
         g = jnp.einsum("smp,sm->sp", J, r)
         A = jnp.einsum("smp,smq->spq", J, J)
@@ -102,7 +140,7 @@ def batched_levenberg_marquardt(
         delta = -jnp.linalg.solve(Ad, g[..., None])[..., 0]
         delta = jnp.where(jnp.isfinite(delta) & ~init, delta, 0.0)
         y_try = y + delta
-        r_t, J_t, flag_t = rj(y_try)
+        r_t, J_t, flag_t = rj(y_try, ~done)
         f_t = 0.5 * jnp.sum(r_t * r_t, axis=1)
         pred = -jnp.sum(g * delta, axis=1) - 0.5 * jnp.einsum("sp,spq,sq->s", delta, A, delta)
         rho = (f - f_t) / jnp.where(pred > 0, pred, 1.0)
@@ -132,7 +170,14 @@ def batched_levenberg_marquardt(
         steps = steps + (live & ~init).astype(steps.dtype)
         done = done | (newly & live)
         flag = flag | jnp.any(flag_t & live)
-        return it + 1, y, r, J, f, f0, lam, nu, done, ok, steps, dmax, flag
+        # Successive halving: keep the better half (rounded up) of the starts still running.
+        running = ~done
+        n_run = jnp.sum(running.astype(jnp.int32))
+        rank = jnp.argsort(jnp.argsort(jnp.where(running, f, jnp.inf), stable=True), stable=True)
+        drop = running & (rank >= (n_run + 1) // 2) & jnp.any(it == prune_at)
+        done = done | drop
+        gone = gone | drop
+        return it + 1, y, r, J, f, f0, lam, nu, done, ok, steps, dmax, flag, gone
 
     state = (
         jnp.zeros((), jnp.int32),
@@ -148,6 +193,7 @@ def batched_levenberg_marquardt(
         jnp.zeros((S,), jnp.int32),
         jnp.zeros((S, P), dt),
         jnp.zeros((), bool),
+        jnp.zeros((S,), bool),
     )
-    _, y, r, J, f, f0, _, _, _, ok, steps, _, flag = jax.lax.while_loop(cond, body, state)
-    return LMResult(y, f, ok, steps, r, J, f0, flag)
+    _, y, r, J, f, f0, _, _, _, ok, steps, _, flag, gone = jax.lax.while_loop(cond, body, state)
+    return LMResult(y, f, ok, steps, r, J, f0, flag, gone)

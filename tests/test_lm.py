@@ -85,6 +85,42 @@ def test_lm_max_steps_reports_not_converged():
     assert not bool(res.converged[0]) and int(res.num_steps[0]) == 3
 
 
+def test_lm_chunked_evaluation_matches_batched():
+    """Evaluating the starts one or three at a time (skipping finished ones) changes nothing."""
+    rng = np.random.default_rng(1)
+    starts = jnp.asarray(np.concatenate([TRUE[None] * 1.5, TRUE[None] + rng.normal(0, 0.5, (6, 3))]))
+    args = (jnp.asarray(T), jnp.asarray(Y))
+    run = jax.jit(lambda y0, chunk: batched_levenberg_marquardt(_exp_resid, y0, args, rtol=1e-10, atol=1e-12,
+                                                                max_steps=200, chunk=chunk), static_argnums=1)
+    full = run(starts, None)
+    assert len(set(np.asarray(full.num_steps).tolist())) > 1  # starts finish at different iterations
+    for chunk in (1, 3):
+        got = run(starts, chunk)
+        np.testing.assert_array_equal(np.asarray(got.num_steps), np.asarray(full.num_steps))
+        np.testing.assert_allclose(np.asarray(got.values), np.asarray(full.values), rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(np.asarray(got.jacobians), np.asarray(full.jacobians), rtol=1e-12, atol=1e-14)
+        assert not np.any(np.asarray(got.abandoned))
+
+
+def test_lm_successive_halving():
+    """`prune`: at each listed iteration the worse half of the running starts stops (abandoned,
+    not converged); the best survives and converges; fewer iterations than without."""
+    starts = jnp.array([[-1.2, 1.0], [2.0, -1.0], [0.9, 0.8], [-3.0, 5.0], [1.5, 2.0], [-0.5, 3.0]])
+    kw = dict(rtol=1e-12, atol=1e-14, max_steps=300)
+    plain = batched_levenberg_marquardt(_rosenbrock, starts, None, **kw)
+    pruned = batched_levenberg_marquardt(_rosenbrock, starts, None, prune=(2, 4), chunk=2, **kw)
+    gone = np.asarray(pruned.abandoned)
+    # 6 running after iteration 2 -> 3 kept; then 3 -> 2 kept (unless some finished before).
+    assert 1 <= gone.sum() <= 4
+    assert not np.any(np.asarray(pruned.converged)[gone])
+    best = int(np.argmin(np.asarray(pruned.losses)))
+    assert bool(pruned.converged[best]) and not gone[best]
+    np.testing.assert_allclose(np.asarray(pruned.values[best]), [1.0, 1.0], atol=1e-8)
+    # Abandoned starts stop early: fewer steps than when every start runs on.
+    assert np.all(np.asarray(pruned.num_steps)[gone] <= 4)
+    assert np.sum(np.asarray(pruned.num_steps)) < np.sum(np.asarray(plain.num_steps))
+
+
 @pytest.fixture(scope="module")
 def occluded_config():
     """The demo's quad light over 8 occluders, 24 targets, noise-free (solver test, not acceptance)."""
