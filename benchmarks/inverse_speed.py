@@ -96,27 +96,35 @@ def main():
     results = {"machine": platform.platform(), "cpu_count": os.cpu_count(), "jax": jax.__version__,
                "backend": jax.default_backend(), "targets": 48, "dtype": "float64",
                "load_average_at_start": os.getloadavg(), "light": {}}
-    cases = [("lm", 1, None, args.repeats), ("lm", 64, 8, args.repeats)]
+    cases = [("lm", 1, None, args.repeats, False), ("lm", 64, 8, args.repeats, False)]
     if not args.no_full:
-        cases.append(("lm", 64, None, args.full_repeats))
+        cases.append(("lm", 64, None, args.full_repeats, False))
+    cases += [("lm", 1, None, args.repeats, True), ("lm", 64, 8, args.repeats, True)]
     if not args.no_optimistix:
-        cases.append(("optimistix", 1, None, args.repeats))
+        cases.append(("optimistix", 1, None, args.repeats, False))
     for n_occ in args.occluders:
         scene, start, material, targets = _light_problem(n_occ)
         true = np.asarray(scene.lights[0].vertices)
-        for solver, starts, refine, reps in cases:
+        for solver, starts, refine, reps, groups in cases:
+            if groups and n_occ < 4:
+                continue  # no culling, nothing to group
             fits = []
 
-            def call(problem=(start, targets, material), solver=solver, starts=starts, refine=refine, fits=fits):
-                fits.append(inverse.fit_light(*problem, starts=starts, refine=refine, solver=solver))
+            def call(problem=(start, targets, material), solver=solver, starts=starts, refine=refine, fits=fits,
+                     groups=groups):
+                fits.append(inverse.fit_light(*problem, starts=starts, refine=refine, solver=solver,
+                                              receiver_groups=groups))
                 return fits[-1].light.vertices
 
             first, med, runs = _timed(call, reps)
             fit = fits[-1]
             err = pose_errors(np.asarray(fit.light.vertices), true)
-            key = f"{solver}/occluders={n_occ}/starts={starts}" + (f"/refine={refine}" if refine else "")
+            key = (f"{solver}/occluders={n_occ}/starts={starts}" + (f"/refine={refine}" if refine else "")
+                   + ("/receiver_groups" if groups else ""))
             results["light"][key] = {
-                "solver": solver, "occluders": n_occ, "starts": starts, "refine": refine,
+                "solver": solver, "occluders": n_occ, "starts": starts, "refine": refine, "receiver_groups": groups,
+                "abandoned_starts": int(np.count_nonzero(fit.report.abandoned)) if fit.report.abandoned is not None
+                else 0,
                 "first_call_s": first, "compile_s": first - med, "solve_s": med, "runs_s": runs,
                 "max_steps_taken": int(np.max(fit.report.num_steps)), "best_loss": fit.report.loss,
                 "position_error_rel": err["position"] / fit.report.scale, "orientation_deg": err["orientation_deg"],
@@ -154,20 +162,21 @@ def _markdown(results):
         f"{results['jax']}, float64, 48 targets, 8 light parameters; load average at start "
         f"{results['load_average_at_start'][0]:.1f}.",
         "",
-        "| solver | occluders | starts | compile (s) | solve (ms) | max LM steps | position error / scene |",
-        "|---|---:|---:|---:|---:|---:|---:|",
+        "| solver | occluders | starts | compile (s) | solve (ms) | max LM steps | abandoned | position error / scene |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in results["light"].values():
         if "cold_process_first_call_s" in r:
             continue
         starts = f"{r['starts']}" + (f" -> best {r['refine']}" if r["refine"] else "")
-        lines.append(f"| {r['solver']} | {r['occluders']} | {starts} | {r['compile_s']:.1f} | {1e3 * r['solve_s']:.0f} | "
-                     f"{r['max_steps_taken']} | {r['position_error_rel']:.1e} |")
+        solver = r["solver"] + (", receiver_groups" if r.get("receiver_groups") else "")
+        lines.append(f"| {solver} | {r['occluders']} | {starts} | {r['compile_s']:.1f} | {1e3 * r['solve_s']:.0f} | "
+                     f"{r['max_steps_taken']} | {r.get('abandoned_starts', 0)} | {r['position_error_rel']:.1e} |")
     for key, label in (("material_fit_n_searched", "material fit, n searched (20 points)"),
                        ("material_fit_n_fixed", "material fit, n fixed (20 points)")):
         if key in results:
             r = results[key]
-            lines.append(f"| {label} | | | {r['compile_s']:.1f} | {1e3 * r['solve_s']:.0f} | | |")
+            lines.append(f"| {label} | | | {r['compile_s']:.1f} | {1e3 * r['solve_s']:.0f} | | | |")
     lines.append("")
     for key, r in results["light"].items():
         if "cold_process_first_call_s" in r:

@@ -47,16 +47,18 @@ def shade(scene: Any, material: Any, points: Array, normals: Array, eye: Array,
 
 
 def shade_culled(scene: Any, material: Any, points: Array, normals: Array, eye: Array,
-                 specular: SpecularFn | None, with_specular: bool, max_active: int | None) -> tuple[Array, Array]:
+                 specular: SpecularFn | None, with_specular: bool, max_active: int | None,
+                 n_wide: int | None = None) -> tuple[Array, Array]:
     """`(shade(...), overflow)`; with `max_active` (static int) each receiver sees at most that
     many occluders per polygon light, and `overflow` (bool scalar) says some receiver had more
     (the value is then not exact). `max_active=None`: the full model and `overflow = False`; a
-    custom `specular` is evaluated uncull'd. Traceable in the scene (no input checks: the caller
-    validated them)."""
+    custom `specular` is evaluated uncull'd. `n_wide`: only that many receivers get `max_active`
+    in the irradiance, the others 1 (`jaxshadow._bsp.grouped_culled_form_factor`). Traceable in
+    the scene (no input checks: the caller validated them)."""
     if max_active is None or scene.occluders is None:
         return shade(scene, material, points, normals, eye, specular, with_specular), jnp.zeros((), bool)
     dt = points.dtype
-    e, over = irradiance_culled(scene, points, normals, max_active)
+    e, over = irradiance_culled(scene, points, normals, max_active, n_wide)
     out = (material.ka.astype(dt) * scene.ambient.astype(dt))[None, :] + (material.kd.astype(dt) / jnp.pi)[None, :] * e
     if with_specular:
         s, over_s = specular_culled(scene, points, normals, eye, material.exponent, specular, max_active)
@@ -65,11 +67,12 @@ def shade_culled(scene: Any, material: Any, points: Array, normals: Array, eye: 
     return out, over
 
 
-def irradiance_culled(scene: Any, points: Array, normals: Array, max_active: int | None) -> tuple[Array, Array]:
+def irradiance_culled(scene: Any, points: Array, normals: Array, max_active: int | None,
+                      n_wide: int | None = None) -> tuple[Array, Array]:
     """`(js.irradiance(...), overflow)` with the culling of `shade_culled`."""
     if max_active is None or scene.occluders is None:
         return js.irradiance(scene, points, normals), jnp.zeros((), bool)
-    return _irradiance_impl(scene, points, normals, max_active, False)
+    return _irradiance_impl(scene, points, normals, max_active, False, n_wide)
 
 
 def specular_culled(scene: Any, points: Array, normals: Array, eye: Array, exponent: Array,

@@ -37,7 +37,7 @@ import optimistix as optx
 from jaxtyping import Array, Float
 
 import jaxshadow as js
-from jaxshadow._bsp import capacity_for, max_relevant
+from jaxshadow._bsp import _counts
 
 from ._forward import SpecularFn, irradiance_culled, shade, shade_culled, specular_culled
 from ._lm import LMResult, batched_levenberg_marquardt
@@ -320,6 +320,8 @@ class _Setup(eqx.Module):
     fit_exponent: bool = eqx.field(static=True, default=False)
     # Occluder-culling capacity for the LM's residual (`_forward.shade_culled`); None = full.
     max_active: int | None = eqx.field(static=True, default=None)
+    # Receivers that get `max_active` in the irradiance (the rest 1); None = all.
+    n_wide: int | None = eqx.field(static=True, default=None)
 
 
 def _projected(theta: Array, setup: _Setup) -> tuple[Array, Array, Array]:
@@ -329,13 +331,14 @@ def _projected(theta: Array, setup: _Setup) -> tuple[Array, Array, Array]:
     return _projected_flag(theta, setup, None)[:3]
 
 
-def _projected_flag(theta: Array, setup: _Setup, max_active: int | None) -> tuple[Array, Array, Array, Array]:
+def _projected_flag(theta: Array, setup: _Setup, max_active: int | None,
+                    n_wide: int | None = None) -> tuple[Array, Array, Array, Array]:
     """`_projected` plus the culling overflow flag (`_forward.shade_culled`)."""
     t = setup.targets
     P = setup.param.size
     scene = with_light(setup.scene, setup.param.light_index, setup.param.build(theta[:P]))
     dt = theta.dtype
-    e, over = irradiance_culled(scene, t.points, t.normals, max_active)
+    e, over = irradiance_culled(scene, t.points, t.normals, max_active, n_wide)
     e = e / jnp.pi
     amb = jnp.broadcast_to(scene.ambient.astype(dt)[None, :], e.shape)
     n = jnp.exp(theta[P]) if setup.fit_exponent else setup.material.exponent.astype(dt)
@@ -365,17 +368,18 @@ def _residuals(theta: Array, setup: _Setup) -> Array:
 
 def _residuals_culled(theta: Array, setup: _Setup) -> tuple[Array, Array]:
     """Residuals with occluder culling at `setup.max_active` and the overflow flag (the LM)."""
-    return _residuals_flag(theta, setup, setup.max_active)
+    return _residuals_flag(theta, setup, setup.max_active, setup.n_wide)
 
 
-def _residuals_flag(theta: Array, setup: _Setup, max_active: int | None) -> tuple[Array, Array]:
+def _residuals_flag(theta: Array, setup: _Setup, max_active: int | None,
+                    n_wide: int | None = None) -> tuple[Array, Array]:
     if setup.project:
-        r, _, _, over = _projected_flag(theta, setup, max_active)
+        r, _, _, over = _projected_flag(theta, setup, max_active, n_wide)
         return r, over
     t = setup.targets
     scene = with_light(setup.scene, setup.param.light_index, setup.param.build(theta))
     model, over = shade_culled(scene, setup.material, t.points, t.normals, t.eye, setup.specular,
-                               setup.with_specular, max_active)
+                               setup.with_specular, max_active, n_wide)
     return (jnp.sqrt(t.weights) * (model - t.colours)).reshape(-1), over
 
 
@@ -426,25 +430,51 @@ def _light_vertices(param: LightParametrisation, thetas: Array) -> Array:
     return jax.vmap(lambda th: param.build(th[: param.size]).vertices)(thetas)
 
 
-def culling_capacity_for_starts(param: LightParametrisation, scene: js.Scene, targets: PaintedTargets,
-                                starts: Array) -> int | None:
-    """The occluder-culling capacity for an LM from `starts`: enough for every receiver with the
-    light at any start and the other polygon lights where they are (`_forward.culling_capacity`:
-    next power of two, None when culling cannot pay). The light moves during the solve; a
-    receiver that then sees more occluders raises the overflow flag and `_solve_lm` retries."""
-    occ = scene.occluders
-    if occ is None or occ.shape[0] < 4 or param.kind != "polygon":
-        return None
+def _start_counts(param: LightParametrisation, scene: js.Scene, targets: PaintedTargets, starts: Array) -> np.ndarray:
+    """`(L, N)` relevant-occluder counts (`jaxshadow._bsp.occluder_relevance`) of every receiver
+    for the light at each start and for the other polygon lights where they are."""
+    assert scene.occluders is not None
     others = [np.asarray(light.vertices, np.float64) for i, light in enumerate(scene.lights)
               if i != param.light_index and isinstance(light, js.PolygonLight)]
     moving = np.asarray(_light_vertices(param, starts), np.float64)
     emitters = [*moving, *others]
     k = max(e.shape[0] for e in emitters)
     padded = np.stack([np.concatenate([e, np.repeat(e[:1], k - e.shape[0], axis=0)]) for e in emitters])
-    count = max_relevant(np.asarray(targets.points, np.float64), np.asarray(targets.normals, np.float64),
-                         padded, np.asarray(occ, np.float64))
-    cap = capacity_for(count + 1, occ.shape[0])  # one spare: the light moves
-    return None if cap >= occ.shape[0] else cap
+    nrm = np.asarray(targets.normals, np.float64)
+    nrm = nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
+    return np.asarray(_counts(jnp.asarray(targets.points, jnp.float64), jnp.asarray(nrm), jnp.asarray(padded),
+                              jnp.asarray(scene.occluders, jnp.float64), False))
+
+
+def culling_capacity_for_starts(param: LightParametrisation, scene: js.Scene, targets: PaintedTargets,
+                                starts: Array) -> int | None:
+    """The occluder-culling capacity for an LM from `starts`: enough for every receiver with the
+    light at any start and the other polygon lights where they are, plus one (None when culling
+    cannot pay: fewer than 4 occluders, or not a polygon light). The light moves during the
+    solve; a receiver that then sees more occluders (or a visible region with more edges than
+    `_bsp.edge_capacity`) raises the overflow flag and `_solve_lm` retries."""
+    occ = scene.occluders
+    if occ is None or occ.shape[0] < 4 or param.kind != "polygon":
+        return None
+    counts = _start_counts(param, scene, targets, starts)
+    # One spare (the light moves); not rounded to a power of two: the kernel's cost grows with it.
+    return min(int(counts.max(initial=0)) + 1, int(occ.shape[0]))
+
+
+def wide_group_for_starts(param: LightParametrisation, scene: js.Scene, targets: PaintedTargets,
+                          starts: Array, max_active: int | None) -> int | None:
+    """How many receivers get the full culling capacity in the irradiance (the others get 1,
+    `jaxshadow._bsp.grouped_culled_form_factor`): twice the number that see two or more
+    occluders from some light at some start, at least a quarter of them, a multiple of 8; None
+    (no split) when that is all of them. Too few raises the overflow flag (`_solve_lm` retries
+    without the split)."""
+    n = int(targets.points.shape[0])
+    if scene.occluders is None or max_active is None or max_active <= 1 or param.kind != "polygon":
+        return None
+    counts = _start_counts(param, scene, targets, starts)
+    many = int(np.count_nonzero(counts.max(axis=0) >= 2))
+    wide = -(-max(2 * many, n // 4, 1) // 8) * 8
+    return None if wide >= n else wide
 
 
 def _solve_lm(setup: _Setup, starts: Array, rtol: float, atol: float, max_steps: int,
@@ -457,12 +487,15 @@ def _solve_lm(setup: _Setup, starts: Array, rtol: float, atol: float, max_steps:
     chunk = 1 if starts.shape[0] > 1 else None
     while True:
         res = _multistart_lm(setup, starts, rtol, atol, max_steps, prune, chunk)
-        if setup.max_active is None or not bool(res.flag):
+        active = setup.max_active
+        if active is None or not bool(res.flag):
             return res, setup, retries
         assert setup.scene.occluders is not None  # a capacity is only set with occluders
         m = int(setup.scene.occluders.shape[0])
-        cap = 2 * setup.max_active
-        setup = dataclasses.replace(setup, max_active=None if cap >= m else cap)
+        if setup.n_wide is not None:  # first drop the two-group split
+            setup = dataclasses.replace(setup, n_wide=None)
+        else:
+            setup = dataclasses.replace(setup, max_active=None if active >= m else min(2 * active, m))
         retries += 1
 
 
@@ -622,6 +655,7 @@ def fit_light(
     fit_exponent: bool = False,
     specular: SpecularFn | None = None,
     prune: bool = True,
+    receiver_groups: bool = False,
 ) -> LightFit:
     """Place light `light_index` of `scene` so the shading matches painted colours.
 
@@ -659,6 +693,11 @@ def fit_light(
       worse half (by current loss) of the starts still running (successive halving), so the
       cost follows the promising starts; `LightReport.abandoned` lists them. False: every
       start runs to convergence or `max_steps`.
+    - `receiver_groups` (`solver="lm"` with occluder culling): give the full culling capacity
+      only to the receivers that need it and capacity 1 to the rest
+      (`jaxshadow._bsp.grouped_culled_form_factor`): each solve is about 1.6x faster with 8
+      occluders, but the shadow kernel is compiled twice (about twice the first-call time;
+      `benchmarks/inverse_speed.py`). Worth it for many solves; exact either way.
 
     **Returns:** `LightFit(scene, light, residual, report, parametrisation)`.
     """
@@ -712,7 +751,10 @@ def fit_light(
     retries = 0
     abandoned = np.zeros(int(y0.shape[0]), bool)
     if solver == "lm":
-        setup = dataclasses.replace(setup, max_active=culling_capacity_for_starts(param, scene, targets, y0))
+        cap = culling_capacity_for_starts(param, scene, targets, y0)
+        setup = dataclasses.replace(setup, max_active=cap,
+                                    n_wide=wide_group_for_starts(param, scene, targets, y0, cap)
+                                    if receiver_groups else None)
         sched = prune_schedule(int(y0.shape[0]), int(max_steps)) if prune else ()
         res, setup, retries = _solve_lm(setup, y0, rtol, atol, int(max_steps), sched)
         values, losses, ok, steps = res.values, res.losses, res.converged, res.num_steps

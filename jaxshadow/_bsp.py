@@ -357,15 +357,39 @@ def culled_visible_edges(
     return starts, ends, overflow | e_over
 
 
+def grouped_culled_form_factor(
+    points: Float[Array, "N 3"],
+    normals: Float[Array, "N 3"],
+    verts: Float[Array, "k 3"],
+    occluders: Float[Array, "m ko 3"],
+    max_active: int,
+    n_wide: int,
+    closed: bool = False,
+) -> tuple[Float[Array, " N"], Bool[Array, " N"]]:
+    """`culled_form_factor_kernel` over a batch with two capacities: the `n_wide` (static)
+    receivers with the most relevant occluders get `max_active`, all others 1 (most receivers
+    of a scene see at most one occluder; the kernel's cost grows quadratically with the
+    capacity). Returns `(F (N,), overflow (N,))`; a receiver of the narrow group with two or
+    more relevant occluders overflows (more than `n_wide` receivers needed the wide one)."""
+    counts = jax.vmap(lambda p, n: jnp.sum(occluder_relevance(p, n, verts, occluders, closed).astype(jnp.int32)))(
+        points, normals
+    )
+    order = jnp.argsort(-counts, stable=True)
+    wide, narrow = order[:n_wide], order[n_wide:]
+    kern = jax.vmap(culled_form_factor_kernel, in_axes=(0, 0, None, None, None, None))
+    fw, ow = kern(points[wide], normals[wide], verts, occluders, max_active, closed)
+    fn, on = kern(points[narrow], normals[narrow], verts, occluders, 1, closed)
+    inv = jnp.argsort(order)
+    return jnp.concatenate([fw, fn])[inv], jnp.concatenate([ow, on])[inv]
+
+
 def edge_capacity(k: int, ko: int, max_active: int) -> int:
     """Edge slots for the boundary of the visible region with at most `max_active` occluders:
-    the next power of two >= `(K + 1) + max_active (Ko + 1)`, every candidate edge once (the
-    worst case, `max_active + 1` runs per edge, is far rarer; it overflows and falls back)."""
-    need = (k + 1) + max_active * (ko + 1)
-    cap = 1
-    while cap < need:
-        cap *= 2
-    return cap
+    `(K + 1) + max_active (Ko + 1)` (every candidate edge once) plus 4 for edges split by
+    another region, rounded up to a multiple of 8. The worst case, `max_active + 1` runs per
+    edge, is far rarer: it overflows and falls back."""
+    need = (k + 1) + max_active * (ko + 1) + 4
+    return -(-need // 8) * 8
 
 
 def with_fallback(culled: Array, overflow: Array, full) -> Array:

@@ -19,6 +19,7 @@ from ._bsp import (
     capacity_for,
     culled_form_factor_kernel,
     culled_visible_edges,
+    grouped_culled_form_factor,
     max_relevant,
     with_fallback,
 )
@@ -101,14 +102,20 @@ def _plan_max_active(scene: Scene, points: Array, normals: Array) -> int | None:
 
 @eqx.filter_jit
 def _irradiance_impl(
-    scene: Scene, points: Array, normals: Array, max_active: int | None = None, fallback: bool = True
+    scene: Scene,
+    points: Array,
+    normals: Array,
+    max_active: int | None = None,
+    fallback: bool = True,
+    n_wide: int | None = None,
 ) -> Any:
     """Irradiance `(N, 3)`. With `max_active` (static) polygon lights see only the occluders that
     `_bsp.select_occluders` keeps per receiver; a receiver with more relevant occluders than that
     falls back to the full kernel (`fallback=True`), or (`fallback=False`) the result is
     `(E, overflow)` and `E` is *not* exact where `overflow` is True: the caller must retry with a
     larger capacity (the inverse solvers do; a `lax.cond` fallback inside their `vmap` over
-    starts would run both branches every time)."""
+    starts would run both branches every time). With `n_wide` (static, `fallback=False` only)
+    only that many receivers get `max_active`, the others 1 (`_bsp.grouped_culled_form_factor`)."""
     dt = points.dtype
     overflow = jnp.zeros((), bool)
     normals = safe_normalize(normals)
@@ -125,6 +132,11 @@ def _irradiance_impl(
                 kern = lambda p, n, v: visible_form_factor_kernel(p, n, v, occ)  # noqa: E731
                 if max_active is None:
                     g = _per_light(kern, points, normals, verts)
+                elif n_wide is not None and not fallback and max_active > 1 and n_wide < points.shape[0]:
+                    f, over = jax.vmap(grouped_culled_form_factor, in_axes=(None, None, 0, None, None, None))(
+                        points, normals, verts, occ, max_active, n_wide
+                    )
+                    g, overflow = f, overflow | jnp.any(over)
                 else:
                     culled = lambda p, n, v: culled_form_factor_kernel(p, n, v, occ, max_active)  # noqa: E731
                     f, over = _per_light(culled, points, normals, verts)

@@ -145,6 +145,29 @@ def test_culled_residual_equals_full_model(occluded_config):
     assert bool(over1)
 
 
+def test_receiver_groups_equal_the_full_model(occluded_config):
+    """Two capacities (`receiver_groups`): the receivers that see two or more occluders get the
+    wide one, the rest capacity 1; the residual and Jacobian are the full model's, and a wide
+    group one receiver too small raises the overflow flag."""
+    scene, start, material, t, size = occluded_config
+    # About the true light, where some receivers see two occluders.
+    param = L.LightParametrisation(scene.lights[0], 0, ("position", "orientation", "size"), None, size, "sigmoid")
+    setup = L._Setup(param, scene, material, t, None, False)
+    y = jnp.asarray(np.random.default_rng(2).normal(0, 0.05, param.size))
+    counts = L._start_counts(param, scene, t, y[None]).max(axis=0)
+    many = int(np.count_nonzero(counts >= 2))
+    assert 1 <= many < len(counts)  # the split is exercised
+    cap = int(counts.max())
+    full = jax.jit(lambda y: jax.jacfwd(L._residuals)(y, setup))(y)
+    grouped = dataclasses.replace(setup, max_active=cap, n_wide=many)
+    got, over = jax.jit(lambda y: jax.jacfwd(L._residuals_culled, has_aux=True)(y, grouped))(y)
+    assert not bool(over)
+    np.testing.assert_allclose(np.asarray(got), np.asarray(full), rtol=1e-12, atol=1e-14)
+    if many > 1:
+        _, over1 = L._residuals_culled(y, dataclasses.replace(grouped, n_wide=many - 1))
+        assert bool(over1)
+
+
 def test_overflow_retry_gives_the_full_model_solution(occluded_config, monkeypatch):
     """A capacity that overflows during the solve is doubled until exact; the fit says so."""
     scene, start, material, t, size = occluded_config
