@@ -40,6 +40,15 @@ The region tested is the one on $R$'s side of the edge, one-sidedly: a piece lyi
 boundary line of another region counts as inside it iff that region's interior is on $R$'s
 side (C&F's "omit degenerate planes" made exact).
 
+**Combinatorics and geometry apart.** `_boundary_runs` does the splitting and the membership
+tests without gradients and returns, per kept run of consecutive pieces of one candidate edge
+(at most $M + 1$ per edge: a region's interval removes one stretch), integer codes for its two
+endpoints: a candidate edge's own end, or the crossing of two planes through $p$ (canonical
+order). `_decode` recomputes just those points from the inputs; the boundary is piecewise
+constant in the inputs, so its derivatives are exactly the endpoints' (what `jax.jacfwd`
+differentiates is the few kept edges, not the splitting machinery).
+`visible_edges_compact` gathers the runs into a fixed number of slots (`_bsp.edge_capacity`).
+
 **Tie-break (coincident edges).** Two candidate pieces on the same line (normals of their planes
 through $p$ parallel within `64 eps`) that both bound $R$ on the same side describe the same
 boundary piece; exactly one is kept, by priority: the emitter's edges first, then occluders in
