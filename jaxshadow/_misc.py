@@ -136,7 +136,8 @@ CHUNK = 1 << 16
 
 
 def map_chunks(fn, batched: tuple, *rest, chunk: int = CHUNK):
-    """`fn(*batched, *rest)` over the leading axis in blocks of `chunk` rows.
+    """`fn(*batched, *rest)` over the leading axis in blocks of `chunk` rows (one call up to
+    `2 chunk` rows).
 
     Only for concrete inputs called from Python (eager): the last block is padded with copies of
     the first row so every block has one shape (one compilation), and blocks are dispatched
@@ -145,7 +146,8 @@ def map_chunks(fn, batched: tuple, *rest, chunk: int = CHUNK):
     import jax as _jax
 
     n = batched[0].shape[0]
-    if n <= chunk or any(isinstance(b, _jax.core.Tracer) for b in batched):
+    # Up to two blocks' worth, one call (fewer rows than a padded pair of blocks, one dispatch).
+    if n <= 2 * chunk or any(isinstance(b, _jax.core.Tracer) for b in batched):
         return fn(*batched, *rest)
     outs = []
     for s in range(0, n, chunk):
