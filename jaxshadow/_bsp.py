@@ -64,7 +64,7 @@ from jaxtyping import Array, Bool, Float, Int
 from ._clip import (
     COLLINEAR_EPS,
     _edge_planes,
-    compact_form_factor_kernel,
+    masked_contour_form_factor,
     visible_edges_compact,
     visible_form_factor_kernel,
 )
@@ -334,10 +334,8 @@ def culled_form_factor_kernel(
     """`visible_form_factor_kernel` on the selected occluders only, the boundary of the visible
     region gathered into `edge_capacity(K, Ko, max_active)` slots: `(F, overflow)`. Equal to
     the full kernel (rounding aside) wherever `overflow` is False."""
-    active, _, overflow = select_occluders(p, n, verts, occluders, max_active, closed)
-    cap = edge_capacity(verts.shape[0], occluders.shape[1], max_active)
-    f, e_over = compact_form_factor_kernel(p, n, verts, active, cap)
-    return f, overflow | e_over
+    starts, ends, overflow = culled_visible_edges(p, n, verts, occluders, max_active, closed)
+    return masked_contour_form_factor(p, n, verts, starts, ends), overflow
 
 
 def culled_visible_edges(

@@ -522,10 +522,12 @@ def visible_form_factor_kernel(
     **Returns:** dimensionless $F \in [0, F_\text{unoccluded}]$.
     """
     starts, ends = visible_edges(p, n, verts, occluders)
-    return _contour_sum(p, n, verts, starts, ends)
+    return masked_contour_form_factor(p, n, verts, starts, ends)
 
 
-def _contour_sum(p, n, verts, starts, ends):
+def masked_contour_form_factor(p: Array, n: Array, verts: Array, starts: Array, ends: Array) -> Array:
+    """Lambert's contour sum over an edge soup of `visible_edges` (or `visible_edges_compact`):
+    zero-length (unused) slots masked, 0 when `p` is not in front of the light `verts`."""
     ne = newell_normal(verts)
     in_front = jnp.dot(ne, p - verts[0]) > 0
     # Dropped pieces are zero-length; mask them so that they add an exact 0 (a fused
@@ -534,19 +536,6 @@ def _contour_sum(p, n, verts, starts, ends):
     terms = jax.vmap(edge_term, in_axes=(None, None, 0, 0))(p, n, starts, ends)
     f = -jnp.sum(jnp.where(used, terms, 0.0)) / (2 * jnp.pi)
     return jnp.where(in_front, f, 0.0)
-
-
-def compact_form_factor_kernel(
-    p: Float[Array, "3"],
-    n: Float[Array, "3"],
-    verts: Float[Array, "k 3"],
-    occluders: Float[Array, "m ko 3"],
-    capacity: int,
-) -> tuple[Float[Array, ""], Bool[Array, ""]]:
-    """`visible_form_factor_kernel` over `visible_edges_compact(..., capacity)`: `(F, overflow)`;
-    exact wherever `overflow` is False."""
-    starts, ends, overflow = visible_edges_compact(p, n, verts, occluders, capacity)
-    return _contour_sum(p, n, verts, starts, ends), overflow
 
 
 @eqx.filter_jit
