@@ -84,16 +84,23 @@ def horizon_clip_edges(
 # --------------------------------------------------------------------------------------
 
 
-@jax.jit
-def _all_good(points: Array, normals: Array) -> Array:
+def inputs_ok(points: Array, normals: Array) -> Array:
+    """Traceable: True when every point and normal is finite and no normal is zero. The public
+    entry points evaluate it inside their own compiled call (one pass fused with the kernel,
+    no extra dispatch) and hand the flag to `raise_if_bad`."""
     finite = jnp.all(jnp.isfinite(points)) & jnp.all(jnp.isfinite(normals))
     return finite & jnp.all(jnp.any(normals != 0, axis=1))
 
 
-def check_points_normals(points: Any, normals: Any, what: str = "") -> tuple[Array, Array]:
-    """Shape/dtype/value checks shared by every public entry point (NumPy, when concrete).
+_all_good = jax.jit(inputs_ok)
+
+
+def check_points_normals(points: Any, normals: Any, what: str = "", values: bool = True) -> tuple[Array, Array]:
+    """Shape/dtype/value checks shared by every public entry point.
 
     Returns JAX arrays; normals are *not* normalised here (the jitted kernels do it, fused).
+    With `values=False` only shapes and dtypes are checked here: the caller evaluates
+    `inputs_ok` in its compiled call and passes the flag to `raise_if_bad` (`evaluate_checked`).
     """
     pre = f"{what}: " if what else ""
     points = points if isinstance(points, jnp.ndarray) else jnp.asarray(points)
@@ -107,23 +114,50 @@ def check_points_normals(points: Any, normals: Any, what: str = "") -> tuple[Arr
         raise ValueError(
             f"{pre}points and normals must have the same length, got {points.shape[0]} and {normals.shape[0]}."
         )
+    if values:
+        _check_values_eagerly(points, normals, what)
+    return points, normals
+
+
+def _check_values_eagerly(points: Array, normals: Array, what: str) -> None:
     if not isinstance(points, jax.core.Tracer) and not isinstance(normals, jax.core.Tracer):
         # One fused pass decides; the slow NumPy search for the culprit runs only on failure.
         # Concrete arrays closed over by a caller's jit are still checked: evaluate eagerly.
         with jax.ensure_compile_time_eval():
             good = bool(_all_good(points, normals))
         if not good:
-            pp, nn = np.asarray(points), np.asarray(normals)
-            for name, x in (("points", pp), ("normals", nn)):
-                bad = ~np.isfinite(x)
-                if bad.any():
-                    i = int(np.argwhere(bad.any(axis=1))[0, 0])
-                    raise ValueError(f"{pre}{name}[{i}] is not finite: {x[i].tolist()}.")
-            zero = ~np.any(nn != 0, axis=1)
-            i = int(np.argmax(zero))
-            raise ValueError(f"{pre}normals[{i}] is the zero vector; a normal needs a direction.")
-    return points, normals
+            raise_if_bad(False, points, normals, what)
 
+
+def raise_if_bad(good: Any, points: Array, normals: Array, what: str) -> None:
+    """Raise the precise `ValueError` (first non-finite value, first zero normal) unless `good`."""
+    if bool(good):
+        return
+    pre = f"{what}: " if what else ""
+    pp, nn = np.asarray(points), np.asarray(normals)
+    for name, x in (("points", pp), ("normals", nn)):
+        bad = ~np.isfinite(x)
+        if bad.any():
+            i = int(np.argwhere(bad.any(axis=1))[0, 0])
+            raise ValueError(f"{pre}{name}[{i}] is not finite: {x[i].tolist()}.")
+    zero = ~np.any(nn != 0, axis=1)
+    i = int(np.argmax(zero))
+    raise ValueError(f"{pre}normals[{i}] is the zero vector; a normal needs a direction.")
+
+
+def evaluate_checked(fn: Any, points: Array, normals: Array, what: str) -> Any:
+    """`fn(points, normals) -> (out, inputs_ok(points, normals))` (one compiled call that also
+    checks the inputs), evaluated in blocks (`_misc.map_chunks`); returns `out`, or raises the
+    precise error when some block's flag is False. Under a caller's transformation (the flag
+    is traced) concrete inputs are checked eagerly instead, and traced ones not at all."""
+    from ._misc import map_chunks
+
+    out, ok = map_chunks(fn, (points, normals))
+    if isinstance(ok, jax.core.Tracer):
+        _check_values_eagerly(points, normals, what)
+        return out
+    raise_if_bad(bool(jnp.all(ok)), points, normals, what)
+    return out
 
 
 def is_concrete(x: object) -> bool:
@@ -167,6 +201,22 @@ def check_unit_direction(x: object, what: str) -> np.ndarray:
     if not np.any(a != 0):
         raise ValueError(f"{what}: a direction must be non-zero, got (0, 0, 0).")
     return a
+
+
+_VALID_POLYGONS: dict = {}
+
+
+def check_convex_polygon_cached(verts: Any, what: str) -> None:
+    """`check_convex_polygon`, remembering the last few polygons that passed (keyed on their
+    bytes): a batch entry point called again with the same emitter skips the NumPy checks."""
+    v = np.asarray(verts)
+    key = (v.shape, v.dtype.str, v.tobytes())
+    if key in _VALID_POLYGONS:
+        return
+    check_convex_polygon(v, what)
+    if len(_VALID_POLYGONS) >= 64:
+        _VALID_POLYGONS.pop(next(iter(_VALID_POLYGONS)))
+    _VALID_POLYGONS[key] = True
 
 
 def check_convex_polygon(verts: object, what: str) -> np.ndarray:

@@ -43,16 +43,16 @@ limit $E = 0$ for $m \ge 1$ (no emission along the axis).
 
 from __future__ import annotations
 
+import functools
 import math
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ._geometry import check_points_normals, check_vector3, is_concrete
-from ._misc import map_chunks, safe_norm, safe_normalize
+from ._geometry import check_points_normals, check_vector3, evaluate_checked, inputs_ok, is_concrete
+from ._misc import safe_norm, safe_normalize
 
 
 def cosine_profile_constant(m: int) -> float:
@@ -168,12 +168,13 @@ def linear_irradiance_kernel(
     return jnp.where(on_segment, jnp.inf, jnp.where(ok, value, 0.0))
 
 
-@eqx.filter_jit
-def _linear_batch(points: Array, normals: Array, start: Array, end: Array, m: int) -> Array:
-    normals = safe_normalize(normals)
-    return jax.vmap(linear_irradiance_kernel, in_axes=(0, 0, None, None, None))(
-        points, normals, start, end, m
+@functools.partial(jax.jit, static_argnums=4)
+def _linear_batch(points: Array, normals: Array, start: Array, end: Array, m: int) -> tuple[Array, Array]:
+    """`(N,)` values and the input flag (`_geometry.inputs_ok`), one compiled call."""
+    e = jax.vmap(linear_irradiance_kernel, in_axes=(0, 0, None, None, None))(
+        points, safe_normalize(normals), start, end, m
     )
+    return e, inputs_ok(points, normals)
 
 
 def linear_irradiance(
@@ -194,7 +195,7 @@ def linear_irradiance(
 
     **Returns:** `(N,)`; `+inf` for a receiver on the segment itself.
     """
-    points, normals = check_points_normals(points, normals, "linear_irradiance")
+    points, normals = check_points_normals(points, normals, "linear_irradiance", values=False)
     if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or m < 0:
         raise ValueError(f"linear_irradiance: m must be an integer >= 0 (a Python int), got {m!r}.")
     ends = []
@@ -208,4 +209,4 @@ def linear_irradiance(
     a, b = ends
     if is_concrete(a) and is_concrete(b) and not np.any(np.asarray(a) != np.asarray(b)):
         raise ValueError("linear_irradiance: zero-length segment (start == end).")
-    return map_chunks(lambda p, n: _linear_batch(p, n, a, b, int(m)), (points, normals))
+    return evaluate_checked(lambda p, n: _linear_batch(p, n, a, b, int(m)), points, normals, "linear_irradiance")

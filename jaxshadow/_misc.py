@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
@@ -137,25 +139,37 @@ CHUNK = 1 << 16
 
 def map_chunks(fn, batched: tuple, *rest, chunk: int = CHUNK):
     """`fn(*batched, *rest)` over the leading axis in blocks of `chunk` rows (one call up to
-    `2 chunk` rows).
+    `2 chunk` rows). `fn`'s output may be a pytree: leaves with a leading axis are joined
+    along it, scalar leaves (per-block flags) are stacked into `(blocks,)`.
 
-    Only for concrete inputs called from Python (eager): the last block is padded with copies of
-    the first row so every block has one shape (one compilation), and blocks are dispatched
-    asynchronously. Traced inputs (inside jit/grad/vmap) get a single call.
+    Only for concrete inputs called from Python (eager): one compiled call cuts the inputs into
+    blocks (the last padded with copies of the first row, so every block has one shape and
+    `fn` compiles once), the blocks are dispatched asynchronously, and one compiled call joins
+    the results. Traced inputs (inside jit/grad/vmap) get a single call.
     """
-    import jax as _jax
-
     n = batched[0].shape[0]
     # Up to two blocks' worth, one call (fewer rows than a padded pair of blocks, one dispatch).
-    if n <= 2 * chunk or any(isinstance(b, _jax.core.Tracer) for b in batched):
+    if n <= 2 * chunk or any(isinstance(b, jax.core.Tracer) for b in batched):
         return fn(*batched, *rest)
-    outs = []
-    for s in range(0, n, chunk):
-        block = tuple(b[s : s + chunk] for b in batched)
-        m = block[0].shape[0]
-        if m < chunk:
-            block = tuple(
-                jnp.concatenate([b, jnp.broadcast_to(b[:1], (chunk - m,) + b.shape[1:])]) for b in block
-            )
-        outs.append(fn(*block, *rest)[:m])
-    return jnp.concatenate(outs)
+    blocks = _split_blocks(tuple(batched), chunk)
+    outs = [fn(*block, *rest) for block in zip(*blocks, strict=True)]
+    return _join_blocks(outs, n)
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _split_blocks(batched: tuple, chunk: int) -> tuple:
+    """Each array of `batched` cut into blocks of `chunk` rows, the last padded with its first row."""
+    n = batched[0].shape[0]
+    nb = -(-n // chunk)
+    out = []
+    for b in batched:
+        pad = jnp.broadcast_to(b[:1], (nb * chunk - n,) + b.shape[1:])
+        full = jnp.concatenate([b, pad])
+        out.append([full[i * chunk : (i + 1) * chunk] for i in range(nb)])
+    return tuple(out)
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _join_blocks(outs: list, n: int):
+    """Inverse of `_split_blocks` for `fn`'s outputs (scalar leaves stacked)."""
+    return jax.tree.map(lambda *xs: jnp.stack(xs) if xs[0].ndim == 0 else jnp.concatenate(xs)[:n], *outs)

@@ -17,14 +17,19 @@ from __future__ import annotations
 
 from typing import Any
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Float
 
-from ._geometry import check_convex_polygon, check_points_normals, is_concrete, newell_normal
-from ._misc import angle_over_sin, map_chunks, safe_normalize
+from ._geometry import (
+    check_convex_polygon_cached,
+    check_points_normals,
+    evaluate_checked,
+    inputs_ok,
+    is_concrete,
+    newell_normal,
+)
+from ._misc import angle_over_sin, safe_normalize
 
 
 def _unit3(x: Array, y: Array, z: Array) -> tuple[Array, Array, Array]:
@@ -171,9 +176,11 @@ def _form_factor_compact(p: Array, n: Array, verts: Array) -> Array:
     return jnp.where(in_front, -total / (2 * jnp.pi), 0.0)
 
 
-@eqx.filter_jit
-def _form_factor_batch(points: Array, normals: Array, vertices: Array) -> Array:
-    return jax.vmap(form_factor_kernel, in_axes=(0, 0, None))(points, safe_normalize(normals), vertices)
+@jax.jit
+def _form_factor_batch(points: Array, normals: Array, vertices: Array) -> tuple[Array, Array]:
+    """Form factors `(N,)` and the input flag (`_geometry.inputs_ok`), one compiled call."""
+    f = jax.vmap(form_factor_kernel, in_axes=(0, 0, None))(points, safe_normalize(normals), vertices)
+    return f, inputs_ok(points, normals)
 
 
 def _check_vertices(vertices: Any, dtype: Any) -> Array:
@@ -186,7 +193,7 @@ def _check_vertices(vertices: Any, dtype: Any) -> Array:
     if not (jnp.issubdtype(v.dtype, jnp.floating) or jnp.issubdtype(v.dtype, jnp.integer)):
         raise ValueError(f"form_factor: vertices must be a real array, got dtype {v.dtype}.")
     if is_concrete(v):
-        check_convex_polygon(np.asarray(v), "form_factor: vertices")
+        check_convex_polygon_cached(v, "form_factor: vertices")
     return v.astype(dtype)
 
 
@@ -209,6 +216,6 @@ def form_factor(
 
     **Returns:** `(N,)` form factors (dimensionless), dtype following `points`.
     """
-    points, normals = check_points_normals(points, normals, "form_factor")
+    points, normals = check_points_normals(points, normals, "form_factor", values=False)
     vertices = _check_vertices(vertices, points.dtype)
-    return map_chunks(lambda p, n: _form_factor_batch(p, n, vertices), (points, normals))
+    return evaluate_checked(lambda p, n: _form_factor_batch(p, n, vertices), points, normals, "form_factor")

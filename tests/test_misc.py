@@ -43,3 +43,44 @@ def test_angle_over_sin_singular_case_is_zero():
     assert float(angle_over_sin(0.0, -1.0)) == 0.0
     g = jax.grad(angle_over_sin, argnums=(0, 1))(0.0, -1.0)
     assert all(np.isfinite(np.asarray(x)) for x in g)
+
+
+def test_map_chunks_blocks_and_joins_pytrees():
+    """Several blocks (the last padded): array leaves joined in order, scalar leaves stacked
+    per block; the padding never leaks into the result."""
+    from jaxshadow._misc import map_chunks
+
+    x = jnp.arange(2 * 10 + 7, dtype=jnp.float32)[:, None] * jnp.ones((1, 3), jnp.float32)
+    calls = []
+
+    def fn(a, b, c):
+        calls.append(a.shape[0])
+        return a[:, 0] * c + b[:, 1], jnp.max(a)
+
+    out, flags = map_chunks(fn, (x, 2 * x), 10.0, chunk=10)
+    assert calls == [10, 10, 10]  # one shape: one compilation
+    np.testing.assert_array_equal(np.asarray(out), np.arange(27) * 12.0)
+    np.testing.assert_array_equal(np.asarray(flags), [9.0, 19.0, 26.0])
+    # Up to two blocks: one call on the inputs themselves.
+    out2, _ = map_chunks(fn, (x[:20], x[:20]), 1.0, chunk=10)
+    assert calls[-1] == 20 and out2.shape == (20,)
+
+
+def test_blocked_public_path_finds_a_bad_row_in_a_late_block():
+    """The input check is fused into each block's compiled call; the error still names the row."""
+    import jaxshadow as js
+    from jaxshadow._misc import CHUNK
+
+    n = 2 * CHUNK + 3
+    p = np.zeros((n, 3), np.float32)
+    nrm = np.tile(np.float32([0, 0, 1]), (n, 1))
+    quad = np.float32([[-1, -1, 1], [-1, 1, 1], [1, 1, 1], [1, -1, 1]])  # emits down (-z)
+    f = np.asarray(js.form_factor(p, nrm, quad))
+    assert f.shape == (n,) and np.all(f == f[0]) and 0 < f[0] < 1
+    p[n - 2, 1] = np.nan
+    with pytest.raises(ValueError, match=rf"form_factor: points\[{n - 2}\] is not finite"):
+        js.form_factor(p, nrm, quad)
+    p[n - 2, 1] = 0.0
+    nrm[CHUNK + 1] = 0.0
+    with pytest.raises(ValueError, match=rf"irradiance: normals\[{CHUNK + 1}\] is the zero vector"):
+        js.irradiance(js.Scene(lights=[js.PolygonLight(quad, 1.0)]), p, nrm)
