@@ -162,8 +162,8 @@ class LightParametrisation(eqx.Module):
         elif isinstance(light, js.PointLight):
             self.kind = "point"
             c = np.asarray(light.position, np.float64)
-            self.frame0 = jnp.eye(3)
-            self.local = jnp.zeros(())
+            self.frame0 = jnp.asarray(np.eye(3))
+            self.local = jnp.asarray(np.zeros(()))
             bad = [g for g in self.fit if g != "position"]
             if bad:
                 raise ValueError(f"fit_light: a point light has only a position; cannot fit {bad}.")
@@ -172,9 +172,10 @@ class LightParametrisation(eqx.Module):
                 f"fit_light: light {light_index} is a {type(light).__name__}; only PolygonLight, "
                 "LinearLight and PointLight can be placed."
             )
-        self.box_lo = jnp.zeros(3)
-        self.box_hi = jnp.ones(3)
-        self.plane_e = jnp.zeros((2, 3))
+        # Host arrays put on the device (eager jnp.zeros/ones would compile one op each).
+        self.box_lo = jnp.asarray(np.zeros(3))
+        self.box_hi = jnp.asarray(np.ones(3))
+        self.plane_e = jnp.asarray(np.zeros((2, 3)))
         if constraint is None:
             self.constraint = "none"
         elif isinstance(constraint, Plane):
@@ -421,6 +422,13 @@ def _multistart_optx(setup: _Setup, starts: Array, rtol: float, atol: float, max
     values, ok, steps = jax.vmap(one)(starts)
     losses = jax.vmap(_loss, in_axes=(0, None))(values, setup)
     return values, losses, ok, steps
+
+
+@eqx.filter_jit
+def _build_light(param: LightParametrisation, theta: Array) -> Any:
+    """`param.build(theta)` compiled once per parametrisation shape (eagerly it would dispatch,
+    and on the first call compile, a few dozen small operations)."""
+    return param.build(theta)
 
 
 @eqx.filter_jit
@@ -771,9 +779,9 @@ def fit_light(
     theta = jnp.asarray(values[best], dt)
     if solver == "lm":
         # The solver's own residual and Jacobian at the optimum (exact: no culling overflow).
-        r, J = np.asarray(res.residuals[best], np.float64), np.asarray(res.jacobians[best], np.float64)
+        r, J = np.asarray(res.residuals, np.float64)[best], np.asarray(res.jacobians, np.float64)[best]
         if initial_loss is None and ref_row >= 0:
-            initial_loss = float(res.initial_losses[ref_row])
+            initial_loss = float(np.asarray(res.initial_losses)[ref_row])
     else:
         r, J = _jacobian(setup, theta)
         r, J = np.asarray(r, np.float64), np.asarray(J, np.float64)
@@ -809,7 +817,7 @@ def fit_light(
         msgs.append(f"the light moved so that some receiver saw more occluders than the culling capacity; "
                     f"solved again {retries} time(s) with a larger one (the result is exact).")
 
-    light = param.build(theta[: param.size])
+    light = _build_light(param, theta[: param.size])
     new_scene = with_light(scene, light_index, light)
     if project:
         _, kc, n_fit = _projected_jit(setup, theta)

@@ -134,15 +134,23 @@ def batched_levenberg_marquardt(
         init = it == 0
         g = jnp.einsum("smp,sm->sp", J, r)
         A = jnp.einsum("smp,smq->spq", J, J)
-        diag = jnp.maximum(dmax, jnp.diagonal(A, axis1=1, axis2=2))
+        diag = jnp.maximum(dmax, jnp.sum(J * J, axis=1))
         scale = jnp.maximum(diag, eps * jnp.max(diag, axis=1, keepdims=True) + jnp.finfo(dt).tiny)
         Ad = A + (lam[:, None] * scale)[:, :, None] * jnp.eye(P, dtype=dt)[None]
-        delta = -jnp.linalg.solve(Ad, g[..., None])[..., 0]
-        delta = jnp.where(jnp.isfinite(delta) & ~init, delta, 0.0)
+        # Ad is symmetric positive definite (lam * scale > 0 on the diagonal): Cholesky, which
+        # compiles to a fraction of a general LU solve. A failed factorisation (round-off) gives
+        # a non-finite step: it is rejected (the damping grows), never taken for a stall.
+        chol = jax.lax.linalg.cholesky(Ad, symmetrize_input=False)
+        delta = -jax.lax.linalg.triangular_solve(
+            chol, jax.lax.linalg.triangular_solve(chol, g[..., None], left_side=True, lower=True),
+            left_side=True, lower=True, transpose_a=True)[..., 0]
+        step_ok = jnp.all(jnp.isfinite(delta), axis=1)
+        delta = jnp.where(step_ok[:, None] & ~init, delta, 0.0)
         y_try = y + delta
         r_t, J_t, flag_t = rj(y_try, ~done)
         f_t = 0.5 * jnp.sum(r_t * r_t, axis=1)
-        pred = -jnp.sum(g * delta, axis=1) - 0.5 * jnp.einsum("sp,spq,sq->s", delta, A, delta)
+        Jd = jnp.einsum("smp,sp->sm", J, delta)
+        pred = -jnp.sum(g * delta, axis=1) - 0.5 * jnp.sum(Jd * Jd, axis=1)
         rho = (f - f_t) / jnp.where(pred > 0, pred, 1.0)
         finite = jnp.isfinite(f_t) & jnp.all(jnp.isfinite(J_t), axis=(1, 2))
         live = ~done
@@ -151,7 +159,7 @@ def batched_levenberg_marquardt(
         small_step = jnp.max(jnp.abs(delta), axis=1) <= atol + rtol * jnp.max(jnp.abs(y), axis=1)
         small_f = jnp.abs(f - f_t) <= atol + rtol * f
         conv = ~init & accept & small_step & small_f
-        stall = ~init & live & ~accept & (pred <= 4 * eps * f)
+        stall = ~init & live & ~accept & step_ok & (pred <= 4 * eps * f)
         dead = ~init & live & (lam > 1e16)
         bad_start = init & ~finite  # a start where the model is not finite: nothing to do
         a = accept[:, None]
@@ -159,8 +167,7 @@ def batched_levenberg_marquardt(
         r = jnp.where(a, r_t, r)
         J = jnp.where(a[:, :, None], J_t, J)
         f = jnp.where(accept, f_t, f)
-        dmax = jnp.where(a, jnp.maximum(dmax, jnp.diagonal(jnp.einsum("smp,smq->spq", J_t, J_t),
-                                                           axis1=1, axis2=2)), dmax)
+        dmax = jnp.where(a, jnp.maximum(dmax, jnp.sum(J_t * J_t, axis=1)), dmax)
         factor = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
         lam = jnp.where(init | ~live, lam, jnp.where(accept, lam * factor, lam * nu))
         nu = jnp.where(accept, 2.0, jnp.where(live, 2.0 * nu, nu))
@@ -171,12 +178,13 @@ def batched_levenberg_marquardt(
         done = done | (newly & live)
         flag = flag | jnp.any(flag_t & live)
         # Successive halving: keep the better half (rounded up) of the starts still running.
-        running = ~done
-        n_run = jnp.sum(running.astype(jnp.int32))
-        rank = jnp.argsort(jnp.argsort(jnp.where(running, f, jnp.inf), stable=True), stable=True)
-        drop = running & (rank >= (n_run + 1) // 2) & jnp.any(it == prune_at)
-        done = done | drop
-        gone = gone | drop
+        if prune and S > 1:  # static: no sorting in the program otherwise
+            running = ~done
+            n_run = jnp.sum(running.astype(jnp.int32))
+            rank = jnp.argsort(jnp.argsort(jnp.where(running, f, jnp.inf), stable=True), stable=True)
+            drop = running & (rank >= (n_run + 1) // 2) & jnp.any(it == prune_at)
+            done = done | drop
+            gone = gone | drop
         return it + 1, y, r, J, f, f0, lam, nu, done, ok, steps, dmax, flag, gone
 
     state = (
