@@ -383,14 +383,15 @@ def shade(
     scene = _check_scene(scene, "shade")
     if not isinstance(material, Material):
         raise ValueError(f"shade: expected a jaxshadow.Material, got {type(material).__name__}.")
-    points, normals = check_points_normals(points, normals, "shade")
+    points, normals = check_points_normals(points, normals, "shade", values=False)
     if method not in ("chebyshev", "exact"):
         raise ValueError(f"shade: method must be 'chebyshev' or 'exact', got {method!r}.")
     eyes = _check_eye(eye, points, "shade")
     dt = points.dtype
     n = _check_exponent(material.exponent, dt, "shade")
     cap = _plan_max_active(scene, points, normals)
-    e = map_chunks(lambda p, q: _irradiance_impl(scene, p, q, cap), (points, normals))
+    # The same compiled irradiance as `irradiance` (its flag checks the points and normals).
+    e = evaluate_checked(lambda p, q: _irradiance_checked(scene, p, q, cap), points, normals, "shade")
     s = map_chunks(
         lambda p, q, v: _specular_impl(scene, p, q, v, n, method, int(degree), cap),
         (points, normals, eyes),
