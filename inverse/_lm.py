@@ -134,7 +134,7 @@ def batched_levenberg_marquardt(
         init = it == 0
         g = jnp.einsum("smp,sm->sp", J, r)
         A = jnp.einsum("smp,smq->spq", J, J)
-        diag = jnp.maximum(dmax, jnp.sum(J * J, axis=1))
+        diag = jnp.maximum(dmax, jnp.diagonal(A, axis1=1, axis2=2))
         scale = jnp.maximum(diag, eps * jnp.max(diag, axis=1, keepdims=True) + jnp.finfo(dt).tiny)
         Ad = A + (lam[:, None] * scale)[:, :, None] * jnp.eye(P, dtype=dt)[None]
         # Ad is symmetric positive definite (lam * scale > 0 on the diagonal): Cholesky, which
@@ -149,8 +149,7 @@ def batched_levenberg_marquardt(
         y_try = y + delta
         r_t, J_t, flag_t = rj(y_try, ~done)
         f_t = 0.5 * jnp.sum(r_t * r_t, axis=1)
-        Jd = jnp.einsum("smp,sp->sm", J, delta)
-        pred = -jnp.sum(g * delta, axis=1) - 0.5 * jnp.sum(Jd * Jd, axis=1)
+        pred = -jnp.sum(g * delta, axis=1) - 0.5 * jnp.einsum("sp,spq,sq->s", delta, A, delta)
         rho = (f - f_t) / jnp.where(pred > 0, pred, 1.0)
         finite = jnp.isfinite(f_t) & jnp.all(jnp.isfinite(J_t), axis=(1, 2))
         live = ~done

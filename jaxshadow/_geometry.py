@@ -20,6 +20,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from ._misc import map_chunks
+
 # Relative tolerances used by build-time validation (NumPy, float64).
 PLANARITY_RTOL = 1e-6
 DEGENERACY_RTOL = 1e-9
@@ -150,8 +152,6 @@ def evaluate_checked(fn: Any, points: Array, normals: Array, what: str) -> Any:
     checks the inputs), evaluated in blocks (`_misc.map_chunks`); returns `out`, or raises the
     precise error when some block's flag is False. Under a caller's transformation (the flag
     is traced) concrete inputs are checked eagerly instead, and traced ones not at all."""
-    from ._misc import map_chunks
-
     out, ok = map_chunks(fn, (points, normals))
     if isinstance(ok, jax.core.Tracer):
         _check_values_eagerly(points, normals, what)
