@@ -29,14 +29,14 @@ from ._geometry import (
     is_concrete,
     newell_normal,
 )
-from ._misc import angle_over_sin, safe_normalize
+from ._misc import angle_over_sin, fusible, safe_normalize
 
 
 def _unit3(x: Array, y: Array, z: Array) -> tuple[Array, Array, Array]:
     """Componentwise `v / |v|` (zero, with zero gradient, for `v = 0`)."""
     sq = x * x + y * y + z * z
     ok = sq > 0
-    inv = jnp.where(ok, jax.lax.rsqrt(jnp.where(ok, sq, 1.0)), 0.0)
+    inv = jnp.where(ok, fusible(jax.lax.rsqrt(jnp.where(ok, sq, 1.0))), 0.0)
     return x * inv, y * inv, z * inv
 
 
