@@ -52,7 +52,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._geometry import check_points_normals, check_vector3, evaluate_checked, inputs_ok, is_concrete
-from ._misc import safe_norm, safe_normalize
+from ._misc import arctan2, fusible, safe_norm, safe_normalize
 
 
 def cosine_profile_constant(m: int) -> float:
@@ -62,12 +62,18 @@ def cosine_profile_constant(m: int) -> float:
     return 1.0 / (2.0 * math.pi * w)
 
 
+def _dot3(x, y):
+    """`x . y` for 3-vectors as an elementwise expression: after `vmap` XLA:CPU fuses it into
+    the surrounding loop (a `dot` of `(N, 3)` by `(3,)` is a separate library call)."""
+    return x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
+
+
 def segment_frame(p, a, b):
     """Poulin's 2-D frame of a segment seen from `p`: `(h, u, tA, tB)` with `X(t) = p + h + t u`."""
     e = b - a
     length = safe_norm(e)
     u = e / jnp.where(length > 0, length, 1.0)
-    ta = jnp.dot(a - p, u)
+    ta = _dot3(a - p, u)
     h = (a - p) - ta * u
     return h, u, ta, ta + length
 
@@ -77,7 +83,7 @@ def horizon_clip_interval(hn, un, ta, tb):
     pos = un > 0
     neg = un < 0
     safe_un = jnp.where(pos | neg, un, 1.0)
-    tc = -hn / safe_un
+    tc = fusible(-hn / safe_un)
     t0 = jnp.where(pos, jnp.maximum(ta, tc), ta)
     t1 = jnp.where(neg, jnp.minimum(tb, tc), tb)
     nonempty = jnp.where(pos | neg, t1 > t0, hn >= 0) & (tb > ta)
@@ -104,12 +110,12 @@ def _cosine_profile_bracket(t0, t1, d, ra, rb, m):
     $T = (c_A^{m+1} - c_B^{m+1})/(m+1) = (c_A - c_B)\sum_{i=0}^{m} c_A^i c_B^{m-i} / (m+1)$,
     $c_A - c_B = c_A (t_B - t_A)(t_B + t_A)/(r_B (r_A + r_B))$ (no cancellation). Returns `J`
     and `T`; every quantity is dimensionless and at most 1 in magnitude (up to a factor 2)."""
-    ca, cb = d / ra, d / rb
-    sa, sb = t0 / ra, t1 / rb
+    ca, cb = fusible(d / ra), fusible(d / rb)
+    sa, sb = fusible(t0 / ra), fusible(t1 / rb)
     k_target = m + 1
     if k_target % 2 == 0:
         # J_0 = phi_B - phi_A; both arguments divided by r_A r_B.
-        j = jnp.arctan2(ca * ((t1 - t0) / rb), ca * cb + sa * sb)
+        j = arctan2(ca * ((t1 - t0) / rb), ca * cb + sa * sb)  # vectorised; XLA:CPU's is a libm call
         k0 = 0
     else:
         # J_1 = s_B - s_A, by the cancellation-free form when the foot is outside the segment.
@@ -143,9 +149,9 @@ def linear_irradiance_kernel(
     **Returns:** scalar $E/\Phi$ in 1/m (multiply by the power per length $\Phi$ in W/m).
     """
     h, u, ta, tb = segment_frame(p, a, b)
-    d2 = jnp.dot(h, h)
-    hn = jnp.dot(n, h)
-    un = jnp.dot(n, u)
+    d2 = _dot3(h, h)
+    hn = _dot3(n, h)
+    un = _dot3(n, u)
     on_segment = (d2 == 0) & (ta <= 0) & (tb >= 0)
     t0, t1, nonempty = horizon_clip_interval(hn, un, ta, tb)
     ok = nonempty & ~on_segment
@@ -154,13 +160,14 @@ def linear_irradiance_kernel(
     t1 = jnp.where(ok, t1, 2.0)
     d2 = jnp.where(ok, d2, 1.0)
     hn = jnp.where(ok, hn, 0.0)
-    ra = jnp.sqrt(t0 * t0 + d2)
-    rb = jnp.sqrt(t1 * t1 + d2)
+    # `fusible`: each square root is read several times (jaxshadow._misc.fusible).
+    ra = fusible(jnp.sqrt(t0 * t0 + d2))
+    rb = fusible(jnp.sqrt(t1 * t1 + d2))
     if m == 0:
         value = hn * _sin_diff_over_d2(t0, t1, d2, ra, rb) + un * (1.0 / ra - 1.0 / rb)
     else:
         d2_ok = d2 > 0
-        d = jnp.sqrt(jnp.where(d2_ok, d2, 1.0))
+        d = fusible(jnp.sqrt(jnp.where(d2_ok, d2, 1.0)))
         hn_hat = hn / d  # N . h / d, in [-1, 1]
         j, tail = _cosine_profile_bracket(t0, t1, d, ra, rb, m)
         value = jnp.where(d2_ok, (hn_hat * j + un * tail) / d, 0.0)

@@ -40,7 +40,7 @@ from ._geometry import (
     pad_polygons_jax,
 )
 from ._linear import linear_irradiance_kernel
-from ._misc import map_chunks, safe_normalize
+from ._misc import map_chunks, safe_normalize, unit_rows
 from ._point import directional_irradiance_kernel, point_irradiance_kernel
 from ._polygon import form_factor_kernel
 from ._scene import DirectionalLight, LinearLight, Material, PointLight, PolygonLight, Scene
@@ -123,11 +123,26 @@ def _irradiance_impl(
     larger capacity (the inverse solvers do; a `lax.cond` fallback inside their `vmap` over
     starts would run both branches every time). With `n_wide` (static, `fallback=False` only)
     only that many receivers get `max_active`, the others 1 (`_bsp.grouped_culled_form_factor`)."""
+    terms, overflow = _irradiance_terms(scene, points, normals, max_active, fallback, n_wide)
+    total = combine_terms(terms, points.shape, points.dtype)
+    return total if fallback else (total, overflow)
+
+
+def _irradiance_terms(
+    scene: Scene,
+    points: Array,
+    normals: Array,
+    max_active: int | None,
+    fallback: bool,
+    n_wide: int | None,
+) -> tuple[tuple[tuple[Array, Array], ...], Array]:
+    r"""Per light group `(g (L, N), emission (L, 3))` with $E = \sum_l g_l\,\text{emission}_l$,
+    and the culling overflow flag (`_irradiance_impl`)."""
     dt = points.dtype
     overflow = jnp.zeros((), bool)
-    normals = safe_normalize(normals)
+    normals = unit_rows(normals)
     occ = None if scene.occluders is None else scene.occluders.astype(dt)
-    total = jnp.zeros(points.shape, dtype=dt)
+    terms = []
     for key, lights in _group(scene).items():
         if not lights:
             continue
@@ -175,8 +190,19 @@ def _irradiance_impl(
                 vis = _per_light(lambda p, n, d: directional_visibility(p, d, occ), points, normals, d)
                 g = g * vis
             emission = _stack(lights, "irradiance", dt)
-        total = total + jnp.sum(g[:, :, None] * emission[:, None, :], axis=0)  # fuses; a dot does not
-    return total if fallback else (total, overflow)
+        terms.append((g, emission))
+    return tuple(terms), overflow
+
+
+def combine_terms(terms: tuple, shape: tuple, dtype: Any) -> Array:
+    r"""$\sum_l g_l\,\text{emission}_l$ over the groups of `_irradiance_terms`: `(N, 3)`."""
+    total = jnp.zeros(shape, dtype=dtype)
+    for g, emission in terms:
+        total = total + jnp.sum(g[:, :, None] * emission[:, None, :], axis=0)
+    return total
+
+
+_combine_terms = jax.jit(combine_terms, static_argnums=(1, 2))
 
 
 def irradiance(
@@ -199,14 +225,25 @@ def irradiance(
     scene = _check_scene(scene, "irradiance")
     points, normals = check_points_normals(points, normals, "irradiance", values=False)
     cap = _plan_max_active(scene, points, normals)
-    return evaluate_checked(lambda p, n: _irradiance_checked(scene, p, n, cap), points, normals, "irradiance")
+    return evaluate_checked(lambda p, n: _irradiance_blocked(scene, p, n, cap), points, normals, "irradiance")
 
 
 @functools.partial(jax.jit, static_argnums=3)
-def _irradiance_checked(scene: Scene, points: Array, normals: Array, max_active: int | None) -> tuple[Array, Array]:
-    """`_irradiance_impl` (with the fallback) and `_geometry.inputs_ok`, one compiled call
-    (plain `jax.jit`: its dispatch costs a fraction of `eqx.filter_jit`'s)."""
-    return _irradiance_impl(scene, points, normals, max_active), inputs_ok(points, normals)
+def _irradiance_checked(scene: Scene, points: Array, normals: Array, max_active: int | None) -> tuple[tuple, Array]:
+    """The terms of `_irradiance_terms` (with the fallback) and `_geometry.inputs_ok`, one
+    compiled call (plain `jax.jit`: its dispatch costs a fraction of `eqx.filter_jit`'s)."""
+    terms, _ = _irradiance_terms(scene, points, normals, max_active, True, None)
+    return terms, inputs_ok(points, normals)
+
+
+def _irradiance_blocked(scene: Scene, points: Array, normals: Array, max_active: int | None) -> tuple[Array, Array]:
+    """`(E (N, 3), inputs_ok)` for one block of receivers: two compiled calls. The per-light
+    values `g (L, N)` are written to memory by the first and weighted by each light's RGB
+    emission in the second; in one program XLA:CPU recomputes the kernel for every channel or
+    splits it into dozens of loops (a broadcast of a fused expression), ~8x slower at 10^6
+    points (benchmarks/README.md)."""
+    terms, ok = _irradiance_checked(scene, points, normals, max_active)
+    return _combine_terms(terms, points.shape, points.dtype), ok
 
 
 def _check_eye(eye: Any, points: Array, what: str) -> Array:
@@ -391,7 +428,7 @@ def shade(
     n = _check_exponent(material.exponent, dt, "shade")
     cap = _plan_max_active(scene, points, normals)
     # The same compiled irradiance as `irradiance` (its flag checks the points and normals).
-    e = evaluate_checked(lambda p, q: _irradiance_checked(scene, p, q, cap), points, normals, "shade")
+    e = evaluate_checked(lambda p, q: _irradiance_blocked(scene, p, q, cap), points, normals, "shade")
     s = map_chunks(
         lambda p, q, v: _specular_impl(scene, p, q, v, n, method, int(degree), cap),
         (points, normals, eyes),
