@@ -52,7 +52,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._geometry import check_points_normals, check_vector3, evaluate_checked, inputs_ok, is_concrete
-from ._misc import arctan2, fusible, safe_norm, safe_normalize
+from ._misc import arctan2, fusible, safe_norm, unit_rows
 
 
 def cosine_profile_constant(m: int) -> float:
@@ -179,7 +179,7 @@ def linear_irradiance_kernel(
 def _linear_batch(points: Array, normals: Array, start: Array, end: Array, m: int) -> tuple[Array, Array]:
     """`(N,)` values and the input flag (`_geometry.inputs_ok`), one compiled call."""
     e = jax.vmap(linear_irradiance_kernel, in_axes=(0, 0, None, None, None))(
-        points, safe_normalize(normals), start, end, m
+        points, unit_rows(normals), start, end, m
     )
     return e, inputs_ok(points, normals)
 

@@ -29,7 +29,7 @@ from ._geometry import (
     is_concrete,
     newell_normal,
 )
-from ._misc import angle_over_sin, fusible, safe_normalize
+from ._misc import angle_over_sin, fusible, unit_rows
 
 
 def _unit3(x: Array, y: Array, z: Array) -> tuple[Array, Array, Array]:
@@ -179,7 +179,7 @@ def _form_factor_compact(p: Array, n: Array, verts: Array) -> Array:
 @jax.jit
 def _form_factor_batch(points: Array, normals: Array, vertices: Array) -> tuple[Array, Array]:
     """Form factors `(N,)` and the input flag (`_geometry.inputs_ok`), one compiled call."""
-    f = jax.vmap(form_factor_kernel, in_axes=(0, 0, None))(points, safe_normalize(normals), vertices)
+    f = jax.vmap(form_factor_kernel, in_axes=(0, 0, None))(points, unit_rows(normals), vertices)
     return f, inputs_ok(points, normals)
 
 
