@@ -118,36 +118,65 @@ def _form_factor_jvp(primals, tangents):
     return jax.jvp(_form_factor_compact, primals, tangents)
 
 
+# Edges per fused loop of the unrolled kernel. XLA:CPU's loop for one polygon stops being
+# vectorised somewhere between 28 and 32 edges (~17x slower, benchmarks/README.md); longer
+# polygons are evaluated in groups of this many edges by a `lax.scan`.
+EDGE_GROUP = 16
+
+
+def _unrolled_edges(n: tuple, dirs: list, carry: tuple) -> tuple:
+    """Lambert's terms of the edges `dirs[i] -> dirs[i + 1]` (unit vertex directions from the
+    receiver, normal components `n`), horizon-clipped, added to `carry = (total, exit_pt,
+    entry_pt, any_exit)` (the crossing points collected for the closing horizon edge)."""
+    total, exit_pt, entry_pt, any_exit = carry
+    h = [n[0] * v[0] + n[1] * v[1] + n[2] * v[2] for v in dirs]
+    up = [hi >= 0 for hi in h]
+    for i in range(len(dirs) - 1):
+        a, b, ha, hb = dirs[i], dirs[i + 1], h[i], h[i + 1]
+        sgn = jnp.where(ha >= 0, 1.0, -1.0)
+        x = tuple(sgn * (ha * bc - hb * ac) for ac, bc in zip(a, b, strict=True))
+        start = tuple(jnp.where(up[i], ac, xc) for ac, xc in zip(a, x, strict=True))
+        end = tuple(jnp.where(up[i + 1], bc, xc) for bc, xc in zip(b, x, strict=True))
+        keep = up[i] | up[i + 1]
+        total = total + jnp.where(keep, _edge_term_c(start, end, n), 0.0)
+        exiting = up[i] & ~up[i + 1]
+        entering = ~up[i] & up[i + 1]
+        exit_pt = tuple(jnp.where(exiting, xc, e) for xc, e in zip(x, exit_pt, strict=True))
+        entry_pt = tuple(jnp.where(entering, xc, e) for xc, e in zip(x, entry_pt, strict=True))
+        any_exit = any_exit | exiting
+    return total, exit_pt, entry_pt, any_exit
+
+
 def _form_factor_unrolled(p: Array, n: Array, verts: Array) -> Array:
-    """`form_factor_kernel` with the edges unrolled (fast values)."""
+    """`form_factor_kernel` with the edges unrolled (fast values); in groups of `EDGE_GROUP`
+    edges (a `lax.scan`) above `1.5 EDGE_GROUP` vertices."""
     k = verts.shape[0]
     ne = newell_normal(verts)
     in_front = jnp.dot(ne, p - verts[0]) > 0
     nc = (n[0], n[1], n[2])
-    dirs = [_unit3(verts[i, 0] - p[0], verts[i, 1] - p[1], verts[i, 2] - p[2]) for i in range(k)]
-    h = [nc[0] * v[0] + nc[1] * v[1] + nc[2] * v[2] for v in dirs]
-    up = [hi >= 0 for hi in h]
-    zero = jnp.zeros_like(h[0])
-    total = zero
-    exit_pt = [zero, zero, zero]
-    entry_pt = [zero, zero, zero]
-    any_exit = jnp.zeros_like(up[0])
-    for i in range(k):
-        j = (i + 1) % k
-        a, b, ha, hb = dirs[i], dirs[j], h[i], h[j]
-        sgn = jnp.where(ha >= 0, 1.0, -1.0)
-        x = tuple(sgn * (ha * bc - hb * ac) for ac, bc in zip(a, b, strict=True))
-        start = tuple(jnp.where(up[i], ac, xc) for ac, xc in zip(a, x, strict=True))
-        end = tuple(jnp.where(up[j], bc, xc) for bc, xc in zip(b, x, strict=True))
-        keep = up[i] | up[j]
-        total = total + jnp.where(keep, _edge_term_c(start, end, nc), 0.0)
-        exiting = up[i] & ~up[j]
-        entering = ~up[i] & up[j]
-        exit_pt = [jnp.where(exiting, xc, e) for xc, e in zip(x, exit_pt, strict=True)]
-        entry_pt = [jnp.where(entering, xc, e) for xc, e in zip(x, entry_pt, strict=True)]
-        any_exit = any_exit | exiting
+
+    def unit(v: Array) -> tuple:
+        return _unit3(v[0] - p[0], v[1] - p[1], v[2] - p[2])
+
+    zero = jnp.zeros_like(p[0])
+    carry = (zero, (zero, zero, zero), (zero, zero, zero), jnp.zeros_like(p[0], dtype=bool))
+    closed = jnp.concatenate([verts, verts[:1]])  # edge i runs closed[i] -> closed[i + 1]
+    if k <= (3 * EDGE_GROUP) // 2:
+        carry = _unrolled_edges(nc, [unit(closed[i]) for i in range(k + 1)], carry)
+    else:
+        g = EDGE_GROUP
+        n_groups = -(-k // g)
+        # Padding edges verts[0] -> verts[0] have zero length: they add nothing and never cross.
+        padded = jnp.concatenate([closed, jnp.broadcast_to(verts[:1], (n_groups * g - k, 3))])
+        groups = jnp.stack([padded[i * g : i * g + g + 1] for i in range(n_groups)])
+
+        def step(c: tuple, vs: Array) -> tuple:
+            return _unrolled_edges(nc, [unit(vs[j]) for j in range(g + 1)], c), None
+
+        carry, _ = jax.lax.scan(step, carry, groups)
+    total, exit_pt, entry_pt, any_exit = carry
     # The closing edge along the horizon, from the exit to the entry crossing.
-    total = total + jnp.where(any_exit, _edge_term_c(tuple(exit_pt), tuple(entry_pt), nc), 0.0)
+    total = total + jnp.where(any_exit, _edge_term_c(exit_pt, entry_pt, nc), 0.0)
     return jnp.where(in_front, -total / (2 * jnp.pi), 0.0)
 
 

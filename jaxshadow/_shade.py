@@ -202,8 +202,6 @@ def combine_terms(terms: tuple, shape: tuple, dtype: Any) -> Array:
     return total
 
 
-_combine_terms = jax.jit(combine_terms, static_argnums=(1, 2))
-
 
 def irradiance(
     scene: Scene, points: Float[ArrayLike, "N 3"], normals: Float[ArrayLike, "N 3"]
@@ -225,25 +223,22 @@ def irradiance(
     scene = _check_scene(scene, "irradiance")
     points, normals = check_points_normals(points, normals, "irradiance", values=False)
     cap = _plan_max_active(scene, points, normals)
-    return evaluate_checked(lambda p, n: _irradiance_blocked(scene, p, n, cap), points, normals, "irradiance")
+    return evaluate_checked(lambda p, n: _irradiance_checked(scene, p, n, cap), points, normals, "irradiance")
 
 
 @functools.partial(jax.jit, static_argnums=3)
-def _irradiance_checked(scene: Scene, points: Array, normals: Array, max_active: int | None) -> tuple[tuple, Array]:
-    """The terms of `_irradiance_terms` (with the fallback) and `_geometry.inputs_ok`, one
-    compiled call (plain `jax.jit`: its dispatch costs a fraction of `eqx.filter_jit`'s)."""
+def _irradiance_checked(scene: Scene, points: Array, normals: Array, max_active: int | None) -> tuple[Array, Array]:
+    """`(E (N, 3), inputs_ok)`, one compiled call (plain `jax.jit`: its dispatch costs a fraction
+    of `eqx.filter_jit`'s). The RGB weighting runs only when the inputs are good (the caller
+    raises otherwise), under a `lax.cond`: that also makes XLA write the per-light values
+    `g (L, N)` to memory before weighting them. Weighted in the same loop, XLA:CPU either
+    recomputes the fused kernel for each of the three channels or splits it into ~27 loops,
+    ~7x slower at 10^6 points (benchmarks/README.md)."""
     terms, _ = _irradiance_terms(scene, points, normals, max_active, True, None)
-    return terms, inputs_ok(points, normals)
-
-
-def _irradiance_blocked(scene: Scene, points: Array, normals: Array, max_active: int | None) -> tuple[Array, Array]:
-    """`(E (N, 3), inputs_ok)` for one block of receivers: two compiled calls. The per-light
-    values `g (L, N)` are written to memory by the first and weighted by each light's RGB
-    emission in the second; in one program XLA:CPU recomputes the kernel for every channel or
-    splits it into dozens of loops (a broadcast of a fused expression), ~8x slower at 10^6
-    points (benchmarks/README.md)."""
-    terms, ok = _irradiance_checked(scene, points, normals, max_active)
-    return _combine_terms(terms, points.shape, points.dtype), ok
+    ok = inputs_ok(points, normals)
+    e = jax.lax.cond(ok, lambda t: combine_terms(t, points.shape, points.dtype),
+                     lambda t: jnp.zeros(points.shape, points.dtype), terms)
+    return e, ok
 
 
 def _check_eye(eye: Any, points: Array, what: str) -> Array:
@@ -428,7 +423,7 @@ def shade(
     n = _check_exponent(material.exponent, dt, "shade")
     cap = _plan_max_active(scene, points, normals)
     # The same compiled irradiance as `irradiance` (its flag checks the points and normals).
-    e = evaluate_checked(lambda p, q: _irradiance_blocked(scene, p, q, cap), points, normals, "shade")
+    e = evaluate_checked(lambda p, q: _irradiance_checked(scene, p, q, cap), points, normals, "shade")
     s = map_chunks(
         lambda p, q, v: _specular_impl(scene, p, q, v, n, method, int(degree), cap),
         (points, normals, eyes),

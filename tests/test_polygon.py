@@ -263,6 +263,26 @@ def test_jit_vmap_and_dtype_follow_inputs(dtype):
     np.testing.assert_allclose(np.asarray(f), np.asarray(g), rtol=1e-6)
 
 
+@pytest.mark.parametrize("k", [24, 25, 33, 64])
+def test_grouped_unrolled_kernel_agrees_with_compact(k):
+    """Polygons longer than 1.5 EDGE_GROUP edges are evaluated in groups by a scan (the
+    crossing points of the horizon carried between groups); same values as the
+    edge-vectorised kernel, with receivers whose tangent plane cuts the polygon."""
+    from jaxshadow._polygon import EDGE_GROUP, _form_factor_compact, _form_factor_unrolled
+
+    assert (k > 1.5 * EDGE_GROUP) == (k != 24)  # one unrolled case, three grouped ones
+    ang = -2 * np.pi * np.arange(k) / k  # clockwise seen from above: emits downwards
+    verts = np.stack([0.6 * np.cos(ang), 0.6 * np.sin(ang), np.ones(k)], axis=1)
+    rng = np.random.default_rng(k)
+    p = rng.uniform(-1.5, 1.5, (64, 3)) * [1, 1, 0.4]
+    n = rng.normal(size=(64, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    fast = jax.jit(jax.vmap(_form_factor_unrolled, in_axes=(0, 0, None)))(p, n, verts)
+    ref = jax.vmap(_form_factor_compact, in_axes=(0, 0, None))(p, n, verts)
+    assert np.count_nonzero(np.asarray(ref) > 0) > 10
+    np.testing.assert_allclose(np.asarray(fast), np.asarray(ref), rtol=1e-12, atol=1e-15)
+
+
 def test_fast_and_compact_evaluations_agree():
     # Values come from the unrolled kernel, derivatives from the edge-vectorised one.
     from jaxshadow._polygon import _form_factor_compact, _form_factor_unrolled
