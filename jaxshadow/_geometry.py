@@ -90,8 +90,12 @@ def inputs_ok(points: Array, normals: Array) -> Array:
     """Traceable: True when every point and normal is finite and no normal is zero. The public
     entry points evaluate it inside their own compiled call (one pass fused with the kernel,
     no extra dispatch) and hand the flag to `raise_if_bad`."""
-    finite = jnp.all(jnp.isfinite(points)) & jnp.all(jnp.isfinite(normals))
-    return finite & jnp.all(jnp.any(normals != 0, axis=1))
+    # Componentwise, one reduction: XLA:CPU fuses it into 4 small loops instead of ~10.
+    def finite(v: Array) -> Array:
+        return jnp.isfinite(v[..., 0]) & jnp.isfinite(v[..., 1]) & jnp.isfinite(v[..., 2])
+
+    nonzero = (normals[..., 0] != 0) | (normals[..., 1] != 0) | (normals[..., 2] != 0)
+    return jnp.all(finite(points) & finite(normals) & nonzero)
 
 
 _all_good = jax.jit(inputs_ok)
