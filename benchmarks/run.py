@@ -226,7 +226,8 @@ def bench_throughput(sizes, reps, numpy_max, n_shadow, quick=False) -> list[dict
                 fns[("segment", "NumPy")] = lambda: numpy_chunked(linear_irradiance_numpy, p_np, n_np, SEG_A, SEG_B)
             # Best of more calls where one call is short (below 10^5 points: 4x `reps`), for
             # JAX and NumPy alike: a best-of-5 of a ~0.3 ms call is mostly scheduler noise.
-            t = time_side_by_side(fns, 0 if n >= 5_000_000 else (reps if n >= 100_000 else 4 * reps))
+            # From 5 10^6 points one timed call after the first (NumPy takes ~15 s per call).
+            t = time_side_by_side(fns, 1 if n >= 5_000_000 else (reps if n >= 100_000 else 4 * reps))
             m_small = min(n, 100_000)
             ps, ns = p[:m_small], nr[:m_small]
             mem = {} if n != min(sizes[-1], 100_000) else {
