@@ -110,8 +110,11 @@ def time_side_by_side(fns: dict, reps: int) -> dict:
         t0 = time.perf_counter()
         _block(f())
         out[name] = {"first_s": time.perf_counter() - t0, "times": []}
-    for _ in range(reps):
-        for name, f in fns.items():
+    items = list(fns.items())
+    for r in range(reps):
+        # Rotate the order each repeat: the call right after a long NumPy call finds XLA's
+        # worker threads asleep, and a fixed order would always give that slot to one method.
+        for name, f in items[r % len(items):] + items[: r % len(items)]:
             t0 = time.perf_counter()
             _block(f())
             out[name]["times"].append(time.perf_counter() - t0)
