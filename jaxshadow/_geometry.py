@@ -109,13 +109,12 @@ def check_points_normals(points: Any, normals: Any, what: str = "", values: bool
     `inputs_ok` in its compiled call and passes the flag to `raise_if_bad` (`evaluate_checked`).
     """
     pre = f"{what}: " if what else ""
-    points, normals = host_or_device(points, pre + "points"), host_or_device(normals, pre + "normals")
+    points, normals = as_input(points, pre + "points"), as_input(normals, pre + "normals")
     for name, x in (("points", points), ("normals", normals)):
         if x.ndim != 2 or x.shape[-1] != 3:
             raise ValueError(f"{pre}{name} must have shape (N, 3), got {x.shape}.")
         if not jnp.issubdtype(x.dtype, jnp.floating):
             raise ValueError(f"{pre}{name} must be a floating-point array, got dtype {x.dtype}.")
-    points, normals = canonical(points), canonical(normals)
     if points.shape[0] != normals.shape[0]:
         raise ValueError(
             f"{pre}points and normals must have the same length, got {points.shape[0]} and {normals.shape[0]}."
@@ -125,23 +124,18 @@ def check_points_normals(points: Any, normals: Any, what: str = "", values: bool
     return points, normals
 
 
-def host_or_device(x: Any, what: str) -> Any:
-    """A JAX array (or tracer) as it is; anything else as a NumPy array. A compiled call takes
-    NumPy arguments directly, at about half the cost of `jnp.asarray` first."""
+def as_input(x: Any, what: str) -> Any:
+    """A JAX array (or tracer) as it is; anything else as a NumPy array, which a compiled call
+    takes directly at about half the cost of `jnp.asarray` first. A NumPy dtype JAX would
+    change (float64 without x64) is converted, so that the caller's dtype bookkeeping follows
+    the dtype the kernels compute in."""
     if isinstance(x, jnp.ndarray):
         return x
     try:
-        return np.asarray(x)
+        a = np.asarray(x)
     except (ValueError, TypeError) as e:
         raise ValueError(f"{what} is not an array of numbers: {e}") from None
-
-
-def canonical(x: Any) -> Any:
-    """`x`, or `jnp.asarray(x)` for a NumPy dtype JAX would change (float64 without x64), so
-    that the caller's dtype bookkeeping follows the dtype the kernels compute in."""
-    if isinstance(x, np.ndarray) and x.dtype != jax.dtypes.canonicalize_dtype(x.dtype):
-        return jnp.asarray(x)
-    return x
+    return jnp.asarray(a) if a.dtype != jax.dtypes.canonicalize_dtype(a.dtype) else a
 
 
 def _check_values_eagerly(points: Array, normals: Array, what: str) -> None:

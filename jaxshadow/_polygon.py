@@ -22,11 +22,10 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ._geometry import (
-    canonical,
+    as_input,
     check_convex_polygon_cached,
     check_points_normals,
     evaluate_checked,
-    host_or_device,
     inputs_ok,
     is_concrete,
     newell_normal,
@@ -216,7 +215,7 @@ def _form_factor_batch(points: Array, normals: Array, vertices: Array) -> tuple[
 
 def _check_vertices(vertices: Any, dtype: Any) -> Array:
     """Validate the emitter of `form_factor` (NumPy, when concrete) and cast it to `dtype`."""
-    v = vertices if isinstance(vertices, jnp.ndarray) else canonical(host_or_device(vertices, "form_factor: vertices"))
+    v = as_input(vertices, "form_factor: vertices")
     if v.ndim != 2 or v.shape[-1] != 3:
         raise ValueError(f"form_factor: vertices must have shape (k, 3), got {v.shape}.")
     if v.shape[0] < 3:
