@@ -272,7 +272,11 @@ def test_random_scenes_float64(m_occ):
         for i in range(len(pts)):
             ref = reference_ff(pts[i], nrm[i], emitter, occs)
             free = unoccluded(pts[i], nrm[i], emitter)
-            err = abs(got[i] - ref) / max(free, 1e-300)
+            # Relative to the unoccluded F, with a floor: where a steep horizon leaves a sliver
+            # of the emitter (F ~ 1e-7), Lambert's sum cancels terms of order 0.1 and what is
+            # left is the absolute round-off, ~1e-17 in the kernel and in this reference alike
+            # (the unoccluded kernel differs from the reference by as much there).
+            err = abs(got[i] - ref) / max(free, 1e-6)
             worst = max(worst, err if free > 0 else abs(got[i]))
             if free > 0:
                 kinds.add(
