@@ -8,6 +8,10 @@ every solver (tests, or a different lobe); `None` means `js.specular`.
 (`jaxshadow._bsp`) and *no* fallback: it also returns whether any receiver had more relevant
 occluders than the capacity (then its value is not exact and the solver retries with a larger
 one). The public entry points cull only with concrete lights; inside a fit the light is traced.
+Both call the forward model's traceable implementations (`_shade._irradiance_traced`,
+`_specular_traced`) rather than its jitted entry points: the solvers compile their own
+programs, and a nested jit there only adds tracing (it is transformed again by every
+`jvp`/`vmap` around it).
 """
 
 from __future__ import annotations
@@ -19,7 +23,7 @@ import jax.numpy as jnp
 from jaxtyping import Array
 
 import jaxshadow as js
-from jaxshadow._shade import _irradiance_impl, _specular_impl
+from jaxshadow._shade import _irradiance_traced, _specular_traced
 from jaxshadow._specular import DEFAULT_DEGREE
 
 SpecularFn = Callable[[Any, Array, Array, Array, Array], Array]
@@ -55,8 +59,6 @@ def shade_culled(scene: Any, material: Any, points: Array, normals: Array, eye: 
     custom `specular` is evaluated uncull'd. `n_wide`: only that many receivers get `max_active`
     in the irradiance, the others 1 (`jaxshadow._bsp.grouped_culled_form_factor`). Traceable in
     the scene (no input checks: the caller validated them)."""
-    if max_active is None or scene.occluders is None:
-        return shade(scene, material, points, normals, eye, specular, with_specular), jnp.zeros((), bool)
     dt = points.dtype
     e, over = irradiance_culled(scene, points, normals, max_active, n_wide)
     out = (material.ka.astype(dt) * scene.ambient.astype(dt))[None, :] + (material.kd.astype(dt) / jnp.pi)[None, :] * e
@@ -70,19 +72,27 @@ def shade_culled(scene: Any, material: Any, points: Array, normals: Array, eye: 
 def irradiance_culled(scene: Any, points: Array, normals: Array, max_active: int | None,
                       n_wide: int | None = None) -> tuple[Array, Array]:
     """`(js.irradiance(...), overflow)` with the culling of `shade_culled`."""
-    if max_active is None or scene.occluders is None:
-        return js.irradiance(scene, points, normals), jnp.zeros((), bool)
-    return _irradiance_impl(scene, points, normals, max_active, False, n_wide)
+    if scene.occluders is None:
+        max_active = None
+    return _irradiance_traced(scene, points, normals, max_active, False, n_wide)
 
 
 def specular_culled(scene: Any, points: Array, normals: Array, eye: Array, exponent: Array,
                     specular: SpecularFn | None, max_active: int | None) -> tuple[Array, Array]:
     """`(js.specular(...), overflow)` (or the custom `specular`, uncull'd)."""
-    if max_active is None or scene.occluders is None or specular is not None:
-        fn = resolve_specular(specular, "specular")
-        return fn(scene, points, normals, eye, exponent), jnp.zeros((), bool)
+    if specular is not None:
+        return specular(scene, points, normals, eye, exponent), jnp.zeros((), bool)
+    if scene.occluders is None:
+        max_active = None
     dt = points.dtype
     eyes = jnp.broadcast_to(jnp.asarray(eye, dt), points.shape)
-    return _specular_impl(scene, points, normals, eyes, exponent.astype(dt), "chebyshev", DEFAULT_DEGREE,
-                          max_active, False)
+    return _specular_traced(scene, points, normals, eyes, exponent.astype(dt), "chebyshev", DEFAULT_DEGREE,
+                            max_active, False)
 
+
+
+def traced_specular(scene: Any, points: Array, normals: Array, eye: Array, exponent: Array) -> Array:
+    """`js.specular` (its default method and degree) without its input checks or its own jit,
+    for the solvers' compiled programs (the material fit's exponent search): a module-level
+    function, so it is one static argument for `equinox.filter_jit` however often it is used."""
+    return specular_culled(scene, points, normals, eye, jnp.asarray(exponent), None, None)[0]

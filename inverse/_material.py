@@ -20,7 +20,6 @@ import math
 import warnings
 from typing import Any
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -28,7 +27,8 @@ from jaxtyping import Array
 
 import jaxshadow as js
 
-from ._forward import SpecularFn, resolve_specular
+from ._forward import SpecularFn, traced_specular
+from ._lm import fit_jit
 from ._targets import PaintedTargets
 
 PARAM_NAMES = tuple(f"{k}[{c}]" for k in ("ka", "kd", "ks") for c in "rgb")
@@ -199,13 +199,13 @@ def _np(x: Any) -> np.ndarray:
     return np.asarray(x, dtype=np.float64)
 
 
-@eqx.filter_jit
+@fit_jit
 def _spec_eval(specular: Any, scene: Any, targets: PaintedTargets, exponents: Array) -> Array:
     t = targets
     return jax.vmap(lambda e: specular(scene, t.points, t.normals, t.eye, e))(exponents)
 
 
-@eqx.filter_jit
+@fit_jit
 def _spec_dlogn(specular: Any, scene: Any, targets: PaintedTargets, exponent: Array) -> Array:
     t = targets
     f = lambda x: specular(scene, t.points, t.normals, t.eye, x)  # noqa: E731
@@ -318,7 +318,7 @@ def fit_material(
     if not (0 < n_lo < n_hi and np.isfinite(n_hi)):
         raise ValueError(f"fit_material: n_bounds must satisfy 0 < lower < upper, got {n_bounds}.")
     fit_n = exponent is None
-    spec_fn = resolve_specular(specular, "fit_material")
+    spec_fn = traced_specular if specular is None else specular
     basis = _Basis(scene, targets, spec_fn)
     y = _np(targets.colours)
     w = _np(targets.weights)

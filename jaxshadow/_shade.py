@@ -107,8 +107,7 @@ def _plan_max_active(scene: Scene, points: Array, normals: Array) -> int | None:
     return cap  # even at M: the culled kernel compacts the edge soup (`_bsp.edge_capacity`)
 
 
-@eqx.filter_jit
-def _irradiance_impl(
+def _irradiance_traced(
     scene: Scene,
     points: Array,
     normals: Array,
@@ -122,10 +121,18 @@ def _irradiance_impl(
     `(E, overflow)` and `E` is *not* exact where `overflow` is True: the caller must retry with a
     larger capacity (the inverse solvers do; a `lax.cond` fallback inside their `vmap` over
     starts would run both branches every time). With `n_wide` (static, `fallback=False` only)
-    only that many receivers get `max_active`, the others 1 (`_bsp.grouped_culled_form_factor`)."""
+    only that many receivers get `max_active`, the others 1 (`_bsp.grouped_culled_form_factor`).
+
+    Traceable, no input checks (`_irradiance_impl` is it jitted). The inverse solvers call it
+    inside their own compiled programs: a nested jit there is traced once and then transformed
+    again by each `jvp` / `vmap` around it, which made up more than half of the tracing time of
+    a light fit's first call."""
     terms, overflow = _irradiance_terms(scene, points, normals, max_active, fallback, n_wide)
     total = combine_terms(terms, points.shape, points.dtype)
     return total if fallback else (total, overflow)
+
+
+_irradiance_impl = eqx.filter_jit(_irradiance_traced)
 
 
 def _irradiance_terms(
@@ -261,8 +268,7 @@ def _check_exponent(exponent: Any, dt: Any, what: str) -> Array:
     return e.astype(dt)
 
 
-@eqx.filter_jit
-def _specular_impl(
+def _specular_traced(
     scene: Scene,
     points: Array,
     normals: Array,
@@ -273,7 +279,8 @@ def _specular_impl(
     max_active: int | None = None,
     fallback: bool = True,
 ) -> Any:
-    """Specular `(N, 3)`; `max_active` and `fallback` as in `_irradiance_impl`."""
+    """Specular `(N, 3)`; `max_active` and `fallback` as in `_irradiance_traced` (traceable,
+    no input checks; `_specular_impl` is it jitted)."""
     dt = points.dtype
     overflow = jnp.zeros((), bool)
     normals = safe_normalize(normals)
@@ -348,6 +355,9 @@ def _specular_impl(
             emission = _stack(lights, "irradiance", dt)
         total = total + jnp.sum(g[:, :, None] * emission[:, None, :], axis=0)  # fuses; a dot does not
     return total if fallback else (total, overflow)
+
+
+_specular_impl = eqx.filter_jit(_specular_traced)
 
 
 def specular(
