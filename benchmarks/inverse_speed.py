@@ -66,7 +66,7 @@ def _child(n_occ, cache_dir):
     print(json.dumps({"first_call_s": time.perf_counter() - t0}))
 
 
-def _process_first_calls(n_occ):
+def _process_first_calls(n_occ, xla_defaults=False):
     """First-call time of a fresh process without, then with, a warm persistent cache."""
     import subprocess
     import tempfile
@@ -74,14 +74,19 @@ def _process_first_calls(n_occ):
     out = []
     with tempfile.TemporaryDirectory() as d:
         for _ in range(2):
-            r = subprocess.run([sys.executable, __file__, "--child", str(n_occ), d], capture_output=True, text=True,
+            r = subprocess.run([sys.executable, __file__, "--child", str(n_occ), d] + (["xla-defaults"] if xla_defaults else []),
+                               capture_output=True, text=True,
                                check=True)
             out.append(json.loads(r.stdout.strip().splitlines()[-1])["first_call_s"])
     return {"cold_process_first_call_s": out[0], "warm_cache_process_first_call_s": out[1]}
 
 
 def main():
-    if len(sys.argv) == 4 and sys.argv[1] == "--child":
+    if len(sys.argv) in (4, 5) and sys.argv[1] == "--child":
+        if sys.argv[4:] == ["xla-defaults"]:
+            import inverse._lm
+
+            inverse._lm.FIT_COMPILER_OPTIONS = {}
         _child(int(sys.argv[2]), sys.argv[3])
         return
     ap = argparse.ArgumentParser(description=__doc__)
@@ -91,9 +96,19 @@ def main():
     ap.add_argument("--no-optimistix", action="store_true", help="skip the optimistix comparison")
     ap.add_argument("--no-full", action="store_true", help="skip the (slow) LM from all 64 starts")
     ap.add_argument("--no-material", action="store_true", help="skip the material-fit timings")
+    ap.add_argument("--xla-defaults", action="store_true",
+                    help="compile the fit programs with XLA's default options instead of "
+                         "inverse._lm.FIT_COMPILER_OPTIONS (the A/B of that choice)")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "inverse_speed.json"))
     args = ap.parse_args()
+    if args.xla_defaults:
+        import inverse._lm
+
+        inverse._lm.FIT_COMPILER_OPTIONS = {}
+    from inverse._lm import FIT_COMPILER_OPTIONS
+
     results = {"machine": platform.platform(), "cpu_count": os.cpu_count(), "jax": jax.__version__,
+               "fit_compiler_options": dict(FIT_COMPILER_OPTIONS),
                "backend": jax.default_backend(), "targets": 48, "dtype": "float64",
                "load_average_at_start": os.getloadavg(), "light": {}}
     cases = [("lm", 1, None, args.repeats, False), ("lm", 64, 8, args.repeats, False)]
@@ -133,7 +148,7 @@ def main():
             print(f"{key:45s} compile {first - med:7.2f} s  solve {1e3 * med:9.1f} ms  "
                   f"steps {int(np.max(fit.report.num_steps)):3d}  pos err {err['position'] / fit.report.scale:.1e}",
                   flush=True)
-        results["light"][f"lm/occluders={n_occ}/process_first_call"] = pc = _process_first_calls(n_occ)
+        results["light"][f"lm/occluders={n_occ}/process_first_call"] = pc = _process_first_calls(n_occ, args.xla_defaults)
         print(f"fresh process, 1 start, {n_occ} occluder(s): first call {pc['cold_process_first_call_s']:.1f} s "
               f"without, {pc['warm_cache_process_first_call_s']:.1f} s with a warm compilation cache", flush=True)
     if args.no_material:
@@ -160,7 +175,8 @@ def _markdown(results):
     lines = [
         f"Run: `benchmarks/inverse_speed.py` on {results['machine']} ({results['cpu_count']} cores), jax "
         f"{results['jax']}, float64, 48 targets, 8 light parameters; load average at start "
-        f"{results['load_average_at_start'][0]:.1f}.",
+        f"{results['load_average_at_start'][0]:.1f}; fit programs compiled with "
+        f"{results.get('fit_compiler_options') or 'XLA defaults'}.",
         "",
         "| solver | occluders | starts | compile (s) | solve (ms) | max LM steps | abandoned | position error / scene |",
         "|---|---:|---:|---:|---:|---:|---:|---:|",

@@ -40,7 +40,7 @@ import jaxshadow as js
 from jaxshadow._bsp import _counts
 
 from ._forward import SpecularFn, irradiance_culled, shade, shade_culled, specular_culled
-from ._lm import LMResult, batched_levenberg_marquardt
+from ._lm import LMResult, batched_levenberg_marquardt, fit_jit
 from ._targets import PaintedTargets
 
 FIT_GROUPS = ("position", "orientation", "size")
@@ -389,13 +389,14 @@ def _loss(theta: Array, setup: _Setup) -> Array:
     return 0.5 * jnp.sum(r * r)
 
 
-@eqx.filter_jit
+@fit_jit
 def _multistart_lm(setup: _Setup, starts: Array, rtol: float, atol: float, max_steps: int,
                    prune: tuple[int, ...] = (), chunk: int | None = None) -> LMResult:
     """Levenberg-Marquardt from every start at once (`_lm.batched_levenberg_marquardt`) on the
     culled residual; `LMResult.flag` is the culling overflow (then retry, `_solve_lm`)."""
     return batched_levenberg_marquardt(_residuals_culled, starts, setup, rtol=rtol, atol=atol,
-                                       max_steps=max_steps, prune=prune, chunk=chunk)
+                                       max_steps=max_steps, prune=prune, chunk=chunk,
+                                       num_residuals=3 * int(setup.targets.points.shape[0]))
 
 
 def prune_schedule(n_starts: int, max_steps: int) -> tuple[int, ...]:
@@ -410,7 +411,7 @@ def prune_schedule(n_starts: int, max_steps: int) -> tuple[int, ...]:
     return tuple(out)
 
 
-@eqx.filter_jit
+@fit_jit
 def _multistart_optx(setup: _Setup, starts: Array, rtol: float, atol: float, max_steps: int) -> tuple:
     """`optimistix.LevenbergMarquardt` from every start under `jax.vmap` (`solver="optimistix"`)."""
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
@@ -424,14 +425,14 @@ def _multistart_optx(setup: _Setup, starts: Array, rtol: float, atol: float, max
     return values, losses, ok, steps
 
 
-@eqx.filter_jit
+@fit_jit
 def _build_light(param: LightParametrisation, theta: Array) -> Any:
     """`param.build(theta)` compiled once per parametrisation shape (eagerly it would dispatch,
     and on the first call compile, a few dozen small operations)."""
     return param.build(theta)
 
 
-@eqx.filter_jit
+@fit_jit
 def _light_vertices(param: LightParametrisation, thetas: Array) -> Array:
     """`(S, K, 3)` vertices of the polygon light for each row of `thetas (S, >=P)` (compiled
     once per parametrisation shape, not per call)."""
@@ -507,7 +508,7 @@ def _solve_lm(setup: _Setup, starts: Array, rtol: float, atol: float, max_steps:
         retries += 1
 
 
-@eqx.filter_jit
+@fit_jit
 def _multistart_lbfgsb(setup: _Setup, starts: Array, lower: Array, upper: Array, tol: float,
                        max_steps: int) -> tuple:
     from ._jaxopt import lbfgsb_solve
@@ -521,7 +522,7 @@ def _multistart_lbfgsb(setup: _Setup, starts: Array, lower: Array, upper: Array,
     return values, losses, steps < max_steps, steps
 
 
-@eqx.filter_jit
+@fit_jit
 def _jacobian(setup: _Setup, theta: Array) -> tuple[Array, Array]:
     return _residuals(theta, setup), jax.jacfwd(_residuals)(theta, setup)
 
@@ -859,17 +860,17 @@ def fit_light(
                     material=material)
 
 
-@eqx.filter_jit
+@fit_jit
 def _loss_jit(setup: _Setup, theta: Array) -> Array:
     return _loss(theta, setup)
 
 
-@eqx.filter_jit
+@fit_jit
 def _projected_jit(setup: _Setup, theta: Array) -> tuple[Array, Array, Array]:
     return _projected(theta, setup)
 
 
-@eqx.filter_jit
+@fit_jit
 def _screen_losses(setup: _Setup, starts: Array) -> Array:
     """$\\tfrac12|r|^2$ at every start (culled at `setup.max_active`: the caller sizes it for
     these starts, so nothing overflows)."""

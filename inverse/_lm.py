@@ -33,12 +33,53 @@ cost of an iteration follows the number of starts still running instead of the b
 
 from __future__ import annotations
 
+import functools
+import inspect
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
+
+# XLA:CPU options for the programs that hold the soft-shadow residual and its Jacobian (the
+# light-placement fits). Their first call is dominated by XLA compiling a few hundred small
+# fused loops; the legacy elemental emitter instead of the MLIR fusion emitters, and LLVM
+# without its most expensive passes, compile them in ~40% less time, and the solves run as
+# fast or faster (`benchmarks/README.md`, "Session 6"). Options of the code generator only:
+# IEEE arithmetic, no fast-math.
+FIT_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False, "xla_llvm_disable_expensive_passes": True}
+
+
+def fit_jit(fun: Callable) -> Callable:
+    """`equinox.filter_jit(fun)` compiled with `FIT_COMPILER_OPTIONS` on the CPU backend (other
+    backends: the defaults). The backend is looked up at the first call, not at import. A jaxlib
+    that does not know one of the options (the supported `jax` range is wide) gets the defaults
+    instead: the first compile that names an option in its error is retried without them."""
+    jitted: list = []
+
+    @functools.wraps(fun)
+    def call(*args: Any, **kwargs: Any) -> Any:
+        if not jitted:
+            cpu = jax.default_backend() == "cpu" and "compiler_options" in inspect.signature(jax.jit).parameters
+            if cpu:
+                # `filter_jit` forwards its extra keywords to `jax.jit` (its stubs do not list them).
+                fast = eqx.filter_jit(fun, compiler_options=FIT_COMPILER_OPTIONS)  # type: ignore[call-overload]
+                try:
+                    out = fast(*args, **kwargs)
+                except Exception as err:  # an unknown option surfaces at the first compile
+                    if not any(key in str(err) for key in FIT_COMPILER_OPTIONS):
+                        raise
+                    jitted.append(eqx.filter_jit(fun))
+                else:
+                    jitted.append(fast)
+                    return out
+            else:
+                jitted.append(eqx.filter_jit(fun))
+        return jitted[0](*args, **kwargs)
+
+    return call
 
 
 class LMResult(NamedTuple):
@@ -70,6 +111,7 @@ def batched_levenberg_marquardt(
     lambda0: float = 1e-3,
     prune: tuple[int, ...] = (),
     chunk: int | None = None,
+    num_residuals: int | None = None,
 ) -> LMResult:
     """Minimise $\\tfrac12|r(y)|^2$ from every row of `y0` at once (traceable; jit the caller).
 
@@ -83,6 +125,9 @@ def batched_levenberg_marquardt(
     - `prune`: iterations at which the worse half of the running starts is abandoned (module
       docstring); `chunk`: evaluate the starts this many at a time, skipping finished ones
       (None: all at once).
+    - `num_residuals`: the length M of `r`, when the caller knows it (static int). Without
+      it the residual is traced once more (`jax.eval_shape`) just to learn M; with the
+      soft-shadow residual that extra trace was about a third of the first call's tracing.
 
     **Returns:** `LMResult`.
     """
@@ -97,7 +142,7 @@ def batched_levenberg_marquardt(
         J, (r, flag) = jax.vmap(jax.jacfwd(resid_aux, has_aux=True))(ys)
         return r, J, flag
 
-    M = jax.eval_shape(lambda y: fn(y, args)[0], y0[0]).shape[0]
+    M = num_residuals if num_residuals is not None else jax.eval_shape(lambda y: fn(y, args)[0], y0[0]).shape[0]
     eps = jnp.finfo(dt).eps
 
     def rj(ys: Array, need: Array) -> tuple[Array, Array, Array]:

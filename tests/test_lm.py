@@ -176,3 +176,42 @@ def test_overflow_retry_gives_the_full_model_solution(occluded_config, monkeypat
     assert any("culling capacity" in w for w in f.report.warnings), f.report.warnings
     err = pose_errors(f.light.vertices, scene.lights[0].vertices)
     assert err["position"] < 1e-7 * size and f.report.loss < 1e-20
+
+
+def test_lm_num_residuals_and_fit_compiler_options():
+    """Passing the residual length (no extra trace) and compiling with `FIT_COMPILER_OPTIONS`
+    (`fit_jit`) change nothing in the solution; a wrong length is an error, not a silent result."""
+    from inverse._lm import FIT_COMPILER_OPTIONS, fit_jit
+
+    starts = jnp.asarray(np.concatenate([TRUE[None] * 1.5, TRUE[None] * 0.7]))
+    args = (jnp.asarray(T), jnp.asarray(Y))
+
+    def solve(y0, m):
+        return batched_levenberg_marquardt(_exp_resid, y0, args, rtol=1e-10, atol=1e-12, max_steps=200,
+                                           num_residuals=m)
+
+    ref = jax.jit(solve, static_argnums=1)(starts, None)
+    fast = fit_jit(solve)
+    got = fast(starts, T.size)
+    np.testing.assert_array_equal(np.asarray(got.num_steps), np.asarray(ref.num_steps))
+    np.testing.assert_allclose(np.asarray(got.values), np.asarray(ref.values), rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(np.asarray(got.jacobians), np.asarray(ref.jacobians), rtol=1e-12, atol=1e-14)
+    # The options are what the compiled program was built with (CPU backend).
+    if jax.default_backend() == "cpu":
+        lowered = jax.jit(solve, static_argnums=1, compiler_options=FIT_COMPILER_OPTIONS).lower(starts, T.size)
+        assert lowered.compile() is not None
+    with pytest.raises((TypeError, ValueError)):
+        jax.jit(solve, static_argnums=1)(starts, T.size + 1)
+
+
+def test_fit_jit_falls_back_when_jaxlib_lacks_an_option(monkeypatch):
+    import inverse._lm as lm
+
+    monkeypatch.setattr(lm, "FIT_COMPILER_OPTIONS", {"xla_no_such_option_anywhere": True})
+    f = lm.fit_jit(lambda x: 2.0 * x)
+    np.testing.assert_array_equal(np.asarray(f(jnp.arange(3.0))), [0.0, 2.0, 4.0])
+    np.testing.assert_array_equal(np.asarray(f(jnp.arange(2.0))), [0.0, 2.0])
+    # Other errors are not swallowed.
+    g = lm.fit_jit(lambda x: x.reshape(7))
+    with pytest.raises(TypeError):
+        g(jnp.arange(3.0))
