@@ -84,9 +84,9 @@ def _process_first_calls(n_occ, xla_defaults=False):
 def main():
     if len(sys.argv) in (4, 5) and sys.argv[1] == "--child":
         if sys.argv[4:] == ["xla-defaults"]:
-            import inverse._lm
+            from inverse import _lm
 
-            inverse._lm.FIT_COMPILER_OPTIONS = {}
+            _lm.FIT_COMPILER_OPTIONS = {}
         _child(int(sys.argv[2]), sys.argv[3])
         return
     ap = argparse.ArgumentParser(description=__doc__)
@@ -102,9 +102,9 @@ def main():
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "inverse_speed.json"))
     args = ap.parse_args()
     if args.xla_defaults:
-        import inverse._lm
+        from inverse import _lm
 
-        inverse._lm.FIT_COMPILER_OPTIONS = {}
+        _lm.FIT_COMPILER_OPTIONS = {}
     from inverse._lm import FIT_COMPILER_OPTIONS
 
     results = {"machine": platform.platform(), "cpu_count": os.cpu_count(), "jax": jax.__version__,

@@ -20,6 +20,7 @@ import math
 import warnings
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -28,7 +29,6 @@ from jaxtyping import Array
 import jaxshadow as js
 
 from ._forward import SpecularFn, traced_specular
-from ._lm import fit_jit
 from ._targets import PaintedTargets
 
 PARAM_NAMES = tuple(f"{k}[{c}]" for k in ("ka", "kd", "ks") for c in "rgb")
@@ -199,13 +199,13 @@ def _np(x: Any) -> np.ndarray:
     return np.asarray(x, dtype=np.float64)
 
 
-@fit_jit
+@eqx.filter_jit
 def _spec_eval(specular: Any, scene: Any, targets: PaintedTargets, exponents: Array) -> Array:
     t = targets
     return jax.vmap(lambda e: specular(scene, t.points, t.normals, t.eye, e))(exponents)
 
 
-@fit_jit
+@eqx.filter_jit
 def _spec_dlogn(specular: Any, scene: Any, targets: PaintedTargets, exponent: Array) -> Array:
     t = targets
     f = lambda x: specular(scene, t.points, t.normals, t.eye, x)  # noqa: E731
