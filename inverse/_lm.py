@@ -46,8 +46,9 @@ from jaxtyping import Array, Bool, Float, Int
 # XLA:CPU options for the programs that hold the soft-shadow residual and its Jacobian (the
 # light-placement fits). Their first call is dominated by XLA compiling a few hundred small
 # fused loops; the legacy elemental emitter instead of the MLIR fusion emitters, and LLVM
-# without its most expensive passes, compile them in ~40% less time, and the solves run as
-# fast or faster (`benchmarks/README.md`, "Session 6"). Options of the code generator only:
+# without its most expensive passes, compile the LM program in ~35% less time (a fit's whole
+# first call is ~25% shorter) and the solves run as fast or faster (`benchmarks/README.md`,
+# "Session 6"; `benchmarks/fit_compiler_options.py`). Options of the code generator only:
 # IEEE arithmetic, no fast-math.
 FIT_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False, "xla_llvm_disable_expensive_passes": True}
 
