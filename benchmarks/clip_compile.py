@@ -38,11 +38,9 @@ import numpy as np  # noqa: E402
 
 from jaxshadow._bsp import culled_form_factor_kernel  # noqa: E402
 from jaxshadow._clip import (  # noqa: E402
-    COLLINEAR_EPS,
     _candidates,
     _decode,
-    _eps,
-    _interval_on_region,
+    edge_breakpoints,
     visible_form_factor_kernel,
 )
 from jaxshadow._geometry import newell_normal  # noqa: E402
@@ -58,28 +56,14 @@ def sort_free_form_factor(p, n, verts, occluders):
     c = _candidates(p, n, verts, occluders)
     ps, cs = jax.lax.stop_gradient((p, c))
     dtype = p.dtype
-    tol = COLLINEAR_EPS * _eps(p)
-    n_cand = c.starts.shape[0]
-    n_pl = c.planes.shape[0] * c.planes.shape[1]
-    n_tab = 2 * n_cand
     region_ids = jnp.arange(m_occ + 1, dtype=jnp.int32)
-    per_region = c.planes.shape[1]
 
     def weights(ci, a, b, n_own, i_own, sig, reg):
-        lo, hi, i_lo, i_hi, c_nc, c_c, any_c = jax.vmap(
-            _interval_on_region, in_axes=(None, None, None, None, None, 0, 0, None)
-        )(ps, a, b - a, n_own, sig, cs.planes, cs.reg_valid, tol)
-        other = region_ids != reg
+        lo, hi, c_nc, c_c, any_c, other, ts, codes = edge_breakpoints(ps, cs, m_occ, ci, a, b, n_own, i_own,
+                                                                      sig, reg)
         member = c_nc & c_c & cs.reg_active & (region_ids > 0)
         tie = c_nc & any_c & (region_ids < reg)
         blocks = other & (member | tie)
-        cuts = jnp.concatenate([lo, hi])
-        ids = jnp.concatenate([region_ids * per_region + i_lo, region_ids * per_region + i_hi])
-        cut_codes = n_tab + jnp.minimum(i_own, ids) * n_pl + jnp.maximum(i_own, ids)
-        code_a, code_b = ci, n_cand + ci
-        cut_codes = jnp.where(cuts <= 0, code_a, jnp.where(cuts >= 1, code_b, cut_codes))
-        ts = jnp.concatenate([jnp.zeros((1,), dtype), jnp.ones((1,), dtype), jnp.clip(cuts, 0.0, 1.0)])
-        codes = jnp.concatenate([jnp.stack([code_a, code_b]), cut_codes])
         on = jnp.concatenate([jnp.ones((2,), bool), blocks, blocks])
         t = ts[:, None]
         left_in = jnp.any(blocks[None, :] & (lo[None, :] < t) & (t <= hi[None, :]), axis=1)
@@ -89,7 +73,7 @@ def sort_free_form_factor(p, n, verts, occluders):
         s = ((ts > 0) & ~left_in).astype(jnp.int32) - ((ts < 1) & ~right_in).astype(jnp.int32)
         return codes, jnp.where(on & ~dup, s, 0)
 
-    codes, s = jax.vmap(weights)(jnp.arange(n_cand, dtype=jnp.int32), cs.starts, cs.ends, cs.own, cs.own_id,
+    codes, s = jax.vmap(weights)(jnp.arange(cs.starts.shape[0], dtype=jnp.int32), cs.starts, cs.ends, cs.own, cs.own_id,
                                  cs.sigma, cs.region)
     s = jnp.where(cs.in_front, s, 0)
     x = _decode(p, c, codes.reshape(-1)).reshape(codes.shape + (3,))

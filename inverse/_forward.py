@@ -90,7 +90,6 @@ def specular_culled(scene: Any, points: Array, normals: Array, eye: Array, expon
                             max_active, False)
 
 
-
 def traced_specular(scene: Any, points: Array, normals: Array, eye: Array, exponent: Array) -> Array:
     """`js.specular` (its default method and degree) without its input checks or its own jit,
     for the solvers' compiled programs (the material fit's exponent search): a module-level

@@ -99,7 +99,7 @@ def _pow2_scale(mag: Array) -> Array:
     `e` is `frexp`'s exponent, read straight from the bits (biased exponent - bias + 1; a
     subnormal `mag` reads as the smallest normal exponent, which the clip below maps to the
     same `2**-e` as `frexp` would): bit-identical to the `jnp.frexp` form it replaced
-    (`tests/test_clip.py`), at a twentieth of its tracing cost."""
+    (`tests/test_misc.py`), at a twentieth of its tracing cost."""
     mag = jax.lax.stop_gradient(mag)
     fi = jnp.finfo(mag.dtype)
     int_t = {2: jnp.int16, 4: jnp.int32, 8: jnp.int64}[mag.dtype.itemsize]
@@ -355,6 +355,35 @@ def _candidates(p: Array, n: Array, verts: Array, occluders: Array) -> _Candidat
     )
 
 
+def edge_breakpoints(p, c: _Candidates, m_occ: int, ci, a, b, n_own, i_own, sig, reg) -> tuple:
+    r"""Where candidate edge `ci` (`a -> b`, plane `n_own` with id `i_own`, side `sig`, region
+    `reg`) enters and leaves every region, unsorted (`_boundary_runs`; no gradient: pass
+    stop-gradient inputs).
+
+    **Returns:** `(lo, hi, c_nc, c_c, any_c, other)`, each `(M + 1,)` as `_interval_on_region`
+    per region (`other`: not the edge's own region), and the breakpoints `ts (2 + 2 (M + 1),)`
+    in [0, 1] (0, 1, then the `lo`s and `hi`s of the other regions; the own region's are 0)
+    with their endpoint codes `(2 + 2 (M + 1),)` (`_boundary_runs`)."""
+    tol = COLLINEAR_EPS * _eps(p)
+    n_cand = c.starts.shape[0]
+    n_pl = c.planes.shape[0] * c.planes.shape[1]
+    n_tab = 2 * n_cand
+    region_ids = jnp.arange(m_occ + 1, dtype=jnp.int32)
+    reg_ids = jnp.arange(n_pl, dtype=jnp.int32).reshape(c.planes.shape[:2])
+    lo, hi, i_lo, i_hi, c_nc, c_c, any_c = jax.vmap(
+        _interval_on_region, in_axes=(None, None, None, None, None, 0, 0, None)
+    )(p, a, b - a, n_own, sig, c.planes, c.reg_valid, tol)
+    other = region_ids != reg
+    cuts = jnp.concatenate([jnp.where(other, lo, 0.0), jnp.where(other, hi, 0.0)])
+    ids = jnp.concatenate([reg_ids[region_ids, i_lo], reg_ids[region_ids, i_hi]])
+    cut_codes = n_tab + jnp.minimum(i_own, ids) * n_pl + jnp.maximum(i_own, ids)
+    code_a, code_b = ci, n_cand + ci
+    cut_codes = jnp.where(cuts <= 0, code_a, jnp.where(cuts >= 1, code_b, cut_codes))
+    ts = jnp.concatenate([jnp.zeros((1,), p.dtype), jnp.ones((1,), p.dtype), jnp.clip(cuts, 0.0, 1.0)])
+    codes = jnp.concatenate([jnp.stack([code_a, code_b]), cut_codes])
+    return lo, hi, c_nc, c_c, any_c, other, ts, codes
+
+
 def _boundary_runs(
     p: Array, c: _Candidates, m_occ: int
 ) -> tuple[Int[Array, " r"], Int[Array, " r"], Bool[Array, " r"]]:
@@ -379,28 +408,12 @@ def _boundary_runs(
     **Returns:** `(start_codes, end_codes, valid)`, each `(C (M + 1),)` (`C` candidate edges).
     """
     p, c = jax.lax.stop_gradient((p, c))
-    dtype = p.dtype
-    tol = COLLINEAR_EPS * _eps(p)
-    n_cand = c.starts.shape[0]
-    n_pl = c.planes.shape[0] * c.planes.shape[1]
-    n_tab = 2 * n_cand
     region_ids = jnp.arange(m_occ + 1, dtype=jnp.int32)
-    reg_ids = jnp.arange(n_pl, dtype=jnp.int32).reshape(c.planes.shape[:2])
 
     def split_edge(ci, a, b, n_own, i_own, sig, reg):
-        lo, hi, i_lo, i_hi, c_nc, c_c, any_c = jax.vmap(
-            _interval_on_region, in_axes=(None, None, None, None, None, 0, 0, None)
-        )(p, a, b - a, n_own, sig, c.planes, c.reg_valid, tol)
-        other = region_ids != reg
-        cuts = jnp.concatenate([jnp.where(other, lo, 0.0), jnp.where(other, hi, 0.0)])
-        ids = jnp.concatenate([reg_ids[region_ids, i_lo], reg_ids[region_ids, i_hi]])
-        cut_codes = n_tab + jnp.minimum(i_own, ids) * n_pl + jnp.maximum(i_own, ids)
-        code_a, code_b = ci, n_cand + ci
-        cut_codes = jnp.where(cuts <= 0, code_a, jnp.where(cuts >= 1, code_b, cut_codes))
-        ts_all = jnp.concatenate(
-            [jnp.zeros((1,), dtype), jnp.ones((1,), dtype), jnp.clip(cuts, 0.0, 1.0)]
+        lo, hi, c_nc, c_c, any_c, other, ts_all, codes_all = edge_breakpoints(
+            p, c, m_occ, ci, a, b, n_own, i_own, sig, reg
         )
-        codes_all = jnp.concatenate([jnp.stack([code_a, code_b]), cut_codes])
         order = jnp.argsort(ts_all)
         ts = ts_all[order]
         codes = codes_all[order]
@@ -426,7 +439,7 @@ def _boundary_runs(
         return codes[sel], end_codes[sel], valid
 
     sc, ec, valid = jax.vmap(split_edge)(
-        jnp.arange(n_cand, dtype=jnp.int32), c.starts, c.ends, c.own, c.own_id, c.sigma, c.region
+        jnp.arange(c.starts.shape[0], dtype=jnp.int32), c.starts, c.ends, c.own, c.own_id, c.sigma, c.region
     )
     return sc.reshape(-1), ec.reshape(-1), valid.reshape(-1) & c.in_front
 

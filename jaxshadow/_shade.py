@@ -123,10 +123,10 @@ def _irradiance_traced(
     starts would run both branches every time). With `n_wide` (static, `fallback=False` only)
     only that many receivers get `max_active`, the others 1 (`_bsp.grouped_culled_form_factor`).
 
-    Traceable, no input checks (`_irradiance_impl` is it jitted). The inverse solvers call it
-    inside their own compiled programs: a nested jit there is traced once and then transformed
-    again by each `jvp` / `vmap` around it, which made up more than half of the tracing time of
-    a light fit's first call."""
+    Traceable, no input checks (`_irradiance_impl` is this function jitted). The inverse
+    solvers call it inside their own compiled programs: a nested jit there is traced once and
+    then transformed again by each `jvp` / `vmap` around it, which made up more than half of
+    the tracing time of a light fit's first call."""
     terms, overflow = _irradiance_terms(scene, points, normals, max_active, fallback, n_wide)
     total = combine_terms(terms, points.shape, points.dtype)
     return total if fallback else (total, overflow)
@@ -280,7 +280,7 @@ def _specular_traced(
     fallback: bool = True,
 ) -> Any:
     """Specular `(N, 3)`; `max_active` and `fallback` as in `_irradiance_traced` (traceable,
-    no input checks; `_specular_impl` is it jitted)."""
+    no input checks; `_specular_impl` is this function jitted)."""
     dt = points.dtype
     overflow = jnp.zeros((), bool)
     normals = safe_normalize(normals)
