@@ -85,18 +85,41 @@ class Box(eqx.Module):
 # --------------------------------------------------------------------------------------
 
 
-def rotation_matrix(omega: Float[Array, "3"]) -> Float[Array, "3 3"]:
-    """Rodrigues: the rotation by angle $|\\omega|$ about $\\omega$; smooth (and NaN-free in
-    its derivatives) at $\\omega = 0$ via a double `where` onto the Taylor series."""
+def _rodrigues_coefficients(omega: Float[Array, "3"]) -> tuple[Array, Array]:
+    """$a = \\sin t / t$, $b = (1 - \\cos t)/t^2$ with $t = |\\omega|$; smooth (and NaN-free in
+    their derivatives) at $\\omega = 0$ via a double `where` onto the Taylor series."""
     t2 = jnp.sum(omega * omega)
     small = t2 < 1e-8
     t2s = jnp.where(small, 1.0, t2)
     t = jnp.sqrt(t2s)
     a = jnp.where(small, 1.0 - t2 / 6.0 + t2 * t2 / 120.0, jnp.sin(t) / t)
     b = jnp.where(small, 0.5 - t2 / 24.0 + t2 * t2 / 720.0, (1.0 - jnp.cos(t)) / t2s)
+    return a, b
+
+
+def rotation_matrix(omega: Float[Array, "3"]) -> Float[Array, "3 3"]:
+    """Rodrigues: the rotation by angle $|\\omega|$ about $\\omega$, $I + aK + bK^2$
+    (`_rodrigues_coefficients`; smooth at $\\omega = 0$)."""
+    a, b = _rodrigues_coefficients(omega)
     K = jnp.array([[0.0, -omega[2], omega[1]], [omega[2], 0.0, -omega[0]], [-omega[1], omega[0], 0.0]],
                   dtype=omega.dtype)
     return jnp.eye(3, dtype=omega.dtype) + a * K + b * (K @ K)
+
+
+def _cross_rows(o: Float[Array, "3"], w: Float[Array, "K 3"]) -> Float[Array, "K 3"]:
+    """$\\omega \\times w_i$ for each row, elementwise (no `jnp.cross`, no dot)."""
+    wx, wy, wz = w[:, 0], w[:, 1], w[:, 2]
+    return jnp.stack([o[1] * wz - o[2] * wy, o[2] * wx - o[0] * wz, o[0] * wy - o[1] * wx], axis=-1)
+
+
+def rotate_rows(omega: Float[Array, "3"], w: Float[Array, "K 3"]) -> Float[Array, "K 3"]:
+    """`w @ rotation_matrix(omega).T`, as $w + a\\,\\omega\\times w + b\\,\\omega\\times(\\omega\\times w)$
+    in elementwise operations: inside a fit this runs under `jvp` and the batching of the
+    tangents, where matrix products of 3-vectors compile to one small kernel each
+    (benchmarks/README.md, Session 7)."""
+    a, b = _rodrigues_coefficients(omega)
+    c1 = _cross_rows(omega, w)
+    return w + a * c1 + b * _cross_rows(omega, c1)
 
 
 def _frame(light: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -249,14 +272,18 @@ class LightParametrisation(eqx.Module):
         if self.kind == "point":
             return js.PointLight(c, self.template.intensity.astype(dt))
         if self.kind == "polygon":
+            # verts = c + rotate(R0 (f * local)): the frame's columns weighted by the local
+            # coordinates, as broadcasts (no matrix products; see `rotate_rows`).
             R0 = self.frame0.astype(dt)
-            R = rotation_matrix(theta[sl["orientation"]]) @ R0 if "orientation" in sl else R0
             local = self.local.astype(dt)
+            lx, ly = local[:, 0:1], local[:, 1:2]
             if "size" in sl:
-                f = jnp.concatenate([jnp.exp(theta[sl["size"]]), jnp.ones((1,), dt)])
-                local = local * f[None, :]
-            verts = c[None, :] + local @ R.T
-            return js.PolygonLight(verts, self.template.radiance.astype(dt))
+                f = jnp.exp(theta[sl["size"]])
+                lx, ly = lx * f[0], ly * f[1]
+            w = lx * R0[:, 0][None, :] + ly * R0[:, 1][None, :] + local[:, 2:3] * R0[:, 2][None, :]
+            if "orientation" in sl:
+                w = rotate_rows(theta[sl["orientation"]], w)
+            return js.PolygonLight(c[None, :] + w, self.template.radiance.astype(dt))
         F = self.frame0.astype(dt)
         d = F[2]
         if "orientation" in sl:
