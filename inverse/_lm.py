@@ -113,6 +113,7 @@ def batched_levenberg_marquardt(
     prune: tuple[int, ...] = (),
     chunk: int | None = None,
     num_residuals: int | None = None,
+    jacobian: str = "linearize",
 ) -> LMResult:
     """Minimise $\\tfrac12|r(y)|^2$ from every row of `y0` at once (traceable; jit the caller).
 
@@ -129,23 +130,34 @@ def batched_levenberg_marquardt(
     - `num_residuals`: the length M of `r`, when the caller knows it (static int). Without
       it the residual is traced once more (`jax.eval_shape`) just to learn M; with the
       soft-shadow residual that extra trace was about a third of the first call's tracing.
+    - `jacobian` (static): `"linearize"` (default: `jax.linearize`, then the linear map on the
+      basis vectors) or `"jacfwd"` (`jax.jacfwd`, and `jax.vmap` over the starts even for one).
+      The same Jacobian to round-off; the first is cheaper to trace and compile
+      (`benchmarks/lm_jacobian.py`).
 
     **Returns:** `LMResult`.
     """
     S, P = y0.shape
     dt = y0.dtype
 
+    if jacobian not in ("linearize", "jacfwd"):
+        raise ValueError(f"batched_levenberg_marquardt: jacobian must be 'linearize' or 'jacfwd', got {jacobian!r}.")
+
     def rj_one(y: Array) -> tuple[Array, Array, Array]:
         # `jax.linearize` and the linear map on the P basis vectors, not `jax.jacfwd` (a `vmap`
         # of `jvp` over the basis): the residual is traced once under `jvp` alone and only its
-        # tangent equations are batched. Same Jacobian to round-off; with the soft-shadow
-        # residual ~30% less tracing and ~20% less XLA compile (benchmarks/README.md, Session 7).
+        # tangent equations are batched. With the soft-shadow residual the LM program traces
+        # and lowers ~25% faster (benchmarks/README.md, Session 7).
+        if jacobian == "jacfwd":
+            J, (r, flag) = jax.jacfwd(lambda z: (lambda rf: (rf[0], rf))(fn(z, args)), has_aux=True)(y)
+            return r, J, flag
         r, lin, flag = jax.linearize(lambda z: fn(z, args), y, has_aux=True)
         J = jax.vmap(lin, out_axes=1)(jnp.eye(P, dtype=dt))
         return r, J, flag
 
     def rj_all(ys: Array) -> tuple[Array, Array, Array]:
-        if ys.shape[0] == 1:  # one start (or chunks of one): no batching layer in the trace
+        # One start (or chunks of one): no batching layer in the trace.
+        if ys.shape[0] == 1 and jacobian == "linearize":
             r, J, flag = rj_one(ys[0])
             return r[None], J[None], flag[None]
         return jax.vmap(rj_one)(ys)

@@ -215,3 +215,22 @@ def test_fit_jit_falls_back_when_jaxlib_lacks_an_option(monkeypatch):
     g = lm.fit_jit(lambda x: x.reshape(7))
     with pytest.raises(TypeError):
         g(jnp.arange(3.0))
+
+
+@pytest.mark.parametrize("n_starts", [1, 3])
+def test_lm_linearize_and_jacfwd_jacobians_agree(n_starts):
+    """The default Jacobian (`jax.linearize`, one start without a batching layer) and `jacfwd`
+    give the same iterates: same solution, Jacobian and step count from every start."""
+    rng = np.random.default_rng(1)
+    starts = jnp.asarray(TRUE[None] + rng.normal(0, 0.3, (n_starts, 3)))
+    args = (jnp.asarray(T), jnp.asarray(Y))
+    out = {}
+    for mode in ("linearize", "jacfwd"):
+        out[mode] = jax.jit(lambda y0, m=mode: batched_levenberg_marquardt(
+            _exp_resid, y0, args, rtol=1e-10, atol=1e-12, max_steps=200, jacobian=m))(starts)
+    a, b = out["linearize"], out["jacfwd"]
+    np.testing.assert_allclose(np.asarray(a.values), np.asarray(b.values), rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(np.asarray(a.jacobians), np.asarray(b.jacobians), rtol=1e-12, atol=1e-13)
+    np.testing.assert_array_equal(np.asarray(a.num_steps), np.asarray(b.num_steps))
+    with pytest.raises(ValueError, match="jacobian must be"):
+        batched_levenberg_marquardt(_exp_resid, starts, args, rtol=1e-10, atol=1e-12, max_steps=5, jacobian="fd")
