@@ -81,12 +81,17 @@ def _process_first_calls(n_occ, xla_defaults=False):
     return {"cold_process_first_call_s": out[0], "warm_cache_process_first_call_s": out[1]}
 
 
+def _use_xla_defaults():
+    """Compile the fit programs with XLA's defaults (`fit_jit` reads the options at its first call)."""
+    from inverse import _lm
+
+    _lm.FIT_COMPILER_OPTIONS = {}
+
+
 def main():
     if len(sys.argv) in (4, 5) and sys.argv[1] == "--child":
         if sys.argv[4:] == ["xla-defaults"]:
-            from inverse import _lm
-
-            _lm.FIT_COMPILER_OPTIONS = {}
+            _use_xla_defaults()
         _child(int(sys.argv[2]), sys.argv[3])
         return
     ap = argparse.ArgumentParser(description=__doc__)
@@ -102,9 +107,7 @@ def main():
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "inverse_speed.json"))
     args = ap.parse_args()
     if args.xla_defaults:
-        from inverse import _lm
-
-        _lm.FIT_COMPILER_OPTIONS = {}
+        _use_xla_defaults()
     from inverse._lm import FIT_COMPILER_OPTIONS
 
     results = {"machine": platform.platform(), "cpu_count": os.cpu_count(), "jax": jax.__version__,

@@ -143,13 +143,17 @@ def batched_levenberg_marquardt(
     if jacobian not in ("linearize", "jacfwd"):
         raise ValueError(f"batched_levenberg_marquardt: jacobian must be 'linearize' or 'jacfwd', got {jacobian!r}.")
 
+    def resid_aux(y: Array) -> tuple[Array, tuple[Array, Array]]:
+        r, flag = fn(y, args)
+        return r, (r, flag)
+
     def rj_one(y: Array) -> tuple[Array, Array, Array]:
         # `jax.linearize` and the linear map on the P basis vectors, not `jax.jacfwd` (a `vmap`
         # of `jvp` over the basis): the residual is traced once under `jvp` alone and only its
         # tangent equations are batched. With the soft-shadow residual the LM program traces
         # and lowers ~25% faster (benchmarks/README.md, Session 7).
         if jacobian == "jacfwd":
-            J, (r, flag) = jax.jacfwd(lambda z: (lambda rf: (rf[0], rf))(fn(z, args)), has_aux=True)(y)
+            J, (r, flag) = jax.jacfwd(resid_aux, has_aux=True)(y)
             return r, J, flag
         r, lin, flag = jax.linearize(lambda z: fn(z, args), y, has_aux=True)
         J = jax.vmap(lin, out_axes=1)(jnp.eye(P, dtype=dt))
