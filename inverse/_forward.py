@@ -52,33 +52,36 @@ def shade(scene: Any, material: Any, points: Array, normals: Array, eye: Array,
 
 def shade_culled(scene: Any, material: Any, points: Array, normals: Array, eye: Array,
                  specular: SpecularFn | None, with_specular: bool, max_active: int | None,
-                 n_wide: int | None = None) -> tuple[Array, Array]:
+                 n_wide: int | None = None, host: bool = False) -> tuple[Array, Array]:
     """`(shade(...), overflow)`; with `max_active` (static int) each receiver sees at most that
     many occluders per polygon light, and `overflow` (bool scalar) says some receiver had more
     (the value is then not exact). `max_active=None`: the full model and `overflow = False`; a
     custom `specular` is evaluated uncull'd. `n_wide`: only that many receivers get `max_active`
-    in the irradiance, the others 1 (`jaxshadow._bsp.grouped_culled_form_factor`). Traceable in
+    in the irradiance, the others 1 (`jaxshadow._bsp.grouped_culled_form_factor`). `host`
+    (static, with `max_active`): the culled kernel's combinatorics run in NumPy on the host
+    (`jaxshadow._clip_host`; the same values, a much smaller compiled program). Traceable in
     the scene (no input checks: the caller validated them)."""
     dt = points.dtype
-    e, over = irradiance_culled(scene, points, normals, max_active, n_wide)
+    e, over = irradiance_culled(scene, points, normals, max_active, n_wide, host)
     out = (material.ka.astype(dt) * scene.ambient.astype(dt))[None, :] + (material.kd.astype(dt) / jnp.pi)[None, :] * e
     if with_specular:
-        s, over_s = specular_culled(scene, points, normals, eye, material.exponent, specular, max_active)
+        s, over_s = specular_culled(scene, points, normals, eye, material.exponent, specular, max_active, host)
         out = out + material.ks.astype(dt)[None, :] * s
         over = over | over_s
     return out, over
 
 
 def irradiance_culled(scene: Any, points: Array, normals: Array, max_active: int | None,
-                      n_wide: int | None = None) -> tuple[Array, Array]:
+                      n_wide: int | None = None, host: bool = False) -> tuple[Array, Array]:
     """`(js.irradiance(...), overflow)` with the culling of `shade_culled`."""
     if scene.occluders is None:
         max_active = None
-    return _irradiance_traced(scene, points, normals, max_active, False, n_wide)
+    return _irradiance_traced(scene, points, normals, max_active, False, n_wide, host and n_wide is None)
 
 
 def specular_culled(scene: Any, points: Array, normals: Array, eye: Array, exponent: Array,
-                    specular: SpecularFn | None, max_active: int | None) -> tuple[Array, Array]:
+                    specular: SpecularFn | None, max_active: int | None,
+                    host: bool = False) -> tuple[Array, Array]:
     """`(js.specular(...), overflow)` (or the custom `specular`, uncull'd)."""
     if specular is not None:
         return specular(scene, points, normals, eye, exponent), jnp.zeros((), bool)
@@ -87,7 +90,7 @@ def specular_culled(scene: Any, points: Array, normals: Array, eye: Array, expon
     dt = points.dtype
     eyes = jnp.broadcast_to(jnp.asarray(eye, dt), points.shape)
     return _specular_traced(scene, points, normals, eyes, exponent.astype(dt), "chebyshev", DEFAULT_DEGREE,
-                            max_active, False)
+                            max_active, False, host)
 
 
 def traced_specular(scene: Any, points: Array, normals: Array, eye: Array, exponent: Array) -> Array:

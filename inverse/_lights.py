@@ -37,7 +37,7 @@ import optimistix as optx
 from jaxtyping import Array, Float
 
 import jaxshadow as js
-from jaxshadow._bsp import _counts
+from jaxshadow._clip_host import relevant_counts
 
 from ._forward import SpecularFn, irradiance_culled, shade, shade_culled, specular_culled
 from ._lm import LMResult, batched_levenberg_marquardt, fit_jit
@@ -350,6 +350,8 @@ class _Setup(eqx.Module):
     max_active: int | None = eqx.field(static=True, default=None)
     # Receivers that get `max_active` in the irradiance (the rest 1); None = all.
     n_wide: int | None = eqx.field(static=True, default=None)
+    # The culled kernel's combinatorics in NumPy on the host (`jaxshadow._clip_host`).
+    host_combinatorics: bool = eqx.field(static=True, default=False)
 
 
 def _projected(theta: Array, setup: _Setup) -> tuple[Array, Array, Array]:
@@ -366,13 +368,14 @@ def _projected_flag(theta: Array, setup: _Setup, max_active: int | None,
     P = setup.param.size
     scene = with_light(setup.scene, setup.param.light_index, setup.param.build(theta[:P]))
     dt = theta.dtype
-    e, over = irradiance_culled(scene, t.points, t.normals, max_active, n_wide)
+    host = setup.host_combinatorics
+    e, over = irradiance_culled(scene, t.points, t.normals, max_active, n_wide, host)
     e = e / jnp.pi
     amb = jnp.broadcast_to(scene.ambient.astype(dt)[None, :], e.shape)
     n = jnp.exp(theta[P]) if setup.fit_exponent else setup.material.exponent.astype(dt)
     cols = [amb, e]
     if setup.with_specular:
-        sp, over_s = specular_culled(scene, t.points, t.normals, t.eye, n, setup.specular, max_active)
+        sp, over_s = specular_culled(scene, t.points, t.normals, t.eye, n, setup.specular, max_active, host)
         cols.append(sp)
         over = over | over_s
     X = jnp.stack(cols, axis=-1)  # (N, C, m)
@@ -407,7 +410,7 @@ def _residuals_flag(theta: Array, setup: _Setup, max_active: int | None,
     t = setup.targets
     scene = with_light(setup.scene, setup.param.light_index, setup.param.build(theta))
     model, over = shade_culled(scene, setup.material, t.points, t.normals, t.eye, setup.specular,
-                               setup.with_specular, max_active, n_wide)
+                               setup.with_specular, max_active, n_wide, setup.host_combinatorics)
     return (jnp.sqrt(t.weights) * (model - t.colours)).reshape(-1), over
 
 
@@ -478,8 +481,9 @@ def _start_counts(param: LightParametrisation, scene: js.Scene, targets: Painted
     padded = np.stack([np.concatenate([e, np.repeat(e[:1], k - e.shape[0], axis=0)]) for e in emitters])
     nrm = np.asarray(targets.normals, np.float64)
     nrm = nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
-    return np.asarray(_counts(jnp.asarray(targets.points, jnp.float64), jnp.asarray(nrm), jnp.asarray(padded),
-                              jnp.asarray(scene.occluders, jnp.float64), False))
+    # In NumPy (`jaxshadow._clip_host`), not `_bsp._counts`: nothing to compile for a count.
+    return relevant_counts(np.asarray(targets.points, np.float64), nrm, padded,
+                           np.asarray(scene.occluders, np.float64))
 
 
 def culling_capacity_for_starts(param: LightParametrisation, scene: js.Scene, targets: PaintedTargets,
@@ -692,6 +696,7 @@ def fit_light(
     specular: SpecularFn | None = None,
     prune: bool = True,
     receiver_groups: bool = False,
+    combinatorics: str = "device",
 ) -> LightFit:
     """Place light `light_index` of `scene` so the shading matches painted colours.
 
@@ -737,6 +742,15 @@ def fit_light(
       (`jaxshadow._bsp.grouped_culled_form_factor`): each solve is about 1.6x faster with 8
       occluders, but the shadow kernel is compiled twice (about twice the first-call time;
       `benchmarks/inverse_speed.py`). Worth it for many solves; exact either way.
+    - `combinatorics` (`solver="lm"` with occluder culling): where the soft-shadow kernel's
+      combinatorics run (which occluders, which pieces of which edges bound the visible
+      region). `"device"` (default): in the compiled program (`jaxshadow._clip`). `"host"`: in
+      NumPy, called back from the compiled solver once per evaluation
+      (`jaxshadow._clip_host`): the compiled program holds only the geometry and its
+      derivatives, so the first call (compilation) is ~30% shorter, but every solve is
+      ~1.8x slower (the NumPy round trip per LM step; `benchmarks/combinatorics.py`). For a
+      single fit in a fresh process. The same values to rounding either way;
+      `receiver_groups=True` always uses the device.
 
     **Returns:** `LightFit(scene, light, residual, report, parametrisation)`.
     """
@@ -757,6 +771,9 @@ def fit_light(
         raise ValueError(f"fit_light: starts must be >= 1, got {starts}.")
     if material_mode not in ("fixed", "projected"):
         raise ValueError(f"fit_light: material_mode must be 'fixed' or 'projected', got {material_mode!r}.")
+    if combinatorics not in ("host", "device"):
+        raise ValueError(f"fit_light: combinatorics must be 'device' or 'host', got {combinatorics!r}.")
+    host = combinatorics == "host"
     dt = targets.points.dtype
     size = scene_size(scene, targets)
     param = LightParametrisation(scene.lights[light_index], light_index, fit, constraint, size,
@@ -765,7 +782,7 @@ def fit_light(
     spec_fn = specular
     project = material_mode == "projected"
     fit_n = project and fit_exponent and with_spec
-    setup = _Setup(param, scene, material, targets, spec_fn, with_spec, project, fit_n)
+    setup = _Setup(param, scene, material, targets, spec_fn, with_spec, project, fit_n, host_combinatorics=host)
     y0 = make_starts(param, int(starts), search_radius=search_radius, orientation_spread=orientation_spread,
                      size_spread=size_spread, seed=seed, dtype=dt)
     names = param.names

@@ -26,12 +26,14 @@ from ._bsp import (
 )
 from ._clip import (
     directional_visibility,
+    masked_contour_form_factor,
     point_visibility,
     visible_edges,
     visible_form_factor_kernel,
     visible_linear_kernel,
     visible_segments,
 )
+from ._clip_host import culled_visible_edges_host
 from ._geometry import (
     check_points_normals,
     evaluate_checked,
@@ -52,6 +54,12 @@ from ._specular import (
     polygon_specular_kernel,
     segment_specular_kernel,
 )
+
+
+def _host_culled_form_factor(p: Array, n: Array, verts: Array, occ: Array, max_active: int) -> tuple[Array, Array]:
+    """`_bsp.culled_form_factor_kernel` with the combinatorics on the host (`_clip_host`)."""
+    starts, ends, overflow = culled_visible_edges_host(p, n, verts, occ, max_active)
+    return masked_contour_form_factor(p, n, verts, starts, ends), overflow
 
 
 def _check_scene(scene: Any, what: str) -> Scene:
@@ -114,6 +122,7 @@ def _irradiance_traced(
     max_active: int | None = None,
     fallback: bool = True,
     n_wide: int | None = None,
+    host: bool = False,
 ) -> Any:
     """Irradiance `(N, 3)`. With `max_active` (static) polygon lights see only the occluders that
     `_bsp.select_occluders` keeps per receiver; a receiver with more relevant occluders than that
@@ -122,12 +131,15 @@ def _irradiance_traced(
     larger capacity (the inverse solvers do; a `lax.cond` fallback inside their `vmap` over
     starts would run both branches every time). With `n_wide` (static, `fallback=False` only)
     only that many receivers get `max_active`, the others 1 (`_bsp.grouped_culled_form_factor`).
+    With `host=True` (static; with `max_active`, not with `n_wide`) the culled kernel's
+    combinatorics run in NumPy on the host (`_clip_host`: a much smaller compiled program,
+    for the inverse solvers' fits on the CPU).
 
     Traceable, no input checks (`_irradiance_impl` is this function jitted). The inverse
     solvers call it inside their own compiled programs: a nested jit there is traced once and
     then transformed again by each `jvp` / `vmap` around it, which made up more than half of
     the tracing time of a light fit's first call."""
-    terms, overflow = _irradiance_terms(scene, points, normals, max_active, fallback, n_wide)
+    terms, overflow = _irradiance_terms(scene, points, normals, max_active, fallback, n_wide, host)
     total = combine_terms(terms, points.shape, points.dtype)
     return total if fallback else (total, overflow)
 
@@ -142,6 +154,7 @@ def _irradiance_terms(
     max_active: int | None,
     fallback: bool,
     n_wide: int | None,
+    host: bool = False,
 ) -> tuple[tuple[tuple[Array, Array], ...], Array]:
     r"""Per light group `(g (L, N), emission (L, 3))` with $E = \sum_l g_l\,\text{emission}_l$,
     and the culling overflow flag (`_irradiance_impl`)."""
@@ -167,7 +180,10 @@ def _irradiance_terms(
                     )
                     g, overflow = f, overflow | jnp.any(over)
                 else:
-                    culled = lambda p, n, v: culled_form_factor_kernel(p, n, v, occ, max_active)  # noqa: E731
+                    if host:
+                        culled = lambda p, n, v: _host_culled_form_factor(p, n, v, occ, max_active)  # noqa: E731
+                    else:
+                        culled = lambda p, n, v: culled_form_factor_kernel(p, n, v, occ, max_active)  # noqa: E731
                     f, over = _per_light(culled, points, normals, verts)
                     if fallback:
                         g = with_fallback(f, over, lambda: _per_light(kern, points, normals, verts))  # noqa: B023
@@ -278,9 +294,10 @@ def _specular_traced(
     degree: int,
     max_active: int | None = None,
     fallback: bool = True,
+    host: bool = False,
 ) -> Any:
-    """Specular `(N, 3)`; `max_active` and `fallback` as in `_irradiance_traced` (traceable,
-    no input checks; `_specular_impl` is this function jitted)."""
+    """Specular `(N, 3)`; `max_active`, `fallback` and `host` as in `_irradiance_traced`
+    (traceable, no input checks; `_specular_impl` is this function jitted)."""
     dt = points.dtype
     overflow = jnp.zeros((), bool)
     normals = safe_normalize(normals)
@@ -312,7 +329,8 @@ def _specular_traced(
             else:
 
                 def culled(p, n, e, v):
-                    starts, ends, over = culled_visible_edges(p, n, v, occ, max_active)
+                    edges = culled_visible_edges_host if host else culled_visible_edges
+                    starts, ends, over = edges(p, n, v, occ, max_active)
                     val = contour_specular_kernel(p, n, e, starts, ends, exponent, **opts)
                     return val, over
 

@@ -1,0 +1,552 @@
+r"""The culled clipping kernel with its combinatorics on the host: NumPy decides, JAX computes.
+
+`jaxshadow._clip` splits the exact soft-shadow kernel into combinatorics (which pieces of which
+candidate edges bound the visible region $R$, as integer endpoint codes: `_boundary_runs`,
+with no gradient) and geometry (the points those codes name, and Lambert's contour sum over
+them: what is differentiated). In a compiled program both are code that XLA has to compile,
+and the combinatorics (the occluder selection, the splitting of every candidate edge at every
+region, the sorting, the runs, the compaction) are most of it: a light fit's first call is
+mostly XLA compiling the kernel (`benchmarks/README.md`, "Inverse solvers").
+
+Here the combinatorics run in NumPy on the host, called from the compiled program
+(`jax.pure_callback`, once per evaluation of the kernel, for every receiver of the batch at
+once), and the program keeps only the geometry:
+
+- `host_culled_codes` (NumPy, batched over leading axes): the occluder selection of
+  `_bsp.select_occluders` and, on the selected occluders, `_clip._candidates`,
+  `_boundary_runs` and the compaction of `visible_edges_compact`, line by line the same
+  arithmetic and the same tests. It returns, per receiver, the selected occluders' indices
+  and, per edge slot, two *endpoint codes* into a table the device can compute directly
+  from the inputs (`culled_visible_edges_host`'s docstring) instead of `_boundary_runs`'s
+  codes into the candidates (which would need the candidates' own clipping on the device).
+- `culled_visible_edges_host` (JAX, traceable): the callback, then the table (the emitter's
+  edges clipped to the horizon, the projected occluder edge ends, $e_0$) and the crossings of
+  pairs of planes through $p$, exactly as `_clip._decode` computes them. A drop-in for
+  `_bsp.culled_visible_edges`: the same `(starts, ends, overflow)`.
+
+The codes are piecewise constant in the inputs, so the derivatives are the geometry's, as in
+`_clip`. Host and device evaluate the same formulas in the same precision; where rounding
+could flip a test (a piece exactly on a region's boundary line) the two describe the same
+region either way, as the device kernel's own tie-breaks do (`_clip` module docstring). What
+is gained: the fit's compiled program no longer holds the combinatorics (`benchmarks/README.md`,
+Session 8). What it costs: one host round trip per evaluation (the program waits for NumPy),
+so this is for the CPU backend's fits, not for the public batched entry points.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float
+
+from ._clip import (
+    COLLINEAR_EPS,
+    _crossing_point,
+    _edge_planes,
+    _occluder_regions,
+    _pow2_scale,
+    _project,
+    _rescale_rows,
+)
+from ._geometry import horizon_clip_edges, newell_normal
+
+# --------------------------------------------------------------------------------------
+# NumPy mirrors of `_clip`'s and `_bsp`'s helpers, batched over the leading axes.
+# --------------------------------------------------------------------------------------
+
+
+def _np_pow2_scale(mag: np.ndarray) -> np.ndarray:
+    """`_clip._pow2_scale`: `2**-e` with `frexp(mag) = (f, e)`, clamped to the normal range;
+    1/2 where `mag` is 0 or not finite. The same values (frexp's exponent is what `_clip`
+    reads from the bits, and the clamp maps a subnormal `mag` to the same scale)."""
+    fi = np.finfo(mag.dtype)
+    bias = int(fi.maxexp) - 1
+    ok = (mag > 0) & np.isfinite(mag)
+    _, e = np.frexp(np.where(ok, mag, 1.0).astype(mag.dtype))
+    k = np.clip(-e.astype(np.int64), 2 - bias, bias - 1)
+    return np.ldexp(np.ones_like(mag), k).astype(mag.dtype)
+
+
+def _np_rescale_rows(x: np.ndarray) -> np.ndarray:
+    return x * _np_pow2_scale(np.max(np.abs(x), axis=-1, keepdims=True))
+
+
+def _np_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.sum(a * b, axis=-1)
+
+
+def _np_newell(v: np.ndarray) -> np.ndarray:
+    return np.sum(np.cross(v, np.roll(v, -1, axis=-2)), axis=-2)
+
+
+def _np_safe_div(num: np.ndarray, den: np.ndarray) -> np.ndarray:
+    ok = den != 0
+    return np.where(ok, num / np.where(ok, den, 1.0), 0.0)
+
+
+def _np_safe_normalize(x: np.ndarray) -> np.ndarray:
+    sq = np.sum(x * x, axis=-1, keepdims=True)
+    ok = sq > 0
+    return np.where(ok, x / np.sqrt(np.where(ok, sq, 1.0)), 0.0)
+
+
+def _np_edge_planes(p: np.ndarray, verts: np.ndarray) -> np.ndarray:
+    """`_clip._edge_planes`; `p (..., 3)`, `verts (..., K, 3)`."""
+    nxt = np.roll(verts, -1, axis=-2)
+    real = np.any(nxt != verts, axis=-1)
+    planes = np.cross(nxt - p[..., None, :], verts - p[..., None, :])
+    return np.where(real[..., None], planes, 0.0)
+
+
+def _np_abs_cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    a, b = np.abs(a), np.abs(b)
+    return np.stack(
+        [
+            a[..., 1] * b[..., 2] + a[..., 2] * b[..., 1],
+            a[..., 2] * b[..., 0] + a[..., 0] * b[..., 2],
+            a[..., 0] * b[..., 1] + a[..., 1] * b[..., 0],
+        ],
+        axis=-1,
+    )
+
+
+def _np_horizon_clip_edges(p: np.ndarray, n: np.ndarray, verts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`_geometry.horizon_clip_edges`; `p, n (..., 3)`, `verts (..., K, 3)`."""
+    nxt = np.roll(verts, -1, axis=-2)
+    da = _np_dot(verts - p[..., None, :], n[..., None, :])
+    db = _np_dot(nxt - p[..., None, :], n[..., None, :])
+    a_in, b_in = da >= 0, db >= 0
+    crossing = a_in != b_in
+    den = np.where(crossing, da - db, 1.0)
+    t = np.where(crossing, da / den, 0.0)
+    x = verts + t[..., None] * (nxt - verts)
+    start = np.where(a_in[..., None], verts, x)
+    end = np.where(b_in[..., None], nxt, x)
+    keep = (a_in | b_in)[..., None]
+    start = np.where(keep, start, verts)
+    end = np.where(keep, end, verts)
+    exiting = (a_in & ~b_in)[..., None]
+    entering = (~a_in & b_in)[..., None]
+    exit_pt = np.sum(np.where(exiting, x, 0.0), axis=-2)
+    entry_pt = np.sum(np.where(entering, x, 0.0), axis=-2)
+    any_cut = (np.any(exiting, axis=(-2, -1)) & np.any(entering, axis=(-2, -1)))[..., None]
+    close_start = np.where(any_cut, exit_pt, verts[..., 0, :])
+    close_end = np.where(any_cut, entry_pt, verts[..., 0, :])
+    return (np.concatenate([start, close_start[..., None, :]], axis=-2),
+            np.concatenate([end, close_end[..., None, :]], axis=-2))
+
+
+def _np_project(p: np.ndarray, x: np.ndarray, ne: np.ndarray, hp: np.ndarray) -> np.ndarray:
+    """`_clip._project`; `x (..., 3)` with `p`, `ne`, `hp` broadcast against it."""
+    r = x - p
+    w = -_np_dot(r, ne)
+    ok = w > 0
+    scale = np.where(ok, hp / np.where(ok, w, 1.0), 0.0)
+    return p + scale[..., None] * r
+
+
+def _np_crossing_point(p: np.ndarray, c: np.ndarray, ne: np.ndarray, hp: np.ndarray) -> np.ndarray:
+    """`_clip._crossing_point`."""
+    c = _np_rescale_rows(c)
+    den = -_np_dot(c, ne)
+    eps = float(np.finfo(c.dtype).eps)
+    ok = np.abs(den) > eps * eps * np.max(np.abs(c), axis=-1) * np.max(np.abs(ne), axis=-1)
+    return p + c * np.where(ok, hp / np.where(ok, den, 1.0), 0.0)[..., None]
+
+
+def _np_first_true(mask: np.ndarray, size: int, fill: int) -> np.ndarray:
+    """`jnp.nonzero(mask, size=size, fill_value=fill)` along the last axis, batched."""
+    m = mask.shape[-1]
+    order = np.argsort(~mask, axis=-1, kind="stable")
+    if size > m:
+        order = np.concatenate([order, np.zeros(mask.shape[:-1] + (size - m,), order.dtype)], axis=-1)
+    order = order[..., :size]
+    count = np.sum(mask, axis=-1, keepdims=True)
+    return np.where(np.arange(size) < count, order, fill)
+
+
+def _np_relevance(p: np.ndarray, n: np.ndarray, verts: np.ndarray, occ: np.ndarray, closed: bool) -> np.ndarray:
+    """`_bsp.occluder_relevance`; `p, n (B, 3)`, `verts (B or 1, K, 3)`, `occ (B or 1, M, Ko, 3)`
+    -> `(B, M)` (a leading 1 is shared by all receivers and computed once)."""
+    tol = COLLINEAR_EPS * float(np.finfo(p.dtype).eps)
+    e0 = verts[:, 0]
+    ne = _np_newell(verts)  # (Bv, 3)
+    in_front = _np_dot(ne, p - e0) > 0  # (B,)
+    rel = occ - p[:, None, None, :]  # (B, M, Ko, 3)
+    rnorm = np.sqrt(_np_dot(rel, rel))  # (B, M, Ko)
+    planes = np.concatenate([_np_edge_planes(p, verts), n[:, None, :]], axis=1)  # (B, K+1, 3)
+    pnorm = np.sqrt(_np_dot(planes, planes))
+    rx, ry, rz = rel[:, :, None, :, 0], rel[:, :, None, :, 1], rel[:, :, None, :, 2]  # (B, M, 1, Ko)
+    qx, qy, qz = planes[:, None, :, None, 0], planes[:, None, :, None, 1], planes[:, None, :, None, 2]
+    g = rx * qx + ry * qy + rz * qz  # (B, M, K+1, Ko)
+    out_cone = np.all(g < -tol * (pnorm[:, None, :, None] * rnorm[:, :, None, :]), axis=-1)
+    cut_by_cone = np.any(out_cone & (pnorm > 0)[:, None, :], axis=2)
+    relv = occ - e0[:, None, None, :]  # (Bo or Bv, M, Ko, 3)
+    h = _np_dot(relv, ne[:, None, None, :])
+    behind = np.all(h < -tol * (np.sqrt(_np_dot(ne, ne))[:, None, None] * np.sqrt(_np_dot(relv, relv))), axis=-1)
+    no = _np_newell(occ)  # (Bo, M, 3)
+    nn = np.sqrt(_np_dot(no, no))
+    # The occluder's plane against p and against each emitter vertex.
+    dp = p[:, None, :] - occ[:, :, 0, :]  # (B, M, 3)
+    d_p = _np_dot(dp, no)  # (B, M)
+    s_p = nn * np.sqrt(_np_dot(dp, dp))
+    dv = verts[:, None, :, :] - occ[:, :, None, 0, :]  # (Bv or Bo, M, K, 3)
+    d_v = _np_dot(dv, no[:, :, None, :])
+    s_v = nn[:, :, None] * np.sqrt(_np_dot(dv, dv))
+    one_side = (((d_p > tol * s_p) & np.all(d_v > tol * s_v, axis=-1))
+                | ((d_p < -tol * s_p) & np.all(d_v < -tol * s_v, axis=-1))) & (nn > 0)
+    irrelevant = cut_by_cone | behind | one_side
+    if closed:
+        irrelevant = irrelevant | (d_p < -tol * s_p)
+    return in_front[:, None] & ~irrelevant
+
+
+def _batch_or_one(x: np.ndarray, batch: tuple, core: int) -> np.ndarray:
+    """`x (*batch or 1s, *core)` as `(B or 1, *core)`."""
+    lead = x.shape[: x.ndim - core]
+    if all(d == 1 for d in lead):
+        return x.reshape((1,) + x.shape[x.ndim - core:])
+    return np.broadcast_to(x, batch + x.shape[x.ndim - core:]).reshape((-1,) + x.shape[x.ndim - core:])
+
+
+def relevant_counts(points: np.ndarray, normals: np.ndarray, emitters: np.ndarray, occluders: np.ndarray,
+                    closed: bool = False) -> np.ndarray:
+    """`(L, N)` numbers of relevant occluders (`_bsp.occluder_relevance`, in NumPy: no
+    compilation) for receivers `points, normals (N, 3)` (unit normals), padded convex lights
+    `emitters (L, K, 3)` and `occluders (M, Ko, 3)`."""
+    points, normals = np.asarray(points), np.asarray(normals)
+    occ = np.asarray(occluders, points.dtype)
+    n_pts = points.shape[0]
+    out = np.zeros((len(emitters), n_pts), np.int64)
+    for i, em in enumerate(np.asarray(emitters, points.dtype)):
+        out[i] = np.sum(_np_relevance(points, normals, em[None], occ[None], closed), axis=-1)
+    return out
+
+
+def host_culled_codes(p: np.ndarray, n: np.ndarray, verts: np.ndarray, occluders: np.ndarray, max_active: int,
+                      capacity: int, closed: bool = False) -> tuple[np.ndarray, ...]:
+    r"""The combinatorics of `_bsp.culled_visible_edges`, in NumPy, batched over leading axes.
+
+    **Arguments:** `p, n (..., 3)` receivers and unit normals, `verts (..., K, 3)` padded convex
+    light, `occluders (..., M, Ko, 3)`, `max_active` and `capacity` (the edge slots,
+    `_bsp.edge_capacity(K, Ko, max_active)`) ints, `closed` as `_bsp.occluder_relevance`.
+
+    **Returns:** `(idx (..., A), start_codes (..., capacity), end_codes (..., capacity),
+    used (..., capacity), overflow (...))` with `A = max_active`: the selected occluders
+    (index `M`: an all-zero dummy), and per edge slot the endpoint codes of
+    `culled_visible_edges_host`'s table and plane crossings; `overflow` as
+    `_bsp.culled_visible_edges` (too many relevant occluders, or too many edges).
+    """
+    dt = np.result_type(p.dtype, verts.dtype)
+    k = verts.shape[-2]
+    m_occ, ko = occluders.shape[-3], occluders.shape[-2]
+    # The callback's `expand_dims`: every argument has all batch axes, size 1 where unbatched.
+    batch = np.broadcast_shapes(p.shape[:-1], n.shape[:-1], verts.shape[:-2], occluders.shape[:-3])
+    p = np.broadcast_to(np.asarray(p, dt), batch + (3,)).reshape(-1, 3)
+    b = p.shape[0]
+    n = np.broadcast_to(np.asarray(n, dt), batch + (3,)).reshape(b, 3)
+    # A light or an occluder set shared by the whole batch (size-1 leading axes, the callback's
+    # `expand_dims`) stays one copy.
+    verts = _batch_or_one(np.asarray(verts, dt), batch, 2)
+    occ_all = _batch_or_one(np.asarray(occluders, dt), batch, 3)
+
+    # Occluder selection (`_bsp.select_occluders`).
+    relevant = _np_relevance(p, n, verts, occ_all, closed)
+    count_sel = np.sum(relevant, axis=-1)
+    idx = _np_first_true(relevant, max_active, m_occ)
+    padded = np.concatenate([occ_all, np.zeros((occ_all.shape[0], 1, ko, 3), dt)], axis=1)
+    occ = padded[np.arange(padded.shape[0])[:, None] if padded.shape[0] > 1 else 0, idx]  # (B, A, Ko, 3)
+    verts = np.broadcast_to(verts, (b, k, 3))
+
+    # Receivers without a relevant occluder: the emitter's edges clipped to the horizon (the
+    # device kernel also returns the dummies' zero-length edges there: they add exactly 0).
+    k1 = k + 1
+    kq = ko + 1
+    t_e0 = 2 * k1 + 2 * max_active * kq
+    e0 = verts[:, 0]
+    in_front = _np_dot(_np_newell(verts), p - e0) > 0
+    out_sc = np.full((b, capacity), t_e0, np.int32)
+    out_ec = np.full((b, capacity), t_e0, np.int32)
+    used = np.zeros((b, capacity), bool)
+    count = np.zeros(b, np.int64)
+    trivial = count_sel == 0
+    out_sc[:, :k1] = np.where(trivial[:, None], np.arange(k1), t_e0)
+    out_ec[:, :k1] = np.where(trivial[:, None], k1 + np.arange(k1), t_e0)
+    used[:, :k1] = (trivial & in_front)[:, None]
+    sub = np.flatnonzero(~trivial)
+    if sub.size:
+        sc_s, ec_s, used_s, count_s = _codes_shadowed(p[sub], n[sub], verts[sub], occ[sub], capacity)
+        out_sc[sub], out_ec[sub], used[sub], count[sub] = sc_s, ec_s, used_s, count_s
+    overflow = (count_sel > max_active) | (count > capacity)
+    return (idx.astype(np.int32).reshape(batch + (max_active,)), out_sc.reshape(batch + (capacity,)),
+            out_ec.reshape(batch + (capacity,)), used.reshape(batch + (capacity,)), overflow.reshape(batch))
+
+
+def _codes_shadowed(p: np.ndarray, n: np.ndarray, verts: np.ndarray, occ: np.ndarray,
+                    capacity: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """`host_culled_codes` for receivers `p, n (B, 3)` with the light `verts (B, K, 3)` and their
+    selected occluders `occ (B, A, Ko, 3)`: `(start_codes, end_codes, used, count)`."""
+    dt = p.dtype
+    b, k = verts.shape[0], verts.shape[1]
+    a_occ, ko = occ.shape[1], occ.shape[2]
+    eps = float(np.finfo(dt).eps)
+
+    # `_clip._candidates`.
+    e0 = verts[:, 0]
+    ne = _np_newell(verts)
+    hp = _np_dot(ne, p - e0)
+    e_scale = _np_pow2_scale(np.max(np.abs(ne), axis=-1))
+    ne, hp = ne * e_scale[:, None], hp * e_scale
+    e_starts, e_ends = _np_horizon_clip_edges(p, n, verts)
+    e_normals = _np_rescale_rows(np.concatenate([_np_edge_planes(p, verts), n[:, None, :]], axis=1))  # (B, K+1, 3)
+
+    # `_clip._occluder_sides` / `_occluder_regions`.
+    rel = occ - p[:, None, None, :]
+    sigma = _np_pow2_scale(np.max(np.abs(rel), axis=(2, 3)))  # (B, A)
+    rel = rel * sigma[..., None, None]
+    no = _np_newell(rel)  # (B, A, 3)
+    nxt = np.roll(rel, -1, axis=2)
+    bound_no = np.sum(_np_abs_cross(rel, nxt), axis=2)
+    h = np.sum(no[:, :, None, :] * rel, axis=-1)  # (B, A, Ko)
+    err = np.sum(bound_no[:, :, None, :] * np.abs(rel), axis=-1)
+    bound = (ko + 8) / 2 * eps * err
+    d_o = h[..., 0]
+    s = np.where(d_o < 0, 1.0, -1.0).astype(dt)
+    active = np.all(-s[..., None] * h > bound, axis=-1)  # (B, A)
+    real = np.any(np.roll(occ, -1, axis=2) != occ, axis=-1)
+    o_planes = np.where(real[..., None], np.cross(nxt, rel), 0.0)
+    o_planes = _np_rescale_rows(s[..., None, None] * o_planes)
+    n_cut = (hp[:, None] * sigma * -s)[..., None] * no + np.abs(d_o)[..., None] * ne[:, None, :]
+    o_normals = np.concatenate([o_planes, _np_rescale_rows(n_cut)[:, :, None, :]], axis=2)  # (B, A, Ko+1, 3)
+
+    o_s, o_e = _np_horizon_clip_edges(e0[:, None, :], ne[:, None, :], occ)  # (B, A, Ko+1, 3)
+    kq = ko + 1
+    # Cyrus-Beck of every occluder edge against the cone (p, E_h) (`_clip._cyrus_beck`).
+    cone = e_normals
+    pp = p[:, None, None, :]
+    g0 = np.einsum("bajx,bcx->bajc", o_s - pp, cone)
+    g1 = np.einsum("bajx,bcx->bajc", o_e - o_s, cone)
+    tc = _np_safe_div(-g0, g1)
+    t_lo = np.where(g1 > 0, tc, 0.0)
+    t_hi = np.where(g1 < 0, tc, 1.0)
+    i0 = np.argmax(t_lo, axis=-1)
+    i1 = np.argmin(t_hi, axis=-1)
+    t0 = np.maximum(np.take_along_axis(t_lo, i0[..., None], -1)[..., 0], 0.0)
+    t1 = np.minimum(np.take_along_axis(t_hi, i1[..., None], -1)[..., 0], 1.0)
+    ok = np.all((g1 != 0) | (g0 >= 0), axis=-1) & (t1 > t0) & active[..., None]  # (B, A, Kq)
+    bi = np.arange(b)[:, None, None]
+    cone_i0, cone_i1 = cone[bi, i0], cone[bi, i1]  # (B, A, Kq, 3)
+    ppj, nej, hpj = p[:, None, None, :], ne[:, None, None, :], hp[:, None, None]
+    x0 = _np_crossing_point(ppj, np.cross(cone_i0, o_normals), nej, hpj)
+    x1 = _np_crossing_point(ppj, np.cross(cone_i1, o_normals), nej, hpj)
+    pr_s = _np_project(ppj, o_s, nej, hpj)
+    pr_e = _np_project(ppj, o_e, nej, hpj)
+    e0j = e0[:, None, None, :]
+    a2 = np.where(ok[..., None], np.where((t0 > 0)[..., None], x0, pr_s), e0j)
+    b2 = np.where(ok[..., None], np.where((t1 < 1)[..., None], x1, pr_e), e0j)
+    ccw = (s > 0)[:, :, None]
+    q_starts = np.where(ccw[..., None], b2, a2)
+    q_ends = np.where(ccw[..., None], a2, b2)
+
+    # Device table: e_starts (K+1), e_ends (K+1), projected o_s (A Kq), projected o_e (A Kq), e0.
+    n_planes = max(k + 1, kq)
+    n_pl = (a_occ + 1) * n_planes
+    t_es, t_ee = 0, k + 1
+    t_ps, t_pe = 2 * (k + 1), 2 * (k + 1) + a_occ * kq
+    t_e0 = 2 * (k + 1) + 2 * a_occ * kq
+    n_table = t_e0 + 1
+    u = np.arange(a_occ * kq).reshape(a_occ, kq)
+    plane_q = (1 + np.arange(a_occ))[:, None] * n_planes + np.arange(kq)[None, :]  # (A, Kq) plane ids
+    cross0 = n_table + i0 * n_pl + plane_q  # cone plane ids (region 0) come first
+    cross1 = n_table + i1 * n_pl + plane_q
+    a_code = np.where(ok, np.where(t0 > 0, cross0, t_ps + u), t_e0)
+    b_code = np.where(ok, np.where(t1 < 1, cross1, t_pe + u), t_e0)
+    qs_code = np.where(ccw, b_code, a_code).reshape(b, -1)
+    qe_code = np.where(ccw, a_code, b_code).reshape(b, -1)
+
+    starts = np.concatenate([e_starts, q_starts.reshape(b, -1, 3)], axis=1)  # (B, C, 3)
+    ends = np.concatenate([e_ends, q_ends.reshape(b, -1, 3)], axis=1)
+    n_cand = starts.shape[1]
+    cand_start = np.concatenate([np.broadcast_to(t_es + np.arange(k + 1), (b, k + 1)), qs_code], axis=1)
+    cand_end = np.concatenate([np.broadcast_to(t_ee + np.arange(k + 1), (b, k + 1)), qe_code], axis=1)
+    own = np.concatenate([e_normals, o_normals.reshape(b, -1, 3)], axis=1)  # (B, C, 3)
+    reg_ids = np.arange(n_pl).reshape(a_occ + 1, n_planes)
+    own_id = np.concatenate([reg_ids[0, : k + 1], reg_ids[1:, :kq].reshape(-1)])  # (C,)
+    sig = np.concatenate([np.ones(k + 1, dt), -np.ones(a_occ * kq, dt)])
+    region = np.concatenate([np.zeros(k + 1, np.int64), np.repeat(np.arange(1, a_occ + 1), kq)])
+    planes = np.concatenate(
+        [np.pad(e_normals, ((0, 0), (0, n_planes - (k + 1)), (0, 0)))[:, None],
+         np.pad(o_normals, ((0, 0), (0, 0), (0, n_planes - kq), (0, 0)))], axis=1)  # (B, R, P, 3)
+    reg_active = np.concatenate([np.ones((b, 1), bool), active], axis=1)  # (B, R)
+    reg_valid = np.any(planes != 0, axis=-1) & reg_active[..., None]  # (B, R, P)
+    in_front = hp > 0
+
+    # `_clip.edge_breakpoints` / `_interval_on_region`, every candidate against every region.
+    tol = COLLINEAR_EPS * eps
+    n_reg = a_occ + 1
+    # Component by component on (B, C, R, P) arrays: the same sums, without (B, C, R, P, 3)
+    # temporaries (this is most of the host's time).
+    d = ends - starts
+    rs = starts - p[:, None, :]
+    px, py, pz = (planes[None, ..., i].transpose(1, 0, 2, 3) for i in range(3))  # (B, 1, R, P)
+    sx, sy, sz = (rs[..., i][:, :, None, None] for i in range(3))  # (B, C, 1, 1)
+    dx, dy, dz = (d[..., i][:, :, None, None] for i in range(3))
+    g0 = sx * px + sy * py + sz * pz  # (B, C, R, P)
+    g1 = dx * px + dy * py + dz * pz
+    un = _np_safe_normalize(planes)[:, None]  # (B, 1, R, P, 3)
+    uo = _np_safe_normalize(own)[:, :, None, None, :]  # (B, C, 1, 1, 3)
+    ux, uy, uz = un[..., 0], un[..., 1], un[..., 2]
+    ox, oy, oz = uo[..., 0], uo[..., 1], uo[..., 2]
+    c1, c2, c3 = oy * uz - oz * uy, oz * ux - ox * uz, ox * uy - oy * ux  # uo x un
+    valid = reg_valid[:, None]
+    collinear = valid & (c1 * c1 + c2 * c2 + c3 * c3 <= tol * tol)
+    side_ok = sig[None, :, None, None] * (ux * ox + uy * oy + uz * oz) > 0
+    generic = valid & ~collinear
+    tcr = _np_safe_div(-g0, g1)
+    t_lo = np.where(generic & (g1 > 0), tcr, -np.inf)
+    t_hi = np.where(generic & (g1 < 0), tcr, np.inf)
+    i_lo = np.argmax(t_lo, axis=-1)  # (B, C, R)
+    i_hi = np.argmin(t_hi, axis=-1)
+    lo = np.take_along_axis(t_lo, i_lo[..., None], -1)[..., 0]
+    hi = np.take_along_axis(t_hi, i_hi[..., None], -1)[..., 0]
+    c_nc = np.all(~generic | (g1 != 0) | (g0 >= 0), axis=-1)
+    c_c = np.all(~collinear | side_ok, axis=-1)
+    any_c = np.any(collinear, axis=-1)
+    region_ids = np.arange(n_reg)
+    other = region_ids[None, None, :] != region[None, :, None]  # (1, C, R)
+    cuts = np.concatenate([np.where(other, lo, 0.0), np.where(other, hi, 0.0)], axis=-1)  # (B, C, 2R)
+    ids = np.concatenate([region_ids * n_planes + i_lo, region_ids * n_planes + i_hi], axis=-1)
+    n_tab = 2 * n_cand
+    i_own = own_id[None, :, None]
+    cut_codes = n_tab + np.minimum(i_own, ids) * n_pl + np.maximum(i_own, ids)
+    ci = np.arange(n_cand)[None, :, None]
+    code_a, code_b = ci, n_cand + ci
+    cut_codes = np.where(cuts <= 0, code_a, np.where(cuts >= 1, code_b, cut_codes))
+    ts = np.concatenate([np.zeros((b, n_cand, 1), dt), np.ones((b, n_cand, 1), dt), np.clip(cuts, 0.0, 1.0)], axis=-1)
+    codes = np.concatenate([np.broadcast_to(code_a, (b, n_cand, 1)), np.broadcast_to(code_b, (b, n_cand, 1)),
+                            cut_codes], axis=-1)
+
+    # `_clip._boundary_runs.split_edge`.
+    order = np.argsort(ts, axis=-1, kind="stable")
+    ts = np.take_along_axis(ts, order, -1)
+    codes = np.take_along_axis(codes, order, -1)
+    t0p = ts[..., :-1]
+    tm = 0.5 * (t0p + ts[..., 1:])
+    inside = (lo[:, :, None, :] < tm[..., None]) & (tm[..., None] < hi[:, :, None, :])  # (B, C, pieces, R)
+    member = inside & (c_nc & c_c & reg_active[:, None, :])[:, :, None, :]
+    tie = inside & (c_nc & any_c)[:, :, None, :] & (region_ids[None, :] < region[:, None])[None, :, None, :]
+    blocked = np.any(((member & (region_ids > 0)) | tie) & other[:, :, None, :], axis=-1)
+    free = ~blocked
+    n_pieces = free.shape[-1]
+    pidx = np.arange(n_pieces)
+    last = np.concatenate([~free[..., 1:], np.ones(free.shape[:-1] + (1,), bool)], axis=-1)
+    run_end = np.minimum.accumulate(np.where(last, pidx, n_pieces - 1)[..., ::-1], axis=-1)[..., ::-1]
+    begins = free & np.concatenate([np.ones(free.shape[:-1] + (1,), bool), ~free[..., :-1]], axis=-1)
+    keep = begins & (np.take_along_axis(ts, run_end + 1, -1) > t0p)
+    end_codes = np.take_along_axis(codes, run_end + 1, -1)
+    sel = _np_first_true(keep, n_reg, 0)
+    run_valid = np.arange(n_reg) < np.sum(keep, axis=-1, keepdims=True)
+    sc = np.take_along_axis(codes, sel, -1).reshape(b, -1)
+    ec = np.take_along_axis(end_codes, sel, -1).reshape(b, -1)
+    run_valid = (run_valid.reshape(b, -1)) & in_front[:, None]
+
+    # Compaction (`visible_edges_compact`), and `_boundary_runs`'s codes -> the device's.
+    count = np.sum(run_valid, axis=-1)
+    slot = _np_first_true(run_valid, capacity, 0)
+    used = np.arange(capacity) < count[:, None]
+    sc = np.take_along_axis(sc, slot, -1)
+    ec = np.take_along_axis(ec, slot, -1)
+
+    def device_code(c: np.ndarray) -> np.ndarray:
+        is_start = c < n_cand
+        is_end = (c >= n_cand) & (c < n_tab)
+        cs = np.take_along_axis(cand_start, np.clip(c, 0, n_cand - 1), -1)
+        ce = np.take_along_axis(cand_end, np.clip(c - n_cand, 0, n_cand - 1), -1)
+        return np.where(is_start, cs, np.where(is_end, ce, c - n_tab + n_table))
+
+    out_sc = np.where(used, device_code(sc), t_e0).astype(np.int32)
+    out_ec = np.where(used, device_code(ec), t_e0).astype(np.int32)
+    return out_sc, out_ec, used, count
+
+
+
+def culled_visible_edges_host(
+    p: Float[Array, "3"],
+    n: Float[Array, "3"],
+    verts: Float[Array, "k 3"],
+    occluders: Float[Array, "m ko 3"],
+    max_active: int,
+    closed: bool = False,
+) -> tuple[Float[Array, "b 3"], Float[Array, "b 3"], Bool[Array, ""]]:
+    r"""`_bsp.culled_visible_edges` with the combinatorics computed by `host_culled_codes`.
+
+    The same arguments and results: `p (3,)` receiver, `n (3,)` unit normal, `verts (K, 3)`
+    padded convex light, `occluders (M, Ko, 3)`, `max_active` (static int), `closed` (static);
+    returns `(starts, ends, overflow)` in `_bsp.edge_capacity(K, Ko, max_active)` slots.
+    Traceable under `jit`, `vmap` (one host call for the whole batch) and forward- and
+    reverse-mode differentiation (the codes carry no gradient; the geometry is differentiated).
+
+    The endpoint table the codes index: the emitter's `K + 1` edges clipped to the horizon
+    (starts, then ends), the selected occluders' `Ko + 1` edges clipped to the lit side of the
+    emitter plane and projected onto it from `p` (starts, then ends), then $e_0$; a code
+    `T + i P' + j` past the table (length `T`) is the crossing of planes `i < j` through `p`
+    (`_clip._decode`)."""
+    k, ko = verts.shape[0], occluders.shape[1]
+    from ._bsp import edge_capacity
+
+    cap = edge_capacity(k, ko, max_active)
+    i32 = jnp.int32
+    shapes = (
+        jax.ShapeDtypeStruct((max_active,), i32),
+        jax.ShapeDtypeStruct((cap,), i32),
+        jax.ShapeDtypeStruct((cap,), i32),
+        jax.ShapeDtypeStruct((cap,), jnp.bool_),
+        jax.ShapeDtypeStruct((), jnp.bool_),
+    )
+
+    def host(p: Any, n: Any, verts: Any, occ: Any) -> tuple[np.ndarray, ...]:
+        return host_culled_codes(np.asarray(p), np.asarray(n), np.asarray(verts), np.asarray(occ), max_active, cap,
+                                 closed)
+
+    sg = jax.lax.stop_gradient
+    idx, sc, ec, used, overflow = jax.pure_callback(host, shapes, sg(p), sg(n), sg(verts), sg(occluders),
+                                                    vmap_method="expand_dims")
+    dt = p.dtype
+    padded = jnp.concatenate([occluders, jnp.zeros((1,) + occluders.shape[1:], occluders.dtype)])
+    occ = padded[idx]
+    e0 = verts[0]
+    ne = newell_normal(verts)
+    hp = jnp.dot(ne, p - e0)
+    e_scale = _pow2_scale(jnp.max(jnp.abs(ne)))
+    ne, hp = ne * e_scale, hp * e_scale
+    e_starts, e_ends = horizon_clip_edges(p, n, verts)
+    e_normals = _rescale_rows(jnp.concatenate([_edge_planes(p, verts), n[None, :]], axis=0))
+    o_normals, _, _ = _occluder_regions(p, occ, ne, hp)
+    o_s, o_e = jax.vmap(horizon_clip_edges, in_axes=(None, None, 0))(e0, ne, occ)
+    proj = jax.vmap(_project, in_axes=(None, 0, None, None))
+    table = jnp.concatenate(
+        [e_starts, e_ends, proj(p, o_s.reshape(-1, 3), ne, hp), proj(p, o_e.reshape(-1, 3), ne, hp), e0[None, :]]
+    )
+    n_planes = max(k + 1, ko + 1)
+    planes = jnp.concatenate(
+        [
+            jnp.pad(e_normals, ((0, n_planes - (k + 1)), (0, 0)))[None],
+            jnp.pad(o_normals, ((0, 0), (0, n_planes - (ko + 1)), (0, 0))),
+        ],
+        axis=0,
+    ).reshape(-1, 3)
+    n_table, n_pl = table.shape[0], planes.shape[0]
+
+    def decode(codes: Array) -> Array:
+        is_tab = codes < n_table
+        kk = jnp.where(is_tab, 0, codes - n_table)
+        cr = jnp.cross(planes[kk // n_pl], planes[kk % n_pl])
+        y = jax.vmap(_crossing_point, in_axes=(None, 0, None, None))(p, cr, ne, hp)
+        return jnp.where(is_tab[:, None], table[jnp.where(is_tab, codes, 0)], y)
+
+    starts = jnp.where(used[:, None], decode(sc), e0[None, :]).astype(dt)
+    ends = jnp.where(used[:, None], decode(ec), e0[None, :]).astype(dt)
+    return starts, ends, overflow

@@ -1,0 +1,136 @@
+"""The culled kernel with its combinatorics on the host (`jaxshadow._clip_host`).
+
+Criteria: the host-combinatorics edges give the same form factors as the device kernel
+`_bsp.culled_visible_edges` (float64: 1e-14 absolute, form factors are <= 1; float32: 1e-6)
+and the same overflow flags, on random scenes with capacities that do and do not overflow, and
+on the touching / sliver / grazing configurations of `test_bsp.py`; the same Jacobian with
+respect to the light's and the occluders' vertices (forward and reverse mode, 1e-12); the
+NumPy occluder counts equal `_bsp.occluder_relevance`'s; a light fit gives the same light with
+either `combinatorics`.
+"""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from test_bsp import M_OCC, _receivers, _scene
+from test_clip import EM, UP, pad
+
+from jaxshadow._bsp import culled_visible_edges, occluder_relevance
+from jaxshadow._clip import masked_contour_form_factor
+from jaxshadow._clip_host import culled_visible_edges_host, relevant_counts
+
+
+def _one(edges, cap, p, n, em, occ):
+    s, e, over = edges(p, n, em, occ, cap)
+    return masked_contour_form_factor(p, n, em, s, e), over
+
+
+@functools.cache  # one compilation per kernel and capacity for the whole module
+def _ff(edges, cap):
+    return jax.jit(jax.vmap(functools.partial(_one, edges, cap), in_axes=(0, 0, None, None)))
+
+
+@pytest.mark.parametrize("seed", [0, 2])
+def test_host_equals_device_random(seed):
+    em, occ = _scene(seed)
+    p, n = _receivers(seed, 64)
+    p, n = jnp.asarray(p), jnp.asarray(n)
+    for cap in (2, M_OCC):  # 2 overflows for some receivers (their values are then truncated alike)
+        fd, od = _ff(culled_visible_edges, cap)(p, n, em, occ)
+        fh, oh = _ff(culled_visible_edges_host, cap)(p, n, em, occ)
+        np.testing.assert_array_equal(np.asarray(oh), np.asarray(od))
+        np.testing.assert_allclose(np.asarray(fh), np.asarray(fd), rtol=0, atol=1e-14)
+    assert bool(jnp.any(od)) is False and float(jnp.max(fd)) > 0  # M_OCC never overflows
+    _, od2 = _ff(culled_visible_edges, 2)(p, n, em, occ)
+    assert bool(jnp.any(od2))  # and the small capacity is exercised
+
+
+def test_host_equals_device_float32():
+    em, occ = _scene(2)
+    p, n = _receivers(2, 32)
+    args = (jnp.asarray(p, jnp.float32), jnp.asarray(n, jnp.float32), em.astype(jnp.float32), occ.astype(jnp.float32))
+    fd, od = _ff(culled_visible_edges, 4)(*args)
+    fh, oh = _ff(culled_visible_edges_host, 4)(*args)
+    assert fh.dtype == jnp.float32
+    np.testing.assert_array_equal(np.asarray(oh), np.asarray(od))
+    np.testing.assert_allclose(np.asarray(fh), np.asarray(fd), rtol=0, atol=1e-6)
+
+
+def test_host_equals_device_touching_and_grazing():
+    p = jnp.zeros(3)
+    n = jnp.asarray(UP)
+    em = jnp.asarray(EM)
+
+    def strip(x0, z=1.0):
+        return np.array([[x0, -0.5, z], [x0 + 1, -0.5, z], [x0 + 1, 0.5, z], [x0, 0.5, z]])
+
+    polys = {
+        "sliver": strip(0.5 - 1e-9),
+        "touching edge": strip(0.5),
+        "just outside": strip(0.5 + 1e-9),
+        "vertex on a pyramid plane": np.array([[0.5, 0.0, 1.0], [0.9, 0.2, 1.0], [0.9, -0.2, 1.1]]),
+        "vertex on light plane": np.array([[0.0, 0.0, 2.0], [0.2, 0.0, 2.5], [-0.2, 0.1, 2.5]]),
+        "receiver in the occluder's plane": strip(-0.5, 0.0),
+        "occluder crossing the light's plane": np.array([[-0.2, -0.2, 1.5], [0.3, -0.2, 1.5], [0.3, 0.2, 2.6]]),
+    }
+    dev = jax.jit(functools.partial(_one, culled_visible_edges, 2))
+    host = jax.jit(functools.partial(_one, culled_visible_edges_host, 2))
+    for name, poly in polys.items():
+        o = jnp.asarray(pad([poly, strip(-1.4, 1.2)], 4))
+        (fd, od), (fh, oh) = dev(p, n, em, o), host(p, n, em, o)
+        assert not bool(od) and not bool(oh), name
+        assert abs(float(fh) - float(fd)) <= 1e-15, name
+
+
+def _weighted_total(edges, p, n, em, occ):
+    f, _ = _ff(edges, 4)(p, n, em, occ)
+    return jnp.sum(f * jnp.arange(1.0, 1.0 + f.shape[0]))
+
+
+def _gradients(argnums):
+    em, occ = _scene(1)
+    p, n = _receivers(1, 24)
+    p, n = jnp.asarray(p), jnp.asarray(n)
+    jd = jax.jacfwd(_weighted_total, argnums=argnums)(culled_visible_edges, p, n, em, occ)
+    jh = jax.jacfwd(_weighted_total, argnums=argnums)(culled_visible_edges_host, p, n, em, occ)
+    gh = jax.grad(_weighted_total, argnums=argnums)(culled_visible_edges_host, p, n, em, occ)
+    assert float(jnp.max(jnp.abs(jd))) > 1e-3  # the shadows move with the vertices
+    np.testing.assert_allclose(np.asarray(jh), np.asarray(jd), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(gh), np.asarray(jd), rtol=0, atol=1e-12)
+
+
+def test_host_gradients_match_device_light():
+    _gradients(3)  # the light's vertices (what the fits differentiate)
+
+
+@pytest.mark.slow  # ~40 s: two more forward- and one reverse-mode compilation
+def test_host_gradients_match_device_occluders():
+    _gradients(4)
+
+
+def test_relevant_counts_match_device():
+    em, occ = _scene(3)
+    p, n = _receivers(3, 64)
+    dev = jax.vmap(occluder_relevance, in_axes=(0, 0, None, None))(jnp.asarray(p), jnp.asarray(n), em, occ)
+    host = relevant_counts(p, n, np.asarray(em)[None], np.asarray(occ))
+    np.testing.assert_array_equal(host[0], np.sum(np.asarray(dev), axis=1))
+    assert 0 < host.max() < M_OCC
+
+
+def test_fit_light_host_combinatorics_gives_the_same_light():
+    import inverse
+    from inverse._scenes import occluded_light_problem
+
+    true, start, material, targets = occluded_light_problem(4, n_points=32, seed=1)[:4]
+    fits = {mode: inverse.fit_light(start, targets, material, starts=1, combinatorics=mode)
+            for mode in ("device", "host")}
+    dev, host = fits["device"], fits["host"]
+    assert dev.report.initial_loss > 1e-4  # the start is far off
+    assert host.report.loss < 1e-20 and dev.report.loss < 1e-20
+    np.testing.assert_allclose(np.asarray(host.light.vertices), np.asarray(dev.light.vertices), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(host.report.singular_values, dev.report.singular_values, rtol=1e-8)
+    with pytest.raises(ValueError, match="combinatorics"):
+        inverse.fit_light(start, targets, material, starts=1, combinatorics="gpu")
