@@ -276,6 +276,33 @@ class _Candidates(NamedTuple):
     reg_active: Array  # (M + 1,) E_h, and the occluders that are not degenerate seen from p
 
 
+def _emitter_frame(p: Array, n: Array, verts: Array) -> tuple[Array, Array, Array, Array]:
+    """`(e0, ne, hp, e_normals)`: the emitter's first vertex, its normal and the height
+    `hp = ne . (p - e0)` of `p` above its plane, both times one exact power of two that brings
+    `ne` to order one (only the direction of `ne` matters: small or large lights neither under-
+    nor overflow), and the interior normals `(K + 1, 3)` of E_h's planes through `p` (the
+    emitter's edges, then the horizon)."""
+    e0 = verts[0]
+    ne = newell_normal(verts)
+    hp = jnp.dot(ne, p - e0)
+    e_scale = _pow2_scale(jnp.max(jnp.abs(ne)))
+    e_normals = _rescale_rows(jnp.concatenate([_edge_planes(p, verts), n[None, :]], axis=0))
+    return e0, ne * e_scale, hp * e_scale, e_normals
+
+
+def _region_planes(e_normals: Array, o_normals: Array) -> Array:
+    """All regions' planes `(M + 1, P, 3)` (E_h's, then each occluder's), padded with zero
+    normals (no constraint) to a common count `P = max(K + 1, Ko + 1)`."""
+    n_planes = max(e_normals.shape[0], o_normals.shape[1])
+    return jnp.concatenate(
+        [
+            jnp.pad(e_normals, ((0, n_planes - e_normals.shape[0]), (0, 0)))[None],
+            jnp.pad(o_normals, ((0, 0), (0, n_planes - o_normals.shape[1]), (0, 0))),
+        ],
+        axis=0,
+    )
+
+
 def _candidates(p: Array, n: Array, verts: Array, occluders: Array) -> _Candidates:
     """E_h's edges and the effective blockers' edges clipped to the pyramid (p, E_h), projected
     onto the emitter plane and reversed (R lies outside each Q_j), with every region's planes
@@ -283,17 +310,10 @@ def _candidates(p: Array, n: Array, verts: Array, occluders: Array) -> _Candidat
     dtype = p.dtype
     m_occ, ko = occluders.shape[0], occluders.shape[1]
     k = verts.shape[0]
-    e0 = verts[0]
-    ne = newell_normal(verts)
-    hp = jnp.dot(ne, p - e0)
-    # Only the direction of ne matters, with hp = ne . (p - e0) scaled alike: an exact power
-    # of two brings ne to order one (small or large lights neither under- nor overflow).
-    e_scale = _pow2_scale(jnp.max(jnp.abs(ne)))
-    ne, hp = ne * e_scale, hp * e_scale
+    e0, ne, hp, e_normals = _emitter_frame(p, n, verts)
 
-    # Region 0: E_h. Its edges and the interior normals of their planes through p.
+    # Region 0: E_h. Its edges (and above, the interior normals of their planes through p).
     e_starts, e_ends = horizon_clip_edges(p, n, verts)
-    e_normals = _rescale_rows(jnp.concatenate([_edge_planes(p, verts), n[None, :]], axis=0))
 
     # Regions 1..M: effective blockers, their edges clipped to the pyramid (p, E_h).
     o_normals, s, active = _occluder_regions(p, occluders, ne, hp)
@@ -319,15 +339,8 @@ def _candidates(p: Array, n: Array, verts: Array, occluders: Array) -> _Candidat
     q_starts = jnp.where(ccw, b2, a2)
     q_ends = jnp.where(ccw, a2, b2)
 
-    # All regions' planes, padded (with zero normals = no constraint) to a common count.
-    n_planes = max(k + 1, ko + 1)
-    planes = jnp.concatenate(
-        [
-            jnp.pad(e_normals, ((0, n_planes - (k + 1)), (0, 0)))[None],
-            jnp.pad(o_normals, ((0, 0), (0, n_planes - (ko + 1)), (0, 0))),
-        ],
-        axis=0,
-    )  # (M+1, P, 3)
+    planes = _region_planes(e_normals, o_normals)  # (M+1, P, 3)
+    n_planes = planes.shape[1]
     reg_active = jnp.concatenate([jnp.ones((1,), bool), active])
     reg_valid = jnp.any(planes != 0, axis=-1) & reg_active[:, None]
     reg_ids = jnp.arange((m_occ + 1) * n_planes, dtype=jnp.int32).reshape(m_occ + 1, n_planes)

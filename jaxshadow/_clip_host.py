@@ -16,15 +16,19 @@ once), and the program keeps only the geometry:
   `_bsp.select_occluders` and, on the selected occluders, `_clip._candidates`,
   `_boundary_runs` and the compaction of `visible_edges_compact`, line by line the same
   arithmetic and the same tests. It returns, per receiver, the selected occluders' indices
-  and, per edge slot, two *endpoint codes* into a table the device can compute directly
-  from the inputs (`culled_visible_edges_host`'s docstring) instead of `_boundary_runs`'s
-  codes into the candidates (which would need the candidates' own clipping on the device).
-- `culled_visible_edges_host` (JAX, traceable): the callback, then the table (the emitter's
-  edges clipped to the horizon, the projected occluder edge ends, $e_0$) and the crossings of
-  pairs of planes through $p$, exactly as `_clip._decode` computes them. A drop-in for
-  `_bsp.culled_visible_edges`: the same `(starts, ends, overflow)`.
+  and, per endpoint of each edge slot, a *recipe* the device evaluates directly from the
+  inputs: a vertex of the light or of a selected occluder; the crossing of one of their
+  edges with the receiver's horizon (light) or the emitter plane (occluder), as
+  `horizon_clip_edges` computes it; projected from $p$ onto the emitter plane (occluder
+  points, `_clip._project`); or the crossing of two planes through $p$ (`_clip._decode`).
+  Nothing is computed on the device for points no edge uses (the device kernel clips every
+  candidate edge: that table and its tangents were about half of the program's XLA compile
+  time, `benchmarks/README.md`, Session 8).
+- `culled_visible_edges_host` (JAX, traceable): the callback, then the recipes, vectorised
+  over the edge slots. A drop-in for `_bsp.culled_visible_edges`: the same
+  `(starts, ends, overflow)`.
 
-The codes are piecewise constant in the inputs, so the derivatives are the geometry's, as in
+The recipes are piecewise constant in the inputs, so the derivatives are the geometry's, as in
 `_clip`. Host and device evaluate the same formulas in the same precision; where rounding
 could flip a test (a piece exactly on a region's boundary line) the two describe the same
 region either way, as the device kernel's own tie-breaks do (`_clip` module docstring). What
@@ -35,6 +39,7 @@ so this is for the CPU backend's fits, not for the public batched entry points.
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import jax
@@ -45,24 +50,34 @@ from jaxtyping import Array, Bool, Float
 from ._clip import (
     COLLINEAR_EPS,
     _crossing_point,
-    _edge_planes,
+    _emitter_frame,
     _occluder_regions,
-    _pow2_scale,
     _project,
-    _rescale_rows,
+    _region_planes,
 )
-from ._geometry import horizon_clip_edges, newell_normal
 
 # --------------------------------------------------------------------------------------
 # NumPy mirrors of `_clip`'s and `_bsp`'s helpers, batched over the leading axes.
 # --------------------------------------------------------------------------------------
 
 
+@functools.cache
+def _finfo(dtype: Any) -> Any:
+    return np.finfo(dtype)  # (np.finfo's constructor costs ~15 us a call; it is called often)
+
+
+def _np_cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """`np.cross` on the last axis, component by component (a third of its overhead)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
 def _np_pow2_scale(mag: np.ndarray) -> np.ndarray:
     """`_clip._pow2_scale`: `2**-e` with `frexp(mag) = (f, e)`, clamped to the normal range;
     1/2 where `mag` is 0 or not finite. The same values (frexp's exponent is what `_clip`
     reads from the bits, and the clamp maps a subnormal `mag` to the same scale)."""
-    fi = np.finfo(mag.dtype)
+    fi = _finfo(mag.dtype)
     bias = int(fi.maxexp) - 1
     ok = (mag > 0) & np.isfinite(mag)
     _, e = np.frexp(np.where(ok, mag, 1.0).astype(mag.dtype))
@@ -79,7 +94,7 @@ def _np_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _np_newell(v: np.ndarray) -> np.ndarray:
-    return np.sum(np.cross(v, np.roll(v, -1, axis=-2)), axis=-2)
+    return np.sum(_np_cross(v, np.roll(v, -1, axis=-2)), axis=-2)
 
 
 def _np_safe_div(num: np.ndarray, den: np.ndarray) -> np.ndarray:
@@ -97,7 +112,7 @@ def _np_edge_planes(p: np.ndarray, verts: np.ndarray) -> np.ndarray:
     """`_clip._edge_planes`; `p (..., 3)`, `verts (..., K, 3)`."""
     nxt = np.roll(verts, -1, axis=-2)
     real = np.any(nxt != verts, axis=-1)
-    planes = np.cross(nxt - p[..., None, :], verts - p[..., None, :])
+    planes = _np_cross(nxt - p[..., None, :], verts - p[..., None, :])
     return np.where(real[..., None], planes, 0.0)
 
 
@@ -139,6 +154,32 @@ def _np_horizon_clip_edges(p: np.ndarray, n: np.ndarray, verts: np.ndarray) -> t
             np.concatenate([end, close_end[..., None, :]], axis=-2))
 
 
+def _np_clip_recipes(da: np.ndarray, db: np.ndarray) -> tuple[np.ndarray, ...]:
+    """How `horizon_clip_edges` forms each of its `K + 1` starts and ends, from the heights
+    `da`, `db (..., K)` of each edge's two vertices above the clipping plane: `(s_a, s_b,
+    s_interp, e_a, e_b, e_interp, bad)`. A point is vertex `a`, or (`interp`) the crossing
+    `v_a + t (v_b - v_a)`, `t = da / (da - db)`, of edge `a -> b` with the plane. `bad`: more
+    than one edge leaves or enters (never for a convex polygon; the caller then reports an
+    overflow, so that the solver falls back to the device kernel)."""
+    k = da.shape[-1]
+    i = np.broadcast_to(np.arange(k), da.shape)
+    nxt = (i + 1) % k
+    a_in, b_in = da >= 0, db >= 0
+    exiting, entering = a_in & ~b_in, ~a_in & b_in
+    any_cut = np.any(exiting, axis=-1, keepdims=True) & np.any(entering, axis=-1, keepdims=True)
+    ix = np.argmax(exiting, axis=-1)[..., None]
+    ie = np.argmax(entering, axis=-1)[..., None]
+    zero = np.zeros_like(ix)
+    s_a = np.concatenate([i, np.where(any_cut, ix, zero)], axis=-1)
+    s_b = np.concatenate([nxt, (ix + 1) % k], axis=-1)
+    s_interp = np.concatenate([entering, any_cut], axis=-1)
+    e_a = np.concatenate([np.where(b_in, nxt, i), np.where(any_cut, ie, zero)], axis=-1)
+    e_b = np.concatenate([nxt, (ie + 1) % k], axis=-1)
+    e_interp = np.concatenate([exiting, any_cut], axis=-1)
+    bad = (np.sum(exiting, axis=-1) > 1) | (np.sum(entering, axis=-1) > 1)
+    return s_a, s_b, s_interp, e_a, e_b, e_interp, bad
+
+
 def _np_project(p: np.ndarray, x: np.ndarray, ne: np.ndarray, hp: np.ndarray) -> np.ndarray:
     """`_clip._project`; `x (..., 3)` with `p`, `ne`, `hp` broadcast against it."""
     r = x - p
@@ -152,7 +193,7 @@ def _np_crossing_point(p: np.ndarray, c: np.ndarray, ne: np.ndarray, hp: np.ndar
     """`_clip._crossing_point`."""
     c = _np_rescale_rows(c)
     den = -_np_dot(c, ne)
-    eps = float(np.finfo(c.dtype).eps)
+    eps = float(_finfo(c.dtype).eps)
     ok = np.abs(den) > eps * eps * np.max(np.abs(c), axis=-1) * np.max(np.abs(ne), axis=-1)
     return p + c * np.where(ok, hp / np.where(ok, den, 1.0), 0.0)[..., None]
 
@@ -171,7 +212,7 @@ def _np_first_true(mask: np.ndarray, size: int, fill: int) -> np.ndarray:
 def _np_relevance(p: np.ndarray, n: np.ndarray, verts: np.ndarray, occ: np.ndarray, closed: bool) -> np.ndarray:
     """`_bsp.occluder_relevance`; `p, n (B, 3)`, `verts (B or 1, K, 3)`, `occ (B or 1, M, Ko, 3)`
     -> `(B, M)` (a leading 1 is shared by all receivers and computed once)."""
-    tol = COLLINEAR_EPS * float(np.finfo(p.dtype).eps)
+    tol = COLLINEAR_EPS * float(_finfo(p.dtype).eps)
     e0 = verts[:, 0]
     ne = _np_newell(verts)  # (Bv, 3)
     in_front = _np_dot(ne, p - e0) > 0  # (B,)
@@ -234,11 +275,15 @@ def host_culled_codes(p: np.ndarray, n: np.ndarray, verts: np.ndarray, occluders
     light, `occluders (..., M, Ko, 3)`, `max_active` and `capacity` (the edge slots,
     `_bsp.edge_capacity(K, Ko, max_active)`) ints, `closed` as `_bsp.occluder_relevance`.
 
-    **Returns:** `(idx (..., A), start_codes (..., capacity), end_codes (..., capacity),
-    used (..., capacity), overflow (...))` with `A = max_active`: the selected occluders
-    (index `M`: an all-zero dummy), and per edge slot the endpoint codes of
-    `culled_visible_edges_host`'s table and plane crossings; `overflow` as
-    `_bsp.culled_visible_edges` (too many relevant occluders, or too many edges).
+    **Returns:** `(idx (..., A), kind, a, b, interp (each (..., 2 capacity)), used (...,
+    capacity), overflow (...))` with `A = max_active`: the selected occluders (index `M`: an
+    all-zero dummy); per endpoint (the slots' starts, then their ends) its recipe, `kind` 0
+    (a light point: vertex `a` of the light, or with `interp` the crossing of its edge
+    `a -> b` with the receiver's horizon), 1 (the same for the selected occluders' vertices,
+    numbered after the light's, with the emitter plane, then projected from `p`) or 2 (the
+    crossing of planes `a < b` through `p`, `_clip._decode`'s numbering); `used` the slots
+    that hold an edge; `overflow` as `_bsp.culled_visible_edges` (too many relevant
+    occluders, or too many edges).
     """
     dt = np.result_type(p.dtype, verts.dtype)
     k = verts.shape[-2]
@@ -265,34 +310,68 @@ def host_culled_codes(p: np.ndarray, n: np.ndarray, verts: np.ndarray, occluders
     # device kernel also returns the dummies' zero-length edges there: they add exactly 0).
     k1 = k + 1
     kq = ko + 1
-    t_e0 = 2 * k1 + 2 * max_active * kq
+    t_ps = 2 * k1
+    t_pe = t_ps + max_active * kq
+    t_e0 = t_pe + max_active * kq
+    n_table = t_e0 + 1
     e0 = verts[:, 0]
     in_front = _np_dot(_np_newell(verts), p - e0) > 0
-    out_sc = np.full((b, capacity), t_e0, np.int32)
-    out_ec = np.full((b, capacity), t_e0, np.int32)
+    out_sc = np.full((b, capacity), t_e0, np.int64)
+    out_ec = np.full((b, capacity), t_e0, np.int64)
     used = np.zeros((b, capacity), bool)
     count = np.zeros(b, np.int64)
     trivial = count_sel == 0
     out_sc[:, :k1] = np.where(trivial[:, None], np.arange(k1), t_e0)
     out_ec[:, :k1] = np.where(trivial[:, None], k1 + np.arange(k1), t_e0)
     used[:, :k1] = (trivial & in_front)[:, None]
+
+    # How the device forms each table point (`culled_visible_edges_host`): the light's edges
+    # clipped to the receiver's horizon, the selected occluders' edges clipped to the lit side
+    # of the emitter plane (then projected), e0.
+    nxt = np.roll(verts, -1, axis=1)
+    la = _np_dot(verts - p[:, None, :], n[:, None, :])
+    lb = _np_dot(nxt - p[:, None, :], n[:, None, :])
+    ls_a, ls_b, ls_i, le_a, le_b, le_i, bad = _np_clip_recipes(la, lb)
+    rec_a = np.zeros((b, n_table), np.int64)
+    rec_b = np.zeros((b, n_table), np.int64)
+    rec_i = np.zeros((b, n_table), bool)
+    rec_a[:, :k1], rec_b[:, :k1], rec_i[:, :k1] = ls_a, ls_b, ls_i
+    rec_a[:, k1:t_ps], rec_b[:, k1:t_ps], rec_i[:, k1:t_ps] = le_a, le_b, le_i
     sub = np.flatnonzero(~trivial)
+    n_pl = (max_active + 1) * max(k1, kq)
     if sub.size:
-        sc_s, ec_s, used_s, count_s = _codes_shadowed(p[sub], n[sub], verts[sub], occ[sub], capacity)
+        sc_s, ec_s, used_s, count_s, orec, obad = _codes_shadowed(p[sub], n[sub], verts[sub], occ[sub], capacity)
         out_sc[sub], out_ec[sub], used[sub], count[sub] = sc_s, ec_s, used_s, count_s
-    overflow = (count_sel > max_active) | (count > capacity)
-    return (idx.astype(np.int32).reshape(batch + (max_active,)), out_sc.reshape(batch + (capacity,)),
-            out_ec.reshape(batch + (capacity,)), used.reshape(batch + (capacity,)), overflow.reshape(batch))
+        for arr, part in zip((rec_a, rec_b, rec_i), orec, strict=True):
+            arr[sub, t_ps:t_e0] = part
+        bad[sub] |= obad
+    # Slot codes -> (kind, a, b, interp): kind 0 a light point, 1 an occluder point (vertex
+    # ids into the light's then the selected occluders' vertices), 2 the crossing of planes a < b.
+    codes = np.concatenate([out_sc, out_ec], axis=1)  # (B, 2 capacity)
+    is_tab = codes < n_table
+    tab = np.where(is_tab, codes, 0)
+    kk = np.where(is_tab, 0, codes - n_table)
+    kind = np.where(is_tab, np.where((tab >= t_ps) & (tab < t_e0), 1, 0), 2)
+    ra = np.where(is_tab, np.take_along_axis(rec_a, tab, 1), kk // n_pl)
+    rb = np.where(is_tab, np.take_along_axis(rec_b, tab, 1), kk % n_pl)
+    ri = is_tab & np.take_along_axis(rec_i, tab, 1)
+    overflow = (count_sel > max_active) | (count > capacity) | bad
+    shape = batch + (2 * capacity,)
+    return (idx.astype(np.int32).reshape(batch + (max_active,)), kind.astype(np.int32).reshape(shape),
+            ra.astype(np.int32).reshape(shape), rb.astype(np.int32).reshape(shape), ri.reshape(shape),
+            used.reshape(batch + (capacity,)), overflow.reshape(batch))
 
 
 def _codes_shadowed(p: np.ndarray, n: np.ndarray, verts: np.ndarray, occ: np.ndarray,
-                    capacity: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                    capacity: int) -> tuple[Any, ...]:
     """`host_culled_codes` for receivers `p, n (B, 3)` with the light `verts (B, K, 3)` and their
-    selected occluders `occ (B, A, Ko, 3)`: `(start_codes, end_codes, used, count)`."""
+    selected occluders `occ (B, A, Ko, 3)`: `(start_codes, end_codes, used, count, recipes,
+    bad)`: table codes, the selected occluders' table recipes `(a, b, interp)` (each
+    `(B, 2 A (Ko + 1))`: starts, then ends) and whether one is not convex enough for them."""
     dt = p.dtype
     b, k = verts.shape[0], verts.shape[1]
     a_occ, ko = occ.shape[1], occ.shape[2]
-    eps = float(np.finfo(dt).eps)
+    eps = float(_finfo(dt).eps)
 
     # `_clip._candidates`.
     e0 = verts[:, 0]
@@ -317,12 +396,19 @@ def _codes_shadowed(p: np.ndarray, n: np.ndarray, verts: np.ndarray, occ: np.nda
     s = np.where(d_o < 0, 1.0, -1.0).astype(dt)
     active = np.all(-s[..., None] * h > bound, axis=-1)  # (B, A)
     real = np.any(np.roll(occ, -1, axis=2) != occ, axis=-1)
-    o_planes = np.where(real[..., None], np.cross(nxt, rel), 0.0)
+    o_planes = np.where(real[..., None], _np_cross(nxt, rel), 0.0)
     o_planes = _np_rescale_rows(s[..., None, None] * o_planes)
     n_cut = (hp[:, None] * sigma * -s)[..., None] * no + np.abs(d_o)[..., None] * ne[:, None, :]
     o_normals = np.concatenate([o_planes, _np_rescale_rows(n_cut)[:, :, None, :]], axis=2)  # (B, A, Ko+1, 3)
 
     o_s, o_e = _np_horizon_clip_edges(e0[:, None, :], ne[:, None, :], occ)  # (B, A, Ko+1, 3)
+    oa = _np_dot(occ - e0[:, None, None, :], ne[:, None, None, :])  # (B, A, Ko)
+    ob = _np_dot(np.roll(occ, -1, axis=2) - e0[:, None, None, :], ne[:, None, None, :])
+    os_a, os_b, os_i, oe_a, oe_b, oe_i, obad = _np_clip_recipes(oa, ob)
+    base = k + ko * np.arange(a_occ)[None, :, None]  # the selected occluders' vertex ids
+    orec = (np.concatenate([(os_a + base).reshape(b, -1), (oe_a + base).reshape(b, -1)], axis=1),
+            np.concatenate([(os_b + base).reshape(b, -1), (oe_b + base).reshape(b, -1)], axis=1),
+            np.concatenate([os_i.reshape(b, -1), oe_i.reshape(b, -1)], axis=1))
     kq = ko + 1
     # Cyrus-Beck of every occluder edge against the cone (p, E_h) (`_clip._cyrus_beck`).
     cone = e_normals
@@ -340,8 +426,8 @@ def _codes_shadowed(p: np.ndarray, n: np.ndarray, verts: np.ndarray, occ: np.nda
     bi = np.arange(b)[:, None, None]
     cone_i0, cone_i1 = cone[bi, i0], cone[bi, i1]  # (B, A, Kq, 3)
     ppj, nej, hpj = p[:, None, None, :], ne[:, None, None, :], hp[:, None, None]
-    x0 = _np_crossing_point(ppj, np.cross(cone_i0, o_normals), nej, hpj)
-    x1 = _np_crossing_point(ppj, np.cross(cone_i1, o_normals), nej, hpj)
+    x0 = _np_crossing_point(ppj, _np_cross(cone_i0, o_normals), nej, hpj)
+    x1 = _np_crossing_point(ppj, _np_cross(cone_i1, o_normals), nej, hpj)
     pr_s = _np_project(ppj, o_s, nej, hpj)
     pr_e = _np_project(ppj, o_e, nej, hpj)
     e0j = e0[:, None, None, :]
@@ -467,9 +553,9 @@ def _codes_shadowed(p: np.ndarray, n: np.ndarray, verts: np.ndarray, occ: np.nda
         ce = np.take_along_axis(cand_end, np.clip(c - n_cand, 0, n_cand - 1), -1)
         return np.where(is_start, cs, np.where(is_end, ce, c - n_tab + n_table))
 
-    out_sc = np.where(used, device_code(sc), t_e0).astype(np.int32)
-    out_ec = np.where(used, device_code(ec), t_e0).astype(np.int32)
-    return out_sc, out_ec, used, count
+    out_sc = np.where(used, device_code(sc), t_e0)
+    out_ec = np.where(used, device_code(ec), t_e0)
+    return out_sc, out_ec, used, count, orec, np.any(obad, axis=-1)
 
 
 
@@ -487,22 +573,20 @@ def culled_visible_edges_host(
     padded convex light, `occluders (M, Ko, 3)`, `max_active` (static int), `closed` (static);
     returns `(starts, ends, overflow)` in `_bsp.edge_capacity(K, Ko, max_active)` slots.
     Traceable under `jit`, `vmap` (one host call for the whole batch) and forward- and
-    reverse-mode differentiation (the codes carry no gradient; the geometry is differentiated).
-
-    The endpoint table the codes index: the emitter's `K + 1` edges clipped to the horizon
-    (starts, then ends), the selected occluders' `Ko + 1` edges clipped to the lit side of the
-    emitter plane and projected onto it from `p` (starts, then ends), then $e_0$; a code
-    `T + i P' + j` past the table (length `T`) is the crossing of planes `i < j` through `p`
-    (`_clip._decode`)."""
+    reverse-mode differentiation (the recipes carry no gradient; the geometry is
+    differentiated). Every endpoint is computed from its recipe (`host_culled_codes`)."""
     k, ko = verts.shape[0], occluders.shape[1]
     from ._bsp import edge_capacity
 
     cap = edge_capacity(k, ko, max_active)
     i32 = jnp.int32
+    slots = (2 * cap,)
     shapes = (
         jax.ShapeDtypeStruct((max_active,), i32),
-        jax.ShapeDtypeStruct((cap,), i32),
-        jax.ShapeDtypeStruct((cap,), i32),
+        jax.ShapeDtypeStruct(slots, i32),
+        jax.ShapeDtypeStruct(slots, i32),
+        jax.ShapeDtypeStruct(slots, i32),
+        jax.ShapeDtypeStruct(slots, jnp.bool_),
         jax.ShapeDtypeStruct((cap,), jnp.bool_),
         jax.ShapeDtypeStruct((), jnp.bool_),
     )
@@ -512,41 +596,29 @@ def culled_visible_edges_host(
                                  closed)
 
     sg = jax.lax.stop_gradient
-    idx, sc, ec, used, overflow = jax.pure_callback(host, shapes, sg(p), sg(n), sg(verts), sg(occluders),
-                                                    vmap_method="expand_dims")
+    idx, kind, ia, ib, interp, used, overflow = jax.pure_callback(
+        host, shapes, sg(p), sg(n), sg(verts), sg(occluders), vmap_method="expand_dims")
     dt = p.dtype
     padded = jnp.concatenate([occluders, jnp.zeros((1,) + occluders.shape[1:], occluders.dtype)])
     occ = padded[idx]
-    e0 = verts[0]
-    ne = newell_normal(verts)
-    hp = jnp.dot(ne, p - e0)
-    e_scale = _pow2_scale(jnp.max(jnp.abs(ne)))
-    ne, hp = ne * e_scale, hp * e_scale
-    e_starts, e_ends = horizon_clip_edges(p, n, verts)
-    e_normals = _rescale_rows(jnp.concatenate([_edge_planes(p, verts), n[None, :]], axis=0))
+    e0, ne, hp, e_normals = _emitter_frame(p, n, verts)
     o_normals, _, _ = _occluder_regions(p, occ, ne, hp)
-    o_s, o_e = jax.vmap(horizon_clip_edges, in_axes=(None, None, 0))(e0, ne, occ)
-    proj = jax.vmap(_project, in_axes=(None, 0, None, None))
-    table = jnp.concatenate(
-        [e_starts, e_ends, proj(p, o_s.reshape(-1, 3), ne, hp), proj(p, o_e.reshape(-1, 3), ne, hp), e0[None, :]]
-    )
-    n_planes = max(k + 1, ko + 1)
-    planes = jnp.concatenate(
-        [
-            jnp.pad(e_normals, ((0, n_planes - (k + 1)), (0, 0)))[None],
-            jnp.pad(o_normals, ((0, 0), (0, n_planes - (ko + 1)), (0, 0))),
-        ],
-        axis=0,
-    ).reshape(-1, 3)
-    n_table, n_pl = table.shape[0], planes.shape[0]
-
-    def decode(codes: Array) -> Array:
-        is_tab = codes < n_table
-        kk = jnp.where(is_tab, 0, codes - n_table)
-        cr = jnp.cross(planes[kk // n_pl], planes[kk % n_pl])
-        y = jax.vmap(_crossing_point, in_axes=(None, 0, None, None))(p, cr, ne, hp)
-        return jnp.where(is_tab[:, None], table[jnp.where(is_tab, codes, 0)], y)
-
-    starts = jnp.where(used[:, None], decode(sc), e0[None, :]).astype(dt)
-    ends = jnp.where(used[:, None], decode(ec), e0[None, :]).astype(dt)
-    return starts, ends, overflow
+    planes = _region_planes(e_normals, o_normals).reshape(-1, 3)
+    # Table points as `horizon_clip_edges` forms them (a vertex, or an edge's crossing with the
+    # receiver's horizon / the emitter plane), the occluders' then projected (`_project`).
+    V = jnp.concatenate([verts, occ.reshape(-1, 3)])
+    on_occ = (kind == 1)[:, None]
+    is_pt = kind < 2
+    va, vb = V[jnp.where(is_pt, ia, 0)], V[jnp.where(is_pt, ib, 0)]
+    h = jnp.where(on_occ, ne, n)
+    q = jnp.where(on_occ, e0, p)
+    da = jnp.sum((va - q) * h, axis=-1)
+    db = jnp.sum((vb - q) * h, axis=-1)
+    den = jnp.where(interp, da - db, 1.0)
+    x = va + jnp.where(interp, da / den, 0.0)[:, None] * (vb - va)
+    x = jnp.where(on_occ, jax.vmap(_project, in_axes=(None, 0, None, None))(p, x, ne, hp), x)
+    cr = jnp.cross(planes[jnp.where(is_pt, 0, ia)], planes[jnp.where(is_pt, 1, ib)])
+    y = jax.vmap(_crossing_point, in_axes=(None, 0, None, None))(p, cr, ne, hp)
+    pts = jnp.where(is_pt[:, None], x, y).astype(dt)
+    use = used[:, None]
+    return jnp.where(use, pts[:cap], e0[None, :]), jnp.where(use, pts[cap:], e0[None, :]), overflow
