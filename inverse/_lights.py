@@ -646,11 +646,13 @@ def make_starts(param: LightParametrisation, starts: int, *, search_radius: floa
     a box constraint), rotation vectors within `orientation_spread` rad, log-sizes within
     `log(1 + size_spread)`.
     """
-    from scipy.stats import qmc
-
     th0 = np.asarray(param.theta0(np.float64))
     if starts <= 1:
         return jnp.asarray(th0[None], dtype)
+    # Imported here, after the one-start return: scipy.stats takes ~1.3 s to import, which was
+    # a seventh of a one-start fit's first call (`benchmarks/README.md`, Session 8).
+    from scipy.stats import qmc
+
     P = param.size
     m = max(int(math.ceil(math.log2(starts - 1))), 0)
     u = qmc.Sobol(P, scramble=True, seed=seed).random_base2(m)[: starts - 1] * 2.0 - 1.0  # [-1, 1)
@@ -747,9 +749,9 @@ def fit_light(
       region). `"device"` (default): in the compiled program (`jaxshadow._clip`). `"host"`: in
       NumPy, called back from the compiled solver once per evaluation
       (`jaxshadow._clip_host`): the compiled program holds only the geometry and its
-      derivatives, so the first call (compilation) is ~30% shorter, but every solve is
-      ~1.8x slower (the NumPy round trip per LM step; `benchmarks/combinatorics.py`). For a
-      single fit in a fresh process. The same values to rounding either way;
+      derivatives, so the first call (compilation) is about half as long, but every solve is
+      2-3x slower (NumPy's work per LM step; `benchmarks/combinatorics.py`). For a single fit
+      in a fresh process. The same values to rounding either way;
       `receiver_groups=True` always uses the device.
 
     **Returns:** `LightFit(scene, light, residual, report, parametrisation)`.
