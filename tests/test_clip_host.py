@@ -5,8 +5,8 @@ Criteria: the host-combinatorics edges give the same form factors as the device 
 and the same overflow flags, on random scenes with capacities that do and do not overflow, and
 on the touching / sliver / grazing configurations of `test_bsp.py`; the same Jacobian with
 respect to the light's and the occluders' vertices (forward and reverse mode, 1e-12); the
-NumPy occluder counts equal `_bsp.occluder_relevance`'s; a light fit gives the same light with
-either `combinatorics`.
+NumPy occluder counts equal `_bsp.occluder_relevance`'s; the shadowed Phong specular term agrees
+(1e-12); a light fit gives the same light with either `combinatorics`.
 """
 
 import functools
@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from test_bsp import M_OCC, _receivers, _scene
-from test_clip import EM, UP, pad
+from test_clip import EM, UP, pad, random_scene
 
 from jaxshadow._bsp import culled_visible_edges, occluder_relevance
 from jaxshadow._clip import masked_contour_form_factor
@@ -134,3 +134,20 @@ def test_fit_light_host_combinatorics_gives_the_same_light():
     np.testing.assert_allclose(host.report.singular_values, dev.report.singular_values, rtol=1e-8)
     with pytest.raises(ValueError, match="combinatorics"):
         inverse.fit_light(start, targets, material, starts=1, combinatorics="gpu")
+
+
+def test_specular_host_equals_device():
+    import jaxshadow as js
+    from jaxshadow._shade import _specular_traced
+
+    em, occs = random_scene(0, M_OCC)
+    p, n = _receivers(0, 16)
+    scene = js.Scene(lights=[js.PolygonLight(vertices=em, radiance=[1.0, 1.0, 1.0])], occluders=occs)
+    eyes = jnp.broadcast_to(jnp.asarray([0.3, -2.0, 2.5]), (16, 3))
+    out = {host: jax.jit(lambda s, host=host: _specular_traced(s, jnp.asarray(p), jnp.asarray(n), eyes,
+                                                               jnp.asarray(20.0), "chebyshev", 6, 4, False, host))(scene)
+           for host in (False, True)}
+    (sd, od), (sh, oh) = out[False], out[True]
+    assert bool(od) == bool(oh)
+    assert float(jnp.max(sd)) > 0
+    np.testing.assert_allclose(np.asarray(sh), np.asarray(sd), rtol=0, atol=1e-12)
