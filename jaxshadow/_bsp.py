@@ -85,7 +85,8 @@ def _strip(poly: np.ndarray) -> np.ndarray:
 
 
 def _newell_np(v: np.ndarray) -> np.ndarray:
-    return np.sum(np.cross(v, np.roll(v, -1, axis=0)), axis=0)
+    """Newell's normal of `(..., K, 3)` polygons."""
+    return np.sum(np.cross(v, np.roll(v, -1, axis=-2)), axis=-2)
 
 
 def _drop_collinear(v: np.ndarray, nhat: np.ndarray, tol: float) -> np.ndarray:
@@ -330,11 +331,13 @@ def culled_form_factor_kernel(
     occluders: Float[Array, "m ko 3"],
     max_active: int,
     closed: bool = False,
+    host: bool = False,
 ) -> tuple[Float[Array, ""], Bool[Array, ""]]:
     """`visible_form_factor_kernel` on the selected occluders only, the boundary of the visible
     region gathered into `edge_capacity(K, Ko, max_active)` slots: `(F, overflow)`. Equal to
-    the full kernel (rounding aside) wherever `overflow` is False."""
-    starts, ends, overflow = culled_visible_edges(p, n, verts, occluders, max_active, closed)
+    the full kernel (rounding aside) wherever `overflow` is False. `host` as
+    `culled_visible_edges`."""
+    starts, ends, overflow = culled_visible_edges(p, n, verts, occluders, max_active, closed, host)
     return masked_contour_form_factor(p, n, verts, starts, ends), overflow
 
 
@@ -345,10 +348,17 @@ def culled_visible_edges(
     occluders: Float[Array, "m ko 3"],
     max_active: int,
     closed: bool = False,
+    host: bool = False,
 ) -> tuple[Float[Array, "b 3"], Float[Array, "b 3"], Bool[Array, ""]]:
     """The boundary of the visible region with the selected occluders only, in
     `edge_capacity(K, Ko, max_active)` slots: `(starts, ends, overflow)` (the edges are exact
-    wherever `overflow` is False)."""
+    wherever `overflow` is False). `host` (static): the selection and the clipping's
+    combinatorics run in NumPy on the host (`_clip_host.culled_visible_edges_host`; the same
+    edges to rounding, a much smaller compiled program)."""
+    if host:
+        from ._clip_host import culled_visible_edges_host  # it imports this module
+
+        return culled_visible_edges_host(p, n, verts, occluders, max_active, closed)
     active, _, overflow = select_occluders(p, n, verts, occluders, max_active, closed)
     cap = edge_capacity(verts.shape[0], occluders.shape[1], max_active)
     starts, ends, e_over = visible_edges_compact(p, n, verts, active, cap)

@@ -47,6 +47,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
+from ._bsp import _newell_np, edge_capacity
 from ._clip import (
     COLLINEAR_EPS,
     _crossing_point,
@@ -93,10 +94,6 @@ def _np_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.sum(a * b, axis=-1)
 
 
-def _np_newell(v: np.ndarray) -> np.ndarray:
-    return np.sum(_np_cross(v, np.roll(v, -1, axis=-2)), axis=-2)
-
-
 def _np_safe_div(num: np.ndarray, den: np.ndarray) -> np.ndarray:
     ok = den != 0
     return np.where(ok, num / np.where(ok, den, 1.0), 0.0)
@@ -128,30 +125,24 @@ def _np_abs_cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     )
 
 
-def _np_horizon_clip_edges(p: np.ndarray, n: np.ndarray, verts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """`_geometry.horizon_clip_edges`; `p, n (..., 3)`, `verts (..., K, 3)`."""
+def _np_horizon_clip_edges(p: np.ndarray, n: np.ndarray,
+                           verts: np.ndarray) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, ...]]:
+    """`_geometry.horizon_clip_edges`; `p, n (..., 3)`, `verts (..., K, 3)`. Also returns how
+    each point is formed (`_np_clip_recipes`), from which the points are computed here."""
     nxt = np.roll(verts, -1, axis=-2)
     da = _np_dot(verts - p[..., None, :], n[..., None, :])
     db = _np_dot(nxt - p[..., None, :], n[..., None, :])
-    a_in, b_in = da >= 0, db >= 0
-    crossing = a_in != b_in
+    recipes = _np_clip_recipes(da, db)
+    s_a, _, s_interp, e_a, _, e_interp, _ = recipes
+    crossing = (da >= 0) != (db >= 0)
     den = np.where(crossing, da - db, 1.0)
-    t = np.where(crossing, da / den, 0.0)
-    x = verts + t[..., None] * (nxt - verts)
-    start = np.where(a_in[..., None], verts, x)
-    end = np.where(b_in[..., None], nxt, x)
-    keep = (a_in | b_in)[..., None]
-    start = np.where(keep, start, verts)
-    end = np.where(keep, end, verts)
-    exiting = (a_in & ~b_in)[..., None]
-    entering = (~a_in & b_in)[..., None]
-    exit_pt = np.sum(np.where(exiting, x, 0.0), axis=-2)
-    entry_pt = np.sum(np.where(entering, x, 0.0), axis=-2)
-    any_cut = (np.any(exiting, axis=(-2, -1)) & np.any(entering, axis=(-2, -1)))[..., None]
-    close_start = np.where(any_cut, exit_pt, verts[..., 0, :])
-    close_end = np.where(any_cut, entry_pt, verts[..., 0, :])
-    return (np.concatenate([start, close_start[..., None, :]], axis=-2),
-            np.concatenate([end, close_end[..., None, :]], axis=-2))
+    x = verts + np.where(crossing, da / den, 0.0)[..., None] * (nxt - verts)  # each edge's crossing
+
+    def point(a: np.ndarray, interp: np.ndarray) -> np.ndarray:
+        return np.where(interp[..., None], np.take_along_axis(x, a[..., None], -2),
+                        np.take_along_axis(verts, a[..., None], -2))
+
+    return point(s_a, s_interp), point(e_a, e_interp), recipes
 
 
 def _np_clip_recipes(da: np.ndarray, db: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -214,7 +205,7 @@ def _np_relevance(p: np.ndarray, n: np.ndarray, verts: np.ndarray, occ: np.ndarr
     -> `(B, M)` (a leading 1 is shared by all receivers and computed once)."""
     tol = COLLINEAR_EPS * float(_finfo(p.dtype).eps)
     e0 = verts[:, 0]
-    ne = _np_newell(verts)  # (Bv, 3)
+    ne = _newell_np(verts)  # (Bv, 3)
     in_front = _np_dot(ne, p - e0) > 0  # (B,)
     rel = occ - p[:, None, None, :]  # (B, M, Ko, 3)
     rnorm = np.sqrt(_np_dot(rel, rel))  # (B, M, Ko)
@@ -228,7 +219,7 @@ def _np_relevance(p: np.ndarray, n: np.ndarray, verts: np.ndarray, occ: np.ndarr
     relv = occ - e0[:, None, None, :]  # (Bo or Bv, M, Ko, 3)
     h = _np_dot(relv, ne[:, None, None, :])
     behind = np.all(h < -tol * (np.sqrt(_np_dot(ne, ne))[:, None, None] * np.sqrt(_np_dot(relv, relv))), axis=-1)
-    no = _np_newell(occ)  # (Bo, M, 3)
+    no = _newell_np(occ)  # (Bo, M, 3)
     nn = np.sqrt(_np_dot(no, no))
     # The occluder's plane against p and against each emitter vertex.
     dp = p[:, None, :] - occ[:, :, 0, :]  # (B, M, 3)
@@ -315,7 +306,7 @@ def host_culled_codes(p: np.ndarray, n: np.ndarray, verts: np.ndarray, occluders
     t_e0 = t_pe + max_active * kq
     n_table = t_e0 + 1
     e0 = verts[:, 0]
-    in_front = _np_dot(_np_newell(verts), p - e0) > 0
+    in_front = _np_dot(_newell_np(verts), p - e0) > 0
     out_sc = np.full((b, capacity), t_e0, np.int64)
     out_ec = np.full((b, capacity), t_e0, np.int64)
     used = np.zeros((b, capacity), bool)
@@ -328,10 +319,7 @@ def host_culled_codes(p: np.ndarray, n: np.ndarray, verts: np.ndarray, occluders
     # How the device forms each table point (`culled_visible_edges_host`): the light's edges
     # clipped to the receiver's horizon, the selected occluders' edges clipped to the lit side
     # of the emitter plane (then projected), e0.
-    nxt = np.roll(verts, -1, axis=1)
-    la = _np_dot(verts - p[:, None, :], n[:, None, :])
-    lb = _np_dot(nxt - p[:, None, :], n[:, None, :])
-    ls_a, ls_b, ls_i, le_a, le_b, le_i, bad = _np_clip_recipes(la, lb)
+    e_starts, e_ends, (ls_a, ls_b, ls_i, le_a, le_b, le_i, bad) = _np_horizon_clip_edges(p, n, verts)
     rec_a = np.zeros((b, n_table), np.int64)
     rec_b = np.zeros((b, n_table), np.int64)
     rec_i = np.zeros((b, n_table), bool)
@@ -340,7 +328,8 @@ def host_culled_codes(p: np.ndarray, n: np.ndarray, verts: np.ndarray, occluders
     sub = np.flatnonzero(~trivial)
     n_pl = (max_active + 1) * max(k1, kq)
     if sub.size:
-        sc_s, ec_s, used_s, count_s, orec, obad = _codes_shadowed(p[sub], n[sub], verts[sub], occ[sub], capacity)
+        sc_s, ec_s, used_s, count_s, orec, obad = _codes_shadowed(p[sub], n[sub], verts[sub], occ[sub], e_starts[sub],
+                                                                   e_ends[sub], capacity)
         out_sc[sub], out_ec[sub], used[sub], count[sub] = sc_s, ec_s, used_s, count_s
         for arr, part in zip((rec_a, rec_b, rec_i), orec, strict=True):
             arr[sub, t_ps:t_e0] = part
@@ -362,10 +351,11 @@ def host_culled_codes(p: np.ndarray, n: np.ndarray, verts: np.ndarray, occluders
             used.reshape(batch + (capacity,)), overflow.reshape(batch))
 
 
-def _codes_shadowed(p: np.ndarray, n: np.ndarray, verts: np.ndarray, occ: np.ndarray,
-                    capacity: int) -> tuple[Any, ...]:
-    """`host_culled_codes` for receivers `p, n (B, 3)` with the light `verts (B, K, 3)` and their
-    selected occluders `occ (B, A, Ko, 3)`: `(start_codes, end_codes, used, count, recipes,
+def _codes_shadowed(p: np.ndarray, n: np.ndarray, verts: np.ndarray, occ: np.ndarray, e_starts: np.ndarray,
+                    e_ends: np.ndarray, capacity: int) -> tuple[Any, ...]:
+    """`host_culled_codes` for receivers `p, n (B, 3)` with the light `verts (B, K, 3)` (its
+    edges clipped to the horizon `e_starts`, `e_ends (B, K + 1, 3)`) and their selected
+    occluders `occ (B, A, Ko, 3)`: `(start_codes, end_codes, used, count, recipes,
     bad)`: table codes, the selected occluders' table recipes `(a, b, interp)` (each
     `(B, 2 A (Ko + 1))`: starts, then ends) and whether one is not convex enough for them."""
     dt = p.dtype
@@ -375,18 +365,17 @@ def _codes_shadowed(p: np.ndarray, n: np.ndarray, verts: np.ndarray, occ: np.nda
 
     # `_clip._candidates`.
     e0 = verts[:, 0]
-    ne = _np_newell(verts)
+    ne = _newell_np(verts)
     hp = _np_dot(ne, p - e0)
     e_scale = _np_pow2_scale(np.max(np.abs(ne), axis=-1))
     ne, hp = ne * e_scale[:, None], hp * e_scale
-    e_starts, e_ends = _np_horizon_clip_edges(p, n, verts)
     e_normals = _np_rescale_rows(np.concatenate([_np_edge_planes(p, verts), n[:, None, :]], axis=1))  # (B, K+1, 3)
 
     # `_clip._occluder_sides` / `_occluder_regions`.
     rel = occ - p[:, None, None, :]
     sigma = _np_pow2_scale(np.max(np.abs(rel), axis=(2, 3)))  # (B, A)
     rel = rel * sigma[..., None, None]
-    no = _np_newell(rel)  # (B, A, 3)
+    no = _newell_np(rel)  # (B, A, 3)
     nxt = np.roll(rel, -1, axis=2)
     bound_no = np.sum(_np_abs_cross(rel, nxt), axis=2)
     h = np.sum(no[:, :, None, :] * rel, axis=-1)  # (B, A, Ko)
@@ -401,10 +390,8 @@ def _codes_shadowed(p: np.ndarray, n: np.ndarray, verts: np.ndarray, occ: np.nda
     n_cut = (hp[:, None] * sigma * -s)[..., None] * no + np.abs(d_o)[..., None] * ne[:, None, :]
     o_normals = np.concatenate([o_planes, _np_rescale_rows(n_cut)[:, :, None, :]], axis=2)  # (B, A, Ko+1, 3)
 
-    o_s, o_e = _np_horizon_clip_edges(e0[:, None, :], ne[:, None, :], occ)  # (B, A, Ko+1, 3)
-    oa = _np_dot(occ - e0[:, None, None, :], ne[:, None, None, :])  # (B, A, Ko)
-    ob = _np_dot(np.roll(occ, -1, axis=2) - e0[:, None, None, :], ne[:, None, None, :])
-    os_a, os_b, os_i, oe_a, oe_b, oe_i, obad = _np_clip_recipes(oa, ob)
+    o_s, o_e, (os_a, os_b, os_i, oe_a, oe_b, oe_i, obad) = _np_horizon_clip_edges(
+        e0[:, None, :], ne[:, None, :], occ)  # (B, A, Ko+1, 3)
     base = k + ko * np.arange(a_occ)[None, :, None]  # the selected occluders' vertex ids
     orec = (np.concatenate([(os_a + base).reshape(b, -1), (oe_a + base).reshape(b, -1)], axis=1),
             np.concatenate([(os_b + base).reshape(b, -1), (oe_b + base).reshape(b, -1)], axis=1),
@@ -576,8 +563,6 @@ def culled_visible_edges_host(
     reverse-mode differentiation (the recipes carry no gradient; the geometry is
     differentiated). Every endpoint is computed from its recipe (`host_culled_codes`)."""
     k, ko = verts.shape[0], occluders.shape[1]
-    from ._bsp import edge_capacity
-
     cap = edge_capacity(k, ko, max_active)
     i32 = jnp.int32
     slots = (2 * cap,)

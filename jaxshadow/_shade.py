@@ -26,14 +26,12 @@ from ._bsp import (
 )
 from ._clip import (
     directional_visibility,
-    masked_contour_form_factor,
     point_visibility,
     visible_edges,
     visible_form_factor_kernel,
     visible_linear_kernel,
     visible_segments,
 )
-from ._clip_host import culled_visible_edges_host
 from ._geometry import (
     check_points_normals,
     evaluate_checked,
@@ -54,12 +52,6 @@ from ._specular import (
     polygon_specular_kernel,
     segment_specular_kernel,
 )
-
-
-def _host_culled_form_factor(p: Array, n: Array, verts: Array, occ: Array, max_active: int) -> tuple[Array, Array]:
-    """`_bsp.culled_form_factor_kernel` with the combinatorics on the host (`_clip_host`)."""
-    starts, ends, overflow = culled_visible_edges_host(p, n, verts, occ, max_active)
-    return masked_contour_form_factor(p, n, verts, starts, ends), overflow
 
 
 def _check_scene(scene: Any, what: str) -> Scene:
@@ -180,10 +172,7 @@ def _irradiance_terms(
                     )
                     g, overflow = f, overflow | jnp.any(over)
                 else:
-                    if host:
-                        culled = lambda p, n, v: _host_culled_form_factor(p, n, v, occ, max_active)  # noqa: E731
-                    else:
-                        culled = lambda p, n, v: culled_form_factor_kernel(p, n, v, occ, max_active)  # noqa: E731
+                    culled = lambda p, n, v: culled_form_factor_kernel(p, n, v, occ, max_active, False, host)  # noqa: E731
                     f, over = _per_light(culled, points, normals, verts)
                     if fallback:
                         g = with_fallback(f, over, lambda: _per_light(kern, points, normals, verts))  # noqa: B023
@@ -329,8 +318,7 @@ def _specular_traced(
             else:
 
                 def culled(p, n, e, v):
-                    edges = culled_visible_edges_host if host else culled_visible_edges
-                    starts, ends, over = edges(p, n, v, occ, max_active)
+                    starts, ends, over = culled_visible_edges(p, n, v, occ, max_active, False, host)
                     val = contour_specular_kernel(p, n, e, starts, ends, exponent, **opts)
                     return val, over
 
