@@ -176,7 +176,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
         from inverse._cli import fit_command
     except ImportError:
         raise SystemExit("`jaxshadow fit` needs the inverse package's CLI support (inverse._cli).") from None
-    return int(fit_command(args.scene, args.targets, args.output, light=args.light) or 0)
+    return int(fit_command(args.scene, args.targets, args.output, light=args.light,
+                           combinatorics=args.combinatorics) or 0)
 
 
 def enable_compile_cache(directory: str | None = None, min_compile_s: float = 0.2) -> str:
@@ -229,6 +230,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("targets")
     p.add_argument("-o", "--output", required=True)
     p.add_argument("--light", type=int, default=None, help="also fit the placement of this light")
+    p.add_argument("--combinatorics", choices=("device", "host"), default="device",
+                   help="with --light and occluders: where the soft-shadow kernel's combinatorics run "
+                        "(host: about half the compile time, each solve about 2x slower; see fit_light)")
     p.set_defaults(func=cmd_fit)
     args = parser.parse_args(argv)
     if not args.no_compile_cache:

@@ -48,6 +48,42 @@ def test_fit_command_writes_the_fitted_material(tmp_path):
     np.testing.assert_allclose(float(fitted.exponent), 20.0, rtol=1e-5)
 
 
+def test_fit_command_passes_combinatorics(tmp_path, monkeypatch):
+    """`jaxshadow fit --light 0 --combinatorics host` asks `fit_light` for host combinatorics
+    (stubbed here: the light fit itself is tested in test_inverse / test_clip_host); an unknown
+    value is refused by the parser."""
+    import inverse._cli as icli
+
+    scene = js.Scene(js.load_scene(builtin_scene_path("room")).lights[:1], ambient=0.1)
+    js.save_scene(scene, tmp_path / "scene.json")
+    rng = np.random.default_rng(1)
+    p = np.c_[rng.uniform(-1, 1, (20, 2)), np.zeros(20)]
+    n = np.tile([0.0, 0.0, 1.0], (20, 1))
+    eye = np.array([0.3, -1.5, 1.5])
+    mat = js.Material(ka=0.2, kd=[0.5, 0.4, 0.3], ks=0.3, exponent=20.0)
+    inverse.PaintedTargets(p, n, np.asarray(js.shade(scene, mat, p, n, eye)), eye).save(tmp_path / "t.json")
+    seen = {}
+
+    def fake_fit_light(scene, targets, material, light_index=0, **kw):
+        seen.update(kw, light_index=light_index)
+        raise ValueError("stub")  # main() reports ValueErrors with exit status 2
+
+    monkeypatch.setattr(icli, "fit_light", fake_fit_light)
+    args = ["--no-compile-cache", "fit", str(tmp_path / "scene.json"), str(tmp_path / "t.json"),
+            "-o", str(tmp_path / "f.json"), "--light", "0"]
+    assert main([*args, "--combinatorics", "host"]) == 2
+    assert seen == {"light_index": 0, "combinatorics": "host"}
+    seen.clear()
+    assert main(args) == 2
+    assert seen["combinatorics"] == "device"
+    try:
+        main([*args, "--combinatorics", "gpu"])
+    except SystemExit as err:
+        assert err.code == 2
+    else:  # pragma: no cover
+        raise AssertionError("unknown --combinatorics accepted")
+
+
 def test_compile_cache_option(tmp_path, monkeypatch):
     """`--compile-cache DIR` turns on JAX's persistent cache there (programs taking >= 0.2 s to
     compile are written); the option is reset afterwards so other tests are unaffected."""
