@@ -421,12 +421,17 @@ def _loss(theta: Array, setup: _Setup) -> Array:
 
 @fit_jit
 def _multistart_lm(setup: _Setup, starts: Array, rtol: float, atol: float, max_steps: int,
-                   prune: tuple[int, ...] = (), chunk: int | None = None) -> LMResult:
+                   prune: tuple[int, ...] = (), chunk: int | None = None) -> tuple[LMResult, Any]:
     """Levenberg-Marquardt from every start at once (`_lm.batched_levenberg_marquardt`) on the
-    culled residual; `LMResult.flag` is the culling overflow (then retry, `_solve_lm`)."""
-    return batched_levenberg_marquardt(_residuals_culled, starts, setup, rtol=rtol, atol=atol,
-                                       max_steps=max_steps, prune=prune, chunk=chunk,
-                                       num_residuals=3 * int(setup.targets.points.shape[0]))
+    culled residual; `LMResult.flag` is the culling overflow (then retry, `_solve_lm`). Also
+    returns the light built at every start's solution (a batched light pytree): built here, in
+    the program that is compiled anyway, instead of by a program of its own (`_build_light`:
+    ~0.15 s more of a one-start fit's first call)."""
+    res = batched_levenberg_marquardt(_residuals_culled, starts, setup, rtol=rtol, atol=atol,
+                                      max_steps=max_steps, prune=prune, chunk=chunk,
+                                      num_residuals=3 * int(setup.targets.points.shape[0]))
+    size = setup.param.size
+    return res, jax.vmap(lambda th: setup.param.build(th[:size]))(res.values)
 
 
 def prune_schedule(n_starts: int, max_steps: int) -> tuple[int, ...]:
@@ -475,7 +480,14 @@ def _start_counts(param: LightParametrisation, scene: js.Scene, targets: Painted
     assert scene.occluders is not None
     others = [np.asarray(light.vertices, np.float64) for i, light in enumerate(scene.lights)
               if i != param.light_index and isinstance(light, js.PolygonLight)]
-    moving = np.asarray(_light_vertices(param, starts), np.float64)
+    th = np.asarray(starts)[:, : param.size]
+    if th.shape[0] == 1 and param.constraint != "box" and not np.any(th):
+        # The reference light itself (a one-start fit): its vertices, without compiling
+        # `_light_vertices` (~0.15 s of the first call). Equal to build(0) up to rounding; the
+        # counts only size the capacity, and an overflow is caught and retried (`_solve_lm`).
+        moving = np.asarray(param.template.vertices, np.float64)[None]
+    else:
+        moving = np.asarray(_light_vertices(param, starts), np.float64)
     emitters = [*moving, *others]
     k = max(e.shape[0] for e in emitters)
     padded = np.stack([np.concatenate([e, np.repeat(e[:1], k - e.shape[0], axis=0)]) for e in emitters])
@@ -518,18 +530,19 @@ def wide_group_for_starts(param: LightParametrisation, scene: js.Scene, targets:
 
 
 def _solve_lm(setup: _Setup, starts: Array, rtol: float, atol: float, max_steps: int,
-              prune: tuple[int, ...] = ()) -> tuple[LMResult, _Setup, int]:
+              prune: tuple[int, ...] = ()) -> tuple[LMResult, Any, _Setup, int]:
     """`_multistart_lm`, retried with twice the culling capacity (at last none) while some
-    receiver overflowed it, so the result is exact. Returns `(result, setup used, retries)`.
+    receiver overflowed it, so the result is exact. Returns `(result, lights at the solutions,
+    setup used, retries)`.
     Several starts are evaluated one at a time (`chunk=1`): finished and abandoned ones cost
     nothing."""
     retries = 0
     chunk = 1 if starts.shape[0] > 1 else None
     while True:
-        res = _multistart_lm(setup, starts, rtol, atol, max_steps, prune, chunk)
+        res, lights = _multistart_lm(setup, starts, rtol, atol, max_steps, prune, chunk)
         active = setup.max_active
         if active is None or not bool(res.flag):
-            return res, setup, retries
+            return res, lights, setup, retries
         assert setup.scene.occluders is not None  # a capacity is only set with occluders
         m = int(setup.scene.occluders.shape[0])
         if setup.n_wide is not None:  # first drop the two-group split
@@ -814,7 +827,7 @@ def fit_light(
                                     n_wide=wide_group_for_starts(param, scene, targets, y0, cap)
                                     if receiver_groups else None)
         sched = prune_schedule(int(y0.shape[0]), int(max_steps)) if prune else ()
-        res, setup, retries = _solve_lm(setup, y0, rtol, atol, int(max_steps), sched)
+        res, lm_lights, setup, retries = _solve_lm(setup, y0, rtol, atol, int(max_steps), sched)
         values, losses, ok, steps = res.values, res.losses, res.converged, res.num_steps
         abandoned = np.asarray(res.abandoned)
     elif solver == "optimistix":
@@ -867,7 +880,11 @@ def fit_light(
         msgs.append(f"the light moved so that some receiver saw more occluders than the culling capacity; "
                     f"solved again {retries} time(s) with a larger one (the result is exact).")
 
-    light = _build_light(param, theta[: param.size])
+    if solver == "lm":
+        # On the host: eager indexing of a device array would compile a gather per leaf.
+        light = jax.tree_util.tree_map(lambda x: jnp.asarray(np.asarray(x)[best]), lm_lights)
+    else:
+        light = _build_light(param, theta[: param.size])
     new_scene = with_light(scene, light_index, light)
     if project:
         _, kc, n_fit = _projected_jit(setup, theta)

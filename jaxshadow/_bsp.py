@@ -85,8 +85,13 @@ def _strip(poly: np.ndarray) -> np.ndarray:
 
 
 def _newell_np(v: np.ndarray) -> np.ndarray:
-    """Newell's normal of `(..., K, 3)` polygons."""
-    return np.sum(np.cross(v, np.roll(v, -1, axis=-2)), axis=-2)
+    """Newell's normal of `(..., K, 3)` polygons (the cross products component by component
+    and the next vertex by slicing: the values of `np.cross` / `np.roll`, at a fifth of their
+    call overhead, which dominates for the small batches of the host kernel)."""
+    w = np.concatenate([v[..., 1:, :], v[..., :1, :]], axis=-2)
+    a0, a1, a2 = v[..., 0], v[..., 1], v[..., 2]
+    b0, b1, b2 = w[..., 0], w[..., 1], w[..., 2]
+    return np.sum(np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1), axis=-2)
 
 
 def _drop_collinear(v: np.ndarray, nhat: np.ndarray, tol: float) -> np.ndarray:
