@@ -763,7 +763,7 @@ def fit_light(
       NumPy, called back from the compiled solver once per evaluation
       (`jaxshadow._clip_host`): the compiled program holds only the geometry and its
       derivatives, so the first call (compilation) is about half as long, but every solve is
-      2-3x slower (NumPy's work per LM step; `benchmarks/combinatorics.py`). For a single fit
+      about 2x slower (NumPy's work per LM step; `benchmarks/combinatorics.py`). For a single fit
       in a fresh process. The same values to rounding either way;
       `receiver_groups=True` always uses the device.
 
