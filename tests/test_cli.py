@@ -33,7 +33,8 @@ def test_irradiance_command_rejects_bad_points(tmp_path, capsys):
         raise AssertionError("bad point file accepted")
 
 
-def test_fit_command_writes_the_fitted_material(tmp_path):
+def _write_fit_inputs(tmp_path):
+    """`scene.json` (the room's first light) and `t.json` (20 floor targets of a known material)."""
     scene = js.Scene(js.load_scene(builtin_scene_path("room")).lights[:1], ambient=0.1)
     js.save_scene(scene, tmp_path / "scene.json")
     rng = np.random.default_rng(1)
@@ -42,6 +43,10 @@ def test_fit_command_writes_the_fitted_material(tmp_path):
     eye = np.array([0.3, -1.5, 1.5])
     truth = js.Material(ka=0.2, kd=[0.5, 0.4, 0.3], ks=0.3, exponent=20.0)
     inverse.PaintedTargets(p, n, np.asarray(js.shade(scene, truth, p, n, eye)), eye).save(tmp_path / "t.json")
+
+
+def test_fit_command_writes_the_fitted_material(tmp_path):
+    _write_fit_inputs(tmp_path)
     assert main(["--no-compile-cache", "fit", str(tmp_path / "scene.json"), str(tmp_path / "t.json"), "-o", str(tmp_path / "f.json")]) == 0
     fitted = js.load_material(tmp_path / "f.json")
     np.testing.assert_allclose(np.asarray(fitted.kd), [0.5, 0.4, 0.3], atol=1e-6)
@@ -54,14 +59,7 @@ def test_fit_command_passes_combinatorics(tmp_path, monkeypatch):
     value is refused by the parser."""
     import inverse._cli as icli
 
-    scene = js.Scene(js.load_scene(builtin_scene_path("room")).lights[:1], ambient=0.1)
-    js.save_scene(scene, tmp_path / "scene.json")
-    rng = np.random.default_rng(1)
-    p = np.c_[rng.uniform(-1, 1, (20, 2)), np.zeros(20)]
-    n = np.tile([0.0, 0.0, 1.0], (20, 1))
-    eye = np.array([0.3, -1.5, 1.5])
-    mat = js.Material(ka=0.2, kd=[0.5, 0.4, 0.3], ks=0.3, exponent=20.0)
-    inverse.PaintedTargets(p, n, np.asarray(js.shade(scene, mat, p, n, eye)), eye).save(tmp_path / "t.json")
+    _write_fit_inputs(tmp_path)
     seen = {}
 
     def fake_fit_light(scene, targets, material, light_index=0, **kw):
