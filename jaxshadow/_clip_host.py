@@ -566,6 +566,75 @@ def _codes_shadowed(p: np.ndarray, n: np.ndarray, verts: np.ndarray, occ: np.nda
 
 
 
+# --------------------------------------------------------------------------------------
+# The same combinatorics compiled (`_clipc.c`, built by setup.py; ctypes).
+# --------------------------------------------------------------------------------------
+
+
+@functools.cache
+def _clipc() -> Any:
+    """The compiled kernel's ctypes library, or None where the extension was not built (no C
+    compiler when the package was installed: `host_culled_codes` in NumPy is used instead)."""
+    import ctypes
+
+    try:
+        from . import _clipc as mod  # type: ignore[attr-defined]
+    except ImportError:
+        return None
+    lib = ctypes.CDLL(mod.__file__)
+    if lib.jaxshadow_clipc_abi_version() != 1:
+        return None
+    i64, i32, ptr = ctypes.c_int64, ctypes.c_int, ctypes.c_void_p
+    for name in ("jaxshadow_host_codes_f64", "jaxshadow_host_codes_f32"):
+        fn = getattr(lib, name)
+        fn.argtypes = [i64] + [i32] * 8 + [ptr] * 11
+        fn.restype = i32
+    return lib
+
+
+def compiled_available() -> bool:
+    """Whether the compiled host combinatorics (`_clipc`) are built and loadable."""
+    return _clipc() is not None
+
+
+def host_culled_codes_c(p: np.ndarray, n: np.ndarray, verts: np.ndarray, occluders: np.ndarray, max_active: int,
+                        capacity: int, closed: bool = False) -> tuple[np.ndarray, ...]:
+    """`host_culled_codes`, compiled (`_clipc.c`: the same arithmetic, receiver by receiver;
+    ~100x faster on a fit's 48 receivers). The same arguments and results; float32 and float64
+    (other dtypes are computed in float64). Raises RuntimeError where the extension is not built."""
+    lib = _clipc()
+    if lib is None:
+        raise RuntimeError("jaxshadow._clipc is not built (reinstall jaxshadow with a C compiler)")
+    dt = np.result_type(p.dtype, verts.dtype)
+    if dt not in (np.float32, np.float64):
+        dt = np.dtype(np.float64)
+    k = verts.shape[-2]
+    m_occ, ko = occluders.shape[-3], occluders.shape[-2]
+    batch = np.broadcast_shapes(p.shape[:-1], n.shape[:-1], verts.shape[:-2], occluders.shape[:-3])
+    p = np.ascontiguousarray(np.broadcast_to(np.asarray(p, dt), batch + (3,)).reshape(-1, 3))
+    b = p.shape[0]
+    n = np.ascontiguousarray(np.broadcast_to(np.asarray(n, dt), batch + (3,)).reshape(b, 3))
+    verts = np.ascontiguousarray(_batch_or_one(np.asarray(verts, dt), batch, 2))
+    occ = np.ascontiguousarray(_batch_or_one(np.asarray(occluders, dt), batch, 3))
+    idx = np.empty((b, max_active), np.int32)
+    kind = np.empty((b, 2 * capacity), np.int32)
+    ra = np.empty((b, 2 * capacity), np.int32)
+    rb = np.empty((b, 2 * capacity), np.int32)
+    ri = np.empty((b, 2 * capacity), np.bool_)
+    used = np.empty((b, capacity), np.bool_)
+    overflow = np.empty((b,), np.bool_)
+    fn = lib.jaxshadow_host_codes_f64 if dt == np.float64 else lib.jaxshadow_host_codes_f32
+    status = fn(b, k, m_occ, ko, max_active, capacity, int(bool(closed)), int(verts.shape[0] > 1),
+                int(occ.shape[0] > 1), *(a.ctypes.data for a in (p, n, verts, occ, idx, kind, ra, rb, ri, used,
+                                                                  overflow)))
+    if status != 0:
+        raise ValueError(f"host_culled_codes_c: bad sizes (K={k}, Ko={ko}, M={m_occ}, max_active={max_active}, "
+                         f"capacity={capacity})")
+    shape = batch + (2 * capacity,)
+    return (idx.reshape(batch + (max_active,)), kind.reshape(shape), ra.reshape(shape), rb.reshape(shape),
+            ri.reshape(shape), used.reshape(batch + (capacity,)), overflow.reshape(batch))
+
+
 def culled_visible_edges_host(
     p: Float[Array, "3"],
     n: Float[Array, "3"],
@@ -584,25 +653,32 @@ def culled_visible_edges_host(
     differentiated). Every endpoint is computed from its recipe (`host_culled_codes`)."""
     k, ko = verts.shape[0], occluders.shape[1]
     cap = edge_capacity(k, ko, max_active)
-    i32 = jnp.int32
-    slots = (2 * cap,)
-    shapes = (
-        jax.ShapeDtypeStruct((max_active,), i32),
-        jax.ShapeDtypeStruct(slots, i32),
-        jax.ShapeDtypeStruct(slots, i32),
-        jax.ShapeDtypeStruct(slots, i32),
-        jax.ShapeDtypeStruct(slots, jnp.bool_),
-        jax.ShapeDtypeStruct((cap,), jnp.bool_),
-        jax.ShapeDtypeStruct((), jnp.bool_),
-    )
+    # One packed input, `[p | n | verts | occluders]` per receiver, and one packed int32 result,
+    # `[idx (A) | kind, a, b, interp (2 cap each) | used (cap) | overflow]`: the callback's fixed
+    # cost is mostly JAX putting each argument and result on the device (~0.2 ms an array: with
+    # eleven of them, more than the compiled combinatorics take).
+    width = max_active + 9 * cap + 1
+    m = occluders.shape[0]
+    codes = host_culled_codes_c if compiled_available() else host_culled_codes
 
-    def host(p: Any, n: Any, verts: Any, occ: Any) -> tuple[np.ndarray, ...]:
-        return host_culled_codes(np.asarray(p), np.asarray(n), np.asarray(verts), np.asarray(occ), max_active, cap,
-                                 closed)
+    def host(x: Any) -> np.ndarray:
+        x = np.asarray(x)
+        lead = x.shape[:-1]
+        out = codes(x[..., :3], x[..., 3:6], x[..., 6: 6 + 3 * k].reshape(lead + (k, 3)),
+                    x[..., 6 + 3 * k:].reshape(lead + (m, ko, 3)), max_active, cap, closed)
+        return np.concatenate([y.astype(np.int32, copy=False) for y in out[:-1]] + [out[-1][..., None].astype(np.int32)],
+                              axis=-1)
 
     sg = jax.lax.stop_gradient
-    idx, kind, ia, ib, interp, used, overflow = jax.pure_callback(
-        host, shapes, sg(p), sg(n), sg(verts), sg(occluders), vmap_method="expand_dims")
+    dt_in = jnp.result_type(p, verts)
+    x = jnp.concatenate([p, n, verts.reshape(-1), occluders.reshape(-1)]).astype(dt_in)
+    packed = jax.pure_callback(host, jax.ShapeDtypeStruct((width,), jnp.int32), sg(x), vmap_method="expand_dims")
+    two = 2 * cap
+    idx = packed[:max_active]
+    kind, ia, ib = (packed[max_active + i * two: max_active + (i + 1) * two] for i in range(3))
+    interp = packed[max_active + 3 * two: max_active + 4 * two] != 0
+    used = packed[max_active + 4 * two: max_active + 4 * two + cap] != 0
+    overflow = packed[-1] != 0
     dt = p.dtype
     padded = jnp.concatenate([occluders, jnp.zeros((1,) + occluders.shape[1:], occluders.dtype)])
     occ = padded[idx]

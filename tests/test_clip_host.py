@@ -6,7 +6,11 @@ and the same overflow flags, on random scenes with capacities that do and do not
 on the touching / sliver / grazing configurations of `test_bsp.py`; the same Jacobian with
 respect to the light's and the occluders' vertices (forward and reverse mode, 1e-12); the
 NumPy occluder counts equal `_bsp.occluder_relevance`'s; the shadowed Phong specular term agrees
-(1e-12); a light fit gives the same light with either `combinatorics`.
+(1e-12); a light fit gives the same light with either `combinatorics`. The compiled
+combinatorics (`_clipc.c`, what the callback uses when it is built) return exactly the NumPy
+reference's codes (every array equal) on random scenes in both precisions, open and closed, with
+capacities that do and do not overflow, on the degenerate configurations and on broadcast
+batches; the NumPy fallback alone also matches the device kernel.
 """
 
 import functools
@@ -18,9 +22,15 @@ import pytest
 from test_bsp import M_OCC, _receivers, _scene
 from test_clip import EM, UP, pad, random_scene
 
-from jaxshadow._bsp import culled_visible_edges, occluder_relevance
+import jaxshadow._clip_host as clip_host
+from jaxshadow._bsp import culled_visible_edges, edge_capacity, occluder_relevance
 from jaxshadow._clip import masked_contour_form_factor
-from jaxshadow._clip_host import culled_visible_edges_host, relevant_counts
+from jaxshadow._clip_host import (
+    culled_visible_edges_host,
+    host_culled_codes,
+    host_culled_codes_c,
+    relevant_counts,
+)
 
 
 def _one(edges, cap, p, n, em, occ):
@@ -151,3 +161,94 @@ def test_specular_host_equals_device():
     assert bool(od) == bool(oh)
     assert float(jnp.max(sd)) > 0
     np.testing.assert_allclose(np.asarray(sh), np.asarray(sd), rtol=0, atol=1e-12)
+
+
+# --------------------------------------------------------------------------------------
+# The compiled combinatorics (`_clipc.c`) against the NumPy reference
+# --------------------------------------------------------------------------------------
+
+_NAMES = ("idx", "kind", "a", "b", "interp", "used", "overflow")
+
+
+def _assert_same_codes(args, what):
+    ref, got = host_culled_codes(*args), host_culled_codes_c(*args)
+    for name, x, y in zip(_NAMES, ref, got, strict=True):
+        assert x.shape == y.shape and x.dtype == y.dtype, (what, name, x.shape, y.shape, x.dtype, y.dtype)
+        bad = np.argwhere(x != y)
+        assert bad.size == 0, (what, name, bad[:5])
+    return ref
+
+
+def test_compiled_kernel_is_built():
+    # `pip install -e .` builds it (setup.py); without it the light fits' "host" combinatorics
+    # fall back to NumPy (~10x slower a call) and the tests below could not run.
+    assert clip_host.compiled_available(), "jaxshadow._clipc was not built: reinstall with a C compiler"
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_compiled_equals_numpy_random(dtype):
+    shadowed = overflowed = 0
+    for seed in range(8):
+        if seed < 4:
+            em, occ = map(np.asarray, _scene(seed))
+        else:  # other light and occluder counts (1 to 11 occluders, 3 to 6 light vertices)
+            em0, occs = random_scene(seed, 1 + (5 * seed) % 11)
+            em, occ = pad([em0], 6)[0], pad(occs, 4)
+        p, n = _receivers(seed % 4, 96)
+        for a in sorted({1, 2, 4, min(8, occ.shape[0])}):
+            for closed in (False, True):
+                cap = edge_capacity(em.shape[0], occ.shape[1], a)
+                args = (p.astype(dtype), n.astype(dtype), em.astype(dtype), occ.astype(dtype), a, cap, closed)
+                idx, *_, used, over = _assert_same_codes(args, (seed, a, closed))
+                shadowed += int(np.sum(idx[:, 0] < occ.shape[0]))
+                overflowed += int(np.sum(over))
+    assert shadowed > 1000 and overflowed > 50  # both the shadowed and the overflow paths ran
+
+
+def test_compiled_equals_numpy_degenerate_and_batched():
+    em = np.asarray(EM)
+
+    def strip(x0, z=1.0):
+        return np.array([[x0, -0.5, z], [x0 + 1, -0.5, z], [x0 + 1, 0.5, z], [x0, 0.5, z]])
+
+    polys = [strip(0.5 - 1e-9), strip(0.5), strip(0.5 + 1e-9), strip(-0.5, 0.0),
+             np.array([[0.5, 0.0, 1.0], [0.9, 0.2, 1.0], [0.9, -0.2, 1.1]]),
+             np.array([[0.0, 0.0, 2.0], [0.2, 0.0, 2.5], [-0.2, 0.1, 2.5]]),
+             np.array([[-0.2, -0.2, 1.5], [0.3, -0.2, 1.5], [0.3, 0.2, 2.6]]),
+             np.array([[-0.3, -0.3, 2.0], [0.3, -0.3, 2.0], [0.3, 0.3, 2.0], [-0.3, 0.3, 2.0]])]  # in the light's plane
+    occ = pad(polys + [strip(-1.4, 1.2)], 4)
+    # Receivers on grid points, on the occluders' and the light's planes' traces, and one on the
+    # light itself and behind it.
+    pts = np.array([[x, y, 0.0] for x in (-1.0, -0.5, 0.0, 0.5, 1.0) for y in (-0.5, 0.0, 0.5)]
+                   + [[0.0, 0.0, 1.0], [0.5, 0.0, 1.0], [0.0, 0.0, 2.0], [0.0, 0.0, 2.5]])
+    nrm = np.broadcast_to(UP, pts.shape)
+    cap = edge_capacity(4, 4, 4)
+    for dtype in (np.float64, np.float32):
+        _assert_same_codes((pts.astype(dtype), nrm.astype(dtype), em.astype(dtype), occ.astype(dtype), 4, cap,
+                            False), dtype)
+    # Leading batch axes, broadcast: per-receiver lights against one occluder set, and the other way.
+    rng = np.random.default_rng(5)
+    p, n = _receivers(5, 12)
+    lights = em[None] + rng.uniform(-0.1, 0.1, (3, 1, 1, 3))  # (3, 1, 4, 3)
+    ref = _assert_same_codes((p.reshape(1, 12, 3), n.reshape(1, 12, 3), lights, occ, 3, cap, True), "batched lights")
+    assert ref[1].shape == (3, 12, 2 * cap)
+    occs = occ[None] + rng.uniform(-0.05, 0.05, (2, 1, 1, 1))
+    _assert_same_codes((p[:, None], n[:, None], em, occs, 2, edge_capacity(4, 4, 2), False), "batched occluders")
+
+
+def test_numpy_fallback_equals_device(monkeypatch):
+    # Where `_clipc` is not built, the callback computes the same codes in NumPy.
+    monkeypatch.setattr(clip_host, "compiled_available", lambda: False)
+
+    def not_here(*args):
+        raise AssertionError("the compiled combinatorics were called")
+
+    monkeypatch.setattr(clip_host, "host_culled_codes_c", not_here)
+    em, occ = _scene(2)
+    p, n = _receivers(2, 48)
+    p, n = jnp.asarray(p), jnp.asarray(n)
+    fd, od = _ff(culled_visible_edges, 4)(p, n, em, occ)
+    fh, oh = jax.jit(jax.vmap(functools.partial(_one, culled_visible_edges_host, 4), in_axes=(0, 0, None, None)))(
+        p, n, em, occ)
+    np.testing.assert_array_equal(np.asarray(oh), np.asarray(od))
+    np.testing.assert_allclose(np.asarray(fh), np.asarray(fd), rtol=0, atol=1e-14)
