@@ -40,7 +40,7 @@ import jaxshadow as js
 from jaxshadow._clip_host import relevant_counts
 
 from ._forward import SpecularFn, irradiance_culled, shade, shade_culled, specular_culled
-from ._lm import LMResult, batched_levenberg_marquardt, fit_jit
+from ._lm import HOST_FIT_COMPILER_OPTIONS, LMResult, batched_levenberg_marquardt, fit_jit
 from ._targets import PaintedTargets
 
 FIT_GROUPS = ("position", "orientation", "size")
@@ -354,6 +354,20 @@ class _Setup(eqx.Module):
     host_combinatorics: bool = eqx.field(static=True, default=False)
 
 
+def _pinned(light: Any) -> Any:
+    """`light` with each array leaf (vertices, position, ...) the result of a product by the
+    identity: the same values, but XLA:CPU then computes the pose from the parameters (and its
+    tangents) once, instead of fusing that chain into every loop over receivers and edges that
+    reads the light (~10% of an evaluation of the residual and its Jacobian with the device
+    combinatorics, ~3% with the host's: `benchmarks/README.md`, Session 10)."""
+    def pin(x: Any) -> Any:
+        if not hasattr(x, "ndim") or x.ndim == 0 or not jnp.issubdtype(x.dtype, jnp.floating):
+            return x
+        return jnp.dot(jnp.eye(x.shape[0], dtype=x.dtype), x, precision=jax.lax.Precision.HIGHEST)
+
+    return jax.tree_util.tree_map(pin, light)
+
+
 def _projected(theta: Array, setup: _Setup) -> tuple[Array, Array, Array]:
     """Variable projection (Golub & Pereyra): for the light in `theta` (and $\\log n$ last when
     fitted), the per-channel coefficients $(k_a, k_d, k_s)$ solved by weighted linear least
@@ -366,7 +380,7 @@ def _projected_flag(theta: Array, setup: _Setup, max_active: int | None,
     """`_projected` plus the culling overflow flag (`_forward.shade_culled`)."""
     t = setup.targets
     P = setup.param.size
-    scene = with_light(setup.scene, setup.param.light_index, setup.param.build(theta[:P]))
+    scene = with_light(setup.scene, setup.param.light_index, _pinned(setup.param.build(theta[:P])))
     dt = theta.dtype
     host = setup.host_combinatorics
     e, over = irradiance_culled(scene, t.points, t.normals, max_active, n_wide, host)
@@ -408,7 +422,7 @@ def _residuals_flag(theta: Array, setup: _Setup, max_active: int | None,
         r, _, _, over = _projected_flag(theta, setup, max_active, n_wide)
         return r, over
     t = setup.targets
-    scene = with_light(setup.scene, setup.param.light_index, setup.param.build(theta))
+    scene = with_light(setup.scene, setup.param.light_index, _pinned(setup.param.build(theta)))
     model, over = shade_culled(scene, setup.material, t.points, t.normals, t.eye, setup.specular,
                                setup.with_specular, max_active, n_wide, setup.host_combinatorics)
     return (jnp.sqrt(t.weights) * (model - t.colours)).reshape(-1), over
@@ -419,9 +433,8 @@ def _loss(theta: Array, setup: _Setup) -> Array:
     return 0.5 * jnp.sum(r * r)
 
 
-@fit_jit
-def _multistart_lm(setup: _Setup, starts: Array, rtol: float, atol: float, max_steps: int,
-                   prune: tuple[int, ...] = (), chunk: int | None = None) -> tuple[LMResult, Any]:
+def _multistart_lm_impl(setup: _Setup, starts: Array, rtol: float, atol: float, max_steps: int,
+                        prune: tuple[int, ...] = (), chunk: int | None = None) -> tuple[LMResult, Any]:
     """Levenberg-Marquardt from every start at once (`_lm.batched_levenberg_marquardt`) on the
     culled residual; `LMResult.flag` is the culling overflow (then retry, `_solve_lm`). Also
     returns the light built at every start's solution (a batched light pytree): built here, in
@@ -432,6 +445,11 @@ def _multistart_lm(setup: _Setup, starts: Array, rtol: float, atol: float, max_s
                                       num_residuals=3 * int(setup.targets.points.shape[0]))
     size = setup.param.size
     return res, jax.vmap(lambda th: setup.param.build(th[:size]))(res.values)
+
+
+_multistart_lm = fit_jit(_multistart_lm_impl)
+# The same program with the host combinatorics: other XLA options (`_lm.HOST_FIT_COMPILER_OPTIONS`).
+_multistart_lm_host = fit_jit(_multistart_lm_impl, options=HOST_FIT_COMPILER_OPTIONS)
 
 
 def prune_schedule(n_starts: int, max_steps: int) -> tuple[int, ...]:
@@ -539,7 +557,8 @@ def _solve_lm(setup: _Setup, starts: Array, rtol: float, atol: float, max_steps:
     retries = 0
     chunk = 1 if starts.shape[0] > 1 else None
     while True:
-        res, lights = _multistart_lm(setup, starts, rtol, atol, max_steps, prune, chunk)
+        lm = _multistart_lm_host if setup.host_combinatorics else _multistart_lm
+        res, lights = lm(setup, starts, rtol, atol, max_steps, prune, chunk)
         active = setup.max_active
         if active is None or not bool(res.flag):
             return res, lights, setup, retries

@@ -51,13 +51,24 @@ from jaxtyping import Array, Bool, Float, Int
 # "Session 6"; `benchmarks/fit_compiler_options.py`). Options of the code generator only:
 # IEEE arithmetic, no fast-math.
 FIT_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False, "xla_llvm_disable_expensive_passes": True}
+# With the host combinatorics (`jaxshadow._clip_host`) the program is the geometry alone, a few
+# hundred small elementwise fusions, and its time is mostly the host round trip: XLA's own loops
+# for the fusions run ~13% faster than YNNPACK's (which jaxlib 0.10 hands elementwise fusions
+# to; with the combinatorics in the program YNNPACK is ~5% faster), and LLVM at -O1 compiles it
+# in ~25% less time for a few % more per evaluation (`benchmarks/README.md`, Session 10).
+HOST_FIT_COMPILER_OPTIONS = {**FIT_COMPILER_OPTIONS, "xla_cpu_experimental_ynn_fusion_type": "",
+                             "xla_backend_optimization_level": 1}
 
 
-def fit_jit(fun: Callable) -> Callable:
-    """`equinox.filter_jit(fun)` compiled with `FIT_COMPILER_OPTIONS` on the CPU backend (other
-    backends: the defaults). The backend is looked up at the first call, not at import. A jaxlib
-    that does not know one of the options (the supported `jax` range is wide) gets the defaults
-    instead: the first compile that names an option in its error is retried without them."""
+def fit_jit(fun: Callable | None = None, *, options: dict | None = None) -> Any:
+    """`equinox.filter_jit(fun)` compiled with `options` (default `FIT_COMPILER_OPTIONS`) on
+    the CPU backend (other backends: the defaults); `fit_jit(options=...)` is the decorator.
+    The backend is looked up at the first call, not at import. A jaxlib that does not know one
+    of the options (the supported `jax` range is wide) gets the defaults instead: the first
+    compile that names an option in its error is retried without them."""
+    if fun is None:
+        return functools.partial(fit_jit, options=options)
+    opts = FIT_COMPILER_OPTIONS if options is None else options
     jitted: list = []
 
     @functools.wraps(fun)
@@ -66,11 +77,11 @@ def fit_jit(fun: Callable) -> Callable:
             cpu = jax.default_backend() == "cpu" and "compiler_options" in inspect.signature(jax.jit).parameters
             if cpu:
                 # `filter_jit` forwards its extra keywords to `jax.jit` (its stubs do not list them).
-                fast = eqx.filter_jit(fun, compiler_options=FIT_COMPILER_OPTIONS)  # type: ignore[call-overload]
+                fast = eqx.filter_jit(fun, compiler_options=opts)  # type: ignore[call-overload]
                 try:
                     out = fast(*args, **kwargs)
                 except Exception as err:  # an unknown option surfaces at the first compile
-                    if not any(key in str(err) for key in FIT_COMPILER_OPTIONS):
+                    if not any(key in str(err) for key in opts):
                         raise
                     jitted.append(eqx.filter_jit(fun))
                 else:

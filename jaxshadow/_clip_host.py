@@ -582,12 +582,12 @@ def _clipc() -> Any:
     except ImportError:
         return None
     lib = ctypes.CDLL(mod.__file__)
-    if lib.jaxshadow_clipc_abi_version() != 1:
+    if lib.jaxshadow_clipc_abi_version() != 2:
         return None
     i64, i32, ptr = ctypes.c_int64, ctypes.c_int, ctypes.c_void_p
     for name in ("jaxshadow_host_codes_f64", "jaxshadow_host_codes_f32"):
         fn = getattr(lib, name)
-        fn.argtypes = [i64] + [i32] * 8 + [ptr] * 11
+        fn.argtypes = [i64] + [i32] * 6 + [ptr] * 2
         fn.restype = i32
     return lib
 
@@ -597,42 +597,58 @@ def compiled_available() -> bool:
     return _clipc() is not None
 
 
-def host_culled_codes_c(p: np.ndarray, n: np.ndarray, verts: np.ndarray, occluders: np.ndarray, max_active: int,
-                        capacity: int, closed: bool = False) -> tuple[np.ndarray, ...]:
-    """`host_culled_codes`, compiled (`_clipc.c`: the same arithmetic, receiver by receiver;
-    ~100x faster on a fit's 48 receivers). The same arguments and results; float32 and float64
-    (other dtypes are computed in float64). Raises RuntimeError where the extension is not built."""
+def _packed_width(k: int, m: int, ko: int, max_active: int, capacity: int) -> tuple[int, int]:
+    """Row widths of the packed input `[p | n | verts | occluders]` and output `[idx | kind |
+    a | b | interp | used | overflow]` (`_clipc.c`, `culled_visible_edges_host`)."""
+    return 6 + 3 * k + 3 * m * ko, max_active + 9 * capacity + 1
+
+
+def _codes_packed_c(x: np.ndarray, k: int, m: int, ko: int, max_active: int, capacity: int,
+                    closed: bool) -> np.ndarray:
+    """The compiled combinatorics on packed rows `x (..., W_in)` (float32 or float64) ->
+    `(..., W_out)` int32 (`_packed_width`)."""
     lib = _clipc()
     if lib is None:
         raise RuntimeError("jaxshadow._clipc is not built (reinstall jaxshadow with a C compiler)")
+    if x.dtype not in (np.float32, np.float64):
+        x = x.astype(np.float64)
+    x = np.ascontiguousarray(x)
+    w_in, w_out = _packed_width(k, m, ko, max_active, capacity)
+    if x.shape[-1] != w_in:
+        raise ValueError(f"_codes_packed_c: rows of {x.shape[-1]} values, expected {w_in}")
+    out = np.empty(x.shape[:-1] + (w_out,), np.int32)
+    fn = lib.jaxshadow_host_codes_f64 if x.dtype == np.float64 else lib.jaxshadow_host_codes_f32
+    if fn(x.size // w_in, k, m, ko, max_active, capacity, int(bool(closed)), x.ctypes.data, out.ctypes.data):
+        raise ValueError(f"_codes_packed_c: bad sizes (K={k}, Ko={ko}, M={m}, max_active={max_active}, "
+                         f"capacity={capacity})")
+    return out
+
+
+def host_culled_codes_c(p: np.ndarray, n: np.ndarray, verts: np.ndarray, occluders: np.ndarray, max_active: int,
+                        capacity: int, closed: bool = False) -> tuple[np.ndarray, ...]:
+    """`host_culled_codes`, compiled (`_clipc.c`: the same arithmetic, receiver by receiver;
+    ~10x faster on a fit's 48 receivers). The same arguments and results; float32 and float64
+    (other dtypes are computed in float64). Raises RuntimeError where the extension is not built."""
     dt = np.result_type(p.dtype, verts.dtype)
     if dt not in (np.float32, np.float64):
         dt = np.dtype(np.float64)
     k = verts.shape[-2]
     m_occ, ko = occluders.shape[-3], occluders.shape[-2]
     batch = np.broadcast_shapes(p.shape[:-1], n.shape[:-1], verts.shape[:-2], occluders.shape[:-3])
-    p = np.ascontiguousarray(np.broadcast_to(np.asarray(p, dt), batch + (3,)).reshape(-1, 3))
-    b = p.shape[0]
-    n = np.ascontiguousarray(np.broadcast_to(np.asarray(n, dt), batch + (3,)).reshape(b, 3))
-    verts = np.ascontiguousarray(_batch_or_one(np.asarray(verts, dt), batch, 2))
-    occ = np.ascontiguousarray(_batch_or_one(np.asarray(occluders, dt), batch, 3))
-    idx = np.empty((b, max_active), np.int32)
-    kind = np.empty((b, 2 * capacity), np.int32)
-    ra = np.empty((b, 2 * capacity), np.int32)
-    rb = np.empty((b, 2 * capacity), np.int32)
-    ri = np.empty((b, 2 * capacity), np.bool_)
-    used = np.empty((b, capacity), np.bool_)
-    overflow = np.empty((b,), np.bool_)
-    fn = lib.jaxshadow_host_codes_f64 if dt == np.float64 else lib.jaxshadow_host_codes_f32
-    status = fn(b, k, m_occ, ko, max_active, capacity, int(bool(closed)), int(verts.shape[0] > 1),
-                int(occ.shape[0] > 1), *(a.ctypes.data for a in (p, n, verts, occ, idx, kind, ra, rb, ri, used,
-                                                                  overflow)))
-    if status != 0:
-        raise ValueError(f"host_culled_codes_c: bad sizes (K={k}, Ko={ko}, M={m_occ}, max_active={max_active}, "
-                         f"capacity={capacity})")
-    shape = batch + (2 * capacity,)
-    return (idx.reshape(batch + (max_active,)), kind.reshape(shape), ra.reshape(shape), rb.reshape(shape),
-            ri.reshape(shape), used.reshape(batch + (capacity,)), overflow.reshape(batch))
+    rows = [np.broadcast_to(np.asarray(a, dt).reshape(a.shape[: a.ndim - c] + (-1,)), batch + (w,))
+            for a, c, w in ((p, 1, 3), (n, 1, 3), (verts, 2, 3 * k), (occluders, 3, 3 * m_occ * ko))]
+    out = _codes_packed_c(np.concatenate(rows, axis=-1), k, m_occ, ko, max_active, capacity, closed)
+    two = 2 * capacity
+    kind, ra, rb, ri = (out[..., max_active + i * two: max_active + (i + 1) * two] for i in range(4))
+    return (out[..., :max_active], kind, ra, rb, ri != 0, out[..., max_active + 4 * two: -1] != 0,
+            out[..., -1] != 0)
+
+
+def _pinned(x: Array) -> Array:
+    """`x (K, ...)` as the result of a product by the identity (the same values, exactly):
+    XLA does not fuse a dot's operands into its consumers, so whatever computed `x` is computed
+    once, not again inside every fused loop that reads it."""
+    return jnp.dot(jnp.eye(x.shape[0], dtype=x.dtype), x, precision=jax.lax.Precision.HIGHEST)
 
 
 def culled_visible_edges_host(
@@ -657,15 +673,17 @@ def culled_visible_edges_host(
     # `[idx (A) | kind, a, b, interp (2 cap each) | used (cap) | overflow]`: the callback's fixed
     # cost is mostly JAX putting each argument and result on the device (~0.2 ms an array: with
     # eleven of them, more than the compiled combinatorics take).
-    width = max_active + 9 * cap + 1
     m = occluders.shape[0]
-    codes = host_culled_codes_c if compiled_available() else host_culled_codes
+    width = _packed_width(k, m, ko, max_active, cap)[1]
+    compiled = compiled_available()
 
     def host(x: Any) -> np.ndarray:
         x = np.asarray(x)
+        if compiled:
+            return _codes_packed_c(x, k, m, ko, max_active, cap, closed)
         lead = x.shape[:-1]
-        out = codes(x[..., :3], x[..., 3:6], x[..., 6: 6 + 3 * k].reshape(lead + (k, 3)),
-                    x[..., 6 + 3 * k:].reshape(lead + (m, ko, 3)), max_active, cap, closed)
+        out = host_culled_codes(x[..., :3], x[..., 3:6], x[..., 6: 6 + 3 * k].reshape(lead + (k, 3)),
+                                x[..., 6 + 3 * k:].reshape(lead + (m, ko, 3)), max_active, cap, closed)
         return np.concatenate([y.astype(np.int32, copy=False) for y in out[:-1]] + [out[-1][..., None].astype(np.int32)],
                               axis=-1)
 
@@ -680,6 +698,11 @@ def culled_visible_edges_host(
     used = packed[max_active + 4 * two: max_active + 4 * two + cap] != 0
     overflow = packed[-1] != 0
     dt = p.dtype
+    # The light's vertices (and their tangents) computed once, as a dot's result: XLA:CPU fuses
+    # the elementwise chain that made them (in a fit, the pose from the parameters) into every
+    # consumer, recomputing it per element of the (receivers x edge slots) arrays below (the
+    # same values; ~9% of a fit's evaluation, `benchmarks/README.md`, Session 10).
+    verts = _pinned(verts)
     padded = jnp.concatenate([occluders, jnp.zeros((1,) + occluders.shape[1:], occluders.dtype)])
     occ = padded[idx]
     e0, ne, hp, e_normals = _emitter_frame(p, n, verts)
@@ -687,10 +710,18 @@ def culled_visible_edges_host(
     planes = _region_planes(e_normals, o_normals).reshape(-1, 3)
     # Table points as `horizon_clip_edges` forms them (a vertex, or an edge's crossing with the
     # receiver's horizon / the emitter plane), the occluders' then projected (`_project`).
+    # The vertices are picked by one-hot products, not gathers: XLA:CPU fuses whatever computed
+    # a gather's operand into it, so that in a fit the light's pose and its tangents were
+    # recomputed from the parameters for every gathered coordinate (~17% of an evaluation). A
+    # dot takes its operands computed. Exact (finite inputs): each row sums one product by 1
+    # and zeros, in the highest precision.
     V = jnp.concatenate([verts, occ.reshape(-1, 3)])
     on_occ = (kind == 1)[:, None]
     is_pt = kind < 2
-    va, vb = V[jnp.where(is_pt, ia, 0)], V[jnp.where(is_pt, ib, 0)]
+    slots = jnp.arange(V.shape[0])[None, :]
+    hi = jax.lax.Precision.HIGHEST
+    va = jnp.dot((jnp.where(is_pt, ia, 0)[:, None] == slots).astype(V.dtype), V, precision=hi)
+    vb = jnp.dot((jnp.where(is_pt, ib, 0)[:, None] == slots).astype(V.dtype), V, precision=hi)
     h = jnp.where(on_occ, ne, n)
     q = jnp.where(on_occ, e0, p)
     da = jnp.sum((va - q) * h, axis=-1)

@@ -40,7 +40,7 @@
 #define FABS fabsf
 #include "_clipc_body.h"
 
-int jaxshadow_clipc_abi_version(void) { return 1; }
+int jaxshadow_clipc_abi_version(void) { return 2; }
 
 static struct PyModuleDef clipc_module = {PyModuleDef_HEAD_INIT, "_clipc",
                                           "Compiled host combinatorics (ctypes entry points; see _clip_host).", -1,

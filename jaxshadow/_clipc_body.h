@@ -211,7 +211,7 @@ static void SFX(relevance)(const REAL *p, const REAL *n, const REAL *v, int k, c
  * occluders' table recipes (written into rec_a/b/i at t_ps..t_e0) and `*count`; returns bad. */
 static int SFX(codes_shadowed)(const REAL *p, const REAL *n, const REAL *v, int k, const REAL *occ, int a_occ, int ko,
                                const REAL *e_starts, const REAL *e_ends, int cap, int64_t *out_sc, int64_t *out_ec,
-                               uint8_t *used, int64_t *count_out, int64_t *rec_a, int64_t *rec_b, uint8_t *rec_i) {
+                               int32_t *used, int64_t *count_out, int64_t *rec_a, int64_t *rec_b, uint8_t *rec_i) {
     const int k1 = k + 1, kq = ko + 1, n_reg = a_occ + 1;
     const int n_planes = k1 > kq ? k1 : kq, n_pl = n_reg * n_planes;
     const int t_ps = 2 * k1, t_pe = t_ps + a_occ * kq, t_e0 = t_ps + 2 * a_occ * kq, n_table = t_e0 + 1;
@@ -543,7 +543,7 @@ static int SFX(codes_shadowed)(const REAL *p, const REAL *n, const REAL *v, int 
 /* host_culled_codes for one receiver. */
 static void SFX(receiver)(const REAL *p, const REAL *n, const REAL *v, int k, const REAL *occ_all, int m, int ko,
                           int a_max, int cap, int closed, int32_t *idx, int32_t *kind, int32_t *ra, int32_t *rb,
-                          uint8_t *ri, uint8_t *used, uint8_t *overflow) {
+                          int32_t *ri, int32_t *used, int32_t *overflow) {
     const int k1 = k + 1, kq = ko + 1;
     const int t_ps = 2 * k1, t_pe = t_ps + a_max * kq, t_e0 = t_pe + a_max * kq, n_table = t_e0 + 1;
     const int n_planes = k1 > kq ? k1 : kq, n_pl = (a_max + 1) * n_planes;
@@ -579,7 +579,7 @@ static void SFX(receiver)(const REAL *p, const REAL *n, const REAL *v, int k, co
         for (int s = 0; s < cap; s++) {
             out_sc[s] = s < k1 ? s : t_e0;
             out_ec[s] = s < k1 ? k1 + s : t_e0;
-            used[s] = (uint8_t)(s < k1 && in_front);
+            used[s] = s < k1 && in_front;
         }
     } else {
         bad |= SFX(codes_shadowed)(p, n, v, k, &occ[0][0][0], a_max, ko, &e_starts[0][0], &e_ends[0][0], cap, out_sc,
@@ -600,20 +600,22 @@ static void SFX(receiver)(const REAL *p, const REAL *n, const REAL *v, int k, co
             ri[s] = 0;
         }
     }
-    *overflow = (uint8_t)(count_sel > a_max || count > cap || bad);
+    *overflow = count_sel > a_max || count > cap || bad;
 }
 
-/* The batch: `p, n (b, 3)`, `v (b or 1, k, 3)`, `occ (b or 1, m, ko, 3)`, all C-contiguous;
- * outputs `idx (b, a_max)`, `kind, ra, rb, ri (b, 2 cap)`, `used (b, cap)`, `overflow (b)`. */
-int SFX(jaxshadow_host_codes)(int64_t b, int k, int m, int ko, int a_max, int cap, int closed, int v_batched,
-                              int occ_batched, const REAL *p, const REAL *n, const REAL *v, const REAL *occ, int32_t *idx,
-                              int32_t *kind, int32_t *ra, int32_t *rb, uint8_t *ri, uint8_t *used, uint8_t *overflow) {
+/* The batch, packed as `_clip_host.culled_visible_edges_host`'s callback exchanges it: each of
+ * the `b` rows of `x` is `[p (3) | n (3) | verts (k, 3) | occluders (m, ko, 3)]`, each row of
+ * `out` is `[idx (a_max) | kind, a, b, interp (2 cap each) | used (cap) | overflow (1)]`.
+ * Returns 0, or 1 for sizes it cannot take. */
+int SFX(jaxshadow_host_codes)(int64_t b, int k, int m, int ko, int a_max, int cap, int closed, const REAL *x,
+                              int32_t *out) {
     if (k < 1 || ko < 1 || m < 0 || a_max < 1 || cap < k + 1) return 1;
+    const size_t in_w = 6 + 3 * (size_t)k + 3 * (size_t)m * ko, out_w = (size_t)a_max + 9 * (size_t)cap + 1;
     for (int64_t i = 0; i < b; i++) {
-        SFX(receiver)(p + 3 * i, n + 3 * i, v + (v_batched ? (size_t)3 * k * i : 0), k,
-                      occ + (occ_batched ? (size_t)3 * ko * m * i : 0), m, ko, a_max, cap, closed, idx + (size_t)a_max * i,
-                      kind + (size_t)2 * cap * i, ra + (size_t)2 * cap * i, rb + (size_t)2 * cap * i,
-                      ri + (size_t)2 * cap * i, used + (size_t)cap * i, overflow + i);
+        const REAL *row = x + in_w * i;
+        int32_t *o = out + out_w * i, *kind = o + a_max;
+        SFX(receiver)(row, row + 3, row + 6, k, row + 6 + 3 * k, m, ko, a_max, cap, closed, o, kind, kind + 2 * cap,
+                      kind + 4 * cap, kind + 6 * cap, kind + 8 * cap, kind + 9 * cap);
     }
     return 0;
 }

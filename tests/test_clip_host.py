@@ -243,7 +243,7 @@ def test_numpy_fallback_equals_device(monkeypatch):
     def not_here(*args):
         raise AssertionError("the compiled combinatorics were called")
 
-    monkeypatch.setattr(clip_host, "host_culled_codes_c", not_here)
+    monkeypatch.setattr(clip_host, "_codes_packed_c", not_here)
     em, occ = _scene(2)
     p, n = _receivers(2, 48)
     p, n = jnp.asarray(p), jnp.asarray(n)
