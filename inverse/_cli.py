@@ -15,17 +15,17 @@ from ._targets import load_targets
 
 
 def fit_command(scene_path: str, targets_path: str, output: str | os.PathLike, light: int | None = None,
-                combinatorics: str = "device") -> int:
+                combinatorics: str = "auto") -> int:
     """Run the fit; print the reports; write `output` (scene JSON with a `material` entry).
 
     With `light` (an index into the scene's lights), that light's placement is fitted first
     (Levenberg-Marquardt multistart, the material of the scene file as the starting material, or
     a first material fit at the given placement), then the material again at the fitted light.
-    `combinatorics` is `fit_light`'s (`"device"` or `"host"`: where the soft-shadow kernel's
-    combinatorics run; `"host"` compiles in about half the time, each solve is about 2x slower).
+    `combinatorics` is `fit_light`'s (`"auto"`, `"device"` or `"host"`: where the soft-shadow
+    kernel's combinatorics run; on the CPU, with the compiled `_clipc`, `"auto"` is `"host"`).
     """
-    if combinatorics not in ("device", "host"):
-        raise ValueError(f"--combinatorics must be 'device' or 'host', got {combinatorics!r}.")
+    if combinatorics not in ("auto", "device", "host"):
+        raise ValueError(f"--combinatorics must be 'auto', 'device' or 'host', got {combinatorics!r}.")
     scene = js.load_scene(scene_path)
     targets = load_targets(targets_path)
     say = lambda msg: print(msg, file=sys.stderr, flush=True)  # noqa: E731

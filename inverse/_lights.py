@@ -37,7 +37,7 @@ import optimistix as optx
 from jaxtyping import Array, Float
 
 import jaxshadow as js
-from jaxshadow._clip_host import relevant_counts
+from jaxshadow._clip_host import compiled_available, relevant_counts
 
 from ._forward import SpecularFn, irradiance_culled, shade, shade_culled, specular_culled
 from ._lm import HOST_FIT_COMPILER_OPTIONS, LMResult, batched_levenberg_marquardt, fit_jit
@@ -707,6 +707,18 @@ def make_starts(param: LightParametrisation, starts: int, *, search_radius: floa
     return jnp.asarray(np.concatenate([th0[None], th]), dtype)
 
 
+def resolve_combinatorics(combinatorics: str, solver: str = "lm", receiver_groups: bool = False) -> str:
+    """What `fit_light(combinatorics="auto")` runs: `"host"` on the CPU backend when the compiled
+    host combinatorics are built (`jaxshadow._clip_host.compiled_available`) and the LM solver
+    uses them (`solver="lm"`, no `receiver_groups`), else `"device"`; other values unchanged.
+    With both on this machine the host's first call is about half as long and every solve
+    faster (`benchmarks/combinatorics.py`); on an accelerator the host round trip would not pay."""
+    if combinatorics != "auto":
+        return combinatorics
+    usable = solver == "lm" and not receiver_groups and jax.default_backend() == "cpu"
+    return "host" if usable and compiled_available() else "device"
+
+
 def fit_light(
     scene: js.Scene,
     targets: PaintedTargets,
@@ -730,7 +742,7 @@ def fit_light(
     specular: SpecularFn | None = None,
     prune: bool = True,
     receiver_groups: bool = False,
-    combinatorics: str = "device",
+    combinatorics: str = "auto",
 ) -> LightFit:
     """Place light `light_index` of `scene` so the shading matches painted colours.
 
@@ -778,13 +790,14 @@ def fit_light(
       `benchmarks/inverse_speed.py`). Worth it for many solves; exact either way.
     - `combinatorics` (`solver="lm"` with occluder culling): where the soft-shadow kernel's
       combinatorics run (which occluders, which pieces of which edges bound the visible
-      region). `"device"` (default): in the compiled program (`jaxshadow._clip`). `"host"`: in
-      NumPy, called back from the compiled solver once per evaluation
-      (`jaxshadow._clip_host`): the compiled program holds only the geometry and its
-      derivatives, so the first call (compilation) is about half as long, but every solve is
-      about 2x slower (NumPy's work per LM step; `benchmarks/combinatorics.py`). For a single fit
-      in a fresh process. The same values to rounding either way;
-      `receiver_groups=True` always uses the device.
+      region). `"device"`: in the compiled program (`jaxshadow._clip`). `"host"`: on the host,
+      called back from the compiled solver once per evaluation (`jaxshadow._clip_host`; compiled
+      C, `_clipc.c`, or its NumPy reference where the extension is not built): the compiled
+      program holds only the geometry and its derivatives. With the C kernel, 8 occluders and
+      48 targets the first call is about half as long and each solve ~20% (1 start) to ~40% (64
+      starts) shorter; with NumPy each solve is ~2x longer (`benchmarks/combinatorics.py`).
+      `"auto"` (default): `resolve_combinatorics` (host on the CPU with the C kernel). The same
+      values to rounding either way; `receiver_groups=True` always uses the device.
 
     **Returns:** `LightFit(scene, light, residual, report, parametrisation)`.
     """
@@ -805,9 +818,9 @@ def fit_light(
         raise ValueError(f"fit_light: starts must be >= 1, got {starts}.")
     if material_mode not in ("fixed", "projected"):
         raise ValueError(f"fit_light: material_mode must be 'fixed' or 'projected', got {material_mode!r}.")
-    if combinatorics not in ("host", "device"):
-        raise ValueError(f"fit_light: combinatorics must be 'device' or 'host', got {combinatorics!r}.")
-    host = combinatorics == "host"
+    if combinatorics not in ("auto", "host", "device"):
+        raise ValueError(f"fit_light: combinatorics must be 'auto', 'device' or 'host', got {combinatorics!r}.")
+    host = resolve_combinatorics(combinatorics, solver, receiver_groups) == "host"
     dt = targets.points.dtype
     size = scene_size(scene, targets)
     param = LightParametrisation(scene.lights[light_index], light_index, fit, constraint, size,

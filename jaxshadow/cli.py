@@ -230,9 +230,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("targets")
     p.add_argument("-o", "--output", required=True)
     p.add_argument("--light", type=int, default=None, help="also fit the placement of this light")
-    p.add_argument("--combinatorics", choices=("device", "host"), default="device",
+    p.add_argument("--combinatorics", choices=("auto", "device", "host"), default="auto",
                    help="with --light and occluders: where the soft-shadow kernel's combinatorics run "
-                        "(host: about half the compile time, each solve about 2x slower; see fit_light)")
+                        "(auto: host on the CPU when the compiled kernel is built; see fit_light)")
     p.set_defaults(func=cmd_fit)
     args = parser.parse_args(argv)
     if not args.no_compile_cache:

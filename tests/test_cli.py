@@ -73,7 +73,7 @@ def test_fit_command_passes_combinatorics(tmp_path, monkeypatch):
     assert seen == {"light_index": 0, "combinatorics": "host"}
     seen.clear()
     assert main(args) == 2
-    assert seen["combinatorics"] == "device"
+    assert seen["combinatorics"] == "auto"
     try:
         main([*args, "--combinatorics", "gpu"])
     except SystemExit as err:

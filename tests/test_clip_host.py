@@ -252,3 +252,18 @@ def test_numpy_fallback_equals_device(monkeypatch):
         p, n, em, occ)
     np.testing.assert_array_equal(np.asarray(oh), np.asarray(od))
     np.testing.assert_allclose(np.asarray(fh), np.asarray(fd), rtol=0, atol=1e-14)
+
+
+def test_auto_combinatorics(monkeypatch):
+    # `fit_light`'s default: the host combinatorics on the CPU when the C kernel is built and
+    # the LM uses them; the device otherwise.
+    import inverse._lights as lights
+
+    assert jax.default_backend() == "cpu"
+    assert lights.resolve_combinatorics("auto") == "host"
+    assert lights.resolve_combinatorics("auto", solver="optimistix") == "device"
+    assert lights.resolve_combinatorics("auto", receiver_groups=True) == "device"
+    assert lights.resolve_combinatorics("device") == "device"
+    assert lights.resolve_combinatorics("host", solver="lm") == "host"
+    monkeypatch.setattr(lights, "compiled_available", lambda: False)
+    assert lights.resolve_combinatorics("auto") == "device"  # NumPy alone: slower solves
