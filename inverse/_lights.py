@@ -37,6 +37,7 @@ import optimistix as optx
 from jaxtyping import Array, Float
 
 import jaxshadow as js
+from jaxshadow._clip_host import _pinned as _pinned_array
 from jaxshadow._clip_host import compiled_available, relevant_counts
 
 from ._forward import SpecularFn, irradiance_culled, shade, shade_culled, specular_culled
@@ -363,7 +364,7 @@ def _pinned(light: Any) -> Any:
     def pin(x: Any) -> Any:
         if not hasattr(x, "ndim") or x.ndim == 0 or not jnp.issubdtype(x.dtype, jnp.floating):
             return x
-        return jnp.dot(jnp.eye(x.shape[0], dtype=x.dtype), x, precision=jax.lax.Precision.HIGHEST)
+        return _pinned_array(x)
 
     return jax.tree_util.tree_map(pin, light)
 
