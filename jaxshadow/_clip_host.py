@@ -606,6 +606,15 @@ def _packed_width(k: int, m: int, ko: int, max_active: int, capacity: int) -> tu
     return 6 + 3 * k + 3 * m * ko, max_active + 9 * capacity + 1
 
 
+def _unpack_codes(out: Any, max_active: int, capacity: int) -> tuple[Any, ...]:
+    """A packed result `(..., W_out)` (NumPy or JAX) as `host_culled_codes`'s `(idx, kind, a,
+    b, interp, used, overflow)`, the last three boolean."""
+    two = 2 * capacity
+    kind, ra, rb, ri = (out[..., max_active + i * two: max_active + (i + 1) * two] for i in range(4))
+    return (out[..., :max_active], kind, ra, rb, ri != 0, out[..., max_active + 4 * two: -1] != 0,
+            out[..., -1] != 0)
+
+
 def _codes_packed_c(x: np.ndarray, k: int, m: int, ko: int, max_active: int, capacity: int,
                     closed: bool) -> np.ndarray:
     """The compiled combinatorics on packed rows `x (..., W_in)` (float32 or float64) ->
@@ -643,10 +652,7 @@ def host_culled_codes_c(p: np.ndarray, n: np.ndarray, verts: np.ndarray, occlude
     rows = [np.broadcast_to(np.asarray(a, dt).reshape(a.shape[: a.ndim - c] + (-1,)), batch + (w,))
             for a, c, w in ((p, 1, 3), (n, 1, 3), (verts, 2, 3 * k), (occluders, 3, 3 * m_occ * ko))]
     out = _codes_packed_c(np.concatenate(rows, axis=-1), k, m_occ, ko, max_active, capacity, closed)
-    two = 2 * capacity
-    kind, ra, rb, ri = (out[..., max_active + i * two: max_active + (i + 1) * two] for i in range(4))
-    return (out[..., :max_active], kind, ra, rb, ri != 0, out[..., max_active + 4 * two: -1] != 0,
-            out[..., -1] != 0)
+    return _unpack_codes(out, max_active, capacity)
 
 
 def _pinned(x: Array) -> Array:
@@ -696,12 +702,7 @@ def culled_visible_edges_host(
     dt_in = jnp.result_type(p, verts)
     x = jnp.concatenate([p, n, verts.reshape(-1), occluders.reshape(-1)]).astype(dt_in)
     packed = jax.pure_callback(host, jax.ShapeDtypeStruct((width,), jnp.int32), sg(x), vmap_method="expand_dims")
-    two = 2 * cap
-    idx = packed[:max_active]
-    kind, ia, ib = (packed[max_active + i * two: max_active + (i + 1) * two] for i in range(3))
-    interp = packed[max_active + 3 * two: max_active + 4 * two] != 0
-    used = packed[max_active + 4 * two: max_active + 4 * two + cap] != 0
-    overflow = packed[-1] != 0
+    idx, kind, ia, ib, interp, used, overflow = _unpack_codes(packed, max_active, cap)
     dt = p.dtype
     # The light's vertices (and their tangents) computed once, as a dot's result: XLA:CPU fuses
     # the elementwise chain that made them (in a fit, the pose from the parameters) into every
