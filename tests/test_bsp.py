@@ -64,7 +64,8 @@ def test_culled_equals_full_random(seed):
     for cap in (3, M_OCC):  # 3 overflows somewhere (fallback), M_OCC never does
         got = np.asarray(visible_form_factor_culled(p, n, em, occ, cap))
         np.testing.assert_allclose(got, full, rtol=0, atol=1e-12)
-    _, counts, over = jax.vmap(select_occluders, in_axes=(0, 0, None, None, None))(p, n, em, occ, 3)
+    select = jax.jit(jax.vmap(lambda p, n, em, occ: select_occluders(p, n, em, occ, 3), in_axes=(0, 0, None, None)))
+    _, counts, over = select(p, n, em, occ)
     assert int(jnp.max(counts)) == count
     assert bool(jnp.any(over)) == (count > 3)
 
@@ -87,6 +88,7 @@ def test_dropped_occluders_block_nothing(seed):
     assert np.all(rel[blocks])
 
 
+@jax.jit
 def visible_form_factor_kernel_batch(p, n, em):
     return jax.vmap(visible_form_factor_kernel, in_axes=(0, 0, None, None))(
         p, n, em, jnp.zeros((0, 4, 3), p.dtype)
@@ -121,14 +123,18 @@ def test_touching_and_sliver_occluders():
         ),
         "below horizon": (np.array([[0.0, 0.3, -0.1], [0.2, 0.3, -0.5], [-0.2, 0.3, -0.5]]), False),
     }
-    free = float(visible_form_factor_kernel(p, n, em, jnp.zeros((0, 4, 3))))
+    # Compiled once for all the cases (op by op, the kernels compile each primitive on its own).
+    relevance = jax.jit(occluder_relevance)
+    visible = jax.jit(visible_form_factor_kernel)
+    culled = jax.jit(lambda p, n, em, o: culled_form_factor_kernel(p, n, em, o, 1))
+    free = float(visible(p, n, em, jnp.zeros((0, 4, 3))))
     for name, (poly, expect) in cases.items():
         o = jnp.asarray(pad([poly], 4))
-        rel = bool(occluder_relevance(p, n, em, o)[0])
+        rel = bool(relevance(p, n, em, o)[0])
         if expect is not None:
             assert rel == expect, name
-        full = float(visible_form_factor_kernel(p, n, em, o))
-        got, over = culled_form_factor_kernel(p, n, em, o, 1)
+        full = float(visible(p, n, em, o))
+        got, over = culled(p, n, em, o)
         assert not bool(over)
         assert abs(float(got) - full) <= 1e-15, name
         if name == "sliver":
