@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -121,6 +122,14 @@ def test_lm_successive_halving():
     assert np.sum(np.asarray(pruned.num_steps)) < np.sum(np.asarray(plain.num_steps))
 
 
+# Compiled once per problem shape and shared by the tests below (the full model's Jacobian with
+# 8 occluders is the costliest program of this module to compile); op-by-op evaluation of the
+# culled residual would compile each of its primitives on its own.
+_full_jacobian = eqx.filter_jit(lambda setup, y: jax.jacfwd(L._residuals)(y, setup))
+_culled_jacobian = eqx.filter_jit(lambda setup, y: jax.jacfwd(L._residuals_culled, has_aux=True)(y, setup))
+_overflow = eqx.filter_jit(lambda setup, y: L._residuals_culled(y, setup)[1])
+
+
 @pytest.fixture(scope="module")
 def occluded_config():
     """The demo's quad light over 8 occluders, 24 targets, noise-free (solver test, not acceptance)."""
@@ -136,13 +145,11 @@ def test_culled_residual_equals_full_model(occluded_config):
     y = jnp.asarray(np.random.default_rng(1).normal(0, 0.05, param.size))
     cap = L.culling_capacity_for_starts(param, start, t, y[None])
     assert cap is not None and cap < 8
-    full = jax.jit(lambda y: jax.jacfwd(L._residuals)(y, setup))(y)
-    culled_setup = dataclasses.replace(setup, max_active=cap)
-    culled, over = jax.jit(lambda y: jax.jacfwd(L._residuals_culled, has_aux=True)(y, culled_setup))(y)
+    full = _full_jacobian(setup, y)
+    culled, over = _culled_jacobian(dataclasses.replace(setup, max_active=cap), y)
     assert not bool(over)
     np.testing.assert_allclose(np.asarray(culled), np.asarray(full), rtol=1e-12, atol=1e-14)
-    _, over1 = L._residuals_culled(y, dataclasses.replace(setup, max_active=1))
-    assert bool(over1)
+    assert bool(_overflow(dataclasses.replace(setup, max_active=1), y))
 
 
 def test_receiver_groups_equal_the_full_model(occluded_config):
@@ -158,14 +165,13 @@ def test_receiver_groups_equal_the_full_model(occluded_config):
     many = int(np.count_nonzero(counts >= 2))
     assert 1 <= many < len(counts)  # the split is exercised
     cap = int(counts.max())
-    full = jax.jit(lambda y: jax.jacfwd(L._residuals)(y, setup))(y)
+    full = _full_jacobian(setup, y)
     grouped = dataclasses.replace(setup, max_active=cap, n_wide=many)
-    got, over = jax.jit(lambda y: jax.jacfwd(L._residuals_culled, has_aux=True)(y, grouped))(y)
+    got, over = _culled_jacobian(grouped, y)
     assert not bool(over)
     np.testing.assert_allclose(np.asarray(got), np.asarray(full), rtol=1e-12, atol=1e-14)
     if many > 1:
-        _, over1 = L._residuals_culled(y, dataclasses.replace(grouped, n_wide=many - 1))
-        assert bool(over1)
+        assert bool(_overflow(dataclasses.replace(grouped, n_wide=many - 1), y))
 
 
 def test_overflow_retry_gives_the_full_model_solution(occluded_config, monkeypatch):
@@ -176,6 +182,29 @@ def test_overflow_retry_gives_the_full_model_solution(occluded_config, monkeypat
     assert any("culling capacity" in w for w in f.report.warnings), f.report.warnings
     err = pose_errors(f.light.vertices, scene.lights[0].vertices)
     assert err["position"] < 1e-7 * size and f.report.loss < 1e-20
+
+
+def test_screening_by_the_lm_program(occluded_config, caplog):
+    """`fit_light` screens its starts with the LM's own program run for no iterations, k starts
+    a call (the last call padded): the losses are the vectorised loss's (`_screen_losses`), and
+    the solve from the k best then compiles no LM program of its own."""
+    import logging
+
+    scene, start, material, t, size = occluded_config
+    param = L.LightParametrisation(start.lights[0], 0, ("position", "orientation", "size"), None, size, "sigmoid")
+    setup = L._Setup(param, start, material, t, None, False)
+    y0 = L.make_starts(param, 11, search_radius=0.5, orientation_spread=0.5, size_spread=0.5, seed=3,
+                       dtype=jnp.float64)
+    s = dataclasses.replace(setup, max_active=L.culling_capacity_for_starts(param, start, t, y0))
+    got = L._screen_with_lm(s, y0, 4, 1e-9, 1e-12, L.prune_schedule(4, 100))
+    ref = np.asarray(L._screen_losses(s, y0))
+    assert got.shape == (11,) and np.all(np.isfinite(got))
+    np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-30)
+    with jax.log_compiles(True), caplog.at_level(logging.WARNING):
+        f = inverse.fit_light(start, t, material, starts=11, refine=3, combinatorics="device")
+    lm_compiles = [r for r in caplog.records if "compilation of jit(_multistart_lm_impl)" in r.getMessage()]
+    assert len(lm_compiles) == 1, [r.getMessage() for r in lm_compiles]
+    assert len(f.report.start_losses) == 3 and f.report.loss <= float(np.min(ref)) + 1e-12
 
 
 def test_lm_num_residuals_and_fit_compiler_options():
