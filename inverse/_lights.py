@@ -559,7 +559,8 @@ def _solve_lm(setup: _Setup, starts: Array, rtol: float, atol: float, max_steps:
     chunk = 1 if starts.shape[0] > 1 else None
     while True:
         lm = _multistart_lm_host if setup.host_combinatorics else _multistart_lm
-        res, lights = lm(setup, starts, rtol, atol, max_steps, prune, chunk)
+        # `max_steps` as an array (traced): `_screen_with_lm` runs the same program with 0.
+        res, lights = lm(setup, starts, rtol, atol, np.asarray(max_steps, np.int32), prune, chunk)
         active = setup.max_active
         if active is None or not bool(res.flag):
             return res, lights, setup, retries
@@ -570,6 +571,27 @@ def _solve_lm(setup: _Setup, starts: Array, rtol: float, atol: float, max_steps:
         else:
             setup = dataclasses.replace(setup, max_active=None if active >= m else min(2 * active, m))
         retries += 1
+
+
+def _screen_with_lm(setup: _Setup, starts: Array, k: int, rtol: float, atol: float,
+                    prune: tuple[int, ...]) -> np.ndarray:
+    """$\tfrac12|r|^2$ at every row of `starts (S, P)` (inf where not finite), evaluated by the
+    program that then solves from the `k` best (`_multistart_lm` with `k` starts and no
+    iterations: its first, evaluation-only iteration), `k` starts a call, the last call padded
+    with the first start. A program of its own (`_screen_losses`, one vectorised loss) would be
+    compiled for this alone: ~40% of a 64-start fit's first call (`benchmarks/README.md`,
+    Session 11), for ~1.5 ms less per screened start."""
+    ys = np.asarray(starts)
+    S = ys.shape[0]
+    calls = -(-S // k)
+    ys = np.concatenate([ys, np.repeat(ys[:1], calls * k - S, axis=0)])
+    lm = _multistart_lm_host if setup.host_combinatorics else _multistart_lm
+    none = np.asarray(0, np.int32)
+    chunk = 1 if k > 1 else None
+    out = [np.asarray(lm(setup, ys[i * k: (i + 1) * k], rtol, atol, none, prune, chunk)[0].initial_losses)
+           for i in range(calls)]
+    losses = np.concatenate(out)[:S].astype(np.float64)
+    return np.where(np.isfinite(losses), losses, np.inf)
 
 
 @fit_jit
@@ -760,11 +782,14 @@ def fit_light(
     - `fit`: subset of `("position", "orientation", "size")`.
     - `constraint`: `None`, `Plane(point, normal)` (centre on a plane) or `Box(lower, upper)`.
     - `starts`: number of multistart points (vectorised with `jax.vmap`); 1 = local solve.
-    - `refine`: k (default 8): evaluate the loss at every start (one vectorised call) and
-      solve only from the k best (Campbell & Fussell §4.4.2's screening of a coarse grid);
-      `None`: solve from every start (successive halving, `prune`, still applies). With 64
-      starts and 8 occluders screening is ~20x faster (`benchmarks/inverse_speed.py`); with
-      `starts <= k` it does nothing.
+    - `refine`: k (default 8): evaluate the loss at every start and solve only from the k
+      best (Campbell & Fussell §4.4.2's screening of a coarse grid); `None`: solve from every
+      start (successive halving, `prune`, still applies). With 64 starts and 8 occluders
+      screening is ~20x faster (`benchmarks/inverse_speed.py`); with `starts <= k` it does
+      nothing. With `solver="lm"` the starts are evaluated by the solver's own program, k at
+      a time (no program is compiled for the screening alone: the first call of a 64-start
+      fit is ~25% shorter, `benchmarks/README.md`, Session 11); with the other solvers by
+      one vectorised loss.
     - `solver`: `"lm"` (default: Levenberg-Marquardt over all starts at once, `inverse/_lm.py`,
       with per-receiver occluder culling; exact), `"optimistix"` (`optimistix.LevenbergMarquardt`
       under `jax.vmap`, the full model; several times slower to compile and to run, see
@@ -844,22 +869,28 @@ def fit_light(
     n_screened = int(y0.shape[0])
     ref_row = 0  # make_starts puts the reference first; screening may drop it
     initial_loss = None
-    if refine is not None and 0 < int(refine) < n_screened:
-        cap = culling_capacity_for_starts(param, scene, targets, y0) if solver == "lm" else None
-        # Exact: the capacity holds every receiver's relevant occluders at these very lights.
-        screen = np.asarray(_screen_losses(dataclasses.replace(setup, max_active=cap), y0), np.float64)
+    screening = refine is not None and 0 < int(refine) < n_screened
+    n_solved = int(refine) if screening else n_screened
+    sched = prune_schedule(n_solved, int(max_steps)) if prune and solver == "lm" else ()
+    cap = culling_capacity_for_starts(param, scene, targets, y0) if solver == "lm" else None
+    if screening:
+        if solver == "lm":
+            # Exact: the capacity holds every receiver's relevant occluders at these very lights.
+            screen = _screen_with_lm(dataclasses.replace(setup, max_active=cap), y0, n_solved, rtol, atol, sched)
+        else:
+            screen = np.asarray(_screen_losses(setup, y0), np.float64)
         order = np.sort(np.argsort(np.where(np.isfinite(screen), screen, np.inf), kind="stable")[: int(refine)])
-        y0 = y0[jnp.asarray(order)]
+        y0 = jnp.asarray(np.asarray(y0)[order])  # on the host: an eager gather compiles ~8 small programs
         initial_loss = float(screen[0])
         ref_row = int(np.searchsorted(order, 0)) if 0 in order else -1
     retries = 0
     abandoned = np.zeros(int(y0.shape[0]), bool)
     if solver == "lm":
-        cap = culling_capacity_for_starts(param, scene, targets, y0)
+        # After screening the capacity stays the one for all the screened starts (enough for the
+        # solved ones too): the solve then runs the very program that screened them.
         setup = dataclasses.replace(setup, max_active=cap,
                                     n_wide=wide_group_for_starts(param, scene, targets, y0, cap)
                                     if receiver_groups else None)
-        sched = prune_schedule(int(y0.shape[0]), int(max_steps)) if prune else ()
         res, lm_lights, setup, retries = _solve_lm(setup, y0, rtol, atol, int(max_steps), sched)
         values, losses, ok, steps = res.values, res.losses, res.converged, res.num_steps
         abandoned = np.asarray(res.abandoned)
@@ -968,8 +999,9 @@ def _projected_jit(setup: _Setup, theta: Array) -> tuple[Array, Array, Array]:
 
 @fit_jit
 def _screen_losses(setup: _Setup, starts: Array) -> Array:
-    """$\\tfrac12|r|^2$ at every start (culled at `setup.max_active`: the caller sizes it for
-    these starts, so nothing overflows)."""
+    """$\\tfrac12|r|^2$ at every start, one vectorised loss (culled at `setup.max_active`: the
+    caller sizes it for these starts, so nothing overflows): the screening of the Optimistix
+    and L-BFGS-B solvers (the LM screens with its own program, `_screen_with_lm`)."""
 
     def loss(theta: Array) -> Array:
         r = _residuals_culled(theta, setup)[0]

@@ -119,7 +119,7 @@ def batched_levenberg_marquardt(
     *,
     rtol: float,
     atol: float,
-    max_steps: int,
+    max_steps: int | Array,
     lambda0: float = 1e-3,
     prune: tuple[int, ...] = (),
     chunk: int | None = None,
@@ -134,7 +134,9 @@ def batched_levenberg_marquardt(
       over every evaluation (returned as `LMResult.flag`).
     - `y0`: `(S, P)` starting points; `args`: passed to `fn`.
     - `rtol`, `atol`: termination tolerances (module docstring); `max_steps`: iterations after
-      the evaluation of the starts; `lambda0`: initial damping relative to the scaling.
+      the evaluation of the starts (an int, or an int32 scalar array so that one compiled
+      program serves any count: 0 only evaluates the starts, `LMResult.initial_losses`);
+      `lambda0`: initial damping relative to the scaling.
     - `prune`: iterations at which the worse half of the running starts is abandoned (module
       docstring); `chunk`: evaluate the starts this many at a time, skipping finished ones
       (None: all at once).
