@@ -575,12 +575,14 @@ def _solve_lm(setup: _Setup, starts: Array, rtol: float, atol: float, max_steps:
 
 def _screen_with_lm(setup: _Setup, starts: Array, k: int, rtol: float, atol: float,
                     prune: tuple[int, ...]) -> np.ndarray:
-    """$\tfrac12|r|^2$ at every row of `starts (S, P)` (inf where not finite), evaluated by the
+    """$\\tfrac12|r|^2$ at every row of `starts (S, P)` (inf where not finite), evaluated by the
     program that then solves from the `k` best (`_multistart_lm` with `k` starts and no
     iterations: its first, evaluation-only iteration), `k` starts a call, the last call padded
-    with the first start. A program of its own (`_screen_losses`, one vectorised loss) would be
-    compiled for this alone: ~40% of a 64-start fit's first call (`benchmarks/README.md`,
-    Session 11), for ~1.5 ms less per screened start."""
+    with the first start. A program of its own (`_screen_losses`, one vectorised loss) took
+    25-40% of a 64-start fit's first call (`benchmarks/README.md`, Session 11); this costs a
+    Jacobian per screened start instead (~1-3 ms). Should the culling overflow at some start
+    (a visible region with more edges than `_bsp.edge_capacity`), the losses are the full
+    model's instead (exact either way)."""
     ys = np.asarray(starts)
     S = ys.shape[0]
     calls = -(-S // k)
@@ -588,9 +590,12 @@ def _screen_with_lm(setup: _Setup, starts: Array, k: int, rtol: float, atol: flo
     lm = _multistart_lm_host if setup.host_combinatorics else _multistart_lm
     none = np.asarray(0, np.int32)
     chunk = 1 if k > 1 else None
-    out = [np.asarray(lm(setup, ys[i * k: (i + 1) * k], rtol, atol, none, prune, chunk)[0].initial_losses)
-           for i in range(calls)]
-    losses = np.concatenate(out)[:S].astype(np.float64)
+    results = [lm(setup, ys[i * k: (i + 1) * k], rtol, atol, none, prune, chunk)[0] for i in range(calls)]
+    if setup.max_active is not None and any(bool(r.flag) for r in results):
+        losses = np.asarray(_screen_losses(dataclasses.replace(setup, max_active=None, n_wide=None), starts))
+    else:
+        losses = np.concatenate([np.asarray(r.initial_losses) for r in results])[:S]
+    losses = losses.astype(np.float64)
     return np.where(np.isfinite(losses), losses, np.inf)
 
 
@@ -875,7 +880,7 @@ def fit_light(
     cap = culling_capacity_for_starts(param, scene, targets, y0) if solver == "lm" else None
     if screening:
         if solver == "lm":
-            # Exact: the capacity holds every receiver's relevant occluders at these very lights.
+            # The capacity holds every receiver's relevant occluders at these very lights.
             screen = _screen_with_lm(dataclasses.replace(setup, max_active=cap), y0, n_solved, rtol, atol, sched)
         else:
             screen = np.asarray(_screen_losses(setup, y0), np.float64)

@@ -184,10 +184,11 @@ def test_overflow_retry_gives_the_full_model_solution(occluded_config, monkeypat
     assert err["position"] < 1e-7 * size and f.report.loss < 1e-20
 
 
-def test_screening_by_the_lm_program(occluded_config, caplog):
+def test_screening_by_the_lm_program(occluded_config, caplog, monkeypatch):
     """`fit_light` screens its starts with the LM's own program run for no iterations, k starts
-    a call (the last call padded): the losses are the vectorised loss's (`_screen_losses`), and
-    the solve from the k best then compiles no LM program of its own."""
+    a call (the last call padded): the losses are the vectorised loss's (`_screen_losses`; the
+    full model's where the culling overflows), and the solve from the k best then compiles no
+    LM program of its own."""
     import logging
 
     scene, start, material, t, size = occluded_config
@@ -200,6 +201,12 @@ def test_screening_by_the_lm_program(occluded_config, caplog):
     ref = np.asarray(L._screen_losses(s, y0))
     assert got.shape == (11,) and np.all(np.isfinite(got))
     np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-30)
+    # A capacity that overflows at some start: the full model's losses instead.
+    full_calls = []
+    with monkeypatch.context() as mp:
+        mp.setattr(L, "_screen_losses", lambda st, y: full_calls.append(st.max_active) or np.full(len(y), 7.0))
+        small = L._screen_with_lm(dataclasses.replace(s, max_active=1), y0, 4, 1e-9, 1e-12, L.prune_schedule(4, 100))
+    assert full_calls == [None] and np.all(small == 7.0)
     with jax.log_compiles(True), caplog.at_level(logging.WARNING):
         f = inverse.fit_light(start, t, material, starts=11, refine=3, combinatorics="device")
     lm_compiles = [r for r in caplog.records if "compilation of jit(_multistart_lm_impl)" in r.getMessage()]
