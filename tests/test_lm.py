@@ -253,6 +253,27 @@ def test_fit_jit_falls_back_when_jaxlib_lacks_an_option(monkeypatch):
         g(jnp.arange(3.0))
 
 
+def test_fit_programs_trace_with_the_garbage_collector_paused():
+    """`fit_jit` traces and compiles with the cyclic GC off and restores it; a caller who had
+    switched it off keeps it off."""
+    import gc
+
+    import inverse._lm as lm
+
+    seen = []
+    f = lm.fit_jit(lambda x: (seen.append(gc.isenabled()), 2.0 * x)[1])
+    assert gc.isenabled()
+    np.testing.assert_array_equal(np.asarray(f(jnp.arange(3.0))), [0.0, 2.0, 4.0])
+    assert seen == [False] and gc.isenabled()
+    gc.disable()
+    try:
+        with lm.gc_paused():
+            pass
+        assert not gc.isenabled()
+    finally:
+        gc.enable()
+
+
 @pytest.mark.parametrize("n_starts", [1, 3])
 def test_lm_linearize_and_jacfwd_jacobians_agree(n_starts):
     """The default Jacobian (`jax.linearize`, one start without a batching layer) and `jacfwd`
