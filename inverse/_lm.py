@@ -64,7 +64,7 @@ HOST_FIT_COMPILER_OPTIONS = {**FIT_COMPILER_OPTIONS, "xla_cpu_experimental_ynn_f
 
 @contextlib.contextmanager
 def gc_paused() -> Any:
-    """Python's cyclic garbage collector off for the block, as it was after. Tracing, lowering
+    """Python's cyclic garbage collector off for the block, then as it was. Tracing, lowering
     and compiling a light fit's program allocate enough objects to set off ~100 collections
     (0.24-0.29 s of a one-start fit's first call with 8 occluders); without them the first call
     is ~10% shorter (`benchmarks/README.md`, Session 11). Nothing is leaked: what the block
