@@ -548,6 +548,17 @@ def wide_group_for_starts(param: LightParametrisation, scene: js.Scene, targets:
     return None if wide >= n else wide
 
 
+def _run_lm(setup: _Setup, starts: Any, rtol: float, atol: float, max_steps: int,
+            prune: tuple[int, ...]) -> tuple[LMResult, Any]:
+    """`_multistart_lm` (`_multistart_lm_host` with the host combinatorics) from `starts (S, P)`,
+    several starts one at a time (`chunk=1`), `max_steps` as an array (traced): the one call
+    that the screening (`_screen_with_lm`, 0 steps) and the solve (`_solve_lm`) both make, so
+    that they run one compiled program."""
+    lm = _multistart_lm_host if setup.host_combinatorics else _multistart_lm
+    chunk = 1 if starts.shape[0] > 1 else None
+    return lm(setup, starts, rtol, atol, np.asarray(max_steps, np.int32), prune, chunk)
+
+
 def _solve_lm(setup: _Setup, starts: Array, rtol: float, atol: float, max_steps: int,
               prune: tuple[int, ...] = ()) -> tuple[LMResult, Any, _Setup, int]:
     """`_multistart_lm`, retried with twice the culling capacity (at last none) while some
@@ -556,11 +567,8 @@ def _solve_lm(setup: _Setup, starts: Array, rtol: float, atol: float, max_steps:
     Several starts are evaluated one at a time (`chunk=1`): finished and abandoned ones cost
     nothing."""
     retries = 0
-    chunk = 1 if starts.shape[0] > 1 else None
     while True:
-        lm = _multistart_lm_host if setup.host_combinatorics else _multistart_lm
-        # `max_steps` as an array (traced): `_screen_with_lm` runs the same program with 0.
-        res, lights = lm(setup, starts, rtol, atol, np.asarray(max_steps, np.int32), prune, chunk)
+        res, lights = _run_lm(setup, starts, rtol, atol, max_steps, prune)
         active = setup.max_active
         if active is None or not bool(res.flag):
             return res, lights, setup, retries
@@ -587,10 +595,7 @@ def _screen_with_lm(setup: _Setup, starts: Array, k: int, rtol: float, atol: flo
     S = ys.shape[0]
     calls = -(-S // k)
     ys = np.concatenate([ys, np.repeat(ys[:1], calls * k - S, axis=0)])
-    lm = _multistart_lm_host if setup.host_combinatorics else _multistart_lm
-    none = np.asarray(0, np.int32)
-    chunk = 1 if k > 1 else None
-    results = [lm(setup, ys[i * k: (i + 1) * k], rtol, atol, none, prune, chunk)[0] for i in range(calls)]
+    results = [_run_lm(setup, ys[i * k: (i + 1) * k], rtol, atol, 0, prune)[0] for i in range(calls)]
     if setup.max_active is not None and any(bool(r.flag) for r in results):
         losses = np.asarray(_screen_losses(dataclasses.replace(setup, max_active=None, n_wide=None), starts))
     else:
