@@ -150,13 +150,16 @@ def _arc_frame(R: Array, a: Array, b: Array):
     )
     e2 = jnp.cross(m_hat, e1)
     ua = jnp.arctan2(jnp.dot(a, e2), jnp.dot(a, e1))
-    ub = jnp.arctan2(jnp.dot(b, e2), jnp.dot(b, e1))
-    # The arc runs from ua up to ub (length < pi). If it crosses u = +-pi, pick the
-    # representative whose midpoint lies in [-pi, pi], so that u = 0 is on it iff it should be.
-    wraps = ub < ua
-    up = (ua + ub) > 0
-    ua = ua - jnp.where(wraps & up, 2.0 * np.pi, 0.0)
-    ub = ub + jnp.where(wraps & ~up, 2.0 * np.pi, 0.0)
+    # The arc runs from ua up by its length atan2(|a x b|, a . b) in [0, pi], taken from the
+    # cross product that orients it: an angle of b computed on its own can fall a rounding
+    # error below ua for an edge of round-off length (the shadow code's edge soups hold such
+    # edges), which would read as an arc around the whole circle.
+    ub = ua + jnp.arctan2(m_len, jnp.dot(a, b))
+    # Of the representatives, the one whose midpoint lies in [-pi, pi]: u = 0 is on the arc
+    # iff it should be.
+    over = (ua + ub) > 2.0 * np.pi
+    ua = ua - jnp.where(over, 2.0 * np.pi, 0.0)
+    ub = ub - jnp.where(over, 2.0 * np.pi, 0.0)
     return ok, s, rho, ua, ub, e1, e2, m_len, a, b
 
 

@@ -18,6 +18,7 @@ from scipy import integrate
 
 from jaxshadow._chebyshev import cutoff_angle, poulin_cos_power_integral
 from jaxshadow._specular import (
+    contour_specular_kernel,
     directional_specular,
     directional_specular_kernel,
     point_specular,
@@ -635,3 +636,35 @@ def test_polygon_eye_behind_the_tangent_plane(method):
             tol = 1e-12 if method == "exact" else 1e-4 * max(ref, 1e-3)
             assert abs(got - ref) <= tol and got > -1e-12, (p, nrm, eye, n, got, ref)
     assert n_minus_r_inside >= 2  # the configurations do exercise the case
+
+
+@pytest.mark.parametrize("method", ["exact", "chebyshev"])
+def test_zero_length_segment_has_zero_finite_gradient(dtype, method):
+    """The shadow code pads a linear light's visible sub-segments with zero-length ones; with
+    fused multiply-adds `a x a` need not round to 0, so the kernel must not trust the cross
+    product alone (this gave NaN derivatives of `js.specular` for a shadowed linear light)."""
+    p = jnp.asarray([0.1, 0.2, 0.0], dtype)
+    nrm = jnp.asarray([0.0, 0.0, 1.0], dtype)
+    eye = jnp.asarray([0.4, -1.8, 1.6], dtype)
+    a = jnp.asarray([-0.6, -0.1, 1.2], dtype)
+    f = lambda p, u: segment_specular_kernel(p, nrm, eye, u, u, jnp.asarray(12.0, dtype), None, method=method)  # noqa: E731
+    assert float(f(p, a)) == 0.0
+    for g in jax.grad(f, argnums=(0, 1))(p, a):
+        assert np.all(np.asarray(g) == 0.0)
+
+
+@pytest.mark.parametrize("method", ["exact", "chebyshev"])
+def test_edges_of_round_off_length_contribute_nothing(method):
+    """Edge soups of the shadow code hold edges of round-off length at shared vertices (this one,
+    1 ulp long, is from the boundary of a cube mesh's shadow). Their direction is noise: the
+    arc's end must not be computed on its own, or it can land a rounding error before its start
+    and read as an arc around the whole circle (this edge alone gave -0.46)."""
+    h = lambda *xs: jnp.asarray([float.fromhex(x) for x in xs])  # noqa: E731
+    p = h("0x1.b88ce9d5b5311p-2", "-0x1.ebf6dd7c47501p-4", "0x0.0p+0")
+    eye = h("0x1.999999999999ap-2", "-0x1.ccccccccccccdp+0", "0x1.999999999999ap+0")
+    a = h("0x1.fc5e2367a673cp-3", "-0x1.c2290e061baaep-3", "0x1.bbae44ab3bdd6p+0")
+    b = h("0x1.fc5e2367a673dp-3", "-0x1.c2290e061baaep-3", "0x1.bbae44ab3bdd5p+0")
+    nrm = jnp.asarray([0.0, 0.0, 1.0])
+    for s, e in ((a, b), (b, a)):
+        val = contour_specular_kernel(p, nrm, eye, s[None, :], e[None, :], jnp.asarray(12.0), method=method)
+        assert abs(float(val)) < 1e-12
