@@ -431,6 +431,9 @@ def segment_specular_kernel(
     a0 = starts[0] - p
     b0 = ends[0] - p
     ok, s, rho, ua, ub, e1, e2, m_len, a, b = _arc_frame(R, a0, b0)
+    # With fused multiply-adds a x a need not round to 0: a zero-length segment (the padding of
+    # the shadow code's visible sub-segments) would pass `_arc_frame` with ab2 = 0.
+    ok = ok & jnp.any(a0 != b0)
     half_pi = jnp.asarray(np.pi / 2, dtype=p.dtype)
     if method == "chebyshev":
         # Cut-off relative to the largest cos^n on the arc (at the arc's point closest to the
@@ -441,7 +444,7 @@ def segment_specular_kernel(
         x_cut = half_pi
     lo, hi, _, _ = _split_arc(ua, ub, x_cut)
     ab = b - a
-    ab2 = jnp.sum(ab * ab)  # > 0 where ok
+    ab2 = jnp.where(ok, jnp.sum(ab * ab), 1.0)
     dist = m_len / jnp.sqrt(ab2)
     lobe_n = (exponent + 1.0) / (2.0 * np.pi)
     peak_width = 0.25 / jnp.sqrt(exponent + 1.0)
