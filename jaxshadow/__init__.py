@@ -8,6 +8,7 @@ from importlib.metadata import PackageNotFoundError, version
 
 from ._clip import visible_form_factor as visible_form_factor
 from ._linear import linear_irradiance as linear_irradiance
+from ._mesh import Mesh as Mesh
 from ._polygon import form_factor as form_factor
 from ._scene import DirectionalLight as DirectionalLight
 from ._scene import LinearLight as LinearLight

@@ -309,9 +309,12 @@ def pad_polygons_jax(polys: list, k: int | None = None) -> Array:
 
     Works on JAX arrays (differentiable leaves stay differentiable).
     """
-    polys = [p if isinstance(p, jnp.ndarray) else jnp.asarray(p) for p in polys]
     if k is None:
-        k = max(int(p.shape[0]) for p in polys)
+        k = max(int(np.shape(p)[0]) for p in polys)
+    if not any(isinstance(p, jax.core.Tracer) for p in polys):
+        # Concrete: pad in NumPy and convert once (one eager JAX op per polygon costs ~1 ms).
+        return jnp.asarray(np.stack([pad_polygon(np.asarray(p), k) for p in polys]))
+    polys = [p if isinstance(p, jnp.ndarray) else jnp.asarray(p) for p in polys]
     out = []
     for p in polys:
         j = p.shape[0]

@@ -26,6 +26,7 @@ from ._geometry import (
     is_concrete,
     pad_polygons_jax,
 )
+from ._mesh import Mesh, OccluderTopology, build_occluders, max_face_vertices, mesh_dicts
 
 SCENE_FORMAT = "jaxshadow.scene"
 SCENE_VERSION = 1
@@ -194,11 +195,13 @@ class Material(eqx.Module):
         self.exponent = _leaf(exponent)
 
 
-def _stack_occluders(occluders: Any) -> Array | None:
+def _stack_occluders(occluders: Any) -> tuple[Array | None, OccluderTopology | None]:
     if occluders is None:
-        return None
+        return None, None
+    if isinstance(occluders, Mesh):
+        occluders = [occluders]
     if isinstance(occluders, (np.ndarray, jnp.ndarray)) and not is_concrete(occluders):
-        return jnp.asarray(occluders)  # traced (m, K, 3), already padded
+        return jnp.asarray(occluders), None  # traced (m, K, 3), already padded
     if isinstance(occluders, (np.ndarray, jnp.ndarray)):
         arr = np.asarray(occluders)
         if arr.ndim == 2:
@@ -209,13 +212,17 @@ def _stack_occluders(occluders: Any) -> Array | None:
             )
         else:
             occluders = [occluders[i] for i in range(arr.shape[0])]
-    polys = list(occluders)
-    if len(polys) == 0:
-        return None
-    for i, poly in enumerate(polys):
-        if is_concrete(poly):
+    items = list(occluders)
+    if len(items) == 0:
+        return None, None
+    for i, poly in enumerate(items):
+        if not isinstance(poly, Mesh) and is_concrete(poly):
             check_convex_polygon(poly, f"Scene.occluders[{i}]")
-    return pad_polygons_jax(polys)
+    if not any(isinstance(x, Mesh) for x in items):
+        return pad_polygons_jax(items), None
+    ko = max_face_vertices(items)
+    polys, topo = build_occluders(items, ko)
+    return pad_polygons_jax(polys, ko), topo
 
 
 class Scene(eqx.Module):
@@ -225,13 +232,19 @@ class Scene(eqx.Module):
 
     - `lights`: tuple of `PolygonLight | LinearLight | PointLight | DirectionalLight`.
     - `occluders`: `(m, K, 3)` convex planar polygons padded by repeating their first vertex,
-      or `None`. Built from a list of `(k_i, 3)` arrays or an `(m, k, 3)` array.
+      or `None`. Built from a list of `(k_i, 3)` arrays and `Mesh` objects, or an `(m, k, 3)`
+      array. A `Mesh` contributes its (merged) faces, kept together; its structure (closed,
+      convex) goes to `occluder_topology` and lets the shadow engine treat a closed convex mesh
+      as one blocker (`jaxshadow._mesh`).
+    - `occluder_topology`: static `OccluderTopology` of the occluders, or `None` (independent
+      polygons).
     - `ambient`: `(3,)` RGB ambient radiance $L_a$ (W m^-2 sr^-1).
     """
 
     lights: tuple
     occluders: Array | None
     ambient: Float[Array, "3"]
+    occluder_topology: OccluderTopology | None = eqx.field(static=True)
 
     def __init__(self, lights: Sequence[Any] = (), occluders: Any = None, ambient: Any = 0.0):
         lights = tuple(lights)
@@ -244,7 +257,7 @@ class Scene(eqx.Module):
         if is_concrete(ambient):
             check_rgb(ambient, "Scene.ambient")
         self.lights = lights
-        self.occluders = _stack_occluders(occluders)
+        self.occluders, self.occluder_topology = _stack_occluders(occluders)
         self.ambient = _rgb_leaf(ambient)
 
 
@@ -355,15 +368,26 @@ def scene_to_dict(scene: Scene, material: Material | None = None) -> dict:
         "ambient": _tolist(scene.ambient),
     }
     if scene.occluders is not None:
-        for poly in np.asarray(scene.occluders, dtype=np.float64):
-            # Drop the first-vertex padding.
-            k = poly.shape[0]
-            while k > 3 and np.array_equal(poly[k - 1], poly[0]):
-                k -= 1
-            out["occluders"].append(poly[:k].tolist())
+        faces = np.asarray(scene.occluders, dtype=np.float64)
+        topo = scene.occluder_topology or OccluderTopology.independent(faces.shape[0])
+        out["occluders"] = mesh_dicts(faces, topo)
     if material is not None:
         out["material"] = material_to_dict(material)
     return out
+
+
+def _occluder_from_json(o: Any, where: str) -> Any:
+    if isinstance(o, dict):
+        if set(o) != {"mesh"} or not isinstance(o["mesh"], dict) or set(o["mesh"]) != {"vertices", "faces"}:
+            raise ValueError(f"{where}: a mesh is {{'mesh': {{'vertices': [...], 'faces': [...]}}}}.")
+        faces = o["mesh"]["faces"]
+        if not isinstance(faces, list) or not all(isinstance(f, list) and all(isinstance(i, int) and not isinstance(i, bool) for i in f) for f in faces):
+            raise ValueError(f"{where}: mesh faces must be lists of integer vertex indices.")
+        try:
+            return Mesh(_numeric(o["mesh"]["vertices"], f"{where}.vertices"), faces)
+        except ValueError as err:
+            raise ValueError(f"{where}: {err}") from None
+    return _numeric(o, where)
 
 
 def scene_from_dict(d: dict) -> Scene:
@@ -387,7 +411,7 @@ def scene_from_dict(d: dict) -> Scene:
     if occl is not None:
         if not isinstance(occl, list):
             raise ValueError(f"scene: 'occluders' must be a list of polygons, got {type(occl).__name__}.")
-        occl = [_numeric(o, f"scene.occluders[{i}]") for i, o in enumerate(occl)]
+        occl = [_occluder_from_json(o, f"scene.occluders[{i}]") for i, o in enumerate(occl)]
     ambient = _numeric(d.get("ambient", 0.0), "scene.ambient")
     return Scene(lights=lights, occluders=occl, ambient=ambient)
 
