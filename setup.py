@@ -1,22 +1,51 @@
-"""Build the one compiled part of jaxshadow: `jaxshadow._clipc`, the host combinatorics of the
-culled soft-shadow kernel (`jaxshadow/_clipc.c`, loaded with ctypes by `jaxshadow._clip_host`).
+"""Build jaxshadow's compiled parts; everything else is in pyproject.toml.
 
-Everything else is in pyproject.toml. The extension is optional: without a C compiler the
-package installs without it and `_clip_host` uses its NumPy version of the same code.
-IEEE arithmetic and no fused multiply-adds (`-ffp-contract=off`): its tests must round as
-NumPy's and XLA's do.
+- `jaxshadow._shadowc` (C++17, `jaxshadow/_shadowc.cc`): the host shadow engine (occluder
+  hierarchy, receiver classification, the combinatorics of the visible region's boundary), loaded
+  with ctypes and, where jaxlib's XLA FFI headers are found at build time (`jax.ffi.include_dir()`;
+  jaxlib is a build requirement), also registered as an XLA FFI target.
+- `jaxshadow._clipc` (C, `jaxshadow/_clipc.c`): the host combinatorics of the culled soft-shadow
+  kernel used by light fits.
+
+Both are optional: without a compiler the package installs without them and uses its JAX (device)
+kernels, which are exact but slower for many occluders. IEEE arithmetic and no fused
+multiply-adds (`-ffp-contract=off`): the host decisions must round as NumPy's and XLA's do.
 """
 
+import os
+
 from setuptools import Extension, setup
+
+
+def _ffi_include() -> list[str]:
+    try:
+        import jaxlib
+    except ImportError:
+        return []
+    inc = os.path.join(os.path.dirname(jaxlib.__file__), "include")
+    return [inc] if os.path.exists(os.path.join(inc, "xla", "ffi", "api", "ffi.h")) else []
+
+
+_FLAGS = ["-O2", "-ffp-contract=off", "-fno-fast-math"]
+_INC = _ffi_include()
 
 setup(
     ext_modules=[
         Extension(
+            "jaxshadow._shadowc",
+            sources=["jaxshadow/_shadowc.cc"],
+            include_dirs=_INC,
+            define_macros=[("JAXSHADOW_FFI", "1")] if _INC else [],
+            extra_compile_args=["-std=c++17", *_FLAGS],
+            language="c++",
+            optional=True,
+        ),
+        Extension(
             "jaxshadow._clipc",
             sources=["jaxshadow/_clipc.c"],
             depends=["jaxshadow/_clipc_body.h"],
-            extra_compile_args=["-O2", "-std=c11", "-ffp-contract=off", "-fno-fast-math"],
+            extra_compile_args=["-std=c11", *_FLAGS],
             optional=True,
-        )
+        ),
     ]
 )

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from . import _shadows
 from ._bsp import (
     capacity_for,
     culled_form_factor_kernel,
@@ -33,6 +34,7 @@ from ._clip import (
     visible_segments,
 )
 from ._geometry import (
+    _check_values_eagerly,
     check_points_normals,
     evaluate_checked,
     inputs_ok,
@@ -234,6 +236,9 @@ def irradiance(
     """
     scene = _check_scene(scene, "irradiance")
     points, normals = check_points_normals(points, normals, "irradiance", values=False)
+    if _shadows.applicable(scene, points, normals):
+        _check_values_eagerly(points, normals, "irradiance")
+        return jnp.asarray(_shadows.irradiance(scene, points, normals))
     cap = _plan_max_active(scene, points, normals)
     return evaluate_checked(lambda p, n: _irradiance_checked(scene, p, n, cap), points, normals, "irradiance")
 
@@ -402,6 +407,8 @@ def specular(
         raise ValueError(f"specular: method must be 'chebyshev' or 'exact', got {method!r}.")
     eyes = _check_eye(eye, points, "specular")
     e = _check_exponent(exponent, points.dtype, "specular")
+    if _shadows.applicable(scene, points, normals, eyes, e):
+        return jnp.asarray(_shadows.specular(scene, points, normals, eyes, e, method, int(degree)))
     cap = _plan_max_active(scene, points, normals)
     return map_chunks(
         lambda p, n, v: _specular_impl(scene, p, n, v, e, method, int(degree), cap),
@@ -437,6 +444,13 @@ def shade(
     eyes = _check_eye(eye, points, "shade")
     dt = points.dtype
     n = _check_exponent(material.exponent, dt, "shade")
+    ka, kd, ks = (jnp.asarray(k).astype(dt) for k in (material.ka, material.kd, material.ks))
+    la = scene.ambient.astype(dt)
+    if _shadows.applicable(scene, points, normals, eyes, n, material):
+        _check_values_eagerly(points, normals, "shade")
+        e = jnp.asarray(_shadows.irradiance(scene, points, normals))
+        s = jnp.asarray(_shadows.specular(scene, points, normals, eyes, n, method, int(degree)))
+        return ka[None, :] * la[None, :] + kd[None, :] / jnp.pi * e + ks[None, :] * s
     cap = _plan_max_active(scene, points, normals)
     # The same compiled irradiance as `irradiance` (its flag checks the points and normals).
     e = evaluate_checked(lambda p, q: _irradiance_checked(scene, p, q, cap), points, normals, "shade")

@@ -1,0 +1,396 @@
+r"""Exact visibility at mesh scale: the host shadow engine and the JAX geometry it drives.
+
+The visible part of a polygon light seen from a receiver is a region $R$ of the light's plane
+(`jaxshadow._clip` module docstring); its boundary is a set of edges whose endpoints are a light
+vertex, a light edge's crossing with the receiver's horizon, a projected occluder vertex, an
+occluder edge's crossing with the light's plane, or the line common to two planes through the
+receiver. Which pieces of which edges bound $R$ is combinatorics: piecewise constant in the
+inputs, carrying no gradient. The points themselves, and Lambert's and Phong's contour integrals
+over them, are geometry: what is differentiated.
+
+`_shadowc.cc` (compiled by `setup.py`, C++17) does the combinatorics on the host for a whole batch:
+for each receiver it queries a bounding-volume hierarchy of the occluders with the receiver's
+illumination pyramid (Campbell & Fussell §4.3's "bounding volume enclosing the light source and
+receiver", one per receiver), tests the candidates exactly (C&F Theorem 2's occlusion volume and
+Theorem 3's umbra volume, in their dual form: does the pyramid meet the occluder; does the
+occluder's projection cover the light), classifies the receiver (`ZERO` behind the light or
+below its horizon, `LIT`, `UMBRA`, `PENUMBRA`) and, in penumbra, splits the candidate edges exactly
+as the device kernel `_clip._boundary_runs` does, with the candidates only. It returns per
+receiver a list of *runs*, each two endpoint codes of 7 int32 (`decode_endpoints`). Convex solids
+(`_mesh.Mesh`) enter as one region, the cone through their silhouette.
+
+This module binds the engine (ctypes for host-side planning from concrete values; an XLA FFI
+handler for programs that need the codes of traced values, e.g. a light fit) and turns codes into
+differentiable edges. It never changes a result: a receiver's region, and so its value, is the
+same as the device kernel's with all occluders (tests: 1e-15 agreement), and the hierarchy only
+decides which occluders are looked at.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import os
+from dataclasses import dataclass
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int
+
+from ._clip import _crossing_point, _pow2_scale, _project, _rescale_rows
+from ._geometry import newell_normal
+from ._mesh import OccluderTopology
+
+ZERO, LIT, UMBRA, PENUMBRA = 0, 1, 2, 3
+CLASS_NAMES = ("zero", "lit", "umbra", "penumbra")
+CODE_WIDTH = 7
+# Endpoint kinds (`_shadowc.cc`).
+K_UNUSED, K_LIGHT, K_HORIZON, K_PROJECTED, K_EMITTER_CROSS, K_PLANES = -1, 0, 1, 2, 3, 4
+FFI_TARGET = "jaxshadow_poly_codes"
+
+
+# --------------------------------------------------------------------------------------
+# The compiled engine
+# --------------------------------------------------------------------------------------
+
+
+@functools.cache
+def _lib() -> Any:
+    """The engine's ctypes library, or None where the extension was not built."""
+    try:
+        from . import _shadowc as mod  # type: ignore[attr-defined]
+    except ImportError:
+        return None
+    lib = ctypes.CDLL(mod.__file__)
+    if lib.jaxshadow_shadowc_abi() != 1:
+        return None
+    p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
+    occ: list[Any] = [i64, i64, p, p, p, i64, p, p, p]
+    lib.jaxshadow_poly_plan.argtypes = [i32, i64, p, p, i64, p, *occ, i32, p, p, p, p, p, ctypes.POINTER(i64)]
+    lib.jaxshadow_poly_fixed.argtypes = [i32, i64, p, p, i64, p, *occ, i32, i64, p, p, p]
+    lib.jaxshadow_hard_plan.argtypes = [i32, i64, p, p, i32, i64, *occ, i32, p]
+    lib.jaxshadow_segment_plan.argtypes = [i32, i64, p, p, p, *occ, i32, p, ctypes.POINTER(p)]
+    for f in (lib.jaxshadow_poly_plan, lib.jaxshadow_poly_fixed, lib.jaxshadow_hard_plan, lib.jaxshadow_segment_plan):
+        f.restype = i32
+    lib.jaxshadow_free.argtypes = [p]
+    lib.jaxshadow_free.restype = None
+    return lib
+
+
+def engine_available() -> bool:
+    """Whether the compiled shadow engine (`jaxshadow._shadowc`) is built and loadable."""
+    return _lib() is not None
+
+
+@functools.cache
+def ffi_available() -> bool:
+    """Whether the engine was built with its XLA FFI handler, and the handler is registered."""
+    lib = _lib()
+    if lib is None or not lib.jaxshadow_has_ffi():
+        return False
+    jax.ffi.register_ffi_target(FFI_TARGET, jax.ffi.pycapsule(lib.JaxshadowPolyCodes), platform="cpu")
+    return True
+
+
+def threads() -> int:
+    """Host threads the engine uses (`JAXSHADOW_THREADS`, default: all cores)."""
+    try:
+        return max(0, int(os.environ.get("JAXSHADOW_THREADS", "0")))
+    except ValueError:
+        return 0
+
+
+@dataclass
+class HostOccluders:
+    """Occluders as the engine reads them: padded faces in one float dtype and the topology."""
+
+    faces: np.ndarray  # (M, Ko, 3)
+    topology: OccluderTopology
+
+    def __post_init__(self) -> None:
+        t = self.topology
+        # Contiguous int32 copies, alive as long as this object (the engine reads their pointers).
+        self._ints = [np.ascontiguousarray(a, np.int32) for a in (t.face_solid, t.face_closed, t.solid_faces,
+                                                                 t.solid_edge_off, t.solid_edges)]
+
+    @staticmethod
+    def of(occluders: Any, topology: OccluderTopology | None, dtype: Any) -> HostOccluders:
+        f = np.ascontiguousarray(np.asarray(occluders, dtype=dtype))
+        topo = topology if topology is not None else OccluderTopology.independent(f.shape[0])
+        return HostOccluders(f, topo)
+
+    def args(self) -> list:
+        t = self.topology
+        arrs = self._ints
+        m, ko = self.faces.shape[:2]
+        return [m, ko, _ptr(self.faces), _ptr(arrs[0]), _ptr(arrs[1]), t.n_solids, _ptr(arrs[2]), _ptr(arrs[3]),
+                _ptr(arrs[4])]
+
+
+def _ptr(a: np.ndarray) -> int | None:
+    return a.ctypes.data if a.size else None
+
+
+def _require() -> Any:
+    lib = _lib()
+    if lib is None:
+        raise RuntimeError("jaxshadow._shadowc is not built: reinstall jaxshadow with a C++ compiler available")
+    return lib
+
+
+@dataclass
+class PolygonCodes:
+    """The engine's result for one polygon light: `classes (N,)` (`ZERO`, `LIT`, `UMBRA`,
+    `PENUMBRA`), `stats (N, 2)` (occluders the hierarchy returned, occluder regions kept),
+    `offsets (N + 1,)`; receiver i's boundary edges are rows `offsets[i]:offsets[i + 1]` of
+    `runs (R, 2, 7)` (endpoint codes) and/or `points (R, 2, 3)` (their points, decoded on the host);
+    for `LIT` receivers, the edges of the horizon-clipped light."""
+
+    classes: np.ndarray
+    stats: np.ndarray
+    offsets: np.ndarray
+    runs: Any  # np.ndarray or None
+    points: Any  # np.ndarray or None
+
+    @property
+    def counts(self) -> np.ndarray:
+        return np.diff(self.offsets)
+
+
+def _take_buffer(lib: Any, buf: ctypes.c_void_p, ctype: Any, shape: tuple) -> np.ndarray | None:
+    if not buf.value:
+        return None
+    n = int(np.prod(shape))
+    arr = np.ctypeslib.as_array(ctypes.cast(buf, ctypes.POINTER(ctype)), shape=(max(n, 1),))[:n].copy()
+    lib.jaxshadow_free(buf)
+    return arr.reshape(shape)
+
+
+def polygon_codes(points: np.ndarray, normals: np.ndarray, verts: np.ndarray, occ: HostOccluders,
+                  codes: bool = True, decoded: bool = False) -> PolygonCodes:
+    """Classify receivers and compute the boundary of their visible regions (host, C++).
+
+    **Arguments:** `points`, `normals` `(N, 3)` (unit normals), `verts (K, 3)` padded convex light,
+    `occ` the occluders; float32 or float64 (all in `occ.faces`' dtype); `codes`: return the endpoint
+    codes; `decoded`: return the endpoints' points (decoded on the host, for values that are not
+    differentiated).
+
+    **Returns:** `PolygonCodes`.
+    """
+    lib = _require()
+    dt = occ.faces.dtype
+    p = np.ascontiguousarray(points, dt)
+    n = np.ascontiguousarray(normals, dt)
+    v = np.ascontiguousarray(verts, dt)
+    N, K = p.shape[0], v.shape[0]
+    cls = np.zeros(N, np.int32)
+    stats = np.zeros((N, 2), np.int32)
+    off = np.zeros(N + 1, np.int64)
+    runs, pts = ctypes.c_void_p(), ctypes.c_void_p()
+    nr = ctypes.c_int64()
+    rc = lib.jaxshadow_poly_plan(int(dt == np.float64), N, _ptr(p), _ptr(n), K, _ptr(v), *occ.args(), threads(),
+                                 _ptr(cls), _ptr(stats), _ptr(off), ctypes.byref(runs) if codes else None,
+                                 ctypes.byref(pts) if decoded else None, ctypes.byref(nr))
+    total = nr.value
+    code_arr = _take_buffer(lib, runs, ctypes.c_int32, (total, 2, CODE_WIDTH))
+    ctype = ctypes.c_double if dt == np.float64 else ctypes.c_float
+    pt_arr = _take_buffer(lib, pts, ctype, (total, 2, 3))
+    if rc == 2:
+        raise MemoryError("jaxshadow shadow engine: out of memory for the boundary codes")
+    if rc:
+        raise ValueError("jaxshadow shadow engine: a light has more than 64 vertices")
+    return PolygonCodes(cls, stats, off, code_arr, pt_arr)
+
+
+def hard_visibility(points: np.ndarray, x: np.ndarray, is_point: bool, occ: HostOccluders) -> np.ndarray:
+    """`(N,)` bool: the segment from each point to the point light `x` (or the ray towards the
+    directional light travelling along `x`) misses every occluder (`_clip.point_visibility`'s
+    test, through the hierarchy)."""
+    lib = _require()
+    dt = occ.faces.dtype
+    p = np.ascontiguousarray(points, dt)
+    xx = np.ascontiguousarray(x, dt)
+    vis = np.zeros(p.shape[0], np.uint8)
+    lib.jaxshadow_hard_plan(int(dt == np.float64), p.shape[0], _ptr(p), _ptr(xx), int(bool(is_point)), 0,
+                            *occ.args(), threads(), _ptr(vis))
+    return vis.astype(bool)
+
+
+def segment_candidates(points: np.ndarray, a: np.ndarray, b: np.ndarray, occ: HostOccluders) -> tuple[np.ndarray, np.ndarray]:
+    """Faces that may block part of the segment light `a -> b` seen from each point (they meet
+    the light triangle; back faces of closed meshes dropped): `(offsets (N + 1,), faces (C,))`."""
+    lib = _require()
+    dt = occ.faces.dtype
+    p = np.ascontiguousarray(points, dt)
+    aa, bb = np.ascontiguousarray(a, dt), np.ascontiguousarray(b, dt)
+    off = np.zeros(p.shape[0] + 1, np.int64)
+    out = ctypes.c_void_p()
+    rc = lib.jaxshadow_segment_plan(int(dt == np.float64), p.shape[0], _ptr(p), _ptr(aa), _ptr(bb), *occ.args(),
+                                    threads(), _ptr(off), ctypes.byref(out))
+    try:
+        if rc:
+            raise MemoryError("jaxshadow shadow engine: out of memory for the segment candidates")
+        total = int(off[-1])
+        buf = np.ctypeslib.as_array(ctypes.cast(out, ctypes.POINTER(ctypes.c_int32)), shape=(max(total, 1),))
+        faces = buf[:total].copy()
+    finally:
+        if out.value:
+            lib.jaxshadow_free(out)
+    return off, faces
+
+
+# --------------------------------------------------------------------------------------
+# Codes -> points (JAX, differentiable)
+# --------------------------------------------------------------------------------------
+
+
+def face_frames(faces: Float[Array, "m ko 3"]) -> tuple[Array, Array]:
+    """Per face its Newell normal (from coordinates relative to its first vertex) and first
+    vertex: what the emitter-plane cut planes of `decode_endpoints` need, computed once a call."""
+    first = faces[:, 0]
+    return jax.vmap(newell_normal)(faces - first[:, None, :]), first
+
+
+def _lex_less(a: Array, b: Array) -> Array:
+    return (a[..., 0] < b[..., 0]) | ((a[..., 0] == b[..., 0]) & ((a[..., 1] < b[..., 1]) | (
+        (a[..., 1] == b[..., 1]) & (a[..., 2] < b[..., 2]))))
+
+
+def edge_planes(p: Float[Array, "3"], a: Float[Array, "e 3"], b: Float[Array, "e 3"]) -> Float[Array, "e 3"]:
+    """Planes through `p` and the edges `a -> b`, `(b - p) x (a - p)` up to a positive factor (order
+    one), computed from the endpoints in lexicographic order so that one edge gives bit-identical
+    normals (up to an exact sign) whatever face it comes from and whichever way it runs (the
+    engine's `edge_plane`; coincident boundary lines are then recognised exactly)."""
+    swap = _lex_less(b, a)
+    lo = jnp.where(swap[..., None], b, a)
+    hi = jnp.where(swap[..., None], a, b)
+    c = _rescale_rows(jnp.cross(_rescale_rows(hi - p), _rescale_rows(lo - p)))
+    return jnp.where(swap[..., None], -c, c)
+
+
+def decode_endpoints(
+    p: Float[Array, "3"],
+    n: Float[Array, "3"],
+    verts: Float[Array, "k 3"],
+    V: Float[Array, "v 3"],
+    face_n: Float[Array, "m 3"],
+    face_0: Float[Array, "m 3"],
+    codes: Int[Array, "e 7"],
+) -> Float[Array, "e 3"]:
+    r"""The points named by endpoint codes (`_shadowc.cc`), as `jaxshadow._clip` computes them.
+
+    `V = [verts; faces.reshape(-1, 3)]` is the table the global vertex refs index; `face_n`,
+    `face_0` from `face_frames`. Codes: `[kind, ...]` with kind 0 a light vertex, 1 a light edge's
+    horizon crossing (as `horizon_clip_edges`), 2 a vertex projected from `p` onto the light's
+    plane (`_clip._project`), 3 an occluder edge's crossing with that plane, projected, 4 the line
+    common to two planes through `p` met with the light's plane (`_clip._crossing_point`); a
+    plane is `(0, a, b)` through `V[a]`, `V[b]`, `(1, ., .)` the horizon, `(2, f, .)` face `f`'s
+    cut $N_L = h_p\,\mathrm{sgn}(d_o) N_o + |d_o| N_e$ (`_clip._occluder_regions`). Unused slots
+    (kind -1) give the light's first vertex. Differentiable in `p`, `n`, `verts`, `V` (the codes
+    carry no gradient).
+    """
+    k = verts.shape[0]
+    e0 = verts[0]
+    ne = newell_normal(verts)
+    scale = _pow2_scale(jnp.max(jnp.abs(ne)))
+    ne = ne * scale
+    hp = jnp.dot(ne, p - e0)
+    codes = jax.lax.stop_gradient(codes)
+    kind = codes[:, 0]
+    nv = V.shape[0]
+
+    def take(table: Array, idx: Array) -> Array:
+        return jnp.take(table, jnp.clip(idx, 0, table.shape[0] - 1), axis=0)
+
+    i1, i2 = codes[:, 1], codes[:, 2]
+    va = take(V, i1)
+    vb = take(V, jnp.where(kind == K_HORIZON, (i1 + 1) % k, i2))
+    on_light = (kind == K_HORIZON)[:, None]
+    h = jnp.where(on_light, n, ne)
+    q = jnp.where(on_light, p, e0)
+    da = jnp.sum((va - q) * h, axis=-1)
+    db = jnp.sum((vb - q) * h, axis=-1)
+    cross_ok = da != db
+    t = jnp.where(cross_ok, da / jnp.where(cross_ok, da - db, 1.0), 0.0)
+    x = va + t[:, None] * (vb - va)
+    to_project = jnp.where((kind == K_PROJECTED)[:, None], va, x)
+    projected = jax.vmap(_project, in_axes=(None, 0, None, None))(p, to_project, ne, hp)
+    x = jnp.where(((kind == K_PROJECTED) | (kind == K_EMITTER_CROSS))[:, None], projected,
+                  jnp.where((kind == K_LIGHT)[:, None], va, x))
+
+    def plane(t_: Array, a: Array, b: Array) -> Array:
+        through = edge_planes(p, take(V, a), take(V, b))
+        fn, f0 = take(face_n, a), take(face_0, a)
+        d = jnp.sum(fn * (f0 - p), axis=-1)
+        cut = (hp * jnp.sign(d))[:, None] * fn + jnp.abs(d)[:, None] * ne
+        out = jnp.where((t_ == 0)[:, None], through, jnp.where((t_ == 1)[:, None], n, cut))
+        return _rescale_rows(out)
+
+    n1 = plane(codes[:, 1], codes[:, 2], codes[:, 3])
+    n2 = plane(codes[:, 4], codes[:, 5], codes[:, 6])
+    y = jax.vmap(_crossing_point, in_axes=(None, 0, None, None))(p, jnp.cross(n1, n2), ne, hp)
+    out = jnp.where((kind == K_PLANES)[:, None], y, x)
+    del nv
+    return jnp.where((kind == K_UNUSED)[:, None], e0, out)
+
+
+def edges_from_codes(
+    p: Float[Array, "3"],
+    n: Float[Array, "3"],
+    verts: Float[Array, "k 3"],
+    V: Float[Array, "v 3"],
+    face_n: Float[Array, "m 3"],
+    face_0: Float[Array, "m 3"],
+    runs: Int[Array, "c 2 7"],
+) -> tuple[Float[Array, "c 3"], Float[Array, "c 3"]]:
+    """`(starts, ends)` of a receiver's boundary runs (unused slots zero-length at the light's
+    first vertex): the edge soup `masked_contour_form_factor` and `contour_specular_kernel` take."""
+    pts = decode_endpoints(p, n, verts, V, face_n, face_0, runs.reshape(-1, CODE_WIDTH)).reshape(runs.shape[0], 2, 3)
+    return pts[:, 0], pts[:, 1]
+
+
+def vertex_table(verts: Array, faces: Array) -> Array:
+    """`V = [verts; faces.reshape(-1, 3)]`: the table the codes' global vertex refs index."""
+    return jnp.concatenate([verts, faces.reshape(-1, 3)], axis=0)
+
+
+# --------------------------------------------------------------------------------------
+# Codes inside a compiled program (XLA FFI)
+# --------------------------------------------------------------------------------------
+
+
+def _topology_arrays(topo: OccluderTopology) -> tuple[Array, ...]:
+    return tuple(jnp.asarray(a, jnp.int32) for a in (topo.face_solid, topo.face_closed, topo.solid_faces,
+                                                      topo.solid_edge_off, topo.solid_edges))
+
+
+def traced_polygon_codes(
+    points: Float[Array, "N 3"],
+    normals: Float[Array, "N 3"],
+    verts: Float[Array, "k 3"],
+    faces: Float[Array, "m ko 3"],
+    topology: OccluderTopology | None,
+    capacity: int,
+) -> tuple[Int[Array, " N"], Int[Array, " N"], Int[Array, "N c 2 7"]]:
+    """`polygon_codes` inside a compiled computation (the engine's XLA FFI handler), for inputs
+    that are traced: `(classes (N,), counts (N,), runs (N, capacity, 2, 7))`. Receivers whose
+    boundary has more than `capacity` (static) edges have `counts > capacity` and only their first
+    `capacity` runs: the caller must detect that (the result is then not exact). Carries no
+    gradient (its inputs are stop-gradient'ed); `vmap` broadcasts all inputs."""
+    if not ffi_available():
+        raise RuntimeError("jaxshadow's shadow engine was built without its XLA FFI handler")
+    topo = topology if topology is not None else OccluderTopology.independent(faces.shape[0])
+    sg = jax.lax.stop_gradient
+    n_pts = points.shape[0]
+    dt = points.dtype
+    call = jax.ffi.ffi_call(
+        FFI_TARGET,
+        (jax.ShapeDtypeStruct((n_pts,), jnp.int32), jax.ShapeDtypeStruct((n_pts,), jnp.int32),
+         jax.ShapeDtypeStruct((n_pts, capacity, 2, CODE_WIDTH), jnp.int32)),
+        vmap_method="broadcast_all",
+    )
+    out: Any = call(sg(points), sg(normals.astype(dt)), sg(verts.astype(dt)), sg(faces.astype(dt)), *_topology_arrays(topo),
+                cap=np.int64(capacity), threads=np.int64(threads()))
+    return out[0], out[1], out[2]
