@@ -841,6 +841,8 @@ def fit_light(
         raise ValueError(f"fit_light: expected a jaxshadow.Scene, got {type(scene).__name__}.")
     if not isinstance(targets, PaintedTargets):
         raise ValueError(f"fit_light: targets must be PaintedTargets, got {type(targets).__name__}.")
+    if isinstance(light_index, bool) or not isinstance(light_index, (int, np.integer)):
+        raise ValueError(f"fit_light: light_index must be an integer, got {light_index!r}.")
     if not 0 <= light_index < len(scene.lights):
         raise ValueError(f"fit_light: light_index {light_index} out of range for {len(scene.lights)} light(s).")
     if isinstance(fit, str):

@@ -304,8 +304,17 @@ def fit_material(
 
     **Returns:** `MaterialFit(material, residual (N, 3), report)`.
     """
+    if not isinstance(scene, js.Scene):
+        raise ValueError(f"fit_material: expected a jaxshadow.Scene, got {type(scene).__name__}.")
     if not isinstance(targets, PaintedTargets):
         raise ValueError(f"fit_material: targets must be PaintedTargets, got {type(targets).__name__}.")
+    if exponent is not None:
+        try:
+            e = np.asarray(exponent, dtype=np.float64)
+        except (TypeError, ValueError):
+            e = np.asarray(np.nan)
+        if isinstance(exponent, bool) or e.shape != () or not np.isfinite(e) or e < 0:
+            raise ValueError(f"fit_material: exponent must be None (fit it) or a finite number >= 0, got {exponent!r}.")
     if weighting not in (None, "poulin"):
         raise ValueError(f"fit_material: weighting must be None or 'poulin', got {weighting!r}.")
     lo = np.broadcast_to(_np(bounds[0]), (3,))

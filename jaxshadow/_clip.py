@@ -67,7 +67,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from ._geometry import horizon_clip_edges, newell_normal
+from ._geometry import check_finite_leaves, horizon_clip_edges, newell_normal
 from ._linear import linear_irradiance_kernel
 from ._misc import safe_div, safe_normalize
 from ._polygon import edge_term
@@ -590,8 +590,11 @@ def visible_form_factor(
     **Arguments:** `points (N, 3)`, unit `normals (N, 3)`, `vertices (k, 3)` convex light
     (counter-clockwise seen from its lit side), `occluders (m, ko, 3)` padded convex polygons.
 
-    **Returns:** `(N,)` dimensionless form factors ($E = \pi L F$), dtype following the inputs.
+    **Returns:** `(N,)` dimensionless form factors ($E = \pi L F$), dtype following the inputs;
+    `ValueError` for a NaN/inf input (traced inputs: an error when the program runs).
     """
+    args = check_finite_leaves((points, normals, vertices, occluders), "visible_form_factor")
+    points, normals, vertices, occluders = args
     return jax.vmap(visible_form_factor_kernel, in_axes=(0, 0, None, None))(
         points, normals, vertices, occluders
     )

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -36,6 +37,27 @@ def newell_normal(verts: Float[Array, "k 3"]) -> Float[Array, "3"]:
     """Newell's normal of a (padded) polygon: twice the vector area, right-hand rule."""
     nxt = jnp.roll(verts, -1, axis=0)
     return jnp.sum(jnp.cross(verts, nxt), axis=0)
+
+
+def on_lit_side(p: Float[Array, "3"], verts: Float[Array, "k 3"]) -> Array:
+    """True where `p` lies strictly on the side the (padded, planar) polygon's right-hand
+    normal points to.
+
+    Translation- and scale-free: the normal comes from the vertices relative to the first one,
+    each set divided by its largest component before any product (the absolute-coordinate
+    Newell sum cancels catastrophically away from the origin: in float32 a unit light 1e5 from
+    the origin got a normal of rounding noise and lit nothing; products of raw coordinates
+    over- and underflow at large and small scales). Only the sign is used: no gradient.
+    """
+    verts = jax.lax.stop_gradient(verts)
+    p = jax.lax.stop_gradient(p)
+    rel = verts - verts[:1]
+    s = jnp.max(jnp.abs(rel))
+    ne = newell_normal(rel / jnp.where(s > 0, s, 1.0))
+    w = p - verts[0]
+    t = jnp.max(jnp.abs(w))
+    w = w / jnp.where(t > 0, t, 1.0)
+    return jnp.dot(ne, w) > 0
 
 
 def horizon_clip_edges(
@@ -121,7 +143,41 @@ def check_points_normals(points: Any, normals: Any, what: str = "", values: bool
         )
     if values:
         _check_values_eagerly(points, normals, what)
+    if isinstance(points, jax.core.Tracer) or isinstance(normals, jax.core.Tracer):
+        # Values that arrive traced (the caller's jit/vmap/grad): checked when the program runs.
+        points, normals = eqx.error_if(
+            (points, normals),
+            ~inputs_ok(points, normals),
+            f"{pre}a point or normal is not finite, or a normal is the zero vector.",
+        )
     return points, normals
+
+
+def check_finite_leaves(tree: Any, what: str) -> Any:
+    """Every floating leaf of `tree` finite: concrete leaves are checked in NumPy (`ValueError`
+    naming the leaf), traced ones when the program runs (`eqx.error_if`, whose result is
+    returned: use it). For values changed after build (`eqx.tree_at`) or traced under the
+    caller's own `jit`, where the build-time checks never saw them."""
+    leaves = jax.tree_util.tree_leaves_with_path(tree)
+    traced = []
+    for path, leaf in leaves:
+        if not hasattr(leaf, "dtype") or not jnp.issubdtype(leaf.dtype, jnp.inexact):
+            continue
+        if isinstance(leaf, jax.core.Tracer):
+            traced.append(leaf)
+            continue
+        a = np.asarray(leaf)
+        if not np.all(np.isfinite(a)):
+            idx = tuple(int(i) for i in np.argwhere(~np.isfinite(a))[0])
+            raise ValueError(
+                f"{what}{jax.tree_util.keystr(path)}: non-finite value {a[idx]} at index {idx}."
+            )
+    if not traced:
+        return tree
+    bad = jnp.zeros((), bool)
+    for leaf in traced:
+        bad = bad | ~jnp.all(jnp.isfinite(leaf))
+    return eqx.error_if(tree, bad, f"{what}: a value is not finite (NaN or inf).")
 
 
 def as_input(x: Any, what: str) -> Any:

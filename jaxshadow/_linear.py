@@ -46,13 +46,46 @@ from __future__ import annotations
 import functools
 import math
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ._geometry import check_points_normals, check_vector3, evaluate_checked, inputs_ok, is_concrete
+from ._geometry import (
+    check_finite_leaves,
+    check_points_normals,
+    check_vector3,
+    evaluate_checked,
+    inputs_ok,
+    is_concrete,
+)
 from ._misc import arctan2, fusible, safe_norm, unit_rows
+
+
+#: Largest exponent of the cosine profile. The kernel's cost grows linearly with m (two
+#: recurrences of about m/2 and m steps per receiver); a cos^m beam has its half-power
+#: half-width at about 1.18/sqrt(m) rad (2.1 degrees at m = 1000): larger m is a laser, not a
+#: tube light. Checked when a `LinearLight` is built and by `linear_irradiance`.
+MAX_COSINE_EXPONENT = 1000
+#: Up to this m the recurrences are unrolled (fused into one loop by XLA); above, `fori_loop`.
+UNROLL_MAX_EXPONENT = 16
+
+
+def check_profile_exponent(m: object, what: str, minimum: int = 0) -> int:
+    """The profile exponent as a Python int, or a `ValueError` (not an integer, below `minimum`,
+    above `MAX_COSINE_EXPONENT`)."""
+    ok = isinstance(m, (int, float, np.integer, np.floating)) and not isinstance(m, bool)
+    if not ok or not np.isfinite(m) or float(m) != int(m) or int(m) < minimum:
+        raise ValueError(
+            f"{what} must be an integer >= {minimum} (closed form per integer m), got {m!r}."
+        )
+    if int(m) > MAX_COSINE_EXPONENT:
+        raise ValueError(
+            f"{what} = {m!r} is above the supported maximum {MAX_COSINE_EXPONENT} (the cost "
+            "grows linearly with m, and a beam narrower than ~2 degrees is not a tube light)."
+        )
+    return int(m)
 
 
 def cosine_profile_constant(m: int) -> float:
@@ -69,13 +102,22 @@ def _dot3(x, y):
 
 
 def segment_frame(p, a, b):
-    """Poulin's 2-D frame of a segment seen from `p`: `(h, u, tA, tB)` with `X(t) = p + h + t u`."""
+    r"""Poulin's 2-D frame of a segment seen from `p`: `(h, u, tA, tB)` with `X(t) = p + h + t u`.
+
+    Light-relative: `tA` and `tB` are each measured from their own endpoint, and `h` from the
+    endpoint nearer to the foot of `p`. Computing `tB` as `tA + length` lost it to the rounding
+    of `tA` when `p` is close to `b` (float32, `p` 1e-7 past the end: $E \sim 1/|t_B|$ came
+    out 2-90x too high); `h` taken from the far endpoint likewise carried its rounding."""
     e = b - a
     length = safe_norm(e)
     u = e / jnp.where(length > 0, length, 1.0)
-    ta = _dot3(a - p, u)
-    h = (a - p) - ta * u
-    return h, u, ta, ta + length
+    wa = a - p
+    wb = b - p
+    ta = _dot3(wa, u)
+    tb = _dot3(wb, u)
+    near_a = jnp.abs(ta) <= jnp.abs(tb)
+    h = jnp.where(near_a, wa - ta * u, wb - tb * u)
+    return h, u, ta, tb
 
 
 def horizon_clip_interval(hn, un, ta, tb):
@@ -123,10 +165,30 @@ def _cosine_profile_bracket(t0, t1, d, ra, rb, m):
         den = jnp.where(same_side, t1 * ra + t0 * rb, 1.0)
         j = jnp.where(same_side, ca * cb * ((t1 - t0) * (t1 + t0) / den), sb - sa)
         k0 = 1
-    for k in range(k0 + 2, k_target + 1, 2):
-        j = (cb ** (k - 1) * sb - ca ** (k - 1) * sa) / k + (k - 1) / k * j
     c_diff = ca * ((t1 - t0) / rb) * ((t1 + t0) / (ra + rb))
-    c_sum = sum(ca**i * cb ** (m - i) for i in range(m + 1))
+    if m <= UNROLL_MAX_EXPONENT:
+        for k in range(k0 + 2, k_target + 1, 2):
+            j = (cb ** (k - 1) * sb - ca ** (k - 1) * sa) / k + (k - 1) / k * j
+        c_sum = sum(ca**i * cb ** (m - i) for i in range(m + 1))
+        return j, c_diff * c_sum / (m + 1)
+    # Large m: the same recurrences as loops (a traced program of fixed size; unrolled, the
+    # trace grew as m^2 and m = 2000 took ~1 min to compile).
+    ca2, cb2 = ca * ca, cb * cb
+
+    def reduce_j(i, state):
+        j, pa, pb = state  # pa = c_A^(k-1), pb = c_B^(k-1) for k = k0 + 2 + 2 i
+        k = (k0 + 2 + 2 * i).astype(j.dtype)
+        return (pb * sb - pa * sa) / k + (k - 1.0) / k * j, pa * ca2, pb * cb2
+
+    p0 = ca ** (k0 + 1), cb ** (k0 + 1)
+    j, _, _ = jax.lax.fori_loop(0, (k_target - k0) // 2, reduce_j, (j, *p0))
+
+    def horner(_, state):
+        acc, pb = state  # acc = sum_{i <= l} c_A^(l - i) c_B^i, pb = c_B^l
+        pb = pb * cb
+        return acc * ca + pb, pb
+
+    c_sum, _ = jax.lax.fori_loop(0, m, horner, (jnp.ones_like(ca), jnp.ones_like(cb)))
     return j, c_diff * c_sum / (m + 1)
 
 
@@ -203,8 +265,9 @@ def linear_irradiance(
     **Returns:** `(N,)`; `+inf` for a receiver on the segment itself.
     """
     points, normals = check_points_normals(points, normals, "linear_irradiance", values=False)
-    if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or m < 0:
+    if not isinstance(m, (int, np.integer)):
         raise ValueError(f"linear_irradiance: m must be an integer >= 0 (a Python int), got {m!r}.")
+    m = check_profile_exponent(m, "linear_irradiance: m")
     ends = []
     for name, x in (("start", start), ("end", end)):
         x = x if isinstance(x, jnp.ndarray) else jnp.asarray(x)
@@ -214,6 +277,10 @@ def linear_irradiance(
             check_vector3(np.asarray(x), f"linear_irradiance: {name}")
         ends.append(x.astype(points.dtype))
     a, b = ends
-    if is_concrete(a) and is_concrete(b) and not np.any(np.asarray(a) != np.asarray(b)):
-        raise ValueError("linear_irradiance: zero-length segment (start == end).")
+    if is_concrete(a) and is_concrete(b):
+        if not np.any(np.asarray(a) != np.asarray(b)):
+            raise ValueError("linear_irradiance: zero-length segment (start == end).")
+    else:
+        a, b = check_finite_leaves((a, b), "linear_irradiance: start, end")
+        a, b = eqx.error_if((a, b), jnp.all(a == b), "linear_irradiance: zero-length segment (start == end).")
     return evaluate_checked(lambda p, n: _linear_batch(p, n, a, b, int(m)), points, normals, "linear_irradiance")

@@ -26,31 +26,58 @@ def fusible(x: Array) -> Array:
     return jax.lax.reduce_precision(x, exponent_bits=fi.nexp, mantissa_bits=fi.nmant)
 
 
+def max_abs3(x: Array, y: Array, z: Array) -> Array:
+    """`max(|x|, |y|, |z|)` of three components (elementwise): the scale of a vector."""
+    return jnp.maximum(jnp.maximum(jnp.abs(x), jnp.abs(y)), jnp.abs(z))
+
+
+def _scaled(x: Float[Array, "... 3"], axis: int) -> tuple[Array, Array, Array]:
+    """`(x / s, s, s > 0)` with `s = max |x_i|` along `axis` (keepdims); `x` itself where `s = 0`.
+
+    Dividing by the largest component before squaring keeps the sum of squares in `[1, 3]`:
+    no overflow (|x| up to the largest float) and no underflow (|x| down to the smallest
+    subnormal) in either dtype, where `sum(x * x)` overflows above `sqrt(max)` (1.8e19 in
+    float32, 1.3e154 in float64) and vanishes below `sqrt(tiny)`. `s` gets no gradient: the
+    quantities formed from `x / s` below are invariant under the scaling (or scale with `s`,
+    which is put back outside)."""
+    s = jax.lax.stop_gradient(jnp.max(jnp.abs(x), axis=axis, keepdims=True))
+    ok = s > 0
+    return x / jnp.where(ok, s, 1.0), s, ok
+
+
 def safe_norm(x: Float[Array, "... 3"], axis: int = -1) -> Float[Array, "..."]:
-    """Euclidean norm whose gradient at `x = 0` is zero instead of NaN (double `where`)."""
-    sq = jnp.sum(x * x, axis=axis)
+    """Euclidean norm, scale-free (`_scaled`) and with a zero gradient at `x = 0` (double `where`)."""
+    xs, s, _ = _scaled(x, axis)
+    sq = jnp.sum(xs * xs, axis=axis, keepdims=True)
     ok = sq > 0
     safe_sq = jnp.where(ok, sq, 1.0)
-    return jnp.where(ok, fusible(jnp.sqrt(safe_sq)), 0.0)
+    return jnp.squeeze(jnp.where(ok, s * fusible(jnp.sqrt(safe_sq)), 0.0), axis=axis)
 
 
 def safe_normalize(x: Float[Array, "... 3"], axis: int = -1) -> Float[Array, "... 3"]:
-    """`x / |x|`, zero (with zero gradient) where `x = 0`."""
-    sq = jnp.sum(x * x, axis=axis, keepdims=True)
+    """`x / |x|`, scale-free (`_scaled`), zero (with zero gradient) where `x = 0`."""
+    xs, _, _ = _scaled(x, axis)
+    sq = jnp.sum(xs * xs, axis=axis, keepdims=True)
     ok = sq > 0
     safe_sq = jnp.where(ok, sq, 1.0)
-    return jnp.where(ok, x / fusible(jnp.sqrt(safe_sq)), 0.0)
+    return jnp.where(ok, xs / fusible(jnp.sqrt(safe_sq)), 0.0)
 
 
 def unit_rows(x: Float[Array, "N 3"]) -> Float[Array, "N 3"]:
     """`safe_normalize` of each row, written component by component: XLA:CPU fuses it into the
-    kernel that reads the rows (a reduction over the length-3 axis is a separate loop)."""
+    kernel that reads the rows (a reduction over the length-3 axis is a separate loop).
+    Scale-free: a normal of any length from the smallest subnormal to the largest float is
+    normalised exactly (a plain sum of squares over- or underflows and gave a zero normal)."""
 
     def one(v: Array) -> Array:
-        sq = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+        # Divide (not multiply by 1/s: that overflows for a subnormal s).
+        s = jax.lax.stop_gradient(max_abs3(v[0], v[1], v[2]))
+        s = jnp.where(s > 0, s, 1.0)
+        w = [fusible(v[i] / s) for i in range(3)]
+        sq = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
         ok = sq > 0
-        s = fusible(jnp.sqrt(jnp.where(ok, sq, 1.0)))
-        return jnp.stack([jnp.where(ok, fusible(v[i] / s), 0.0) for i in range(3)])
+        r = fusible(jnp.sqrt(jnp.where(ok, sq, 1.0)))
+        return jnp.stack([jnp.where(ok, fusible(w[i] / r), 0.0) for i in range(3)])
 
     return jax.vmap(one)(x)
 

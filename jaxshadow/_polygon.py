@@ -24,11 +24,12 @@ from jaxtyping import Array, Float
 from ._geometry import (
     as_input,
     check_convex_polygon_cached,
+    check_finite_leaves,
     check_points_normals,
     evaluate_checked,
     inputs_ok,
     is_concrete,
-    newell_normal,
+    on_lit_side,
 )
 from ._misc import angle_over_sin, fusible, unit_rows
 
@@ -150,8 +151,7 @@ def _form_factor_unrolled(p: Array, n: Array, verts: Array) -> Array:
     """`form_factor_kernel` with the edges unrolled (fast values); in groups of `EDGE_GROUP`
     edges (a `lax.scan`) above `1.5 EDGE_GROUP` vertices."""
     k = verts.shape[0]
-    ne = newell_normal(verts)
-    in_front = jnp.dot(ne, p - verts[0]) > 0
+    in_front = on_lit_side(p, verts)
     nc = (n[0], n[1], n[2])
 
     def unit(v: Array) -> tuple:
@@ -181,8 +181,7 @@ def _form_factor_unrolled(p: Array, n: Array, verts: Array) -> Array:
 
 def _form_factor_compact(p: Array, n: Array, verts: Array) -> Array:
     """`form_factor_kernel` vectorised over the edges (compact program for derivatives)."""
-    ne = newell_normal(verts)
-    in_front = jnp.dot(ne, p - verts[0]) > 0
+    in_front = on_lit_side(p, verts)
     nc = (n[0], n[1], n[2])
     # Per-vertex unit directions and heights above the tangent plane, one (K,) array per
     # component; "next" is the same rolled by one (the edge i -> i+1).
@@ -224,6 +223,8 @@ def _check_vertices(vertices: Any, dtype: Any) -> Array:
         raise ValueError(f"form_factor: vertices must be a real array, got dtype {v.dtype}.")
     if is_concrete(v):
         check_convex_polygon_cached(v, "form_factor: vertices")
+    else:
+        v = check_finite_leaves(v, "form_factor: vertices")
     return v.astype(dtype)
 
 

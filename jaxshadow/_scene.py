@@ -19,13 +19,17 @@ from jaxtyping import Array, Float
 
 from ._geometry import (
     check_convex_polygon,
+    check_convex_polygon_cached,
     check_finite,
+    check_finite_leaves,
     check_rgb,
     check_unit_direction,
     check_vector3,
     is_concrete,
     pad_polygons_jax,
 )
+from ._files import atomic_write
+from ._linear import check_profile_exponent
 from ._mesh import Mesh, OccluderTopology, build_occluders, max_face_vertices, mesh_dicts
 
 SCENE_FORMAT = "jaxshadow.scene"
@@ -111,14 +115,7 @@ class LinearLight(eqx.Module):
     ):
         if profile not in PROFILES:
             raise ValueError(f"LinearLight.profile must be one of {PROFILES}, got {profile!r}.")
-        ok = isinstance(exponent, (int, float, np.integer, np.floating)) and not isinstance(exponent, bool)
-        if not ok or not np.isfinite(exponent) or float(exponent) != int(exponent) or int(exponent) < (
-            1 if profile == "cosine" else 0
-        ):
-            raise ValueError(
-                "LinearLight.exponent must be an integer >= 1 for the cosine profile "
-                f"(closed form per integer m), got {exponent!r}."
-            )
+        exponent = check_profile_exponent(exponent, "LinearLight.exponent", 1 if profile == "cosine" else 0)
         if _all_concrete(start, end, power):
             s = check_vector3(start, "LinearLight.start")
             e = check_vector3(end, "LinearLight.end")
@@ -261,6 +258,41 @@ class Scene(eqx.Module):
         self.ambient = _rgb_leaf(ambient)
 
 
+def checked_scene(scene: Any, what: str) -> Scene:
+    """`scene` as the public entry points use it: a `Scene` whose values are checked again,
+    since they may have changed after it was built (`eqx.tree_at`) or arrive traced under the
+    caller's `jit`. Concrete values: every leaf finite and every polygon light convex and
+    planar (NumPy, `ValueError`; cached per polygon). Traced values: finite, checked when the
+    program runs (`eqx.error_if`; use the returned scene)."""
+    if not isinstance(scene, Scene):
+        raise ValueError(f"{what}: expected a jaxshadow.Scene, got {type(scene).__name__}.")
+    scene = check_finite_leaves(scene, f"{what}: scene")
+    for i, light in enumerate(scene.lights):
+        if isinstance(light, PolygonLight) and is_concrete(light.vertices):
+            check_convex_polygon_cached(light.vertices, f"{what}: scene.lights[{i}].vertices")
+    return scene
+
+
+def checked_material(material: Any, what: str) -> Material:
+    """`material` re-checked like `checked_scene`: coefficients finite and >= 0, exponent
+    finite and >= 0 (concrete: `ValueError`; traced: `eqx.error_if`)."""
+    if not isinstance(material, Material):
+        raise ValueError(f"{what}: expected a jaxshadow.Material, got {type(material).__name__}.")
+    leaves = (material.ka, material.kd, material.ks, material.exponent)
+    if _all_concrete(*leaves):
+        for name in ("ka", "kd", "ks"):
+            check_rgb(getattr(material, name), f"{what}: material.{name}")
+        e = np.asarray(material.exponent, np.float64).reshape(-1)
+        check_finite(e, f"{what}: material.exponent")
+        if np.any(e < 0):
+            raise ValueError(f"{what}: material.exponent must be >= 0, got {e.tolist()}.")
+        return material
+    bad = jnp.zeros((), bool)
+    for leaf in leaves:
+        bad = bad | ~jnp.all(jnp.isfinite(leaf) & (leaf >= 0))
+    return eqx.error_if(material, bad, f"{what}: a material value is negative or not finite.")
+
+
 # --------------------------------------------------------------------------------------
 # JSON scene format (versioned)
 # --------------------------------------------------------------------------------------
@@ -303,8 +335,17 @@ _LIGHT_FIELDS = {
 }
 
 
+def _has_bool(v: Any) -> bool:
+    if isinstance(v, bool):
+        return True
+    return isinstance(v, list) and any(_has_bool(x) for x in v)
+
+
 def _numeric(v: Any, where: str) -> np.ndarray:
-    """A JSON value as a float64 array, with an error naming the entry (strings, ragged lists)."""
+    """A JSON value as a float64 array, with an error naming the entry (strings, booleans,
+    ragged lists)."""
+    if _has_bool(v):
+        raise ValueError(f"{where}: expected numbers, got a boolean in {v!r}.")
     try:
         a = np.asarray(v, dtype=np.float64)
     except (TypeError, ValueError):
@@ -352,8 +393,9 @@ def material_from_dict(d: dict, where: str = "material") -> Material:
     unknown = set(d) - {"ka", "kd", "ks", "exponent"}
     if unknown:
         raise ValueError(f"{where}: unknown field(s) {sorted(unknown)}.")
+    values = {k: _numeric(v, f"{where}.{k}") for k, v in d.items()}
     try:
-        return Material(**{k: np.asarray(v, dtype=np.float64) for k, v in d.items()})
+        return Material(**values)
     except ValueError as err:
         raise ValueError(f"{where}: {err}") from None
 
@@ -396,14 +438,17 @@ def scene_from_dict(d: dict) -> Scene:
         raise ValueError("scene: expected a JSON object.")
     if d.get("format") != SCENE_FORMAT:
         raise ValueError(f"scene: 'format' must be {SCENE_FORMAT!r}, got {d.get('format')!r}.")
-    if d.get("version") != SCENE_VERSION:
+    version = d.get("version")
+    if isinstance(version, bool) or not isinstance(version, int) or version != SCENE_VERSION:
         raise ValueError(
             f"scene: unsupported schema version {d.get('version')!r} (this jaxshadow reads {SCENE_VERSION})."
         )
     unknown = set(d) - {"format", "version", "lights", "occluders", "ambient", "material"}
     if unknown:
         raise ValueError(f"scene: unknown field(s) {sorted(unknown)}.")
-    raw_lights = d.get("lights", [])
+    if "lights" not in d:
+        raise ValueError("scene: missing field 'lights' (a list of lights; [] for none).")
+    raw_lights = d["lights"]
     if not isinstance(raw_lights, list):
         raise ValueError(f"scene: 'lights' must be a list, got {type(raw_lights).__name__}.")
     lights = [light_from_dict(ld, f"scene.lights[{i}]") for i, ld in enumerate(raw_lights)]
@@ -417,25 +462,52 @@ def scene_from_dict(d: dict) -> Scene:
 
 
 def save_scene(scene: Scene, path: str | os.PathLike, material: Material | None = None) -> None:
-    """Write a scene (and optionally a material) to a JSON file (schema version 1)."""
-    with open(path, "w") as f:
-        json.dump(scene_to_dict(scene, material), f, indent=2)
+    """Write a scene (and optionally a material) to a JSON file (schema version 1).
+
+    The document is built first and written through `_files.atomic_write` (a temporary file in
+    the same directory, renamed over `path` when complete): a bad argument, a failing
+    serialiser or a full disk leaves an existing file as it was.
+
+    **Arguments:** `scene` (`Scene`), `path` (file name), `material` (`Material` or `None`).
+    """
+    if not isinstance(scene, Scene):
+        raise ValueError(f"save_scene: expected a jaxshadow.Scene, got {type(scene).__name__}.")
+    if material is not None and not isinstance(material, Material):
+        raise ValueError(f"save_scene: material must be a jaxshadow.Material or None, got {type(material).__name__}.")
+    text = json.dumps(scene_to_dict(scene, material), indent=2)
+    with atomic_write(path) as f:
+        f.write(text)
+
+
+def _read_json(path: str | os.PathLike) -> Any:
+    """A JSON document from a file, with a `ValueError` naming the path (missing file, a
+    directory, unreadable, not JSON) instead of a traceback."""
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path}: not valid JSON ({err}).") from None
+    except IsADirectoryError:
+        raise ValueError(f"{path}: is a directory, not a scene file.") from None
+    except FileNotFoundError:
+        raise ValueError(f"{path}: no such file.") from None
+    except (PermissionError, UnicodeDecodeError) as err:
+        raise ValueError(f"{path}: cannot be read ({err}).") from None
 
 
 def load_scene(path: str | os.PathLike) -> Scene:
-    """Read a scene from a JSON file written by `save_scene` (or by hand, same schema)."""
-    with open(path) as f:
-        try:
-            d = json.load(f)
-        except json.JSONDecodeError as err:
-            raise ValueError(f"{path}: not valid JSON ({err}).") from None
-    return scene_from_dict(d)
+    """Read a scene from a JSON file written by `save_scene` (or by hand, same schema).
+
+    **Returns:** the `Scene`; `ValueError` naming the path or the offending entry otherwise.
+    """
+    return scene_from_dict(_read_json(path))
 
 
 def load_material(path: str | os.PathLike) -> Material:
     """Read the `material` entry of a scene JSON file."""
-    with open(path) as f:
-        d = json.load(f)
-    if "material" not in d:
+    d = _read_json(path)
+    if not isinstance(d, dict) or "material" not in d:
         raise ValueError(f"{path}: no 'material' entry.")
+    if not isinstance(d["material"], dict):
+        raise ValueError(f"{path}: 'material' must be an object, got {type(d['material']).__name__}.")
     return material_from_dict(d["material"])

@@ -45,7 +45,16 @@ from ._linear import linear_irradiance_kernel
 from ._misc import map_chunks, safe_normalize, unit_rows
 from ._point import directional_irradiance_kernel, point_irradiance_kernel
 from ._polygon import form_factor_kernel
-from ._scene import DirectionalLight, LinearLight, Material, PointLight, PolygonLight, Scene
+from ._scene import (
+    DirectionalLight,
+    LinearLight,
+    Material,
+    PointLight,
+    PolygonLight,
+    Scene,
+    checked_material,
+    checked_scene,
+)
 from ._specular import (
     DEFAULT_DEGREE,
     contour_specular_kernel,
@@ -234,7 +243,7 @@ def irradiance(
 
     **Returns:** `(N, 3)` irradiance, dtype following `points`.
     """
-    scene = _check_scene(scene, "irradiance")
+    scene = checked_scene(scene, "irradiance")  # values changed after build / traced: checked again
     points, normals = check_points_normals(points, normals, "irradiance", values=False)
     if _shadows.applicable(scene, points, normals):
         _check_values_eagerly(points, normals, "irradiance")
@@ -401,7 +410,7 @@ def specular(
 
     **Returns:** `(N, 3)`, dtype following `points`.
     """
-    scene = _check_scene(scene, "specular")
+    scene = checked_scene(scene, "specular")  # values changed after build / traced: checked again
     points, normals = check_points_normals(points, normals, "specular")
     if method not in ("chebyshev", "exact"):
         raise ValueError(f"specular: method must be 'chebyshev' or 'exact', got {method!r}.")
@@ -435,9 +444,8 @@ def shade(
 
     **Returns:** `(N, 3)` radiance (W m^-2 sr^-1).
     """
-    scene = _check_scene(scene, "shade")
-    if not isinstance(material, Material):
-        raise ValueError(f"shade: expected a jaxshadow.Material, got {type(material).__name__}.")
+    scene = checked_scene(scene, "shade")  # values changed after build / traced: checked again
+    material = checked_material(material, "shade")
     points, normals = check_points_normals(points, normals, "shade", values=False)
     if method not in ("chebyshev", "exact"):
         raise ValueError(f"shade: method must be 'chebyshev' or 'exact', got {method!r}.")

@@ -87,7 +87,9 @@ $O^*$ (floor region $O_j$), occluder vertices inside $E^*$ ($E_i$) and edge-edge
    shadow node (eq. 18) is a forward projection ($w \ge 0$; with $w < 0$ the floor polygons
    would be wrong: a tilted occluder that satisfies Stark's condition can have a vertex
    higher than an emitter vertex, and then its shadow from that vertex is unbounded). Touching from below (an occluder vertex level
-   with the emitter) is allowed. Under tracing (jit/grad of the wrapper) the checks cannot
+   with the emitter) is allowed, but not a vertex shared with the emitter (closer than
+   `SHARED_VERTEX_RTOL` times its size): its node is $0/0$ and every polygon through it is
+   undefined (an occluder lying on the emitter came out as $-F$). Under tracing (jit/grad of the wrapper) the checks cannot
    run; outside the region the result stays finite with finite gradients but is not
    physically meaningful.
 """
@@ -102,7 +104,14 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from ._geometry import check_convex_polygon, check_finite, is_concrete, newell_normal
+from ._geometry import (
+    check_convex_polygon,
+    check_finite,
+    check_finite_leaves,
+    is_concrete,
+    newell_normal,
+    on_lit_side,
+)
 
 # --------------------------------------------------------------------------------------
 # Pieces of eqs. 18-24
@@ -321,9 +330,9 @@ def _negate(terms: Terms) -> Terms:
 
 
 def _ccw_seen_from(rel: Float[Array, "k 3"]) -> Bool[Array, ""]:
-    """True where the polygon (relative to the receiver) projects counter-clockwise."""
-    rel = jax.lax.stop_gradient(rel)
-    return jnp.dot(newell_normal(rel), rel[0]) > 0
+    """True where the polygon (relative to the receiver) projects counter-clockwise: the
+    receiver (the origin) is on the side its reversed vertex order's normal points to."""
+    return on_lit_side(jnp.zeros_like(rel[0]), rel[::-1])
 
 
 def spline_shadow_kernel(
@@ -425,6 +434,20 @@ def _check_validity_region(
             )
     high = int(np.argmax(occluder_verts[:, 2]))
     for k, e in enumerate(emitters):
+        # A shared vertex makes its shadow node 0/0 (eq. 18: P = 0 and w = 0): the node, and
+        # the side tests of every floor polygon through it, are undefined (the result was -F
+        # for an occluder lying on the emitter).
+        size = float(np.max(np.abs(e - e.mean(axis=0))))
+        gap = np.max(np.abs(occluder_verts[:, None, :] - e[None, :, :]), axis=-1)
+        i, j = np.unravel_index(int(np.argmin(gap)), gap.shape)
+        if gap[i, j] <= SHARED_VERTEX_RTOL * size:
+            name = "the emitter" if len(emitters) == 1 else f"emitter {k}"
+            raise ValueError(
+                f"{what}: occluder vertex {i} coincides with vertex {j} of {name} "
+                f"({occluder_verts[i].tolist()}): its shadow node (Stark eq. 18) is 0/0, outside "
+                "the validity region of the shadow equation. An occluder lying on the emitter "
+                "blocks the part it covers: give the emitter without that part instead."
+            )
         j = int(np.argmin(e[:, 2]))
         if occluder_verts[high, 2] > e[j, 2]:
             name = "the emitter" if len(emitters) == 1 else f"emitter {k}"
@@ -434,6 +457,12 @@ def _check_validity_region(
                 f"§7): occluder vertex {high} at z = {occluder_verts[high, 2]:.6g} is above "
                 f"emitter vertex {j} at z = {e[j, 2]:.6g}."
             )
+
+
+#: Occluder and emitter vertices closer than this (times the emitter's size, per coordinate)
+#: count as shared. Float32 rounds coordinates to ~6e-8 relative, which decides the direction
+#: of a node whose `P` and `w` are that small.
+SHARED_VERTEX_RTOL = 1e-6
 
 
 def _as_float(*xs: object) -> list[Array]:
@@ -489,6 +518,8 @@ def spline_shadow(
         )
         pts = _check_points(points, what)
         _check_validity_region([e], o, pts, what)
+    else:
+        emitter, occluder, points = check_finite_leaves((emitter, occluder, points), what)
     emitter, occluder, points = _as_float(emitter, occluder, points)
     return _spline_shadow(emitter, occluder, points)
 
@@ -593,5 +624,7 @@ def spline_shadow_faces(
         pts = _check_points(points, what)
         _check_closed_convex(fa_np, what)
         _check_validity_region(em_np, np.concatenate(fa_np), pts, what)
+    else:
+        em, fa, points = check_finite_leaves((em, fa, points), what)
     em, fa, points = _as_float(em, fa, points)
     return _spline_shadow_faces(em, fa, points)

@@ -47,3 +47,9 @@ def uv_sphere(centre, radius, n_lat, n_lon):
     )
     tris[out < 0] = tris[out < 0][:, ::-1]
     return tris
+
+
+def square_light(x0, x1, y0, y1, z):
+    """Axis-aligned rectangle in the plane z, counter-clockwise seen from below (it emits
+    towards -z, the right-hand-rule normal of its vertex order)."""
+    return np.array([[x0, y0, z], [x0, y1, z], [x1, y1, z], [x1, y0, z]], dtype=np.float64)
