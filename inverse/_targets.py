@@ -18,6 +18,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from jaxshadow._files import atomic_write
+from jaxshadow._misc import safe_normalize
 
 TARGETS_FORMAT = "inverse.targets"
 TARGETS_VERSION = 1
@@ -53,12 +54,10 @@ def _check_rows(name: str, a: np.ndarray, *, nonneg: bool = False, positive: boo
 
 
 def _unit_rows(v: Array) -> Array:
-    """Rows divided by their length, scale-free: divided by their largest component first, so
-    that a normal of length 1e-160 or 1e160 (valid input) neither under- nor overflows when
-    squared (a plain norm gave 0/0 = NaN and inf/inf)."""
-    s = jnp.max(jnp.abs(v), axis=-1, keepdims=True)
-    v = v / jnp.where(s > 0, s, 1.0)
-    return v / jnp.linalg.norm(v, axis=-1, keepdims=True)
+    """Rows divided by their length, scale-free (`jaxshadow._misc.safe_normalize`): a normal of
+    length 1e-160 or 1e160 (valid input) neither under- nor overflows when squared (a plain
+    norm gave 0/0 = NaN and inf/inf)."""
+    return safe_normalize(v)
 
 
 def _per_target_rgb(x: Any, n: int, name: str) -> Array:

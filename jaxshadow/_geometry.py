@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._misc import map_chunks
+from ._misc import divide_by_scale, map_chunks
 
 # Relative tolerances used by build-time validation (NumPy, float64).
 PLANARITY_RTOL = 1e-6
@@ -53,10 +53,10 @@ def on_lit_side(p: Float[Array, "3"], verts: Float[Array, "k 3"]) -> Array:
     p = jax.lax.stop_gradient(p)
     rel = verts - verts[:1]
     s = jnp.max(jnp.abs(rel))
-    ne = newell_normal(rel / jnp.where(s > 0, s, 1.0))
+    ne = newell_normal(divide_by_scale(rel, jnp.where(s > 0, s, 1.0)))
     w = p - verts[0]
     t = jnp.max(jnp.abs(w))
-    w = w / jnp.where(t > 0, t, 1.0)
+    w = divide_by_scale(w, jnp.where(t > 0, t, 1.0))
     return jnp.dot(ne, w) > 0
 
 

@@ -31,18 +31,30 @@ def max_abs3(x: Array, y: Array, z: Array) -> Array:
     return jnp.maximum(jnp.maximum(jnp.abs(x), jnp.abs(y)), jnp.abs(z))
 
 
+_BIG = 2.0**64
+
+
+def divide_by_scale(x: Array, s: Array) -> Array:
+    """`x / s` for a positive scale `s` (e.g. the largest component of `x`), exact where `x / s`
+    is. XLA:CPU divides by multiplying with the reciprocal, and flushes subnormals to zero: for
+    `s` above 2^126 (float32; 2^1022 in float64) `1/s` is subnormal and every quotient came
+    out 0. Both are first multiplied by an exact power of two that brings `s` into
+    [2^-64, 2^64]."""
+    f = jnp.where(s > _BIG, 1.0 / _BIG, jnp.where(s < 1.0 / _BIG, _BIG, 1.0)).astype(x.dtype)
+    return (x * f) / (s * f)
+
+
 def _scaled(x: Float[Array, "... 3"], axis: int) -> tuple[Array, Array, Array]:
     """`(x / s, s, s > 0)` with `s = max |x_i|` along `axis` (keepdims); `x` itself where `s = 0`.
 
     Dividing by the largest component before squaring keeps the sum of squares in `[1, 3]`:
-    no overflow (|x| up to the largest float) and no underflow (|x| down to the smallest
-    subnormal) in either dtype, where `sum(x * x)` overflows above `sqrt(max)` (1.8e19 in
-    float32, 1.3e154 in float64) and vanishes below `sqrt(tiny)`. `s` gets no gradient: the
-    quantities formed from `x / s` below are invariant under the scaling (or scale with `s`,
-    which is put back outside)."""
+    no overflow (|x| up to the largest float) and no underflow (|x| down to the smallest normal
+    number) in either dtype, where `sum(x * x)` overflows above `sqrt(max)` (1.8e19 in float32,
+    1.3e154 in float64) and vanishes below `sqrt(tiny)`. `s` gets no gradient: what is formed
+    from `x / s` below is invariant under the scaling (or scales with `s`, put back outside)."""
     s = jax.lax.stop_gradient(jnp.max(jnp.abs(x), axis=axis, keepdims=True))
     ok = s > 0
-    return x / jnp.where(ok, s, 1.0), s, ok
+    return divide_by_scale(x, jnp.where(ok, s, 1.0)), s, ok
 
 
 def safe_norm(x: Float[Array, "... 3"], axis: int = -1) -> Float[Array, "..."]:
@@ -70,10 +82,9 @@ def unit_rows(x: Float[Array, "N 3"]) -> Float[Array, "N 3"]:
     normalised exactly (a plain sum of squares over- or underflows and gave a zero normal)."""
 
     def one(v: Array) -> Array:
-        # Divide (not multiply by 1/s: that overflows for a subnormal s).
         s = jax.lax.stop_gradient(max_abs3(v[0], v[1], v[2]))
         s = jnp.where(s > 0, s, 1.0)
-        w = [fusible(v[i] / s) for i in range(3)]
+        w = [fusible(divide_by_scale(v[i], s)) for i in range(3)]
         sq = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
         ok = sq > 0
         r = fusible(jnp.sqrt(jnp.where(ok, sq, 1.0)))
