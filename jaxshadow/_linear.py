@@ -62,7 +62,6 @@ from ._geometry import (
 )
 from ._misc import arctan2, fusible, safe_norm, unit_rows
 
-
 #: Largest exponent of the cosine profile. The kernel's cost grows linearly with m (two
 #: recurrences of about m/2 and m steps per receiver); a cos^m beam has its half-power
 #: half-width at about 1.18/sqrt(m) rad (2.1 degrees at m = 1000): larger m is a laser, not a

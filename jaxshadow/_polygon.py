@@ -31,13 +31,21 @@ from ._geometry import (
     is_concrete,
     on_lit_side,
 )
-from ._misc import angle_over_sin, fusible, unit_rows
+from ._misc import angle_over_sin, divide_by_scale, fusible, max_abs3, unit_rows
 
 
 def _unit3(x: Array, y: Array, z: Array) -> tuple[Array, Array, Array]:
-    """Componentwise `v / |v|` (zero, with zero gradient, for `v = 0`)."""
+    r"""Componentwise `v / |v|` (zero, with zero gradient, for `v = 0`), scale-free.
+
+    Divided by the largest component first (`_misc.divide_by_scale`, the scale without a
+    gradient: `v / |v|` does not depend on it): the square never over- or underflows, and the
+    derivative is formed as $(1/s) D\hat u(v/s)$, never as $1/|v|^3$ -- which overflowed in
+    float32 for a receiver 1e-16 from a vertex and made a NaN gradient of a zero value."""
+    s = jax.lax.stop_gradient(max_abs3(x, y, z))
+    ok = s > 0
+    s = jnp.where(ok, s, 1.0)
+    x, y, z = (fusible(divide_by_scale(c, s)) for c in (x, y, z))
     sq = x * x + y * y + z * z
-    ok = sq > 0
     inv = jnp.where(ok, fusible(jax.lax.rsqrt(jnp.where(ok, sq, 1.0))), 0.0)
     return x * inv, y * inv, z * inv
 
@@ -101,9 +109,9 @@ def form_factor_kernel(
     path for millions of receivers), derivatives from a version vectorised over the edges
     (`(K,)` arrays: the edge code appears once, so second derivatives compile ~10x faster).
     `tests/test_polygon.py` checks that the two agree. Lambert's term is scale-free, so each vertex is
-    turned into a unit direction once; the horizon crossing of edge `a -> b` is the direction
-    $\operatorname{sgn}(h_a)(h_a \hat b - h_b \hat a)$, $h = n\cdot\hat v$ (it lies in the
-    tangent plane, between $\hat a$ and $\hat b$).
+    turned into a unit direction once; the horizon crossing of edge `a -> b` is the point
+    $(h_a \hat b - h_b \hat a)/(h_a - h_b)$ of the chord, $h = n\cdot\hat v$ (it lies in the
+    tangent plane, between $\hat a$ and $\hat b$; `_horizon_crossing`).
 
     **Arguments:** `p (3,)` receiving point (m), `n (3,)` receiver normal (unit length),
     `verts (K, 3)` padded convex polygon, counter-clockwise seen from its lit side.
@@ -124,6 +132,17 @@ def _form_factor_jvp(primals, tangents):
 EDGE_GROUP = 16
 
 
+def _horizon_crossing(a: tuple, b: tuple, ha: Array, hb: Array, crossing: Array) -> tuple:
+    r"""Where the chord from the unit direction `a` to `b` (heights $h = n\cdot\hat v$ above
+    the tangent plane) crosses it: $(h_a b - h_b a)/(h_a - h_b)$, of length between
+    $\cos(\theta_{ab}/2)$ and 1 (scale-free). Edges that do not cross get `a` (double
+    `where`): their unused crossing was rounding noise of length ~1e-9, whose derivatives
+    (~1/length^3) overflowed float32 and turned every gradient into NaN through `0 * inf`
+    (e.g. the zero-length padding edge of a padded polygon below the horizon)."""
+    den = jnp.where(crossing, ha - hb, 1.0)
+    return tuple(jnp.where(crossing, fusible((ha * bc - hb * ac) / den), ac) for ac, bc in zip(a, b, strict=True))
+
+
 def _unrolled_edges(n: tuple, dirs: list, carry: tuple) -> tuple:
     """Lambert's terms of the edges `dirs[i] -> dirs[i + 1]` (unit vertex directions from the
     receiver, normal components `n`), horizon-clipped, added to `carry = (total, exit_pt,
@@ -133,8 +152,7 @@ def _unrolled_edges(n: tuple, dirs: list, carry: tuple) -> tuple:
     up = [hi >= 0 for hi in h]
     for i in range(len(dirs) - 1):
         a, b, ha, hb = dirs[i], dirs[i + 1], h[i], h[i + 1]
-        sgn = jnp.where(ha >= 0, 1.0, -1.0)
-        x = tuple(sgn * (ha * bc - hb * ac) for ac, bc in zip(a, b, strict=True))
+        x = _horizon_crossing(a, b, ha, hb, up[i] != up[i + 1])
         start = tuple(jnp.where(up[i], ac, xc) for ac, xc in zip(a, x, strict=True))
         end = tuple(jnp.where(up[i + 1], bc, xc) for bc, xc in zip(b, x, strict=True))
         keep = up[i] | up[i + 1]
@@ -190,8 +208,7 @@ def _form_factor_compact(p: Array, n: Array, verts: Array) -> Array:
     ha = nc[0] * a[0] + nc[1] * a[1] + nc[2] * a[2]
     hb = jnp.roll(ha, -1)
     up_a, up_b = ha >= 0, hb >= 0
-    sgn = jnp.where(up_a, 1.0, -1.0)
-    x = tuple(sgn * (ha * bc - hb * ac) for ac, bc in zip(a, b, strict=True))
+    x = _horizon_crossing(a, b, ha, hb, up_a != up_b)
     start = tuple(jnp.where(up_a, ac, xc) for ac, xc in zip(a, x, strict=True))
     end = tuple(jnp.where(up_b, bc, xc) for bc, xc in zip(b, x, strict=True))
     terms = jnp.where(up_a | up_b, _edge_term_c(start, end, nc), 0.0)

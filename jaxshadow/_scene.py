@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from ._files import atomic_write
 from ._geometry import (
     check_convex_polygon,
     check_convex_polygon_cached,
@@ -28,7 +29,6 @@ from ._geometry import (
     is_concrete,
     pad_polygons_jax,
 )
-from ._files import atomic_write
 from ._linear import check_profile_exponent
 from ._mesh import Mesh, OccluderTopology, build_occluders, max_face_vertices, mesh_dicts
 

@@ -280,7 +280,7 @@ def _raises_at_run_time(fn, *args, match="not finite"):
 
 
 def test_row9_traced_values_are_checked_at_the_public_entry_points():
-    a, b = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 1.0])
+    b = np.array([1.0, 0.0, 1.0])
     _raises_at_run_time(jax.jit(js.form_factor), _NAN_P, UP, Q)
     _raises_at_run_time(jax.jit(js.form_factor), P, UP, np.where(Q == 1.0, np.nan, Q))
     _raises_at_run_time(jax.jit(lambda s: js.linear_irradiance(P, UP, s, b)), np.array([0.0, np.nan, 1.0]))
@@ -367,3 +367,37 @@ def test_row10_json_and_paths(tmp_path):
         js.load_scene(tmp_path / "missing.json")
     with pytest.raises(IsADirectoryError):
         js.save_scene(_scene(), tmp_path)
+
+
+# ---- failures found by the property suite (test_properties.py) ---------------------------
+
+
+_VG = jax.jit(jax.value_and_grad(form_factor_kernel, argnums=(0, 1, 2)))
+
+
+def _value_and_finite_gradient_f32(p, n, verts):
+    """float32 value and gradients of a 5-slot padded polygon (one compilation for both cases)."""
+    verts = np.concatenate([verts, np.repeat(verts[:1], 5 - len(verts), axis=0)])
+    val, grads = _VG(*(jnp.asarray(x, F32) for x in (p, n, verts)))
+    assert all(np.all(np.isfinite(np.asarray(g))) for g in grads)
+    return float(val)
+
+
+def test_found_float32_gradient_of_a_receiver_at_a_light_vertex():
+    # The vertex (1, -2.4e-16, 0) of a rotated triangle and the receiver (1, 0, 0): v - p is
+    # 2.4e-16 long, and 1/|v - p|^3 overflowed in float32's derivative of v/|v|: NaN gradients
+    # of a zero value (the receiver is in the light's plane).
+    v = np.array([[-0.5, 0.866025404, 0.0], [-0.5, -0.866025404, 0.0], [1.0, -2.44929360e-16, 0.0]])
+    assert _value_and_finite_gradient_f32([1.0, 0.0, 0.0], [1.0, 0.0, 0.0], v) == 0.0
+
+
+def test_found_float32_gradient_of_a_padded_polygon_below_the_horizon():
+    # A padded polygon (its first vertex repeated, as the scene pads lights of different vertex
+    # counts) whose first vertex is below the receiver's horizon: the unused horizon crossing
+    # of the zero-length padding edge was rounding noise (~1e-9 long under XLA's fused
+    # multiply-adds), whose derivative overflowed float32: NaN gradients, in jit only.
+    v = np.array([[-0.70680073, 0.15123682, -0.13113843], [-0.05929406, 0.95284256, 0.15234019],
+                  [0.47432375, -0.6667053, -0.01019427], [-0.21994245, -0.95167697, -0.21432746]])
+    p, n = np.array([1.0, 0.0, 0.0]), np.array([-0.07710583, -0.99702291, 0.0])
+    ref = float(js.form_factor(p[None], n[None], v)[0])
+    assert _rel(_value_and_finite_gradient_f32(p, n, v), ref) <= 2e-6
