@@ -15,7 +15,8 @@ which for $m = 0$ is eq. 3.10 ($C_0 = 1/4\pi$; Poulin projects $N$ onto the plan
 light and the point, $N\cdot N_p \cos\phi$ being our $(N\cdot h + t\,N\cdot u)/r$) and for
 $m = 1$ is the cosine-distributed tube of §3.2.2. $J_k$ follows the standard reduction
 $J_k = [\cos^{k-1}\phi \sin\phi]/k + (k-1)/k\, J_{k-2}$ with $\cos\phi = d/r$, $\sin\phi = t/r$,
-so any integer $m \ge 0$ is exact (closed form); non-integer $m$ is rejected at build time.
+so any integer $m \ge 0$ is exact (closed form) up to `MAX_COSINE_EXPONENT` (above: a
+build-time error); non-integer $m$ is rejected at build time.
 
 The normalisation $C_m = 1 / (2\pi W_{m+1})$, $W_k = \int_{-\pi/2}^{\pi/2}\cos^k$, makes every
 profile emit the same power $\Phi$ per unit length (DESIGN.md).
@@ -45,6 +46,7 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -71,7 +73,7 @@ MAX_COSINE_EXPONENT = 1000
 UNROLL_MAX_EXPONENT = 16
 
 
-def check_profile_exponent(m: object, what: str, minimum: int = 0) -> int:
+def check_profile_exponent(m: Any, what: str, minimum: int = 0) -> int:
     """The profile exponent as a Python int, or a `ValueError` (not an integer, below `minimum`,
     above `MAX_COSINE_EXPONENT`)."""
     ok = isinstance(m, (int, float, np.integer, np.floating)) and not isinstance(m, bool)
@@ -258,8 +260,8 @@ def linear_irradiance(
 
     - `points`, `normals`: `(N, 3)` receivers (m) and their normals (normalised here).
     - `start`, `end`: `(3,)` endpoints of the segment (m); cast to the dtype of `points`.
-    - `m`: profile exponent, a Python int: 0 for the isotropic tube, $m \ge 1$ for the
-      $\cos^m$ tube (Poulin §3.2.2).
+    - `m`: profile exponent, a Python int: 0 for the isotropic tube, $1 \le m \le$
+      `MAX_COSINE_EXPONENT` (1000) for the $\cos^m$ tube (Poulin §3.2.2).
 
     **Returns:** `(N,)`; `+inf` for a receiver on the segment itself.
     """

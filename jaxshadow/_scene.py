@@ -95,8 +95,9 @@ class LinearLight(eqx.Module):
     - `profile`: `"isotropic"` (per-length intensity $\\Phi/4\\pi$) or `"cosine"` (intensity
       $\\propto \\cos^m\\beta$, $\\beta$ from the plane perpendicular to the segment, normalised
       to emit the same $\\Phi$). Static.
-    - `exponent`: the integer $m \\ge 1$ of the cosine profile (closed form for every
-      integer; non-integer $m$ is rejected). Static.
+    - `exponent`: the integer $1 \\le m \\le 1000$ of the cosine profile (closed form for
+      every integer; non-integer $m$ and $m$ above `_linear.MAX_COSINE_EXPONENT` are
+      rejected). Static.
     """
 
     start: Float[Array, "3"]

@@ -28,6 +28,7 @@ import inverse
 import jaxshadow as js
 from jaxshadow._linear import MAX_COSINE_EXPONENT, linear_irradiance_kernel
 from jaxshadow._polygon import form_factor_kernel
+from jaxshadow._specular import MAX_DEGREE
 
 F32 = np.float32
 UP = np.array([[0.0, 0.0, 1.0]])
@@ -225,6 +226,14 @@ def test_row6_large_cosine_exponent_has_a_bounded_program_and_the_right_value():
         ref = float(mp_linear(np.asarray(p), np.asarray(n), np.asarray(a), np.asarray(b), m))
         got = float(js.linear_irradiance(np.asarray(p)[None], np.asarray(n)[None], a, b, m)[0])
         assert _rel(got, ref) <= 1e-12
+
+
+def test_resource_limit_chebyshev_degree():
+    # The fit's matrices and the traced program grow with the degree: a clear error above it.
+    sc = js.Scene([js.PolygonLight(Q, 1.0)])
+    for degree in (MAX_DEGREE + 1, 10**6, True):
+        with pytest.raises(ValueError, match=r"degree must be a Python int in \[2, 64\]"):
+            js.specular(sc, P, UP, [0.0, 0.0, 5.0], 10.0, degree=degree)
 
 
 # ---- row 7 -------------------------------------------------------------------------------
