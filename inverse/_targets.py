@@ -54,10 +54,15 @@ def _check_rows(name: str, a: np.ndarray, *, nonneg: bool = False, positive: boo
 
 
 def _unit_rows(v: Array) -> Array:
-    """Rows divided by their length, scale-free (`jaxshadow._misc.safe_normalize`): a normal of
-    length 1e-160 or 1e160 (valid input) neither under- nor overflows when squared (a plain
-    norm gave 0/0 = NaN and inf/inf)."""
-    return safe_normalize(v)
+    """Rows divided by their length. A plain norm where the sum of squares is a normal number
+    (so that unit rows come back bit for bit and files round-trip exactly), else scale-free
+    (`jaxshadow._misc.safe_normalize`): a normal of length 1e-160 or 1e160 (valid input)
+    gave 0/0 = NaN or inf/inf."""
+    sq = jnp.sum(v * v, axis=-1, keepdims=True)
+    fi = jnp.finfo(v.dtype)
+    plain = (sq > fi.tiny) & (sq < fi.max)
+    norm = jnp.linalg.norm(jnp.where(plain, v, 1.0), axis=-1, keepdims=True)
+    return jnp.where(plain, v / norm, safe_normalize(v))
 
 
 def _per_target_rgb(x: Any, n: int, name: str) -> Array:

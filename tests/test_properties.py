@@ -36,6 +36,7 @@ case in `test_reliability.py` (`test_found_*`).
 from __future__ import annotations
 
 import math
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -146,9 +147,16 @@ def polar_form_factor(p, n, verts):
 
     cuts = sorted({math.atan2(y[1], y[0]) for y in poly} | {-math.pi, math.pi})
     total = 0.0
-    for lo, hi in zip(cuts[:-1], cuts[1:], strict=True):
-        if hi > lo:
-            total += integrate.quad(radial, lo, hi, epsabs=1e-15, epsrel=1e-13, limit=200)[0]
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", integrate.IntegrationWarning)
+            for lo, hi in zip(cuts[:-1], cuts[1:], strict=True):
+                if hi > lo:
+                    total += integrate.quad(radial, lo, hi, epsabs=1e-15, epsrel=1e-13, limit=200)[0]
+    except integrate.IntegrationWarning:
+        # quad doubts its result (a foot point within rounding of an edge): mpmath's 60-digit
+        # contour sum, the other independent reference.
+        total = float(mp_form_factor(p, n, v))
     return total, cond / (2 * math.pi)
 
 
@@ -262,8 +270,16 @@ def _check_polygon(data):
         raise
     ref, cond = polar_form_factor(pr, nr, vr)
     rtol, floor = _tolerances(dt)
-    assert np.isfinite(f)
-    assert abs(f - ref) <= rtol * ref + floor * cond, (kind, dt.__name__, f, ref, cond)
+    tol = rtol * ref + floor * cond
+    assert np.isfinite(f) and -tol <= f <= 1.0 + tol, (kind, dt.__name__, f, ref, cond)
+    # Within the rounding of the light's coordinates of its plane, the side is undecidable
+    # (the documented validity bound of `form_factor`): F is 0 or the lit-side value.
+    v64, p64 = vr.astype(F64), pr.astype(F64)
+    ne = _unit(np.sum(np.cross(v64, np.roll(v64, -1, axis=0)), axis=0))
+    if abs(ne @ (p64 - v64[0])) <= 8 * np.finfo(dt).eps * np.max(np.abs(v64 - p64)):
+        assert ref == 0.0 or min(f, abs(f - ref)) <= tol, (kind, dt.__name__, f, ref)
+        return
+    assert abs(f - ref) <= tol, (kind, dt.__name__, f, ref, cond)
 
 
 @CI

@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 from shapes import square_light
 from test_clip import reference_ff
-from test_stability import mp_linear
+from test_stability import mp_form_factor, mp_linear
 
 import inverse
 import jaxshadow as js
@@ -410,3 +410,16 @@ def test_found_float32_gradient_of_a_padded_polygon_below_the_horizon():
     p, n = np.array([1.0, 0.0, 0.0]), np.array([-0.07710583, -0.99702291, 0.0])
     ref = float(js.form_factor(p[None], n[None], v)[0])
     assert _rel(_value_and_finite_gradient_f32(p, n, v), ref) <= 2e-6
+
+
+def test_found_float32_receiver_near_the_light_plane_with_a_cut_horizon():
+    # The receiver 1e-6 from the plane of a tilted triangle (near its centre), its horizon
+    # cutting the light in two: the closing horizon edge spans nearly pi, and its term took
+    # n . Gamma from the direction of a x b, rounding noise there: float32 F off by 7.6e-6
+    # (3.3e-5 relative) on a problem whose 1-ulp input perturbations move F by 2e-8.
+    v = np.array([[-0.5, 0.467915523, 0.728735249], [-0.5, -0.467915523, -0.728735249], [1.0, -1.32335898e-16, -2.06100950e-16]])
+    p, n = np.array([2.13662521e-23, -8.41470985e-07, 5.40302306e-07]), np.array([0.0, 0.0, 1.0])
+    v, p, n = (x.astype(F32) for x in (v, p, n))
+    ref = float(mp_form_factor(p.astype(float), n.astype(float), v.astype(float)))
+    assert ref == pytest.approx(0.22984796, abs=1e-8)
+    assert abs(float(js.form_factor(p[None], n[None], v)[0]) - ref) <= 2e-7
