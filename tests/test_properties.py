@@ -375,10 +375,13 @@ def _check_gradients(data):
     val, grads = _grad_lin[m](args[0], args[1], args[2][0], args[2][1])
     assert not np.isnan(float(val)) and all(np.all(np.isfinite(np.asarray(g))) for g in grads), kind
     if kind == "generic" and dt == F64:
-        # Away from the kinks (a vertex crossing the horizon within the difference step).
+        # Away from the kinks (a vertex crossing the horizon within the difference step) and
+        # from the light's plane (F jumps to 0 across it).
         rel = verts - p
         heights = rel @ _unit(n) / np.linalg.norm(rel, axis=1)
         assume(np.min(np.abs(heights)) > 1e-3)
+        ne = _unit(np.sum(np.cross(verts, np.roll(verts, -1, axis=0)), axis=0))
+        assume(abs(ne @ rel[0]) > 1e-3)
         v = jnp.asarray(verts)
         check_grads(lambda q, nn: _ff(q, nn, v), (jnp.asarray(p), jnp.asarray(_unit(n))), order=1, modes=("fwd", "rev"), eps=1e-6)
 
