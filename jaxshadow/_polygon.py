@@ -145,12 +145,18 @@ def _horizon_crossing(a: tuple, b: tuple, ha: Array, hb: Array, crossing: Array)
 
 def _horizon_arc_term(a: tuple, b: tuple, n: tuple) -> Array:
     r"""Lambert's term of the closing edge `a -> b`, which lies in the tangent plane: there
-    $\hat\Gamma = \pm n$ and the term is the signed angle $\operatorname{atan2}(n\cdot(a	imes b),
-    a\cdot b)$. `_edge_term_c` would take $n\cdot\hat\Gamma$ from the direction of
-    $a 	imes b$, which is rounding noise when the crossings are nearly opposite (a receiver
-    close to the light's plane, its horizon cutting the light in two): float32 lost 3e-5 of F."""
+    $\hat\Gamma = \pm\hat n$, and the term is $|n|$ times the signed angle
+    $\operatorname{atan2}(\hat n\cdot(a\times b), a\cdot b)$ ($|n|$ keeps the kernel's
+    degree-1 homogeneity in `n`, which its derivatives in `n` rely on). `_edge_term_c` would
+    take $n\cdot\hat\Gamma$ from the direction of $a \times b$, which is rounding noise when the
+    crossings are nearly opposite (a receiver close to the light's plane, its horizon cutting
+    the light in two): float32 lost 3e-5 of F."""
     c = n[0] * (a[1] * b[2] - a[2] * b[1]) + n[1] * (a[2] * b[0] - a[0] * b[2]) + n[2] * (a[0] * b[1] - a[1] * b[0])
-    return arctan2(c, a[0] * b[0] + a[1] * b[1] + a[2] * b[2])
+    nn2 = n[0] * n[0] + n[1] * n[1] + n[2] * n[2]
+    ok = nn2 > 0
+    nn = fusible(jnp.sqrt(jnp.where(ok, nn2, 1.0)))
+    angle = arctan2(fusible(c / nn), a[0] * b[0] + a[1] * b[1] + a[2] * b[2])
+    return jnp.where(ok, nn * angle, 0.0)
 
 
 def _unrolled_edges(n: tuple, dirs: list, carry: tuple) -> tuple:

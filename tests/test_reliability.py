@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from jax.test_util import check_grads
 from shapes import square_light
 from test_clip import reference_ff
 from test_stability import mp_form_factor, mp_linear
@@ -222,6 +223,8 @@ def test_row6_large_cosine_exponent_has_a_bounded_program_and_the_right_value():
         return len(jax.make_jaxpr(lambda *x: linear_irradiance_kernel(*x, m))(p, n, a, b).eqns)
 
     assert size(40) == size(MAX_COSINE_EXPONENT)
+    # The loop form is differentiable like the unrolled one (forward and reverse, order 2).
+    check_grads(lambda q, nn: linear_irradiance_kernel(q, nn, a, b, 40), (p + 0.1, n), order=2, modes=("fwd", "rev"))
     for m in (40, MAX_COSINE_EXPONENT):
         ref = float(mp_linear(np.asarray(p), np.asarray(n), np.asarray(a), np.asarray(b), m))
         got = float(js.linear_irradiance(np.asarray(p)[None], np.asarray(n)[None], a, b, m)[0])
