@@ -109,7 +109,6 @@ from ._geometry import (
     check_finite,
     check_finite_leaves,
     is_concrete,
-    newell_normal,
     on_lit_side,
 )
 
@@ -528,7 +527,7 @@ def spline_shadow(
 def _spline_shadow_faces(emitters: Array, faces: Array, points: Array) -> Array:
     # Orient every face inward, towards the mean of all vertices (inside a convex polyhedron).
     centre = jnp.mean(faces.reshape(-1, 3), axis=0)
-    inward = jax.vmap(lambda f: jnp.dot(newell_normal(f), centre - f[0]) > 0)(faces)
+    inward = jax.vmap(lambda f: on_lit_side(centre, f))(faces)  # translation- and scale-free
     faces = jnp.where(inward[:, None, None], faces, faces[:, ::-1, :])
     return jax.vmap(spline_shadow_faces_kernel, in_axes=(0, None, None))(points, emitters, faces)
 
