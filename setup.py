@@ -12,6 +12,7 @@ kernels, which are exact but slower for many occluders. IEEE arithmetic and no f
 multiply-adds (`-ffp-contract=off`): the host decisions must round as NumPy's and XLA's do.
 """
 
+import glob
 import os
 
 from setuptools import Extension, setup
@@ -34,6 +35,7 @@ setup(
         Extension(
             "jaxshadow._shadowc",
             sources=["jaxshadow/_shadowc.cc"],
+            depends=sorted(glob.glob("jaxshadow/_shadowc/*.h")),
             include_dirs=_INC,
             define_macros=[("JAXSHADOW_FFI", "1")] if _INC else [],
             extra_compile_args=["-std=c++17", *_FLAGS],
