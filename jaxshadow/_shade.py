@@ -46,6 +46,7 @@ from ._misc import map_chunks, safe_normalize, unit_rows
 from ._point import directional_irradiance_kernel, point_irradiance_kernel
 from ._polygon import form_factor_kernel
 from ._scene import DirectionalLight, LinearLight, Material, PointLight, PolygonLight, Scene
+from ._shadows import DEFAULT_OPTIONS, Lambert, Phong, ShadowOptions
 from ._specular import (
     DEFAULT_DEGREE,
     contour_specular_kernel,
@@ -217,8 +218,77 @@ def combine_terms(terms: tuple, shape: tuple, dtype: Any) -> Array:
 
 
 
+# --------------------------------------------------------------------------------------
+# Scenes with occluders: the shadow engine (`_shadows`), three ways
+# --------------------------------------------------------------------------------------
+
+
+def _value_of(x: Any) -> Any:
+    """`x` as a NumPy array when its value is known (concrete, or a tracer of an eager
+    `jax.grad`/`jax.jacfwd` that carries its primal), else None."""
+    if not isinstance(x, jax.core.Tracer):
+        return np.asarray(x)
+    try:
+        return np.asarray(jax.extend.core.concrete_or_error(None, x))
+    except jax.errors.ConcretizationTypeError:
+        return None
+
+
+def _valued(tree: Any) -> Any:
+    """`tree` with every array leaf replaced by its NumPy value, or None if one is abstract."""
+    leaves, treedef = jax.tree_util.tree_flatten(tree)
+    vals = []
+    for leaf in leaves:
+        v = _value_of(leaf) if isinstance(leaf, (jax.Array, np.ndarray, jax.core.Tracer)) else leaf
+        if v is None:
+            return None
+        vals.append(v)
+    return jax.tree_util.tree_unflatten(treedef, vals)
+
+
+def _unit_np(n: np.ndarray) -> np.ndarray:
+    return np.asarray(unit_rows(jnp.asarray(n)))
+
+
+@eqx.filter_jit
+def _device_impl(scene: Scene, integ: Any, points: Array, normals: Array, eyes: Array | None) -> Array:
+    return _shadows.device_values(scene, integ, points, unit_rows(normals), eyes)
+
+
+def _shadowed(scene: Scene, integ: Any, points: Array, normals: Array, eyes: Array | None,
+              options: ShadowOptions, what: str) -> Array:
+    """`(N, 3)` for a scene with occluders through the shadow engine: on the host from concrete
+    values (`host_values`; `planned_values` when the inputs carry derivatives), in the compiled
+    program (`traced_values`, static capacity, overflow an error) when they are abstract."""
+    tree = (scene, integ, points, normals, eyes)
+    if not options.use_engine():
+        _check_values_eagerly(points, normals, what)
+        out = _device_impl(scene, integ, points, normals, eyes)
+        return eqx.error_if(out, ~inputs_ok(points, normals), f"{what}: a point or normal is not finite, or a normal is zero.")
+    if not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree)):
+        _check_values_eagerly(points, normals, what)
+        p = np.asarray(points)
+        e = None if eyes is None else np.asarray(eyes)
+        return jnp.asarray(_shadows.host_values(scene, integ, p, _unit_np(normals), e))
+    val = _valued((scene, points, normals))
+    if val is not None:
+        vscene, p, n = val
+        _check_values_eagerly(p, n, what)
+        return _shadows.planned_values(scene, vscene, integ, points, unit_rows(normals), eyes, (p, _unit_np(n)))
+    total, overflow = _shadows.traced_values(scene, integ, points, unit_rows(normals), eyes, options.capacity)
+    total = eqx.error_if(total, ~inputs_ok(points, normals),
+                         f"{what}: a point or normal is not finite, or a normal is zero.")
+    return eqx.error_if(total, overflow, f"{what}: a receiver's visible region has more than {options.capacity} "
+                        "boundary edges (or candidate faces); pass shadows=jaxshadow.ShadowOptions(capacity=...) "
+                        "with a larger capacity.")
+
+
 def irradiance(
-    scene: Scene, points: Float[ArrayLike, "N 3"], normals: Float[ArrayLike, "N 3"]
+    scene: Scene,
+    points: Float[ArrayLike, "N 3"],
+    normals: Float[ArrayLike, "N 3"],
+    *,
+    shadows: ShadowOptions | None = None,
 ) -> Float[Array, "N 3"]:
     r"""Direct irradiance $E$ (W/m^2, RGB) at receivers from every light of the scene.
 
@@ -231,16 +301,18 @@ def irradiance(
     - `scene`: a `Scene`.
     - `points`: `(N, 3)` receiving points (m).
     - `normals`: `(N, 3)` receiver normals (normalised here; zero vectors are an error).
+    - `shadows`: `ShadowOptions` (static): which shadow engine, and the boundary capacity per
+      receiver when the values are abstract (inside `jax.jit`/`jax.vmap`). Default: the
+      compiled host engine when it is built.
 
     **Returns:** `(N, 3)` irradiance, dtype following `points`.
     """
     scene = _check_scene(scene, "irradiance")
     points, normals = check_points_normals(points, normals, "irradiance", values=False)
-    if _shadows.applicable(scene, points, normals):
-        _check_values_eagerly(points, normals, "irradiance")
-        return jnp.asarray(_shadows.irradiance(scene, points, normals))
-    cap = _plan_max_active(scene, points, normals)
-    return evaluate_checked(lambda p, n: _irradiance_checked(scene, p, n, cap), points, normals, "irradiance")
+    options = _check_options(shadows, "irradiance")
+    if scene.occluders is not None:
+        return _shadowed(scene, Lambert(), points, normals, None, options, "irradiance")
+    return evaluate_checked(lambda p, n: _irradiance_checked(scene, p, n, None), points, normals, "irradiance")
 
 
 @functools.partial(jax.jit, static_argnums=3)
@@ -256,6 +328,14 @@ def _irradiance_checked(scene: Scene, points: Array, normals: Array, max_active:
     e = jax.lax.cond(ok, lambda t: combine_terms(t, points.shape, points.dtype),
                      lambda t: jnp.zeros(points.shape, points.dtype), terms)
     return e, ok
+
+
+def _check_options(shadows: Any, what: str) -> ShadowOptions:
+    if shadows is None:
+        return DEFAULT_OPTIONS
+    if not isinstance(shadows, ShadowOptions):
+        raise ValueError(f"{what}: shadows must be a jaxshadow.ShadowOptions, got {type(shadows).__name__}.")
+    return shadows
 
 
 def _check_eye(eye: Any, points: Array, what: str) -> Array:
@@ -380,6 +460,7 @@ def specular(
     *,
     method: str = "chebyshev",
     degree: int = DEFAULT_DEGREE,
+    shadows: ShadowOptions | None = None,
 ) -> Float[Array, "N 3"]:
     r"""Phong specular integral $S$ (RGB) at receivers, shadows included.
 
@@ -398,6 +479,7 @@ def specular(
     - `method`: `"chebyshev"` (default: Chebyshev fit of the lobe with a cut-off angle) or
       `"exact"` (recurrence for integer $n$, graded quadrature otherwise). Static.
     - `degree`: Chebyshev degree (static).
+    - `shadows`: `ShadowOptions` (static), as for `irradiance`.
 
     **Returns:** `(N, 3)`, dtype following `points`.
     """
@@ -407,11 +489,11 @@ def specular(
         raise ValueError(f"specular: method must be 'chebyshev' or 'exact', got {method!r}.")
     eyes = _check_eye(eye, points, "specular")
     e = _check_exponent(exponent, points.dtype, "specular")
-    if _shadows.applicable(scene, points, normals, eyes, e):
-        return jnp.asarray(_shadows.specular(scene, points, normals, eyes, e, method, int(degree)))
-    cap = _plan_max_active(scene, points, normals)
+    options = _check_options(shadows, "specular")
+    if scene.occluders is not None:
+        return _shadowed(scene, Phong(e, method, int(degree)), points, normals, eyes, options, "specular")
     return map_chunks(
-        lambda p, n, v: _specular_impl(scene, p, n, v, e, method, int(degree), cap),
+        lambda p, n, v: _specular_impl(scene, p, n, v, e, method, int(degree), None),
         (points, normals, eyes),
     )
 
@@ -425,13 +507,14 @@ def shade(
     *,
     method: str = "chebyshev",
     degree: int = DEFAULT_DEGREE,
+    shadows: ShadowOptions | None = None,
 ) -> Float[Array, "N 3"]:
     r"""Outgoing radiance $L = k_a L_a + \frac{k_d}{\pi} E + k_s S$ per RGB channel (Poulin eq. 5.14).
 
     `E` from `irradiance`, `S` from `specular` with the material's exponent; shadows included.
 
     **Arguments:** `scene`, `material` (`Material`), `points`, `normals` `(N, 3)`, `eye` `(3,)`
-    or `(N, 3)`; `method`, `degree` as for `specular`.
+    or `(N, 3)`; `method`, `degree`, `shadows` as for `specular`.
 
     **Returns:** `(N, 3)` radiance (W m^-2 sr^-1).
     """
@@ -446,16 +529,15 @@ def shade(
     n = _check_exponent(material.exponent, dt, "shade")
     ka, kd, ks = (jnp.asarray(k).astype(dt) for k in (material.ka, material.kd, material.ks))
     la = scene.ambient.astype(dt)
-    if _shadows.applicable(scene, points, normals, eyes, n, material):
-        _check_values_eagerly(points, normals, "shade")
-        e = jnp.asarray(_shadows.irradiance(scene, points, normals))
-        s = jnp.asarray(_shadows.specular(scene, points, normals, eyes, n, method, int(degree)))
+    options = _check_options(shadows, "shade")
+    if scene.occluders is not None:
+        e = _shadowed(scene, Lambert(), points, normals, None, options, "shade")
+        s = _shadowed(scene, Phong(n, method, int(degree)), points, normals, eyes, options, "shade")
         return ka[None, :] * la[None, :] + kd[None, :] / jnp.pi * e + ks[None, :] * s
-    cap = _plan_max_active(scene, points, normals)
     # The same compiled irradiance as `irradiance` (its flag checks the points and normals).
-    e = evaluate_checked(lambda p, q: _irradiance_checked(scene, p, q, cap), points, normals, "shade")
+    e = evaluate_checked(lambda p, q: _irradiance_checked(scene, p, q, None), points, normals, "shade")
     s = map_chunks(
-        lambda p, q, v: _specular_impl(scene, p, q, v, n, method, int(degree), cap),
+        lambda p, q, v: _specular_impl(scene, p, q, v, n, method, int(degree), None),
         (points, normals, eyes),
     )
     ka, kd, ks = (jnp.asarray(k).astype(dt) for k in (material.ka, material.kd, material.ks))
