@@ -1,0 +1,3 @@
+"""placeholder"""
+def add_render_command(sub):
+    pass
