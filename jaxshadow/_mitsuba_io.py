@@ -26,7 +26,7 @@ way Mitsuba reads it (includes, defaults, transforms, OBJ/PLY/serialized files):
 | BSDF | Material | loss |
 |---|---|---|
 | `diffuse` (rgb $\rho$) | $k_d = \rho$ | exact |
-| `plastic`, `roughplastic` ($\rho$, $\eta$, $\alpha$) | $k_d = \rho(1-F_0)^2/(\eta^2(1-\rho F_{dr}))$, $k_s = F_0$, $n = 2/\alpha^2-2$ | $k_d$ exact at normal incidence only; the Fresnel-weighted Beckmann lobe becomes a Phong lobe (Walter et al. 2007) |
+| `plastic`, `roughplastic` ($\rho$, $\eta$, $\alpha$) | $k_d = \pi f_d(n, n)$, Mitsuba's own diffuse component at normal incidence ($\rho(1-F_0)^2/(\eta^2(1-F_{dr}))$ by default), $k_s = F_0$, $n = 2/\alpha^2-2$ | $k_d$ exact at normal incidence only; the Fresnel-weighted Beckmann lobe becomes a Phong lobe (Walter et al. 2007) |
 | `conductor`, `roughconductor` ($\eta$, $k$, $R$, $\alpha$) | $k_s = R\,F(0)$, $k_d = 0$ | Fresnel at normal incidence only; a smooth one gets $n$ = `SMOOTH_EXPONENT` |
 | `twosided` | its inner BSDF | |
 | `blendbsdf` of `diffuse` and `roughconductor` (what `material_to_bsdf` writes) | $k_d = (1-w)\rho$, $k_s = wR$ | the lobe's shape as above |
@@ -292,7 +292,7 @@ def material_from_bsdf(mi: Any, bsdf: Any, name: str = "bsdf") -> Material:
 
     def fallback(why: str) -> Material:
         _warn(f"BSDF {name!r} ({kind}): {why}; using Material() (k_d = 0.5, no specular).")
-        return Material()
+        return Material(ka=np.zeros(3), kd=np.full(3, 0.5), ks=np.zeros(3), exponent=1.0)
 
     if kind == "TwoSidedBRDF":
         inner = {k[len("brdf_0."):]: k for k in keys if k.startswith("brdf_0.")}
@@ -303,17 +303,16 @@ def material_from_bsdf(mi: Any, bsdf: Any, name: str = "bsdf") -> Material:
         rho = _rgb_param(p, "reflectance.value")
         if rho is None or textured("reflectance"):
             return fallback("a textured reflectance is not represented")
-        return Material(ka=0.0, kd=rho, ks=0.0, exponent=1.0)
+        return Material(ka=np.zeros(3), kd=rho, ks=np.zeros(3), exponent=1.0)
     if kind in ("SmoothPlastic", "RoughPlastic"):
         rho = _rgb_param(p, "diffuse_reflectance.value")
         if rho is None or textured("diffuse_reflectance"):
             return fallback("a textured diffuse_reflectance is not represented")
         eta = float(np.asarray(p["eta"]).ravel()[0])
         f0 = ((eta - 1) / (eta + 1)) ** 2
-        fdr = float(np.asarray(mi.fresnel_diffuse_reflectance(1.0 / eta)).ravel()[0])
-        kd = rho * (1 - f0) ** 2 / (eta**2 * (1 - rho * fdr))
+        kd = np.pi * _diffuse_at_normal_incidence(mi, bsdf)
         n = SMOOTH_EXPONENT if kind == "SmoothPlastic" else _exponent_from_alpha(float(np.asarray(p["alpha"]).ravel()[0]))
-        return Material(ka=0.0, kd=kd, ks=f0, exponent=n)
+        return Material(ka=np.zeros(3), kd=kd, ks=np.full(3, f0), exponent=n)
     if kind in ("SmoothConductor", "RoughConductor"):
         if any(textured(k) for k in ("eta", "k", "specular_reflectance", "alpha")) or "alpha_u.value" in keys:
             return fallback("textured or anisotropic parameters are not represented")
@@ -322,7 +321,7 @@ def material_from_bsdf(mi: Any, bsdf: Any, name: str = "bsdf") -> Material:
         refl = np.ones(3) if refl is None else refl
         ks = refl * ((eta - 1) ** 2 + k**2) / ((eta + 1) ** 2 + k**2)
         n = SMOOTH_EXPONENT if kind == "SmoothConductor" else _exponent_from_alpha(float(np.asarray(p["alpha.value"]).ravel()[0]))
-        return Material(ka=0.0, kd=0.0, ks=ks, exponent=n)
+        return Material(ka=np.zeros(3), kd=np.zeros(3), ks=ks, exponent=n)
     if kind == "BlendBSDF":
         w = np.asarray(p["weight.value"], np.float64).ravel() if "weight.value" in keys else None
         rho = _rgb_param(p, "bsdf_0.reflectance.value")
@@ -330,8 +329,20 @@ def material_from_bsdf(mi: Any, bsdf: Any, name: str = "bsdf") -> Material:
         alpha = np.asarray(p["bsdf_1.alpha.value"], np.float64).ravel() if "bsdf_1.alpha.value" in keys else None
         if w is None or w.size != 1 or rho is None or refl is None or alpha is None or alpha.size != 1:
             return fallback("only the blend of a diffuse and a roughconductor that material_to_bsdf writes is read")
-        return Material(ka=0.0, kd=(1 - w[0]) * rho, ks=w[0] * refl, exponent=_exponent_from_alpha(float(alpha[0])))
+        return Material(ka=np.zeros(3), kd=(1 - w[0]) * rho, ks=w[0] * refl, exponent=_exponent_from_alpha(float(alpha[0])))
     return fallback("no Phong counterpart")
+
+
+def _diffuse_at_normal_incidence(mi: Any, bsdf: Any) -> np.ndarray:
+    """Mitsuba's own value of a BSDF's diffuse component for wi = wo = the normal (RGB)."""
+    import drjit as dr
+
+    si = dr.zeros(mi.SurfaceInteraction3f)
+    si.sh_frame = mi.Frame3f(mi.Vector3f(0, 0, 1))
+    si.wi = mi.Vector3f(0, 0, 1)
+    ctx = mi.BSDFContext(mi.TransportMode.Radiance, int(mi.BSDFFlags.DiffuseReflection))
+    f = np.asarray(bsdf.eval(ctx, si, mi.Vector3f(0, 0, 1)), np.float64).ravel()
+    return np.broadcast_to(f, (3,)).copy()
 
 
 def _child(bsdf: Any, i: int) -> Any:
@@ -397,12 +408,21 @@ def from_mitsuba(path_or_dict: Any, *, disc_segments: int = DISC_SEGMENTS,
     cannot be represented raise an `UnsupportedMitsubaElementWarning` naming them.
     """
     mi = _mi()
-    ms = _load(mi, path_or_dict)
+    scene, receivers, materials, _ = convert_scene(mi, _load(mi, path_or_dict), disc_segments, sphere_segments)
+    return scene, receivers, materials
+
+
+def convert_scene(mi: Any, ms: Any, disc_segments: int = DISC_SEGMENTS, sphere_segments: int = SPHERE_SEGMENTS,
+                  textures: bool = False) -> tuple[Scene, list[ReceiverMesh], list[Material], list[Any]]:
+    """`from_mitsuba` of a loaded `mi.Scene`, plus the Mitsuba shape of each receiver. With
+    `textures`, a `diffuse` BSDF with a textured reflectance raises no warning (the renderer
+    looks the texture up per pixel)."""
     if int(disc_segments) < 3 or int(sphere_segments) < 3:
         raise ValueError("from_mitsuba: disc_segments and sphere_segments must be >= 3.")
     lights: list[Any] = []
     receivers: list[ReceiverMesh] = []
     materials: list[Material] = []
+    shapes: list[Any] = []
     for i, shape in _ordered(ms.shapes()):
         name = _name(shape, "shape", i)
         if shape.is_sensor():
@@ -415,6 +435,10 @@ def from_mitsuba(path_or_dict: Any, *, disc_segments: int = DISC_SEGMENTS,
                 _warn(f"emitter on shape {name!r} ({emitter.class_name()}): only area emitters of uniform RGB "
                       "radiance are represented; it is left out.")
                 continue
+            if not (shape.is_mesh() or shape.class_name() == "Disk"):
+                _warn(f"emitter on shape {name!r} (AreaLight on a {shape.class_name()}): only meshes and discs "
+                      "become polygon lights; it is left out.")
+                continue
             if geom is None:
                 continue
             lights += [PolygonLight(poly, radiance) for poly in emitter_polygons(geom[0], geom[1])]
@@ -423,7 +447,11 @@ def from_mitsuba(path_or_dict: Any, *, disc_segments: int = DISC_SEGMENTS,
             continue
         v, f, nrm = geom
         receivers.append(ReceiverMesh(v, f, nrm, name=name))
-        materials.append(material_from_bsdf(mi, shape.bsdf(), f"{name}.bsdf"))
+        if textures and textured_diffuse(mi, shape.bsdf()):
+            materials.append(Material(ka=np.zeros(3), kd=np.full(3, 0.5), ks=np.zeros(3), exponent=1.0))
+        else:
+            materials.append(material_from_bsdf(mi, shape.bsdf(), f"{name}.bsdf"))
+        shapes.append(shape)
     for i, emitter in _ordered(ms.emitters()):
         kind = emitter.class_name()
         if kind == "AreaLight":
@@ -444,7 +472,15 @@ def from_mitsuba(path_or_dict: Any, *, disc_segments: int = DISC_SEGMENTS,
         _warn(f"emitter {name!r} ({kind}) has no jaxshadow counterpart (point, directional and area "
               "emitters of uniform RGB do); it is left out.")
     occluders = [r.occluder() for r in receivers]
-    return Scene(lights, occluders=occluders or None), receivers, materials
+    return Scene(lights, occluders=occluders or None), receivers, materials, shapes
+
+
+def textured_diffuse(mi: Any, bsdf: Any) -> bool:
+    """Whether a BSDF is a `diffuse` (possibly `twosided`) with a textured reflectance."""
+    if bsdf.class_name() == "TwoSidedBRDF":
+        bsdf = _child(bsdf, 0)
+    keys = set(mi.traverse(bsdf).keys())
+    return bsdf.class_name() == "SmoothDiffuse" and "reflectance.value" not in keys
 
 
 def read_sensor(path_or_dict: Any) -> dict | None:
@@ -573,3 +609,54 @@ def write_mitsuba_xml(path: str | os.PathLike, scene: Scene, receivers: Any = ()
     with atomic_write(path) as fh:
         fh.write('<?xml version="1.0" encoding="utf-8"?>\n<!-- written by jaxshadow -->\n' + text + "\n")
 
+
+
+_EXAMPLE = """<?xml version="1.0" encoding="utf-8"?>
+<!-- jaxshadow's example scene: a rectangle light, a torus (OBJ, {faces} triangles) and a floor -->
+<scene version="3.0.0">
+  <integrator type="direct"/>
+  <sensor type="perspective">
+    <float name="fov" value="40"/>
+    <transform name="to_world"><lookat origin="0, -3.4, 2.6" target="0, 0, 0.3" up="0, 0, 1"/></transform>
+    <sampler type="independent"><integer name="sample_count" value="{spp}"/></sampler>
+    <film type="hdrfilm">
+      <integer name="width" value="{res}"/><integer name="height" value="{res}"/><rfilter type="box"/>
+    </film>
+  </sensor>
+  <shape type="rectangle" id="lamp">
+    <transform name="to_world">
+      <scale x="0.3" y="0.3"/><rotate x="1" angle="180"/><translate x="0.15" y="0.1" z="1.6"/>
+    </transform>
+    <emitter type="area"><rgb name="radiance" value="8, 8, 8"/></emitter>
+  </shape>
+  <shape type="obj" id="torus">
+    <string name="filename" value="torus.obj"/>
+    <bsdf type="diffuse"><rgb name="reflectance" value="0.7, 0.3, 0.2"/></bsdf>
+  </shape>
+  <shape type="rectangle" id="floor">
+    <transform name="to_world"><scale x="2" y="2"/></transform>
+    <bsdf type="diffuse"><rgb name="reflectance" value="0.6, 0.6, 0.6"/></bsdf>
+  </shape>
+</scene>
+"""
+
+
+def write_example_scene(directory: str | os.PathLike, resolution: int = 256, spp: int = 16) -> str:
+    """Write jaxshadow's example Mitsuba scene into `directory`: `scene.xml` (a 0.6 m square
+    light 1.6 m above a 4 m floor, a tilted torus of 768 triangles, `torus.obj`, between them; a
+    camera of `resolution` x `resolution` pixels with a box filter, `spp` samples per pixel).
+
+    **Returns:** the path of `scene.xml`.
+    """
+    from ._meshio import _trimesh, write_mesh
+
+    trimesh = _trimesh()
+    directory = os.fspath(directory)
+    torus = trimesh.creation.torus(0.35, 0.12, major_sections=32, minor_sections=12)
+    torus.apply_transform(trimesh.transformations.rotation_matrix(np.radians(20), [1, 0, 0]))
+    torus.apply_translation([0.1, 0.0, 0.6])
+    write_mesh(os.path.join(directory, "torus.obj"), torus.vertices, torus.faces)
+    path = os.path.join(directory, "scene.xml")
+    with atomic_write(path) as fh:
+        fh.write(_EXAMPLE.format(faces=len(torus.faces), res=int(resolution), spp=int(spp)))
+    return path

@@ -56,6 +56,7 @@ from ._mitsuba_io import from_mitsuba as from_mitsuba
 from ._mitsuba_io import material_from_bsdf as material_from_bsdf
 from ._mitsuba_io import material_to_bsdf as material_to_bsdf
 from ._mitsuba_io import read_sensor as read_sensor
+from ._mitsuba_io import write_example_scene as write_example_scene
 from ._mitsuba_io import write_mitsuba_xml as write_mitsuba_xml
 from ._scene import DirectionalLight, LinearLight, Material, PointLight, PolygonLight, Scene
 
@@ -284,12 +285,17 @@ def to_mitsuba(scene: Scene, *, receivers: Any = (), materials: Any = (), sensor
 class _Twin:
     """The Mitsuba scene of a jaxshadow scene, plus what the estimators need beside it."""
 
-    def __init__(self, mi: Any, scene: Any, lights_occlude: bool, convert: dict):
+    def __init__(self, mi: Any, scene: Any, lights_occlude: bool, convert: dict, native: Any = None):
         if not isinstance(scene, Scene):
             raise ValueError(f"expected a jaxshadow.Scene, got {type(scene).__name__}.")
+        self.occluders = None
+        if native is not None:  # the user's own Mitsuba scene, with Mitsuba's visibility test
+            from ._mitsuba_io import _load
+
+            self.full, self.lights_occlude, self.max_light_hits = _load(mi, native), True, 1
+            return
         self.full = to_mitsuba(scene, **convert)
         self.lights_occlude = bool(lights_occlude)
-        self.occluders = None
         if scene.occluders is not None and not self.lights_occlude:
             props = mi.Properties()
             props["bsdf"] = mi.load_dict({"type": "diffuse", "reflectance": _rgb(mi, 0.0)})
@@ -412,9 +418,10 @@ def _estimate(
     coef_s: Any = 0.0,
     lights_occlude: bool = False,
     convert: dict | None = None,
+    native: Any = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     mi = _mi()
-    twin = _Twin(mi, scene, lights_occlude, convert or {})
+    twin = _Twin(mi, scene, lights_occlude, convert or {}, native)
     p, n = _points_normals(points, normals)
     spp = int(spp)
     if spp < 2:
@@ -449,6 +456,7 @@ def reference_irradiance(
     seed: int = 0,
     *,
     lights_occlude: bool = False,
+    mitsuba_scene: Any = None,
     **convert: Any,
 ) -> tuple[np.ndarray, np.ndarray]:
     r"""Monte Carlo direct irradiance with Mitsuba's emitter sampling and shadow rays.
@@ -465,6 +473,10 @@ def reference_irradiance(
     - `lights_occlude`: `False` (default, jaxshadow's model): Mitsuba's shadow rays are traced
       against the occluders only. `True`: Mitsuba's own `test_visibility=True` in the full
       scene, where light meshes are opaque too (one light can shadow another).
+    - `mitsuba_scene`: `None`, or the Mitsuba scene `scene` was read from (a file, a dict or an
+      `mi.Scene`, see `from_mitsuba`): the estimate then runs in that scene itself, with
+      Mitsuba's own `test_visibility=True` (every shape occludes), independent of jaxshadow's
+      conversion; `scene` is only checked.
     - `convert`: `segment_points`, `segment_radius` for `to_mitsuba`.
 
     **Returns:** `(estimate, stderr)`, each an `(N, 3)` float64 NumPy array (W/m^2); `stderr` is
@@ -472,7 +484,8 @@ def reference_irradiance(
     deterministic, e.g. a single point light).
     """
     return _estimate(
-        scene, points, normals, spp, seed, lights_occlude=lights_occlude, convert=convert
+        scene, points, normals, spp, seed, lights_occlude=lights_occlude, convert=convert,
+        native=mitsuba_scene,
     )
 
 
