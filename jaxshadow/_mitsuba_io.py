@@ -35,9 +35,9 @@ way Mitsuba reads it (includes, defaults, transforms, OBJ/PLY/serialized files):
 $F_0 = ((\eta-1)/(\eta+1))^2$, $F_{dr}$ Mitsuba's internal diffuse Fresnel reflectance. $k_a$ is 0
 (ambient light is not something Mitsuba transports).
 
-**Out.** `material_to_bsdf`: $k_s = 0$ -> `diffuse` (exact); else `blendbsdf` (weight 1/2) of a
-`diffuse` of reflectance $2k_d$ and a `roughconductor` (no Fresnel, Beckmann
-$\alpha = \sqrt{2/(n+2)}$) of reflectance $2k_s$. `write_mitsuba_xml` writes a scene file that
+**Out.** `material_to_bsdf`: $k_s = 0$ -> `diffuse` (exact); else `blendbsdf` of weight
+$w = \max k_s/(\max k_d + \max k_s)$ of a `diffuse` of reflectance $k_d/(1-w)$ and a
+`roughconductor` (no Fresnel, Beckmann $\alpha = \sqrt{2/(n+2)}$) of reflectance $k_s/w$. `write_mitsuba_xml` writes a scene file that
 `mi.load_file` reads back into the same lights and shapes.
 """
 
@@ -373,12 +373,19 @@ def material_to_bsdf(material: Material) -> dict:
     if not np.any(ks > 0):
         return {"type": "diffuse", "reflectance": rgb(kd)}
     n = float(np.asarray(material.exponent))
+    # Mitsuba's RGB reflectances must lie in [0, 1]: weight w with k_d/(1-w), k_s/w <= 1 when
+    # max k_d + max k_s <= 1; beyond that the material reflects more than it receives.
+    a, b = float(kd.max()), float(ks.max())
+    if a + b > 1:
+        _warn(f"Material with max k_d + max k_s = {a + b:.4g} > 1 has no Mitsuba BSDF; scaled down to 1.")
+        kd, ks, a, b = kd / (a + b), ks / (a + b), a / (a + b), b / (a + b)
+    w = b / (a + b)
     return {
         "type": "blendbsdf",
-        "weight": 0.5,
-        "bsdf_0": {"type": "diffuse", "reflectance": rgb(2 * kd)},
+        "weight": w,
+        "bsdf_0": {"type": "diffuse", "reflectance": rgb(kd / (1 - w) if w < 1 else np.zeros(3))},
         "bsdf_1": {"type": "roughconductor", "material": "none", "distribution": "beckmann",
-                   "alpha": _alpha_from_exponent(n), "specular_reflectance": rgb(2 * ks)},
+                   "alpha": _alpha_from_exponent(n), "specular_reflectance": rgb(ks / w)},
     }
 
 

@@ -300,7 +300,7 @@ def test_fit_command_checks_its_arguments_first(tmp_path, capsys, monkeypatch):
     assert not (tmp_path / "f.json").exists()
 
 
-def test_fit_command_passes_combinatorics(tmp_path, monkeypatch):
+def test_fit_command_passes_combinatorics(tmp_path, monkeypatch, capsys):
     """`jaxshadow fit --light 0 --combinatorics host` asks `fit_light` for host combinatorics
     (stubbed here: the light fit itself is tested in test_inverse / test_clip_host); an unknown
     value is refused by the parser."""
@@ -309,21 +309,25 @@ def test_fit_command_passes_combinatorics(tmp_path, monkeypatch):
     _write_fit_inputs(tmp_path)
     seen = {}
 
-    def fake_fit_light(scene, targets, material, light_index=0, **kw):
-        seen.update(kw, light_index=light_index)
+    def fake_fit(scene, targets, material, light_index=0, light_kwargs=None, **kw):
+        seen.update(light_kwargs, light_index=light_index)
         raise ValueError("stub")  # main() reports ValueErrors with exit status 2
 
-    monkeypatch.setattr(icli, "fit_light", fake_fit_light)
+    monkeypatch.setattr(icli, "fit_light_and_material", fake_fit)
     args = [NC, "fit", str(tmp_path / "scene.json"), str(tmp_path / "t.json"),
             "-o", str(tmp_path / "f.json"), "--light", "0"]
     assert main([*args, "--combinatorics", "host"]) == 2
-    assert seen == {"light_index": 0, "combinatorics": "host"}
+    assert seen == {"light_index": 0, "combinatorics": "host", "fit": ("position", "orientation"), "starts": 64, "refine": 8}
     seen.clear()
     assert main(args) == 2
     assert seen["combinatorics"] == "auto"
     with pytest.raises(SystemExit) as exc:
         main([*args, "--combinatorics", "gpu"])
     assert exc.value.code == 2
+    seen.clear()
+    assert main([*args, "--fit", "position,size"]) == 2 and seen["fit"] == ("position", "size")
+    rc, err = _run([*args, "--fit", "position,colour"], capsys)
+    assert rc == 2 and "--fit: expected a comma-separated subset of position,orientation,size" in err
 
 
 def test_compile_cache_option(tmp_path, monkeypatch):
