@@ -193,8 +193,9 @@ def _exposure(img: np.ndarray) -> float:
     return 1.0 / top if top > 0 else 1.0
 
 
-def write_comparison(path: str | os.PathLike, ours: Rendering, theirs: np.ndarray, seconds: float, spp: int) -> None:
-    """Side by side: ours | Mitsuba `direct` | |difference| (PNG, atomically)."""
+def write_comparison(path: str | os.PathLike, ours: Rendering, theirs: np.ndarray, seconds: float, spp: int,
+                     dpi: int = 100) -> None:
+    """Side by side: ours | Mitsuba `direct` | |difference| (PNG at `dpi`, atomically)."""
     from matplotlib.figure import Figure
 
     exp = _exposure(ours.image)
@@ -212,7 +213,7 @@ def write_comparison(path: str | os.PathLike, ours: Rendering, theirs: np.ndarra
         ax.set_xticks([])
         ax.set_yticks([])
     fig.tight_layout()
-    atomic_write_path(path, lambda tmp: fig.savefig(tmp, dpi=100))
+    atomic_write_path(path, lambda tmp: fig.savefig(tmp, dpi=dpi))
 
 
 def equal_time_spp(source: Any, seconds: float, probe_spp: int = 4) -> int:
