@@ -75,7 +75,7 @@ def _camera_rays(mi: Any, sensor: Any, k: int) -> tuple[Any, int, int]:
 
 
 def render(source: Any, *, supersample: int = 1, progress: Any = None, chunk: int = 1 << 14,
-           float64: bool = True) -> Rendering:
+           float64: bool = True, shade: bool = True) -> Rendering:
     """Render a Mitsuba scene from its camera with jaxshadow's exact shading.
 
     **Arguments:**
@@ -87,6 +87,7 @@ def render(source: Any, *, supersample: int = 1, progress: Any = None, chunk: in
     - `progress`: `None` or an object with `update(n)` (receives shaded sample counts).
     - `chunk`: pixels per jaxshadow evaluation.
     - `float64`: shade in float64 (default) or float32.
+    - `shade`: `False` skips the shading (only `surface` and the lights' pixels are computed).
 
     **Returns:** a `Rendering`.
     """
@@ -120,6 +121,7 @@ def render(source: Any, *, supersample: int = 1, progress: Any = None, chunk: in
     bbox = ms.bbox()
     size = float(np.max(np.asarray(bbox.max, np.float64) - np.asarray(bbox.min, np.float64)))
     dt = np.float64 if float64 else np.float32
+    shaded = 0
     for index, (shape, material) in enumerate(zip(shapes, materials, strict=True)):
         hit = valid & ~on_light & np.asarray(si.shape == mi.ShapePtr(shape), bool)
         surface[hit] = index
@@ -128,7 +130,7 @@ def render(source: Any, *, supersample: int = 1, progress: Any = None, chunk: in
         flip = np.where(facing, 1.0, -1.0)[:, None]
         lit = hit & (facing | two_sided)
         idx = np.flatnonzero(lit)
-        if idx.size == 0:
+        if idx.size == 0 or not shade:
             continue
         kd_tex = None
         if textured_diffuse(mi, shape.bsdf()):
@@ -148,10 +150,13 @@ def render(source: Any, *, supersample: int = 1, progress: Any = None, chunk: in
             image[j] = np.asarray(mat.radiance(scene.ambient, e, spec), np.float64)
             if progress is not None:
                 progress.update(len(j))
+                shaded += len(j)
+    if progress is not None:
+        progress.update(w * h * k * k - shaded)  # background and light samples
     image = image.reshape(h, w, k * k, 3).mean(axis=2)
     # A pixel's surface: the one its samples agree on, else -3 (an edge between surfaces).
-    s = surface.reshape(h, w, k * k)
-    surface = np.where((s == s[..., :1]).all(axis=2), s[..., 0], -3)
+    per_sample = surface.reshape(h, w, k * k)
+    surface = np.where((per_sample == per_sample[..., :1]).all(axis=2), per_sample[..., 0], -3)
     return Rendering(image, surface, time.perf_counter() - t0)
 
 

@@ -160,7 +160,7 @@ def test_per_receiver_material():
     kd = np.array([[0.1, 0.2, 0.3], [0.5, 0.5, 0.5], [0.9, 0.0, 0.2]])
     m = js.Material(ka=0.1, kd=kd, ks=0.2, exponent=10.0)
     assert m.receivers == 3 and js.Material().receivers is None
-    scene = js.Scene([js.PolygonLight([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2]], 3.0)], ambient=0.2)
+    scene = js.Scene([js.PointLight([0.5, 0.5, 2.0], 3.0)], ambient=0.2)
     p = np.array([[0.5, 0.5, 0.0], [0.2, 0.7, 0.3], [1.5, 0.5, 0.0]])
     n = np.tile([0.0, 0.0, 1.0], (3, 1))
     eye = np.array([0.3, -2.0, 1.0])

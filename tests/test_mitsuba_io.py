@@ -238,7 +238,7 @@ _BOX = """<shape type="cube" id="box"><transform name="to_world"><scale x="0.2" 
     <bsdf type="diffuse"><rgb name="reflectance" value="0.6, 0.5, 0.4"/></bsdf></shape>"""
 
 
-def _fit_inputs(tmp_path, occluder):
+def _fit_inputs(tmp_path, occluder, spp=1 << 15):
     """truth.xml (the hidden light), start.xml (the light moved and turned) and t.csv: 48 floor
     targets whose colours Mitsuba computes in truth.xml (k_d E / pi of the diffuse floor)."""
     import inverse
@@ -248,7 +248,7 @@ def _fit_inputs(tmp_path, occluder):
     start = _xml(_FIT_SCENE.format(tilt=0, x=0.4, y=0.15, occluder=occ), tmp_path, "start.xml")
     scene, receivers, materials = from_mitsuba(truth)
     p, n = receivers[0 if receivers[0].name == "floor" else 1].sample(48, seed=4)
-    e, _ = jm.reference_irradiance(scene, p, n, spp=1 << 15, seed=5, mitsuba_scene=truth)
+    e, _ = jm.reference_irradiance(scene, p, n, spp=spp, seed=5, mitsuba_scene=truth)
     colours = np.asarray(materials[-1].kd) / np.pi * e  # the floor is diffuse: L = k_d E / pi
     inverse.PaintedTargets(p, n, colours, [0.0, -3.0, 2.5], weights=1 / np.maximum(colours, 1e-6) ** 2).save(tmp_path / "t.csv")
     return scene, truth, start
@@ -261,7 +261,7 @@ def test_fit_command_reads_and_writes_mitsuba_xml(tmp_path):
 
     from jaxshadow.cli import main
 
-    scene, truth, _ = _fit_inputs(tmp_path, False)
+    scene, truth, _ = _fit_inputs(tmp_path, False, spp=1 << 11)
     out = tmp_path / "fitted.xml"
     assert main(["--no-compile-cache", "fit", truth, str(tmp_path / "t.csv"), "-o", str(out)]) == 0
     jm._mi()
