@@ -386,7 +386,11 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
     for add in BUILTIN_COMMANDS:
         add(sub)
-    for name, ep in sorted(plugin_commands().items()):
+    plugins = plugin_commands()
+    if not plugins:
+        parser.epilog = ("No solver commands (fit, demo) are registered: they come from the `inverse` package "
+                         f"through the entry-point group {ENTRY_POINT_GROUP!r}; reinstall jaxshadow (pip install -e .).")
+    for name, ep in sorted(plugins.items()):
         try:
             ep.load()(sub)
         except ImportError as err:  # a registered package that cannot be imported here

@@ -1,4 +1,13 @@
-r"""Mitsuba 3 bridge: scene conversion and Monte Carlo reference estimators (optional extra).
+r"""Mitsuba 3 bridge: scenes in and out, and Monte Carlo reference estimators (optional extra).
+
+- In: `from_mitsuba(path_or_dict) -> (Scene, receivers, materials)` reads any Mitsuba scene
+  through Mitsuba's own loader (`jaxshadow._mitsuba_io`: what maps to what, and what is lost);
+  `read_sensor` its camera.
+- Out: `to_mitsuba` / `to_mitsuba_dict` (an in-memory Mitsuba scene, with receiver surfaces and
+  their materials as BSDFs, and a camera) and `write_mitsuba_xml` (a scene file).
+- Reference estimators: `reference_irradiance`, `reference_specular`, `reference_shade`,
+  `quick_report` (below); `reference_irradiance(..., mitsuba_scene=...)` runs in the user's own
+  Mitsuba scene instead of the twin.
 
 Mitsuba 3 is jaxshadow's independent ground truth. Units are Mitsuba's, so a jaxshadow scene
 and its Mitsuba twin must agree with no fudge factor:
