@@ -7,8 +7,8 @@ vertex properties, which is what a receiver mesh with its irradiance needs. mesh
 simulation meshes (cells of many kinds, no glTF, no colours). It is the `mesh` extra.
 
 Receivers read from a mesh are its vertices (with trimesh's vertex normals: the file's when it
-has them, else the angle-weighted average of the face normals) or its face centres (with the
-right-hand-rule face normals). Point tables follow one convention for every command:
+has them, else the mean of the normals of the faces around the vertex) or its face centres (with
+the right-hand-rule face normals). Point tables follow one convention for every command:
 
 - `.csv`: a header row with named columns; `px, py, pz, nx, ny, nz` are required (other columns
   are ignored, so a targets CSV is also a points CSV); values written back get `r, g, b` columns.
@@ -157,8 +157,8 @@ def read_mesh(path: str | os.PathLike) -> ReceiverMesh:
         raise ValueError(f"{path}: cannot read the mesh ({type(err).__name__}: {err}).") from None
     if not isinstance(m, trimesh.Trimesh) or len(m.faces) == 0:
         raise ValueError(f"{path}: the file holds no triangles.")
-    normals = m.vertex_normals if "vertex_normals" in m._cache else None
-    return ReceiverMesh(np.asarray(m.vertices), np.asarray(m.faces), normals, name=os.path.basename(path))
+    return ReceiverMesh(np.asarray(m.vertices), np.asarray(m.faces), np.asarray(m.vertex_normals),
+                        name=os.path.basename(path))
 
 
 def tonemap(values: Any, exposure: float | None = None) -> np.ndarray:

@@ -352,12 +352,9 @@ def _child(bsdf: Any, i: int) -> Any:
     found: list[Any] = []
 
     class Collect(mi.TraversalCallback):  # type: ignore[misc, name-defined]
-        def put_object(self, name: str, obj: Any, flags: Any) -> None:
-            if isinstance(obj, mi.BSDF):
-                found.append(obj)
-
-        def put_parameter(self, *args: Any) -> None:
-            pass
+        def put(self, name: str, value: Any, flags: int) -> None:
+            if isinstance(value, mi.BSDF):
+                found.append(value)
 
     bsdf.traverse(Collect())
     return found[i]

@@ -197,6 +197,9 @@ def test_material_bsdf_round_trip():
         np.testing.assert_allclose(np.asarray(back.ks), np.asarray(mat.ks), rtol=1e-6)
         if float(np.max(np.asarray(mat.ks))) > 0:
             assert float(back.exponent) == pytest.approx(float(mat.exponent), rel=1e-5)
+    two = jm.material_from_bsdf(mi, mi.load_dict({"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": {
+        "type": "rgb", "value": [0.2, 0.3, 0.4]}}}))
+    np.testing.assert_allclose(np.asarray(two.kd), [0.2, 0.3, 0.4], rtol=1e-7)
     conductor = jm.material_from_bsdf(mi, mi.load_dict({"type": "roughconductor", "alpha": 0.1}))
     np.testing.assert_allclose(np.asarray(conductor.ks), 1.0)
     assert float(conductor.exponent) == pytest.approx(198.0) and float(np.max(np.asarray(conductor.kd))) == 0.0
