@@ -21,6 +21,7 @@ import numpy as np
 import jaxshadow as js
 from jaxshadow.cli import (
     SCENE_EXTS,
+    add_io_arguments,
     check_directory,
     check_input,
     check_output,
@@ -139,14 +140,13 @@ def _cmd_fit(args: argparse.Namespace) -> int:
 
 def add_fit_command(subparsers: Any) -> argparse.ArgumentParser:
     """Add `jaxshadow fit` to the `jaxshadow` sub-parsers (entry point `jaxshadow.commands`)."""
+    # Declared like jaxshadow.cli's own sub-parsers (argparse calls of the same shape, not shared code).
     p = subparsers.add_parser("fit", help="fit material (and a light) to painted targets",
                               description="Fit k_a, k_d, k_s and the Phong roughness (and, with --light, a "
                                           "light's placement) to painted target colours.")
-    p.add_argument("scene", help="scene: jaxshadow JSON (.json) or Mitsuba XML (.xml)")
-    p.add_argument("targets", help="painted targets: .csv with header px,py,pz,nx,ny,nz,r,g,b,ex,ey,ez "
-                                   "(optional wr,wg,wb) or .json")
-    p.add_argument("-o", "--output", required=True,
-                   help="fitted scene, written exactly here: .json (with a 'material' entry) or .xml (Mitsuba)")
+    add_io_arguments(p, "targets", "painted targets: .csv with header px,py,pz,nx,ny,nz,r,g,b,ex,ey,ez "
+                     "(optional wr,wg,wb) or .json",
+                     "fitted scene: .json (with a 'material' entry) or .xml (Mitsuba)")
     p.add_argument("--light", type=int, default=None,
                    help="also fit the placement of this light (index into the scene's lights), jointly with the material")
     p.add_argument("--fit", default="position,orientation",

@@ -32,7 +32,7 @@ import numpy as np
 
 from ._files import atomic_write_path
 from ._meshio import tonemap
-from .cli import Progress, _say, check_input, check_output, positive_int
+from .cli import Progress, _say, check_input, check_output, int_at_least, positive_int
 
 IMAGE_EXTS = (".exr", ".png")
 
@@ -234,16 +234,6 @@ def equal_time_spp(source: Any, seconds: float, probe_spp: int = 4) -> int:
 # --------------------------------------------------------------------------------------
 
 
-def _spp(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text!r}") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text!r}")
-    return v
-
-
 def cmd_render(args: argparse.Namespace) -> int:
     check_input(args.scene, (".xml",), "scene")
     for out in args.output:
@@ -283,7 +273,7 @@ def add_render_command(sub: Any) -> None:
     p.add_argument("scene", help="Mitsuba XML scene with a perspective sensor (its film size is the image size)")
     p.add_argument("-o", "--output", action="append", required=True,
                    help="image written exactly here, .exr (linear float) or .png (tone-mapped sRGB); repeat for both")
-    p.add_argument("--spp-compare", type=_spp, default=None, metavar="N",
+    p.add_argument("--spp-compare", type=int_at_least(0, "an integer >= 0"), default=None, metavar="N",
                    help="also render Mitsuba's direct integrator with N samples per pixel (0: as many as take "
                         "it as long as our render, equal wall time) and write ours | Mitsuba | difference")
     p.add_argument("--compare-output", default=None, metavar="PNG",

@@ -52,15 +52,30 @@ def builtin_scene_path(name: str = "room") -> str:
 # --------------------------------------------------------------------------------------
 
 
-def positive_int(text: str) -> int:
-    """argparse type: an integer >= 1."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}")
-    return value
+def int_at_least(minimum: int, what: str) -> Callable[[str], int]:
+    """argparse type: an integer >= `minimum` (`what` names it in the error message)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = minimum - 1
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be {what}, got {text!r}")
+        return value
+
+    return parse
+
+
+positive_int = int_at_least(1, "a positive integer")
+
+
+def add_io_arguments(parser: argparse.ArgumentParser, name: str, what: str, output: str) -> None:
+    """The arguments `SCENE NAME -o OUTPUT` shared by the commands: a scene (JSON or Mitsuba
+    XML), an input file described by `what`, and an output described by `output`."""
+    parser.add_argument("scene", help="scene: jaxshadow JSON (.json) or Mitsuba XML (.xml)")
+    parser.add_argument(name, help=what)
+    parser.add_argument("-o", "--output", required=True, help=f"{output}, written exactly here")
 
 
 def check_input(path: str, exts: Sequence[str], what: str) -> str:
@@ -300,11 +315,9 @@ def _add_irradiance(sub: Any) -> None:
     p = sub.add_parser("irradiance", help="irradiance (W/m^2, RGB) at many receivers",
                        description="Irradiance with exact soft shadows at receivers read from a file, "
                                    "evaluated in chunks with progress.")
-    p.add_argument("scene", help="scene: jaxshadow JSON (.json) or Mitsuba XML (.xml)")
-    p.add_argument("points", help="receivers: .csv with header px,py,pz,nx,ny,nz; .npy (N, 6); .npz with "
-                                  "'points' and 'normals'; or a mesh (.ply .obj .glb .gltf .stl .off)")
-    p.add_argument("-o", "--output", required=True,
-                   help="output, written exactly here: .npy (N, 3), .npz, .csv (px..nz,r,g,b) or .ply (mesh receivers)")
+    add_io_arguments(p, "points", "receivers: .csv with header px,py,pz,nx,ny,nz; .npy (N, 6); .npz with "
+                     "'points' and 'normals'; or a mesh (.ply .obj .glb .gltf .stl .off)",
+                     "irradiance: .npy (N, 3), .npz, .csv (px..nz,r,g,b) or .ply (mesh receivers)")
     p.add_argument("--at", choices=("vertices", "faces"), default="vertices",
                    help="mesh receivers: at the vertices (default) or at the face centres")
     p.add_argument("--chunk", type=positive_int, default=1 << 18,
