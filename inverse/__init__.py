@@ -30,6 +30,10 @@ from ._material import MaterialReport as MaterialReport
 from ._material import UndeterminedParameterWarning as UndeterminedParameterWarning
 from ._material import bounded_lstsq as bounded_lstsq
 from ._material import fit_material as fit_material
+from ._regions import RegionFit as RegionFit
+from ._regions import fit_material_regions as fit_material_regions
+from ._scenes import demo_configuration as demo_configuration
+from ._scenes import pose_errors as pose_errors
 from ._targets import PaintedTargets as PaintedTargets
 from ._targets import load_targets as load_targets
 from ._targets import save_targets as save_targets

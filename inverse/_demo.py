@@ -11,6 +11,7 @@ with k_d free, the light area and k_d trade off far from the light).
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import sys
 import time
@@ -77,7 +78,8 @@ def run_demo(out_dir: str | os.PathLike, progress: bool = True, *, n_points: int
     targets = PaintedTargets(cfg.points, cfg.normals, colours, cfg.eye,
                              weights=1.0 / np.maximum(colours, 1e-6) ** 2)
     targets_path = os.path.join(out_dir, "demo_targets.json")
-    targets.save(targets_path)
+    with js.atomic_write(targets_path) as fh:
+        json.dump(targets.to_dict(), fh, indent=1)
     timings["targets"] = time.perf_counter() - t0
 
     with_spec = bool(np.any(np.asarray(cfg.material.ks) != 0))
@@ -143,16 +145,14 @@ def run_demo(out_dir: str | os.PathLike, progress: bool = True, *, n_points: int
         "Jacobian (1 % noise), an error of 2-3 sigma is expected in a few rows:\n" + table)
 
     t0 = time.perf_counter()
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     ext = 1.3
     imgs = [_floor_image(s, m, cfg.eye, image_resolution, ext)
             for s, m in ((cfg.start_scene, guess), (fit.scene, m_fit), (cfg.scene, m_true))]
     vmax = max(float(np.percentile(i, 99.5)) for i in imgs)
-    fig, axes = plt.subplots(1, 3, figsize=(12, 4.3))
+    fig = Figure(figsize=(12, 4.3))
+    axes = fig.subplots(1, 3)
     for ax, img, title in zip(axes, imgs, ("before (start)", "after (fitted)", "hidden truth"), strict=True):
         ax.imshow(np.clip(img / vmax, 0, 1), origin="lower", extent=(-ext, ext, -ext, ext))
         on_floor = np.abs(cfg.points[:, 2]) < 1e-9
@@ -163,8 +163,7 @@ def run_demo(out_dir: str | os.PathLike, progress: bool = True, *, n_points: int
     fig.suptitle(f"floor z=0 seen from above; x: painted points on the floor (targets: {source})")
     fig.tight_layout()
     png = os.path.join(out_dir, "demo_before_after.png")
-    fig.savefig(png, dpi=90)
-    plt.close(fig)
+    js.atomic_write_path(png, lambda tmp: fig.savefig(tmp, dpi=90))
     timings["plot"] = time.perf_counter() - t0
     say(f"wrote {png}")
     return {

@@ -8,8 +8,16 @@ from importlib.metadata import PackageNotFoundError, version
 
 from ._cache import ShadowCache as ShadowCache
 from ._clip import visible_form_factor as visible_form_factor
+from ._files import atomic_write as atomic_write
+from ._files import atomic_write_path as atomic_write_path
 from ._linear import linear_irradiance as linear_irradiance
 from ._mesh import Mesh as Mesh
+from ._meshio import ReceiverMesh as ReceiverMesh
+from ._meshio import read_mesh as read_mesh
+from ._meshio import read_points as read_points
+from ._meshio import write_mesh as write_mesh
+from ._meshio import write_ply as write_ply
+from ._meshio import write_values as write_values
 from ._polygon import form_factor as form_factor
 from ._scene import DirectionalLight as DirectionalLight
 from ._scene import LinearLight as LinearLight

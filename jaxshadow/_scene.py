@@ -171,18 +171,33 @@ class Material(eqx.Module):
     """Phong material (Poulin eq. 2.1 / 5.14): $L = k_a L_a + k_d/\\pi\\, E + k_s S$.
 
     `ka`, `kd`, `ks`: `(3,)` RGB coefficients (`kd` is the diffuse albedo, as Mitsuba's
-    `diffuse` reflectance), each >= 0; `exponent`: Phong $n \\ge 0$ (scalar array).
+    `diffuse` reflectance), each >= 0, or `(N, 3)` per receiver (a texture looked up at `N`
+    points: row `i` is the material at receiver `i`); a scalar is broadcast to grey. Per-receiver
+    fields share one `N`. `exponent`: Phong $n \\ge 0$ (scalar array: one lobe per material).
     """
 
-    ka: Float[Array, "3"]
-    kd: Float[Array, "3"]
-    ks: Float[Array, "3"]
+    ka: Float[Array, "3"] | Float[Array, "N 3"]
+    kd: Float[Array, "3"] | Float[Array, "N 3"]
+    ks: Float[Array, "3"] | Float[Array, "N 3"]
     exponent: Float[Array, ""]
 
     def __init__(self, ka: Any = 0.0, kd: Any = 0.5, ks: Any = 0.0, exponent: Any = 1.0):
         if _all_concrete(ka, kd, ks, exponent):
+            rows = set()
             for name, v in (("ka", ka), ("kd", kd), ("ks", ks)):
-                check_rgb(v, f"Material.{name}")
+                a = np.asarray(v, dtype=np.float64)
+                if a.ndim == 2 and a.shape[1] == 3 and a.shape[0] >= 1:
+                    rows.add(a.shape[0])
+                    check_finite(a, f"Material.{name}")
+                    if np.any(a < 0):
+                        i, c = np.argwhere(a < 0)[0]
+                        raise ValueError(f"Material.{name}[{i}]: must be >= 0, got {float(a[i, c])} in channel {'RGB'[c]}.")
+                elif a.ndim == 2:
+                    raise ValueError(f"Material.{name}: expected a scalar, (3,) or (N, 3), got shape {a.shape}.")
+                else:
+                    check_rgb(v, f"Material.{name}")
+            if len(rows) > 1:
+                raise ValueError(f"Material: per-receiver fields have different numbers of rows {sorted(rows)}.")
             e = np.asarray(exponent, dtype=np.float64)
             if e.shape != ():
                 raise ValueError(f"Material.exponent must be a scalar, got shape {e.shape}.")
@@ -193,6 +208,26 @@ class Material(eqx.Module):
         self.kd = _rgb_leaf(kd)
         self.ks = _rgb_leaf(ks)
         self.exponent = _leaf(exponent)
+
+    @property
+    def receivers(self) -> int | None:
+        """`N` when some coefficient is given per receiver, else `None`."""
+        for k in (self.ka, self.kd, self.ks):
+            if k.ndim == 2:
+                return int(k.shape[0])
+        return None
+
+    def radiance(self, ambient: Any, irradiance: Any, specular: Any = None) -> Array:
+        """$k_a L_a + k_d E/\\pi + k_s S$ (Poulin eq. 5.14) from `ambient` `(3,)`, `irradiance` and
+        `specular` `(N, 3)` (`None`: no specular term); per-receiver coefficients apply row by
+        row. **Returns:** `(N, 3)` radiance (W m^-2 sr^-1), dtype of `irradiance`."""
+        e = jnp.asarray(irradiance)
+        dt = e.dtype
+        rows = lambda k: jnp.broadcast_to(jnp.asarray(k, dt), e.shape)  # noqa: E731
+        out = rows(self.ka) * rows(ambient) + rows(self.kd) / jnp.pi * e
+        if specular is not None:
+            out = out + rows(self.ks) * jnp.asarray(specular, dt)
+        return out
 
 
 def _stack_occluders(occluders: Any) -> tuple[Array | None, OccluderTopology | None]:
