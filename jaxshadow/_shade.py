@@ -527,19 +527,18 @@ def shade(
     eyes = _check_eye(eye, points, "shade")
     dt = points.dtype
     n = _check_exponent(material.exponent, dt, "shade")
-    ka, kd, ks = (jnp.asarray(k).astype(dt) for k in (material.ka, material.kd, material.ks))
-    la = scene.ambient.astype(dt)
     options = _check_options(shadows, "shade")
+    rows = material.receivers
+    if rows is not None and rows != points.shape[0]:
+        raise ValueError(f"shade: the material has coefficients for {rows} receivers, got {points.shape[0]} points.")
     if scene.occluders is not None:
         e = _shadowed(scene, Lambert(), points, normals, None, options, "shade")
         s = _shadowed(scene, Phong(n, method, int(degree)), points, normals, eyes, options, "shade")
-        return ka[None, :] * la[None, :] + kd[None, :] / jnp.pi * e + ks[None, :] * s
+        return material.radiance(scene.ambient, e, s)
     # The same compiled irradiance as `irradiance` (its flag checks the points and normals).
     e = evaluate_checked(lambda p, q: _irradiance_checked(scene, p, q, None), points, normals, "shade")
     s = map_chunks(
         lambda p, q, v: _specular_impl(scene, p, q, v, n, method, int(degree), None),
         (points, normals, eyes),
     )
-    ka, kd, ks = (jnp.asarray(k).astype(dt) for k in (material.ka, material.kd, material.ks))
-    la = scene.ambient.astype(dt)
-    return ka[None, :] * la[None, :] + kd[None, :] / jnp.pi * e + ks[None, :] * s
+    return material.radiance(scene.ambient, e, s)

@@ -187,8 +187,6 @@ def test_per_receiver_material_rejects_bad_input(kw, msg):
         js.Material(**kw)
 
 
-@pytest.mark.xfail(strict=True, reason="js.shade broadcasts k as (1, 3) rows (jaxshadow/_shade.py, the lead's): "
-                   "per-receiver (N, 3) coefficients raise; Material.radiance is the combination to use")
 def test_shade_with_per_receiver_material():
     scene = js.Scene([js.PointLight([0, 0, 2], 1.0)])
     p = np.zeros((2, 3))
