@@ -2,7 +2,8 @@
 
 `box_field(n_boxes)` is the mesh-scale scene of the shadows-at-scale study: a 0.6 m square
 light at z = 2 facing down over a [-4, 4]^2 floor, and `n_boxes` closed boxes (12 triangles
-each, footprints 0.1-0.35 m, heights 0.3-1.2 m) clustered over the middle of the floor.
+each, footprints 0.1-0.35 m, standing on the floor, heights 0.3-1.2 m) clustered over the
+middle of the floor.
 """
 
 from __future__ import annotations
@@ -44,9 +45,8 @@ def box_field(n_boxes: int, seed: int = 0, spread: float = 1.5) -> BoxField:
     for _ in range(n_boxes):
         c = np.clip(rng.normal(0.0, spread, 2), -3.5, 3.5)
         half = rng.uniform(0.05, 0.175, 2)
-        z0 = rng.uniform(0.0, 0.3)
         h = rng.uniform(0.3, 1.2)
-        boxes.append(box((c[0] - half[0], c[1] - half[1], z0), (c[0] + half[0], c[1] + half[1], z0 + h)))
+        boxes.append(box((c[0] - half[0], c[1] - half[1], 0.0), (c[0] + half[0], c[1] + half[1], h)))
     return BoxField(LIGHT.copy(), boxes)
 
 

@@ -37,6 +37,8 @@
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 
+#include <type_traits>
+
 #include "_shadowc/driver.h"
 
 using namespace jaxshadow_engine;  // NOLINT: this file only binds the engine to C and XLA
@@ -48,6 +50,61 @@ using namespace jaxshadow_engine;  // NOLINT: this file only binds the engine to
 #define JS_OCC_ARGS                                                                                           \
   int64_t M, int64_t Ko, const void *faces, const int32_t *face_solid, const int32_t *face_closed, int64_t S, \
       const int32_t *solid_faces, const int32_t *solid_edge_off, const int32_t *solid_edges
+#define JS_OCC_PARAMS JS_OCC_ARGS
+
+namespace {
+
+// Every decision is made in double precision, whatever the inputs' dtype: float32 inputs are
+// exact in double, and the combinatorics (which occluders, which pieces of which edges) are then
+// those of the exact float32 geometry, resolved far below float32's rounding (a receiver 1e-6
+// under a light, an occluder 5e-7 under it: float32 planes through the receiver differ by less
+// than its own collinearity tolerance). Only the points the JAX side integrates are float32.
+template <class T>
+const double* as_double(const void* x, size_t n, std::vector<double>& store) {
+  if (std::is_same<T, double>::value) return static_cast<const double*>(x);
+  const T* t = static_cast<const T*>(x);
+  store.assign(t, t + n);
+  return store.data();
+}
+
+struct Inputs {
+  std::vector<double> p, n, e, f;
+};
+
+template <class T>
+Occluders<double> occ_double(int64_t K, JS_OCC_PARAMS, Inputs& in) {
+  return make_occ<double>(K, M, Ko, as_double<T>(faces, size_t(M * Ko * 3), in.f), face_solid, face_closed, S,
+                          solid_faces, solid_edge_off, solid_edges);
+}
+
+template <class T>
+int poly_plan_any(int64_t N, const void* P, const void* Nrm, int64_t K, const void* E, JS_OCC_PARAMS, int threads,
+                  int32_t* cls, int32_t* stats, int64_t* offsets, int32_t** runs, void** points, int64_t* nruns) {
+  Inputs in;
+  auto occ = occ_double<T>(K, M, Ko, faces, face_solid, face_closed, S, solid_faces, solid_edge_off, solid_edges, in);
+  double* pts = nullptr;
+  int rc = poly_plan<double>(N, as_double<T>(P, size_t(3 * N), in.p), as_double<T>(Nrm, size_t(3 * N), in.n), K,
+                             as_double<T>(E, size_t(3 * K), in.e), occ, threads, cls, stats, offsets, runs,
+                             points ? &pts : nullptr, nruns);
+  if (points && pts) {
+    if (std::is_same<T, double>::value) {
+      *points = pts;
+    } else {
+      const int64_t m = 6 * std::max<int64_t>(*nruns, 1);
+      T* out = static_cast<T*>(std::malloc(sizeof(T) * m));
+      if (!out) {
+        std::free(pts);
+        return 2;
+      }
+      for (int64_t i = 0; i < 6 * *nruns; i++) out[i] = T(pts[i]);
+      std::free(pts);
+      *points = out;
+    }
+  }
+  return rc;
+}
+
+}  // namespace
 
 extern "C" {
 
@@ -58,61 +115,46 @@ void jaxshadow_free(void* p) { std::free(p); }
 int jaxshadow_poly_plan(int is_f64, int64_t N, const void* P, const void* Nrm, int64_t K, const void* E, JS_OCC_ARGS,
                         int threads, int32_t* cls, int32_t* stats, int64_t* offsets, int32_t** runs, void** points,
                         int64_t* nruns) {
-  if (is_f64) {
-    auto occ = make_occ<double>(K, M, Ko, static_cast<const double*>(faces), face_solid, face_closed, S, solid_faces,
-                                solid_edge_off, solid_edges);
-    return poly_plan<double>(N, static_cast<const double*>(P), static_cast<const double*>(Nrm), K,
-                             static_cast<const double*>(E), occ, threads, cls, stats, offsets, runs,
-                             reinterpret_cast<double**>(points), nruns);
-  }
-  auto occ = make_occ<float>(K, M, Ko, static_cast<const float*>(faces), face_solid, face_closed, S, solid_faces,
-                             solid_edge_off, solid_edges);
-  return poly_plan<float>(N, static_cast<const float*>(P), static_cast<const float*>(Nrm), K,
-                          static_cast<const float*>(E), occ, threads, cls, stats, offsets, runs,
-                          reinterpret_cast<float**>(points), nruns);
+  auto fn = is_f64 ? poly_plan_any<double> : poly_plan_any<float>;
+  return fn(N, P, Nrm, K, E, M, Ko, faces, face_solid, face_closed, S, solid_faces, solid_edge_off, solid_edges,
+            threads, cls, stats, offsets, runs, points, nruns);
 }
 
 int jaxshadow_poly_fixed(int is_f64, int64_t N, const void* P, const void* Nrm, int64_t K, const void* E, JS_OCC_ARGS,
                          int threads, int64_t cap, int32_t* cls, int32_t* counts, int32_t* runs) {
-  if (is_f64) {
-    auto occ = make_occ<double>(K, M, Ko, static_cast<const double*>(faces), face_solid, face_closed, S, solid_faces,
-                                solid_edge_off, solid_edges);
-    return poly_fixed<double>(N, static_cast<const double*>(P), static_cast<const double*>(Nrm), K,
-                              static_cast<const double*>(E), occ, threads, cap, cls, counts, runs);
-  }
-  auto occ = make_occ<float>(K, M, Ko, static_cast<const float*>(faces), face_solid, face_closed, S, solid_faces,
-                             solid_edge_off, solid_edges);
-  return poly_fixed<float>(N, static_cast<const float*>(P), static_cast<const float*>(Nrm), K,
-                           static_cast<const float*>(E), occ, threads, cap, cls, counts, runs);
+  Inputs in;
+  auto occ = is_f64 ? occ_double<double>(K, M, Ko, faces, face_solid, face_closed, S, solid_faces, solid_edge_off,
+                                         solid_edges, in)
+                    : occ_double<float>(K, M, Ko, faces, face_solid, face_closed, S, solid_faces, solid_edge_off,
+                                        solid_edges, in);
+  auto cv = is_f64 ? as_double<double> : as_double<float>;
+  return poly_fixed<double>(N, cv(P, size_t(3 * N), in.p), cv(Nrm, size_t(3 * N), in.n), K, cv(E, size_t(3 * K), in.e),
+                            occ, threads, cap, cls, counts, runs);
 }
 
 int jaxshadow_hard_plan(int is_f64, int64_t N, const void* P, const void* X, int is_point, int64_t K_unused,
                         JS_OCC_ARGS, int threads, uint8_t* visible) {
   (void)K_unused;
-  if (is_f64) {
-    auto occ = make_occ<double>(0, M, Ko, static_cast<const double*>(faces), face_solid, face_closed, S, solid_faces,
-                                solid_edge_off, solid_edges);
-    return hard_plan<double>(N, static_cast<const double*>(P), static_cast<const double*>(X), is_point, occ, threads,
-                             visible);
-  }
-  auto occ = make_occ<float>(0, M, Ko, static_cast<const float*>(faces), face_solid, face_closed, S, solid_faces,
-                             solid_edge_off, solid_edges);
-  return hard_plan<float>(N, static_cast<const float*>(P), static_cast<const float*>(X), is_point, occ, threads,
-                          visible);
+  Inputs in;
+  auto occ = is_f64 ? occ_double<double>(0, M, Ko, faces, face_solid, face_closed, S, solid_faces, solid_edge_off,
+                                         solid_edges, in)
+                    : occ_double<float>(0, M, Ko, faces, face_solid, face_closed, S, solid_faces, solid_edge_off,
+                                        solid_edges, in);
+  auto cv = is_f64 ? as_double<double> : as_double<float>;
+  return hard_plan<double>(N, cv(P, size_t(3 * N), in.p), cv(X, 3, in.e), is_point, occ, threads, visible);
 }
 
 int jaxshadow_segment_plan(int is_f64, int64_t N, const void* P, const void* A, const void* B, JS_OCC_ARGS,
                            int threads, int64_t* offsets, int32_t** faces_out) {
-  if (is_f64) {
-    auto occ = make_occ<double>(0, M, Ko, static_cast<const double*>(faces), face_solid, face_closed, S, solid_faces,
-                                solid_edge_off, solid_edges);
-    return segment_plan<double>(N, static_cast<const double*>(P), static_cast<const double*>(A),
-                                static_cast<const double*>(B), occ, threads, offsets, faces_out);
-  }
-  auto occ = make_occ<float>(0, M, Ko, static_cast<const float*>(faces), face_solid, face_closed, S, solid_faces,
-                             solid_edge_off, solid_edges);
-  return segment_plan<float>(N, static_cast<const float*>(P), static_cast<const float*>(A),
-                             static_cast<const float*>(B), occ, threads, offsets, faces_out);
+  Inputs in;
+  auto occ = is_f64 ? occ_double<double>(0, M, Ko, faces, face_solid, face_closed, S, solid_faces, solid_edge_off,
+                                         solid_edges, in)
+                    : occ_double<float>(0, M, Ko, faces, face_solid, face_closed, S, solid_faces, solid_edge_off,
+                                        solid_edges, in);
+  auto cv = is_f64 ? as_double<double> : as_double<float>;
+  std::vector<double> b;
+  return segment_plan<double>(N, cv(P, size_t(3 * N), in.p), cv(A, 3, in.e), cv(B, 3, b), occ, threads, offsets,
+                              faces_out);
 }
 
 }  // extern "C"
@@ -150,15 +192,16 @@ ffi::Error poly_ffi_typed(ffi::AnyBuffer points, ffi::AnyBuffer normals, ffi::An
   const int64_t S = sd[sd.size() - 2];
   auto ed = solid_edges.dimensions();
   const int64_t NE = ed[ed.size() - 2];
-  const T* P = reinterpret_cast<const T*>(points.untyped_data());
-  const T* Nr = reinterpret_cast<const T*>(normals.untyped_data());
-  const T* E = reinterpret_cast<const T*>(light.untyped_data());
-  const T* F = reinterpret_cast<const T*>(faces.untyped_data());
+  std::vector<double> sp, sn, se, sf;
+  const double* P = as_double<T>(points.untyped_data(), size_t(B * N * 3), sp);
+  const double* Nr = as_double<T>(normals.untyped_data(), size_t(B * N * 3), sn);
+  const double* E = as_double<T>(light.untyped_data(), size_t(B * K * 3), se);
+  const double* F = as_double<T>(faces.untyped_data(), size_t(B * M * Ko * 3), sf);
   for (int64_t b = 0; b < B; b++) {
-    auto occ = make_occ<T>(K, M, Ko, F + b * M * Ko * 3, face_solid.typed_data() + b * M, face_closed.typed_data() + b * M,
+    auto occ = make_occ<double>(K, M, Ko, F + b * M * Ko * 3, face_solid.typed_data() + b * M, face_closed.typed_data() + b * M,
                            S, solid_faces.typed_data() + b * 2 * S, solid_edge_off.typed_data() + b * (S + 1),
                            solid_edges.typed_data() + b * 4 * NE);
-    int rc = poly_fixed<T>(N, P + b * N * 3, Nr + b * N * 3, K, E + b * K * 3, occ, int(threads), cap,
+    int rc = poly_fixed<double>(N, P + b * N * 3, Nr + b * N * 3, K, E + b * K * 3, occ, int(threads), cap,
                            cls->typed_data() + b * N, counts->typed_data() + b * N, runs->typed_data() + b * N * cap * 14);
     if (rc) return ffi::Error::InvalidArgument("jaxshadow_poly_codes: light with more than 64 vertices");
   }
@@ -199,15 +242,16 @@ ffi::Error hard_ffi_typed(ffi::AnyBuffer points, ffi::AnyBuffer x, ffi::AnyBuffe
   const int64_t S = sd[sd.size() - 2];
   auto ed = solid_edges.dimensions();
   const int64_t NE = ed[ed.size() - 2];
-  const T* P = reinterpret_cast<const T*>(points.untyped_data());
-  const T* X = reinterpret_cast<const T*>(x.untyped_data());
-  const T* F = reinterpret_cast<const T*>(faces.untyped_data());
+  std::vector<double> sp, sx, sf;
+  const double* P = as_double<T>(points.untyped_data(), size_t(B * N * 3), sp);
+  const double* X = as_double<T>(x.untyped_data(), size_t(B * 3), sx);
+  const double* F = as_double<T>(faces.untyped_data(), size_t(B * M * Ko * 3), sf);
   std::vector<uint8_t> vis(N);
   for (int64_t b = 0; b < B; b++) {
-    auto occ = make_occ<T>(0, M, Ko, F + b * M * Ko * 3, face_solid.typed_data() + b * M, face_closed.typed_data() + b * M,
+    auto occ = make_occ<double>(0, M, Ko, F + b * M * Ko * 3, face_solid.typed_data() + b * M, face_closed.typed_data() + b * M,
                            S, solid_faces.typed_data() + b * 2 * S, solid_edge_off.typed_data() + b * (S + 1),
                            solid_edges.typed_data() + b * 4 * NE);
-    hard_plan<T>(N, P + b * N * 3, X + b * 3, int(is_point), occ, int(threads), vis.data());
+    hard_plan<double>(N, P + b * N * 3, X + b * 3, int(is_point), occ, int(threads), vis.data());
     int32_t* out = visible->typed_data() + b * N;
     for (int64_t i = 0; i < N; i++) out[i] = vis[i];
   }
@@ -246,16 +290,17 @@ ffi::Error segment_ffi_typed(ffi::AnyBuffer points, ffi::AnyBuffer ends, ffi::An
   const int64_t S = sd[sd.size() - 2];
   auto ed = solid_edges.dimensions();
   const int64_t NE = ed[ed.size() - 2];
-  const T* P = reinterpret_cast<const T*>(points.untyped_data());
-  const T* AB = reinterpret_cast<const T*>(ends.untyped_data());
-  const T* F = reinterpret_cast<const T*>(faces.untyped_data());
+  std::vector<double> sp, sab, sf;
+  const double* P = as_double<T>(points.untyped_data(), size_t(B * N * 3), sp);
+  const double* AB = as_double<T>(ends.untyped_data(), size_t(B * 6), sab);
+  const double* F = as_double<T>(faces.untyped_data(), size_t(B * M * Ko * 3), sf);
   for (int64_t b = 0; b < B; b++) {
-    auto occ = make_occ<T>(0, M, Ko, F + b * M * Ko * 3, face_solid.typed_data() + b * M, face_closed.typed_data() + b * M,
+    auto occ = make_occ<double>(0, M, Ko, F + b * M * Ko * 3, face_solid.typed_data() + b * M, face_closed.typed_data() + b * M,
                            S, solid_faces.typed_data() + b * 2 * S, solid_edge_off.typed_data() + b * (S + 1),
                            solid_edges.typed_data() + b * 4 * NE);
     BVH bvh = build_bvh(occ);
-    V3<T> a = ld(AB + b * 6), bb = ld(AB + b * 6 + 3);
-    const T* Pb = P + b * N * 3;
+    V3<double> a = ld(AB + b * 6), bb = ld(AB + b * 6 + 3);
+    const double* Pb = P + b * N * 3;
     int32_t* cnt = counts->typed_data() + b * N;
     int32_t* out = cand->typed_data() + b * N * cap;
     parallel_for(N, default_threads(int(threads)), [&](int, int64_t s, int64_t e) {

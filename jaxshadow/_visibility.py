@@ -13,7 +13,9 @@ for each receiver it queries a bounding-volume hierarchy of the occluders with t
 illumination pyramid (Campbell & Fussell §4.3's "bounding volume enclosing the light source and
 receiver", one per receiver), tests the candidates exactly (C&F Theorem 2's occlusion volume and
 Theorem 3's umbra volume, in their dual form: does the pyramid meet the occluder; does the
-occluder's projection cover the light), classifies the receiver (`ZERO` behind the light or
+occluder's projection cover the light) in double precision whatever the inputs' dtype (float32
+values are exact in double, so the decisions are those of the exact float32 geometry; only the
+points that JAX integrates are float32), classifies the receiver (`ZERO` behind the light or
 below its horizon, `LIT`, `UMBRA`, `PENUMBRA`) and, in penumbra, splits the candidate edges exactly
 as the device kernel `_clip._boundary_runs` does, with the candidates only. It returns per
 receiver a list of *runs*, each two endpoint codes of 7 int32 (`decode_endpoints`). Convex solids
