@@ -285,6 +285,7 @@ def _image_reference_uncached(ref: ReferenceScene, r: int, q: int, names: tuple[
     if bad:
         raise ValueError(f"image: {ref.name} has no geometric parameter(s) {bad}.")
     out = []
+    scene, material = ref.scene, ref.material  # built before tracing: the scene's leaves are constants
     with jax.enable_x64(True):
         for qq in (q, max(q // 2, 1)):
             nodes, weights = _gauss_nodes(ref.window, r, qq)
@@ -293,7 +294,7 @@ def _image_reference_uncached(ref: ReferenceScene, r: int, q: int, names: tuple[
             wj = jnp.asarray(weights)
 
             def mean_e(theta, p=p, nrm=nrm, wj=wj, qq=qq):
-                sc, _ = apply_parameters(ref.scene, ref.material, names, theta)
+                sc, _ = apply_parameters(scene, material, names, theta)
                 e = irradiance(sc, p, nrm).reshape(qq * qq, r * r, 3)
                 return jnp.einsum("k,kpc->pc", wj, e).reshape(r, r, 3)
 

@@ -274,14 +274,14 @@ def apply_parameters(scene: Scene, material: Material, names: tuple[str, ...], t
     c = jnp.mean(pts, axis=0)
     t = jnp.stack([get("light.tx"), get("light.ty"), get("light.tz")])
     m = (1.0 + get("light.scale")) * _rotation(get("light.rx"), get("light.ry"), get("light.rz")) - jnp.eye(3, dtype=dt)
-    new = pts + t + (pts - c) @ m.T
+    new = pts + t[None, :] + (pts - c[None, :]) @ m.T
     if isinstance(light, PolygonLight):
         scene = eqx.tree_at(lambda s: s.lights[0].vertices, scene, new)
     else:
         scene = eqx.tree_at(lambda s: (s.lights[0].start, s.lights[0].end), scene, (new[0], new[1]))
     if scene.occluders is not None:
         o = jnp.stack([get("occluder.tx"), get("occluder.ty"), get("occluder.tz")])
-        scene = eqx.tree_at(lambda s: s.occluders, scene, scene.occluders.astype(dt) + o)
+        scene = eqx.tree_at(lambda s: s.occluders, scene, scene.occluders.astype(dt) + o[None, None, :])
     grey = lambda k, n: k.astype(dt) + get(n)  # noqa: E731
     material = eqx.tree_at(
         lambda mt: (mt.ka, mt.kd, mt.ks, mt.exponent),

@@ -80,7 +80,8 @@ class Comparison:
     $\\tau$), `z` (signed sigmas beyond the allowance), `p_values` (two-sided), `rejected`
     (entries flagged by the multiple test), `chi2`, `chi2_dof`, `chi2_p` (the summary),
     `alpha`, `alpha_z`, `alpha_chi2` (None when the chi-square test is off), `method`, `dof`,
-    `labels` (one text label per entry, e.g. "d/d light.tx, point 3, G"), `passed`.
+    `what`; properties `labels` (one text label per entry, e.g. "d/d light.tx, point 3, G"),
+    `passed`, `chi2_rejected`, `max_abs_z`.
     """
 
     estimate: np.ndarray
@@ -99,7 +100,15 @@ class Comparison:
     method: str
     dof: float | None
     what: str
-    labels: list[str] = field(repr=False)
+    given_labels: list[str] | None = field(default=None, repr=False)
+    prefix: list[str] | None = field(default=None, repr=False)
+
+    @property
+    def labels(self) -> list[str]:
+        """One text label per entry (row-major), made when first needed."""
+        if self.given_labels is not None:
+            return self.given_labels
+        return _entry_labels(self.estimate.shape, self.prefix)
 
     @property
     def chi2_rejected(self) -> bool:
@@ -130,9 +139,10 @@ class Comparison:
         bad = np.flatnonzero(self.rejected.ravel())
         order = bad[np.argsort(-np.abs(flat_z[bad]), kind="stable")]
         est, err, ref, tol = (a.ravel() for a in (self.estimate, self.stderr, self.reference, self.tolerance))
+        labels = self.labels
         for i in order[:worst]:
             lines.append(
-                f"  {self.labels[i]}: estimate {est[i]:.6g} +- {err[i]:.3g}, reference "
+                f"  {labels[i]}: estimate {est[i]:.6g} +- {err[i]:.3g}, reference "
                 f"{ref[i]:.6g} (allowance {tol[i]:.2g}): {flat_z[i]:+.1f} sigma "
                 f"(p = {self.p_values.ravel()[i]:.2g})"
             )
@@ -140,7 +150,7 @@ class Comparison:
             lines.append(f"  ... and {order.size - worst} more")
         if not bad.size and n:
             i = int(np.argmax(np.abs(flat_z)))
-            lines.append(f"  largest deviation: {self.labels[i]}: {flat_z[i]:+.2f} sigma")
+            lines.append(f"  largest deviation: {labels[i]}: {flat_z[i]:+.2f} sigma")
         verdict = "fails" if self.chi2_rejected else "passes" if self.alpha_chi2 is not None else "not tested"
         lines.append(
             f"  chi-square summary: {self.chi2:.4g} on {self.chi2_dof} groups "
@@ -197,6 +207,7 @@ def compare(
     correlated_axes: Sequence[int] | None = None,
     labels: Sequence[str] | None = None,
     what: str = "values",
+    prefix: Sequence[str] | None = None,
 ) -> Comparison:
     r"""Test Monte Carlo estimates against exact references (see the module docstring).
 
@@ -216,7 +227,8 @@ def compare(
     - `correlated_axes`: axes along which entries may be correlated (share samples); the
       chi-square averages the normal scores over them. Default: the last axis when the
       arrays have at least two dimensions (RGB channels), else none.
-    - `labels`: one label per entry (row-major), for the report.
+    - `labels`: one label per entry (row-major), for the report; or `prefix`: one name per
+      index of the leading axis (e.g. parameter names), the rest labelled by position.
     - `what`: what is compared, for the report.
 
     **Returns:** a `Comparison` (`.passed`, `.report()`).
@@ -265,15 +277,16 @@ def compare(
     stat = float(np.sum(grouped**2))
     k = int(np.size(grouped))
     chi2_p = float(_special().chdtrc(k, stat)) if np.isfinite(stat) else 0.0
-    if labels is None:
-        labels = _entry_labels(est.shape)
-    elif len(labels) != est.size:
+    if labels is not None and len(labels) != est.size:
         raise ValueError(f"compare: {len(labels)} labels for {est.size} entries.")
+    if prefix is not None and (est.ndim == 0 or len(prefix) != est.shape[0]):
+        raise ValueError(f"compare: {len(prefix)} prefixes for a leading axis of {est.shape[:1]}.")
     return Comparison(
         estimate=est, stderr=np.array(err), reference=np.array(ref), tolerance=np.array(tol),
         z=z, p_values=p, rejected=rejected, chi2=stat, chi2_dof=k, chi2_p=chi2_p, alpha=alpha,
         alpha_z=alpha_z, alpha_chi2=alpha / 2.0 if chi2 else None, method=method,
-        dof=None if dof is None else float(dof), what=what, labels=list(labels),
+        dof=None if dof is None else float(dof), what=what,
+        given_labels=None if labels is None else list(labels), prefix=None if prefix is None else list(prefix),
     )
 
 
@@ -377,10 +390,9 @@ def assert_gradient_matches(
     scale = np.broadcast_to(per_param.reshape((-1,) + (1,) * (ref.ndim - 1)), ref.shape)
     if correlated_axes is None:
         correlated_axes = (0, ref.ndim - 1) if ref.ndim >= 3 else (0,)
-    labels = _entry_labels(ref.shape, prefix=[f"d/d {n}" for n in names])
     res = compare(
         est, err, ref, alpha=alpha, method=method, dof=dof, rtol=rtol, atol=atol, scale=scale,
-        chi2=chi2, correlated_axes=correlated_axes, labels=labels, what=what,
+        chi2=chi2, correlated_axes=correlated_axes, prefix=[f"d/d {n}" for n in names], what=what,
     )
     if not res.passed:
         raise AssertionError(res.report())
@@ -402,8 +414,8 @@ def clopper_pearson(k: int, n: int, level: float = 0.95) -> tuple[float, float]:
     """Two-sided Clopper-Pearson interval of a binomial rate `k / n`."""
     sp = _special()
     a = (1.0 - level) / 2.0
-    lo = 0.0 if k == 0 else float(sp.btdtri(k, n - k + 1, a))
-    hi = 1.0 if k == n else float(sp.btdtri(k + 1, n - k, 1.0 - a))
+    lo = 0.0 if k == 0 else float(sp.betaincinv(k, n - k + 1, a))
+    hi = 1.0 if k == n else float(sp.betaincinv(k + 1, n - k, 1.0 - a))
     return lo, hi
 
 
