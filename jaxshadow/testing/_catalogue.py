@@ -36,7 +36,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._files import atomic_write
-from .._scene import LinearLight, Material, Scene, material_from_dict, scene_from_dict, scene_to_dict
+from .._scene import (
+    LinearLight,
+    Material,
+    Scene,
+    material_from_dict,
+    scene_from_dict,
+    scene_to_dict,
+)
 from .._shade import irradiance, shade
 from ._scenes import (
     BUILDERS,
@@ -299,7 +306,7 @@ def _image_reference_uncached(ref: ReferenceScene, r: int, q: int, names: tuple[
                 return jnp.einsum("k,kpc->pc", wj, e).reshape(r, r, 3)
 
             theta0 = jnp.zeros(len(names), jnp.float64)
-            jvp = jax.jit(jax.vmap(lambda v, f=mean_e: jax.jvp(f, (theta0,), (v,)), in_axes=0))
+            jvp = jax.jit(jax.vmap(lambda v, f=mean_e, t0=theta0: jax.jvp(f, (t0,), (v,)), in_axes=0))
             vals, ders = jvp(jnp.eye(len(names), dtype=jnp.float64))
             out.append((_f64(vals[0]), _f64(ders)))
     (v, dv), (v2, dv2) = out
