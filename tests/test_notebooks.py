@@ -10,7 +10,7 @@ import pytest
 NOTEBOOKS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "notebooks")
 
 
-@pytest.mark.parametrize("name", ["paint_material.ipynb", "light_from_shadow.ipynb"])
+@pytest.mark.parametrize("name", ["paint_material.ipynb", "light_from_shadow.ipynb", "checking_shadow_gradients.ipynb"])
 def test_notebook_runs(name):
     nbformat = pytest.importorskip("nbformat")
     nbclient = pytest.importorskip("nbclient")

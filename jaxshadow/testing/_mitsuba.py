@@ -38,18 +38,25 @@ def _mi() -> tuple[Any, Any]:
     return mi, dr
 
 
+KINDS = ("direct", "direct_emitter", "direct_projective")
+
+
 def integrator(kind: str, **options: Any) -> Any:
-    """`"direct"` (Mitsuba's C++ direct integrator, differentiated by plain AD) or
-    `"direct_projective"` (projective sampling of the visibility boundary; `sppp = 0` since the
-    camera sees no moving silhouette, `guiding` default `"none"`)."""
+    """A Mitsuba integrator by kind: `"direct"` (Mitsuba's C++ direct integrator, differentiated
+    by plain AD; emitter and BSDF samples combined by MIS), `"direct_emitter"` (the same with
+    emitter samples only: `bsdf_samples = 0`), or `"direct_projective"` (projective sampling of
+    the visibility boundary; `sppp = 0` since the camera sees no moving silhouette, `guiding`
+    default `"none"`)."""
     mi, _ = _mi()
     if kind == "direct":
         return mi.load_dict({"type": "direct", **options})
+    if kind == "direct_emitter":
+        return mi.load_dict({"type": "direct", "emitter_samples": 1, "bsdf_samples": 0, **options})
     if kind == "direct_projective":
         it = mi.load_dict({"type": "direct_projective", "sppp": 0, "guiding": "none", **options})
         it.sample_border_warning = False  # nothing enters or leaves the view
         return it
-    raise ValueError(f"integrator: kind must be 'direct' or 'direct_projective', got {kind!r}.")
+    raise ValueError(f"integrator: kind must be one of {KINDS}, got {kind!r}.")
 
 
 @dataclass

@@ -17,6 +17,13 @@ mapped back to standard normal scores, averaged over the axes whose entries may 
 test stays at or below its level), and $\sum \bar z^2$ is compared with $\chi^2$ on the number of
 groups. With `chi2=True` the z tests run at $\alpha/2$ and the chi-square test at $\alpha/2$, so
 the probability of a false alarm is at most $\alpha$ (Bonferroni over the two tests).
+
+The tests assume each estimate is close to normal around its mean (the central limit theorem at
+the sample count used). Derivative estimators whose samples are rare and large (boundary
+samples of a projective estimator, a few per pixel) violate that at low sample counts: their
+batch means are skewed or even identical across batches. Use batches with many such samples
+each, and measure the false-alarm rate of the whole set-up on a case with a known answer
+(`benchmarks/gradient_oracle.py` does, for Mitsuba).
 """
 
 from __future__ import annotations
@@ -148,6 +155,12 @@ class Comparison:
             )
         if order.size > worst:
             lines.append(f"  ... and {order.size - worst} more")
+        stuck = int(np.sum((self.stderr == 0) & np.isinf(self.z)))
+        if stuck:
+            lines.append(
+                f"  ({stuck} of them with standard error 0: a deterministic estimate that disagrees, or "
+                "batches that all gave the same value - too few samples per batch for a t test)"
+            )
         if not bad.size and n:
             i = int(np.argmax(np.abs(flat_z)))
             lines.append(f"  largest deviation: {labels[i]}: {flat_z[i]:+.2f} sigma")
