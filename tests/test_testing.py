@@ -352,3 +352,46 @@ def test_entry_point_is_declared():
     assert eps == {"jaxshadow.testing.plugin": "jaxshadow.testing.plugin"}
     assert "jaxshadow.testing" in meta["tool"]["setuptools"]["packages"]
     assert LIGHT_TRANSLATION == ("light.tx", "light.ty", "light.tz")
+
+
+# ----------------------------------------------------------------------------- regeneration
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", list(BUILDERS))
+def test_stored_references_are_reproduced_by_forward_mode(name):
+    """`python -m jaxshadow.testing._catalogue` would write the same numbers (float64 jvp)."""
+    ref = catalogue[name]
+    live = ref.compute()
+    for q in ("irradiance", "radiance"):
+        np.testing.assert_allclose(live[q], getattr(ref, q), rtol=1e-12, atol=1e-15)
+        table = getattr(ref, f"d_{q}")
+        assert set(live[f"d_{q}"]) == set(table)
+        for p, d in table.items():
+            np.testing.assert_allclose(live[f"d_{q}"][p], d, rtol=1e-10, atol=1e-13, err_msg=f"{q} {p}")
+
+
+@pytest.mark.slow
+def test_image_references_agree_with_central_differences():
+    """Pixel means of the penumbra scene's window (8 x 8 pixels, 4 x 4 nodes) and their
+    derivatives: the values against the mean of the same nodes through the host engine, the
+    derivatives against Richardson central differences of those means."""
+    from jaxshadow.testing._catalogue import _gauss_nodes
+
+    ref = catalogue["penumbra"]
+    r, q = 8, 4
+    img = ref.image(r, q)
+    nodes, weights = _gauss_nodes(ref.window, r, q)
+    normals = np.tile([0.0, 0.0, 1.0], (nodes.shape[0], 1))
+
+    def means(scene):
+        e = np.asarray(js.irradiance(scene, nodes, normals), np.float64).reshape(q * q, r * r, 3)
+        return np.einsum("k,kpc->pc", weights, e).reshape(r, r, 3)
+
+    np.testing.assert_allclose(img.irradiance, means(ref.scene), rtol=1e-12, atol=1e-15)
+    for p in LIGHT_TRANSLATION:
+        f = {t: means(ref.perturbed(p, t)[0]) for t in (-H, -H / 2, H / 2, H)}
+        fd = (4.0 * (f[H / 2] - f[-H / 2]) / H - (f[H] - f[-H]) / (2 * H)) / 3.0
+        floor = max(1e-2 * np.abs(fd).max(), 1e-3 * np.abs(img.irradiance).max())
+        err = np.abs(img.d_irradiance[p] - fd) / np.maximum(np.abs(fd), floor)
+        assert err.max() < RTOL, (p, err.max())
