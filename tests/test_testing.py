@@ -161,6 +161,26 @@ def test_gradient_comparison_by_name_and_scale():
         assert_gradient_matches(stack(est)[:1], stack(err), stack(ref), parameters=names)
 
 
+def test_gradient_chi_square_per_parameter():
+    """Parameters share their samples (fully correlated noise): the per-parameter chi-square
+    tests (Bonferroni) keep the false-alarm rate, and a small bias of one parameter is caught."""
+    rng = np.random.default_rng(5)
+    names = ["light.tx", "light.ty", "light.tz"]
+    ref = rng.uniform(-1.0, 1.0, (3, 64, 3))
+    err = np.full(ref.shape, 0.02)
+    trials, alpha, alarms = 500, 0.05, 0
+    for _ in range(trials):
+        noise = rng.standard_normal((1, 64, 1))
+        res = compare(ref + err * noise, err, ref, alpha=alpha, rtol=0.0, correlated_axes=(2,), chi2_axis=0, prefix=names)
+        alarms += not res.passed
+    assert alarms <= false_alarm_bound(trials, alpha)
+    est = ref + err * rng.standard_normal((1, 64, 1))
+    est[1] += 1.5 * err[1]  # d/d light.ty biased by 1.5 sigma at every point: no single test sees it
+    with pytest.raises(AssertionError, match=r"light.ty: .* \(p = ") as info:
+        assert_gradient_matches(est, err, ref, parameters=names)
+    assert "0 of 576 entries" in str(info.value) and "chi-square" in str(info.value)
+
+
 def test_false_alarm_bound_and_interval():
     assert false_alarm_bound(200, 0.05) in range(18, 24)  # mean 10, sd 3.1
     lo, hi = clopper_pearson(10, 200)

@@ -15,8 +15,11 @@ chi-square summary adds power against small biases spread over many entries: the
 mapped back to standard normal scores, averaged over the axes whose entries may be correlated
 (`correlated_axes`; the mean of $c$ correlated standard normals has variance at most 1, so the
 test stays at or below its level), and $\sum \bar z^2$ is compared with $\chi^2$ on the number of
-groups. With `chi2=True` the z tests run at $\alpha/2$ and the chi-square test at $\alpha/2$, so
-the probability of a false alarm is at most $\alpha$ (Bonferroni over the two tests).
+groups. With `chi2_axis` (derivatives: the parameter axis) each index along that axis gets its
+own chi-square (a bias in one parameter is not diluted by the others), combined by Bonferroni
+(valid however the parameters' estimates are correlated). With `chi2=True` the z tests run at
+$\alpha/2$ and the chi-square test(s) at $\alpha/2$, so the probability of a false alarm is at
+most $\alpha$ (Bonferroni over the two tests).
 
 The tests assume each estimate is close to normal around its mean (the central limit theorem at
 the sample count used). Derivative estimators whose samples are rare and large (boundary
@@ -85,7 +88,9 @@ class Comparison:
 
     **Fields:** `estimate`, `stderr`, `reference`, `tolerance` (the deterministic allowance
     $\\tau$), `z` (signed sigmas beyond the allowance), `p_values` (two-sided), `rejected`
-    (entries flagged by the multiple test), `chi2`, `chi2_dof`, `chi2_p` (the summary),
+    (entries flagged by the multiple test), `chi2`, `chi2_dof`, `chi2_p` (the summary: the
+    statistic, degrees of freedom and p-value of each chi-square group, `(G,)` arrays, and the
+    Bonferroni-combined p-value `chi2_p_combined`),
     `alpha`, `alpha_z`, `alpha_chi2` (None when the chi-square test is off), `method`, `dof`,
     `what`; properties `labels` (one text label per entry, e.g. "d/d light.tx, point 3, G"),
     `passed`, `chi2_rejected`, `max_abs_z`.
@@ -98,15 +103,16 @@ class Comparison:
     z: np.ndarray
     p_values: np.ndarray
     rejected: np.ndarray
-    chi2: float
-    chi2_dof: int
-    chi2_p: float
+    chi2: np.ndarray
+    chi2_dof: np.ndarray
+    chi2_p: np.ndarray
     alpha: float
     alpha_z: float
     alpha_chi2: float | None
     method: str
     dof: float | None
     what: str
+    chi2_names: list[str] | None = field(default=None, repr=False)
     given_labels: list[str] | None = field(default=None, repr=False)
     prefix: list[str] | None = field(default=None, repr=False)
 
@@ -118,8 +124,12 @@ class Comparison:
         return _entry_labels(self.estimate.shape, self.prefix)
 
     @property
+    def chi2_p_combined(self) -> float:
+        return float(min(1.0, np.min(self.chi2_p) * self.chi2_p.size))
+
+    @property
     def chi2_rejected(self) -> bool:
-        return self.alpha_chi2 is not None and self.chi2_p <= self.alpha_chi2
+        return self.alpha_chi2 is not None and self.chi2_p_combined <= self.alpha_chi2
 
     @property
     def passed(self) -> bool:
@@ -165,10 +175,12 @@ class Comparison:
             i = int(np.argmax(np.abs(flat_z)))
             lines.append(f"  largest deviation: {labels[i]}: {flat_z[i]:+.2f} sigma")
         verdict = "fails" if self.chi2_rejected else "passes" if self.alpha_chi2 is not None else "not tested"
-        lines.append(
-            f"  chi-square summary: {self.chi2:.4g} on {self.chi2_dof} groups "
-            f"(p = {self.chi2_p:.3g}): {verdict}"
-        )
+        parts = []
+        for g in range(self.chi2.size):
+            name = "" if self.chi2_names is None else f"{self.chi2_names[g]}: "
+            parts.append(f"{name}{self.chi2[g]:.4g} on {self.chi2_dof[g]} (p = {self.chi2_p[g]:.3g})")
+        combined = f"; Bonferroni p = {self.chi2_p_combined:.3g}" if self.chi2.size > 1 else ""
+        lines.append(f"  chi-square summary: {', '.join(parts)}{combined}: {verdict}")
         return "\n".join(lines)
 
     def __str__(self) -> str:
@@ -221,6 +233,7 @@ def compare(
     labels: Sequence[str] | None = None,
     what: str = "values",
     prefix: Sequence[str] | None = None,
+    chi2_axis: int | None = None,
 ) -> Comparison:
     r"""Test Monte Carlo estimates against exact references (see the module docstring).
 
@@ -240,6 +253,8 @@ def compare(
     - `correlated_axes`: axes along which entries may be correlated (share samples); the
       chi-square averages the normal scores over them. Default: the last axis when the
       arrays have at least two dimensions (RGB channels), else none.
+    - `chi2_axis`: an axis (not among `correlated_axes`) whose indices get separate chi-square
+      tests, combined by Bonferroni; default None (one test).
     - `labels`: one label per entry (row-major), for the report; or `prefix`: one name per
       index of the leading axis (e.g. parameter names), the rest labelled by position.
     - `what`: what is compared, for the report.
@@ -283,13 +298,18 @@ def compare(
     axes = tuple(sorted({a % est.ndim for a in correlated_axes}))
     score = _normal_score(p, z)
     if axes:
-        infinite = np.isinf(score).any(axis=axes)
-        grouped = np.where(infinite, np.inf, np.where(np.isinf(score), 0.0, score).mean(axis=axes))
+        infinite = np.isinf(score).any(axis=axes, keepdims=True)
+        score = np.where(infinite, np.inf, np.where(np.isinf(score), 0.0, score).mean(axis=axes, keepdims=True))
+    if chi2_axis is None:
+        groups = score.reshape(1, -1)
     else:
-        grouped = score
-    stat = float(np.sum(grouped**2))
-    k = int(np.size(grouped))
-    chi2_p = float(_special().chdtrc(k, stat)) if np.isfinite(stat) else 0.0
+        g = chi2_axis % est.ndim
+        if g in axes:
+            raise ValueError("compare: chi2_axis cannot be one of the correlated axes.")
+        groups = np.moveaxis(score, g, 0).reshape(score.shape[g], -1)
+    stat = np.sum(groups**2, axis=1)
+    k = np.full(stat.shape, groups.shape[1])
+    chi2_p = np.where(np.isfinite(stat), _special().chdtrc(k, np.where(np.isfinite(stat), stat, 0.0)), 0.0)
     if labels is not None and len(labels) != est.size:
         raise ValueError(f"compare: {len(labels)} labels for {est.size} entries.")
     if prefix is not None and (est.ndim == 0 or len(prefix) != est.shape[0]):
@@ -300,6 +320,7 @@ def compare(
         alpha_z=alpha_z, alpha_chi2=alpha / 2.0 if chi2 else None, method=method,
         dof=None if dof is None else float(dof), what=what,
         given_labels=None if labels is None else list(labels), prefix=None if prefix is None else list(prefix),
+        chi2_names=None if chi2_axis is None or prefix is None or chi2_axis % est.ndim != 0 else list(prefix),
     )
 
 
@@ -380,8 +401,9 @@ def assert_gradient_matches(
       parameter as the leading axis (`(P, N, 3)`), then named by `parameters`.
     - `parameters`: names (and order) of the parameters; default: the keys of `reference`.
     - `alpha`, `method`, `dof`, `rtol`, `atol`, `chi2`, `what`: as `assert_values_match`.
-    - `correlated_axes`: default: the parameter axis and the channel axis (estimates of several
-      parameters often share samples).
+    - `correlated_axes`: default: the channel axis (arrays of 3 or more dimensions); each
+      parameter gets its own chi-square test (Bonferroni over the parameters), so estimates of
+      several parameters may share samples.
 
     **Returns:** the `Comparison` (when it passes).
     """
@@ -402,10 +424,11 @@ def assert_gradient_matches(
     per_param = np.max(np.abs(ref.reshape(ref.shape[0], -1)), axis=1, initial=0.0)
     scale = np.broadcast_to(per_param.reshape((-1,) + (1,) * (ref.ndim - 1)), ref.shape)
     if correlated_axes is None:
-        correlated_axes = (0, ref.ndim - 1) if ref.ndim >= 3 else (0,)
+        correlated_axes = (ref.ndim - 1,) if ref.ndim >= 3 else ()
     res = compare(
         est, err, ref, alpha=alpha, method=method, dof=dof, rtol=rtol, atol=atol, scale=scale,
         chi2=chi2, correlated_axes=correlated_axes, prefix=[f"d/d {n}" for n in names], what=what,
+        chi2_axis=0,
     )
     if not res.passed:
         raise AssertionError(res.report())
