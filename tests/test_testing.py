@@ -334,6 +334,27 @@ def test_derivatives_agree_with_central_differences(name, quantity):
     assert not bad, f"{name} d{quantity}:\n" + "\n".join(bad)
 
 
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="engine bug: exact-specular derivative at a grazing receiver (reported)")
+def test_exact_specular_derivative_at_the_grazing_receiver():
+    """The failure behind KNOWN_ENGINE_BUGS, reduced to the kernel: light crossing the receiver's
+    horizon, exponent 5; the value is right, forward and reverse derivatives are not (the
+    Chebyshev method's derivative agrees with central differences)."""
+    import jax
+
+    from jaxshadow._specular import polygon_specular_kernel
+
+    ref = catalogue["grazing"]
+    v = jnp.asarray(ref.scene.lights[0].vertices)
+    p, n, eye = (jnp.asarray(x) for x in (ref.points[14], ref.normals[14], ref.eye))
+    tangent = jnp.asarray(np.random.default_rng(0).normal(size=v.shape))
+    f = jax.jit(lambda w: polygon_specular_kernel(p, n, eye, w, jnp.asarray(5.0), method="exact"))
+    _, d = jax.jit(lambda w, t: jax.jvp(f, (w,), (t,)))(v, tangent)
+    h = 1e-6
+    fd = (float(f(v + h * tangent)) - float(f(v - h * tangent))) / (2 * h)
+    assert abs(float(d) - fd) <= 1e-6 * abs(fd), (float(d), fd)
+
+
 # ----------------------------------------------------------------------------- the plugin
 
 
