@@ -18,6 +18,15 @@ from typing import Any
 
 import pytest
 
+__all__ = [
+    "jaxshadow_alpha",
+    "jaxshadow_catalogue",
+    "jaxshadow_reference",
+    "pytest_addoption",
+    "pytest_configure",
+    "pytest_generate_tests",
+]
+
 MARKER = "jaxshadow_scenes"
 SCENES = ("unoccluded", "penumbra", "umbra", "touching", "grazing", "highlight", "linear", "mesh")
 
@@ -70,4 +79,5 @@ def jaxshadow_reference(request: Any, jaxshadow_catalogue: Any) -> Any:
 @pytest.fixture
 def jaxshadow_alpha(request: Any) -> float:
     """The family-wise false-alarm rate from `--jaxshadow-alpha`."""
-    return float(request.config.getoption("--jaxshadow-alpha"))
+    # The default also serves a conftest that imports these fixtures after option parsing.
+    return float(request.config.getoption("--jaxshadow-alpha", default=1e-3))
