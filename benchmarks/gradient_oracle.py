@@ -257,7 +257,10 @@ def _plot(out: dict, path: str) -> None:
     ax.set_xticks(x, names, rotation=30)
     ax.set_ylabel("largest |t| over pixels, channels, axes")
     ax.set_title(f"dE/d(light translation) vs the oracle; hatched: flagged (alpha = {out['alpha']:g})", fontsize=10)
-    ax.legend(fontsize=8, loc="upper right")
+    from matplotlib.patches import Patch
+
+    handles = [Patch(facecolor=c, label=k) for k, c in kinds] + [Patch(facecolor="white", edgecolor="k", hatch="///", label="flagged")]
+    ax.legend(handles=handles, fontsize=8, loc="upper right")
     rows = [("values\n(all scenes)", out["false_alarms_values"])] + [
         (f"{g['integrator']}\n{g['scene']}", g) for g in out["false_alarms_gradients"]]
     for j, (_, g) in enumerate(rows):
@@ -321,11 +324,17 @@ def main(argv: list[str] | None = None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true", help="smoke test: two scenes, few samples")
     p.add_argument("--out", default=None, help="output stem (default benchmarks/results/gradient_oracle[_quick])")
+    p.add_argument("--from-json", default=None, help="only re-render the PNG and markdown of a previous run's JSON")
     a = p.parse_args(argv)
-    out = run(a.quick)
-    stem = a.out or os.path.join(HERE, "results", "gradient_oracle" + ("_quick" if a.quick else ""))
-    with atomic_write(stem + ".json") as fh:
-        json.dump(out, fh, indent=1)
+    if a.from_json:
+        with open(a.from_json) as fh:
+            out = json.load(fh)
+        stem = os.path.splitext(a.from_json)[0]
+    else:
+        out = run(a.quick)
+        stem = a.out or os.path.join(HERE, "results", "gradient_oracle" + ("_quick" if a.quick else ""))
+        with atomic_write(stem + ".json") as fh:
+            json.dump(out, fh, indent=1)
     _plot(out, stem + ".png")
     with atomic_write(stem + ".md") as fh:
         fh.write(markdown(out))
