@@ -11,7 +11,7 @@ import time
 import pytest
 
 NOTEBOOKS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "notebooks")
-NAMES = ["paint_material.ipynb", "light_from_shadow.ipynb"]
+NAMES = ["paint_material.ipynb", "light_from_shadow.ipynb", "checking_shadow_gradients.ipynb"]
 
 
 @pytest.mark.parametrize("name", NAMES)
