@@ -11,6 +11,7 @@ import jaxshadow as js
 
 from ._lights import fit_light
 from ._material import fit_material
+from ._solvers import LM
 from ._targets import load_targets
 
 
@@ -37,7 +38,7 @@ def fit_command(scene_path: str, targets_path: str, output: str | os.PathLike, l
         if not 0 <= light < len(scene.lights):
             raise ValueError(f"--light {light}: the scene has {len(scene.lights)} lights.")
         say("[2/3] light placement (multistart Levenberg-Marquardt) ...")
-        lfit = fit_light(scene, targets, mfit.material, light_index=light, combinatorics=combinatorics)
+        lfit = fit_light(scene, targets, mfit.material, light_index=light, solver=LM(combinatorics=combinatorics))
         print(lfit.report)
         scene = lfit.scene
         say("[3/3] material fit at the fitted light ...")

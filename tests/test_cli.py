@@ -70,10 +70,10 @@ def test_fit_command_passes_combinatorics(tmp_path, monkeypatch):
     args = ["--no-compile-cache", "fit", str(tmp_path / "scene.json"), str(tmp_path / "t.json"),
             "-o", str(tmp_path / "f.json"), "--light", "0"]
     assert main([*args, "--combinatorics", "host"]) == 2
-    assert seen == {"light_index": 0, "combinatorics": "host"}
+    assert seen == {"light_index": 0, "solver": inverse.LM(combinatorics="host")}
     seen.clear()
     assert main(args) == 2
-    assert seen["combinatorics"] == "auto"
+    assert seen["solver"].combinatorics == "auto"
     try:
         main([*args, "--combinatorics", "gpu"])
     except SystemExit as err:
