@@ -38,7 +38,6 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 RESULTS = HERE / "results"
@@ -49,7 +48,13 @@ MAX_ROW = 400  # characters of one generated README table row
 
 # The suite, in the order `--all` runs it: one line per benchmark module.
 SUITE: tuple[str, ...] = (
+    "throughput",
+    "error_vs_time",
+    "specular_error",
+    "shadow_error_vs_time",
     "stability_table",
+    "inverse_speed",
+    "projective_gradient",
 )
 
 

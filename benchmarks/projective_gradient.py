@@ -33,7 +33,8 @@ Issue 5, acceptance item "gradient accuracy through soft shadows":
    fit=("position",), starts=1)` (pixel-centre targets) as the packaged solver.
 
 Run: `.venv/bin/python -m benchmarks.projective_gradient` (~10 min on the shared 2-core
-machine; `--quick` for a smoke test). Writes `benchmarks/results/projective_gradient.{json,png,md}`.
+machine; `--quick` for a smoke test): `python -m benchmarks projective_gradient [--quick]`
+(needs the mitsuba extra).
 """
 
 from __future__ import annotations
@@ -50,6 +51,7 @@ import time
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+DESCRIPTION = "d(loss)/d(light position) through soft shadows vs Mitsuba direct_projective; Adam vs our LM"
 
 
 def _args(argv=None):
@@ -76,16 +78,12 @@ def _args(argv=None):
     p.add_argument("--quad-check", action="store_true", default=True)
     p.add_argument("--no-quad-check", dest="quad_check", action="store_false")
     p.add_argument("--reps", type=int, default=5, help="timed repetitions of our gradient")
-    p.add_argument("--out", default=os.path.join(HERE, "results", "projective_gradient"))
-    p.add_argument("--from-json", default=None, help="only re-render the PNG and markdown from a JSON of a run")
     p.add_argument("--quick", action="store_true", help="smoke test: small image, few samples, short Adam")
     a = p.parse_args(argv)
     if a.quick:
         a.res, a.forward_spp, a.spp, a.seeds = 16, 256, [4, 16], 2
         a.octree_default_spp, a.adam_seconds, a.adam_iters, a.lm_iters = [], 15.0, 100, 15
         a.quad_check, a.reps = False, 2
-        if a.out == os.path.join(HERE, "results", "projective_gradient"):
-            a.out += "_quick"
     return a
 
 
@@ -93,18 +91,11 @@ def _log(*msg):
     print(f"[{time.strftime('%H:%M:%S')}]", *msg, flush=True)
 
 
-def main(argv=None):  # noqa: C901 - one linear study
-    a = _args(argv)
-    if a.from_json:
-        with open(a.from_json) as fh:
-            out = json.load(fh)
-        stem = os.path.splitext(a.from_json)[0]
-        out["time_to_error"] = _time_to_error(out)
-        _plot(out, stem + ".png")
-        with open(stem + ".md", "w") as fh:
-            fh.write(_markdown(out, os.path.basename(stem)))
-        _log(f"re-rendered {stem}.png/.md from {a.from_json}")
-        return out
+def run(quick: bool) -> dict:
+    return _study(_args(["--quick"] if quick else []))
+
+
+def _study(a):  # noqa: C901 - one linear study
     t_start = time.perf_counter()
     load_start = os.getloadavg()
 
@@ -493,14 +484,6 @@ def main(argv=None):  # noqa: C901 - one linear study
     out["time_to_error"] = _time_to_error(out)
     out["total_wall_s"] = time.perf_counter() - t_start
     out["machine"]["loadavg_end"] = os.getloadavg()
-
-    os.makedirs(os.path.dirname(a.out), exist_ok=True)
-    with open(a.out + ".json", "w") as fh:
-        json.dump(out, fh, indent=1)
-    _plot(out, a.out + ".png")
-    with open(a.out + ".md", "w") as fh:
-        fh.write(_markdown(out, os.path.basename(a.out)))
-    _log(f"wrote {a.out}.json/.png/.md in {out['total_wall_s']:.0f} s total")
     return out
 
 
@@ -545,11 +528,10 @@ def _time_to_error(out):
     return {"thresholds_m": thresholds, "rows": reach}
 
 
-def _plot(out, path):
-    import matplotlib
-
-    matplotlib.use("Agg")
+def plot(out, path):
     import matplotlib.pyplot as plt
+
+    from ._suite import save_figure
 
     size = out["scene"]["scene_size_m"]
     fig, ax = plt.subplots(1, 2, figsize=(12, 4.6))
@@ -596,24 +578,22 @@ def _plot(out, path):
     ax[1].set_title("gradient error vs time (labels: spp)")
     ax[1].legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path)
+    plt.close(fig)
 
 
 def _fmt(v, f="{:.3g}"):
     return "never" if v is None else f.format(v)
 
 
-def _markdown(out, stem):
+def markdown(out):
     s = out["scene"]
     o = out["ours"]
     fwd = out["forward_check"]
     fd = o["fd_check"]
     m = out["machine"]
     lines = [
-        "## Gradient through soft shadows: jaxshadow vs Mitsuba `direct_projective`",
-        "",
-        f"`.venv/bin/python -m benchmarks.projective_gradient` -> `results/{stem}.{{json,png}}` "
-        f"(run of {out['date_utc']}, {out['total_wall_s']:.0f} s, load average "
+        f"Run of {out['date_utc']}, {out['total_wall_s']:.0f} s, load average "
         f"{m['loadavg_start'][0]:.1f} at start / {m['loadavg_end'][0]:.1f} at end on {m['cpu_count']} shared cores; "
         f"Mitsuba {m['mitsuba']} `{m['mitsuba_variant']}`, Dr.Jit {m['drjit']}, JAX {m['jax']}).",
         "",
@@ -772,5 +752,20 @@ def _reading(out):
     return " ".join(txt)
 
 
-if __name__ == "__main__":
-    main()
+
+def key_numbers(out) -> list[tuple[str, str]]:
+    o, mg = out["ours"], out["mitsuba_gradients"]
+    rows = {r["method"]: r for r in out["time_to_error"]["rows"]}
+    lm = rows["jaxshadow LM (float64)"]
+    adam = [r for name, r in rows.items() if name.startswith("Mitsuba Adam")]
+    errs = [r["rel_error_mean"] for r in mg]
+    times = [r["time_per_gradient_s"] for r in mg]
+    stayed = [r["stays_below_0.1%_from_s"] for r in adam]
+    adam_txt = ("Mitsuba's Adam never stayed there" if all(s is None for s in stayed)
+                else f"Mitsuba's Adam from {min(s for s in stayed if s is not None):.1f} s")
+    res = "x".join(str(v) for v in out["scene"]["image"])
+    return [(f"d(loss)/d(light position) through a soft shadow ({res} image)",
+             f"float64 vs central differences {o['fd_check']['all_pixels']['best_rel_error_norm']:.1e} relative; "
+             f"Mitsuba `direct_projective` {min(errs):.2f}-{max(errs):.2f} relative error at "
+             f"{min(times):.2g}-{max(times):.2g} s per gradient (ours {o['float64']['time_per_gradient_s']:.2f} s); "
+             f"to 0.1 % of the scene: our LM {_fmt(lm['time_to_0.1%_s'], '{:.1f}')} s, {adam_txt}")]
