@@ -144,8 +144,10 @@ def run_demo(out_dir: str | os.PathLike, progress: bool = True, *, n_points: int
         "Jacobian (1 % noise), an error of 2-3 sigma is expected in a few rows:\n" + table)
 
     t0 = time.perf_counter()
-    import matplotlib
-
+    try:
+        import matplotlib
+    except ImportError as err:
+        raise ImportError("plots need the optional dependency 'matplotlib': `pip install 'jaxshadow[plot]'`.") from err
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 

@@ -38,6 +38,25 @@ def joint_std_errors(param: LightParametrisation, theta: Any, scene: js.Scene, m
     **Returns:** name -> standard error: `"x", "y", "z"` (or `"a", "b"` on a plane) in m,
     rotations in rad, log sizes, `"ka[r]"` ... `"ks[b]"` and `"n"` (the exponent itself,
     by the delta method); `inf` for a direction the targets do not determine.
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+        import inverse
+
+        true = js.Scene([js.PointLight([0.2, 0.3, 2.0], 3.0)], ambient=0.05)
+        material = js.Material(ka=0.2, kd=0.6, ks=0.0, exponent=1.0)
+        rng = np.random.default_rng(0)
+        points = np.c_[rng.uniform(-1.0, 1.0, (24, 2)), np.zeros(24)]
+        normals = np.tile([0.0, 0.0, 1.0], (24, 1))
+        eye = np.array([0.0, -2.0, 2.0])
+        targets = inverse.PaintedTargets(points, normals, js.shade(true, material, points, normals, eye), eye)
+        start = js.Scene([js.PointLight([0.0, 0.0, 1.8], 3.0)], ambient=0.05)
+        lf = inverse.fit_light(start, targets, material, fit=("position",), starts=1)
+        se = inverse.joint_std_errors(lf.parametrisation, lf.report.theta, start, material, targets,
+                                      fit_exponent=False)   # x, y, z (m) and ka[r] ... kd[b]
+        ```
     """
     t = targets
     dt = t.points.dtype
@@ -110,6 +129,25 @@ def fit_light_and_material(
     `progress`: `None` or a callable taking a message string (one line per half-step).
 
     **Returns:** `JointFit`.
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+        import inverse
+
+        true = js.Scene([js.PointLight([0.2, 0.3, 2.0], 3.0)], ambient=0.05)
+        material = js.Material(ka=0.2, kd=0.6, ks=0.0, exponent=1.0)
+        rng = np.random.default_rng(0)
+        points = np.c_[rng.uniform(-1.0, 1.0, (24, 2)), np.zeros(24)]
+        normals = np.tile([0.0, 0.0, 1.0], (24, 1))
+        eye = np.array([0.0, -2.0, 2.0])
+        targets = inverse.PaintedTargets(points, normals, js.shade(true, material, points, normals, eye), eye)
+        start = js.Scene([js.PointLight([0.0, 0.0, 1.8], 3.0)], ambient=0.05)
+        guess = js.Material(ka=0.5, kd=0.5, ks=0.0, exponent=1.0)
+        joint = inverse.fit_light_and_material(start, targets, guess, light_kwargs={"fit": ("position",), "starts": 4})
+        joint.scene.lights[0].position, joint.material.kd, joint.std_errors
+        ```
     """
     lk = dict(light_kwargs or {})
     mk = dict(material_kwargs or {})

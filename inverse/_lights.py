@@ -81,11 +81,22 @@ def fit_light(
 
     Example:
         ```python
+        import numpy as np
+        import jaxshadow as js
         import inverse
 
-        fit = inverse.fit_light(scene, targets, material, fit=("position",), starts=16,
-                                solver=inverse.LM(refine=4))
-        print(fit.report)   # loss, parameters with standard errors, warnings
+        true = js.Scene([js.PointLight([0.2, 0.3, 2.0], 3.0)], ambient=0.05)
+        material = js.Material(ka=0.2, kd=0.6, ks=0.0, exponent=1.0)
+        rng = np.random.default_rng(0)
+        points = np.c_[rng.uniform(-1.0, 1.0, (24, 2)), np.zeros(24)]
+        normals = np.tile([0.0, 0.0, 1.0], (24, 1))
+        eye = np.array([0.0, -2.0, 2.0])
+        targets = inverse.PaintedTargets(points, normals, js.shade(true, material, points, normals, eye), eye)
+        start = js.Scene([js.PointLight([0.0, 0.0, 1.8], 3.0)], ambient=0.05)
+        fit = inverse.fit_light(start, targets, material, fit=("position",), starts=4,
+                                solver=inverse.LM(refine=2))
+        print(fit.report)          # loss, parameters with standard errors, warnings
+        fit.light.position         # ~ [0.2, 0.3, 2.0]
         ```
     """
     solver = solver_from_arguments(solver, deprecated)

@@ -56,6 +56,16 @@ def bounded_lstsq(X: np.ndarray, y: np.ndarray, w: np.ndarray, lo: Any, hi: Any,
 
     **Returns:** `(k (3,), objective, active (7,) bool)`: active constraints in the order
     `k0>=lo, k0<=hi, k1>=lo, k1<=hi, k2>=lo, k2<=hi, k1+k2<=1`.
+
+    Example:
+        ```python
+        import numpy as np
+        import inverse
+
+        X = np.random.default_rng(0).uniform(0, 1, (10, 3))
+        y = X @ np.array([0.2, 0.9, -0.1])
+        k, objective, active = inverse.bounded_lstsq(X, y, np.ones(10), 0.0, 1.0)   # k[2] held at 0
+        ```
     """
     X = np.asarray(X, np.float64)
     y = np.asarray(y, np.float64)
@@ -230,6 +240,23 @@ def fit_material(
       flags them either way).
 
     **Returns:** `MaterialFit(material, residual (N, 3), report)`.
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+        import inverse
+
+        scene = js.Scene([js.PolygonLight([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2]], radiance=4.0)], ambient=0.2)
+        rng = np.random.default_rng(0)
+        points = np.c_[rng.uniform(-0.5, 1.5, (20, 2)), np.zeros(20)]
+        normals = np.tile([0.0, 0.0, 1.0], (20, 1))
+        eye = np.array([0.5, -2.0, 2.0])
+        true = js.Material(ka=0.2, kd=0.6, ks=0.3, exponent=20.0)
+        targets = inverse.PaintedTargets(points, normals, js.shade(scene, true, points, normals, eye), eye)
+        fit = inverse.fit_material(scene, targets, exponent=20.0)
+        print(fit.report)   # k_a, k_d, k_s per channel with standard errors
+        ```
     """
     if not isinstance(targets, PaintedTargets):
         raise ValueError(f"fit_material: targets must be PaintedTargets, got {type(targets).__name__}.")

@@ -74,7 +74,16 @@ def _rodrigues_coefficients(omega: Float[Array, "3"]) -> tuple[Array, Array]:
 
 def rotation_matrix(omega: Float[Array, "3"]) -> Float[Array, "3 3"]:
     """Rodrigues: the rotation by angle $|\\omega|$ about $\\omega$, $I + aK + bK^2$
-    (`_rodrigues_coefficients`; smooth at $\\omega = 0$)."""
+    (`_rodrigues_coefficients`; smooth at $\\omega = 0$).
+
+    Example:
+        ```python
+        import jax.numpy as jnp
+        import inverse
+
+        R = inverse.rotation_matrix(jnp.array([0.0, 0.0, jnp.pi / 2]))   # 90 degrees about z
+        ```
+    """
     a, b = _rodrigues_coefficients(omega)
     K = jnp.array([[0.0, -omega[2], omega[1]], [omega[2], 0.0, -omega[0]], [-omega[1], omega[0], 0.0]],
                   dtype=omega.dtype)
@@ -292,7 +301,25 @@ def with_light(scene: js.Scene, index: int, light: Any) -> js.Scene:
 
 
 def scene_size(scene: js.Scene, targets: PaintedTargets) -> float:
-    """Diagonal (m) of the bounding box of targets, lights and occluders."""
+    """Diagonal (m) of the bounding box of targets, lights and occluders.
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+        import inverse
+
+        true = js.Scene([js.PointLight([0.2, 0.3, 2.0], 3.0)], ambient=0.05)
+        material = js.Material(ka=0.2, kd=0.6, ks=0.0, exponent=1.0)
+        rng = np.random.default_rng(0)
+        points = np.c_[rng.uniform(-1.0, 1.0, (24, 2)), np.zeros(24)]
+        normals = np.tile([0.0, 0.0, 1.0], (24, 1))
+        eye = np.array([0.0, -2.0, 2.0])
+        targets = inverse.PaintedTargets(points, normals, js.shade(true, material, points, normals, eye), eye)
+        start = js.Scene([js.PointLight([0.0, 0.0, 1.8], 3.0)], ambient=0.05)
+        inverse.scene_size(start, targets)   # m: the unit of the light's position parameters
+        ```
+    """
     pts = [np.asarray(targets.points, np.float64)]
     for light in scene.lights:
         if isinstance(light, js.PolygonLight):

@@ -10,7 +10,8 @@ light it builds.
   that can shadow it (culling at a static capacity chosen from the starting lights; if the
   light moves so that some receiver needs more, the solve is repeated with a larger capacity,
   so the result is always that of the full model).
-- `OptimistixLM`: `optimistix.LevenbergMarquardt` under `jax.vmap` on the full model; it traces
+- `OptimistixLM`: `optimistix.LevenbergMarquardt` under `jax.vmap` on the full model (needs the
+  `optimistix` extra); it traces
   the shadow kernel several times and transposes its linearisation, so it compiles several
   times longer, and its per-start accept/reject branches evaluate both sides under `vmap`
   (`benchmarks/inverse_speed.py` measures both).
@@ -29,7 +30,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 from jaxtyping import Array
 
 from jaxshadow import traced
@@ -187,7 +187,8 @@ class LM(AbstractLightSolver):
 class OptimistixLM(AbstractLightSolver):
     """`optimistix.LevenbergMarquardt` from every start under `jax.vmap`, on the full model
     (no culling). Several times slower to compile and to run than `LM`
-    (`benchmarks/inverse_speed.py`): the reference implementation.
+    (`benchmarks/inverse_speed.py`): the reference implementation. Needs the `optimistix` extra
+    (`pip install 'jaxshadow[optimistix]'`).
 
     **Arguments:** `refine` (default 8: the starts are screened by one vectorised loss),
     `rtol`, `atol` (Optimistix's), `max_steps`.
@@ -341,8 +342,18 @@ def screen_with_lm(problem: LightProblem, starts: Array, k: int, rtol: float, at
     return np.where(np.isfinite(losses), losses, np.inf)
 
 
+def _optimistix() -> Any:
+    try:
+        import optimistix
+    except ImportError as err:
+        raise ImportError("inverse.OptimistixLM needs the optional dependency 'optimistix': install it with "
+                          "`pip install 'jaxshadow[optimistix]'`.") from err
+    return optimistix
+
+
 @fit_jit
 def _multistart_optx(problem: LightProblem, starts: Array, rtol: float, atol: float, max_steps: int) -> tuple:
+    optx = _optimistix()
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
 
     def one(y0: Array) -> tuple:

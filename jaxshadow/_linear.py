@@ -201,6 +201,16 @@ def linear_irradiance(
       $\cos^m$ tube (Poulin §3.2.2).
 
     **Returns:** `(N,)`; `+inf` for a receiver on the segment itself.
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+
+        points = np.array([[0.0, 0.0, 0.0], [1.0, 0.5, 0.0]])
+        normals = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+        f = js.linear_irradiance(points, normals, [-1.0, 0.0, 1.5], [1.0, 0.0, 1.5])   # (2,)
+        ```
     """
     points, normals = check_points_normals(points, normals, "linear_irradiance", values=False)
     if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or m < 0:

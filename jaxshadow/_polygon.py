@@ -245,6 +245,17 @@ def form_factor(
     normals, non-planar / non-convex / degenerate polygons); `ValueError` names the culprit.
 
     **Returns:** `(N,)` form factors (dimensionless), dtype following `points`.
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+
+        quad = np.array([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2.0]])   # faces -z
+        points = np.array([[0.5, 0.5, 0.0], [3.0, 0.0, 0.0]])
+        normals = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+        F = js.form_factor(points, normals, quad)   # (2,), dimensionless
+        ```
     """
     points, normals = check_points_normals(points, normals, "form_factor", values=False)
     vertices = _check_vertices(vertices, points.dtype)

@@ -233,6 +233,19 @@ def irradiance(
     - `normals`: `(N, 3)` receiver normals (normalised here; zero vectors are an error).
 
     **Returns:** `(N, 3)` irradiance, dtype following `points`.
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+
+        light = js.PolygonLight([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2]], radiance=[4.0, 3.5, 3.0])
+        blocker = [[0.2, 0.2, 1.0], [0.6, 0.2, 1.0], [0.6, 0.6, 1.0]]
+        scene = js.Scene([light], occluders=[blocker], ambient=0.05)
+        points = np.array([[0.5, 0.5, 0.0], [2.0, 0.0, 0.0]])
+        normals = np.array([[0.0, 0.0, 1.0], [0.0, 0.3, 1.0]])
+        E = js.irradiance(scene, points, normals)   # (2, 3) W/m^2, soft shadow included
+        ```
     """
     scene = _check_scene(scene, "irradiance")
     points, normals = check_points_normals(points, normals, "irradiance", values=False)
@@ -400,6 +413,19 @@ def specular(
     - `degree`: Chebyshev degree (static).
 
     **Returns:** `(N, 3)`, dtype following `points`.
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+
+        light = js.PolygonLight([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2]], radiance=[4.0, 3.5, 3.0])
+        blocker = [[0.2, 0.2, 1.0], [0.6, 0.2, 1.0], [0.6, 0.6, 1.0]]
+        scene = js.Scene([light], occluders=[blocker], ambient=0.05)
+        points = np.array([[0.5, 0.5, 0.0], [2.0, 0.0, 0.0]])
+        normals = np.array([[0.0, 0.0, 1.0], [0.0, 0.3, 1.0]])
+        S = js.specular(scene, points, normals, eye=[0.5, -2.0, 2.0], exponent=20.0)   # (2, 3)
+        ```
     """
     scene = _check_scene(scene, "specular")
     points, normals = check_points_normals(points, normals, "specular")
@@ -434,6 +460,20 @@ def shade(
     or `(N, 3)`; `method`, `degree` as for `specular`.
 
     **Returns:** `(N, 3)` radiance (W m^-2 sr^-1).
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+
+        light = js.PolygonLight([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2]], radiance=[4.0, 3.5, 3.0])
+        blocker = [[0.2, 0.2, 1.0], [0.6, 0.2, 1.0], [0.6, 0.6, 1.0]]
+        scene = js.Scene([light], occluders=[blocker], ambient=0.05)
+        points = np.array([[0.5, 0.5, 0.0], [2.0, 0.0, 0.0]])
+        normals = np.array([[0.0, 0.0, 1.0], [0.0, 0.3, 1.0]])
+        material = js.Material(ka=0.1, kd=0.6, ks=0.3, exponent=20.0)
+        L = js.shade(scene, material, points, normals, [0.5, -2.0, 2.0])   # (2, 3) radiance
+        ```
     """
     scene = _check_scene(scene, "shade")
     if not isinstance(material, Material):

@@ -22,7 +22,15 @@ from ._shade import irradiance
 
 
 def batch_mesh(devices: Any = None) -> Mesh:
-    """A 1-D `Mesh` with axis name `"points"` over `devices` (default: all of `jax.devices()`)."""
+    """A 1-D `Mesh` with axis name `"points"` over `devices` (default: all of `jax.devices()`).
+
+    Example:
+        ```python
+        import jaxshadow as js
+
+        mesh = js.batch_mesh()   # every local device on one axis
+        ```
+    """
     devs = jax.devices() if devices is None else list(devices)
     return Mesh(np.asarray(devs), ("points",))
 
@@ -53,6 +61,19 @@ def sharded_irradiance(
     **Returns:** `(N, 3)` irradiance, dtype following `points`. When `N` is a multiple of the
     device count the result stays sharded along its first axis (`NamedSharding`); otherwise
     the batch is padded for the computation and the `N` real rows are returned.
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+
+        light = js.PolygonLight([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2]], radiance=[4.0, 3.5, 3.0])
+        blocker = [[0.2, 0.2, 1.0], [0.6, 0.2, 1.0], [0.6, 0.6, 1.0]]
+        scene = js.Scene([light], occluders=[blocker], ambient=0.05)
+        points = np.array([[0.5, 0.5, 0.0], [2.0, 0.0, 0.0]])
+        normals = np.array([[0.0, 0.0, 1.0], [0.0, 0.3, 1.0]])
+        E = js.sharded_irradiance(scene, points, normals, js.batch_mesh())   # as js.irradiance
+        ```
     """
     points, normals = check_points_normals(points, normals, "sharded_irradiance")
     mesh = batch_mesh() if mesh is None else mesh

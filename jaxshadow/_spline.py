@@ -382,6 +382,16 @@ def shadow_nodes(
     $E_i = \langle v_{i1}..v_{im}\rangle$, $S_{ij} = \langle v_{ij}, v_{i+1,j}, v_{i+1,j+1},
     v_{i,j+1}\rangle$ (indices in the given vertex orders). Infinite where $z'_j = z_i$. For
     plotting and tests; the kernel uses the homogeneous form (module docstring, note 6).
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+
+        emitter = np.array([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2.0]])
+        occluder = np.array([[0.3, 0.3, 1], [0.7, 0.3, 1], [0.7, 0.7, 1], [0.3, 0.7, 1.0]])
+        nodes = js.shadow_nodes(emitter, occluder)   # (4, 4, 2): the shadow's spline nodes on z = 0
+        ```
     """
     zo = occluder[:, None, 2:3]
     ze = emitter[None, :, 2:3]
@@ -470,6 +480,16 @@ def spline_shadow(
     **Raises:** `ValueError` (inputs concrete, i.e. not under jit/grad/vmap) for bad shapes,
     NaN/inf, non-convex or degenerate polygons, and configurations outside the validity region.
     Jitted (`eqx.filter_jit`) below the checks; differentiable in every input.
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+
+        emitter = np.array([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2.0]])      # emits towards -z
+        occluder = np.array([[0.3, 0.3, 1], [0.7, 0.3, 1], [0.7, 0.7, 1], [0.3, 0.7, 1.0]])
+        F = js.spline_shadow(emitter, occluder, np.array([[0.5, 0.5, 0.0], [0.9, 0.1, 0.0]]))
+        ```
     """
     what = "spline_shadow"
     for name, x, ndim in (
@@ -585,6 +605,17 @@ def spline_shadow_faces(
 
     **Raises:** `ValueError` for invalid inputs (when concrete), as `spline_shadow`, and when
     the faces do not bound a closed convex polyhedron.
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+
+        emitter = np.array([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2.0]])
+        a, b, c, d = [0.3, 0.3, 1.0], [0.7, 0.3, 1.0], [0.5, 0.7, 1.0], [0.5, 0.45, 1.3]   # a tetrahedron
+        faces = np.array([[a, c, b], [a, b, d], [b, c, d], [c, a, d]])   # every face of the occluder
+        F = js.spline_shadow_faces(emitter[None], faces, np.array([[0.5, 0.5, 0.0]]))
+        ```
     """
     what = "spline_shadow_faces"
     em, em_np = _stack_polygons(emitters, f"{what}: emitter")

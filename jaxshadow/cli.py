@@ -82,8 +82,10 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def _plot_report(scene: Any, points, ours, mits, se, path: str) -> None:
-    import matplotlib
-
+    try:
+        import matplotlib
+    except ImportError as err:
+        raise ImportError("plots need the optional dependency 'matplotlib': `pip install 'jaxshadow[plot]'`.") from err
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 

@@ -21,10 +21,15 @@ from typing import Any
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from ._clip_host import _pinned, compiled_available, relevant_counts
+from ._clip_host import _pinned
+from ._clip_host import compiled_available as _compiled_available
+from ._clip_host import relevant_counts as _relevant_counts
 from ._scene import Scene
 from ._shade import _irradiance_traced, _specular_traced
 from ._specular import DEFAULT_DEGREE
+
+__all__ = ["DEFAULT_SPECULAR_DEGREE", "irradiance", "specular", "pin", "host_combinatorics_available",
+           "relevant_occluder_counts"]
 
 DEFAULT_SPECULAR_DEGREE = DEFAULT_DEGREE
 """The Chebyshev degree of `jaxshadow.specular`'s default method."""
@@ -152,7 +157,7 @@ def host_combinatorics_available() -> bool:
         traced.host_combinatorics_available()   # True after `pip install` with a C compiler
         ```
     """
-    return compiled_available()
+    return _compiled_available()
 
 
 def relevant_occluder_counts(
@@ -178,5 +183,5 @@ def relevant_occluder_counts(
         traced.relevant_occluder_counts(p, n, light, blocker)   # array([[1]])
         ```
     """
-    return relevant_counts(np.asarray(points, np.float64), np.asarray(normals, np.float64),
+    return _relevant_counts(np.asarray(points, np.float64), np.asarray(normals, np.float64),
                            np.asarray(emitters, np.float64), np.asarray(occluders, np.float64))
