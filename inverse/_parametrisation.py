@@ -99,8 +99,8 @@ def _cross_rows(o: Float[Array, "3"], w: Float[Array, "K 3"]) -> Float[Array, "K
 def rotate_rows(omega: Float[Array, "3"], w: Float[Array, "K 3"]) -> Float[Array, "K 3"]:
     """`w @ rotation_matrix(omega).T`, as $w + a\\,\\omega\\times w + b\\,\\omega\\times(\\omega\\times w)$
     in elementwise operations: inside a fit this runs under `jvp` and the batching of the
-    tangents, where matrix products of 3-vectors compile to one small kernel each
-    (benchmarks/README.md, Session 7)."""
+    tangents, where matrix products of 3-vectors compile to one small kernel each (the light's
+    value-and-Jacobian program: 17 kernels instead of 29 fusions and 8 dots)."""
     a, b = _rodrigues_coefficients(omega)
     c1 = _cross_rows(omega, w)
     return w + a * c1 + b * _cross_rows(omega, c1)

@@ -118,9 +118,10 @@ class LM(AbstractLightSolver):
       `"host"`, on the host, called back from the compiled solver once per evaluation
       (`jaxshadow.traced`; compiled C, or NumPy where the extension is not built), so the
       program holds only the geometry: with the C kernel, 8 occluders and 48 targets the first
-      call is about half as long and each solve ~20-40% shorter (`benchmarks/README.md`);
-      `"auto"` (default): `"host"` on the CPU with the C kernel and without `receiver_groups`,
-      else `"device"`. The same values to rounding either way.
+      call took 0.57x / 0.48x and each solve 0.84x / 0.72x of the device's (1 / 64 starts,
+      `benchmarks/results/ab/combinatorics.md`); `"auto"` (default): `"host"` on the CPU with
+      the C kernel and without `receiver_groups`, else `"device"`. The same values to rounding
+      either way.
     - `rtol`, `atol`: termination tolerances (`_lm.batched_levenberg_marquardt`);
       `max_steps`: iterations per start.
 
