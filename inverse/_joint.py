@@ -41,18 +41,17 @@ def joint_std_errors(param: LightParametrisation, theta: Any, scene: js.Scene, m
 
     Example:
         ```python
+        # fit_light's problem, repeated: each example runs on its own (tests/test_docs.py)
         import numpy as np
         import jaxshadow as js
         import inverse
 
-        true = js.Scene([js.PointLight([0.2, 0.3, 2.0], 3.0)], ambient=0.05)
         material = js.Material(ka=0.2, kd=0.6, ks=0.0, exponent=1.0)
-        rng = np.random.default_rng(0)
-        points = np.c_[rng.uniform(-1.0, 1.0, (24, 2)), np.zeros(24)]
-        normals = np.tile([0.0, 0.0, 1.0], (24, 1))
-        eye = np.array([0.0, -2.0, 2.0])
+        points = np.c_[np.random.default_rng(0).uniform(-1, 1, (24, 2)), np.zeros(24)]
+        normals, eye = np.tile([0.0, 0.0, 1.0], (24, 1)), np.array([0.0, -2.0, 2.0])
+        true = js.Scene([js.PointLight([0.2, 0.3, 2.0], 3.0)], ambient=0.05)
         targets = inverse.PaintedTargets(points, normals, js.shade(true, material, points, normals, eye), eye)
-        start = js.Scene([js.PointLight([0.0, 0.0, 1.8], 3.0)], ambient=0.05)
+        start = js.Scene([js.PointLight([0.0, 0.0, 1.8], 3.0)], ambient=0.05)   # the reference light
         lf = inverse.fit_light(start, targets, material, fit=("position",), starts=1)
         se = inverse.joint_std_errors(lf.parametrisation, lf.report.theta, start, material, targets,
                                       fit_exponent=False)   # x, y, z (m) and ka[r] ... kd[b]
@@ -132,18 +131,17 @@ def fit_light_and_material(
 
     Example:
         ```python
+        # fit_light's problem, repeated: each example runs on its own (tests/test_docs.py)
         import numpy as np
         import jaxshadow as js
         import inverse
 
-        true = js.Scene([js.PointLight([0.2, 0.3, 2.0], 3.0)], ambient=0.05)
         material = js.Material(ka=0.2, kd=0.6, ks=0.0, exponent=1.0)
-        rng = np.random.default_rng(0)
-        points = np.c_[rng.uniform(-1.0, 1.0, (24, 2)), np.zeros(24)]
-        normals = np.tile([0.0, 0.0, 1.0], (24, 1))
-        eye = np.array([0.0, -2.0, 2.0])
+        points = np.c_[np.random.default_rng(0).uniform(-1, 1, (24, 2)), np.zeros(24)]
+        normals, eye = np.tile([0.0, 0.0, 1.0], (24, 1)), np.array([0.0, -2.0, 2.0])
+        true = js.Scene([js.PointLight([0.2, 0.3, 2.0], 3.0)], ambient=0.05)
         targets = inverse.PaintedTargets(points, normals, js.shade(true, material, points, normals, eye), eye)
-        start = js.Scene([js.PointLight([0.0, 0.0, 1.8], 3.0)], ambient=0.05)
+        start = js.Scene([js.PointLight([0.0, 0.0, 1.8], 3.0)], ambient=0.05)   # the reference light
         guess = js.Material(ka=0.5, kd=0.5, ks=0.0, exponent=1.0)
         joint = inverse.fit_light_and_material(start, targets, guess, light_kwargs={"fit": ("position",), "starts": 4})
         joint.scene.lights[0].position, joint.material.kd, joint.std_errors

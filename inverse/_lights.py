@@ -55,18 +55,14 @@ def fit_light(
 
     **Arguments:**
 
-    - `scene`, `targets`, `material`: the scene (occluders cast soft shadows), the painted
-      targets and the (fixed) material.
-    - `light_index`: which light to place (PolygonLight, LinearLight or PointLight).
-    - `fit`: subset of `("position", "orientation", "size")`.
-    - `constraint`: `None`, `Plane(point, normal)` (centre on a plane) or `Box(lower, upper)`.
-    - `starts`: number of multistart points (a scrambled Sobol stratification of the search
-      region, the reference first); 1 = local solve.
+    - `scene` (occluders cast soft shadows), `targets`, `material` (fixed); `light_index`: the
+      light to place (PolygonLight, LinearLight or PointLight); `fit`: a subset of
+      `("position", "orientation", "size")`; `constraint`: `None`, `Plane` or `Box`.
+    - `starts`: multistart points (a scrambled Sobol stratification of the search region, the
+      reference first; 1 = local solve); `search_radius` (scene sizes), `orientation_spread`
+      (rad), `size_spread` (relative): the region's half-widths; `seed`: its stratification.
     - `solver`: `LM()` (default: screening to the 8 best starts, successive halving, occluder
-      culling; exact), `OptimistixLM()` or `LBFGSB()`; their options are theirs.
-    - `search_radius`: half-width of the start region, in units of the scene size;
-      `orientation_spread` (rad), `size_spread` (relative): its other axes; `seed`: of the
-      stratification.
+      culling; exact), `OptimistixLM()` or `LBFGSB()`, with their options.
     - `material_mode`: `"fixed"` (the material as given) or `"projected"` (joint light and
       material by variable projection: at every trial light $k_a, k_d, k_s$ are the exact,
       unconstrained weighted least-squares solution, so only the light - and with
@@ -85,18 +81,14 @@ def fit_light(
         import jaxshadow as js
         import inverse
 
-        true = js.Scene([js.PointLight([0.2, 0.3, 2.0], 3.0)], ambient=0.05)
         material = js.Material(ka=0.2, kd=0.6, ks=0.0, exponent=1.0)
-        rng = np.random.default_rng(0)
-        points = np.c_[rng.uniform(-1.0, 1.0, (24, 2)), np.zeros(24)]
-        normals = np.tile([0.0, 0.0, 1.0], (24, 1))
-        eye = np.array([0.0, -2.0, 2.0])
+        points = np.c_[np.random.default_rng(0).uniform(-1, 1, (24, 2)), np.zeros(24)]
+        normals, eye = np.tile([0.0, 0.0, 1.0], (24, 1)), np.array([0.0, -2.0, 2.0])
+        true = js.Scene([js.PointLight([0.2, 0.3, 2.0], 3.0)], ambient=0.05)
         targets = inverse.PaintedTargets(points, normals, js.shade(true, material, points, normals, eye), eye)
-        start = js.Scene([js.PointLight([0.0, 0.0, 1.8], 3.0)], ambient=0.05)
-        fit = inverse.fit_light(start, targets, material, fit=("position",), starts=4,
-                                solver=inverse.LM(refine=2))
-        print(fit.report)          # loss, parameters with standard errors, warnings
-        fit.light.position         # ~ [0.2, 0.3, 2.0]
+        start = js.Scene([js.PointLight([0.0, 0.0, 1.8], 3.0)], ambient=0.05)   # the reference light
+        fit = inverse.fit_light(start, targets, material, fit=("position",), starts=4, solver=inverse.LM(refine=2))
+        fit.light.position   # ~ [0.2, 0.3, 2.0]; print(fit.report): the parameters, their errors, warnings
         ```
     """
     solver = solver_from_arguments(solver, deprecated)

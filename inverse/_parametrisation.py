@@ -25,17 +25,31 @@ from ._targets import PaintedTargets
 FIT_GROUPS = ("position", "orientation", "size")
 
 
+def _finite_3_vectors(what: str, a: Any, b: Any) -> tuple[np.ndarray, np.ndarray]:
+    """`a`, `b` as float64 3-vectors; ValueError (naming `what`) unless both are finite."""
+    x, y = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    if x.shape != (3,) or y.shape != (3,) or not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
+        raise ValueError(f"{what} must be finite 3-vectors, got {x.tolist()}, {y.tolist()}.")
+    return x, y
+
+
 class Plane(eqx.Module):
-    """Constrain the light centre to a plane (a ceiling): `point (3,)`, `normal (3,)`."""
+    """Constrain the light centre to a plane (a ceiling): `point (3,)`, `normal (3,)`.
+
+    Example:
+        ```python
+        import inverse
+
+        ceiling = inverse.Plane([0.0, 0.0, 2.5], [0.0, 0.0, 1.0])
+        # inverse.fit_light(scene, targets, material, constraint=ceiling)
+        ```
+    """
 
     point: Float[Array, "3"]
     normal: Float[Array, "3"]
 
     def __init__(self, point: Any, normal: Any):
-        p = np.asarray(point, np.float64)
-        n = np.asarray(normal, np.float64)
-        if p.shape != (3,) or n.shape != (3,) or not (np.all(np.isfinite(p)) and np.all(np.isfinite(n))):
-            raise ValueError(f"Plane: point and normal must be finite 3-vectors, got {p.tolist()}, {n.tolist()}.")
+        p, n = _finite_3_vectors("Plane: point and normal", point, normal)
         if np.linalg.norm(n) == 0:
             raise ValueError("Plane: the normal is the zero vector.")
         self.point = jnp.asarray(p)
@@ -43,16 +57,22 @@ class Plane(eqx.Module):
 
 
 class Box(eqx.Module):
-    """Constrain the light centre to an axis-aligned box `lower (3,) <= c <= upper (3,)`."""
+    """Constrain the light centre to an axis-aligned box `lower (3,) <= c <= upper (3,)`.
+
+    Example:
+        ```python
+        import inverse
+
+        room = inverse.Box([-2.0, -2.0, 1.5], [2.0, 2.0, 3.0])
+        # inverse.fit_light(scene, targets, material, constraint=room, solver=inverse.LBFGSB())
+        ```
+    """
 
     lower: Float[Array, "3"]
     upper: Float[Array, "3"]
 
     def __init__(self, lower: Any, upper: Any):
-        lo = np.asarray(lower, np.float64)
-        hi = np.asarray(upper, np.float64)
-        if lo.shape != (3,) or hi.shape != (3,) or not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
-            raise ValueError("Box: lower and upper must be finite 3-vectors.")
+        lo, hi = _finite_3_vectors("Box: lower and upper", lower, upper)
         if np.any(hi <= lo):
             raise ValueError(f"Box: need lower < upper in every axis, got {lo.tolist()} and {hi.tolist()}.")
         self.lower = jnp.asarray(lo)
@@ -309,15 +329,9 @@ def scene_size(scene: js.Scene, targets: PaintedTargets) -> float:
         import jaxshadow as js
         import inverse
 
-        true = js.Scene([js.PointLight([0.2, 0.3, 2.0], 3.0)], ambient=0.05)
-        material = js.Material(ka=0.2, kd=0.6, ks=0.0, exponent=1.0)
-        rng = np.random.default_rng(0)
-        points = np.c_[rng.uniform(-1.0, 1.0, (24, 2)), np.zeros(24)]
-        normals = np.tile([0.0, 0.0, 1.0], (24, 1))
-        eye = np.array([0.0, -2.0, 2.0])
-        targets = inverse.PaintedTargets(points, normals, js.shade(true, material, points, normals, eye), eye)
-        start = js.Scene([js.PointLight([0.0, 0.0, 1.8], 3.0)], ambient=0.05)
-        inverse.scene_size(start, targets)   # m: the unit of the light's position parameters
+        scene = js.Scene([js.PointLight([0.0, 0.0, 2.0], 1.0)])
+        targets = inverse.PaintedTargets(np.zeros((1, 3)), [[0, 0, 1.0]], [[0.2, 0.2, 0.2]], eye=[0, -1, 1.0])
+        inverse.scene_size(scene, targets)   # 2.0 m: the unit of a fit's position parameters
         ```
     """
     pts = [np.asarray(targets.points, np.float64)]

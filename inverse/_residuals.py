@@ -160,22 +160,17 @@ def light_loss(scene: js.Scene, targets: PaintedTargets, material: js.Material, 
 
     Example:
         ```python
+        import jax
         import numpy as np
         import jaxshadow as js
         import inverse
 
-        true = js.Scene([js.PointLight([0.2, 0.3, 2.0], 3.0)], ambient=0.05)
-        material = js.Material(ka=0.2, kd=0.6, ks=0.0, exponent=1.0)
-        rng = np.random.default_rng(0)
-        points = np.c_[rng.uniform(-1.0, 1.0, (24, 2)), np.zeros(24)]
-        normals = np.tile([0.0, 0.0, 1.0], (24, 1))
-        eye = np.array([0.0, -2.0, 2.0])
-        targets = inverse.PaintedTargets(points, normals, js.shade(true, material, points, normals, eye), eye)
-        start = js.Scene([js.PointLight([0.0, 0.0, 1.8], 3.0)], ambient=0.05)
-        import jax
-
-        grad = jax.grad(lambda p: inverse.light_loss(start, targets, material, js.PointLight(p, 3.0)))
-        grad(np.array([0.0, 0.0, 1.8]))   # d(loss)/d(light position)
+        scene = js.Scene([js.PointLight([0.0, 0.0, 2.0], 3.0)])
+        material = js.Material(ka=0.0, kd=0.5, ks=0.0, exponent=1.0)
+        targets = inverse.PaintedTargets([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]], [[0, 0, 1.0], [0, 0, 1.0]],
+                                         [[0.10, 0.10, 0.10], [0.05, 0.05, 0.05]], eye=[0.0, -2.0, 2.0])
+        grad = jax.grad(lambda pos: inverse.light_loss(scene, targets, material, js.PointLight(pos, 3.0)))
+        grad(np.array([0.0, 0.0, 2.0]))   # d(loss)/d(light position)
         ```
     """
     with_spec = bool(np.any(np.asarray(material.ks) != 0))

@@ -19,7 +19,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from ._geometry import (
     as_input,
@@ -229,7 +229,7 @@ def _check_vertices(vertices: Any, dtype: Any) -> Array:
 
 
 def form_factor(
-    points: Float[Array, "N 3"], normals: Float[Array, "N 3"], vertices: Float[Array, "k 3"]
+    points: Float[ArrayLike, "N 3"], normals: Float[ArrayLike, "N 3"], vertices: Float[ArrayLike, "k 3"]
 ) -> Float[Array, " N"]:
     r"""Unoccluded point-to-polygon form factor for a batch of receivers.
 

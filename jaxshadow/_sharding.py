@@ -67,12 +67,10 @@ def sharded_irradiance(
         import numpy as np
         import jaxshadow as js
 
-        light = js.PolygonLight([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2]], radiance=[4.0, 3.5, 3.0])
-        blocker = [[0.2, 0.2, 1.0], [0.6, 0.2, 1.0], [0.6, 0.6, 1.0]]
-        scene = js.Scene([light], occluders=[blocker], ambient=0.05)
-        points = np.array([[0.5, 0.5, 0.0], [2.0, 0.0, 0.0]])
-        normals = np.array([[0.0, 0.0, 1.0], [0.0, 0.3, 1.0]])
-        E = js.sharded_irradiance(scene, points, normals, js.batch_mesh())   # as js.irradiance
+        scene = js.Scene([js.DirectionalLight([0.0, 0.0, -1.0], 800.0)])
+        points = np.random.default_rng(0).uniform(-1, 1, (1024, 3))
+        normals = np.tile([0.0, 0.0, 1.0], (1024, 1))
+        E = js.sharded_irradiance(scene, points, normals, js.batch_mesh())   # as js.irradiance, split over devices
         ```
     """
     points, normals = check_points_normals(points, normals, "sharded_irradiance")

@@ -87,6 +87,8 @@ def irradiance(
     return _irradiance_traced(scene, points, normals, max_active, False, n_wide, host and n_wide is None)
 
 
+# The signature of `jaxshadow.specular` (and of `_shade._specular_traced`, which this wraps),
+# with the culling options: the same shape on purpose.
 def specular(
     scene: Scene,
     points: Float[Array, "n 3"],
