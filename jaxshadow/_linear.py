@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import no_type_check
 
 import jax
 import jax.numpy as jnp
@@ -184,6 +185,8 @@ def _linear_batch(points: Array, normals: Array, start: Array, end: Array, m: in
     return e, inputs_ok(points, normals)
 
 
+# Validates its own inputs (ValueError, docs/design.md): no runtime annotation check before it.
+@no_type_check
 def linear_irradiance(
     points: Float[ArrayLike, "N 3"],
     normals: Float[ArrayLike, "N 3"],

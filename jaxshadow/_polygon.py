@@ -15,13 +15,14 @@ vertices run counter-clockwise seen from its lit side (DESIGN.md).
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, no_type_check
 
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from ._geometry import (
+    AnyArray,
     as_input,
     check_convex_polygon_cached,
     check_points_normals,
@@ -214,7 +215,7 @@ def _form_factor_batch(points: Array, normals: Array, vertices: Array) -> tuple[
     return f, inputs_ok(points, normals)
 
 
-def _check_vertices(vertices: Any, dtype: Any) -> Array:
+def _check_vertices(vertices: Any, dtype: Any) -> AnyArray:
     """Validate the emitter of `form_factor` (NumPy, when concrete) and cast it to `dtype`."""
     v = as_input(vertices, "form_factor: vertices")
     if v.ndim != 2 or v.shape[-1] != 3:
@@ -228,6 +229,8 @@ def _check_vertices(vertices: Any, dtype: Any) -> Array:
     return v.astype(dtype)
 
 
+# Validates its own inputs (ValueError, docs/design.md): no runtime annotation check before it.
+@no_type_check
 def form_factor(
     points: Float[ArrayLike, "N 3"], normals: Float[ArrayLike, "N 3"], vertices: Float[ArrayLike, "k 3"]
 ) -> Float[Array, " N"]:

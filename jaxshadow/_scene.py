@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 import os
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, no_type_check
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -398,6 +398,8 @@ def _occluder_from_json(o: Any, where: str) -> Any:
     return _numeric(o, where)
 
 
+# Validates its own inputs (ValueError, docs/design.md): no runtime annotation check before it.
+@no_type_check
 def scene_from_dict(d: dict) -> Scene:
     """Build a Scene from its dict form, with errors naming the offending entry.
 

@@ -8,7 +8,7 @@ with copies of its first receiver and the padding is dropped from the result.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, no_type_check
 
 import equinox as eqx
 import jax
@@ -41,6 +41,8 @@ def _irradiance_sharded(scene: Scene, points: Array, normals: Array, sharding: N
     return jax.lax.with_sharding_constraint(out, sharding)
 
 
+# Validates its own inputs (ValueError, docs/design.md): no runtime annotation check before it.
+@no_type_check
 def sharded_irradiance(
     scene: Scene,
     points: Float[Array, "N 3"],

@@ -94,13 +94,13 @@ $O^*$ (floor region $O_j$), occluder vertices inside $E^*$ ($E_i$) and edge-edge
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, no_type_check
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._geometry import check_convex_polygon, check_finite, is_concrete, newell_normal
 
@@ -242,7 +242,11 @@ def _vertex_terms(rel: Float[Array, "k 3"], normals: Float[Array, "k 3"], coef) 
     return -coef, rel, jnp.roll(rel, 1, axis=0), jnp.roll(normals, 1, axis=0)
 
 
-def _concat(*terms: Terms) -> Terms:
+# Terms of several sets, each of its own length (`_t`: not matched across the arguments).
+AnyTerms = tuple[Float[Array, " _t"], Float[Array, "_t 3"], Float[Array, "_t 3"], Float[Array, "_t 3"]]
+
+
+def _concat(*terms: AnyTerms) -> Terms:
     a, b, c, d = (jnp.concatenate(parts, axis=0) for parts in zip(*terms, strict=True))
     return a, b, c, d
 
@@ -373,8 +377,10 @@ def spline_shadow_faces_kernel(
     return _sum_terms(flat) / jnp.pi
 
 
+# Validates its own inputs (ValueError, docs/design.md): no runtime annotation check before it.
+@no_type_check
 def shadow_nodes(
-    emitter: Float[Array, "m 3"], occluder: Float[Array, "n 3"]
+    emitter: Float[ArrayLike, "m 3"], occluder: Float[ArrayLike, "n 3"]
 ) -> Float[Array, "n m 2"]:
     r"""Shadow nodes $v_{ij}$ (Stark eq. 18) on the floor $z = 0$: where $o_i$ and $e_j$ line up.
 
@@ -457,8 +463,10 @@ def _spline_shadow(emitter: Array, occluder: Array, points: Array) -> Array:
     return jax.vmap(spline_shadow_kernel, in_axes=(0, None, None))(points, emitter, occluder)
 
 
+# Validates its own inputs (ValueError, docs/design.md): no runtime annotation check before it.
+@no_type_check
 def spline_shadow(
-    emitter: Float[Array, "m 3"], occluder: Float[Array, "n 3"], points: Float[Array, "N 3"]
+    emitter: Float[ArrayLike, "m 3"], occluder: Float[ArrayLike, "n 3"], points: Float[ArrayLike, "N 3"]
 ) -> Float[Array, " N"]:
     r"""Form factor of the visible part of a polygon emitter behind one polygon occluder.
 
@@ -580,10 +588,12 @@ def _check_closed_convex(faces: list[np.ndarray], what: str) -> None:
         )
 
 
+# Validates its own inputs (ValueError, docs/design.md): no runtime annotation check before it.
+@no_type_check
 def spline_shadow_faces(
-    emitters: Float[Array, "l m 3"] | list,
-    faces: Float[Array, "f k 3"] | list,
-    points: Float[Array, "N 3"],
+    emitters: Float[ArrayLike, "l m 3"] | list,
+    faces: Float[ArrayLike, "f k 3"] | list,
+    points: Float[ArrayLike, "N 3"],
 ) -> Float[Array, " N"]:
     r"""Shadow equation with several emitters and one convex polyhedral occluder (Stark fig. 14).
 
