@@ -8,7 +8,7 @@ residual (`_residuals`), the starts (`_multistart`), a solver object (`_solvers`
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, no_type_check
 
 import jax.numpy as jnp
 import numpy as np
@@ -27,6 +27,8 @@ from ._targets import PaintedTargets
 _POSITION_NAMES = ("x", "y", "z", "a", "b")
 
 
+# Validates its own inputs (ValueError, docs/design.md): no runtime annotation check before it.
+@no_type_check
 def fit_light(
     scene: js.Scene,
     targets: PaintedTargets,
@@ -36,7 +38,7 @@ def fit_light(
     fit: tuple = FIT_GROUPS,
     constraint: Plane | Box | None = None,
     starts: int = 64,
-    solver: AbstractLightSolver | None = None,
+    solver: AbstractLightSolver | str | None = None,
     search_radius: float = 0.5,
     orientation_spread: float = 0.5,
     size_spread: float = 0.5,

@@ -17,7 +17,7 @@ from __future__ import annotations
 import itertools
 import math
 import warnings
-from typing import Any
+from typing import Any, no_type_check
 
 import equinox as eqx
 import jax
@@ -202,6 +202,8 @@ def _poulin_weights(basis: _Basis, s: np.ndarray | None, k: np.ndarray, n: int) 
     return np.broadcast_to(w[:, None], (n, 3)).copy()
 
 
+# Validates its own inputs (ValueError, docs/design.md): no runtime annotation check before it.
+@no_type_check
 def fit_material(
     scene: Any,
     targets: PaintedTargets,

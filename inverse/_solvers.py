@@ -270,7 +270,7 @@ def _minimise_vectorised(solver: AbstractLightSolver, problem: LightProblem, sta
 # --------------------------------------------------------------------------------------
 
 
-def _multistart_lm_impl(problem: LightProblem, starts: Array, rtol: float, atol: float, max_steps: int,
+def _multistart_lm_impl(problem: LightProblem, starts: Array, rtol: float, atol: float, max_steps: int | Array,
                         prune: tuple[int, ...] = (), chunk: int | None = None) -> tuple[LMResult, Any]:
     """Levenberg-Marquardt from every start at once (`_lm.batched_levenberg_marquardt`) on the
     culled residual; `LMResult.flag` is the culling overflow (then retry, `solve_lm`). Also
