@@ -574,6 +574,7 @@ def polygon_specular(
     return radiance * jax.vmap(kern)(points, jnp.asarray(normals), _eyes(eye, points))
 
 
+# The batch signature of `polygon_specular`, for a segment light (the same shape on purpose).
 @eqx.filter_jit
 def segment_specular(
     points: Float[ArrayLike, "N 3"],
