@@ -23,8 +23,9 @@ import numpy as np
 import jaxshadow as js
 
 from ._forward import shade
-from ._lights import fit_light_and_material
+from ._joint import fit_light_and_material
 from ._scenes import LIGHT_H, LIGHT_W, demo_configuration, polygon_pose, pose_errors, quad
+from ._solvers import LM
 from ._targets import PaintedTargets
 
 
@@ -94,7 +95,7 @@ def run_demo(out_dir: str | os.PathLike, progress: bool = True, *, n_points: int
                            occluders=cfg.scene.occluders, ambient=cfg.scene.ambient)
     cfg = dataclasses.replace(cfg, start_scene=start_scene)
     fit = fit_light_and_material(cfg.start_scene, targets, guess, method="projected",
-                                 light_kwargs={"starts": starts, "refine": refine, "fit": ("position", "orientation")},
+                                 light_kwargs={"starts": starts, "solver": LM(refine=refine), "fit": ("position", "orientation")},
                                  material_kwargs={} if with_spec else {"bounds": ((0, 0, 0), (1, 1, 0))},
                                  progress=say)
     timings["fit"] = time.perf_counter() - t0
@@ -145,7 +146,10 @@ def run_demo(out_dir: str | os.PathLike, progress: bool = True, *, n_points: int
         "Jacobian (1 % noise), an error of 2-3 sigma is expected in a few rows:\n" + table)
 
     t0 = time.perf_counter()
-    from matplotlib.figure import Figure
+    try:
+        from matplotlib.figure import Figure
+    except ImportError as err:
+        raise ImportError("plots need the optional dependency 'matplotlib': `pip install 'jaxshadow[plot]'`.") from err
 
     ext = 1.3
     imgs = [_floor_image(s, m, cfg.eye, image_resolution, ext)

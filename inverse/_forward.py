@@ -1,17 +1,15 @@
 """The forward model the solvers fit.
 
-`js.irradiance`, `js.specular` and `js.shade` (DESIGN.md): $L = k_a L_a + k_d/\\pi\\,E + k_s S$
+`js.irradiance`, `js.specular` and `js.shade` (docs/design.md): $L = k_a L_a + k_d/\\pi\\,E + k_s S$
 (Poulin eq. 5.14). A `specular` callable with the signature of `js.specular` can be passed to
 every solver (tests, or a different lobe); `None` means `js.specular`.
 
-`shade_culled` is the same model with per-receiver occluder culling at a fixed capacity
-(`jaxshadow._bsp`) and *no* fallback: it also returns whether any receiver had more relevant
+`shade_culled` is the same model with per-receiver occluder culling at a fixed capacity and
+*no* fallback (`jaxshadow.traced`): it also returns whether any receiver had more relevant
 occluders than the capacity (then its value is not exact and the solver retries with a larger
 one). The public entry points cull only with concrete lights; inside a fit the light is traced.
-Both call the forward model's traceable implementations (`_shade._irradiance_traced`,
-`_specular_traced`) rather than its jitted entry points: the solvers compile their own
-programs, and a nested jit there only adds tracing (it is transformed again by every
-`jvp`/`vmap` around it).
+The solvers compile their own programs, so they call the traceable model of `jaxshadow.traced`
+rather than the jitted entry points.
 """
 
 from __future__ import annotations
@@ -23,8 +21,7 @@ import jax.numpy as jnp
 from jaxtyping import Array
 
 import jaxshadow as js
-from jaxshadow._shade import _irradiance_traced, _specular_traced
-from jaxshadow._specular import DEFAULT_DEGREE
+from jaxshadow import traced
 
 SpecularFn = Callable[[Any, Array, Array, Array, Array], Array]
 
@@ -57,10 +54,10 @@ def shade_culled(scene: Any, material: Any, points: Array, normals: Array, eye: 
     many occluders per polygon light, and `overflow` (bool scalar) says some receiver had more
     (the value is then not exact). `max_active=None`: the full model and `overflow = False`; a
     custom `specular` is evaluated uncull'd. `n_wide`: only that many receivers get `max_active`
-    in the irradiance, the others 1 (`jaxshadow._bsp.grouped_culled_form_factor`). `host`
-    (static, with `max_active`): the culled kernel's combinatorics run in NumPy on the host
-    (`jaxshadow._clip_host`; the same values, a much smaller compiled program). Traceable in
-    the scene (no input checks: the caller validated them)."""
+    in the irradiance, the others 1. `host` (static, with `max_active`): the culled kernel's
+    combinatorics run on the host (the same values, a much smaller compiled program; see
+    `jaxshadow.traced.irradiance`). Traceable in the scene (no input checks: the caller
+    validated them)."""
     dt = points.dtype
     e, over = irradiance_culled(scene, points, normals, max_active, n_wide, host)
     out = (material.ka.astype(dt) * scene.ambient.astype(dt))[None, :] + (material.kd.astype(dt) / jnp.pi)[None, :] * e
@@ -76,7 +73,7 @@ def irradiance_culled(scene: Any, points: Array, normals: Array, max_active: int
     """`(js.irradiance(...), overflow)` with the culling of `shade_culled`."""
     if scene.occluders is None:
         max_active = None
-    return _irradiance_traced(scene, points, normals, max_active, False, n_wide, host and n_wide is None)
+    return traced.irradiance(scene, points, normals, max_active=max_active, n_wide=n_wide, host=host)
 
 
 def specular_culled(scene: Any, points: Array, normals: Array, eye: Array, exponent: Array,
@@ -89,8 +86,7 @@ def specular_culled(scene: Any, points: Array, normals: Array, eye: Array, expon
         max_active = None
     dt = points.dtype
     eyes = jnp.broadcast_to(jnp.asarray(eye, dt), points.shape)
-    return _specular_traced(scene, points, normals, eyes, exponent.astype(dt), "chebyshev", DEFAULT_DEGREE,
-                            max_active, False, host)
+    return traced.specular(scene, points, normals, eyes, exponent.astype(dt), max_active=max_active, host=host)
 
 
 def traced_specular(scene: Any, points: Array, normals: Array, eye: Array, exponent: Array) -> Array:

@@ -30,8 +30,9 @@ from jaxshadow.cli import (
 )
 
 from ._demo import run_demo
-from ._lights import fit_light_and_material
+from ._joint import fit_light_and_material
 from ._material import fit_material
+from ._solvers import LM
 from ._targets import load_targets
 
 TARGET_EXTS = (".csv", ".json")
@@ -96,8 +97,8 @@ def fit_command(scene_path: str, targets_path: str, output: str | os.PathLike, l
         say(f"[2/2] light {light} ({', '.join(fit)}) and material, jointly (multistart Levenberg-Marquardt) ...")
         guess = js.Material(ka=0.0, kd=0.5, ks=0.0, exponent=1.0) if diffuse else material
         joint = fit_light_and_material(scene, targets, guess, light, progress=say, material_kwargs=mkw,
-                                       light_kwargs={"combinatorics": combinatorics, "fit": tuple(fit),
-                                                     "starts": int(starts), "refine": min(8, int(starts))})
+                                       light_kwargs={"solver": LM(combinatorics=combinatorics, refine=min(8, int(starts))),
+                                                     "fit": tuple(fit), "starts": int(starts)})
         for rep in joint.report:
             print(rep)
         material = joint.material

@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 import os
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, no_type_check
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -394,7 +394,15 @@ def material_from_dict(d: dict, where: str = "material") -> Material:
 
 
 def scene_to_dict(scene: Scene, material: Material | None = None) -> dict:
-    """The JSON-able dict of a scene (and optionally a material), schema version 1."""
+    """The JSON-able dict of a scene (and optionally a material), schema version 1.
+
+    Example:
+        ```python
+        import jaxshadow as js
+
+        d = js.scene_to_dict(js.Scene([js.PointLight([0, 0, 2.0], 1.0)], ambient=0.05))   # JSON-ready
+        ```
+    """
     out: dict[str, Any] = {
         "format": SCENE_FORMAT,
         "version": SCENE_VERSION,
@@ -425,8 +433,19 @@ def _occluder_from_json(o: Any, where: str) -> Any:
     return _numeric(o, where)
 
 
+# Validates its own inputs (ValueError, docs/design.md): no runtime annotation check before it.
+@no_type_check
 def scene_from_dict(d: dict) -> Scene:
-    """Build a Scene from its dict form, with errors naming the offending entry."""
+    """Build a Scene from its dict form, with errors naming the offending entry.
+
+    Example:
+        ```python
+        import jaxshadow as js
+
+        d = js.scene_to_dict(js.Scene([js.PointLight([0, 0, 2.0], 1.0)]))
+        scene = js.scene_from_dict(d)
+        ```
+    """
     if not isinstance(d, dict):
         raise ValueError("scene: expected a JSON object.")
     if d.get("format") != SCENE_FORMAT:
@@ -452,13 +471,35 @@ def scene_from_dict(d: dict) -> Scene:
 
 
 def save_scene(scene: Scene, path: str | os.PathLike, material: Material | None = None) -> None:
-    """Write a scene (and optionally a material) to a JSON file (schema version 1)."""
+    """Write a scene (and optionally a material) to a JSON file (schema version 1).
+
+    Example:
+        ```python
+        import os, tempfile
+        import jaxshadow as js
+
+        scene = js.Scene([js.PointLight([0, 0, 2.0], 1.0)], ambient=0.05)
+        path = os.path.join(tempfile.mkdtemp(), "scene.json")
+        js.save_scene(scene, path, material=js.Material(ka=0.1, kd=0.6, ks=0.3, exponent=20.0))
+        ```
+    """
     with open(path, "w") as f:
         json.dump(scene_to_dict(scene, material), f, indent=2)
 
 
 def load_scene(path: str | os.PathLike) -> Scene:
-    """Read a scene from a JSON file written by `save_scene` (or by hand, same schema)."""
+    """Read a scene from a JSON file written by `save_scene` (or by hand, same schema).
+
+    Example:
+        ```python
+        import os, tempfile
+        import jaxshadow as js
+
+        path = os.path.join(tempfile.mkdtemp(), "scene.json")
+        js.save_scene(js.Scene([js.PointLight([0, 0, 2.0], 1.0)]), path)
+        scene = js.load_scene(path)
+        ```
+    """
     with open(path) as f:
         try:
             d = json.load(f)
@@ -468,7 +509,19 @@ def load_scene(path: str | os.PathLike) -> Scene:
 
 
 def load_material(path: str | os.PathLike) -> Material:
-    """Read the `material` entry of a scene JSON file."""
+    """Read the `material` entry of a scene JSON file.
+
+    Example:
+        ```python
+        import os, tempfile
+        import jaxshadow as js
+
+        path = os.path.join(tempfile.mkdtemp(), "scene.json")
+        js.save_scene(js.Scene([js.PointLight([0, 0, 2.0], 1.0)]), path,
+                      material=js.Material(ka=0.1, kd=0.6, ks=0.3, exponent=20.0))
+        material = js.load_material(path)
+        ```
+    """
     with open(path) as f:
         d = json.load(f)
     if "material" not in d:

@@ -306,6 +306,19 @@ def irradiance(
       compiled host engine when it is built.
 
     **Returns:** `(N, 3)` irradiance, dtype following `points`.
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+
+        light = js.PolygonLight([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2]], radiance=[4.0, 3.5, 3.0])
+        blocker = [[0.2, 0.2, 1.0], [0.6, 0.2, 1.0], [0.6, 0.6, 1.0]]
+        scene = js.Scene([light], occluders=[blocker], ambient=0.05)
+        points = np.array([[0.5, 0.5, 0.0], [2.0, 0.0, 0.0]])
+        normals = np.array([[0.0, 0.0, 1.0], [0.0, 0.3, 1.0]])
+        E = js.irradiance(scene, points, normals)   # (2, 3) W/m^2, soft shadow included
+        ```
     """
     scene = _check_scene(scene, "irradiance")
     points, normals = check_points_normals(points, normals, "irradiance", values=False)
@@ -482,6 +495,17 @@ def specular(
     - `shadows`: `ShadowOptions` (static), as for `irradiance`.
 
     **Returns:** `(N, 3)`, dtype following `points`.
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+
+        tube = js.LinearLight([-1, 0, 1.5], [1, 0, 1.5], power=2.0)
+        scene = js.Scene([tube, js.PointLight([0, 2, 2], 1.0)])
+        p, n = np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]])
+        S = js.specular(scene, p, n, eye=[0.0, -2.0, 2.0], exponent=50.0)   # (1, 3): the Phong lobe's integral
+        ```
     """
     scene = _check_scene(scene, "specular")
     points, normals = check_points_normals(points, normals, "specular")
@@ -517,6 +541,21 @@ def shade(
     or `(N, 3)`; `method`, `degree`, `shadows` as for `specular`.
 
     **Returns:** `(N, 3)` radiance (W m^-2 sr^-1).
+
+    Example:
+        ```python
+        import jax
+        import jax.numpy as jnp
+        import jaxshadow as js
+
+        scene = js.Scene([js.PointLight([0, 0, 2.0], 5.0)], ambient=0.1)
+        p, n = jnp.array([[0.3, 0.1, 0.0]]), jnp.array([[0.0, 0.0, 1.0]])
+
+        def radiance(kd):   # k_a L_a + k_d / pi E + k_s S, differentiable in the material
+            return js.shade(scene, js.Material(ka=0.2, kd=kd, ks=0.3, exponent=20.0), p, n, [0, -1, 1.0]).sum()
+
+        jax.grad(radiance)(0.6)
+        ```
     """
     scene = _check_scene(scene, "shade")
     if not isinstance(material, Material):

@@ -70,7 +70,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 from jax.scipy.special import gammaln
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from ._chebyshev import cutoff_angle, even_fit_integral, interval_fit_integral
 from ._geometry import horizon_clip_edges, newell_normal
@@ -592,12 +592,12 @@ def _eyes(eye: Array, points: Array) -> Array:
 
 @eqx.filter_jit
 def polygon_specular(
-    points: Float[Array, "N 3"],
-    normals: Float[Array, "N 3"],
-    eye: Float[Array, "3"] | Float[Array, "N 3"],
-    vertices: Float[Array, "k 3"],
-    radiance: Float[Array, ""],
-    exponent: Float[Array, ""],
+    points: Float[ArrayLike, "N 3"],
+    normals: Float[ArrayLike, "N 3"],
+    eye: Float[ArrayLike, "3"] | Float[ArrayLike, "N 3"],
+    vertices: Float[ArrayLike, "k 3"],
+    radiance: Float[ArrayLike, ""],
+    exponent: Float[ArrayLike, ""],
     *,
     method: Method = "chebyshev",
     degree: int = DEFAULT_DEGREE,
@@ -611,16 +611,17 @@ def polygon_specular(
     return radiance * jax.vmap(kern)(points, jnp.asarray(normals), _eyes(eye, points))
 
 
+# The batch signature of `polygon_specular`, for a segment light (the same shape on purpose).
 @eqx.filter_jit
 def segment_specular(
-    points: Float[Array, "N 3"],
-    normals: Float[Array, "N 3"],
-    eye: Float[Array, "3"] | Float[Array, "N 3"],
-    start: Float[Array, "3"],
-    end: Float[Array, "3"],
-    power: Float[Array, ""],
-    exponent: Float[Array, ""],
-    profile_exponent: Float[Array, ""] | None = None,
+    points: Float[ArrayLike, "N 3"],
+    normals: Float[ArrayLike, "N 3"],
+    eye: Float[ArrayLike, "3"] | Float[ArrayLike, "N 3"],
+    start: Float[ArrayLike, "3"],
+    end: Float[ArrayLike, "3"],
+    power: Float[ArrayLike, ""],
+    exponent: Float[ArrayLike, ""],
+    profile_exponent: Float[ArrayLike, ""] | None = None,
     *,
     method: Method = "chebyshev",
     degree: int = DEFAULT_DEGREE,
@@ -637,12 +638,12 @@ def segment_specular(
 
 @eqx.filter_jit
 def point_specular(
-    points: Float[Array, "N 3"],
-    normals: Float[Array, "N 3"],
-    eye: Float[Array, "3"] | Float[Array, "N 3"],
-    position: Float[Array, "3"],
-    intensity: Float[Array, ""],
-    exponent: Float[Array, ""],
+    points: Float[ArrayLike, "N 3"],
+    normals: Float[ArrayLike, "N 3"],
+    eye: Float[ArrayLike, "3"] | Float[ArrayLike, "N 3"],
+    position: Float[ArrayLike, "3"],
+    intensity: Float[ArrayLike, ""],
+    exponent: Float[ArrayLike, ""],
 ) -> Float[Array, " N"]:
     """Specular term $S$ of one point light of scalar intensity at `N` receivers."""
     points = jnp.asarray(points)
@@ -652,12 +653,12 @@ def point_specular(
 
 @eqx.filter_jit
 def directional_specular(
-    points: Float[Array, "N 3"],
-    normals: Float[Array, "N 3"],
-    eye: Float[Array, "3"] | Float[Array, "N 3"],
-    direction: Float[Array, "3"],
-    irradiance: Float[Array, ""],
-    exponent: Float[Array, ""],
+    points: Float[ArrayLike, "N 3"],
+    normals: Float[ArrayLike, "N 3"],
+    eye: Float[ArrayLike, "3"] | Float[ArrayLike, "N 3"],
+    direction: Float[ArrayLike, "3"],
+    irradiance: Float[ArrayLike, ""],
+    exponent: Float[ArrayLike, ""],
 ) -> Float[Array, " N"]:
     """Specular term $S$ of one directional light of scalar irradiance at `N` receivers."""
     points = jnp.asarray(points)

@@ -225,7 +225,10 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def _plot_report(scene: Any, points, ours, mits, se) -> Any:
-    from matplotlib.figure import Figure
+    try:
+        from matplotlib.figure import Figure
+    except ImportError as err:
+        raise ImportError("plots need the optional dependency 'matplotlib': `pip install 'jaxshadow[plot]'`.") from err
 
     import jaxshadow as js
 

@@ -317,10 +317,12 @@ def test_fit_command_passes_combinatorics(tmp_path, monkeypatch, capsys):
     args = [NC, "fit", str(tmp_path / "scene.json"), str(tmp_path / "t.json"),
             "-o", str(tmp_path / "f.json"), "--light", "0"]
     assert main([*args, "--combinatorics", "host"]) == 2
-    assert seen == {"light_index": 0, "combinatorics": "host", "fit": ("position", "orientation"), "starts": 64, "refine": 8}
+    solver = seen.pop("solver")
+    assert seen == {"light_index": 0, "fit": ("position", "orientation"), "starts": 64}
+    assert solver.combinatorics == "host" and solver.refine == 8
     seen.clear()
     assert main(args) == 2
-    assert seen["combinatorics"] == "auto"
+    assert seen["solver"].combinatorics == "auto"
     with pytest.raises(SystemExit) as exc:
         main([*args, "--combinatorics", "gpu"])
     assert exc.value.code == 2

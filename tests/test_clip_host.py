@@ -135,7 +135,7 @@ def test_fit_light_host_combinatorics_gives_the_same_light():
     from inverse._scenes import occluded_light_problem
 
     true, start, material, targets = occluded_light_problem(4, n_points=32, seed=1)[:4]
-    fits = {mode: inverse.fit_light(start, targets, material, starts=1, combinatorics=mode)
+    fits = {mode: inverse.fit_light(start, targets, material, starts=1, solver=inverse.LM(combinatorics=mode))
             for mode in ("device", "host")}
     dev, host = fits["device"], fits["host"]
     assert dev.report.initial_loss > 1e-4  # the start is far off
@@ -143,7 +143,7 @@ def test_fit_light_host_combinatorics_gives_the_same_light():
     np.testing.assert_allclose(np.asarray(host.light.vertices), np.asarray(dev.light.vertices), rtol=0, atol=1e-9)
     np.testing.assert_allclose(host.report.singular_values, dev.report.singular_values, rtol=1e-8)
     with pytest.raises(ValueError, match="combinatorics"):
-        inverse.fit_light(start, targets, material, starts=1, combinatorics="gpu")
+        inverse.LM(combinatorics="gpu")
 
 
 def test_specular_host_equals_device():
@@ -257,13 +257,13 @@ def test_numpy_fallback_equals_device(monkeypatch):
 def test_auto_combinatorics(monkeypatch):
     # `fit_light`'s default: the host combinatorics on the CPU when the C kernel is built and
     # the LM uses them; the device otherwise.
-    import inverse._lights as lights
+    import inverse
+    from jaxshadow import traced
 
     assert jax.default_backend() == "cpu"
-    assert lights.resolve_combinatorics("auto") == "host"
-    assert lights.resolve_combinatorics("auto", solver="optimistix") == "device"
-    assert lights.resolve_combinatorics("auto", receiver_groups=True) == "device"
-    assert lights.resolve_combinatorics("device") == "device"
-    assert lights.resolve_combinatorics("host", solver="lm") == "host"
-    monkeypatch.setattr(lights, "compiled_available", lambda: False)
-    assert lights.resolve_combinatorics("auto") == "device"  # NumPy alone: slower solves
+    assert inverse.LM().host_combinatorics()
+    assert not inverse.LM(receiver_groups=True).host_combinatorics()
+    assert not inverse.LM(combinatorics="device").host_combinatorics()
+    assert inverse.LM(combinatorics="host", receiver_groups=True).host_combinatorics()
+    monkeypatch.setattr(traced, "host_combinatorics_available", lambda: False)
+    assert not inverse.LM().host_combinatorics()  # NumPy alone: slower solves

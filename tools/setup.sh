@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Set up a fresh machine for jaxshadow: Debian's libllvm19 (Mitsuba's llvm_ad_rgb variant
 # needs it; the preinstalled LLVM aborts on 'fminimum'), a virtualenv in .venv, and the package
-# with its mitsuba and test extras (pip compiles its one C extension). Idempotent.
+# with every extra CI uses (pip compiles its C extensions). Idempotent.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 if ! ldconfig -p 2>/dev/null | grep -q 'libLLVM.so.19\|libLLVM-19'; then
@@ -16,7 +16,7 @@ fi
 PY=${PYTHON:-python3}
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
-.venv/bin/python -m pip install -q -e ".[mitsuba,test]"
+.venv/bin/python -m pip install -q -e ".[mitsuba,jaxopt,optimistix,plot,test,docs]"
 # The compiled host combinatorics (jaxshadow/_clipc.c, built by setup.py with the machine's C
 # compiler) are optional: without them light fits use the device combinatorics.
 if ! .venv/bin/python -c "import jaxshadow._clipc" 2>/dev/null; then
