@@ -5,5 +5,5 @@ top-level conftest when collecting from the repository root.)"""
 
 from importlib.metadata import entry_points
 
-if not any(ep.name == "jaxshadow.testing.plugin" for ep in entry_points(group="pytest11")):
-    from jaxshadow.testing.plugin import *  # noqa: F403
+if not any(ep.name == "jaxshadow" for ep in entry_points(group="pytest11")):
+    from _jaxshadow_pytest import *  # noqa: F403

@@ -375,11 +375,11 @@ def test_selected(jaxshadow_reference, jaxshadow_alpha):
 
 def test_pytest_plugin(pytester):
     pytester.makepyfile(test_uses_plugin=PLUGIN_TEST)
-    result = pytester.runpytest_inprocess("-p", "jaxshadow.testing.plugin", "--jaxshadow-alpha", "0.01", "-v", "-p", "no:xdist")
+    result = pytester.runpytest_inprocess("--jaxshadow-alpha", "0.01", "-v", "-p", "no:xdist")
     result.assert_outcomes(passed=1 + len(SCENES) + 2)
     result.stdout.fnmatch_lines(["*test_every_scene?penumbra? PASSED*", "*test_selected?mesh? PASSED*"])
     pytester.makepyfile(test_bad='import pytest\n@pytest.mark.jaxshadow_scenes("nowhere")\ndef test_x(jaxshadow_reference):\n    pass\n')
-    bad = pytester.runpytest_inprocess("-p", "jaxshadow.testing.plugin", "test_bad.py", "-p", "no:xdist")
+    bad = pytester.runpytest_inprocess("test_bad.py", "-p", "no:xdist")
     assert bad.ret != 0
     bad.stdout.fnmatch_lines(["*unknown scene*nowhere*"])
 
@@ -390,8 +390,20 @@ def test_entry_point_is_declared():
     with open(os.path.join(ROOT, "pyproject.toml"), "rb") as fh:
         meta = tomllib.load(fh)
     eps = meta["project"]["entry-points"]["pytest11"]
-    assert eps == {"jaxshadow.testing.plugin": "jaxshadow.testing.plugin"}
+    assert eps == {"jaxshadow": "_jaxshadow_pytest"}
     assert "jaxshadow.testing" in meta["tool"]["setuptools"]["packages"]
+    assert "_jaxshadow_pytest" in meta["tool"]["setuptools"]["py-modules"]
+
+
+def test_plugin_module_does_not_import_jaxshadow():
+    """pytest imports entry-point plugins before anything else: the plugin must not import
+    jaxshadow (jaxtyping's import hook, which the test run itself uses, must see it first)."""
+    import subprocess
+    import sys
+
+    code = "import sys, _jaxshadow_pytest; print(any(m.split('.')[0] == 'jaxshadow' for m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
+    assert out.stdout.strip() == "False"
     assert LIGHT_TRANSLATION == ("light.tx", "light.ty", "light.tz")
 
 
