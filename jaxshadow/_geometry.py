@@ -94,7 +94,7 @@ def inputs_ok(points: AnyArray, normals: AnyArray) -> Array:
     entry points evaluate it inside their own compiled call (one pass fused with the kernel,
     no extra dispatch) and hand the flag to `raise_if_bad`."""
     # Componentwise, one reduction: XLA:CPU fuses it into 4 small loops instead of ~10.
-    def finite(v: Array) -> Array:
+    def finite(v: AnyArray) -> Array:
         return jnp.isfinite(v[..., 0]) & jnp.isfinite(v[..., 1]) & jnp.isfinite(v[..., 2])
 
     nonzero = (normals[..., 0] != 0) | (normals[..., 1] != 0) | (normals[..., 2] != 0)

@@ -6,7 +6,7 @@ import functools
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 
 def fusible(x: Array) -> Array:
@@ -42,7 +42,7 @@ def safe_normalize(x: Float[Array, "... 3"], axis: int = -1) -> Float[Array, "..
     return jnp.where(ok, x / fusible(jnp.sqrt(safe_sq)), 0.0)
 
 
-def unit_rows(x: Float[Array, "N 3"]) -> Float[Array, "N 3"]:
+def unit_rows(x: Float[ArrayLike, "N 3"]) -> Float[Array, "N 3"]:
     """`safe_normalize` of each row, written component by component: XLA:CPU fuses it into the
     kernel that reads the rows (a reduction over the length-3 axis is a separate loop)."""
 

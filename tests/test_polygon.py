@@ -257,7 +257,7 @@ def test_grouped_unrolled_kernel_agrees_with_compact(k):
     n = rng.normal(size=(64, 3))
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     fast = jax.jit(jax.vmap(_form_factor_unrolled, in_axes=(0, 0, None)))(p, n, verts)
-    ref = jax.vmap(_form_factor_compact, in_axes=(0, 0, None))(p, n, verts)
+    ref = jax.vmap(_form_factor_compact, in_axes=(0, 0, None))(p, n, jnp.asarray(verts))
     assert np.count_nonzero(np.asarray(ref) > 0) > 10
     np.testing.assert_allclose(np.asarray(fast), np.asarray(ref), rtol=1e-12, atol=1e-15)
 
