@@ -31,7 +31,7 @@ def irradiance_and_derivative(reference, axis, spp=SPP, seed=0):
         mi.set_variant("llvm_ad_rgb")
     scene = mi.load_dict(reference.mitsuba_dict())
     params = mi.traverse(scene)
-    key = reference.mitsuba_light_key  # "light_0.vertex_positions" for a polygon light
+    key = reference.mitsuba_light_key  # "light_000.vertex_positions" for a polygon light
     v0 = dr.unravel(mi.Point3f, params[key])
     t = mi.Vector3f(0.0)
     dr.enable_grad(t)

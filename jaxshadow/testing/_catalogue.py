@@ -185,7 +185,7 @@ class ReferenceScene:
         albedo `reflectance`) and a perspective camera straight above the window's centre
         whose `resolution`^2 pixels are the squares of `image(resolution)` (`box` filter): the
         rendered pixel is `reflectance / pi` times the pixel mean of $E$. The light is
-        `light_0` (`light_0.vertex_positions`, or `light_0.to_world` for the cylinder that
+        `light_000` (`light_000.vertex_positions`, or `light_000.to_world` for the cylinder that
         stands in for a linear light).
         """
         import mitsuba as mi
@@ -218,7 +218,7 @@ class ReferenceScene:
     @property
     def mitsuba_light_key(self) -> str:
         """The `mi.traverse` key that moves the light in `mitsuba_dict()`."""
-        return "light_0.to_world" if isinstance(self.scene.lights[0], LinearLight) else "light_0.vertex_positions"
+        return "light_000.to_world" if isinstance(self.scene.lights[0], LinearLight) else "light_000.vertex_positions"
 
 
 def classify(scene: Scene, points: np.ndarray, normals: np.ndarray) -> np.ndarray:

@@ -8,8 +8,8 @@ compare with `dof = batches - 1`. Pixel values are converted to irradiance (time
 $\pi$ / reflectance), so they estimate `ReferenceScene.image(...).irradiance` and its derivatives.
 
 The light moves through the documented route for derived parameters: a translation `t`
-(`mi.Vector3f`, gradient enabled) is applied to `light_0.vertex_positions` (or composed with
-`light_0.to_world` for the cylinder standing in for a linear light), its tangent is pushed to the
+(`mi.Vector3f`, gradient enabled) is applied to `light_000.vertex_positions` (or composed with
+`light_000.to_world` for the cylinder standing in for a linear light), its tangent is pushed to the
 scene parameter with `dr.forward_to(..., flags=dr.ADFlag.ClearEdges)` before rendering, and the
 image's gradient is read after `dr.forward_to(image)`.
 """
