@@ -63,6 +63,24 @@ def fit_material_regions(scene: Any, targets: PaintedTargets, regions: Any, **kw
     **Returns:** `RegionFit`. Raises `ValueError` when `regions` does not have one label per
     target, or a region has fewer than 3 targets (a region's 3 coefficients per channel need
     at least 3 colours).
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+        import inverse
+
+        scene = js.Scene([js.PolygonLight([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2]], radiance=10.0)])
+        rng = np.random.default_rng(0)
+        p = np.c_[rng.uniform(-1, 2, (12, 2)), np.zeros(12)]
+        n = np.tile([0.0, 0.0, 1.0], (12, 1))
+        eye = np.array([0.5, -2.0, 2.0])
+        labels = np.repeat([0, 1], 6)                     # two painted regions
+        red, blue = js.Material(kd=[0.7, 0.2, 0.1]), js.Material(kd=[0.1, 0.2, 0.7])
+        colours = np.where(labels[:, None] == 0, js.shade(scene, red, p, n, eye), js.shade(scene, blue, p, n, eye))
+        fit = inverse.fit_material_regions(scene, inverse.PaintedTargets(p, n, colours, eye), labels, exponent=1.0)
+        print(fit.materials[0].kd, fit.materials[1].kd)
+        ```
     """
     if not isinstance(targets, PaintedTargets):
         raise ValueError(f"fit_material_regions: targets must be PaintedTargets, got {type(targets).__name__}.")

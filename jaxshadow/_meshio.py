@@ -144,6 +144,19 @@ def read_mesh(path: str | os.PathLike) -> ReceiverMesh:
 
     **Returns:** a `ReceiverMesh` (use `.occluder()` for a `jaxshadow.Mesh` occluder,
     `.receivers(at)` for receiver points and normals).
+
+    Example:
+        ```python
+        import os, tempfile
+        import jaxshadow as js
+
+        path = os.path.join(tempfile.mkdtemp(), "quad.obj")
+        js.write_mesh(path, [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], [[0, 1, 2], [0, 2, 3]])
+        mesh = js.read_mesh(path)
+        points, normals = mesh.receivers("faces")   # (2, 3) face centres and normals
+        occluder = mesh.occluder()                  # the same mesh as a js.Mesh occluder
+        print(points, normals)
+        ```
     """
     path = os.fspath(path)
     if extension(path) not in MESH_EXTS:
@@ -187,6 +200,20 @@ def write_ply(path: str | os.PathLike, mesh: ReceiverMesh, values: Any, *, at: s
     - `exposure`: tone mapping of the colours (`tonemap`).
 
     Vertex (or face) colours are 8-bit sRGB, viewable in any mesh viewer.
+
+    Example:
+        ```python
+        import os, tempfile
+        import jaxshadow as js
+
+        folder = tempfile.mkdtemp()
+        js.write_mesh(os.path.join(folder, "floor.ply"), [[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]],
+                      [[0, 1, 2], [0, 2, 3]])
+        mesh = js.read_mesh(os.path.join(folder, "floor.ply"))
+        p, n = mesh.receivers("vertices")
+        scene = js.Scene([js.PolygonLight([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2]], radiance=10.0)])
+        js.write_ply(os.path.join(folder, "lit.ply"), mesh, js.irradiance(scene, p, n))   # vertex colours
+        ```
     """
     trimesh = _trimesh()
     if extension(path) != ".ply":
@@ -209,7 +236,18 @@ def write_ply(path: str | os.PathLike, mesh: ReceiverMesh, values: Any, *, at: s
 
 def write_mesh(path: str | os.PathLike, vertices: Any, faces: Any) -> None:
     """Write a triangle mesh (`.ply`, `.obj`, `.glb`, `.stl`, `.off`, by extension) with trimesh,
-    vertices and faces in the given order, atomically."""
+    vertices and faces in the given order, atomically.
+
+    Example:
+        ```python
+        import os, tempfile
+        import jaxshadow as js
+
+        path = os.path.join(tempfile.mkdtemp(), "quad.ply")
+        js.write_mesh(path, [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], [[0, 1, 2], [0, 2, 3]])
+        mesh = js.read_mesh(path)   # read back with trimesh
+        ```
+    """
     trimesh = _trimesh()
     ext = extension(path)
     if ext not in MESH_EXTS or ext == ".gltf":
@@ -233,6 +271,19 @@ def read_points(path: str | os.PathLike, at: str = "vertices") -> tuple[np.ndarr
 
     **Returns:** `(points (N, 3), normals (N, 3), mesh)`, `mesh` the `ReceiverMesh` when the
     file is a mesh (receivers at its vertices or faces, `at`), else `None`.
+
+    Example:
+        ```python
+        import os, tempfile
+        import numpy as np
+        import jaxshadow as js
+
+        path = os.path.join(tempfile.mkdtemp(), "receivers.csv")
+        np.savetxt(path, [[0.5, 0.5, 0, 0, 0, 1], [0.2, 0.4, 0, 0, 0, 1]], delimiter=",",
+                   header="px,py,pz,nx,ny,nz", comments="")
+        points, normals, mesh = js.read_points(path)   # mesh is None for a CSV
+        print(points.shape, mesh)
+        ```
     """
     path = os.fspath(path)
     ext = extension(path)
@@ -302,6 +353,19 @@ def write_values(path: str | os.PathLike, values: Any, *, points: Any = None, no
     - `.csv`: header `px,py,pz,nx,ny,nz,r,g,b` (the receiver columns when `points` and
       `normals` are given), full float64 precision.
     - `.ply`: needs `mesh` (receivers read from a mesh): `write_ply`.
+
+    Example:
+        ```python
+        import os, tempfile
+        import numpy as np
+        import jaxshadow as js
+
+        scene = js.Scene([js.PolygonLight([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2]], radiance=10.0)])
+        p = np.array([[0.5, 0.5, 0.0], [2.0, 0.0, 0.0]]); n = np.array([[0.0, 0.0, 1.0]] * 2)
+        path = os.path.join(tempfile.mkdtemp(), "irradiance.csv")
+        js.write_values(path, js.irradiance(scene, p, n), points=p, normals=n)   # px,...,nz,r,g,b
+        print(np.loadtxt(path, delimiter=",", skiprows=1))
+        ```
     """
     path = os.fspath(path)
     v = np.asarray(values)

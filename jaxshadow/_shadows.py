@@ -528,6 +528,19 @@ def shadow_plan(scene: Scene, points: Any, normals: Any) -> ShadowPlan:
 
     Raises `ValueError` without occluders or for traced inputs, `RuntimeError` when the engine
     (`jaxshadow._shadowc`) is not built.
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+
+        light = js.PolygonLight([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2]], radiance=1.0)
+        scene = js.Scene([light], occluders=[[[0.2, 0.2, 1.0], [0.8, 0.2, 1.0], [0.8, 0.8, 1.0], [0.2, 0.8, 1.0]]])
+        xy = np.stack(np.meshgrid(np.linspace(-1, 2, 30), np.linspace(-1, 2, 30)), -1).reshape(-1, 2)
+        p = np.c_[xy, np.zeros(len(xy))]; n = np.tile([0.0, 0.0, 1.0], (len(p), 1))
+        plan = js.shadow_plan(scene, p, n)
+        print(plan.summary())   # receivers per class (lit / umbra / penumbra), candidates, boundary sizes
+        ```
     """
     from ._geometry import check_points_normals
 
