@@ -72,7 +72,7 @@ def fit_light(
       Whether $k_s$ is used follows `material.ks != 0`.
     - `specular`: a callable like `js.specular` (default `js.specular`).
 
-    The keywords `refine`, `prune`, `receiver_groups`, `combinatorics`, `rtol`, `atol`,
+    The keywords `refine`, `prune`, `receiver_groups` (ignored), `combinatorics`, `rtol`, `atol`,
     `max_steps` and string solvers (`"lm"`, ...) are deprecated: they are the solver's options.
 
     **Returns:** `LightFit(scene, light, residual, report, parametrisation, material)`.
@@ -146,7 +146,8 @@ def _light_fit(problem: LightProblem, sol: Solution, solver_name: str, n_screene
     if not sol.converged[sol.best]:
         msgs.append("the best start did not report convergence (max_steps reached?).")
     if sol.retries:
-        msgs.append(f"the light moved so that some receiver saw more occluders than the culling capacity; "
+        msgs.append(f"the light moved so that some receiver's visible region needed more boundary edges than the "
+                    f"shadow capacity (culling capacity); "
                     f"solved again {sol.retries} time(s) with a larger one (the result is exact).")
     new_scene = with_light(problem.scene, param.light_index, sol.light)
     if problem.project:

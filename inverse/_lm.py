@@ -53,13 +53,6 @@ from jaxtyping import Array, Bool, Float, Int
 # (`benchmarks/results/ab/fit_compiler_options.md`). Options of the code generator only:
 # IEEE arithmetic, no fast-math.
 FIT_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False, "xla_llvm_disable_expensive_passes": True}
-# With the host combinatorics (`jaxshadow.traced`, `host=True`) the program is the geometry alone, a few
-# hundred small elementwise fusions, and its time is mostly the host round trip: XLA's own loops
-# for the fusions run ~13% faster than YNNPACK's (which jaxlib 0.10 hands elementwise fusions
-# to; with the combinatorics in the program YNNPACK is ~5% faster), and LLVM at -O1 compiles it
-# in ~25% less time for a few % more per evaluation (measured when the host combinatorics came, 482d859).
-HOST_FIT_COMPILER_OPTIONS = {**FIT_COMPILER_OPTIONS, "xla_cpu_experimental_ynn_fusion_type": "",
-                             "xla_backend_optimization_level": 1}
 
 
 @contextlib.contextmanager

@@ -74,70 +74,44 @@ def prune_schedule(n_starts: int, max_steps: int) -> tuple[int, ...]:
 
 
 @fit_jit
-def _light_vertices(param: LightParametrisation, thetas: Array) -> Array:
-    """`(S, K, 3)` vertices of the polygon light for each row of `thetas (S, >=P)` (compiled
+def _start_lights(param: LightParametrisation, thetas: Array) -> Any:
+    """The light built at each row of `thetas (S, >=P)`, as one batched light pytree (compiled
     once per parametrisation shape, not per call)."""
-    return jax.vmap(lambda th: param.build(th[: param.size]).vertices)(thetas)
+    return jax.vmap(lambda th: param.build(th[: param.size]))(thetas)
 
 
-def start_counts(param: LightParametrisation, scene: js.Scene, targets: PaintedTargets, starts: Array) -> np.ndarray:
-    """`(L, N)` relevant-occluder counts (`jaxshadow.traced.relevant_occluder_counts`) of every
-    receiver for the light at each start and for the other polygon lights where they are."""
-    assert scene.occluders is not None
-    others = [np.asarray(light.vertices, np.float64) for i, light in enumerate(scene.lights)
-              if i != param.light_index and isinstance(light, js.PolygonLight)]
+def start_lights(param: LightParametrisation, starts: Array) -> list[Any]:
+    """The moving light at every start, as a list of lights with NumPy arrays."""
     th = np.asarray(starts)[:, : param.size]
     if th.shape[0] == 1 and param.constraint != "box" and not np.any(th):
-        # The reference light itself (a one-start fit): its vertices, without compiling
-        # `_light_vertices` (~0.15 s of the first call). Equal to build(0) up to rounding; the
-        # counts only size the capacity, and an overflow is caught and retried (`LM`).
-        moving = np.asarray(param.template.vertices, np.float64)[None]
-    else:
-        moving = np.asarray(_light_vertices(param, starts), np.float64)
-    emitters = [*moving, *others]
-    k = max(e.shape[0] for e in emitters)
-    padded = np.stack([np.concatenate([e, np.repeat(e[:1], k - e.shape[0], axis=0)]) for e in emitters])
-    nrm = np.asarray(targets.normals, np.float64)
-    nrm = nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
-    # In NumPy: nothing to compile for a count.
-    return traced.relevant_occluder_counts(targets.points, nrm, padded, scene.occluders)
+        # The reference light itself (a one-start fit), without compiling `_start_lights`.
+        # Equal to build(0) up to rounding; the lights only size the capacity, and an overflow
+        # is caught and retried (`LM`).
+        return [param.template]
+    batched = jax.tree_util.tree_map(np.asarray, _start_lights(param, jnp.asarray(starts)))
+    return [jax.tree_util.tree_map(lambda x, i=i: x[i] if isinstance(x, np.ndarray) else x, batched)
+            for i in range(th.shape[0])]
 
 
 def culling_capacity_for_starts(param: LightParametrisation, scene: js.Scene, targets: PaintedTargets,
                                 starts: Array) -> int | None:
-    """The occluder-culling capacity for an LM from `starts`: enough for every receiver with the
-    light at any start and the other polygon lights where they are, plus one (None when culling
-    cannot pay: fewer than 4 occluders, or not a polygon light). The light moves during the
-    solve; a receiver that then sees more occluders (or a visible region with more edges than
-    the kernel's edge capacity) raises the overflow flag and the `LM` solves again."""
-    occ = scene.occluders
-    if occ is None or occ.shape[0] < 4 or param.kind != "polygon":
+    """The shadow engine's capacity for a solve from `starts`: the most boundary edges (candidate
+    faces for a segment light) any receiver needs with the light at any start or from the other
+    lights (`jaxshadow.traced.shadow_capacity`, on the host), with room for the light to move:
+    `max(8, ceil(1.25 * most) + 4)`. None without occluders. A receiver that needs more during
+    the solve raises the overflow flag and the `LM` solves again with twice the capacity."""
+    if scene.occluders is None:
         return None
-    counts = start_counts(param, scene, targets, starts)
-    # One spare (the light moves); not rounded to a power of two: the kernel's cost grows with it.
-    return min(int(counts.max(initial=0)) + 1, int(occ.shape[0]))
-
-
-def wide_group_for_starts(param: LightParametrisation, scene: js.Scene, targets: PaintedTargets,
-                          starts: Array, max_active: int | None) -> int | None:
-    """How many receivers get the full culling capacity in the irradiance (the others get 1,
-    `jaxshadow.traced.irradiance(n_wide=...)`): twice the number that see two or more
-    occluders from some light at some start, at least a quarter of them, a multiple of 8; None
-    (no split) when that is all of them. Too few raises the overflow flag (the `LM` solves again
-    without the split)."""
-    n = int(targets.points.shape[0])
-    if scene.occluders is None or max_active is None or max_active <= 1 or param.kind != "polygon":
-        return None
-    counts = start_counts(param, scene, targets, starts)
-    many = int(np.count_nonzero(counts.max(axis=0) >= 2))
-    wide = -(-max(2 * many, n // 4, 1) // 8) * 8
-    return None if wide >= n else wide
+    others = [light for i, light in enumerate(scene.lights) if i != param.light_index]
+    most = traced.shadow_capacity(scene, targets.points, targets.normals,
+                                  lights=[*start_lights(param, starts), *others])
+    return max(8, -(-5 * most // 4) + 4)
 
 
 @fit_jit
 def screen_losses(problem: LightProblem, starts: Array) -> Array:
-    """$\\tfrac12|r|^2$ at every start, one vectorised loss (culled at `problem.max_active`: the
-    caller sizes it for these starts, so nothing overflows): the screening of the Optimistix
+    """$\\tfrac12|r|^2$ at every start, one vectorised loss (at `problem.capacity`: the caller
+    sizes it for these starts, so nothing overflows): the screening of the Optimistix
     and L-BFGS-B solvers (the LM screens with its own program, `_solvers.screen_with_lm`)."""
 
     def loss(theta: Array) -> Array:

@@ -1,6 +1,6 @@
 """The light fit's residual: $\\sqrt{w}\\,(L_{model} - L_{painted})$ as a function of the light's
 parameters, with the model of `js.shade` (Poulin eq. 5.14; soft shadows included when the scene
-has occluders), optionally culled (`_forward.shade_culled`), and with the material projected out
+has occluders), in the solvers' programs with the shadow engine at a capacity (`_forward.shade_culled`), and with the material projected out
 (variable projection, Golub & Pereyra) when it is fitted jointly.
 
 Module-level functions, jitted where a solver calls them from the host: each compiles once per
@@ -38,20 +38,16 @@ class LightProblem(eqx.Module):
     with_specular: bool = eqx.field(static=True)
     project: bool = eqx.field(static=True, default=False)
     fit_exponent: bool = eqx.field(static=True, default=False)
-    # Occluder-culling capacity for the LM's residual (`_forward.shade_culled`); None = full.
-    max_active: int | None = eqx.field(static=True, default=None)
-    # Receivers that get `max_active` in the irradiance (the rest 1); None = all.
-    n_wide: int | None = eqx.field(static=True, default=None)
-    # The culled kernel's combinatorics on the host (`jaxshadow.traced.irradiance(host=True)`).
-    host_combinatorics: bool = eqx.field(static=True, default=False)
+    # The shadow engine's capacity in the solvers' residual (`_forward.shade_culled`); None:
+    # every receiver against every occluder.
+    capacity: int | None = eqx.field(static=True, default=None)
 
 
 def pinned(light: Any) -> Any:
     """`light` with each array leaf (vertices, position, ...) the result of a product by the
     identity (`jaxshadow.traced.pin`): the same values, but XLA:CPU then computes the pose from
     the parameters (and its tangents) once, instead of fusing that chain into every loop over
-    receivers and edges that reads the light (~10% of an evaluation of the residual and its
-    Jacobian with the device combinatorics, ~3% with the host's)."""
+    receivers and edges that reads the light."""
     def pin(x: Any) -> Any:
         if not hasattr(x, "ndim") or x.ndim == 0 or not jnp.issubdtype(x.dtype, jnp.floating):
             return x
@@ -67,21 +63,20 @@ def projected(theta: Array, problem: LightProblem) -> tuple[Array, Array, Array]
     return projected_flag(theta, problem, None)[:3]
 
 
-def projected_flag(theta: Array, problem: LightProblem, max_active: int | None,
-                    n_wide: int | None = None) -> tuple[Array, Array, Array, Array]:
-    """`projected` plus the culling overflow flag (`_forward.shade_culled`)."""
+def projected_flag(theta: Array, problem: LightProblem,
+                   capacity: int | None) -> tuple[Array, Array, Array, Array]:
+    """`projected` plus the capacity overflow flag (`_forward.shade_culled`)."""
     t = problem.targets
     P = problem.param.size
     scene = with_light(problem.scene, problem.param.light_index, pinned(problem.param.build(theta[:P])))
     dt = theta.dtype
-    host = problem.host_combinatorics
-    e, over = irradiance_culled(scene, t.points, t.normals, max_active, n_wide, host)
+    e, over = irradiance_culled(scene, t.points, t.normals, capacity)
     e = e / jnp.pi
     amb = jnp.broadcast_to(scene.ambient.astype(dt)[None, :], e.shape)
     n = jnp.exp(theta[P]) if problem.fit_exponent else problem.material.exponent.astype(dt)
     cols = [amb, e]
     if problem.with_specular:
-        sp, over_s = specular_culled(scene, t.points, t.normals, t.eye, n, problem.specular, max_active, host)
+        sp, over_s = specular_culled(scene, t.points, t.normals, t.eye, n, problem.specular, capacity)
         cols.append(sp)
         over = over | over_s
     X = jnp.stack(cols, axis=-1)  # (N, C, m)
@@ -99,24 +94,23 @@ def projected_flag(theta: Array, problem: LightProblem, max_active: int | None,
 
 
 def residuals(theta: Array, problem: LightProblem) -> Array:
-    """Weighted residuals `(3N,)` with the full (uncull'd) model."""
+    """Weighted residuals `(3N,)` with every receiver against every occluder (no capacity)."""
     return residuals_flag(theta, problem, None)[0]
 
 
 def residuals_culled(theta: Array, problem: LightProblem) -> tuple[Array, Array]:
-    """Residuals with occluder culling at `problem.max_active` and the overflow flag (the LM)."""
-    return residuals_flag(theta, problem, problem.max_active, problem.n_wide)
+    """Residuals with the shadow engine at `problem.capacity` and the overflow flag (the LM)."""
+    return residuals_flag(theta, problem, problem.capacity)
 
 
-def residuals_flag(theta: Array, problem: LightProblem, max_active: int | None,
-                    n_wide: int | None = None) -> tuple[Array, Array]:
+def residuals_flag(theta: Array, problem: LightProblem, capacity: int | None) -> tuple[Array, Array]:
     if problem.project:
-        r, _, _, over = projected_flag(theta, problem, max_active, n_wide)
+        r, _, _, over = projected_flag(theta, problem, capacity)
         return r, over
     t = problem.targets
     scene = with_light(problem.scene, problem.param.light_index, pinned(problem.param.build(theta)))
     model, over = shade_culled(scene, problem.material, t.points, t.normals, t.eye, problem.specular,
-                               problem.with_specular, max_active, n_wide, problem.host_combinatorics)
+                               problem.with_specular, capacity)
     return (jnp.sqrt(t.weights) * (model - t.colours)).reshape(-1), over
 
 

@@ -6,12 +6,13 @@ the solved starts, the best one, the residual and its Jacobian there (for the re
 light it builds.
 
 - `LM` (the default): the Levenberg-Marquardt of `_lm.py`, written for this batch: one
-  forward-mode Jacobian per iteration for all starts, and each receiver sees only the occluders
-  that can shadow it (culling at a static capacity chosen from the starting lights; if the
-  light moves so that some receiver needs more, the solve is repeated with a larger capacity,
-  so the result is always that of the full model).
-- `OptimistixLM`: `optimistix.LevenbergMarquardt` under `jax.vmap` on the full model (needs the
-  `optimistix` extra); it traces
+  forward-mode Jacobian per iteration for all starts, with the shadow engine inside the
+  compiled program (`jaxshadow.traced`: each receiver's visible region from its candidate
+  occluders only, at a static capacity of boundary edges chosen from the starting lights; if
+  the light moves so that some receiver needs more, the solve is repeated with twice the
+  capacity, so the result is always exact).
+- `OptimistixLM`: `optimistix.LevenbergMarquardt` under `jax.vmap` on the full model (every
+  receiver against every occluder; needs the `optimistix` extra); it traces
   the shadow kernel several times and transposes its linearisation, so it compiles several
   times longer, and its per-start accept/reject branches evaluate both sides under `vmap`
   (`benchmarks/inverse_speed.py` measures both).
@@ -32,15 +33,14 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
 
-from jaxshadow import traced
+from jaxshadow import ShadowOptions
 
-from ._lm import HOST_FIT_COMPILER_OPTIONS, LMResult, batched_levenberg_marquardt, fit_jit
+from ._lm import LMResult, batched_levenberg_marquardt, fit_jit
 from ._multistart import (
     best_starts,
     culling_capacity_for_starts,
     prune_schedule,
     screen_losses,
-    wide_group_for_starts,
 )
 from ._residuals import (
     LightProblem,
@@ -53,6 +53,8 @@ from ._residuals import (
 )
 
 COMBINATORICS = ("auto", "device", "host")
+# The most boundary edges per receiver `solve_lm` retries with before it gives up.
+MAX_CAPACITY = 4096
 
 
 @dataclasses.dataclass(frozen=True)
@@ -61,7 +63,7 @@ class Solution:
     `losses (S,)` (as returned: may be non-finite), `converged`, `num_steps`, `abandoned`;
     `best`: the index of the lowest finite loss; `residual (M,)`, `jacobian (M, P)` and `light`
     at the best; `initial_loss`: at the reference start (the first); `retries`: solves repeated
-    with a larger culling capacity; `exact_residual`: `residual` is the full model's, usable
+    with a larger shadow capacity; `exact_residual`: `residual` is the full model's, usable
     as the fit's residual; `problem`: as last solved."""
 
     values: np.ndarray
@@ -98,8 +100,8 @@ class AbstractLightSolver(eqx.Module):
 
 
 class LM(AbstractLightSolver):
-    """Levenberg-Marquardt over all starts at once (`inverse/_lm.py`), with per-receiver
-    occluder culling; exact (the default solver).
+    """Levenberg-Marquardt over all starts at once (`inverse/_lm.py`), with the shadow engine in
+    its compiled program; exact (the default solver).
 
     **Arguments:**
 
@@ -110,18 +112,13 @@ class LM(AbstractLightSolver):
     - `prune` (several starts): at iterations 4, 8, 16, ... abandon the worse half (by current
       loss) of the starts still running (successive halving), so the cost follows the promising
       starts (`LightReport.abandoned`). False: every start runs to convergence or `max_steps`.
-    - `receiver_groups`: give the full culling capacity only to the receivers that need it and
-      capacity 1 to the rest: each solve is about 1.6x faster with 8 occluders, but the shadow
-      kernel is compiled twice (about twice the first call). Worth it for many solves.
-    - `combinatorics`: where the soft-shadow kernel's combinatorics run (which occluders, which
-      pieces of which edges bound the visible region): `"device"`, in the compiled program;
-      `"host"`, on the host, called back from the compiled solver once per evaluation
-      (`jaxshadow.traced`; compiled C, or NumPy where the extension is not built), so the
-      program holds only the geometry: with the C kernel, 8 occluders and 48 targets the first
-      call took 0.57x / 0.48x and each solve 0.84x / 0.72x of the device's (1 / 64 starts,
-      `benchmarks/results/ab/combinatorics.md`); `"auto"` (default): `"host"` on the CPU with
-      the C kernel and without `receiver_groups`, else `"device"`. The same values to rounding
-      either way.
+    - `combinatorics`: how soft shadows are evaluated in the solver's program: `"host"`, by the
+      shadow engine (compiled C++ called from the program through XLA's FFI: per receiver,
+      the visible region of the light from its candidate occluders only, at a capacity sized
+      from the starts and doubled when the light moves so that some receiver needs more);
+      `"device"`, every receiver against every occluder in XLA (no host code; memory and time
+      grow with the number of occluders); `"auto"` (default): `"host"` where the engine is
+      built, else `"device"`. The same values to rounding either way.
     - `rtol`, `atol`: termination tolerances (`_lm.batched_levenberg_marquardt`);
       `max_steps`: iterations per start.
 
@@ -139,7 +136,6 @@ class LM(AbstractLightSolver):
 
     refine: int | None = 8
     prune: bool = True
-    receiver_groups: bool = False
     combinatorics: str = "auto"
     rtol: float = 1e-9
     atol: float = 1e-12
@@ -149,30 +145,27 @@ class LM(AbstractLightSolver):
         if self.combinatorics not in COMBINATORICS:
             raise ValueError(f"LM: combinatorics must be 'auto', 'device' or 'host', got {self.combinatorics!r}.")
 
-    def host_combinatorics(self) -> bool:
-        """Whether this solver runs the combinatorics on the host (`combinatorics`)."""
+    def uses_engine(self) -> bool:
+        """Whether this solver evaluates shadows with the shadow engine (`combinatorics`)."""
         if self.combinatorics != "auto":
             return self.combinatorics == "host"
-        usable = not self.receiver_groups and jax.default_backend() == "cpu"
-        return usable and traced.host_combinatorics_available()
+        return ShadowOptions().use_engine()
 
     def minimise(self, problem: LightProblem, starts: Array) -> Solution:
         p = problem.param
-        problem = dataclasses.replace(problem, host_combinatorics=self.host_combinatorics())
         n_solved = int(self.refine) if self._screens(starts.shape[0]) else int(starts.shape[0])
         sched = prune_schedule(n_solved, self.max_steps) if self.prune else ()
-        cap = culling_capacity_for_starts(p, problem.scene, problem.targets, starts)
+        cap = culling_capacity_for_starts(p, problem.scene, problem.targets, starts) if self.uses_engine() else None
         initial = None
         if self._screens(starts.shape[0]):
-            # The capacity holds every receiver's relevant occluders at these very lights.
-            screen = screen_with_lm(dataclasses.replace(problem, max_active=cap), starts, n_solved, self.rtol,
+            # The capacity holds every receiver's boundary at these very lights.
+            screen = screen_with_lm(dataclasses.replace(problem, capacity=cap), starts, n_solved, self.rtol,
                                     self.atol, sched)
             starts = jnp.asarray(np.asarray(starts)[best_starts(screen, n_solved)])  # host: no eager gather
             initial = float(screen[0])
         # After screening the capacity stays the one for all the screened starts (enough for the
         # solved ones too): the solve then runs the very program that screened them.
-        wide = wide_group_for_starts(p, problem.scene, problem.targets, starts, cap) if self.receiver_groups else None
-        problem = dataclasses.replace(problem, max_active=cap, n_wide=wide)
+        problem = dataclasses.replace(problem, capacity=cap)
         res, lights, problem, retries = solve_lm(problem, starts, self.rtol, self.atol, self.max_steps, sched)
         losses = np.asarray(res.losses, np.float64)
         best = int(np.argmin(np.where(np.isfinite(losses), losses, np.inf)))
@@ -285,38 +278,33 @@ def _multistart_lm_impl(problem: LightProblem, starts: Array, rtol: float, atol:
 
 
 _multistart_lm = fit_jit(_multistart_lm_impl)
-# The same program with the host combinatorics: other XLA options (`_lm.HOST_FIT_COMPILER_OPTIONS`).
-_multistart_lm_host = fit_jit(_multistart_lm_impl, options=HOST_FIT_COMPILER_OPTIONS)
 
 
 def run_lm(problem: LightProblem, starts: Any, rtol: float, atol: float, max_steps: int,
            prune: tuple[int, ...]) -> tuple[LMResult, Any]:
-    """`_multistart_lm` (`_multistart_lm_host` with the host combinatorics) from `starts (S, P)`,
+    """`_multistart_lm` from `starts (S, P)`,
     several starts one at a time (`chunk=1`: finished and abandoned ones cost nothing),
     `max_steps` as an array (traced): the one call that the screening (`screen_with_lm`, 0
     steps) and the solve (`solve_lm`) both make, so that they run one compiled program."""
-    lm = _multistart_lm_host if problem.host_combinatorics else _multistart_lm
     chunk = 1 if starts.shape[0] > 1 else None
-    return lm(problem, starts, rtol, atol, np.asarray(max_steps, np.int32), prune, chunk)
+    return _multistart_lm(problem, starts, rtol, atol, np.asarray(max_steps, np.int32), prune, chunk)
 
 
 def solve_lm(problem: LightProblem, starts: Array, rtol: float, atol: float, max_steps: int,
              prune: tuple[int, ...] = ()) -> tuple[LMResult, Any, LightProblem, int]:
-    """`run_lm`, retried with twice the culling capacity (at last none) while some receiver
-    overflowed it, so the result is exact. Returns `(result, lights at the solutions, problem
-    used, retries)`."""
+    """`run_lm`, retried with twice the shadow capacity while some receiver overflowed it, so
+    the result is exact (`MAX_CAPACITY` edges at most: beyond that a `RuntimeError` says so).
+    Returns `(result, lights at the solutions, problem used, retries)`."""
     retries = 0
     while True:
         res, lights = run_lm(problem, starts, rtol, atol, max_steps, prune)
-        active = problem.max_active
-        if active is None or not bool(res.flag):
+        cap = problem.capacity
+        if cap is None or not bool(res.flag):
             return res, lights, problem, retries
-        assert problem.scene.occluders is not None  # a capacity is only set with occluders
-        m = int(problem.scene.occluders.shape[0])
-        if problem.n_wide is not None:  # first drop the two-group split
-            problem = dataclasses.replace(problem, n_wide=None)
-        else:
-            problem = dataclasses.replace(problem, max_active=None if active >= m else min(2 * active, m))
+        if cap >= MAX_CAPACITY:
+            raise RuntimeError(f"fit_light: some receiver's visible region needs more than {MAX_CAPACITY} boundary "
+                               "edges during the solve; use inverse.LM(combinatorics='device').")
+        problem = dataclasses.replace(problem, capacity=min(2 * cap, MAX_CAPACITY))
         retries += 1
 
 
@@ -328,15 +316,17 @@ def screen_with_lm(problem: LightProblem, starts: Array, k: int, rtol: float, at
     with the first start. A program of its own (`_multistart.screen_losses`, one vectorised
     loss) took 25-40% of a 64-start fit's first call; this costs a Jacobian per screened start
     instead (~1-3 ms). Should the culling overflow at some start (a visible region with more
-    edges than the kernel's edge capacity), the losses are the full model's instead."""
+    edges than the capacity), the losses are those of a vectorised loss at twice the capacity
+    needed there instead."""
     ys = np.asarray(starts)
     S = ys.shape[0]
     calls = -(-S // k)
     ys = np.concatenate([ys, np.repeat(ys[:1], calls * k - S, axis=0)])
     results = [run_lm(problem, ys[i * k: (i + 1) * k], rtol, atol, 0, prune)[0] for i in range(calls)]
-    if problem.max_active is not None and any(bool(r.flag) for r in results):
-        full = dataclasses.replace(problem, max_active=None, n_wide=None)
-        losses = np.asarray(screen_losses(full, starts))
+    if problem.capacity is not None and any(bool(r.flag) for r in results):
+        need = culling_capacity_for_starts(problem.param, problem.scene, problem.targets, starts)
+        wider = dataclasses.replace(problem, capacity=max(2 * problem.capacity, need or 0))
+        losses = np.asarray(screen_losses(wider, starts))
     else:
         losses = np.concatenate([np.asarray(r.initial_losses) for r in results])[:S]
     losses = losses.astype(np.float64)
@@ -390,7 +380,7 @@ _LEGACY = ("refine", "prune", "receiver_groups", "combinatorics", "rtol", "atol"
 
 def solver_from_arguments(solver: AbstractLightSolver | str | None, legacy: dict[str, Any]) -> AbstractLightSolver:
     """`fit_light`'s solver: `solver`, `LM()` for None; a solver name (`"lm"`, `"optimistix"`,
-    `"lbfgsb"`) and the keywords `refine`, `prune`, `receiver_groups`, `combinatorics`, `rtol`,
+    `"lbfgsb"`) and the keywords `refine`, `prune`, `receiver_groups` (no longer used), `combinatorics`, `rtol`,
     `atol`, `max_steps` still work, with a `DeprecationWarning` (options a solver does not have
     are ignored, as they were)."""
     unknown = sorted(set(legacy) - set(_LEGACY))

@@ -1,15 +1,16 @@
 r"""The traceable forward model: what solvers put inside their own compiled programs.
 
-`jaxshadow.irradiance`, `specular` and `shade` check their inputs in NumPy and are jitted; a
-solver that compiles its own program (a Levenberg-Marquardt loop over many starts, with
-`jax.linearize` and `vmap` around the model) wants the model without either: no checks (the
-light is traced there) and no nested `jit` (it would be traced once more and transformed again
-by every `jvp` / `vmap` around it). This module is that model, with keyword arguments and one
-extra: **per-receiver occluder culling at a static capacity without a fallback**. With
-`max_active=A` each receiver of a polygon light sees only its `A` most relevant occluders, and
-the result comes with an `overflow` flag (bool scalar) that says some receiver had more, so
-that the value is not exact there: the caller retries with a larger capacity (a `lax.cond`
-fallback inside a `vmap` over starts would run both branches every time).
+`jaxshadow.irradiance`, `specular` and `shade` check their inputs in NumPy and decide on the host
+how to evaluate shadows; a solver that compiles its own program (a Levenberg-Marquardt loop over
+many starts, with `jax.linearize` and `vmap` around the model) wants the model without either: no
+checks (the light is traced there) and no host-side dispatch. This module is that model, with
+keyword arguments and one extra, the **shadow capacity**: with occluders, the shadow engine runs
+inside the compiled program (XLA FFI, `jaxshadow._visibility`) and holds at most `capacity`
+boundary edges of each receiver's visible region (candidate faces for segment lights). The
+result comes with an `overflow` flag (bool scalar) that says some receiver needed more, so that
+the value is not exact there: the caller retries with a larger capacity (a `lax.cond` fallback
+inside a `vmap` over starts would run both branches every time). `shadow_capacity` sizes it from
+concrete values on the host.
 
 `inverse` uses only this module (and the public API) of `jaxshadow`.
 """
@@ -18,21 +19,34 @@ from __future__ import annotations
 
 from typing import Any
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from ._clip_host import _pinned
-from ._clip_host import compiled_available as _compiled_available
-from ._clip_host import relevant_counts as _relevant_counts
-from ._scene import Scene
+from . import _shadows
+from ._misc import unit_rows as _unit_rows
+from ._scene import LinearLight, PolygonLight, Scene
 from ._shade import _irradiance_traced, _specular_traced
+from ._shadows import DEFAULT_OPTIONS, Lambert, Phong, ShadowOptions
 from ._specular import DEFAULT_DEGREE
 
-__all__ = ["DEFAULT_SPECULAR_DEGREE", "irradiance", "specular", "pin", "host_combinatorics_available",
-           "relevant_occluder_counts"]
+__all__ = ["DEFAULT_SPECULAR_DEGREE", "irradiance", "specular", "pin", "shadow_capacity"]
 
 DEFAULT_SPECULAR_DEGREE = DEFAULT_DEGREE
 """The Chebyshev degree of `jaxshadow.specular`'s default method."""
+
+
+def _options(capacity: int | None, shadows: ShadowOptions | None) -> ShadowOptions:
+    opts = DEFAULT_OPTIONS if shadows is None else shadows
+    return opts if capacity is None else ShadowOptions(opts.engine, int(capacity))
+
+
+def _shadowed(scene: Scene, integ: Any, points: Array, normals: Array, eyes: Array | None,
+              opts: ShadowOptions) -> tuple[Array, Array]:
+    if opts.use_engine():
+        return _shadows.traced_values(scene, integ, points, _unit_rows(normals), eyes, opts.capacity)
+    return _shadows.device_values(scene, integ, points, _unit_rows(normals), eyes), jnp.zeros((), bool)
 
 
 def irradiance(
@@ -40,32 +54,27 @@ def irradiance(
     points: Float[Array, "n 3"],
     normals: Float[Array, "n 3"],
     *,
-    max_active: int | None = None,
-    n_wide: int | None = None,
-    host: bool = False,
+    capacity: int | None = None,
+    shadows: ShadowOptions | None = None,
 ) -> tuple[Float[Array, "n 3"], Bool[Array, ""]]:
-    r"""Irradiance $E$ (W/m², RGB) at `points`, as `jaxshadow.irradiance`, and the culling flag.
+    r"""Irradiance $E$ (W/m², RGB) at `points`, as `jaxshadow.irradiance`, and the overflow flag.
 
     Traceable under `jit`, `vmap`, `jvp` and `grad` in the scene's arrays (light vertices,
-    radiance, ...), the points and the normals; no input checks (validate before tracing).
+    radiance, occluder vertices, ...), the points and the normals; no input checks (validate
+    before tracing).
 
     **Arguments:**
 
     - `scene`: a `jaxshadow.Scene` (its arrays may be traced).
     - `points`, `normals`: `(N, 3)` receivers and their normals (need not be unit).
-    - `max_active`: static int, the occluder capacity per receiver for polygon lights; `None`
-      (default) evaluates every occluder (exact, never overflows).
-    - `n_wide`: static int; with `max_active`, only the first `n_wide` receivers get
-      `max_active` occluders and the others 1 (two capacities in one program). `None`: all.
-    - `host`: static bool; with `max_active` (and no `n_wide`) the culled kernel's
-      combinatorics (which occluders, which pieces of which edges bound the visible region)
-      run on the host (compiled C where it is built, else NumPy), called back from the
-      compiled program, which then holds only the geometry and its derivatives. The same
-      values to rounding.
+    - `capacity`: static int, boundary edges (candidate faces for segment lights) per receiver
+      the shadow engine holds; default `shadows.capacity` (64). `shadow_capacity` sizes it.
+    - `shadows`: static `ShadowOptions` (`engine="device"`: every receiver against every
+      occluder, no capacity, no overflow).
 
     **Returns:** `(E (N, 3), overflow)`: `overflow` (bool scalar) is True when some receiver
-    had more relevant occluders (or visible-region edges) than the capacity; `E` is then not
-    exact at that receiver. Always False without `max_active`.
+    needed more than `capacity`; `E` is then not exact at that receiver. Always False without
+    occluders.
 
     Example:
         ```python
@@ -74,21 +83,22 @@ def irradiance(
         from jaxshadow import traced
 
         quad = [[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2]]
+        blocker = [[0.2, 0.2, 1.0], [0.6, 0.2, 1.0], [0.6, 0.6, 1.0]]
         p = jnp.array([[0.5, 0.5, 0.0]]); n = jnp.array([[0.0, 0.0, 1.0]])
 
         def total(height):
             light = js.PolygonLight(jnp.asarray(quad, float).at[:, 2].set(height), radiance=1.0)
-            e, overflow = traced.irradiance(js.Scene([light]), p, n)
+            e, overflow = traced.irradiance(js.Scene([light], occluders=[blocker]), p, n, capacity=16)
             return e.sum()
 
-        jax.grad(total)(2.0)   # d(E)/d(light height), through the traced model
+        jax.grad(total)(2.0)   # d(E)/d(light height), soft shadow included
         ```
     """
-    return _irradiance_traced(scene, points, normals, max_active, False, n_wide, host and n_wide is None)
+    if scene.occluders is None:
+        return _irradiance_traced(scene, points, normals), jnp.zeros((), bool)
+    return _shadowed(scene, Lambert(), points, normals, None, _options(capacity, shadows))
 
 
-# The signature of `jaxshadow.specular` (and of `_shade._specular_traced`, which this wraps),
-# with the culling options: the same shape on purpose.
 def specular(
     scene: Scene,
     points: Float[Array, "n 3"],
@@ -98,11 +108,11 @@ def specular(
     *,
     method: str = "chebyshev",
     degree: int = DEFAULT_DEGREE,
-    max_active: int | None = None,
-    host: bool = False,
+    capacity: int | None = None,
+    shadows: ShadowOptions | None = None,
 ) -> tuple[Float[Array, "n 3"], Bool[Array, ""]]:
-    r"""Phong specular integral $S$ (RGB) at `points`, as `jaxshadow.specular`, and the culling
-    flag (`irradiance` explains the culling).
+    r"""Phong specular integral $S$ (RGB) at `points`, as `jaxshadow.specular`, and the overflow
+    flag (`irradiance` explains the capacity).
 
     **Arguments:**
 
@@ -111,7 +121,7 @@ def specular(
     - `exponent`: the Phong exponent $n$, a scalar array of the points' dtype (traceable).
     - `method`, `degree`: static, as `jaxshadow.specular` (`"chebyshev"` of degree
       `DEFAULT_SPECULAR_DEGREE`, or `"exact"`).
-    - `max_active`, `host`: static, as `irradiance`.
+    - `capacity`, `shadows`: static, as `irradiance`.
 
     **Returns:** `(S (N, 3), overflow)`.
 
@@ -126,7 +136,9 @@ def specular(
         s, _ = traced.specular(js.Scene([light]), p, n, jnp.array([[0.5, -1.0, 2.0]]), jnp.asarray(20.0))
         ```
     """
-    return _specular_traced(scene, points, normals, eyes, exponent, method, degree, max_active, False, host)
+    if scene.occluders is None:
+        return _specular_traced(scene, points, normals, eyes, exponent, method, degree), jnp.zeros((), bool)
+    return _shadowed(scene, Phong(exponent, method, int(degree)), points, normals, eyes, _options(capacity, shadows))
 
 
 def pin(x: Float[Array, "k ..."]) -> Float[Array, "k ..."]:
@@ -145,45 +157,39 @@ def pin(x: Float[Array, "k ..."]) -> Float[Array, "k ..."]:
         v = traced.pin(jnp.ones((4, 3)))   # == jnp.ones((4, 3))
         ```
     """
-    return _pinned(x)
+    return jnp.dot(jnp.eye(x.shape[0], dtype=x.dtype), x, precision=jax.lax.Precision.HIGHEST)
 
 
-def host_combinatorics_available() -> bool:
-    """Whether the compiled host combinatorics (the C extension `jaxshadow._clipc`) are built;
-    without them `host=True` runs their NumPy reference (exact, slower).
+def shadow_capacity(scene: Scene, points: Any, normals: Any, lights: Any = None) -> int:
+    """The most boundary edges (polygon lights) or candidate faces (segment lights) any receiver
+    needs, for the lights of `scene` (or `lights`) at concrete receivers: what `capacity` must
+    hold for `irradiance` / `specular` not to overflow there. Runs the shadow engine on the host,
+    nothing is compiled; 0 without occluders or without the engine.
 
-    Example:
-        ```python
-        from jaxshadow import traced
+    **Arguments:** `scene`: a `Scene` with concrete arrays; `points`, `normals`: `(N, 3)`
+    concrete receivers; `lights`: optional list of lights to use instead of the scene's (e.g. a
+    light at several candidate poses).
 
-        traced.host_combinatorics_available()   # True after `pip install` with a C compiler
-        ```
-    """
-    return _compiled_available()
-
-
-def relevant_occluder_counts(
-    points: Any, normals: Any, emitters: Any, occluders: Any
-) -> np.ndarray:
-    """How many occluders can shadow each receiver from each emitter, in NumPy (nothing is
-    compiled): what a capacity for `max_active` must hold.
-
-    **Arguments:** `points`, `normals`: `(N, 3)` receivers and unit normals; `emitters`:
-    `(L, K, 3)` convex polygon lights padded to `K` vertices (repeat a vertex);
-    `occluders`: `(M, Ko, 3)`.
-
-    **Returns:** `(L, N)` int counts.
+    **Returns:** a non-negative int.
 
     Example:
         ```python
         import numpy as np
+        import jaxshadow as js
         from jaxshadow import traced
 
-        p, n = np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]])
-        light = np.array([[[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2.0]]])
-        blocker = np.array([[[0.2, 0.2, 1], [0.6, 0.2, 1], [0.6, 0.6, 1.0]]])
-        traced.relevant_occluder_counts(p, n, light, blocker)   # array([[1]])
+        light = js.PolygonLight([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2]], radiance=1.0)
+        scene = js.Scene([light], occluders=[[[0.2, 0.2, 1], [0.6, 0.2, 1], [0.6, 0.6, 1.0]]])
+        traced.shadow_capacity(scene, np.array([[0.5, 0.4, 0.0]]), np.array([[0.0, 0.0, 1.0]]))   # 7
         ```
     """
-    return _relevant_counts(np.asarray(points, np.float64), np.asarray(normals, np.float64),
-                           np.asarray(emitters, np.float64), np.asarray(occluders, np.float64))
+    if scene.occluders is None or not DEFAULT_OPTIONS.use_engine():
+        return 0
+    p = np.ascontiguousarray(np.asarray(points, np.float64))
+    n = np.asarray(normals, np.float64)
+    n = np.ascontiguousarray(n / np.linalg.norm(n, axis=1, keepdims=True))
+    todo = [x for x in (scene.lights if lights is None else lights) if isinstance(x, (PolygonLight, LinearLight))]
+    if not todo or p.shape[0] == 0:
+        return 0
+    plan = _shadows.plan(scene, p, n, codes=False, decoded=False, lights=todo)
+    return max(int(lp.counts.max(initial=0)) for lp in plan.lights)

@@ -302,7 +302,7 @@ def test_fit_command_checks_its_arguments_first(tmp_path, capsys, monkeypatch):
 
 def test_fit_command_passes_combinatorics(tmp_path, monkeypatch, capsys):
     """`jaxshadow fit --light 0 --combinatorics host` asks `fit_light` for host combinatorics
-    (stubbed here: the light fit itself is tested in test_inverse / test_clip_host); an unknown
+    (stubbed here: the light fit itself is tested in test_inverse / test_lm); an unknown
     value is refused by the parser."""
     import inverse.cli as icli
 
