@@ -160,6 +160,20 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
   }
   const T nenorm = norm(ne);
 
+  // A region none of whose edges crosses E_h either misses E_h or contains all of it (both are
+  // convex): E_h's centroid decides. Without this, a region that covers E_h with an edge exactly
+  // on E_h's boundary (a receiver on an umbra boundary, an EV event) was taken for a miss and the
+  // receiver came out fully lit.
+  V3<T> eh_centre{0, 0, 0};
+  for (int i = 0; i < nehv; i++) eh_centre = eh_centre + ehv[i];
+  eh_centre = (T(1) / T(nehv > 0 ? nehv : 1)) * eh_centre;
+  auto covers_eh = [&](const V3<T>* pl, int np) -> bool {
+    V3<T> r = eh_centre - p;
+    for (int k = 0; k < np; k++)
+      if (nonzero(pl[k]) && !(dot(r, pl[k]) >= 0)) return false;
+    return true;
+  };
+
   auto add_face = [&](int64_t f, bool closed_ok) -> int {  // 0 dropped, 1 added, 2 umbra
     const int64_t Ko = occ.Ko;
     if (Ko > 64) return 0;
@@ -310,10 +324,11 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
       Code cy = code_point(kEmitterCross, occ.ref(f, bentry_i), occ.ref(f, (bentry_i + 1) % Ko));
       emit(bexit, bentry, cx, cy, planes[first + Ko], w.prefs[first + Ko]);
     }
-    if (w.edges.size() == before) {  // its projection misses E_h
+    if (w.edges.size() == before) {  // its projection misses E_h, or covers it
+      const bool covers = covers_eh(planes.data() + first, np);
       planes.resize(first);
       w.prefs.resize(first);
-      return 0;
+      return covers ? 2 : 0;
     }
     Region<T> r;
     r.first = first;
@@ -438,10 +453,11 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
       e.region = int32_t(w.regions.size());
       w.edges.push_back(e);
     }
-    if (w.edges.size() == before) {
+    if (w.edges.size() == before) {  // its cone misses E_h, or covers it
+      const bool covers = covers_eh(planes.data() + first, nsil);
       planes.resize(first);
       w.prefs.resize(first);
-      return 0;
+      return covers ? 2 : 0;
     }
     Region<T> r;
     r.first = first;
