@@ -52,6 +52,7 @@ SUITE: tuple[str, ...] = (
     "error_vs_time",
     "specular_error",
     "shadow_error_vs_time",
+    "shadows_scale",
     "stability_table",
     "inverse_speed",
     "projective_gradient",

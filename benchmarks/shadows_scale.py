@@ -1,7 +1,7 @@
 """Exact shadows at mesh scale: throughput, memory, exactness and Radiance in the same run.
 
-    .venv/bin/python -m benchmarks.shadows_scale            # full (~10 min on 2 cores)
-    .venv/bin/python -m benchmarks.shadows_scale --quick    # smoke run (~1 min)
+    .venv/bin/python -m benchmarks shadows_scale            # full (~15 min on 2 cores)
+    .venv/bin/python -m benchmarks shadows_scale --quick    # smoke run (~2 min)
 
 Scenes (`benchmarks/scenes.py`): a floor `[-4, 4]^2` under a 0.6 m quad light at z = 2, with
 (a) `mesh`: 180 random closed boxes (2 160 triangles) as `js.Mesh` occluders, (b) `quad`: one
@@ -17,7 +17,8 @@ against the independent float64 reference of the tests (Sutherland-Hodgman clipp
 polygon booleans in shapely, Lambert's contour sum; `tests/test_clip.py`), on receivers drawn
 from every class (lit, umbra, penumbra, grazing).
 
-Writes `benchmarks/results/shadows_scale.json`.
+Also `inverse.fit_light` with the mesh scene (48 targets): a solve's time and the gradient of
+the loss against central differences. Writes `benchmarks/results/shadows_scale.json`.
 """
 
 from __future__ import annotations
@@ -127,6 +128,92 @@ def _incremental(n: int, reps: int) -> dict:
             max_diff = float(np.max(np.abs(cache.irradiance - fresh.irradiance)))
     return {"n": n, "rebuild_s": rebuild, "update_s": update, "speedup": rebuild / update,
             "receivers_reevaluated": moved, "identical_to_rebuild": identical, "max_abs_diff": max_diff}
+
+
+def _fit(n_targets: int, reps: int) -> dict:
+    """`inverse.fit_light` with the 2 160-triangle mesh scene (180 `js.Mesh` boxes) and
+    `n_targets` painted floor points (half in penumbra), from one start 3 cm / 2 degrees off:
+    first call, best later solve, pose error; d(loss)/d(light) (each vertex's x and y, and the
+    light's height) at the start through the solver's
+    compiled residual (shadow engine through the FFI) against float64 central differences of
+    the loss evaluated point by point by `js.shade` (host engine)."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+
+    import inverse
+    import jaxshadow as js
+    from benchmarks.scenes import floor_receivers
+    from inverse import _residuals as R
+    from inverse._parametrisation import LightParametrisation
+
+    scene, light, _ = _scene("mesh")
+    rng = np.random.default_rng(5)
+    p, nrm = floor_receivers(20_000, seed=3)
+    near = np.abs(p[:, :2]).max(axis=1) < 2.5
+    cls = js.shadow_plan(scene, p, nrm).classes[0]
+    pen = np.nonzero((cls == 3) & near)[0]
+    lit = np.nonzero((cls == 1) & near)[0]
+    idx = np.concatenate([rng.choice(pen, n_targets // 2, replace=False),
+                          rng.choice(lit, n_targets - n_targets // 2, replace=False)])
+    pts, nn = p[idx], nrm[idx]
+    material = js.Material(ka=0.0, kd=0.6, ks=0.0, exponent=1.0)
+    eye = np.array([0.0, -5.0, 4.0])
+    targets = inverse.PaintedTargets(pts, nn, js.shade(scene, material, pts, nn, eye), eye)
+    c = light.mean(axis=0)
+    t = np.radians(2.0)
+    rot = np.array([[np.cos(t), -np.sin(t), 0], [np.sin(t), np.cos(t), 0], [0, 0, 1.0]])
+    moved = (light - c) @ rot.T + c + np.array([0.03, -0.02, 0.01])
+    start = js.Scene([js.PolygonLight(moved, radiance=1.0)], occluders=scene.occluders)
+    solver = inverse.LM(refine=None)
+    times = []
+    for _ in range(1 + reps):
+        t0 = time.perf_counter()
+        fit = inverse.fit_light(start, targets, material, starts=1, solver=solver)
+        jax.block_until_ready(fit.light.vertices)
+        times.append(time.perf_counter() - t0)
+    err = float(np.abs(np.asarray(fit.light.vertices) - light).max())
+
+    # Gradient of the loss in the light's vertices: the solver's residual (traced engine) ...
+    from inverse._multistart import culling_capacity_for_starts
+
+    param = LightParametrisation(start.lights[0], 0, ("position",), None, 1.0, "sigmoid")
+    cap = culling_capacity_for_starts(param, start, targets, jnp.zeros((1, param.size)))
+    occ = start.occluders
+
+    def loss_at(v, capacity):
+        sc = js.Scene([js.PolygonLight(v, radiance=1.0)], occluders=occ)
+        model, over = R.shade_culled(sc, material, targets.points, targets.normals, targets.eye, None, False, capacity)
+        r = model - targets.colours
+        return 0.5 * jnp.sum(r * r), over
+
+    # Parameters that keep the light planar: each vertex's x and y (8), and a lift of the
+    # whole light along z (a single vertex moved in z would bend the quad out of its plane).
+    def verts(theta):
+        return jnp.asarray(moved) + jnp.concatenate([theta[:8].reshape(4, 2), jnp.zeros((4, 1))], axis=1) \
+            + theta[8] * jnp.array([[0.0, 0.0, 1.0]])
+
+    theta0 = jnp.zeros(9)
+    g, over = jax.jit(jax.grad(lambda th, c: loss_at(verts(th), c), has_aux=True), static_argnums=1)(theta0, cap)
+    g = np.asarray(g)
+
+    # ... against central differences of the loss from js.shade (the host engine, concrete).
+    def host_loss(theta):
+        sc = js.Scene([js.PolygonLight(np.asarray(verts(jnp.asarray(theta))), radiance=1.0)], occluders=occ)
+        r = np.asarray(js.shade(sc, material, pts, nn, eye)) - np.asarray(targets.colours)
+        return 0.5 * float(np.sum(r * r))
+
+    h = 1e-6
+    fd = np.zeros(9)
+    for i in range(9):
+        e = np.zeros(9)
+        e[i] = h
+        fd[i] = (host_loss(e) - host_loss(-e)) / (2 * h)
+    rel = float(np.abs(g - fd).max() / np.abs(fd).max())
+    return {"targets": n_targets, "triangles": 2160, "capacity": cap, "first_call_s": times[0],
+            "solve_s": min(times[1:]), "vertex_error_m": err, "loss": float(fit.report.loss),
+            "grad_rel_err_vs_central_fd": rel, "overflow": bool(over), "fd_step": h}
 
 
 def _run_worker(kind: str, n: int, reps: int, tmp: Path) -> tuple[dict, np.ndarray]:
@@ -239,7 +326,71 @@ def run(quick: bool = False) -> dict:
                          cwd=ROOT, env=env, capture_output=True, text=True, check=True)
     results["incremental"] = json.loads(res.stdout.strip().splitlines()[-1])
     print(json.dumps({"incremental": results["incremental"]}), flush=True)
+    res = subprocess.run([sys.executable, "-m", "benchmarks.shadows_scale", "--worker", "fit", "48", str(reps)],
+                         cwd=ROOT, env=env, capture_output=True, text=True, check=True)
+    results["fit_light"] = json.loads(res.stdout.strip().splitlines()[-1])
+    print(json.dumps({"fit_light": results["fit_light"]}), flush=True)
     return results
+
+
+def markdown(results: dict) -> str:
+    """The tables of `benchmarks/README.md`."""
+    lines = ["Scene: a floor [-4, 4]^2 under a 0.6 m quad light at z = 2; `mesh`: 180 closed boxes "
+             "(2 160 triangles, `js.Mesh`), `quad`: one square occluder. float64, best of the steady-state "
+             "calls; Radiance `rtrace -I -ab 0` on the same receivers in the same run (default / fine source "
+             "subdivision), its error the RMS difference to jaxshadow's exact values relative to their RMS.",
+             "",
+             "| scene | receivers | jaxshadow points/s | first call (s) | peak memory (GB) | max rel. error vs "
+             "shapely (checked) | Radiance default points/s (RMS err) | Radiance fine points/s (RMS err) | "
+             "speedup vs default / fine |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for c in results["cases"]:
+        j, r = c["jaxshadow"], c["radiance"]
+        ex = c.get("exactness")
+        ex_txt = f"{ex['max_rel_err']:.1e} ({ex['checked']})" if ex else "-"
+        lines.append(f"| {c['scene']} | {c['n']:,} | {j['points_per_s']:.3g} | {j['first_call_s']:.1f} | "
+                     f"{j['peak_rss_gb']:.2f} | {ex_txt} | {r['default']['points_per_s']:.3g} "
+                     f"({100 * r['default']['rms_rel_err']:.1f} %) | {r['fine']['points_per_s']:.3g} "
+                     f"({100 * r['fine']['rms_rel_err']:.1f} %) | {c['speedup_vs_radiance_default']:.2f}x / "
+                     f"{c['speedup_vs_radiance_fine']:.2f}x |")
+    mesh = next(c for c in results["cases"] if c["scene"] == "mesh")
+    plan = mesh["jaxshadow"].get("plan", {})
+    if plan:
+        lp = plan["lights"][0]
+        fr = lp["fractions"]
+        lines += ["", f"Classes of the mesh scene ({mesh['n']:,} receivers): lit {100 * fr['lit']:.1f} %, umbra "
+                  f"{100 * fr['umbra']:.1f} %, penumbra {100 * fr['penumbra']:.1f} %, behind / below the horizon "
+                  f"{100 * fr['zero']:.1f} %; candidates per penumbra receiver: mean {lp['candidates']['mean']:.1f}, "
+                  f"max {lp['candidates']['max']}; engine time {plan['seconds']:.2f} s; scene build "
+                  f"{mesh['jaxshadow']['scene_build_s']:.2f} s."]
+    lit = results["lit90"]
+    inc = results["incremental"]
+    fit = results["fit_light"]
+    lines += ["",
+              "| measure | value |", "|---|---:|",
+              f"| 90 % lit scene: cost / the same scene without occluders ({lit['n']:,} receivers) | "
+              f"{lit['cost_ratio']:.2f}x |",
+              f"| moving one box: rebuild / update ({inc['n']:,} receivers, {inc['receivers_reevaluated']} re-evaluated) "
+              f"| {inc['speedup']:.1f}x (identical: {inc['identical_to_rebuild']}) |",
+              f"| `fit_light`, 2 160-triangle mesh, {fit['targets']} targets: first call / one solve | "
+              f"{fit['first_call_s']:.1f} s / {fit['solve_s']:.2f} s |",
+              f"| `fit_light`: d(loss)/d(light) vs float64 central differences (max rel.) | "
+              f"{fit['grad_rel_err_vs_central_fd']:.1e} |"]
+    return "\n".join(lines)
+
+
+def key_numbers(results: dict) -> list[tuple[str, str]]:
+    """Rows of the top-level README's key numbers."""
+    out = []
+    for c in results["cases"]:
+        what = ("exact shadows, 2 160-triangle mesh" if c["scene"] == "mesh" else "exact shadows, one quad occluder")
+        out.append((f"{what}, {c['n']:,} receivers: points/s vs Radiance default (its RMS error), peak memory",
+                    f"{c['jaxshadow']['points_per_s']:.2g} vs {c['radiance']['default']['points_per_s']:.2g} "
+                    f"({100 * c['radiance']['default']['rms_rel_err']:.1f} %), {c['jaxshadow']['peak_rss_gb']:.1f} GB"))
+    fit = results["fit_light"]
+    out.append(("`fit_light` with a 2 160-triangle mesh occluder, 48 targets: one solve after compilation",
+                f"{fit['solve_s']:.2f} s"))
+    return out
 
 
 def _classes(kind: str, n: int) -> np.ndarray:
@@ -261,15 +412,13 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     if args.worker:
         kind, n, reps = args.worker
-        fn = _incremental if kind == "incremental" else (lambda n_, r_: _worker(kind, n_, r_))
+        special = {"incremental": _incremental, "fit": _fit}
+        fn = special.get(kind, lambda n_, r_: _worker(kind, n_, r_))
         print(json.dumps(fn(int(n), int(reps))))
         return
-    res = run(args.quick)
-    RESULTS.mkdir(exist_ok=True)
-    name = f"{NAME}_quick.json" if args.quick else f"{NAME}.json"
-    with open(RESULTS / name, "w") as fh:
-        json.dump(res, fh, indent=1)
-    print(f"wrote {RESULTS / name}")
+    from benchmarks._suite import main as suite
+
+    raise SystemExit(suite([NAME, *(["--quick"] if args.quick else [])]))
 
 
 if __name__ == "__main__":
