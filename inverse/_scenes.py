@@ -42,7 +42,18 @@ def polygon_pose(vertices) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarr
 def pose_errors(fitted, true) -> dict:
     """Position error (m), normal angle (deg), long-axis angle modulo 180 deg (a rectangle is
     symmetric under a half turn), relative side-length error; `orientation_deg` is the angle
-    of the rotation taking the true frame to the fitted one (normal and long axis)."""
+    of the rotation taking the true frame to the fitted one (normal and long axis).
+
+    Example:
+        ```python
+        import numpy as np
+        import inverse
+
+        true = np.array([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2]], float)
+        err = inverse.pose_errors(true + [0.01, 0.0, 0.0], true)
+        print(err["position"], err["orientation_deg"])   # 0.01 m, 0 deg
+        ```
+    """
     c1, n1, e1, s1 = polygon_pose(fitted)
     c0, n0, e0, s0 = polygon_pose(true)
     ang = lambda a, b: float(np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b)), a @ b)))  # noqa: E731
@@ -85,7 +96,16 @@ def _unit(v):
 
 def demo_configuration(occluders: bool = True, n_points: int = 40, seed: int = 0,
                        penumbra_fraction: float = 0.25, near_fraction: float = 0.0) -> Configuration:
-    """The demo / acceptance scene (see the module docstring). Deterministic for a seed."""
+    """The demo / acceptance scene (see the module docstring). Deterministic for a seed.
+
+    Example:
+        ```python
+        import inverse
+
+        cfg = inverse.demo_configuration(occluders=True, n_points=40, seed=0)
+        print(cfg.points.shape, len(cfg.scene.lights))   # (40, 3) receivers, the true light
+        ```
+    """
     rng = np.random.default_rng(seed)
     light_c = np.array([0.25, 0.15, 1.6])
     true_light = js.PolygonLight(quad(light_c, LIGHT_W, LIGHT_H, (np.pi + 0.15, 0.1, 0.3)), [20.0, 18.0, 16.0])

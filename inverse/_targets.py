@@ -277,10 +277,34 @@ class PaintedTargets(eqx.Module):
 
 
 def load_targets(path: str | os.PathLike) -> PaintedTargets:
-    """Read painted targets from `.json` or `.csv` (see `PaintedTargets.load`)."""
+    """Read painted targets from `.json` or `.csv` (see `PaintedTargets.load`).
+
+    Example:
+        ```python
+        import os, tempfile
+        import numpy as np
+        import inverse
+
+        path = os.path.join(tempfile.mkdtemp(), "targets.json")
+        inverse.save_targets(inverse.PaintedTargets(np.zeros((1, 3)), [[0.0, 0.0, 1.0]], [[0.2, 0.3, 0.4]],
+                                                    eye=[0.0, -1.0, 1.0]), path)
+        targets = inverse.load_targets(path)
+        ```
+    """
     return PaintedTargets.load(path)
 
 
 def save_targets(targets: PaintedTargets, path: str | os.PathLike) -> None:
-    """Write painted targets to `.json` or `.csv` (see `PaintedTargets.save`)."""
+    """Write painted targets to `.json` or `.csv` (see `PaintedTargets.save`).
+
+    Example:
+        ```python
+        import os, tempfile
+        import numpy as np
+        import inverse
+
+        t = inverse.PaintedTargets(np.zeros((1, 3)), [[0.0, 0.0, 1.0]], [[0.2, 0.3, 0.4]], eye=[0.0, -1.0, 1.0])
+        inverse.save_targets(t, os.path.join(tempfile.mkdtemp(), "targets.json"))
+        ```
+    """
     targets.save(path)

@@ -23,6 +23,9 @@ from jaxtyping import Array, Float
 
 from ._misc import divide_by_scale, map_chunks
 
+# A JAX array or tracer, or a NumPy array: what the entry points' checks pass on (`as_input`).
+AnyArray = Array | np.ndarray
+
 # Relative tolerances used by build-time validation (NumPy, float64).
 PLANARITY_RTOL = 1e-6
 DEGENERACY_RTOL = 1e-9
@@ -108,12 +111,12 @@ def horizon_clip_edges(
 # --------------------------------------------------------------------------------------
 
 
-def inputs_ok(points: Array, normals: Array) -> Array:
+def inputs_ok(points: AnyArray, normals: AnyArray) -> Array:
     """Traceable: True when every point and normal is finite and no normal is zero. The public
     entry points evaluate it inside their own compiled call (one pass fused with the kernel,
     no extra dispatch) and hand the flag to `raise_if_bad`."""
     # Componentwise, one reduction: XLA:CPU fuses it into 4 small loops instead of ~10.
-    def finite(v: Array) -> Array:
+    def finite(v: AnyArray) -> Array:
         return jnp.isfinite(v[..., 0]) & jnp.isfinite(v[..., 1]) & jnp.isfinite(v[..., 2])
 
     nonzero = (normals[..., 0] != 0) | (normals[..., 1] != 0) | (normals[..., 2] != 0)
@@ -123,10 +126,10 @@ def inputs_ok(points: Array, normals: Array) -> Array:
 _all_good = jax.jit(inputs_ok)
 
 
-def check_points_normals(points: Any, normals: Any, what: str = "", values: bool = True) -> tuple[Array, Array]:
+def check_points_normals(points: Any, normals: Any, what: str = "", values: bool = True) -> tuple[AnyArray, AnyArray]:
     """Shape/dtype/value checks shared by every public entry point.
 
-    Returns JAX arrays; normals are *not* normalised here (the jitted kernels do it, fused).
+    Returns the inputs as arrays (`as_input`: NumPy arrays stay NumPy); normals are *not* normalised here (the jitted kernels do it, fused).
     With `values=False` only shapes and dtypes are checked here: the caller evaluates
     `inputs_ok` in its compiled call and passes the flag to `raise_if_bad` (`evaluate_checked`).
     """
@@ -194,7 +197,7 @@ def as_input(x: Any, what: str) -> Any:
     return jnp.asarray(a) if a.dtype != jax.dtypes.canonicalize_dtype(a.dtype) else a
 
 
-def _check_values_eagerly(points: Array, normals: Array, what: str) -> None:
+def _check_values_eagerly(points: AnyArray, normals: AnyArray, what: str) -> None:
     if not isinstance(points, jax.core.Tracer) and not isinstance(normals, jax.core.Tracer):
         # One fused pass decides; the slow NumPy search for the culprit runs only on failure.
         # Concrete arrays closed over by a caller's jit are still checked: evaluate eagerly.
@@ -204,7 +207,7 @@ def _check_values_eagerly(points: Array, normals: Array, what: str) -> None:
             raise_if_bad(False, points, normals, what)
 
 
-def raise_if_bad(good: Any, points: Array, normals: Array, what: str) -> None:
+def raise_if_bad(good: Any, points: AnyArray, normals: AnyArray, what: str) -> None:
     """Raise the precise `ValueError` (first non-finite value, first zero normal) unless `good`."""
     if bool(good):
         return
@@ -220,7 +223,7 @@ def raise_if_bad(good: Any, points: Array, normals: Array, what: str) -> None:
     raise ValueError(f"{pre}normals[{i}] is the zero vector; a normal needs a direction.")
 
 
-def evaluate_checked(fn: Any, points: Array, normals: Array, what: str) -> Any:
+def evaluate_checked(fn: Any, points: AnyArray, normals: AnyArray, what: str) -> Any:
     """`fn(points, normals) -> (out, inputs_ok(points, normals))` (one compiled call that also
     checks the inputs), evaluated in blocks (`_misc.map_chunks`); returns `out`, or raises the
     precise error when some block's flag is False. Under a caller's transformation (the flag

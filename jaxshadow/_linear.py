@@ -46,7 +46,7 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import Any
+from typing import Any, no_type_check
 
 import equinox as eqx
 import jax
@@ -247,6 +247,8 @@ def _linear_batch(points: Array, normals: Array, start: Array, end: Array, m: in
     return e, inputs_ok(points, normals)
 
 
+# Validates its own inputs (ValueError, docs/design.md): no runtime annotation check before it.
+@no_type_check
 def linear_irradiance(
     points: Float[ArrayLike, "N 3"],
     normals: Float[ArrayLike, "N 3"],
@@ -264,6 +266,16 @@ def linear_irradiance(
       `MAX_COSINE_EXPONENT` (1000) for the $\cos^m$ tube (Poulin §3.2.2).
 
     **Returns:** `(N,)`; `+inf` for a receiver on the segment itself.
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+
+        points = np.array([[0.0, 0.0, 0.0], [1.0, 0.5, 0.0]])
+        normals = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+        f = js.linear_irradiance(points, normals, [-1.0, 0.0, 1.5], [1.0, 0.0, 1.5])   # (2,)
+        ```
     """
     points, normals = check_points_normals(points, normals, "linear_irradiance", values=False)
     if not isinstance(m, (int, np.integer)):

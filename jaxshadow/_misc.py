@@ -6,7 +6,7 @@ import functools
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 
 def fusible(x: Array) -> Array:
@@ -20,7 +20,7 @@ def fusible(x: Array) -> Array:
     its derivative is the identity too) that XLA counts as cheap, so wrapping an expensive
     result in it lets the whole computation around it fuse into one loop. In the quad form
     factor this took the compiled kernel from 48 fused loops to 4 and ~8x less time at 10^6
-    points (`benchmarks/README.md`). It only changes how XLA schedules the work, never a value.
+    points (commit 34489f5). It only changes how XLA schedules the work, never a value.
     """
     fi = jnp.finfo(x.dtype)
     return jax.lax.reduce_precision(x, exponent_bits=fi.nexp, mantissa_bits=fi.nmant)
@@ -75,7 +75,7 @@ def safe_normalize(x: Float[Array, "... 3"], axis: int = -1) -> Float[Array, "..
     return jnp.where(ok, xs / fusible(jnp.sqrt(safe_sq)), 0.0)
 
 
-def unit_rows(x: Float[Array, "N 3"]) -> Float[Array, "N 3"]:
+def unit_rows(x: Float[ArrayLike, "N 3"]) -> Float[Array, "N 3"]:
     """`safe_normalize` of each row, written component by component: XLA:CPU fuses it into the
     kernel that reads the rows (a reduction over the length-3 axis is a separate loop).
     Scale-free: a normal of any length from the smallest subnormal to the largest float is
@@ -100,7 +100,7 @@ def safe_div(num: Array, den: Array, fallback: float | Array = 0.0) -> Array:
     return jnp.where(ok, fusible(num / safe_den), fallback)
 
 
-def angle_over_sin(s2: Array, c: Array) -> Array:
+def angle_over_sin(s2: Array | float, c: Array | float) -> Array:
     r"""$\theta / s$ for $\theta = \operatorname{atan2}(s, c)$, $s = \sqrt{s_2} \ge 0$.
 
     This is the factor that turns the (unnormalised) cross product of two edge vectors into
@@ -169,7 +169,7 @@ def _atan_over_t(z: Array) -> Array:
 
 
 @jax.custom_jvp
-def arctan2(y: Array, x: Array) -> Array:
+def arctan2(y: Array | float, x: Array | float) -> Array:
     r"""`atan2(y, x)` in $(-\pi, \pi]$, branch-free and vectorisable (XLA:CPU's own `atan2` is a
     scalar libm call, ~25 ns per float32 element, which dominated the form-factor kernel).
 

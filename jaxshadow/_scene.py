@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 import os
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, no_type_check
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -169,18 +169,33 @@ class Material(eqx.Module):
     """Phong material (Poulin eq. 2.1 / 5.14): $L = k_a L_a + k_d/\\pi\\, E + k_s S$.
 
     `ka`, `kd`, `ks`: `(3,)` RGB coefficients (`kd` is the diffuse albedo, as Mitsuba's
-    `diffuse` reflectance), each >= 0; `exponent`: Phong $n \\ge 0$ (scalar array).
+    `diffuse` reflectance), each >= 0, or `(N, 3)` per receiver (a texture looked up at `N`
+    points: row `i` is the material at receiver `i`); a scalar is broadcast to grey. Per-receiver
+    fields share one `N`. `exponent`: Phong $n \\ge 0$ (scalar array: one lobe per material).
     """
 
-    ka: Float[Array, "3"]
-    kd: Float[Array, "3"]
-    ks: Float[Array, "3"]
+    ka: Float[Array, "3"] | Float[Array, "N 3"]
+    kd: Float[Array, "3"] | Float[Array, "N 3"]
+    ks: Float[Array, "3"] | Float[Array, "N 3"]
     exponent: Float[Array, ""]
 
     def __init__(self, ka: Any = 0.0, kd: Any = 0.5, ks: Any = 0.0, exponent: Any = 1.0):
         if _all_concrete(ka, kd, ks, exponent):
+            rows = set()
             for name, v in (("ka", ka), ("kd", kd), ("ks", ks)):
-                check_rgb(v, f"Material.{name}")
+                a = np.asarray(v, dtype=np.float64)
+                if a.ndim == 2 and a.shape[1] == 3 and a.shape[0] >= 1:
+                    rows.add(a.shape[0])
+                    check_finite(a, f"Material.{name}")
+                    if np.any(a < 0):
+                        i, c = np.argwhere(a < 0)[0]
+                        raise ValueError(f"Material.{name}[{i}]: must be >= 0, got {float(a[i, c])} in channel {'RGB'[c]}.")
+                elif a.ndim == 2:
+                    raise ValueError(f"Material.{name}: expected a scalar, (3,) or (N, 3), got shape {a.shape}.")
+                else:
+                    check_rgb(v, f"Material.{name}")
+            if len(rows) > 1:
+                raise ValueError(f"Material: per-receiver fields have different numbers of rows {sorted(rows)}.")
             e = np.asarray(exponent, dtype=np.float64)
             if e.shape != ():
                 raise ValueError(f"Material.exponent must be a scalar, got shape {e.shape}.")
@@ -191,6 +206,26 @@ class Material(eqx.Module):
         self.kd = _rgb_leaf(kd)
         self.ks = _rgb_leaf(ks)
         self.exponent = _leaf(exponent)
+
+    @property
+    def receivers(self) -> int | None:
+        """`N` when some coefficient is given per receiver, else `None`."""
+        for k in (self.ka, self.kd, self.ks):
+            if k.ndim == 2:
+                return int(k.shape[0])
+        return None
+
+    def radiance(self, ambient: Any, irradiance: Any, specular: Any = None) -> Array:
+        """$k_a L_a + k_d E/\\pi + k_s S$ (Poulin eq. 5.14) from `ambient` `(3,)`, `irradiance` and
+        `specular` `(N, 3)` (`None`: no specular term); per-receiver coefficients apply row by
+        row. **Returns:** `(N, 3)` radiance (W m^-2 sr^-1), dtype of `irradiance`."""
+        e = jnp.asarray(irradiance)
+        dt = e.dtype
+        rows = lambda k: jnp.broadcast_to(jnp.asarray(k, dt), e.shape)  # noqa: E731
+        out = rows(self.ka) * rows(ambient) + rows(self.kd) / jnp.pi * e
+        if specular is not None:
+            out = out + rows(self.ks) * jnp.asarray(specular, dt)
+        return out
 
 
 def _stack_occluders(occluders: Any) -> tuple[Array | None, OccluderTopology | None]:
@@ -402,7 +437,15 @@ def material_from_dict(d: dict, where: str = "material") -> Material:
 
 
 def scene_to_dict(scene: Scene, material: Material | None = None) -> dict:
-    """The JSON-able dict of a scene (and optionally a material), schema version 1."""
+    """The JSON-able dict of a scene (and optionally a material), schema version 1.
+
+    Example:
+        ```python
+        import jaxshadow as js
+
+        d = js.scene_to_dict(js.Scene([js.PointLight([0, 0, 2.0], 1.0)], ambient=0.05))   # JSON-ready
+        ```
+    """
     out: dict[str, Any] = {
         "format": SCENE_FORMAT,
         "version": SCENE_VERSION,
@@ -433,8 +476,19 @@ def _occluder_from_json(o: Any, where: str) -> Any:
     return _numeric(o, where)
 
 
+# Validates its own inputs (ValueError, docs/design.md): no runtime annotation check before it.
+@no_type_check
 def scene_from_dict(d: dict) -> Scene:
-    """Build a Scene from its dict form, with errors naming the offending entry."""
+    """Build a Scene from its dict form, with errors naming the offending entry.
+
+    Example:
+        ```python
+        import jaxshadow as js
+
+        d = js.scene_to_dict(js.Scene([js.PointLight([0, 0, 2.0], 1.0)]))
+        scene = js.scene_from_dict(d)
+        ```
+    """
     if not isinstance(d, dict):
         raise ValueError("scene: expected a JSON object.")
     if d.get("format") != SCENE_FORMAT:
@@ -470,6 +524,16 @@ def save_scene(scene: Scene, path: str | os.PathLike, material: Material | None 
     serialiser or a full disk leaves an existing file as it was.
 
     **Arguments:** `scene` (`Scene`), `path` (file name), `material` (`Material` or `None`).
+
+    Example:
+        ```python
+        import os, tempfile
+        import jaxshadow as js
+
+        scene = js.Scene([js.PointLight([0, 0, 2.0], 1.0)], ambient=0.05)
+        path = os.path.join(tempfile.mkdtemp(), "scene.json")
+        js.save_scene(scene, path, material=js.Material(ka=0.1, kd=0.6, ks=0.3, exponent=20.0))
+        ```
     """
     if not isinstance(scene, Scene):
         raise ValueError(f"save_scene: expected a jaxshadow.Scene, got {type(scene).__name__}.")
@@ -500,12 +564,34 @@ def load_scene(path: str | os.PathLike) -> Scene:
     """Read a scene from a JSON file written by `save_scene` (or by hand, same schema).
 
     **Returns:** the `Scene`; `ValueError` naming the path or the offending entry otherwise.
+
+    Example:
+        ```python
+        import os, tempfile
+        import jaxshadow as js
+
+        path = os.path.join(tempfile.mkdtemp(), "scene.json")
+        js.save_scene(js.Scene([js.PointLight([0, 0, 2.0], 1.0)]), path)
+        scene = js.load_scene(path)
+        ```
     """
     return scene_from_dict(_read_json(path))
 
 
 def load_material(path: str | os.PathLike) -> Material:
-    """Read the `material` entry of a scene JSON file."""
+    """Read the `material` entry of a scene JSON file.
+
+    Example:
+        ```python
+        import os, tempfile
+        import jaxshadow as js
+
+        path = os.path.join(tempfile.mkdtemp(), "scene.json")
+        js.save_scene(js.Scene([js.PointLight([0, 0, 2.0], 1.0)]), path,
+                      material=js.Material(ka=0.1, kd=0.6, ks=0.3, exponent=20.0))
+        material = js.load_material(path)
+        ```
+    """
     d = _read_json(path)
     if not isinstance(d, dict) or "material" not in d:
         raise ValueError(f"{path}: no 'material' entry.")

@@ -96,13 +96,13 @@ $O^*$ (floor region $O_j$), occluder vertices inside $E^*$ ($E_i$) and edge-edge
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, no_type_check
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._geometry import (
     check_convex_polygon,
@@ -250,7 +250,11 @@ def _vertex_terms(rel: Float[Array, "k 3"], normals: Float[Array, "k 3"], coef) 
     return -coef, rel, jnp.roll(rel, 1, axis=0), jnp.roll(normals, 1, axis=0)
 
 
-def _concat(*terms: Terms) -> Terms:
+# Terms of several sets, each of its own length (`_t`: not matched across the arguments).
+AnyTerms = tuple[Float[Array, " _t"], Float[Array, "_t 3"], Float[Array, "_t 3"], Float[Array, "_t 3"]]
+
+
+def _concat(*terms: AnyTerms) -> Terms:
     a, b, c, d = (jnp.concatenate(parts, axis=0) for parts in zip(*terms, strict=True))
     return a, b, c, d
 
@@ -381,8 +385,10 @@ def spline_shadow_faces_kernel(
     return _sum_terms(flat) / jnp.pi
 
 
+# Validates its own inputs (ValueError, docs/design.md): no runtime annotation check before it.
+@no_type_check
 def shadow_nodes(
-    emitter: Float[Array, "m 3"], occluder: Float[Array, "n 3"]
+    emitter: Float[ArrayLike, "m 3"], occluder: Float[ArrayLike, "n 3"]
 ) -> Float[Array, "n m 2"]:
     r"""Shadow nodes $v_{ij}$ (Stark eq. 18) on the floor $z = 0$: where $o_i$ and $e_j$ line up.
 
@@ -390,6 +396,16 @@ def shadow_nodes(
     $E_i = \langle v_{i1}..v_{im}\rangle$, $S_{ij} = \langle v_{ij}, v_{i+1,j}, v_{i+1,j+1},
     v_{i,j+1}\rangle$ (indices in the given vertex orders). Infinite where $z'_j = z_i$. For
     plotting and tests; the kernel uses the homogeneous form (module docstring, note 6).
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+
+        emitter = np.array([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2.0]])
+        occluder = np.array([[0.3, 0.3, 1], [0.7, 0.3, 1], [0.7, 0.7, 1], [0.3, 0.7, 1.0]])
+        nodes = js.shadow_nodes(emitter, occluder)   # (4, 4, 2): the shadow's spline nodes on z = 0
+        ```
     """
     zo = occluder[:, None, 2:3]
     ze = emitter[None, :, 2:3]
@@ -475,8 +491,10 @@ def _spline_shadow(emitter: Array, occluder: Array, points: Array) -> Array:
     return jax.vmap(spline_shadow_kernel, in_axes=(0, None, None))(points, emitter, occluder)
 
 
+# Validates its own inputs (ValueError, docs/design.md): no runtime annotation check before it.
+@no_type_check
 def spline_shadow(
-    emitter: Float[Array, "m 3"], occluder: Float[Array, "n 3"], points: Float[Array, "N 3"]
+    emitter: Float[ArrayLike, "m 3"], occluder: Float[ArrayLike, "n 3"], points: Float[ArrayLike, "N 3"]
 ) -> Float[Array, " N"]:
     r"""Form factor of the visible part of a polygon emitter behind one polygon occluder.
 
@@ -498,6 +516,16 @@ def spline_shadow(
     **Raises:** `ValueError` (inputs concrete, i.e. not under jit/grad/vmap) for bad shapes,
     NaN/inf, non-convex or degenerate polygons, and configurations outside the validity region.
     Jitted (`eqx.filter_jit`) below the checks; differentiable in every input.
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+
+        emitter = np.array([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2.0]])      # emits towards -z
+        occluder = np.array([[0.3, 0.3, 1], [0.7, 0.3, 1], [0.7, 0.7, 1], [0.3, 0.7, 1.0]])
+        F = js.spline_shadow(emitter, occluder, np.array([[0.5, 0.5, 0.0], [0.9, 0.1, 0.0]]))
+        ```
     """
     what = "spline_shadow"
     for name, x, ndim in (
@@ -590,10 +618,12 @@ def _check_closed_convex(faces: list[np.ndarray], what: str) -> None:
         )
 
 
+# Validates its own inputs (ValueError, docs/design.md): no runtime annotation check before it.
+@no_type_check
 def spline_shadow_faces(
-    emitters: Float[Array, "l m 3"] | list,
-    faces: Float[Array, "f k 3"] | list,
-    points: Float[Array, "N 3"],
+    emitters: Float[ArrayLike, "l m 3"] | list,
+    faces: Float[ArrayLike, "f k 3"] | list,
+    points: Float[ArrayLike, "N 3"],
 ) -> Float[Array, " N"]:
     r"""Shadow equation with several emitters and one convex polyhedral occluder (Stark fig. 14).
 
@@ -615,6 +645,17 @@ def spline_shadow_faces(
 
     **Raises:** `ValueError` for invalid inputs (when concrete), as `spline_shadow`, and when
     the faces do not bound a closed convex polyhedron.
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+
+        emitter = np.array([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2.0]])
+        a, b, c, d = [0.3, 0.3, 1.0], [0.7, 0.3, 1.0], [0.5, 0.7, 1.0], [0.5, 0.45, 1.3]   # a tetrahedron
+        faces = np.array([[a, c, b], [a, b, d], [b, c, d], [c, a, d]])   # every face of the occluder
+        F = js.spline_shadow_faces(emitter[None], faces, np.array([[0.5, 0.5, 0.0]]))
+        ```
     """
     what = "spline_shadow_faces"
     em, em_np = _stack_polygons(emitters, f"{what}: emitter")

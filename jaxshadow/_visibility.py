@@ -13,7 +13,9 @@ for each receiver it queries a bounding-volume hierarchy of the occluders with t
 illumination pyramid (Campbell & Fussell §4.3's "bounding volume enclosing the light source and
 receiver", one per receiver), tests the candidates exactly (C&F Theorem 2's occlusion volume and
 Theorem 3's umbra volume, in their dual form: does the pyramid meet the occluder; does the
-occluder's projection cover the light), classifies the receiver (`ZERO` behind the light or
+occluder's projection cover the light) in double precision whatever the inputs' dtype (float32
+values are exact in double, so the decisions are those of the exact float32 geometry; only the
+points that JAX integrates are float32), classifies the receiver (`ZERO` behind the light or
 below its horizon, `LIT`, `UMBRA`, `PENUMBRA`) and, in penumbra, splits the candidate edges exactly
 as the device kernel `_clip._boundary_runs` does, with the candidates only. It returns per
 receiver a list of *runs*, each two endpoint codes of 7 int32 (`decode_endpoints`). Convex solids
@@ -49,6 +51,8 @@ CODE_WIDTH = 7
 # Endpoint kinds (`_shadowc.cc`).
 K_UNUSED, K_LIGHT, K_HORIZON, K_PROJECTED, K_EMITTER_CROSS, K_PLANES = -1, 0, 1, 2, 3, 4
 FFI_TARGET = "jaxshadow_poly_codes"
+FFI_HARD = "jaxshadow_hard_visibility"
+FFI_SEGMENT = "jaxshadow_segment_candidates"
 
 
 # --------------------------------------------------------------------------------------
@@ -91,6 +95,8 @@ def ffi_available() -> bool:
     if lib is None or not lib.jaxshadow_has_ffi():
         return False
     jax.ffi.register_ffi_target(FFI_TARGET, jax.ffi.pycapsule(lib.JaxshadowPolyCodes), platform="cpu")
+    jax.ffi.register_ffi_target(FFI_HARD, jax.ffi.pycapsule(lib.JaxshadowHardVisibility), platform="cpu")
+    jax.ffi.register_ffi_target(FFI_SEGMENT, jax.ffi.pycapsule(lib.JaxshadowSegmentCandidates), platform="cpu")
     return True
 
 
@@ -138,6 +144,13 @@ def _require() -> Any:
     if lib is None:
         raise RuntimeError("jaxshadow._shadowc is not built: reinstall jaxshadow with a C++ compiler available")
     return lib
+
+
+def unused_code() -> np.ndarray:
+    """One endpoint code of an unused slot (kind `K_UNUSED`, decoded as the light's first vertex)."""
+    c = np.zeros(CODE_WIDTH, np.int32)
+    c[0] = K_UNUSED
+    return c
 
 
 @dataclass
@@ -266,7 +279,7 @@ def edge_planes(p: Float[Array, "3"], a: Float[Array, "e 3"], b: Float[Array, "e
     swap = _lex_less(b, a)
     lo = jnp.where(swap[..., None], b, a)
     hi = jnp.where(swap[..., None], a, b)
-    c = _rescale_rows(jnp.cross(_rescale_rows(hi - p), _rescale_rows(lo - p)))
+    c = _rescale_rows(jnp.cross(_rescale_rows(hi - p[None, :]), _rescale_rows(lo - p[None, :])))
     return jnp.where(swap[..., None], -c, c)
 
 
@@ -308,8 +321,8 @@ def decode_endpoints(
     va = take(V, i1)
     vb = take(V, jnp.where(kind == K_HORIZON, (i1 + 1) % k, i2))
     on_light = (kind == K_HORIZON)[:, None]
-    h = jnp.where(on_light, n, ne)
-    q = jnp.where(on_light, p, e0)
+    h = jnp.where(on_light, n[None, :], ne[None, :])
+    q = jnp.where(on_light, p[None, :], e0[None, :])
     da = jnp.sum((va - q) * h, axis=-1)
     db = jnp.sum((vb - q) * h, axis=-1)
     cross_ok = da != db
@@ -323,9 +336,9 @@ def decode_endpoints(
     def plane(t_: Array, a: Array, b: Array) -> Array:
         through = edge_planes(p, take(V, a), take(V, b))
         fn, f0 = take(face_n, a), take(face_0, a)
-        d = jnp.sum(fn * (f0 - p), axis=-1)
-        cut = (hp * jnp.sign(d))[:, None] * fn + jnp.abs(d)[:, None] * ne
-        out = jnp.where((t_ == 0)[:, None], through, jnp.where((t_ == 1)[:, None], n, cut))
+        d = jnp.sum(fn * (f0 - p[None, :]), axis=-1)
+        cut = (hp * jnp.sign(d))[:, None] * fn + jnp.abs(d)[:, None] * ne[None, :]
+        out = jnp.where((t_ == 0)[:, None], through, jnp.where((t_ == 1)[:, None], n[None, :], cut))
         return _rescale_rows(out)
 
     n1 = plane(codes[:, 1], codes[:, 2], codes[:, 3])
@@ -333,7 +346,7 @@ def decode_endpoints(
     y = jax.vmap(_crossing_point, in_axes=(None, 0, None, None))(p, jnp.cross(n1, n2), ne, hp)
     out = jnp.where((kind == K_PLANES)[:, None], y, x)
     del nv
-    return jnp.where((kind == K_UNUSED)[:, None], e0, out)
+    return jnp.where((kind == K_UNUSED)[:, None], e0[None, :], out)
 
 
 def edges_from_codes(
@@ -379,8 +392,7 @@ def traced_polygon_codes(
     boundary has more than `capacity` (static) edges have `counts > capacity` and only their first
     `capacity` runs: the caller must detect that (the result is then not exact). Carries no
     gradient (its inputs are stop-gradient'ed); `vmap` broadcasts all inputs."""
-    if not ffi_available():
-        raise RuntimeError("jaxshadow's shadow engine was built without its XLA FFI handler")
+    _require_ffi()
     topo = topology if topology is not None else OccluderTopology.independent(faces.shape[0])
     sg = jax.lax.stop_gradient
     n_pts = points.shape[0]
@@ -394,3 +406,54 @@ def traced_polygon_codes(
     out: Any = call(sg(points), sg(normals.astype(dt)), sg(verts.astype(dt)), sg(faces.astype(dt)), *_topology_arrays(topo),
                 cap=np.int64(capacity), threads=np.int64(threads()))
     return out[0], out[1], out[2]
+
+
+def _require_ffi() -> None:
+    if not ffi_available():
+        raise RuntimeError("jaxshadow's shadow engine was built without its XLA FFI handlers")
+
+
+def traced_hard_visibility(
+    points: Float[Array, "N 3"],
+    x: Float[Array, "3"],
+    is_point: bool,
+    faces: Float[Array, "m ko 3"],
+    topology: OccluderTopology | None,
+) -> Int[Array, " N"]:
+    """`hard_visibility` inside a compiled computation: `(N,)` int32, 1 where the point light at
+    `x` (or the directional light travelling along `x`) is visible. No gradient."""
+    _require_ffi()
+    topo = topology if topology is not None else OccluderTopology.independent(faces.shape[0])
+    sg = jax.lax.stop_gradient
+    dt = points.dtype
+    call = jax.ffi.ffi_call(FFI_HARD, jax.ShapeDtypeStruct((points.shape[0],), jnp.int32),
+                            vmap_method="broadcast_all")
+    return call(sg(points), sg(x.astype(dt)), sg(faces.astype(dt)), *_topology_arrays(topo),
+                is_point=np.int64(bool(is_point)), threads=np.int64(threads()))
+
+
+def traced_segment_candidates(
+    points: Float[Array, "N 3"],
+    a: Float[Array, "3"],
+    b: Float[Array, "3"],
+    faces: Float[Array, "m ko 3"],
+    topology: OccluderTopology | None,
+    capacity: int,
+) -> tuple[Int[Array, " N"], Int[Array, "N c"]]:
+    """`segment_candidates` inside a compiled computation: `(counts (N,), faces (N, capacity))`
+    with -1 in unused slots; receivers with `counts > capacity` have only their first
+    `capacity` faces (the caller must detect that). No gradient."""
+    _require_ffi()
+    topo = topology if topology is not None else OccluderTopology.independent(faces.shape[0])
+    sg = jax.lax.stop_gradient
+    dt = points.dtype
+    n_pts = points.shape[0]
+    call = jax.ffi.ffi_call(
+        FFI_SEGMENT,
+        (jax.ShapeDtypeStruct((n_pts,), jnp.int32), jax.ShapeDtypeStruct((n_pts, capacity), jnp.int32)),
+        vmap_method="broadcast_all",
+    )
+    ends = jnp.stack([a.astype(dt), b.astype(dt)])
+    out: Any = call(sg(points), sg(ends), sg(faces.astype(dt)), *_topology_arrays(topo), cap=np.int64(capacity),
+                    threads=np.int64(threads()))
+    return out[0], out[1]

@@ -105,8 +105,6 @@ def test_row3_float64_soft_shadow_near_the_light_plane():
     assert float(js.irradiance(sc, ROW3_P, UP)[0, 0]) == pytest.approx(ref, rel=1e-5)
 
 
-@pytest.mark.xfail(strict=True, reason="issue 25 row 3 (shadow engine, lead): float32 receiver 1e-6 "
-                   "below the light under an occluder at 5e-7 comes out fully lit (1.0 vs 4.9e-11)")
 def test_row3_float32_soft_shadow_near_the_light_plane():
     ref = reference_ff(ROW3_P[0].astype(F32), UP[0], ROW3_LIGHT.astype(F32), [ROW3_OCC.astype(F32)])
     unocc = float(js.form_factor(ROW3_P, UP, ROW3_LIGHT)[0])
