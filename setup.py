@@ -27,7 +27,7 @@ def _ffi_include() -> list[str]:
     return [inc] if os.path.exists(os.path.join(inc, "xla", "ffi", "api", "ffi.h")) else []
 
 
-_FLAGS = ["-O2", "-ffp-contract=off", "-fno-fast-math"]
+_FLAGS = ["-O3", "-ffp-contract=off", "-fno-fast-math"]
 _INC = _ffi_include()
 
 setup(
