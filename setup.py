@@ -27,7 +27,7 @@ def _ffi_include() -> list[str]:
     return [inc] if os.path.exists(os.path.join(inc, "xla", "ffi", "api", "ffi.h")) else []
 
 
-_FLAGS = ["-O3", "-ffp-contract=off", "-fno-fast-math"]
+_FLAGS = ["-O2", "-ffp-contract=off", "-fno-fast-math"]
 _INC = _ffi_include()
 
 setup(
@@ -38,7 +38,7 @@ setup(
             depends=sorted(glob.glob("jaxshadow/_shadowc/*.h")),
             include_dirs=_INC,
             define_macros=[("JAXSHADOW_FFI", "1")] if _INC else [],
-            extra_compile_args=["-std=c++17", *_FLAGS],
+            extra_compile_args=["-std=c++17", *_FLAGS, "-O3"],
             language="c++",
             optional=True,
         ),
