@@ -37,7 +37,7 @@ setup(
             depends=sorted(glob.glob("jaxshadow/_shadowc/*.h")),
             include_dirs=_INC,
             define_macros=[("JAXSHADOW_FFI", "1")] if _INC else [],
-            extra_compile_args=["-std=c++17", *_FLAGS],
+            extra_compile_args=["-std=c++17", *_FLAGS, "-O3"],
             language="c++",
             optional=True,
         ),

@@ -238,12 +238,17 @@ def _oracle():
 def _culled(p: np.ndarray, n: np.ndarray, em: np.ndarray, tris: np.ndarray) -> np.ndarray:
     """The triangles that can block part of `em` seen from `p` (an exact cull: a triangle with
     all vertices strictly outside one bounding plane of the pyramid conv(p, em), or behind the
-    light's plane, or below p's tangent plane, blocks nothing); the oracle then clips these."""
+    light's plane, or below p's tangent plane, or not above p's plane parallel to the light,
+    blocks nothing); the oracle then clips these."""
     if len(tris) == 0:
         return tris
     ne = np.cross(em[1] - em[0], em[2] - em[0])
     keep = ~np.all((tris - em[0]) @ ne <= 0, axis=1)  # beyond the light's plane (lit side is +ne)
     keep &= ~np.all((tris - p) @ n <= 0, axis=1)
+    # Not beyond p's plane parallel to the light (rays to the light leave it at once: a face
+    # there meets them at p only; e.g. a box's bottom face around a floor point under it).
+    toward = np.sign(np.dot(em[0] - p, ne))
+    keep &= ~np.all(((tris - p) @ ne) * toward <= 0, axis=1)
     for i in range(len(em)):
         a, b = em[i], em[(i + 1) % len(em)]
         c = np.cross(a - p, b - p)

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from . import _shadows as sh
-from ._misc import unit_rows
+from ._misc import unit_rows_host
 from ._scene import LinearLight, PointLight, PolygonLight, Scene
 
 
@@ -102,7 +102,7 @@ class ShadowCache:
 
         p, n = check_points_normals(points, normals, "ShadowCache")
         self._p = np.ascontiguousarray(np.asarray(p))
-        self._n = np.ascontiguousarray(np.asarray(unit_rows(n)))
+        self._n = np.ascontiguousarray(unit_rows_host(n))
         self.scene = scene
         t = time.perf_counter()
         self._g = [self._evaluate(scene, light_i, np.arange(self._p.shape[0])) for light_i in range(len(scene.lights))]

@@ -6,6 +6,7 @@ import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 
@@ -91,6 +92,15 @@ def unit_rows(x: Float[ArrayLike, "N 3"]) -> Float[Array, "N 3"]:
         return jnp.stack([jnp.where(ok, fusible(w[i] / r), 0.0) for i in range(3)])
 
     return jax.vmap(one)(x)
+
+
+_unit_rows_jit = jax.jit(unit_rows)
+
+
+def unit_rows_host(x: Float[ArrayLike, "N 3"]) -> np.ndarray:
+    """`unit_rows` of concrete rows as a NumPy array, as one compiled call (bit for bit what a
+    compiled program computes; op by op it took ~70 ms for 2e5 rows)."""
+    return np.asarray(_unit_rows_jit(jnp.asarray(x)))
 
 
 def safe_div(num: Array, den: Array, fallback: float | Array = 0.0) -> Array:

@@ -24,7 +24,7 @@ from ._geometry import (
     pad_polygons_jax,
 )
 from ._linear import linear_irradiance_kernel
-from ._misc import map_chunks, safe_normalize, unit_rows
+from ._misc import map_chunks, safe_normalize, unit_rows, unit_rows_host
 from ._point import directional_irradiance_kernel, point_irradiance_kernel
 from ._polygon import form_factor_kernel
 from ._scene import (
@@ -154,7 +154,7 @@ def _valued(tree: Any) -> Any:
 
 
 def _unit_np(n: np.ndarray) -> np.ndarray:
-    return np.asarray(unit_rows(jnp.asarray(n)))
+    return unit_rows_host(n)
 
 
 @eqx.filter_jit

@@ -199,8 +199,9 @@ class LightPlan:
     point and directional lights 1 (visible) or 2 (blocked). `candidates (N,)`: items the
     hierarchy returned for the receiver (polygon lights; a convex closed mesh counts once),
     `kept (N,)`: occluder regions kept after the exact tests (polygon lights) or faces that meet
-    the light triangle (segment lights). Polygon lights: receiver i's boundary edges are rows
-    `offsets[i]:offsets[i + 1]` of `runs (R, 2, 7)` (endpoint codes) and/or `points (R, 2, 3)`."""
+    the light triangle (segment lights). Polygon lights: penumbra receiver i's boundary edges
+    are rows `offsets[i]:offsets[i + 1]` of `runs (R, 2, 7)` (endpoint codes) and/or `points
+    (R, 2, 3)`; receivers of the other classes have none (a lit one takes the unoccluded kernel)."""
 
     kind: str
     classes: np.ndarray

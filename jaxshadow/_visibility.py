@@ -41,13 +41,14 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
+from . import _engine_abi as _abi
 from ._clip import _crossing_point, _pow2_scale, _project, _rescale_rows
 from ._geometry import newell_normal
 from ._mesh import OccluderTopology
 
 ZERO, LIT, UMBRA, PENUMBRA = 0, 1, 2, 3
 CLASS_NAMES = ("zero", "lit", "umbra", "penumbra")
-CODE_WIDTH = 7
+CODE_WIDTH = _abi.CODE_WIDTH
 # Endpoint kinds (`_shadowc.cc`).
 K_UNUSED, K_LIGHT, K_HORIZON, K_PROJECTED, K_EMITTER_CROSS, K_PLANES = -1, 0, 1, 2, 3, 4
 FFI_TARGET = "jaxshadow_poly_codes"
@@ -67,20 +68,7 @@ def _lib() -> Any:
         from . import _shadowc as mod  # type: ignore[attr-defined]
     except ImportError:
         return None
-    lib = ctypes.CDLL(mod.__file__)
-    if lib.jaxshadow_shadowc_abi() != 1:
-        return None
-    p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
-    occ: list[Any] = [i64, i64, p, p, p, i64, p, p, p]
-    lib.jaxshadow_poly_plan.argtypes = [i32, i64, p, p, i64, p, *occ, i32, p, p, p, p, p, ctypes.POINTER(i64)]
-    lib.jaxshadow_poly_fixed.argtypes = [i32, i64, p, p, i64, p, *occ, i32, i64, p, p, p]
-    lib.jaxshadow_hard_plan.argtypes = [i32, i64, p, p, i32, i64, *occ, i32, p]
-    lib.jaxshadow_segment_plan.argtypes = [i32, i64, p, p, p, *occ, i32, p, ctypes.POINTER(p)]
-    for f in (lib.jaxshadow_poly_plan, lib.jaxshadow_poly_fixed, lib.jaxshadow_hard_plan, lib.jaxshadow_segment_plan):
-        f.restype = i32
-    lib.jaxshadow_free.argtypes = [p]
-    lib.jaxshadow_free.restype = None
-    return lib
+    return _abi.load(mod.__file__)
 
 
 def engine_available() -> bool:
@@ -128,15 +116,10 @@ class HostOccluders:
         return HostOccluders(f, topo)
 
     def args(self) -> list:
-        t = self.topology
-        arrs = self._ints
-        m, ko = self.faces.shape[:2]
-        return [m, ko, _ptr(self.faces), _ptr(arrs[0]), _ptr(arrs[1]), t.n_solids, _ptr(arrs[2]), _ptr(arrs[3]),
-                _ptr(arrs[4])]
+        return _abi.occluder_args(self.faces, self._ints, self.topology.n_solids)
 
 
-def _ptr(a: np.ndarray) -> int | None:
-    return a.ctypes.data if a.size else None
+_ptr = _abi.ptr
 
 
 def _require() -> Any:
@@ -172,15 +155,6 @@ class PolygonCodes:
         return np.diff(self.offsets)
 
 
-def _take_buffer(lib: Any, buf: ctypes.c_void_p, ctype: Any, shape: tuple) -> np.ndarray | None:
-    if not buf.value:
-        return None
-    n = int(np.prod(shape))
-    arr = np.ctypeslib.as_array(ctypes.cast(buf, ctypes.POINTER(ctype)), shape=(max(n, 1),))[:n].copy()
-    lib.jaxshadow_free(buf)
-    return arr.reshape(shape)
-
-
 def polygon_codes(points: np.ndarray, normals: np.ndarray, verts: np.ndarray, occ: HostOccluders,
                   codes: bool = True, decoded: bool = False) -> PolygonCodes:
     """Classify receivers and compute the boundary of their visible regions (host, C++).
@@ -197,24 +171,7 @@ def polygon_codes(points: np.ndarray, normals: np.ndarray, verts: np.ndarray, oc
     p = np.ascontiguousarray(points, dt)
     n = np.ascontiguousarray(normals, dt)
     v = np.ascontiguousarray(verts, dt)
-    N, K = p.shape[0], v.shape[0]
-    cls = np.zeros(N, np.int32)
-    stats = np.zeros((N, 2), np.int32)
-    off = np.zeros(N + 1, np.int64)
-    runs, pts = ctypes.c_void_p(), ctypes.c_void_p()
-    nr = ctypes.c_int64()
-    rc = lib.jaxshadow_poly_plan(int(dt == np.float64), N, _ptr(p), _ptr(n), K, _ptr(v), *occ.args(), threads(),
-                                 _ptr(cls), _ptr(stats), _ptr(off), ctypes.byref(runs) if codes else None,
-                                 ctypes.byref(pts) if decoded else None, ctypes.byref(nr))
-    total = nr.value
-    code_arr = _take_buffer(lib, runs, ctypes.c_int32, (total, 2, CODE_WIDTH))
-    ctype = ctypes.c_double if dt == np.float64 else ctypes.c_float
-    pt_arr = _take_buffer(lib, pts, ctype, (total, 2, 3))
-    if rc == 2:
-        raise MemoryError("jaxshadow shadow engine: out of memory for the boundary codes")
-    if rc:
-        raise ValueError("jaxshadow shadow engine: a light has more than 64 vertices")
-    return PolygonCodes(cls, stats, off, code_arr, pt_arr)
+    return PolygonCodes(*_abi.poly_plan(lib, p, n, v, occ.args(), threads(), codes, decoded))
 
 
 def hard_visibility(points: np.ndarray, x: np.ndarray, is_point: bool, occ: HostOccluders) -> np.ndarray:

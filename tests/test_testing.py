@@ -310,13 +310,7 @@ def test_stored_values_are_the_library_values(name, quantity):
 H = 2e-5
 RTOL = 1e-7
 
-# The exact Phong specular (`method="exact"`) has a wrong derivative at one grazing receiver:
-# polygon_specular_kernel's jvp/grad there is 0.00686 per radian of light.rz where central
-# differences (and the Chebyshev method) give -0.000135; the value itself is right.
-KNOWN_ENGINE_BUGS = frozenset({("grazing", "radiance")})
-
-
-@pytest.mark.parametrize("name,quantity", _cases(KNOWN_ENGINE_BUGS))
+@pytest.mark.parametrize("name,quantity", _cases())
 def test_derivatives_agree_with_central_differences(name, quantity):
     ref = catalogue[name]
     table = ref.d_irradiance if quantity == "irradiance" else ref.d_radiance
@@ -334,12 +328,10 @@ def test_derivatives_agree_with_central_differences(name, quantity):
     assert not bad, f"{name} d{quantity}:\n" + "\n".join(bad)
 
 
-@pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="engine bug: exact-specular derivative at a grazing receiver (reported)")
 def test_exact_specular_derivative_at_the_grazing_receiver():
-    """The failure behind KNOWN_ENGINE_BUGS, reduced to the kernel: light crossing the receiver's
-    horizon, exponent 5; the value is right, forward and reverse derivatives are not (the
-    Chebyshev method's derivative agrees with central differences)."""
+    """Once a wrong derivative of the catalogue's grazing scene, reduced to the kernel: light
+    crossing the receiver's horizon, exponent 5, exact method (its quadrature's limits move with
+    the light: differentiated by Leibniz's rule); forward mode equals central differences."""
     import jax
 
     from jaxshadow._specular import polygon_specular_kernel

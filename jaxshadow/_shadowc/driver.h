@@ -153,6 +153,9 @@ int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const 
         w.runs.clear();
       }
       cls[i] = c;
+      // Only penumbra receivers are evaluated from their boundary: a lit receiver's would be
+      // E_h's own edges (the unoccluded kernel evaluates it), so none are stored.
+      if (c != kPenumbra) w.runs.clear();
       counts[i] = int32_t(w.runs.size());
       if (stats) {
         stats[2 * i] = w.n_candidates;
