@@ -111,7 +111,7 @@ def fit_light(
     return _light_fit(problem, solver.minimise(problem, y0), solver.name, int(y0.shape[0]))
 
 
-def _checked_groups(scene: Any, targets: Any, light_index: int, fit: Any, starts: int, material_mode: str) -> tuple:
+def _checked_groups(scene: Any, targets: Any, light_index: Any, fit: Any, starts: int, material_mode: str) -> tuple:
     """`fit` as a tuple, after the argument checks of `fit_light` (ValueError)."""
     if not isinstance(scene, js.Scene):
         raise ValueError(f"fit_light: expected a jaxshadow.Scene, got {type(scene).__name__}.")

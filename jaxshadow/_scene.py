@@ -317,7 +317,10 @@ def checked_material(material: Any, what: str) -> Material:
     leaves = (material.ka, material.kd, material.ks, material.exponent)
     if _all_concrete(*leaves):
         for name in ("ka", "kd", "ks"):
-            check_rgb(getattr(material, name), f"{what}: material.{name}")
+            c = np.asarray(getattr(material, name), np.float64)
+            # (3,) or per receiver (N, 3) (Material's per-receiver coefficients).
+            for i, row in enumerate(c if c.ndim == 2 else [c]):
+                check_rgb(row, f"{what}: material.{name}" + (f"[{i}]" if c.ndim == 2 else ""))
         e = np.asarray(material.exponent, np.float64).reshape(-1)
         check_finite(e, f"{what}: material.exponent")
         if np.any(e < 0):
@@ -516,7 +519,7 @@ def scene_from_dict(d: dict) -> Scene:
     return Scene(lights=lights, occluders=occl, ambient=ambient)
 
 
-def save_scene(scene: Scene, path: str | os.PathLike, material: Material | None = None) -> None:
+def save_scene(scene: Any, path: str | os.PathLike, material: Any = None) -> None:
     """Write a scene (and optionally a material) to a JSON file (schema version 1).
 
     The document is built first and written through `_files.atomic_write` (a temporary file in
