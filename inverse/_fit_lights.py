@@ -218,7 +218,7 @@ def fit_lights(
                 continue
             sl = slice(offsets[j], offsets[j] + params[j].size)
             mask = np.zeros(P, bool)
-            mask[sl] = True
+            mask[sl] = _stage_mask(params[j])
             full = np.tile(base, (y.shape[0], 1))
             full[:, sl] = y
             if full.shape[0] > k:  # screen: the same program, no iterations, k starts a call
@@ -253,6 +253,18 @@ def fit_lights(
         theta = theta0
     return _result(problem, np.asarray(theta, np.float64), idx, cons, size, candidates, stage_losses, n_solved,
                    retries, initial, time.perf_counter() - t0)
+
+
+def _stage_mask(param: LightParametrisation) -> np.ndarray:
+    """Which of a light's parameters its own multistart searches: its position when fitted (the
+    orientation and size follow in the joint refinement: searched while the other lights are
+    still misplaced they compensate for them - a polygon shrinks to a bright point), else all."""
+    sl = param._slices()
+    if "position" not in sl:
+        return np.ones(param.size, bool)
+    out = np.zeros(param.size, bool)
+    out[sl["position"]] = True
+    return out
 
 
 def _pad(rows: np.ndarray, k: int) -> np.ndarray:
