@@ -233,22 +233,29 @@ def fit_lights(
             order = np.argsort(f)
             if initial is None:
                 initial = float(np.asarray(res.initial_losses)[0]) if np.all(full[0] == theta0) else None
-            base = np.asarray(res.values)[order[0]].copy()
+            # The solved rows hold the starts' values where the mask is off: the residual used `base`.
+            vals = np.where(mask[None], np.asarray(res.values), base[None])
+            base = vals[order[0]].copy()
             if len(order) > 1 and np.isfinite(f[order[1]]):
-                runner_up[j] = np.asarray(res.values)[order[1]][sl]
+                runner_up[j] = vals[order[1]][sl]
             stage_losses.append(float(f[order[0]]))
-        joint = [base]
+        joint = [base, theta0]  # the given poses together are a candidate too
         for j, v in runner_up.items():
             alt = base.copy()
             alt[offsets[j]:offsets[j] + params[j].size] = v
             joint.append(alt)
-        joint = np.stack(joint[:k])
-        res, problem, r = solve(problem, _pad(joint, k if joint.shape[0] > 1 else 1), base, np.ones(P, bool), **lm)
-        retries += r
-        n_solved += joint.shape[0]
-        f = np.where(np.isfinite(np.asarray(res.losses)), np.asarray(res.losses), np.inf)[: joint.shape[0]]
-        theta = np.asarray(res.values)[int(np.argmin(f))]
-        stage_losses.append(float(np.min(f)))
+        joint = _pad(np.stack(joint[:k]), k)
+        # Sizes last: free from the start, a polygon trades its size for its power (it shrinks to a
+        # bright point or grows dim) before the poses are right.
+        sizes = np.concatenate([np.zeros(0, bool)] + [_size_mask(p) for p in params if p is not None])
+        for mask in ([~sizes] if sizes.any() else []) + [np.ones(P, bool)]:
+            res, problem, r = solve(problem, joint, base, mask, **lm)
+            retries += r
+            n_solved += joint.shape[0]
+            f = np.where(np.isfinite(np.asarray(res.losses)), np.asarray(res.losses), np.inf)
+            joint = np.where(mask[None], np.asarray(res.values), base[None])[np.argsort(f)]
+            stage_losses.append(float(np.min(f)))
+        theta = joint[0]
     else:
         theta = theta0
     return _result(problem, np.asarray(theta, np.float64), idx, cons, size, candidates, stage_losses, n_solved,
@@ -267,6 +274,15 @@ def _stage_mask(param: LightParametrisation) -> np.ndarray:
     return out
 
 
+def _size_mask(param: LightParametrisation) -> np.ndarray:
+    """Which of a light's parameters are its size."""
+    out = np.zeros(param.size, bool)
+    sl = param._slices()
+    if "size" in sl:
+        out[sl["size"]] = True
+    return out
+
+
 def _pad(rows: np.ndarray, k: int) -> np.ndarray:
     """`rows` padded to `k` rows with copies of the first (the same program for every call)."""
     return np.concatenate([rows, np.repeat(rows[:1], k - rows.shape[0], axis=0)]) if rows.shape[0] < k else rows
@@ -282,7 +298,7 @@ def _with_capacity(problem: LightsProblem, per_light: list, fixed: list) -> Ligh
     cands = list(fixed)
     for j, y in enumerate(per_light):
         p = problem.params[j]
-        cands += [problem.refs[j]] if y is None else start_lights(p, y)
+        cands += [problem.refs[j]] if y is None else start_lights(p, jnp.asarray(y))
     most = traced.shadow_capacity(scene, t.points, t.normals, lights=cands)
     return dataclasses.replace(problem, capacity=max(8, -(-5 * most // 4) + 4))
 

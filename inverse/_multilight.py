@@ -134,11 +134,11 @@ def projected_residual(theta: Array, problem: LightsProblem, capacity: int | Non
     m = problem.material
     sw = jnp.sqrt(t.weights)
     La = jnp.broadcast_to(problem.scene.ambient.astype(dt)[None, :], t.colours.shape)
-    kd, ks, ka = m.kd.astype(dt), m.ks.astype(dt), m.ka.astype(dt)
+    kd, ks, ka = m.kd.astype(dt)[None, :], m.ks.astype(dt)[None, :], m.ka.astype(dt)[None, :]
     ef, sf = problem.e_fixed.astype(dt), problem.s_fixed.astype(dt)
     if not problem.project:
         fixed = ka * La + kd / jnp.pi * ef + (ks * sf if problem.with_specular else 0.0)
-        per_light = kd / jnp.pi * E + (ks * S if problem.with_specular else 0.0)  # (J, N, 3)
+        per_light = kd[None] / jnp.pi * E + (ks[None] * S if problem.with_specular else 0.0)  # (J, N, 3)
         y = sw * (t.colours - fixed)
         if not problem.fit_power:
             return (sw * jnp.sum(per_light, axis=0) - y).reshape(-1), over
@@ -174,9 +174,9 @@ def structured_residual(theta: Array, problem: LightsProblem, powers: Array, mat
     p = powers.astype(dt)[:, None, None]
     La = problem.scene.ambient.astype(dt)[None, :]
     e = problem.e_fixed.astype(dt) + jnp.sum(p * E, axis=0)
-    model = material.ka.astype(dt) * La + material.kd.astype(dt) / jnp.pi * e
+    model = material.ka.astype(dt)[None, :] * La + material.kd.astype(dt)[None, :] / jnp.pi * e
     if problem.with_specular:
-        model = model + material.ks.astype(dt) * (problem.s_fixed.astype(dt) + jnp.sum(p * S, axis=0))
+        model = model + material.ks.astype(dt)[None, :] * (problem.s_fixed.astype(dt) + jnp.sum(p * S, axis=0))
     return (jnp.sqrt(t.weights) * (model - t.colours)).reshape(-1)
 
 
