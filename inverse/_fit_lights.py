@@ -10,8 +10,8 @@ every stage.
 
 from __future__ import annotations
 
+import dataclasses
 import math
-import time
 from typing import Any, no_type_check
 
 import jax.numpy as jnp
@@ -166,7 +166,6 @@ def fit_lights(
         print(fit.report)
         ```
     """
-    t0 = time.perf_counter()
     idx, fit, cons = _checked(scene, targets, material, lights, fit, starts, material_mode, constraints)
     solver = LM() if solver is None else solver
     if not isinstance(solver, LM):
@@ -191,10 +190,13 @@ def fit_lights(
     P = off
     if P == 0 and not fit_power:
         raise ValueError("fit_lights: nothing to fit.")
+    if project:  # one dtype and shape for every material the alternation below puts in the problem
+        material = material_of(np.stack([np.broadcast_to(np.asarray(getattr(material, f), np.float64), (3,))
+                                         for f in ("ka", "kd", "ks")]), float(material.exponent), dt)
     fixed = [light for k, light in enumerate(scene.lights) if k not in idx]
     e0, s0 = fixed_contribution(scene, t, material, fixed, specular, with_spec)
     problem = LightsProblem(tuple(params), tuple(scene.lights[i] for i in idx), scene, material, t, e0, s0,
-                            tuple(offsets), fit_power, project, with_spec, bool(fixed), specular)
+                            tuple(offsets), fit_power, False, with_spec, bool(fixed), specular)
     theta0 = np.zeros(P)
     per_light = []
     for j, p in enumerate(params):
@@ -209,6 +211,8 @@ def fit_lights(
     k = max(1, min(int(solver.refine or starts), int(starts)))
     sched = prune_schedule(k, solver.max_steps) if solver.prune else ()
     lm = dict(rtol=solver.rtol, atol=solver.atol, max_steps=solver.max_steps, prune=sched)
+    if project:  # the material (and powers) that best fit the given poses: where the search starts
+        problem = dataclasses.replace(problem, material=_material_at(problem, theta0))
     base = theta0.copy()
     stage_losses, n_solved, retries, runner_up = [], 0, 0, {}
     initial = None
@@ -256,10 +260,14 @@ def fit_lights(
             joint = np.where(mask[None], np.asarray(res.values), base[None])[np.argsort(f)]
             stage_losses.append(float(np.min(f)))
         theta = joint[0]
+        if project:
+            problem, theta, n, r = _alternate(problem, theta, joint, base, lm, stage_losses)
+            n_solved += n
+            retries += r
     else:
         theta = theta0
-    return _result(problem, np.asarray(theta, np.float64), idx, cons, size, candidates, stage_losses, n_solved,
-                   retries, initial, time.perf_counter() - t0)
+    return _result(problem, np.asarray(theta, np.float64), idx, size, candidates, stage_losses, n_solved,
+                   retries, initial, project)
 
 
 def _stage_mask(param: LightParametrisation) -> np.ndarray:
@@ -303,8 +311,48 @@ def _with_capacity(problem: LightsProblem, per_light: list, fixed: list) -> Ligh
     return dataclasses.replace(problem, capacity=max(8, -(-5 * most // 4) + 4))
 
 
-def _result(problem: LightsProblem, theta: np.ndarray, idx: list, cons: dict, size: float, candidates: Any,
-            stage_losses: list, n_solved: int, retries: int, initial: float | None, seconds: float) -> LightsFit:
+def _material_at(problem: LightsProblem, theta: np.ndarray) -> js.Material:
+    """The structured least-squares material at the poses `theta` (`structured_coefficients`)."""
+    t = problem.targets
+    dt = t.points.dtype
+    gauge = 0 if (problem.fit_power and not problem.has_fixed) else None
+    E, S, _ = (np.asarray(x, np.float64) for x in report_parts(problem, jnp.asarray(theta, dt),
+                                                                jnp.ones(len(problem.params), dt), problem.material))
+    spec = problem.with_specular
+    _, k = structured_coefficients(E, S if spec else None, np.asarray(problem.e_fixed, np.float64),
+                                   np.asarray(problem.s_fixed, np.float64) if spec else None,
+                                   np.asarray(problem.scene.ambient, np.float64), np.asarray(t.colours, np.float64),
+                                   np.asarray(t.weights, np.float64), problem.material,
+                                   fit_power=problem.fit_power, project=True, gauge=gauge)
+    return material_of(k, problem.material.exponent, dt)
+
+
+def _alternate(problem: LightsProblem, theta: np.ndarray, joint: np.ndarray, base: np.ndarray, lm: dict,
+               stage_losses: list, rounds: int = 6) -> tuple[LightsProblem, np.ndarray, int, int]:
+    """The projected material: alternately the material and powers at the current poses (structured
+    least squares, `structured_coefficients`), then the poses and powers at that material (the
+    joint solve again: the material is a leaf of the problem, the program is the same), until the
+    loss stops decreasing. Returns `(problem, theta, starts solved, retries)`."""
+    n_solved = retries = 0
+    best = stage_losses[-1]
+    for _ in range(rounds):
+        trial = dataclasses.replace(problem, material=_material_at(problem, theta))
+        res, trial, r = solve(trial, joint, base, np.ones(len(theta), bool), **lm)
+        retries += r
+        n_solved += joint.shape[0]
+        f = np.where(np.isfinite(np.asarray(res.losses)), np.asarray(res.losses), np.inf)
+        stage_losses.append(float(np.min(f)))
+        if not np.min(f) < best * (1 - 1e-9):
+            break
+        best = float(np.min(f))
+        problem = trial
+        joint = np.asarray(res.values)[np.argsort(f)]
+        theta = joint[0]
+    return problem, theta, n_solved, retries
+
+
+def _result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, candidates: Any,
+            stage_losses: list, n_solved: int, retries: int, initial: float | None, project: bool) -> LightsFit:
     t, m = problem.targets, problem.material
     dt = t.points.dtype
     th = jnp.asarray(theta, dt)
@@ -315,12 +363,12 @@ def _result(problem: LightsProblem, theta: np.ndarray, idx: list, cons: dict, si
     La = np.asarray(problem.scene.ambient, np.float64)
     e0, s0 = np.asarray(problem.e_fixed, np.float64), np.asarray(problem.s_fixed, np.float64)
     spec = problem.with_specular
-    gauge = 0 if (problem.project and problem.fit_power and not problem.has_fixed) else None
+    gauge = 0 if (project and problem.fit_power and not problem.has_fixed) else None
     coef = lambda EE, SS: structured_coefficients(  # noqa: E731
         EE, SS if spec else None, e0, s0 if spec else None, La, colours, w, m, fit_power=problem.fit_power,
-        project=problem.project, gauge=gauge)
+        project=project, gauge=gauge)
     powers, k = coef(E, S)
-    mat = material_of(k, m.exponent, dt) if problem.project else m
+    mat = material_of(k, m.exponent, dt) if project else m
     _, _, Jth = (np.asarray(x, np.float64) for x in report_parts(problem, th, jnp.asarray(powers, dt), mat))
     model = _model(E, S, e0, s0, La, powers, k, spec)
     residual = model - colours
@@ -337,7 +385,7 @@ def _result(problem: LightsProblem, theta: np.ndarray, idx: list, cons: dict, si
         names.append(f"light{idx[j]}.power")
         scale_of.append(1.0)
         cols.append((sw * (k[1] / np.pi * E[j] + (k[2] * S[j] if spec else 0.0))).reshape(-1, 1))
-    if problem.project:
+    if project:
         e_tot = e0 + np.tensordot(powers, E, axes=1)
         s_tot = s0 + np.tensordot(powers, S, axes=1)
         terms = [("ka", np.broadcast_to(La, e_tot.shape)), ("kd", e_tot / np.pi)] + ([("ks", s_tot)] if spec else [])
@@ -354,7 +402,7 @@ def _result(problem: LightsProblem, theta: np.ndarray, idx: list, cons: dict, si
     ident = identifiability(jac, rss, n_pos)
     names = tuple(names)
     values = list(theta) + [powers[j] for j in free_p]
-    if problem.project:
+    if project:
         values += list(k[0]) + list(k[1]) + (list(k[2]) if spec else [])
     se = {nm: math.inf if not ok else float(s) * sc
           for nm, s, ok, sc in zip(names, ident.std_errors, ident.determined, scale_of, strict=True)}
@@ -366,7 +414,7 @@ def _result(problem: LightsProblem, theta: np.ndarray, idx: list, cons: dict, si
         warnings.append(f"solved again {retries} time(s) with a larger shadow capacity (the result is exact).")
     fixed = [x for n, x in enumerate(problem.scene.lights) if n not in idx]
     suggestions, sugg_n = _suggest(problem, th, powers, mat, names, jac, ident.determined, candidates, free_p, k,
-                                   fixed)
+                                   fixed, project)
     report = LightsReport(
         names=names, values={nm: float(v) for nm, v in zip(names, values, strict=True)}, std_errors=se,
         determined=determined, singular_values=ident.singular_values,
@@ -384,7 +432,6 @@ def _result(problem: LightsProblem, theta: np.ndarray, idx: list, cons: dict, si
     import equinox as eqx
 
     new_scene = eqx.tree_at(lambda s: s.lights, problem.scene, tuple(all_lights))
-    del seconds
     return LightsFit(scene=new_scene, lights=out_lights, powers=np.asarray(powers), material=mat, residual=residual,
                      report=report, theta=theta, parametrisations=problem.params)
 
@@ -400,7 +447,7 @@ def _model(E: np.ndarray, S: np.ndarray, e0: np.ndarray, s0: np.ndarray, La: np.
 
 def _suggest(problem: LightsProblem, th: Any, powers: np.ndarray, mat: Any, names: tuple, jac: np.ndarray,
              determined: np.ndarray, candidates: Any, free_p: list, k: np.ndarray,
-             fixed: list) -> tuple[dict, dict]:
+             fixed: list, project: bool) -> tuple[dict, dict]:
     """For each undetermined parameter: the candidate receivers, best first, where the model
     changes most along the null direction(s) that involve it."""
     if np.all(determined):
@@ -432,7 +479,7 @@ def _suggest(problem: LightsProblem, th: Any, powers: np.ndarray, mat: Any, name
     for j in free_p:
         cols.append((k[1] / np.pi * E[j] + (k[2] * S[j] if spec else 0.0)).reshape(-1, 1))
     ncand = cp.shape[0]
-    if problem.project:
+    if project:
         e_tot = np.asarray(e0, np.float64) + np.tensordot(powers, E, axes=1)
         s_tot = np.asarray(s0, np.float64) + np.tensordot(powers, S, axes=1)
         La = np.asarray(problem.scene.ambient, np.float64)

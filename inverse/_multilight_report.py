@@ -74,7 +74,58 @@ def structured_coefficients(E: np.ndarray, S: np.ndarray | None, e0: np.ndarray,
         k, p = k_new, p_new
         if done:
             break
-    return p, k
+    return _polish(E, S, e0, s0, La, colours, sw, p, k, gauge)
+
+
+def _polish(E: np.ndarray, S: np.ndarray | None, e0: np.ndarray, s0: np.ndarray | None, La: np.ndarray,
+            colours: np.ndarray, sw: np.ndarray, p: np.ndarray, k: np.ndarray,
+            gauge: int | None) -> tuple[np.ndarray, np.ndarray]:
+    """Alternating least squares creeps along the valley of the product $k_d p$: finish with a
+    bounded Gauss-Newton (`scipy.optimize.least_squares`, trust region, all >= 0) in the material
+    and the free powers together, with the exact Jacobian of the bilinear model."""
+    from scipy.optimize import least_squares
+
+    J = E.shape[0]
+    spec = S is not None
+    nk = 9 if spec else 6
+    free = np.ones(J, bool)
+    if gauge is not None:
+        free[gauge] = False
+
+    def unpack(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        kk = np.zeros((3, 3))
+        kk[: nk // 3] = x[:nk].reshape(-1, 3)
+        pp = np.ones(J)
+        pp[free] = x[nk:]
+        return kk, pp
+
+    def fun(x: np.ndarray) -> np.ndarray:
+        kk, pp = unpack(x)
+        e = e0 + np.tensordot(pp, E, axes=1)
+        m = kk[0] * La + kk[1] / np.pi * e + (kk[2] * (s0 + np.tensordot(pp, S, axes=1)) if spec else 0.0)
+        return (sw * (m - colours)).reshape(-1)
+
+    def jac(x: np.ndarray) -> np.ndarray:
+        kk, pp = unpack(x)
+        n = colours.shape[0]
+        e = e0 + np.tensordot(pp, E, axes=1)
+        cols = []
+        terms = [np.broadcast_to(La, e.shape), e / np.pi]
+        if spec:
+            terms.append(s0 + np.tensordot(pp, S, axes=1))
+        for b in terms:
+            for c in range(3):
+                col = np.zeros((n, 3))
+                col[:, c] = b[:, c]
+                cols.append(col)
+        for j in np.flatnonzero(free):
+            cols.append(kk[1] / np.pi * E[j] + (kk[2] * S[j] if spec else 0.0))
+        return np.stack([(sw * c_).reshape(-1) for c_ in cols], axis=1)
+
+    x0 = np.concatenate([k[: nk // 3].reshape(-1), p[free]])
+    sol = least_squares(fun, np.maximum(x0, 0.0), jac=jac, bounds=(0.0, np.inf), xtol=1e-15, ftol=1e-15,
+                        gtol=1e-15, max_nfev=200)
+    return unpack(sol.x)[::-1]
 
 
 def material_of(k: np.ndarray, exponent: Any, dtype: Any) -> js.Material:
