@@ -22,7 +22,6 @@ from jaxshadow import traced
 
 from ._forward import SpecularFn
 from ._identifiability import identifiability
-from ._multistart import best_starts, make_starts, prune_schedule, start_lights
 from ._multilight import (
     LightsProblem,
     build_lights,
@@ -39,6 +38,7 @@ from ._multilight_report import (
     null_directions,
     structured_coefficients,
 )
+from ._multistart import best_starts, make_starts, prune_schedule, start_lights
 from ._parametrisation import Box, LightParametrisation, Plane, scene_size
 from ._solvers import LM
 from ._targets import PaintedTargets
@@ -116,11 +116,18 @@ def fit_lights(
     painted colours (Poulin ch. 5: lights from diffuse shading, highlights and shadows).
 
     Minimises $\\sum_i w_i |L(x_i) - C_i|^2$ over the poses of the lights `lights` (soft
-    shadows included) with each light's power a non-negative scale of its given radiance,
-    projected out (variable projection: the powers enter linearly), and with
-    `material_mode="projected"` the material too (per channel $k_a$, $k_d$, $k_s$ beside the
-    powers). The given poses are the starting point and the origin of each light's
-    parametrisation (`LightParametrisation`). Lights not in `lights` are held as given.
+    shadows included) with each light's power a non-negative scale of its given radiance (the
+    colour is the given one), projected out in the solver (variable projection: the powers enter
+    linearly) and finally solved with bounds ($p \\ge 0$). With `material_mode="projected"` the
+    material too: alternately the poses and powers at the current material (the solver) and
+    $k_a, k_d, k_s \\ge 0$ with the powers at the current poses (bounded least squares of the
+    bilinear model), from the material that best fits the given poses. The given poses are the
+    starting point and the origin of each light's parametrisation (`LightParametrisation`).
+    Lights not in `lights` are held as given.
+
+    Each light is searched from its own starts (its position, the other lights at their current
+    best), then every pose jointly (sizes freed last): the starts add up over the lights instead
+    of multiplying.
 
     **Arguments:**
 
@@ -196,7 +203,7 @@ def fit_lights(
     fixed = [light for k, light in enumerate(scene.lights) if k not in idx]
     e0, s0 = fixed_contribution(scene, t, material, fixed, specular, with_spec)
     problem = LightsProblem(tuple(params), tuple(scene.lights[i] for i in idx), scene, material, t, e0, s0,
-                            tuple(offsets), fit_power, False, with_spec, bool(fixed), specular)
+                            tuple(offsets), fit_power, with_spec, bool(fixed), specular)
     theta0 = np.zeros(P)
     per_light = []
     for j, p in enumerate(params):

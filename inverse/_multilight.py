@@ -9,14 +9,10 @@ $$L_c = k_{a,c} L_{a,c} + \frac{k_{d,c}}{\pi} \Big(E^{0}_c + \sum_j p_j E^{j}_c\
 $E^j, S^j$ the irradiance and specular integral of fitted light $j$ at its reference power and
 the pose of the parameters $\theta_j$ (soft shadows included), $E^0, S^0$ those of the lights
 that are not fitted (concrete: computed once). The powers enter linearly, so they are
-projected out (variable projection, Golub & Pereyra):
-
-- `material_mode="fixed"`: $p$ is the weighted linear least-squares solution shared by the
-  three channels (the $3N \times J$ design of columns $k_d/\pi\,E^j + k_s S^j$);
-- `material_mode="projected"`: per channel, $k_{a,c}$ and the products $k_{d,c} p_j$,
-  $k_{s,c} p_j$ are the linear coefficients beside each other (the design
-  $[L_a, E^j/\pi, S^j]$; the rank-one structure of the products is relaxed in the solver and
-  restored afterwards, `_multilight_report.structured_coefficients`).
+projected out (variable projection, Golub & Pereyra): $p$ is the weighted linear least-squares
+solution shared by the three channels (the $3N \times J$ design of columns
+$k_d/\pi\,E^j + k_s S^j$) at the problem's material. (A fitted material is a leaf of the
+problem, updated between solves: `_fit_lights`.)
 
 Only the poses are searched. The shadow engine runs inside the compiled program at a capacity
 (`jaxshadow.traced`); the program's `mask` and `base` let one compiled program search one light
@@ -35,7 +31,6 @@ import numpy as np
 from jaxtyping import Array
 
 import jaxshadow as js
-from jaxshadow import traced
 
 from ._forward import SpecularFn, irradiance_culled, specular_culled
 from ._lm import LMResult, batched_levenberg_marquardt, fit_jit
@@ -71,7 +66,6 @@ class LightsProblem(eqx.Module):
     s_fixed: Array
     offsets: tuple = eqx.field(static=True)
     fit_power: bool = eqx.field(static=True)
-    project: bool = eqx.field(static=True)
     with_specular: bool = eqx.field(static=True)
     has_fixed: bool = eqx.field(static=True)
     specular: Any = eqx.field(static=True, default=None)
@@ -126,8 +120,8 @@ def _lstsq(A: Array, y: Array) -> tuple[Array, Array]:
 
 
 def projected_residual(theta: Array, problem: LightsProblem, capacity: int | None) -> tuple[Array, Array]:
-    """`(r (3N,), overflow)`: $\\sqrt{w}(L_{model} - C)$ with the linear coefficients projected
-    out (module docstring), row-major `(N, 3)`."""
+    """`(r (3N,), overflow)`: $\\sqrt{w}(L_{model} - C)$ at the problem's material with the powers
+    projected out (module docstring), row-major `(N, 3)`."""
     t = problem.targets
     dt = theta.dtype
     E, S, over = basis(theta, problem, capacity)
@@ -136,38 +130,18 @@ def projected_residual(theta: Array, problem: LightsProblem, capacity: int | Non
     La = jnp.broadcast_to(problem.scene.ambient.astype(dt)[None, :], t.colours.shape)
     kd, ks, ka = m.kd.astype(dt)[None, :], m.ks.astype(dt)[None, :], m.ka.astype(dt)[None, :]
     ef, sf = problem.e_fixed.astype(dt), problem.s_fixed.astype(dt)
-    if not problem.project:
-        fixed = ka * La + kd / jnp.pi * ef + (ks * sf if problem.with_specular else 0.0)
-        per_light = kd[None] / jnp.pi * E + (ks[None] * S if problem.with_specular else 0.0)  # (J, N, 3)
-        y = sw * (t.colours - fixed)
-        if not problem.fit_power:
-            return (sw * jnp.sum(per_light, axis=0) - y).reshape(-1), over
-        A = (sw[None] * per_light).reshape(per_light.shape[0], -1).T  # (3N, J)
-        return _lstsq(A, y.reshape(-1))[0], over
-    if problem.fit_power:
-        cols = [La[None], E / jnp.pi]
-        if problem.has_fixed:
-            cols.append(ef[None] / jnp.pi)
-        if problem.with_specular:
-            cols.append(S)
-            if problem.has_fixed:
-                cols.append(sf[None])
-    else:
-        cols = [La[None], (jnp.sum(E, axis=0) + ef)[None] / jnp.pi]
-        if problem.with_specular:
-            cols.append((jnp.sum(S, axis=0) + sf)[None])
-    X = jnp.concatenate(cols, axis=0)  # (m, N, 3)
-
-    def channel(Xc: Array, yc: Array, swc: Array) -> Array:
-        return _lstsq(Xc.T * swc[:, None], yc * swc)[0]
-
-    r = jax.vmap(channel, in_axes=(2, 1, 1), out_axes=1)(X, t.colours, sw)
-    return r.reshape(-1), over
+    fixed = ka * La + kd / jnp.pi * ef + (ks * sf if problem.with_specular else 0.0)
+    per_light = kd[None] / jnp.pi * E + (ks[None] * S if S is not None else 0.0)  # (J, N, 3)
+    y = sw * (t.colours - fixed)
+    if not problem.fit_power:
+        return (sw * jnp.sum(per_light, axis=0) - y).reshape(-1), over
+    A = (sw[None] * per_light).reshape(per_light.shape[0], -1).T  # (3N, J)
+    return _lstsq(A, y.reshape(-1))[0], over
 
 
 def structured_residual(theta: Array, problem: LightsProblem, powers: Array, material: js.Material) -> Array:
-    """$\\sqrt{w}(L_{model} - C)$ `(3N,)` at given powers `(J,)` and material (no projection;
-    every receiver against every occluder): the report's Jacobian in $\\theta$."""
+    """$\\sqrt{w}(L_{model} - C)$ `(3N,)` at given powers `(J,)` and material (no projection; the
+    shadow engine at `problem.capacity`, which the solve checked): the report's Jacobian in $\\theta$."""
     t = problem.targets
     dt = theta.dtype
     E, S, _ = basis(theta, problem, problem.capacity)
@@ -175,7 +149,7 @@ def structured_residual(theta: Array, problem: LightsProblem, powers: Array, mat
     La = problem.scene.ambient.astype(dt)[None, :]
     e = problem.e_fixed.astype(dt) + jnp.sum(p * E, axis=0)
     model = material.ka.astype(dt)[None, :] * La + material.kd.astype(dt)[None, :] / jnp.pi * e
-    if problem.with_specular:
+    if S is not None:
         model = model + material.ks.astype(dt)[None, :] * (problem.s_fixed.astype(dt) + jnp.sum(p * S, axis=0))
     return (jnp.sqrt(t.weights) * (model - t.colours)).reshape(-1)
 

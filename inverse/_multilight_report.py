@@ -37,9 +37,11 @@ def structured_coefficients(E: np.ndarray, S: np.ndarray | None, e0: np.ndarray,
     `E`, `S`: `(J, N, 3)`; `e0`, `s0`, `colours`, `weights`: `(N, 3)`; `La`: `(3,)`."""
     J = E.shape[0]
     sw = np.sqrt(weights)
+    spec = S is not None
+    S = np.zeros_like(E) if S is None else S  # unused without a specular term
+    s0 = np.zeros_like(e0) if s0 is None else s0
     k = np.stack([np.broadcast_to(np.asarray(getattr(material, f), np.float64), (3,)) for f in ("ka", "kd", "ks")])
     p = np.ones(J)
-    spec = S is not None
 
     def solve_p(k: np.ndarray) -> np.ndarray:
         cols = k[1] / np.pi * E + (k[2] * S if spec else 0.0)  # (J, N, 3)
@@ -56,7 +58,7 @@ def structured_coefficients(E: np.ndarray, S: np.ndarray | None, e0: np.ndarray,
 
     def solve_k(p: np.ndarray) -> np.ndarray:
         e = e0 + np.tensordot(p, E, axes=1)
-        s = (s0 + np.tensordot(p, S, axes=1)) if spec else None
+        s = s0 + np.tensordot(p, S, axes=1)
         out = np.zeros((3, 3))
         for c in range(3):
             X = np.stack([np.full(len(e), La[c]), e[:, c] / np.pi] + ([s[:, c]] if spec else []), axis=1)
@@ -74,10 +76,10 @@ def structured_coefficients(E: np.ndarray, S: np.ndarray | None, e0: np.ndarray,
         k, p = k_new, p_new
         if done:
             break
-    return _polish(E, S, e0, s0, La, colours, sw, p, k, gauge)
+    return _polish(E, S if spec else None, e0, s0, La, colours, sw, p, k, gauge)
 
 
-def _polish(E: np.ndarray, S: np.ndarray | None, e0: np.ndarray, s0: np.ndarray | None, La: np.ndarray,
+def _polish(E: np.ndarray, S: np.ndarray | None, e0: np.ndarray, s0: np.ndarray, La: np.ndarray,
             colours: np.ndarray, sw: np.ndarray, p: np.ndarray, k: np.ndarray,
             gauge: int | None) -> tuple[np.ndarray, np.ndarray]:
     """Alternating least squares creeps along the valley of the product $k_d p$: finish with a
@@ -87,6 +89,7 @@ def _polish(E: np.ndarray, S: np.ndarray | None, e0: np.ndarray, s0: np.ndarray 
 
     J = E.shape[0]
     spec = S is not None
+    S = np.zeros_like(E) if S is None else S
     nk = 9 if spec else 6
     free = np.ones(J, bool)
     if gauge is not None:
