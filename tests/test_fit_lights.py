@@ -12,42 +12,16 @@ import pytest
 import inverse
 import jaxshadow as js
 from inverse._multilight import projected_residual
+from inverse._scenes import THREE_LIGHTS_EYE as EYE
+from inverse._scenes import floor_receivers as _receivers
 from inverse._scenes import quad
-
-OCCLUDERS = [quad([-0.5, 0.3, 0.6], 0.4, 0.4, (0, 0, 0.3)), quad([0.6, -0.2, 0.5], 0.35, 0.3, (0, 0, -0.2)),
-             quad([0.1, -0.7, 0.7], 0.3, 0.3, (0, 0, 0.0))]
-EYE = np.array([0.0, -3.0, 2.5])
-
-
-def _true_scene():
-    a = js.PolygonLight(quad([-0.6, 0.4, 1.8], 0.6, 0.3, (np.pi + 0.1, 0.05, 0.4)), [6.0, 5.5, 5.0])
-    b = js.PolygonLight(quad([0.8, -0.3, 1.6], 0.4, 0.4, (np.pi - 0.15, 0.1, -0.3)), [4.0, 4.0, 4.5])
-    c = js.PointLight([0.1, 0.9, 1.4], [1.5, 1.5, 1.5])
-    return js.Scene([a, b, c], occluders=OCCLUDERS, ambient=0.1)
-
-
-def _receivers(n=80, seed=0):
-    """Floor points (many in penumbrae of the three occluders) with normals tilted up to ~20 deg."""
-    rng = np.random.default_rng(seed)
-    pts = np.c_[rng.uniform(-1.5, 1.5, (n, 2)), np.zeros(n)]
-    nrm = rng.normal(size=(n, 3)) * 0.35 + [0.0, 0.0, 1.0]
-    return pts, nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
+from inverse._scenes import three_lights_scene as _true_scene
+from inverse._scenes import three_lights_start as _start
 
 
 def _targets(true, material):
     pts, nrm = _receivers()
     return inverse.PaintedTargets(pts, nrm, js.shade(true, material, pts, nrm, EYE), EYE)
-
-
-def _start(true, shift, brightness=(0.7, 1.4, 0.6)):
-    """The true lights moved `shift` (m) in three different directions, at wrong powers."""
-    d = np.array([[0.6, -0.64, 0.48], [-0.5, 0.7, 0.5], [0.7, 0.6, -0.4]])
-    d = shift * d / np.linalg.norm(d, axis=1, keepdims=True)
-    a, b, c = true.lights
-    return js.Scene([js.PolygonLight(np.asarray(a.vertices) + d[0], brightness[0] * np.asarray(a.radiance)),
-                     js.PolygonLight(np.asarray(b.vertices) + d[1], brightness[1] * np.asarray(b.radiance)),
-                     js.PointLight(np.asarray(c.position) + d[2], brightness[2] * np.asarray(c.intensity))],
-                    occluders=OCCLUDERS, ambient=0.1)
 
 
 def _check_lights(fit, true, start, tol_pos, tol_deg, tol_power):
