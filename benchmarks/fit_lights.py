@@ -36,7 +36,12 @@ def _case(shift: float, noise: float, mode: str, fit: str, starts: int = 8) -> d
 
     import inverse
     import jaxshadow as js
-    from inverse._scenes import THREE_LIGHTS_EYE, floor_receivers, three_lights_scene, three_lights_start
+    from inverse._scenes import (
+        THREE_LIGHTS_EYE,
+        floor_receivers,
+        three_lights_scene,
+        three_lights_start,
+    )
 
     t0 = time.perf_counter()
     true = three_lights_scene()
