@@ -22,13 +22,14 @@ DESCRIPTION = "inverse.fit_lights: 2 quad lights + 1 point light, 3 occluders: p
 CASES = {
     "shift=10%/noise=0": dict(shift=0.10, noise=0.0, mode="fixed", fit="position,orientation,size,power"),
     "shift=10%/noise=1%": dict(shift=0.10, noise=0.01, mode="fixed", fit="position,orientation,size,power"),
+    "shift=10%/noise=1%/fixed size": dict(shift=0.10, noise=0.01, mode="fixed", fit="position,orientation,power"),
     "shift=30%/noise=0": dict(shift=0.30, noise=0.0, mode="fixed", fit="position,orientation,size,power"),
     "shift=8%/projected/position+power": dict(shift=0.08, noise=0.0, mode="projected", fit="position,power"),
 }
 QUICK = ("shift=10%/noise=0",)
 
 
-def _case(shift: float, noise: float, mode: str, fit: str, starts: int = 8) -> dict:
+def _case(shift: float, noise: float, mode: str, fit: str, starts: int = 8, sweeps: int = 2) -> dict:
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -55,7 +56,8 @@ def _case(shift: float, noise: float, mode: str, fit: str, starts: int = 8) -> d
     start = three_lights_start(true, shift * size, brightness)
     guess = material if mode == "fixed" else js.Material(ka=0.2, kd=0.5, ks=0.0, exponent=1.0)
     t1 = time.perf_counter()
-    out = inverse.fit_lights(start, targets, guess, fit=tuple(fit.split(",")), starts=starts, material_mode=mode)
+    out = inverse.fit_lights(start, targets, guess, fit=tuple(fit.split(",")), starts=starts, sweeps=sweeps,
+                             material_mode=mode)
     fit_s = time.perf_counter() - t1
     pos, deg, size_rel, power = [], [], [], []
     for k in (0, 1):

@@ -107,6 +107,7 @@ def fit_lights(
     orientation_spread: float = 0.5,
     size_spread: float = 0.5,
     seed: int = 0,
+    sweeps: int = 2,
     material_mode: str = "fixed",
     solver: LM | None = None,
     candidates: Any = None,
@@ -141,6 +142,8 @@ def fit_lights(
     - `starts`: starts per light (the given pose first, then a Sobol stratification within
       `search_radius` scene sizes, `orientation_spread` rad, `size_spread` relative; `seed`);
       each light's starts are screened to the solver's `refine` best.
+    - `sweeps`: how many times each light's own multistart runs (in turn, the others at their
+      current best) before the joint refinement.
     - `material_mode`: `"fixed"` (as given) or `"projected"` (fitted jointly, $k \\ge 0$; the
       product $k_d p$ does not separate, so the first fitted light's power is held at 1 unless
       some light of the scene is not fitted, which then sets the scale).
@@ -224,7 +227,8 @@ def fit_lights(
     stage_losses, n_solved, retries, runner_up = [], 0, 0, {}
     initial = None
     if P:
-        for j, y in enumerate(per_light):
+        for sweep, j in ((s, j) for s in range(int(sweeps)) for j in range(len(per_light))):
+            y = per_light[j]
             if y is None:
                 continue
             sl = slice(offsets[j], offsets[j] + params[j].size)
@@ -232,6 +236,8 @@ def fit_lights(
             mask[sl] = _stage_mask(params[j])
             full = np.tile(base, (y.shape[0], 1))
             full[:, sl] = y
+            if sweep:  # again, with the others placed: from the current pose and the same spread
+                full[0, sl] = base[sl]
             if full.shape[0] > k:  # screen: the same program, no iterations, k starts a call
                 losses = np.concatenate([
                     np.asarray(solve(problem, _pad(full[a:a + k], k), base, mask, **{**lm, "max_steps": 0})[0]

@@ -42,7 +42,7 @@ def test_two_polygon_lights_and_a_point_light_recovered():
     material = js.Material(ka=0.3, kd=[0.6, 0.5, 0.4], ks=0.0, exponent=1.0)
     targets = _targets(true, material)
     start = _start(true, 0.1 * inverse.scene_size(true, targets))
-    fit = inverse.fit_lights(start, targets, material, starts=8)
+    fit = inverse.fit_lights(start, targets, material, starts=8, sweeps=1)
     _check_lights(fit, true, start, tol_pos=1e-6, tol_deg=1e-3, tol_power=1e-6)
     rep = fit.report
     assert rep.loss < 1e-20 < rep.initial_loss
@@ -65,7 +65,8 @@ def test_material_projected_with_the_powers():
     targets = _targets(true, material)
     start = _start(true, 0.0, brightness=(1.0, 1.4, 0.6))
     guess = js.Material(ka=0.2, kd=0.5, ks=0.0, exponent=1.0)
-    fit = inverse.fit_lights(start, targets, guess, fit=("position", "power"), starts=4, material_mode="projected")
+    fit = inverse.fit_lights(start, targets, guess, fit=("position", "power"), starts=4, sweeps=1,
+                             material_mode="projected")
     _check_lights(fit, true, start, tol_pos=1e-6, tol_deg=1e-6, tol_power=1e-6)
     np.testing.assert_allclose(fit.material.ka, material.ka, atol=1e-7)
     np.testing.assert_allclose(fit.material.kd, material.kd, atol=1e-7)
@@ -173,7 +174,7 @@ def test_constraints_fixed_size_and_a_directional_light():
     ceiling = inverse.Plane([0.0, 0.0, 2.0], [0.0, 0.0, 1.0])
     room = inverse.Box([-1.0, -1.0, 0.8], [1.0, 1.0, 1.8])
     fit = inverse.fit_lights(start, targets, material, fit=("position", "orientation", "power"),
-                             constraints={0: ceiling, 1: room}, starts=4)
+                             constraints={0: ceiling, 1: room}, starts=4, sweeps=1)
     names = fit.report.names
     assert "light0.a" in names and "light0.z" not in names and "light0.log_sx" not in names
     assert "light2.power" in names and not any(n.startswith("light2.r") for n in names)
