@@ -177,6 +177,8 @@ def fit_lights(
         ```
     """
     idx, fit, cons = _checked(scene, targets, material, lights, fit, starts, material_mode, constraints)
+    if int(sweeps) < 1:
+        raise ValueError(f"fit_lights: sweeps must be >= 1, got {sweeps}.")
     solver = LM() if solver is None else solver
     if not isinstance(solver, LM):
         raise ValueError(f"fit_lights: solver must be an inverse.LM, got {type(solver).__name__}.")

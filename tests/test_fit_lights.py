@@ -154,6 +154,8 @@ def test_fit_lights_errors():
         inverse.fit_lights(true, t, material, constraints={0: "ceiling"})
     with pytest.raises(ValueError, match="not fitted"):
         inverse.fit_lights(true, t, material, lights=[0], constraints={1: inverse.Box([-1, -1, 1], [1, 1, 2])})
+    with pytest.raises(ValueError, match="sweeps"):
+        inverse.fit_lights(true, t, material, sweeps=0)
     with pytest.raises(ValueError, match="PaintedTargets"):
         inverse.fit_lights(true, None, material)
 
