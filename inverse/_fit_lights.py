@@ -14,6 +14,7 @@ import dataclasses
 import math
 from typing import Any, no_type_check
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
@@ -313,8 +314,6 @@ def _pad(rows: np.ndarray, k: int) -> np.ndarray:
 
 def _with_capacity(problem: LightsProblem, per_light: list, fixed: list) -> LightsProblem:
     """The problem with the shadow capacity for every light at every one of its starts."""
-    import dataclasses
-
     scene, t = problem.scene, problem.targets
     if scene.occluders is None:
         return problem
@@ -444,8 +443,6 @@ def _result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, c
     all_lights = list(problem.scene.lights)
     for j, i in enumerate(idx):
         all_lights[i] = out_lights[j]
-    import equinox as eqx
-
     new_scene = eqx.tree_at(lambda s: s.lights, problem.scene, tuple(all_lights))
     return LightsFit(scene=new_scene, lights=out_lights, powers=np.asarray(powers), material=mat, residual=residual,
                      report=report, theta=theta, parametrisations=problem.params)
@@ -485,8 +482,6 @@ def _suggest(problem: LightsProblem, th: Any, powers: np.ndarray, mat: Any, name
     ct = PaintedTargets(jnp.asarray(cp, dt), jnp.asarray(cn, dt), jnp.zeros(cp.shape, dt), jnp.asarray(eye, dt))
     e0, s0 = fixed_contribution(problem.scene, ct, problem.material, fixed, problem.specular,
                                 problem.with_specular)
-    import dataclasses
-
     cprob = dataclasses.replace(problem, targets=ct, e_fixed=e0, s_fixed=s0, capacity=None)
     E, S, Jth = (np.asarray(x, np.float64) for x in report_parts(cprob, th, jnp.asarray(powers, dt), mat))
     spec = problem.with_specular
