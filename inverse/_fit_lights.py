@@ -245,6 +245,8 @@ def fit_lights(
                 losses = np.concatenate([
                     np.asarray(solve(problem, _pad(full[a:a + k], k), base, mask, **{**lm, "max_steps": 0})[0]
                                .initial_losses) for a in range(0, full.shape[0], k)])[: full.shape[0]]
+                if initial is None and sweep == 0:
+                    initial = float(losses[0])  # the given poses (row 0), screened out or not
                 full = full[best_starts(np.where(np.isfinite(losses), losses, np.inf), k)]
             res, problem, r = solve(problem, full, base, mask, **lm)
             retries += r
