@@ -56,6 +56,7 @@ SUITE: tuple[str, ...] = (
     "stability_table",
     "inverse_speed",
     "projective_gradient",
+    "fit_lights",
 )
 
 

@@ -14,11 +14,14 @@ from ._closed_forms import light_from_highlight as light_from_highlight
 from ._closed_forms import light_from_shadow as light_from_shadow
 from ._closed_forms import mirror_direction as mirror_direction
 from ._closed_forms import point_from_shadows as point_from_shadows
+from ._fit_lights import fit_lights as fit_lights
 from ._joint import fit_light_and_material as fit_light_and_material
 from ._joint import joint_std_errors as joint_std_errors
 from ._lights import fit_light as fit_light
 from ._material import bounded_lstsq as bounded_lstsq
 from ._material import fit_material as fit_material
+from ._multilight_report import LightsFit as LightsFit
+from ._multilight_report import LightsReport as LightsReport
 from ._parametrisation import Box as Box
 from ._parametrisation import LightParametrisation as LightParametrisation
 from ._parametrisation import Plane as Plane
