@@ -153,10 +153,6 @@ def _valued(tree: Any) -> Any:
     return jax.tree_util.tree_unflatten(treedef, vals)
 
 
-def _unit_np(n: np.ndarray) -> np.ndarray:
-    return unit_rows_host(n)
-
-
 @eqx.filter_jit
 def _device_impl(scene: Scene, integ: Any, points: Array, normals: Array, eyes: Array | None) -> Array:
     return _shadows.device_values(scene, integ, points, unit_rows(normals), eyes)
@@ -176,12 +172,12 @@ def _shadowed(scene: Scene, integ: Any, points: Array, normals: Array, eyes: Arr
         _check_values_eagerly(points, normals, what)
         p = np.asarray(points)
         e = None if eyes is None else np.asarray(eyes)
-        return jnp.asarray(_shadows.host_values(scene, integ, p, _unit_np(normals), e))
+        return jnp.asarray(_shadows.host_values(scene, integ, p, unit_rows_host(normals), e))
     val = _valued((scene, points, normals))
     if val is not None:
         vscene, p, n = val
         _check_values_eagerly(p, n, what)
-        return _shadows.planned_values(scene, vscene, integ, points, unit_rows(normals), eyes, (p, _unit_np(n)))
+        return _shadows.planned_values(scene, vscene, integ, points, unit_rows(normals), eyes, (p, unit_rows_host(n)))
     total, overflow = _shadows.traced_values(scene, integ, points, unit_rows(normals), eyes, options.capacity)
     total = eqx.error_if(total, ~inputs_ok(points, normals),
                          f"{what}: a point or normal is not finite, or a normal is zero.")

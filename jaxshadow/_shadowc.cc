@@ -169,6 +169,38 @@ namespace ffi = xla::ffi;
 
 namespace {
 
+// A handler's occluder inputs, batched like its points: faces (..., M, Ko, 3), converted to double
+// once, and the topology arrays; `at(b)` is batch b's Occluders (light vertices K before the faces).
+template <class T>
+struct FfiOccluders {
+  int64_t K, M, Ko, S, NE;
+  std::vector<double> store;
+  const double* F;
+  const int32_t *face_solid, *face_closed, *solid_faces, *solid_edge_off, *solid_edges;
+  FfiOccluders(int64_t K_, int64_t B, size_t nb, ffi::AnyBuffer faces, ffi::Buffer<ffi::S32> fsolid,
+               ffi::Buffer<ffi::S32> fclosed, ffi::Buffer<ffi::S32> sfaces, ffi::Buffer<ffi::S32> soff,
+               ffi::Buffer<ffi::S32> sedges)
+      : K(K_) {
+    auto fd = faces.dimensions();
+    M = fd[nb];
+    Ko = fd[nb + 1];
+    auto sd = sfaces.dimensions();
+    S = sd[sd.size() - 2];
+    auto ed = sedges.dimensions();
+    NE = ed[ed.size() - 2];
+    F = as_double<T>(faces.untyped_data(), size_t(B * M * Ko * 3), store);
+    face_solid = fsolid.typed_data();
+    face_closed = fclosed.typed_data();
+    solid_faces = sfaces.typed_data();
+    solid_edge_off = soff.typed_data();
+    solid_edges = sedges.typed_data();
+  }
+  Occluders<double> at(int64_t b) const {
+    return make_occ<double>(K, M, Ko, F + b * M * Ko * 3, face_solid + b * M, face_closed + b * M, S,
+                            solid_faces + b * 2 * S, solid_edge_off + b * (S + 1), solid_edges + b * 4 * NE);
+  }
+};
+
 // Inputs with a common leading batch shape (vmap_method="broadcast_all"): points (..., N, 3),
 // normals (..., N, 3), light (..., K, 3), faces (..., M, Ko, 3), and the occluder topology
 // (int32, batched alike). Outputs: classes (..., N), counts (..., N), runs (..., N, cap, 2, 7).
@@ -187,20 +219,14 @@ ffi::Error poly_ffi_typed(ffi::AnyBuffer points, ffi::AnyBuffer normals, ffi::An
   if (ld_.size() != nb + 2 || fd.size() != nb + 3) return ffi::Error::InvalidArgument("jaxshadow_poly_codes: batch ranks differ");
   int64_t B = 1;
   for (size_t i = 0; i < nb; i++) B *= pd[i];
-  const int64_t N = pd[nb], K = ld_[nb], M = fd[nb], Ko = fd[nb + 1];
-  auto sd = solid_faces.dimensions();
-  const int64_t S = sd[sd.size() - 2];
-  auto ed = solid_edges.dimensions();
-  const int64_t NE = ed[ed.size() - 2];
-  std::vector<double> sp, sn, se, sf;
+  const int64_t N = pd[nb], K = ld_[nb];
+  const FfiOccluders<T> fo(K, B, nb, faces, face_solid, face_closed, solid_faces, solid_edge_off, solid_edges);
+  std::vector<double> sp, sn, se;
   const double* P = as_double<T>(points.untyped_data(), size_t(B * N * 3), sp);
   const double* Nr = as_double<T>(normals.untyped_data(), size_t(B * N * 3), sn);
   const double* E = as_double<T>(light.untyped_data(), size_t(B * K * 3), se);
-  const double* F = as_double<T>(faces.untyped_data(), size_t(B * M * Ko * 3), sf);
   for (int64_t b = 0; b < B; b++) {
-    auto occ = make_occ<double>(K, M, Ko, F + b * M * Ko * 3, face_solid.typed_data() + b * M, face_closed.typed_data() + b * M,
-                           S, solid_faces.typed_data() + b * 2 * S, solid_edge_off.typed_data() + b * (S + 1),
-                           solid_edges.typed_data() + b * 4 * NE);
+    auto occ = fo.at(b);
     int rc = poly_fixed<double>(N, P + b * N * 3, Nr + b * N * 3, K, E + b * K * 3, occ, int(threads), cap,
                            cls->typed_data() + b * N, counts->typed_data() + b * N, runs->typed_data() + b * N * cap * 14);
     if (rc) return ffi::Error::InvalidArgument("jaxshadow_poly_codes: light with more than 64 vertices");
@@ -237,20 +263,14 @@ ffi::Error hard_ffi_typed(ffi::AnyBuffer points, ffi::AnyBuffer x, ffi::AnyBuffe
   const size_t nb = pd.size() - 2;
   int64_t B = 1;
   for (size_t i = 0; i < nb; i++) B *= pd[i];
-  const int64_t N = pd[nb], M = fd[nb], Ko = fd[nb + 1];
-  auto sd = solid_faces.dimensions();
-  const int64_t S = sd[sd.size() - 2];
-  auto ed = solid_edges.dimensions();
-  const int64_t NE = ed[ed.size() - 2];
-  std::vector<double> sp, sx, sf;
+  const int64_t N = pd[nb];
+  const FfiOccluders<T> fo(0, B, nb, faces, face_solid, face_closed, solid_faces, solid_edge_off, solid_edges);
+  std::vector<double> sp, sx;
   const double* P = as_double<T>(points.untyped_data(), size_t(B * N * 3), sp);
   const double* X = as_double<T>(x.untyped_data(), size_t(B * 3), sx);
-  const double* F = as_double<T>(faces.untyped_data(), size_t(B * M * Ko * 3), sf);
   std::vector<uint8_t> vis(N);
   for (int64_t b = 0; b < B; b++) {
-    auto occ = make_occ<double>(0, M, Ko, F + b * M * Ko * 3, face_solid.typed_data() + b * M, face_closed.typed_data() + b * M,
-                           S, solid_faces.typed_data() + b * 2 * S, solid_edge_off.typed_data() + b * (S + 1),
-                           solid_edges.typed_data() + b * 4 * NE);
+    auto occ = fo.at(b);
     hard_plan<double>(N, P + b * N * 3, X + b * 3, int(is_point), occ, int(threads), vis.data());
     int32_t* out = visible->typed_data() + b * N;
     for (int64_t i = 0; i < N; i++) out[i] = vis[i];
@@ -285,19 +305,13 @@ ffi::Error segment_ffi_typed(ffi::AnyBuffer points, ffi::AnyBuffer ends, ffi::An
   const size_t nb = pd.size() - 2;
   int64_t B = 1;
   for (size_t i = 0; i < nb; i++) B *= pd[i];
-  const int64_t N = pd[nb], M = fd[nb], Ko = fd[nb + 1];
-  auto sd = solid_faces.dimensions();
-  const int64_t S = sd[sd.size() - 2];
-  auto ed = solid_edges.dimensions();
-  const int64_t NE = ed[ed.size() - 2];
-  std::vector<double> sp, sab, sf;
+  const int64_t N = pd[nb];
+  const FfiOccluders<T> fo(0, B, nb, faces, face_solid, face_closed, solid_faces, solid_edge_off, solid_edges);
+  std::vector<double> sp, sab;
   const double* P = as_double<T>(points.untyped_data(), size_t(B * N * 3), sp);
   const double* AB = as_double<T>(ends.untyped_data(), size_t(B * 6), sab);
-  const double* F = as_double<T>(faces.untyped_data(), size_t(B * M * Ko * 3), sf);
   for (int64_t b = 0; b < B; b++) {
-    auto occ = make_occ<double>(0, M, Ko, F + b * M * Ko * 3, face_solid.typed_data() + b * M, face_closed.typed_data() + b * M,
-                           S, solid_faces.typed_data() + b * 2 * S, solid_edge_off.typed_data() + b * (S + 1),
-                           solid_edges.typed_data() + b * 4 * NE);
+    auto occ = fo.at(b);
     BVH bvh = build_bvh(occ);
     V3<double> a = ld(AB + b * 6), bb = ld(AB + b * 6 + 3);
     const double* Pb = P + b * N * 3;

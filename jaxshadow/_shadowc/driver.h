@@ -122,6 +122,19 @@ struct Decoder {
   }
 };
 
+// Receiver i of a polygon light: its class, with `w.runs` its boundary; a light of more than 64
+// vertices gives kZero and sets `err`.
+template <class T>
+int32_t receiver_class(const PolyCall<T>& call, const T* P, const T* Nrm, int64_t i, Work<T>& w, std::atomic<int>& err) {
+  int32_t c = polygon_receiver(call, ld(P + 3 * i), ld(Nrm + 3 * i), w);
+  if (c < 0) {
+    err = 1;
+    c = kZero;
+    w.runs.clear();
+  }
+  return c;
+}
+
 // Polygon plan, CSR output: classes (N), offsets (N + 1), runs (R, 2, 7) codes and/or (R, 2, 3) points
 // (malloc'd, freed by the caller).
 template <class T>
@@ -146,12 +159,7 @@ int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const 
     blk.s = s;
     blk.e = e;
     for (int64_t i = s; i < e; i++) {
-      int32_t c = polygon_receiver(call, ld(P + 3 * i), ld(Nrm + 3 * i), w);
-      if (c < 0) {
-        err = 1;
-        c = kZero;
-        w.runs.clear();
-      }
+      const int32_t c = receiver_class(call, P, Nrm, i, w, err);
       cls[i] = c;
       // Only penumbra receivers are evaluated from their boundary: a lit receiver's would be
       // E_h's own edges (the unoccluded kernel evaluates it), so none are stored.
@@ -212,12 +220,7 @@ int poly_fixed(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const
   parallel_for(N, default_threads(threads), [&](int, int64_t s, int64_t e) {
     Work<T> w;
     for (int64_t i = s; i < e; i++) {
-      int32_t c = polygon_receiver(call, ld(P + 3 * i), ld(Nrm + 3 * i), w);
-      if (c < 0) {
-        err = 1;
-        c = kZero;
-        w.runs.clear();
-      }
+      const int32_t c = receiver_class(call, P, Nrm, i, w, err);
       cls[i] = c;
       counts[i] = int32_t(w.runs.size());
       int32_t* out = runs + i * cap * 14;

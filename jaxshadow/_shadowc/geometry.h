@@ -171,6 +171,51 @@ struct Occluders {
   V3<T> vref(int32_t r) const { return ld(faces + 3 * (int64_t(r) - K)); }
 };
 
+// _clip._occluder_sides for face f seen from p: its vertices relative to p, scaled by the power of
+// two `scale` into `rel` (Ko <= 64 slots), their Newell normal `no` and h0 = no . rel[0]; `side`
+// is +1 when p is behind `no` (h0 < 0), -1 in front, 0 when p cannot be told apart from the face's
+// plane within the heights' rounding bounds (the face then blocks a zero solid angle) or a vertex
+// is not finite.
+template <class T>
+struct FaceSide {
+  int side = 0;
+  T scale = 0, h0 = 0;
+  V3<T> no{0, 0, 0};
+};
+
+template <class T>
+FaceSide<T> face_side(const Occluders<T>& occ, int64_t f, V3<T> p, V3<T>* rel) {
+  const int64_t Ko = occ.Ko;
+  FaceSide<T> out;
+  T mx = 0;
+  for (int64_t i = 0; i < Ko; i++) {
+    rel[i] = occ.vert(f, i) - p;
+    mx = std::max(mx, absmax(rel[i]));
+  }
+  if (!(mx == mx)) return out;
+  out.scale = pow2_scale(mx);
+  for (int64_t i = 0; i < Ko; i++) rel[i] = out.scale * rel[i];
+  V3<T> no{0, 0, 0}, bnd{0, 0, 0};
+  for (int64_t i = 0; i < Ko; i++) {
+    V3<T> a = rel[i], b = rel[(i + 1) % Ko];
+    no = no + cross(a, b);
+    V3<T> aa{std::fabs(a.x), std::fabs(a.y), std::fabs(a.z)}, bb{std::fabs(b.x), std::fabs(b.y), std::fabs(b.z)};
+    bnd = bnd + V3<T>{aa.y * bb.z + aa.z * bb.y, aa.z * bb.x + aa.x * bb.z, aa.x * bb.y + aa.y * bb.x};
+  }
+  const T h0 = dot(no, rel[0]);
+  const T s = h0 < 0 ? T(1) : T(-1);
+  const T boundf = T(Ko + 8) / T(2) * eps_of<T>();
+  for (int64_t i = 0; i < Ko; i++) {
+    T h = dot(no, rel[i]);
+    V3<T> ar{std::fabs(rel[i].x), std::fabs(rel[i].y), std::fabs(rel[i].z)};
+    if (!(-s * h > boundf * dot(bnd, ar))) return out;
+  }
+  out.side = h0 < 0 ? 1 : -1;
+  out.h0 = h0;
+  out.no = no;
+  return out;
+}
+
 }  // namespace jaxshadow_engine
 
 #endif  // JAXSHADOW_SHADOWC_GEOMETRY_H_

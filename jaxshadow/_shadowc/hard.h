@@ -18,28 +18,9 @@ bool face_blocks_ray(const Occluders<T>& occ, int64_t f, V3<T> p, V3<T> r, const
   const int64_t Ko = occ.Ko;
   V3<T> rel[64];
   if (Ko > 64) return false;
-  T mx = 0;
-  for (int64_t i = 0; i < Ko; i++) {
-    rel[i] = occ.vert(f, i) - p;
-    mx = std::max(mx, absmax(rel[i]));
-  }
-  T sg = pow2_scale(mx);
-  for (int64_t i = 0; i < Ko; i++) rel[i] = sg * rel[i];
-  V3<T> no{0, 0, 0}, bnd{0, 0, 0};
-  for (int64_t i = 0; i < Ko; i++) {
-    V3<T> a = rel[i], b = rel[(i + 1) % Ko];
-    no = no + cross(a, b);
-    V3<T> aa{std::fabs(a.x), std::fabs(a.y), std::fabs(a.z)}, bb{std::fabs(b.x), std::fabs(b.y), std::fabs(b.z)};
-    bnd = bnd + V3<T>{aa.y * bb.z + aa.z * bb.y, aa.z * bb.x + aa.x * bb.z, aa.x * bb.y + aa.y * bb.x};
-  }
-  T h0 = dot(no, rel[0]);
-  T s = h0 < 0 ? T(1) : T(-1);
-  T boundf = T(Ko + 8) / T(2) * eps_of<T>();
-  for (int64_t i = 0; i < Ko; i++) {
-    T h = dot(no, rel[i]);
-    V3<T> ar{std::fabs(rel[i].x), std::fabs(rel[i].y), std::fabs(rel[i].z)};
-    if (!(-s * h > boundf * dot(bnd, ar))) return false;
-  }
+  const FaceSide<T> fs = face_side(occ, f, p, rel);
+  if (fs.side == 0) return false;  // p in the face's plane: it blocks a zero solid angle
+  const T s = T(fs.side);
   for (int64_t i = 0; i < Ko; i++) {
     V3<T> a = occ.vert(f, i), b = occ.vert(f, (i + 1) % Ko);
     if (same(a, b)) continue;
@@ -47,10 +28,8 @@ bool face_blocks_ray(const Occluders<T>& occ, int64_t f, V3<T> p, V3<T> r, const
     if (!(dot(pl, r) > 0)) return false;
   }
   if (x) {
-    V3<T> nraw{0, 0, 0};
-    for (int64_t i = 0; i < Ko; i++) nraw = nraw + cross(rel[i], rel[(i + 1) % Ko]);
-    // beyond: -s * no . (x - o_0) > 0, with no the sigma-scaled Newell normal (only its sign matters)
-    if (!(-s * dot(nraw, *x - occ.vert(f, 0)) > 0)) return false;
+    // beyond: -s * no . (x - o_0) > 0, with no the scaled Newell normal (only its sign matters)
+    if (!(-s * dot(fs.no, *x - occ.vert(f, 0)) > 0)) return false;
   }
   return true;
 }

@@ -174,6 +174,24 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
     return true;
   };
 
+  // An occluder region's planes are planes[first, first + np) and its candidate edges were pushed
+  // after `before`: without any, it misses E_h (0, dropped) or covers all of it (2, umbra); else it
+  // becomes a region (1).
+  auto close_region = [&](int32_t first, int np, size_t before) -> int {
+    if (w.edges.size() == before) {
+      const bool covers = covers_eh(planes.data() + first, np);
+      planes.resize(first);
+      w.prefs.resize(first);
+      return covers ? 2 : 0;
+    }
+    Region<T> r;
+    r.first = first;
+    r.count = np;
+    r.active = true;
+    w.regions.push_back(r);
+    return 1;
+  };
+
   auto add_face = [&](int64_t f, bool closed_ok) -> int {  // 0 dropped, 1 added, 2 umbra
     const int64_t Ko = occ.Ko;
     if (Ko > 64) return 0;
@@ -198,30 +216,10 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
       if (all_behind) return 0;
     }
     V3<T> rel[64];
-    T mx = 0;
-    for (int64_t i = 0; i < Ko; i++) {
-      rel[i] = occ.vert(f, i) - p;
-      mx = std::max(mx, absmax(rel[i]));
-    }
-    if (!(mx == mx)) return 0;
-    T sigma = pow2_scale(mx);
-    for (int64_t i = 0; i < Ko; i++) rel[i] = sigma * rel[i];
-    // _occluder_sides.
-    V3<T> no{0, 0, 0}, bnd{0, 0, 0};
-    for (int64_t i = 0; i < Ko; i++) {
-      V3<T> a = rel[i], b = rel[(i + 1) % Ko];
-      no = no + cross(a, b);
-      V3<T> aa{std::fabs(a.x), std::fabs(a.y), std::fabs(a.z)}, bb{std::fabs(b.x), std::fabs(b.y), std::fabs(b.z)};
-      bnd = bnd + V3<T>{aa.y * bb.z + aa.z * bb.y, aa.z * bb.x + aa.x * bb.z, aa.x * bb.y + aa.y * bb.x};
-    }
-    T h0 = dot(no, rel[0]);
-    T s = h0 < 0 ? T(1) : T(-1);
-    T boundf = T(Ko + 8) / T(2) * eps_of<T>();
-    for (int64_t i = 0; i < Ko; i++) {
-      T h = dot(no, rel[i]);
-      V3<T> ar{std::fabs(rel[i].x), std::fabs(rel[i].y), std::fabs(rel[i].z)};
-      if (!(-s * h > boundf * dot(bnd, ar))) return 0;  // inactive: blocks a zero solid angle
-    }
+    const FaceSide<T> fs = face_side(occ, f, p, rel);
+    if (fs.side == 0) return 0;  // inactive: blocks a zero solid angle (or not finite)
+    const T sigma = fs.scale, h0 = fs.h0, s = T(fs.side);
+    const V3<T> no = fs.no;
     if (closed_ok && s < 0 && occ.face_closed && call.bvh->outside_mesh(occ.face_closed[f], pd)) return 0;  // back face
     // Region planes: oriented edge planes, then the emitter-plane cut (_occluder_regions).
     const int32_t first = int32_t(planes.size());
@@ -324,18 +322,7 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
       Code cy = code_point(kEmitterCross, occ.ref(f, bentry_i), occ.ref(f, (bentry_i + 1) % Ko));
       emit(bexit, bentry, cx, cy, planes[first + Ko], w.prefs[first + Ko]);
     }
-    if (w.edges.size() == before) {  // its projection misses E_h, or covers it
-      const bool covers = covers_eh(planes.data() + first, np);
-      planes.resize(first);
-      w.prefs.resize(first);
-      return covers ? 2 : 0;
-    }
-    Region<T> r;
-    r.first = first;
-    r.count = np;
-    r.active = true;
-    w.regions.push_back(r);
-    return 1;
+    return close_region(first, np, before);  // its projection misses E_h, covers it, or bounds R
   };
 
   auto add_solid = [&](int64_t sidx) -> int {  // 0 dropped, 1 added, 2 umbra, 3 use its faces
@@ -453,18 +440,7 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
       e.region = int32_t(w.regions.size());
       w.edges.push_back(e);
     }
-    if (w.edges.size() == before) {  // its cone misses E_h, or covers it
-      const bool covers = covers_eh(planes.data() + first, nsil);
-      planes.resize(first);
-      w.prefs.resize(first);
-      return covers ? 2 : 0;
-    }
-    Region<T> r;
-    r.first = first;
-    r.count = nsil;
-    r.active = true;
-    w.regions.push_back(r);
-    return 1;
+    return close_region(first, nsil, before);  // its cone misses E_h, covers it, or bounds R
   };
 
   w.n_candidates = int32_t(w.cand.size());
