@@ -437,8 +437,16 @@ def light_values(lp: LightPlan, light: Any, integ: Any, p: Any, n: Any, e: Any, 
     rows = EDGE_BLOCK // 8
     if lp.kind == "polygon":
         verts = light.vertices.astype(dt)
-        lit = np.nonzero(lp.classes == vis.LIT)[0]
-        if lit.size:
+        is_lit = lp.classes == vis.LIT
+        lit = np.nonzero(is_lit)[0]
+        if concrete and 2 * lit.size > N:
+            # Mostly lit: the unoccluded kernel on every receiver costs less than gathering the
+            # lit ones (a gather moves as many bytes as the kernel reads); the others are masked
+            # (and the penumbra receivers overwritten below). Not with derivatives: a masked
+            # receiver's cotangent is zero, but 0 * a singular kernel derivative is not.
+            every = _map_blocks(lambda a, b, c: _lit_block(integ, a, b, c, verts), (p, n, e), rows)
+            parts.append((np.arange(N), np.where(is_lit, np.asarray(every), 0.0)))
+        elif lit.size:
             parts.append((lit, _map_blocks(lambda a, b, c: _lit_block(integ, a, b, c, verts),
                                            (_take(p, lit), _take(n, lit), _take(e, lit)), rows)))
         for cap, idx in capacity_groups(lp.counts, np.nonzero(lp.classes == vis.PENUMBRA)[0]):

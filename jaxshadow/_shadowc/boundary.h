@@ -154,7 +154,13 @@ void boundary_runs(V3<T> p, T tol, const V3<T>* ehv, int nehv, Work<T>& w) {
     const int nt = int(w.ts.size());
     w.order.resize(nt);
     for (int i = 0; i < nt; i++) w.order[i] = i;
-    std::stable_sort(w.order.begin(), w.order.end(), [&](int32_t x, int32_t y) { return w.ts[x] < w.ts[y]; });
+    // Stable insertion sort by t (a handful of breakpoints; std::stable_sort allocates a buffer).
+    for (int i = 1; i < nt; i++) {
+      const int32_t x = w.order[i];
+      int j = i;
+      for (; j > 0 && w.ts[x] < w.ts[w.order[j - 1]]; j--) w.order[j] = w.order[j - 1];
+      w.order[j] = x;
+    }
     // Pieces [ts[i], ts[i+1]]: free unless inside another region (one-sided) or tied.
     w.free.resize(nt > 0 ? nt - 1 : 0);
     for (int i = 0; i + 1 < nt; i++) {

@@ -233,6 +233,31 @@ inline bool ibox_outside(const BVH& bvh, int32_t i, const HalfSpace& h, double m
   return best < -margin * nn;
 }
 
+// Whether any item survives `query`'s tests (stops at the first).
+inline bool query_any(const BVH& bvh, const HalfSpace* hs, int nh, double margin) {
+  if (bvh.nodes.empty()) return false;
+  int32_t stack[256];
+  int sp = 0;
+  stack[sp++] = 0;
+  while (sp) {
+    const Node& nd = bvh.nodes[stack[--sp]];
+    bool rej = false;
+    for (int i = 0; i < nh && !rej; i++) rej = box_outside(nd, hs[i], margin);
+    if (rej) continue;
+    if (nd.left < 0) {
+      for (int32_t i = nd.start; i < nd.start + nd.count; i++) {
+        bool r2 = false;
+        for (int k = 0; k < nh && !r2; k++) r2 = ibox_outside(bvh, i, hs[k], margin);
+        if (!r2) return true;
+      }
+    } else {
+      stack[sp++] = nd.left;
+      stack[sp++] = nd.right;
+    }
+  }
+  return false;
+}
+
 inline void query(const BVH& bvh, const HalfSpace* hs, int nh, double margin, std::vector<std::pair<int32_t, int32_t>>& out) {
   out.clear();
   if (bvh.nodes.empty()) return;

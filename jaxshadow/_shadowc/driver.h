@@ -155,6 +155,7 @@ int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const 
   std::atomic<int> err(0);
   parallel_for(N, threads, [&](int t, int64_t s, int64_t e) {
     Work<T> w;
+    w.lit_runs = false;
     Block blk;
     blk.s = s;
     blk.e = e;

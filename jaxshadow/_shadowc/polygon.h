@@ -6,6 +6,45 @@
 
 namespace jaxshadow_engine {
 
+// A receiver that no item can block, decided before any of polygon_receiver's work: kZero or
+// kLit exactly as polygon_receiver would decide them, or -1 (undecided: the full test). Only
+// receivers whose horizon leaves the whole light above it are decided lit (then E_h is the light
+// itself, a nonempty boundary when the light has an edge). The hierarchy is queried with the
+// pyramid's planes as plain cross products, not rescaled, and twice query's margin plus a bound
+// on that difference in rounding: an item that survives polygon_receiver's query survives this
+// one, so "none survives" implies polygon_receiver's candidate list is empty.
+template <class T>
+int32_t quick_class(const PolyCall<T>& call, V3<T> p, V3<T> n) {
+  const int64_t K = call.L.K;
+  const V3<T> e0 = call.L.v(0);
+  const T hp = dot(call.ne_raw, p - e0);
+  if (!(hp > 0)) return kZero;
+  if (K > 64) return -1;
+  bool any_in = false, all_in = true;
+  for (int64_t i = 0; i < K; i++) {
+    const bool in = dot(call.L.v(i) - p, n) >= 0;
+    any_in = any_in || in;
+    all_in = all_in && in;
+  }
+  if (!any_in) return kZero;
+  if (!all_in || !call.light_has_edge) return -1;
+  HalfSpace hs[67];
+  int nh = 0;
+  auto add = [&](V3<T> nn, V3<T> q) {
+    hs[nh] = HalfSpace{{double(nn.x), double(nn.y), double(nn.z)}, {double(q.x), double(q.y), double(q.z)}};
+    nh++;
+  };
+  for (int64_t i = 0; i < K; i++) {
+    V3<T> a = call.L.v(i), b = call.L.v((i + 1) % K);
+    if (!same(a, b)) add(cross(b - p, a - p), p);
+  }
+  add(n, p);
+  add(call.ne_raw, e0);
+  const double scale = std::max(double(absmax(p)), double(absmax(e0))) + 1.0;
+  const double margin = 2e3 * double(eps_of<T>()) * scale + 64 * double(eps_of<T>()) * (call.item_extent + scale);
+  return query_any(*call.bvh, hs, nh, margin) ? -1 : kLit;
+}
+
 // Output of one receiver: class and runs (appended to w.runs).
 template <class T>
 int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) {
@@ -15,12 +54,15 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
   const Occluders<T>& occ = call.occ;
   const T tol = T(kCollinearEps) * eps_of<T>();
   w.runs.clear();
+  if (!w.lit_runs) {
+    const int32_t q = quick_class(call, p, n);
+    if (q >= 0) return q;
+  }
   const double pd[3] = {double(p.x), double(p.y), double(p.z)};
 
   // Emitter frame (_clip._emitter_frame).
   V3<T> e0 = call.L.v(0);
-  V3<T> ne{0, 0, 0};
-  for (int64_t i = 0; i < K; i++) ne = ne + cross(call.L.v(i), call.L.v((i + 1) % K));
+  V3<T> ne = call.ne_raw;
   T hp = dot(ne, p - e0);
   if (!(hp > 0)) return kZero;
   T esc = pow2_scale(absmax(ne));
@@ -150,6 +192,7 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
   double margin = 1e3 * double(eps_of<T>()) * scale;
   // Items are boxes in float64 of T's values; a T-rounding margin keeps touching ones.
   query(*call.bvh, hs, nh, margin, w.cand);
+  if (w.cand.empty() && !w.lit_runs) return kLit;
 
   // Per candidate: its region (planes through p) and candidate edges, or drop it.
   V3<T> cone[65];  // E_h's planes (a copy: `planes` grows below)
@@ -342,11 +385,17 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
       if (all_out) return 0;
     }
     // The cone through the silhouette needs the solid strictly on p's side of the light's plane
-    // and p strictly off every face plane (front or back); otherwise its faces are used.
+    // and p strictly in front of at least one face (outside the solid); otherwise its faces are used.
     for (int32_t q = v0i; q < v1i; q++) {
       V3<T> r = ld(occ.faces + 3 * int64_t(bv.solid_verts[q])) - e0;
       if (!(dot(r, ne) > tol * nenorm * (std::fabs(r.x) + std::fabs(r.y) + std::fabs(r.z)))) return 3;
     }
+    // Faces whose plane holds p (within the rounding bound `m`: a box resting on the floor, seen
+    // from the floor) are taken as back faces. They are seen edge-on and block a zero solid
+    // angle; the silhouette is then that of a point just behind their planes, whose edges all
+    // border a strictly front face, so every silhouette plane's orientation is decided by a
+    // strictly nonzero height. Where p is truly (by less than `m`) in front of such a face, the
+    // cone leaves out that face's projection, a sliver of angular width O(m / |x - p|): round-off.
     bool any_front = false;
     for (int64_t f = f0; f < f1; f++) {
       const double* fp = bv.face_plane.data() + 6 * f;
@@ -354,12 +403,12 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
       double h = fp[0] * rx + fp[1] * ry + fp[2] * rz;
       double m = 1e3 * double(eps_of<T>()) * (std::fabs(rx) + std::fabs(ry) + std::fabs(rz) + std::fabs(fp[3]) +
                                               std::fabs(fp[4]) + std::fabs(fp[5]));
-      if (!(std::fabs(h) > m)) return 3;
-      front[f - f0] = h > 0;
-      any_front = any_front || h > 0;
-      if (h > 0 && call.light_side[f] > 0) return 0;  // the face's plane separates solid and pyramid
+      const bool strict_front = h > m;
+      front[f - f0] = strict_front;
+      any_front = any_front || strict_front;
+      if (strict_front && call.light_side[f] > 0) return 0;  // the face's plane separates solid and pyramid
     }
-    if (!any_front) return 3;  // p inside the solid
+    if (!any_front) return 3;  // p inside the solid or on its surface
     // Silhouette planes (through p and the edges between a front and a back face).
     const int32_t first = int32_t(planes.size());
     const size_t before = w.edges.size();

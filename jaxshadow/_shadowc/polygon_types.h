@@ -52,6 +52,10 @@ struct Work {  // per-thread scratch
   std::vector<int32_t> live;
   std::vector<uint8_t> free;
   int32_t n_candidates = 0, n_regions = 0;  // items the hierarchy returned; occluder regions kept
+  // Whether a lit receiver's boundary (E_h's own edges) is wanted in `runs`: the fixed-capacity
+  // (compiled) plan evaluates every receiver from its runs; the CSR plan evaluates lit receivers
+  // with the unoccluded kernel, so a receiver that no item can block returns at once.
+  bool lit_runs = true;
 };
 
 template <class T>
@@ -123,10 +127,26 @@ struct PolyCall {
   // -1 all strictly behind, 0 otherwise (a receiver strictly on that same side cannot be shadowed by
   // it: the plane separates the face from the receiver's pyramid).
   std::vector<int8_t> light_side;
+  // The light's Newell normal (unscaled), whether it has two distinct consecutive vertices, and
+  // the largest coordinate magnitude of the hierarchy's items (bounds rounding in quick_class).
+  V3<T> ne_raw{0, 0, 0};
+  bool light_has_edge = false;
+  double item_extent = 0;
 };
 
+// Per-call data of the light and the occluders (`light_side`, `ne_raw`, `light_has_edge`,
+// `item_extent`).
 template <class T>
 void light_sides(PolyCall<T>& call) {
+  const int64_t K = call.L.K;
+  call.ne_raw = V3<T>{0, 0, 0};
+  for (int64_t i = 0; i < K; i++) call.ne_raw = call.ne_raw + cross(call.L.v(i), call.L.v((i + 1) % K));
+  call.light_has_edge = false;
+  for (int64_t i = 0; i < K; i++) call.light_has_edge = call.light_has_edge || !same(call.L.v(i), call.L.v((i + 1) % K));
+  call.item_extent = 0;
+  if (!call.bvh->nodes.empty())
+    for (int d = 0; d < 3; d++)
+      call.item_extent = std::max(call.item_extent, std::max(std::fabs(call.bvh->nodes[0].lo[d]), std::fabs(call.bvh->nodes[0].hi[d])));
   const Occluders<T>& occ = call.occ;
   call.light_side.assign(occ.M, 0);
   for (int64_t f = 0; f < occ.M; f++) {
