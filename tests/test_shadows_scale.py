@@ -312,6 +312,35 @@ def test_receivers_exactly_on_event_planes():
     np.testing.assert_allclose(got[:11], got[11:22], rtol=0, atol=1e-7)  # continuous across the event
 
 
+def test_boxes_resting_on_the_floor_equal_the_independent_reference():
+    # Every floor receiver lies in the plane of every box's bottom face (and some in the planes of
+    # their side faces): the engine takes those faces as back faces and keeps one silhouette cone
+    # per box instead of falling back to the faces (the receivers' horizons coincide with the
+    # cones' bottom planes).
+    bxs = [box((-0.35, -0.2, 0.0), (-0.05, 0.15, 0.7)), box((0.1, -0.1, 0.0), (0.6, 0.5, 1.1)),
+           box((-0.4, 0.3, 0.0), (0.0, 0.45, 0.4))]
+    scene, _, tris = scene_pair(bxs)
+    rng = np.random.default_rng(3)
+    p = np.zeros((100, 3))
+    p[:, :2] = rng.uniform(-1.2, 1.2, (100, 2))
+    p[:20, 0] = -0.05  # in the plane of the first box's +x face, outside the box
+    p[20:40, 0] = 0.6  # the same for the second box (whose shadow holds an umbra)
+    p[20:40, 1] = rng.uniform(-0.3, 0.7, 20)
+    p[40:50, 0] = 0.6 + 1e-3  # just outside it: umbra
+    p[40:50, 1] = rng.uniform(-0.1, 0.5, 10)
+    # Receivers under a box or on its boundary are left out (the reference divides by zero
+    # there; `test_mesh_cases_on_shadow_boundaries` has receivers on faces).
+    under = np.array([any(np.all(q[:2] >= v.min(0)[:2]) and np.all(q[:2] <= v.max(0)[:2]) for v, _ in bxs) for q in p])
+    p = p[~under]
+    nrm = np.tile([0.0, 0.0, 1.0], (len(p), 1))
+    lp = js.shadow_plan(scene, p, nrm).lights[0]
+    assert {1, 2, 3} <= set(lp.classes.tolist())
+    assert lp.kept.max() <= len(bxs)  # one region per box (its faces would give up to three)
+    got = np.asarray(js.irradiance(scene, p, nrm))[:, 0]
+    ref = np.pi * np.array([reference_ff(q, m, LIGHT, culled(q, m, LIGHT, tris)) for q, m in zip(p, nrm, strict=True)])
+    np.testing.assert_allclose(got, ref, rtol=1e-10, atol=1e-12)
+
+
 def test_fit_light_with_mesh_occluders_is_exact_with_exact_gradients():
     """`inverse.fit_light` with box meshes as occluders (the LM with the shadow engine in its
     program): the light that painted the targets is recovered from a start 3 cm / 2 degrees
