@@ -55,7 +55,7 @@ from ._clip import (
 )
 from ._linear import linear_irradiance_kernel
 from ._point import directional_irradiance_kernel, point_irradiance_kernel
-from ._polygon import form_factor_kernel
+from ._polygon import edge_term, form_factor_kernel
 from ._scene import LinearLight, PointLight, PolygonLight, Scene
 from ._specular import (
     DEFAULT_DEGREE,
@@ -364,6 +364,14 @@ def _contour_block(integ, p, n, e, verts, starts, ends):
 
 
 @jax.jit
+def _lambert_edge_block(p, n, starts, ends):
+    """Lambert's term of each boundary edge (`(R,)`, zero-length edges exactly 0), receivers
+    repeated per edge: the contour sum without padding receivers to a capacity."""
+    used = jnp.any(starts != ends, axis=1)
+    return jnp.where(used, jax.vmap(edge_term)(p, n, starts, ends), 0.0)
+
+
+@jax.jit
 def _decoded_block(integ, p, n, e, verts, faces, runs):
     fn, f0 = vis.face_frames(faces)
     table = vis.vertex_table(verts, faces)
@@ -449,7 +457,19 @@ def light_values(lp: LightPlan, light: Any, integ: Any, p: Any, n: Any, e: Any, 
         elif lit.size:
             parts.append((lit, _map_blocks(lambda a, b, c: _lit_block(integ, a, b, c, verts),
                                            (_take(p, lit), _take(n, lit), _take(e, lit)), rows)))
-        for cap, idx in capacity_groups(lp.counts, np.nonzero(lp.classes == vis.PENUMBRA)[0]):
+        pen = np.nonzero(lp.classes == vis.PENUMBRA)[0]
+        if concrete and isinstance(integ, Lambert) and pen.size:
+            # Lambert's contour sum is a sum of edge terms: evaluated over the flat list of
+            # boundary edges and added up per receiver (Lambert.contour = pi * (-sum / 2 pi)).
+            owner = np.repeat(np.arange(N), np.diff(lp.offsets))
+            terms = _map_blocks(_lambert_edge_block, (p[owner], n[owner], np.ascontiguousarray(lp.points[:, 0]),
+                                                      np.ascontiguousarray(lp.points[:, 1])), EDGE_BLOCK)
+            f = np.bincount(owner, weights=np.asarray(terms), minlength=N)[pen]
+            v = np.asarray(verts)
+            ne = np.sum(np.cross(v, np.roll(v, -1, axis=0)), axis=0)
+            parts.append((pen, np.where((p[pen] - v[0]) @ ne > 0, -0.5 * f, 0.0).astype(dt)))
+            pen = pen[:0]
+        for cap, idx in capacity_groups(lp.counts, pen):
             r, used = _dense_rows(lp.offsets, idx, cap)
             rb = max(MIN_BLOCK, EDGE_BLOCK // cap)
             if concrete:

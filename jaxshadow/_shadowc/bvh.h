@@ -12,7 +12,7 @@ namespace jaxshadow_engine {
 // ----------------------------------------------------------------------------------------------
 
 struct Node {
-  double lo[3], hi[3];
+  double box[6];  // lo[3], hi[3]
   int32_t left, right;  // children, or -1
   int32_t start, count;  // item range for leaves
 };
@@ -114,13 +114,13 @@ BVH build_bvh(const Occluders<T>& occ) {
     Node nd;
     double clo[3], chi[3];
     for (int d = 0; d < 3; d++) {
-      nd.lo[d] = clo[d] = std::numeric_limits<double>::infinity();
-      nd.hi[d] = chi[d] = -std::numeric_limits<double>::infinity();
+      nd.box[d] = clo[d] = std::numeric_limits<double>::infinity();
+      nd.box[3 + d] = chi[d] = -std::numeric_limits<double>::infinity();
     }
     for (int32_t i = t.start; i < t.start + t.count; i++)
       for (int d = 0; d < 3; d++) {
-        nd.lo[d] = std::min(nd.lo[d], its[i].lo[d]);
-        nd.hi[d] = std::max(nd.hi[d], its[i].hi[d]);
+        nd.box[d] = std::min(nd.box[d], its[i].lo[d]);
+        nd.box[3 + d] = std::max(nd.box[3 + d], its[i].hi[d]);
         clo[d] = std::min(clo[d], its[i].c[d]);
         chi[d] = std::max(chi[d], its[i].c[d]);
       }
@@ -206,80 +206,74 @@ void prepare_solids(const Occluders<T>& occ, BVH& bvh) {
 
 // Items whose boxes are not strictly outside any of the half-spaces {x : N.(x - q) >= 0}.
 // `planes` holds (N, q) pairs; a box is rejected when its farthest corner along N is below
-// -margin * |N| (the margin, a bound on the rounding of the coordinates, keeps touching items).
+// -margin * |N|_1 (the margin, a bound on the rounding of the planes and the coordinates, keeps
+// touching items).
 struct HalfSpace {
   double n[3], q[3];
 };
 
-inline bool box_outside(const Node& nd, const HalfSpace& h, double margin) {
-  double best = 0;
-  double nn = 0;
-  for (int d = 0; d < 3; d++) {
-    double c = h.n[d] >= 0 ? nd.hi[d] : nd.lo[d];
-    best += h.n[d] * (c - h.q[d]);
-    nn += std::fabs(h.n[d]);
-  }
-  return best < -margin * nn;
-}
+// A half-space prepared for box tests: the box's farthest corner along n is read as
+// lo_hi[sel[d] + d] (lo at 0..2, hi at 3..5), rejected below `thr`.
+struct BoxPlane {
+  double n[3];
+  int sel[3];
+  double thr;  // n.q - margin |n|_1
+};
 
-inline bool ibox_outside(const BVH& bvh, int32_t i, const HalfSpace& h, double margin) {
-  const double* b = bvh.ibox.data() + 6 * i;
-  double best = 0, nn = 0;
-  for (int d = 0; d < 3; d++) {
-    double c = h.n[d] >= 0 ? b[3 + d] : b[d];
-    best += h.n[d] * (c - h.q[d]);
-    nn += std::fabs(h.n[d]);
-  }
-  return best < -margin * nn;
-}
-
-// Whether any item survives `query`'s tests (stops at the first).
-inline bool query_any(const BVH& bvh, const HalfSpace* hs, int nh, double margin) {
-  if (bvh.nodes.empty()) return false;
-  int32_t stack[256];
-  int sp = 0;
-  stack[sp++] = 0;
-  while (sp) {
-    const Node& nd = bvh.nodes[stack[--sp]];
-    bool rej = false;
-    for (int i = 0; i < nh && !rej; i++) rej = box_outside(nd, hs[i], margin);
-    if (rej) continue;
-    if (nd.left < 0) {
-      for (int32_t i = nd.start; i < nd.start + nd.count; i++) {
-        bool r2 = false;
-        for (int k = 0; k < nh && !r2; k++) r2 = ibox_outside(bvh, i, hs[k], margin);
-        if (!r2) return true;
-      }
-    } else {
-      stack[sp++] = nd.left;
-      stack[sp++] = nd.right;
+inline int prepare_planes(const HalfSpace* hs, int nh, double margin, BoxPlane* out) {
+  for (int i = 0; i < nh; i++) {
+    double nq = 0, n1 = 0;
+    for (int d = 0; d < 3; d++) {
+      out[i].n[d] = hs[i].n[d];
+      out[i].sel[d] = hs[i].n[d] >= 0 ? 3 : 0;
+      nq += hs[i].n[d] * hs[i].q[d];
+      n1 += std::fabs(hs[i].n[d]);
     }
+    out[i].thr = nq - margin * n1;
   }
-  return false;
+  return nh;
 }
 
-inline void query(const BVH& bvh, const HalfSpace* hs, int nh, double margin, std::vector<std::pair<int32_t, int32_t>>& out) {
-  out.clear();
+inline bool outside6(const double* lo_hi, const BoxPlane& b) {
+  return b.n[0] * lo_hi[b.sel[0]] + b.n[1] * lo_hi[b.sel[1] + 1] + b.n[2] * lo_hi[b.sel[2] + 2] < b.thr;
+}
+
+// Depth-first over the hierarchy: `visit(item slot)` for every item no plane rejects; it returns
+// false to stop.
+template <class F>
+inline void traverse(const BVH& bvh, const HalfSpace* hs, int nh, double margin, F visit) {
   if (bvh.nodes.empty()) return;
+  BoxPlane bp[72];
+  if (nh > 72) nh = 72;
+  prepare_planes(hs, nh, margin, bp);
   int32_t stack[256];  // median splits: depth ~ log2(M)
   int sp = 0;
   stack[sp++] = 0;
   while (sp) {
     const Node& nd = bvh.nodes[stack[--sp]];
     bool rej = false;
-    for (int i = 0; i < nh && !rej; i++) rej = box_outside(nd, hs[i], margin);
+    for (int i = 0; i < nh && !rej; i++) rej = outside6(nd.box, bp[i]);
     if (rej) continue;
     if (nd.left < 0) {
       for (int32_t i = nd.start; i < nd.start + nd.count; i++) {
+        const double* b = bvh.ibox.data() + 6 * i;
         bool r2 = false;
-        for (int k = 0; k < nh && !r2; k++) r2 = ibox_outside(bvh, i, hs[k], margin);
-        if (!r2) out.push_back({bvh.key[i], bvh.items[i]});
+        for (int k = 0; k < nh && !r2; k++) r2 = outside6(b, bp[k]);
+        if (!r2 && !visit(i)) return;
       }
     } else {
       stack[sp++] = nd.left;
       stack[sp++] = nd.right;
     }
   }
+}
+
+inline void query(const BVH& bvh, const HalfSpace* hs, int nh, double margin, std::vector<std::pair<int32_t, int32_t>>& out) {
+  out.clear();
+  traverse(bvh, hs, nh, margin, [&](int32_t i) {
+    out.push_back({bvh.key[i], bvh.items[i]});
+    return true;
+  });
   std::sort(out.begin(), out.end());
 }
 

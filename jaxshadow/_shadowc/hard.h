@@ -49,8 +49,8 @@ bool ray_blocked(const Occluders<T>& occ, const BVH& bvh, V3<T> p, V3<T> r, cons
   auto hits = [&](const Node& nd) {
     double t0 = 0, t1 = tmax;
     for (int k = 0; k < 3; k++) {
-      double pad = 1e-9 * (std::fabs(nd.lo[k]) + std::fabs(nd.hi[k]) + std::fabs(o[k]) + 1e-300);
-      double lo = nd.lo[k] - pad, hi = nd.hi[k] + pad;
+      double pad = 1e-9 * (std::fabs(nd.box[k]) + std::fabs(nd.box[3 + k]) + std::fabs(o[k]) + 1e-300);
+      double lo = nd.box[k] - pad, hi = nd.box[3 + k] + pad;
       if (dd[k] == 0) {
         if (o[k] < lo || o[k] > hi) return false;
         continue;

@@ -6,45 +6,6 @@
 
 namespace jaxshadow_engine {
 
-// A receiver that no item can block, decided before any of polygon_receiver's work: kZero or
-// kLit exactly as polygon_receiver would decide them, or -1 (undecided: the full test). Only
-// receivers whose horizon leaves the whole light above it are decided lit (then E_h is the light
-// itself, a nonempty boundary when the light has an edge). The hierarchy is queried with the
-// pyramid's planes as plain cross products, not rescaled, and twice query's margin plus a bound
-// on that difference in rounding: an item that survives polygon_receiver's query survives this
-// one, so "none survives" implies polygon_receiver's candidate list is empty.
-template <class T>
-int32_t quick_class(const PolyCall<T>& call, V3<T> p, V3<T> n) {
-  const int64_t K = call.L.K;
-  const V3<T> e0 = call.L.v(0);
-  const T hp = dot(call.ne_raw, p - e0);
-  if (!(hp > 0)) return kZero;
-  if (K > 64) return -1;
-  bool any_in = false, all_in = true;
-  for (int64_t i = 0; i < K; i++) {
-    const bool in = dot(call.L.v(i) - p, n) >= 0;
-    any_in = any_in || in;
-    all_in = all_in && in;
-  }
-  if (!any_in) return kZero;
-  if (!all_in || !call.light_has_edge) return -1;
-  HalfSpace hs[67];
-  int nh = 0;
-  auto add = [&](V3<T> nn, V3<T> q) {
-    hs[nh] = HalfSpace{{double(nn.x), double(nn.y), double(nn.z)}, {double(q.x), double(q.y), double(q.z)}};
-    nh++;
-  };
-  for (int64_t i = 0; i < K; i++) {
-    V3<T> a = call.L.v(i), b = call.L.v((i + 1) % K);
-    if (!same(a, b)) add(cross(b - p, a - p), p);
-  }
-  add(n, p);
-  add(call.ne_raw, e0);
-  const double scale = std::max(double(absmax(p)), double(absmax(e0))) + 1.0;
-  const double margin = 2e3 * double(eps_of<T>()) * scale + 64 * double(eps_of<T>()) * (call.item_extent + scale);
-  return query_any(*call.bvh, hs, nh, margin) ? -1 : kLit;
-}
-
 // Output of one receiver: class and runs (appended to w.runs).
 template <class T>
 int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) {
@@ -54,10 +15,7 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
   const Occluders<T>& occ = call.occ;
   const T tol = T(kCollinearEps) * eps_of<T>();
   w.runs.clear();
-  if (!w.lit_runs) {
-    const int32_t q = quick_class(call, p, n);
-    if (q >= 0) return q;
-  }
+  w.cand.clear();
   const double pd[3] = {double(p.x), double(p.y), double(p.z)};
 
   // Emitter frame (_clip._emitter_frame).
@@ -65,6 +23,41 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
   V3<T> ne = call.ne_raw;
   T hp = dot(ne, p - e0);
   if (!(hp > 0)) return kZero;
+  if (K > 64) return -1;
+
+  // Candidate items: the hierarchy queried with the pyramid over the light (planes through p
+  // and the light's edges, as plain cross products), the horizon and the emitter plane (the
+  // pyramid lies on p's side of it). The pyramid over E_h lies inside. The margin bounds the
+  // rounding of the planes and of the boxes' coordinates; it keeps touching items.
+  {
+    HalfSpace hs[67];
+    int nh = 0;
+    auto add = [&](V3<T> nn, V3<T> q) {
+      hs[nh] = HalfSpace{{double(nn.x), double(nn.y), double(nn.z)}, {double(q.x), double(q.y), double(q.z)}};
+      nh++;
+    };
+    for (int64_t i = 0; i < K; i++) {
+      V3<T> a = call.L.v(i), b = call.L.v((i + 1) % K);
+      if (!same(a, b)) add(cross(b - p, a - p), p);
+    }
+    add(n, p);
+    add(ne, e0);
+    const double scale = std::max(double(absmax(p)), double(absmax(e0))) + 1.0;
+    const double margin = 1e3 * double(eps_of<T>()) * scale + 64 * double(eps_of<T>()) * (call.item_extent + scale);
+    query(*call.bvh, hs, nh, margin, w.cand);
+  }
+  if (w.cand.empty() && !w.lit_runs && call.light_has_edge) {
+    // Nothing can block: lit, or zero below the horizon. With the whole light above the horizon,
+    // E_h is the light itself (a nonempty boundary: the light has an edge), as below.
+    bool any_in = false, all_in = true;
+    for (int64_t i = 0; i < K; i++) {
+      const bool in = dot(call.L.v(i) - p, n) >= 0;
+      any_in = any_in || in;
+      all_in = all_in && in;
+    }
+    if (!any_in) return kZero;
+    if (all_in) return kLit;
+  }
   T esc = pow2_scale(absmax(ne));
   ne = esc * ne;
   hp = esc * hp;
@@ -98,7 +91,6 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
   int32_t exit_i = -1, entry_i = -1;
   V3<T> ehv[130];  // E_h's vertices (for the umbra and box tests)
   int nehv = 0;
-  if (K > 64) return -1;
   for (int64_t i = 0; i < K; i++) {
     V3<T> a = call.L.v(i), b = call.L.v((i + 1) % K);
     da[i] = dot(a - p, n);
@@ -167,31 +159,6 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
     w.regions[0].hi[d] = ehhi[d];
   }
 
-  // Candidate items: the hierarchy queried with the pyramid's planes (through p and E_h's edges)
-  // and the emitter plane (the pyramid lies on p's side of it).
-  HalfSpace hs[70];
-  int nh = 0;
-  for (int k = 0; k < np0; k++) {
-    if (!nonzero(planes[k])) continue;
-    hs[nh].n[0] = double(planes[k].x);
-    hs[nh].n[1] = double(planes[k].y);
-    hs[nh].n[2] = double(planes[k].z);
-    hs[nh].q[0] = double(p.x);
-    hs[nh].q[1] = double(p.y);
-    hs[nh].q[2] = double(p.z);
-    nh++;
-  }
-  hs[nh].n[0] = double(ne.x);
-  hs[nh].n[1] = double(ne.y);
-  hs[nh].n[2] = double(ne.z);
-  hs[nh].q[0] = double(e0.x);
-  hs[nh].q[1] = double(e0.y);
-  hs[nh].q[2] = double(e0.z);
-  nh++;
-  double scale = std::max(double(absmax(p)), double(absmax(e0))) + 1.0;
-  double margin = 1e3 * double(eps_of<T>()) * scale;
-  // Items are boxes in float64 of T's values; a T-rounding margin keeps touching ones.
-  query(*call.bvh, hs, nh, margin, w.cand);
   if (w.cand.empty() && !w.lit_runs) return kLit;
 
   // Per candidate: its region (planes through p) and candidate edges, or drop it.

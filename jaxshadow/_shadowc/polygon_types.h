@@ -146,7 +146,7 @@ void light_sides(PolyCall<T>& call) {
   call.item_extent = 0;
   if (!call.bvh->nodes.empty())
     for (int d = 0; d < 3; d++)
-      call.item_extent = std::max(call.item_extent, std::max(std::fabs(call.bvh->nodes[0].lo[d]), std::fabs(call.bvh->nodes[0].hi[d])));
+      call.item_extent = std::max(call.item_extent, std::max(std::fabs(call.bvh->nodes[0].box[d]), std::fabs(call.bvh->nodes[0].box[3 + d])));
   const Occluders<T>& occ = call.occ;
   call.light_side.assign(occ.M, 0);
   for (int64_t f = 0; f < occ.M; f++) {
