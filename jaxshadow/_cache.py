@@ -44,36 +44,43 @@ def _box_outside_planes(lo: np.ndarray, hi: np.ndarray, normals: np.ndarray, off
 
 
 def affected(light: Any, points: np.ndarray, normals: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """`(N,)` bool: the box `[lo, hi]` may meet the receiver's illumination region of `light`."""
+    """`(N,)` bool: the box `[lo, hi]` may meet the receiver's illumination region of `light`.
+
+    Cheapest test first: the bounding box of the hull of the receiver and the light (exact for
+    the separating axes x, y, z); the horizon and the pyramid's side planes only for receivers
+    that pass it."""
     scale = np.max(np.abs(points), axis=1) + np.max(np.abs(np.concatenate([lo, hi]))) + 1.0
     margin = 1e-9 * scale
-    hit = ~_box_outside_planes(lo, hi, normals, np.einsum("nd,nd->n", normals, points), margin)
     if isinstance(light, (PolygonLight, LinearLight)):
         verts = np.asarray(light.vertices if isinstance(light, PolygonLight) else np.stack([light.start, light.end]),
                            np.float64)
-        pts = np.concatenate([points[:, None, :], np.broadcast_to(verts, (points.shape[0],) + verts.shape)], axis=1)
+        hull_lo, hull_hi = np.minimum(points, verts.min(axis=0)), np.maximum(points, verts.max(axis=0))
     elif isinstance(light, PointLight):
-        pts = np.stack([points, np.broadcast_to(np.asarray(light.position, np.float64), points.shape)], axis=1)
+        x = np.asarray(light.position, np.float64)
+        hull_lo, hull_hi = np.minimum(points, x), np.maximum(points, x)
     else:
         d = np.asarray(light.direction, np.float64)
         d = d / np.linalg.norm(d)
         # The shadow ray p - t d, t >= 0, meets the box only up to the box's far side.
         reach = np.linalg.norm(np.maximum(np.abs(lo), np.abs(hi))) + np.linalg.norm(points, axis=1)[:, None] + 1.0
-        pts = np.stack([points, points - reach * d], axis=1)
-    # The hull's bounding box against the box (exact for the separating axes x, y, z).
-    hull_lo, hull_hi = pts.min(axis=1), pts.max(axis=1)
-    hit &= np.all((hull_lo <= hi[None, :] + margin[:, None]) & (hull_hi >= lo[None, :] - margin[:, None]), axis=1)
+        far = points - reach * d
+        hull_lo, hull_hi = np.minimum(points, far), np.maximum(points, far)
+    hit = np.all((hull_lo <= hi[None, :] + margin[:, None]) & (hull_hi >= lo[None, :] - margin[:, None]), axis=1)
+    idx = np.nonzero(hit)[0]
+    q, m, mg = points[idx], normals[idx], margin[idx]
+    keep = ~_box_outside_planes(lo, hi, m, np.einsum("nd,nd->n", m, q), mg)
     if isinstance(light, PolygonLight):
         v = np.asarray(light.vertices, np.float64)
         centre = v.mean(axis=0)
         for i in range(v.shape[0]):
             a, b = v[i], v[(i + 1) % v.shape[0]]
-            nrm = np.cross(a - points, b - points)
-            side = np.sign(np.einsum("nd,nd->n", nrm, centre - points))[:, None]
+            nrm = np.cross(a - q, b - q)
+            side = np.sign(np.einsum("nd,nd->n", nrm, centre - q))[:, None]
             nrm = nrm * side
-            hit &= ~_box_outside_planes(lo, hi, nrm, np.einsum("nd,nd->n", nrm, points),
-                                        margin * np.linalg.norm(nrm, axis=1))
-    return hit
+            keep &= ~_box_outside_planes(lo, hi, nrm, np.einsum("nd,nd->n", nrm, q), mg * np.linalg.norm(nrm, axis=1))
+    out = np.zeros(points.shape[0], bool)
+    out[idx[keep]] = True
+    return out
 
 
 class ShadowCache:
