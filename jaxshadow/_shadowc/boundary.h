@@ -17,9 +17,11 @@ void boundary_runs(V3<T> p, T tol, const V3<T>* ehv, int nehv, Work<T>& w) {
   const size_t npl = planes.size();
   w.unit.resize(npl);
   w.pnorm.resize(npl);
-  for (size_t k = 0; k < npl; k++) {
-    w.unit[k] = normalize_safe(planes[k]);
-    w.pnorm[k] = norm(planes[k]);
+  for (size_t k = 0; k < npl; k++) {  // normalize_safe and norm, one square root
+    const T n2 = dot(planes[k], planes[k]);
+    const T nn = std::sqrt(n2);
+    w.unit[k] = n2 > 0 ? (T(1) / nn) * planes[k] : V3<T>{0, 0, 0};
+    w.pnorm[k] = nn;
   }
   for (int32_t r = 1; r < n_regions; r++)
     for (int d = 0; d < 3; d++) {

@@ -87,7 +87,9 @@ inline T eps_of() { return std::numeric_limits<T>::epsilon(); }
 
 // _clip._pow2_scale: 2^-e with mag * 2^-e in [0.5, 1) (1/2 for 0 or non-finite), clamped to the
 // normal range; read from the exponent bits (frexp's exponent), as the JAX version does.
-inline double pow2_scale(double mag) {
+#define JS_INLINE inline __attribute__((always_inline))
+
+JS_INLINE double pow2_scale(double mag) {
   uint64_t bits;
   bool ok = mag > 0 && std::isfinite(mag);
   double m = ok ? mag : 1.0;
@@ -101,7 +103,7 @@ inline double pow2_scale(double mag) {
   std::memcpy(&r, &out, 8);
   return r;
 }
-inline float pow2_scale(float mag) {
+JS_INLINE float pow2_scale(float mag) {
   uint32_t bits;
   bool ok = mag > 0 && std::isfinite(mag);
   float m = ok ? mag : 1.0f;
@@ -116,7 +118,7 @@ inline float pow2_scale(float mag) {
   return r;
 }
 template <class T>
-inline V3<T> rescale(V3<T> a) { return pow2_scale(absmax(a)) * a; }
+JS_INLINE V3<T> rescale(V3<T> a) { return pow2_scale(absmax(a)) * a; }
 
 template <class T>
 inline bool lex_less(V3<T> a, V3<T> b) {
@@ -131,7 +133,7 @@ inline bool lex_less(V3<T> a, V3<T> b) {
 // boundary lines (two faces of a mesh sharing an edge) are recognised exactly, not within a
 // tolerance that rounding (or a compiler's fused multiply-adds) can defeat.
 template <class T>
-inline V3<T> edge_plane(V3<T> p, V3<T> a, V3<T> b) {
+JS_INLINE V3<T> edge_plane(V3<T> p, V3<T> a, V3<T> b) {
   if (lex_less(a, b)) return rescale(cross(rescale(b - p), rescale(a - p)));
   V3<T> c = rescale(cross(rescale(a - p), rescale(b - p)));
   return V3<T>{-c.x, -c.y, -c.z};
