@@ -23,7 +23,11 @@
 // kept pieces merged into runs. Regions whose bounding boxes in the emitter plane do not meet an
 // edge are skipped (they cannot contain any of it). A convex closed mesh ("solid") strictly on the
 // receiver's side of the emitter plane, with p strictly outside it, is one region: the planes
-// through p and its silhouette edges (the cone it blocks), so that a box costs one hexagon.
+// through p and its silhouette edges (the cone it blocks), so that a box costs one hexagon. A
+// face whose plane holds p (a box resting on the receiver's floor) is a back face there: it
+// blocks a zero solid angle, and every silhouette edge then borders a strictly front face.
+// Receivers that no item's box can reach are classified before any other work (lit, or zero
+// below their horizon) where the caller evaluates lit receivers with the unoccluded kernel.
 //
 // Point and directional lights: hard-shadow ray tests against the hierarchy. Segment lights: the
 // occluders that meet the light triangle (p, a, b) (Poulin §4.2), for the device kernel to clip.
