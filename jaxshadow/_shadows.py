@@ -461,6 +461,7 @@ def light_values(lp: LightPlan, light: Any, integ: Any, p: Any, n: Any, e: Any, 
         if concrete and isinstance(integ, Lambert) and pen.size:
             # Lambert's contour sum is a sum of edge terms: evaluated over the flat list of
             # boundary edges and added up per receiver (Lambert.contour = pi * (-sum / 2 pi)).
+            assert lp.offsets is not None and lp.points is not None
             owner = np.repeat(np.arange(N), np.diff(lp.offsets))
             terms = _map_blocks(_lambert_edge_block, (p[owner], n[owner], np.ascontiguousarray(lp.points[:, 0]),
                                                       np.ascontiguousarray(lp.points[:, 1])), EDGE_BLOCK)
