@@ -55,7 +55,7 @@ def _groups_for(light: Any, fit: tuple) -> tuple:
         return tuple(g for g in fit if g == "position")
     if isinstance(light, (js.PolygonLight, js.LinearLight)):
         return tuple(g for g in fit if g in _POSE)
-    return ()
+    return tuple(g for g in fit if g == "orientation")  # a DirectionalLight: its direction
 
 
 def _checked(scene: Any, targets: Any, material: Any, lights: Any, fit: Any, starts: int, material_mode: str,
@@ -86,10 +86,6 @@ def _checked(scene: Any, targets: Any, material: Any, lights: Any, fit: Any, sta
             raise ValueError(f"fit_lights: a constraint for light {k}, which is not fitted.")
         if not isinstance(c, (Plane, Box)):
             raise ValueError(f"fit_lights: constraints must be inverse.Plane or inverse.Box, got {type(c).__name__}.")
-    for i in idx:
-        light = scene.lights[i]
-        if isinstance(light, js.DirectionalLight) and any(g in _POSE for g in fit) and "power" not in fit:
-            raise ValueError(f"fit_lights: light {i} is a DirectionalLight: only its power can be fitted.")
     return idx, fit, {int(k): c for k, c in cons.items()}
 
 
@@ -135,7 +131,8 @@ def fit_lights(
 
     - `scene`, `targets`, `material`; `lights`: indices of the lights to fit (default: all):
       `PolygonLight` (position, orientation, size), `LinearLight` (position, orientation,
-      length), `PointLight` (position), `DirectionalLight` (power only).
+      length: its two ends), `PointLight` (position), `DirectionalLight` (orientation: its
+      direction, two angles `ru`, `rv` of a rotation perpendicular to the given direction).
     - `fit`: a subset of `("position", "orientation", "size", "power")`, applied to each light
       where its kind has the group (leave out `"size"` to hold the sizes fixed; without
       `"power"` the powers stay as given).
