@@ -22,6 +22,8 @@ from ._material import bounded_lstsq as bounded_lstsq
 from ._material import fit_material as fit_material
 from ._multilight_report import LightsFit as LightsFit
 from ._multilight_report import LightsReport as LightsReport
+from ._painting import Brighter as Brighter
+from ._painting import ColourRange as ColourRange
 from ._parametrisation import Box as Box
 from ._parametrisation import LightParametrisation as LightParametrisation
 from ._parametrisation import Plane as Plane
