@@ -158,11 +158,11 @@ def fit_lights(
       where its kind has the group (leave out `"size"` to hold the sizes fixed; without
       `"power"` the powers stay as given).
     - `constraints`: `{light index: inverse.Plane | inverse.Box}` for the light's centre, and
-      `"budget": B` (W, > 0) for the total power: $\sum_j p_j c_j \le B$ over the fitted
+      `"budget": B` (W, > 0) for the total power: $\\sum_j p_j c_j \\le B$ over the fitted
       lights, $c_j$ the power light $j$ emits at its given radiance, averaged over RGB
-      (`_powers.emitted_power`: $\pi \bar L A$ for a polygon, $\bar\Phi \ell$ for a segment,
-      $4\pi \bar I$ for a point light; not with a fitted `DirectionalLight`). It holds in the
-      variable projection (the least-squares powers on the plane $c \cdot p = B$ when the free
+      (`_powers.emitted_power`: $\\pi \\bar L A$ for a polygon, $\\bar\\Phi \\ell$ for a segment,
+      $4\\pi \\bar I$ for a point light; not with a fitted `DirectionalLight`). It holds in the
+      variable projection (the least-squares powers on the plane $c \\cdot p = B$ when the free
       ones exceed it) and exactly in the final solve of the powers (`_powers.constrained_powers`).
     - `starts`: starts per light (the given pose first, then a Sobol stratification within
       `search_radius` scene sizes, `orientation_spread` rad, `size_spread` relative; `seed`);
@@ -175,7 +175,7 @@ def fit_lights(
     - `ranges`: an `inverse.ColourRange`: targets painted as a colour range (residual 0 inside,
       the distance outside); `brighter`: an `inverse.Brighter`: "target i at least as bright as
       target j" relations (luminance hinges). With either, the powers are searched with the
-      poses ($p = q^2$) instead of projected out, and solved at the end with $p \ge 0$ (and
+      poses ($p = q^2$) instead of projected out, and solved at the end with $p \\ge 0$ (and
       the budget) on the piecewise-linear residual; `material_mode="fixed"` only. The targets'
       weights weight every row (ranges included).
     - `solver`: an `inverse.LM` for its options (`refine`, `prune`, `rtol`, `atol`,

@@ -160,12 +160,12 @@ def budget_coefficients(theta: Array, problem: LightsProblem) -> Array:
 
 
 def projected_residual(theta: Array, problem: LightsProblem, capacity: int | None) -> tuple[Array, Array]:
-    """`(r, overflow)`: $\sqrt{w}(L_{model} - C)$ `(3N,)` row-major `(N, 3)` at the problem's
+    """`(r, overflow)`: $\\sqrt{w}(L_{model} - C)$ `(3N,)` row-major `(N, 3)` at the problem's
     material with the powers projected out (module docstring); under a budget `B` the projection
     is the least-squares solution on the plane `c . p = B` when the free one exceeds it. With
     painted ranges or relations (`problem.powers_in_theta`) the powers are the last J entries
     `q` of `theta`, `p = q^2`, and `r` is `_painting.painted_rows` (plus, under a budget, a
-    penalty row $\sqrt{\sum w}\max(0, c\cdot p / B - 1)$: the final solve keeps it exactly)."""
+    penalty row $\\sqrt{\\sum w}\\max(0, c\\cdot p / B - 1)$: the final solve keeps it exactly)."""
     t = problem.targets
     sw = jnp.sqrt(t.weights)
     fixed, per_light, over = _parts(theta, problem, capacity)

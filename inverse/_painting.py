@@ -141,15 +141,15 @@ class Painting(eqx.Module):
     `ranged (N, 3)` bool, `lower`, `upper (N, 3)` (absent bounds as +-1e30), `pairs (M, 2)`,
     `pair_sw (M,)` $\\sqrt{w}$, `margin (M,)`."""
 
-    ranged: Array
-    lower: Array
-    upper: Array
-    pairs: Array
-    pair_sw: Array
-    margin: Array
+    ranged: Any  # a jax array (NumPy in `as_numpy`)
+    lower: Any  # a jax array (NumPy in `as_numpy`)
+    upper: Any  # a jax array (NumPy in `as_numpy`)
+    pairs: Any  # a jax array (NumPy in `as_numpy`)
+    pair_sw: Any  # a jax array (NumPy in `as_numpy`)
+    margin: Any  # a jax array (NumPy in `as_numpy`)
 
 
-def painting(n: int, ranges: ColourRange | None, brighter: Brighter | None, dtype: Any) -> Painting | None:
+def painting(n: int, ranges: Any, brighter: Any, dtype: Any) -> Painting | None:
     """`Painting` for `n` targets, or None when neither is given. ValueError for an index out of
     range."""
     if ranges is None and brighter is None:
@@ -177,7 +177,7 @@ def painting(n: int, ranges: ColourRange | None, brighter: Brighter | None, dtyp
                     jnp.asarray(sw, dtype), jnp.asarray(margin, dtype))
 
 
-def painted_rows(model: Array, colours: Array, sw: Array, paint: Painting | None) -> Array:
+def painted_rows(model: Any, colours: Any, sw: Any, paint: Painting | None) -> Any:
     """The weighted residual `(3N + M,)` of a model `(N, 3)`: $\\sqrt{w}(L - C)$ row-major for
     exact targets, $\\sqrt{w}$ times the distance outside the range for ranged ones, then one
     hinge per `Brighter` pair (traceable; NumPy arrays in, NumPy out as well)."""

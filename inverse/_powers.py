@@ -90,13 +90,16 @@ def constrained_powers(fixed: np.ndarray, cols: np.ndarray, colours: np.ndarray,
     start = np.maximum(np.asarray(p0, np.float64), 0.0)
     if budget is not None and budget[0] @ start > budget[1]:
         start = start * budget[1] / (budget[0] @ start)
-    # SLSQP's tolerances are absolute on the objective: scale it to O(1).
-    f0 = max(fun(start)[0], 1e-300)
+    # SLSQP's tolerances are absolute on the objective: scale it by its value with the lights
+    # off (the size of the data), not at the start (which may already be ~0).
+    f0 = max(fun(np.zeros(J))[0], fun(start)[0], 1e-300)
     sol = minimize(lambda p: tuple(x / f0 for x in fun(p)), start, jac=True, method="SLSQP",
-                   bounds=[(0.0, None)] * J, constraints=cons, options={"ftol": 1e-15, "maxiter": 1000})
+                   bounds=[(0.0, None)] * J, constraints=cons, options={"ftol": 1e-16, "maxiter": 1000})
     p = np.maximum(sol.x, 0.0)
     if budget is not None and budget[0] @ p > budget[1]:
         p = p * budget[1] / (budget[0] @ p)
+    if not fun(p)[0] <= fun(start)[0]:  # never worse than where it started (feasible)
+        p = start
     return _polish(p, fun, model, cols, colours, sw, paint, budget)
 
 
