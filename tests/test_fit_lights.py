@@ -162,8 +162,8 @@ def test_fit_lights_errors():
 
 def test_constraints_fixed_size_and_a_directional_light():
     """A polygon light on the ceiling plane (fixed size), a point light in a box, and a
-    directional light whose power alone is fitted, without occluders: the Plane's and the Box's
-    parameters are the ones reported, and the poses and powers come back."""
+    directional light (its direction, given right, and its power), without occluders: the
+    Plane's and the Box's parameters are the ones reported, and the poses and powers come back."""
     material = js.Material(ka=0.2, kd=[0.6, 0.5, 0.4], ks=0.0, exponent=1.0)
     quad_true = js.PolygonLight(quad([0.4, -0.2, 2.0], 0.5, 0.3, (np.pi, 0.0, 0.3)), [5.0, 5.0, 5.0])
     sun = js.DirectionalLight([0.3, 0.2, -1.0], [0.4, 0.4, 0.35])
@@ -179,13 +179,14 @@ def test_constraints_fixed_size_and_a_directional_light():
                              constraints={0: ceiling, 1: room}, starts=4, sweeps=1)
     names = fit.report.names
     assert "light0.a" in names and "light0.z" not in names and "light0.log_sx" not in names
-    assert "light2.power" in names and not any(n.startswith("light2.r") for n in names)
+    assert {"light2.power", "light2.ru", "light2.rv"} <= set(names) and "light2.x" not in names
     err = inverse.pose_errors(np.asarray(fit.lights[0].vertices), np.asarray(quad_true.vertices))
     assert err["position"] < 1e-7 and err["orientation_deg"] < 1e-5 and err["size_rel"] < 1e-12, err
     assert abs(np.asarray(fit.lights[0].vertices)[:, 2].mean() - 2.0) < 1e-12  # the centre on the plane
     np.testing.assert_allclose(fit.lights[1].position, [-0.5, 0.4, 1.2], atol=1e-7)
     np.testing.assert_allclose(fit.powers, [1.0, 1.5, 2.0], rtol=1e-7)
     np.testing.assert_allclose(fit.scene.lights[2].irradiance, sun.irradiance, rtol=1e-7)
+    np.testing.assert_allclose(fit.scene.lights[2].direction, _unit(sun.direction), atol=1e-8)
 
 
 @pytest.mark.slow
