@@ -29,6 +29,7 @@ from ._parametrisation import LightParametrisation as LightParametrisation
 from ._parametrisation import Plane as Plane
 from ._parametrisation import rotation_matrix as rotation_matrix
 from ._parametrisation import scene_size as scene_size
+from ._plots import plot_residuals as plot_residuals
 from ._regions import RegionFit as RegionFit
 from ._regions import fit_material_regions as fit_material_regions
 from ._reports import FitReport as FitReport

@@ -17,7 +17,6 @@ from typing import Any
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array
 
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 """Rec. 709 luminance weights of linear RGB (Mitsuba's `luminance`)."""

@@ -79,7 +79,7 @@ def _ring(n, radius, centre=(0.2, -0.1)):
     return np.c_[centre[0] + radius * np.cos(a), centre[1] + radius * np.sin(a), np.zeros(n)]
 
 
-def test_undetermined_height_is_reported_with_where_to_paint():
+def test_undetermined_height_is_reported_with_where_to_paint(tmp_path):
     """Floor targets on a circle around a point light's foot: its height trades off exactly with
     its power (the same irradiance on the circle). The report says so and suggests targets;
     painting there determines both."""
@@ -99,6 +99,10 @@ def test_undetermined_height_is_reported_with_where_to_paint():
     assert where.shape[1] == 3 and len(where) >= 3
     # The best candidates are off the circle (where the falloff with distance shows the height).
     assert abs(np.linalg.norm(where[0, :2] - [0.2, -0.1]) - 1.0) > 0.2
+    picture = tmp_path / "residuals.png"
+    inverse.plot_residuals(fit, paint(pts, nrm), picture)
+    assert picture.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and picture.stat().st_size > 10_000
+    assert [x.name for x in tmp_path.iterdir()] == ["residuals.png"]  # no temporary file left
     more = np.concatenate([pts, where[:3]])
     nrm2 = np.concatenate([nrm, rep.suggestion_normals["light0.z"][:3]])
     fit2 = inverse.fit_lights(start, paint(more, nrm2), material, fit=("position", "power"), starts=1)
