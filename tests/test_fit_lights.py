@@ -14,7 +14,7 @@ import jaxshadow as js
 from inverse._multilight import projected_residual
 from inverse._scenes import THREE_LIGHTS_EYE as EYE
 from inverse._scenes import floor_receivers as _receivers
-from inverse._scenes import quad
+from inverse._scenes import one_light_shadow_case, quad, shadow_outline
 from inverse._scenes import three_lights_scene as _true_scene
 from inverse._scenes import three_lights_start as _start
 
@@ -223,47 +223,26 @@ def _unit(v):
     return v / np.linalg.norm(v)
 
 
-def _turned(d, deg, axis):
-    """`d` turned by `deg` degrees about the unit vector perpendicular to `d` and `axis`."""
-    return np.asarray(inverse.rotation_matrix(jnp.asarray(np.deg2rad(deg) * _unit(np.cross(d, axis))))) @ d
-
-
-_OCCLUDER = [quad([0.1, 0.0, 0.6], 0.5, 0.4, (0.0, 0.0, 0.3))]
 _MATERIAL = js.Material(ka=0.2, kd=[0.6, 0.5, 0.4], ks=0.0, exponent=1.0)
 
 
-def _shadow_targets(true, source, n_shadow=24, seed=5):
-    """40 floor points (tilted normals) plus `n_shadow` flat ones around the occluder's shadow
-    cast from `source` (a point, or a direction `(3,)` with `directional=True`: see the callers),
-    painted by `js.shade` from `true`. Asserts that at least 5 lie inside the shadow outline
-    (the occluder projected onto the floor from `source`, shapely)."""
+def _shadow_case(kind):
+    """`one_light_shadow_case(kind)` painted by `js.shade` from its truth; asserts that at least 5
+    targets lie inside the occluder's shadow outline (shapely)."""
     from shapely.geometry import Point, Polygon
 
-    occ = np.asarray(_OCCLUDER[0])
-    if isinstance(true.lights[0], js.DirectionalLight):  # along the light's direction
-        d = np.asarray(source, np.float64)
-        outline = occ - (occ[:, 2:3] / d[2]) * d
-    else:  # from a point of the light
-        s = np.asarray(source, np.float64)
-        outline = s + (occ - s) * (s[2] / (s[2] - occ[:, 2:3]))
-    foot = outline.mean(axis=0)
-    pts, nrm = _receivers(40, seed=4)
-    near = np.c_[foot[:2] + np.random.default_rng(seed).uniform(-0.4, 0.4, (n_shadow, 2)), np.zeros(n_shadow)]
-    pts, nrm = np.concatenate([pts, near]), np.concatenate([nrm, np.tile([0.0, 0.0, 1.0], (n_shadow, 1))])
-    shadow = Polygon(outline[:, :2])
+    true, start, pts, nrm = one_light_shadow_case(kind)
+    shadow = Polygon(shadow_outline(true.occluders[0], true.lights[0])[:, :2])
     assert sum(shadow.contains(Point(*q[:2])) for q in pts) >= 5
-    return inverse.PaintedTargets(pts, nrm, js.shade(true, _MATERIAL, pts, nrm, EYE), EYE)
+    return true, start, inverse.PaintedTargets(pts, nrm, js.shade(true, _MATERIAL, pts, nrm, EYE), EYE)
 
 
 def test_directional_light_direction_recovered():
     """A directional light's direction and power, from floor targets that include the
     occluder's (hard) shadow, 4 degrees and 30 % of its power away: the direction comes back
     within 1e-6 degrees (the acceptance asks for 1 degree) and stays unit."""
-    d_true = _unit([0.35, 0.25, -1.0])
-    true = js.Scene([js.DirectionalLight(d_true, [2.0, 1.9, 1.7])], occluders=_OCCLUDER, ambient=0.1)
-    targets = _shadow_targets(true, d_true)
-    start = js.Scene([js.DirectionalLight(_turned(d_true, 4.0, [0.0, 1.0, 0.3]), [1.4, 1.33, 1.19])],
-                     occluders=_OCCLUDER, ambient=0.1)
+    true, start, targets = _shadow_case("directional")
+    d_true = np.asarray(true.lights[0].direction)
     fit = inverse.fit_lights(start, targets, _MATERIAL, fit=("orientation", "power"), starts=4, sweeps=1)
     d = np.asarray(fit.lights[0].direction)
     assert abs(np.linalg.norm(d) - 1.0) < 1e-12
@@ -280,14 +259,9 @@ def test_segment_light_ends_recovered():
     """A segment light's two ends and power through its soft shadow, from a start 3 % of the
     scene away, turned 3 degrees and 4 % longer: each end within 1e-6 of the scene size (the
     acceptance asks for 1 %)."""
-    a, b = np.array([-0.5, 0.2, 1.6]), np.array([0.4, 0.5, 1.7])
-    true = js.Scene([js.LinearLight(a, b, [3.0, 3.0, 2.8])], occluders=_OCCLUDER, ambient=0.1)
-    targets = _shadow_targets(true, 0.5 * (a + b))
+    true, start, targets = _shadow_case("segment")
+    a, b = np.asarray(true.lights[0].start), np.asarray(true.lights[0].end)
     size = inverse.scene_size(true, targets)
-    c, d, length = 0.5 * (a + b), _unit(b - a), np.linalg.norm(b - a)
-    d2, c2, l2 = _turned(d, 3.0, [0.0, 0.0, 1.0]), c + 0.03 * size * _unit([0.6, -0.6, 0.5]), 1.04 * length
-    start = js.Scene([js.LinearLight(c2 - 0.5 * l2 * d2, c2 + 0.5 * l2 * d2, [2.0, 2.0, 28 / 15])],
-                     occluders=_OCCLUDER, ambient=0.1)
     fit = inverse.fit_lights(start, targets, _MATERIAL, starts=4, sweeps=1)
     light = fit.lights[0]
     assert np.linalg.norm(np.asarray(light.start) - a) < 1e-6 * size
