@@ -137,3 +137,48 @@ def test_painted_targets_and_budget_errors():
     sun = js.Scene([js.DirectionalLight([0.0, 0.0, -1.0], 1.0)], ambient=0.1)
     with pytest.raises(ValueError, match="DirectionalLight"):
         inverse.fit_lights(sun, t, MATERIAL, fit=("power",), constraints={"budget": 10.0})
+
+
+@pytest.mark.parametrize("mode", ["budget", "painted"])
+def test_residual_gradients_match_central_differences(mode):
+    """d(residual)/d(theta) in float64, forward mode against central differences: the variable
+    projection with an active budget (the powers on the plane c . p = B), and the painted rows
+    (ranges, relations, powers in theta), away from the hinges' kinks."""
+    import jax
+    import jax.numpy as jnp
+
+    from inverse._multilight import LightsProblem, projected_residual
+    from inverse._painting import painting
+
+    t = _targets()
+    col = np.asarray(t.colours)
+    size = inverse.scene_size(START, t)
+    params = tuple(inverse.LightParametrisation(x, i, ("position",), None, size, "sigmoid")
+                   for i, x in enumerate(START.lights))
+    z = jnp.zeros(t.points.shape, jnp.float64)
+    extra = {}
+    if mode == "budget":
+        extra = dict(budget=jnp.asarray(40.0))  # W, below the projected powers' (checked below)
+    else:
+        n = len(t)
+        paint = painting(n, inverse.ColourRange(np.arange(0, n, 2), 0.9 * col[::2], 1.1 * col[::2]),
+                         inverse.Brighter([[0, 1], [5, 2], [7, 9]], weight=3.0, margin=0.05), jnp.float64)
+        extra = dict(paint=paint, powers_in_theta=True)
+    problem = LightsProblem(params, tuple(START.lights), START, MATERIAL, t, z, z, (0, 3), True, False, False, None,
+                            None, **extra)
+    rng = np.random.default_rng(3)
+    theta = np.r_[rng.normal(0.0, 0.02, 6), [1.1, 0.8] if mode == "painted" else []]
+    theta = jnp.asarray(theta)
+    fn = jax.jit(lambda th: projected_residual(th, problem, None)[0])
+    if mode == "budget":  # the budget binds here: the residual is not the free projection's
+        import dataclasses
+
+        free = dataclasses.replace(problem, budget=None)
+        r_free = np.asarray(jax.jit(lambda th: projected_residual(th, free, None)[0])(theta))
+        assert np.linalg.norm(np.asarray(fn(theta)) - r_free) > 1e-3 * np.linalg.norm(r_free)
+    J = np.asarray(jax.jit(jax.jacfwd(fn))(theta))
+    h = 1e-6
+    fd = np.stack([(np.asarray(fn(theta.at[i].add(h))) - np.asarray(fn(theta.at[i].add(-h)))) / (2 * h)
+                   for i in range(theta.shape[0])], axis=1)
+    assert np.max(np.abs(fd)) > 1e-3
+    np.testing.assert_allclose(J, fd, atol=2e-6 * np.max(np.abs(fd)), rtol=1e-4)
