@@ -6,6 +6,11 @@ current best poses and every power projected out; then all poses are refined joi
 best combination (and the combinations that swap in one light's runner-up). The cost grows
 with the number of lights, not exponentially. One compiled program (`_multilight._lm`) serves
 every stage.
+
+Every light kind is placed: a polygon (pose and size), a segment (its ends), a point light
+(position), a directional light (its direction). What a designer states goes in as well: a
+plane or a box for a light's centre, a total power budget (`_powers`), targets painted as a
+colour range or as "brighter than" relations (`_painting`), per-target weights.
 """
 
 from __future__ import annotations
