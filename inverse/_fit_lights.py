@@ -153,6 +153,12 @@ def fit_lights(
     best), then every pose jointly (sizes freed last): the starts add up over the lights instead
     of multiplying.
 
+    Point and directional lights cast hard shadows: a target that crosses a shadow edge jumps in
+    value with no derivative, so their poses come from the lit targets' shading (normals that
+    vary), and starts whose shadows fall on the wrong targets can stop at a step of the loss (a
+    directional light 4 degrees off on `_scenes.one_light_shadow_case`: recovered exactly with
+    its power fitted, 1.7 degrees off with its power held).
+
     **Arguments:**
 
     - `scene`, `targets`, `material`; `lights`: indices of the lights to fit (default: all):
