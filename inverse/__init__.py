@@ -22,11 +22,14 @@ from ._material import bounded_lstsq as bounded_lstsq
 from ._material import fit_material as fit_material
 from ._multilight_report import LightsFit as LightsFit
 from ._multilight_report import LightsReport as LightsReport
+from ._painting import Brighter as Brighter
+from ._painting import ColourRange as ColourRange
 from ._parametrisation import Box as Box
 from ._parametrisation import LightParametrisation as LightParametrisation
 from ._parametrisation import Plane as Plane
 from ._parametrisation import rotation_matrix as rotation_matrix
 from ._parametrisation import scene_size as scene_size
+from ._plots import plot_residuals as plot_residuals
 from ._regions import RegionFit as RegionFit
 from ._regions import fit_material_regions as fit_material_regions
 from ._reports import FitReport as FitReport

@@ -34,6 +34,7 @@ import jaxshadow as js
 
 from ._forward import SpecularFn, irradiance_culled, specular_culled
 from ._lm import LMResult, batched_levenberg_marquardt, fit_jit
+from ._painting import painted_rows
 from ._residuals import pinned
 from ._targets import PaintedTargets
 
@@ -70,10 +71,27 @@ class LightsProblem(eqx.Module):
     has_fixed: bool = eqx.field(static=True)
     specular: Any = eqx.field(static=True, default=None)
     capacity: int | None = eqx.field(static=True, default=None)
+    # Painted ranges and relations (`_painting.Painting`), a power budget (W, scalar array).
+    paint: Any = None
+    budget: Any = None
+    # The powers are parameters of the search (the last J entries of theta, p = q^2) instead of
+    # projected out: with ranges or relations the residual is not linear in them.
+    powers_in_theta: bool = eqx.field(static=True, default=False)
+
+    @property
+    def n_pose(self) -> int:
+        """Pose parameters (the first entries of theta)."""
+        return int(sum(0 if p is None else p.size for p in self.params))
 
     @property
     def n_theta(self) -> int:
-        return int(sum(0 if p is None else p.size for p in self.params))
+        return self.n_pose + (len(self.params) if self.powers_in_theta else 0)
+
+    @property
+    def n_residuals(self) -> int:
+        n = 3 * int(self.targets.points.shape[0])
+        n += 0 if self.paint is None else int(self.paint.pairs.shape[0])
+        return n + (1 if self.powers_in_theta and self.budget is not None else 0)
 
 
 def lights_at(theta: Array, problem: LightsProblem) -> list[Any]:
@@ -119,24 +137,60 @@ def _lstsq(A: Array, y: Array) -> tuple[Array, Array]:
     return A @ k - y, k
 
 
-def projected_residual(theta: Array, problem: LightsProblem, capacity: int | None) -> tuple[Array, Array]:
-    """`(r (3N,), overflow)`: $\\sqrt{w}(L_{model} - C)$ at the problem's material with the powers
-    projected out (module docstring), row-major `(N, 3)`."""
+def _parts(theta: Array, problem: LightsProblem, capacity: int | None) -> tuple[Array, Array, Array]:
+    """`(fixed (N, 3), per_light (J, N, 3), overflow)`: the model is `fixed + sum_j p_j per_light[j]`."""
     t = problem.targets
     dt = theta.dtype
     E, S, over = basis(theta, problem, capacity)
     m = problem.material
-    sw = jnp.sqrt(t.weights)
     La = jnp.broadcast_to(problem.scene.ambient.astype(dt)[None, :], t.colours.shape)
     kd, ks, ka = m.kd.astype(dt)[None, :], m.ks.astype(dt)[None, :], m.ka.astype(dt)[None, :]
     ef, sf = problem.e_fixed.astype(dt), problem.s_fixed.astype(dt)
     fixed = ka * La + kd / jnp.pi * ef + (ks * sf if problem.with_specular else 0.0)
     per_light = kd[None] / jnp.pi * E + (ks[None] * S if S is not None else 0.0)  # (J, N, 3)
-    y = sw * (t.colours - fixed)
+    return fixed, per_light, over
+
+
+def budget_coefficients(theta: Array, problem: LightsProblem) -> Array:
+    """`(J,)` the emitted power (W) of each fitted light at its reference radiance and the pose
+    `theta` (`_powers.emitted_power`): the budget is `c . p <= B`."""
+    from ._powers import emitted_power
+
+    return jnp.stack([emitted_power(light) for light in lights_at(theta, problem)]).astype(theta.dtype)
+
+
+def projected_residual(theta: Array, problem: LightsProblem, capacity: int | None) -> tuple[Array, Array]:
+    """`(r, overflow)`: $\\sqrt{w}(L_{model} - C)$ `(3N,)` row-major `(N, 3)` at the problem's
+    material with the powers projected out (module docstring); under a budget `B` the projection
+    is the least-squares solution on the plane `c . p = B` when the free one exceeds it. With
+    painted ranges or relations (`problem.powers_in_theta`) the powers are the last J entries
+    `q` of `theta`, `p = q^2`, and `r` is `_painting.painted_rows` (plus, under a budget, a
+    penalty row $\\sqrt{\\sum w}\\max(0, c\\cdot p / B - 1)$: the final solve keeps it exactly)."""
+    t = problem.targets
+    sw = jnp.sqrt(t.weights)
+    fixed, per_light, over = _parts(theta, problem, capacity)
+    if problem.powers_in_theta:
+        q = theta[problem.n_pose:]
+        p = q * q
+        r = painted_rows(fixed + jnp.tensordot(p, per_light, axes=1), t.colours, sw, problem.paint)
+        if problem.budget is not None:
+            b = problem.budget.astype(theta.dtype)
+            g = budget_coefficients(theta, problem) @ p / b - 1.0
+            r = jnp.concatenate([r, jnp.sqrt(jnp.sum(t.weights))[None] * jnp.where(g > 0, g, 0.0)[None]])
+        return r, over
     if not problem.fit_power:
-        return (sw * jnp.sum(per_light, axis=0) - y).reshape(-1), over
+        return painted_rows(fixed + jnp.sum(per_light, axis=0), t.colours, sw, problem.paint), over
+    y = (sw * (t.colours - fixed)).reshape(-1)
     A = (sw[None] * per_light).reshape(per_light.shape[0], -1).T  # (3N, J)
-    return _lstsq(A, y.reshape(-1))[0], over
+    if problem.budget is None:
+        return _lstsq(A, y)[0], over
+    Ap = jnp.linalg.pinv(A)
+    p = Ap @ y
+    c = budget_coefficients(theta, problem)
+    Gc = Ap @ (Ap.T @ c)  # (A^T A)^+ c
+    excess = c @ p - problem.budget.astype(theta.dtype)
+    p = jnp.where(excess > 0, p - Gc * excess / (c @ Gc), p)
+    return A @ p - y, over
 
 
 def structured_residual(theta: Array, problem: LightsProblem, powers: Array, material: js.Material) -> Array:
@@ -151,7 +205,7 @@ def structured_residual(theta: Array, problem: LightsProblem, powers: Array, mat
     model = material.ka.astype(dt)[None, :] * La + material.kd.astype(dt)[None, :] / jnp.pi * e
     if S is not None:
         model = model + material.ks.astype(dt)[None, :] * (problem.s_fixed.astype(dt) + jnp.sum(p * S, axis=0))
-    return (jnp.sqrt(t.weights) * (model - t.colours)).reshape(-1)
+    return painted_rows(model, t.colours, jnp.sqrt(t.weights), problem.paint)
 
 
 @fit_jit
@@ -179,7 +233,7 @@ def _lm_impl(problem: LightsProblem, starts: Array, base: Array, mask: Array, rt
 
     return batched_levenberg_marquardt(fn, starts, (problem, base, mask), rtol=rtol, atol=atol,
                                        max_steps=max_steps, prune=prune, chunk=chunk,
-                                       num_residuals=3 * int(problem.targets.points.shape[0]))
+                                       num_residuals=problem.n_residuals)
 
 
 _lm = fit_jit(_lm_impl)

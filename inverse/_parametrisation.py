@@ -4,7 +4,9 @@ A polygon light is moved as a rigid body and stretched in its own plane: centre 
 vector $\\omega$ (Rodrigues) applied to its initial frame, and log-scales $(s_x, s_y)$ of its
 initial width and height (any convex polygon, a quad being the usual case). A segment light: its
 midpoint, its direction (two rotation angles about axes perpendicular to it) and its log length.
-A point light: its position. Positions are measured in units of the scene size so every
+A point light: its position. A directional light: its direction, turned like a segment's (a
+rotation vector in the plane perpendicular to the given direction: unit by construction, smooth
+around the start, no pole). Positions are measured in units of the scene size so every
 parameter is O(1) for the solvers. The centre can be constrained to a `Plane` or a `Box`.
 """
 
@@ -194,10 +196,23 @@ class LightParametrisation(eqx.Module):
             bad = [g for g in self.fit if g != "position"]
             if bad:
                 raise ValueError(f"fit_light: a point light has only a position; cannot fit {bad}.")
+        elif isinstance(light, js.DirectionalLight):
+            self.kind = "directional"
+            d = np.asarray(light.direction, np.float64)
+            d = d / np.linalg.norm(d)
+            c = np.zeros(3)
+            self.frame0 = jnp.asarray(np.concatenate([_perp_basis(d), d[None]], axis=0))  # rows u, v, d
+            self.local = jnp.asarray(np.zeros(()))
+            bad = [g for g in self.fit if g != "orientation"]
+            if bad:
+                raise ValueError(f"fit_light: a directional light has only a direction; cannot fit {bad}.")
+            if constraint is not None:
+                raise ValueError(f"fit_light: light {light_index} is a DirectionalLight: it has no position to "
+                                 "constrain.")
         else:
             raise ValueError(
                 f"fit_light: light {light_index} is a {type(light).__name__}; only PolygonLight, "
-                "LinearLight and PointLight can be placed."
+                "LinearLight, PointLight and DirectionalLight can be placed."
             )
         # Host arrays put on the device (eager jnp.zeros/ones would compile one op each).
         self.box_lo = jnp.asarray(np.zeros(3))
@@ -292,6 +307,8 @@ class LightParametrisation(eqx.Module):
         d = F[2]
         if "orientation" in sl:
             d = rotation_matrix(theta[sl["orientation"]] @ F[:2]) @ d
+        if self.kind == "directional":
+            return js.DirectionalLight(d, self.template.irradiance.astype(dt))
         length = self.local.astype(dt)
         if "size" in sl:
             length = length * jnp.exp(theta[sl["size"]][0])

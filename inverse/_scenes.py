@@ -225,3 +225,57 @@ def three_lights_start(true: js.Scene, shift: float, brightness=(0.7, 1.4, 0.6))
                      js.PolygonLight(np.asarray(b.vertices) + d[1], brightness[1] * np.asarray(b.radiance)),
                      js.PointLight(np.asarray(c.position) + d[2], brightness[2] * np.asarray(c.intensity))],
                     occluders=true.occluders, ambient=true.ambient)
+
+
+SHADOW_OCCLUDER = [quad([0.1, 0.0, 0.6], 0.5, 0.4, (0.0, 0.0, 0.3))]
+
+
+def turned(d, degrees: float, axis) -> np.ndarray:
+    """`d (3,)` turned by `degrees` about the unit vector perpendicular to `d` and `axis`."""
+    d = np.asarray(d, np.float64)
+    k = _unit(np.cross(d, axis))
+    t = np.deg2rad(degrees)
+    return d * np.cos(t) + np.cross(k, d) * np.sin(t) + k * (k @ d) * (1 - np.cos(t))
+
+
+def shadow_outline(occluder, light) -> np.ndarray:
+    """`(k, 3)` the occluder polygon projected onto the floor z = 0 along a `DirectionalLight`'s
+    direction, or from a `LinearLight`'s midpoint (its shadow's core)."""
+    occ = np.asarray(occluder, np.float64)
+    if isinstance(light, js.DirectionalLight):
+        d = np.asarray(light.direction, np.float64)
+        return occ - (occ[:, 2:3] / d[2]) * d
+    s = 0.5 * (np.asarray(light.start, np.float64) + np.asarray(light.end, np.float64))
+    return s + (occ - s) * (s[2] / (s[2] - occ[:, 2:3]))
+
+
+def one_light_shadow_case(kind: str) -> tuple:
+    """A directional (`kind="directional"`) or segment (`"segment"`) light over a floor with one
+    occluder (`SHADOW_OCCLUDER`): the hidden truth, a start (the direction turned 4 degrees at 70 %
+    power; the segment moved 3 % of the scene size, turned 3 degrees, 4 % longer, at 2/3 power),
+    and 64 floor receivers: 40 with tilted normals (`floor_receivers(40, seed=4)`) and 24 flat
+    ones around the occluder's shadow (`shadow_outline`).
+
+    **Returns:** `(true Scene, start Scene, points (64, 3), normals (64, 3))`.
+    """
+    occ = SHADOW_OCCLUDER
+    if kind == "directional":
+        d = _unit([0.35, 0.25, -1.0])
+        true_light = js.DirectionalLight(d, [2.0, 1.9, 1.7])
+        start_light = js.DirectionalLight(turned(d, 4.0, [0.0, 1.0, 0.3]), 0.7 * np.array([2.0, 1.9, 1.7]))
+    elif kind == "segment":
+        a, b = np.array([-0.5, 0.2, 1.6]), np.array([0.4, 0.5, 1.7])
+        true_light = js.LinearLight(a, b, [3.0, 3.0, 2.8])
+        size = 4.369  # m: the scene's bounding-box diagonal, about
+        c, d, length = 0.5 * (a + b), _unit(b - a), np.linalg.norm(b - a)
+        d2, c2, l2 = turned(d, 3.0, [0.0, 0.0, 1.0]), c + 0.03 * size * _unit([0.6, -0.6, 0.5]), 1.04 * length
+        start_light = js.LinearLight(c2 - 0.5 * l2 * d2, c2 + 0.5 * l2 * d2, np.array([3.0, 3.0, 2.8]) * 2 / 3)
+    else:
+        raise ValueError(f"one_light_shadow_case: kind must be 'directional' or 'segment', got {kind!r}.")
+    foot = shadow_outline(occ[0], true_light).mean(axis=0)
+    pts, nrm = floor_receivers(40, seed=4)
+    near = np.c_[foot[:2] + np.random.default_rng(5).uniform(-0.4, 0.4, (24, 2)), np.zeros(24)]
+    pts, nrm = np.concatenate([pts, near]), np.concatenate([nrm, np.tile([0.0, 0.0, 1.0], (24, 1))])
+    true = js.Scene([true_light], occluders=occ, ambient=0.1)
+    start = js.Scene([start_light], occluders=occ, ambient=0.1)
+    return true, start, pts, nrm
