@@ -332,14 +332,19 @@ def _pad_rows(a: Any, size: int) -> Any:
 
 
 def _map_blocks(fn: Any, arrays: tuple, rows: int) -> Any:
-    """`fn(*blocks)` over the leading axis in padded blocks; concatenated, unpadded."""
+    """`fn(*blocks)` over the leading axis in padded blocks; concatenated, unpadded. With NumPy
+    inputs (concrete values) the results are cut and joined in NumPy: slicing a JAX array
+    compiles a slice for every distinct block length."""
     n = arrays[0].shape[0]
+    concrete = all(isinstance(a, np.ndarray) for a in arrays)
+    xp = np if concrete else jnp
     outs = []
     for s, e, size in _blocks(n, rows):
-        outs.append(fn(*(_pad_rows(a[s:e], size) for a in arrays))[: e - s])
+        out = fn(*(_pad_rows(a[s:e], size) for a in arrays))
+        outs.append((np.asarray(out) if concrete else out)[: e - s])
     if not outs:
-        return jnp.zeros((0,), arrays[0].dtype)
-    return outs[0] if len(outs) == 1 else jnp.concatenate(outs)
+        return xp.zeros((0,), arrays[0].dtype)
+    return outs[0] if len(outs) == 1 else xp.concatenate(outs)
 
 
 def _dense_rows(offsets: np.ndarray, idx: np.ndarray, cap: int) -> tuple[np.ndarray, np.ndarray]:
