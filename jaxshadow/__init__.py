@@ -7,6 +7,8 @@ Mitsuba 3 bridge used as independent ground truth. See DESIGN.md for the convent
 from importlib.metadata import PackageNotFoundError, version
 
 from ._clip import visible_form_factor as visible_form_factor
+from ._illumination import IlluminationMesh as IlluminationMesh
+from ._illumination import illumination_mesh as illumination_mesh
 from ._linear import linear_irradiance as linear_irradiance
 from ._mesh import Mesh as Mesh
 from ._polygon import form_factor as form_factor

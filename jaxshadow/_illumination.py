@@ -50,6 +50,7 @@ SEGMENT_SAMPLES_PER_TILE = 16  # visibility samples per tile length along a disc
 JAX_GRADIENT_MAX_FACES = 16
 ON_LINE_STEP = 1e-9
 GRID_SHIFT = (np.sqrt(2.0) - 1) / 10
+MAX_ROUNDS = 200  # refinement rounds per tile (each halves the worst elements; a guard)
 _DEBUG = False  # progress prints (development)
 _INNER = np.array([[0.5, 0.0, 0.0], [0.0, 0.5, 0.0], [0.0, 0.0, 0.5]]) + 0.5 / 3  # between centroid and corners
 
@@ -209,9 +210,11 @@ def _tiles(poly: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> tuple[np.ndarray
     return gp, tiles
 
 
-def _triangulate(v: np.ndarray, s: np.ndarray, m: np.ndarray) -> dict:
+def _triangulate(v: np.ndarray, s: np.ndarray, m: np.ndarray) -> tuple[dict, bool]:
     """Constrained Delaunay triangulation of a PSLG (Triangle, no Steiner points on the boundary).
-    Exact duplicate vertices are merged first: Triangle's Python binding crashes on them."""
+    Exact duplicate vertices are merged first (Triangle's Python binding crashes on them). If
+    Triangle rejects the internal segments (nearly collinear ones it cannot split consistently),
+    they are dropped and their vertices kept: `(mesh, dropped)`."""
     import triangle
 
     uniq, first, inv = np.unique(v, axis=0, return_index=True, return_inverse=True)
@@ -222,10 +225,64 @@ def _triangulate(v: np.ndarray, s: np.ndarray, m: np.ndarray) -> dict:
     s2 = rank[inv.ravel()][s]
     keep = s2[:, 0] != s2[:, 1]
     s2, m2 = s2[keep], m[keep]
-    key = np.sort(s2, axis=1)
-    _, one = np.unique(key, axis=0, return_index=True)
+    _, one = np.unique(np.sort(s2, axis=1), axis=0, return_index=True)
     one = np.sort(one)
-    return triangle.triangulate({"vertices": v2, "segments": s2[one], "segment_markers": m2[one][:, None]}, "pYQ")
+    s2, m2 = s2[one], m2[one]
+    try:
+        return triangle.triangulate({"vertices": v2, "segments": s2, "segment_markers": m2[:, None]}, "pYQ"), False
+    except RuntimeError:
+        b = m2 == 1
+        return triangle.triangulate({"vertices": v2, "segments": s2[b], "segment_markers": m2[b][:, None]}, "pYQ"), True
+
+
+def _split_at(v: np.ndarray, s: np.ndarray, m: np.ndarray, idx: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """Split internal segments (marker 0) at the vertices `idx` that lie on them (within `tol`,
+    not at their ends): Triangle keeps a vertex that is off a segment by round-off as a separate
+    point and fills the gap with zero-area triangles."""
+    if idx.size == 0 or s.size == 0:
+        return s, m
+    inner = np.nonzero(m == 0)[0]
+    if inner.size == 0:
+        return s, m
+    a, b = v[s[inner, 0]], v[s[inner, 1]]
+    d = b - a
+    ll = np.maximum(np.sum(d * d, axis=1), 1e-300)
+    q = v[idx]
+    t = np.einsum("skj,sj->sk", q[None, :, :] - a[:, None, :], d) / ll[:, None]  # (S, k)
+    foot = a[:, None, :] + t[..., None] * d[:, None, :]
+    dist = np.linalg.norm(foot - q[None], axis=2)
+    on = (dist <= tol) & (t > 0) & (t < 1)
+    on &= (idx[None, :] != s[inner, 0][:, None]) & (idx[None, :] != s[inner, 1][:, None])
+    if not np.any(on):
+        return s, m
+    out_s, out_m = [row for row in s[m != 0]], list(m[m != 0])
+    for r, si in enumerate(inner):
+        hit = np.nonzero(on[r])[0]
+        chain = [s[si, 0]] + [int(idx[h]) for h in hit[np.argsort(t[r, hit])]] + [s[si, 1]]
+        for i, j in zip(chain[:-1], chain[1:], strict=True):
+            out_s.append(np.array([i, j]))
+            out_m.append(0)
+    return np.array(out_s).reshape(-1, 2), np.array(out_m)
+
+
+def _noded(lines: list[tuple[np.ndarray, np.ndarray]]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Segments split where they cross or overlap (GEOS noding through shapely), duplicates
+    dropped: collinear overlapping discontinuity lines (parallel occluder and light edges make
+    them) would otherwise have Triangle split nearly collinear segments against each other."""
+    if len(lines) < 2:
+        return lines
+    import shapely
+
+    noded = shapely.node(shapely.MultiLineString([np.stack(ln) for ln in lines]))
+    out, seen = [], set()
+    for g in shapely.get_parts(noded):
+        c = np.asarray(shapely.get_coordinates(g))
+        for a, b in zip(c[:-1], c[1:], strict=True):
+            key = tuple(sorted([tuple(a.tolist()), tuple(b.tolist())]))
+            if key not in seen and key[0] != key[1]:
+                seen.add(key)
+                out.append((a, b))
+    return out
 
 
 def _edge_kinds(edge_ij: np.ndarray, segs: np.ndarray, marks: np.ndarray, n: int) -> np.ndarray:
@@ -578,14 +635,22 @@ class _Builder:
                 verts.append(p)
             return index[key]
 
+        lines = []
         for k, (p0, p1) in enumerate(t.pieces):
             ts = sorted(t.piece_extrema.get(k, []))
             chain = [p0] + [p0 + tk * (p1 - p0) for tk in ts] + [p1]
-            for q0, q1 in zip(chain[:-1], chain[1:], strict=True):
-                i, j = vid(q0), vid(q1)
-                if i != j:
-                    segs.append([i, j])
-                    marks.append(0)
+            lines.extend(zip(chain[:-1], chain[1:], strict=True))
+        bverts = np.array(verts)
+        snap = 1e-10 * self.diam
+        for q0, q1 in _noded(lines):
+            ends = []
+            for q in (q0, q1):
+                d = np.abs(bverts - q).max(axis=1)
+                j = int(np.argmin(d))
+                ends.append(j if d[j] <= snap else vid(q))
+            if ends[0] != ends[1]:
+                segs.append(ends)
+                marks.append(0)
         for p in t.extrema:
             vid(p)
         return np.array(verts), np.array(segs), np.array(marks)
@@ -593,11 +658,14 @@ class _Builder:
     def _refine_tiles(self, tile_ids: list[int]) -> None:
         thr = self._threshold()
         state = {}
+        on_tol = 1e-11 * self.diam
         for ti in tile_ids:
             v, s, m = self._tile_pslg(self.tiles[ti])
+            s, m = _split_at(v, s, m, np.arange(v.shape[0]), on_tol)
             state[ti] = (v, s, m)
         active = list(tile_ids)
         rounds = 0
+        tried: dict[int, set] = {}
         while active:
             rounds += 1
             if _DEBUG:
@@ -606,7 +674,8 @@ class _Builder:
             probes = []
             for ti in active:
                 v, s, m = state[ti]
-                out = _triangulate(v, s, m)
+                out, dropped = _triangulate(v, s, m)
+                self.stats["cdt_fallbacks"] = self.stats.get("cdt_fallbacks", 0) + int(dropped)
                 tv, tt = out["vertices"], out["triangles"]
                 meshes[ti] = out
                 inner_seg = out["segments"][out["segment_markers"].ravel() == 0]
@@ -659,14 +728,24 @@ class _Builder:
                 edge_of = edge_ij[bad][np.arange(worst.size), np.minimum(worst, 2)]
                 nv = tv.shape[0]
                 add: dict[tuple[float, float], int] = {}
+                seen = tried.setdefault(ti, set())
                 for p, oe, (i, j), kd in zip(newp, on_edge, edge_of.tolist(),
                                              kind[bad][np.arange(worst.size), np.minimum(worst, 2)], strict=True):
                     key = (float(p[0]), float(p[1]))
-                    if key in add:
+                    if key in add or key in seen:  # inserted before and not kept by Triangle
+                        if _DEBUG and key in seen and key not in add:
+                            import pickle
+                            with open(f"/tmp/stuck_{ti}.pkl", "wb") as fh:
+                                pickle.dump((state[ti], key, tv, tt, segs, smark), fh)
                         continue
+                    seen.add(key)
                     add[key] = nv + len(add)
                     if oe and kd == 0:
                         seg_split[(min(i, j), max(i, j))] = add[key]
+                if not add or rounds >= MAX_ROUNDS:
+                    t.verts, t.tris, t.values = tv, tt, ve
+                    t.error = float(err.max())
+                    continue
                 new_v = np.concatenate([tv, np.array(list(add), np.float64).reshape(-1, 2)])
                 new_s, new_m = [], []
                 for (i, j), mk in zip(segs.tolist(), smark.tolist(), strict=True):
@@ -677,7 +756,8 @@ class _Builder:
                     else:
                         new_s.extend([[i, mid], [mid, j]])
                         new_m.extend([mk, mk])
-                state[ti] = (new_v, np.array(new_s), np.array(new_m))
+                new_s2, new_m2 = _split_at(new_v, np.array(new_s), np.array(new_m), np.arange(nv, new_v.shape[0]), on_tol)
+                state[ti] = (new_v, new_s2, new_m2)
                 nxt.append(ti)
             active = nxt
         self.stats["rounds"] = max(self.stats.get("rounds", 0), rounds)

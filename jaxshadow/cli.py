@@ -9,6 +9,8 @@
   with progress.
 - `jaxshadow fit SCENE TARGETS -o FITTED`: fit material (and optionally a light) to painted
   targets.
+- `jaxshadow mesh SCENE -o OUT.ply --tol 1e-3 [--receiver R]`: adaptive illumination mesh of a
+  receiver polygon (exact irradiance at the vertices), as PLY or glTF.
 """
 
 from __future__ import annotations
@@ -234,6 +236,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="with --light and occluders: where the soft-shadow kernel's combinatorics run "
                         "(auto: host on the CPU when the compiled kernel is built; see fit_light)")
     p.set_defaults(func=cmd_fit)
+    from ._illumination_io import add_mesh_parser
+
+    add_mesh_parser(sub)
     args = parser.parse_args(argv)
     if not args.no_compile_cache:
         enable_compile_cache(args.compile_cache)
