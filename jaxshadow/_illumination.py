@@ -496,8 +496,8 @@ class _Builder:
                     signs.append(sgn)
                     los.append(t.lo)
                     his.append(t.hi)
+        vg = self._value_and_gradient()
         if starts:
-            vg = self._value_and_gradient()
             x, val, interior = ex.ascend(self.eval.luminance, vg, np.array(starts), np.array(los), np.array(his),
                                          np.array(signs), np.full(len(starts), 1e-7 * self.tile_size))
             found: dict[int, list[np.ndarray]] = {}
@@ -866,20 +866,11 @@ class IlluminationMesh:
     def interpolate(self, points: Any) -> np.ndarray:
         """Linear interpolation of the vertex irradiance at `points (N, 3)` on a single-polygon
         receiver (projected onto its plane): `(N, 3)`, NaN outside the receiver."""
-        from matplotlib.tri import LinearTriInterpolator, Triangulation
-
         if len(self._builders) != 1:
             raise ValueError("IlluminationMesh.interpolate: only for a single receiver polygon.")
         b = self._builders[0]
-        xy = b.frame.to2d(self.vertices)
-        q = b.frame.to2d(np.asarray(points, np.float64).reshape(-1, 3))
-        tri = Triangulation(xy[:, 0], xy[:, 1], self.triangles)
-        finder = tri.get_trifinder()
-        out = np.empty((q.shape[0], 3))
-        for c in range(3):
-            val = LinearTriInterpolator(tri, self.irradiance[:, c], trifinder=finder)(q[:, 0], q[:, 1])
-            out[:, c] = np.ma.filled(val.astype(np.float64), np.nan)
-        return out
+        return _interpolate(b.frame.to2d(self.vertices), self.triangles, self.irradiance,
+                            b.frame.to2d(np.asarray(points, np.float64).reshape(-1, 3)))
 
     def update(self, scene: Scene) -> IlluminationMesh:
         """The mesh of the same receiver in `scene`, where only occluders changed (moved, added or
@@ -911,6 +902,51 @@ class IlluminationMesh:
         from ._illumination_io import save_mesh
 
         save_mesh(self, path)
+
+
+def _interpolate(xy: np.ndarray, tris: np.ndarray, values: np.ndarray, q: np.ndarray, bins: int = 64) -> np.ndarray:
+    """Piecewise-linear interpolation on a 2-D triangle mesh at points `q (N, 2)` (NaN outside):
+    triangles binned by their bounding boxes on a grid, barycentric tests per bin."""
+    out = np.full((q.shape[0], values.shape[1]), np.nan)
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    cell = (hi - lo) / bins * (1 + 1e-12) + 1e-300
+    c = xy[tris]
+    tlo = np.floor((c.min(axis=1) - lo) / cell).astype(int).clip(0, bins - 1)
+    thi = np.floor((c.max(axis=1) - lo) / cell).astype(int).clip(0, bins - 1)
+    qb = np.floor((q - lo) / cell).astype(int)
+    inside = np.all((qb >= 0) & (qb < bins), axis=1)
+    members: dict[int, list[int]] = {}
+    for t in range(tris.shape[0]):
+        for i in range(tlo[t, 0], thi[t, 0] + 1):
+            for j in range(tlo[t, 1], thi[t, 1] + 1):
+                members.setdefault(i * bins + j, []).append(t)
+    key = np.where(inside, qb[:, 0] * bins + qb[:, 1], -1)
+    order = np.argsort(key, kind="stable")
+    ks, starts = np.unique(key[order], return_index=True)
+    ends = np.append(starts[1:], order.size)
+    for k, a, e in zip(ks, starts, ends, strict=True):
+        if k < 0 or k not in members:
+            continue
+        qi = order[a:e]
+        ts = np.array(members[k])
+        p0, p1, p2 = c[ts, 0], c[ts, 1], c[ts, 2]
+        det = (p1[:, 0] - p0[:, 0]) * (p2[:, 1] - p0[:, 1]) - (p2[:, 0] - p0[:, 0]) * (p1[:, 1] - p0[:, 1])
+        ok = np.abs(det) > 0
+        ts, p0, p1, p2, det = ts[ok], p0[ok], p1[ok], p2[ok], det[ok]
+        d = q[qi][:, None, :] - p0[None]
+        l1 = (d[..., 0] * (p2[:, 1] - p0[:, 1]) - d[..., 1] * (p2[:, 0] - p0[:, 0])) / det
+        l2 = ((p1[:, 0] - p0[:, 0]) * d[..., 1] - (p1[:, 1] - p0[:, 1]) * d[..., 0]) / det
+        l0 = 1 - l1 - l2
+        eps = 1e-12
+        hit = (l0 >= -eps) & (l1 >= -eps) & (l2 >= -eps)
+        any_hit = hit.any(axis=1)
+        first = np.argmax(hit, axis=1)
+        r = np.arange(qi.size)
+        tt = tris[ts[first]]
+        val = (l0[r, first, None] * values[tt[:, 0]] + l1[r, first, None] * values[tt[:, 1]]
+               + l2[r, first, None] * values[tt[:, 2]])
+        out[qi[any_hit]] = val[any_hit]
+    return out
 
 
 def _same_lights(a: Scene, b: Scene) -> bool:

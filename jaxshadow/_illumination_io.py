@@ -116,7 +116,7 @@ def mesh_command(args: argparse.Namespace) -> int:
         raise FileNotFoundError(f"-o {out}: directory {directory} does not exist.")
     scene = js.load_scene(args.scene)
     receiver = parse_receiver(args.receiver) if args.receiver else default_receiver(scene)
-    mesh = js.illumination_mesh(scene, receiver, args.tol, max_vertices=args.max_vertices)
+    mesh = js.illumination_mesh(scene, receiver, args.tol, max_vertices=args.max_vertices, tile_size=args.tile_size)
     mesh.save(out)
     print(f"{mesh.vertices.shape[0]} vertices, {mesh.triangles.shape[0]} triangles, checked error "
           f"{mesh.max_error_estimate:.3g} of the maximum {mesh.scale:.4g} W/m^2 (tol {args.tol:g}), "
@@ -136,6 +136,8 @@ def add_mesh_parser(sub: Any) -> None:
                    help="receiver polygon: a JSON file with a list of [x, y, z] vertices or 'x,y,z; x,y,z; ...' "
                         "(counter-clockwise seen from its lit side; default: the floor z = 0 under the scene)")
     p.add_argument("--max-vertices", type=int, default=2_000_000, help="stop refining at this many vertices")
+    p.add_argument("--tile-size", type=float, default=None,
+                   help="side of the tiles the receiver is meshed in (m; default 1/16 of its extent)")
     p.set_defaults(func=mesh_command)
 
 

@@ -37,6 +37,18 @@ def exact(scene, pts):
     return np.asarray(js.irradiance(scene, pts, np.tile(UP, (pts.shape[0], 1))))
 
 
+def device(scene, pts, rows=256):
+    """pi L F from the device kernel `js.visible_form_factor` (one light of radiance 10), in
+    blocks of `rows` (one compilation)."""
+    out = []
+    for s in range(0, pts.shape[0], rows):
+        blk = pts[s:s + rows]
+        pad = np.concatenate([blk, np.repeat(blk[:1], rows - blk.shape[0], axis=0)])
+        f = js.visible_form_factor(pad, np.tile(UP, (rows, 1)), scene.lights[0].vertices, scene.occluders)
+        out.append(np.pi * 10.0 * np.asarray(f)[: blk.shape[0]])
+    return np.concatenate(out)
+
+
 @pytest.fixture(scope="module")
 def mesh():
     return js.illumination_mesh(two_occluders(), FLOOR, TOL, tile_size=TILE, gradient="differences")
@@ -59,10 +71,8 @@ def test_interpolation_within_tol_on_a_dense_exact_grid(mesh):
 def test_vertex_values_match_the_device_kernel(mesh):
     rng = np.random.default_rng(0)
     idx = rng.choice(mesh.vertices.shape[0], 256, replace=False)
-    p = mesh.vertices[idx]
-    scene = two_occluders()
-    f = np.asarray(js.visible_form_factor(p, np.tile(UP, (p.shape[0], 1)), scene.lights[0].vertices, scene.occluders))
-    np.testing.assert_allclose(mesh.irradiance[idx], np.pi * 10.0 * f[:, None] * np.ones(3), rtol=0, atol=1e-7)
+    ref = device(two_occluders(), mesh.vertices[idx])
+    np.testing.assert_allclose(mesh.irradiance[idx], ref[:, None] * np.ones(3), rtol=0, atol=1e-7)
 
 
 def _on_an_edge(mesh, q, tol=1e-9):
@@ -92,27 +102,29 @@ def test_discontinuity_lines_are_mesh_edges(mesh):
 
 
 def test_brightest_point_is_a_vertex(mesh):
-    # Independent search: a fine grid, then Nelder-Mead on the exact irradiance from its best
-    # points (the maximum sits on a kink of the umbra's neighbour, so several starts).
+    # Independent search: a grid, then Nelder-Mead on the device kernel's exact irradiance from
+    # its best points (the maximum sits on a kink next to a shadow, so several starts).
     from scipy.optimize import minimize
 
     scene = two_occluders()
-    pts = floor_grid(200, offset=0.0)
+    pts = floor_grid(100, offset=0.0)
     e = exact(scene, pts).max(axis=1)
     best = -np.inf
-    for i in np.argsort(e)[-4:]:
-        r = minimize(lambda x: -exact(scene, np.array([[x[0], x[1], 0.0]])).max(), pts[i, :2], method="Nelder-Mead",
-                     options={"xatol": 1e-10, "fatol": 1e-14, "maxiter": 400})
+    for i in np.argsort(e)[-3:]:
+        r = minimize(lambda x: -device(scene, np.array([[x[0], x[1], 0.0]]))[0], pts[i, :2], method="Nelder-Mead",
+                     options={"xatol": 1e-9, "fatol": 1e-14, "maxiter": 300})
         best = max(best, -r.fun)
-    assert mesh.irradiance.max() >= best * (1 - 1e-6)
+    assert best > e.max()
+    assert mesh.irradiance.max() >= best * (1 - 1e-7)
 
 
+@pytest.mark.slow
 def test_jax_gradient_extremum_unoccluded():
     # A light tilted and off-centre: the brightest floor point is an interior critical point,
     # found by BFGS on the exact gradient (jax.grad) and inserted as a vertex.
     from scipy.optimize import minimize
 
-    light = js.PolygonLight(np.array([[0.2, -0.2, 1.0], [0.3, 0.3, 1.3], [0.7, 0.3, 1.3], [0.6, -0.2, 1.0]])[::-1], 5.0)
+    light = js.PolygonLight(np.array([[0.2, -0.2, 1.0], [0.3, 0.3, 1.3], [0.7, 0.3, 1.3], [0.6, -0.2, 1.0]]), 5.0)
     scene = js.Scene([light])
     floor = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]])
     m = js.illumination_mesh(scene, floor, 2e-2, tile_size=1.0, gradient="jax")
@@ -194,13 +206,14 @@ def test_bad_input():
 def test_cli_mesh(tmp_path, capsys):
     from jaxshadow import cli
 
-    scene = js.Scene([js.PolygonLight(LIGHT, 10.0)], [OCC_HIGH])
+    scene = js.Scene([js.PolygonLight(LIGHT, 10.0)])
     path = tmp_path / "scene.json"
     js.save_scene(scene, path)
     rec = tmp_path / "floor.json"
     rec.write_text(json.dumps(FLOOR.tolist()))
     out = tmp_path / "floor.ply"
-    rc = cli.main(["--no-compile-cache", "mesh", str(path), "-o", str(out), "--tol", "2e-2", "--receiver", str(rec)])
+    rc = cli.main(["--no-compile-cache", "mesh", str(path), "-o", str(out), "--tol", "0.2", "--receiver", str(rec),
+                   "--tile-size", "3.0"])
     assert rc == 0 and out.exists()
     assert "vertices" in capsys.readouterr().out
     rc = cli.main(["--no-compile-cache", "mesh", str(path), "-o", str(tmp_path / "x.stl"), "--tol", "2e-2"])
