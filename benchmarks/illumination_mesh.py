@@ -73,7 +73,7 @@ def exact(scene, pts):
 
 def uniform_error(scene, floor, n, dense, ref, scale):
     """Max interpolation error (relative to `scale`) of an n x n vertex grid, and its time."""
-    from jaxshadow._illumination import _interpolate
+    from jaxshadow._illumination_pslg import _interpolate
 
     lo, hi = floor[:, :2].min(axis=0), floor[:, :2].max(axis=0)
     xs, ys = np.linspace(lo[0], hi[0], n), np.linspace(lo[1], hi[1], n)
