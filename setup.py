@@ -4,14 +4,14 @@
   hierarchy, receiver classification, the combinatorics of the visible region's boundary), loaded
   with ctypes and, where jaxlib's XLA FFI headers are found at build time (`jax.ffi.include_dir()`;
   jaxlib is a build requirement), also registered as an XLA FFI target.
-- `jaxshadow._clipc` (C, `jaxshadow/_clipc.c`): the host combinatorics of the culled soft-shadow
-  kernel used by light fits.
 
-Both are optional: without a compiler the package installs without them and uses its JAX (device)
-kernels, which are exact but slower for many occluders. IEEE arithmetic and no fused
-multiply-adds (`-ffp-contract=off`): the host decisions must round as NumPy's and XLA's do.
+It is optional: without a compiler the package installs without it and uses its JAX (device)
+kernels, which are exact but slower and need memory that grows with the square of the occluder
+count. IEEE arithmetic and no fused multiply-adds (`-ffp-contract=off`): the host decisions must
+round as NumPy's and XLA's do.
 """
 
+import glob
 import os
 
 from setuptools import Extension, setup
@@ -34,17 +34,11 @@ setup(
         Extension(
             "jaxshadow._shadowc",
             sources=["jaxshadow/_shadowc.cc"],
+            depends=sorted(glob.glob("jaxshadow/_shadowc/*.h")),
             include_dirs=_INC,
             define_macros=[("JAXSHADOW_FFI", "1")] if _INC else [],
-            extra_compile_args=["-std=c++17", *_FLAGS],
+            extra_compile_args=["-std=c++17", *_FLAGS, "-O3"],
             language="c++",
-            optional=True,
-        ),
-        Extension(
-            "jaxshadow._clipc",
-            sources=["jaxshadow/_clipc.c"],
-            depends=["jaxshadow/_clipc_body.h"],
-            extra_compile_args=["-std=c11", *_FLAGS],
             optional=True,
         ),
     ]

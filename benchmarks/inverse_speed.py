@@ -4,32 +4,30 @@ Targets (issue 5): compile <= 5 s, <= 200 ms per solve after compilation, 64 sta
 <= 8 occluders. Light placement (position, orientation, size: 8 parameters) on the demo
 configuration (quad light, 48 painted points, diffuse material) with 1 and 8 random occluders,
 timed end to end through `inverse.fit_light` (compile = first call - median later call):
-the default batched LM from 1 start, from 64 starts screened to the 8 best, from all 64 starts,
-and `solver="optimistix"` from 1 start. Then the material fit on 20 points with the roughness
-searched. Writes benchmarks/results/inverse_speed.json.
+`inverse.LM()` from 1 start, from 64 starts screened to the 8 best, from all 64 starts, with
+every receiver against every occluder (`combinatorics="device"`) instead of the shadow engine, and `inverse.OptimistixLM()` from 1 start; a fresh process's first call
+without and with the persistent compilation cache. Then the material fit on 20 points with the
+roughness searched and fixed.
 
-    .venv/bin/python benchmarks/inverse_speed.py [--occluders 1 8] [--repeats 3] [--no-optimistix]
+    python -m benchmarks inverse_speed [--quick]     # ~15 min on 2 shared cores
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
-import platform
 import sys
 import time
 
 import jax
+import jax.numpy as jnp
+import numpy as np
 
-jax.config.update("jax_enable_x64", True)
+import inverse
+from inverse._forward import shade
+from inverse._scenes import demo_configuration, occluded_light_problem, pose_errors
 
-import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
-
-import inverse  # noqa: E402
-from inverse._forward import shade  # noqa: E402
-from inverse._scenes import demo_configuration, occluded_light_problem, pose_errors  # noqa: E402
+DESCRIPTION = "inverse solvers: light-placement compile / solve times (1, 64 -> 8, 64 starts), material fit"
 
 
 def _block(x):
@@ -66,81 +64,52 @@ def _child(n_occ, cache_dir):
     print(json.dumps({"first_call_s": time.perf_counter() - t0}))
 
 
-def _process_first_calls(n_occ, xla_defaults=False):
+def _process_first_calls(n_occ):
     """First-call time of a fresh process without, then with, a warm persistent cache."""
     import subprocess
     import tempfile
 
     out = []
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     with tempfile.TemporaryDirectory() as d:
         for _ in range(2):
-            r = subprocess.run([sys.executable, __file__, "--child", str(n_occ), d] + (["xla-defaults"] if xla_defaults else []),
-                               capture_output=True, text=True,
-                               check=True)
+            r = subprocess.run([sys.executable, "-m", "benchmarks.inverse_speed", str(n_occ), d],
+                               capture_output=True, text=True, check=True, cwd=root)
             out.append(json.loads(r.stdout.strip().splitlines()[-1])["first_call_s"])
     return {"cold_process_first_call_s": out[0], "warm_cache_process_first_call_s": out[1]}
 
 
-def _use_xla_defaults():
-    """Compile the fit programs with XLA's defaults (`fit_jit` reads the options at its first call)."""
-    from inverse import _lm
-
-    _lm.FIT_COMPILER_OPTIONS = {}
-
-
-def main():
-    if len(sys.argv) in (4, 5) and sys.argv[1] == "--child":
-        if sys.argv[4:] == ["xla-defaults"]:
-            _use_xla_defaults()
-        _child(int(sys.argv[2]), sys.argv[3])
-        return
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--occluders", type=int, nargs="+", default=[1, 8])
-    ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--full-repeats", type=int, default=1, help="repeats of the (slow) full 64-start solve")
-    ap.add_argument("--no-optimistix", action="store_true", help="skip the optimistix comparison")
-    ap.add_argument("--no-full", action="store_true", help="skip the (slow) LM from all 64 starts")
-    ap.add_argument("--no-material", action="store_true", help="skip the material-fit timings")
-    ap.add_argument("--xla-defaults", action="store_true",
-                    help="compile the fit programs with XLA's default options instead of "
-                         "inverse._lm.FIT_COMPILER_OPTIONS (the A/B of that choice)")
-    ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "inverse_speed.json"))
-    args = ap.parse_args()
-    if args.xla_defaults:
-        _use_xla_defaults()
+def run(quick: bool) -> dict:
+    jax.config.update("jax_enable_x64", True)
     from inverse._lm import FIT_COMPILER_OPTIONS
 
-    results = {"machine": platform.platform(), "cpu_count": os.cpu_count(), "jax": jax.__version__,
-               "fit_compiler_options": dict(FIT_COMPILER_OPTIONS),
-               "backend": jax.default_backend(), "targets": 48, "dtype": "float64",
-               "load_average_at_start": os.getloadavg(), "light": {}}
-    cases = [("lm", 1, None, args.repeats, False), ("lm", 64, 8, args.repeats, False)]
-    if not args.no_full:
-        cases.append(("lm", 64, None, args.full_repeats, False))
-    cases += [("lm", 1, None, args.repeats, True), ("lm", 64, 8, args.repeats, True)]
-    if not args.no_optimistix:
-        cases.append(("optimistix", 1, None, args.repeats, False))
-    for n_occ in args.occluders:
+    occluders, repeats = ([1], 1) if quick else ([1, 8], 3)
+    results = {"fit_compiler_options": dict(FIT_COMPILER_OPTIONS), "backend": jax.default_backend(), "targets": 48,
+               "dtype": "float64", "light": {}}
+    # (solver, starts, refine, repeats, every receiver against every occluder)
+    cases = [("lm", 1, None, repeats, False), ("lm", 64, 8, repeats, False)]
+    if not quick:
+        cases += [("lm", 64, None, 1, False), ("lm", 1, None, repeats, True),
+                  ("optimistix", 1, None, repeats, False)]
+    for n_occ in occluders:
         scene, start, material, targets = _light_problem(n_occ)
         true = np.asarray(scene.lights[0].vertices)
         for solver, starts, refine, reps, groups in cases:
-            if groups and n_occ < 4:
-                continue  # no culling, nothing to group
             fits = []
+            obj = (inverse.LM(refine=refine, combinatorics="device" if groups else "auto") if solver == "lm"
+                   else inverse.OptimistixLM(refine=refine))
 
-            def call(problem=(start, targets, material), solver=solver, starts=starts, refine=refine, fits=fits,
-                     groups=groups):
-                fits.append(inverse.fit_light(*problem, starts=starts, refine=refine, solver=solver,
-                                              receiver_groups=groups))
+            def call(problem=(start, targets, material), obj=obj, starts=starts, fits=fits):
+                fits.append(inverse.fit_light(*problem, starts=starts, solver=obj))
                 return fits[-1].light.vertices
 
             first, med, runs = _timed(call, reps)
             fit = fits[-1]
             err = pose_errors(np.asarray(fit.light.vertices), true)
             key = (f"{solver}/occluders={n_occ}/starts={starts}" + (f"/refine={refine}" if refine else "")
-                   + ("/receiver_groups" if groups else ""))
+                   + ("/device" if groups else ""))
             results["light"][key] = {
-                "solver": solver, "occluders": n_occ, "starts": starts, "refine": refine, "receiver_groups": groups,
+                "solver": solver, "occluders": n_occ, "starts": starts, "refine": refine, "device": groups,
                 "abandoned_starts": int(np.count_nonzero(fit.report.abandoned)) if fit.report.abandoned is not None
                 else 0,
                 "first_call_s": first, "compile_s": first - med, "solve_s": med, "runs_s": runs,
@@ -148,37 +117,43 @@ def main():
                 "position_error_rel": err["position"] / fit.report.scale, "orientation_deg": err["orientation_deg"],
                 "warnings": list(fit.report.warnings),
             }
-            print(f"{key:45s} compile {first - med:7.2f} s  solve {1e3 * med:9.1f} ms  "
-                  f"steps {int(np.max(fit.report.num_steps)):3d}  pos err {err['position'] / fit.report.scale:.1e}",
-                  flush=True)
-        results["light"][f"lm/occluders={n_occ}/process_first_call"] = pc = _process_first_calls(n_occ, args.xla_defaults)
-        print(f"fresh process, 1 start, {n_occ} occluder(s): first call {pc['cold_process_first_call_s']:.1f} s "
-              f"without, {pc['warm_cache_process_first_call_s']:.1f} s with a warm compilation cache", flush=True)
-    if args.no_material:
-        _write(results, args.out)
-        return
+            print(f"{key:45s} compile {first - med:7.2f} s  solve {1e3 * med:9.1f} ms", flush=True)
+        results["light"][f"lm/occluders={n_occ}/process_first_call"] = _process_first_calls(n_occ)
     # Material fit (roughness searched): whole call, after a warm-up call.
     mcfg = demo_configuration(occluders=False, n_points=20, seed=0)
     mcol = np.asarray(shade(mcfg.scene, mcfg.material, jnp.asarray(mcfg.points), jnp.asarray(mcfg.normals),
                             jnp.asarray(np.broadcast_to(mcfg.eye, (20, 3)))))
     mt = inverse.PaintedTargets(mcfg.points, mcfg.normals, mcol, mcfg.eye)
-    first, med, runs = _timed(lambda: inverse.fit_material(mcfg.scene, mt).material.kd, args.repeats)
-    results["material_fit_n_searched"] = {"first_call_s": first, "compile_s": first - med, "solve_s": med,
-                                          "runs_s": runs}
-    print(f"material fit (n searched): first call {first:6.2f} s, solve {1e3 * med:8.1f} ms")
-    first, med, runs = _timed(lambda: inverse.fit_material(mcfg.scene, mt, exponent=30.0).material.kd,
-                              args.repeats)
-    results["material_fit_n_fixed"] = {"first_call_s": first, "compile_s": first - med, "solve_s": med,
-                                       "runs_s": runs}
-    print(f"material fit (n fixed):    first call {first:6.2f} s, solve {1e3 * med:8.1f} ms")
-    _write(results, args.out)
+    for key, kw in (("material_fit_n_searched", {}), ("material_fit_n_fixed", {"exponent": 30.0})):
+        first, med, runs = _timed(lambda kw=kw: inverse.fit_material(mcfg.scene, mt, **kw).material.kd, repeats)
+        results[key] = {"first_call_s": first, "compile_s": first - med, "solve_s": med, "runs_s": runs}
+    results["targets_s"] = {"compile": 5.0, "solve": 0.2, "starts_64": 2.0}
+    return results
+
+
+def markdown(results):
+    return _markdown(results)
+
+
+def key_numbers(results: dict) -> list[tuple[str, str]]:
+    light = results["light"]
+    occ = sorted({r["occluders"] for r in light.values() if "solver" in r})
+
+    def cell(key: str) -> str:
+        parts = [light.get(f"lm/occluders={n}/{key}") for n in occ]
+        return " / ".join(f"{r['compile_s']:.1f} s + {r['solve_s'] * 1e3:.0f} ms" if r else "-" for r in parts)
+
+    first = " / ".join(f"{light[f'lm/occluders={n}/process_first_call']['cold_process_first_call_s']:.1f} s"
+                       for n in occ if f"lm/occluders={n}/process_first_call" in light)
+    which = " / ".join(str(n) for n in occ)
+    return [(f"light placement (8 parameters, 48 targets), `inverse.LM()`, {which} occluders: compile + solve",
+             f"1 start {cell('starts=1')}; 64 starts screened to 8 (default) {cell('starts=64/refine=8')}; "
+             f"a fresh process's first call {first}")]
 
 
 def _markdown(results):
     lines = [
-        f"Run: `benchmarks/inverse_speed.py` on {results['machine']} ({results['cpu_count']} cores), jax "
-        f"{results['jax']}, float64, 48 targets, 8 light parameters; load average at start "
-        f"{results['load_average_at_start'][0]:.1f}; fit programs compiled with "
+        "float64, 48 targets, 8 light parameters; fit programs compiled with "
         f"{results.get('fit_compiler_options') or 'XLA defaults'}.",
         "",
         "| solver | occluders | starts | compile (s) | solve (ms) | max LM steps | abandoned | position error / scene |",
@@ -188,7 +163,7 @@ def _markdown(results):
         if "cold_process_first_call_s" in r:
             continue
         starts = f"{r['starts']}" + (f" -> best {r['refine']}" if r["refine"] else "")
-        solver = r["solver"] + (", receiver_groups" if r.get("receiver_groups") else "")
+        solver = r["solver"] + (", device" if r.get("device") else "") + (", receiver_groups" if r.get("receiver_groups") else "")
         lines.append(f"| {solver} | {r['occluders']} | {starts} | {r['compile_s']:.1f} | {1e3 * r['solve_s']:.0f} | "
                      f"{r['max_steps_taken']} | {r.get('abandoned_starts', 0)} | {r['position_error_rel']:.1e} |")
     for key, label in (("material_fit_n_searched", "material fit, n searched (20 points)"),
@@ -206,16 +181,7 @@ def _markdown(results):
     return "\n".join(lines) + "\n"
 
 
-def _write(results, out):
-    results["targets_s"] = {"compile": 5.0, "solve": 0.2, "starts_64": 2.0}
-    os.makedirs(os.path.dirname(out), exist_ok=True)
-    with open(out, "w") as fh:
-        json.dump(results, fh, indent=1)
-    md = os.path.splitext(out)[0] + ".md"
-    with open(md, "w") as fh:
-        fh.write(_markdown(results))
-    print("wrote", out, "and", md)
-
-
 if __name__ == "__main__":
-    main()
+    # A fresh process's first call, for `_process_first_calls`: N_OCCLUDERS CACHE_DIR.
+    jax.config.update("jax_enable_x64", True)
+    _child(int(sys.argv[1]), sys.argv[2])

@@ -21,36 +21,22 @@ after a warm-up, `block_until_ready`; compile time (first call minus a warm call
 target (else not reached); Mitsuba, from fits err = C spp^(-1/2) (least squares in log space,
 slope fixed) and time = a + b spp, extrapolated beyond the largest measured spp (flagged).
 
-Writes benchmarks/results/shadow_error_vs_time.json and .png. Run:
-
-    .venv/bin/python benchmarks/shadow_error_vs_time.py           # ~2-4 min on 2 busy cores
-    .venv/bin/python benchmarks/shadow_error_vs_time.py --quick   # smoke run
+    python -m benchmarks shadow_error_vs_time [--quick]    # needs the mitsuba extra
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
-import pathlib
-import platform
 import time
 
 import jax
+import jax.numpy as jnp
+import numpy as np
 
-jax.config.update("jax_enable_x64", True)
+import jaxshadow as js
+from jaxshadow._clip import visible_form_factor
 
-import jax.numpy as jnp  # noqa: E402
-import matplotlib  # noqa: E402
-import numpy as np  # noqa: E402
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-
-import jaxshadow as js  # noqa: E402
-from jaxshadow._clip import visible_form_factor  # noqa: E402
-
-RESULTS = pathlib.Path(__file__).parent / "results"
+DESCRIPTION = "exact soft shadows (clipping, spline equation) against Mitsuba Monte Carlo: error vs run time"
 EMITTER = np.array([[0.0, 0.0, 2.0], [0.0, 1.0, 2.0], [1.0, 1.0, 2.0], [1.0, 0.0, 2.0]])  # faces -z
 OCCLUDER = np.array([[0.3, 0.3, 1.0], [0.7, 0.3, 1.0], [0.7, 0.7, 1.0], [0.3, 0.7, 1.0]])
 TARGETS = (1e-3, 1e-6)
@@ -219,14 +205,15 @@ def time_to_target(our_rows, mi_rows) -> dict:
     return out
 
 
-def plot(our_rows, mi_rows, path) -> None:
+def plot(results: dict, path) -> None:
+    import matplotlib.pyplot as plt
+
+    from ._suite import save_figure
+
+    our_rows, mi_rows = results["ours"], results["mitsuba"]
     fig, ax = plt.subplots(figsize=(7, 4.5))
-    ax.loglog(
-        [r["median_s"] for r in mi_rows],
-        [r["rel_rms_err"] for r in mi_rows],
-        "o-",
-        label="Mitsuba MC (spp sweep)",
-    )
+    ax.loglog([r["median_s"] for r in mi_rows], [r["rel_rms_err"] for r in mi_rows], "o-",
+              label="Mitsuba MC (spp sweep)")
     for r in mi_rows:
         ax.annotate(str(r["spp"]), (r["median_s"], r["rel_rms_err"]), fontsize=7)
     markers = {"float32": "s", "float64": "^"}
@@ -240,45 +227,52 @@ def plot(our_rows, mi_rows, path) -> None:
     ax.set_title("Penumbra receivers, 1 quad light, 1 occluder")
     ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path)
+    plt.close(fig)
 
 
-def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--quick", action="store_true")
-    ap.add_argument("--points", type=int, default=512)
-    args = ap.parse_args(argv)
-    n = 64 if args.quick else args.points
-    reps = 3 if args.quick else 7
-    spps = (16, 256) if args.quick else (16, 64, 256, 1024, 4096, 16384, 65536, 262144, 524288)
+def run(quick: bool) -> dict:
+    jax.config.update("jax_enable_x64", True)
+    n = 64 if quick else 512
+    reps = 3 if quick else 7
+    spps = (16, 256) if quick else (16, 64, 256, 1024, 4096, 16384, 65536, 262144, 524288)
     points = penumbra_points(n)
-    t_all = time.perf_counter()
-    print(f"{n} penumbra receivers", flush=True)
     our_rows, ref, check = ours(points, reps)
-    print(f"  reference check: rel RMS |clipping f64 - spline f64| = {check:.3g}", flush=True)
-    mi_rows = mitsuba(points, ref, spps, 2 if args.quick else 3)
-    summary = time_to_target(our_rows, mi_rows)
-    meta = dict(
-        points=n,
-        reps=reps,
-        machine=platform.machine(),
-        cpus=__import__("os").cpu_count(),
-        jax=jax.__version__,
-        backend=jax.default_backend(),
-        reference="clipping float64 (js.irradiance / pi)",
-        reference_check_rel_rms_vs_spline_f64=check,
-        wall_s=time.perf_counter() - t_all,
-        command="python benchmarks/shadow_error_vs_time.py" + (" --quick" if args.quick else ""),
-    )
-    suffix = "_quick" if args.quick else ""
-    RESULTS.mkdir(exist_ok=True)
-    out = {"meta": meta, "ours": our_rows, "mitsuba": mi_rows, "time_to_target": summary}
-    (RESULTS / f"shadow_error_vs_time{suffix}.json").write_text(
-        json.dumps(out, indent=1, default=float)
-    )
-    plot(our_rows, mi_rows, RESULTS / f"shadow_error_vs_time{suffix}.png")
-    print(json.dumps(summary, indent=1, default=float))
+    mi_rows = mitsuba(points, ref, spps, 2 if quick else 3)
+    config = dict(points=n, reps=reps, reference="clipping float64 (js.irradiance / pi)",
+                  reference_check_rel_rms_vs_spline_f64=check)
+    return {"config": config, "ours": our_rows, "mitsuba": mi_rows, "time_to_target": time_to_target(our_rows, mi_rows)}
 
 
-if __name__ == "__main__":
-    main()
+def markdown(results: dict) -> str:
+    c = results["config"]
+    lines = [f"{c['points']} penumbra receivers; error: relative RMS against {c['reference']} (which agrees with the "
+             f"spline equation in float64 to {c['reference_check_rel_rms_vs_spline_f64']:.1e}); time: median of "
+             f"{c['reps']} calls after compilation.", "",
+             "| method | dtype / spp | time (s) | relative RMS error |", "|---|---|---:|---:|"]
+    for r in results["ours"]:
+        lines.append(f"| {r['method']} | {r['dtype']} | {r['median_s']:.3g} | {r['rel_rms_err']:.1e} |")
+    for r in results["mitsuba"]:
+        lines.append(f"| Mitsuba MC | {r['spp']} spp | {r['median_s']:.3g} | {r['rel_rms_err']:.1e} |")
+    tt = results["time_to_target"]
+    lines += ["", "Time to reach an error target (Mitsuba: from err = C spp^-1/2 and time = a + b spp fitted above; "
+              "`extrapolated` beyond the largest spp measured):", "", "| target | method | time (s) | ours / Mitsuba |",
+              "|---|---|---:|---:|"]
+    for key in (f"{t:.0e}" for t in TARGETS):
+        mi = tt[key]["mitsuba"]
+        lines.append(f"| {key} | Mitsuba MC ({mi['spp']:.3g} spp{', extrapolated' if mi['extrapolated'] else ''}) | "
+                     f"{mi['seconds']:.3g} | |")
+        for name, r in tt[key].items():
+            if name != "mitsuba" and r["reached"]:
+                lines.append(f"| {key} | {name} | {r['seconds']:.3g} | {r['ratio_ours_over_mitsuba']:.1e} |")
+    return "\n".join(lines)
+
+
+def key_numbers(results: dict) -> list[tuple[str, str]]:
+    tt = results["time_to_target"]["1e-03"]
+    ours = {k: v for k, v in tt.items() if k != "mitsuba" and v["reached"] and k.startswith("clipping (js.irradiance)")}
+    best = min(ours.values(), key=lambda v: v["seconds"])
+    return [(f"soft shadows to 1e-3 relative RMS ({results['config']['points']} penumbra receivers), "
+             "`js.irradiance` vs Mitsuba Monte Carlo",
+             f"{best['seconds']:.3g} s vs {tt['mitsuba']['seconds']:.3g} s ({tt['mitsuba']['spp']:.2g} spp): "
+             f"{1 / best['ratio_ours_over_mitsuba']:.0f}x faster")]

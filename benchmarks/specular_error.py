@@ -10,42 +10,29 @@ Error metric: |S_cheb - S_exact| / max(S_exact, floor), the floor being 1e-3 of 
 that light kind and exponent over the configurations (so a highlight tail that is 1000 times
 dimmer than the highlight counts in absolute terms).
 
-Writes benchmarks/results/specular_error.json and .png. Run:
-
-    .venv/bin/python benchmarks/specular_error.py            # full table (a few minutes)
-    .venv/bin/python benchmarks/specular_error.py --quick    # smoke run
+    python -m benchmarks specular_error            # full table (a few minutes)
+    python -m benchmarks specular_error --quick    # smoke run
 """
 
 from __future__ import annotations
 
-import argparse
-import json
-import pathlib
-import platform
 import time
 from functools import partial
 
 import jax
+import jax.numpy as jnp
+import numpy as np
 
-jax.config.update("jax_enable_x64", True)
-
-import jax.numpy as jnp  # noqa: E402
-import matplotlib  # noqa: E402
-import numpy as np  # noqa: E402
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-
-from jaxshadow._specular import (  # noqa: E402
+from jaxshadow._specular import (
     DEFAULT_DEGREE,
     DEFAULT_TOL,
     polygon_specular_kernel,
     segment_specular_kernel,
 )
 
+DESCRIPTION = "Chebyshev specular integrals: error vs degree and vs run time, against the exact method"
 EXPONENTS = [1.0, 5.0, 20.0, 100.0, 1000.0, 10000.0]
 POULIN = (6, 1.0 / 250.0)
-RESULTS = pathlib.Path(__file__).parent / "results"
 
 
 def _mirror_eye(p, nrm, target, rng):
@@ -129,36 +116,28 @@ def timed(fn, args, repeat):
     return best
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--count", type=int, default=1024, help="configurations per light kind")
-    ap.add_argument("--repeat", type=int, default=15)
-    ap.add_argument("--quick", action="store_true", help="few degrees/configurations (smoke run)")
-    args = ap.parse_args()
+def run(quick: bool) -> dict:
+    jax.config.update("jax_enable_x64", True)
     degrees = [4, 6, 8, 10, 12, 14, 16, 20, 24]
     tols = [1.0 / 250.0, 1e-4, 1e-6, 1e-8]
-    if args.quick:
-        degrees, tols, args.count, args.repeat = (
-            [6, DEFAULT_DEGREE],
-            [POULIN[1], DEFAULT_TOL],
-            32,
-            2,
-        )
+    count, repeat = 1024, 15
+    if quick:
+        degrees, tols, count, repeat = [6, DEFAULT_DEGREE], [POULIN[1], DEFAULT_TOL], 32, 2
     settings = sorted(
         {(d, t) for d in degrees for t in tols} | {POULIN, (DEFAULT_DEGREE, DEFAULT_TOL)}
     )
 
     rng = np.random.default_rng(20240611)
     configs = {
-        "polygon": polygon_configs(rng, args.count),
-        "segment": segment_configs(rng, args.count),
+        "polygon": polygon_configs(rng, count),
+        "segment": segment_configs(rng, count),
     }
     rows = []
     for kind, cfg in configs.items():
         exact_fn = batched(kind, "exact", DEFAULT_DEGREE, DEFAULT_TOL)
         exact = {n: np.asarray(exact_fn(*cfg, jnp.asarray(n))) for n in EXPONENTS}
         floors = {n: 1e-3 * float(np.max(np.abs(exact[n]))) for n in EXPONENTS}
-        t_exact = timed(exact_fn, (*cfg, jnp.asarray(100.0)), args.repeat)
+        t_exact = timed(exact_fn, (*cfg, jnp.asarray(100.0)), repeat)
         order = [POULIN] + [st for st in settings if st != POULIN]
         fns, compile_s = {}, {}
         for st in order:
@@ -172,7 +151,7 @@ def main():
         times = {st: np.inf for st in order}
         for st in order:
             jax.block_until_ready(fns[st](*run_args))
-        for _ in range(args.repeat):
+        for _ in range(repeat):
             for st in order:
                 t0 = time.perf_counter()
                 jax.block_until_ready(fns[st](*run_args))
@@ -194,7 +173,7 @@ def main():
                     "max_rel_err": errs,
                     "worst_rel_err": max(errs.values()),
                     "time_s": t,
-                    "time_per_eval_us": 1e6 * t / args.count,
+                    "time_per_eval_us": 1e6 * t / count,
                     "time_ratio_vs_poulin_d6": t / base_time,
                     "compile_s": compile_s[(degree, tol)],
                 }
@@ -216,31 +195,31 @@ def main():
         )
 
     default = {"degree": DEFAULT_DEGREE, "tol": DEFAULT_TOL}
-    out = {
-        "description": __doc__.splitlines()[0],
+    return {
         "exponents": EXPONENTS,
-        "configurations_per_light": args.count,
+        "tols": tols,
+        "configurations_per_light": count,
         "poulin_setting": {"degree": POULIN[0], "tol": POULIN[1]},
         "default": default,
         "metric": "max over configurations of |S_cheb - S_exact| / max(S_exact, 1e-3 max S)",
         "timing": "best of repeat, one jit call on the whole batch at n = 100, float64, CPU",
-        "machine": platform.platform(),
-        "jax": jax.__version__,
         "rows": rows,
     }
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    stem = "specular_error_quick" if args.quick else "specular_error"
-    (RESULTS / f"{stem}.json").write_text(json.dumps(out, indent=1))
-    plot(rows, tols, RESULTS / f"{stem}.png")
 
 
-def plot(rows, tols, path):
+def plot(results: dict, path) -> None:
+    import matplotlib.pyplot as plt
+
+    from ._suite import save_figure
+
+    rows, tols = results["rows"], results["tols"]
+    default_tol = results["default"]["tol"]
     fig, axes = plt.subplots(2, 2, figsize=(11, 8.5))
     for col, kind in enumerate(["polygon", "segment"]):
         cheb = [r for r in rows if r["light"] == kind and "degree" in r]
         ax = axes[0, col]
         for n in EXPONENTS:
-            sel = sorted((r for r in cheb if r["tol"] == DEFAULT_TOL), key=lambda r: r["degree"])
+            sel = sorted((r for r in cheb if r["tol"] == default_tol), key=lambda r: r["degree"])
             ax.semilogy(
                 [r["degree"] for r in sel],
                 [r["max_rel_err"][str(int(n))] for r in sel],
@@ -249,7 +228,7 @@ def plot(rows, tols, path):
             )
         ax.axhline(1e-4, color="k", lw=0.8, ls=":")
         ax.set(
-            title=f"{kind}: error vs degree (tol={DEFAULT_TOL:g})",
+            title=f"{kind}: error vs degree (tol={default_tol:g})",
             xlabel="degree D",
             ylabel="max relative error",
         )
@@ -276,8 +255,39 @@ def plot(rows, tols, path):
         )
         ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, dpi=120)
+    plt.close(fig)
 
 
-if __name__ == "__main__":
-    main()
+def _setting(results: dict, kind: str, degree: int, tol: float) -> dict:
+    return next(r for r in results["rows"] if r["light"] == kind and r.get("degree") == degree and r.get("tol") == tol)
+
+
+def markdown(results: dict) -> str:
+    d, p = results["default"], results["poulin_setting"]
+    lines = [f"{results['metric']}; {results['configurations_per_light']} configurations per light; "
+             f"{results['timing']}. Time relative to Poulin's setting (degree {p['degree']}, tol {p['tol']:.3g}).", "",
+             "| light | degree | tol | " + " | ".join(f"n={int(n)}" for n in results["exponents"]) + " | time / Poulin's |",
+             "|---|---:|---:|" + "---:|" * (len(results["exponents"]) + 1)]
+    for r in results["rows"]:
+        if "degree" not in r:
+            continue
+        mark = " (default)" if (r["degree"], r["tol"]) == (d["degree"], d["tol"]) else (
+            " (Poulin)" if (r["degree"], r["tol"]) == (p["degree"], p["tol"]) else "")
+        errs = " | ".join(f"{r['max_rel_err'][str(int(n))]:.1e}" for n in results["exponents"])
+        lines.append(f"| {r['light']} | {r['degree']}{mark} | {r['tol']:.2g} | {errs} | {r['time_ratio_vs_poulin_d6']:.2f} |")
+    for r in results["rows"]:
+        if r.get("method") == "exact":
+            lines.append(f"| {r['light']} | exact method | | " + " | " * len(results["exponents"])
+                         + f"{r['time_ratio_vs_poulin_d6']:.2f} |")
+    return "\n".join(lines)
+
+
+def key_numbers(results: dict) -> list[tuple[str, str]]:
+    d, p = results["default"], results["poulin_setting"]
+    worst = max(_setting(results, k, d["degree"], d["tol"])["worst_rel_err"] for k in ("polygon", "segment"))
+    ratio = max(_setting(results, k, d["degree"], d["tol"])["time_ratio_vs_poulin_d6"] for k in ("polygon", "segment"))
+    poulin = max(_setting(results, k, p["degree"], p["tol"])["worst_rel_err"] for k in ("polygon", "segment"))
+    exps = results["exponents"]
+    return [(f"specular, Chebyshev default (degree {d['degree']}) vs exact, n = {exps[0]:g} ... {exps[-1]:g}",
+             f"<= {worst:.1e} relative at up to {ratio:.2f}x the cost of Poulin's degree-{p['degree']} fit ({poulin:.1e})")]

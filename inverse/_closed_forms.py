@@ -51,6 +51,13 @@ def intersect_plane(origin: Any, direction: Any, plane_point: Any, plane_normal:
 
     Raises `ValueError` when the ray is parallel to the plane or points away from it
     (Poulin §5.2.1 footnote 3: "there might not be any intersection").
+
+    Example:
+        ```python
+        import inverse
+
+        inverse.intersect_plane([0, 0, 0], [0, 0, 1], [0, 0, 2.5], [0, 0, 1])   # array([0., 0., 2.5])
+        ```
     """
     o = _vec(origin, "origin")
     d = _unit(direction, "direction")
@@ -77,6 +84,14 @@ def light_from_diffuse_maximum(point: Any, normal: Any, plane: tuple | None = No
     to place the light where the normal ray meets it.
 
     **Returns:** `LightRay` (direction $\\vec L = \\vec N$).
+
+    Example:
+        ```python
+        import inverse
+
+        ray = inverse.light_from_diffuse_maximum([0.4, 0.2, 0.0], [0.0, 0.6, 0.8], plane=([0, 0, 2.0], [0, 0, 1.0]))
+        ray.position   # where the normal ray meets the ceiling z = 2
+        ```
     """
     p = _vec(point, "point")
     return _ray(p, _unit(normal, "normal"), plane)
@@ -84,7 +99,15 @@ def light_from_diffuse_maximum(point: Any, normal: Any, plane: tuple | None = No
 
 def mirror_direction(normal: Any, to_eye: Any) -> np.ndarray:
     """$\\vec L = 2(\\vec N\\cdot\\vec E)\\vec N - \\vec E$ (unit), the light direction whose
-    highlight peaks at a point (Poulin §5.2.2)."""
+    highlight peaks at a point (Poulin §5.2.2).
+
+    Example:
+        ```python
+        import inverse
+
+        inverse.mirror_direction([0.0, 0.0, 1.0], [0.0, -1.0, 1.0])   # array([0., 0.707, 0.707])
+        ```
+    """
     n = _unit(normal, "normal")
     e = _unit(to_eye, "to_eye")
     return 2.0 * float(n @ e) * n - e
@@ -97,6 +120,14 @@ def light_from_highlight(point: Any, normal: Any, eye: Any, plane: tuple | None 
     **Arguments:** `point (3,)`, `normal (3,)`, `eye (3,)` position; optional `plane`.
 
     **Returns:** `LightRay`.
+
+    Example:
+        ```python
+        import inverse
+
+        ray = inverse.light_from_highlight([0, 0, 0], [0, 0, 1], eye=[0, -2, 2], plane=([0, 0, 3.0], [0, 0, 1.0]))
+        ray.position   # array([0., 3., 3.])
+        ```
     """
     p = _vec(point, "point")
     e = _vec(eye, "eye") - p
@@ -118,6 +149,13 @@ def exponent_from_highlight(boundary_point: Any, boundary_normal: Any, eye: Any,
     - `threshold`: $t \\in (0, 1)$, the lobe value $(\\vec N\\cdot\\vec H)^n$ at the boundary.
 
     **Returns:** the Phong exponent $n$ (the highlight's size sets the roughness).
+
+    Example:
+        ```python
+        import inverse
+
+        n = inverse.exponent_from_highlight([0.3, 0, 0], [0, 0, 1], eye=[0, -2, 2], light=[0, 2, 2], threshold=0.5)
+        ```
     """
     if not 0.0 < float(threshold) < 1.0:
         raise ValueError(f"exponent_from_highlight: threshold must be in (0, 1), got {threshold!r}.")
@@ -141,6 +179,14 @@ def light_from_shadow(occluder_point: Any, shadow_point: Any, plane: tuple | Non
     the line through the light.
 
     **Returns:** `LightRay` from the shadow point through the occluder point (towards the light).
+
+    Example:
+        ```python
+        import inverse
+
+        ray = inverse.light_from_shadow([0.5, 0.5, 1.0], [0.0, 0.0, 0.0], plane=([0, 0, 2.0], [0, 0, 1.0]))
+        ray.position   # array([1., 1., 2.])
+        ```
     """
     s = _vec(shadow_point, "shadow_point")
     o = _vec(occluder_point, "occluder_point")
@@ -156,6 +202,14 @@ def point_from_shadows(occluder_points: Any, shadow_points: Any) -> tuple[np.nda
     **Arguments:** `occluder_points (M, 3)`, `shadow_points (M, 3)`, `M >= 2`, not all parallel.
 
     **Returns:** `(position (3,), rms distance of the position from the lines)`.
+
+    Example:
+        ```python
+        import inverse
+
+        position, rms = inverse.point_from_shadows([[0.5, 0.5, 1.0], [0.0, 0.5, 1.0]], [[0, 0, 0], [-1.0, 0, 0]])
+        # position = [1, 1, 2]: the point light both shadow lines meet at; rms = 0
+        ```
     """
     o = np.asarray(occluder_points, np.float64)
     s = np.asarray(shadow_points, np.float64)

@@ -11,6 +11,7 @@ with k_d free, the light area and k_d trade off far from the light).
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import sys
 import time
@@ -22,8 +23,9 @@ import numpy as np
 import jaxshadow as js
 
 from ._forward import shade
-from ._lights import fit_light_and_material
+from ._joint import fit_light_and_material
 from ._scenes import LIGHT_H, LIGHT_W, demo_configuration, polygon_pose, pose_errors, quad
+from ._solvers import LM
 from ._targets import PaintedTargets
 
 
@@ -77,7 +79,8 @@ def run_demo(out_dir: str | os.PathLike, progress: bool = True, *, n_points: int
     targets = PaintedTargets(cfg.points, cfg.normals, colours, cfg.eye,
                              weights=1.0 / np.maximum(colours, 1e-6) ** 2)
     targets_path = os.path.join(out_dir, "demo_targets.json")
-    targets.save(targets_path)
+    with js.atomic_write(targets_path) as fh:
+        json.dump(targets.to_dict(), fh, indent=1)
     timings["targets"] = time.perf_counter() - t0
 
     with_spec = bool(np.any(np.asarray(cfg.material.ks) != 0))
@@ -92,7 +95,7 @@ def run_demo(out_dir: str | os.PathLike, progress: bool = True, *, n_points: int
                            occluders=cfg.scene.occluders, ambient=cfg.scene.ambient)
     cfg = dataclasses.replace(cfg, start_scene=start_scene)
     fit = fit_light_and_material(cfg.start_scene, targets, guess, method="projected",
-                                 light_kwargs={"starts": starts, "refine": refine, "fit": ("position", "orientation")},
+                                 light_kwargs={"starts": starts, "solver": LM(refine=refine), "fit": ("position", "orientation")},
                                  material_kwargs={} if with_spec else {"bounds": ((0, 0, 0), (1, 1, 0))},
                                  progress=say)
     timings["fit"] = time.perf_counter() - t0
@@ -143,16 +146,17 @@ def run_demo(out_dir: str | os.PathLike, progress: bool = True, *, n_points: int
         "Jacobian (1 % noise), an error of 2-3 sigma is expected in a few rows:\n" + table)
 
     t0 = time.perf_counter()
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    try:
+        from matplotlib.figure import Figure
+    except ImportError as err:
+        raise ImportError("plots need the optional dependency 'matplotlib': `pip install 'jaxshadow[plot]'`.") from err
 
     ext = 1.3
     imgs = [_floor_image(s, m, cfg.eye, image_resolution, ext)
             for s, m in ((cfg.start_scene, guess), (fit.scene, m_fit), (cfg.scene, m_true))]
     vmax = max(float(np.percentile(i, 99.5)) for i in imgs)
-    fig, axes = plt.subplots(1, 3, figsize=(12, 4.3))
+    fig = Figure(figsize=(12, 4.3))
+    axes = fig.subplots(1, 3)
     for ax, img, title in zip(axes, imgs, ("before (start)", "after (fitted)", "hidden truth"), strict=True):
         ax.imshow(np.clip(img / vmax, 0, 1), origin="lower", extent=(-ext, ext, -ext, ext))
         on_floor = np.abs(cfg.points[:, 2]) < 1e-9
@@ -163,8 +167,7 @@ def run_demo(out_dir: str | os.PathLike, progress: bool = True, *, n_points: int
     fig.suptitle(f"floor z=0 seen from above; x: painted points on the floor (targets: {source})")
     fig.tight_layout()
     png = os.path.join(out_dir, "demo_before_after.png")
-    fig.savefig(png, dpi=90)
-    plt.close(fig)
+    js.atomic_write_path(png, lambda tmp: fig.savefig(tmp, dpi=90))
     timings["plot"] = time.perf_counter() - t0
     say(f"wrote {png}")
     return {

@@ -49,17 +49,10 @@ from jaxtyping import Array, Bool, Float, Int
 # light-placement fits). Their first call is dominated by XLA compiling a few hundred small
 # fused loops; the legacy elemental emitter instead of the MLIR fusion emitters, and LLVM
 # without its most expensive passes, compile the LM program in ~35% less time (a fit's whole
-# first call is ~25% shorter) and the solves run as fast or faster (`benchmarks/README.md`,
-# "Session 6"; `benchmarks/fit_compiler_options.py`). Options of the code generator only:
+# first call is 0.69-0.81x) and the solves run as fast or faster
+# (`benchmarks/results/ab/fit_compiler_options.md`). Options of the code generator only:
 # IEEE arithmetic, no fast-math.
 FIT_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False, "xla_llvm_disable_expensive_passes": True}
-# With the host combinatorics (`jaxshadow._clip_host`) the program is the geometry alone, a few
-# hundred small elementwise fusions, and its time is mostly the host round trip: XLA's own loops
-# for the fusions run ~13% faster than YNNPACK's (which jaxlib 0.10 hands elementwise fusions
-# to; with the combinatorics in the program YNNPACK is ~5% faster), and LLVM at -O1 compiles it
-# in ~25% less time for a few % more per evaluation (`benchmarks/README.md`, Session 10).
-HOST_FIT_COMPILER_OPTIONS = {**FIT_COMPILER_OPTIONS, "xla_cpu_experimental_ynn_fusion_type": "",
-                             "xla_backend_optimization_level": 1}
 
 
 @contextlib.contextmanager
@@ -67,7 +60,7 @@ def gc_paused() -> Any:
     """Python's cyclic garbage collector off for the block, then as it was. Tracing, lowering
     and compiling a light fit's program allocate enough objects to set off ~100 collections
     (0.24-0.29 s of a one-start fit's first call with 8 occluders); without them the first call
-    is ~10% shorter (`benchmarks/README.md`, Session 11). Nothing is leaked: what the block
+    is ~10% shorter (`benchmarks/results/ab/gc_paused.md`). Nothing is leaked: what the block
     left unreachable is collected by the next collection after it."""
     was = gc.isenabled()
     gc.disable()
@@ -169,7 +162,7 @@ def batched_levenberg_marquardt(
     - `jacobian` (static): `"linearize"` (default: `jax.linearize`, then the linear map on the
       basis vectors) or `"jacfwd"` (`jax.jacfwd`, and `jax.vmap` over the starts even for one).
       The same Jacobian to round-off; the first is cheaper to trace and compile
-      (`benchmarks/lm_jacobian.py`).
+      (`benchmarks/results/ab/lm_jacobian.md`).
 
     **Returns:** `LMResult`.
     """
@@ -187,7 +180,7 @@ def batched_levenberg_marquardt(
         # `jax.linearize` and the linear map on the P basis vectors, not `jax.jacfwd` (a `vmap`
         # of `jvp` over the basis): the residual is traced once under `jvp` alone and only its
         # tangent equations are batched. With the soft-shadow residual the LM program traces
-        # and lowers ~25% faster (benchmarks/README.md, Session 7).
+        # and lowers ~25% faster (`benchmarks/results/ab/lm_jacobian.md`).
         if jacobian == "jacfwd":
             J, (r, flag) = jax.jacfwd(resid_aux, has_aux=True)(y)
             return r, J, flag

@@ -14,11 +14,10 @@ section), the linear coefficients re-solved exactly at every trial $n$.
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 import math
 import warnings
-from typing import Any
+from typing import Any, no_type_check
 
 import equinox as eqx
 import jax
@@ -29,14 +28,12 @@ from jaxtyping import Array
 import jaxshadow as js
 
 from ._forward import SpecularFn, traced_specular
+from ._identifiability import identifiability
+from ._reports import MaterialFit, MaterialReport, UndeterminedParameterWarning
 from ._targets import PaintedTargets
 
 PARAM_NAMES = tuple(f"{k}[{c}]" for k in ("ka", "kd", "ks") for c in "rgb")
 _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
-
-
-class UndeterminedParameterWarning(UserWarning):
-    """A fitted parameter is not determined by the targets (flat direction of the residual)."""
 
 
 # --------------------------------------------------------------------------------------
@@ -59,6 +56,16 @@ def bounded_lstsq(X: np.ndarray, y: np.ndarray, w: np.ndarray, lo: Any, hi: Any,
 
     **Returns:** `(k (3,), objective, active (7,) bool)`: active constraints in the order
     `k0>=lo, k0<=hi, k1>=lo, k1<=hi, k2>=lo, k2<=hi, k1+k2<=1`.
+
+    Example:
+        ```python
+        import numpy as np
+        import inverse
+
+        X = np.random.default_rng(0).uniform(0, 1, (10, 3))
+        y = X @ np.array([0.2, 0.9, -0.1])
+        k, objective, active = inverse.bounded_lstsq(X, y, np.ones(10), 0.0, 1.0)   # k[2] held at 0
+        ```
     """
     X = np.asarray(X, np.float64)
     y = np.asarray(y, np.float64)
@@ -118,76 +125,6 @@ def bounded_lstsq(X: np.ndarray, y: np.ndarray, w: np.ndarray, lo: Any, hi: Any,
     active[1:6:2] = np.abs(k - hi) <= tol
     active[6] = sum_le_1 and abs(k[1] + k[2] - 1.0) <= 1e-10
     return k, best_obj, active
-
-
-# --------------------------------------------------------------------------------------
-# Result and report
-# --------------------------------------------------------------------------------------
-
-
-@dataclasses.dataclass(frozen=True)
-class MaterialReport:
-    """Identifiability of a material fit.
-
-    - `exponent`, `exponent_fitted`: the roughness used, and whether it was searched.
-    - `exponent_determined`: False when the targets do not pin $n$ down (the projected residual
-      is flat up to a bound of `n_bounds`, or $k_s = 0$ in every channel, or its standard
-      error is above 50 %); `exponent_interval`: the $n$ whose projected residual is within
-      $4\\hat\\sigma^2$ of the minimum (an approximate 95 % profile interval).
-    - `determined`: parameter name -> bool (`ka[r]`, ..., `n`).
-    - `active_bounds`: names of the active constraints per channel, e.g. `ks[g]>=lower`.
-    - `singular_values`: of the weighted Jacobian with unit-norm columns (scale-free; a zero
-      means an undetermined combination); `singular_values_raw` without column scaling.
-    - `std_errors`: name -> standard error, $\\hat\\sigma^2 (J^T J)^{-1}$ over the free
-      parameters (inf when undetermined, 0 at an active bound).
-    - `values`: name -> fitted value (`ka[r]`, ..., `n`).
-    - `rss`, `dof`, `sigma`: weighted residual sum of squares, degrees of freedom,
-      $\\hat\\sigma = \\sqrt{rss/dof}$.
-    - `profile_exponents`, `profile_rss`: the variable-projection profile over the grid.
-    - `weights`: the `(N, 3)` weights used; `targets_met`: `(N,)` bool (all channels within
-      the targets' tolerance) or None; `warnings`: human-readable messages.
-    """
-
-    exponent: float
-    exponent_fitted: bool
-    exponent_determined: bool
-    exponent_interval: tuple[float, float] | None
-    determined: dict
-    active_bounds: tuple
-    singular_values: np.ndarray
-    singular_values_raw: np.ndarray
-    std_errors: dict
-    values: dict
-    rss: float
-    dof: int
-    sigma: float
-    profile_exponents: np.ndarray | None
-    profile_rss: np.ndarray | None
-    weights: np.ndarray
-    targets_met: np.ndarray | None
-    warnings: tuple
-
-    def __str__(self) -> str:
-        lines = [f"material fit: rss={self.rss:.4g} dof={self.dof} sigma={self.sigma:.3g}"]
-        for name in (*PARAM_NAMES, "n"):
-            if name in self.std_errors:
-                det = "" if self.determined.get(name, True) else "  UNDETERMINED"
-                lines.append(f"  {name:6s} {self.values[name]:10.5g}  se={self.std_errors[name]:.3g}{det}")
-        if self.active_bounds:
-            lines.append(f"  active: {', '.join(self.active_bounds)}")
-        lines.append(f"  singular values (unit columns): {np.array2string(self.singular_values, precision=3)}")
-        lines += [f"  warning: {w}" for w in self.warnings]
-        return "\n".join(lines)
-
-
-@dataclasses.dataclass(frozen=True)
-class MaterialFit:
-    """`material` (a `js.Material`), `residual` `(N, 3)` = model - colours (unweighted),
-    `report` (`MaterialReport`)."""
-
-    material: js.Material
-    residual: np.ndarray
-    report: MaterialReport
 
 
 # --------------------------------------------------------------------------------------
@@ -265,6 +202,8 @@ def _poulin_weights(basis: _Basis, s: np.ndarray | None, k: np.ndarray, n: int) 
     return np.broadcast_to(w[:, None], (n, 3)).copy()
 
 
+# Validates its own inputs (ValueError, docs/design.md): no runtime annotation check before it.
+@no_type_check
 def fit_material(
     scene: Any,
     targets: PaintedTargets,
@@ -303,9 +242,35 @@ def fit_material(
       flags them either way).
 
     **Returns:** `MaterialFit(material, residual (N, 3), report)`.
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+        import inverse
+
+        scene = js.Scene([js.PolygonLight([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2]], radiance=4.0)], ambient=0.2)
+        rng = np.random.default_rng(0)
+        points = np.c_[rng.uniform(-0.5, 1.5, (20, 2)), np.zeros(20)]
+        normals = np.tile([0.0, 0.0, 1.0], (20, 1))
+        eye = np.array([0.5, -2.0, 2.0])
+        true = js.Material(ka=0.2, kd=0.6, ks=0.3, exponent=20.0)
+        targets = inverse.PaintedTargets(points, normals, js.shade(scene, true, points, normals, eye), eye)
+        fit = inverse.fit_material(scene, targets, exponent=20.0)
+        print(fit.report)   # k_a, k_d, k_s per channel with standard errors
+        ```
     """
+    if not isinstance(scene, js.Scene):
+        raise ValueError(f"fit_material: expected a jaxshadow.Scene, got {type(scene).__name__}.")
     if not isinstance(targets, PaintedTargets):
         raise ValueError(f"fit_material: targets must be PaintedTargets, got {type(targets).__name__}.")
+    if exponent is not None:
+        try:
+            e = np.asarray(exponent, dtype=np.float64)
+        except (TypeError, ValueError):
+            e = np.asarray(np.nan)
+        if isinstance(exponent, bool) or e.shape != () or not np.isfinite(e) or e < 0:
+            raise ValueError(f"fit_material: exponent must be None (fit it) or a finite number >= 0, got {exponent!r}.")
     if weighting not in (None, "poulin"):
         raise ValueError(f"fit_material: weighting must be None or 'poulin', got {weighting!r}.")
     lo = np.broadcast_to(_np(bounds[0]), (3,))
@@ -389,34 +354,11 @@ def fit_material(
                 at_bound[(j // 2) * 3 + c] = True
             else:
                 active_names.append(f"kd[{ch}]+ks[{ch}]<=1")
-    m_res = int(np.count_nonzero(w > 0))
-    free = ~at_bound
-    dof = max(m_res - int(free.sum()), 1)
-    sigma2 = rss / dof
-    colnorm = np.linalg.norm(J, axis=0)
-    Jn = J / np.where(colnorm > 0, colnorm, 1.0)
-    sv = np.linalg.svd(Jn, compute_uv=False)
+    ident = identifiability(J, rss, int(np.count_nonzero(w > 0)), free=~at_bound)
+    sigma2, dof = ident.sigma2, ident.dof
     sv_raw = np.linalg.svd(J, compute_uv=False)
-    se = {nm: 0.0 for nm in names}
-    determined = {nm: True for nm in names}
-    Jf = Jn[:, free]
-    free_idx = np.flatnonzero(free)
-    if Jf.shape[1]:
-        _, svf, vt = np.linalg.svd(Jf, full_matrices=False)
-        cut = 1e-8 * max(svf.max(), 1e-300)
-        null = vt[svf <= cut]
-        bad = np.any(np.abs(null) > 1e-6, axis=0) if len(null) else np.zeros(len(free_idx), bool)
-        bad |= colnorm[free_idx] == 0
-        good = ~bad
-        if good.any():
-            Jg = Jf[:, good]
-            cov = sigma2 * np.linalg.pinv(Jg.T @ Jg)
-            sd = np.sqrt(np.maximum(np.diag(cov), 0.0)) / colnorm[free_idx][good]
-            for j, v in zip(free_idx[good], sd, strict=True):
-                se[names[j]] = float(v)
-        for j in free_idx[bad]:
-            se[names[j]] = math.inf
-            determined[names[j]] = False
+    se = {nm: float(v) for nm, v in zip(names, ident.std_errors, strict=True)}
+    determined = {nm: bool(ok) for nm, ok in zip(names, ident.determined, strict=True)}
 
     msgs = []
     n_interval = None
@@ -471,13 +413,14 @@ def fit_material(
         exponent=jnp.asarray(n_best, dt),
     )
     report = MaterialReport(
+        names=tuple(names),
         exponent=float(n_best),
         exponent_fitted=fit_n,
         exponent_determined=n_determined,
         exponent_interval=n_interval,
         determined=determined,
         active_bounds=tuple(active_names),
-        singular_values=sv,
+        singular_values=ident.singular_values,
         singular_values_raw=sv_raw,
         std_errors=se,
         values={**{nm: float(k[j // 3, j % 3]) for j, nm in enumerate(PARAM_NAMES)}, "n": float(n_best)},

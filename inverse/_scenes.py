@@ -42,7 +42,18 @@ def polygon_pose(vertices) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarr
 def pose_errors(fitted, true) -> dict:
     """Position error (m), normal angle (deg), long-axis angle modulo 180 deg (a rectangle is
     symmetric under a half turn), relative side-length error; `orientation_deg` is the angle
-    of the rotation taking the true frame to the fitted one (normal and long axis)."""
+    of the rotation taking the true frame to the fitted one (normal and long axis).
+
+    Example:
+        ```python
+        import numpy as np
+        import inverse
+
+        true = np.array([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2]], float)
+        err = inverse.pose_errors(true + [0.01, 0.0, 0.0], true)
+        print(err["position"], err["orientation_deg"])   # 0.01 m, 0 deg
+        ```
+    """
     c1, n1, e1, s1 = polygon_pose(fitted)
     c0, n0, e0, s0 = polygon_pose(true)
     ang = lambda a, b: float(np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b)), a @ b)))  # noqa: E731
@@ -85,7 +96,16 @@ def _unit(v):
 
 def demo_configuration(occluders: bool = True, n_points: int = 40, seed: int = 0,
                        penumbra_fraction: float = 0.25, near_fraction: float = 0.0) -> Configuration:
-    """The demo / acceptance scene (see the module docstring). Deterministic for a seed."""
+    """The demo / acceptance scene (see the module docstring). Deterministic for a seed.
+
+    Example:
+        ```python
+        import inverse
+
+        cfg = inverse.demo_configuration(occluders=True, n_points=40, seed=0)
+        print(cfg.points.shape, len(cfg.scene.lights))   # (40, 3) receivers, the true light
+        ```
+    """
     rng = np.random.default_rng(seed)
     light_c = np.array([0.25, 0.15, 1.6])
     true_light = js.PolygonLight(quad(light_c, LIGHT_W, LIGHT_H, (np.pi + 0.15, 0.1, 0.3)), [20.0, 18.0, 16.0])
@@ -170,3 +190,38 @@ def occluded_light_problem(n_occluders: int, n_points: int = 48, seed: int = 0) 
     col = np.asarray(shade(scene, material, jnp.asarray(cfg.points), jnp.asarray(cfg.normals),
                            jnp.asarray(np.broadcast_to(cfg.eye, (n, 3))), with_specular=False))
     return scene, start, material, PaintedTargets(cfg.points, cfg.normals, col, cfg.eye), cfg.size
+
+
+THREE_LIGHTS_OCCLUDERS = [quad([-0.5, 0.3, 0.6], 0.4, 0.4, (0, 0, 0.3)), quad([0.6, -0.2, 0.5], 0.35, 0.3, (0, 0, -0.2)),
+                          quad([0.1, -0.7, 0.7], 0.3, 0.3, (0, 0, 0.0))]
+THREE_LIGHTS_EYE = np.array([0.0, -3.0, 2.5])
+
+
+def three_lights_scene() -> js.Scene:
+    """The hidden truth of the several-lights tests and benchmark (`fit_lights`): two tilted quad
+    lights and a point light over a floor, three square occluders (soft shadows)."""
+    a = js.PolygonLight(quad([-0.6, 0.4, 1.8], 0.6, 0.3, (np.pi + 0.1, 0.05, 0.4)), [6.0, 5.5, 5.0])
+    b = js.PolygonLight(quad([0.8, -0.3, 1.6], 0.4, 0.4, (np.pi - 0.15, 0.1, -0.3)), [4.0, 4.0, 4.5])
+    c = js.PointLight([0.1, 0.9, 1.4], [1.5, 1.5, 1.5])
+    return js.Scene([a, b, c], occluders=THREE_LIGHTS_OCCLUDERS, ambient=0.1)
+
+
+def floor_receivers(n: int = 80, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """`n` floor points in [-1.5, 1.5]^2 (many in the penumbrae of `three_lights_scene`) with
+    normals tilted up to ~20 degrees: `(points (n, 3), unit normals (n, 3))`."""
+    rng = np.random.default_rng(seed)
+    pts = np.c_[rng.uniform(-1.5, 1.5, (n, 2)), np.zeros(n)]
+    nrm = rng.normal(size=(n, 3)) * 0.35 + [0.0, 0.0, 1.0]
+    return pts, nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
+
+
+def three_lights_start(true: js.Scene, shift: float, brightness=(0.7, 1.4, 0.6)) -> js.Scene:
+    """The lights of `true` moved `shift` (m) in three different directions, at `brightness`
+    times their power (the starting scene of `fit_lights` tests)."""
+    d = np.array([[0.6, -0.64, 0.48], [-0.5, 0.7, 0.5], [0.7, 0.6, -0.4]])
+    d = shift * d / np.linalg.norm(d, axis=1, keepdims=True)
+    a, b, c = true.lights
+    return js.Scene([js.PolygonLight(np.asarray(a.vertices) + d[0], brightness[0] * np.asarray(a.radiance)),
+                     js.PolygonLight(np.asarray(b.vertices) + d[1], brightness[1] * np.asarray(b.radiance)),
+                     js.PointLight(np.asarray(c.position) + d[2], brightness[2] * np.asarray(c.intensity))],
+                    occluders=true.occluders, ambient=true.ambient)

@@ -17,6 +17,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from jaxshadow._files import atomic_write
+from jaxshadow._misc import safe_normalize
+
 TARGETS_FORMAT = "inverse.targets"
 TARGETS_VERSION = 1
 
@@ -48,6 +51,18 @@ def _check_rows(name: str, a: np.ndarray, *, nonneg: bool = False, positive: boo
     if positive and (a <= 0).any():
         i = _first_bad_row(a <= 0)
         raise ValueError(f"PaintedTargets: {name}[{i}] must be > 0, got {a[i].tolist()}.")
+
+
+def _unit_rows(v: Array) -> Array:
+    """Rows divided by their length. A plain norm where the sum of squares is a normal number
+    (so that unit rows come back bit for bit and files round-trip exactly), else scale-free
+    (`jaxshadow._misc.safe_normalize`): a normal of length 1e-160 or 1e160 (valid input)
+    gave 0/0 = NaN or inf/inf."""
+    sq = jnp.sum(v * v, axis=-1, keepdims=True)
+    fi = jnp.finfo(v.dtype)
+    plain = (sq > fi.tiny) & (sq < fi.max)
+    norm = jnp.linalg.norm(jnp.where(plain, v, 1.0), axis=-1, keepdims=True)
+    return jnp.where(plain, v / norm, safe_normalize(v))
 
 
 def _per_target_rgb(x: Any, n: int, name: str) -> Array:
@@ -132,7 +147,7 @@ class PaintedTargets(eqx.Module):
                 _check_rows("tolerance", np.asarray(tol), positive=True)
         nrm = arrs["normals"]
         self.points = arrs["points"]
-        self.normals = nrm / jnp.linalg.norm(nrm, axis=-1, keepdims=True)
+        self.normals = _unit_rows(nrm)
         self.colours = arrs["colours"].astype(dt)
         self.eye = e.astype(dt)
         self.weights = w.astype(dt)
@@ -144,8 +159,7 @@ class PaintedTargets(eqx.Module):
     @property
     def view_directions(self) -> Array:
         """`(N, 3)` unit vectors from each point to its eye ($\\vec V$ in Poulin eq. 3.12)."""
-        v = self.eye - self.points
-        return v / jnp.linalg.norm(v, axis=-1, keepdims=True)
+        return _unit_rows(self.eye - self.points)
 
     def with_colours(self, colours: Any) -> PaintedTargets:
         """The same targets with other colours (e.g. re-rendered, or with noise added)."""
@@ -200,7 +214,9 @@ class PaintedTargets(eqx.Module):
         return cls(g("points"), g("normals"), g("colours"), g("eye"), g("weights"), g("tolerance"))
 
     def save(self, path: str | os.PathLike) -> None:
-        """Write to `.json` or `.csv` (chosen by the extension)."""
+        """Write to `.json` or `.csv` (chosen by the extension), through
+        `jaxshadow._files.atomic_write`: a failure (serialiser, full disk) leaves an existing
+        file as it was."""
         path = os.fspath(path)
         if path.lower().endswith(".csv"):
             cols = [self.points, self.normals, self.colours, self.eye, self.weights]
@@ -209,14 +225,15 @@ class PaintedTargets(eqx.Module):
                 cols.append(self.tolerance)
                 header += list(_CSV_TOL)
             table = np.concatenate([np.asarray(c, dtype=np.float64) for c in cols], axis=1)
-            with open(path, "w", newline="") as fh:
+            with atomic_write(path, newline="") as fh:
                 w = csv.writer(fh)
                 w.writerow(header)
                 for row in table:
                     w.writerow([repr(float(x)) for x in row])
         else:
-            with open(path, "w") as fh:
-                json.dump(self.to_dict(), fh, indent=1)
+            text = json.dumps(self.to_dict(), indent=1)
+            with atomic_write(path) as fh:
+                fh.write(text)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> PaintedTargets:
@@ -260,10 +277,34 @@ class PaintedTargets(eqx.Module):
 
 
 def load_targets(path: str | os.PathLike) -> PaintedTargets:
-    """Read painted targets from `.json` or `.csv` (see `PaintedTargets.load`)."""
+    """Read painted targets from `.json` or `.csv` (see `PaintedTargets.load`).
+
+    Example:
+        ```python
+        import os, tempfile
+        import numpy as np
+        import inverse
+
+        path = os.path.join(tempfile.mkdtemp(), "targets.json")
+        inverse.save_targets(inverse.PaintedTargets(np.zeros((1, 3)), [[0.0, 0.0, 1.0]], [[0.2, 0.3, 0.4]],
+                                                    eye=[0.0, -1.0, 1.0]), path)
+        targets = inverse.load_targets(path)
+        ```
+    """
     return PaintedTargets.load(path)
 
 
 def save_targets(targets: PaintedTargets, path: str | os.PathLike) -> None:
-    """Write painted targets to `.json` or `.csv` (see `PaintedTargets.save`)."""
+    """Write painted targets to `.json` or `.csv` (see `PaintedTargets.save`).
+
+    Example:
+        ```python
+        import os, tempfile
+        import numpy as np
+        import inverse
+
+        t = inverse.PaintedTargets(np.zeros((1, 3)), [[0.0, 0.0, 1.0]], [[0.2, 0.3, 0.4]], eye=[0.0, -1.0, 1.0])
+        inverse.save_targets(t, os.path.join(tempfile.mkdtemp(), "targets.json"))
+        ```
+    """
     targets.save(path)

@@ -6,11 +6,20 @@ Mitsuba 3 bridge used as independent ground truth. See DESIGN.md for the convent
 
 from importlib.metadata import PackageNotFoundError, version
 
+from ._cache import ShadowCache as ShadowCache
 from ._clip import visible_form_factor as visible_form_factor
+from ._files import atomic_write as atomic_write
+from ._files import atomic_write_path as atomic_write_path
 from ._illumination import IlluminationMesh as IlluminationMesh
 from ._illumination import illumination_mesh as illumination_mesh
 from ._linear import linear_irradiance as linear_irradiance
 from ._mesh import Mesh as Mesh
+from ._meshio import ReceiverMesh as ReceiverMesh
+from ._meshio import read_mesh as read_mesh
+from ._meshio import read_points as read_points
+from ._meshio import write_mesh as write_mesh
+from ._meshio import write_ply as write_ply
+from ._meshio import write_values as write_values
 from ._polygon import form_factor as form_factor
 from ._scene import DirectionalLight as DirectionalLight
 from ._scene import LinearLight as LinearLight
@@ -26,6 +35,9 @@ from ._scene import scene_to_dict as scene_to_dict
 from ._shade import irradiance as irradiance
 from ._shade import shade as shade
 from ._shade import specular as specular
+from ._shadows import ShadowOptions as ShadowOptions
+from ._shadows import ShadowPlan as ShadowPlan
+from ._shadows import shadow_plan as shadow_plan
 from ._sharding import batch_mesh as batch_mesh
 from ._sharding import sharded_irradiance as sharded_irradiance
 from ._spline import shadow_nodes as shadow_nodes

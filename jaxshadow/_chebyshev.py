@@ -142,7 +142,7 @@ def cutoff_angle(
 
 def poulin_cos_power_coefficients(
     exponent: Float[Array, ""], x_max: Float[Array, ""], degree: int
-) -> Float[Array, " d+1"]:
+) -> Float[Array, " degree_plus_1"]:
     r"""Poulin's fig. 3.9: Chebyshev coefficients of $\cos^n x$ on $[0, x_M]$.
 
     The fit variable is $t \in [-1, 1]$ with $x = x_M (t + 1)/2$; samples at the

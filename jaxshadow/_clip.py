@@ -46,8 +46,9 @@ tests without gradients and returns, per kept run of consecutive pieces of one c
 endpoints: a candidate edge's own end, or the crossing of two planes through $p$ (canonical
 order). `_decode` recomputes just those points from the inputs; the boundary is piecewise
 constant in the inputs, so its derivatives are exactly the endpoints' (what `jax.jacfwd`
-differentiates is the few kept edges, not the splitting machinery).
-`visible_edges_compact` gathers the runs into a fixed number of slots (`_bsp.edge_capacity`).
+differentiates is the few kept edges, not the splitting machinery). The shadow engine
+(`_shadowc`, `_visibility`) produces the same codes on the host from each receiver's
+candidates only; `_decode`'s twin there recomputes the points the same way.
 
 **Tie-break (coincident edges).** Two candidate pieces on the same line (normals of their planes
 through $p$ parallel within `64 eps`) that both bound $R$ on the same side describe the same
@@ -67,7 +68,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from ._geometry import horizon_clip_edges, newell_normal
+from ._geometry import check_finite_leaves, horizon_clip_edges, newell_normal
 from ._linear import linear_irradiance_kernel
 from ._misc import safe_div, safe_normalize
 from ._polygon import edge_term
@@ -505,44 +506,9 @@ def visible_edges(
         return _no_occluder_edges(p, n, verts)
     c = _candidates(p, n, verts, occluders)
     sc, ec, valid = _boundary_runs(p, c, occluders.shape[0])
-    return _edges_of(p, c, sc, ec, valid)
-
-
-def _edges_of(p, c, sc, ec, valid):
     s = _decode(p, c, sc)
     e = _decode(p, c, ec)
     return jnp.where(valid[:, None], s, c.e0[None, :]), jnp.where(valid[:, None], e, c.e0[None, :])
-
-
-def visible_edges_compact(
-    p: Float[Array, "3"],
-    n: Float[Array, "3"],
-    verts: Float[Array, "k 3"],
-    occluders: Float[Array, "m ko 3"],
-    capacity: int,
-) -> tuple[Float[Array, "b 3"], Float[Array, "b 3"], Bool[Array, ""]]:
-    r"""`visible_edges` gathered into `capacity` (static int) slots: `(starts, ends, overflow)`.
-
-    The boundary of R usually has far fewer edges than `visible_edges`'s worst-case count; only
-    the used ones have their endpoints computed (and differentiated). `overflow` is True when
-    the boundary has more than `capacity` edges: then only the first `capacity` are returned
-    and the caller must use `visible_edges` instead (or a larger capacity).
-    """
-    if occluders.shape[0] == 0:
-        s, e = _no_occluder_edges(p, n, verts)
-        if s.shape[0] > capacity:
-            raise ValueError(f"visible_edges_compact: capacity {capacity} < {s.shape[0]} emitter edges")
-        pad = capacity - s.shape[0]
-        s = jnp.concatenate([s, jnp.broadcast_to(verts[0], (pad, 3))])
-        e = jnp.concatenate([e, jnp.broadcast_to(verts[0], (pad, 3))])
-        return s, e, jnp.zeros((), bool)
-    c = _candidates(p, n, verts, occluders)
-    sc, ec, valid = _boundary_runs(p, c, occluders.shape[0])
-    count = jnp.sum(valid.astype(jnp.int32))
-    (sel,) = jnp.nonzero(valid, size=capacity, fill_value=0)
-    used = jnp.arange(capacity) < count
-    s, e = _edges_of(p, c, sc[sel], ec[sel], used)
-    return s, e, count > capacity
 
 
 def visible_form_factor_kernel(
@@ -590,8 +556,11 @@ def visible_form_factor(
     **Arguments:** `points (N, 3)`, unit `normals (N, 3)`, `vertices (k, 3)` convex light
     (counter-clockwise seen from its lit side), `occluders (m, ko, 3)` padded convex polygons.
 
-    **Returns:** `(N,)` dimensionless form factors ($E = \pi L F$), dtype following the inputs.
+    **Returns:** `(N,)` dimensionless form factors ($E = \pi L F$), dtype following the inputs;
+    `ValueError` for a NaN/inf input (traced inputs: an error when the program runs).
     """
+    args = check_finite_leaves((points, normals, vertices, occluders), "visible_form_factor")
+    points, normals, vertices, occluders = args
     return jax.vmap(visible_form_factor_kernel, in_axes=(0, 0, None, None))(
         points, normals, vertices, occluders
     )

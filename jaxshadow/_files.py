@@ -27,6 +27,19 @@ def atomic_write(path: str | os.PathLike, mode: str = "w", **open_kwargs: Any) -
 
     On any exception inside the block the temporary file is removed and the exception re-raised;
     `path` is then untouched. The new file gets the permissions a plain `open` would give it.
+
+    Example:
+        ```python
+        import tempfile
+        from pathlib import Path
+        import jaxshadow as js
+
+        path = Path(tempfile.mkdtemp()) / "values.csv"
+        with js.atomic_write(path, newline="") as f:   # written to a temporary file, then renamed
+            print("r,g,b", file=f)
+            print("0.1,0.2,0.3", file=f)
+        print(path.read_text())
+        ```
     """
     if mode not in ("w", "wb"):
         raise ValueError(f"atomic_write: mode must be 'w' or 'wb', got {mode!r}.")
@@ -55,7 +68,19 @@ def atomic_write(path: str | os.PathLike, mode: str = "w", **open_kwargs: Any) -
 def atomic_write_path(path: str | os.PathLike, writer: Any) -> None:
     """Call `writer(tmp_path)` to write a file by name (savefig, trimesh export, EXR writers),
     then rename it over `path`; on failure `path` is untouched. The temporary name keeps
-    `path`'s extension, for writers that choose the format by it."""
+    `path`'s extension, for writers that choose the format by it.
+
+    Example:
+        ```python
+        import os, tempfile
+        import numpy as np
+        import jaxshadow as js
+
+        path = os.path.join(tempfile.mkdtemp(), "values.npy")
+        js.atomic_write_path(path, lambda tmp: np.save(tmp, np.ones(3)))   # tmp keeps the .npy extension
+        print(np.load(path))
+        ```
+    """
     path = os.fspath(path)
     directory = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(directory):

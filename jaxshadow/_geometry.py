@@ -15,12 +15,16 @@ from __future__ import annotations
 
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._misc import map_chunks
+from ._misc import divide_by_scale, map_chunks
+
+# A JAX array or tracer, or a NumPy array: what the entry points' checks pass on (`as_input`).
+AnyArray = Array | np.ndarray
 
 # Relative tolerances used by build-time validation (NumPy, float64).
 PLANARITY_RTOL = 1e-6
@@ -36,6 +40,27 @@ def newell_normal(verts: Float[Array, "k 3"]) -> Float[Array, "3"]:
     """Newell's normal of a (padded) polygon: twice the vector area, right-hand rule."""
     nxt = jnp.roll(verts, -1, axis=0)
     return jnp.sum(jnp.cross(verts, nxt), axis=0)
+
+
+def on_lit_side(p: Float[Array, "3"], verts: Float[Array, "k 3"]) -> Array:
+    """True where `p` lies strictly on the side the (padded, planar) polygon's right-hand
+    normal points to.
+
+    Translation- and scale-free: the normal comes from the vertices relative to the first one,
+    each set divided by its largest component before any product (the absolute-coordinate
+    Newell sum cancels catastrophically away from the origin: in float32 a unit light 1e5 from
+    the origin got a normal of rounding noise and lit nothing; products of raw coordinates
+    over- and underflow at large and small scales). Only the sign is used: no gradient.
+    """
+    verts = jax.lax.stop_gradient(verts)
+    p = jax.lax.stop_gradient(p)
+    rel = verts - verts[:1]
+    s = jnp.max(jnp.abs(rel))
+    ne = newell_normal(divide_by_scale(rel, jnp.where(s > 0, s, 1.0)))
+    w = p - verts[0]
+    t = jnp.max(jnp.abs(w))
+    w = divide_by_scale(w, jnp.where(t > 0, t, 1.0))
+    return jnp.dot(ne, w) > 0
 
 
 def horizon_clip_edges(
@@ -86,12 +111,12 @@ def horizon_clip_edges(
 # --------------------------------------------------------------------------------------
 
 
-def inputs_ok(points: Array, normals: Array) -> Array:
+def inputs_ok(points: AnyArray, normals: AnyArray) -> Array:
     """Traceable: True when every point and normal is finite and no normal is zero. The public
     entry points evaluate it inside their own compiled call (one pass fused with the kernel,
     no extra dispatch) and hand the flag to `raise_if_bad`."""
     # Componentwise, one reduction: XLA:CPU fuses it into 4 small loops instead of ~10.
-    def finite(v: Array) -> Array:
+    def finite(v: AnyArray) -> Array:
         return jnp.isfinite(v[..., 0]) & jnp.isfinite(v[..., 1]) & jnp.isfinite(v[..., 2])
 
     nonzero = (normals[..., 0] != 0) | (normals[..., 1] != 0) | (normals[..., 2] != 0)
@@ -101,10 +126,10 @@ def inputs_ok(points: Array, normals: Array) -> Array:
 _all_good = jax.jit(inputs_ok)
 
 
-def check_points_normals(points: Any, normals: Any, what: str = "", values: bool = True) -> tuple[Array, Array]:
+def check_points_normals(points: Any, normals: Any, what: str = "", values: bool = True) -> tuple[AnyArray, AnyArray]:
     """Shape/dtype/value checks shared by every public entry point.
 
-    Returns JAX arrays; normals are *not* normalised here (the jitted kernels do it, fused).
+    Returns the inputs as arrays (`as_input`: NumPy arrays stay NumPy); normals are *not* normalised here (the jitted kernels do it, fused).
     With `values=False` only shapes and dtypes are checked here: the caller evaluates
     `inputs_ok` in its compiled call and passes the flag to `raise_if_bad` (`evaluate_checked`).
     """
@@ -121,7 +146,41 @@ def check_points_normals(points: Any, normals: Any, what: str = "", values: bool
         )
     if values:
         _check_values_eagerly(points, normals, what)
+    if isinstance(points, jax.core.Tracer) or isinstance(normals, jax.core.Tracer):
+        # Values that arrive traced (the caller's jit/vmap/grad): checked when the program runs.
+        points, normals = eqx.error_if(
+            (points, normals),
+            ~inputs_ok(points, normals),
+            f"{pre}a point or normal is not finite, or a normal is the zero vector.",
+        )
     return points, normals
+
+
+def check_finite_leaves(tree: Any, what: str) -> Any:
+    """Every floating leaf of `tree` finite: concrete leaves are checked in NumPy (`ValueError`
+    naming the leaf), traced ones when the program runs (`eqx.error_if`, whose result is
+    returned: use it). For values changed after build (`eqx.tree_at`) or traced under the
+    caller's own `jit`, where the build-time checks never saw them."""
+    leaves = jax.tree_util.tree_leaves_with_path(tree)
+    traced = []
+    for path, leaf in leaves:
+        if not hasattr(leaf, "dtype") or not jnp.issubdtype(leaf.dtype, jnp.inexact):
+            continue
+        if isinstance(leaf, jax.core.Tracer):
+            traced.append(leaf)
+            continue
+        a = np.asarray(leaf)
+        if not np.all(np.isfinite(a)):
+            idx = tuple(int(i) for i in np.argwhere(~np.isfinite(a))[0])
+            raise ValueError(
+                f"{what}{jax.tree_util.keystr(path)}: non-finite value {a[idx]} at index {idx}."
+            )
+    if not traced:
+        return tree
+    bad = jnp.zeros((), bool)
+    for leaf in traced:
+        bad = bad | ~jnp.all(jnp.isfinite(leaf))
+    return eqx.error_if(tree, bad, f"{what}: a value is not finite (NaN or inf).")
 
 
 def as_input(x: Any, what: str) -> Any:
@@ -138,7 +197,7 @@ def as_input(x: Any, what: str) -> Any:
     return jnp.asarray(a) if a.dtype != jax.dtypes.canonicalize_dtype(a.dtype) else a
 
 
-def _check_values_eagerly(points: Array, normals: Array, what: str) -> None:
+def _check_values_eagerly(points: AnyArray, normals: AnyArray, what: str) -> None:
     if not isinstance(points, jax.core.Tracer) and not isinstance(normals, jax.core.Tracer):
         # One fused pass decides; the slow NumPy search for the culprit runs only on failure.
         # Concrete arrays closed over by a caller's jit are still checked: evaluate eagerly.
@@ -148,7 +207,7 @@ def _check_values_eagerly(points: Array, normals: Array, what: str) -> None:
             raise_if_bad(False, points, normals, what)
 
 
-def raise_if_bad(good: Any, points: Array, normals: Array, what: str) -> None:
+def raise_if_bad(good: Any, points: AnyArray, normals: AnyArray, what: str) -> None:
     """Raise the precise `ValueError` (first non-finite value, first zero normal) unless `good`."""
     if bool(good):
         return
@@ -164,7 +223,7 @@ def raise_if_bad(good: Any, points: Array, normals: Array, what: str) -> None:
     raise ValueError(f"{pre}normals[{i}] is the zero vector; a normal needs a direction.")
 
 
-def evaluate_checked(fn: Any, points: Array, normals: Array, what: str) -> Any:
+def evaluate_checked(fn: Any, points: AnyArray, normals: AnyArray, what: str) -> Any:
     """`fn(points, normals) -> (out, inputs_ok(points, normals))` (one compiled call that also
     checks the inputs), evaluated in blocks (`_misc.map_chunks`); returns `out`, or raises the
     precise error when some block's flag is False. Under a caller's transformation (the flag

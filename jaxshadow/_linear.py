@@ -15,7 +15,8 @@ which for $m = 0$ is eq. 3.10 ($C_0 = 1/4\pi$; Poulin projects $N$ onto the plan
 light and the point, $N\cdot N_p \cos\phi$ being our $(N\cdot h + t\,N\cdot u)/r$) and for
 $m = 1$ is the cosine-distributed tube of §3.2.2. $J_k$ follows the standard reduction
 $J_k = [\cos^{k-1}\phi \sin\phi]/k + (k-1)/k\, J_{k-2}$ with $\cos\phi = d/r$, $\sin\phi = t/r$,
-so any integer $m \ge 0$ is exact (closed form); non-integer $m$ is rejected at build time.
+so any integer $m \ge 0$ is exact (closed form) up to `MAX_COSINE_EXPONENT` (above: a
+build-time error); non-integer $m$ is rejected at build time.
 
 The normalisation $C_m = 1 / (2\pi W_{m+1})$, $W_k = \int_{-\pi/2}^{\pi/2}\cos^k$, makes every
 profile emit the same power $\Phi$ per unit length (DESIGN.md).
@@ -45,14 +46,47 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import Any, no_type_check
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ._geometry import check_points_normals, check_vector3, evaluate_checked, inputs_ok, is_concrete
+from ._geometry import (
+    check_finite_leaves,
+    check_points_normals,
+    check_vector3,
+    evaluate_checked,
+    inputs_ok,
+    is_concrete,
+)
 from ._misc import arctan2, fusible, safe_norm, unit_rows
+
+#: Largest exponent of the cosine profile. The kernel's cost grows linearly with m (two
+#: recurrences of about m/2 and m steps per receiver); a cos^m beam has its half-power
+#: half-width at about 1.18/sqrt(m) rad (2.1 degrees at m = 1000): larger m is a laser, not a
+#: tube light. Checked when a `LinearLight` is built and by `linear_irradiance`.
+MAX_COSINE_EXPONENT = 1000
+#: Up to this m the recurrences are unrolled (fused into one loop by XLA); above, `fori_loop`.
+UNROLL_MAX_EXPONENT = 16
+
+
+def check_profile_exponent(m: Any, what: str, minimum: int = 0) -> int:
+    """The profile exponent as a Python int, or a `ValueError` (not an integer, below `minimum`,
+    above `MAX_COSINE_EXPONENT`)."""
+    ok = isinstance(m, (int, float, np.integer, np.floating)) and not isinstance(m, bool)
+    if not ok or not np.isfinite(m) or float(m) != int(m) or int(m) < minimum:
+        raise ValueError(
+            f"{what} must be an integer >= {minimum} (closed form per integer m), got {m!r}."
+        )
+    if int(m) > MAX_COSINE_EXPONENT:
+        raise ValueError(
+            f"{what} = {m!r} is above the supported maximum {MAX_COSINE_EXPONENT} (the cost "
+            "grows linearly with m, and a beam narrower than ~2 degrees is not a tube light)."
+        )
+    return int(m)
 
 
 def cosine_profile_constant(m: int) -> float:
@@ -69,13 +103,22 @@ def _dot3(x, y):
 
 
 def segment_frame(p, a, b):
-    """Poulin's 2-D frame of a segment seen from `p`: `(h, u, tA, tB)` with `X(t) = p + h + t u`."""
+    r"""Poulin's 2-D frame of a segment seen from `p`: `(h, u, tA, tB)` with `X(t) = p + h + t u`.
+
+    Light-relative: `tA` and `tB` are each measured from their own endpoint, and `h` from the
+    endpoint nearer to the foot of `p`. Computing `tB` as `tA + length` lost it to the rounding
+    of `tA` when `p` is close to `b` (float32, `p` 1e-7 past the end: $E \sim 1/|t_B|$ came
+    out 2-90x too high); `h` taken from the far endpoint likewise carried its rounding."""
     e = b - a
     length = safe_norm(e)
     u = e / jnp.where(length > 0, length, 1.0)
-    ta = _dot3(a - p, u)
-    h = (a - p) - ta * u
-    return h, u, ta, ta + length
+    wa = a - p
+    wb = b - p
+    ta = _dot3(wa, u)
+    tb = _dot3(wb, u)
+    near_a = jnp.abs(ta) <= jnp.abs(tb)
+    h = jnp.where(near_a, wa - ta * u, wb - tb * u)
+    return h, u, ta, tb
 
 
 def horizon_clip_interval(hn, un, ta, tb):
@@ -123,10 +166,30 @@ def _cosine_profile_bracket(t0, t1, d, ra, rb, m):
         den = jnp.where(same_side, t1 * ra + t0 * rb, 1.0)
         j = jnp.where(same_side, ca * cb * ((t1 - t0) * (t1 + t0) / den), sb - sa)
         k0 = 1
-    for k in range(k0 + 2, k_target + 1, 2):
-        j = (cb ** (k - 1) * sb - ca ** (k - 1) * sa) / k + (k - 1) / k * j
     c_diff = ca * ((t1 - t0) / rb) * ((t1 + t0) / (ra + rb))
-    c_sum = sum(ca**i * cb ** (m - i) for i in range(m + 1))
+    if m <= UNROLL_MAX_EXPONENT:
+        for k in range(k0 + 2, k_target + 1, 2):
+            j = (cb ** (k - 1) * sb - ca ** (k - 1) * sa) / k + (k - 1) / k * j
+        c_sum = sum(ca**i * cb ** (m - i) for i in range(m + 1))
+        return j, c_diff * c_sum / (m + 1)
+    # Large m: the same recurrences as loops (a traced program of fixed size; unrolled, the
+    # trace grew as m^2 and m = 2000 took ~1 min to compile).
+    ca2, cb2 = ca * ca, cb * cb
+
+    def reduce_j(i, state):
+        j, pa, pb = state  # pa = c_A^(k-1), pb = c_B^(k-1) for k = k0 + 2 + 2 i
+        k = (k0 + 2 + 2 * i).astype(j.dtype)
+        return (pb * sb - pa * sa) / k + (k - 1.0) / k * j, pa * ca2, pb * cb2
+
+    p0 = ca ** (k0 + 1), cb ** (k0 + 1)
+    j, _, _ = jax.lax.fori_loop(0, (k_target - k0) // 2, reduce_j, (j, *p0))
+
+    def horner(_, state):
+        acc, pb = state  # acc = sum_{i <= l} c_A^(l - i) c_B^i, pb = c_B^l
+        pb = pb * cb
+        return acc * ca + pb, pb
+
+    c_sum, _ = jax.lax.fori_loop(0, m, horner, (jnp.ones_like(ca), jnp.ones_like(cb)))
     return j, c_diff * c_sum / (m + 1)
 
 
@@ -184,6 +247,8 @@ def _linear_batch(points: Array, normals: Array, start: Array, end: Array, m: in
     return e, inputs_ok(points, normals)
 
 
+# Validates its own inputs (ValueError, docs/design.md): no runtime annotation check before it.
+@no_type_check
 def linear_irradiance(
     points: Float[ArrayLike, "N 3"],
     normals: Float[ArrayLike, "N 3"],
@@ -197,14 +262,25 @@ def linear_irradiance(
 
     - `points`, `normals`: `(N, 3)` receivers (m) and their normals (normalised here).
     - `start`, `end`: `(3,)` endpoints of the segment (m); cast to the dtype of `points`.
-    - `m`: profile exponent, a Python int: 0 for the isotropic tube, $m \ge 1$ for the
-      $\cos^m$ tube (Poulin §3.2.2).
+    - `m`: profile exponent, a Python int: 0 for the isotropic tube, $1 \le m \le$
+      `MAX_COSINE_EXPONENT` (1000) for the $\cos^m$ tube (Poulin §3.2.2).
 
     **Returns:** `(N,)`; `+inf` for a receiver on the segment itself.
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+
+        points = np.array([[0.0, 0.0, 0.0], [1.0, 0.5, 0.0]])
+        normals = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+        f = js.linear_irradiance(points, normals, [-1.0, 0.0, 1.5], [1.0, 0.0, 1.5])   # (2,)
+        ```
     """
     points, normals = check_points_normals(points, normals, "linear_irradiance", values=False)
-    if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or m < 0:
+    if not isinstance(m, (int, np.integer)):
         raise ValueError(f"linear_irradiance: m must be an integer >= 0 (a Python int), got {m!r}.")
+    m = check_profile_exponent(m, "linear_irradiance: m")
     ends = []
     for name, x in (("start", start), ("end", end)):
         x = x if isinstance(x, jnp.ndarray) else jnp.asarray(x)
@@ -214,6 +290,10 @@ def linear_irradiance(
             check_vector3(np.asarray(x), f"linear_irradiance: {name}")
         ends.append(x.astype(points.dtype))
     a, b = ends
-    if is_concrete(a) and is_concrete(b) and not np.any(np.asarray(a) != np.asarray(b)):
-        raise ValueError("linear_irradiance: zero-length segment (start == end).")
+    if is_concrete(a) and is_concrete(b):
+        if not np.any(np.asarray(a) != np.asarray(b)):
+            raise ValueError("linear_irradiance: zero-length segment (start == end).")
+    else:
+        a, b = check_finite_leaves((a, b), "linear_irradiance: start, end")
+        a, b = eqx.error_if((a, b), jnp.all(a == b), "linear_irradiance: zero-length segment (start == end).")
     return evaluate_checked(lambda p, n: _linear_batch(p, n, a, b, int(m)), points, normals, "linear_irradiance")

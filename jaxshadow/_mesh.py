@@ -94,6 +94,28 @@ class Mesh:
         if self.edges is None:
             self.convex = False
 
+    def with_vertices(self, vertices: Any) -> Mesh:
+        """The same mesh (faces, merging, closedness, convexity) with new vertex positions,
+        which may be traced (differentiable: e.g. a rigid motion or a scaling of the original
+        vertices inside `jax.grad`). The structure is not re-derived: the caller keeps merged
+        faces planar and convex solids convex (rigid motions and positive scalings do).
+
+        **Arguments:** `vertices`: `(V, 3)`, the original vertex count.
+
+        **Returns:** a `Mesh` whose `polygons` are gathered from `vertices`.
+        """
+        import copy
+
+        import jax.numpy as jnp
+
+        if tuple(np.shape(vertices)) != self.vertices.shape:
+            raise ValueError(f"Mesh.with_vertices: expected shape {self.vertices.shape}, got {tuple(np.shape(vertices))}.")
+        out = copy.copy(self)
+        out.vertices = vertices
+        out.polygons = [jnp.take(vertices, jnp.asarray(loop), axis=0) if not isinstance(vertices, np.ndarray)
+                        else vertices[loop] for loop in self.loops]
+        return out
+
     @classmethod
     def box(cls, lo: Any, hi: Any) -> Mesh:
         """An axis-aligned box from corner `lo (3,)` to corner `hi (3,)` (m), 12 triangles."""

@@ -6,7 +6,8 @@ import functools
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
 
 
 def fusible(x: Array) -> Array:
@@ -20,39 +21,86 @@ def fusible(x: Array) -> Array:
     its derivative is the identity too) that XLA counts as cheap, so wrapping an expensive
     result in it lets the whole computation around it fuse into one loop. In the quad form
     factor this took the compiled kernel from 48 fused loops to 4 and ~8x less time at 10^6
-    points (`benchmarks/README.md`). It only changes how XLA schedules the work, never a value.
+    points (commit 34489f5). It only changes how XLA schedules the work, never a value.
     """
     fi = jnp.finfo(x.dtype)
     return jax.lax.reduce_precision(x, exponent_bits=fi.nexp, mantissa_bits=fi.nmant)
 
 
+def max_abs3(x: Array, y: Array, z: Array) -> Array:
+    """`max(|x|, |y|, |z|)` of three components (elementwise): the scale of a vector."""
+    return jnp.maximum(jnp.maximum(jnp.abs(x), jnp.abs(y)), jnp.abs(z))
+
+
+_BIG = 2.0**64
+
+
+def divide_by_scale(x: Array, s: Array) -> Array:
+    """`x / s` for a positive scale `s` (e.g. the largest component of `x`), exact where `x / s`
+    is. XLA:CPU divides by multiplying with the reciprocal, and flushes subnormals to zero: for
+    `s` above 2^126 (float32; 2^1022 in float64) `1/s` is subnormal and every quotient came
+    out 0. Both are first multiplied by an exact power of two that brings `s` into
+    [2^-64, 2^64]."""
+    f = jnp.where(s > _BIG, 1.0 / _BIG, jnp.where(s < 1.0 / _BIG, _BIG, 1.0)).astype(x.dtype)
+    return (x * f) / (s * f)
+
+
+def _scaled(x: Float[Array, "... 3"], axis: int) -> tuple[Array, Array, Array]:
+    """`(x / s, s, s > 0)` with `s = max |x_i|` along `axis` (keepdims); `x` itself where `s = 0`.
+
+    Dividing by the largest component before squaring keeps the sum of squares in `[1, 3]`:
+    no overflow (|x| up to the largest float) and no underflow (|x| down to the smallest normal
+    number) in either dtype, where `sum(x * x)` overflows above `sqrt(max)` (1.8e19 in float32,
+    1.3e154 in float64) and vanishes below `sqrt(tiny)`. `s` gets no gradient: what is formed
+    from `x / s` below is invariant under the scaling (or scales with `s`, put back outside)."""
+    s = jax.lax.stop_gradient(jnp.max(jnp.abs(x), axis=axis, keepdims=True))
+    ok = s > 0
+    return divide_by_scale(x, jnp.where(ok, s, 1.0)), s, ok
+
+
 def safe_norm(x: Float[Array, "... 3"], axis: int = -1) -> Float[Array, "..."]:
-    """Euclidean norm whose gradient at `x = 0` is zero instead of NaN (double `where`)."""
-    sq = jnp.sum(x * x, axis=axis)
+    """Euclidean norm, scale-free (`_scaled`) and with a zero gradient at `x = 0` (double `where`)."""
+    xs, s, _ = _scaled(x, axis)
+    sq = jnp.sum(xs * xs, axis=axis, keepdims=True)
     ok = sq > 0
     safe_sq = jnp.where(ok, sq, 1.0)
-    return jnp.where(ok, fusible(jnp.sqrt(safe_sq)), 0.0)
+    return jnp.squeeze(jnp.where(ok, s * fusible(jnp.sqrt(safe_sq)), 0.0), axis=axis)
 
 
 def safe_normalize(x: Float[Array, "... 3"], axis: int = -1) -> Float[Array, "... 3"]:
-    """`x / |x|`, zero (with zero gradient) where `x = 0`."""
-    sq = jnp.sum(x * x, axis=axis, keepdims=True)
+    """`x / |x|`, scale-free (`_scaled`), zero (with zero gradient) where `x = 0`."""
+    xs, _, _ = _scaled(x, axis)
+    sq = jnp.sum(xs * xs, axis=axis, keepdims=True)
     ok = sq > 0
     safe_sq = jnp.where(ok, sq, 1.0)
-    return jnp.where(ok, x / fusible(jnp.sqrt(safe_sq)), 0.0)
+    return jnp.where(ok, xs / fusible(jnp.sqrt(safe_sq)), 0.0)
 
 
-def unit_rows(x: Float[Array, "N 3"]) -> Float[Array, "N 3"]:
+def unit_rows(x: Float[ArrayLike, "N 3"]) -> Float[Array, "N 3"]:
     """`safe_normalize` of each row, written component by component: XLA:CPU fuses it into the
-    kernel that reads the rows (a reduction over the length-3 axis is a separate loop)."""
+    kernel that reads the rows (a reduction over the length-3 axis is a separate loop).
+    Scale-free: a normal of any length from the smallest subnormal to the largest float is
+    normalised exactly (a plain sum of squares over- or underflows and gave a zero normal)."""
 
     def one(v: Array) -> Array:
-        sq = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+        s = jax.lax.stop_gradient(max_abs3(v[0], v[1], v[2]))
+        s = jnp.where(s > 0, s, 1.0)
+        w = [fusible(divide_by_scale(v[i], s)) for i in range(3)]
+        sq = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
         ok = sq > 0
-        s = fusible(jnp.sqrt(jnp.where(ok, sq, 1.0)))
-        return jnp.stack([jnp.where(ok, fusible(v[i] / s), 0.0) for i in range(3)])
+        r = fusible(jnp.sqrt(jnp.where(ok, sq, 1.0)))
+        return jnp.stack([jnp.where(ok, fusible(w[i] / r), 0.0) for i in range(3)])
 
     return jax.vmap(one)(x)
+
+
+_unit_rows_jit = jax.jit(unit_rows)
+
+
+def unit_rows_host(x: Float[ArrayLike, "N 3"]) -> np.ndarray:
+    """`unit_rows` of concrete rows as a NumPy array, as one compiled call (bit for bit what a
+    compiled program computes; op by op it took ~70 ms for 2e5 rows)."""
+    return np.asarray(_unit_rows_jit(jnp.asarray(x)))
 
 
 def safe_div(num: Array, den: Array, fallback: float | Array = 0.0) -> Array:
@@ -62,7 +110,7 @@ def safe_div(num: Array, den: Array, fallback: float | Array = 0.0) -> Array:
     return jnp.where(ok, fusible(num / safe_den), fallback)
 
 
-def angle_over_sin(s2: Array, c: Array) -> Array:
+def angle_over_sin(s2: Array | float, c: Array | float) -> Array:
     r"""$\theta / s$ for $\theta = \operatorname{atan2}(s, c)$, $s = \sqrt{s_2} \ge 0$.
 
     This is the factor that turns the (unnormalised) cross product of two edge vectors into
@@ -131,7 +179,7 @@ def _atan_over_t(z: Array) -> Array:
 
 
 @jax.custom_jvp
-def arctan2(y: Array, x: Array) -> Array:
+def arctan2(y: Array | float, x: Array | float) -> Array:
     r"""`atan2(y, x)` in $(-\pi, \pi]$, branch-free and vectorisable (XLA:CPU's own `atan2` is a
     scalar libm call, ~25 ns per float32 element, which dominated the form-factor kernel).
 

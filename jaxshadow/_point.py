@@ -5,7 +5,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._misc import safe_norm
+from ._misc import safe_normalize
 
 
 def point_irradiance_kernel(
@@ -25,6 +25,6 @@ def directional_irradiance_kernel(
     n: Float[Array, "3"], direction: Float[Array, "3"]
 ) -> Float[Array, ""]:
     r"""$E/E_0 = \max(0, -n\cdot\hat d)$ for light travelling along `direction`."""
-    dhat = direction / safe_norm(direction)
+    dhat = safe_normalize(direction)  # scale-free: any non-zero length
     c = -jnp.dot(n, dhat)
     return jnp.where(c > 0, c, 0.0)

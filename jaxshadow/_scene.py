@@ -10,22 +10,26 @@ from __future__ import annotations
 import json
 import os
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, no_type_check
 
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from ._files import atomic_write
 from ._geometry import (
     check_convex_polygon,
+    check_convex_polygon_cached,
     check_finite,
+    check_finite_leaves,
     check_rgb,
     check_unit_direction,
     check_vector3,
     is_concrete,
     pad_polygons_jax,
 )
+from ._linear import check_profile_exponent
 from ._mesh import Mesh, OccluderTopology, build_occluders, max_face_vertices, mesh_dicts
 
 SCENE_FORMAT = "jaxshadow.scene"
@@ -91,8 +95,9 @@ class LinearLight(eqx.Module):
     - `profile`: `"isotropic"` (per-length intensity $\\Phi/4\\pi$) or `"cosine"` (intensity
       $\\propto \\cos^m\\beta$, $\\beta$ from the plane perpendicular to the segment, normalised
       to emit the same $\\Phi$). Static.
-    - `exponent`: the integer $m \\ge 1$ of the cosine profile (closed form for every
-      integer; non-integer $m$ is rejected). Static.
+    - `exponent`: the integer $1 \\le m \\le 1000$ of the cosine profile (closed form for
+      every integer; non-integer $m$ and $m$ above `_linear.MAX_COSINE_EXPONENT` are
+      rejected). Static.
     """
 
     start: Float[Array, "3"]
@@ -111,14 +116,7 @@ class LinearLight(eqx.Module):
     ):
         if profile not in PROFILES:
             raise ValueError(f"LinearLight.profile must be one of {PROFILES}, got {profile!r}.")
-        ok = isinstance(exponent, (int, float, np.integer, np.floating)) and not isinstance(exponent, bool)
-        if not ok or not np.isfinite(exponent) or float(exponent) != int(exponent) or int(exponent) < (
-            1 if profile == "cosine" else 0
-        ):
-            raise ValueError(
-                "LinearLight.exponent must be an integer >= 1 for the cosine profile "
-                f"(closed form per integer m), got {exponent!r}."
-            )
+        exponent = check_profile_exponent(exponent, "LinearLight.exponent", 1 if profile == "cosine" else 0)
         if _all_concrete(start, end, power):
             s = check_vector3(start, "LinearLight.start")
             e = check_vector3(end, "LinearLight.end")
@@ -171,18 +169,33 @@ class Material(eqx.Module):
     """Phong material (Poulin eq. 2.1 / 5.14): $L = k_a L_a + k_d/\\pi\\, E + k_s S$.
 
     `ka`, `kd`, `ks`: `(3,)` RGB coefficients (`kd` is the diffuse albedo, as Mitsuba's
-    `diffuse` reflectance), each >= 0; `exponent`: Phong $n \\ge 0$ (scalar array).
+    `diffuse` reflectance), each >= 0, or `(N, 3)` per receiver (a texture looked up at `N`
+    points: row `i` is the material at receiver `i`); a scalar is broadcast to grey. Per-receiver
+    fields share one `N`. `exponent`: Phong $n \\ge 0$ (scalar array: one lobe per material).
     """
 
-    ka: Float[Array, "3"]
-    kd: Float[Array, "3"]
-    ks: Float[Array, "3"]
+    ka: Float[Array, "3"] | Float[Array, "N 3"]
+    kd: Float[Array, "3"] | Float[Array, "N 3"]
+    ks: Float[Array, "3"] | Float[Array, "N 3"]
     exponent: Float[Array, ""]
 
     def __init__(self, ka: Any = 0.0, kd: Any = 0.5, ks: Any = 0.0, exponent: Any = 1.0):
         if _all_concrete(ka, kd, ks, exponent):
+            rows = set()
             for name, v in (("ka", ka), ("kd", kd), ("ks", ks)):
-                check_rgb(v, f"Material.{name}")
+                a = np.asarray(v, dtype=np.float64)
+                if a.ndim == 2 and a.shape[1] == 3 and a.shape[0] >= 1:
+                    rows.add(a.shape[0])
+                    check_finite(a, f"Material.{name}")
+                    if np.any(a < 0):
+                        i, c = np.argwhere(a < 0)[0]
+                        raise ValueError(f"Material.{name}[{i}]: must be >= 0, got {float(a[i, c])} in channel {'RGB'[c]}.")
+                elif a.ndim == 2:
+                    raise ValueError(f"Material.{name}: expected a scalar, (3,) or (N, 3), got shape {a.shape}.")
+                else:
+                    check_rgb(v, f"Material.{name}")
+            if len(rows) > 1:
+                raise ValueError(f"Material: per-receiver fields have different numbers of rows {sorted(rows)}.")
             e = np.asarray(exponent, dtype=np.float64)
             if e.shape != ():
                 raise ValueError(f"Material.exponent must be a scalar, got shape {e.shape}.")
@@ -193,6 +206,26 @@ class Material(eqx.Module):
         self.kd = _rgb_leaf(kd)
         self.ks = _rgb_leaf(ks)
         self.exponent = _leaf(exponent)
+
+    @property
+    def receivers(self) -> int | None:
+        """`N` when some coefficient is given per receiver, else `None`."""
+        for k in (self.ka, self.kd, self.ks):
+            if k.ndim == 2:
+                return int(k.shape[0])
+        return None
+
+    def radiance(self, ambient: Any, irradiance: Any, specular: Any = None) -> Array:
+        """$k_a L_a + k_d E/\\pi + k_s S$ (Poulin eq. 5.14) from `ambient` `(3,)`, `irradiance` and
+        `specular` `(N, 3)` (`None`: no specular term); per-receiver coefficients apply row by
+        row. **Returns:** `(N, 3)` radiance (W m^-2 sr^-1), dtype of `irradiance`."""
+        e = jnp.asarray(irradiance)
+        dt = e.dtype
+        rows = lambda k: jnp.broadcast_to(jnp.asarray(k, dt), e.shape)  # noqa: E731
+        out = rows(self.ka) * rows(ambient) + rows(self.kd) / jnp.pi * e
+        if specular is not None:
+            out = out + rows(self.ks) * jnp.asarray(specular, dt)
+        return out
 
 
 def _stack_occluders(occluders: Any) -> tuple[Array | None, OccluderTopology | None]:
@@ -261,6 +294,44 @@ class Scene(eqx.Module):
         self.ambient = _rgb_leaf(ambient)
 
 
+def checked_scene(scene: Any, what: str) -> Scene:
+    """`scene` as the public entry points use it: a `Scene` whose values are checked again,
+    since they may have changed after it was built (`eqx.tree_at`) or arrive traced under the
+    caller's `jit`. Concrete values: every leaf finite and every polygon light convex and
+    planar (NumPy, `ValueError`; cached per polygon). Traced values: finite, checked when the
+    program runs (`eqx.error_if`; use the returned scene)."""
+    if not isinstance(scene, Scene):
+        raise ValueError(f"{what}: expected a jaxshadow.Scene, got {type(scene).__name__}.")
+    scene = check_finite_leaves(scene, f"{what}: scene")
+    for i, light in enumerate(scene.lights):
+        if isinstance(light, PolygonLight) and is_concrete(light.vertices):
+            check_convex_polygon_cached(light.vertices, f"{what}: scene.lights[{i}].vertices")
+    return scene
+
+
+def checked_material(material: Any, what: str) -> Material:
+    """`material` re-checked like `checked_scene`: coefficients finite and >= 0, exponent
+    finite and >= 0 (concrete: `ValueError`; traced: `eqx.error_if`)."""
+    if not isinstance(material, Material):
+        raise ValueError(f"{what}: expected a jaxshadow.Material, got {type(material).__name__}.")
+    leaves = (material.ka, material.kd, material.ks, material.exponent)
+    if _all_concrete(*leaves):
+        for name in ("ka", "kd", "ks"):
+            c = np.asarray(getattr(material, name), np.float64)
+            # (3,) or per receiver (N, 3) (Material's per-receiver coefficients).
+            for i, row in enumerate(c if c.ndim == 2 else [c]):
+                check_rgb(row, f"{what}: material.{name}" + (f"[{i}]" if c.ndim == 2 else ""))
+        e = np.asarray(material.exponent, np.float64).reshape(-1)
+        check_finite(e, f"{what}: material.exponent")
+        if np.any(e < 0):
+            raise ValueError(f"{what}: material.exponent must be >= 0, got {e.tolist()}.")
+        return material
+    bad = jnp.zeros((), bool)
+    for leaf in leaves:
+        bad = bad | ~jnp.all(jnp.isfinite(leaf) & (leaf >= 0))
+    return eqx.error_if(material, bad, f"{what}: a material value is negative or not finite.")
+
+
 # --------------------------------------------------------------------------------------
 # JSON scene format (versioned)
 # --------------------------------------------------------------------------------------
@@ -303,8 +374,17 @@ _LIGHT_FIELDS = {
 }
 
 
+def _has_bool(v: Any) -> bool:
+    if isinstance(v, bool):
+        return True
+    return isinstance(v, list) and any(_has_bool(x) for x in v)
+
+
 def _numeric(v: Any, where: str) -> np.ndarray:
-    """A JSON value as a float64 array, with an error naming the entry (strings, ragged lists)."""
+    """A JSON value as a float64 array, with an error naming the entry (strings, booleans,
+    ragged lists)."""
+    if _has_bool(v):
+        raise ValueError(f"{where}: expected numbers, got a boolean in {v!r}.")
     try:
         a = np.asarray(v, dtype=np.float64)
     except (TypeError, ValueError):
@@ -352,14 +432,23 @@ def material_from_dict(d: dict, where: str = "material") -> Material:
     unknown = set(d) - {"ka", "kd", "ks", "exponent"}
     if unknown:
         raise ValueError(f"{where}: unknown field(s) {sorted(unknown)}.")
+    values = {k: _numeric(v, f"{where}.{k}") for k, v in d.items()}
     try:
-        return Material(**{k: np.asarray(v, dtype=np.float64) for k, v in d.items()})
+        return Material(**values)
     except ValueError as err:
         raise ValueError(f"{where}: {err}") from None
 
 
 def scene_to_dict(scene: Scene, material: Material | None = None) -> dict:
-    """The JSON-able dict of a scene (and optionally a material), schema version 1."""
+    """The JSON-able dict of a scene (and optionally a material), schema version 1.
+
+    Example:
+        ```python
+        import jaxshadow as js
+
+        d = js.scene_to_dict(js.Scene([js.PointLight([0, 0, 2.0], 1.0)], ambient=0.05))   # JSON-ready
+        ```
+    """
     out: dict[str, Any] = {
         "format": SCENE_FORMAT,
         "version": SCENE_VERSION,
@@ -390,20 +479,34 @@ def _occluder_from_json(o: Any, where: str) -> Any:
     return _numeric(o, where)
 
 
+# Validates its own inputs (ValueError, docs/design.md): no runtime annotation check before it.
+@no_type_check
 def scene_from_dict(d: dict) -> Scene:
-    """Build a Scene from its dict form, with errors naming the offending entry."""
+    """Build a Scene from its dict form, with errors naming the offending entry.
+
+    Example:
+        ```python
+        import jaxshadow as js
+
+        d = js.scene_to_dict(js.Scene([js.PointLight([0, 0, 2.0], 1.0)]))
+        scene = js.scene_from_dict(d)
+        ```
+    """
     if not isinstance(d, dict):
         raise ValueError("scene: expected a JSON object.")
     if d.get("format") != SCENE_FORMAT:
         raise ValueError(f"scene: 'format' must be {SCENE_FORMAT!r}, got {d.get('format')!r}.")
-    if d.get("version") != SCENE_VERSION:
+    version = d.get("version")
+    if isinstance(version, bool) or not isinstance(version, int) or version != SCENE_VERSION:
         raise ValueError(
             f"scene: unsupported schema version {d.get('version')!r} (this jaxshadow reads {SCENE_VERSION})."
         )
     unknown = set(d) - {"format", "version", "lights", "occluders", "ambient", "material"}
     if unknown:
         raise ValueError(f"scene: unknown field(s) {sorted(unknown)}.")
-    raw_lights = d.get("lights", [])
+    if "lights" not in d:
+        raise ValueError("scene: missing field 'lights' (a list of lights; [] for none).")
+    raw_lights = d["lights"]
     if not isinstance(raw_lights, list):
         raise ValueError(f"scene: 'lights' must be a list, got {type(raw_lights).__name__}.")
     lights = [light_from_dict(ld, f"scene.lights[{i}]") for i, ld in enumerate(raw_lights)]
@@ -416,26 +519,85 @@ def scene_from_dict(d: dict) -> Scene:
     return Scene(lights=lights, occluders=occl, ambient=ambient)
 
 
-def save_scene(scene: Scene, path: str | os.PathLike, material: Material | None = None) -> None:
-    """Write a scene (and optionally a material) to a JSON file (schema version 1)."""
-    with open(path, "w") as f:
-        json.dump(scene_to_dict(scene, material), f, indent=2)
+def save_scene(scene: Any, path: str | os.PathLike, material: Any = None) -> None:
+    """Write a scene (and optionally a material) to a JSON file (schema version 1).
+
+    The document is built first and written through `_files.atomic_write` (a temporary file in
+    the same directory, renamed over `path` when complete): a bad argument, a failing
+    serialiser or a full disk leaves an existing file as it was.
+
+    **Arguments:** `scene` (`Scene`), `path` (file name), `material` (`Material` or `None`).
+
+    Example:
+        ```python
+        import os, tempfile
+        import jaxshadow as js
+
+        scene = js.Scene([js.PointLight([0, 0, 2.0], 1.0)], ambient=0.05)
+        path = os.path.join(tempfile.mkdtemp(), "scene.json")
+        js.save_scene(scene, path, material=js.Material(ka=0.1, kd=0.6, ks=0.3, exponent=20.0))
+        ```
+    """
+    if not isinstance(scene, Scene):
+        raise ValueError(f"save_scene: expected a jaxshadow.Scene, got {type(scene).__name__}.")
+    if material is not None and not isinstance(material, Material):
+        raise ValueError(f"save_scene: material must be a jaxshadow.Material or None, got {type(material).__name__}.")
+    text = json.dumps(scene_to_dict(scene, material), indent=2)
+    with atomic_write(path) as f:
+        f.write(text)
+
+
+def _read_json(path: str | os.PathLike) -> Any:
+    """A JSON document from a file, with a `ValueError` naming the path (missing file, a
+    directory, unreadable, not JSON) instead of a traceback."""
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path}: not valid JSON ({err}).") from None
+    except IsADirectoryError:
+        raise ValueError(f"{path}: is a directory, not a scene file.") from None
+    except FileNotFoundError:
+        raise ValueError(f"{path}: no such file.") from None
+    except (PermissionError, UnicodeDecodeError) as err:
+        raise ValueError(f"{path}: cannot be read ({err}).") from None
 
 
 def load_scene(path: str | os.PathLike) -> Scene:
-    """Read a scene from a JSON file written by `save_scene` (or by hand, same schema)."""
-    with open(path) as f:
-        try:
-            d = json.load(f)
-        except json.JSONDecodeError as err:
-            raise ValueError(f"{path}: not valid JSON ({err}).") from None
-    return scene_from_dict(d)
+    """Read a scene from a JSON file written by `save_scene` (or by hand, same schema).
+
+    **Returns:** the `Scene`; `ValueError` naming the path or the offending entry otherwise.
+
+    Example:
+        ```python
+        import os, tempfile
+        import jaxshadow as js
+
+        path = os.path.join(tempfile.mkdtemp(), "scene.json")
+        js.save_scene(js.Scene([js.PointLight([0, 0, 2.0], 1.0)]), path)
+        scene = js.load_scene(path)
+        ```
+    """
+    return scene_from_dict(_read_json(path))
 
 
 def load_material(path: str | os.PathLike) -> Material:
-    """Read the `material` entry of a scene JSON file."""
-    with open(path) as f:
-        d = json.load(f)
-    if "material" not in d:
+    """Read the `material` entry of a scene JSON file.
+
+    Example:
+        ```python
+        import os, tempfile
+        import jaxshadow as js
+
+        path = os.path.join(tempfile.mkdtemp(), "scene.json")
+        js.save_scene(js.Scene([js.PointLight([0, 0, 2.0], 1.0)]), path,
+                      material=js.Material(ka=0.1, kd=0.6, ks=0.3, exponent=20.0))
+        material = js.load_material(path)
+        ```
+    """
+    d = _read_json(path)
+    if not isinstance(d, dict) or "material" not in d:
         raise ValueError(f"{path}: no 'material' entry.")
+    if not isinstance(d["material"], dict):
+        raise ValueError(f"{path}: 'material' must be an object, got {type(d['material']).__name__}.")
     return material_from_dict(d["material"])

@@ -1,44 +1,64 @@
-r"""Exact shadows for concrete inputs: classify on the host, evaluate only what each receiver needs.
+r"""Exact shadows at scale: plan on the host, then integrate only what each receiver needs.
 
-Campbell & Fussell's pipeline (§4.2-4.3), with the host engine of `_visibility` as the shadow
-data: for every light, each receiver is classified and gets exactly the work its class needs.
+Campbell & Fussell's pipeline (§4.2-4.3) with the shadow engine of `_visibility` (`_shadowc.cc`)
+as the shadow data. For every light the engine classifies each receiver and returns exactly the
+visibility information its class needs, and one integrand (`Lambert` for irradiance, `Phong` for
+the specular term) consumes it:
 
-- **Polygon lights.** `LIT` receivers take the unoccluded kernel (`form_factor_kernel`,
-  `polygon_specular_kernel`); `UMBRA` ones and receivers behind the light or below its horizon
-  get exactly 0 without clipping; `PENUMBRA` receivers integrate over the boundary of their
-  visible region, computed by the engine from their candidate occluders only and decoded on the
-  host into edges (`_visibility.polygon_codes(decoded=True)`), grouped by edge count into
-  power-of-two capacities (one compiled contour integral per capacity and block size). No
-  receiver ever needs more than its own edges: memory is bounded by the block sizes, not by the
-  number of occluders, and no count of candidates is too large (the engine has no capacity).
-- **Point and directional lights.** Hard shadows from the engine's ray tests against the
-  hierarchy, times the unoccluded kernel.
+- **Polygon lights.** `LIT` receivers take the unoccluded kernel; `UMBRA` receivers and those
+  behind the light or below its horizon (`ZERO`) get exactly 0 without clipping; `PENUMBRA`
+  receivers integrate over the boundary of their visible region, computed by the engine from
+  their candidate occluders only, grouped by edge count into power-of-two capacities (one
+  compiled contour integral per capacity and block size). Memory is bounded by the block sizes,
+  not by the number of occluders, and no receiver has too many candidates (the engine has no
+  capacity).
 - **Segment lights.** The engine lists the faces that meet each receiver's light triangle
-  (Poulin §4.2); receivers are grouped by that count, the device kernel clips the segment against
-  their own faces only (`_clip.visible_segments`).
+  (Poulin §4.2); receivers are grouped by that count, and the segment is clipped against their
+  own faces only (`_clip.visible_segments`).
+- **Point and directional lights.** Hard shadows from the engine's ray tests against its
+  hierarchy, times the unoccluded kernel.
 
-Values only: everything here runs from concrete NumPy values (nothing is differentiated; the
-traced path is `_shade._irradiance_traced`, whose derivatives follow the same regions). The
-results equal the device kernels' with all occluders to rounding (`tests/test_shadows_scale.py`).
+Three ways to run the same plan, chosen by `_shade` from what the inputs are:
+
+- `host_values`: every input concrete and nothing differentiated. The engine also decodes the
+  boundary's points (in C++, with the formulas of `_visibility.decode_endpoints`), JAX only
+  integrates.
+- `planned_values`: the inputs carry derivatives but have concrete values (`jax.grad` or
+  `jax.jacfwd` called eagerly). The engine plans from the values; the boundary's points are
+  decoded from its codes in JAX, so derivatives flow to receivers, normals, light and occluder
+  vertices (the codes, piecewise constant, carry none).
+- `traced_values`: the values are abstract (inside `jax.jit` or `jax.vmap`). The engine runs
+  inside the compiled program (XLA FFI) with a static number of boundary edges per receiver
+  (`ShadowOptions.capacity`); receivers over it are reported (`overflow`), never silently
+  truncated: the public functions raise, the inverse solvers retry with a larger capacity.
 """
 
 from __future__ import annotations
 
 import functools
+import time
+from dataclasses import dataclass, field
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from . import _visibility as vis
-from ._clip import masked_contour_form_factor, visible_linear_kernel, visible_segments
+from ._clip import (
+    directional_visibility,
+    masked_contour_form_factor,
+    point_visibility,
+    visible_edges,
+    visible_segments,
+)
 from ._linear import linear_irradiance_kernel
-from ._misc import unit_rows
 from ._point import directional_irradiance_kernel, point_irradiance_kernel
-from ._polygon import form_factor_kernel
-from ._scene import DirectionalLight, LinearLight, PointLight, PolygonLight, Scene
+from ._polygon import edge_term, form_factor_kernel
+from ._scene import LinearLight, PointLight, PolygonLight, Scene
 from ._specular import (
+    DEFAULT_DEGREE,
     contour_specular_kernel,
     directional_specular_kernel,
     point_specular_kernel,
@@ -46,20 +66,235 @@ from ._specular import (
     segment_specular_kernel,
 )
 
-# Receivers per engine call (bounds the host memory of the codes and edges), and edge slots per
-# compiled block (receivers per block = EDGE_BLOCK // capacity).
+# Receivers per engine call (bounds the host memory of codes and edges) and edge (or occluder)
+# slots per compiled block: receivers per block = EDGE_BLOCK // capacity.
 HOST_CHUNK = 1 << 18
 EDGE_BLOCK = 1 << 18
 MIN_BLOCK = 64
 MIN_CAPACITY = 8
 
 
-def applicable(scene: Scene, *arrays: Any) -> bool:
-    """Whether `scene` has occluders, the engine is built and every input is concrete."""
-    if scene.occluders is None or not vis.engine_available():
-        return False
-    leaves = jax.tree_util.tree_leaves((scene, arrays))
-    return not any(isinstance(x, jax.core.Tracer) for x in leaves)
+@dataclass(frozen=True)
+class ShadowOptions:
+    """How exact shadows are evaluated (static: part of a compiled program's identity).
+
+    - `engine`: `"auto"` (the compiled host engine when it is built, else the device kernels),
+      `"host"` (the engine; an error if it is not built) or `"device"` (JAX kernels that clip
+      every receiver against every occluder: no build needed, memory and time grow with the
+      square of the occluder count).
+    - `capacity`: boundary edges (polygon lights) or candidate faces (segment lights) per
+      receiver when the values are abstract (inside `jax.jit`/`jax.vmap`) and the engine runs in
+      the compiled program. A receiver that needs more is an error, never a truncation. Eager
+      calls (including eager `jax.grad`) plan from the values and have no capacity.
+    """
+
+    engine: str = "auto"
+    capacity: int = 64
+
+    def __post_init__(self) -> None:
+        if self.engine not in ("auto", "host", "device"):
+            raise ValueError(f"ShadowOptions: engine must be 'auto', 'host' or 'device', got {self.engine!r}.")
+        if not isinstance(self.capacity, int) or isinstance(self.capacity, bool) or not 1 <= self.capacity <= 1 << 16:
+            raise ValueError(f"ShadowOptions: capacity must be an integer in [1, 65536], got {self.capacity!r}.")
+
+    def use_engine(self) -> bool:
+        if self.engine == "device":
+            return False
+        if self.engine == "host" and not vis.engine_available():
+            raise RuntimeError("ShadowOptions(engine='host'): jaxshadow._shadowc is not built "
+                               "(reinstall jaxshadow with a C++ compiler available).")
+        return vis.engine_available()
+
+
+DEFAULT_OPTIONS = ShadowOptions()
+
+
+# --------------------------------------------------------------------------------------
+# Integrands: what a light contributes per unit emission, given its visibility
+# --------------------------------------------------------------------------------------
+
+
+class Lambert(eqx.Module):
+    """Irradiance per unit emission: $\\pi F$ for polygons (per unit radiance), $E/\\Phi$ for
+    segments, $E/I$ for point lights, $E/E_0$ for directional lights."""
+
+    def polygon(self, p, n, e, verts):
+        return jnp.pi * form_factor_kernel(p, n, verts)
+
+    def contour(self, p, n, e, verts, starts, ends):
+        return jnp.pi * masked_contour_form_factor(p, n, verts, starts, ends)
+
+    def segment(self, p, n, e, a, b, light: LinearLight):
+        return linear_irradiance_kernel(p, n, a, b, light.exponent)
+
+    def point(self, p, n, e, x):
+        return point_irradiance_kernel(p, n, x)
+
+    def directional(self, p, n, e, d):
+        return directional_irradiance_kernel(n, d)
+
+
+class Phong(eqx.Module):
+    """Phong-lobe integral per unit emission (Poulin eqs. 3.11, 3.12): `exponent` differentiable,
+    `method` and `degree` static."""
+
+    exponent: Any
+    method: str = eqx.field(static=True, default="chebyshev")
+    degree: int = eqx.field(static=True, default=DEFAULT_DEGREE)
+
+    def polygon(self, p, n, e, verts):
+        return polygon_specular_kernel(p, n, e, verts, self.exponent, method=self.method, degree=self.degree)
+
+    def contour(self, p, n, e, verts, starts, ends):
+        return contour_specular_kernel(p, n, e, starts, ends, self.exponent, method=self.method, degree=self.degree)
+
+    def segment(self, p, n, e, a, b, light: LinearLight):
+        prof = None if light.profile == "isotropic" else jnp.asarray(float(light.exponent), p.dtype)
+        return segment_specular_kernel(p, n, e, a, b, self.exponent, prof, method=self.method, degree=self.degree)
+
+    def point(self, p, n, e, x):
+        return point_specular_kernel(p, n, e, x, self.exponent)
+
+    def directional(self, p, n, e, d):
+        return directional_specular_kernel(p, n, e, d, self.exponent)
+
+
+def _segment_visible(integ: Any, p, n, e, a, b, light: LinearLight, occ):
+    """The segment integrand summed over the visible pieces of `a -> b` (occluders `occ`)."""
+    sa, sb = visible_segments(p, a, b, occ)
+    return jnp.sum(jax.vmap(lambda u, v: integ.segment(p, n, e, u, v, light))(sa, sb))
+
+
+def emission(light: Any, dt: Any) -> Any:
+    """The light's emission the integrands are per unit of: radiance, power, intensity or
+    irradiance (RGB)."""
+    if isinstance(light, PolygonLight):
+        return light.radiance.astype(dt)
+    if isinstance(light, LinearLight):
+        return light.power.astype(dt)
+    if isinstance(light, PointLight):
+        return light.intensity.astype(dt)
+    return light.irradiance.astype(dt)
+
+
+def _occluders(scene: Scene) -> Any:
+    assert scene.occluders is not None, "the shadow engine needs a scene with occluders"
+    return scene.occluders
+
+
+# --------------------------------------------------------------------------------------
+# The plan (host)
+# --------------------------------------------------------------------------------------
+
+KIND_CLASSES = {"polygon": vis.CLASS_NAMES, "segment": ("zero", "free", "", "candidates"),
+                "point": ("", "visible", "blocked", ""), "directional": ("", "visible", "blocked", "")}
+
+
+@dataclass
+class LightPlan:
+    """The engine's answer for one light and a batch of receivers.
+
+    `classes (N,)`: polygon lights `ZERO` (0: behind the light or below the horizon), `LIT` (1),
+    `UMBRA` (2), `PENUMBRA` (3); segment lights 1 (no face meets the light triangle) or 3;
+    point and directional lights 1 (visible) or 2 (blocked). `candidates (N,)`: items the
+    hierarchy returned for the receiver (polygon lights; a convex closed mesh counts once),
+    `kept (N,)`: occluder regions kept after the exact tests (polygon lights) or faces that meet
+    the light triangle (segment lights). Polygon lights: penumbra receiver i's boundary edges
+    are rows `offsets[i]:offsets[i + 1]` of `runs (R, 2, 7)` (endpoint codes) and/or `points
+    (R, 2, 3)`; receivers of the other classes have none (a lit one takes the unoccluded kernel)."""
+
+    kind: str
+    classes: np.ndarray
+    candidates: np.ndarray | None = None
+    kept: np.ndarray | None = None
+    offsets: np.ndarray | None = None
+    runs: Any = None
+    points: Any = None
+    faces: Any = None  # segment lights: candidate faces (CSR with `offsets`), np.ndarray
+    seconds: float = 0.0
+
+    @property
+    def counts(self) -> np.ndarray:
+        assert self.offsets is not None
+        return np.diff(self.offsets)
+
+
+@dataclass
+class ShadowPlan:
+    """What the shadow engine decided for a scene and a batch of receivers (`shadow_plan`).
+
+    `lights`: one `LightPlan` per light of the scene, in order. `n_faces`: occluder faces after
+    mesh merging; `n_solids`: convex closed meshes (each tested as one blocker through its
+    silhouette); `seconds`: engine time of the whole plan."""
+
+    lights: list[LightPlan]
+    n_receivers: int
+    n_faces: int
+    n_solids: int
+    seconds: float = 0.0
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def classes(self) -> list[np.ndarray]:
+        return [lp.classes for lp in self.lights]
+
+    def summary(self) -> dict:
+        """Counts and fractions per class, candidate-list and boundary sizes, per light."""
+        out: dict[str, Any] = {"receivers": self.n_receivers, "faces": self.n_faces, "solids": self.n_solids,
+                               "seconds": self.seconds, "lights": []}
+        for lp in self.lights:
+            names = KIND_CLASSES[lp.kind]
+            counts = np.bincount(lp.classes, minlength=4)
+            d: dict = {"kind": lp.kind, "seconds": lp.seconds,
+                       "classes": {names[c]: int(counts[c]) for c in range(4) if names[c]},
+                       "fractions": {names[c]: float(counts[c]) / max(1, self.n_receivers) for c in range(4) if names[c]}}
+            for key, arr in (("candidates", lp.candidates), ("kept", lp.kept)):
+                if arr is not None and arr.size:
+                    d[key] = {"mean": float(arr.mean()), "max": int(arr.max())}
+            if lp.kind == "polygon" and lp.offsets is not None:
+                c = lp.counts
+                pen = c[lp.classes == vis.PENUMBRA]
+                d["penumbra_edges"] = {"mean": float(pen.mean()) if pen.size else 0.0, "max": int(pen.max()) if pen.size else 0}
+            out["lights"].append(d)
+        return out
+
+
+def host_occluders(scene: Scene, dtype: Any) -> vis.HostOccluders:
+    return vis.HostOccluders.of(np.asarray(scene.occluders), scene.occluder_topology, dtype)
+
+
+def plan(scene: Scene, points: np.ndarray, normals: np.ndarray, *, codes: bool, decoded: bool,
+         lights: list | None = None) -> ShadowPlan:
+    """Run the engine for every light of `scene` (or `lights`) on concrete receivers (unit
+    `normals`)."""
+    dt = points.dtype
+    occ = host_occluders(scene, dt)
+    t_all = time.perf_counter()
+    out = []
+    for light in scene.lights if lights is None else lights:
+        t = time.perf_counter()
+        if isinstance(light, PolygonLight):
+            pc = vis.polygon_codes(points, normals, np.asarray(light.vertices, dt), occ, codes=codes, decoded=decoded)
+            lp = LightPlan("polygon", pc.classes, pc.stats[:, 0], pc.stats[:, 1], pc.offsets, pc.runs, pc.points)
+        elif isinstance(light, LinearLight):
+            off, faces = vis.segment_candidates(points, np.asarray(light.start, dt), np.asarray(light.end, dt), occ)
+            cnt = np.diff(off).astype(np.int32)
+            cls = np.where(cnt > 0, vis.PENUMBRA, vis.LIT).astype(np.int32)
+            lp = LightPlan("segment", cls, kept=cnt, offsets=off, faces=faces)
+        else:
+            is_point = isinstance(light, PointLight)
+            x = np.asarray(light.position if is_point else light.direction, dt)
+            visible = vis.hard_visibility(points, x, is_point, occ)
+            cls = np.where(visible, vis.LIT, vis.UMBRA).astype(np.int32)
+            lp = LightPlan("point" if is_point else "directional", cls)
+        lp.seconds = time.perf_counter() - t
+        out.append(lp)
+    return ShadowPlan(out, points.shape[0], occ.faces.shape[0], occ.topology.n_solids, time.perf_counter() - t_all)
+
+
+# --------------------------------------------------------------------------------------
+# Blocks: few compiled shapes, bounded memory
+# --------------------------------------------------------------------------------------
 
 
 def _next_pow2(n: int, lo: int) -> int:
@@ -69,270 +304,414 @@ def _next_pow2(n: int, lo: int) -> int:
     return c
 
 
-def _padded_map(fn: Any, arrays: tuple, shared: tuple, rows: int, out_dtype: Any) -> np.ndarray:
-    """`fn(*blocks, *shared)` over the leading axis of `arrays` in blocks of at most `rows`, each
-    padded (with copies of its first row) to a power of two of at least `MIN_BLOCK` rows, so that
-    `fn` compiles for a few shapes only."""
-    n = arrays[0].shape[0]
-    out = np.empty(n, out_dtype)
+def capacity_groups(counts: np.ndarray, idx: np.ndarray) -> list[tuple[int, np.ndarray]]:
+    """Receivers `idx` grouped by the power of two (>= `MIN_CAPACITY`) that holds their count."""
+    if idx.size == 0:
+        return []
+    c = np.maximum(counts[idx], 1)
+    caps = np.maximum(MIN_CAPACITY, 2 ** np.ceil(np.log2(c)).astype(np.int64))
+    return [(int(cap), idx[caps == cap]) for cap in np.unique(caps)]
+
+
+def _blocks(n: int, rows: int) -> list[tuple[int, int, int]]:
+    """`(start, stop, padded size)` blocks of at most `rows` rows, sizes powers of two >= MIN_BLOCK."""
+    out = []
     for s in range(0, n, rows):
         e = min(n, s + rows)
-        m = e - s
-        size = min(rows, _next_pow2(m, MIN_BLOCK)) if rows >= MIN_BLOCK else m
-        size = max(size, m)
-        blk = []
-        for a in arrays:
-            b = a[s:e]
-            if size > m:
-                b = np.concatenate([b, np.broadcast_to(b[:1], (size - m,) + b.shape[1:])])
-            blk.append(b)
-        out[s:e] = np.asarray(fn(*blk, *shared))[:m]
+        size = max(e - s, min(rows, _next_pow2(e - s, MIN_BLOCK)))
+        out.append((s, e, size))
     return out
 
 
-def _dense_edges(pc: vis.PolygonCodes, idx: np.ndarray, cap: int, e0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The decoded edges of receivers `idx` as `(n, cap, 3)` starts and ends (unused slots
-    zero-length at the light's first vertex `e0`)."""
-    counts = pc.counts[idx]
+def _pad_rows(a: Any, size: int) -> Any:
+    m = a.shape[0]
+    if size == m:
+        return a
+    xp = jnp if isinstance(a, jax.Array) else np
+    return xp.concatenate([a, xp.broadcast_to(a[:1], (size - m,) + a.shape[1:])])
+
+
+def _map_blocks(fn: Any, arrays: tuple, rows: int) -> Any:
+    """`fn(*blocks)` over the leading axis in padded blocks; concatenated, unpadded."""
+    n = arrays[0].shape[0]
+    outs = []
+    for s, e, size in _blocks(n, rows):
+        outs.append(fn(*(_pad_rows(a[s:e], size) for a in arrays))[: e - s])
+    if not outs:
+        return jnp.zeros((0,), arrays[0].dtype)
+    return outs[0] if len(outs) == 1 else jnp.concatenate(outs)
+
+
+def _dense_rows(offsets: np.ndarray, idx: np.ndarray, cap: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rows into a CSR table for receivers `idx`, `(n, cap)`, and the mask of used slots."""
+    counts = np.diff(offsets)[idx]
     slot = np.arange(cap)
     used = slot[None, :] < counts[:, None]
-    rows = np.where(used, pc.offsets[idx][:, None] + slot[None, :], 0)
-    pts = pc.points[rows]  # (n, cap, 2, 3)
-    pts = np.where(used[:, :, None, None], pts, e0)
-    return np.ascontiguousarray(pts[:, :, 0]), np.ascontiguousarray(pts[:, :, 1])
+    return np.where(used, offsets[idx][:, None] + slot[None, :], 0), used
+
+
+# Compiled pieces, one light and one block. Each is jitted once per (integrand type, shapes).
+
+
+@jax.jit
+def _lit_block(integ, p, n, e, verts):
+    return jax.vmap(integ.polygon, in_axes=(0, 0, 0, None))(p, n, e, verts)
+
+
+@jax.jit
+def _contour_block(integ, p, n, e, verts, starts, ends):
+    return jax.vmap(integ.contour, in_axes=(0, 0, 0, None, 0, 0))(p, n, e, verts, starts, ends)
+
+
+@jax.jit
+def _lambert_edge_block(p, n, starts, ends):
+    """Lambert's term of each boundary edge (`(R,)`, zero-length edges exactly 0), receivers
+    repeated per edge: the contour sum without padding receivers to a capacity."""
+    used = jnp.any(starts != ends, axis=1)
+    return jnp.where(used, jax.vmap(edge_term)(p, n, starts, ends), 0.0)
+
+
+@jax.jit
+def _decoded_block(integ, p, n, e, verts, faces, runs):
+    fn, f0 = vis.face_frames(faces)
+    table = vis.vertex_table(verts, faces)
+
+    def one(p_, n_, e_, r_):
+        s, t = vis.edges_from_codes(p_, n_, verts, table, fn, f0, r_)
+        return integ.contour(p_, n_, e_, verts, s, t)
+
+    return jax.vmap(one)(p, n, e, runs)
+
+
+@functools.partial(jax.jit, static_argnames=("light",))
+def _segment_free_block(integ, light, p, n, e, a, b):
+    return jax.vmap(integ.segment, in_axes=(0, 0, 0, None, None, None))(p, n, e, a, b, light)
+
+
+@functools.partial(jax.jit, static_argnames=("light",))
+def _segment_block(integ, light, p, n, e, a, b, occ):
+    return jax.vmap(_segment_visible, in_axes=(None, 0, 0, 0, None, None, None, 0))(integ, p, n, e, a, b, light, occ)
+
+
+@functools.partial(jax.jit, static_argnames=("is_point",))
+def _hard_block(integ, p, n, e, x, visible, is_point):
+    kern = integ.point if is_point else integ.directional
+    g = jax.vmap(kern, in_axes=(0, 0, 0, None))(p, n, e, x)
+    return jnp.where(visible, g, 0.0)
+
+
+# jit with a static `light` needs it hashable: LinearLight is an eqx.Module of arrays, so pass
+# a hashable stand-in carrying what the integrands read (profile and exponent).
+@dataclass(frozen=True)
+class _SegmentProfile:
+    profile: str
+    exponent: int
+
+
+def _profile(light: LinearLight) -> _SegmentProfile:
+    return _SegmentProfile(light.profile, int(light.exponent))
 
 
 # --------------------------------------------------------------------------------------
-# Compiled integrals (one light, a block of receivers)
+# Evaluation from a plan (eager: concrete values, possibly carrying derivatives)
 # --------------------------------------------------------------------------------------
 
 
-@jax.jit
-def _lambert_lit(p, n, verts):
-    return jax.vmap(form_factor_kernel, in_axes=(0, 0, None))(p, n, verts)
+def _scatter(n: int, dt: Any, parts: list[tuple[np.ndarray, Any]], concrete: bool) -> Any:
+    if concrete:
+        out = np.zeros(n, dt)
+        for idx, vals in parts:
+            out[idx] = np.asarray(vals)
+        return out
+    res = jnp.zeros(n, dt)
+    for idx, vals in parts:
+        res = res.at[jnp.asarray(idx)].set(vals)
+    return res
 
 
-@jax.jit
-def _lambert_contour(p, n, starts, ends, verts):
-    return jax.vmap(masked_contour_form_factor, in_axes=(0, 0, None, 0, 0))(p, n, verts, starts, ends)
+def _take(a: Any, idx: np.ndarray) -> Any:
+    return a[idx] if isinstance(a, np.ndarray) else jnp.take(a, jnp.asarray(idx), axis=0)
 
 
-@functools.partial(jax.jit, static_argnames=("method", "degree"))
-def _phong_lit(p, n, eye, verts, exponent, method, degree):
-    k = functools.partial(polygon_specular_kernel, method=method, degree=degree)
-    return jax.vmap(k, in_axes=(0, 0, 0, None, None))(p, n, eye, verts, exponent)
+def light_values(lp: LightPlan, light: Any, integ: Any, p: Any, n: Any, e: Any, faces: Any, concrete: bool) -> Any:
+    """`(N,)` contribution per unit emission of one light, from its plan.
 
-
-@functools.partial(jax.jit, static_argnames=("method", "degree"))
-def _phong_contour(p, n, eye, starts, ends, verts, exponent, method, degree):
-    k = functools.partial(contour_specular_kernel, method=method, degree=degree)
-    return jax.vmap(k, in_axes=(0, 0, 0, 0, 0, None))(p, n, eye, starts, ends, exponent)
-
-
-@functools.partial(jax.jit, static_argnames=("m",))
-def _segment_lit(p, n, a, b, m):
-    return jax.vmap(linear_irradiance_kernel, in_axes=(0, 0, None, None, None))(p, n, a, b, m)
-
-
-@functools.partial(jax.jit, static_argnames=("m",))
-def _segment_shadowed(p, n, occ, a, b, m):
-    return jax.vmap(visible_linear_kernel, in_axes=(0, 0, None, None, None, 0))(p, n, a, b, m, occ)
-
-
-@functools.partial(jax.jit, static_argnames=("method", "degree"))
-def _segment_phong(p, n, eye, occ, a, b, exponent, prof, method, degree):
-    def one(p, n, e, o):
-        sa, sb = visible_segments(p, a, b, o)
-        piece = lambda u, v: segment_specular_kernel(p, n, e, u, v, exponent, prof, method=method, degree=degree)  # noqa: E731
-        return jnp.sum(jax.vmap(piece)(sa, sb))
-
-    return jax.vmap(one)(p, n, eye, occ)
-
-
-@functools.partial(jax.jit, static_argnames=("method", "degree"))
-def _segment_phong_lit(p, n, eye, a, b, exponent, prof, method, degree):
-    k = functools.partial(segment_specular_kernel, method=method, degree=degree)
-    return jax.vmap(k, in_axes=(0, 0, 0, None, None, None, None))(p, n, eye, a, b, exponent, prof)
-
-
-@jax.jit
-def _point_lit(p, n, x):
-    return jax.vmap(point_irradiance_kernel, in_axes=(0, 0, None))(p, n, x)
-
-
-@jax.jit
-def _directional_lit(n, d):
-    return jax.vmap(directional_irradiance_kernel, in_axes=(0, None))(n, d)
-
-
-@jax.jit
-def _point_phong(p, n, eye, x, exponent):
-    return jax.vmap(point_specular_kernel, in_axes=(0, 0, 0, None, None))(p, n, eye, x, exponent)
-
-
-@jax.jit
-def _directional_phong(p, n, eye, d, exponent):
-    return jax.vmap(directional_specular_kernel, in_axes=(0, 0, 0, None, None))(p, n, eye, d, exponent)
-
-
-@jax.jit
-def _unit(n):
-    return unit_rows(n)
-
-
-# --------------------------------------------------------------------------------------
-# Per light
-# --------------------------------------------------------------------------------------
-
-
-class _Receivers:
-    """Concrete receivers in one dtype (normals made unit as the kernels do), and eyes."""
-
-    def __init__(self, points: Any, normals: Any, eyes: Any = None):
-        self.p = np.ascontiguousarray(np.asarray(points))
-        self.dtype = self.p.dtype
-        self.n = np.ascontiguousarray(np.asarray(_unit(jnp.asarray(normals, self.dtype))))
-        self.eye: Any = None if eyes is None else np.ascontiguousarray(np.asarray(eyes, self.dtype))
-
-
-def _polygon_values(r: _Receivers, verts: np.ndarray, occ: vis.HostOccluders, phong: dict | None) -> np.ndarray:
-    """Per receiver: form factor (Lambert) or Phong integral per unit radiance of one polygon
-    light, shadows included."""
-    n_pts = r.p.shape[0]
-    out = np.zeros(n_pts, r.dtype)
-    v = np.asarray(verts, r.dtype)
-    e0 = v[0]
-    for s in range(0, n_pts, HOST_CHUNK):
-        e = min(n_pts, s + HOST_CHUNK)
-        p, n = r.p[s:e], r.n[s:e]
-        pc = vis.polygon_codes(p, n, v, occ, codes=False, decoded=True)
-        res = np.zeros(e - s, r.dtype)
-        lit = np.nonzero(pc.classes == vis.LIT)[0]
-        if lit.size:
-            if phong is None:
-                res[lit] = _padded_map(_lambert_lit, (p[lit], n[lit]), (v,), EDGE_BLOCK // 8, r.dtype)
-            else:
-                res[lit] = _padded_map(
-                    lambda a, b, c, vv: _phong_lit(a, b, c, vv, phong["exponent"], phong["method"], phong["degree"]),
-                    (p[lit], n[lit], r.eye[s:e][lit]), (v,), EDGE_BLOCK // 8, r.dtype)
-        pen = np.nonzero(pc.classes == vis.PENUMBRA)[0]
-        if pen.size:
-            counts = pc.counts[pen]
-            caps = np.maximum(MIN_CAPACITY, 2 ** np.ceil(np.log2(np.maximum(counts, 1))).astype(np.int64))
-            for cap in np.unique(caps):
-                idx = pen[caps == cap]
-                starts, ends = _dense_edges(pc, idx, int(cap), e0)
-                rows = max(MIN_BLOCK, EDGE_BLOCK // int(cap))
-                if phong is None:
-                    res[idx] = _padded_map(_lambert_contour, (p[idx], n[idx], starts, ends), (v,), rows, r.dtype)
-                else:
-                    res[idx] = _padded_map(
-                        lambda a, b, c, d, f, vv: _phong_contour(a, b, c, d, f, vv, phong["exponent"], phong["method"],
-                                                                 phong["degree"]),
-                        (p[idx], n[idx], r.eye[s:e][idx], starts, ends), (v,), rows, r.dtype)
-        out[s:e] = res
-    return out
-
-
-def _segment_values(r: _Receivers, light: LinearLight, occ: vis.HostOccluders, phong: dict | None) -> np.ndarray:
-    n_pts = r.p.shape[0]
-    a = np.asarray(light.start, r.dtype)
-    b = np.asarray(light.end, r.dtype)
-    m = light.exponent
-    prof = None if light.profile == "isotropic" else np.asarray(float(m), r.dtype)
-    out = np.zeros(n_pts, r.dtype)
-    faces = occ.faces
-    for s in range(0, n_pts, HOST_CHUNK):
-        e = min(n_pts, s + HOST_CHUNK)
-        p, n = r.p[s:e], r.n[s:e]
-        eye: Any = None if r.eye is None else r.eye[s:e]
-        off, cand = vis.segment_candidates(p, a, b, occ)
-        counts = np.diff(off)
-        res = np.zeros(e - s, r.dtype)
-        free = np.nonzero(counts == 0)[0]
-        if free.size:
-            if phong is None:
-                res[free] = _padded_map(lambda x, y: _segment_lit(x, y, a, b, m), (p[free], n[free]), (), EDGE_BLOCK // 8,
-                                        r.dtype)
-            else:
-                res[free] = _padded_map(
-                    lambda x, y, z: _segment_phong_lit(x, y, z, a, b, phong["exponent"], prof, phong["method"],
-                                                       phong["degree"]),
-                    (p[free], n[free], eye[free]), (), EDGE_BLOCK // 8, r.dtype)
-        busy = np.nonzero(counts > 0)[0]
-        if busy.size:
-            caps = 2 ** np.ceil(np.log2(counts[busy])).astype(np.int64)
-            for cap in np.unique(caps):
-                idx = busy[caps == cap]
-                slot = np.arange(cap)
-                used = slot[None, :] < counts[idx][:, None]
-                rows_ = np.where(used, off[idx][:, None] + slot[None, :], 0)
-                occ_b = np.where(used[:, :, None, None], faces[cand[rows_]], 0.0).astype(r.dtype)
-                rows = max(MIN_BLOCK, (EDGE_BLOCK // 16) // int(cap))
-                if phong is None:
-                    res[idx] = _padded_map(lambda x, y, o: _segment_shadowed(x, y, o, a, b, m), (p[idx], n[idx], occ_b), (),
-                                           rows, r.dtype)
-                else:
-                    res[idx] = _padded_map(
-                        lambda x, y, z, o: _segment_phong(x, y, z, o, a, b, phong["exponent"], prof, phong["method"],
-                                                          phong["degree"]),
-                        (p[idx], n[idx], eye[idx], occ_b), (), rows, r.dtype)
-        out[s:e] = res
-    return out
-
-
-def _hard_values(r: _Receivers, light: Any, occ: vis.HostOccluders, phong: dict | None) -> np.ndarray:
-    is_point = isinstance(light, PointLight)
-    x = np.asarray(light.position if is_point else light.direction, r.dtype)
-    visible = vis.hard_visibility(r.p, x, is_point, occ)
+    `concrete`: every input is a NumPy array and nothing is differentiated (the plan then holds
+    decoded `points`); otherwise `p`, `n`, `e`, the light and `faces` may carry derivatives and
+    polygon boundaries are decoded from the plan's codes in JAX."""
+    N = lp.classes.shape[0]
+    dt = p.dtype
+    parts: list[tuple[np.ndarray, Any]] = []
     rows = EDGE_BLOCK // 8
-    if phong is None:
-        if is_point:
-            g = _padded_map(_point_lit, (r.p, r.n), (x,), rows, r.dtype)
-        else:
-            g = _padded_map(_directional_lit, (r.n,), (x,), rows, r.dtype)
+    if lp.kind == "polygon":
+        verts = light.vertices.astype(dt)
+        is_lit = lp.classes == vis.LIT
+        lit = np.nonzero(is_lit)[0]
+        if concrete and 2 * lit.size > N:
+            # Mostly lit: the unoccluded kernel on every receiver costs less than gathering the
+            # lit ones (a gather moves as many bytes as the kernel reads); the others are masked
+            # (and the penumbra receivers overwritten below). Not with derivatives: a masked
+            # receiver's cotangent is zero, but 0 * a singular kernel derivative is not.
+            every = _map_blocks(lambda a, b, c: _lit_block(integ, a, b, c, verts), (p, n, e), rows)
+            parts.append((np.arange(N), np.where(is_lit, np.asarray(every), 0.0)))
+        elif lit.size:
+            parts.append((lit, _map_blocks(lambda a, b, c: _lit_block(integ, a, b, c, verts),
+                                           (_take(p, lit), _take(n, lit), _take(e, lit)), rows)))
+        pen = np.nonzero(lp.classes == vis.PENUMBRA)[0]
+        if concrete and isinstance(integ, Lambert) and pen.size:
+            # Lambert's contour sum is a sum of edge terms: evaluated over the flat list of
+            # boundary edges and added up per receiver (Lambert.contour = pi * (-sum / 2 pi)).
+            owner = np.repeat(np.arange(N), np.diff(lp.offsets))
+            terms = _map_blocks(_lambert_edge_block, (p[owner], n[owner], np.ascontiguousarray(lp.points[:, 0]),
+                                                      np.ascontiguousarray(lp.points[:, 1])), EDGE_BLOCK)
+            f = np.bincount(owner, weights=np.asarray(terms), minlength=N)[pen]
+            v = np.asarray(verts)
+            ne = np.sum(np.cross(v, np.roll(v, -1, axis=0)), axis=0)
+            parts.append((pen, np.where((p[pen] - v[0]) @ ne > 0, -0.5 * f, 0.0).astype(dt)))
+            pen = pen[:0]
+        for cap, idx in capacity_groups(lp.counts, pen):
+            r, used = _dense_rows(lp.offsets, idx, cap)
+            rb = max(MIN_BLOCK, EDGE_BLOCK // cap)
+            if concrete:
+                pts = np.where(used[:, :, None, None], lp.points[r], np.asarray(verts)[0])
+                fn = lambda a, b, c, s, t: _contour_block(integ, a, b, c, verts, s, t)  # noqa: E731
+                vals = _map_blocks(fn, (p[idx], n[idx], e[idx], np.ascontiguousarray(pts[:, :, 0]),
+                                        np.ascontiguousarray(pts[:, :, 1])), rb)
+            else:
+                runs = np.where(used[:, :, None, None], lp.runs[r], vis.unused_code())
+                fn = lambda a, b, c, rr: _decoded_block(integ, a, b, c, verts, faces, rr)  # noqa: E731
+                vals = _map_blocks(fn, (_take(p, idx), _take(n, idx), _take(e, idx), runs), rb)
+            parts.append((idx, vals))
+    elif lp.kind == "segment":
+        a, b = light.start.astype(dt), light.end.astype(dt)
+        prof = _profile(light)
+        free = np.nonzero(lp.classes == vis.LIT)[0]
+        if free.size:
+            parts.append((free, _map_blocks(lambda x, y, z: _segment_free_block(integ, prof, x, y, z, a, b),
+                                            (_take(p, free), _take(n, free), _take(e, free)), rows)))
+        for cap, idx in capacity_groups(lp.kept, np.nonzero(lp.classes == vis.PENUMBRA)[0]):
+            r, used = _dense_rows(lp.offsets, idx, cap)
+            # Unused slots repeat the receiver's first candidate: the union of the blocked
+            # intervals, and so the value and its derivatives, are unchanged.
+            fidx = lp.faces[np.where(used, r, r[:, :1])]
+            occ = _take(faces, fidx.reshape(-1)).reshape(fidx.shape + faces.shape[1:])
+            rb = max(MIN_BLOCK, (EDGE_BLOCK // 16) // cap)
+            parts.append((idx, _map_blocks(lambda x, y, z, o: _segment_block(integ, prof, x, y, z, a, b, o),
+                                           (_take(p, idx), _take(n, idx), _take(e, idx), occ), rb)))
     else:
-        fn = _point_phong if is_point else _directional_phong
-        g = _padded_map(lambda a, b, c, xx: fn(a, b, c, xx, phong["exponent"]), (r.p, r.n, r.eye), (x,), rows, r.dtype)
-    return np.where(visible, g, 0.0).astype(r.dtype)
+        is_point = lp.kind == "point"
+        x = (light.position if is_point else light.direction).astype(dt)
+        visible = lp.classes == vis.LIT
+        vals = _map_blocks(lambda a, b, c, v: _hard_block(integ, a, b, c, x, v, is_point), (p, n, e, visible), rows)
+        parts.append((np.arange(N), vals))
+    return _scatter(N, dt, parts, concrete)
 
 
-def _light_values(r: _Receivers, light: Any, occ: vis.HostOccluders, phong: dict | None) -> tuple[np.ndarray, np.ndarray]:
-    """`(g (N,), emission (3,))` with the light's contribution `g[:, None] * emission[None, :]`."""
+def host_values(scene: Scene, integ: Any, points: np.ndarray, normals: np.ndarray, eyes: np.ndarray | None) -> np.ndarray:
+    """`(N, 3)` for concrete inputs, nothing differentiated (unit `normals`)."""
+    dt = points.dtype
+    e = points if eyes is None else eyes
+    faces = np.asarray(scene.occluders, dt)
+    total = np.zeros(points.shape, dt)
+    for s in range(0, points.shape[0], HOST_CHUNK):
+        sl = slice(s, min(points.shape[0], s + HOST_CHUNK))
+        pl = plan(scene, points[sl], normals[sl], codes=False, decoded=True)
+        for lp, light in zip(pl.lights, scene.lights, strict=True):
+            g = light_values(lp, light, integ, points[sl], normals[sl], e[sl], faces, True)
+            total[sl] += np.asarray(g)[:, None] * np.asarray(emission(light, dt))[None, :]
+    return total
+
+
+def planned_values(scene: Scene, value_scene: Scene, integ: Any, points: Any, normals: Any, eyes: Any,
+                   values: tuple) -> Any:
+    """`(N, 3)` for inputs that carry derivatives but have concrete values (`value_scene`: the
+    scene with NumPy leaves; `values`: points and unit normals as NumPy arrays): the engine
+    plans from the values, JAX differentiates `scene`, `points`, `normals`, `eyes`."""
+    p_val, n_val = values
+    dt = points.dtype
+    e = points if eyes is None else eyes
+    faces = _occluders(scene).astype(dt)
+    total = jnp.zeros(points.shape, dt)
+    for s in range(0, points.shape[0], HOST_CHUNK):
+        stop = min(points.shape[0], s + HOST_CHUNK)
+        pl = plan(value_scene, p_val[s:stop], n_val[s:stop], codes=True, decoded=False)
+        part = jnp.zeros((stop - s, 3), dt)
+        for lp, light in zip(pl.lights, scene.lights, strict=True):
+            g = light_values(lp, light, integ, points[s:stop], normals[s:stop], e[s:stop], faces, False)
+            part = part + g[:, None] * emission(light, dt)[None, :]
+        total = total.at[s:stop].set(part) if points.shape[0] > HOST_CHUNK else part
+    return total
+
+
+def shadow_plan(scene: Scene, points: Any, normals: Any) -> ShadowPlan:
+    """What the shadow engine decides for `scene` at concrete receivers: per light, the class
+    of every receiver, its candidate occluders and the size of its visible region's boundary.
+
+    **Arguments:**
+
+    - `scene`: a `Scene` with occluders.
+    - `points`, `normals`: `(N, 3)` concrete receivers and normals (any length, not zero).
+
+    **Returns:** `ShadowPlan` (`.lights[i].classes`, `.summary()` with counts and fractions per
+    class, candidate-list and boundary sizes, and the engine's time).
+
+    Raises `ValueError` without occluders or for traced inputs, `RuntimeError` when the engine
+    (`jaxshadow._shadowc`) is not built.
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+
+        light = js.PolygonLight([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2]], radiance=1.0)
+        scene = js.Scene([light], occluders=[[[0.2, 0.2, 1.0], [0.8, 0.2, 1.0], [0.8, 0.8, 1.0], [0.2, 0.8, 1.0]]])
+        xy = np.stack(np.meshgrid(np.linspace(-1, 2, 30), np.linspace(-1, 2, 30)), -1).reshape(-1, 2)
+        p = np.c_[xy, np.zeros(len(xy))]; n = np.tile([0.0, 0.0, 1.0], (len(p), 1))
+        plan = js.shadow_plan(scene, p, n)
+        print(plan.summary())   # receivers per class (lit / umbra / penumbra), candidates, boundary sizes
+        ```
+    """
+    from ._geometry import check_points_normals
+
+    if not isinstance(scene, Scene):
+        raise ValueError(f"shadow_plan: expected a jaxshadow.Scene, got {type(scene).__name__}.")
+    if scene.occluders is None:
+        raise ValueError("shadow_plan: the scene has no occluders.")
+    p, n = check_points_normals(points, normals, "shadow_plan")
+    leaves = jax.tree_util.tree_leaves((scene, p, n))
+    if any(isinstance(x, jax.core.Tracer) for x in leaves):
+        raise ValueError("shadow_plan: needs concrete values (it runs on the host, before any compiled code).")
+    p = np.asarray(p)
+    n = np.asarray(n)
+    n = n / np.linalg.norm(n, axis=1, keepdims=True)
+    return plan(scene, p, n, codes=False, decoded=False)
+
+
+# --------------------------------------------------------------------------------------
+# Abstract values: the engine inside the compiled program (XLA FFI), static capacities
+# --------------------------------------------------------------------------------------
+
+
+def _traced_light(light: Any, integ: Any, p, n, e, faces, topo, capacity: int) -> tuple[Any, Any]:
+    """`(g (n,), overflow)` of one light for a block of receivers, inside a compiled program."""
+    dt = p.dtype
     if isinstance(light, PolygonLight):
-        g = _polygon_values(r, np.asarray(light.vertices), occ, phong)
-        return (g * np.pi if phong is None else g), np.asarray(light.radiance, r.dtype)
+        verts = light.vertices.astype(dt)
+        _, cnt, runs = vis.traced_polygon_codes(p, n, verts, faces, topo, capacity)
+        fn, f0 = vis.face_frames(faces)
+        table = vis.vertex_table(verts, faces)
+
+        def one(p_, n_, e_, r_):
+            s, t = vis.edges_from_codes(p_, n_, verts, table, fn, f0, r_)
+            return integ.contour(p_, n_, e_, verts, s, t)
+
+        return jax.vmap(one)(p, n, e, runs), jnp.any(cnt > capacity)
     if isinstance(light, LinearLight):
-        return _segment_values(r, light, occ, phong), np.asarray(light.power, r.dtype)
-    if isinstance(light, PointLight):
-        return _hard_values(r, light, occ, phong), np.asarray(light.intensity, r.dtype)
-    if isinstance(light, DirectionalLight):
-        return _hard_values(r, light, occ, phong), np.asarray(light.irradiance, r.dtype)
-    raise TypeError(f"unknown light {type(light).__name__}")
+        a, b = light.start.astype(dt), light.end.astype(dt)
+        prof = _profile(light)
+        cnt, cand = vis.traced_segment_candidates(p, a, b, faces, topo, capacity)
+        # Unused slots repeat the first candidate (or face 0 where there is none: then the
+        # unoccluded value is taken).
+        first = jnp.where(cand[:, :1] >= 0, cand[:, :1], 0)
+        fidx = jnp.where(cand >= 0, cand, first)
+        occ = jnp.take(faces, fidx.reshape(-1), axis=0).reshape(fidx.shape + faces.shape[1:])
+        shadowed = jax.vmap(_segment_visible, in_axes=(None, 0, 0, 0, None, None, None, 0))(integ, p, n, e, a, b, prof, occ)
+        free = jax.vmap(integ.segment, in_axes=(0, 0, 0, None, None, None))(p, n, e, a, b, prof)
+        return jnp.where(cnt > 0, shadowed, free), jnp.any(cnt > capacity)
+    is_point = isinstance(light, PointLight)
+    x = (light.position if is_point else light.direction).astype(dt)
+    visible = vis.traced_hard_visibility(p, x, is_point, faces, topo)
+    kern = integ.point if is_point else integ.directional
+    g = jax.vmap(kern, in_axes=(0, 0, 0, None))(p, n, e, x)
+    return jnp.where(visible > 0, g, 0.0), jnp.zeros((), bool)
 
 
-def host_occluders(scene: Scene, dtype: Any) -> vis.HostOccluders:
-    return vis.HostOccluders.of(np.asarray(scene.occluders), scene.occluder_topology, dtype)
+def traced_values(scene: Scene, integ: Any, points: Any, normals: Any, eyes: Any, capacity: int,
+                  chunk: int | None = None) -> tuple[Any, Any]:
+    """`((N, 3), overflow)`: every light's contribution with exact shadows, traceable (unit
+    `normals`). `overflow` is True when a receiver needed more than `capacity` boundary edges
+    (or candidate faces): the values are then not exact. Receivers are processed `chunk` at a
+    time (`lax.map`), which bounds the memory of the decoded boundaries."""
+    dt = points.dtype
+    e = points if eyes is None else eyes
+    faces = _occluders(scene).astype(dt)
+    topo = scene.occluder_topology
+    chunk = chunk or max(MIN_BLOCK, EDGE_BLOCK // (4 * capacity))
+
+    def block(args):
+        p, n, ee = args
+        total = jnp.zeros(p.shape, dt)
+        over = jnp.zeros((), bool)
+        for light in scene.lights:
+            g, o = _traced_light(light, integ, p, n, ee, faces, topo, capacity)
+            total = total + g[:, None] * emission(light, dt)[None, :]
+            over = over | o
+        return total, over
+
+    return lax_chunks(block, (points, normals, e), chunk)
 
 
-def irradiance(scene: Scene, points: Any, normals: Any) -> np.ndarray:
-    """`(N, 3)` irradiance with exact shadows (concrete inputs, checked by the caller)."""
-    r = _Receivers(points, normals)
-    occ = host_occluders(scene, r.dtype)
-    total = np.zeros(r.p.shape, r.dtype)
-    for light in scene.lights:
-        g, emission = _light_values(r, light, occ, None)
-        total += g[:, None] * emission[None, :]
-    return total
+def lax_chunks(block: Any, arrays: tuple, chunk: int) -> tuple[Any, Any]:
+    """`block(arrays) -> (out (n, ...), flag)` over the leading axis `chunk` rows at a time
+    (`lax.map`, the last chunk padded with copies of the first row): traceable, and the memory
+    of one chunk's intermediates bounds the whole call's."""
+    n_pts = arrays[0].shape[0]
+    if n_pts <= chunk:
+        return block(arrays)
+    nb = -(-n_pts // chunk)
+    pad = nb * chunk - n_pts
+    arrs = tuple(jnp.concatenate([a, jnp.broadcast_to(a[:1], (pad,) + a.shape[1:])]) if pad else a for a in arrays)
+    out, flag = jax.lax.map(block, tuple(a.reshape((nb, chunk) + a.shape[1:]) for a in arrs))
+    return out.reshape((nb * chunk,) + out.shape[2:])[:n_pts], jnp.any(flag)
 
 
-def specular(scene: Scene, points: Any, normals: Any, eyes: Any, exponent: Any, method: str, degree: int) -> np.ndarray:
-    """`(N, 3)` Phong specular integral with exact shadows (concrete inputs)."""
-    r = _Receivers(points, normals, eyes)
-    occ = host_occluders(scene, r.dtype)
-    phong = {"exponent": np.asarray(exponent, r.dtype), "method": method, "degree": int(degree)}
-    total = np.zeros(r.p.shape, r.dtype)
-    for light in scene.lights:
-        g, emission = _light_values(r, light, occ, phong)
-        total += g[:, None] * emission[None, :]
-    return total
+# --------------------------------------------------------------------------------------
+# Without the engine: every receiver against every occluder (device kernels)
+# --------------------------------------------------------------------------------------
+
+
+def _device_light(light: Any, integ: Any, p, n, e, faces) -> Any:
+    dt = p.dtype
+    if isinstance(light, PolygonLight):
+        verts = light.vertices.astype(dt)
+
+        def one(p_, n_, e_):
+            s, t = visible_edges(p_, n_, verts, faces)
+            return integ.contour(p_, n_, e_, verts, s, t)
+
+        return jax.vmap(one)(p, n, e)
+    if isinstance(light, LinearLight):
+        a, b = light.start.astype(dt), light.end.astype(dt)
+        return jax.vmap(_segment_visible, in_axes=(None, 0, 0, 0, None, None, None, None))(
+            integ, p, n, e, a, b, _profile(light), faces)
+    is_point = isinstance(light, PointLight)
+    x = (light.position if is_point else light.direction).astype(dt)
+    vis_fn = point_visibility if is_point else directional_visibility
+    kern = integ.point if is_point else integ.directional
+    g = jax.vmap(kern, in_axes=(0, 0, 0, None))(p, n, e, x)
+    return g * jax.vmap(vis_fn, in_axes=(0, None, None))(p, x, faces)
+
+
+def device_chunk(n_faces: int, ko: int) -> int:
+    """Receivers per chunk of the device kernels: their intermediates grow like the square of
+    the occluder count (every candidate edge against every region); about 2^26 values a chunk."""
+    m = max(1, n_faces)
+    per = (ko + 1) * m * (m + 1) * (ko + 1)
+    return int(min(4096, max(1, 2 ** int(np.log2(max(1, (1 << 26) // per))))))
+
+
+def device_values(scene: Scene, integ: Any, points: Any, normals: Any, eyes: Any) -> Any:
+    """`(N, 3)` with exact shadows from the device kernels: each receiver clipped against every
+    occluder (`_clip.visible_edges`), no engine, traceable, chunked (unit `normals`)."""
+    dt = points.dtype
+    e = points if eyes is None else eyes
+    faces = _occluders(scene).astype(dt)
+
+    def block(args):
+        p, n, ee = args
+        total = jnp.zeros(p.shape, dt)
+        for light in scene.lights:
+            total = total + _device_light(light, integ, p, n, ee, faces)[:, None] * emission(light, dt)[None, :]
+        return total, jnp.zeros((), bool)
+
+    return lax_chunks(block, (points, normals, e), device_chunk(faces.shape[0], faces.shape[1]))[0]

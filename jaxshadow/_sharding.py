@@ -8,7 +8,7 @@ with copies of its first receiver and the padding is dropped from the result.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, no_type_check
 
 import equinox as eqx
 import jax
@@ -22,7 +22,15 @@ from ._shade import irradiance
 
 
 def batch_mesh(devices: Any = None) -> Mesh:
-    """A 1-D `Mesh` with axis name `"points"` over `devices` (default: all of `jax.devices()`)."""
+    """A 1-D `Mesh` with axis name `"points"` over `devices` (default: all of `jax.devices()`).
+
+    Example:
+        ```python
+        import jaxshadow as js
+
+        mesh = js.batch_mesh()   # every local device on one axis
+        ```
+    """
     devs = jax.devices() if devices is None else list(devices)
     return Mesh(np.asarray(devs), ("points",))
 
@@ -33,6 +41,8 @@ def _irradiance_sharded(scene: Scene, points: Array, normals: Array, sharding: N
     return jax.lax.with_sharding_constraint(out, sharding)
 
 
+# Validates its own inputs (ValueError, docs/design.md): no runtime annotation check before it.
+@no_type_check
 def sharded_irradiance(
     scene: Scene,
     points: Float[Array, "N 3"],
@@ -53,6 +63,17 @@ def sharded_irradiance(
     **Returns:** `(N, 3)` irradiance, dtype following `points`. When `N` is a multiple of the
     device count the result stays sharded along its first axis (`NamedSharding`); otherwise
     the batch is padded for the computation and the `N` real rows are returned.
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+
+        scene = js.Scene([js.DirectionalLight([0.0, 0.0, -1.0], 800.0)])
+        points = np.random.default_rng(0).uniform(-1, 1, (1024, 3))
+        normals = np.tile([0.0, 0.0, 1.0], (1024, 1))
+        E = js.sharded_irradiance(scene, points, normals, js.batch_mesh())   # as js.irradiance, split over devices
+        ```
     """
     points, normals = check_points_normals(points, normals, "sharded_irradiance")
     mesh = batch_mesh() if mesh is None else mesh

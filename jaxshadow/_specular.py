@@ -61,6 +61,7 @@ times slower than the Chebyshev default (benchmarks/specular_error.py).
 
 from __future__ import annotations
 
+import functools
 from typing import Literal
 
 import equinox as eqx
@@ -69,10 +70,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 from jax.scipy.special import gammaln
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
 from ._chebyshev import cutoff_angle, even_fit_integral, interval_fit_integral
-from ._geometry import horizon_clip_edges, newell_normal
+from ._geometry import horizon_clip_edges, on_lit_side
 from ._misc import safe_norm, safe_normalize
 
 Method = Literal["chebyshev", "exact"]
@@ -83,6 +84,9 @@ Method = Literal["chebyshev", "exact"]
 #: 1.34x the time of Poulin's degree 6, epsilon = 1/250 (whose worst errors are 6.9e-3 and
 #: 2.5e-3). Degree 10 misses 1e-4 on polygons (2.0e-4 at n = 10^4); tol 1e-4 stalls at 8.3e-5.
 DEFAULT_DEGREE = 12
+#: Largest Chebyshev degree: the fit's constant matrices and the traced program grow with the
+#: degree (quadratically), and degree 12 already reaches ~1e-5 (above: no gain in float64).
+MAX_DEGREE = 64
 DEFAULT_TOL = 1e-6
 
 # Exact method: Gauss-Legendre nodes per panel, number of geometric panels per side of a peak,
@@ -95,8 +99,8 @@ _RECURRENCE_MAX = 1e5
 def _check_method(method: str, degree: int) -> None:
     if method not in ("chebyshev", "exact"):
         raise ValueError(f"method must be 'chebyshev' or 'exact', got {method!r}.")
-    if not isinstance(degree, int) or degree < 2:
-        raise ValueError(f"degree must be a Python int >= 2, got {degree!r}.")
+    if isinstance(degree, bool) or not isinstance(degree, int) or not 2 <= degree <= MAX_DEGREE:
+        raise ValueError(f"degree must be a Python int in [2, {MAX_DEGREE}], got {degree!r}.")
 
 
 def reflected_direction(
@@ -265,6 +269,39 @@ def _graded_quadrature(f, lo, hi, peaks):
     return jnp.sum(half[:, None] * jnp.asarray(w, dtype)[None, :] * f(u))
 
 
+def _leibniz_quadrature(integrand, params, lo, hi, peaks):
+    r"""$\int_{lo}^{hi} g(u; \theta)\,du$ by `_graded_quadrature`, differentiated by Leibniz's rule.
+
+    `integrand(params, u)` is $g$, elementwise in `u`; `params` a pytree of arrays. The value is
+    the graded quadrature's; the derivative is $g(hi)\,\dot{hi} - g(lo)\,\dot{lo} + \int
+    \partial_\theta g\,\dot\theta$, the last integral again by this rule (so derivatives of every
+    order are Leibniz's). Differentiating the quadrature rule itself would move its nodes with the
+    limits, an approximation of the same order as the rule only: at a receiver whose light
+    crosses its horizon the integrand is steep at a limit and the derivative was off by orders of
+    magnitude while the value was right. Node placement (`peaks`) carries no derivative."""
+    peaks = tuple((lax.stop_gradient(c), lax.stop_gradient(w)) for c, w in peaks)
+    return _leibniz(integrand, params, lo, hi, peaks)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _leibniz(integrand, params, lo, hi, peaks):
+    return _graded_quadrature(lambda u: integrand(params, u), lo, hi, peaks)
+
+
+def _tangent_integrand(integrand, pair, u):
+    params, dparams = pair
+    return jax.jvp(lambda q: integrand(q, u), (params,), (dparams,))[1]
+
+
+@_leibniz.defjvp
+def _leibniz_jvp(integrand, primals, tangents):
+    params, lo, hi, peaks = primals
+    dparams, dlo, dhi, _ = tangents
+    value = _leibniz(integrand, params, lo, hi, peaks)
+    interior = _leibniz(functools.partial(_tangent_integrand, integrand), (params, dparams), lo, hi, peaks)
+    return value, interior + integrand(params, hi) * dhi - integrand(params, lo) * dlo
+
+
 def _is_recurrence_exponent(e: Array) -> Array:
     return (e == jnp.round(e)) & (e >= 0) & (e <= _RECURRENCE_MAX)
 
@@ -282,8 +319,8 @@ def _lobe_edge_exact(s, rho, k, lo, hi):
     _, sums = _cos_power_recurrence(lo0, hi0, rho0, j0, jnp.where(use_rec, kk - 2.0, -1.0))
     rec = jnp.where(j0 == 1, base, 0.0) + s0 * sums
     width = 0.25 / jnp.sqrt(k)
-    quad = _graded_quadrature(
-        lambda u: _lobe_edge_integrand(s, k, u), lo, hi, [(jnp.zeros_like(lo), width)]
+    quad = _leibniz_quadrature(
+        lambda q, u: _lobe_edge_integrand(q[0], q[1], u), (s, k), lo, hi, [(jnp.zeros_like(lo), width)]
     )
     return jnp.where(use_rec, _value_of_with_derivatives_of(rec, quad), quad)
 
@@ -381,7 +418,7 @@ def polygon_specular_kernel(
 
     **Returns:** dimensionless $S/L \in [0, 1]$.
     """
-    in_front = jnp.dot(newell_normal(verts), p - verts[0]) > 0
+    in_front = on_lit_side(p, verts)
     starts, ends = horizon_clip_edges(p, safe_normalize(n), verts)
     s = contour_specular_kernel(
         p, n, eye, starts, ends, exponent, method=method, degree=degree, tol=tol
@@ -462,7 +499,8 @@ def segment_specular_kernel(
             j0 = jnp.where(jnp.fmod(ne, 2.0) == 0, 0.0, 1.0).astype(lo.dtype)
             lo0, hi0 = lax.stop_gradient(lo), lax.stop_gradient(hi)
             rec, _ = _cos_power_recurrence(lo0, hi0, rho, j0, jnp.where(use_rec, ne, 1.0))
-            quad = _graded_quadrature(f, lo, hi, [(jnp.zeros_like(lo), peak_width)])
+            quad = _leibniz_quadrature(lambda q, u: _pos_pow(jnp.cos(u), q), exponent, lo, hi,
+                                       [(jnp.zeros_like(lo), peak_width)])
             integral = jnp.where(use_rec, _value_of_with_derivatives_of(rec, quad), quad)
     else:
         m = profile_exponent
@@ -477,7 +515,9 @@ def segment_specular_kernel(
 
         if method == "exact":
             peaks = [(jnp.zeros_like(lo), peak_width), (u_foot, 0.25 / jnp.sqrt(m + 1.0))]
-            integral = _graded_quadrature(f, lo, hi, peaks)
+            integral = _leibniz_quadrature(
+                lambda q, u: _pos_pow(jnp.cos(u), q[0]) * _pos_pow(jnp.cos(u - q[1]), q[2]), (exponent, u_foot, m),
+                lo, hi, peaks)
     if method == "chebyshev":
         # The interval may hold the peak off-centre: degree 2 D (Poulin's "product of two
         # polynomials" for the cos^m profile).
@@ -555,12 +595,12 @@ def _eyes(eye: Array, points: Array) -> Array:
 
 @eqx.filter_jit
 def polygon_specular(
-    points: Float[Array, "N 3"],
-    normals: Float[Array, "N 3"],
-    eye: Float[Array, "3"] | Float[Array, "N 3"],
-    vertices: Float[Array, "k 3"],
-    radiance: Float[Array, ""],
-    exponent: Float[Array, ""],
+    points: Float[ArrayLike, "N 3"],
+    normals: Float[ArrayLike, "N 3"],
+    eye: Float[ArrayLike, "3"] | Float[ArrayLike, "N 3"],
+    vertices: Float[ArrayLike, "k 3"],
+    radiance: Float[ArrayLike, ""],
+    exponent: Float[ArrayLike, ""],
     *,
     method: Method = "chebyshev",
     degree: int = DEFAULT_DEGREE,
@@ -574,16 +614,17 @@ def polygon_specular(
     return radiance * jax.vmap(kern)(points, jnp.asarray(normals), _eyes(eye, points))
 
 
+# The batch signature of `polygon_specular`, for a segment light (the same shape on purpose).
 @eqx.filter_jit
 def segment_specular(
-    points: Float[Array, "N 3"],
-    normals: Float[Array, "N 3"],
-    eye: Float[Array, "3"] | Float[Array, "N 3"],
-    start: Float[Array, "3"],
-    end: Float[Array, "3"],
-    power: Float[Array, ""],
-    exponent: Float[Array, ""],
-    profile_exponent: Float[Array, ""] | None = None,
+    points: Float[ArrayLike, "N 3"],
+    normals: Float[ArrayLike, "N 3"],
+    eye: Float[ArrayLike, "3"] | Float[ArrayLike, "N 3"],
+    start: Float[ArrayLike, "3"],
+    end: Float[ArrayLike, "3"],
+    power: Float[ArrayLike, ""],
+    exponent: Float[ArrayLike, ""],
+    profile_exponent: Float[ArrayLike, ""] | None = None,
     *,
     method: Method = "chebyshev",
     degree: int = DEFAULT_DEGREE,
@@ -600,12 +641,12 @@ def segment_specular(
 
 @eqx.filter_jit
 def point_specular(
-    points: Float[Array, "N 3"],
-    normals: Float[Array, "N 3"],
-    eye: Float[Array, "3"] | Float[Array, "N 3"],
-    position: Float[Array, "3"],
-    intensity: Float[Array, ""],
-    exponent: Float[Array, ""],
+    points: Float[ArrayLike, "N 3"],
+    normals: Float[ArrayLike, "N 3"],
+    eye: Float[ArrayLike, "3"] | Float[ArrayLike, "N 3"],
+    position: Float[ArrayLike, "3"],
+    intensity: Float[ArrayLike, ""],
+    exponent: Float[ArrayLike, ""],
 ) -> Float[Array, " N"]:
     """Specular term $S$ of one point light of scalar intensity at `N` receivers."""
     points = jnp.asarray(points)
@@ -615,12 +656,12 @@ def point_specular(
 
 @eqx.filter_jit
 def directional_specular(
-    points: Float[Array, "N 3"],
-    normals: Float[Array, "N 3"],
-    eye: Float[Array, "3"] | Float[Array, "N 3"],
-    direction: Float[Array, "3"],
-    irradiance: Float[Array, ""],
-    exponent: Float[Array, ""],
+    points: Float[ArrayLike, "N 3"],
+    normals: Float[ArrayLike, "N 3"],
+    eye: Float[ArrayLike, "3"] | Float[ArrayLike, "N 3"],
+    direction: Float[ArrayLike, "3"],
+    irradiance: Float[ArrayLike, ""],
+    exponent: Float[ArrayLike, ""],
 ) -> Float[Array, " N"]:
     """Specular term $S$ of one directional light of scalar irradiance at `N` receivers."""
     points = jnp.asarray(points)

@@ -87,22 +87,30 @@ $O^*$ (floor region $O_j$), occluder vertices inside $E^*$ ($E_i$) and edge-edge
    shadow node (eq. 18) is a forward projection ($w \ge 0$; with $w < 0$ the floor polygons
    would be wrong: a tilted occluder that satisfies Stark's condition can have a vertex
    higher than an emitter vertex, and then its shadow from that vertex is unbounded). Touching from below (an occluder vertex level
-   with the emitter) is allowed. Under tracing (jit/grad of the wrapper) the checks cannot
+   with the emitter) is allowed, but not a vertex shared with the emitter (closer than
+   `SHARED_VERTEX_RTOL` times its size): its node is $0/0$ and every polygon through it is
+   undefined (an occluder lying on the emitter came out as $-F$). Under tracing (jit/grad of the wrapper) the checks cannot
    run; outside the region the result stays finite with finite gradients but is not
    physically meaningful.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, no_type_check
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
-from ._geometry import check_convex_polygon, check_finite, is_concrete, newell_normal
+from ._geometry import (
+    check_convex_polygon,
+    check_finite,
+    check_finite_leaves,
+    is_concrete,
+    on_lit_side,
+)
 
 # --------------------------------------------------------------------------------------
 # Pieces of eqs. 18-24
@@ -242,7 +250,11 @@ def _vertex_terms(rel: Float[Array, "k 3"], normals: Float[Array, "k 3"], coef) 
     return -coef, rel, jnp.roll(rel, 1, axis=0), jnp.roll(normals, 1, axis=0)
 
 
-def _concat(*terms: Terms) -> Terms:
+# Terms of several sets, each of its own length (`_t`: not matched across the arguments).
+AnyTerms = tuple[Float[Array, " _t"], Float[Array, "_t 3"], Float[Array, "_t 3"], Float[Array, "_t 3"]]
+
+
+def _concat(*terms: AnyTerms) -> Terms:
     a, b, c, d = (jnp.concatenate(parts, axis=0) for parts in zip(*terms, strict=True))
     return a, b, c, d
 
@@ -321,9 +333,9 @@ def _negate(terms: Terms) -> Terms:
 
 
 def _ccw_seen_from(rel: Float[Array, "k 3"]) -> Bool[Array, ""]:
-    """True where the polygon (relative to the receiver) projects counter-clockwise."""
-    rel = jax.lax.stop_gradient(rel)
-    return jnp.dot(newell_normal(rel), rel[0]) > 0
+    """True where the polygon (relative to the receiver) projects counter-clockwise: the
+    receiver (the origin) is on the side its reversed vertex order's normal points to."""
+    return on_lit_side(jnp.zeros_like(rel[0]), rel[::-1])
 
 
 def spline_shadow_kernel(
@@ -373,8 +385,10 @@ def spline_shadow_faces_kernel(
     return _sum_terms(flat) / jnp.pi
 
 
+# Validates its own inputs (ValueError, docs/design.md): no runtime annotation check before it.
+@no_type_check
 def shadow_nodes(
-    emitter: Float[Array, "m 3"], occluder: Float[Array, "n 3"]
+    emitter: Float[ArrayLike, "m 3"], occluder: Float[ArrayLike, "n 3"]
 ) -> Float[Array, "n m 2"]:
     r"""Shadow nodes $v_{ij}$ (Stark eq. 18) on the floor $z = 0$: where $o_i$ and $e_j$ line up.
 
@@ -382,6 +396,16 @@ def shadow_nodes(
     $E_i = \langle v_{i1}..v_{im}\rangle$, $S_{ij} = \langle v_{ij}, v_{i+1,j}, v_{i+1,j+1},
     v_{i,j+1}\rangle$ (indices in the given vertex orders). Infinite where $z'_j = z_i$. For
     plotting and tests; the kernel uses the homogeneous form (module docstring, note 6).
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+
+        emitter = np.array([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2.0]])
+        occluder = np.array([[0.3, 0.3, 1], [0.7, 0.3, 1], [0.7, 0.7, 1], [0.3, 0.7, 1.0]])
+        nodes = js.shadow_nodes(emitter, occluder)   # (4, 4, 2): the shadow's spline nodes on z = 0
+        ```
     """
     zo = occluder[:, None, 2:3]
     ze = emitter[None, :, 2:3]
@@ -425,6 +449,20 @@ def _check_validity_region(
             )
     high = int(np.argmax(occluder_verts[:, 2]))
     for k, e in enumerate(emitters):
+        # A shared vertex makes its shadow node 0/0 (eq. 18: P = 0 and w = 0): the node, and
+        # the side tests of every floor polygon through it, are undefined (the result was -F
+        # for an occluder lying on the emitter).
+        size = float(np.max(np.abs(e - e.mean(axis=0))))
+        gap = np.max(np.abs(occluder_verts[:, None, :] - e[None, :, :]), axis=-1)
+        i, j = np.unravel_index(int(np.argmin(gap)), gap.shape)
+        if gap[i, j] <= SHARED_VERTEX_RTOL * size:
+            name = "the emitter" if len(emitters) == 1 else f"emitter {k}"
+            raise ValueError(
+                f"{what}: occluder vertex {i} coincides with vertex {j} of {name} "
+                f"({occluder_verts[i].tolist()}): its shadow node (Stark eq. 18) is 0/0, outside "
+                "the validity region of the shadow equation. An occluder lying on the emitter "
+                "blocks the part it covers: give the emitter without that part instead."
+            )
         j = int(np.argmin(e[:, 2]))
         if occluder_verts[high, 2] > e[j, 2]:
             name = "the emitter" if len(emitters) == 1 else f"emitter {k}"
@@ -434,6 +472,12 @@ def _check_validity_region(
                 f"§7): occluder vertex {high} at z = {occluder_verts[high, 2]:.6g} is above "
                 f"emitter vertex {j} at z = {e[j, 2]:.6g}."
             )
+
+
+#: Occluder and emitter vertices closer than this (times the emitter's size, per coordinate)
+#: count as shared. Float32 rounds coordinates to ~6e-8 relative, which decides the direction
+#: of a node whose `P` and `w` are that small.
+SHARED_VERTEX_RTOL = 1e-6
 
 
 def _as_float(*xs: object) -> list[Array]:
@@ -447,8 +491,10 @@ def _spline_shadow(emitter: Array, occluder: Array, points: Array) -> Array:
     return jax.vmap(spline_shadow_kernel, in_axes=(0, None, None))(points, emitter, occluder)
 
 
+# Validates its own inputs (ValueError, docs/design.md): no runtime annotation check before it.
+@no_type_check
 def spline_shadow(
-    emitter: Float[Array, "m 3"], occluder: Float[Array, "n 3"], points: Float[Array, "N 3"]
+    emitter: Float[ArrayLike, "m 3"], occluder: Float[ArrayLike, "n 3"], points: Float[ArrayLike, "N 3"]
 ) -> Float[Array, " N"]:
     r"""Form factor of the visible part of a polygon emitter behind one polygon occluder.
 
@@ -470,6 +516,16 @@ def spline_shadow(
     **Raises:** `ValueError` (inputs concrete, i.e. not under jit/grad/vmap) for bad shapes,
     NaN/inf, non-convex or degenerate polygons, and configurations outside the validity region.
     Jitted (`eqx.filter_jit`) below the checks; differentiable in every input.
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+
+        emitter = np.array([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2.0]])      # emits towards -z
+        occluder = np.array([[0.3, 0.3, 1], [0.7, 0.3, 1], [0.7, 0.7, 1], [0.3, 0.7, 1.0]])
+        F = js.spline_shadow(emitter, occluder, np.array([[0.5, 0.5, 0.0], [0.9, 0.1, 0.0]]))
+        ```
     """
     what = "spline_shadow"
     for name, x, ndim in (
@@ -489,6 +545,8 @@ def spline_shadow(
         )
         pts = _check_points(points, what)
         _check_validity_region([e], o, pts, what)
+    else:
+        emitter, occluder, points = check_finite_leaves((emitter, occluder, points), what)
     emitter, occluder, points = _as_float(emitter, occluder, points)
     return _spline_shadow(emitter, occluder, points)
 
@@ -497,7 +555,7 @@ def spline_shadow(
 def _spline_shadow_faces(emitters: Array, faces: Array, points: Array) -> Array:
     # Orient every face inward, towards the mean of all vertices (inside a convex polyhedron).
     centre = jnp.mean(faces.reshape(-1, 3), axis=0)
-    inward = jax.vmap(lambda f: jnp.dot(newell_normal(f), centre - f[0]) > 0)(faces)
+    inward = jax.vmap(lambda f: on_lit_side(centre, f))(faces)  # translation- and scale-free
     faces = jnp.where(inward[:, None, None], faces, faces[:, ::-1, :])
     return jax.vmap(spline_shadow_faces_kernel, in_axes=(0, None, None))(points, emitters, faces)
 
@@ -560,10 +618,12 @@ def _check_closed_convex(faces: list[np.ndarray], what: str) -> None:
         )
 
 
+# Validates its own inputs (ValueError, docs/design.md): no runtime annotation check before it.
+@no_type_check
 def spline_shadow_faces(
-    emitters: Float[Array, "l m 3"] | list,
-    faces: Float[Array, "f k 3"] | list,
-    points: Float[Array, "N 3"],
+    emitters: Float[ArrayLike, "l m 3"] | list,
+    faces: Float[ArrayLike, "f k 3"] | list,
+    points: Float[ArrayLike, "N 3"],
 ) -> Float[Array, " N"]:
     r"""Shadow equation with several emitters and one convex polyhedral occluder (Stark fig. 14).
 
@@ -585,6 +645,17 @@ def spline_shadow_faces(
 
     **Raises:** `ValueError` for invalid inputs (when concrete), as `spline_shadow`, and when
     the faces do not bound a closed convex polyhedron.
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+
+        emitter = np.array([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2.0]])
+        a, b, c, d = [0.3, 0.3, 1.0], [0.7, 0.3, 1.0], [0.5, 0.7, 1.0], [0.5, 0.45, 1.3]   # a tetrahedron
+        faces = np.array([[a, c, b], [a, b, d], [b, c, d], [c, a, d]])   # every face of the occluder
+        F = js.spline_shadow_faces(emitter[None], faces, np.array([[0.5, 0.5, 0.0]]))
+        ```
     """
     what = "spline_shadow_faces"
     em, em_np = _stack_polygons(emitters, f"{what}: emitter")
@@ -593,5 +664,7 @@ def spline_shadow_faces(
         pts = _check_points(points, what)
         _check_closed_convex(fa_np, what)
         _check_validity_region(em_np, np.concatenate(fa_np), pts, what)
+    else:
+        em, fa, points = check_finite_leaves((em, fa, points), what)
     em, fa, points = _as_float(em, fa, points)
     return _spline_shadow_faces(em, fa, points)

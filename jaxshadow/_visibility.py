@@ -13,7 +13,9 @@ for each receiver it queries a bounding-volume hierarchy of the occluders with t
 illumination pyramid (Campbell & Fussell §4.3's "bounding volume enclosing the light source and
 receiver", one per receiver), tests the candidates exactly (C&F Theorem 2's occlusion volume and
 Theorem 3's umbra volume, in their dual form: does the pyramid meet the occluder; does the
-occluder's projection cover the light), classifies the receiver (`ZERO` behind the light or
+occluder's projection cover the light) in double precision whatever the inputs' dtype (float32
+values are exact in double, so the decisions are those of the exact float32 geometry; only the
+points that JAX integrates are float32), classifies the receiver (`ZERO` behind the light or
 below its horizon, `LIT`, `UMBRA`, `PENUMBRA`) and, in penumbra, splits the candidate edges exactly
 as the device kernel `_clip._boundary_runs` does, with the candidates only. It returns per
 receiver a list of *runs*, each two endpoint codes of 7 int32 (`decode_endpoints`). Convex solids
@@ -39,16 +41,19 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
+from . import _engine_abi as _abi
 from ._clip import _crossing_point, _pow2_scale, _project, _rescale_rows
 from ._geometry import newell_normal
 from ._mesh import OccluderTopology
 
 ZERO, LIT, UMBRA, PENUMBRA = 0, 1, 2, 3
 CLASS_NAMES = ("zero", "lit", "umbra", "penumbra")
-CODE_WIDTH = 7
+CODE_WIDTH = _abi.CODE_WIDTH
 # Endpoint kinds (`_shadowc.cc`).
 K_UNUSED, K_LIGHT, K_HORIZON, K_PROJECTED, K_EMITTER_CROSS, K_PLANES = -1, 0, 1, 2, 3, 4
 FFI_TARGET = "jaxshadow_poly_codes"
+FFI_HARD = "jaxshadow_hard_visibility"
+FFI_SEGMENT = "jaxshadow_segment_candidates"
 
 
 # --------------------------------------------------------------------------------------
@@ -63,20 +68,7 @@ def _lib() -> Any:
         from . import _shadowc as mod  # type: ignore[attr-defined]
     except ImportError:
         return None
-    lib = ctypes.CDLL(mod.__file__)
-    if lib.jaxshadow_shadowc_abi() != 1:
-        return None
-    p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
-    occ: list[Any] = [i64, i64, p, p, p, i64, p, p, p]
-    lib.jaxshadow_poly_plan.argtypes = [i32, i64, p, p, i64, p, *occ, i32, p, p, p, p, p, ctypes.POINTER(i64)]
-    lib.jaxshadow_poly_fixed.argtypes = [i32, i64, p, p, i64, p, *occ, i32, i64, p, p, p]
-    lib.jaxshadow_hard_plan.argtypes = [i32, i64, p, p, i32, i64, *occ, i32, p]
-    lib.jaxshadow_segment_plan.argtypes = [i32, i64, p, p, p, *occ, i32, p, ctypes.POINTER(p)]
-    for f in (lib.jaxshadow_poly_plan, lib.jaxshadow_poly_fixed, lib.jaxshadow_hard_plan, lib.jaxshadow_segment_plan):
-        f.restype = i32
-    lib.jaxshadow_free.argtypes = [p]
-    lib.jaxshadow_free.restype = None
-    return lib
+    return _abi.load(mod.__file__)
 
 
 def engine_available() -> bool:
@@ -91,6 +83,8 @@ def ffi_available() -> bool:
     if lib is None or not lib.jaxshadow_has_ffi():
         return False
     jax.ffi.register_ffi_target(FFI_TARGET, jax.ffi.pycapsule(lib.JaxshadowPolyCodes), platform="cpu")
+    jax.ffi.register_ffi_target(FFI_HARD, jax.ffi.pycapsule(lib.JaxshadowHardVisibility), platform="cpu")
+    jax.ffi.register_ffi_target(FFI_SEGMENT, jax.ffi.pycapsule(lib.JaxshadowSegmentCandidates), platform="cpu")
     return True
 
 
@@ -122,15 +116,10 @@ class HostOccluders:
         return HostOccluders(f, topo)
 
     def args(self) -> list:
-        t = self.topology
-        arrs = self._ints
-        m, ko = self.faces.shape[:2]
-        return [m, ko, _ptr(self.faces), _ptr(arrs[0]), _ptr(arrs[1]), t.n_solids, _ptr(arrs[2]), _ptr(arrs[3]),
-                _ptr(arrs[4])]
+        return _abi.occluder_args(self.faces, self._ints, self.topology.n_solids)
 
 
-def _ptr(a: np.ndarray) -> int | None:
-    return a.ctypes.data if a.size else None
+_ptr = _abi.ptr
 
 
 def _require() -> Any:
@@ -138,6 +127,13 @@ def _require() -> Any:
     if lib is None:
         raise RuntimeError("jaxshadow._shadowc is not built: reinstall jaxshadow with a C++ compiler available")
     return lib
+
+
+def unused_code() -> np.ndarray:
+    """One endpoint code of an unused slot (kind `K_UNUSED`, decoded as the light's first vertex)."""
+    c = np.zeros(CODE_WIDTH, np.int32)
+    c[0] = K_UNUSED
+    return c
 
 
 @dataclass
@@ -159,15 +155,6 @@ class PolygonCodes:
         return np.diff(self.offsets)
 
 
-def _take_buffer(lib: Any, buf: ctypes.c_void_p, ctype: Any, shape: tuple) -> np.ndarray | None:
-    if not buf.value:
-        return None
-    n = int(np.prod(shape))
-    arr = np.ctypeslib.as_array(ctypes.cast(buf, ctypes.POINTER(ctype)), shape=(max(n, 1),))[:n].copy()
-    lib.jaxshadow_free(buf)
-    return arr.reshape(shape)
-
-
 def polygon_codes(points: np.ndarray, normals: np.ndarray, verts: np.ndarray, occ: HostOccluders,
                   codes: bool = True, decoded: bool = False) -> PolygonCodes:
     """Classify receivers and compute the boundary of their visible regions (host, C++).
@@ -184,24 +171,7 @@ def polygon_codes(points: np.ndarray, normals: np.ndarray, verts: np.ndarray, oc
     p = np.ascontiguousarray(points, dt)
     n = np.ascontiguousarray(normals, dt)
     v = np.ascontiguousarray(verts, dt)
-    N, K = p.shape[0], v.shape[0]
-    cls = np.zeros(N, np.int32)
-    stats = np.zeros((N, 2), np.int32)
-    off = np.zeros(N + 1, np.int64)
-    runs, pts = ctypes.c_void_p(), ctypes.c_void_p()
-    nr = ctypes.c_int64()
-    rc = lib.jaxshadow_poly_plan(int(dt == np.float64), N, _ptr(p), _ptr(n), K, _ptr(v), *occ.args(), threads(),
-                                 _ptr(cls), _ptr(stats), _ptr(off), ctypes.byref(runs) if codes else None,
-                                 ctypes.byref(pts) if decoded else None, ctypes.byref(nr))
-    total = nr.value
-    code_arr = _take_buffer(lib, runs, ctypes.c_int32, (total, 2, CODE_WIDTH))
-    ctype = ctypes.c_double if dt == np.float64 else ctypes.c_float
-    pt_arr = _take_buffer(lib, pts, ctype, (total, 2, 3))
-    if rc == 2:
-        raise MemoryError("jaxshadow shadow engine: out of memory for the boundary codes")
-    if rc:
-        raise ValueError("jaxshadow shadow engine: a light has more than 64 vertices")
-    return PolygonCodes(cls, stats, off, code_arr, pt_arr)
+    return PolygonCodes(*_abi.poly_plan(lib, p, n, v, occ.args(), threads(), codes, decoded))
 
 
 def hard_visibility(points: np.ndarray, x: np.ndarray, is_point: bool, occ: HostOccluders) -> np.ndarray:
@@ -266,7 +236,7 @@ def edge_planes(p: Float[Array, "3"], a: Float[Array, "e 3"], b: Float[Array, "e
     swap = _lex_less(b, a)
     lo = jnp.where(swap[..., None], b, a)
     hi = jnp.where(swap[..., None], a, b)
-    c = _rescale_rows(jnp.cross(_rescale_rows(hi - p), _rescale_rows(lo - p)))
+    c = _rescale_rows(jnp.cross(_rescale_rows(hi - p[None, :]), _rescale_rows(lo - p[None, :])))
     return jnp.where(swap[..., None], -c, c)
 
 
@@ -308,8 +278,8 @@ def decode_endpoints(
     va = take(V, i1)
     vb = take(V, jnp.where(kind == K_HORIZON, (i1 + 1) % k, i2))
     on_light = (kind == K_HORIZON)[:, None]
-    h = jnp.where(on_light, n, ne)
-    q = jnp.where(on_light, p, e0)
+    h = jnp.where(on_light, n[None, :], ne[None, :])
+    q = jnp.where(on_light, p[None, :], e0[None, :])
     da = jnp.sum((va - q) * h, axis=-1)
     db = jnp.sum((vb - q) * h, axis=-1)
     cross_ok = da != db
@@ -323,9 +293,9 @@ def decode_endpoints(
     def plane(t_: Array, a: Array, b: Array) -> Array:
         through = edge_planes(p, take(V, a), take(V, b))
         fn, f0 = take(face_n, a), take(face_0, a)
-        d = jnp.sum(fn * (f0 - p), axis=-1)
-        cut = (hp * jnp.sign(d))[:, None] * fn + jnp.abs(d)[:, None] * ne
-        out = jnp.where((t_ == 0)[:, None], through, jnp.where((t_ == 1)[:, None], n, cut))
+        d = jnp.sum(fn * (f0 - p[None, :]), axis=-1)
+        cut = (hp * jnp.sign(d))[:, None] * fn + jnp.abs(d)[:, None] * ne[None, :]
+        out = jnp.where((t_ == 0)[:, None], through, jnp.where((t_ == 1)[:, None], n[None, :], cut))
         return _rescale_rows(out)
 
     n1 = plane(codes[:, 1], codes[:, 2], codes[:, 3])
@@ -333,7 +303,7 @@ def decode_endpoints(
     y = jax.vmap(_crossing_point, in_axes=(None, 0, None, None))(p, jnp.cross(n1, n2), ne, hp)
     out = jnp.where((kind == K_PLANES)[:, None], y, x)
     del nv
-    return jnp.where((kind == K_UNUSED)[:, None], e0, out)
+    return jnp.where((kind == K_UNUSED)[:, None], e0[None, :], out)
 
 
 def edges_from_codes(
@@ -379,8 +349,7 @@ def traced_polygon_codes(
     boundary has more than `capacity` (static) edges have `counts > capacity` and only their first
     `capacity` runs: the caller must detect that (the result is then not exact). Carries no
     gradient (its inputs are stop-gradient'ed); `vmap` broadcasts all inputs."""
-    if not ffi_available():
-        raise RuntimeError("jaxshadow's shadow engine was built without its XLA FFI handler")
+    _require_ffi()
     topo = topology if topology is not None else OccluderTopology.independent(faces.shape[0])
     sg = jax.lax.stop_gradient
     n_pts = points.shape[0]
@@ -394,3 +363,54 @@ def traced_polygon_codes(
     out: Any = call(sg(points), sg(normals.astype(dt)), sg(verts.astype(dt)), sg(faces.astype(dt)), *_topology_arrays(topo),
                 cap=np.int64(capacity), threads=np.int64(threads()))
     return out[0], out[1], out[2]
+
+
+def _require_ffi() -> None:
+    if not ffi_available():
+        raise RuntimeError("jaxshadow's shadow engine was built without its XLA FFI handlers")
+
+
+def traced_hard_visibility(
+    points: Float[Array, "N 3"],
+    x: Float[Array, "3"],
+    is_point: bool,
+    faces: Float[Array, "m ko 3"],
+    topology: OccluderTopology | None,
+) -> Int[Array, " N"]:
+    """`hard_visibility` inside a compiled computation: `(N,)` int32, 1 where the point light at
+    `x` (or the directional light travelling along `x`) is visible. No gradient."""
+    _require_ffi()
+    topo = topology if topology is not None else OccluderTopology.independent(faces.shape[0])
+    sg = jax.lax.stop_gradient
+    dt = points.dtype
+    call = jax.ffi.ffi_call(FFI_HARD, jax.ShapeDtypeStruct((points.shape[0],), jnp.int32),
+                            vmap_method="broadcast_all")
+    return call(sg(points), sg(x.astype(dt)), sg(faces.astype(dt)), *_topology_arrays(topo),
+                is_point=np.int64(bool(is_point)), threads=np.int64(threads()))
+
+
+def traced_segment_candidates(
+    points: Float[Array, "N 3"],
+    a: Float[Array, "3"],
+    b: Float[Array, "3"],
+    faces: Float[Array, "m ko 3"],
+    topology: OccluderTopology | None,
+    capacity: int,
+) -> tuple[Int[Array, " N"], Int[Array, "N c"]]:
+    """`segment_candidates` inside a compiled computation: `(counts (N,), faces (N, capacity))`
+    with -1 in unused slots; receivers with `counts > capacity` have only their first
+    `capacity` faces (the caller must detect that). No gradient."""
+    _require_ffi()
+    topo = topology if topology is not None else OccluderTopology.independent(faces.shape[0])
+    sg = jax.lax.stop_gradient
+    dt = points.dtype
+    n_pts = points.shape[0]
+    call = jax.ffi.ffi_call(
+        FFI_SEGMENT,
+        (jax.ShapeDtypeStruct((n_pts,), jnp.int32), jax.ShapeDtypeStruct((n_pts, capacity), jnp.int32)),
+        vmap_method="broadcast_all",
+    )
+    ends = jnp.stack([a.astype(dt), b.astype(dt)])
+    out: Any = call(sg(points), sg(ends), sg(faces.astype(dt)), *_topology_arrays(topo), cap=np.int64(capacity),
+                    threads=np.int64(threads()))
+    return out[0], out[1]

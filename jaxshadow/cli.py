@@ -1,16 +1,26 @@
 """The `jaxshadow` command.
 
+- `jaxshadow --version`
+- `jaxshadow irradiance SCENE POINTS -o OUT`: irradiance at many receivers, in chunks with
+  progress. SCENE: scene JSON or Mitsuba XML. POINTS: `.csv` (header row naming the columns
+  `px,py,pz,nx,ny,nz`), `.npy` `(N, 6)`, `.npz` (`points`, `normals`), or a mesh (`.ply`,
+  `.obj`, `.glb`/`.gltf`, `.stl`, `.off`: receivers at its vertices or, with `--at faces`, its
+  face centres). OUT: `.npy`, `.npz`, `.csv` (columns `px..nz,r,g,b`) or, for mesh receivers,
+  `.ply` (vertex colours plus float properties `irradiance_r/g/b`).
+- `jaxshadow render SCENE.xml -o IMAGE.exr -o IMAGE.png [--spp-compare N]`: an image from the
+  scene's camera (Mitsuba finds what each pixel sees, jaxshadow shades it exactly).
 - `jaxshadow report [--out DIR]`: irradiance of a built-in scene, checked point by point against
-  Mitsuba 3 (needs the `mitsuba` extra), with a table and a plot.
-- `jaxshadow demo [--out DIR]`: the inverse-shading demo (fit material and light to targets
-  rendered by Mitsuba), when the `inverse` package provides it.
-- `jaxshadow irradiance SCENE POINTS -o OUT`: batched irradiance for large point sets
-  (POINTS: `.npy` of shape (N, 6) = points and normals, or `.csv` with 6 columns), in chunks
-  with progress.
-- `jaxshadow fit SCENE TARGETS -o FITTED`: fit material (and optionally a light) to painted
-  targets.
+  Mitsuba 3, with a table and a plot.
+- `jaxshadow fit SCENE TARGETS -o FITTED` and `jaxshadow demo`: the solvers' commands, provided
+  by the `inverse` package (entry-point group `jaxshadow.commands`).
 - `jaxshadow mesh SCENE -o OUT.ply --tol 1e-3 [--receiver R]`: adaptive illumination mesh of a
   receiver polygon (exact irradiance at the vertices), as PLY or glTF.
+
+Conventions: every output path is used exactly as given and its format follows its extension;
+inputs, outputs and options are checked before any computation; outputs are written to a
+temporary file renamed into place, so an interrupted run leaves no partial file. Exit codes:
+0 success, 1 internal error (a bug: please report it), 2 usage error or bad input, 3 `report`
+found a disagreement with Mitsuba beyond 4 standard errors.
 """
 
 from __future__ import annotations
@@ -20,10 +30,18 @@ import json
 import os
 import sys
 import time
-from importlib import resources
+import traceback
+from collections.abc import Callable, Sequence
+from importlib import metadata, resources
 from typing import Any
 
 import numpy as np
+
+EXIT_OK, EXIT_INTERNAL, EXIT_USAGE, EXIT_CHECK = 0, 1, 2, 3
+ENTRY_POINT_GROUP = "jaxshadow.commands"
+SCENE_EXTS = (".json", ".xml")
+_USER_ERRORS = (ValueError, FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError,
+                NotImplementedError, ImportError)
 
 
 def builtin_scene_path(name: str = "room") -> str:
@@ -31,14 +49,131 @@ def builtin_scene_path(name: str = "room") -> str:
     return str(resources.files("jaxshadow") / "data" / f"{name}.json")
 
 
-def _progress(i: int, n: int, t0: float, what: str) -> None:
-    frac = i / max(n, 1)
-    el = time.perf_counter() - t0
-    eta = el / frac - el if frac > 0 else float("nan")
-    bar = "#" * int(30 * frac)
-    print(f"\r{what} [{bar:<30}] {100 * frac:5.1f}%  {el:6.1f}s elapsed, ~{eta:5.1f}s left", end="", file=sys.stderr)
-    if i >= n:
-        print(file=sys.stderr)
+# --------------------------------------------------------------------------------------
+# Checks that run before any computation (public: the solver commands use them too)
+# --------------------------------------------------------------------------------------
+
+
+def int_at_least(minimum: int, what: str) -> Callable[[str], int]:
+    """argparse type: an integer >= `minimum` (`what` names it in the error message)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = minimum - 1
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be {what}, got {text!r}")
+        return value
+
+    return parse
+
+
+positive_int = int_at_least(1, "a positive integer")
+
+
+def add_io_arguments(parser: argparse.ArgumentParser, name: str, what: str, output: str) -> None:
+    """The arguments `SCENE NAME -o OUTPUT` shared by the commands: a scene (JSON or Mitsuba
+    XML), an input file described by `what`, and an output described by `output`."""
+    parser.add_argument("scene", help="scene: jaxshadow JSON (.json) or Mitsuba XML (.xml)")
+    parser.add_argument(name, help=what)
+    parser.add_argument("-o", "--output", required=True, help=f"{output}, written exactly here")
+
+
+def check_input(path: str, exts: Sequence[str], what: str) -> str:
+    """`path` if it is an existing file with one of the extensions `exts`; else `ValueError` /
+    `FileNotFoundError` with a message naming `what`."""
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in exts:
+        raise ValueError(f"{what} {path!r}: unknown format {ext or '(no extension)'!r} "
+                         f"(expected {', '.join(exts)}).")
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"{what} {path!r}: no such file.")
+    return path
+
+
+def check_output(path: str, exts: Sequence[str], what: str = "output") -> str:
+    """`path` if its extension is one of `exts` and its directory exists and is writable."""
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in exts:
+        raise ValueError(f"{what} {path!r}: unknown format {ext or '(no extension)'!r} "
+                         f"(expected {', '.join(exts)}).")
+    check_directory(os.path.dirname(os.path.abspath(path)), what)
+    if os.path.isdir(path):
+        raise IsADirectoryError(f"{what} {path!r} is a directory.")
+    return path
+
+
+def check_directory(directory: str, what: str = "output", create: bool = False) -> str:
+    """An existing writable directory (with `create`, one whose parent is such a directory)."""
+    d = os.path.abspath(directory)
+    probe = os.path.dirname(d) if create and not os.path.exists(d) else d
+    if not os.path.isdir(probe):
+        raise FileNotFoundError(f"{what}: directory {probe!r} does not exist.")
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise PermissionError(f"{what}: directory {probe!r} is not writable.")
+    return d
+
+
+def read_scene(path: str) -> tuple[Any, list, list]:
+    """`(Scene, receivers, materials)` from a scene JSON file (receivers `[]`, materials the
+    file's `material` entry if any) or a Mitsuba XML file (`jaxshadow.mitsuba.from_mitsuba`)."""
+    check_input(path, SCENE_EXTS, "scene")
+    if path.lower().endswith(".xml"):
+        from .mitsuba import from_mitsuba
+
+        return from_mitsuba(path)
+    import jaxshadow as js
+
+    scene = js.load_scene(path)
+    with open(path) as fh:
+        has_material = "material" in json.load(fh)
+    return scene, [], [js.load_material(path)] if has_material else []
+
+
+class Progress:
+    """Progress of `total` units: a tqdm bar on a terminal; on anything else (a log, a pipe) a
+    plain line at every tenth, no carriage returns; nothing with `quiet`."""
+
+    def __init__(self, total: int, desc: str, quiet: bool = False, stream: Any = None):
+        self.total, self.desc, self.done = max(int(total), 1), desc, 0
+        self.stream = stream or sys.stderr
+        self.quiet, self.bar, self.next_tenth = quiet, None, 1
+        self.t0 = time.perf_counter()
+        if not quiet and self.stream.isatty():
+            try:
+                from tqdm import tqdm
+
+                self.bar = tqdm(total=self.total, desc=desc, file=self.stream, unit="pt", unit_scale=True)
+            except ImportError:
+                pass
+
+    def update(self, n: int) -> None:
+        self.done += int(n)
+        if self.quiet:
+            return
+        if self.bar is not None:
+            self.bar.update(int(n))
+            return
+        while self.done * 10 >= self.next_tenth * self.total and self.next_tenth <= 10:
+            el = time.perf_counter() - self.t0
+            print(f"{self.desc}: {10 * self.next_tenth:3d}% ({self.done}/{self.total}) {el:.1f} s",
+                  file=self.stream, flush=True)
+            self.next_tenth += 1
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _say(args: argparse.Namespace) -> Callable[[str], None]:
+    quiet = getattr(args, "quiet", False)
+    return (lambda msg: None) if quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
+
+
+# --------------------------------------------------------------------------------------
+# report
+# --------------------------------------------------------------------------------------
 
 
 def report_points(n_side: int = 6) -> tuple[np.ndarray, np.ndarray]:
@@ -54,13 +189,19 @@ def report_points(n_side: int = 6) -> tuple[np.ndarray, np.ndarray]:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
+    out_dir = check_directory(args.out, "--out", create=True)
+    scene_path = args.scene or builtin_scene_path("room")
+    if args.scene:
+        check_input(args.scene, (".json",), "--scene")
     import jax
 
     jax.config.update("jax_enable_x64", True)
     import jaxshadow as js
     from jaxshadow import mitsuba as jm
 
-    scene = js.load_scene(args.scene or builtin_scene_path("room"))
+    from ._files import atomic_write, atomic_write_path
+
+    scene = js.load_scene(scene_path)
     if scene.occluders is not None and not args.with_occluders:
         scene = js.Scene(scene.lights, None, scene.ambient)
     points, normals = report_points()
@@ -75,19 +216,21 @@ def cmd_report(args: argparse.Namespace) -> int:
     worst = float(sig.max())
     print(f"max |ours - Mitsuba| / stderr over all points and channels: {worst:.2f} (pass if <= 4)")
     print(f"time: jaxshadow {rep['ours_s']:.3f} s (incl. compile), Mitsuba {rep['mitsuba_s']:.3f} s")
-    os.makedirs(args.out, exist_ok=True)
-    _plot_report(scene, points, ours, mits, se, os.path.join(args.out, "irradiance_report.png"))
-    with open(os.path.join(args.out, "irradiance_report.json"), "w") as f:
-        json.dump({k: (np.asarray(v).tolist() if isinstance(v, np.ndarray) else v) for k, v in rep.items()}, f)
-    print(f"wrote {os.path.join(args.out, 'irradiance_report.png')} and irradiance_report.json")
-    return 0 if worst <= 4.0 else 1
+    os.makedirs(out_dir, exist_ok=True)
+    png, js_path = (os.path.join(out_dir, f"irradiance_report.{e}") for e in ("png", "json"))
+    fig = _plot_report(scene, points, ours, mits, se)
+    atomic_write_path(png, lambda tmp: fig.savefig(tmp, dpi=110))
+    with atomic_write(js_path) as fh:
+        json.dump({k: (np.asarray(v).tolist() if isinstance(v, np.ndarray) else v) for k, v in rep.items()}, fh)
+    print(f"wrote {png} and {js_path}")
+    return EXIT_OK if worst <= 4.0 else EXIT_CHECK
 
 
-def _plot_report(scene: Any, points, ours, mits, se, path: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+def _plot_report(scene: Any, points, ours, mits, se) -> Any:
+    try:
+        from matplotlib.figure import Figure
+    except ImportError as err:
+        raise ImportError("plots need the optional dependency 'matplotlib': `pip install 'jaxshadow[plot]'`.") from err
 
     import jaxshadow as js
 
@@ -96,7 +239,8 @@ def _plot_report(scene: Any, points, ours, mits, se, path: str) -> None:
     gx, gy = np.meshgrid(xs, xs, indexing="xy")
     pts = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], axis=1)
     e = np.asarray(js.irradiance(scene, pts, np.tile([0.0, 0.0, 1.0], (pts.shape[0], 1))))[:, 0].reshape(n, n)
-    fig, ax = plt.subplots(1, 2, figsize=(11, 4.6))
+    fig = Figure(figsize=(11, 4.6))
+    ax = fig.subplots(1, 2)
     im = ax[0].imshow(e, extent=(-2, 2, -2, 2), origin="lower", cmap="inferno")
     fig.colorbar(im, ax=ax[0], label="irradiance E, red channel (W/m²)")
     ax[0].set_title("jaxshadow: floor irradiance (exact)")
@@ -109,35 +253,52 @@ def _plot_report(scene: Any, points, ours, mits, se, path: str) -> None:
     ax[1].set_title("agreement per receiver")
     ax[1].legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    return fig
 
 
-def _load_points(path: str) -> tuple[np.ndarray, np.ndarray]:
-    if path.endswith(".npy"):
-        a = np.load(path)
-    else:
-        a = np.loadtxt(path, delimiter=",", ndmin=2, comments="#")
-    if a.ndim != 2 or a.shape[1] != 6:
-        raise SystemExit(f"{path}: expected N rows of 6 columns (px, py, pz, nx, ny, nz), got shape {a.shape}")
-    return a[:, :3], a[:, 3:]
+def _add_report(sub: Any) -> None:
+    p = sub.add_parser("report", help="irradiance of a built-in scene vs Mitsuba 3, with a plot",
+                       description="Irradiance of a scene at a grid of receivers, checked against Mitsuba 3 "
+                                   "Monte Carlo (exit 3 if any point is off by more than 4 standard errors).")
+    p.add_argument("--scene", default=None, help="scene JSON (default: the built-in room)")
+    p.add_argument("--out", default="out", help="directory for irradiance_report.png/.json (created; default: out)")
+    p.add_argument("--spp", type=positive_int, default=65536, help="Mitsuba samples per receiver (default: 65536)")
+    p.add_argument("--seed", type=int, default=0, help="Mitsuba's random seed (default: 0)")
+    p.add_argument("--with-occluders", action="store_true", help="keep the scene's occluders (shadows)")
+    p.set_defaults(func=cmd_report)
+
+
+# --------------------------------------------------------------------------------------
+# irradiance
+# --------------------------------------------------------------------------------------
+
+POINT_EXTS = (".csv", ".npy", ".npz", ".ply", ".obj", ".glb", ".gltf", ".stl", ".off")
+VALUE_EXTS = (".npy", ".npz", ".csv", ".ply")
 
 
 def cmd_irradiance(args: argparse.Namespace) -> int:
+    check_input(args.scene, SCENE_EXTS, "scene")
+    check_input(args.points, POINT_EXTS, "points")
+    check_output(args.output, VALUE_EXTS)
+    from ._meshio import MESH_EXTS, extension, read_points, write_values
+
+    if extension(args.output) == ".ply" and extension(args.points) not in MESH_EXTS:
+        raise ValueError(f"output {args.output!r}: a .ply output needs mesh receivers (points from a mesh file).")
     import jax
 
     if args.float64:
         jax.config.update("jax_enable_x64", True)
     import jaxshadow as js
 
-    scene = js.load_scene(args.scene)
-    pts, nrm = _load_points(args.points)
+    scene = read_scene(args.scene)[0]
+    pts, nrm, mesh = read_points(args.points, at=args.at)
     dt = np.float64 if args.float64 else np.float32
     pts, nrm = pts.astype(dt), nrm.astype(dt)
     n = pts.shape[0]
     out = np.empty((n, 3), dtype=dt)
     chunk = args.chunk
     t0 = time.perf_counter()
+    bar = Progress(n, "irradiance", quiet=args.quiet)
     for s in range(0, n, chunk):
         e = min(n, s + chunk)
         # pad the last chunk to the chunk size: one compilation for the whole run
@@ -147,39 +308,63 @@ def cmd_irradiance(args: argparse.Namespace) -> int:
             pp = np.concatenate([pp, np.repeat(pp[:1], pad, 0)])
             nn = np.concatenate([nn, np.repeat(nn[:1], pad, 0)])
         out[s:e] = np.asarray(js.irradiance(scene, pp, nn))[: e - s]
-        _progress(e, n, t0, "irradiance")
-    if args.output.endswith(".csv"):
-        np.savetxt(args.output, out, delimiter=",", header="E_r,E_g,E_b")
-    else:
-        np.save(args.output, out)
+        bar.update(e - s)
+    bar.close()
+    write_values(args.output, out, points=pts, normals=nrm, mesh=mesh, at=args.at, name="irradiance")
     el = time.perf_counter() - t0
-    print(f"{n} points in {el:.2f} s ({n / el:.3g} points/s, incl. compile) -> {args.output}")
-    return 0
+    _say(args)(f"{n} points in {el:.2f} s ({n / el:.3g} points/s, incl. compile) -> {args.output}")
+    return EXIT_OK
 
 
-def cmd_demo(args: argparse.Namespace) -> int:
-    import jax
+def _add_irradiance(sub: Any) -> None:
+    p = sub.add_parser("irradiance", help="irradiance (W/m^2, RGB) at many receivers",
+                       description="Irradiance with exact soft shadows at receivers read from a file, "
+                                   "evaluated in chunks with progress.")
+    add_io_arguments(p, "points", "receivers: .csv with header px,py,pz,nx,ny,nz; .npy (N, 6); .npz with "
+                     "'points' and 'normals'; or a mesh (.ply .obj .glb .gltf .stl .off)",
+                     "irradiance: .npy (N, 3), .npz, .csv (px..nz,r,g,b) or .ply (mesh receivers)")
+    p.add_argument("--at", choices=("vertices", "faces"), default="vertices",
+                   help="mesh receivers: at the vertices (default) or at the face centres")
+    p.add_argument("--chunk", type=positive_int, default=1 << 18,
+                   help="receivers per evaluation (default: 262144); smaller uses less memory")
+    p.add_argument("--float64", action="store_true", help="evaluate in float64 (default: float32)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    p.set_defaults(func=cmd_irradiance)
 
-    jax.config.update("jax_enable_x64", True)  # the fits run in float64
-    try:
-        from inverse._demo import run_demo
-    except ImportError:
-        print("the inverse demo is not available in this version; running `jaxshadow report`", file=sys.stderr)
-        return cmd_report(args)
-    run_demo(args.out, progress=True)
-    return 0
+
+# --------------------------------------------------------------------------------------
+# render
+# --------------------------------------------------------------------------------------
 
 
-def cmd_fit(args: argparse.Namespace) -> int:
-    import jax
+def _add_render(sub: Any) -> None:
+    from ._render import add_render_command
 
-    jax.config.update("jax_enable_x64", True)
-    try:
-        from inverse._cli import fit_command
-    except ImportError:
-        raise SystemExit("`jaxshadow fit` needs the inverse package's CLI support (inverse._cli).") from None
-    return int(fit_command(args.scene, args.targets, args.output, light=args.light,
-                           combinatorics=args.combinatorics) or 0)
+    add_render_command(sub)
+
+
+# --------------------------------------------------------------------------------------
+# main
+# --------------------------------------------------------------------------------------
+
+# The forward model's commands; each adds its sub-parser (the `mesh` command registers here).
+def _add_mesh(sub: Any) -> None:
+    from ._illumination_io import add_mesh_parser
+
+    add_mesh_parser(sub)
+
+
+BUILTIN_COMMANDS: list[Callable[[Any], None]] = [_add_irradiance, _add_mesh, _add_render, _add_report]
+
+
+def plugin_commands() -> dict[str, Any]:
+    """Commands other packages register in the entry-point group `jaxshadow.commands` (the
+    `inverse` package's `fit` and `demo`): name -> entry point, whose object is a function
+    `add_command(subparsers)` adding an argparse sub-parser with `func=callable(args) -> int`."""
+    found: dict[str, Any] = {}
+    for ep in metadata.entry_points(group=ENTRY_POINT_GROUP):
+        found.setdefault(ep.name, ep)
+    return found
 
 
 def enable_compile_cache(directory: str | None = None, min_compile_s: float = 0.2) -> str:
@@ -191,62 +376,72 @@ def enable_compile_cache(directory: str | None = None, min_compile_s: float = 0.
 
     d = directory or os.environ.get("JAX_COMPILATION_CACHE_DIR") or os.path.join(
         os.path.expanduser("~"), ".cache", "jaxshadow", "xla")
-    os.makedirs(d, mode=0o700, exist_ok=True)
+    try:
+        os.makedirs(d, mode=0o700, exist_ok=True)
+    except OSError as err:
+        raise PermissionError(f"--compile-cache: cannot create {d!r} ({err.strerror}); "
+                              "pass --compile-cache DIR or --no-compile-cache.") from None
+    if not os.access(d, os.W_OK):
+        raise PermissionError(f"--compile-cache: {d!r} is not writable; pass --compile-cache DIR or --no-compile-cache.")
     jax.config.update("jax_compilation_cache_dir", d)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", min_compile_s)
     return d
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="jaxshadow", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def _version() -> str:
+    try:
+        return metadata.version("jaxshadow")
+    except metadata.PackageNotFoundError:  # pragma: no cover
+        return "0.0.0"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The `jaxshadow` argument parser, with the built-in and the registered commands."""
+    parser = argparse.ArgumentParser(prog="jaxshadow", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--version", action="version", version=f"jaxshadow {_version()}",
+                        help="print the version and exit")
     parser.add_argument(
         "--compile-cache", default=None, metavar="DIR",
         help="JAX persistent compilation cache (default: $JAX_COMPILATION_CACHE_DIR, else "
              "~/.cache/jaxshadow/xla): a second run of the same job skips most XLA compilation",
     )
     parser.add_argument("--no-compile-cache", action="store_true", help="do not read or write the cache")
-    sub = parser.add_subparsers(dest="cmd", required=True)
-    p = sub.add_parser("report", help="irradiance of a built-in scene vs Mitsuba 3, with a plot")
-    p.add_argument("--scene", default=None, help="scene JSON (default: the built-in room)")
-    p.add_argument("--out", default="out")
-    p.add_argument("--spp", type=int, default=65536)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--with-occluders", action="store_true", help="keep the scene's occluders (shadows)")
-    p.set_defaults(func=cmd_report)
-    p = sub.add_parser("demo", help="inverse shading demo: recover material and light from Mitsuba targets")
-    p.add_argument("--out", default="out")
-    p.add_argument("--scene", default=None)
-    p.add_argument("--spp", type=int, default=65536)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--with-occluders", action="store_true")
-    p.set_defaults(func=cmd_demo)
-    p = sub.add_parser("irradiance", help="batched irradiance for many points")
-    p.add_argument("scene")
-    p.add_argument("points", help=".npy (N, 6) or .csv with columns px,py,pz,nx,ny,nz")
-    p.add_argument("-o", "--output", required=True, help=".npy or .csv")
-    p.add_argument("--chunk", type=int, default=1 << 18)
-    p.add_argument("--float64", action="store_true")
-    p.set_defaults(func=cmd_irradiance)
-    p = sub.add_parser("fit", help="fit material (and a light) to painted targets")
-    p.add_argument("scene")
-    p.add_argument("targets")
-    p.add_argument("-o", "--output", required=True)
-    p.add_argument("--light", type=int, default=None, help="also fit the placement of this light")
-    p.add_argument("--combinatorics", choices=("auto", "device", "host"), default="auto",
-                   help="with --light and occluders: where the soft-shadow kernel's combinatorics run "
-                        "(auto: host on the CPU when the compiled kernel is built; see fit_light)")
-    p.set_defaults(func=cmd_fit)
-    from ._illumination_io import add_mesh_parser
+    sub = parser.add_subparsers(dest="cmd", required=True, metavar="COMMAND")
+    for add in BUILTIN_COMMANDS:
+        add(sub)
+    plugins = plugin_commands()
+    if not plugins:
+        parser.epilog = ("No solver commands (fit, demo) are registered: they come from the `inverse` package "
+                         f"through the entry-point group {ENTRY_POINT_GROUP!r}; reinstall jaxshadow (pip install -e .).")
+    for name, ep in sorted(plugins.items()):
+        try:
+            ep.load()(sub)
+        except ImportError as err:  # a registered package that cannot be imported here
+            print(f"jaxshadow: command {name!r} unavailable ({err})", file=sys.stderr)
+    return parser
 
-    add_mesh_parser(sub)
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the command line `argv` (default: `sys.argv[1:]`); returns the exit code. Usage
+    errors detected by argparse exit with status 2 through `SystemExit`."""
+    parser = build_parser()
     args = parser.parse_args(argv)
-    if not args.no_compile_cache:
-        enable_compile_cache(args.compile_cache)
     try:
+        if not args.no_compile_cache:
+            enable_compile_cache(args.compile_cache)
         return int(args.func(args) or 0)
-    except (ValueError, NotImplementedError, FileNotFoundError) as err:
+    except _USER_ERRORS as err:
         print(f"jaxshadow {args.cmd}: error: {err}", file=sys.stderr)
-        return 2
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print(f"jaxshadow {args.cmd}: interrupted (no output written)", file=sys.stderr)
+        return 130
+    except Exception as err:
+        traceback.print_exc()
+        print(f"jaxshadow {args.cmd}: internal error: {type(err).__name__}: {err} (a bug: please report it "
+              "with the command line)", file=sys.stderr)
+        return EXIT_INTERNAL
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,4 +1,13 @@
-r"""Mitsuba 3 bridge: scene conversion and Monte Carlo reference estimators (optional extra).
+r"""Mitsuba 3 bridge: scenes in and out, and Monte Carlo reference estimators (optional extra).
+
+- In: `from_mitsuba(path_or_dict) -> (Scene, receivers, materials)` reads any Mitsuba scene
+  through Mitsuba's own loader (`jaxshadow._mitsuba_io`: what maps to what, and what is lost);
+  `read_sensor` its camera.
+- Out: `to_mitsuba` / `to_mitsuba_dict` (an in-memory Mitsuba scene, with receiver surfaces and
+  their materials as BSDFs, and a camera) and `write_mitsuba_xml` (a scene file).
+- Reference estimators: `reference_irradiance`, `reference_specular`, `reference_shade`,
+  `quick_report` (below); `reference_irradiance(..., mitsuba_scene=...)` runs in the user's own
+  Mitsuba scene instead of the twin.
 
 Mitsuba 3 is jaxshadow's independent ground truth. Units are Mitsuba's, so a jaxshadow scene
 and its Mitsuba twin must agree with no fudge factor:
@@ -45,11 +54,19 @@ already active.
 from __future__ import annotations
 
 import math
+import re
 import time
 from typing import Any
 
 import numpy as np
 
+from ._mitsuba_io import UnsupportedMitsubaElementWarning as UnsupportedMitsubaElementWarning
+from ._mitsuba_io import from_mitsuba as from_mitsuba
+from ._mitsuba_io import material_from_bsdf as material_from_bsdf
+from ._mitsuba_io import material_to_bsdf as material_to_bsdf
+from ._mitsuba_io import read_sensor as read_sensor
+from ._mitsuba_io import write_example_scene as write_example_scene
+from ._mitsuba_io import write_mitsuba_xml as write_mitsuba_xml
 from ._scene import DirectionalLight, LinearLight, Material, PointLight, PolygonLight, Scene
 
 _VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
@@ -88,10 +105,22 @@ def _strip_padding(poly: np.ndarray) -> np.ndarray:
     return poly[:k]
 
 
-def _fan_mesh(mi: Any, name: str, polygons: list, props: Any) -> Any:
-    """One `mi.Mesh` holding the fan triangulations of convex polygons (face normals only)."""
+def _mi_mesh(mi: Any, name: str, vertices: np.ndarray, faces: np.ndarray, props: Any) -> Any:
+    """An `mi.Mesh` from vertex and triangle arrays (face normals only)."""
     import drjit as dr
 
+    v = np.asarray(vertices, np.float32)
+    f = np.asarray(faces, np.uint32)
+    mesh = mi.Mesh(name, v.shape[0], f.shape[0], props=props)
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = dr.ravel(mi.Point3f(v.T))
+    params["faces"] = dr.ravel(mi.Vector3u(f.T))
+    params.update()
+    return mesh
+
+
+def _fan_arrays(polygons: list) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices and fan triangles of convex polygons."""
     verts: list[np.ndarray] = []
     faces: list[tuple[int, int, int]] = []
     base = 0
@@ -101,58 +130,54 @@ def _fan_mesh(mi: Any, name: str, polygons: list, props: Any) -> Any:
         verts.append(poly)
         faces.extend((base, base + i, base + i + 1) for i in range(1, k - 1))
         base += k
-    v = np.concatenate(verts).astype(np.float32)
-    f = np.asarray(faces, dtype=np.uint32)
-    mesh = mi.Mesh(name, v.shape[0], f.shape[0], props=props)
-    params = mi.traverse(mesh)
-    params["vertex_positions"] = dr.ravel(mi.Point3f(v.T))
-    params["faces"] = dr.ravel(mi.Vector3u(f.T))
-    params.update()
-    return mesh
+    return np.concatenate(verts), np.asarray(faces, dtype=np.int64)
 
 
-def to_mitsuba_dict(
-    scene: Scene, *, segment_points: int = 64, segment_radius: float = 1e-4
-) -> dict:
-    r"""The `mi.load_dict` dictionary of a jaxshadow scene (see the module docstring).
+def _fan_mesh(mi: Any, name: str, polygons: list, props: Any) -> Any:
+    """One `mi.Mesh` holding the fan triangulations of convex polygons (face normals only)."""
+    return _mi_mesh(mi, name, *_fan_arrays(polygons), props)
 
-    **Arguments:**
 
-    - `scene`: a jaxshadow `Scene`. Ambient radiance is not part of it (it is not light that
-      Mitsuba transports; `reference_shade` adds $k_a L_a$ itself).
-    - `segment_points`: number $M$ of point emitters standing in for an isotropic `LinearLight`.
-    - `segment_radius`: radius of the Lambertian cylinder standing in for a cosine ($m = 1$)
-      `LinearLight`, as a fraction of its length.
+def _surface_ids(names: list[str]) -> list[str]:
+    """Ids `s000_<name>` (characters other than letters, digits, `_.-` replaced): sorted, they
+    keep the receivers' order (`from_mitsuba` reads shapes in id order)."""
+    return [f"s{i:03d}_" + re.sub(r"[^A-Za-z0-9_.-]", "_", re.sub(r"^s\d{3}_", "", n)) for i, n in enumerate(names)]
 
-    **Returns:** a dict with `"type": "scene"`; polygon lights and occluders are `mi.Mesh`
-    objects, so build a fresh dict for every `mi.load_dict`.
-    """
-    mi = _mi()
+
+def scene_items(scene: Scene, receivers: Any = (), materials: Any = (), *, segment_points: int = 64,
+                segment_radius: float = 1e-4) -> list[tuple[str, dict]]:
+    """`(name, plugin dict)` of every Mitsuba object of a scene, meshes as `{"type": "_mesh",
+    "vertices", "faces", "emitter" | "bsdf"}` (`to_mitsuba_dict` makes them `mi.Mesh` objects,
+    `write_mitsuba_xml` PLY files). Arguments as `to_mitsuba_dict`."""
     if not isinstance(scene, Scene):
         raise ValueError(f"to_mitsuba: expected a jaxshadow.Scene, got {type(scene).__name__}.")
     if int(segment_points) < 1:
         raise ValueError(f"to_mitsuba: segment_points must be >= 1, got {segment_points!r}.")
     if not segment_radius > 0:
         raise ValueError(f"to_mitsuba: segment_radius must be > 0, got {segment_radius!r}.")
-    out: dict[str, Any] = {"type": "scene"}
+    receivers, materials = list(receivers), list(materials)
+    if len(materials) > len(receivers):
+        raise ValueError(f"to_mitsuba: {len(materials)} materials for {len(receivers)} receivers.")
+    rgb = lambda x: _rgb(None, x)  # noqa: E731
+    out: list[tuple[str, dict]] = []
     for i, light in enumerate(scene.lights):
         if isinstance(light, PolygonLight):
-            props = mi.Properties()
-            props["emitter"] = mi.load_dict({"type": "area", "radiance": _rgb(mi, light.radiance)})
-            out[f"light_{i}"] = _fan_mesh(mi, f"light_{i}", [np.asarray(light.vertices)], props)
+            v, f = _fan_arrays([np.asarray(light.vertices)])
+            out.append((f"light_{i:03d}", {"type": "_mesh", "vertices": v, "faces": f,
+                                       "emitter": {"type": "area", "radiance": rgb(light.radiance)}}))
         elif isinstance(light, PointLight):
-            out[f"light_{i}"] = {
+            out.append((f"light_{i:03d}", {
                 "type": "point",
                 "position": [float(c) for c in np.asarray(light.position, dtype=np.float64)],
-                "intensity": _rgb(mi, light.intensity),
-            }
+                "intensity": rgb(light.intensity),
+            }))
         elif isinstance(light, DirectionalLight):
             d = np.asarray(light.direction, dtype=np.float64)
-            out[f"light_{i}"] = {
+            out.append((f"light_{i:03d}", {
                 "type": "directional",
                 "direction": [float(c) for c in d / np.linalg.norm(d)],
-                "irradiance": _rgb(mi, light.irradiance),
-            }
+                "irradiance": rgb(light.irradiance),
+            }))
         elif isinstance(light, LinearLight):
             a = np.asarray(light.start, dtype=np.float64)
             b = np.asarray(light.end, dtype=np.float64)
@@ -162,21 +187,21 @@ def to_mitsuba_dict(
                 m = int(segment_points)
                 for j in range(m):
                     x = a + (j + 0.5) / m * (b - a)
-                    out[f"light_{i}_{j}"] = {
+                    out.append((f"light_{i:03d}_{j:03d}", {
                         "type": "point",
                         "position": [float(c) for c in x],
-                        "intensity": _rgb(mi, phi * length / (4.0 * math.pi * m)),
+                        "intensity": rgb(phi * length / (4.0 * math.pi * m)),
                         "sampling_weight": 1.0 / m,
-                    }
+                    }))
             elif light.exponent == 1:
                 r = float(segment_radius) * length
-                out[f"light_{i}"] = {
+                out.append((f"light_{i:03d}", {
                     "type": "cylinder",
                     "p0": [float(c) for c in a],
                     "p1": [float(c) for c in b],
                     "radius": r,
-                    "emitter": {"type": "area", "radiance": _rgb(mi, phi / (2.0 * math.pi**2 * r))},
-                }
+                    "emitter": {"type": "area", "radiance": rgb(phi / (2.0 * math.pi**2 * r))},
+                }))
             else:
                 raise NotImplementedError(
                     f"to_mitsuba: scene.lights[{i}] is a cosine LinearLight with exponent "
@@ -186,15 +211,68 @@ def to_mitsuba_dict(
                 )
         else:  # pragma: no cover - Scene validates its lights
             raise ValueError(f"to_mitsuba: unsupported light {type(light).__name__}.")
-    if scene.occluders is not None:
-        polys = [_strip_padding(p) for p in np.asarray(scene.occluders, dtype=np.float64)]
-        props = mi.Properties()
-        props["bsdf"] = mi.load_dict({"type": "diffuse", "reflectance": _rgb(mi, 0.0)})
-        out["occluders"] = _fan_mesh(mi, "occluders", polys, props)
+    if receivers:
+        from ._mitsuba_io import material_to_bsdf
+
+        names = _surface_ids([r.name for r in receivers])
+        for k, (name, r) in enumerate(zip(names, receivers, strict=True)):
+            mat = materials[k] if k < len(materials) else Material()
+            out.append((name, {"type": "_mesh", "vertices": r.vertices, "faces": r.faces,
+                               "bsdf": material_to_bsdf(mat)}))
+    elif scene.occluders is not None:
+        v, f = _fan_arrays([_strip_padding(p) for p in np.asarray(scene.occluders, dtype=np.float64)])
+        out.append(("occluders", {"type": "_mesh", "vertices": v, "faces": f,
+                                  "bsdf": {"type": "diffuse", "reflectance": rgb(0.0)}}))
     return out
 
 
-def to_mitsuba(scene: Scene, *, segment_points: int = 64, segment_radius: float = 1e-4) -> Any:
+def to_mitsuba_dict(
+    scene: Scene, *, receivers: Any = (), materials: Any = (), sensor: dict | None = None,
+    segment_points: int = 64, segment_radius: float = 1e-4
+) -> dict:
+    r"""The `mi.load_dict` dictionary of a jaxshadow scene (see the module docstring).
+
+    **Arguments:**
+
+    - `scene`: a jaxshadow `Scene`. Ambient radiance is not part of it (it is not light that
+      Mitsuba transports; `reference_shade` adds $k_a L_a$ itself).
+    - `receivers`, `materials`: receiver surfaces (`ReceiverMesh`, e.g. from `from_mitsuba`) and
+      their `Material`s, written as meshes with the nearest BSDF (`material_to_bsdf`); when any
+      are given they are the occluders (as in `from_mitsuba`), else `scene.occluders` are
+      written as one black mesh.
+    - `sensor`: a camera as `read_sensor` returns it, or `None`.
+    - `segment_points`: number $M$ of point emitters standing in for an isotropic `LinearLight`.
+    - `segment_radius`: radius of the Lambertian cylinder standing in for a cosine ($m = 1$)
+      `LinearLight`, as a fraction of its length.
+
+    **Returns:** a dict with `"type": "scene"`; meshes are `mi.Mesh` objects, so build a fresh
+    dict for every `mi.load_dict`.
+    """
+    mi = _mi()
+    out: dict[str, Any] = {"type": "scene"}
+    for name, d in scene_items(scene, receivers, materials, segment_points=segment_points,
+                               segment_radius=segment_radius):
+        if d["type"] == "_mesh":
+            props = mi.Properties()
+            for k in ("emitter", "bsdf"):
+                if k in d:
+                    props[k] = mi.load_dict(d[k])
+            out[name] = _mi_mesh(mi, name, d["vertices"], d["faces"], props)
+        else:
+            out[name] = d
+    if sensor is not None:
+        out["sensor"] = {
+            "type": "perspective", "fov": float(sensor["fov"]), "fov_axis": "x",
+            "to_world": mi.ScalarTransform4f(np.asarray(sensor["to_world"], np.float64).tolist()),
+            "film": {"type": "hdrfilm", "width": int(sensor["width"]), "height": int(sensor["height"]),
+                     "rfilter": {"type": "box"}},
+            "sampler": {"type": "independent", "sample_count": int(sensor.get("spp", 16))},
+        }
+    return out
+
+
+def to_mitsuba(scene: Scene, *, receivers: Any = (), materials: Any = (), sensor: dict | None = None,
+               segment_points: int = 64, segment_radius: float = 1e-4) -> Any:
     """The Mitsuba twin of a jaxshadow scene: `mi.load_dict(to_mitsuba_dict(scene, ...))`.
 
     **Arguments:** as `to_mitsuba_dict`.
@@ -203,7 +281,8 @@ def to_mitsuba(scene: Scene, *, segment_points: int = 64, segment_radius: float 
     """
     mi = _mi()
     return mi.load_dict(
-        to_mitsuba_dict(scene, segment_points=segment_points, segment_radius=segment_radius)
+        to_mitsuba_dict(scene, receivers=receivers, materials=materials, sensor=sensor,
+                        segment_points=segment_points, segment_radius=segment_radius)
     )
 
 
@@ -215,12 +294,17 @@ def to_mitsuba(scene: Scene, *, segment_points: int = 64, segment_radius: float 
 class _Twin:
     """The Mitsuba scene of a jaxshadow scene, plus what the estimators need beside it."""
 
-    def __init__(self, mi: Any, scene: Any, lights_occlude: bool, convert: dict):
+    def __init__(self, mi: Any, scene: Any, lights_occlude: bool, convert: dict, native: Any = None):
         if not isinstance(scene, Scene):
             raise ValueError(f"expected a jaxshadow.Scene, got {type(scene).__name__}.")
+        self.occluders = None
+        if native is not None:  # the user's own Mitsuba scene, with Mitsuba's visibility test
+            from ._mitsuba_io import _load
+
+            self.full, self.lights_occlude, self.max_light_hits = _load(mi, native), True, 1
+            return
         self.full = to_mitsuba(scene, **convert)
         self.lights_occlude = bool(lights_occlude)
-        self.occluders = None
         if scene.occluders is not None and not self.lights_occlude:
             props = mi.Properties()
             props["bsdf"] = mi.load_dict({"type": "diffuse", "reflectance": _rgb(mi, 0.0)})
@@ -343,9 +427,10 @@ def _estimate(
     coef_s: Any = 0.0,
     lights_occlude: bool = False,
     convert: dict | None = None,
+    native: Any = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     mi = _mi()
-    twin = _Twin(mi, scene, lights_occlude, convert or {})
+    twin = _Twin(mi, scene, lights_occlude, convert or {}, native)
     p, n = _points_normals(points, normals)
     spp = int(spp)
     if spp < 2:
@@ -380,6 +465,7 @@ def reference_irradiance(
     seed: int = 0,
     *,
     lights_occlude: bool = False,
+    mitsuba_scene: Any = None,
     **convert: Any,
 ) -> tuple[np.ndarray, np.ndarray]:
     r"""Monte Carlo direct irradiance with Mitsuba's emitter sampling and shadow rays.
@@ -396,6 +482,10 @@ def reference_irradiance(
     - `lights_occlude`: `False` (default, jaxshadow's model): Mitsuba's shadow rays are traced
       against the occluders only. `True`: Mitsuba's own `test_visibility=True` in the full
       scene, where light meshes are opaque too (one light can shadow another).
+    - `mitsuba_scene`: `None`, or the Mitsuba scene `scene` was read from (a file, a dict or an
+      `mi.Scene`, see `from_mitsuba`): the estimate then runs in that scene itself, with
+      Mitsuba's own `test_visibility=True` (every shape occludes), independent of jaxshadow's
+      conversion; `scene` is only checked.
     - `convert`: `segment_points`, `segment_radius` for `to_mitsuba`.
 
     **Returns:** `(estimate, stderr)`, each an `(N, 3)` float64 NumPy array (W/m^2); `stderr` is
@@ -403,7 +493,8 @@ def reference_irradiance(
     deterministic, e.g. a single point light).
     """
     return _estimate(
-        scene, points, normals, spp, seed, lights_occlude=lights_occlude, convert=convert
+        scene, points, normals, spp, seed, lights_occlude=lights_occlude, convert=convert,
+        native=mitsuba_scene,
     )
 
 

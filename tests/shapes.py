@@ -1,4 +1,5 @@
-"""Geometry shared by several test modules (meshes, rotations)."""
+"""Geometry shared by the test modules: rotations, random convex polygons, half-space clipping,
+meshes. One definition each (test modules import them from here)."""
 
 import math
 
@@ -20,6 +21,51 @@ def rotation(axis, angle):
             [z * x * (1 - c) - y * s, z * y * (1 - c) + x * s, c + z * z * (1 - c)],
         ]
     )
+
+
+def random_rotation(rng, max_angle):
+    """A rotation by an angle uniform in `[-max_angle, max_angle]` about a random axis."""
+    axis = rng.normal(size=3)
+    return rotation(axis, rng.uniform(-max_angle, max_angle))
+
+
+def random_angles(rng, k, max_gap=2 * math.pi):
+    """`k` sorted angles uniform in `[0, 2 pi)`, drawn again while two neighbours are more than
+    `max_gap` apart (with `max_gap < pi` the polygon on them contains its centre)."""
+    while True:
+        ang = np.sort(rng.uniform(0, 2 * np.pi, size=k))
+        if np.max(np.diff(np.concatenate([ang, ang[:1] + 2 * np.pi]))) <= max_gap:
+            return ang
+
+
+def random_convex(rng, k, radii, centre=(0.0, 0.0, 0.0), max_tilt=math.pi, max_gap=2 * math.pi):
+    """A random convex `k`-gon `(k, 3)`: points of an ellipse with semi-axes `radii = (rx, ry)`
+    (or `radii(rng)`, drawn after the angles) at `random_angles`, counter-clockwise about +z
+    before `random_rotation(rng, max_tilt)`, then moved to `centre`."""
+    ang = random_angles(rng, k, max_gap)
+    rx, ry = radii(rng) if callable(radii) else radii
+    loc = np.stack([rx * np.cos(ang), ry * np.sin(ang), np.zeros(k)], axis=1)
+    return loc @ random_rotation(rng, max_tilt).T + np.asarray(centre, np.float64)
+
+
+def clip_halfspace(poly, p, n):
+    """Sutherland-Hodgman: the part of a convex polygon (a sequence of 3-D points) with
+    `n . (x - p) >= 0`, as a list of points. Plain arithmetic on the coordinates, so it works
+    on NumPy arrays and on lists of mpmath numbers alike."""
+    def side(x):
+        return sum(ni * (xi - pi) for ni, xi, pi in zip(n, x, p, strict=True))
+
+    out = []
+    k = len(poly)
+    for i in range(k):
+        a, b = poly[i], poly[(i + 1) % k]
+        da, db = side(a), side(b)
+        if da >= 0:
+            out.append(a)
+        if (da >= 0) != (db >= 0):
+            t = da / (da - db)
+            out.append([x + t * (y - x) for x, y in zip(a, b, strict=True)])
+    return out
 
 
 def uv_sphere(centre, radius, n_lat, n_lon):
@@ -47,3 +93,9 @@ def uv_sphere(centre, radius, n_lat, n_lon):
     )
     tris[out < 0] = tris[out < 0][:, ::-1]
     return tris
+
+
+def square_light(x0, x1, y0, y1, z):
+    """Axis-aligned rectangle in the plane z, counter-clockwise seen from below (it emits
+    towards -z, the right-hand-rule normal of its vertex order)."""
+    return np.array([[x0, y0, z], [x0, y1, z], [x1, y1, z], [x1, y0, z]], dtype=np.float64)

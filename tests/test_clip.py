@@ -18,9 +18,11 @@ from jax.test_util import check_grads
 from scipy import integrate
 
 shapely = pytest.importorskip("shapely")
+import shapes  # noqa: E402
 from shapely.geometry import Polygon  # noqa: E402
 from shapely.geometry.polygon import orient  # noqa: E402
 from shapely.ops import unary_union  # noqa: E402
+from shapes import clip_halfspace  # noqa: E402
 
 from jaxshadow._clip import (  # noqa: E402
     directional_visibility,
@@ -37,21 +39,6 @@ from jaxshadow._clip import (  # noqa: E402
 
 def _newell(v):
     return np.sum(np.cross(v, np.roll(v, -1, axis=0)), axis=0)
-
-
-def _sh_clip(poly, normal, offset):
-    """Sutherland-Hodgman: keep `{x : normal . x >= offset}` of a convex polygon (list of 3-D points)."""
-    out = []
-    k = len(poly)
-    for i in range(k):
-        a, b = poly[i], poly[(i + 1) % k]
-        da, db = np.dot(normal, a) - offset, np.dot(normal, b) - offset
-        if da >= 0:
-            out.append(a)
-        if (da >= 0) != (db >= 0):
-            t = da / (da - db)
-            out.append(a + t * (b - a))
-    return out
 
 
 def _lambert(p, n, ring3d):
@@ -90,7 +77,7 @@ def reference_ff(p, n, emitter, occluders):
     def to3(xy):
         return e0 + xy[0] * u + xy[1] * v
 
-    eh = _sh_clip(list(em), n, np.dot(n, p))
+    eh = [np.asarray(x) for x in clip_halfspace(list(em), p, n)]
     if len(eh) < 3:
         return 0.0
     region = Polygon([to2(x) for x in eh])
@@ -102,11 +89,11 @@ def reference_ff(p, n, emitter, occluders):
     corners = [c + sx * big * u + sy * big * v for sx, sy in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
     shadows = []
     for occ in occluders:
-        poly = _sh_clip(list(np.asarray(occ, np.float64)), ne, np.dot(ne, e0))
+        poly = [np.asarray(x) for x in clip_halfspace(list(np.asarray(occ, np.float64)), e0, ne)]
         for i in range(4):
             a, b = corners[i], corners[(i + 1) % 4]
             nrm = np.cross(b - p, a - p)  # interior of the pyramid on the positive side
-            poly = _sh_clip(poly, nrm, np.dot(nrm, p))
+            poly = [np.asarray(x) for x in clip_halfspace(poly, p, nrm)]
             if len(poly) < 3:
                 break
         if len(poly) < 3:
@@ -157,21 +144,8 @@ def ray_blocked_np(p, x, occluders):
 # --------------------------------------------------------------------------------------
 
 
-def _rot(rng, tilt):
-    axis = rng.normal(size=3)
-    axis /= np.linalg.norm(axis)
-    ang = tilt * rng.uniform(-1, 1)
-    kx = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + math.sin(ang) * kx + (1 - math.cos(ang)) * kx @ kx
-
-
 def random_convex(rng, k, size, centre, tilt, facing_down=None):
-    ang = np.sort(rng.uniform(0, 2 * np.pi, size=k))
-    while np.max(np.diff(np.concatenate([ang, ang[:1] + 2 * np.pi]))) > 0.9 * np.pi:
-        ang = np.sort(rng.uniform(0, 2 * np.pi, size=k))
-    rx, ry = size * rng.uniform(0.5, 1.0, size=2)
-    loc = np.stack([rx * np.cos(ang), ry * np.sin(ang), np.zeros(k)], axis=1)
-    v = loc @ _rot(rng, tilt).T + centre
+    v = shapes.random_convex(rng, k, lambda r: size * r.uniform(0.5, 1.0, size=2), centre, tilt, 0.9 * np.pi)
     if facing_down is not None:
         nz = _newell(v)[2]
         if (nz < 0) != facing_down:

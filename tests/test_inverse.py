@@ -22,7 +22,8 @@ import pytest
 
 import inverse
 import jaxshadow as js
-from inverse import _lights as L
+from inverse import _parametrisation as P
+from inverse import _residuals as R
 from inverse._forward import shade
 from inverse._scenes import demo_configuration, pose_errors
 
@@ -291,9 +292,9 @@ def test_rotation_matrix_is_smooth_at_zero():
 
 
 def test_rotate_rows_matches_the_rotation_matrix():
-    """`_lights.rotate_rows` (the elementwise Rodrigues the light build uses) against the matrix
+    """`_parametrisation.rotate_rows` (the elementwise Rodrigues the light build uses) against the matrix
     form, at a generic angle, near zero (the Taylor branch) and at zero, with derivatives."""
-    from inverse._lights import rotate_rows
+    from inverse._parametrisation import rotate_rows
 
     w = jnp.asarray(np.random.default_rng(3).normal(size=(5, 3)))
     for om in ([0.3, -0.2, 0.5], [2e-5, -1e-5, 3e-5], [0.0, 0.0, 0.0]):
@@ -335,7 +336,7 @@ def test_fit_light_point_on_plane_lbfgsb(light_config):
     np.testing.assert_allclose(np.asarray(f.light.position), true_pos, atol=1e-6)
     assert f.report.names == ("a", "b")
     box = inverse.Box([-1.0, -1.0, 1.0], [1.0, 1.0, 2.0])
-    f = inverse.fit_light(start, tt, material, fit=("position",), constraint=box, starts=4, solver="lbfgsb",
+    f = inverse.fit_light(start, tt, material, fit=("position",), constraint=box, starts=4, solver=inverse.LBFGSB(),
                           specular=SPEC)
     np.testing.assert_allclose(np.asarray(f.light.position), true_pos, atol=1e-5)
     assert f.report.solver == "lbfgsb" and f.report.names == ("x", "y", "z")
@@ -406,19 +407,36 @@ def test_fit_light_errors(light_config):
         inverse.fit_light(js.Scene([js.PointLight([0, 0, 2.0])]), t, material, fit=("size",))
     with pytest.raises(ValueError, match="solver"):
         inverse.fit_light(cfg.start_scene, t, material, solver="newton")
+    with pytest.raises(ValueError, match="combinatorics"):
+        inverse.LM(combinatorics="gpu")
+
+
+def test_deprecated_solver_keywords():
+    """`fit_light(solver="lbfgsb", atol=...)` and the LM's options as `fit_light` keywords (before
+    the solver objects) still build the same solver, with a DeprecationWarning."""
+    from inverse._solvers import solver_from_arguments
+
+    with pytest.warns(DeprecationWarning, match="solver object"):
+        assert solver_from_arguments("lbfgsb", {"atol": 1e-10, "prune": False}) == inverse.LBFGSB(tol=1e-10)
+    with pytest.warns(DeprecationWarning):
+        got = solver_from_arguments(None, {"refine": None, "combinatorics": "device"})
+    assert got == inverse.LM(refine=None, combinatorics="device")
+    assert solver_from_arguments(None, {}) == inverse.LM()
+    with pytest.raises(TypeError, match="refin"):
+        solver_from_arguments(None, {"refin": 3})
 
 
 def _fd_check(scene, targets, material, light_index=0):
     """d(loss)/d(light position): jax.grad vs float64 central finite differences."""
-    param = L.LightParametrisation(scene.lights[light_index], light_index, ("position",), None, 1.0, "sigmoid")
-    setup = L._Setup(param, scene, material, targets, SPEC, bool(np.any(np.asarray(material.ks) != 0)))
+    param = P.LightParametrisation(scene.lights[light_index], light_index, ("position",), None, 1.0, "sigmoid")
+    setup = R.LightProblem(param, scene, material, targets, SPEC, bool(np.any(np.asarray(material.ks) != 0)))
     theta = jnp.zeros(3)
-    _, g = L.loss_and_grad(setup, theta)
+    _, g = R.loss_and_grad(setup, theta)
     fd = []
     h = 1e-5
     for i in range(3):
         e = jnp.zeros(3).at[i].set(h)
-        fd.append((float(L._loss_jit(setup, theta + e)) - float(L._loss_jit(setup, theta - e))) / (2 * h))
+        fd.append((float(R.loss_jit(setup, theta + e)) - float(R.loss_jit(setup, theta - e))) / (2 * h))
     g, fd = np.asarray(g), np.asarray(fd)
     return np.max(np.abs(g - fd)) / np.max(np.abs(fd))
 
@@ -440,7 +458,7 @@ def test_loss_gradient_vs_finite_differences_penumbra():
     frac = E[:, 0] / E0[:, 0]
     assert np.sum((frac > 0.02) & (frac < 0.98)) >= 5, frac  # really in the penumbra
     t = inverse.PaintedTargets(cfg.points[pen], cfg.normals[pen], col, cfg.eye)
-    moved = L.with_light(cfg.scene, 0, js.PolygonLight(np.asarray(cfg.scene.lights[0].vertices) + [0.03, -0.02, 0.01],
+    moved = P.with_light(cfg.scene, 0, js.PolygonLight(np.asarray(cfg.scene.lights[0].vertices) + [0.03, -0.02, 0.01],
                                                        cfg.scene.lights[0].radiance))
     assert _fd_check(moved, t, material) <= 1e-6
 
@@ -539,7 +557,7 @@ def test_acceptance_light_from_mitsuba_penumbra():
     assert abs(np.linalg.norm(c0 - c1) / cfg.size - 0.3) < 1e-9
     # 64 stratified starts, screened by their loss; LM from the 8 best (the benchmark times
     # the full 64-start solve).
-    f = inverse.fit_light(start, t, material, starts=64, refine=8, specular=SPEC)
+    f = inverse.fit_light(start, t, material, starts=64, solver=inverse.LM(refine=8), specular=SPEC)
     err = pose_errors(f.light.vertices, cfg.scene.lights[0].vertices)
     print("light pose errors:", err, "scene size", cfg.size)
     assert err["position"] <= 0.01 * cfg.size, err

@@ -17,7 +17,10 @@ import pytest
 import scipy.optimize
 
 import inverse
-from inverse import _lights as L
+from inverse import _multistart as M
+from inverse import _parametrisation as P
+from inverse import _residuals as R
+from inverse import _solvers as S
 from inverse._lm import batched_levenberg_marquardt
 from inverse._scenes import occluded_light_problem, pose_errors
 
@@ -125,9 +128,9 @@ def test_lm_successive_halving():
 # Compiled once per problem shape and shared by the tests below (the full model's Jacobian with
 # 8 occluders is the costliest program of this module to compile); op-by-op evaluation of the
 # culled residual would compile each of its primitives on its own.
-_full_jacobian = eqx.filter_jit(lambda setup, y: jax.jacfwd(L._residuals)(y, setup))
-_culled_jacobian = eqx.filter_jit(lambda setup, y: jax.jacfwd(L._residuals_culled, has_aux=True)(y, setup))
-_overflow = eqx.filter_jit(lambda setup, y: L._residuals_culled(y, setup)[1])
+_full_jacobian = eqx.filter_jit(lambda setup, y: jax.jacfwd(R.residuals)(y, setup))
+_culled_jacobian = eqx.filter_jit(lambda setup, y: jax.jacfwd(R.residuals_culled, has_aux=True)(y, setup))
+_overflow = eqx.filter_jit(lambda setup, y: R.residuals_culled(y, setup)[1])
 
 
 @pytest.fixture(scope="module")
@@ -137,47 +140,27 @@ def occluded_config():
 
 
 def test_culled_residual_equals_full_model(occluded_config):
-    """Where no receiver overflows the capacity, the culled residual and Jacobian are the full
-    model's; with a capacity of 1 (too small here) the flag is raised."""
+    """Where no receiver overflows the capacity, the residual and Jacobian with the shadow
+    engine in the program are those of every receiver against every occluder; with a capacity
+    of 1 (too small here) the flag is raised."""
     scene, start, material, t, size = occluded_config
-    param = L.LightParametrisation(start.lights[0], 0, ("position", "orientation", "size"), None, size, "sigmoid")
-    setup = L._Setup(param, start, material, t, None, False)
+    param = P.LightParametrisation(start.lights[0], 0, ("position", "orientation", "size"), None, size, "sigmoid")
+    setup = R.LightProblem(param, start, material, t, None, False)
     y = jnp.asarray(np.random.default_rng(1).normal(0, 0.05, param.size))
-    cap = L.culling_capacity_for_starts(param, start, t, y[None])
-    assert cap is not None and cap < 8
+    cap = M.culling_capacity_for_starts(param, start, t, y[None])
+    assert cap is not None and cap >= 8
     full = _full_jacobian(setup, y)
-    culled, over = _culled_jacobian(dataclasses.replace(setup, max_active=cap), y)
+    culled, over = _culled_jacobian(dataclasses.replace(setup, capacity=cap), y)
     assert not bool(over)
-    np.testing.assert_allclose(np.asarray(culled), np.asarray(full), rtol=1e-12, atol=1e-14)
-    assert bool(_overflow(dataclasses.replace(setup, max_active=1), y))
-
-
-def test_receiver_groups_equal_the_full_model(occluded_config):
-    """Two capacities (`receiver_groups`): the receivers that see two or more occluders get the
-    wide one, the rest capacity 1; the residual and Jacobian are the full model's, and a wide
-    group one receiver too small raises the overflow flag."""
-    scene, start, material, t, size = occluded_config
-    # About the true light, where some receivers see two occluders.
-    param = L.LightParametrisation(scene.lights[0], 0, ("position", "orientation", "size"), None, size, "sigmoid")
-    setup = L._Setup(param, scene, material, t, None, False)
-    y = jnp.asarray(np.random.default_rng(2).normal(0, 0.05, param.size))
-    counts = L._start_counts(param, scene, t, y[None]).max(axis=0)
-    many = int(np.count_nonzero(counts >= 2))
-    assert 1 <= many < len(counts)  # the split is exercised
-    cap = int(counts.max())
-    full = _full_jacobian(setup, y)
-    grouped = dataclasses.replace(setup, max_active=cap, n_wide=many)
-    got, over = _culled_jacobian(grouped, y)
-    assert not bool(over)
-    np.testing.assert_allclose(np.asarray(got), np.asarray(full), rtol=1e-12, atol=1e-14)
-    if many > 1:
-        assert bool(_overflow(dataclasses.replace(grouped, n_wide=many - 1), y))
+    assert np.abs(np.asarray(full)).max() > 0
+    np.testing.assert_allclose(np.asarray(culled), np.asarray(full), rtol=1e-9, atol=1e-12)
+    assert bool(_overflow(dataclasses.replace(setup, capacity=1), y))
 
 
 def test_overflow_retry_gives_the_full_model_solution(occluded_config, monkeypatch):
     """A capacity that overflows during the solve is doubled until exact; the fit says so."""
     scene, start, material, t, size = occluded_config
-    monkeypatch.setattr(L, "culling_capacity_for_starts", lambda *a: 1)
+    monkeypatch.setattr(S, "culling_capacity_for_starts", lambda *a: 1)
     f = inverse.fit_light(start, t, material, starts=1)
     assert any("culling capacity" in w for w in f.report.warnings), f.report.warnings
     err = pose_errors(f.light.vertices, scene.lights[0].vertices)
@@ -186,30 +169,29 @@ def test_overflow_retry_gives_the_full_model_solution(occluded_config, monkeypat
 
 def test_screening_by_the_lm_program(occluded_config, caplog, monkeypatch):
     """`fit_light` screens its starts with the LM's own program run for no iterations, k starts
-    a call (the last call padded): the losses are the vectorised loss's (`_screen_losses`; the
+    a call (the last call padded): the losses are the vectorised loss's (`_multistart.screen_losses`; the
     full model's where the culling overflows), and the solve from the k best then compiles no
     LM program of its own."""
     import logging
 
     scene, start, material, t, size = occluded_config
-    param = L.LightParametrisation(start.lights[0], 0, ("position", "orientation", "size"), None, size, "sigmoid")
-    # The host combinatorics: their programs compile in about half the time (the same values).
-    setup = L._Setup(param, start, material, t, None, False, host_combinatorics=True)
-    y0 = L.make_starts(param, 11, search_radius=0.5, orientation_spread=0.5, size_spread=0.5, seed=3,
+    param = P.LightParametrisation(start.lights[0], 0, ("position", "orientation", "size"), None, size, "sigmoid")
+    setup = R.LightProblem(param, start, material, t, None, False)
+    y0 = M.make_starts(param, 11, search_radius=0.5, orientation_spread=0.5, size_spread=0.5, seed=3,
                        dtype=jnp.float64)
-    s = dataclasses.replace(setup, max_active=L.culling_capacity_for_starts(param, start, t, y0))
-    got = L._screen_with_lm(s, y0, 4, 1e-9, 1e-12, L.prune_schedule(4, 100))
-    ref = np.asarray(L._screen_losses(s, y0))
+    s = dataclasses.replace(setup, capacity=M.culling_capacity_for_starts(param, start, t, y0))
+    got = S.screen_with_lm(s, y0, 4, 1e-9, 1e-12, M.prune_schedule(4, 100))
+    ref = np.asarray(M.screen_losses(s, y0))
     assert got.shape == (11,) and np.all(np.isfinite(got))
     np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-30)
-    # A capacity that overflows at some start: the full model's losses instead.
-    full_calls = []
+    # A capacity that overflows at some start: the vectorised loss at a capacity that holds.
+    wide_calls = []
     with monkeypatch.context() as mp:
-        mp.setattr(L, "_screen_losses", lambda st, y: full_calls.append(st.max_active) or np.full(len(y), 7.0))
-        small = L._screen_with_lm(dataclasses.replace(s, max_active=1), y0, 4, 1e-9, 1e-12, L.prune_schedule(4, 100))
-    assert full_calls == [None] and np.all(small == 7.0)
+        mp.setattr(S, "screen_losses", lambda st, y: wide_calls.append(st.capacity) or np.full(len(y), 7.0))
+        small = S.screen_with_lm(dataclasses.replace(s, capacity=1), y0, 4, 1e-9, 1e-12, M.prune_schedule(4, 100))
+    assert wide_calls == [s.capacity] and np.all(small == 7.0)
     with jax.log_compiles(True), caplog.at_level(logging.WARNING):
-        f = inverse.fit_light(start, t, material, starts=11, refine=3, combinatorics="host")
+        f = inverse.fit_light(start, t, material, starts=11, solver=inverse.LM(refine=3, combinatorics="host"))
     lm_compiles = [r for r in caplog.records if "compilation of jit(_multistart_lm_impl)" in r.getMessage()]
     assert len(lm_compiles) == 1, [r.getMessage() for r in lm_compiles]
     assert len(f.report.start_losses) == 3 and f.report.loss <= float(np.min(ref)) + 1e-12

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 from scipy.integrate import dblquad
+from shapes import clip_halfspace, random_convex
 
 import jaxshadow as js
 from jaxshadow._polygon import form_factor_kernel
@@ -82,25 +83,12 @@ def test_large_emitter_close_by_approaches_one():
 # --------------------------------------------------------------------------------------
 
 
-def _clip_halfspace(poly, p, n):
-    out = []
-    k = len(poly)
-    for i in range(k):
-        a, b = poly[i], poly[(i + 1) % k]
-        da, db = np.dot(a - p, n), np.dot(b - p, n)
-        if da >= 0:
-            out.append(a)
-        if (da >= 0) != (db >= 0):
-            out.append(a + da / (da - db) * (b - a))
-    return np.array(out)
-
-
 def reference_form_factor(p, n, verts):
     ne = np.cross(verts[1] - verts[0], verts[2] - verts[0])
     ne /= np.linalg.norm(ne)
     if np.dot(ne, p - verts[0]) <= 0:
         return 0.0
-    poly = _clip_halfspace(verts, p, n)
+    poly = np.array(clip_halfspace(verts, p, n))
     if len(poly) < 3:
         return 0.0
     total = 0.0
@@ -119,21 +107,12 @@ def reference_form_factor(p, n, verts):
     return total
 
 
-def random_convex_polygon(rng, k):
-    ang = np.sort(rng.uniform(0, 2 * np.pi, k))
-    r = rng.uniform(0.5, 1.5, 2)
-    pts2 = np.stack([r[0] * np.cos(ang), r[1] * np.sin(ang)], axis=1)
-    # random orientation and position
-    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
-    centre = rng.normal(size=3)
-    return centre + pts2 @ q[:2], q[2] * np.sign(np.linalg.det(q)), centre
-
-
 def random_configurations(seed, count):
     rng = np.random.default_rng(seed)
     cases = []
     while len(cases) < count:
-        verts, _, centre = random_convex_polygon(rng, int(rng.integers(3, 7)))
+        centre = rng.normal(size=3)
+        verts = random_convex(rng, int(rng.integers(3, 7)), rng.uniform(0.5, 1.5, 2), centre)
         ne = np.cross(verts[1] - verts[0], verts[2] - verts[0])
         ne /= np.linalg.norm(ne)
         p = centre + ne * rng.uniform(0.2, 2.0) + rng.normal(size=3) * 0.8
@@ -278,7 +257,7 @@ def test_grouped_unrolled_kernel_agrees_with_compact(k):
     n = rng.normal(size=(64, 3))
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     fast = jax.jit(jax.vmap(_form_factor_unrolled, in_axes=(0, 0, None)))(p, n, verts)
-    ref = jax.vmap(_form_factor_compact, in_axes=(0, 0, None))(p, n, verts)
+    ref = jax.vmap(_form_factor_compact, in_axes=(0, 0, None))(p, n, jnp.asarray(verts))
     assert np.count_nonzero(np.asarray(ref) > 0) > 10
     np.testing.assert_allclose(np.asarray(fast), np.asarray(ref), rtol=1e-12, atol=1e-15)
 

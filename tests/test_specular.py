@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 from scipy import integrate
+from shapes import clip_halfspace, random_convex
 
 from jaxshadow._chebyshev import cutoff_angle, poulin_cos_power_integral
 from jaxshadow._specular import (
@@ -44,27 +45,13 @@ def _mirror(p, nrm, eye):
     return nrm, 2 * (nrm @ v) * nrm - v
 
 
-def _clip_to_horizon(p, nrm, verts):
-    """Sutherland-Hodgman against the plane nrm . (x - p) >= 0."""
-    out = []
-    m = len(verts)
-    for i in range(m):
-        a, b = verts[i], verts[(i + 1) % m]
-        da, db = nrm @ (a - p), nrm @ (b - p)
-        if da >= 0:
-            out.append(a)
-        if (da >= 0) != (db >= 0):
-            out.append(a + da / (da - db) * (b - a))
-    return np.array(out)
-
-
 def reference_polygon(p, nrm, eye, verts, n):
     """S / L by nested adaptive quadrature over the clipped polygon in its own plane."""
     nrm, r = _mirror(p, nrm, eye)
     # The integrand is smooth on the part above the horizon with w . R > 0: clip to both.
-    verts = _clip_to_horizon(p, nrm, np.asarray(verts, float))
+    verts = np.array(clip_halfspace(np.asarray(verts, float), p, nrm))
     if len(verts) >= 3:
-        verts = _clip_to_horizon(p, r, verts)
+        verts = np.array(clip_halfspace(verts, p, r))
     if len(verts) < 3:
         return 0.0
     o = verts[0]
@@ -166,13 +153,9 @@ def random_polygons(seed, count, grow=1.0):
     out = []
     while len(out) < count:
         m = int(rng.integers(3, K + 1))
-        ang = np.sort(rng.uniform(0, 2 * np.pi, m))
-        if np.max(np.diff(np.concatenate([ang, ang[:1] + 2 * np.pi]))) > 0.9 * np.pi:
-            continue
-        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
         rad = rng.uniform(0.3, 1.0)
         centre = np.array([0, 0, rng.uniform(1.0, 2.0)]) + 0.3 * rng.normal(size=3)
-        verts = centre + rad * (np.cos(ang)[:, None] * q[:, 0] + np.sin(ang)[:, None] * q[:, 1])
+        verts = random_convex(rng, m, (rad, rad), centre, max_gap=0.9 * np.pi)
         p = 0.2 * rng.normal(size=3)
         nrm = np.array([0.0, 0.0, 1.0]) + 0.3 * rng.normal(size=3)
         nrm /= np.linalg.norm(nrm)

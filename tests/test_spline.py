@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from jax.test_util import check_grads
+from shapes import clip_halfspace, random_convex
 
 from jaxshadow._polygon import form_factor
 from jaxshadow._spline import (
@@ -50,19 +51,6 @@ def _polygon_ff(p, poly, n_emit):
     return total
 
 
-def _clip(poly, n, p):
-    """Sutherland-Hodgman: keep the part of a convex 3-D polygon with n . (x - p) >= 0."""
-    out = []
-    for i in range(len(poly)):
-        a, b = poly[i], poly[(i + 1) % len(poly)]
-        da, db = n @ (a - p), n @ (b - p)
-        if da >= 0:
-            out.append(a)
-        if (da >= 0) != (db >= 0):
-            out.append(a + (da / (da - db)) * (b - a))
-    return np.array(out)
-
-
 def _cone_planes(p, verts):
     """Inward normals of the facets of the convex cone from p over a point set (brute force)."""
     rel = verts - p
@@ -91,7 +79,7 @@ def reference(p, emitter, occluder_vertices):
     full = _polygon_ff(p, emitter, n)
     hidden = emitter
     for plane in _cone_planes(p, occluder_vertices):
-        hidden = _clip(hidden, plane, p)
+        hidden = np.array(clip_halfspace(hidden, p, plane))
         if len(hidden) < 3:
             return full, full
     return full - _polygon_ff(p, hidden, n), full
@@ -102,19 +90,9 @@ def reference(p, emitter, occluder_vertices):
 # --------------------------------------------------------------------------------------
 
 
-def _rotation(rng, max_angle):
-    ax = rng.normal(size=3)
-    ax /= np.linalg.norm(ax)
-    a = rng.uniform(-max_angle, max_angle)
-    k = np.array([[0, -ax[2], ax[1]], [ax[2], 0, -ax[0]], [-ax[1], ax[0], 0]])
-    return np.eye(3) + np.sin(a) * k + (1 - np.cos(a)) * k @ k
-
-
 def _convex(rng, k, radius, centre, tilt):
     """Random convex k-gon (points of an ellipse), counter-clockwise seen from above."""
-    ang = np.sort(rng.uniform(0, 2 * np.pi, k))
-    v = np.stack([radius * rng.uniform(0.6, 1.4) * np.cos(ang), radius * np.sin(ang), 0 * ang], 1)
-    return v @ _rotation(rng, tilt).T + centre
+    return random_convex(rng, k, lambda r: (radius * r.uniform(0.6, 1.4), radius), centre, tilt)
 
 
 def random_scene(seed):

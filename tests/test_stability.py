@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import mpmath as mp
 import numpy as np
 import pytest
+from shapes import clip_halfspace
 
 from jaxshadow._linear import linear_irradiance_kernel
 from jaxshadow._point import point_irradiance_kernel
@@ -129,21 +130,6 @@ def _cross(a, b):
     return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
 
 
-def _clip_to_halfspace(poly, p, n):
-    """Sutherland-Hodgman: the part of a convex polygon with n.(x - p) >= 0."""
-    out = []
-    k = len(poly)
-    for i in range(k):
-        a, b = poly[i], poly[(i + 1) % k]
-        da, db = _dot(n, _sub(a, p)), _dot(n, _sub(b, p))
-        if da >= 0:
-            out.append(a)
-        if (da >= 0) != (db >= 0):
-            t = da / (da - db)
-            out.append([x + t * (y - x) for x, y in zip(a, b, strict=True)])
-    return out
-
-
 def mp_form_factor(p, n, verts):
     """Unoccluded form factor at 60 digits (n used as given, like the kernel)."""
     with mp.workdps(DPS):
@@ -156,7 +142,7 @@ def mp_form_factor(p, n, verts):
             ne = [x + y for x, y in zip(ne, c, strict=True)]
         if _dot(ne, _sub(p, v[0])) <= 0:
             return mp.mpf(0)
-        poly = _clip_to_halfspace(v, p, n)
+        poly = clip_halfspace(v, p, n)
         total = mp.mpf(0)
         for i in range(len(poly)):
             a, b = _sub(poly[i], p), _sub(poly[(i + 1) % len(poly)], p)

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Set up a fresh machine for jaxshadow: Debian's libllvm19 (Mitsuba's llvm_ad_rgb variant
 # needs it; the preinstalled LLVM aborts on 'fminimum'), a virtualenv in .venv, and the package
-# with its mitsuba and test extras (pip compiles its one C extension). Idempotent.
+# with every extra CI uses (pip compiles its C extensions). Idempotent.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 if ! ldconfig -p 2>/dev/null | grep -q 'libLLVM.so.19\|libLLVM-19'; then
@@ -16,10 +16,10 @@ fi
 PY=${PYTHON:-python3}
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
-.venv/bin/python -m pip install -q -e ".[mitsuba,test]"
-# The compiled host combinatorics (jaxshadow/_clipc.c, built by setup.py with the machine's C
-# compiler) are optional: without them light fits use the device combinatorics.
-if ! .venv/bin/python -c "import jaxshadow._clipc" 2>/dev/null; then
-  echo "warning: jaxshadow._clipc was not built (no C compiler?): light fits will be slower" >&2
+.venv/bin/python -m pip install -q -e ".[mitsuba,jaxopt,optimistix,plot,test,docs,bench]"
+# The compiled shadow engine (jaxshadow/_shadowc.cc, built by setup.py with the machine's C++
+# compiler) is optional, but without it scenes with occluders use the device kernels.
+if ! .venv/bin/python -c "import jaxshadow._shadowc" 2>/dev/null; then
+  echo "warning: jaxshadow._shadowc was not built (no C++ compiler?): exact shadows fall back to the device kernels (slow, memory-hungry with many occluders)" >&2
 fi
 echo "jaxshadow set up in .venv"

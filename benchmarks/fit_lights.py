@@ -1,0 +1,113 @@
+"""fit_lights: two quad lights and a point light with three occluders, placed jointly with their
+powers from 80 painted floor targets; pose and power errors and the whole fit's time (a fresh
+process per case: compile included).
+
+The truth is `inverse._scenes.three_lights_scene` (targets painted by `js.shade`, optionally with
+1 % multiplicative noise); the starts are the true lights moved a fraction of the scene size in
+three directions at wrong powers (`three_lights_start`); material as given (`"fixed"`) or fitted
+(`"projected"`, the first light's power held as the scale).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+
+NAME = "fit_lights"
+DESCRIPTION = "inverse.fit_lights: 2 quad lights + 1 point light, 3 occluders: pose / power errors and time"
+
+CASES = {
+    "shift=10%/noise=0": dict(shift=0.10, noise=0.0, mode="fixed", fit="position,orientation,size,power"),
+    "shift=10%/noise=1%": dict(shift=0.10, noise=0.01, mode="fixed", fit="position,orientation,size,power"),
+    "shift=10%/noise=1%/fixed size": dict(shift=0.10, noise=0.01, mode="fixed", fit="position,orientation,power"),
+    "shift=30%/noise=0": dict(shift=0.30, noise=0.0, mode="fixed", fit="position,orientation,size,power"),
+    "shift=8%/projected/position+power": dict(shift=0.08, noise=0.0, mode="projected", fit="position,power"),
+}
+QUICK = ("shift=10%/noise=0",)
+
+
+def _case(shift: float, noise: float, mode: str, fit: str, starts: int = 8, sweeps: int = 2) -> dict:
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import numpy as np
+
+    import inverse
+    import jaxshadow as js
+    from inverse._scenes import (
+        THREE_LIGHTS_EYE,
+        floor_receivers,
+        three_lights_scene,
+        three_lights_start,
+    )
+
+    t0 = time.perf_counter()
+    true = three_lights_scene()
+    material = js.Material(ka=[0.3, 0.25, 0.2], kd=[0.6, 0.5, 0.4], ks=0.0, exponent=1.0)
+    pts, nrm = floor_receivers()
+    col = np.asarray(js.shade(true, material, pts, nrm, THREE_LIGHTS_EYE))
+    col = col * (1.0 + noise * np.random.default_rng(0).normal(size=col.shape))
+    targets = inverse.PaintedTargets(pts, nrm, np.maximum(col, 0.0), THREE_LIGHTS_EYE)
+    size = inverse.scene_size(true, targets)
+    brightness = (1.0, 1.4, 0.6) if mode == "projected" else (0.7, 1.4, 0.6)
+    start = three_lights_start(true, shift * size, brightness)
+    guess = material if mode == "fixed" else js.Material(ka=0.2, kd=0.5, ks=0.0, exponent=1.0)
+    t1 = time.perf_counter()
+    out = inverse.fit_lights(start, targets, guess, fit=tuple(fit.split(",")), starts=starts, sweeps=sweeps,
+                             material_mode=mode)
+    fit_s = time.perf_counter() - t1
+    pos, deg, size_rel, power = [], [], [], []
+    for k in (0, 1):
+        e = inverse.pose_errors(np.asarray(out.lights[k].vertices), np.asarray(true.lights[k].vertices))
+        pos.append(e["position"])
+        deg.append(e["orientation_deg"])
+        size_rel.append(e["size_rel"])
+        power.append(float(np.max(np.abs(np.asarray(out.lights[k].radiance) / np.asarray(true.lights[k].radiance) - 1))))
+    pos.append(float(np.linalg.norm(np.asarray(out.lights[2].position) - np.asarray(true.lights[2].position))))
+    power.append(float(np.max(np.abs(np.asarray(out.lights[2].intensity) / np.asarray(true.lights[2].intensity) - 1))))
+    mat_err = max(float(np.max(np.abs(np.asarray(getattr(out.material, f)) - np.asarray(getattr(material, f)))))
+                  for f in ("ka", "kd"))
+    return {"scene_size_m": size, "position_err_pct_of_scene": 100 * max(pos) / size,
+            "orientation_err_deg": max(deg), "size_err_rel": max(size_rel), "power_err_rel": max(power),
+            "material_err": mat_err, "loss": out.report.loss, "initial_loss": out.report.initial_loss,
+            "starts_per_light": starts, "starts_solved": out.report.starts_solved,
+            "starts_if_multiplied": starts ** 3, "fit_s": fit_s, "process_s": time.perf_counter() - t0 + _IMPORT_S}
+
+
+_IMPORT_S = 0.0
+
+
+def _child(name: str) -> dict:
+    """Run one case in a fresh process (its first call: tracing and compiling included)."""
+    code = (f"import json, time; t=time.perf_counter(); import benchmarks.fit_lights as b; "
+            f"b._IMPORT_S = time.perf_counter() - t; print(json.dumps(b._case(**b.CASES[{name!r}])))")
+    env = dict(os.environ)
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def run(quick: bool) -> dict:
+    return {"cases": {name: _child(name) for name in (QUICK if quick else CASES)}}
+
+
+def markdown(results: dict) -> str:
+    rows = ["| case | position error (% of scene) | orientation (deg) | size (rel) | power (rel) | material | "
+            "loss | starts solved (8 per light; 512 if multiplied) | fit (s, compile included) |",
+            "|---|---|---|---|---|---|---|---|---|"]
+    for name, r in results["cases"].items():
+        rows.append(f"| {name} | {r['position_err_pct_of_scene']:.2g} | {r['orientation_err_deg']:.2g} | "
+                    f"{r['size_err_rel']:.2g} | {r['power_err_rel']:.2g} | {r['material_err']:.2g} | "
+                    f"{r['loss']:.2g} | {r['starts_solved']} | {r['fit_s']:.1f} |")
+    return "\n".join(rows) + "\n"
+
+
+def key_numbers(results: dict) -> list[tuple[str, str]]:
+    r = results["cases"].get("shift=10%/noise=0")
+    if r is None:
+        return []
+    return [("`inverse.fit_lights`: 2 quad lights + 1 point light, 3 occluders, 80 targets, starts 10 % of the "
+             "scene away: worst position error / power error / whole fit (compile included)",
+             f"{r['position_err_pct_of_scene']:.2g} % / {r['power_err_rel']:.2g} / {r['fit_s']:.0f} s")]

@@ -1,0 +1,512 @@
+"""`fit_lights`: several lights placed at once, with their powers, through the soft shadows.
+
+The multistart does not multiply: each light in turn is searched from its own starts (a
+scrambled Sobol stratification, `_multistart.make_starts`) with the other lights held at their
+current best poses and every power projected out; then all poses are refined jointly from the
+best combination (and the combinations that swap in one light's runner-up). The cost grows
+with the number of lights, not exponentially. One compiled program (`_multilight._lm`) serves
+every stage.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, no_type_check
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+import jaxshadow as js
+from jaxshadow import traced
+
+from ._forward import SpecularFn
+from ._identifiability import identifiability
+from ._multilight import (
+    LightsProblem,
+    build_lights,
+    fixed_contribution,
+    report_parts,
+    scaled_light,
+    solve,
+)
+from ._multilight_report import (
+    LightsFit,
+    LightsReport,
+    correlated_pairs,
+    material_of,
+    null_directions,
+    structured_coefficients,
+)
+from ._multistart import best_starts, make_starts, prune_schedule, start_lights
+from ._parametrisation import Box, LightParametrisation, Plane, scene_size
+from ._solvers import LM
+from ._targets import PaintedTargets
+
+FIT_LIGHTS_GROUPS = ("position", "orientation", "size", "power")
+_POSE = ("position", "orientation", "size")
+_POSITION_NAMES = ("x", "y", "z", "a", "b")
+
+
+def _groups_for(light: Any, fit: tuple) -> tuple:
+    """The pose groups of `fit` that this kind of light has."""
+    if isinstance(light, js.PointLight):
+        return tuple(g for g in fit if g == "position")
+    if isinstance(light, (js.PolygonLight, js.LinearLight)):
+        return tuple(g for g in fit if g in _POSE)
+    return ()
+
+
+def _checked(scene: Any, targets: Any, material: Any, lights: Any, fit: Any, starts: int, material_mode: str,
+             constraints: Any) -> tuple[list[int], tuple, dict]:
+    if not isinstance(scene, js.Scene):
+        raise ValueError(f"fit_lights: expected a jaxshadow.Scene, got {type(scene).__name__}.")
+    if not isinstance(targets, PaintedTargets):
+        raise ValueError(f"fit_lights: targets must be PaintedTargets, got {type(targets).__name__}.")
+    if not isinstance(material, js.Material):
+        raise ValueError(f"fit_lights: material must be a jaxshadow.Material, got {type(material).__name__}.")
+    if np.ndim(material.kd) != 1:
+        raise ValueError("fit_lights: a per-receiver material is not supported; pass one (3,) material.")
+    idx = list(range(len(scene.lights))) if lights is None else [int(i) for i in lights]
+    if not idx or len(set(idx)) != len(idx) or not all(0 <= i < len(scene.lights) for i in idx):
+        raise ValueError(f"fit_lights: lights must be distinct indices into the scene's {len(scene.lights)} "
+                         f"light(s), got {lights}.")
+    fit = (fit,) if isinstance(fit, str) else tuple(fit)
+    unknown = [g for g in fit if g not in FIT_LIGHTS_GROUPS]
+    if unknown or not fit:
+        raise ValueError(f"fit_lights: fit must be a non-empty subset of {FIT_LIGHTS_GROUPS}, got {fit}.")
+    if int(starts) < 1:
+        raise ValueError(f"fit_lights: starts must be >= 1, got {starts}.")
+    if material_mode not in ("fixed", "projected"):
+        raise ValueError(f"fit_lights: material_mode must be 'fixed' or 'projected', got {material_mode!r}.")
+    cons = {} if constraints is None else dict(constraints)
+    for k, c in cons.items():
+        if int(k) not in idx:
+            raise ValueError(f"fit_lights: a constraint for light {k}, which is not fitted.")
+        if not isinstance(c, (Plane, Box)):
+            raise ValueError(f"fit_lights: constraints must be inverse.Plane or inverse.Box, got {type(c).__name__}.")
+    for i in idx:
+        light = scene.lights[i]
+        if isinstance(light, js.DirectionalLight) and any(g in _POSE for g in fit) and "power" not in fit:
+            raise ValueError(f"fit_lights: light {i} is a DirectionalLight: only its power can be fitted.")
+    return idx, fit, {int(k): c for k, c in cons.items()}
+
+
+# Validates its own inputs (ValueError): no runtime annotation check before it.
+@no_type_check
+def fit_lights(
+    scene: js.Scene,
+    targets: PaintedTargets,
+    material: js.Material,
+    lights: Any = None,
+    fit: tuple = FIT_LIGHTS_GROUPS,
+    *,
+    constraints: dict | None = None,
+    starts: int = 16,
+    search_radius: float = 0.5,
+    orientation_spread: float = 0.5,
+    size_spread: float = 0.5,
+    seed: int = 0,
+    sweeps: int = 2,
+    material_mode: str = "fixed",
+    solver: LM | None = None,
+    candidates: Any = None,
+    specular: SpecularFn | None = None,
+) -> LightsFit:
+    """Place several lights of `scene` at once, with their powers, so the shading matches
+    painted colours (Poulin ch. 5: lights from diffuse shading, highlights and shadows).
+
+    Minimises $\\sum_i w_i |L(x_i) - C_i|^2$ over the poses of the lights `lights` (soft
+    shadows included) with each light's power a non-negative scale of its given radiance (the
+    colour is the given one), projected out in the solver (variable projection: the powers enter
+    linearly) and finally solved with bounds ($p \\ge 0$). With `material_mode="projected"` the
+    material too: alternately the poses and powers at the current material (the solver) and
+    $k_a, k_d, k_s \\ge 0$ with the powers at the current poses (bounded least squares of the
+    bilinear model), from the material that best fits the given poses. The given poses are the
+    starting point and the origin of each light's parametrisation (`LightParametrisation`).
+    Lights not in `lights` are held as given.
+
+    Each light is searched from its own starts (its position, the other lights at their current
+    best), then every pose jointly (sizes freed last): the starts add up over the lights instead
+    of multiplying.
+
+    **Arguments:**
+
+    - `scene`, `targets`, `material`; `lights`: indices of the lights to fit (default: all):
+      `PolygonLight` (position, orientation, size), `LinearLight` (position, orientation,
+      length), `PointLight` (position), `DirectionalLight` (power only).
+    - `fit`: a subset of `("position", "orientation", "size", "power")`, applied to each light
+      where its kind has the group (leave out `"size"` to hold the sizes fixed; without
+      `"power"` the powers stay as given).
+    - `constraints`: `{light index: inverse.Plane | inverse.Box}` for the light's centre.
+    - `starts`: starts per light (the given pose first, then a Sobol stratification within
+      `search_radius` scene sizes, `orientation_spread` rad, `size_spread` relative; `seed`);
+      each light's starts are screened to the solver's `refine` best.
+    - `sweeps`: how many times each light's own multistart runs (in turn, the others at their
+      current best) before the joint refinement.
+    - `material_mode`: `"fixed"` (as given) or `"projected"` (fitted jointly, $k \\ge 0$; the
+      product $k_d p$ does not separate, so the first fitted light's power is held at 1 unless
+      some light of the scene is not fitted, which then sets the scale).
+    - `solver`: an `inverse.LM` for its options (`refine`, `prune`, `rtol`, `atol`,
+      `max_steps`); default `LM()`.
+    - `candidates`: `(points (K, 3), normals (K, 3))` where new targets could be painted (default:
+      a 9 x 9 grid over the targets' bounding box, with their mean normal): the report ranks them
+      for each undetermined parameter.
+    - `specular`: a callable like `js.specular` (default `js.specular`).
+
+    **Returns:** `LightsFit(scene, lights, powers, material, residual, report, theta,
+    parametrisations)`; `print(fit.report)` lists every parameter with its standard error,
+    the pairs that trade off and where to paint targets for an undetermined parameter.
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+        import inverse
+
+        material = js.Material(ka=0.2, kd=0.6, ks=0.0, exponent=1.0)
+        rng = np.random.default_rng(0)
+        points = np.c_[rng.uniform(-1.5, 1.5, (40, 2)), np.zeros(40)]
+        normals, eye = np.tile([0.0, 0.0, 1.0], (40, 1)), np.array([0.0, -3.0, 2.0])
+        true = js.Scene([js.PointLight([-0.6, 0.2, 1.5], 4.0), js.PointLight([0.7, -0.3, 1.2], 2.0)], ambient=0.05)
+        targets = inverse.PaintedTargets(points, normals, js.shade(true, material, points, normals, eye), eye)
+        start = js.Scene([js.PointLight([-0.4, 0.0, 1.8], 3.0), js.PointLight([0.5, 0.0, 1.8], 3.0)], ambient=0.05)
+        fit = inverse.fit_lights(start, targets, material, fit=("position", "power"), starts=4)
+        fit.lights[0].position, fit.powers * 3.0   # ~ [-0.6, 0.2, 1.5]; ~ [4.0, 2.0]
+        print(fit.report)
+        ```
+    """
+    idx, fit, cons = _checked(scene, targets, material, lights, fit, starts, material_mode, constraints)
+    if int(sweeps) < 1:
+        raise ValueError(f"fit_lights: sweeps must be >= 1, got {sweeps}.")
+    solver = LM() if solver is None else solver
+    if not isinstance(solver, LM):
+        raise ValueError(f"fit_lights: solver must be an inverse.LM, got {type(solver).__name__}.")
+    t = targets
+    dt = t.points.dtype
+    size = scene_size(scene, t)
+    with_spec = bool(np.any(np.asarray(material.ks) != 0))
+    fit_power = "power" in fit
+    project = material_mode == "projected"
+    params, offsets, off = [], [], 0
+    for i in idx:
+        groups = _groups_for(scene.lights[i], fit)
+        if not groups:
+            if i in cons:
+                raise ValueError(f"fit_lights: a constraint for light {i}, whose position is not fitted.")
+            params.append(None)
+        else:
+            params.append(LightParametrisation(scene.lights[i], i, groups, cons.get(i), size, solver.box_map))
+        offsets.append(off)
+        off += 0 if params[-1] is None else params[-1].size
+    P = off
+    if P == 0 and not fit_power:
+        raise ValueError("fit_lights: nothing to fit.")
+    if project:  # one dtype and shape for every material the alternation below puts in the problem
+        material = material_of(np.stack([np.broadcast_to(np.asarray(getattr(material, f), np.float64), (3,))
+                                         for f in ("ka", "kd", "ks")]), float(material.exponent), dt)
+    fixed = [light for k, light in enumerate(scene.lights) if k not in idx]
+    e0, s0 = fixed_contribution(scene, t, material, fixed, specular, with_spec)
+    problem = LightsProblem(tuple(params), tuple(scene.lights[i] for i in idx), scene, material, t, e0, s0,
+                            tuple(offsets), fit_power, with_spec, bool(fixed), specular)
+    theta0 = np.zeros(P)
+    per_light = []
+    for j, p in enumerate(params):
+        if p is None:
+            per_light.append(None)
+            continue
+        y = np.asarray(make_starts(p, int(starts), search_radius=search_radius, orientation_spread=orientation_spread,
+                                   size_spread=size_spread, seed=seed + j, dtype=np.float64))
+        theta0[offsets[j]:offsets[j] + p.size] = y[0]
+        per_light.append(y)
+    problem = _with_capacity(problem, per_light, fixed)
+    k = max(1, min(int(solver.refine or starts), int(starts)))
+    sched = prune_schedule(k, solver.max_steps) if solver.prune else ()
+    lm = dict(rtol=solver.rtol, atol=solver.atol, max_steps=solver.max_steps, prune=sched)
+    if project:  # the material (and powers) that best fit the given poses: where the search starts
+        problem = dataclasses.replace(problem, material=_material_at(problem, theta0))
+    base = theta0.copy()
+    stage_losses, n_solved, retries, runner_up = [], 0, 0, {}
+    initial = None
+    if P:
+        for sweep, j in ((s, j) for s in range(int(sweeps)) for j in range(len(per_light))):
+            y = per_light[j]
+            if y is None:
+                continue
+            sl = slice(offsets[j], offsets[j] + params[j].size)
+            mask = np.zeros(P, bool)
+            mask[sl] = _stage_mask(params[j])
+            full = np.tile(base, (y.shape[0], 1))
+            full[:, sl] = y
+            if sweep:  # again, with the others placed: from the current pose and the same spread
+                full[0, sl] = base[sl]
+            if full.shape[0] > k:  # screen: the same program, no iterations, k starts a call
+                losses = np.concatenate([
+                    np.asarray(solve(problem, _pad(full[a:a + k], k), base, mask, **{**lm, "max_steps": 0})[0]
+                               .initial_losses) for a in range(0, full.shape[0], k)])[: full.shape[0]]
+                if initial is None and sweep == 0:
+                    initial = float(losses[0])  # the given poses (row 0), screened out or not
+                full = full[best_starts(np.where(np.isfinite(losses), losses, np.inf), k)]
+            res, problem, r = solve(problem, full, base, mask, **lm)
+            retries += r
+            n_solved += full.shape[0]
+            f = np.where(np.isfinite(np.asarray(res.losses)), np.asarray(res.losses), np.inf)
+            order = np.argsort(f)
+            if initial is None:
+                initial = float(np.asarray(res.initial_losses)[0]) if np.all(full[0] == theta0) else None
+            # The solved rows hold the starts' values where the mask is off: the residual used `base`.
+            vals = np.where(mask[None], np.asarray(res.values), base[None])
+            base = vals[order[0]].copy()
+            if len(order) > 1 and np.isfinite(f[order[1]]):
+                runner_up[j] = vals[order[1]][sl]
+            stage_losses.append(float(f[order[0]]))
+        joint = [base, theta0]  # the given poses together are a candidate too
+        for j, v in runner_up.items():
+            alt = base.copy()
+            alt[offsets[j]:offsets[j] + params[j].size] = v
+            joint.append(alt)
+        joint = _pad(np.stack(joint[:k]), k)
+        # Sizes last: free from the start, a polygon trades its size for its power (it shrinks to a
+        # bright point or grows dim) before the poses are right.
+        sizes = np.concatenate([np.zeros(0, bool)] + [_size_mask(p) for p in params if p is not None])
+        for mask in ([~sizes] if sizes.any() else []) + [np.ones(P, bool)]:
+            res, problem, r = solve(problem, joint, base, mask, **lm)
+            retries += r
+            n_solved += joint.shape[0]
+            f = np.where(np.isfinite(np.asarray(res.losses)), np.asarray(res.losses), np.inf)
+            joint = np.where(mask[None], np.asarray(res.values), base[None])[np.argsort(f)]
+            stage_losses.append(float(np.min(f)))
+        theta = joint[0]
+        if project:
+            problem, theta, n, r = _alternate(problem, theta, joint, base, lm, stage_losses)
+            n_solved += n
+            retries += r
+    else:
+        theta = theta0
+    return _result(problem, np.asarray(theta, np.float64), idx, size, candidates, stage_losses, n_solved,
+                   retries, initial, project)
+
+
+def _stage_mask(param: LightParametrisation) -> np.ndarray:
+    """Which of a light's parameters its own multistart searches: its position when fitted (the
+    orientation and size follow in the joint refinement: searched while the other lights are
+    still misplaced they compensate for them - a polygon shrinks to a bright point), else all."""
+    sl = param._slices()
+    if "position" not in sl:
+        return np.ones(param.size, bool)
+    out = np.zeros(param.size, bool)
+    out[sl["position"]] = True
+    return out
+
+
+def _size_mask(param: LightParametrisation) -> np.ndarray:
+    """Which of a light's parameters are its size."""
+    out = np.zeros(param.size, bool)
+    sl = param._slices()
+    if "size" in sl:
+        out[sl["size"]] = True
+    return out
+
+
+def _pad(rows: np.ndarray, k: int) -> np.ndarray:
+    """`rows` padded to `k` rows with copies of the first (the same program for every call)."""
+    return np.concatenate([rows, np.repeat(rows[:1], k - rows.shape[0], axis=0)]) if rows.shape[0] < k else rows
+
+
+def _with_capacity(problem: LightsProblem, per_light: list, fixed: list) -> LightsProblem:
+    """The problem with the shadow capacity for every light at every one of its starts."""
+    scene, t = problem.scene, problem.targets
+    if scene.occluders is None:
+        return problem
+    cands = list(fixed)
+    for j, y in enumerate(per_light):
+        p = problem.params[j]
+        cands += [problem.refs[j]] if y is None else start_lights(p, jnp.asarray(y))
+    most = traced.shadow_capacity(scene, t.points, t.normals, lights=cands)
+    return dataclasses.replace(problem, capacity=max(8, -(-5 * most // 4) + 4))
+
+
+def _material_at(problem: LightsProblem, theta: np.ndarray) -> js.Material:
+    """The structured least-squares material at the poses `theta` (`structured_coefficients`)."""
+    t = problem.targets
+    dt = t.points.dtype
+    gauge = 0 if (problem.fit_power and not problem.has_fixed) else None
+    E, S, _ = (np.asarray(x, np.float64) for x in report_parts(problem, jnp.asarray(theta, dt),
+                                                                jnp.ones(len(problem.params), dt), problem.material))
+    spec = problem.with_specular
+    _, k = structured_coefficients(E, S if spec else None, np.asarray(problem.e_fixed, np.float64),
+                                   np.asarray(problem.s_fixed, np.float64) if spec else None,
+                                   np.asarray(problem.scene.ambient, np.float64), np.asarray(t.colours, np.float64),
+                                   np.asarray(t.weights, np.float64), problem.material,
+                                   fit_power=problem.fit_power, project=True, gauge=gauge)
+    return material_of(k, problem.material.exponent, dt)
+
+
+def _alternate(problem: LightsProblem, theta: np.ndarray, joint: np.ndarray, base: np.ndarray, lm: dict,
+               stage_losses: list, rounds: int = 6) -> tuple[LightsProblem, np.ndarray, int, int]:
+    """The projected material: alternately the material and powers at the current poses (structured
+    least squares, `structured_coefficients`), then the poses and powers at that material (the
+    joint solve again: the material is a leaf of the problem, the program is the same), until the
+    loss stops decreasing. Returns `(problem, theta, starts solved, retries)`."""
+    n_solved = retries = 0
+    best = stage_losses[-1]
+    for _ in range(rounds):
+        trial = dataclasses.replace(problem, material=_material_at(problem, theta))
+        res, trial, r = solve(trial, joint, base, np.ones(len(theta), bool), **lm)
+        retries += r
+        n_solved += joint.shape[0]
+        f = np.where(np.isfinite(np.asarray(res.losses)), np.asarray(res.losses), np.inf)
+        stage_losses.append(float(np.min(f)))
+        if not np.min(f) < best * (1 - 1e-9):
+            break
+        best = float(np.min(f))
+        problem = trial
+        joint = np.asarray(res.values)[np.argsort(f)]
+        theta = joint[0]
+    return problem, theta, n_solved, retries
+
+
+def _result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, candidates: Any,
+            stage_losses: list, n_solved: int, retries: int, initial: float | None, project: bool) -> LightsFit:
+    t, m = problem.targets, problem.material
+    dt = t.points.dtype
+    th = jnp.asarray(theta, dt)
+    J = len(idx)
+    ones = jnp.ones(J, dt)
+    E, S, _ = (np.asarray(x, np.float64) for x in report_parts(problem, th, ones, m))
+    colours, w = np.asarray(t.colours, np.float64), np.asarray(t.weights, np.float64)
+    La = np.asarray(problem.scene.ambient, np.float64)
+    e0, s0 = np.asarray(problem.e_fixed, np.float64), np.asarray(problem.s_fixed, np.float64)
+    spec = problem.with_specular
+    gauge = 0 if (project and problem.fit_power and not problem.has_fixed) else None
+    coef = lambda EE, SS: structured_coefficients(  # noqa: E731
+        EE, SS if spec else None, e0, s0 if spec else None, La, colours, w, m, fit_power=problem.fit_power,
+        project=project, gauge=gauge)
+    powers, k = coef(E, S)
+    mat = material_of(k, m.exponent, dt) if project else m
+    _, _, Jth = (np.asarray(x, np.float64) for x in report_parts(problem, th, jnp.asarray(powers, dt), mat))
+    model = _model(E, S, e0, s0, La, powers, k, spec)
+    residual = model - colours
+    sw = np.sqrt(w)
+    # The report's parameters: poses, then powers, then the material.
+    names, cols, scale_of = [], [], []
+    for j, p in enumerate(problem.params):
+        if p is not None:
+            names += [f"light{idx[j]}.{nm}" for nm in p.names]
+            scale_of += [size if nm in _POSITION_NAMES else 1.0 for nm in p.names]
+    cols.append(Jth)
+    free_p = [j for j in range(J) if problem.fit_power and j != gauge]
+    for j in free_p:
+        names.append(f"light{idx[j]}.power")
+        scale_of.append(1.0)
+        cols.append((sw * (k[1] / np.pi * E[j] + (k[2] * S[j] if spec else 0.0))).reshape(-1, 1))
+    if project:
+        e_tot = e0 + np.tensordot(powers, E, axes=1)
+        s_tot = s0 + np.tensordot(powers, S, axes=1)
+        terms = [("ka", np.broadcast_to(La, e_tot.shape)), ("kd", e_tot / np.pi)] + ([("ks", s_tot)] if spec else [])
+        for nm, basis_ in terms:
+            for c, ch in enumerate("rgb"):
+                col = np.zeros_like(e_tot)
+                col[:, c] = basis_[:, c]
+                names.append(f"{nm}[{ch}]")
+                scale_of.append(1.0)
+                cols.append((sw * col).reshape(-1, 1))
+    jac = np.concatenate(cols, axis=1)
+    rss = float(np.sum(w * residual**2))
+    n_pos = int(np.count_nonzero(w > 0))
+    ident = identifiability(jac, rss, n_pos)
+    names = tuple(names)
+    values = list(theta) + [powers[j] for j in free_p]
+    if project:
+        values += list(k[0]) + list(k[1]) + (list(k[2]) if spec else [])
+    se = {nm: math.inf if not ok else float(s) * sc
+          for nm, s, ok, sc in zip(names, ident.std_errors, ident.determined, scale_of, strict=True)}
+    determined = {nm: bool(ok) for nm, ok in zip(names, ident.determined, strict=True)}
+    warnings = [f"{nm} is not determined by these targets." for nm in names if not determined[nm]]
+    warnings += [f"the power of light {idx[j]} is at its bound 0 (the targets ask for less than none)."
+                 for j in free_p if powers[j] == 0.0]
+    if retries:
+        warnings.append(f"solved again {retries} time(s) with a larger shadow capacity (the result is exact).")
+    fixed = [x for n, x in enumerate(problem.scene.lights) if n not in idx]
+    suggestions, sugg_n = _suggest(problem, th, powers, mat, names, jac, ident.determined, candidates, free_p, k,
+                                   fixed, project)
+    report = LightsReport(
+        names=names, values={nm: float(v) for nm, v in zip(names, values, strict=True)}, std_errors=se,
+        determined=determined, singular_values=ident.singular_values,
+        targets_met=None if t.tolerance is None else np.all(np.abs(residual) <= np.asarray(t.tolerance), axis=1),
+        warnings=tuple(warnings), correlated=correlated_pairs(jac, names, ident.determined),
+        suggestions=suggestions, suggestion_normals=sugg_n, loss=0.5 * rss,
+        initial_loss=math.nan if initial is None else float(initial), stage_losses=tuple(stage_losses),
+        starts_solved=n_solved, retries=retries, scale=size,
+    )
+    fitted = build_lights(problem, th)
+    out_lights = tuple(scaled_light(light, jnp.asarray(pw, dt)) for light, pw in zip(fitted, powers, strict=True))
+    all_lights = list(problem.scene.lights)
+    for j, i in enumerate(idx):
+        all_lights[i] = out_lights[j]
+    new_scene = eqx.tree_at(lambda s: s.lights, problem.scene, tuple(all_lights))
+    return LightsFit(scene=new_scene, lights=out_lights, powers=np.asarray(powers), material=mat, residual=residual,
+                     report=report, theta=theta, parametrisations=problem.params)
+
+
+def _model(E: np.ndarray, S: np.ndarray, e0: np.ndarray, s0: np.ndarray, La: np.ndarray, p: np.ndarray,
+           k: np.ndarray, spec: bool) -> np.ndarray:
+    e = e0 + np.tensordot(p, E, axes=1)
+    out = k[0] * La + k[1] / np.pi * e
+    if spec:
+        out = out + k[2] * (s0 + np.tensordot(p, S, axes=1))
+    return out
+
+
+def _suggest(problem: LightsProblem, th: Any, powers: np.ndarray, mat: Any, names: tuple, jac: np.ndarray,
+             determined: np.ndarray, candidates: Any, free_p: list, k: np.ndarray,
+             fixed: list, project: bool) -> tuple[dict, dict]:
+    """For each undetermined parameter: the candidate receivers, best first, where the model
+    changes most along the null direction(s) that involve it."""
+    if np.all(determined):
+        return {}, {}
+    t = problem.targets
+    dt = t.points.dtype
+    if candidates is None:
+        pts = np.asarray(t.points, np.float64)
+        nrm = np.asarray(t.normals, np.float64).mean(axis=0)
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        ax = np.argsort(hi - lo)[::-1][:2]
+        g = np.linspace(0.0, 1.0, 9)
+        cp = np.tile(pts.mean(axis=0), (81, 1))
+        cp[:, ax[0]] = lo[ax[0]] + (hi - lo)[ax[0]] * np.repeat(g, 9)
+        cp[:, ax[1]] = lo[ax[1]] + (hi - lo)[ax[1]] * np.tile(g, 9)
+        cn = np.tile(nrm / np.linalg.norm(nrm), (81, 1))
+    else:
+        cp, cn = (np.asarray(x, np.float64) for x in candidates)
+    eye = np.asarray(t.eye, np.float64)[0]
+    ct = PaintedTargets(jnp.asarray(cp, dt), jnp.asarray(cn, dt), jnp.zeros(cp.shape, dt), jnp.asarray(eye, dt))
+    e0, s0 = fixed_contribution(problem.scene, ct, problem.material, fixed, problem.specular,
+                                problem.with_specular)
+    cprob = dataclasses.replace(problem, targets=ct, e_fixed=e0, s_fixed=s0, capacity=None)
+    E, S, Jth = (np.asarray(x, np.float64) for x in report_parts(cprob, th, jnp.asarray(powers, dt), mat))
+    spec = problem.with_specular
+    cols = [Jth]
+    for j in free_p:
+        cols.append((k[1] / np.pi * E[j] + (k[2] * S[j] if spec else 0.0)).reshape(-1, 1))
+    ncand = cp.shape[0]
+    if project:
+        e_tot = np.asarray(e0, np.float64) + np.tensordot(powers, E, axes=1)
+        s_tot = np.asarray(s0, np.float64) + np.tensordot(powers, S, axes=1)
+        La = np.asarray(problem.scene.ambient, np.float64)
+        terms = [np.broadcast_to(La, e_tot.shape), e_tot / np.pi] + ([s_tot] if spec else [])
+        for b in terms:
+            for c in range(3):
+                col = np.zeros_like(e_tot)
+                col[:, c] = b[:, c]
+                cols.append(col.reshape(-1, 1))
+    jc = np.concatenate(cols, axis=1)  # (3K, P)
+    out, out_n = {}, {}
+    for v in null_directions(jac):
+        change = np.linalg.norm((jc @ v).reshape(ncand, 3), axis=1)
+        order = np.argsort(change)[::-1][:5]
+        for nm, comp in zip(names, v * np.linalg.norm(jac, axis=0), strict=True):
+            if abs(comp) > 1e-6 and nm not in out:
+                out[nm], out_n[nm] = cp[order], cn[order]
+    return out, out_n

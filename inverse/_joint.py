@@ -1,0 +1,203 @@
+"""Light and material together: one projected multistart then the exact bounded material
+(`method="projected"`), or block coordinate descent (`method="alternate"`); and the joint
+standard errors of both halves.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array
+
+import jaxshadow as js
+
+from ._forward import SpecularFn, shade
+from ._identifiability import identifiability
+from ._lights import fit_light
+from ._material import fit_material
+from ._parametrisation import LightParametrisation, with_light
+from ._reports import JointFit
+from ._targets import PaintedTargets
+
+
+def joint_std_errors(param: LightParametrisation, theta: Any, scene: js.Scene, material: js.Material,
+                     targets: PaintedTargets, *, fit_exponent: bool, specular: SpecularFn | None = None,
+                     free_k: Any = None) -> dict:
+    r"""Standard errors of a joint light + material fit, from the Jacobian of the weighted
+    residual in *all* the fitted parameters at once: the light's `theta` (`param.names`), the
+    coefficients $k_a, k_d, k_s$ per channel and, with `fit_exponent`, $\log n$.
+
+    $\hat\sigma^2 (J^\top J)^{-1}$ with $\hat\sigma^2 = |r|^2 / (m - p)$ (Gauss-Markov; a
+    linearisation at the optimum). Coefficients outside `free_k` (a `(3, 3)` bool array, rows
+    `ka, kd, ks`: False at an active bound, or for $k_s$ of a diffuse fit) are held fixed.
+
+    **Returns:** name -> standard error: `"x", "y", "z"` (or `"a", "b"` on a plane) in m,
+    rotations in rad, log sizes, `"ka[r]"` ... `"ks[b]"` and `"n"` (the exponent itself,
+    by the delta method); `inf` for a direction the targets do not determine.
+
+    Example:
+        ```python
+        # fit_light's problem, repeated: each example runs on its own (tests/test_docs.py)
+        import numpy as np
+        import jaxshadow as js
+        import inverse
+
+        material = js.Material(ka=0.2, kd=0.6, ks=0.0, exponent=1.0)
+        points = np.c_[np.random.default_rng(0).uniform(-1, 1, (24, 2)), np.zeros(24)]
+        normals, eye = np.tile([0.0, 0.0, 1.0], (24, 1)), np.array([0.0, -2.0, 2.0])
+        true = js.Scene([js.PointLight([0.2, 0.3, 2.0], 3.0)], ambient=0.05)
+        targets = inverse.PaintedTargets(points, normals, js.shade(true, material, points, normals, eye), eye)
+        start = js.Scene([js.PointLight([0.0, 0.0, 1.8], 3.0)], ambient=0.05)   # the reference light
+        lf = inverse.fit_light(start, targets, material, fit=("position",), starts=1)
+        se = inverse.joint_std_errors(lf.parametrisation, lf.report.theta, start, material, targets,
+                                      fit_exponent=False)   # x, y, z (m) and ka[r] ... kd[b]
+        ```
+    """
+    t = targets
+    dt = t.points.dtype
+    P = param.size
+    with_spec = bool(np.any(np.asarray(material.ks) != 0))
+    free = np.ones((3, 3), bool) if free_k is None else np.asarray(free_k, bool)
+    if not with_spec:
+        free[2] = False
+    k0 = np.stack([np.asarray(material.ka, np.float64), np.asarray(material.kd, np.float64),
+                   np.asarray(material.ks, np.float64)])
+    idx = np.flatnonzero(free.reshape(-1))
+    fit_n = bool(fit_exponent and with_spec)
+    n0 = float(material.exponent)
+    phi0 = np.concatenate([np.asarray(theta, np.float64)[:P], k0.reshape(-1)[idx], [np.log(n0)] if fit_n else []])
+
+    def resid(phi: Array) -> Array:
+        k = jnp.asarray(k0, dt).reshape(-1).at[jnp.asarray(idx)].set(phi[P:P + len(idx)]).reshape(3, 3)
+        n = jnp.exp(phi[-1]) if fit_n else jnp.asarray(n0, dt)
+        sc = with_light(scene, param.light_index, param.build(phi[:P]))
+        m = js.Material(ka=k[0], kd=k[1], ks=k[2], exponent=n)
+        model = shade(sc, m, t.points, t.normals, t.eye, specular, with_spec)
+        return (jnp.sqrt(t.weights) * (model - t.colours)).reshape(-1)
+
+    phi = jnp.asarray(phi0, dt)
+    r, J = jax.jit(lambda f: (resid(f), jax.jacfwd(resid)(f)))(phi)
+    r, J = np.asarray(r, np.float64), np.asarray(J, np.float64)
+    m_eff = int(np.count_nonzero(np.asarray(t.weights) > 0))
+    se_all = identifiability(J, float(r @ r), m_eff, cut=1e-10).std_errors
+    names = [*param.names, *[f"{'ka kd ks'.split()[i // 3]}[{'rgb'[i % 3]}]" for i in idx]] + (["log_n"] if fit_n else [])
+    out = {}
+    for nm, se in zip(names, se_all, strict=True):
+        if nm in ("x", "y", "z", "a", "b"):
+            out[nm] = float(se) * float(param.scale)
+        elif nm == "log_n":
+            out["n"] = float(se) * n0
+        else:
+            out[nm] = float(se)
+    return out
+
+
+def fit_light_and_material(
+    scene: js.Scene,
+    targets: PaintedTargets,
+    material: js.Material,
+    light_index: int = 0,
+    *,
+    method: str = "projected",
+    rounds: int = 4,
+    light_kwargs: dict | None = None,
+    material_kwargs: dict | None = None,
+    specular: SpecularFn | None = None,
+    progress: Any = None,
+) -> JointFit:
+    """Joint light placement and material.
+
+    `method="projected"` (default, "stack"): one multistart nonlinear least squares over the
+    light pose and $\\log n$ with $k_a, k_d, k_s$ projected out (`fit_light(...,
+    material_mode="projected", fit_exponent=True)`), then the exact bounded `fit_material` at the
+    fitted light (the coefficients then respect `bounds`). `material` gives the starting
+    exponent and whether there is a specular term ($k_s \\ne 0$).
+
+    `method="alternate"` (block coordinate descent, `rounds` rounds): each round places the
+    light with the material fixed (`fit_light`, the full multistart in the first round;
+    afterwards a local solve from the previous light, or, when the light solver screens its
+    starts (`light_kwargs={"solver": inverse.LM(refine=k)}`), a multistart in a 4x tighter
+    region, same shapes so nothing recompiles), then refits the
+    material exactly for that light (`fit_material`). Every half-step cannot increase the
+    loss, so the history is non-increasing up to solver tolerance.
+
+    `progress`: `None` or a callable taking a message string (one line per half-step).
+
+    **Returns:** `JointFit`.
+
+    Example:
+        ```python
+        # fit_light's problem, repeated: each example runs on its own (tests/test_docs.py)
+        import numpy as np
+        import jaxshadow as js
+        import inverse
+
+        material = js.Material(ka=0.2, kd=0.6, ks=0.0, exponent=1.0)
+        points = np.c_[np.random.default_rng(0).uniform(-1, 1, (24, 2)), np.zeros(24)]
+        normals, eye = np.tile([0.0, 0.0, 1.0], (24, 1)), np.array([0.0, -2.0, 2.0])
+        true = js.Scene([js.PointLight([0.2, 0.3, 2.0], 3.0)], ambient=0.05)
+        targets = inverse.PaintedTargets(points, normals, js.shade(true, material, points, normals, eye), eye)
+        start = js.Scene([js.PointLight([0.0, 0.0, 1.8], 3.0)], ambient=0.05)   # the reference light
+        guess = js.Material(ka=0.5, kd=0.5, ks=0.0, exponent=1.0)
+        joint = inverse.fit_light_and_material(start, targets, guess, light_kwargs={"fit": ("position",), "starts": 4})
+        joint.scene.lights[0].position, joint.material.kd, joint.std_errors
+        ```
+    """
+    lk = dict(light_kwargs or {})
+    mk = dict(material_kwargs or {})
+    mk.setdefault("warn", False)
+    if method not in ("projected", "alternate"):
+        raise ValueError(f"fit_light_and_material: method must be 'projected' or 'alternate', got {method!r}.")
+    history = []
+    if method == "projected":
+        t0 = time.perf_counter()
+        lf = fit_light(scene, targets, material, light_index, specular=specular, material_mode="projected",
+                       fit_exponent=True, **lk)
+        history.append(lf.report.loss)
+        if progress is not None:
+            progress(f"  light + projected material: loss {lf.report.loss:.4e}  [{time.perf_counter() - t0:.1f} s]")
+        t0 = time.perf_counter()
+        if "exponent" not in mk and not bool(np.any(np.asarray(material.ks) != 0)):
+            mk["exponent"] = float(material.exponent)
+        mf = fit_material(lf.scene, targets, specular=specular, **mk)
+        history.append(0.5 * float(np.sum(mf.report.weights * mf.residual**2)))
+        if progress is not None:
+            progress(f"  exact bounded material at that light: loss {history[-1]:.4e}  [{time.perf_counter() - t0:.1f} s]")
+        free = np.ones((3, 3), bool)
+        for a in mf.report.active_bounds:  # e.g. "ks[g]>=lower": held at the bound
+            if a.endswith(("lower", "upper")):
+                free["ka kd ks".split().index(a[:2]), "rgb".index(a[3])] = False
+        se = joint_std_errors(lf.parametrisation, lf.report.theta, scene, mf.material, targets,
+                              fit_exponent="exponent" not in mk, specular=specular, free_k=free)
+        return JointFit(scene=lf.scene, material=mf.material, residual=mf.residual, report=(lf.report, mf.report),
+                        history=tuple(history), std_errors=se)
+    lf = mf = None
+    for r in range(int(rounds)):
+        kw = dict(lk)
+        if r > 0:
+            if kw.get("refine", getattr(kw.get("solver"), "refine", None)):
+                # Same array shapes as round 1 (no recompilation); a tighter start region.
+                kw["search_radius"] = 0.25 * kw.get("search_radius", 0.5)
+                kw["orientation_spread"] = 0.25 * kw.get("orientation_spread", 0.5)
+            else:
+                kw["starts"] = 1
+        t0 = time.perf_counter()
+        lf = fit_light(scene, targets, material, light_index, specular=specular, **kw)
+        scene = lf.scene
+        history.append(lf.report.loss)
+        if progress is not None:
+            progress(f"  round {r + 1}/{rounds}: light  ({kw.get('starts', 64)} start(s)) loss {lf.report.loss:.4e}"
+                     f"  [{time.perf_counter() - t0:.1f} s]")
+        t0 = time.perf_counter()
+        mf = fit_material(scene, targets, specular=specular, **mk)
+        material = mf.material
+        history.append(0.5 * float(np.sum(mf.report.weights * mf.residual**2)))
+        if progress is not None:
+            progress(f"  round {r + 1}/{rounds}: material loss {history[-1]:.4e}  [{time.perf_counter() - t0:.1f} s]")
+    assert lf is not None and mf is not None
+    return JointFit(scene=scene, material=material, residual=mf.residual, report=(lf.report, mf.report),
+                    history=tuple(history))

@@ -1,0 +1,221 @@
+r"""Several lights at once: the residual of `fit_lights` and its Levenberg-Marquardt program.
+
+The model (Poulin eq. 5.14, every light summed) is written with each fitted light's power as a
+scale $p_j$ of its given radiance (intensity, power, irradiance):
+
+$$L_c = k_{a,c} L_{a,c} + \frac{k_{d,c}}{\pi} \Big(E^{0}_c + \sum_j p_j E^{j}_c\Big)
+      + k_{s,c} \Big(S^{0}_c + \sum_j p_j S^{j}_c\Big),$$
+
+$E^j, S^j$ the irradiance and specular integral of fitted light $j$ at its reference power and
+the pose of the parameters $\theta_j$ (soft shadows included), $E^0, S^0$ those of the lights
+that are not fitted (concrete: computed once). The powers enter linearly, so they are
+projected out (variable projection, Golub & Pereyra): $p$ is the weighted linear least-squares
+solution shared by the three channels (the $3N \times J$ design of columns
+$k_d/\pi\,E^j + k_s S^j$) at the problem's material. (A fitted material is a leaf of the
+problem, updated between solves: `_fit_lights`.)
+
+Only the poses are searched. The shadow engine runs inside the compiled program at a capacity
+(`jaxshadow.traced`); the program's `mask` and `base` let one compiled program search one light
+(the others held at `base`) or all of them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array
+
+import jaxshadow as js
+
+from ._forward import SpecularFn, irradiance_culled, specular_culled
+from ._lm import LMResult, batched_levenberg_marquardt, fit_jit
+from ._residuals import pinned
+from ._targets import PaintedTargets
+
+# The most boundary edges per receiver the solve retries with before it gives up.
+MAX_CAPACITY = 4096
+
+
+def scaled_light(light: Any, p: Any) -> Any:
+    """`light` with its radiance / power / intensity / irradiance multiplied by `p`."""
+    if isinstance(light, js.PolygonLight):
+        return eqx.tree_at(lambda x: x.radiance, light, light.radiance * p)
+    if isinstance(light, js.LinearLight):
+        return eqx.tree_at(lambda x: x.power, light, light.power * p)
+    if isinstance(light, js.PointLight):
+        return eqx.tree_at(lambda x: x.intensity, light, light.intensity * p)
+    return eqx.tree_at(lambda x: x.irradiance, light, light.irradiance * p)
+
+
+class LightsProblem(eqx.Module):
+    """What the joint residual depends on. `params[j]`: the `LightParametrisation` of fitted
+    light `j` (None: only its power is fitted, `refs[j]` is the light); `offsets[j]`: where its
+    parameters start in $\\theta$; `e_fixed`, `s_fixed` `(N, 3)`: the lights that are not fitted."""
+
+    params: tuple
+    refs: tuple
+    scene: js.Scene  # occluders and ambient (its lights are not used)
+    material: js.Material
+    targets: PaintedTargets
+    e_fixed: Array
+    s_fixed: Array
+    offsets: tuple = eqx.field(static=True)
+    fit_power: bool = eqx.field(static=True)
+    with_specular: bool = eqx.field(static=True)
+    has_fixed: bool = eqx.field(static=True)
+    specular: Any = eqx.field(static=True, default=None)
+    capacity: int | None = eqx.field(static=True, default=None)
+
+    @property
+    def n_theta(self) -> int:
+        return int(sum(0 if p is None else p.size for p in self.params))
+
+
+def lights_at(theta: Array, problem: LightsProblem) -> list[Any]:
+    """The fitted lights at reference power for parameters `theta (P,)` (traceable)."""
+    out = []
+    for j, p in enumerate(problem.params):
+        if p is None:
+            out.append(problem.refs[j])
+        else:
+            o = problem.offsets[j]
+            out.append(p.build(theta[o:o + p.size]))
+    return out
+
+
+def one_light_scene(scene: js.Scene, light: Any) -> js.Scene:
+    """`scene` (occluders, ambient) lit by `light` alone."""
+    return eqx.tree_at(lambda s: s.lights, scene, (light,))
+
+
+def basis(theta: Array, problem: LightsProblem, capacity: int | None) -> tuple[Array, Array | None, Array]:
+    """`(E (J, N, 3), S (J, N, 3) or None, overflow)`: each fitted light's irradiance and
+    specular integral at reference power (`jaxshadow.traced`, at `capacity`)."""
+    t = problem.targets
+    dt = theta.dtype
+    es, ss = [], []
+    over = jnp.zeros((), bool)
+    for light in lights_at(theta, problem):
+        sc = one_light_scene(problem.scene, pinned(light))
+        e, o = irradiance_culled(sc, t.points, t.normals, capacity)
+        es.append(e)
+        over = over | o
+        if problem.with_specular:
+            s, o = specular_culled(sc, t.points, t.normals, t.eye, problem.material.exponent.astype(dt),
+                                   problem.specular, capacity)
+            ss.append(s)
+            over = over | o
+    return jnp.stack(es), (jnp.stack(ss) if problem.with_specular else None), over
+
+
+def _lstsq(A: Array, y: Array) -> tuple[Array, Array]:
+    """`(A k - y, k)` for the least-squares `k` (pseudo-inverse: differentiable)."""
+    k = jnp.linalg.pinv(A) @ y
+    return A @ k - y, k
+
+
+def projected_residual(theta: Array, problem: LightsProblem, capacity: int | None) -> tuple[Array, Array]:
+    """`(r (3N,), overflow)`: $\\sqrt{w}(L_{model} - C)$ at the problem's material with the powers
+    projected out (module docstring), row-major `(N, 3)`."""
+    t = problem.targets
+    dt = theta.dtype
+    E, S, over = basis(theta, problem, capacity)
+    m = problem.material
+    sw = jnp.sqrt(t.weights)
+    La = jnp.broadcast_to(problem.scene.ambient.astype(dt)[None, :], t.colours.shape)
+    kd, ks, ka = m.kd.astype(dt)[None, :], m.ks.astype(dt)[None, :], m.ka.astype(dt)[None, :]
+    ef, sf = problem.e_fixed.astype(dt), problem.s_fixed.astype(dt)
+    fixed = ka * La + kd / jnp.pi * ef + (ks * sf if problem.with_specular else 0.0)
+    per_light = kd[None] / jnp.pi * E + (ks[None] * S if S is not None else 0.0)  # (J, N, 3)
+    y = sw * (t.colours - fixed)
+    if not problem.fit_power:
+        return (sw * jnp.sum(per_light, axis=0) - y).reshape(-1), over
+    A = (sw[None] * per_light).reshape(per_light.shape[0], -1).T  # (3N, J)
+    return _lstsq(A, y.reshape(-1))[0], over
+
+
+def structured_residual(theta: Array, problem: LightsProblem, powers: Array, material: js.Material) -> Array:
+    """$\\sqrt{w}(L_{model} - C)$ `(3N,)` at given powers `(J,)` and material (no projection; the
+    shadow engine at `problem.capacity`, which the solve checked): the report's Jacobian in $\\theta$."""
+    t = problem.targets
+    dt = theta.dtype
+    E, S, _ = basis(theta, problem, problem.capacity)
+    p = powers.astype(dt)[:, None, None]
+    La = problem.scene.ambient.astype(dt)[None, :]
+    e = problem.e_fixed.astype(dt) + jnp.sum(p * E, axis=0)
+    model = material.ka.astype(dt)[None, :] * La + material.kd.astype(dt)[None, :] / jnp.pi * e
+    if S is not None:
+        model = model + material.ks.astype(dt)[None, :] * (problem.s_fixed.astype(dt) + jnp.sum(p * S, axis=0))
+    return (jnp.sqrt(t.weights) * (model - t.colours)).reshape(-1)
+
+
+@fit_jit
+def report_parts(problem: LightsProblem, theta: Array, powers: Array, material: js.Material) -> tuple:
+    """`(E, S, J_theta (3N, P))` at `theta`: the basis and the structured residual's Jacobian."""
+    E, S, _ = basis(theta, problem, problem.capacity)
+    J = jax.jacfwd(structured_residual)(theta, problem, powers, material)
+    return E, (jnp.zeros_like(E) if S is None else S), J
+
+
+@fit_jit
+def build_lights(problem: LightsProblem, theta: Array) -> list[Any]:
+    """The fitted lights at reference power, compiled once per problem structure."""
+    return lights_at(theta, problem)
+
+
+def _lm_impl(problem: LightsProblem, starts: Array, base: Array, mask: Array, rtol: float, atol: float,
+             max_steps: Array, prune: tuple[int, ...], chunk: int | None) -> LMResult:
+    """Batched LM (`_lm`) on the projected residual, searching only where `mask` (the other
+    parameters held at `base`): one program serves each light's multistart and the joint
+    refinement."""
+    def fn(th: Array, args: tuple) -> tuple[Array, Array]:
+        pr, b, m = args
+        return projected_residual(jnp.where(m, th, b), pr, pr.capacity)
+
+    return batched_levenberg_marquardt(fn, starts, (problem, base, mask), rtol=rtol, atol=atol,
+                                       max_steps=max_steps, prune=prune, chunk=chunk,
+                                       num_residuals=3 * int(problem.targets.points.shape[0]))
+
+
+_lm = fit_jit(_lm_impl)
+
+
+def solve(problem: LightsProblem, starts: np.ndarray, base: np.ndarray, mask: np.ndarray, *, rtol: float,
+          atol: float, max_steps: int, prune: tuple[int, ...]) -> tuple[LMResult, LightsProblem, int]:
+    """`_lm` from `starts (S, P)` (one start a chunk), solved again with twice the shadow capacity
+    while some receiver overflowed it (exact). Returns `(result, problem used, retries)`."""
+    retries = 0
+    dt = problem.targets.points.dtype
+    while True:
+        res = _lm(problem, jnp.asarray(starts, dt), jnp.asarray(base, dt), jnp.asarray(mask), rtol, atol,
+                  np.asarray(max_steps, np.int32), prune, 1)
+        cap = problem.capacity
+        if cap is None or not bool(res.flag):
+            return res, problem, retries
+        if cap >= MAX_CAPACITY:
+            raise RuntimeError(f"fit_lights: some receiver's visible region needs more than {MAX_CAPACITY} "
+                               "boundary edges during the solve.")
+        problem = dataclasses.replace(problem, capacity=min(2 * cap, MAX_CAPACITY))
+        retries += 1
+
+
+def fixed_contribution(scene: js.Scene, targets: PaintedTargets, material: js.Material, fixed: list[Any],
+                       specular: SpecularFn | None, with_specular: bool) -> tuple[Array, Array]:
+    """`(E0, S0)` `(N, 3)` of the lights that are not fitted (the public entry points: concrete)."""
+    t = targets
+    dt = t.points.dtype
+    if not fixed:
+        z = jnp.zeros(t.points.shape, dt)
+        return z, z
+    sc = eqx.tree_at(lambda s: s.lights, scene, tuple(fixed))
+    e = js.irradiance(sc, t.points, t.normals)
+    if not with_specular:
+        return e, jnp.zeros_like(e)
+    eyes = jnp.broadcast_to(t.eye, t.points.shape)
+    fn = js.specular if specular is None else specular
+    return e, fn(sc, t.points, t.normals, eyes, material.exponent.astype(dt))

@@ -1,0 +1,174 @@
+"""What the fits return: results and reports of one shape for the material and the light fits.
+
+Every report is a `FitReport`: the fitted parameters by name (`names`, `values`), how well the
+targets determine them (`std_errors`, `determined`, `singular_values`, from
+`_identifiability`), whether the targets are met, and warnings; each fit adds what is its own.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+
+import jaxshadow as js
+
+from ._parametrisation import LightParametrisation
+
+
+class UndeterminedParameterWarning(UserWarning):
+    """A fitted parameter is not determined by the targets (flat direction of the residual)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class FitReport:
+    """What every fit reports.
+
+    - `names`: the fitted parameters; `values`: name -> fitted value.
+    - `std_errors`: name -> standard error in the parameter's units ($\\hat\\sigma^2
+      (J^TJ)^{-1}$ over the determined parameters; inf when undetermined, 0 when held at a
+      bound); `determined`: name -> bool (False for a null direction of the Jacobian).
+    - `singular_values`: of the weighted residual Jacobian with unit-norm columns (scale-free;
+      a zero means an undetermined combination).
+    - `targets_met`: `(N,)` bool, all channels within the targets' tolerance, or None.
+    - `warnings`: human-readable messages (undetermined parameters, solver trouble).
+    """
+
+    names: tuple
+    values: dict
+    std_errors: dict
+    determined: dict
+    singular_values: np.ndarray
+    targets_met: np.ndarray | None
+    warnings: tuple
+
+    def _headline(self) -> str:
+        return "fit"
+
+    def _extra_lines(self) -> list[str]:
+        return []
+
+    def __str__(self) -> str:
+        lines = [self._headline()]
+        for nm in self.names:
+            flag = "" if self.determined.get(nm, True) else "  UNDETERMINED"
+            lines.append(f"  {nm:10s} {self.values[nm]: .6g}  se={self.std_errors[nm]:.3g}{flag}")
+        lines += self._extra_lines()
+        lines.append(f"  singular values (unit columns): {np.array2string(self.singular_values, precision=3)}")
+        lines += [f"  warning: {w}" for w in self.warnings]
+        return "\n".join(lines)
+
+
+@dataclasses.dataclass(frozen=True)
+class MaterialReport(FitReport):
+    """A material fit (`FitReport`, names `ka[r]` ... `ks[b]` and `n` when fitted), and:
+
+    - `exponent`, `exponent_fitted`: the roughness used, and whether it was searched.
+    - `exponent_determined`: False when the targets do not pin $n$ down (the projected residual
+      is flat up to a bound of `n_bounds`, or $k_s = 0$ in every channel, or its standard
+      error is above 50 %); `exponent_interval`: the $n$ whose projected residual is within
+      $4\\hat\\sigma^2$ of the minimum (an approximate 95 % profile interval).
+    - `active_bounds`: names of the active constraints per channel, e.g. `ks[g]>=lower`.
+    - `singular_values_raw`: of the Jacobian without column scaling.
+    - `rss`, `dof`, `sigma`: weighted residual sum of squares, degrees of freedom,
+      $\\hat\\sigma = \\sqrt{rss/dof}$.
+    - `profile_exponents`, `profile_rss`: the variable-projection profile over the grid.
+    - `weights`: the `(N, 3)` weights used.
+
+    `values` also holds `n` when it was not fitted.
+    """
+
+    exponent: float
+    exponent_fitted: bool
+    exponent_determined: bool
+    exponent_interval: tuple[float, float] | None
+    active_bounds: tuple
+    singular_values_raw: np.ndarray
+    rss: float
+    dof: int
+    sigma: float
+    profile_exponents: np.ndarray | None
+    profile_rss: np.ndarray | None
+    weights: np.ndarray
+
+    def _headline(self) -> str:
+        return f"material fit: rss={self.rss:.4g} dof={self.dof} sigma={self.sigma:.3g}"
+
+    def _extra_lines(self) -> list[str]:
+        return [f"  active: {', '.join(self.active_bounds)}"] if self.active_bounds else []
+
+
+@dataclasses.dataclass(frozen=True)
+class LightReport(FitReport):
+    """A light fit (`FitReport`: names as `LightParametrisation.names`, positions in m in
+    `std_errors`), and:
+
+    - `theta`: the parameter vector at the optimum (positions in units of `scale` m;
+      rotations rad; sizes log factors; `log_n` last with a fitted exponent).
+    - `loss`: $\\tfrac12\\sum w r^2$ at the optimum; `initial_loss` at the reference light.
+    - `best_start`, `start_losses (S,)`, `converged (S,)`, `num_steps (S,)`: the multistart
+      (the solved starts; `n_screened` starts were generated, see the solver's `refine`).
+    - `n_distinct_minima`: final points more than 1e-3 (parameter units) apart among the
+      converged starts within 1 % of the best loss (a measure of ambiguity).
+    - `solver` (its name: `"lm"`, `"optimistix"`, `"lbfgsb"`), `scale` (m);
+      `abandoned (S,)`: starts stopped early by the LM's `prune` (their `converged` is False).
+    """
+
+    theta: np.ndarray
+    loss: float
+    initial_loss: float
+    best_start: int
+    start_losses: np.ndarray
+    converged: np.ndarray
+    num_steps: np.ndarray
+    n_distinct_minima: int
+    n_screened: int
+    solver: str
+    scale: float
+    abandoned: np.ndarray | None = None
+
+    def _headline(self) -> str:
+        ok = int(np.count_nonzero(self.converged))
+        return (f"light fit ({self.solver}): loss {self.initial_loss:.4g} -> {self.loss:.4g}; "
+                f"best start {self.best_start} of {len(self.start_losses)} ({ok} converged, "
+                + (f"{int(np.count_nonzero(self.abandoned))} abandoned, " if self.abandoned is not None else "")
+                + f"{self.n_distinct_minima} distinct minima near the best)")
+
+
+@dataclasses.dataclass(frozen=True)
+class MaterialFit:
+    """`material` (a `js.Material`), `residual` `(N, 3)` = model - colours (unweighted),
+    `report` (`MaterialReport`)."""
+
+    material: js.Material
+    residual: np.ndarray
+    report: MaterialReport
+
+
+@dataclasses.dataclass(frozen=True)
+class LightFit:
+    """`scene` (with the fitted light), `light`, `residual (N, 3)` = model - colours
+    (unweighted), `report` (`LightReport`), `parametrisation`, `material` (the material used:
+    as given, or the projected one with `material_mode="projected"`)."""
+
+    scene: js.Scene
+    light: Any
+    residual: np.ndarray
+    report: LightReport
+    parametrisation: LightParametrisation
+    material: js.Material
+
+
+@dataclasses.dataclass(frozen=True)
+class JointFit:
+    """`scene`, `material`, `residual (N, 3)`, `report = (LightReport, MaterialReport)` of the
+    last round, `history`: the loss after each half-step, `std_errors`: name -> joint standard
+    error (`joint_std_errors`; the two reports' errors are each conditional on the other half)."""
+
+    scene: js.Scene
+    material: js.Material
+    residual: np.ndarray
+    report: tuple
+    history: tuple
+    std_errors: dict = dataclasses.field(default_factory=dict)

@@ -1,0 +1,403 @@
+r"""The light fit's solvers, as objects: `LM`, `OptimistixLM`, `LBFGSB` (`fit_light(solver=...)`).
+
+Each minimises $\tfrac12|r(\theta)|^2$ (`_residuals`) from a batch of starts (`_multistart`),
+first screening them down to the `refine` best when there are more, and returns a `Solution`:
+the solved starts, the best one, the residual and its Jacobian there (for the report), and the
+light it builds.
+
+- `LM` (the default): the Levenberg-Marquardt of `_lm.py`, written for this batch: one
+  forward-mode Jacobian per iteration for all starts, with the shadow engine inside the
+  compiled program (`jaxshadow.traced`: each receiver's visible region from its candidate
+  occluders only, at a static capacity of boundary edges chosen from the starting lights; if
+  the light moves so that some receiver needs more, the solve is repeated with twice the
+  capacity, so the result is always exact).
+- `OptimistixLM`: `optimistix.LevenbergMarquardt` under `jax.vmap` on the full model (every
+  receiver against every occluder; needs the `optimistix` extra); it traces
+  the shadow kernel several times and transposes its linearisation, so it compiles several
+  times longer, and its per-start accept/reject branches evaluate both sides under `vmap`
+  (`benchmarks/inverse_speed.py` measures both).
+- `LBFGSB`: JAXopt's bounded L-BFGS-B on the loss (`_jaxopt.py`; needs the `jaxopt` extra),
+  with hard box bounds on the parameters.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from collections.abc import Callable
+from typing import Any, ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array
+
+from jaxshadow import ShadowOptions
+
+from ._lm import LMResult, batched_levenberg_marquardt, fit_jit
+from ._multistart import (
+    best_starts,
+    culling_capacity_for_starts,
+    prune_schedule,
+    screen_losses,
+)
+from ._residuals import (
+    LightProblem,
+    build_light,
+    jacobian,
+    loss,
+    loss_jit,
+    residuals,
+    residuals_culled,
+)
+
+COMBINATORICS = ("auto", "device", "host")
+# The most boundary edges per receiver `solve_lm` retries with before it gives up.
+MAX_CAPACITY = 4096
+
+
+@dataclasses.dataclass(frozen=True)
+class Solution:
+    """What a solver found from the (screened) starts. Per solved start: `values (S, P)`,
+    `losses (S,)` (as returned: may be non-finite), `converged`, `num_steps`, `abandoned`;
+    `best`: the index of the lowest finite loss; `residual (M,)`, `jacobian (M, P)` and `light`
+    at the best; `initial_loss`: at the reference start (the first); `retries`: solves repeated
+    with a larger shadow capacity; `exact_residual`: `residual` is the full model's, usable
+    as the fit's residual; `problem`: as last solved."""
+
+    values: np.ndarray
+    losses: np.ndarray
+    converged: np.ndarray
+    num_steps: np.ndarray
+    abandoned: np.ndarray
+    best: int
+    residual: np.ndarray
+    jacobian: np.ndarray
+    light: Any
+    initial_loss: float
+    retries: int
+    exact_residual: bool
+    problem: LightProblem
+
+
+class AbstractLightSolver(eqx.Module):
+    """A multistart solver for `fit_light`: `minimise(problem, starts) -> Solution`.
+
+    `refine`: solve only from the `refine` starts of lowest loss (Campbell & Fussell §4.4.2's
+    screening of a coarse grid); `None`: from every start."""
+
+    name: ClassVar[str] = ""
+    box_map: ClassVar[str] = "sigmoid"  # how a Box constraint maps the position parameters
+
+    refine: eqx.AbstractVar[int | None]
+
+    def minimise(self, problem: LightProblem, starts: Array) -> Solution:
+        raise NotImplementedError
+
+    def _screens(self, n_starts: int) -> bool:
+        return self.refine is not None and 0 < int(self.refine) < n_starts
+
+
+class LM(AbstractLightSolver):
+    """Levenberg-Marquardt over all starts at once (`inverse/_lm.py`), with the shadow engine in
+    its compiled program; exact (the default solver).
+
+    **Arguments:**
+
+    - `refine`: k (default 8): evaluate the loss at every start and solve only from the k best;
+      the starts are evaluated by the solver's own program, k at a time, so no second program
+      is compiled for the screening. `None`: solve from every start. With 64 starts and 8
+      occluders screening is ~20x faster (`benchmarks/inverse_speed.py`).
+    - `prune` (several starts): at iterations 4, 8, 16, ... abandon the worse half (by current
+      loss) of the starts still running (successive halving), so the cost follows the promising
+      starts (`LightReport.abandoned`). False: every start runs to convergence or `max_steps`.
+    - `combinatorics`: how soft shadows are evaluated in the solver's program: `"host"`, by the
+      shadow engine (compiled C++ called from the program through XLA's FFI: per receiver,
+      the visible region of the light from its candidate occluders only, at a capacity sized
+      from the starts and doubled when the light moves so that some receiver needs more);
+      `"device"`, every receiver against every occluder in XLA (no host code; memory and time
+      grow with the number of occluders); `"auto"` (default): `"host"` where the engine is
+      built, else `"device"`. The same values to rounding either way.
+    - `rtol`, `atol`: termination tolerances (`_lm.batched_levenberg_marquardt`);
+      `max_steps`: iterations per start.
+
+    Example:
+        ```python
+        import inverse
+
+        solver = inverse.LM(refine=8, prune=True)        # the default
+        local = inverse.LM(refine=None, max_steps=50)    # every start, fewer iterations
+        # inverse.fit_light(scene, targets, material, solver=local)
+        ```
+    """
+
+    name: ClassVar[str] = "lm"
+
+    refine: int | None = 8
+    prune: bool = True
+    combinatorics: str = "auto"
+    rtol: float = 1e-9
+    atol: float = 1e-12
+    max_steps: int = 100
+
+    def __check_init__(self) -> None:
+        if self.combinatorics not in COMBINATORICS:
+            raise ValueError(f"LM: combinatorics must be 'auto', 'device' or 'host', got {self.combinatorics!r}.")
+
+    def uses_engine(self) -> bool:
+        """Whether this solver evaluates shadows with the shadow engine (`combinatorics`)."""
+        if self.combinatorics != "auto":
+            return self.combinatorics == "host"
+        return ShadowOptions().use_engine()
+
+    def minimise(self, problem: LightProblem, starts: Array) -> Solution:
+        p = problem.param
+        n_solved = int(self.refine) if self._screens(starts.shape[0]) else int(starts.shape[0])
+        sched = prune_schedule(n_solved, self.max_steps) if self.prune else ()
+        cap = culling_capacity_for_starts(p, problem.scene, problem.targets, starts) if self.uses_engine() else None
+        initial = None
+        if self._screens(starts.shape[0]):
+            # The capacity holds every receiver's boundary at these very lights.
+            screen = screen_with_lm(dataclasses.replace(problem, capacity=cap), starts, n_solved, self.rtol,
+                                    self.atol, sched)
+            starts = jnp.asarray(np.asarray(starts)[best_starts(screen, n_solved)])  # host: no eager gather
+            initial = float(screen[0])
+        # After screening the capacity stays the one for all the screened starts (enough for the
+        # solved ones too): the solve then runs the very program that screened them.
+        problem = dataclasses.replace(problem, capacity=cap)
+        res, lights, problem, retries = solve_lm(problem, starts, self.rtol, self.atol, self.max_steps, sched)
+        losses = np.asarray(res.losses, np.float64)
+        best = int(np.argmin(np.where(np.isfinite(losses), losses, np.inf)))
+        if initial is None:
+            initial = float(np.asarray(res.initial_losses)[0])
+        # On the host: eager indexing of a device array would compile a gather per leaf.
+        light = jax.tree_util.tree_map(lambda x: jnp.asarray(np.asarray(x)[best]), lights)
+        return Solution(np.asarray(res.values), losses, np.asarray(res.converged), np.asarray(res.num_steps),
+                        np.asarray(res.abandoned), best, np.asarray(res.residuals, np.float64)[best],
+                        np.asarray(res.jacobians, np.float64)[best], light, initial, retries, True, problem)
+
+
+class OptimistixLM(AbstractLightSolver):
+    """`optimistix.LevenbergMarquardt` from every start under `jax.vmap`, on the full model
+    (no culling). Several times slower to compile and to run than `LM`
+    (`benchmarks/inverse_speed.py`): the reference implementation. Needs the `optimistix` extra
+    (`pip install 'jaxshadow[optimistix]'`).
+
+    **Arguments:** `refine` (default 8: the starts are screened by one vectorised loss),
+    `rtol`, `atol` (Optimistix's), `max_steps`.
+
+    Example:
+        ```python
+        import inverse
+
+        solver = inverse.OptimistixLM(rtol=1e-9, atol=1e-12)
+        # inverse.fit_light(scene, targets, material, solver=solver)
+        ```
+    """
+
+    name: ClassVar[str] = "optimistix"
+
+    refine: int | None = 8
+    rtol: float = 1e-9
+    atol: float = 1e-12
+    max_steps: int = 100
+
+    def minimise(self, problem: LightProblem, starts: Array) -> Solution:
+        return _minimise_vectorised(self, problem, starts, lambda pr, y0: _multistart_optx(
+            pr, y0, self.rtol, self.atol, int(self.max_steps)))
+
+
+class LBFGSB(AbstractLightSolver):
+    """JAXopt's bounded L-BFGS-B on $\\tfrac12|r|^2$ from every start under `jax.vmap`, with box
+    bounds on the parameters (a `Box` constraint maps the position affinely, so its bounds are
+    hard). Needs the `jaxopt` extra (`pip install jaxshadow[jaxopt]`).
+
+    **Arguments:** `refine` (default 8: the starts are screened by one vectorised loss), `tol`
+    (JAXopt's), `max_steps`.
+
+    Example:
+        ```python
+        import inverse
+
+        solver = inverse.LBFGSB(tol=1e-12)
+        # inverse.fit_light(scene, targets, material, constraint=inverse.Box(lo, hi), solver=solver)
+        ```
+    """
+
+    name: ClassVar[str] = "lbfgsb"
+    box_map: ClassVar[str] = "affine"
+
+    refine: int | None = 8
+    tol: float = 1e-12
+    max_steps: int = 100
+
+    def minimise(self, problem: LightProblem, starts: Array) -> Solution:
+        lo, hi = problem.param.lbfgsb_bounds(starts.dtype)
+        return _minimise_vectorised(self, problem, starts, lambda pr, y0: _multistart_lbfgsb(
+            pr, y0, lo, hi, self.tol, int(self.max_steps)))
+
+
+def _minimise_vectorised(solver: AbstractLightSolver, problem: LightProblem, starts: Array, run: Any) -> Solution:
+    """Screening by one vectorised loss, then `run(problem, starts) -> (values, losses,
+    converged, steps)`; the residual and Jacobian at the best by a program of their own."""
+    initial = None
+    if solver._screens(starts.shape[0]):
+        screen = np.asarray(screen_losses(problem, starts), np.float64)
+        starts = jnp.asarray(np.asarray(starts)[best_starts(screen, int(solver.refine))])
+        initial = float(screen[0])
+    values, losses, ok, steps = (np.asarray(x) for x in run(problem, starts))
+    losses = losses.astype(np.float64)
+    best = int(np.argmin(np.where(np.isfinite(losses), losses, np.inf)))
+    theta = jnp.asarray(values[best], starts.dtype)
+    r, J = jacobian(problem, theta)
+    if initial is None:
+        initial = float(loss_jit(problem, jnp.asarray(np.asarray(starts)[0])))
+    light = build_light(problem.param, theta[: problem.param.size])
+    return Solution(values, losses, ok, steps, np.zeros(len(losses), bool), best, np.asarray(r, np.float64),
+                    np.asarray(J, np.float64), light, initial, 0, False, problem)
+
+
+# --------------------------------------------------------------------------------------
+# The programs (module-level jitted functions: compiled once per problem structure)
+# --------------------------------------------------------------------------------------
+
+
+def _multistart_lm_impl(problem: LightProblem, starts: Array, rtol: float, atol: float, max_steps: int | Array,
+                        prune: tuple[int, ...] = (), chunk: int | None = None) -> tuple[LMResult, Any]:
+    """Levenberg-Marquardt from every start at once (`_lm.batched_levenberg_marquardt`) on the
+    culled residual; `LMResult.flag` is the culling overflow (then retry, `solve_lm`). Also
+    returns the light built at every start's solution (a batched light pytree): built here, in
+    the program that is compiled anyway, instead of by a program of its own (`build_light`:
+    ~0.15 s more of a one-start fit's first call)."""
+    res = batched_levenberg_marquardt(residuals_culled, starts, problem, rtol=rtol, atol=atol,
+                                      max_steps=max_steps, prune=prune, chunk=chunk,
+                                      num_residuals=3 * int(problem.targets.points.shape[0]))
+    size = problem.param.size
+    return res, jax.vmap(lambda th: problem.param.build(th[:size]))(res.values)
+
+
+_multistart_lm = fit_jit(_multistart_lm_impl)
+
+
+def run_lm(problem: LightProblem, starts: Any, rtol: float, atol: float, max_steps: int,
+           prune: tuple[int, ...]) -> tuple[LMResult, Any]:
+    """`_multistart_lm` from `starts (S, P)`,
+    several starts one at a time (`chunk=1`: finished and abandoned ones cost nothing),
+    `max_steps` as an array (traced): the one call that the screening (`screen_with_lm`, 0
+    steps) and the solve (`solve_lm`) both make, so that they run one compiled program."""
+    chunk = 1 if starts.shape[0] > 1 else None
+    return _multistart_lm(problem, starts, rtol, atol, np.asarray(max_steps, np.int32), prune, chunk)
+
+
+def solve_lm(problem: LightProblem, starts: Array, rtol: float, atol: float, max_steps: int,
+             prune: tuple[int, ...] = ()) -> tuple[LMResult, Any, LightProblem, int]:
+    """`run_lm`, retried with twice the shadow capacity while some receiver overflowed it, so
+    the result is exact (`MAX_CAPACITY` edges at most: beyond that a `RuntimeError` says so).
+    Returns `(result, lights at the solutions, problem used, retries)`."""
+    retries = 0
+    while True:
+        res, lights = run_lm(problem, starts, rtol, atol, max_steps, prune)
+        cap = problem.capacity
+        if cap is None or not bool(res.flag):
+            return res, lights, problem, retries
+        if cap >= MAX_CAPACITY:
+            raise RuntimeError(f"fit_light: some receiver's visible region needs more than {MAX_CAPACITY} boundary "
+                               "edges during the solve; use inverse.LM(combinatorics='device').")
+        problem = dataclasses.replace(problem, capacity=min(2 * cap, MAX_CAPACITY))
+        retries += 1
+
+
+def screen_with_lm(problem: LightProblem, starts: Array, k: int, rtol: float, atol: float,
+                   prune: tuple[int, ...]) -> np.ndarray:
+    """$\\tfrac12|r|^2$ at every row of `starts (S, P)` (inf where not finite), evaluated by the
+    program that then solves from the `k` best (`_multistart_lm` with `k` starts and no
+    iterations: its first, evaluation-only iteration), `k` starts a call, the last call padded
+    with the first start. A program of its own (`_multistart.screen_losses`, one vectorised
+    loss) took 25-40% of a 64-start fit's first call; this costs a Jacobian per screened start
+    instead (~1-3 ms). Should the culling overflow at some start (a visible region with more
+    edges than the capacity), the losses are those of a vectorised loss at twice the capacity
+    needed there instead."""
+    ys = np.asarray(starts)
+    S = ys.shape[0]
+    calls = -(-S // k)
+    ys = np.concatenate([ys, np.repeat(ys[:1], calls * k - S, axis=0)])
+    results = [run_lm(problem, ys[i * k: (i + 1) * k], rtol, atol, 0, prune)[0] for i in range(calls)]
+    if problem.capacity is not None and any(bool(r.flag) for r in results):
+        need = culling_capacity_for_starts(problem.param, problem.scene, problem.targets, starts)
+        wider = dataclasses.replace(problem, capacity=max(2 * problem.capacity, need or 0))
+        losses = np.asarray(screen_losses(wider, starts))
+    else:
+        losses = np.concatenate([np.asarray(r.initial_losses) for r in results])[:S]
+    losses = losses.astype(np.float64)
+    return np.where(np.isfinite(losses), losses, np.inf)
+
+
+def _optimistix() -> Any:
+    try:
+        import optimistix
+    except ImportError as err:
+        raise ImportError("inverse.OptimistixLM needs the optional dependency 'optimistix': install it with "
+                          "`pip install 'jaxshadow[optimistix]'`.") from err
+    return optimistix
+
+
+@fit_jit
+def _multistart_optx(problem: LightProblem, starts: Array, rtol: float, atol: float, max_steps: int) -> tuple:
+    optx = _optimistix()
+    solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
+
+    def one(y0: Array) -> tuple:
+        sol = optx.least_squares(residuals, solver, y0, args=problem, throw=False, max_steps=max_steps)
+        return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
+
+    values, ok, steps = jax.vmap(one)(starts)
+    losses = jax.vmap(loss, in_axes=(0, None))(values, problem)
+    return values, losses, ok, steps
+
+
+@fit_jit
+def _multistart_lbfgsb(problem: LightProblem, starts: Array, lower: Array, upper: Array, tol: float,
+                       max_steps: int) -> tuple:
+    from ._jaxopt import lbfgsb_solve
+
+    def one(y0: Array) -> tuple:
+        y, _, it = lbfgsb_solve(lambda th: loss(th, problem), y0, lower, upper, max_steps, tol)
+        return y, it
+
+    values, steps = jax.vmap(one)(starts)
+    losses = jax.vmap(loss, in_axes=(0, None))(values, problem)
+    return values, losses, steps < max_steps, steps
+
+
+# --------------------------------------------------------------------------------------
+# fit_light's keywords before the solver objects
+# --------------------------------------------------------------------------------------
+
+_SOLVERS: dict[str, Callable[[], AbstractLightSolver]] = {"lm": LM, "optimistix": OptimistixLM, "lbfgsb": LBFGSB}
+_LEGACY = ("refine", "prune", "receiver_groups", "combinatorics", "rtol", "atol", "max_steps")
+
+
+def solver_from_arguments(solver: AbstractLightSolver | str | None, legacy: dict[str, Any]) -> AbstractLightSolver:
+    """`fit_light`'s solver: `solver`, `LM()` for None; a solver name (`"lm"`, `"optimistix"`,
+    `"lbfgsb"`) and the keywords `refine`, `prune`, `receiver_groups` (no longer used), `combinatorics`, `rtol`,
+    `atol`, `max_steps` still work, with a `DeprecationWarning` (options a solver does not have
+    are ignored, as they were)."""
+    unknown = sorted(set(legacy) - set(_LEGACY))
+    if unknown:
+        raise TypeError(f"fit_light() got unexpected keyword argument(s) {unknown}.")
+    if isinstance(solver, str) and solver not in _SOLVERS:
+        raise ValueError(f"fit_light: solver must be inverse.LM(), OptimistixLM() or LBFGSB(), got {solver!r}.")
+    if solver is not None and not isinstance(solver, (str, AbstractLightSolver)):
+        raise ValueError(f"fit_light: solver must be inverse.LM(), OptimistixLM() or LBFGSB(), got {solver!r}.")
+    if not isinstance(solver, str) and not legacy:
+        return LM() if solver is None else solver
+    warnings.warn("fit_light(solver='lm', refine=..., prune=..., ...) is deprecated: pass a solver object, "
+                  "e.g. solver=inverse.LM(refine=8, prune=True), inverse.OptimistixLM() or inverse.LBFGSB().",
+                  DeprecationWarning, stacklevel=3)
+    base = _SOLVERS[solver]() if isinstance(solver, str) else (LM() if solver is None else solver)
+    kw = dict(legacy)
+    if isinstance(base, LBFGSB) and "atol" in kw:
+        kw["tol"] = kw["atol"]  # L-BFGS-B used atol as its tolerance
+    fields = {f.name for f in dataclasses.fields(base)}
+    return dataclasses.replace(base, **{k: v for k, v in kw.items() if k in fields})

@@ -1,0 +1,399 @@
+"""Meshes and point sets in and out: OBJ / PLY / glTF / STL through trimesh, point tables.
+
+trimesh is the mesh library (rather than meshio): it reads the formats scene files use for
+surfaces (OBJ, PLY, glTF/GLB, STL, OFF) into one triangle mesh, triangulating polygons and
+flattening glTF node transforms, and writes binary PLY with vertex colours *and* extra float
+vertex properties, which is what a receiver mesh with its irradiance needs. meshio targets
+simulation meshes (cells of many kinds, no glTF, no colours). It is the `mesh` extra.
+
+Receivers read from a mesh are its vertices (with trimesh's vertex normals: the file's when it
+has them, else the mean of the normals of the faces around the vertex) or its face centres (with
+the right-hand-rule face normals). Point tables follow one convention for every command:
+
+- `.csv`: a header row with named columns; `px, py, pz, nx, ny, nz` are required (other columns
+  are ignored, so a targets CSV is also a points CSV); values written back get `r, g, b` columns.
+- `.npy`: an `(N, 6)` array (points, then normals); `.npz`: arrays `points` and `normals`.
+- `.ply` / `.obj` / `.glb` / `.gltf` / `.stl` / `.off`: a mesh, receivers at its vertices or faces.
+
+Every file is written through `jaxshadow._files` (a temporary file renamed into place).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import os
+from typing import Any
+
+import numpy as np
+
+from ._files import atomic_write
+
+MESH_EXTS = (".obj", ".ply", ".glb", ".gltf", ".stl", ".off")
+TABLE_EXTS = (".csv", ".npy", ".npz")
+POINT_COLUMNS = ("px", "py", "pz", "nx", "ny", "nz")
+
+
+def _trimesh() -> Any:
+    try:
+        import trimesh
+    except ImportError as err:
+        raise ImportError(
+            "reading and writing meshes needs the optional dependency 'trimesh': "
+            "install it with `pip install 'jaxshadow[mesh]'`."
+        ) from err
+    return trimesh
+
+
+def extension(path: str | os.PathLike) -> str:
+    """The lower-case extension of `path` (`".ply"`), `""` when there is none."""
+    return os.path.splitext(os.fspath(path))[1].lower()
+
+
+class ReceiverMesh:
+    """A triangle surface whose vertices or face centres are receivers.
+
+    **Arguments:**
+
+    - `vertices`: `(V, 3)` positions (m).
+    - `faces`: `(F, 3)` vertex indices of triangles, counter-clockwise seen from the side the
+      face normal points to.
+    - `vertex_normals`: `(V, 3)` normals, or `None` for the area-weighted average of the face
+      normals.
+    - `name`: a label (the file or the Mitsuba shape id).
+
+    **Attributes:** `vertices`, `faces`, `vertex_normals` (unit), `face_normals` `(F, 3)` (unit),
+    `face_areas` `(F,)` (m^2), `face_centres` `(F, 3)`, `name`.
+
+    Raises `ValueError` for non-finite vertices, indices out of range, zero-area faces, and (at
+    `receivers("vertices")`) vertices that belong to no face.
+    """
+
+    def __init__(self, vertices: Any, faces: Any, vertex_normals: Any = None, name: str = ""):
+        v = np.asarray(vertices, dtype=np.float64)
+        f = np.asarray(faces)
+        if v.ndim != 2 or v.shape[1] != 3 or v.shape[0] < 3:
+            raise ValueError(f"ReceiverMesh {name!r}: vertices must have shape (V >= 3, 3), got {v.shape}.")
+        if not np.all(np.isfinite(v)):
+            raise ValueError(f"ReceiverMesh {name!r}: vertices must be finite.")
+        if f.ndim != 2 or f.shape[1] != 3 or f.shape[0] == 0 or not np.issubdtype(f.dtype, np.integer):
+            raise ValueError(f"ReceiverMesh {name!r}: faces must be an (F >= 1, 3) integer array, got {f.shape} {f.dtype}.")
+        if f.min() < 0 or f.max() >= v.shape[0]:
+            raise ValueError(f"ReceiverMesh {name!r}: a face index is out of range [0, {v.shape[0]}).")
+        f = f.astype(np.int64)
+        cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+        area2 = np.linalg.norm(cross, axis=1)
+        size = float(np.max(np.ptp(v, axis=0)))
+        if not (area2 > 1e-12 * size * size).all():
+            raise ValueError(f"ReceiverMesh {name!r}: face {int(np.argmin(area2))} has zero area.")
+        self.vertices, self.faces, self.name = v, f, name
+        self.face_areas = 0.5 * area2
+        self.face_normals = cross / area2[:, None]
+        self.face_centres = v[f].mean(axis=1)
+        if vertex_normals is None:
+            acc = np.zeros_like(v)
+            for k in range(3):
+                np.add.at(acc, f[:, k], cross)
+        else:
+            acc = np.asarray(vertex_normals, dtype=np.float64)
+            if acc.shape != v.shape or not np.all(np.isfinite(acc)):
+                raise ValueError(f"ReceiverMesh {name!r}: vertex_normals must be finite with shape {v.shape}.")
+        length = np.linalg.norm(acc, axis=1)
+        self._used = length > 0
+        self.vertex_normals = acc / np.where(self._used, length, 1.0)[:, None]
+
+    def __repr__(self) -> str:
+        return f"ReceiverMesh({self.name!r}: {len(self.vertices)} vertices, {len(self.faces)} triangles)"
+
+    def receivers(self, at: str = "vertices") -> tuple[np.ndarray, np.ndarray]:
+        """`(points (N, 3), normals (N, 3))` at the vertices (`at="vertices"`) or the face
+        centres (`at="faces"`), float64."""
+        if at == "faces":
+            return self.face_centres.copy(), self.face_normals.copy()
+        if at != "vertices":
+            raise ValueError(f"ReceiverMesh.receivers: at must be 'vertices' or 'faces', got {at!r}.")
+        if not self._used.all():
+            raise ValueError(f"ReceiverMesh {self.name!r}: {int((~self._used).sum())} vertices belong to "
+                             "no face (no normal); use at='faces'.")
+        return self.vertices.copy(), self.vertex_normals.copy()
+
+    def sample(self, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """`n` points uniformly distributed over the surface (by area) with their face normals."""
+        if int(n) < 1:
+            raise ValueError(f"ReceiverMesh.sample: n must be >= 1, got {n!r}.")
+        rng = np.random.default_rng(seed)
+        tri = rng.choice(len(self.faces), size=int(n), p=self.face_areas / self.face_areas.sum())
+        u, w = rng.random((2, int(n)))
+        flip = u + w > 1
+        u, w = np.where(flip, 1 - u, u), np.where(flip, 1 - w, w)
+        a, b, c = (self.vertices[self.faces[tri, k]] for k in range(3))
+        return a + u[:, None] * (b - a) + w[:, None] * (c - a), self.face_normals[tri].copy()
+
+    def occluder(self, merge: bool = True) -> Any:
+        """The surface as a `jaxshadow.Mesh` occluder."""
+        from ._mesh import Mesh
+
+        return Mesh(self.vertices, self.faces, merge=merge)
+
+
+def read_mesh(path: str | os.PathLike) -> ReceiverMesh:
+    """Read a triangle mesh (OBJ, PLY, glTF/GLB, STL, OFF; polygons are triangulated, glTF
+    scenes flattened with their transforms) with trimesh.
+
+    **Arguments:** `path`: the file; the format follows its extension.
+
+    **Returns:** a `ReceiverMesh` (use `.occluder()` for a `jaxshadow.Mesh` occluder,
+    `.receivers(at)` for receiver points and normals).
+
+    Example:
+        ```python
+        import os, tempfile
+        import jaxshadow as js
+
+        path = os.path.join(tempfile.mkdtemp(), "quad.obj")
+        js.write_mesh(path, [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], [[0, 1, 2], [0, 2, 3]])
+        mesh = js.read_mesh(path)
+        points, normals = mesh.receivers("faces")   # (2, 3) face centres and normals
+        occluder = mesh.occluder()                  # the same mesh as a js.Mesh occluder
+        print(points, normals)
+        ```
+    """
+    path = os.fspath(path)
+    if extension(path) not in MESH_EXTS:
+        raise ValueError(f"{path}: not a mesh file (expected one of {', '.join(MESH_EXTS)}).")
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"{path}: no such file.")
+    trimesh = _trimesh()
+    try:
+        m = trimesh.load(path, force="mesh", process=False)
+    except Exception as err:  # trimesh raises many kinds for malformed files
+        raise ValueError(f"{path}: cannot read the mesh ({type(err).__name__}: {err}).") from None
+    if not isinstance(m, trimesh.Trimesh) or len(m.faces) == 0:
+        raise ValueError(f"{path}: the file holds no triangles.")
+    return ReceiverMesh(np.asarray(m.vertices), np.asarray(m.faces), np.asarray(m.vertex_normals),
+                        name=os.path.basename(path))
+
+
+def tonemap(values: Any, exposure: float | None = None) -> np.ndarray:
+    """Linear RGB values `(..., 3)` -> 8-bit sRGB: scaled by `exposure` (default: 1 / the 99th
+    percentile of the largest channel), clipped to [0, 1], sRGB transfer curve."""
+    x = np.asarray(values, dtype=np.float64)
+    if exposure is None:
+        top = float(np.percentile(x.max(axis=-1), 99)) if x.size else 0.0
+        exposure = 1.0 / top if top > 0 else 1.0
+    y = np.clip(x * exposure, 0.0, 1.0)
+    srgb = np.where(y <= 0.0031308, 12.92 * y, 1.055 * np.power(y, 1 / 2.4) - 0.055)
+    return np.round(255 * srgb).astype(np.uint8)
+
+
+def write_ply(path: str | os.PathLike, mesh: ReceiverMesh, values: Any, *, at: str = "vertices",
+              name: str = "value", exposure: float | None = None) -> None:
+    """Write `mesh` as a binary PLY with `values` as colours and as float properties.
+
+    **Arguments:**
+
+    - `path`: the `.ply` file (written atomically).
+    - `mesh`: a `ReceiverMesh`.
+    - `values`: `(V, 3)` (`at="vertices"`) or `(F, 3)` (`at="faces"`) linear RGB values, e.g.
+      irradiance (W/m^2) or radiance.
+    - `name`: the float properties are `{name}_r`, `{name}_g`, `{name}_b` (float64).
+    - `exposure`: tone mapping of the colours (`tonemap`).
+
+    Vertex (or face) colours are 8-bit sRGB, viewable in any mesh viewer.
+
+    Example:
+        ```python
+        import os, tempfile
+        import jaxshadow as js
+
+        folder = tempfile.mkdtemp()
+        js.write_mesh(os.path.join(folder, "floor.ply"), [[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]],
+                      [[0, 1, 2], [0, 2, 3]])
+        mesh = js.read_mesh(os.path.join(folder, "floor.ply"))
+        p, n = mesh.receivers("vertices")
+        scene = js.Scene([js.PolygonLight([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2]], radiance=10.0)])
+        js.write_ply(os.path.join(folder, "lit.ply"), mesh, js.irradiance(scene, p, n))   # vertex colours
+        ```
+    """
+    trimesh = _trimesh()
+    if extension(path) != ".ply":
+        raise ValueError(f"{os.fspath(path)}: write_ply writes .ply files.")
+    v = np.asarray(values, dtype=np.float64)
+    n = len(mesh.vertices) if at == "vertices" else len(mesh.faces)
+    if at not in ("vertices", "faces") or v.shape != (n, 3):
+        raise ValueError(f"write_ply: values must have shape ({n}, 3) for at={at!r}, got {v.shape}.")
+    rgb = tonemap(v, exposure)
+    rgba = np.concatenate([rgb, np.full((n, 1), 255, np.uint8)], axis=1)
+    kw = {"vertex_colors": rgba} if at == "vertices" else {"face_colors": rgba}
+    m = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False, **kw)
+    attrs = m.vertex_attributes if at == "vertices" else m.face_attributes
+    for c, ch in enumerate("rgb"):
+        attrs[f"{name}_{ch}"] = v[:, c]
+    data = m.export(file_type="ply", encoding="binary", include_attributes=True)
+    with atomic_write(path, "wb") as fh:
+        fh.write(data)
+
+
+def write_mesh(path: str | os.PathLike, vertices: Any, faces: Any) -> None:
+    """Write a triangle mesh (`.ply`, `.obj`, `.glb`, `.stl`, `.off`, by extension) with trimesh,
+    vertices and faces in the given order, atomically.
+
+    Example:
+        ```python
+        import os, tempfile
+        import jaxshadow as js
+
+        path = os.path.join(tempfile.mkdtemp(), "quad.ply")
+        js.write_mesh(path, [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], [[0, 1, 2], [0, 2, 3]])
+        mesh = js.read_mesh(path)   # read back with trimesh
+        ```
+    """
+    trimesh = _trimesh()
+    ext = extension(path)
+    if ext not in MESH_EXTS or ext == ".gltf":
+        raise ValueError(f"{os.fspath(path)}: write_mesh writes .ply, .obj, .glb, .stl or .off files.")
+    m = trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64), process=False)
+    data = m.export(file_type=ext[1:])
+    with atomic_write(path, "wb" if isinstance(data, bytes) else "w") as fh:
+        fh.write(data)
+
+
+def read_ply_values(path: str | os.PathLike, name: str = "value", at: str = "vertices") -> np.ndarray:
+    """The `(N, 3)` float properties `{name}_r, _g, _b` of a PLY written by `write_ply`."""
+    trimesh = _trimesh()
+    m = trimesh.load(os.fspath(path), process=False)
+    data = m.metadata["_ply_raw"]["vertex" if at == "vertices" else "face"]["data"]
+    return np.stack([np.asarray(data[f"{name}_{c}"], np.float64) for c in "rgb"], axis=1)
+
+
+def read_points(path: str | os.PathLike, at: str = "vertices") -> tuple[np.ndarray, np.ndarray, ReceiverMesh | None]:
+    """Receivers from a file, by extension (see the module docstring for the conventions).
+
+    **Returns:** `(points (N, 3), normals (N, 3), mesh)`, `mesh` the `ReceiverMesh` when the
+    file is a mesh (receivers at its vertices or faces, `at`), else `None`.
+
+    Example:
+        ```python
+        import os, tempfile
+        import numpy as np
+        import jaxshadow as js
+
+        path = os.path.join(tempfile.mkdtemp(), "receivers.csv")
+        np.savetxt(path, [[0.5, 0.5, 0, 0, 0, 1], [0.2, 0.4, 0, 0, 0, 1]], delimiter=",",
+                   header="px,py,pz,nx,ny,nz", comments="")
+        points, normals, mesh = js.read_points(path)   # mesh is None for a CSV
+        print(points.shape, mesh)
+        ```
+    """
+    path = os.fspath(path)
+    ext = extension(path)
+    if ext in MESH_EXTS:
+        mesh = read_mesh(path)
+        p, n = mesh.receivers(at)
+        return p, n, mesh
+    if ext not in TABLE_EXTS:
+        raise ValueError(f"{path}: unknown points format {ext or '(no extension)'!r} "
+                         f"(expected one of {', '.join(TABLE_EXTS + MESH_EXTS)}).")
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"{path}: no such file.")
+    if ext == ".npy":
+        a = np.load(path, allow_pickle=False)
+        if a.ndim != 2 or a.shape[1] != 6:
+            raise ValueError(f"{path}: expected an (N, 6) array (px, py, pz, nx, ny, nz), got shape {a.shape}.")
+        p, n = a[:, :3], a[:, 3:]
+    elif ext == ".npz":
+        with np.load(path, allow_pickle=False) as z:
+            missing = [k for k in ("points", "normals") if k not in z]
+            if missing:
+                raise ValueError(f"{path}: missing array(s) {missing} (expected 'points' and 'normals').")
+            p, n = z["points"], z["normals"]
+        if p.ndim != 2 or p.shape[1] != 3 or n.shape != p.shape:
+            raise ValueError(f"{path}: 'points' and 'normals' must both be (N, 3), got {p.shape} and {n.shape}.")
+    else:
+        table = read_csv(path, POINT_COLUMNS)
+        p, n = table[:, :3], table[:, 3:]
+    p, n = np.asarray(p, np.float64), np.asarray(n, np.float64)
+    if p.shape[0] == 0:
+        raise ValueError(f"{path}: no points.")
+    if not (np.isfinite(p).all() and np.isfinite(n).all()):
+        raise ValueError(f"{path}: points and normals must be finite.")
+    return p, n, None
+
+
+def read_csv(path: str | os.PathLike, columns: tuple[str, ...]) -> np.ndarray:
+    """The named `columns` of a CSV file with a header row, as an `(N, len(columns))` float64
+    array (other columns are ignored; errors name the file, the row and the column)."""
+    path = os.fspath(path)
+    with open(path, newline="") as fh:
+        rows = [r for r in csv.reader(fh) if r]
+    if not rows:
+        raise ValueError(f"{path}: empty CSV file (expected a header row {','.join(columns)}).")
+    header = [h.strip() for h in rows[0]]
+    missing = [c for c in columns if c not in header]
+    if missing:
+        raise ValueError(f"{path}: missing CSV column(s) {missing}: the first row must be a header "
+                         f"naming the columns, e.g. {','.join(columns)} (got {rows[0][:8]}).")
+    idx = [header.index(c) for c in columns]
+    out = np.empty((len(rows) - 1, len(columns)))
+    for i, row in enumerate(rows[1:]):
+        if len(row) != len(header):
+            raise ValueError(f"{path}: row {i + 1} has {len(row)} fields, the header has {len(header)}.")
+        try:
+            out[i] = [float(row[j]) for j in idx]
+        except ValueError:
+            raise ValueError(f"{path}: row {i + 1} has a non-numeric value in {columns}: {row}.") from None
+    return out
+
+
+def write_values(path: str | os.PathLike, values: Any, *, points: Any = None, normals: Any = None,
+                 mesh: ReceiverMesh | None = None, at: str = "vertices", name: str = "value") -> None:
+    """Write `(N, 3)` values to `path`, by extension, atomically and exactly at `path`.
+
+    - `.npy`: the `(N, 3)` array. `.npz`: `values` (and `points`, `normals` when given).
+    - `.csv`: header `px,py,pz,nx,ny,nz,r,g,b` (the receiver columns when `points` and
+      `normals` are given), full float64 precision.
+    - `.ply`: needs `mesh` (receivers read from a mesh): `write_ply`.
+
+    Example:
+        ```python
+        import os, tempfile
+        import numpy as np
+        import jaxshadow as js
+
+        scene = js.Scene([js.PolygonLight([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2]], radiance=10.0)])
+        p = np.array([[0.5, 0.5, 0.0], [2.0, 0.0, 0.0]]); n = np.array([[0.0, 0.0, 1.0]] * 2)
+        path = os.path.join(tempfile.mkdtemp(), "irradiance.csv")
+        js.write_values(path, js.irradiance(scene, p, n), points=p, normals=n)   # px,...,nz,r,g,b
+        print(np.loadtxt(path, delimiter=",", skiprows=1))
+        ```
+    """
+    path = os.fspath(path)
+    v = np.asarray(values)
+    ext = extension(path)
+    if ext == ".ply":
+        if mesh is None:
+            raise ValueError(f"{path}: PLY output needs receivers read from a mesh.")
+        write_ply(path, mesh, v, at=at, name=name)
+    elif ext == ".npy":
+        with atomic_write(path, "wb") as fh:
+            np.save(fh, v)
+    elif ext == ".npz":
+        arrays = {"values": v}
+        if points is not None:
+            arrays.update(points=np.asarray(points), normals=np.asarray(normals))
+        with atomic_write(path, "wb") as fh:
+            np.savez(fh, **arrays)
+    elif ext == ".csv":
+        cols, header = [v], ["r", "g", "b"]
+        if points is not None:
+            cols, header = [np.asarray(points), np.asarray(normals), v], [*POINT_COLUMNS, "r", "g", "b"]
+        table = np.concatenate([np.asarray(c, np.float64) for c in cols], axis=1)
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")
+        w.writerow(header)
+        w.writerows([[repr(float(x)) for x in row] for row in table])
+        with atomic_write(path, "w", newline="") as fh:
+            fh.write(buf.getvalue())
+    else:
+        raise ValueError(f"{path}: unknown output format {ext or '(no extension)'!r} (expected .npy, .npz, .csv or .ply).")
+

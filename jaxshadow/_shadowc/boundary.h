@@ -1,0 +1,194 @@
+// jaxshadow's shadow engine: boundary (part of `_shadowc.cc`; see its header comment).
+#ifndef JAXSHADOW_SHADOWC_BOUNDARY_H_
+#define JAXSHADOW_SHADOWC_BOUNDARY_H_
+
+#include "polygon_types.h"
+
+namespace jaxshadow_engine {
+
+// Split every candidate edge of a penumbra receiver at the regions it enters and leaves and keep
+// the free pieces as runs (`_clip._boundary_runs` / `edge_breakpoints`), appended to w.runs.
+template <class T>
+void boundary_runs(V3<T> p, T tol, const V3<T>* ehv, int nehv, Work<T>& w) {
+  std::vector<V3<T>>& planes = w.planes;
+  const int32_t n_regions = int32_t(w.regions.size());
+  // Unit normals and norms of all planes; regions' boxes (their candidate edges' ends and the
+  // E_h vertices inside them).
+  const size_t npl = planes.size();
+  w.unit.resize(npl);
+  w.pnorm.resize(npl);
+  for (size_t k = 0; k < npl; k++) {
+    w.unit[k] = normalize_safe(planes[k]);
+    w.pnorm[k] = norm(planes[k]);
+  }
+  for (int32_t r = 1; r < n_regions; r++)
+    for (int d = 0; d < 3; d++) {
+      w.regions[r].lo[d] = std::numeric_limits<T>::infinity();
+      w.regions[r].hi[d] = -std::numeric_limits<T>::infinity();
+    }
+  for (auto& e : w.edges) {
+    const T ca[3] = {e.a.x, e.a.y, e.a.z}, cb[3] = {e.b.x, e.b.y, e.b.z};
+    for (int d = 0; d < 3; d++) {
+      e.lo[d] = std::min(ca[d], cb[d]);
+      e.hi[d] = std::max(ca[d], cb[d]);
+      if (e.region > 0) {
+        Region<T>& R = w.regions[e.region];
+        R.lo[d] = std::min(R.lo[d], e.lo[d]);
+        R.hi[d] = std::max(R.hi[d], e.hi[d]);
+      }
+    }
+    e.uo = normalize_safe(e.own);
+  }
+  for (int i = 0; i < nehv; i++) {
+    V3<T> r = ehv[i] - p;
+    for (int32_t j = 1; j < n_regions; j++) {
+      const Region<T>& R = w.regions[j];
+      bool in = true;
+      for (int k = 0; k < R.count && in; k++) in = dot(r, planes[R.first + k]) >= 0;
+      if (in) {
+        Region<T>& Rw = w.regions[j];
+        const T c[3] = {ehv[i].x, ehv[i].y, ehv[i].z};
+        for (int d = 0; d < 3; d++) {
+          Rw.lo[d] = std::min(Rw.lo[d], c[d]);
+          Rw.hi[d] = std::max(Rw.hi[d], c[d]);
+        }
+      }
+    }
+  }
+
+  // Split every candidate edge (_clip._boundary_runs / edge_breakpoints).
+  const T big = std::numeric_limits<T>::infinity();
+  for (const Edge<T>& e : w.edges) {
+    V3<T> ap = e.a - p, d = e.b - e.a;
+    T apn = norm(ap) + norm(e.b - p);
+    T ext = 0;
+    for (int dd = 0; dd < 3; dd++) ext = std::max(ext, std::max(std::fabs(e.lo[dd]), std::fabs(e.hi[dd])));
+    T bmargin = T(1e3) * eps_of<T>() * (ext + absmax(p));
+    w.live.clear();
+    for (int32_t j = 0; j < n_regions; j++) {
+      if (j == e.region) continue;
+      const Region<T>& R = w.regions[j];
+      bool overlap = true;
+      const T elo[3] = {e.lo[0], e.lo[1], e.lo[2]}, ehi[3] = {e.hi[0], e.hi[1], e.hi[2]};
+      for (int dd = 0; dd < 3 && overlap; dd++)
+        overlap = !(ehi[dd] < R.lo[dd] - bmargin || R.hi[dd] < elo[dd] - bmargin);
+      if (overlap) w.live.push_back(j);
+    }
+    const int nl = int(w.live.size());
+    w.rlo.resize(nl);
+    w.rhi.resize(nl);
+    w.rnc.resize(nl);
+    w.rc.resize(nl);
+    w.rany.resize(nl);
+    w.rilo.resize(nl);
+    w.rihi.resize(nl);
+    for (int li = 0; li < nl; li++) {
+      const Region<T>& R = w.regions[w.live[li]];
+      T lo = -big, hi = big;
+      int ilo = 0, ihi = 0;
+      bool have_lo = false, have_hi = false;
+      bool c_nc = true, c_c = true, any_c = false;
+      for (int k = 0; k < R.count; k++) {
+        const int32_t pk = R.first + k;
+        const V3<T>& N = planes[pk];
+        bool valid = nonzero(N) && R.active;
+        T g0 = dot(ap, N), g1 = dot(d, N);
+        bool collinear = false;
+        if (valid) {
+          // Cheap exclusion first: an edge whose start is clearly off the plane is not on its line.
+          // (Parallel unit normals put both ends within |x - p| tol of the plane.)
+          if (!(std::fabs(g0) > T(4) * tol * w.pnorm[pk] * apn) && !(std::fabs(g0 + g1) > T(4) * tol * w.pnorm[pk] * apn)) {
+            V3<T> cr = cross(e.uo, w.unit[pk]);
+            collinear = dot(cr, cr) <= tol * tol;
+          }
+        }
+        bool side_ok = e.sigma * dot(w.unit[pk], e.uo) > 0;
+        bool generic = valid && !collinear;
+        T tc = g1 != 0 ? -g0 / g1 : T(0);
+        T tl = (generic && g1 > 0) ? tc : -big;
+        T th = (generic && g1 < 0) ? tc : big;
+        if (!have_lo || tl > lo) {
+          lo = tl;
+          ilo = pk;
+          have_lo = true;
+        }
+        if (!have_hi || th < hi) {
+          hi = th;
+          ihi = pk;
+          have_hi = true;
+        }
+        if (generic && !(g1 != 0 || g0 >= 0)) c_nc = false;
+        if (collinear && !side_ok) c_c = false;
+        if (collinear) any_c = true;
+      }
+      w.rlo[li] = lo;
+      w.rhi[li] = hi;
+      w.rnc[li] = c_nc;
+      w.rc[li] = c_c;
+      w.rany[li] = any_c;
+      w.rilo[li] = ilo;
+      w.rihi[li] = ihi;
+    }
+    // Breakpoints: 0, 1, then lo's and hi's of the live regions (clipped to [0, 1]).
+    w.ts.clear();
+    w.tcodes.clear();
+    w.ts.push_back(0);
+    w.tcodes.push_back(e.ca);
+    w.ts.push_back(1);
+    w.tcodes.push_back(e.cb);
+    for (int pass = 0; pass < 2; pass++)
+      for (int li = 0; li < nl; li++) {
+        T c = pass == 0 ? w.rlo[li] : w.rhi[li];
+        int32_t pk = pass == 0 ? w.rilo[li] : w.rihi[li];
+        Code cc;
+        if (c <= 0) {
+          cc = e.ca;
+        } else if (c >= 1) {
+          cc = e.cb;
+        } else {
+          cc = code_planes(e.own_ref, w.prefs[pk]);
+        }
+        w.ts.push_back(std::min(std::max(c, T(0)), T(1)));
+        w.tcodes.push_back(cc);
+      }
+    const int nt = int(w.ts.size());
+    w.order.resize(nt);
+    for (int i = 0; i < nt; i++) w.order[i] = i;
+    // Stable insertion sort by t (a handful of breakpoints; std::stable_sort allocates a buffer).
+    for (int i = 1; i < nt; i++) {
+      const int32_t x = w.order[i];
+      int j = i;
+      for (; j > 0 && w.ts[x] < w.ts[w.order[j - 1]]; j--) w.order[j] = w.order[j - 1];
+      w.order[j] = x;
+    }
+    // Pieces [ts[i], ts[i+1]]: free unless inside another region (one-sided) or tied.
+    w.free.resize(nt > 0 ? nt - 1 : 0);
+    for (int i = 0; i + 1 < nt; i++) {
+      T tm = T(0.5) * (w.ts[w.order[i]] + w.ts[w.order[i + 1]]);
+      bool blocked = false;
+      for (int li = 0; li < nl && !blocked; li++) {
+        if (!(w.rlo[li] < tm && tm < w.rhi[li])) continue;
+        const int32_t j = w.live[li];
+        bool member = w.rnc[li] && w.rc[li] && w.regions[j].active;
+        bool tie = w.rnc[li] && w.rany[li] && j < e.region;
+        blocked = (member && j > 0) || tie;
+      }
+      w.free[i] = !blocked;
+    }
+    // Runs of consecutive free pieces, kept when of positive length.
+    for (int i = 0; i + 1 < nt;) {
+      if (!w.free[i]) {
+        i++;
+        continue;
+      }
+      int j = i;
+      while (j + 1 < nt - 1 && w.free[j + 1]) j++;
+      if (w.ts[w.order[j + 1]] > w.ts[w.order[i]]) w.runs.push_back(Run{w.tcodes[w.order[i]], w.tcodes[w.order[j + 1]]});
+      i = j + 1;
+    }
+  }
+}
+
+}  // namespace jaxshadow_engine
+
+#endif  // JAXSHADOW_SHADOWC_BOUNDARY_H_

@@ -1,0 +1,279 @@
+// jaxshadow's shadow engine: driver (part of `_shadowc.cc`; see its header comment).
+#ifndef JAXSHADOW_SHADOWC_DRIVER_H_
+#define JAXSHADOW_SHADOWC_DRIVER_H_
+
+#include "polygon.h"
+#include "hard.h"
+
+namespace jaxshadow_engine {
+
+
+// ----------------------------------------------------------------------------------------------
+// Parallel driver
+// ----------------------------------------------------------------------------------------------
+
+template <class F>
+void parallel_for(int64_t n, int threads, F fn) {
+  if (threads <= 1 || n < 64) {
+    fn(0, 0, n);
+    return;
+  }
+  std::vector<std::thread> pool;
+  std::atomic<int64_t> next(0);
+  const int64_t block = std::max<int64_t>(64, n / (threads * 16));
+  for (int t = 0; t < threads; t++)
+    pool.emplace_back([&, t]() {
+      for (;;) {
+        int64_t s = next.fetch_add(block);
+        if (s >= n) break;
+        fn(t, s, std::min(n, s + block));
+      }
+    });
+  for (auto& th : pool) th.join();
+}
+
+int default_threads(int requested) {
+  if (requested > 0) return requested;
+  unsigned hc = std::thread::hardware_concurrency();
+  return hc ? int(std::min(hc, 64u)) : 1;
+}
+
+template <class T>
+Occluders<T> make_occ(int64_t K, int64_t M, int64_t Ko, const T* faces, const int32_t* face_solid,
+                      const int32_t* face_closed, int64_t S, const int32_t* solid_faces,
+                      const int32_t* solid_edge_off, const int32_t* solid_edges) {
+  Occluders<T> occ;
+  occ.K = K;
+  occ.M = M;
+  occ.Ko = Ko;
+  occ.faces = faces;
+  occ.face_solid = face_solid;
+  occ.face_closed = face_closed;
+  occ.S = S;
+  occ.solid_faces = solid_faces;
+  occ.solid_edge_off = solid_edge_off;
+  occ.solid_edges = solid_edges;
+  return occ;
+}
+
+// The points of endpoint codes, as `_visibility.decode_endpoints` computes them (the same formulas
+// in the same order): for evaluations that are not differentiated, the JAX side then only
+// integrates over ready-made edges.
+template <class T>
+struct Decoder {
+  const PolyCall<T>& call;
+  V3<T> p, n, e0, ne;
+  T hp;
+  Decoder(const PolyCall<T>& c, V3<T> p_, V3<T> n_) : call(c), p(p_), n(n_) {
+    const int64_t K = c.L.K;
+    e0 = c.L.v(0);
+    ne = V3<T>{0, 0, 0};
+    for (int64_t i = 0; i < K; i++) ne = ne + cross(c.L.v(i), c.L.v((i + 1) % K));
+    ne = pow2_scale(absmax(ne)) * ne;
+    hp = dot(ne, p - e0);
+  }
+  V3<T> V(int32_t r) const { return r < call.L.K ? call.L.v(r) : call.occ.vref(r); }
+  V3<T> face_normal(int32_t f) const {
+    const Occluders<T>& o = call.occ;
+    V3<T> v0 = o.vert(f, 0), acc{0, 0, 0};
+    for (int64_t i = 0; i < o.Ko; i++) acc = acc + cross(o.vert(f, i) - v0, o.vert(f, (i + 1) % o.Ko) - v0);
+    return acc;
+  }
+  V3<T> plane(int32_t t, int32_t a, int32_t b) const {
+    V3<T> out;
+    if (t == kThrough) {
+      out = edge_plane(p, V(a), V(b));
+    } else if (t == kHorizonPlane) {
+      out = n;
+    } else {
+      V3<T> fn = face_normal(a), f0 = call.occ.vert(a, 0);
+      T d = dot(fn, f0 - p);
+      T sg = d > 0 ? T(1) : (d < 0 ? T(-1) : T(0));
+      out = (hp * sg) * fn + std::fabs(d) * ne;
+    }
+    return rescale(out);
+  }
+  V3<T> point(const Code& c) const {
+    const int32_t kind = c.v[0];
+    switch (kind) {
+      case kLightVertex:
+        return V(c.v[1]);
+      case kHorizon: {
+        V3<T> va = V(c.v[1]), vb = V(int32_t((c.v[1] + 1) % call.L.K));
+        T da = dot(va - p, n), db = dot(vb - p, n);
+        T t = da != db ? da / (da - db) : T(0);
+        return va + t * (vb - va);
+      }
+      case kProjected:
+        return project(p, V(c.v[1]), ne, hp);
+      case kEmitterCross: {
+        V3<T> va = V(c.v[1]), vb = V(c.v[2]);
+        T da = dot(va - e0, ne), db = dot(vb - e0, ne);
+        T t = da != db ? da / (da - db) : T(0);
+        return project(p, va + t * (vb - va), ne, hp);
+      }
+      case kPlanes: {
+        V3<T> n1 = plane(c.v[1], c.v[2], c.v[3]), n2 = plane(c.v[4], c.v[5], c.v[6]);
+        return crossing_point(p, cross(n1, n2), ne, hp);
+      }
+      default:
+        return e0;
+    }
+  }
+};
+
+// Receiver i of a polygon light: its class, with `w.runs` its boundary; a light of more than 64
+// vertices gives kZero and sets `err`.
+template <class T>
+int32_t receiver_class(const PolyCall<T>& call, const T* P, const T* Nrm, int64_t i, Work<T>& w, std::atomic<int>& err) {
+  int32_t c = polygon_receiver(call, ld(P + 3 * i), ld(Nrm + 3 * i), w);
+  if (c < 0) {
+    err = 1;
+    c = kZero;
+    w.runs.clear();
+  }
+  return c;
+}
+
+// Polygon plan, CSR output: classes (N), offsets (N + 1), runs (R, 2, 7) codes and/or (R, 2, 3) points
+// (malloc'd, freed by the caller).
+template <class T>
+int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const Occluders<T>& occ, int threads,
+              int32_t* cls, int32_t* stats, int64_t* offsets, int32_t** runs_out, T** points_out, int64_t* nruns_out) {
+  BVH bvh = build_bvh(occ);
+  prepare_solids(occ, bvh);
+  PolyCall<T> call{Light<T>{K, E}, occ, &bvh, {}};
+  light_sides(call);
+  threads = default_threads(threads);
+  struct Block {
+    int64_t s, e;
+    std::vector<int32_t> codes;
+    std::vector<T> pts;
+  };
+  std::vector<std::vector<Block>> per_thread(threads);
+  std::vector<int32_t> counts(N, 0);
+  std::atomic<int> err(0);
+  parallel_for(N, threads, [&](int t, int64_t s, int64_t e) {
+    Work<T> w;
+    w.lit_runs = false;
+    Block blk;
+    blk.s = s;
+    blk.e = e;
+    for (int64_t i = s; i < e; i++) {
+      const int32_t c = receiver_class(call, P, Nrm, i, w, err);
+      cls[i] = c;
+      // Only penumbra receivers are evaluated from their boundary: a lit receiver's would be
+      // E_h's own edges (the unoccluded kernel evaluates it), so none are stored.
+      if (c != kPenumbra) w.runs.clear();
+      counts[i] = int32_t(w.runs.size());
+      if (stats) {
+        stats[2 * i] = w.n_candidates;
+        stats[2 * i + 1] = w.n_regions;
+      }
+      if (runs_out)
+        for (const Run& r : w.runs) {
+          blk.codes.insert(blk.codes.end(), r.s.v, r.s.v + 7);
+          blk.codes.insert(blk.codes.end(), r.e.v, r.e.v + 7);
+        }
+      if (points_out && !w.runs.empty()) {
+        Decoder<T> dec(call, ld(P + 3 * i), ld(Nrm + 3 * i));
+        for (const Run& r : w.runs) {
+          V3<T> a = dec.point(r.s), b = dec.point(r.e);
+          const T q[6] = {a.x, a.y, a.z, b.x, b.y, b.z};
+          blk.pts.insert(blk.pts.end(), q, q + 6);
+        }
+      }
+    }
+    per_thread[t].push_back(std::move(blk));
+  });
+  offsets[0] = 0;
+  for (int64_t i = 0; i < N; i++) offsets[i + 1] = offsets[i] + counts[i];
+  int64_t total = offsets[N];
+  *nruns_out = total;
+  if (runs_out) {
+    int32_t* runs = static_cast<int32_t*>(std::malloc(sizeof(int32_t) * 14 * std::max<int64_t>(total, 1)));
+    if (!runs) return 2;
+    for (auto& blocks : per_thread)
+      for (auto& blk : blocks)
+        if (!blk.codes.empty()) std::memcpy(runs + 14 * offsets[blk.s], blk.codes.data(), sizeof(int32_t) * blk.codes.size());
+    *runs_out = runs;
+  }
+  if (points_out) {
+    T* pts = static_cast<T*>(std::malloc(sizeof(T) * 6 * std::max<int64_t>(total, 1)));
+    if (!pts) return 2;
+    for (auto& blocks : per_thread)
+      for (auto& blk : blocks)
+        if (!blk.pts.empty()) std::memcpy(pts + 6 * offsets[blk.s], blk.pts.data(), sizeof(T) * blk.pts.size());
+    *points_out = pts;
+  }
+  return err.load();
+}
+
+// Fixed-capacity variant (the FFI handler's layout): runs (N, cap, 2, 7), unused slots kUnused.
+template <class T>
+int poly_fixed(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const Occluders<T>& occ, int threads,
+               int64_t cap, int32_t* cls, int32_t* counts, int32_t* runs) {
+  BVH bvh = build_bvh(occ);
+  prepare_solids(occ, bvh);
+  PolyCall<T> call{Light<T>{K, E}, occ, &bvh, {}};
+  light_sides(call);
+  std::atomic<int> err(0);
+  parallel_for(N, default_threads(threads), [&](int, int64_t s, int64_t e) {
+    Work<T> w;
+    for (int64_t i = s; i < e; i++) {
+      const int32_t c = receiver_class(call, P, Nrm, i, w, err);
+      cls[i] = c;
+      counts[i] = int32_t(w.runs.size());
+      int32_t* out = runs + i * cap * 14;
+      int64_t m = std::min<int64_t>(cap, int64_t(w.runs.size()));
+      for (int64_t k = 0; k < m; k++) {
+        std::memcpy(out + 14 * k, w.runs[k].s.v, 7 * sizeof(int32_t));
+        std::memcpy(out + 14 * k + 7, w.runs[k].e.v, 7 * sizeof(int32_t));
+      }
+      for (int64_t k = m; k < cap; k++)
+        for (int q = 0; q < 14; q++) out[14 * k + q] = (q % 7 == 0) ? kUnused : 0;
+    }
+  });
+  return err.load();
+}
+
+template <class T>
+int hard_plan(int64_t N, const T* P, const T* X, int is_point, const Occluders<T>& occ, int threads, uint8_t* visible) {
+  BVH bvh = build_bvh(occ);
+  V3<T> x = ld(X);
+  parallel_for(N, default_threads(threads), [&](int, int64_t s, int64_t e) {
+    std::vector<std::pair<int32_t, int32_t>> cand;
+    for (int64_t i = s; i < e; i++) {
+      V3<T> p = ld(P + 3 * i);
+      bool blocked = is_point ? ray_blocked(occ, bvh, p, x - p, &x, cand)
+                              : ray_blocked(occ, bvh, p, T(-1) * x, static_cast<const V3<T>*>(nullptr), cand);
+      visible[i] = blocked ? 0 : 1;
+    }
+  });
+  return 0;
+}
+
+template <class T>
+int segment_plan(int64_t N, const T* P, const T* A, const T* B, const Occluders<T>& occ, int threads,
+                 int64_t* offsets, int32_t** faces_out) {
+  BVH bvh = build_bvh(occ);
+  V3<T> a = ld(A), b = ld(B);
+  std::vector<std::vector<int32_t>> lists(N);
+  parallel_for(N, default_threads(threads), [&](int, int64_t s, int64_t e) {
+    std::vector<std::pair<int32_t, int32_t>> cand;
+    for (int64_t i = s; i < e; i++) segment_candidates(occ, bvh, ld(P + 3 * i), a, b, lists[i], cand);
+  });
+  offsets[0] = 0;
+  for (int64_t i = 0; i < N; i++) offsets[i + 1] = offsets[i] + int64_t(lists[i].size());
+  int32_t* out = static_cast<int32_t*>(std::malloc(sizeof(int32_t) * std::max<int64_t>(offsets[N], 1)));
+  if (!out) return 2;
+  for (int64_t i = 0; i < N; i++)
+    if (!lists[i].empty()) std::memcpy(out + offsets[i], lists[i].data(), sizeof(int32_t) * lists[i].size());
+  *faces_out = out;
+  return 0;
+}
+
+
+}  // namespace jaxshadow_engine
+
+#endif  // JAXSHADOW_SHADOWC_DRIVER_H_

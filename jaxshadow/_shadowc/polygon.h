@@ -1,0 +1,500 @@
+// jaxshadow's shadow engine: polygon (part of `_shadowc.cc`; see its header comment).
+#ifndef JAXSHADOW_SHADOWC_POLYGON_H_
+#define JAXSHADOW_SHADOWC_POLYGON_H_
+
+#include "boundary.h"
+
+namespace jaxshadow_engine {
+
+// Output of one receiver: class and runs (appended to w.runs).
+template <class T>
+int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) {
+  w.n_candidates = 0;
+  w.n_regions = 0;
+  const int64_t K = call.L.K;
+  const Occluders<T>& occ = call.occ;
+  const T tol = T(kCollinearEps) * eps_of<T>();
+  w.runs.clear();
+  w.cand.clear();
+  const double pd[3] = {double(p.x), double(p.y), double(p.z)};
+
+  // Emitter frame (_clip._emitter_frame).
+  V3<T> e0 = call.L.v(0);
+  V3<T> ne = call.ne_raw;
+  T hp = dot(ne, p - e0);
+  if (!(hp > 0)) return kZero;
+  if (K > 64) return -1;
+
+  // Candidate items: the hierarchy queried with the pyramid over the light (planes through p
+  // and the light's edges, as plain cross products), the horizon and the emitter plane (the
+  // pyramid lies on p's side of it). The pyramid over E_h lies inside. The margin bounds the
+  // rounding of the planes and of the boxes' coordinates; it keeps touching items.
+  {
+    HalfSpace hs[67];
+    int nh = 0;
+    auto add = [&](V3<T> nn, V3<T> q) {
+      hs[nh] = HalfSpace{{double(nn.x), double(nn.y), double(nn.z)}, {double(q.x), double(q.y), double(q.z)}};
+      nh++;
+    };
+    for (int64_t i = 0; i < K; i++) {
+      V3<T> a = call.L.v(i), b = call.L.v((i + 1) % K);
+      if (!same(a, b)) add(cross(b - p, a - p), p);
+    }
+    add(n, p);
+    add(ne, e0);
+    const double scale = std::max(double(absmax(p)), double(absmax(e0))) + 1.0;
+    const double margin = 1e3 * double(eps_of<T>()) * scale + 64 * double(eps_of<T>()) * (call.item_extent + scale);
+    query(*call.bvh, hs, nh, margin, w.cand);
+  }
+  if (w.cand.empty() && !w.lit_runs && call.light_has_edge) {
+    // Nothing can block: lit, or zero below the horizon. With the whole light above the horizon,
+    // E_h is the light itself (a nonempty boundary: the light has an edge), as below.
+    bool any_in = false, all_in = true;
+    for (int64_t i = 0; i < K; i++) {
+      const bool in = dot(call.L.v(i) - p, n) >= 0;
+      any_in = any_in || in;
+      all_in = all_in && in;
+    }
+    if (!any_in) return kZero;
+    if (all_in) return kLit;
+  }
+  T esc = pow2_scale(absmax(ne));
+  ne = esc * ne;
+  hp = esc * hp;
+
+  // E_h (horizon_clip_edges(p, n, E)): K + 1 edges with codes.
+  w.edges.clear();
+  w.planes.clear();
+  w.prefs.clear();
+  w.regions.clear();
+  std::vector<V3<T>>& planes = w.planes;
+  // Region 0 planes: the light's edge planes (v_{i+1} - p) x (v_i - p), then the horizon.
+  for (int64_t i = 0; i < K; i++) {
+    V3<T> a = call.L.v(i), b = call.L.v((i + 1) % K);
+    V3<T> pl = same(a, b) ? V3<T>{0, 0, 0} : edge_plane(p, a, b);
+    planes.push_back(rescale(pl));
+    w.prefs.push_back(through(int32_t(i), int32_t((i + 1) % K)));
+  }
+  planes.push_back(rescale(n));
+  w.prefs.push_back(PlaneRef{kHorizonPlane, 0, 0});
+  const int np0 = int(K + 1);
+  {
+    Region<T> r0;
+    r0.first = 0;
+    r0.count = np0;
+    r0.active = true;
+    w.regions.push_back(r0);
+  }
+  T da[64], db[64];
+  bool any_above = false;
+  V3<T> exit_pt{}, entry_pt{};
+  int32_t exit_i = -1, entry_i = -1;
+  V3<T> ehv[130];  // E_h's vertices (for the umbra and box tests)
+  int nehv = 0;
+  for (int64_t i = 0; i < K; i++) {
+    V3<T> a = call.L.v(i), b = call.L.v((i + 1) % K);
+    da[i] = dot(a - p, n);
+    db[i] = dot(b - p, n);
+  }
+  for (int64_t i = 0; i < K; i++) {
+    V3<T> a = call.L.v(i), b = call.L.v((i + 1) % K);
+    bool ain = da[i] >= 0, bin = db[i] >= 0;
+    bool crossing = ain != bin;
+    T t = crossing ? da[i] / (da[i] - db[i]) : T(0);
+    V3<T> x = a + t * (b - a);
+    if (ain) any_above = true;
+    if (ain && !bin) {
+      exit_pt = x;
+      exit_i = int32_t(i);
+    }
+    if (!ain && bin) {
+      entry_pt = x;
+      entry_i = int32_t(i);
+    }
+    if (!(ain || bin)) continue;  // collapsed
+    Edge<T> e;
+    e.a = ain ? a : x;
+    e.b = bin ? b : x;
+    e.ca = ain ? code_point(kLightVertex, int32_t(i)) : code_point(kHorizon, int32_t(i));
+    e.cb = bin ? code_point(kLightVertex, int32_t((i + 1) % K)) : code_point(kHorizon, int32_t(i));
+    if (same(e.a, e.b)) continue;
+    e.own = planes[i];
+    e.own_ref = w.prefs[i];
+    e.sigma = 1;
+    e.region = 0;
+    w.edges.push_back(e);
+    ehv[nehv++] = e.a;
+    ehv[nehv++] = e.b;
+  }
+  if (!any_above) return kZero;
+  if (exit_i >= 0 && entry_i >= 0 && !same(exit_pt, entry_pt)) {
+    Edge<T> e;
+    e.a = exit_pt;
+    e.b = entry_pt;
+    e.ca = code_point(kHorizon, exit_i);
+    e.cb = code_point(kHorizon, entry_i);
+    e.own = planes[K];
+    e.own_ref = w.prefs[K];
+    e.sigma = 1;
+    e.region = 0;
+    w.edges.push_back(e);
+  }
+  const size_t n_eh_edges = w.edges.size();
+  if (n_eh_edges == 0) return kZero;
+  // E_h's box in the emitter plane.
+  T ehlo[3], ehhi[3];
+  for (int d = 0; d < 3; d++) {
+    ehlo[d] = std::numeric_limits<T>::infinity();
+    ehhi[d] = -std::numeric_limits<T>::infinity();
+  }
+  for (int i = 0; i < nehv; i++) {
+    const T c[3] = {ehv[i].x, ehv[i].y, ehv[i].z};
+    for (int d = 0; d < 3; d++) {
+      ehlo[d] = std::min(ehlo[d], c[d]);
+      ehhi[d] = std::max(ehhi[d], c[d]);
+    }
+  }
+  for (int d = 0; d < 3; d++) {
+    w.regions[0].lo[d] = ehlo[d];
+    w.regions[0].hi[d] = ehhi[d];
+  }
+
+  if (w.cand.empty() && !w.lit_runs) return kLit;
+
+  // Per candidate: its region (planes through p) and candidate edges, or drop it.
+  V3<T> cone[65];  // E_h's planes (a copy: `planes` grows below)
+  T cnorm[65];
+  for (int k = 0; k < np0; k++) {
+    cone[k] = planes[k];
+    cnorm[k] = norm(cone[k]);
+  }
+  const T nenorm = norm(ne);
+
+  // A region none of whose edges crosses E_h either misses E_h or contains all of it (both are
+  // convex): E_h's centroid decides. Without this, a region that covers E_h with an edge exactly
+  // on E_h's boundary (a receiver on an umbra boundary, an EV event) was taken for a miss and the
+  // receiver came out fully lit.
+  V3<T> eh_centre{0, 0, 0};
+  for (int i = 0; i < nehv; i++) eh_centre = eh_centre + ehv[i];
+  eh_centre = (T(1) / T(nehv > 0 ? nehv : 1)) * eh_centre;
+  auto covers_eh = [&](const V3<T>* pl, int np) -> bool {
+    V3<T> r = eh_centre - p;
+    for (int k = 0; k < np; k++)
+      if (nonzero(pl[k]) && !(dot(r, pl[k]) >= 0)) return false;
+    return true;
+  };
+
+  // An occluder region's planes are planes[first, first + np) and its candidate edges were pushed
+  // after `before`: without any, it misses E_h (0, dropped) or covers all of it (2, umbra); else it
+  // becomes a region (1).
+  auto close_region = [&](int32_t first, int np, size_t before) -> int {
+    if (w.edges.size() == before) {
+      const bool covers = covers_eh(planes.data() + first, np);
+      planes.resize(first);
+      w.prefs.resize(first);
+      return covers ? 2 : 0;
+    }
+    Region<T> r;
+    r.first = first;
+    r.count = np;
+    r.active = true;
+    w.regions.push_back(r);
+    return 1;
+  };
+
+  auto add_face = [&](int64_t f, bool closed_ok) -> int {  // 0 dropped, 1 added, 2 umbra
+    const int64_t Ko = occ.Ko;
+    if (Ko > 64) return 0;
+    if (call.light_side[f] != 0 && point_side(occ, f, p) == call.light_side[f]) return 0;
+    // Cheap rejections first (_bsp.occluder_relevance): all vertices strictly outside one cone
+    // plane, or strictly behind the emitter plane (|r|_1 >= |r|: a looser, still strict, test).
+    for (int k = 0; k < np0; k++) {
+      if (!nonzero(cone[k])) continue;
+      bool all_out = true;
+      for (int64_t i = 0; i < Ko && all_out; i++) {
+        V3<T> r = occ.vert(f, i) - p;
+        all_out = dot(r, cone[k]) < -tol * cnorm[k] * (std::fabs(r.x) + std::fabs(r.y) + std::fabs(r.z));
+      }
+      if (all_out) return 0;
+    }
+    {
+      bool all_behind = true;
+      for (int64_t i = 0; i < Ko && all_behind; i++) {
+        V3<T> r = occ.vert(f, i) - e0;
+        all_behind = dot(r, ne) < -tol * nenorm * (std::fabs(r.x) + std::fabs(r.y) + std::fabs(r.z));
+      }
+      if (all_behind) return 0;
+    }
+    V3<T> rel[64];
+    const FaceSide<T> fs = face_side(occ, f, p, rel);
+    if (fs.side == 0) return 0;  // inactive: blocks a zero solid angle (or not finite)
+    const T sigma = fs.scale, h0 = fs.h0, s = T(fs.side);
+    const V3<T> no = fs.no;
+    if (closed_ok && s < 0 && occ.face_closed && call.bvh->outside_mesh(occ.face_closed[f], pd)) return 0;  // back face
+    // Region planes: oriented edge planes, then the emitter-plane cut (_occluder_regions).
+    const int32_t first = int32_t(planes.size());
+    for (int64_t i = 0; i < Ko; i++) {
+      V3<T> a = occ.vert(f, i), b = occ.vert(f, (i + 1) % Ko);
+      V3<T> pl = same(a, b) ? V3<T>{0, 0, 0} : s * edge_plane(p, a, b);
+      planes.push_back(pl);
+      w.prefs.push_back(through(occ.ref(f, i), occ.ref(f, (i + 1) % Ko)));
+    }
+    V3<T> ncut = rescale((hp * sigma * -s) * no + std::fabs(h0) * ne);
+    planes.push_back(ncut);
+    w.prefs.push_back(PlaneRef{kCut, int32_t(f), 0});
+    const int np = int(Ko + 1);
+    const V3<T>* pl = planes.data() + first;
+    // Umbra: every E_h vertex strictly inside all the region's planes.
+    {
+      bool all_in = true;
+      for (int i = 0; i < nehv && all_in; i++) {
+        V3<T> r = ehv[i] - p;
+        T rn = norm(r);
+        for (int k = 0; k < np && all_in; k++)
+          if (nonzero(pl[k])) all_in = dot(r, pl[k]) > tol * norm(pl[k]) * rn;
+      }
+      if (all_in) return 2;
+    }
+    // Candidate edges: the effective blocker (horizon_clip_edges(e0, ne, occ)), each clipped to the
+    // pyramid (p, E_h) and projected; reversed (R lies outside).
+    T ha[64], hb[64];
+    for (int64_t i = 0; i < Ko; i++) {
+      ha[i] = dot(occ.vert(f, i) - e0, ne);
+      hb[i] = dot(occ.vert(f, (i + 1) % Ko) - e0, ne);
+    }
+    const size_t before = w.edges.size();
+    V3<T> bexit{}, bentry{};
+    int64_t bexit_i = -1, bentry_i = -1;
+    auto emit = [&](V3<T> a3, V3<T> b3, Code ca3, Code cb3, V3<T> own, PlaneRef oref) {
+      if (same(a3, b3)) return;
+      T t0, t1;
+      int i0, i1;
+      if (!cyrus_beck(p, a3, b3, cone, np0, t0, t1, i0, i1)) return;
+      V3<T> a2, b2;
+      Code c2a, c2b;
+      if (t0 > 0) {
+        a2 = crossing_point(p, cross(cone[i0], own), ne, hp);
+        c2a = code_planes(w.prefs[i0], oref);
+      } else {
+        a2 = project(p, a3, ne, hp);
+        c2a = ca3;
+      }
+      if (t1 < 1) {
+        b2 = crossing_point(p, cross(cone[i1], own), ne, hp);
+        c2b = code_planes(w.prefs[i1], oref);
+      } else {
+        b2 = project(p, b3, ne, hp);
+        c2b = cb3;
+      }
+      Edge<T> e;
+      if (s > 0) {
+        e.a = b2;
+        e.b = a2;
+        e.ca = c2b;
+        e.cb = c2a;
+      } else {
+        e.a = a2;
+        e.b = b2;
+        e.ca = c2a;
+        e.cb = c2b;
+      }
+      if (same(e.a, e.b)) return;
+      e.own = own;
+      e.own_ref = oref;
+      e.sigma = -1;
+      e.region = int32_t(w.regions.size());
+      w.edges.push_back(e);
+    };
+    for (int64_t i = 0; i < Ko; i++) {
+      V3<T> a = occ.vert(f, i), b = occ.vert(f, (i + 1) % Ko);
+      bool ain = ha[i] >= 0, bin = hb[i] >= 0;
+      bool crossing = ain != bin;
+      T t = crossing ? ha[i] / (ha[i] - hb[i]) : T(0);
+      V3<T> x = a + t * (b - a);
+      Code cx = code_point(kEmitterCross, occ.ref(f, i), occ.ref(f, (i + 1) % Ko));
+      if (ain && !bin) {
+        bexit = x;
+        bexit_i = i;
+      }
+      if (!ain && bin) {
+        bentry = x;
+        bentry_i = i;
+      }
+      if (!(ain || bin)) continue;
+      V3<T> a3 = ain ? a : x, b3 = bin ? b : x;
+      Code ca3 = ain ? code_point(kProjected, occ.ref(f, i)) : cx;
+      Code cb3 = bin ? code_point(kProjected, occ.ref(f, (i + 1) % Ko)) : cx;
+      if (same(a, b)) continue;
+      emit(a3, b3, ca3, cb3, planes[first + i], w.prefs[first + i]);
+    }
+    if (bexit_i >= 0 && bentry_i >= 0) {
+      Code cx = code_point(kEmitterCross, occ.ref(f, bexit_i), occ.ref(f, (bexit_i + 1) % Ko));
+      Code cy = code_point(kEmitterCross, occ.ref(f, bentry_i), occ.ref(f, (bentry_i + 1) % Ko));
+      emit(bexit, bentry, cx, cy, planes[first + Ko], w.prefs[first + Ko]);
+    }
+    return close_region(first, np, before);  // its projection misses E_h, covers it, or bounds R
+  };
+
+  auto add_solid = [&](int64_t sidx) -> int {  // 0 dropped, 1 added, 2 umbra, 3 use its faces
+    const int64_t f0 = occ.solid_faces[2 * sidx], f1 = occ.solid_faces[2 * sidx + 1];
+    const BVH& bv = *call.bvh;
+    const int32_t v0i = bv.solid_vert_off[sidx], v1i = bv.solid_vert_off[sidx + 1];
+    uint8_t front[256];
+    if (f1 - f0 > 256) return 3;
+    // Strictly outside one cone plane: cannot block (its distinct vertices).
+    for (int k = 0; k < np0; k++) {
+      if (!nonzero(cone[k])) continue;
+      bool all_out = true;
+      for (int32_t q = v0i; q < v1i && all_out; q++) {
+        V3<T> r = ld(occ.faces + 3 * int64_t(bv.solid_verts[q])) - p;
+        all_out = dot(r, cone[k]) < -tol * cnorm[k] * (std::fabs(r.x) + std::fabs(r.y) + std::fabs(r.z));
+      }
+      if (all_out) return 0;
+    }
+    // The cone through the silhouette needs the solid strictly on p's side of the light's plane
+    // and p strictly in front of at least one face (outside the solid); otherwise its faces are used.
+    for (int32_t q = v0i; q < v1i; q++) {
+      V3<T> r = ld(occ.faces + 3 * int64_t(bv.solid_verts[q])) - e0;
+      if (!(dot(r, ne) > tol * nenorm * (std::fabs(r.x) + std::fabs(r.y) + std::fabs(r.z)))) return 3;
+    }
+    // Faces whose plane holds p (within the rounding bound `m`: a box resting on the floor, seen
+    // from the floor) are taken as back faces. They are seen edge-on and block a zero solid
+    // angle; the silhouette is then that of a point just behind their planes, whose edges all
+    // border a strictly front face, so every silhouette plane's orientation is decided by a
+    // strictly nonzero height. Where p is truly (by less than `m`) in front of such a face, the
+    // cone leaves out that face's projection, a sliver of angular width O(m / |x - p|): round-off.
+    bool any_front = false;
+    for (int64_t f = f0; f < f1; f++) {
+      const double* fp = bv.face_plane.data() + 6 * f;
+      double rx = pd[0] - fp[3], ry = pd[1] - fp[4], rz = pd[2] - fp[5];
+      double h = fp[0] * rx + fp[1] * ry + fp[2] * rz;
+      double m = 1e3 * double(eps_of<T>()) * (std::fabs(rx) + std::fabs(ry) + std::fabs(rz) + std::fabs(fp[3]) +
+                                              std::fabs(fp[4]) + std::fabs(fp[5]));
+      const bool strict_front = h > m;
+      front[f - f0] = strict_front;
+      any_front = any_front || strict_front;
+      if (strict_front && call.light_side[f] > 0) return 0;  // the face's plane separates solid and pyramid
+    }
+    if (!any_front) return 3;  // p inside the solid or on its surface
+    // Silhouette planes (through p and the edges between a front and a back face).
+    const int32_t first = int32_t(planes.size());
+    const size_t before = w.edges.size();
+    const int32_t e0i = occ.solid_edge_off[sidx], e1i = occ.solid_edge_off[sidx + 1];
+    struct SE {
+      int32_t ra, rb;
+    };
+    SE sil[64];
+    int nsil = 0;
+    for (int32_t k = e0i; k < e1i; k++) {
+      const int32_t* ed = occ.solid_edges + 4 * k;
+      bool fl = front[ed[2] - f0], fr = front[ed[3] - f0];
+      if (fl == fr) continue;
+      if (nsil >= 16) {
+        planes.resize(first);
+        w.prefs.resize(first);
+        return 3;
+      }
+      // In the front face's counter-clockwise order (seen from p) the edge runs ra -> rb.
+      const int32_t ra = int32_t(occ.K) + ed[0], rb = int32_t(occ.K) + ed[1];  // flat face-vertex slots -> refs
+      sil[nsil++] = fl ? SE{ra, rb} : SE{rb, ra};
+    }
+    if (nsil < 3) return 3;
+    for (int k = 0; k < nsil; k++) {
+      planes.push_back(edge_plane(p, occ.vref(sil[k].ra), occ.vref(sil[k].rb)));
+      w.prefs.push_back(through(sil[k].ra, sil[k].rb));
+    }
+    const V3<T>* pl = planes.data() + first;
+    for (int k = 0; k < nsil; k++) {  // E_h strictly outside one silhouette plane: disjoint cones
+      T pn = norm(pl[k]);
+      bool all_out = true;
+      for (int i = 0; i < nehv && all_out; i++) {
+        V3<T> r = ehv[i] - p;
+        all_out = dot(r, pl[k]) < -tol * pn * (std::fabs(r.x) + std::fabs(r.y) + std::fabs(r.z));
+      }
+      if (all_out) {
+        planes.resize(first);
+        w.prefs.resize(first);
+        return 0;
+      }
+    }
+    {
+      bool all_in = true;
+      for (int i = 0; i < nehv && all_in; i++) {
+        V3<T> r = ehv[i] - p;
+        T rn = norm(r);
+        for (int k = 0; k < nsil && all_in; k++) all_in = dot(r, pl[k]) > tol * norm(pl[k]) * rn;
+      }
+      if (all_in) return 2;
+    }
+    for (int k = 0; k < nsil; k++) {
+      V3<T> a3 = occ.vref(sil[k].ra), b3 = occ.vref(sil[k].rb);
+      T t0, t1;
+      int i0, i1;
+      if (!cyrus_beck(p, a3, b3, cone, np0, t0, t1, i0, i1)) continue;
+      V3<T> own = planes[first + k];
+      PlaneRef oref = w.prefs[first + k];
+      Edge<T> e;
+      // Q's boundary runs a -> b counter-clockwise: R's edge is b -> a.
+      if (t1 < 1) {
+        e.a = crossing_point(p, cross(cone[i1], own), ne, hp);
+        e.ca = code_planes(w.prefs[i1], oref);
+      } else {
+        e.a = project(p, b3, ne, hp);
+        e.ca = code_point(kProjected, sil[k].rb);
+      }
+      if (t0 > 0) {
+        e.b = crossing_point(p, cross(cone[i0], own), ne, hp);
+        e.cb = code_planes(w.prefs[i0], oref);
+      } else {
+        e.b = project(p, a3, ne, hp);
+        e.cb = code_point(kProjected, sil[k].ra);
+      }
+      if (same(e.a, e.b)) continue;
+      e.own = own;
+      e.own_ref = oref;
+      e.sigma = -1;
+      e.region = int32_t(w.regions.size());
+      w.edges.push_back(e);
+    }
+    return close_region(first, nsil, before);  // its cone misses E_h, covers it, or bounds R
+  };
+
+  w.n_candidates = int32_t(w.cand.size());
+  for (const auto& kv : w.cand) {
+    int32_t item = kv.second;
+    int res;
+    if (item >= 0) {
+      res = add_face(item, true);
+    } else {
+      int64_t sidx = -int64_t(item) - 1;
+      res = add_solid(sidx);
+      if (res == 3) {
+        res = 0;
+        for (int64_t f = occ.solid_faces[2 * sidx]; f < occ.solid_faces[2 * sidx + 1]; f++) {
+          int r2 = add_face(f, true);
+          if (r2 == 2) {
+            res = 2;
+            break;
+          }
+        }
+      }
+    }
+    if (res == 2) {
+      w.runs.clear();
+      w.n_regions = int32_t(w.regions.size());
+      return kUmbra;
+    }
+  }
+  const int32_t n_regions = int32_t(w.regions.size());
+  w.n_regions = n_regions - 1;
+  if (n_regions == 1) {
+    for (size_t i = 0; i < w.edges.size(); i++) w.runs.push_back(Run{w.edges[i].ca, w.edges[i].cb});
+    return kLit;
+  }
+  boundary_runs(p, tol, ehv, nehv, w);
+  return kPenumbra;
+}
+
+}  // namespace jaxshadow_engine
+
+#endif  // JAXSHADOW_SHADOWC_POLYGON_H_

@@ -1,0 +1,181 @@
+// jaxshadow's shadow engine: polygon_types (part of `_shadowc.cc`; see its header comment).
+#ifndef JAXSHADOW_SHADOWC_POLYGON_TYPES_H_
+#define JAXSHADOW_SHADOWC_POLYGON_TYPES_H_
+
+#include "bvh.h"
+
+namespace jaxshadow_engine {
+
+
+// ----------------------------------------------------------------------------------------------
+// Polygon lights: one receiver
+// ----------------------------------------------------------------------------------------------
+
+template <class T>
+struct Edge {
+  V3<T> a, b;      // in the emitter plane
+  V3<T> own;       // normal of the plane through p and the edge's line
+  V3<T> uo;        // its unit vector
+  PlaneRef own_ref;
+  Code ca, cb;     // endpoint codes of a and b
+  T sigma;         // +1: R on the interior side of `own` (E_h), -1: outside (occluders)
+  int32_t region;
+  T lo[3], hi[3];  // bounding box
+};
+
+template <class T>
+struct Region {
+  int32_t first, count;  // planes in the receiver's plane table
+  bool active;
+  T lo[3], hi[3];  // box of region ∩ E_h, in the emitter plane
+};
+
+struct Run {
+  Code s, e;
+};
+
+template <class T>
+struct Work {  // per-thread scratch
+  std::vector<std::pair<int32_t, int32_t>> cand;
+  std::vector<V3<T>> planes, unit;
+  std::vector<T> pnorm;
+  std::vector<PlaneRef> prefs;
+  std::vector<Region<T>> regions;
+  std::vector<Edge<T>> edges;
+  std::vector<Run> runs;
+  std::vector<T> ts;
+  std::vector<Code> tcodes;
+  std::vector<int32_t> order;
+  std::vector<T> rlo, rhi;
+  std::vector<uint8_t> rnc, rc, rany, rlive;
+  std::vector<int32_t> rilo, rihi;
+  std::vector<int32_t> live;
+  std::vector<uint8_t> free;
+  int32_t n_candidates = 0, n_regions = 0;  // items the hierarchy returned; occluder regions kept
+  // Whether a lit receiver's boundary (E_h's own edges) is wanted in `runs`: the fixed-capacity
+  // (compiled) plan evaluates every receiver from its runs; the CSR plan evaluates lit receivers
+  // with the unoccluded kernel, so a receiver that no item can block returns at once.
+  bool lit_runs = true;
+};
+
+template <class T>
+struct Light {
+  int64_t K;
+  const T* E;
+  V3<T> v(int64_t i) const { return ld(E + 3 * i); }
+};
+
+// Cyrus-Beck of the segment a -> b against {x : (x - p).N >= 0} for the planes: (t0, t1, ok, i0, i1).
+template <class T>
+inline bool cyrus_beck(V3<T> p, V3<T> a, V3<T> b, const V3<T>* pl, int np, T& t0, T& t1, int& i0, int& i1) {
+  T tlo_best = -std::numeric_limits<T>::infinity(), thi_best = std::numeric_limits<T>::infinity();
+  i0 = 0;
+  i1 = 0;
+  bool const_ok = true;
+  T first_lo = 0, first_hi = 1;  // argmax/argmin over the full arrays (jnp semantics: first index)
+  bool have_lo = false, have_hi = false;
+  V3<T> ap = a - p, d = b - a;
+  for (int k = 0; k < np; k++) {
+    T g0 = dot(ap, pl[k]), g1 = dot(d, pl[k]);
+    T tc = g1 != 0 ? -g0 / g1 : T(0);
+    T tl = g1 > 0 ? tc : T(0);  // t_lo = where(pos, tc, 0)
+    T th = g1 < 0 ? tc : T(1);  // t_hi = where(neg, tc, 1)
+    if (!have_lo || tl > first_lo) {
+      first_lo = tl;
+      i0 = k;
+      have_lo = true;
+    }
+    if (!have_hi || th < first_hi) {
+      first_hi = th;
+      i1 = k;
+      have_hi = true;
+    }
+    if (!(g1 != 0 || g0 >= 0)) const_ok = false;
+  }
+  (void)tlo_best;
+  (void)thi_best;
+  t0 = std::max(have_lo ? first_lo : T(0), T(0));
+  t1 = std::min(have_hi ? first_hi : T(1), T(1));
+  return const_ok && t1 > t0;
+}
+
+// _clip._project: central projection from p of x onto the emitter plane.
+template <class T>
+inline V3<T> project(V3<T> p, V3<T> x, V3<T> ne, T hp) {
+  V3<T> r = x - p;
+  T w = -dot(r, ne);
+  T s = w > 0 ? hp / w : T(0);
+  return p + s * r;
+}
+
+// _clip._crossing_point.
+template <class T>
+inline V3<T> crossing_point(V3<T> p, V3<T> c, V3<T> ne, T hp) {
+  c = rescale(c);
+  T den = -dot(c, ne);
+  T e = eps_of<T>();
+  bool ok = std::fabs(den) > e * e * absmax(c) * absmax(ne);
+  return p + (ok ? hp / den : T(0)) * c;
+}
+
+template <class T>
+struct PolyCall {
+  Light<T> L;
+  Occluders<T> occ;
+  const BVH* bvh;
+  // Per face, from the light alone: +1 all light vertices strictly in front of the face's plane,
+  // -1 all strictly behind, 0 otherwise (a receiver strictly on that same side cannot be shadowed by
+  // it: the plane separates the face from the receiver's pyramid).
+  std::vector<int8_t> light_side;
+  // The light's Newell normal (unscaled), whether it has two distinct consecutive vertices, and
+  // the largest coordinate magnitude of the hierarchy's items (bounds rounding in quick_class).
+  V3<T> ne_raw{0, 0, 0};
+  bool light_has_edge = false;
+  double item_extent = 0;
+};
+
+// Per-call data of the light and the occluders (`light_side`, `ne_raw`, `light_has_edge`,
+// `item_extent`).
+template <class T>
+void light_sides(PolyCall<T>& call) {
+  const int64_t K = call.L.K;
+  call.ne_raw = V3<T>{0, 0, 0};
+  for (int64_t i = 0; i < K; i++) call.ne_raw = call.ne_raw + cross(call.L.v(i), call.L.v((i + 1) % K));
+  call.light_has_edge = false;
+  for (int64_t i = 0; i < K; i++) call.light_has_edge = call.light_has_edge || !same(call.L.v(i), call.L.v((i + 1) % K));
+  call.item_extent = 0;
+  if (!call.bvh->nodes.empty())
+    for (int d = 0; d < 3; d++)
+      call.item_extent = std::max(call.item_extent, std::max(std::fabs(call.bvh->nodes[0].box[d]), std::fabs(call.bvh->nodes[0].box[3 + d])));
+  const Occluders<T>& occ = call.occ;
+  call.light_side.assign(occ.M, 0);
+  for (int64_t f = 0; f < occ.M; f++) {
+    V3<T> o = occ.vert(f, 0), n{0, 0, 0};
+    for (int64_t i = 0; i < occ.Ko; i++) n = n + cross(occ.vert(f, i) - o, occ.vert(f, (i + 1) % occ.Ko) - o);
+    T nn = norm(n);
+    if (!(nn > 0)) continue;
+    bool pos = true, neg = true;
+    for (int64_t i = 0; i < call.L.K; i++) {
+      V3<T> r = call.L.v(i) - o;
+      T h = dot(r, n), m = T(1e3) * eps_of<T>() * nn * (std::fabs(r.x) + std::fabs(r.y) + std::fabs(r.z) + absmax(o));
+      pos = pos && h > m;
+      neg = neg && h < -m;
+    }
+    call.light_side[f] = pos ? 1 : (neg ? -1 : 0);
+  }
+}
+
+// Side of p against face f's plane (+1 / -1 strictly, 0 too close to tell), as light_sides measures it.
+template <class T>
+inline int point_side(const Occluders<T>& occ, int64_t f, V3<T> p) {
+  V3<T> o = occ.vert(f, 0), n{0, 0, 0};
+  for (int64_t i = 0; i < occ.Ko; i++) n = n + cross(occ.vert(f, i) - o, occ.vert(f, (i + 1) % occ.Ko) - o);
+  V3<T> r = p - o;
+  T h = dot(r, n), m = T(1e3) * eps_of<T>() * norm(n) * (std::fabs(r.x) + std::fabs(r.y) + std::fabs(r.z) + absmax(o));
+  return h > m ? 1 : (h < -m ? -1 : 0);
+}
+
+
+}  // namespace jaxshadow_engine
+
+#endif  // JAXSHADOW_SHADOWC_POLYGON_TYPES_H_
