@@ -14,12 +14,12 @@ receiver polygon:
    update exact (`IlluminationMesh.update`).
 2. **Discontinuity lines** (`_illumination_events`): the VE and EV event segments of the
    occluders that can shadow the receiver, kept where a ray along the event is not blocked,
-   inserted as constrained edges of a constrained Delaunay triangulation (Shewchuk's Triangle,
-   through the `triangle` package). Each tile's occluder list holds the faces whose shadow volume
+   inserted as constrained edges of a constrained Delaunay triangulation (artem-ogre's CDT,
+   through the `pythoncdt` package). Each tile's occluder list holds the faces whose shadow volume
    can reach it (C&F §4.3, C&S's per-cell occluder lists).
 3. **Extrema** (`_illumination_extrema`): starts where a coarse grid sample beats its
-   neighbours, batched BFGS on the exact gradient (or central differences of exact values on
-   large scenes), and a golden-section search along tile edges; the extrema become vertices.
+   neighbours, batched BFGS on central differences of exact values (or on the exact gradient,
+   `jax.grad`), and a golden-section search along tile edges; the extrema become vertices.
 4. **Refinement.** Every element is checked at seven points (edge midpoints, centroid, and the
    midpoints between centroid and corners) against exact irradiance; the worst point of an
    element whose linear interpolation misses by more than `ESTIMATE_MARGIN * tol * scale` is
@@ -39,7 +39,6 @@ import numpy as np
 from . import _illumination_events as ev
 from ._geometry import check_convex_polygon
 from ._illumination_builder import ESTIMATE_MARGIN as ESTIMATE_MARGIN  # noqa: F401 (documented)
-from ._illumination_builder import JAX_GRADIENT_MAX_FACES as JAX_GRADIENT_MAX_FACES  # noqa: F401
 from ._illumination_builder import _Builder
 from ._illumination_pslg import _Edge, _interpolate, _Tile
 from ._scene import Scene
@@ -177,11 +176,11 @@ def _merged_stats(builders: list[_Builder]) -> dict[str, Any]:
     return out
 
 
-GRADIENTS = ("auto", "jax", "differences")
+GRADIENTS = ("differences", "jax")
 
 
 def illumination_mesh(scene: Scene, receiver: Any, tol: float = 1e-3, *, max_vertices: int = 2_000_000,
-                      tile_size: float | None = None, min_edge: float | None = None, gradient: str = "auto",
+                      tile_size: float | None = None, min_edge: float | None = None, gradient: str = "differences",
                       scale: float | None = None) -> IlluminationMesh:
     r"""An adaptive, discontinuity-aware mesh of `receiver` with exact irradiance at its vertices.
 
@@ -205,10 +204,10 @@ def illumination_mesh(scene: Scene, receiver: Any, tol: float = 1e-3, *, max_ver
     - `min_edge`: elements smaller than this are not split (m); default 1e-6 of the extent. Value
       discontinuities (hard shadows of point lights, occluders touching the receiver) cannot be
       interpolated within `tol`; they stop here and show in `max_error_estimate`.
-    - `gradient`: how the extremum search differentiates: `"jax"` (`jax.grad` of the traced
-      irradiance, exact; compiles the device kernel, for scenes with few occluder faces),
-      `"differences"` (central differences of exact values), `"auto"` (`"jax"` up to
-      `JAX_GRADIENT_MAX_FACES` occluder faces).
+    - `gradient`: how the extremum search differentiates: `"differences"` (default: central
+      differences of exact values, step 1e-6 of a tile) or `"jax"` (`jax.grad` of the traced
+      irradiance; exact, but it compiles the device kernel for every batch size, which costs far
+      more than the search on all but the smallest scenes).
     - `scale`: the irradiance (W/m^2) `tol` is relative to; default the receiver's maximum.
 
     **Returns:** `IlluminationMesh` with `vertices (V, 3)`, `triangles (T, 3)`, `irradiance (V, 3)`,
@@ -227,9 +226,9 @@ def illumination_mesh(scene: Scene, receiver: Any, tol: float = 1e-3, *, max_ver
         if val is not None and not (np.isfinite(val) and val > 0):
             raise ValueError(f"illumination_mesh: {name} must be a positive number, got {val!r}.")
     try:
-        import triangle  # noqa: F401
+        import pythoncdt  # noqa: F401
     except ImportError:
-        raise ImportError("illumination_mesh needs the 'triangle' package: pip install 'jaxshadow[mesh]'") from None
+        raise ImportError("illumination_mesh needs the 'pythoncdt' package: pip install 'jaxshadow[mesh]'") from None
     from ._mesh import Mesh
 
     if isinstance(receiver, Mesh):

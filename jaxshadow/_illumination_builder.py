@@ -29,7 +29,6 @@ ESTIMATE_MARGIN = 0.5  # elements pass when their checked error is below this fr
 DEFAULT_TILES = 16  # tiles along the receiver's longer side
 SAMPLES_PER_TILE = 6  # extremum-search grid per tile side
 SEGMENT_SAMPLES_PER_TILE = 16  # visibility samples per tile length along a discontinuity line
-JAX_GRADIENT_MAX_FACES = 16
 MAX_ROUNDS = 200  # refinement rounds per tile (each halves the worst elements; a guard)
 _DEBUG = False  # progress prints (development)
 _INNER = np.array([[0.5, 0.0, 0.0], [0.0, 0.5, 0.0], [0.0, 0.0, 0.5]]) + 0.5 / 3  # between centroid and corners
@@ -181,10 +180,7 @@ class _Builder:
 
     # ------------------------------------------------------------------ extrema
     def _value_and_gradient(self) -> ex.Gradient:
-        m = 0 if self.scene.occluders is None else self.scene.occluders.shape[0]
         mode = self.gradient
-        if mode == "auto":
-            mode = "jax" if m <= JAX_GRADIENT_MAX_FACES else "differences"
         self.stats["gradient"] = mode
         if mode == "differences":
             return ex.difference_gradient(self.eval.luminance, 1e-6 * self.tile_size)
@@ -400,7 +396,7 @@ class _Builder:
             probes = []
             for ti in active:
                 v, s, m = state[ti]
-                out, dropped = _triangulate(v, s, m)
+                out, dropped = _triangulate(v, s, m, on_tol)
                 self.stats["cdt_fallbacks"] = self.stats.get("cdt_fallbacks", 0) + int(dropped)
                 tv, tt = out["vertices"], out["triangles"]
                 meshes[ti] = out
@@ -458,7 +454,7 @@ class _Builder:
                 for p, oe, (i, j), kd in zip(newp, on_edge, edge_of.tolist(),
                                              kind[bad][np.arange(worst.size), np.minimum(worst, 2)], strict=True):
                     key = (float(p[0]), float(p[1]))
-                    if key in add or key in seen:  # inserted before and not kept by Triangle
+                    if key in add or key in seen:  # inserted before and not kept by the triangulation
                         if _DEBUG and key in seen and key not in add:
                             import pickle
                             with open(f"/tmp/stuck_{ti}.pkl", "wb") as fh:

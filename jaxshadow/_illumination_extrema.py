@@ -8,9 +8,8 @@ search along edges. Here every start advances in lock step, so that each iterati
 call of the exact irradiance (`js.irradiance` on the host engine) rather than one call per start:
 
 - `ascend`: projected BFGS ascent in 2-D with a batched backtracking line search. The gradient is
-  the exact one (`jax.grad` of the traced irradiance, on scenes small enough for the device
-  kernel) or central differences of exact values (`difference_gradient`), which is what a scene
-  with thousands of occluder faces uses.
+  central differences of exact values (`difference_gradient`, the default) or the exact one
+  (`jax.grad` of the traced irradiance).
 - `golden_section`: the 1-D search along tile edges.
 """
 

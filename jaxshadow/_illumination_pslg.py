@@ -1,5 +1,5 @@
 """2-D machinery of the illumination meshes (`_illumination`): the receiver's tiles and their
-shared edges, the exact-irradiance evaluator, constrained Delaunay triangulation through Triangle
+shared edges, the exact-irradiance evaluator, constrained Delaunay triangulation (PythonCDT)
 with the clean-up it needs, and piecewise-linear interpolation on the result."""
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ from ._shade import irradiance
 
 ON_LINE_STEP = 1e-9
 GRID_SHIFT = (np.sqrt(2.0) - 1) / 10
+MIN_BATCH = 256  # smallest batch handed to the engine
 
 
 class _Evaluator:
@@ -52,9 +53,12 @@ class _Evaluator:
             side = pts[line]
             allp = np.concatenate([pts, side + self.step, side - self.step])
             t0 = time.perf_counter()
-            p3 = self.frame.to3d(allp)
+            # Padded to a power of two: the engine compiles per batch shape.
+            n_all = allp.shape[0]
+            size = max(MIN_BATCH, 1 << (n_all - 1).bit_length())
+            p3 = self.frame.to3d(np.concatenate([allp, np.repeat(allp[:1], size - n_all, axis=0)]))
             nrm = np.broadcast_to(self.frame.normal, p3.shape)
-            e = np.asarray(irradiance(self.scene, p3, np.ascontiguousarray(nrm)), np.float64)
+            e = np.asarray(irradiance(self.scene, p3, np.ascontiguousarray(nrm)), np.float64)[:n_all]
             self.seconds += time.perf_counter() - t0
             self.evaluations += allp.shape[0]
             n, m = pts.shape[0], side.shape[0]
@@ -172,35 +176,63 @@ def _tiles(poly: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> tuple[np.ndarray
     return gp, tiles
 
 
-def _triangulate(v: np.ndarray, s: np.ndarray, m: np.ndarray) -> tuple[dict, bool]:
-    """Constrained Delaunay triangulation of a PSLG (Triangle, no Steiner points on the boundary).
-    Exact duplicate vertices are merged first (Triangle's Python binding crashes on them). If
-    Triangle rejects the internal segments (nearly collinear ones it cannot split consistently),
-    they are dropped and their vertices kept: `(mesh, dropped)`."""
-    import triangle
+def _triangulate(v: np.ndarray, s: np.ndarray, m: np.ndarray, on_tol: float = 0.0) -> tuple[dict, bool]:
+    """Constrained Delaunay triangulation of a PSLG whose outer segments (marker 1) bound a convex
+    region (artem-ogre's CDT through PythonCDT): the input vertices first, in order, then any
+    vertices CDT adds where constrained edges cross; no other Steiner points. Exact duplicate
+    vertices are merged first. Vertices within `on_tol` of a constrained edge split it (CDT's
+    `min_dist_to_constraint_edge`). Returns `({"vertices": (V, 2), "triangles": (T, 3)
+    counter-clockwise, "segments": (S, 2), "segment_markers": (S, 1)}, dropped)`, the segments
+    being the constrained edges as split by the triangulation; `dropped` is True when CDT
+    rejected the internal segments and they were left out (their vertices kept)."""
+    import pythoncdt as cdt
 
     uniq, first, inv = np.unique(v, axis=0, return_index=True, return_inverse=True)
     order = np.argsort(first)  # keep the input order (deterministic, boundary first)
     rank = np.empty_like(order)
     rank[order] = np.arange(order.size)
-    v2 = uniq[order]
+    v2 = np.ascontiguousarray(uniq[order], np.float64)
     s2 = rank[inv.ravel()][s]
     keep = s2[:, 0] != s2[:, 1]
     s2, m2 = s2[keep], m[keep]
     _, one = np.unique(np.sort(s2, axis=1), axis=0, return_index=True)
     one = np.sort(one)
     s2, m2 = s2[one], m2[one]
+
+    def run(segs: np.ndarray) -> cdt.Triangulation:
+        tri = cdt.Triangulation(cdt.VertexInsertionOrder.AUTO, cdt.IntersectingConstraintEdges.TRY_RESOLVE,
+                                float(on_tol))
+        tri.insert_vertices(v2)  # type: ignore[call-overload]  # an ndarray is a Buffer
+        tri.insert_edges(np.ascontiguousarray(segs, np.uint32))  # type: ignore[call-overload]
+        tri.erase_super_triangle()
+        return tri
+
+    dropped = False
     try:
-        return triangle.triangulate({"vertices": v2, "segments": s2, "segment_markers": m2[:, None]}, "pYQ"), False
-    except RuntimeError:
-        b = m2 == 1
-        return triangle.triangulate({"vertices": v2, "segments": s2[b], "segment_markers": m2[b][:, None]}, "pYQ"), True
+        tri = run(s2)
+    except (RuntimeError, ValueError):
+        dropped = True
+        s2, m2 = s2[m2 == 1], m2[m2 == 1]
+        tri = run(s2)
+    verts = tri.vertices_array().view(np.float64).reshape(-1, 2)
+    tris = tri.triangles_array()["vertices"].astype(np.int64).reshape(-1, 3)
+    mark = {(min(i, j), max(i, j)): int(k) for (i, j), k in zip(s2.tolist(), m2.tolist(), strict=True)}
+    pieces = {(min(e.v1, e.v2), max(e.v1, e.v2)): [(min(o.v1, o.v2), max(o.v1, o.v2)) for o in orig]
+              for e, orig in tri.piece_to_originals_iter()}
+    segs, marks = [], []
+    for e in tri.fixed_edges_iter():
+        key = (min(e.v1, e.v2), max(e.v1, e.v2))
+        segs.append(key)
+        marks.append(max((mark.get(o, 0) for o in pieces.get(key, [key])), default=0))
+    out = {"vertices": verts, "triangles": tris, "segments": np.array(segs, np.int64).reshape(-1, 2),
+           "segment_markers": np.array(marks, np.int64).reshape(-1, 1)}
+    return out, dropped
 
 
 def _split_at(v: np.ndarray, s: np.ndarray, m: np.ndarray, idx: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
     """Split internal segments (marker 0) at the vertices `idx` that lie on them (within `tol`,
-    not at their ends): Triangle keeps a vertex that is off a segment by round-off as a separate
-    point and fills the gap with zero-area triangles."""
+    not at their ends), so that a vertex off a segment by round-off becomes its end point instead of
+    a separate vertex beside it (with slivers in between)."""
     if idx.size == 0 or s.size == 0:
         return s, m
     inner = np.nonzero(m == 0)[0]
@@ -230,7 +262,7 @@ def _split_at(v: np.ndarray, s: np.ndarray, m: np.ndarray, idx: np.ndarray, tol:
 def _noded(lines: list[tuple[np.ndarray, np.ndarray]]) -> list[tuple[np.ndarray, np.ndarray]]:
     """Segments split where they cross or overlap (GEOS noding through shapely), duplicates
     dropped: collinear overlapping discontinuity lines (parallel occluder and light edges make
-    them) would otherwise have Triangle split nearly collinear segments against each other."""
+    them) would otherwise make the triangulation split nearly collinear segments against each other."""
     if len(lines) < 2:
         return lines
     import shapely
