@@ -212,6 +212,19 @@ def illumination_mesh(scene: Scene, receiver: Any, tol: float = 1e-3, *, max_ver
 
     **Returns:** `IlluminationMesh` with `vertices (V, 3)`, `triangles (T, 3)`, `irradiance (V, 3)`,
     `max_error_estimate`, `scale`, `stats`.
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+
+        light = js.PolygonLight([[-0.3, -0.3, 2], [-0.3, 0.3, 2], [0.3, 0.3, 2], [0.3, -0.3, 2]], radiance=10.0)
+        scene = js.Scene([light], occluders=[[[-0.4, -0.2, 1], [0.2, -0.2, 1], [0.2, 0.3, 1], [-0.4, 0.3, 1]]])
+        floor = np.array([[-1.5, -1.5, 0], [1.5, -1.5, 0], [1.5, 1.5, 0], [-1.5, 1.5, 0]])
+        mesh = js.illumination_mesh(scene, floor, 2e-2, tile_size=1.0)
+        print(mesh.vertices.shape, mesh.triangles.shape, mesh.max_error_estimate)
+        mesh.save("floor.ply")  # vertex colours and the exact irradiance per vertex
+        ```
     """
     t0 = time.perf_counter()
     if not isinstance(scene, Scene):
