@@ -72,6 +72,7 @@ class IlluminationMesh:
         self.triangles = np.concatenate([p[1] + o for p, o in zip(parts, off[:-1], strict=True)])
         self.irradiance = np.concatenate([p[2] for p in parts])
         self.max_error_estimate = max(p[3] for p in parts)
+        stats = {**stats, "corner_error": max(max(t.corner_error for t in b.tiles) / float(b.scale) for b in builders)}
         self.scale = max(float(b.scale) for b in builders)
         self.tol = float(tol)
         self.stats = stats

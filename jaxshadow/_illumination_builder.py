@@ -29,6 +29,8 @@ ESTIMATE_MARGIN = 0.5  # elements pass when their checked error is below this fr
 DEFAULT_TILES = 16  # tiles along the receiver's longer side
 SAMPLES_PER_TILE = 6  # extremum-search grid per tile side
 SEGMENT_SAMPLES_PER_TILE = 16  # visibility samples per tile length along a discontinuity line
+CORNER_SIZE = 1e-4  # elements at a contact polygon's corner are not split below this (of the receiver's size)
+CONTACT_STEP = 1e-9  # points on a hole's edge take the value this far outside (of the receiver's size)
 MAX_ROUNDS = 200  # refinement rounds per tile (each halves the worst elements; a guard)
 _DEBUG = False  # progress prints (development)
 _INNER = np.array([[0.5, 0.0, 0.0], [0.0, 0.5, 0.0], [0.0, 0.0, 0.5]]) + 0.5 / 3  # between centroid and corners
@@ -63,6 +65,7 @@ class _Builder:
         self.scene = scene
         self.eval = _Evaluator(scene, self.frame, self.diam)
         bbox = np.concatenate([self.poly.min(axis=0), self.poly.max(axis=0)])
+        self.contact, self.contact_box = _contact_polygons(scene, self.frame, 1e-9 * self.diam)
         if scene.occluders is None:
             self.occ, self.seg, self.foot = None, None, np.zeros((0, 4))
             return
@@ -83,6 +86,72 @@ class _Builder:
             return np.zeros(0, int)
         return np.nonzero(ev.boxes_overlap(self.seg_box, t.lo, t.hi, margin=1e-9 * self.diam))[0]
 
+    def _contact_ids(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        if not self.contact:
+            return np.zeros(0, int)
+        return np.nonzero(ev.boxes_overlap(self.contact_box, lo, hi, margin=1e-9 * self.diam))[0]
+
+    def _in_contact(self, q: np.ndarray, ids: np.ndarray) -> np.ndarray:
+        """Whether points `q (n, 2)` lie strictly inside one of the contact polygons `ids` (the
+        receiver there is covered by an occluder face lying on it: a hole of the mesh)."""
+        out = np.zeros(q.shape[0], bool)
+        eps = 1e-14 * self.diam  # round-off; a sliver between a hole's edge and a point just inside is in the hole
+        for i in ids:
+            c = self.contact[i]
+            e = np.roll(c, -1, axis=0) - c
+            d = (e[None, :, 0] * (q[:, None, 1] - c[None, :, 1]) - e[None, :, 0 + 1] * (q[:, None, 0] - c[None, :, 0]))
+            out |= np.all(d > eps * np.linalg.norm(e, axis=1)[None, :], axis=1)
+        return out
+
+    def _at_contact_corner(self, c: np.ndarray, ids: np.ndarray) -> np.ndarray:
+        """Whether triangles `c (T, 3, 2)` have a vertex at a corner of contact polygons `ids`."""
+        if ids.size == 0:
+            return np.zeros(c.shape[0], bool)
+        corners = np.concatenate([self.contact[i] for i in ids])
+        d = np.abs(c[:, :, None, :] - corners[None, None]).max(axis=-1)  # (T, 3, C)
+        return np.any(d <= 1e-9 * self.diam, axis=(1, 2))
+
+    def _contact_edges(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The edges `(a, b)`, each `(n, 2)`, of the contact polygons `ids`."""
+        if ids.size == 0:
+            return np.zeros((0, 2)), np.zeros((0, 2))
+        a = np.concatenate([self.contact[i] for i in ids])
+        b = np.concatenate([np.roll(self.contact[i], -1, axis=0) for i in ids])
+        return a, b
+
+    def _contact_crossings(self, lo: np.ndarray, hi: np.ndarray, a: np.ndarray, b: np.ndarray) -> list[float]:
+        """Parameters along the edge `a -> b` where contact polygons' edges cross it."""
+        ca, cb = self._contact_edges(self._contact_ids(lo, hi))
+        if ca.shape[0] == 0:
+            return []
+        r, e = cb - ca, b - a
+        den = r[:, 0] * e[1] - r[:, 1] * e[0]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = ((ca[:, 0] - a[0]) * r[:, 1] - (ca[:, 1] - a[1]) * r[:, 0]) / -den
+            t = ((ca[:, 0] - a[0]) * e[1] - (ca[:, 1] - a[1]) * e[0]) / -den
+        ok = (den != 0) & (s > 1e-12) & (s < 1 - 1e-12) & (t >= 0) & (t <= 1)
+        return sorted({float(x) for x in s[ok]})
+
+    def _move_off_contact(self, xy: np.ndarray, ids: np.ndarray) -> None:
+        """Points `xy (n, 2)` on (within round-off of) the edges of contact polygons `ids` are
+        evaluated `CONTACT_STEP` (of the receiver's size) outside them: along such an edge the
+        irradiance jumps, and the mesh takes the value on the open receiver's side."""
+        if ids.size == 0 or xy.shape[0] == 0:
+            return
+        ca, cb = self._contact_edges(ids)
+        d = cb - ca
+        ll = np.linalg.norm(d, axis=1)
+        out = np.stack([d[:, 1], -d[:, 0]], axis=1) / ll[:, None]  # outward: the polygons are CCW
+        t = np.einsum("nej,ej->ne", xy[:, None, :] - ca[None], d) / (ll * ll)[None]
+        foot = ca[None] + np.clip(t, 0.0, 1.0)[..., None] * d[None]
+        near = np.linalg.norm(xy[:, None, :] - foot, axis=2) <= 1e-10 * self.diam  # (n, E)
+        hit = np.any(near, axis=1)
+        if not np.any(hit):
+            return
+        push = near[hit].astype(np.float64) @ out
+        push /= np.maximum(np.linalg.norm(push, axis=1, keepdims=True), 1e-300)
+        self.eval.move(xy[hit], xy[hit] + CONTACT_STEP * self.diam * push)
+
     def _visible(self, xy: np.ndarray, ids: np.ndarray, faces: np.ndarray) -> np.ndarray:
         """Whether the event of segment `ids` is real at `xy`: its ray, nudged off the occluder,
         reaches the light."""
@@ -96,9 +165,14 @@ class _Builder:
         for key in keys:
             e = self.edges[key]
             e.cross = {}
+            lo, hi = np.minimum(e.a, e.b), np.maximum(e.a, e.b)
+            # Contact polygons' edges (value discontinuities) crossing the edge: keys < 0.
+            for j, sj in enumerate(self._contact_crossings(lo, hi, e.a, e.b)):
+                e.cross[-1 - j] = (sj, e.point(sj), True)
+            if len(e.cross):
+                self._move_off_contact(np.array([x for _, x, _ in e.cross.values()]), self._contact_ids(lo, hi))
             if self.seg is None or len(self.seg) == 0:
                 continue
-            lo, hi = np.minimum(e.a, e.b), np.maximum(e.a, e.b)
             cand = np.nonzero(ev.boxes_overlap(self.seg_box, lo, hi, margin=1e-9 * self.diam))[0]
             ids, s, _ = _segment_crossings(self.seg, cand, e.a, e.b)
             if ids.size == 0:
@@ -111,6 +185,13 @@ class _Builder:
     def _prepare_tile(self, ti: int) -> None:
         t = self.tiles[ti]
         t.pieces, t.piece_extrema = [], {}
+        t.contact = self._contact_ids(t.lo, t.hi)
+        ca, cb = self._contact_edges(t.contact)
+        if ca.shape[0]:
+            a, b, ok = ev._clip_to_polygon(ca, cb, t.poly)
+            t.contact_pieces = [(p, q) for p, q, k in zip(a, b, ok, strict=True) if k]
+        else:
+            t.contact_pieces = []
         if self.seg is None or len(self.seg) == 0:
             return
         cand = self._tile_segments(t)
@@ -328,7 +409,9 @@ class _Builder:
                 interp = (1 - w) * ve[:-1, None, :] + w * ve[1:, None, :]
                 err = np.abs(vp - interp).max(axis=2)  # (intervals, 3)
                 length = np.diff(s) * np.linalg.norm(e.b - e.a)
-                bad = (err.max(axis=1) > thr) & (length > self.min_edge)
+                hole = self._in_contact(e.point(s[:-1] + 0.5 * np.diff(s)),
+                                        self._contact_ids(np.minimum(e.a, e.b), np.maximum(e.a, e.b)))
+                bad = (err.max(axis=1) > thr) & (length > self.min_edge) & ~hole
                 if np.any(bad):
                     worst = np.argmax(err[bad], axis=1)
                     new = probe.reshape(-1, 3)[bad][np.arange(worst.size), worst]
@@ -364,15 +447,16 @@ class _Builder:
             lines.extend(zip(chain[:-1], chain[1:], strict=True))
         bverts = np.array(verts)
         snap = 1e-10 * self.diam
-        for q0, q1 in _noded(lines):
-            ends = []
-            for q in (q0, q1):
-                d = np.abs(bverts - q).max(axis=1)
-                j = int(np.argmin(d))
-                ends.append(j if d[j] <= snap else vid(q))
-            if ends[0] != ends[1]:
-                segs.append(ends)
-                marks.append(0)
+        for group, mk in ((_noded(lines), 0), (_noded(list(t.contact_pieces)), 2)):
+            for q0, q1 in group:
+                ends = []
+                for q in (q0, q1):
+                    d = np.abs(bverts - q).max(axis=1)
+                    j = int(np.argmin(d))
+                    ends.append(j if d[j] <= snap else vid(q))
+                if ends[0] != ends[1]:
+                    segs.append(ends)
+                    marks.append(mk)
         for p in t.extrema:
             vid(p)
         return np.array(verts), np.array(segs), np.array(marks)
@@ -400,6 +484,9 @@ class _Builder:
                 self.stats["cdt_fallbacks"] = self.stats.get("cdt_fallbacks", 0) + int(dropped)
                 tv, tt = out["vertices"], out["triangles"]
                 meshes[ti] = out
+                on_contact = out["segments"][out["segment_markers"].ravel() == 2]
+                if on_contact.size:
+                    self._move_off_contact(tv[np.unique(on_contact)], self.tiles[ti].contact)
                 inner_seg = out["segments"][out["segment_markers"].ravel() == 0]
                 if inner_seg.size:
                     self.eval.mark(tv[inner_seg.ravel()])
@@ -429,15 +516,24 @@ class _Builder:
                 interp = np.concatenate([0.5 * (vt + np.roll(vt, -1, axis=1)), vt.mean(axis=1, keepdims=True),
                                          np.einsum("ij,tjk->tik", _INNER, vt)], axis=1)
                 err = np.abs(self.eval(pts.reshape(-1, 2)).reshape(pts.shape[0], 7, 3) - interp).max(axis=2)
+                hole = self._in_contact(c.mean(axis=1), self.tiles[ti].contact)
+                err[hole] = 0.0  # covered by an occluder face lying on the receiver: not meshed
                 edge_ij = np.stack([tt, np.roll(tt, -1, axis=1)], axis=-1)  # (T, 3, 2)
                 kind = _edge_kinds(edge_ij, segs, smark, tv.shape[0])
                 longest = np.linalg.norm(c - np.roll(c, -1, axis=1), axis=2).max(axis=1)
                 sel_err = err.copy()
                 sel_err[:, :3][kind == 1] = -1.0  # never insert on the tile boundary
-                bad = (err.max(axis=1) > thr) & (longest > self.min_edge) & (sel_err.max(axis=1) > thr)
+                # At a contact polygon's corner the irradiance has no limit (it depends on the
+                # direction of approach): the elements there are refined down to CORNER_SIZE only,
+                # and their error is reported apart (`stats["corner_error"]`).
+                corner = self._at_contact_corner(c, self.tiles[ti].contact)
+                floor = np.where(corner, CORNER_SIZE * self.diam, self.min_edge)
+                bad = (err.max(axis=1) > thr) & (longest > floor) & (sel_err.max(axis=1) > thr)
                 t = self.tiles[ti]
+                t.corner_error = float(err[corner].max()) if np.any(corner) else 0.0
+                err[corner] = 0.0
                 if not np.any(bad) or not budget:
-                    t.verts, t.tris, t.values = tv, tt, ve
+                    t.verts, t.tris, t.values = tv, tt[~hole], ve
                     t.error = float(err.max()) if err.size else 0.0
                     continue
                 if _DEBUG and rounds > 12:
@@ -462,10 +558,10 @@ class _Builder:
                         continue
                     seen.add(key)
                     add[key] = nv + len(add)
-                    if oe and kd == 0:
+                    if oe and kd in (0, 2):
                         seg_split[(min(i, j), max(i, j))] = add[key]
                 if not add or rounds >= MAX_ROUNDS:
-                    t.verts, t.tris, t.values = tv, tt, ve
+                    t.verts, t.tris, t.values = tv, tt[~hole], ve
                     t.error = float(err.max())
                     continue
                 new_v = np.concatenate([tv, np.array(list(add), np.float64).reshape(-1, 2)])
@@ -521,9 +617,12 @@ class _Builder:
         allval = np.concatenate([t.values for t in self.tiles])
         tris = np.concatenate([t.tris + o for t, o in zip(self.tiles, off[:-1], strict=True)])
         uniq, first, inv = np.unique(allv, axis=0, return_index=True, return_inverse=True)
-        inv = inv.ravel()
+        tris = inv.ravel()[tris]
+        used = np.zeros(uniq.shape[0], bool)
+        used[tris.ravel()] = True  # vertices only inside holes are dropped
+        renum = np.cumsum(used) - 1
         err = max(t.error for t in self.tiles) / float(self.scale)
-        return self.frame.to3d(uniq), inv[tris], allval[first], err
+        return self.frame.to3d(uniq[used]), renum[tris], allval[first[used]], err
 
 
 def _jax_gradient(scene: Scene, frame: ev.Frame, evaluator: _Evaluator) -> ex.Gradient:
@@ -546,3 +645,24 @@ def _jax_gradient(scene: Scene, frame: ev.Frame, evaluator: _Evaluator) -> ex.Gr
         return evaluator.luminance(xy), np.stack([g3 @ frame.u, g3 @ frame.w], axis=1)
 
     return vg
+
+
+def _contact_polygons(scene: Scene, frame: ev.Frame, tol: float) -> tuple[list[np.ndarray], np.ndarray]:
+    """The occluder faces lying on the receiver plane (within `tol`), as counter-clockwise 2-D
+    polygons, and their bounding boxes `(n, 4)`: an object standing on the receiver covers them,
+    and along their edges the irradiance jumps (a value discontinuity no interpolation meets), so
+    they are holes of the mesh, bounded by mesh edges."""
+    if scene.occluders is None:
+        return [], np.zeros((0, 4))
+    from ._mesh import _strip_padding
+
+    faces = np.asarray(scene.occluders, np.float64)
+    flat = np.all(np.abs(frame.height(faces)) <= tol, axis=1)
+    out = []
+    for f in faces[flat]:
+        q = frame.to2d(_strip_padding(f))
+        area = 0.5 * np.sum(q[:, 0] * np.roll(q[:, 1], -1) - np.roll(q[:, 0], -1) * q[:, 1])
+        if area != 0:
+            out.append(q if area > 0 else q[::-1].copy())
+    box = np.array([np.concatenate([q.min(axis=0), q.max(axis=0)]) for q in out]).reshape(-1, 4)
+    return out, box

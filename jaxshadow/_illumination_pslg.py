@@ -33,6 +33,7 @@ class _Evaluator:
         self.scene, self.frame = scene, frame
         self.cache: dict[tuple, np.ndarray] = {}
         self.online: set[tuple] = set()
+        self.moved: dict[tuple, tuple] = {}  # points evaluated elsewhere (`move`)
         self.checked: set[tuple] = set()
         self.step = ON_LINE_STEP * size * np.array([np.cos(0.6180339887), np.sin(0.6180339887)])
         self.evaluations = 0
@@ -43,12 +44,21 @@ class _Evaluator:
         """Declare points `(n, 2)` to lie on discontinuity lines."""
         self.online.update(map(tuple, np.asarray(xy, np.float64).reshape(-1, 2).tolist()))
 
+    def move(self, xy: np.ndarray, to: np.ndarray) -> None:
+        """Evaluate points `xy (n, 2)` at `to (n, 2)` instead (a point on the edge of a hole takes
+        the value just outside it)."""
+        for a, b in zip(np.asarray(xy, np.float64).reshape(-1, 2).tolist(), np.asarray(to).reshape(-1, 2).tolist(),
+                        strict=True):
+            if tuple(a) not in self.moved:
+                self.moved[tuple(a)] = tuple(b)
+                self.cache.pop(tuple(a), None)
+
     def __call__(self, xy: np.ndarray) -> np.ndarray:
         xy = np.asarray(xy, np.float64).reshape(-1, 2)
         keys = list(map(tuple, xy.tolist()))
         todo = {k: None for k in keys if k not in self.cache or (k in self.online and k not in self.checked)}
         if todo:
-            pts = np.array(list(todo), np.float64)
+            pts = np.array([self.moved.get(k, k) for k in todo], np.float64)
             line = np.array([k in self.online for k in todo])
             side = pts[line]
             allp = np.concatenate([pts, side + self.step, side - self.step])
@@ -106,6 +116,8 @@ class _Tile:
     lo: np.ndarray
     hi: np.ndarray
     faces: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    contact: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    contact_pieces: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
     pieces: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
     extrema: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     piece_extrema: dict[int, list[float]] = field(default_factory=dict)
@@ -113,6 +125,7 @@ class _Tile:
     tris: np.ndarray | None = None
     values: np.ndarray | None = None
     error: float = 0.0
+    corner_error: float = 0.0
 
     def edge_keys(self) -> list[tuple[int, int, bool]]:
         g = self.gids
@@ -230,12 +243,12 @@ def _triangulate(v: np.ndarray, s: np.ndarray, m: np.ndarray, on_tol: float = 0.
 
 
 def _split_at(v: np.ndarray, s: np.ndarray, m: np.ndarray, idx: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
-    """Split internal segments (marker 0) at the vertices `idx` that lie on them (within `tol`,
+    """Split internal segments (markers 0 and 2) at the vertices `idx` that lie on them (within `tol`,
     not at their ends), so that a vertex off a segment by round-off becomes its end point instead of
     a separate vertex beside it (with slivers in between)."""
     if idx.size == 0 or s.size == 0:
         return s, m
-    inner = np.nonzero(m == 0)[0]
+    inner = np.nonzero(m != 1)[0]
     if inner.size == 0:
         return s, m
     a, b = v[s[inner, 0]], v[s[inner, 1]]
@@ -249,13 +262,13 @@ def _split_at(v: np.ndarray, s: np.ndarray, m: np.ndarray, idx: np.ndarray, tol:
     on &= (idx[None, :] != s[inner, 0][:, None]) & (idx[None, :] != s[inner, 1][:, None])
     if not np.any(on):
         return s, m
-    out_s, out_m = [row for row in s[m != 0]], list(m[m != 0])
+    out_s, out_m = [row for row in s[m == 1]], list(m[m == 1])
     for r, si in enumerate(inner):
         hit = np.nonzero(on[r])[0]
         chain = [s[si, 0]] + [int(idx[h]) for h in hit[np.argsort(t[r, hit])]] + [s[si, 1]]
         for i, j in zip(chain[:-1], chain[1:], strict=True):
             out_s.append(np.array([i, j]))
-            out_m.append(0)
+            out_m.append(m[si])
     return np.array(out_s).reshape(-1, 2), np.array(out_m)
 
 
