@@ -485,8 +485,9 @@ class _Builder:
                 tv, tt = out["vertices"], out["triangles"]
                 meshes[ti] = out
                 on_contact = out["segments"][out["segment_markers"].ravel() == 2]
-                if on_contact.size:
-                    self._move_off_contact(tv[np.unique(on_contact)], self.tiles[ti].contact)
+                if on_contact.size:  # their vertices and the edge midpoints the check probes
+                    self._move_off_contact(np.concatenate([tv[np.unique(on_contact)], 0.5 * (
+                        tv[on_contact[:, 0]] + tv[on_contact[:, 1]])]), self.tiles[ti].contact)
                 inner_seg = out["segments"][out["segment_markers"].ravel() == 0]
                 if inner_seg.size:
                     self.eval.mark(tv[inner_seg.ravel()])
