@@ -10,6 +10,8 @@ from ._cache import ShadowCache as ShadowCache
 from ._clip import visible_form_factor as visible_form_factor
 from ._files import atomic_write as atomic_write
 from ._files import atomic_write_path as atomic_write_path
+from ._illumination import IlluminationMesh as IlluminationMesh
+from ._illumination import illumination_mesh as illumination_mesh
 from ._linear import linear_irradiance as linear_irradiance
 from ._mesh import Mesh as Mesh
 from ._meshio import ReceiverMesh as ReceiverMesh

@@ -13,6 +13,8 @@
   Mitsuba 3, with a table and a plot.
 - `jaxshadow fit SCENE TARGETS -o FITTED` and `jaxshadow demo`: the solvers' commands, provided
   by the `inverse` package (entry-point group `jaxshadow.commands`).
+- `jaxshadow mesh SCENE -o OUT.ply --tol 1e-3 [--receiver R]`: adaptive illumination mesh of a
+  receiver polygon (exact irradiance at the vertices), as PLY or glTF.
 
 Conventions: every output path is used exactly as given and its format follows its extension;
 inputs, outputs and options are checked before any computation; outputs are written to a
@@ -346,7 +348,13 @@ def _add_render(sub: Any) -> None:
 # --------------------------------------------------------------------------------------
 
 # The forward model's commands; each adds its sub-parser (the `mesh` command registers here).
-BUILTIN_COMMANDS: list[Callable[[Any], None]] = [_add_irradiance, _add_render, _add_report]
+def _add_mesh(sub: Any) -> None:
+    from ._illumination_io import add_mesh_parser
+
+    add_mesh_parser(sub)
+
+
+BUILTIN_COMMANDS: list[Callable[[Any], None]] = [_add_irradiance, _add_mesh, _add_render, _add_report]
 
 
 def plugin_commands() -> dict[str, Any]:

@@ -1,0 +1,669 @@
+"""The illumination mesher proper (`_illumination`'s module docstring describes the method):
+discontinuity lines per tile, extrema, 1-D refinement of tile edges, 2-D refinement of tiles."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from . import _illumination_events as ev
+from . import _illumination_extrema as ex
+from ._illumination_pslg import (
+    _Edge,
+    _edge_kinds,
+    _Evaluator,
+    _grid,
+    _noded,
+    _segment_crossings,
+    _split_at,
+    _Tile,
+    _tiles,
+    _triangulate,
+)
+from ._scene import Scene
+from ._shade import irradiance
+
+ESTIMATE_MARGIN = 0.5  # elements pass when their checked error is below this fraction of tol
+DEFAULT_TILES = 16  # tiles along the receiver's longer side
+SAMPLES_PER_TILE = 6  # extremum-search grid per tile side
+SEGMENT_SAMPLES_PER_TILE = 16  # visibility samples per tile length along a discontinuity line
+CORNER_SIZE = 1e-4  # elements at a contact polygon's corner are not split below this (of the receiver's size)
+CONTACT_STEP = 1e-9  # points on a hole's edge take the value this far outside (of the receiver's size)
+MAX_ROUNDS = 200  # refinement rounds per tile (each halves the worst elements; a guard)
+_DEBUG = False  # progress prints (development)
+_INNER = np.array([[0.5, 0.0, 0.0], [0.0, 0.5, 0.0], [0.0, 0.0, 0.5]]) + 0.5 / 3  # between centroid and corners
+
+
+class _Builder:
+    """Everything one mesh (or one update) computes; per tile and per edge, kept for updates."""
+
+    def __init__(self, scene: Scene, receiver: np.ndarray, tol: float, tile_size: float | None,
+                 min_edge: float | None, max_vertices: int, gradient: str, scale: float | None):
+        self.scene, self.tol = scene, float(tol)
+        self.frame = ev.receiver_frame(receiver)
+        self.poly = self.frame.to2d(receiver)
+        diam = float(np.max(np.ptp(self.poly, axis=0)))
+        self.diam = diam
+        self.tile_size = float(tile_size) if tile_size else diam / DEFAULT_TILES
+        self.min_edge = float(min_edge) if min_edge else 1e-6 * diam
+        self.max_vertices = int(max_vertices)
+        self.gradient = gradient
+        self.scale = scale
+        xs, ys = _grid(self.poly, self.tile_size)
+        self.gp, self.tiles = _tiles(self.poly, xs, ys)
+        self.edges: dict[tuple[int, int], _Edge] = {}
+        for t in self.tiles:
+            for ga, gb, _ in t.edge_keys():
+                if (ga, gb) not in self.edges:
+                    self.edges[(ga, gb)] = _Edge(self.gp[ga], self.gp[gb])
+        self.stats: dict[str, Any] = {}
+        self._load_scene(scene)
+
+    def _load_scene(self, scene: Scene) -> None:
+        self.scene = scene
+        self.eval = _Evaluator(scene, self.frame, self.diam)
+        bbox = np.concatenate([self.poly.min(axis=0), self.poly.max(axis=0)])
+        self.contact, self.contact_box = _contact_polygons(scene, self.frame, 1e-9 * self.diam)
+        if scene.occluders is None:
+            self.occ, self.seg, self.foot = None, None, np.zeros((0, 4))
+            return
+        self.occ = ev.occluder_features(scene)
+        self.foot = ev.face_footprints(self.occ, scene, self.frame, bbox)
+        self.seg = ev.discontinuity_segments(scene, self.occ, self.frame, self.poly)
+        s = self.seg
+        self.seg_box = np.concatenate([np.minimum(s.a, s.b), np.maximum(s.a, s.b)], axis=1)
+
+    # ------------------------------------------------------------------ discontinuity lines
+    def _tile_faces(self, t: _Tile) -> np.ndarray:
+        if self.occ is None:
+            return np.zeros(0, int)
+        return np.nonzero(ev.boxes_overlap(self.foot, t.lo, t.hi, margin=1e-6 * self.diam))[0]
+
+    def _tile_segments(self, t: _Tile) -> np.ndarray:
+        if self.seg is None or len(self.seg) == 0:
+            return np.zeros(0, int)
+        return np.nonzero(ev.boxes_overlap(self.seg_box, t.lo, t.hi, margin=1e-9 * self.diam))[0]
+
+    def _contact_ids(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        if not self.contact:
+            return np.zeros(0, int)
+        return np.nonzero(ev.boxes_overlap(self.contact_box, lo, hi, margin=1e-9 * self.diam))[0]
+
+    def _in_contact(self, q: np.ndarray, ids: np.ndarray) -> np.ndarray:
+        """Whether points `q (n, 2)` lie strictly inside one of the contact polygons `ids` (the
+        receiver there is covered by an occluder face lying on it: a hole of the mesh)."""
+        out = np.zeros(q.shape[0], bool)
+        eps = 1e-14 * self.diam  # round-off; a sliver between a hole's edge and a point just inside is in the hole
+        for i in ids:
+            c = self.contact[i]
+            e = np.roll(c, -1, axis=0) - c
+            d = (e[None, :, 0] * (q[:, None, 1] - c[None, :, 1]) - e[None, :, 0 + 1] * (q[:, None, 0] - c[None, :, 0]))
+            out |= np.all(d > eps * np.linalg.norm(e, axis=1)[None, :], axis=1)
+        return out
+
+    def _at_contact_corner(self, c: np.ndarray, ids: np.ndarray) -> np.ndarray:
+        """Whether triangles `c (T, 3, 2)` have a vertex at a corner of contact polygons `ids`."""
+        if ids.size == 0:
+            return np.zeros(c.shape[0], bool)
+        corners = np.concatenate([self.contact[i] for i in ids])
+        d = np.abs(c[:, :, None, :] - corners[None, None]).max(axis=-1)  # (T, 3, C)
+        return np.any(d <= 1e-9 * self.diam, axis=(1, 2))
+
+    def _contact_edges(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The edges `(a, b)`, each `(n, 2)`, of the contact polygons `ids`."""
+        if ids.size == 0:
+            return np.zeros((0, 2)), np.zeros((0, 2))
+        a = np.concatenate([self.contact[i] for i in ids])
+        b = np.concatenate([np.roll(self.contact[i], -1, axis=0) for i in ids])
+        return a, b
+
+    def _contact_crossings(self, lo: np.ndarray, hi: np.ndarray, a: np.ndarray, b: np.ndarray) -> list[float]:
+        """Parameters along the edge `a -> b` where contact polygons' edges cross it."""
+        ca, cb = self._contact_edges(self._contact_ids(lo, hi))
+        if ca.shape[0] == 0:
+            return []
+        r, e = cb - ca, b - a
+        den = r[:, 0] * e[1] - r[:, 1] * e[0]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = ((ca[:, 0] - a[0]) * r[:, 1] - (ca[:, 1] - a[1]) * r[:, 0]) / -den
+            t = ((ca[:, 0] - a[0]) * e[1] - (ca[:, 1] - a[1]) * e[0]) / -den
+        ok = (den != 0) & (s > 1e-12) & (s < 1 - 1e-12) & (t >= 0) & (t <= 1)
+        return sorted({float(x) for x in s[ok]})
+
+    def _move_off_contact(self, xy: np.ndarray, ids: np.ndarray) -> None:
+        """Points `xy (n, 2)` on (within round-off of) the edges of contact polygons `ids` are
+        evaluated `CONTACT_STEP` (of the receiver's size) outside them: along such an edge the
+        irradiance jumps, and the mesh takes the value on the open receiver's side."""
+        if ids.size == 0 or xy.shape[0] == 0:
+            return
+        ca, cb = self._contact_edges(ids)
+        d = cb - ca
+        ll = np.linalg.norm(d, axis=1)
+        out = np.stack([d[:, 1], -d[:, 0]], axis=1) / ll[:, None]  # outward: the polygons are CCW
+        t = np.einsum("nej,ej->ne", xy[:, None, :] - ca[None], d) / (ll * ll)[None]
+        foot = ca[None] + np.clip(t, 0.0, 1.0)[..., None] * d[None]
+        near = np.linalg.norm(xy[:, None, :] - foot, axis=2) <= 1e-10 * self.diam  # (n, E)
+        hit = np.any(near, axis=1)
+        if not np.any(hit):
+            return
+        push = near[hit].astype(np.float64) @ out
+        push /= np.maximum(np.linalg.norm(push, axis=1, keepdims=True), 1e-300)
+        self.eval.move(xy[hit], xy[hit] + CONTACT_STEP * self.diam * push)
+
+    def _visible(self, xy: np.ndarray, ids: np.ndarray, faces: np.ndarray) -> np.ndarray:
+        """Whether the event of segment `ids` is real at `xy`: its ray, nudged off the occluder,
+        reaches the light."""
+        nudge = ev.NUDGE_RTOL * self.diam
+        assert self.seg is not None and self.occ is not None
+        p3 = self.frame.to3d(xy + nudge * self.seg.free[ids])
+        return ev.ray_visible(p3, ev.ray_targets(self.seg, ids, p3), self.occ, faces)
+
+    def _prepare_edges(self, keys: list[tuple[int, int]]) -> None:
+        """Crossings of the discontinuity lines with edges `keys` and whether each is real."""
+        for key in keys:
+            e = self.edges[key]
+            e.cross = {}
+            lo, hi = np.minimum(e.a, e.b), np.maximum(e.a, e.b)
+            # Contact polygons' edges (value discontinuities) crossing the edge: keys < 0.
+            for j, sj in enumerate(self._contact_crossings(lo, hi, e.a, e.b)):
+                e.cross[-1 - j] = (sj, e.point(sj), True)
+            if len(e.cross):
+                self._move_off_contact(np.array([x for _, x, _ in e.cross.values()]), self._contact_ids(lo, hi))
+            if self.seg is None or len(self.seg) == 0:
+                continue
+            cand = np.nonzero(ev.boxes_overlap(self.seg_box, lo, hi, margin=1e-9 * self.diam))[0]
+            ids, s, _ = _segment_crossings(self.seg, cand, e.a, e.b)
+            if ids.size == 0:
+                continue
+            faces = np.nonzero(ev.boxes_overlap(self.foot, lo, hi, margin=1e-6 * self.diam))[0]
+            xy = e.point(s)
+            vis = self._visible(xy, ids, faces)
+            e.cross = {int(i): (float(si), xy[k], bool(vis[k])) for k, (i, si) in enumerate(zip(ids, s, strict=True))}
+
+    def _prepare_tile(self, ti: int) -> None:
+        t = self.tiles[ti]
+        t.pieces, t.piece_extrema = [], {}
+        t.contact = self._contact_ids(t.lo, t.hi)
+        ca, cb = self._contact_edges(t.contact)
+        if ca.shape[0]:
+            a, b, ok = ev._clip_to_polygon(ca, cb, t.poly)
+            t.contact_pieces = [(p, q) for p, q, k in zip(a, b, ok, strict=True) if k]
+        else:
+            t.contact_pieces = []
+        if self.seg is None or len(self.seg) == 0:
+            return
+        cand = self._tile_segments(t)
+        if cand.size == 0:
+            return
+        seg = self.seg
+        k = t.poly.shape[0]
+        e = np.roll(t.poly, -1, axis=0) - t.poly
+
+        def inside(q: np.ndarray) -> np.ndarray:
+            c = e[None, :, 0] * (q[:, None, 1] - t.poly[None, :, 1]) - e[None, :, 1] * (q[:, None, 0] - t.poly[None, :, 0])
+            return np.all(c > 0, axis=1)
+
+        ends: dict[int, list[tuple[float, np.ndarray, bool | None]]] = {int(i): [] for i in cand}
+        ina, inb = inside(seg.a[cand]), inside(seg.b[cand])
+        for i, fa, fb in zip(cand, ina, inb, strict=True):
+            if fa:
+                ends[int(i)].append((0.0, seg.a[i], None))
+            if fb:
+                ends[int(i)].append((1.0, seg.b[i], None))
+        for ga, gb, _ in t.edge_keys():
+            edge = self.edges[(ga, gb)]
+            for i, (_, xy, vis) in edge.cross.items():
+                if i in ends:
+                    d = seg.b[i] - seg.a[i]
+                    tt = float(np.dot(xy - seg.a[i], d) / np.dot(d, d))
+                    ends[i].append((tt, xy, vis))
+        samples, owner, known = [], [], []
+        runs_of: list[tuple[int, int, int]] = []
+        h = self.tile_size / SEGMENT_SAMPLES_PER_TILE
+        for i, lst in ends.items():
+            if len(lst) != 2:
+                continue
+            lst.sort(key=lambda z: z[0])
+            (_, p0, v0), (_, p1, v1) = lst
+            n = max(2, int(np.ceil(np.linalg.norm(p1 - p0) / h)))
+            frac = np.linspace(0.0, 1.0, n + 1)
+            pts = p0 + frac[:, None] * (p1 - p0)
+            pts[0], pts[-1] = p0, p1
+            start = len(samples)
+            samples.extend(pts)
+            owner.extend([i] * (n + 1))
+            known.extend([v0] + [None] * (n - 1) + [v1])
+            runs_of.append((i, start, n + 1))
+        if not samples:
+            return
+        xy = np.array(samples)
+        ids = np.array(owner)
+        need = np.array([kv is None for kv in known])
+        seen = np.array([bool(kv) for kv in known])
+        if np.any(need):
+            seen[need] = self._visible(xy[need], ids[need], t.faces)
+        for _, start, n in runs_of:
+            v = seen[start:start + n]
+            j = 0
+            while j < n:
+                if not v[j]:
+                    j += 1
+                    continue
+                r = j
+                while r + 1 < n and v[r + 1]:
+                    r += 1
+                if r > j:
+                    t.pieces.append((xy[start + j], xy[start + r]))
+                j = r + 1
+        del k
+
+    # ------------------------------------------------------------------ extrema
+    def _value_and_gradient(self) -> ex.Gradient:
+        mode = self.gradient
+        self.stats["gradient"] = mode
+        if mode == "differences":
+            return ex.difference_gradient(self.eval.luminance, 1e-6 * self.tile_size)
+        return _jax_gradient(self.scene, self.frame, self.eval)
+
+    def _find_extrema(self, tile_ids: list[int], edge_keys: list[tuple[int, int]]) -> float:
+        """Interior extrema of each tile (-> `tile.extrema`) and along each edge (-> required
+        edge parameters); returns the largest irradiance seen (any channel)."""
+        g = SAMPLES_PER_TILE
+        top = 0.0
+        starts, owners, signs, los, his = [], [], [], [], []
+        for ti in tile_ids:
+            t = self.tiles[ti]
+            t.extrema = np.zeros((0, 2))
+            fr = (np.arange(g) + 0.5) / g
+            gx, gy = np.meshgrid(t.lo[0] + fr * (t.hi[0] - t.lo[0]), t.lo[1] + fr * (t.hi[1] - t.lo[1]), indexing="ij")
+            q = np.stack([gx, gy], axis=-1)
+            e = np.roll(t.poly, -1, axis=0) - t.poly
+            c = e[None, None, :, 0] * (q[..., None, 1] - t.poly[:, 1]) - e[None, None, :, 1] * (q[..., None, 0] - t.poly[:, 0])
+            ok = np.all(c > 0, axis=-1)
+            vals = np.full((g, g), np.nan)
+            e3 = self.eval(q[ok])
+            vals[ok] = e3.sum(axis=1)
+            if e3.size:
+                top = max(top, float(e3.max()))
+            pad = np.pad(vals, 1, constant_values=np.nan)
+            nb = np.stack([pad[1 + di:1 + di + g, 1 + dj:1 + dj + g] for di in (-1, 0, 1) for dj in (-1, 0, 1) if di or dj])
+            with np.errstate(invalid="ignore"):
+                is_max = ok & np.all(np.isnan(nb) | (vals > nb), axis=0)
+                is_min = ok & np.all(np.isnan(nb) | (vals < nb), axis=0) & (vals > 0)
+            for mask, sgn in ((is_max, 1.0), (is_min, -1.0)):
+                for a, b in zip(*np.nonzero(mask), strict=True):
+                    starts.append(q[a, b])
+                    owners.append(ti)
+                    signs.append(sgn)
+                    los.append(t.lo)
+                    his.append(t.hi)
+        vg = self._value_and_gradient()
+        if starts:
+            x, val, interior = ex.ascend(self.eval.luminance, vg, np.array(starts), np.array(los), np.array(his),
+                                         np.array(signs), np.full(len(starts), 1e-7 * self.tile_size))
+            found: dict[int, list[np.ndarray]] = {}
+            for k, ti in enumerate(owners):
+                t = self.tiles[ti]
+                e = np.roll(t.poly, -1, axis=0) - t.poly
+                d = (e[:, 0] * (x[k, 1] - t.poly[:, 1]) - e[:, 1] * (x[k, 0] - t.poly[:, 0])) / np.linalg.norm(e, axis=1)
+                if interior[k] and np.all(d > 1e-6 * self.tile_size):
+                    lst = found.setdefault(ti, [])
+                    if all(np.linalg.norm(x[k] - y) > 1e-6 * self.tile_size for y in lst):
+                        lst.append(x[k])
+            for ti, lst in found.items():
+                self.tiles[ti].extrema = np.array(lst)
+                top = max(top, float(self.eval(np.array(lst)).max()))
+        # Along tile edges and along the discontinuity lines (a maximum often sits on a kink).
+        found_e, vmax = self._line_extrema(np.array([self.edges[k].a for k in edge_keys]).reshape(-1, 2),
+                                           np.array([self.edges[k].b for k in edge_keys]).reshape(-1, 2), False)
+        top = max(top, vmax)
+        self._edge_extrema = {}
+        for r, s, v in found_e:
+            self._edge_extrema.setdefault(edge_keys[r], []).append(s)
+            top = max(top, v)
+        where = [(ti, k) for ti in tile_ids for k in range(len(self.tiles[ti].pieces))]
+        if where:
+            P0 = np.array([self.tiles[i].pieces[j][0] for i, j in where])
+            P1 = np.array([self.tiles[i].pieces[j][1] for i, j in where])
+            found_p, vmax = self._line_extrema(P0, P1, True)
+            top = max(top, vmax)
+            for r, s, v in found_p:
+                ti, k = where[r]
+                self.tiles[ti].piece_extrema.setdefault(k, []).append(s)
+                top = max(top, v)
+        return top
+
+    def _line_extrema(self, A: np.ndarray, B: np.ndarray, on_line: bool) -> tuple[list[tuple[int, float, float]], float]:
+        """Local extrema of the irradiance along segments `A -> B (n, 2)`: 9 samples each, a
+        golden-section search around each discrete extremum. Returns (row, parameter, max channel
+        value) for the extrema strictly inside their segment, and the largest value sampled."""
+        fr = np.linspace(0.0, 1.0, 9)
+        if A.shape[0] == 0:
+            return [], 0.0
+        pts = (A[:, None, :] + fr[None, :, None] * (B - A)[:, None, :]).reshape(-1, 2)
+        if on_line:
+            self.eval.mark(pts)
+        v = self.eval(pts).reshape(A.shape[0], 9, 3)
+        out: list[tuple[int, float, float]] = []
+        lum = v.sum(axis=2)
+        rows, a_s, b_s, sg = [], [], [], []
+        for sgn in (1.0, -1.0):
+            x = sgn * lum
+            hit = (x[:, 1:-1] > x[:, :-2]) & (x[:, 1:-1] > x[:, 2:]) & (lum[:, 1:-1] > 0)
+            for r, j in zip(*np.nonzero(hit), strict=True):
+                rows.append(r)
+                a_s.append(fr[j])
+                b_s.append(fr[j + 2])
+                sg.append(sgn)
+        if rows:
+            Ar, Br = A[rows], B[rows]
+
+            def along(tr: np.ndarray) -> np.ndarray:
+                r = tr[:, 1].astype(int)
+                q = Ar[r] + tr[:, :1] * (Br[r] - Ar[r])
+                if on_line:
+                    self.eval.mark(q)
+                return self.eval.luminance(q)
+
+            t, _ = ex.golden_section(along, np.array(a_s), np.array(b_s), np.array(sg))
+            val = self.eval(Ar + t[:, None] * (Br - Ar)).max(axis=1)
+            for r, ti, a0, b0, vv in zip(rows, t, a_s, b_s, val, strict=True):
+                if a0 + 1e-6 < ti < b0 - 1e-6:
+                    out.append((int(r), float(ti), float(vv)))
+        return out, float(v.max())
+
+    # ------------------------------------------------------------------ refinement
+    def _threshold(self) -> float:
+        return ESTIMATE_MARGIN * self.tol * float(self.scale)
+
+    def _refine_edges(self, keys: list[tuple[int, int]]) -> None:
+        thr = self._threshold()
+        params: dict[tuple[int, int], np.ndarray] = {}
+        for key in keys:
+            e = self.edges[key]
+            on = [s for s, _, vis in e.cross.values() if vis]
+            self.eval.mark(e.point(np.array(on)))
+            params[key] = np.unique(np.array([0.0, 1.0] + on + self._edge_extrema.get(key, [])))
+        active = list(keys)
+        while active:
+            if _DEBUG:
+                print("edges", len(active), sum(params[k].size for k in active))
+            quarter = np.array([0.25, 0.5, 0.75])
+            pts, owners = [], []
+            for key in active:
+                s = params[key]
+                probe = s[:-1, None] + quarter[None, :] * np.diff(s)[:, None]
+                pts.append(probe.ravel())
+                owners.append(key)
+            # Evaluate vertices and probes of all active edges in one call.
+            allp = np.concatenate([self.edges[k].point(np.concatenate([params[k], p])) for k, p in zip(owners, pts, strict=True)])
+            self.eval(allp)
+            nxt = []
+            for key, probe in zip(owners, pts, strict=True):
+                e, s = self.edges[key], params[key]
+                ve = self.eval(e.point(s))
+                vp = self.eval(e.point(probe)).reshape(s.size - 1, 3, 3)
+                w = quarter[None, :, None]
+                interp = (1 - w) * ve[:-1, None, :] + w * ve[1:, None, :]
+                err = np.abs(vp - interp).max(axis=2)  # (intervals, 3)
+                length = np.diff(s) * np.linalg.norm(e.b - e.a)
+                hole = self._in_contact(e.point(s[:-1] + 0.5 * np.diff(s)),
+                                        self._contact_ids(np.minimum(e.a, e.b), np.maximum(e.a, e.b)))
+                bad = (err.max(axis=1) > thr) & (length > self.min_edge) & ~hole
+                if np.any(bad):
+                    worst = np.argmax(err[bad], axis=1)
+                    new = probe.reshape(-1, 3)[bad][np.arange(worst.size), worst]
+                    params[key] = np.unique(np.concatenate([s, new]))
+                    nxt.append(key)
+            active = nxt
+        for key in keys:
+            self.edges[key].s = params[key]
+
+    def _tile_pslg(self, t: _Tile) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        verts: list[np.ndarray] = []
+        for ga, gb, rev in t.edge_keys():
+            e = self.edges[(ga, gb)]
+            p = e.point(e.s)
+            p[0], p[-1] = e.a, e.b
+            verts.extend((p[::-1] if rev else p)[:-1])
+        nb = len(verts)
+        segs = [[k, (k + 1) % nb] for k in range(nb)]
+        marks = [1] * nb
+        index = {(float(p[0]), float(p[1])): k for k, p in enumerate(verts)}
+
+        def vid(p: np.ndarray) -> int:
+            key = (float(p[0]), float(p[1]))
+            if key not in index:
+                index[key] = len(verts)
+                verts.append(p)
+            return index[key]
+
+        lines = []
+        for k, (p0, p1) in enumerate(t.pieces):
+            ts = sorted(t.piece_extrema.get(k, []))
+            chain = [p0] + [p0 + tk * (p1 - p0) for tk in ts] + [p1]
+            lines.extend(zip(chain[:-1], chain[1:], strict=True))
+        bverts = np.array(verts)
+        snap = 1e-10 * self.diam
+        for group, mk in ((_noded(lines), 0), (_noded(list(t.contact_pieces)), 2)):
+            for q0, q1 in group:
+                ends = []
+                for q in (q0, q1):
+                    d = np.abs(bverts - q).max(axis=1)
+                    j = int(np.argmin(d))
+                    ends.append(j if d[j] <= snap else vid(q))
+                if ends[0] != ends[1]:
+                    segs.append(ends)
+                    marks.append(mk)
+        for p in t.extrema:
+            vid(p)
+        return np.array(verts), np.array(segs), np.array(marks)
+
+    def _refine_tiles(self, tile_ids: list[int]) -> None:
+        thr = self._threshold()
+        state = {}
+        on_tol = 1e-11 * self.diam
+        for ti in tile_ids:
+            v, s, m = self._tile_pslg(self.tiles[ti])
+            s, m = _split_at(v, s, m, np.arange(v.shape[0]), on_tol)
+            state[ti] = (v, s, m)
+        active = list(tile_ids)
+        rounds = 0
+        tried: dict[int, set] = {}
+        while active:
+            rounds += 1
+            if _DEBUG:
+                print("round", rounds, len(active), sum(state[ti][0].shape[0] for ti in active))
+            meshes = {}
+            probes = []
+            for ti in active:
+                v, s, m = state[ti]
+                out, dropped = _triangulate(v, s, m, on_tol)
+                self.stats["cdt_fallbacks"] = self.stats.get("cdt_fallbacks", 0) + int(dropped)
+                tv, tt = out["vertices"], out["triangles"]
+                meshes[ti] = out
+                on_contact = out["segments"][out["segment_markers"].ravel() == 2]
+                if on_contact.size:  # their vertices and the edge midpoints the check probes
+                    self._move_off_contact(np.concatenate([tv[np.unique(on_contact)], 0.5 * (
+                        tv[on_contact[:, 0]] + tv[on_contact[:, 1]])]), self.tiles[ti].contact)
+                inner_seg = out["segments"][out["segment_markers"].ravel() == 0]
+                if inner_seg.size:
+                    self.eval.mark(tv[inner_seg.ravel()])
+                    self.eval.mark(0.5 * (tv[inner_seg[:, 0]] + tv[inner_seg[:, 1]]))
+                c = tv[tt]  # (T, 3, 2)
+                mids = 0.5 * (c + np.roll(c, -1, axis=1))  # edges (0,1), (1,2), (2,0)
+                inner = np.einsum("ij,tjk->tik", _INNER, c)
+                probes.append(tv)
+                probes.append(np.concatenate([mids, c.mean(axis=1, keepdims=True), inner], axis=1).reshape(-1, 2))
+            self.eval(np.concatenate(probes))
+            total = sum(meshes[ti]["vertices"].shape[0] for ti in meshes) + sum(
+                self.tiles[ti].verts.shape[0] for ti in range(len(self.tiles))  # type: ignore[union-attr]
+                if self.tiles[ti].verts is not None and ti not in meshes)
+            budget = total < self.max_vertices
+            nxt = []
+            for ti in active:
+                out = meshes[ti]
+                tv, tt = out["vertices"], out["triangles"]
+                segs = out["segments"]
+                smark = out["segment_markers"].ravel()
+                c = tv[tt]
+                ve = self.eval(tv)
+                vt = ve[tt]  # (T, 3, 3)
+                mids = 0.5 * (c + np.roll(c, -1, axis=1))
+                inner = np.einsum("ij,tjk->tik", _INNER, c)
+                pts = np.concatenate([mids, c.mean(axis=1, keepdims=True), inner], axis=1)  # (T, 7, 2)
+                interp = np.concatenate([0.5 * (vt + np.roll(vt, -1, axis=1)), vt.mean(axis=1, keepdims=True),
+                                         np.einsum("ij,tjk->tik", _INNER, vt)], axis=1)
+                err = np.abs(self.eval(pts.reshape(-1, 2)).reshape(pts.shape[0], 7, 3) - interp).max(axis=2)
+                hole = self._in_contact(c.mean(axis=1), self.tiles[ti].contact)
+                err[hole] = 0.0  # covered by an occluder face lying on the receiver: not meshed
+                edge_ij = np.stack([tt, np.roll(tt, -1, axis=1)], axis=-1)  # (T, 3, 2)
+                kind = _edge_kinds(edge_ij, segs, smark, tv.shape[0])
+                longest = np.linalg.norm(c - np.roll(c, -1, axis=1), axis=2).max(axis=1)
+                sel_err = err.copy()
+                sel_err[:, :3][kind == 1] = -1.0  # never insert on the tile boundary
+                # At a contact polygon's corner the irradiance has no limit (it depends on the
+                # direction of approach): the elements there are refined down to CORNER_SIZE only,
+                # and their error is reported apart (`stats["corner_error"]`).
+                corner = self._at_contact_corner(c, self.tiles[ti].contact)
+                floor = np.where(corner, CORNER_SIZE * self.diam, self.min_edge)
+                bad = (err.max(axis=1) > thr) & (longest > floor) & (sel_err.max(axis=1) > thr)
+                t = self.tiles[ti]
+                t.corner_error = float(err[corner].max()) if np.any(corner) else 0.0
+                err[corner] = 0.0
+                if not np.any(bad) or not budget:
+                    t.verts, t.tris, t.values = tv, tt[~hole], ve
+                    t.error = float(err.max()) if err.size else 0.0
+                    continue
+                if _DEBUG and rounds > 12:
+                    k = np.argmax(err.max(axis=1))
+                    print("tile", ti, "worst", c[k].tolist(), err[k].tolist(), "n bad", bad.sum(), "vals", vt[k].tolist())
+                worst = np.argmax(sel_err[bad], axis=1)
+                newp = pts[bad][np.arange(worst.size), worst]
+                on_edge = worst < 3
+                seg_split = {}
+                edge_of = edge_ij[bad][np.arange(worst.size), np.minimum(worst, 2)]
+                nv = tv.shape[0]
+                add: dict[tuple[float, float], int] = {}
+                seen = tried.setdefault(ti, set())
+                for p, oe, (i, j), kd in zip(newp, on_edge, edge_of.tolist(),
+                                             kind[bad][np.arange(worst.size), np.minimum(worst, 2)], strict=True):
+                    key = (float(p[0]), float(p[1]))
+                    if key in add or key in seen:  # inserted before and not kept by the triangulation
+                        if _DEBUG and key in seen and key not in add:
+                            import pickle
+                            with open(f"/tmp/stuck_{ti}.pkl", "wb") as fh:
+                                pickle.dump((state[ti], key, tv, tt, segs, smark), fh)
+                        continue
+                    seen.add(key)
+                    add[key] = nv + len(add)
+                    if oe and kd in (0, 2):
+                        seg_split[(min(i, j), max(i, j))] = add[key]
+                if not add or rounds >= MAX_ROUNDS:
+                    t.verts, t.tris, t.values = tv, tt[~hole], ve
+                    t.error = float(err.max())
+                    continue
+                new_v = np.concatenate([tv, np.array(list(add), np.float64).reshape(-1, 2)])
+                new_s, new_m = [], []
+                for (i, j), mk in zip(segs.tolist(), smark.tolist(), strict=True):
+                    mid = seg_split.get((min(i, j), max(i, j)))
+                    if mid is None:
+                        new_s.append([i, j])
+                        new_m.append(mk)
+                    else:
+                        new_s.extend([[i, mid], [mid, j]])
+                        new_m.extend([mk, mk])
+                new_s2, new_m2 = _split_at(new_v, np.array(new_s), np.array(new_m), np.arange(nv, new_v.shape[0]), on_tol)
+                state[ti] = (new_v, new_s2, new_m2)
+                nxt.append(ti)
+            active = nxt
+        self.stats["rounds"] = max(self.stats.get("rounds", 0), rounds)
+
+    # ------------------------------------------------------------------ driver
+    def build(self, tile_ids: list[int], edge_keys: list[tuple[int, int]]) -> None:
+        """Mesh tiles `tile_ids`, after refining edges `edge_keys` (the other edges of those tiles
+        keep their vertices)."""
+        t0 = time.perf_counter()
+        for ti in tile_ids:
+            self.tiles[ti].faces = self._tile_faces(self.tiles[ti])
+        around = sorted({(ga, gb) for ti in tile_ids for ga, gb, _ in self.tiles[ti].edge_keys()} | set(edge_keys))
+        self._prepare_edges(around)
+        for ti in tile_ids:
+            self._prepare_tile(ti)
+        t1 = time.perf_counter()
+        top = self._find_extrema(tile_ids, edge_keys)
+        if self.scale is None:
+            self.scale = top if top > 0 else 1.0
+        t2 = time.perf_counter()
+        self._refine_edges(edge_keys)
+        self._refine_tiles(tile_ids)
+        t3 = time.perf_counter()
+        self.stats.update(
+            lines_seconds=t1 - t0, extrema_seconds=t2 - t1, refine_seconds=t3 - t2,
+            evaluations=self.eval.evaluations, evaluation_seconds=self.eval.seconds,
+            tiles_meshed=len(tile_ids), edges_refined=len(edge_keys),
+            segments=0 if self.seg is None else len(self.seg),
+            pieces=sum(len(self.tiles[ti].pieces) for ti in tile_ids),
+            extrema=sum(self.tiles[ti].extrema.shape[0] + sum(map(len, self.tiles[ti].piece_extrema.values())) for ti in tile_ids)
+            + sum(len(v) for v in self._edge_extrema.values()),
+            repairs=self.eval.repairs,
+        )
+
+    def assemble(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        vs = [t.verts for t in self.tiles]
+        off = np.cumsum([0] + [v.shape[0] for v in vs])  # type: ignore[union-attr]
+        allv = np.concatenate(vs)
+        allval = np.concatenate([t.values for t in self.tiles])
+        tris = np.concatenate([t.tris + o for t, o in zip(self.tiles, off[:-1], strict=True)])
+        uniq, first, inv = np.unique(allv, axis=0, return_index=True, return_inverse=True)
+        tris = inv.ravel()[tris]
+        used = np.zeros(uniq.shape[0], bool)
+        used[tris.ravel()] = True  # vertices only inside holes are dropped
+        renum = np.cumsum(used) - 1
+        err = max(t.error for t in self.tiles) / float(self.scale)
+        return self.frame.to3d(uniq[used]), renum[tris], allval[first[used]], err
+
+
+def _jax_gradient(scene: Scene, frame: ev.Frame, evaluator: _Evaluator) -> ex.Gradient:
+    """Value (host engine) and exact gradient (`jax.grad` of the traced irradiance) of the
+    luminance at 2-D receiver points; one compilation per power-of-two batch size."""
+    import jax
+    import jax.numpy as jnp
+
+    nrm = jnp.asarray(frame.normal)
+
+    @jax.jit
+    def grad3(p3: Any, sc: Scene) -> Any:
+        return jax.grad(lambda q: jnp.sum(irradiance(sc, q, jnp.broadcast_to(nrm, q.shape))))(p3)
+
+    def vg(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        n = xy.shape[0]
+        size = max(8, 1 << (n - 1).bit_length())
+        pad = np.concatenate([xy, np.repeat(xy[:1], size - n, axis=0)])
+        g3 = np.asarray(grad3(jnp.asarray(frame.to3d(pad)), scene))[:n]
+        return evaluator.luminance(xy), np.stack([g3 @ frame.u, g3 @ frame.w], axis=1)
+
+    return vg
+
+
+def _contact_polygons(scene: Scene, frame: ev.Frame, tol: float) -> tuple[list[np.ndarray], np.ndarray]:
+    """The occluder faces lying on the receiver plane (within `tol`), as counter-clockwise 2-D
+    polygons, and their bounding boxes `(n, 4)`: an object standing on the receiver covers them,
+    and along their edges the irradiance jumps (a value discontinuity no interpolation meets), so
+    they are holes of the mesh, bounded by mesh edges."""
+    if scene.occluders is None:
+        return [], np.zeros((0, 4))
+    from ._mesh import _strip_padding
+
+    faces = np.asarray(scene.occluders, np.float64)
+    flat = np.all(np.abs(frame.height(faces)) <= tol, axis=1)
+    out = []
+    for f in faces[flat]:
+        q = frame.to2d(_strip_padding(f))
+        area = 0.5 * np.sum(q[:, 0] * np.roll(q[:, 1], -1) - np.roll(q[:, 0], -1) * q[:, 1])
+        if area != 0:
+            out.append(q if area > 0 else q[::-1].copy())
+    box = np.array([np.concatenate([q.min(axis=0), q.max(axis=0)]) for q in out]).reshape(-1, 4)
+    return out, box

@@ -1,0 +1,407 @@
+r"""Shadow discontinuity lines on a planar receiver, for the illumination meshes (`_illumination`).
+
+The irradiance from a polygon light over a receiver is smooth except where the visible part of
+the light changes shape: where a light vertex lines up with an occluder edge (a *VE* event) or an
+occluder vertex with a light edge (an *EV* event). Each event is a plane (Campbell & Fussell's
+extremal planes, §3.1.2; Chrysanthou & Slater's EV critical surfaces, §1) and meets the receiver
+in a straight segment: the central projection of the occluder edge from the light vertex, or of
+the light edge through the occluder vertex. Across such a line the irradiance has a kink (its
+gradient jumps), which linear interpolation resolves only if the line is a mesh edge.
+
+Most candidate planes are not events anywhere on the receiver, and this module keeps only those
+that can be:
+
+- **Local support.** At an event the plane touches the occluder without cutting it: every
+  vertex of the faces around the occluder's edge (or vertex) lies on one side (for a convex solid
+  this is Campbell's extremal-plane condition; for a single polygon it always holds).
+- **Between light and receiver.** The occluder part strictly between the receiver plane and the
+  light vertex (or the part of the light edge above the occluder vertex) is projected; the
+  segment is clipped to the receiver polygon.
+- **Visibility along the line.** Seen from a receiver point on the line, the event is real only
+  if the ray from the point through the occluder feature to the light is not blocked by another
+  occluder (EEE events and events hidden behind other objects are not inserted; the refinement
+  resolves whatever is left). `ray_visible` is that test, one ray per sample, nudged to the side
+  of the plane the occluder does not occupy so that the occluder's own edge does not block it.
+
+Point lights contribute their hard-shadow boundaries (the VE lines from the point); linear lights
+their two endpoints as vertices and the segment as an edge. Directional lights add no lines.
+Everything here is NumPy on concrete values.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ._mesh import _strip_padding
+from ._scene import LinearLight, PointLight, PolygonLight, Scene
+
+SUPPORT_RTOL = 1e-9  # relative tolerance of the side tests (of the occluder's size squared)
+NUDGE_RTOL = 1e-7  # visibility rays start this far (of the receiver's size) on the free side
+
+
+@dataclass(frozen=True)
+class Frame:
+    """An orthonormal frame of the receiver plane: `origin`, in-plane axes `u`, `w` and the
+    receiver's `normal` (`u x w = normal`); 2-D coordinates are along `u` and `w` (m)."""
+
+    origin: np.ndarray
+    u: np.ndarray
+    w: np.ndarray
+    normal: np.ndarray
+
+    def to3d(self, xy: np.ndarray) -> np.ndarray:
+        xy = np.asarray(xy, np.float64)
+        return self.origin + xy[..., :1] * self.u + xy[..., 1:2] * self.w
+
+    def to2d(self, x: np.ndarray) -> np.ndarray:
+        d = np.asarray(x, np.float64) - self.origin
+        return np.stack([d @ self.u, d @ self.w], axis=-1)
+
+    def height(self, x: np.ndarray) -> np.ndarray:
+        """Signed distance above the receiver plane (m)."""
+        return (np.asarray(x, np.float64) - self.origin) @ self.normal
+
+
+def receiver_frame(receiver: np.ndarray) -> Frame:
+    """The frame of a planar convex receiver polygon `(k, 3)` (its normal by the right-hand rule)."""
+    r = np.asarray(receiver, np.float64)
+    nrm = np.sum(np.cross(r, np.roll(r, -1, axis=0)), axis=0)
+    nrm = nrm / np.linalg.norm(nrm)
+    u = r[1] - r[0]
+    u = u - (u @ nrm) * nrm
+    u = u / np.linalg.norm(u)
+    return Frame(r[0].copy(), u, np.cross(nrm, u), nrm)
+
+
+@dataclass
+class Occluders:
+    """The scene's occluder faces with the adjacency the support test needs.
+
+    `faces (M, K, 3)` padded, `face_normal (M, 3)` (unit), `face_object (M,)`; per undirected edge
+    of an object `edge (E, 2, 3)`, `edge_adj (E, A, 3)` the vertices of its faces (padded with the
+    edge's first end), `edge_object (E,)`; per vertex `vert (W, 3)`, `vert_adj (W, B, 3)`,
+    `vert_object (W,)`."""
+
+    faces: np.ndarray
+    face_normal: np.ndarray
+    face_object: np.ndarray
+    edge: np.ndarray
+    edge_adj: np.ndarray
+    edge_object: np.ndarray
+    vert: np.ndarray
+    vert_adj: np.ndarray
+    vert_object: np.ndarray
+
+
+def _pad_rows(rows: list[list[np.ndarray]], fill: list[np.ndarray]) -> np.ndarray:
+    width = max((len(r) for r in rows), default=1)
+    out = np.zeros((len(rows), max(width, 1), 3))
+    for i, r in enumerate(rows):
+        out[i, : len(r)] = r
+        out[i, len(r):] = fill[i]
+    return out
+
+
+def occluder_features(scene: Scene) -> Occluders:
+    """Edges and vertices of each occluder object (a `Mesh` entry or a polygon) with the faces
+    around them, from `scene.occluders` and its topology (vertices matched by exact equality)."""
+    faces = np.asarray(scene.occluders, np.float64)
+    m = faces.shape[0]
+    topo = scene.occluder_topology
+    obj_of = np.arange(m) if topo is None else np.asarray(topo.face_object)
+    loops = [_strip_padding(faces[i]) for i in range(m)]
+    normals = np.stack([np.sum(np.cross(p, np.roll(p, -1, axis=0)), axis=0) for p in loops])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    edges, eadj, eobj, verts, vadj, vobj = [], [], [], [], [], []
+    start = 0
+    while start < m:
+        stop = start
+        while stop < m and obj_of[stop] == obj_of[start]:
+            stop += 1
+        index: dict[tuple, int] = {}
+        coords: list[np.ndarray] = []
+        face_ids: list[list[int]] = []
+        for f in range(start, stop):
+            ids = []
+            for x in loops[f]:
+                key = tuple(x.tolist())
+                if key not in index:
+                    index[key] = len(coords)
+                    coords.append(x)
+                ids.append(index[key])
+            face_ids.append(ids)
+        edge_faces: dict[tuple[int, int], list[int]] = {}
+        vert_faces: dict[int, list[int]] = {}
+        for fi, ids in enumerate(face_ids):
+            for k, a in enumerate(ids):
+                b = ids[(k + 1) % len(ids)]
+                edge_faces.setdefault((min(a, b), max(a, b)), []).append(fi)
+                vert_faces.setdefault(a, []).append(fi)
+        for (a, b), fs in edge_faces.items():
+            edges.append(np.stack([coords[a], coords[b]]))
+            eadj.append([coords[i] for f in fs for i in face_ids[f]])
+            eobj.append(obj_of[start])
+        for a, fs in vert_faces.items():
+            verts.append(coords[a])
+            vadj.append([coords[i] for f in fs for i in face_ids[f]])
+            vobj.append(obj_of[start])
+        start = stop
+    edge = np.stack(edges)
+    vert = np.stack(verts)
+    return Occluders(
+        faces, normals, np.asarray(obj_of), edge, _pad_rows(eadj, list(edge[:, 0])), np.asarray(eobj),
+        vert, _pad_rows(vadj, verts), np.asarray(vobj),
+    )
+
+
+@dataclass
+class LightFeatures:
+    """The vertices `(kv, 3)` and edges `(ke, 2, 3)` of the lights that make lines."""
+
+    vertices: np.ndarray
+    edges: np.ndarray
+
+
+def light_features(scene: Scene) -> LightFeatures:
+    vs: list[np.ndarray] = []
+    es: list[np.ndarray] = []
+    for light in scene.lights:
+        if isinstance(light, PolygonLight):
+            v = np.asarray(light.vertices, np.float64)
+            vs.extend(v)
+            es.extend(np.stack([v, np.roll(v, -1, axis=0)], axis=1))
+        elif isinstance(light, LinearLight):
+            a, b = np.asarray(light.start, np.float64), np.asarray(light.end, np.float64)
+            vs.extend([a, b])
+            es.append(np.stack([a, b]))
+        elif isinstance(light, PointLight):
+            vs.append(np.asarray(light.position, np.float64))
+    return LightFeatures(np.asarray(vs).reshape(-1, 3), np.asarray(es).reshape(-1, 2, 3))
+
+
+@dataclass
+class Segments:
+    """Candidate discontinuity segments on the receiver (2-D): `a`, `b (S, 2)`; `free (S, 2)` the
+    in-plane unit normal pointing to the side the occluder does not occupy; `target (S, 3)` the
+    light vertex (`through = False`) or the occluder vertex the ray passes (`through = True`, EV
+    events: the ray continues to the light edge `ledge (S, 2, 3)`); `obj (S,)` the occluder object."""
+
+    a: np.ndarray
+    b: np.ndarray
+    free: np.ndarray
+    target: np.ndarray
+    through: np.ndarray
+    ledge: np.ndarray
+    obj: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.a.shape[0])
+
+    def take(self, keep: np.ndarray) -> Segments:
+        return Segments(*(getattr(self, f)[keep] for f in ("a", "b", "free", "target", "through", "ledge", "obj")))
+
+
+def _supports(m: np.ndarray, origin: np.ndarray, adj: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray]:
+    """(supporting, side): the planes through `origin (n, 3)` with normals `m (n, 3)` leave all
+    `adj (n, A, 3)` on one side; `side` is +1 or -1, where they lie."""
+    s = np.einsum("nak,nk->na", adj - origin[:, None, :], m)
+    tol = SUPPORT_RTOL * size * size * np.linalg.norm(m, axis=1, keepdims=True)
+    pos = np.all(s >= -tol, axis=1)
+    neg = np.all(s <= tol, axis=1)
+    side = np.where(np.sum(np.where(np.abs(s) > tol, s, 0.0), axis=1) >= 0, 1.0, -1.0)
+    return (pos | neg) & (np.linalg.norm(m, axis=1) > 0), side
+
+
+def _clip_to_polygon(a: np.ndarray, b: np.ndarray, poly: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Liang-Barsky clip of 2-D segments `a -> b (n, 2)` to a convex counter-clockwise polygon:
+    `(a', b', nonempty)`."""
+    t0 = np.zeros(a.shape[0])
+    t1 = np.ones(a.shape[0])
+    d = b - a
+    for k in range(poly.shape[0]):
+        p, q = poly[k], poly[(k + 1) % poly.shape[0]]
+        e = q - p
+        # inside: cross(e, x - p) >= 0
+        f0 = e[0] * (a[:, 1] - p[1]) - e[1] * (a[:, 0] - p[0])
+        df = e[0] * d[:, 1] - e[1] * d[:, 0]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = -f0 / df
+        enter = df > 0
+        leave = df < 0
+        t0 = np.where(enter, np.maximum(t0, t), t0)
+        t1 = np.where(leave, np.minimum(t1, t), t1)
+        t1 = np.where((df == 0) & (f0 < 0), -1.0, t1)
+    ok = t1 > t0
+    return a + t0[:, None] * d, a + t1[:, None] * d, ok
+
+
+def _project_from(v: np.ndarray, x: np.ndarray, frame: Frame) -> np.ndarray:
+    """Central projection of `x` from `v` onto the receiver plane (needs h(v) > h(x))."""
+    hv, hx = frame.height(v), frame.height(x)
+    return frame.to2d(v + (x - v) * (hv / (hv - hx))[..., None])
+
+
+def _slab(h0: np.ndarray, h1: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Parameter range of a segment with end heights h0, h1 where lo < h < hi."""
+    dh = h1 - h0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ta = (lo - h0) / dh
+        tb = (hi - h0) / dh
+    t0 = np.where(dh > 0, ta, np.where(dh < 0, tb, 0.0))
+    t1 = np.where(dh > 0, tb, np.where(dh < 0, ta, 1.0))
+    inside_const = (h0 > lo) & (h0 < hi)
+    t0 = np.where(dh == 0, np.where(inside_const, 0.0, 2.0), np.clip(t0, 0.0, 1.0))
+    t1 = np.where(dh == 0, np.where(inside_const, 1.0, -1.0), np.clip(t1, 0.0, 1.0))
+    return t0, t1
+
+
+def discontinuity_segments(scene: Scene, occ: Occluders, frame: Frame, poly: np.ndarray) -> Segments:
+    """The candidate VE and EV segments of `scene` on the receiver polygon `poly (k, 2)` (frame
+    coordinates), after the support and between-ness tests (not yet the visibility test)."""
+    lf = light_features(scene)
+    size = float(np.max(np.ptp(occ.faces.reshape(-1, 3), axis=0))) or 1.0
+    parts: list[tuple] = []
+    # VE: light vertex v, occluder edge (x0, x1).
+    for v in lf.vertices:
+        hv = float(frame.height(v))
+        if hv <= 0:
+            continue
+        x0, x1 = occ.edge[:, 0], occ.edge[:, 1]
+        m = np.cross(x0 - v, x1 - v)
+        sup, side = _supports(m, np.broadcast_to(v, x0.shape), occ.edge_adj, size)
+        h0, h1 = frame.height(x0), frame.height(x1)
+        t0, t1 = _slab(h0, h1, np.full_like(h0, 1e-9 * hv), np.full_like(h0, hv * (1 - 1e-7)))
+        ok = sup & (t1 > t0)
+        y0 = x0 + t0[:, None] * (x1 - x0)
+        y1 = x0 + t1[:, None] * (x1 - x0)
+        ok &= np.isfinite(t0) & np.isfinite(t1)
+        idx = np.nonzero(ok)[0]
+        if idx.size:
+            a = _project_from(v, y0[idx], frame)
+            b = _project_from(v, y1[idx], frame)
+            parts.append((a, b, m[idx], side[idx], np.broadcast_to(v, (idx.size, 3)), False,
+                          np.broadcast_to(np.stack([v, v]), (idx.size, 2, 3)), occ.edge_object[idx]))
+    # EV: light edge (v0, v1), occluder vertex w.
+    for v0, v1 in lf.edges:
+        w = occ.vert
+        m = np.cross(v0 - w, v1 - w)
+        sup, side = _supports(m, w, occ.vert_adj, size)
+        hw = frame.height(w)
+        h0, h1 = np.full_like(hw, frame.height(v0)), np.full_like(hw, frame.height(v1))
+        t0, t1 = _slab(h0, h1, hw + 1e-7 * np.maximum(hw, 1e-300), np.full_like(hw, np.inf))
+        ok = sup & (hw > 0) & (t1 > t0)
+        idx = np.nonzero(ok)[0]
+        if idx.size:
+            ya = v0 + t0[idx, None] * (v1 - v0)
+            yb = v0 + t1[idx, None] * (v1 - v0)
+            a = _project_from(ya, w[idx], frame)
+            b = _project_from(yb, w[idx], frame)
+            parts.append((a, b, m[idx], side[idx], w[idx], True,
+                          np.broadcast_to(np.stack([v0, v1]), (idx.size, 2, 3)), occ.vert_object[idx]))
+    if not parts:
+        z2, z3 = np.zeros((0, 2)), np.zeros((0, 3))
+        return Segments(z2, z2, z2, z3, np.zeros(0, bool), np.zeros((0, 2, 3)), np.zeros(0, int))
+    a = np.concatenate([p[0] for p in parts])
+    b = np.concatenate([p[1] for p in parts])
+    m = np.concatenate([p[2] for p in parts])
+    side = np.concatenate([p[3] for p in parts])
+    target = np.concatenate([p[4] for p in parts])
+    through = np.concatenate([np.full(p[0].shape[0], p[5]) for p in parts])
+    ledge = np.concatenate([p[6] for p in parts])
+    obj = np.concatenate([p[7] for p in parts])
+    a, b, ok = _clip_to_polygon(a, b, poly)
+    length = np.linalg.norm(b - a, axis=1)
+    diam = float(np.max(np.ptp(poly, axis=0)))
+    ok &= length > 1e-9 * diam
+    # In-plane normal of the line, pointing away from the occluder's side of the event plane.
+    d = (b - a) / np.maximum(length, 1e-300)[:, None]
+    nu = np.stack([-d[:, 1], d[:, 0]], axis=1)
+    m2 = np.stack([m @ frame.u, m @ frame.w], axis=1)
+    s = np.sum(nu * m2, axis=1)
+    free = np.where((np.sign(s) * side)[:, None] > 0, -nu, nu)
+    seg = Segments(a, b, free, target, through, ledge, obj)
+    return seg.take(ok)
+
+
+def ray_targets(seg: Segments, idx: np.ndarray, pts3: np.ndarray) -> np.ndarray:
+    """The light point each sample's event ray ends at: the light vertex (VE), or where the line
+    from the sample through the occluder vertex meets the light edge's line (EV)."""
+    tgt = seg.target[idx].copy()
+    thr = seg.through[idx]
+    if np.any(thr):
+        p = pts3[thr]
+        w = seg.target[idx][thr]
+        e0, e1 = seg.ledge[idx][thr, 0], seg.ledge[idx][thr, 1]
+        d1, d2 = e1 - e0, w - p
+        c = np.cross(d1, d2)
+        t = np.einsum("nk,nk->n", np.cross(p - e0, d2), c) / np.maximum(np.einsum("nk,nk->n", c, c), 1e-300)
+        tgt[thr] = e0 + t[:, None] * d1
+    return tgt
+
+
+def ray_visible(p: np.ndarray, q: np.ndarray, occ: Occluders, faces: np.ndarray) -> np.ndarray:
+    """`(n,)` bool: the open segment from `p (n, 3)` to `q (n, 3)` misses the occluder faces
+    `faces (c,)` (indices into `occ`); one vectorised test per (ray, face)."""
+    vis = np.ones(p.shape[0], bool)
+    if faces.size == 0 or p.shape[0] == 0:
+        return vis
+    f = occ.faces[faces]  # (c, K, 3)
+    nf = occ.face_normal[faces]
+    step = max(1, int(4_000_000 // max(1, faces.size * f.shape[1])))
+    for s in range(0, p.shape[0], step):
+        pp, qq = p[s:s + step], q[s:s + step]
+        d = qq - pp
+        num = np.einsum("ck,ck->c", f[:, 0], nf)[None, :] - pp @ nf.T  # (n, c)
+        den = d @ nf.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = num / den
+        hit = (t > 1e-12) & (t < 1 - 1e-12) & (den != 0)
+        x = pp[:, None, :] + t[:, :, None] * d[:, None, :]  # (n, c, 3)
+        e = np.roll(f, -1, axis=1) - f  # (c, K, 3)
+        rel = x[:, :, None, :] - f[None]  # (n, c, K, 3)
+        inside = np.all(np.einsum("nckj,ckj->nck", np.cross(e[None], rel), nf[:, None, :]) >= 0, axis=2)
+        vis[s:s + step] = ~np.any(hit & inside, axis=1)
+    return vis
+
+
+def face_footprints(occ: Occluders, scene: Scene, frame: Frame, bbox: np.ndarray) -> np.ndarray:
+    """Per face the 2-D bounding box `(M, 4)` = (xmin, ymin, xmax, ymax) of the receiver region its
+    shadow volume can reach (the central projections of its part above the receiver from every
+    light vertex; the whole receiver `bbox` when the face reaches the height of a light vertex,
+    or for directional and unrecognised lights)."""
+    lf = light_features(scene)
+    m = occ.faces.shape[0]
+    full = np.broadcast_to(bbox, (m, 4)).copy()
+    other = any(not isinstance(lt, (PolygonLight, LinearLight, PointLight)) for lt in scene.lights)
+    if other or lf.vertices.shape[0] == 0:
+        return full
+    h = frame.height(occ.faces)  # (M, K)
+    below = np.all(h <= 0, axis=1)
+    out = np.empty((m, 4))
+    out[:, :2] = np.inf
+    out[:, 2:] = -np.inf
+    hv = frame.height(lf.vertices)
+    unbounded = np.zeros(m, bool)
+    for v, hvv in zip(lf.vertices, hv, strict=True):
+        if hvv <= 0:
+            continue
+        unbounded |= np.any(h >= hvv * (1 - 1e-9), axis=1) & ~below
+        # A face crossing the receiver plane meets it between its vertices' orthographic
+        # images: those (and the projections of the vertices above) bound its shadow.
+        hx = np.clip(h, 0.0, hvv * (1 - 1e-9))
+        x = occ.faces + (hx - h)[..., None] * frame.normal
+        xy = np.concatenate([frame.to2d(v + (x - v) * (hvv / (hvv - hx))[..., None]), frame.to2d(occ.faces)], axis=1)
+        out[:, :2] = np.minimum(out[:, :2], xy.min(axis=1))
+        out[:, 2:] = np.maximum(out[:, 2:], xy.max(axis=1))
+    out = np.where(unbounded[:, None], full, out)
+    out[below] = np.array([np.inf, np.inf, -np.inf, -np.inf])
+    return out
+
+
+def boxes_overlap(boxes: np.ndarray, lo: Any, hi: Any, margin: float = 0.0) -> np.ndarray:
+    """Which `boxes (n, 4)` meet the axis-aligned box [lo, hi] (2-D) grown by `margin`."""
+    return ((boxes[:, 0] <= hi[0] + margin) & (boxes[:, 2] >= lo[0] - margin)
+            & (boxes[:, 1] <= hi[1] + margin) & (boxes[:, 3] >= lo[1] - margin))

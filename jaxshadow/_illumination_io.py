@@ -1,0 +1,148 @@
+"""Illumination meshes out: PLY and glTF files (through trimesh) and the `jaxshadow mesh` command.
+
+Vertex colours are the irradiance over the mesh's `scale` (the receiver's maximum), clipped to
+[0, 1] and gamma-encoded (sRGB-like 1/2.2) for viewers; PLY files also carry the exact float
+irradiance as the vertex properties `irradiance_r`, `irradiance_g`, `irradiance_b` (W/m^2).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from typing import Any
+
+import numpy as np
+
+from ._files import atomic_write_path
+
+FORMATS = {".ply": "ply", ".glb": "glb", ".gltf": "gltf"}
+
+
+def vertex_colours(irradiance: np.ndarray, scale: float) -> np.ndarray:
+    """`(V, 4)` uint8 RGBA display colours of irradiance `(V, 3)` relative to `scale`."""
+    c = np.clip(np.asarray(irradiance, np.float64) / max(float(scale), 1e-300), 0.0, 1.0) ** (1 / 2.2)
+    rgba = np.empty((c.shape[0], 4), np.uint8)
+    rgba[:, :3] = np.round(255 * c).astype(np.uint8)
+    rgba[:, 3] = 255
+    return rgba
+
+
+def save_mesh(mesh: Any, path: str | os.PathLike) -> None:
+    """Write an `IlluminationMesh` to `path`: `.ply` (binary, vertex colours and the float
+    irradiance as vertex properties), `.glb` or `.gltf` (buffers embedded; vertex colours as
+    `COLOR_0`). The file is replaced atomically (`jaxshadow._files.atomic_write_path`)."""
+    import trimesh
+    from trimesh.exchange.gltf import export_gltf
+
+    path = os.fspath(path)
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in FORMATS:
+        raise ValueError(f"illumination mesh: unknown output format {ext!r} (expected one of {sorted(FORMATS)}).")
+    tm = trimesh.Trimesh(mesh.vertices, mesh.triangles, vertex_colors=vertex_colours(mesh.irradiance, mesh.scale),
+                         process=False)
+    if ext == ".ply":
+        for c, name in enumerate("rgb"):
+            tm.vertex_attributes[f"irradiance_{name}"] = np.ascontiguousarray(mesh.irradiance[:, c], np.float64)
+        atomic_write_path(path, lambda tmp: tm.export(tmp, file_type="ply"))
+    elif ext == ".glb":
+        atomic_write_path(path, lambda tmp: tm.export(tmp, file_type="glb"))
+    else:
+        data = export_gltf(tm.scene(), embed_buffers=True)["model.gltf"]
+
+        def write(tmp: str) -> None:
+            with open(tmp, "wb") as fh:
+                fh.write(data)
+
+        atomic_write_path(path, write)
+
+
+# --------------------------------------------------------------------------------------
+# `jaxshadow mesh`
+# --------------------------------------------------------------------------------------
+
+
+def default_receiver(scene: Any) -> np.ndarray:
+    """The square on z = 0 (normal +z) under the scene: the x-y bounding box of its lights and
+    occluders, grown on every side by the highest light's height."""
+    pts = []
+    for light in scene.lights:
+        for name in ("vertices", "start", "end", "position"):
+            if hasattr(light, name):
+                pts.append(np.asarray(getattr(light, name), np.float64).reshape(-1, 3))
+    if scene.occluders is not None:
+        pts.append(np.asarray(scene.occluders, np.float64).reshape(-1, 3))
+    if not pts:
+        raise ValueError("the scene has no light with a position; give --receiver.")
+    p = np.concatenate(pts)
+    grow = max(float(np.max(p[:, 2])), 1e-3)
+    lo, hi = p[:, :2].min(axis=0) - grow, p[:, :2].max(axis=0) + grow
+    return np.array([[lo[0], lo[1], 0.0], [hi[0], lo[1], 0.0], [hi[0], hi[1], 0.0], [lo[0], hi[1], 0.0]])
+
+
+def parse_receiver(text: str) -> np.ndarray:
+    """`--receiver`: a JSON file holding a list of [x, y, z] vertices, or the vertices inline as
+    `"x,y,z; x,y,z; ..."`."""
+    if os.path.exists(text):
+        with open(text) as fh:
+            try:
+                data = json.load(fh)
+            except json.JSONDecodeError as err:
+                raise ValueError(f"--receiver {text}: not valid JSON ({err}).") from None
+    else:
+        try:
+            data = [[float(x) for x in row.split(",")] for row in text.split(";") if row.strip()]
+        except ValueError:
+            raise ValueError(f"--receiver: expected a JSON file or 'x,y,z; x,y,z; ...', got {text!r}.") from None
+    arr = np.asarray(data, np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ValueError(f"--receiver: expected k rows of 3 coordinates, got shape {arr.shape}.")
+    return arr
+
+
+def mesh_command(args: argparse.Namespace) -> int:
+    """`jaxshadow mesh SCENE -o OUT --tol TOL [--receiver R]`."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jaxshadow as js
+
+    out = os.fspath(args.output)
+    if os.path.splitext(out)[1].lower() not in FORMATS:
+        raise ValueError(f"-o {out}: the output must end in one of {sorted(FORMATS)}.")
+    directory = os.path.dirname(os.path.abspath(out))
+    if not os.path.isdir(directory):
+        raise FileNotFoundError(f"-o {out}: directory {directory} does not exist.")
+    scene = js.load_scene(args.scene)
+    receiver = parse_receiver(args.receiver) if args.receiver else default_receiver(scene)
+    mesh = js.illumination_mesh(scene, receiver, args.tol, max_vertices=args.max_vertices, tile_size=args.tile_size)
+    mesh.save(out)
+    print(f"{mesh.vertices.shape[0]} vertices, {mesh.triangles.shape[0]} triangles, checked error "
+          f"{mesh.max_error_estimate:.3g} of the maximum {mesh.scale:.4g} W/m^2 (tol {args.tol:g}), "
+          f"{mesh.stats['seconds']:.1f} s -> {out}")
+    return 0
+
+
+def add_mesh_parser(sub: Any) -> None:
+    """Register `jaxshadow mesh` on an argparse subparsers object."""
+    p = sub.add_parser("mesh", help="adaptive illumination mesh of a receiver (exact irradiance at the vertices), "
+                                    "written as PLY or glTF")
+    p.add_argument("scene", help="scene JSON")
+    p.add_argument("-o", "--output", required=True, help="output mesh: .ply, .glb or .gltf")
+    p.add_argument("--tol", type=float, default=1e-3,
+                   help="interpolation tolerance relative to the receiver's maximum irradiance (default 1e-3)")
+    p.add_argument("--receiver", default=None,
+                   help="receiver polygon: a JSON file with a list of [x, y, z] vertices or 'x,y,z; x,y,z; ...' "
+                        "(counter-clockwise seen from its lit side; default: the floor z = 0 under the scene)")
+    p.add_argument("--max-vertices", type=int, default=2_000_000, help="stop refining at this many vertices")
+    p.add_argument("--tile-size", type=float, default=None,
+                   help="side of the tiles the receiver is meshed in (m; default 1/16 of its extent)")
+    p.set_defaults(func=mesh_command)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    parser = argparse.ArgumentParser(prog="jaxshadow")
+    add_mesh_parser(parser.add_subparsers(dest="cmd", required=True))
+    a = parser.parse_args()
+    sys.exit(a.func(a))

@@ -1,0 +1,362 @@
+"""2-D machinery of the illumination meshes (`_illumination`): the receiver's tiles and their
+shared edges, the exact-irradiance evaluator, constrained Delaunay triangulation (PythonCDT)
+with the clean-up it needs, and piecewise-linear interpolation on the result."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import _illumination_events as ev
+from ._scene import Scene
+from ._shade import irradiance
+
+ON_LINE_STEP = 1e-9
+GRID_SHIFT = (np.sqrt(2.0) - 1) / 10
+MIN_BATCH = 256  # smallest batch handed to the engine
+
+
+class _Evaluator:
+    """Exact irradiance at 2-D receiver points, cached by coordinates, batched per call.
+
+    Points on a discontinuity line (`mark`) are also evaluated `ON_LINE_STEP` (of the receiver's
+    size) to either side along a fixed oblique direction: the host engine can return the
+    unoccluded value at a point exactly on an umbra boundary (an EV plane; see
+    `tests/test_illumination_mesh.py::test_engine_on_event_plane`), and where the value at the
+    point is not between its neighbours' (with a slack far above a kink's) their mean is used
+    (`repairs` counts these; the irradiance is continuous there, so the mean is within
+    `ON_LINE_STEP` times the gradient of the exact value)."""
+
+    def __init__(self, scene: Scene, frame: ev.Frame, size: float):
+        self.scene, self.frame = scene, frame
+        self.cache: dict[tuple, np.ndarray] = {}
+        self.online: set[tuple] = set()
+        self.moved: dict[tuple, tuple] = {}  # points evaluated elsewhere (`move`)
+        self.checked: set[tuple] = set()
+        self.step = ON_LINE_STEP * size * np.array([np.cos(0.6180339887), np.sin(0.6180339887)])
+        self.evaluations = 0
+        self.repairs = 0
+        self.seconds = 0.0
+
+    def mark(self, xy: np.ndarray) -> None:
+        """Declare points `(n, 2)` to lie on discontinuity lines."""
+        self.online.update(map(tuple, np.asarray(xy, np.float64).reshape(-1, 2).tolist()))
+
+    def move(self, xy: np.ndarray, to: np.ndarray) -> None:
+        """Evaluate points `xy (n, 2)` at `to (n, 2)` instead (a point on the edge of a hole takes
+        the value just outside it)."""
+        for a, b in zip(np.asarray(xy, np.float64).reshape(-1, 2).tolist(), np.asarray(to).reshape(-1, 2).tolist(),
+                        strict=True):
+            if tuple(a) not in self.moved:
+                self.moved[tuple(a)] = tuple(b)
+                self.cache.pop(tuple(a), None)
+
+    def __call__(self, xy: np.ndarray) -> np.ndarray:
+        xy = np.asarray(xy, np.float64).reshape(-1, 2)
+        keys = list(map(tuple, xy.tolist()))
+        todo = {k: None for k in keys if k not in self.cache or (k in self.online and k not in self.checked)}
+        if todo:
+            pts = np.array([self.moved.get(k, k) for k in todo], np.float64)
+            line = np.array([k in self.online for k in todo])
+            side = pts[line]
+            allp = np.concatenate([pts, side + self.step, side - self.step])
+            t0 = time.perf_counter()
+            # Padded to a power of two: the engine compiles per batch shape.
+            n_all = allp.shape[0]
+            size = max(MIN_BATCH, 1 << (n_all - 1).bit_length())
+            p3 = self.frame.to3d(np.concatenate([allp, np.repeat(allp[:1], size - n_all, axis=0)]))
+            nrm = np.broadcast_to(self.frame.normal, p3.shape)
+            e = np.asarray(irradiance(self.scene, p3, np.ascontiguousarray(nrm)), np.float64)[:n_all]
+            self.seconds += time.perf_counter() - t0
+            self.evaluations += allp.shape[0]
+            n, m = pts.shape[0], side.shape[0]
+            val = e[:n].copy()
+            if m:
+                ep, em = e[n:n + m], e[n + m:]
+                mid = 0.5 * (ep + em)
+                slack = 0.5 * np.abs(ep - em) + 1e-6 * np.maximum(np.abs(ep), np.abs(em)) + 1e-300
+                bad = np.any(np.abs(val[line] - mid) > slack, axis=1)
+                if np.any(bad):
+                    fixed = val[line]
+                    fixed[bad] = mid[bad]
+                    val[line] = fixed
+                    self.repairs += int(bad.sum())
+            for k, v, ln in zip(todo, val, line, strict=True):
+                self.cache[k] = v
+                if ln:
+                    self.checked.add(k)
+        if not keys:
+            return np.zeros((0, 3))
+        return np.stack([self.cache[k] for k in keys])
+
+    def luminance(self, xy: np.ndarray) -> np.ndarray:
+        return self(xy).sum(axis=1)
+
+
+@dataclass
+class _Edge:
+    """A tile edge from global point `ga` to `gb` (`ga < gb`): its crossings with discontinuity
+    segments and, once refined, its vertex parameters `s` in [0, 1]."""
+
+    a: np.ndarray
+    b: np.ndarray
+    cross: dict[int, tuple[float, np.ndarray, bool]] = field(default_factory=dict)
+    s: np.ndarray | None = None
+
+    def point(self, s: np.ndarray) -> np.ndarray:
+        return self.a + np.asarray(s)[..., None] * (self.b - self.a)
+
+
+@dataclass
+class _Tile:
+    poly: np.ndarray  # (k, 2) counter-clockwise
+    gids: list[int]
+    lo: np.ndarray
+    hi: np.ndarray
+    faces: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    contact: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    contact_pieces: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
+    pieces: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
+    extrema: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    piece_extrema: dict[int, list[float]] = field(default_factory=dict)
+    verts: np.ndarray | None = None
+    tris: np.ndarray | None = None
+    values: np.ndarray | None = None
+    error: float = 0.0
+    corner_error: float = 0.0
+
+    def edge_keys(self) -> list[tuple[int, int, bool]]:
+        g = self.gids
+        return [(min(g[k], g[(k + 1) % len(g)]), max(g[k], g[(k + 1) % len(g)]), g[k] > g[(k + 1) % len(g)])
+                for k in range(len(g))]
+
+
+def _grid(poly: np.ndarray, tile_size: float) -> tuple[np.ndarray, np.ndarray]:
+    """Interior grid lines of the tiles. They are shifted by an irrational fraction of a tile
+    off the receiver's round subdivisions: scenes built on round coordinates put shadow
+    boundaries on those, and a tile edge along a discontinuity line would cross it nowhere."""
+    lo, hi = poly.min(axis=0), poly.max(axis=0)
+    lines = []
+    for ax in range(2):
+        n = max(1, int(np.ceil((hi[ax] - lo[ax]) / tile_size - 1e-9)))
+        step = (hi[ax] - lo[ax]) / n
+        xs = lo[ax] + step * (np.arange(1, n) + GRID_SHIFT)
+        # Keep the lines off the receiver's vertices (a vertex on a line makes a degenerate tile).
+        while xs.size and np.min(np.abs(poly[:, ax][:, None] - xs[None, :])) < 1e-6 * step:
+            xs = xs + 0.01 * step
+        lines.append(xs)
+    return lines[0], lines[1]
+
+
+def _tiles(poly: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> tuple[np.ndarray, list[_Tile]]:
+    """Global points (receiver vertices, grid lines' crossings with the boundary, grid crossings
+    inside) and the convex tiles made of them."""
+    k = poly.shape[0]
+    pts: list[tuple[float, float]] = [tuple(p) for p in poly.tolist()]
+    inside = lambda q: all(  # noqa: E731
+        (poly[(i + 1) % k, 0] - poly[i, 0]) * (q[1] - poly[i, 1]) - (poly[(i + 1) % k, 1] - poly[i, 1]) * (q[0] - poly[i, 0]) > 0
+        for i in range(k))
+    for ax, lines in ((0, xs), (1, ys)):
+        for c in lines:
+            for i in range(k):
+                a, b = poly[i], poly[(i + 1) % k]
+                if (a[ax] - c) * (b[ax] - c) < 0:
+                    t = (c - a[ax]) / (b[ax] - a[ax])
+                    other = a[1 - ax] + t * (b[1 - ax] - a[1 - ax])
+                    pts.append((c, other) if ax == 0 else (other, c))
+    for x in xs:
+        for y in ys:
+            if inside((x, y)):
+                pts.append((float(x), float(y)))
+    gp = np.array(pts, np.float64)
+    bx = np.concatenate([[-np.inf], xs, [np.inf]])
+    by = np.concatenate([[-np.inf], ys, [np.inf]])
+    tiles = []
+    for i in range(bx.size - 1):
+        for j in range(by.size - 1):
+            sel = np.nonzero((gp[:, 0] >= bx[i]) & (gp[:, 0] <= bx[i + 1]) & (gp[:, 1] >= by[j]) & (gp[:, 1] <= by[j + 1]))[0]
+            if sel.size < 3:
+                continue
+            c = gp[sel].mean(axis=0)
+            order = sel[np.argsort(np.arctan2(gp[sel, 1] - c[1], gp[sel, 0] - c[0]))]
+            q = gp[order]
+            area = 0.5 * np.sum(q[:, 0] * np.roll(q[:, 1], -1) - np.roll(q[:, 0], -1) * q[:, 1])
+            if area <= 1e-12 * np.prod(np.ptp(poly, axis=0)):
+                continue
+            tiles.append(_Tile(q, [int(g) for g in order], q.min(axis=0), q.max(axis=0)))
+    return gp, tiles
+
+
+def _triangulate(v: np.ndarray, s: np.ndarray, m: np.ndarray, on_tol: float = 0.0) -> tuple[dict, bool]:
+    """Constrained Delaunay triangulation of a PSLG whose outer segments (marker 1) bound a convex
+    region (artem-ogre's CDT through PythonCDT): the input vertices first, in order, then any
+    vertices CDT adds where constrained edges cross; no other Steiner points. Exact duplicate
+    vertices are merged first. Vertices within `on_tol` of a constrained edge split it (CDT's
+    `min_dist_to_constraint_edge`). Returns `({"vertices": (V, 2), "triangles": (T, 3)
+    counter-clockwise, "segments": (S, 2), "segment_markers": (S, 1)}, dropped)`, the segments
+    being the constrained edges as split by the triangulation; `dropped` is True when CDT
+    rejected the internal segments and they were left out (their vertices kept)."""
+    import pythoncdt as cdt
+
+    uniq, first, inv = np.unique(v, axis=0, return_index=True, return_inverse=True)
+    order = np.argsort(first)  # keep the input order (deterministic, boundary first)
+    rank = np.empty_like(order)
+    rank[order] = np.arange(order.size)
+    v2 = np.ascontiguousarray(uniq[order], np.float64)
+    s2 = rank[inv.ravel()][s]
+    keep = s2[:, 0] != s2[:, 1]
+    s2, m2 = s2[keep], m[keep]
+    _, one = np.unique(np.sort(s2, axis=1), axis=0, return_index=True)
+    one = np.sort(one)
+    s2, m2 = s2[one], m2[one]
+
+    def run(segs: np.ndarray) -> cdt.Triangulation:
+        tri = cdt.Triangulation(cdt.VertexInsertionOrder.AUTO, cdt.IntersectingConstraintEdges.TRY_RESOLVE,
+                                float(on_tol))
+        tri.insert_vertices(v2)  # type: ignore[call-overload]  # an ndarray is a Buffer
+        tri.insert_edges(np.ascontiguousarray(segs, np.uint32))  # type: ignore[call-overload]
+        tri.erase_super_triangle()
+        return tri
+
+    dropped = False
+    try:
+        tri = run(s2)
+    except (RuntimeError, ValueError):
+        dropped = True
+        s2, m2 = s2[m2 == 1], m2[m2 == 1]
+        tri = run(s2)
+    verts = tri.vertices_array().view(np.float64).reshape(-1, 2)
+    tris = tri.triangles_array()["vertices"].astype(np.int64).reshape(-1, 3)
+    mark = {(min(i, j), max(i, j)): int(k) for (i, j), k in zip(s2.tolist(), m2.tolist(), strict=True)}
+    pieces = {(min(e.v1, e.v2), max(e.v1, e.v2)): [(min(o.v1, o.v2), max(o.v1, o.v2)) for o in orig]
+              for e, orig in tri.piece_to_originals_iter()}
+    segs, marks = [], []
+    for e in tri.fixed_edges_iter():
+        key = (min(e.v1, e.v2), max(e.v1, e.v2))
+        segs.append(key)
+        marks.append(max((mark.get(o, 0) for o in pieces.get(key, [key])), default=0))
+    out = {"vertices": verts, "triangles": tris, "segments": np.array(segs, np.int64).reshape(-1, 2),
+           "segment_markers": np.array(marks, np.int64).reshape(-1, 1)}
+    return out, dropped
+
+
+def _split_at(v: np.ndarray, s: np.ndarray, m: np.ndarray, idx: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """Split internal segments (markers 0 and 2) at the vertices `idx` that lie on them (within `tol`,
+    not at their ends), so that a vertex off a segment by round-off becomes its end point instead of
+    a separate vertex beside it (with slivers in between)."""
+    if idx.size == 0 or s.size == 0:
+        return s, m
+    inner = np.nonzero(m != 1)[0]
+    if inner.size == 0:
+        return s, m
+    a, b = v[s[inner, 0]], v[s[inner, 1]]
+    d = b - a
+    ll = np.maximum(np.sum(d * d, axis=1), 1e-300)
+    q = v[idx]
+    t = np.einsum("skj,sj->sk", q[None, :, :] - a[:, None, :], d) / ll[:, None]  # (S, k)
+    foot = a[:, None, :] + t[..., None] * d[:, None, :]
+    dist = np.linalg.norm(foot - q[None], axis=2)
+    on = (dist <= tol) & (t > 0) & (t < 1)
+    on &= (idx[None, :] != s[inner, 0][:, None]) & (idx[None, :] != s[inner, 1][:, None])
+    if not np.any(on):
+        return s, m
+    out_s, out_m = [row for row in s[m == 1]], list(m[m == 1])
+    for r, si in enumerate(inner):
+        hit = np.nonzero(on[r])[0]
+        chain = [s[si, 0]] + [int(idx[h]) for h in hit[np.argsort(t[r, hit])]] + [s[si, 1]]
+        for i, j in zip(chain[:-1], chain[1:], strict=True):
+            out_s.append(np.array([i, j]))
+            out_m.append(m[si])
+    return np.array(out_s).reshape(-1, 2), np.array(out_m)
+
+
+def _noded(lines: list[tuple[np.ndarray, np.ndarray]]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Segments split where they cross or overlap (GEOS noding through shapely), duplicates
+    dropped: collinear overlapping discontinuity lines (parallel occluder and light edges make
+    them) would otherwise make the triangulation split nearly collinear segments against each other."""
+    if len(lines) < 2:
+        return lines
+    import shapely
+
+    noded = shapely.node(shapely.MultiLineString([np.stack(ln) for ln in lines]))
+    out, seen = [], set()
+    for g in shapely.get_parts(noded):
+        c = np.asarray(shapely.get_coordinates(g))
+        for a, b in zip(c[:-1], c[1:], strict=True):
+            key = tuple(sorted([tuple(a.tolist()), tuple(b.tolist())]))
+            if key not in seen and key[0] != key[1]:
+                seen.add(key)
+                out.append((a, b))
+    return out
+
+
+def _edge_kinds(edge_ij: np.ndarray, segs: np.ndarray, marks: np.ndarray, n: int) -> np.ndarray:
+    """Per triangle edge `(T, 3, 2)` the marker of the PSLG segment it lies on, or -1."""
+    code = lambda a, b: np.minimum(a, b).astype(np.int64) * n + np.maximum(a, b)  # noqa: E731
+    keys = code(segs[:, 0], segs[:, 1])
+    order = np.argsort(keys)
+    keys, marks = keys[order], marks[order]
+    q = code(edge_ij[..., 0], edge_ij[..., 1])
+    pos = np.clip(np.searchsorted(keys, q), 0, max(keys.size - 1, 0))
+    hit = (keys.size > 0) & (keys[pos] == q) if keys.size else np.zeros(q.shape, bool)
+    return np.where(hit, marks[pos] if keys.size else -1, -1)
+
+
+def _segment_crossings(seg: ev.Segments, cand: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Crossings of segments `cand` with the edge a -> b: (segment ids, edge parameter s,
+    segment parameter t), strictly inside the edge."""
+    p, r = seg.a[cand], seg.b[cand] - seg.a[cand]
+    e = b - a
+    den = r[:, 0] * e[1] - r[:, 1] * e[0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = ((p[:, 0] - a[0]) * r[:, 1] - (p[:, 1] - a[1]) * r[:, 0]) / -den
+        t = ((p[:, 0] - a[0]) * e[1] - (p[:, 1] - a[1]) * e[0]) / -den
+    ok = (den != 0) & (s > 1e-12) & (s < 1 - 1e-12) & (t >= 0) & (t <= 1)
+    return cand[ok], s[ok], t[ok]
+
+
+def _interpolate(xy: np.ndarray, tris: np.ndarray, values: np.ndarray, q: np.ndarray, bins: int = 64) -> np.ndarray:
+    """Piecewise-linear interpolation on a 2-D triangle mesh at points `q (N, 2)` (NaN outside):
+    triangles binned by their bounding boxes on a grid, barycentric tests per bin."""
+    out = np.full((q.shape[0], values.shape[1]), np.nan)
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    cell = (hi - lo) / bins * (1 + 1e-12) + 1e-300
+    c = xy[tris]
+    tlo = np.floor((c.min(axis=1) - lo) / cell).astype(int).clip(0, bins - 1)
+    thi = np.floor((c.max(axis=1) - lo) / cell).astype(int).clip(0, bins - 1)
+    qb = np.floor((q - lo) / cell).astype(int)
+    inside = np.all((qb >= 0) & (qb < bins), axis=1)
+    members: dict[int, list[int]] = {}
+    for t in range(tris.shape[0]):
+        for i in range(tlo[t, 0], thi[t, 0] + 1):
+            for j in range(tlo[t, 1], thi[t, 1] + 1):
+                members.setdefault(i * bins + j, []).append(t)
+    key = np.where(inside, qb[:, 0] * bins + qb[:, 1], -1)
+    order = np.argsort(key, kind="stable")
+    ks, starts = np.unique(key[order], return_index=True)
+    ends = np.append(starts[1:], order.size)
+    for k, a, e in zip(ks, starts, ends, strict=True):
+        if k < 0 or k not in members:
+            continue
+        qi = order[a:e]
+        ts = np.array(members[k])
+        p0, p1, p2 = c[ts, 0], c[ts, 1], c[ts, 2]
+        det = (p1[:, 0] - p0[:, 0]) * (p2[:, 1] - p0[:, 1]) - (p2[:, 0] - p0[:, 0]) * (p1[:, 1] - p0[:, 1])
+        ok = np.abs(det) > 0
+        ts, p0, p1, p2, det = ts[ok], p0[ok], p1[ok], p2[ok], det[ok]
+        d = q[qi][:, None, :] - p0[None]
+        l1 = (d[..., 0] * (p2[:, 1] - p0[:, 1]) - d[..., 1] * (p2[:, 0] - p0[:, 0])) / det
+        l2 = ((p1[:, 0] - p0[:, 0]) * d[..., 1] - (p1[:, 1] - p0[:, 1]) * d[..., 0]) / det
+        l0 = 1 - l1 - l2
+        eps = 1e-12
+        hit = (l0 >= -eps) & (l1 >= -eps) & (l2 >= -eps)
+        any_hit = hit.any(axis=1)
+        first = np.argmax(hit, axis=1)
+        r = np.arange(qi.size)
+        tt = tris[ts[first]]
+        val = (l0[r, first, None] * values[tt[:, 0]] + l1[r, first, None] * values[tt[:, 1]]
+               + l2[r, first, None] * values[tt[:, 2]])
+        out[qi[any_hit]] = val[any_hit]
+    return out

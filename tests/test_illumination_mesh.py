@@ -1,0 +1,259 @@
+"""Illumination meshes (`js.illumination_mesh`): interpolation within tol on an independent dense
+grid of exact values, discontinuity lines as edges, extrema as vertices, incremental updates equal
+to fresh meshes, PLY/glTF output, the CLI, bad input.
+
+The reference values are the host engine's (`js.irradiance`) at points the mesher never chose
+(an offset grid) and, for the vertex values, the device kernel `js.visible_form_factor` (a
+separate implementation of the same exact integral)."""
+
+import json
+
+import numpy as np
+import pytest
+
+import jaxshadow as js
+
+LIGHT = np.array([[-0.3, -0.3, 2.0], [-0.3, 0.3, 2.0], [0.3, 0.3, 2.0], [0.3, -0.3, 2.0]])  # faces -z
+OCC_HIGH = np.array([[-0.5, -0.3, 1.0], [0.3, -0.3, 1.0], [0.3, 0.4, 1.0], [-0.5, 0.4, 1.0]])
+OCC_LOW = np.array([[-0.1, -0.6, 0.6], [0.7, -0.6, 0.6], [0.7, 0.1, 0.6], [-0.1, 0.1, 0.6]])
+FLOOR = np.array([[-1.5, -1.5, 0.0], [1.5, -1.5, 0.0], [1.5, 1.5, 0.0], [-1.5, 1.5, 0.0]])
+TOL = 1e-2
+TILE = 0.75
+UP = np.array([0.0, 0.0, 1.0])
+
+
+def two_occluders(shift=(0.0, 0.0)):
+    low = OCC_LOW + np.array([shift[0], shift[1], 0.0])
+    return js.Scene([js.PolygonLight(LIGHT, 10.0)], [OCC_HIGH, low])
+
+
+def floor_grid(n, offset=1e-4 * np.pi):
+    xs = np.linspace(FLOOR[0, 0], FLOOR[1, 0], n + 2)[1:-1] + offset
+    gx, gy = np.meshgrid(xs, xs)
+    return np.c_[gx.ravel(), gy.ravel(), np.zeros(gx.size)]
+
+
+def exact(scene, pts):
+    return np.asarray(js.irradiance(scene, pts, np.tile(UP, (pts.shape[0], 1))))
+
+
+def device(scene, pts, rows=256):
+    """pi L F from the device kernel `js.visible_form_factor` (one light of radiance 10), in
+    blocks of `rows` (one compilation)."""
+    out = []
+    for s in range(0, pts.shape[0], rows):
+        blk = pts[s:s + rows]
+        pad = np.concatenate([blk, np.repeat(blk[:1], rows - blk.shape[0], axis=0)])
+        f = js.visible_form_factor(pad, np.tile(UP, (rows, 1)), scene.lights[0].vertices, scene.occluders)
+        out.append(np.pi * 10.0 * np.asarray(f)[: blk.shape[0]])
+    return np.concatenate(out)
+
+
+@pytest.fixture(scope="module")
+def mesh():
+    return js.illumination_mesh(two_occluders(), FLOOR, TOL, tile_size=TILE, gradient="differences")
+
+
+def test_interpolation_within_tol_on_a_dense_exact_grid(mesh):
+    pts = floor_grid(150)
+    ref = exact(two_occluders(), pts)
+    lin = mesh.interpolate(pts)
+    assert np.all(np.isfinite(lin))
+    err = np.max(np.abs(lin - ref)) / mesh.scale
+    assert err <= TOL, err
+    assert mesh.max_error_estimate <= TOL
+    # The scale is the receiver's maximum: no grid point is brighter.
+    assert ref.max() <= mesh.scale * (1 + 1e-12)
+    # Adaptive: far fewer vertices than a grid with the grid's own spacing would need.
+    assert mesh.vertices.shape[0] < pts.shape[0] / 4
+
+
+def test_vertex_values_match_the_device_kernel(mesh):
+    rng = np.random.default_rng(0)
+    idx = rng.choice(mesh.vertices.shape[0], 256, replace=False)
+    ref = device(two_occluders(), mesh.vertices[idx])
+    np.testing.assert_allclose(mesh.irradiance[idx], ref[:, None] * np.ones(3), rtol=0, atol=1e-7)
+
+
+def _on_an_edge(mesh, q, tol=1e-9):
+    v = mesh.vertices[:, :2]
+    t = mesh.triangles
+    a = v[np.concatenate([t[:, 0], t[:, 1], t[:, 2]])]
+    b = v[np.concatenate([t[:, 1], t[:, 2], t[:, 0]])]
+    d = b - a
+    out = []
+    for p in q[:, :2]:
+        s = np.clip(np.sum((p - a) * d, axis=1) / np.sum(d * d, axis=1), 0.0, 1.0)
+        out.append(np.min(np.linalg.norm(a + s[:, None] * d - p, axis=1)) <= tol)
+    return np.array(out)
+
+
+def test_discontinuity_lines_are_mesh_edges(mesh):
+    # OCC_HIGH's edge x = -0.5 (z = 1) seen past the light's edge x = -0.3 (z = 2) bounds the
+    # umbra at x = 2 * (-0.5) + 0.3 = -0.7 and the penumbra at 2 * (-0.5) - 0.3 = -1.3, for
+    # y between the events of its corners (hand-computed; OCC_LOW does not block these rays).
+    ys = np.linspace(-0.8, 1.0, 13)
+    for x in (-0.7, -1.3):
+        q = np.c_[np.full(ys.size, x), ys, np.zeros(ys.size)]
+        assert np.all(_on_an_edge(mesh, q)), x
+    # A generic line is not: the check can fail.
+    q = np.c_[np.full(ys.size, -0.4321), ys, np.zeros(ys.size)]
+    assert not np.all(_on_an_edge(mesh, q))
+
+
+def test_brightest_point_is_a_vertex(mesh):
+    # Independent search: a grid, then Nelder-Mead on the exact irradiance from its best points
+    # (the maximum sits on a kink next to a shadow, so several starts).
+    from scipy.optimize import minimize
+
+    scene = two_occluders()
+    pts = floor_grid(100, offset=0.0)
+    e = exact(scene, pts).max(axis=1)
+    best = -np.inf
+    for i in np.argsort(e)[-3:]:
+        r = minimize(lambda x: -exact(scene, np.array([[x[0], x[1], 0.0]]))[0, 0], pts[i, :2], method="Nelder-Mead",
+                     options={"xatol": 1e-9, "fatol": 1e-14, "maxiter": 300})
+        best = max(best, -r.fun)
+    assert best > e.max()
+    assert mesh.irradiance.max() >= best * (1 - 1e-7)
+
+
+@pytest.mark.slow
+def test_jax_gradient_extremum_unoccluded():
+    # A light tilted and off-centre: the brightest floor point is an interior critical point,
+    # found by BFGS on the exact gradient (jax.grad) and inserted as a vertex.
+    from scipy.optimize import minimize
+
+    light = js.PolygonLight(np.array([[0.2, -0.2, 1.0], [0.3, 0.3, 1.3], [0.7, 0.3, 1.3], [0.6, -0.2, 1.0]]), 5.0)
+    scene = js.Scene([light])
+    floor = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]])
+    m = js.illumination_mesh(scene, floor, 2e-2, tile_size=1.0, gradient="jax")
+    assert m.stats["gradient"] == "jax"
+    r = minimize(lambda x: -exact(scene, np.array([[x[0], x[1], 0.0]]))[0, 0], [0.4, 0.0], method="Nelder-Mead",
+                 options={"xatol": 1e-10, "fatol": 1e-15})
+    k = np.argmax(m.irradiance[:, 0])
+    np.testing.assert_allclose(m.vertices[k, :2], r.x, atol=1e-5)
+    assert m.irradiance[k, 0] >= -r.fun * (1 - 1e-9)
+
+
+def test_incremental_update_equals_a_fresh_mesh(mesh):
+    moved = two_occluders(shift=(0.25, -0.1))
+    upd = mesh.update(moved)
+    fresh = js.illumination_mesh(moved, FLOOR, TOL, tile_size=TILE, gradient="differences", scale=mesh.scale)
+    assert 0 < upd.stats["tiles_meshed"] < upd.stats["tiles"]
+
+    def canon(m):
+        order = np.lexsort(m.vertices.T[::-1])
+        rank = np.empty_like(order)
+        rank[order] = np.arange(order.size)
+        tris = np.sort(rank[m.triangles], axis=1)
+        return m.vertices[order], m.irradiance[order], tris[np.lexsort(tris.T[::-1])]
+
+    v1, e1, t1 = canon(upd)
+    v2, e2, t2 = canon(fresh)
+    np.testing.assert_array_equal(v1, v2)
+    np.testing.assert_array_equal(t1, t2)
+    np.testing.assert_allclose(e1, e2, rtol=0, atol=1e-12 * mesh.scale)
+    # The untouched tiles are the old mesh's, vertex for vertex.
+    old = {tuple(x) for x in mesh.vertices.tolist()}
+    new = {tuple(x) for x in upd.vertices.tolist()}
+    assert len(old & new) > 0.3 * len(old)
+    # And the update is within tol of the moved scene.
+    pts = floor_grid(80)
+    assert np.max(np.abs(upd.interpolate(pts) - exact(moved, pts))) <= TOL * mesh.scale
+
+
+BOX_LO, BOX_HI = np.array([0.3, -0.2, 0.0]), np.array([0.6, 0.1, 0.7])
+
+
+@pytest.fixture(scope="module")
+def standing():
+    # A box standing on the floor: its bottom face lies on the receiver.
+    scene = js.Scene([js.PolygonLight(LIGHT, 10.0)], [js.Mesh.box(BOX_LO, BOX_HI)])
+    return scene, js.illumination_mesh(scene, FLOOR, 5e-2, tile_size=TILE)
+
+
+def test_object_standing_on_the_receiver_is_a_hole(standing):
+    scene, m = standing
+    pts = floor_grid(150)
+    lin = m.interpolate(pts)
+    inside = np.all((pts[:, :2] > BOX_LO[:2]) & (pts[:, :2] < BOX_HI[:2]), axis=1)
+    assert inside.sum() > 100
+    assert np.all(np.isnan(lin[inside])) and np.all(np.isfinite(lin[~inside]))
+    ref = exact(scene, pts[~inside])
+    assert np.max(np.abs(lin[~inside] - ref)) <= 5e-2 * m.scale
+
+
+@pytest.mark.xfail(strict=True, reason="some elements next to a standing box still fail the check at min_edge")
+def test_object_standing_on_the_receiver_error_estimate(standing):
+    assert standing[1].max_error_estimate <= 5e-2
+
+
+def test_update_rejects_changed_lights(mesh):
+    other = js.Scene([js.PolygonLight(LIGHT + 0.1, 10.0)], [OCC_HIGH, OCC_LOW])
+    with pytest.raises(ValueError, match="lights changed"):
+        mesh.update(other)
+
+
+def test_save_ply_and_gltf(mesh, tmp_path):
+    trimesh = pytest.importorskip("trimesh")
+    mesh.save(tmp_path / "m.ply")
+    back = trimesh.load(tmp_path / "m.ply", process=False)
+    assert back.vertices.shape == mesh.vertices.shape and back.faces.shape == mesh.triangles.shape
+    np.testing.assert_array_equal(back.faces, mesh.triangles)
+    raw = back.metadata["_ply_raw"]["vertex"]["data"]
+    np.testing.assert_array_equal(raw["irradiance_g"], mesh.irradiance[:, 1])
+    assert back.visual.vertex_colors.shape == (mesh.vertices.shape[0], 4)
+    for name in ("m.glb", "m.gltf"):
+        mesh.save(tmp_path / name)
+        g = trimesh.load(tmp_path / name, process=False, force="mesh")
+        assert g.faces.shape == mesh.triangles.shape
+    with pytest.raises(ValueError, match="unknown output format"):
+        mesh.save(tmp_path / "m.obj")
+    assert not (tmp_path / "m.obj").exists()
+
+
+def test_bad_input():
+    scene = two_occluders()
+    with pytest.raises(ValueError, match="tol"):
+        js.illumination_mesh(scene, FLOOR, 0.0)
+    with pytest.raises(ValueError, match="tol"):
+        js.illumination_mesh(scene, FLOOR, 1.5)
+    with pytest.raises(ValueError, match="non-planar"):
+        js.illumination_mesh(scene, FLOOR + np.array([[0, 0, 0], [0, 0, 0], [0, 0, 0.3], [0, 0, 0]]), 1e-2)
+    with pytest.raises(ValueError, match="gradient"):
+        js.illumination_mesh(scene, FLOOR, 1e-2, gradient="magic")
+    with pytest.raises(ValueError, match="Scene"):
+        js.illumination_mesh("scene.json", FLOOR, 1e-2)
+    with pytest.raises(ValueError, match="tile_size"):
+        js.illumination_mesh(scene, FLOOR, 1e-2, tile_size=-1.0)
+
+
+def test_cli_mesh(tmp_path, capsys):
+    from jaxshadow import cli
+
+    scene = js.Scene([js.PolygonLight(LIGHT, 10.0)])
+    path = tmp_path / "scene.json"
+    js.save_scene(scene, path)
+    rec = tmp_path / "floor.json"
+    rec.write_text(json.dumps(FLOOR.tolist()))
+    out = tmp_path / "floor.ply"
+    rc = cli.main(["--no-compile-cache", "mesh", str(path), "-o", str(out), "--tol", "0.2", "--receiver", str(rec),
+                   "--tile-size", "3.0"])
+    assert rc == 0 and out.exists()
+    assert "vertices" in capsys.readouterr().out
+    rc = cli.main(["--no-compile-cache", "mesh", str(path), "-o", str(tmp_path / "x.stl"), "--tol", "2e-2"])
+    assert rc == 2
+    assert "must end in one of" in capsys.readouterr().err
+
+
+def test_engine_on_event_plane():
+    # x = -0.7 is where OCC_HIGH's edge x = -0.5 (z = 1) lines up with the light's edge
+    # x = -0.3 (z = 2): the umbra boundary, where the irradiance is 0 (continuous from both sides).
+    # The evaluator's repair of on-line values guards against an engine that gets this wrong.
+    scene = js.Scene([js.PolygonLight(LIGHT, 10.0)], [OCC_HIGH])
+    p = np.array([[-0.7, -0.06, 0.0], [-0.7 + 1e-9, -0.06, 0.0], [-0.7 - 1e-9, -0.06, 0.0]])
+    e = exact(scene, p)[:, 0]
+    f = device(js.Scene([js.PolygonLight(LIGHT, 10.0)], [OCC_HIGH, OCC_HIGH]), p)  # (2, 4, 3): one compilation
+    assert e[1] == 0.0 and e[2] < 1e-8 and f[0] == 0.0  # the device kernel and the neighbours agree
+    assert e[0] == pytest.approx(0.0, abs=1e-8)
