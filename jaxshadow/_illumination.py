@@ -216,6 +216,7 @@ def illumination_mesh(scene: Scene, receiver: Any, tol: float = 1e-3, *, max_ver
 
     Example:
         ```python
+        import os, tempfile
         import numpy as np
         import jaxshadow as js
 
@@ -224,7 +225,7 @@ def illumination_mesh(scene: Scene, receiver: Any, tol: float = 1e-3, *, max_ver
         floor = np.array([[-1.5, -1.5, 0], [1.5, -1.5, 0], [1.5, 1.5, 0], [-1.5, 1.5, 0]])
         mesh = js.illumination_mesh(scene, floor, 2e-2, tile_size=1.0)
         print(mesh.vertices.shape, mesh.triangles.shape, mesh.max_error_estimate)
-        mesh.save("floor.ply")  # vertex colours and the exact irradiance per vertex
+        mesh.save(os.path.join(tempfile.mkdtemp(), "floor.ply"))  # vertex colours, exact irradiance per vertex
         ```
     """
     t0 = time.perf_counter()
