@@ -53,6 +53,7 @@ from ._clip import (
     visible_edges,
     visible_segments,
 )
+from ._geometry import newell_normal
 from ._linear import linear_irradiance_kernel
 from ._point import directional_irradiance_kernel, point_irradiance_kernel
 from ._polygon import edge_term, form_factor_kernel
@@ -472,7 +473,7 @@ def light_values(lp: LightPlan, light: Any, integ: Any, p: Any, n: Any, e: Any, 
                                                       np.ascontiguousarray(lp.points[:, 1])), EDGE_BLOCK)
             f = np.bincount(owner, weights=np.asarray(terms), minlength=N)[pen]
             v = np.asarray(verts)
-            ne = np.sum(np.cross(v, np.roll(v, -1, axis=0)), axis=0)
+            ne = np.asarray(newell_normal(verts))
             parts.append((pen, np.where((p[pen] - v[0]) @ ne > 0, -0.5 * f, 0.0).astype(dt)))
             pen = pen[:0]
         for cap, idx in capacity_groups(lp.counts, pen):

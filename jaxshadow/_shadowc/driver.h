@@ -65,11 +65,8 @@ struct Decoder {
   V3<T> p, n, e0, ne;
   T hp;
   Decoder(const PolyCall<T>& c, V3<T> p_, V3<T> n_) : call(c), p(p_), n(n_) {
-    const int64_t K = c.L.K;
     e0 = c.L.v(0);
-    ne = V3<T>{0, 0, 0};
-    for (int64_t i = 0; i < K; i++) ne = ne + cross(c.L.v(i), c.L.v((i + 1) % K));
-    ne = pow2_scale(absmax(ne)) * ne;
+    ne = pow2_scale(absmax(c.ne_raw)) * c.ne_raw;
     hp = dot(ne, p - e0);
   }
   V3<T> V(int32_t r) const { return r < call.L.K ? call.L.v(r) : call.occ.vref(r); }
@@ -143,7 +140,7 @@ int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const 
   BVH bvh = build_bvh(occ);
   prepare_solids(occ, bvh);
   PolyCall<T> call{Light<T>{K, E}, occ, &bvh, {}};
-  light_sides(call);
+  prepare_call(call);
   threads = default_threads(threads);
   struct Block {
     int64_t s, e;
@@ -216,7 +213,7 @@ int poly_fixed(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const
   BVH bvh = build_bvh(occ);
   prepare_solids(occ, bvh);
   PolyCall<T> call{Light<T>{K, E}, occ, &bvh, {}};
-  light_sides(call);
+  prepare_call(call);
   std::atomic<int> err(0);
   parallel_for(N, default_threads(threads), [&](int, int64_t s, int64_t e) {
     Work<T> w;

@@ -137,7 +137,7 @@ struct PolyCall {
 // Per-call data of the light and the occluders (`light_side`, `ne_raw`, `light_has_edge`,
 // `item_extent`).
 template <class T>
-void light_sides(PolyCall<T>& call) {
+void prepare_call(PolyCall<T>& call) {
   const int64_t K = call.L.K;
   call.ne_raw = V3<T>{0, 0, 0};
   for (int64_t i = 0; i < K; i++) call.ne_raw = call.ne_raw + cross(call.L.v(i), call.L.v((i + 1) % K));
@@ -165,7 +165,7 @@ void light_sides(PolyCall<T>& call) {
   }
 }
 
-// Side of p against face f's plane (+1 / -1 strictly, 0 too close to tell), as light_sides measures it.
+// Side of p against face f's plane (+1 / -1 strictly, 0 too close to tell), measured as prepare_call measures the light's vertices.
 template <class T>
 inline int point_side(const Occluders<T>& occ, int64_t f, V3<T> p) {
   V3<T> o = occ.vert(f, 0), n{0, 0, 0};
