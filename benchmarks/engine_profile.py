@@ -293,7 +293,11 @@ def compare(ref: Path, quick: bool) -> dict:
             bad[k] = f"{a.dtype}{a.shape} vs reference {b.dtype}{b.shape}"
         elif a.tobytes() != b.tobytes():
             diff = a.view(np.uint8).reshape(a.shape[0], -1) != b.view(np.uint8).reshape(b.shape[0], -1) if a.ndim else None
-            bad[k] = f"{int(np.any(diff, axis=1).sum()) if diff is not None else 1} rows differ"
+            rows = int(np.any(diff, axis=1).sum()) if diff is not None else 1
+            bad[k] = f"{rows} rows differ"
+            if a.dtype.kind == "f":
+                rel = np.max(np.abs(a - b)) / max(float(np.max(np.abs(b))), np.finfo(b.dtype).tiny)
+                bad[k] += f" (max difference {rel:.1e} of the largest value)"
     return {"arrays": len(want), "mismatches": bad}
 
 
