@@ -22,6 +22,7 @@ from ._geometry import (
     evaluate_checked,
     inputs_ok,
     pad_polygons_jax,
+    raise_if_bad,
 )
 from ._linear import linear_irradiance_kernel
 from ._misc import map_chunks, safe_normalize, unit_rows, unit_rows_host
@@ -158,6 +159,12 @@ def _device_impl(scene: Scene, integ: Any, points: Array, normals: Array, eyes: 
     return _shadows.device_values(scene, integ, points, unit_rows(normals), eyes)
 
 
+@jax.jit
+def _checked_unit_rows(points: Array, normals: Array) -> tuple[Array, Array]:
+    """`inputs_ok(points, normals)` and `unit_rows(normals)` (as `unit_rows_host` computes them)."""
+    return inputs_ok(points, normals), unit_rows(normals)
+
+
 def _shadowed(scene: Scene, integ: Any, points: Array, normals: Array, eyes: Array | None,
               options: ShadowOptions, what: str) -> Array:
     """`(N, 3)` for a scene with occluders through the shadow engine: on the host from concrete
@@ -169,10 +176,11 @@ def _shadowed(scene: Scene, integ: Any, points: Array, normals: Array, eyes: Arr
         out = _device_impl(scene, integ, points, normals, eyes)
         return eqx.error_if(out, ~inputs_ok(points, normals), f"{what}: a point or normal is not finite, or a normal is zero.")
     if not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree)):
-        _check_values_eagerly(points, normals, what)
+        good, unit = _checked_unit_rows(points, normals)  # one compiled call
+        raise_if_bad(good, points, normals, what)
         p = np.asarray(points)
         e = None if eyes is None else np.asarray(eyes)
-        return jnp.asarray(_shadows.host_values(scene, integ, p, unit_rows_host(normals), e))
+        return jnp.asarray(_shadows.host_values(scene, integ, p, np.asarray(unit), e))
     val = _valued((scene, points, normals))
     if val is not None:
         vscene, p, n = val

@@ -332,20 +332,35 @@ def _pad_rows(a: Any, size: int) -> Any:
     return xp.concatenate([a, xp.broadcast_to(a[:1], (size - m,) + a.shape[1:])])
 
 
+def _dispatch_blocks(fn: Any, arrays: tuple, rows: int) -> Any:
+    """Dispatch `fn(*blocks)` over the leading axis of NumPy `arrays` in padded blocks now
+    (JAX runs them asynchronously); the returned function waits for them and joins the
+    unpadded results as one NumPy array."""
+    n = arrays[0].shape[0]
+    pending = [(e - s, fn(*(_pad_rows(a[s:e], size) for a in arrays))) for s, e, size in _blocks(n, rows)]
+
+    def result() -> np.ndarray:
+        outs = [np.asarray(out)[:m] for m, out in pending]
+        if not outs:
+            return np.zeros((0,), arrays[0].dtype)
+        return outs[0] if len(outs) == 1 else np.concatenate(outs)
+
+    return result
+
+
 def _map_blocks(fn: Any, arrays: tuple, rows: int) -> Any:
     """`fn(*blocks)` over the leading axis in padded blocks; concatenated, unpadded. With NumPy
     inputs (concrete values) the results are cut and joined in NumPy: slicing a JAX array
     compiles a slice for every distinct block length."""
+    if all(isinstance(a, np.ndarray) for a in arrays):
+        return _dispatch_blocks(fn, arrays, rows)()
     n = arrays[0].shape[0]
-    concrete = all(isinstance(a, np.ndarray) for a in arrays)
-    xp = np if concrete else jnp
     outs = []
     for s, e, size in _blocks(n, rows):
-        out = fn(*(_pad_rows(a[s:e], size) for a in arrays))
-        outs.append((np.asarray(out) if concrete else out)[: e - s])
+        outs.append(fn(*(_pad_rows(a[s:e], size) for a in arrays))[: e - s])
     if not outs:
-        return xp.zeros((0,), arrays[0].dtype)
-    return outs[0] if len(outs) == 1 else xp.concatenate(outs)
+        return jnp.zeros((0,), arrays[0].dtype)
+    return outs[0] if len(outs) == 1 else jnp.concatenate(outs)
 
 
 def _dense_rows(offsets: np.ndarray, idx: np.ndarray, cap: int) -> tuple[np.ndarray, np.ndarray]:
@@ -439,21 +454,28 @@ def _take(a: Any, idx: np.ndarray) -> Any:
     return a[idx] if isinstance(a, np.ndarray) else jnp.take(a, jnp.asarray(idx), axis=0)
 
 
-def light_values(lp: LightPlan, light: Any, integ: Any, p: Any, n: Any, e: Any, faces: Any, concrete: bool) -> Any:
+def light_values(lp: LightPlan, light: Any, integ: Any, p: Any, n: Any, e: Any, faces: Any, concrete: bool,
+                 unoccluded: Any = None) -> Any:
     """`(N,)` contribution per unit emission of one light, from its plan.
 
     `concrete`: every input is a NumPy array and nothing is differentiated (the plan then holds
     decoded `points`); otherwise `p`, `n`, `e`, the light and `faces` may carry derivatives and
-    polygon boundaries are decoded from the plan's codes in JAX."""
+    polygon boundaries are decoded from the plan's codes in JAX. `unoccluded` (concrete polygon
+    lights): a function that returns the unoccluded values of every receiver, dispatched before
+    the plan was made (`_dispatch_blocks`)."""
     N = lp.classes.shape[0]
     dt = p.dtype
     parts: list[tuple[np.ndarray, Any]] = []
     rows = EDGE_BLOCK // 8
     if lp.kind == "polygon":
-        verts = light.vertices.astype(dt)
+        verts = np.asarray(light.vertices, dt) if concrete else light.vertices.astype(dt)
         is_lit = lp.classes == vis.LIT
         lit = np.nonzero(is_lit)[0]
-        if concrete and 2 * lit.size > N:
+        if unoccluded is not None:
+            # Dispatched before the engine ran (they overlap); a receiver that is not lit is
+            # masked (and a penumbra receiver overwritten below).
+            parts.append((np.arange(N), np.where(is_lit, unoccluded(), 0.0)))
+        elif concrete and 2 * lit.size > N:
             # Mostly lit: the unoccluded kernel on every receiver costs less than gathering the
             # lit ones (a gather moves as many bytes as the kernel reads); the others are masked
             # (and the penumbra receivers overwritten below). Not with derivatives: a masked
@@ -473,7 +495,7 @@ def light_values(lp: LightPlan, light: Any, integ: Any, p: Any, n: Any, e: Any, 
                                                       np.ascontiguousarray(lp.points[:, 1])), EDGE_BLOCK)
             f = np.bincount(owner, weights=np.asarray(terms), minlength=N)[pen]
             v = np.asarray(verts)
-            ne = np.asarray(newell_normal(verts))
+            ne = np.asarray(newell_normal(jnp.asarray(verts)))
             parts.append((pen, np.where((p[pen] - v[0]) @ ne > 0, -0.5 * f, 0.0).astype(dt)))
             pen = pen[:0]
         for cap, idx in capacity_groups(lp.counts, pen):
@@ -520,11 +542,20 @@ def host_values(scene: Scene, integ: Any, points: np.ndarray, normals: np.ndarra
     e = points if eyes is None else eyes
     faces = np.asarray(scene.occluders, dt)
     total = np.zeros(points.shape, dt)
+    rows = EDGE_BLOCK // 8
     for s in range(0, points.shape[0], HOST_CHUNK):
         sl = slice(s, min(points.shape[0], s + HOST_CHUNK))
+        # Every polygon light's unoccluded values, dispatched first: JAX computes them while the
+        # engine (which releases the GIL) classifies the receivers.
+        early = {}
+        for j, light in enumerate(scene.lights):
+            if isinstance(light, PolygonLight):
+                verts = np.asarray(light.vertices, dt)
+                early[j] = _dispatch_blocks(lambda a, b, c, v=verts: _lit_block(integ, a, b, c, v),
+                                            (points[sl], normals[sl], e[sl]), rows)
         pl = plan(scene, points[sl], normals[sl], codes=False, decoded=True)
-        for lp, light in zip(pl.lights, scene.lights, strict=True):
-            g = light_values(lp, light, integ, points[sl], normals[sl], e[sl], faces, True)
+        for j, (lp, light) in enumerate(zip(pl.lights, scene.lights, strict=True)):
+            g = light_values(lp, light, integ, points[sl], normals[sl], e[sl], faces, True, early.get(j))
             total[sl] += np.asarray(g)[:, None] * np.asarray(emission(light, dt))[None, :]
     return total
 

@@ -239,20 +239,30 @@ inline bool outside6(const double* lo_hi, const BoxPlane& b) {
 }
 
 // Depth-first over the hierarchy: `visit(item slot)` for every item no plane rejects; it returns
-// false to stop.
-template <class F>
-inline void traverse(const BVH& bvh, const HalfSpace* hs, int nh, double margin, F visit) {
+// false to stop. `make(i)` gives half-space i; each is prepared on first use only (a receiver whose
+// pyramid misses the root's box is mostly rejected by its first plane or two). Which items are
+// visited does not depend on the order in which planes are tested.
+template <class Make, class F>
+inline void traverse_lazy(const BVH& bvh, int nh, double margin, Make make, F visit) {
   if (bvh.nodes.empty()) return;
   BoxPlane bp[72];
   if (nh > 72) nh = 72;
-  prepare_planes(hs, nh, margin, bp);
+  int ready = 0;
+  auto plane = [&](int i) -> const BoxPlane& {
+    while (ready <= i) {
+      const HalfSpace h = make(ready);
+      prepare_planes(&h, 1, margin, bp + ready);
+      ready++;
+    }
+    return bp[i];
+  };
   int32_t stack[256];  // median splits: depth ~ log2(M)
   int sp = 0;
   stack[sp++] = 0;
   while (sp) {
     const Node& nd = bvh.nodes[stack[--sp]];
     bool rej = false;
-    for (int i = 0; i < nh && !rej; i++) rej = outside6(nd.box, bp[i]);
+    for (int i = 0; i < nh && !rej; i++) rej = outside6(nd.box, plane(i));
     if (rej) continue;
     if (nd.left < 0) {
       for (int32_t i = nd.start; i < nd.start + nd.count; i++) {
@@ -266,6 +276,21 @@ inline void traverse(const BVH& bvh, const HalfSpace* hs, int nh, double margin,
       stack[sp++] = nd.right;
     }
   }
+}
+
+template <class F>
+inline void traverse(const BVH& bvh, const HalfSpace* hs, int nh, double margin, F visit) {
+  traverse_lazy(bvh, nh, margin, [hs](int i) { return hs[i]; }, visit);
+}
+
+template <class Make>
+inline void query_lazy(const BVH& bvh, int nh, double margin, Make make, std::vector<std::pair<int32_t, int32_t>>& out) {
+  out.clear();
+  traverse_lazy(bvh, nh, margin, make, [&](int32_t i) {
+    out.push_back({bvh.key[i], bvh.items[i]});
+    return true;
+  });
+  std::sort(out.begin(), out.end());
 }
 
 inline void query(const BVH& bvh, const HalfSpace* hs, int nh, double margin, std::vector<std::pair<int32_t, int32_t>>& out) {

@@ -30,21 +30,21 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
   // pyramid lies on p's side of it). The pyramid over E_h lies inside. The margin bounds the
   // rounding of the planes and of the boxes' coordinates; it keeps touching items.
   {
-    HalfSpace hs[67];
-    int nh = 0;
-    auto add = [&](V3<T> nn, V3<T> q) {
-      hs[nh] = HalfSpace{{double(nn.x), double(nn.y), double(nn.z)}, {double(q.x), double(q.y), double(q.z)}};
-      nh++;
+    const int ne_edges = call.n_edges;
+    auto make = [&](int j) -> HalfSpace {
+      V3<T> nn = n, q = p;
+      if (j < ne_edges) {
+        const int64_t i = call.edge_index[j];
+        nn = cross(call.L.v((i + 1) % K) - p, call.L.v(i) - p);
+      } else if (j > ne_edges) {
+        nn = ne;
+        q = e0;
+      }
+      return HalfSpace{{double(nn.x), double(nn.y), double(nn.z)}, {double(q.x), double(q.y), double(q.z)}};
     };
-    for (int64_t i = 0; i < K; i++) {
-      V3<T> a = call.L.v(i), b = call.L.v((i + 1) % K);
-      if (!same(a, b)) add(cross(b - p, a - p), p);
-    }
-    add(n, p);
-    add(ne, e0);
     const double scale = std::max(double(absmax(p)), double(absmax(e0))) + 1.0;
     const double margin = 1e3 * double(eps_of<T>()) * scale + 64 * double(eps_of<T>()) * (call.item_extent + scale);
-    query(*call.bvh, hs, nh, margin, w.cand);
+    query_lazy(*call.bvh, ne_edges + 2, margin, make, w.cand);
   }
   if (w.cand.empty() && !w.lit_runs && call.light_has_edge) {
     // Nothing can block: lit, or zero below the horizon. With the whole light above the horizon,

@@ -132,6 +132,9 @@ struct PolyCall {
   V3<T> ne_raw{0, 0, 0};
   bool light_has_edge = false;
   double item_extent = 0;
+  // The light's edges with distinct ends (their indices i: v_i -> v_{i+1}), in order.
+  int32_t edge_index[64];
+  int n_edges = 0;
 };
 
 // Per-call data of the light and the occluders (`light_side`, `ne_raw`, `light_has_edge`,
@@ -141,8 +144,10 @@ void prepare_call(PolyCall<T>& call) {
   const int64_t K = call.L.K;
   call.ne_raw = V3<T>{0, 0, 0};
   for (int64_t i = 0; i < K; i++) call.ne_raw = call.ne_raw + cross(call.L.v(i), call.L.v((i + 1) % K));
-  call.light_has_edge = false;
-  for (int64_t i = 0; i < K; i++) call.light_has_edge = call.light_has_edge || !same(call.L.v(i), call.L.v((i + 1) % K));
+  call.n_edges = 0;
+  for (int64_t i = 0; i < K && i < 64; i++)
+    if (!same(call.L.v(i), call.L.v((i + 1) % K))) call.edge_index[call.n_edges++] = int32_t(i);
+  call.light_has_edge = call.n_edges > 0;
   call.item_extent = 0;
   if (!call.bvh->nodes.empty())
     for (int d = 0; d < 3; d++)
