@@ -104,7 +104,6 @@ void boundary_runs(V3<T> p, T tol, const V3<T>* ehv, int nehv, Work<T>& w) {
             collinear = dot(cr, cr) <= tol * tol;
           }
         }
-        bool side_ok = e.sigma * dot(w.unit[pk], e.uo) > 0;
         bool generic = valid && !collinear;
         T tc = g1 != 0 ? -g0 / g1 : T(0);
         T tl = (generic && g1 > 0) ? tc : -big;
@@ -120,7 +119,7 @@ void boundary_runs(V3<T> p, T tol, const V3<T>* ehv, int nehv, Work<T>& w) {
           have_hi = true;
         }
         if (generic && !(g1 != 0 || g0 >= 0)) c_nc = false;
-        if (collinear && !side_ok) c_c = false;
+        if (collinear && !(e.sigma * dot(w.unit[pk], e.uo) > 0)) c_c = false;  // on the line, other side
         if (collinear) any_c = true;
       }
       w.rlo[li] = lo;

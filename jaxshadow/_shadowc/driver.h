@@ -173,9 +173,19 @@ int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const 
           blk.codes.insert(blk.codes.end(), r.e.v, r.e.v + 7);
         }
       if (points_out && !w.runs.empty()) {
+        // A boundary vertex ends one run and starts the next under the same code: decoded once
+        // (the same code gives the same point bit for bit).
         Decoder<T> dec(call, ld(P + 3 * i), ld(Nrm + 3 * i));
+        w.decoded.clear();
+        auto point = [&](const Code& c) -> V3<T> {
+          for (const auto& kv : w.decoded)
+            if (std::memcmp(kv.first.v, c.v, sizeof(c.v)) == 0) return kv.second;
+          const V3<T> x = dec.point(c);
+          w.decoded.push_back({c, x});
+          return x;
+        };
         for (const Run& r : w.runs) {
-          V3<T> a = dec.point(r.s), b = dec.point(r.e);
+          V3<T> a = point(r.s), b = point(r.e);
           const T q[6] = {a.x, a.y, a.z, b.x, b.y, b.z};
           blk.pts.insert(blk.pts.end(), q, q + 6);
         }

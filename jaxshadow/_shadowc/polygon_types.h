@@ -37,6 +37,7 @@ struct Run {
 template <class T>
 struct Work {  // per-thread scratch
   std::vector<std::pair<int32_t, int32_t>> cand;
+  std::vector<std::pair<Code, V3<T>>> decoded;  // the driver's decoded boundary vertices
   std::vector<V3<T>> planes, unit;
   std::vector<T> pnorm;
   std::vector<PlaneRef> prefs;
