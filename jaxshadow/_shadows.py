@@ -438,7 +438,7 @@ def _profile(light: LinearLight) -> _SegmentProfile:
 # --------------------------------------------------------------------------------------
 
 
-def _scatter(n: int, dt: Any, parts: list[tuple[np.ndarray, Any]], concrete: bool) -> Any:
+def _scatter(n: int, dt: Any, parts: list[tuple[Any, Any]], concrete: bool) -> Any:
     if concrete:
         out = np.zeros(n, dt)
         for idx, vals in parts:
@@ -451,7 +451,8 @@ def _scatter(n: int, dt: Any, parts: list[tuple[np.ndarray, Any]], concrete: boo
 
 
 def _take(a: Any, idx: np.ndarray) -> Any:
-    return a[idx] if isinstance(a, np.ndarray) else jnp.take(a, jnp.asarray(idx), axis=0)
+    # np.take: rows of an (N, 3) array gathered ~4x faster than a[idx].
+    return np.take(a, idx, axis=0) if isinstance(a, np.ndarray) else jnp.take(a, jnp.asarray(idx), axis=0)
 
 
 def light_values(lp: LightPlan, light: Any, integ: Any, p: Any, n: Any, e: Any, faces: Any, concrete: bool,
@@ -465,24 +466,24 @@ def light_values(lp: LightPlan, light: Any, integ: Any, p: Any, n: Any, e: Any, 
     the plan was made (`_dispatch_blocks`)."""
     N = lp.classes.shape[0]
     dt = p.dtype
-    parts: list[tuple[np.ndarray, Any]] = []
+    parts: list[tuple[Any, Any]] = []  # (receiver indices, or a slice of all when concrete; values)
     rows = EDGE_BLOCK // 8
     if lp.kind == "polygon":
         verts = np.asarray(light.vertices, dt) if concrete else light.vertices.astype(dt)
         is_lit = lp.classes == vis.LIT
-        lit = np.nonzero(is_lit)[0]
+        lit = np.nonzero(is_lit)[0] if unoccluded is None else None
         if unoccluded is not None:
             # Dispatched before the engine ran (they overlap); a receiver that is not lit is
             # masked (and a penumbra receiver overwritten below).
-            parts.append((np.arange(N), np.where(is_lit, unoccluded(), 0.0)))
-        elif concrete and 2 * lit.size > N:
+            parts.append((slice(None), np.where(is_lit, unoccluded(), 0.0)))
+        elif concrete and 2 * np.count_nonzero(is_lit) > N:
             # Mostly lit: the unoccluded kernel on every receiver costs less than gathering the
             # lit ones (a gather moves as many bytes as the kernel reads); the others are masked
             # (and the penumbra receivers overwritten below). Not with derivatives: a masked
             # receiver's cotangent is zero, but 0 * a singular kernel derivative is not.
             every = _map_blocks(lambda a, b, c: _lit_block(integ, a, b, c, verts), (p, n, e), rows)
             parts.append((np.arange(N), np.where(is_lit, np.asarray(every), 0.0)))
-        elif lit.size:
+        elif lit is not None and lit.size:
             parts.append((lit, _map_blocks(lambda a, b, c: _lit_block(integ, a, b, c, verts),
                                            (_take(p, lit), _take(n, lit), _take(e, lit)), rows)))
         pen = np.nonzero(lp.classes == vis.PENUMBRA)[0]
@@ -490,13 +491,16 @@ def light_values(lp: LightPlan, light: Any, integ: Any, p: Any, n: Any, e: Any, 
             # Lambert's contour sum is a sum of edge terms: evaluated over the flat list of
             # boundary edges and added up per receiver (Lambert.contour = pi * (-sum / 2 pi)).
             assert lp.offsets is not None and lp.points is not None
-            owner = np.repeat(np.arange(N), np.diff(lp.offsets))
-            terms = _map_blocks(_lambert_edge_block, (p[owner], n[owner], np.ascontiguousarray(lp.points[:, 0]),
-                                                      np.ascontiguousarray(lp.points[:, 1])), EDGE_BLOCK)
-            f = np.bincount(owner, weights=np.asarray(terms), minlength=N)[pen]
+            # Only penumbra receivers have stored edges (the CSR rows of the others are empty).
+            counts = np.diff(lp.offsets)[pen]
+            assert counts.sum() == lp.points.shape[0]
+            owner = np.repeat(pen, counts)
+            ends = (np.ascontiguousarray(lp.points[:, 0]), np.ascontiguousarray(lp.points[:, 1]))
+            terms = _map_blocks(_lambert_edge_block, (_take(p, owner), _take(n, owner), *ends), EDGE_BLOCK)
+            f = np.bincount(np.repeat(np.arange(pen.size), counts), weights=np.asarray(terms), minlength=pen.size)
             v = np.asarray(verts)
             ne = np.asarray(newell_normal(jnp.asarray(verts)))
-            parts.append((pen, np.where((p[pen] - v[0]) @ ne > 0, -0.5 * f, 0.0).astype(dt)))
+            parts.append((pen, np.where((_take(p, pen) - v[0]) @ ne > 0, -0.5 * f, 0.0).astype(dt)))
             pen = pen[:0]
         for cap, idx in capacity_groups(lp.counts, pen):
             r, used = _dense_rows(lp.offsets, idx, cap)
