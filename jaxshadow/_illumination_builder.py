@@ -104,12 +104,16 @@ class _Builder:
         return out
 
     def _at_contact_corner(self, c: np.ndarray, ids: np.ndarray) -> np.ndarray:
-        """Whether triangles `c (T, 3, 2)` have a vertex at a corner of contact polygons `ids`."""
+        """Whether triangles `c (T, 3, 2)` have a vertex within `CORNER_SIZE` (of the receiver's
+        size) of a corner of contact polygons `ids`. Around such a corner the irradiance is
+        continuous on every ray from it but takes a different limit along each (the walls standing
+        there hide a direction-dependent part of the light), so every ring of elements around
+        it sees the same variation, at any size: no refinement meets `tol` there."""
         if ids.size == 0:
             return np.zeros(c.shape[0], bool)
         corners = np.concatenate([self.contact[i] for i in ids])
-        d = np.abs(c[:, :, None, :] - corners[None, None]).max(axis=-1)  # (T, 3, C)
-        return np.any(d <= 1e-9 * self.diam, axis=(1, 2))
+        d = np.linalg.norm(c[:, :, None, :] - corners[None, None], axis=-1)  # (T, 3, C)
+        return np.any(d <= CORNER_SIZE * self.diam, axis=(1, 2))
 
     def _contact_edges(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The edges `(a, b)`, each `(n, 2)`, of the contact polygons `ids`."""
@@ -484,10 +488,13 @@ class _Builder:
                 self.stats["cdt_fallbacks"] = self.stats.get("cdt_fallbacks", 0) + int(dropped)
                 tv, tt = out["vertices"], out["triangles"]
                 meshes[ti] = out
-                on_contact = out["segments"][out["segment_markers"].ravel() == 2]
-                if on_contact.size:  # their vertices and the edge midpoints the check probes
-                    self._move_off_contact(np.concatenate([tv[np.unique(on_contact)], 0.5 * (
-                        tv[on_contact[:, 0]] + tv[on_contact[:, 1]])]), self.tiles[ti].contact)
+                if self.tiles[ti].contact.size:
+                    # Vertices and edge midpoints on a contact polygon's edge, found by position: a
+                    # discontinuity line along the edge (an occluder's edge on the receiver makes
+                    # one) can take the place of the contact segment in the triangulation.
+                    c = tv[tt]
+                    self._move_off_contact(np.concatenate([tv, 0.5 * (c + np.roll(c, -1, axis=1)).reshape(-1, 2)]),
+                                           self.tiles[ti].contact)
                 inner_seg = out["segments"][out["segment_markers"].ravel() == 0]
                 if inner_seg.size:
                     self.eval.mark(tv[inner_seg.ravel()])
@@ -525,8 +532,8 @@ class _Builder:
                 sel_err = err.copy()
                 sel_err[:, :3][kind == 1] = -1.0  # never insert on the tile boundary
                 # At a contact polygon's corner the irradiance has no limit (it depends on the
-                # direction of approach): the elements there are refined down to CORNER_SIZE only,
-                # and their error is reported apart (`stats["corner_error"]`).
+                # direction of approach): the elements within CORNER_SIZE of it are refined down
+                # to CORNER_SIZE only, and their error is reported apart (`stats["corner_error"]`).
                 corner = self._at_contact_corner(c, self.tiles[ti].contact)
                 floor = np.where(corner, CORNER_SIZE * self.diam, self.min_edge)
                 bad = (err.max(axis=1) > thr) & (longest > floor) & (sel_err.max(axis=1) > thr)
