@@ -90,7 +90,7 @@ class IlluminationMesh:
         return _interpolate(b.frame.to2d(self.vertices), self.triangles, self.irradiance,
                             b.frame.to2d(np.asarray(points, np.float64).reshape(-1, 3)))
 
-    def update(self, scene: Scene) -> IlluminationMesh:
+    def update(self, scene: Any) -> IlluminationMesh:
         """The mesh of the same receiver in `scene`, where only occluders changed (moved, added or
         removed): only the tiles that the changed occluders' shadow volumes can reach, before or
         after the change, are meshed again (Chrysanthou & Slater §3); the others are kept as they
@@ -180,7 +180,7 @@ def _merged_stats(builders: list[_Builder]) -> dict[str, Any]:
 GRADIENTS = ("differences", "jax")
 
 
-def illumination_mesh(scene: Scene, receiver: Any, tol: float = 1e-3, *, max_vertices: int = 2_000_000,
+def illumination_mesh(scene: Any, receiver: Any, tol: float = 1e-3, *, max_vertices: int = 2_000_000,
                       tile_size: float | None = None, min_edge: float | None = None, gradient: str = "differences",
                       scale: float | None = None) -> IlluminationMesh:
     r"""An adaptive, discontinuity-aware mesh of `receiver` with exact irradiance at its vertices.

@@ -66,6 +66,7 @@ class _Builder:
         self.eval = _Evaluator(scene, self.frame, self.diam)
         bbox = np.concatenate([self.poly.min(axis=0), self.poly.max(axis=0)])
         self.contact, self.contact_box = _contact_polygons(scene, self.frame, 1e-9 * self.diam)
+        self.contact_corners = _contact_corners(self.contact)
         if scene.occluders is None:
             self.occ, self.seg, self.foot = None, None, np.zeros((0, 4))
             return
@@ -105,15 +106,22 @@ class _Builder:
 
     def _at_contact_corner(self, c: np.ndarray, ids: np.ndarray) -> np.ndarray:
         """Whether triangles `c (T, 3, 2)` have a vertex within `CORNER_SIZE` (of the receiver's
-        size) of a corner of contact polygons `ids`. Around such a corner the irradiance is
-        continuous on every ray from it but takes a different limit along each (the walls standing
-        there hide a direction-dependent part of the light), so every ring of elements around
-        it sees the same variation, at any size: no refinement meets `tol` there."""
-        if ids.size == 0:
+        size) of a corner of the contact polygons (a vertex, or a crossing of two polygons'
+        edges where standing objects overlap) when the tile has contact polygons `ids`. Around
+        such a corner the irradiance is continuous on every ray from it but takes a different
+        limit along each (the walls standing there hide a direction-dependent part of the
+        light), so every ring of elements around it sees the same variation, at any size: no
+        refinement meets `tol` there."""
+        r = CORNER_SIZE * self.diam
+        k = self.contact_corners
+        if ids.size == 0 or c.shape[0] == 0:
             return np.zeros(c.shape[0], bool)
-        corners = np.concatenate([self.contact[i] for i in ids])
-        d = np.linalg.norm(c[:, :, None, :] - corners[None, None], axis=-1)  # (T, 3, C)
-        return np.any(d <= CORNER_SIZE * self.diam, axis=(1, 2))
+        lo, hi = c.reshape(-1, 2).min(axis=0) - r, c.reshape(-1, 2).max(axis=0) + r
+        k = k[np.all((k >= lo) & (k <= hi), axis=1)]
+        if k.shape[0] == 0:
+            return np.zeros(c.shape[0], bool)
+        d = np.linalg.norm(c[:, :, None, :] - k[None, None], axis=-1)  # (T, 3, C)
+        return np.any(d <= r, axis=(1, 2))
 
     def _contact_edges(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The edges `(a, b)`, each `(n, 2)`, of the contact polygons `ids`."""
@@ -529,6 +537,12 @@ class _Builder:
                 edge_ij = np.stack([tt, np.roll(tt, -1, axis=1)], axis=-1)  # (T, 3, 2)
                 kind = _edge_kinds(edge_ij, segs, smark, tv.shape[0])
                 longest = np.linalg.norm(c - np.roll(c, -1, axis=1), axis=2).max(axis=1)
+                # Zero-area slivers (three vertices on a line up to round-off, where CDT's computed
+                # crossings land an ulp off a tile edge) hold no point of the receiver: their long
+                # edge is checked by the element on its other side (or, on a tile edge, in 1-D).
+                e1, e2 = c[:, 1] - c[:, 0], c[:, 2] - c[:, 0]
+                flat = np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]) <= 1e-9 * longest * longest
+                err[flat] = 0.0
                 sel_err = err.copy()
                 sel_err[:, :3][kind == 1] = -1.0  # never insert on the tile boundary
                 # At a contact polygon's corner the irradiance has no limit (it depends on the
@@ -653,6 +667,25 @@ def _jax_gradient(scene: Scene, frame: ev.Frame, evaluator: _Evaluator) -> ex.Gr
         return evaluator.luminance(xy), np.stack([g3 @ frame.u, g3 @ frame.w], axis=1)
 
     return vg
+
+
+def _contact_corners(polys: list[np.ndarray]) -> np.ndarray:
+    """The corners `(n, 2)` of the union of contact polygons `polys`: their vertices and the
+    points where edges of two of them cross."""
+    if not polys:
+        return np.zeros((0, 2))
+    a = np.concatenate(polys)
+    b = np.concatenate([np.roll(q, -1, axis=0) for q in polys])
+    owner = np.repeat(np.arange(len(polys)), [q.shape[0] for q in polys])
+    r = b - a
+    den = r[:, None, 0] * r[None, :, 1] - r[:, None, 1] * r[None, :, 0]  # (E, E)
+    dx = a[None, :, :] - a[:, None, :]  # a_j - a_i
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (dx[..., 0] * r[None, :, 1] - dx[..., 1] * r[None, :, 0]) / den
+        u = (dx[..., 0] * r[:, None, 1] - dx[..., 1] * r[:, None, 0]) / den
+    hit = (den != 0) & (s >= 0) & (s <= 1) & (u >= 0) & (u <= 1) & (owner[:, None] < owner[None, :])
+    i, _ = np.nonzero(hit)
+    return np.concatenate([a, a[i] + s[hit][:, None] * r[i]])
 
 
 def _contact_polygons(scene: Scene, frame: ev.Frame, tol: float) -> tuple[list[np.ndarray], np.ndarray]:

@@ -62,7 +62,7 @@ class Frame:
 
     def height(self, x: np.ndarray) -> np.ndarray:
         """Signed distance above the receiver plane (m)."""
-        return (np.asarray(x, np.float64) - self.origin) @ self.normal
+        return np.asarray((np.asarray(x, np.float64) - self.origin) @ self.normal)
 
 
 def receiver_frame(receiver: np.ndarray) -> Frame:

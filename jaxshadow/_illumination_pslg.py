@@ -117,7 +117,7 @@ class _Edge:
     cross: dict[int, tuple[float, np.ndarray, bool]] = field(default_factory=dict)
     s: np.ndarray | None = None
 
-    def point(self, s: np.ndarray) -> np.ndarray:
+    def point(self, s: np.ndarray | float) -> np.ndarray:
         return self.a + np.asarray(s)[..., None] * (self.b - self.a)
 
 
