@@ -57,7 +57,10 @@ class IlluminationMesh:
     - `triangles`: `(T, 3)` vertex indices, counter-clockwise seen from the receiver's lit side.
     - `irradiance`: `(V, 3)` exact RGB irradiance at the vertices (W/m^2).
     - `max_error_estimate`: the largest checked interpolation error over all elements, relative
-      to `scale` (each element checked at seven points against exact values).
+      to `scale` (each element checked at seven points against exact values), but those within
+      `CORNER_SIZE` (1e-4 of the receiver's size) of a corner of a standing object's footprint:
+      there the irradiance takes a different limit along each direction of approach, no mesh
+      meets `tol`, and their error is `stats["corner_error"]`.
     - `scale`: the irradiance `tol` is relative to (W/m^2): the receiver's maximum found by the
       extremum search, unless given.
     - `tol`: the requested relative tolerance.
