@@ -60,7 +60,8 @@ class IlluminationMesh:
       to `scale` (each element checked at seven points against exact values), but those within
       `CORNER_SIZE` (1e-4 of the receiver's size) of a corner of a standing object's footprint:
       there the irradiance takes a different limit along each direction of approach, no mesh
-      meets `tol`, and their error is `stats["corner_error"]`.
+      meets `tol`, and their error is `stats["corner_error"]`; and zero-area slivers (width
+      below 1e-9 of their length, where a computed crossing lands off a line by round-off).
     - `scale`: the irradiance `tol` is relative to (W/m^2): the receiver's maximum found by the
       extremum search, unless given.
     - `tol`: the requested relative tolerance.

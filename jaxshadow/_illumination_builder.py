@@ -512,26 +512,29 @@ class _Builder:
                 inner = np.einsum("ij,tjk->tik", _INNER, c)
                 probes.append(tv)
                 probes.append(np.concatenate([mids, c.mean(axis=1, keepdims=True), inner], axis=1).reshape(-1, 2))
-            self.eval(np.concatenate(probes))
+            # All active tiles' vertices and check points in one call; each tile reads its rows.
+            allval = self.eval(np.concatenate(probes))
+            rows = np.cumsum([0] + [p.shape[0] for p in probes])
             total = sum(meshes[ti]["vertices"].shape[0] for ti in meshes) + sum(
                 self.tiles[ti].verts.shape[0] for ti in range(len(self.tiles))  # type: ignore[union-attr]
                 if self.tiles[ti].verts is not None and ti not in meshes)
             budget = total < self.max_vertices
             nxt = []
-            for ti in active:
+            for k_tile, ti in enumerate(active):
                 out = meshes[ti]
                 tv, tt = out["vertices"], out["triangles"]
                 segs = out["segments"]
                 smark = out["segment_markers"].ravel()
                 c = tv[tt]
-                ve = self.eval(tv)
+                ve = allval[rows[2 * k_tile]:rows[2 * k_tile + 1]].copy()
                 vt = ve[tt]  # (T, 3, 3)
                 mids = 0.5 * (c + np.roll(c, -1, axis=1))
                 inner = np.einsum("ij,tjk->tik", _INNER, c)
                 pts = np.concatenate([mids, c.mean(axis=1, keepdims=True), inner], axis=1)  # (T, 7, 2)
                 interp = np.concatenate([0.5 * (vt + np.roll(vt, -1, axis=1)), vt.mean(axis=1, keepdims=True),
                                          np.einsum("ij,tjk->tik", _INNER, vt)], axis=1)
-                err = np.abs(self.eval(pts.reshape(-1, 2)).reshape(pts.shape[0], 7, 3) - interp).max(axis=2)
+                err = np.abs(allval[rows[2 * k_tile + 1]:rows[2 * k_tile + 2]].reshape(pts.shape[0], 7, 3)
+                             - interp).max(axis=2)
                 hole = self._in_contact(c.mean(axis=1), self.tiles[ti].contact)
                 err[hole] = 0.0  # covered by an occluder face lying on the receiver: not meshed
                 edge_ij = np.stack([tt, np.roll(tt, -1, axis=1)], axis=-1)  # (T, 3, 2)
