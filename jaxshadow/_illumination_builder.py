@@ -150,13 +150,20 @@ class _Builder:
         irradiance jumps, and the mesh takes the value on the open receiver's side."""
         if ids.size == 0 or xy.shape[0] == 0:
             return
+        eps = 1e-10 * self.diam
+        box = self.contact_box[ids]  # only points in a polygon's bounding box can be on its edges
+        cand = np.any(np.all((xy[:, None, :] >= box[None, :, :2] - eps) & (xy[:, None, :] <= box[None, :, 2:] + eps),
+                             axis=2), axis=1)
+        if not np.any(cand):
+            return
+        xy = xy[cand]
         ca, cb = self._contact_edges(ids)
         d = cb - ca
         ll = np.linalg.norm(d, axis=1)
         out = np.stack([d[:, 1], -d[:, 0]], axis=1) / ll[:, None]  # outward: the polygons are CCW
         t = np.einsum("nej,ej->ne", xy[:, None, :] - ca[None], d) / (ll * ll)[None]
         foot = ca[None] + np.clip(t, 0.0, 1.0)[..., None] * d[None]
-        near = np.linalg.norm(xy[:, None, :] - foot, axis=2) <= 1e-10 * self.diam  # (n, E)
+        near = np.linalg.norm(xy[:, None, :] - foot, axis=2) <= eps  # (n, E)
         hit = np.any(near, axis=1)
         if not np.any(hit):
             return
