@@ -11,6 +11,7 @@ import numpy as np
 from . import _illumination_events as ev
 from . import _illumination_extrema as ex
 from ._illumination_pslg import (
+    _contact_corners,
     _Edge,
     _edge_kinds,
     _Evaluator,
@@ -65,7 +66,7 @@ class _Builder:
         self.scene = scene
         self.eval = _Evaluator(scene, self.frame, self.diam)
         bbox = np.concatenate([self.poly.min(axis=0), self.poly.max(axis=0)])
-        self.contact, self.contact_box = _contact_polygons(scene, self.frame, 1e-9 * self.diam)
+        self.contact, self.contact_box = ev.contact_polygons(scene, self.frame, 1e-9 * self.diam)
         self.contact_corners = _contact_corners(self.contact)
         if scene.occluders is None:
             self.occ, self.seg, self.foot = None, None, np.zeros((0, 4))
@@ -677,43 +678,3 @@ def _jax_gradient(scene: Scene, frame: ev.Frame, evaluator: _Evaluator) -> ex.Gr
         return evaluator.luminance(xy), np.stack([g3 @ frame.u, g3 @ frame.w], axis=1)
 
     return vg
-
-
-def _contact_corners(polys: list[np.ndarray]) -> np.ndarray:
-    """The corners `(n, 2)` of the union of contact polygons `polys`: their vertices and the
-    points where edges of two of them cross."""
-    if not polys:
-        return np.zeros((0, 2))
-    a = np.concatenate(polys)
-    b = np.concatenate([np.roll(q, -1, axis=0) for q in polys])
-    owner = np.repeat(np.arange(len(polys)), [q.shape[0] for q in polys])
-    r = b - a
-    den = r[:, None, 0] * r[None, :, 1] - r[:, None, 1] * r[None, :, 0]  # (E, E)
-    dx = a[None, :, :] - a[:, None, :]  # a_j - a_i
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = (dx[..., 0] * r[None, :, 1] - dx[..., 1] * r[None, :, 0]) / den
-        u = (dx[..., 0] * r[:, None, 1] - dx[..., 1] * r[:, None, 0]) / den
-    hit = (den != 0) & (s >= 0) & (s <= 1) & (u >= 0) & (u <= 1) & (owner[:, None] < owner[None, :])
-    i, _ = np.nonzero(hit)
-    return np.concatenate([a, a[i] + s[hit][:, None] * r[i]])
-
-
-def _contact_polygons(scene: Scene, frame: ev.Frame, tol: float) -> tuple[list[np.ndarray], np.ndarray]:
-    """The occluder faces lying on the receiver plane (within `tol`), as counter-clockwise 2-D
-    polygons, and their bounding boxes `(n, 4)`: an object standing on the receiver covers them,
-    and along their edges the irradiance jumps (a value discontinuity no interpolation meets), so
-    they are holes of the mesh, bounded by mesh edges."""
-    if scene.occluders is None:
-        return [], np.zeros((0, 4))
-    from ._mesh import _strip_padding
-
-    faces = np.asarray(scene.occluders, np.float64)
-    flat = np.all(np.abs(frame.height(faces)) <= tol, axis=1)
-    out = []
-    for f in faces[flat]:
-        q = frame.to2d(_strip_padding(f))
-        area = 0.5 * np.sum(q[:, 0] * np.roll(q[:, 1], -1) - np.roll(q[:, 0], -1) * q[:, 1])
-        if area != 0:
-            out.append(q if area > 0 else q[::-1].copy())
-    box = np.array([np.concatenate([q.min(axis=0), q.max(axis=0)]) for q in out]).reshape(-1, 4)
-    return out, box

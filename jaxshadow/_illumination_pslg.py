@@ -372,3 +372,22 @@ def _interpolate(xy: np.ndarray, tris: np.ndarray, values: np.ndarray, q: np.nda
                + l2[r, first, None] * values[tt[:, 2]])
         out[qi[any_hit]] = val[any_hit]
     return out
+
+
+def _contact_corners(polys: list[np.ndarray]) -> np.ndarray:
+    """The corners `(n, 2)` of the union of contact polygons `polys`: their vertices and the
+    points where edges of two of them cross."""
+    if not polys:
+        return np.zeros((0, 2))
+    a = np.concatenate(polys)
+    b = np.concatenate([np.roll(q, -1, axis=0) for q in polys])
+    owner = np.repeat(np.arange(len(polys)), [q.shape[0] for q in polys])
+    r = b - a
+    den = r[:, None, 0] * r[None, :, 1] - r[:, None, 1] * r[None, :, 0]  # (E, E)
+    dx = a[None, :, :] - a[:, None, :]  # a_j - a_i
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (dx[..., 0] * r[None, :, 1] - dx[..., 1] * r[None, :, 0]) / den
+        u = (dx[..., 0] * r[:, None, 1] - dx[..., 1] * r[:, None, 0]) / den
+    hit = (den != 0) & (s >= 0) & (s <= 1) & (u >= 0) & (u <= 1) & (owner[:, None] < owner[None, :])
+    i, _ = np.nonzero(hit)
+    return np.concatenate([a, a[i] + s[hit][:, None] * r[i]])

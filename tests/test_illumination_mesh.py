@@ -215,7 +215,7 @@ def test_object_standing_on_the_receiver_error_estimate(standing):
 def test_footprint_corners_include_crossings():
     # Two overlapping standing boxes: the union of their footprints has corners where their
     # edges cross, (2, 1) and (1, 2) here (hand-computed), besides the squares' own vertices.
-    from jaxshadow._illumination_builder import _contact_corners
+    from jaxshadow._illumination_pslg import _contact_corners
 
     a = np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 2.0], [0.0, 2.0]])
     got = _contact_corners([a, a + 1.0])
