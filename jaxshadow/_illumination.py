@@ -57,7 +57,11 @@ class IlluminationMesh:
     - `triangles`: `(T, 3)` vertex indices, counter-clockwise seen from the receiver's lit side.
     - `irradiance`: `(V, 3)` exact RGB irradiance at the vertices (W/m^2).
     - `max_error_estimate`: the largest checked interpolation error over all elements, relative
-      to `scale` (each element checked at seven points against exact values).
+      to `scale` (each element checked at seven points against exact values), but those within
+      `CORNER_SIZE` (1e-4 of the receiver's size) of a corner of a standing object's footprint:
+      there the irradiance takes a different limit along each direction of approach, no mesh
+      meets `tol`, and their error is `stats["corner_error"]`; and zero-area slivers (width
+      below 1e-9 of their length, where a computed crossing lands off a line by round-off).
     - `scale`: the irradiance `tol` is relative to (W/m^2): the receiver's maximum found by the
       extremum search, unless given.
     - `tol`: the requested relative tolerance.
@@ -90,7 +94,7 @@ class IlluminationMesh:
         return _interpolate(b.frame.to2d(self.vertices), self.triangles, self.irradiance,
                             b.frame.to2d(np.asarray(points, np.float64).reshape(-1, 3)))
 
-    def update(self, scene: Scene) -> IlluminationMesh:
+    def update(self, scene: Any) -> IlluminationMesh:
         """The mesh of the same receiver in `scene`, where only occluders changed (moved, added or
         removed): only the tiles that the changed occluders' shadow volumes can reach, before or
         after the change, are meshed again (Chrysanthou & Slater §3); the others are kept as they
@@ -180,7 +184,7 @@ def _merged_stats(builders: list[_Builder]) -> dict[str, Any]:
 GRADIENTS = ("differences", "jax")
 
 
-def illumination_mesh(scene: Scene, receiver: Any, tol: float = 1e-3, *, max_vertices: int = 2_000_000,
+def illumination_mesh(scene: Any, receiver: Any, tol: float = 1e-3, *, max_vertices: int = 2_000_000,
                       tile_size: float | None = None, min_edge: float | None = None, gradient: str = "differences",
                       scale: float | None = None) -> IlluminationMesh:
     r"""An adaptive, discontinuity-aware mesh of `receiver` with exact irradiance at its vertices.

@@ -11,6 +11,7 @@ import numpy as np
 from . import _illumination_events as ev
 from . import _illumination_extrema as ex
 from ._illumination_pslg import (
+    _contact_corners,
     _Edge,
     _edge_kinds,
     _Evaluator,
@@ -65,7 +66,8 @@ class _Builder:
         self.scene = scene
         self.eval = _Evaluator(scene, self.frame, self.diam)
         bbox = np.concatenate([self.poly.min(axis=0), self.poly.max(axis=0)])
-        self.contact, self.contact_box = _contact_polygons(scene, self.frame, 1e-9 * self.diam)
+        self.contact, self.contact_box = ev.contact_polygons(scene, self.frame, 1e-9 * self.diam)
+        self.contact_corners = _contact_corners(self.contact)
         if scene.occluders is None:
             self.occ, self.seg, self.foot = None, None, np.zeros((0, 4))
             return
@@ -104,12 +106,23 @@ class _Builder:
         return out
 
     def _at_contact_corner(self, c: np.ndarray, ids: np.ndarray) -> np.ndarray:
-        """Whether triangles `c (T, 3, 2)` have a vertex at a corner of contact polygons `ids`."""
-        if ids.size == 0:
+        """Whether triangles `c (T, 3, 2)` have a vertex within `CORNER_SIZE` (of the receiver's
+        size) of a corner of the contact polygons (a vertex, or a crossing of two polygons'
+        edges where standing objects overlap) when the tile has contact polygons `ids`. Around
+        such a corner the irradiance is continuous on every ray from it but takes a different
+        limit along each (the walls standing there hide a direction-dependent part of the
+        light), so every ring of elements around it sees the same variation, at any size: no
+        refinement meets `tol` there."""
+        r = CORNER_SIZE * self.diam
+        k = self.contact_corners
+        if ids.size == 0 or c.shape[0] == 0:
             return np.zeros(c.shape[0], bool)
-        corners = np.concatenate([self.contact[i] for i in ids])
-        d = np.abs(c[:, :, None, :] - corners[None, None]).max(axis=-1)  # (T, 3, C)
-        return np.any(d <= 1e-9 * self.diam, axis=(1, 2))
+        lo, hi = c.reshape(-1, 2).min(axis=0) - r, c.reshape(-1, 2).max(axis=0) + r
+        k = k[np.all((k >= lo) & (k <= hi), axis=1)]
+        if k.shape[0] == 0:
+            return np.zeros(c.shape[0], bool)
+        d = np.linalg.norm(c[:, :, None, :] - k[None, None], axis=-1)  # (T, 3, C)
+        return np.any(d <= r, axis=(1, 2))
 
     def _contact_edges(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The edges `(a, b)`, each `(n, 2)`, of the contact polygons `ids`."""
@@ -138,13 +151,20 @@ class _Builder:
         irradiance jumps, and the mesh takes the value on the open receiver's side."""
         if ids.size == 0 or xy.shape[0] == 0:
             return
+        eps = 1e-10 * self.diam
+        box = self.contact_box[ids]  # only points in a polygon's bounding box can be on its edges
+        cand = np.any(np.all((xy[:, None, :] >= box[None, :, :2] - eps) & (xy[:, None, :] <= box[None, :, 2:] + eps),
+                             axis=2), axis=1)
+        if not np.any(cand):
+            return
+        xy = xy[cand]
         ca, cb = self._contact_edges(ids)
         d = cb - ca
         ll = np.linalg.norm(d, axis=1)
         out = np.stack([d[:, 1], -d[:, 0]], axis=1) / ll[:, None]  # outward: the polygons are CCW
         t = np.einsum("nej,ej->ne", xy[:, None, :] - ca[None], d) / (ll * ll)[None]
         foot = ca[None] + np.clip(t, 0.0, 1.0)[..., None] * d[None]
-        near = np.linalg.norm(xy[:, None, :] - foot, axis=2) <= 1e-10 * self.diam  # (n, E)
+        near = np.linalg.norm(xy[:, None, :] - foot, axis=2) <= eps  # (n, E)
         hit = np.any(near, axis=1)
         if not np.any(hit):
             return
@@ -484,10 +504,13 @@ class _Builder:
                 self.stats["cdt_fallbacks"] = self.stats.get("cdt_fallbacks", 0) + int(dropped)
                 tv, tt = out["vertices"], out["triangles"]
                 meshes[ti] = out
-                on_contact = out["segments"][out["segment_markers"].ravel() == 2]
-                if on_contact.size:  # their vertices and the edge midpoints the check probes
-                    self._move_off_contact(np.concatenate([tv[np.unique(on_contact)], 0.5 * (
-                        tv[on_contact[:, 0]] + tv[on_contact[:, 1]])]), self.tiles[ti].contact)
+                if self.tiles[ti].contact.size:
+                    # Vertices and edge midpoints on a contact polygon's edge, found by position: a
+                    # discontinuity line along the edge (an occluder's edge on the receiver makes
+                    # one) can take the place of the contact segment in the triangulation.
+                    c = tv[tt]
+                    self._move_off_contact(np.concatenate([tv, 0.5 * (c + np.roll(c, -1, axis=1)).reshape(-1, 2)]),
+                                           self.tiles[ti].contact)
                 inner_seg = out["segments"][out["segment_markers"].ravel() == 0]
                 if inner_seg.size:
                     self.eval.mark(tv[inner_seg.ravel()])
@@ -497,36 +520,45 @@ class _Builder:
                 inner = np.einsum("ij,tjk->tik", _INNER, c)
                 probes.append(tv)
                 probes.append(np.concatenate([mids, c.mean(axis=1, keepdims=True), inner], axis=1).reshape(-1, 2))
-            self.eval(np.concatenate(probes))
+            # All active tiles' vertices and check points in one call; each tile reads its rows.
+            allval = self.eval(np.concatenate(probes))
+            rows = np.cumsum([0] + [p.shape[0] for p in probes])
             total = sum(meshes[ti]["vertices"].shape[0] for ti in meshes) + sum(
                 self.tiles[ti].verts.shape[0] for ti in range(len(self.tiles))  # type: ignore[union-attr]
                 if self.tiles[ti].verts is not None and ti not in meshes)
             budget = total < self.max_vertices
             nxt = []
-            for ti in active:
+            for k_tile, ti in enumerate(active):
                 out = meshes[ti]
                 tv, tt = out["vertices"], out["triangles"]
                 segs = out["segments"]
                 smark = out["segment_markers"].ravel()
                 c = tv[tt]
-                ve = self.eval(tv)
+                ve = allval[rows[2 * k_tile]:rows[2 * k_tile + 1]].copy()
                 vt = ve[tt]  # (T, 3, 3)
                 mids = 0.5 * (c + np.roll(c, -1, axis=1))
                 inner = np.einsum("ij,tjk->tik", _INNER, c)
                 pts = np.concatenate([mids, c.mean(axis=1, keepdims=True), inner], axis=1)  # (T, 7, 2)
                 interp = np.concatenate([0.5 * (vt + np.roll(vt, -1, axis=1)), vt.mean(axis=1, keepdims=True),
                                          np.einsum("ij,tjk->tik", _INNER, vt)], axis=1)
-                err = np.abs(self.eval(pts.reshape(-1, 2)).reshape(pts.shape[0], 7, 3) - interp).max(axis=2)
+                err = np.abs(allval[rows[2 * k_tile + 1]:rows[2 * k_tile + 2]].reshape(pts.shape[0], 7, 3)
+                             - interp).max(axis=2)
                 hole = self._in_contact(c.mean(axis=1), self.tiles[ti].contact)
                 err[hole] = 0.0  # covered by an occluder face lying on the receiver: not meshed
                 edge_ij = np.stack([tt, np.roll(tt, -1, axis=1)], axis=-1)  # (T, 3, 2)
                 kind = _edge_kinds(edge_ij, segs, smark, tv.shape[0])
                 longest = np.linalg.norm(c - np.roll(c, -1, axis=1), axis=2).max(axis=1)
+                # Zero-area slivers (three vertices on a line up to round-off, where CDT's computed
+                # crossings land an ulp off a tile edge) hold no point of the receiver: their long
+                # edge is checked by the element on its other side (or, on a tile edge, in 1-D).
+                e1, e2 = c[:, 1] - c[:, 0], c[:, 2] - c[:, 0]
+                flat = np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]) <= 1e-9 * longest * longest
+                err[flat] = 0.0
                 sel_err = err.copy()
                 sel_err[:, :3][kind == 1] = -1.0  # never insert on the tile boundary
                 # At a contact polygon's corner the irradiance has no limit (it depends on the
-                # direction of approach): the elements there are refined down to CORNER_SIZE only,
-                # and their error is reported apart (`stats["corner_error"]`).
+                # direction of approach): the elements within CORNER_SIZE of it are refined down
+                # to CORNER_SIZE only, and their error is reported apart (`stats["corner_error"]`).
                 corner = self._at_contact_corner(c, self.tiles[ti].contact)
                 floor = np.where(corner, CORNER_SIZE * self.diam, self.min_edge)
                 bad = (err.max(axis=1) > thr) & (longest > floor) & (sel_err.max(axis=1) > thr)
@@ -646,24 +678,3 @@ def _jax_gradient(scene: Scene, frame: ev.Frame, evaluator: _Evaluator) -> ex.Gr
         return evaluator.luminance(xy), np.stack([g3 @ frame.u, g3 @ frame.w], axis=1)
 
     return vg
-
-
-def _contact_polygons(scene: Scene, frame: ev.Frame, tol: float) -> tuple[list[np.ndarray], np.ndarray]:
-    """The occluder faces lying on the receiver plane (within `tol`), as counter-clockwise 2-D
-    polygons, and their bounding boxes `(n, 4)`: an object standing on the receiver covers them,
-    and along their edges the irradiance jumps (a value discontinuity no interpolation meets), so
-    they are holes of the mesh, bounded by mesh edges."""
-    if scene.occluders is None:
-        return [], np.zeros((0, 4))
-    from ._mesh import _strip_padding
-
-    faces = np.asarray(scene.occluders, np.float64)
-    flat = np.all(np.abs(frame.height(faces)) <= tol, axis=1)
-    out = []
-    for f in faces[flat]:
-        q = frame.to2d(_strip_padding(f))
-        area = 0.5 * np.sum(q[:, 0] * np.roll(q[:, 1], -1) - np.roll(q[:, 0], -1) * q[:, 1])
-        if area != 0:
-            out.append(q if area > 0 else q[::-1].copy())
-    box = np.array([np.concatenate([q.min(axis=0), q.max(axis=0)]) for q in out]).reshape(-1, 4)
-    return out, box

@@ -62,7 +62,7 @@ class Frame:
 
     def height(self, x: np.ndarray) -> np.ndarray:
         """Signed distance above the receiver plane (m)."""
-        return (np.asarray(x, np.float64) - self.origin) @ self.normal
+        return np.asarray((np.asarray(x, np.float64) - self.origin) @ self.normal)
 
 
 def receiver_frame(receiver: np.ndarray) -> Frame:
@@ -405,3 +405,22 @@ def boxes_overlap(boxes: np.ndarray, lo: Any, hi: Any, margin: float = 0.0) -> n
     """Which `boxes (n, 4)` meet the axis-aligned box [lo, hi] (2-D) grown by `margin`."""
     return ((boxes[:, 0] <= hi[0] + margin) & (boxes[:, 2] >= lo[0] - margin)
             & (boxes[:, 1] <= hi[1] + margin) & (boxes[:, 3] >= lo[1] - margin))
+
+
+def contact_polygons(scene: Scene, frame: Frame, tol: float) -> tuple[list[np.ndarray], np.ndarray]:
+    """The occluder faces lying on the receiver plane (within `tol`), as counter-clockwise 2-D
+    polygons, and their bounding boxes `(n, 4)`: an object standing on the receiver covers them,
+    and along their edges the irradiance jumps (a value discontinuity no interpolation meets), so
+    they are holes of the mesh, bounded by mesh edges."""
+    if scene.occluders is None:
+        return [], np.zeros((0, 4))
+    faces = np.asarray(scene.occluders, np.float64)
+    flat = np.all(np.abs(frame.height(faces)) <= tol, axis=1)
+    out = []
+    for f in faces[flat]:
+        q = frame.to2d(_strip_padding(f))
+        area = 0.5 * np.sum(q[:, 0] * np.roll(q[:, 1], -1) - np.roll(q[:, 0], -1) * q[:, 1])
+        if area != 0:
+            out.append(q if area > 0 else q[::-1].copy())
+    box = np.array([np.concatenate([q.min(axis=0), q.max(axis=0)]) for q in out]).reshape(-1, 4)
+    return out, box

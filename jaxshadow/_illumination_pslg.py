@@ -27,39 +27,48 @@ class _Evaluator:
     `tests/test_illumination_mesh.py::test_engine_on_event_plane`), and where the value at the
     point is not between its neighbours' (with a slack far above a kink's) their mean is used
     (`repairs` counts these; the irradiance is continuous there, so the mean is within
-    `ON_LINE_STEP` times the gradient of the exact value)."""
+    `ON_LINE_STEP` times the gradient of the exact value).
+
+    The cache maps a point's coordinates, as the Python complex `x + iy` (exact, hashed without
+    building tuples), to a row of one growing value array."""
 
     def __init__(self, scene: Scene, frame: ev.Frame, size: float):
         self.scene, self.frame = scene, frame
-        self.cache: dict[tuple, np.ndarray] = {}
-        self.online: set[tuple] = set()
-        self.moved: dict[tuple, tuple] = {}  # points evaluated elsewhere (`move`)
-        self.checked: set[tuple] = set()
+        self.cache: dict[complex, int] = {}
+        self.values = np.zeros((1024, 3))
+        self._rows = 0
+        self.online: set[complex] = set()
+        self.moved: dict[complex, complex] = {}  # points evaluated elsewhere (`move`)
+        self.checked: set[complex] = set()
         self.step = ON_LINE_STEP * size * np.array([np.cos(0.6180339887), np.sin(0.6180339887)])
         self.evaluations = 0
         self.repairs = 0
         self.seconds = 0.0
 
+    @staticmethod
+    def _keys(xy: np.ndarray) -> list[complex]:
+        xy = np.ascontiguousarray(np.asarray(xy, np.float64).reshape(-1, 2))
+        return xy.view(np.complex128).ravel().tolist()  # type: ignore[no-any-return]
+
     def mark(self, xy: np.ndarray) -> None:
         """Declare points `(n, 2)` to lie on discontinuity lines."""
-        self.online.update(map(tuple, np.asarray(xy, np.float64).reshape(-1, 2).tolist()))
+        self.online.update(self._keys(xy))
 
     def move(self, xy: np.ndarray, to: np.ndarray) -> None:
         """Evaluate points `xy (n, 2)` at `to (n, 2)` instead (a point on the edge of a hole takes
         the value just outside it)."""
-        for a, b in zip(np.asarray(xy, np.float64).reshape(-1, 2).tolist(), np.asarray(to).reshape(-1, 2).tolist(),
-                        strict=True):
-            if tuple(a) not in self.moved:
-                self.moved[tuple(a)] = tuple(b)
-                self.cache.pop(tuple(a), None)
+        for a, b in zip(self._keys(xy), self._keys(to), strict=True):
+            if a not in self.moved:
+                self.moved[a] = b
+                self.cache.pop(a, None)
 
     def __call__(self, xy: np.ndarray) -> np.ndarray:
-        xy = np.asarray(xy, np.float64).reshape(-1, 2)
-        keys = list(map(tuple, xy.tolist()))
-        todo = {k: None for k in keys if k not in self.cache or (k in self.online and k not in self.checked)}
+        keys = self._keys(xy)
+        cache, online, checked = self.cache, self.online, self.checked
+        todo = list(dict.fromkeys(k for k in keys if k not in cache or (k in online and k not in checked)))
         if todo:
-            pts = np.array([self.moved.get(k, k) for k in todo], np.float64)
-            line = np.array([k in self.online for k in todo])
+            pts = np.array([self.moved.get(k, k) for k in todo], np.complex128).view(np.float64).reshape(-1, 2)
+            line = np.array([k in online for k in todo], bool)
             side = pts[line]
             allp = np.concatenate([pts, side + self.step, side - self.step])
             t0 = time.perf_counter()
@@ -83,13 +92,16 @@ class _Evaluator:
                     fixed[bad] = mid[bad]
                     val[line] = fixed
                     self.repairs += int(bad.sum())
-            for k, v, ln in zip(todo, val, line, strict=True):
-                self.cache[k] = v
-                if ln:
-                    self.checked.add(k)
+            start = self._rows  # rows are never reused (a key dropped by `move` leaves its row behind)
+            while start + n > self.values.shape[0]:
+                self.values = np.concatenate([self.values, np.zeros_like(self.values)])
+            self.values[start:start + n] = val
+            cache.update(zip(todo, range(start, start + n), strict=True))
+            self._rows = start + n
+            checked.update(k for k, ln in zip(todo, line.tolist(), strict=True) if ln)
         if not keys:
             return np.zeros((0, 3))
-        return np.stack([self.cache[k] for k in keys])
+        return self.values[np.fromiter(map(cache.__getitem__, keys), np.int64, len(keys))]
 
     def luminance(self, xy: np.ndarray) -> np.ndarray:
         return self(xy).sum(axis=1)
@@ -105,7 +117,7 @@ class _Edge:
     cross: dict[int, tuple[float, np.ndarray, bool]] = field(default_factory=dict)
     s: np.ndarray | None = None
 
-    def point(self, s: np.ndarray) -> np.ndarray:
+    def point(self, s: np.ndarray | float) -> np.ndarray:
         return self.a + np.asarray(s)[..., None] * (self.b - self.a)
 
 
@@ -360,3 +372,22 @@ def _interpolate(xy: np.ndarray, tris: np.ndarray, values: np.ndarray, q: np.nda
                + l2[r, first, None] * values[tt[:, 2]])
         out[qi[any_hit]] = val[any_hit]
     return out
+
+
+def _contact_corners(polys: list[np.ndarray]) -> np.ndarray:
+    """The corners `(n, 2)` of the union of contact polygons `polys`: their vertices and the
+    points where edges of two of them cross."""
+    if not polys:
+        return np.zeros((0, 2))
+    a = np.concatenate(polys)
+    b = np.concatenate([np.roll(q, -1, axis=0) for q in polys])
+    owner = np.repeat(np.arange(len(polys)), [q.shape[0] for q in polys])
+    r = b - a
+    den = r[:, None, 0] * r[None, :, 1] - r[:, None, 1] * r[None, :, 0]  # (E, E)
+    dx = a[None, :, :] - a[:, None, :]  # a_j - a_i
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (dx[..., 0] * r[None, :, 1] - dx[..., 1] * r[None, :, 0]) / den
+        u = (dx[..., 0] * r[:, None, 1] - dx[..., 1] * r[:, None, 0]) / den
+    hit = (den != 0) & (s >= 0) & (s <= 1) & (u >= 0) & (u <= 1) & (owner[:, None] < owner[None, :])
+    i, _ = np.nonzero(hit)
+    return np.concatenate([a, a[i] + s[hit][:, None] * r[i]])

@@ -184,9 +184,44 @@ def test_object_standing_on_the_receiver_is_a_hole(standing):
     assert np.max(np.abs(lin[~inside] - ref)) <= 5e-2 * m.scale
 
 
-@pytest.mark.xfail(strict=True, reason="some elements next to a standing box still fail the check at min_edge")
 def test_object_standing_on_the_receiver_error_estimate(standing):
-    assert standing[1].max_error_estimate <= 5e-2
+    # The estimate leaves out only the elements within CORNER_SIZE of the footprint's corners
+    # (no limit there), reported apart; everything else meets tol, the wall feet included.
+    from jaxshadow._illumination_builder import CORNER_SIZE
+
+    scene, m = standing
+    assert m.max_error_estimate <= 5e-2
+    assert m.stats["corner_error"] > 5e-2  # the corner really is a singularity
+    # Check the estimate independently: exact values at points the mesher does not check (a
+    # fifth of the way from each edge midpoint to the centroid) of the elements outside the
+    # corner discs.
+    v, t = m.vertices, m.triangles
+    c = v[t]
+    corners = np.array([[x, y, 0.0] for x in (BOX_LO[0], BOX_HI[0]) for y in (BOX_LO[1], BOX_HI[1])])
+    near = np.min(np.linalg.norm(c[:, :, None, :] - corners[None, None], axis=-1), axis=(1, 2))
+    e1, e2 = c[:, 1] - c[:, 0], c[:, 2] - c[:, 0]
+    longest = np.max(np.linalg.norm(c - np.roll(c, -1, axis=1), axis=2), axis=1)
+    flat = np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]) <= 1e-9 * longest**2  # zero-area slivers: not checked
+    keep = (near > CORNER_SIZE * 3.0) & ~flat  # 3.0: the floor's size
+    assert keep.sum() > 0.5 * keep.size  # (many small elements crowd the corner discs)
+    ck = c[keep]
+    q = (0.8 * 0.5 * (ck + np.roll(ck, -1, axis=1)) + 0.2 * ck.mean(axis=1, keepdims=True)).reshape(-1, 3)
+    lin = m.interpolate(q)
+    ok = np.all(np.isfinite(lin), axis=1)
+    ref = exact(scene, q[ok])
+    assert np.max(np.abs(lin[ok] - ref)) <= 5e-2 * m.scale
+
+
+def test_footprint_corners_include_crossings():
+    # Two overlapping standing boxes: the union of their footprints has corners where their
+    # edges cross, (2, 1) and (1, 2) here (hand-computed), besides the squares' own vertices.
+    from jaxshadow._illumination_pslg import _contact_corners
+
+    a = np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 2.0], [0.0, 2.0]])
+    got = _contact_corners([a, a + 1.0])
+    want = np.concatenate([a, a + 1.0, [[2.0, 1.0], [1.0, 2.0]]])
+    np.testing.assert_allclose(got[np.lexsort(got.T)], want[np.lexsort(want.T)])
+    assert _contact_corners([a, a + 5.0]).shape == (8, 2)  # apart: no crossing
 
 
 def test_update_rejects_changed_lights(mesh):
