@@ -37,7 +37,7 @@ KIND_CASES = {
 QUICK = ("shift=10%/noise=0", "directional/shadow targets/noise=1%", "segment/shadow targets/noise=1%")
 
 
-def _case(shift: float, noise: float, mode: str, fit: str, starts: int = 8, sweeps: int = 2) -> dict:
+def _case(shift: float, noise: float, mode: str, fit: str, starts: int = 8, sweeps: int = 2, **options) -> dict:
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -65,7 +65,7 @@ def _case(shift: float, noise: float, mode: str, fit: str, starts: int = 8, swee
     guess = material if mode == "fixed" else js.Material(ka=0.2, kd=0.5, ks=0.0, exponent=1.0)
     t1 = time.perf_counter()
     out = inverse.fit_lights(start, targets, guess, fit=tuple(fit.split(",")), starts=starts, sweeps=sweeps,
-                             material_mode=mode)
+                             material_mode=mode, **options)
     fit_s = time.perf_counter() - t1
     pos, deg, size_rel, power = [], [], [], []
     for k in (0, 1):

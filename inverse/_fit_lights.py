@@ -129,6 +129,7 @@ def fit_lights(
     size_spread: float = 0.5,
     seed: int = 0,
     sweeps: int = 2,
+    grid: int = 32,
     material_mode: str = "fixed",
     ranges: ColourRange | None = None,
     brighter: Brighter | None = None,
@@ -256,7 +257,8 @@ def fit_lights(
     in_theta = paint is not None and fit_power
     problem = LightsProblem(tuple(params), tuple(scene.lights[i] for i in idx), scene, material, t, e0, s0,
                             tuple(offsets), fit_power, with_spec, bool(fixed), specular, paint=paint,
-                            budget=None if budget is None else jnp.asarray(budget, dt), powers_in_theta=in_theta)
+                            budget=None if budget is None else jnp.asarray(budget, dt), powers_in_theta=in_theta,
+                            active=jnp.ones(len(idx), dt))
     Pt = problem.n_theta  # poses, then (with ranges or relations) q, p = q^2, from the given powers
     theta0 = np.r_[np.zeros(P), np.ones(Pt - P)]
     per_light = []
@@ -268,7 +270,15 @@ def fit_lights(
                                    size_spread=size_spread, seed=seed + j, dtype=np.float64))
         theta0[offsets[j]:offsets[j] + p.size] = y[0]
         per_light.append(y)
-    problem = _with_capacity(problem, per_light, fixed)
+    grid_rows = None
+    if int(grid) > 0 and sum(p is not None for p in params) > 1:
+        grid_rows = [None if p is None else
+                     np.asarray(make_starts(p, int(grid), search_radius=search_radius, orientation_spread=0.0,
+                                            size_spread=0.0, seed=seed + 101 + j, dtype=np.float64))
+                     for j, p in enumerate(params)]
+    problem = _with_capacity(problem, [y if g is None else np.concatenate([y, g]) if y is not None else None
+                                       for y, g in zip(per_light, grid_rows or [None] * len(per_light),
+                                                       strict=True)], fixed)
     k = max(1, min(int(solver.refine or starts), int(starts)))
     sched = prune_schedule(k, solver.max_steps) if solver.prune else ()
     lm = dict(rtol=solver.rtol, atol=solver.atol, max_steps=solver.max_steps, prune=sched)
@@ -277,6 +287,14 @@ def fit_lights(
     base = theta0.copy()
     stage_losses, n_solved, retries, runner_up = [], 0, 0, {}
     initial = None
+    placed = grid_rows is not None
+    if placed:
+        problem, base, initial, n, retries = _greedy(problem, base, grid_rows, offsets, P, in_theta, k, lm,
+                                                     stage_losses)
+        n_solved += n
+        problem, base, n, r = _swaps(problem, base, offsets, k, lm, stage_losses)
+        n_solved += n
+        retries += r
     if P:
         for sweep, j in ((s, j) for s in range(int(sweeps)) for j in range(len(per_light))):
             y = per_light[j]
@@ -287,9 +305,11 @@ def fit_lights(
             mask[sl] = _stage_mask(params[j])
             if in_theta:  # its power with it
                 mask[P + j] = True
+            if placed:  # the grid's positions too, screened with every light placed
+                y = np.concatenate([y, grid_rows[j]])
             full = np.tile(base, (y.shape[0], 1))
             full[:, sl] = y
-            if sweep:  # again, with the others placed: from the current pose and the same spread
+            if sweep or placed:  # again, with the others placed: from the current pose and the same spread
                 full[0, sl] = base[sl]
             if full.shape[0] > k:  # screen: the same program, no iterations, k starts a call
                 losses = np.concatenate([
@@ -337,6 +357,104 @@ def fit_lights(
         theta = theta0
     return _result(problem, np.asarray(theta, np.float64), idx, size, candidates, stage_losses, n_solved,
                    retries, initial, project)
+
+
+def _greedy(problem: LightsProblem, base: np.ndarray, grid_rows: list, offsets: list, P: int, in_theta: bool,
+            k: int, lm: dict, stage_losses: list) -> tuple[LightsProblem, np.ndarray, float, int, int]:
+    """Greedy placement, one light at a time: the lights not placed yet are left out of the model
+    (`LightsProblem.active`); at each stage every unplaced light's grid of positions
+    (`grid_rows[j]`, a Sobol stratification of its search region) is screened with the placed
+    lights, the light and positions that explain the targets best are refined (its position, the
+    powers projected) and that light is placed. A misplaced light is thereby never compensated
+    for, and the screened positions add up over the lights, they do not multiply.
+    Returns `(problem, base, the given poses' loss, starts solved, retries)`."""
+    dt = problem.targets.points.dtype
+    J = len(problem.params)
+    Pt = base.shape[0]
+    lm0 = {**lm, "max_steps": 0}
+    res, problem, retries = solve(problem, _pad(base[None], k), base, np.ones(Pt, bool), **lm0)
+    initial = float(np.asarray(res.initial_losses)[0])
+    active = np.array([p is None for p in problem.params], np.float64)
+    todo = [j for j in range(J) if problem.params[j] is not None]
+    n_solved = 0
+    while todo:
+        best = (np.inf, None, None)
+        for j in todo:
+            p, sl = problem.params[j], slice(offsets[j], offsets[j] + problem.params[j].size)
+            act = active.copy()
+            act[j] = 1.0
+            trial = dataclasses.replace(problem, active=jnp.asarray(act, dt))
+            mask = np.zeros(Pt, bool)
+            mask[sl] = _stage_mask(p)
+            if in_theta:
+                mask[P + j] = True
+            full = np.tile(base, (grid_rows[j].shape[0], 1))
+            full[:, sl] = grid_rows[j]
+            losses = []
+            for a in range(0, full.shape[0], k):
+                r, trial, n = solve(trial, _pad(full[a:a + k], k), base, mask, **lm0)
+                retries += n
+                losses.append(np.asarray(r.initial_losses))
+            f = np.concatenate(losses)[: full.shape[0]]
+            f = np.where(np.isfinite(f), f, np.inf)
+            if np.min(f) < best[0]:
+                best = (float(np.min(f)), j, (full[best_starts(f, k)], mask, trial))
+        _, j, (rows, mask, trial) = best
+        res, trial, n = solve(trial, _pad(rows, k), base, mask, **lm)
+        retries += n
+        n_solved += rows.shape[0]
+        f = np.where(np.isfinite(np.asarray(res.losses)), np.asarray(res.losses), np.inf)
+        base = np.where(mask, np.asarray(res.values)[int(np.argmin(f))], base)
+        stage_losses.append(float(np.min(f)))
+        active[j] = 1.0
+        todo.remove(j)
+        problem = dataclasses.replace(problem, capacity=trial.capacity)
+    return dataclasses.replace(problem, active=jnp.ones(J, dt)), base, initial, n_solved, retries
+
+
+def _swaps(problem: LightsProblem, base: np.ndarray, offsets: list, k: int, lm: dict,
+           stage_losses: list) -> tuple[LightsProblem, np.ndarray, int, int]:
+    """The greedy placement finds where lights are, not which light is where (a small polygon
+    light high up passes for a point light lower down): the placed positions are dealt to the
+    lights in every order (up to 4 movable lights; beyond, each exchange of two), every deal's
+    positions refined jointly, the best kept. Lights on a plane or in a box keep their own.
+    Returns `(problem, base, starts solved, retries)`."""
+    import itertools
+
+    movable = [j for j, p in enumerate(problem.params)
+               if p is not None and "position" in p._slices() and p.constraint == "none"]
+    if len(movable) < 2:
+        return problem, base, 0, 0
+    sl = {j: slice(offsets[j] + problem.params[j]._slices()["position"].start,
+                   offsets[j] + problem.params[j]._slices()["position"].stop) for j in movable}
+    c0 = {j: np.asarray(problem.params[j].c0, np.float64) for j in movable}
+    s = float(problem.params[movable[0]].scale)
+    where = {j: c0[j] + s * base[sl[j]] for j in movable}
+    if len(movable) <= 4:
+        deals = list(itertools.permutations(movable))
+    else:
+        deals = [tuple(movable)]
+        for a, b in itertools.combinations(range(len(movable)), 2):
+            d = list(movable)
+            d[a], d[b] = d[b], d[a]
+            deals.append(tuple(d))
+    rows = np.tile(base, (len(deals), 1))
+    for r, deal in enumerate(deals):
+        for j, src in zip(movable, deal, strict=True):
+            rows[r, sl[j]] = (where[src] - c0[j]) / s
+    mask = np.zeros(base.shape[0], bool)
+    for j in movable:
+        mask[sl[j]] = True
+    best, best_f, n_solved, retries = base, np.inf, 0, 0
+    for a in range(0, rows.shape[0], k):
+        res, problem, r = solve(problem, _pad(rows[a:a + k], k), base, mask, **lm)
+        retries += r
+        n_solved += min(k, rows.shape[0] - a)
+        f = np.where(np.isfinite(np.asarray(res.losses)), np.asarray(res.losses), np.inf)
+        if np.min(f) < best_f:
+            best_f, best = float(np.min(f)), np.where(mask, np.asarray(res.values)[int(np.argmin(f))], base)
+    stage_losses.append(best_f)
+    return problem, best, n_solved, retries
 
 
 def _stage_mask(param: LightParametrisation) -> np.ndarray:

@@ -77,6 +77,9 @@ class LightsProblem(eqx.Module):
     # The powers are parameters of the search (the last J entries of theta, p = q^2) instead of
     # projected out: with ranges or relations the residual is not linear in them.
     powers_in_theta: bool = eqx.field(static=True, default=False)
+    # (J,) 1 where a fitted light is in the model, 0 where it is left out (the greedy placement
+    # of `_fit_lights`: lights not placed yet do not pollute the others' search). None: all in.
+    active: Any = None
 
     @property
     def n_pose(self) -> int:
@@ -148,6 +151,8 @@ def _parts(theta: Array, problem: LightsProblem, capacity: int | None) -> tuple[
     ef, sf = problem.e_fixed.astype(dt), problem.s_fixed.astype(dt)
     fixed = ka * La + kd / jnp.pi * ef + (ks * sf if problem.with_specular else 0.0)
     per_light = kd[None] / jnp.pi * E + (ks[None] * S if S is not None else 0.0)  # (J, N, 3)
+    if problem.active is not None:
+        per_light = per_light * problem.active.astype(dt)[:, None, None]
     return fixed, per_light, over
 
 
