@@ -305,8 +305,9 @@ def fit_lights(
             mask[sl] = _stage_mask(params[j])
             if in_theta:  # its power with it
                 mask[P + j] = True
-            if placed:  # the grid's positions too, screened with every light placed
-                y = np.concatenate([y, grid_rows[j]])
+            if placed:  # the grid again, a third the size, around the placed pose (every light placed)
+                g = grid_rows[j]
+                y = np.concatenate([y, base[sl][None] + (g - g[:1]) / 3.0])
             full = np.tile(base, (y.shape[0], 1))
             full[:, sl] = y
             if sweep or placed:  # again, with the others placed: from the current pose and the same spread
