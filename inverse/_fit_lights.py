@@ -36,6 +36,7 @@ from ._multilight import (
     scaled_light,
     solve,
 )
+from ._multilight_placement import greedy, pad, stage_mask, swaps
 from ._multilight_report import (
     LightsFit,
     LightsReport,
@@ -46,7 +47,7 @@ from ._multilight_report import (
 )
 from ._multistart import best_starts, make_starts, prune_schedule, start_lights
 from ._painting import Brighter, ColourRange, as_numpy, painted_rows, painting
-from ._parametrisation import Box, LightParametrisation, Plane, scene_size
+from ._parametrisation import Box, LightParametrisation, Outside, Plane, outside_planes, scene_size
 from ._powers import constrained_powers, emitted_power, painted_jacobian
 from ._solvers import LM
 from ._targets import PaintedTargets
@@ -108,8 +109,9 @@ def _checked(scene: Any, targets: Any, material: Any, lights: Any, fit: Any, sta
             continue
         if int(k) not in idx:
             raise ValueError(f"fit_lights: a constraint for light {k}, which is not fitted.")
-        if not isinstance(c, (Plane, Box)):
-            raise ValueError(f"fit_lights: constraints must be inverse.Plane or inverse.Box, got {type(c).__name__}.")
+        if not isinstance(c, (Plane, Box, Outside)):
+            raise ValueError("fit_lights: constraints must be inverse.Plane, inverse.Box or inverse.Outside, got "
+                             f"{type(c).__name__}.")
     return idx, fit, {(k if k == "budget" else int(k)): c for k, c in cons.items()}
 
 
@@ -169,7 +171,9 @@ def fit_lights(
     - `fit`: a subset of `("position", "orientation", "size", "power")`, applied to each light
       where its kind has the group (leave out `"size"` to hold the sizes fixed; without
       `"power"` the powers stay as given).
-    - `constraints`: `{light index: inverse.Plane | inverse.Box}` for the light's centre, and
+    - `constraints`: `{light index: inverse.Plane | inverse.Box | inverse.Outside}` for the
+      light's centre (`Outside`: outside the convex hull of some occluders, a hinge penalty in
+      the solve and a final move out through the nearest face: see `inverse.Outside`), and
       `"budget": B` (W, > 0) for the total power: $\\sum_j p_j c_j \\le B$ over the fitted
       lights, $c_j$ the power light $j$ emits at its given radiance, averaged over RGB
       (`_powers.emitted_power`: $\\pi \\bar L A$ for a polygon, $\\bar\\Phi \\ell$ for a segment,
@@ -243,7 +247,11 @@ def fit_lights(
                 raise ValueError(f"fit_lights: a constraint for light {i}, whose position is not fitted.")
             params.append(None)
         else:
-            params.append(LightParametrisation(scene.lights[i], i, groups, cons.get(i), size, solver.box_map))
+            c = cons.get(i)
+            if isinstance(c, Outside) and "position" not in groups:
+                raise ValueError(f"fit_lights: inverse.Outside for light {i}, whose position is not fitted.")
+            params.append(LightParametrisation(scene.lights[i], i, groups, None if isinstance(c, Outside) else c,
+                                               size, solver.box_map))
         offsets.append(off)
         off += 0 if params[-1] is None else params[-1].size
     P = off
@@ -258,7 +266,10 @@ def fit_lights(
     problem = LightsProblem(tuple(params), tuple(scene.lights[i] for i in idx), scene, material, t, e0, s0,
                             tuple(offsets), fit_power, with_spec, bool(fixed), specular, paint=paint,
                             budget=None if budget is None else jnp.asarray(budget, dt), powers_in_theta=in_theta,
-                            active=jnp.ones(len(idx), dt))
+                            active=jnp.ones(len(idx), dt),
+                            outside=tuple((j, *(jnp.asarray(x, dt) for x in outside_planes(scene, cons[i])),
+                                           cons[i].margin) for j, i in enumerate(idx)
+                                          if isinstance(cons.get(i), Outside)))
     Pt = problem.n_theta  # poses, then (with ranges or relations) q, p = q^2, from the given powers
     theta0 = np.r_[np.zeros(P), np.ones(Pt - P)]
     per_light = []
@@ -289,10 +300,10 @@ def fit_lights(
     initial = None
     placed = grid_rows is not None
     if placed:
-        problem, base, initial, n, retries = _greedy(problem, base, grid_rows, offsets, P, in_theta, k, lm,
+        problem, base, initial, n, retries = greedy(problem, base, grid_rows, offsets, P, in_theta, k, lm,
                                                      stage_losses)
         n_solved += n
-        problem, base, n, r = _swaps(problem, base, offsets, k, lm, stage_losses)
+        problem, base, n, r = swaps(problem, base, offsets, k, lm, stage_losses)
         n_solved += n
         retries += r
     if P:
@@ -302,7 +313,7 @@ def fit_lights(
                 continue
             sl = slice(offsets[j], offsets[j] + params[j].size)
             mask = np.zeros(Pt, bool)
-            mask[sl] = _stage_mask(params[j])
+            mask[sl] = stage_mask(params[j])
             if in_theta:  # its power with it
                 mask[P + j] = True
             if placed:  # the grid again, a third the size, around the placed pose (every light placed)
@@ -314,7 +325,7 @@ def fit_lights(
                 full[0, sl] = base[sl]
             if full.shape[0] > k:  # screen: the same program, no iterations, k starts a call
                 losses = np.concatenate([
-                    np.asarray(solve(problem, _pad(full[a:a + k], k), base, mask, **{**lm, "max_steps": 0})[0]
+                    np.asarray(solve(problem, pad(full[a:a + k], k), base, mask, **{**lm, "max_steps": 0})[0]
                                .initial_losses) for a in range(0, full.shape[0], k)])[: full.shape[0]]
                 if initial is None and sweep == 0:
                     initial = float(losses[0])  # the given poses (row 0), screened out or not
@@ -332,23 +343,34 @@ def fit_lights(
             if len(order) > 1 and np.isfinite(f[order[1]]):
                 runner_up[j] = vals[order[1]][sl]
             stage_losses.append(float(f[order[0]]))
-        joint = [base, theta0]  # the given poses together are a candidate too
+        joint = [base] + ([] if placed else [theta0])  # the given poses together are a candidate too
         for j, v in runner_up.items():
             alt = base.copy()
             alt[offsets[j]:offsets[j] + params[j].size] = v
             joint.append(alt)
-        joint = _pad(np.stack(joint[:k]), k)
         # Sizes last: free from the start, a polygon trades its size for its power (it shrinks to a
         # bright point or grows dim) before the poses are right.
         sizes = np.concatenate([np.zeros(0, bool)] + [_size_mask(p) for p in params if p is not None]
                                + [np.zeros(Pt - P, bool)])
-        for mask in ([~sizes] if sizes.any() else []) + [np.ones(Pt, bool)]:
-            res, problem, r = solve(problem, joint, base, mask, **lm)
+        for attempt in range(2 if placed else 1):
+            joint = pad(np.stack(joint[:k]), k)
+            for mask in ([~sizes] if sizes.any() else []) + [np.ones(Pt, bool)]:
+                res, problem, r = solve(problem, joint, base, mask, **lm)
+                retries += r
+                n_solved += joint.shape[0]
+                f = np.where(np.isfinite(np.asarray(res.losses)), np.asarray(res.losses), np.inf)
+                joint = np.where(mask[None], np.asarray(res.values), base[None])[np.argsort(f)]
+                stage_losses.append(float(np.min(f)))
+            if attempt or not placed:
+                break
+            # The refined positions dealt again (two lights of similar shading swapped in the first
+            # deal under noise): refined jointly again only from a deal that is better.
+            problem, dealt, n, r = swaps(problem, joint[0], offsets, k, lm, stage_losses)
+            n_solved += n
             retries += r
-            n_solved += joint.shape[0]
-            f = np.where(np.isfinite(np.asarray(res.losses)), np.asarray(res.losses), np.inf)
-            joint = np.where(mask[None], np.asarray(res.values), base[None])[np.argsort(f)]
-            stage_losses.append(float(np.min(f)))
+            if not stage_losses[-1] < stage_losses[-2] * (1 - 1e-6):
+                break
+            base, joint = dealt, [dealt, joint[0]]
         theta = joint[0]
         if project:
             problem, theta, n, r = _alternate(problem, theta, joint, base, lm, stage_losses)
@@ -356,118 +378,28 @@ def fit_lights(
             retries += r
     else:
         theta = theta0
+    theta = _moved_outside(problem, np.asarray(theta, np.float64))
     return _result(problem, np.asarray(theta, np.float64), idx, size, candidates, stage_losses, n_solved,
                    retries, initial, project)
 
 
-def _greedy(problem: LightsProblem, base: np.ndarray, grid_rows: list, offsets: list, P: int, in_theta: bool,
-            k: int, lm: dict, stage_losses: list) -> tuple[LightsProblem, np.ndarray, float, int, int]:
-    """Greedy placement, one light at a time: the lights not placed yet are left out of the model
-    (`LightsProblem.active`); at each stage every unplaced light's grid of positions
-    (`grid_rows[j]`, a Sobol stratification of its search region) is screened with the placed
-    lights, the light and positions that explain the targets best are refined (its position, the
-    powers projected) and that light is placed. A misplaced light is thereby never compensated
-    for, and the screened positions add up over the lights, they do not multiply.
-    Returns `(problem, base, the given poses' loss, starts solved, retries)`."""
-    dt = problem.targets.points.dtype
-    J = len(problem.params)
-    Pt = base.shape[0]
-    lm0 = {**lm, "max_steps": 0}
-    res, problem, retries = solve(problem, _pad(base[None], k), base, np.ones(Pt, bool), **lm0)
-    initial = float(np.asarray(res.initial_losses)[0])
-    active = np.array([p is None for p in problem.params], np.float64)
-    todo = [j for j in range(J) if problem.params[j] is not None]
-    n_solved = 0
-    while todo:
-        best = (np.inf, None, None)
-        for j in todo:
-            p, sl = problem.params[j], slice(offsets[j], offsets[j] + problem.params[j].size)
-            act = active.copy()
-            act[j] = 1.0
-            trial = dataclasses.replace(problem, active=jnp.asarray(act, dt))
-            mask = np.zeros(Pt, bool)
-            mask[sl] = _stage_mask(p)
-            if in_theta:
-                mask[P + j] = True
-            full = np.tile(base, (grid_rows[j].shape[0], 1))
-            full[:, sl] = grid_rows[j]
-            losses = []
-            for a in range(0, full.shape[0], k):
-                r, trial, n = solve(trial, _pad(full[a:a + k], k), base, mask, **lm0)
-                retries += n
-                losses.append(np.asarray(r.initial_losses))
-            f = np.concatenate(losses)[: full.shape[0]]
-            f = np.where(np.isfinite(f), f, np.inf)
-            if np.min(f) < best[0]:
-                best = (float(np.min(f)), j, (full[best_starts(f, k)], mask, trial))
-        _, j, (rows, mask, trial) = best
-        res, trial, n = solve(trial, _pad(rows, k), base, mask, **lm)
-        retries += n
-        n_solved += rows.shape[0]
-        f = np.where(np.isfinite(np.asarray(res.losses)), np.asarray(res.losses), np.inf)
-        base = np.where(mask, np.asarray(res.values)[int(np.argmin(f))], base)
-        stage_losses.append(float(np.min(f)))
-        active[j] = 1.0
-        todo.remove(j)
-        problem = dataclasses.replace(problem, capacity=trial.capacity)
-    return dataclasses.replace(problem, active=jnp.ones(J, dt)), base, initial, n_solved, retries
-
-
-def _swaps(problem: LightsProblem, base: np.ndarray, offsets: list, k: int, lm: dict,
-           stage_losses: list) -> tuple[LightsProblem, np.ndarray, int, int]:
-    """The greedy placement finds where lights are, not which light is where (a small polygon
-    light high up passes for a point light lower down): the placed positions are dealt to the
-    lights in every order (up to 4 movable lights; beyond, each exchange of two), every deal's
-    positions refined jointly, the best kept. Lights on a plane or in a box keep their own.
-    Returns `(problem, base, starts solved, retries)`."""
-    import itertools
-
-    movable = [j for j, p in enumerate(problem.params)
-               if p is not None and "position" in p._slices() and p.constraint == "none"]
-    if len(movable) < 2:
-        return problem, base, 0, 0
-    sl = {j: slice(offsets[j] + problem.params[j]._slices()["position"].start,
-                   offsets[j] + problem.params[j]._slices()["position"].stop) for j in movable}
-    c0 = {j: np.asarray(problem.params[j].c0, np.float64) for j in movable}
-    s = float(problem.params[movable[0]].scale)
-    where = {j: c0[j] + s * base[sl[j]] for j in movable}
-    if len(movable) <= 4:
-        deals = list(itertools.permutations(movable))
-    else:
-        deals = [tuple(movable)]
-        for a, b in itertools.combinations(range(len(movable)), 2):
-            d = list(movable)
-            d[a], d[b] = d[b], d[a]
-            deals.append(tuple(d))
-    rows = np.tile(base, (len(deals), 1))
-    for r, deal in enumerate(deals):
-        for j, src in zip(movable, deal, strict=True):
-            rows[r, sl[j]] = (where[src] - c0[j]) / s
-    mask = np.zeros(base.shape[0], bool)
-    for j in movable:
-        mask[sl[j]] = True
-    best, best_f, n_solved, retries = base, np.inf, 0, 0
-    for a in range(0, rows.shape[0], k):
-        res, problem, r = solve(problem, _pad(rows[a:a + k], k), base, mask, **lm)
-        retries += r
-        n_solved += min(k, rows.shape[0] - a)
-        f = np.where(np.isfinite(np.asarray(res.losses)), np.asarray(res.losses), np.inf)
-        if np.min(f) < best_f:
-            best_f, best = float(np.min(f)), np.where(mask, np.asarray(res.values)[int(np.argmin(f))], base)
-    stage_losses.append(best_f)
-    return problem, best, n_solved, retries
-
-
-def _stage_mask(param: LightParametrisation) -> np.ndarray:
-    """Which of a light's parameters its own multistart searches: its position when fitted (the
-    orientation and size follow in the joint refinement: searched while the other lights are
-    still misplaced they compensate for them - a polygon shrinks to a bright point), else all."""
-    sl = param._slices()
-    if "position" not in sl:
-        return np.ones(param.size, bool)
-    out = np.zeros(param.size, bool)
-    out[sl["position"]] = True
-    return out
+def _moved_outside(problem: LightsProblem, theta: np.ndarray) -> np.ndarray:
+    """`theta` with every `Outside`-constrained centre still short of its margin moved out
+    through the hull face whose plane it is closest to (`inverse.Outside`: exact up to rounding,
+    since that face's value is the largest)."""
+    theta = theta.copy()
+    for j, A, b, margin in problem.outside:
+        p, o = problem.params[j], problem.offsets[j]
+        sl = p._slices()["position"]
+        c = np.asarray(p.centre_of(jnp.asarray(theta[o:o + p.size])), np.float64)
+        A, b = np.asarray(A, np.float64), np.asarray(b, np.float64)
+        g = A @ c + b
+        f = int(np.argmax(g))
+        if g[f] >= margin:
+            continue
+        c_new = c + (margin - g[f]) * A[f] * (1 + 1e-12)
+        theta[o + sl.start:o + sl.stop] += (c_new - c) / float(p.scale)  # an Outside light's centre is free
+    return theta
 
 
 def _size_mask(param: LightParametrisation) -> np.ndarray:
@@ -477,11 +409,6 @@ def _size_mask(param: LightParametrisation) -> np.ndarray:
     if "size" in sl:
         out[sl["size"]] = True
     return out
-
-
-def _pad(rows: np.ndarray, k: int) -> np.ndarray:
-    """`rows` padded to `k` rows with copies of the first (the same program for every call)."""
-    return np.concatenate([rows, np.repeat(rows[:1], k - rows.shape[0], axis=0)]) if rows.shape[0] < k else rows
 
 
 def _with_capacity(problem: LightsProblem, per_light: list, fixed: list) -> LightsProblem:
