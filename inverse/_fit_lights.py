@@ -1,11 +1,16 @@
 """`fit_lights`: several lights placed at once, with their powers, through the soft shadows.
 
-The multistart does not multiply: each light in turn is searched from its own starts (a
-scrambled Sobol stratification, `_multistart.make_starts`) with the other lights held at their
-current best poses and every power projected out; then all poses are refined jointly from the
-best combination (and the combinations that swap in one light's runner-up). The cost grows
-with the number of lights, not exponentially. One compiled program (`_multilight._lm`) serves
-every stage.
+The multistart does not multiply. With several lights to place, they are first placed one at
+a time (`_multilight_placement.greedy`): the lights not placed yet are left out of the model,
+every unplaced light's grid of positions (a scrambled Sobol stratification,
+`_multistart.make_starts`) is screened and the light and position that explain the targets
+best are refined and kept; the placed positions are then dealt to the lights in every order
+(`swaps`: a small polygon high up passes for a point light lower down). Then each light in turn
+is searched again from its own starts and a finer grid around its placed pose, the others held
+at their current best and every power projected out, and all poses are refined jointly (sizes
+last); the refined positions are dealt once more, and a better deal is swept and refined again.
+The cost grows with the number of lights, not exponentially. One compiled program
+(`_multilight._lm`) serves every stage.
 
 Every light kind is placed: a polygon (pose and size), a segment (its ends), a point light
 (position), a directional light (its direction). What a designer states goes in as well: a
@@ -185,6 +190,9 @@ def fit_lights(
       each light's starts are screened to the solver's `refine` best.
     - `sweeps`: how many times each light's own multistart runs (in turn, the others at their
       current best) before the joint refinement.
+    - `grid`: positions per light screened in the greedy placement (with two or more lights
+      to place; the same grid at a third of its size around each placed light in the sweeps);
+      0: no greedy placement (each light's sweep starts from the given poses).
     - `material_mode`: `"fixed"` (as given) or `"projected"` (fitted jointly, $k \\ge 0$; the
       product $k_d p$ does not separate, so the first fitted light's power is held at 1 unless
       some light of the scene is not fitted, which then sets the scale).
@@ -230,6 +238,8 @@ def fit_lights(
         raise ValueError("fit_lights: ranges and brighter-than relations need material_mode='fixed'.")
     if int(sweeps) < 1:
         raise ValueError(f"fit_lights: sweeps must be >= 1, got {sweeps}.")
+    if int(grid) < 0:
+        raise ValueError(f"fit_lights: grid must be >= 0, got {grid}.")
     solver = LM() if solver is None else solver
     if not isinstance(solver, LM):
         raise ValueError(f"fit_lights: solver must be an inverse.LM, got {type(solver).__name__}.")
@@ -307,52 +317,53 @@ def fit_lights(
         n_solved += n
         retries += r
     if P:
-        for sweep, j in ((s, j) for s in range(int(sweeps)) for j in range(len(per_light))):
-            y = per_light[j]
-            if y is None:
-                continue
-            sl = slice(offsets[j], offsets[j] + params[j].size)
-            mask = np.zeros(Pt, bool)
-            mask[sl] = stage_mask(params[j])
-            if in_theta:  # its power with it
-                mask[P + j] = True
-            if placed:  # the grid again, a third the size, around the placed pose (every light placed)
-                g = grid_rows[j]
-                y = np.concatenate([y, base[sl][None] + (g - g[:1]) / 3.0])
-            full = np.tile(base, (y.shape[0], 1))
-            full[:, sl] = y
-            if sweep or placed:  # again, with the others placed: from the current pose and the same spread
-                full[0, sl] = base[sl]
-            if full.shape[0] > k:  # screen: the same program, no iterations, k starts a call
-                losses = np.concatenate([
-                    np.asarray(solve(problem, pad(full[a:a + k], k), base, mask, **{**lm, "max_steps": 0})[0]
-                               .initial_losses) for a in range(0, full.shape[0], k)])[: full.shape[0]]
-                if initial is None and sweep == 0:
-                    initial = float(losses[0])  # the given poses (row 0), screened out or not
-                full = full[best_starts(np.where(np.isfinite(losses), losses, np.inf), k)]
-            res, problem, r = solve(problem, full, base, mask, **lm)
-            retries += r
-            n_solved += full.shape[0]
-            f = np.where(np.isfinite(np.asarray(res.losses)), np.asarray(res.losses), np.inf)
-            order = np.argsort(f)
-            if initial is None:
-                initial = float(np.asarray(res.initial_losses)[0]) if np.all(full[0] == theta0) else None
-            # The solved rows hold the starts' values where the mask is off: the residual used `base`.
-            vals = np.where(mask[None], np.asarray(res.values), base[None])
-            base = vals[order[0]].copy()
-            if len(order) > 1 and np.isfinite(f[order[1]]):
-                runner_up[j] = vals[order[1]][sl]
-            stage_losses.append(float(f[order[0]]))
-        joint = [base] + ([] if placed else [theta0])  # the given poses together are a candidate too
-        for j, v in runner_up.items():
-            alt = base.copy()
-            alt[offsets[j]:offsets[j] + params[j].size] = v
-            joint.append(alt)
-        # Sizes last: free from the start, a polygon trades its size for its power (it shrinks to a
-        # bright point or grows dim) before the poses are right.
-        sizes = np.concatenate([np.zeros(0, bool)] + [_size_mask(p) for p in params if p is not None]
-                               + [np.zeros(Pt - P, bool)])
-        for attempt in range(2 if placed else 1):
+        n_sweeps = int(sweeps)
+        for rnd in range(2 if placed else 1):
+            for sweep, j in ((s, j) for s in range(n_sweeps) for j in range(len(per_light))):
+                y = per_light[j]
+                if y is None:
+                    continue
+                sl = slice(offsets[j], offsets[j] + params[j].size)
+                mask = np.zeros(Pt, bool)
+                mask[sl] = stage_mask(params[j])
+                if in_theta:  # its power with it
+                    mask[P + j] = True
+                if placed:  # the grid again, a third the size, around the placed pose (every light placed)
+                    g = grid_rows[j]
+                    y = np.concatenate([y, base[sl][None] + (g - g[:1]) / 3.0])
+                full = np.tile(base, (y.shape[0], 1))
+                full[:, sl] = y
+                if sweep or placed:  # again, with the others placed: from the current pose and the same spread
+                    full[0, sl] = base[sl]
+                if full.shape[0] > k:  # screen: the same program, no iterations, k starts a call
+                    losses = np.concatenate([
+                        np.asarray(solve(problem, pad(full[a:a + k], k), base, mask, **{**lm, "max_steps": 0})[0]
+                                   .initial_losses) for a in range(0, full.shape[0], k)])[: full.shape[0]]
+                    if initial is None and sweep == 0:
+                        initial = float(losses[0])  # the given poses (row 0), screened out or not
+                    full = full[best_starts(np.where(np.isfinite(losses), losses, np.inf), k)]
+                res, problem, r = solve(problem, full, base, mask, **lm)
+                retries += r
+                n_solved += full.shape[0]
+                f = np.where(np.isfinite(np.asarray(res.losses)), np.asarray(res.losses), np.inf)
+                order = np.argsort(f)
+                if initial is None:
+                    initial = float(np.asarray(res.initial_losses)[0]) if np.all(full[0] == theta0) else None
+                # The solved rows hold the starts' values where the mask is off: the residual used `base`.
+                vals = np.where(mask[None], np.asarray(res.values), base[None])
+                base = vals[order[0]].copy()
+                if len(order) > 1 and np.isfinite(f[order[1]]):
+                    runner_up[j] = vals[order[1]][sl]
+                stage_losses.append(float(f[order[0]]))
+            joint = [base] + ([] if placed else [theta0])  # the given poses together are a candidate too
+            for j, v in runner_up.items():
+                alt = base.copy()
+                alt[offsets[j]:offsets[j] + params[j].size] = v
+                joint.append(alt)
+            # Sizes last: free from the start, a polygon trades its size for its power (it shrinks to a
+            # bright point or grows dim) before the poses are right.
+            sizes = np.concatenate([np.zeros(0, bool)] + [_size_mask(p) for p in params if p is not None]
+                                   + [np.zeros(Pt - P, bool)])
             joint = pad(np.stack(joint[:k]), k)
             for mask in ([~sizes] if sizes.any() else []) + [np.ones(Pt, bool)]:
                 res, problem, r = solve(problem, joint, base, mask, **lm)
@@ -361,16 +372,16 @@ def fit_lights(
                 f = np.where(np.isfinite(np.asarray(res.losses)), np.asarray(res.losses), np.inf)
                 joint = np.where(mask[None], np.asarray(res.values), base[None])[np.argsort(f)]
                 stage_losses.append(float(np.min(f)))
-            if attempt or not placed:
+            if rnd or not placed:
                 break
             # The refined positions dealt again (two lights of similar shading swapped in the first
-            # deal under noise): refined jointly again only from a deal that is better.
-            problem, dealt, n, r = swaps(problem, joint[0], offsets, k, lm, stage_losses)
+            # deal under noise): from a better deal, one more sweep and joint refinement.
+            problem, dealt, n, r = swaps(problem, joint[0], offsets, k, lm, stage_losses, theta0)
             n_solved += n
             retries += r
             if not stage_losses[-1] < stage_losses[-2] * (1 - 1e-6):
                 break
-            base, joint = dealt, [dealt, joint[0]]
+            base, n_sweeps = dealt, 1
         theta = joint[0]
         if project:
             problem, theta, n, r = _alternate(problem, theta, joint, base, lm, stage_losses)

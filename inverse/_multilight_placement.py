@@ -70,11 +70,12 @@ def greedy(problem: LightsProblem, base: np.ndarray, grid_rows: list, offsets: l
 
 
 def swaps(problem: LightsProblem, base: np.ndarray, offsets: list, k: int, lm: dict,
-           stage_losses: list) -> tuple[LightsProblem, np.ndarray, int, int]:
+           stage_losses: list, given: np.ndarray | None = None) -> tuple[LightsProblem, np.ndarray, int, int]:
     """The greedy placement finds where lights are, not which light is where (a small polygon
     light high up passes for a point light lower down): the placed positions are dealt to the
     lights in every order (up to 4 movable lights; beyond, each exchange of two), every deal's
-    positions refined jointly, the best kept. Lights on a plane or in a box keep their own.
+    positions refined jointly, the best kept (with `given`, each deal also with the given
+    orientations and sizes). Lights on a plane or in a box keep their own.
     Returns `(problem, base, starts solved, retries)`."""
     movable = [j for j, p in enumerate(problem.params)
                if p is not None and "position" in p._slices() and p.constraint == "none"]
@@ -97,6 +98,14 @@ def swaps(problem: LightsProblem, base: np.ndarray, offsets: list, k: int, lm: d
     for r, deal in enumerate(deals):
         for j, src in zip(movable, deal, strict=True):
             rows[r, sl[j]] = (where[src] - c0[j]) / s
+    if given is not None:  # each deal also with the given orientations and sizes (the refined ones fit elsewhere)
+        reset = rows.copy()
+        for j in movable:
+            o = slice(offsets[j], offsets[j] + problem.params[j].size)
+            keep = reset[:, sl[j]].copy()
+            reset[:, o] = given[o]
+            reset[:, sl[j]] = keep
+        rows = np.concatenate([rows, reset[1:]])
     mask = np.zeros(base.shape[0], bool)
     for j in movable:
         mask[sl[j]] = True

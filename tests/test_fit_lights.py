@@ -154,12 +154,14 @@ def test_fit_lights_errors():
         inverse.fit_lights(true, t, material, fit=("colour",))
     with pytest.raises(ValueError, match="material_mode"):
         inverse.fit_lights(true, t, material, material_mode="free")
-    with pytest.raises(ValueError, match="Plane or inverse.Box"):
+    with pytest.raises(ValueError, match="Plane, inverse.Box or inverse.Outside"):
         inverse.fit_lights(true, t, material, constraints={0: "ceiling"})
     with pytest.raises(ValueError, match="not fitted"):
         inverse.fit_lights(true, t, material, lights=[0], constraints={1: inverse.Box([-1, -1, 1], [1, 1, 2])})
     with pytest.raises(ValueError, match="sweeps"):
         inverse.fit_lights(true, t, material, sweeps=0)
+    with pytest.raises(ValueError, match="grid"):
+        inverse.fit_lights(true, t, material, grid=-1)
     with pytest.raises(ValueError, match="PaintedTargets"):
         inverse.fit_lights(true, None, material)
 
