@@ -35,28 +35,28 @@ def greedy(problem: LightsProblem, base: np.ndarray, grid_rows: list, offsets: l
     todo = [j for j in range(J) if problem.params[j] is not None]
     n_solved = 0
     while todo:
-        best = (np.inf, None, None)
+        best_f, chosen, rows, mask, trial = np.inf, -1, base[None], np.zeros(Pt, bool), problem
         for j in todo:
             p, sl = problem.params[j], slice(offsets[j], offsets[j] + problem.params[j].size)
             act = active.copy()
             act[j] = 1.0
-            trial = dataclasses.replace(problem, active=jnp.asarray(act, dt))
-            mask = np.zeros(Pt, bool)
-            mask[sl] = stage_mask(p)
+            this = dataclasses.replace(problem, active=jnp.asarray(act, dt))
+            m = np.zeros(Pt, bool)
+            m[sl] = stage_mask(p)
             if in_theta:
-                mask[P + j] = True
+                m[P + j] = True
             full = np.tile(base, (grid_rows[j].shape[0], 1))
             full[:, sl] = grid_rows[j]
             losses = []
             for a in range(0, full.shape[0], k):
-                r, trial, n = solve(trial, pad(full[a:a + k], k), base, mask, **lm0)
+                r, this, n = solve(this, pad(full[a:a + k], k), base, m, **lm0)
                 retries += n
                 losses.append(np.asarray(r.initial_losses))
             f = np.concatenate(losses)[: full.shape[0]]
             f = np.where(np.isfinite(f), f, np.inf)
-            if np.min(f) < best[0]:
-                best = (float(np.min(f)), j, (full[best_starts(f, k)], mask, trial))
-        _, j, (rows, mask, trial) = best
+            if chosen < 0 or np.min(f) < best_f:
+                best_f, chosen, rows, mask, trial = float(np.min(f)), j, full[best_starts(f, k)], m, this
+        j = chosen
         res, trial, n = solve(trial, pad(rows, k), base, mask, **lm)
         retries += n
         n_solved += rows.shape[0]
