@@ -219,6 +219,17 @@ def save_painted(path: Any, targets: Any, ranges: ColourRange | None = None, bri
 
     **Arguments:** `path`; `targets` (`inverse.PaintedTargets`); `ranges`, `brighter` (or None).
     Read back with `load_painted`.
+
+    Example:
+        ```python
+        import os, tempfile
+        import numpy as np
+        import inverse
+
+        t = inverse.PaintedTargets(np.zeros((3, 3)), [[0.0, 0.0, 1.0]] * 3, np.full((3, 3), 0.3), [0.0, -3.0, 2.0])
+        path = os.path.join(tempfile.mkdtemp(), "painted.json")
+        inverse.save_painted(path, t, inverse.ColourRange([1], 0.2, float("inf")), inverse.Brighter([[0, 2]]))
+        ```
     """
     import csv
     import json
@@ -273,7 +284,21 @@ _CSV_BRIGHTER = ("i", "j", "weight", "margin")
 def load_painted(path: Any) -> tuple[Any, ColourRange | None, Brighter | None]:
     """Read a file written by `save_painted` (a plain targets file too).
 
+    **Arguments:** `path` (`.json` or `.csv`).
+
     **Returns:** `(PaintedTargets, ColourRange or None, Brighter or None)`.
+
+    Example:
+        ```python
+        import os, tempfile
+        import numpy as np
+        import inverse
+
+        t = inverse.PaintedTargets(np.zeros((3, 3)), [[0.0, 0.0, 1.0]] * 3, np.full((3, 3), 0.3), [0.0, -3.0, 2.0])
+        path = os.path.join(tempfile.mkdtemp(), "painted.csv")
+        inverse.save_painted(path, t, ranges=inverse.ColourRange([1], 0.2, 0.4))
+        targets, ranges, brighter = inverse.load_painted(path)   # brighter is None
+        ```
     """
     import csv
     import io
