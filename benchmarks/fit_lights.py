@@ -227,7 +227,7 @@ def key_numbers(results: dict) -> list[tuple[str, str]]:
     r = results["cases"].get("greedy/mitsuba/shift=30%/noise=1%")
     if r is None:
         return []
-    return [("`inverse.fit_lights`: 2 quad lights + 1 point light, 3 occluders, 80 targets, starts 10 % of the "
+    return [("`inverse.fit_lights`: 2 quad lights + 1 point light, 3 occluders, 80 targets, starts 30 % of the "
              "scene away (greedy placement), Mitsuba-rendered targets with 1 % noise: worst position error / power "
              "error / whole fit (compile included)",
              f"{r['position_err_pct_of_scene']:.2g} % / {r['power_err_rel']:.2g} / {r['fit_s']:.0f} s")]
