@@ -48,3 +48,31 @@ def test_outside_errors():
         inverse.Outside([0, 1], margin=-1.0)
     with pytest.raises(ValueError, match="position is not fitted"):
         inverse.fit_lights(scene, t, MATERIAL, fit=("power",), constraints={0: inverse.Outside([0, 1])})
+
+
+def test_outside_depth_and_its_gradient():
+    """The hinge's depth against the box's analytic one inside, and its gradient against central
+    differences (a point light's position, in scene-size units)."""
+    import jax
+    import jax.numpy as jnp
+
+    from inverse._multilight import LightsProblem, outside_depth
+    from inverse._parametrisation import LightParametrisation, outside_planes
+
+    scene = js.Scene([js.PointLight([0.01, 0.05, 1.3], 1.0)], occluders=PLATES, ambient=0.1)
+    A, b = outside_planes(scene, inverse.Outside([0, 1]))
+    param = LightParametrisation(scene.lights[0], 0, ("position",), None, 2.0, "sigmoid")
+    pts, nrm = floor_receivers(2, seed=2)
+    t = inverse.PaintedTargets(pts, nrm, np.full((2, 3), 0.2), EYE)
+    z = jnp.zeros((2, 3))
+    prob = LightsProblem((param,), tuple(scene.lights), scene, MATERIAL, t, z, z, (0,), True, False, False, None,
+                         outside=((0, jnp.asarray(A), jnp.asarray(b), 0.02),))
+    theta = jnp.zeros(3)
+    depth = float(outside_depth(theta, prob)[0])
+    np.testing.assert_allclose(depth, 0.02 + _box_depth(np.array([0.01, 0.05, 1.3])), atol=1e-12)
+    g = np.asarray(jax.grad(lambda th: outside_depth(th, prob)[0])(theta))
+    h = 1e-6
+    fd = [(float(outside_depth(theta.at[i].add(h), prob)[0]) - float(outside_depth(theta.at[i].add(-h), prob)[0]))
+          / (2 * h) for i in range(3)]
+    np.testing.assert_allclose(g, fd, atol=1e-8)
+    np.testing.assert_allclose(g, [-2.0, 0.0, 0.0], atol=1e-12)  # nearest face x = 0.05: d(depth)/dx = -scale
