@@ -24,8 +24,11 @@ from ._multilight_report import LightsFit as LightsFit
 from ._multilight_report import LightsReport as LightsReport
 from ._painting import Brighter as Brighter
 from ._painting import ColourRange as ColourRange
+from ._painting import load_painted as load_painted
+from ._painting import save_painted as save_painted
 from ._parametrisation import Box as Box
 from ._parametrisation import LightParametrisation as LightParametrisation
+from ._parametrisation import Outside as Outside
 from ._parametrisation import Plane as Plane
 from ._parametrisation import rotation_matrix as rotation_matrix
 from ._parametrisation import scene_size as scene_size

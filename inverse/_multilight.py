@@ -77,6 +77,11 @@ class LightsProblem(eqx.Module):
     # The powers are parameters of the search (the last J entries of theta, p = q^2) instead of
     # projected out: with ranges or relations the residual is not linear in them.
     powers_in_theta: bool = eqx.field(static=True, default=False)
+    # (J,) 1 where a fitted light is in the model, 0 where it is left out (the greedy placement
+    # of `_fit_lights`: lights not placed yet do not pollute the others' search). None: all in.
+    active: Any = None
+    # `Outside` constraints: ((j, hull normals (F, 3), offsets (F,), margin), ...) for fitted light j.
+    outside: tuple = ()
 
     @property
     def n_pose(self) -> int:
@@ -91,7 +96,7 @@ class LightsProblem(eqx.Module):
     def n_residuals(self) -> int:
         n = 3 * int(self.targets.points.shape[0])
         n += 0 if self.paint is None else int(self.paint.pairs.shape[0])
-        return n + (1 if self.powers_in_theta and self.budget is not None else 0)
+        return n + (1 if self.powers_in_theta and self.budget is not None else 0) + len(self.outside)
 
 
 def lights_at(theta: Array, problem: LightsProblem) -> list[Any]:
@@ -148,6 +153,8 @@ def _parts(theta: Array, problem: LightsProblem, capacity: int | None) -> tuple[
     ef, sf = problem.e_fixed.astype(dt), problem.s_fixed.astype(dt)
     fixed = ka * La + kd / jnp.pi * ef + (ks * sf if problem.with_specular else 0.0)
     per_light = kd[None] / jnp.pi * E + (ks[None] * S if S is not None else 0.0)  # (J, N, 3)
+    if problem.active is not None:
+        per_light = per_light * problem.active.astype(dt)[:, None, None]
     return fixed, per_light, over
 
 
@@ -159,7 +166,7 @@ def budget_coefficients(theta: Array, problem: LightsProblem) -> Array:
     return jnp.stack([emitted_power(light) for light in lights_at(theta, problem)]).astype(theta.dtype)
 
 
-def projected_residual(theta: Array, problem: LightsProblem, capacity: int | None) -> tuple[Array, Array]:
+def _data_residual(theta: Array, problem: LightsProblem, capacity: int | None) -> tuple[Array, Array]:
     """`(r, overflow)`: $\\sqrt{w}(L_{model} - C)$ `(3N,)` row-major `(N, 3)` at the problem's
     material with the powers projected out (module docstring); under a budget `B` the projection
     is the least-squares solution on the plane `c . p = B` when the free one exceeds it. With
@@ -191,6 +198,32 @@ def projected_residual(theta: Array, problem: LightsProblem, capacity: int | Non
     excess = c @ p - problem.budget.astype(theta.dtype)
     p = jnp.where(excess > 0, p - Gc * excess / (c @ Gc), p)
     return A @ p - y, over
+
+
+def outside_depth(theta: Array, problem: LightsProblem) -> Array:
+    """`(len(problem.outside),)` how far (m) each `Outside`-constrained light's centre is short of
+    its margin outside the hull: `margin - max_f(n_f . c + b_f)` (<= 0 where it is met)."""
+    out = []
+    for j, A, b, margin in problem.outside:
+        p = problem.params[j]
+        o = problem.offsets[j]
+        c = p.centre_of(theta[o:o + p.size])
+        out.append(margin - jnp.max(A.astype(theta.dtype) @ c + b.astype(theta.dtype)))
+    return jnp.stack(out)
+
+
+def projected_residual(theta: Array, problem: LightsProblem, capacity: int | None) -> tuple[Array, Array]:
+    r"""`_data_residual` (the targets' rows) and, for every `Outside` constraint, a hinge row
+    $\sqrt{\sum w}\,10^3 \max(0, \text{depth}) / s$ (depth `outside_depth`, $s$ the scene size):
+    a centre 1 % of the scene size inside adds a hundred times the loss of a unit residual at
+    every target."""
+    r, over = _data_residual(theta, problem, capacity)
+    if not problem.outside:
+        return r, over
+    d = outside_depth(theta, problem)
+    s = problem.params[problem.outside[0][0]].scale.astype(theta.dtype)
+    rows = jnp.sqrt(jnp.sum(problem.targets.weights)) * 1e3 * jnp.where(d > 0, d, 0.0) / s
+    return jnp.concatenate([r, rows.astype(r.dtype)]), over
 
 
 def structured_residual(theta: Array, problem: LightsProblem, powers: Array, material: js.Material) -> Array:

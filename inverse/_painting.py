@@ -201,3 +201,150 @@ def as_numpy(paint: Painting | None) -> Painting | None:
     f = lambda x: np.asarray(x, np.float64)  # noqa: E731
     return Painting(np.asarray(paint.ranged), f(paint.lower), f(paint.upper), np.asarray(paint.pairs),
                     f(paint.pair_sw), f(paint.margin))
+
+
+def _bound_list(a: np.ndarray) -> list:
+    """A bound array as JSON (an absent bound, +-inf, as null)."""
+    return [[None if not np.isfinite(x) else float(x) for x in row] for row in a]
+
+
+def save_painted(path: Any, targets: Any, ranges: ColourRange | None = None, brighter: Brighter | None = None) -> None:
+    """Write painted targets with their colour ranges and "brighter than" relations to `.json`
+    or `.csv` (by the extension), atomically (`jaxshadow._files.atomic_write`).
+
+    JSON: the targets' object (`PaintedTargets.to_dict`) with `"ranges": {"index", "lower",
+    "upper"}` (an absent bound as `null`) and `"brighter": {"pairs", "weight", "margin"}`. CSV:
+    the targets' columns and `lr lg lb ur ug ub` (empty for a target without a range,
+    `inf`/`-inf` for one-sided ranges); then, after an empty line, the relations as `i,j,weight,margin`.
+
+    **Arguments:** `path`; `targets` (`inverse.PaintedTargets`); `ranges`, `brighter` (or None).
+    Read back with `load_painted`.
+
+    Example:
+        ```python
+        import os, tempfile
+        import numpy as np
+        import inverse
+
+        t = inverse.PaintedTargets(np.zeros((3, 3)), [[0.0, 0.0, 1.0]] * 3, np.full((3, 3), 0.3), [0.0, -3.0, 2.0])
+        path = os.path.join(tempfile.mkdtemp(), "painted.json")
+        inverse.save_painted(path, t, inverse.ColourRange([1], 0.2, float("inf")), inverse.Brighter([[0, 2]]))
+        ```
+    """
+    import csv
+    import json
+    import os
+
+    from jaxshadow._files import atomic_write
+
+    from ._targets import _CSV_REQUIRED, _CSV_TOL, _CSV_WEIGHTS
+
+    n = int(targets.points.shape[0])
+    painting(n, ranges, brighter, np.float64)  # index checks
+    path = os.fspath(path)
+    if not path.lower().endswith(".csv"):
+        d = targets.to_dict()
+        if ranges is not None:
+            d["ranges"] = {"index": ranges.index.tolist(), "lower": _bound_list(ranges.lower),
+                           "upper": _bound_list(ranges.upper)}
+        if brighter is not None:
+            d["brighter"] = {"pairs": brighter.pairs.tolist(), "weight": brighter.weight.tolist(),
+                             "margin": brighter.margin.tolist()}
+        text = json.dumps(d, indent=1, allow_nan=False)
+        with atomic_write(path) as fh:
+            fh.write(text)
+        return
+    cols = [targets.points, targets.normals, targets.colours, targets.eye, targets.weights]
+    header = list(_CSV_REQUIRED) + list(_CSV_WEIGHTS)
+    if targets.tolerance is not None:
+        cols.append(targets.tolerance)
+        header += list(_CSV_TOL)
+    table = np.concatenate([np.asarray(c, np.float64) for c in cols], axis=1)
+    bounds: list[list[str]] = [[""] * 6 for _ in range(n)]
+    if ranges is not None:
+        header += list(_CSV_RANGE)
+        for i, lo, hi in zip(ranges.index, ranges.lower, ranges.upper, strict=True):
+            bounds[int(i)] = [repr(float(x)) for x in (*lo, *hi)]
+    with atomic_write(path, newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(header)
+        for row, b in zip(table, bounds, strict=True):
+            w.writerow([repr(float(x)) for x in row] + (b if ranges is not None else []))
+        if brighter is not None:
+            w.writerow([])
+            w.writerow(list(_CSV_BRIGHTER))
+            for (i, j), wt, m in zip(brighter.pairs, brighter.weight, brighter.margin, strict=True):
+                w.writerow([int(i), int(j), repr(float(wt)), repr(float(m))])
+
+
+_CSV_RANGE = ("lr", "lg", "lb", "ur", "ug", "ub")
+_CSV_BRIGHTER = ("i", "j", "weight", "margin")
+
+
+def load_painted(path: Any) -> tuple[Any, ColourRange | None, Brighter | None]:
+    """Read a file written by `save_painted` (a plain targets file too).
+
+    **Arguments:** `path` (`.json` or `.csv`).
+
+    **Returns:** `(PaintedTargets, ColourRange or None, Brighter or None)`.
+
+    Example:
+        ```python
+        import os, tempfile
+        import numpy as np
+        import inverse
+
+        t = inverse.PaintedTargets(np.zeros((3, 3)), [[0.0, 0.0, 1.0]] * 3, np.full((3, 3), 0.3), [0.0, -3.0, 2.0])
+        path = os.path.join(tempfile.mkdtemp(), "painted.csv")
+        inverse.save_painted(path, t, ranges=inverse.ColourRange([1], 0.2, 0.4))
+        targets, ranges, brighter = inverse.load_painted(path)   # brighter is None
+        ```
+    """
+    import csv
+    import io
+    import json
+    import os
+    import tempfile
+
+    from jaxshadow._files import atomic_write
+
+    from ._targets import PaintedTargets
+
+    path = os.fspath(path)
+    if not path.lower().endswith(".csv"):
+        with open(path) as fh:
+            d = json.load(fh)
+        if not isinstance(d, dict):
+            raise ValueError(f"{path}: expected a JSON object.")
+        r, b = d.pop("ranges", None), d.pop("brighter", None)
+        unb = lambda x, s: np.array([[s * np.inf if v is None else v for v in row] for row in x], float)  # noqa: E731
+        ranges = None if r is None else ColourRange(r["index"], unb(r["lower"], -1), unb(r["upper"], 1))
+        rel = None if b is None else Brighter(np.asarray(b["pairs"]).reshape(-1, 2), b["weight"], b["margin"])
+        return PaintedTargets.from_dict(d), ranges, rel
+    with open(path, newline="") as fh:
+        rows = list(csv.reader(fh))
+    split = next((i for i, row in enumerate(rows) if not row), len(rows))
+    main, rel_rows = rows[:split], rows[split + 1:]
+    header = [h.strip() for h in main[0]] if main else []
+    ranged = all(c in header for c in _CSV_RANGE)
+    keep = [k for k, h in enumerate(header) if h not in _CSV_RANGE]
+    buf = io.StringIO()
+    csv.writer(buf).writerows([[row[k] for k in keep] for row in main])
+    with tempfile.TemporaryDirectory() as tmp:  # the targets' own reader, on their columns
+        p = os.path.join(tmp, "targets.csv")
+        with atomic_write(p, newline="") as fh:
+            fh.write(buf.getvalue())
+        targets = PaintedTargets.load(p)
+    ranges = None
+    if ranged:
+        at = [header.index(c) for c in _CSV_RANGE]
+        idx = [i for i, row in enumerate(main[1:]) if any(row[k].strip() for k in at)]
+        vals = np.array([[float(main[1 + i][k]) for k in at] for i in idx], float).reshape(-1, 6)
+        ranges = ColourRange(idx, vals[:, :3], vals[:, 3:])
+    rel = None
+    if rel_rows:
+        if [h.strip() for h in rel_rows[0]] != list(_CSV_BRIGHTER):
+            raise ValueError(f"{path}: the relations' header must be {','.join(_CSV_BRIGHTER)}, got {rel_rows[0]}.")
+        v = np.array([[float(x) for x in row] for row in rel_rows[1:] if row], float).reshape(-1, 4)
+        rel = Brighter(v[:, :2].astype(np.int64), v[:, 2], v[:, 3])
+    return targets, ranges, rel

@@ -363,3 +363,57 @@ def scene_size(scene: js.Scene, targets: PaintedTargets) -> float:
         pts.append(np.asarray(scene.occluders, np.float64).reshape(-1, 3))
     p = np.concatenate(pts)
     return float(np.linalg.norm(p.max(axis=0) - p.min(axis=0)))
+
+
+class Outside(eqx.Module):
+    """Keep a light's centre outside a solid object made of occluders: the convex hull of the
+    vertices of the scene's occluders `occluders` (indices into `scene.occluders`, at least
+    four non-coplanar vertices), by at least `margin` (m). For `fit_lights(constraints={j:
+    inverse.Outside([...])})`: the light's centre (a point light's position, a polygon's or a
+    segment's centre; not its vertices) pays a hinge penalty in the solve for every metre it
+    is inside, and the fitted centre, if still inside, is moved out through the nearest face of
+    the hull (the face whose plane it is closest to): the result is outside by `margin` up to
+    rounding, and the powers are solved again there.
+
+    Example:
+        ```python
+        import inverse
+
+        lamp_outside_box = inverse.Outside([0, 1, 2, 3, 4, 5], margin=0.05)   # a box of 6 quads
+        # inverse.fit_lights(scene, targets, material, constraints={0: lamp_outside_box})
+        ```
+    """
+
+    occluders: tuple = eqx.field(static=True)
+    margin: float = eqx.field(static=True, default=0.0)
+
+    def __init__(self, occluders: Any, margin: float = 0.0):
+        idx = np.atleast_1d(np.asarray(occluders))
+        if idx.ndim != 1 or idx.size == 0 or not np.issubdtype(idx.dtype, np.integer):
+            raise ValueError(f"Outside: occluders must be a non-empty list of occluder indices, got {occluders!r}.")
+        m = float(margin)
+        if not np.isfinite(m) or m < 0:
+            raise ValueError(f"Outside: margin must be finite and >= 0 (m), got {margin!r}.")
+        self.occluders = tuple(int(i) for i in idx)
+        self.margin = m
+
+
+def outside_planes(scene: js.Scene, outside: Outside) -> tuple[np.ndarray, np.ndarray]:
+    """`(normals (F, 3), offsets (F,))` of the faces of the convex hull of the occluders of
+    `outside`: a point `c` is inside when `normals @ c + offsets < 0` for every face (unit
+    outward normals, so `max(normals @ c + offsets)` is minus the distance to the nearest face
+    plane inside). ValueError for an index out of range or a hull with no volume."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    occ = [] if scene.occluders is None else list(scene.occluders)
+    bad = [i for i in outside.occluders if not 0 <= i < len(occ)]
+    if bad:
+        raise ValueError(f"Outside: occluder index(es) {bad} out of range (the scene has {len(occ)}).")
+    pts = np.concatenate([np.asarray(occ[i], np.float64).reshape(-1, 3) for i in outside.occluders])
+    pts = pts[np.all(np.isfinite(pts), axis=1)]  # padded vertices, if any
+    try:
+        hull = ConvexHull(pts)
+    except QhullError:
+        raise ValueError(f"Outside: the occluders {list(outside.occluders)} span no volume (flat or too few "
+                         "vertices): a light cannot be inside them.") from None
+    return hull.equations[:, :3].copy(), hull.equations[:, 3].copy()

@@ -154,12 +154,14 @@ def test_fit_lights_errors():
         inverse.fit_lights(true, t, material, fit=("colour",))
     with pytest.raises(ValueError, match="material_mode"):
         inverse.fit_lights(true, t, material, material_mode="free")
-    with pytest.raises(ValueError, match="Plane or inverse.Box"):
+    with pytest.raises(ValueError, match="Plane, inverse.Box or inverse.Outside"):
         inverse.fit_lights(true, t, material, constraints={0: "ceiling"})
     with pytest.raises(ValueError, match="not fitted"):
         inverse.fit_lights(true, t, material, lights=[0], constraints={1: inverse.Box([-1, -1, 1], [1, 1, 2])})
     with pytest.raises(ValueError, match="sweeps"):
         inverse.fit_lights(true, t, material, sweeps=0)
+    with pytest.raises(ValueError, match="grid"):
+        inverse.fit_lights(true, t, material, grid=-1)
     with pytest.raises(ValueError, match="PaintedTargets"):
         inverse.fit_lights(true, None, material)
 
@@ -197,7 +199,8 @@ def test_constraints_fixed_size_and_a_directional_light():
 def test_three_lights_with_one_percent_noise_fixed_size():
     """1 % multiplicative noise on the colours, starts 10 % of the scene away, sizes held: the
     positions come back within 1 % of the scene size and the powers within 5 % (measured 0.42 %
-    and 2.5 %: `benchmarks/fit_lights.py`), and the report's standard errors cover the errors."""
+    and 2.5 % by `benchmarks/fit_lights.py` at commit a34ea9e), and the report's standard errors
+    cover the errors."""
     true = _true_scene()
     material = js.Material(ka=[0.3, 0.25, 0.2], kd=[0.6, 0.5, 0.4], ks=0.0, exponent=1.0)
     pts, nrm = _receivers()
