@@ -39,8 +39,9 @@ def _box_outside_planes(lo: np.ndarray, hi: np.ndarray, normals: np.ndarray, off
                         margin: np.ndarray) -> np.ndarray:
     """Per row: the box `[lo, hi]` lies strictly on the negative side of plane `normals . x >= offsets`
     (its farthest corner along the normal is below `-margin`)."""
-    corner = np.where(normals >= 0, hi[None, :], lo[None, :])
-    return np.einsum("nd,nd->n", normals, corner) - offsets < -margin
+    # Column by column (an (N, 3) where/einsum costs ~3x as much).
+    far = sum(normals[:, d] * np.where(normals[:, d] >= 0, hi[d], lo[d]) for d in range(3))
+    return far - offsets < -margin
 
 
 def affected(light: Any, points: np.ndarray, normals: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -49,15 +50,23 @@ def affected(light: Any, points: np.ndarray, normals: np.ndarray, lo: np.ndarray
     Cheapest test first: the bounding box of the hull of the receiver and the light (exact for
     the separating axes x, y, z); the horizon and the pyramid's side planes only for receivers
     that pass it."""
-    scale = np.max(np.abs(points), axis=1) + np.max(np.abs(np.concatenate([lo, hi]))) + 1.0
+    absmax = np.maximum(np.maximum(np.abs(points[:, 0]), np.abs(points[:, 1])), np.abs(points[:, 2]))
+    scale = absmax + np.max(np.abs(np.concatenate([lo, hi]))) + 1.0
     margin = 1e-9 * scale
-    if isinstance(light, (PolygonLight, LinearLight)):
-        verts = np.asarray(light.vertices if isinstance(light, PolygonLight) else np.stack([light.start, light.end]),
-                           np.float64)
-        hull_lo, hull_hi = np.minimum(points, verts.min(axis=0)), np.maximum(points, verts.max(axis=0))
-    elif isinstance(light, PointLight):
-        x = np.asarray(light.position, np.float64)
-        hull_lo, hull_hi = np.minimum(points, x), np.maximum(points, x)
+    if isinstance(light, (PolygonLight, LinearLight, PointLight)):
+        if isinstance(light, PointLight):
+            verts = np.asarray(light.position, np.float64)[None, :]
+        else:
+            verts = np.asarray(light.vertices if isinstance(light, PolygonLight) else np.stack([light.start, light.end]),
+                               np.float64)
+        vlo, vhi = verts.min(axis=0), verts.max(axis=0)
+        # Axis by axis on (N,) columns (no (N, 3) temporaries): min(p, vlo) <= hi + margin and
+        # max(p, vhi) >= lo - margin.
+        hit = np.ones(points.shape[0], bool)
+        for d in range(3):
+            col = points[:, d]
+            hit &= np.minimum(col, vlo[d]) <= hi[d] + margin
+            hit &= np.maximum(col, vhi[d]) >= lo[d] - margin
     else:
         d = np.asarray(light.direction, np.float64)
         d = d / np.linalg.norm(d)
@@ -65,7 +74,7 @@ def affected(light: Any, points: np.ndarray, normals: np.ndarray, lo: np.ndarray
         reach = np.linalg.norm(np.maximum(np.abs(lo), np.abs(hi))) + np.linalg.norm(points, axis=1)[:, None] + 1.0
         far = points - reach * d
         hull_lo, hull_hi = np.minimum(points, far), np.maximum(points, far)
-    hit = np.all((hull_lo <= hi[None, :] + margin[:, None]) & (hull_hi >= lo[None, :] - margin[:, None]), axis=1)
+        hit = np.all((hull_lo <= hi[None, :] + margin[:, None]) & (hull_hi >= lo[None, :] - margin[:, None]), axis=1)
     idx = np.nonzero(hit)[0]
     q, m, mg = points[idx], normals[idx], margin[idx]
     keep = ~_box_outside_planes(lo, hi, m, np.einsum("nd,nd->n", m, q), mg)
