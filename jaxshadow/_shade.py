@@ -180,7 +180,7 @@ def _shadowed(scene: Scene, integ: Any, points: Array, normals: Array, eyes: Arr
         raise_if_bad(good, points, normals, what)
         p = np.asarray(points)
         e = None if eyes is None else np.asarray(eyes)
-        return jnp.asarray(_shadows.host_values(scene, integ, p, np.asarray(unit), e))
+        return _shadows.host_values(scene, integ, p, np.asarray(unit), e)
     val = _valued((scene, points, normals))
     if val is not None:
         vscene, p, n = val

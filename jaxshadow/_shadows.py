@@ -540,12 +540,22 @@ def light_values(lp: LightPlan, light: Any, integ: Any, p: Any, n: Any, e: Any, 
     return _scatter(N, dt, parts, concrete)
 
 
-def host_values(scene: Scene, integ: Any, points: np.ndarray, normals: np.ndarray, eyes: np.ndarray | None) -> np.ndarray:
-    """`(N, 3)` for concrete inputs, nothing differentiated (unit `normals`)."""
+@jax.jit
+def _weighted_sum(gs: Any, emissions: Any) -> Any:
+    """`sum_l gs[l, :, None] * emissions[l]`, `(N, 3)`, accumulated from zero in light order; a
+    zero is +0 (as NumPy's `0 + x` gives it)."""
+    total = jnp.zeros((gs.shape[1], 3), gs.dtype)
+    for light in range(gs.shape[0]):
+        total = total + gs[light][:, None] * emissions[light][None, :]
+    return jnp.where(total == 0, jnp.zeros_like(total), total)
+
+
+def host_values(scene: Scene, integ: Any, points: np.ndarray, normals: np.ndarray, eyes: np.ndarray | None) -> Any:
+    """`(N, 3)` JAX array for concrete inputs, nothing differentiated (unit `normals`)."""
     dt = points.dtype
     e = points if eyes is None else eyes
     faces = np.asarray(scene.occluders, dt)
-    total = np.zeros(points.shape, dt)
+    gs = np.zeros((len(scene.lights), points.shape[0]), dt)
     rows = EDGE_BLOCK // 8
     for s in range(0, points.shape[0], HOST_CHUNK):
         sl = slice(s, min(points.shape[0], s + HOST_CHUNK))
@@ -559,9 +569,10 @@ def host_values(scene: Scene, integ: Any, points: np.ndarray, normals: np.ndarra
                                             (points[sl], normals[sl], e[sl]), rows)
         pl = plan(scene, points[sl], normals[sl], codes=False, decoded=True)
         for j, (lp, light) in enumerate(zip(pl.lights, scene.lights, strict=True)):
-            g = light_values(lp, light, integ, points[sl], normals[sl], e[sl], faces, True, early.get(j))
-            total[sl] += np.asarray(g)[:, None] * np.asarray(emission(light, dt))[None, :]
-    return total
+            gs[j, sl] = np.asarray(light_values(lp, light, integ, points[sl], normals[sl], e[sl], faces, True,
+                                                early.get(j)))
+    emissions = np.asarray([np.asarray(emission(light, dt)) for light in scene.lights], dt).reshape(-1, 3)
+    return _weighted_sum(gs, emissions)
 
 
 def planned_values(scene: Scene, value_scene: Scene, integ: Any, points: Any, normals: Any, eyes: Any,
