@@ -135,11 +135,11 @@ class ShadowCache:
                                           self._n[idx], self._p[idx], None, True))
 
     def _combine(self) -> None:
+        # The same compiled sum as `jaxshadow.irradiance`'s (so the two agree bit for bit).
         dt = self._p.dtype
-        total = np.zeros(self._p.shape, dt)
-        for g, light in zip(self._g, self.scene.lights, strict=True):
-            total += g[:, None] * np.asarray(sh.emission(light, dt))[None, :]
-        self.irradiance = total
+        emissions = np.asarray([np.asarray(sh.emission(light, dt)) for light in self.scene.lights], dt).reshape(-1, 3)
+        gs = np.stack(self._g) if self._g else np.zeros((0, self._p.shape[0]), dt)
+        self.irradiance = np.asarray(sh.weighted_sum(gs, emissions))
 
     def update(self, scene: Scene) -> ShadowCache:
         """Edit the scene: re-evaluate only the receivers and lights the change can affect."""

@@ -541,7 +541,7 @@ def light_values(lp: LightPlan, light: Any, integ: Any, p: Any, n: Any, e: Any, 
 
 
 @jax.jit
-def _weighted_sum(gs: Any, emissions: Any) -> Any:
+def weighted_sum(gs: Any, emissions: Any) -> Any:
     """`sum_l gs[l, :, None] * emissions[l]`, `(N, 3)`, accumulated from zero in light order; a
     zero is +0 (as NumPy's `0 + x` gives it)."""
     total = jnp.zeros((gs.shape[1], 3), gs.dtype)
@@ -572,7 +572,7 @@ def host_values(scene: Scene, integ: Any, points: np.ndarray, normals: np.ndarra
             gs[j, sl] = np.asarray(light_values(lp, light, integ, points[sl], normals[sl], e[sl], faces, True,
                                                 early.get(j)))
     emissions = np.asarray([np.asarray(emission(light, dt)) for light in scene.lights], dt).reshape(-1, 3)
-    return _weighted_sum(gs, emissions)
+    return weighted_sum(gs, emissions)
 
 
 def planned_values(scene: Scene, value_scene: Scene, integ: Any, points: Any, normals: Any, eyes: Any,
