@@ -312,11 +312,12 @@ class OccluderTopology:
                                 np.zeros(m, np.int32))
 
 
-def build_occluders(items: list[Any], ko: int) -> tuple[list[np.ndarray], OccluderTopology]:
+def build_occluders(items: list[Any], ko: int) -> tuple[list[Any], OccluderTopology]:
     """Polygons (in order) and their topology from `Scene(occluders=[...])` entries: plain
     `(k, 3)` polygons and `Mesh` objects (their polygons kept contiguous). `ko` is the padded
-    vertex count the caller will use (slots of the solid edges refer to it)."""
-    polys: list[np.ndarray] = []
+    vertex count the caller will use (slots of the solid edges refer to it). A polygon is a
+    NumPy array, or a JAX array (a tracer when the scene is built under `jax.grad`)."""
+    polys: list[Any] = []
     face_solid: list[int] = []
     face_closed: list[int] = []
     face_object: list[int] = []
