@@ -136,10 +136,8 @@ class ShadowCache:
 
     def _combine(self) -> None:
         # The same compiled sum as `jaxshadow.irradiance`'s (so the two agree bit for bit).
-        dt = self._p.dtype
-        emissions = np.asarray([np.asarray(sh.emission(light, dt)) for light in self.scene.lights], dt).reshape(-1, 3)
-        gs = np.stack(self._g) if self._g else np.zeros((0, self._p.shape[0]), dt)
-        self.irradiance = np.asarray(sh.weighted_sum(gs, emissions))
+        gs = np.asarray(self._g, self._p.dtype).reshape(len(self._g), self._p.shape[0])
+        self.irradiance = np.asarray(sh.sum_lights(gs, self.scene.lights, self._p.dtype))
 
     def update(self, scene: Scene) -> ShadowCache:
         """Edit the scene: re-evaluate only the receivers and lights the change can affect."""

@@ -541,13 +541,19 @@ def light_values(lp: LightPlan, light: Any, integ: Any, p: Any, n: Any, e: Any, 
 
 
 @jax.jit
-def weighted_sum(gs: Any, emissions: Any) -> Any:
-    """`sum_l gs[l, :, None] * emissions[l]`, `(N, 3)`, accumulated from zero in light order; a
-    zero is +0 (as NumPy's `0 + x` gives it)."""
+def _weighted_sum(gs: Any, emissions: Any) -> Any:
     total = jnp.zeros((gs.shape[1], 3), gs.dtype)
     for light in range(gs.shape[0]):
         total = total + gs[light][:, None] * emissions[light][None, :]
     return jnp.where(total == 0, jnp.zeros_like(total), total)
+
+
+def sum_lights(gs: np.ndarray, lights: list, dt: Any) -> Any:
+    """`(N, 3)` JAX array: `sum_l gs[l, :, None] * emission_l` for concrete per-light values
+    `gs (L, N)`, accumulated from zero in light order in one compiled call; a zero is +0 (as
+    NumPy's `0 + x` gives it)."""
+    emissions = np.asarray([np.asarray(emission(light, dt)) for light in lights], dt).reshape(-1, 3)
+    return _weighted_sum(gs, emissions)
 
 
 def host_values(scene: Scene, integ: Any, points: np.ndarray, normals: np.ndarray, eyes: np.ndarray | None) -> Any:
@@ -571,8 +577,7 @@ def host_values(scene: Scene, integ: Any, points: np.ndarray, normals: np.ndarra
         for j, (lp, light) in enumerate(zip(pl.lights, scene.lights, strict=True)):
             gs[j, sl] = np.asarray(light_values(lp, light, integ, points[sl], normals[sl], e[sl], faces, True,
                                                 early.get(j)))
-    emissions = np.asarray([np.asarray(emission(light, dt)) for light in scene.lights], dt).reshape(-1, 3)
-    return weighted_sum(gs, emissions)
+    return sum_lights(gs, scene.lights, dt)
 
 
 def planned_values(scene: Scene, value_scene: Scene, integ: Any, points: Any, normals: Any, eyes: Any,

@@ -278,11 +278,6 @@ inline void traverse_lazy(const BVH& bvh, int nh, double margin, Make make, F vi
   }
 }
 
-template <class F>
-inline void traverse(const BVH& bvh, const HalfSpace* hs, int nh, double margin, F visit) {
-  traverse_lazy(bvh, nh, margin, [hs](int i) { return hs[i]; }, visit);
-}
-
 template <class Make>
 inline void query_lazy(const BVH& bvh, int nh, double margin, Make make, std::vector<std::pair<int32_t, int32_t>>& out) {
   out.clear();
@@ -294,12 +289,7 @@ inline void query_lazy(const BVH& bvh, int nh, double margin, Make make, std::ve
 }
 
 inline void query(const BVH& bvh, const HalfSpace* hs, int nh, double margin, std::vector<std::pair<int32_t, int32_t>>& out) {
-  out.clear();
-  traverse(bvh, hs, nh, margin, [&](int32_t i) {
-    out.push_back({bvh.key[i], bvh.items[i]});
-    return true;
-  });
-  std::sort(out.begin(), out.end());
+  query_lazy(bvh, nh, margin, [hs](int i) { return hs[i]; }, out);
 }
 
 }  // namespace jaxshadow_engine

@@ -46,7 +46,7 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
     const double margin = 1e3 * double(eps_of<T>()) * scale + 64 * double(eps_of<T>()) * (call.item_extent + scale);
     query_lazy(*call.bvh, ne_edges + 2, margin, make, w.cand);
   }
-  if (w.cand.empty() && !w.lit_runs && call.light_has_edge) {
+  if (w.cand.empty() && !w.lit_runs && call.n_edges > 0) {
     // Nothing can block: lit, or zero below the horizon. With the whole light above the horizon,
     // E_h is the light itself (a nonempty boundary: the light has an edge), as below.
     bool any_in = false, all_in = true;

@@ -128,17 +128,16 @@ struct PolyCall {
   // -1 all strictly behind, 0 otherwise (a receiver strictly on that same side cannot be shadowed by
   // it: the plane separates the face from the receiver's pyramid).
   std::vector<int8_t> light_side;
-  // The light's Newell normal (unscaled), whether it has two distinct consecutive vertices, and
-  // the largest coordinate magnitude of the hierarchy's items (bounds rounding in quick_class).
+  // The light's Newell normal (unscaled) and the largest coordinate magnitude of the hierarchy's
+  // items (bounds rounding in quick_class).
   V3<T> ne_raw{0, 0, 0};
-  bool light_has_edge = false;
   double item_extent = 0;
   // The light's edges with distinct ends (their indices i: v_i -> v_{i+1}), in order.
   int32_t edge_index[64];
   int n_edges = 0;
 };
 
-// Per-call data of the light and the occluders (`light_side`, `ne_raw`, `light_has_edge`,
+// Per-call data of the light and the occluders (`light_side`, `ne_raw`, `edge_index`,
 // `item_extent`).
 template <class T>
 void prepare_call(PolyCall<T>& call) {
@@ -148,7 +147,6 @@ void prepare_call(PolyCall<T>& call) {
   call.n_edges = 0;
   for (int64_t i = 0; i < K && i < 64; i++)
     if (!same(call.L.v(i), call.L.v((i + 1) % K))) call.edge_index[call.n_edges++] = int32_t(i);
-  call.light_has_edge = call.n_edges > 0;
   call.item_extent = 0;
   if (!call.bvh->nodes.empty())
     for (int d = 0; d < 3; d++)
