@@ -27,7 +27,9 @@
 // face whose plane holds p (a box resting on the receiver's floor) is a back face there: it
 // blocks a zero solid angle, and every silhouette edge then borders a strictly front face.
 // Receivers that no item's box can reach are classified before any other work (lit, or zero
-// below their horizon) where the caller evaluates lit receivers with the unoccluded kernel.
+// below their horizon) where the caller evaluates lit receivers with the unoccluded kernel;
+// before the hierarchy is queried, a receiver outside the occlusion volume of the root's box
+// (planes computed once per call, `_shadowc/volume.h`) is known to be such a receiver.
 //
 // Point and directional lights: hard-shadow ray tests against the hierarchy. Segment lights: the
 // occluders that meet the light triangle (p, a, b) (Poulin §4.2), for the device kernel to clip.

@@ -312,6 +312,31 @@ def test_receivers_exactly_on_event_planes():
     np.testing.assert_allclose(got[:11], got[11:22], rtol=0, atol=1e-7)  # continuous across the event
 
 
+def test_receivers_at_the_occlusion_volume_boundary():
+    # The engine skips the hierarchy for a receiver outside the occlusion volume of the
+    # occluders' bounding box (planes separating it from the light). Its boundary on the floor
+    # is the outer edge of the penumbra: for the square occluder [-0.4, 0.4]^2 at z = 1 under
+    # LIGHT ([-0.3, 0.3]^2 at z = 2) the line x = -1.1 (light edge x = 0.3 through occluder
+    # edge x = -0.4), and the corner region around (-1.1, -1.1). Receivers at and around it,
+    # from inside to well outside, in float64 and float32 inputs.
+    occ = np.array([[-0.4, -0.4, 1.0], [0.4, -0.4, 1.0], [0.4, 0.4, 1.0], [-0.4, 0.4, 1.0]])
+    boxed = box((-0.4, -0.4, 0.9), (0.4, 0.4, 1.0))
+    offsets = np.array([-1e-3, -1e-6, -1e-9, 0.0, 1e-12, 1e-9, 1e-7, 1e-6, 1e-5, 1e-3, 0.1])
+    ys = np.array([-1.2, -1.1, -0.5, 0.0, 0.7, 1.1])
+    pts = np.array([[-1.1 - d, y, 0.0] for d in offsets for y in ys] + [[-1.1 - d, -1.1 - d, 0.0] for d in offsets])
+    nrm = np.tile([0.0, 0.0, 1.0], (len(pts), 1))
+    for occluders, tris in (([occ], [occ]), ([js.Mesh(*boxed)], list(boxed[0][boxed[1]]))):
+        scene = js.Scene([js.PolygonLight(LIGHT, 1.0)], occluders=occluders)
+        got = np.asarray(js.irradiance(scene, pts, nrm))[:, 0]
+        ref = np.pi * np.array([reference_ff(p, q, LIGHT, culled(p, q, LIGHT, np.array(tris))) for p, q in
+                                zip(pts, nrm, strict=True)])
+        np.testing.assert_allclose(got, ref, rtol=1e-10, atol=1e-13)
+        cls = js.shadow_plan(scene, pts, nrm).lights[0].classes
+        assert {1, 3} <= set(cls.tolist())
+        got32 = np.asarray(js.irradiance(scene, pts.astype(np.float32), nrm.astype(np.float32)))[:, 0]
+        np.testing.assert_allclose(got32, ref, rtol=2e-4, atol=1e-5)
+
+
 def test_boxes_resting_on_the_floor_equal_the_independent_reference():
     # Every floor receiver lies in the plane of every box's bottom face (and some in the planes of
     # their side faces): the engine takes those faces as back faces and keeps one silhouette cone

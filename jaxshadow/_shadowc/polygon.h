@@ -44,7 +44,10 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
     };
     const double scale = std::max(double(absmax(p)), double(absmax(e0))) + 1.0;
     const double margin = 1e3 * double(eps_of<T>()) * scale + 64 * double(eps_of<T>()) * (call.item_extent + scale);
-    query_lazy(*call.bvh, ne_edges + 2, margin, make, w.cand);
+    if (call.volume.outside(p))
+      w.cand.clear();  // outside the root's occlusion volume: the query would return nothing usable
+    else
+      query_lazy(*call.bvh, ne_edges + 2, margin, make, w.cand);
   }
   if (w.cand.empty() && !w.lit_runs && call.n_edges > 0) {
     // Nothing can block: lit, or zero below the horizon. With the whole light above the horizon,

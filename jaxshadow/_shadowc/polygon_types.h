@@ -3,6 +3,7 @@
 #define JAXSHADOW_SHADOWC_POLYGON_TYPES_H_
 
 #include "bvh.h"
+#include "volume.h"
 
 namespace jaxshadow_engine {
 
@@ -135,6 +136,8 @@ struct PolyCall {
   // The light's edges with distinct ends (their indices i: v_i -> v_{i+1}), in order.
   int32_t edge_index[64];
   int n_edges = 0;
+  // The occlusion volume of the hierarchy's root box: a receiver outside it needs no query.
+  OcclusionVolume volume;
 };
 
 // Per-call data of the light and the occluders (`light_side`, `ne_raw`, `edge_index`,
@@ -148,9 +151,13 @@ void prepare_call(PolyCall<T>& call) {
   for (int64_t i = 0; i < K && i < 64; i++)
     if (!same(call.L.v(i), call.L.v((i + 1) % K))) call.edge_index[call.n_edges++] = int32_t(i);
   call.item_extent = 0;
-  if (!call.bvh->nodes.empty())
+  if (!call.bvh->nodes.empty()) {
     for (int d = 0; d < 3; d++)
       call.item_extent = std::max(call.item_extent, std::max(std::fabs(call.bvh->nodes[0].box[d]), std::fabs(call.bvh->nodes[0].box[3 + d])));
+    std::vector<double> lv(3 * K);
+    for (int64_t i = 0; i < 3 * K; i++) lv[i] = double(call.L.E[i]);
+    call.volume = occlusion_volume(lv.data(), K, call.bvh->nodes[0].box, double(eps_of<T>()));
+  }
   const Occluders<T>& occ = call.occ;
   call.light_side.assign(occ.M, 0);
   for (int64_t f = 0; f < occ.M; f++) {
