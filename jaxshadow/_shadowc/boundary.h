@@ -15,14 +15,10 @@ void boundary_runs(V3<T> p, T tol, const V3<T>* ehv, int nehv, Work<T>& w) {
   // Unit normals and norms of all planes; regions' boxes (their candidate edges' ends and the
   // E_h vertices inside them).
   const size_t npl = planes.size();
-  w.unit.resize(npl);
   w.pnorm.resize(npl);
-  for (size_t k = 0; k < npl; k++) {  // normalize_safe and norm, one square root
-    const T n2 = dot(planes[k], planes[k]);
-    const T nn = std::sqrt(n2);
-    w.unit[k] = n2 > 0 ? (T(1) / nn) * planes[k] : V3<T>{0, 0, 0};
-    w.pnorm[k] = nn;
-  }
+  for (size_t k = 0; k < npl; k++) w.pnorm[k] = norm(planes[k]);
+  // normalize_safe of plane k from its norm (one square root), where a collinearity test needs it.
+  auto unit = [&](int32_t k) -> V3<T> { return w.pnorm[k] > 0 ? (T(1) / w.pnorm[k]) * planes[k] : V3<T>{0, 0, 0}; };
   for (int32_t r = 1; r < n_regions; r++)
     for (int d = 0; d < 3; d++) {
       w.regions[r].lo[d] = std::numeric_limits<T>::infinity();
@@ -39,7 +35,6 @@ void boundary_runs(V3<T> p, T tol, const V3<T>* ehv, int nehv, Work<T>& w) {
         R.hi[d] = std::max(R.hi[d], e.hi[d]);
       }
     }
-    e.uo = normalize_safe(e.own);
   }
   for (int i = 0; i < nehv; i++) {
     V3<T> r = ehv[i] - p;
@@ -60,6 +55,9 @@ void boundary_runs(V3<T> p, T tol, const V3<T>* ehv, int nehv, Work<T>& w) {
 
   // Split every candidate edge (_clip._boundary_runs / edge_breakpoints).
   const T big = std::numeric_limits<T>::infinity();
+  for (auto* v : {&w.rlo, &w.rhi}) v->resize(n_regions);  // per live region of one edge
+  for (auto* v : {&w.rnc, &w.rc, &w.rany}) v->resize(n_regions);
+  for (auto* v : {&w.rilo, &w.rihi}) v->resize(n_regions);
   for (const Edge<T>& e : w.edges) {
     V3<T> ap = e.a - p, d = e.b - e.a;
     T apn = norm(ap) + norm(e.b - p);
@@ -77,13 +75,6 @@ void boundary_runs(V3<T> p, T tol, const V3<T>* ehv, int nehv, Work<T>& w) {
       if (overlap) w.live.push_back(j);
     }
     const int nl = int(w.live.size());
-    w.rlo.resize(nl);
-    w.rhi.resize(nl);
-    w.rnc.resize(nl);
-    w.rc.resize(nl);
-    w.rany.resize(nl);
-    w.rilo.resize(nl);
-    w.rihi.resize(nl);
     for (int li = 0; li < nl; li++) {
       const Region<T>& R = w.regions[w.live[li]];
       T lo = -big, hi = big;
@@ -100,7 +91,7 @@ void boundary_runs(V3<T> p, T tol, const V3<T>* ehv, int nehv, Work<T>& w) {
           // Cheap exclusion first: an edge whose start is clearly off the plane is not on its line.
           // (Parallel unit normals put both ends within |x - p| tol of the plane.)
           if (!(std::fabs(g0) > T(4) * tol * w.pnorm[pk] * apn) && !(std::fabs(g0 + g1) > T(4) * tol * w.pnorm[pk] * apn)) {
-            V3<T> cr = cross(e.uo, w.unit[pk]);
+            V3<T> cr = cross(normalize_safe(e.own), unit(pk));
             collinear = dot(cr, cr) <= tol * tol;
           }
         }
@@ -119,7 +110,7 @@ void boundary_runs(V3<T> p, T tol, const V3<T>* ehv, int nehv, Work<T>& w) {
           have_hi = true;
         }
         if (generic && !(g1 != 0 || g0 >= 0)) c_nc = false;
-        if (collinear && !(e.sigma * dot(w.unit[pk], e.uo) > 0)) c_c = false;  // on the line, other side
+        if (collinear && !(e.sigma * dot(unit(pk), normalize_safe(e.own)) > 0)) c_c = false;  // on the line, other side
         if (collinear) any_c = true;
       }
       w.rlo[li] = lo;

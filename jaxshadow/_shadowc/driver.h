@@ -184,10 +184,13 @@ int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const 
           w.decoded.push_back({c, x});
           return x;
         };
+        size_t o = blk.pts.size();
+        blk.pts.resize(o + 6 * w.runs.size());
         for (const Run& r : w.runs) {
-          V3<T> a = point(r.s), b = point(r.e);
-          const T q[6] = {a.x, a.y, a.z, b.x, b.y, b.z};
-          blk.pts.insert(blk.pts.end(), q, q + 6);
+          const V3<T> a = point(r.s), b = point(r.e);
+          T* q = blk.pts.data() + o;
+          q[0] = a.x, q[1] = a.y, q[2] = a.z, q[3] = b.x, q[4] = b.y, q[5] = b.z;
+          o += 6;
         }
       }
     }

@@ -249,12 +249,17 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
     const V3<T>* pl = planes.data() + first;
     // Umbra: every E_h vertex strictly inside all the region's planes.
     {
+      T pn[65];  // the planes' norms, on first use
+      for (int k = 0; k < np; k++) pn[k] = -1;
       bool all_in = true;
       for (int i = 0; i < nehv && all_in; i++) {
         V3<T> r = ehv[i] - p;
         T rn = norm(r);
         for (int k = 0; k < np && all_in; k++)
-          if (nonzero(pl[k])) all_in = dot(r, pl[k]) > tol * norm(pl[k]) * rn;
+          if (nonzero(pl[k])) {
+            if (pn[k] < 0) pn[k] = norm(pl[k]);
+            all_in = dot(r, pl[k]) > tol * pn[k] * rn;
+          }
       }
       if (all_in) return 2;
     }

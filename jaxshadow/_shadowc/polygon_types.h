@@ -16,7 +16,6 @@ template <class T>
 struct Edge {
   V3<T> a, b;      // in the emitter plane
   V3<T> own;       // normal of the plane through p and the edge's line
-  V3<T> uo;        // its unit vector
   PlaneRef own_ref;
   Code ca, cb;     // endpoint codes of a and b
   T sigma;         // +1: R on the interior side of `own` (E_h), -1: outside (occluders)
@@ -39,7 +38,7 @@ template <class T>
 struct Work {  // per-thread scratch
   std::vector<std::pair<int32_t, int32_t>> cand;
   std::vector<std::pair<Code, V3<T>>> decoded;  // the driver's decoded boundary vertices
-  std::vector<V3<T>> planes, unit;
+  std::vector<V3<T>> planes;
   std::vector<T> pnorm;
   std::vector<PlaneRef> prefs;
   std::vector<Region<T>> regions;
