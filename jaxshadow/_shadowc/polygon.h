@@ -180,6 +180,15 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
   V3<T> eh_centre{0, 0, 0};
   for (int i = 0; i < nehv; i++) eh_centre = eh_centre + ehv[i];
   eh_centre = (T(1) / T(nehv > 0 ? nehv : 1)) * eh_centre;
+  {  // Each E_h vertex once (consecutive edges share one) for the all-vertices tests below.
+    int m = 0;
+    for (int i = 0; i < nehv; i++) {
+      bool dup = false;
+      for (int j = 0; j < m && !dup; j++) dup = same(ehv[i], ehv[j]);
+      if (!dup) ehv[m++] = ehv[i];
+    }
+    nehv = m;
+  }
   auto covers_eh = [&](const V3<T>* pl, int np) -> bool {
     V3<T> r = eh_centre - p;
     for (int k = 0; k < np; k++)
@@ -412,12 +421,13 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
       w.prefs.push_back(through(sil[k].ra, sil[k].rb));
     }
     const V3<T>* pl = planes.data() + first;
+    T pn[64];
+    for (int k = 0; k < nsil; k++) pn[k] = norm(pl[k]);
     for (int k = 0; k < nsil; k++) {  // E_h strictly outside one silhouette plane: disjoint cones
-      T pn = norm(pl[k]);
       bool all_out = true;
       for (int i = 0; i < nehv && all_out; i++) {
         V3<T> r = ehv[i] - p;
-        all_out = dot(r, pl[k]) < -tol * pn * (std::fabs(r.x) + std::fabs(r.y) + std::fabs(r.z));
+        all_out = dot(r, pl[k]) < -tol * pn[k] * (std::fabs(r.x) + std::fabs(r.y) + std::fabs(r.z));
       }
       if (all_out) {
         planes.resize(first);
@@ -430,7 +440,7 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
       for (int i = 0; i < nehv && all_in; i++) {
         V3<T> r = ehv[i] - p;
         T rn = norm(r);
-        for (int k = 0; k < nsil && all_in; k++) all_in = dot(r, pl[k]) > tol * norm(pl[k]) * rn;
+        for (int k = 0; k < nsil && all_in; k++) all_in = dot(r, pl[k]) > tol * pn[k] * rn;
       }
       if (all_in) return 2;
     }
