@@ -68,6 +68,21 @@ void boundary_runs(V3<T> p, T tol, const V3<T>* ehv, int nehv, Work<T>& w) {
     for (int32_t j = 0; j < n_regions; j++) {
       if (j == e.region) continue;
       const Region<T>& R = w.regions[j];
+      if (j == 0 && R.active) {
+        // An occluder's edge was clipped to E_h's pyramid when it was made: E_h's region can
+        // block none of it (only occluder regions block) except by the tie rule, which needs
+        // one of its planes to hold the edge. Without such a plane -- both ends clearly off
+        // every plane, the test below -- its breakpoints only split free pieces again.
+        bool maybe_on = false;
+        for (int k = 0; k < R.count && !maybe_on; k++) {
+          const V3<T>& N = planes[R.first + k];
+          if (!nonzero(N)) continue;
+          const T g0 = dot(ap, N), g1 = dot(d, N);
+          maybe_on = !(std::fabs(g0) > T(4) * tol * w.pnorm[R.first + k] * apn) &&
+                     !(std::fabs(g0 + g1) > T(4) * tol * w.pnorm[R.first + k] * apn);
+        }
+        if (!maybe_on) continue;
+      }
       bool overlap = true;
       const T elo[3] = {e.lo[0], e.lo[1], e.lo[2]}, ehi[3] = {e.hi[0], e.hi[1], e.hi[2]};
       for (int dd = 0; dd < 3 && overlap; dd++)
