@@ -98,8 +98,14 @@ class IlluminationMesh:
         """The mesh of the same receiver in `scene`, where only occluders changed (moved, added or
         removed): only the tiles that the changed occluders' shadow volumes can reach, before or
         after the change, are meshed again (Chrysanthou & Slater §3); the others are kept as they
-        are. The result equals `illumination_mesh(scene, receiver, tol, scale=self.scale)` with the
-        same settings. `stats["tiles_meshed"]` says how many tiles were redone.
+        are. In the tiles meshed again, an exact value the old mesh computed is taken over, not
+        computed again, where the changed occluders cannot affect it: outside their footprints,
+        and where their bounding box (before and after the change) misses the point's
+        illumination region of every light (`ShadowCache.update`'s test); the engine's value
+        there does not depend on them. The result equals `illumination_mesh(scene, receiver, tol,
+        scale=self.scale)` with the same settings, bit for bit. `stats` says how many tiles were
+        redone (`tiles_meshed`), how many old values the change can affect (`values_affected`)
+        or not (`values_kept`), and how many of the latter the new mesh used (`reused`).
 
         Raises `ValueError` if the lights or ambient changed (re-mesh instead)."""
         t0 = time.perf_counter()

@@ -554,11 +554,16 @@ class _Builder:
                 interp = np.concatenate([0.5 * (vn + np.roll(vn, -1, axis=1)), vn.mean(axis=1, keepdims=True),
                                          np.einsum("ij,tjk->tik", _INNER, vn)], axis=1)
                 err = np.empty((tt.shape[0], 7))
+                hole, corner = np.empty(tt.shape[0], bool), np.empty(tt.shape[0], bool)
                 if np.any(kn):
-                    err[kn] = last[ti].errors(kn)
+                    err[kn], hole[kn], corner[kn] = last[ti].take(kn)
                 err[~kn] = np.abs(allval[rows[2 * k_tile + 1]:rows[2 * k_tile + 2]].reshape(-1, 7, 3) - interp).max(axis=2)
-                last[ti] = _Checked(tv, tt, err.copy())
-                hole = self._in_contact(c.mean(axis=1), self.tiles[ti].contact)
+                hole[~kn] = self._in_contact(c[~kn].mean(axis=1), self.tiles[ti].contact)
+                # At a contact polygon's corner the irradiance has no limit (it depends on the
+                # direction of approach): the elements within CORNER_SIZE of it are refined down
+                # to CORNER_SIZE only, and their error is reported apart (`stats["corner_error"]`).
+                corner[~kn] = self._at_contact_corner(c[~kn], self.tiles[ti].contact)
+                last[ti] = _Checked(tv, tt, err.copy(), hole, corner)
                 err[hole] = 0.0  # covered by an occluder face lying on the receiver: not meshed
                 edge_ij = np.stack([tt, np.roll(tt, -1, axis=1)], axis=-1)  # (T, 3, 2)
                 kind = _edge_kinds(edge_ij, segs, smark, tv.shape[0])
@@ -571,10 +576,6 @@ class _Builder:
                 err[flat] = 0.0
                 sel_err = err.copy()
                 sel_err[:, :3][kind == 1] = -1.0  # never insert on the tile boundary
-                # At a contact polygon's corner the irradiance has no limit (it depends on the
-                # direction of approach): the elements within CORNER_SIZE of it are refined down
-                # to CORNER_SIZE only, and their error is reported apart (`stats["corner_error"]`).
-                corner = self._at_contact_corner(c, self.tiles[ti].contact)
                 floor = np.where(corner, CORNER_SIZE * self.diam, self.min_edge)
                 bad = (err.max(axis=1) > thr) & (longest > floor) & (sel_err.max(axis=1) > thr)
                 t = self.tiles[ti]
@@ -650,6 +651,7 @@ class _Builder:
         self.stats.update(
             lines_seconds=t1 - t0, extrema_seconds=t2 - t1, refine_seconds=t3 - t2,
             evaluations=self.eval.evaluations, evaluation_seconds=self.eval.seconds, reused=self.eval.reused,
+            values_kept=self.eval.kept, values_affected=self.eval.affected,
             tiles_meshed=len(tile_ids), edges_refined=len(edge_keys),
             segments=0 if self.seg is None else len(self.seg),
             pieces=sum(len(self.tiles[ti].pieces) for ti in tile_ids),

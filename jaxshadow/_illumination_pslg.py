@@ -47,6 +47,7 @@ class _Evaluator:
         self.prior_ok = np.zeros(0, bool)
         self.first_row = 0
         self.reused = 0
+        self.kept = self.affected = 0  # earlier values taken over / that the change can affect (`inherit`)
         self.online: set[complex] = set()
         self.moved: dict[complex, complex] = {}  # points evaluated elsewhere (`move`)
         self.checked: set[complex] = set()
@@ -173,6 +174,7 @@ class _Evaluator:
         pts = old.positions(n)
         ok = valid.copy()
         ok[valid] = keep(pts[valid])
+        self.kept, self.affected = int(ok.sum()), int(valid.sum() - ok.sum())
         self.values, self.targets, self.lined = old.values.copy(), old.targets.copy(), old.lined.copy()
         self._rows = self.first_row = n
         self.prior, self.prior_ok = index, ok
@@ -185,14 +187,15 @@ _RADIX = 1 << 21  # vertex indices per tile that `_Checked` can encode
 
 
 class _Checked:
-    """A tile's triangles `tt (T, 3)` over vertices `tv (V, 2)` with their checked errors
-    `(T, 7)`, for the next refinement round: `match` finds which of the next triangulation's
-    triangles are the same (the next round's vertices start with these, in order)."""
+    """A tile's triangles `tt (T, 3)` over vertices `tv (V, 2)` with what the refinement found
+    per triangle (`per`: arrays `(T, ...)`: checked errors, in a hole, at a corner), for the next
+    round: `match` finds which of the next triangulation's triangles are the same (the next
+    round's vertices start with these, in order) and `take` gives their rows."""
 
-    def __init__(self, tv: np.ndarray, tt: np.ndarray, err: np.ndarray):
+    def __init__(self, tv: np.ndarray, tt: np.ndarray, *per: np.ndarray):
         codes = _tri_codes(tt)
         order = np.argsort(codes)
-        self.tv, self.codes, self.err = tv, codes[order], err[order]
+        self.tv, self.codes, self.per = tv, codes[order], [a[order] for a in per]
         self._pos = np.zeros(0, np.int64)
 
     def match(self, tv: np.ndarray, tt: np.ndarray) -> tuple[np.ndarray, int]:
@@ -207,9 +210,9 @@ class _Checked:
         self._pos = pos
         return hit, n
 
-    def errors(self, rows: np.ndarray) -> np.ndarray:
-        """The errors of the triangles `rows` (a mask at most `match`'s)."""
-        return self.err[self._pos[rows]]
+    def take(self, rows: np.ndarray) -> list[np.ndarray]:
+        """The stored arrays at the triangles `rows` (a mask at most `match`'s)."""
+        return [a[self._pos[rows]] for a in self.per]
 
 
 def _tri_codes(tt: np.ndarray) -> np.ndarray:
