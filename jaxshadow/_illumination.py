@@ -24,7 +24,9 @@ receiver polygon:
    midpoints between centroid and corners) against exact irradiance; the worst point of an
    element whose linear interpolation misses by more than `ESTIMATE_MARGIN * tol * scale` is
    inserted, and the tile re-triangulated, until no element fails. Tile edges are refined the
-   same way in 1-D beforehand.
+   same way in 1-D beforehand. A round's triangulation starts with the previous round's vertices
+   in order, so the elements it keeps (same three vertices) keep their checked errors: a round
+   evaluates and looks up only the new elements' check points.
 
 Values come from `jaxshadow.irradiance` (the host shadow engine for concrete inputs).
 """
