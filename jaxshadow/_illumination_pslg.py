@@ -133,20 +133,24 @@ class _Evaluator:
     def _take_prior(self, todo: list[complex]) -> list[complex]:
         """Point the keys `todo` whose evaluation (the same point, with the on-line check or
         without) is a kept row of the earlier scene at that row; return the others."""
-        prior, ok, targets, lined = self.prior, self.prior_ok, self.targets, self.lined
+        prior = self.prior
         assert prior is not None
-        cache, online, checked, moved = self.cache, self.online, self.checked, self.moved
-        rest = []
-        for k in todo:
-            r = prior.get(k)
-            if r is not None and ok[r] and targets[r] == moved.get(k, k) and lined[r] == (k in online):
-                cache[k] = r
-                if k in online:
-                    checked.add(k)
-            else:
-                rest.append(k)
-        self.reused += len(todo) - len(rest)
-        return rest
+        if self.prior_ok.size == 0:
+            return todo
+        r = np.fromiter(map(prior.get, todo, [-1] * len(todo)), np.int64, len(todo))
+        online, moved = self.online, self.moved
+        tgt = np.array([moved.get(k, k) for k in todo], np.complex128)
+        line = np.fromiter(map(online.__contains__, todo), bool, len(todo))
+        rr = np.maximum(r, 0)
+        take = (r >= 0) & self.prior_ok[rr] & (self.targets[rr] == tgt) & (self.lined[rr] == line)
+        if not np.any(take):
+            return todo
+        idx = np.nonzero(take)[0].tolist()
+        keys = [todo[i] for i in idx]
+        self.cache.update(zip(keys, r[take].tolist(), strict=True))
+        self.checked.update(k for k, ln in zip(keys, line[take].tolist(), strict=True) if ln)
+        self.reused += len(keys)
+        return [todo[i] for i in np.nonzero(~take)[0].tolist()]
 
     def rows(self) -> tuple[dict[complex, int], np.ndarray]:
         """Every key evaluated so far or taken over (`inherit`), with its row, and which rows hold
@@ -175,7 +179,8 @@ class _Evaluator:
         ok = valid.copy()
         ok[valid] = keep(pts[valid])
         self.kept, self.affected = int(ok.sum()), int(valid.sum() - ok.sum())
-        self.values, self.targets, self.lined = old.values.copy(), old.targets.copy(), old.lined.copy()
+        m = max(n, 1024)
+        self.values, self.targets, self.lined = old.values[:m].copy(), old.targets[:m].copy(), old.lined[:m].copy()
         self._rows = self.first_row = n
         self.prior, self.prior_ok = index, ok
 
