@@ -11,6 +11,7 @@ import numpy as np
 from . import _illumination_events as ev
 from . import _illumination_extrema as ex
 from ._illumination_pslg import (
+    _Checked,
     _contact_corners,
     _Edge,
     _edge_kinds,
@@ -492,11 +493,15 @@ class _Builder:
         active = list(tile_ids)
         rounds = 0
         tried: dict[int, set] = {}
+        # Each round re-triangulates a tile with its new vertices appended; the triangles of the
+        # previous round that are still there (same vertices) keep their checked errors, so only
+        # the new triangles' check points are looked up and evaluated.
+        last: dict[int, _Checked] = {}
         while active:
             rounds += 1
             if _DEBUG:
                 print("round", rounds, len(active), sum(state[ti][0].shape[0] for ti in active))
-            meshes = {}
+            meshes, known = {}, {}
             probes = []
             for ti in active:
                 v, s, m = state[ti]
@@ -504,19 +509,24 @@ class _Builder:
                 self.stats["cdt_fallbacks"] = self.stats.get("cdt_fallbacks", 0) + int(dropped)
                 tv, tt = out["vertices"], out["triangles"]
                 meshes[ti] = out
+                kn, n_old = last[ti].match(tv, tt) if ti in last else (np.zeros(tt.shape[0], bool), 0)
+                c = tv[tt[~kn]]  # (T_new, 3, 2)
+                mids = 0.5 * (c + np.roll(c, -1, axis=1))  # edges (0,1), (1,2), (2,0)
                 if self.tiles[ti].contact.size:
                     # Vertices and edge midpoints on a contact polygon's edge, found by position: a
                     # discontinuity line along the edge (an occluder's edge on the receiver makes
                     # one) can take the place of the contact segment in the triangulation.
-                    c = tv[tt]
-                    self._move_off_contact(np.concatenate([tv, 0.5 * (c + np.roll(c, -1, axis=1)).reshape(-1, 2)]),
-                                           self.tiles[ti].contact)
+                    self._move_off_contact(np.concatenate([tv[n_old:], mids.reshape(-1, 2)]), self.tiles[ti].contact)
                 inner_seg = out["segments"][out["segment_markers"].ravel() == 0]
                 if inner_seg.size:
                     self.eval.mark(tv[inner_seg.ravel()])
                     self.eval.mark(0.5 * (tv[inner_seg[:, 0]] + tv[inner_seg[:, 1]]))
-                c = tv[tt]  # (T, 3, 2)
-                mids = 0.5 * (c + np.roll(c, -1, axis=1))  # edges (0,1), (1,2), (2,0)
+                stale = self.eval.stale(tv[:n_old])  # an old vertex evaluated again: its triangles are new
+                if np.any(stale):
+                    kn &= ~np.any(np.concatenate([stale, np.zeros(tv.shape[0] - n_old, bool)])[tt], axis=1)
+                    c = tv[tt[~kn]]
+                    mids = 0.5 * (c + np.roll(c, -1, axis=1))
+                known[ti] = kn
                 inner = np.einsum("ij,tjk->tik", _INNER, c)
                 probes.append(tv)
                 probes.append(np.concatenate([mids, c.mean(axis=1, keepdims=True), inner], axis=1).reshape(-1, 2))
@@ -539,11 +549,21 @@ class _Builder:
                 mids = 0.5 * (c + np.roll(c, -1, axis=1))
                 inner = np.einsum("ij,tjk->tik", _INNER, c)
                 pts = np.concatenate([mids, c.mean(axis=1, keepdims=True), inner], axis=1)  # (T, 7, 2)
-                interp = np.concatenate([0.5 * (vt + np.roll(vt, -1, axis=1)), vt.mean(axis=1, keepdims=True),
-                                         np.einsum("ij,tjk->tik", _INNER, vt)], axis=1)
-                err = np.abs(allval[rows[2 * k_tile + 1]:rows[2 * k_tile + 2]].reshape(pts.shape[0], 7, 3)
-                             - interp).max(axis=2)
-                hole = self._in_contact(c.mean(axis=1), self.tiles[ti].contact)
+                kn = known[ti]
+                vn = vt[~kn]
+                interp = np.concatenate([0.5 * (vn + np.roll(vn, -1, axis=1)), vn.mean(axis=1, keepdims=True),
+                                         np.einsum("ij,tjk->tik", _INNER, vn)], axis=1)
+                err = np.empty((tt.shape[0], 7))
+                hole, corner = np.empty(tt.shape[0], bool), np.empty(tt.shape[0], bool)
+                if np.any(kn):
+                    err[kn], hole[kn], corner[kn] = last[ti].take(kn)
+                err[~kn] = np.abs(allval[rows[2 * k_tile + 1]:rows[2 * k_tile + 2]].reshape(-1, 7, 3) - interp).max(axis=2)
+                hole[~kn] = self._in_contact(c[~kn].mean(axis=1), self.tiles[ti].contact)
+                # At a contact polygon's corner the irradiance has no limit (it depends on the
+                # direction of approach): the elements within CORNER_SIZE of it are refined down
+                # to CORNER_SIZE only, and their error is reported apart (`stats["corner_error"]`).
+                corner[~kn] = self._at_contact_corner(c[~kn], self.tiles[ti].contact)
+                last[ti] = _Checked(tv, tt, err.copy(), hole, corner)
                 err[hole] = 0.0  # covered by an occluder face lying on the receiver: not meshed
                 edge_ij = np.stack([tt, np.roll(tt, -1, axis=1)], axis=-1)  # (T, 3, 2)
                 kind = _edge_kinds(edge_ij, segs, smark, tv.shape[0])
@@ -556,10 +576,6 @@ class _Builder:
                 err[flat] = 0.0
                 sel_err = err.copy()
                 sel_err[:, :3][kind == 1] = -1.0  # never insert on the tile boundary
-                # At a contact polygon's corner the irradiance has no limit (it depends on the
-                # direction of approach): the elements within CORNER_SIZE of it are refined down
-                # to CORNER_SIZE only, and their error is reported apart (`stats["corner_error"]`).
-                corner = self._at_contact_corner(c, self.tiles[ti].contact)
                 floor = np.where(corner, CORNER_SIZE * self.diam, self.min_edge)
                 bad = (err.max(axis=1) > thr) & (longest > floor) & (sel_err.max(axis=1) > thr)
                 t = self.tiles[ti]
@@ -634,7 +650,8 @@ class _Builder:
         t3 = time.perf_counter()
         self.stats.update(
             lines_seconds=t1 - t0, extrema_seconds=t2 - t1, refine_seconds=t3 - t2,
-            evaluations=self.eval.evaluations, evaluation_seconds=self.eval.seconds,
+            evaluations=self.eval.evaluations, evaluation_seconds=self.eval.seconds, reused=self.eval.reused,
+            values_kept=self.eval.kept, values_affected=self.eval.affected,
             tiles_meshed=len(tile_ids), edges_refined=len(edge_keys),
             segments=0 if self.seg is None else len(self.seg),
             pieces=sum(len(self.tiles[ti].pieces) for ti in tile_ids),

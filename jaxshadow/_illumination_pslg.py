@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -30,13 +31,23 @@ class _Evaluator:
     `ON_LINE_STEP` times the gradient of the exact value).
 
     The cache maps a point's coordinates, as the Python complex `x + iy` (exact, hashed without
-    building tuples), to a row of one growing value array."""
+    building tuples), to a row of one growing value array; each row also records where it was
+    evaluated and whether with the on-line check, so that an update (`inherit`) can take over the
+    rows of the previous scene whose value the change cannot affect: a point asked for again
+    with the same evaluation takes the old row instead of calling the engine (`reused`)."""
 
     def __init__(self, scene: Scene, frame: ev.Frame, size: float):
         self.scene, self.frame = scene, frame
         self.cache: dict[complex, int] = {}
         self.values = np.zeros((1024, 3))
+        self.targets = np.zeros(1024, np.complex128)  # per row: the point evaluated (`move`)
+        self.lined = np.zeros(1024, bool)  # per row: evaluated with the on-line check
         self._rows = 0
+        self.prior: dict[complex, int] | None = None  # an earlier scene's rows (`inherit`)
+        self.prior_ok = np.zeros(0, bool)
+        self.first_row = 0
+        self.reused = 0
+        self.kept = self.affected = 0  # earlier values taken over / that the change can affect (`inherit`)
         self.online: set[complex] = set()
         self.moved: dict[complex, complex] = {}  # points evaluated elsewhere (`move`)
         self.checked: set[complex] = set()
@@ -66,8 +77,11 @@ class _Evaluator:
         keys = self._keys(xy)
         cache, online, checked = self.cache, self.online, self.checked
         todo = list(dict.fromkeys(k for k in keys if k not in cache or (k in online and k not in checked)))
+        if todo and self.prior is not None:
+            todo = self._take_prior(todo)
         if todo:
-            pts = np.array([self.moved.get(k, k) for k in todo], np.complex128).view(np.float64).reshape(-1, 2)
+            tgt = [self.moved.get(k, k) for k in todo]
+            pts = np.array(tgt, np.complex128).view(np.float64).reshape(-1, 2)
             line = np.array([k in online for k in todo], bool)
             side = pts[line]
             allp = np.concatenate([pts, side + self.step, side - self.step])
@@ -93,9 +107,10 @@ class _Evaluator:
                     val[line] = fixed
                     self.repairs += int(bad.sum())
             start = self._rows  # rows are never reused (a key dropped by `move` leaves its row behind)
-            while start + n > self.values.shape[0]:
-                self.values = np.concatenate([self.values, np.zeros_like(self.values)])
+            self._grow(start + n)
             self.values[start:start + n] = val
+            self.targets[start:start + n] = tgt
+            self.lined[start:start + n] = line
             cache.update(zip(todo, range(start, start + n), strict=True))
             self._rows = start + n
             checked.update(k for k, ln in zip(todo, line.tolist(), strict=True) if ln)
@@ -103,8 +118,111 @@ class _Evaluator:
             return np.zeros((0, 3))
         return self.values[np.fromiter(map(cache.__getitem__, keys), np.int64, len(keys))]
 
+    def stale(self, xy: np.ndarray) -> np.ndarray:
+        """`(n,)` bool: whether points `xy (n, 2)` would be evaluated (again) by the next call."""
+        cache, online, checked = self.cache, self.online, self.checked
+        return np.fromiter((k not in cache or (k in online and k not in checked) for k in self._keys(xy)), bool,
+                           xy.shape[0])
+
+    def _grow(self, rows: int) -> None:
+        while rows > self.values.shape[0]:
+            self.values = np.concatenate([self.values, np.zeros_like(self.values)])
+            self.targets = np.concatenate([self.targets, np.zeros_like(self.targets)])
+            self.lined = np.concatenate([self.lined, np.zeros_like(self.lined)])
+
+    def _take_prior(self, todo: list[complex]) -> list[complex]:
+        """Point the keys `todo` whose evaluation (the same point, with the on-line check or
+        without) is a kept row of the earlier scene at that row; return the others."""
+        prior = self.prior
+        assert prior is not None
+        if self.prior_ok.size == 0:
+            return todo
+        r = np.fromiter(map(prior.get, todo, [-1] * len(todo)), np.int64, len(todo))
+        online, moved = self.online, self.moved
+        tgt = np.array([moved.get(k, k) for k in todo], np.complex128)
+        line = np.fromiter(map(online.__contains__, todo), bool, len(todo))
+        rr = np.maximum(r, 0)
+        take = (r >= 0) & self.prior_ok[rr] & (self.targets[rr] == tgt) & (self.lined[rr] == line)
+        if not np.any(take):
+            return todo
+        idx = np.nonzero(take)[0].tolist()
+        keys = [todo[i] for i in idx]
+        self.cache.update(zip(keys, r[take].tolist(), strict=True))
+        self.checked.update(k for k, ln in zip(keys, line[take].tolist(), strict=True) if ln)
+        self.reused += len(keys)
+        return [todo[i] for i in np.nonzero(~take)[0].tolist()]
+
+    def rows(self) -> tuple[dict[complex, int], np.ndarray]:
+        """Every key evaluated so far or taken over (`inherit`), with its row, and which rows hold
+        a value of the current scene."""
+        valid = np.zeros(self._rows, bool)
+        valid[self.first_row:] = True
+        if self.prior is None:
+            return self.cache, valid
+        valid[:self.first_row] = self.prior_ok[:self.first_row]
+        merged = dict(self.prior)
+        merged.update(self.cache)
+        return merged, valid
+
+    def positions(self, rows: int) -> np.ndarray:
+        """The points `(rows, 2)` evaluated by the first `rows` rows (with the on-line check also
+        `step` to either side)."""
+        return self.targets[:rows].view(np.float64).reshape(-1, 2)
+
+    def inherit(self, old: _Evaluator, keep: Any) -> None:
+        """Take over the rows of `old` (the evaluator of an earlier scene) for which `keep(points
+        (n, 2))` says that the change of scene cannot affect the value at them or within `step`
+        of them."""
+        index, valid = old.rows()
+        n = old._rows
+        pts = old.positions(n)
+        ok = valid.copy()
+        ok[valid] = keep(pts[valid])
+        self.kept, self.affected = int(ok.sum()), int(valid.sum() - ok.sum())
+        m = max(n, 1024)
+        self.values, self.targets, self.lined = old.values[:m].copy(), old.targets[:m].copy(), old.lined[:m].copy()
+        self._rows = self.first_row = n
+        self.prior, self.prior_ok = index, ok
+
     def luminance(self, xy: np.ndarray) -> np.ndarray:
         return self(xy).sum(axis=1)
+
+
+_RADIX = 1 << 21  # vertex indices per tile that `_Checked` can encode
+
+
+class _Checked:
+    """A tile's triangles `tt (T, 3)` over vertices `tv (V, 2)` with what the refinement found
+    per triangle (`per`: arrays `(T, ...)`: checked errors, in a hole, at a corner), for the next
+    round: `match` finds which of the next triangulation's triangles are the same (the next
+    round's vertices start with these, in order) and `take` gives their rows."""
+
+    def __init__(self, tv: np.ndarray, tt: np.ndarray, *per: np.ndarray):
+        codes = _tri_codes(tt)
+        order = np.argsort(codes)
+        self.tv, self.codes, self.per = tv, codes[order], [a[order] for a in per]
+        self._pos = np.zeros(0, np.int64)
+
+    def match(self, tv: np.ndarray, tt: np.ndarray) -> tuple[np.ndarray, int]:
+        """`(T,)` bool: which triangles of `tt` over `tv` were checked before, and the number of
+        leading vertices of `tv` that are the old ones (0 when they are not)."""
+        n = self.tv.shape[0]
+        if tv.shape[0] < n or tv.shape[0] >= _RADIX or not np.array_equal(tv[:n], self.tv):
+            return np.zeros(tt.shape[0], bool), 0
+        codes = _tri_codes(tt)
+        pos = np.minimum(np.searchsorted(self.codes, codes), max(self.codes.size - 1, 0))
+        hit = (self.codes[pos] == codes) if self.codes.size else np.zeros(tt.shape[0], bool)
+        self._pos = pos
+        return hit, n
+
+    def take(self, rows: np.ndarray) -> list[np.ndarray]:
+        """The stored arrays at the triangles `rows` (a mask at most `match`'s)."""
+        return [a[self._pos[rows]] for a in self.per]
+
+
+def _tri_codes(tt: np.ndarray) -> np.ndarray:
+    s = np.sort(tt, axis=1).astype(np.int64)
+    return (s[:, 0] * _RADIX + s[:, 1]) * _RADIX + s[:, 2]
 
 
 @dataclass
