@@ -222,7 +222,8 @@ def fit_lights(
       greedy placement and each light's sweeps); the joint refinement then uses every target.
       For targets painted close to the lights (where the report's standard errors are small,
       `inverse.design_targets`), whose loss from far starts is spiky: search on the far-field
-      ones. The others' weights are zero during the search (the same compiled program).
+      ones. The others' weights are zero during the search (the same compiled program; the
+      report's `initial_loss` and the search's `stage_losses` are over the search targets).
 
     **Returns:** `LightsFit(scene, lights, powers, material, residual, report, theta,
     parametrisations)`; `print(fit.report)` lists every parameter with its standard error,
