@@ -39,6 +39,7 @@ from ._multilight import (
     fixed_contribution,
     report_parts,
     scaled_light,
+    screen,
     solve,
 )
 from ._multilight_placement import greedy, pad, stage_mask, swaps
@@ -143,6 +144,7 @@ def fit_lights(
     solver: LM | None = None,
     candidates: Any = None,
     specular: SpecularFn | None = None,
+    search_targets: Any = None,
 ) -> LightsFit:
     """Place several lights of `scene` at once, with their powers, so the shading matches
     painted colours (Poulin ch. 5: lights from diffuse shading, highlights and shadows).
@@ -151,9 +153,12 @@ def fit_lights(
     shadows included) with each light's power a non-negative scale of its given radiance (the
     colour is the given one), projected out in the solver (variable projection: the powers enter
     linearly) and finally solved with bounds ($p \\ge 0$). With `material_mode="projected"` the
-    material too: alternately the poses and powers at the current material (the solver) and
-    $k_a, k_d, k_s \\ge 0$ with the powers at the current poses (bounded least squares of the
-    bilinear model), from the material that best fits the given poses. The given poses are the
+    material too: with the powers fitted, the search projects out, per channel, $k_a$ and every
+    light's coefficient $k_d p_j$ independently (`_multilight._colour_free_rows`: a model that
+    contains the structured one, linear in those coefficients), and the material and powers at
+    the found poses are the bounded least squares of the structured (bilinear) model; with the
+    powers held, alternately the poses at the current material (the solver) and $k_a, k_d, k_s
+    \\ge 0$ at the current poses. The given poses are the
     starting point and the origin of each light's parametrisation (`LightParametrisation`).
     Lights not in `lights` are held as given.
 
@@ -213,6 +218,12 @@ def fit_lights(
       a 9 x 9 grid over the targets' bounding box, with their mean normal): the report ranks them
       for each undetermined parameter.
     - `specular`: a callable like `js.specular` (default `js.specular`).
+    - `search_targets`: indices (or an `(N,)` bool mask) of the targets the search uses (the
+      greedy placement and each light's sweeps); the joint refinement then uses every target.
+      For targets painted close to the lights (where the report's standard errors are small,
+      `inverse.design_targets`), whose loss from far starts is spiky: search on the far-field
+      ones. The others' weights are zero during the search (the same compiled program; the
+      report's `initial_loss` and the search's `stage_losses` are over the search targets).
 
     **Returns:** `LightsFit(scene, lights, powers, material, residual, report, theta,
     parametrisations)`; `print(fit.report)` lists every parameter with its standard error,
@@ -284,7 +295,8 @@ def fit_lights(
                             active=jnp.ones(len(idx), dt),
                             outside=tuple((j, *(jnp.asarray(x, dt) for x in outside_planes(scene, cons[i])),
                                            cons[i].margin) for j, i in enumerate(idx)
-                                          if isinstance(cons.get(i), Outside)))
+                                          if isinstance(cons.get(i), Outside)),
+                            colour_free=project and fit_power)
     Pt = problem.n_theta  # poses, then (with ranges or relations) q, p = q^2, from the given powers
     theta0 = np.r_[np.zeros(P), np.ones(Pt - P)]
     per_light = []
@@ -305,11 +317,14 @@ def fit_lights(
     problem = _with_capacity(problem, [y if g is None else np.concatenate([y, g]) if y is not None else None
                                        for y, g in zip(per_light, grid_rows or [None] * len(per_light),
                                                        strict=True)], fixed)
+    search_w = _search_weights(t, search_targets)
     k = max(1, min(int(solver.refine or starts), int(starts)))
     sched = prune_schedule(k, solver.max_steps) if solver.prune else ()
     lm = dict(rtol=solver.rtol, atol=solver.atol, max_steps=solver.max_steps, prune=sched)
     if project:  # the material (and powers) that best fit the given poses: where the search starts
         problem = dataclasses.replace(problem, material=_material_at(problem, theta0))
+    full_w = problem.targets.weights
+    problem = _reweighted(problem, search_w)
     base = theta0.copy()
     stage_losses, n_solved, retries, runner_up = [], 0, 0, {}
     initial = None
@@ -326,6 +341,7 @@ def fit_lights(
     if P:
         n_sweeps = int(sweeps)
         for rnd in range(2 if placed else 1):
+            problem = _reweighted(problem, search_w)
             for sweep, j in ((s, j) for s in range(n_sweeps) for j in range(len(per_light))):
                 y = per_light[j]
                 if y is None:
@@ -342,10 +358,9 @@ def fit_lights(
                 full[:, sl] = y
                 if sweep or placed:  # again, with the others placed: from the current pose and the same spread
                     full[0, sl] = base[sl]
-                if full.shape[0] > k:  # screen: the same program, no iterations, k starts a call
-                    losses = np.concatenate([
-                        np.asarray(solve(problem, pad(full[a:a + k], k), base, mask, **{**lm, "max_steps": 0})[0]
-                                   .initial_losses) for a in range(0, full.shape[0], k)])[: full.shape[0]]
+                if full.shape[0] > k:  # screen: the loss alone (no Jacobian), k starts a call
+                    losses, problem, r = screen(problem, full, base, mask, k)
+                    retries += r
                     if initial is None and sweep == 0:
                         initial = float(losses[0])  # the given poses (row 0), screened out or not
                     full = full[best_starts(np.where(np.isfinite(losses), losses, np.inf), k)]
@@ -372,6 +387,7 @@ def fit_lights(
             sizes = np.concatenate([np.zeros(0, bool)] + [_size_mask(p) for p in params if p is not None]
                                    + [np.zeros(Pt - P, bool)])
             joint = pad(np.stack(joint[:k]), k)
+            problem = _reweighted(problem, full_w)  # every target from here on
             for mask in ([~sizes] if sizes.any() else []) + [np.ones(Pt, bool)]:
                 res, problem, r = solve(problem, joint, base, mask, **lm)
                 retries += r
@@ -390,15 +406,44 @@ def fit_lights(
                 break
             base, n_sweeps = dealt, 1
         theta = joint[0]
-        if project:
+        if project and not problem.colour_free:
             problem, theta, n, r = _alternate(problem, theta, joint, base, lm, stage_losses)
             n_solved += n
             retries += r
     else:
         theta = theta0
+    problem = _reweighted(problem, full_w)
     theta = _moved_outside(problem, np.asarray(theta, np.float64))
     return _result(problem, np.asarray(theta, np.float64), idx, size, candidates, stage_losses, n_solved,
                    retries, initial, project)
+
+
+def _search_weights(targets: PaintedTargets, search: Any) -> Any:
+    """The targets' weights with those not in `search` (indices or an `(N,)` bool mask) zeroed;
+    None when `search` is None."""
+    if search is None:
+        return None
+    n = len(targets)
+    s = np.asarray(search)
+    if s.dtype == bool:
+        if s.shape != (n,):
+            raise ValueError(f"fit_lights: a search_targets mask must have shape ({n},), got {s.shape}.")
+        keep = s
+    else:
+        if s.ndim != 1 or not np.issubdtype(s.dtype, np.integer) or s.size == 0 or s.min() < 0 or s.max() >= n:
+            raise ValueError(f"fit_lights: search_targets must be indices into the {n} targets or a bool mask.")
+        keep = np.zeros(n, bool)
+        keep[s] = True
+    if not keep.any():
+        raise ValueError("fit_lights: search_targets selects no target.")
+    return targets.weights * jnp.asarray(keep, targets.weights.dtype)[:, None]
+
+
+def _reweighted(problem: LightsProblem, weights: Any) -> LightsProblem:
+    """`problem` with its targets' weights replaced (a leaf: the same compiled program)."""
+    if weights is None:
+        return problem
+    return dataclasses.replace(problem, targets=eqx.tree_at(lambda t: t.weights, problem.targets, weights))
 
 
 def _moved_outside(problem: LightsProblem, theta: np.ndarray) -> np.ndarray:

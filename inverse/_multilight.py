@@ -82,6 +82,9 @@ class LightsProblem(eqx.Module):
     active: Any = None
     # `Outside` constraints: ((j, hull normals (F, 3), offsets (F,), margin), ...) for fitted light j.
     outside: tuple = ()
+    # A projected material: the search projects out, per channel, k_a and every light's (and the
+    # fixed lights') coefficient k_d p_j / pi independently (`_colour_free_rows`), not the material.
+    colour_free: bool = eqx.field(static=True, default=False)
 
     @property
     def n_pose(self) -> int:
@@ -185,6 +188,8 @@ def _data_residual(theta: Array, problem: LightsProblem, capacity: int | None) -
             g = budget_coefficients(theta, problem) @ p / b - 1.0
             r = jnp.concatenate([r, jnp.sqrt(jnp.sum(t.weights))[None] * jnp.where(g > 0, g, 0.0)[None]])
         return r, over
+    if problem.colour_free:
+        return _colour_free_rows(theta, problem, capacity)
     if not problem.fit_power:
         return painted_rows(fixed + jnp.sum(per_light, axis=0), t.colours, sw, problem.paint), over
     y = (sw * (t.colours - fixed)).reshape(-1)
@@ -198,6 +203,40 @@ def _data_residual(theta: Array, problem: LightsProblem, capacity: int | None) -
     excess = c @ p - problem.budget.astype(theta.dtype)
     p = jnp.where(excess > 0, p - Gc * excess / (c @ Gc), p)
     return A @ p - y, over
+
+
+def _colour_free_rows(theta: Array, problem: LightsProblem, capacity: int | None) -> tuple[Array, Array]:
+    r"""`(r (3N,), overflow)` of the model with every coefficient free per channel $c$:
+
+    $$L_c = a_c L_{a,c} + \sum_j b_{j,c} E^j_c / \pi + b_{0,c} E^0_c / \pi
+          \; (+ \textstyle\sum_j d_{j,c} S^j_c + d_{0,c} S^0_c),$$
+
+    $a, b, d$ projected out by linear least squares per channel. The structured model (one
+    material, one power per light: $a = k_a$, $b_{j,c} = k_{d,c} p_j$, $d_{j,c} = k_{s,c} p_j$) is
+    the special case, so at noise-free targets its optimum is this one's; with the material in
+    the search, its product with the powers ($k_d p$: one scale per light and channel) makes a
+    long curved valley that alternating material and poses stalls in, while here the poses alone
+    are searched."""
+    t = problem.targets
+    dt = theta.dtype
+    E, S, over = basis(theta, problem, capacity)
+    if problem.active is not None:  # lights left out of the model: zero columns (pinv ignores them)
+        E = E * problem.active.astype(dt)[:, None, None]
+        S = None if S is None else S * problem.active.astype(dt)[:, None, None]
+    n = t.points.shape[0]
+    La = jnp.broadcast_to(problem.scene.ambient.astype(dt)[None, :], (n, 3))
+    cols = [La, *(E[j] / jnp.pi for j in range(E.shape[0]))]
+    if problem.has_fixed:
+        cols.append(problem.e_fixed.astype(dt) / jnp.pi)
+    if S is not None:
+        cols += [S[j] for j in range(S.shape[0])] + ([problem.s_fixed.astype(dt)] if problem.has_fixed else [])
+    sw = jnp.sqrt(t.weights)  # (N, 3)
+    A = jnp.stack(cols, axis=-1) * sw[:, :, None]  # (N, 3, m)
+    A = jnp.moveaxis(A, 1, 0)  # (3, N, m)
+    y = (sw * t.colours).T[:, :, None]  # (3, N, 1)
+    k = jnp.linalg.pinv(A) @ y
+    r = (A @ k - y)[:, :, 0].T  # (N, 3)
+    return r.reshape(-1), over
 
 
 def outside_depth(theta: Array, problem: LightsProblem) -> Array:
@@ -287,6 +326,46 @@ def solve(problem: LightsProblem, starts: np.ndarray, base: np.ndarray, mask: np
         if cap >= MAX_CAPACITY:
             raise RuntimeError(f"fit_lights: some receiver's visible region needs more than {MAX_CAPACITY} "
                                "boundary edges during the solve.")
+        problem = dataclasses.replace(problem, capacity=min(2 * cap, MAX_CAPACITY))
+        retries += 1
+
+
+def _screen_impl(problem: LightsProblem, rows: Array, base: Array, mask: Array) -> tuple[Array, Array]:
+    """`(losses (S,), overflow)`: $\tfrac12|r|^2$ of the projected residual at every row (the
+    others held at `base` where `mask` is off), one row at a time: no Jacobian (the solver's
+    program with no iterations computes one at every start)."""
+    def one(th: Array) -> tuple[Array, Array]:
+        r, over = projected_residual(jnp.where(mask, th, base), problem, problem.capacity)
+        return 0.5 * jnp.sum(r * r), over
+
+    f, over = jax.lax.map(one, rows)
+    return f, jnp.any(over)
+
+
+_screen = fit_jit(_screen_impl)
+
+
+def screen(problem: LightsProblem, rows: np.ndarray, base: np.ndarray, mask: np.ndarray,
+           chunk: int) -> tuple[np.ndarray, LightsProblem, int]:
+    """The losses (`LMResult.initial_losses` of `solve` with no iterations) at `rows (S, P)`,
+    `chunk` rows a call (one compiled program for any S), again with twice the shadow capacity
+    while some receiver overflowed it. Returns `(losses (S,), problem used, retries)`."""
+    dt = problem.targets.points.dtype
+    retries = 0
+    while True:
+        out, over = [], False
+        for a in range(0, rows.shape[0], chunk):
+            part = rows[a:a + chunk]
+            part = np.concatenate([part, np.repeat(part[:1], chunk - part.shape[0], axis=0)])
+            f, o = _screen(problem, jnp.asarray(part, dt), jnp.asarray(base, dt), jnp.asarray(mask))
+            out.append(np.asarray(f))
+            over = over or bool(o)
+        cap = problem.capacity
+        if cap is None or not over:
+            return np.concatenate(out)[: rows.shape[0]], problem, retries
+        if cap >= MAX_CAPACITY:
+            raise RuntimeError(f"fit_lights: some receiver's visible region needs more than {MAX_CAPACITY} "
+                               "boundary edges during the screening.")
         problem = dataclasses.replace(problem, capacity=min(2 * cap, MAX_CAPACITY))
         retries += 1
 

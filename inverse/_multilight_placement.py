@@ -11,7 +11,7 @@ import itertools
 import jax.numpy as jnp
 import numpy as np
 
-from ._multilight import LightsProblem, solve
+from ._multilight import LightsProblem, screen, solve
 from ._multistart import best_starts
 from ._parametrisation import LightParametrisation
 
@@ -28,9 +28,8 @@ def greedy(problem: LightsProblem, base: np.ndarray, grid_rows: list, offsets: l
     dt = problem.targets.points.dtype
     J = len(problem.params)
     Pt = base.shape[0]
-    lm0 = {**lm, "max_steps": 0}
-    res, problem, retries = solve(problem, pad(base[None], k), base, np.ones(Pt, bool), **lm0)
-    initial = float(np.asarray(res.initial_losses)[0])
+    f0, problem, retries = screen(problem, base[None], base, np.ones(Pt, bool), k)
+    initial = float(f0[0])
     active = np.array([p is None for p in problem.params], np.float64)
     todo = [j for j in range(J) if problem.params[j] is not None]
     n_solved = 0
@@ -47,12 +46,8 @@ def greedy(problem: LightsProblem, base: np.ndarray, grid_rows: list, offsets: l
                 m[P + j] = True
             full = np.tile(base, (grid_rows[j].shape[0], 1))
             full[:, sl] = grid_rows[j]
-            losses = []
-            for a in range(0, full.shape[0], k):
-                r, this, n = solve(this, pad(full[a:a + k], k), base, m, **lm0)
-                retries += n
-                losses.append(np.asarray(r.initial_losses))
-            f = np.concatenate(losses)[: full.shape[0]]
+            f, this, n = screen(this, full, base, m, k)
+            retries += n
             f = np.where(np.isfinite(f), f, np.inf)
             if chosen < 0 or np.min(f) < best_f:
                 best_f, chosen, rows, mask, trial = float(np.min(f)), j, full[best_starts(f, k)], m, this

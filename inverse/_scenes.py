@@ -279,3 +279,23 @@ def one_light_shadow_case(kind: str) -> tuple:
     true = js.Scene([true_light], occluders=occ, ambient=0.1)
     start = js.Scene([start_light], occluders=occ, ambient=0.1)
     return true, start, pts, nrm
+
+
+def near_light_candidates(centres, radii=(0.3, 0.5, 0.8), drops=(0.15, 0.35, 0.6),
+                          n_around: int = 12) -> tuple[np.ndarray, np.ndarray]:
+    """Candidate receivers around (estimated) light centres, where a light's orientation, size
+    and power change the shading most (its near field, seen at grazing angles): for each centre
+    `(3,)`, points `n_around` around it at horizontal `radii` (m) and `drops` (m) below it, each
+    with two normals, towards the centre and up.
+
+    **Returns:** `(points (K, 3), unit normals (K, 3))`, K = 2 len(centres) len(radii) len(drops) n_around.
+    """
+    pts, nrm = [], []
+    for c in np.asarray(centres, np.float64).reshape(-1, 3):
+        for r in radii:
+            for a in np.linspace(0.0, 2 * np.pi, n_around, endpoint=False):
+                for dz in drops:
+                    p = c + [r * np.cos(a), r * np.sin(a), -dz]
+                    pts += [p, p]
+                    nrm += [_unit(c - p), np.array([0.0, 0.0, 1.0])]
+    return np.asarray(pts), np.asarray(nrm)
