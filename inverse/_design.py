@@ -131,6 +131,22 @@ def design_targets(scene: js.Scene, material: js.Material, candidates: tuple, n:
     - `keep`: indices of candidates that are targets already (chosen first).
 
     **Returns:** `TargetDesign`.
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+        import inverse
+
+        scene = js.Scene([js.PointLight([0.3, -0.2, 1.5], 4.0)], ambient=0.05)
+        material = js.Material(ka=0.2, kd=0.6, ks=0.0, exponent=1.0)
+        rng = np.random.default_rng(0)
+        pool = np.c_[rng.uniform(-2.0, 2.0, (60, 2)), np.zeros(60)]
+        up = np.tile([0.0, 0.0, 1.0], (60, 1))
+        design = inverse.design_targets(scene, material, (pool, up), 12, np.array([0.0, -3.0, 2.0]),
+                                        fit=("position", "power"))
+        assert design.points.shape == (12, 3)
+        ```
     """
     pts, nrm = (np.asarray(x, np.float64) for x in candidates)
     if pts.ndim != 2 or pts.shape[1] != 3 or nrm.shape != pts.shape:
