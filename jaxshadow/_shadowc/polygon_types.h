@@ -155,7 +155,8 @@ void prepare_call(PolyCall<T>& call) {
       call.item_extent = std::max(call.item_extent, std::max(std::fabs(call.bvh->nodes[0].box[d]), std::fabs(call.bvh->nodes[0].box[3 + d])));
     std::vector<double> lv(3 * K);
     for (int64_t i = 0; i < 3 * K; i++) lv[i] = double(call.L.E[i]);
-    call.volume = occlusion_volume(lv.data(), K, call.bvh->nodes[0].box, double(eps_of<T>()));
+    const double ne[3] = {double(call.ne_raw.x), double(call.ne_raw.y), double(call.ne_raw.z)};
+    call.volume = occlusion_volume(lv.data(), K, ne, call.bvh->nodes[0].box, double(eps_of<T>()));
   }
   const Occluders<T>& occ = call.occ;
   call.light_side.assign(occ.M, 0);

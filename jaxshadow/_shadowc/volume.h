@@ -45,9 +45,10 @@ struct OcclusionVolume {
   }
 };
 
-// `lv`: the light's K vertices (double, counter-clockwise seen from the lit side, which is
-// +ne); `box`: lo[3], hi[3]; `eps`: the receivers' float type's epsilon.
-inline OcclusionVolume occlusion_volume(const double* lv, int64_t K, const double* box, double eps) {
+// `lv`: the light's K vertices (double, counter-clockwise seen from the lit side); `ne`: their
+// Newell normal (unscaled, towards the lit side); `box`: lo[3], hi[3]; `eps`: the receivers'
+// float type's epsilon.
+inline OcclusionVolume occlusion_volume(const double* lv, int64_t K, const double* ne, const double* box, double eps) {
   OcclusionVolume vol;
   constexpr double kGap = 1e11, kMargin = 1e10;  // times eps: 2.2e-5 and 2.2e-6 in float64
   vol.margin = kMargin * eps;
@@ -72,12 +73,6 @@ inline OcclusionVolume occlusion_volume(const double* lv, int64_t K, const doubl
   };
   auto dt = [](const double* a, const double* b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; };
   // B strictly on the lit side of the light's plane, by the gap.
-  double ne[3] = {0, 0, 0};
-  for (int64_t i = 0; i < K; i++) {
-    double c[3];
-    crs(lv + 3 * i, lv + 3 * ((i + 1) % K), c);
-    for (int d = 0; d < 3; d++) ne[d] += c[d];
-  }
   const double nn = std::sqrt(dt(ne, ne));
   if (!(nn > 0)) return vol;
   for (int c = 0; c < 8; c++) {
