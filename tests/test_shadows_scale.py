@@ -337,6 +337,34 @@ def test_receivers_at_the_occlusion_volume_boundary():
         np.testing.assert_allclose(got32, ref, rtol=2e-4, atol=1e-5)
 
 
+def test_receivers_at_the_umbra_volume_boundary():
+    # A receiver strictly inside a convex solid's umbra volume (the solid hides every light
+    # vertex) is umbra without any region built. For the box [-0.4, 0.4]^2 x [0.9, 1.0] under
+    # LIGHT the volume meets the floor in the square |x|, |y| <= 0.5 (the light's edge x = 0.3
+    # through the box's top edge x = 0.4). Receivers from 1e-3 inside to 0.1 outside its edge and
+    # corner, tilted ones (their horizon clips the light), and points between the floor and the
+    # box down to 1e-9 below its bottom face, in float64 and float32 inputs.
+    lo, hi = (-0.4, -0.4, 0.9), (0.4, 0.4, 1.0)
+    v, f = box(lo, hi)
+    offsets = np.array([-1e-3, -1e-6, -1e-9, 0.0, 1e-12, 1e-9, 1e-7, 1e-6, 1e-3, 0.1])
+    ys = np.array([-0.45, -0.2, 0.0, 0.3])
+    pts = np.array([[0.5 + d, y, 0.0] for d in offsets for y in ys] + [[0.5 + d, 0.5 + d, 0.0] for d in offsets]
+                   + [[0.1, -0.2, z] for z in (0.5, 0.9 - 1e-6, 0.9 - 1e-9)])
+    nrm = np.tile([0.0, 0.0, 1.0], (len(pts), 1))
+    nrm[::3] = [0.6, 0.0, 0.8]
+    nrm[1::5] = [-0.2, 0.9, 0.1]
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    scene = js.Scene([js.PolygonLight(LIGHT, 1.0)], occluders=[js.Mesh(v, f)])
+    ref = np.pi * np.array([reference_ff(p, q, LIGHT, culled(p, q, LIGHT, v[f])) for p, q in zip(pts, nrm, strict=True)])
+    got = np.asarray(js.irradiance(scene, pts, nrm))[:, 0]
+    np.testing.assert_allclose(got, ref, rtol=1e-10, atol=1e-13)
+    cls = js.shadow_plan(scene, pts, nrm).lights[0].classes
+    assert {vis.UMBRA, vis.PENUMBRA} <= set(cls.tolist())
+    assert np.all(got[cls == vis.UMBRA] == 0.0)
+    got32 = np.asarray(js.irradiance(scene, pts.astype(np.float32), nrm.astype(np.float32)))[:, 0]
+    np.testing.assert_allclose(got32, ref, rtol=2e-4, atol=1e-5)
+
+
 def test_boxes_resting_on_the_floor_equal_the_independent_reference():
     # Every floor receiver lies in the plane of every box's bottom face (and some in the planes of
     # their side faces): the engine takes those faces as back faces and keeps one silhouette cone

@@ -17,6 +17,7 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
   w.runs.clear();
   w.cand.clear();
   const double pd[3] = {double(p.x), double(p.y), double(p.z)};
+  bool umbra_hit = false;  // inside a solid's umbra volume (umbra.h)
 
   // Emitter frame (_clip._emitter_frame).
   V3<T> e0 = call.L.v(0);
@@ -44,10 +45,22 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
     };
     const double scale = std::max(double(absmax(p)), double(absmax(e0))) + 1.0;
     const double margin = 1e3 * double(eps_of<T>()) * scale + 64 * double(eps_of<T>()) * (call.item_extent + scale);
-    if (call.volume.outside(p))
+    if (call.volume.outside(p)) {
       w.cand.clear();  // outside the root's occlusion volume: the query would return nothing usable
-    else
+    } else if (call.umbra.any) {
+      // The query, stopped at the first solid whose umbra volume holds p.
+      w.cand.clear();
+      const BVH& bv = *call.bvh;
+      traverse_lazy(bv, ne_edges + 2, margin, make, [&](int32_t i) {
+        const int32_t item = bv.items[i];
+        w.cand.push_back({bv.key[i], item});
+        umbra_hit = item < 0 && call.umbra.inside(-int64_t(item) - 1, pd, bv, occ.solid_faces);
+        return !umbra_hit;
+      });
+      std::sort(w.cand.begin(), w.cand.end());
+    } else {
       query_lazy(*call.bvh, ne_edges + 2, margin, make, w.cand);
+    }
   }
   if (w.cand.empty() && !w.lit_runs && call.n_edges > 0) {
     // Nothing can block: lit, or zero below the horizon. With the whole light above the horizon,
@@ -163,6 +176,11 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
   }
 
   if (w.cand.empty() && !w.lit_runs) return kLit;
+  if (umbra_hit) {  // S hides all of the light, so all of E_h
+    w.n_candidates = int32_t(w.cand.size());
+    w.n_regions = int32_t(w.regions.size());
+    return kUmbra;
+  }
 
   // Per candidate: its region (planes through p) and candidate edges, or drop it.
   V3<T> cone[65];  // E_h's planes (a copy: `planes` grows below)

@@ -3,6 +3,7 @@
 #define JAXSHADOW_SHADOWC_POLYGON_TYPES_H_
 
 #include "bvh.h"
+#include "umbra.h"
 #include "volume.h"
 
 namespace jaxshadow_engine {
@@ -137,6 +138,8 @@ struct PolyCall {
   int n_edges = 0;
   // The occlusion volume of the hierarchy's root box: a receiver outside it needs no query.
   OcclusionVolume volume;
+  // Umbra volumes of the convex solids: a receiver inside one is umbra without building regions.
+  UmbraVolumes umbra;
 };
 
 // Per-call data of the light and the occluders (`light_side`, `ne_raw`, `edge_index`,
@@ -157,6 +160,7 @@ void prepare_call(PolyCall<T>& call) {
     for (int64_t i = 0; i < 3 * K; i++) lv[i] = double(call.L.E[i]);
     const double ne[3] = {double(call.ne_raw.x), double(call.ne_raw.y), double(call.ne_raw.z)};
     call.volume = occlusion_volume(lv.data(), K, ne, call.bvh->nodes[0].box, double(eps_of<T>()));
+    call.umbra = umbra_volumes(call.occ, *call.bvh, lv.data(), K, ne, double(eps_of<T>()));
   }
   const Occluders<T>& occ = call.occ;
   call.light_side.assign(occ.M, 0);
