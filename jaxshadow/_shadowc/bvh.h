@@ -278,6 +278,29 @@ inline void traverse_lazy(const BVH& bvh, int nh, double margin, Make make, F vi
   }
 }
 
+// `visit(slot)` for the item slots of `slots` (in their order) that no half-space rejects: the
+// leaf test of traverse_lazy on a ready list of items. With a list that holds every item
+// traverse_lazy would visit, the same items in the same order.
+template <class Make, class F>
+inline void filter_lazy(const BVH& bvh, const int32_t* slots, size_t n, int nh, double margin, Make make, F visit) {
+  BoxPlane bp[72];
+  if (nh > 72) nh = 72;
+  int ready = 0;
+  for (size_t j = 0; j < n; j++) {
+    const double* b = bvh.ibox.data() + 6 * slots[j];
+    bool r = false;
+    for (int k = 0; k < nh && !r; k++) {
+      while (ready <= k) {
+        const HalfSpace h = make(ready);
+        prepare_planes(&h, 1, margin, bp + ready);
+        ready++;
+      }
+      r = outside6(b, bp[k]);
+    }
+    if (!r && !visit(slots[j])) return;
+  }
+}
+
 template <class Make>
 inline void query_lazy(const BVH& bvh, int nh, double margin, Make make, std::vector<std::pair<int32_t, int32_t>>& out) {
   out.clear();

@@ -2,6 +2,7 @@
 #ifndef JAXSHADOW_SHADOWC_DRIVER_H_
 #define JAXSHADOW_SHADOWC_DRIVER_H_
 
+#include "groups.h"
 #include "polygon.h"
 #include "hard.h"
 
@@ -150,13 +151,44 @@ int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const 
   std::vector<std::vector<Block>> per_thread(threads);
   std::vector<int32_t> counts(N, 0);
   std::atomic<int> err(0);
+  // Receivers in groups of one grid cell that share one hierarchy query (groups.h); the blocks
+  // then hold positions in that order.
+  std::vector<int64_t> perm, cell;
+  const bool grouped = int64_t(bvh.items.size()) >= kGroupMinItems && N >= 4 * kGroupSize;
+  if (grouped) receiver_order(N, P, perm, cell);
   parallel_for(N, threads, [&](int t, int64_t s, int64_t e) {
     Work<T> w;
     w.lit_runs = false;
     Block blk;
     blk.s = s;
     blk.e = e;
-    for (int64_t i = s; i < e; i++) {
+    std::vector<int32_t> group;
+    int64_t group_end = s;
+    for (int64_t k = s; k < e; k++) {
+      const int64_t i = grouped ? perm[k] : k;
+      if (grouped && k == group_end) {  // the next group: positions [k, group_end) of one cell
+        group_end = k + 1;
+        while (group_end < e && group_end - k < kGroupSize && cell[group_end] == cell[k]) group_end++;
+        double lo[3], hi[3];
+        for (int d = 0; d < 3; d++) {
+          lo[d] = std::numeric_limits<double>::infinity();
+          hi[d] = -std::numeric_limits<double>::infinity();
+        }
+        bool query = false;  // some receiver needs it (not outside the occlusion volume)
+        for (int64_t q = k; q < group_end; q++) {
+          const V3<T> x = ld(P + 3 * perm[q]);
+          if (!(std::isfinite(double(x.x)) && std::isfinite(double(x.y)) && std::isfinite(double(x.z)))) continue;
+          query = query || !call.volume.outside(x);
+          const double c[3] = {double(x.x), double(x.y), double(x.z)};
+          for (int d = 0; d < 3; d++) {
+            lo[d] = std::min(lo[d], c[d]);
+            hi[d] = std::max(hi[d], c[d]);
+          }
+        }
+        group.clear();
+        if (query) group_items(call, lo, hi, group);
+        w.group = &group;
+      }
       const int32_t c = receiver_class(call, P, Nrm, i, w, err);
       cls[i] = c;
       // Only penumbra receivers are evaluated from their boundary: a lit receiver's would be
@@ -200,12 +232,24 @@ int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const 
   for (int64_t i = 0; i < N; i++) offsets[i + 1] = offsets[i] + counts[i];
   int64_t total = offsets[N];
   *nruns_out = total;
+  // A block's runs, receiver after receiver in its positions' order, to their CSR rows.
+  auto scatter = [&](const Block& blk, auto* dst, const auto* src, int64_t width) {
+    if (!grouped) {
+      std::memcpy(dst + width * offsets[blk.s], src, sizeof(*src) * width * (offsets[blk.e] - offsets[blk.s]));
+      return;
+    }
+    for (int64_t k = blk.s; k < blk.e; k++) {
+      const int64_t i = perm[k], m = width * counts[i];
+      if (m) std::memcpy(dst + width * offsets[i], src, sizeof(*src) * m);
+      src += m;
+    }
+  };
   if (runs_out) {
     int32_t* runs = static_cast<int32_t*>(std::malloc(sizeof(int32_t) * 14 * std::max<int64_t>(total, 1)));
     if (!runs) return 2;
     for (auto& blocks : per_thread)
       for (auto& blk : blocks)
-        if (!blk.codes.empty()) std::memcpy(runs + 14 * offsets[blk.s], blk.codes.data(), sizeof(int32_t) * blk.codes.size());
+        if (!blk.codes.empty()) scatter(blk, runs, blk.codes.data(), 14);
     *runs_out = runs;
   }
   if (points_out) {
@@ -213,7 +257,7 @@ int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const 
     if (!pts) return 2;
     for (auto& blocks : per_thread)
       for (auto& blk : blocks)
-        if (!blk.pts.empty()) std::memcpy(pts + 6 * offsets[blk.s], blk.pts.data(), sizeof(T) * blk.pts.size());
+        if (!blk.pts.empty()) scatter(blk, pts, blk.pts.data(), 6);
     *points_out = pts;
   }
   return err.load();

@@ -45,21 +45,22 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
     };
     const double scale = std::max(double(absmax(p)), double(absmax(e0))) + 1.0;
     const double margin = 1e3 * double(eps_of<T>()) * scale + 64 * double(eps_of<T>()) * (call.item_extent + scale);
-    if (call.volume.outside(p)) {
-      w.cand.clear();  // outside the root's occlusion volume: the query would return nothing usable
-    } else if (call.umbra.any) {
-      // The query, stopped at the first solid whose umbra volume holds p.
-      w.cand.clear();
+    w.cand.clear();
+    if (!call.volume.outside(p)) {  // outside the root's occlusion volume the query returns nothing usable
+      // The hierarchy's items in its depth-first order (from the receiver's group's list when there
+      // is one), stopped at the first solid whose umbra volume holds p.
       const BVH& bv = *call.bvh;
-      traverse_lazy(bv, ne_edges + 2, margin, make, [&](int32_t i) {
+      auto visit = [&](int32_t i) {
         const int32_t item = bv.items[i];
         w.cand.push_back({bv.key[i], item});
-        umbra_hit = item < 0 && call.umbra.inside(-int64_t(item) - 1, pd, bv, occ.solid_faces);
+        umbra_hit = call.umbra.any && item < 0 && call.umbra.inside(-int64_t(item) - 1, pd, bv, occ.solid_faces);
         return !umbra_hit;
-      });
+      };
+      if (w.group)
+        filter_lazy(bv, w.group->data(), w.group->size(), ne_edges + 2, margin, make, visit);
+      else
+        traverse_lazy(bv, ne_edges + 2, margin, make, visit);
       std::sort(w.cand.begin(), w.cand.end());
-    } else {
-      query_lazy(*call.bvh, ne_edges + 2, margin, make, w.cand);
     }
   }
   if (w.cand.empty() && !w.lit_runs && call.n_edges > 0) {

@@ -58,6 +58,9 @@ struct Work {  // per-thread scratch
   // (compiled) plan evaluates every receiver from its runs; the CSR plan evaluates lit receivers
   // with the unoccluded kernel, so a receiver that no item can block returns at once.
   bool lit_runs = true;
+  // Items (slots, in the hierarchy's depth-first order) that may meet the pyramid of any receiver
+  // of the current group (receiver_groups); null: the receiver queries the hierarchy itself.
+  const std::vector<int32_t>* group = nullptr;
 };
 
 template <class T>
