@@ -365,6 +365,36 @@ def test_receivers_at_the_umbra_volume_boundary():
     np.testing.assert_allclose(got32, ref, rtol=2e-4, atol=1e-5)
 
 
+def test_receiver_groups_give_what_each_receiver_alone_gives():
+    # With >= 8 items and >= 512 receivers in one call the engine orders receivers by grid cell
+    # and queries the hierarchy once per group (the hull of the group's box and the light). The
+    # same receivers in calls of 250 take the per-receiver walk: classes and values are
+    # identical. Receivers: a floor with grazing normals, a tight cluster (groups split at
+    # their size), points at random heights with random normals (some inside or on boxes), and
+    # every class is checked against the independent reference.
+    bxs = boxes(12, seed=5)
+    scene, _, tris = scene_pair(bxs)
+    rng = np.random.default_rng(8)
+    fp, fn = floor(1500, seed=3, grazing=0.2)
+    cp = np.array([0.3, -0.2, 0.0]) + np.concatenate([rng.uniform(-0.01, 0.01, (300, 2)), np.zeros((300, 1))], axis=1)
+    hp = np.concatenate([rng.uniform(-1.2, 1.2, (200, 2)), rng.uniform(0.0, 1.5, (200, 1))], axis=1)
+    hn = rng.normal(size=(200, 3))
+    p = np.concatenate([fp, cp, hp])
+    nrm = np.concatenate([fn, np.tile([0.0, 0.0, 1.0], (300, 1)), hn])
+    whole = np.asarray(js.irradiance(scene, p, nrm))
+    parts = np.concatenate([np.asarray(js.irradiance(scene, p[s:s + 250], nrm[s:s + 250])) for s in range(0, len(p), 250)])
+    np.testing.assert_array_equal(whole, parts)
+    cls = js.shadow_plan(scene, p, nrm).lights[0].classes
+    cls_parts = np.concatenate([js.shadow_plan(scene, p[s:s + 250], nrm[s:s + 250]).lights[0].classes
+                                for s in range(0, len(p), 250)])
+    np.testing.assert_array_equal(cls, cls_parts)
+    pick = np.concatenate([rng.choice(np.nonzero(cls[:1800] == c)[0], 25, replace=False)
+                           for c in (vis.LIT, vis.UMBRA, vis.PENUMBRA)])
+    nn = nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
+    ref = np.pi * np.array([reference_ff(q, m, LIGHT, culled(q, m, LIGHT, tris)) for q, m in zip(p[pick], nn[pick], strict=True)])
+    np.testing.assert_allclose(whole[pick, 0], ref, rtol=1e-10, atol=1e-12)
+
+
 def test_boxes_resting_on_the_floor_equal_the_independent_reference():
     # Every floor receiver lies in the plane of every box's bottom face (and some in the planes of
     # their side faces): the engine takes those faces as back faces and keeps one silhouette cone
