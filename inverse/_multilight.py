@@ -295,6 +295,11 @@ def projected_residual(theta: Array, problem: LightsProblem, capacity: int | Non
 def structured_residual(theta: Array, problem: LightsProblem, powers: Array, material: js.Material) -> Array:
     """$\\sqrt{w}(L_{model} - C)$ `(3N,)` at given powers `(J,)` and material (no projection; the
     shadow engine at `problem.capacity`, which the solve checked): the report's Jacobian in $\\theta$."""
+    return _structured(theta, problem, powers, material)[0]
+
+
+def _structured(theta: Array, problem: LightsProblem, powers: Array, material: js.Material) -> tuple:
+    """`(structured_residual, (E, S or zeros))`: the rows and the basis they were made of."""
     t = problem.targets
     dt = theta.dtype
     E, S, _ = basis(theta, problem, problem.capacity)
@@ -304,15 +309,18 @@ def structured_residual(theta: Array, problem: LightsProblem, powers: Array, mat
     model = material.ka.astype(dt)[None, :] * La + material.kd.astype(dt)[None, :] / jnp.pi * e
     if S is not None:
         model = model + material.ks.astype(dt)[None, :] * (problem.s_fixed.astype(dt) + jnp.sum(p * S, axis=0))
-    return painted_rows(model, t.colours, jnp.sqrt(t.weights), problem.paint)
+    rows = painted_rows(model, t.colours, jnp.sqrt(t.weights), problem.paint)
+    return rows, (E, jnp.zeros_like(E) if S is None else S)
 
 
 @fit_jit
 def report_parts(problem: LightsProblem, theta: Array, powers: Array, material: js.Material) -> tuple:
-    """`(E, S, J_theta (3N, P))` at `theta`: the basis and the structured residual's Jacobian."""
-    E, S, _ = basis(theta, problem, problem.capacity)
-    J = jax.jacfwd(structured_residual)(theta, problem, powers, material)
-    return E, (jnp.zeros_like(E) if S is None else S), J
+    """`(E, S, J_theta (3N, P))` at `theta`: the basis and the structured residual's Jacobian,
+    from one linearisation (`jax.linearize`, the tangent map on the P basis vectors, as the
+    solver's Jacobian): the shadow engine is traced once, its primal shared by E, S and J."""
+    rows, lin, (E, S) = jax.linearize(lambda th: _structured(th, problem, powers, material), theta, has_aux=True)
+    J = jax.vmap(lin, out_axes=1)(jnp.eye(theta.shape[0], dtype=theta.dtype))
+    return E, S, J
 
 
 @fit_jit
