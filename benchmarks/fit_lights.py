@@ -339,7 +339,10 @@ def markdown(results: dict) -> str:
     rows = ["Acceptance: position within 1 % of the scene, orientation within 1 deg, power within 2 %, material "
             "within 0.01, fit <= 30 s. Errors against the hidden truth; [the report's standard error]; "
             "{the standard error the design predicted at the lights of the case it was designed at (`design_at`)}. "
-            "Fit times were measured on a shared, loaded machine (load average in the JSON's meta).", "",
+            "Fit times were measured on a shared, loaded machine (load average in the JSON's meta). Mitsuba "
+            "targets: 2^18 samples per point, points whose Monte Carlo relative standard error (Mitsuba's own "
+            "estimate) exceeds 0.2 x the added noise rendered again with more (up to 2^24); the worst left is in "
+            "the JSON (`mc_stderr_rel_max`).", "",
             "| case | position error (% of scene) [std. error] {design} | orientation (deg) [std. error] {design} | "
             "size (rel) | power (rel) [std. error] {design} | material [std. error] | loss | starts solved "
             "(8 per light; 512 if multiplied) | fit (s, compile included) | of which compiling / tracing (s) |",
