@@ -119,23 +119,50 @@ def one_light_scene(scene: js.Scene, light: Any) -> js.Scene:
     return eqx.tree_at(lambda s: s.lights, scene, (light,))
 
 
+def _one_basis(light: Any, problem: LightsProblem, capacity: int | None) -> tuple[Array, Array | None, Array]:
+    """`(E (N, 3), S (N, 3) or None, overflow)` of one light at reference power."""
+    t = problem.targets
+    sc = one_light_scene(problem.scene, pinned(light))
+    e, over = irradiance_culled(sc, t.points, t.normals, capacity)
+    if not problem.with_specular:
+        return e, None, over
+    s, o = specular_culled(sc, t.points, t.normals, t.eye, problem.material.exponent.astype(t.points.dtype),
+                           problem.specular, capacity)
+    return e, s, over | o
+
+
+def same_kind_groups(lights: list) -> list[list[int]]:
+    """Indices of `lights` grouped by pytree structure and leaf shapes and dtypes (first
+    appearance order): the lights of one group can be stacked and run through one copy of the
+    shadow engine (`jax.vmap`)."""
+    groups: dict = {}
+    for j, light in enumerate(lights):
+        leaves, tdef = jax.tree_util.tree_flatten(light)
+        key = (tdef, tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves))
+        groups.setdefault(key, []).append(j)
+    return list(groups.values())
+
+
 def basis(theta: Array, problem: LightsProblem, capacity: int | None) -> tuple[Array, Array | None, Array]:
     """`(E (J, N, 3), S (J, N, 3) or None, overflow)`: each fitted light's irradiance and
-    specular integral at reference power (`jaxshadow.traced`, at `capacity`)."""
-    t = problem.targets
-    dt = theta.dtype
-    es, ss = [], []
+    specular integral at reference power (`jaxshadow.traced`, at `capacity`). Lights of the
+    same kind and shape share one traced copy of the shadow engine (`jax.vmap` over them): the
+    compiled program holds one engine per kind, not one per light."""
+    lights = lights_at(theta, problem)
+    es: list = [None] * len(lights)
+    ss: list = [None] * len(lights)
     over = jnp.zeros((), bool)
-    for light in lights_at(theta, problem):
-        sc = one_light_scene(problem.scene, pinned(light))
-        e, o = irradiance_culled(sc, t.points, t.normals, capacity)
-        es.append(e)
-        over = over | o
-        if problem.with_specular:
-            s, o = specular_culled(sc, t.points, t.normals, t.eye, problem.material.exponent.astype(dt),
-                                   problem.specular, capacity)
-            ss.append(s)
-            over = over | o
+    for group in same_kind_groups(lights):
+        if len(group) == 1:
+            e, s, o = _one_basis(lights[group[0]], problem, capacity)
+            e, s, o = e[None], None if s is None else s[None], o
+        else:
+            stacked = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *(lights[j] for j in group))
+            e, s, o = jax.vmap(lambda light: _one_basis(light, problem, capacity))(stacked)
+        over = over | jnp.any(o)
+        for i, j in enumerate(group):
+            es[j] = e[i]
+            ss[j] = None if s is None else s[i]
     return jnp.stack(es), (jnp.stack(ss) if problem.with_specular else None), over
 
 
@@ -268,6 +295,11 @@ def projected_residual(theta: Array, problem: LightsProblem, capacity: int | Non
 def structured_residual(theta: Array, problem: LightsProblem, powers: Array, material: js.Material) -> Array:
     """$\\sqrt{w}(L_{model} - C)$ `(3N,)` at given powers `(J,)` and material (no projection; the
     shadow engine at `problem.capacity`, which the solve checked): the report's Jacobian in $\\theta$."""
+    return _structured(theta, problem, powers, material)[0]
+
+
+def _structured(theta: Array, problem: LightsProblem, powers: Array, material: js.Material) -> tuple:
+    """`(structured_residual, (E, S or zeros))`: the rows and the basis they were made of."""
     t = problem.targets
     dt = theta.dtype
     E, S, _ = basis(theta, problem, problem.capacity)
@@ -277,15 +309,18 @@ def structured_residual(theta: Array, problem: LightsProblem, powers: Array, mat
     model = material.ka.astype(dt)[None, :] * La + material.kd.astype(dt)[None, :] / jnp.pi * e
     if S is not None:
         model = model + material.ks.astype(dt)[None, :] * (problem.s_fixed.astype(dt) + jnp.sum(p * S, axis=0))
-    return painted_rows(model, t.colours, jnp.sqrt(t.weights), problem.paint)
+    rows = painted_rows(model, t.colours, jnp.sqrt(t.weights), problem.paint)
+    return rows, (E, jnp.zeros_like(E) if S is None else S)
 
 
 @fit_jit
 def report_parts(problem: LightsProblem, theta: Array, powers: Array, material: js.Material) -> tuple:
-    """`(E, S, J_theta (3N, P))` at `theta`: the basis and the structured residual's Jacobian."""
-    E, S, _ = basis(theta, problem, problem.capacity)
-    J = jax.jacfwd(structured_residual)(theta, problem, powers, material)
-    return E, (jnp.zeros_like(E) if S is None else S), J
+    """`(E, S, J_theta (3N, P))` at `theta`: the basis and the structured residual's Jacobian,
+    from one linearisation (`jax.linearize`, the tangent map on the P basis vectors, as the
+    solver's Jacobian): the shadow engine is traced once, its primal shared by E, S and J."""
+    rows, lin, (E, S) = jax.linearize(lambda th: _structured(th, problem, powers, material), theta, has_aux=True)
+    J = jax.vmap(lin, out_axes=1)(jnp.eye(theta.shape[0], dtype=theta.dtype))
+    return E, S, J
 
 
 @fit_jit

@@ -119,7 +119,7 @@ def test_joint_residual_gradient_matches_central_differences():
     targets = _targets(true, material)
     start = _start(true, 0.3)
     from inverse._fit_lights import _groups_for
-    from inverse._multilight import LightsProblem
+    from inverse._multilight import LightsProblem, basis, lights_at, same_kind_groups
 
     size = inverse.scene_size(start, targets)
     params, offsets, off = [], [], 0
@@ -140,6 +140,15 @@ def test_joint_residual_gradient_matches_central_differences():
     fd = np.stack([(np.asarray(fn(theta.at[i].add(h))[0]) - np.asarray(fn(theta.at[i].add(-h))[0])) / (2 * h)
                    for i in range(off)], axis=1)
     np.testing.assert_allclose(J, fd, atol=2e-6 * np.max(np.abs(fd)), rtol=1e-4)
+    # The two quads share one (vmapped) copy of the shadow engine; each light's basis column is
+    # still its own irradiance (`js.irradiance`, one light at a time, its own engine).
+    lights = lights_at(theta, problem)
+    assert same_kind_groups(lights) == [[0, 1], [2]]
+    E = np.asarray(jax.jit(lambda th: basis(th, problem, problem.capacity)[0])(theta))
+    for j, light in enumerate(lights):
+        one = js.Scene([light], occluders=start.occluders, ambient=start.ambient)
+        np.testing.assert_allclose(E[j], np.asarray(js.irradiance(one, targets.points, targets.normals)),
+                                   rtol=1e-10, atol=1e-13)
 
 
 def test_fit_lights_errors():
