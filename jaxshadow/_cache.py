@@ -130,7 +130,8 @@ class ShadowCache:
         """The contribution per unit emission of light `light_i` at receivers `idx` (fresh)."""
         if idx.size == 0:
             return np.zeros(0, self._p.dtype)
-        pl = sh.plan(scene, self._p[idx], self._n[idx], codes=False, decoded=True, lights=[scene.lights[light_i]])
+        pl = sh.plan(scene, self._p[idx], self._n[idx], codes=False, decoded=False, lights=[scene.lights[light_i]],
+                     lambert=True)
         return np.asarray(sh.light_values(pl.lights[0], scene.lights[light_i], sh.Lambert(), self._p[idx],
                                           self._n[idx], self._p[idx], None, True))
 

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-ABI_VERSION = 1
+ABI_VERSION = 2
 CODE_WIDTH = 7
 
 
@@ -24,7 +24,7 @@ def load(path: str) -> Any:
         return None
     p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
     occ: list[Any] = [i64, i64, p, p, p, i64, p, p, p]
-    lib.jaxshadow_poly_plan.argtypes = [i32, i64, p, p, i64, p, *occ, i32, p, p, p, p, p, ctypes.POINTER(i64)]
+    lib.jaxshadow_poly_plan.argtypes = [i32, i64, p, p, i64, p, *occ, i32, p, p, p, p, p, ctypes.POINTER(i64), p]
     lib.jaxshadow_poly_fixed.argtypes = [i32, i64, p, p, i64, p, *occ, i32, i64, p, p, p]
     lib.jaxshadow_hard_plan.argtypes = [i32, i64, p, p, i32, i64, *occ, i32, p]
     lib.jaxshadow_segment_plan.argtypes = [i32, i64, p, p, p, *occ, i32, p, ctypes.POINTER(p)]
@@ -59,10 +59,12 @@ def take_buffer(lib: Any, buf: ctypes.c_void_p, ctype: Any, shape: tuple) -> np.
 
 
 def poly_plan(lib: Any, p: np.ndarray, n: np.ndarray, v: np.ndarray, occ_args: list, threads: int, codes: bool,
-              decoded: bool) -> tuple:
+              decoded: bool, lambert: bool = False) -> tuple:
     """`jaxshadow_poly_plan` on contiguous `p`, `n (N, 3)`, `v (K, 3)` of one float dtype:
     `(classes (N,), stats (N, 2), offsets (N + 1,), runs (R, 2, 7) or None, points (R, 2, 3) or
-    None)`. Raises `MemoryError` / `ValueError` as the engine reports."""
+    None, lambert (N,) float64 or None)`; with `lambert`, each receiver's sum of Lambert's edge
+    terms over its boundary (`_polygon.edge_term`, in double; 0 without a boundary). Raises
+    `MemoryError` / `ValueError` as the engine reports."""
     dt = p.dtype
     N, K = p.shape[0], v.shape[0]
     cls = np.zeros(N, np.int32)
@@ -70,9 +72,11 @@ def poly_plan(lib: Any, p: np.ndarray, n: np.ndarray, v: np.ndarray, occ_args: l
     off = np.zeros(N + 1, np.int64)
     runs, pts = ctypes.c_void_p(), ctypes.c_void_p()
     nr = ctypes.c_int64()
+    lam = np.zeros(N, np.float64) if lambert else None
     rc = lib.jaxshadow_poly_plan(int(dt == np.float64), N, ptr(p), ptr(n), K, ptr(v), *occ_args, threads, ptr(cls),
                                  ptr(stats), ptr(off), ctypes.byref(runs) if codes else None,
-                                 ctypes.byref(pts) if decoded else None, ctypes.byref(nr))
+                                 ctypes.byref(pts) if decoded else None, ctypes.byref(nr),
+                                 None if lam is None else ptr(lam))
     total = nr.value
     code_arr = take_buffer(lib, runs, ctypes.c_int32, (total, 2, CODE_WIDTH))
     ctype = ctypes.c_double if dt == np.float64 else ctypes.c_float
@@ -81,4 +85,4 @@ def poly_plan(lib: Any, p: np.ndarray, n: np.ndarray, v: np.ndarray, occ_args: l
         raise MemoryError("jaxshadow shadow engine: out of memory for the boundary codes")
     if rc:
         raise ValueError("jaxshadow shadow engine: a light has more than 64 vertices")
-    return cls, stats, off, code_arr, pt_arr
+    return cls, stats, off, code_arr, pt_arr, lam

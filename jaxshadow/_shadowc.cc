@@ -85,13 +85,14 @@ Occluders<double> occ_double(int64_t K, JS_OCC_PARAMS, Inputs& in) {
 
 template <class T>
 int poly_plan_any(int64_t N, const void* P, const void* Nrm, int64_t K, const void* E, JS_OCC_PARAMS, int threads,
-                  int32_t* cls, int32_t* stats, int64_t* offsets, int32_t** runs, void** points, int64_t* nruns) {
+                  int32_t* cls, int32_t* stats, int64_t* offsets, int32_t** runs, void** points, int64_t* nruns,
+                  double* lambert) {
   Inputs in;
   auto occ = occ_double<T>(K, M, Ko, faces, face_solid, face_closed, S, solid_faces, solid_edge_off, solid_edges, in);
   double* pts = nullptr;
   int rc = poly_plan<double>(N, as_double<T>(P, size_t(3 * N), in.p), as_double<T>(Nrm, size_t(3 * N), in.n), K,
                              as_double<T>(E, size_t(3 * K), in.e), occ, threads, cls, stats, offsets, runs,
-                             points ? &pts : nullptr, nruns);
+                             points ? &pts : nullptr, nruns, lambert);
   if (points && pts) {
     if (std::is_same<T, double>::value) {
       *points = pts;
@@ -114,16 +115,18 @@ int poly_plan_any(int64_t N, const void* P, const void* Nrm, int64_t K, const vo
 
 extern "C" {
 
-int jaxshadow_shadowc_abi(void) { return 1; }
+int jaxshadow_shadowc_abi(void) { return 2; }
 
 void jaxshadow_free(void* p) { std::free(p); }
 
+// `lambert` (N doubles, or null): each receiver's sum of Lambert's edge terms over its boundary
+// (driver.h, lambert_edge).
 int jaxshadow_poly_plan(int is_f64, int64_t N, const void* P, const void* Nrm, int64_t K, const void* E, JS_OCC_ARGS,
                         int threads, int32_t* cls, int32_t* stats, int64_t* offsets, int32_t** runs, void** points,
-                        int64_t* nruns) {
+                        int64_t* nruns, double* lambert) {
   auto fn = is_f64 ? poly_plan_any<double> : poly_plan_any<float>;
   return fn(N, P, Nrm, K, E, M, Ko, faces, face_solid, face_closed, S, solid_faces, solid_edge_off, solid_edges,
-            threads, cls, stats, offsets, runs, points, nruns);
+            threads, cls, stats, offsets, runs, points, nruns, lambert);
 }
 
 int jaxshadow_poly_fixed(int is_f64, int64_t N, const void* P, const void* Nrm, int64_t K, const void* E, JS_OCC_ARGS,

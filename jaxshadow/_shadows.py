@@ -56,7 +56,7 @@ from ._clip import (
 from ._geometry import newell_normal
 from ._linear import linear_irradiance_kernel
 from ._point import directional_irradiance_kernel, point_irradiance_kernel
-from ._polygon import edge_term, form_factor_kernel
+from ._polygon import form_factor_kernel
 from ._scene import LinearLight, PointLight, PolygonLight, Scene
 from ._specular import (
     DEFAULT_DEGREE,
@@ -212,6 +212,7 @@ class LightPlan:
     runs: Any = None
     points: Any = None
     faces: Any = None  # segment lights: candidate faces (CSR with `offsets`), np.ndarray
+    lambert: Any = None  # polygon lights with `points`: each receiver's sum of Lambert's edge terms
     seconds: float = 0.0
 
     @property
@@ -265,9 +266,9 @@ def host_occluders(scene: Scene, dtype: Any) -> vis.HostOccluders:
 
 
 def plan(scene: Scene, points: np.ndarray, normals: np.ndarray, *, codes: bool, decoded: bool,
-         lights: list | None = None) -> ShadowPlan:
+         lights: list | None = None, lambert: bool = False) -> ShadowPlan:
     """Run the engine for every light of `scene` (or `lights`) on concrete receivers (unit
-    `normals`)."""
+    `normals`); `lambert`: polygon lights' plans carry each receiver's Lambert edge sum."""
     dt = points.dtype
     occ = host_occluders(scene, dt)
     t_all = time.perf_counter()
@@ -275,8 +276,10 @@ def plan(scene: Scene, points: np.ndarray, normals: np.ndarray, *, codes: bool, 
     for light in scene.lights if lights is None else lights:
         t = time.perf_counter()
         if isinstance(light, PolygonLight):
-            pc = vis.polygon_codes(points, normals, np.asarray(light.vertices, dt), occ, codes=codes, decoded=decoded)
-            lp = LightPlan("polygon", pc.classes, pc.stats[:, 0], pc.stats[:, 1], pc.offsets, pc.runs, pc.points)
+            pc = vis.polygon_codes(points, normals, np.asarray(light.vertices, dt), occ, codes=codes, decoded=decoded,
+                                   lambert=lambert)
+            lp = LightPlan("polygon", pc.classes, pc.stats[:, 0], pc.stats[:, 1], pc.offsets, pc.runs, pc.points,
+                           lambert=pc.lambert)
         elif isinstance(light, LinearLight):
             off, faces = vis.segment_candidates(points, np.asarray(light.start, dt), np.asarray(light.end, dt), occ)
             cnt = np.diff(off).astype(np.int32)
@@ -385,14 +388,6 @@ def _contour_block(integ, p, n, e, verts, starts, ends):
 
 
 @jax.jit
-def _lambert_edge_block(p, n, starts, ends):
-    """Lambert's term of each boundary edge (`(R,)`, zero-length edges exactly 0), receivers
-    repeated per edge: the contour sum without padding receivers to a capacity."""
-    used = jnp.any(starts != ends, axis=1)
-    return jnp.where(used, jax.vmap(edge_term)(p, n, starts, ends), 0.0)
-
-
-@jax.jit
 def _decoded_block(integ, p, n, e, verts, faces, runs):
     fn, f0 = vis.face_frames(faces)
     table = vis.vertex_table(verts, faces)
@@ -460,7 +455,7 @@ def light_values(lp: LightPlan, light: Any, integ: Any, p: Any, n: Any, e: Any, 
     """`(N,)` contribution per unit emission of one light, from its plan.
 
     `concrete`: every input is a NumPy array and nothing is differentiated (the plan then holds
-    decoded `points`); otherwise `p`, `n`, `e`, the light and `faces` may carry derivatives and
+    the engine's Lambert edge sums for `Lambert`, decoded `points` for other integrands); otherwise `p`, `n`, `e`, the light and `faces` may carry derivatives and
     polygon boundaries are decoded from the plan's codes in JAX. `unoccluded` (concrete polygon
     lights): a function that returns the unoccluded values of every receiver, dispatched before
     the plan was made (`_dispatch_blocks`)."""
@@ -488,16 +483,10 @@ def light_values(lp: LightPlan, light: Any, integ: Any, p: Any, n: Any, e: Any, 
                                            (_take(p, lit), _take(n, lit), _take(e, lit)), rows)))
         pen = np.nonzero(lp.classes == vis.PENUMBRA)[0]
         if concrete and isinstance(integ, Lambert) and pen.size:
-            # Lambert's contour sum is a sum of edge terms: evaluated over the flat list of
-            # boundary edges and added up per receiver (Lambert.contour = pi * (-sum / 2 pi)).
-            assert lp.offsets is not None and lp.points is not None
-            # Only penumbra receivers have stored edges (the CSR rows of the others are empty).
-            counts = np.diff(lp.offsets)[pen]
-            assert counts.sum() == lp.points.shape[0]
-            owner = np.repeat(pen, counts)
-            ends = (np.ascontiguousarray(lp.points[:, 0]), np.ascontiguousarray(lp.points[:, 1]))
-            terms = _map_blocks(_lambert_edge_block, (_take(p, owner), _take(n, owner), *ends), EDGE_BLOCK)
-            f = np.bincount(np.repeat(np.arange(pen.size), counts), weights=np.asarray(terms), minlength=pen.size)
+            # Lambert's contour sum is a sum of edge terms (Lambert.contour = pi * (-sum / 2 pi)):
+            # the engine adds them up, in double, as it decodes the edges (`edge_term`'s formula).
+            assert lp.lambert is not None
+            f = lp.lambert[pen]
             v = np.asarray(verts)
             ne = np.asarray(newell_normal(jnp.asarray(verts)))
             parts.append((pen, np.where((_take(p, pen) - v[0]) @ ne > 0, -0.5 * f, 0.0).astype(dt)))
@@ -573,7 +562,9 @@ def host_values(scene: Scene, integ: Any, points: np.ndarray, normals: np.ndarra
                 verts = np.asarray(light.vertices, dt)
                 early[j] = _dispatch_blocks(lambda a, b, c, v=verts: _lit_block(integ, a, b, c, v),
                                             (points[sl], normals[sl], e[sl]), rows)
-        pl = plan(scene, points[sl], normals[sl], codes=False, decoded=True)
+        # Lambert's values need only the engine's edge sums; other integrands the decoded edges.
+        lam = isinstance(integ, Lambert)
+        pl = plan(scene, points[sl], normals[sl], codes=False, decoded=not lam, lambert=lam)
         for j, (lp, light) in enumerate(zip(pl.lights, scene.lights, strict=True)):
             gs[j, sl] = np.asarray(light_values(lp, light, integ, points[sl], normals[sl], e[sl], faces, True,
                                                 early.get(j)))

@@ -142,13 +142,16 @@ class PolygonCodes:
     `PENUMBRA`), `stats (N, 2)` (occluders the hierarchy returned, occluder regions kept),
     `offsets (N + 1,)`; receiver i's boundary edges are rows `offsets[i]:offsets[i + 1]` of
     `runs (R, 2, 7)` (endpoint codes) and/or `points (R, 2, 3)` (their points, decoded on the host);
-    for `LIT` receivers, the edges of the horizon-clipped light."""
+    for `LIT` receivers, the edges of the horizon-clipped light. `lambert (N,)` float64 (when
+    asked for): each receiver's sum of Lambert's edge terms over its boundary (`edge_term`,
+    computed on the host in double), so that its form factor is `-lambert / (2 pi)`."""
 
     classes: np.ndarray
     stats: np.ndarray
     offsets: np.ndarray
     runs: Any  # np.ndarray or None
     points: Any  # np.ndarray or None
+    lambert: Any = None  # np.ndarray or None
 
     @property
     def counts(self) -> np.ndarray:
@@ -156,13 +159,13 @@ class PolygonCodes:
 
 
 def polygon_codes(points: np.ndarray, normals: np.ndarray, verts: np.ndarray, occ: HostOccluders,
-                  codes: bool = True, decoded: bool = False) -> PolygonCodes:
+                  codes: bool = True, decoded: bool = False, lambert: bool = False) -> PolygonCodes:
     """Classify receivers and compute the boundary of their visible regions (host, C++).
 
     **Arguments:** `points`, `normals` `(N, 3)` (unit normals), `verts (K, 3)` padded convex light,
     `occ` the occluders; float32 or float64 (all in `occ.faces`' dtype); `codes`: return the endpoint
     codes; `decoded`: return the endpoints' points (decoded on the host, for values that are not
-    differentiated).
+    differentiated); `lambert`: return each receiver's sum of Lambert's edge terms (`lambert`).
 
     **Returns:** `PolygonCodes`.
     """
@@ -171,7 +174,7 @@ def polygon_codes(points: np.ndarray, normals: np.ndarray, verts: np.ndarray, oc
     p = np.ascontiguousarray(points, dt)
     n = np.ascontiguousarray(normals, dt)
     v = np.ascontiguousarray(verts, dt)
-    return PolygonCodes(*_abi.poly_plan(lib, p, n, v, occ.args(), threads(), codes, decoded))
+    return PolygonCodes(*_abi.poly_plan(lib, p, n, v, occ.args(), threads(), codes, decoded, lambert))
 
 
 def hard_visibility(points: np.ndarray, x: np.ndarray, is_point: bool, occ: HostOccluders) -> np.ndarray:

@@ -395,6 +395,27 @@ def test_receiver_groups_give_what_each_receiver_alone_gives():
     np.testing.assert_allclose(whole[pick, 0], ref, rtol=1e-10, atol=1e-12)
 
 
+def test_engine_lambert_sums_equal_the_jax_edge_terms():
+    # On the host path Lambert's contour sum of a penumbra receiver is added up by the engine as
+    # it decodes the boundary (lambert_edge, in double): the same sum as `edge_term` over the
+    # decoded edges in JAX, for float64 and float32 receivers, grazing ones included (float32:
+    # the engine sums its double points, the returned points are rounded to float32).
+    from jaxshadow._polygon import edge_term
+    from jaxshadow._shadows import host_occluders
+
+    for dt, tol in ((np.float64, 1e-12), (np.float32, 2e-6)):
+        occ = host_occluders(SCENE, dt)
+        nn = (N / np.linalg.norm(N, axis=1, keepdims=True)).astype(dt)
+        pc = vis.polygon_codes(P.astype(dt), nn, LIGHT.astype(dt), occ, codes=False, decoded=True, lambert=True)
+        assert pc.lambert is not None and pc.points is not None
+        owner = np.repeat(np.arange(len(P)), np.diff(pc.offsets))
+        terms = jax.vmap(edge_term)(jnp.asarray(P[owner], jnp.float64), jnp.asarray(nn[owner], jnp.float64),
+                                    jnp.asarray(pc.points[:, 0], jnp.float64), jnp.asarray(pc.points[:, 1], jnp.float64))
+        want = np.bincount(owner, weights=np.asarray(terms), minlength=len(P))
+        assert np.count_nonzero(want) >= 10
+        np.testing.assert_allclose(pc.lambert, want, rtol=tol, atol=tol * np.abs(want).max())
+
+
 def test_boxes_resting_on_the_floor_equal_the_independent_reference():
     # Every floor receiver lies in the plane of every box's bottom face (and some in the planes of
     # their side faces): the engine takes those faces as back faces and keeps one silhouette cone

@@ -135,9 +135,32 @@ int32_t receiver_class(const PolyCall<T>& call, const T* P, const T* Nrm, int64_
 
 // Polygon plan, CSR output: classes (N), offsets (N + 1), runs (R, 2, 7) codes and/or (R, 2, 3) points
 // (malloc'd, freed by the caller).
+// Lambert's term theta (n . Gamma) of the boundary edge a -> b seen from p (`_polygon.edge_term`:
+// the edge's ends as unit vectors from p, theta = atan2(|A x B|, A . B); zero for a zero-length
+// edge and for p on the edge). Its sum over a receiver's boundary is -2 pi times the form factor.
+template <class T>
+inline T lambert_edge(V3<T> p, V3<T> n, V3<T> a, V3<T> b) {
+  auto unit = [](V3<T> v) -> V3<T> {
+    const T s = absmax(v);
+    if (!(s > 0)) return V3<T>{0, 0, 0};
+    v = V3<T>{v.x / s, v.y / s, v.z / s};
+    const T r = std::sqrt(dot(v, v));
+    return V3<T>{v.x / r, v.y / r, v.z / r};
+  };
+  const V3<T> A = unit(a - p), B = unit(b - p), c = cross(A, B);
+  const T s2 = dot(c, c);
+  if (!(s2 > 0)) return T(0);
+  const T sn = std::sqrt(s2);
+  return std::atan2(sn, dot(A, B)) / sn * dot(n, c);
+}
+
+// `lambert` (N, nullable): per receiver the sum of lambert_edge over its boundary (0 without
+// one), for Lambert's integrand on the host path (the edges are decoded for it, also without
+// `points_out`).
 template <class T>
 int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const Occluders<T>& occ, int threads,
-              int32_t* cls, int32_t* stats, int64_t* offsets, int32_t** runs_out, T** points_out, int64_t* nruns_out) {
+              int32_t* cls, int32_t* stats, int64_t* offsets, int32_t** runs_out, T** points_out, int64_t* nruns_out,
+              T* lambert = nullptr) {
   BVH bvh = build_bvh(occ);
   prepare_solids(occ, bvh);
   PolyCall<T> call{Light<T>{K, E}, occ, &bvh, {}};
@@ -204,7 +227,8 @@ int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const 
           blk.codes.insert(blk.codes.end(), r.s.v, r.s.v + 7);
           blk.codes.insert(blk.codes.end(), r.e.v, r.e.v + 7);
         }
-      if (points_out && !w.runs.empty()) {
+      if (lambert) lambert[i] = 0;
+      if ((points_out || lambert) && !w.runs.empty()) {
         // A boundary vertex ends one run and starts the next under the same code: decoded once
         // (the same code gives the same point bit for bit).
         Decoder<T> dec(call, ld(P + 3 * i), ld(Nrm + 3 * i));
@@ -217,13 +241,19 @@ int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const 
           return x;
         };
         size_t o = blk.pts.size();
-        blk.pts.resize(o + 6 * w.runs.size());
+        if (points_out) blk.pts.resize(o + 6 * w.runs.size());
+        T sum = 0;
+        const V3<T> pi = ld(P + 3 * i), ni = ld(Nrm + 3 * i);
         for (const Run& r : w.runs) {
           const V3<T> a = point(r.s), b = point(r.e);
-          T* q = blk.pts.data() + o;
-          q[0] = a.x, q[1] = a.y, q[2] = a.z, q[3] = b.x, q[4] = b.y, q[5] = b.z;
-          o += 6;
+          if (points_out) {
+            T* q = blk.pts.data() + o;
+            q[0] = a.x, q[1] = a.y, q[2] = a.z, q[3] = b.x, q[4] = b.y, q[5] = b.z;
+            o += 6;
+          }
+          if (lambert) sum += lambert_edge(pi, ni, a, b);
         }
+        if (lambert) lambert[i] = sum;
       }
     }
     per_thread[t].push_back(std::move(blk));
