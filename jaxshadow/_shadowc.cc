@@ -29,7 +29,13 @@
 // Receivers that no item's box can reach are classified before any other work (lit, or zero
 // below their horizon) where the caller evaluates lit receivers with the unoccluded kernel;
 // before the hierarchy is queried, a receiver outside the occlusion volume of the root's box
-// (planes computed once per call, `_shadowc/volume.h`) is known to be such a receiver.
+// (planes computed once per call, `_shadowc/volume.h`) is known to be such a receiver. A receiver
+// strictly inside a convex solid's umbra volume (C&F §3.1.3, `_shadowc/umbra.h`) is umbra as soon
+// as the query meets that solid. Large batches are ordered by grid cell and each group of nearby
+// receivers queries the hierarchy once with the hull of its box and the light; each receiver then
+// filters that list (C&F §4.1/§4.3 occluder lists refined down the receivers, `_shadowc/groups.h`).
+// For Lambert's integrand the host path takes each penumbra receiver's contour sum from the engine
+// (edge terms added up as the boundary is decoded, in double).
 //
 // Point and directional lights: hard-shadow ray tests against the hierarchy. Segment lights: the
 // occluders that meet the light triangle (p, a, b) (Poulin §4.2), for the device kernel to clip.
