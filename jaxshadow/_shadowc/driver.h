@@ -165,6 +165,7 @@ int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const 
   prepare_solids(occ, bvh);
   PolyCall<T> call{Light<T>{K, E}, occ, &bvh, {}};
   prepare_call(call);
+  if (N >= kUmbraMinReceivers) prepare_umbra(call);
   threads = default_threads(threads);
   struct Block {
     int64_t s, e;

@@ -141,7 +141,8 @@ struct PolyCall {
   int n_edges = 0;
   // The occlusion volume of the hierarchy's root box: a receiver outside it needs no query.
   OcclusionVolume volume;
-  // Umbra volumes of the convex solids: a receiver inside one is umbra without building regions.
+  // Umbra volumes of the convex solids (prepare_umbra; none: not built): a receiver inside one is
+  // umbra without building regions.
   UmbraVolumes umbra;
 };
 
@@ -163,7 +164,6 @@ void prepare_call(PolyCall<T>& call) {
     for (int64_t i = 0; i < 3 * K; i++) lv[i] = double(call.L.E[i]);
     const double ne[3] = {double(call.ne_raw.x), double(call.ne_raw.y), double(call.ne_raw.z)};
     call.volume = occlusion_volume(lv.data(), K, ne, call.bvh->nodes[0].box, double(eps_of<T>()));
-    call.umbra = umbra_volumes(call.occ, *call.bvh, lv.data(), K, ne, double(eps_of<T>()));
   }
   const Occluders<T>& occ = call.occ;
   call.light_side.assign(occ.M, 0);
@@ -181,6 +181,18 @@ void prepare_call(PolyCall<T>& call) {
     }
     call.light_side[f] = pos ? 1 : (neg ? -1 : 0);
   }
+}
+
+// The solids' umbra volumes for `call` (after prepare_call), for batches of at least
+// kUmbraMinReceivers receivers.
+template <class T>
+void prepare_umbra(PolyCall<T>& call) {
+  if (call.bvh->nodes.empty()) return;
+  const int64_t K = call.L.K;
+  std::vector<double> lv(3 * K);
+  for (int64_t i = 0; i < 3 * K; i++) lv[i] = double(call.L.E[i]);
+  const double ne[3] = {double(call.ne_raw.x), double(call.ne_raw.y), double(call.ne_raw.z)};
+  call.umbra = umbra_volumes(call.occ, *call.bvh, lv.data(), K, ne, double(eps_of<T>()));
 }
 
 // Side of p against face f's plane (+1 / -1 strictly, 0 too close to tell), measured as prepare_call measures the light's vertices.

@@ -25,6 +25,10 @@ namespace jaxshadow_engine {
 // is far below the margin: a receiver the test calls umbra is umbra in exact arithmetic, and
 // the exact path would have found S covering all of its visible light (the same class). The
 // others, near the volume's boundary or on S, take the exact path.
+// Building them costs about one umbra receiver's exact path per solid, and about a third of the
+// receivers of a scene of boxes are umbra: worth it for batches of a few hundred receivers.
+constexpr int64_t kUmbraMinReceivers = 512;
+
 struct UmbraVolumes {
   std::vector<int32_t> off;    // (S + 1): solid s's planes are [off[s], off[s + 1]); none: no volume
   std::vector<double> planes;  // (n, 4): unit normal (inside on its positive side), offset n . x0
