@@ -8,7 +8,8 @@
 **Identity.** On a fixed set of seeded scenes the engine's outputs are recorded for float32 and
 float64: per receiver the class, the statistics (candidates, regions kept), the CSR offsets,
 the boundary runs' endpoint codes and their decoded points (`polygon_codes`, both with codes
-and with decoded points only, as `host_values` asks); the compiled-program variant
+and with decoded points only, as `host_values` asks for other integrands than Lambert's), each
+receiver's Lambert edge sum (as it asks for irradiance); the compiled-program variant
 (`traced_polygon_codes`, XLA FFI, a small capacity so that truncation is covered); hard-shadow
 visibility and segment-light candidates; and the end-to-end values of `js.irradiance` and an
 eager `jax.grad` (the Python side of the host path). A later build must reproduce every array
@@ -235,6 +236,7 @@ def outputs(case: tuple, dt) -> dict[str, np.ndarray]:
     for k in ("classes", "stats", "offsets", "runs", "points"):
         out[f"poly/{k}"] = getattr(pc, k)
     out["poly/points_only"] = vis.polygon_codes(p, nrm, light, occ, codes=False, decoded=True).points
+    out["poly/lambert"] = vis.polygon_codes(p, nrm, light, occ, codes=False, decoded=False, lambert=True).lambert
     if "ffi" in flags and vis.ffi_available():
         cls, cnt, runs = vis.traced_polygon_codes(jnp.asarray(p), jnp.asarray(nrm), jnp.asarray(light),
                                                   jnp.asarray(np.asarray(scene.occluders, dt)), scene.occluder_topology, 16)
@@ -326,7 +328,7 @@ def _load_abi():
 
 
 def driver(path: str, reps: int = 1) -> float:
-    """One engine call (one thread, decoded points as `host_values` asks) on saved inputs;
+    """One engine call (one thread, Lambert edge sums as `host_values` asks for irradiance) on saved inputs;
     no JAX import. Returns the best wall time of `reps` calls."""
     abi, lib = _load_abi()
     d = dict(np.load(path))  # the arrays stay alive while the engine reads their pointers
@@ -334,7 +336,7 @@ def driver(path: str, reps: int = 1) -> float:
     best = np.inf
     for _ in range(reps):
         t = time.perf_counter()
-        abi.poly_plan(lib, d["p"], d["n"], d["v"], args, 1, False, True)
+        abi.poly_plan(lib, d["p"], d["n"], d["v"], args, 1, False, False, True)
         best = min(best, time.perf_counter() - t)
     return best
 
