@@ -62,7 +62,7 @@ FIT_LIGHTS_GROUPS = ("position", "orientation", "size", "power")
 _POSE = ("position", "orientation", "size")
 _POSITION_NAMES = ("x", "y", "z", "a", "b")
 # Iterations the placement stages run at most (the joint refinement runs `LM.max_steps`).
-STAGE_STEPS = 32
+STAGE_STEPS = 16
 
 
 def _groups_for(light: Any, fit: tuple) -> tuple:
