@@ -407,7 +407,7 @@ def fit_lights(
             problem, dealt, n, r = swaps(problem, joint[0], offsets, k, staged, stage_losses, theta0)
             n_solved += n
             retries += r
-            if not stage_losses[-1] < stage_losses[-2] * (1 - 1e-6):
+            if not stage_losses[-1] < stage_losses[-2] * (1 - 1e-6) - solver.atol:  # not at round-off
                 break
             base, n_sweeps = dealt, 1
         theta = joint[0]
