@@ -61,6 +61,8 @@ from ._targets import PaintedTargets
 FIT_LIGHTS_GROUPS = ("position", "orientation", "size", "power")
 _POSE = ("position", "orientation", "size")
 _POSITION_NAMES = ("x", "y", "z", "a", "b")
+# Iterations the placement stages run at most (the joint refinement runs `LM.max_steps`).
+STAGE_STEPS = 16
 
 
 def _groups_for(light: Any, fit: tuple) -> tuple:
@@ -213,7 +215,9 @@ def fit_lights(
       the budget) on the piecewise-linear residual; `material_mode="fixed"` only. The targets'
       weights weight every row (ranges included).
     - `solver`: an `inverse.LM` for its options (`refine`, `prune`, `rtol`, `atol`,
-      `max_steps`); default `LM()`.
+      `max_steps`); default `LM()`. The placement stages (greedy, deals, each light's sweeps)
+      run at most `STAGE_STEPS` of the `max_steps` iterations: the joint refinement that
+      follows converges from wherever they stop.
     - `candidates`: `(points (K, 3), normals (K, 3))` where new targets could be painted (default:
       a 9 x 9 grid over the targets' bounding box, with their mean normal): the report ranks them
       for each undetermined parameter.
@@ -321,6 +325,7 @@ def fit_lights(
     k = max(1, min(int(solver.refine or starts), int(starts)))
     sched = prune_schedule(k, solver.max_steps) if solver.prune else ()
     lm = dict(rtol=solver.rtol, atol=solver.atol, max_steps=solver.max_steps, prune=sched)
+    staged = dict(lm, max_steps=min(int(solver.max_steps), STAGE_STEPS))
     if project:  # the material (and powers) that best fit the given poses: where the search starts
         problem = dataclasses.replace(problem, material=_material_at(problem, theta0))
     full_w = problem.targets.weights
@@ -330,10 +335,10 @@ def fit_lights(
     initial = None
     placed = grid_rows is not None
     if placed:
-        problem, base, initial, n, retries = greedy(problem, base, grid_rows, offsets, P, in_theta, k, lm,
+        problem, base, initial, n, retries = greedy(problem, base, grid_rows, offsets, P, in_theta, k, staged,
                                                      stage_losses)
         n_solved += n
-        problem, base, n, r = swaps(problem, base, offsets, k, lm, stage_losses)
+        problem, base, n, r = swaps(problem, base, offsets, k, staged, stage_losses)
         n_solved += n
         retries += r
         if not stage_losses[-1] < initial:  # the given poses explain the targets better
@@ -364,7 +369,7 @@ def fit_lights(
                     if initial is None and sweep == 0:
                         initial = float(losses[0])  # the given poses (row 0), screened out or not
                     full = full[best_starts(np.where(np.isfinite(losses), losses, np.inf), k)]
-                res, problem, r = solve(problem, full, base, mask, **lm)
+                res, problem, r = solve(problem, full, base, mask, **staged)
                 retries += r
                 n_solved += full.shape[0]
                 f = np.where(np.isfinite(np.asarray(res.losses)), np.asarray(res.losses), np.inf)
@@ -399,10 +404,10 @@ def fit_lights(
                 break
             # The refined positions dealt again (two lights of similar shading swapped in the first
             # deal under noise): from a better deal, one more sweep and joint refinement.
-            problem, dealt, n, r = swaps(problem, joint[0], offsets, k, lm, stage_losses, theta0)
+            problem, dealt, n, r = swaps(problem, joint[0], offsets, k, staged, stage_losses, theta0)
             n_solved += n
             retries += r
-            if not stage_losses[-1] < stage_losses[-2] * (1 - 1e-6):
+            if not stage_losses[-1] < stage_losses[-2] * (1 - 1e-6) - solver.atol:  # not at round-off
                 break
             base, n_sweeps = dealt, 1
         theta = joint[0]

@@ -141,6 +141,7 @@ def batched_levenberg_marquardt(
     chunk: int | None = None,
     num_residuals: int | None = None,
     jacobian: str = "linearize",
+    mirror: Int[Array, " S"] | None = None,
 ) -> LMResult:
     """Minimise $\\tfrac12|r(y)|^2$ from every row of `y0` at once (traceable; jit the caller).
 
@@ -163,6 +164,12 @@ def batched_levenberg_marquardt(
       basis vectors) or `"jacfwd"` (`jax.jacfwd`, and `jax.vmap` over the starts even for one).
       The same Jacobian to round-off; the first is cheaper to trace and compile
       (`benchmarks/results/ab/lm_jacobian.md`).
+    - `mirror`: `(S,)` for each start the index of the first start equal to it (`mirror[i] <= i`;
+      `duplicate_sources`), or None. A start with `mirror[i] != i` is not evaluated: it takes
+      its source's residual and Jacobian at every iteration. It starts where its source does, so
+      it follows the same iterates and stops at the same iteration (successive halving ranks ties
+      by index: the source first), and the result is the one of evaluating it; padding rows cost
+      nothing. Only with `chunk` (chunks with no evaluated start are skipped).
 
     **Returns:** `LMResult`.
     """
@@ -202,6 +209,14 @@ def batched_levenberg_marquardt(
         """Residuals, Jacobians and flags at `ys`; rows where `need` is False may be zeros."""
         if chunk is None or chunk >= S:
             return rj_all(ys)
+        if mirror is not None:
+            src = jnp.asarray(mirror, jnp.int32)
+            r, J, flag = rj_chunked(ys, need & (src == jnp.arange(S)))
+            return r[src], J[src], flag[src]
+        return rj_chunked(ys, need)
+
+    def rj_chunked(ys: Array, need: Array) -> tuple[Array, Array, Array]:
+        assert chunk is not None
         n_chunks = -(-S // chunk)
         pad = n_chunks * chunk - S
         order = jnp.argsort(~need, stable=True)  # the needed rows first
@@ -302,3 +317,13 @@ def batched_levenberg_marquardt(
     )
     _, y, r, J, f, f0, _, _, _, ok, steps, _, flag, gone = jax.lax.while_loop(cond, body, state)
     return LMResult(y, f, ok, steps, r, J, f0, flag, gone)
+
+
+def duplicate_sources(rows: Any) -> Any:
+    """`(S,)` int32: for each row of `rows (S, P)` (NumPy) the index of the first row equal to it
+    (`batched_levenberg_marquardt`'s `mirror`)."""
+    import numpy as np
+
+    rows = np.asarray(rows)
+    _, first, inverse = np.unique(rows, axis=0, return_index=True, return_inverse=True)
+    return first[np.reshape(inverse, -1)].astype(np.int32)

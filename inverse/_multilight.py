@@ -33,7 +33,7 @@ from jaxtyping import Array
 import jaxshadow as js
 
 from ._forward import SpecularFn, irradiance_culled, specular_culled
-from ._lm import LMResult, batched_levenberg_marquardt, fit_jit
+from ._lm import LMResult, batched_levenberg_marquardt, duplicate_sources, fit_jit
 from ._painting import painted_rows
 from ._residuals import pinned
 from ._targets import PaintedTargets
@@ -330,17 +330,17 @@ def build_lights(problem: LightsProblem, theta: Array) -> list[Any]:
 
 
 def _lm_impl(problem: LightsProblem, starts: Array, base: Array, mask: Array, rtol: float, atol: float,
-             max_steps: Array, prune: tuple[int, ...], chunk: int | None) -> LMResult:
+             max_steps: Array, prune: tuple[int, ...], chunk: int | None, mirror: Array) -> LMResult:
     """Batched LM (`_lm`) on the projected residual, searching only where `mask` (the other
     parameters held at `base`): one program serves each light's multistart and the joint
-    refinement."""
+    refinement. `mirror`: `duplicate_sources` of the starts (a repeated start is solved once)."""
     def fn(th: Array, args: tuple) -> tuple[Array, Array]:
         pr, b, m = args
         return projected_residual(jnp.where(m, th, b), pr, pr.capacity)
 
     return batched_levenberg_marquardt(fn, starts, (problem, base, mask), rtol=rtol, atol=atol,
                                        max_steps=max_steps, prune=prune, chunk=chunk,
-                                       num_residuals=problem.n_residuals)
+                                       num_residuals=problem.n_residuals, mirror=mirror)
 
 
 _lm = fit_jit(_lm_impl)
@@ -348,13 +348,15 @@ _lm = fit_jit(_lm_impl)
 
 def solve(problem: LightsProblem, starts: np.ndarray, base: np.ndarray, mask: np.ndarray, *, rtol: float,
           atol: float, max_steps: int, prune: tuple[int, ...]) -> tuple[LMResult, LightsProblem, int]:
-    """`_lm` from `starts (S, P)` (one start a chunk), solved again with twice the shadow capacity
-    while some receiver overflowed it (exact). Returns `(result, problem used, retries)`."""
+    """`_lm` from `starts (S, P)` (one start a chunk; repeated starts, e.g. padding, solved once:
+    the same result), solved again with twice the shadow capacity while some receiver overflowed
+    it (exact). Returns `(result, problem used, retries)`."""
     retries = 0
     dt = problem.targets.points.dtype
+    mirror = jnp.asarray(duplicate_sources(np.asarray(starts, dt)))
     while True:
         res = _lm(problem, jnp.asarray(starts, dt), jnp.asarray(base, dt), jnp.asarray(mask), rtol, atol,
-                  np.asarray(max_steps, np.int32), prune, 1)
+                  np.asarray(max_steps, np.int32), prune, 1, mirror)
         cap = problem.capacity
         if cap is None or not bool(res.flag):
             return res, problem, retries
