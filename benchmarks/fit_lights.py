@@ -61,6 +61,10 @@ CASES = {
     "designed(2)/greedy/shift=30%/noise=1%/projected material": dict(
         shift=0.30, noise=0.01, mode="projected", fit="position,orientation,size,power", grid=32, targets="designed",
         sweeps=1, design_at="designed(1)/greedy/shift=30%/noise=1%"),
+    # The same on Mitsuba's renders: lights and material from Monte-Carlo targets.
+    "designed(2)/greedy/mitsuba/shift=30%/noise=1%/projected material": dict(
+        shift=0.30, noise=0.01, mode="projected", fit="position,orientation,size,power", painter="mitsuba", grid=32,
+        targets="designed", sweeps=1, design_at="designed(1)/greedy/shift=30%/noise=1%"),
     "floor/shift=8%/projected/position+power": dict(shift=0.08, noise=0.0, mode="projected", fit="position,power"),
 }
 # One light from the shadow of an occluder (`inverse._scenes.one_light_shadow_case`): a
