@@ -84,81 +84,46 @@ void group_items(const PolyCall<T>& call, const double* lo, const double* hi, st
   const BVH& bvh = *call.bvh;
   const int64_t K = call.L.K;
   const double eps = double(eps_of<T>());
-  // The box's distinct corners (a flat box, e.g. receivers on a floor, has four), then the light's
-  // vertices.
-  int flat = 0;
-  for (int d = 0; d < 3; d++)
-    if (!(hi[d] > lo[d])) flat |= 1 << d;
-  double pts[8 + 64][3];
-  int corner[8], nb = 0;
+  // The points whose hull it is: the box's distinct corners (a flat box, e.g. receivers on a
+  // floor, has four) and the light's vertices (a light of more than 64 is refused per receiver).
+  const int64_t nl = std::min<int64_t>(K, 64);
+  double lv[3 * 64];
+  for (int64_t i = 0; i < 3 * nl; i++) lv[i] = double(call.L.E[i]);
+  V3<double> pts[8 + 64];
+  int np = 0;
   for (int c = 0; c < 8; c++) {
-    if (c & flat) continue;
-    corner[nb++] = c;
-    for (int d = 0; d < 3; d++) pts[nb - 1][d] = (c >> d & 1) ? hi[d] : lo[d];
+    const V3<double> x = box_corner(lo, hi, c);
+    bool dup = false;
+    for (int j = 0; j < np && !dup; j++) dup = same(x, pts[j]);
+    if (!dup) pts[np++] = x;
   }
-  const int L0 = nb;
-  int np = nb;
-  double scale = 0;
-  for (int64_t i = 0; i < K; i++, np++)
-    for (int d = 0; d < 3; d++) pts[np][d] = double(call.L.E[3 * i + d]);
-  for (int i = 0; i < np; i++)
-    for (int d = 0; d < 3; d++) scale = std::max(scale, std::fabs(pts[i][d]));
-  scale = std::max(scale, call.item_extent) + 1.0;
+  for (int64_t i = 0; i < nl; i++) pts[np++] = ld(lv + 3 * i);
+  double scale = call.item_extent;
+  for (int i = 0; i < np; i++) scale = std::max(scale, absmax(pts[i]));
+  scale += 1.0;
   std::vector<HalfSpace> hs;
-  auto consider = [&](const double* n, const double* q) {
-    const double len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+  // A plane through q with normal n: kept (the hull on its positive side) when it supports the hull.
+  auto support = [&](V3<double> n, V3<double> q) {
+    const double len = norm(n);
     if (!(len > 1e-12 * scale * scale)) return;
     const double tol = kSupport * eps * scale * len;
     bool pos = true, neg = true;
     for (int i = 0; i < np && (pos || neg); i++) {
-      const double s = n[0] * (pts[i][0] - q[0]) + n[1] * (pts[i][1] - q[1]) + n[2] * (pts[i][2] - q[2]);
-      pos = pos && s >= -tol;
-      neg = neg && s <= tol;
+      const double h = dot(n, pts[i] - q);
+      pos = pos && h >= -tol;
+      neg = neg && h <= tol;
     }
     if (pos == neg) return;  // neither, or every point on the plane
     const double sg = pos ? 1.0 : -1.0;
-    hs.push_back(HalfSpace{{sg * n[0], sg * n[1], sg * n[2]}, {q[0], q[1], q[2]}});
+    hs.push_back(HalfSpace{{sg * n.x, sg * n.y, sg * n.z}, {q.x, q.y, q.z}});
   };
-  auto sub = [](const double* a, const double* b, double* r) {
-    for (int d = 0; d < 3; d++) r[d] = a[d] - b[d];
-  };
-  auto crs = [](const double* a, const double* b, double* r) {
-    r[0] = a[1] * b[2] - a[2] * b[1];
-    r[1] = a[2] * b[0] - a[0] * b[2];
-    r[2] = a[0] * b[1] - a[1] * b[0];
-  };
-  double u[3], v[3], n[3];
-  for (int64_t i = 0; i < K; i++) {  // light edge + box corner
-    const double *a = pts[L0 + i], *b = pts[L0 + (i + 1) % K];
-    sub(b, a, u);
-    for (int c = 0; c < nb; c++) {
-      sub(pts[c], a, v);
-      crs(u, v, n);
-      consider(n, a);
-    }
-  }
-  for (int j = 0; j < nb; j++)  // box edge (of positive length) + light vertex
-    for (int d = 0; d < 3; d++) {
-      if ((corner[j] >> d & 1) || (flat >> d & 1)) continue;
-      int k = 0;
-      while (corner[k] != (corner[j] | (1 << d))) k++;
-      const double *a = pts[j], *b = pts[k];
-      sub(b, a, u);
-      for (int64_t i = 0; i < K; i++) {
-        sub(pts[L0 + i], a, v);
-        crs(u, v, n);
-        consider(n, a);
-      }
-    }
-  {  // the light's plane and the box's faces
-    const double ne[3] = {double(call.ne_raw.x), double(call.ne_raw.y), double(call.ne_raw.z)};
-    consider(ne, pts[L0]);
-    for (int d = 0; d < 3; d++) {
-      double e[3] = {0, 0, 0};
-      e[d] = 1;
-      consider(e, lo);
-      consider(e, hi);
-    }
+  extremal_planes(lo, hi, lv, nl, [&](V3<double> a, V3<double> b, V3<double> c) { support(cross(b - a, c - a), a); });
+  // The light's plane and the box's faces.
+  support(V3<double>{double(call.ne_raw.x), double(call.ne_raw.y), double(call.ne_raw.z)}, ld(lv));
+  for (int d = 0; d < 3; d++) {
+    const V3<double> e{d == 0 ? 1.0 : 0.0, d == 1 ? 1.0 : 0.0, d == 2 ? 1.0 : 0.0};
+    support(e, ld(lo));
+    support(e, ld(hi));
   }
   if (hs.empty()) {
     for (size_t i = 0; i < bvh.items.size(); i++) out.push_back(int32_t(i));

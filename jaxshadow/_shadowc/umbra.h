@@ -67,10 +67,13 @@ UmbraVolumes umbra_volumes(const Occluders<T>& occ, const BVH& bvh, const double
   const double nn = std::sqrt(ne[0] * ne[0] + ne[1] * ne[1] + ne[2] * ne[2]);
   if (!(nn > 0)) return u;
   auto vert = [&](int32_t slot) { return occ.faces + 3 * int64_t(slot); };
+  auto point = [&](int32_t slot) {
+    const T* x = vert(slot);
+    return V3<double>{double(x[0]), double(x[1]), double(x[2])};
+  };
   double scale = 0;
   for (int64_t i = 0; i < 3 * K; i++) scale = std::max(scale, std::fabs(lv[i]));
-  for (int32_t q : bvh.solid_verts)
-    for (int d = 0; d < 3; d++) scale = std::max(scale, std::fabs(double(vert(q)[d])));
+  for (int32_t q : bvh.solid_verts) scale = std::max(scale, absmax(point(q)));
   if (!std::isfinite(scale)) return u;
   u.scale = scale;
   const double gap = kBuild * eps * (scale + 1e-300);
@@ -115,19 +118,16 @@ UmbraVolumes umbra_volumes(const Occluders<T>& occ, const BVH& bvh, const double
       for (int32_t k = occ.solid_edge_off[s]; k < occ.solid_edge_off[s + 1] && ok; k++) {
         const int32_t* ed = occ.solid_edges + 4 * k;
         if (front[ed[2] - f0] == front[ed[3] - f0]) continue;
-        const T *a = vert(ed[0]), *b = vert(ed[1]);
-        const double ax = double(a[0]) - v[0], ay = double(a[1]) - v[1], az = double(a[2]) - v[2];
-        const double bx = double(b[0]) - v[0], by = double(b[1]) - v[1], bz = double(b[2]) - v[2];
-        double n[3] = {ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx};
-        const double len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
-        const double la = std::sqrt(ax * ax + ay * ay + az * az), lb = std::sqrt(bx * bx + by * by + bz * bz);
-        ok = len > kBuild * eps * la * lb;  // v clearly off the edge's line
+        const V3<double> vv = ld(v), a = point(ed[0]) - vv, b = point(ed[1]) - vv;
+        V3<double> n = cross(a, b);
+        const double len = norm(n);
+        ok = len > kBuild * eps * norm(a) * norm(b);  // v clearly off the edge's line
         if (!ok) break;
-        for (double& x : n) x /= len;
-        const double hc = n[0] * (c[0] - v[0]) + n[1] * (c[1] - v[1]) + n[2] * (c[2] - v[2]);
+        n = V3<double>{n.x / len, n.y / len, n.z / len};
+        const double hc = dot(n, ld(c) - vv);
         ok = std::fabs(hc) > gap;
         const double sg = hc > 0 ? 1.0 : -1.0;
-        mine.insert(mine.end(), {sg * n[0], sg * n[1], sg * n[2], sg * (n[0] * v[0] + n[1] * v[1] + n[2] * v[2])});
+        mine.insert(mine.end(), {sg * n.x, sg * n.y, sg * n.z, sg * dot(n, vv)});
       }
     }
     if (ok && !mine.empty()) {

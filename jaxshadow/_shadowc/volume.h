@@ -45,61 +45,73 @@ struct OcclusionVolume {
   }
 };
 
+// Corner c of the box [lo, hi]: bit d of c picks hi along axis d.
+inline V3<double> box_corner(const double* lo, const double* hi, int c) {
+  return V3<double>{(c & 1) ? hi[0] : lo[0], (c & 2) ? hi[1] : lo[1], (c & 4) ? hi[2] : lo[2]};
+}
+
+// The candidates for the extremal planes of a box [lo, hi] and a polygon light (C&F §3.1.2):
+// `plane(a, b, c)` for the plane through each light edge a -> b (distinct ends) and each distinct
+// box corner c, then through each box edge a -> b of positive length and each light vertex c. A
+// flat box (zero extent along an axis) repeats no corner and has no zero-length edge.
+template <class F>
+void extremal_planes(const double* lo, const double* hi, const double* lv, int64_t K, F plane) {
+  int flat = 0;
+  for (int d = 0; d < 3; d++)
+    if (!(hi[d] > lo[d])) flat |= 1 << d;
+  V3<double> B[8];
+  for (int c = 0; c < 8; c++) B[c] = box_corner(lo, hi, c);
+  for (int64_t i = 0; i < K; i++) {
+    const V3<double> a = ld(lv + 3 * i), b = ld(lv + 3 * ((i + 1) % K));
+    if (same(a, b)) continue;
+    for (int c = 0; c < 8; c++)
+      if (!(c & flat)) plane(a, b, B[c]);
+  }
+  for (int c = 0; c < 8; c++)
+    for (int d = 0; d < 3; d++) {
+      if ((c & flat) || (c >> d & 1) || (flat >> d & 1)) continue;
+      for (int64_t i = 0; i < K; i++) plane(B[c], B[c | (1 << d)], ld(lv + 3 * i));
+    }
+}
+
 // `lv`: the light's K vertices (double, counter-clockwise seen from the lit side); `ne`: their
 // Newell normal (unscaled, towards the lit side); `box`: lo[3], hi[3]; `eps`: the receivers'
 // float type's epsilon.
-inline OcclusionVolume occlusion_volume(const double* lv, int64_t K, const double* ne, const double* box, double eps) {
+inline OcclusionVolume occlusion_volume(const double* lv, int64_t K, const double* ne_, const double* box, double eps) {
   OcclusionVolume vol;
   constexpr double kGap = 1e11, kMargin = 1e10;  // times eps: 2.2e-5 and 2.2e-6 in float64
   vol.margin = kMargin * eps;
   if (K < 3 || K > 64 || !(vol.margin < 1e-3)) return vol;
-  double B[8][3];
-  for (int c = 0; c < 8; c++)
-    for (int d = 0; d < 3; d++) B[c][d] = box[(c >> d & 1) ? 3 + d : d];
+  V3<double> B[8];
+  for (int c = 0; c < 8; c++) B[c] = box_corner(box, box + 3, c);
   double scale = 0;
-  for (int c = 0; c < 8; c++)
-    for (int d = 0; d < 3; d++) scale = std::max(scale, std::fabs(B[c][d]));
-  for (int64_t i = 0; i < K; i++)
-    for (int d = 0; d < 3; d++) scale = std::max(scale, std::fabs(lv[3 * i + d]));
+  for (int c = 0; c < 8; c++) scale = std::max(scale, absmax(B[c]));
+  for (int64_t i = 0; i < K; i++) scale = std::max(scale, absmax(ld(lv + 3 * i)));
   if (!(scale > 0) || !std::isfinite(scale)) return vol;
   vol.scale = scale;
-  auto sub = [](const double* a, const double* b, double* o) {
-    for (int d = 0; d < 3; d++) o[d] = a[d] - b[d];
-  };
-  auto crs = [](const double* a, const double* b, double* o) {
-    o[0] = a[1] * b[2] - a[2] * b[1];
-    o[1] = a[2] * b[0] - a[0] * b[2];
-    o[2] = a[0] * b[1] - a[1] * b[0];
-  };
-  auto dt = [](const double* a, const double* b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; };
   // B strictly on the lit side of the light's plane, by the gap.
-  const double nn = std::sqrt(dt(ne, ne));
+  const V3<double> ne = ld(ne_), l0 = ld(lv);
+  const double nn = norm(ne);
   if (!(nn > 0)) return vol;
-  for (int c = 0; c < 8; c++) {
-    double r[3];
-    sub(B[c], lv, r);
-    if (!(dt(r, ne) > kGap * eps * scale * nn)) return vol;
-  }
+  for (int c = 0; c < 8; c++)
+    if (!(dot(B[c] - l0, ne) > kGap * eps * scale * nn)) return vol;
   // A candidate plane through points a, b, c: kept (oriented with B positive) when it
   // separates L and B, within a rounding tolerance.
   const double tol = 64 * eps * scale;
-  auto consider = [&](const double* a, const double* b, const double* c) {
-    double u[3], v[3], n[3];
-    sub(b, a, u);
-    sub(c, a, v);
-    crs(u, v, n);
-    const double len = std::sqrt(dt(n, n));
+  extremal_planes(box, box + 3, lv, K, [&](V3<double> a, V3<double> b, V3<double> c) {
+    V3<double> n = cross(b - a, c - a);
+    const double len = norm(n);
     if (!(len > 1e-9 * scale * scale)) return;
-    for (int d = 0; d < 3; d++) n[d] /= len;
-    const double off = dt(n, a);
+    n = V3<double>{n.x / len, n.y / len, n.z / len};
+    const double off = dot(n, a);
     double bmin = std::numeric_limits<double>::infinity(), bmax = -bmin, lmin = bmin, lmax = -bmin;
     for (int q = 0; q < 8; q++) {
-      const double h = dt(n, B[q]) - off;
+      const double h = dot(n, B[q]) - off;
       bmin = std::min(bmin, h);
       bmax = std::max(bmax, h);
     }
     for (int64_t q = 0; q < K; q++) {
-      const double h = dt(n, lv + 3 * q) - off;
+      const double h = dot(n, ld(lv + 3 * q)) - off;
       lmin = std::min(lmin, h);
       lmax = std::max(lmax, h);
     }
@@ -107,23 +119,14 @@ inline OcclusionVolume occlusion_volume(const double* lv, int64_t K, const doubl
     if (bmin >= -tol && lmax <= tol) s = 1;
     else if (bmax <= tol && lmin >= -tol) s = -1;
     if (s == 0) return;
-    for (size_t k = 0; k + 4 <= vol.planes.size(); k += 4) {  // the same plane again (a flat box)
+    for (size_t k = 0; k + 4 <= vol.planes.size(); k += 4) {  // the same plane again
       const double* q = vol.planes.data() + k;
-      if (std::fabs(q[0] - s * n[0]) + std::fabs(q[1] - s * n[1]) + std::fabs(q[2] - s * n[2]) < 1e-12 &&
+      if (std::fabs(q[0] - s * n.x) + std::fabs(q[1] - s * n.y) + std::fabs(q[2] - s * n.z) < 1e-12 &&
           std::fabs(q[3] - s * off) < 1e-12 * scale)
         return;
     }
-    vol.planes.insert(vol.planes.end(), {s * n[0], s * n[1], s * n[2], s * off});
-  };
-  static const int kEdges[12][2] = {{0, 1}, {2, 3}, {4, 5}, {6, 7}, {0, 2}, {1, 3},
-                                    {4, 6}, {5, 7}, {0, 4}, {1, 5}, {2, 6}, {3, 7}};
-  for (int64_t i = 0; i < K; i++) {
-    const double *a = lv + 3 * i, *b = lv + 3 * ((i + 1) % K);
-    if (a[0] == b[0] && a[1] == b[1] && a[2] == b[2]) continue;
-    for (int c = 0; c < 8; c++) consider(a, b, B[c]);
-  }
-  for (const auto& e : kEdges)
-    for (int64_t i = 0; i < K; i++) consider(B[e[0]], B[e[1]], lv + 3 * i);
+    vol.planes.insert(vol.planes.end(), {s * n.x, s * n.y, s * n.z, s * off});
+  });
   return vol;
 }
 
