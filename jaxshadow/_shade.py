@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from . import _shadows
+from . import _shadows, _shadows_compiled
 from ._geometry import (
     _check_values_eagerly,
     check_points_normals,
@@ -156,7 +156,7 @@ def _valued(tree: Any) -> Any:
 
 @eqx.filter_jit
 def _device_impl(scene: Scene, integ: Any, points: Array, normals: Array, eyes: Array | None) -> Array:
-    return _shadows.device_values(scene, integ, points, unit_rows(normals), eyes)
+    return _shadows_compiled.device_values(scene, integ, points, unit_rows(normals), eyes)
 
 
 @jax.jit
@@ -186,7 +186,7 @@ def _shadowed(scene: Scene, integ: Any, points: Array, normals: Array, eyes: Arr
         vscene, p, n = val
         _check_values_eagerly(p, n, what)
         return _shadows.planned_values(scene, vscene, integ, points, unit_rows(normals), eyes, (p, unit_rows_host(n)))
-    total, overflow = _shadows.traced_values(scene, integ, points, unit_rows(normals), eyes, options.capacity)
+    total, overflow = _shadows_compiled.traced_values(scene, integ, points, unit_rows(normals), eyes, options.capacity)
     total = eqx.error_if(total, ~inputs_ok(points, normals),
                          f"{what}: a point or normal is not finite, or a normal is zero.")
     return eqx.error_if(total, overflow, f"{what}: a receiver's visible region has more than {options.capacity} "

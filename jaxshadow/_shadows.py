@@ -27,7 +27,7 @@ Three ways to run the same plan, chosen by `_shade` from what the inputs are:
   `jax.jacfwd` called eagerly). The engine plans from the values; the boundary's points are
   decoded from its codes in JAX, so derivatives flow to receivers, normals, light and occluder
   vertices (the codes, piecewise constant, carry none).
-- `traced_values`: the values are abstract (inside `jax.jit` or `jax.vmap`). The engine runs
+- `traced_values` (`_shadows_compiled`): the values are abstract (inside `jax.jit` or `jax.vmap`). The engine runs
   inside the compiled program (XLA FFI) with a static number of boundary edges per receiver
   (`ShadowOptions.capacity`); receivers over it are reported (`overflow`), never silently
   truncated: the public functions raise, the inverse solvers retry with a larger capacity.
@@ -47,10 +47,7 @@ import numpy as np
 
 from . import _visibility as vis
 from ._clip import (
-    directional_visibility,
     masked_contour_form_factor,
-    point_visibility,
-    visible_edges,
     visible_segments,
 )
 from ._geometry import newell_normal
@@ -634,133 +631,3 @@ def shadow_plan(scene: Scene, points: Any, normals: Any) -> ShadowPlan:
     n = np.asarray(n)
     n = n / np.linalg.norm(n, axis=1, keepdims=True)
     return plan(scene, p, n, codes=False, decoded=False)
-
-
-# --------------------------------------------------------------------------------------
-# Abstract values: the engine inside the compiled program (XLA FFI), static capacities
-# --------------------------------------------------------------------------------------
-
-
-def _traced_light(light: Any, integ: Any, p, n, e, faces, topo, capacity: int) -> tuple[Any, Any]:
-    """`(g (n,), overflow)` of one light for a block of receivers, inside a compiled program."""
-    dt = p.dtype
-    if isinstance(light, PolygonLight):
-        verts = light.vertices.astype(dt)
-        _, cnt, runs = vis.traced_polygon_codes(p, n, verts, faces, topo, capacity)
-        fn, f0 = vis.face_frames(faces)
-        table = vis.vertex_table(verts, faces)
-
-        def one(p_, n_, e_, r_):
-            s, t = vis.edges_from_codes(p_, n_, verts, table, fn, f0, r_)
-            return integ.contour(p_, n_, e_, verts, s, t)
-
-        return jax.vmap(one)(p, n, e, runs), jnp.any(cnt > capacity)
-    if isinstance(light, LinearLight):
-        a, b = light.start.astype(dt), light.end.astype(dt)
-        prof = _profile(light)
-        cnt, cand = vis.traced_segment_candidates(p, a, b, faces, topo, capacity)
-        # Unused slots repeat the first candidate (or face 0 where there is none: then the
-        # unoccluded value is taken).
-        first = jnp.where(cand[:, :1] >= 0, cand[:, :1], 0)
-        fidx = jnp.where(cand >= 0, cand, first)
-        occ = jnp.take(faces, fidx.reshape(-1), axis=0).reshape(fidx.shape + faces.shape[1:])
-        shadowed = jax.vmap(_segment_visible, in_axes=(None, 0, 0, 0, None, None, None, 0))(integ, p, n, e, a, b, prof, occ)
-        free = jax.vmap(integ.segment, in_axes=(0, 0, 0, None, None, None))(p, n, e, a, b, prof)
-        return jnp.where(cnt > 0, shadowed, free), jnp.any(cnt > capacity)
-    is_point = isinstance(light, PointLight)
-    x = (light.position if is_point else light.direction).astype(dt)
-    visible = vis.traced_hard_visibility(p, x, is_point, faces, topo)
-    kern = integ.point if is_point else integ.directional
-    g = jax.vmap(kern, in_axes=(0, 0, 0, None))(p, n, e, x)
-    return jnp.where(visible > 0, g, 0.0), jnp.zeros((), bool)
-
-
-def traced_values(scene: Scene, integ: Any, points: Any, normals: Any, eyes: Any, capacity: int,
-                  chunk: int | None = None) -> tuple[Any, Any]:
-    """`((N, 3), overflow)`: every light's contribution with exact shadows, traceable (unit
-    `normals`). `overflow` is True when a receiver needed more than `capacity` boundary edges
-    (or candidate faces): the values are then not exact. Receivers are processed `chunk` at a
-    time (`lax.map`), which bounds the memory of the decoded boundaries."""
-    dt = points.dtype
-    e = points if eyes is None else eyes
-    faces = _occluders(scene).astype(dt)
-    topo = scene.occluder_topology
-    chunk = chunk or max(MIN_BLOCK, EDGE_BLOCK // (4 * capacity))
-
-    def block(args):
-        p, n, ee = args
-        total = jnp.zeros(p.shape, dt)
-        over = jnp.zeros((), bool)
-        for light in scene.lights:
-            g, o = _traced_light(light, integ, p, n, ee, faces, topo, capacity)
-            total = total + g[:, None] * emission(light, dt)[None, :]
-            over = over | o
-        return total, over
-
-    return lax_chunks(block, (points, normals, e), chunk)
-
-
-def lax_chunks(block: Any, arrays: tuple, chunk: int) -> tuple[Any, Any]:
-    """`block(arrays) -> (out (n, ...), flag)` over the leading axis `chunk` rows at a time
-    (`lax.map`, the last chunk padded with copies of the first row): traceable, and the memory
-    of one chunk's intermediates bounds the whole call's."""
-    n_pts = arrays[0].shape[0]
-    if n_pts <= chunk:
-        return block(arrays)
-    nb = -(-n_pts // chunk)
-    pad = nb * chunk - n_pts
-    arrs = tuple(jnp.concatenate([a, jnp.broadcast_to(a[:1], (pad,) + a.shape[1:])]) if pad else a for a in arrays)
-    out, flag = jax.lax.map(block, tuple(a.reshape((nb, chunk) + a.shape[1:]) for a in arrs))
-    return out.reshape((nb * chunk,) + out.shape[2:])[:n_pts], jnp.any(flag)
-
-
-# --------------------------------------------------------------------------------------
-# Without the engine: every receiver against every occluder (device kernels)
-# --------------------------------------------------------------------------------------
-
-
-def _device_light(light: Any, integ: Any, p, n, e, faces) -> Any:
-    dt = p.dtype
-    if isinstance(light, PolygonLight):
-        verts = light.vertices.astype(dt)
-
-        def one(p_, n_, e_):
-            s, t = visible_edges(p_, n_, verts, faces)
-            return integ.contour(p_, n_, e_, verts, s, t)
-
-        return jax.vmap(one)(p, n, e)
-    if isinstance(light, LinearLight):
-        a, b = light.start.astype(dt), light.end.astype(dt)
-        return jax.vmap(_segment_visible, in_axes=(None, 0, 0, 0, None, None, None, None))(
-            integ, p, n, e, a, b, _profile(light), faces)
-    is_point = isinstance(light, PointLight)
-    x = (light.position if is_point else light.direction).astype(dt)
-    vis_fn = point_visibility if is_point else directional_visibility
-    kern = integ.point if is_point else integ.directional
-    g = jax.vmap(kern, in_axes=(0, 0, 0, None))(p, n, e, x)
-    return g * jax.vmap(vis_fn, in_axes=(0, None, None))(p, x, faces)
-
-
-def device_chunk(n_faces: int, ko: int) -> int:
-    """Receivers per chunk of the device kernels: their intermediates grow like the square of
-    the occluder count (every candidate edge against every region); about 2^26 values a chunk."""
-    m = max(1, n_faces)
-    per = (ko + 1) * m * (m + 1) * (ko + 1)
-    return int(min(4096, max(1, 2 ** int(np.log2(max(1, (1 << 26) // per))))))
-
-
-def device_values(scene: Scene, integ: Any, points: Any, normals: Any, eyes: Any) -> Any:
-    """`(N, 3)` with exact shadows from the device kernels: each receiver clipped against every
-    occluder (`_clip.visible_edges`), no engine, traceable, chunked (unit `normals`)."""
-    dt = points.dtype
-    e = points if eyes is None else eyes
-    faces = _occluders(scene).astype(dt)
-
-    def block(args):
-        p, n, ee = args
-        total = jnp.zeros(p.shape, dt)
-        for light in scene.lights:
-            total = total + _device_light(light, integ, p, n, ee, faces)[:, None] * emission(light, dt)[None, :]
-        return total, jnp.zeros((), bool)
-
-    return lax_chunks(block, (points, normals, e), device_chunk(faces.shape[0], faces.shape[1]))[0]

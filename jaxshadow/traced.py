@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from . import _shadows
+from . import _shadows, _shadows_compiled
 from ._misc import unit_rows as _unit_rows
 from ._scene import LinearLight, PolygonLight, Scene
 from ._shade import _irradiance_traced, _specular_traced
@@ -45,8 +45,8 @@ def _options(capacity: int | None, shadows: ShadowOptions | None) -> ShadowOptio
 def _shadowed(scene: Scene, integ: Any, points: Array, normals: Array, eyes: Array | None,
               opts: ShadowOptions) -> tuple[Array, Array]:
     if opts.use_engine():
-        return _shadows.traced_values(scene, integ, points, _unit_rows(normals), eyes, opts.capacity)
-    return _shadows.device_values(scene, integ, points, _unit_rows(normals), eyes), jnp.zeros((), bool)
+        return _shadows_compiled.traced_values(scene, integ, points, _unit_rows(normals), eyes, opts.capacity)
+    return _shadows_compiled.device_values(scene, integ, points, _unit_rows(normals), eyes), jnp.zeros((), bool)
 
 
 def irradiance(
