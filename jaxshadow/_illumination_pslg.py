@@ -4,6 +4,7 @@ with the clean-up it needs, and piecewise-linear interpolation on the result."""
 
 from __future__ import annotations
 
+import itertools
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -11,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from . import _illumination_events as ev
-from ._scene import Scene
+from ._scene import DirectionalLight, LinearLight, PointLight, PolygonLight, Scene
 from ._shade import irradiance
 
 ON_LINE_STEP = 1e-9
@@ -34,7 +35,13 @@ class _Evaluator:
     building tuples), to a row of one growing value array; each row also records where it was
     evaluated and whether with the on-line check, so that an update (`inherit`) can take over the
     rows of the previous scene whose value the change cannot affect: a point asked for again
-    with the same evaluation takes the old row instead of calling the engine (`reused`)."""
+    with the same evaluation takes the old row instead of calling the engine (`reused`).
+
+    A point needs evaluating when it is not cached, or when it was marked on a line after its
+    value was computed without the on-line check (or moved: then it leaves the cache); the
+    latter are kept in `pending`, so that finding them (`stale`) looks at those few keys rather
+    than at every point. Batches are padded to a power of two with rows whose normal faces away
+    from every light (the engine gives them 0 without clipping), not with copies of real points."""
 
     def __init__(self, scene: Scene, frame: ev.Frame, size: float):
         self.scene, self.frame = scene, frame
@@ -51,6 +58,9 @@ class _Evaluator:
         self.online: set[complex] = set()
         self.moved: dict[complex, complex] = {}  # points evaluated elsewhere (`move`)
         self.checked: set[complex] = set()
+        self.pending: set[complex] = set()  # cached keys to evaluate again: `online` and not `checked`
+        self.dropped: set[complex] = set()  # keys evaluated, then moved (`move`), not evaluated since
+        self.away = _away_normal(scene, frame)
         self.step = ON_LINE_STEP * size * np.array([np.cos(0.6180339887), np.sin(0.6180339887)])
         self.evaluations = 0
         self.repairs = 0
@@ -63,7 +73,11 @@ class _Evaluator:
 
     def mark(self, xy: np.ndarray) -> None:
         """Declare points `(n, 2)` to lie on discontinuity lines."""
-        self.online.update(self._keys(xy))
+        keys = set(self._keys(xy))
+        self.online |= keys
+        keys -= self.checked
+        if keys:
+            self.pending |= keys
 
     def move(self, xy: np.ndarray, to: np.ndarray) -> None:
         """Evaluate points `xy (n, 2)` at `to (n, 2)` instead (a point on the edge of a hole takes
@@ -71,12 +85,23 @@ class _Evaluator:
         for a, b in zip(self._keys(xy), self._keys(to), strict=True):
             if a not in self.moved:
                 self.moved[a] = b
-                self.cache.pop(a, None)
+                if self.cache.pop(a, None) is not None:
+                    self.dropped.add(a)
+
+    def _lookup(self, keys: list[complex]) -> tuple[np.ndarray, np.ndarray]:
+        """Per key its cached row (-1 when none) and whether it needs evaluating."""
+        n = len(keys)
+        rows = np.fromiter(map(self.cache.get, keys, itertools.repeat(-1, n)), np.int64, n)
+        need = rows < 0
+        if self.pending:
+            need |= np.fromiter(map(self.pending.__contains__, keys), bool, n)
+        return rows, need
 
     def __call__(self, xy: np.ndarray) -> np.ndarray:
         keys = self._keys(xy)
         cache, online, checked = self.cache, self.online, self.checked
-        todo = list(dict.fromkeys(k for k in keys if k not in cache or (k in online and k not in checked)))
+        rows, need = self._lookup(keys)
+        todo = list(dict.fromkeys(itertools.compress(keys, need))) if need.any() else []
         if todo and self.prior is not None:
             todo = self._take_prior(todo)
         if todo:
@@ -90,8 +115,10 @@ class _Evaluator:
             n_all = allp.shape[0]
             size = max(MIN_BATCH, 1 << (n_all - 1).bit_length())
             p3 = self.frame.to3d(np.concatenate([allp, np.repeat(allp[:1], size - n_all, axis=0)]))
-            nrm = np.broadcast_to(self.frame.normal, p3.shape)
-            e = np.asarray(irradiance(self.scene, p3, np.ascontiguousarray(nrm)), np.float64)[:n_all]
+            nrm = np.empty_like(p3)
+            nrm[:n_all] = self.frame.normal
+            nrm[n_all:] = self.frame.normal if self.away is None else self.away
+            e = np.asarray(irradiance(self.scene, p3, nrm), np.float64)[:n_all]
             self.seconds += time.perf_counter() - t0
             self.evaluations += allp.shape[0]
             n, m = pts.shape[0], side.shape[0]
@@ -113,16 +140,26 @@ class _Evaluator:
             self.lined[start:start + n] = line
             cache.update(zip(todo, range(start, start + n), strict=True))
             self._rows = start + n
-            checked.update(k for k, ln in zip(todo, line.tolist(), strict=True) if ln)
+            lined = list(itertools.compress(todo, line))
+            checked.update(lined)
+            self.pending.difference_update(lined)
+            if self.dropped:
+                self.dropped.difference_update(todo)
         if not keys:
             return np.zeros((0, 3))
-        return self.values[np.fromiter(map(cache.__getitem__, keys), np.int64, len(keys))]
+        if need.any():
+            rows[need] = np.fromiter(map(cache.__getitem__, itertools.compress(keys, need)), np.int64, int(need.sum()))
+        return self.values[rows]
 
     def stale(self, xy: np.ndarray) -> np.ndarray:
-        """`(n,)` bool: whether points `xy (n, 2)` would be evaluated (again) by the next call."""
-        cache, online, checked = self.cache, self.online, self.checked
-        return np.fromiter((k not in cache or (k in online and k not in checked) for k in self._keys(xy)), bool,
-                           xy.shape[0])
+        """`(n,)` bool: whether points `xy (n, 2)`, all evaluated before, would be evaluated again
+        by the next call: those marked on a line since, or moved since (the log of both, not a
+        look-up of every point)."""
+        log = self.pending | self.dropped
+        if not log:
+            return np.zeros(xy.shape[0], bool)
+        keys = np.ascontiguousarray(np.asarray(xy, np.float64).reshape(-1, 2)).view(np.complex128).ravel()
+        return np.isin(keys, np.fromiter(log, np.complex128, len(log)))
 
     def _grow(self, rows: int) -> None:
         while rows > self.values.shape[0]:
@@ -148,7 +185,11 @@ class _Evaluator:
         idx = np.nonzero(take)[0].tolist()
         keys = [todo[i] for i in idx]
         self.cache.update(zip(keys, r[take].tolist(), strict=True))
-        self.checked.update(k for k, ln in zip(keys, line[take].tolist(), strict=True) if ln)
+        lined = list(itertools.compress(keys, line[take]))
+        self.checked.update(lined)
+        self.pending.difference_update(lined)
+        if self.dropped:
+            self.dropped.difference_update(keys)
         self.reused += len(keys)
         return [todo[i] for i in np.nonzero(~take)[0].tolist()]
 
@@ -186,6 +227,34 @@ class _Evaluator:
 
     def luminance(self, xy: np.ndarray) -> np.ndarray:
         return self(xy).sum(axis=1)
+
+
+def _away_normal(scene: Scene, frame: ev.Frame) -> np.ndarray | None:
+    """A normal that puts every light of `scene` strictly below the horizon of any point of the
+    receiver plane (`-normal` when all lights are above the plane, `normal` when all are below),
+    or None when the lights are on both sides."""
+    sides = set()
+    for light in scene.lights:
+        if isinstance(light, DirectionalLight):
+            c = float(np.asarray(light.direction, np.float64) @ frame.normal)
+            h = np.array([-c])  # light travelling along -normal comes from above
+        elif isinstance(light, PolygonLight):
+            h = frame.height(np.asarray(light.vertices, np.float64))
+        elif isinstance(light, LinearLight):
+            h = frame.height(np.stack([np.asarray(light.start, np.float64), np.asarray(light.end, np.float64)]))
+        elif isinstance(light, PointLight):
+            h = frame.height(np.asarray(light.position, np.float64)[None])
+        else:
+            return None
+        if np.all(h > 0):
+            sides.add(1.0)
+        elif np.all(h < 0):
+            sides.add(-1.0)
+        else:
+            return None
+    if len(sides) != 1:
+        return None
+    return -sides.pop() * frame.normal
 
 
 _RADIX = 1 << 21  # vertex indices per tile that `_Checked` can encode
@@ -256,6 +325,8 @@ class _Tile:
     values: np.ndarray | None = None
     error: float = 0.0
     corner_error: float = 0.0
+    unrefined: int = 0  # elements over the threshold at the minimum edge length
+    unrefined_error: float = 0.0  # their largest checked error (W/m^2)
 
     def edge_keys(self) -> list[tuple[int, int, bool]]:
         g = self.gids
@@ -372,6 +443,33 @@ def _triangulate(v: np.ndarray, s: np.ndarray, m: np.ndarray, on_tol: float = 0.
     return out, dropped
 
 
+def _split_segments(segs: np.ndarray, marks: np.ndarray, edges: np.ndarray, mids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Segments `segs (S, 2)` (markers `marks (S,)`) with the one on each of `edges (n, 2)` (as
+    vertex pairs, either way round) split at vertex `mids (n,)` (the last one given for an edge),
+    in order: a split segment `(i, j)` becomes `(i, mid), (mid, j)` in its place."""
+    marks = np.asarray(marks).ravel()
+    if edges.shape[0] == 0 or segs.shape[0] == 0:
+        return segs.reshape(-1, 2).astype(np.int64), marks
+    n = int(max(segs.max(), edges.max(), mids.max())) + 1
+    code = lambda a, b: np.minimum(a, b).astype(np.int64) * n + np.maximum(a, b)  # noqa: E731
+    ec = code(edges[:, 0], edges[:, 1])
+    # The last entry per edge wins: unique over the reversed list.
+    uc, last = np.unique(ec[::-1], return_index=True)
+    um = mids[::-1][last]
+    sc = code(segs[:, 0], segs[:, 1])
+    pos = np.clip(np.searchsorted(uc, sc), 0, uc.size - 1)
+    hit = uc[pos] == sc
+    mid = np.where(hit, um[pos], -1)
+    cnt = 1 + hit.astype(np.int64)
+    at = np.cumsum(cnt) - cnt
+    out = np.empty((int(cnt.sum()), 2), np.int64)
+    out[at, 0] = segs[:, 0]
+    out[at + cnt - 1, 1] = segs[:, 1]
+    out[at[hit], 1] = mid[hit]
+    out[at[hit] + 1, 0] = mid[hit]
+    return out, np.repeat(marks, cnt)
+
+
 def _split_at(v: np.ndarray, s: np.ndarray, m: np.ndarray, idx: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
     """Split internal segments (markers 0 and 2) at the vertices `idx` that lie on them (within `tol`,
     not at their ends), so that a vertex off a segment by round-off becomes its end point instead of
@@ -392,14 +490,26 @@ def _split_at(v: np.ndarray, s: np.ndarray, m: np.ndarray, idx: np.ndarray, tol:
     on &= (idx[None, :] != s[inner, 0][:, None]) & (idx[None, :] != s[inner, 1][:, None])
     if not np.any(on):
         return s, m
-    out_s, out_m = [row for row in s[m == 1]], list(m[m == 1])
-    for r, si in enumerate(inner):
-        hit = np.nonzero(on[r])[0]
-        chain = [s[si, 0]] + [int(idx[h]) for h in hit[np.argsort(t[r, hit])]] + [s[si, 1]]
-        for i, j in zip(chain[:-1], chain[1:], strict=True):
-            out_s.append(np.array([i, j]))
-            out_m.append(m[si])
-    return np.array(out_s).reshape(-1, 2), np.array(out_m)
+    # Every inner segment becomes the chain start, its vertices in order along it, end; all
+    # chains in one array (segment by segment), the pieces its consecutive pairs within a chain.
+    r, h = np.nonzero(on)
+    order = np.lexsort((t[r, h], r))
+    r, h = r[order], h[order]
+    hits = np.bincount(r, minlength=inner.size)
+    length = hits + 2
+    first = np.cumsum(length) - length  # where each chain starts
+    nodes = np.empty(int(length.sum()), np.int64)
+    nodes[first] = s[inner, 0]
+    nodes[first + length - 1] = s[inner, 1]
+    rank = np.arange(r.size) - (np.cumsum(hits) - hits)[r]  # position among its segment's hits
+    nodes[first[r] + 1 + rank] = idx[h]
+    last = np.zeros(nodes.size, bool)
+    last[first + length - 1] = True
+    pieces = np.stack([nodes[:-1][~last[:-1]], nodes[1:][~last[:-1]]], axis=1)
+    outer = m == 1
+    out_s = np.concatenate([s[outer].astype(np.int64), pieces]).reshape(-1, 2)
+    out_m = np.concatenate([m[outer], np.repeat(m[inner], hits + 1)])
+    return out_s, out_m
 
 
 def _noded(lines: list[tuple[np.ndarray, np.ndarray]]) -> list[tuple[np.ndarray, np.ndarray]]:
