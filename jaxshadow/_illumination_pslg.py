@@ -49,6 +49,7 @@ class _Evaluator:
         self.values = np.zeros((1024, 3))
         self.targets = np.zeros(1024, np.complex128)  # per row: the point evaluated (`move`)
         self.lined = np.zeros(1024, bool)  # per row: evaluated with the on-line check
+        self.succ = np.full(1024, -1, np.int64)  # per row: the row of the point's next evaluation (`follow`)
         self._rows = 0
         self.prior: dict[complex, int] | None = None  # an earlier scene's rows (`inherit`)
         self.prior_ok = np.zeros(0, bool)
@@ -59,7 +60,7 @@ class _Evaluator:
         self.moved: dict[complex, complex] = {}  # points evaluated elsewhere (`move`)
         self.checked: set[complex] = set()
         self.pending: set[complex] = set()  # cached keys to evaluate again: `online` and not `checked`
-        self.dropped: set[complex] = set()  # keys evaluated, then moved (`move`), not evaluated since
+        self.dropped: dict[complex, int] = {}  # keys evaluated (their row), then moved, not evaluated since
         self.away = _away_normal(scene, frame)
         self.step = ON_LINE_STEP * size * np.array([np.cos(0.6180339887), np.sin(0.6180339887)])
         self.evaluations = 0
@@ -85,8 +86,9 @@ class _Evaluator:
         for a, b in zip(self._keys(xy), self._keys(to), strict=True):
             if a not in self.moved:
                 self.moved[a] = b
-                if self.cache.pop(a, None) is not None:
-                    self.dropped.add(a)
+                r = self.cache.pop(a, None)
+                if r is not None:
+                    self.dropped[a] = r
 
     def _lookup(self, keys: list[complex]) -> tuple[np.ndarray, np.ndarray]:
         """Per key its cached row (-1 when none) and whether it needs evaluating."""
@@ -98,6 +100,36 @@ class _Evaluator:
         return rows, need
 
     def __call__(self, xy: np.ndarray) -> np.ndarray:
+        """Exact irradiance `(n, 3)` at points `xy (n, 2)`."""
+        rows = self.row_of(xy)  # (first: it may grow the arrays)
+        return self.values[rows]
+
+    def _previous_rows(self, todo: list[complex]) -> np.ndarray | None:
+        """The rows the keys `todo` had before (pending or moved ones; -1 for none), or None
+        when no key can have one."""
+        if not self.pending and not self.dropped:
+            return None
+        cache, dropped = self.cache, self.dropped
+        return np.fromiter((cache.get(k, dropped.get(k, -1)) for k in todo), np.int64, len(todo))
+
+    def _succeed(self, prev: np.ndarray | None, rows: np.ndarray) -> None:
+        if prev is not None:
+            ok = (prev >= 0) & (prev != rows)
+            self.succ[prev[ok]] = rows[ok]
+
+    def follow(self, rows: np.ndarray) -> np.ndarray:
+        """The rows now holding the points whose values were at `rows` (a point evaluated again,
+        moved or checked on a line, has a new row)."""
+        rows = np.asarray(rows, np.int64)
+        while rows.size:
+            nxt = self.succ[rows]
+            if not np.any(nxt >= 0):
+                break
+            rows = np.where(nxt >= 0, nxt, rows)
+        return rows
+
+    def row_of(self, xy: np.ndarray) -> np.ndarray:
+        """The value rows `(n,)` of points `xy (n, 2)`, evaluated first where needed."""
         keys = self._keys(xy)
         cache, online, checked = self.cache, self.online, self.checked
         rows, need = self._lookup(keys)
@@ -105,6 +137,7 @@ class _Evaluator:
         if todo and self.prior is not None:
             todo = self._take_prior(todo)
         if todo:
+            prev = self._previous_rows(todo)
             tgt = [self.moved.get(k, k) for k in todo]
             pts = np.array(tgt, np.complex128).view(np.float64).reshape(-1, 2)
             line = np.array([k in online for k in todo], bool)
@@ -138,34 +171,39 @@ class _Evaluator:
             self.values[start:start + n] = val
             self.targets[start:start + n] = tgt
             self.lined[start:start + n] = line
+            self._succeed(prev, np.arange(start, start + n))
             cache.update(zip(todo, range(start, start + n), strict=True))
             self._rows = start + n
             lined = list(itertools.compress(todo, line))
             checked.update(lined)
             self.pending.difference_update(lined)
             if self.dropped:
-                self.dropped.difference_update(todo)
-        if not keys:
-            return np.zeros((0, 3))
+                for k in todo:
+                    self.dropped.pop(k, None)
         if need.any():
             rows[need] = np.fromiter(map(cache.__getitem__, itertools.compress(keys, need)), np.int64, int(need.sum()))
-        return self.values[rows]
+        return rows
 
     def stale(self, xy: np.ndarray) -> np.ndarray:
         """`(n,)` bool: whether points `xy (n, 2)`, all evaluated before, would be evaluated again
         by the next call: those marked on a line since, or moved since (the log of both, not a
         look-up of every point)."""
-        log = self.pending | self.dropped
+        log = self.pending | self.dropped.keys()
         if not log:
             return np.zeros(xy.shape[0], bool)
         keys = np.ascontiguousarray(np.asarray(xy, np.float64).reshape(-1, 2)).view(np.complex128).ravel()
         return np.isin(keys, np.fromiter(log, np.complex128, len(log)))
 
-    def _grow(self, rows: int) -> None:
-        while rows > self.values.shape[0]:
-            self.values = np.concatenate([self.values, np.zeros_like(self.values)])
-            self.targets = np.concatenate([self.targets, np.zeros_like(self.targets)])
-            self.lined = np.concatenate([self.lined, np.zeros_like(self.lined)])
+    def _grow(self, rows: int, spare: float = 1.0) -> None:
+        """Room for `rows` rows, and `spare` times as many again when the arrays must grow."""
+        if rows <= self.values.shape[0]:
+            return
+        size = max(int(rows * (1 + spare)), 1024)
+        for name in ("values", "targets", "lined", "succ"):
+            a = getattr(self, name)
+            b = np.full((size,) + a.shape[1:], -1 if name == "succ" else 0, a.dtype)
+            b[:self._rows] = a[:self._rows]
+            setattr(self, name, b)
 
     def _take_prior(self, todo: list[complex]) -> list[complex]:
         """Point the keys `todo` whose evaluation (the same point, with the on-line check or
@@ -184,12 +222,14 @@ class _Evaluator:
             return todo
         idx = np.nonzero(take)[0].tolist()
         keys = [todo[i] for i in idx]
+        self._succeed(self._previous_rows(keys), r[take])
         self.cache.update(zip(keys, r[take].tolist(), strict=True))
         lined = list(itertools.compress(keys, line[take]))
         self.checked.update(lined)
         self.pending.difference_update(lined)
         if self.dropped:
-            self.dropped.difference_update(keys)
+            for k in keys:
+                self.dropped.pop(k, None)
         self.reused += len(keys)
         return [todo[i] for i in np.nonzero(~take)[0].tolist()]
 
@@ -220,8 +260,12 @@ class _Evaluator:
         ok = valid.copy()
         ok[valid] = keep(pts[valid])
         self.kept, self.affected = int(ok.sum()), int(valid.sum() - ok.sum())
-        m = max(n, 1024)
-        self.values, self.targets, self.lined = old.values[:m].copy(), old.targets[:m].copy(), old.lined[:m].copy()
+        # Copies (the old mesh keeps its evaluator), with room for the update's new rows.
+        self.values, self.targets, self.lined = old.values[:0], old.targets[:0], old.lined[:0]
+        self.succ = self.succ[:0]
+        self._rows = 0
+        self._grow(n, spare=0.5)
+        self.values[:n], self.targets[:n], self.lined[:n] = old.values[:n], old.targets[:n], old.lined[:n]
         self._rows = self.first_row = n
         self.prior, self.prior_ok = index, ok
 
@@ -401,7 +445,10 @@ def _triangulate(v: np.ndarray, s: np.ndarray, m: np.ndarray, on_tol: float = 0.
     rejected the internal segments and they were left out (their vertices kept)."""
     import pythoncdt as cdt
 
-    uniq, first, inv = np.unique(v, axis=0, return_index=True, return_inverse=True)
+    # Rows as complex numbers: a 1-D unique (the same rows, the same first occurrences).
+    key = np.ascontiguousarray(v, np.float64).view(np.complex128).ravel()
+    uniq_k, first, inv = np.unique(key, return_index=True, return_inverse=True)
+    uniq = uniq_k.view(np.float64).reshape(-1, 2)
     order = np.argsort(first)  # keep the input order (deterministic, boundary first)
     rank = np.empty_like(order)
     rank[order] = np.arange(order.size)
@@ -430,16 +477,32 @@ def _triangulate(v: np.ndarray, s: np.ndarray, m: np.ndarray, on_tol: float = 0.
         tri = run(s2)
     verts = tri.vertices_array().view(np.float64).reshape(-1, 2)
     tris = tri.triangles_array()["vertices"].astype(np.int64).reshape(-1, 3)
-    mark = {(min(i, j), max(i, j)): int(k) for (i, j), k in zip(s2.tolist(), m2.tolist(), strict=True)}
-    pieces = {(min(e.v1, e.v2), max(e.v1, e.v2)): [(min(o.v1, o.v2), max(o.v1, o.v2)) for o in orig]
-              for e, orig in tri.piece_to_originals_iter()}
-    segs, marks = [], []
-    for e in tri.fixed_edges_iter():
-        key = (min(e.v1, e.v2), max(e.v1, e.v2))
-        segs.append(key)
-        marks.append(max((mark.get(o, 0) for o in pieces.get(key, [key])), default=0))
-    out = {"vertices": verts, "triangles": tris, "segments": np.array(segs, np.int64).reshape(-1, 2),
-           "segment_markers": np.array(marks, np.int64).reshape(-1, 1)}
+    # Each fixed edge takes the marker of the input segment it is (or, when the triangulation
+    # split or merged input segments, the largest of those it is a piece of; 0 for none).
+    segs = np.array([(e.v1, e.v2) for e in tri.fixed_edges_iter()], np.int64).reshape(-1, 2)
+    segs = np.sort(segs, axis=1)
+    n = max(int(verts.shape[0]), int(s2.max(initial=0)) + 1)
+    sk = np.sort(s2, axis=1).astype(np.int64)
+    in_code = sk[:, 0] * n + sk[:, 1]
+    order_in = np.argsort(in_code)
+    in_code, in_mark = in_code[order_in], m2[order_in].astype(np.int64)
+
+    def marker(codes: np.ndarray) -> np.ndarray:
+        pos = np.clip(np.searchsorted(in_code, codes), 0, max(in_code.size - 1, 0))
+        hit = (in_code[pos] == codes) if in_code.size else np.zeros(codes.shape, bool)
+        return np.where(hit, in_mark[pos] if in_code.size else 0, 0)
+
+    marks = marker(segs[:, 0] * n + segs[:, 1])
+    pieces = tri.piece_to_originals
+    if pieces:
+        at = {(int(a), int(b)): k for k, (a, b) in enumerate(segs.tolist())}
+        for e, orig in pieces.items():
+            k = at.get((min(e.v1, e.v2), max(e.v1, e.v2)))
+            if k is not None:
+                oc = np.array([min(o.v1, o.v2) * n + max(o.v1, o.v2) for o in orig], np.int64)
+                marks[k] = int(marker(oc).max(initial=0))
+    out = {"vertices": verts, "triangles": tris, "segments": segs,
+           "segment_markers": marks.astype(np.int64).reshape(-1, 1)}
     return out, dropped
 
 

@@ -8,7 +8,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ._illumination_pslg import _Checked, _edge_kinds, _split_at, _split_segments, _triangulate
+from ._illumination_pslg import (
+    _RADIX,
+    _Checked,
+    _edge_kinds,
+    _split_at,
+    _split_segments,
+    _triangulate,
+)
 
 if TYPE_CHECKING:
     from ._illumination_builder import _Builder
@@ -36,11 +43,13 @@ def refine_tiles(b: _Builder, tile_ids: list[int]) -> None:
     # previous round that are still there (same vertices) keep their checked errors, so only
     # the new triangles' check points are looked up and evaluated.
     last: dict[int, _Checked] = {}
+    vrows: dict[int, np.ndarray] = {}  # per tile: the evaluator's rows of the last round's vertices
+    marked: dict[int, np.ndarray] = {}  # per tile: the last round's inner segments (vertex-pair codes)
     while active:
         rounds += 1
         if _DEBUG:
             print("round", rounds, len(active), sum(state[ti][0].shape[0] for ti in active))
-        meshes, known = {}, {}
+        meshes, known, last_n = {}, {}, {}
         probes = []
         for ti in active:
             v, s, m = state[ti]
@@ -57,20 +66,28 @@ def refine_tiles(b: _Builder, tile_ids: list[int]) -> None:
                 # one) can take the place of the contact segment in the triangulation.
                 b._move_off_contact(np.concatenate([tv[n_old:], mids.reshape(-1, 2)]), b.tiles[ti].contact)
             inner_seg = out["segments"][out["segment_markers"].ravel() == 0]
-            if inner_seg.size:
-                b.eval.mark(tv[inner_seg.ravel()])
-                b.eval.mark(0.5 * (tv[inner_seg[:, 0]] + tv[inner_seg[:, 1]]))
+            ends = np.sort(inner_seg, axis=1).astype(np.int64)
+            codes = ends[:, 0] * _RADIX + ends[:, 1]
+            fresh = inner_seg[~np.isin(codes, marked[ti])] if n_old and ti in marked else inner_seg
+            marked[ti] = codes
+            if fresh.size:  # (marking again the segments marked before changes nothing)
+                b.eval.mark(tv[fresh.ravel()])
+                b.eval.mark(0.5 * (tv[fresh[:, 0]] + tv[fresh[:, 1]]))
             stale = b.eval.stale(tv[:n_old])  # an old vertex evaluated again: its triangles are new
             if np.any(stale):
                 kn &= ~np.any(np.concatenate([stale, np.zeros(tv.shape[0] - n_old, bool)])[tt], axis=1)
                 c = tv[tt[~kn]]
                 mids = 0.5 * (c + np.roll(c, -1, axis=1))
             known[ti] = kn
+            last_n[ti] = n_old
             inner = np.einsum("ij,tjk->tik", _INNER, c)
-            probes.append(tv)
+            # The vertices to look up: the new ones and the old ones to evaluate again (the
+            # others keep their rows, followed to any later evaluation of the point).
+            probes.append(np.concatenate([tv[:n_old][stale], tv[n_old:]]))
             probes.append(np.concatenate([mids, c.mean(axis=1, keepdims=True), inner], axis=1).reshape(-1, 2))
         # All active tiles' vertices and check points in one call; each tile reads its rows.
-        allval = b.eval(np.concatenate(probes))
+        allrows = b.eval.row_of(np.concatenate(probes))
+        allval = b.eval.values[allrows]
         rows = np.cumsum([0] + [p.shape[0] for p in probes])
         total = sum(meshes[ti]["vertices"].shape[0] for ti in meshes) + sum(
             b.tiles[ti].verts.shape[0] for ti in range(len(b.tiles))  # type: ignore[union-attr]
@@ -83,7 +100,12 @@ def refine_tiles(b: _Builder, tile_ids: list[int]) -> None:
             segs = out["segments"]
             smark = out["segment_markers"].ravel()
             c = tv[tt]
-            ve = allval[rows[2 * k_tile]:rows[2 * k_tile + 1]].copy()
+            n_old = last_n[ti]
+            vr = np.empty(tv.shape[0], np.int64)
+            vr[n_old:] = allrows[rows[2 * k_tile + 1] - (tv.shape[0] - n_old):rows[2 * k_tile + 1]]
+            vr[:n_old] = b.eval.follow(vrows[ti]) if n_old else vr[:0]
+            vrows[ti] = vr
+            ve = b.eval.values[vr]
             vt = ve[tt]  # (T, 3, 3)
             mids = 0.5 * (c + np.roll(c, -1, axis=1))
             inner = np.einsum("ij,tjk->tik", _INNER, c)
