@@ -49,7 +49,8 @@ class _Evaluator:
         self.values = np.zeros((1024, 3))
         self.targets = np.zeros(1024, np.complex128)  # per row: the point evaluated (`move`)
         self.lined = np.zeros(1024, bool)  # per row: evaluated with the on-line check
-        self.succ = np.full(1024, -1, np.int64)  # per row: the row of the point's next evaluation (`follow`)
+        self.succ: dict[int, int] = {}  # row -> the row of the point's next evaluation (`follow`)
+        self._succ_sorted: tuple[np.ndarray, np.ndarray] | None = None
         self._rows = 0
         self.prior: dict[complex, int] | None = None  # an earlier scene's rows (`inherit`)
         self.prior_ok = np.zeros(0, bool)
@@ -77,8 +78,9 @@ class _Evaluator:
         keys = set(self._keys(xy))
         self.online |= keys
         keys -= self.checked
-        if keys:
-            self.pending |= keys
+        if keys:  # cached without the check: pending (the others get it when first evaluated)
+            cache = self.cache
+            self.pending.update(k for k in keys if k in cache)
 
     def move(self, xy: np.ndarray, to: np.ndarray) -> None:
         """Evaluate points `xy (n, 2)` at `to (n, 2)` instead (a point on the edge of a hole takes
@@ -96,7 +98,7 @@ class _Evaluator:
         rows = np.fromiter(map(self.cache.get, keys, itertools.repeat(-1, n)), np.int64, n)
         need = rows < 0
         if self.pending:
-            need |= np.fromiter(map(self.pending.__contains__, keys), bool, n)
+            need |= np.isin(np.array(keys, np.complex128), np.fromiter(self.pending, np.complex128, len(self.pending)))
         return rows, need
 
     def __call__(self, xy: np.ndarray) -> np.ndarray:
@@ -104,28 +106,40 @@ class _Evaluator:
         rows = self.row_of(xy)  # (first: it may grow the arrays)
         return self.values[rows]
 
-    def _previous_rows(self, todo: list[complex]) -> np.ndarray | None:
-        """The rows the keys `todo` had before (pending or moved ones; -1 for none), or None
-        when no key can have one."""
+    def _settle(self, keys: list[complex], rows: np.ndarray) -> None:
+        """Keys `keys` now have rows `rows`: the rows they had before (pending or moved keys:
+        the log, not every key, is searched) lead to the new ones (`follow`), and they leave
+        the log."""
         if not self.pending and not self.dropped:
-            return None
+            return
+        index = dict(zip(keys, range(len(keys)), strict=True))
         cache, dropped = self.cache, self.dropped
-        return np.fromiter((cache.get(k, dropped.get(k, -1)) for k in todo), np.int64, len(todo))
-
-    def _succeed(self, prev: np.ndarray | None, rows: np.ndarray) -> None:
-        if prev is not None:
-            ok = (prev >= 0) & (prev != rows)
-            self.succ[prev[ok]] = rows[ok]
+        for k in [k for k in self.pending if k in index] + [k for k in dropped if k in index]:
+            old = cache.get(k, dropped.get(k, -1))
+            new = int(rows[index[k]])
+            if old >= 0 and old != new:
+                self.succ[old] = new
+                self._succ_sorted = None
+            dropped.pop(k, None)
 
     def follow(self, rows: np.ndarray) -> np.ndarray:
         """The rows now holding the points whose values were at `rows` (a point evaluated again,
         moved or checked on a line, has a new row)."""
         rows = np.asarray(rows, np.int64)
+        if not self.succ:
+            return rows
+        if self._succ_sorted is None:
+            k = np.fromiter(self.succ.keys(), np.int64, len(self.succ))
+            v = np.fromiter(self.succ.values(), np.int64, len(self.succ))
+            o = np.argsort(k)
+            self._succ_sorted = (k[o], v[o])
+        ks, vs = self._succ_sorted
         while rows.size:
-            nxt = self.succ[rows]
-            if not np.any(nxt >= 0):
+            pos = np.minimum(np.searchsorted(ks, rows), ks.size - 1)
+            hit = ks[pos] == rows
+            if not np.any(hit):
                 break
-            rows = np.where(nxt >= 0, nxt, rows)
+            rows = np.where(hit, vs[pos], rows)
         return rows
 
     def row_of(self, xy: np.ndarray) -> np.ndarray:
@@ -137,10 +151,9 @@ class _Evaluator:
         if todo and self.prior is not None:
             todo = self._take_prior(todo)
         if todo:
-            prev = self._previous_rows(todo)
-            tgt = [self.moved.get(k, k) for k in todo]
+            tgt = list(map(self.moved.get, todo, todo))
             pts = np.array(tgt, np.complex128).view(np.float64).reshape(-1, 2)
-            line = np.array([k in online for k in todo], bool)
+            line = np.fromiter(map(online.__contains__, todo), bool, len(todo))
             side = pts[line]
             allp = np.concatenate([pts, side + self.step, side - self.step])
             t0 = time.perf_counter()
@@ -171,15 +184,12 @@ class _Evaluator:
             self.values[start:start + n] = val
             self.targets[start:start + n] = tgt
             self.lined[start:start + n] = line
-            self._succeed(prev, np.arange(start, start + n))
+            self._settle(todo, np.arange(start, start + n))
             cache.update(zip(todo, range(start, start + n), strict=True))
             self._rows = start + n
             lined = list(itertools.compress(todo, line))
             checked.update(lined)
             self.pending.difference_update(lined)
-            if self.dropped:
-                for k in todo:
-                    self.dropped.pop(k, None)
         if need.any():
             rows[need] = np.fromiter(map(cache.__getitem__, itertools.compress(keys, need)), np.int64, int(need.sum()))
         return rows
@@ -199,9 +209,9 @@ class _Evaluator:
         if rows <= self.values.shape[0]:
             return
         size = max(int(rows * (1 + spare)), 1024)
-        for name in ("values", "targets", "lined", "succ"):
+        for name in ("values", "targets", "lined"):
             a = getattr(self, name)
-            b = np.full((size,) + a.shape[1:], -1 if name == "succ" else 0, a.dtype)
+            b = np.zeros((size,) + a.shape[1:], a.dtype)
             b[:self._rows] = a[:self._rows]
             setattr(self, name, b)
 
@@ -212,26 +222,26 @@ class _Evaluator:
         assert prior is not None
         if self.prior_ok.size == 0:
             return todo
-        r = np.fromiter(map(prior.get, todo, [-1] * len(todo)), np.int64, len(todo))
+        n = len(todo)
+        r = np.fromiter(map(prior.get, todo, itertools.repeat(-1, n)), np.int64, n)
+        hit = r >= 0
+        if not np.any(hit):
+            return todo
         online, moved = self.online, self.moved
-        tgt = np.array([moved.get(k, k) for k in todo], np.complex128)
-        line = np.fromiter(map(online.__contains__, todo), bool, len(todo))
+        tgt = np.fromiter(map(moved.get, todo, todo), np.complex128, n) if moved else np.array(todo, np.complex128)
+        line = np.fromiter(map(online.__contains__, todo), bool, n)
         rr = np.maximum(r, 0)
-        take = (r >= 0) & self.prior_ok[rr] & (self.targets[rr] == tgt) & (self.lined[rr] == line)
+        take = hit & self.prior_ok[rr] & (self.targets[rr] == tgt) & (self.lined[rr] == line)
         if not np.any(take):
             return todo
-        idx = np.nonzero(take)[0].tolist()
-        keys = [todo[i] for i in idx]
-        self._succeed(self._previous_rows(keys), r[take])
+        keys = list(itertools.compress(todo, take))
+        self._settle(keys, r[take])
         self.cache.update(zip(keys, r[take].tolist(), strict=True))
         lined = list(itertools.compress(keys, line[take]))
         self.checked.update(lined)
         self.pending.difference_update(lined)
-        if self.dropped:
-            for k in keys:
-                self.dropped.pop(k, None)
         self.reused += len(keys)
-        return [todo[i] for i in np.nonzero(~take)[0].tolist()]
+        return list(itertools.compress(todo, ~take))
 
     def rows(self) -> tuple[dict[complex, int], np.ndarray]:
         """Every key evaluated so far or taken over (`inherit`), with its row, and which rows hold
@@ -262,7 +272,6 @@ class _Evaluator:
         self.kept, self.affected = int(ok.sum()), int(valid.sum() - ok.sum())
         # Copies (the old mesh keeps its evaluator), with room for the update's new rows.
         self.values, self.targets, self.lined = old.values[:0], old.targets[:0], old.lined[:0]
-        self.succ = self.succ[:0]
         self._rows = 0
         self._grow(n, spare=0.5)
         self.values[:n], self.targets[:n], self.lined[:n] = old.values[:n], old.targets[:n], old.lined[:n]
