@@ -221,11 +221,17 @@ def _affected(scene: Scene, frame: Any, step: float, xy: np.ndarray, faces: list
     boxes = np.concatenate([foot.reshape(-1, 4), np.array(own)])
     boxes = boxes[np.all(np.isfinite(boxes), axis=1)]
     grow = margin + step
-    near = np.zeros(xy.shape[0], bool)
+    if boxes.shape[0] == 0:
+        return out
+    # The boxes' common bounding box first (they overlap: one object's faces), then each box.
+    x, y = xy[:, 0], xy[:, 1]
+    idx = np.nonzero((x >= boxes[:, 0].min() - grow) & (x <= boxes[:, 2].max() + grow)
+                     & (y >= boxes[:, 1].min() - grow) & (y <= boxes[:, 3].max() + grow))[0]
+    x, y = x[idx], y[idx]
+    near = np.zeros(idx.size, bool)
     for bx in boxes:
-        near |= ((xy[:, 0] >= bx[0] - grow) & (xy[:, 0] <= bx[2] + grow)
-                 & (xy[:, 1] >= bx[1] - grow) & (xy[:, 1] <= bx[3] + grow))
-    idx = np.nonzero(near)[0]
+        near |= (x >= bx[0] - grow) & (x <= bx[2] + grow) & (y >= bx[1] - grow) & (y <= bx[3] + grow)
+    idx = idx[near]
     if idx.size == 0:
         return out
     p3 = np.ascontiguousarray(frame.to3d(xy[idx]))
