@@ -165,7 +165,8 @@ def affected(light: Any, points: np.ndarray, normals: np.ndarray, lo: np.ndarray
     pos = np.full(n_pts, -1)
     pos[union] = np.arange(union.size)
     for (idx, box_max), lo_g, hi_g in zip(picked, lo_all, hi_all, strict=True):
-        r = pos[idx]
+        whole = idx.size == union.size  # (then idx is union: both sorted)
+        r = slice(None) if whole else pos[idx]
         mg = 1e-9 * (pmax[idx] + box_max + 1.0)
         keep = np.ones(idx.size, bool)
         for nx, ny, nz, off, scale in planes:

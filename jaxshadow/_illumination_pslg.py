@@ -228,16 +228,19 @@ class _Evaluator:
         if not np.any(hit):
             return todo
         online, moved = self.online, self.moved
-        tgt = np.fromiter(map(moved.get, todo, todo), np.complex128, n) if moved else np.array(todo, np.complex128)
-        line = np.fromiter(map(online.__contains__, todo), bool, n)
-        rr = np.maximum(r, 0)
-        take = hit & self.prior_ok[rr] & (self.targets[rr] == tgt) & (self.lined[rr] == line)
-        if not np.any(take):
+        cand = list(itertools.compress(todo, hit))  # keys with an earlier row: the same evaluation?
+        m, rr = len(cand), r[hit]
+        tgt = np.fromiter(map(moved.get, cand, cand), np.complex128, m) if moved else np.array(cand, np.complex128)
+        line = np.fromiter(map(online.__contains__, cand), bool, m)
+        same = self.prior_ok[rr] & (self.targets[rr] == tgt) & (self.lined[rr] == line)
+        if not np.any(same):
             return todo
-        keys = list(itertools.compress(todo, take))
-        self._settle(keys, r[take])
-        self.cache.update(zip(keys, r[take].tolist(), strict=True))
-        lined = list(itertools.compress(keys, line[take]))
+        take = hit.copy()
+        take[hit] = same
+        keys = list(itertools.compress(cand, same))
+        self._settle(keys, rr[same])
+        self.cache.update(zip(keys, rr[same].tolist(), strict=True))
+        lined = list(itertools.compress(keys, line[same]))
         self.checked.update(lined)
         self.pending.difference_update(lined)
         self.reused += len(keys)
