@@ -25,8 +25,9 @@ receiver polygon:
    element whose linear interpolation misses by more than `ESTIMATE_MARGIN * tol * scale` is
    inserted, and the tile re-triangulated, until no element fails. Tile edges are refined the
    same way in 1-D beforehand. A round's triangulation starts with the previous round's vertices
-   in order, so the elements it keeps (same three vertices) keep their checked errors: a round
-   evaluates and looks up only the new elements' check points.
+   in order, so the elements it keeps (same three vertices) keep their checked errors and the
+   vertices keep their evaluated values: a round evaluates and looks up only the new vertices
+   and the new elements' check points (`_illumination_refine`).
 
 Values come from `jaxshadow.irradiance` (the host shadow engine for concrete inputs).
 """

@@ -1,5 +1,6 @@
 """The illumination mesher proper (`_illumination`'s module docstring describes the method):
-discontinuity lines per tile, extrema, 1-D refinement of tile edges, 2-D refinement of tiles."""
+discontinuity lines per tile, extrema, 1-D refinement of tile edges; the 2-D refinement of the
+tiles is `_illumination_refine`."""
 
 from __future__ import annotations
 
