@@ -11,10 +11,10 @@ import numpy as np
 
 from . import _illumination_events as ev
 from . import _illumination_extrema as ex
+from ._illumination_evaluator import _Evaluator
 from ._illumination_pslg import (
     _contact_corners,
     _Edge,
-    _Evaluator,
     _grid,
     _noded,
     _segment_crossings,

@@ -13,6 +13,7 @@ import pytest
 
 import jaxshadow as js
 from jaxshadow import _cache
+from jaxshadow import _illumination_evaluator as evaluator
 from jaxshadow import _illumination_events as ev
 from jaxshadow import _illumination_pslg as pslg
 
@@ -115,7 +116,7 @@ def _evaluator():
     occ = np.array([[-0.5, -0.3, 1.0], [0.3, -0.3, 1.0], [0.3, 0.4, 1.0], [-0.5, 0.4, 1.0]])
     scene = js.Scene([js.PolygonLight(QUAD, 10.0)], occluders=[occ])
     frame = ev.receiver_frame(FLOOR)
-    return scene, frame, pslg._Evaluator(scene, frame, 3.0)
+    return scene, frame, evaluator._Evaluator(scene, frame, 3.0)
 
 
 def _by_definition(e, xy):
@@ -145,10 +146,10 @@ def test_away_normal_needs_every_light_on_one_side():
     down = js.Scene([js.PolygonLight(below, 1.0)])
     both = js.Scene([js.PolygonLight(QUAD, 1.0), js.PointLight([0, 0, -1.0], 1.0)])
     sun = js.Scene([js.DirectionalLight([0.1, 0.2, -1.0], 1.0)])
-    np.testing.assert_array_equal(pslg._away_normal(up, frame), -frame.normal)
-    np.testing.assert_array_equal(pslg._away_normal(down, frame), frame.normal)
-    np.testing.assert_array_equal(pslg._away_normal(sun, frame), -frame.normal)
-    assert pslg._away_normal(both, frame) is None
+    np.testing.assert_array_equal(evaluator._away_normal(up, frame), -frame.normal)
+    np.testing.assert_array_equal(evaluator._away_normal(down, frame), frame.normal)
+    np.testing.assert_array_equal(evaluator._away_normal(sun, frame), -frame.normal)
+    assert evaluator._away_normal(both, frame) is None
 
 
 def test_evaluator_pending_points_follow_the_definition():
