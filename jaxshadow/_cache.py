@@ -35,15 +35,6 @@ from ._misc import unit_rows_host
 from ._scene import LinearLight, PointLight, PolygonLight, Scene
 
 
-def _box_outside_planes(lo: np.ndarray, hi: np.ndarray, normals: np.ndarray, offsets: np.ndarray,
-                        margin: np.ndarray) -> np.ndarray:
-    """Per row: the box `[lo, hi]` lies strictly on the negative side of plane `normals . x >= offsets`
-    (its farthest corner along the normal is below `-margin`)."""
-    # Column by column (an (N, 3) where/einsum costs ~3x as much).
-    far = sum(normals[:, d] * np.where(normals[:, d] >= 0, hi[d], lo[d]) for d in range(3))
-    return far - offsets < -margin
-
-
 def _box_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.array([[(lo, hi)[(k >> d) & 1][d] for d in range(3)] for k in range(8)])
 
@@ -82,78 +73,109 @@ def separating_planes(verts: np.ndarray, lo: np.ndarray, hi: np.ndarray, scale: 
     return planes[np.sort(first)]
 
 
-def affected(light: Any, points: np.ndarray, normals: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """`(N,)` bool: the box `[lo, hi]` may meet the receiver's illumination region of `light`.
+def _plane_filter(points: np.ndarray, planes: np.ndarray, s_all: float) -> np.ndarray:
+    """Indices of `points` on the box's side of every separating plane (`separating_planes`),
+    most rejecting planes first (greedily, on a sample of the receivers)."""
+    cand = np.arange(points.shape[0])
+    if planes.shape[0] == 0:
+        return cand
+    sample = points[:: max(1, points.shape[0] // 256)]
+    inside = sample @ planes[:, :3].T >= planes[:, 3] - 1e-6 * s_all
+    order: list[int] = []
+    left = np.ones(sample.shape[0], bool)
+    for _ in range(planes.shape[0]):
+        passing = np.count_nonzero(inside & left[:, None], axis=0).astype(np.float64)
+        passing[order] = np.inf
+        order.append(int(np.argmin(passing)))
+        left &= inside[:, order[-1]]
+    px, py, pz = points[:, 0], points[:, 1], points[:, 2]
+    for k in order:
+        # Column by column: a (N, 3) @ (3,) product costs ~20x as much.
+        h = px * planes[k, 0] + py * planes[k, 1] + pz * planes[k, 2]
+        keep = h >= planes[k, 3] - 1e-6 * s_all
+        cand, px, py, pz = cand[keep], px[keep], py[keep], pz[keep]
+        if cand.size == 0:
+            break
+    return cand
 
-    Cheapest tests first: the planes that separate the whole light from the box
+
+def affected(light: Any, points: np.ndarray, normals: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """`(N,)` bool: one of the boxes `[lo, hi]` (each `(3,)`, or `(G, 3)` for `G` boxes) may meet
+    the receiver's illumination region of `light`.
+
+    Cheapest tests first: per box, the planes that separate the whole light from it
     (`separating_planes`, the box's occlusion volume; one dot product per receiver and plane,
     on the receivers that are left), then the bounding box of the hull of the receiver and the
     light (exact for the separating axes x, y, z); the horizon and the pyramid's side planes only
-    for receivers that pass both."""
-    box_max = float(np.max(np.abs(np.concatenate([lo, hi]))))
-
-    def margin_of(rows: np.ndarray) -> np.ndarray:  # 1e-9 (|p|_inf + |box|_inf + 1) per receiver
-        return 1e-9 * (np.max(np.abs(rows), axis=1, initial=0.0) + box_max + 1.0)
-
-    if isinstance(light, (PolygonLight, LinearLight, PointLight)):
-        if isinstance(light, PointLight):
-            verts = np.asarray(light.position, np.float64)[None, :]
+    for receivers that pass both, the side planes computed once for all boxes. Column by column
+    throughout: NumPy's `(N, 3)` products and `np.cross` cost far more than three columns."""
+    lo_all, hi_all = np.atleast_2d(np.asarray(lo, np.float64)), np.atleast_2d(np.asarray(hi, np.float64))
+    n_pts = points.shape[0]
+    out = np.zeros(n_pts, bool)
+    if n_pts == 0:
+        return out
+    # |p|_inf per receiver, column by column (an axis-1 reduction over three columns is slow).
+    pmax = np.maximum(np.maximum(np.abs(points[:, 0]), np.abs(points[:, 1])), np.abs(points[:, 2]))
+    picked = []  # per box: (receivers passing the cheap tests, the box's margin scale)
+    for lo_g, hi_g in zip(lo_all, hi_all, strict=True):
+        box_max = float(np.max(np.abs(np.concatenate([lo_g, hi_g]))))
+        if isinstance(light, (PolygonLight, LinearLight, PointLight)):
+            if isinstance(light, PointLight):
+                verts = np.asarray(light.position, np.float64)[None, :]
+            else:
+                verts = np.asarray(light.vertices if isinstance(light, PolygonLight)
+                                   else np.stack([light.start, light.end]), np.float64)
+            vlo, vhi = verts.min(axis=0), verts.max(axis=0)
+            s_all = float(max(np.max(pmax), box_max, np.max(np.abs(verts)))) + 1.0
+            cand = _plane_filter(points, separating_planes(verts, lo_g, hi_g, s_all), s_all)
+            # The bounding box of the hull, axis by axis: min(p, vlo) <= hi + margin and
+            # max(p, vhi) >= lo - margin (margin 1e-9 (|p|_inf + |box|_inf + 1) per receiver).
+            mg = 1e-9 * (pmax[cand] + box_max + 1.0)
+            ok = np.ones(cand.size, bool)
+            for d in range(3):
+                q = points[cand, d]
+                ok &= (np.minimum(q, vlo[d]) <= hi_g[d] + mg) & (np.maximum(q, vhi[d]) >= lo_g[d] - mg)
+            idx = cand[ok]
         else:
-            verts = np.asarray(light.vertices if isinstance(light, PolygonLight) else np.stack([light.start, light.end]),
-                               np.float64)
-        vlo, vhi = verts.min(axis=0), verts.max(axis=0)
-        s_all = float(max(np.max(np.abs(points), initial=0.0), box_max, np.max(np.abs(verts)))) + 1.0
-        planes = separating_planes(verts, lo, hi, s_all)
-        cand = np.arange(points.shape[0])
-        if planes.shape[0]:
-            # Most rejecting planes first (greedily, on a sample of the receivers).
-            sample = points[:: max(1, points.shape[0] // 256)]
-            inside = sample @ planes[:, :3].T >= planes[:, 3] - 1e-6 * s_all
-            order: list[int] = []
-            left = np.ones(sample.shape[0], bool)
-            for _ in range(planes.shape[0]):
-                passing = np.count_nonzero(inside & left[:, None], axis=0).astype(np.float64)
-                passing[order] = np.inf
-                order.append(int(np.argmin(passing)))
-                left &= inside[:, order[-1]]
-            for k in order:
-                q = points if cand.size == points.shape[0] else np.take(points, cand, axis=0)
-                # Column by column: a (N, 3) @ (3,) product costs ~20x as much.
-                h = q[:, 0] * planes[k, 0] + q[:, 1] * planes[k, 1] + q[:, 2] * planes[k, 2]
-                cand = cand[h >= planes[k, 3] - 1e-6 * s_all]
-                if cand.size == 0:
-                    break
-        # The bounding box of the hull, axis by axis: min(p, vlo) <= hi + margin and
-        # max(p, vhi) >= lo - margin.
-        q = np.take(points, cand, axis=0)
-        mg = margin_of(q)
-        ok = np.ones(cand.size, bool)
-        for d in range(3):
-            ok &= (np.minimum(q[:, d], vlo[d]) <= hi[d] + mg) & (np.maximum(q[:, d], vhi[d]) >= lo[d] - mg)
-        idx = cand[ok]
-    else:
-        d = np.asarray(light.direction, np.float64)
-        d = d / np.linalg.norm(d)
-        # The shadow ray p - t d, t >= 0, meets the box only up to the box's far side.
-        reach = np.linalg.norm(np.maximum(np.abs(lo), np.abs(hi))) + np.linalg.norm(points, axis=1)[:, None] + 1.0
-        far = points - reach * d
-        hull_lo, hull_hi = np.minimum(points, far), np.maximum(points, far)
-        mg = margin_of(points)[:, None]
-        idx = np.nonzero(np.all((hull_lo <= hi[None, :] + mg) & (hull_hi >= lo[None, :] - mg), axis=1))[0]
-    q, m = points[idx], normals[idx]
-    mg = margin_of(q)
-    keep = ~_box_outside_planes(lo, hi, m, np.einsum("nd,nd->n", m, q), mg)
+            d = np.asarray(light.direction, np.float64)
+            d = d / np.linalg.norm(d)
+            # The shadow ray p - t d, t >= 0, meets the box only up to the box's far side.
+            reach = np.linalg.norm(np.maximum(np.abs(lo_g), np.abs(hi_g))) + np.linalg.norm(points, axis=1)[:, None] + 1.0
+            far = points - reach * d
+            hull_lo, hull_hi = np.minimum(points, far), np.maximum(points, far)
+            mg = (1e-9 * (pmax + box_max + 1.0))[:, None]
+            idx = np.nonzero(np.all((hull_lo <= hi_g[None, :] + mg) & (hull_hi >= lo_g[None, :] - mg), axis=1))[0]
+        picked.append((idx, box_max))
+    union = np.unique(np.concatenate([idx for idx, _ in picked]))
+    if union.size == 0:
+        return out
+    qx, qy, qz = points[union, 0], points[union, 1], points[union, 2]
+    mx, my, mz = normals[union, 0], normals[union, 1], normals[union, 2]
+    planes = [(mx, my, mz, mx * qx + my * qy + mz * qz, np.ones(union.size))]  # the horizon
     if isinstance(light, PolygonLight):
         v = np.asarray(light.vertices, np.float64)
         centre = v.mean(axis=0)
         for i in range(v.shape[0]):
             a, b = v[i], v[(i + 1) % v.shape[0]]
-            nrm = np.cross(a - q, b - q)
-            side = np.sign(np.einsum("nd,nd->n", nrm, centre - q))[:, None]
-            nrm = nrm * side
-            keep &= ~_box_outside_planes(lo, hi, nrm, np.einsum("nd,nd->n", nrm, q), mg * np.linalg.norm(nrm, axis=1))
-    out = np.zeros(points.shape[0], bool)
-    out[idx[keep]] = True
+            ax, ay, az, bx, by, bz = a[0] - qx, a[1] - qy, a[2] - qz, b[0] - qx, b[1] - qy, b[2] - qz
+            nx, ny, nz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+            side = np.sign(nx * (centre[0] - qx) + ny * (centre[1] - qy) + nz * (centre[2] - qz))
+            nx, ny, nz = nx * side, ny * side, nz * side
+            planes.append((nx, ny, nz, nx * qx + ny * qy + nz * qz, np.sqrt(nx * nx + ny * ny + nz * nz)))
+    pos = np.full(n_pts, -1)
+    pos[union] = np.arange(union.size)
+    for (idx, box_max), lo_g, hi_g in zip(picked, lo_all, hi_all, strict=True):
+        whole = idx.size == union.size  # (then idx is union: both sorted)
+        r = slice(None) if whole else pos[idx]
+        mg = 1e-9 * (pmax[idx] + box_max + 1.0)
+        keep = np.ones(idx.size, bool)
+        for nx, ny, nz, off, scale in planes:
+            # Outside when the box's farthest corner along the normal is below the plane.
+            cx, cy, cz = nx[r], ny[r], nz[r]
+            far = (cx * np.where(cx >= 0, hi_g[0], lo_g[0]) + cy * np.where(cy >= 0, hi_g[1], lo_g[1])
+                   + cz * np.where(cz >= 0, hi_g[2], lo_g[2]))
+            keep &= ~(far - off[r] < -mg * scale[r])
+        out[idx[keep]] = True
     return out
 
 

@@ -1,5 +1,6 @@
 """The illumination mesher proper (`_illumination`'s module docstring describes the method):
-discontinuity lines per tile, extrema, 1-D refinement of tile edges, 2-D refinement of tiles."""
+discontinuity lines per tile, extrema, 1-D refinement of tile edges; the 2-D refinement of the
+tiles is `_illumination_refine`."""
 
 from __future__ import annotations
 
@@ -10,20 +11,17 @@ import numpy as np
 
 from . import _illumination_events as ev
 from . import _illumination_extrema as ex
+from ._illumination_evaluator import _Evaluator
 from ._illumination_pslg import (
-    _Checked,
     _contact_corners,
     _Edge,
-    _edge_kinds,
-    _Evaluator,
     _grid,
     _noded,
     _segment_crossings,
-    _split_at,
     _Tile,
     _tiles,
-    _triangulate,
 )
+from ._illumination_refine import CORNER_SIZE, refine_tiles
 from ._scene import Scene
 from ._shade import irradiance
 
@@ -31,11 +29,8 @@ ESTIMATE_MARGIN = 0.5  # elements pass when their checked error is below this fr
 DEFAULT_TILES = 16  # tiles along the receiver's longer side
 SAMPLES_PER_TILE = 6  # extremum-search grid per tile side
 SEGMENT_SAMPLES_PER_TILE = 16  # visibility samples per tile length along a discontinuity line
-CORNER_SIZE = 1e-4  # elements at a contact polygon's corner are not split below this (of the receiver's size)
 CONTACT_STEP = 1e-9  # points on a hole's edge take the value this far outside (of the receiver's size)
-MAX_ROUNDS = 200  # refinement rounds per tile (each halves the worst elements; a guard)
 _DEBUG = False  # progress prints (development)
-_INNER = np.array([[0.5, 0.0, 0.0], [0.0, 0.5, 0.0], [0.0, 0.0, 0.5]]) + 0.5 / 3  # between centroid and corners
 
 
 class _Builder:
@@ -63,7 +58,8 @@ class _Builder:
         self.stats: dict[str, Any] = {}
         self._load_scene(scene)
 
-    def _load_scene(self, scene: Scene) -> None:
+    def _load_scene(self, scene: Scene, reuse: ev.Occluders | None = None) -> None:
+        """Scene-dependent data; `reuse`: an earlier scene's occluder features (`update`)."""
         self.scene = scene
         self.eval = _Evaluator(scene, self.frame, self.diam)
         bbox = np.concatenate([self.poly.min(axis=0), self.poly.max(axis=0)])
@@ -72,7 +68,7 @@ class _Builder:
         if scene.occluders is None:
             self.occ, self.seg, self.foot = None, None, np.zeros((0, 4))
             return
-        self.occ = ev.occluder_features(scene)
+        self.occ = ev.occluder_features(scene, reuse)
         self.foot = ev.face_footprints(self.occ, scene, self.frame, bbox)
         self.seg = ev.discontinuity_segments(scene, self.occ, self.frame, self.poly)
         s = self.seg
@@ -294,6 +290,7 @@ class _Builder:
         g = SAMPLES_PER_TILE
         top = 0.0
         starts, owners, signs, los, his = [], [], [], [], []
+        grids = []
         for ti in tile_ids:
             t = self.tiles[ti]
             t.extrema = np.zeros((0, 2))
@@ -302,9 +299,14 @@ class _Builder:
             q = np.stack([gx, gy], axis=-1)
             e = np.roll(t.poly, -1, axis=0) - t.poly
             c = e[None, None, :, 0] * (q[..., None, 1] - t.poly[:, 1]) - e[None, None, :, 1] * (q[..., None, 0] - t.poly[:, 0])
-            ok = np.all(c > 0, axis=-1)
+            grids.append((q, np.all(c > 0, axis=-1)))
+        # Every tile's start grid in one call.
+        allq = self.eval(np.concatenate([q[ok] for q, ok in grids]).reshape(-1, 2))
+        at = np.cumsum([0] + [int(ok.sum()) for _, ok in grids])
+        for k_tile, (ti, (q, ok)) in enumerate(zip(tile_ids, grids, strict=True)):
+            t = self.tiles[ti]
             vals = np.full((g, g), np.nan)
-            e3 = self.eval(q[ok])
+            e3 = allq[at[k_tile]:at[k_tile + 1]]
             vals[ok] = e3.sum(axis=1)
             if e3.size:
                 top = max(top, float(e3.max()))
@@ -335,7 +337,8 @@ class _Builder:
                         lst.append(x[k])
             for ti, lst in found.items():
                 self.tiles[ti].extrema = np.array(lst)
-                top = max(top, float(self.eval(np.array(lst)).max()))
+            if found:
+                top = max(top, float(self.eval(np.concatenate([np.array(lst) for lst in found.values()])).max()))
         # Along tile edges and along the discontinuity lines (a maximum often sits on a kink).
         found_e, vmax = self._line_extrema(np.array([self.edges[k].a for k in edge_keys]).reshape(-1, 2),
                                            np.array([self.edges[k].b for k in edge_keys]).reshape(-1, 2), False)
@@ -483,151 +486,7 @@ class _Builder:
         return np.array(verts), np.array(segs), np.array(marks)
 
     def _refine_tiles(self, tile_ids: list[int]) -> None:
-        thr = self._threshold()
-        state = {}
-        on_tol = 1e-11 * self.diam
-        for ti in tile_ids:
-            v, s, m = self._tile_pslg(self.tiles[ti])
-            s, m = _split_at(v, s, m, np.arange(v.shape[0]), on_tol)
-            state[ti] = (v, s, m)
-        active = list(tile_ids)
-        rounds = 0
-        tried: dict[int, set] = {}
-        # Each round re-triangulates a tile with its new vertices appended; the triangles of the
-        # previous round that are still there (same vertices) keep their checked errors, so only
-        # the new triangles' check points are looked up and evaluated.
-        last: dict[int, _Checked] = {}
-        while active:
-            rounds += 1
-            if _DEBUG:
-                print("round", rounds, len(active), sum(state[ti][0].shape[0] for ti in active))
-            meshes, known = {}, {}
-            probes = []
-            for ti in active:
-                v, s, m = state[ti]
-                out, dropped = _triangulate(v, s, m, on_tol)
-                self.stats["cdt_fallbacks"] = self.stats.get("cdt_fallbacks", 0) + int(dropped)
-                tv, tt = out["vertices"], out["triangles"]
-                meshes[ti] = out
-                kn, n_old = last[ti].match(tv, tt) if ti in last else (np.zeros(tt.shape[0], bool), 0)
-                c = tv[tt[~kn]]  # (T_new, 3, 2)
-                mids = 0.5 * (c + np.roll(c, -1, axis=1))  # edges (0,1), (1,2), (2,0)
-                if self.tiles[ti].contact.size:
-                    # Vertices and edge midpoints on a contact polygon's edge, found by position: a
-                    # discontinuity line along the edge (an occluder's edge on the receiver makes
-                    # one) can take the place of the contact segment in the triangulation.
-                    self._move_off_contact(np.concatenate([tv[n_old:], mids.reshape(-1, 2)]), self.tiles[ti].contact)
-                inner_seg = out["segments"][out["segment_markers"].ravel() == 0]
-                if inner_seg.size:
-                    self.eval.mark(tv[inner_seg.ravel()])
-                    self.eval.mark(0.5 * (tv[inner_seg[:, 0]] + tv[inner_seg[:, 1]]))
-                stale = self.eval.stale(tv[:n_old])  # an old vertex evaluated again: its triangles are new
-                if np.any(stale):
-                    kn &= ~np.any(np.concatenate([stale, np.zeros(tv.shape[0] - n_old, bool)])[tt], axis=1)
-                    c = tv[tt[~kn]]
-                    mids = 0.5 * (c + np.roll(c, -1, axis=1))
-                known[ti] = kn
-                inner = np.einsum("ij,tjk->tik", _INNER, c)
-                probes.append(tv)
-                probes.append(np.concatenate([mids, c.mean(axis=1, keepdims=True), inner], axis=1).reshape(-1, 2))
-            # All active tiles' vertices and check points in one call; each tile reads its rows.
-            allval = self.eval(np.concatenate(probes))
-            rows = np.cumsum([0] + [p.shape[0] for p in probes])
-            total = sum(meshes[ti]["vertices"].shape[0] for ti in meshes) + sum(
-                self.tiles[ti].verts.shape[0] for ti in range(len(self.tiles))  # type: ignore[union-attr]
-                if self.tiles[ti].verts is not None and ti not in meshes)
-            budget = total < self.max_vertices
-            nxt = []
-            for k_tile, ti in enumerate(active):
-                out = meshes[ti]
-                tv, tt = out["vertices"], out["triangles"]
-                segs = out["segments"]
-                smark = out["segment_markers"].ravel()
-                c = tv[tt]
-                ve = allval[rows[2 * k_tile]:rows[2 * k_tile + 1]].copy()
-                vt = ve[tt]  # (T, 3, 3)
-                mids = 0.5 * (c + np.roll(c, -1, axis=1))
-                inner = np.einsum("ij,tjk->tik", _INNER, c)
-                pts = np.concatenate([mids, c.mean(axis=1, keepdims=True), inner], axis=1)  # (T, 7, 2)
-                kn = known[ti]
-                vn = vt[~kn]
-                interp = np.concatenate([0.5 * (vn + np.roll(vn, -1, axis=1)), vn.mean(axis=1, keepdims=True),
-                                         np.einsum("ij,tjk->tik", _INNER, vn)], axis=1)
-                err = np.empty((tt.shape[0], 7))
-                hole, corner = np.empty(tt.shape[0], bool), np.empty(tt.shape[0], bool)
-                if np.any(kn):
-                    err[kn], hole[kn], corner[kn] = last[ti].take(kn)
-                err[~kn] = np.abs(allval[rows[2 * k_tile + 1]:rows[2 * k_tile + 2]].reshape(-1, 7, 3) - interp).max(axis=2)
-                hole[~kn] = self._in_contact(c[~kn].mean(axis=1), self.tiles[ti].contact)
-                # At a contact polygon's corner the irradiance has no limit (it depends on the
-                # direction of approach): the elements within CORNER_SIZE of it are refined down
-                # to CORNER_SIZE only, and their error is reported apart (`stats["corner_error"]`).
-                corner[~kn] = self._at_contact_corner(c[~kn], self.tiles[ti].contact)
-                last[ti] = _Checked(tv, tt, err.copy(), hole, corner)
-                err[hole] = 0.0  # covered by an occluder face lying on the receiver: not meshed
-                edge_ij = np.stack([tt, np.roll(tt, -1, axis=1)], axis=-1)  # (T, 3, 2)
-                kind = _edge_kinds(edge_ij, segs, smark, tv.shape[0])
-                longest = np.linalg.norm(c - np.roll(c, -1, axis=1), axis=2).max(axis=1)
-                # Zero-area slivers (three vertices on a line up to round-off, where CDT's computed
-                # crossings land an ulp off a tile edge) hold no point of the receiver: their long
-                # edge is checked by the element on its other side (or, on a tile edge, in 1-D).
-                e1, e2 = c[:, 1] - c[:, 0], c[:, 2] - c[:, 0]
-                flat = np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]) <= 1e-9 * longest * longest
-                err[flat] = 0.0
-                sel_err = err.copy()
-                sel_err[:, :3][kind == 1] = -1.0  # never insert on the tile boundary
-                floor = np.where(corner, CORNER_SIZE * self.diam, self.min_edge)
-                bad = (err.max(axis=1) > thr) & (longest > floor) & (sel_err.max(axis=1) > thr)
-                t = self.tiles[ti]
-                t.corner_error = float(err[corner].max()) if np.any(corner) else 0.0
-                err[corner] = 0.0
-                if not np.any(bad) or not budget:
-                    t.verts, t.tris, t.values = tv, tt[~hole], ve
-                    t.error = float(err.max()) if err.size else 0.0
-                    continue
-                if _DEBUG and rounds > 12:
-                    k = np.argmax(err.max(axis=1))
-                    print("tile", ti, "worst", c[k].tolist(), err[k].tolist(), "n bad", bad.sum(), "vals", vt[k].tolist())
-                worst = np.argmax(sel_err[bad], axis=1)
-                newp = pts[bad][np.arange(worst.size), worst]
-                on_edge = worst < 3
-                seg_split = {}
-                edge_of = edge_ij[bad][np.arange(worst.size), np.minimum(worst, 2)]
-                nv = tv.shape[0]
-                add: dict[tuple[float, float], int] = {}
-                seen = tried.setdefault(ti, set())
-                for p, oe, (i, j), kd in zip(newp, on_edge, edge_of.tolist(),
-                                             kind[bad][np.arange(worst.size), np.minimum(worst, 2)], strict=True):
-                    key = (float(p[0]), float(p[1]))
-                    if key in add or key in seen:  # inserted before and not kept by the triangulation
-                        if _DEBUG and key in seen and key not in add:
-                            import pickle
-                            with open(f"/tmp/stuck_{ti}.pkl", "wb") as fh:
-                                pickle.dump((state[ti], key, tv, tt, segs, smark), fh)
-                        continue
-                    seen.add(key)
-                    add[key] = nv + len(add)
-                    if oe and kd in (0, 2):
-                        seg_split[(min(i, j), max(i, j))] = add[key]
-                if not add or rounds >= MAX_ROUNDS:
-                    t.verts, t.tris, t.values = tv, tt[~hole], ve
-                    t.error = float(err.max())
-                    continue
-                new_v = np.concatenate([tv, np.array(list(add), np.float64).reshape(-1, 2)])
-                new_s, new_m = [], []
-                for (i, j), mk in zip(segs.tolist(), smark.tolist(), strict=True):
-                    mid = seg_split.get((min(i, j), max(i, j)))
-                    if mid is None:
-                        new_s.append([i, j])
-                        new_m.append(mk)
-                    else:
-                        new_s.extend([[i, mid], [mid, j]])
-                        new_m.extend([mk, mk])
-                new_s2, new_m2 = _split_at(new_v, np.array(new_s), np.array(new_m), np.arange(nv, new_v.shape[0]), on_tol)
-                state[ti] = (new_v, new_s2, new_m2)
-                nxt.append(ti)
-            active = nxt
-        self.stats["rounds"] = max(self.stats.get("rounds", 0), rounds)
+        refine_tiles(self, tile_ids)
 
     # ------------------------------------------------------------------ driver
     def build(self, tile_ids: list[int], edge_keys: list[tuple[int, int]]) -> None:

@@ -30,7 +30,7 @@ Everything here is NumPy on concrete values.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -83,7 +83,8 @@ class Occluders:
     `faces (M, K, 3)` padded, `face_normal (M, 3)` (unit), `face_object (M,)`; per undirected edge
     of an object `edge (E, 2, 3)`, `edge_adj (E, A, 3)` the vertices of its faces (padded with the
     edge's first end), `edge_object (E,)`; per vertex `vert (W, 3)`, `vert_adj (W, B, 3)`,
-    `vert_object (W,)`."""
+    `vert_object (W,)`. `objects` keeps each object's part (before padding), keyed by its faces'
+    bytes, for `occluder_features(reuse=...)`."""
 
     faces: np.ndarray
     face_normal: np.ndarray
@@ -94,6 +95,7 @@ class Occluders:
     vert: np.ndarray
     vert_adj: np.ndarray
     vert_object: np.ndarray
+    objects: dict[bytes, tuple] = field(default_factory=dict, repr=False)
 
 
 def _pad_rows(rows: list[list[np.ndarray]], fill: list[np.ndarray]) -> np.ndarray:
@@ -105,55 +107,69 @@ def _pad_rows(rows: list[list[np.ndarray]], fill: list[np.ndarray]) -> np.ndarra
     return out
 
 
-def occluder_features(scene: Scene) -> Occluders:
+def _object_features(faces: np.ndarray) -> tuple:
+    """One object's face normals `(F, 3)`, edges (with their faces' vertices) and vertices (with
+    theirs), from its faces `(F, K, 3)` (vertices matched by exact equality)."""
+    loops = [_strip_padding(f) for f in faces]
+    normals = np.stack([np.sum(np.cross(p, np.roll(p, -1, axis=0)), axis=0) for p in loops])
+    index: dict[tuple, int] = {}
+    coords: list[np.ndarray] = []
+    face_ids: list[list[int]] = []
+    for loop in loops:
+        ids = []
+        for x in loop:
+            key = tuple(x.tolist())
+            if key not in index:
+                index[key] = len(coords)
+                coords.append(x)
+            ids.append(index[key])
+        face_ids.append(ids)
+    edge_faces: dict[tuple[int, int], list[int]] = {}
+    vert_faces: dict[int, list[int]] = {}
+    for fi, ids in enumerate(face_ids):
+        for k, a in enumerate(ids):
+            b = ids[(k + 1) % len(ids)]
+            edge_faces.setdefault((min(a, b), max(a, b)), []).append(fi)
+            vert_faces.setdefault(a, []).append(fi)
+    edges = [np.stack([coords[a], coords[b]]) for a, b in edge_faces]
+    eadj = [[coords[i] for f in fs for i in face_ids[f]] for fs in edge_faces.values()]
+    verts = [coords[a] for a in vert_faces]
+    vadj = [[coords[i] for f in fs for i in face_ids[f]] for fs in vert_faces.values()]
+    return normals, edges, eadj, verts, vadj
+
+
+def occluder_features(scene: Scene, reuse: Occluders | None = None) -> Occluders:
     """Edges and vertices of each occluder object (a `Mesh` entry or a polygon) with the faces
-    around them, from `scene.occluders` and its topology (vertices matched by exact equality)."""
+    around them, from `scene.occluders` and its topology (vertices matched by exact equality).
+    `reuse`: the features of an earlier scene, whose objects with the same faces are taken over
+    (an update moves a few objects; the others' features are the same)."""
     faces = np.asarray(scene.occluders, np.float64)
     m = faces.shape[0]
     topo = scene.occluder_topology
     obj_of = np.arange(m) if topo is None else np.asarray(topo.face_object)
-    loops = [_strip_padding(faces[i]) for i in range(m)]
-    normals = np.stack([np.sum(np.cross(p, np.roll(p, -1, axis=0)), axis=0) for p in loops])
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    edges, eadj, eobj, verts, vadj, vobj = [], [], [], [], [], []
-    start = 0
-    while start < m:
-        stop = start
-        while stop < m and obj_of[stop] == obj_of[start]:
-            stop += 1
-        index: dict[tuple, int] = {}
-        coords: list[np.ndarray] = []
-        face_ids: list[list[int]] = []
-        for f in range(start, stop):
-            ids = []
-            for x in loops[f]:
-                key = tuple(x.tolist())
-                if key not in index:
-                    index[key] = len(coords)
-                    coords.append(x)
-                ids.append(index[key])
-            face_ids.append(ids)
-        edge_faces: dict[tuple[int, int], list[int]] = {}
-        vert_faces: dict[int, list[int]] = {}
-        for fi, ids in enumerate(face_ids):
-            for k, a in enumerate(ids):
-                b = ids[(k + 1) % len(ids)]
-                edge_faces.setdefault((min(a, b), max(a, b)), []).append(fi)
-                vert_faces.setdefault(a, []).append(fi)
-        for (a, b), fs in edge_faces.items():
-            edges.append(np.stack([coords[a], coords[b]]))
-            eadj.append([coords[i] for f in fs for i in face_ids[f]])
-            eobj.append(obj_of[start])
-        for a, fs in vert_faces.items():
-            verts.append(coords[a])
-            vadj.append([coords[i] for f in fs for i in face_ids[f]])
-            vobj.append(obj_of[start])
-        start = stop
+    old = reuse.objects if reuse is not None else {}
+    objects: dict[bytes, tuple] = {}
+    normals, edges, eadj, eobj, verts, vadj, vobj = [], [], [], [], [], [], []
+    cut = np.concatenate([[0], np.nonzero(obj_of[1:] != obj_of[:-1])[0] + 1, [m]])
+    for start, stop in zip(cut[:-1].tolist(), cut[1:].tolist(), strict=True):
+        key = faces[start:stop].tobytes() + bytes(str(faces.shape[1:]), 'ascii')
+        part = old.get(key) or objects.get(key) or _object_features(faces[start:stop])
+        objects[key] = part
+        nrm, e, ea, v, va = part
+        normals.append(nrm)
+        edges.extend(e)
+        eadj.extend(ea)
+        eobj.extend([obj_of[start]] * len(e))
+        verts.extend(v)
+        vadj.extend(va)
+        vobj.extend([obj_of[start]] * len(v))
+    normal = np.concatenate(normals)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
     edge = np.stack(edges)
     vert = np.stack(verts)
     return Occluders(
-        faces, normals, np.asarray(obj_of), edge, _pad_rows(eadj, list(edge[:, 0])), np.asarray(eobj),
-        vert, _pad_rows(vadj, verts), np.asarray(vobj),
+        faces, normal, np.asarray(obj_of), edge, _pad_rows(eadj, list(edge[:, 0])), np.asarray(eobj),
+        vert, _pad_rows(vadj, verts), np.asarray(vobj), objects,
     )
 
 

@@ -1,193 +1,17 @@
 """2-D machinery of the illumination meshes (`_illumination`): the receiver's tiles and their
-shared edges, the exact-irradiance evaluator, constrained Delaunay triangulation (PythonCDT)
-with the clean-up it needs, and piecewise-linear interpolation on the result."""
+shared edges, constrained Delaunay triangulation (PythonCDT) with the clean-up it needs, and
+piecewise-linear interpolation on the result (the exact-irradiance evaluator is
+`_illumination_evaluator`)."""
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 
 from . import _illumination_events as ev
-from ._scene import Scene
-from ._shade import irradiance
 
-ON_LINE_STEP = 1e-9
 GRID_SHIFT = (np.sqrt(2.0) - 1) / 10
-MIN_BATCH = 256  # smallest batch handed to the engine
-
-
-class _Evaluator:
-    """Exact irradiance at 2-D receiver points, cached by coordinates, batched per call.
-
-    Points on a discontinuity line (`mark`) are also evaluated `ON_LINE_STEP` (of the receiver's
-    size) to either side along a fixed oblique direction: the host engine can return the
-    unoccluded value at a point exactly on an umbra boundary (an EV plane; see
-    `tests/test_illumination_mesh.py::test_engine_on_event_plane`), and where the value at the
-    point is not between its neighbours' (with a slack far above a kink's) their mean is used
-    (`repairs` counts these; the irradiance is continuous there, so the mean is within
-    `ON_LINE_STEP` times the gradient of the exact value).
-
-    The cache maps a point's coordinates, as the Python complex `x + iy` (exact, hashed without
-    building tuples), to a row of one growing value array; each row also records where it was
-    evaluated and whether with the on-line check, so that an update (`inherit`) can take over the
-    rows of the previous scene whose value the change cannot affect: a point asked for again
-    with the same evaluation takes the old row instead of calling the engine (`reused`)."""
-
-    def __init__(self, scene: Scene, frame: ev.Frame, size: float):
-        self.scene, self.frame = scene, frame
-        self.cache: dict[complex, int] = {}
-        self.values = np.zeros((1024, 3))
-        self.targets = np.zeros(1024, np.complex128)  # per row: the point evaluated (`move`)
-        self.lined = np.zeros(1024, bool)  # per row: evaluated with the on-line check
-        self._rows = 0
-        self.prior: dict[complex, int] | None = None  # an earlier scene's rows (`inherit`)
-        self.prior_ok = np.zeros(0, bool)
-        self.first_row = 0
-        self.reused = 0
-        self.kept = self.affected = 0  # earlier values taken over / that the change can affect (`inherit`)
-        self.online: set[complex] = set()
-        self.moved: dict[complex, complex] = {}  # points evaluated elsewhere (`move`)
-        self.checked: set[complex] = set()
-        self.step = ON_LINE_STEP * size * np.array([np.cos(0.6180339887), np.sin(0.6180339887)])
-        self.evaluations = 0
-        self.repairs = 0
-        self.seconds = 0.0
-
-    @staticmethod
-    def _keys(xy: np.ndarray) -> list[complex]:
-        xy = np.ascontiguousarray(np.asarray(xy, np.float64).reshape(-1, 2))
-        return xy.view(np.complex128).ravel().tolist()  # type: ignore[no-any-return]
-
-    def mark(self, xy: np.ndarray) -> None:
-        """Declare points `(n, 2)` to lie on discontinuity lines."""
-        self.online.update(self._keys(xy))
-
-    def move(self, xy: np.ndarray, to: np.ndarray) -> None:
-        """Evaluate points `xy (n, 2)` at `to (n, 2)` instead (a point on the edge of a hole takes
-        the value just outside it)."""
-        for a, b in zip(self._keys(xy), self._keys(to), strict=True):
-            if a not in self.moved:
-                self.moved[a] = b
-                self.cache.pop(a, None)
-
-    def __call__(self, xy: np.ndarray) -> np.ndarray:
-        keys = self._keys(xy)
-        cache, online, checked = self.cache, self.online, self.checked
-        todo = list(dict.fromkeys(k for k in keys if k not in cache or (k in online and k not in checked)))
-        if todo and self.prior is not None:
-            todo = self._take_prior(todo)
-        if todo:
-            tgt = [self.moved.get(k, k) for k in todo]
-            pts = np.array(tgt, np.complex128).view(np.float64).reshape(-1, 2)
-            line = np.array([k in online for k in todo], bool)
-            side = pts[line]
-            allp = np.concatenate([pts, side + self.step, side - self.step])
-            t0 = time.perf_counter()
-            # Padded to a power of two: the engine compiles per batch shape.
-            n_all = allp.shape[0]
-            size = max(MIN_BATCH, 1 << (n_all - 1).bit_length())
-            p3 = self.frame.to3d(np.concatenate([allp, np.repeat(allp[:1], size - n_all, axis=0)]))
-            nrm = np.broadcast_to(self.frame.normal, p3.shape)
-            e = np.asarray(irradiance(self.scene, p3, np.ascontiguousarray(nrm)), np.float64)[:n_all]
-            self.seconds += time.perf_counter() - t0
-            self.evaluations += allp.shape[0]
-            n, m = pts.shape[0], side.shape[0]
-            val = e[:n].copy()
-            if m:
-                ep, em = e[n:n + m], e[n + m:]
-                mid = 0.5 * (ep + em)
-                slack = 0.5 * np.abs(ep - em) + 1e-6 * np.maximum(np.abs(ep), np.abs(em)) + 1e-300
-                bad = np.any(np.abs(val[line] - mid) > slack, axis=1)
-                if np.any(bad):
-                    fixed = val[line]
-                    fixed[bad] = mid[bad]
-                    val[line] = fixed
-                    self.repairs += int(bad.sum())
-            start = self._rows  # rows are never reused (a key dropped by `move` leaves its row behind)
-            self._grow(start + n)
-            self.values[start:start + n] = val
-            self.targets[start:start + n] = tgt
-            self.lined[start:start + n] = line
-            cache.update(zip(todo, range(start, start + n), strict=True))
-            self._rows = start + n
-            checked.update(k for k, ln in zip(todo, line.tolist(), strict=True) if ln)
-        if not keys:
-            return np.zeros((0, 3))
-        return self.values[np.fromiter(map(cache.__getitem__, keys), np.int64, len(keys))]
-
-    def stale(self, xy: np.ndarray) -> np.ndarray:
-        """`(n,)` bool: whether points `xy (n, 2)` would be evaluated (again) by the next call."""
-        cache, online, checked = self.cache, self.online, self.checked
-        return np.fromiter((k not in cache or (k in online and k not in checked) for k in self._keys(xy)), bool,
-                           xy.shape[0])
-
-    def _grow(self, rows: int) -> None:
-        while rows > self.values.shape[0]:
-            self.values = np.concatenate([self.values, np.zeros_like(self.values)])
-            self.targets = np.concatenate([self.targets, np.zeros_like(self.targets)])
-            self.lined = np.concatenate([self.lined, np.zeros_like(self.lined)])
-
-    def _take_prior(self, todo: list[complex]) -> list[complex]:
-        """Point the keys `todo` whose evaluation (the same point, with the on-line check or
-        without) is a kept row of the earlier scene at that row; return the others."""
-        prior = self.prior
-        assert prior is not None
-        if self.prior_ok.size == 0:
-            return todo
-        r = np.fromiter(map(prior.get, todo, [-1] * len(todo)), np.int64, len(todo))
-        online, moved = self.online, self.moved
-        tgt = np.array([moved.get(k, k) for k in todo], np.complex128)
-        line = np.fromiter(map(online.__contains__, todo), bool, len(todo))
-        rr = np.maximum(r, 0)
-        take = (r >= 0) & self.prior_ok[rr] & (self.targets[rr] == tgt) & (self.lined[rr] == line)
-        if not np.any(take):
-            return todo
-        idx = np.nonzero(take)[0].tolist()
-        keys = [todo[i] for i in idx]
-        self.cache.update(zip(keys, r[take].tolist(), strict=True))
-        self.checked.update(k for k, ln in zip(keys, line[take].tolist(), strict=True) if ln)
-        self.reused += len(keys)
-        return [todo[i] for i in np.nonzero(~take)[0].tolist()]
-
-    def rows(self) -> tuple[dict[complex, int], np.ndarray]:
-        """Every key evaluated so far or taken over (`inherit`), with its row, and which rows hold
-        a value of the current scene."""
-        valid = np.zeros(self._rows, bool)
-        valid[self.first_row:] = True
-        if self.prior is None:
-            return self.cache, valid
-        valid[:self.first_row] = self.prior_ok[:self.first_row]
-        merged = dict(self.prior)
-        merged.update(self.cache)
-        return merged, valid
-
-    def positions(self, rows: int) -> np.ndarray:
-        """The points `(rows, 2)` evaluated by the first `rows` rows (with the on-line check also
-        `step` to either side)."""
-        return self.targets[:rows].view(np.float64).reshape(-1, 2)
-
-    def inherit(self, old: _Evaluator, keep: Any) -> None:
-        """Take over the rows of `old` (the evaluator of an earlier scene) for which `keep(points
-        (n, 2))` says that the change of scene cannot affect the value at them or within `step`
-        of them."""
-        index, valid = old.rows()
-        n = old._rows
-        pts = old.positions(n)
-        ok = valid.copy()
-        ok[valid] = keep(pts[valid])
-        self.kept, self.affected = int(ok.sum()), int(valid.sum() - ok.sum())
-        m = max(n, 1024)
-        self.values, self.targets, self.lined = old.values[:m].copy(), old.targets[:m].copy(), old.lined[:m].copy()
-        self._rows = self.first_row = n
-        self.prior, self.prior_ok = index, ok
-
-    def luminance(self, xy: np.ndarray) -> np.ndarray:
-        return self(xy).sum(axis=1)
-
-
 _RADIX = 1 << 21  # vertex indices per tile that `_Checked` can encode
 
 
@@ -256,6 +80,8 @@ class _Tile:
     values: np.ndarray | None = None
     error: float = 0.0
     corner_error: float = 0.0
+    unrefined: int = 0  # elements over the threshold at the minimum edge length
+    unrefined_error: float = 0.0  # their largest checked error (W/m^2)
 
     def edge_keys(self) -> list[tuple[int, int, bool]]:
         g = self.gids
@@ -330,7 +156,10 @@ def _triangulate(v: np.ndarray, s: np.ndarray, m: np.ndarray, on_tol: float = 0.
     rejected the internal segments and they were left out (their vertices kept)."""
     import pythoncdt as cdt
 
-    uniq, first, inv = np.unique(v, axis=0, return_index=True, return_inverse=True)
+    # Rows as complex numbers: a 1-D unique (the same rows, the same first occurrences).
+    key = np.ascontiguousarray(v, np.float64).view(np.complex128).ravel()
+    uniq_k, first, inv = np.unique(key, return_index=True, return_inverse=True)
+    uniq = uniq_k.view(np.float64).reshape(-1, 2)
     order = np.argsort(first)  # keep the input order (deterministic, boundary first)
     rank = np.empty_like(order)
     rank[order] = np.arange(order.size)
@@ -359,17 +188,60 @@ def _triangulate(v: np.ndarray, s: np.ndarray, m: np.ndarray, on_tol: float = 0.
         tri = run(s2)
     verts = tri.vertices_array().view(np.float64).reshape(-1, 2)
     tris = tri.triangles_array()["vertices"].astype(np.int64).reshape(-1, 3)
-    mark = {(min(i, j), max(i, j)): int(k) for (i, j), k in zip(s2.tolist(), m2.tolist(), strict=True)}
-    pieces = {(min(e.v1, e.v2), max(e.v1, e.v2)): [(min(o.v1, o.v2), max(o.v1, o.v2)) for o in orig]
-              for e, orig in tri.piece_to_originals_iter()}
-    segs, marks = [], []
-    for e in tri.fixed_edges_iter():
-        key = (min(e.v1, e.v2), max(e.v1, e.v2))
-        segs.append(key)
-        marks.append(max((mark.get(o, 0) for o in pieces.get(key, [key])), default=0))
-    out = {"vertices": verts, "triangles": tris, "segments": np.array(segs, np.int64).reshape(-1, 2),
-           "segment_markers": np.array(marks, np.int64).reshape(-1, 1)}
+    # Each fixed edge takes the marker of the input segment it is (or, when the triangulation
+    # split or merged input segments, the largest of those it is a piece of; 0 for none).
+    segs = np.array([(e.v1, e.v2) for e in tri.fixed_edges_iter()], np.int64).reshape(-1, 2)
+    segs = np.sort(segs, axis=1)
+    n = max(int(verts.shape[0]), int(s2.max(initial=0)) + 1)
+    sk = np.sort(s2, axis=1).astype(np.int64)
+    in_code = sk[:, 0] * n + sk[:, 1]
+    order_in = np.argsort(in_code)
+    in_code, in_mark = in_code[order_in], m2[order_in].astype(np.int64)
+
+    def marker(codes: np.ndarray) -> np.ndarray:
+        pos = np.clip(np.searchsorted(in_code, codes), 0, max(in_code.size - 1, 0))
+        hit = (in_code[pos] == codes) if in_code.size else np.zeros(codes.shape, bool)
+        return np.where(hit, in_mark[pos] if in_code.size else 0, 0)
+
+    marks = marker(segs[:, 0] * n + segs[:, 1])
+    pieces = tri.piece_to_originals
+    if pieces:
+        at = {(int(a), int(b)): k for k, (a, b) in enumerate(segs.tolist())}
+        for e, orig in pieces.items():
+            k = at.get((min(e.v1, e.v2), max(e.v1, e.v2)))
+            if k is not None:
+                oc = np.array([min(o.v1, o.v2) * n + max(o.v1, o.v2) for o in orig], np.int64)
+                marks[k] = int(marker(oc).max(initial=0))
+    out = {"vertices": verts, "triangles": tris, "segments": segs,
+           "segment_markers": marks.astype(np.int64).reshape(-1, 1)}
     return out, dropped
+
+
+def _split_segments(segs: np.ndarray, marks: np.ndarray, edges: np.ndarray, mids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Segments `segs (S, 2)` (markers `marks (S,)`) with the one on each of `edges (n, 2)` (as
+    vertex pairs, either way round) split at vertex `mids (n,)` (the last one given for an edge),
+    in order: a split segment `(i, j)` becomes `(i, mid), (mid, j)` in its place."""
+    marks = np.asarray(marks).ravel()
+    if edges.shape[0] == 0 or segs.shape[0] == 0:
+        return segs.reshape(-1, 2).astype(np.int64), marks
+    n = int(max(segs.max(), edges.max(), mids.max())) + 1
+    code = lambda a, b: np.minimum(a, b).astype(np.int64) * n + np.maximum(a, b)  # noqa: E731
+    ec = code(edges[:, 0], edges[:, 1])
+    # The last entry per edge wins: unique over the reversed list.
+    uc, last = np.unique(ec[::-1], return_index=True)
+    um = mids[::-1][last]
+    sc = code(segs[:, 0], segs[:, 1])
+    pos = np.clip(np.searchsorted(uc, sc), 0, uc.size - 1)
+    hit = uc[pos] == sc
+    mid = np.where(hit, um[pos], -1)
+    cnt = 1 + hit.astype(np.int64)
+    at = np.cumsum(cnt) - cnt
+    out = np.empty((int(cnt.sum()), 2), np.int64)
+    out[at, 0] = segs[:, 0]
+    out[at + cnt - 1, 1] = segs[:, 1]
+    out[at[hit], 1] = mid[hit]
+    out[at[hit] + 1, 0] = mid[hit]
+    return out, np.repeat(marks, cnt)
 
 
 def _split_at(v: np.ndarray, s: np.ndarray, m: np.ndarray, idx: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]:
@@ -392,14 +264,26 @@ def _split_at(v: np.ndarray, s: np.ndarray, m: np.ndarray, idx: np.ndarray, tol:
     on &= (idx[None, :] != s[inner, 0][:, None]) & (idx[None, :] != s[inner, 1][:, None])
     if not np.any(on):
         return s, m
-    out_s, out_m = [row for row in s[m == 1]], list(m[m == 1])
-    for r, si in enumerate(inner):
-        hit = np.nonzero(on[r])[0]
-        chain = [s[si, 0]] + [int(idx[h]) for h in hit[np.argsort(t[r, hit])]] + [s[si, 1]]
-        for i, j in zip(chain[:-1], chain[1:], strict=True):
-            out_s.append(np.array([i, j]))
-            out_m.append(m[si])
-    return np.array(out_s).reshape(-1, 2), np.array(out_m)
+    # Every inner segment becomes the chain start, its vertices in order along it, end; all
+    # chains in one array (segment by segment), the pieces its consecutive pairs within a chain.
+    r, h = np.nonzero(on)
+    order = np.lexsort((t[r, h], r))
+    r, h = r[order], h[order]
+    hits = np.bincount(r, minlength=inner.size)
+    length = hits + 2
+    first = np.cumsum(length) - length  # where each chain starts
+    nodes = np.empty(int(length.sum()), np.int64)
+    nodes[first] = s[inner, 0]
+    nodes[first + length - 1] = s[inner, 1]
+    rank = np.arange(r.size) - (np.cumsum(hits) - hits)[r]  # position among its segment's hits
+    nodes[first[r] + 1 + rank] = idx[h]
+    last = np.zeros(nodes.size, bool)
+    last[first + length - 1] = True
+    pieces = np.stack([nodes[:-1][~last[:-1]], nodes[1:][~last[:-1]]], axis=1)
+    outer = m == 1
+    out_s = np.concatenate([s[outer].astype(np.int64), pieces]).reshape(-1, 2)
+    out_m = np.concatenate([m[outer], np.repeat(m[inner], hits + 1)])
+    return out_s, out_m
 
 
 def _noded(lines: list[tuple[np.ndarray, np.ndarray]]) -> list[tuple[np.ndarray, np.ndarray]]:

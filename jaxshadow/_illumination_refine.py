@@ -1,0 +1,182 @@
+"""2-D refinement of an illumination mesh's tiles (`_illumination`'s module docstring, step 4):
+rounds of constrained Delaunay triangulation, checks of each new element at seven points against
+exact values, insertion of each failing element's worst point."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ._illumination_pslg import (
+    _RADIX,
+    _Checked,
+    _edge_kinds,
+    _split_at,
+    _split_segments,
+    _triangulate,
+)
+
+if TYPE_CHECKING:
+    from ._illumination_builder import _Builder
+
+CORNER_SIZE = 1e-4  # elements at a contact polygon's corner are not split below this (of the receiver's size)
+MAX_ROUNDS = 200  # refinement rounds per tile (each halves the worst elements; a guard)
+_DEBUG = False  # progress prints (development)
+_INNER = np.array([[0.5, 0.0, 0.0], [0.0, 0.5, 0.0], [0.0, 0.0, 0.5]]) + 0.5 / 3  # between centroid and corners
+
+
+def refine_tiles(b: _Builder, tile_ids: list[int]) -> None:
+    """Refine the tiles `tile_ids` of `b` until no element fails its check (`_illumination`,
+    step 4); the result goes to each tile's `verts`, `tris`, `values`, `error`."""
+    thr = b._threshold()
+    state = {}
+    on_tol = 1e-11 * b.diam
+    for ti in tile_ids:
+        v, s, m = b._tile_pslg(b.tiles[ti])
+        s, m = _split_at(v, s, m, np.arange(v.shape[0]), on_tol)
+        state[ti] = (v, s, m)
+    active = list(tile_ids)
+    rounds = 0
+    tried: dict[int, np.ndarray] = {}  # per tile: the points inserted so far (as x + iy)
+    # Each round re-triangulates a tile with its new vertices appended; the triangles of the
+    # previous round that are still there (same vertices) keep their checked errors, so only
+    # the new triangles' check points are looked up and evaluated.
+    last: dict[int, _Checked] = {}
+    vrows: dict[int, np.ndarray] = {}  # per tile: the evaluator's rows of the last round's vertices
+    marked: dict[int, np.ndarray] = {}  # per tile: the last round's inner segments (vertex-pair codes)
+    while active:
+        rounds += 1
+        if _DEBUG:
+            print("round", rounds, len(active), sum(state[ti][0].shape[0] for ti in active))
+        meshes, known, last_n = {}, {}, {}
+        probes = []
+        for ti in active:
+            v, s, m = state[ti]
+            out, dropped = _triangulate(v, s, m, on_tol)
+            b.stats["cdt_fallbacks"] = b.stats.get("cdt_fallbacks", 0) + int(dropped)
+            tv, tt = out["vertices"], out["triangles"]
+            meshes[ti] = out
+            kn, n_old = last[ti].match(tv, tt) if ti in last else (np.zeros(tt.shape[0], bool), 0)
+            c = tv[tt[~kn]]  # (T_new, 3, 2)
+            mids = 0.5 * (c + np.roll(c, -1, axis=1))  # edges (0,1), (1,2), (2,0)
+            if b.tiles[ti].contact.size:
+                # Vertices and edge midpoints on a contact polygon's edge, found by position: a
+                # discontinuity line along the edge (an occluder's edge on the receiver makes
+                # one) can take the place of the contact segment in the triangulation.
+                b._move_off_contact(np.concatenate([tv[n_old:], mids.reshape(-1, 2)]), b.tiles[ti].contact)
+            inner_seg = out["segments"][out["segment_markers"].ravel() == 0]
+            ends = np.sort(inner_seg, axis=1).astype(np.int64)
+            codes = ends[:, 0] * _RADIX + ends[:, 1]
+            fresh = inner_seg[~np.isin(codes, marked[ti])] if n_old and ti in marked else inner_seg
+            marked[ti] = codes
+            if fresh.size:  # (marking again the segments marked before changes nothing)
+                b.eval.mark(tv[fresh.ravel()])
+                b.eval.mark(0.5 * (tv[fresh[:, 0]] + tv[fresh[:, 1]]))
+            stale = b.eval.stale(tv[:n_old])  # an old vertex evaluated again: its triangles are new
+            if np.any(stale):
+                kn &= ~np.any(np.concatenate([stale, np.zeros(tv.shape[0] - n_old, bool)])[tt], axis=1)
+                c = tv[tt[~kn]]
+                mids = 0.5 * (c + np.roll(c, -1, axis=1))
+            known[ti] = kn
+            last_n[ti] = n_old
+            inner = np.einsum("ij,tjk->tik", _INNER, c)
+            # The vertices to look up: the new ones and the old ones to evaluate again (the
+            # others keep their rows, followed to any later evaluation of the point).
+            probes.append(np.concatenate([tv[:n_old][stale], tv[n_old:]]))
+            probes.append(np.concatenate([mids, c.mean(axis=1, keepdims=True), inner], axis=1).reshape(-1, 2))
+        # All active tiles' vertices and check points in one call; each tile reads its rows.
+        allrows = b.eval.row_of(np.concatenate(probes))
+        allval = b.eval.values[allrows]
+        rows = np.cumsum([0] + [p.shape[0] for p in probes])
+        total = sum(meshes[ti]["vertices"].shape[0] for ti in meshes) + sum(
+            b.tiles[ti].verts.shape[0] for ti in range(len(b.tiles))  # type: ignore[union-attr]
+            if b.tiles[ti].verts is not None and ti not in meshes)
+        budget = total < b.max_vertices
+        nxt = []
+        for k_tile, ti in enumerate(active):
+            out = meshes[ti]
+            tv, tt = out["vertices"], out["triangles"]
+            segs = out["segments"]
+            smark = out["segment_markers"].ravel()
+            c = tv[tt]
+            n_old = last_n[ti]
+            vr = np.empty(tv.shape[0], np.int64)
+            vr[n_old:] = allrows[rows[2 * k_tile + 1] - (tv.shape[0] - n_old):rows[2 * k_tile + 1]]
+            vr[:n_old] = b.eval.follow(vrows[ti]) if n_old else vr[:0]
+            vrows[ti] = vr
+            ve = b.eval.values[vr]
+            vt = ve[tt]  # (T, 3, 3)
+            mids = 0.5 * (c + np.roll(c, -1, axis=1))
+            inner = np.einsum("ij,tjk->tik", _INNER, c)
+            pts = np.concatenate([mids, c.mean(axis=1, keepdims=True), inner], axis=1)  # (T, 7, 2)
+            kn = known[ti]
+            vn = vt[~kn]
+            interp = np.concatenate([0.5 * (vn + np.roll(vn, -1, axis=1)), vn.mean(axis=1, keepdims=True),
+                                     np.einsum("ij,tjk->tik", _INNER, vn)], axis=1)
+            err = np.empty((tt.shape[0], 7))
+            hole, corner = np.empty(tt.shape[0], bool), np.empty(tt.shape[0], bool)
+            if np.any(kn):
+                err[kn], hole[kn], corner[kn] = last[ti].take(kn)
+            err[~kn] = np.abs(allval[rows[2 * k_tile + 1]:rows[2 * k_tile + 2]].reshape(-1, 7, 3) - interp).max(axis=2)
+            hole[~kn] = b._in_contact(c[~kn].mean(axis=1), b.tiles[ti].contact)
+            # At a contact polygon's corner the irradiance has no limit (it depends on the
+            # direction of approach): the elements within CORNER_SIZE of it are refined down
+            # to CORNER_SIZE only, and their error is reported apart (`stats["corner_error"]`).
+            corner[~kn] = b._at_contact_corner(c[~kn], b.tiles[ti].contact)
+            last[ti] = _Checked(tv, tt, err.copy(), hole, corner)
+            err[hole] = 0.0  # covered by an occluder face lying on the receiver: not meshed
+            edge_ij = np.stack([tt, np.roll(tt, -1, axis=1)], axis=-1)  # (T, 3, 2)
+            kind = _edge_kinds(edge_ij, segs, smark, tv.shape[0])
+            longest = np.linalg.norm(c - np.roll(c, -1, axis=1), axis=2).max(axis=1)
+            # Zero-area slivers (three vertices on a line up to round-off, where CDT's computed
+            # crossings land an ulp off a tile edge) hold no point of the receiver: their long
+            # edge is checked by the element on its other side (or, on a tile edge, in 1-D).
+            e1, e2 = c[:, 1] - c[:, 0], c[:, 2] - c[:, 0]
+            flat = np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]) <= 1e-9 * longest * longest
+            err[flat] = 0.0
+            sel_err = err.copy()
+            sel_err[:, :3][kind == 1] = -1.0  # never insert on the tile boundary
+            floor = np.where(corner, CORNER_SIZE * b.diam, b.min_edge)
+            bad = (err.max(axis=1) > thr) & (longest > floor) & (sel_err.max(axis=1) > thr)
+            t = b.tiles[ti]
+            t.corner_error = float(err[corner].max()) if np.any(corner) else 0.0
+            err[corner] = 0.0
+            # Elements that fail but stop at the minimum edge length (`stats["unrefined_min_edge"]`).
+            short = err.max(axis=1) > thr
+            short &= longest <= floor
+            t.unrefined = int(short.sum())
+            t.unrefined_error = float(err[short].max()) if t.unrefined else 0.0
+            if not np.any(bad) or not budget:
+                t.verts, t.tris, t.values = tv, tt[~hole], ve
+                t.error = float(err.max()) if err.size else 0.0
+                continue
+            if _DEBUG and rounds > 12:
+                k = np.argmax(err.max(axis=1))
+                print("tile", ti, "worst", c[k].tolist(), err[k].tolist(), "n bad", bad.sum(), "vals", vt[k].tolist())
+            worst = np.argmax(sel_err[bad], axis=1)
+            newp = pts[bad][np.arange(worst.size), worst]
+            edge_of = edge_ij[bad][np.arange(worst.size), np.minimum(worst, 2)]
+            kd = kind[bad][np.arange(worst.size), np.minimum(worst, 2)]
+            # A point is inserted once: not twice in a round, never again once tried (then
+            # the triangulation did not keep it).
+            key = np.ascontiguousarray(newp).view(np.complex128).ravel()
+            _, once = np.unique(key, return_index=True)
+            once = np.sort(once)
+            seen = tried.get(ti, np.zeros(0, np.complex128))
+            once = once[~np.isin(key[once], seen)]
+            tried[ti] = np.concatenate([seen, key[once]])
+            if once.size == 0 or rounds >= MAX_ROUNDS:
+                t.verts, t.tris, t.values = tv, tt[~hole], ve
+                t.error = float(err.max())
+                continue
+            nv = tv.shape[0]
+            new_v = np.concatenate([tv, newp[once]])
+            # Edge midpoints on a line or a hole's edge split that segment.
+            on_seg = (worst[once] < 3) & ((kd[once] == 0) | (kd[once] == 2))
+            new_s, new_m = _split_segments(segs, smark, edge_of[once][on_seg], nv + np.nonzero(on_seg)[0])
+            new_s2, new_m2 = _split_at(new_v, new_s, new_m, np.arange(nv, new_v.shape[0]), on_tol)
+            state[ti] = (new_v, new_s2, new_m2)
+            nxt.append(ti)
+        active = nxt
+    b.stats["rounds"] = max(b.stats.get("rounds", 0), rounds)

@@ -1,0 +1,246 @@
+"""The vectorised pieces of the illumination mesher against plain per-item references.
+
+Each reference below is the straightforward loop the vectorised code replaced (one segment, one
+inserted point, one box at a time), written out here; the tests compare the two on random small
+cases. The evaluator's bookkeeping is checked against its definition (a point is evaluated again
+when it was moved, or marked on a line after it was evaluated without the on-line check) and its
+values against `js.irradiance` called on the points alone."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import jaxshadow as js
+from jaxshadow import _cache
+from jaxshadow import _illumination_evaluator as evaluator
+from jaxshadow import _illumination_events as ev
+from jaxshadow import _illumination_pslg as pslg
+
+QUAD = np.array([[-0.3, -0.3, 2.0], [-0.3, 0.3, 2.0], [0.3, 0.3, 2.0], [0.3, -0.3, 2.0]])
+FLOOR = np.array([[-1.5, -1.5, 0.0], [1.5, -1.5, 0.0], [1.5, 1.5, 0.0], [-1.5, 1.5, 0.0]])
+
+
+# --------------------------------------------------------------------------------------
+# Segment splits
+# --------------------------------------------------------------------------------------
+
+
+def split_at_loop(v, s, m, idx, tol):
+    """`_split_at` one segment at a time."""
+    out_s = [row for row in s[m == 1]]
+    out_m = list(m[m == 1])
+    for si in np.nonzero(m != 1)[0]:
+        a, b = v[s[si, 0]], v[s[si, 1]]
+        d = b - a
+        hits = []
+        for k in idx:
+            if k in (s[si, 0], s[si, 1]):
+                continue
+            t = float(np.dot(v[k] - a, d) / max(np.dot(d, d), 1e-300))
+            if 0 < t < 1 and np.linalg.norm(a + t * d - v[k]) <= tol:
+                hits.append((t, int(k)))
+        chain = [s[si, 0]] + [k for _, k in sorted(hits)] + [s[si, 1]]
+        for i, j in zip(chain[:-1], chain[1:], strict=True):
+            out_s.append(np.array([i, j]))
+            out_m.append(m[si])
+    return np.array(out_s).reshape(-1, 2), np.array(out_m)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_split_at_matches_the_loop(seed):
+    rng = np.random.default_rng(seed)
+    n = 30
+    v = rng.uniform(0, 1, (n, 2))
+    s = np.stack([np.arange(4), (np.arange(4) + 1) % 4], axis=1)  # an outer square
+    inner = rng.choice(np.arange(4, n), (8, 2), replace=False)
+    s = np.concatenate([s, inner])
+    m = np.concatenate([np.ones(4, int), rng.choice([0, 2], 8)])
+    # New vertices: some exactly on inner segments (several on one), some a hair off, some away.
+    new = []
+    for r in range(8):
+        a, b = v[inner[r, 0]], v[inner[r, 1]]
+        for t in rng.uniform(0.05, 0.95, rng.integers(0, 4)):
+            new.append(a + t * (b - a) + rng.choice([0.0, 1e-13, 1e-6]) * rng.normal(size=2))
+    new.extend(rng.uniform(0, 1, (5, 2)))
+    v = np.concatenate([v, np.array(new)])
+    idx = np.arange(n, v.shape[0])
+    got = pslg._split_at(v, s, m, idx, 1e-11)
+    want = split_at_loop(v, s, m, idx, 1e-11)
+    assert got[0].shape[0] > s.shape[0]  # something was split
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
+
+
+def split_segments_loop(segs, marks, edges, mids):
+    """`_split_segments` one segment at a time (the last split given for an edge wins)."""
+    split = {}
+    for (i, j), mid in zip(edges.tolist(), mids.tolist(), strict=True):
+        split[(min(i, j), max(i, j))] = mid
+    out_s, out_m = [], []
+    for (i, j), mk in zip(segs.tolist(), marks.tolist(), strict=True):
+        mid = split.get((min(i, j), max(i, j)))
+        if mid is None:
+            out_s.append([i, j])
+            out_m.append(mk)
+        else:
+            out_s.extend([[i, mid], [mid, j]])
+            out_m.extend([mk, mk])
+    return np.array(out_s).reshape(-1, 2), np.array(out_m)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_split_segments_matches_the_loop(seed):
+    rng = np.random.default_rng(seed)
+    segs = rng.choice(40, (25, 2), replace=True)
+    segs = segs[segs[:, 0] != segs[:, 1]]
+    marks = rng.choice([0, 1, 2], segs.shape[0])
+    pick = rng.choice(segs.shape[0], 10)  # repeats: the same edge split twice, the last wins
+    edges = segs[pick].copy()
+    flip = rng.random(10) < 0.5
+    edges[flip] = edges[flip][:, ::-1]  # either way round
+    edges = np.concatenate([edges, [[41, 42]]])  # an edge that is not a segment
+    mids = 50 + np.arange(edges.shape[0])
+    got = pslg._split_segments(segs, marks, edges, mids)
+    want = split_segments_loop(segs, marks, edges, mids)
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
+
+
+# --------------------------------------------------------------------------------------
+# The evaluator
+# --------------------------------------------------------------------------------------
+
+
+def _evaluator():
+    occ = np.array([[-0.5, -0.3, 1.0], [0.3, -0.3, 1.0], [0.3, 0.4, 1.0], [-0.5, 0.4, 1.0]])
+    scene = js.Scene([js.PolygonLight(QUAD, 10.0)], occluders=[occ])
+    frame = ev.receiver_frame(FLOOR)
+    return scene, frame, evaluator._Evaluator(scene, frame, 3.0)
+
+
+def _by_definition(e, xy):
+    keys = e._keys(xy)
+    return np.array([k not in e.cache or (k in e.online and k not in e.checked) for k in keys])
+
+
+def test_evaluator_values_and_padding():
+    scene, frame, e = _evaluator()
+    rng = np.random.default_rng(1)
+    xy = rng.uniform(-1.4, 1.4, (37, 2))
+    got = e(xy)  # 37 rows, padded to the smallest batch
+    p3 = frame.to3d(xy)
+    want = np.asarray(js.irradiance(scene, p3, np.tile(frame.normal, (37, 1))))
+    np.testing.assert_array_equal(got, want)
+    assert e.evaluations == 37
+    assert got.max() > 0 and got.min() == 0  # lit and umbra points
+    # The padding rows face away from the light: the engine gives them 0.
+    assert e.away is not None
+    np.testing.assert_array_equal(np.asarray(js.irradiance(scene, p3[:4], np.tile(e.away, (4, 1)))), 0.0)
+
+
+def test_away_normal_needs_every_light_on_one_side():
+    frame = ev.receiver_frame(FLOOR)
+    below = QUAD[::-1] * np.array([1.0, 1.0, -1.0])
+    up = js.Scene([js.PolygonLight(QUAD, 1.0), js.PointLight([0, 0, 1.0], 1.0)])
+    down = js.Scene([js.PolygonLight(below, 1.0)])
+    both = js.Scene([js.PolygonLight(QUAD, 1.0), js.PointLight([0, 0, -1.0], 1.0)])
+    sun = js.Scene([js.DirectionalLight([0.1, 0.2, -1.0], 1.0)])
+    np.testing.assert_array_equal(evaluator._away_normal(up, frame), -frame.normal)
+    np.testing.assert_array_equal(evaluator._away_normal(down, frame), frame.normal)
+    np.testing.assert_array_equal(evaluator._away_normal(sun, frame), -frame.normal)
+    assert evaluator._away_normal(both, frame) is None
+
+
+def test_evaluator_pending_points_follow_the_definition():
+    scene, frame, e = _evaluator()
+    rng = np.random.default_rng(2)
+    xy = rng.uniform(-1.4, 1.4, (40, 2))
+    first = e.row_of(xy)
+    assert not e.stale(xy).any() and not _by_definition(e, xy).any()
+    # Marked on a line after their evaluation: evaluated again, with the on-line check.
+    e.mark(xy[:5])
+    e.mark(xy[:2])  # twice: once in the log
+    np.testing.assert_array_equal(e.stale(xy), _by_definition(e, xy))
+    assert e.stale(xy)[:5].all() and not e.stale(xy)[5:].any()
+    # Moved (a point on a hole's edge takes the value beside it): evaluated again, elsewhere.
+    to = xy[10:12] + 1e-3
+    e.move(xy[10:12], to)
+    np.testing.assert_array_equal(e.stale(xy), _by_definition(e, xy))
+    assert e.stale(xy)[10:12].all()
+    n0 = e.evaluations
+    got = e(xy)
+    assert e.evaluations == n0 + 5 * 3 + 2  # the marked ones with a point to either side
+    assert not e.stale(xy).any() and not _by_definition(e, xy).any()
+    np.testing.assert_array_equal(got[10:12], e(to))
+    # The rows of the first evaluation lead to the current ones (a tile's old vertices).
+    now = e.row_of(xy)
+    assert np.sum(now != first) == 7
+    np.testing.assert_array_equal(e.follow(first), now)
+    # A point marked before its first evaluation is not pending twice.
+    q = rng.uniform(-1.4, 1.4, (3, 2))
+    e.mark(q)
+    n0 = e.evaluations
+    e(q)
+    assert e.evaluations == n0 + 9
+    assert not e.pending and not e.dropped
+    # Nothing left to do: no engine call.
+    n0 = e.evaluations
+    e(np.concatenate([xy, q]))
+    assert e.evaluations == n0
+
+
+# --------------------------------------------------------------------------------------
+# Several boxes at once
+# --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("kind", ["polygon", "point", "segment", "directional"])
+def test_affected_several_boxes_is_the_union_of_single_boxes(kind):
+    light = {"polygon": js.PolygonLight(QUAD, 1.0), "point": js.PointLight([0.1, -0.2, 1.9], 1.0),
+             "segment": js.LinearLight([-0.4, 0.0, 2.0], [0.4, 0.1, 2.0], 1.0),
+             "directional": js.DirectionalLight([0.2, 0.1, -1.0], 1.0)}[kind]
+    rng = np.random.default_rng(4)
+    p = np.c_[rng.uniform(-3, 3, (3000, 2)), np.zeros(3000)]
+    n = np.c_[rng.normal(0, 0.3, (3000, 2)), np.ones(3000)]
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    lo = np.array([[0.2, -0.5, 0.0], [-0.2, -0.1, 1.2], [-1.5, 1.0, 0.0]])
+    hi = np.array([[0.6, -0.1, 0.9], [0.1, 0.2, 1.5], [-1.2, 1.3, 0.4]])
+    want = np.zeros(p.shape[0], bool)
+    for g in range(lo.shape[0]):
+        single = _cache.affected(light, p, n, lo[g], hi[g])
+        assert single.any() and not single.all()
+        want |= single
+    got = _cache.affected(light, p, n, lo, hi)
+    np.testing.assert_array_equal(got, want)
+    assert want.sum() > max(_cache.affected(light, p, n, lo[g], hi[g]).sum() for g in range(3))
+
+
+# --------------------------------------------------------------------------------------
+# Occluder features reused on update
+# --------------------------------------------------------------------------------------
+
+
+def _boxes(shift):
+    out = []
+    for i, (x, y) in enumerate([(-0.8, -0.6), (0.3, 0.4), (0.9, -0.7)]):
+        lo = np.array([x, y, 0.0]) + (shift if i == 1 else 0.0)
+        c = lo + np.array([[0, 0, 0], [0.3, 0, 0], [0.3, 0.3, 0], [0, 0.3, 0],
+                           [0, 0, 0.4], [0.3, 0, 0.4], [0.3, 0.3, 0.4], [0, 0.3, 0.4]])
+        f = np.array([[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4],
+                      [1, 2, 6], [1, 6, 5], [2, 3, 7], [2, 7, 6], [3, 0, 4], [3, 4, 7]])
+        out.append(js.Mesh(c, f))
+    return js.Scene([js.PolygonLight(QUAD, 1.0)], out)
+
+
+def test_occluder_features_reused_equal_fresh():
+    old = ev.occluder_features(_boxes(np.zeros(3)))
+    new_scene = _boxes(np.array([0.05, 0.02, 0.0]))
+    fresh = ev.occluder_features(new_scene)
+    reused = ev.occluder_features(new_scene, reuse=old)
+    for name in ("faces", "face_normal", "face_object", "edge", "edge_adj", "edge_object", "vert", "vert_adj",
+                 "vert_object"):
+        np.testing.assert_array_equal(getattr(reused, name), getattr(fresh, name), err_msg=name)
+    # The boxes that did not move are taken over, the moved one is computed again.
+    taken = [k for k, part in reused.objects.items() if any(part is q for q in old.objects.values())]
+    assert len(old.objects) == len(reused.objects) == 3 and len(taken) == 2
