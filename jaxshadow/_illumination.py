@@ -75,11 +75,10 @@ class IlluminationMesh:
       and `unrefined_min_edge_error` (their largest error, relative to `scale`).
 
     Those elements count in `max_error_estimate`, which can therefore exceed `tol` while the
-    interpolation error measured on a dense grid stays below it. On the benchmark's box scene
-    (`benchmarks/illumination_mesh.py`, 180 boxes standing on the floor) at tol 1e-3 the estimate
-    is 1.6e-3 and the dense error 7.0e-4, from 882 such elements in 40 of the 256 tiles. They
-    lie near the corners of the boxes' footprints (on a 2 m x 2 m part of that floor at 1e-3:
-    1 194 elements in 4 tiles, all within 2 mm of a corner but outside its `CORNER_SIZE` disc), where the shadow boundaries of the box's edges converge and an umbra boundary cast by two
+    interpolation error measured on a dense grid stays below it (the box scene of
+    `benchmarks/illumination_mesh.py` at tol 1e-3; its README gives the figures). They lie within
+    millimetres of the corners of standing objects' footprints, outside the `CORNER_SIZE` disc,
+    where the shadow boundaries of the object's edges converge and an umbra boundary cast by two
     occluders together (an EEE event: a light edge and edges of two different occluders lined
     up) crosses: not a discontinuity line the mesher inserts (only VE and EV events are), so the
     elements across that kink fail at every size and stop at `min_edge` (1e-6 of the receiver's

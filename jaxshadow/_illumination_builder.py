@@ -30,7 +30,6 @@ DEFAULT_TILES = 16  # tiles along the receiver's longer side
 SAMPLES_PER_TILE = 6  # extremum-search grid per tile side
 SEGMENT_SAMPLES_PER_TILE = 16  # visibility samples per tile length along a discontinuity line
 CONTACT_STEP = 1e-9  # points on a hole's edge take the value this far outside (of the receiver's size)
-_DEBUG = False  # progress prints (development)
 
 
 class _Builder:
@@ -412,8 +411,6 @@ class _Builder:
             params[key] = np.unique(np.array([0.0, 1.0] + on + self._edge_extrema.get(key, [])))
         active = list(keys)
         while active:
-            if _DEBUG:
-                print("edges", len(active), sum(params[k].size for k in active))
             quarter = np.array([0.25, 0.5, 0.75])
             pts, owners = [], []
             for key in active:

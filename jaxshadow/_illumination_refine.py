@@ -22,7 +22,6 @@ if TYPE_CHECKING:
 
 CORNER_SIZE = 1e-4  # elements at a contact polygon's corner are not split below this (of the receiver's size)
 MAX_ROUNDS = 200  # refinement rounds per tile (each halves the worst elements; a guard)
-_DEBUG = False  # progress prints (development)
 _INNER = np.array([[0.5, 0.0, 0.0], [0.0, 0.5, 0.0], [0.0, 0.0, 0.5]]) + 0.5 / 3  # between centroid and corners
 
 
@@ -47,8 +46,6 @@ def refine_tiles(b: _Builder, tile_ids: list[int]) -> None:
     marked: dict[int, np.ndarray] = {}  # per tile: the last round's inner segments (vertex-pair codes)
     while active:
         rounds += 1
-        if _DEBUG:
-            print("round", rounds, len(active), sum(state[ti][0].shape[0] for ti in active))
         meshes, known, last_n = {}, {}, {}
         probes = []
         for ti in active:
@@ -151,9 +148,6 @@ def refine_tiles(b: _Builder, tile_ids: list[int]) -> None:
                 t.verts, t.tris, t.values = tv, tt[~hole], ve
                 t.error = float(err.max()) if err.size else 0.0
                 continue
-            if _DEBUG and rounds > 12:
-                k = np.argmax(err.max(axis=1))
-                print("tile", ti, "worst", c[k].tolist(), err[k].tolist(), "n bad", bad.sum(), "vals", vt[k].tolist())
             worst = np.argmax(sel_err[bad], axis=1)
             newp = pts[bad][np.arange(worst.size), worst]
             edge_of = edge_ij[bad][np.arange(worst.size), np.minimum(worst, 2)]
