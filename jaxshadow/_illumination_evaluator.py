@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from . import _illumination_events as ev
+from ._keytable import KeyTable, as_keys, first_occurrence
 from ._scene import DirectionalLight, LinearLight, PointLight, PolygonLight, Scene
 from ._shade import irradiance
 
@@ -29,11 +30,12 @@ class _Evaluator:
     (`repairs` counts these; the irradiance is continuous there, so the mean is within
     `ON_LINE_STEP` times the gradient of the exact value).
 
-    The cache maps a point's coordinates, as the Python complex `x + iy` (exact, hashed without
-    building tuples), to a row of one growing value array; each row also records where it was
-    evaluated and whether with the on-line check, so that an update (`inherit`) can take over the
-    rows of the previous scene whose value the change cannot affect: a point asked for again
-    with the same evaluation takes the old row instead of calling the engine (`reused`).
+    The cache (`KeyTable`) maps a point's coordinates, as the `complex128` key `x + iy` (exact),
+    to a row of one growing value array; each row also records where it was evaluated and whether
+    with the on-line check, so that an update (`inherit`) can take over the rows of the previous
+    scene whose value the change cannot affect: a point asked for again with the same evaluation
+    takes the old row instead of calling the engine (`reused`). Every look-up is done for a whole
+    array of points at once.
 
     A point needs evaluating when it is not cached, or when it was marked on a line after its
     value was computed without the on-line check (or moved: then it leaves the cache); the
@@ -43,21 +45,22 @@ class _Evaluator:
 
     def __init__(self, scene: Scene, frame: ev.Frame, size: float):
         self.scene, self.frame = scene, frame
-        self.cache: dict[complex, int] = {}
+        self.cache = KeyTable()
         self.values = np.zeros((1024, 3))
         self.targets = np.zeros(1024, np.complex128)  # per row: the point evaluated (`move`)
         self.lined = np.zeros(1024, bool)  # per row: evaluated with the on-line check
         self.succ: dict[int, int] = {}  # row -> the row of the point's next evaluation (`follow`)
         self._succ_sorted: tuple[np.ndarray, np.ndarray] | None = None
         self._rows = 0
-        self.prior: dict[complex, int] | None = None  # an earlier scene's rows (`inherit`)
+        self.prior: KeyTable | None = None  # an earlier scene's rows (`inherit`)
         self.prior_ok = np.zeros(0, bool)
         self.first_row = 0
         self.reused = 0
         self.kept = self.affected = 0  # earlier values taken over / that the change can affect (`inherit`)
-        self.online: set[complex] = set()
-        self.moved: dict[complex, complex] = {}  # points evaluated elsewhere (`move`)
-        self.checked: set[complex] = set()
+        self.online = KeyTable()  # a set: the points marked on a line
+        self.checked = KeyTable()  # a set: the points evaluated with the on-line check
+        self.moved = KeyTable()  # points evaluated elsewhere (`move`) -> index into `moved_to`
+        self.moved_to = np.zeros(0, np.complex128)
         self.pending: set[complex] = set()  # cached keys to evaluate again: `online` and not `checked`
         self.dropped: dict[complex, int] = {}  # keys evaluated (their row), then moved, not evaluated since
         self.away = _away_normal(scene, frame)
@@ -67,36 +70,49 @@ class _Evaluator:
         self.seconds = 0.0
 
     @staticmethod
-    def _keys(xy: np.ndarray) -> list[complex]:
-        xy = np.ascontiguousarray(np.asarray(xy, np.float64).reshape(-1, 2))
-        return xy.view(np.complex128).ravel().tolist()  # type: ignore[no-any-return]
+    def _keys(xy: np.ndarray) -> np.ndarray:
+        return as_keys(xy)
 
     def mark(self, xy: np.ndarray) -> None:
         """Declare points `(n, 2)` to lie on discontinuity lines."""
-        keys = set(self._keys(xy))
-        self.online |= keys
-        keys -= self.checked
-        if keys:  # cached without the check: pending (the others get it when first evaluated)
-            cache = self.cache
-            self.pending.update(k for k in keys if k in cache)
+        keys = self._keys(xy)
+        if keys.size == 0:
+            return
+        self.online.put(keys)
+        keys = keys[~self.checked.contains(keys)]
+        keys = keys[self.cache.contains(keys)]
+        if keys.size:  # cached without the check: pending (the others get it when first evaluated)
+            self.pending.update(keys.tolist())
 
     def move(self, xy: np.ndarray, to: np.ndarray) -> None:
         """Evaluate points `xy (n, 2)` at `to (n, 2)` instead (a point on the edge of a hole takes
         the value just outside it)."""
-        for a, b in zip(self._keys(xy), self._keys(to), strict=True):
-            if a not in self.moved:
-                self.moved[a] = b
-                r = self.cache.pop(a, None)
-                if r is not None:
-                    self.dropped[a] = r
+        a, b = self._keys(xy), self._keys(to)
+        a, first = np.unique(a, return_index=True)
+        keep = ~self.moved.contains(a)
+        a, b = a[keep], b[first[keep]]
+        if a.size == 0:
+            return
+        self.moved.put(a, np.arange(self.moved_to.size, self.moved_to.size + a.size))
+        self.moved_to = np.concatenate([self.moved_to, b])
+        r = self.cache.delete(a)
+        self.dropped.update(zip(a[r >= 0].tolist(), r[r >= 0].tolist(), strict=True))
 
-    def _lookup(self, keys: list[complex]) -> tuple[np.ndarray, np.ndarray]:
+    def _targets(self, keys: np.ndarray) -> np.ndarray:
+        """Where each key is evaluated: itself, or where it was moved."""
+        if len(self.moved) == 0:
+            return keys.copy()
+        m = self.moved.get(keys)
+        return np.where(m >= 0, self.moved_to[np.maximum(m, 0)], keys)
+
+    def _lookup(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per key its cached row (-1 when none) and whether it needs evaluating."""
-        n = len(keys)
-        rows = np.fromiter(map(self.cache.get, keys, itertools.repeat(-1, n)), np.int64, n)
+        rows = self.cache.get(keys)
         need = rows < 0
         if self.pending:
-            need |= np.isin(np.array(keys, np.complex128), np.fromiter(self.pending, np.complex128, len(self.pending)))
+            log = KeyTable(2 * len(self.pending))
+            log.put(np.fromiter(self.pending, np.complex128, len(self.pending)))
+            need |= log.contains(keys)
         return rows, need
 
     def __call__(self, xy: np.ndarray) -> np.ndarray:
@@ -104,21 +120,27 @@ class _Evaluator:
         rows = self.row_of(xy)  # (first: it may grow the arrays)
         return self.values[rows]
 
-    def _settle(self, keys: list[complex], rows: np.ndarray) -> None:
+    def _settle(self, keys: np.ndarray, rows: np.ndarray) -> None:
         """Keys `keys` now have rows `rows`: the rows they had before (pending or moved keys:
         the log, not every key, is searched) lead to the new ones (`follow`), and they leave
         the log."""
         if not self.pending and not self.dropped:
             return
-        index = dict(zip(keys, range(len(keys)), strict=True))
-        cache, dropped = self.cache, self.dropped
-        for k in [k for k in self.pending if k in index] + [k for k in dropped if k in index]:
-            old = cache.get(k, dropped.get(k, -1))
-            new = int(rows[index[k]])
-            if old >= 0 and old != new:
-                self.succ[old] = new
+        log = KeyTable(2 * (len(self.pending) + len(self.dropped)))
+        log.put(np.fromiter(itertools.chain(self.pending, self.dropped), np.complex128,
+                            len(self.pending) + len(self.dropped)))
+        at = np.nonzero(log.contains(keys))[0]  # (keys are distinct)
+        if at.size == 0:
+            return
+        new, hit = rows[at], keys[at]
+        old = self.cache.get(hit)
+        for k, o, n in zip(hit.tolist(), old.tolist(), new.tolist(), strict=True):
+            if o < 0:
+                o = self.dropped.get(k, -1)
+            if o >= 0 and o != n:
+                self.succ[o] = n
                 self._succ_sorted = None
-            dropped.pop(k, None)
+            self.dropped.pop(k, None)
 
     def follow(self, rows: np.ndarray) -> np.ndarray:
         """The rows now holding the points whose values were at `rows` (a point evaluated again,
@@ -143,15 +165,17 @@ class _Evaluator:
     def row_of(self, xy: np.ndarray) -> np.ndarray:
         """The value rows `(n,)` of points `xy (n, 2)`, evaluated first where needed."""
         keys = self._keys(xy)
-        cache, online, checked = self.cache, self.online, self.checked
         rows, need = self._lookup(keys)
-        todo = list(dict.fromkeys(itertools.compress(keys, need))) if need.any() else []
-        if todo and self.prior is not None:
+        if not need.any():
+            return rows
+        asked = keys[need]
+        todo = asked[first_occurrence(asked)]  # each key once, in the order asked
+        if todo.size and self.prior is not None:
             todo = self._take_prior(todo)
-        if todo:
-            tgt = list(map(self.moved.get, todo, todo))
-            pts = np.array(tgt, np.complex128).view(np.float64).reshape(-1, 2)
-            line = np.fromiter(map(online.__contains__, todo), bool, len(todo))
+        if todo.size:
+            tgt = self._targets(todo)
+            pts = tgt.view(np.float64).reshape(-1, 2)
+            line = self.online.contains(todo) if len(self.online) else np.zeros(todo.size, bool)
             side = pts[line]
             allp = np.concatenate([pts, side + self.step, side - self.step])
             t0 = time.perf_counter()
@@ -182,15 +206,21 @@ class _Evaluator:
             self.values[start:start + n] = val
             self.targets[start:start + n] = tgt
             self.lined[start:start + n] = line
-            self._settle(todo, np.arange(start, start + n))
-            cache.update(zip(todo, range(start, start + n), strict=True))
+            new_rows = np.arange(start, start + n)
+            self._settle(todo, new_rows)
+            self.cache.put(todo, new_rows)
             self._rows = start + n
-            lined = list(itertools.compress(todo, line))
-            checked.update(lined)
-            self.pending.difference_update(lined)
-        if need.any():
-            rows[need] = np.fromiter(map(cache.__getitem__, itertools.compress(keys, need)), np.int64, int(need.sum()))
+            self._checked(todo[line])
+        rows[need] = self.cache.get(asked)
         return rows
+
+    def _checked(self, keys: np.ndarray) -> None:
+        """Keys `keys` were evaluated with the on-line check: they leave `pending`."""
+        if keys.size == 0:
+            return
+        self.checked.put(keys)
+        if self.pending:
+            self.pending.difference_update(keys.tolist())
 
     def stale(self, xy: np.ndarray) -> np.ndarray:
         """`(n,)` bool: whether points `xy (n, 2)`, all evaluated before, would be evaluated again
@@ -213,38 +243,32 @@ class _Evaluator:
             b[:self._rows] = a[:self._rows]
             setattr(self, name, b)
 
-    def _take_prior(self, todo: list[complex]) -> list[complex]:
+    def _take_prior(self, todo: np.ndarray) -> np.ndarray:
         """Point the keys `todo` whose evaluation (the same point, with the on-line check or
         without) is a kept row of the earlier scene at that row; return the others."""
         prior = self.prior
         assert prior is not None
         if self.prior_ok.size == 0:
             return todo
-        n = len(todo)
-        r = np.fromiter(map(prior.get, todo, itertools.repeat(-1, n)), np.int64, n)
+        r = prior.get(todo)
         hit = r >= 0
         if not np.any(hit):
             return todo
-        online, moved = self.online, self.moved
-        cand = list(itertools.compress(todo, hit))  # keys with an earlier row: the same evaluation?
-        m, rr = len(cand), r[hit]
-        tgt = np.fromiter(map(moved.get, cand, cand), np.complex128, m) if moved else np.array(cand, np.complex128)
-        line = np.fromiter(map(online.__contains__, cand), bool, m)
-        same = self.prior_ok[rr] & (self.targets[rr] == tgt) & (self.lined[rr] == line)
+        cand, rr = todo[hit], r[hit]  # keys with an earlier row: the same evaluation?
+        line = self.online.contains(cand) if len(self.online) else np.zeros(cand.size, bool)
+        same = self.prior_ok[rr] & (self.targets[rr] == self._targets(cand)) & (self.lined[rr] == line)
         if not np.any(same):
             return todo
         take = hit.copy()
         take[hit] = same
-        keys = list(itertools.compress(cand, same))
+        keys = cand[same]
         self._settle(keys, rr[same])
-        self.cache.update(zip(keys, rr[same].tolist(), strict=True))
-        lined = list(itertools.compress(keys, line[same]))
-        self.checked.update(lined)
-        self.pending.difference_update(lined)
-        self.reused += len(keys)
-        return list(itertools.compress(todo, ~take))
+        self.cache.put(keys, rr[same])
+        self._checked(keys[line[same]])
+        self.reused += keys.size
+        return todo[~take]
 
-    def rows(self) -> tuple[dict[complex, int], np.ndarray]:
+    def rows(self) -> tuple[KeyTable, np.ndarray]:
         """Every key evaluated so far or taken over (`inherit`), with its row, and which rows hold
         a value of the current scene."""
         valid = np.zeros(self._rows, bool)
@@ -252,8 +276,8 @@ class _Evaluator:
         if self.prior is None:
             return self.cache, valid
         valid[:self.first_row] = self.prior_ok[:self.first_row]
-        merged = dict(self.prior)
-        merged.update(self.cache)
+        merged = self.prior.copy()
+        merged.put(*self.cache.items())
         return merged, valid
 
     def positions(self, rows: int) -> np.ndarray:

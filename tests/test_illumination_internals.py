@@ -121,7 +121,8 @@ def _evaluator():
 
 def _by_definition(e, xy):
     keys = e._keys(xy)
-    return np.array([k not in e.cache or (k in e.online and k not in e.checked) for k in keys])
+    cached, online, checked = (set(t.items()[0].tolist()) for t in (e.cache, e.online, e.checked))
+    return np.array([k not in cached or (k in online and k not in checked) for k in keys.tolist()])
 
 
 def test_evaluator_values_and_padding():
@@ -244,3 +245,39 @@ def test_occluder_features_reused_equal_fresh():
     # The boxes that did not move are taken over, the moved one is computed again.
     taken = [k for k, part in reused.objects.items() if any(part is q for q in old.objects.values())]
     assert len(old.objects) == len(reused.objects) == 3 and len(taken) == 2
+
+
+# --------------------------------------------------------------------------------------
+# The evaluator's hash table
+# --------------------------------------------------------------------------------------
+
+
+def test_key_table_matches_a_dict():
+    """Random puts (with repeated keys in a batch), deletes and look-ups against a `dict`, with
+    keys from a coarse lattice so that batches collide often, through several resizes."""
+    from jaxshadow._keytable import KeyTable, as_keys, first_occurrence
+
+    rng = np.random.default_rng(5)
+    t, d = KeyTable(16), {}
+    for _ in range(200):
+        k = as_keys(np.round(rng.uniform(-1, 1, (int(rng.integers(0, 300)), 2)), 2))
+        if rng.random() < 0.7:
+            v = rng.integers(0, 1000, k.size)
+            t.put(k, v)
+            d.update(zip(k.tolist(), v.tolist(), strict=True))  # the last value of a repeated key
+        else:
+            got = t.delete(k)
+            want = [d.get(x, -1) for x in k.tolist()]
+            for x in k.tolist():
+                d.pop(x, None)
+            np.testing.assert_array_equal(got, want)
+        q = np.concatenate([k, as_keys(np.round(rng.uniform(-1, 1, (200, 2)), 2))])
+        np.testing.assert_array_equal(t.get(q), [d.get(x, -1) for x in q.tolist()])
+        assert len(t) == len(d)
+        _, first = np.unique(q, return_index=True)
+        np.testing.assert_array_equal(np.nonzero(first_occurrence(q))[0], np.sort(first))
+    keys, vals = t.items()
+    assert dict(zip(keys.tolist(), vals.tolist(), strict=True)) == d
+    # -0.0 and 0.0 are one key, as in a dict of complex numbers.
+    t.put(np.array([complex(-0.0, -0.0)]), 3)
+    assert t.get(np.array([0j]))[0] == 3 and t.contains(np.array([complex(0.0, -0.0)]))[0]
