@@ -185,11 +185,13 @@ def _updated(old: _Builder, scene: Scene) -> _Builder:
     boxes = np.concatenate([old.foot[gone], nb.foot[new]]) if (gone or new) else np.zeros((0, 4))
     # Exact values the change cannot affect are taken over from the old mesh's evaluations.
     step = float(np.linalg.norm(nb.eval.step)) * (1 + 1e-6)
-    nb.eval.inherit(old.eval, lambda xy: ~_affected(scene, nb.frame, step, xy, [fo[gone], fn[new]], boxes,
-                                                    1e-6 * old.diam))
-    boxes = boxes[np.all(np.isfinite(boxes), axis=1)]
+    fin = boxes[np.all(np.isfinite(boxes), axis=1)]
     margin = 1e-6 * old.diam
-    tile_ids = [ti for ti, t in enumerate(nb.tiles) if boxes.size and np.any(ev.boxes_overlap(boxes, t.lo, t.hi, margin))]
+    tile_ids = [ti for ti, t in enumerate(nb.tiles) if fin.size and np.any(ev.boxes_overlap(fin, t.lo, t.hi, margin))]
+    region = np.array([np.concatenate([nb.tiles[ti].lo - margin, nb.tiles[ti].hi + margin]) for ti in tile_ids]).reshape(-1, 4)
+    nb.eval.inherit(old.eval, lambda xy: ~_affected(scene, nb.frame, step, xy, [fo[gone], fn[new]], boxes,
+                                                    1e-6 * old.diam), region)
+    boxes = fin
     edge_keys = [k for k, e in nb.edges.items()
                  if boxes.size and np.any(ev.boxes_overlap(boxes, np.minimum(e.a, e.b), np.maximum(e.a, e.b), margin))]
     for ti in tile_ids:

@@ -49,6 +49,7 @@ class _Evaluator:
         self.values = np.zeros((1024, 3))
         self.targets = np.zeros(1024, np.complex128)  # per row: the point evaluated (`move`)
         self.lined = np.zeros(1024, bool)  # per row: evaluated with the on-line check
+        self.inner = np.zeros(1024, bool)  # per row: an element's inner point, not in the cache (`inner_rows`)
         self.succ: dict[int, int] = {}  # row -> the row of the point's next evaluation (`follow`)
         self._succ_sorted: tuple[np.ndarray, np.ndarray] | None = None
         self._rows = 0
@@ -171,48 +172,73 @@ class _Evaluator:
         asked = keys[need]
         todo = asked[first_occurrence(asked)]  # each key once, in the order asked
         if todo.size and self.prior is not None:
-            todo = self._take_prior(todo)
+            todo = todo[~self._take_prior(todo, True)[0]]
         if todo.size:
-            tgt = self._targets(todo)
-            pts = tgt.view(np.float64).reshape(-1, 2)
             line = self.online.contains(todo) if len(self.online) else np.zeros(todo.size, bool)
-            side = pts[line]
-            allp = np.concatenate([pts, side + self.step, side - self.step])
-            t0 = time.perf_counter()
-            # Padded to a power of two: the engine compiles per batch shape.
-            n_all = allp.shape[0]
-            size = max(MIN_BATCH, 1 << (n_all - 1).bit_length())
-            p3 = self.frame.to3d(np.concatenate([allp, np.repeat(allp[:1], size - n_all, axis=0)]))
-            nrm = np.empty_like(p3)
-            nrm[:n_all] = self.frame.normal
-            nrm[n_all:] = self.frame.normal if self.away is None else self.away
-            e = np.asarray(irradiance(self.scene, p3, nrm), np.float64)[:n_all]
-            self.seconds += time.perf_counter() - t0
-            self.evaluations += allp.shape[0]
-            n, m = pts.shape[0], side.shape[0]
-            val = e[:n].copy()
-            if m:
-                ep, em = e[n:n + m], e[n + m:]
-                mid = 0.5 * (ep + em)
-                slack = 0.5 * np.abs(ep - em) + 1e-6 * np.maximum(np.abs(ep), np.abs(em)) + 1e-300
-                bad = np.any(np.abs(val[line] - mid) > slack, axis=1)
-                if np.any(bad):
-                    fixed = val[line]
-                    fixed[bad] = mid[bad]
-                    val[line] = fixed
-                    self.repairs += int(bad.sum())
-            start = self._rows  # rows are never reused (a key dropped by `move` leaves its row behind)
-            self._grow(start + n)
-            self.values[start:start + n] = val
-            self.targets[start:start + n] = tgt
-            self.lined[start:start + n] = line
-            new_rows = np.arange(start, start + n)
+            new_rows = self._evaluate(self._targets(todo), line)
             self._settle(todo, new_rows)
             self.cache.put(todo, new_rows)
-            self._rows = start + n
             self._checked(todo[line])
         rows[need] = self.cache.get(asked)
         return rows
+
+    def inner_rows(self, xy: np.ndarray) -> np.ndarray:
+        """The value rows `(n,)` of points `xy (n, 2)` inside elements (never on a line, never
+        moved), evaluated without entering the cache: an element's inner check points are most of
+        the evaluations and are asked for once, so they get rows but no keys (`adopt` keys the
+        few that become vertices). An update's earlier scene may hold them (`inherit`)."""
+        keys = self._keys(xy)
+        rows = np.full(keys.size, -1, np.int64)
+        todo = np.ones(keys.size, bool)
+        if keys.size and self.prior is not None:
+            took, rr = self._take_prior(keys, False)
+            rows[took] = rr
+            todo = ~took
+        if np.any(todo):
+            rows[todo] = self._evaluate(keys[todo], np.zeros(int(todo.sum()), bool))
+            self.inner[rows[todo]] = True
+        return rows
+
+    def adopt(self, xy: np.ndarray, rows: np.ndarray) -> None:
+        """Key the points `xy (n, 2)` to their rows `rows` (`inner_rows`): they become vertices."""
+        self.cache.put(self._keys(xy), rows)
+
+    def _evaluate(self, tgt: np.ndarray, line: np.ndarray) -> np.ndarray:
+        """Evaluate at the points `tgt` (keys, `(n,)`), with the on-line check where `line`, into
+        new rows; returns the rows."""
+        pts = tgt.view(np.float64).reshape(-1, 2)
+        side = pts[line]
+        allp = np.concatenate([pts, side + self.step, side - self.step])
+        t0 = time.perf_counter()
+        # Padded to a power of two: the engine compiles per batch shape.
+        n_all = allp.shape[0]
+        size = max(MIN_BATCH, 1 << (n_all - 1).bit_length())
+        p3 = self.frame.to3d(np.concatenate([allp, np.repeat(allp[:1], size - n_all, axis=0)]))
+        nrm = np.empty_like(p3)
+        nrm[:n_all] = self.frame.normal
+        nrm[n_all:] = self.frame.normal if self.away is None else self.away
+        e = np.asarray(irradiance(self.scene, p3, nrm), np.float64)[:n_all]
+        self.seconds += time.perf_counter() - t0
+        self.evaluations += allp.shape[0]
+        n, m = pts.shape[0], side.shape[0]
+        val = e[:n].copy()
+        if m:
+            ep, em = e[n:n + m], e[n + m:]
+            mid = 0.5 * (ep + em)
+            slack = 0.5 * np.abs(ep - em) + 1e-6 * np.maximum(np.abs(ep), np.abs(em)) + 1e-300
+            bad = np.any(np.abs(val[line] - mid) > slack, axis=1)
+            if np.any(bad):
+                fixed = val[line]
+                fixed[bad] = mid[bad]
+                val[line] = fixed
+                self.repairs += int(bad.sum())
+        start = self._rows  # rows are never reused (a key dropped by `move` leaves its row behind)
+        self._grow(start + n)
+        self.values[start:start + n] = val
+        self.targets[start:start + n] = tgt
+        self.lined[start:start + n] = line
+        self._rows = start + n
+        return np.arange(start, start + n)
 
     def _checked(self, keys: np.ndarray) -> None:
         """Keys `keys` were evaluated with the on-line check: they leave `pending`."""
@@ -237,36 +263,39 @@ class _Evaluator:
         if rows <= self.values.shape[0]:
             return
         size = max(int(rows * (1 + spare)), 1024)
-        for name in ("values", "targets", "lined"):
+        for name in ("values", "targets", "lined", "inner"):
             a = getattr(self, name)
             b = np.zeros((size,) + a.shape[1:], a.dtype)
             b[:self._rows] = a[:self._rows]
             setattr(self, name, b)
 
-    def _take_prior(self, todo: np.ndarray) -> np.ndarray:
-        """Point the keys `todo` whose evaluation (the same point, with the on-line check or
-        without) is a kept row of the earlier scene at that row; return the others."""
+    def _take_prior(self, todo: np.ndarray, keyed: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Which of the keys `todo` have an evaluation (the same point, with the on-line check or
+        without) in a kept row of the earlier scene, and those rows; with `keyed` the keys enter
+        the cache at those rows."""
         prior = self.prior
         assert prior is not None
+        none = np.zeros(todo.size, bool), np.zeros(0, np.int64)
         if self.prior_ok.size == 0:
-            return todo
+            return none
         r = prior.get(todo)
         hit = r >= 0
         if not np.any(hit):
-            return todo
+            return none
         cand, rr = todo[hit], r[hit]  # keys with an earlier row: the same evaluation?
         line = self.online.contains(cand) if len(self.online) else np.zeros(cand.size, bool)
         same = self.prior_ok[rr] & (self.targets[rr] == self._targets(cand)) & (self.lined[rr] == line)
         if not np.any(same):
-            return todo
+            return none
         take = hit.copy()
         take[hit] = same
         keys = cand[same]
-        self._settle(keys, rr[same])
-        self.cache.put(keys, rr[same])
-        self._checked(keys[line[same]])
+        if keyed:
+            self._settle(keys, rr[same])
+            self.cache.put(keys, rr[same])
+            self._checked(keys[line[same]])
         self.reused += keys.size
-        return todo[~take]
+        return take, rr[same]
 
     def rows(self) -> tuple[KeyTable, np.ndarray]:
         """Every key evaluated so far or taken over (`inherit`), with its row, and which rows hold
@@ -285,21 +314,32 @@ class _Evaluator:
         `step` to either side)."""
         return self.targets[:rows].view(np.float64).reshape(-1, 2)
 
-    def inherit(self, old: _Evaluator, keep: Any) -> None:
+    def inherit(self, old: _Evaluator, keep: Any, region: np.ndarray | None = None) -> None:
         """Take over the rows of `old` (the evaluator of an earlier scene) for which `keep(points
         (n, 2))` says that the change of scene cannot affect the value at them or within `step`
-        of them."""
+        of them; of the elements' inner points (not in `old`'s cache), those in the boxes
+        `region (G, 4)` (`lo_x, lo_y, hi_x, hi_y`: the tiles the update meshes again)."""
         index, valid = old.rows()
         n = old._rows
         pts = old.positions(n)
         ok = valid.copy()
         ok[valid] = keep(pts[valid])
         self.kept, self.affected = int(ok.sum()), int(valid.sum() - ok.sum())
+        inner = np.nonzero(old.inner[:n] & ok)[0]
+        if region is not None and region.shape[0] and inner.size:
+            x, y = pts[inner, 0], pts[inner, 1]
+            near = np.zeros(inner.size, bool)
+            for lo_x, lo_y, hi_x, hi_y in region:
+                near |= (x >= lo_x) & (x <= hi_x) & (y >= lo_y) & (y <= hi_y)
+            if np.any(near):
+                index = index.copy() if index is old.cache else index
+                index.put(old.targets[inner[near]], inner[near])  # (inner points are never moved)
         # Copies (the old mesh keeps its evaluator), with room for the update's new rows.
-        self.values, self.targets, self.lined = old.values[:0], old.targets[:0], old.lined[:0]
+        self.values, self.targets, self.lined, self.inner = old.values[:0], old.targets[:0], old.lined[:0], old.inner[:0]
         self._rows = 0
         self._grow(n, spare=0.5)
         self.values[:n], self.targets[:n], self.lined[:n] = old.values[:n], old.targets[:n], old.lined[:n]
+        self.inner[:n] = old.inner[:n]
         self._rows = self.first_row = n
         self.prior, self.prior_ok = index, ok
 

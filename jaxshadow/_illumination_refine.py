@@ -47,7 +47,7 @@ def refine_tiles(b: _Builder, tile_ids: list[int]) -> None:
     while active:
         rounds += 1
         meshes, known, last_n = {}, {}, {}
-        probes = []
+        probes, inside = [], []
         for ti in active:
             v, s, m = state[ti]
             out, dropped = _triangulate(v, s, m, on_tol)
@@ -81,11 +81,16 @@ def refine_tiles(b: _Builder, tile_ids: list[int]) -> None:
             # The vertices to look up: the new ones and the old ones to evaluate again (the
             # others keep their rows, followed to any later evaluation of the point).
             probes.append(np.concatenate([tv[:n_old][stale], tv[n_old:]]))
-            probes.append(np.concatenate([mids, c.mean(axis=1, keepdims=True), inner], axis=1).reshape(-1, 2))
-        # All active tiles' vertices and check points in one call; each tile reads its rows.
+            probes.append(mids.reshape(-1, 2))
+            inside.append(np.concatenate([c.mean(axis=1, keepdims=True), inner], axis=1).reshape(-1, 2))
+        # All active tiles' vertices and check points in two calls (the points inside elements,
+        # most of them, are not cached: `_Evaluator.inner_rows`); each tile reads its rows.
         allrows = b.eval.row_of(np.concatenate(probes))
+        in_rows = b.eval.inner_rows(np.concatenate(inside))
         allval = b.eval.values[allrows]
+        in_val = b.eval.values[in_rows]
         rows = np.cumsum([0] + [p.shape[0] for p in probes])
+        at = np.cumsum([0] + [p.shape[0] for p in inside])
         total = sum(meshes[ti]["vertices"].shape[0] for ti in meshes) + sum(
             b.tiles[ti].verts.shape[0] for ti in range(len(b.tiles))  # type: ignore[union-attr]
             if b.tiles[ti].verts is not None and ti not in meshes)
@@ -115,7 +120,11 @@ def refine_tiles(b: _Builder, tile_ids: list[int]) -> None:
             hole, corner = np.empty(tt.shape[0], bool), np.empty(tt.shape[0], bool)
             if np.any(kn):
                 err[kn], hole[kn], corner[kn] = last[ti].take(kn)
-            err[~kn] = np.abs(allval[rows[2 * k_tile + 1]:rows[2 * k_tile + 2]].reshape(-1, 7, 3) - interp).max(axis=2)
+            got = np.concatenate([allval[rows[2 * k_tile + 1]:rows[2 * k_tile + 2]].reshape(-1, 3, 3),
+                                  in_val[at[k_tile]:at[k_tile + 1]].reshape(-1, 4, 3)], axis=1)
+            err[~kn] = np.abs(got - interp).max(axis=2)
+            irow = np.full((tt.shape[0], 4), -1, np.int64)  # rows of the new elements' inner points
+            irow[~kn] = in_rows[at[k_tile]:at[k_tile + 1]].reshape(-1, 4)
             hole[~kn] = b._in_contact(c[~kn].mean(axis=1), b.tiles[ti].contact)
             # At a contact polygon's corner the irradiance has no limit (it depends on the
             # direction of approach): the elements within CORNER_SIZE of it are refined down
@@ -164,6 +173,9 @@ def refine_tiles(b: _Builder, tile_ids: list[int]) -> None:
                 t.verts, t.tris, t.values = tv, tt[~hole], ve
                 t.error = float(err.max())
                 continue
+            r = irow[bad][np.arange(worst.size), np.maximum(worst - 3, 0)][once]
+            r[worst[once] < 3] = -1
+            b.eval.adopt(newp[once][r >= 0], r[r >= 0])  # inner points that become vertices keep their rows
             nv = tv.shape[0]
             new_v = np.concatenate([tv, newp[once]])
             # Edge midpoints on a line or a hole's edge split that segment.
