@@ -35,6 +35,7 @@ Values come from `jaxshadow.irradiance` (the host shadow engine for concrete inp
 from __future__ import annotations
 
 import time
+import warnings
 from typing import Any
 
 import numpy as np
@@ -143,7 +144,7 @@ class IlluminationMesh:
             out.append(nb)
         stats = {"seconds": time.perf_counter() - t0, "tiles_meshed": meshed,
                  "tiles": sum(len(b.tiles) for b in out), **_merged_stats(out)}
-        return IlluminationMesh(out, self.tol, stats)
+        return _budget_warning(IlluminationMesh(out, self.tol, stats), out[0].max_vertices)
 
     def save(self, path: Any) -> None:
         """Write the mesh as PLY (vertex colours and the float irradiance as vertex properties) or
@@ -279,8 +280,9 @@ def illumination_mesh(scene: Any, receiver: Any, tol: float = 1e-3, *, max_verti
       (the side its right-hand-rule normal points to), or a `Mesh` or list of such polygons (each
       face meshed on its own; vertices are not shared between faces).
     - `tol`: relative tolerance in (0, 1): interpolation error over the receiver's maximum.
-    - `max_vertices`: stop refining once the mesh has this many vertices (then
-      `max_error_estimate` may exceed `tol`).
+    - `max_vertices`: stop refining once the mesh has this many vertices (per receiver polygon);
+      if elements over `tol` are left then, a `RuntimeWarning` says so and
+      `stats["tiles_stopped_by_budget"]` counts the tiles (`max_error_estimate` exceeds `tol`).
     - `tile_size`: side of the tiles the receiver is cut into (m); default 1/16 of its extent.
     - `min_edge`: elements smaller than this are not split (m); default 1e-6 of the extent. Value
       discontinuities (hard shadows of point lights, occluders touching the receiver) cannot be
@@ -346,4 +348,14 @@ def illumination_mesh(scene: Any, receiver: Any, tol: float = 1e-3, *, max_verti
                 b.scale = top
         # (refinement is monotone: faces meshed with a smaller scale already meet the larger one)
     stats = {"seconds": time.perf_counter() - t0, "tiles": sum(len(b.tiles) for b in builders), **_merged_stats(builders)}
-    return IlluminationMesh(builders, float(tol), stats)
+    return _budget_warning(IlluminationMesh(builders, float(tol), stats), max_vertices)
+
+
+def _budget_warning(mesh: IlluminationMesh, max_vertices: int) -> IlluminationMesh:
+    """Warn when refinement stopped at the vertex budget with elements still over `tol`."""
+    if mesh.stats.get("tiles_stopped_by_budget", 0):
+        warnings.warn(f"illumination_mesh: refinement stopped at max_vertices={max_vertices:,} with elements "
+                      f"over tol in {mesh.stats['tiles_stopped_by_budget']} tiles (max_error_estimate "
+                      f"{mesh.max_error_estimate:.3g}, tol {mesh.tol:g}); raise max_vertices or tol.",
+                      RuntimeWarning, stacklevel=3)
+    return mesh

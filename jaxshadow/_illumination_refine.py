@@ -108,12 +108,8 @@ def refine_tiles(b: _Builder, tile_ids: list[int]) -> None:
             vr[:n_old] = b.eval.follow(vrows[ti]) if n_old else vr[:0]
             vrows[ti] = vr
             ve = b.eval.values[vr]
-            vt = ve[tt]  # (T, 3, 3)
-            mids = 0.5 * (c + np.roll(c, -1, axis=1))
-            inner = np.einsum("ij,tjk->tik", _INNER, c)
-            pts = np.concatenate([mids, c.mean(axis=1, keepdims=True), inner], axis=1)  # (T, 7, 2)
             kn = known[ti]
-            vn = vt[~kn]
+            vn = ve[tt[~kn]]  # (T_new, 3, 3)
             interp = np.concatenate([0.5 * (vn + np.roll(vn, -1, axis=1)), vn.mean(axis=1, keepdims=True),
                                      np.einsum("ij,tjk->tik", _INNER, vn)], axis=1)
             err = np.empty((tt.shape[0], 7))
@@ -132,8 +128,6 @@ def refine_tiles(b: _Builder, tile_ids: list[int]) -> None:
             corner[~kn] = b._at_contact_corner(c[~kn], b.tiles[ti].contact)
             last[ti] = _Checked(tv, tt, err.copy(), hole, corner)
             err[hole] = 0.0  # covered by an occluder face lying on the receiver: not meshed
-            edge_ij = np.stack([tt, np.roll(tt, -1, axis=1)], axis=-1)  # (T, 3, 2)
-            kind = _edge_kinds(edge_ij, segs, smark, tv.shape[0])
             longest = np.linalg.norm(c - np.roll(c, -1, axis=1), axis=2).max(axis=1)
             # Zero-area slivers (three vertices on a line up to round-off, where CDT's computed
             # crossings land an ulp off a tile edge) hold no point of the receiver: their long
@@ -141,10 +135,16 @@ def refine_tiles(b: _Builder, tile_ids: list[int]) -> None:
             e1, e2 = c[:, 1] - c[:, 0], c[:, 2] - c[:, 0]
             flat = np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]) <= 1e-9 * longest * longest
             err[flat] = 0.0
-            sel_err = err.copy()
-            sel_err[:, :3][kind == 1] = -1.0  # never insert on the tile boundary
             floor = np.where(corner, CORNER_SIZE * b.diam, b.min_edge)
-            bad = (err.max(axis=1) > thr) & (longest > floor) & (sel_err.max(axis=1) > thr)
+            # The elements to split (the few that fail; the next lines look at those only).
+            cand = np.nonzero((err.max(axis=1) > thr) & (longest > floor))[0]
+            edge_ij = np.stack([tt[cand], np.roll(tt[cand], -1, axis=1)], axis=-1)  # (C, 3, 2)
+            kind = _edge_kinds(edge_ij, segs, smark, tv.shape[0])
+            sel_err = err[cand]
+            sel_err[:, :3][kind == 1] = -1.0  # never insert on the tile boundary
+            split = sel_err.max(axis=1) > thr
+            bad = np.zeros(tt.shape[0], bool)
+            bad[cand[split]] = True
             t = b.tiles[ti]
             t.corner_error = float(err[corner].max()) if np.any(corner) else 0.0
             err[corner] = 0.0
@@ -154,13 +154,18 @@ def refine_tiles(b: _Builder, tile_ids: list[int]) -> None:
             t.unrefined = int(short.sum())
             t.unrefined_error = float(err[short].max()) if t.unrefined else 0.0
             if not np.any(bad) or not budget:
+                if np.any(bad):
+                    b.stats["tiles_stopped_by_budget"] = b.stats.get("tiles_stopped_by_budget", 0) + 1
                 t.verts, t.tris, t.values = tv, tt[~hole], ve
                 t.error = float(err.max()) if err.size else 0.0
                 continue
-            worst = np.argmax(sel_err[bad], axis=1)
-            newp = pts[bad][np.arange(worst.size), worst]
-            edge_of = edge_ij[bad][np.arange(worst.size), np.minimum(worst, 2)]
-            kd = kind[bad][np.arange(worst.size), np.minimum(worst, 2)]
+            worst = np.argmax(sel_err[split], axis=1)
+            cb = c[bad]
+            pts = np.concatenate([0.5 * (cb + np.roll(cb, -1, axis=1)), cb.mean(axis=1, keepdims=True),
+                                  np.einsum("ij,tjk->tik", _INNER, cb)], axis=1)  # (B, 7, 2)
+            newp = pts[np.arange(worst.size), worst]
+            edge_of = edge_ij[split][np.arange(worst.size), np.minimum(worst, 2)]
+            kd = kind[split][np.arange(worst.size), np.minimum(worst, 2)]
             # A point is inserted once: not twice in a round, never again once tried (then
             # the triangulation did not keep it).
             key = np.ascontiguousarray(newp).view(np.complex128).ravel()

@@ -270,6 +270,17 @@ def test_footprint_corners_include_crossings():
     assert _contact_corners([a, a + 5.0]).shape == (8, 2)  # apart: no crossing
 
 
+def test_vertex_budget_warns_and_counts(mesh):
+    """Refinement stopped by max_vertices with elements over tol left: a warning, a count, and an
+    estimate over tol (the full mesh, built without the budget, meets it)."""
+    assert mesh.stats.get("tiles_stopped_by_budget", 0) == 0 and mesh.max_error_estimate <= TOL
+    with pytest.warns(RuntimeWarning, match="max_vertices=200"):
+        small = js.illumination_mesh(two_occluders(), FLOOR, TOL, tile_size=TILE, max_vertices=200)
+    assert small.stats["tiles_stopped_by_budget"] > 0
+    assert small.max_error_estimate > TOL
+    assert small.vertices.shape[0] < mesh.vertices.shape[0]
+
+
 def test_update_rejects_changed_lights(mesh):
     other = js.Scene([js.PolygonLight(LIGHT + 0.1, 10.0)], [OCC_HIGH, OCC_LOW])
     with pytest.raises(ValueError, match="lights changed"):
