@@ -263,7 +263,7 @@ GRADIENTS = ("differences", "jax")
 
 def illumination_mesh(scene: Any, receiver: Any, tol: float = 1e-3, *, max_vertices: int = 2_000_000,
                       tile_size: float | None = None, min_edge: float | None = None, gradient: str = "differences",
-                      scale: float | None = None) -> IlluminationMesh:
+                      scale: float | None = None, progress: Any = None) -> IlluminationMesh:
     r"""An adaptive, discontinuity-aware mesh of `receiver` with exact irradiance at its vertices.
 
     Linear interpolation of the vertex irradiance over each triangle stays within `tol` times the
@@ -292,6 +292,10 @@ def illumination_mesh(scene: Any, receiver: Any, tol: float = 1e-3, *, max_verti
       irradiance; exact, but it compiles the device kernel for every batch size, which costs far
       more than the search on all but the smallest scenes).
     - `scale`: the irradiance (W/m^2) `tol` is relative to; default the receiver's maximum.
+    - `progress`: `None` or a callable, called after each refinement round with a dict: `round`,
+      `tiles_active` (tiles still refining), `tile_vertices` (vertices of all tiles, those on
+      shared tile edges counted once per tile), `failing_elements` (elements split this round),
+      `seconds` (since refinement began); for a receiver of several polygons, per polygon.
 
     **Returns:** `IlluminationMesh` with `vertices (V, 3)`, `triangles (T, 3)`, `irradiance (V, 3)`,
     `max_error_estimate`, `scale`, `stats`.
@@ -339,6 +343,7 @@ def illumination_mesh(scene: Any, receiver: Any, tol: float = 1e-3, *, max_verti
     builders = []
     for p in polys:
         b = _Builder(scene, p, float(tol), tile_size, min_edge, max_vertices, gradient, scale)
+        b.progress = progress
         b.build(list(range(len(b.tiles))), list(b.edges))
         builders.append(b)
     if scale is None and len(builders) > 1:

@@ -46,6 +46,7 @@ class _Builder:
         self.min_edge = float(min_edge) if min_edge else 1e-6 * diam
         self.max_vertices = int(max_vertices)
         self.gradient = gradient
+        self.progress: Any = None  # called after each refinement round (`illumination_mesh`)
         self.scale = scale
         xs, ys = _grid(self.poly, self.tile_size)
         self.gp, self.tiles = _tiles(self.poly, xs, ys)

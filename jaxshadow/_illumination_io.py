@@ -116,7 +116,12 @@ def mesh_command(args: argparse.Namespace) -> int:
         raise FileNotFoundError(f"-o {out}: directory {directory} does not exist.")
     scene = js.load_scene(args.scene)
     receiver = parse_receiver(args.receiver) if args.receiver else default_receiver(scene)
-    mesh = js.illumination_mesh(scene, receiver, args.tol, max_vertices=args.max_vertices, tile_size=args.tile_size)
+    def report(r: dict) -> None:
+        print(f"round {r['round']}: {r['tiles_active']} tiles refining, {r['tile_vertices']:,} vertices, "
+              f"{r['failing_elements']:,} elements split, {r['seconds']:.1f} s", file=sys.stderr, flush=True)
+
+    mesh = js.illumination_mesh(scene, receiver, args.tol, max_vertices=args.max_vertices, tile_size=args.tile_size,
+                                progress=None if args.quiet else report)
     mesh.save(out)
     print(f"{mesh.vertices.shape[0]} vertices, {mesh.triangles.shape[0]} triangles, checked error "
           f"{mesh.max_error_estimate:.3g} of the maximum {mesh.scale:.4g} W/m^2 (tol {args.tol:g}), "
@@ -138,6 +143,7 @@ def add_mesh_parser(sub: Any) -> None:
     p.add_argument("--max-vertices", type=int, default=2_000_000, help="stop refining at this many vertices")
     p.add_argument("--tile-size", type=float, default=None,
                    help="side of the tiles the receiver is meshed in (m; default 1/16 of its extent)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress output (one line per refinement round)")
     p.set_defaults(func=mesh_command)
 
 

@@ -4,6 +4,7 @@ exact values, insertion of each failing element's worst point."""
 
 from __future__ import annotations
 
+import time
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -37,6 +38,7 @@ def refine_tiles(b: _Builder, tile_ids: list[int]) -> None:
         state[ti] = (v, s, m)
     active = list(tile_ids)
     rounds = 0
+    t_start = time.perf_counter()
     tried: dict[int, np.ndarray] = {}  # per tile: the points inserted so far (as x + iy)
     # Each round re-triangulates a tile with its new vertices appended; the triangles of the
     # previous round that are still there (same vertices) keep their checked errors, so only
@@ -96,6 +98,7 @@ def refine_tiles(b: _Builder, tile_ids: list[int]) -> None:
             if b.tiles[ti].verts is not None and ti not in meshes)
         budget = total < b.max_vertices
         nxt = []
+        failing = 0
         for k_tile, ti in enumerate(active):
             out = meshes[ti]
             tv, tt = out["vertices"], out["triangles"]
@@ -145,6 +148,7 @@ def refine_tiles(b: _Builder, tile_ids: list[int]) -> None:
             split = sel_err.max(axis=1) > thr
             bad = np.zeros(tt.shape[0], bool)
             bad[cand[split]] = True
+            failing += int(split.sum())
             t = b.tiles[ti]
             t.corner_error = float(err[corner].max()) if np.any(corner) else 0.0
             err[corner] = 0.0
@@ -190,4 +194,7 @@ def refine_tiles(b: _Builder, tile_ids: list[int]) -> None:
             state[ti] = (new_v, new_s2, new_m2)
             nxt.append(ti)
         active = nxt
+        if b.progress is not None:
+            b.progress({"round": rounds, "tiles_active": len(active), "tile_vertices": total,
+                        "failing_elements": failing, "seconds": time.perf_counter() - t_start})
     b.stats["rounds"] = max(b.stats.get("rounds", 0), rounds)

@@ -281,6 +281,15 @@ def test_vertex_budget_warns_and_counts(mesh):
     assert small.vertices.shape[0] < mesh.vertices.shape[0]
 
 
+def test_progress_reports_each_round():
+    seen = []
+    m = js.illumination_mesh(two_occluders(), FLOOR, TOL, tile_size=TILE, progress=seen.append)
+    assert [r["round"] for r in seen] == list(range(1, m.stats["rounds"] + 1))
+    assert seen[-1]["tiles_active"] == 0 and seen[0]["failing_elements"] > 0
+    assert all(a["tile_vertices"] <= b["tile_vertices"] for a, b in zip(seen[:-1], seen[1:], strict=True))
+    assert seen[-1]["tile_vertices"] >= m.vertices.shape[0]  # (tile-edge vertices once per tile)
+
+
 def test_update_rejects_changed_lights(mesh):
     other = js.Scene([js.PolygonLight(LIGHT + 0.1, 10.0)], [OCC_HIGH, OCC_LOW])
     with pytest.raises(ValueError, match="lights changed"):
@@ -333,7 +342,9 @@ def test_cli_mesh(tmp_path, capsys):
     rc = cli.main(["--no-compile-cache", "mesh", str(path), "-o", str(out), "--tol", "0.2", "--receiver", str(rec),
                    "--tile-size", "3.0"])
     assert rc == 0 and out.exists()
-    assert "vertices" in capsys.readouterr().out
+    got = capsys.readouterr()
+    assert "vertices" in got.out
+    assert "round 1:" in got.err and "0 tiles refining" in got.err.splitlines()[-1]  # progress, to the end
     rc = cli.main(["--no-compile-cache", "mesh", str(path), "-o", str(tmp_path / "x.stl"), "--tol", "2e-2"])
     assert rc == 2
     assert "must end in one of" in capsys.readouterr().err
