@@ -397,10 +397,12 @@ def corner_segments(scene: Scene, occ: Occluders, frame: Frame, poly: np.ndarray
     rising = np.nonzero(low.any(axis=1) & (h.max(axis=1) > on))[0]
     above = np.nonzero(h.max(axis=1) > on)[0]
     nrm = frame.normal
-    obj_box: dict[int, np.ndarray] = {}
-    for o in np.unique(occ.edge_object):
+    objs = np.unique(occ.edge_object)
+    obj_box = np.full((int(objs.max()) + 1, 4), np.nan)
+    for o in objs:
         f = foot[occ.face_object == o]
-        obj_box[int(o)] = np.concatenate([f[:, :2].min(axis=0), f[:, 2:].max(axis=0)])
+        obj_box[o] = np.concatenate([f[:, :2].min(axis=0), f[:, 2:].max(axis=0)])
+    edge_box = obj_box[occ.edge_object]
     A: list[np.ndarray] = []
     B: list[np.ndarray] = []
     OBJ: list[int] = []
@@ -408,7 +410,9 @@ def corner_segments(scene: Scene, occ: Occluders, frame: Frame, poly: np.ndarray
         k = 0 if low[i, 0] else 1
         c, top = occ.edge[i, k], occ.edge[i, 1 - k]
         e = top - c
-        cand = above[above != i]
+        c2 = frame.to2d(c)
+        # Only objects that can shadow the receiver within `length` of c.
+        cand = above[(above != i) & boxes_overlap(edge_box[above], c2, c2, length)]
         w1, w2 = occ.edge[cand, 0] - c, occ.edge[cand, 1] - c
         det = np.einsum("k,nk->n", e, np.cross(w1, w2))
         scale = np.linalg.norm(e) * np.linalg.norm(w1, axis=1) * np.linalg.norm(w2, axis=1)
@@ -453,10 +457,9 @@ def corner_segments(scene: Scene, occ: Occluders, frame: Frame, poly: np.ndarray
             seen |= (lo_l <= hi_e) & (hi_l >= lo_e)
         ok &= seen
         for j in np.nonzero(ok)[0]:
-            c2 = frame.to2d(c)
             b2 = c2 + length * np.array([d[j] @ frame.u, d[j] @ frame.w])
             # Where both objects can shadow (outside, one of them does not change the light).
-            b1, b2_ = obj_box[int(occ.edge_object[i])], obj_box[int(occ.edge_object[cand[j]])]
+            b1, b2_ = edge_box[i], edge_box[cand[j]]
             bx = np.concatenate([np.maximum(b1[:2], b2_[:2]), np.minimum(b1[2:], b2_[2:])])
             if not (np.all(np.isfinite(bx)) and np.all(bx[:2] < bx[2:])):
                 continue
