@@ -362,26 +362,26 @@ def discontinuity_segments(scene: Scene, occ: Occluders, frame: Frame, poly: np.
 def corner_segments(scene: Scene, occ: Occluders, frame: Frame, poly: np.ndarray, foot: np.ndarray,
                     length: float) -> Segments:
     """The discontinuity lines that leave the foot `c` of an occluder edge `E` standing on the
-    receiver: the traces of the planes through `E` and another occluder edge `E'` in a plane with
-    it (a face of the same object, or a parallel edge of another object: two boxes' vertical
-    edges), on the side of `c` away from `E'`, from `c` over `length` (m), clipped to the
-    receiver polygon `poly` and to the receiver region both objects can shadow (`foot`, per
-    face; what an update re-meshes when either moves). Seen from a receiver point crossing such a plane, the blocked part of the light is
-    bounded by the image of `E` on one side and of `E'` on the other, so the irradiance has a
-    kink on the trace. For a face of the object, its plane bounds the face's occlusion volume
-    (Campbell & Fussell §3.1.2, "the plane of the blocker"): crossing it, the face turns from
-    back- to front-facing and its image, a sliver as wide as the distance to the plane, adds to
-    the object's. For two objects it is an EEE event (two occluder edges and a light edge lined
-    up; a quadric in general, beyond C&F's single blocker) whose two occluder edges are
-    coplanar, so that the quadric is their plane. Its gradient jump grows as 1/r at distance r from
-    `c` (the image of `E` moves on the light as 1/r), which is what no element of at least
-    `min_edge` resolves near a standing object's corner; away from it the jump is finite and
-    the refinement takes care of it, hence a bounded `length`. Kept are the pairs where the
-    plane supports both edges' objects (both are silhouette edges; on either side: the blocked
-    part is bounded by the outer image, or the gap between the images opens) and, seen from `c`
-    within the plane, the light's chord overlaps the directions of `E'` (the light lies behind
-    `E'`). No visibility test (`kept`): a line where the swap is
-    hidden is a harmless extra mesh edge."""
+    receiver: the traces of the planes through `E` and another occluder edge `E'` in a plane
+    with it (a face of the same object, or a parallel edge of another object: two boxes'
+    vertical edges), on the side of `c` away from `E'`, from `c` over `length` (m), clipped to
+    the receiver polygon `poly` and to the receiver region both objects can shadow (`foot`, per
+    face; what an update re-meshes when either moves). Seen from a receiver point crossing such
+    a plane, the blocked part of the light is bounded by the image of `E` on one side and of
+    `E'` on the other, so the irradiance has a kink on the trace. For a face of the object, its
+    plane bounds the face's occlusion volume (Campbell & Fussell §3.1.2, "the plane of the
+    blocker"): crossing it, the face turns from back- to front-facing and its image, a sliver as
+    wide as the distance to the plane, adds to the object's. For two objects it is an EEE event
+    (two occluder edges and a light edge lined up; a quadric in general, beyond C&F's single
+    blocker) whose two occluder edges are coplanar, so that the quadric is their plane. Its
+    gradient jump grows as 1/r at distance r from `c` (the image of `E` moves on the light as
+    1/r), which is what no element of at least `min_edge` resolves near a standing object's
+    corner; away from it the jump is finite and the refinement takes care of it, hence a bounded
+    `length`. Kept are the pairs where the plane supports both edges' objects (both are
+    silhouette edges; on either side: the blocked part is bounded by the outer image, or the gap
+    between the images opens) and, seen from `c` within the plane, the light's chord overlaps
+    the directions of `E'` (the light lies behind `E'`). No visibility test (`kept`): a line
+    where the swap is hidden is a harmless extra mesh edge."""
     empty = Segments(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 3)), np.zeros(0, bool),
                      np.zeros((0, 2, 3)), np.zeros(0, int), np.zeros(0, bool))
     lights = [np.asarray(lt.vertices, np.float64) for lt in scene.lights if isinstance(lt, PolygonLight)]
