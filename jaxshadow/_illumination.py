@@ -13,10 +13,12 @@ receiver polygon:
    and a tile whose neighbourhood did not change meshes identically: what makes the incremental
    update exact (`IlluminationMesh.update`).
 2. **Discontinuity lines** (`_illumination_events`): the VE and EV event segments of the
-   occluders that can shadow the receiver, kept where a ray along the event is not blocked,
-   inserted as constrained edges of a constrained Delaunay triangulation (artem-ogre's CDT,
-   through the `pythoncdt` package). Each tile's occluder list holds the faces whose shadow volume
-   can reach it (C&F §4.3, C&S's per-cell occluder lists).
+   occluders that can shadow the receiver, kept where a ray along the event is not blocked, and
+   the lines leaving the foot of an occluder edge standing on the receiver (the planes through
+   that edge and another edge in a plane with it), inserted as constrained edges of a
+   constrained Delaunay triangulation (artem-ogre's CDT, through the `pythoncdt` package). Each
+   tile's occluder list holds the faces whose shadow volume can reach it (C&F §4.3, C&S's
+   per-cell occluder lists).
 3. **Extrema** (`_illumination_extrema`): starts where a coarse grid sample beats its
    neighbours, batched BFGS on central differences of exact values (or on the exact gradient,
    `jax.grad`), and a golden-section search along tile edges; the extrema become vertices.
@@ -76,14 +78,10 @@ class IlluminationMesh:
       and `unrefined_min_edge_error` (their largest error, relative to `scale`).
 
     Those elements count in `max_error_estimate`, which can therefore exceed `tol` while the
-    interpolation error measured on a dense grid stays below it (the box scene of
-    `benchmarks/illumination_mesh.py` at tol 1e-3; its README gives the figures). They lie within
-    millimetres of the corners of standing objects' footprints, outside the `CORNER_SIZE` disc,
-    where the shadow boundaries of the object's edges converge and an umbra boundary cast by two
-    occluders together (an EEE event: a light edge and edges of two different occluders lined
-    up) crosses: not a discontinuity line the mesher inserts (only VE and EV events are), so the
-    elements across that kink fail at every size and stop at `min_edge` (1e-6 of the receiver's
-    size), too small for a dense grid to land in.
+    interpolation error measured on a dense grid stays below it. Near the corners of standing
+    objects' footprints, the kinks along the planes through the object's edge there and another
+    edge in a plane with it (`_illumination_events.corner_segments`) would be such elements
+    (their gradient grows as 1/r towards the corner); they are mesh edges.
     """
 
     def __init__(self, builders: list[_Builder], tol: float, stats: dict[str, Any]):
@@ -269,7 +267,8 @@ def illumination_mesh(scene: Any, receiver: Any, tol: float = 1e-3, *, max_verti
     Linear interpolation of the vertex irradiance over each triangle stays within `tol` times the
     receiver's maximum irradiance, as checked against exact values at seven points per triangle
     (with a safety factor `ESTIMATE_MARGIN`); the shadows' discontinuity lines (VE and EV events
-    of the polygon and linear lights, Campbell & Fussell's extremal planes) are mesh edges and the
+    of the polygon and linear lights, Campbell & Fussell's extremal planes, and the lines leaving
+    a standing occluder's foot) are mesh edges and the
     illumination's local extrema (found by optimisation, §3.3) are vertices. See the module
     docstring for the method and `IlluminationMesh.update` for moving occluders.
 

@@ -30,6 +30,10 @@ DEFAULT_TILES = 16  # tiles along the receiver's longer side
 SAMPLES_PER_TILE = 6  # extremum-search grid per tile side
 SEGMENT_SAMPLES_PER_TILE = 16  # visibility samples per tile length along a discontinuity line
 CONTACT_STEP = 1e-9  # points on a hole's edge take the value this far outside (of the receiver's size)
+# Length of the lines leaving a standing occluder's foot (`_illumination_events.corner_segments`),
+# in units of min_edge / tol: their kink's gradient jump falls as 1/r with the distance r from
+# the foot, and beyond about 0.5 min_edge / tol (the box scene) elements of min_edge resolve it.
+CORNER_LINE = 10.0
 
 
 class _Builder:
@@ -70,7 +74,10 @@ class _Builder:
             return
         self.occ = ev.occluder_features(scene, reuse)
         self.foot = ev.face_footprints(self.occ, scene, self.frame, bbox)
-        self.seg = ev.discontinuity_segments(scene, self.occ, self.frame, self.poly)
+        self.seg = ev.Segments.concat([
+            ev.discontinuity_segments(scene, self.occ, self.frame, self.poly),
+            ev.corner_segments(scene, self.occ, self.frame, self.poly, self.foot,
+                               CORNER_LINE * self.min_edge / self.tol)])
         s = self.seg
         self.seg_box = np.concatenate([np.minimum(s.a, s.b), np.maximum(s.a, s.b)], axis=1)
 
@@ -174,8 +181,12 @@ class _Builder:
         reaches the light."""
         nudge = ev.NUDGE_RTOL * self.diam
         assert self.seg is not None and self.occ is not None
-        p3 = self.frame.to3d(xy + nudge * self.seg.free[ids])
-        return ev.ray_visible(p3, ev.ray_targets(self.seg, ids, p3), self.occ, faces)
+        out = np.ones(ids.shape[0], bool)  # the corner lines are kept without the test
+        test = ~self.seg.kept[ids]
+        if np.any(test):
+            p3 = self.frame.to3d(xy[test] + nudge * self.seg.free[ids[test]])
+            out[test] = ev.ray_visible(p3, ev.ray_targets(self.seg, ids[test], p3), self.occ, faces)
+        return out
 
     def _prepare_edges(self, keys: list[tuple[int, int]]) -> None:
         """Crossings of the discontinuity lines with edges `keys` and whether each is real."""

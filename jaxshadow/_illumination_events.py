@@ -23,6 +23,10 @@ that can be:
   resolves whatever is left). `ray_visible` is that test, one ray per sample, nudged to the side
   of the plane the occluder does not occupy so that the occluder's own edge does not block it.
 
+Near the foot of an occluder edge standing on the receiver one more kind of line matters
+(`corner_segments`): the planes through that edge and another occluder edge in a plane with it,
+where the gradient jump grows without bound towards the foot.
+
 Point lights contribute their hard-shadow boundaries (the VE lines from the point); linear lights
 their two endpoints as vertices and the segment as an edge. Directional lights add no lines.
 Everything here is NumPy on concrete values.
@@ -203,7 +207,8 @@ class Segments:
     """Candidate discontinuity segments on the receiver (2-D): `a`, `b (S, 2)`; `free (S, 2)` the
     in-plane unit normal pointing to the side the occluder does not occupy; `target (S, 3)` the
     light vertex (`through = False`) or the occluder vertex the ray passes (`through = True`, EV
-    events: the ray continues to the light edge `ledge (S, 2, 3)`); `obj (S,)` the occluder object."""
+    events: the ray continues to the light edge `ledge (S, 2, 3)`); `obj (S,)` the occluder object;
+    `kept (S,)` the lines inserted without the visibility test (`corner_segments`)."""
 
     a: np.ndarray
     b: np.ndarray
@@ -212,12 +217,24 @@ class Segments:
     through: np.ndarray
     ledge: np.ndarray
     obj: np.ndarray
+    kept: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+
+    def __post_init__(self) -> None:
+        if self.kept.shape[0] != self.a.shape[0]:
+            self.kept = np.zeros(self.a.shape[0], bool)
 
     def __len__(self) -> int:
         return int(self.a.shape[0])
 
     def take(self, keep: np.ndarray) -> Segments:
-        return Segments(*(getattr(self, f)[keep] for f in ("a", "b", "free", "target", "through", "ledge", "obj")))
+        return Segments(*(getattr(self, f)[keep] for f in _SEGMENT_FIELDS))
+
+    @staticmethod
+    def concat(parts: list[Segments]) -> Segments:
+        return Segments(*(np.concatenate([getattr(p, f) for p in parts]) for f in _SEGMENT_FIELDS))
+
+
+_SEGMENT_FIELDS = ("a", "b", "free", "target", "through", "ledge", "obj", "kept")
 
 
 def _supports(m: np.ndarray, origin: np.ndarray, adj: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray]:
@@ -340,6 +357,136 @@ def discontinuity_segments(scene: Scene, occ: Occluders, frame: Frame, poly: np.
     free = np.where((np.sign(s) * side)[:, None] > 0, -nu, nu)
     seg = Segments(a, b, free, target, through, ledge, obj)
     return seg.take(ok)
+
+
+def corner_segments(scene: Scene, occ: Occluders, frame: Frame, poly: np.ndarray, foot: np.ndarray,
+                    length: float) -> Segments:
+    """The discontinuity lines that leave the foot `c` of an occluder edge `E` standing on the
+    receiver: the traces of the planes through `E` and another occluder edge `E'` in a plane
+    with it (a face of the same object, or a parallel edge of another object: two boxes'
+    vertical edges), on the side of `c` away from `E'`, from `c` over `length` (m), clipped to
+    the receiver polygon `poly` and to the receiver region both objects can shadow (`foot`, per
+    face; what an update re-meshes when either moves). Seen from a receiver point crossing such
+    a plane, the blocked part of the light is bounded by the image of `E` on one side and of
+    `E'` on the other, so the irradiance has a kink on the trace. For a face of the object, its
+    plane bounds the face's occlusion volume (Campbell & Fussell §3.1.2, "the plane of the
+    blocker"): crossing it, the face turns from back- to front-facing and its image, a sliver as
+    wide as the distance to the plane, adds to the object's. For two objects it is an EEE event
+    (two occluder edges and a light edge lined up; a quadric in general, beyond C&F's single
+    blocker) whose two occluder edges are coplanar, so that the quadric is their plane. Its
+    gradient jump grows as 1/r at distance r from `c` (the image of `E` moves on the light as
+    1/r), which is what no element of at least `min_edge` resolves near a standing object's
+    corner; away from it the jump is finite and the refinement takes care of it, hence a bounded
+    `length`. Kept are the pairs where the plane supports both edges' objects (both are
+    silhouette edges; on either side: the blocked part is bounded by the outer image, or the gap
+    between the images opens) and, seen from `c` within the plane, the light's chord overlaps
+    the directions of `E'` (the light lies behind `E'`). No visibility test (`kept`): a line
+    where the swap is hidden is a harmless extra mesh edge."""
+    empty = Segments(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 3)), np.zeros(0, bool),
+                     np.zeros((0, 2, 3)), np.zeros(0, int), np.zeros(0, bool))
+    lights = [np.asarray(lt.vertices, np.float64) for lt in scene.lights if isinstance(lt, PolygonLight)]
+    lights += [np.stack([np.asarray(lt.start, np.float64), np.asarray(lt.end, np.float64)])
+               for lt in scene.lights if isinstance(lt, LinearLight)]
+    if not lights or occ.edge.shape[0] < 2:
+        return empty
+    size = float(np.max(np.ptp(occ.faces.reshape(-1, 3), axis=0))) or 1.0
+    diam = float(np.max(np.ptp(poly, axis=0)))
+    on = 1e-9 * diam  # the contact tolerance (`contact_polygons`)
+    h = frame.height(occ.edge)  # (E, 2)
+    low = np.abs(h) <= on
+    rising = np.nonzero(low.any(axis=1) & (h.max(axis=1) > on))[0]
+    above = np.nonzero(h.max(axis=1) > on)[0]
+    nrm = frame.normal
+    objs = np.unique(occ.edge_object)
+    obj_box = np.full((int(objs.max()) + 1, 4), np.nan)
+    for o in objs:
+        f = foot[occ.face_object == o]
+        obj_box[o] = np.concatenate([f[:, :2].min(axis=0), f[:, 2:].max(axis=0)])
+    edge_box = obj_box[occ.edge_object]
+    A: list[np.ndarray] = []
+    B: list[np.ndarray] = []
+    OBJ: list[int] = []
+    for i in rising:
+        k = 0 if low[i, 0] else 1
+        c, top = occ.edge[i, k], occ.edge[i, 1 - k]
+        e = top - c
+        c2 = frame.to2d(c)
+        # Only objects that can shadow the receiver within `length` of c.
+        cand = above[(above != i) & boxes_overlap(edge_box[above], c2, c2, length)]
+        w1, w2 = occ.edge[cand, 0] - c, occ.edge[cand, 1] - c
+        det = np.einsum("k,nk->n", e, np.cross(w1, w2))
+        scale = np.linalg.norm(e) * np.linalg.norm(w1, axis=1) * np.linalg.norm(w2, axis=1)
+        far1 = np.linalg.norm(np.cross(e, w1), axis=1) >= np.linalg.norm(np.cross(e, w2), axis=1)
+        w = np.where(far1[:, None], w1, w2)
+        n = np.cross(e, w)
+        nn = np.linalg.norm(n, axis=1)
+        ok = (np.abs(det) <= SUPPORT_RTOL * np.maximum(scale, 1e-300)) & (nn > SUPPORT_RTOL * size * np.linalg.norm(e))
+        cand, w, n, nn = cand[ok], w[ok], n[ok], nn[ok]
+        if cand.size == 0:
+            continue
+        sup_e, _ = _supports(n, np.broadcast_to(c, n.shape), np.broadcast_to(occ.edge_adj[i], (cand.size,) + occ.edge_adj.shape[1:]), size)
+        sup_f, _ = _supports(n, np.broadcast_to(c, n.shape), occ.edge_adj[cand], size)
+        ok = sup_e & sup_f
+        # The trace on the receiver, away from E'; within the plane, `hdir` points to E', `up` up.
+        d = np.cross(n, nrm)
+        dl = np.linalg.norm(d, axis=1)
+        ok &= dl > SUPPORT_RTOL
+        d = d / np.maximum(dl, 1e-300)[:, None]
+        toward = np.einsum("nk,nk->n", d, w)
+        ok &= np.abs(toward) > SUPPORT_RTOL * size
+        d = np.where((toward > 0)[:, None], -d, d)
+        hdir = -d
+        up = np.cross(n / nn[:, None], d)
+        up = np.where((up @ nrm < 0)[:, None], -up, up)
+        # Directions from c within the plane, as angles from `hdir`: E''s, then the light's chord.
+        ends = occ.edge[cand] - c  # (n, 2, 3)
+        a12 = np.arctan2(np.einsum("nek,nk->ne", ends, up), np.einsum("nek,nk->ne", ends, hdir))
+        lo_e, hi_e = a12.min(axis=1), a12.max(axis=1)
+        seen = np.zeros(cand.size, bool)
+        nu = n / nn[:, None]
+        for lv in lights:
+            s = (lv - c) @ nu.T  # (k, n)
+            nxt = np.roll(lv, -1, axis=0) if lv.shape[0] > 2 else lv[::-1]
+            sn = np.roll(s, -1, axis=0) if lv.shape[0] > 2 else s[::-1]
+            cross = (s * sn <= 0) & (s != sn)
+            t = np.where(cross, s / np.where(cross, s - sn, 1.0), 0.0)
+            pts = lv[:, None, :] + t[..., None] * (nxt - lv)[:, None, :] - c  # (k, n, 3)
+            ang = np.arctan2(np.einsum("knj,nj->kn", pts, up), np.einsum("knj,nj->kn", pts, hdir))
+            lo_l = np.where(cross, ang, np.inf).min(axis=0)
+            hi_l = np.where(cross, ang, -np.inf).max(axis=0)
+            seen |= (lo_l <= hi_e) & (hi_l >= lo_e)
+        ok &= seen
+        for j in np.nonzero(ok)[0]:
+            b2 = c2 + length * np.array([d[j] @ frame.u, d[j] @ frame.w])
+            # Where both objects can shadow (outside, one of them does not change the light).
+            b1, b2_ = edge_box[i], edge_box[cand[j]]
+            bx = np.concatenate([np.maximum(b1[:2], b2_[:2]), np.minimum(b1[2:], b2_[2:])])
+            if not (np.all(np.isfinite(bx)) and np.all(bx[:2] < bx[2:])):
+                continue
+            A.append(c2)
+            B.append(b2)
+            OBJ.append(int(occ.edge_object[cand[j]]))
+            box = np.array([[bx[0], bx[1]], [bx[2], bx[1]], [bx[2], bx[3]], [bx[0], bx[3]]])
+            a_, b_, k_ = _clip_to_polygon(np.array([c2]), np.array([b2]), box)
+            A[-1], B[-1] = (a_[0], b_[0]) if k_[0] else (c2, c2)
+    if not A:
+        return empty
+    a, b = np.array(A), np.array(B)
+    a, b, ok = _clip_to_polygon(a, b, poly)
+    ok &= np.linalg.norm(b - a, axis=1) > 1e-9 * diam
+    a, b, obj = a[ok], b[ok], np.array(OBJ, dtype=int)[ok]
+    # One line per corner and direction (a face's edges, or aligned edges of several objects,
+    # give the same plane), the longest.
+    dd = (b - a) / np.linalg.norm(b - a, axis=1)[:, None]
+    key = np.concatenate([np.round(a / (1e-12 * diam)), np.round(np.arctan2(dd[:, 1], dd[:, 0]) / 1e-9)[:, None]], axis=1)
+    order = np.lexsort((-np.linalg.norm(b - a, axis=1), *key.T[::-1]))
+    first = np.ones(order.size, bool)
+    first[1:] = np.any(key[order[1:]] != key[order[:-1]], axis=1)
+    keep = np.sort(order[first])
+    a, b, obj, dd = a[keep], b[keep], obj[keep], dd[keep]
+    m = a.shape[0]
+    return Segments(a, b, np.stack([-dd[:, 1], dd[:, 0]], axis=1), np.zeros((m, 3)), np.zeros(m, bool),
+                    np.zeros((m, 2, 3)), obj, np.ones(m, bool))
 
 
 def ray_targets(seg: Segments, idx: np.ndarray, pts3: np.ndarray) -> np.ndarray:

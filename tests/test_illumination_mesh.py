@@ -360,3 +360,51 @@ def test_engine_on_event_plane():
     f = device(js.Scene([js.PolygonLight(LIGHT, 10.0)], [OCC_HIGH, OCC_HIGH]), p)  # (2, 4, 3): one compilation
     assert e[1] == 0.0 and e[2] < 1e-8 and f[0] == 0.0  # the device kernel and the neighbours agree
     assert e[0] == pytest.approx(0.0, abs=1e-8)
+
+
+# Boxes of `benchmarks.scenes.box_field(180)` (rounded) standing on the floor, the receiver's
+# left edge x0, its tol and min_edge: "face_plane" one box, whose south and north faces' planes
+# (y = -0.07, y = 0.05) meet the floor in lines leaving its east corners eastward, away from the
+# light; "two_boxes" the plane through the first box's south-east vertical edge and the second's,
+# whose line leaves the first box's corner (-0.44, -1.78) southward.
+CORNER_CASES = {
+    "face_plane": ([((0.79, -0.07, 0.0), (0.91, 0.05, 1.08))], 0.90, 1e-2, 8e-5),
+    "two_boxes": ([((-0.61, -1.78, 0.0), (-0.44, -1.63, 0.93)), ((-0.47, -1.30, 0.0), (-0.31, -1.02, 0.77))],
+                  -0.46, 1e-3, 8e-6),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CORNER_CASES))
+def test_lines_leaving_a_standing_corner(case):
+    # Near the corner c of a standing box, seen from a point crossing the plane through the box's
+    # edge at c and another edge in a plane with it, the light's blocked part is bounded by one
+    # edge's image, then the other's: a kink whose gradient jump grows as 1/r towards c, which
+    # no element of min_edge resolves within a few mm of c, outside the exempt corner disc,
+    # unless the line is a mesh edge. The receiver: a strip 3 cm wide across the corners and
+    # 8 m long (the box scene's floor size, so that CORNER_SIZE is); min_edge / tol as there
+    # (8e-6 / 1e-3).
+    from jaxshadow._illumination_builder import CORNER_SIZE, ESTIMATE_MARGIN
+
+    boxes, x0, tol, min_edge = CORNER_CASES[case]
+    scene = js.Scene([js.PolygonLight(LIGHT, 10.0)], [js.Mesh.box(lo, hi) for lo, hi in boxes])
+    y = boxes[0][0][1]
+    rec = np.array([[x0, y - 4.0, 0.0], [x0 + 0.03, y - 4.0, 0.0], [x0 + 0.03, y + 4.0, 0.0], [x0, y + 4.0, 0.0]])
+    scale = 0.75  # the box scene's floor maximum, about
+    m = js.illumination_mesh(scene, rec, tol, min_edge=min_edge, scale=scale)
+    assert m.stats["unrefined_min_edge"] == 0
+    # Independently: exact values at the points each element is checked at (edge midpoints,
+    # centroid, midpoints between centroid and corners) against the mesh's interpolation, for
+    # the elements within 5 mm of a footprint corner but outside its disc, points on or in a
+    # footprint left out (the value jumps there; the mesh takes the outside one).
+    corners = np.array([[x, y] for lo, hi in boxes for x in (lo[0], hi[0]) for y in (lo[1], hi[1])])
+    c = m.vertices[m.triangles]
+    near = np.min(np.linalg.norm(c[:, :, None, :2] - corners[None, None], axis=-1), axis=(1, 2))
+    c = c[(near > CORNER_SIZE * 8.0) & (near < 5e-3)]  # 8.0: the receiver's size
+    assert c.shape[0] > 50
+    cen = c.mean(axis=1, keepdims=True)
+    q = np.concatenate([0.5 * (c + np.roll(c, -1, axis=1)), cen, 0.5 * (c + cen)], axis=1).reshape(-1, 3)
+    on = np.zeros(q.shape[0], bool)
+    for lo, hi in boxes:
+        on |= np.all((q[:, :2] >= np.array(lo[:2]) - 1e-9) & (q[:, :2] <= np.array(hi[:2]) + 1e-9), axis=1)
+    err = np.max(np.abs(m.interpolate(q[~on]) - exact(scene, q[~on])))
+    assert err <= ESTIMATE_MARGIN * tol * scale * (1 + 1e-3)
