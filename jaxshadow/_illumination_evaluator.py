@@ -64,6 +64,8 @@ class _Evaluator:
         self.moved_to = np.zeros(0, np.complex128)
         self.pending: set[complex] = set()  # cached keys to evaluate again: `online` and not `checked`
         self.dropped: dict[complex, int] = {}  # keys evaluated (their row), then moved, not evaluated since
+        self._log_version = 0  # counts changes of `pending` and `dropped` (`_log`)
+        self._log_memo: dict[bool, tuple[tuple[int, int, int], KeyTable]] = {}
         self.away = _away_normal(scene, frame)
         self.step = ON_LINE_STEP * size * np.array([np.cos(0.6180339887), np.sin(0.6180339887)])
         self.evaluations = 0
@@ -84,6 +86,7 @@ class _Evaluator:
         keys = keys[self.cache.contains(keys)]
         if keys.size:  # cached without the check: pending (the others get it when first evaluated)
             self.pending.update(keys.tolist())
+            self._log_version += 1
 
     def move(self, xy: np.ndarray, to: np.ndarray) -> None:
         """Evaluate points `xy (n, 2)` at `to (n, 2)` instead (a point on the edge of a hole takes
@@ -98,6 +101,7 @@ class _Evaluator:
         self.moved_to = np.concatenate([self.moved_to, b])
         r = self.cache.delete(a)
         self.dropped.update(zip(a[r >= 0].tolist(), r[r >= 0].tolist(), strict=True))
+        self._log_version += 1
 
     def _targets(self, keys: np.ndarray) -> np.ndarray:
         """Where each key is evaluated: itself, or where it was moved."""
@@ -111,9 +115,7 @@ class _Evaluator:
         rows = self.cache.get(keys)
         need = rows < 0
         if self.pending:
-            log = KeyTable(2 * len(self.pending))
-            log.put(np.fromiter(self.pending, np.complex128, len(self.pending)))
-            need |= log.contains(keys)
+            need |= self._log(False).contains(keys)
         return rows, need
 
     def __call__(self, xy: np.ndarray) -> np.ndarray:
@@ -127,10 +129,7 @@ class _Evaluator:
         the log."""
         if not self.pending and not self.dropped:
             return
-        log = KeyTable(2 * (len(self.pending) + len(self.dropped)))
-        log.put(np.fromiter(itertools.chain(self.pending, self.dropped), np.complex128,
-                            len(self.pending) + len(self.dropped)))
-        at = np.nonzero(log.contains(keys))[0]  # (keys are distinct)
+        at = np.nonzero(self._log(True).contains(keys))[0]  # (keys are distinct)
         if at.size == 0:
             return
         new, hit = rows[at], keys[at]
@@ -142,6 +141,20 @@ class _Evaluator:
                 self.succ[o] = n
                 self._succ_sorted = None
             self.dropped.pop(k, None)
+            self._log_version += 1
+
+    def _log(self, with_dropped: bool) -> KeyTable:
+        """The keys of `pending` (and of `dropped`) as a table, rebuilt when they changed."""
+        state = (len(self.pending), len(self.dropped) if with_dropped else -1, self._log_version)
+        memo = self._log_memo.get(with_dropped)
+        if memo is not None and memo[0] == state:
+            return memo[1]
+        keys = itertools.chain(self.pending, self.dropped) if with_dropped else iter(self.pending)
+        n = len(self.pending) + (len(self.dropped) if with_dropped else 0)
+        t = KeyTable(2 * n)
+        t.put(np.fromiter(keys, np.complex128, n))
+        self._log_memo[with_dropped] = (state, t)
+        return t
 
     def follow(self, rows: np.ndarray) -> np.ndarray:
         """The rows now holding the points whose values were at `rows` (a point evaluated again,
@@ -247,6 +260,7 @@ class _Evaluator:
         self.checked.put(keys)
         if self.pending:
             self.pending.difference_update(keys.tolist())
+            self._log_version += 1
 
     def stale(self, xy: np.ndarray) -> np.ndarray:
         """`(n,)` bool: whether points `xy (n, 2)`, all evaluated before, would be evaluated again

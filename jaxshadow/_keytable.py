@@ -18,6 +18,7 @@ import numpy as np
 
 EMPTY, GONE = -1, -2  # slot markers in `vals`: never used / deleted (a tombstone: probing goes on;
 # its slot is not used again until the table is rebuilt)
+SMALL = 512  # below this many keys, `first_occurrence` sorts
 MAX_LOAD = 0.6  # occupied (live and deleted) slots per slot before the table doubles
 _C1, _C2, _C3 = np.uint64(0x9E3779B97F4A7C15), np.uint64(0xC2B2AE3D27D4EB4F), np.uint64(0x94D049BB133111EB)
 
@@ -168,6 +169,10 @@ def first_occurrence(k: np.ndarray) -> np.ndarray:
         [True, True, False, True]
     """
     k = np.asarray(k, np.complex128).ravel() + 0.0
+    if k.size < SMALL:  # (a sort costs less than the table's set-up)
+        out = np.zeros(k.size, bool)
+        out[np.unique(k, return_index=True)[1]] = True
+        return out
     t = KeyTable(int(k.size / MAX_LOAD) + 1)
     idx = np.arange(k.size)
     return t.vals[t._claim(k, idx)] == idx  # type: ignore[no-any-return]
