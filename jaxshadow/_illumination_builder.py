@@ -60,6 +60,7 @@ class _Builder:
                 if (ga, gb) not in self.edges:
                     self.edges[(ga, gb)] = _Edge(self.gp[ga], self.gp[gb])
         self.stats: dict[str, Any] = {}
+        self._corner_memo: dict[bytes, Any] = {}  # `corner_segments` per rising edge, kept across updates
         self._load_scene(scene)
 
     def _load_scene(self, scene: Scene, reuse: ev.Occluders | None = None) -> None:
@@ -77,7 +78,7 @@ class _Builder:
         self.seg = ev.Segments.concat([
             ev.discontinuity_segments(scene, self.occ, self.frame, self.poly),
             ev.corner_segments(scene, self.occ, self.frame, self.poly, self.foot,
-                               CORNER_LINE * self.min_edge / self.tol)])
+                               CORNER_LINE * self.min_edge / self.tol, self._corner_memo)])
         s = self.seg
         self.seg_box = np.concatenate([np.minimum(s.a, s.b), np.maximum(s.a, s.b)], axis=1)
 

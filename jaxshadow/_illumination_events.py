@@ -360,7 +360,7 @@ def discontinuity_segments(scene: Scene, occ: Occluders, frame: Frame, poly: np.
 
 
 def corner_segments(scene: Scene, occ: Occluders, frame: Frame, poly: np.ndarray, foot: np.ndarray,
-                    length: float) -> Segments:
+                    length: float, memo: dict[bytes, list[tuple[np.ndarray, np.ndarray, int]]] | None = None) -> Segments:
     """The discontinuity lines that leave the foot `c` of an occluder edge `E` standing on the
     receiver: the traces of the planes through `E` and another occluder edge `E'` in a plane
     with it (a face of the same object, or a parallel edge of another object: two boxes'
@@ -406,13 +406,9 @@ def corner_segments(scene: Scene, occ: Occluders, frame: Frame, poly: np.ndarray
     A: list[np.ndarray] = []
     B: list[np.ndarray] = []
     OBJ: list[int] = []
-    for i in rising:
-        k = 0 if low[i, 0] else 1
-        c, top = occ.edge[i, k], occ.edge[i, 1 - k]
-        e = top - c
-        c2 = frame.to2d(c)
-        # Only objects that can shadow the receiver within `length` of c.
-        cand = above[(above != i) & boxes_overlap(edge_box[above], c2, c2, length)]
+    def lines_of_edge(i: int, c: np.ndarray, e: np.ndarray, c2: np.ndarray, cand: np.ndarray) -> None:
+        """The lines leaving the foot `c` of rising edge `i` (direction `e`), paired with the
+        candidate edges `cand`: appended to `A`, `B`, `OBJ`."""
         w1, w2 = occ.edge[cand, 0] - c, occ.edge[cand, 1] - c
         det = np.einsum("k,nk->n", e, np.cross(w1, w2))
         scale = np.linalg.norm(e) * np.linalg.norm(w1, axis=1) * np.linalg.norm(w2, axis=1)
@@ -423,7 +419,7 @@ def corner_segments(scene: Scene, occ: Occluders, frame: Frame, poly: np.ndarray
         ok = (np.abs(det) <= SUPPORT_RTOL * np.maximum(scale, 1e-300)) & (nn > SUPPORT_RTOL * size * np.linalg.norm(e))
         cand, w, n, nn = cand[ok], w[ok], n[ok], nn[ok]
         if cand.size == 0:
-            continue
+            return
         sup_e, _ = _supports(n, np.broadcast_to(c, n.shape), np.broadcast_to(occ.edge_adj[i], (cand.size,) + occ.edge_adj.shape[1:]), size)
         sup_f, _ = _supports(n, np.broadcast_to(c, n.shape), occ.edge_adj[cand], size)
         ok = sup_e & sup_f
@@ -469,6 +465,31 @@ def corner_segments(scene: Scene, occ: Occluders, frame: Frame, poly: np.ndarray
             box = np.array([[bx[0], bx[1]], [bx[2], bx[1]], [bx[2], bx[3]], [bx[0], bx[3]]])
             a_, b_, k_ = _clip_to_polygon(np.array([c2]), np.array([b2]), box)
             A[-1], B[-1] = (a_[0], b_[0]) if k_[0] else (c2, c2)
+    # `memo` (kept by the mesher across updates): an edge's lines, by everything they depend on.
+    common = b"".join(np.asarray(x, np.float64).tobytes() for x in [*lights, frame.normal, frame.u, frame.w,
+                                                                       [size, length, SUPPORT_RTOL]])
+    for i in rising:
+        k = 0 if low[i, 0] else 1
+        c, top = occ.edge[i, k], occ.edge[i, 1 - k]
+        e = top - c
+        c2 = frame.to2d(c)
+        # Only objects that can shadow the receiver within `length` of c.
+        cand = above[(above != i) & boxes_overlap(edge_box[above], c2, c2, length)]
+        mkey = b""
+        if memo is not None:
+            mkey = b"".join([common, np.array([k], np.int64).tobytes(), c2.tobytes(), occ.edge[i].tobytes(), occ.edge_adj[i].tobytes(), edge_box[i].tobytes(),
+                            occ.edge[cand].tobytes(), occ.edge_adj[cand].tobytes(), edge_box[cand].tobytes(),
+                            occ.edge_object[cand].astype(np.int64).tobytes()])
+            if mkey in memo:
+                for a_, b_, o_ in memo[mkey]:
+                    A.append(a_)
+                    B.append(b_)
+                    OBJ.append(o_)
+                continue
+            start = len(A)
+        lines_of_edge(i, c, e, c2, cand)
+        if memo is not None:
+            memo[mkey] = list(zip(A[start:], B[start:], OBJ[start:], strict=True))
     if not A:
         return empty
     a, b = np.array(A), np.array(B)
