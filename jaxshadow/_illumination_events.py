@@ -487,7 +487,7 @@ def corner_segments(scene: Scene, occ: Occluders, frame: Frame, poly: np.ndarray
                     OBJ.append(o_)
                 continue
             start = len(A)
-        lines_of_edge(i, c, e, c2, cand)
+        lines_of_edge(int(i), c, e, c2, cand)
         if memo is not None:
             memo[mkey] = list(zip(A[start:], B[start:], OBJ[start:], strict=True))
     if not A:
