@@ -65,7 +65,7 @@ class _Evaluator:
         self.pending: set[complex] = set()  # cached keys to evaluate again: `online` and not `checked`
         self.dropped: dict[complex, int] = {}  # keys evaluated (their row), then moved, not evaluated since
         self._log_version = 0  # counts changes of `pending` and `dropped` (`_log`)
-        self._log_memo: dict[bool, tuple[tuple[int, int, int], KeyTable]] = {}
+        self._log_memo: dict[bool, tuple[int, KeyTable]] = {}
         self.away = _away_normal(scene, frame)
         self.step = ON_LINE_STEP * size * np.array([np.cos(0.6180339887), np.sin(0.6180339887)])
         self.evaluations = 0
@@ -145,15 +145,14 @@ class _Evaluator:
 
     def _log(self, with_dropped: bool) -> KeyTable:
         """The keys of `pending` (and of `dropped`) as a table, rebuilt when they changed."""
-        state = (len(self.pending), len(self.dropped) if with_dropped else -1, self._log_version)
         memo = self._log_memo.get(with_dropped)
-        if memo is not None and memo[0] == state:
+        if memo is not None and memo[0] == self._log_version:
             return memo[1]
         keys = itertools.chain(self.pending, self.dropped) if with_dropped else iter(self.pending)
         n = len(self.pending) + (len(self.dropped) if with_dropped else 0)
         t = KeyTable(2 * n)
         t.put(np.fromiter(keys, np.complex128, n))
-        self._log_memo[with_dropped] = (state, t)
+        self._log_memo[with_dropped] = (self._log_version, t)
         return t
 
     def follow(self, rows: np.ndarray) -> np.ndarray:
