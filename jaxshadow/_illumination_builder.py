@@ -110,17 +110,18 @@ class _Builder:
             out |= np.all(d > eps * np.linalg.norm(e, axis=1)[None, :], axis=1)
         return out
 
-    def _at_contact_corner(self, c: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    def _at_contact_corner(self, c: np.ndarray) -> np.ndarray:
         """Whether triangles `c (T, 3, 2)` have a vertex within `CORNER_SIZE` (of the receiver's
         size) of a corner of the contact polygons (a vertex, or a crossing of two polygons'
-        edges where standing objects overlap) when the tile has contact polygons `ids`. Around
-        such a corner the irradiance is continuous on every ray from it but takes a different
-        limit along each (the walls standing there hide a direction-dependent part of the
-        light), so every ring of elements around it sees the same variation, at any size: no
-        refinement meets `tol` there."""
+        edges where standing objects overlap), whether or not the polygon reaches the
+        triangle's tile (a corner just outside a tile's edge reaches into it). Around such a
+        corner the irradiance is continuous on every ray from it but takes a different limit
+        along each (the walls standing there hide a direction-dependent part of the light), so
+        every ring of elements around it sees the same variation, at any size: no refinement
+        meets `tol` there."""
         r = CORNER_SIZE * self.diam
         k = self.contact_corners
-        if ids.size == 0 or c.shape[0] == 0:
+        if k.shape[0] == 0 or c.shape[0] == 0:
             return np.zeros(c.shape[0], bool)
         lo, hi = c.reshape(-1, 2).min(axis=0) - r, c.reshape(-1, 2).max(axis=0) + r
         k = k[np.all((k >= lo) & (k <= hi), axis=1)]

@@ -128,7 +128,7 @@ def refine_tiles(b: _Builder, tile_ids: list[int]) -> None:
             # At a contact polygon's corner the irradiance has no limit (it depends on the
             # direction of approach): the elements within CORNER_SIZE of it are refined down
             # to CORNER_SIZE only, and their error is reported apart (`stats["corner_error"]`).
-            corner[~kn] = b._at_contact_corner(c[~kn], b.tiles[ti].contact)
+            corner[~kn] = b._at_contact_corner(c[~kn])
             last[ti] = _Checked(tv, tt, err.copy(), hole, corner)
             err[hole] = 0.0  # covered by an occluder face lying on the receiver: not meshed
             longest = np.linalg.norm(c - np.roll(c, -1, axis=1), axis=2).max(axis=1)

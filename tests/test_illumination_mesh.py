@@ -258,6 +258,25 @@ def test_object_standing_on_the_receiver_error_estimate(standing):
     assert np.max(np.abs(lin[ok] - ref)) <= 5e-2 * m.scale
 
 
+def test_corner_just_outside_a_tile_is_a_corner():
+    # A standing box whose corner away from the light lies 5 um short of a tile corner,
+    # diagonally: the tile beyond does not meet the box's footprint, but the walls at that
+    # corner hide a direction-dependent part of the light from its points too. Its elements
+    # there are at a corner (refined to CORNER_SIZE, error reported apart). Before, only tiles
+    # meeting a footprint looked for its corners: those elements were split down to min_edge
+    # and left far over tol (`unrefined_min_edge`, and in `max_error_estimate`).
+    from jaxshadow._illumination_pslg import _grid
+
+    xs, ys = _grid(FLOOR[:, :2], TILE)
+    hi = np.array([xs[2] - 5e-6, ys[2] - 5e-6, 0.5])  # on the third interior grid lines, less 5 um
+    assert np.all(hi[:2] > 0.05)  # the light is over the origin: the corner faces away from it
+    scene = js.Scene([js.PolygonLight(LIGHT, 10.0)], [js.Mesh.box(hi - [0.2, 0.2, 0.5], hi)])
+    m = js.illumination_mesh(scene, FLOOR, 2e-2, tile_size=TILE)
+    assert m.stats["unrefined_min_edge"] == 0
+    assert m.max_error_estimate <= 2e-2
+    assert m.stats["corner_error"] > 2e-2  # the corner's neighbourhood really is singular
+
+
 def test_footprint_corners_include_crossings():
     # Two overlapping standing boxes: the union of their footprints has corners where their
     # edges cross, (2, 1) and (1, 2) here (hand-computed), besides the squares' own vertices.
