@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from . import _illumination_events as ev
-from ._keytable import KeyTable, as_keys, first_occurrence
+from ._keytable import MAX_LOAD, KeyTable, as_keys, first_occurrence
 from ._scene import DirectionalLight, LinearLight, PointLight, PolygonLight, Scene
 from ._shade import irradiance
 
@@ -54,7 +54,8 @@ class _Evaluator:
         self._succ_sorted: tuple[np.ndarray, np.ndarray] | None = None
         self._rows = 0
         self.prior: KeyTable | None = None  # an earlier scene's rows (`inherit`)
-        self.prior_ok = np.zeros(0, bool)
+        self.prior_ok = np.zeros(0, bool)  # which of its rows hold a value of this scene
+        self.prior_index: KeyTable | None = None  # all of the earlier scene's keys (`rows`)
         self.first_row = 0
         self.reused = 0
         self.kept = self.affected = 0  # earlier values taken over / that the change can affect (`inherit`)
@@ -318,7 +319,8 @@ class _Evaluator:
         if self.prior is None:
             return self.cache, valid
         valid[:self.first_row] = self.prior_ok[:self.first_row]
-        merged = self.prior.copy()
+        assert self.prior_index is not None
+        merged = self.prior_index.copy()
         merged.put(*self.cache.items())
         return merged, valid
 
@@ -330,23 +332,28 @@ class _Evaluator:
     def inherit(self, old: _Evaluator, keep: Any, region: np.ndarray | None = None) -> None:
         """Take over the rows of `old` (the evaluator of an earlier scene) for which `keep(points
         (n, 2))` says that the change of scene cannot affect the value at them or within `step`
-        of them; of the elements' inner points (not in `old`'s cache), those in the boxes
-        `region (G, 4)` (`lo_x, lo_y, hi_x, hi_y`: the tiles the update meshes again)."""
+        of them. With `region (G, 4)` (boxes `lo_x, lo_y, hi_x, hi_y`: the tiles the update
+        meshes again, which hold every point the change can affect), only rows there are
+        looked at and taken over (the other tiles keep their meshes: nothing looks them up),
+        the elements' inner points (not in `old`'s cache) among them."""
         index, valid = old.rows()
         n = old._rows
         pts = old.positions(n)
-        ok = valid.copy()
-        ok[valid] = keep(pts[valid])
-        self.kept, self.affected = int(ok.sum()), int(valid.sum() - ok.sum())
-        inner = np.nonzero(old.inner[:n] & ok)[0]
-        if region is not None and region.shape[0] and inner.size:
-            x, y = pts[inner, 0], pts[inner, 1]
-            near = np.zeros(inner.size, bool)
-            for lo_x, lo_y, hi_x, hi_y in region:
-                near |= (x >= lo_x) & (x <= hi_x) & (y >= lo_y) & (y <= hi_y)
-            if np.any(near):
-                index = index.copy() if index is old.cache else index
-                index.put(old.targets[inner[near]], inner[near])  # (inner points are never moved)
+        look = valid if region is None else valid & _in_boxes(pts, region)
+        ok = np.zeros(n, bool)
+        ok[look] = keep(pts[look])
+        now = valid.copy()  # rows holding a value of the new scene: all but the affected
+        now[look] = ok[look]
+        self.affected = int(look.sum() - ok.sum())
+        self.kept = int(now.sum())
+        self.prior_index = index  # (shared, not copied: `rows` copies it for the next update)
+        if region is not None:  # a table of the region's rows alone: small, quick to probe
+            k, r = index.items()
+            sel = ok[r]
+            inner = np.nonzero(old.inner[:n] & ok)[0]  # (inner points are never moved: their key is their target)
+            index = KeyTable(int((sel.sum() + inner.size) / MAX_LOAD) + 1)
+            index.put(k[sel], r[sel])
+            index.put(old.targets[inner], inner)
         # Copies (the old mesh keeps its evaluator), with room for the update's new rows.
         self.values, self.targets, self.lined, self.inner = old.values[:0], old.targets[:0], old.lined[:0], old.inner[:0]
         self._rows = 0
@@ -354,10 +361,27 @@ class _Evaluator:
         self.values[:n], self.targets[:n], self.lined[:n] = old.values[:n], old.targets[:n], old.lined[:n]
         self.inner[:n] = old.inner[:n]
         self._rows = self.first_row = n
-        self.prior, self.prior_ok = index, ok
+        self.prior, self.prior_ok = index, now
 
     def luminance(self, xy: np.ndarray) -> np.ndarray:
         return self(xy).sum(axis=1)
+
+
+def _in_boxes(xy: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """`(n,)` bool: whether points `xy (n, 2)` lie in one of `boxes (G, 4)` (`lo_x, lo_y, hi_x,
+    hi_y`, closed)."""
+    out = np.zeros(xy.shape[0], bool)
+    if boxes.shape[0] == 0:
+        return out
+    x, y = xy[:, 0], xy[:, 1]
+    idx = np.nonzero((x >= boxes[:, 0].min()) & (x <= boxes[:, 2].max())
+                     & (y >= boxes[:, 1].min()) & (y <= boxes[:, 3].max()))[0]
+    x, y = x[idx], y[idx]
+    near = np.zeros(idx.size, bool)
+    for lo_x, lo_y, hi_x, hi_y in boxes:
+        near |= (x >= lo_x) & (x <= hi_x) & (y >= lo_y) & (y <= hi_y)
+    out[idx[near]] = True
+    return out
 
 
 def _away_normal(scene: Scene, frame: ev.Frame) -> np.ndarray | None:
