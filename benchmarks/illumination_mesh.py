@@ -3,7 +3,7 @@
 Scenes: (1) two overlapping quad occluders over a 4 m floor under a 0.6 m quad light at z = 2
 (lit, penumbra, umbra); (2) `box_scene`: `benchmarks.scenes.box_field(180)`, 180 boxes standing
 on the floor (2 160 triangles), meshed with `max_vertices=BOX_MAX_VERTICES` (tol 1e-4 needs more
-than the default). Where a box stands the floor is covered: those points are holes
+than the default) and `tile_size=BOX_TILE` (1/32 of the floor, not the default 1/16). Where a box stands the floor is covered: those points are holes
 of the mesh (`interpolate` gives NaN there) and are left out of every error, the grid's too. For each tolerance the adaptive mesh
 (`js.illumination_mesh`) is checked on a dense offset grid of exact values (`js.irradiance`);
 uniform triangulated grids of n = 16 * 2^(k/2) vertices per side (exact values at their
@@ -31,6 +31,8 @@ RESULTS = os.path.join(os.path.dirname(__file__), "results")
 LIGHT = np.array([[-0.3, -0.3, 2.0], [-0.3, 0.3, 2.0], [0.3, 0.3, 2.0], [0.3, -0.3, 2.0]])
 MAX_VERTICES = 2_000_000  # js.illumination_mesh's default
 BOX_MAX_VERTICES = 8_000_000  # the box scene's budget (tol 1e-4 on the whole floor needs ~5M vertices)
+BOX_TILE = 0.25  # the box scene's tile size (m): 1/32 of the floor (the default 1/16 re-triangulates
+# larger tiles every refinement round, and an update re-meshes more of the floor)
 UPDATE_ROUNDS = 3  # update / fresh mesh pairs timed (alternating); the medians are compared
 
 
@@ -160,7 +162,7 @@ def _same(a, b) -> bool:
 
 
 def run_scene(name, scene, floor, tols, n_dense, n_max, moved_scene, zoom, update_tol, outdir, skipped=None,
-              picture_tol=1e-3, scale=None, max_vertices=MAX_VERTICES):
+              picture_tol=1e-3, scale=None, max_vertices=MAX_VERTICES, tile_size=None):
     """Meshes of `floor` at each of `tols` against the dense grid and the uniform grids; the
     picture; the update after the move to `moved_scene` (None: no picture, no update). `scale`:
     the irradiance tol is relative to (default: the receiver's maximum)."""
@@ -174,7 +176,7 @@ def run_scene(name, scene, floor, tols, n_dense, n_max, moved_scene, zoom, updat
     ladder = None
     for tol in tols:
         t0 = time.perf_counter()
-        m = js.illumination_mesh(scene, floor, tol, scale=scale, max_vertices=max_vertices)
+        m = js.illumination_mesh(scene, floor, tol, scale=scale, max_vertices=max_vertices, tile_size=tile_size)
         el = time.perf_counter() - t0
         lin = m.interpolate(dense)
         ok = np.all(np.isfinite(lin), axis=1)  # outside the holes under standing objects
@@ -205,7 +207,8 @@ def run_scene(name, scene, floor, tols, n_dense, n_max, moved_scene, zoom, updat
         upd = m.update(moved_scene)
         t_upd.append(time.perf_counter() - t0)
         t0 = time.perf_counter()
-        fresh = js.illumination_mesh(moved_scene, floor, m.tol, scale=m.scale, max_vertices=max_vertices)
+        fresh = js.illumination_mesh(moved_scene, floor, m.tol, scale=m.scale, max_vertices=max_vertices,
+                                     tile_size=tile_size)
         t_fresh.append(time.perf_counter() - t0)
         same.append(_same(upd, fresh))
     t_u, t_f = float(np.median(t_upd)), float(np.median(t_fresh))
@@ -246,8 +249,8 @@ def run(quick: bool) -> dict:
         boxes, floor_b = box_scene()
         moved_b, _ = box_scene(moved=(0, 0.05, 0.025))
         res["scenes"].append(run_scene(
-            "boxes", boxes, floor_b, [1e-2, 1e-3, 1e-4], 700, 1024, moved_b, (0.5, 1.5, 0.5, 1.5), 1e-2, outdir,
-            picture_tol=1e-2, max_vertices=BOX_MAX_VERTICES))
+            "boxes", boxes, floor_b, [1e-2, 1e-3, 1e-4], 700, 2048, moved_b, (0.5, 1.5, 0.5, 1.5), 1e-2, outdir,
+            picture_tol=1e-2, max_vertices=BOX_MAX_VERTICES, tile_size=BOX_TILE))
     return res
 
 
@@ -258,7 +261,9 @@ def markdown(results: dict) -> str:
              "`box_field(180)` (180 boxes standing on an 8 m floor, 2 160 triangles; the floor under a box is a "
              "hole, left out of every error). Errors: max over a dense offset grid of exact values "
              "(`js.irradiance`), relative to the receiver's maximum. The box scene is meshed with "
-             f"max_vertices={BOX_MAX_VERTICES:,} (tol 1e-4 needs more than the default {MAX_VERTICES:,}). "
+             f"max_vertices={BOX_MAX_VERTICES:,} (tol 1e-4 needs more than the default {MAX_VERTICES:,}) and "
+             f"tile_size={BOX_TILE} m (1/32 of the floor; the default is 1/16: smaller tiles make each refinement "
+             "round's re-triangulation, and the region an update meshes again, smaller). "
              "A uniform grid is tried at n = 16 * 2^(k/2) "
              "per side; the grid column gives the smallest rung reaching the mesh's own dense error, credited "
              "with the previous rung's vertex count + 1 (a lower bound), or '>' the largest rung tried. "
