@@ -30,10 +30,6 @@ DEFAULT_TILES = 16  # tiles along the receiver's longer side
 SAMPLES_PER_TILE = 6  # extremum-search grid per tile side
 SEGMENT_SAMPLES_PER_TILE = 16  # visibility samples per tile length along a discontinuity line
 CONTACT_STEP = 1e-9  # points on a hole's edge take the value this far outside (of the receiver's size)
-# Length of the lines leaving a standing occluder's foot (`_illumination_events.corner_segments`),
-# in units of min_edge / tol: their kink's gradient jump falls as 1/r with the distance r from
-# the foot, and beyond about 0.5 min_edge / tol (the box scene) elements of min_edge resolve it.
-CORNER_LINE = 10.0
 
 
 class _Builder:
@@ -77,8 +73,8 @@ class _Builder:
         self.foot = ev.face_footprints(self.occ, scene, self.frame, bbox)
         self.seg = ev.Segments.concat([
             ev.discontinuity_segments(scene, self.occ, self.frame, self.poly),
-            ev.corner_segments(scene, self.occ, self.frame, self.poly, self.foot,
-                               CORNER_LINE * self.min_edge / self.tol, self._corner_memo)])
+            ev.corner_segments(scene, self.occ, self.frame, self.poly, self.foot, self.diam, self._corner_memo,
+                               (self.contact, self.contact_box))])
         s = self.seg
         self.seg_box = np.concatenate([np.minimum(s.a, s.b), np.maximum(s.a, s.b)], axis=1)
 

@@ -25,7 +25,9 @@ that can be:
 
 Near the foot of an occluder edge standing on the receiver one more kind of line matters
 (`corner_segments`): the planes through that edge and another occluder edge in a plane with it,
-where the gradient jump grows without bound towards the foot.
+where the gradient jump grows without bound towards the foot. The mesher inserts them over their
+whole length (where both objects can shadow): a bounded length left, beyond it, kinks in
+regions of faint light that an element's seven check points can miss.
 
 Point lights contribute their hard-shadow boundaries (the VE lines from the point); linear lights
 their two endpoints as vertices and the segment as an edge. Directional lights add no lines.
@@ -34,6 +36,7 @@ Everything here is NumPy on concrete values.
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -44,6 +47,7 @@ from ._scene import LinearLight, PointLight, PolygonLight, Scene
 
 SUPPORT_RTOL = 1e-9  # relative tolerance of the side tests (of the occluder's size squared)
 NUDGE_RTOL = 1e-7  # visibility rays start this far (of the receiver's size) on the free side
+CONTACT_GAP = 1e-6  # corner lines stop this far (of the receiver's size) from another object's foot
 
 
 @dataclass(frozen=True)
@@ -271,6 +275,61 @@ def _clip_to_polygon(a: np.ndarray, b: np.ndarray, poly: np.ndarray) -> tuple[np
     return a + t0[:, None] * d, a + t1[:, None] * d, ok
 
 
+def _cut_by_polygons(a: np.ndarray, b: np.ndarray, polys: list[np.ndarray], boxes: np.ndarray,
+                     grow: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pieces of 2-D segments `a -> b (n, 2)` outside the convex counter-clockwise polygons
+    `polys` (bounding boxes `boxes (m, 4)`) grown by `grow` (each edge moved out by it), but
+    for the polygons a segment starts in (its own object's foot): `(a', b', line (k,))`, the
+    piece's segment index."""
+    n = a.shape[0]
+    d = b - a
+    lo, hi = np.minimum(a, b) - grow, np.maximum(a, b) + grow
+    if boxes.shape[0] and n:
+        li, pj = np.nonzero((boxes[None, :, 0] <= hi[:, None, 0]) & (boxes[None, :, 2] >= lo[:, None, 0])
+                            & (boxes[None, :, 1] <= hi[:, None, 1]) & (boxes[None, :, 3] >= lo[:, None, 1]))
+    else:
+        li = pj = np.zeros(0, int)
+    if li.size:
+        k = max(q.shape[0] for q in polys)
+        pad = np.stack([np.concatenate([q, np.repeat(q[-1:], k - q.shape[0], axis=0)]) for q in polys])  # (m, k, 2)
+        q = pad[pj]
+        e = np.roll(q, -1, axis=1) - q  # (P, k, 2); a repeated vertex gives a null edge: no constraint
+        f0 = (e[..., 0] * (a[li, None, 1] - q[..., 1]) - e[..., 1] * (a[li, None, 0] - q[..., 0])
+              + grow * np.linalg.norm(e, axis=2))
+        df = e[..., 0] * d[li, None, 1] - e[..., 1] * d[li, None, 0]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = -f0 / df
+        t0 = np.max(np.where(df > 0, t, -np.inf), axis=1)
+        t1 = np.min(np.where(df < 0, t, np.inf), axis=1)
+        # Missed, started in (its own foot), or entered past the end: no cut.
+        cut = ~np.any((df == 0) & (f0 < 0), axis=1) & (t1 > t0) & (t0 > 0.0) & (t0 < 1.0)
+        li, t0, t1 = li[cut], t0[cut], t1[cut]
+    cuts: dict[int, list[tuple[float, float]]] = {}
+    for i, x0, x1 in zip(li.tolist(), t0.tolist() if li.size else [], t1.tolist() if li.size else [], strict=True):
+        cuts.setdefault(i, []).append((x0, x1))
+    keep = np.ones(n, bool)
+    out_a, out_b, out_i = [], [], []
+    for i, lst in cuts.items():
+        keep[i] = False
+        start = 0.0
+        for x0, x1 in sorted(lst):
+            if x0 > start:
+                out_a.append(a[i] + start * d[i])
+                out_b.append(a[i] + x0 * d[i])
+                out_i.append(i)
+            start = max(start, x1)
+        if start < 1.0:
+            out_a.append(a[i] + start * d[i])
+            out_b.append(b[i].copy())
+            out_i.append(i)
+    whole = np.nonzero(keep)[0]
+    pa = np.array(out_a).reshape(-1, 2)
+    pb = np.array(out_b).reshape(-1, 2)
+    idx = np.concatenate([whole, np.array(out_i, dtype=int)])
+    order = np.argsort(idx, kind="stable")  # the segments' order, a segment's pieces along it
+    return np.concatenate([a[whole], pa])[order], np.concatenate([b[whole], pb])[order], idx[order]
+
+
 def _project_from(v: np.ndarray, x: np.ndarray, frame: Frame) -> np.ndarray:
     """Central projection of `x` from `v` onto the receiver plane (needs h(v) > h(x))."""
     hv, hx = frame.height(v), frame.height(x)
@@ -360,7 +419,8 @@ def discontinuity_segments(scene: Scene, occ: Occluders, frame: Frame, poly: np.
 
 
 def corner_segments(scene: Scene, occ: Occluders, frame: Frame, poly: np.ndarray, foot: np.ndarray,
-                    length: float, memo: dict[bytes, list[tuple[np.ndarray, np.ndarray, int]]] | None = None) -> Segments:
+                    length: float, memo: dict[bytes, list[tuple[np.ndarray, np.ndarray, int]]] | None = None,
+                    contact: tuple[list[np.ndarray], np.ndarray] | None = None) -> Segments:
     """The discontinuity lines that leave the foot `c` of an occluder edge `E` standing on the
     receiver: the traces of the planes through `E` and another occluder edge `E'` in a plane
     with it (a face of the same object, or a parallel edge of another object: two boxes'
@@ -376,12 +436,15 @@ def corner_segments(scene: Scene, occ: Occluders, frame: Frame, poly: np.ndarray
     blocker) whose two occluder edges are coplanar, so that the quadric is their plane. Its
     gradient jump grows as 1/r at distance r from `c` (the image of `E` moves on the light as
     1/r), which is what no element of at least `min_edge` resolves near a standing object's
-    corner; away from it the jump is finite and the refinement takes care of it, hence a bounded
-    `length`. Kept are the pairs where the plane supports both edges' objects (both are
+    corner; away from it the jump is finite, but where the light is faint an element's checks
+    can miss it (the mesher passes the receiver's size as `length`). Kept are the pairs where the plane supports both edges' objects (both are
     silhouette edges; on either side: the blocked part is bounded by the outer image, or the gap
     between the images opens) and, seen from `c` within the plane, the light's chord overlaps
     the directions of `E'` (the light lies behind `E'`). No visibility test (`kept`): a line
-    where the swap is hidden is a harmless extra mesh edge."""
+    where the swap is hidden is a harmless extra mesh edge. But the pieces within `CONTACT_GAP`
+    (of the receiver's size) of another object's foot (`contact`: `contact_polygons`) are cut
+    out: the floor there is a hole, and a line along or into its edge would make slivers whose
+    vertices fall into the hole by round-off."""
     empty = Segments(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 3)), np.zeros(0, bool),
                      np.zeros((0, 2, 3)), np.zeros(0, int), np.zeros(0, bool))
     lights = [np.asarray(lt.vertices, np.float64) for lt in scene.lights if isinstance(lt, PolygonLight)]
@@ -473,13 +536,15 @@ def corner_segments(scene: Scene, occ: Occluders, frame: Frame, poly: np.ndarray
         c, top = occ.edge[i, k], occ.edge[i, 1 - k]
         e = top - c
         c2 = frame.to2d(c)
-        # Only objects that can shadow the receiver within `length` of c.
-        cand = above[(above != i) & boxes_overlap(edge_box[above], c2, c2, length)]
+        # Only objects that can shadow the receiver within `length` of c, where E's can too.
+        cand = above[(above != i) & boxes_overlap(edge_box[above], c2, c2, length)
+                     & boxes_overlap(edge_box[above], edge_box[i, :2], edge_box[i, 2:])]
         mkey = b""
         if memo is not None:
-            mkey = b"".join([common, np.array([k], np.int64).tobytes(), c2.tobytes(), occ.edge[i].tobytes(), occ.edge_adj[i].tobytes(), edge_box[i].tobytes(),
-                            occ.edge[cand].tobytes(), occ.edge_adj[cand].tobytes(), edge_box[cand].tobytes(),
-                            occ.edge_object[cand].astype(np.int64).tobytes()])
+            mkey = hashlib.blake2b(b"".join([
+                common, np.array([k], np.int64).tobytes(), c2.tobytes(), occ.edge[i].tobytes(), occ.edge_adj[i].tobytes(),
+                edge_box[i].tobytes(), occ.edge[cand].tobytes(), occ.edge_adj[cand].tobytes(), edge_box[cand].tobytes(),
+                occ.edge_object[cand].astype(np.int64).tobytes()]), digest_size=32).digest()
             if mkey in memo:
                 for a_, b_, o_ in memo[mkey]:
                     A.append(a_)
@@ -505,6 +570,10 @@ def corner_segments(scene: Scene, occ: Occluders, frame: Frame, poly: np.ndarray
     first[1:] = np.any(key[order[1:]] != key[order[:-1]], axis=1)
     keep = np.sort(order[first])
     a, b, obj, dd = a[keep], b[keep], obj[keep], dd[keep]
+    if contact is not None and contact[0]:
+        a, b, src = _cut_by_polygons(a, b, contact[0], contact[1], CONTACT_GAP * diam)
+        ok = np.linalg.norm(b - a, axis=1) > 1e-9 * diam
+        a, b, obj, dd = a[ok], b[ok], obj[src[ok]], dd[src[ok]]
     m = a.shape[0]
     return Segments(a, b, np.stack([-dd[:, 1], dd[:, 0]], axis=1), np.zeros((m, 3)), np.zeros(m, bool),
                     np.zeros((m, 2, 3)), obj, np.ones(m, bool))

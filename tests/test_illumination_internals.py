@@ -281,3 +281,53 @@ def test_key_table_matches_a_dict():
     # -0.0 and 0.0 are one key, as in a dict of complex numbers.
     t.put(np.array([complex(-0.0, -0.0)]), 3)
     assert t.get(np.array([0j]))[0] == 3 and t.contains(np.array([complex(0.0, -0.0)]))[0]
+
+
+def test_cut_by_polygons_hand_computed():
+    # A segment along the x axis through a square (cut out, grown by g), from inside a square
+    # at its start (its own object's foot: kept) and short of a square past its end.
+    from jaxshadow._illumination_events import _cut_by_polygons
+
+    sq = lambda x0, x1: np.array([[x0, -1.0], [x1, -1.0], [x1, 1.0], [x0, 1.0]])  # noqa: E731
+    polys = [sq(2.0, 3.0), sq(-1.0, 0.0), sq(11.0, 12.0)]
+    boxes = np.array([[p[:, 0].min(), p[:, 1].min(), p[:, 0].max(), p[:, 1].max()] for p in polys])
+    a, b = np.array([[0.0, 0.0], [0.0, 5.0]]), np.array([[10.0, 0.0], [10.0, 5.0]])
+    pa, pb, idx = _cut_by_polygons(a, b, polys, boxes, 0.01)
+    np.testing.assert_allclose(pa, [[0.0, 0.0], [3.01, 0.0], [0.0, 5.0]])
+    np.testing.assert_allclose(pb, [[1.99, 0.0], [10.0, 0.0], [10.0, 5.0]])
+    assert idx.tolist() == [0, 0, 1]
+
+
+def test_corner_lines_run_their_whole_length_outside_other_feet():
+    # Boxes A and B of `box_field(180)` (rounded): the plane through A's vertical edge at
+    # (-0.048, -1.951) and B's at (0.093, -1.211) meets the floor in a line leaving A's corner
+    # away from B. Its kink matters far from the corner where the light is faint: with the line
+    # 8 cm long (the earlier min_edge / tol rule at tol 1e-3), an element 27 cm from the corner
+    # kept an interpolation error of 1.07e-3 that its seven check points did not see. The line
+    # now runs as far as both boxes can shadow, but not through box C's foot (a hole), which it
+    # resumes beyond.
+    from jaxshadow._illumination_builder import _Builder
+
+    A = ((-0.270, -1.951, 0.0), (-0.048, -1.606, 0.998))
+    B = ((-0.108, -1.211, 0.0), (0.093, -0.906, 1.106))
+    c, far = np.array([-0.048, -1.951]), np.array([0.093, -1.211])
+    d = (c - far) / np.linalg.norm(c - far)  # the line's direction, away from B
+    mid = c + 0.5 * d  # C straddles the line half a metre from the corner
+    C = ((mid[0] - 0.03, mid[1] - 0.03, 0.0), (mid[0] + 0.03, mid[1] + 0.03, 0.3))
+    floor = np.array([[-2.0, -4.0, 0.0], [2.0, -4.0, 0.0], [2.0, 0.0, 0.0], [-2.0, 0.0, 0.0]])
+    scene = js.Scene([js.PolygonLight(np.array([[-0.3, -0.3, 2.0], [-0.3, 0.3, 2.0], [0.3, 0.3, 2.0],
+                                                [0.3, -0.3, 2.0]]), 10.0)],
+                     [js.Mesh.box(lo, hi) for lo, hi in (A, B, C)])
+    b = _Builder(scene, floor, 1e-3, None, None, 1_000_000, "differences", None)
+    s = b.seg
+    o = b.frame.to2d(np.array([[0.0, 0.0, 0.0]]))[0]  # frame coordinates of the world origin
+    k = s.kept
+    a2, b2 = s.a[k] - o, s.b[k] - o
+    u = (b2 - a2) / np.linalg.norm(b2 - a2, axis=1)[:, None]
+    on = np.abs((a2[:, 0] - c[0]) * d[1] - (a2[:, 1] - c[1]) * d[0]) < 1e-6  # pieces on the line
+    on &= np.abs(u @ d - 1.0) < 1e-9
+    t0, t1 = (a2[on] - c) @ d, (b2[on] - c) @ d
+    assert np.isclose(t0.min(), 0.0, atol=1e-9)  # from the corner
+    assert t1.max() > 0.6  # past C, far beyond 8 cm
+    assert not np.any((t0 < 0.52) & (t1 > 0.48))  # nothing inside C's foot (half-width >= 0.03)
+    assert np.sum(on) >= 2  # the line resumes beyond C
