@@ -290,7 +290,9 @@ def illumination_mesh(scene: Any, receiver: Any, tol: float = 1e-3, *, max_verti
       meshes again the tiles a moved occluder's shadow reaches: on receivers crowded with
       shadows (many standing objects) smaller tiles are faster for both (the box benchmark
       uses 1/32).
-    - `min_edge`: elements smaller than this are not split (m); default 1e-6 of the extent. Value
+    - `min_edge`: elements smaller than this are not split (m); default 1e-6 of the extent (but
+      within `min_edge / CORNER_GRADE` of a footprint corner, down to `CORNER_GRADE` = 1e-3 of
+      their distance to it: the irradiance varies there with the direction from it). Value
       discontinuities (hard shadows of point lights, occluders touching the receiver) cannot be
       interpolated within `tol`; they stop here and show in `max_error_estimate`.
     - `gradient`: how the extremum search differentiates: `"differences"` (default: central

@@ -126,6 +126,20 @@ class _Builder:
         d = np.linalg.norm(c[:, :, None, :] - k[None, None], axis=-1)  # (T, 3, C)
         return np.any(d <= r, axis=(1, 2))
 
+    def _corner_distance(self, c: np.ndarray, reach: float) -> np.ndarray:
+        """`(T,)`: the distance from triangles `c (T, 3, 2)` (their nearest vertex) to the
+        nearest corner of the contact polygons (`_at_contact_corner`), `inf` beyond `reach`."""
+        out = np.full(c.shape[0], np.inf)
+        k = self.contact_corners
+        if k.shape[0] == 0 or c.shape[0] == 0:
+            return out
+        lo, hi = c.reshape(-1, 2).min(axis=0) - reach, c.reshape(-1, 2).max(axis=0) + reach
+        k = k[np.all((k >= lo) & (k <= hi), axis=1)]
+        if k.shape[0] == 0:
+            return out
+        d = np.min(np.linalg.norm(c[:, :, None, :] - k[None, None], axis=-1), axis=(1, 2))
+        return np.where(d <= reach, d, np.inf)
+
     def _contact_edges(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The edges `(a, b)`, each `(n, 2)`, of the contact polygons `ids`."""
         if ids.size == 0:

@@ -22,6 +22,7 @@ if TYPE_CHECKING:
     from ._illumination_builder import _Builder
 
 CORNER_SIZE = 1e-4  # elements at a contact polygon's corner are not split below this (of the receiver's size)
+CORNER_GRADE = 1e-3  # elements at distance r from such a corner may be split down to CORNER_GRADE * r
 MAX_ROUNDS = 200  # refinement rounds per tile (each halves the worst elements; a guard)
 _INNER = np.array([[0.5, 0.0, 0.0], [0.0, 0.5, 0.0], [0.0, 0.0, 0.5]]) + 0.5 / 3  # between centroid and corners
 
@@ -139,6 +140,12 @@ def refine_tiles(b: _Builder, tile_ids: list[int]) -> None:
             flat = np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]) <= 1e-9 * longest * longest
             err[flat] = 0.0
             floor = np.where(corner, CORNER_SIZE * b.diam, b.min_edge)
+            # Just outside the corner discs the irradiance still varies with the direction from
+            # the corner (across the standing edge's penumbra wedge), over an angle, so the
+            # elements must shrink in proportion to their distance r from it: down to
+            # CORNER_GRADE * r there, below min_edge.
+            floor = np.where(corner, floor, np.minimum(floor, CORNER_GRADE * b._corner_distance(
+                c, b.min_edge / CORNER_GRADE)))
             # The elements to split (the few that fail; the next lines look at those only).
             cand = np.nonzero((err.max(axis=1) > thr) & (longest > floor))[0]
             edge_ij = np.stack([tt[cand], np.roll(tt[cand], -1, axis=1)], axis=-1)  # (C, 3, 2)

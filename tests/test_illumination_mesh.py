@@ -427,3 +427,28 @@ def test_lines_leaving_a_standing_corner(case):
         on |= np.all((q[:, :2] >= np.array(lo[:2]) - 1e-9) & (q[:, :2] <= np.array(hi[:2]) + 1e-9), axis=1)
     err = np.max(np.abs(m.interpolate(q[~on]) - exact(scene, q[~on])))
     assert err <= ESTIMATE_MARGIN * tol * scale * (1 + 1e-3)
+
+
+def test_penumbra_wedge_beyond_the_corner_disc(monkeypatch):
+    # A box of `box_field(180)` standing on the floor (rounded), tol 1e-4, min_edge and the
+    # corner disc (0.8 mm) as on the box scene's 8 m floor, on a 2 cm patch around its corner
+    # away from the light. Within a few mm of the corner the irradiance still varies with the
+    # direction from it, across the vertical edge's penumbra wedge, so the elements there must
+    # be smaller than min_edge in proportion to their distance: before CORNER_GRADE, 477
+    # elements here stopped at min_edge over the threshold (the whole floor: 16 761, checked
+    # error up to 5.97e-4, around 102 corners).
+    import jaxshadow._illumination_builder as B
+    import jaxshadow._illumination_refine as R
+
+    half = 0.01
+    monkeypatch.setattr(R, "CORNER_SIZE", 0.8e-3 / (2 * half))
+    monkeypatch.setattr(B, "CORNER_SIZE", 0.8e-3 / (2 * half))
+    lo, hi = (-1.5813, -0.4540, 0.0), (-1.4475, -0.1736, 0.7728)
+    scene = js.Scene([js.PolygonLight(LIGHT, 10.0)], [js.Mesh.box(lo, hi)])
+    o = np.array(hi[:2]) + np.array([0.31, 0.17]) * half  # the corner off the tile grid's lines
+    rec = np.array([[o[0] - half, o[1] - half, 0.0], [o[0] + half, o[1] - half, 0.0],
+                    [o[0] + half, o[1] + half, 0.0], [o[0] - half, o[1] + half, 0.0]])
+    m = js.illumination_mesh(scene, rec, 1e-4, scale=0.7475662659124022, min_edge=8e-6, tile_size=half / 2)
+    assert m.stats["unrefined_min_edge"] == 0
+    assert m.max_error_estimate <= 1e-4
+    assert m.stats["corner_error"] > 1e-4
