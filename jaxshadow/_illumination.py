@@ -193,9 +193,8 @@ def _updated(old: _Builder, scene: Scene) -> _Builder:
     region = np.array([np.concatenate([nb.tiles[ti].lo - margin, nb.tiles[ti].hi + margin]) for ti in tile_ids]).reshape(-1, 4)
     nb.eval.inherit(old.eval, lambda xy: ~_affected(scene, nb.frame, step, xy, [fo[gone], fn[new]], boxes,
                                                     1e-6 * old.diam), region)
-    boxes = fin
     edge_keys = [k for k, e in nb.edges.items()
-                 if boxes.size and np.any(ev.boxes_overlap(boxes, np.minimum(e.a, e.b), np.maximum(e.a, e.b), margin))]
+                 if fin.size and np.any(ev.boxes_overlap(fin, np.minimum(e.a, e.b), np.maximum(e.a, e.b), margin))]
     for ti in tile_ids:
         t = nb.tiles[ti]
         nb.tiles[ti] = _Tile(t.poly, t.gids, t.lo, t.hi)

@@ -116,15 +116,7 @@ class _Builder:
         every ring of elements around it sees the same variation, at any size: no refinement
         meets `tol` there."""
         r = CORNER_SIZE * self.diam
-        k = self.contact_corners
-        if k.shape[0] == 0 or c.shape[0] == 0:
-            return np.zeros(c.shape[0], bool)
-        lo, hi = c.reshape(-1, 2).min(axis=0) - r, c.reshape(-1, 2).max(axis=0) + r
-        k = k[np.all((k >= lo) & (k <= hi), axis=1)]
-        if k.shape[0] == 0:
-            return np.zeros(c.shape[0], bool)
-        d = np.linalg.norm(c[:, :, None, :] - k[None, None], axis=-1)  # (T, 3, C)
-        return np.any(d <= r, axis=(1, 2))
+        return self._corner_distance(c, r) <= r
 
     def _corner_distance(self, c: np.ndarray, reach: float) -> np.ndarray:
         """`(T,)`: the distance from triangles `c (T, 3, 2)` (their nearest vertex) to the

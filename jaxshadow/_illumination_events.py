@@ -437,10 +437,11 @@ def corner_segments(scene: Scene, occ: Occluders, frame: Frame, poly: np.ndarray
     gradient jump grows as 1/r at distance r from `c` (the image of `E` moves on the light as
     1/r), which is what no element of at least `min_edge` resolves near a standing object's
     corner; away from it the jump is finite, but where the light is faint an element's checks
-    can miss it (the mesher passes the receiver's size as `length`). Kept are the pairs where the plane supports both edges' objects (both are
-    silhouette edges; on either side: the blocked part is bounded by the outer image, or the gap
-    between the images opens) and, seen from `c` within the plane, the light's chord overlaps
-    the directions of `E'` (the light lies behind `E'`). No visibility test (`kept`): a line
+    can miss it (the mesher passes the receiver's size as `length`). Kept are the pairs where
+    the plane supports both edges' objects (both are silhouette edges; on either side: the
+    blocked part is bounded by the outer image, or the gap between the images opens) and, seen
+    from `c` within the plane, the light's chord overlaps the directions of `E'` (the light
+    lies behind `E'`). No visibility test (`kept`): a line
     where the swap is hidden is a harmless extra mesh edge. But the pieces within `CONTACT_GAP`
     (of the receiver's size) of another object's foot (`contact`: `contact_polygons`) are cut
     out: the floor there is a hole, and a line along or into its edge would make slivers whose

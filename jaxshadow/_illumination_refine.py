@@ -139,15 +139,16 @@ def refine_tiles(b: _Builder, tile_ids: list[int]) -> None:
             e1, e2 = c[:, 1] - c[:, 0], c[:, 2] - c[:, 0]
             flat = np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]) <= 1e-9 * longest * longest
             err[flat] = 0.0
+            over = err.max(axis=1) > thr
             floor = np.where(corner, CORNER_SIZE * b.diam, b.min_edge)
             # Just outside the corner discs the irradiance still varies with the direction from
             # the corner (across the standing edge's penumbra wedge), over an angle, so the
             # elements must shrink in proportion to their distance r from it: down to
-            # CORNER_GRADE * r there, below min_edge.
-            floor = np.where(corner, floor, np.minimum(floor, CORNER_GRADE * b._corner_distance(
-                c, b.min_edge / CORNER_GRADE)))
+            # CORNER_GRADE * r there, below min_edge (looked at for the failing elements only).
+            near = np.nonzero(over & ~corner)[0]
+            floor[near] = np.minimum(b.min_edge, CORNER_GRADE * b._corner_distance(c[near], b.min_edge / CORNER_GRADE))
             # The elements to split (the few that fail; the next lines look at those only).
-            cand = np.nonzero((err.max(axis=1) > thr) & (longest > floor))[0]
+            cand = np.nonzero(over & (longest > floor))[0]
             edge_ij = np.stack([tt[cand], np.roll(tt[cand], -1, axis=1)], axis=-1)  # (C, 3, 2)
             kind = _edge_kinds(edge_ij, segs, smark, tv.shape[0])
             sel_err = err[cand]
@@ -160,8 +161,7 @@ def refine_tiles(b: _Builder, tile_ids: list[int]) -> None:
             t.corner_error = float(err[corner].max()) if np.any(corner) else 0.0
             err[corner] = 0.0
             # Elements that fail but stop at the minimum edge length (`stats["unrefined_min_edge"]`).
-            short = err.max(axis=1) > thr
-            short &= longest <= floor
+            short = over & ~corner & (longest <= floor)
             t.unrefined = int(short.sum())
             t.unrefined_error = float(err[short].max()) if t.unrefined else 0.0
             if not np.any(bad) or not budget:
