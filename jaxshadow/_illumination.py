@@ -47,7 +47,7 @@ from ._geometry import check_convex_polygon
 from ._illumination_builder import ESTIMATE_MARGIN as ESTIMATE_MARGIN  # noqa: F401 (documented)
 from ._illumination_builder import _Builder
 from ._illumination_pslg import _Edge, _interpolate, _Tile
-from ._illumination_refine import CORNER_SIZE
+from ._illumination_refine import CORNER_GRADE, CORNER_SIZE
 from ._scene import Scene
 
 # --------------------------------------------------------------------------------------
@@ -186,9 +186,10 @@ def _updated(old: _Builder, scene: Scene) -> _Builder:
     # Exact values the change cannot affect are taken over from the old mesh's evaluations.
     step = float(np.linalg.norm(nb.eval.step)) * (1 + 1e-6)
     fin = boxes[np.all(np.isfinite(boxes), axis=1)]
-    # Tiles within the corner radius of a changed contact polygon are re-meshed too: which of
-    # their elements count as at a corner depends on it (`_Builder._at_contact_corner`).
-    margin = max(1e-6, CORNER_SIZE) * old.diam
+    # Tiles within reach of a changed contact polygon's corners are re-meshed too: which of
+    # their elements count as at a corner (`_Builder._at_contact_corner`), and how far the
+    # failing ones may be split near it (`CORNER_GRADE`), depend on them.
+    margin = max(1e-6 * old.diam, CORNER_SIZE * old.diam, old.min_edge / CORNER_GRADE)
     tile_ids = [ti for ti, t in enumerate(nb.tiles) if fin.size and np.any(ev.boxes_overlap(fin, t.lo, t.hi, margin))]
     region = np.array([np.concatenate([nb.tiles[ti].lo - margin, nb.tiles[ti].hi + margin]) for ti in tile_ids]).reshape(-1, 4)
     nb.eval.inherit(old.eval, lambda xy: ~_affected(scene, nb.frame, step, xy, [fo[gone], fn[new]], boxes,
