@@ -1,6 +1,6 @@
 """Build jaxshadow's compiled parts; everything else is in pyproject.toml.
 
-- `jaxshadow._shadowc` (C++17, `jaxshadow/_shadowc.cc`): the host shadow engine (occluder
+- `jaxshadow._shadows._shadowc` (C++17, `csrc/shadowc.cc` and `csrc/engine/*.h`): the host shadow engine (occluder
   hierarchy, receiver classification, the combinatorics of the visible region's boundary), loaded
   with ctypes and, where jaxlib's XLA FFI headers are found at build time (`jax.ffi.include_dir()`;
   jaxlib is a build requirement), also registered as an XLA FFI target.
@@ -32,9 +32,9 @@ _INC = _ffi_include()
 setup(
     ext_modules=[
         Extension(
-            "jaxshadow._shadowc",
-            sources=["jaxshadow/_shadowc.cc"],
-            depends=sorted(glob.glob("jaxshadow/_shadowc/*.h")),
+            "jaxshadow._shadows._shadowc",
+            sources=["csrc/shadowc.cc"],
+            depends=sorted(glob.glob("csrc/engine/*.h")),
             include_dirs=_INC,
             define_macros=[("JAXSHADOW_FFI", "1")] if _INC else [],
             extra_compile_args=["-std=c++17", *_FLAGS, "-O3"],

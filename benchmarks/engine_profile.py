@@ -1,4 +1,4 @@
-"""The host shadow engine (`jaxshadow/_shadowc.cc`): bit-identical results, instructions per receiver.
+"""The host shadow engine (`csrc/shadowc.cc`): bit-identical results, instructions per receiver.
 
     .venv/bin/python -m benchmarks.engine_profile --record         # store the reference outputs
     .venv/bin/python -m benchmarks.engine_profile --check          # compare this build against them
@@ -27,7 +27,7 @@ edges) and an open mesh. The reference lives in a temporary directory (`--ref DI
 **Instructions.** `valgrind --tool=callgrind` counts the instructions of `jaxshadow_poly_plan`
 (one thread, `--toggle-collect`, the hierarchy's build included) on `N` receivers of each scene;
 reported per receiver (repeatable to a few parts in 1e5, unlike wall times on a shared machine).
-The valgrind'd driver loads the compiled library and `jaxshadow/_engine_abi.py` by path, without
+The valgrind'd driver loads the compiled library and `jaxshadow/_shadows/abi.py` by path, without
 importing JAX (which alone takes minutes under valgrind). Wall times (best of 3, one thread) are
 reported beside them as a secondary, noisy number.
 
@@ -214,7 +214,7 @@ def cases(quick: bool) -> dict:
 
 def _host_occ(occluders: list, light: np.ndarray, dt):
     import jaxshadow as js
-    from jaxshadow import _visibility as vis
+    from jaxshadow._shadows import binding as vis
 
     scene = js.Scene([js.PolygonLight(light, 1.0)], occluders=occluders)
     return scene, vis.HostOccluders.of(np.asarray(scene.occluders), scene.occluder_topology, dt)
@@ -226,7 +226,7 @@ def outputs(case: tuple, dt) -> dict[str, np.ndarray]:
     import jax.numpy as jnp
 
     import jaxshadow as js
-    from jaxshadow import _visibility as vis
+    from jaxshadow._shadows import binding as vis
 
     light, occluders, p, nrm, flags = case
     p, nrm, light = p.astype(dt), nrm.astype(dt), np.asarray(light, dt)
@@ -317,13 +317,13 @@ def _driver_inputs(name: str, n: int, dt, path: Path) -> None:
 
 
 def _load_abi():
-    spec = importlib.util.spec_from_file_location("jaxshadow_engine_abi", ROOT / "jaxshadow" / "_engine_abi.py")
+    spec = importlib.util.spec_from_file_location("jaxshadow_engine_abi", ROOT / "jaxshadow" / "_shadows" / "abi.py")
     assert spec is not None and spec.loader is not None
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
-    so = sorted((ROOT / "jaxshadow").glob("_shadowc*.so"))
+    so = sorted((ROOT / "jaxshadow" / "_shadows").glob("_shadowc*.so"))
     if not so:
-        raise RuntimeError("jaxshadow/_shadowc*.so is not built (python setup.py build_ext --inplace)")
+        raise RuntimeError("jaxshadow/_shadows/_shadowc*.so is not built (python setup.py build_ext --inplace)")
     return mod, mod.load(str(so[0]))
 
 

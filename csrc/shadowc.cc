@@ -1,7 +1,7 @@
 // The host side of jaxshadow's exact shadows: per receiver, which occluders can block the light
 // (a bounding-volume hierarchy queried with the receiver's illumination pyramid) and the
 // combinatorics of the visible region's boundary, as integer endpoint codes that the JAX side turns
-// into points (and differentiates): `jaxshadow/_visibility.py`.
+// into points (and differentiates): `jaxshadow/_shadows/binding.py`.
 //
 // Polygon lights (Campbell & Fussell §3.1, §4.2-4.3). For a receiver p with normal n the visible
 // region is R = E_h \ U_j Q_j in the emitter plane: E_h the light clipped to p's horizon, Q_j the
@@ -29,11 +29,11 @@
 // Receivers that no item's box can reach are classified before any other work (lit, or zero
 // below their horizon) where the caller evaluates lit receivers with the unoccluded kernel;
 // before the hierarchy is queried, a receiver outside the occlusion volume of the root's box
-// (planes computed once per call, `_shadowc/volume.h`) is known to be such a receiver. A receiver
-// strictly inside a convex solid's umbra volume (C&F §3.1.3, `_shadowc/umbra.h`) is umbra as soon
+// (planes computed once per call, `engine/volume.h`) is known to be such a receiver. A receiver
+// strictly inside a convex solid's umbra volume (C&F §3.1.3, `engine/umbra.h`) is umbra as soon
 // as the query meets that solid. Large batches are ordered by grid cell and each group of nearby
 // receivers queries the hierarchy once with the hull of its box and the light; each receiver then
-// filters that list (C&F §4.1/§4.3 occluder lists refined down the receivers, `_shadowc/groups.h`).
+// filters that list (C&F §4.1/§4.3 occluder lists refined down the receivers, `engine/groups.h`).
 // For Lambert's integrand the host path takes each penumbra receiver's contour sum from the engine
 // (edge terms added up as the boundary is decoded, in double).
 //
@@ -51,7 +51,7 @@
 
 #include <type_traits>
 
-#include "_shadowc/driver.h"
+#include "engine/driver.h"
 
 using namespace jaxshadow_engine;  // NOLINT: this file only binds the engine to C and XLA
 

@@ -6,7 +6,6 @@ Mitsuba 3 bridge used as independent ground truth. See DESIGN.md for the convent
 
 from importlib.metadata import PackageNotFoundError, version
 
-from ._cache import ShadowCache as ShadowCache
 from ._clip import visible_form_factor as visible_form_factor
 from ._files import atomic_write as atomic_write
 from ._files import atomic_write_path as atomic_write_path
@@ -35,9 +34,10 @@ from ._scene import scene_to_dict as scene_to_dict
 from ._shade import irradiance as irradiance
 from ._shade import shade as shade
 from ._shade import specular as specular
-from ._shadows import ShadowOptions as ShadowOptions
-from ._shadows import ShadowPlan as ShadowPlan
-from ._shadows import shadow_plan as shadow_plan
+from ._shadows.cache import ShadowCache as ShadowCache
+from ._shadows.plan import ShadowOptions as ShadowOptions
+from ._shadows.plan import ShadowPlan as ShadowPlan
+from ._shadows.plan import shadow_plan as shadow_plan
 from ._sharding import batch_mesh as batch_mesh
 from ._sharding import sharded_irradiance as sharded_irradiance
 from ._spline import shadow_nodes as shadow_nodes

@@ -47,7 +47,7 @@ endpoints: a candidate edge's own end, or the crossing of two planes through $p$
 order). `_decode` recomputes just those points from the inputs; the boundary is piecewise
 constant in the inputs, so its derivatives are exactly the endpoints' (what `jax.jacfwd`
 differentiates is the few kept edges, not the splitting machinery). The shadow engine
-(`_shadowc`, `_visibility`) produces the same codes on the host from each receiver's
+(`csrc/shadowc.cc`, `_shadows.binding`) produces the same codes on the host from each receiver's
 candidates only; `_decode`'s twin there recomputes the points the same way.
 
 **Tie-break (coincident edges).** Two candidate pieces on the same line (normals of their planes

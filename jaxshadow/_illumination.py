@@ -217,7 +217,7 @@ def _affected(scene: Scene, frame: Any, step: float, xy: np.ndarray, faces: list
     decide the tiles an update re-meshes) and outside the faces' own outlines are not affected;
     for the others the test of `ShadowCache.update` (`_cache.affected`: the bounding box of each
     group, grown by `step`, against the point's illumination region of every light)."""
-    from ._cache import affected
+    from ._shadows.cache import affected
 
     out = np.zeros(xy.shape[0], bool)
     groups = [f.reshape(-1, 3) for f in faces if f.shape[0]]

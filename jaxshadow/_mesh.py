@@ -16,7 +16,7 @@ code runs (Campbell & Fussell §4.2.2 use the same two facts):
 - **Convex solids.** A closed mesh whose vertices all lie on or behind every face plane is convex:
   seen from a receiver outside it, it blocks exactly the cone through its silhouette edges (the
   edges between a front and a back face), one convex region instead of up to three front faces;
-  the shadow engine (`_shadowc.cc`) uses that cone when the receiver is strictly outside and the
+  the shadow engine (`csrc/shadowc.cc`) uses that cone when the receiver is strictly outside and the
   solid strictly on the receiver's side of the light's plane, and the faces otherwise.
 
 The result feeds `Scene`: the merged faces become rows of `Scene.occluders` (differentiable

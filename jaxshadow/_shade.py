@@ -15,7 +15,6 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from . import _shadows, _shadows_compiled
 from ._geometry import (
     _check_values_eagerly,
     check_points_normals,
@@ -38,7 +37,9 @@ from ._scene import (
     checked_material,
     checked_scene,
 )
-from ._shadows import DEFAULT_OPTIONS, Lambert, Phong, ShadowOptions
+from ._shadows import compiled as _shadows_compiled
+from ._shadows import plan as _shadows
+from ._shadows.plan import DEFAULT_OPTIONS, Lambert, Phong, ShadowOptions
 from ._specular import (
     DEFAULT_DEGREE,
     directional_specular_kernel,

@@ -5,7 +5,7 @@ how to evaluate shadows; a solver that compiles its own program (a Levenberg-Mar
 many starts, with `jax.linearize` and `vmap` around the model) wants the model without either: no
 checks (the light is traced there) and no host-side dispatch. This module is that model, with
 keyword arguments and one extra, the **shadow capacity**: with occluders, the shadow engine runs
-inside the compiled program (XLA FFI, `jaxshadow._visibility`) and holds at most `capacity`
+inside the compiled program (XLA FFI, `jaxshadow._shadows.binding`) and holds at most `capacity`
 boundary edges of each receiver's visible region (candidate faces for segment lights). The
 result comes with an `overflow` flag (bool scalar) that says some receiver needed more, so that
 the value is not exact there: the caller retries with a larger capacity (a `lax.cond` fallback
@@ -24,11 +24,12 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from . import _shadows, _shadows_compiled
 from ._misc import unit_rows as _unit_rows
 from ._scene import LinearLight, PolygonLight, Scene
 from ._shade import _irradiance_traced, _specular_traced
-from ._shadows import DEFAULT_OPTIONS, Lambert, Phong, ShadowOptions
+from ._shadows import compiled as _shadows_compiled
+from ._shadows import plan as _shadows
+from ._shadows.plan import DEFAULT_OPTIONS, Lambert, Phong, ShadowOptions
 from ._specular import DEFAULT_DEGREE
 
 __all__ = ["DEFAULT_SPECULAR_DEGREE", "irradiance", "specular", "pin", "shadow_capacity"]

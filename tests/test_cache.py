@@ -13,7 +13,7 @@ import pytest
 from scipy.optimize import linprog
 
 import jaxshadow as js
-from jaxshadow import _cache
+from jaxshadow._shadows import cache as _cache
 
 QUAD = np.array([[-0.3, -0.3, 2.0], [-0.3, 0.3, 2.0], [0.3, 0.3, 2.0], [0.3, -0.3, 2.0]])
 

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 import jaxshadow as js
-from jaxshadow import _cache
 from jaxshadow import _illumination_evaluator as evaluator
 from jaxshadow import _illumination_events as ev
 from jaxshadow import _illumination_pslg as pslg
+from jaxshadow._shadows import cache as _cache
 
 QUAD = np.array([[-0.3, -0.3, 2.0], [-0.3, 0.3, 2.0], [0.3, 0.3, 2.0], [0.3, -0.3, 2.0]])
 FLOOR = np.array([[-1.5, -1.5, 0.0], [1.5, -1.5, 0.0], [1.5, 1.5, 0.0], [-1.5, 1.5, 0.0]])

@@ -1,4 +1,4 @@
-"""Exact shadows at mesh scale: the shadow engine (`jaxshadow._shadows`, `_visibility`, `_shadowc.cc`).
+"""Exact shadows at mesh scale: the shadow engine (`jaxshadow._shadows`: `plan`, `binding`, `csrc/shadowc.cc`).
 
 Independent reference: `reference_ff` of `tests/test_clip.py` (Sutherland-Hodgman clipping,
 exact polygon booleans in shapely, Lambert's contour sum: no code shared with the kernels), on
@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 
 import jaxshadow as js
-from jaxshadow import _visibility as vis
+from jaxshadow._shadows import binding as vis
 
 pytestmark = pytest.mark.skipif(not vis.engine_available() or not vis.ffi_available(),
-                                reason="the shadow engine (jaxshadow._shadowc) is not built")
+                                reason="the shadow engine (jaxshadow._shadows._shadowc) is not built")
 
 shapely = pytest.importorskip("shapely")
 from test_clip import reference_ff  # noqa: E402
@@ -403,7 +403,7 @@ def test_engine_lambert_sums_equal_the_jax_edge_terms():
     # decoded edges in JAX, for float64 and float32 receivers, grazing ones included (float32:
     # the engine sums its double points, the returned points are rounded to float32).
     from jaxshadow._polygon import edge_term
-    from jaxshadow._shadows import host_occluders
+    from jaxshadow._shadows.plan import host_occluders
 
     for dt, tol in ((np.float64, 1e-12), (np.float32, 2e-6)):
         occ = host_occluders(SCENE, dt)

@@ -17,9 +17,9 @@ PY=${PYTHON:-python3}
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
 .venv/bin/python -m pip install -q -e ".[mitsuba,jaxopt,optimistix,plot,test,docs,bench]"
-# The compiled shadow engine (jaxshadow/_shadowc.cc, built by setup.py with the machine's C++
+# The compiled shadow engine (csrc/shadowc.cc, built by setup.py with the machine's C++
 # compiler) is optional, but without it scenes with occluders use the device kernels.
-if ! .venv/bin/python -c "import jaxshadow._shadowc" 2>/dev/null; then
-  echo "warning: jaxshadow._shadowc was not built (no C++ compiler?): exact shadows fall back to the device kernels (slow, memory-hungry with many occluders)" >&2
+if ! .venv/bin/python -c "import jaxshadow._shadows._shadowc" 2>/dev/null; then
+  echo "warning: jaxshadow._shadows._shadowc was not built (no C++ compiler?): exact shadows fall back to the device kernels (slow, memory-hungry with many occluders)" >&2
 fi
 echo "jaxshadow set up in .venv"

@@ -1,4 +1,4 @@
-// jaxshadow's shadow engine: boundary (part of `_shadowc.cc`; see its header comment).
+// jaxshadow's shadow engine: boundary (part of `csrc/shadowc.cc`; see its header comment).
 #ifndef JAXSHADOW_SHADOWC_BOUNDARY_H_
 #define JAXSHADOW_SHADOWC_BOUNDARY_H_
 

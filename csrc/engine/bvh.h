@@ -1,4 +1,4 @@
-// jaxshadow's shadow engine: bvh (part of `_shadowc.cc`; see its header comment).
+// jaxshadow's shadow engine: bvh (part of `csrc/shadowc.cc`; see its header comment).
 #ifndef JAXSHADOW_SHADOWC_BVH_H_
 #define JAXSHADOW_SHADOWC_BVH_H_
 

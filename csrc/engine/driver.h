@@ -1,4 +1,4 @@
-// jaxshadow's shadow engine: driver (part of `_shadowc.cc`; see its header comment).
+// jaxshadow's shadow engine: driver (part of `csrc/shadowc.cc`; see its header comment).
 #ifndef JAXSHADOW_SHADOWC_DRIVER_H_
 #define JAXSHADOW_SHADOWC_DRIVER_H_
 
@@ -57,7 +57,7 @@ Occluders<T> make_occ(int64_t K, int64_t M, int64_t Ko, const T* faces, const in
   return occ;
 }
 
-// The points of endpoint codes, as `_visibility.decode_endpoints` computes them (the same formulas
+// The points of endpoint codes, as `_shadows.binding.decode_endpoints` computes them (the same formulas
 // in the same order): for evaluations that are not differentiated, the JAX side then only
 // integrates over ready-made edges.
 template <class T>

@@ -1,4 +1,4 @@
-// jaxshadow's shadow engine: geometry helpers and the occluder layout (see `_shadowc.cc`).
+// jaxshadow's shadow engine: geometry helpers and the occluder layout (see `csrc/shadowc.cc`).
 #ifndef JAXSHADOW_SHADOWC_GEOMETRY_H_
 #define JAXSHADOW_SHADOWC_GEOMETRY_H_
 
@@ -20,7 +20,7 @@ constexpr double kCollinearEps = 64.0;  // _clip.COLLINEAR_EPS
 
 enum Class : int32_t { kZero = 0, kLit = 1, kUmbra = 2, kPenumbra = 3 };
 
-// Endpoint codes (7 int32 each), decoded by `_visibility._decode_endpoints`.
+// Endpoint codes (7 int32 each), decoded by `_shadows.binding.decode_endpoints`.
 enum Kind : int32_t {
   kUnused = -1,
   kLightVertex = 0,    // a: light vertex index

@@ -1,4 +1,4 @@
-// jaxshadow's shadow engine: receiver groups (part of `_shadowc.cc`; see its header comment).
+// jaxshadow's shadow engine: receiver groups (part of `csrc/shadowc.cc`; see its header comment).
 #ifndef JAXSHADOW_SHADOWC_GROUPS_H_
 #define JAXSHADOW_SHADOWC_GROUPS_H_
 

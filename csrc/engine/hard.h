@@ -1,4 +1,4 @@
-// jaxshadow's shadow engine: hard (part of `_shadowc.cc`; see its header comment).
+// jaxshadow's shadow engine: hard (part of `csrc/shadowc.cc`; see its header comment).
 #ifndef JAXSHADOW_SHADOWC_HARD_H_
 #define JAXSHADOW_SHADOWC_HARD_H_
 

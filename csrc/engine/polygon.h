@@ -1,4 +1,4 @@
-// jaxshadow's shadow engine: polygon (part of `_shadowc.cc`; see its header comment).
+// jaxshadow's shadow engine: polygon (part of `csrc/shadowc.cc`; see its header comment).
 #ifndef JAXSHADOW_SHADOWC_POLYGON_H_
 #define JAXSHADOW_SHADOWC_POLYGON_H_
 

@@ -1,4 +1,4 @@
-// jaxshadow's shadow engine: polygon_types (part of `_shadowc.cc`; see its header comment).
+// jaxshadow's shadow engine: polygon_types (part of `csrc/shadowc.cc`; see its header comment).
 #ifndef JAXSHADOW_SHADOWC_POLYGON_TYPES_H_
 #define JAXSHADOW_SHADOWC_POLYGON_TYPES_H_
 

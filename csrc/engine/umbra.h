@@ -1,4 +1,4 @@
-// jaxshadow's shadow engine: umbra volumes of convex solids (part of `_shadowc.cc`; see its header
+// jaxshadow's shadow engine: umbra volumes of convex solids (part of `csrc/shadowc.cc`; see its header
 // comment).
 #ifndef JAXSHADOW_SHADOWC_UMBRA_H_
 #define JAXSHADOW_SHADOWC_UMBRA_H_

@@ -1,4 +1,4 @@
-// jaxshadow's shadow engine: occlusion volumes (part of `_shadowc.cc`; see its header comment).
+// jaxshadow's shadow engine: occlusion volumes (part of `csrc/shadowc.cc`; see its header comment).
 #ifndef JAXSHADOW_SHADOWC_VOLUME_H_
 #define JAXSHADOW_SHADOWC_VOLUME_H_
 

@@ -1,6 +1,6 @@
-"""The shadow engine's C ABI (`_shadowc.cc`, ctypes): signatures and the polygon-plan call.
+"""The shadow engine's C ABI (`csrc/shadowc.cc`, ctypes): signatures and the polygon-plan call.
 
-NumPy and ctypes only (no JAX): `_visibility` binds the engine through this module, and a
+NumPy and ctypes only (no JAX): `binding` binds the engine through this module, and a
 profiler can drive the compiled library alone, loading this file by path, without importing
 the package (`benchmarks/engine_profile.py` counts the engine's instructions under valgrind,
 where importing JAX alone takes minutes).

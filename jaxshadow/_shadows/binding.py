@@ -8,7 +8,7 @@ receiver. Which pieces of which edges bound $R$ is combinatorics: piecewise cons
 inputs, carrying no gradient. The points themselves, and Lambert's and Phong's contour integrals
 over them, are geometry: what is differentiated.
 
-`_shadowc.cc` (compiled by `setup.py`, C++17) does the combinatorics on the host for a whole batch:
+`csrc/shadowc.cc` (compiled by `setup.py`, C++17) does the combinatorics on the host for a whole batch:
 for each receiver it queries a bounding-volume hierarchy of the occluders with the receiver's
 illumination pyramid (Campbell & Fussell §4.3's "bounding volume enclosing the light source and
 receiver", one per receiver), tests the candidates exactly (C&F Theorem 2's occlusion volume and
@@ -41,15 +41,15 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from . import _engine_abi as _abi
-from ._clip import _crossing_point, _pow2_scale, _project, _rescale_rows
-from ._geometry import newell_normal
-from ._mesh import OccluderTopology
+from .._clip import _crossing_point, _pow2_scale, _project, _rescale_rows
+from .._geometry import newell_normal
+from .._mesh import OccluderTopology
+from . import abi as _abi
 
 ZERO, LIT, UMBRA, PENUMBRA = 0, 1, 2, 3
 CLASS_NAMES = ("zero", "lit", "umbra", "penumbra")
 CODE_WIDTH = _abi.CODE_WIDTH
-# Endpoint kinds (`_shadowc.cc`).
+# Endpoint kinds (`csrc/shadowc.cc`).
 K_UNUSED, K_LIGHT, K_HORIZON, K_PROJECTED, K_EMITTER_CROSS, K_PLANES = -1, 0, 1, 2, 3, 4
 FFI_TARGET = "jaxshadow_poly_codes"
 FFI_HARD = "jaxshadow_hard_visibility"
@@ -72,7 +72,7 @@ def _lib() -> Any:
 
 
 def engine_available() -> bool:
-    """Whether the compiled shadow engine (`jaxshadow._shadowc`) is built and loadable."""
+    """Whether the compiled shadow engine (`jaxshadow._shadows._shadowc`) is built and loadable."""
     return _lib() is not None
 
 
@@ -125,7 +125,7 @@ _ptr = _abi.ptr
 def _require() -> Any:
     lib = _lib()
     if lib is None:
-        raise RuntimeError("jaxshadow._shadowc is not built: reinstall jaxshadow with a C++ compiler available")
+        raise RuntimeError("jaxshadow._shadows._shadowc is not built: reinstall jaxshadow with a C++ compiler available")
     return lib
 
 
@@ -252,7 +252,7 @@ def decode_endpoints(
     face_0: Float[Array, "m 3"],
     codes: Int[Array, "e 7"],
 ) -> Float[Array, "e 3"]:
-    r"""The points named by endpoint codes (`_shadowc.cc`), as `jaxshadow._clip` computes them.
+    r"""The points named by endpoint codes (`csrc/shadowc.cc`), as `jaxshadow._clip` computes them.
 
     `V = [verts; faces.reshape(-1, 3)]` is the table the global vertex refs index; `face_n`,
     `face_0` from `face_frames`. Codes: `[kind, ...]` with kind 0 a light vertex, 1 a light edge's

@@ -30,9 +30,9 @@ from typing import Any
 
 import numpy as np
 
-from . import _shadows as sh
-from ._misc import unit_rows_host
-from ._scene import LinearLight, PointLight, PolygonLight, Scene
+from .._misc import unit_rows_host
+from .._scene import LinearLight, PointLight, PolygonLight, Scene
+from . import plan as sh
 
 
 def _box_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -200,8 +200,8 @@ class ShadowCache:
         if not isinstance(scene, Scene) or scene.occluders is None:
             raise ValueError("ShadowCache: needs a jaxshadow.Scene with occluders.")
         if not sh.DEFAULT_OPTIONS.use_engine():
-            raise RuntimeError("ShadowCache: the shadow engine (jaxshadow._shadowc) is not built.")
-        from ._geometry import check_points_normals
+            raise RuntimeError("ShadowCache: the shadow engine (jaxshadow._shadows._shadowc) is not built.")
+        from .._geometry import check_points_normals
 
         p, n = check_points_normals(points, normals, "ShadowCache")
         self._p = np.ascontiguousarray(np.asarray(p))

@@ -16,10 +16,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _visibility as vis
-from ._clip import directional_visibility, point_visibility, visible_edges
-from ._scene import LinearLight, PointLight, PolygonLight, Scene
-from ._shadows import EDGE_BLOCK, MIN_BLOCK, _occluders, _profile, _segment_visible, emission
+from .._clip import directional_visibility, point_visibility, visible_edges
+from .._scene import LinearLight, PointLight, PolygonLight, Scene
+from . import binding as vis
+from .plan import EDGE_BLOCK, MIN_BLOCK, _occluders, _profile, _segment_visible, emission
 
 # --------------------------------------------------------------------------------------
 # Abstract values: the engine inside the compiled program (XLA FFI), static capacities

@@ -1,6 +1,6 @@
 r"""Exact shadows at scale: plan on the host, then integrate only what each receiver needs.
 
-Campbell & Fussell's pipeline (§4.2-4.3) with the shadow engine of `_visibility` (`_shadowc.cc`)
+Campbell & Fussell's pipeline (§4.2-4.3) with the shadow engine of `binding` (`csrc/shadowc.cc`)
 as the shadow data. For every light the engine classifies each receiver and returns exactly the
 visibility information its class needs, and one integrand (`Lambert` for irradiance, `Phong` for
 the specular term) consumes it:
@@ -21,13 +21,13 @@ the specular term) consumes it:
 Three ways to run the same plan, chosen by `_shade` from what the inputs are:
 
 - `host_values`: every input concrete and nothing differentiated. The engine also decodes the
-  boundary's points (in C++, with the formulas of `_visibility.decode_endpoints`), JAX only
+  boundary's points (in C++, with the formulas of `binding.decode_endpoints`), JAX only
   integrates.
 - `planned_values`: the inputs carry derivatives but have concrete values (`jax.grad` or
   `jax.jacfwd` called eagerly). The engine plans from the values; the boundary's points are
   decoded from its codes in JAX, so derivatives flow to receivers, normals, light and occluder
   vertices (the codes, piecewise constant, carry none).
-- `traced_values` (`_shadows_compiled`): the values are abstract (inside `jax.jit` or `jax.vmap`). The engine runs
+- `traced_values` (`compiled`): the values are abstract (inside `jax.jit` or `jax.vmap`). The engine runs
   inside the compiled program (XLA FFI) with a static number of boundary edges per receiver
   (`ShadowOptions.capacity`); receivers over it are reported (`overflow`), never silently
   truncated: the public functions raise, the inverse solvers retry with a larger capacity.
@@ -45,17 +45,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import _visibility as vis
-from ._clip import (
+from .._clip import (
     masked_contour_form_factor,
     visible_segments,
 )
-from ._geometry import newell_normal
-from ._linear import linear_irradiance_kernel
-from ._point import directional_irradiance_kernel, point_irradiance_kernel
-from ._polygon import form_factor_kernel
-from ._scene import LinearLight, PointLight, PolygonLight, Scene
-from ._specular import (
+from .._geometry import newell_normal
+from .._linear import linear_irradiance_kernel
+from .._point import directional_irradiance_kernel, point_irradiance_kernel
+from .._polygon import form_factor_kernel
+from .._scene import LinearLight, PointLight, PolygonLight, Scene
+from .._specular import (
     DEFAULT_DEGREE,
     contour_specular_kernel,
     directional_specular_kernel,
@@ -63,6 +62,7 @@ from ._specular import (
     polygon_specular_kernel,
     segment_specular_kernel,
 )
+from . import binding as vis
 
 # Receivers per engine call (bounds the host memory of codes and edges) and edge (or occluder)
 # slots per compiled block: receivers per block = EDGE_BLOCK // capacity.
@@ -99,7 +99,7 @@ class ShadowOptions:
         if self.engine == "device":
             return False
         if self.engine == "host" and not vis.engine_available():
-            raise RuntimeError("ShadowOptions(engine='host'): jaxshadow._shadowc is not built "
+            raise RuntimeError("ShadowOptions(engine='host'): jaxshadow._shadows._shadowc is not built "
                                "(reinstall jaxshadow with a C++ compiler available).")
         return vis.engine_available()
 
@@ -602,7 +602,7 @@ def shadow_plan(scene: Scene, points: Any, normals: Any) -> ShadowPlan:
     class, candidate-list and boundary sizes, and the engine's time).
 
     Raises `ValueError` without occluders or for traced inputs, `RuntimeError` when the engine
-    (`jaxshadow._shadowc`) is not built.
+    (`jaxshadow._shadows._shadowc`) is not built.
 
     Example:
         ```python
@@ -617,7 +617,7 @@ def shadow_plan(scene: Scene, points: Any, normals: Any) -> ShadowPlan:
         print(plan.summary())   # receivers per class (lit / umbra / penumbra), candidates, boundary sizes
         ```
     """
-    from ._geometry import check_points_normals
+    from .._geometry import check_points_normals
 
     if not isinstance(scene, Scene):
         raise ValueError(f"shadow_plan: expected a jaxshadow.Scene, got {type(scene).__name__}.")
