@@ -40,3 +40,49 @@ def test_optional_solvers_name_their_extra(monkeypatch):
     monkeypatch.setitem(sys.modules, "optimistix", None)
     with pytest.raises(ImportError, match=r"jaxshadow\[optimistix\]"):
         _solvers._optimistix()
+
+
+
+_UNBUILT = """
+import json, sys, warnings
+import numpy as np
+
+class Block:
+    def find_spec(self, name, path=None, target=None):
+        if name == "jaxshadow._shadows._shadowc":
+            raise ImportError("blocked: the engine is not built")
+
+sys.meta_path.insert(0, Block())
+import jax
+jax.config.update("jax_enable_x64", True)
+import jaxshadow as js
+
+quad = js.PolygonLight([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2]], radiance=1.0)
+scene = js.Scene([quad], occluders=[js.Mesh.box([0.3, 0.3, 0.8], [0.6, 0.5, 1.0])])
+p = np.array([[0.45, 0.4, 0.0], [0.2, 0.9, 0.0], [3.0, 0.0, 0.0]])
+n = np.tile([0.0, 0.0, 1.0], (3, 1))
+with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    a = np.asarray(js.irradiance(scene, p, n))
+    b = np.asarray(js.irradiance(scene, p, n))
+dev = np.asarray(js.irradiance(scene, p, n, shadows=js.ShadowOptions(engine="device")))
+free = np.asarray(js.irradiance(js.Scene([quad]), p, n))
+print(json.dumps({"a": a.tolist(), "b": b.tolist(), "dev": dev.tolist(), "free": free.tolist(),
+                  "warnings": [str(w.message) for w in caught]}))
+"""
+
+
+def test_unbuilt_engine_falls_back_to_the_device_kernels_with_one_warning():
+    """With the compiled engine hidden, scenes with occluders take the device kernels' values
+    and say so once per process (before, a half-found extension raised AttributeError)."""
+    import json
+
+    out = subprocess.run([sys.executable, "-c", _UNBUILT], capture_output=True, text=True,
+                         cwd=Path(__file__).resolve().parent.parent)
+    assert out.returncode == 0, out.stderr[-3000:]
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    assert r["a"] == r["dev"] == r["b"]
+    a, free = r["a"], r["free"]
+    assert a[0][0] < 0.9 * free[0][0]  # under the box: shadowed
+    assert a[2][0] == free[2][0]  # far away: unoccluded
+    assert len(r["warnings"]) == 1 and "not built" in r["warnings"][0]

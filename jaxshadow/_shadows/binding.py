@@ -68,7 +68,24 @@ def _lib() -> Any:
         from . import _shadowc as mod  # type: ignore[attr-defined]
     except ImportError:
         return None
-    return _abi.load(mod.__file__)
+    path = getattr(mod, "__file__", None)
+    if not path or not os.path.isfile(path):  # not an extension module (e.g. a namespace package)
+        return None
+    try:
+        return _abi.load(path)
+    except (OSError, AttributeError):  # not loadable, or an older build without the ABI's symbols
+        return None
+
+
+@functools.cache
+def warn_unbuilt() -> None:
+    """One warning per process that exact shadows fall back to the device kernels."""
+    import warnings
+
+    warnings.warn("jaxshadow: the compiled shadow engine (jaxshadow._shadows._shadowc) is not built or "
+                  "not loadable; exact shadows use the device kernels (same values, but time and memory "
+                  "grow with the number of occluders). Reinstall jaxshadow with a C++ compiler.",
+                  RuntimeWarning, stacklevel=4)
 
 
 def engine_available() -> bool:

@@ -101,7 +101,10 @@ class ShadowOptions:
         if self.engine == "host" and not vis.engine_available():
             raise RuntimeError("ShadowOptions(engine='host'): jaxshadow._shadows._shadowc is not built "
                                "(reinstall jaxshadow with a C++ compiler available).")
-        return vis.engine_available()
+        if not vis.engine_available():
+            vis.warn_unbuilt()
+            return False
+        return True
 
 
 DEFAULT_OPTIONS = ShadowOptions()
