@@ -406,3 +406,58 @@ def _strip_padding(poly: np.ndarray) -> np.ndarray:
     while k > 3 and np.array_equal(poly[k - 1], poly[0]):
         k -= 1
     return poly[:k]
+
+
+def weld_polygons(items: list[Any]) -> list[Any]:
+    """`Scene(occluders=[...])` entries with triangle soups turned into meshes: the plain polygons
+    (concrete `(k, 3)` arrays) are welded by exactly equal vertex coordinates and split into
+    connected components (polygons sharing an edge); each component of two or more polygons
+    becomes one `Mesh` (coplanar merging, closed and convex detection), in place of its first
+    polygon. It blocks exactly what its polygons block (the same point set), and the shadow
+    engine then treats it as the same `Mesh` given directly would be treated (a convex solid's
+    cone, interior edges left out). `Mesh` entries, lone polygons and components a `Mesh`
+    refuses (e.g. faces that reuse a vertex) are kept as they are."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    idx = [i for i, x in enumerate(items) if not isinstance(x, Mesh)]
+    if len(idx) < 2:
+        return items
+    polys = [np.asarray(items[i], dtype=np.float64) for i in idx]
+    sizes = np.array([len(q) for q in polys])
+    start = np.concatenate([[0], np.cumsum(sizes)])
+    verts, inv = np.unique(np.concatenate(polys), axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    # Undirected edges (a, b) of every polygon, and the polygons that share one.
+    a = inv
+    nxt = np.arange(len(inv)) + 1
+    nxt[start[1:] - 1] = start[:-1]
+    b = inv[nxt]
+    face = np.repeat(np.arange(len(polys)), sizes)
+    key = np.minimum(a, b) * len(verts) + np.maximum(a, b)
+    order = np.argsort(key, kind="stable")
+    ks, fs = key[order], face[order]
+    same = ks[1:] == ks[:-1]
+    g = coo_matrix((np.ones(int(same.sum())), (fs[:-1][same], fs[1:][same])), shape=(len(polys), len(polys)))
+    n_comp, label = connected_components(g, directed=False)
+    if n_comp == len(polys):
+        return items
+    members: dict[int, list[int]] = {}
+    for f, c in enumerate(label):
+        members.setdefault(int(c), []).append(f)
+    replace: dict[int, Any] = {}
+    drop: set[int] = set()
+    for faces in members.values():
+        if len(faces) < 2:
+            continue
+        loops = [inv[start[f]:start[f + 1]] for f in faces]
+        used = np.unique(np.concatenate(loops))
+        local = np.full(len(verts), -1)
+        local[used] = np.arange(len(used))
+        try:
+            mesh = Mesh(verts[used], [local[loop] for loop in loops])
+        except ValueError:
+            continue
+        replace[idx[faces[0]]] = mesh
+        drop.update(idx[f] for f in faces[1:])
+    return [replace.get(i, x) for i, x in enumerate(items) if i not in drop]

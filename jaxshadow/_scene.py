@@ -13,6 +13,7 @@ from collections.abc import Sequence
 from typing import Any, no_type_check
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
@@ -30,7 +31,14 @@ from ._geometry import (
     pad_polygons_jax,
 )
 from ._linear import check_profile_exponent
-from ._mesh import Mesh, OccluderTopology, build_occluders, max_face_vertices, mesh_dicts
+from ._mesh import (
+    Mesh,
+    OccluderTopology,
+    build_occluders,
+    max_face_vertices,
+    mesh_dicts,
+    weld_polygons,
+)
 
 SCENE_FORMAT = "jaxshadow.scene"
 SCENE_VERSION = 1
@@ -251,6 +259,8 @@ def _stack_occluders(occluders: Any) -> tuple[Array | None, OccluderTopology | N
     for i, poly in enumerate(items):
         if not isinstance(poly, Mesh) and is_concrete(poly):
             check_convex_polygon(poly, f"Scene.occluders[{i}]")
+    if all(isinstance(x, Mesh) or (is_concrete(x) and not isinstance(x, jax.Array)) for x in items):
+        items = weld_polygons(items)  # triangle soups become meshes (NumPy inputs only)
     if not any(isinstance(x, Mesh) for x in items):
         return pad_polygons_jax(items), None
     ko = max_face_vertices(items)

@@ -21,8 +21,8 @@ void boundary_runs(V3<T> p, T tol, const V3<T>* ehv, int nehv, Work<T>& w) {
   auto unit = [&](int32_t k) -> V3<T> { return w.pnorm[k] > 0 ? (T(1) / w.pnorm[k]) * planes[k] : V3<T>{0, 0, 0}; };
   for (int32_t r = 1; r < n_regions; r++)
     for (int d = 0; d < 3; d++) {
-      w.regions[r].lo[d] = std::numeric_limits<T>::infinity();
-      w.regions[r].hi[d] = -std::numeric_limits<T>::infinity();
+      w.regions[r].lo[d] = w.regions[r].xlo[d];
+      w.regions[r].hi[d] = w.regions[r].xhi[d];
     }
   for (auto& e : w.edges) {
     const T ca[3] = {e.a.x, e.a.y, e.a.z}, cb[3] = {e.b.x, e.b.y, e.b.z};

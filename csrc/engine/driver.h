@@ -165,6 +165,7 @@ int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const 
   prepare_solids(occ, bvh);
   PolyCall<T> call{Light<T>{K, E}, occ, &bvh, {}};
   prepare_call(call);
+  prepare_twins(call);
   if (N >= kUmbraMinReceivers) prepare_umbra(call);
   threads = default_threads(threads);
   struct Block {
@@ -302,6 +303,7 @@ int poly_fixed(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const
   prepare_solids(occ, bvh);
   PolyCall<T> call{Light<T>{K, E}, occ, &bvh, {}};
   prepare_call(call);
+  prepare_twins(call);
   std::atomic<int> err(0);
   parallel_for(N, default_threads(threads), [&](int, int64_t s, int64_t e) {
     Work<T> w;

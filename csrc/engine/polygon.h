@@ -218,8 +218,9 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
   // An occluder region's planes are planes[first, first + np) and its candidate edges were pushed
   // after `before`: without any, it misses E_h (0, dropped) or covers all of it (2, umbra); else it
   // becomes a region (1).
-  auto close_region = [&](int32_t first, int np, size_t before) -> int {
-    if (w.edges.size() == before) {
+  // `xlo`, `xhi`: the box of the region's interior edges' pieces (null: none).
+  auto close_region = [&](int32_t first, int np, size_t before, bool touched, const T* xlo, const T* xhi) -> int {
+    if (w.edges.size() == before && !touched) {
       const bool covers = covers_eh(planes.data() + first, np);
       planes.resize(first);
       w.prefs.resize(first);
@@ -229,11 +230,19 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
     r.first = first;
     r.count = np;
     r.active = true;
+    for (int d = 0; d < 3; d++) {
+      r.xlo[d] = xlo ? xlo[d] : std::numeric_limits<T>::infinity();
+      r.xhi[d] = xhi ? xhi[d] : -std::numeric_limits<T>::infinity();
+    }
     w.regions.push_back(r);
     return 1;
   };
 
-  auto add_face = [&](int64_t f, bool closed_ok) -> int {  // 0 dropped, 1 added, 2 umbra
+  // The tests that drop face f before its region is built (0), or its side (+1 / -1): the
+  // face's plane separates it from the pyramid, all its vertices lie strictly outside one cone
+  // plane or strictly behind the emitter plane, it blocks a zero solid angle, or it is a back
+  // face of a closed mesh seen from outside its box. `fs` receives face_side's result.
+  auto face_status = [&](int64_t f, bool closed_ok, FaceSide<T>& fs) -> int {
     const int64_t Ko = occ.Ko;
     if (Ko > 64) return 0;
     if (call.light_side[f] != 0 && point_side(occ, f, p) == call.light_side[f]) return 0;
@@ -257,11 +266,41 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
       if (all_behind) return 0;
     }
     V3<T> rel[64];
-    const FaceSide<T> fs = face_side(occ, f, p, rel);
+    fs = face_side(occ, f, p, rel);
     if (fs.side == 0) return 0;  // inactive: blocks a zero solid angle (or not finite)
+    if (closed_ok && fs.side < 0 && occ.face_closed && call.bvh->outside_mesh(occ.face_closed[f], pd)) return 0;  // back face
+    return fs.side;
+  };
+
+  // Interior edges. Where face f and its twin g (PolyCall::twin) are both added and lie on
+  // opposite sides of the plane through p and their shared edge (the same side for twins running
+  // the edge in opposite directions, opposite sides otherwise), every point of the edge's relative
+  // interior inside the pyramid lies inside the union of the two regions: each piece of it would
+  // be blocked by the other region's collinear plane (the midpoint and tie tests of
+  // boundary_runs), so it is left out. Only edges that bound the union (silhouette and boundary
+  // edges, and interior edges of faces not both added) are split and tested; a region all of
+  // whose edges inside the pyramid are interior is kept (it blocks the others' edges).
+  bool any_interior = false;
+  auto interior = [&](int64_t f, int64_t i, int s) -> bool {
+    const int32_t t = call.twin[size_t(f * occ.Ko + i)];
+    if (t < 0) return false;
+    const int g = w.fstat[size_t(t >> 1)];
+    return g != 0 && ((t & 1) ? g == -s : g == s);
+  };
+
+  // `pre`: face_status's side and result when already computed (0: dropped).
+  auto add_face = [&](int64_t f, bool closed_ok, const FaceSide<T>* pre) -> int {  // 0 dropped, 1 added, 2 umbra
+    const int64_t Ko = occ.Ko;
+    FaceSide<T> fs0;
+    if (pre) {
+      if (pre->side == 0) return 0;
+      fs0 = *pre;
+    } else if (face_status(f, closed_ok, fs0) == 0) {
+      return 0;
+    }
+    const FaceSide<T>& fs = fs0;
     const T sigma = fs.scale, h0 = fs.h0, s = T(fs.side);
     const V3<T> no = fs.no;
-    if (closed_ok && s < 0 && occ.face_closed && call.bvh->outside_mesh(occ.face_closed[f], pd)) return 0;  // back face
     // Region planes: oriented edge planes, then the emitter-plane cut (_occluder_regions).
     const int32_t first = int32_t(planes.size());
     for (int64_t i = 0; i < Ko; i++) {
@@ -299,9 +338,15 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
       hb[i] = dot(occ.vert(f, (i + 1) % Ko) - e0, ne);
     }
     const size_t before = w.edges.size();
+    bool touched = false;  // an interior edge of this face meets the pyramid
+    T xlo[3], xhi[3];  // the box of those pieces (boundary_runs' region boxes include it)
+    for (int d = 0; d < 3; d++) {
+      xlo[d] = std::numeric_limits<T>::infinity();
+      xhi[d] = -std::numeric_limits<T>::infinity();
+    }
     V3<T> bexit{}, bentry{};
     int64_t bexit_i = -1, bentry_i = -1;
-    auto emit = [&](V3<T> a3, V3<T> b3, Code ca3, Code cb3, V3<T> own, PlaneRef oref) {
+    auto emit = [&](V3<T> a3, V3<T> b3, Code ca3, Code cb3, V3<T> own, PlaneRef oref, bool inner) {
       if (same(a3, b3)) return;
       T t0, t1;
       int i0, i1;
@@ -335,6 +380,16 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
         e.cb = c2b;
       }
       if (same(e.a, e.b)) return;
+      if (inner) {
+        touched = true;
+        any_interior = true;
+        const T ca[3] = {e.a.x, e.a.y, e.a.z}, cb[3] = {e.b.x, e.b.y, e.b.z};
+        for (int d = 0; d < 3; d++) {
+          xlo[d] = std::min(xlo[d], std::min(ca[d], cb[d]));
+          xhi[d] = std::max(xhi[d], std::max(ca[d], cb[d]));
+        }
+        return;
+      }
       e.own = own;
       e.own_ref = oref;
       e.sigma = -1;
@@ -361,14 +416,14 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
       Code ca3 = ain ? code_point(kProjected, occ.ref(f, i)) : cx;
       Code cb3 = bin ? code_point(kProjected, occ.ref(f, (i + 1) % Ko)) : cx;
       if (same(a, b)) continue;
-      emit(a3, b3, ca3, cb3, planes[first + i], w.prefs[first + i]);
+      emit(a3, b3, ca3, cb3, planes[first + i], w.prefs[first + i], interior(f, i, fs.side));
     }
     if (bexit_i >= 0 && bentry_i >= 0) {
       Code cx = code_point(kEmitterCross, occ.ref(f, bexit_i), occ.ref(f, (bexit_i + 1) % Ko));
       Code cy = code_point(kEmitterCross, occ.ref(f, bentry_i), occ.ref(f, (bentry_i + 1) % Ko));
-      emit(bexit, bentry, cx, cy, planes[first + Ko], w.prefs[first + Ko]);
+      emit(bexit, bentry, cx, cy, planes[first + Ko], w.prefs[first + Ko], false);
     }
-    return close_region(first, np, before);  // its projection misses E_h, covers it, or bounds R
+    return close_region(first, np, before, touched, xlo, xhi);  // its projection misses E_h, covers it, or bounds R
   };
 
   auto add_solid = [&](int64_t sidx) -> int {  // 0 dropped, 1 added, 2 umbra, 3 use its faces
@@ -493,22 +548,43 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
       e.region = int32_t(w.regions.size());
       w.edges.push_back(e);
     }
-    return close_region(first, nsil, before);  // its cone misses E_h, covers it, or bounds R
+    return close_region(first, nsil, before, false, nullptr, nullptr);  // its cone misses E_h, covers it, or bounds R
   };
 
   w.n_candidates = int32_t(w.cand.size());
-  for (const auto& kv : w.cand) {
-    int32_t item = kv.second;
+  // The plain faces' sides first (interior edges need both faces' sides).
+  if (w.fstat.size() != size_t(occ.M)) w.fstat.assign(size_t(occ.M), 0);
+  std::vector<FaceSide<T>>& pre = w.pre;
+  pre.resize(w.cand.size());
+  for (size_t c = 0; c < w.cand.size(); c++) {
+    const int32_t item = w.cand[c].second;
+    if (item < 0) continue;
+    const int st = face_status(item, true, pre[c]);
+    if (st == 0) pre[c].side = 0;
+    if (st != 0 && !call.twin.empty()) {
+      w.fstat[size_t(item)] = int8_t(st);
+      w.fstat_set.push_back(item);
+    }
+  }
+  struct ResetStatus {  // every exit below leaves fstat all zero for the next receiver
+    Work<T>& w;
+    ~ResetStatus() {
+      for (int32_t f : w.fstat_set) w.fstat[size_t(f)] = 0;
+      w.fstat_set.clear();
+    }
+  } reset_status{w};
+  for (size_t c = 0; c < w.cand.size(); c++) {
+    int32_t item = w.cand[c].second;
     int res;
     if (item >= 0) {
-      res = add_face(item, true);
+      res = add_face(item, true, &pre[c]);
     } else {
       int64_t sidx = -int64_t(item) - 1;
       res = add_solid(sidx);
       if (res == 3) {
         res = 0;
         for (int64_t f = occ.solid_faces[2 * sidx]; f < occ.solid_faces[2 * sidx + 1]; f++) {
-          int r2 = add_face(f, true);
+          int r2 = add_face(f, true, nullptr);
           if (r2 == 2) {
             res = 2;
             break;
@@ -524,6 +600,17 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
   }
   const int32_t n_regions = int32_t(w.regions.size());
   w.n_regions = n_regions - 1;
+  if (any_interior && w.edges.size() == n_eh_edges) {
+    // No edge bounds the union of the regions inside E_h: the union holds all of E_h's interior
+    // or none of it, and E_h's centroid decides (umbra, or lit with E_h's own boundary).
+    for (int32_t r = 1; r < n_regions; r++)
+      if (covers_eh(planes.data() + w.regions[r].first, w.regions[r].count)) {
+        w.runs.clear();
+        return kUmbra;
+      }
+    for (size_t i = 0; i < w.edges.size(); i++) w.runs.push_back(Run{w.edges[i].ca, w.edges[i].cb});
+    return kLit;
+  }
   if (n_regions == 1) {
     for (size_t i = 0; i < w.edges.size(); i++) w.runs.push_back(Run{w.edges[i].ca, w.edges[i].cb});
     return kLit;

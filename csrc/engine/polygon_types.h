@@ -29,6 +29,7 @@ struct Region {
   int32_t first, count;  // planes in the receiver's plane table
   bool active;
   T lo[3], hi[3];  // box of region ∩ E_h, in the emitter plane
+  T xlo[3], xhi[3];  // box of its interior edges' pieces in the pyramid (not candidate edges)
 };
 
 struct Run {
@@ -53,6 +54,11 @@ struct Work {  // per-thread scratch
   std::vector<int32_t> rilo, rihi;
   std::vector<int32_t> live;
   std::vector<uint8_t> free;
+  // Interior-edge culling (polygon_receiver): per face the side it is added with (+1 / -1, 0: not
+  // added), set for the plain faces among the candidates and reset after each receiver.
+  std::vector<int8_t> fstat;
+  std::vector<int32_t> fstat_set;
+  std::vector<FaceSide<T>> pre;  // per candidate: face_side of a plain face (side 0: dropped)
   int32_t n_candidates = 0, n_regions = 0;  // items the hierarchy returned; occluder regions kept
   // Whether a lit receiver's boundary (E_h's own edges) is wanted in `runs`: the fixed-capacity
   // (compiled) plan evaluates every receiver from its runs; the CSR plan evaluates lit receivers
@@ -144,7 +150,71 @@ struct PolyCall {
   // Umbra volumes of the convex solids (prepare_umbra; none: not built): a receiver inside one is
   // umbra without building regions.
   UmbraVolumes umbra;
+  // Per face edge slot f * Ko + i (the edge v_i -> v_{i+1}): 2 g + d when exactly one other face g
+  // has an edge with the same two endpoints (exactly equal coordinates) and no third face does,
+  // d = 1 when g runs it in the same direction; -1 otherwise. Faces of convex solids are left out
+  // (their cones are built from their silhouettes).
+  std::vector<int32_t> twin;
 };
+
+// The faces' edge twins (PolyCall::twin): one sort of the edge slots by their endpoints'
+// coordinates (the lower endpoint first, lexicographically), O(M Ko log(M Ko)) per call.
+template <class T>
+void prepare_twins(PolyCall<T>& call) {
+  const Occluders<T>& occ = call.occ;
+  const int64_t M = occ.M, Ko = occ.Ko;
+  call.twin.assign(size_t(M * Ko), -1);
+  if (M < 2) return;
+  struct Key {
+    T k[6];
+    int32_t slot;
+    int8_t fwd;
+  };
+  std::vector<Key> keys;
+  keys.reserve(size_t(M * Ko));
+  for (int64_t f = 0; f < M; f++) {
+    if (occ.face_solid && occ.face_solid[f] >= 0) continue;
+    for (int64_t i = 0; i < Ko; i++) {
+      const V3<T> a = occ.vert(f, i), b = occ.vert(f, (i + 1) % Ko);
+      if (same(a, b)) continue;
+      const T ca[3] = {a.x, a.y, a.z}, cb[3] = {b.x, b.y, b.z};
+      const bool fwd = std::lexicographical_compare(ca, ca + 3, cb, cb + 3);
+      Key key;
+      for (int d = 0; d < 3; d++) {
+        key.k[d] = fwd ? ca[d] : cb[d];
+        key.k[3 + d] = fwd ? cb[d] : ca[d];
+      }
+      key.slot = int32_t(f * Ko + i);
+      key.fwd = int8_t(fwd);
+      keys.push_back(key);
+    }
+  }
+  auto less = [](const Key& x, const Key& y) {
+    for (int d = 0; d < 6; d++)
+      if (x.k[d] != y.k[d]) return x.k[d] < y.k[d];
+    return x.slot < y.slot;
+  };
+  std::sort(keys.begin(), keys.end(), less);
+  auto eq = [](const Key& x, const Key& y) {
+    for (int d = 0; d < 6; d++)
+      if (!(x.k[d] == y.k[d])) return false;
+    return true;
+  };
+  for (size_t s = 0; s < keys.size();) {
+    size_t e = s + 1;
+    while (e < keys.size() && eq(keys[s], keys[e])) e++;
+    if (e - s == 2) {
+      const Key &x = keys[s], &y = keys[s + 1];
+      const int32_t fx = int32_t(x.slot / Ko), fy = int32_t(y.slot / Ko);
+      if (fx != fy) {
+        const int32_t d = x.fwd == y.fwd ? 1 : 0;
+        call.twin[size_t(x.slot)] = 2 * fy + d;
+        call.twin[size_t(y.slot)] = 2 * fx + d;
+      }
+    }
+    s = e;
+  }
+}
 
 // Per-call data of the light and the occluders (`light_side`, `ne_raw`, `edge_index`,
 // `item_extent`).

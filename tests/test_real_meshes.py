@@ -1,0 +1,125 @@
+"""Real meshes in the shadow engine: non-convex closed meshes, open meshes and triangle soups.
+
+The engine leaves out the interior edges of a mesh (an edge whose two faces are both added and
+lie on opposite sides of the plane through the receiver and the edge) and recognises a receiver
+whose light the mesh hides entirely as umbra without building its boundary; a list of triangles
+is welded into meshes at `Scene` build. Independent reference: `reference_ff` of
+`tests/test_clip.py` (exact polygon booleans in shapely, no code shared with the engine), and
+the device kernel (`ShadowOptions(engine="device")`), which clips every face.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxshadow as js
+from jaxshadow._shadows import binding as vis
+
+pytestmark = pytest.mark.skipif(not vis.engine_available(), reason="the shadow engine is not built")
+trimesh = pytest.importorskip("trimesh")
+shapely = pytest.importorskip("shapely")
+from test_clip import reference_ff  # noqa: E402
+
+LIGHT = np.array([[-0.4, -0.4, 2.5], [-0.4, 0.4, 2.5], [0.4, 0.4, 2.5], [0.4, -0.4, 2.5]])
+DEVICE = js.ShadowOptions(engine="device")
+
+
+def blob(subdivisions: int, open_below: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """A smooth non-convex closed shape of size 1 m, 0.3 m above the floor (an icosphere with a
+    smooth displacement: the same shape at every tessellation); `open_below`: the faces whose
+    centre lies below that height are removed (an open mesh with a boundary loop)."""
+    m = trimesh.creation.icosphere(subdivisions=subdivisions)
+    v = np.asarray(m.vertices, float)
+    d = 1 + 0.25 * np.sin(3 * v[:, 0]) * np.cos(2 * v[:, 1]) + 0.15 * np.sin(4 * v[:, 2] + 1)
+    v = v * d[:, None]
+    v = v / np.ptp(v, axis=0).max()
+    v[:, 2] += 0.3 - v[:, 2].min()
+    f = np.asarray(m.faces)
+    if open_below is not None:
+        f = f[v[f][:, :, 2].mean(axis=1) > open_below]
+    return v, f
+
+
+def floor(n: int, seed: int = 0, half: float = 1.2) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    p = np.c_[rng.uniform(-half, half, (n, 2)), np.zeros(n)]
+    nrm = np.tile([0.0, 0.0, 1.0], (n, 1))
+    k = n // 5  # grazing normals
+    t, a = np.radians(rng.uniform(60, 88, k)), rng.uniform(0, 2 * np.pi, k)
+    nrm[:k] = np.stack([np.sin(t) * np.cos(a), np.sin(t) * np.sin(a), np.cos(t)], axis=1)
+    return p, nrm
+
+
+def _scene(occluders) -> js.Scene:
+    return js.Scene([js.PolygonLight(LIGHT, 1.0)], occluders=occluders)
+
+
+@pytest.mark.parametrize("open_below", [None, 0.6], ids=["closed", "open"])
+def test_non_convex_mesh_against_polygon_booleans(open_below):
+    """Penumbra, umbra and lit receivers of a non-convex closed mesh and of an open one (which
+    blocks from both sides, so no face is culled): within 1e-9 of exact polygon booleans."""
+    v, f = blob(2, open_below)
+    scene = _scene([js.Mesh(v, f)])
+    p, nrm = floor(600)
+    cls = js.shadow_plan(scene, p, nrm).lights[0].classes
+    pick = np.concatenate([np.where(cls == c)[0][:k] for c, k in ((vis.PENUMBRA, 40), (vis.UMBRA, 10), (vis.LIT, 5))])
+    if open_below is None:
+        assert (cls == vis.UMBRA).sum() > 0, "the floor under the mesh is umbra"
+    got = np.asarray(js.irradiance(scene, p[pick], nrm[pick]))[:, 0]
+    tris = v[f]
+    ref = np.pi * np.array([reference_ff(q, m, LIGHT, list(tris)) for q, m in zip(p[pick], nrm[pick], strict=True)])
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9 * ref.max())
+    assert np.all(got[cls[pick] == vis.UMBRA] == 0)
+
+
+def test_soup_is_welded_into_the_mesh():
+    """A list of triangles becomes one mesh per connected component: the same plan (classes,
+    candidates) and values as the `js.Mesh`, and the same values as the unwelded faces through
+    the device kernel."""
+    v, f = blob(2)
+    mesh = _scene([js.Mesh(v, f)])
+    soup = _scene([v[t] for t in f])
+    assert soup.occluder_topology is not None and soup.occluders.shape == mesh.occluders.shape
+    p, nrm = floor(400, seed=1)
+    a, b = js.shadow_plan(mesh, p, nrm).lights[0], js.shadow_plan(soup, p, nrm).lights[0]
+    np.testing.assert_array_equal(a.classes, b.classes)
+    np.testing.assert_array_equal(a.candidates, b.candidates)
+    e_mesh = np.asarray(js.irradiance(mesh, p, nrm))
+    np.testing.assert_array_equal(np.asarray(js.irradiance(soup, p, nrm)), e_mesh)
+    sel = np.where(a.classes == vis.PENUMBRA)[0][:24]
+    raw = js.Scene([js.PolygonLight(LIGHT, 1.0)], occluders=jnp.asarray(v[f]))  # JAX arrays: not welded
+    assert raw.occluder_topology is None
+    dev = np.asarray(js.irradiance(raw, p[sel], nrm[sel], shadows=DEVICE))
+    np.testing.assert_allclose(e_mesh[sel], dev, rtol=0, atol=1e-9 * e_mesh.max())
+
+
+def test_two_boxes_as_a_soup_are_two_solids():
+    """Two boxes given as 24 triangles are two convex solids (each box a component)."""
+    def box(lo, hi):
+        return js.Mesh.box(lo, hi)
+    b1, b2 = box([-0.5, -0.2, 0.4], [-0.1, 0.2, 0.8]), box([0.2, -0.1, 0.5], [0.5, 0.3, 0.9])
+    tris = [b.vertices[t] for b in (b1, b2) for t in np.array([[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7], [0, 1, 5],
+                                                               [0, 5, 4], [1, 2, 6], [1, 6, 5], [2, 3, 7], [2, 7, 6],
+                                                               [3, 0, 4], [3, 4, 7]])]
+    soup = _scene(tris)
+    assert soup.occluder_topology.n_solids == 2
+    p, nrm = floor(300, seed=2)
+    want = np.asarray(js.irradiance(_scene([b1, b2]), p, nrm))  # vertex order may differ: rounding only
+    np.testing.assert_allclose(np.asarray(js.irradiance(soup, p, nrm)), want, rtol=0, atol=1e-13 * want.max())
+
+
+def test_gradients_through_interior_edge_culling():
+    """Eager derivatives wrt receivers (planned on the host, interior edges left out) equal the
+    device kernel's, which clips every face, on penumbra receivers of a non-convex mesh."""
+    v, f = blob(1)
+    scene = _scene([js.Mesh(v, f)])
+    p, nrm = floor(300, seed=3)
+    cls = js.shadow_plan(scene, p, nrm).lights[0].classes
+    sel = np.where(cls == vis.PENUMBRA)[0][:12]
+    q, m = jnp.asarray(p[sel]), jnp.asarray(nrm[sel])
+    g = jax.grad(lambda x: js.irradiance(scene, x, m).sum())(q)
+    gd = jax.grad(lambda x: js.irradiance(scene, x, m, shadows=DEVICE).sum())(q)
+    np.testing.assert_allclose(np.asarray(g), np.asarray(gd), rtol=1e-7, atol=1e-9 * float(jnp.abs(gd).max()))
