@@ -157,3 +157,66 @@ def test_fit_light_outlier_and_conflicting_duplicate_targets_are_reported():
     same = inverse.PaintedTargets(pts2, nrm2, np.r_[col, col[4:5]], EYE)
     sigma, _ = diag.noise_sigma(same, None)
     assert diag.conflicting_targets(same, sigma) == ()
+
+
+# --------------------------------------------------------------------------------------
+# fit_lights: the same checks
+# --------------------------------------------------------------------------------------
+
+
+def _fit_lights(start, targets=None, occluders=OCCLUDER, fit=("position",), **kw):
+    scene = js.Scene([js.PointLight(start, 3.0)], occluders=occluders, ambient=0.05)
+    kw.setdefault("starts", 1)
+    return inverse.fit_lights(scene, _targets(occluders) if targets is None else targets, MATERIAL, fit=fit,
+                              sweeps=1, **kw)
+
+
+def test_fit_lights_wrong_minimum_is_flagged_and_a_near_start_is_not():
+    with pytest.warns(inverse.FitQualityWarning, match=r"light0: the residual is well above"):
+        fit = _fit_lights([-1.5, 0.5, 1.0])
+    q = fit.report.quality
+    assert np.linalg.norm(np.asarray(fit.lights[0].position) - TRUE) > 0.3
+    assert not fit.report.trusted and q.flags == ("wrong_minimum",) and not q.std_errors_trusted
+    assert "NOT TRUSTED" in str(fit.report)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        good = _fit_lights([0.52, 0.22, 1.38])
+    np.testing.assert_allclose(good.lights[0].position, TRUE, atol=1e-6)
+    assert good.report.trusted and good.report.quality.flags == ()
+
+
+def test_fit_lights_escaping_light_is_flagged():
+    with pytest.warns(inverse.FitQualityWarning) as rec:
+        fit = _fit_lights([0.3, 0.2, -0.5], occluders=None, fit=("position", "power"))
+    assert any("light0 escaped" in str(r.message) for r in rec)
+    q = fit.report.quality
+    assert "escaped" in q.flags and set(q.escaped) == {"light0"} and not fit.report.trusted
+    assert not any(v for k, v in fit.report.determined.items() if k.startswith("light0."))
+
+
+def test_fit_lights_outlier_and_conflicting_duplicate_targets_are_reported():
+    pts, nrm = _floor()
+    true = js.Scene([js.PointLight(TRUE, 3.0)], ambient=0.05)
+    col = np.array(js.shade(true, MATERIAL, pts, nrm, EYE))
+    col[7] *= 1.5
+    targets = inverse.PaintedTargets(np.r_[pts, pts[4:5]], np.r_[nrm, nrm[4:5]], np.r_[col, col[4:5] * 1.3], EYE)
+    with pytest.warns(inverse.FitQualityWarning, match="targets 4 and 30 share a point"):
+        fit = _fit_lights([0.45, 0.25, 1.3], targets=targets, occluders=None, fit=("position", "power"))
+    q = fit.report.quality
+    assert 7 in q.outliers and q.conflicting == ((4, 30),) and fit.report.trusted
+    assert any("are outliers" in w for w in fit.report.warnings)
+
+
+def test_relations_met_by_an_all_dark_answer_are_flagged():
+    """Targets painted only as "0 brighter than 1" (any colour, by a range) with the light held
+    over target 1: only no light at all meets the relation; that answer is flagged."""
+    pts = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.5, 0.5, 0.0], [-0.5, 0.5, 0.0]])
+    nrm = np.tile([0.0, 0.0, 1.0], (4, 1))
+    targets = inverse.PaintedTargets(pts, nrm, np.full((4, 3), 0.1), EYE)
+    ranges = inverse.ColourRange([0, 1, 2, 3], 0.0, float("inf"))
+    scene = js.Scene([js.PointLight([0.0, 0.0, 1.0], 3.0)], ambient=0.05)
+    with pytest.warns(inverse.FitQualityWarning, match="every target dark"):
+        fit = inverse.fit_lights(scene, targets, MATERIAL, fit=("power",), ranges=ranges,
+                                 brighter=inverse.Brighter([[0, 1]]))
+    assert fit.powers[0] == pytest.approx(0.0, abs=1e-9)
+    assert "all_dark" in fit.report.quality.flags and not fit.report.trusted
