@@ -308,8 +308,8 @@ def assess(*, targets: Any, residual: np.ndarray, noise: Any, n_params: int, nam
     if wrong:
         flags.append("wrong_minimum")
         msg = (f"{light_list}: the residual is well above the targets' noise (reduced chi-square {chi2:.3g} > "
-               f"{WRONG_MINIMUM_CHI2:g}, noise {how}): a wrong minimum (or a model that cannot paint these "
-               "targets); the standard errors are not trustworthy")
+               f"{WRONG_MINIMUM_CHI2:g}, noise {how}): a wrong minimum (or a model or constraints that "
+               "cannot paint these targets); the standard errors are not trustworthy")
         if len(candidates) > 1:
             msg += f"; {len(candidates)} competing placements within a factor {COMPETING_FACTOR:g} of the best loss"
         messages.append(msg + ".")
