@@ -16,6 +16,8 @@ from ._closed_forms import mirror_direction as mirror_direction
 from ._closed_forms import point_from_shadows as point_from_shadows
 from ._design import TargetDesign as TargetDesign
 from ._design import design_targets as design_targets
+from ._diagnostics import FitQuality as FitQuality
+from ._diagnostics import FitQualityWarning as FitQualityWarning
 from ._fit_lights import fit_lights as fit_lights
 from ._joint import fit_light_and_material as fit_light_and_material
 from ._joint import joint_std_errors as joint_std_errors

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings as _warnings
 from typing import Any, no_type_check
 
 import equinox as eqx
@@ -31,6 +32,7 @@ import numpy as np
 import jaxshadow as js
 from jaxshadow import traced
 
+from ._diagnostics import FitQualityWarning, assess, competing_placements, dark_answer
 from ._forward import SpecularFn
 from ._identifiability import identifiability
 from ._multilight import (
@@ -147,6 +149,8 @@ def fit_lights(
     candidates: Any = None,
     specular: SpecularFn | None = None,
     search_targets: Any = None,
+    noise: Any = None,
+    warn: bool = True,
 ) -> LightsFit:
     """Place several lights of `scene` at once, with their powers, so the shading matches
     painted colours (Poulin ch. 5: lights from diffuse shading, highlights and shadows).
@@ -228,6 +232,13 @@ def fit_lights(
       `inverse.design_targets`), whose loss from far starts is spiky: search on the far-field
       ones. The others' weights are zero during the search (the same compiled program; the
       report's `initial_loss` and the search's `stage_losses` are over the search targets).
+    - `noise`: the painted colours' standard deviation (colour units: a number, `(N,)` or
+      `(N, 3)`), `"weights"` (the weights are inverse variances) or None (estimated: 2.5 % of
+      the RMS weighted colour); what the checks of the answer compare the residual with
+      (`inverse._diagnostics`: a wrong minimum, outliers, conflicting targets).
+    - `warn`: emit a `FitQualityWarning` when the answer is flagged (a wrong minimum, an
+      escaped light, conflicting targets, an all-dark answer to "brighter than" relations);
+      the report's `quality` says so either way.
 
     **Returns:** `LightsFit(scene, lights, powers, material, residual, report, theta,
     parametrisations)`; `print(fit.report)` lists every parameter with its standard error,
@@ -332,6 +343,7 @@ def fit_lights(
     problem = _reweighted(problem, search_w)
     base = theta0.copy()
     stage_losses, n_solved, retries, runner_up = [], 0, 0, {}
+    final = None  # the last joint solve's rows and losses, best first: the competing placements
     initial = None
     placed = grid_rows is not None
     if placed:
@@ -399,6 +411,7 @@ def fit_lights(
                 n_solved += joint.shape[0]
                 f = np.where(np.isfinite(np.asarray(res.losses)), np.asarray(res.losses), np.inf)
                 joint = np.where(mask[None], np.asarray(res.values), base[None])[np.argsort(f)]
+                final = (joint, np.sort(f))
                 stage_losses.append(float(np.min(f)))
             if rnd or not placed:
                 break
@@ -419,8 +432,12 @@ def fit_lights(
         theta = theta0
     problem = _reweighted(problem, full_w)
     theta = _moved_outside(problem, np.asarray(theta, np.float64))
-    return _result(problem, np.asarray(theta, np.float64), idx, size, candidates, stage_losses, n_solved,
-                   retries, initial, project)
+    out = _result(problem, np.asarray(theta, np.float64), idx, size, candidates, stage_losses, n_solved,
+                  retries, initial, project, noise, final if P else None)
+    if warn:
+        for msg in out.report.quality.emitted:
+            _warnings.warn(msg, FitQualityWarning, stacklevel=2)
+    return out
 
 
 def _search_weights(targets: PaintedTargets, search: Any) -> Any:
@@ -533,7 +550,8 @@ def _alternate(problem: LightsProblem, theta: np.ndarray, joint: np.ndarray, bas
 
 
 def _result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, candidates: Any,
-            stage_losses: list, n_solved: int, retries: int, initial: float | None, project: bool) -> LightsFit:
+            stage_losses: list, n_solved: int, retries: int, initial: float | None, project: bool,
+            noise: Any = None, final: tuple | None = None) -> LightsFit:
     t, m = problem.targets, problem.material
     dt = t.points.dtype
     q = np.asarray(theta[problem.n_pose:], np.float64)  # the searched powers' roots, if any
@@ -614,20 +632,32 @@ def _result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, c
                         "ignore it).")
     if retries:
         warnings.append(f"solved again {retries} time(s) with a larger shadow capacity (the result is exact).")
+    fitted = build_lights(problem, th)
+    out_lights = tuple(scaled_light(light, jnp.asarray(pw, dt)) for light, pw in zip(fitted, powers, strict=True))
+    pose_names = names[:problem.n_pose]
+    light_params = {f"light{i}": tuple(nm for nm in names if nm.startswith(f"light{i}.")) for i in idx}
+    moved = {f"light{idx[j]}": out_lights[j] for j, p in enumerate(problem.params) if p is not None}
+    competing = () if final is None else competing_placements(np.asarray(final[0], np.float64)[:, :problem.n_pose],
+                                                              np.asarray(final[1], np.float64), pose_names)
+    dark = paint is not None and len(paint.pairs) > 0 and dark_answer(
+        np.tensordot(powers, per_light, axes=1), colours, w, paint.margin)
+    values_d = {nm: float(v) for nm, v in zip(names, values, strict=True)}
+    quality, determined = assess(
+        targets=t, residual=residual, noise=noise, n_params=len(names), names=names, std_errors=se, values=values_d,
+        determined=determined, scale=size, lights=moved, light_params=light_params, candidates=competing,
+        messages=warnings, all_dark=dark)
     fixed = [x for n, x in enumerate(problem.scene.lights) if n not in idx]
     suggestions, sugg_n = _suggest(problem, th, powers, mat, names, jac, ident.determined, candidates, free_p, k,
                                    fixed, project)
     report = LightsReport(
-        names=names, values={nm: float(v) for nm, v in zip(names, values, strict=True)}, std_errors=se,
+        names=names, values=values_d, std_errors=se,
         determined=determined, singular_values=ident.singular_values,
         targets_met=None if t.tolerance is None else np.all(np.abs(residual) <= np.asarray(t.tolerance), axis=1),
         warnings=tuple(warnings), correlated=correlated_pairs(jac, names, ident.determined),
         suggestions=suggestions, suggestion_normals=sugg_n, loss=0.5 * rss,
         initial_loss=math.nan if initial is None else float(initial), stage_losses=tuple(stage_losses),
-        starts_solved=n_solved, retries=retries, scale=size,
+        starts_solved=n_solved, retries=retries, scale=size, quality=quality,
     )
-    fitted = build_lights(problem, th)
-    out_lights = tuple(scaled_light(light, jnp.asarray(pw, dt)) for light, pw in zip(fitted, powers, strict=True))
     all_lights = list(problem.scene.lights)
     for j, i in enumerate(idx):
         all_lights[i] = out_lights[j]

@@ -185,6 +185,8 @@ def fit_light_and_material(
                 kw["orientation_spread"] = 0.25 * kw.get("orientation_spread", 0.5)
             else:
                 kw["starts"] = 1
+        if r < int(rounds) - 1:  # the material is still being fitted: only the last round's checks speak
+            kw["warn"] = False
         t0 = time.perf_counter()
         lf = fit_light(scene, targets, material, light_index, specular=specular, **kw)
         scene = lf.scene

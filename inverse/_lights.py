@@ -8,6 +8,7 @@ residual (`_residuals`), the starts (`_multistart`), a solver object (`_solvers`
 from __future__ import annotations
 
 import math
+import warnings
 from typing import Any, no_type_check
 
 import jax.numpy as jnp
@@ -15,6 +16,7 @@ import numpy as np
 
 import jaxshadow as js
 
+from ._diagnostics import FitQualityWarning, assess, competing_placements
 from ._forward import SpecularFn, shade
 from ._identifiability import identifiability
 from ._multistart import distinct_minima, make_starts
@@ -46,6 +48,8 @@ def fit_light(
     material_mode: str = "fixed",
     fit_exponent: bool = False,
     specular: SpecularFn | None = None,
+    noise: Any = None,
+    warn: bool = True,
     **deprecated: Any,
 ) -> LightFit:
     """Place light `light_index` of `scene` so the shading matches painted colours.
@@ -71,6 +75,12 @@ def fit_light(
       `fit_exponent=True` also $\\log n$ - is searched; `LightFit.material` holds them).
       Whether $k_s$ is used follows `material.ks != 0`.
     - `specular`: a callable like `js.specular` (default `js.specular`).
+    - `noise`: the painted colours' standard deviation (colour units: a number, `(N,)` or
+      `(N, 3)`), `"weights"` (the weights are inverse variances) or None (estimated: 2.5 % of
+      the RMS weighted colour); what the checks of the answer compare the residual with
+      (`inverse._diagnostics`: a wrong minimum, outliers, conflicting targets).
+    - `warn`: emit a `FitQualityWarning` when the answer is flagged (a wrong minimum, an
+      escaped light, conflicting targets); the report's `quality` says so either way.
 
     The keywords `refine`, `prune`, `receiver_groups` (ignored), `combinatorics`, `rtol`, `atol`,
     `max_steps` and string solvers (`"lm"`, ...) are deprecated: they are the solver's options.
@@ -108,7 +118,11 @@ def fit_light(
         logn = np.full((y0.shape[0], 1), np.log(float(material.exponent)))
         logn[1:, 0] += np.random.default_rng(seed).uniform(-np.log(3.0), np.log(3.0), y0.shape[0] - 1)
         y0 = jnp.concatenate([y0, jnp.asarray(logn, dt)], axis=1)
-    return _light_fit(problem, solver.minimise(problem, y0), solver.name, int(y0.shape[0]))
+    fitted = _light_fit(problem, solver.minimise(problem, y0), solver.name, int(y0.shape[0]), noise)
+    if warn:
+        for msg in fitted.report.quality.emitted:
+            warnings.warn(msg, FitQualityWarning, stacklevel=2)
+    return fitted
 
 
 def _checked_groups(scene: Any, targets: Any, light_index: Any, fit: Any, starts: int, material_mode: str) -> tuple:
@@ -132,7 +146,8 @@ def _checked_groups(scene: Any, targets: Any, light_index: Any, fit: Any, starts
     return fit
 
 
-def _light_fit(problem: LightProblem, sol: Solution, solver_name: str, n_screened: int) -> LightFit:
+def _light_fit(problem: LightProblem, sol: Solution, solver_name: str, n_screened: int,
+               noise: Any = None) -> LightFit:
     """The fitted scene, residual and report from a solver's `Solution`."""
     param, t, material = problem.param, problem.targets, problem.material
     names = (*param.names, "log_n") if problem.fit_exponent else param.names
@@ -164,14 +179,20 @@ def _light_fit(problem: LightProblem, sol: Solution, solver_name: str, n_screene
         model = shade(new_scene, material, t.points, t.normals, t.eye, problem.specular, problem.with_specular)
         residual = np.asarray(model, np.float64) - np.asarray(t.colours, np.float64)
     theta64 = np.asarray(theta, np.float64)
+    values = {nm: float(v) for nm, v in zip(names, theta64, strict=True)}
+    light_name = f"light{param.light_index}"
+    quality, determined = assess(
+        targets=t, residual=residual, noise=noise, n_params=len(names), names=names, std_errors=se, values=values,
+        determined=determined, scale=scale, lights={light_name: sol.light}, light_params={light_name: param.names},
+        candidates=competing_placements(np.asarray(sol.values, np.float64), losses, names), messages=msgs)
     report = LightReport(
-        names=names, values={nm: float(v) for nm, v in zip(names, theta64, strict=True)}, std_errors=se,
+        names=names, values=values, std_errors=se,
         determined=determined, singular_values=ident.singular_values,
         targets_met=None if t.tolerance is None else np.all(np.abs(residual) <= np.asarray(t.tolerance), axis=1),
         warnings=tuple(msgs), theta=theta64, loss=float(losses[sol.best]), initial_loss=sol.initial_loss,
         best_start=sol.best, start_losses=sol.losses, converged=sol.converged, num_steps=sol.num_steps,
         n_distinct_minima=distinct_minima(sol.values, losses, sol.converged, sol.best), n_screened=n_screened,
-        solver=solver_name, scale=scale, abandoned=sol.abandoned,
+        solver=solver_name, scale=scale, abandoned=sol.abandoned, quality=quality,
     )
     return LightFit(scene=new_scene, light=sol.light, residual=residual, report=report, parametrisation=param,
                     material=material)

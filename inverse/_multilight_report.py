@@ -18,6 +18,7 @@ from scipy.optimize import nnls
 
 import jaxshadow as js
 
+from ._diagnostics import FitQuality
 from ._reports import FitReport
 
 CORRELATION_THRESHOLD = 0.95
@@ -183,6 +184,9 @@ class LightsReport(FitReport):
       (powers projected); `stage_losses`: the best loss after each light's multistart, then
       after the joint refinement; `starts_solved`: starts solved in total; `retries`: solves
       repeated with a larger shadow capacity; `scale` (m); `warnings`.
+    - `quality`: the checks of `inverse._diagnostics` (`FitQuality`: a wrong minimum with the
+      competing placements of the last joint solve, escaped lights, outliers, conflicting
+      targets, nearly undetermined parameters, an all-dark answer to relations); `trusted`.
     """
 
     correlated: tuple
@@ -194,6 +198,7 @@ class LightsReport(FitReport):
     starts_solved: int
     retries: int
     scale: float
+    quality: FitQuality | None = None
 
     def _headline(self) -> str:
         return (f"lights fit: loss {self.initial_loss:.4g} -> {self.loss:.4g} "

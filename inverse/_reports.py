@@ -14,6 +14,7 @@ import numpy as np
 
 import jaxshadow as js
 
+from ._diagnostics import FitQuality
 from ._parametrisation import LightParametrisation
 
 
@@ -43,6 +44,12 @@ class FitReport:
     targets_met: np.ndarray | None
     warnings: tuple
 
+    @property
+    def trusted(self) -> bool:
+        """False when a light fit's checks flagged the answer (`quality.flags`; light fits only)."""
+        quality = getattr(self, "quality", None)
+        return True if quality is None else bool(quality.trusted)
+
     def _headline(self) -> str:
         return "fit"
 
@@ -55,6 +62,9 @@ class FitReport:
             flag = "" if self.determined.get(nm, True) else "  UNDETERMINED"
             lines.append(f"  {nm:10s} {self.values[nm]: .6g}  se={self.std_errors[nm]:.3g}{flag}")
         lines += self._extra_lines()
+        quality = getattr(self, "quality", None)
+        if quality is not None:
+            lines += quality.lines()
         lines.append(f"  singular values (unit columns): {np.array2string(self.singular_values, precision=3)}")
         lines += [f"  warning: {w}" for w in self.warnings]
         return "\n".join(lines)
@@ -113,6 +123,9 @@ class LightReport(FitReport):
       converged starts within 1 % of the best loss (a measure of ambiguity).
     - `solver` (its name: `"lm"`, `"optimistix"`, `"lbfgsb"`), `scale` (m);
       `abandoned (S,)`: starts stopped early by the LM's `prune` (their `converged` is False).
+    - `quality`: the checks of `inverse._diagnostics` (`FitQuality`: a wrong minimum, an escaped
+      light, outliers, conflicting targets, nearly undetermined parameters); `trusted` is
+      `quality.trusted`: False when the answer should not be used as is.
     """
 
     theta: np.ndarray
@@ -127,6 +140,7 @@ class LightReport(FitReport):
     solver: str
     scale: float
     abandoned: np.ndarray | None = None
+    quality: FitQuality | None = None
 
     def _headline(self) -> str:
         ok = int(np.count_nonzero(self.converged))

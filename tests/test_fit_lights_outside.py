@@ -29,11 +29,14 @@ def test_light_ends_outside_the_occluders_hull():
     assert _box_depth(np.array([0.0, 0.05, 1.3])) > 0  # the truth (the unconstrained optimum) is inside
     start = js.Scene([js.PointLight([0.5, 0.3, 1.6], 2.0)], occluders=PLATES, ambient=0.1)
     margin = 0.02
-    fit = inverse.fit_lights(start, targets, MATERIAL, fit=("position", "power"), starts=4,
-                             constraints={0: inverse.Outside([0, 1], margin=margin)})
+    # The constraint excludes every light that paints these targets: said out loud (#40).
+    with pytest.warns(inverse.FitQualityWarning, match="constraints that cannot paint these targets"):
+        fit = inverse.fit_lights(start, targets, MATERIAL, fit=("position", "power"), starts=4,
+                                 constraints={0: inverse.Outside([0, 1], margin=margin)})
     c = np.asarray(fit.lights[0].position)
     assert _box_depth(c) <= -margin + 1e-9, c
     assert fit.report.loss > 1e-8  # the constraint held the light away from the exact fit
+    assert "wrong_minimum" in fit.report.quality.flags
 
 
 def test_outside_errors():

@@ -1,0 +1,355 @@
+r"""Whether a light fit's answer can be trusted: the checks `fit_light` and `fit_lights` run on
+their solution, so that a wrong answer does not come back looking like a normal one.
+
+The rules (thresholds are the module's constants):
+
+- **Noise.** The painted colours' standard deviation $\sigma$ per target and channel is
+  `noise` when the caller gives it (a number, `(N,)` or `(N, 3)`, in colour units); with
+  `noise="weights"` the weights are inverse variances, $\sigma = 1/\sqrt{w}$; by default
+  (`noise=None`) it is estimated as $\sigma = s / \sqrt{w}$ with $s$ = `DEFAULT_RELATIVE_NOISE`
+  (2.5 %) of the RMS weighted colour $\sqrt{\sum w c^2 / m}$ ($m$ entries of positive weight):
+  the weights are relative, and a hand-painted colour is taken to be good to a few per cent.
+- **Wrong minimum.** The reduced chi-square $\chi^2_\nu = \sum (r/\sigma)^2 / \nu$, $\nu = m - p$,
+  over the targets that are not outliers (below), above `WRONG_MINIMUM_CHI2` (4: an RMS
+  residual twice the noise; by default, above 5 % of the RMS colour) means the solution does
+  not explain the targets: a wrong local minimum, or a model that cannot paint them. Then the
+  fit is not `trusted`, its standard errors are not (they assume the residual is noise), a
+  `FitQualityWarning` names the lights, and the report lists the multistart's other distinct
+  placements whose loss is within `COMPETING_FACTOR` (x 2) of the best.
+- **Outliers.** Per target and channel $u = r/\sigma$; a target is an outlier when some channel's
+  robust z-score $|u - \operatorname{med} u| / \max(1.4826 \operatorname{MAD} u, 1)$ exceeds
+  `OUTLIER_Z` (5; the floor 1 is the noise itself, so an exact fit has none). They are left
+  out of $\chi^2_\nu$ unless they are more than `OUTLIER_SHARE` (10 %) of the targets (then
+  the misfit is systematic, not a few bad targets).
+- **Conflicting targets.** Targets with the same point, normal and eye (to 1e-9 of the targets'
+  extent) whose colours differ by more than `CONFLICT_SIGMAS` (3) $\sqrt{\sigma_i^2 +
+  \sigma_j^2}$ in some channel: no light paints both; reported with a warning naming them.
+- **Escaping light.** A fitted light (its centre, vertices or ends) farther than `ESCAPE_FACTOR`
+  (10) times the targets' bounding-box diagonal from every target, or behind the tangent plane
+  of every target (no target sees it; a directional light shining on no target's front), or a
+  polygon facing away from every target: flagged, warned, its parameters not determined.
+- **Nearly undetermined.** A standard error above `NEAR_POSITION_FRACTION` (1/4) of the scene
+  size for a position, `NEAR_ORIENTATION` (30 degrees) for a rotation, `NEAR_LOG_SIZE` (log 2)
+  for a log size, or the value itself for a power: the parameter is marked not determined,
+  like an exactly undetermined one (`_identifiability`), with its finite error kept.
+- **All dark.** With "brighter than" relations, a fitted light that leaves every target
+  receiving less than `DARK_FRACTION` (1e-6) of the relations' margin or of the RMS colour
+  has met the relations trivially (nothing is brighter than nothing): flagged.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import numpy as np
+
+import jaxshadow as js
+
+WRONG_MINIMUM_CHI2 = 4.0
+DEFAULT_RELATIVE_NOISE = 0.025
+COMPETING_FACTOR = 2.0
+OUTLIER_Z = 5.0
+OUTLIER_SHARE = 0.1
+CONFLICT_SIGMAS = 3.0
+ESCAPE_FACTOR = 10.0
+NEAR_POSITION_FRACTION = 0.25
+NEAR_ORIENTATION = math.radians(30.0)
+NEAR_LOG_SIZE = math.log(2.0)
+DARK_FRACTION = 1e-6
+
+_POSITION = ("x", "y", "z", "a", "b")
+_ORIENTATION = ("rx", "ry", "rz", "ru", "rv")
+
+
+class FitQualityWarning(RuntimeWarning):
+    """A light fit's answer is not trustworthy: a wrong minimum (the residual is well above the
+    targets' noise), a light that escaped the region it can light the targets from, or painted
+    targets that contradict each other. The report (`quality`) says which."""
+
+
+@dataclasses.dataclass(frozen=True)
+class FitQuality:
+    """What the checks of `inverse._diagnostics` found (the rules are in its docstring).
+
+    - `trusted`: False when the answer should not be used as is (a wrong minimum or an escaped
+      light); `flags`: the reasons, from `"wrong_minimum"`, `"escaped"`, `"outliers"`,
+      `"conflicting_targets"`, `"all_dark"`.
+    - `chi2`: the reduced chi-square over the non-outlier targets; `dof`; `noise`: how the
+      colours' noise was set (`"given"`, `"weights"`, `"estimated"`).
+    - `std_errors_trusted`: False at a wrong minimum (the errors assume the residual is noise).
+    - `competing`: `((loss, {name: value}), ...)`, the multistart's distinct placements within
+      `COMPETING_FACTOR` of the best loss, best first (listed with two or more).
+    - `outliers`: target indices; `outlier_z (N,)`: each target's largest robust z-score.
+    - `conflicting`: `((i, j), ...)` targets at one point, normal and eye with conflicting colours.
+    - `escaped`: `{light name: reason}`; `nearly_undetermined`: names marked not determined for
+      a standard error above the limits; `emitted`: the messages the fit warns with
+      (`FitQualityWarning`).
+    """
+
+    trusted: bool
+    flags: tuple
+    chi2: float
+    dof: int
+    noise: str
+    std_errors_trusted: bool
+    competing: tuple
+    outliers: tuple
+    outlier_z: np.ndarray
+    conflicting: tuple
+    escaped: dict
+    nearly_undetermined: tuple
+    emitted: tuple = ()
+
+    def lines(self) -> list[str]:
+        """The report's lines for these checks."""
+        state = "trusted" if self.trusted else "NOT TRUSTED (" + ", ".join(self.flags) + ")"
+        out = [f"  quality: {state}; reduced chi2 {self.chi2:.3g} (dof {self.dof}, noise {self.noise})"]
+        for loss, vals in self.competing:
+            out.append(f"  competing placement: loss {loss:.4g}: "
+                       + ", ".join(f"{k}={v:.4g}" for k, v in vals.items()))
+        return out
+
+
+def noise_sigma(targets: Any, noise: Any) -> tuple[np.ndarray, str]:
+    """`(N, 3)` standard deviation of the painted colours (inf where the weight is 0) and how it
+    was set (module docstring)."""
+    w = np.asarray(targets.weights, np.float64)
+    c = np.asarray(targets.colours, np.float64)
+    n = w.shape[0]
+    pos = w > 0
+    if isinstance(noise, str):
+        if noise != "weights":
+            raise ValueError(f"noise must be None, 'weights' or standard deviations, got {noise!r}.")
+        return np.where(pos, 1.0 / np.sqrt(np.where(pos, w, 1.0)), np.inf), "weights"
+    if noise is not None:
+        s = np.asarray(noise, np.float64)
+        if s.ndim == 1 and s.shape[0] == n:
+            s = s[:, None]
+        try:
+            s = np.broadcast_to(s, (n, 3))
+        except ValueError:
+            raise ValueError(f"noise must be a scalar, (N,) or (N, 3) with N={n}, got shape {s.shape}.") from None
+        if not np.all(np.isfinite(s)) or np.any(s <= 0):
+            raise ValueError("noise: standard deviations must be finite and > 0.")
+        return np.where(pos, s, np.inf), "given"
+    m = max(int(np.count_nonzero(pos)), 1)
+    level = math.sqrt(float(np.sum(w * c * c)) / m)
+    s = DEFAULT_RELATIVE_NOISE * level if level > 0 else 1.0
+    return np.where(pos, s / np.sqrt(np.where(pos, w, 1.0)), np.inf), "estimated"
+
+
+def robust_z(residual: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """`(N,)` each target's largest robust z-score of $u = r/\\sigma$ over its channels (0 for
+    targets of zero weight)."""
+    u = np.asarray(residual, np.float64) / sigma
+    ok = np.isfinite(sigma)
+    if not ok.any():
+        return np.zeros(u.shape[0])
+    med = float(np.median(u[ok]))
+    mad = 1.4826 * float(np.median(np.abs(u[ok] - med)))
+    z = np.where(ok, np.abs(u - med) / max(mad, 1.0), 0.0)
+    return z.max(axis=1)
+
+
+def conflicting_targets(targets: Any, sigma: np.ndarray) -> tuple:
+    """`((i, j), ...)`: targets at one point, normal and eye (to 1e-9 of the targets' extent)
+    whose colours differ by more than `CONFLICT_SIGMAS` joint standard deviations."""
+    p = np.asarray(targets.points, np.float64)
+    key_scale = max(float(np.linalg.norm(p.max(axis=0) - p.min(axis=0))), 1.0) * 1e-9
+    keys = np.concatenate([p / key_scale, np.asarray(targets.normals, np.float64) / 1e-9,
+                           np.asarray(targets.eye, np.float64) / key_scale], axis=1)
+    keys = np.round(keys).astype(np.int64)
+    groups: dict[bytes, list[int]] = {}
+    for i, k in enumerate(keys):
+        groups.setdefault(k.tobytes(), []).append(i)
+    c = np.asarray(targets.colours, np.float64)
+    out = []
+    for idx in groups.values():
+        for a in range(len(idx)):
+            for b in range(a + 1, len(idx)):
+                i, j = idx[a], idx[b]
+                s = np.sqrt(sigma[i] ** 2 + sigma[j] ** 2)
+                ok = np.isfinite(s)
+                if np.any(np.abs(c[i] - c[j])[ok] > CONFLICT_SIGMAS * s[ok]):
+                    out.append((i, j))
+    return tuple(out)
+
+
+def competing_placements(values: np.ndarray, losses: np.ndarray, names: tuple, tol: float = 1e-3) -> tuple:
+    """`((loss, {name: value}), ...)`: the distinct rows of `values (S, P)` (more than `tol`
+    apart) whose finite loss is within `COMPETING_FACTOR` of the lowest, best first; empty
+    when there are fewer than two."""
+    f = np.where(np.isfinite(losses), losses, np.inf)
+    if not np.isfinite(f).any():
+        return ()
+    best = float(np.min(f))
+    reps: list[tuple[float, np.ndarray]] = []
+    for i in np.argsort(f, kind="stable"):
+        if not f[i] <= COMPETING_FACTOR * best + 1e-300:
+            break
+        if all(np.max(np.abs(values[i] - q)) > tol for _, q in reps):
+            reps.append((float(f[i]), np.asarray(values[i], np.float64)))
+    if len(reps) < 2:
+        return ()
+    return tuple((loss, {nm: float(v) for nm, v in zip(names, q, strict=False)}) for loss, q in reps)
+
+
+def escape_reason(light: Any, targets: Any) -> str | None:
+    """Why `light` cannot be where the targets' light comes from (module docstring), or None."""
+    w = np.asarray(targets.weights, np.float64)
+    keep = np.any(w > 0, axis=1)
+    p = np.asarray(targets.points, np.float64)[keep]
+    n = np.asarray(targets.normals, np.float64)[keep]
+    if isinstance(light, js.DirectionalLight):
+        d = np.asarray(light.direction, np.float64)
+        return None if np.any(n @ -d > 0) else "it shines on no target's front side"
+    if isinstance(light, js.PolygonLight):
+        pts = np.asarray(light.vertices, np.float64)
+    elif isinstance(light, js.LinearLight):
+        pts = np.stack([np.asarray(light.start, np.float64), np.asarray(light.end, np.float64)])
+    elif isinstance(light, js.PointLight):
+        pts = np.asarray(light.position, np.float64)[None]
+    else:
+        return None
+    diag = float(np.linalg.norm(p.max(axis=0) - p.min(axis=0)))
+    dist = float(np.min(np.linalg.norm(pts.mean(axis=0)[None] - p, axis=1)))
+    if diag > 0 and dist > ESCAPE_FACTOR * diag:
+        return (f"it is {dist:.3g} m from the nearest target, more than {ESCAPE_FACTOR:g} times the targets' "
+                f"extent ({diag:.3g} m)")
+    above = np.einsum("vnk,nk->vn", pts[:, None, :] - p[None], n)  # (V, N): light points over target planes
+    if not np.any(above > 0):
+        return "it is behind every target's tangent plane"
+    if isinstance(light, js.PolygonLight):
+        e1, e2 = pts[1] - pts[0], pts[2] - pts[0]
+        m = np.cross(e1, e2)
+        if not np.any((p - pts.mean(axis=0)) @ m > 0):
+            return "it faces away from every target"
+    return None
+
+
+def nearly_undetermined(names: tuple, std_errors: dict, values: dict, scale: float,
+                        determined: dict) -> tuple:
+    """The names of determined parameters whose standard error is above the module's limits."""
+    out = []
+    for nm in names:
+        se = std_errors[nm]
+        if not determined[nm] or not math.isfinite(se):
+            continue
+        base = nm.rsplit(".", 1)[-1]
+        if base in _POSITION:
+            limit = NEAR_POSITION_FRACTION * scale
+        elif base in _ORIENTATION:
+            limit = NEAR_ORIENTATION
+        elif base.startswith("log_"):
+            limit = NEAR_LOG_SIZE
+        elif base == "power":
+            limit = abs(values[nm])
+        else:
+            continue
+        if se > limit and (base != "power" or values[nm] > 0):
+            out.append(nm)
+    return tuple(out)
+
+
+def dark_answer(light_part: np.ndarray, colours: np.ndarray, weights: np.ndarray, margin: np.ndarray) -> bool:
+    """Whether the fitted lights' part of the model `light_part (N, 3)` is near zero at every
+    target: below `DARK_FRACTION` of the largest relation margin or of the RMS colour."""
+    c = np.asarray(colours, np.float64)
+    pos = np.asarray(weights) > 0
+    level = math.sqrt(float(np.mean(c[pos] ** 2))) if pos.any() else 0.0
+    ref = max(float(np.max(np.abs(margin), initial=0.0)), level)
+    lum = np.abs(np.asarray(light_part, np.float64)) @ np.array([0.2126, 0.7152, 0.0722])
+    return bool(ref > 0 and np.max(lum) <= DARK_FRACTION * ref)
+
+
+def _limit_text(nm: str, scale: float) -> str:
+    base = nm.rsplit(".", 1)[-1]
+    if base in _POSITION:
+        return f"{NEAR_POSITION_FRACTION:g} of the scene size ({NEAR_POSITION_FRACTION * scale:.3g} m)"
+    if base in _ORIENTATION:
+        return f"{math.degrees(NEAR_ORIENTATION):g} degrees"
+    if base.startswith("log_"):
+        return "a factor 2"
+    return "its value"
+
+
+def assess(*, targets: Any, residual: np.ndarray, noise: Any, n_params: int, names: tuple, std_errors: dict,
+           values: dict, determined: dict, scale: float, lights: dict, light_params: dict,
+           candidates: tuple = (), messages: list, all_dark: bool = False) -> tuple[FitQuality, dict]:
+    """Run the checks on a fit's solution.
+
+    **Arguments:** `targets`; `residual (N, 3)` = model - colours (unweighted); `noise` (module
+    docstring); `n_params`: free parameters; `names`, `std_errors`, `values`, `determined` as in
+    the report; `scale`: the scene size (m); `lights`: {light name: fitted light} to check for
+    escape; `light_params`: {light name: its parameter names}; `candidates`: the competing
+    placements (`competing_placements`); `messages`: the report's warnings, extended here;
+    `all_dark`: the fitted lights leave every target dark (`dark_answer`) under relations.
+
+    **Returns:** `(quality, determined (updated))`; `quality.emitted`: the warnings to emit.
+    """
+    determined = dict(determined)
+    sigma, how = noise_sigma(targets, noise)
+    r = np.asarray(residual, np.float64)
+    z = robust_z(r, sigma)
+    pos = np.isfinite(sigma)
+    n_targets = int(np.count_nonzero(pos.any(axis=1)))
+    out_idx = np.flatnonzero(z > OUTLIER_Z)
+    inlier = pos.copy()
+    if 0 < out_idx.size <= OUTLIER_SHARE * n_targets:
+        inlier[out_idx] = False
+    m = int(np.count_nonzero(inlier))
+    dof = max(m - int(n_params), 1)
+    chi2 = float(np.sum(np.where(inlier, (r / np.where(inlier, sigma, 1.0)) ** 2, 0.0))) / dof
+    flags, emit = [], []
+    light_list = ", ".join(lights) if lights else "the lights"
+    wrong = chi2 > WRONG_MINIMUM_CHI2
+    if wrong:
+        flags.append("wrong_minimum")
+        msg = (f"{light_list}: the residual is well above the targets' noise (reduced chi-square {chi2:.3g} > "
+               f"{WRONG_MINIMUM_CHI2:g}, noise {how}): a wrong minimum (or a model or constraints that "
+               "cannot paint these targets); the standard errors are not trustworthy")
+        if len(candidates) > 1:
+            msg += f"; {len(candidates)} competing placements within a factor {COMPETING_FACTOR:g} of the best loss"
+        messages.append(msg + ".")
+        emit.append(msg + ".")
+    escaped = {}
+    for nm, light in lights.items():
+        why = escape_reason(light, targets)
+        if why is not None:
+            escaped[nm] = why
+            for p in light_params.get(nm, ()):
+                determined[p] = False
+            msg = f"{nm} escaped the region it can light the targets from: {why}."
+            messages.append(msg)
+            emit.append(msg)
+    if escaped:
+        flags.append("escaped")
+    near = nearly_undetermined(names, std_errors, values, scale, determined)
+    for nm in near:
+        determined[nm] = False
+        messages.append(f"{nm} is nearly undetermined by these targets: standard error {std_errors[nm]:.3g} > "
+                        f"{_limit_text(nm, scale)}.")
+    if out_idx.size:
+        flags.append("outliers")
+        messages.append(f"target(s) {out_idx.tolist()} are outliers (robust z > {OUTLIER_Z:g} at the solution).")
+    conflicting = conflicting_targets(targets, sigma)
+    if conflicting:
+        flags.append("conflicting_targets")
+        msg = (f"targets {', '.join(f'{i} and {j}' for i, j in conflicting)} share a point, normal and eye but "
+               "their colours conflict (beyond the noise): no light paints both.")
+        messages.append(msg)
+        emit.append(msg)
+    if all_dark:
+        flags.append("all_dark")
+        msg = (f"{light_list}: the fitted lights leave every target dark: the \"brighter than\" relations are met "
+               "trivially (nothing is brighter than nothing); paint a colour or a margin.")
+        messages.append(msg)
+        emit.append(msg)
+    quality = FitQuality(
+        trusted=not (wrong or escaped or all_dark), flags=tuple(flags), chi2=chi2, dof=dof, noise=how,
+        std_errors_trusted=not wrong, competing=tuple(candidates),
+        outliers=tuple(int(i) for i in out_idx), outlier_z=z, conflicting=conflicting, escaped=escaped,
+        nearly_undetermined=near, emitted=tuple(emit))
+    return quality, determined

@@ -1,0 +1,222 @@
+"""Issue #40: light fits say when their answer is not to be trusted (`inverse._diagnostics`).
+
+The targets are painted by `js.shade` from a known scene; a point light over a floor of 30
+targets with a square occluder between them (hard shadows: the loss has steps, so a start far
+from the truth stops in a wrong minimum).
+"""
+
+import re
+import warnings
+
+import numpy as np
+import pytest
+
+import inverse
+import jaxshadow as js
+from inverse import _diagnostics as diag
+
+MATERIAL = js.Material(ka=0.2, kd=0.6, ks=0.0, exponent=1.0)
+EYE = np.array([0.0, -2.0, 2.0])
+OCCLUDER = np.array([[[-0.4, -0.4, 0.6], [0.4, -0.4, 0.6], [0.4, 0.4, 0.6], [-0.4, 0.4, 0.6]]])
+TRUE = [0.5, 0.2, 1.4]
+
+
+def _floor(n=30, seed=0):
+    rng = np.random.default_rng(seed)
+    return np.c_[rng.uniform(-1, 1, (n, 2)), np.zeros(n)], np.tile([0.0, 0.0, 1.0], (n, 1))
+
+
+def _targets(occluders=OCCLUDER, colours=None):
+    pts, nrm = _floor()
+    true = js.Scene([js.PointLight(TRUE, 3.0)], occluders=occluders, ambient=0.05)
+    col = js.shade(true, MATERIAL, pts, nrm, EYE) if colours is None else colours
+    return inverse.PaintedTargets(pts, nrm, col, EYE)
+
+
+def _fit_light(start, targets=None, occluders=OCCLUDER, **kw):
+    scene = js.Scene([js.PointLight(start, 3.0)], occluders=occluders, ambient=0.05)
+    kw.setdefault("starts", 1)
+    kw.setdefault("solver", inverse.LM(refine=None))
+    return inverse.fit_light(scene, _targets(occluders) if targets is None else targets, MATERIAL,
+                             fit=("position",), **kw)
+
+
+def test_fit_light_wrong_minimum_is_flagged_and_a_near_start_is_not():
+    with pytest.warns(inverse.FitQualityWarning, match=r"light0: the residual is well above"):
+        fit = _fit_light([-1.5, 0.5, 1.0])
+    q = fit.report.quality
+    assert np.linalg.norm(np.asarray(fit.light.position) - TRUE) > 0.3  # the wrong minimum indeed
+    assert not fit.report.trusted and "wrong_minimum" in q.flags and q.chi2 > diag.WRONG_MINIMUM_CHI2
+    assert not q.std_errors_trusted and q.noise == "estimated"
+    assert "NOT TRUSTED" in str(fit.report)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        good = _fit_light([0.52, 0.22, 1.38])
+    np.testing.assert_allclose(good.light.position, TRUE, atol=1e-6)
+    assert good.report.trusted and good.report.quality.flags == () and good.report.quality.std_errors_trusted
+
+
+def test_fit_light_lists_competing_placements_at_a_wrong_minimum():
+    with pytest.warns(inverse.FitQualityWarning, match="competing placements"):
+        fit = _fit_light([-1.5, 0.5, 1.0], starts=8, search_radius=0.3, solver=inverse.LM(refine=None, prune=False))
+    comp = fit.report.quality.competing
+    assert len(comp) >= 2 and "competing placement" in str(fit.report)
+    losses = [loss for loss, _ in comp]
+    assert losses == sorted(losses) and losses[-1] <= diag.COMPETING_FACTOR * losses[0]
+    assert losses[0] == pytest.approx(fit.report.loss) and set(comp[0][1]) == {"x", "y", "z"}
+
+
+def test_given_noise_decides_what_is_well_above_it():
+    """The same wrong minimum is sound for colours said to be as noisy as its residual."""
+    targets = _targets()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fit = _fit_light([-1.5, 0.5, 1.0], targets=targets, noise=0.5)
+    assert fit.report.trusted and fit.report.quality.noise == "given" and fit.report.quality.chi2 < 1
+    with pytest.warns(inverse.FitQualityWarning):
+        fit = _fit_light([-1.5, 0.5, 1.0], targets=targets.with_weights(1e6), noise="weights")
+    assert fit.report.quality.noise == "weights" and not fit.report.trusted
+
+
+def test_fit_light_escaping_light_is_flagged():
+    """A light started below the floor stays there (no target sees it): flagged, not determined."""
+    with pytest.warns(inverse.FitQualityWarning) as rec:
+        fit = _fit_light([0.3, 0.2, -0.5], occluders=None)
+    assert any(re.search("light0 escaped .* behind every target", str(r.message)) for r in rec)
+    q = fit.report.quality
+    assert "escaped" in q.flags and "light0" in q.escaped and not fit.report.trusted
+    assert not any(fit.report.determined.values())
+
+
+def test_escape_rules():
+    targets = _targets(occluders=None)
+    far = js.PointLight([0.0, 0.0, 40.0], 1.0)   # > 10 x the targets' 2.7 m diagonal
+    assert "more than 10 times" in diag.escape_reason(far, targets)
+    assert diag.escape_reason(js.PointLight([0.0, 0.0, 20.0], 1.0), targets) is None
+    up = np.array([[-0.2, -0.2, 1.0], [0.2, -0.2, 1.0], [0.2, 0.2, 1.0], [-0.2, 0.2, 1.0]])
+    assert diag.escape_reason(js.PolygonLight(up, 1.0), targets) == "it faces away from every target"
+    assert diag.escape_reason(js.PolygonLight(up[::-1], 1.0), targets) is None
+    assert "no target's front" in diag.escape_reason(js.DirectionalLight([0.0, 0.0, 1.0], 1.0), targets)
+    assert diag.escape_reason(js.DirectionalLight([0.3, 0.0, -1.0], 1.0), targets) is None
+
+
+def _quad(centre, half, angle):
+    """A square light facing down (-z), turned by `angle` about the vertical."""
+    c, s = np.cos(angle), np.sin(angle)
+    v = np.array([[-half, -half], [-half, half], [half, half], [half, -half]]) @ np.array([[c, s], [-s, c]])
+    return np.c_[v + np.asarray(centre[:2]), np.full(4, centre[2])]
+
+
+def test_nearly_undetermined_parameter_is_flagged_like_an_undetermined_one():
+    """A small square light 1.5 m over the floor: its turn about its own normal (rz) changes the
+    colours by a hundredth of what a tilt does (not exactly undetermined: a singular value
+    0.04 of the largest); with 1 % noise its standard error is many radians."""
+    pts, nrm = _floor()
+    true = js.Scene([js.PolygonLight(_quad([0.2, 0.1, 1.5], 0.15, 0.2), 5.0)], ambient=0.05)
+    col = np.asarray(js.shade(true, MATERIAL, pts, nrm, EYE))
+    col = col * (1.0 + 0.01 * np.random.default_rng(3).normal(size=col.shape))
+    targets = inverse.PaintedTargets(pts, nrm, col, EYE)
+    start = js.Scene([js.PolygonLight(_quad([0.2, 0.1, 1.5], 0.15, 0.0), 5.0)], ambient=0.05)
+    fit = inverse.fit_light(start, targets, MATERIAL, fit=("orientation",), starts=1,
+                            solver=inverse.LM(refine=None))
+    rep = fit.report
+    assert rep.trusted and "rz" in rep.quality.nearly_undetermined
+    assert min(rep.singular_values) > 1e-3 * max(rep.singular_values)  # not an exact null direction
+    assert not rep.determined["rz"] and rep.determined["ry"]
+    assert np.isfinite(rep.std_errors["rz"]) and rep.std_errors["rz"] > diag.NEAR_ORIENTATION
+    assert any("rz is nearly undetermined" in w for w in rep.warnings) and "UNDETERMINED" in str(rep)
+
+
+def test_nearly_undetermined_rule():
+    names = ("light0.x", "light0.rx", "light0.log_sx", "light0.power", "light0.z")
+    se = {"light0.x": 0.3, "light0.rx": 0.6, "light0.log_sx": 0.8, "light0.power": 2.0, "light0.z": 0.1}
+    values = dict.fromkeys(names, 1.0)
+    det = dict.fromkeys(names, True)
+    assert diag.nearly_undetermined(names, se, values, 1.0, det) == names[:4]
+    assert diag.nearly_undetermined(names, se, values, 2.0, det) == names[1:4]
+
+
+def test_fit_light_outlier_and_conflicting_duplicate_targets_are_reported():
+    """One target painted 50 % too bright is listed (and left out of the misfit test, so the fit
+    stays trusted; at 2x it pulls the least-squares light so far that the rest misfit too); a
+    target painted again 30 % brighter conflicts with its first painting: warned about."""
+    pts, nrm = _floor()
+    true = js.Scene([js.PointLight(TRUE, 3.0)], ambient=0.05)
+    col = np.array(js.shade(true, MATERIAL, pts, nrm, EYE))
+    col[7] *= 1.5
+    pts2, nrm2 = np.r_[pts, pts[4:5]], np.r_[nrm, nrm[4:5]]
+    col2 = np.r_[col, col[4:5] * 1.3]
+    targets = inverse.PaintedTargets(pts2, nrm2, col2, EYE)
+    with pytest.warns(inverse.FitQualityWarning, match="targets 4 and 30 share a point"):
+        fit = _fit_light([0.45, 0.25, 1.3], targets=targets, occluders=None)
+    q = fit.report.quality
+    assert 7 in q.outliers and q.outlier_z[7] > diag.OUTLIER_Z
+    assert q.conflicting == ((4, 30),) and "conflicting_targets" in q.flags
+    assert "wrong_minimum" not in q.flags and fit.report.trusted
+    # The same point painted twice alike is no conflict.
+    same = inverse.PaintedTargets(pts2, nrm2, np.r_[col, col[4:5]], EYE)
+    sigma, _ = diag.noise_sigma(same, None)
+    assert diag.conflicting_targets(same, sigma) == ()
+
+
+# --------------------------------------------------------------------------------------
+# fit_lights: the same checks
+# --------------------------------------------------------------------------------------
+
+
+def _fit_lights(start, targets=None, occluders=OCCLUDER, fit=("position",), **kw):
+    scene = js.Scene([js.PointLight(start, 3.0)], occluders=occluders, ambient=0.05)
+    kw.setdefault("starts", 1)
+    return inverse.fit_lights(scene, _targets(occluders) if targets is None else targets, MATERIAL, fit=fit,
+                              sweeps=1, **kw)
+
+
+def test_fit_lights_wrong_minimum_is_flagged_and_a_near_start_is_not():
+    with pytest.warns(inverse.FitQualityWarning, match=r"light0: the residual is well above"):
+        fit = _fit_lights([-1.5, 0.5, 1.0])
+    q = fit.report.quality
+    assert np.linalg.norm(np.asarray(fit.lights[0].position) - TRUE) > 0.3
+    assert not fit.report.trusted and q.flags == ("wrong_minimum",) and not q.std_errors_trusted
+    assert "NOT TRUSTED" in str(fit.report)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        good = _fit_lights([0.52, 0.22, 1.38])
+    np.testing.assert_allclose(good.lights[0].position, TRUE, atol=1e-6)
+    assert good.report.trusted and good.report.quality.flags == ()
+
+
+def test_fit_lights_escaping_light_is_flagged():
+    with pytest.warns(inverse.FitQualityWarning) as rec:
+        fit = _fit_lights([0.3, 0.2, -0.5], occluders=None, fit=("position", "power"))
+    assert any("light0 escaped" in str(r.message) for r in rec)
+    q = fit.report.quality
+    assert "escaped" in q.flags and set(q.escaped) == {"light0"} and not fit.report.trusted
+    assert not any(v for k, v in fit.report.determined.items() if k.startswith("light0."))
+
+
+def test_fit_lights_outlier_and_conflicting_duplicate_targets_are_reported():
+    pts, nrm = _floor()
+    true = js.Scene([js.PointLight(TRUE, 3.0)], ambient=0.05)
+    col = np.array(js.shade(true, MATERIAL, pts, nrm, EYE))
+    col[7] *= 1.5
+    targets = inverse.PaintedTargets(np.r_[pts, pts[4:5]], np.r_[nrm, nrm[4:5]], np.r_[col, col[4:5] * 1.3], EYE)
+    with pytest.warns(inverse.FitQualityWarning, match="targets 4 and 30 share a point"):
+        fit = _fit_lights([0.45, 0.25, 1.3], targets=targets, occluders=None, fit=("position", "power"))
+    q = fit.report.quality
+    assert 7 in q.outliers and q.conflicting == ((4, 30),) and fit.report.trusted
+    assert any("are outliers" in w for w in fit.report.warnings)
+
+
+def test_relations_met_by_an_all_dark_answer_are_flagged():
+    """Targets painted only as "0 brighter than 1" (any colour, by a range) with the light held
+    over target 1: only no light at all meets the relation; that answer is flagged."""
+    pts = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.5, 0.5, 0.0], [-0.5, 0.5, 0.0]])
+    nrm = np.tile([0.0, 0.0, 1.0], (4, 1))
+    targets = inverse.PaintedTargets(pts, nrm, np.full((4, 3), 0.1), EYE)
+    ranges = inverse.ColourRange([0, 1, 2, 3], 0.0, float("inf"))
+    scene = js.Scene([js.PointLight([0.0, 0.0, 1.0], 3.0)], ambient=0.05)
+    with pytest.warns(inverse.FitQualityWarning, match="every target dark"):
+        fit = inverse.fit_lights(scene, targets, MATERIAL, fit=("power",), ranges=ranges,
+                                 brighter=inverse.Brighter([[0, 1]]))
+    assert fit.powers[0] == pytest.approx(0.0, abs=1e-9)
+    assert "all_dark" in fit.report.quality.flags and not fit.report.trusted
