@@ -32,7 +32,15 @@ import numpy as np
 
 from ._files import atomic_write_path
 from ._meshio import tonemap
-from .cli import Progress, _say, check_input, check_output, int_at_least, positive_int
+from .cli import (
+    Progress,
+    _say,
+    check_input,
+    check_output,
+    check_outputs_are_not_inputs,
+    int_at_least,
+    positive_int,
+)
 
 IMAGE_EXTS = (".exr", ".png")
 
@@ -242,6 +250,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     if args.spp_compare is not None:
         compare = args.compare_output or os.path.splitext(args.output[0])[0] + "_compare.png"
         check_output(compare, (".png",), "--compare-output")
+        check_outputs_are_not_inputs([*args.output, compare], [args.scene])
     import jax
 
     jax.config.update("jax_enable_x64", True)

@@ -17,7 +17,8 @@
   receiver polygon (exact irradiance at the vertices), as PLY or glTF.
 
 Conventions: every output path is used exactly as given and its format follows its extension;
-inputs, outputs and options are checked before any computation; outputs are written to a
+an output that is an input file (or an input scene's arrays file) is refused; inputs, outputs
+and options are checked before any computation; outputs are written to a
 temporary file renamed into place, so an interrupted run leaves no partial file. Exit codes:
 0 success, 1 internal error (a bug: please report it), 2 usage error or bad input, 3 `report`
 found a disagreement with Mitsuba beyond 4 standard errors.
@@ -113,6 +114,46 @@ def check_directory(directory: str, what: str = "output", create: bool = False) 
     if not os.access(probe, os.W_OK | os.X_OK):
         raise PermissionError(f"{what}: directory {probe!r} is not writable.")
     return d
+
+
+# The argument names every command (the plugins' too) gives its input files and its outputs;
+# `main` checks that no output is an input before running the command.
+INPUT_ARGUMENTS = ("scene", "points", "targets", "receiver")
+OUTPUT_ARGUMENTS = ("output", "compare_output")
+
+
+def same_file(a: str, b: str) -> bool:
+    """Whether paths `a` and `b` name one file: `os.path.samefile` when both exist (links,
+    hard links), else the same resolved path."""
+    if os.path.exists(a) and os.path.exists(b):
+        return os.path.samefile(a, b)
+    return os.path.realpath(a) == os.path.realpath(b)
+
+
+def check_outputs_are_not_inputs(outputs: Sequence[str], inputs: Sequence[str]) -> None:
+    """`ValueError` when an output path is an input file (or the arrays file of an input scene
+    JSON, `<stem>.meshes.npz`) or two outputs are one file: writing it would destroy the input
+    or the other output."""
+    from ._scene import arrays_file_name
+
+    files = list(inputs)
+    files += [os.path.join(os.path.dirname(p), arrays_file_name(p)) for p in inputs if p.lower().endswith(".json")]
+    for i, out in enumerate(outputs):
+        for inp in files:
+            if same_file(out, inp):
+                raise ValueError(f"output {out!r} is the input {inp!r}: writing it would destroy the input; "
+                                 "choose another output path.")
+        for other in outputs[:i]:
+            if same_file(out, other):
+                raise ValueError(f"outputs {other!r} and {out!r} are the same file.")
+
+
+def _paths(args: argparse.Namespace, names: Sequence[str]) -> list[str]:
+    found: list[str] = []
+    for name in names:
+        value = getattr(args, name, None)
+        found += [value] if isinstance(value, str) else [v for v in (value or []) if isinstance(v, str)]
+    return found
 
 
 def read_scene(path: str) -> tuple[Any, list, list]:
@@ -428,6 +469,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        check_outputs_are_not_inputs(_paths(args, OUTPUT_ARGUMENTS), _paths(args, INPUT_ARGUMENTS))
         if not args.no_compile_cache:
             enable_compile_cache(args.compile_cache)
         return int(args.func(args) or 0)

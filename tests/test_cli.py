@@ -351,3 +351,40 @@ def test_compile_cache_option(tmp_path, monkeypatch):
     (tmp_path / "file").write_text("")
     with pytest.raises(PermissionError, match="--compile-cache: cannot create"):
         enable_compile_cache(str(tmp_path / "file" / "xla"))
+
+
+def test_an_output_that_is_an_input_is_refused(tmp_path, capsys, monkeypatch):
+    def forbidden(*args, **kw):
+        raise AssertionError("computed before the arguments were checked")
+
+    monkeypatch.setattr(js, "irradiance", forbidden)
+    monkeypatch.setattr(js, "illumination_mesh", forbidden)
+    import inverse.cli as icli
+
+    monkeypatch.setattr(icli, "fit_material", forbidden)
+    p = np.zeros((3, 6))
+    np.save(tmp_path / "pts.npy", p)
+    scene = tmp_path / "scene.json"
+    js.save_scene(js.load_scene(ROOM), scene)
+    (tmp_path / "scene.xml").write_text("<scene version='3.0.0'/>")
+    before = {f: (tmp_path / f).read_bytes() for f in os.listdir(tmp_path)}
+    os.symlink(tmp_path / "pts.npy", tmp_path / "link.npy")
+    cases = [
+        (["irradiance", str(scene), str(tmp_path / "pts.npy"), "-o", str(tmp_path / "pts.npy")], "pts.npy"),
+        (["irradiance", str(scene), str(tmp_path / "pts.npy"), "-o", str(tmp_path / "link.npy")], "pts.npy"),
+        (["irradiance", str(scene), str(tmp_path / "pts.npy"), "-o", str(tmp_path / "." / "scene.json")], "scene.json"),
+        (["render", str(tmp_path / "scene.xml"), "-o", str(tmp_path / "scene.xml")], "scene.xml"),
+        (["render", str(tmp_path / "scene.xml"), "-o", str(tmp_path / "a.png"), "-o", str(tmp_path / "a.png")], "a.png"),
+        (["mesh", str(scene), "-o", str(scene)], "scene.json"),
+        (["fit", str(scene), str(tmp_path / "pts.npy"), "-o", str(scene)], "scene.json"),
+    ]
+    for argv, name in cases:
+        rc, err = _run([NC, *argv], capsys)
+        assert rc == 2, (argv, err)
+        assert "the same file" in err or ("writing it would destroy the input" in err and name in err), (argv, err)
+    # an input scene's arrays file is an input too
+    js.save_scene(js.Scene([], occluders=[js.Mesh([[0, 0, 1], [1, 0, 1], [0, 1, 1]], [[0, 1, 2]])]), scene)
+    before = {f: (tmp_path / f).read_bytes() for f in os.listdir(tmp_path) if f != "link.npy"}
+    rc, err = _run([NC, "irradiance", str(scene), str(tmp_path / "pts.npy"), "-o", str(tmp_path / "scene.meshes.npz")], capsys)
+    assert rc == 2 and "scene.meshes.npz" in err and "destroy the input" in err
+    assert {f: (tmp_path / f).read_bytes() for f in os.listdir(tmp_path) if f != "link.npy"} == before
