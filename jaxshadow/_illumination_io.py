@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from ._files import atomic_write_path
+from ._meshio import IRRADIANCE_PROPERTY
 
 FORMATS = {".ply": "ply", ".glb": "glb", ".gltf": "gltf"}
 
@@ -44,7 +45,7 @@ def save_mesh(mesh: Any, path: str | os.PathLike) -> None:
                          process=False)
     if ext == ".ply":
         for c, name in enumerate("rgb"):
-            tm.vertex_attributes[f"irradiance_{name}"] = np.ascontiguousarray(mesh.irradiance[:, c], np.float64)
+            tm.vertex_attributes[f"{IRRADIANCE_PROPERTY}_{name}"] = np.ascontiguousarray(mesh.irradiance[:, c], np.float64)
         atomic_write_path(path, lambda tmp: tm.export(tmp, file_type="ply"))
     elif ext == ".glb":
         atomic_write_path(path, lambda tmp: tm.export(tmp, file_type="glb"))

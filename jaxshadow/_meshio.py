@@ -23,6 +23,7 @@ from __future__ import annotations
 import csv
 import io
 import os
+import re
 import warnings
 from typing import Any
 
@@ -33,6 +34,8 @@ from ._files import atomic_write
 MESH_EXTS = (".obj", ".ply", ".glb", ".gltf", ".stl", ".off")
 TABLE_EXTS = (".csv", ".npy", ".npz")
 POINT_COLUMNS = ("px", "py", "pz", "nx", "ny", "nz")
+# The PLY float properties of irradiance, `irradiance_r/g/b`, in every PLY the project writes.
+IRRADIANCE_PROPERTY = "irradiance"
 
 
 def _trimesh() -> Any:
@@ -188,7 +191,7 @@ def tonemap(values: Any, exposure: float | None = None) -> np.ndarray:
 
 
 def write_ply(path: str | os.PathLike, mesh: ReceiverMesh, values: Any, *, at: str = "vertices",
-              name: str = "value", exposure: float | None = None) -> None:
+              name: str = IRRADIANCE_PROPERTY, exposure: float | None = None) -> None:
     """Write `mesh` as a binary PLY with `values` as colours and as float properties.
 
     **Arguments:**
@@ -197,7 +200,10 @@ def write_ply(path: str | os.PathLike, mesh: ReceiverMesh, values: Any, *, at: s
     - `mesh`: a `ReceiverMesh`.
     - `values`: `(V, 3)` (`at="vertices"`) or `(F, 3)` (`at="faces"`) linear RGB values, e.g.
       irradiance (W/m^2) or radiance.
-    - `name`: the float properties are `{name}_r`, `{name}_g`, `{name}_b` (float64).
+    - `name`: the float properties are `{name}_r`, `{name}_g`, `{name}_b` (float64); by default
+      `irradiance_r/g/b`, the names every PLY of the project uses for irradiance (the
+      `irradiance` and `mesh` commands, `IlluminationMesh.save`). Pass another name for other
+      quantities (e.g. `name="radiance"`).
     - `exposure`: tone mapping of the colours (`tonemap`).
 
     Vertex (or face) colours are 8-bit sRGB, viewable in any mesh viewer.
@@ -219,6 +225,8 @@ def write_ply(path: str | os.PathLike, mesh: ReceiverMesh, values: Any, *, at: s
     trimesh = _trimesh()
     if extension(path) != ".ply":
         raise ValueError(f"{os.fspath(path)}: write_ply writes .ply files.")
+    if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", str(name)):
+        raise ValueError(f"write_ply: name must be a PLY property name (letters, digits, _), got {name!r}.")
     v = np.asarray(values, dtype=np.float64)
     n = len(mesh.vertices) if at == "vertices" else len(mesh.faces)
     if at not in ("vertices", "faces") or v.shape != (n, 3):
@@ -259,8 +267,9 @@ def write_mesh(path: str | os.PathLike, vertices: Any, faces: Any) -> None:
         fh.write(data)
 
 
-def read_ply_values(path: str | os.PathLike, name: str = "value", at: str = "vertices") -> np.ndarray:
-    """The `(N, 3)` float properties `{name}_r, _g, _b` of a PLY written by `write_ply`."""
+def read_ply_values(path: str | os.PathLike, name: str = IRRADIANCE_PROPERTY, at: str = "vertices") -> np.ndarray:
+    """The `(N, 3)` float properties `{name}_r, _g, _b` (default `irradiance_r/g/b`) of a PLY
+    written by `write_ply`, the `irradiance` or the `mesh` command."""
     trimesh = _trimesh()
     m = trimesh.load(os.fspath(path), process=False)
     data = m.metadata["_ply_raw"]["vertex" if at == "vertices" else "face"]["data"]
@@ -380,13 +389,14 @@ def _loadtxt(fh: Any, usecols: list[int] | None = None) -> np.ndarray:
 
 
 def write_values(path: str | os.PathLike, values: Any, *, points: Any = None, normals: Any = None,
-                 mesh: ReceiverMesh | None = None, at: str = "vertices", name: str = "value") -> None:
+                 mesh: ReceiverMesh | None = None, at: str = "vertices", name: str = IRRADIANCE_PROPERTY) -> None:
     """Write `(N, 3)` values to `path`, by extension, atomically and exactly at `path`.
 
     - `.npy`: the `(N, 3)` array. `.npz`: `values` (and `points`, `normals` when given).
     - `.csv`: header `px,py,pz,nx,ny,nz,r,g,b` (the receiver columns when `points` and
       `normals` are given), full float64 precision.
-    - `.ply`: needs `mesh` (receivers read from a mesh): `write_ply`.
+    - `.ply`: needs `mesh` (receivers read from a mesh): `write_ply`, float properties
+      `{name}_r/g/b` (default `irradiance_r/g/b`).
 
     Example:
         ```python

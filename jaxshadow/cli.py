@@ -321,7 +321,7 @@ def cmd_irradiance(args: argparse.Namespace) -> int:
     check_input(args.scene, SCENE_EXTS, "scene")
     check_input(args.points, POINT_EXTS, "points")
     check_output(args.output, VALUE_EXTS)
-    from ._meshio import MESH_EXTS, extension, read_points, write_values
+    from ._meshio import IRRADIANCE_PROPERTY, MESH_EXTS, extension, read_points, write_values
 
     if extension(args.output) == ".ply" and extension(args.points) not in MESH_EXTS:
         raise ValueError(f"output {args.output!r}: a .ply output needs mesh receivers (points from a mesh file).")
@@ -351,7 +351,7 @@ def cmd_irradiance(args: argparse.Namespace) -> int:
         out[s:e] = np.asarray(js.irradiance(scene, pp, nn))[: e - s]
         bar.update(e - s)
     bar.close()
-    write_values(args.output, out, points=pts, normals=nrm, mesh=mesh, at=args.at, name="irradiance")
+    write_values(args.output, out, points=pts, normals=nrm, mesh=mesh, at=args.at, name=IRRADIANCE_PROPERTY)
     el = time.perf_counter() - t0
     _say(args)(f"{n} points in {el:.2f} s ({n / el:.3g} points/s, incl. compile) -> {args.output}")
     return EXIT_OK

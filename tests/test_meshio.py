@@ -231,3 +231,34 @@ def test_csv_header_without_rows_has_no_points(tmp_path):
     (tmp_path / "h.csv").write_text("px,py,pz,nx,ny,nz\n")
     with pytest.raises(ValueError, match="no points"):
         js.read_points(tmp_path / "h.csv")
+
+
+def _ply_properties(path):
+    """The vertex / face property names in a PLY header, read as text."""
+    head = path.read_bytes().split(b"end_header")[0].decode("ascii")
+    return [line.split()[-1] for line in head.splitlines() if line.startswith("property")]
+
+
+def test_one_ply_property_naming_for_irradiance(tmp_path):
+    # write_ply's default, the `irradiance` command and the illumination meshes: irradiance_r/g/b.
+    from types import SimpleNamespace
+
+    from jaxshadow._illumination_io import save_mesh
+
+    m = _box()
+    r = js.ReceiverMesh(m.vertices, m.faces)
+    vals = np.random.default_rng(0).uniform(0, 3, (len(m.vertices), 3))
+    js.write_ply(tmp_path / "api.ply", r, vals)
+    save_mesh(SimpleNamespace(vertices=np.asarray(m.vertices), triangles=np.asarray(m.faces), irradiance=vals, scale=3.0),
+              tmp_path / "mesh.ply")
+    js.write_values(tmp_path / "values.ply", vals, mesh=r)
+    for name in ("api.ply", "mesh.ply", "values.ply"):
+        props = _ply_properties(tmp_path / name)
+        assert {"irradiance_r", "irradiance_g", "irradiance_b"} <= set(props), (name, props)
+        assert not any(p.startswith("value_") for p in props), (name, props)
+    back = trimesh.load(tmp_path / "api.ply", process=False).metadata["_ply_raw"]["vertex"]["data"]
+    np.testing.assert_array_equal(np.stack([back[f"irradiance_{c}"] for c in "rgb"], axis=1), vals)
+    js.write_ply(tmp_path / "rad.ply", r, vals, name="radiance")
+    assert "radiance_r" in _ply_properties(tmp_path / "rad.ply")
+    with pytest.raises(ValueError, match="name must be a PLY property name"):
+        js.write_ply(tmp_path / "bad.ply", r, vals, name="my value")
