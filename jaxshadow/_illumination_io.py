@@ -91,12 +91,17 @@ def parse_receiver(text: str) -> np.ndarray:
                 data = json.load(fh)
             except json.JSONDecodeError as err:
                 raise ValueError(f"--receiver {text}: not valid JSON ({err}).") from None
+            except RecursionError:
+                raise ValueError(f"--receiver {text}: JSON nested too deeply to read.") from None
     else:
         try:
             data = [[float(x) for x in row.split(",")] for row in text.split(";") if row.strip()]
         except ValueError:
             raise ValueError(f"--receiver: expected a JSON file or 'x,y,z; x,y,z; ...', got {text!r}.") from None
-    arr = np.asarray(data, np.float64)
+    try:
+        arr = np.asarray(data, np.float64)
+    except (TypeError, ValueError, RecursionError):
+        raise ValueError(f"--receiver: expected k rows of 3 numbers, got {str(data)[:80]!r}.") from None
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise ValueError(f"--receiver: expected k rows of 3 coordinates, got shape {arr.shape}.")
     return arr

@@ -661,6 +661,8 @@ def _read_json(path: str | os.PathLike) -> Any:
         raise ValueError(f"{path}: no such file.") from None
     except (PermissionError, UnicodeDecodeError) as err:
         raise ValueError(f"{path}: cannot be read ({err}).") from None
+    except RecursionError:
+        raise ValueError(f"{path}: JSON nested too deeply to read.") from None
 
 
 def load_scene(path: str | os.PathLike) -> Scene:
@@ -680,7 +682,11 @@ def load_scene(path: str | os.PathLike) -> Scene:
         ```
     """
     d = _read_json(path)
-    return scene_from_dict(d, arrays=_read_arrays(path, d))
+    arrays = _read_arrays(path, d)
+    try:
+        return scene_from_dict(d, arrays=arrays)
+    except RecursionError:
+        raise ValueError(f"{path}: a value is nested too deeply to be a scene entry.") from None
 
 
 def load_material(path: str | os.PathLike) -> Material:

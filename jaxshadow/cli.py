@@ -166,9 +166,10 @@ def read_scene(path: str) -> tuple[Any, list, list]:
         return from_mitsuba(path)
     import jaxshadow as js
 
+    from ._scene import _read_json
+
     scene = js.load_scene(path)
-    with open(path) as fh:
-        has_material = "material" in json.load(fh)
+    has_material = "material" in _read_json(path)
     return scene, [], [js.load_material(path)] if has_material else []
 
 
