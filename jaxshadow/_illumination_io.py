@@ -138,7 +138,10 @@ def mesh_command(args: argparse.Namespace) -> int:
 def add_mesh_parser(sub: Any) -> None:
     """Register `jaxshadow mesh` on an argparse subparsers object."""
     p = sub.add_parser("mesh", help="adaptive illumination mesh of a receiver (exact irradiance at the vertices), "
-                                    "written as PLY or glTF")
+                                    "written as PLY or glTF",
+                       description="Mesh a receiver polygon adaptively until linear interpolation of the exact "
+                                   "irradiance at its vertices is within --tol of the receiver's maximum, and write "
+                                   "it as PLY (vertex colours and float properties irradiance_r/g/b) or glTF.")
     p.add_argument("scene", help="scene JSON")
     p.add_argument("-o", "--output", required=True, help="output mesh: .ply, .glb or .gltf")
     p.add_argument("--tol", type=float, default=1e-3,

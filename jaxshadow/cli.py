@@ -174,13 +174,14 @@ def read_scene(path: str) -> tuple[Any, list, list]:
 
 
 class Progress:
-    """Progress of `total` units: a tqdm bar on a terminal; on anything else (a log, a pipe) a
-    plain line at every tenth, no carriage returns; nothing with `quiet`."""
+    """Progress of `total` units: a tqdm bar on a terminal; on anything else (a log, a pipe)
+    plain lines, no carriage returns: one at the first update and one at each further tenth
+    reached, each with the true percentage and count; nothing with `quiet`."""
 
     def __init__(self, total: int, desc: str, quiet: bool = False, stream: Any = None):
         self.total, self.desc, self.done = max(int(total), 1), desc, 0
         self.stream = stream or sys.stderr
-        self.quiet, self.bar, self.next_tenth = quiet, None, 1
+        self.quiet, self.bar, self.printed_tenth = quiet, None, -1
         self.t0 = time.perf_counter()
         if not quiet and self.stream.isatty():
             try:
@@ -197,11 +198,12 @@ class Progress:
         if self.bar is not None:
             self.bar.update(int(n))
             return
-        while self.done * 10 >= self.next_tenth * self.total and self.next_tenth <= 10:
+        tenth = min(10, self.done * 10 // self.total)
+        if self.printed_tenth < 0 or tenth > self.printed_tenth:
             el = time.perf_counter() - self.t0
-            print(f"{self.desc}: {10 * self.next_tenth:3d}% ({self.done}/{self.total}) {el:.1f} s",
+            print(f"{self.desc}: {100 * self.done // self.total:3d}% ({self.done}/{self.total}) {el:.1f} s",
                   file=self.stream, flush=True)
-            self.next_tenth += 1
+            self.printed_tenth = tenth
 
     def close(self) -> None:
         if self.bar is not None:
@@ -247,24 +249,26 @@ def cmd_report(args: argparse.Namespace) -> int:
     if scene.occluders is not None and not args.with_occluders:
         scene = js.Scene(scene.lights, None, scene.ambient)
     points, normals = report_points()
-    print(f"scene: {len(scene.lights)} lights; {points.shape[0]} receivers; Mitsuba spp={args.spp}")
+    quiet = getattr(args, "quiet", False)
+    show = (lambda *a: None) if quiet else print
+    show(f"scene: {len(scene.lights)} lights; {points.shape[0]} receivers; Mitsuba spp={args.spp}")
     rep = jm.quick_report(scene, points, normals, spp=args.spp, seed=args.seed)
     ours, mits, se = (np.asarray(rep[k]) for k in ("ours", "mitsuba", "stderr"))
     sig = np.abs(ours - mits) / np.maximum(se, 1e-300)
-    print(f"{'#':>3} {'point':>24} {'jaxshadow E (R)':>16} {'Mitsuba E (R)':>16} {'stderr':>10} {'|d|/sigma':>9}")
+    show(f"{'#':>3} {'point':>24} {'jaxshadow E (R)':>16} {'Mitsuba E (R)':>16} {'stderr':>10} {'|d|/sigma':>9}")
     for i in range(points.shape[0]):
         p = ", ".join(f"{x:+.2f}" for x in points[i])
-        print(f"{i:3d} {p:>24} {ours[i, 0]:16.6f} {mits[i, 0]:16.6f} {se[i, 0]:10.2e} {sig[i].max():9.2f}")
+        show(f"{i:3d} {p:>24} {ours[i, 0]:16.6f} {mits[i, 0]:16.6f} {se[i, 0]:10.2e} {sig[i].max():9.2f}")
     worst = float(sig.max())
     print(f"max |ours - Mitsuba| / stderr over all points and channels: {worst:.2f} (pass if <= 4)")
-    print(f"time: jaxshadow {rep['ours_s']:.3f} s (incl. compile), Mitsuba {rep['mitsuba_s']:.3f} s")
+    show(f"time: jaxshadow {rep['ours_s']:.3f} s (incl. compile), Mitsuba {rep['mitsuba_s']:.3f} s")
     os.makedirs(out_dir, exist_ok=True)
     png, js_path = (os.path.join(out_dir, f"irradiance_report.{e}") for e in ("png", "json"))
     fig = _plot_report(scene, points, ours, mits, se)
     atomic_write_path(png, lambda tmp: fig.savefig(tmp, dpi=110))
     with atomic_write(js_path) as fh:
         json.dump({k: (np.asarray(v).tolist() if isinstance(v, np.ndarray) else v) for k, v in rep.items()}, fh)
-    print(f"wrote {png} and {js_path}")
+    show(f"wrote {png} and {js_path}")
     return EXIT_OK if worst <= 4.0 else EXIT_CHECK
 
 
@@ -307,6 +311,7 @@ def _add_report(sub: Any) -> None:
     p.add_argument("--spp", type=positive_int, default=65536, help="Mitsuba samples per receiver (default: 65536)")
     p.add_argument("--seed", type=int, default=0, help="Mitsuba's random seed (default: 0)")
     p.add_argument("--with-occluders", action="store_true", help="keep the scene's occluders (shadows)")
+    p.add_argument("-q", "--quiet", action="store_true", help="print only the verdict line (no table, no progress)")
     p.set_defaults(func=cmd_report)
 
 
@@ -361,14 +366,15 @@ def cmd_irradiance(args: argparse.Namespace) -> int:
 def _add_irradiance(sub: Any) -> None:
     p = sub.add_parser("irradiance", help="irradiance (W/m^2, RGB) at many receivers",
                        description="Irradiance with exact soft shadows at receivers read from a file, "
-                                   "evaluated in chunks with progress.")
+                                   "evaluated in chunks, with progress after every chunk.")
     add_io_arguments(p, "points", "receivers: .csv with header px,py,pz,nx,ny,nz; .npy (N, 6); .npz with "
                      "'points' and 'normals'; or a mesh (.ply .obj .glb .gltf .stl .off)",
                      "irradiance: .npy (N, 3), .npz, .csv (px..nz,r,g,b) or .ply (mesh receivers)")
     p.add_argument("--at", choices=("vertices", "faces"), default="vertices",
                    help="mesh receivers: at the vertices (default) or at the face centres")
-    p.add_argument("--chunk", type=positive_int, default=1 << 18,
-                   help="receivers per evaluation (default: 262144); smaller uses less memory")
+    p.add_argument("--chunk", type=positive_int, default=1 << 16,
+                   help="receivers per evaluation and per progress update (default: 65536); smaller uses "
+                        "less memory, larger is a little faster")
     p.add_argument("--float64", action="store_true", help="evaluate in float64 (default: float32)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=cmd_irradiance)
@@ -437,11 +443,16 @@ def _version() -> str:
         return "0.0.0"
 
 
+def _plain(text: str) -> str:
+    """Help text from a Markdown docstring: without the backticks of code spans."""
+    return text.replace("`", "")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The `jaxshadow` argument parser, with the built-in and the registered commands."""
-    parser = argparse.ArgumentParser(prog="jaxshadow", description=__doc__,
+    parser = argparse.ArgumentParser(prog="jaxshadow", description=_plain(__doc__ or ""),
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--version", action="version", version=f"jaxshadow {_version()}",
+    parser.add_argument("-V", "--version", action="version", version=f"jaxshadow {_version()}",
                         help="print the version and exit")
     parser.add_argument(
         "--compile-cache", default=None, metavar="DIR",
@@ -454,7 +465,7 @@ def build_parser() -> argparse.ArgumentParser:
         add(sub)
     plugins = plugin_commands()
     if not plugins:
-        parser.epilog = ("No solver commands (fit, demo) are registered: they come from the `inverse` package "
+        parser.epilog = ("No solver commands (fit, demo) are registered: they come from the inverse package "
                          f"through the entry-point group {ENTRY_POINT_GROUP!r}; reinstall jaxshadow (pip install -e .).")
     for name, ep in sorted(plugins.items()):
         try:

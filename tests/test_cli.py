@@ -204,16 +204,66 @@ def test_killed_run_leaves_no_partial_output(tmp_path):
     assert sorted(os.listdir(tmp_path)) == ["e.npy", "pts.npy"]
 
 
+def _progress_lines(err):
+    """(percent, done, total) of each plain progress line."""
+    import re
+
+    return [tuple(int(x) for x in re.match(r"\w+: +(\d+)% \((\d+)/(\d+)\)", line).groups())
+            for line in err.splitlines()]
+
+
 def test_progress_is_plain_lines_off_a_terminal(capsys):
     bar = cli.Progress(100, "work")
     for _ in range(20):
         bar.update(5)
     bar.close()
     err = capsys.readouterr().err
-    assert "\r" not in err and err.count("\n") == 10 and "work: 100% (100/100)" in err
+    # the first update, then one line per tenth reached
+    assert "\r" not in err and err.count("\n") == 11 and err.startswith("work:   5% (5/100)") and "work: 100% (100/100)" in err
     quiet = cli.Progress(100, "work", quiet=True)
     quiet.update(100)
     assert capsys.readouterr().err == ""
+
+
+def test_progress_lines_state_the_true_count(capsys):
+    # Uneven blocks: each line's percentage is its own count's, never "20% (262144/1000000)".
+    bar = cli.Progress(1_000_000, "irradiance")
+    for n in (262144, 262144, 262144, 213568):
+        bar.update(n)
+    lines = _progress_lines(capsys.readouterr().err)
+    assert [line[1] for line in lines] == [262144, 524288, 786432, 1000000]
+    for pct, done, total in lines:
+        assert pct == 100 * done // total
+
+
+def test_irradiance_progress_from_the_first_chunk(tmp_path, capsys):
+    _points_csv(tmp_path / "pts.csv", n=40)
+    rc = main([NC, "irradiance", ROOM, str(tmp_path / "pts.csv"), "-o", str(tmp_path / "e.npy"), "--chunk", "16"])
+    assert rc == 0
+    lines = _progress_lines("\n".join(x for x in capsys.readouterr().err.splitlines() if x.startswith("irradiance:")))
+    assert [line[1] for line in lines] == [16, 32, 40]
+
+
+def test_short_version_flag_and_plain_help(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["-V"])
+    assert exc.value.code == 0 and capsys.readouterr().out.strip() == f"jaxshadow {metadata.version('jaxshadow')}"
+    parser = build_parser()
+    text = parser.format_help()
+    assert "`" not in text and "Exit codes" in text
+    subs = next(a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction")
+    for name, sp in subs.choices.items():
+        assert sp.description and len(sp.description) > 30, f"{name} --help has no description"
+        assert "-q" in sp._option_string_actions, f"{name} has no -q"
+
+
+def test_fit_quiet_prints_no_progress(tmp_path, capsys):
+    name = _write_fit_inputs(tmp_path)
+    args = [NC, "fit", str(tmp_path / "scene.json"), str(tmp_path / name), "-o", str(tmp_path / "f.json")]
+    assert main(args) == 0
+    assert "material fit on 20 targets" in capsys.readouterr().err
+    assert main([*args, "-q"]) == 0
+    assert "material fit" not in capsys.readouterr().err and (tmp_path / "f.json").exists()
 
 
 def test_mesh_receivers_in_ply_out(tmp_path):
