@@ -153,7 +153,9 @@ def add_mesh_parser(sub: Any) -> None:
     p.add_argument("--tile-size", type=float, default=None,
                    help="side of the tiles the receiver is meshed in (m; default 1/16 of its extent)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output (one line per refinement round)")
-    p.set_defaults(func=mesh_command)
+    p.set_defaults(func=mesh_command, requires=(("trimesh", "mesh", "mesh (writing the mesh)"),
+                                                ("pythoncdt", "mesh", "mesh (triangulation)"),
+                                                ("shapely", "mesh", "mesh (polygon clipping)")))
 
 
 if __name__ == "__main__":  # pragma: no cover

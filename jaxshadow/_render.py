@@ -38,6 +38,7 @@ from .cli import (
     check_input,
     check_output,
     check_outputs_are_not_inputs,
+    check_requirements,
     int_at_least,
     positive_int,
 )
@@ -267,6 +268,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     for out in args.output:
         check_output(out, IMAGE_EXTS)
     compare = None
+    check_requirements([("matplotlib", "plot", "--spp-compare's picture")] if args.spp_compare is not None else [])
     if args.spp_compare is not None:
         compare = args.compare_output or os.path.splitext(args.output[0])[0] + "_compare.png"
         check_output(compare, (".png",), "--compare-output")
@@ -314,5 +316,6 @@ def add_render_command(sub: Any) -> None:
                    help="PNG tone mapping: radiance scale before the sRGB curve (default: 1 / 99th percentile)")
     p.add_argument("--chunk", type=positive_int, default=1 << 14, help="pixels per evaluation (default: 16384)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
-    p.set_defaults(func=cmd_render)
+    p.set_defaults(func=cmd_render, requires=(("mitsuba", "mitsuba", "render (Mitsuba's ray casting)"),
+                                              ("drjit", "mitsuba", "render (Mitsuba's ray casting)")))
 

@@ -122,6 +122,25 @@ INPUT_ARGUMENTS = ("scene", "points", "targets", "receiver")
 OUTPUT_ARGUMENTS = ("output", "compare_output")
 
 
+# Optional modules each command needs: (module, the extra that installs it, what for). `main`
+# checks them before running the command, so a missing one is exit 2 before any computation.
+# Commands set `requires` with `set_defaults`; the plugin commands' needs are listed here.
+PLUGIN_REQUIRES: dict[str, tuple[tuple[str, str, str], ...]] = {
+    "demo": (("matplotlib", "plot", "the before/after picture"),),
+}
+
+
+def check_requirements(requires: Sequence[tuple[str, str, str]]) -> None:
+    """`ImportError` naming the first missing module of `requires` ((module, extra, what for)
+    triples, found with `importlib.util.find_spec`, not imported) and the extra to install."""
+    import importlib.util
+
+    for module, extra, purpose in requires:
+        if importlib.util.find_spec(module) is None:
+            raise ImportError(f"{purpose} needs the optional dependency {module!r}: "
+                              f"pip install 'jaxshadow[{extra}]'.")
+
+
 def same_file(a: str, b: str) -> bool:
     """Whether paths `a` and `b` name one file: `os.path.samefile` when both exist (links,
     hard links), else the same resolved path."""
@@ -312,7 +331,9 @@ def _add_report(sub: Any) -> None:
     p.add_argument("--seed", type=int, default=0, help="Mitsuba's random seed (default: 0)")
     p.add_argument("--with-occluders", action="store_true", help="keep the scene's occluders (shadows)")
     p.add_argument("-q", "--quiet", action="store_true", help="print only the verdict line (no table, no progress)")
-    p.set_defaults(func=cmd_report)
+    p.set_defaults(func=cmd_report, requires=(("mitsuba", "mitsuba", "the report's Mitsuba reference"),
+                                              ("drjit", "mitsuba", "the report's Mitsuba reference"),
+                                              ("matplotlib", "plot", "the report's plot")))
 
 
 # --------------------------------------------------------------------------------------
@@ -481,6 +502,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        check_requirements(tuple(getattr(args, "requires", ())) + PLUGIN_REQUIRES.get(args.cmd, ()))
         check_outputs_are_not_inputs(_paths(args, OUTPUT_ARGUMENTS), _paths(args, INPUT_ARGUMENTS))
         if not args.no_compile_cache:
             enable_compile_cache(args.compile_cache)

@@ -438,3 +438,43 @@ def test_an_output_that_is_an_input_is_refused(tmp_path, capsys, monkeypatch):
     rc, err = _run([NC, "irradiance", str(scene), str(tmp_path / "pts.npy"), "-o", str(tmp_path / "scene.meshes.npz")], capsys)
     assert rc == 2 and "scene.meshes.npz" in err and "destroy the input" in err
     assert {f: (tmp_path / f).read_bytes() for f in os.listdir(tmp_path) if f != "link.npy"} == before
+
+
+def test_readme_names_every_extra():
+    import re
+
+    tomllib = pytest.importorskip("tomllib")  # Python >= 3.11
+    with open(os.path.join(ROOT, "pyproject.toml"), "rb") as fh:
+        extras = set(tomllib.load(fh)["project"]["optional-dependencies"])
+    with open(os.path.join(ROOT, "README.md")) as fh:
+        readme = fh.read()
+    paragraph = readme[readme.index("`pip install jaxshadow` needs only"):]
+    paragraph = paragraph[:paragraph.index("\n\n")]
+    assert extras <= set(re.findall(r"`(\w+)`", paragraph)), extras - set(re.findall(r"`(\w+)`", paragraph))
+
+
+@pytest.mark.parametrize(("argv", "missing", "extra"), [
+    (["demo", "--out", "{tmp}"], "matplotlib", "plot"),
+    (["report", "--out", "{tmp}"], "mitsuba", "mitsuba"),
+    (["report", "--out", "{tmp}"], "matplotlib", "plot"),
+    (["render", "{tmp}/s.xml", "-o", "{tmp}/a.png"], "mitsuba", "mitsuba"),
+    (["render", "{tmp}/s.xml", "-o", "{tmp}/a.png", "--spp-compare", "4"], "matplotlib", "plot"),
+    (["mesh", ROOM, "-o", "{tmp}/m.ply"], "shapely", "mesh"),
+])
+def test_missing_optional_dependency_is_found_before_computing(tmp_path, capsys, monkeypatch, argv, missing, extra):
+    import importlib.util
+
+    import inverse.cli as icli
+    from jaxshadow import _render
+
+    def forbidden(*a, **k):
+        raise AssertionError("computed before the optional dependencies were checked")
+
+    for mod, name in ((icli, "run_demo"), (js, "load_scene"), (_render, "_load")):
+        monkeypatch.setattr(mod, name, forbidden)
+    (tmp_path / "s.xml").write_text("<scene version='3.0.0'/>")
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == missing else real(name, *a))
+    rc, err = _run([NC, *[a.replace("{tmp}", str(tmp_path)) for a in argv]], capsys)
+    assert rc == 2 and repr(missing) in err and f"jaxshadow[{extra}]" in err, err
+    assert sorted(os.listdir(tmp_path)) == ["s.xml"]
