@@ -146,7 +146,7 @@ JSON_CASES = {
     "truncated": ('{"format": "jaxshadow.scene", "vers', r"(?i)unterminated string|expecting"),
     "not-an-object": ("[1, 2]", r"scene: expected a JSON object"),
     "wrong-format": ({**GOOD, "format": "mitsuba"}, r"scene: 'format' must be 'jaxshadow.scene', got 'mitsuba'"),
-    "wrong-version": ({**GOOD, "version": 2}, r"scene: unsupported schema version 2"),
+    "wrong-version": ({**GOOD, "version": 3}, r"scene: unsupported schema version 3"),
     "unknown-field": ({**GOOD, "camera": {}}, r"scene: unknown field\(s\) \['camera'\]"),
     "light-without-type": ({**GOOD, "lights": [{"vertices": QUAD.tolist()}]}, r"scene.lights\[0\]: expected an object with a 'type' field"),
     "light-unknown-type": (_light(type="spot"), r"scene.lights\[0\]: unknown light type 'spot'"),
