@@ -135,8 +135,9 @@ def _cmd_fit(args: argparse.Namespace) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)  # the fits run in float64
+    say = (lambda msg: None) if args.quiet else None
     return fit_command(args.scene, args.targets, args.output, light=args.light, combinatorics=args.combinatorics,
-                       fit=tuple(x.strip() for x in args.fit.split(",") if x.strip()), starts=args.starts)
+                       fit=tuple(x.strip() for x in args.fit.split(",") if x.strip()), starts=args.starts, say=say)
 
 
 def add_fit_command(subparsers: Any) -> argparse.ArgumentParser:
@@ -158,6 +159,7 @@ def add_fit_command(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--combinatorics", choices=("auto", "device", "host"), default="auto",
                    help="with --light and occluders: where the soft-shadow kernel's combinatorics run "
                         "(auto: host on the CPU when the compiled kernel is built; see fit_light)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress messages (the fit reports are still printed)")
     p.set_defaults(func=_cmd_fit)
     return p
 

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from ._files import atomic_write_path
+from ._meshio import IRRADIANCE_PROPERTY
 
 FORMATS = {".ply": "ply", ".glb": "glb", ".gltf": "gltf"}
 
@@ -44,7 +45,7 @@ def save_mesh(mesh: Any, path: str | os.PathLike) -> None:
                          process=False)
     if ext == ".ply":
         for c, name in enumerate("rgb"):
-            tm.vertex_attributes[f"irradiance_{name}"] = np.ascontiguousarray(mesh.irradiance[:, c], np.float64)
+            tm.vertex_attributes[f"{IRRADIANCE_PROPERTY}_{name}"] = np.ascontiguousarray(mesh.irradiance[:, c], np.float64)
         atomic_write_path(path, lambda tmp: tm.export(tmp, file_type="ply"))
     elif ext == ".glb":
         atomic_write_path(path, lambda tmp: tm.export(tmp, file_type="glb"))
@@ -90,12 +91,17 @@ def parse_receiver(text: str) -> np.ndarray:
                 data = json.load(fh)
             except json.JSONDecodeError as err:
                 raise ValueError(f"--receiver {text}: not valid JSON ({err}).") from None
+            except RecursionError:
+                raise ValueError(f"--receiver {text}: JSON nested too deeply to read.") from None
     else:
         try:
             data = [[float(x) for x in row.split(",")] for row in text.split(";") if row.strip()]
         except ValueError:
             raise ValueError(f"--receiver: expected a JSON file or 'x,y,z; x,y,z; ...', got {text!r}.") from None
-    arr = np.asarray(data, np.float64)
+    try:
+        arr = np.asarray(data, np.float64)
+    except (TypeError, ValueError, RecursionError):
+        raise ValueError(f"--receiver: expected k rows of 3 numbers, got {str(data)[:80]!r}.") from None
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise ValueError(f"--receiver: expected k rows of 3 coordinates, got shape {arr.shape}.")
     return arr
@@ -132,7 +138,10 @@ def mesh_command(args: argparse.Namespace) -> int:
 def add_mesh_parser(sub: Any) -> None:
     """Register `jaxshadow mesh` on an argparse subparsers object."""
     p = sub.add_parser("mesh", help="adaptive illumination mesh of a receiver (exact irradiance at the vertices), "
-                                    "written as PLY or glTF")
+                                    "written as PLY or glTF",
+                       description="Mesh a receiver polygon adaptively until linear interpolation of the exact "
+                                   "irradiance at its vertices is within --tol of the receiver's maximum, and write "
+                                   "it as PLY (vertex colours and float properties irradiance_r/g/b) or glTF.")
     p.add_argument("scene", help="scene JSON")
     p.add_argument("-o", "--output", required=True, help="output mesh: .ply, .glb or .gltf")
     p.add_argument("--tol", type=float, default=1e-3,
@@ -144,7 +153,9 @@ def add_mesh_parser(sub: Any) -> None:
     p.add_argument("--tile-size", type=float, default=None,
                    help="side of the tiles the receiver is meshed in (m; default 1/16 of its extent)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output (one line per refinement round)")
-    p.set_defaults(func=mesh_command)
+    p.set_defaults(func=mesh_command, requires=(("trimesh", "mesh", "mesh (writing the mesh)"),
+                                                ("pythoncdt", "mesh", "mesh (triangulation)"),
+                                                ("shapely", "mesh", "mesh (polygon clipping)")))
 
 
 if __name__ == "__main__":  # pragma: no cover

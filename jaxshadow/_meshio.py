@@ -23,6 +23,8 @@ from __future__ import annotations
 import csv
 import io
 import os
+import re
+import warnings
 from typing import Any
 
 import numpy as np
@@ -32,6 +34,8 @@ from ._files import atomic_write
 MESH_EXTS = (".obj", ".ply", ".glb", ".gltf", ".stl", ".off")
 TABLE_EXTS = (".csv", ".npy", ".npz")
 POINT_COLUMNS = ("px", "py", "pz", "nx", "ny", "nz")
+# The PLY float properties of irradiance, `irradiance_r/g/b`, in every PLY the project writes.
+IRRADIANCE_PROPERTY = "irradiance"
 
 
 def _trimesh() -> Any:
@@ -187,7 +191,7 @@ def tonemap(values: Any, exposure: float | None = None) -> np.ndarray:
 
 
 def write_ply(path: str | os.PathLike, mesh: ReceiverMesh, values: Any, *, at: str = "vertices",
-              name: str = "value", exposure: float | None = None) -> None:
+              name: str = IRRADIANCE_PROPERTY, exposure: float | None = None) -> None:
     """Write `mesh` as a binary PLY with `values` as colours and as float properties.
 
     **Arguments:**
@@ -196,7 +200,10 @@ def write_ply(path: str | os.PathLike, mesh: ReceiverMesh, values: Any, *, at: s
     - `mesh`: a `ReceiverMesh`.
     - `values`: `(V, 3)` (`at="vertices"`) or `(F, 3)` (`at="faces"`) linear RGB values, e.g.
       irradiance (W/m^2) or radiance.
-    - `name`: the float properties are `{name}_r`, `{name}_g`, `{name}_b` (float64).
+    - `name`: the float properties are `{name}_r`, `{name}_g`, `{name}_b` (float64); by default
+      `irradiance_r/g/b`, the names every PLY of the project uses for irradiance (the
+      `irradiance` and `mesh` commands, `IlluminationMesh.save`). Pass another name for other
+      quantities (e.g. `name="radiance"`).
     - `exposure`: tone mapping of the colours (`tonemap`).
 
     Vertex (or face) colours are 8-bit sRGB, viewable in any mesh viewer.
@@ -218,6 +225,8 @@ def write_ply(path: str | os.PathLike, mesh: ReceiverMesh, values: Any, *, at: s
     trimesh = _trimesh()
     if extension(path) != ".ply":
         raise ValueError(f"{os.fspath(path)}: write_ply writes .ply files.")
+    if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", str(name)):
+        raise ValueError(f"write_ply: name must be a PLY property name (letters, digits, _), got {name!r}.")
     v = np.asarray(values, dtype=np.float64)
     n = len(mesh.vertices) if at == "vertices" else len(mesh.faces)
     if at not in ("vertices", "faces") or v.shape != (n, 3):
@@ -258,8 +267,9 @@ def write_mesh(path: str | os.PathLike, vertices: Any, faces: Any) -> None:
         fh.write(data)
 
 
-def read_ply_values(path: str | os.PathLike, name: str = "value", at: str = "vertices") -> np.ndarray:
-    """The `(N, 3)` float properties `{name}_r, _g, _b` of a PLY written by `write_ply`."""
+def read_ply_values(path: str | os.PathLike, name: str = IRRADIANCE_PROPERTY, at: str = "vertices") -> np.ndarray:
+    """The `(N, 3)` float properties `{name}_r, _g, _b` (default `irradiance_r/g/b`) of a PLY
+    written by `write_ply`, the `irradiance` or the `mesh` command."""
     trimesh = _trimesh()
     m = trimesh.load(os.fspath(path), process=False)
     data = m.metadata["_ply_raw"]["vertex" if at == "vertices" else "face"]["data"]
@@ -322,37 +332,71 @@ def read_points(path: str | os.PathLike, at: str = "vertices") -> tuple[np.ndarr
 
 def read_csv(path: str | os.PathLike, columns: tuple[str, ...]) -> np.ndarray:
     """The named `columns` of a CSV file with a header row, as an `(N, len(columns))` float64
-    array (other columns are ignored; errors name the file, the row and the column)."""
+    array (other columns are ignored; errors name the file, the row and the column).
+
+    The header is read with the `csv` module, the body with `np.loadtxt` (array speed). A
+    header naming one of `columns` twice is a `ValueError` (which of the two was meant is not
+    known). Blank lines are skipped; rows count from 1 after the header, blank lines not counted.
+    """
     path = os.fspath(path)
-    with open(path, newline="") as fh:
-        rows = [r for r in csv.reader(fh) if r]
-    if not rows:
-        raise ValueError(f"{path}: empty CSV file (expected a header row {','.join(columns)}).")
-    header = [h.strip() for h in rows[0]]
-    missing = [c for c in columns if c not in header]
-    if missing:
-        raise ValueError(f"{path}: missing CSV column(s) {missing}: the first row must be a header "
-                         f"naming the columns, e.g. {','.join(columns)} (got {rows[0][:8]}).")
-    idx = [header.index(c) for c in columns]
-    out = np.empty((len(rows) - 1, len(columns)))
-    for i, row in enumerate(rows[1:]):
-        if len(row) != len(header):
-            raise ValueError(f"{path}: row {i + 1} has {len(row)} fields, the header has {len(header)}.")
+    with open(path, encoding="utf-8-sig", newline="") as fh:
+        head = fh.readline()
+        while head and not head.strip():
+            head = fh.readline()
+        if not head:
+            raise ValueError(f"{path}: empty CSV file (expected a header row {','.join(columns)}).")
+        raw_header = next(csv.reader([head]))
+        header = [h.strip() for h in raw_header]
+        missing = [c for c in columns if c not in header]
+        if missing:
+            raise ValueError(f"{path}: missing CSV column(s) {missing}: the first row must be a header "
+                             f"naming the columns, e.g. {','.join(columns)} (got {raw_header[:8]}).")
+        repeated = [c for c in columns if header.count(c) > 1]
+        if repeated:
+            raise ValueError(f"{path}: CSV column(s) {repeated} appear more than once in the header "
+                             f"{','.join(header)}; each of {','.join(columns)} must appear once.")
+        idx = [header.index(c) for c in columns]
+        body_at = fh.tell()
         try:
-            out[i] = [float(row[j]) for j in idx]
+            # Every column at once: loadtxt itself refuses rows whose field count changes.
+            table = _loadtxt(fh)
         except ValueError:
-            raise ValueError(f"{path}: row {i + 1} has a non-numeric value in {columns}: {row}.") from None
-    return out
+            table = None
+        if table is not None and table.size == 0:
+            return np.empty((0, len(columns)))
+        if table is not None and table.shape[1] == len(header):
+            return table[:, idx]
+        # A text column the caller ignores, or a bad row: find the row, then read the columns used.
+        fh.seek(body_at)
+        for i, row in enumerate((r for r in csv.reader(fh) if r), 1):
+            if len(row) != len(header):
+                raise ValueError(f"{path}: row {i} has {len(row)} fields, the header has {len(header)}.")
+            try:
+                [float(row[j]) for j in idx]
+            except ValueError:
+                raise ValueError(f"{path}: row {i} has a non-numeric value in {columns}: {row}.") from None
+        fh.seek(body_at)
+        table = _loadtxt(fh, usecols=idx)
+    return table.reshape(-1, len(columns))
+
+
+def _loadtxt(fh: Any, usecols: list[int] | None = None) -> np.ndarray:
+    """The rest of `fh` as a float64 table (`np.loadtxt`: comma-separated, `"` quotes, no
+    comment character, empty lines skipped); no warning for a header without rows."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="loadtxt: input contained no data", category=UserWarning)
+        return np.loadtxt(fh, delimiter=",", usecols=usecols, dtype=np.float64, ndmin=2, comments=None, quotechar='"')
 
 
 def write_values(path: str | os.PathLike, values: Any, *, points: Any = None, normals: Any = None,
-                 mesh: ReceiverMesh | None = None, at: str = "vertices", name: str = "value") -> None:
+                 mesh: ReceiverMesh | None = None, at: str = "vertices", name: str = IRRADIANCE_PROPERTY) -> None:
     """Write `(N, 3)` values to `path`, by extension, atomically and exactly at `path`.
 
     - `.npy`: the `(N, 3)` array. `.npz`: `values` (and `points`, `normals` when given).
     - `.csv`: header `px,py,pz,nx,ny,nz,r,g,b` (the receiver columns when `points` and
       `normals` are given), full float64 precision.
-    - `.ply`: needs `mesh` (receivers read from a mesh): `write_ply`.
+    - `.ply`: needs `mesh` (receivers read from a mesh): `write_ply`, float properties
+      `{name}_r/g/b` (default `irradiance_r/g/b`).
 
     Example:
         ```python

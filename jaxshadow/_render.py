@@ -32,9 +32,34 @@ import numpy as np
 
 from ._files import atomic_write_path
 from ._meshio import tonemap
-from .cli import Progress, _say, check_input, check_output, int_at_least, positive_int
+from .cli import (
+    Progress,
+    _say,
+    check_input,
+    check_output,
+    check_outputs_are_not_inputs,
+    check_requirements,
+    int_at_least,
+    positive_int,
+)
 
 IMAGE_EXTS = (".exr", ".png")
+# Camera rays (pixels x supersample^2) one render may cast: every sample holds ~200 bytes of
+# hit data at once (positions, normals, directions, colours), so 2^25 samples are ~7 GB.
+MAX_SAMPLES = 1 << 25
+
+
+def check_film_size(w: int, h: int, supersample: int = 1, max_samples: int = MAX_SAMPLES) -> int:
+    """The number of camera samples of a `w x h` film at `supersample`; `ValueError` before any
+    allocation when it exceeds `max_samples` (or the film is empty)."""
+    n = int(w) * int(h) * int(supersample) ** 2
+    if w < 1 or h < 1:
+        raise ValueError(f"render: the film is {w}x{h} pixels; it needs at least one.")
+    if n > max_samples:
+        raise ValueError(f"render: a {w}x{h} film with supersample {supersample} is {n:,} camera samples, "
+                         f"more than the {max_samples:,} one render holds in memory (about 200 bytes each); "
+                         "lower the film's width/height or --supersample.")
+    return n
 
 
 @dataclass
@@ -75,7 +100,7 @@ def _camera_rays(mi: Any, sensor: Any, k: int) -> tuple[Any, int, int]:
 
 
 def render(source: Any, *, supersample: int = 1, progress: Any = None, chunk: int = 1 << 14,
-           float64: bool = True, shade: bool = True) -> Rendering:
+           float64: bool = True, shade: bool = True, max_samples: int = MAX_SAMPLES) -> Rendering:
     """Render a Mitsuba scene from its camera with jaxshadow's exact shading.
 
     **Arguments:**
@@ -88,6 +113,8 @@ def render(source: Any, *, supersample: int = 1, progress: Any = None, chunk: in
     - `chunk`: pixels per jaxshadow evaluation.
     - `float64`: shade in float64 (default) or float32.
     - `shade`: `False` skips the shading (only `surface` and the lights' pixels are computed).
+    - `max_samples`: the most camera samples (pixels x `supersample`^2) to allocate;
+      `ValueError` above (`check_film_size`).
 
     **Returns:** a `Rendering`.
     """
@@ -104,6 +131,8 @@ def render(source: Any, *, supersample: int = 1, progress: Any = None, chunk: in
     k = int(supersample)
     if k < 1:
         raise ValueError(f"render: supersample must be >= 1, got {supersample!r}.")
+    film_w, film_h = (int(x) for x in ms.sensors()[0].film().size())
+    check_film_size(film_w, film_h, k, max_samples)
     ray, w, h = _camera_rays(mi, ms.sensors()[0], k)
     si = ms.ray_intersect(ray)
     valid = np.asarray(si.is_valid(), bool)
@@ -239,9 +268,11 @@ def cmd_render(args: argparse.Namespace) -> int:
     for out in args.output:
         check_output(out, IMAGE_EXTS)
     compare = None
+    check_requirements([("matplotlib", "plot", "--spp-compare's picture")] if args.spp_compare is not None else [])
     if args.spp_compare is not None:
         compare = args.compare_output or os.path.splitext(args.output[0])[0] + "_compare.png"
         check_output(compare, (".png",), "--compare-output")
+        check_outputs_are_not_inputs([*args.output, compare], [args.scene])
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -250,6 +281,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     if not ms.sensors():
         raise ValueError(f"{args.scene}: the scene has no sensor (camera).")
     w, h = (int(x) for x in ms.sensors()[0].film().size())
+    check_film_size(w, h, args.supersample)
     bar = Progress(w * h * args.supersample**2, "render", quiet=args.quiet)
     result = render(ms, supersample=args.supersample, progress=bar, chunk=args.chunk)
     bar.close()
@@ -284,5 +316,6 @@ def add_render_command(sub: Any) -> None:
                    help="PNG tone mapping: radiance scale before the sRGB curve (default: 1 / 99th percentile)")
     p.add_argument("--chunk", type=positive_int, default=1 << 14, help="pixels per evaluation (default: 16384)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
-    p.set_defaults(func=cmd_render)
+    p.set_defaults(func=cmd_render, requires=(("mitsuba", "mitsuba", "render (Mitsuba's ray casting)"),
+                                              ("drjit", "mitsuba", "render (Mitsuba's ray casting)")))
 

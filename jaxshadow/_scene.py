@@ -7,8 +7,11 @@ skipped under `jit`/`grad`/`vmap` (the inverse solvers rebuild lights from trace
 
 from __future__ import annotations
 
+import hashlib
+import io
 import json
 import os
+import zipfile
 from collections.abc import Sequence
 from typing import Any, no_type_check
 
@@ -41,7 +44,11 @@ from ._mesh import (
 )
 
 SCENE_FORMAT = "jaxshadow.scene"
+# 1: everything inline in the JSON. 2: meshes may live in a binary `.npz` beside it ("arrays").
 SCENE_VERSION = 1
+SCENE_VERSION_ARRAYS = 2
+READ_VERSIONS = (1, 2)
+MESH_ARRAYS_SUFFIX = ".meshes.npz"
 
 
 def _leaf(x: Any) -> Array:
@@ -475,10 +482,13 @@ def scene_to_dict(scene: Scene, material: Material | None = None) -> dict:
     return out
 
 
-def _occluder_from_json(o: Any, where: str) -> Any:
+def _occluder_from_json(o: Any, where: str, arrays: Any = None) -> Any:
     if isinstance(o, dict):
+        if set(o) == {"mesh"} and isinstance(o["mesh"], dict) and set(o["mesh"]) == {"arrays"}:
+            return _mesh_from_arrays(o["mesh"]["arrays"], where, arrays)
         if set(o) != {"mesh"} or not isinstance(o["mesh"], dict) or set(o["mesh"]) != {"vertices", "faces"}:
-            raise ValueError(f"{where}: a mesh is {{'mesh': {{'vertices': [...], 'faces': [...]}}}}.")
+            raise ValueError(f"{where}: a mesh is {{'mesh': {{'vertices': [...], 'faces': [...]}}}} "
+                             "or {'mesh': {'arrays': NAME}}.")
         faces = o["mesh"]["faces"]
         if not isinstance(faces, list) or not all(isinstance(f, list) and all(isinstance(i, int) and not isinstance(i, bool) for i in f) for f in faces):
             raise ValueError(f"{where}: mesh faces must be lists of integer vertex indices.")
@@ -489,10 +499,37 @@ def _occluder_from_json(o: Any, where: str) -> Any:
     return _numeric(o, where)
 
 
+def _mesh_from_arrays(key: Any, where: str, arrays: Any) -> Mesh:
+    """A mesh stored in the scene's arrays file: `{key}_vertices` `(V, 3)` float and
+    `{key}_faces` `(F, K)` integer, rows padded at their end with -1."""
+    if arrays is None:
+        raise ValueError(f"{where}: the mesh is stored in the scene's arrays file; read the scene with "
+                         "jaxshadow.load_scene(path), which finds that file beside the JSON.")
+    if not isinstance(key, str) or f"{key}_vertices" not in arrays or f"{key}_faces" not in arrays:
+        raise ValueError(f"{where}: the arrays file has no mesh {key!r}.")
+    v, f = np.asarray(arrays[f"{key}_vertices"]), np.asarray(arrays[f"{key}_faces"])
+    if not np.issubdtype(f.dtype, np.integer) or f.ndim != 2 or f.shape[1] < 3:
+        raise ValueError(f"{where}: mesh faces must be an (F, K >= 3) array of integer vertex indices, "
+                         f"got {f.shape} {f.dtype}.")
+    if not np.issubdtype(v.dtype, np.floating) or v.ndim != 2 or v.shape[1] != 3:
+        raise ValueError(f"{where}: mesh vertices must be a (V, 3) float array, got {v.shape} {v.dtype}.")
+    used = f >= 0
+    if np.any(f < -1) or np.any(used[:, 1:] & ~used[:, :-1]):
+        raise ValueError(f"{where}: mesh faces: a negative index other than the -1 padding at a row's end.")
+    faces: Any = f if used.all() else [row[row >= 0] for row in f]
+    try:
+        return Mesh(v.astype(np.float64), faces)
+    except ValueError as err:
+        raise ValueError(f"{where}: {err}") from None
+
+
 # Validates its own inputs (ValueError, docs/design.md): no runtime annotation check before it.
 @no_type_check
-def scene_from_dict(d: dict) -> Scene:
+def scene_from_dict(d: dict, arrays: Any = None) -> Scene:
     """Build a Scene from its dict form, with errors naming the offending entry.
+
+    **Arguments:** `d`: the dict (schema version 1, or 2 whose meshes may be stored apart);
+    `arrays`: for version 2, the mapping of the scene's arrays file (`load_scene` reads it).
 
     Example:
         ```python
@@ -507,11 +544,13 @@ def scene_from_dict(d: dict) -> Scene:
     if d.get("format") != SCENE_FORMAT:
         raise ValueError(f"scene: 'format' must be {SCENE_FORMAT!r}, got {d.get('format')!r}.")
     version = d.get("version")
-    if isinstance(version, bool) or not isinstance(version, int) or version != SCENE_VERSION:
+    if isinstance(version, bool) or not isinstance(version, int) or version not in READ_VERSIONS:
         raise ValueError(
-            f"scene: unsupported schema version {d.get('version')!r} (this jaxshadow reads {SCENE_VERSION})."
+            f"scene: unsupported schema version {d.get('version')!r} (this jaxshadow reads "
+            f"{', '.join(map(str, READ_VERSIONS))})."
         )
-    unknown = set(d) - {"format", "version", "lights", "occluders", "ambient", "material"}
+    known = {"format", "version", "lights", "occluders", "ambient", "material"}
+    unknown = set(d) - (known | {"arrays"} if version >= SCENE_VERSION_ARRAYS else known)
     if unknown:
         raise ValueError(f"scene: unknown field(s) {sorted(unknown)}.")
     if "lights" not in d:
@@ -524,17 +563,23 @@ def scene_from_dict(d: dict) -> Scene:
     if occl is not None:
         if not isinstance(occl, list):
             raise ValueError(f"scene: 'occluders' must be a list of polygons, got {type(occl).__name__}.")
-        occl = [_occluder_from_json(o, f"scene.occluders[{i}]") for i, o in enumerate(occl)]
+        occl = [_occluder_from_json(o, f"scene.occluders[{i}]", arrays) for i, o in enumerate(occl)]
     ambient = _numeric(d.get("ambient", 0.0), "scene.ambient")
     return Scene(lights=lights, occluders=occl, ambient=ambient)
 
 
 def save_scene(scene: Any, path: str | os.PathLike, material: Any = None) -> None:
-    """Write a scene (and optionally a material) to a JSON file (schema version 1).
+    """Write a scene (and optionally a material) to a JSON file.
 
-    The document is built first and written through `_files.atomic_write` (a temporary file in
-    the same directory, renamed over `path` when complete): a bad argument, a failing
-    serialiser or a full disk leaves an existing file as it was.
+    A scene without meshes is one JSON file (schema version 1). A scene with `Mesh` occluders
+    gets schema version 2: each mesh's vertices and faces go, as arrays, to a NumPy `.npz`
+    file beside the JSON, `<stem>.meshes.npz` (its name and SHA-256 in the JSON's `arrays`
+    entry), so large meshes are not text; keep the two files together.
+
+    Each file is built first and written through `_files.atomic_write` (a temporary file in
+    the same directory, renamed over the target when complete), the arrays before the JSON: a
+    bad argument, a failing serialiser or a full disk leaves existing files as they were, and
+    a JSON left beside arrays from another save is refused by `load_scene` (the hash differs).
 
     **Arguments:** `scene` (`Scene`), `path` (file name), `material` (`Material` or `None`).
 
@@ -552,9 +597,64 @@ def save_scene(scene: Any, path: str | os.PathLike, material: Any = None) -> Non
         raise ValueError(f"save_scene: expected a jaxshadow.Scene, got {type(scene).__name__}.")
     if material is not None and not isinstance(material, Material):
         raise ValueError(f"save_scene: material must be a jaxshadow.Material or None, got {type(material).__name__}.")
-    text = json.dumps(scene_to_dict(scene, material), indent=2)
+    d = scene_to_dict(scene, material)
+    arrays: dict[str, np.ndarray] = {}
+    for i, o in enumerate(d["occluders"]):
+        if isinstance(o, dict):
+            key = f"mesh{len(arrays) // 2}"
+            loops = o["mesh"]["faces"]
+            k = max(len(loop) for loop in loops)
+            arrays[f"{key}_vertices"] = np.asarray(o["mesh"]["vertices"], np.float64).reshape(-1, 3)
+            arrays[f"{key}_faces"] = np.asarray([loop + [-1] * (k - len(loop)) for loop in loops], np.int64)
+            d["occluders"][i] = {"mesh": {"arrays": key}}
+    if arrays:
+        name = arrays_file_name(path)
+        buf = io.BytesIO()
+        np.savez(buf, **arrays)
+        data = buf.getvalue()
+        d["version"] = SCENE_VERSION_ARRAYS
+        d["arrays"] = {"file": name, "sha256": hashlib.sha256(data).hexdigest()}
+        with atomic_write(os.path.join(os.path.dirname(os.path.abspath(path)), name), "wb") as fb:
+            fb.write(data)
+    text = json.dumps(d, indent=2)
     with atomic_write(path) as f:
         f.write(text)
+
+
+def arrays_file_name(path: str | os.PathLike) -> str:
+    """The name of the arrays file `save_scene` writes beside the scene JSON `path`:
+    `scene.json` -> `scene.meshes.npz`."""
+    return os.path.splitext(os.path.basename(os.fspath(path)))[0] + MESH_ARRAYS_SUFFIX
+
+
+def _read_arrays(path: str | os.PathLike, d: Any) -> dict[str, np.ndarray] | None:
+    """The arrays file a version-2 scene JSON `d` (read from `path`) names, checked against its
+    SHA-256; `None` when `d` names none. `ValueError` naming both files otherwise."""
+    if not isinstance(d, dict) or "arrays" not in d:
+        return None
+    ref = d["arrays"]
+    if not isinstance(ref, dict) or set(ref) != {"file", "sha256"} or not all(isinstance(x, str) for x in ref.values()):
+        raise ValueError(f"{path}: 'arrays' must be {{'file': NAME, 'sha256': HEX}}, got {ref!r}.")
+    name = ref["file"]
+    if not name or os.path.basename(name) != name or name in (".", ".."):
+        raise ValueError(f"{path}: 'arrays.file' must be a file name in the scene's directory, got {name!r}.")
+    full = os.path.join(os.path.dirname(os.path.abspath(path)), name)
+    try:
+        with open(full, "rb") as fh:
+            data = fh.read()
+    except FileNotFoundError:
+        raise ValueError(f"{path}: its mesh arrays file {name!r} is missing (save_scene writes it beside "
+                         "the JSON; copy both files).") from None
+    except OSError as err:
+        raise ValueError(f"{path}: its mesh arrays file {name!r} cannot be read ({err}).") from None
+    if hashlib.sha256(data).hexdigest() != ref["sha256"]:
+        raise ValueError(f"{path}: its mesh arrays file {name!r} does not match the scene (corrupt, or "
+                         "written by another save); save the scene again.")
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as err:
+        raise ValueError(f"{path}: its mesh arrays file {name!r} is not a NumPy .npz file ({err}).") from None
 
 
 def _read_json(path: str | os.PathLike) -> Any:
@@ -571,10 +671,13 @@ def _read_json(path: str | os.PathLike) -> Any:
         raise ValueError(f"{path}: no such file.") from None
     except (PermissionError, UnicodeDecodeError) as err:
         raise ValueError(f"{path}: cannot be read ({err}).") from None
+    except RecursionError:
+        raise ValueError(f"{path}: JSON nested too deeply to read.") from None
 
 
 def load_scene(path: str | os.PathLike) -> Scene:
-    """Read a scene from a JSON file written by `save_scene` (or by hand, same schema).
+    """Read a scene from a JSON file written by `save_scene` (or by hand, same schema), with
+    its meshes' arrays file when it names one (schema version 2, checked by its SHA-256).
 
     **Returns:** the `Scene`; `ValueError` naming the path or the offending entry otherwise.
 
@@ -588,7 +691,12 @@ def load_scene(path: str | os.PathLike) -> Scene:
         scene = js.load_scene(path)
         ```
     """
-    return scene_from_dict(_read_json(path))
+    d = _read_json(path)
+    arrays = _read_arrays(path, d)
+    try:
+        return scene_from_dict(d, arrays=arrays)
+    except RecursionError:
+        raise ValueError(f"{path}: a value is nested too deeply to be a scene entry.") from None
 
 
 def load_material(path: str | os.PathLike) -> Material:

@@ -17,7 +17,8 @@
   receiver polygon (exact irradiance at the vertices), as PLY or glTF.
 
 Conventions: every output path is used exactly as given and its format follows its extension;
-inputs, outputs and options are checked before any computation; outputs are written to a
+an output that is an input file (or an input scene's arrays file) is refused; inputs, outputs
+and options are checked before any computation; outputs are written to a
 temporary file renamed into place, so an interrupted run leaves no partial file. Exit codes:
 0 success, 1 internal error (a bug: please report it), 2 usage error or bad input, 3 `report`
 found a disagreement with Mitsuba beyond 4 standard errors.
@@ -115,6 +116,65 @@ def check_directory(directory: str, what: str = "output", create: bool = False) 
     return d
 
 
+# The argument names every command (the plugins' too) gives its input files and its outputs;
+# `main` checks that no output is an input before running the command.
+INPUT_ARGUMENTS = ("scene", "points", "targets", "receiver")
+OUTPUT_ARGUMENTS = ("output", "compare_output")
+
+
+# Optional modules each command needs: (module, the extra that installs it, what for). `main`
+# checks them before running the command, so a missing one is exit 2 before any computation.
+# Commands set `requires` with `set_defaults`; the plugin commands' needs are listed here.
+PLUGIN_REQUIRES: dict[str, tuple[tuple[str, str, str], ...]] = {
+    "demo": (("matplotlib", "plot", "the before/after picture"),),
+}
+
+
+def check_requirements(requires: Sequence[tuple[str, str, str]]) -> None:
+    """`ImportError` naming the first missing module of `requires` ((module, extra, what for)
+    triples, found with `importlib.util.find_spec`, not imported) and the extra to install."""
+    import importlib.util
+
+    for module, extra, purpose in requires:
+        if importlib.util.find_spec(module) is None:
+            raise ImportError(f"{purpose} needs the optional dependency {module!r}: "
+                              f"pip install 'jaxshadow[{extra}]'.")
+
+
+def same_file(a: str, b: str) -> bool:
+    """Whether paths `a` and `b` name one file: `os.path.samefile` when both exist (links,
+    hard links), else the same resolved path."""
+    if os.path.exists(a) and os.path.exists(b):
+        return os.path.samefile(a, b)
+    return os.path.realpath(a) == os.path.realpath(b)
+
+
+def check_outputs_are_not_inputs(outputs: Sequence[str], inputs: Sequence[str]) -> None:
+    """`ValueError` when an output path is an input file (or the arrays file of an input scene
+    JSON, `<stem>.meshes.npz`) or two outputs are one file: writing it would destroy the input
+    or the other output."""
+    from ._scene import arrays_file_name
+
+    files = list(inputs)
+    files += [os.path.join(os.path.dirname(p), arrays_file_name(p)) for p in inputs if p.lower().endswith(".json")]
+    for i, out in enumerate(outputs):
+        for inp in files:
+            if same_file(out, inp):
+                raise ValueError(f"output {out!r} is the input {inp!r}: writing it would destroy the input; "
+                                 "choose another output path.")
+        for other in outputs[:i]:
+            if same_file(out, other):
+                raise ValueError(f"outputs {other!r} and {out!r} are the same file.")
+
+
+def _paths(args: argparse.Namespace, names: Sequence[str]) -> list[str]:
+    found: list[str] = []
+    for name in names:
+        value = getattr(args, name, None)
+        found += [value] if isinstance(value, str) else [v for v in (value or []) if isinstance(v, str)]
+    return found
+
+
 def read_scene(path: str) -> tuple[Any, list, list]:
     """`(Scene, receivers, materials)` from a scene JSON file (receivers `[]`, materials the
     file's `material` entry if any) or a Mitsuba XML file (`jaxshadow.mitsuba.from_mitsuba`)."""
@@ -125,20 +185,22 @@ def read_scene(path: str) -> tuple[Any, list, list]:
         return from_mitsuba(path)
     import jaxshadow as js
 
+    from ._scene import _read_json
+
     scene = js.load_scene(path)
-    with open(path) as fh:
-        has_material = "material" in json.load(fh)
+    has_material = "material" in _read_json(path)
     return scene, [], [js.load_material(path)] if has_material else []
 
 
 class Progress:
-    """Progress of `total` units: a tqdm bar on a terminal; on anything else (a log, a pipe) a
-    plain line at every tenth, no carriage returns; nothing with `quiet`."""
+    """Progress of `total` units: a tqdm bar on a terminal; on anything else (a log, a pipe)
+    plain lines, no carriage returns: one at the first update and one at each further tenth
+    reached, each with the true percentage and count; nothing with `quiet`."""
 
     def __init__(self, total: int, desc: str, quiet: bool = False, stream: Any = None):
         self.total, self.desc, self.done = max(int(total), 1), desc, 0
         self.stream = stream or sys.stderr
-        self.quiet, self.bar, self.next_tenth = quiet, None, 1
+        self.quiet, self.bar, self.printed_tenth = quiet, None, -1
         self.t0 = time.perf_counter()
         if not quiet and self.stream.isatty():
             try:
@@ -155,11 +217,12 @@ class Progress:
         if self.bar is not None:
             self.bar.update(int(n))
             return
-        while self.done * 10 >= self.next_tenth * self.total and self.next_tenth <= 10:
+        tenth = min(10, self.done * 10 // self.total)
+        if self.printed_tenth < 0 or tenth > self.printed_tenth:
             el = time.perf_counter() - self.t0
-            print(f"{self.desc}: {10 * self.next_tenth:3d}% ({self.done}/{self.total}) {el:.1f} s",
+            print(f"{self.desc}: {100 * self.done // self.total:3d}% ({self.done}/{self.total}) {el:.1f} s",
                   file=self.stream, flush=True)
-            self.next_tenth += 1
+            self.printed_tenth = tenth
 
     def close(self) -> None:
         if self.bar is not None:
@@ -205,24 +268,26 @@ def cmd_report(args: argparse.Namespace) -> int:
     if scene.occluders is not None and not args.with_occluders:
         scene = js.Scene(scene.lights, None, scene.ambient)
     points, normals = report_points()
-    print(f"scene: {len(scene.lights)} lights; {points.shape[0]} receivers; Mitsuba spp={args.spp}")
+    quiet = getattr(args, "quiet", False)
+    show = (lambda *a: None) if quiet else print
+    show(f"scene: {len(scene.lights)} lights; {points.shape[0]} receivers; Mitsuba spp={args.spp}")
     rep = jm.quick_report(scene, points, normals, spp=args.spp, seed=args.seed)
     ours, mits, se = (np.asarray(rep[k]) for k in ("ours", "mitsuba", "stderr"))
     sig = np.abs(ours - mits) / np.maximum(se, 1e-300)
-    print(f"{'#':>3} {'point':>24} {'jaxshadow E (R)':>16} {'Mitsuba E (R)':>16} {'stderr':>10} {'|d|/sigma':>9}")
+    show(f"{'#':>3} {'point':>24} {'jaxshadow E (R)':>16} {'Mitsuba E (R)':>16} {'stderr':>10} {'|d|/sigma':>9}")
     for i in range(points.shape[0]):
         p = ", ".join(f"{x:+.2f}" for x in points[i])
-        print(f"{i:3d} {p:>24} {ours[i, 0]:16.6f} {mits[i, 0]:16.6f} {se[i, 0]:10.2e} {sig[i].max():9.2f}")
+        show(f"{i:3d} {p:>24} {ours[i, 0]:16.6f} {mits[i, 0]:16.6f} {se[i, 0]:10.2e} {sig[i].max():9.2f}")
     worst = float(sig.max())
     print(f"max |ours - Mitsuba| / stderr over all points and channels: {worst:.2f} (pass if <= 4)")
-    print(f"time: jaxshadow {rep['ours_s']:.3f} s (incl. compile), Mitsuba {rep['mitsuba_s']:.3f} s")
+    show(f"time: jaxshadow {rep['ours_s']:.3f} s (incl. compile), Mitsuba {rep['mitsuba_s']:.3f} s")
     os.makedirs(out_dir, exist_ok=True)
     png, js_path = (os.path.join(out_dir, f"irradiance_report.{e}") for e in ("png", "json"))
     fig = _plot_report(scene, points, ours, mits, se)
     atomic_write_path(png, lambda tmp: fig.savefig(tmp, dpi=110))
     with atomic_write(js_path) as fh:
         json.dump({k: (np.asarray(v).tolist() if isinstance(v, np.ndarray) else v) for k, v in rep.items()}, fh)
-    print(f"wrote {png} and {js_path}")
+    show(f"wrote {png} and {js_path}")
     return EXIT_OK if worst <= 4.0 else EXIT_CHECK
 
 
@@ -265,7 +330,10 @@ def _add_report(sub: Any) -> None:
     p.add_argument("--spp", type=positive_int, default=65536, help="Mitsuba samples per receiver (default: 65536)")
     p.add_argument("--seed", type=int, default=0, help="Mitsuba's random seed (default: 0)")
     p.add_argument("--with-occluders", action="store_true", help="keep the scene's occluders (shadows)")
-    p.set_defaults(func=cmd_report)
+    p.add_argument("-q", "--quiet", action="store_true", help="print only the verdict line (no table, no progress)")
+    p.set_defaults(func=cmd_report, requires=(("mitsuba", "mitsuba", "the report's Mitsuba reference"),
+                                              ("drjit", "mitsuba", "the report's Mitsuba reference"),
+                                              ("matplotlib", "plot", "the report's plot")))
 
 
 # --------------------------------------------------------------------------------------
@@ -280,7 +348,7 @@ def cmd_irradiance(args: argparse.Namespace) -> int:
     check_input(args.scene, SCENE_EXTS, "scene")
     check_input(args.points, POINT_EXTS, "points")
     check_output(args.output, VALUE_EXTS)
-    from ._meshio import MESH_EXTS, extension, read_points, write_values
+    from ._meshio import IRRADIANCE_PROPERTY, MESH_EXTS, extension, read_points, write_values
 
     if extension(args.output) == ".ply" and extension(args.points) not in MESH_EXTS:
         raise ValueError(f"output {args.output!r}: a .ply output needs mesh receivers (points from a mesh file).")
@@ -310,7 +378,7 @@ def cmd_irradiance(args: argparse.Namespace) -> int:
         out[s:e] = np.asarray(js.irradiance(scene, pp, nn))[: e - s]
         bar.update(e - s)
     bar.close()
-    write_values(args.output, out, points=pts, normals=nrm, mesh=mesh, at=args.at, name="irradiance")
+    write_values(args.output, out, points=pts, normals=nrm, mesh=mesh, at=args.at, name=IRRADIANCE_PROPERTY)
     el = time.perf_counter() - t0
     _say(args)(f"{n} points in {el:.2f} s ({n / el:.3g} points/s, incl. compile) -> {args.output}")
     return EXIT_OK
@@ -319,14 +387,15 @@ def cmd_irradiance(args: argparse.Namespace) -> int:
 def _add_irradiance(sub: Any) -> None:
     p = sub.add_parser("irradiance", help="irradiance (W/m^2, RGB) at many receivers",
                        description="Irradiance with exact soft shadows at receivers read from a file, "
-                                   "evaluated in chunks with progress.")
+                                   "evaluated in chunks, with progress after every chunk.")
     add_io_arguments(p, "points", "receivers: .csv with header px,py,pz,nx,ny,nz; .npy (N, 6); .npz with "
                      "'points' and 'normals'; or a mesh (.ply .obj .glb .gltf .stl .off)",
                      "irradiance: .npy (N, 3), .npz, .csv (px..nz,r,g,b) or .ply (mesh receivers)")
     p.add_argument("--at", choices=("vertices", "faces"), default="vertices",
                    help="mesh receivers: at the vertices (default) or at the face centres")
-    p.add_argument("--chunk", type=positive_int, default=1 << 18,
-                   help="receivers per evaluation (default: 262144); smaller uses less memory")
+    p.add_argument("--chunk", type=positive_int, default=1 << 16,
+                   help="receivers per evaluation and per progress update (default: 65536); smaller uses "
+                        "less memory, larger is a little faster")
     p.add_argument("--float64", action="store_true", help="evaluate in float64 (default: float32)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=cmd_irradiance)
@@ -395,11 +464,16 @@ def _version() -> str:
         return "0.0.0"
 
 
+def _plain(text: str) -> str:
+    """Help text from a Markdown docstring: without the backticks of code spans."""
+    return text.replace("`", "")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The `jaxshadow` argument parser, with the built-in and the registered commands."""
-    parser = argparse.ArgumentParser(prog="jaxshadow", description=__doc__,
+    parser = argparse.ArgumentParser(prog="jaxshadow", description=_plain(__doc__ or ""),
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--version", action="version", version=f"jaxshadow {_version()}",
+    parser.add_argument("-V", "--version", action="version", version=f"jaxshadow {_version()}",
                         help="print the version and exit")
     parser.add_argument(
         "--compile-cache", default=None, metavar="DIR",
@@ -412,7 +486,7 @@ def build_parser() -> argparse.ArgumentParser:
         add(sub)
     plugins = plugin_commands()
     if not plugins:
-        parser.epilog = ("No solver commands (fit, demo) are registered: they come from the `inverse` package "
+        parser.epilog = ("No solver commands (fit, demo) are registered: they come from the inverse package "
                          f"through the entry-point group {ENTRY_POINT_GROUP!r}; reinstall jaxshadow (pip install -e .).")
     for name, ep in sorted(plugins.items()):
         try:
@@ -428,6 +502,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        check_requirements(tuple(getattr(args, "requires", ())) + PLUGIN_REQUIRES.get(args.cmd, ()))
+        check_outputs_are_not_inputs(_paths(args, OUTPUT_ARGUMENTS), _paths(args, INPUT_ARGUMENTS))
         if not args.no_compile_cache:
             enable_compile_cache(args.compile_cache)
         return int(args.func(args) or 0)

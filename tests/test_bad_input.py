@@ -7,6 +7,7 @@ NumPy); they are strict xfails, so fixing the gap makes them XPASS and fail: the
 """
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -145,7 +146,7 @@ JSON_CASES = {
     "truncated": ('{"format": "jaxshadow.scene", "vers', r"(?i)unterminated string|expecting"),
     "not-an-object": ("[1, 2]", r"scene: expected a JSON object"),
     "wrong-format": ({**GOOD, "format": "mitsuba"}, r"scene: 'format' must be 'jaxshadow.scene', got 'mitsuba'"),
-    "wrong-version": ({**GOOD, "version": 2}, r"scene: unsupported schema version 2"),
+    "wrong-version": ({**GOOD, "version": 3}, r"scene: unsupported schema version 3"),
     "unknown-field": ({**GOOD, "camera": {}}, r"scene: unknown field\(s\) \['camera'\]"),
     "light-without-type": ({**GOOD, "lights": [{"vertices": QUAD.tolist()}]}, r"scene.lights\[0\]: expected an object with a 'type' field"),
     "light-unknown-type": (_light(type="spot"), r"scene.lights\[0\]: unknown light type 'spot'"),
@@ -187,3 +188,59 @@ def test_valid_integer_vertices_are_accepted_and_cast():
     verts = np.array([[-1, -1, 1], [-1, 1, 1], [1, 1, 1], [1, -1, 1]])
     f = js.form_factor(np.zeros((1, 3), np.float32), np.array([[0, 0, 1]], np.float32), verts)
     assert f.dtype == np.float32 and 0.0 < float(f[0]) < 1.0
+
+
+# ---- the command line: bad files are usage errors (exit 2 with the reason), not exit 1 --------
+
+
+def _cli(argv, capsys):
+    from jaxshadow.cli import main
+
+    try:
+        rc = main(["--no-compile-cache", *argv])
+    except SystemExit as err:
+        rc = err.code
+    return rc, capsys.readouterr().err
+
+
+def test_cli_deeply_nested_json_is_a_usage_error(tmp_path, capsys):
+    deep = "[" * 200_000 + "]" * 200_000
+    (tmp_path / "deep.json").write_text(deep)
+    np.save(tmp_path / "pts.npy", np.array([[0.0, 0, 0, 0, 0, 1]]))
+    with pytest.raises(ValueError, match="nested too deeply"):
+        js.load_scene(tmp_path / "deep.json")
+    rc, err = _cli(["irradiance", str(tmp_path / "deep.json"), str(tmp_path / "pts.npy"), "-o", str(tmp_path / "e.npy")], capsys)
+    assert rc == 2 and "nested too deeply" in err and "internal error" not in err
+    # nested within the JSON parser's reach but too deep for a scene entry
+    d = js.scene_to_dict(js.Scene([js.PolygonLight(QUAD, 1.0)]))
+    (tmp_path / "s.json").write_text(json.dumps(d))
+    text = json.dumps({**d, "ambient": 0}).replace('"ambient": 0', '"ambient": ' + "[" * 5000 + "]" * 5000)
+    (tmp_path / "a.json").write_text(text)
+    rc, err = _cli(["irradiance", str(tmp_path / "a.json"), str(tmp_path / "pts.npy"), "-o", str(tmp_path / "e.npy")], capsys)
+    assert rc == 2 and "internal error" not in err
+    rc, err = _cli(["mesh", str(tmp_path / "s.json"), "-o", str(tmp_path / "m.ply"), "--receiver", str(tmp_path / "deep.json")], capsys)
+    assert rc == 2 and "nested too deeply" in err
+    (tmp_path / "r.json").write_text('[[0, 0, 0], [1, 0, "x"], [1, 1, 0]]')
+    rc, err = _cli(["mesh", str(tmp_path / "s.json"), "-o", str(tmp_path / "m.ply"), "--receiver", str(tmp_path / "r.json")], capsys)
+    assert rc == 2 and "--receiver" in err and "internal error" not in err
+    assert sorted(os.listdir(tmp_path)) == ["a.json", "deep.json", "pts.npy", "r.json", "s.json"]
+
+
+def test_render_refuses_a_film_too_large_before_allocating(tmp_path, capsys, monkeypatch):
+    pytest.importorskip("mitsuba")
+    from jaxshadow import _render
+    from jaxshadow import mitsuba as jm
+
+    def forbidden(*a, **k):
+        raise AssertionError("allocated the camera rays")
+
+    monkeypatch.setattr(_render, "_camera_rays", forbidden)
+    scene = jm.write_example_scene(tmp_path, resolution=100_000)
+    rc, err = _cli(["render", scene, "-o", str(tmp_path / "a.png")], capsys)
+    assert rc == 2 and "100000x100000 film" in err and "10,000,000,000 camera samples" in err
+    with pytest.raises(ValueError, match="camera samples"):
+        _render.render(scene)
+    with pytest.raises(ValueError, match="supersample 3"):
+        _render.check_film_size(2000, 2000, 3)
+    assert _render.check_film_size(64, 48, 2) == 64 * 48 * 4
+    assert not (tmp_path / "a.png").exists()

@@ -204,16 +204,66 @@ def test_killed_run_leaves_no_partial_output(tmp_path):
     assert sorted(os.listdir(tmp_path)) == ["e.npy", "pts.npy"]
 
 
+def _progress_lines(err):
+    """(percent, done, total) of each plain progress line."""
+    import re
+
+    return [tuple(int(x) for x in re.match(r"\w+: +(\d+)% \((\d+)/(\d+)\)", line).groups())
+            for line in err.splitlines()]
+
+
 def test_progress_is_plain_lines_off_a_terminal(capsys):
     bar = cli.Progress(100, "work")
     for _ in range(20):
         bar.update(5)
     bar.close()
     err = capsys.readouterr().err
-    assert "\r" not in err and err.count("\n") == 10 and "work: 100% (100/100)" in err
+    # the first update, then one line per tenth reached
+    assert "\r" not in err and err.count("\n") == 11 and err.startswith("work:   5% (5/100)") and "work: 100% (100/100)" in err
     quiet = cli.Progress(100, "work", quiet=True)
     quiet.update(100)
     assert capsys.readouterr().err == ""
+
+
+def test_progress_lines_state_the_true_count(capsys):
+    # Uneven blocks: each line's percentage is its own count's, never "20% (262144/1000000)".
+    bar = cli.Progress(1_000_000, "irradiance")
+    for n in (262144, 262144, 262144, 213568):
+        bar.update(n)
+    lines = _progress_lines(capsys.readouterr().err)
+    assert [line[1] for line in lines] == [262144, 524288, 786432, 1000000]
+    for pct, done, total in lines:
+        assert pct == 100 * done // total
+
+
+def test_irradiance_progress_from_the_first_chunk(tmp_path, capsys):
+    _points_csv(tmp_path / "pts.csv", n=40)
+    rc = main([NC, "irradiance", ROOM, str(tmp_path / "pts.csv"), "-o", str(tmp_path / "e.npy"), "--chunk", "16"])
+    assert rc == 0
+    lines = _progress_lines("\n".join(x for x in capsys.readouterr().err.splitlines() if x.startswith("irradiance:")))
+    assert [line[1] for line in lines] == [16, 32, 40]
+
+
+def test_short_version_flag_and_plain_help(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["-V"])
+    assert exc.value.code == 0 and capsys.readouterr().out.strip() == f"jaxshadow {metadata.version('jaxshadow')}"
+    parser = build_parser()
+    text = parser.format_help()
+    assert "`" not in text and "Exit codes" in text
+    subs = next(a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction")
+    for name, sp in subs.choices.items():
+        assert sp.description and len(sp.description) > 30, f"{name} --help has no description"
+        assert "-q" in sp._option_string_actions, f"{name} has no -q"
+
+
+def test_fit_quiet_prints_no_progress(tmp_path, capsys):
+    name = _write_fit_inputs(tmp_path)
+    args = [NC, "fit", str(tmp_path / "scene.json"), str(tmp_path / name), "-o", str(tmp_path / "f.json")]
+    assert main(args) == 0
+    assert "material fit on 20 targets" in capsys.readouterr().err
+    assert main([*args, "-q"]) == 0
+    assert "material fit" not in capsys.readouterr().err and (tmp_path / "f.json").exists()
 
 
 def test_mesh_receivers_in_ply_out(tmp_path):
@@ -351,3 +401,80 @@ def test_compile_cache_option(tmp_path, monkeypatch):
     (tmp_path / "file").write_text("")
     with pytest.raises(PermissionError, match="--compile-cache: cannot create"):
         enable_compile_cache(str(tmp_path / "file" / "xla"))
+
+
+def test_an_output_that_is_an_input_is_refused(tmp_path, capsys, monkeypatch):
+    def forbidden(*args, **kw):
+        raise AssertionError("computed before the arguments were checked")
+
+    monkeypatch.setattr(js, "irradiance", forbidden)
+    monkeypatch.setattr(js, "illumination_mesh", forbidden)
+    import inverse.cli as icli
+
+    monkeypatch.setattr(icli, "fit_material", forbidden)
+    p = np.zeros((3, 6))
+    np.save(tmp_path / "pts.npy", p)
+    scene = tmp_path / "scene.json"
+    js.save_scene(js.load_scene(ROOM), scene)
+    (tmp_path / "scene.xml").write_text("<scene version='3.0.0'/>")
+    before = {f: (tmp_path / f).read_bytes() for f in os.listdir(tmp_path)}
+    os.symlink(tmp_path / "pts.npy", tmp_path / "link.npy")
+    cases = [
+        (["irradiance", str(scene), str(tmp_path / "pts.npy"), "-o", str(tmp_path / "pts.npy")], "pts.npy"),
+        (["irradiance", str(scene), str(tmp_path / "pts.npy"), "-o", str(tmp_path / "link.npy")], "pts.npy"),
+        (["irradiance", str(scene), str(tmp_path / "pts.npy"), "-o", str(tmp_path / "." / "scene.json")], "scene.json"),
+        (["render", str(tmp_path / "scene.xml"), "-o", str(tmp_path / "scene.xml")], "scene.xml"),
+        (["render", str(tmp_path / "scene.xml"), "-o", str(tmp_path / "a.png"), "-o", str(tmp_path / "a.png")], "a.png"),
+        (["mesh", str(scene), "-o", str(scene)], "scene.json"),
+        (["fit", str(scene), str(tmp_path / "pts.npy"), "-o", str(scene)], "scene.json"),
+    ]
+    for argv, name in cases:
+        rc, err = _run([NC, *argv], capsys)
+        assert rc == 2, (argv, err)
+        assert "the same file" in err or ("writing it would destroy the input" in err and name in err), (argv, err)
+    # an input scene's arrays file is an input too
+    js.save_scene(js.Scene([], occluders=[js.Mesh([[0, 0, 1], [1, 0, 1], [0, 1, 1]], [[0, 1, 2]])]), scene)
+    before = {f: (tmp_path / f).read_bytes() for f in os.listdir(tmp_path) if f != "link.npy"}
+    rc, err = _run([NC, "irradiance", str(scene), str(tmp_path / "pts.npy"), "-o", str(tmp_path / "scene.meshes.npz")], capsys)
+    assert rc == 2 and "scene.meshes.npz" in err and "destroy the input" in err
+    assert {f: (tmp_path / f).read_bytes() for f in os.listdir(tmp_path) if f != "link.npy"} == before
+
+
+def test_readme_names_every_extra():
+    import re
+
+    tomllib = pytest.importorskip("tomllib")  # Python >= 3.11
+    with open(os.path.join(ROOT, "pyproject.toml"), "rb") as fh:
+        extras = set(tomllib.load(fh)["project"]["optional-dependencies"])
+    with open(os.path.join(ROOT, "README.md")) as fh:
+        readme = fh.read()
+    paragraph = readme[readme.index("`pip install jaxshadow` needs only"):]
+    paragraph = paragraph[:paragraph.index("\n\n")]
+    assert extras <= set(re.findall(r"`(\w+)`", paragraph)), extras - set(re.findall(r"`(\w+)`", paragraph))
+
+
+@pytest.mark.parametrize(("argv", "missing", "extra"), [
+    (["demo", "--out", "{tmp}"], "matplotlib", "plot"),
+    (["report", "--out", "{tmp}"], "mitsuba", "mitsuba"),
+    (["report", "--out", "{tmp}"], "matplotlib", "plot"),
+    (["render", "{tmp}/s.xml", "-o", "{tmp}/a.png"], "mitsuba", "mitsuba"),
+    (["render", "{tmp}/s.xml", "-o", "{tmp}/a.png", "--spp-compare", "4"], "matplotlib", "plot"),
+    (["mesh", ROOM, "-o", "{tmp}/m.ply"], "shapely", "mesh"),
+])
+def test_missing_optional_dependency_is_found_before_computing(tmp_path, capsys, monkeypatch, argv, missing, extra):
+    import importlib.util
+
+    import inverse.cli as icli
+    from jaxshadow import _render
+
+    def forbidden(*a, **k):
+        raise AssertionError("computed before the optional dependencies were checked")
+
+    for mod, name in ((icli, "run_demo"), (js, "load_scene"), (_render, "_load")):
+        monkeypatch.setattr(mod, name, forbidden)
+    (tmp_path / "s.xml").write_text("<scene version='3.0.0'/>")
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == missing else real(name, *a))
+    rc, err = _run([NC, *[a.replace("{tmp}", str(tmp_path)) for a in argv]], capsys)
+    assert rc == 2 and repr(missing) in err and f"jaxshadow[{extra}]" in err, err
+    assert sorted(os.listdir(tmp_path)) == ["s.xml"]

@@ -194,3 +194,71 @@ def test_shade_with_per_receiver_material():
     m = js.Material(kd=np.array([[0.1, 0.2, 0.3], [0.4, 0.5, 0.6]]))
     got = np.asarray(js.shade(scene, m, p, n, [0, 0, 1.0]))
     np.testing.assert_allclose(got, np.asarray(m.radiance(scene.ambient, js.irradiance(scene, p, n))), rtol=1e-12)
+
+
+def test_csv_duplicated_column_is_an_error(tmp_path):
+    # Two 'px' columns: which one is meant is unknown, so neither is taken silently.
+    (tmp_path / "dup.csv").write_text("px,py,pz,nx,ny,nz,px\n0,0,0,0,0,1,5\n")
+    with pytest.raises(ValueError, match=r"\['px'\] appear more than once"):
+        js.read_points(tmp_path / "dup.csv")
+    # a repeated name among the ignored columns does not matter
+    (tmp_path / "extra.csv").write_text("w,px,py,pz,nx,ny,nz,w\n9,1,2,3,0,0,1,8\n")
+    np.testing.assert_array_equal(js.read_points(tmp_path / "extra.csv")[0], [[1.0, 2.0, 3.0]])
+
+
+def test_csv_columns_by_name_with_text_and_blank_lines(tmp_path):
+    # Columns in any order, an ignored text column with a quoted comma, CRLF and blank lines.
+    text = ('label,nz,ny,nx,pz,py,px\r\n"a,b",1,0,0,3,2,1\r\n\r\nc,0,1,0,6,5,4\r\n')
+    (tmp_path / "t.csv").write_bytes(text.encode())
+    p, n, _ = js.read_points(tmp_path / "t.csv")
+    np.testing.assert_array_equal(p, [[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])
+    np.testing.assert_array_equal(n, [[0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
+
+
+@pytest.mark.parametrize(("body", "message"), [
+    ("1,2,3,0,0,1\n4,5,6,0,0\n", "row 2 has 5 fields, the header has 6"),
+    ("1,2,3,0,0,1\n\n4,5,6,0,0,1,7\n", "row 2 has 7 fields, the header has 6"),
+    ("1,2,3,0,0,1\n4,x,6,0,0,1\n", r"row 2 has a non-numeric value"),
+    ("1,2,3,0,0,1\n4,,6,0,0,1\n", r"row 2 has a non-numeric value"),
+])
+def test_csv_bad_rows_are_named(tmp_path, body, message):
+    (tmp_path / "bad.csv").write_text("px,py,pz,nx,ny,nz\n" + body)
+    with pytest.raises(ValueError, match=message):
+        js.read_points(tmp_path / "bad.csv")
+
+
+def test_csv_header_without_rows_has_no_points(tmp_path):
+    (tmp_path / "h.csv").write_text("px,py,pz,nx,ny,nz\n")
+    with pytest.raises(ValueError, match="no points"):
+        js.read_points(tmp_path / "h.csv")
+
+
+def _ply_properties(path):
+    """The vertex / face property names in a PLY header, read as text."""
+    head = path.read_bytes().split(b"end_header")[0].decode("ascii")
+    return [line.split()[-1] for line in head.splitlines() if line.startswith("property")]
+
+
+def test_one_ply_property_naming_for_irradiance(tmp_path):
+    # write_ply's default, the `irradiance` command and the illumination meshes: irradiance_r/g/b.
+    from types import SimpleNamespace
+
+    from jaxshadow._illumination_io import save_mesh
+
+    m = _box()
+    r = js.ReceiverMesh(m.vertices, m.faces)
+    vals = np.random.default_rng(0).uniform(0, 3, (len(m.vertices), 3))
+    js.write_ply(tmp_path / "api.ply", r, vals)
+    save_mesh(SimpleNamespace(vertices=np.asarray(m.vertices), triangles=np.asarray(m.faces), irradiance=vals, scale=3.0),
+              tmp_path / "mesh.ply")
+    js.write_values(tmp_path / "values.ply", vals, mesh=r)
+    for name in ("api.ply", "mesh.ply", "values.ply"):
+        props = _ply_properties(tmp_path / name)
+        assert {"irradiance_r", "irradiance_g", "irradiance_b"} <= set(props), (name, props)
+        assert not any(p.startswith("value_") for p in props), (name, props)
+    back = trimesh.load(tmp_path / "api.ply", process=False).metadata["_ply_raw"]["vertex"]["data"]
+    np.testing.assert_array_equal(np.stack([back[f"irradiance_{c}"] for c in "rgb"], axis=1), vals)
+    js.write_ply(tmp_path / "rad.ply", r, vals, name="radiance")
+    assert "radiance_r" in _ply_properties(tmp_path / "rad.ply")
+    with pytest.raises(ValueError, match="name must be a PLY property name"):
+        js.write_ply(tmp_path / "bad.ply", r, vals, name="my value")

@@ -1,6 +1,7 @@
 """Scene model: validation messages, JSON round trip, pytree behaviour."""
 
 import json
+import os
 
 import equinox as eqx
 import jax
@@ -145,3 +146,126 @@ def test_scene_is_a_pytree_with_differentiable_leaves():
     grads = g(scene)
     assert np.all(np.isfinite(np.asarray(grads.lights[0].vertices)))
     assert float(jnp.abs(grads.lights[0].radiance).sum()) > 0
+
+
+# ---- meshes in a binary arrays file beside the scene JSON ---------------------------------
+
+
+def _mesh_scene():
+    trimesh = pytest.importorskip("trimesh")
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=0.3)
+    # A pyramid: after merging, a square base and four triangles (faces of 3 and 4 vertices).
+    pyramid = js.Mesh([[0, 0, 0.2], [1, 0, 0.2], [1, 1, 0.2], [0, 1, 0.2], [0.5, 0.5, 0.7]],
+                      [[0, 2, 1], [0, 3, 2], [0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]])
+    return js.Scene([js.PolygonLight(SQ, 2.0)], ambient=0.1, occluders=[
+        js.Mesh(np.asarray(ball.vertices) + [0.5, 0.5, 0.5], np.asarray(ball.faces)),
+        [[0, 0, 0.9], [0.2, 0, 0.9], [0.2, 0.2, 0.9]],
+        pyramid,
+    ])
+
+
+def _topology(scene):
+    t = scene.occluder_topology
+    return [np.asarray(a) for a in (t.face_object, t.from_mesh, t.face_solid, t.face_closed, t.solid_faces)]
+
+
+def test_meshes_are_saved_as_arrays_beside_the_json(tmp_path):
+    scene = _mesh_scene()
+    path = tmp_path / "room.json"
+    js.save_scene(scene, path, material=js.Material(kd=0.4))
+    assert sorted(os.listdir(tmp_path)) == ["room.json", "room.meshes.npz"]
+    d = json.loads(path.read_text())
+    assert d["version"] == 2 and d["arrays"]["file"] == "room.meshes.npz"
+    assert d["occluders"][0] == {"mesh": {"arrays": "mesh0"}} and d["occluders"][2] == {"mesh": {"arrays": "mesh1"}}
+    assert np.asarray(d["occluders"][1]).shape == (3, 3)  # a plain polygon stays inline
+    with np.load(tmp_path / "room.meshes.npz") as z:
+        assert z["mesh0_faces"].shape == (320, 3) and z["mesh0_vertices"].shape == (162, 3)
+        assert z["mesh1_faces"].shape == (5, 4) and (z["mesh1_faces"] == -1).sum() == 4
+    back = js.load_scene(path)
+    np.testing.assert_array_equal(np.asarray(back.occluders), np.asarray(scene.occluders))
+    # the same scene as the inline (version 1) form gives
+    inline = js.scene_from_dict(js.scene_to_dict(scene))
+    for a, b in zip(_topology(back), _topology(inline), strict=True):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(np.asarray(js.load_material(path).kd), [0.4, 0.4, 0.4])
+
+
+def test_inline_version_1_mesh_files_still_load(tmp_path):
+    scene = _mesh_scene()
+    d = js.scene_to_dict(scene)
+    assert d["version"] == 1 and "vertices" in d["occluders"][0]["mesh"]
+    (tmp_path / "old.json").write_text(json.dumps(d))
+    np.testing.assert_array_equal(np.asarray(js.load_scene(tmp_path / "old.json").occluders),
+                                  np.asarray(scene.occluders))
+
+
+def test_scene_without_meshes_is_one_version_1_file(tmp_path):
+    js.save_scene(js.Scene([js.PolygonLight(SQ, 1.0)], occluders=[[[0, 0, 0.5], [1, 0, 0.5], [0, 1, 0.5]]]),
+                  tmp_path / "s.json")
+    assert os.listdir(tmp_path) == ["s.json"] and json.loads((tmp_path / "s.json").read_text())["version"] == 1
+
+
+def _rewrite_arrays(tmp_path, **arrays):
+    """Replace the arrays file of tmp_path/s.json, with a matching hash in the JSON."""
+    import hashlib
+    import io
+
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    (tmp_path / "s.meshes.npz").write_bytes(buf.getvalue())
+    d = json.loads((tmp_path / "s.json").read_text())
+    d["arrays"]["sha256"] = hashlib.sha256(buf.getvalue()).hexdigest()
+    (tmp_path / "s.json").write_text(json.dumps(d))
+
+
+def test_missing_or_corrupt_arrays_file_is_a_clear_error(tmp_path):
+    js.save_scene(_mesh_scene(), tmp_path / "s.json")
+    npz = tmp_path / "s.meshes.npz"
+    data = npz.read_bytes()
+    npz.write_bytes(data[: len(data) // 2])
+    with pytest.raises(ValueError, match=r"'s.meshes.npz' does not match the scene"):
+        js.load_scene(tmp_path / "s.json")
+    npz.unlink()
+    with pytest.raises(ValueError, match=r"s.json: its mesh arrays file 's.meshes.npz' is missing"):
+        js.load_scene(tmp_path / "s.json")
+    npz.write_bytes(data)
+    js.load_scene(tmp_path / "s.json")
+    d = json.loads((tmp_path / "s.json").read_text())
+    with pytest.raises(ValueError, match=r"stored in the scene's arrays file; read the scene with jaxshadow.load_scene"):
+        js.scene_from_dict(d)
+    (tmp_path / "t.json").write_text(json.dumps({**d, "arrays": {**d["arrays"], "file": "../s.meshes.npz"}}))
+    with pytest.raises(ValueError, match=r"must be a file name in the scene's directory"):
+        js.load_scene(tmp_path / "t.json")
+    (tmp_path / "s.meshes.npz").write_bytes(b"not a zip file")
+    d["arrays"]["sha256"] = __import__("hashlib").sha256(b"not a zip file").hexdigest()
+    (tmp_path / "s.json").write_text(json.dumps(d))
+    with pytest.raises(ValueError, match=r"is not a NumPy .npz file"):
+        js.load_scene(tmp_path / "s.json")
+
+
+def test_arrays_file_faces_must_be_integers(tmp_path):
+    scene = _mesh_scene()
+    js.save_scene(scene, tmp_path / "s.json")
+    with np.load(tmp_path / "s.meshes.npz") as z:
+        arrays = {k: z[k] for k in z.files}
+    faces = arrays["mesh0_faces"].astype(np.float64)
+    faces[0, 2] = 2.5
+    _rewrite_arrays(tmp_path, **{**arrays, "mesh0_faces": faces})
+    with pytest.raises(ValueError, match=r"scene.occluders\[0\]: mesh faces must be an \(F, K >= 3\) array of integer"):
+        js.load_scene(tmp_path / "s.json")
+    faces = arrays["mesh1_faces"].copy()
+    faces[1, 1] = -1  # padding in the middle of a row
+    _rewrite_arrays(tmp_path, **{**arrays, "mesh1_faces": faces})
+    with pytest.raises(ValueError, match=r"scene.occluders\[2\]: mesh faces: a negative index other than"):
+        js.load_scene(tmp_path / "s.json")
+    _rewrite_arrays(tmp_path, **{k: v for k, v in arrays.items() if not k.startswith("mesh1")})
+    with pytest.raises(ValueError, match=r"scene.occluders\[2\]: the arrays file has no mesh 'mesh1'"):
+        js.load_scene(tmp_path / "s.json")
+
+
+def test_inline_json_face_index_must_be_an_integer(tmp_path):
+    d = js.scene_to_dict(_mesh_scene())
+    d["occluders"][0]["mesh"]["faces"][0][1] = 2.5
+    (tmp_path / "f.json").write_text(json.dumps(d))
+    with pytest.raises(ValueError, match=r"scene.occluders\[0\]: mesh faces must be lists of integer vertex indices"):
+        js.load_scene(tmp_path / "f.json")
