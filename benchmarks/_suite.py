@@ -58,6 +58,7 @@ SUITE: tuple[str, ...] = (
     "projective_gradient",
     "fit_lights",
     "illumination_mesh",
+    "real_meshes",
 )
 
 
