@@ -26,6 +26,9 @@ edges with their two faces) a static `OccluderTopology`.
 
 from __future__ import annotations
 
+import itertools
+import math
+import operator
 from dataclasses import dataclass
 from typing import Any
 
@@ -44,6 +47,97 @@ def _newell(v: np.ndarray) -> np.ndarray:
 
 def _cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+def _plane_values(pts: np.ndarray, p0: Any, nrm: np.ndarray) -> np.ndarray:
+    """(pts - p0) . nrm over the last axis, with one fixed order of operations (broadcasting), so
+    that every test of a vertex against a face plane below rounds the same way."""
+    d = pts - p0
+    return d[..., 0] * nrm[..., 0] + d[..., 1] * nrm[..., 1] + d[..., 2] * nrm[..., 2]
+
+
+def _newell_many(p: np.ndarray) -> np.ndarray:
+    """`_newell` of each polygon of `p (G, k, 3)`: the same products summed along a contiguous
+    axis of length k (the same summation as `np.sum` of one face's terms)."""
+    w = np.concatenate([p[:, 1:], p[:, :1]], axis=1)
+    return np.stack([(p[:, :, 1] * w[:, :, 2] - p[:, :, 2] * w[:, :, 1]).sum(axis=1),
+                     (p[:, :, 2] * w[:, :, 0] - p[:, :, 0] * w[:, :, 2]).sum(axis=1),
+                     (p[:, :, 0] * w[:, :, 1] - p[:, :, 1] * w[:, :, 0]).sum(axis=1)], axis=1)
+
+
+def _groups(loops: list[list[int]]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The faces grouped by vertex count: (face indices (G,), vertex indices (G, k)) per count."""
+    lens = np.fromiter((len(x) for x in loops), dtype=np.intp, count=len(loops))
+    out = []
+    for k in np.unique(lens):
+        idx = np.flatnonzero(lens == k)
+        if len(idx) == len(loops):
+            arr = np.asarray(loops, dtype=np.intp).reshape(-1, int(k))
+        else:
+            arr = np.asarray([loops[i] for i in idx], dtype=np.intp).reshape(-1, int(k))
+        out.append((idx, arr))
+    return out
+
+
+def _normals(loops: list[list[int]], v: np.ndarray) -> np.ndarray:
+    """Newell normals `(F, 3)` (not normalised) of all faces."""
+    out = np.zeros((len(loops), 3))
+    for idx, arr in _groups(loops):
+        out[idx] = _newell_many(v[arr])
+    return out
+
+
+def _unit(n: np.ndarray) -> np.ndarray:
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return n / np.sqrt((n * n).sum(axis=1))[:, None]
+
+
+def _padded(loops: list[list[int]]) -> np.ndarray:
+    """`(F, K)` vertex indices, short faces padded with their first vertex (which changes no
+    maximum over a face's vertices)."""
+    k = max((len(x) for x in loops), default=3)
+    out = np.empty((len(loops), k), dtype=np.intp)
+    for idx, arr in _groups(loops):
+        out[idx, :arr.shape[1]] = arr
+        out[idx, arr.shape[1]:] = arr[:, :1]
+    return out
+
+
+def _check_faces(loops: list[list[int]], v: np.ndarray, size: float) -> None:
+    """Zero-area and non-planar faces (the first offending face is reported)."""
+    bad = np.zeros(len(loops), dtype=np.int8)  # 1: zero area, 2: not planar
+    for idx, arr in _groups(loops):
+        pts = v[arr]
+        n = _newell_many(pts)
+        area = np.sqrt((n * n).sum(axis=1))
+        zero = ~(area > COPLANAR_RTOL * size * size)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            off = np.abs(_plane_values(pts, pts[:, :1], (n / area[:, None])[:, None, :])).max(axis=1)
+        bad[idx] = np.where(zero, 1, np.where(off > 1e-6 * size, 2, 0))
+    hit = np.flatnonzero(bad)
+    if len(hit):
+        i = int(hit[0])
+        raise ValueError(f"Mesh: face {i} has zero area." if bad[i] == 1 else f"Mesh: face {i} is not planar.")
+
+
+def _gather(v: np.ndarray, loops: list[list[int]]) -> list[np.ndarray]:
+    """`[v[loop] for loop in loops]`, one gather per vertex count."""
+    out: list[Any] = [None] * len(loops)
+    for idx, arr in _groups(loops):
+        for i, p in zip(idx.tolist(), v[arr], strict=True):
+            out[i] = p
+    return out
+
+
+def _edge_arrays(loops: list[list[int]]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Directed edges in face order: (face, position k in the face, a = loop[k], b = loop[k+1])."""
+    lens = np.fromiter((len(x) for x in loops), dtype=np.intp, count=len(loops))
+    flat = np.fromiter(itertools.chain.from_iterable(loops), dtype=np.intp, count=int(lens.sum()))
+    start = np.concatenate([[0], np.cumsum(lens)[:-1]]).astype(np.intp)
+    face = np.repeat(np.arange(len(loops)), lens)
+    k = np.arange(len(flat)) - start[face]
+    nxt = start[face] + (k + 1) % lens[face]
+    return face, k, flat, flat[nxt]
 
 
 class Mesh:
@@ -76,19 +170,12 @@ class Mesh:
             raise ValueError("Mesh: all vertices coincide.")
         self.vertices = v
         self.n_input_faces = len(loops)
-        for i, loop in enumerate(loops):
-            pts = v[loop]
-            area = np.linalg.norm(_newell(pts))
-            if not area > COPLANAR_RTOL * size * size:
-                raise ValueError(f"Mesh: face {i} has zero area.")
-            nrm = _newell(pts) / area
-            if np.max(np.abs((pts - pts[0]) @ nrm)) > 1e-6 * size:
-                raise ValueError(f"Mesh: face {i} is not planar.")
+        _check_faces(loops, v, size)
         self.closed, flip = _closed(loops, v)
         if flip:
             loops = [loop[::-1] for loop in loops]
         self.loops = _merge(loops, v, size) if merge else [list(x) for x in loops]
-        self.polygons = [v[loop] for loop in self.loops]
+        self.polygons = _gather(v, self.loops)
         self.convex = self.closed and _convex(self.loops, v, size)
         self.edges = _solid_edges(self.loops) if self.convex else None
         if self.edges is None:
@@ -134,13 +221,58 @@ class Mesh:
                 f"{len(self.polygons)} polygons, {kind})")
 
 
+def _index(x: Any, i: int) -> int:
+    """One vertex index: an integer, or a number with an integral value (2.0); 2.5 is refused
+    rather than truncated."""
+    try:
+        return operator.index(x)
+    except TypeError:
+        pass
+    try:
+        xf = float(x)
+    except (TypeError, ValueError):
+        raise ValueError(f"Mesh: face {i} has a vertex index that is not an integer: {x!r}.") from None
+    if not (math.isfinite(xf) and xf == int(xf)):
+        raise ValueError(f"Mesh: face {i} has a vertex index that is not an integer: {x!r}.")
+    return int(xf)
+
+
 def _face_loops(faces: Any, n_vertices: int) -> list[list[int]]:
-    if isinstance(faces, np.ndarray) and faces.ndim == 2:
-        loops = [list(map(int, f)) for f in faces]
-    else:
-        loops = [list(map(int, f)) for f in faces]
+    arr = None
+    if isinstance(faces, np.ndarray) or (isinstance(faces, list | tuple) and faces
+                                         and all(isinstance(f, np.ndarray | list | tuple) for f in faces[:1])):
+        try:
+            arr = np.asarray(faces)
+        except (ValueError, TypeError):
+            arr = None
+    if arr is not None and arr.ndim == 2 and arr.dtype.kind in "biuf":
+        if arr.dtype.kind == "f":
+            nonint = ~np.all(np.isfinite(arr) & (arr == np.round(arr)), axis=1)
+            if nonint.any():
+                i = int(np.flatnonzero(nonint)[0])
+                bad = arr[i][~(np.isfinite(arr[i]) & (arr[i] == np.round(arr[i])))][0]
+                raise ValueError(f"Mesh: face {i} has a vertex index that is not an integer: {bad!r}.")
+        if arr.shape[1] != 3:
+            return _face_loops_generic(arr.astype(np.int64).tolist(), n_vertices)
+        a = arr.astype(np.int64) if arr.dtype.kind != "i" or arr.dtype.itemsize != 8 else arr
+        if arr.dtype.kind == "u" and arr.size and arr.max() > np.iinfo(np.int64).max:
+            return _face_loops_generic(arr.tolist(), n_vertices)
+        out_of_range = np.any((a < 0) | (a >= n_vertices), axis=1)
+        repeated = (a[:, 0] == a[:, 1]) | (a[:, 1] == a[:, 2]) | (a[:, 2] == a[:, 0])
+        hit = np.flatnonzero(out_of_range | repeated)
+        if len(hit):
+            i = int(hit[0])
+            if out_of_range[i]:
+                raise ValueError(f"Mesh: face {i} has a vertex index out of range [0, {n_vertices}).")
+            raise ValueError(f"Mesh: face {i} needs at least three distinct vertices, got {a[i].tolist()}.")
+        return a.tolist()  # a triangle with three distinct vertices is its own deduplicated loop
+    return _face_loops_generic(faces, n_vertices)
+
+
+def _face_loops_generic(faces: Any, n_vertices: int) -> list[list[int]]:
     out = []
-    for i, loop in enumerate(loops):
+    for i, f in enumerate(faces):
+        loop = [_index(x, i) for x in f]
         if any(j < 0 or j >= n_vertices for j in loop):
             raise ValueError(f"Mesh: face {i} has a vertex index out of range [0, {n_vertices}).")
         dedup = [a for k, a in enumerate(loop) if a != loop[k - 1]]
@@ -158,63 +290,184 @@ def _directed_edges(loops: list[list[int]]):
 
 def _closed(loops: list[list[int]], v: np.ndarray) -> tuple[bool, bool]:
     """(closed, flip): every edge used once in each direction; flip when the volume is negative."""
-    count: dict[tuple[int, int], int] = {}
-    for _, a, b in _directed_edges(loops):
-        count[(a, b)] = count.get((a, b), 0) + 1
-    closed = all(c == 1 and count.get((b, a), 0) == 1 for (a, b), c in count.items())
-    if not closed:
+    if not loops:
+        return True, False
+    _, _, a, b = _edge_arrays(loops)
+    n = np.int64(v.shape[0])
+    keys = np.sort(a.astype(np.int64) * n + b)
+    if np.any(keys[1:] == keys[:-1]):
+        return False, False
+    rev = b.astype(np.int64) * n + a
+    pos = np.minimum(np.searchsorted(keys, rev), len(keys) - 1)
+    if not np.all(keys[pos] == rev):
         return False, False
     c = v.mean(axis=0)
-    vol = sum(float(np.dot(_newell(v[loop] - c), v[loop[0]] - c)) for loop in loops)
-    return True, vol < 0
+    vol = np.zeros(len(loops))
+    for idx, arr in _groups(loops):
+        pts = v[arr] - c
+        nrm = _newell_many(pts)
+        vol[idx] = _plane_values(pts[:, 0], 0.0, nrm)
+    return True, bool(np.cumsum(vol)[-1] < 0)  # summed in face order, as a Python sum would
 
 
 def _convex(loops: list[list[int]], v: np.ndarray, size: float) -> bool:
-    for loop in loops:
-        pts = v[loop]
-        nrm = _newell(pts)
-        nrm = nrm / np.linalg.norm(nrm)
-        if np.max((v - pts[0]) @ nrm) > 1e-9 * size:
+    """Every vertex on or behind every face plane: max over vertices of (v - p0) . n <= 1e-9 size
+    for every face (p0 its first vertex, n its unit Newell normal).
+
+    Three steps, each deciding exactly that test. (1) Local: the vertices of each face's
+    neighbours (across an edge) against its plane; any one in front is a witness, not convex
+    (cheap, and what a non-convex mesh almost always fails). (2) Small meshes: every vertex
+    against every plane, in chunks. (3) Large meshes: the maximum of a linear function over the
+    vertices is attained at a vertex of their convex hull, and on a convex polytope a vertex none
+    of whose hull neighbours has a larger value attains that maximum (the simplex method's
+    argument). So each face's maximum is found by climbing the hull's edge graph from a vertex
+    of the face; a climbed value above the tolerance is a witness (not convex); faces whose
+    climbed value lies within half the tolerance of it (far above Qhull's round-off, far below
+    the tolerance for a convex mesh, whose faces' maxima are their own vertices, ~0) are checked
+    against every vertex directly, so round-off in the hull cannot change the answer."""
+    tol = 1e-9 * size
+    f_all = len(loops)
+    nrm = _unit(_normals(loops, v))
+    pad = _padded(loops)
+    p0 = v[pad[:, 0]]
+    # (1) neighbours' vertices against each face's plane.
+    face, _, a, b = _edge_arrays(loops)
+    n = np.int64(v.shape[0])
+    keys = a.astype(np.int64) * n + b
+    order = np.argsort(keys, kind="stable")
+    rev = b.astype(np.int64) * n + a
+    pos = np.minimum(np.searchsorted(keys[order], rev), len(keys) - 1)
+    found = keys[order][pos] == rev
+    f, g = face[found], face[order[pos[found]]]
+    for s in range(0, len(f), 200_000):
+        fs, gs = f[s:s + 200_000], g[s:s + 200_000]
+        if np.max(_plane_values(v[pad[gs]], p0[fs][:, None], nrm[fs][:, None])) > tol:
+            return False
+    # (2) every vertex against every plane.
+    if f_all * v.shape[0] <= 4_000_000:
+        return _convex_brute(np.arange(f_all), v, p0, nrm, tol)
+    # (3) climb the convex hull's edge graph.
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        hull = ConvexHull(v)
+    except (QhullError, ValueError):
+        return _convex_brute(np.arange(f_all), v, p0, nrm, tol)
+    s = hull.simplices
+    src = np.concatenate([s[:, 0], s[:, 1], s[:, 2], s[:, 1], s[:, 2], s[:, 0]])
+    dst = np.concatenate([s[:, 1], s[:, 2], s[:, 0], s[:, 0], s[:, 1], s[:, 2]])
+    pairs = np.unique(src.astype(np.int64) * n + dst)
+    src, dst = (pairs // n).astype(np.intp), (pairs % n).astype(np.intp)
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(src, minlength=v.shape[0]))]).astype(np.intp)
+    on_hull = np.zeros(v.shape[0], dtype=bool)
+    on_hull[hull.vertices] = True
+    cur = np.where(on_hull[pad[:, 0]], pad[:, 0], hull.vertices[0])
+    val = _plane_values(v[cur], p0, nrm)
+    active = np.arange(f_all)
+    while len(active):
+        c = cur[active]
+        deg = indptr[c + 1] - indptr[c]
+        seg = np.repeat(np.arange(len(active)), deg)
+        first = np.concatenate([[0], np.cumsum(deg)[:-1]]).astype(np.intp)
+        nb = dst[indptr[c][seg] + np.arange(len(seg)) - first[seg]]
+        nv = _plane_values(v[nb], p0[active][seg], nrm[active][seg])
+        best = np.full(len(active), -np.inf)
+        np.maximum.at(best, seg, nv)
+        up = best > val[active]
+        if not up.any():
+            break
+        # The first neighbour attaining each face's best value.
+        hit = np.flatnonzero(nv == best[seg])
+        pick = np.full(len(active), -1)
+        pick[seg[hit][::-1]] = nb[hit][::-1]
+        moved = active[up]
+        cur[moved] = pick[up]
+        val[moved] = best[up]
+        active = moved
+    if np.any(val > tol):
+        return False
+    unsure = np.flatnonzero(val > 0.5 * tol)
+    return _convex_brute(unsure, v, p0, nrm, tol) if len(unsure) else True
+
+
+def _convex_brute(faces: np.ndarray, v: np.ndarray, p0: np.ndarray, nrm: np.ndarray, tol: float) -> bool:
+    step = max(1, 2_000_000 // max(1, v.shape[0]))
+    for s in range(0, len(faces), step):
+        fs = faces[s:s + step]
+        if np.max(_plane_values(v[None], p0[fs][:, None], nrm[fs][:, None])) > tol:
             return False
     return True
 
 
+def _coplanar(ni: np.ndarray, nj: np.ndarray, pts_j: np.ndarray, p0_i: np.ndarray, size: float) -> Any:
+    """The merge test of two faces: unit normals `ni`, `nj`, `pts_j` the vertices of face j (last
+    two axes), `p0_i` the first vertex of face i. Broadcasts (one or many pairs, same rounding)."""
+    dot = ni[..., 0] * nj[..., 0] + ni[..., 1] * nj[..., 1] + ni[..., 2] * nj[..., 2]
+    off = np.abs(_plane_values(pts_j, p0_i[..., None, :], ni[..., None, :])).max(axis=-1)
+    return ~(dot < 1 - 1e-12) & ~(off > COPLANAR_RTOL * size)
+
+
 def _merge(loops: list[list[int]], v: np.ndarray, size: float) -> list[list[int]]:
     """Merge coplanar faces sharing an edge while the union stays a convex polygon (greedy, one
-    pass over a queue of shared edges; a merged face's edges are queued again)."""
+    pass over a queue of shared edges; a merged face's edges are queued again).
+
+    Whether two faces are coplanar is first decided for every shared edge at once (vectorised);
+    an edge between two faces that no merge has touched yet uses that answer, so a mesh without
+    coplanar neighbours (a smooth surface) costs no Python loop over its edges."""
     loops = [list(x) for x in loops]
-    normals = []
-    for loop in loops:
-        n = _newell(v[loop])
-        normals.append(n / np.linalg.norm(n))
+    if not loops:
+        return loops
+    normals = _unit(_normals(loops, v))
+    pad = _padded(loops)
+    face, _, ea, eb = _edge_arrays(loops)
+    n = np.int64(v.shape[0])
+    keys = ea.astype(np.int64) * n + eb
+    # owner[(a, b)]: the last face running a -> b (as a dict filled in face order would hold).
+    order = np.argsort(keys, kind="stable")
+    ks = keys[order]
+    last = np.concatenate([ks[1:] != ks[:-1], [True]])
+    ukeys, uface = ks[last], face[order[last]]
+    rev = eb.astype(np.int64) * n + ea
+    pos = np.minimum(np.searchsorted(ukeys, rev), len(ukeys) - 1)
+    shared = (ukeys[pos] == rev) & (ea < eb)
+    fi = uface[np.searchsorted(ukeys, keys[shared])]
+    fj = uface[pos[shared]]
+    ok = _coplanar(normals[fi], normals[fj], v[pad[fj]], v[pad[fi, 0]], size) & (fi != fj)
+    if not ok.any():
+        return loops
+    candidates = set(zip(ea[shared][ok].tolist(), eb[shared][ok].tolist(), strict=True))
+    touched = [False] * len(loops)
     alive = [True] * len(loops)
     owner: dict[tuple[int, int], int] = {}
-    for fi, a, b in _directed_edges(loops):
-        owner[(a, b)] = fi
+    for f_, a_, b_ in _directed_edges(loops):
+        owner[(a_, b_)] = f_
     queue = [e for e in owner if (e[1], e[0]) in owner and e[0] < e[1]]
     while queue:
         a, b = queue.pop()
-        fi, fj = owner.get((a, b)), owner.get((b, a))
-        if fi is None or fj is None or fi == fj or not (alive[fi] and alive[fj]):
+        i, j = owner.get((a, b)), owner.get((b, a))
+        if i is None or j is None or i == j or not (alive[i] and alive[j]):
             continue
-        ni, nj = normals[fi], normals[fj]
-        if np.dot(ni, nj) < 1 - 1e-12 or np.max(np.abs((v[loops[fj]] - v[loops[fi][0]]) @ ni)) > COPLANAR_RTOL * size:
+        if not (touched[i] or touched[j]):
+            if (a, b) not in candidates:
+                continue
+        elif not _coplanar(normals[i], normals[j], v[loops[j]], v[loops[i][0]], size):
             continue
-        m = _union(loops[fi], loops[fj], a, b, v, ni, size)
+        m = _union(loops[i], loops[j], a, b, v, normals[i], size)
         if m is None:
             continue
-        for k in range(len(loops[fj])):
-            owner.pop((loops[fj][k], loops[fj][(k + 1) % len(loops[fj])]), None)
-        for k in range(len(loops[fi])):
-            owner.pop((loops[fi][k], loops[fi][(k + 1) % len(loops[fi])]), None)
-        loops[fi] = m
-        alive[fj] = False
+        for k in range(len(loops[j])):
+            owner.pop((loops[j][k], loops[j][(k + 1) % len(loops[j])]), None)
+        for k in range(len(loops[i])):
+            owner.pop((loops[i][k], loops[i][(k + 1) % len(loops[i])]), None)
+        loops[i] = m
+        alive[j] = False
+        touched[i] = touched[j] = True
         for k in range(len(m)):
             e = (m[k], m[(k + 1) % len(m)])
-            owner[e] = fi
+            owner[e] = i
             if (e[1], e[0]) in owner:
                 queue.append(e)
-    return [lp for lp, ok in zip(loops, alive, strict=True) if ok]
+    return [lp for lp, keep in zip(loops, alive, strict=True) if keep]
 
 
 def _union(la: list[int], lb: list[int], a: int, b: int, v: np.ndarray, nrm: np.ndarray, size: float) -> list[int] | None:
@@ -253,6 +506,25 @@ def _solid_edges(loops: list[list[int]]) -> list[tuple[int, int, int, int, int, 
     """Per undirected edge of a closed polygon mesh: (f_left, k_a, k_b, f_right) with the edge
     running loop[f_left][k_a] -> loop[f_left][k_b] in f_left; None when some edge does not have
     exactly one opposite (a merge left a vertex on an edge of a neighbour)."""
+    face, ka, a, b = _edge_arrays(loops)
+    n = np.int64(max(int(a.max(initial=0)), int(b.max(initial=0))) + 1)
+    keys = a.astype(np.int64) * n + b
+    order = np.argsort(keys, kind="stable")
+    ks = keys[order]
+    if np.any(ks[1:] == ks[:-1]):
+        return _solid_edges_dict(loops)
+    rev = b.astype(np.int64) * n + a
+    pos = np.minimum(np.searchsorted(ks, rev), len(ks) - 1)
+    if len(ks) == 0 or not np.all(ks[pos] == rev):
+        return None if len(ks) else []
+    lens = np.fromiter((len(x) for x in loops), dtype=np.intp, count=len(loops))
+    kb = (ka + 1) % lens[face]
+    sel = a < b
+    cols = (face[sel], ka[sel], kb[sel], face[order[pos[sel]]], a[sel], b[sel])
+    return list(zip(*(c.tolist() for c in cols), strict=True))
+
+
+def _solid_edges_dict(loops: list[list[int]]) -> list[tuple[int, int, int, int, int, int]] | None:
     where: dict[tuple[int, int], tuple[int, int, int]] = {}
     for fi, loop in enumerate(loops):
         for k in range(len(loop)):

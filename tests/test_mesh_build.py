@@ -1,0 +1,116 @@
+"""`Mesh` construction (vectorised validation, closedness, coplanar merging, convexity): its
+results against brute-force definitions on meshes of every kind, and index validation."""
+
+import numpy as np
+import pytest
+import trimesh
+
+import jaxshadow as js
+from jaxshadow._mesh import _face_loops
+
+
+def _convex_reference(loops, v, size):
+    """The definition: every vertex on or behind every face plane (tolerance 1e-9 size)."""
+    for loop in loops:
+        pts = v[loop]
+        w = np.concatenate([pts[1:], pts[:1]])
+        n = np.array([np.sum(pts[:, 1] * w[:, 2] - pts[:, 2] * w[:, 1]), np.sum(pts[:, 2] * w[:, 0] - pts[:, 0] * w[:, 2]),
+                      np.sum(pts[:, 0] * w[:, 1] - pts[:, 1] * w[:, 0])])
+        if np.max((v - pts[0]) @ (n / np.linalg.norm(n))) > 1e-9 * size:
+            return False
+    return True
+
+
+def _closed_reference(loops):
+    count = {}
+    for loop in loops:
+        for k in range(len(loop)):
+            e = (loop[k], loop[(k + 1) % len(loop)])
+            count[e] = count.get(e, 0) + 1
+    return all(c == 1 and count.get((b, a), 0) == 1 for (a, b), c in count.items())
+
+
+def _displaced(m):
+    u = m.vertices / np.linalg.norm(m.vertices, axis=1, keepdims=True)
+    return m.vertices * (1 + 0.15 * np.sin(3 * u[:, :1]) * np.cos(2 * u[:, 1:2])), m.faces
+
+
+def _meshes():
+    out = {"box": (trimesh.creation.box().vertices, trimesh.creation.box().faces)}
+    for s in (1, 2, 3, 4):
+        m = trimesh.creation.icosphere(subdivisions=s)
+        out[f"icosphere{s}"] = (m.vertices, m.faces)
+    out["displaced"] = _displaced(trimesh.creation.icosphere(subdivisions=3))
+    m = trimesh.creation.icosphere(subdivisions=2)
+    out["open"] = (m.vertices, m.faces[5:])
+    b = trimesh.creation.box().subdivide().subdivide()
+    out["subdivided_box"] = (b.vertices, b.faces)
+    uv = trimesh.creation.uv_sphere(count=[16, 16])
+    out["uv_sphere"] = (uv.vertices, uv.faces)
+    out["inward_box"] = (trimesh.creation.box().vertices, trimesh.creation.box().faces[:, ::-1])
+    two = trimesh.util.concatenate([trimesh.creation.icosphere(4), trimesh.creation.icosphere(4).apply_translation([3, 0, 0])])
+    out["two_spheres"] = (two.vertices, two.faces)  # every edge convex, the whole not
+    return out
+
+
+MESHES = _meshes()
+EXPECTED = {"box": (True, True, 6), "icosphere1": (True, True, 80), "icosphere4": (True, True, 5120),
+            "displaced": (True, False, 1280), "open": (False, False, 315), "subdivided_box": (True, True, 6),
+            "inward_box": (True, True, 6), "two_spheres": (True, False, 10240)}
+
+
+@pytest.mark.parametrize("name", sorted(MESHES))
+def test_mesh_build_matches_definitions(name):
+    v, f = MESHES[name]
+    m = js.Mesh(v, f)
+    v = np.asarray(v, float)
+    size = float(np.max(np.ptp(v, axis=0)))
+    assert m.closed == _closed_reference(m.loops)
+    assert m.convex == (m.closed and _convex_reference(m.loops, v, size))
+    if name in EXPECTED:
+        assert (m.closed, m.convex, len(m.loops)) == EXPECTED[name]
+    # The faces the kernels see are the loops' vertices; merging keeps the area.
+    assert all(np.array_equal(p, v[loop]) for p, loop in zip(m.polygons, m.loops, strict=True))
+    area = sum(np.linalg.norm(np.cross(v[t[1]] - v[t[0]], v[t[2]] - v[t[0]])) for t in np.asarray(f)) / 2
+    merged = sum(np.linalg.norm(sum(np.cross(p[i], p[(i + 1) % len(p)]) for i in range(len(p)))) for p in m.polygons) / 2
+    assert merged == pytest.approx(area, rel=1e-9)
+    # A list of faces (the generic path) and merge=False build the same mesh.
+    lst = js.Mesh(v, np.asarray(f).tolist())
+    assert lst.loops == m.loops and lst.closed == m.closed and lst.convex == m.convex and lst.edges == m.edges
+    raw = js.Mesh(v, f, merge=False)
+    assert raw.closed == m.closed and len(raw.loops) == len(f)
+    if m.convex:
+        # Each undirected edge once, its two faces on either side.
+        assert len(m.edges) == sum(len(loop) for loop in m.loops) // 2
+        for fl, ka, kb, fr, a, b in m.edges:
+            assert (m.loops[fl][ka], m.loops[fl][kb]) == (a, b)
+            assert any((m.loops[fr][k], m.loops[fr][(k + 1) % len(m.loops[fr])]) == (b, a) for k in range(len(m.loops[fr])))
+
+
+def test_outward_orientation_of_an_inward_mesh():
+    v, f = MESHES["inward_box"]
+    m = js.Mesh(v, f)
+    for p in m.polygons:
+        n = sum(np.cross(p[i], p[(i + 1) % len(p)]) for i in range(len(p)))
+        assert np.dot(n, p.mean(axis=0) - np.asarray(v).mean(axis=0)) > 0
+
+
+@pytest.mark.parametrize("faces", [np.array([[0, 1, 2.5]]), [[0, 1, 2.5]], [[0, 1, 2], [0, 2, np.nan]],
+                                   [[0, 1, 2, 3.5]], np.array([[0.0, 1.0, 2.0, 3.25]])])
+def test_non_integer_face_index_is_refused(faces):
+    with pytest.raises(ValueError, match="not an integer"):
+        _face_loops(faces, 4)
+
+
+def test_integral_indices_and_errors():
+    assert _face_loops(np.array([[0.0, 1.0, 2.0]]), 3) == [[0, 1, 2]]
+    assert _face_loops([[0, 1, 2, 2]], 3) == [[0, 1, 2]]
+    with pytest.raises(ValueError, match="face 1 has a vertex index out of range"):
+        _face_loops(np.array([[0, 1, 2], [0, 1, 3]]), 3)
+    with pytest.raises(ValueError, match="face 0 needs at least three distinct vertices"):
+        _face_loops(np.array([[0, 1, 0], [0, 1, 5]]), 3)
+    v = [[0, 0, 0], [1, 0, 0], [2, 0, 0], [0, 1, 0]]
+    with pytest.raises(ValueError, match="face 1 has zero area"):
+        js.Mesh(v, [[0, 1, 3], [0, 1, 2]])
+    with pytest.raises(ValueError, match="face 0 is not planar"):
+        js.Mesh([[0, 0, 0], [1, 0, 0], [1, 1, 0.5], [0, 1, 0]], [[0, 1, 2, 3]])
