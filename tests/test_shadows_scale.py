@@ -77,7 +77,8 @@ def scene_pair(bxs, light=LIGHT, radiance=(1.0, 2.0, 3.0)):
     """The same occluders as meshes (engine) and as independent triangles (device kernel)."""
     lt = js.PolygonLight(light, radiance)
     tris = np.concatenate([v[f] for v, f in bxs])
-    return js.Scene([lt], occluders=[js.Mesh(v, f) for v, f in bxs]), js.Scene([lt], occluders=list(tris)), tris
+    # JAX arrays are not welded into meshes at Scene build: independent triangles, as meant.
+    return js.Scene([lt], occluders=[js.Mesh(v, f) for v, f in bxs]), js.Scene([lt], occluders=jnp.asarray(tris)), tris
 
 
 BXS = boxes(6)

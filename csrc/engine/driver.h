@@ -166,6 +166,7 @@ int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const 
   PolyCall<T> call{Light<T>{K, E}, occ, &bvh, {}};
   prepare_call(call);
   prepare_twins(call);
+  build_silhouette_tree(occ, call.twin, call.ne_raw, call.L.v(0), call.sil);
   if (N >= kUmbraMinReceivers) prepare_umbra(call);
   threads = default_threads(threads);
   struct Block {
@@ -304,6 +305,7 @@ int poly_fixed(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const
   PolyCall<T> call{Light<T>{K, E}, occ, &bvh, {}};
   prepare_call(call);
   prepare_twins(call);
+  build_silhouette_tree(occ, call.twin, call.ne_raw, call.L.v(0), call.sil);
   std::atomic<int> err(0);
   parallel_for(N, default_threads(threads), [&](int, int64_t s, int64_t e) {
     Work<T> w;

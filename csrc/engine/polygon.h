@@ -3,6 +3,7 @@
 #define JAXSHADOW_SHADOWC_POLYGON_H_
 
 #include "boundary.h"
+#include "silhouette.h"
 
 namespace jaxshadow_engine {
 
@@ -25,12 +26,19 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
   T hp = dot(ne, p - e0);
   if (!(hp > 0)) return kZero;
   if (K > 64) return -1;
+  // The silhouette path (silhouette.h) where every occluder vertex lies strictly between the
+  // receiver's level and the emitter plane; the hierarchy's face query only if it falls back.
+  const SilhouetteTree& sil = call.sil;
+  const double hmargin = 1e-9 * double(norm(ne)) * (sil.scale + double(absmax(p)) + 1.0);
+  const bool try_sil = sil.ok && sil.hmin > hmargin && sil.hmax < double(hp) - hmargin;
+  const V3<T> ne_query = ne;
 
   // Candidate items: the hierarchy queried with the pyramid over the light (planes through p
   // and the light's edges, as plain cross products), the horizon and the emitter plane (the
   // pyramid lies on p's side of it). The pyramid over E_h lies inside. The margin bounds the
   // rounding of the planes and of the boxes' coordinates; it keeps touching items.
-  {
+  auto query = [&]() {
+    const V3<T> ne = ne_query;
     const int ne_edges = call.n_edges;
     auto make = [&](int j) -> HalfSpace {
       V3<T> nn = n, q = p;
@@ -62,8 +70,9 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
         traverse_lazy(bv, ne_edges + 2, margin, make, visit);
       std::sort(w.cand.begin(), w.cand.end());
     }
-  }
-  if (w.cand.empty() && !w.lit_runs && call.n_edges > 0) {
+  };
+  if (!try_sil) query();
+  if (!try_sil && w.cand.empty() && !w.lit_runs && call.n_edges > 0) {
     // Nothing can block: lit, or zero below the horizon. With the whole light above the horizon,
     // E_h is the light itself (a nonempty boundary: the light has an edge), as below.
     bool any_in = false, all_in = true;
@@ -176,6 +185,13 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
     w.regions[0].hi[d] = ehhi[d];
   }
 
+  if (try_sil) {
+    const int32_t r = silhouette_receiver(call, sil, p, n, w.edges.data(), int(n_eh_edges), planes.data(), w.prefs.data(),
+                                          np0, ne, hp, w);
+    if (r != kFallback) return r;
+    w.runs.clear();
+    query();
+  }
   if (w.cand.empty() && !w.lit_runs) return kLit;
   if (umbra_hit) {  // S hides all of the light, so all of E_h
     w.n_candidates = int32_t(w.cand.size());

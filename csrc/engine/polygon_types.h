@@ -3,6 +3,7 @@
 #define JAXSHADOW_SHADOWC_POLYGON_TYPES_H_
 
 #include "bvh.h"
+#include "silhouette_types.h"
 #include "umbra.h"
 #include "volume.h"
 
@@ -59,6 +60,11 @@ struct Work {  // per-thread scratch
   std::vector<int8_t> fstat;
   std::vector<int32_t> fstat_set;
   std::vector<FaceSide<T>> pre;  // per candidate: face_side of a plain face (side 0: dropped)
+  // The silhouette path's scratch (silhouette.h).
+  std::vector<SSeg<T>> ssegs;
+  std::vector<T> sts;
+  std::vector<Code> stc;
+  std::vector<int32_t> sord;
   int32_t n_candidates = 0, n_regions = 0;  // items the hierarchy returned; occluder regions kept
   // Whether a lit receiver's boundary (E_h's own edges) is wanted in `runs`: the fixed-capacity
   // (compiled) plan evaluates every receiver from its runs; the CSR plan evaluates lit receivers
@@ -155,6 +161,8 @@ struct PolyCall {
   // d = 1 when g runs it in the same direction; -1 otherwise. Faces of convex solids are left out
   // (their cones are built from their silhouettes).
   std::vector<int32_t> twin;
+  // The silhouette path's hierarchy of mesh edges (silhouette.h; `ok` false: not used).
+  SilhouetteTree sil;
 };
 
 // The faces' edge twins (PolyCall::twin): one sort of the edge slots by their endpoints'

@@ -1,0 +1,516 @@
+// jaxshadow's shadow engine: the silhouette path for large meshes (part of `csrc/shadowc.cc`; see
+// its header comment).
+//
+// Seen from a receiver p, the faces of a mesh that lie strictly between p's level and the
+// emitter plane project centrally onto that plane as convex polygons; the number of them covering
+// a point q of the emitter plane (the depth complexity C(q), every face counted whichever way it
+// faces) is what blocks q: q is visible iff C(q) = 0. Summing the faces' projected boundaries,
+// each oriented with its face on the positive side, an edge shared by two faces that lie on
+// opposite sides of the plane through p and the edge cancels; what is left are the contour edges
+// (silhouette edges, where the two faces lie on the same side, with weight 2; boundary and
+// non-manifold edges, weight 1), and C jumps by an edge's weight W across it. So C at any point
+// follows from C at one reference point q0 (the faces a ray from p towards q0 crosses) plus the
+// signed crossings of the segment q0 -> q with the contour edges (Laine et al. 2005, soft shadow
+// volumes), and the visible region's boundary is made of the pieces of contour edges (cut where
+// they cross each other) with C = 0 on exactly one side, and of the pieces of E_h's edges with
+// C = 0 inside. The contour edges are found with a hierarchy of the mesh's edges whose nodes bound
+// their faces' planes (a box of the faces' vertices and a cone of their normals): a node whose
+// faces all face p the same way and that holds no boundary, non-manifold or inconsistently
+// oriented edge has no contour edge and is skipped with its whole subtree, so the work per
+// receiver grows with the contour inside the light's pyramid, not with the faces.
+//
+// Used for calls without convex solids and with many faces, for receivers that every occluder
+// vertex lies strictly between (in height above the emitter plane); any decision too close to
+// call (a face's plane through p, a reference ray along an edge, crossings at a vertex, collinear
+// edges) returns kFallback and the receiver takes the face path (polygon.h), which resolves those.
+#ifndef JAXSHADOW_SHADOWC_SILHOUETTE_H_
+#define JAXSHADOW_SHADOWC_SILHOUETTE_H_
+
+#include "polygon_types.h"
+
+namespace jaxshadow_engine {
+
+template <class T>
+void build_silhouette_tree(const Occluders<T>& occ, const std::vector<int32_t>& twin, V3<T> ne, V3<T> e0,
+                           SilhouetteTree& st) {
+  st = SilhouetteTree();
+  const int64_t M = occ.M, Ko = occ.Ko;
+  if (M < kSilhouetteMinFaces || occ.S > 0 || Ko > 64 || twin.size() != size_t(M * Ko)) return;
+  st.fn.assign(size_t(9 * M), 0.0);
+  st.hmin = std::numeric_limits<double>::infinity();
+  st.hmax = -st.hmin;
+  for (int64_t f = 0; f < M; f++) {
+    V3<T> o = occ.vert(f, 0), n{0, 0, 0};
+    for (int64_t i = 0; i < Ko; i++) {
+      const V3<T> x = occ.vert(f, i);
+      n = n + cross(x - o, occ.vert(f, (i + 1) % Ko) - o);
+      const double h = double(dot(ne, x - e0));
+      if (!std::isfinite(h)) return;
+      st.hmin = std::min(st.hmin, h);
+      st.hmax = std::max(st.hmax, h);
+      st.scale = std::max(st.scale, double(absmax(x)));
+    }
+    const double nn = double(norm(n));
+    if (!(nn > 0)) return;  // a degenerate face: the face path
+    double* q = st.fn.data() + 9 * f;
+    q[0] = n.x, q[1] = n.y, q[2] = n.z, q[3] = o.x, q[4] = o.y, q[5] = o.z;
+    q[6] = n.x / nn, q[7] = n.y / nn, q[8] = n.z / nn;
+  }
+  for (int64_t f = 0; f < M; f++)
+    for (int64_t i = 0; i < Ko; i++) {
+      if (same(occ.vert(f, i), occ.vert(f, (i + 1) % Ko))) continue;
+      const int32_t t = twin[size_t(f * Ko + i)];
+      SEdge e{occ.ref(f, i), occ.ref(f, (i + 1) % Ko), int32_t(f), -1, 0};
+      if (t >= 0) {
+        if ((t >> 1) < f) continue;  // recorded from the other face
+        e.g = t >> 1;
+        e.dg = (t & 1) ? int8_t(1) : int8_t(-1);
+      }
+      st.edges.push_back(e);
+    }
+  // Build: sort by the edge midpoints along the box's longest axis, split at the median.
+  const int64_t E = int64_t(st.edges.size());
+  std::vector<double> mid(size_t(3 * E));
+  for (int64_t k = 0; k < E; k++) {
+    const V3<T> a = occ.vref(st.edges[k].ra), b = occ.vref(st.edges[k].rb);
+    mid[3 * k] = 0.5 * (double(a.x) + double(b.x));
+    mid[3 * k + 1] = 0.5 * (double(a.y) + double(b.y));
+    mid[3 * k + 2] = 0.5 * (double(a.z) + double(b.z));
+  }
+  std::vector<int32_t> order(static_cast<size_t>(E));
+  for (int64_t k = 0; k < E; k++) order[k] = int32_t(k);
+  auto fill = [&](SNode& nd) {  // box, cone and flag from the node's edges' faces
+    for (int d = 0; d < 3; d++) {
+      nd.box[d] = std::numeric_limits<double>::infinity();
+      nd.box[3 + d] = -std::numeric_limits<double>::infinity();
+    }
+    double ax[3] = {0, 0, 0};
+    nd.special = false;
+    auto face = [&](int32_t f) {
+      for (int64_t i = 0; i < Ko; i++) {
+        const V3<T> x = occ.vert(f, i);
+        const double c[3] = {double(x.x), double(x.y), double(x.z)};
+        for (int d = 0; d < 3; d++) {
+          nd.box[d] = std::min(nd.box[d], c[d]);
+          nd.box[3 + d] = std::max(nd.box[3 + d], c[d]);
+        }
+      }
+      for (int d = 0; d < 3; d++) ax[d] += st.fn[9 * size_t(f) + 6 + d];
+    };
+    for (int32_t k = nd.start; k < nd.start + nd.count; k++) {
+      const SEdge& e = st.edges[order[k]];
+      face(e.f);
+      if (e.g >= 0) face(e.g);
+      nd.special = nd.special || e.g < 0 || e.dg > 0;
+    }
+    const double an = std::sqrt(ax[0] * ax[0] + ax[1] * ax[1] + ax[2] * ax[2]);
+    nd.cosa = -1;
+    nd.sina = 1;
+    if (!(an > 0)) return;
+    for (int d = 0; d < 3; d++) nd.axis[d] = ax[d] / an;
+    double cmin = 1;
+    auto cone = [&](int32_t f) {
+      const double* u = st.fn.data() + 9 * size_t(f) + 6;
+      cmin = std::min(cmin, u[0] * nd.axis[0] + u[1] * nd.axis[1] + u[2] * nd.axis[2]);
+    };
+    for (int32_t k = nd.start; k < nd.start + nd.count; k++) {
+      cone(st.edges[order[k]].f);
+      if (st.edges[order[k]].g >= 0) cone(st.edges[order[k]].g);
+    }
+    cmin = std::max(-1.0, std::min(1.0, cmin)) - 1e-12;  // rounding of the unit normals
+    nd.cosa = cmin;
+    nd.sina = std::sqrt(std::max(0.0, 1 - cmin * cmin)) + 1e-12;
+  };
+  st.nodes.reserve(size_t(2 * E / 4 + 2));
+  struct Job {
+    int32_t node, start, count;
+  };
+  std::vector<Job> jobs;
+  st.nodes.push_back(SNode{});
+  jobs.push_back({0, 0, int32_t(E)});
+  while (!jobs.empty()) {
+    const Job jb = jobs.back();
+    jobs.pop_back();
+    SNode nd{};
+    nd.start = jb.start;
+    nd.count = jb.count;
+    nd.left = nd.right = -1;
+    fill(nd);
+    if (jb.count > 4) {
+      int ax = 0;
+      double ext = -1;
+      for (int d = 0; d < 3; d++)
+        if (nd.box[3 + d] - nd.box[d] > ext) ext = nd.box[3 + d] - nd.box[d], ax = d;
+      const int32_t half = jb.count / 2;
+      std::nth_element(order.begin() + jb.start, order.begin() + jb.start + half, order.begin() + jb.start + jb.count,
+                       [&](int32_t x, int32_t y) { return mid[3 * size_t(x) + ax] < mid[3 * size_t(y) + ax]; });
+      nd.left = int32_t(st.nodes.size());
+      st.nodes.push_back(SNode{});
+      nd.right = int32_t(st.nodes.size());
+      st.nodes.push_back(SNode{});
+      jobs.push_back({nd.left, jb.start, half});
+      jobs.push_back({nd.right, jb.start + half, jb.count - half});
+    }
+    st.nodes[size_t(jb.node)] = nd;
+  }
+  std::vector<SEdge> sorted(static_cast<size_t>(E));
+  for (int64_t k = 0; k < E; k++) sorted[k] = st.edges[order[k]];
+  st.edges.swap(sorted);
+  st.ok = std::isfinite(st.hmin) && std::isfinite(st.hmax);
+}
+
+// Which way face f faces p: +1 when p is in front of its Newell normal... as face_side decides
+// (+1: h0 = N . (v0 - p) < 0), 0 when p is within the rounding bound of its plane.
+inline int sil_side(const SilhouetteTree& st, int32_t f, const double* p) {
+  const double* q = st.fn.data() + 9 * size_t(f);
+  const double r0 = q[3] - p[0], r1 = q[4] - p[1], r2 = q[5] - p[2];
+  const double h = q[0] * r0 + q[1] * r1 + q[2] * r2;
+  const double nn = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2]);
+  const double m = 1e4 * 2.220446049250313e-16 * nn *
+                   (std::fabs(r0) + std::fabs(r1) + std::fabs(r2) + std::max(std::fabs(q[3]), std::max(std::fabs(q[4]), std::fabs(q[5]))));
+  return h < -m ? 1 : (h > m ? -1 : 0);
+}
+
+// +1 (-1): every face of the node faces p with side +1 (-1) by a clear margin; 0: not known.
+inline int node_side(const SNode& nd, const double* p, double margin) {
+  if (!(nd.cosa > 0)) return 0;
+  double amin = std::numeric_limits<double>::infinity(), amax = -amin, perp = 0;
+  for (int c = 0; c < 8; c++) {
+    const double d[3] = {p[0] - nd.box[(c & 1) ? 3 : 0], p[1] - nd.box[(c & 2) ? 4 : 1], p[2] - nd.box[(c & 4) ? 5 : 2]};
+    const double a = d[0] * nd.axis[0] + d[1] * nd.axis[1] + d[2] * nd.axis[2];
+    const double e[3] = {d[0] - a * nd.axis[0], d[1] - a * nd.axis[1], d[2] - a * nd.axis[2]};
+    amin = std::min(amin, a);
+    amax = std::max(amax, a);
+    perp = std::max(perp, std::sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2]));
+  }
+  // n . d with n within the cone and d = p - v over the box: n . d >= a cos - |d_perp| sin.
+  // side +1 <=> N . (v - p) < 0 <=> n . d > 0.
+  if (amin * nd.cosa - perp * nd.sina > margin) return 1;
+  if (amax * nd.cosa + perp * nd.sina < -margin) return -1;
+  return 0;
+}
+
+// The receiver through the silhouette path: its class with w.runs its boundary, or kFallback.
+// `eh` are E_h's edges (polygon_receiver's first edges), `cone` / `prefs` E_h's planes.
+template <class T>
+int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p, V3<T> n,
+                            const Edge<T>* eh, int neh, const V3<T>* cone, const PlaneRef* prefs, int np0,
+                            V3<T> ne, double hp, Work<T>& w) {
+  const Occluders<T>& occ = call.occ;
+  const double eps = 2.220446049250313e-16;
+  const double tol = kCollinearEps * eps;
+  const double pd[3] = {p.x, p.y, p.z};
+  const double scale = std::max(st.scale, double(absmax(p))) + 1e-300;
+  std::vector<SSeg<T>>& segs = w.ssegs;
+  segs.clear();
+  for (int i = 0; i < neh; i++) {
+    SSeg<T> s;
+    s.a = eh[i].a, s.b = eh[i].b, s.own = eh[i].own, s.own_ref = eh[i].own_ref, s.ca = eh[i].ca, s.cb = eh[i].cb;
+    s.w = 0, s.va = s.vb = -1, s.on_a = s.on_b = -1;
+    segs.push_back(s);
+  }
+  // Contour edges in the pyramid: the hierarchy walked with the pyramid's half-spaces and the
+  // faces' sides.
+  double cn[66][3], cq[66][3];
+  int nc = 0;
+  for (int k = 0; k < np0; k++) {
+    if (!nonzero(cone[k])) continue;
+    cn[nc][0] = cone[k].x, cn[nc][1] = cone[k].y, cn[nc][2] = cone[k].z;
+    cq[nc][0] = p.x, cq[nc][1] = p.y, cq[nc][2] = p.z;
+    nc++;
+  }
+  const V3<T> e0 = call.L.v(0);
+  cn[nc][0] = ne.x, cn[nc][1] = ne.y, cn[nc][2] = ne.z;  // the emitter plane: the pyramid on p's side
+  cq[nc][0] = e0.x, cq[nc][1] = e0.y, cq[nc][2] = e0.z;
+  nc++;
+  const double bmargin = 1e3 * eps * scale;
+  auto outside = [&](const double* box) {
+    for (int k = 0; k < nc; k++) {
+      double best = -std::numeric_limits<double>::infinity();
+      double nn = std::fabs(cn[k][0]) + std::fabs(cn[k][1]) + std::fabs(cn[k][2]);
+      for (int c = 0; c < 8; c++) {
+        const double x[3] = {box[(c & 1) ? 3 : 0], box[(c & 2) ? 4 : 1], box[(c & 4) ? 5 : 2]};
+        best = std::max(best, cn[k][0] * (x[0] - cq[k][0]) + cn[k][1] * (x[1] - cq[k][1]) + cn[k][2] * (x[2] - cq[k][2]));
+      }
+      if (best < -bmargin * nn) return true;
+    }
+    return false;
+  };
+  const double smargin = 1e-9 * scale;
+  int32_t stack[128];
+  int sp = 0;
+  stack[sp++] = 0;
+  int32_t n_contour = 0;
+  while (sp) {
+    const SNode& nd = st.nodes[size_t(stack[--sp])];
+    if (outside(nd.box)) continue;
+    if (!nd.special && node_side(nd, pd, smargin) != 0) continue;
+    if (nd.left >= 0) {
+      if (sp + 2 > 128) return kFallback;
+      stack[sp++] = nd.left;
+      stack[sp++] = nd.right;
+      continue;
+    }
+    for (int32_t k = nd.start; k < nd.start + nd.count; k++) {
+      const SEdge& e = st.edges[size_t(k)];
+      const int sf = sil_side(st, e.f, pd);
+      if (sf == 0) return kFallback;
+      int W = sf;
+      if (e.g >= 0) {
+        const int sg = sil_side(st, e.g, pd);
+        if (sg == 0) return kFallback;
+        W += sg * e.dg;
+      }
+      if (W == 0) continue;
+      const V3<T> a3 = occ.vref(e.ra), b3 = occ.vref(e.rb);
+      double t0, t1;
+      int i0, i1;
+      if (!cyrus_beck(p, a3, b3, cone, np0, t0, t1, i0, i1)) continue;
+      const V3<T> own = edge_plane(p, a3, b3);
+      const PlaneRef oref = through(e.ra, e.rb);
+      SSeg<T> s;
+      s.own = own, s.own_ref = oref, s.w = W, s.va = e.ra, s.vb = e.rb, s.x3a = a3, s.x3b = b3;
+      if (t0 > 0) {
+        s.a = crossing_point(p, cross(cone[i0], own), ne, hp);
+        s.ca = code_planes(prefs[i0], oref);
+        s.on_a = i0;
+      } else {
+        s.a = project(p, a3, ne, hp);
+        s.ca = code_point(kProjected, e.ra);
+        s.on_a = -1;
+      }
+      if (t1 < 1) {
+        s.b = crossing_point(p, cross(cone[i1], own), ne, hp);
+        s.cb = code_planes(prefs[i1], oref);
+        s.on_b = i1;
+      } else {
+        s.b = project(p, b3, ne, hp);
+        s.cb = code_point(kProjected, e.rb);
+        s.on_b = -1;
+      }
+      if (same(s.a, s.b)) continue;
+      for (int k = 0; k < np0; k++) {  // an unclipped end on E_h's boundary: too close to call
+        if (!nonzero(cone[k])) continue;
+        const V3<T> ra = s.a - p, rb = s.b - p;
+        const T cn1 = norm(cone[k]);
+        if ((s.on_a < 0 && !(std::fabs(dot(ra, cone[k])) > tol * cn1 * (std::fabs(ra.x) + std::fabs(ra.y) + std::fabs(ra.z)))) ||
+            (s.on_b < 0 && !(std::fabs(dot(rb, cone[k])) > tol * cn1 * (std::fabs(rb.x) + std::fabs(rb.y) + std::fabs(rb.z)))))
+          return kFallback;
+      }
+      segs.push_back(s);
+      n_contour++;
+    }
+  }
+  w.n_candidates = n_contour;
+  // Each E_h edge's cone plane (its plane vector is a copy of one).
+  int eh_plane[130];
+  for (int i = 0; i < neh; i++) {
+    eh_plane[i] = -1;
+    for (int k = 0; k < np0 && eh_plane[i] < 0; k++)
+      if (same(cone[k], eh[i].own)) eh_plane[i] = k;
+    if (eh_plane[i] < 0) return kFallback;
+  }
+  w.n_regions = 1;
+  const int ns = int(segs.size());
+  // A clear sign of `x` against the bound `m` (0: too close to call).
+  auto sgn = [](double x, double m) { return x > m ? 1 : (x < -m ? -1 : 0); };
+  auto side_of = [&](V3<T> x, const V3<T>& pl) {  // of a point in the emitter plane
+    const V3<T> r = x - p;
+    return sgn(dot(r, pl), tol * norm(pl) * (std::fabs(r.x) + std::fabs(r.y) + std::fabs(r.z)));
+  };
+  // Reference points inside E_h: its centroid, then points towards its corners.
+  V3<T> centre{0, 0, 0};
+  for (int i = 0; i < neh; i++) centre = centre + eh[i].a;
+  centre = (1.0 / neh) * centre;
+  // C at q0: faces crossed by the segment from p to q0, every face counted.
+  auto layers = [&](V3<T> q0) -> int {
+    const BVH& bvh = *call.bvh;
+    const V3<T> r = q0 - p;
+    const double o[3] = {p.x, p.y, p.z}, dd[3] = {r.x, r.y, r.z};
+    int count = 0;
+    int32_t stk[128];
+    int sq = 0;
+    stk[sq++] = 0;
+    while (sq) {
+      const Node& nd = bvh.nodes[size_t(stk[--sq])];
+      double ta = 0, tb = 1;
+      bool hit = true;
+      for (int k = 0; k < 3 && hit; k++) {
+        const double pad = 1e-9 * (std::fabs(nd.box[k]) + std::fabs(nd.box[3 + k]) + std::fabs(o[k]) + 1e-300);
+        const double lo = nd.box[k] - pad, hi = nd.box[3 + k] + pad;
+        if (dd[k] == 0) {
+          hit = !(o[k] < lo || o[k] > hi);
+          continue;
+        }
+        double x = (lo - o[k]) / dd[k], y = (hi - o[k]) / dd[k];
+        if (x > y) std::swap(x, y);
+        ta = std::max(ta, x);
+        tb = std::min(tb, y);
+        hit = ta <= tb;
+      }
+      if (!hit) continue;
+      if (nd.left >= 0) {
+        if (sq + 2 > 128) return -1;
+        stk[sq++] = nd.left;
+        stk[sq++] = nd.right;
+        continue;
+      }
+      for (int32_t i = nd.start; i < nd.start + nd.count; i++) {
+        const int32_t f = bvh.items[size_t(i)];
+        if (f < 0) return -1;
+        const int s = sil_side(st, f, pd);
+        if (s == 0) return -1;
+        bool in = true;
+        for (int64_t k = 0; k < occ.Ko && in; k++) {
+          const V3<T> a = occ.vert(f, k), b = occ.vert(f, (k + 1) % occ.Ko);
+          if (same(a, b)) continue;
+          const V3<T> pl = double(s) * edge_plane(p, a, b);
+          const int c = sgn(dot(pl, r), tol * norm(pl) * norm(r));
+          if (c == 0) return -1;
+          in = c > 0;
+        }
+        count += in;  // the face lies between p and q0 (every vertex strictly below the light)
+      }
+    }
+    return count;
+  };
+  V3<T> q0{};
+  int c0 = -1;
+  for (int attempt = 0; attempt <= neh && c0 < 0; attempt++) {
+    q0 = attempt == 0 ? centre : centre + 0.37 * (eh[attempt - 1].a - centre);
+    bool clear = true;
+    for (int i = neh; i < ns && clear; i++) clear = side_of(q0, segs[i].own) != 0;
+    if (clear) c0 = layers(q0);
+  }
+  if (c0 < 0) return kFallback;
+  // C on the q0 side of point m (in the emitter plane), from the crossings of q0 -> m with every
+  // contour edge but `skip`; INT_MIN when a crossing is too close to call.
+  auto coverage = [&](V3<T> m, int skip) -> int {
+    const V3<T> pqm = cross(q0 - p, m - p);
+    const double pn = norm(pqm);
+    int c = c0;
+    for (int i = neh; i < ns; i++) {
+      if (i == skip) continue;
+      const SSeg<T>& s = segs[size_t(i)];
+      const int sq = side_of(q0, s.own), sm = side_of(m, s.own);
+      if (sq == 0) return std::numeric_limits<int>::min();
+      if (sm == sq) continue;
+      if (sm == 0) return std::numeric_limits<int>::min();
+      const V3<T> ra = s.a - p, rb = s.b - p;
+      const int ca = sgn(dot(ra, pqm), tol * pn * (std::fabs(ra.x) + std::fabs(ra.y) + std::fabs(ra.z)));
+      const int cb = sgn(dot(rb, pqm), tol * pn * (std::fabs(rb.x) + std::fabs(rb.y) + std::fabs(rb.z)));
+      if (ca == 0 || cb == 0) return std::numeric_limits<int>::min();
+      if (ca == cb) continue;
+      c += sm > 0 ? s.w : -s.w;  // from q0's side to m's: + W into the positive side
+    }
+    return c;
+  };
+  // Pieces: every segment cut where another crosses it.
+  w.runs.clear();
+  bool eh_all = true, eh_any = false;
+  std::vector<T>& ts = w.sts;
+  std::vector<Code>& tc = w.stc;
+  bool contour_runs = false;
+  for (int i = 0; i < ns; i++) {
+    const SSeg<T>& s = segs[size_t(i)];
+    const size_t runs_before = w.runs.size();
+    ts.clear();
+    tc.clear();
+    ts.push_back(0), tc.push_back(s.ca);
+    ts.push_back(1), tc.push_back(s.cb);
+    const V3<T> ap = s.a - p, d = s.b - s.a;
+    const double apn = std::fabs(ap.x) + std::fabs(ap.y) + std::fabs(ap.z) + std::fabs(d.x) + std::fabs(d.y) + std::fabs(d.z);
+    for (int j = 0; j < ns; j++) {
+      if (j == i) continue;
+      const SSeg<T>& o = segs[size_t(j)];
+      if (i < neh && j < neh) continue;  // E_h's edges meet at its vertices only
+      if (s.va >= 0 && o.va >= 0 &&
+          (same(s.x3a, o.x3a) || same(s.x3a, o.x3b) || same(s.x3b, o.x3a) || same(s.x3b, o.x3b)))
+        continue;  // mesh edges with a common end meet there only
+      if (i < neh) {
+        // An E_h edge: cut where a contour piece was clipped at its plane.
+        const int pi = eh_plane[i];
+        const bool at_a = o.on_a >= 0 && o.on_a == pi;
+        const bool at_b = o.on_b >= 0 && o.on_b == pi;
+        if (!at_a && !at_b) continue;
+        const double g0 = dot(ap, o.own), g1 = dot(d, o.own);
+        if (!(std::fabs(g1) > tol * norm(o.own) * apn)) return kFallback;
+        const double t = -g0 / g1;
+        if (!(t >= -1e-9 && t <= 1 + 1e-9)) return kFallback;
+        ts.push_back(std::min(1.0, std::max(0.0, t)));
+        tc.push_back(at_a ? o.ca : o.cb);
+        continue;
+      }
+      if (j < neh) continue;  // a contour piece ends on E_h's boundary, inside it otherwise
+      const double on = norm(o.own) * apn;
+      const double g0 = dot(ap, o.own), g1 = dot(d, o.own);
+      const int s0 = sgn(g0, tol * on), s1 = sgn(g0 + g1, tol * on);
+      if (s0 == s1 && s0 != 0) continue;
+      if (s0 == 0 || s1 == 0) return kFallback;
+      const V3<T> ra = o.a - p, rb = o.b - p;
+      const int ca = side_of(o.a, s.own), cb = side_of(o.b, s.own);
+      (void)ra, (void)rb;
+      if (ca == cb && ca != 0) continue;
+      if (ca == 0 || cb == 0) return kFallback;
+      ts.push_back(-g0 / g1);
+      tc.push_back(code_planes(s.own_ref, o.own_ref));
+    }
+    const int nt = int(ts.size());
+    std::vector<int32_t>& ord = w.sord;
+    ord.resize(size_t(nt));
+    for (int k = 0; k < nt; k++) ord[size_t(k)] = k;
+    std::sort(ord.begin(), ord.end(), [&](int32_t x, int32_t y) { return ts[size_t(x)] < ts[size_t(y)]; });
+    // Classify the pieces; a kept piece extends the current run.
+    int run_dir = 0;  // +1: a run along s, -1: against it, 0: none open
+    Code run_s{}, run_e{};
+    auto close_run = [&]() {
+      if (run_dir > 0) w.runs.push_back(Run{run_s, run_e});
+      if (run_dir < 0) w.runs.push_back(Run{run_e, run_s});
+      run_dir = 0;
+    };
+    for (int k = 0; k + 1 < nt; k++) {
+      const double ta = ts[size_t(ord[k])], tb = ts[size_t(ord[k + 1])];
+      if (!(tb > ta)) continue;
+      const V3<T> m = s.a + (0.5 * (ta + tb)) * d;
+      int dir = 0;
+      if (i < neh) {
+        const int c = coverage(m, -1);
+        if (c == std::numeric_limits<int>::min() || c < 0) return kFallback;
+        eh_any = eh_any || c == 0;
+        eh_all = eh_all && c == 0;
+        dir = c == 0 ? 1 : 0;
+      } else {
+        const int c = coverage(m, i);
+        if (c == std::numeric_limits<int>::min()) return kFallback;
+        const int q0side = side_of(q0, s.own);
+        if (q0side == 0) return kFallback;
+        const int cpos = q0side > 0 ? c : c + s.w, cneg = q0side > 0 ? c - s.w : c;
+        if (cpos < 0 || cneg < 0) return kFallback;
+        if ((cpos == 0) != (cneg == 0)) dir = cpos == 0 ? 1 : -1;  // R on the positive side: along own's edge
+      }
+      if (dir != run_dir) {
+        close_run();
+        if (dir != 0) {
+          run_dir = dir;
+          run_s = tc[size_t(ord[k])];
+        }
+      }
+      if (dir != 0) run_e = tc[size_t(ord[k + 1])];
+    }
+    close_run();
+    if (i >= neh && w.runs.size() > runs_before) contour_runs = true;
+  }
+  if (!contour_runs) {
+    if (eh_all) return kLit;
+    if (!eh_any) {
+      w.runs.clear();
+      return kUmbra;
+    }
+    return kFallback;  // parts of E_h's boundary visible but no contour bounds them
+  }
+  return kPenumbra;
+}
+
+}  // namespace jaxshadow_engine
+
+#endif  // JAXSHADOW_SHADOWC_SILHOUETTE_H_

@@ -1,0 +1,49 @@
+// jaxshadow's shadow engine: the silhouette path's data (part of `csrc/shadowc.cc`; see
+// silhouette.h).
+#ifndef JAXSHADOW_SHADOWC_SILHOUETTE_TYPES_H_
+#define JAXSHADOW_SHADOWC_SILHOUETTE_TYPES_H_
+
+#include "geometry.h"
+
+namespace jaxshadow_engine {
+
+constexpr int64_t kSilhouetteMinFaces = 256;  // fewer faces: the face path is as fast
+constexpr int32_t kFallback = -2;
+
+struct SEdge {
+  int32_t ra, rb;  // vertex refs (K + f * Ko + i), the edge running ra -> rb in face f
+  int32_t f, g;    // its faces (g = -1: a boundary or non-manifold edge slot)
+  int8_t dg;       // +1: g runs it ra -> rb too (inconsistent orientation), -1: rb -> ra
+};
+
+struct SNode {
+  double box[6];            // the faces' vertices (lo, hi)
+  double axis[3], cosa, sina;  // cone of the faces' unit normals (cosa < 0: no cone)
+  int32_t left, right, start, count;
+  bool special;  // holds an edge with g < 0 or dg > 0
+};
+
+struct SilhouetteTree {
+  std::vector<SEdge> edges;
+  std::vector<SNode> nodes;
+  std::vector<double> fn;  // per face: Newell normal (3), first vertex (3), unit normal (3)
+  double hmin = 0, hmax = 0;  // occluder vertices' heights above the emitter plane (ne_raw . (x - e0))
+  double scale = 0;           // largest coordinate magnitude
+  bool ok = false;
+};
+
+template <class T>
+struct SSeg {
+  V3<T> a, b;  // in the emitter plane (clipped to E_h)
+  V3<T> own;   // edge_plane(p, ., .) of the edge, canonical direction
+  PlaneRef own_ref;
+  Code ca, cb;
+  int32_t w;            // coverage jump across it (positive side minus negative side); 0: an E_h edge
+  int32_t va, vb;       // vertex refs of the mesh edge (-1 for E_h edges)
+  V3<T> x3a, x3b;       // the mesh edge's ends
+  int32_t on_a, on_b;   // the cone plane an end was clipped at (-1: none)
+};
+
+}  // namespace jaxshadow_engine
+
+#endif  // JAXSHADOW_SHADOWC_SILHOUETTE_TYPES_H_
