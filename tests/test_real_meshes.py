@@ -123,3 +123,63 @@ def test_gradients_through_interior_edge_culling():
     g = jax.grad(lambda x: js.irradiance(scene, x, m).sum())(q)
     gd = jax.grad(lambda x: js.irradiance(scene, x, m, shadows=DEVICE).sum())(q)
     np.testing.assert_allclose(np.asarray(g), np.asarray(gd), rtol=1e-7, atol=1e-9 * float(jnp.abs(gd).max()))
+
+
+def _mixed_scene() -> tuple[js.Scene, list[np.ndarray]]:
+    """Plain faces only (no convex solid), over 256 of them: a closed non-convex mesh, an open
+    one with a quarter of its faces flipped (inconsistently oriented edges), and loose
+    triangles that share no edge."""
+    v, f = blob(2)
+    vo, fo = blob(2, open_below=0.55)
+    vo = vo * 0.6 + np.array([0.9, -0.4, 0.25])
+    fo = fo.copy()
+    fo[::4] = fo[::4, ::-1]
+    rng = np.random.default_rng(5)
+    loose = [rng.uniform([-1.2, -1.2, 0.5], [1.2, 1.2, 1.6]) + rng.normal(0, 0.08, (3, 3)) for _ in range(12)]
+    polys = list(v[f]) + list(vo[fo]) + loose
+    return _scene([js.Mesh(v, f), js.Mesh(vo, fo), *loose]), polys
+
+
+def test_silhouette_path_against_the_face_path_and_polygon_booleans(monkeypatch):
+    """The silhouette path (contour edges and depth complexity) against the face path on the same
+    receivers (the switch JAXSHADOW_SILHOUETTE=0), and both against exact polygon booleans."""
+    scene, polys = _mixed_scene()
+    assert scene.occluders.shape[0] >= 256 and scene.occluder_topology.n_solids == 0
+    p, nrm = floor(800, seed=7)
+    on = js.shadow_plan(scene, p, nrm).lights[0]
+    e_on = np.asarray(js.irradiance(scene, p, nrm))[:, 0]
+    monkeypatch.setenv("JAXSHADOW_SILHOUETTE", "0")
+    off = js.shadow_plan(scene, p, nrm).lights[0]
+    e_off = np.asarray(js.irradiance(scene, p, nrm))[:, 0]
+    monkeypatch.delenv("JAXSHADOW_SILHOUETTE")
+    # The same classes, except receivers the face path leaves as penumbra with an empty boundary
+    # (its regions cover E_h together, none alone), which the depth complexity finds umbra.
+    diff = on.classes != off.classes
+    assert np.all(on.classes[diff] == vis.UMBRA) and np.all(off.classes[diff] == vis.PENUMBRA)
+    assert np.all(np.diff(off.offsets)[diff] == 0)
+    pen = on.classes == vis.PENUMBRA
+    assert pen.sum() > 50 and (on.classes == vis.UMBRA).sum() > 0
+    # The silhouette path counts contour edges, the face path faces: far fewer.
+    assert on.candidates[pen].mean() < 0.5 * off.candidates[pen].mean()
+    np.testing.assert_allclose(e_on, e_off, rtol=0, atol=1e-11 * e_off.max())
+    pick = np.concatenate([np.where(pen)[0][:30], np.where(on.classes == vis.UMBRA)[0][:5]])
+    ref = np.pi * np.array([reference_ff(q, m, LIGHT, polys) for q, m in zip(p[pick], nrm[pick], strict=True)])
+    np.testing.assert_allclose(e_on[pick], ref, rtol=0, atol=1e-9 * ref.max())
+
+
+def test_silhouette_path_float32_and_gradients():
+    """float32 inputs (decided in double, as the face path does) stay within float32 rounding;
+    eager gradients through the silhouette path's codes equal the device kernel's."""
+    v, f = blob(2)
+    scene = _scene([js.Mesh(v, f)])
+    p, nrm = floor(300, seed=8)
+    cls = js.shadow_plan(scene, p, nrm).lights[0].classes
+    e64 = np.asarray(js.irradiance(scene, p, nrm))
+    e32 = np.asarray(js.irradiance(scene, p.astype(np.float32), nrm.astype(np.float32)))
+    assert e32.dtype == np.float32
+    np.testing.assert_allclose(e32, e64, rtol=0, atol=2e-5 * e64.max())
+    sel = np.where(cls == vis.PENUMBRA)[0][:10]
+    q, m = jnp.asarray(p[sel]), jnp.asarray(nrm[sel])
+    g = jax.grad(lambda x: js.irradiance(scene, x, m).sum())(q)
+    gd = jax.grad(lambda x: js.irradiance(scene, x, m, shadows=DEVICE).sum())(q)
+    np.testing.assert_allclose(np.asarray(g), np.asarray(gd), rtol=1e-7, atol=1e-9 * float(jnp.abs(gd).max()))

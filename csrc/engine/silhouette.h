@@ -36,6 +36,10 @@ void build_silhouette_tree(const Occluders<T>& occ, const std::vector<int32_t>& 
   st = SilhouetteTree();
   const int64_t M = occ.M, Ko = occ.Ko;
   if (M < kSilhouetteMinFaces || occ.S > 0 || Ko > 64 || twin.size() != size_t(M * Ko)) return;
+  // JAXSHADOW_SILHOUETTE=0 switches the path off (every receiver takes the face path): for
+  // measuring one against the other, and for tests that compare them.
+  const char* env = std::getenv("JAXSHADOW_SILHOUETTE");
+  if (env && env[0] == '0') return;
   st.fn.assign(size_t(9 * M), 0.0);
   st.hmin = std::numeric_limits<double>::infinity();
   st.hmax = -st.hmin;

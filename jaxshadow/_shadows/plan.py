@@ -198,8 +198,10 @@ class LightPlan:
     `classes (N,)`: polygon lights `ZERO` (0: behind the light or below the horizon), `LIT` (1),
     `UMBRA` (2), `PENUMBRA` (3); segment lights 1 (no face meets the light triangle) or 3;
     point and directional lights 1 (visible) or 2 (blocked). `candidates (N,)`: items the
-    hierarchy returned for the receiver (polygon lights; a convex closed mesh counts once),
-    `kept (N,)`: occluder regions kept after the exact tests (polygon lights) or faces that meet
+    hierarchy returned for the receiver (polygon lights; a convex closed mesh counts once), or,
+    for receivers the engine's silhouette path served (large meshes without convex solids, every
+    occluder between the receiver and the light), the contour edges in its pyramid; `kept (N,)`:
+    occluder regions kept after the exact tests (1 on the silhouette path) or faces that meet
     the light triangle (segment lights). Polygon lights: penumbra receiver i's boundary edges
     are rows `offsets[i]:offsets[i + 1]` of `runs (R, 2, 7)` (endpoint codes) and/or `points
     (R, 2, 3)`; receivers of the other classes have none (a lit one takes the unoccluded kernel)."""
