@@ -65,6 +65,8 @@ struct Work {  // per-thread scratch
   std::vector<T> sts;
   std::vector<Code> stc;
   std::vector<int32_t> sord;
+  std::vector<int32_t> std_;
+  std::vector<T> sbox;
   int32_t n_candidates = 0, n_regions = 0;  // items the hierarchy returned; occluder regions kept
   // Whether a lit receiver's boundary (E_h's own edges) is wanted in `runs`: the fixed-capacity
   // (compiled) plan evaluates every receiver from its runs; the CSR plan evaluates lit receivers
@@ -158,8 +160,8 @@ struct PolyCall {
   UmbraVolumes umbra;
   // Per face edge slot f * Ko + i (the edge v_i -> v_{i+1}): 2 g + d when exactly one other face g
   // has an edge with the same two endpoints (exactly equal coordinates) and no third face does,
-  // d = 1 when g runs it in the same direction; -1 otherwise. Faces of convex solids are left out
-  // (their cones are built from their silhouettes).
+  // d = 1 when g runs it in the same direction; -1 otherwise. (The face path uses it for plain
+  // faces only: a solid's faces have no side in Work::fstat.)
   std::vector<int32_t> twin;
   // The silhouette path's hierarchy of mesh edges (silhouette.h; `ok` false: not used).
   SilhouetteTree sil;
@@ -181,7 +183,6 @@ void prepare_twins(PolyCall<T>& call) {
   std::vector<Key> keys;
   keys.reserve(size_t(M * Ko));
   for (int64_t f = 0; f < M; f++) {
-    if (occ.face_solid && occ.face_solid[f] >= 0) continue;
     for (int64_t i = 0; i < Ko; i++) {
       const V3<T> a = occ.vert(f, i), b = occ.vert(f, (i + 1) % Ko);
       if (same(a, b)) continue;

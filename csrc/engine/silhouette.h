@@ -19,7 +19,7 @@
 // oriented edge has no contour edge and is skipped with its whole subtree, so the work per
 // receiver grows with the contour inside the light's pyramid, not with the faces.
 //
-// Used for calls without convex solids and with many faces, for receivers that every occluder
+// Used for calls with many faces (a convex solid's faces count as faces here), for receivers that every occluder
 // vertex lies strictly between (in height above the emitter plane); any decision too close to
 // call (a face's plane through p, a reference ray along an edge, crossings at a vertex, collinear
 // edges) returns kFallback and the receiver takes the face path (polygon.h), which resolves those.
@@ -35,7 +35,7 @@ void build_silhouette_tree(const Occluders<T>& occ, const std::vector<int32_t>& 
                            SilhouetteTree& st) {
   st = SilhouetteTree();
   const int64_t M = occ.M, Ko = occ.Ko;
-  if (M < kSilhouetteMinFaces || occ.S > 0 || Ko > 64 || twin.size() != size_t(M * Ko)) return;
+  if (M < kSilhouetteMinFaces || Ko > 64 || twin.size() != size_t(M * Ko)) return;
   // JAXSHADOW_SILHOUETTE=0 switches the path off (every receiver takes the face path): for
   // measuring one against the other, and for tests that compare them.
   const char* env = std::getenv("JAXSHADOW_SILHOUETTE");
@@ -360,9 +360,11 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         continue;
       }
       for (int32_t i = nd.start; i < nd.start + nd.count; i++) {
-        const int32_t f = bvh.items[size_t(i)];
-        if (f < 0) return -1;
-        const int s = sil_side(st, f, pd);
+        const int32_t item = bvh.items[size_t(i)];
+        const int64_t f0 = item >= 0 ? item : occ.solid_faces[2 * (-int64_t(item) - 1)];
+        const int64_t f1 = item >= 0 ? item + 1 : occ.solid_faces[2 * (-int64_t(item) - 1) + 1];
+        for (int64_t f = f0; f < f1; f++) {
+        const int s = sil_side(st, int32_t(f), pd);
         if (s == 0) return -1;
         bool in = true;
         for (int64_t k = 0; k < occ.Ko && in; k++) {
@@ -374,6 +376,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
           in = c > 0;
         }
         count += in;  // the face lies between p and q0 (every vertex strictly below the light)
+        }
       }
     }
     return count;
@@ -414,14 +417,26 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   bool eh_all = true, eh_any = false;
   std::vector<T>& ts = w.sts;
   std::vector<Code>& tc = w.stc;
+  std::vector<int32_t>& td = w.std_;  // per breakpoint: the change of C crossing it along s
+  // The segments' boxes in the emitter plane (crossing tests only between overlapping boxes).
+  std::vector<T>& bx = w.sbox;
+  bx.resize(size_t(6 * ns));
+  for (int i = 0; i < ns; i++) {
+    const T ca[3] = {segs[i].a.x, segs[i].a.y, segs[i].a.z}, cb[3] = {segs[i].b.x, segs[i].b.y, segs[i].b.z};
+    for (int k = 0; k < 3; k++) {
+      bx[6 * i + k] = std::min(ca[k], cb[k]) - T(1e-9) * T(scale);
+      bx[6 * i + 3 + k] = std::max(ca[k], cb[k]) + T(1e-9) * T(scale);
+    }
+  }
   bool contour_runs = false;
   for (int i = 0; i < ns; i++) {
     const SSeg<T>& s = segs[size_t(i)];
     const size_t runs_before = w.runs.size();
     ts.clear();
     tc.clear();
-    ts.push_back(0), tc.push_back(s.ca);
-    ts.push_back(1), tc.push_back(s.cb);
+    td.clear();
+    ts.push_back(0), tc.push_back(s.ca), td.push_back(0);
+    ts.push_back(1), tc.push_back(s.cb), td.push_back(0);
     const V3<T> ap = s.a - p, d = s.b - s.a;
     const double apn = std::fabs(ap.x) + std::fabs(ap.y) + std::fabs(ap.z) + std::fabs(d.x) + std::fabs(d.y) + std::fabs(d.z);
     for (int j = 0; j < ns; j++) {
@@ -443,9 +458,15 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         if (!(t >= -1e-9 && t <= 1 + 1e-9)) return kFallback;
         ts.push_back(std::min(1.0, std::max(0.0, t)));
         tc.push_back(at_a ? o.ca : o.cb);
+        td.push_back(g1 > 0 ? o.w : -o.w);
         continue;
       }
       if (j < neh) continue;  // a contour piece ends on E_h's boundary, inside it otherwise
+      {
+        const T* bi = bx.data() + 6 * i;
+        const T* bj = bx.data() + 6 * j;
+        if (bi[3] < bj[0] || bj[3] < bi[0] || bi[4] < bj[1] || bj[4] < bi[1] || bi[5] < bj[2] || bj[5] < bi[2]) continue;
+      }
       const double on = norm(o.own) * apn;
       const double g0 = dot(ap, o.own), g1 = dot(d, o.own);
       const int s0 = sgn(g0, tol * on), s1 = sgn(g0 + g1, tol * on);
@@ -458,6 +479,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       if (ca == 0 || cb == 0) return kFallback;
       ts.push_back(-g0 / g1);
       tc.push_back(code_planes(s.own_ref, o.own_ref));
+      td.push_back(s1 > 0 ? o.w : -o.w);  // into o's positive side: + W
     }
     const int nt = int(ts.size());
     std::vector<int32_t>& ord = w.sord;
@@ -472,20 +494,29 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       if (run_dir < 0) w.runs.push_back(Run{run_e, run_s});
       run_dir = 0;
     };
+    // C beside s on q0's side (inside E_h for E_h's edges): computed at the first piece, then
+    // carried across the breakpoints, and checked again at the last piece.
+    const int kNone = std::numeric_limits<int>::min();
+    int c = kNone, last = -1;
+    for (int k = 0; k + 1 < nt; k++)
+      if (ts[size_t(ord[k + 1])] > ts[size_t(ord[k])]) last = k;
     for (int k = 0; k + 1 < nt; k++) {
+      if (k > 0 && c != kNone) c += td[size_t(ord[k])];
       const double ta = ts[size_t(ord[k])], tb = ts[size_t(ord[k + 1])];
       if (!(tb > ta)) continue;
       const V3<T> m = s.a + (0.5 * (ta + tb)) * d;
+      if (c == kNone || k == last) {
+        const int full = coverage(m, i < neh ? -1 : i);
+        if (full == kNone || (c != kNone && full != c)) return kFallback;
+        c = full;
+      }
       int dir = 0;
       if (i < neh) {
-        const int c = coverage(m, -1);
-        if (c == std::numeric_limits<int>::min() || c < 0) return kFallback;
+        if (c < 0) return kFallback;
         eh_any = eh_any || c == 0;
         eh_all = eh_all && c == 0;
         dir = c == 0 ? 1 : 0;
       } else {
-        const int c = coverage(m, i);
-        if (c == std::numeric_limits<int>::min()) return kFallback;
         const int q0side = side_of(q0, s.own);
         if (q0side == 0) return kFallback;
         const int cpos = q0side > 0 ? c : c + s.w, cneg = q0side > 0 ? c - s.w : c;
