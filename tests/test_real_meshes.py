@@ -183,3 +183,21 @@ def test_silhouette_path_float32_and_gradients():
     g = jax.grad(lambda x: js.irradiance(scene, x, m).sum())(q)
     gd = jax.grad(lambda x: js.irradiance(scene, x, m, shadows=DEVICE).sum())(q)
     np.testing.assert_allclose(np.asarray(g), np.asarray(gd), rtol=1e-7, atol=1e-9 * float(jnp.abs(gd).max()))
+
+
+def test_silhouette_path_with_convex_solids(monkeypatch):
+    """Convex solids (floating boxes) beside a non-convex mesh: their faces join the depth
+    complexity as plain faces; the values equal the face path's (which uses the solids' cones)."""
+    v, f = blob(2)
+    boxes = [js.Mesh.box([-0.9, -0.5, 0.5], [-0.6, -0.2, 0.8]), js.Mesh.box([0.7, 0.3, 0.4], [1.0, 0.7, 1.5])]
+    scene = _scene([js.Mesh(v, f), *boxes])
+    assert scene.occluder_topology.n_solids == 2 and scene.occluders.shape[0] >= 256
+    p, nrm = floor(600, seed=9)
+    on = js.shadow_plan(scene, p, nrm).lights[0]
+    e_on = np.asarray(js.irradiance(scene, p, nrm))[:, 0]
+    monkeypatch.setenv("JAXSHADOW_SILHOUETTE", "0")
+    off = js.shadow_plan(scene, p, nrm).lights[0]
+    e_off = np.asarray(js.irradiance(scene, p, nrm))[:, 0]
+    assert (on.classes == vis.PENUMBRA).sum() > 50
+    assert on.candidates[on.classes == vis.PENUMBRA].mean() < off.candidates[off.classes == vis.PENUMBRA].mean()
+    np.testing.assert_allclose(e_on, e_off, rtol=0, atol=1e-11 * e_off.max())
