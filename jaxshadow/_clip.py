@@ -77,6 +77,14 @@ from ._polygon import edge_term
 # are the same plane: their traces on the emitter plane are one line (coincident edges).
 COLLINEAR_EPS = 64.0
 
+# A receiver closer to an occluder face's plane than ON_SURFACE * S (S: the largest coordinate
+# magnitude of the face's vertices and the receiver) lies on that face, which then blocks
+# nothing (nor does any face coplanar with it): 32 float32 epsilons (2^-18 ~ 3.8e-6) of S in
+# float32 and float64 alike, since a face built from float32-rounded vertices (OBJ, PLY,
+# Mitsuba) is planar, and a point computed on it lies in its plane, only to a few float32
+# roundings of S (`_occluder_sides`; the engine's `kOnSurface`).
+ON_SURFACE = 2.0**-18
+
 
 def _eps(x: Array) -> float:
     return float(jnp.finfo(x.dtype).eps)
@@ -158,7 +166,15 @@ def _occluder_sides(p, occluders):
     product, $3u$ for the rounding of $o_j - p$). The bound follows the actual terms: an
     occluder parallel to a coordinate plane 1e-9 above p is resolved in float32, a tilted one
     only beyond several $\epsilon$ times its size; p within the thickness of a (tolerated)
-    non-planar occluder, or exactly in its plane, or at a vertex ($h_j = 0$) is inactive."""
+    non-planar occluder, or exactly in its plane, or at a vertex ($h_j = 0$) is inactive.
+
+    A receiver *on* the occluder is inactive too: closer than `ON_SURFACE` $S$ ($2^{-18} S$, $S$
+    the largest coordinate magnitude of the occluder's vertices and p) to its plane, with its
+    foot inside the occluder grown by that distance (a face farther along its plane keeps its
+    true side). Faces made of float32-rounded vertices (meshes from files, Mitsuba) are planar,
+    and points computed on them lie in their planes, only to that order; a receiver on such a
+    face taken as behind it by 1e-8 is shadowed by the whole face (0, or a negative contour sum
+    from its nearly degenerate projection)."""
     rel = occluders - p[None, None, :]  # (M, Ko, 3)
     sigma = _pow2_scale(jnp.max(jnp.abs(rel), axis=(1, 2)))  # (M,)
     rel = rel * sigma[:, None, None]
@@ -171,7 +187,18 @@ def _occluder_sides(p, occluders):
     bound = (occluders.shape[1] + 8) / 2 * _eps(p) * err
     d_o = h[:, 0]
     s = jnp.where(d_o < 0, 1.0, -1.0).astype(p.dtype)
-    active = jnp.all(-s[:, None] * h > bound, axis=1)
+    # On the face (ON_SURFACE): every height also exceeds ON_SURFACE * S * |no| (scaled frame).
+    big = jnp.maximum(jnp.max(jnp.abs(occluders), axis=(1, 2)), jnp.max(jnp.abs(p)))
+    no_c = jax.lax.stop_gradient(no)
+    dtol = ON_SURFACE * jax.lax.stop_gradient(big) * sigma * jnp.sqrt(jnp.sum(no_c * no_c, axis=-1))
+    # Near the plane: on the face only where p's foot lies inside the face grown by the same
+    # distance (c: the edge functions of p's foot); a face farther along its plane is seen
+    # edge-on and keeps its true side.
+    near = jnp.any(~(-s[:, None] * h > dtol[:, None]), axis=1)
+    e = jax.lax.stop_gradient(nxt - rel)
+    c = jnp.sum(jnp.cross(e, -jax.lax.stop_gradient(rel)) * no_c[:, None, :], axis=-1)
+    inside = jnp.all(c >= -dtol[:, None] * jnp.sqrt(jnp.sum(e * e, axis=-1)), axis=1)
+    active = jnp.all(-s[:, None] * h > bound, axis=1) & ~(near & inside)
     # Planes through p and the edges, from the same scaled differences (a power of two times
     # `_edge_planes(p, occluders)`); zero for padded (repeated) vertices.
     real = jnp.any(jnp.roll(occluders, -1, axis=1) != occluders, axis=2)
@@ -191,10 +218,28 @@ def _occluder_regions(p, occluders, ne, hp):
     return normals, s, active
 
 
-def _cyrus_beck(p, a, b, normals):
-    """Parameter interval `[t0, t1]` of the segment `a -> b` inside `{x : (x-p).N >= 0}` for all N."""
+def _cyrus_beck(p, a, b, normals, n_own):
+    """Parameter interval `[t0, t1]` of the segment `a -> b` inside `{x : (x-p).N >= 0}` for all N.
+
+    `n_own`: the normal of the plane through p and the segment. A plane that holds the
+    segment's line (parallel to `n_own` within the collinear tolerance of `_interval_on_region`,
+    which decides with the same test) neither cuts nor drops it: its parameter there would be
+    the ratio of two rounding errors, and the crossing point that of two coincident planes (a
+    receiver on a face: its horizon holds the neighbouring faces' shared edges). The
+    tie-break of `_boundary_runs` keeps one of the coincident edges (the engine's
+    `cyrus_beck`)."""
+    tol = COLLINEAR_EPS * _eps(p)
     g0 = (a - p) @ normals.T
     g1 = (b - a) @ normals.T
+    sp, sa, sb, sn, so, h0, h1 = jax.lax.stop_gradient((p, a, b, normals, n_own, g0, g1))
+    pn = jnp.sqrt(jnp.sum(sn * sn, axis=-1))
+    apn = jnp.sqrt(jnp.sum((sa - sp) ** 2)) + jnp.sqrt(jnp.sum((sb - sp) ** 2))
+    near = (jnp.any(sn != 0, axis=-1) & ~(jnp.abs(h0) > 4 * tol * pn * apn)
+            & ~(jnp.abs(h0 + h1) > 4 * tol * pn * apn))
+    cr = jnp.cross(safe_normalize(so)[None, :], safe_div(sn, pn[:, None]))
+    on_line = near & (jnp.sum(cr * cr, axis=-1) <= tol * tol)
+    g0 = jnp.where(on_line, 0.0, g0)
+    g1 = jnp.where(on_line, 0.0, g1)
     pos = g1 > 0
     neg = g1 < 0
     tc = safe_div(-g0, g1)
@@ -322,7 +367,7 @@ def _candidates(p: Array, n: Array, verts: Array, occluders: Array) -> _Candidat
     cone = e_normals
 
     def clip_one(a, b, n_q, act):
-        t0, t1, ok, i0, i1 = _cyrus_beck(p, a, b, cone)
+        t0, t1, ok, i0, i1 = _cyrus_beck(p, a, b, cone, n_q)
         ok = ok & act
         # A clipped end is the crossing of this edge's plane with an E_h plane (E_h's plane ids
         # come first in the canonical order, see `_decode`).

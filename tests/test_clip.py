@@ -365,24 +365,26 @@ def test_occluder_reaching_behind_receiver():
 def test_occluder_touching_receiver():
     # A box-like wall standing on the receiver plane z = 0.
     wall = np.array([[0.3, -1.0, 0.0], [0.3, 1.0, 0.0], [0.3, 1.0, 1.5], [0.3, -1.0, 1.5]])
-    pts = [np.array([x, 0.2, 0.0]) for x in (-1.0, 0.0, 0.29, 0.2999999, 0.3000001, 0.31, 1.0, 2.0)]
+    pts = [np.array([x, 0.2, 0.0]) for x in (-1.0, 0.0, 0.29, 0.29999, 0.30001, 0.31, 1.0, 2.0)]
     _check_cases([wall], points=pts)
-    # Exactly at the foot of the wall: finite (the wall's plane contains p: it blocks nothing).
-    got = float(ff([0.3, 0.2, 0.0], UP, EM, [wall]))
-    assert got == pytest.approx(unoccluded([0.3, 0.2, 0.0], UP, EM), rel=1e-12)
+    # At the foot of the wall, and within 2^-18 S of its plane (S = 2 here: the on-surface rule of
+    # `js.irradiance`, `_clip.ON_SURFACE`): the wall's plane holds p, it blocks nothing.
+    for x in (0.3, 0.2999999, 0.3000001):
+        got = float(ff([x, 0.2, 0.0], UP, EM, [wall]))
+        assert got == pytest.approx(unoccluded([x, 0.2, 0.0], UP, EM), rel=1e-12)
     # A triangle with one vertex on the receiver plane, p elsewhere.
     tri = np.array([[0.0, 0.0, 0.0], [0.8, -0.3, 1.2], [0.5, 0.6, 1.2]])
     _check_cases([tri])
 
 
 def test_float32_occluder_1e9_above_receiver():
-    # An occluder parallel to the receiver's plane 1e-9 above p (p off the origin, so o - p is
-    # rounded): float32 tells its side from the rounding-error bound of its vertex heights and
-    # it shadows everything; a tilted occluder whose plane contains p (not representable in
+    # An occluder parallel to the receiver's plane 1e-5 above p (p off the origin, so o - p is
+    # rounded; beyond the on-surface distance 2^-18 S = 1.5e-6 of `js.irradiance`, within which
+    # p would lie on it): float32 tells its side and it shadows everything; a tilted occluder whose plane contains p (not representable in
     # float32: p is within rounding of it) blocks nothing. All kernels; finite gradients.
     f32 = np.float32
     p = np.array([0.3, -0.2, 0.0])
-    cover = np.array([[0.2, -0.3, 1e-9], [0.4, -0.3, 1e-9], [0.4, -0.1, 1e-9], [0.2, -0.1, 1e-9]])
+    cover = np.array([[0.2, -0.3, 1e-5], [0.4, -0.3, 1e-5], [0.4, -0.1, 1e-5], [0.2, -0.1, 1e-5]])
     e1, e2 = np.array([0.6, 0.0, 0.8]), np.array([0.0, 1.0, 0.0])
     tilted = p + 0.5 * np.array([-e1 - e2, e1 - e2, e1 + e2, e2 - e1])
     vg = jax.jit(jax.value_and_grad(visible_form_factor_kernel, argnums=(0, 1, 2, 3)))

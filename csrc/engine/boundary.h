@@ -63,7 +63,7 @@ void boundary_runs(V3<T> p, T tol, const V3<T>* ehv, int nehv, Work<T>& w) {
     T apn = norm(ap) + norm(e.b - p);
     T ext = 0;
     for (int dd = 0; dd < 3; dd++) ext = std::max(ext, std::max(std::fabs(e.lo[dd]), std::fabs(e.hi[dd])));
-    T bmargin = T(1e3) * eps_of<T>() * (ext + absmax(p));
+    T bmargin = T(1e3) * eps_of<T>() * (ext + absmax(p)) + w.eh_margin;  // off_plane_margin
     w.live.clear();
     for (int32_t j = 0; j < n_regions; j++) {
       if (j == e.region) continue;

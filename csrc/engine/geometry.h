@@ -17,6 +17,12 @@ namespace jaxshadow_engine {
 
 
 constexpr double kCollinearEps = 64.0;  // _clip.COLLINEAR_EPS
+// _clip.ON_SURFACE: a receiver closer to a face's plane than kOnSurface times S (the largest
+// coordinate magnitude of the face's vertices and the receiver) lies on that face: 32 float32
+// epsilons (2^-18, about 3.8e-6) of S, whatever the float type, because scene data are float32
+// (OBJ, PLY, Mitsuba) far more often than not, and a face built from float32-rounded vertices
+// is planar, and a point computed on it lies in its plane, only to a few float32 roundings.
+constexpr double kOnSurface = 1.0 / 262144.0;
 
 enum Class : int32_t { kZero = 0, kLit = 1, kUmbra = 2, kPenumbra = 3 };
 
@@ -176,8 +182,9 @@ struct Occluders {
 // _clip._occluder_sides for face f seen from p: its vertices relative to p, scaled by the power of
 // two `scale` into `rel` (Ko <= 64 slots), their Newell normal `no` and h0 = no . rel[0]; `side`
 // is +1 when p is behind `no` (h0 < 0), -1 in front, 0 when p cannot be told apart from the face's
-// plane within the heights' rounding bounds (the face then blocks a zero solid angle) or a vertex
-// is not finite.
+// plane within the heights' rounding bounds or lies on the face (closer to its plane than
+// kOnSurface S, with its foot inside the face grown by that distance: the face then blocks a
+// zero solid angle, and so does every face coplanar with it) or a vertex is not finite.
 template <class T>
 struct FaceSide {
   int side = 0;
@@ -207,15 +214,40 @@ FaceSide<T> face_side(const Occluders<T>& occ, int64_t f, V3<T> p, V3<T>* rel) {
   const T h0 = dot(no, rel[0]);
   const T s = h0 < 0 ? T(1) : T(-1);
   const T boundf = T(Ko + 8) / T(2) * eps_of<T>();
+  // On the face (kOnSurface): every height must also exceed kOnSurface S |no| (scaled frame).
+  T S = absmax(p);
+  for (int64_t i = 0; i < Ko; i++) S = std::max(S, absmax(occ.vert(f, i)));
+  const T dtol = T(kOnSurface) * S * out.scale * norm(no);
+  bool near = false;
   for (int64_t i = 0; i < Ko; i++) {
     T h = dot(no, rel[i]);
     V3<T> ar{std::fabs(rel[i].x), std::fabs(rel[i].y), std::fabs(rel[i].z)};
     if (!(-s * h > boundf * dot(bnd, ar))) return out;
+    near = near || !(-s * h > dtol);
+  }
+  // Near the plane: on the face only where p's foot lies inside the face (grown by the same
+  // distance); a face farther along its plane is seen edge-on and keeps its true side (exact).
+  if (near) {
+    bool inside = true;
+    for (int64_t i = 0; i < Ko && inside; i++) {
+      const V3<T> e = rel[(i + 1) % Ko] - rel[i];
+      const T c = dot(cross(e, T(-1) * rel[i]), no);
+      inside = c >= -dtol * norm(e);
+    }
+    if (inside) return out;
   }
   out.side = h0 < 0 ? 1 : -1;
   out.h0 = h0;
   out.no = no;
   return out;
+}
+
+// The distance from face f's plane below which p lies on the face (kOnSurface S, face_side).
+template <class T>
+inline double on_surface_tol(const Occluders<T>& occ, int64_t f, const double* p) {
+  double S = std::max(std::fabs(p[0]), std::max(std::fabs(p[1]), std::fabs(p[2])));
+  for (int64_t i = 0; i < occ.Ko; i++) S = std::max(S, double(absmax(occ.vert(f, i))));
+  return kOnSurface * S;
 }
 
 }  // namespace jaxshadow_engine

@@ -223,6 +223,7 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
       if (!dup) ehv[m++] = ehv[i];
     }
     nehv = m;
+    w.eh_margin = off_plane_margin(p, ehv, nehv, ne, hp);  // boundary_runs' boxes
   }
   auto covers_eh = [&](const V3<T>* pl, int np) -> bool {
     V3<T> r = eh_centre - p;
@@ -366,7 +367,7 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
       if (same(a3, b3)) return;
       T t0, t1;
       int i0, i1;
-      if (!cyrus_beck(p, a3, b3, cone, np0, t0, t1, i0, i1)) return;
+      if (!cyrus_beck(p, a3, b3, cone, np0, own, t0, t1, i0, i1)) return;
       V3<T> a2, b2;
       Code c2a, c2b;
       if (t0 > 0) {
@@ -477,7 +478,7 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
       double h = fp[0] * rx + fp[1] * ry + fp[2] * rz;
       double m = 1e3 * double(eps_of<T>()) * (std::fabs(rx) + std::fabs(ry) + std::fabs(rz) + std::fabs(fp[3]) +
                                               std::fabs(fp[4]) + std::fabs(fp[5]));
-      const bool strict_front = h > m;
+      const bool strict_front = h > std::max(m, on_surface_tol(occ, f, pd));  // on the face: not front
       front[f - f0] = strict_front;
       any_front = any_front || strict_front;
       if (strict_front && call.light_side[f] > 0) return 0;  // the face's plane separates solid and pyramid
@@ -538,7 +539,7 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
       V3<T> a3 = occ.vref(sil[k].ra), b3 = occ.vref(sil[k].rb);
       T t0, t1;
       int i0, i1;
-      if (!cyrus_beck(p, a3, b3, cone, np0, t0, t1, i0, i1)) continue;
+      if (!cyrus_beck(p, a3, b3, cone, np0, planes[first + k], t0, t1, i0, i1)) continue;
       V3<T> own = planes[first + k];
       PlaneRef oref = w.prefs[first + k];
       Edge<T> e;

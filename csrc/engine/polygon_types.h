@@ -67,6 +67,8 @@ struct Work {  // per-thread scratch
   std::vector<int32_t> sord;
   std::vector<int32_t> std_;
   std::vector<T> sbox;
+  // off_plane_margin of the current receiver's E_h: boundary_runs widens its boxes by it.
+  T eh_margin = 0;
   int32_t n_candidates = 0, n_regions = 0;  // items the hierarchy returned; occluder regions kept
   // Whether a lit receiver's boundary (E_h's own edges) is wanted in `runs`: the fixed-capacity
   // (compiled) plan evaluates every receiver from its runs; the CSR plan evaluates lit receivers
@@ -85,8 +87,18 @@ struct Light {
 };
 
 // Cyrus-Beck of the segment a -> b against {x : (x - p).N >= 0} for the planes: (t0, t1, ok, i0, i1).
+// `own`: the normal of the plane through p and the segment. A plane that holds the segment's line
+// (its plane through p parallel to `own` within the collinear tolerance of boundary_runs, which
+// decides with the same test) neither cuts nor drops it: its parameter there would be the ratio
+// of two rounding errors, and the crossing point that of two coincident planes (a receiver on a
+// face: the horizon holds the neighbouring faces' shared edges). boundary_runs' tie-break keeps
+// one of the coincident edges (_clip._cyrus_beck).
 template <class T>
-inline bool cyrus_beck(V3<T> p, V3<T> a, V3<T> b, const V3<T>* pl, int np, T& t0, T& t1, int& i0, int& i1) {
+inline bool cyrus_beck(V3<T> p, V3<T> a, V3<T> b, const V3<T>* pl, int np, V3<T> own, T& t0, T& t1, int& i0,
+                       int& i1) {
+  const T tol = T(kCollinearEps) * eps_of<T>();
+  const V3<T> uo = normalize_safe(own);
+  const T apn = norm(a - p) + norm(b - p);
   T tlo_best = -std::numeric_limits<T>::infinity(), thi_best = std::numeric_limits<T>::infinity();
   i0 = 0;
   i1 = 0;
@@ -96,6 +108,13 @@ inline bool cyrus_beck(V3<T> p, V3<T> a, V3<T> b, const V3<T>* pl, int np, T& t0
   V3<T> ap = a - p, d = b - a;
   for (int k = 0; k < np; k++) {
     T g0 = dot(ap, pl[k]), g1 = dot(d, pl[k]);
+    if (nonzero(pl[k])) {
+      const T pn = norm(pl[k]);
+      if (!(std::fabs(g0) > T(4) * tol * pn * apn) && !(std::fabs(g0 + g1) > T(4) * tol * pn * apn)) {
+        const V3<T> cr = cross(uo, (T(1) / pn) * pl[k]);
+        if (dot(cr, cr) <= tol * tol) g0 = g1 = 0;  // on the plane's line
+      }
+    }
     T tc = g1 != 0 ? -g0 / g1 : T(0);
     T tl = g1 > 0 ? tc : T(0);  // t_lo = where(pos, tc, 0)
     T th = g1 < 0 ? tc : T(1);  // t_hi = where(neg, tc, 1)
@@ -125,6 +144,20 @@ inline V3<T> project(V3<T> p, V3<T> x, V3<T> ne, T hp) {
   T w = -dot(r, ne);
   T s = w > 0 ? hp / w : T(0);
   return p + s * r;
+}
+
+// The largest coordinate distance between an E_h vertex and its central projection from p onto
+// the emitter plane (through e0 with normal ne; hp = ne . (p - e0)). E_h's edges run between the
+// light's own vertices, and a light that is planar only to rounding (float32 vertices of a tilted
+// rectangle, or one vertex 1e-9 off: validation accepts both) has them off that plane, while the
+// occluders' edges are projected onto it: boundary_runs compares their boxes, which must be
+// widened by this much (a region otherwise missed an E_h edge by its 1e-9, and the edge was not
+// split). Only the boxes: every membership test is made with planes through p.
+template <class T>
+inline T off_plane_margin(V3<T> p, const V3<T>* v, int n, V3<T> ne, T hp) {
+  T m = 0;
+  for (int i = 0; i < n; i++) m = std::max(m, absmax(project(p, v[i], ne, hp) - v[i]));
+  return m == m ? m : std::numeric_limits<T>::infinity();
 }
 
 // _clip._crossing_point.

@@ -267,10 +267,10 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       }
       if (W == 0) continue;
       const V3<T> a3 = occ.vref(e.ra), b3 = occ.vref(e.rb);
+      const V3<T> own = edge_plane(p, a3, b3);
       double t0, t1;
       int i0, i1;
-      if (!cyrus_beck(p, a3, b3, cone, np0, t0, t1, i0, i1)) continue;
-      const V3<T> own = edge_plane(p, a3, b3);
+      if (!cyrus_beck(p, a3, b3, cone, np0, own, t0, t1, i0, i1)) continue;
       const PlaneRef oref = through(e.ra, e.rb);
       SSeg<T> s;
       s.own = own, s.own_ref = oref, s.w = W, s.va = e.ra, s.vb = e.rb, s.x3a = a3, s.x3b = b3;
