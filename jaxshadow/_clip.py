@@ -168,10 +168,10 @@ def _occluder_sides(p, occluders):
     only beyond several $\epsilon$ times its size; p within the thickness of a (tolerated)
     non-planar occluder, or exactly in its plane, or at a vertex ($h_j = 0$) is inactive.
 
-    A receiver *on* the occluder is inactive too: closer than `ON_SURFACE` $S$ ($2^{-18} S$, $S$
-    the largest coordinate magnitude of the occluder's vertices and p) to its plane, with its
-    foot inside the occluder grown by that distance (a face farther along its plane keeps its
-    true side). Faces made of float32-rounded vertices (meshes from files, Mitsuba) are planar,
+    A receiver *on* the occluder is inactive too: every $|h_j|$ must also exceed
+    `ON_SURFACE` $\cdot S\,\sigma\,|$`no`$|$, i.e. p must be farther than `ON_SURFACE` $S$
+    ($2^{-18} S$, $S$ the largest coordinate magnitude of the occluder's vertices and p) from
+    its plane. Faces made of float32-rounded vertices (meshes from files, Mitsuba) are planar,
     and points computed on them lie in their planes, only to that order; a receiver on such a
     face taken as behind it by 1e-8 is shadowed by the whole face (0, or a negative contour sum
     from its nearly degenerate projection)."""
@@ -191,14 +191,7 @@ def _occluder_sides(p, occluders):
     big = jnp.maximum(jnp.max(jnp.abs(occluders), axis=(1, 2)), jnp.max(jnp.abs(p)))
     no_c = jax.lax.stop_gradient(no)
     dtol = ON_SURFACE * jax.lax.stop_gradient(big) * sigma * jnp.sqrt(jnp.sum(no_c * no_c, axis=-1))
-    # Near the plane: on the face only where p's foot lies inside the face grown by the same
-    # distance (c: the edge functions of p's foot); a face farther along its plane is seen
-    # edge-on and keeps its true side.
-    near = jnp.any(~(-s[:, None] * h > dtol[:, None]), axis=1)
-    e = jax.lax.stop_gradient(nxt - rel)
-    c = jnp.sum(jnp.cross(e, -jax.lax.stop_gradient(rel)) * no_c[:, None, :], axis=-1)
-    inside = jnp.all(c >= -dtol[:, None] * jnp.sqrt(jnp.sum(e * e, axis=-1)), axis=1)
-    active = jnp.all(-s[:, None] * h > bound, axis=1) & ~(near & inside)
+    active = jnp.all((-s[:, None] * h > bound) & (-s[:, None] * h > dtol[:, None]), axis=1)
     # Planes through p and the edges, from the same scaled differences (a power of two times
     # `_edge_planes(p, occluders)`); zero for padded (repeated) vertices.
     real = jnp.any(jnp.roll(occluders, -1, axis=1) != occluders, axis=2)

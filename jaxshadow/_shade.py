@@ -221,8 +221,8 @@ def irradiance(
 
     **Receivers on occluders.** A receiver closer to an occluder face's plane than
     $2^{-18} S \approx 3.8\cdot 10^{-6} S$ ($S$: the largest coordinate magnitude of that face's
-    vertices and the receiver; 32 float32 epsilons, in float32 and float64 alike), with its foot
-    inside the face (grown by that distance), lies on the face: the face blocks nothing for it, and nor does any face coplanar with it (they are seen
+    vertices and the receiver; 32 float32 epsilons, in float32 and float64 alike) lies on the
+    face: the face blocks nothing for it, and nor does any face coplanar with it (they are seen
     edge-on); every other face, the neighbours of a non-convex surface included, casts its true
     shadow. Faces read from files or Mitsuba have float32 vertices, planar (and points computed
     on them in their planes) only to that order, so receivers on a scene's own surfaces get the

@@ -183,8 +183,8 @@ struct Occluders {
 // two `scale` into `rel` (Ko <= 64 slots), their Newell normal `no` and h0 = no . rel[0]; `side`
 // is +1 when p is behind `no` (h0 < 0), -1 in front, 0 when p cannot be told apart from the face's
 // plane within the heights' rounding bounds or lies on the face (closer to its plane than
-// kOnSurface S, with its foot inside the face grown by that distance: the face then blocks a
-// zero solid angle, and so does every face coplanar with it) or a vertex is not finite.
+// kOnSurface S: the face then blocks a zero solid angle, and so does every face coplanar with
+// it) or a vertex is not finite.
 template <class T>
 struct FaceSide {
   int side = 0;
@@ -218,23 +218,10 @@ FaceSide<T> face_side(const Occluders<T>& occ, int64_t f, V3<T> p, V3<T>* rel) {
   T S = absmax(p);
   for (int64_t i = 0; i < Ko; i++) S = std::max(S, absmax(occ.vert(f, i)));
   const T dtol = T(kOnSurface) * S * out.scale * norm(no);
-  bool near = false;
   for (int64_t i = 0; i < Ko; i++) {
     T h = dot(no, rel[i]);
     V3<T> ar{std::fabs(rel[i].x), std::fabs(rel[i].y), std::fabs(rel[i].z)};
-    if (!(-s * h > boundf * dot(bnd, ar))) return out;
-    near = near || !(-s * h > dtol);
-  }
-  // Near the plane: on the face only where p's foot lies inside the face (grown by the same
-  // distance); a face farther along its plane is seen edge-on and keeps its true side (exact).
-  if (near) {
-    bool inside = true;
-    for (int64_t i = 0; i < Ko && inside; i++) {
-      const V3<T> e = rel[(i + 1) % Ko] - rel[i];
-      const T c = dot(cross(e, T(-1) * rel[i]), no);
-      inside = c >= -dtol * norm(e);
-    }
-    if (inside) return out;
+    if (!(-s * h > boundf * dot(bnd, ar)) || !(-s * h > dtol)) return out;
   }
   out.side = h0 < 0 ? 1 : -1;
   out.h0 = h0;

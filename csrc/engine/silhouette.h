@@ -165,13 +165,15 @@ void build_silhouette_tree(const Occluders<T>& occ, const std::vector<int32_t>& 
 
 // Which way face f faces p: +1 when p is in front of its Newell normal... as face_side decides
 // (+1: h0 = N . (v0 - p) < 0), 0 when p is within the rounding bound of its plane.
+// Within the on-surface distance of the plane (kOnSurface of the scene's largest coordinate, at
+// least face_side's own bound) it is 0 too: the face path then applies the on-surface rule.
 inline int sil_side(const SilhouetteTree& st, int32_t f, const double* p) {
   const double* q = st.fn.data() + 9 * size_t(f);
   const double r0 = q[3] - p[0], r1 = q[4] - p[1], r2 = q[5] - p[2];
   const double h = q[0] * r0 + q[1] * r1 + q[2] * r2;
   const double nn = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2]);
-  const double m = 1e4 * 2.220446049250313e-16 * nn *
-                   (std::fabs(r0) + std::fabs(r1) + std::fabs(r2) + std::max(std::fabs(q[3]), std::max(std::fabs(q[4]), std::fabs(q[5]))));
+  const double S = std::max(st.scale, std::max(std::fabs(p[0]), std::max(std::fabs(p[1]), std::fabs(p[2]))));
+  const double m = std::max(1e4 * 2.220446049250313e-16 * (std::fabs(r0) + std::fabs(r1) + std::fabs(r2) + S), 2 * kOnSurface * S) * nn;
   return h < -m ? 1 : (h > m ? -1 : 0);
 }
 
@@ -240,7 +242,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     }
     return false;
   };
-  const double smargin = 1e-9 * scale;
+  const double smargin = 4 * kOnSurface * scale;  // beyond the on-surface distance (sil_side)
   int32_t stack[128];
   int sp = 0;
   stack[sp++] = 0;
