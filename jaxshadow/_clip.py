@@ -168,7 +168,7 @@ def _occluder_sides(p, occluders):
     only beyond several $\epsilon$ times its size; p within the thickness of a (tolerated)
     non-planar occluder, or exactly in its plane, or at a vertex ($h_j = 0$) is inactive.
 
-    A receiver *on* the occluder is inactive too: every $|h_j|$ must also exceed
+    A receiver *on* an occluder of float32 values is inactive too: every $|h_j|$ must also exceed
     `ON_SURFACE` $\cdot S\,\sigma\,|$`no`$|$, i.e. p must be farther than `ON_SURFACE` $S$
     ($2^{-18} S$, $S$ the largest coordinate magnitude of the occluder's vertices and p) from
     its plane. Faces made of float32-rounded vertices (meshes from files, Mitsuba) are planar,
@@ -191,6 +191,10 @@ def _occluder_sides(p, occluders):
     big = jnp.maximum(jnp.max(jnp.abs(occluders), axis=(1, 2)), jnp.max(jnp.abs(p)))
     no_c = jax.lax.stop_gradient(no)
     dtol = ON_SURFACE * jax.lax.stop_gradient(big) * sigma * jnp.sqrt(jnp.sum(no_c * no_c, axis=-1))
+    # Only for faces of float32 values (files, Mitsuba): others are planar to their own rounding.
+    occ_c = jax.lax.stop_gradient(occluders)
+    f32 = jnp.all(occ_c.astype(jnp.float32).astype(occ_c.dtype) == occ_c, axis=(1, 2))
+    dtol = jnp.where(f32, dtol, 0.0)
     active = jnp.all((-s[:, None] * h > bound) & (-s[:, None] * h > dtol[:, None]), axis=1)
     # Planes through p and the edges, from the same scaled differences (a power of two times
     # `_edge_planes(p, occluders)`); zero for padded (repeated) vertices.

@@ -219,7 +219,8 @@ def irradiance(
 
     **Returns:** `(N, 3)` irradiance, dtype following `points`.
 
-    **Receivers on occluders.** A receiver closer to an occluder face's plane than
+    **Receivers on occluders.** A receiver closer to the plane of an occluder face whose
+    coordinates are float32 values (meshes from files, Mitsuba) than
     $2^{-18} S \approx 3.8\cdot 10^{-6} S$ ($S$: the largest coordinate magnitude of that face's
     vertices and the receiver; 32 float32 epsilons, in float32 and float64 alike) lies on the
     face: the face blocks nothing for it, and nor does any face coplanar with it (they are seen

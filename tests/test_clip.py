@@ -365,12 +365,19 @@ def test_occluder_reaching_behind_receiver():
 def test_occluder_touching_receiver():
     # A box-like wall standing on the receiver plane z = 0.
     wall = np.array([[0.3, -1.0, 0.0], [0.3, 1.0, 0.0], [0.3, 1.0, 1.5], [0.3, -1.0, 1.5]])
-    pts = [np.array([x, 0.2, 0.0]) for x in (-1.0, 0.0, 0.29, 0.29999, 0.30001, 0.31, 1.0, 2.0)]
+    # 0.3 is no float32 value: the on-surface rule (faces of float32 values) does not apply, and
+    # points 1e-7 from the wall are exact.
+    pts = [np.array([x, 0.2, 0.0]) for x in (-1.0, 0.0, 0.29, 0.2999999, 0.3000001, 0.31, 1.0, 2.0)]
     _check_cases([wall], points=pts)
-    # At the foot of the wall, and within 2^-18 S of its plane (S = 2 here: the on-surface rule of
-    # `js.irradiance`, `_clip.ON_SURFACE`): the wall's plane holds p, it blocks nothing.
-    for x in (0.3, 0.2999999, 0.3000001):
-        got = float(ff([x, 0.2, 0.0], UP, EM, [wall]))
+    # Exactly at the foot of the wall: finite (the wall's plane contains p: it blocks nothing).
+    got = float(ff([0.3, 0.2, 0.0], UP, EM, [wall]))
+    assert got == pytest.approx(unoccluded([0.3, 0.2, 0.0], UP, EM), rel=1e-12)
+    # A wall of float32 values: within 2^-18 S of its plane (S = 2: `_clip.ON_SURFACE`) p lies on
+    # it, and it blocks nothing.
+    w32 = wall.copy()
+    w32[:, 0] = 0.25
+    for x in (0.25, 0.2499999, 0.2500001):
+        got = float(ff([x, 0.2, 0.0], UP, EM, [w32]))
         assert got == pytest.approx(unoccluded([x, 0.2, 0.0], UP, EM), rel=1e-12)
     # A triangle with one vertex on the receiver plane, p elsewhere.
     tri = np.array([[0.0, 0.0, 0.0], [0.8, -0.3, 1.2], [0.5, 0.6, 1.2]])

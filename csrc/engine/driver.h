@@ -4,6 +4,7 @@
 
 #include "groups.h"
 #include "polygon.h"
+#include "prepared.h"
 #include "hard.h"
 
 namespace jaxshadow_engine {
@@ -161,12 +162,13 @@ template <class T>
 int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const Occluders<T>& occ, int threads,
               int32_t* cls, int32_t* stats, int64_t* offsets, int32_t** runs_out, T** points_out, int64_t* nruns_out,
               T* lambert = nullptr) {
-  BVH bvh = build_bvh(occ);
-  prepare_solids(occ, bvh);
+  const std::shared_ptr<const Prepared> prep = prepared(occ);
+  const BVH& bvh = prep->bvh;
   PolyCall<T> call{Light<T>{K, E}, occ, &bvh, {}};
   prepare_call(call);
-  prepare_twins(call);
-  build_silhouette_tree(occ, call.twin, call.ne_raw, call.L.v(0), call.sil);
+  call.twin_ptr = &prep->twin;
+  call.sil = &prep->sil;
+  silhouette_heights(call);
   if (N >= kUmbraMinReceivers) prepare_umbra(call);
   threads = default_threads(threads);
   struct Block {
@@ -300,12 +302,13 @@ int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const 
 template <class T>
 int poly_fixed(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const Occluders<T>& occ, int threads,
                int64_t cap, int32_t* cls, int32_t* counts, int32_t* runs) {
-  BVH bvh = build_bvh(occ);
-  prepare_solids(occ, bvh);
+  const std::shared_ptr<const Prepared> prep = prepared(occ);
+  const BVH& bvh = prep->bvh;
   PolyCall<T> call{Light<T>{K, E}, occ, &bvh, {}};
   prepare_call(call);
-  prepare_twins(call);
-  build_silhouette_tree(occ, call.twin, call.ne_raw, call.L.v(0), call.sil);
+  call.twin_ptr = &prep->twin;
+  call.sil = &prep->sil;
+  silhouette_heights(call);
   std::atomic<int> err(0);
   parallel_for(N, default_threads(threads), [&](int, int64_t s, int64_t e) {
     Work<T> w;

@@ -182,9 +182,19 @@ struct Occluders {
 // _clip._occluder_sides for face f seen from p: its vertices relative to p, scaled by the power of
 // two `scale` into `rel` (Ko <= 64 slots), their Newell normal `no` and h0 = no . rel[0]; `side`
 // is +1 when p is behind `no` (h0 < 0), -1 in front, 0 when p cannot be told apart from the face's
-// plane within the heights' rounding bounds or lies on the face (closer to its plane than
-// kOnSurface S: the face then blocks a zero solid angle, and so does every face coplanar with
-// it) or a vertex is not finite.
+// plane within the heights' rounding bounds or lies on the face (for a face of float32 values:
+// closer to its plane than kOnSurface S; the face then blocks a zero solid angle, and so does
+// every face coplanar with it) or a vertex is not finite.
+// Whether every coordinate of face f is a float32 value (data read from files or Mitsuba).
+template <class T>
+inline bool float32_face(const Occluders<T>& occ, int64_t f) {
+  for (int64_t k = 0; k < 3 * occ.Ko; k++) {
+    const double x = double(occ.faces[3 * f * occ.Ko + k]);
+    if (double(float(x)) != x) return false;
+  }
+  return true;
+}
+
 template <class T>
 struct FaceSide {
   int side = 0;
@@ -217,7 +227,9 @@ FaceSide<T> face_side(const Occluders<T>& occ, int64_t f, V3<T> p, V3<T>* rel) {
   // On the face (kOnSurface): every height must also exceed kOnSurface S |no| (scaled frame).
   T S = absmax(p);
   for (int64_t i = 0; i < Ko; i++) S = std::max(S, absmax(occ.vert(f, i)));
-  const T dtol = T(kOnSurface) * S * out.scale * norm(no);
+  // The rule is for faces made of float32 values (meshes from files, Mitsuba): a face of other
+  // doubles is planar to double rounding, and keeps the exact treatment.
+  const T dtol = float32_face(occ, f) ? T(kOnSurface) * S * out.scale * norm(no) : T(0);
   for (int64_t i = 0; i < Ko; i++) {
     T h = dot(no, rel[i]);
     V3<T> ar{std::fabs(rel[i].x), std::fabs(rel[i].y), std::fabs(rel[i].z)};

@@ -28,9 +28,9 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
   if (K > 64) return -1;
   // The silhouette path (silhouette.h) where every occluder vertex lies strictly between the
   // receiver's level and the emitter plane; the hierarchy's face query only if it falls back.
-  const SilhouetteTree& sil = call.sil;
+  const SilhouetteTree& sil = *call.sil;
   const double hmargin = 1e-9 * double(norm(ne)) * (sil.scale + double(absmax(p)) + 1.0);
-  const bool try_sil = sil.ok && sil.hmin > hmargin && sil.hmax < double(hp) - hmargin;
+  const bool try_sil = call.sil_ok && call.sil_hmin > hmargin && call.sil_hmax < double(hp) - hmargin;
   const V3<T> ne_query = ne;
 
   // Candidate items: the hierarchy queried with the pyramid over the light (planes through p
@@ -299,7 +299,7 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
   // whose edges inside the pyramid are interior is kept (it blocks the others' edges).
   bool any_interior = false;
   auto interior = [&](int64_t f, int64_t i, int s) -> bool {
-    const int32_t t = call.twin[size_t(f * occ.Ko + i)];
+    const int32_t t = call.twin()[size_t(f * occ.Ko + i)];
     if (t < 0) return false;
     const int g = w.fstat[size_t(t >> 1)];
     return g != 0 && ((t & 1) ? g == -s : g == s);
@@ -578,7 +578,7 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
     if (item < 0) continue;
     const int st = face_status(item, true, pre[c]);
     if (st == 0) pre[c].side = 0;
-    if (st != 0 && !call.twin.empty()) {
+    if (st != 0 && !call.twin().empty()) {
       w.fstat[size_t(item)] = int8_t(st);
       w.fstat_set.push_back(item);
     }

@@ -195,19 +195,22 @@ struct PolyCall {
   // has an edge with the same two endpoints (exactly equal coordinates) and no third face does,
   // d = 1 when g runs it in the same direction; -1 otherwise. (The face path uses it for plain
   // faces only: a solid's faces have no side in Work::fstat.)
-  std::vector<int32_t> twin;
-  // The silhouette path's hierarchy of mesh edges (silhouette.h; `ok` false: not used).
-  SilhouetteTree sil;
+  const std::vector<int32_t>* twin_ptr = nullptr;
+  const std::vector<int32_t>& twin() const { return *twin_ptr; }
+  // The silhouette path's hierarchy of mesh edges (silhouette.h; prepared.h) and the occluders'
+  // heights above the emitter plane for this light (silhouette_heights); `sil_ok` false: not used.
+  const SilhouetteTree* sil = nullptr;
+  double sil_hmin = 0, sil_hmax = 0;
+  bool sil_ok = false;
 };
 
-// The faces' edge twins (PolyCall::twin): one sort of the edge slots by their endpoints'
+// The faces' edge twins (PolyCall::twin, prepared.h): one sort of the edge slots by their endpoints'
 // coordinates (the lower endpoint first, lexicographically), O(M Ko log(M Ko)) per call.
 template <class T>
-void prepare_twins(PolyCall<T>& call) {
-  const Occluders<T>& occ = call.occ;
+std::vector<int32_t> edge_twins(const Occluders<T>& occ) {
   const int64_t M = occ.M, Ko = occ.Ko;
-  call.twin.assign(size_t(M * Ko), -1);
-  if (M < 2) return;
+  std::vector<int32_t> twin(size_t(M * Ko), -1);
+  if (M < 2) return twin;
   struct Key {
     T k[6];
     int32_t slot;
@@ -250,12 +253,13 @@ void prepare_twins(PolyCall<T>& call) {
       const int32_t fx = int32_t(x.slot / Ko), fy = int32_t(y.slot / Ko);
       if (fx != fy) {
         const int32_t d = x.fwd == y.fwd ? 1 : 0;
-        call.twin[size_t(x.slot)] = 2 * fy + d;
-        call.twin[size_t(y.slot)] = 2 * fx + d;
+        twin[size_t(x.slot)] = 2 * fy + d;
+        twin[size_t(y.slot)] = 2 * fx + d;
       }
     }
     s = e;
   }
+  return twin;
 }
 
 // Per-call data of the light and the occluders (`light_side`, `ne_raw`, `edge_index`,

@@ -31,8 +31,7 @@
 namespace jaxshadow_engine {
 
 template <class T>
-void build_silhouette_tree(const Occluders<T>& occ, const std::vector<int32_t>& twin, V3<T> ne, V3<T> e0,
-                           SilhouetteTree& st) {
+void build_silhouette_tree(const Occluders<T>& occ, const std::vector<int32_t>& twin, SilhouetteTree& st) {
   st = SilhouetteTree();
   const int64_t M = occ.M, Ko = occ.Ko;
   if (M < kSilhouetteMinFaces || Ko > 64 || twin.size() != size_t(M * Ko)) return;
@@ -41,17 +40,12 @@ void build_silhouette_tree(const Occluders<T>& occ, const std::vector<int32_t>& 
   const char* env = std::getenv("JAXSHADOW_SILHOUETTE");
   if (env && env[0] == '0') return;
   st.fn.assign(size_t(9 * M), 0.0);
-  st.hmin = std::numeric_limits<double>::infinity();
-  st.hmax = -st.hmin;
   for (int64_t f = 0; f < M; f++) {
     V3<T> o = occ.vert(f, 0), n{0, 0, 0};
     for (int64_t i = 0; i < Ko; i++) {
       const V3<T> x = occ.vert(f, i);
       n = n + cross(x - o, occ.vert(f, (i + 1) % Ko) - o);
-      const double h = double(dot(ne, x - e0));
-      if (!std::isfinite(h)) return;
-      st.hmin = std::min(st.hmin, h);
-      st.hmax = std::max(st.hmax, h);
+      if (!(double(absmax(x)) < std::numeric_limits<double>::infinity())) return;
       st.scale = std::max(st.scale, double(absmax(x)));
     }
     const double nn = double(norm(n));
@@ -160,20 +154,43 @@ void build_silhouette_tree(const Occluders<T>& occ, const std::vector<int32_t>& 
   std::vector<SEdge> sorted(static_cast<size_t>(E));
   for (int64_t k = 0; k < E; k++) sorted[k] = st.edges[order[k]];
   st.edges.swap(sorted);
-  st.ok = std::isfinite(st.hmin) && std::isfinite(st.hmax);
+  st.f32.resize(size_t(M));
+  for (int64_t f = 0; f < M; f++) st.f32[size_t(f)] = float32_face(occ, f);
+  st.ok = true;
+}
+
+// The occluders' heights above the emitter plane (ne . (x - e0)) for one light: whether the
+// silhouette path may serve this call (`call.sil_ok`) and its bounds.
+template <class T>
+void silhouette_heights(PolyCall<T>& call) {
+  call.sil_ok = false;
+  if (!call.sil || !call.sil->ok) return;
+  const Occluders<T>& occ = call.occ;
+  const V3<T> ne = call.ne_raw, e0 = call.L.v(0);
+  double lo = std::numeric_limits<double>::infinity(), hi = -lo;
+  for (int64_t k = 0; k < occ.M * occ.Ko; k++) {
+    const double h = double(dot(ne, ld(occ.faces + 3 * k) - e0));
+    lo = std::min(lo, h);
+    hi = std::max(hi, h);
+  }
+  call.sil_hmin = lo;
+  call.sil_hmax = hi;
+  call.sil_ok = std::isfinite(lo) && std::isfinite(hi);
 }
 
 // Which way face f faces p: +1 when p is in front of its Newell normal... as face_side decides
 // (+1: h0 = N . (v0 - p) < 0), 0 when p is within the rounding bound of its plane.
-// Within the on-surface distance of the plane (kOnSurface of the scene's largest coordinate, at
-// least face_side's own bound) it is 0 too: the face path then applies the on-surface rule.
+// Within the on-surface distance of the plane of a face of float32 values (kOnSurface of the
+// scene's largest coordinate, at least face_side's own bound) it is 0 too: the face path then
+// applies the on-surface rule.
 inline int sil_side(const SilhouetteTree& st, int32_t f, const double* p) {
   const double* q = st.fn.data() + 9 * size_t(f);
   const double r0 = q[3] - p[0], r1 = q[4] - p[1], r2 = q[5] - p[2];
   const double h = q[0] * r0 + q[1] * r1 + q[2] * r2;
   const double nn = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2]);
   const double S = std::max(st.scale, std::max(std::fabs(p[0]), std::max(std::fabs(p[1]), std::fabs(p[2]))));
-  const double m = std::max(1e4 * 2.220446049250313e-16 * (std::fabs(r0) + std::fabs(r1) + std::fabs(r2) + S), 2 * kOnSurface * S) * nn;
+  const double m = std::max(1e4 * 2.220446049250313e-16 * (std::fabs(r0) + std::fabs(r1) + std::fabs(r2) + S),
+                            st.f32[size_t(f)] ? 2 * kOnSurface * S : 0.0) * nn;
   return h < -m ? 1 : (h > m ? -1 : 0);
 }
 

@@ -27,8 +27,8 @@ struct SilhouetteTree {
   std::vector<SEdge> edges;
   std::vector<SNode> nodes;
   std::vector<double> fn;  // per face: Newell normal (3), first vertex (3), unit normal (3)
-  double hmin = 0, hmax = 0;  // occluder vertices' heights above the emitter plane (ne_raw . (x - e0))
   double scale = 0;           // largest coordinate magnitude
+  std::vector<uint8_t> f32;   // per face: every coordinate a float32 value (the on-surface rule)
   bool ok = false;
 };
 
