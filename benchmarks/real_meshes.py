@@ -211,6 +211,8 @@ def markdown(r: dict) -> str:
     g = r["growth"]
     rows.append("")
     for name, x in r.get("others", {}).items():
+        if "exactness" not in x:
+            continue
         ex = x["exactness"]
         rows.append(f"{name}: against exact polygon booleans (shapely) on {ex['receivers']} receivers "
                     f"({ex['classes']['penumbra']} penumbra, {ex['classes']['umbra']} umbra, {ex['classes']['lit']} lit, "
