@@ -205,10 +205,13 @@ def markdown(r: dict) -> str:
     for x in r["sizes"] + [dict(r["open"], triangles=f"{r['open']['triangles']} (open)")] + named:
         rad = x.get("radiance", {})
         cell = {k: f"{rad[k]['points_per_s']:.3g} ({100 * rad[k]['rms_rel_err']:.2g} %)" if k in rad else "-" for k in ("default", "fine")}
-        rows.append(f"| {x['triangles']} | {x['build_s']:.2f} s | {x['setup_s']:.3f} s | {x['plan_ms_per_penumbra']:.3g} / {x['face_path_ms_per_penumbra']:.3g} ms | "
+        face = f"{x['face_path_ms_per_penumbra']:.3g}" if "face_path_ms_per_penumbra" in x else "-"
+        rows.append(f"| {x['triangles']} | {x['build_s']:.2f} s | {x['setup_s']:.3f} s | {x['plan_ms_per_penumbra']:.3g} / {face} ms | "
                     f"{x['classes']['penumbra']} / {x['classes']['umbra']} | {x['candidates_penumbra_mean']:.0f} / {x['candidates_max']} | "
-                    f"{x['points_per_s']:.3g} | {cell['default']} | {cell['fine']} | {x['max_rel_diff_face_path']:.1e} |")
+                    f"{x['points_per_s']:.3g} | {cell['default']} | {cell['fine']} | "
+                    + (f"{x['max_rel_diff_face_path']:.1e} |" if "max_rel_diff_face_path" in x else "- |"))
     g = r["growth"]
+    face_growth = f" (the face path: {g['face_path']:.1f}x)" if "face_path" in g else ""
     rows.append("")
     for name, x in r.get("others", {}).items():
         if "exactness" not in x:
@@ -218,11 +221,13 @@ def markdown(r: dict) -> str:
                     f"({ex['classes']['penumbra']} penumbra, {ex['classes']['umbra']} umbra, {ex['classes']['lit']} lit, "
                     f"{ex['grazing']} of them grazing): max error {ex['max_rel_err']:.1e} of the largest value.")
     rows.append("")
+    if "face_path_note" in r:
+        rows.append(r["face_path_note"])
     rows.append("'vs face path': the largest difference from the engine's face path (the silhouette path switched off) on "
                 "all receivers, relative to the largest value; where it exceeds 1e-9 the independent reference sides "
                 "with the silhouette path (the face path's error on fine meshes, issue 'Reliability, round 3').")
     rows.append(f"{r['receivers']} floor receivers. Over {g['triangles']:.0f}x the triangles the plan time per penumbra "
-                f"receiver (silhouette path, set-up excluded) grows {g['plan_per_penumbra']:.1f}x (the face path: {g['face_path']:.1f}x). The {r['soup']['triangles']}-triangle mesh as a list of "
+                f"receiver (silhouette path, set-up excluded) grows {g['plan_per_penumbra']:.1f}x{face_growth}. The {r['soup']['triangles']}-triangle mesh as a list of "
                 f"triangles: {r['soup']['points_per_s']:.3g} points/s, {r['soup_vs_mesh']:.2f}x the `js.Mesh`'s time. "
                 f"Engine vs device kernel on {r['exactness']['receivers']} penumbra and umbra receivers: "
                 f"{r['exactness']['max_rel_diff_vs_device']:.1e} relative. Peak RSS of the runs above {r['peak_rss_gb']:.2f} GB.")
@@ -240,7 +245,8 @@ def plot(r: dict, path: Any) -> None:
     t = [x["triangles"] for x in r["sizes"]]
     fig, ax = plt.subplots(figsize=(5.5, 4))
     ax.loglog(t, [x["plan_ms_per_penumbra"] for x in r["sizes"]], "o-", label="silhouette path, per penumbra receiver (ms)")
-    ax.loglog(t, [x["face_path_ms_per_penumbra"] for x in r["sizes"]], "^-", label="face path, per penumbra receiver (ms)")
+    if all("face_path_ms_per_penumbra" in x for x in r["sizes"]):
+        ax.loglog(t, [x["face_path_ms_per_penumbra"] for x in r["sizes"]], "^-", label="face path, per penumbra receiver (ms)")
     ax.loglog(t, [1e3 / x["points_per_s"] * 1e3 for x in r["sizes"]], "s--", label="js.irradiance per 1000 receivers (ms)")
     ax.loglog(t, [x["plan_ms_per_penumbra"] for x in r["sizes"]][0] * np.asarray(t) / t[0], ":", color="grey", label="linear in triangles")
     ax.set_xlabel("triangles")

@@ -35,10 +35,6 @@ void build_silhouette_tree(const Occluders<T>& occ, const std::vector<int32_t>& 
   st = SilhouetteTree();
   const int64_t M = occ.M, Ko = occ.Ko;
   if (M < kSilhouetteMinFaces || Ko > 64 || twin.size() != size_t(M * Ko)) return;
-  // JAXSHADOW_SILHOUETTE=0 switches the path off (every receiver takes the face path): for
-  // measuring one against the other, and for tests that compare them.
-  const char* env = std::getenv("JAXSHADOW_SILHOUETTE");
-  if (env && env[0] == '0') return;
   st.fn.assign(size_t(9 * M), 0.0);
   for (int64_t f = 0; f < M; f++) {
     V3<T> o = occ.vert(f, 0), n{0, 0, 0};
@@ -165,6 +161,11 @@ template <class T>
 void silhouette_heights(PolyCall<T>& call) {
   call.sil_ok = false;
   if (!call.sil || !call.sil->ok) return;
+  // JAXSHADOW_SILHOUETTE=0 switches the path off (every receiver takes the face path): for
+  // measuring one against the other, and for tests that compare them. Read per call (the
+  // prepared data are cached across calls).
+  const char* env = std::getenv("JAXSHADOW_SILHOUETTE");
+  if (env && env[0] == '0') return;
   const Occluders<T>& occ = call.occ;
   const V3<T> ne = call.ne_raw, e0 = call.L.v(0);
   double lo = std::numeric_limits<double>::infinity(), hi = -lo;
