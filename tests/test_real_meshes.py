@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 import jaxshadow as js
+from benchmarks.real_meshes import blob  # the benchmark's shape: one definition
 from jaxshadow._shadows import binding as vis
 
 pytestmark = pytest.mark.skipif(not vis.engine_available(), reason="the shadow engine is not built")
@@ -25,22 +26,6 @@ from test_clip import reference_ff  # noqa: E402
 
 LIGHT = np.array([[-0.4, -0.4, 2.5], [-0.4, 0.4, 2.5], [0.4, 0.4, 2.5], [0.4, -0.4, 2.5]])
 DEVICE = js.ShadowOptions(engine="device")
-
-
-def blob(subdivisions: int, open_below: float | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """A smooth non-convex closed shape of size 1 m, 0.3 m above the floor (an icosphere with a
-    smooth displacement: the same shape at every tessellation); `open_below`: the faces whose
-    centre lies below that height are removed (an open mesh with a boundary loop)."""
-    m = trimesh.creation.icosphere(subdivisions=subdivisions)
-    v = np.asarray(m.vertices, float)
-    d = 1 + 0.25 * np.sin(3 * v[:, 0]) * np.cos(2 * v[:, 1]) + 0.15 * np.sin(4 * v[:, 2] + 1)
-    v = v * d[:, None]
-    v = v / np.ptp(v, axis=0).max()
-    v[:, 2] += 0.3 - v[:, 2].min()
-    f = np.asarray(m.faces)
-    if open_below is not None:
-        f = f[v[f][:, :, 2].mean(axis=1) > open_below]
-    return v, f
 
 
 def floor(n: int, seed: int = 0, half: float = 1.2) -> tuple[np.ndarray, np.ndarray]:
