@@ -165,10 +165,7 @@ int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const 
   const std::shared_ptr<const Prepared> prep = prepared(occ);
   const BVH& bvh = prep->bvh;
   PolyCall<T> call{Light<T>{K, E}, occ, &bvh, {}};
-  prepare_call(call);
-  call.twin_ptr = &prep->twin;
-  call.sil = &prep->sil;
-  silhouette_heights(call);
+  bind_call(call, *prep);
   if (N >= kUmbraMinReceivers) prepare_umbra(call);
   threads = default_threads(threads);
   struct Block {
@@ -305,10 +302,7 @@ int poly_fixed(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const
   const std::shared_ptr<const Prepared> prep = prepared(occ);
   const BVH& bvh = prep->bvh;
   PolyCall<T> call{Light<T>{K, E}, occ, &bvh, {}};
-  prepare_call(call);
-  call.twin_ptr = &prep->twin;
-  call.sil = &prep->sil;
-  silhouette_heights(call);
+  bind_call(call, *prep);
   std::atomic<int> err(0);
   parallel_for(N, default_threads(threads), [&](int, int64_t s, int64_t e) {
     Work<T> w;

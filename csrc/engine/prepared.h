@@ -79,6 +79,15 @@ std::shared_ptr<const Prepared> prepared(const Occluders<T>& occ) {
   return out;
 }
 
+// A polygon light's per-call data over prepared occluders (`prep` outlives `call`).
+template <class T>
+void bind_call(PolyCall<T>& call, const Prepared& prep) {
+  prepare_call(call);
+  call.twin_ptr = &prep.twin;
+  call.sil = &prep.sil;
+  silhouette_heights(call);
+}
+
 }  // namespace jaxshadow_engine
 
 #endif  // JAXSHADOW_SHADOWC_PREPARED_H_

@@ -492,9 +492,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       const int s0 = sgn(g0, tol * on), s1 = sgn(g0 + g1, tol * on);
       if (s0 == s1 && s0 != 0) continue;
       if (s0 == 0 || s1 == 0) return kFallback;
-      const V3<T> ra = o.a - p, rb = o.b - p;
       const int ca = side_of(o.a, s.own), cb = side_of(o.b, s.own);
-      (void)ra, (void)rb;
       if (ca == cb && ca != 0) continue;
       if (ca == 0 || cb == 0) return kFallback;
       ts.push_back(-g0 / g1);
