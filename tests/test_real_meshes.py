@@ -186,3 +186,39 @@ def test_silhouette_path_with_convex_solids(monkeypatch):
     assert (on.classes == vis.PENUMBRA).sum() > 50
     assert on.candidates[on.classes == vis.PENUMBRA].mean() < off.candidates[off.classes == vis.PENUMBRA].mean()
     np.testing.assert_allclose(e_on, e_off, rtol=0, atol=1e-11 * e_off.max())
+
+
+def test_long_noisy_contours_on_the_contour_grid(monkeypatch):
+    """A noisy (scan-like) surface gives receivers dozens to hundreds of contour pieces, which the
+    silhouette path arranges on a grid of the emitter plane (crossing candidates and depth
+    complexity from cell reference points): values equal the face path's and exact polygon
+    booleans', in float64 and float32, and the gradients central differences."""
+    v, f = blob(4)
+    v = v + np.random.default_rng(5).normal(0, 8e-3, v.shape)
+    scene = _scene([js.Mesh(v, f)])
+    p, nrm = floor(400, seed=3, half=0.9)
+    on = js.shadow_plan(scene, p, nrm).lights[0]
+    pen = on.classes == vis.PENUMBRA
+    assert pen.sum() > 150 and (on.candidates[pen] >= 64).sum() > 60  # the grid's range (>= 32 pieces)
+    e_on = np.asarray(js.irradiance(scene, p, nrm))[:, 0]
+    e32 = np.asarray(js.irradiance(scene, p.astype(np.float32), nrm.astype(np.float32)))[:, 0]
+    monkeypatch.setenv("JAXSHADOW_SILHOUETTE", "0")
+    e_off = np.asarray(js.irradiance(scene, p, nrm))[:, 0]
+    monkeypatch.delenv("JAXSHADOW_SILHOUETTE")
+    np.testing.assert_allclose(e_on, e_off, rtol=0, atol=1e-11 * e_off.max())
+    np.testing.assert_allclose(e32, e_on, rtol=0, atol=2e-5 * e_on.max())
+    tris = v[f]
+    pick = np.where(pen & (on.candidates >= 64))[0][:8]
+    ref = np.pi * np.array([reference_ff(q, m, LIGHT, list(tris)) for q, m in zip(p[pick], nrm[pick], strict=True)])
+    np.testing.assert_allclose(e_on[pick], ref, rtol=0, atol=1e-9 * ref.max())
+    # Gradients along the floor against central differences (the device kernel's clipping of
+    # every face is too large here).
+    q, m = jnp.asarray(p[pick[:4]]), jnp.asarray(nrm[pick[:4]])
+    g = np.asarray(jax.grad(lambda x: js.irradiance(scene, x, m)[:, 0].sum())(q))
+    h = 1e-6
+    for d in (0, 1):
+        step = np.zeros(3)
+        step[d] = h
+        fd = (np.asarray(js.irradiance(scene, p[pick[:4]] + step, nrm[pick[:4]]))[:, 0]
+              - np.asarray(js.irradiance(scene, p[pick[:4]] - step, nrm[pick[:4]]))[:, 0]) / (2 * h)
+        np.testing.assert_allclose(g[:, d], fd, rtol=1e-5, atol=1e-6 * np.abs(g).max())

@@ -67,6 +67,14 @@ struct Work {  // per-thread scratch
   std::vector<int32_t> sord;
   std::vector<int32_t> std_;
   std::vector<T> sbox;
+  // Its grid of contour pieces in the emitter plane (silhouette.h, ContourGrid).
+  std::vector<double> guv;       // per piece: (u, v) box
+  std::vector<int32_t> gstart;   // per cell: first entry in gitems (CSR; G * G + 1)
+  std::vector<int32_t> gitems;   // pieces by cell
+  std::vector<V3<T>> gref;       // per cell: its reference point (inside E_h and the cell)
+  std::vector<int32_t> gcov;     // per cell: C at the reference point (INT_MIN: none)
+  std::vector<int32_t> gstamp;   // per piece: the last query that tested it
+  std::vector<int32_t> gcand;    // one piece's crossing candidates
   // off_plane_margin of the current receiver's E_h: boundary_runs widens its boxes by it.
   T eh_margin = 0;
   int32_t n_candidates = 0, n_regions = 0;  // items the hierarchy returned; occluder regions kept

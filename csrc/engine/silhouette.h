@@ -248,15 +248,14 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   cq[nc][0] = e0.x, cq[nc][1] = e0.y, cq[nc][2] = e0.z;
   nc++;
   const double bmargin = 1e3 * eps * scale;
+  double cnn[66];
+  for (int k = 0; k < nc; k++) cnn[k] = std::fabs(cn[k][0]) + std::fabs(cn[k][1]) + std::fabs(cn[k][2]);
   auto outside = [&](const double* box) {
     for (int k = 0; k < nc; k++) {
-      double best = -std::numeric_limits<double>::infinity();
-      double nn = std::fabs(cn[k][0]) + std::fabs(cn[k][1]) + std::fabs(cn[k][2]);
-      for (int c = 0; c < 8; c++) {
-        const double x[3] = {box[(c & 1) ? 3 : 0], box[(c & 2) ? 4 : 1], box[(c & 4) ? 5 : 2]};
-        best = std::max(best, cn[k][0] * (x[0] - cq[k][0]) + cn[k][1] * (x[1] - cq[k][1]) + cn[k][2] * (x[2] - cq[k][2]));
-      }
-      if (best < -bmargin * nn) return true;
+      // The box's corner farthest along the plane's normal.
+      const double x[3] = {box[cn[k][0] > 0 ? 3 : 0], box[cn[k][1] > 0 ? 4 : 1], box[cn[k][2] > 0 ? 5 : 2]};
+      const double best = cn[k][0] * (x[0] - cq[k][0]) + cn[k][1] * (x[1] - cq[k][1]) + cn[k][2] * (x[2] - cq[k][2]);
+      if (best < -bmargin * cnn[k]) return true;
     }
     return false;
   };
@@ -410,27 +409,243 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     if (clear) c0 = layers(q0);
   }
   if (c0 < 0) return kFallback;
+  const int kNone = std::numeric_limits<int>::min();
+  // The jump of C along the path from -> m (pqm = cross(from - p, m - p), pn its norm) across
+  // piece s: 0 when they do not cross, +-W when they do, kNone when a crossing is too close to
+  // call.
+  auto jump = [&](const SSeg<T>& s, V3<T> from, V3<T> m, V3<T> pqm, double pn) -> int {
+    const int sq = side_of(from, s.own), sm = side_of(m, s.own);
+    if (sq == 0) return kNone;
+    if (sm == sq) return 0;
+    if (sm == 0) return kNone;
+    const V3<T> ra = s.a - p, rb = s.b - p;
+    const int ca = sgn(dot(ra, pqm), tol * pn * (std::fabs(ra.x) + std::fabs(ra.y) + std::fabs(ra.z)));
+    const int cb = sgn(dot(rb, pqm), tol * pn * (std::fabs(rb.x) + std::fabs(rb.y) + std::fabs(rb.z)));
+    if (ca == 0 || cb == 0) return kNone;
+    if (ca == cb) return 0;
+    return sm > 0 ? s.w : -s.w;  // from `from`'s side to m's: + W into the positive side
+  };
   // C on the q0 side of point m (in the emitter plane), from the crossings of q0 -> m with every
-  // contour edge but `skip`; INT_MIN when a crossing is too close to call.
+  // contour edge but `skip`; kNone when a crossing is too close to call.
   auto coverage = [&](V3<T> m, int skip) -> int {
     const V3<T> pqm = cross(q0 - p, m - p);
     const double pn = norm(pqm);
     int c = c0;
     for (int i = neh; i < ns; i++) {
       if (i == skip) continue;
-      const SSeg<T>& s = segs[size_t(i)];
-      const int sq = side_of(q0, s.own), sm = side_of(m, s.own);
-      if (sq == 0) return std::numeric_limits<int>::min();
-      if (sm == sq) continue;
-      if (sm == 0) return std::numeric_limits<int>::min();
-      const V3<T> ra = s.a - p, rb = s.b - p;
-      const int ca = sgn(dot(ra, pqm), tol * pn * (std::fabs(ra.x) + std::fabs(ra.y) + std::fabs(ra.z)));
-      const int cb = sgn(dot(rb, pqm), tol * pn * (std::fabs(rb.x) + std::fabs(rb.y) + std::fabs(rb.z)));
-      if (ca == 0 || cb == 0) return std::numeric_limits<int>::min();
-      if (ca == cb) continue;
-      c += sm > 0 ? s.w : -s.w;  // from q0's side to m's: + W into the positive side
+      const int j = jump(segs[size_t(i)], q0, m, pqm, pn);
+      if (j == kNone) return kNone;
+      c += j;
     }
     return c;
+  };
+  // The contour pieces on a grid of the emitter plane: a piece's crossing candidates are the
+  // pieces registered in the cells its box meets, and C at a point is C at its cell's reference
+  // point plus the crossings of the path between them with the cell's pieces (not the path from
+  // q0 with every piece): the arrangement costs about O(S sqrt S) for S contour pieces instead of
+  // O(S^2). A path between two points of one cell, or of two cells sharing a side (their union is
+  // a rectangle), stays in those cells and inside E_h (convex), so only pieces registered there
+  // (by their boxes, padded far beyond rounding) can cross it. Any decision too close to call, and
+  // any point without a usable cell, takes the path from q0 as above.
+  const int nsc = ns - neh;
+  int G = 0;
+  double umin = 0, vmin = 0, du = 0, dv = 0, gpad = 0;
+  double O[3] = {0, 0, 0}, U[3] = {0, 0, 0}, Vv[3] = {0, 0, 0};
+  auto uv = [&](V3<T> x, double& u, double& v) {
+    const double r[3] = {double(x.x) - O[0], double(x.y) - O[1], double(x.z) - O[2]};
+    u = r[0] * U[0] + r[1] * U[1] + r[2] * U[2];
+    v = r[0] * Vv[0] + r[1] * Vv[1] + r[2] * Vv[2];
+  };
+  double ehu[130], ehv[130];
+  if (nsc >= kSilGridMin) {
+    O[0] = double(centre.x), O[1] = double(centre.y), O[2] = double(centre.z);
+    const V3<double> ed = normalize_safe(V3<double>{double(eh[0].b.x) - double(eh[0].a.x), double(eh[0].b.y) - double(eh[0].a.y),
+                                                    double(eh[0].b.z) - double(eh[0].a.z)});
+    const V3<double> vd = normalize_safe(cross(V3<double>{double(ne.x), double(ne.y), double(ne.z)}, ed));
+    U[0] = ed.x, U[1] = ed.y, U[2] = ed.z, Vv[0] = vd.x, Vv[1] = vd.y, Vv[2] = vd.z;
+    if (nonzero(ed) && nonzero(vd)) {
+      double umax = -std::numeric_limits<double>::infinity(), vmax = umax;
+      umin = vmin = std::numeric_limits<double>::infinity();
+      for (int k = 0; k < neh; k++) {
+        uv(eh[k].a, ehu[k], ehv[k]);
+        umin = std::min(umin, ehu[k]), umax = std::max(umax, ehu[k]);
+        vmin = std::min(vmin, ehv[k]), vmax = std::max(vmax, ehv[k]);
+      }
+      G = std::max(2, std::min(kSilGridMax, int(std::ceil(std::sqrt(8.0 * nsc)))));
+      du = (umax - umin) / G, dv = (vmax - vmin) / G;
+      gpad = 1e-9 * (umax - umin + vmax - vmin) + 64 * eps * scale;
+      if (!(du > gpad && dv > gpad)) G = 0;
+    }
+  }
+  auto cell_of = [&](double x, double mn, double d) {
+    return std::max(0, std::min(G - 1, int(std::floor(std::min(std::max((x - mn) / d, -1.0), double(G))))));
+  };
+  std::vector<int32_t>& gs = w.gstart;
+  std::vector<int32_t>& gi = w.gitems;
+  std::vector<int32_t>& stamp_of = w.gstamp;
+  int32_t stamp = 0;
+  if (G) {
+    std::vector<double>& gb = w.guv;
+    gb.resize(size_t(4 * nsc));
+    gs.assign(size_t(G * G + 1), 0);
+    for (int i = 0; i < nsc; i++) {
+      double ua, va, ub, vb;
+      uv(segs[size_t(neh + i)].a, ua, va);
+      uv(segs[size_t(neh + i)].b, ub, vb);
+      double* b = gb.data() + 4 * i;
+      b[0] = std::min(ua, ub) - gpad, b[1] = std::max(ua, ub) + gpad;
+      b[2] = std::min(va, vb) - gpad, b[3] = std::max(va, vb) + gpad;
+      for (int iy = cell_of(b[2], vmin, dv); iy <= cell_of(b[3], vmin, dv); iy++)
+        for (int ix = cell_of(b[0], umin, du); ix <= cell_of(b[1], umin, du); ix++) gs[size_t(iy * G + ix + 1)]++;
+    }
+    for (int c = 0; c < G * G; c++) gs[size_t(c + 1)] += gs[size_t(c)];
+    gi.resize(size_t(gs[size_t(G * G)]));
+    std::vector<int32_t>& cur = w.gcand;
+    cur.assign(gs.begin(), gs.end() - 1);
+    for (int i = 0; i < nsc; i++) {
+      const double* b = gb.data() + 4 * i;
+      for (int iy = cell_of(b[2], vmin, dv); iy <= cell_of(b[3], vmin, dv); iy++)
+        for (int ix = cell_of(b[0], umin, du); ix <= cell_of(b[1], umin, du); ix++) gi[size_t(cur[size_t(iy * G + ix)]++)] = neh + i;
+    }
+    stamp_of.assign(size_t(ns), 0);
+  }
+  // C at m on the `from` side of piece `skip` (-1: none), from C at `from` and the crossings of
+  // from -> m with the pieces registered in cells ca and cb (-1: none).
+  auto cross_cells = [&](V3<T> from, int cfrom, V3<T> m, int skip, int ca, int cb) -> int {
+    const V3<T> pqm = cross(from - p, m - p);
+    const double pn = norm(pqm);
+    int c = cfrom;
+    stamp++;
+    for (int cell : {ca, cb}) {
+      if (cell < 0) continue;
+      for (int32_t k = gs[size_t(cell)]; k < gs[size_t(cell + 1)]; k++) {
+        const int32_t i = gi[size_t(k)];
+        if (i == skip || stamp_of[size_t(i)] == stamp) continue;
+        stamp_of[size_t(i)] = stamp;
+        const int j = jump(segs[size_t(i)], from, m, pqm, pn);
+        if (j == kNone) return kNone;
+        c += j;
+      }
+    }
+    return c;
+  };
+  // Reference points in the cells that hold pieces (the only cells queried): the cell's centre
+  // when the cell lies inside E_h, else the mean of the vertices of the cell clipped to E_h, kept
+  // when it is clear of E_h's edges by a thousandth of a cell. C there from the previous such cell
+  // of its row (the cells between hold no piece), else from the row of such cells below: straight
+  // up from the cell below when it has a reference, else through a point of that cell reached
+  // along its row from the nearest cell holding pieces; else from q0.
+  if (G) {
+    w.gref.resize(size_t(G * G));
+    w.gcov.assign(size_t(G * G), kNone);
+    double cside[130];
+    for (int k = 0; k < neh; k++) {
+      const int k1 = (k + 1) % neh;
+      cside[k] = (ehu[k1] - ehu[k]) * (0 - ehv[k]) - (ehv[k1] - ehv[k]) * (0 - ehu[k]) > 0 ? 1.0 : -1.0;
+    }
+    const double margin = 1e-3 * std::min(du, dv);
+    auto inside = [&](double x, double y) {  // clear of every E_h edge by the margin
+      for (int k = 0; k < neh; k++) {
+        const int k1 = (k + 1) % neh;
+        const double ex = ehu[k1] - ehu[k], ey = ehv[k1] - ehv[k];
+        if (!(cside[k] * (ex * (y - ehv[k]) - ey * (x - ehu[k])) > margin * std::sqrt(ex * ex + ey * ey))) return false;
+      }
+      return true;
+    };
+    auto cell_point = [&](int ix, int iy, V3<T>& r) -> bool {
+      double pu[140], pv[140], qu[140], qv[140];
+      pu[0] = umin + ix * du, pv[0] = vmin + iy * dv;
+      pu[1] = pu[0] + du, pv[1] = pv[0];
+      pu[2] = pu[1], pv[2] = pv[0] + dv;
+      pu[3] = pu[0], pv[3] = pv[2];
+      double ru = pu[0] + 0.5 * du, rv = pv[0] + 0.5 * dv;
+      if (!(inside(pu[0], pv[0]) && inside(pu[1], pv[1]) && inside(pu[2], pv[2]) && inside(pu[3], pv[3]))) {
+        int np = 4;
+        for (int k = 0; k < neh && np >= 3; k++) {  // Sutherland-Hodgman, E_h's side of edge k
+          const int k1 = (k + 1) % neh;
+          const double ex = ehu[k1] - ehu[k], ey = ehv[k1] - ehv[k];
+          auto f = [&](double x, double y) { return cside[k] * (ex * (y - ehv[k]) - ey * (x - ehu[k])); };
+          int nq = 0;
+          for (int a = 0; a < np && nq < 136; a++) {
+            const int b = (a + 1) % np;
+            const double fa = f(pu[a], pv[a]), fb = f(pu[b], pv[b]);
+            if (fa >= 0) qu[nq] = pu[a], qv[nq] = pv[a], nq++;
+            if ((fa >= 0) != (fb >= 0)) {
+              const double t = fa / (fa - fb);
+              qu[nq] = pu[a] + t * (pu[b] - pu[a]), qv[nq] = pv[a] + t * (pv[b] - pv[a]), nq++;
+            }
+          }
+          np = nq;
+          for (int a = 0; a < np; a++) pu[a] = qu[a], pv[a] = qv[a];
+        }
+        if (np < 3) return false;
+        ru = 0, rv = 0;
+        for (int a = 0; a < np; a++) ru += pu[a], rv += pv[a];
+        ru /= np, rv /= np;
+        if (!inside(ru, rv)) return false;
+      }
+      r = V3<T>{T(O[0] + ru * U[0] + rv * Vv[0]), T(O[1] + ru * U[1] + rv * Vv[1]), T(O[2] + ru * U[2] + rv * Vv[2])};
+      return true;
+    };
+    auto held = [&](int cell) { return gs[size_t(cell + 1)] > gs[size_t(cell)]; };
+    int last_row = -1;  // the last row with a cell holding pieces
+    for (int iy = 0; iy < G; iy++) {
+      int prev = -1;  // the previous cell of this row holding pieces
+      for (int ix = 0; ix < G; ix++) {
+        const int cell = iy * G + ix;
+        if (!held(cell)) continue;
+        const int before = prev;
+        prev = cell;
+        V3<T> r;
+        if (!cell_point(ix, iy, r)) continue;
+        w.gref[size_t(cell)] = r;
+        int c = kNone;
+        if (before >= 0) {
+          if (w.gcov[size_t(before)] != kNone) c = cross_cells(w.gref[size_t(before)], w.gcov[size_t(before)], r, -1, before, cell);
+        } else if (last_row >= 0) {
+          const int below = last_row * G + ix;
+          if (w.gcov[size_t(below)] != kNone) {
+            c = cross_cells(w.gref[size_t(below)], w.gcov[size_t(below)], r, -1, below, cell);
+          } else {
+            V3<T> sp;
+            if (cell_point(ix, last_row, sp)) {
+              for (int dir = -1; dir <= 1 && c == kNone; dir += 2) {
+                int k = ix + dir;
+                while (k >= 0 && k < G && !held(last_row * G + k)) k += dir;
+                if (k < 0 || k >= G) continue;
+                const int from = last_row * G + k;
+                if (w.gcov[size_t(from)] == kNone) continue;
+                const int c1 = cross_cells(w.gref[size_t(from)], w.gcov[size_t(from)], sp, -1, from, below);
+                if (c1 != kNone) c = cross_cells(sp, c1, r, -1, below, cell);
+              }
+            }
+          }
+        }
+        if (c == kNone) c = coverage(r, -1);
+        w.gcov[size_t(cell)] = c;
+      }
+      if (prev >= 0) last_row = iy;
+    }
+  }
+  // C on q0's side of contour piece `skip` at point m on it: from m's cell where it can.
+  auto coverage_at = [&](V3<T> m, int skip) -> int {
+    if (G) {
+      double um, vm;
+      uv(m, um, vm);
+      if (um > umin - gpad && um < umin + G * du + gpad && vm > vmin - gpad && vm < vmin + G * dv + gpad) {
+        const int cell = cell_of(vm, vmin, dv) * G + cell_of(um, umin, du);
+        if (w.gcov[size_t(cell)] != kNone) {
+          const SSeg<T>& s = segs[size_t(skip)];
+          const V3<T> r = w.gref[size_t(cell)];
+          const int rs = side_of(r, s.own), qs = side_of(q0, s.own);
+          if (rs != 0 && qs != 0) {
+            const int c = cross_cells(r, w.gcov[size_t(cell)], m, skip, cell, -1);
+            if (c != kNone) return rs == qs ? c : (qs > 0 ? c + s.w : c - s.w);
+          }
+        }
+      }
+    }
+    return coverage(m, skip);
   };
   // Pieces: every segment cut where another crosses it.
   w.runs.clear();
@@ -459,7 +674,25 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     ts.push_back(1), tc.push_back(s.cb), td.push_back(0);
     const V3<T> ap = s.a - p, d = s.b - s.a;
     const double apn = std::fabs(ap.x) + std::fabs(ap.y) + std::fabs(ap.z) + std::fabs(d.x) + std::fabs(d.y) + std::fabs(d.z);
-    for (int j = 0; j < ns; j++) {
+    // Crossing candidates: every segment, or for a contour piece on the grid the pieces
+    // registered in the cells its box meets (in index order, as the full loop visits them).
+    const bool listed = G && i >= neh;
+    if (listed) {
+      std::vector<int32_t>& cand = w.gcand;
+      cand.clear();
+      stamp++;
+      const double* b = w.guv.data() + 4 * (i - neh);
+      for (int iy = cell_of(b[2], vmin, dv); iy <= cell_of(b[3], vmin, dv); iy++)
+        for (int ix = cell_of(b[0], umin, du); ix <= cell_of(b[1], umin, du); ix++)
+          for (int32_t k = gs[size_t(iy * G + ix)]; k < gs[size_t(iy * G + ix + 1)]; k++) {
+            const int32_t j = gi[size_t(k)];
+            if (j != i && stamp_of[size_t(j)] != stamp) stamp_of[size_t(j)] = stamp, cand.push_back(j);
+          }
+      std::sort(cand.begin(), cand.end());
+    }
+    const int nj = listed ? int(w.gcand.size()) : ns;
+    for (int jj = 0; jj < nj; jj++) {
+      const int j = listed ? w.gcand[size_t(jj)] : jj;
       if (j == i) continue;
       const SSeg<T>& o = segs[size_t(j)];
       if (i < neh && j < neh) continue;  // E_h's edges meet at its vertices only
@@ -514,7 +747,6 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     };
     // C beside s on q0's side (inside E_h for E_h's edges): computed at the first piece, then
     // carried across the breakpoints, and checked again at the last piece.
-    const int kNone = std::numeric_limits<int>::min();
     int c = kNone, last = -1;
     for (int k = 0; k + 1 < nt; k++)
       if (ts[size_t(ord[k + 1])] > ts[size_t(ord[k])]) last = k;
@@ -524,7 +756,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       if (!(tb > ta)) continue;
       const V3<T> m = s.a + (0.5 * (ta + tb)) * d;
       if (c == kNone || k == last) {
-        const int full = coverage(m, i < neh ? -1 : i);
+        const int full = i < neh ? coverage(m, -1) : coverage_at(m, i);
         if (full == kNone || (c != kNone && full != c)) return kFallback;
         c = full;
       }

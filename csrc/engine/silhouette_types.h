@@ -9,6 +9,10 @@ namespace jaxshadow_engine {
 
 constexpr int64_t kSilhouetteMinFaces = 256;  // fewer faces: the face path is as fast
 constexpr int32_t kFallback = -2;
+// Contour pieces from which the arrangement uses a grid of the emitter plane (fewer: every pair
+// and every path from q0 is as fast), and the grid's largest side in cells.
+constexpr int kSilGridMin = 32;
+constexpr int kSilGridMax = 128;
 
 struct SEdge {
   int32_t ra, rb;  // vertex refs (K + f * Ko + i), the edge running ra -> rb in face f
