@@ -105,12 +105,98 @@ def exactness(scene: Any, tris: np.ndarray, p: np.ndarray, nrm: np.ndarray, n: i
             "grazing": int(m), "max_rel_err": float(np.abs(got - ref).max() / np.abs(ref).max())}
 
 
+EMBREE_SAMPLES = (16, 64, 256, 1024)
+
+
+def embree_sweep(tris: np.ndarray, p: np.ndarray, nrm: np.ndarray, exact: np.ndarray) -> dict:
+    """Embree Monte Carlo (stratified shadow rays on the light) at several sample counts: points/s
+    and RMS error relative to the exact values; the throughput at 1 % RMS error interpolated
+    log-log between the two sample counts around it."""
+    from benchmarks.peers import Embree
+
+    em = Embree(tris)
+    runs = []
+    for spp in EMBREE_SAMPLES:
+        x, sec = em.polygon_irradiance(p, nrm, LIGHT, 1.0, spp)
+        runs.append({"samples": spp, "points_per_s": len(p) / sec,
+                     "rms_rel_err": float(np.sqrt(np.mean((x - exact) ** 2)) / np.sqrt(np.mean(exact**2)))})
+    at = None
+    for a, b in zip(runs, runs[1:], strict=False):
+        if a["rms_rel_err"] >= 0.01 >= b["rms_rel_err"]:
+            w = np.log(a["rms_rel_err"] / 0.01) / np.log(a["rms_rel_err"] / b["rms_rel_err"])
+            at = float(np.exp((1 - w) * np.log(a["points_per_s"]) + w * np.log(b["points_per_s"])))
+    return {"build_s": em.build_seconds, "runs": runs, "points_per_s_at_1pct": at}
+
+
+def light_kinds(v: np.ndarray, f: np.ndarray, p: np.ndarray, nrm: np.ndarray, n_exact: int) -> dict:
+    """Point, directional and segment lights over the mesh: jaxshadow's throughput (second call),
+    its values against the engine-free device kernels on `n_exact` receivers (point and
+    directional lights; the segment light's device kernel clips every face and is too large
+    here), and Embree: hard-shadow rays for the point and directional lights (agreement of the
+    lit/shadowed decision), Monte Carlo along the segment (RMS error, points/s)."""
+    import jaxshadow as js
+    from benchmarks.peers import Embree
+
+    em = Embree(v[f])
+    kinds = {"point": js.PointLight([0.1, 0.2, 2.5], 1.0), "directional": js.DirectionalLight([0.2, 0.1, -1.0], 1.0),
+             "segment": js.LinearLight([-0.4, 0.0, 2.5], [0.4, 0.0, 2.5], 1.0)}
+    out = {}
+    for name, light in kinds.items():
+        scene = js.Scene([light], occluders=[js.Mesh(v, f)])
+        np.asarray(js.irradiance(scene, p, nrm))
+        t = time.perf_counter()
+        e = np.asarray(js.irradiance(scene, p, nrm))[:, 0]
+        row: dict[str, Any] = {"points_per_s": len(p) / (time.perf_counter() - t), "shadowed": float(np.mean(e == 0))}
+        if name in ("point", "directional"):
+            dev = np.asarray(js.irradiance(scene, p[:n_exact], nrm[:n_exact], shadows=js.ShadowOptions(engine="device")))[:, 0]
+            row["exact_receivers"] = n_exact
+            row["max_rel_diff_vs_device"] = float(np.abs(e[:n_exact] - dev).max() / np.abs(dev).max())
+            towards = (np.asarray(light.position)[None, :] - p) if name == "point" else np.broadcast_to(-1e3 * np.asarray(light.direction), p.shape)
+            unocc = np.asarray(js.irradiance(js.Scene([light]), p, nrm))[:, 0]
+            vis, sec = em.hard_visibility(p, nrm, towards)
+            lit = unocc > 0
+            row["embree"] = {"points_per_s": len(p) / sec,
+                             "disagree": int(np.sum((vis[lit]) != (e[lit] > 0)))}
+        else:
+            row["embree"] = embree_segment(em, light, p, nrm, e)
+        out[name] = row
+    return out
+
+
+def embree_segment(em: Any, light: Any, p: np.ndarray, nrm: np.ndarray, exact: np.ndarray) -> dict:
+    """Embree Monte Carlo along an isotropic segment light (stratified jittered points, per-length
+    intensity Phi / (4 pi)): RMS error and points/s at 16 and 256 samples."""
+    a, b = np.asarray(light.start, float), np.asarray(light.end, float)
+    phi = float(np.asarray(light.power).reshape(-1)[0])
+    length = float(np.linalg.norm(b - a))
+    rng = np.random.default_rng(0)
+    runs = []
+    for spp in (16, 256):
+        block = max(1, 2**16 // spp)
+        out = np.empty(len(p))
+        t = time.perf_counter()
+        for s in range(0, len(p), block):
+            q, n = p[s:s + block], nrm[s:s + block]
+            u = (np.arange(spp)[None, :] + rng.random((len(q), spp))) / spp
+            x = a + u[..., None] * (b - a)
+            d = x - q[:, None, :]
+            r2 = np.einsum("bsi,bsi->bs", d, d)
+            cos_p = np.maximum(np.einsum("bsi,bi->bs", d, n) / np.sqrt(r2), 0.0)
+            blocked = em._occluded(np.repeat(q + 1e-6 * n, spp, axis=0), d.reshape(-1, 3)).reshape(len(q), spp)
+            out[s:s + block] = phi / (4 * np.pi) * length * np.where(blocked, 0.0, cos_p / r2).mean(axis=1)
+        sec = time.perf_counter() - t
+        runs.append({"samples": spp, "points_per_s": len(p) / sec,
+                     "rms_rel_err": float(np.sqrt(np.mean((out - exact) ** 2)) / np.sqrt(np.mean(exact**2)))})
+    return {"runs": runs}
+
+
 def _receivers(n: int, seed: int = 1) -> tuple[np.ndarray, np.ndarray]:
     rng = np.random.default_rng(seed)
     return np.c_[rng.uniform(-2, 2, (n, 2)), np.zeros(n)], np.tile([0.0, 0.0, 1.0], (n, 1))
 
 
-def _case(occluders: Any, tris: np.ndarray, p: np.ndarray, nrm: np.ndarray, radiance: bool, fine: bool) -> dict:
+def _case(occluders: Any, tris: np.ndarray, p: np.ndarray, nrm: np.ndarray, radiance: bool, fine: bool,
+          embree: bool = False) -> dict:
     import jaxshadow as js
     from jaxshadow._shadows import binding as vis
 
@@ -141,6 +227,8 @@ def _case(occluders: Any, tris: np.ndarray, p: np.ndarray, nrm: np.ndarray, radi
            "candidates_penumbra_mean": float(lp.candidates[cls == vis.PENUMBRA].mean()) if pen else 0.0,
            "candidates_max": int(lp.candidates.max()), "points_per_s": len(p) / sec,
            "max_rel_diff_face_path": float(np.abs(e - e_face).max() / np.abs(e_face).max())}
+    if embree:
+        out["embree"] = embree_sweep(tris, p, nrm, e[:, 0])
     if radiance:
         from benchmarks.peers import RADIANCE_DEFAULT, RADIANCE_FINE, Radiance
 
@@ -172,9 +260,11 @@ def run(quick: bool = False) -> dict:
     light = js.PolygonLight(LIGHT, 1.0)
     for name, (vx, fx) in (("scan-like (noisy, open base)", scan_like()),
                            ("CAD-like (annulus, long thin triangles)", cad_like())):
-        others[name] = _case(lambda vx=vx, fx=fx: [js.Mesh(vx, fx)], vx[fx], p, nrm, radiance=True, fine=not quick)
+        others[name] = _case(lambda vx=vx, fx=fx: [js.Mesh(vx, fx)], vx[fx], p, nrm, radiance=True, fine=not quick, embree=True)
         others[name]["exactness"] = exactness(js.Scene([light], occluders=[js.Mesh(vx, fx)]), vx[fx], p, nrm,
                                               100 if quick else 1000)
+    vs, fs = scan_like()
+    kinds = light_kinds(vs, fs, p, nrm, 50 if quick else 200)
     v, f = blob(4)
     soup = _case(lambda: [v[t] for t in f], v[f], p, nrm, radiance=False, fine=False)
     mesh4 = next(x for x in sizes if x["triangles"] == len(f))
@@ -190,7 +280,7 @@ def run(quick: bool = False) -> dict:
     dev = np.asarray(js.irradiance(scene, p[sel], nrm[sel], shadows=js.ShadowOptions(engine="device")))[:, 0]
     first, last = sizes[0], sizes[-1]
     return {"receivers": n, "sizes": sizes, "soup": soup, "soup_vs_mesh": mesh4["points_per_s"] / soup["points_per_s"],
-            "open": opened, "others": others,
+            "open": opened, "others": others, "light_kinds": kinds,
             "growth": {"triangles": last["triangles"] / first["triangles"],
                        "plan_per_penumbra": last["plan_ms_per_penumbra"] / first["plan_ms_per_penumbra"],
                        "face_path": last["face_path_ms_per_penumbra"] / first["face_path_ms_per_penumbra"]},
@@ -220,6 +310,23 @@ def markdown(r: dict) -> str:
         rows.append(f"{name}: against exact polygon booleans (shapely) on {ex['receivers']} receivers "
                     f"({ex['classes']['penumbra']} penumbra, {ex['classes']['umbra']} umbra, {ex['classes']['lit']} lit, "
                     f"{ex['grazing']} of them grazing): max error {ex['max_rel_err']:.1e} of the largest value.")
+    for name, x in r.get("others", {}).items():
+        if "embree" not in x:
+            continue
+        runs = ", ".join(f"{y['samples']} rays {y['points_per_s']:.3g}/s ({100 * y['rms_rel_err']:.2g} %)" for y in x["embree"]["runs"])
+        at = x["embree"]["points_per_s_at_1pct"]
+        rows.append(f"{name}: Embree Monte Carlo (stratified shadow rays per receiver, points/s and RMS error): {runs}; "
+                    + (f"at 1 % RMS error {at:.3g} points/s (jaxshadow, exact: {x['points_per_s']:.3g})." if at else "1 % not bracketed."))
+    if "light_kinds" in r:
+        rows.append("")
+        rows.append("| light on the scan-like mesh | jaxshadow points/s | shadowed receivers | vs device kernel | Embree |")
+        rows.append("|---|---:|---:|---:|---|")
+        for name, x in r["light_kinds"].items():
+            dev = f"{x['max_rel_diff_vs_device']:.1e} ({x['exact_receivers']} receivers)" if "max_rel_diff_vs_device" in x else "-"
+            em = x["embree"]
+            emc = (f"{em['points_per_s']:.3g} points/s, {em['disagree']} lit/shadowed disagreements" if "disagree" in em else
+                   ", ".join(f"{y['samples']} samples {y['points_per_s']:.3g}/s ({100 * y['rms_rel_err']:.2g} %)" for y in em["runs"]))
+            rows.append(f"| {name} | {x['points_per_s']:.3g} | {100 * x['shadowed']:.1f} % | {dev} | {emc} |")
     rows.append("")
     if "face_path_note" in r:
         rows.append(r["face_path_note"])
