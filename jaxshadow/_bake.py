@@ -540,6 +540,9 @@ def _chunk(scene: Scene, patch: _Patch, pos: np.ndarray, settings: dict[str, Any
 
     if settings["x64"] and not jax.config.read("jax_enable_x64"):  # a worker process: the client's precision
         jax.config.update("jax_enable_x64", True)
+    # a scene shipped to a worker holds NumPy leaves (a JAX array unpickled before the line above
+    # would have lost float64)
+    scene = jax.tree_util.tree_map(jax.numpy.asarray, scene)
     if before is not None:
         before(index)
     if patch.kind == "planar":
@@ -613,6 +616,7 @@ def _run_chunks(scene: Scene, patches: list[_Patch], pos: np.ndarray, settings: 
             progress(1, len(patches))
 
     if todo and (scheduler is not None or workers is not None):
+        import jax
         from distributed import Client, LocalCluster, as_completed
 
         cluster = None
@@ -625,7 +629,8 @@ def _run_chunks(scene: Scene, patches: list[_Patch], pos: np.ndarray, settings: 
         else:
             client = Client(scheduler)
         try:
-            scene_f = client.scatter(scene, broadcast=True, hash=False)
+            shipped = jax.tree_util.tree_map(np.asarray, scene)
+            scene_f = client.scatter(shipped, broadcast=True, hash=False)
             pos_f = client.scatter(pos, broadcast=True, hash=False)
             futures = {client.submit(_chunk, scene_f, patches[i], pos_f, settings, before, i,
                                      key=f"jaxshadow-bake-{names[i][6:-4]}", pure=False): i for i in todo}
