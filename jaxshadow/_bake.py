@@ -370,8 +370,8 @@ def _without_own_faces(scene: Scene, poly: np.ndarray, normal: np.ndarray) -> Sc
     own = on & (nf @ normal > 0)
     if not own.any():
         return scene
-    keep = occ[~own]
-    return Scene(scene.lights, occluders=keep if keep.shape[0] else None, ambient=scene.ambient)
+    keep = [_unpad(o) for o in occ[~own]]
+    return Scene(scene.lights, occluders=keep or None, ambient=scene.ambient)
 
 
 def _planar_chunk(scene: Scene, patch: _Patch, pos: np.ndarray, tol: float, scale: float,
