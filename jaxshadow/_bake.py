@@ -834,8 +834,8 @@ def bake(scene: Scene, receivers: Any = None, tol: float = 1e-3, *, lights: Sequ
       discontinuities (objects passing through a receiver, hard shadows of point lights) refine
       down to it.
     - `max_rounds`: refinement rounds of a curved patch (each halves the split edges).
-    - `progress`: `None` or `callable(done, total)`, called with the number of chunks finished
-      (first the ones read from `work_dir`).
+    - `progress`: `None` or `callable(n, total)`: `n` more of the `total` chunks are done
+      (first call: the chunks read from `work_dir`, possibly 0; then 1 per chunk computed).
 
     **Returns:** a `BakedScene`: `vertices (V, 3)`, `normals (V, 3)`, `triangles (T, 3)`,
     `irradiance (V, 3)`, `irradiance_per_light (V, L, 3)`, `surface (T,)`, `patch (T,)`.
