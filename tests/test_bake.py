@@ -250,7 +250,7 @@ def _kill_once(index, marker):
 
 
 @pytest.mark.slow
-def test_dask_two_workers_and_a_killed_worker_give_the_same_result(reference, tmp_path):
+def test_dask_workers_a_scheduler_address_and_a_killed_worker_give_the_same_result(reference, tmp_path):
     pytest.importorskip("distributed")
     import functools
 
@@ -260,6 +260,10 @@ def test_dask_two_workers_and_a_killed_worker_give_the_same_result(reference, tm
     scene, rec = _small()
     two = js.bake(scene, rec, 0.1, tile_size=1.0, workers=2)
     _same(two, reference)
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        _same(js.bake(scene, rec, 0.1, tile_size=1.0, scheduler=cluster.scheduler_address), reference)
     marker = str(tmp_path / "killed")
     hook = functools.partial(_kill_once, marker=marker)
     survived = js.bake(scene, rec, 0.1, tile_size=1.0, workers=2, work_dir=tmp_path / "w", _before_chunk=hook)
