@@ -76,11 +76,11 @@ def test_vertex_values_are_exact_per_light(baked):
         assert err.max() <= 1e-12 * max(np.abs(ref).max(), 1e-300)
 
 
-def test_no_t_junctions_and_one_value_per_point(baked):
+def check_seams(b):
     """Every vertex on a patch's boundary that lies on another patch's boundary edge is an end
-    of it (never strictly inside: no T vertex); coincident vertices with equal normals carry
-    values within 1e-12 relative; the floor-wall crease and the sphere's cut are shared."""
-    _, b = baked
+    of it (never strictly inside: no T vertex); coincident vertices of two patches are at the
+    same position exactly, and with equal normals carry values within 1e-12 relative. Returns
+    the boundary vertices of each patch."""
     V, T = b.vertices, b.triangles
     size = np.ptp(V, axis=0).max()
     segs, bverts = [], []
@@ -124,6 +124,14 @@ def test_no_t_junctions_and_one_value_per_point(baked):
                 same_normal += 1
                 e0, e1 = b.irradiance_per_light[g[0]], b.irradiance_per_light[i]
                 assert np.abs(e0 - e1).max() <= 1e-12 * max(np.abs(e0).max(), 1e-12 * b.scale)
+    return bverts
+
+
+def test_no_t_junctions_and_one_value_per_point(baked):
+    """`check_seams`; the floor-wall crease and the sphere's cut are shared."""
+    _, b = baked
+    V, T = b.vertices, b.triangles
+    check_seams(b)
     # where the normals are equal (the floor halves' edge x = 0, the sphere's cut) the two
     # patches share the vertices themselves: one value per point
     users = {}
@@ -205,6 +213,27 @@ def test_lights_subset_and_bad_input():
             js.bake(scene, rec[:1], **kw)
     with pytest.raises(ValueError):
         js.bake("scene", rec[:1], 0.1)
+
+
+@pytest.mark.slow
+def test_mitsuba_room_bakes_without_seams():
+    """The benchmark's Cornell-box-like Mitsuba room (10 surfaces: six rectangles, a table top,
+    two cubes, a sphere): no T vertex between any two patches, and the walls' shared edges carry
+    the same points from both sides."""
+    pytest.importorskip("mitsuba")
+    from benchmarks.bake import scene_of
+
+    scene, receivers = scene_of("room")
+    b = js.bake(scene, receivers, 2e-2)
+    assert len(b.surface_names) == 10 and b.stats["patches_curved"] == 1
+    check_seams(b)
+    V, T = b.vertices, b.triangles
+    names = b.surface_names
+    floor = np.unique(T[b.surface == names.index("floor")])
+    wall = np.unique(T[b.surface == names.index("wall-x0")])
+    line = lambda ids: np.unique(V[ids[(np.abs(V[ids, 2]) < 1e-6) & (np.abs(V[ids, 0] + 1) < 1e-6)]], axis=0)  # noqa: E731
+    assert line(wall).shape[0] > 2
+    np.testing.assert_array_equal(line(floor), line(wall))
 
 
 # -- chunks: resume and Dask ---------------------------------------------------------------
