@@ -58,6 +58,7 @@ SUITE: tuple[str, ...] = (
     "projective_gradient",
     "fit_lights",
     "illumination_mesh",
+    "bake",
     "real_meshes",
 )
 

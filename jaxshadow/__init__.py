@@ -6,6 +6,8 @@ Mitsuba 3 bridge used as independent ground truth. See DESIGN.md for the convent
 
 from importlib.metadata import PackageNotFoundError, version
 
+from ._bake import BakedScene as BakedScene
+from ._bake import bake as bake
 from ._clip import visible_form_factor as visible_form_factor
 from ._files import atomic_write as atomic_write
 from ._files import atomic_write_path as atomic_write_path

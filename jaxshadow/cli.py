@@ -15,6 +15,9 @@
   by the `inverse` package (entry-point group `jaxshadow.commands`).
 - `jaxshadow mesh SCENE -o OUT.ply --tol 1e-3 [--receiver R]`: adaptive illumination mesh of a
   receiver polygon (exact irradiance at the vertices), as PLY or glTF.
+- `jaxshadow bake SCENE -o OUT.glb|.ply [--tol 1e-3] [--lights I,J] [--workers N | --scheduler
+  ADDRESS]`: every receiving surface of a scene meshed (`jaxshadow.bake`), seam-free, exact
+  irradiance per light at the vertices; per-chunk results in a work directory (resume).
 
 Conventions: every output path is used exactly as given and its format follows its extension;
 an output that is an input file (or an input scene's arrays file) is refused; inputs, outputs
@@ -423,7 +426,109 @@ def _add_mesh(sub: Any) -> None:
     add_mesh_parser(sub)
 
 
-BUILTIN_COMMANDS: list[Callable[[Any], None]] = [_add_irradiance, _add_mesh, _add_render, _add_report]
+def _add_bake(sub: Any) -> None:
+    p = sub.add_parser("bake", help="illumination mesh of every surface of a scene (exact irradiance per light), "
+                                    "as glTF or PLY",
+                       description="Mesh every receiving surface of a scene adaptively (planar faces by the "
+                                   "illumination mesher, curved meshes by refining their triangles), seam-free "
+                                   "across shared edges, with the exact irradiance of each light at the vertices; "
+                                   "chunks run here or on a Dask cluster and are kept in a work directory, so an "
+                                   "interrupted run resumes.")
+    p.add_argument("scene", help="scene: jaxshadow JSON (.json: its occluders are the receivers, unless --receiver) "
+                                 "or Mitsuba XML (.xml: every non-emitting shape)")
+    p.add_argument("-o", "--output", required=True, help="output mesh: .glb or .ply, written exactly here")
+    p.add_argument("--receiver", dest="receiver", action="append", default=None, metavar="MESH",
+                   help="a mesh file (.obj .ply .glb .gltf .stl .off) to bake as a receiver (repeatable; replaces "
+                        "the default receivers)")
+    p.add_argument("--tol", type=float, default=1e-3,
+                   help="interpolation tolerance relative to the scene's maximum irradiance (default 1e-3)")
+    p.add_argument("--lights", default=None, metavar="I,J,...",
+                   help="indices of the lights to bake, comma-separated (default: all)")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="run the chunks on this Dask scheduler (tcp://host:8786); needs jaxshadow[bake]")
+    p.add_argument("--workers", type=positive_int, default=None,
+                   help="run the chunks on a local Dask cluster of this many worker processes")
+    p.add_argument("--work-dir", default=None, metavar="DIR",
+                   help="where the per-chunk results are kept (default: OUTPUT.chunks beside the output); "
+                        "a second run with the same scene and settings reads them instead of computing")
+    p.add_argument("--keep-work", action="store_true", help="keep the work directory after a successful run")
+    p.add_argument("--max-vertices", type=positive_int, default=2_000_000,
+                   help="refinement budget per planar face or curved surface (default 2000000)")
+    p.add_argument("--min-edge", type=float, default=None,
+                   help="elements shorter than this (m) are not split (default: see jaxshadow.bake)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    p.set_defaults(func=cmd_bake, requires=(("trimesh", "mesh", "bake (writing the mesh)"),
+                                            ("pythoncdt", "mesh", "bake (triangulation)"),
+                                            ("shapely", "mesh", "bake (polygon clipping)")))
+
+
+def parse_lights(text: str | None) -> list[int] | None:
+    """`--lights "0,2"` -> `[0, 2]`; `None` -> `None`."""
+    if text is None:
+        return None
+    try:
+        out = [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise ValueError(f"--lights: expected comma-separated light indices, got {text!r}.") from None
+    if not out:
+        raise ValueError(f"--lights: expected comma-separated light indices, got {text!r}.")
+    return out
+
+
+def cmd_bake(args: argparse.Namespace) -> int:
+    import shutil
+
+    from ._bake import BAKE_FORMATS
+    from ._meshio import MESH_EXTS
+
+    check_input(args.scene, SCENE_EXTS, "scene")
+    check_output(args.output, BAKE_FORMATS)
+    for r in args.receiver or []:
+        check_input(r, MESH_EXTS, "--receiver")
+    if not (0 < args.tol < 1):
+        raise ValueError(f"--tol must be in (0, 1), got {args.tol!r}.")
+    if args.min_edge is not None and not (np.isfinite(args.min_edge) and args.min_edge > 0):
+        raise ValueError(f"--min-edge must be a positive number, got {args.min_edge!r}.")
+    lights = parse_lights(args.lights)
+    if args.scheduler is not None and args.workers is not None:
+        raise ValueError("give --scheduler or --workers, not both.")
+    if args.scheduler is not None or args.workers is not None:
+        check_requirements((("distributed", "bake", "--scheduler/--workers (Dask)"),))
+    work = args.work_dir or args.output + ".chunks"
+    check_directory(work, "--work-dir", create=True)
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jaxshadow as js
+
+    scene, receivers, _ = read_scene(args.scene)
+    if args.receiver:
+        receivers = [js.read_mesh(r) for r in args.receiver]
+    quiet = args.quiet or not sys.stderr.isatty()
+    bar: Progress | None = None
+
+    def progress(n: int, total: int) -> None:
+        nonlocal bar
+        if bar is None:
+            bar = Progress(total, "bake (chunks)", quiet=quiet)
+        bar.update(n)
+
+    baked = js.bake(scene, receivers or None, args.tol, lights=lights, work_dir=work, workers=args.workers,
+                    scheduler=args.scheduler, max_vertices=args.max_vertices, min_edge=args.min_edge,
+                    progress=progress)
+    if bar is not None:
+        bar.close()
+    baked.save(args.output)
+    if not args.keep_work:
+        shutil.rmtree(work, ignore_errors=True)
+    st = baked.stats
+    _say(args)(f"{baked.vertices.shape[0]} vertices, {baked.triangles.shape[0]} triangles on "
+               f"{len(baked.surface_names)} surfaces, {st['chunks']} chunks ({st['chunks_computed']} computed), "
+               f"{st['seconds']:.1f} s -> {args.output}")
+    return EXIT_OK
+
+
+BUILTIN_COMMANDS: list[Callable[[Any], None]] = [_add_bake, _add_irradiance, _add_mesh, _add_render, _add_report]
 
 
 def plugin_commands() -> dict[str, Any]:

@@ -1,0 +1,242 @@
+"""Baking whole scenes (`js.bake`): vertices, time and peak memory per vertex, and vertices
+against uniform grids of the same error on the planar surfaces.
+
+Scenes: (1) `room`: a Cornell-box-like Mitsuba scene built here (`room_dict`, read by
+`jaxshadow.mitsuba.from_mitsuba`): a 2 m room of six rectangles, a 0.5 m square light under the
+ceiling, two floating cubes, a table top and a sphere (10 receiving surfaces, the sphere curved);
+(2) `torus_floor`: the example scene's tilted torus (768 triangles, smooth vertex normals: a
+curved patch) over a 4 m floor (`jaxshadow.mitsuba.write_example_scene`). Each bake runs in a
+fresh process: its wall time (including compilation) and its peak resident memory
+(`ru_maxrss`) are recorded, per output vertex too.
+
+On every planar patch that is a parallelogram (every planar patch of these scenes), uniform
+grids of n x n vertices (cells split along a diagonal, exact values at the vertices; n doubling
+from 4 while its error is above the target, up to 128) are compared with the bake: errors of both are the largest
+difference between linear interpolation and exact irradiance over 8 random points per triangle
+(fixed seed), relative to the bake's `scale`; sample points where the host engine's exact value
+exceeds the unoccluded one (an engine error, counted in `samples_above_unoccluded`) are left out. A grid matches when its error is at or below the
+bake's own error on that patch (its `tol`, whichever is larger); the grid vertex count is the sum over the patches
+of the smallest matching grid (patches with no match up to 128 count 128^2, and are counted
+apart).
+
+    python -m benchmarks bake [--quick]
+
+writes `benchmarks/results/bake.json` (`--quick`: `results/quick/`, tol 1e-2 only).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+
+DESCRIPTION = "whole-scene bakes: vertices, time and memory per vertex, vertices vs uniform grids on planar surfaces"
+SAMPLES = 8  # random points per triangle for the interpolation error
+GRID_MAX = 128
+
+
+def room_dict() -> dict:
+    """The room as a Mitsuba scene dictionary (z up, floor at z = 0, ceiling at z = 2)."""
+    import mitsuba as mi
+
+    from jaxshadow.mitsuba import _mi
+
+    _mi()
+    T = mi.ScalarTransform4f
+
+    def rect(origin, target, up, scale=1.0, **extra):
+        return {"type": "rectangle", "to_world": T().look_at(origin=origin, target=target, up=up) @ T().scale(scale),
+                **extra}
+
+    white = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.7, 0.7, 0.7]}}
+    d = {"type": "scene",
+         "floor": rect([0, 0, 0], [0, 0, 1], [0, 1, 0], bsdf=white),
+         "ceiling": rect([0, 0, 2], [0, 0, 1], [0, 1, 0], bsdf=white),
+         "wall-x0": rect([-1, 0, 1], [0, 0, 1], [0, 0, 1], bsdf=white),
+         "wall-x1": rect([1, 0, 1], [0, 0, 1], [0, 0, 1], bsdf=white),
+         "wall-y0": rect([0, -1, 1], [0, 0, 1], [0, 0, 1], bsdf=white),
+         "wall-y1": rect([0, 1, 1], [0, 0, 1], [0, 0, 1], bsdf=white),
+         "table": rect([-0.3, 0.4, 0.5], [-0.3, 0.4, 1.5], [0, 1, 0], 0.3, bsdf=white),
+         "cube-a": {"type": "cube", "to_world": T().translate([0.4, -0.3, 0.45]) @ T().rotate([0, 0, 1], 25)
+                    @ T().scale(0.2), "bsdf": white},
+         "cube-b": {"type": "cube", "to_world": T().translate([-0.45, -0.4, 0.3]) @ T().rotate([0, 0, 1], -15)
+                    @ T().scale(0.15), "bsdf": white},
+         "sphere": {"type": "sphere", "center": [0.3, 0.45, 0.9], "radius": 0.2, "bsdf": white},
+         "light": rect([0, 0, 1.98], [0, 0, 0], [0, 1, 0], 0.25,
+                       emitter={"type": "area", "radiance": {"type": "rgb", "value": [10.0, 10.0, 10.0]}})}
+    return d
+
+
+def scene_of(name: str):
+    from jaxshadow.mitsuba import from_mitsuba, write_example_scene
+
+    if name == "room":
+        return from_mitsuba(room_dict())[:2]
+    import tempfile
+
+    return from_mitsuba(write_example_scene(tempfile.mkdtemp()))[:2]
+
+
+def _samples(vertices, values, tris, n, seed=0):
+    rng = np.random.default_rng(seed)
+    u = rng.random((tris.shape[0], n, 2))
+    flip = u.sum(axis=2) > 1
+    u[flip] = 1 - u[flip]
+    w = np.concatenate([1 - u.sum(axis=2, keepdims=True), u], axis=2)
+    p = np.einsum("tnk,tkd->tnd", w, vertices[tris]).reshape(-1, 3)
+    e = np.einsum("tnk,tkd->tnd", w, values[tris]).reshape(-1, 3)
+    return p, e
+
+
+def _error(scene, vertices, values, tris, normal):
+    """Largest |interpolated - exact| over the sample points, and how many points were left out
+    because the host engine's value there exceeds the unoccluded one (an engine error: the
+    device engine gives the unoccluded value at such a point of the room's cube)."""
+    import jaxshadow as js
+
+    p, e = _samples(vertices, values, tris, SAMPLES)
+    nrm = np.ascontiguousarray(np.broadcast_to(normal, p.shape))
+    exact = np.asarray(js.irradiance(scene, p, nrm))
+    free = np.asarray(js.irradiance(js.Scene(scene.lights), p, nrm))
+    bad = np.any(exact > free * (1 + 1e-9) + 1e-12 * free.max(), axis=1)
+    return float(np.abs(e - exact)[~bad].max()), int(bad.sum())
+
+
+def _grid(scene, corners, normal, n):
+    import jaxshadow as js
+
+    c0, c1, c3 = corners[0], corners[1], corners[3]
+    s = np.linspace(0, 1, n)
+    uu, vv = np.meshgrid(s, s, indexing="ij")
+    pts = c0 + uu.reshape(-1, 1) * (c1 - c0) + vv.reshape(-1, 1) * (c3 - c0)
+    vals = np.asarray(js.irradiance(scene, pts, np.ascontiguousarray(np.broadcast_to(normal, pts.shape))))
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    tris = np.concatenate([np.c_[a, b, c], np.c_[a, c, d]])
+    return pts, vals, tris
+
+
+def bake_case(name: str, tol: float) -> dict:
+    """One bake in this process: counts, time, peak memory, and the grid comparison."""
+    import resource
+    import time
+
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jaxshadow as js
+    from jaxshadow._bake import _newell
+
+    scene, receivers = scene_of(name)
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    t0 = time.perf_counter()
+    b = js.bake(scene, receivers, tol)
+    seconds = time.perf_counter() - t0
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    nv = int(b.vertices.shape[0])
+    out = {"scene": name, "tol": tol, "vertices": nv, "triangles": int(b.triangles.shape[0]),
+           "surfaces": len(b.surface_names), "lights": int(b.irradiance_per_light.shape[1]), "seconds": seconds,
+           "seconds_per_vertex": seconds / nv, "peak_rss_bytes": rss, "rss_before_bytes": rss0,
+           "peak_rss_per_vertex_bytes": rss / nv, "scale": b.scale, **{k: v for k, v in b.stats.items()
+                                                                         if k != "seconds"}}
+    # planar patches: the bake's error and the uniform grid of the same error
+    planar_v, grid_v, unmatched, errs, above_free = 0, 0, 0, [], 0
+    for p in np.unique(b.patch):
+        tris = b.triangles[b.patch == p]
+        used = np.unique(tris)
+        nrm = b.normals[used[0]]
+        if not np.allclose(b.normals[used], nrm, atol=1e-12):
+            continue  # a curved patch
+        planar_v += used.size
+        err, nbad = _error(scene, b.vertices, b.irradiance, tris, nrm)
+        above_free += nbad
+        errs.append(err / b.scale)
+        target = max(err, tol * b.scale)
+        # the patch's corners: its convex hull in its plane, a parallelogram here
+        from scipy.spatial import ConvexHull
+
+        pts = b.vertices[used]
+        e1 = pts[np.argmax(np.linalg.norm(pts - pts[0], axis=1))] - pts[0]
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(nrm, e1)
+        uv = np.c_[(pts - pts[0]) @ e1, (pts - pts[0]) @ e2]
+        hull = ConvexHull(uv).vertices
+        poly = pts[hull]
+        poly = poly[np.r_[True, np.linalg.norm(np.diff(poly, axis=0), axis=1) > 1e-9]]
+        turn = [np.linalg.norm(np.cross(poly[i] - poly[i - 1], poly[(i + 1) % len(poly)] - poly[i]))
+                for i in range(len(poly))]
+        corners = poly[np.array(turn) > 1e-9 * np.ptp(pts, axis=0).max() ** 2]
+        if corners.shape[0] != 4:
+            grid_v += GRID_MAX * GRID_MAX
+            unmatched += 1
+            continue
+        if _newell(corners) @ nrm < 0:
+            corners = corners[::-1]
+        n, found = 4, False
+        while n <= GRID_MAX:
+            gp, gv, gt = _grid(scene, corners, nrm, n)
+            if _error(scene, gp, gv, gt, nrm)[0] <= target:
+                found = True
+                break
+            n *= 2
+        grid_v += min(n, GRID_MAX) ** 2
+        unmatched += not found
+    out.update({"planar_vertices": planar_v, "grid_vertices": grid_v, "grid_unmatched_patches": unmatched,
+                "planar_error_max": max(errs) if errs else None, "samples_above_unoccluded": above_free,
+                "grid_ratio": grid_v / planar_v if planar_v else None})
+    return out
+
+
+def run(quick: bool) -> dict:
+    cases = [("room", 1e-2), ("torus_floor", 1e-2)] if quick else [
+        ("room", 1e-2), ("torus_floor", 1e-2), ("room", 1e-3), ("torus_floor", 1e-3)]
+    res = []
+    for name, tol in cases:
+        # a fresh process per bake: its peak memory is its own
+        code = ("import json, sys; from benchmarks.bake import bake_case; "
+                f"print('RESULT ' + json.dumps(bake_case({name!r}, {tol!r})))")
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                             cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+        line = [x for x in out.stdout.splitlines() if x.startswith("RESULT ")]
+        if out.returncode != 0 or not line:
+            res.append({"scene": name, "tol": tol, "error": out.stderr[-2000:]})
+            continue
+        r = json.loads(line[0][7:])
+        print(f"{name} tol {tol:g}: {r['vertices']} vertices, {r['seconds']:.1f} s, "
+              f"{r['peak_rss_per_vertex_bytes'] / 1024:.1f} KiB/vertex peak", file=sys.stderr, flush=True)
+        res.append(r)
+    return {"cases": res}
+
+
+def markdown(results: dict) -> str:
+    rows = ["| scene | tol | surfaces | vertices | s | ms / vertex | peak RSS (MB) | KiB / vertex | planar vertices "
+            "| uniform grid of the same error | ratio |",
+            "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in results["cases"]:
+        if "error" in r:
+            rows.append(f"| {r['scene']} | {r['tol']:g} | failed | | | | | | | | |")
+            continue
+        grid = f"{r['grid_vertices']:,}" + (f" ({r['grid_unmatched_patches']} patches > {GRID_MAX}^2)"
+                                             if r["grid_unmatched_patches"] else "")
+        rows.append(f"| {r['scene']} | {r['tol']:g} | {r['surfaces']} | {r['vertices']:,} | {r['seconds']:.1f} | "
+                    f"{1e3 * r['seconds_per_vertex']:.2f} | {r['peak_rss_bytes'] / 1e6:.0f} | "
+                    f"{r['peak_rss_per_vertex_bytes'] / 1024:.1f} | {r['planar_vertices']:,} | {grid} | "
+                    f"{r['grid_ratio']:.1f}x |")
+    return "\n".join(rows) + "\n"
+
+
+def main(argv=None) -> int:
+    from benchmarks._suite import main as suite_main
+
+    ap = argparse.ArgumentParser(prog="python -m benchmarks.bake")
+    ap.add_argument("--quick", action="store_true", help="tol 1e-2 only")
+    args = ap.parse_args(argv)
+    return suite_main(["bake"] + (["--quick"] if args.quick else []))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

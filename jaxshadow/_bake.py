@@ -1,0 +1,938 @@
+r"""Bake a whole scene: every receiving surface meshed, exact irradiance per light at the vertices.
+
+Campbell & Fussell's system ends in "a collection of smooth-shaded polygonal facets that may be
+rendered from any viewing position" (abstract, §3.3, §4.4). `bake` produces that for every
+receiving surface of a scene:
+
+1. **Surfaces into patches.** The receivers' vertices are welded (within `weld` of the scene's
+   size: Mitsuba's float32 transforms put a wall's corner 6e-8 away from the floor's). Faces
+   whose vertex normals equal their face normal are *flat*: coplanar connected flat faces are
+   merged into one convex polygon where their union is one (else each triangle stays a polygon);
+   every polygon is a *planar patch*, meshed by `illumination_mesh` (discontinuity lines,
+   extrema, adaptive refinement). The other faces of a surface form one *curved patch*, refined
+   on its own triangles (`_refine_curved`): 1-to-4 splits where an edge midpoint's or the
+   centroid's exact value misses linear interpolation by more than `tol`, bisection of the
+   neighbours across a split edge (red-green closure), so the patch stays conforming.
+2. **Chunks.** Each patch is one independent chunk: its mesh and its exact irradiance per light
+   at the vertices. Chunks run in this process or on `dask.distributed` workers (the scene is
+   scattered once per worker); with a `work_dir`, each chunk's result is an `.npz` file named
+   by a hash of the scene, the patch and the settings, so a killed run resumes where it stopped
+   and gives the identical result.
+3. **Stitching.** Patches that share an edge (the same two welded vertices) get the same
+   vertices on it: every patch's points on the edge are merged (parameters within 1e-9 of the
+   edge are one point, at the smallest parameter), and a triangle that lacks a point on its
+   edge is split there (a fan from its opposite corner, or from its centroid when several of
+   its edges gain points). New or moved vertices get their exact values. No T vertices remain
+   on shared edges; vertices of equal position and normal are one output vertex.
+
+Values on a shared edge agree where the normals agree (coplanar patches, a curved surface's
+smooth normals); across a crease (floor and wall) the vertices coincide but the irradiance
+differs, as it physically does.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+
+from ._scene import Scene
+
+BAKE_FORMAT = 1  # bumped when a chunk file's content changes meaning (part of its hash)
+EDGE_EPS = 1e-9  # points on a shared edge closer than this (in its parameter) are one point
+
+
+# --------------------------------------------------------------------------------------
+# Result
+# --------------------------------------------------------------------------------------
+
+
+class BakedScene:
+    """The illumination mesh of a whole scene (`bake`).
+
+    **Attributes:**
+
+    - `vertices`: `(V, 3)` positions (m).
+    - `normals`: `(V, 3)` unit normals the irradiance was evaluated with.
+    - `triangles`: `(T, 3)` vertex indices, counter-clockwise seen from the lit side.
+    - `irradiance`: `(V, 3)` exact RGB irradiance from all baked lights (W/m^2).
+    - `irradiance_per_light`: `(V, L, 3)` the same per light (re-weight lights without baking
+      again: `(w[None, :, None] * irradiance_per_light).sum(1)`).
+    - `surface`: `(T,)` index of the receiver surface each triangle belongs to.
+    - `patch`: `(T,)` index of the patch (chunk) each triangle belongs to.
+    - `surface_names`: names of the surfaces.
+    - `lights`: `(L,)` indices into the scene's lights of the baked lights.
+    - `scale`: the irradiance `tol` is relative to (W/m^2).
+    - `tol`: the requested relative tolerance.
+    - `stats`: `chunks`, `chunks_computed` (this run; the others were read from `work_dir`),
+      `patches_planar`, `patches_curved`, `stitched_points` (points added on shared edges),
+      `moved_points`, `seconds`.
+    """
+
+    def __init__(self, vertices: np.ndarray, normals: np.ndarray, triangles: np.ndarray, per_light: np.ndarray,
+                 surface: np.ndarray, patch: np.ndarray, surface_names: list[str], lights: np.ndarray,
+                 scale: float, tol: float, stats: dict[str, Any]):
+        self.vertices, self.normals, self.triangles = vertices, normals, triangles
+        self.irradiance_per_light = per_light
+        self.irradiance = per_light.sum(axis=1)
+        self.surface, self.patch, self.surface_names = surface, patch, surface_names
+        self.lights, self.scale, self.tol, self.stats = lights, float(scale), float(tol), stats
+
+    def __repr__(self) -> str:
+        return (f"BakedScene({self.vertices.shape[0]} vertices, {self.triangles.shape[0]} triangles, "
+                f"{len(self.surface_names)} surfaces, {self.irradiance_per_light.shape[1]} lights, tol={self.tol:g})")
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write the bake to `path` (atomically): `.glb` (binary glTF: vertex colours `COLOR_0`,
+        `NORMAL`, float32 irradiance as the custom attributes `_IRRADIANCE` and `_IRRADIANCE_<l>`
+        per light) or `.ply` (binary: vertex colours, float64 `irradiance_r/g/b` and
+        `irradiance_<l>_r/g/b` per light)."""
+        write_bake(path, self)
+
+
+# --------------------------------------------------------------------------------------
+# Receivers -> surfaces -> patches
+# --------------------------------------------------------------------------------------
+
+
+def _weld(points: np.ndarray, tol: float) -> np.ndarray:
+    """`(n,)` welded id of each point: points within `tol` are one (transitively); the id is
+    the lowest index of its group."""
+    from scipy.spatial import cKDTree
+
+    n = points.shape[0]
+    parent = np.arange(n)
+    if n and tol > 0:
+        pairs = cKDTree(points).query_pairs(tol, output_type="ndarray")
+
+        def find(i: int) -> int:
+            while parent[i] != i:
+                parent[i] = parent[parent[i]]
+                i = parent[i]
+            return i
+
+        for a, b in pairs:
+            ra, rb = find(int(a)), find(int(b))
+            if ra != rb:
+                parent[max(ra, rb)] = min(ra, rb)
+        for i in range(n):
+            parent[i] = find(i)
+    return parent
+
+
+def _surfaces(scene: Scene, receivers: Any) -> list[tuple[str, np.ndarray, Any, np.ndarray | None]]:
+    """`(name, vertices, triangles or polygon rows, vertex normals or None)` per surface."""
+    from ._meshio import ReceiverMesh
+
+    if receivers is None:
+        if scene.occluders is None:
+            raise ValueError("bake: the scene has no occluders and no receivers were given.")
+        occ = np.asarray(scene.occluders, np.float64)
+        receivers = [_unpad(o) for o in occ]
+    if isinstance(receivers, (ReceiverMesh, np.ndarray)) or not isinstance(receivers, (list, tuple)):
+        receivers = [receivers]
+    out: list[tuple[str, np.ndarray, Any, np.ndarray | None]] = []
+    for i, r in enumerate(receivers):
+        if isinstance(r, ReceiverMesh):
+            out.append((r.name or f"surface{i}", r.vertices, r.faces, r.vertex_normals))
+            continue
+        from ._mesh import Mesh
+
+        if isinstance(r, Mesh):
+            polys = [_unpad(np.asarray(p, np.float64)) for p in r.polygons]
+        else:
+            p = np.asarray(r, np.float64)
+            polys = [p] if p.ndim == 2 else [_unpad(q) for q in p]
+        if not polys or any(p.ndim != 2 or p.shape[1] != 3 or p.shape[0] < 3 for p in polys):
+            raise ValueError(f"bake: receivers[{i}] must be a ReceiverMesh, a Mesh or polygons (k, 3).")
+        verts = np.concatenate(polys)
+        off = np.cumsum([0] + [p.shape[0] for p in polys])
+        rows = [np.arange(off[j], off[j + 1]) for j in range(len(polys))]
+        out.append((f"surface{i}", verts, rows, None))
+    return out
+
+
+def _unpad(p: np.ndarray) -> np.ndarray:
+    keep = np.r_[True, np.any(np.diff(p, axis=0) != 0, axis=1)]
+    p = p[keep]
+    if p.shape[0] > 1 and np.array_equal(p[0], p[-1]):
+        p = p[:-1]
+    return p
+
+
+def _newell(p: np.ndarray) -> np.ndarray:
+    n = np.sum(np.cross(p, np.roll(p, -1, axis=0)), axis=0)
+    return n / np.linalg.norm(n)
+
+
+def _convex_loop(loop: np.ndarray, normal: np.ndarray) -> bool:
+    """Strictly convex, counter-clockwise about `normal`, no collinear corners."""
+    d = np.roll(loop, -1, axis=0) - loop
+    turn = np.cross(d, np.roll(d, -1, axis=0)) @ normal
+    size = np.linalg.norm(d, axis=1)
+    return bool(np.all(turn > 1e-9 * size * np.roll(size, -1)))
+
+
+def _planar_groups(tris: np.ndarray, pos: np.ndarray) -> list[tuple[list[int], list[np.ndarray]]]:
+    """Flat triangles (rows of welded ids) grouped into coplanar connected sets; each set is
+    one convex polygon `(ids loop)` when its union is one, else one polygon per triangle.
+    Returns `(triangle indices, polygon id loops)` per set."""
+    n = tris.shape[0]
+    nrm = np.array([_newell(pos[t]) for t in tris]) if n else np.zeros((0, 3))
+    by_edge: dict[tuple[int, int], list[int]] = {}
+    for i, t in enumerate(tris):
+        for k in range(3):
+            a, b = int(t[k]), int(t[(k + 1) % 3])
+            by_edge.setdefault((min(a, b), max(a, b)), []).append(i)
+    seen = np.zeros(n, bool)
+    groups: list[tuple[list[int], list[np.ndarray]]] = []
+    for s in range(n):
+        if seen[s]:
+            continue
+        comp, stack = [s], [s]
+        seen[s] = True
+        while stack:
+            i = stack.pop()
+            t = tris[i]
+            for k in range(3):
+                a, b = int(t[k]), int(t[(k + 1) % 3])
+                for j in by_edge[(min(a, b), max(a, b))]:
+                    if not seen[j] and nrm[j] @ nrm[s] > 1 - 1e-9 and abs((pos[tris[j]] - pos[tris[s][0]]) @ nrm[s]).max() \
+                            <= 1e-7 * (1 + np.abs(pos[tris[s]]).max()):
+                        seen[j] = True
+                        comp.append(j)
+                        stack.append(j)
+        comp.sort()
+        loop = _boundary_loop(tris[comp])
+        if loop is not None and len(comp) > 1 and set(loop.tolist()) == set(tris[comp].ravel().tolist()) \
+                and _convex_loop(pos[loop], nrm[s]):
+            groups.append((comp, [loop]))
+        else:
+            groups.append((comp, [tris[i] for i in comp]))
+    return groups
+
+
+def _boundary_loop(tris: np.ndarray) -> np.ndarray | None:
+    directed = {(int(t[k]), int(t[(k + 1) % 3])) for t in tris for k in range(3)}
+    nxt: dict[int, int] = {}
+    for a, b in directed:
+        if (b, a) not in directed:
+            if a in nxt:
+                return None
+            nxt[a] = b
+    if not nxt:
+        return None
+    start = min(nxt)
+    loop = [start]
+    while True:
+        b = nxt[loop[-1]]
+        if b == start:
+            break
+        if b in loop or b not in nxt:
+            return None
+        loop.append(b)
+    return np.array(loop) if len(loop) == len(nxt) else None
+
+
+class _Patch:
+    """One chunk: a planar polygon (`ids (k,)` welded ids of its corners, counter-clockwise) or
+    a curved triangle set (`tri (t, 3)` local vertex ids, `vpos`, `vnrm`, `vwid` per local
+    vertex)."""
+
+    def __init__(self, kind: str, surface: int, **data: Any):
+        self.kind, self.surface = kind, surface
+        self.data = {k: np.ascontiguousarray(v) for k, v in data.items()}
+
+    def digest(self) -> bytes:
+        h = hashlib.sha256(self.kind.encode())
+        for k in sorted(self.data):
+            v = self.data[k]
+            h.update(k.encode() + str(v.dtype).encode() + str(v.shape).encode() + v.tobytes())
+        return h.digest()
+
+
+def _patches(surfaces: list, weld: float) -> tuple[list[_Patch], np.ndarray, list[str]]:
+    """The patches of all surfaces, the welded positions `(W, 3)` and the surface names."""
+    allv = np.concatenate([s[1] for s in surfaces])
+    size = float(np.max(np.ptp(allv, axis=0))) if allv.shape[0] else 1.0
+    wid_all = _weld(allv, weld * size)
+    pos = allv[wid_all]  # every point at its group's representative
+    off = np.cumsum([0] + [s[1].shape[0] for s in surfaces])
+    patches: list[_Patch] = []
+    names = []
+    for si, (name, v, faces, vn) in enumerate(surfaces):
+        names.append(name)
+        wid = wid_all[off[si]:off[si + 1]]
+        if vn is None:  # polygons given as rows
+            for rows in faces:
+                ids = _dedup_loop(wid[rows])
+                if ids.shape[0] >= 3:
+                    patches.append(_Patch("planar", si, ids=ids, normal=_newell(pos[ids])))
+            continue
+        f = np.asarray(faces)
+        fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+        fn /= np.linalg.norm(fn, axis=1)[:, None]
+        flat = np.all(np.einsum("fkj,fj->fk", vn[f], fn) > 1 - 1e-6, axis=1)
+        wt = wid[f]
+        degenerate = (wt[:, 0] == wt[:, 1]) | (wt[:, 1] == wt[:, 2]) | (wt[:, 0] == wt[:, 2])
+        flat_idx = np.nonzero(flat & ~degenerate)[0]
+        for comp, polys in _planar_groups(wt[flat_idx], pos):
+            # one normal per coplanar set: its vertices on inner edges are then one output vertex
+            ct = pos[wt[flat_idx[comp]]]
+            acc = np.cross(ct[:, 1] - ct[:, 0], ct[:, 2] - ct[:, 0]).sum(axis=0)
+            normal = acc / np.linalg.norm(acc)
+            for ids in polys:
+                patches.append(_Patch("planar", si, ids=np.asarray(ids, np.int64), normal=normal))
+        curved = np.nonzero(~flat & ~degenerate)[0]
+        if curved.size:
+            fc = f[curved]
+            # local vertices: one per (welded position, normal)
+            key = np.concatenate([wid[:, None].astype(np.float64), np.round(vn, 9)], axis=1)
+            uk, inv = np.unique(key[fc.ravel()], axis=0, return_inverse=True)
+            tri = inv.reshape(-1, 3).astype(np.int64)
+            first = np.zeros(uk.shape[0], np.int64)
+            first[inv.ravel()] = fc.ravel()
+            lw = wid[first]
+            patches.append(_Patch("curved", si, tri=tri, vpos=pos[lw], vnrm=vn[first], vwid=lw.astype(np.int64)))
+    # planar patches carry their corners' positions; all patches the welded ids they touch
+    for p in patches:
+        if p.kind == "planar":
+            p.data["poly"] = pos[p.data["ids"]]
+    return patches, pos, names
+
+
+def _dedup_loop(ids: np.ndarray) -> np.ndarray:
+    keep = [int(i) for k, i in enumerate(ids) if i != ids[k - 1]] if ids.shape[0] > 1 else list(ids)
+    return np.array(keep, np.int64)
+
+
+# --------------------------------------------------------------------------------------
+# One chunk
+# --------------------------------------------------------------------------------------
+
+
+def _light_scenes(scene: Scene) -> list[Scene]:
+    import equinox as eqx
+
+    return [eqx.tree_at(lambda s: s.lights, scene, (light,)) for light in scene.lights]
+
+
+def _values(scenes: list[Scene], points: np.ndarray, normals: np.ndarray, chunk: int = 1 << 15) -> np.ndarray:
+    """`(n, L, 3)` exact irradiance per light (W/m^2)."""
+    from ._shade import irradiance
+
+    n = points.shape[0]
+    out = np.zeros((n, len(scenes), 3))
+    for s in range(0, n, chunk):
+        e = min(n, s + chunk)
+        for li, sc in enumerate(scenes):
+            out[s:e, li] = np.asarray(irradiance(sc, points[s:e], normals[s:e]), np.float64)
+    return out
+
+
+def _edge_param(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Parameter of points `p (n, 3)` along a -> b and their distance to the segment."""
+    d = b - a
+    t = (p - a) @ d / (d @ d)
+    foot = a + np.clip(t, 0, 1)[:, None] * d
+    return t, np.linalg.norm(p - foot, axis=1)
+
+
+def _on_point(pos: np.ndarray, ka: int, kb: int, t: float) -> np.ndarray:
+    """The point at parameter `t` of the welded edge `ka < kb` (endpoints exactly at 0 and 1)."""
+    if t == 0.0:
+        return pos[ka].copy()
+    if t == 1.0:
+        return pos[kb].copy()
+    return pos[ka] + t * (pos[kb] - pos[ka])
+
+
+ON_SURFACE = 2.0**-18  # `js.irradiance`'s on-surface distance, relative to the coordinates' magnitude
+
+
+def _without_own_faces(scene: Scene, poly: np.ndarray, normal: np.ndarray) -> Scene:
+    """`scene` without the occluder faces lying on the receiver's plane and facing its way (the
+    receiver's own surface): by the on-surface rule they block nothing for it, but the mesher
+    would take them for the foot of an object standing on it (a hole). Faces lying on it and
+    facing the other way (the bottom of a box on the floor) stay: they are such feet."""
+    if scene.occluders is None:
+        return scene
+    occ = np.asarray(scene.occluders, np.float64)
+    size = max(float(np.abs(poly).max()), float(np.abs(occ).max()))
+    on = np.all(np.abs((occ - poly[0]) @ normal) <= ON_SURFACE * size, axis=1)
+    if not on.any():
+        return scene
+    nf = np.sum(np.cross(occ, np.roll(occ, -1, axis=1)), axis=1)
+    own = on & (nf @ normal > 0)
+    if not own.any():
+        return scene
+    keep = [_unpad(o) for o in occ[~own]]
+    return Scene(scene.lights, occluders=keep or None, ambient=scene.ambient)
+
+
+def _planar_chunk(scene: Scene, patch: _Patch, pos: np.ndarray, tol: float, scale: float,
+                  options: dict[str, Any], options_weld: float) -> dict[str, np.ndarray]:
+    from ._illumination import illumination_mesh
+
+    ids, poly, normal = patch.data["ids"], patch.data["poly"], patch.data["normal"]
+    m = illumination_mesh(_without_own_faces(scene, poly, normal), poly, tol, scale=scale, **options)
+    v = np.array(m.vertices, np.float64)
+    # welded corners may leave the polygon planar only to the weld distance
+    near = 1e-9 * float(np.max(np.ptp(poly, axis=0))) + 2 * options_weld
+    occ_id, occ_v, occ_t, keys = [], [], [], []
+    for k in range(ids.shape[0]):
+        ia, ib = int(ids[k]), int(ids[(k + 1) % ids.shape[0]])
+        ka, kb = min(ia, ib), max(ia, ib)
+        t, dist = _edge_param(v, pos[ka], pos[kb])
+        on = np.nonzero((dist <= near) & (t >= -1e-9) & (t <= 1 + 1e-9))[0]
+        tt = np.clip(t[on], 0.0, 1.0)
+        tt[tt < 1e-12] = 0.0
+        tt[tt > 1 - 1e-12] = 1.0
+        for vi, ti in zip(on, tt, strict=True):
+            v[vi] = _on_point(pos, ka, kb, float(ti))
+        keys.append((ka, kb))
+        occ_id += [k] * on.size
+        occ_v += on.tolist()
+        occ_t += tt.tolist()
+    nrm = np.broadcast_to(normal, v.shape).copy()
+    return {"vertices": v, "normals": nrm, "triangles": np.asarray(m.triangles, np.int64),
+            "values": _values(_light_scenes(scene), v, nrm), "edge_keys": np.array(keys, np.int64).reshape(-1, 2),
+            "occ_edge": np.array(occ_id, np.int64), "occ_vertex": np.array(occ_v, np.int64),
+            "occ_t": np.array(occ_t, np.float64)}
+
+
+def _refine_curved(scenes: list[Scene], patch: _Patch, pos: np.ndarray, tol: float, scale: float,
+                   min_edge: float, max_vertices: int, max_rounds: int) -> dict[str, np.ndarray]:
+    """Conforming refinement of a curved triangle set: edges whose midpoint value misses the
+    mean of its ends by more than `tol * scale` (max over RGB of the light sum), and the three
+    edges of triangles whose centroid misses the mean of the corners, are split; a triangle with
+    two split edges gets its third split too (red: 1-to-4), one with one is bisected (green).
+    Stops when no edge fails, at `max_vertices`, or after `max_rounds` rounds."""
+    tri = patch.data["tri"].copy()
+    vpos = [patch.data["vpos"].astype(np.float64)]
+    vnrm = [patch.data["vnrm"].astype(np.float64)]
+    vwid = patch.data["vwid"]
+    vals = [_values(scenes, vpos[0], vnrm[0])]
+    n0 = vpos[0].shape[0]
+    # the patch's boundary edges (used by one triangle): their points are recorded for stitching
+    cnt: dict[tuple[int, int], int] = {}
+    for t in tri:
+        for k in range(3):
+            a, b = int(t[k]), int(t[(k + 1) % 3])
+            e = (min(a, b), max(a, b))
+            cnt[e] = cnt.get(e, 0) + 1
+    bnd = [e for e, c in cnt.items() if c == 1 and vwid[e[0]] != vwid[e[1]]]
+    edge_keys = [(min(int(vwid[a]), int(vwid[b])), max(int(vwid[a]), int(vwid[b]))) for a, b in bnd]
+    # on[v] = {boundary edge index: parameter in the welded key's direction}
+    on: list[dict[int, float]] = [dict() for _ in range(n0)]
+    for j, (a, b) in enumerate(bnd):
+        lo = int(vwid[a]) < int(vwid[b])
+        on[a][j] = 0.0 if lo else 1.0
+        on[b][j] = 1.0 if lo else 0.0
+    mids: dict[tuple[int, int], int] = {}
+    cache: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+    checked_tris: set[tuple[int, int, int]] = set()
+    limit = tol * scale
+
+    def arrays() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if len(vpos) > 1:
+            vpos[:] = [np.concatenate(vpos)]
+            vnrm[:] = [np.concatenate(vnrm)]
+            vals[:] = [np.concatenate(vals)]
+        return vpos[0], vnrm[0], vals[0]
+
+    def unit(x: np.ndarray) -> np.ndarray:
+        return x / np.linalg.norm(x, axis=-1, keepdims=True)
+
+    rounds = 0
+    while True:
+        P, N, E = arrays()
+        tot = E.sum(axis=1)
+        ed = np.sort(np.stack([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]], axis=1), axis=2)
+        uniq, eid = np.unique(ed.reshape(-1, 2), axis=0, return_inverse=True)
+        eid = eid.reshape(-1, 3)
+        keys = [tuple(e) for e in uniq.tolist()]
+        new = [e for e in keys if e not in cache]
+        if new:
+            na = np.array(new, np.int64)
+            mp = 0.5 * (P[na[:, 0]] + P[na[:, 1]])
+            for r, (a, b) in enumerate(new):
+                common = on[a].keys() & on[b].keys()
+                if common:
+                    j = min(common)
+                    ka, kb = edge_keys[j]
+                    mp[r] = _on_point(pos, ka, kb, 0.5 * (on[a][j] + on[b][j]))
+            same = np.all(N[na[:, 0]] == N[na[:, 1]], axis=1)
+            mn = np.where(same[:, None], N[na[:, 0]], unit(N[na[:, 0]] + N[na[:, 1]]))
+            mv = _values(scenes, mp, mn)
+            for r, e in enumerate(new):
+                cache[e] = (mp[r], mn[r], mv[r])
+        mval = np.array([cache[e][2].sum(axis=0) for e in keys])
+        long = np.linalg.norm(P[uniq[:, 0]] - P[uniq[:, 1]], axis=1) > min_edge
+        bad = (np.max(np.abs(mval - 0.5 * (tot[uniq[:, 0]] + tot[uniq[:, 1]])), axis=1) > limit) & long
+        fresh = np.array([tuple(t) not in checked_tris for t in tri.tolist()], bool)
+        if fresh.any():
+            ft = tri[fresh]
+            same = np.all((N[ft[:, 0]] == N[ft[:, 1]]) & (N[ft[:, 0]] == N[ft[:, 2]]), axis=1)
+            cn = np.where(same[:, None], N[ft[:, 0]], unit(N[ft].sum(axis=1)))
+            cv = _values(scenes, P[ft].mean(axis=1), cn).sum(axis=1)
+            miss = np.max(np.abs(cv - tot[ft].mean(axis=1)), axis=1) > limit
+            checked_tris.update(tuple(t) for t in ft.tolist())
+            fe = eid[fresh][miss].ravel()
+            bad[fe[long[fe]]] = True
+        if not bad.any() or P.shape[0] >= max_vertices or rounds >= max_rounds:
+            break
+        rounds += 1
+        while True:  # closure: two split edges -> split the third
+            two = bad[eid].sum(axis=1) == 2
+            if not two.any():
+                break
+            bad[eid[two].ravel()] = True
+        split = bad[eid]  # (t, 3): which sides of each triangle are split
+        bad_keys = [keys[i] for i in np.nonzero(bad)[0]]
+        base = P.shape[0]  # midpoints numbered in sorted edge order
+        newv = [e for e in bad_keys if e not in mids]
+        for k, e in enumerate(newv):
+            mids[e] = base + k
+            a, b = e
+            common = on[a].keys() & on[b].keys()
+            on.append({j: 0.5 * (on[a][j] + on[b][j]) for j in common})
+        if newv:
+            vpos.append(np.array([cache[e][0] for e in newv]))
+            vnrm.append(np.array([cache[e][1] for e in newv]))
+            vals.append(np.array([cache[e][2] for e in newv]))
+        out = []
+        for t, m, ei in zip(tri.tolist(), split.tolist(), eid.tolist(), strict=True):
+            es = [keys[i] for i in ei]
+            if sum(m) == 3:
+                a, b, c = t
+                ab, bc, ca = (mids[e] for e in es)
+                out += [[a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca]]
+            elif sum(m) == 1:
+                k = m.index(True)
+                a, b, c = t[k], t[(k + 1) % 3], t[(k + 2) % 3]
+                mm = mids[es[k]]
+                out += [[a, mm, c], [mm, b, c]]
+            else:
+                out.append(t)
+        tri = np.array(out, np.int64)
+    P, N, E = arrays()
+    occ_e, occ_v, occ_t = [], [], []
+    for vi, d in enumerate(on):
+        for j, t in sorted(d.items()):
+            occ_e.append(j)
+            occ_v.append(vi)
+            occ_t.append(t)
+    return {"vertices": P, "normals": N, "triangles": tri, "values": E,
+            "edge_keys": np.array(edge_keys, np.int64).reshape(-1, 2), "occ_edge": np.array(occ_e, np.int64),
+            "occ_vertex": np.array(occ_v, np.int64), "occ_t": np.array(occ_t, np.float64),
+            "rounds": np.array(rounds)}
+
+
+def _chunk(scene: Scene, patch: _Patch, pos: np.ndarray, settings: dict[str, Any],
+           before: Callable[[int], None] | None = None, index: int = 0) -> dict[str, np.ndarray]:
+    """One chunk's result (arrays only: what its `.npz` file holds)."""
+    import jax
+
+    if settings["x64"] and not jax.config.read("jax_enable_x64"):  # a worker process: the client's precision
+        jax.config.update("jax_enable_x64", True)
+    # a scene shipped to a worker holds NumPy leaves (a JAX array unpickled before the line above
+    # would have lost float64)
+    scene = jax.tree_util.tree_map(jax.numpy.asarray, scene)
+    if before is not None:
+        before(index)
+    if patch.kind == "planar":
+        return _planar_chunk(scene, patch, pos, settings["tol"], settings["scale"], settings["planar"],
+                             settings["weld"])
+    return _refine_curved(_light_scenes(scene), patch, pos, settings["tol"], settings["scale"],
+                          settings["min_edge"], settings["max_vertices"], settings["max_rounds"])
+
+
+def _scene_digest(scene: Scene) -> bytes:
+    import jax
+
+    leaves, tree = jax.tree_util.tree_flatten(scene)
+    h = hashlib.sha256(str(tree).encode())
+    for leaf in leaves:
+        a = np.asarray(leaf)
+        h.update(str(a.dtype).encode() + str(a.shape).encode() + a.tobytes())
+    return h.digest()
+
+
+def _chunk_name(scene_digest: bytes, patch: _Patch, pos: np.ndarray, settings: dict[str, Any]) -> str:
+    h = hashlib.sha256(scene_digest + patch.digest())
+    h.update(repr(sorted((k, v) for k, v in settings.items() if k != "planar")).encode())
+    h.update(repr(sorted(settings["planar"].items())).encode() + str(BAKE_FORMAT).encode())
+    if patch.kind == "planar":
+        h.update(pos[patch.data["ids"]].tobytes())
+    return f"chunk-{h.hexdigest()[:32]}.npz"
+
+
+# --------------------------------------------------------------------------------------
+# Running the chunks
+# --------------------------------------------------------------------------------------
+
+
+def _save_chunk(path: str, result: dict[str, np.ndarray]) -> None:
+    from ._files import atomic_write
+
+    with atomic_write(path, "wb") as fh:
+        np.savez(fh, **result)
+
+
+def _load_chunk(path: str) -> dict[str, np.ndarray]:
+    with np.load(path) as z:
+        return {k: z[k] for k in z.files}
+
+
+def _run_chunks(scene: Scene, patches: list[_Patch], pos: np.ndarray, settings: dict[str, Any],
+                work_dir: str | None, scheduler: Any, workers: int | None, progress: Any,
+                before: Callable[[int], None] | None) -> tuple[list[dict[str, np.ndarray]], int]:
+    digest = _scene_digest(scene)
+    names = [_chunk_name(digest, p, pos, settings) for p in patches]
+    results: list[dict[str, np.ndarray] | None] = [None] * len(patches)
+    if work_dir is not None:
+        os.makedirs(work_dir, exist_ok=True)
+        for i, nm in enumerate(names):
+            path = os.path.join(work_dir, nm)
+            if os.path.isfile(path):
+                try:
+                    results[i] = _load_chunk(path)
+                except (OSError, ValueError, KeyError):
+                    results[i] = None  # unreadable: computed again
+    todo = [i for i, r in enumerate(results) if r is None]
+    if progress is not None:
+        progress(len(patches) - len(todo), len(patches))
+
+    def done(i: int, res: dict[str, np.ndarray]) -> None:
+        results[i] = res
+        if work_dir is not None:
+            _save_chunk(os.path.join(work_dir, names[i]), res)
+        if progress is not None:
+            progress(1, len(patches))
+
+    if todo and (scheduler is not None or workers is not None):
+        import jax
+        from distributed import Client, LocalCluster, as_completed
+
+        cluster = None
+        if scheduler is None or scheduler == "local":
+            cluster = LocalCluster(n_workers=int(workers or 2), threads_per_worker=1, processes=True,
+                                   dashboard_address=None)
+            client = Client(cluster)
+        elif isinstance(scheduler, Client):
+            client = scheduler
+        else:
+            client = Client(scheduler)
+        try:
+            shipped = jax.tree_util.tree_map(np.asarray, scene)
+            scene_f = client.scatter(shipped, broadcast=True, hash=False)
+            pos_f = client.scatter(pos, broadcast=True, hash=False)
+            futures = {client.submit(_chunk, scene_f, patches[i], pos_f, settings, before, i,
+                                     key=f"jaxshadow-bake-{names[i][6:-4]}", pure=False): i for i in todo}
+            for fut in as_completed(futures):
+                done(futures[fut], fut.result())
+        finally:
+            if not isinstance(scheduler, Client):
+                client.close()
+            if cluster is not None:
+                cluster.close()
+    else:
+        for i in todo:
+            done(i, _chunk(scene, patches[i], pos, settings, before, i))
+    return [r for r in results if r is not None], len(todo)
+
+
+# --------------------------------------------------------------------------------------
+# Stitching and assembly
+# --------------------------------------------------------------------------------------
+
+
+def _stitch(parts: list[dict[str, np.ndarray]], pos: np.ndarray, scenes: list[Scene]) -> dict[str, int]:
+    """Give every shared edge the same points in all patches that have it (in place)."""
+    occ: dict[tuple[int, int], list[tuple[int, int]]] = {}
+    for pi, r in enumerate(parts):
+        for j, (a, b) in enumerate(r["edge_keys"].tolist()):
+            occ.setdefault((a, b), []).append((pi, j))
+    # per part: vertices to re-evaluate, and insertions per triangle edge
+    moved: list[set[int]] = [set() for _ in parts]
+    newv: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in parts]
+    inserts: list[dict[tuple[int, int], list[int]]] = [{} for _ in parts]
+    nstitched = 0
+    for (ka, kb), sides in sorted(occ.items()):
+        if len(sides) < 2:
+            continue
+        own = []
+        for pi, j in sides:
+            r = parts[pi]
+            sel = r["occ_edge"] == j
+            vs, ts = r["occ_vertex"][sel], r["occ_t"][sel]
+            if vs.size < 2:  # the patch's mesh has no edge along it (should not happen)
+                continue
+            o = np.argsort(ts, kind="stable")
+            own.append((pi, vs[o], ts[o]))
+        if len(own) < 2:
+            continue
+        allt = np.unique(np.concatenate([o[2] for o in own]))
+        canon = [float(allt[0])]
+        for t in allt[1:]:
+            if t - canon[-1] > EDGE_EPS:
+                canon.append(float(t))
+        ct = np.array(canon)
+        for pi, vs, ts in own:
+            r = parts[pi]
+            idx = np.searchsorted(ct, ts + EDGE_EPS, side="right") - 1
+            idx = np.clip(idx, 0, ct.size - 1)
+            for v, k in zip(vs, idx, strict=True):
+                p = _on_point(pos, ka, kb, float(ct[k]))
+                if not np.array_equal(p, r["vertices"][v]):
+                    r["vertices"][v] = p
+                    moved[pi].add(int(v))
+            for s in range(vs.size - 1):
+                u, w = int(vs[s]), int(vs[s + 1])
+                missing = [k for k in range(idx[s] + 1, idx[s + 1])]
+                if not missing:
+                    continue
+                nu, nw = r["normals"][u], r["normals"][w]
+                ids = []
+                for k in missing:
+                    t = float(ct[k])
+                    f = (t - ts[s]) / (ts[s + 1] - ts[s])
+                    n = nu if np.array_equal(nu, nw) else (1 - f) * nu + f * nw
+                    n = n if np.array_equal(nu, nw) else n / np.linalg.norm(n)
+                    ids.append(r["vertices"].shape[0] + len(newv[pi]))
+                    newv[pi].append((_on_point(pos, ka, kb, t), n))
+                inserts[pi][(u, w)] = ids
+                nstitched += len(ids)
+    nmoved = 0
+    for pi, r in enumerate(parts):
+        if not inserts[pi] and not moved[pi]:
+            continue
+        V, N, T = r["vertices"], r["normals"], r["triangles"]
+        if newv[pi]:
+            V = np.concatenate([V, np.array([p for p, _ in newv[pi]])])
+            N = np.concatenate([N, np.array([n for _, n in newv[pi]])])
+        out, extra_v, extra_n = [], [], []
+        for t in T.tolist():
+            sides = []
+            for k in range(3):
+                a, b = t[k], t[(k + 1) % 3]
+                if (a, b) in inserts[pi]:
+                    sides.append(inserts[pi][(a, b)])
+                elif (b, a) in inserts[pi]:
+                    sides.append(inserts[pi][(b, a)][::-1])
+                else:
+                    sides.append([])
+            nz = [k for k in range(3) if sides[k]]
+            if not nz:
+                out.append(t)
+            elif len(nz) == 1:
+                k = nz[0]
+                chain = [t[k], *sides[k], t[(k + 1) % 3]]
+                c = t[(k + 2) % 3]
+                out += [[chain[i], chain[i + 1], c] for i in range(len(chain) - 1)]
+            else:
+                loop = []
+                for k in range(3):
+                    loop += [t[k], *sides[k]]
+                g = V.shape[0] + len(extra_v)
+                extra_v.append(V[t].mean(axis=0))
+                nn = N[t]
+                same = np.all(nn == nn[0])
+                extra_n.append(nn[0] if same else nn.sum(axis=0) / np.linalg.norm(nn.sum(axis=0)))
+                out += [[g, loop[i], loop[(i + 1) % len(loop)]] for i in range(len(loop))]
+        if extra_v:
+            V = np.concatenate([V, np.array(extra_v)])
+            N = np.concatenate([N, np.array(extra_n)])
+        n_old = r["vertices"].shape[0]
+        fresh = np.r_[np.array(sorted(moved[pi]), np.int64), np.arange(n_old, V.shape[0])]
+        vals = np.concatenate([r["values"], np.zeros((V.shape[0] - n_old, *r["values"].shape[1:]))])
+        vals[fresh] = _values(scenes, V[fresh], N[fresh])
+        nmoved += len(moved[pi])
+        r["vertices"], r["normals"], r["triangles"], r["values"] = V, N, np.array(out, np.int64), vals
+    return {"stitched_points": nstitched, "moved_points": nmoved}
+
+
+def _assemble(parts: list[dict[str, np.ndarray]], patches: list[_Patch]) -> tuple[np.ndarray, ...]:
+    V = np.concatenate([r["vertices"] for r in parts])
+    N = np.concatenate([r["normals"] for r in parts])
+    E = np.concatenate([r["values"] for r in parts])
+    off = np.cumsum([0] + [r["vertices"].shape[0] for r in parts])
+    T = np.concatenate([r["triangles"] + o for r, o in zip(parts, off[:-1], strict=True)])
+    patch = np.concatenate([np.full(r["triangles"].shape[0], i, np.int64) for i, r in enumerate(parts)])
+    surface = np.array([p.surface for p in patches], np.int64)[patch]
+    key = np.ascontiguousarray(np.concatenate([V, N], axis=1)).view(np.dtype((np.void, 48))).ravel()
+    _, first, inv = np.unique(key, return_index=True, return_inverse=True)
+    order = np.argsort(first, kind="stable")  # keep the first-seen order
+    rank = np.empty_like(order)
+    rank[order] = np.arange(order.size)
+    keep = first[order]
+    T = rank[inv.ravel()][T]
+    # two vertices of a patch snapped onto one point of a shared edge (the mesher's near-duplicates,
+    # 1e-13 apart) are one vertex now: the slivers between them go
+    ok = (T[:, 0] != T[:, 1]) & (T[:, 1] != T[:, 2]) & (T[:, 0] != T[:, 2])
+    return V[keep], N[keep], T[ok], E[keep], surface[ok], patch[ok]
+
+
+# --------------------------------------------------------------------------------------
+# Public entry point
+# --------------------------------------------------------------------------------------
+
+
+def _default_scale(scenes: list[Scene], patches: list[_Patch], pos: np.ndarray) -> float:
+    """The largest exact total irradiance at the patches' corners and centroids (W/m^2)."""
+    pts, nrm = [], []
+    for p in patches:
+        if p.kind == "planar":
+            poly = p.data["poly"]
+            pts += [poly, poly.mean(axis=0)[None]]
+            nrm += [np.broadcast_to(p.data["normal"], (poly.shape[0] + 1, 3))]
+        else:
+            vp, vn, tri = p.data["vpos"], p.data["vnrm"], p.data["tri"]
+            c = vn[tri].sum(axis=1)
+            pts += [vp, vp[tri].mean(axis=1)]
+            nrm += [vn, c / np.linalg.norm(c, axis=1)[:, None]]
+    v = _values(scenes, np.concatenate(pts), np.concatenate(nrm)).sum(axis=1)
+    return float(v.max())
+
+
+def bake(scene: Scene, receivers: Any = None, tol: float = 1e-3, *, lights: Sequence[int] | None = None,
+         scale: float | None = None, work_dir: str | os.PathLike | None = None, scheduler: Any = None,
+         workers: int | None = None, weld: float = 1e-6, tile_size: float | None = None,
+         max_vertices: int = 2_000_000, min_edge: float | None = None, max_rounds: int = 12,
+         progress: Callable[[int, int], None] | None = None,
+         _before_chunk: Callable[[int], None] | None = None) -> BakedScene:
+    r"""Bake every receiving surface of `scene`: an illumination mesh with exact irradiance per
+    light at its vertices, conforming across shared edges (see the module `jaxshadow._bake`).
+
+    **Arguments:**
+
+    - `scene`: a `Scene` (its occluders cast the shadows).
+    - `receivers`: the surfaces to bake: a list of `ReceiverMesh` (`from_mitsuba`'s second
+      value, `read_mesh`), `Mesh`, or planar convex polygons `(k, 3)` (m, counter-clockwise
+      seen from the lit side), mixed freely; default the scene's occluder polygons.
+    - `tol`: relative tolerance in (0, 1): interpolation error over `scale`. Planar patches
+      meet it as `illumination_mesh` does (seven checked points per element); curved patches
+      at every edge midpoint and centroid.
+    - `lights`: indices of the lights to bake (default all); values are kept per light.
+    - `scale`: the irradiance (W/m^2) `tol` is relative to; default the largest exact value at
+      the patches' corners and centroids (the scene's maximum, or less: then stricter).
+    - `work_dir`: a directory for the per-chunk `.npz` files; chunks already there (same scene,
+      patch and settings) are read, not computed (resume). Default: none (nothing written).
+    - `scheduler`: `None` (in this process, unless `workers`), `"local"`, a Dask scheduler
+      address (`"tcp://host:8786"`) or a `distributed.Client`.
+    - `workers`: with no `scheduler`, the number of worker processes of a Dask `LocalCluster`.
+    - `weld`: receiver vertices closer than `weld` times the scene's size are one vertex.
+    - `tile_size`, `max_vertices`: passed to `illumination_mesh` for the planar patches;
+      `max_vertices` also bounds a curved patch.
+    - `min_edge`: elements shorter than this (m) are not split; default 1e-4 of the receivers'
+      extent on curved patches, `illumination_mesh`'s default on planar ones. Value
+      discontinuities (objects passing through a receiver, hard shadows of point lights) refine
+      down to it.
+    - `max_rounds`: refinement rounds of a curved patch (each halves the split edges).
+    - `progress`: `None` or `callable(n, total)`: `n` more of the `total` chunks are done
+      (first call: the chunks read from `work_dir`, possibly 0; then 1 per chunk computed).
+
+    **Returns:** a `BakedScene`: `vertices (V, 3)`, `normals (V, 3)`, `triangles (T, 3)`,
+    `irradiance (V, 3)`, `irradiance_per_light (V, L, 3)`, `surface (T,)`, `patch (T,)`.
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+
+        light = js.PolygonLight([[-0.3, -0.3, 2], [-0.3, 0.3, 2], [0.3, 0.3, 2], [0.3, -0.3, 2]], radiance=10.0)
+        block = [[-0.2, -0.2, 1], [0.2, -0.2, 1], [0.2, 0.2, 1], [-0.2, 0.2, 1]]
+        scene = js.Scene([light], occluders=[block])
+        floor = [np.array([[-1, -1, 0], [0, -1, 0], [0, 1, 0], [-1, 1, 0.0]]),
+                 np.array([[0, -1, 0], [1, -1, 0], [1, 1, 0], [0, 1, 0.0]])]
+        baked = js.bake(scene, floor, 2e-2, tile_size=1.0)
+        print(baked.vertices.shape, baked.irradiance_per_light.shape)
+        ```
+    """
+    import jax
+
+    t0 = time.perf_counter()
+    if not isinstance(scene, Scene):
+        raise ValueError(f"bake: expected a jaxshadow.Scene, got {type(scene).__name__}.")
+    if not isinstance(tol, (int, float, np.floating)) or not 0 < float(tol) < 1:
+        raise ValueError(f"bake: tol must be a number in (0, 1), got {tol!r}.")
+    if workers is not None and int(workers) < 1:
+        raise ValueError(f"bake: workers must be >= 1, got {workers!r}.")
+    n_lights = len(scene.lights)
+    sel = list(range(n_lights)) if lights is None else [int(i) for i in lights]
+    if not sel or any(not 0 <= i < n_lights for i in sel) or len(set(sel)) != len(sel):
+        raise ValueError(f"bake: lights must be distinct indices in [0, {n_lights}), got {lights!r}.")
+    import equinox as eqx
+
+    scene = eqx.tree_at(lambda s: s.lights, scene, tuple(scene.lights[i] for i in sel))
+    surfaces = _surfaces(scene, receivers)
+    patches, pos, names = _patches(surfaces, float(weld))
+    if not patches:
+        raise ValueError("bake: the receivers have no faces.")
+    scenes = _light_scenes(scene)
+    if scale is None:
+        scale = _default_scale(scenes, patches, pos)
+    if not (np.isfinite(scale) and scale > 0):
+        raise ValueError(f"bake: scale must be a positive number (the scene is unlit at its sample points?), got {scale!r}.")
+    extent = float(np.max(np.ptp(pos, axis=0)))
+    planar: dict[str, Any] = {"max_vertices": int(max_vertices)}
+    if tile_size is not None:
+        planar["tile_size"] = float(tile_size)
+    if min_edge is not None:
+        planar["min_edge"] = float(min_edge)
+    settings = {"tol": float(tol), "scale": float(scale), "x64": bool(jax.config.read("jax_enable_x64")),
+                "weld": float(weld) * extent,
+                "min_edge": float(min_edge) if min_edge is not None else 1e-4 * extent,
+                "max_vertices": int(max_vertices), "max_rounds": int(max_rounds), "planar": planar}
+    parts, computed = _run_chunks(scene, patches, pos, settings, None if work_dir is None else os.fspath(work_dir),
+                                  scheduler, workers, progress, _before_chunk)
+    parts = [{k: np.array(v) for k, v in r.items()} for r in parts]  # writable copies
+    stitch = _stitch(parts, pos, scenes)
+    V, N, T, E, surface, patch = _assemble(parts, patches)
+    stats = {"chunks": len(patches), "chunks_computed": computed,
+             "patches_planar": sum(p.kind == "planar" for p in patches),
+             "patches_curved": sum(p.kind == "curved" for p in patches), **stitch,
+             "seconds": time.perf_counter() - t0}
+    return BakedScene(V, N, T, E, surface, patch, names, np.array(sel, np.int64), float(scale), float(tol), stats)
+
+
+# --------------------------------------------------------------------------------------
+# Files
+# --------------------------------------------------------------------------------------
+
+BAKE_FORMATS = (".glb", ".ply")
+
+
+def write_bake(path: str | os.PathLike, baked: BakedScene) -> None:
+    """Write a `BakedScene` as `.glb` or `.ply` (see `BakedScene.save`), atomically."""
+    from ._files import atomic_write, atomic_write_path
+    from ._illumination_io import vertex_colours
+    from ._meshio import IRRADIANCE_PROPERTY, _trimesh
+
+    trimesh = _trimesh()
+    path = os.fspath(path)
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in BAKE_FORMATS:
+        raise ValueError(f"bake: unknown output format {ext!r} (expected one of {', '.join(BAKE_FORMATS)}).")
+    tm = trimesh.Trimesh(baked.vertices, baked.triangles, vertex_normals=baked.normals,
+                         vertex_colors=vertex_colours(baked.irradiance, baked.scale), process=False)
+    per = baked.irradiance_per_light
+    if ext == ".ply":
+        for c, ch in enumerate("rgb"):
+            tm.vertex_attributes[f"{IRRADIANCE_PROPERTY}_{ch}"] = np.ascontiguousarray(baked.irradiance[:, c])
+        for li in range(per.shape[1]):
+            for c, ch in enumerate("rgb"):
+                tm.vertex_attributes[f"{IRRADIANCE_PROPERTY}_{li}_{ch}"] = np.ascontiguousarray(per[:, li, c])
+        data = tm.export(file_type="ply", encoding="binary", include_attributes=True)
+        with atomic_write(path, "wb") as fh:
+            fh.write(data)
+        return
+    tm.vertex_attributes["_IRRADIANCE"] = np.ascontiguousarray(baked.irradiance, np.float32)
+    for li in range(per.shape[1]):
+        tm.vertex_attributes[f"_IRRADIANCE_{li}"] = np.ascontiguousarray(per[:, li], np.float32)
+    atomic_write_path(path, lambda tmp: tm.export(tmp, file_type="glb", include_normals=True))

@@ -1,0 +1,334 @@
+"""`js.bake` and `jaxshadow bake` (issue 39): every surface of a scene meshed, seam-free, exact
+irradiance per light; chunks on Dask workers, resumable from per-chunk files.
+
+References: the vertex values against `js.irradiance` of each light alone at the output
+vertices; the interpolation error against `js.irradiance` at random points of every output
+triangle; seams from the output geometry alone (no vertex of a patch strictly inside another
+patch's boundary edge)."""
+
+import os
+import sys
+
+import equinox as eqx
+import numpy as np
+import pytest
+
+import jaxshadow as js
+from jaxshadow.cli import main
+
+pytest.importorskip("pythoncdt")
+trimesh = pytest.importorskip("trimesh")
+
+NC = "--no-compile-cache"
+TOL = 5e-2
+
+
+def _scene_and_receivers():
+    """Two square lights above a floor made of two quads (one surface), a wall standing on the
+    floor's edge (a crease), a blocker, and a UV sphere cut along a ring into two curved
+    surfaces (a shared curved edge between surfaces) in the blocker's penumbra."""
+    light = js.PolygonLight([[-0.3, -0.3, 2], [-0.3, 0.3, 2], [0.3, 0.3, 2], [0.3, -0.3, 2]], radiance=10.0)
+    light2 = js.PolygonLight([[0.6, -0.8, 1.5], [0.6, -0.6, 1.5], [0.8, -0.6, 1.5], [0.8, -0.8, 1.5]], radiance=4.0)
+    blocker = np.array([[-0.2, -0.25, 1], [0.5, -0.25, 1], [0.5, 0.15, 1], [-0.2, 0.15, 1]])
+    floor = [np.array([[-1, -1, 0], [0, -1, 0], [0, 1, 0], [-1, 1, 0.0]]),
+             np.array([[0, -1, 0], [1, -1, 0], [1, 1, 0], [0, 1, 0.0]])]
+    wall = js.ReceiverMesh([[1, -1, 0], [1, 1, 0], [1, 1, 1], [1, -1, 1.0]], [[0, 2, 1], [0, 3, 2]], name="wall")
+    s = trimesh.creation.uv_sphere(radius=0.18, count=[8, 8])
+    s.apply_translation([0.55, 0.3, 0.45])
+    v, f = np.asarray(s.vertices), np.asarray(s.faces)
+    nrm = (v - [0.55, 0.3, 0.45]) / 0.18
+    up = v[f].mean(axis=1)[:, 2] > 0.45
+    halves = [js.ReceiverMesh(v, f[m], nrm, name=n) for m, n in ((up, "upper"), (~up, "lower"))]
+    # The sphere receives the blocker's penumbra but casts no shadow: on a faceted sphere with
+    # smooth normals a receiver's tangent plane cuts the neighbouring faces, whose (exact)
+    # shadows near the terminator refine down to max_rounds.
+    scene = js.Scene([light, light2], occluders=[blocker])
+    return scene, [floor, wall, *halves]
+
+
+@pytest.fixture(scope="module")
+def baked():
+    scene, receivers = _scene_and_receivers()
+    return scene, js.bake(scene, receivers, TOL, tile_size=0.5)
+
+
+def _boundary_segments(tris):
+    edges = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1)
+    uniq, count = np.unique(edges, axis=0, return_counts=True)
+    return uniq[count == 1]
+
+
+def test_surfaces_and_patches(baked):
+    _, b = baked
+    assert b.surface_names[1:] == ["wall", "upper", "lower"]
+    assert set(np.unique(b.surface)) == {0, 1, 2, 3}
+    assert b.stats["patches_planar"] >= 3 and b.stats["patches_curved"] == 2
+    assert b.irradiance_per_light.shape == (b.vertices.shape[0], 2, 3)
+    np.testing.assert_array_equal(b.irradiance, b.irradiance_per_light.sum(axis=1))
+
+
+def test_vertex_values_are_exact_per_light(baked):
+    scene, b = baked
+    for li, light in enumerate(scene.lights):
+        alone = eqx.tree_at(lambda s: s.lights, scene, (light,))
+        ref = np.asarray(js.irradiance(alone, b.vertices, b.normals))
+        err = np.abs(b.irradiance_per_light[:, li] - ref)
+        assert err.max() <= 1e-12 * max(np.abs(ref).max(), 1e-300)
+
+
+def check_seams(b):
+    """Every vertex on a patch's boundary that lies on another patch's boundary edge is an end
+    of it (never strictly inside: no T vertex); coincident vertices of two patches are at the
+    same position exactly, and with equal normals carry values within 1e-12 relative. Returns
+    the boundary vertices of each patch."""
+    V, T = b.vertices, b.triangles
+    size = np.ptp(V, axis=0).max()
+    segs, bverts = [], []
+    for p in np.unique(b.patch):
+        s = _boundary_segments(T[b.patch == p])
+        segs.append((p, s))
+        bverts.append((p, np.unique(s)))
+    shared = 0
+    for p, s in segs:
+        a, c = V[s[:, 0]], V[s[:, 1]]
+        d = c - a
+        for q, vs in bverts:
+            if q == p:
+                continue
+            x = V[vs]
+            t = np.einsum("snk,sk->sn", x[None] - a[:, None], d) / np.einsum("sk,sk->s", d, d)[:, None]
+            foot = a[:, None] + t[..., None] * d[:, None]
+            dist = np.linalg.norm(x[None] - foot, axis=2)
+            on = dist <= 1e-9 * size
+            inner = on & (t > 1e-9) & (t < 1 - 1e-9)
+            assert not inner.any(), f"patch {q} vertex inside a boundary edge of patch {p}"
+            shared += int((on & ((np.abs(t) <= 1e-9) | (np.abs(t - 1) <= 1e-9))).sum())
+    assert shared > 0
+    # coincident positions on patch boundaries (inside a patch the mesher may leave points 1e-13
+    # apart: no seam)
+    on_boundary = np.unique(np.concatenate([v for _, v in bverts]))
+    key = V[on_boundary].round(12)
+    _, inv, cnt = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    groups = [on_boundary[inv.ravel() == g] for g in np.nonzero(cnt > 1)[0]]
+    patches_of = {}
+    for p, vs in bverts:
+        for v in vs.tolist():
+            patches_of.setdefault(v, set()).add(int(p))
+    seams = [g for g in groups if len({frozenset(patches_of[v]) for v in g.tolist()}) > 1]
+    assert seams
+    same_normal = 0
+    for g in seams:
+        assert np.all(V[g] == V[g[0]]), "coincident vertices of two patches must be at the same position exactly"
+        for i in g[1:]:
+            if b.normals[i] @ b.normals[g[0]] > 1 - 1e-9:
+                same_normal += 1
+                e0, e1 = b.irradiance_per_light[g[0]], b.irradiance_per_light[i]
+                assert np.abs(e0 - e1).max() <= 1e-12 * max(np.abs(e0).max(), 1e-12 * b.scale)
+    return bverts
+
+
+def test_no_t_junctions_and_one_value_per_point(baked):
+    """`check_seams`; the floor-wall crease and the sphere's cut are shared."""
+    _, b = baked
+    V, T = b.vertices, b.triangles
+    check_seams(b)
+    # where the normals are equal (the floor halves' edge x = 0, the sphere's cut) the two
+    # patches share the vertices themselves: one value per point
+    users = {}
+    for p in np.unique(b.patch):
+        for v in np.unique(T[b.patch == p]).tolist():
+            users.setdefault(v, set()).add(int(p))
+    joint = np.array([v for v, u in users.items() if len(u) > 1])
+    assert np.sum(np.abs(V[joint, 0]) < 1e-12) >= 3
+    on_both = np.intersect1d(np.unique(T[b.surface == 2]), np.unique(T[b.surface == 3]))
+    assert on_both.size >= 8  # the cut between the sphere's halves
+    # the floor-wall crease: wall vertices on the floor line z = 0, x = 1 coincide with floor vertices
+    wall_on = np.unique(T[b.surface == 1])
+    wall_on = wall_on[np.abs(V[wall_on, 2]) < 1e-12]
+    floor_on = np.unique(T[b.surface == 0])
+    floor_on = floor_on[np.abs(V[floor_on, 0] - 1) < 1e-12]
+    assert wall_on.size > 2
+    np.testing.assert_array_equal(np.unique(V[wall_on], axis=0), np.unique(V[floor_on], axis=0))
+
+
+def _samples(b, tris, n_per, seed=0):
+    rng = np.random.default_rng(seed)
+    u = rng.random((tris.shape[0], n_per, 2))
+    flip = u.sum(axis=2) > 1
+    u[flip] = 1 - u[flip]
+    w = np.concatenate([1 - u.sum(axis=2, keepdims=True), u], axis=2)  # (t, n, 3)
+    p = np.einsum("tnk,tkd->tnd", w, b.vertices[tris]).reshape(-1, 3)
+    e = np.einsum("tnk,tkd->tnd", w, b.irradiance[tris]).reshape(-1, 3)
+    nn = np.einsum("tnk,tkd->tnd", w, b.normals[tris]).reshape(-1, 3)
+    return p, nn / np.linalg.norm(nn, axis=1)[:, None], e
+
+
+def test_interpolation_error_on_planar_surfaces_within_tol(baked):
+    scene, b = baked
+    planar = b.triangles[b.surface <= 1]
+    p, n, interp = _samples(b, planar, 12)
+    exact = np.asarray(js.irradiance(scene, p, n))
+    assert np.abs(interp - exact).max() <= TOL * b.scale
+
+
+def test_curved_surfaces_refined_to_tol_at_edge_midpoints(baked):
+    """Curved patches split every edge whose midpoint value misses linear interpolation by more
+    than tol (or that is shorter than min_edge): checked at the output's edges."""
+    scene, b = baked
+    tris = b.triangles[b.surface >= 2]
+    assert np.unique(tris).size > 2 * 42  # refined: the two halves of the UV sphere have 42 vertices
+    e = np.unique(np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1), axis=0)
+    mid = 0.5 * (b.vertices[e[:, 0]] + b.vertices[e[:, 1]])
+    nn = b.normals[e[:, 0]] + b.normals[e[:, 1]]
+    exact = np.asarray(js.irradiance(scene, mid, nn / np.linalg.norm(nn, axis=1)[:, None]))
+    miss = np.abs(exact - 0.5 * (b.irradiance[e[:, 0]] + b.irradiance[e[:, 1]])).max(axis=1)
+    short = np.linalg.norm(b.vertices[e[:, 0]] - b.vertices[e[:, 1]], axis=1) <= 1e-4 * np.ptp(b.vertices, axis=0).max()
+    assert np.all((miss <= TOL * b.scale) | short)
+
+
+def test_glb_and_ply_carry_values_per_light(baked, tmp_path):
+    _, b = baked
+    b.save(tmp_path / "s.glb")
+    b.save(tmp_path / "s.ply")
+    g = trimesh.load(tmp_path / "s.glb", force="mesh", process=False)
+    assert g.vertices.shape == b.vertices.shape
+    np.testing.assert_allclose(g.vertex_attributes["_IRRADIANCE_1"], b.irradiance_per_light[:, 1], rtol=1e-6)
+    np.testing.assert_allclose(g.vertex_attributes["_IRRADIANCE"], b.irradiance, rtol=1e-6)
+    from jaxshadow._meshio import read_ply_values
+
+    np.testing.assert_array_equal(read_ply_values(tmp_path / "s.ply"), b.irradiance)
+    np.testing.assert_array_equal(read_ply_values(tmp_path / "s.ply", "irradiance_0"), b.irradiance_per_light[:, 0])
+
+
+def test_lights_subset_and_bad_input():
+    scene, rec = _scene_and_receivers()
+    one = js.bake(scene, rec[:1], 0.2, lights=[1], tile_size=1.0)
+    assert one.irradiance_per_light.shape[1] == 1 and list(one.lights) == [1]
+    alone = eqx.tree_at(lambda s: s.lights, scene, (scene.lights[1],))
+    ref = np.asarray(js.irradiance(alone, one.vertices, one.normals))
+    np.testing.assert_allclose(one.irradiance, ref, rtol=1e-12, atol=1e-15)
+    for bad in ({"tol": 0.0}, {"tol": 1.5}, {"lights": [2]}, {"lights": [0, 0]}, {"workers": 0}):
+        kw = {"tol": 0.1, **bad}
+        with pytest.raises(ValueError):
+            js.bake(scene, rec[:1], **kw)
+    with pytest.raises(ValueError):
+        js.bake("scene", rec[:1], 0.1)
+
+
+@pytest.mark.slow
+def test_mitsuba_room_bakes_without_seams():
+    """The benchmark's Cornell-box-like Mitsuba room (10 surfaces: six rectangles, a table top,
+    two cubes, a sphere): no T vertex between any two patches, and the walls' shared edges carry
+    the same points from both sides."""
+    pytest.importorskip("mitsuba")
+    from benchmarks.bake import scene_of
+
+    scene, receivers = scene_of("room")
+    b = js.bake(scene, receivers, 2e-2)
+    assert len(b.surface_names) == 10 and b.stats["patches_curved"] == 1
+    check_seams(b)
+    V, T = b.vertices, b.triangles
+    names = b.surface_names
+    floor = np.unique(T[b.surface == names.index("floor")])
+    wall = np.unique(T[b.surface == names.index("wall-x0")])
+    line = lambda ids: np.unique(V[ids[(np.abs(V[ids, 2]) < 1e-6) & (np.abs(V[ids, 0] + 1) < 1e-6)]], axis=0)  # noqa: E731
+    assert line(wall).shape[0] > 2
+    np.testing.assert_array_equal(line(floor), line(wall))
+
+
+# -- chunks: resume and Dask ---------------------------------------------------------------
+
+
+def _small():
+    scene, rec = _scene_and_receivers()
+    return scene, [rec[0], rec[2], rec[3]]
+
+
+def _same(a, b):
+    for name in ("vertices", "normals", "triangles", "irradiance_per_light", "surface", "patch"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+
+
+@pytest.fixture(scope="module")
+def reference():
+    scene, rec = _small()
+    return js.bake(scene, rec, 0.1, tile_size=1.0)
+
+
+def test_resume_reads_chunk_files_and_gives_the_same_result(reference, tmp_path):
+    scene, rec = _small()
+    first = js.bake(scene, rec, 0.1, tile_size=1.0, work_dir=tmp_path)
+    files = sorted(os.listdir(tmp_path))
+    assert first.stats["chunks_computed"] == first.stats["chunks"] == len(files) == 4
+    _same(first, reference)
+    os.remove(tmp_path / files[0])  # as if the run had been killed before that chunk
+    calls = []
+    again = js.bake(scene, rec, 0.1, tile_size=1.0, work_dir=tmp_path, _before_chunk=calls.append)
+    assert again.stats["chunks_computed"] == 1 and len(calls) == 1
+    _same(again, reference)
+    other = js.bake(scene, rec, 0.09, tile_size=1.0, work_dir=tmp_path)  # other settings: other files
+    assert other.stats["chunks_computed"] == 4
+
+
+def _kill_once(index, marker):
+    """Kill this worker process the first time chunk 0 runs (a marker file remembers)."""
+    if index == 0 and not os.path.exists(marker):
+        with open(marker, "w") as fh:
+            fh.write(str(os.getpid()))
+        os._exit(1)
+
+
+@pytest.mark.slow
+def test_dask_workers_a_scheduler_address_and_a_killed_worker_give_the_same_result(reference, tmp_path):
+    pytest.importorskip("distributed")
+    import functools
+
+    import cloudpickle
+
+    cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    scene, rec = _small()
+    two = js.bake(scene, rec, 0.1, tile_size=1.0, workers=2)
+    _same(two, reference)
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        _same(js.bake(scene, rec, 0.1, tile_size=1.0, scheduler=cluster.scheduler_address), reference)
+    marker = str(tmp_path / "killed")
+    hook = functools.partial(_kill_once, marker=marker)
+    survived = js.bake(scene, rec, 0.1, tile_size=1.0, workers=2, work_dir=tmp_path / "w", _before_chunk=hook)
+    assert os.path.exists(marker)  # a worker did die
+    assert survived.stats["chunks_computed"] == 4
+    _same(survived, reference)
+
+
+# -- the command ---------------------------------------------------------------------------
+
+
+def _write_json_scene(tmp_path):
+    scene, rec = _small()
+    occ = js.Scene(scene.lights, occluders=[np.asarray(p) for p in rec[0]] + [np.asarray(scene.occluders)[0]])
+    js.save_scene(occ, tmp_path / "scene.json")
+    return tmp_path / "scene.json"
+
+
+def test_bake_command(tmp_path, capsys):
+    path = _write_json_scene(tmp_path)
+    out = tmp_path / "b.glb"
+    assert main([NC, "bake", str(path), "-o", str(out), "--tol", "0.2", "--lights", "0"]) == 0
+    assert out.exists() and not (tmp_path / "b.glb.chunks").exists()
+    err = capsys.readouterr().err
+    assert "vertices" in err and "%" not in err  # piped: no progress, a summary
+    g = trimesh.load(out, force="mesh", process=False)
+    assert "_IRRADIANCE_0" in g.vertex_attributes and "_IRRADIANCE_1" not in g.vertex_attributes
+    assert main([NC, "bake", str(path), "-o", str(tmp_path / "b.ply"), "--tol", "0.2", "-q"]) == 0
+    assert capsys.readouterr().err == ""
+    with pytest.raises(SystemExit) as exc:
+        main([NC, "bake", str(path), "-o", str(tmp_path / "c.glb"), "--workers", "0"])
+    assert exc.value.code == 2
+    for bad in (["--tol", "2"], ["--lights", "x"], ["--lights", "7"]):
+        assert main([NC, "bake", str(path), "-o", str(tmp_path / "c.glb"), *bad, "-q"]) == 2, bad
+        capsys.readouterr()
+    assert main([NC, "bake", str(path), "-o", str(tmp_path / "c.obj"), "-q"]) == 2
+    assert main([NC, "bake", str(path), "-o", str(path), "-q"]) == 2
+    assert not (tmp_path / "c.glb").exists()
+    assert "destroy the input" in capsys.readouterr().err
