@@ -84,6 +84,9 @@ COLLINEAR_EPS = 64.0
 # Mitsuba) is planar, and a point computed on it lies in its plane, only to a few float32
 # roundings of S (`_occluder_sides`; the engine's `kOnSurface`).
 ON_SURFACE = 2.0**-18
+# An occluder within this elevation (radians) of a receiver's horizon blocks nothing
+# (`_hugs_horizon`; geometry.h kHorizonBand).
+HORIZON_BAND = 1e-7
 
 
 def _eps(x: Array) -> float:
@@ -346,6 +349,25 @@ def _region_planes(e_normals: Array, o_normals: Array) -> Array:
     )
 
 
+def _hugs_horizon(p: Array, n: Array, occluders: Array) -> Array:
+    """Per occluder: whether it stays within `HORIZON_BAND` (radians) of p's horizon. Every
+    point of it rises at most `hmax` (its highest vertex) above the horizon plane and lies at
+    least the distance d of its plane from p, so its elevation is below asin(hmax / d); within
+    the band it blocks a projected solid angle under pi * HORIZON_BAND^2 (a form factor below
+    1e-14), and clipping it at the horizon is ill-conditioned (its projection runs along E_h's
+    horizon edge). Such occluders, and those wholly at or below the horizon, are dropped (the
+    engine's face_status does the same)."""
+    occ = jax.lax.stop_gradient(occluders)
+    q, m = jax.lax.stop_gradient(p), jax.lax.stop_gradient(n)
+    rel = occ - q[None, None, :]
+    nh = m / jnp.sqrt(jnp.sum(m * m))
+    hmax = jnp.max(jnp.sum(rel * nh[None, None, :], axis=-1), axis=1)  # (M,)
+    no = jax.vmap(newell_normal)(rel)
+    nn = jnp.sqrt(jnp.sum(no * no, axis=-1))
+    d = jnp.abs(jnp.sum(no * rel[:, 0, :], axis=-1)) / jnp.where(nn > 0, nn, 1.0)
+    return hmax <= HORIZON_BAND * jnp.where(nn > 0, d, 0.0)
+
+
 def _candidates(p: Array, n: Array, verts: Array, occluders: Array) -> _Candidates:
     """E_h's edges and the effective blockers' edges clipped to the pyramid (p, E_h), projected
     onto the emitter plane and reversed (R lies outside each Q_j), with every region's planes
@@ -360,6 +382,7 @@ def _candidates(p: Array, n: Array, verts: Array, occluders: Array) -> _Candidat
 
     # Regions 1..M: effective blockers, their edges clipped to the pyramid (p, E_h).
     o_normals, s, active = _occluder_regions(p, occluders, ne, hp)
+    active = active & ~_hugs_horizon(p, n, occluders)
     o_s, o_e = jax.vmap(horizon_clip_edges, in_axes=(None, None, 0))(e0, ne, occluders)
     cone = e_normals
 

@@ -17,6 +17,7 @@ namespace jaxshadow_engine {
 
 
 constexpr double kCollinearEps = 64.0;  // _clip.COLLINEAR_EPS
+constexpr double kHorizonBand = 1e-7;  // polygon.h face_status: faces this close to the horizon (rad) block nothing
 // _clip.ON_SURFACE: a receiver closer to a face's plane than kOnSurface times S (the largest
 // coordinate magnitude of the face's vertices and the receiver) lies on that face: 32 float32
 // epsilons (2^-18, about 3.8e-6) of S, whatever the float type, because scene data are float32

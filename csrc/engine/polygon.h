@@ -275,6 +275,31 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
       if (all_out) return 0;
     }
     {
+      // Hugging the receiver's horizon: every point x of the face rises at most hmax (its highest
+      // vertex) above the horizon plane and lies at least the distance d of the face's plane
+      // from p, so its elevation is below asin(hmax / d). Within kHorizonBand the face blocks a
+      // projected solid angle under pi * kHorizonBand^2 (a form factor below 1e-14) and clipping
+      // it at the horizon is ill-conditioned (its projection runs along E_h's horizon edge): it
+      // is dropped, as a face wholly at or below the horizon is (hmax <= 0).
+      const V3<T>& hz = cone[np0 - 1];
+      const double hn = norm(hz);
+      if (hn > 0) {
+        const V3<T> v0 = occ.vert(f, 0);
+        double hmax = -std::numeric_limits<double>::infinity();
+        double N[3] = {0, 0, 0};
+        for (int64_t i = 0; i < Ko; i++) {
+          hmax = std::max(hmax, double(dot(occ.vert(f, i) - p, hz)) / hn);
+          const V3<T> a = occ.vert(f, i) - v0, b = occ.vert(f, (i + 1) % Ko) - v0;
+          N[0] += double(a.y) * b.z - double(a.z) * b.y;
+          N[1] += double(a.z) * b.x - double(a.x) * b.z;
+          N[2] += double(a.x) * b.y - double(a.y) * b.x;
+        }
+        const double nn = std::sqrt(N[0] * N[0] + N[1] * N[1] + N[2] * N[2]);
+        const double d = nn > 0 ? std::fabs((double(p.x) - v0.x) * N[0] + (double(p.y) - v0.y) * N[1] + (double(p.z) - v0.z) * N[2]) / nn : 0.0;
+        if (hmax <= kHorizonBand * d) return 0;
+      }
+    }
+    {
       bool all_behind = true;
       for (int64_t i = 0; i < Ko && all_behind; i++) {
         V3<T> r = occ.vert(f, i) - e0;
