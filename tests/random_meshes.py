@@ -82,7 +82,8 @@ def place(v: np.ndarray, size: float, centre_xy, touch: str | None, z: float) ->
     return v
 
 
-def mesh_scene(rng: np.random.Generator, kind: str, fine: bool = False) -> list[tuple[np.ndarray, np.ndarray]]:
+def mesh_scene(rng: np.random.Generator, kind: str, fine: bool = False,
+               shapes: tuple[str, ...] = SHAPES) -> list[tuple[np.ndarray, np.ndarray]]:
     """Occluder meshes `[(V, F), ...]` for one scene.
 
     - `closed`: one displaced closed shape floating between floor and light;
@@ -93,7 +94,7 @@ def mesh_scene(rng: np.random.Generator, kind: str, fine: bool = False) -> list[
     n = int(rng.integers(2, 4)) if kind == "components" else 1
     out = []
     for i in range(n):
-        shape = SHAPES[int(rng.integers(len(SHAPES)))]
+        shape = shapes[int(rng.integers(len(shapes)))]
         v, f = base_shape(rng, shape, fine)
         v = rotate(rng, v)
         if kind in ("open", "components") and (kind == "open" or rng.random() < 0.5):
