@@ -21,8 +21,9 @@ values finite. And the public entry points (`Scene`, `Mesh`, `PolygonLight`, `ir
 `shadow_plan`, `ShadowCache`) refuse NaN and infinite coordinates with a `ValueError` before any
 C++ runs.
 
-Profiles: CI runs `CI_EXAMPLES` derandomized draws per property; `-m slow` runs
-`JAXSHADOW_FUZZ_EXAMPLES` (default 3000) random draws per property.
+Profiles: CI runs `CI_EXAMPLES` derandomized draws of the engine property (30 through the
+public values, 8 through the FFI handlers); `-m slow` runs `JAXSHADOW_FUZZ_EXAMPLES` (default
+3000) random draws.
 """
 
 from __future__ import annotations
@@ -312,7 +313,7 @@ def test_public_entry_points_refuse_non_finite_input(seed, where, value, entry):
         call()
 
 
-@CI
+@_profile(30, True)  # each new occluder count compiles the value kernels once
 @given(engine_scenes())
 def test_public_values_are_finite_on_random_meshes(draw):
     """Scenes the public entry points accept (degenerate faces are refused with a ValueError)
