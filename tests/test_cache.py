@@ -83,3 +83,24 @@ def test_separating_planes_separate():
     assert np.all(c @ planes[:, :3].T >= planes[:, 3] - 1e-12)
     # Nothing separates a box that reaches the light.
     assert _cache.separating_planes(QUAD, np.array([-0.1, -0.1, 1.0]), np.array([0.1, 0.1, 2.5]), 5.0).shape == (0, 4)
+
+
+def test_cache_with_a_segment_light_and_occluders():
+    """A scene with a segment light (whose candidate faces the device kernel clips) beside a
+    polygon and a point light: the cache builds (it raised `TypeError` on the segment light's
+    missing faces) and its values, before and after moving the occluder, are
+    `jaxshadow.irradiance`'s of the same scene."""
+    tri = np.array([[-0.2, -0.1, 1.0], [0.3, -0.1, 1.0], [0.0, 0.3, 1.0]])
+    lights = [js.LinearLight([-0.5, 0.0, 2.0], [0.5, 0.1, 2.0], power=2.0), js.PolygonLight(QUAD, 1.0),
+              js.PointLight([0.1, 0.0, 2.0], 1.0)]
+    rng = np.random.default_rng(4)
+    p = np.c_[rng.uniform(-1, 1, (60, 2)), np.zeros(60)]
+    n = np.tile([0.0, 0.0, 1.0], (60, 1))
+    scene = js.Scene(lights, occluders=[tri])
+    cache = js.ShadowCache(scene, p, n)
+    want = np.asarray(js.irradiance(scene, p, n))
+    assert want[:, 0].min() < 0.9 * want[:, 0].max()  # some receivers are shadowed
+    np.testing.assert_allclose(cache.irradiance, want, rtol=1e-12, atol=1e-15)
+    moved = js.Scene(lights, occluders=[tri + [0.2, 0.1, 0.0]])
+    np.testing.assert_allclose(cache.update(moved).irradiance, np.asarray(js.irradiance(moved, p, n)), rtol=1e-12,
+                               atol=1e-15)

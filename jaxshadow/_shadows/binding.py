@@ -63,7 +63,17 @@ FFI_SEGMENT = "jaxshadow_segment_candidates"
 
 @functools.cache
 def _lib() -> Any:
-    """The engine's ctypes library, or None where the extension was not built."""
+    """The engine's ctypes library, or None where the extension was not built.
+
+    `JAXSHADOW_ENGINE_LIBRARY`, when set, names another build of the same sources to load instead
+    (`tools/sanitize.sh` runs the tests with one built under AddressSanitizer); a path that does
+    not load is an error, not a silent fallback to the device kernels."""
+    override = os.environ.get("JAXSHADOW_ENGINE_LIBRARY")
+    if override:
+        lib = _abi.load(override)
+        if lib is None:
+            raise RuntimeError(f"JAXSHADOW_ENGINE_LIBRARY={override}: not the engine's ABI version {_abi.ABI_VERSION}")
+        return lib
     try:
         from . import _shadowc as mod  # type: ignore[attr-defined]
     except ImportError:

@@ -219,8 +219,10 @@ class ShadowCache:
             return np.zeros(0, self._p.dtype)
         pl = sh.plan(scene, self._p[idx], self._n[idx], codes=False, decoded=False, lights=[scene.lights[light_i]],
                      lambert=True)
+        # The faces: segment lights clip their candidate faces (the other kinds do not read them).
+        faces = np.asarray(scene.occluders, self._p.dtype)
         return np.asarray(sh.light_values(pl.lights[0], scene.lights[light_i], sh.Lambert(), self._p[idx],
-                                          self._n[idx], self._p[idx], None, True))
+                                          self._n[idx], self._p[idx], faces, True))
 
     def _combine(self) -> None:
         # The same compiled sum as `jaxshadow.irradiance`'s (so the two agree bit for bit).

@@ -49,7 +49,6 @@ from .._clip import (
     masked_contour_form_factor,
     visible_segments,
 )
-from .._geometry import newell_normal
 from .._linear import linear_irradiance_kernel
 from .._point import directional_irradiance_kernel, point_irradiance_kernel
 from .._polygon import form_factor_kernel
@@ -379,6 +378,19 @@ def _dense_rows(offsets: np.ndarray, idx: np.ndarray, cap: int) -> tuple[np.ndar
 # Compiled pieces, one light and one block. Each is jitted once per (integrand type, shapes).
 
 
+def _on_lit_side_host(p: np.ndarray, verts: np.ndarray) -> np.ndarray:
+    """`_geometry.on_lit_side` for concrete receivers `(N, 3)`, in float64: the light's normal
+    from its vertices relative to the first, each set divided by its largest component (raw
+    products overflowed in float32 beyond 1e19 and underflowed below 1e-19: penumbra values 0)."""
+    v = np.asarray(verts, np.float64)
+    rel = v - v[0]
+    rel = rel / max(float(np.max(np.abs(rel))), np.finfo(np.float64).tiny)
+    ne = np.sum(np.cross(rel, np.roll(rel, -1, axis=0)), axis=0)
+    w = np.asarray(p, np.float64) - v[0]
+    t = np.max(np.abs(w), axis=1, keepdims=True)
+    return (w / np.where(t > 0, t, 1.0)) @ ne > 0
+
+
 @jax.jit
 def _lit_block(integ, p, n, e, verts):
     return jax.vmap(integ.polygon, in_axes=(0, 0, 0, None))(p, n, e, verts)
@@ -489,9 +501,8 @@ def light_values(lp: LightPlan, light: Any, integ: Any, p: Any, n: Any, e: Any, 
             # the engine adds them up, in double, as it decodes the edges (`edge_term`'s formula).
             assert lp.lambert is not None
             f = lp.lambert[pen]
-            v = np.asarray(verts)
-            ne = np.asarray(newell_normal(jnp.asarray(verts)))
-            parts.append((pen, np.where((_take(p, pen) - v[0]) @ ne > 0, -0.5 * f, 0.0).astype(dt)))
+            lit_side = _on_lit_side_host(np.asarray(_take(p, pen)), np.asarray(verts))
+            parts.append((pen, np.where(lit_side, -0.5 * f, 0.0).astype(dt)))
             pen = pen[:0]
         for cap, idx in capacity_groups(lp.counts, pen):
             r, used = _dense_rows(lp.offsets, idx, cap)
