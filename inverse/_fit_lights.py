@@ -34,6 +34,7 @@ from jaxshadow import traced
 
 from ._diagnostics import FitQualityWarning, assess, competing_placements, dark_answer
 from ._forward import SpecularFn
+from ._global_placement import place, region_of, template_light
 from ._identifiability import identifiability
 from ._multilight import (
     LightsProblem,
@@ -151,6 +152,8 @@ def fit_lights(
     search_targets: Any = None,
     noise: Any = None,
     warn: bool = True,
+    kinds: Any = None,
+    placement: str = "global",
 ) -> LightsFit:
     """Place several lights of `scene` at once, with their powers, so the shading matches
     painted colours (Poulin ch. 5: lights from diffuse shading, highlights and shadows).
@@ -262,6 +265,10 @@ def fit_lights(
         print(fit.report)
         ```
     """
+    if kinds is not None:
+        scene, lights = _with_new_lights(scene, targets, kinds, lights)
+    if placement not in ("global", "local"):
+        raise ValueError(f"fit_lights: placement must be 'global' or 'local', got {placement!r}.")
     idx, fit, cons = _checked(scene, targets, material, lights, fit, starts, material_mode, constraints)
     budget = cons.pop("budget", None)
     paint = painting(len(targets), ranges, brighter, targets.points.dtype)
@@ -346,7 +353,17 @@ def fit_lights(
     final = None  # the last joint solve's rows and losses, best first: the competing placements
     initial = None
     placed = grid_rows is not None
-    if placed:
+    ranked: list = [None] * len(params)
+    use_global = (placement == "global" and not placed and not in_theta and not project
+                  and any(p is not None and "position" in p._slices() for p in params))
+    if use_global:
+        f0, problem, retries = screen(problem, theta0[None], theta0, np.ones(Pt, bool), k)
+        initial = float(f0[0])
+        pl = place(problem, theta0, per_light, cons, idx, seed, k)
+        problem, base, ranked = pl.problem, pl.theta, pl.ranked
+        stage_losses.append(pl.loss)
+        placed = True
+    elif placed:
         problem, base, initial, n, retries = greedy(problem, base, grid_rows, offsets, P, in_theta, k, staged,
                                                      stage_losses)
         n_solved += n
@@ -368,9 +385,11 @@ def fit_lights(
                 mask[sl] = stage_mask(params[j])
                 if in_theta:  # its power with it
                     mask[P + j] = True
-                if placed:  # the grid again, a third the size, around the placed pose (every light placed)
+                if grid_rows is not None:  # the grid again, a third the size, around the placed pose
                     g = grid_rows[j]
                     y = np.concatenate([y, base[sl][None] + (g - g[:1]) / 3.0])
+                if ranked[j] is not None:  # the global placement's candidates for this light
+                    y = np.concatenate([y, ranked[j]])
                 full = np.tile(base, (y.shape[0], 1))
                 full[:, sl] = y
                 if sweep or placed:  # again, with the others placed: from the current pose and the same spread
@@ -394,7 +413,8 @@ def fit_lights(
                 if len(order) > 1 and np.isfinite(f[order[1]]):
                     runner_up[j] = vals[order[1]][sl]
                 stage_losses.append(float(f[order[0]]))
-            joint = [base] + ([] if placed else [theta0])  # the given poses together are a candidate too
+            # the given poses together are a candidate too (the grid's greedy placement replaces them)
+            joint = [base] + ([] if grid_rows is not None else [theta0])
             for j, v in runner_up.items():
                 alt = base.copy()
                 alt[offsets[j]:offsets[j] + params[j].size] = v
@@ -438,6 +458,25 @@ def fit_lights(
         for msg in out.report.quality.emitted:
             _warnings.warn(msg, FitQualityWarning, stacklevel=2)
     return out
+
+
+def _with_new_lights(scene: Any, targets: Any, kinds: Any, lights: Any) -> tuple[js.Scene, list[int]]:
+    """`scene` with one template light per entry of `kinds` appended (`template_light`: white,
+    unit power, in the middle of the feasible region) and their indices."""
+    if not isinstance(scene, js.Scene):
+        raise ValueError(f"fit_lights: expected a jaxshadow.Scene, got {type(scene).__name__}.")
+    if not isinstance(targets, PaintedTargets):
+        raise ValueError(f"fit_lights: targets must be PaintedTargets, got {type(targets).__name__}.")
+    if lights is not None:
+        raise ValueError("fit_lights: give either kinds (new lights) or lights (indices of the scene's), not both.")
+    kinds = [kinds] if isinstance(kinds, str) else list(kinds)
+    if not kinds:
+        raise ValueError("fit_lights: kinds must name at least one light kind.")
+    region = region_of(scene, np.asarray(targets.points), np.asarray(targets.normals))
+    new = [template_light(str(k), region) for k in kinds]
+    n = len(scene.lights)
+    out = js.Scene([*scene.lights, *new], occluders=scene.occluders, ambient=scene.ambient)
+    return out, list(range(n, n + len(new)))
 
 
 def _search_weights(targets: PaintedTargets, search: Any) -> Any:
