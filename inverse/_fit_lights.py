@@ -545,7 +545,8 @@ def _with_capacity(problem: LightsProblem, per_light: list, fixed: list) -> Ligh
         p = problem.params[j]
         cands += [problem.refs[j]] if y is None else start_lights(p, jnp.asarray(y))
     most = traced.shadow_capacity(scene, t.points, t.normals, lights=cands)
-    return dataclasses.replace(problem, capacity=max(8, -(-5 * most // 4) + 4))
+    # Rounded up to a multiple of 8: nearby scenes and starts share one compiled program.
+    return dataclasses.replace(problem, capacity=8 * -(-max(8, -(-5 * most // 4) + 4) // 8))
 
 
 def _material_at(problem: LightsProblem, theta: np.ndarray) -> js.Material:

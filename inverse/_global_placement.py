@@ -48,8 +48,8 @@ from ._multilight import MAX_CAPACITY, LightsProblem, _parts
 from ._parametrisation import LightParametrisation
 
 POSITIONS = 512
-CHUNK = 128
-REFINE_POINTS = 128
+CHUNK = 64
+REFINE_POINTS = 64
 BEAM, PER_PARENT, REFINED = 12, 3, 2
 HEIGHT_MIN, HEIGHT_MAX = 0.02, 0.6
 LATERAL_MARGIN = 0.1
