@@ -35,7 +35,6 @@ def _setting(kinds: str, start: str, seeds: list[int]) -> dict:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    import numpy as np
 
     import inverse
     import jaxshadow as js

@@ -81,8 +81,8 @@ def region_of(scene: js.Scene, points: np.ndarray, normals: np.ndarray) -> Regio
     e1 = np.cross(up, a)
     e1 /= np.linalg.norm(e1)
     axes = np.stack([e1, np.cross(up, e1), up])
-    allp = [pts] + ([np.asarray(scene.occluders, np.float64).reshape(-1, 3)] if scene.occluders is not None else [])
-    allp = np.concatenate(allp)
+    allp = np.concatenate([pts] + ([np.asarray(scene.occluders, np.float64).reshape(-1, 3)]
+                                   if scene.occluders is not None else []))
     allp = allp[np.all(np.isfinite(allp), axis=1)]
     extent = float(np.linalg.norm(allp.max(axis=0) - allp.min(axis=0)))
     origin = pts.mean(axis=0)
@@ -198,7 +198,7 @@ def rows_at(param: LightParametrisation, region: Region, centres: np.ndarray) ->
         pos = (np.clip(centres, lo, hi) - c0) / s
     else:
         pos = (centres - c0) / s
-    orients = [None]
+    orients: list[Any] = [None]
     if "orientation" in sl and param.kind == "polygon":
         n0 = np.asarray(param.frame0, np.float64)[:, 2]
         orients = [np.zeros(3), -region.axes[2], "centroid"]
