@@ -8,7 +8,14 @@ Each scene is `inverse._random_scenes.random_case(seed, kinds)`: grey lights of 
 random direction at 0.5-2x its power (`shifted_start`), or no light at all
 (`fit_lights(..., kinds=[...])`). A fit succeeds when every light is within 0.5 % of the scene
 size (vertices, ends, position) and every power within 1 %. One process per setting: its first
-fit compiles (`compile_s`, from `jax.monitoring`), the later ones reuse the programs.
+fit compiles (`compile_s`, from `jax.monitoring`), the later ones reuse the programs (a scene
+whose shadow capacity differs compiles again).
+
+`compile_study`: the first fit of fresh processes without and with JAX's persistent compilation
+cache (`jaxshadow.cli.enable_compile_cache`), for a one-light + material fit
+(`inverse.fit_light_and_material` on the demo scene) and for `fit_lights` from no start.
+
+    python -m benchmarks fit_global [--quick]    # quick: quad + point, 3 scenes per setting
 """
 
 from __future__ import annotations
@@ -66,6 +73,69 @@ def _setting(kinds: str, start: str, seeds: list[int]) -> dict:
     return {"runs": runs, "load": os.getloadavg()[0]}
 
 
+def _one_light_and_material(cache_dir: str) -> dict:
+    """The demo's quad light (30 % of the scene away) and its material from 40 painted targets
+    (`inverse.fit_light_and_material`), in this fresh process: the fit's wall time and the time
+    JAX spent compiling and tracing (`jax.monitoring`), with the persistent compilation cache
+    in `cache_dir` (`jaxshadow.cli.enable_compile_cache`; "" for none)."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import numpy as np
+
+    import inverse
+    import jaxshadow as js
+    from benchmarks.fit_lights import _timing
+    from jaxshadow.cli import enable_compile_cache
+
+    if cache_dir:
+        enable_compile_cache(cache_dir, min_compile_s=0.0)
+    timing = _timing()
+    cfg = inverse.demo_configuration(occluders=True, n_points=40, seed=0)
+    col = js.shade(cfg.scene, cfg.material, cfg.points, cfg.normals, cfg.eye)
+    tg = inverse.PaintedTargets(cfg.points, cfg.normals, col, cfg.eye)
+    guess = js.Material(ka=0.2, kd=0.5, ks=0.2, exponent=float(cfg.material.exponent))
+    t0 = time.perf_counter()
+    fit = inverse.fit_light_and_material(cfg.start_scene, tg, guess)
+    fit_s = time.perf_counter() - t0
+    err = inverse.pose_errors(np.asarray(fit.scene.lights[0].vertices), np.asarray(cfg.scene.lights[0].vertices))
+    return {"fit_s": fit_s, **timing, "position_err_m": err["position"], "load": os.getloadavg()[0]}
+
+
+def _cached_setting(cache_dir: str, kinds: str, start: str, seeds: list[int]) -> dict:
+    """`_setting` with the persistent compilation cache in `cache_dir`."""
+    from jaxshadow.cli import enable_compile_cache
+
+    enable_compile_cache(cache_dir, min_compile_s=0.0)
+    return _setting(kinds, start, seeds)
+
+
+def _run_child(call: str) -> dict:
+    code = f"import json; import benchmarks.fit_global as b; print(json.dumps(b.{call}))"
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=dict(os.environ), check=True)
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def compile_study() -> dict:
+    """First fits of fresh processes: without the persistent compilation cache, then twice with
+    one (cold: it is filled; warm: a later process reuses it), for a one-light + material fit
+    and for `fit_lights` from no start (quad + point, scene seed 1)."""
+    import tempfile
+
+    out: dict = {}
+    with tempfile.TemporaryDirectory() as d:
+        for label, cache in (("no cache", ""), ("cache filled", d), ("cache reused", d)):
+            out[f"one light + material/{label}"] = _run_child(f"_one_light_and_material({cache!r})")
+    with tempfile.TemporaryDirectory() as d:
+        for label, cache in (("no cache", ""), ("cache filled", d), ("cache reused", d)):
+            call = (f"_cached_setting({cache!r}, 'quad+point', 'none', [1])" if cache
+                    else "_setting('quad+point', 'none', [1])")
+            r = _run_child(call)["runs"][0]
+            out[f"fit_lights quad+point no start/{label}"] = {"fit_s": r["fit_s"], "compile_s": r["compile_s"],
+                                                             "success": r["success"]}
+    return out
+
+
 def _child(kinds: str, start: str, seeds: list[int]) -> dict:
     code = (f"import json; import benchmarks.fit_global as b; "
             f"print(json.dumps(b._setting({kinds!r}, {start!r}, {seeds!r})))")
@@ -92,7 +162,7 @@ def run(quick: bool) -> dict:
         for start in STARTS:
             r = _child(kinds, start, seeds)
             out[f"{kinds}/start={start}"] = {**_summary(r["runs"]), **r}
-    return {"settings": out}
+    return {"settings": out, "compile": compile_study()}
 
 
 def markdown(results: dict) -> str:
@@ -105,4 +175,7 @@ def markdown(results: dict) -> str:
         rows.append(f"| {name} | {r['success']}/{r['n']} | {r['failed_flagged']}/{r['n'] - r['success']} | "
                     f"{r['worst_position_err_pct']:.2g} | {r['median_fit_s']:.1f} | {r['first_fit_s']:.1f} | "
                     f"{r['first_compile_s']:.1f} |")
+    rows += ["", "| first fit of a fresh process | fit (s) | of which compiling (s) |", "|---|---|---|"]
+    for name, r in results.get("compile", {}).items():
+        rows.append(f"| {name} | {r['fit_s']:.1f} | {r['compile_s']:.1f} |")
     return "\n".join(rows) + "\n"

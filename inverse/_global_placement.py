@@ -10,7 +10,8 @@ column of light $j$ at its reference power, `(3N,)`). So the screen needs no der
    ("up"), between `HEIGHT_MIN` and `HEIGHT_MAX` times the extent $D$ (the diagonal of the
    targets' and occluders' bounding box) above the highest target, and laterally within the
    targets' extent plus `LATERAL_MARGIN` $D$; inside the box of an `inverse.Box` constraint,
-   on the plane of an `inverse.Plane`, outside the hull of an `inverse.Outside`.
+   on the plane of an `inverse.Plane` (an `inverse.Outside` hull is left to the solver's
+   penalty: a light inside closed occluders lights nothing and is never chosen).
 2. **Candidates.** `POSITIONS` centres per light from a scrambled Sobol set over the region
    (`scipy.stats.qmc`), plus points on the rays of `light_from_diffuse_maximum` at the
    brightest targets (Poulin ch. 5's closed form), plus the light's own multistart rows
@@ -23,7 +24,8 @@ column of light $j$ at its reference power, `(3N,)`). So the screen needs no der
 4. **Matching pursuit.** Starting from no light, each step tries every candidate of every
    unplaced light with the placed ones, powers by NNLS, and places the best; then each light
    in turn is re-chosen with the others held (coordinate descent) until nothing changes, and
-   refined by a local screen around its pose (`REFINE_POINTS` candidates, radius halved twice).
+   refined by a local screen around its pose (`REFINE_POINTS` candidates in position,
+   orientation and log size, the radius halved twice).
 
 The result is a placement (`theta`, the poses) and, per light, its candidates ranked with the
 others at that placement: the starts of `fit_lights`' per-light solves, which then refine all
@@ -423,6 +425,8 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
                 spread[sl["position"]] = 0.5 * spacing / float(p.scale)
             if "orientation" in sl:
                 spread[sl["orientation"]] = 0.2
+            if "size" in sl:  # log sizes: a given or default size is a guess
+                spread[sl["size"]] = 0.4
             for level in range(3):
                 trial = rows[j][chosen[j]] + spread / 2 ** level * rng.uniform(-1.0, 1.0, (REFINE_POINTS, p.size))
                 ct, problem = unit_columns(problem, j, trial)
