@@ -384,7 +384,9 @@ def fit_lights(
     # exact already (the lowest final loss wins).
     energy = 0.5 * float(jnp.sum(full_w * problem.targets.colours ** 2))
     best_attempt: tuple | None = None
-    for attempt in ("local", "global") if use_global else ("local",):
+    # Lights given by kind only: their templates are candidates of the global placement already.
+    attempts = ("local", "global") if use_global and kinds is None else ("global",) if use_global else ("local",)
+    for attempt in attempts:
         problem = _reweighted(problem, search_w)
         base = theta0.copy()
         runner_up: dict = {}
@@ -392,6 +394,9 @@ def fit_lights(
         placed = grid_rows is not None
         ranked: list = [None] * len(params)
         if attempt == "global":
+            if initial is None:  # the given poses' loss
+                f0, problem, r = screen(problem, theta0[None], theta0, np.ones(Pt, bool), k)
+                initial, retries = float(f0[0]), retries + r
             pl = place(problem, theta0, per_light, cons, idx, seed, k)
             problem, base, ranked = pl.problem, pl.theta, pl.ranked
             stage_losses.append(pl.loss)
