@@ -1,14 +1,17 @@
 """`fit_lights`: several lights placed at once, with their powers, through the soft shadows.
 
-By default every light is first placed globally (`_global_placement`): its pose screened over
-the whole region above the targets, the powers by non-negative least squares, one light at a
-time on the residual; the given poses compete there and in the joint refinement, so starts far
-from the truth, or no start at all (`kinds=`), are not a local solver's problem. Then each light
-is searched from its best screened poses and its own starts, and all poses are refined jointly
-as below.
+The given poses are searched first (each light's sweeps, then jointly, below). Unless that
+explains the targets exactly (`EXACT_LOSS`), the lights are then placed globally
+(`_global_placement`): every pose screened over the region above the targets, the powers by
+non-negative least squares, one light at a time on the residual; each light is searched from
+its best screened poses and its own starts and all poses are refined jointly, and the lower
+final loss of the two searches wins. So starts far from the truth, or no start at all
+(`kinds=`: the global placement only), are not a local solver's problem, and starts close to
+it cost what they did.
 
-The multistart does not multiply. With `grid=` (the former far-start option), the lights are
-instead placed one at a time from a grid around the given poses (`_multilight_placement.greedy`): the lights not placed yet are left out of the model,
+The multistart does not multiply. With `grid=`, the lights are instead placed one at a time
+from a grid around the given poses (`_multilight_placement.greedy`): the lights not placed yet
+are left out of the model,
 every unplaced light's grid of positions (a scrambled Sobol stratification,
 `_multistart.make_starts`) is screened and the light and position that explain the targets
 best are refined and kept; the placed positions are then dealt to the lights in every order
@@ -190,9 +193,10 @@ def fit_lights(
     The powers are non-negative least squares over the lights' unit contributions (no
     derivative needed); the lights are added one at a time on the residual (a beam of 12
     partial placements), the positions dealt to the lights in every order, and each light
-    screened again locally around its pose. The given poses are candidates there and a start
-    of the joint refinement: the lowest final loss wins, so starts 10 % away keep working.
-    Then each light is searched from its best screened poses and its own starts (the others at
+    screened again locally around its pose. It runs after the search from the given poses
+    unless that fit is exact (a final loss below `EXACT_LOSS` = 1e-12 of $\\tfrac12\\sum w c^2$),
+    and the lower final loss of the two wins, so starts 10 % away cost what they did. Then each
+    light is searched from its best screened poses and its own starts (the others at
     their current best), then every pose jointly (sizes freed last): the starts add up over
     the lights instead of multiplying. Not with `ranges`, `brighter`, `material_mode="projected"`
     or `grid > 0` (those start from the given poses); `placement="local"` switches it off.

@@ -400,19 +400,22 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
     for f, ch in finals:
         if all(ch != c for _, c in distinct):
             distinct.append((f, ch))
-    if len(todo) > 1:  # the positions dealt to the lights in every order (a small quad passes for a point)
+    # The positions dealt to the lights in every order (a small quad passes for a point), for the
+    # lights whose centre is free (a Plane or a Box keeps its own).
+    movable = [j for j in todo if "position" in params[j]._slices() and params[j].constraint == "none"]
+    if len(movable) > 1:
         for _, ch in list(distinct[:REFINED]):
-            where = {j: centre_of_row(params[j], rows[j][ch[j]]) for j in todo}
-            perms = [q for q in itertools.permutations(todo) if q != tuple(todo)]
+            where = {j: centre_of_row(params[j], rows[j][ch[j]]) for j in movable}
+            perms = [q for q in itertools.permutations(movable) if q != tuple(movable)]
             first: dict = {}
-            for j in todo:
-                new = [rows_at(params[j], region, where[q[todo.index(j)]][None]) for q in perms]
+            for j in movable:
+                new = [rows_at(params[j], region, where[q[movable.index(j)]][None]) for q in perms]
                 first[j] = rows[j].shape[0] + np.cumsum([0] + [r.shape[0] for r in new[:-1]])
                 ct, problem = unit_columns(problem, j, np.concatenate(new))
                 rows[j] = np.concatenate([rows[j], *new])
                 cols[j] = np.concatenate([cols[j], ct])
             for n in range(len(perms)):
-                distinct.append(descend({j: int(first[j][n]) for j in todo}))
+                distinct.append(descend({**ch, **{j: int(first[j][n]) for j in movable}}))
         distinct.sort(key=lambda x: x[0])
     rng = np.random.default_rng(seed + 11)
     best: tuple = (np.inf, {})
