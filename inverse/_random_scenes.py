@@ -43,7 +43,7 @@ def box_faces(lo, hi) -> list[np.ndarray]:
 def random_case(seed: int, kinds=("polygon", "point"), n_targets: int = 60) -> RandomCase:
     """A quad / point / segment light per entry of `kinds` (grey, random powers), 1.0-2.0 m above
     a floor `[-1.5, 1.5]^2`, a floating box (0.3-0.5 m wide, 0.35-0.65 m high) and `n_targets`
-    floor targets (normals tilted up to ~15 degrees) outside the box's footprint; a coloured
+    floor targets (normals tilted ~14 degrees RMS per axis) outside the box's footprint; a coloured
     diffuse material. Deterministic for a seed."""
     rng = np.random.default_rng(seed)
     centre = rng.uniform(-0.5, 0.5, 2)
