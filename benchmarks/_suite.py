@@ -57,6 +57,7 @@ SUITE: tuple[str, ...] = (
     "inverse_speed",
     "projective_gradient",
     "fit_lights",
+    "fit_global",
     "illumination_mesh",
     "bake",
     "real_meshes",

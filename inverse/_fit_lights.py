@@ -1,7 +1,17 @@
 """`fit_lights`: several lights placed at once, with their powers, through the soft shadows.
 
-The multistart does not multiply. With several lights to place, they are first placed one at
-a time (`_multilight_placement.greedy`): the lights not placed yet are left out of the model,
+The given poses are searched first (each light's sweeps, then jointly, below). Unless that
+explains the targets exactly (`EXACT_LOSS`), the lights are then placed globally
+(`_global_placement`): every pose screened over the region above the targets, the powers by
+non-negative least squares, one light at a time on the residual; each light is searched from
+its best screened poses and its own starts and all poses are refined jointly, and the lower
+final loss of the two searches wins. So starts far from the truth, or no start at all
+(`kinds=`: the global placement only), are not a local solver's problem, and starts close to
+it cost what they did.
+
+The multistart does not multiply. With `grid=`, the lights are instead placed one at a time
+from a grid around the given poses (`_multilight_placement.greedy`): the lights not placed yet
+are left out of the model,
 every unplaced light's grid of positions (a scrambled Sobol stratification,
 `_multistart.make_starts`) is screened and the light and position that explain the targets
 best are refined and kept; the placed positions are then dealt to the lights in every order
@@ -34,6 +44,7 @@ from jaxshadow import traced
 
 from ._diagnostics import FitQualityWarning, assess, competing_placements, dark_answer
 from ._forward import SpecularFn
+from ._global_placement import place, region_of, template_light
 from ._identifiability import identifiability
 from ._multilight import (
     LightsProblem,
@@ -65,6 +76,9 @@ _POSE = ("position", "orientation", "size")
 _POSITION_NAMES = ("x", "y", "z", "a", "b")
 # Iterations the placement stages run at most (the joint refinement runs `LM.max_steps`).
 STAGE_STEPS = 16
+# A final loss below this fraction of the targets' energy (1/2 sum w c^2) is an exact fit: the
+# global placement is not tried after the given poses' local search reaches it.
+EXACT_LOSS = 1e-12
 
 
 def _groups_for(light: Any, fit: tuple) -> tuple:
@@ -151,6 +165,8 @@ def fit_lights(
     search_targets: Any = None,
     noise: Any = None,
     warn: bool = True,
+    kinds: Any = None,
+    placement: str = "global",
 ) -> LightsFit:
     """Place several lights of `scene` at once, with their powers, so the shading matches
     painted colours (Poulin ch. 5: lights from diffuse shading, highlights and shadows).
@@ -168,9 +184,22 @@ def fit_lights(
     starting point and the origin of each light's parametrisation (`LightParametrisation`).
     Lights not in `lights` are held as given.
 
-    Each light is searched from its own starts (its position, the other lights at their current
-    best), then every pose jointly (sizes freed last): the starts add up over the lights instead
-    of multiplying.
+    **Global placement (the default).** The given poses need not be close: each light's pose is
+    first screened over the region where a light can light the targets (above them along their
+    mean normal, up to 0.6 times their and the occluders' extent, inside a `Box` or on a
+    `Plane` constraint), 512 Sobol positions plus the rays of `light_from_diffuse_maximum` at
+    the brightest targets, a polygon facing the targets' centroid, facing down or as given,
+    a segment as given or along three horizontal directions (`inverse._global_placement`).
+    The powers are non-negative least squares over the lights' unit contributions (no
+    derivative needed); the lights are added one at a time on the residual (a beam of 12
+    partial placements), the positions dealt to the lights in every order, and each light
+    screened again locally around its pose. It runs after the search from the given poses
+    unless that fit is exact (a final loss below `EXACT_LOSS` = 1e-12 of $\\tfrac12\\sum w c^2$),
+    and the lower final loss of the two wins, so starts 10 % away cost what they did. Then each
+    light is searched from its best screened poses and its own starts (the others at
+    their current best), then every pose jointly (sizes freed last): the starts add up over
+    the lights instead of multiplying. Not with `ranges`, `brighter`, `material_mode="projected"`
+    or `grid > 0` (those start from the given poses); `placement="local"` switches it off.
 
     Point and directional lights cast hard shadows: a target that crosses a shadow edge jumps in
     value with no derivative, so their poses come from the lit targets' shading (normals that
@@ -201,14 +230,11 @@ def fit_lights(
       each light's starts are screened to the solver's `refine` best.
     - `sweeps`: how many times each light's own multistart runs (in turn, the others at their
       current best) before the joint refinement.
-    - `grid`: positions per light screened in the greedy placement (with two or more lights
-      to place; the same grid at a third of its size around each placed light in the sweeps;
-      kept only if it explains the targets better than the given poses); 0 (default): no
-      greedy placement, each light's sweep starts from the given poses. For starts far from
-      the truth (`grid=32`: three lights 30 % of the scene away recovered in
-      `benchmarks/fit_lights.py`); not the default, since from starts 10 % away the greedy
-      placement can end in a worse minimum than the sweeps from the given poses (measured on
-      `tests/test_fit_lights.py`'s three lights).
+    - `grid`: positions per light screened in a greedy placement around the given poses
+      within `search_radius` (with two or more lights to place; the same grid at a third of
+      its size around each placed light in the sweeps; kept only if it explains the targets
+      better than the given poses) instead of the global placement; 0 (default): the global
+      placement (`placement`).
     - `material_mode`: `"fixed"` (as given) or `"projected"` (fitted jointly, $k \\ge 0$; the
       product $k_d p$ does not separate, so the first fitted light's power is held at 1 unless
       some light of the scene is not fitted, which then sets the scale).
@@ -239,6 +265,15 @@ def fit_lights(
     - `warn`: emit a `FitQualityWarning` when the answer is flagged (a wrong minimum, an
       escaped light, conflicting targets, an all-dark answer to "brighter than" relations);
       the report's `quality` says so either way.
+    - `kinds`: lights given by kind only, e.g. `kinds=["polygon", "point"]` (one of
+      `"polygon"`, `"point"`, `"segment"`, `"directional"` each): they are added to `scene`
+      (which may have no lights; its lights are then held as given) and fitted, with `lights`
+      left None. Each starts white at unit power (radiance, intensity, power per length or
+      irradiance `[1, 1, 1]`): a polygon a square of a tenth of the targets' and occluders'
+      extent, a segment 0.15 of it long, a directional light pointing down. Their colour stays
+      white (the fitted power is one grey scale per light): for coloured lights give starts.
+    - `placement`: `"global"` (default: the global placement above) or `"local"` (from the
+      given poses only: the previous behaviour, for starts known to be close).
 
     **Returns:** `LightsFit(scene, lights, powers, material, residual, report, theta,
     parametrisations)`; `print(fit.report)` lists every parameter with its standard error,
@@ -262,6 +297,10 @@ def fit_lights(
         print(fit.report)
         ```
     """
+    if kinds is not None:
+        scene, lights = _with_new_lights(scene, targets, kinds, lights)
+    if placement not in ("global", "local"):
+        raise ValueError(f"fit_lights: placement must be 'global' or 'local', got {placement!r}.")
     idx, fit, cons = _checked(scene, targets, material, lights, fit, starts, material_mode, constraints)
     budget = cons.pop("budget", None)
     paint = painting(len(targets), ranges, brighter, targets.points.dtype)
@@ -341,95 +380,124 @@ def fit_lights(
         problem = dataclasses.replace(problem, material=_material_at(problem, theta0))
     full_w = problem.targets.weights
     problem = _reweighted(problem, search_w)
-    base = theta0.copy()
-    stage_losses, n_solved, retries, runner_up = [], 0, 0, {}
-    final = None  # the last joint solve's rows and losses, best first: the competing placements
+    stage_losses, n_solved, retries = [], 0, 0
     initial = None
-    placed = grid_rows is not None
-    if placed:
-        problem, base, initial, n, retries = greedy(problem, base, grid_rows, offsets, P, in_theta, k, staged,
-                                                     stage_losses)
-        n_solved += n
-        problem, base, n, r = swaps(problem, base, offsets, k, staged, stage_losses)
-        n_solved += n
-        retries += r
-        if not stage_losses[-1] < initial:  # the given poses explain the targets better
-            base = theta0.copy()
-    if P:
-        n_sweeps = int(sweeps)
-        for rnd in range(2 if placed else 1):
-            problem = _reweighted(problem, search_w)
-            for sweep, j in ((s, j) for s in range(n_sweeps) for j in range(len(per_light))):
-                y = per_light[j]
-                if y is None:
-                    continue
-                sl = slice(offsets[j], offsets[j] + params[j].size)
-                mask = np.zeros(Pt, bool)
-                mask[sl] = stage_mask(params[j])
-                if in_theta:  # its power with it
-                    mask[P + j] = True
-                if placed:  # the grid again, a third the size, around the placed pose (every light placed)
-                    g = grid_rows[j]
-                    y = np.concatenate([y, base[sl][None] + (g - g[:1]) / 3.0])
-                full = np.tile(base, (y.shape[0], 1))
-                full[:, sl] = y
-                if sweep or placed:  # again, with the others placed: from the current pose and the same spread
-                    full[0, sl] = base[sl]
-                if full.shape[0] > k:  # screen: the loss alone (no Jacobian), k starts a call
-                    losses, problem, r = screen(problem, full, base, mask, k)
+    use_global = (placement == "global" and grid_rows is None and not in_theta and not project
+                  and any(p is not None and "position" in p._slices() for p in params))
+    # The given poses' local search first; the global placement competes unless that fit is
+    # exact already (the lowest final loss wins).
+    energy = 0.5 * float(jnp.sum(full_w * problem.targets.colours ** 2))
+    best_attempt: tuple | None = None
+    # Lights given by kind only: their templates are candidates of the global placement already.
+    attempts = ("local", "global") if use_global and kinds is None else ("global",) if use_global else ("local",)
+    for attempt in attempts:
+        problem = _reweighted(problem, search_w)
+        base = theta0.copy()
+        runner_up: dict = {}
+        final = None  # the last joint solve's rows and losses, best first: the competing placements
+        placed = grid_rows is not None
+        ranked: list = [None] * len(params)
+        if attempt == "global":
+            if initial is None:  # the given poses' loss
+                f0, problem, r = screen(problem, theta0[None], theta0, np.ones(Pt, bool), k)
+                initial, retries = float(f0[0]), retries + r
+            pl = place(problem, theta0, per_light, cons, idx, seed, k)
+            problem, base, ranked = pl.problem, pl.theta, pl.ranked
+            stage_losses.append(pl.loss)
+            placed = True
+        elif placed:
+            problem, base, initial, n, retries = greedy(problem, base, grid_rows, offsets, P, in_theta, k, staged,
+                                                         stage_losses)
+            n_solved += n
+            problem, base, n, r = swaps(problem, base, offsets, k, staged, stage_losses)
+            n_solved += n
+            retries += r
+            if not stage_losses[-1] < initial:  # the given poses explain the targets better
+                base = theta0.copy()
+        if P:
+            n_sweeps = int(sweeps)
+            for rnd in range(2 if placed else 1):
+                problem = _reweighted(problem, search_w)
+                for sweep, j in ((s, j) for s in range(n_sweeps) for j in range(len(per_light))):
+                    y = per_light[j]
+                    if y is None:
+                        continue
+                    sl = slice(offsets[j], offsets[j] + params[j].size)
+                    mask = np.zeros(Pt, bool)
+                    mask[sl] = stage_mask(params[j])
+                    if in_theta:  # its power with it
+                        mask[P + j] = True
+                    if grid_rows is not None:  # the grid again, a third the size, around the placed pose
+                        g = grid_rows[j]
+                        y = np.concatenate([y, base[sl][None] + (g - g[:1]) / 3.0])
+                    if ranked[j] is not None:  # the global placement's candidates for this light
+                        y = np.concatenate([y, ranked[j]])
+                    full = np.tile(base, (y.shape[0], 1))
+                    full[:, sl] = y
+                    if sweep or placed:  # again, with the others placed: from the current pose and the same spread
+                        full[0, sl] = base[sl]
+                    if full.shape[0] > k:  # screen: the loss alone (no Jacobian), k starts a call
+                        losses, problem, r = screen(problem, full, base, mask, k)
+                        retries += r
+                        if initial is None and sweep == 0:
+                            initial = float(losses[0])  # the given poses (row 0), screened out or not
+                        full = full[best_starts(np.where(np.isfinite(losses), losses, np.inf), k)]
+                    res, problem, r = solve(problem, full, base, mask, **staged)
                     retries += r
-                    if initial is None and sweep == 0:
-                        initial = float(losses[0])  # the given poses (row 0), screened out or not
-                    full = full[best_starts(np.where(np.isfinite(losses), losses, np.inf), k)]
-                res, problem, r = solve(problem, full, base, mask, **staged)
+                    n_solved += full.shape[0]
+                    f = np.where(np.isfinite(np.asarray(res.losses)), np.asarray(res.losses), np.inf)
+                    order = np.argsort(f)
+                    if initial is None:
+                        initial = float(np.asarray(res.initial_losses)[0]) if np.all(full[0] == theta0) else None
+                    # The solved rows hold the starts' values where the mask is off: the residual used `base`.
+                    vals = np.where(mask[None], np.asarray(res.values), base[None])
+                    base = vals[order[0]].copy()
+                    if len(order) > 1 and np.isfinite(f[order[1]]):
+                        runner_up[j] = vals[order[1]][sl]
+                    stage_losses.append(float(f[order[0]]))
+                # the given poses together are a candidate too (the grid's greedy placement replaces them)
+                joint = [base] + ([] if grid_rows is not None else [theta0])
+                for j, v in runner_up.items():
+                    alt = base.copy()
+                    alt[offsets[j]:offsets[j] + params[j].size] = v
+                    joint.append(alt)
+                # Sizes last: free from the start, a polygon trades its size for its power (it shrinks to a
+                # bright point or grows dim) before the poses are right.
+                sizes = np.concatenate([np.zeros(0, bool)] + [_size_mask(p) for p in params if p is not None]
+                                       + [np.zeros(Pt - P, bool)])
+                joint = pad(np.stack(joint[:k]), k)
+                problem = _reweighted(problem, full_w)  # every target from here on
+                for mask in ([~sizes] if sizes.any() else []) + [np.ones(Pt, bool)]:
+                    res, problem, r = solve(problem, joint, base, mask, **lm)
+                    retries += r
+                    n_solved += joint.shape[0]
+                    f = np.where(np.isfinite(np.asarray(res.losses)), np.asarray(res.losses), np.inf)
+                    joint = np.where(mask[None], np.asarray(res.values), base[None])[np.argsort(f)]
+                    final = (joint, np.sort(f))
+                    stage_losses.append(float(np.min(f)))
+                if rnd or not placed:
+                    break
+                # The refined positions dealt again (two lights of similar shading swapped in the first
+                # deal under noise): from a better deal, one more sweep and joint refinement.
+                problem, dealt, n, r = swaps(problem, joint[0], offsets, k, staged, stage_losses, theta0)
+                n_solved += n
                 retries += r
-                n_solved += full.shape[0]
-                f = np.where(np.isfinite(np.asarray(res.losses)), np.asarray(res.losses), np.inf)
-                order = np.argsort(f)
-                if initial is None:
-                    initial = float(np.asarray(res.initial_losses)[0]) if np.all(full[0] == theta0) else None
-                # The solved rows hold the starts' values where the mask is off: the residual used `base`.
-                vals = np.where(mask[None], np.asarray(res.values), base[None])
-                base = vals[order[0]].copy()
-                if len(order) > 1 and np.isfinite(f[order[1]]):
-                    runner_up[j] = vals[order[1]][sl]
-                stage_losses.append(float(f[order[0]]))
-            joint = [base] + ([] if placed else [theta0])  # the given poses together are a candidate too
-            for j, v in runner_up.items():
-                alt = base.copy()
-                alt[offsets[j]:offsets[j] + params[j].size] = v
-                joint.append(alt)
-            # Sizes last: free from the start, a polygon trades its size for its power (it shrinks to a
-            # bright point or grows dim) before the poses are right.
-            sizes = np.concatenate([np.zeros(0, bool)] + [_size_mask(p) for p in params if p is not None]
-                                   + [np.zeros(Pt - P, bool)])
-            joint = pad(np.stack(joint[:k]), k)
-            problem = _reweighted(problem, full_w)  # every target from here on
-            for mask in ([~sizes] if sizes.any() else []) + [np.ones(Pt, bool)]:
-                res, problem, r = solve(problem, joint, base, mask, **lm)
+                if not stage_losses[-1] < stage_losses[-2] * (1 - 1e-6) - solver.atol:  # not at round-off
+                    break
+                base, n_sweeps = dealt, 1
+            theta = joint[0]
+            if project and not problem.colour_free:
+                problem, theta, n, r = _alternate(problem, theta, joint, base, lm, stage_losses)
+                n_solved += n
                 retries += r
-                n_solved += joint.shape[0]
-                f = np.where(np.isfinite(np.asarray(res.losses)), np.asarray(res.losses), np.inf)
-                joint = np.where(mask[None], np.asarray(res.values), base[None])[np.argsort(f)]
-                final = (joint, np.sort(f))
-                stage_losses.append(float(np.min(f)))
-            if rnd or not placed:
-                break
-            # The refined positions dealt again (two lights of similar shading swapped in the first
-            # deal under noise): from a better deal, one more sweep and joint refinement.
-            problem, dealt, n, r = swaps(problem, joint[0], offsets, k, staged, stage_losses, theta0)
-            n_solved += n
-            retries += r
-            if not stage_losses[-1] < stage_losses[-2] * (1 - 1e-6) - solver.atol:  # not at round-off
-                break
-            base, n_sweeps = dealt, 1
-        theta = joint[0]
-        if project and not problem.colour_free:
-            problem, theta, n, r = _alternate(problem, theta, joint, base, lm, stage_losses)
-            n_solved += n
-            retries += r
-    else:
-        theta = theta0
+        else:
+            theta = theta0
+        loss = stage_losses[-1] if P else math.nan
+        if best_attempt is None or loss < best_attempt[0]:
+            best_attempt = (loss, theta, final, problem)
+        if not loss > EXACT_LOSS * energy:
+            break
+    _, theta, final, problem = best_attempt
     problem = _reweighted(problem, full_w)
     theta = _moved_outside(problem, np.asarray(theta, np.float64))
     out = _result(problem, np.asarray(theta, np.float64), idx, size, candidates, stage_losses, n_solved,
@@ -438,6 +506,25 @@ def fit_lights(
         for msg in out.report.quality.emitted:
             _warnings.warn(msg, FitQualityWarning, stacklevel=2)
     return out
+
+
+def _with_new_lights(scene: Any, targets: Any, kinds: Any, lights: Any) -> tuple[js.Scene, list[int]]:
+    """`scene` with one template light per entry of `kinds` appended (`template_light`: white,
+    unit power, in the middle of the feasible region) and their indices."""
+    if not isinstance(scene, js.Scene):
+        raise ValueError(f"fit_lights: expected a jaxshadow.Scene, got {type(scene).__name__}.")
+    if not isinstance(targets, PaintedTargets):
+        raise ValueError(f"fit_lights: targets must be PaintedTargets, got {type(targets).__name__}.")
+    if lights is not None:
+        raise ValueError("fit_lights: give either kinds (new lights) or lights (indices of the scene's), not both.")
+    kinds = [kinds] if isinstance(kinds, str) else list(kinds)
+    if not kinds:
+        raise ValueError("fit_lights: kinds must name at least one light kind.")
+    region = region_of(scene, np.asarray(targets.points), np.asarray(targets.normals))
+    new = [template_light(str(k), region) for k in kinds]
+    n = len(scene.lights)
+    out = js.Scene([*scene.lights, *new], occluders=scene.occluders, ambient=scene.ambient)
+    return out, list(range(n, n + len(new)))
 
 
 def _search_weights(targets: PaintedTargets, search: Any) -> Any:
@@ -506,7 +593,8 @@ def _with_capacity(problem: LightsProblem, per_light: list, fixed: list) -> Ligh
         p = problem.params[j]
         cands += [problem.refs[j]] if y is None else start_lights(p, jnp.asarray(y))
     most = traced.shadow_capacity(scene, t.points, t.normals, lights=cands)
-    return dataclasses.replace(problem, capacity=max(8, -(-5 * most // 4) + 4))
+    # Rounded up to a multiple of 8: nearby scenes and starts share one compiled program.
+    return dataclasses.replace(problem, capacity=8 * -(-max(8, -(-5 * most // 4) + 4) // 8))
 
 
 def _material_at(problem: LightsProblem, theta: np.ndarray) -> js.Material:

@@ -1,0 +1,450 @@
+r"""`fit_lights`' global placement: every light's pose screened over the whole feasible region,
+its power by non-negative least squares, one light at a time on the residual (matching
+pursuit), before the local solver refines.
+
+The powers enter the model linearly (`_multilight`): for fixed poses the best powers are one
+non-negative least squares over the lights' unit contributions $a_j$ (the weighted model
+column of light $j$ at its reference power, `(3N,)`). So the screen needs no derivative:
+
+1. **Region.** Light centres lie above the receivers: with $u$ the targets' mean normal
+   ("up"), between `HEIGHT_MIN` and `HEIGHT_MAX` times the extent $D$ (the diagonal of the
+   targets' and occluders' bounding box) above the highest target, and laterally within the
+   targets' extent plus `LATERAL_MARGIN` $D$; inside the box of an `inverse.Box` constraint,
+   on the plane of an `inverse.Plane` (an `inverse.Outside` hull is left to the solver's
+   penalty: a light inside closed occluders lights nothing and is never chosen).
+2. **Candidates.** `POSITIONS` centres per light from a scrambled Sobol set over the region
+   (`scipy.stats.qmc`), plus points on the rays of `light_from_diffuse_maximum` at the
+   brightest targets (Poulin ch. 5's closed form), plus the light's own multistart rows
+   around the given pose (`_multistart.make_starts`: the given pose first). A polygon is
+   tried facing the targets' centroid, facing down ($-u$) and as given; a segment as given
+   and along three horizontal directions; sizes as given.
+3. **Unit contributions.** One compiled program per light kind evaluates the forward model
+   (`_multilight._parts`: soft shadows, the shadow engine at the fit's capacity) at `CHUNK`
+   candidates at once (`jax.vmap`).
+4. **Matching pursuit.** Starting from no light, each step tries every candidate of every
+   unplaced light with the placed ones, powers by NNLS, and places the best; then each light
+   in turn is re-chosen with the others held (coordinate descent) until nothing changes, and
+   refined by a local screen around its pose (`REFINE_POINTS` candidates in position,
+   orientation and log size, the radius halved twice).
+
+The result is a placement (`theta`, the poses) and, per light, its candidates ranked with the
+others at that placement: the starts of `fit_lights`' per-light solves, which then refine all
+poses jointly (the given poses compete there as one more start).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jaxshadow as js
+
+from ._closed_forms import light_from_diffuse_maximum
+from ._lm import fit_jit
+from ._multilight import MAX_CAPACITY, LightsProblem, _parts
+from ._parametrisation import LightParametrisation
+
+POSITIONS = 512
+CHUNK = 64
+REFINE_POINTS = 64
+BEAM, PER_PARENT, REFINED = 12, 3, 2
+HEIGHT_MIN, HEIGHT_MAX = 0.02, 0.6
+LATERAL_MARGIN = 0.1
+DIFFUSE_MAXIMA = 3
+
+
+@dataclasses.dataclass(frozen=True)
+class Region:
+    """The feasible region of light centres: `origin (3,)` (the targets' centroid), `axes (3, 3)`
+    rows $e_1, e_2, u$ (u the targets' mean normal), `lo (3,)`, `hi (3,)` the box in those
+    coordinates (m), `extent` (m: the targets' and occluders' bounding-box diagonal)."""
+
+    origin: np.ndarray
+    axes: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    extent: float
+
+    def world(self, local: np.ndarray) -> np.ndarray:
+        return self.origin + local @ self.axes
+
+
+def region_of(scene: js.Scene, points: np.ndarray, normals: np.ndarray) -> Region:
+    """The feasible region (module docstring, step 1) for receivers `points`, `normals` `(N, 3)`."""
+    pts = np.asarray(points, np.float64)
+    up = np.asarray(normals, np.float64).mean(axis=0)
+    up = up / np.linalg.norm(up) if np.linalg.norm(up) > 1e-9 else np.array([0.0, 0.0, 1.0])
+    a = np.eye(3)[int(np.argmin(np.abs(up)))]
+    e1 = np.cross(up, a)
+    e1 /= np.linalg.norm(e1)
+    axes = np.stack([e1, np.cross(up, e1), up])
+    allp = np.concatenate([pts] + ([np.asarray(scene.occluders, np.float64).reshape(-1, 3)]
+                                   if scene.occluders is not None else []))
+    allp = allp[np.all(np.isfinite(allp), axis=1)]
+    extent = float(np.linalg.norm(allp.max(axis=0) - allp.min(axis=0)))
+    origin = pts.mean(axis=0)
+    loc = (pts - origin) @ axes.T
+    m = LATERAL_MARGIN * extent
+    top = loc[:, 2].max()
+    lo = np.r_[loc[:, 0].min() - m, loc[:, 1].min() - m, top + HEIGHT_MIN * extent]
+    hi = np.r_[loc[:, 0].max() + m, loc[:, 1].max() + m, top + HEIGHT_MAX * extent]
+    return Region(origin, axes, lo, hi, extent)
+
+
+def template_light(kind: str, region: Region) -> Any:
+    """A light of `kind` (`"polygon"`, `"point"`, `"segment"`, `"directional"`) at the middle of
+    the region's top half, white at unit power (radiance, intensity, power per length,
+    irradiance 1): a square of side a tenth of the extent facing down, a segment of 0.15
+    extents along $e_1$, a direction straight down."""
+    c = region.world(np.r_[0.5 * (region.lo[:2] + region.hi[:2]), 0.5 * (region.lo[2] + region.hi[2])])
+    e1, e2, up = region.axes
+    if kind == "polygon":
+        h = 0.05 * region.extent
+        # counter-clockwise seen from below: the normal points down
+        v = np.stack([c - h * e1 - h * e2, c - h * e1 + h * e2, c + h * e1 + h * e2, c + h * e1 - h * e2])
+        return js.PolygonLight(v, [1.0, 1.0, 1.0])
+    if kind == "point":
+        return js.PointLight(c, [1.0, 1.0, 1.0])
+    if kind == "segment":
+        h = 0.075 * region.extent
+        return js.LinearLight(c - h * e1, c + h * e1, [1.0, 1.0, 1.0])
+    if kind == "directional":
+        return js.DirectionalLight(-up, [1.0, 1.0, 1.0])
+    raise ValueError(f"fit_lights: kinds must be 'polygon', 'point', 'segment' or 'directional', got {kind!r}.")
+
+
+def _rotation_vector(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The rotation vector of the smallest rotation taking unit `a` to unit `b`."""
+    axis = np.cross(a, b)
+    s, c = np.linalg.norm(axis), float(a @ b)
+    if s < 1e-12:
+        if c > 0:
+            return np.zeros(3)
+        p = np.eye(3)[int(np.argmin(np.abs(a)))]
+        axis = np.cross(a, p)
+        return np.pi * axis / np.linalg.norm(axis)
+    return axis / s * np.arctan2(s, c)
+
+
+def _centres(region: Region, constraint: Any, n: int, seed: int, targets: Any) -> np.ndarray:
+    """`(M, 3)` candidate centres (world, m): a Sobol set over the region (or a constraint's
+    box, or the region's points projected onto a constraint's plane) and points on the
+    diffuse-maximum rays of the brightest targets."""
+    from scipy.stats import qmc
+
+    u = qmc.Sobol(3, scramble=True, seed=seed).random_base2(int(np.ceil(np.log2(n))))[:n]
+    if constraint is not None and hasattr(constraint, "lower"):  # a Box
+        lo, hi = np.asarray(constraint.lower, np.float64), np.asarray(constraint.upper, np.float64)
+        return lo + (hi - lo) * u
+    c = region.world(region.lo + (region.hi - region.lo) * u)
+    pts = np.asarray(targets.points, np.float64)
+    nrm = np.asarray(targets.normals, np.float64)
+    lum = (np.asarray(targets.colours, np.float64) * (np.asarray(targets.weights) > 0)).sum(axis=1)
+    rays = []
+    for i in np.argsort(lum)[::-1][:DIFFUSE_MAXIMA]:
+        ray = light_from_diffuse_maximum(pts[i], nrm[i])
+        o, d = np.asarray(ray.origin, np.float64), np.asarray(ray.direction, np.float64)
+        for h in np.linspace(region.lo[2], region.hi[2], 6):
+            up_d = d @ region.axes[2]
+            if up_d > 1e-3:
+                rays.append(o + d * (h - (o - region.origin) @ region.axes[2]) / up_d)
+    c = np.concatenate([c, np.asarray(rays).reshape(-1, 3)])
+    if constraint is not None and hasattr(constraint, "normal"):  # a Plane
+        m, p0 = np.asarray(constraint.normal, np.float64), np.asarray(constraint.point, np.float64)
+        c = c - ((c - p0) @ m)[:, None] * m
+    return c
+
+
+def candidate_rows(param: LightParametrisation, region: Region, constraint: Any, targets: Any, seed: int,
+                   n: int = POSITIONS) -> np.ndarray:
+    """`(M, P)` parameter rows of light `param` at candidate poses (module docstring, step 2;
+    sizes as given); empty `(0, P)` for a light whose position is not fitted."""
+    if "position" not in param._slices():
+        return np.zeros((0, param.size))
+    return rows_at(param, region, _centres(region, constraint, n, seed, targets))
+
+
+def centre_of_row(param: LightParametrisation, row: np.ndarray) -> np.ndarray:
+    """The light's centre (m) at parameters `row` (NumPy `LightParametrisation.centre_of`)."""
+    sl = param._slices()
+    c0, s = np.asarray(param.c0, np.float64), float(param.scale)
+    if "position" not in sl:
+        return c0
+    z = np.asarray(row, np.float64)[sl["position"]]
+    if param.constraint == "plane":
+        return c0 + s * (z @ np.asarray(param.plane_e, np.float64))
+    if param.constraint == "box" and param.box_map == "sigmoid":
+        lo, hi = np.asarray(param.box_lo, np.float64), np.asarray(param.box_hi, np.float64)
+        return lo + (hi - lo) / (1.0 + np.exp(-z))
+    return c0 + s * z
+
+
+def rows_at(param: LightParametrisation, region: Region, centres: np.ndarray) -> np.ndarray:
+    """`(M, P)` rows of light `param` centred at each of `centres (C, 3)` (m) in each of its
+    orientation variants (module docstring, step 2), sizes as given."""
+    sl = param._slices()
+    s, c0 = float(param.scale), np.asarray(param.c0, np.float64)
+    if param.constraint == "plane":
+        pos = (centres - c0) @ np.asarray(param.plane_e, np.float64).T / s
+    elif param.constraint == "box" and param.box_map == "sigmoid":
+        lo, hi = np.asarray(param.box_lo, np.float64), np.asarray(param.box_hi, np.float64)
+        f = np.clip((centres - lo) / (hi - lo), 1e-3, 1 - 1e-3)
+        pos = np.log(f / (1 - f))
+    elif param.constraint == "box":
+        lo, hi = np.asarray(param.box_lo, np.float64), np.asarray(param.box_hi, np.float64)
+        pos = (np.clip(centres, lo, hi) - c0) / s
+    else:
+        pos = (centres - c0) / s
+    orients: list[Any] = [None]
+    if "orientation" in sl and param.kind == "polygon":
+        n0 = np.asarray(param.frame0, np.float64)[:, 2]
+        orients = [np.zeros(3), -region.axes[2], "centroid"]
+    elif "orientation" in sl and param.kind == "linear":
+        F = np.asarray(param.frame0, np.float64)
+        e1, e2 = region.axes[0], region.axes[1]
+        dirs = [np.cos(a) * e1 + np.sin(a) * e2 for a in (0.0, np.pi / 3, 2 * np.pi / 3)]
+        orients = [np.zeros(2)]
+        for d in dirs:
+            d = d if d @ F[2] >= 0 else -d
+            w = _rotation_vector(F[2], d)
+            orients.append(np.array([w @ F[0], w @ F[1]]))
+    rows = []
+    for o in orients:
+        r = np.zeros((centres.shape[0], param.size))
+        r[:, sl["position"]] = pos
+        if o is not None:
+            if isinstance(o, str):  # facing the targets' centroid from each centre
+                look = region.origin - centres
+                look /= np.linalg.norm(look, axis=1, keepdims=True)
+                r[:, sl["orientation"]] = np.stack([_rotation_vector(n0, d) for d in look])
+            elif param.kind == "polygon":
+                r[:, sl["orientation"]] = _rotation_vector(n0, o) if np.any(o) else 0.0
+            else:
+                r[:, sl["orientation"]] = o
+        rows.append(r)
+    return np.concatenate(rows)
+
+
+def _single(problem: LightsProblem, j: int) -> LightsProblem:
+    """The problem restricted to its fitted light `j` (its unit contribution alone)."""
+    return dataclasses.replace(problem, params=(problem.params[j],), refs=(problem.refs[j],), offsets=(0,),
+                               active=None, outside=(), paint=None, budget=None, powers_in_theta=False,
+                               colour_free=False)
+
+
+def _columns_impl(problem: LightsProblem, rows: Any) -> tuple[Any, Any]:
+    """`(per_light (S, N, 3), overflow)` of the one-light `problem` at every row `(S, P)`."""
+    def one(th: Any) -> tuple[Any, Any]:
+        _, per, over = _parts(th, problem, problem.capacity)
+        return per[0], over
+
+    per, over = jax.vmap(one)(rows)
+    return per, jnp.any(over)
+
+
+_columns = fit_jit(_columns_impl)
+
+
+def unit_columns(problem: LightsProblem, j: int, rows: np.ndarray) -> tuple[np.ndarray, LightsProblem]:
+    """`(A (S, 3N), problem)`: light `j`'s weighted unit contribution $\\sqrt{w}\\,a_j$ at every
+    row of `rows (S, P_j)`, `CHUNK` rows a call (one compiled program per light kind), again
+    with twice the shadow capacity while some receiver overflowed it."""
+    dt = problem.targets.points.dtype
+    sw = np.sqrt(np.asarray(problem.targets.weights, np.float64))
+    while True:
+        one = _single(problem, j)
+        out, over = [], False
+        for a in range(0, rows.shape[0], CHUNK):
+            part = rows[a:a + CHUNK]
+            part = np.concatenate([part, np.repeat(part[:1], CHUNK - part.shape[0], axis=0)])
+            per, o = _columns(one, jnp.asarray(part, dt))
+            out.append(np.asarray(per, np.float64))
+            over = over or bool(o)
+        cap = problem.capacity
+        if cap is None or not over:
+            per = np.concatenate(out)[: rows.shape[0]]
+            return (sw[None] * per).reshape(per.shape[0], -1), problem
+        if cap >= MAX_CAPACITY:
+            raise RuntimeError(f"fit_lights: some receiver's visible region needs more than {MAX_CAPACITY} "
+                               "boundary edges during the global placement.")
+        problem = dataclasses.replace(problem, capacity=min(2 * cap, MAX_CAPACITY))
+
+
+def nnls_rss(fixed: np.ndarray, cand: np.ndarray, y: np.ndarray, fit_power: bool) -> np.ndarray:
+    """`(S,)` the least residual sum of squares $|y - B p - a_s q|^2$ over $p, q \\ge 0$ for
+    every candidate column `cand[s] (M,)`, `fixed (M, m)` the placed lights' columns: the
+    normal equations batched over the candidates, `scipy.optimize.nnls` where they give a
+    negative power. Without `fit_power` the powers are 1 (as given)."""
+    if not fit_power:
+        r = y - fixed.sum(axis=1) if fixed.size else y
+        d = r[None] - cand
+        return np.einsum("sm,sm->s", d, d)
+    from scipy.optimize import nnls
+
+    ok = np.all(np.isfinite(cand), axis=1)
+    cand = np.where(ok[:, None], cand, 0.0)
+    S, m = cand.shape[0], fixed.shape[1]
+    A = np.concatenate([np.broadcast_to(fixed[None], (S, *fixed.shape)), cand[:, :, None]], axis=2)  # (S, M, m+1)
+    G = np.einsum("smi,smj->sij", A, A)
+    b = np.einsum("smi,m->si", A, y)
+    d = np.einsum("sii->si", G)
+    scale = np.sqrt(np.where(d > 0, d, 1.0))
+    Gn = G / (scale[:, :, None] * scale[:, None, :]) + 1e-12 * np.eye(m + 1)  # a zero column: its power 0
+    p = np.linalg.solve(Gn, (b / scale)[:, :, None])[:, :, 0] / scale
+    rss = float(y @ y) - 2 * np.einsum("si,si->s", p, b) + np.einsum("si,sij,sj->s", p, G, p)
+    for s in np.flatnonzero(ok & (np.any(p < 0, axis=1) | ~np.isfinite(rss))):
+        rss[s] = nnls(A[s], y)[1] ** 2
+    rss[~ok] = np.inf
+    return np.maximum(rss, 0.0)
+
+
+@dataclasses.dataclass
+class Placement:
+    """What `place` found: `theta (P,)` the poses, `loss` ($\\tfrac12$ rss at NNLS powers),
+    `ranked[j]` light j's candidate rows, best first with the others at `theta` (None for a
+    light whose pose is not fitted), `problem` (its capacity possibly raised)."""
+
+    theta: np.ndarray
+    loss: float
+    ranked: list
+    problem: LightsProblem
+
+
+def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constraints: dict, idx: list,
+          seed: int, keep: int) -> Placement:
+    """Global placement (module docstring): `theta0 (Pt,)` the given poses, `local_rows[j]` light
+    j's multistart rows around its given pose (None for a light whose pose is not fitted),
+    `constraints` by scene light index, `idx` the fitted lights' scene indices; `keep` ranked
+    rows per light."""
+    t = problem.targets
+    params = problem.params
+    J = len(params)
+    region = region_of(problem.scene, np.asarray(t.points), np.asarray(t.normals))
+    sw = np.sqrt(np.asarray(t.weights, np.float64))
+    m = problem.material
+    La = np.broadcast_to(np.asarray(problem.scene.ambient, np.float64), t.colours.shape)
+    base_model = (np.asarray(m.ka, np.float64) * La + np.asarray(m.kd, np.float64) / np.pi
+                  * np.asarray(problem.e_fixed, np.float64))
+    if problem.with_specular:
+        base_model = base_model + np.asarray(m.ks, np.float64) * np.asarray(problem.s_fixed, np.float64)
+    y = (sw * (np.asarray(t.colours, np.float64) - base_model)).reshape(-1)
+    rows: list = [None] * J
+    cols: list = [None] * J
+    for j, p in enumerate(params):
+        if p is None:
+            continue
+        glob = candidate_rows(p, region, constraints.get(idx[j]), t, seed + 7 * j)
+        r = np.concatenate([np.asarray(local_rows[j], np.float64), glob])
+        rows[j] = r
+        cols[j], problem = unit_columns(problem, j, r)
+    todo = [j for j in range(J) if rows[j] is not None]
+    spacing = (region.hi - region.lo).max() / POSITIONS ** (1 / 3)  # m: between neighbouring candidates
+
+    def rss_for(j: int, chosen: dict) -> np.ndarray:
+        others = [cols[i][chosen[i]] for i in chosen if i != j]
+        B = np.stack(others, axis=1) if others else np.zeros((y.shape[0], 0))
+        return nnls_rss(B, cols[j], y, problem.fit_power)
+
+    def centres(j: int, r: np.ndarray) -> np.ndarray:
+        sl = params[j]._slices().get("position", slice(0, 0))
+        return r[:, sl] * float(params[j].scale)
+
+    def descend(chosen: dict) -> tuple[float, dict]:
+        """Each light re-chosen with the others held, until nothing changes."""
+        chosen = dict(chosen)
+        f = np.full(1, np.inf)
+        for _ in range(4):
+            changed = False
+            for j in todo:
+                f = rss_for(j, chosen)
+                c = int(np.argmin(f))
+                changed |= c != chosen[j]
+                chosen[j] = c
+            if not changed:
+                break
+        return float(np.min(f)), chosen
+
+    # Matching pursuit with a beam: every kept partial placement tries every candidate of every
+    # unplaced light on its residual; the BEAM best (a few distinct ones per light and parent)
+    # are kept for the next light.
+    beams: list = [(float(y @ y), {})]
+    for _ in todo:
+        pool = []
+        for _, ch in beams:
+            for j in (j for j in todo if j not in ch):
+                f = rss_for(j, ch)
+                pos = centres(j, rows[j])
+                picked: list = []
+                for c in np.argsort(f, kind="stable"):
+                    if len(picked) == PER_PARENT or not np.isfinite(f[c]):
+                        break
+                    if all(np.linalg.norm(pos[c] - pos[q]) > spacing for q in picked):
+                        picked.append(int(c))
+                pool += [(float(f[c]), {**ch, j: c}) for c in picked]
+        pool.sort(key=lambda x: x[0])
+        beams, seen = [], set()
+        for f, ch in pool:
+            key = tuple(sorted(ch.items()))
+            if key not in seen:
+                seen.add(key)
+                beams.append((f, ch))
+            if len(beams) == BEAM:
+                break
+    finals = sorted((descend(ch) for _, ch in beams), key=lambda x: x[0])
+    distinct: list = []
+    for f, ch in finals:
+        if all(ch != c for _, c in distinct):
+            distinct.append((f, ch))
+    # The positions dealt to the lights in every order (a small quad passes for a point), for the
+    # lights whose centre is free (a Plane or a Box keeps its own).
+    movable = [j for j in todo if "position" in params[j]._slices() and params[j].constraint == "none"]
+    if len(movable) > 1:
+        for _, ch in list(distinct[:REFINED]):
+            where = {j: centre_of_row(params[j], rows[j][ch[j]]) for j in movable}
+            perms = [q for q in itertools.permutations(movable) if q != tuple(movable)]
+            first: dict = {}
+            for j in movable:
+                new = [rows_at(params[j], region, where[q[movable.index(j)]][None]) for q in perms]
+                first[j] = rows[j].shape[0] + np.cumsum([0] + [r.shape[0] for r in new[:-1]])
+                ct, problem = unit_columns(problem, j, np.concatenate(new))
+                rows[j] = np.concatenate([rows[j], *new])
+                cols[j] = np.concatenate([cols[j], ct])
+            for n in range(len(perms)):
+                distinct.append(descend({**ch, **{j: int(first[j][n]) for j in movable}}))
+        distinct.sort(key=lambda x: x[0])
+    rng = np.random.default_rng(seed + 11)
+    best: tuple = (np.inf, {})
+    for _, chosen in distinct[:REFINED]:  # a local screen around each light, its radius halved twice
+        for j in todo:
+            p = params[j]
+            sl = p._slices()
+            spread = np.zeros(p.size)
+            if "position" in sl:
+                spread[sl["position"]] = 0.5 * spacing / float(p.scale)
+            if "orientation" in sl:
+                spread[sl["orientation"]] = 0.2
+            if "size" in sl:  # log sizes: a given or default size is a guess
+                spread[sl["size"]] = 0.4
+            for level in range(3):
+                trial = rows[j][chosen[j]] + spread / 2 ** level * rng.uniform(-1.0, 1.0, (REFINE_POINTS, p.size))
+                ct, problem = unit_columns(problem, j, trial)
+                rows[j] = np.concatenate([rows[j], trial])
+                cols[j] = np.concatenate([cols[j], ct])
+                chosen[j] = int(np.argmin(rss_for(j, chosen)))
+        f, chosen = descend(chosen)
+        if f < best[0]:
+            best = (f, chosen)
+    chosen = best[1]
+    theta = np.asarray(theta0, np.float64).copy()
+    ranked: list = [None] * J
+    for j in todo:
+        o = problem.offsets[j]
+        theta[o:o + params[j].size] = rows[j][chosen[j]]
+    for j in todo:
+        ranked[j] = rows[j][np.argsort(rss_for(j, chosen), kind="stable")[:keep]]
+    return Placement(theta, 0.5 * best[0], ranked, problem)
