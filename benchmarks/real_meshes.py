@@ -133,7 +133,8 @@ def light_kinds(v: np.ndarray, f: np.ndarray, p: np.ndarray, nrm: np.ndarray, n_
     its values against the engine-free device kernels on `n_exact` receivers (point and
     directional lights; the segment light's device kernel clips every face and is too large
     here), and Embree: hard-shadow rays for the point and directional lights (agreement of the
-    lit/shadowed decision), Monte Carlo along the segment (RMS error, points/s)."""
+    lit/shadowed decision), Monte Carlo along the segment at 16 and 256 samples (RMS error,
+    points/s)."""
     import jaxshadow as js
     from benchmarks.peers import Embree
 
@@ -158,36 +159,15 @@ def light_kinds(v: np.ndarray, f: np.ndarray, p: np.ndarray, nrm: np.ndarray, n_
             row["embree"] = {"points_per_s": len(p) / sec,
                              "disagree": int(np.sum((vis[lit]) != (e[lit] > 0)))}
         else:
-            row["embree"] = embree_segment(em, light, p, nrm, e)
+            runs = []
+            for spp in (16, 256):
+                x, sec = em.segment_irradiance(p, nrm, np.asarray(light.start, float), np.asarray(light.end, float),
+                                               float(np.asarray(light.power).reshape(-1)[0]), spp)
+                runs.append({"samples": spp, "points_per_s": len(p) / sec,
+                             "rms_rel_err": float(np.sqrt(np.mean((x - e) ** 2)) / np.sqrt(np.mean(e**2)))})
+            row["embree"] = {"runs": runs}
         out[name] = row
     return out
-
-
-def embree_segment(em: Any, light: Any, p: np.ndarray, nrm: np.ndarray, exact: np.ndarray) -> dict:
-    """Embree Monte Carlo along an isotropic segment light (stratified jittered points, per-length
-    intensity Phi / (4 pi)): RMS error and points/s at 16 and 256 samples."""
-    a, b = np.asarray(light.start, float), np.asarray(light.end, float)
-    phi = float(np.asarray(light.power).reshape(-1)[0])
-    length = float(np.linalg.norm(b - a))
-    rng = np.random.default_rng(0)
-    runs = []
-    for spp in (16, 256):
-        block = max(1, 2**16 // spp)
-        out = np.empty(len(p))
-        t = time.perf_counter()
-        for s in range(0, len(p), block):
-            q, n = p[s:s + block], nrm[s:s + block]
-            u = (np.arange(spp)[None, :] + rng.random((len(q), spp))) / spp
-            x = a + u[..., None] * (b - a)
-            d = x - q[:, None, :]
-            r2 = np.einsum("bsi,bsi->bs", d, d)
-            cos_p = np.maximum(np.einsum("bsi,bi->bs", d, n) / np.sqrt(r2), 0.0)
-            blocked = em._occluded(np.repeat(q + 1e-6 * n, spp, axis=0), d.reshape(-1, 3)).reshape(len(q), spp)
-            out[s:s + block] = phi / (4 * np.pi) * length * np.where(blocked, 0.0, cos_p / r2).mean(axis=1)
-        sec = time.perf_counter() - t
-        runs.append({"samples": spp, "points_per_s": len(p) / sec,
-                     "rms_rel_err": float(np.sqrt(np.mean((out - exact) ** 2)) / np.sqrt(np.mean(exact**2)))})
-    return {"runs": runs}
 
 
 def _receivers(n: int, seed: int = 1) -> tuple[np.ndarray, np.ndarray]:

@@ -9,6 +9,7 @@ Scenes stand between a floor (z = 0, the receivers' plane) and a light facing do
 from __future__ import annotations
 
 import numpy as np
+from hypothesis import HealthCheck, Phase, settings
 
 LIGHT_Z = 2.0
 SHAPES = ("icosphere", "uv_sphere", "capsule", "torus", "box", "cylinder", "annulus")
@@ -166,3 +167,11 @@ def event_receivers(rng: np.random.Generator, light_v: np.ndarray, tris: np.ndar
     p[:, 2] = 0.0
     nrm = np.tile([0.0, 0.0, 1.0], (n, 1))
     return p, nrm
+
+
+def profile(n: int, derandomize: bool) -> settings:
+    """Hypothesis settings of the mesh suites: `n` examples; derandomized (the fixed-seed CI
+    profile: explicit, reused and generated examples only) or random (the long profile)."""
+    return settings(max_examples=n, derandomize=derandomize, deadline=None, database=None, print_blob=True,
+                    phases=(Phase.explicit, Phase.reuse, Phase.generate) if derandomize else tuple(Phase),
+                    suppress_health_check=list(HealthCheck))

@@ -33,7 +33,7 @@ import os
 import jax
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, Phase, given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 import jaxshadow as js
@@ -49,14 +49,8 @@ LONG_EXAMPLES = int(os.environ.get("JAXSHADOW_FUZZ_EXAMPLES", "3000"))
 F32, F64 = np.float32, np.float64
 
 
-def _profile(n: int, derandomize: bool):
-    return settings(max_examples=n, derandomize=derandomize, deadline=None, database=None, print_blob=True,
-                    phases=(Phase.explicit, Phase.reuse, Phase.generate) if derandomize else tuple(Phase),
-                    suppress_health_check=list(HealthCheck))
-
-
-CI = _profile(CI_EXAMPLES, True)
-LONG = _profile(LONG_EXAMPLES, False)
+CI = rm.profile(CI_EXAMPLES, True)
+LONG = rm.profile(LONG_EXAMPLES, False)
 
 
 # --------------------------------------------------------------------------------------
@@ -245,7 +239,7 @@ def test_engine_silhouette_path_with_stacked_components():
 # --------------------------------------------------------------------------------------
 
 
-@_profile(8, True)
+@rm.profile(8, True)
 @given(engine_scenes())
 def test_ffi_handlers_survive_random_scenes(draw):
     light, faces, topo, p, nrm, what = build_scene(*draw)
@@ -313,7 +307,7 @@ def test_public_entry_points_refuse_non_finite_input(seed, where, value, entry):
         call()
 
 
-@_profile(30, True)  # each new occluder count compiles the value kernels once
+@rm.profile(30, True)  # each new occluder count compiles the value kernels once
 @given(engine_scenes())
 def test_public_values_are_finite_on_random_meshes(draw):
     """Scenes the public entry points accept (degenerate faces are refused with a ValueError)

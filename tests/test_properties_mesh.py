@@ -41,7 +41,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, Phase, given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 import jaxshadow as js
@@ -59,14 +59,8 @@ RECEIVERS = 7
 F32, F64 = np.float32, np.float64
 
 
-def _profile(n: int, derandomize: bool):
-    return settings(max_examples=n, derandomize=derandomize, deadline=None, database=None, print_blob=True,
-                    phases=(Phase.explicit, Phase.reuse, Phase.generate) if derandomize else tuple(Phase),
-                    suppress_health_check=list(HealthCheck))
-
-
-CI = _profile(CI_EXAMPLES, True)
-LONG = _profile(LONG_EXAMPLES, False)
+CI = rm.profile(CI_EXAMPLES, True)
+LONG = rm.profile(LONG_EXAMPLES, False)
 
 
 @st.composite

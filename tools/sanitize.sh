@@ -23,6 +23,13 @@ LIB="$OUT/_shadowc_asan.so"
 PYINC=$("$PY" -c "import sysconfig; print(sysconfig.get_paths()['include'])")
 FFI=$("$PY" -c "import os, jaxlib; d = os.path.join(os.path.dirname(jaxlib.__file__), 'include'); print(d if os.path.exists(os.path.join(d, 'xla/ffi/api/ffi.h')) else '')")
 DEFS=(); [ -n "$FFI" ] && DEFS=(-DJAXSHADOW_FFI=1 -I"$FFI")
+# The sanitizer runtimes come with the compiler's libasan / libubsan (Debian: libasan8,
+# libubsan1, installed with g++); install them when the compiler does not find them.
+if [ ! -f "$("$CXX" -print-file-name=libasan.so)" ] && command -v apt-get >/dev/null 2>&1; then
+  SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq libasan8 libubsan1 >/dev/null
+fi
 echo "sanitize: building the engine with ASan + UBSan into $LIB"
 "$CXX" -std=c++17 -O1 -g -fno-omit-frame-pointer -ffp-contract=off -fno-fast-math \
   -fsanitize=address,undefined,float-cast-overflow -fno-sanitize-recover=all \

@@ -68,7 +68,7 @@ struct Work {  // per-thread scratch
   std::vector<int32_t> std_;
   std::vector<T> sbox;
   // Its grid of contour pieces in the emitter plane (silhouette.h, ContourGrid).
-  std::vector<double> guv;       // per piece: (u, v) box
+  std::vector<int32_t> gcells;   // per piece: the cells its box meets (ix0, ix1, iy0, iy1)
   std::vector<int32_t> gstart;   // per cell: first entry in gitems (CSR; G * G + 1)
   std::vector<int32_t> gitems;   // pieces by cell
   std::vector<V3<T>> gref;       // per cell: its reference point (inside E_h and the cell)

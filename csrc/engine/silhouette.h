@@ -485,27 +485,28 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   std::vector<int32_t>& stamp_of = w.gstamp;
   int32_t stamp = 0;
   if (G) {
-    std::vector<double>& gb = w.guv;
-    gb.resize(size_t(4 * nsc));
+    // Per piece: the cells its padded (u, v) box meets (ix0, ix1, iy0, iy1).
+    std::vector<int32_t>& gc = w.gcells;
+    gc.resize(size_t(4 * nsc));
     gs.assign(size_t(G * G + 1), 0);
     for (int i = 0; i < nsc; i++) {
       double ua, va, ub, vb;
       uv(segs[size_t(neh + i)].a, ua, va);
       uv(segs[size_t(neh + i)].b, ub, vb);
-      double* b = gb.data() + 4 * i;
-      b[0] = std::min(ua, ub) - gpad, b[1] = std::max(ua, ub) + gpad;
-      b[2] = std::min(va, vb) - gpad, b[3] = std::max(va, vb) + gpad;
-      for (int iy = cell_of(b[2], vmin, dv); iy <= cell_of(b[3], vmin, dv); iy++)
-        for (int ix = cell_of(b[0], umin, du); ix <= cell_of(b[1], umin, du); ix++) gs[size_t(iy * G + ix + 1)]++;
+      int32_t* r = gc.data() + 4 * i;
+      r[0] = cell_of(std::min(ua, ub) - gpad, umin, du), r[1] = cell_of(std::max(ua, ub) + gpad, umin, du);
+      r[2] = cell_of(std::min(va, vb) - gpad, vmin, dv), r[3] = cell_of(std::max(va, vb) + gpad, vmin, dv);
+      for (int iy = r[2]; iy <= r[3]; iy++)
+        for (int ix = r[0]; ix <= r[1]; ix++) gs[size_t(iy * G + ix + 1)]++;
     }
     for (int c = 0; c < G * G; c++) gs[size_t(c + 1)] += gs[size_t(c)];
     gi.resize(size_t(gs[size_t(G * G)]));
     std::vector<int32_t>& cur = w.gcand;
     cur.assign(gs.begin(), gs.end() - 1);
     for (int i = 0; i < nsc; i++) {
-      const double* b = gb.data() + 4 * i;
-      for (int iy = cell_of(b[2], vmin, dv); iy <= cell_of(b[3], vmin, dv); iy++)
-        for (int ix = cell_of(b[0], umin, du); ix <= cell_of(b[1], umin, du); ix++) gi[size_t(cur[size_t(iy * G + ix)]++)] = neh + i;
+      const int32_t* r = gc.data() + 4 * i;
+      for (int iy = r[2]; iy <= r[3]; iy++)
+        for (int ix = r[0]; ix <= r[1]; ix++) gi[size_t(cur[size_t(iy * G + ix)]++)] = neh + i;
     }
     stamp_of.assign(size_t(ns), 0);
   }
@@ -681,9 +682,9 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       std::vector<int32_t>& cand = w.gcand;
       cand.clear();
       stamp++;
-      const double* b = w.guv.data() + 4 * (i - neh);
-      for (int iy = cell_of(b[2], vmin, dv); iy <= cell_of(b[3], vmin, dv); iy++)
-        for (int ix = cell_of(b[0], umin, du); ix <= cell_of(b[1], umin, du); ix++)
+      const int32_t* r = w.gcells.data() + 4 * (i - neh);
+      for (int iy = r[2]; iy <= r[3]; iy++)
+        for (int ix = r[0]; ix <= r[1]; ix++)
           for (int32_t k = gs[size_t(iy * G + ix)]; k < gs[size_t(iy * G + ix + 1)]; k++) {
             const int32_t j = gi[size_t(k)];
             if (j != i && stamp_of[size_t(j)] != stamp) stamp_of[size_t(j)] = stamp, cand.push_back(j);
