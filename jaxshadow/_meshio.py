@@ -21,7 +21,6 @@ Every file is written through `jaxshadow._files` (a temporary file renamed into 
 from __future__ import annotations
 
 import csv
-import io
 import os
 import re
 import warnings
@@ -36,6 +35,7 @@ TABLE_EXTS = (".csv", ".npy", ".npz")
 POINT_COLUMNS = ("px", "py", "pz", "nx", "ny", "nz")
 # The PLY float properties of irradiance, `irradiance_r/g/b`, in every PLY the project writes.
 IRRADIANCE_PROPERTY = "irradiance"
+LEGACY_PROPERTY = "value"  # what `write_ply` named them before: still read by `read_ply_values`
 
 
 def _trimesh() -> Any:
@@ -269,10 +269,16 @@ def write_mesh(path: str | os.PathLike, vertices: Any, faces: Any) -> None:
 
 def read_ply_values(path: str | os.PathLike, name: str = IRRADIANCE_PROPERTY, at: str = "vertices") -> np.ndarray:
     """The `(N, 3)` float properties `{name}_r, _g, _b` (default `irradiance_r/g/b`) of a PLY
-    written by `write_ply`, the `irradiance` or the `mesh` command."""
+    written by `write_ply`, the `irradiance` or the `mesh` command. Irradiance in PLY files of
+    earlier versions, whose API wrote it as `value_r/g/b`, is read too."""
     trimesh = _trimesh()
     m = trimesh.load(os.fspath(path), process=False)
     data = m.metadata["_ply_raw"]["vertex" if at == "vertices" else "face"]["data"]
+    names = data.dtype.names or ()
+    if f"{name}_r" not in names and name == IRRADIANCE_PROPERTY and f"{LEGACY_PROPERTY}_r" in names:
+        name = LEGACY_PROPERTY
+    if f"{name}_r" not in names:
+        raise ValueError(f"{os.fspath(path)}: no {at} properties {name}_r/g/b (has {', '.join(names)}).")
     return np.stack([np.asarray(data[f"{name}_{c}"], np.float64) for c in "rgb"], axis=1)
 
 
@@ -380,6 +386,33 @@ def read_csv(path: str | os.PathLike, columns: tuple[str, ...]) -> np.ndarray:
     return table.reshape(-1, len(columns))
 
 
+CSV_BLOCK_ROWS = 1 << 15
+
+
+def write_csv_table(fh: Any, header: list[str], columns: list[Any]) -> None:
+    """Write a CSV table to the open text file `fh`: the `header` row, then the rows of the
+    `(N, k_i)` arrays `columns` side by side, formatted a block of rows at a time (one string
+    format per block, array speed; a block in memory, not the whole text).
+
+    Each value is written so that it reads back exactly in its own precision: a float64 value
+    as its shortest round-trip repr (`repr(float)`), a float32 value (an array whose dtype is
+    float32) with 9 significant digits, which parse back to the same float32.
+    """
+    arrays = [np.asarray(c) for c in columns]
+    arrays = [a.reshape(a.shape[0], -1) for a in arrays]
+    n = arrays[0].shape[0] if arrays else 0
+    if any(a.shape[0] != n for a in arrays):
+        raise ValueError(f"write_csv_table: columns have different row counts {[a.shape[0] for a in arrays]}.")
+    fmts = [("%.9g" if a.dtype == np.float32 else "%r") for a in arrays for _ in range(a.shape[1])]
+    if len(fmts) != len(header):
+        raise ValueError(f"write_csv_table: {len(header)} header names for {len(fmts)} columns.")
+    fh.write(",".join(header) + "\n")
+    row = ",".join(fmts) + "\n"
+    for s in range(0, n, CSV_BLOCK_ROWS):
+        block = np.concatenate([a[s:s + CSV_BLOCK_ROWS].astype(np.float64) for a in arrays], axis=1)
+        fh.write((row * block.shape[0]) % tuple(block.ravel().tolist()))
+
+
 def _loadtxt(fh: Any, usecols: list[int] | None = None) -> np.ndarray:
     """The rest of `fh` as a float64 table (`np.loadtxt`: comma-separated, `"` quotes, no
     comment character, empty lines skipped); no warning for a header without rows."""
@@ -394,7 +427,7 @@ def write_values(path: str | os.PathLike, values: Any, *, points: Any = None, no
 
     - `.npy`: the `(N, 3)` array. `.npz`: `values` (and `points`, `normals` when given).
     - `.csv`: header `px,py,pz,nx,ny,nz,r,g,b` (the receiver columns when `points` and
-      `normals` are given), full float64 precision.
+      `normals` are given), every value exactly (`write_csv_table`).
     - `.ply`: needs `mesh` (receivers read from a mesh): `write_ply`, float properties
       `{name}_r/g/b` (default `irradiance_r/g/b`).
 
@@ -431,13 +464,8 @@ def write_values(path: str | os.PathLike, values: Any, *, points: Any = None, no
         cols, header = [v], ["r", "g", "b"]
         if points is not None:
             cols, header = [np.asarray(points), np.asarray(normals), v], [*POINT_COLUMNS, "r", "g", "b"]
-        table = np.concatenate([np.asarray(c, np.float64) for c in cols], axis=1)
-        buf = io.StringIO()
-        w = csv.writer(buf, lineterminator="\n")
-        w.writerow(header)
-        w.writerows([[repr(float(x)) for x in row] for row in table])
         with atomic_write(path, "w", newline="") as fh:
-            fh.write(buf.getvalue())
+            write_csv_table(fh, header, cols)
     else:
         raise ValueError(f"{path}: unknown output format {ext or '(no extension)'!r} (expected .npy, .npz, .csv or .ply).")
 

@@ -262,3 +262,38 @@ def test_one_ply_property_naming_for_irradiance(tmp_path):
     assert "radiance_r" in _ply_properties(tmp_path / "rad.ply")
     with pytest.raises(ValueError, match="name must be a PLY property name"):
         js.write_ply(tmp_path / "bad.ply", r, vals, name="my value")
+
+
+def test_csv_values_round_trip_exactly_in_their_own_precision(tmp_path):
+    # float64 columns come back bit for bit as float64, float32 columns bit for bit as float32
+    # (parsed by NumPy's own reader, not by the code under test), across several write blocks.
+    from jaxshadow import _meshio
+
+    rng = np.random.default_rng(3)
+    n = 2 * _meshio.CSV_BLOCK_ROWS + 17
+    p64 = rng.normal(size=(n, 3)) * 10.0 ** rng.integers(-12, 12, (n, 1))
+    n64 = rng.normal(size=(n, 3))
+    v32 = (rng.normal(size=(n, 3)) * 10.0 ** rng.integers(-30, 30, (n, 1))).astype(np.float32)
+    v32[:3] = [[0.1, 1 / 3, np.float32(np.pi)], [np.finfo(np.float32).max, np.finfo(np.float32).tiny, 0.0],
+               [-0.0, 16777217.0, 1e-45]]
+    js.write_values(tmp_path / "v.csv", v32, points=p64, normals=n64)
+    raw = np.loadtxt(tmp_path / "v.csv", delimiter=",", skiprows=1)
+    assert raw.shape == (n, 9)
+    np.testing.assert_array_equal(raw[:, :3], p64)
+    np.testing.assert_array_equal(raw[:, 3:6], n64)
+    np.testing.assert_array_equal(raw[:, 6:].astype(np.float32), v32)
+    assert (tmp_path / "v.csv").read_text().splitlines()[0] == "px,py,pz,nx,ny,nz,r,g,b"
+    # float64 values are written as Python's shortest repr (what csv.writer of repr(x) wrote).
+    js.write_values(tmp_path / "w.csv", p64[:4])
+    assert (tmp_path / "w.csv").read_text().splitlines()[1:] == [",".join(repr(float(x)) for x in r) for r in p64[:4]]
+
+
+def test_ply_irradiance_under_the_old_property_names_is_still_read(tmp_path):
+    m = _box()
+    r = js.ReceiverMesh(m.vertices, m.faces)
+    vals = np.random.default_rng(4).uniform(0, 3, (len(m.vertices), 3))
+    js.write_ply(tmp_path / "old.ply", r, vals, name="value")  # the API's former naming
+    assert "value_r" in _ply_properties(tmp_path / "old.ply")
+    np.testing.assert_array_equal(read_ply_values(tmp_path / "old.ply"), vals)
+    with pytest.raises(ValueError, match="no vertices properties radiance_r/g/b"):
+        read_ply_values(tmp_path / "old.ply", name="radiance")
