@@ -220,6 +220,33 @@ class Mesh:
         return (f"Mesh({self.vertices.shape[0]} vertices, {self.n_input_faces} faces -> "
                 f"{len(self.polygons)} polygons, {kind})")
 
+    n_welded: int = 0  # vertices merged away by `welded`
+
+    def welded(self, tol: float = 0.0) -> Mesh:
+        """The same surface with vertices at equal positions (`tol=0`) or within `tol` (m) merged
+        (`jaxshadow.ReceiverMesh.welded`'s rule): a mesh split at UV seams becomes one closed
+        surface. **Returns:** a new `Mesh` (of this one's faces); `n_welded` counts the vertices
+        merged away. Faces a tolerance collapses are dropped."""
+        from ._meshio import weld_vertices
+
+        index, first = weld_vertices(self.vertices, tol)
+        loops = [[int(i) for i in index[loop]] for loop in self.loops]
+        loops = [[a for k, a in enumerate(lp) if a != lp[k - 1]] for lp in loops]
+        out = Mesh(self.vertices[first], [lp for lp in loops if len(set(lp)) >= 3])
+        out.n_welded = len(self.vertices) - len(first)
+        return out
+
+    def transformed(self, matrix: Any = None, *, rotation: Any = None, translation: Any = None,
+                    scale: Any = 1.0) -> Mesh:
+        """The mesh moved by an affine map $x \\mapsto A x + t$ (arguments as
+        `jaxshadow.ReceiverMesh.transformed`); a mirroring map reverses the faces, so a closed
+        mesh stays outward-oriented. **Returns:** a new `Mesh`."""
+        from ._meshio import affine_parts
+
+        a, t = affine_parts(matrix, rotation=rotation, translation=translation, scale=scale)
+        flip = np.linalg.det(a) < 0
+        return Mesh(self.vertices @ a.T + t, [lp[::-1] if flip else lp for lp in self.loops])
+
 
 def _index(x: Any, i: int) -> int:
     """One vertex index: an integer, or a number with an integral value (2.0); 2.5 is refused

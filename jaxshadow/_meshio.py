@@ -6,9 +6,21 @@ flattening glTF node transforms, and writes binary PLY with vertex colours *and*
 vertex properties, which is what a receiver mesh with its irradiance needs. meshio targets
 simulation meshes (cells of many kinds, no glTF, no colours). It is the `mesh` extra.
 
-Receivers read from a mesh are its vertices (with trimesh's vertex normals: the file's when it
-has them, else the mean of the normals of the faces around the vertex) or its face centres (with
-the right-hand-rule face normals). Point tables follow one convention for every command:
+Receivers read from a mesh are its vertices or its face centres. One convention for every route
+(`read_mesh`, `ReceiverMesh(v, f)`, `from_mitsuba`, the commands):
+
+- **Normals.** A face's normal is the right-hand-rule normal of its vertices; a vertex's normal
+  is the area-weighted mean of the normals of the faces around it (the normalised sum of their
+  edge cross products), computed from the welded geometry. Normals stored in a file are not
+  used (pass `vertex_normals=` to `ReceiverMesh` to give others).
+- **Welding.** Vertices at exactly equal positions (or within `weld` metres) are merged when a
+  mesh is read, so a surface split along UV seams or per-face normals is one connected surface
+  (one normal per point, closed meshes found closed); `ReceiverMesh.n_welded` counts them.
+- **Transforms.** `ReceiverMesh.transformed(matrix)` moves the vertices by an affine map and
+  carries normals as normals (by the inverse transpose), reversing the faces of a mirroring map
+  so that every normal stays on its side of the surface.
+
+Point tables follow one convention for every command:
 
 - `.csv`: a header row with named columns; `px, py, pz, nx, ny, nz` are required (other columns
   are ignored, so a targets CSV is also a points CSV); values written back get `r, g, b` columns.
@@ -62,12 +74,18 @@ class ReceiverMesh:
     - `vertices`: `(V, 3)` positions (m).
     - `faces`: `(F, 3)` vertex indices of triangles, counter-clockwise seen from the side the
       face normal points to.
-    - `vertex_normals`: `(V, 3)` normals, or `None` for the area-weighted average of the face
-      normals.
+    - `vertex_normals`: `(V, 3)` normals, or `None` (default) for the area-weighted mean of the
+      normals of the faces around each vertex (the normalised sum of their edge cross products,
+      i.e. of twice their area times their unit normal): the convention of `read_mesh` and
+      `from_mitsuba` too, so one geometry has one set of normals whatever route built it.
     - `name`: a label (the file or the Mitsuba shape id).
 
     **Attributes:** `vertices`, `faces`, `vertex_normals` (unit), `face_normals` `(F, 3)` (unit),
-    `face_areas` `(F,)` (m^2), `face_centres` `(F, 3)`, `name`.
+    `face_areas` `(F,)` (m^2), `face_centres` `(F, 3)`, `name`, `n_welded` (vertices merged
+    into others when the mesh was welded: `read_mesh`, `welded`; 0 otherwise).
+
+    A mesh's vertices are used as given: `welded()` merges duplicates (UV seams, triangle soups),
+    `transformed(matrix)` moves the mesh with its normals.
 
     Raises `ValueError` for non-finite vertices, indices out of range, zero-area faces, and (at
     `receivers("vertices")`) vertices that belong to no face.
@@ -91,13 +109,14 @@ class ReceiverMesh:
         if not (area2 > 1e-12 * size * size).all():
             raise ValueError(f"ReceiverMesh {name!r}: face {int(np.argmin(area2))} has zero area.")
         self.vertices, self.faces, self.name = v, f, name
+        self.n_welded = 0
         self.face_areas = 0.5 * area2
         self.face_normals = cross / area2[:, None]
         self.face_centres = v[f].mean(axis=1)
+        self._normals_given = vertex_normals is not None
         if vertex_normals is None:
-            acc = np.zeros_like(v)
-            for k in range(3):
-                np.add.at(acc, f[:, k], cross)
+            acc = np.stack([np.bincount(f.ravel(), np.repeat(cross[:, c], 3), minlength=len(v)) for c in range(3)],
+                           axis=1)
         else:
             acc = np.asarray(vertex_normals, dtype=np.float64)
             if acc.shape != v.shape or not np.all(np.isfinite(acc)):
@@ -134,20 +153,143 @@ class ReceiverMesh:
         return a + u[:, None] * (b - a) + w[:, None] * (c - a), self.face_normals[tri].copy()
 
     def occluder(self, merge: bool = True) -> Any:
-        """The surface as a `jaxshadow.Mesh` occluder."""
+        """The surface as a `jaxshadow.Mesh` occluder (its vertices as they are: a mesh read by
+        `read_mesh` or `from_mitsuba` is welded, so a closed surface is found closed)."""
         from ._mesh import Mesh
 
         return Mesh(self.vertices, self.faces, merge=merge)
 
+    def welded(self, tol: float = 0.0) -> ReceiverMesh:
+        """The same surface with duplicate vertices merged.
 
-def read_mesh(path: str | os.PathLike) -> ReceiverMesh:
+        **Arguments:** `tol`: vertices at exactly equal positions (`0`, default) or within `tol`
+        (m, transitively) become one, at the position of the first of them (lowest index).
+        Vertices with given normals (`vertex_normals=`) are merged only when their normals are
+        equal too, so a hard edge stays split; computed normals are recomputed (area-weighted)
+        on the welded surface.
+
+        **Returns:** a `ReceiverMesh` whose `n_welded` is the number of vertices merged away
+        (`len(self.vertices) - len(result.vertices)`, plus `self.n_welded`). Faces that a
+        tolerance collapses (two corners merged) are dropped; `ValueError` if none is left.
+        """
+        keys = self.vertex_normals if self._normals_given else None
+        index, first = weld_vertices(self.vertices, tol, keys=keys)
+        f = index[self.faces]
+        keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])
+        if not keep.any():
+            raise ValueError(f"ReceiverMesh {self.name!r}: welding within {tol} collapses every face.")
+        out = ReceiverMesh(self.vertices[first], f[keep], self.vertex_normals[first] if self._normals_given else None,
+                           name=self.name)
+        out.n_welded = self.n_welded + len(self.vertices) - len(first)
+        return out
+
+    def transformed(self, matrix: Any = None, *, rotation: Any = None, translation: Any = None,
+                    scale: Any = 1.0) -> ReceiverMesh:
+        """The mesh moved by an affine map $x \\mapsto A x + t$.
+
+        **Arguments:** either `matrix`, a `(4, 4)` homogeneous (last row `0, 0, 0, 1`), `(3, 4)`
+        affine `[A | t]` or `(3, 3)` linear matrix; or `rotation` `(3, 3)`, `translation` `(3,)` (m)
+        and `scale` (a scalar or `(3,)`, applied first): $A = R\\,\\mathrm{diag}(s)$.
+
+        **Returns:** a `ReceiverMesh` with vertices $A v + t$. Computed normals are recomputed
+        from the moved faces (area-weighted); given normals are carried as normals,
+        $A^{-\\top} n$ normalised, which stays perpendicular to the surface under non-uniform
+        scaling. A mirroring map ($\\det A < 0$) reverses each face's vertex order, so face and
+        vertex normals stay on the same side of the surface. `ValueError` for a singular or
+        non-finite map.
+        """
+        a, t = affine_parts(matrix, rotation=rotation, translation=translation, scale=scale)
+        v = self.vertices @ a.T + t
+        f = self.faces[:, ::-1] if np.linalg.det(a) < 0 else self.faces
+        n = None
+        if self._normals_given:
+            n = self.vertex_normals @ np.linalg.inv(a)  # (A^-T n) for every row n
+            n /= np.maximum(np.linalg.norm(n, axis=1), 1e-300)[:, None]
+        out = ReceiverMesh(v, f, n, name=self.name)
+        out.n_welded = self.n_welded
+        return out
+
+
+def affine_parts(matrix: Any = None, *, rotation: Any = None, translation: Any = None,
+                 scale: Any = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """`(A (3, 3), t (3,))` of an affine map given as a matrix (`(4, 4)`, `(3, 4)` or `(3, 3)`)
+    or as `rotation`, `translation` and `scale` ($A = R\\,\\mathrm{diag}(s)$); `ValueError` for a
+    singular, non-finite or projective one."""
+    if matrix is not None:
+        if rotation is not None or translation is not None or not (np.ndim(scale) == 0 and float(scale) == 1.0):
+            raise ValueError("transformed: give a matrix, or rotation/translation/scale, not both.")
+        m = np.asarray(matrix, dtype=np.float64)
+        if m.shape == (4, 4):
+            if not np.allclose(m[3], [0, 0, 0, 1], rtol=0, atol=1e-12 * max(1.0, float(np.abs(m[3]).max()))):
+                raise ValueError(f"transformed: a (4, 4) matrix must be affine (last row 0, 0, 0, 1), got {m[3]}.")
+            a, t = m[:3, :3], m[:3, 3]
+        elif m.shape == (3, 4):
+            a, t = m[:, :3], m[:, 3]
+        elif m.shape == (3, 3):
+            a, t = m, np.zeros(3)
+        else:
+            raise ValueError(f"transformed: matrix must have shape (4, 4), (3, 4) or (3, 3), got {m.shape}.")
+    else:
+        r = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
+        t = np.zeros(3) if translation is None else np.asarray(translation, dtype=np.float64)
+        s = np.broadcast_to(np.asarray(scale, dtype=np.float64), (3,))
+        if r.shape != (3, 3) or t.shape != (3,):
+            raise ValueError(f"transformed: rotation must be (3, 3) and translation (3,), got {r.shape} and {t.shape}.")
+        a = r * s[None, :]
+    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(t))):
+        raise ValueError("transformed: the map must be finite.")
+    sv = np.linalg.svd(a, compute_uv=False)
+    if not sv[-1] > 1e-12 * sv[0]:
+        raise ValueError("transformed: the map is singular (it flattens the mesh).")
+    return a.copy(), t.copy()
+
+
+def weld_vertices(vertices: Any, tol: float = 0.0, keys: Any = None) -> tuple[np.ndarray, np.ndarray]:
+    """Which vertices are one: `(index (V,), first (W,))`, vertex i becoming welded vertex
+    `index[i]`, welded vertex j being original vertex `first[j]` (the lowest index of its group;
+    groups in the order of their first vertex).
+
+    **Arguments:** `vertices` `(V, 3)`; `tol`: `0` merges exactly equal positions (`-0.0` equals
+    `0.0`), `tol > 0` positions within `tol` (m) of each other, transitively; `keys`: optional
+    `(V, k)` values that must be equal too (e.g. given normals).
+    """
+    v = np.asarray(vertices, dtype=np.float64) + 0.0
+    if not (np.isfinite(tol) and tol >= 0):
+        raise ValueError(f"weld: the tolerance must be a finite number >= 0, got {tol!r}.")
+    if tol > 0 and len(v) > 1:
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import connected_components
+        from scipy.spatial import cKDTree
+
+        pairs = cKDTree(v).query_pairs(float(tol), output_type="ndarray")
+        g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(v), len(v)))
+        label = connected_components(g, directed=False)[1].astype(np.float64)[:, None]
+    else:
+        label = v
+    if keys is not None:
+        label = np.concatenate([label, np.asarray(keys, dtype=np.float64) + 0.0], axis=1)
+    _, first, inv = np.unique(label, axis=0, return_index=True, return_inverse=True)
+    order = np.argsort(first, kind="stable")
+    rank = np.empty(len(order), dtype=np.int64)
+    rank[order] = np.arange(len(order))
+    return rank[inv.reshape(-1)], first[order]
+
+
+def read_mesh(path: str | os.PathLike, *, weld: float | None = 0.0) -> ReceiverMesh:
     """Read a triangle mesh (OBJ, PLY, glTF/GLB, STL, OFF; polygons are triangulated, glTF
     scenes flattened with their transforms) with trimesh.
 
-    **Arguments:** `path`: the file; the format follows its extension.
+    **Arguments:**
+
+    - `path`: the file; the format follows its extension.
+    - `weld`: vertices at exactly equal positions (`0.0`, default) or within `weld` (m) are
+      merged (`ReceiverMesh.welded`): a surface split at UV seams, or stored as a triangle soup
+      (STL), is read as one connected surface; `None` keeps the file's vertices as they are.
 
     **Returns:** a `ReceiverMesh` (use `.occluder()` for a `jaxshadow.Mesh` occluder,
-    `.receivers(at)` for receiver points and normals).
+    `.receivers(at)` for receiver points and normals), with `n_welded` the number of vertices
+    merged. Vertex normals are the area-weighted ones of the (welded) faces, as for
+    `ReceiverMesh(vertices, faces)`; normals stored in the file are not used.
 
     Example:
         ```python
@@ -174,8 +316,8 @@ def read_mesh(path: str | os.PathLike) -> ReceiverMesh:
         raise ValueError(f"{path}: cannot read the mesh ({type(err).__name__}: {err}).") from None
     if not isinstance(m, trimesh.Trimesh) or len(m.faces) == 0:
         raise ValueError(f"{path}: the file holds no triangles.")
-    return ReceiverMesh(np.asarray(m.vertices), np.asarray(m.faces), np.asarray(m.vertex_normals),
-                        name=os.path.basename(path))
+    mesh = ReceiverMesh(np.asarray(m.vertices), np.asarray(m.faces), name=os.path.basename(path))
+    return mesh if weld is None else mesh.welded(weld)
 
 
 def tonemap(values: Any, exposure: float | None = None) -> np.ndarray:
@@ -282,8 +424,10 @@ def read_ply_values(path: str | os.PathLike, name: str = IRRADIANCE_PROPERTY, at
     return np.stack([np.asarray(data[f"{name}_{c}"], np.float64) for c in "rgb"], axis=1)
 
 
-def read_points(path: str | os.PathLike, at: str = "vertices") -> tuple[np.ndarray, np.ndarray, ReceiverMesh | None]:
-    """Receivers from a file, by extension (see the module docstring for the conventions).
+def read_points(path: str | os.PathLike, at: str = "vertices", *,
+                weld: float | None = 0.0) -> tuple[np.ndarray, np.ndarray, ReceiverMesh | None]:
+    """Receivers from a file, by extension (see the module docstring for the conventions);
+    a mesh is read by `read_mesh(path, weld=weld)`.
 
     **Returns:** `(points (N, 3), normals (N, 3), mesh)`, `mesh` the `ReceiverMesh` when the
     file is a mesh (receivers at its vertices or faces, `at`), else `None`.
@@ -304,7 +448,7 @@ def read_points(path: str | os.PathLike, at: str = "vertices") -> tuple[np.ndarr
     path = os.fspath(path)
     ext = extension(path)
     if ext in MESH_EXTS:
-        mesh = read_mesh(path)
+        mesh = read_mesh(path, weld=weld)
         p, n = mesh.receivers(at)
         return p, n, mesh
     if ext not in TABLE_EXTS:

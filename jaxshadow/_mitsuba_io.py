@@ -15,7 +15,8 @@ way Mitsuba reads it (includes, defaults, transforms, OBJ/PLY/serialized files):
 - `point` -> `PointLight` (`intensity`, W/sr); `directional` -> `DirectionalLight` (direction
   = `to_world` applied to +z, `irradiance`, W/m^2).
 - every other shape is an occluder (a `jaxshadow.Mesh`) and a receiver surface (a
-  `ReceiverMesh`, with the vertex normals Mitsuba has); `sphere` and `cylinder` are tessellated
+  `ReceiverMesh`, welded, with area-weighted vertex normals like every `ReceiverMesh`);
+  `sphere` and `cylinder` are tessellated
   (inscribed, `sphere_segments`), `disk` polygonised as above.
 - what cannot be represented (spot and environment emitters, textured radiance, emitters on
   shapes that are not meshes or discs, unknown shapes) raises an `UnsupportedMitsubaElementWarning`
@@ -391,8 +392,8 @@ def material_to_bsdf(material: Material) -> dict:
 # --------------------------------------------------------------------------------------
 
 
-def from_mitsuba(path_or_dict: Any, *, disc_segments: int = DISC_SEGMENTS,
-                 sphere_segments: int = SPHERE_SEGMENTS) -> tuple[Scene, list[ReceiverMesh], list[Material]]:
+def from_mitsuba(path_or_dict: Any, *, disc_segments: int = DISC_SEGMENTS, sphere_segments: int = SPHERE_SEGMENTS,
+                 weld: float | None = 0.0) -> tuple[Scene, list[ReceiverMesh], list[Material]]:
     """A Mitsuba 3 scene as jaxshadow's: lights, occluders, receiver surfaces and materials.
 
     **Arguments:**
@@ -400,6 +401,9 @@ def from_mitsuba(path_or_dict: Any, *, disc_segments: int = DISC_SEGMENTS,
     - `path_or_dict`: a Mitsuba XML file, a `mi.load_dict` dictionary, or a loaded `mi.Scene`.
     - `disc_segments`: vertices of the regular polygon (of equal area) standing in for a `disk`.
     - `sphere_segments`: segments around a tessellated `sphere` or `cylinder` (inscribed).
+    - `weld`: each shape's vertices at equal positions (`0.0`, default) or within `weld` (m)
+      are merged (`ReceiverMesh.welded`; `n_welded` counts them), so a mesh split at UV seams
+      is one closed surface for the shadow engine; `None` keeps Mitsuba's vertex buffers.
 
     Shapes and emitters are taken in id order (those without an id after, in Mitsuba's order):
     area lights first, then point and directional lights. A file is loaded without Mitsuba's
@@ -407,17 +411,19 @@ def from_mitsuba(path_or_dict: Any, *, disc_segments: int = DISC_SEGMENTS,
 
     **Returns:** `(scene, receivers, materials)`: a `Scene` (polygon, point and directional
     lights; every non-emitting shape as a `Mesh` occluder; no ambient), a list of
-    `ReceiverMesh` (one per non-emitting shape, named by its id) and a list of `Material`
+    `ReceiverMesh` (one per non-emitting shape, named by its id; vertex normals area-weighted
+    from its welded faces, as for every `ReceiverMesh`) and a list of `Material`
     (`materials[i]` is the nearest Phong material of `receivers[i]`'s BSDF). Elements that
     cannot be represented raise an `UnsupportedMitsubaElementWarning` naming them.
     """
     mi = _mi()
-    scene, receivers, materials, _ = convert_scene(mi, _load(mi, path_or_dict), disc_segments, sphere_segments)
+    scene, receivers, materials, _ = convert_scene(mi, _load(mi, path_or_dict), disc_segments, sphere_segments,
+                                                   weld=weld)
     return scene, receivers, materials
 
 
 def convert_scene(mi: Any, ms: Any, disc_segments: int = DISC_SEGMENTS, sphere_segments: int = SPHERE_SEGMENTS,
-                  textures: bool = False) -> tuple[Scene, list[ReceiverMesh], list[Material], list[Any]]:
+                  textures: bool = False, weld: float | None = 0.0) -> tuple[Scene, list[ReceiverMesh], list[Material], list[Any]]:
     """`from_mitsuba` of a loaded `mi.Scene`, plus the Mitsuba shape of each receiver. With
     `textures`, a `diffuse` BSDF with a textured reflectance raises no warning (the renderer
     looks the texture up per pixel)."""
@@ -449,8 +455,9 @@ def convert_scene(mi: Any, ms: Any, disc_segments: int = DISC_SEGMENTS, sphere_s
             continue
         if geom is None:
             continue
-        v, f, nrm = geom
-        receivers.append(ReceiverMesh(v, f, nrm, name=name))
+        v, f, _ = geom
+        receiver = ReceiverMesh(v, f, name=name)
+        receivers.append(receiver if weld is None else receiver.welded(weld))
         if textures and textured_diffuse(mi, shape.bsdf()):
             materials.append(Material(ka=np.zeros(3), kd=np.full(3, 0.5), ks=np.zeros(3), exponent=1.0))
         else:
