@@ -30,33 +30,29 @@ def vertex_colours(irradiance: np.ndarray, scale: float) -> np.ndarray:
     return rgba
 
 
-def save_mesh(mesh: Any, path: str | os.PathLike) -> None:
+def save_mesh(mesh: Any, path: str | os.PathLike, up: Any = "z") -> dict[str, int] | None:
     """Write an `IlluminationMesh` to `path`: `.ply` (binary, vertex colours and the float
-    irradiance as vertex properties), `.glb` or `.gltf` (buffers embedded; vertex colours as
-    `COLOR_0`). The file is replaced atomically (`jaxshadow._files.atomic_write_path`)."""
+    irradiance as vertex properties, in the scene's frame), `.glb` or `.gltf` (buffers embedded;
+    vertex colours as `COLOR_0`, the float irradiance as `_IRRADIANCE`, y-up: the scene's `up`
+    axis turned to +y, and a clean float32 triangulation: `jaxshadow._meshio.write_gltf`, whose
+    counts it returns). The file is replaced atomically."""
     import trimesh
-    from trimesh.exchange.gltf import export_gltf
+
+    from ._meshio import write_gltf
 
     path = os.fspath(path)
     ext = os.path.splitext(path)[1].lower()
     if ext not in FORMATS:
         raise ValueError(f"illumination mesh: unknown output format {ext!r} (expected one of {sorted(FORMATS)}).")
-    tm = trimesh.Trimesh(mesh.vertices, mesh.triangles, vertex_colors=vertex_colours(mesh.irradiance, mesh.scale),
-                         process=False)
-    if ext == ".ply":
-        for c, name in enumerate("rgb"):
-            tm.vertex_attributes[f"{IRRADIANCE_PROPERTY}_{name}"] = np.ascontiguousarray(mesh.irradiance[:, c], np.float64)
-        atomic_write_path(path, lambda tmp: tm.export(tmp, file_type="ply"))
-    elif ext == ".glb":
-        atomic_write_path(path, lambda tmp: tm.export(tmp, file_type="glb"))
-    else:
-        data = export_gltf(tm.scene(), embed_buffers=True)["model.gltf"]
-
-        def write(tmp: str) -> None:
-            with open(tmp, "wb") as fh:
-                fh.write(data)
-
-        atomic_write_path(path, write)
+    colours = vertex_colours(mesh.irradiance, mesh.scale)
+    if ext != ".ply":
+        return write_gltf(path, mesh.vertices, mesh.triangles, colours=colours,
+                          attributes={IRRADIANCE_PROPERTY: np.asarray(mesh.irradiance, np.float64)}, up=up)
+    tm = trimesh.Trimesh(mesh.vertices, mesh.triangles, vertex_colors=colours, process=False)
+    for c, name in enumerate("rgb"):
+        tm.vertex_attributes[f"{IRRADIANCE_PROPERTY}_{name}"] = np.ascontiguousarray(mesh.irradiance[:, c], np.float64)
+    atomic_write_path(path, lambda tmp: tm.export(tmp, file_type="ply"))
+    return None
 
 
 # --------------------------------------------------------------------------------------
@@ -120,18 +116,36 @@ def mesh_command(args: argparse.Namespace) -> int:
     directory = os.path.dirname(os.path.abspath(out))
     if not os.path.isdir(directory):
         raise FileNotFoundError(f"-o {out}: directory {directory} does not exist.")
-    scene = js.load_scene(args.scene)
-    receiver = parse_receiver(args.receiver) if args.receiver else default_receiver(scene)
+    from .cli import default_receiver_polygon, read_scene, scene_up
+
+    scene, receivers, _ = read_scene(args.scene)
+    if args.receiver:
+        receiver = parse_receiver(args.receiver)
+    elif receivers:
+        receiver = default_receiver_polygon(scene, receivers)
+    else:
+        receiver = default_receiver(scene)
+    up = args.up or scene_up(args.scene)
+    # The receiver's own surface (faces on its plane facing its way) blocks nothing on it (the
+    # on-surface rule); the mesher is given the scene without it, as `bake` does.
+    from ._bake import _without_own_faces
+
+    normal = np.cross(receiver, np.roll(receiver, -1, axis=0)).sum(axis=0)
+    scene = _without_own_faces(scene, receiver, normal / np.linalg.norm(normal))
     def report(r: dict) -> None:
         print(f"round {r['round']}: {r['tiles_active']} tiles refining, {r['tile_vertices']:,} vertices, "
               f"{r['failing_elements']:,} elements split, {r['seconds']:.1f} s", file=sys.stderr, flush=True)
 
     mesh = js.illumination_mesh(scene, receiver, args.tol, max_vertices=args.max_vertices, tile_size=args.tile_size,
                                 progress=None if args.quiet else report)
-    mesh.save(out)
+    written = save_mesh(mesh, out, up=up)
+    cleaned = ""
+    if written and (written["welded"] or written["dropped"]):
+        cleaned = (f" (glTF, y-up from {up}: {written['welded']} vertices welded and {written['dropped']} "
+                   "slivers dropped at float32 resolution)")
     print(f"{mesh.vertices.shape[0]} vertices, {mesh.triangles.shape[0]} triangles, checked error "
           f"{mesh.max_error_estimate:.3g} of the maximum {mesh.scale:.4g} W/m^2 (tol {args.tol:g}), "
-          f"{mesh.stats['seconds']:.1f} s -> {out}")
+          f"{mesh.stats['seconds']:.1f} s -> {out}{cleaned}")
     return 0
 
 
@@ -142,13 +156,18 @@ def add_mesh_parser(sub: Any) -> None:
                        description="Mesh a receiver polygon adaptively until linear interpolation of the exact "
                                    "irradiance at its vertices is within --tol of the receiver's maximum, and write "
                                    "it as PLY (vertex colours and float properties irradiance_r/g/b) or glTF.")
-    p.add_argument("scene", help="scene JSON")
-    p.add_argument("-o", "--output", required=True, help="output mesh: .ply, .glb or .gltf")
+    p.add_argument("scene", help="scene: jaxshadow JSON (.json) or Mitsuba XML (.xml)")
+    p.add_argument("-o", "--output", required=True,
+                   help="output mesh: .ply (scene frame) or .glb/.gltf (y-up, float32 irradiance _IRRADIANCE)")
     p.add_argument("--tol", type=float, default=1e-3,
                    help="interpolation tolerance relative to the receiver's maximum irradiance (default 1e-3)")
     p.add_argument("--receiver", default=None,
                    help="receiver polygon: a JSON file with a list of [x, y, z] vertices or 'x,y,z; x,y,z; ...' "
-                        "(counter-clockwise seen from its lit side; default: the floor z = 0 under the scene)")
+                        "(counter-clockwise seen from its lit side; default: for a JSON scene the floor z = 0 "
+                        "under the scene, for a Mitsuba scene the largest face of its shapes facing the lights)")
+    p.add_argument("--up", choices=("x", "y", "z", "-x", "-y", "-z"), default=None,
+                   help="the scene's up axis, turned to +y in glTF output (default: z for a JSON scene, the "
+                        "camera's up axis for a Mitsuba scene, y without a camera)")
     p.add_argument("--max-vertices", type=int, default=2_000_000, help="stop refining at this many vertices")
     p.add_argument("--tile-size", type=float, default=None,
                    help="side of the tiles the receiver is meshed in (m; default 1/16 of its extent)")

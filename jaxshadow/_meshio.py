@@ -40,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from ._files import atomic_write
+from ._files import atomic_write, atomic_write_path
 
 MESH_EXTS = (".obj", ".ply", ".glb", ".gltf", ".stl", ".off")
 TABLE_EXTS = (".csv", ".npy", ".npz")
@@ -613,3 +613,145 @@ def write_values(path: str | os.PathLike, values: Any, *, points: Any = None, no
     else:
         raise ValueError(f"{path}: unknown output format {ext or '(no extension)'!r} (expected .npy, .npz, .csv or .ply).")
 
+
+
+# --------------------------------------------------------------------------------------
+# glTF out
+# --------------------------------------------------------------------------------------
+
+GLTF_EXTS = (".glb", ".gltf")
+AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0),
+        "-x": (-1.0, 0.0, 0.0), "-y": (0.0, -1.0, 0.0), "-z": (0.0, 0.0, -1.0)}
+# Triangles thinner than this many float32 spacings of the largest coordinate are repaired.
+GLTF_SLIVER_ULPS = 1.0
+
+
+def y_up_rotation(up: Any) -> np.ndarray:
+    """The rotation `(3, 3)` taking the unit axis `up` (`"z"`, `"-y"`, ... or a `(3,)`
+    vector along a coordinate axis) to +y, glTF's up: its rows are an axis `a` perpendicular to
+    `up`, `up`, and `a x up` (z-up -> y-up is `(x, y, z) -> (x, z, -y)`)."""
+    if isinstance(up, str) and up not in AXES:
+        raise ValueError(f"up must be a coordinate axis ({', '.join(AXES)}), got {up!r}.")
+    u = np.asarray(AXES[up] if isinstance(up, str) else up, dtype=np.float64)
+    if u.shape != (3,) or np.count_nonzero(u) != 1 or abs(float(np.abs(u).sum()) - 1.0) > 0:
+        raise ValueError(f"up must be a coordinate axis ({', '.join(AXES)}), got {up!r}.")
+    a = np.array([1.0, 0.0, 0.0]) if u[0] == 0 else np.array([0.0, 0.0, 1.0])
+    return np.stack([a, u, np.cross(a, u)])  # rows a, u, a x u: det 1, and r @ u = +y
+
+
+def write_gltf(path: str | os.PathLike, vertices: Any, faces: Any, *, normals: Any = None, colours: Any = None,
+               attributes: dict[str, Any] | None = None, up: Any = "z") -> dict[str, int]:
+    """Write a triangle mesh as glTF 2.0 (`.glb` binary, or `.gltf` with embedded buffers) through
+    trimesh, y-up as glTF requires, with a clean triangulation in glTF's float32 positions.
+
+    **Arguments:**
+
+    - `vertices` `(V, 3)` (m), `faces` `(F, 3)` counter-clockwise seen from the side the normals
+      point to; `normals` `(V, 3)` vertex normals (`NORMAL`) or `None`.
+    - `colours`: `(V, 4)` uint8 RGBA display colours (`COLOR_0`) or `None`.
+    - `attributes`: float vertex attributes `{name: (V,) or (V, k)}`, written as float32 glTF
+      custom attributes (`_NAME`, upper case, as the specification asks), e.g.
+      `{"irradiance": E}` -> `_IRRADIANCE`.
+    - `up`: the scene's up axis (`"z"` for jaxshadow's scenes, `"y"` for most Mitsuba scenes);
+      positions and normals are rotated so that it becomes +y.
+
+    **Clean triangulation.** Positions are rounded to float32 first (glTF's type); vertices that
+    become equal are welded (the first keeps its values) and the triangles left with a repeated
+    vertex dropped (an edge collapse). A triangle thinner than `GLTF_SLIVER_ULPS` float32
+    spacings of the largest coordinate, or turned over by the rounding (its normal against the
+    given one), has its longest edge flipped with the neighbour across it when that makes two
+    sound triangles, and is dropped otherwise (on the boundary, or if a flip does not help).
+    The file thus has no duplicate vertex, no zero-area and no inverted triangle.
+
+    **Returns:** `{"vertices", "faces", "welded", "dropped"}`: what was written and removed.
+    """
+    trimesh = _trimesh()
+    ext = extension(path)
+    if ext not in GLTF_EXTS:
+        raise ValueError(f"{os.fspath(path)}: write_gltf writes .glb or .gltf files.")
+    rot = y_up_rotation(up)
+    v0 = np.asarray(vertices, dtype=np.float64) @ rot.T
+    f0 = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    nv = len(v0)
+    cols = {k: np.asarray(a).reshape(nv, -1) for k, a in (attributes or {}).items()}
+    if not re.fullmatch(r"[A-Za-z0-9_]*", "".join(cols)):
+        raise ValueError(f"write_gltf: attribute names must be letters, digits and _, got {sorted(cols)}.")
+    v32 = v0.astype(np.float32).astype(np.float64)
+    spacing = GLTF_SLIVER_ULPS * float(np.finfo(np.float32).eps) * max(float(np.abs(v32).max(initial=0.0)), 1e-30)
+    index, first = weld_vertices(v32)
+    f = index[f0]
+    ref = np.cross(v0[f0[:, 1]] - v0[f0[:, 0]], v0[f0[:, 2]] - v0[f0[:, 0]])
+    if normals is not None:
+        n0 = np.asarray(normals, dtype=np.float64) @ rot.T
+        ref = n0[f0].sum(axis=1)
+    keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])
+    f, ref = _flip_slivers(v32[first], f[keep], ref[keep], spacing)
+    used = np.unique(f)
+    local = np.full(len(first), -1, dtype=np.int64)
+    local[used] = np.arange(len(used))
+    src = first[used]  # original vertex of each written vertex
+    kw: dict[str, Any] = {}
+    if normals is not None:
+        kw["vertex_normals"] = n0[src]
+    if colours is not None:
+        kw["vertex_colors"] = np.asarray(colours)[src]
+    tm = trimesh.Trimesh(v32[src].astype(np.float32), local[f], process=False, **kw)
+    for k, a in cols.items():
+        tm.vertex_attributes["_" + k.upper()] = np.ascontiguousarray(a[src], np.float32)
+    if ext == ".glb":
+        atomic_write_path(path, lambda tmp: tm.export(tmp, file_type="glb", include_normals=normals is not None))
+    else:
+        from trimesh.exchange.gltf import export_gltf
+
+        data = export_gltf(tm.scene(), embed_buffers=True, include_normals=normals is not None)["model.gltf"]
+        with atomic_write(path, "wb") as fh:
+            fh.write(data)
+    return {"vertices": len(used), "faces": len(f), "welded": nv - len(first), "dropped": len(f0) - len(f)}
+
+
+def _flip_slivers(p: np.ndarray, f: np.ndarray, ref: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """`(faces, reference normals)` with the bad triangles of `f` on positions `p` repaired: a
+    triangle is bad when its normal is not along `ref` or its height over its longest edge is at
+    most `spacing`; its longest edge is flipped with the neighbouring triangle across it when both
+    new triangles are good, else it is dropped. Only the few bad triangles are visited."""
+
+    def good(tri: Any, r: np.ndarray) -> bool:
+        a, b, c = p[tri[0]], p[tri[1]], p[tri[2]]
+        cr = np.cross(b - a, c - a)
+        longest = max(np.linalg.norm(b - a), np.linalg.norm(c - b), np.linalg.norm(a - c))
+        return bool(cr @ r > 0) and bool(float(np.linalg.norm(cr)) > spacing * longest)
+
+    cr = np.cross(p[f[:, 1]] - p[f[:, 0]], p[f[:, 2]] - p[f[:, 0]])
+    edge = np.max(np.linalg.norm(p[f] - p[np.roll(f, 1, axis=1)], axis=2), axis=1)
+    bad = np.flatnonzero(~((np.einsum("ij,ij->i", cr, ref) > 0) & (np.linalg.norm(cr, axis=1) > spacing * edge)))
+    if not len(bad):
+        return f, ref
+    f, ref = f.copy(), ref.copy()
+    alive = np.ones(len(f), dtype=bool)
+    near = np.flatnonzero(np.isin(f, np.unique(f[bad])).any(axis=1))
+    owner = {(int(f[i, k]), int(f[i, (k + 1) % 3])): int(i) for i in near for k in range(3)}
+    for i in bad.tolist():
+        if not alive[i] or good(f[i], ref[i]):
+            continue
+        tri = [int(x) for x in f[i]]
+        k = max(range(3), key=lambda k: float(np.linalg.norm(p[tri[(k + 1) % 3]] - p[tri[k]])))
+        b, c, a = tri[k], tri[(k + 1) % 3], tri[(k + 2) % 3]  # longest edge b -> c, apex a
+        j = owner.get((c, b))
+        d = -1
+        if j is not None and alive[j]:
+            d = next(int(x) for x in f[j] if x != b and x != c)
+        t1, t2 = [a, b, d], [a, d, c]
+        r = ref[i] + (ref[j] if j is not None else 0.0)
+        for e in ((a, b), (b, c), (c, a)):
+            owner.pop(e, None)
+        if d >= 0 and j is not None and good(t1, r) and good(t2, r):
+            for e in ((c, b), (b, d), (d, c)):
+                owner.pop(e, None)
+            f[i], f[j] = t1, t2
+            ref[i] = ref[j] = r
+            for t, fi in ((t1, i), (t2, j)):
+                for m in range(3):
+                    owner[(t[m], t[(m + 1) % 3])] = fi
+        else:
+            alive[i] = False
+    return f[alive], ref[alive]

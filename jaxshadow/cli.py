@@ -76,6 +76,17 @@ def int_at_least(minimum: int, what: str) -> Callable[[str], int]:
 positive_int = int_at_least(1, "a positive integer")
 
 
+def non_negative_float(text: str) -> float:
+    """argparse type: a finite number >= 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not (np.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text!r}")
+    return value
+
+
 def add_io_arguments(parser: argparse.ArgumentParser, name: str, what: str, output: str) -> None:
     """The arguments `SCENE NAME -o OUTPUT` shared by the commands: a scene (JSON or Mitsuba
     XML), an input file described by `what`, and an output described by `output`."""
@@ -193,6 +204,52 @@ def read_scene(path: str) -> tuple[Any, list, list]:
     scene = js.load_scene(path)
     has_material = "material" in _read_json(path)
     return scene, [], [js.load_material(path)] if has_material else []
+
+
+def scene_up(path: str) -> str:
+    """The up axis of a scene file, for y-up outputs (glTF): `"z"` for a jaxshadow JSON scene
+    (the project's convention); for a Mitsuba XML scene the coordinate axis nearest to its first
+    camera's up direction (`to_world` applied to +y), `"y"` when it has no camera."""
+    if not path.lower().endswith(".xml"):
+        return "z"
+    from ._mitsuba_io import _load, _mi
+
+    sensors = _load(_mi(), path).sensors()
+    if not sensors:
+        return "y"
+    m = np.asarray(sensors[0].world_transform().matrix, dtype=np.float64).reshape(4, 4)
+    u = m[:3, 1]
+    k = int(np.argmax(np.abs(u)))
+    return ("-" if u[k] < 0 else "") + "xyz"[k]
+
+
+def default_receiver_polygon(scene: Any, receivers: Sequence[Any]) -> np.ndarray:
+    """The receiver polygon a command meshes when none is given, for a scene with receiver
+    surfaces (a Mitsuba scene): of the convex faces of its receivers (coplanar triangles merged,
+    as `jaxshadow.Mesh` merges them), the one of largest area times the cosine between its normal
+    and the direction to the centre of the lights (the floor under a ceiling light). `(k, 3)`,
+    counter-clockwise seen from the side its normal points to."""
+    centres = []
+    for light in scene.lights:
+        for name in ("vertices", "start", "end", "position"):
+            if hasattr(light, name):
+                centres.append(np.asarray(getattr(light, name), np.float64).reshape(-1, 3).mean(axis=0))
+    if not centres:
+        raise ValueError("the scene has no light with a position; give --receiver.")
+    c = np.mean(centres, axis=0)
+    best, best_score = None, 0.0
+    for r in receivers:
+        for poly in r.occluder().polygons:
+            q = np.asarray(poly, np.float64)
+            cross = np.cross(q[1:-1] - q[0], q[2:] - q[0]).sum(axis=0)
+            area = 0.5 * float(np.linalg.norm(cross))
+            d = c - q.mean(axis=0)
+            cos = float(cross @ d) / max(2 * area * float(np.linalg.norm(d)), 1e-300)
+            if area * cos > best_score:
+                best, best_score = q, area * cos
+    if best is None:
+        raise ValueError("no face of the scene's shapes faces its lights; give --receiver.")
+    return best
 
 
 class Progress:
@@ -362,7 +419,9 @@ def cmd_irradiance(args: argparse.Namespace) -> int:
     import jaxshadow as js
 
     scene = read_scene(args.scene)[0]
-    pts, nrm, mesh = read_points(args.points, at=args.at)
+    pts, nrm, mesh = read_points(args.points, at=args.at, weld=args.weld)
+    if mesh is not None and mesh.n_welded:
+        _say(args)(f"{args.points}: {mesh.n_welded} duplicate vertices welded (--weld {args.weld:g})")
     dt = np.float64 if args.float64 else np.float32
     pts, nrm = pts.astype(dt), nrm.astype(dt)
     n = pts.shape[0]
@@ -396,6 +455,9 @@ def _add_irradiance(sub: Any) -> None:
                      "irradiance: .npy (N, 3), .npz, .csv (px..nz,r,g,b) or .ply (mesh receivers)")
     p.add_argument("--at", choices=("vertices", "faces"), default="vertices",
                    help="mesh receivers: at the vertices (default) or at the face centres")
+    p.add_argument("--weld", type=non_negative_float, default=0.0, metavar="TOL",
+                   help="mesh receivers: merge vertices within TOL (m) of each other (default 0: exactly "
+                        "equal positions, e.g. UV-seam copies)")
     p.add_argument("--chunk", type=positive_int, default=1 << 16,
                    help="receivers per evaluation and per progress update (default: 65536); smaller uses "
                         "less memory, larger is a little faster")

@@ -327,7 +327,10 @@ def test_save_ply_and_gltf(mesh, tmp_path):
     for name in ("m.glb", "m.gltf"):
         mesh.save(tmp_path / name)
         g = trimesh.load(tmp_path / name, process=False, force="mesh")
-        assert g.faces.shape == mesh.triangles.shape
+        # glTF holds float32 positions: elements below that resolution are collapsed or flipped
+        # (`write_gltf`), none left degenerate; all but those few triangles are kept.
+        assert len(mesh.triangles) * 0.95 <= len(g.faces) <= len(mesh.triangles)
+        assert g.nondegenerate_faces().all()
     with pytest.raises(ValueError, match="unknown output format"):
         mesh.save(tmp_path / "m.obj")
     assert not (tmp_path / "m.obj").exists()
