@@ -272,7 +272,26 @@ def _stack_occluders(occluders: Any) -> tuple[Array | None, OccluderTopology | N
         return pad_polygons_jax(items), None
     ko = max_face_vertices(items)
     polys, topo = build_occluders(items, ko)
+    if all(isinstance(x, np.ndarray) if not isinstance(x, Mesh) else isinstance(x.vertices, np.ndarray) for x in items):
+        return jnp.asarray(_padded_numpy(items, ko)), topo
     return pad_polygons_jax(polys, ko), topo
+
+
+def _padded_numpy(items: list[Any], ko: int) -> np.ndarray:
+    """`(m, ko, 3)` faces of concrete polygons and `Mesh` entries in `build_occluders`' order,
+    padded with each face's first vertex (`pad_polygons_jax`'s result, one gather per mesh)."""
+    from ._mesh import _padded
+
+    blocks = []
+    for x in items:
+        if isinstance(x, Mesh):
+            idx = _padded(x.loops)
+            idx = np.concatenate([idx, np.repeat(idx[:, :1], ko - idx.shape[1], axis=1)], axis=1)
+            blocks.append(x.vertices[idx])
+        else:
+            p = np.asarray(x)
+            blocks.append(np.concatenate([p, np.repeat(p[:1], ko - p.shape[0], axis=0)])[None])
+    return np.concatenate(blocks)
 
 
 class Scene(eqx.Module):
@@ -474,12 +493,56 @@ def scene_to_dict(scene: Scene, material: Material | None = None) -> dict:
         "ambient": _tolist(scene.ambient),
     }
     if scene.occluders is not None:
-        faces = np.asarray(scene.occluders, dtype=np.float64)
-        topo = scene.occluder_topology or OccluderTopology.independent(faces.shape[0])
-        out["occluders"] = mesh_dicts(faces, topo)
+        out["occluders"] = _occluder_entries(scene, None)
     if material is not None:
         out["material"] = material_to_dict(material)
     return out
+
+
+def _occluder_entries(scene: Scene, arrays: dict[str, np.ndarray] | None) -> list[Any]:
+    """The JSON `occluders` entries of `scene`, in entry order: `(k, 3)` lists for plain
+    polygons; for each mesh, its vertices and faces recovered (vectorised) from the padded faces
+    by exact equality of coordinates, vertices in order of first use (`mesh_dicts`' result).
+    With `arrays`, each mesh goes there as `meshN_vertices (V, 3)` and `meshN_faces (F, K)`
+    (rows padded with -1) and its entry is `{"mesh": {"arrays": "meshN"}}`; else it is
+    `{"mesh": {"vertices": [...], "faces": [...]}}`."""
+    faces = np.asarray(scene.occluders, dtype=np.float64)
+    topo = scene.occluder_topology or OccluderTopology.independent(faces.shape[0])
+    objs = np.asarray(topo.face_object)
+    starts = np.flatnonzero(np.r_[True, objs[1:] != objs[:-1]]) if len(objs) else np.zeros(0, np.int64)
+    ends = np.r_[starts[1:], len(objs)]
+    out: list[Any] = []
+    for f, g in zip(starts.tolist(), ends.tolist(), strict=True):
+        if not topo.from_mesh[f]:
+            out.extend(mesh_dicts(faces[f:g], OccluderTopology.independent(g - f)))
+            continue
+        v, loops = _mesh_arrays(faces[f:g])
+        if arrays is not None:
+            key = f"mesh{len(arrays) // 2}"
+            arrays[f"{key}_vertices"], arrays[f"{key}_faces"] = v, loops
+            out.append({"mesh": {"arrays": key}})
+        else:
+            out.append({"mesh": {"vertices": v.tolist(),
+                                 "faces": [row[row >= 0].tolist() for row in loops]}})
+    return out
+
+
+def _mesh_arrays(block: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`(vertices (V, 3), faces (G, K))` of one mesh's padded faces `block (G, Ko, 3)`: trailing
+    copies of a face's first vertex are padding (a face keeps at least three vertices), equal
+    coordinates are one vertex (in order of first use), faces padded with -1."""
+    from ._meshio import weld_vertices
+
+    eq = np.all(block == block[:, :1], axis=2)[:, 1:]  # (G, Ko - 1)
+    pad = np.flip(np.cumprod(np.flip(eq, axis=1), axis=1), axis=1).astype(bool)
+    pad[:, :2] = False
+    real = np.concatenate([np.ones((block.shape[0], 1), bool), ~pad], axis=1)
+    k = int(real.sum(axis=1).max())
+    pts = block[real]
+    index, first = weld_vertices(pts)
+    loops = np.full(real.shape, -1, dtype=np.int64)
+    loops[real] = index
+    return pts[first], loops[:, :k]
 
 
 def _occluder_from_json(o: Any, where: str, arrays: Any = None) -> Any:
@@ -597,16 +660,10 @@ def save_scene(scene: Any, path: str | os.PathLike, material: Any = None) -> Non
         raise ValueError(f"save_scene: expected a jaxshadow.Scene, got {type(scene).__name__}.")
     if material is not None and not isinstance(material, Material):
         raise ValueError(f"save_scene: material must be a jaxshadow.Material or None, got {type(material).__name__}.")
-    d = scene_to_dict(scene, material)
+    d = scene_to_dict(Scene(scene.lights, None, scene.ambient), material)
     arrays: dict[str, np.ndarray] = {}
-    for i, o in enumerate(d["occluders"]):
-        if isinstance(o, dict):
-            key = f"mesh{len(arrays) // 2}"
-            loops = o["mesh"]["faces"]
-            k = max(len(loop) for loop in loops)
-            arrays[f"{key}_vertices"] = np.asarray(o["mesh"]["vertices"], np.float64).reshape(-1, 3)
-            arrays[f"{key}_faces"] = np.asarray([loop + [-1] * (k - len(loop)) for loop in loops], np.int64)
-            d["occluders"][i] = {"mesh": {"arrays": key}}
+    if scene.occluders is not None:
+        d["occluders"] = _occluder_entries(scene, arrays)
     if arrays:
         name = arrays_file_name(path)
         buf = io.BytesIO()

@@ -269,3 +269,23 @@ def test_inline_json_face_index_must_be_an_integer(tmp_path):
     (tmp_path / "f.json").write_text(json.dumps(d))
     with pytest.raises(ValueError, match=r"scene.occluders\[0\]: mesh faces must be lists of integer vertex indices"):
         js.load_scene(tmp_path / "f.json")
+
+
+def test_vectorised_mesh_entries_match_the_per_vertex_recovery():
+    # scene_to_dict / save_scene recover each mesh's vertices and faces from the padded faces in
+    # one vectorised pass; mesh_dicts does it vertex by vertex with a dict: the same entries.
+    from jaxshadow._mesh import OccluderTopology, mesh_dicts
+
+    trimesh = pytest.importorskip("trimesh")
+    ball = trimesh.creation.icosphere(subdivisions=1)
+    box = js.Mesh.box([-0.0, -1.0, 0.0], [1.0, 0.0, 2.0])  # quads, a -0.0 coordinate
+    hexagon = np.array([[np.cos(a), np.sin(a), 3.0] for a in np.linspace(0, 2 * np.pi, 7)[:-1]])
+    fan = js.Mesh(np.vstack([hexagon, [[0.0, 0.0, 3.0]]]), [[6, i, (i + 1) % 6] for i in range(6)])  # merges
+    scene = js.Scene([js.PointLight([0, 0, 5.0], 1.0)],
+                     occluders=[js.Mesh(ball.vertices, ball.faces), [[0, 0, 4.0], [1, 0, 4.0], [0, 1, 4.0]], box, fan])
+    faces = np.asarray(scene.occluders, np.float64)
+    want = mesh_dicts(faces, scene.occluder_topology or OccluderTopology.independent(len(faces)))
+    got = js.scene_to_dict(scene)["occluders"]
+    assert got == want
+    assert [len(f) for f in got[2]["mesh"]["faces"]] == [4] * 6 and len(got[2]["mesh"]["vertices"]) == 8
+    assert len(got[3]["mesh"]["vertices"]) == 6  # the fan merged into one hexagon: its centre unused
