@@ -61,6 +61,7 @@ SUITE: tuple[str, ...] = (
     "illumination_mesh",
     "bake",
     "real_meshes",
+    "files_io",
 )
 
 

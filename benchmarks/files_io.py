@@ -1,0 +1,173 @@
+"""Files at array speed: receiver tables (CSV vs .npy, read, written, and a whole `jaxshadow irradiance` run) and a 69 888-triangle scene saved and loaded.
+
+- **Tables**, 10^6 receivers (10^5 with `--quick`): `read_points` of a CSV (header check, then
+  NumPy's parser) against the same points as `.npy`; `write_values` of the CSV output against
+  the writer it replaced (a `csv.writer` row of `repr` strings per receiver), in the same run;
+  a whole `jaxshadow irradiance` run in a fresh process (a quad light, one triangle occluder,
+  float32) from `.csv` to `.csv` and from `.npy` to `.npy`, wall time and peak RSS (the
+  child's `VmHWM`), best of two interleaved runs.
+- **Scene**: `benchmarks.real_meshes.scan_like()` (76 152 triangles, open, float32 coordinates)
+  as one `js.Mesh` occluder: `save_scene` (JSON and the `.meshes.npz` beside it) and `load_scene`,
+  best of three, and the inline JSON of schema 1 (`scene_to_dict` dumped with indent, as files
+  were written before) for comparison, with file sizes.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+NAME = "files_io"
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _best(fn: Any, reps: int = 3) -> float:
+    best = float("inf")
+    for _ in range(reps):
+        t = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t)
+    return best
+
+
+def _old_csv_writer(path: str, table: np.ndarray, header: list[str]) -> None:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(header)
+    w.writerows([[repr(float(x)) for x in row] for row in table])
+    with open(path, "w", newline="") as fh:
+        fh.write(buf.getvalue())
+
+
+# The child reports its own peak (VmHWM: its address space's high-water mark). Not ru_maxrss:
+# Linux carries a forked child's ru_maxrss over from the parent (this process holds the tables).
+_CHILD = """import runpy, sys
+sys.argv = ["jaxshadow", *sys.argv[1:]]
+try:
+    runpy.run_module("jaxshadow.cli", run_name="__main__")
+finally:
+    hwm = [line.split()[1] for line in open("/proc/self/status") if line.startswith("VmHWM")]
+    print("maxrss_kb", hwm[0] if hwm else -1, file=sys.stderr)
+"""
+
+
+def _cli(args: list[str]) -> tuple[float, float]:
+    """Wall time (s) and peak RSS (MB) of `jaxshadow ARGS` in a fresh process."""
+    t = time.perf_counter()
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    r = subprocess.run([sys.executable, "-c", _CHILD, "--no-compile-cache", *args], env=env, capture_output=True,
+                       text=True)
+    wall = time.perf_counter() - t
+    if r.returncode != 0:
+        raise RuntimeError(f"jaxshadow {' '.join(args)} failed: {r.stderr[-2000:]}")
+    kb = [int(line.split()[1]) for line in r.stderr.splitlines() if line.startswith("maxrss_kb")]
+    return wall, kb[-1] / 1024.0
+
+
+def tables(n: int, folder: str) -> dict:
+    import jaxshadow as js
+    from jaxshadow._meshio import POINT_COLUMNS
+
+    rng = np.random.default_rng(0)
+    p = np.c_[rng.uniform(-1, 1, (n, 2)), np.zeros(n)]
+    nrm = np.tile([0.0, 0.0, 1.0], (n, 1))
+    csv_in, npy_in = os.path.join(folder, "pts.csv"), os.path.join(folder, "pts.npy")
+    js.write_values(csv_in, np.zeros((n, 3)), points=p, normals=nrm)
+    np.save(npy_in, np.c_[p, nrm])
+    out: dict[str, Any] = {"n": n}
+    out["read_csv_s"] = _best(lambda: js.read_points(csv_in), 2)
+    out["read_npy_s"] = _best(lambda: js.read_points(npy_in), 2)
+    vals = rng.uniform(0, 5, (n, 3)).astype(np.float32)
+    p32, n32 = p.astype(np.float32), nrm.astype(np.float32)
+    out["write_csv_s"] = _best(lambda: js.write_values(os.path.join(folder, "w.csv"), vals, points=p32, normals=n32), 2)
+    table = np.concatenate([p32, n32, vals], axis=1).astype(np.float64)
+    out["write_csv_before_s"] = _best(lambda: _old_csv_writer(os.path.join(folder, "w0.csv"), table,
+                                                              [*POINT_COLUMNS, "r", "g", "b"]), 2)
+    out["write_npy_s"] = _best(lambda: js.write_values(os.path.join(folder, "w.npy"), vals), 2)
+    light = js.PolygonLight([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2]], 10.0)
+    scene = js.Scene([light], occluders=[np.array([[0.2, 0.2, 1.0], [0.6, 0.2, 1.0], [0.6, 0.6, 1.0]])])
+    sp = os.path.join(folder, "scene.json")
+    js.save_scene(scene, sp)
+    runs: dict[str, list] = {"npy": [], "csv": []}
+    for _ in range(2):  # interleaved: the shared machine's speed drifts
+        for ext in ("npy", "csv"):
+            runs[ext].append(_cli(["irradiance", sp, os.path.join(folder, f"pts.{ext}"),
+                                   "-o", os.path.join(folder, f"out.{ext}"), "-q"]))
+    for ext in ("npy", "csv"):
+        out[f"cli_{ext}_s"] = min(w for w, _ in runs[ext])
+        out[f"cli_{ext}_rss_mb"] = max(r for _, r in runs[ext])
+    out["cli_csv_over_npy"] = out["cli_csv_s"] / out["cli_npy_s"]
+    return out
+
+
+def scene_files(folder: str, subdivisions: int) -> dict:
+    import jaxshadow as js
+    from benchmarks.real_meshes import scan_like
+    from jaxshadow._scene import arrays_file_name
+
+    v, f = scan_like(subdivisions)
+    v = v.astype(np.float32).astype(np.float64)
+    t = time.perf_counter()
+    mesh = js.Mesh(v, f)
+    build = time.perf_counter() - t
+    scene = js.Scene([js.PointLight([0, 0, 3.0], 1.0)], occluders=[mesh])
+    path = os.path.join(folder, "scene.json")
+    save = _best(lambda: js.save_scene(scene, path))
+    load = _best(lambda: js.load_scene(path))
+    back = js.load_scene(path)
+    assert np.array_equal(np.asarray(back.occluders), np.asarray(scene.occluders))
+    size = os.path.getsize(path) + os.path.getsize(os.path.join(folder, arrays_file_name(path)))
+    old = os.path.join(folder, "inline.json")
+
+    def save_inline() -> None:
+        with open(old, "w") as fh:
+            fh.write(json.dumps(js.scene_to_dict(scene), indent=2))
+
+    save_v1 = _best(save_inline, 1)
+    load_v1 = _best(lambda: js.load_scene(old), 1)
+    return {"triangles": int(len(f)), "mesh_build_s": build, "save_s": save, "load_s": load, "bytes": size,
+            "inline_save_s": save_v1, "inline_load_s": load_v1, "inline_bytes": os.path.getsize(old)}
+
+
+def run(quick: bool) -> dict:
+    with tempfile.TemporaryDirectory() as folder:
+        t = tables(10**5 if quick else 10**6, folder)
+        s = scene_files(folder, 4 if quick else 6)
+    return {"tables": t, "scene": s}
+
+
+def markdown(results: dict) -> str:
+    t, s = results["tables"], results["scene"]
+    n = f"{t['n']:.0e}"
+    rows = [
+        "| what | time (s) | beside it |",
+        "|---|---:|---|",
+        f"| read {n} receivers, CSV | {t['read_csv_s']:.2f} | .npy {t['read_npy_s']:.3f} s |",
+        f"| write {n} values, CSV (block format) | {t['write_csv_s']:.2f} | per-value repr writer "
+        f"{t['write_csv_before_s']:.2f} s; .npy {t['write_npy_s']:.3f} s |",
+        f"| `jaxshadow irradiance`, {n} receivers, .csv -> .csv | {t['cli_csv_s']:.1f} | .npy -> .npy "
+        f"{t['cli_npy_s']:.1f} s ({t['cli_csv_over_npy']:.2f}x); peak RSS {t['cli_csv_rss_mb']:.0f} MB vs "
+        f"{t['cli_npy_rss_mb']:.0f} MB |",
+        f"| `save_scene`, {s['triangles']} triangles | {s['save_s']:.2f} | inline JSON (schema 1) "
+        f"{s['inline_save_s']:.2f} s; {s['bytes'] / 1e6:.1f} MB vs {s['inline_bytes'] / 1e6:.1f} MB |",
+        f"| `load_scene`, {s['triangles']} triangles | {s['load_s']:.2f} | inline JSON {s['inline_load_s']:.2f} s; "
+        f"`js.Mesh` build alone {s['mesh_build_s']:.2f} s |",
+    ]
+    return "\n".join(rows) + "\n"
+
+
+def key_numbers(results: dict) -> list[tuple[str, str]]:
+    t, s = results["tables"], results["scene"]
+    return [("receiver files", f"`jaxshadow irradiance` on {t['n']:.0e} CSV receivers {t['cli_csv_over_npy']:.2f}x "
+                               f"the .npy run; a {s['triangles']}-triangle scene saved in {s['save_s']:.2f} s, "
+                               f"loaded in {s['load_s']:.2f} s")]
