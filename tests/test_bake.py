@@ -301,6 +301,52 @@ def test_dask_workers_a_scheduler_address_and_a_killed_worker_give_the_same_resu
     _same(survived, reference)
 
 
+# -- incremental re-bakes --------------------------------------------------------------------
+
+
+def _two_rooms(blocker_b=(3.0, 0.0), radiance_b=4.0, radiance_a=10.0):
+    """Two lit floors 1 m apart, each under its own light and blocker (the shadow volumes of one
+    floor reach neither the other's blocker), a hemisphere under light A (a curved patch), and a
+    roof above both lights facing up (no light reaches it: both emit downwards)."""
+    def quad(cx, cy, z, h, down=False):
+        q = np.array([[cx - h, cy - h, z], [cx + h, cy - h, z], [cx + h, cy + h, z], [cx - h, cy + h, z]])
+        return q[::-1] if down else q
+
+    lights = [js.PolygonLight(quad(0.0, 0.0, 2.0, 0.3, down=True), radiance=radiance_a),
+              js.PolygonLight(quad(3.0, 0.0, 2.0, 0.2, down=True), radiance=radiance_b)]
+    blockers = [quad(0.1, 0.0, 1.0, 0.25), quad(*blocker_b, 1.0, 0.15)]
+    s = trimesh.creation.uv_sphere(radius=0.15, count=[6, 6])
+    v, f = np.asarray(s.vertices), np.asarray(s.faces)
+    up = v[f].mean(axis=1)[:, 2] > 0
+    centre = np.array([0.55, 0.5, 0.3])
+    dome = js.ReceiverMesh(v + centre, f[up], v / 0.15, name="dome")
+    receivers = [[quad(0.0, 0.0, 0.0, 1.0)], [quad(3.0, 0.0, 0.0, 1.0)], [quad(1.5, 0.0, 2.5, 2.5)], dome]
+    return js.Scene(lights, occluders=blockers), receivers
+
+
+def test_incremental_rebake_computes_only_the_chunks_a_change_reaches(tmp_path):
+    """Moving blocker B re-bakes floor B alone; changing light B everything it reaches (not the
+    roof); each result identical to a fresh bake of the changed scene (same scale)."""
+    scene, rec = _two_rooms()
+    kw = {"tile_size": 1.0, "scale": 1.0}
+    first = js.bake(scene, rec, 0.1, work_dir=tmp_path, **kw)
+    assert first.stats["chunks_computed"] == first.stats["chunks"] == 4
+    roof = np.unique(first.triangles[first.surface == 2])
+    np.testing.assert_array_equal(first.irradiance_per_light[roof], 0.0)  # dark: no light reaches it
+    for light in scene.lights:  # its zeros are the exact values
+        alone = eqx.tree_at(lambda s: s.lights, scene, (light,))
+        np.testing.assert_array_equal(np.asarray(js.irradiance(alone, first.vertices[roof], first.normals[roof])), 0.0)
+    changes = [(_two_rooms(blocker_b=(3.1, 0.05))[0], 1),  # floor B only
+               (_two_rooms(radiance_b=6.0)[0], 3),  # floors A and B, the dome (not the roof)
+               (_two_rooms(radiance_a=12.0)[0], 3)]
+    for changed, n_computed in changes:
+        calls = []
+        again = js.bake(changed, rec, 0.1, work_dir=tmp_path, _before_chunk=calls.append, **kw)
+        assert again.stats["chunks_computed"] == len(calls) == n_computed
+        _same(again, js.bake(changed, rec, 0.1, **kw))
+        assert not np.array_equal(again.irradiance, first.irradiance)  # the change did change the bake
+
+
 # -- the command ---------------------------------------------------------------------------
 
 
