@@ -38,6 +38,7 @@ from __future__ import annotations
 import hashlib
 import os
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -49,6 +50,7 @@ BAKE_FORMAT = 2  # bumped when a chunk file's content changes meaning (part of i
 EDGE_EPS = 1e-9  # points on a shared edge closer than this (in its parameter) are one point
 MIN_BATCH = 256  # smallest padded batch of `_values`
 _CODE = 1 << 31  # an edge (a, b) of local vertex ids is the code a * _CODE + b
+PIERCED_MIN_EDGE = 1e-3  # elements of a patch that open geometry passes through stop here (of its size)
 
 
 # --------------------------------------------------------------------------------------
@@ -75,7 +77,13 @@ class BakedScene:
     - `tol`: the requested relative tolerance.
     - `stats`: `chunks`, `chunks_computed` (this run; the others were read from `work_dir`),
       `patches_planar`, `patches_curved`, `stitched_points` (points added on shared edges),
-      `moved_points`, `seconds`.
+      `moved_points`, `seconds`; `unconverged`: one dict per patch left with elements over
+      `tol` (`surface`, `patch`, `kind`, `elements` over tol, `stopped_by_budget`, `error`: the
+      largest checked error over `scale`), at the minimum edge length (value jumps: hard
+      shadows of point lights, geometry passing through the receiver) or stopped by
+      `max_vertices` (also a `RuntimeWarning`); `pierced`: one dict per planar patch that
+      occluders pass through (`surface`, `patch`, `sections`: convex pieces of the cut-out
+      cross-sections of closed objects, `open`: segments where open geometry crosses it).
     """
 
     def __init__(self, vertices: np.ndarray, normals: np.ndarray, triangles: np.ndarray, per_light: np.ndarray,
@@ -449,13 +457,79 @@ def _chunk_inputs(scene: Scene, occ: np.ndarray | None, patch: _Patch) -> tuple[
     return np.nonzero(keep & ~own)[0].astype(np.int64), mask
 
 
-def _chunk_scene(scene: Scene, occ_idx: np.ndarray, mask: np.ndarray, sentinel: np.ndarray | None = None) -> Scene:
+def _cross_sections(faces: np.ndarray, p0: np.ndarray, normal: np.ndarray, size: float
+                    ) -> tuple[list[np.ndarray], int]:
+    """Where occluders pass through a planar receiver: the regions of its plane inside them.
+
+    `faces (m, K, 3)` (padded) that cross the plane through `p0` (vertices strictly on both
+    sides, beyond the on-surface distance) cut it along segments; the segments' closed loops
+    bound the cross-sections of closed objects. Each region is returned as convex polygons
+    lying on the plane and facing away from `normal` (as the bottom of a box standing on the
+    floor does: the mesher takes faces lying on its plane for the foot of an object, a hole
+    bounded by mesh edges, and by the on-surface rule they block nothing on the plane). Open
+    geometry (a single wall passing through the floor) leaves segments in no loop: the value
+    jumps across them, no hole to cut; their count is returned.
+
+    **Returns:** `(polygons, open segments)`."""
+    import shapely
+    from shapely.ops import polygonize
+
+    eps = ON_SURFACE * size
+    h = (faces - p0) @ normal  # (m, K)
+    crossing = np.nonzero(np.any(h > eps, axis=1) & np.any(h < -eps, axis=1))[0]
+    if crossing.size == 0:
+        return [], 0
+    e1 = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(normal, e1)
+    lines = []
+    for f in crossing:
+        q = _unpad(faces[f])
+        hq = (q - p0) @ normal
+        pts = []
+        for k in range(q.shape[0]):
+            a, b, ha, hb = q[k], q[(k + 1) % q.shape[0]], hq[k], hq[(k + 1) % q.shape[0]]
+            if abs(ha) <= eps:
+                pts.append(a)
+            if (ha > eps and hb < -eps) or (ha < -eps and hb > eps):
+                if tuple(b) < tuple(a):  # the same point from both faces of a shared edge
+                    a, b, ha, hb = b, a, hb, ha
+                pts.append(a + (ha / (ha - hb)) * (b - a))
+        uv: list[tuple[float, float]] = []
+        for p in pts:
+            key = (float((p - p0) @ e1), float((p - p0) @ e2))
+            if key not in uv:
+                uv.append(key)
+        if len(uv) == 2:
+            lines.append(shapely.LineString(uv))
+    polys = list(polygonize(lines))
+    covered = shapely.unary_union([pg.boundary for pg in polys]) if polys else None
+    n_open = sum(1 for ln in lines if covered is None or not ln.within(covered.buffer(1e-9 * size)))
+    out = []
+    for pg in polys:
+        parts = [pg] if _convex_2d(np.asarray(pg.exterior.coords)[:-1]) and not pg.interiors else \
+            list(shapely.constrained_delaunay_triangles(pg).geoms)
+        for part in parts:
+            uv = np.asarray(shapely.orient_polygons(part, exterior_cw=True).exterior.coords)[:-1]
+            out.append(p0 + uv[:, :1] * e1 + uv[:, 1:] * e2)  # clockwise about normal: facing away
+    return out, n_open
+
+
+def _convex_2d(q: np.ndarray) -> bool:
+    d = np.roll(q, -1, axis=0) - q
+    c = d[:, 0] * np.roll(d, -1, axis=0)[:, 1] - d[:, 1] * np.roll(d, -1, axis=0)[:, 0]
+    return bool(np.all(c > 0) or np.all(c < 0))
+
+
+def _chunk_scene(scene: Scene, occ_idx: np.ndarray, mask: np.ndarray, sentinel: np.ndarray | None = None,
+                 extra: Sequence[np.ndarray] = ()) -> Scene:
     """The scene of a chunk: the lights of `mask` and the occluder faces `occ_idx` of `scene`
     (welded again into meshes as `Scene` does; their convexity was checked when `scene` was
     built, so it is not checked again: that costs ~1 ms a face, per chunk). With no face kept,
     `sentinel` (a triangle below a planar patch's plane: it blocks nothing there) is its one
     occluder, so that the chunk runs on the host shadow engine like the others (the unoccluded
-    kernels compile per batch shape, ~1 s each, and run slower than the engine here)."""
+    kernels compile per batch shape, ~1 s each, and run slower than the engine here). `extra`:
+    polygons added as they are, after the welding (`_cross_sections`)."""
     from ._geometry import pad_polygons_jax
     from ._mesh import Mesh, build_occluders, max_face_vertices, weld_polygons
 
@@ -466,7 +540,7 @@ def _chunk_scene(scene: Scene, occ_idx: np.ndarray, mask: np.ndarray, sentinel: 
         object.__setattr__(sub, "occluders", pad_polygons_jax([sentinel]))
         return sub
     occ = np.asarray(scene.occluders, np.float64)
-    items = weld_polygons([_unpad(o) for o in occ[occ_idx]])
+    items = weld_polygons([_unpad(o) for o in occ[occ_idx]]) + list(extra)
     if any(isinstance(x, Mesh) for x in items):
         ko = max_face_vertices(items)
         polys, topo = build_occluders(items, ko)
@@ -478,14 +552,59 @@ def _chunk_scene(scene: Scene, occ_idx: np.ndarray, mask: np.ndarray, sentinel: 
     return sub
 
 
+def _off_contact(v: np.ndarray, scene: Scene, poly: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """Where to evaluate the vertices `v (n, 3)` of a planar patch: those on an edge of an
+    occluder face lying on its plane (the foot of an object standing on it, or the
+    cross-section of one passing through it: a hole, along whose edges the irradiance jumps)
+    `CONTACT_STEP` of the patch's size outside it, as `illumination_mesh` evaluates them (the
+    limit on the open side); the others where they are."""
+    from ._illumination_builder import CONTACT_STEP
+
+    if scene.occluders is None:
+        return v
+    occ = np.asarray(scene.occluders, np.float64)
+    diam = float(np.max(np.ptp(poly, axis=0)))
+    size = max(float(np.abs(occ).max()), float(np.abs(poly).max()))
+    flat = np.all(np.abs((occ - poly[0]) @ normal) <= 1e-9 * diam, axis=1)
+    if not flat.any():
+        return v
+    push = np.zeros_like(v)
+    eps = 1e-10 * diam + 4 * np.finfo(np.float64).eps * size
+    for f in occ[flat]:
+        q = _unpad(f)
+        c = q.mean(axis=0)
+        for k in range(q.shape[0]):
+            a, b = q[k], q[(k + 1) % q.shape[0]]
+            d = b - a
+            out = np.cross(d, normal)
+            out /= np.linalg.norm(out)
+            if (c - a) @ out > 0:
+                out = -out
+            t = np.clip((v - a) @ d / (d @ d), 0.0, 1.0)
+            near = np.linalg.norm(v - (a + t[:, None] * d), axis=1) <= eps
+            push[near] += out
+    hit = np.any(push != 0, axis=1)
+    if not hit.any():
+        return v
+    w = v.copy()
+    w[hit] += CONTACT_STEP * diam * push[hit] / np.maximum(np.linalg.norm(push[hit], axis=1, keepdims=True), 1e-300)
+    return w
+
+
 def _planar_chunk(scene: Scene, mask: np.ndarray, patch: _Patch, pos: np.ndarray, tol: float, scale: float,
                   options: dict[str, Any], options_weld: float) -> dict[str, np.ndarray]:
     from ._illumination import illumination_mesh
 
     ids, poly, normal = patch.data["ids"], patch.data["poly"], patch.data["normal"]
+    unrefined, stopped, error = 0, 0, 0.0
     if scene.lights:
-        m = illumination_mesh(scene, poly, tol, scale=scale, **options)
+        with warnings.catch_warnings():  # reported per patch in `BakedScene.stats["unconverged"]`
+            warnings.simplefilter("ignore", RuntimeWarning)
+            m = illumination_mesh(scene, poly, tol, scale=scale, **options)
         v, tris = np.array(m.vertices, np.float64), np.asarray(m.triangles, np.int64)
+        unrefined = int(m.stats.get("unrefined_min_edge", 0))
+        stopped = int(m.stats.get("tiles_stopped_by_budget", 0))
+        error = float(m.max_error_estimate)
     else:  # no light reaches it: zero everywhere, its corners suffice
         v = poly.copy()
         tris = np.array([[0, k, k + 1] for k in range(1, poly.shape[0] - 1)], np.int64)
@@ -509,11 +628,11 @@ def _planar_chunk(scene: Scene, mask: np.ndarray, patch: _Patch, pos: np.ndarray
     nrm = np.broadcast_to(normal, v.shape).copy()
     values = np.zeros((v.shape[0], mask.size, 3))
     if scene.lights:
-        values[:, mask] = _values(_light_scenes(scene), v, nrm)
+        values[:, mask] = _values(_light_scenes(scene), _off_contact(v, scene, poly, normal), nrm)
     return {"vertices": v, "normals": nrm, "triangles": tris,
             "values": values, "edge_keys": np.array(keys, np.int64).reshape(-1, 2),
             "occ_edge": np.array(occ_id, np.int64), "occ_vertex": np.array(occ_v, np.int64),
-            "occ_t": np.array(occ_t, np.float64)}
+            "occ_t": np.array(occ_t, np.float64), "unrefined": np.array(unrefined), "stopped": np.array(stopped), "error": np.array(error)}
 
 
 def _refine_curved(scenes: list[Scene], patch: _Patch, pos: np.ndarray, tol: float, scale: float,
@@ -522,8 +641,10 @@ def _refine_curved(scenes: list[Scene], patch: _Patch, pos: np.ndarray, tol: flo
     mean of its ends by more than `tol * scale` (max over RGB of the light sum), and the three
     edges of triangles whose centroid misses the mean of the corners, are split; a triangle with
     two split edges gets its third split too (red: 1-to-4), one with one is bisected (green).
-    Stops when no edge fails, at `max_vertices`, or after `max_rounds` rounds (`rounds` and
-    `unrefined`, the edges still failing then, are in the result).
+    Stops when no edge fails, at `max_vertices`, or after `max_rounds` rounds. The result
+    reports `rounds`, `unrefined` (edges whose midpoint still misses, the short ones
+    included), `stopped` (1: stopped by `max_vertices` with edges failing) and `error` (the
+    largest midpoint miss over `scale`).
 
     Edges are int64 codes `a * _CODE + b` (`a < b`): each round's unique edges, the cache of
     evaluated midpoints and the inserted midpoints are sorted code arrays (`np.searchsorted`);
@@ -588,7 +709,8 @@ def _refine_curved(scenes: list[Scene], patch: _Patch, pos: np.ndarray, tol: flo
             at, found = lookup(ucode, c_code)
         mval = c_v[at].sum(axis=1)
         long = np.linalg.norm(P[ua] - P[ub], axis=1) > min_edge
-        bad = (np.max(np.abs(mval - 0.5 * (tot[ua] + tot[ub])), axis=1) > limit) & long
+        emiss = np.max(np.abs(mval - 0.5 * (tot[ua] + tot[ub])), axis=1)
+        bad = (emiss > limit) & long
         if fresh.any():
             ft = tri[fresh]
             same = np.all((N[ft[:, 0]] == N[ft[:, 1]]) & (N[ft[:, 0]] == N[ft[:, 2]]), axis=1)
@@ -650,8 +772,9 @@ def _refine_curved(scenes: list[Scene], patch: _Patch, pos: np.ndarray, tol: flo
     return {"vertices": P, "normals": N, "triangles": tri, "values": E,
             "edge_keys": edge_keys, "occ_edge": np.array(occ_e, np.int64),
             "occ_vertex": np.array(occ_v, np.int64), "occ_t": np.array(occ_t, np.float64),
-            "rounds": np.array(rounds), "unrefined": np.array(int(bad.sum()) if rounds >= max_rounds or
-                                                               P.shape[0] >= max_vertices else 0)}
+            "rounds": np.array(rounds), "unrefined": np.array(int(np.sum(emiss > limit))),
+            "stopped": np.array(int(bad.any() and P.shape[0] >= max_vertices)),
+            "error": np.array(float(emiss.max(initial=0.0)) / scale)}
 
 
 def _chunk(scene: Scene, patch: _Patch, pos: np.ndarray, settings: dict[str, Any],
@@ -668,16 +791,24 @@ def _chunk(scene: Scene, patch: _Patch, pos: np.ndarray, settings: dict[str, Any
     if before is not None:
         before(index)
     occ_idx, mask = inputs
-    sentinel = None
     if patch.kind == "planar":
         poly, normal = patch.data["poly"], patch.data["normal"]
         d = float(np.max(np.ptp(poly, axis=0)))
         base = poly.mean(axis=0) - d * normal
         sentinel = np.stack([base, base + 1e-2 * (poly[1] - poly[0]), base + 1e-2 * (poly[2] - poly[1])])
-    sub = _chunk_scene(scene, occ_idx, mask, sentinel)
-    if patch.kind == "planar":
-        return _planar_chunk(sub, mask, patch, pos, settings["tol"], settings["scale"], settings["planar"],
-                             settings["weld"])
+        sections, n_open = [], 0
+        if scene.occluders is not None and occ_idx.size and mask.any():
+            occ = np.asarray(scene.occluders, np.float64)[occ_idx]
+            sections, n_open = _cross_sections(occ, poly[0], normal, max(float(np.abs(occ).max()),
+                                                                         float(np.abs(poly).max())))
+        options = dict(settings["planar"])
+        if n_open:  # a value jump along a line, no hole to cut: elements stop at PIERCED_MIN_EDGE
+            options["min_edge"] = max(options.get("min_edge", 0.0), PIERCED_MIN_EDGE * d)
+        sub = _chunk_scene(scene, occ_idx, mask, sentinel, sections)
+        out = _planar_chunk(sub, mask, patch, pos, settings["tol"], settings["scale"], options, settings["weld"])
+        out["pierced"] = np.array([len(sections), n_open], np.int64)
+        return out
+    sub = _chunk_scene(scene, occ_idx, mask)
     return _refine_curved(_light_scenes(sub), patch, pos, settings["tol"], settings["scale"],
                           settings["min_edge"], settings["max_vertices"], settings["max_rounds"])
 
@@ -924,20 +1055,40 @@ def _assemble(parts: list[dict[str, np.ndarray]], patches: list[_Patch]) -> tupl
 # --------------------------------------------------------------------------------------
 
 
+SCALE_GRID = 8  # a planar patch's scale samples: points of a barycentric grid of this order per fan triangle
+
+
 def _default_scale(scenes: list[Scene], patches: list[_Patch], pos: np.ndarray) -> float:
-    """The largest exact total irradiance at the patches' corners and centroids (W/m^2)."""
+    """The largest exact total irradiance (W/m^2) at sample points of the patches: a planar
+    patch's barycentric grid of order `SCALE_GRID` on each triangle of its fan (corners and
+    edges included) and the feet of the perpendiculars from the lights' points when they fall
+    inside it; a curved patch's vertices and triangle centroids."""
+    i, j = np.meshgrid(np.arange(SCALE_GRID + 1), np.arange(SCALE_GRID + 1), indexing="ij")
+    keep = i + j <= SCALE_GRID
+    bary = np.stack([i[keep], j[keep], SCALE_GRID - i[keep] - j[keep]], axis=1) / SCALE_GRID  # (G, 3)
     pts, nrm = [], []
     for p in patches:
         if p.kind == "planar":
-            poly = p.data["poly"]
-            pts += [poly, poly.mean(axis=0)[None]]
-            nrm += [np.broadcast_to(p.data["normal"], (poly.shape[0] + 1, 3))]
+            poly, normal = p.data["poly"], p.data["normal"]
+            fan = np.stack([np.broadcast_to(poly[0], poly[1:-1].shape), poly[1:-1], poly[2:]], axis=1)  # (k-2, 3, 3)
+            q = np.einsum("gk,tkd->tgd", bary, fan).reshape(-1, 3)
+            feet = []
+            for sc in scenes:
+                for lp in _light_points(sc.lights[0], poly, 0.0):
+                    f = lp - ((lp - poly[0]) @ normal) * normal
+                    d = np.roll(poly, -1, axis=0) - poly
+                    if np.all(np.cross(d, f - poly) @ normal >= 0):  # inside (counter-clockwise about normal)
+                        feet.append(f)
+            if feet:
+                q = np.concatenate([q, np.array(feet)])
+            pts.append(q)
+            nrm.append(np.broadcast_to(normal, q.shape))
         else:
             vp, vn, tri = p.data["vpos"], p.data["vnrm"], p.data["tri"]
             c = vn[tri].sum(axis=1)
             pts += [vp, vp[tri].mean(axis=1)]
             nrm += [vn, c / np.linalg.norm(c, axis=1)[:, None]]
-    v = _values(scenes, np.concatenate(pts), np.concatenate(nrm)).sum(axis=1)
+    v = _values(scenes, np.concatenate(pts), np.ascontiguousarray(np.concatenate(nrm))).sum(axis=1)
     return float(v.max())
 
 
@@ -961,7 +1112,9 @@ def bake(scene: Scene, receivers: Any = None, tol: float = 1e-3, *, lights: Sequ
       at every edge midpoint and centroid.
     - `lights`: indices of the lights to bake (default all); values are kept per light.
     - `scale`: the irradiance (W/m^2) `tol` is relative to; default the largest exact value at
-      the patches' corners and centroids (the scene's maximum, or less: then stricter).
+      sample points of the patches (`_default_scale`: a grid on each planar patch and the feet
+      of the lights' points; a curved patch's vertices and centroids): the scene's maximum, or
+      less (then stricter).
     - `work_dir`: a directory for the per-chunk `.npz` files; chunks already there (same
       inputs, patch and settings) are read, not computed: a killed run resumes, and a re-bake
       after an edit (an object moved, a light changed) computes only the chunks whose inputs
@@ -977,8 +1130,12 @@ def bake(scene: Scene, receivers: Any = None, tol: float = 1e-3, *, lights: Sequ
       `max_vertices` also bounds a curved patch.
     - `min_edge`: elements shorter than this (m) are not split; default 1e-4 of the receivers'
       extent on curved patches, `illumination_mesh`'s default on planar ones. Value
-      discontinuities (objects passing through a receiver, hard shadows of point lights) refine
-      down to it.
+      discontinuities (hard shadows of point lights, objects passing through a curved
+      receiver) refine down to it. Closed objects passing through a planar receiver are cut
+      out of it (their cross-section is a hole, as the foot of an object standing on it);
+      open geometry crossing a planar receiver (a single wall through the floor) makes a value
+      jump along a line: that patch's elements stop at `PIERCED_MIN_EDGE` (1e-3) of its size.
+      Both are reported in `stats["pierced"]`, elements left over tol in `stats["unconverged"]`.
     - `max_rounds`: refinement rounds of a curved patch (each halves the split edges).
     - `progress`: `None` or `callable(n, total)`: `n` more of the `total` chunks are done
       (first call: the chunks read from `work_dir`, possibly 0; then 1 per chunk computed).
@@ -1040,7 +1197,18 @@ def bake(scene: Scene, receivers: Any = None, tol: float = 1e-3, *, lights: Sequ
     parts = [{k: np.array(v) for k, v in r.items()} for r in parts]  # writable copies
     stitch = _stitch(parts, pos, scenes)
     V, N, T, E, surface, patch = _assemble(parts, patches)
-    stats = {"chunks": len(patches), "chunks_computed": computed,
+    unconverged = [{"surface": names[p.surface], "patch": i, "kind": p.kind, "elements": int(r["unrefined"]),
+                    "stopped_by_budget": bool(r["stopped"]), "error": float(r["error"])}
+                   for i, (p, r) in enumerate(zip(patches, parts, strict=True)) if int(r["unrefined"]) or int(r["stopped"])]
+    pierced = [{"surface": names[p.surface], "patch": i, "sections": int(r["pierced"][0]), "open": int(r["pierced"][1])}
+               for i, (p, r) in enumerate(zip(patches, parts, strict=True)) if "pierced" in r and r["pierced"].any()]
+    stopped = [u for u in unconverged if u["stopped_by_budget"]]
+    if stopped:
+        warnings.warn(f"bake: {len(stopped)} patches stopped at max_vertices={max_vertices:,} with elements over tol "
+                      f"(largest error {max(u['error'] for u in stopped):.3g} of scale, tol {tol:g}; surfaces "
+                      f"{sorted({u['surface'] for u in stopped})}); see BakedScene.stats['unconverged'].",
+                      RuntimeWarning, stacklevel=2)
+    stats = {"chunks": len(patches), "chunks_computed": computed, "unconverged": unconverged, "pierced": pierced,
              "patches_planar": sum(p.kind == "planar" for p in patches),
              "patches_curved": sum(p.kind == "curved" for p in patches), **stitch,
              "seconds": time.perf_counter() - t0}
