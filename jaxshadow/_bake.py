@@ -510,8 +510,8 @@ def _cross_sections(faces: np.ndarray, p0: np.ndarray, normal: np.ndarray, size:
         parts = [pg] if _convex_2d(np.asarray(pg.exterior.coords)[:-1]) and not pg.interiors else \
             list(shapely.constrained_delaunay_triangles(pg).geoms)
         for part in parts:
-            uv = np.asarray(shapely.orient_polygons(part, exterior_cw=True).exterior.coords)[:-1]
-            out.append(p0 + uv[:, :1] * e1 + uv[:, 1:] * e2)  # clockwise about normal: facing away
+            ring = np.array(shapely.orient_polygons(part, exterior_cw=True).exterior.coords, np.float64)[:-1]
+            out.append(p0 + ring[:, :1] * e1 + ring[:, 1:] * e2)  # clockwise about normal: facing away
     return out, n_open
 
 
@@ -1197,7 +1197,7 @@ def bake(scene: Scene, receivers: Any = None, tol: float = 1e-3, *, lights: Sequ
     parts = [{k: np.array(v) for k, v in r.items()} for r in parts]  # writable copies
     stitch = _stitch(parts, pos, scenes)
     V, N, T, E, surface, patch = _assemble(parts, patches)
-    unconverged = [{"surface": names[p.surface], "patch": i, "kind": p.kind, "elements": int(r["unrefined"]),
+    unconverged: list[dict[str, Any]] = [{"surface": names[p.surface], "patch": i, "kind": p.kind, "elements": int(r["unrefined"]),
                     "stopped_by_budget": bool(r["stopped"]), "error": float(r["error"])}
                    for i, (p, r) in enumerate(zip(patches, parts, strict=True)) if int(r["unrefined"]) or int(r["stopped"])]
     pierced = [{"surface": names[p.surface], "patch": i, "sections": int(r["pierced"][0]), "open": int(r["pierced"][1])}
@@ -1205,8 +1205,8 @@ def bake(scene: Scene, receivers: Any = None, tol: float = 1e-3, *, lights: Sequ
     stopped = [u for u in unconverged if u["stopped_by_budget"]]
     if stopped:
         warnings.warn(f"bake: {len(stopped)} patches stopped at max_vertices={max_vertices:,} with elements over tol "
-                      f"(largest error {max(u['error'] for u in stopped):.3g} of scale, tol {tol:g}; surfaces "
-                      f"{sorted({u['surface'] for u in stopped})}); see BakedScene.stats['unconverged'].",
+                      f"(largest error {max(float(u['error']) for u in stopped):.3g} of scale, tol {tol:g}; surfaces "
+                      f"{sorted({str(u['surface']) for u in stopped})}); see BakedScene.stats['unconverged'].",
                       RuntimeWarning, stacklevel=2)
     stats = {"chunks": len(patches), "chunks_computed": computed, "unconverged": unconverged, "pierced": pierced,
              "patches_planar": sum(p.kind == "planar" for p in patches),
