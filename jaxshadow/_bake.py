@@ -15,9 +15,12 @@ receiving surface of a scene:
    neighbours across a split edge (red-green closure), so the patch stays conforming.
 2. **Chunks.** Each patch is one independent chunk: its mesh and its exact irradiance per light
    at the vertices. Chunks run in this process or on `dask.distributed` workers (the scene is
-   scattered once per worker); with a `work_dir`, each chunk's result is an `.npz` file named
-   by a hash of the scene, the patch and the settings, so a killed run resumes where it stopped
-   and gives the identical result.
+   scattered once per worker). A chunk sees only its own inputs (`_chunk_inputs`): the lights
+   that reach its patch and the occluder faces that may meet its shadow volumes (the convex
+   hulls of the patch and each such light). With a `work_dir`, each chunk's result is an
+   `.npz` file named by a hash of those inputs, the patch and the settings, so a killed run
+   resumes where it stopped and gives the identical result, and a re-bake after moving an
+   object or changing a light computes only the chunks that change reaches.
 3. **Stitching.** Patches that share an edge (the same two welded vertices) get the same
    vertices on it: every patch's points on the edge are merged (parameters within 1e-9 of the
    edge are one point, at the smallest parameter), and a triangle that lacks a point on its
@@ -35,6 +38,7 @@ from __future__ import annotations
 import hashlib
 import os
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -42,8 +46,11 @@ import numpy as np
 
 from ._scene import Scene
 
-BAKE_FORMAT = 1  # bumped when a chunk file's content changes meaning (part of its hash)
+BAKE_FORMAT = 2  # bumped when a chunk file's content changes meaning (part of its hash)
 EDGE_EPS = 1e-9  # points on a shared edge closer than this (in its parameter) are one point
+MIN_BATCH = 256  # smallest padded batch of `_values`
+_CODE = 1 << 31  # an edge (a, b) of local vertex ids is the code a * _CODE + b
+PIERCED_MIN_EDGE = 1e-3  # elements of a patch that open geometry passes through stop here (of its size)
 
 
 # --------------------------------------------------------------------------------------
@@ -70,7 +77,13 @@ class BakedScene:
     - `tol`: the requested relative tolerance.
     - `stats`: `chunks`, `chunks_computed` (this run; the others were read from `work_dir`),
       `patches_planar`, `patches_curved`, `stitched_points` (points added on shared edges),
-      `moved_points`, `seconds`.
+      `moved_points`, `seconds`; `unconverged`: one dict per patch left with elements over
+      `tol` (`surface`, `patch`, `kind`, `elements` over tol, `stopped_by_budget`, `error`: the
+      largest checked error over `scale`), at the minimum edge length (value jumps: hard
+      shadows of point lights, geometry passing through the receiver) or stopped by
+      `max_vertices` (also a `RuntimeWarning`); `pierced`: one dict per planar patch that
+      occluders pass through (`surface`, `patch`, `sections`: convex pieces of the cut-out
+      cross-sections of closed objects, `open`: segments where open geometry crosses it).
     """
 
     def __init__(self, vertices: np.ndarray, normals: np.ndarray, triangles: np.ndarray, per_light: np.ndarray,
@@ -322,15 +335,21 @@ def _light_scenes(scene: Scene) -> list[Scene]:
 
 
 def _values(scenes: list[Scene], points: np.ndarray, normals: np.ndarray, chunk: int = 1 << 15) -> np.ndarray:
-    """`(n, L, 3)` exact irradiance per light (W/m^2)."""
+    """`(n, L, 3)` exact irradiance per light (W/m^2). Batches are padded to a power of two
+    (at least `MIN_BATCH`): the engine compiles per batch shape, and a bake calls this with
+    every count of points."""
     from ._shade import irradiance
 
     n = points.shape[0]
     out = np.zeros((n, len(scenes), 3))
     for s in range(0, n, chunk):
         e = min(n, s + chunk)
+        size = max(MIN_BATCH, 1 << (e - s - 1).bit_length())
+        pad = size - (e - s)
+        p = np.concatenate([points[s:e], np.repeat(points[s:s + 1], pad, axis=0)])
+        q = np.concatenate([normals[s:e], np.repeat(normals[s:s + 1], pad, axis=0)])
         for li, sc in enumerate(scenes):
-            out[s:e, li] = np.asarray(irradiance(sc, points[s:e], normals[s:e]), np.float64)
+            out[s:e, li] = np.asarray(irradiance(sc, p, q), np.float64)[:e - s]
     return out
 
 
@@ -354,33 +373,241 @@ def _on_point(pos: np.ndarray, ka: int, kb: int, t: float) -> np.ndarray:
 ON_SURFACE = 2.0**-18  # `js.irradiance`'s on-surface distance, relative to the coordinates' magnitude
 
 
-def _without_own_faces(scene: Scene, poly: np.ndarray, normal: np.ndarray) -> Scene:
-    """`scene` without the occluder faces lying on the receiver's plane and facing its way (the
-    receiver's own surface): by the on-surface rule they block nothing for it, but the mesher
-    would take them for the foot of an object standing on it (a hole). Faces lying on it and
-    facing the other way (the bottom of a box on the floor) stay: they are such feet."""
-    if scene.occluders is None:
-        return scene
+def _light_points(light: Any, pts: np.ndarray, reach: float) -> np.ndarray:
+    """Points whose convex hull with the receiver points `pts` holds every segment from a
+    receiver point to the light (for a directional light: up to `reach` towards it)."""
+    from ._scene import DirectionalLight, LinearLight, PointLight, PolygonLight
+
+    if isinstance(light, PolygonLight):
+        return np.asarray(light.vertices, np.float64)
+    if isinstance(light, LinearLight):
+        return np.stack([np.asarray(light.start, np.float64), np.asarray(light.end, np.float64)])
+    if isinstance(light, PointLight):
+        return np.asarray(light.position, np.float64)[None, :]
+    assert isinstance(light, DirectionalLight)
+    d = np.asarray(light.direction, np.float64)
+    return pts - reach * d / np.linalg.norm(d)
+
+
+def _dark(light: Any, poly: np.ndarray, normal: np.ndarray, size: float) -> bool:
+    """The light gives exactly zero on the planar convex polygon `poly` (its corners): every
+    point of the light strictly behind the polygon's plane, or (a one-sided polygon light)
+    every corner strictly behind the light's emitting side."""
+    from ._scene import DirectionalLight, PolygonLight
+
+    eps = 1e-9 * size
+    if isinstance(light, DirectionalLight):
+        d = np.asarray(light.direction, np.float64)
+        return bool(-(d @ normal) <= -eps * np.linalg.norm(d) / size)
+    lp = _light_points(light, poly, 0.0)
+    if np.all((lp - poly[0]) @ normal < -eps):
+        return True
+    if isinstance(light, PolygonLight):
+        m = _newell(lp)
+        return bool(np.all((poly - lp[0]) @ m < -eps))
+    return False
+
+
+def _chunk_inputs(scene: Scene, occ: np.ndarray | None, patch: _Patch) -> tuple[np.ndarray, np.ndarray]:
+    """What a patch's chunk sees of the scene: `(occluder indices (k,), light mask (L,))`.
+
+    An occluder face is kept when it may meet a shadow volume of the patch: the convex hull of
+    the patch's points and a light's (`_light_points`) for each light that reaches the patch;
+    one outside a face plane of every such hull (by more than 1e-9 of the scene's size) blocks
+    nothing there. A planar patch also drops the faces lying on its plane and facing its way
+    (its own surface: by the on-surface rule they block nothing for it, but the mesher would
+    take them for the foot of an object standing on it, a hole; faces lying on it and facing
+    the other way, the bottom of a box on the floor, stay: they are such feet), and the lights
+    that give it exactly zero (`_dark`: their values there are zeros). A chunk is a function of
+    these alone, so moving an object or changing a light changes only the chunks whose inputs
+    change (`bake`'s `work_dir`)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    planar = patch.kind == "planar"
+    pts = patch.data["poly"] if planar else patch.data["vpos"]
+    n_lights = len(scene.lights)
+    size = float(np.abs(pts).max()) + 1.0
+    if occ is not None:
+        size = max(size, float(np.abs(occ).max()) + 1.0)
+    mask = np.ones(n_lights, bool)
+    if planar:
+        mask = np.array([not _dark(light, pts, patch.data["normal"], size) for light in scene.lights], bool)
+    if occ is None:
+        return np.zeros(0, np.int64), mask
+    keep = np.zeros(occ.shape[0], bool)
+    if planar:
+        normal = patch.data["normal"]
+        on = np.all(np.abs((occ - pts[0]) @ normal) <= ON_SURFACE * size, axis=1)
+        nf = np.sum(np.cross(occ, np.roll(occ, -1, axis=1)), axis=1)
+        own = on & (nf @ normal > 0)
+    else:
+        own = np.zeros(occ.shape[0], bool)
+    reach = 4.0 * size
+    for li in np.nonzero(mask)[0]:
+        hp = np.concatenate([pts, _light_points(scene.lights[li], pts, reach)])
+        try:
+            eq = ConvexHull(hp).equations  # (F, 4): n . x + c <= 0 inside
+        except (QhullError, ValueError):  # flat or degenerate hull: keep every face
+            keep[:] = True
+            break
+        out = np.zeros(occ.shape[0], bool)
+        for f in eq:
+            out |= np.all(occ @ f[:3] + f[3] > 1e-9 * size, axis=1)
+        keep |= ~out
+    return np.nonzero(keep & ~own)[0].astype(np.int64), mask
+
+
+def _cross_sections(faces: np.ndarray, p0: np.ndarray, normal: np.ndarray, size: float
+                    ) -> tuple[list[np.ndarray], int]:
+    """Where occluders pass through a planar receiver: the regions of its plane inside them.
+
+    `faces (m, K, 3)` (padded) that cross the plane through `p0` (vertices strictly on both
+    sides, beyond the on-surface distance) cut it along segments; the segments' closed loops
+    bound the cross-sections of closed objects. Each region is returned as convex polygons
+    lying on the plane and facing away from `normal` (as the bottom of a box standing on the
+    floor does: the mesher takes faces lying on its plane for the foot of an object, a hole
+    bounded by mesh edges, and by the on-surface rule they block nothing on the plane). Open
+    geometry (a single wall passing through the floor) leaves segments in no loop: the value
+    jumps across them, no hole to cut; their count is returned.
+
+    **Returns:** `(polygons, open segments)`."""
+    import shapely
+    from shapely.ops import polygonize
+
+    eps = ON_SURFACE * size
+    h = (faces - p0) @ normal  # (m, K)
+    crossing = np.nonzero(np.any(h > eps, axis=1) & np.any(h < -eps, axis=1))[0]
+    if crossing.size == 0:
+        return [], 0
+    e1 = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(normal, e1)
+    lines = []
+    for f in crossing:
+        q = _unpad(faces[f])
+        hq = (q - p0) @ normal
+        pts = []
+        for k in range(q.shape[0]):
+            a, b, ha, hb = q[k], q[(k + 1) % q.shape[0]], hq[k], hq[(k + 1) % q.shape[0]]
+            if abs(ha) <= eps:
+                pts.append(a)
+            if (ha > eps and hb < -eps) or (ha < -eps and hb > eps):
+                if tuple(b) < tuple(a):  # the same point from both faces of a shared edge
+                    a, b, ha, hb = b, a, hb, ha
+                pts.append(a + (ha / (ha - hb)) * (b - a))
+        uv: list[tuple[float, float]] = []
+        for p in pts:
+            key = (float((p - p0) @ e1), float((p - p0) @ e2))
+            if key not in uv:
+                uv.append(key)
+        if len(uv) == 2:
+            lines.append(shapely.LineString(uv))
+    polys = list(polygonize(lines))
+    covered = shapely.unary_union([pg.boundary for pg in polys]) if polys else None
+    n_open = sum(1 for ln in lines if covered is None or not ln.within(covered.buffer(1e-9 * size)))
+    out = []
+    for pg in polys:
+        parts = [pg] if _convex_2d(np.asarray(pg.exterior.coords)[:-1]) and not pg.interiors else \
+            list(shapely.constrained_delaunay_triangles(pg).geoms)
+        for part in parts:
+            ring = np.array(shapely.orient_polygons(part, exterior_cw=True).exterior.coords, np.float64)[:-1]
+            out.append(p0 + ring[:, :1] * e1 + ring[:, 1:] * e2)  # clockwise about normal: facing away
+    return out, n_open
+
+
+def _convex_2d(q: np.ndarray) -> bool:
+    d = np.roll(q, -1, axis=0) - q
+    c = d[:, 0] * np.roll(d, -1, axis=0)[:, 1] - d[:, 1] * np.roll(d, -1, axis=0)[:, 0]
+    return bool(np.all(c > 0) or np.all(c < 0))
+
+
+def _chunk_scene(scene: Scene, occ_idx: np.ndarray, mask: np.ndarray, sentinel: np.ndarray | None = None,
+                 extra: Sequence[np.ndarray] = ()) -> Scene:
+    """The scene of a chunk: the lights of `mask` and the occluder faces `occ_idx` of `scene`
+    (welded again into meshes as `Scene` does; their convexity was checked when `scene` was
+    built, so it is not checked again: that costs ~1 ms a face, per chunk). With no face kept,
+    `sentinel` (a triangle below a planar patch's plane: it blocks nothing there) is its one
+    occluder, so that the chunk runs on the host shadow engine like the others (the unoccluded
+    kernels compile per batch shape, ~1 s each, and run slower than the engine here). `extra`:
+    polygons added as they are, after the welding (`_cross_sections`)."""
+    from ._geometry import pad_polygons_jax
+    from ._mesh import Mesh, build_occluders, max_face_vertices, weld_polygons
+
+    sub = Scene(tuple(light for light, m in zip(scene.lights, mask, strict=True) if m), ambient=scene.ambient)
+    if scene.occluders is None or occ_idx.size == 0:
+        if sentinel is None or scene.occluders is None:
+            return sub
+        object.__setattr__(sub, "occluders", pad_polygons_jax([sentinel]))
+        return sub
     occ = np.asarray(scene.occluders, np.float64)
-    size = max(float(np.abs(poly).max()), float(np.abs(occ).max()))
-    on = np.all(np.abs((occ - poly[0]) @ normal) <= ON_SURFACE * size, axis=1)
-    if not on.any():
-        return scene
-    nf = np.sum(np.cross(occ, np.roll(occ, -1, axis=1)), axis=1)
-    own = on & (nf @ normal > 0)
-    if not own.any():
-        return scene
-    keep = [_unpad(o) for o in occ[~own]]
-    return Scene(scene.lights, occluders=keep or None, ambient=scene.ambient)
+    items = weld_polygons([_unpad(o) for o in occ[occ_idx]]) + list(extra)
+    if any(isinstance(x, Mesh) for x in items):
+        ko = max_face_vertices(items)
+        polys, topo = build_occluders(items, ko)
+        arr = pad_polygons_jax(polys, ko)
+    else:
+        arr, topo = pad_polygons_jax(items), None
+    object.__setattr__(sub, "occluders", arr)
+    object.__setattr__(sub, "occluder_topology", topo)
+    return sub
 
 
-def _planar_chunk(scene: Scene, patch: _Patch, pos: np.ndarray, tol: float, scale: float,
+def _off_contact(v: np.ndarray, scene: Scene, poly: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """Where to evaluate the vertices `v (n, 3)` of a planar patch: those on an edge of an
+    occluder face lying on its plane (the foot of an object standing on it, or the
+    cross-section of one passing through it: a hole, along whose edges the irradiance jumps)
+    `CONTACT_STEP` of the patch's size outside it, as `illumination_mesh` evaluates them (the
+    limit on the open side); the others where they are."""
+    from ._illumination_builder import CONTACT_STEP
+
+    if scene.occluders is None:
+        return v
+    occ = np.asarray(scene.occluders, np.float64)
+    diam = float(np.max(np.ptp(poly, axis=0)))
+    size = max(float(np.abs(occ).max()), float(np.abs(poly).max()))
+    flat = np.all(np.abs((occ - poly[0]) @ normal) <= 1e-9 * diam, axis=1)
+    if not flat.any():
+        return v
+    push = np.zeros_like(v)
+    eps = 1e-10 * diam + 4 * np.finfo(np.float64).eps * size
+    for f in occ[flat]:
+        q = _unpad(f)
+        c = q.mean(axis=0)
+        for k in range(q.shape[0]):
+            a, b = q[k], q[(k + 1) % q.shape[0]]
+            d = b - a
+            out = np.cross(d, normal)
+            out /= np.linalg.norm(out)
+            if (c - a) @ out > 0:
+                out = -out
+            t = np.clip((v - a) @ d / (d @ d), 0.0, 1.0)
+            near = np.linalg.norm(v - (a + t[:, None] * d), axis=1) <= eps
+            push[near] += out
+    hit = np.any(push != 0, axis=1)
+    if not hit.any():
+        return v
+    w = v.copy()
+    w[hit] += CONTACT_STEP * diam * push[hit] / np.maximum(np.linalg.norm(push[hit], axis=1, keepdims=True), 1e-300)
+    return w
+
+
+def _planar_chunk(scene: Scene, mask: np.ndarray, patch: _Patch, pos: np.ndarray, tol: float, scale: float,
                   options: dict[str, Any], options_weld: float) -> dict[str, np.ndarray]:
     from ._illumination import illumination_mesh
 
     ids, poly, normal = patch.data["ids"], patch.data["poly"], patch.data["normal"]
-    m = illumination_mesh(_without_own_faces(scene, poly, normal), poly, tol, scale=scale, **options)
-    v = np.array(m.vertices, np.float64)
+    unrefined, stopped, error = 0, 0, 0.0
+    if scene.lights:
+        with warnings.catch_warnings():  # reported per patch in `BakedScene.stats["unconverged"]`
+            warnings.simplefilter("ignore", RuntimeWarning)
+            m = illumination_mesh(scene, poly, tol, scale=scale, **options)
+        v, tris = np.array(m.vertices, np.float64), np.asarray(m.triangles, np.int64)
+        unrefined = int(m.stats.get("unrefined_min_edge", 0))
+        stopped = int(m.stats.get("tiles_stopped_by_budget", 0))
+        error = float(m.max_error_estimate)
+    else:  # no light reaches it: zero everywhere, its corners suffice
+        v = poly.copy()
+        tris = np.array([[0, k, k + 1] for k in range(1, poly.shape[0] - 1)], np.int64)
     # welded corners may leave the polygon planar only to the weld distance
     near = 1e-9 * float(np.max(np.ptp(poly, axis=0))) + 2 * options_weld
     occ_id, occ_v, occ_t, keys = [], [], [], []
@@ -399,10 +626,13 @@ def _planar_chunk(scene: Scene, patch: _Patch, pos: np.ndarray, tol: float, scal
         occ_v += on.tolist()
         occ_t += tt.tolist()
     nrm = np.broadcast_to(normal, v.shape).copy()
-    return {"vertices": v, "normals": nrm, "triangles": np.asarray(m.triangles, np.int64),
-            "values": _values(_light_scenes(scene), v, nrm), "edge_keys": np.array(keys, np.int64).reshape(-1, 2),
+    values = np.zeros((v.shape[0], mask.size, 3))
+    if scene.lights:
+        values[:, mask] = _values(_light_scenes(scene), _off_contact(v, scene, poly, normal), nrm)
+    return {"vertices": v, "normals": nrm, "triangles": tris,
+            "values": values, "edge_keys": np.array(keys, np.int64).reshape(-1, 2),
             "occ_edge": np.array(occ_id, np.int64), "occ_vertex": np.array(occ_v, np.int64),
-            "occ_t": np.array(occ_t, np.float64)}
+            "occ_t": np.array(occ_t, np.float64), "unrefined": np.array(unrefined), "stopped": np.array(stopped), "error": np.array(error)}
 
 
 def _refine_curved(scenes: list[Scene], patch: _Patch, pos: np.ndarray, tol: float, scale: float,
@@ -411,77 +641,82 @@ def _refine_curved(scenes: list[Scene], patch: _Patch, pos: np.ndarray, tol: flo
     mean of its ends by more than `tol * scale` (max over RGB of the light sum), and the three
     edges of triangles whose centroid misses the mean of the corners, are split; a triangle with
     two split edges gets its third split too (red: 1-to-4), one with one is bisected (green).
-    Stops when no edge fails, at `max_vertices`, or after `max_rounds` rounds."""
-    tri = patch.data["tri"].copy()
-    vpos = [patch.data["vpos"].astype(np.float64)]
-    vnrm = [patch.data["vnrm"].astype(np.float64)]
-    vwid = patch.data["vwid"]
-    vals = [_values(scenes, vpos[0], vnrm[0])]
-    n0 = vpos[0].shape[0]
-    # the patch's boundary edges (used by one triangle): their points are recorded for stitching
-    cnt: dict[tuple[int, int], int] = {}
-    for t in tri:
-        for k in range(3):
-            a, b = int(t[k]), int(t[(k + 1) % 3])
-            e = (min(a, b), max(a, b))
-            cnt[e] = cnt.get(e, 0) + 1
-    bnd = [e for e, c in cnt.items() if c == 1 and vwid[e[0]] != vwid[e[1]]]
-    edge_keys = [(min(int(vwid[a]), int(vwid[b])), max(int(vwid[a]), int(vwid[b]))) for a, b in bnd]
-    # on[v] = {boundary edge index: parameter in the welded key's direction}
-    on: list[dict[int, float]] = [dict() for _ in range(n0)]
-    for j, (a, b) in enumerate(bnd):
-        lo = int(vwid[a]) < int(vwid[b])
-        on[a][j] = 0.0 if lo else 1.0
-        on[b][j] = 1.0 if lo else 0.0
-    mids: dict[tuple[int, int], int] = {}
-    cache: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
-    checked_tris: set[tuple[int, int, int]] = set()
-    limit = tol * scale
+    Stops when no edge fails, at `max_vertices`, or after `max_rounds` rounds. The result
+    reports `rounds`, `unrefined` (edges whose midpoint still misses, the short ones
+    included), `stopped` (1: stopped by `max_vertices` with edges failing) and `error` (the
+    largest midpoint miss over `scale`).
 
-    def arrays() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        if len(vpos) > 1:
-            vpos[:] = [np.concatenate(vpos)]
-            vnrm[:] = [np.concatenate(vnrm)]
-            vals[:] = [np.concatenate(vals)]
-        return vpos[0], vnrm[0], vals[0]
+    Edges are int64 codes `a * _CODE + b` (`a < b`): each round's unique edges, the cache of
+    evaluated midpoints and the inserted midpoints are sorted code arrays (`np.searchsorted`);
+    only the few edges with both ends on the patch's boundary go through Python (their points
+    are recorded for stitching)."""
+    tri = patch.data["tri"].astype(np.int64)
+    vwid = patch.data["vwid"]
+    P = patch.data["vpos"].astype(np.float64)
+    N = patch.data["vnrm"].astype(np.float64)
+    E = _values(scenes, P, N)
+    # the patch's boundary edges (used by one triangle), in the order the triangles list them
+    ed0 = np.sort(np.stack([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]], axis=1), axis=2).reshape(-1, 2)
+    _, inv0, cnt0 = np.unique(ed0[:, 0] * _CODE + ed0[:, 1], return_inverse=True, return_counts=True)
+    once = cnt0[inv0.ravel()] == 1
+    bnd = ed0[once & (vwid[ed0[:, 0]] != vwid[ed0[:, 1]])]
+    edge_keys = np.sort(vwid[bnd], axis=1).astype(np.int64).reshape(-1, 2)
+    # on[v] = {boundary edge index: parameter in the welded key's direction}, boundary vertices only
+    on: dict[int, dict[int, float]] = {}
+    for j, (a, b) in enumerate(bnd.tolist()):
+        lo = int(vwid[a]) < int(vwid[b])
+        on.setdefault(a, {})[j] = 0.0 if lo else 1.0
+        on.setdefault(b, {})[j] = 1.0 if lo else 0.0
+    c_code = np.zeros(0, np.int64)  # evaluated midpoints, sorted by edge code
+    c_p, c_n, c_v = np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, E.shape[1], 3))
+    m_code, m_idx = np.zeros(0, np.int64), np.zeros(0, np.int64)  # inserted midpoints
+    fresh = np.ones(tri.shape[0], bool)  # triangles whose centroid is not checked yet
+    limit = tol * scale
 
     def unit(x: np.ndarray) -> np.ndarray:
         return x / np.linalg.norm(x, axis=-1, keepdims=True)
 
-    rounds = 0
+    def lookup(codes: np.ndarray, table: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        at = np.minimum(np.searchsorted(table, codes), max(table.size - 1, 0))
+        return at, (table[at] == codes) if table.size else np.zeros(codes.size, bool)
+
+    rounds, bad = 0, np.zeros(0, bool)
     while True:
-        P, N, E = arrays()
         tot = E.sum(axis=1)
         ed = np.sort(np.stack([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]], axis=1), axis=2)
-        uniq, eid = np.unique(ed.reshape(-1, 2), axis=0, return_inverse=True)
+        ucode, eid = np.unique((ed[..., 0] * _CODE + ed[..., 1]).ravel(), return_inverse=True)
         eid = eid.reshape(-1, 3)
-        keys = [tuple(e) for e in uniq.tolist()]
-        new = [e for e in keys if e not in cache]
-        if new:
-            na = np.array(new, np.int64)
-            mp = 0.5 * (P[na[:, 0]] + P[na[:, 1]])
-            for r, (a, b) in enumerate(new):
+        ua, ub = ucode // _CODE, ucode % _CODE
+        at, found = lookup(ucode, c_code)
+        if not found.all():
+            na, nb = ua[~found], ub[~found]
+            mp = 0.5 * (P[na] + P[nb])
+            for r in np.nonzero(np.isin(na, list(on)) & np.isin(nb, list(on)))[0]:
+                a, b = int(na[r]), int(nb[r])
                 common = on[a].keys() & on[b].keys()
                 if common:
                     j = min(common)
                     ka, kb = edge_keys[j]
-                    mp[r] = _on_point(pos, ka, kb, 0.5 * (on[a][j] + on[b][j]))
-            same = np.all(N[na[:, 0]] == N[na[:, 1]], axis=1)
-            mn = np.where(same[:, None], N[na[:, 0]], unit(N[na[:, 0]] + N[na[:, 1]]))
+                    mp[r] = _on_point(pos, int(ka), int(kb), 0.5 * (on[a][j] + on[b][j]))
+            same = np.all(N[na] == N[nb], axis=1)
+            mn = np.where(same[:, None], N[na], unit(N[na] + N[nb]))
             mv = _values(scenes, mp, mn)
-            for r, e in enumerate(new):
-                cache[e] = (mp[r], mn[r], mv[r])
-        mval = np.array([cache[e][2].sum(axis=0) for e in keys])
-        long = np.linalg.norm(P[uniq[:, 0]] - P[uniq[:, 1]], axis=1) > min_edge
-        bad = (np.max(np.abs(mval - 0.5 * (tot[uniq[:, 0]] + tot[uniq[:, 1]])), axis=1) > limit) & long
-        fresh = np.array([tuple(t) not in checked_tris for t in tri.tolist()], bool)
+            c_code = np.concatenate([c_code, ucode[~found]])
+            order = np.argsort(c_code, kind="stable")
+            c_code = c_code[order]
+            c_p, c_n, c_v = (np.concatenate([c_p, mp])[order], np.concatenate([c_n, mn])[order],
+                             np.concatenate([c_v, mv])[order])
+            at, found = lookup(ucode, c_code)
+        mval = c_v[at].sum(axis=1)
+        long = np.linalg.norm(P[ua] - P[ub], axis=1) > min_edge
+        emiss = np.max(np.abs(mval - 0.5 * (tot[ua] + tot[ub])), axis=1)
+        bad = (emiss > limit) & long
         if fresh.any():
             ft = tri[fresh]
             same = np.all((N[ft[:, 0]] == N[ft[:, 1]]) & (N[ft[:, 0]] == N[ft[:, 2]]), axis=1)
             cn = np.where(same[:, None], N[ft[:, 0]], unit(N[ft].sum(axis=1)))
             cv = _values(scenes, P[ft].mean(axis=1), cn).sum(axis=1)
             miss = np.max(np.abs(cv - tot[ft].mean(axis=1)), axis=1) > limit
-            checked_tris.update(tuple(t) for t in ft.tolist())
             fe = eid[fresh][miss].ravel()
             bad[fe[long[fe]]] = True
         if not bad.any() or P.shape[0] >= max_vertices or rounds >= max_rounds:
@@ -493,49 +728,59 @@ def _refine_curved(scenes: list[Scene], patch: _Patch, pos: np.ndarray, tol: flo
                 break
             bad[eid[two].ravel()] = True
         split = bad[eid]  # (t, 3): which sides of each triangle are split
-        bad_keys = [keys[i] for i in np.nonzero(bad)[0]]
-        base = P.shape[0]  # midpoints numbered in sorted edge order
-        newv = [e for e in bad_keys if e not in mids]
-        for k, e in enumerate(newv):
-            mids[e] = base + k
-            a, b = e
-            common = on[a].keys() & on[b].keys()
-            on.append({j: 0.5 * (on[a][j] + on[b][j]) for j in common})
-        if newv:
-            vpos.append(np.array([cache[e][0] for e in newv]))
-            vnrm.append(np.array([cache[e][1] for e in newv]))
-            vals.append(np.array([cache[e][2] for e in newv]))
-        out = []
-        for t, m, ei in zip(tri.tolist(), split.tolist(), eid.tolist(), strict=True):
-            es = [keys[i] for i in ei]
-            if sum(m) == 3:
-                a, b, c = t
-                ab, bc, ca = (mids[e] for e in es)
-                out += [[a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca]]
-            elif sum(m) == 1:
-                k = m.index(True)
-                a, b, c = t[k], t[(k + 1) % 3], t[(k + 2) % 3]
-                mm = mids[es[k]]
-                out += [[a, mm, c], [mm, b, c]]
-            else:
-                out.append(t)
-        tri = np.array(out, np.int64)
-    P, N, E = arrays()
+        bi = np.nonzero(bad)[0]
+        mat, mfound = lookup(ucode[bi], m_code)
+        newe = bi[~mfound]  # midpoints numbered in sorted edge order
+        base = P.shape[0]
+        for k, e in enumerate(newe.tolist()):
+            a, b = int(ua[e]), int(ub[e])
+            if a in on and b in on:
+                common = on[a].keys() & on[b].keys()
+                if common:
+                    on[base + k] = {j: 0.5 * (on[a][j] + on[b][j]) for j in common}
+        if newe.size:
+            ce = at[newe]
+            P, N, E = np.concatenate([P, c_p[ce]]), np.concatenate([N, c_n[ce]]), np.concatenate([E, c_v[ce]])
+            m_code = np.concatenate([m_code, ucode[newe]])
+            m_idx = np.concatenate([m_idx, base + np.arange(newe.size)])
+            order = np.argsort(m_code, kind="stable")
+            m_code, m_idx = m_code[order], m_idx[order]
+        mid = np.full(ucode.size, -1, np.int64)
+        mid[bi] = m_idx[lookup(ucode[bi], m_code)[0]]
+        M = mid[eid]  # (t, 3): the midpoint of each split side
+        ns = split.sum(axis=1)
+        out = np.full((tri.shape[0], 4, 3), -1, np.int64)
+        keep = ns == 0
+        out[keep, 0] = tri[keep]
+        r = ns == 3
+        a, b, c, ab, bc, ca = tri[r, 0], tri[r, 1], tri[r, 2], M[r, 0], M[r, 1], M[r, 2]
+        out[r] = np.stack([np.c_[a, ab, ca], np.c_[ab, b, bc], np.c_[ca, bc, c], np.c_[ab, bc, ca]], axis=1)
+        g = np.nonzero(ns == 1)[0]
+        k = np.argmax(split[g], axis=1)
+        a, b, c = tri[g, k], tri[g, (k + 1) % 3], tri[g, (k + 2) % 3]
+        mm = M[g, k]
+        out[g, 0], out[g, 1] = np.c_[a, mm, c], np.c_[mm, b, c]
+        valid = out[:, :, 0] >= 0
+        fresh = (valid & ~keep[:, None])[valid]
+        tri = out[valid]
     occ_e, occ_v, occ_t = [], [], []
-    for vi, d in enumerate(on):
-        for j, t in sorted(d.items()):
+    for vi in sorted(on):
+        for j, t in sorted(on[vi].items()):
             occ_e.append(j)
             occ_v.append(vi)
             occ_t.append(t)
     return {"vertices": P, "normals": N, "triangles": tri, "values": E,
-            "edge_keys": np.array(edge_keys, np.int64).reshape(-1, 2), "occ_edge": np.array(occ_e, np.int64),
+            "edge_keys": edge_keys, "occ_edge": np.array(occ_e, np.int64),
             "occ_vertex": np.array(occ_v, np.int64), "occ_t": np.array(occ_t, np.float64),
-            "rounds": np.array(rounds)}
+            "rounds": np.array(rounds), "unrefined": np.array(int(np.sum(emiss > limit))),
+            "stopped": np.array(int(bad.any() and P.shape[0] >= max_vertices)),
+            "error": np.array(float(emiss.max(initial=0.0)) / scale)}
 
 
 def _chunk(scene: Scene, patch: _Patch, pos: np.ndarray, settings: dict[str, Any],
-           before: Callable[[int], None] | None = None, index: int = 0) -> dict[str, np.ndarray]:
-    """One chunk's result (arrays only: what its `.npz` file holds)."""
+           inputs: tuple[np.ndarray, np.ndarray], before: Callable[[int], None] | None = None,
+           index: int = 0) -> dict[str, np.ndarray]:
+    """One chunk's result (arrays only: what its `.npz` file holds); `inputs`: `_chunk_inputs`."""
     import jax
 
     if settings["x64"] and not jax.config.read("jax_enable_x64"):  # a worker process: the client's precision
@@ -545,26 +790,52 @@ def _chunk(scene: Scene, patch: _Patch, pos: np.ndarray, settings: dict[str, Any
     scene = jax.tree_util.tree_map(jax.numpy.asarray, scene)
     if before is not None:
         before(index)
+    occ_idx, mask = inputs
     if patch.kind == "planar":
-        return _planar_chunk(scene, patch, pos, settings["tol"], settings["scale"], settings["planar"],
-                             settings["weld"])
-    return _refine_curved(_light_scenes(scene), patch, pos, settings["tol"], settings["scale"],
+        poly, normal = patch.data["poly"], patch.data["normal"]
+        d = float(np.max(np.ptp(poly, axis=0)))
+        base = poly.mean(axis=0) - d * normal
+        sentinel = np.stack([base, base + 1e-2 * (poly[1] - poly[0]), base + 1e-2 * (poly[2] - poly[1])])
+        sections, n_open = [], 0
+        if scene.occluders is not None and occ_idx.size and mask.any():
+            occ = np.asarray(scene.occluders, np.float64)[occ_idx]
+            sections, n_open = _cross_sections(occ, poly[0], normal, max(float(np.abs(occ).max()),
+                                                                         float(np.abs(poly).max())))
+        options = dict(settings["planar"])
+        if n_open:  # a value jump along a line, no hole to cut: elements stop at PIERCED_MIN_EDGE
+            options["min_edge"] = max(options.get("min_edge", 0.0), PIERCED_MIN_EDGE * d)
+        sub = _chunk_scene(scene, occ_idx, mask, sentinel, sections)
+        out = _planar_chunk(sub, mask, patch, pos, settings["tol"], settings["scale"], options, settings["weld"])
+        out["pierced"] = np.array([len(sections), n_open], np.int64)
+        return out
+    sub = _chunk_scene(scene, occ_idx, mask)
+    return _refine_curved(_light_scenes(sub), patch, pos, settings["tol"], settings["scale"],
                           settings["min_edge"], settings["max_vertices"], settings["max_rounds"])
 
 
-def _scene_digest(scene: Scene) -> bytes:
+def _inputs_digest(scene: Scene, inputs: tuple[np.ndarray, np.ndarray]) -> bytes:
+    """What a chunk's result depends on in the scene (`_chunk_inputs`): its lights, occluder
+    faces and the ambient term."""
     import jax
 
-    leaves, tree = jax.tree_util.tree_flatten(scene)
-    h = hashlib.sha256(str(tree).encode())
-    for leaf in leaves:
-        a = np.asarray(leaf)
-        h.update(str(a.dtype).encode() + str(a.shape).encode() + a.tobytes())
+    occ_idx, mask = inputs
+    h = hashlib.sha256(mask.tobytes())
+    for li in np.nonzero(mask)[0]:
+        light = scene.lights[li]
+        leaves, tree = jax.tree_util.tree_flatten(light)
+        h.update(str(tree).encode())
+        for leaf in leaves:
+            a = np.asarray(leaf)
+            h.update(str(a.dtype).encode() + str(a.shape).encode() + a.tobytes())
+    h.update(np.asarray(scene.ambient).tobytes())
+    if scene.occluders is not None and occ_idx.size:
+        occ = np.asarray(scene.occluders)
+        h.update(str(occ.dtype).encode() + occ_idx.tobytes() + np.ascontiguousarray(occ[occ_idx]).tobytes())
     return h.digest()
 
 
-def _chunk_name(scene_digest: bytes, patch: _Patch, pos: np.ndarray, settings: dict[str, Any]) -> str:
-    h = hashlib.sha256(scene_digest + patch.digest())
+def _chunk_name(inputs_digest: bytes, patch: _Patch, pos: np.ndarray, settings: dict[str, Any]) -> str:
+    h = hashlib.sha256(inputs_digest + patch.digest())
     h.update(repr(sorted((k, v) for k, v in settings.items() if k != "planar")).encode())
     h.update(repr(sorted(settings["planar"].items())).encode() + str(BAKE_FORMAT).encode())
     if patch.kind == "planar":
@@ -592,8 +863,9 @@ def _load_chunk(path: str) -> dict[str, np.ndarray]:
 def _run_chunks(scene: Scene, patches: list[_Patch], pos: np.ndarray, settings: dict[str, Any],
                 work_dir: str | None, scheduler: Any, workers: int | None, progress: Any,
                 before: Callable[[int], None] | None) -> tuple[list[dict[str, np.ndarray]], int]:
-    digest = _scene_digest(scene)
-    names = [_chunk_name(digest, p, pos, settings) for p in patches]
+    occ = None if scene.occluders is None else np.asarray(scene.occluders, np.float64)
+    inputs = [_chunk_inputs(scene, occ, p) for p in patches]
+    names = [_chunk_name(_inputs_digest(scene, x), p, pos, settings) for p, x in zip(patches, inputs, strict=True)]
     results: list[dict[str, np.ndarray] | None] = [None] * len(patches)
     if work_dir is not None:
         os.makedirs(work_dir, exist_ok=True)
@@ -632,7 +904,7 @@ def _run_chunks(scene: Scene, patches: list[_Patch], pos: np.ndarray, settings: 
             shipped = jax.tree_util.tree_map(np.asarray, scene)
             scene_f = client.scatter(shipped, broadcast=True, hash=False)
             pos_f = client.scatter(pos, broadcast=True, hash=False)
-            futures = {client.submit(_chunk, scene_f, patches[i], pos_f, settings, before, i,
+            futures = {client.submit(_chunk, scene_f, patches[i], pos_f, settings, inputs[i], before, i,
                                      key=f"jaxshadow-bake-{names[i][6:-4]}", pure=False): i for i in todo}
             for fut in as_completed(futures):
                 done(futures[fut], fut.result())
@@ -643,7 +915,7 @@ def _run_chunks(scene: Scene, patches: list[_Patch], pos: np.ndarray, settings: 
                 cluster.close()
     else:
         for i in todo:
-            done(i, _chunk(scene, patches[i], pos, settings, before, i))
+            done(i, _chunk(scene, patches[i], pos, settings, inputs[i], before, i))
     return [r for r in results if r is not None], len(todo)
 
 
@@ -783,20 +1055,40 @@ def _assemble(parts: list[dict[str, np.ndarray]], patches: list[_Patch]) -> tupl
 # --------------------------------------------------------------------------------------
 
 
+SCALE_GRID = 8  # a planar patch's scale samples: points of a barycentric grid of this order per fan triangle
+
+
 def _default_scale(scenes: list[Scene], patches: list[_Patch], pos: np.ndarray) -> float:
-    """The largest exact total irradiance at the patches' corners and centroids (W/m^2)."""
+    """The largest exact total irradiance (W/m^2) at sample points of the patches: a planar
+    patch's barycentric grid of order `SCALE_GRID` on each triangle of its fan (corners and
+    edges included) and the feet of the perpendiculars from the lights' points when they fall
+    inside it; a curved patch's vertices and triangle centroids."""
+    i, j = np.meshgrid(np.arange(SCALE_GRID + 1), np.arange(SCALE_GRID + 1), indexing="ij")
+    keep = i + j <= SCALE_GRID
+    bary = np.stack([i[keep], j[keep], SCALE_GRID - i[keep] - j[keep]], axis=1) / SCALE_GRID  # (G, 3)
     pts, nrm = [], []
     for p in patches:
         if p.kind == "planar":
-            poly = p.data["poly"]
-            pts += [poly, poly.mean(axis=0)[None]]
-            nrm += [np.broadcast_to(p.data["normal"], (poly.shape[0] + 1, 3))]
+            poly, normal = p.data["poly"], p.data["normal"]
+            fan = np.stack([np.broadcast_to(poly[0], poly[1:-1].shape), poly[1:-1], poly[2:]], axis=1)  # (k-2, 3, 3)
+            q = np.einsum("gk,tkd->tgd", bary, fan).reshape(-1, 3)
+            feet = []
+            for sc in scenes:
+                for lp in _light_points(sc.lights[0], poly, 0.0):
+                    f = lp - ((lp - poly[0]) @ normal) * normal
+                    d = np.roll(poly, -1, axis=0) - poly
+                    if np.all(np.cross(d, f - poly) @ normal >= 0):  # inside (counter-clockwise about normal)
+                        feet.append(f)
+            if feet:
+                q = np.concatenate([q, np.array(feet)])
+            pts.append(q)
+            nrm.append(np.broadcast_to(normal, q.shape))
         else:
             vp, vn, tri = p.data["vpos"], p.data["vnrm"], p.data["tri"]
             c = vn[tri].sum(axis=1)
             pts += [vp, vp[tri].mean(axis=1)]
             nrm += [vn, c / np.linalg.norm(c, axis=1)[:, None]]
-    v = _values(scenes, np.concatenate(pts), np.concatenate(nrm)).sum(axis=1)
+    v = _values(scenes, np.concatenate(pts), np.ascontiguousarray(np.concatenate(nrm))).sum(axis=1)
     return float(v.max())
 
 
@@ -820,9 +1112,16 @@ def bake(scene: Scene, receivers: Any = None, tol: float = 1e-3, *, lights: Sequ
       at every edge midpoint and centroid.
     - `lights`: indices of the lights to bake (default all); values are kept per light.
     - `scale`: the irradiance (W/m^2) `tol` is relative to; default the largest exact value at
-      the patches' corners and centroids (the scene's maximum, or less: then stricter).
-    - `work_dir`: a directory for the per-chunk `.npz` files; chunks already there (same scene,
-      patch and settings) are read, not computed (resume). Default: none (nothing written).
+      sample points of the patches (`_default_scale`: a grid on each planar patch and the feet
+      of the lights' points; a curved patch's vertices and centroids): the scene's maximum, or
+      less (then stricter).
+    - `work_dir`: a directory for the per-chunk `.npz` files; chunks already there (same
+      inputs, patch and settings) are read, not computed: a killed run resumes, and a re-bake
+      after an edit (an object moved, a light changed) computes only the chunks whose inputs
+      changed (a chunk's inputs: the lights that reach its patch and the occluder faces that
+      may meet its shadow volumes). The result is identical to a fresh bake's at the same
+      `scale` (pass the first bake's `scale`: the default follows the scene's maximum, and a
+      new maximum changes every chunk's threshold). Default: none (nothing written).
     - `scheduler`: `None` (in this process, unless `workers`), `"local"`, a Dask scheduler
       address (`"tcp://host:8786"`) or a `distributed.Client`.
     - `workers`: with no `scheduler`, the number of worker processes of a Dask `LocalCluster`.
@@ -831,8 +1130,12 @@ def bake(scene: Scene, receivers: Any = None, tol: float = 1e-3, *, lights: Sequ
       `max_vertices` also bounds a curved patch.
     - `min_edge`: elements shorter than this (m) are not split; default 1e-4 of the receivers'
       extent on curved patches, `illumination_mesh`'s default on planar ones. Value
-      discontinuities (objects passing through a receiver, hard shadows of point lights) refine
-      down to it.
+      discontinuities (hard shadows of point lights, objects passing through a curved
+      receiver) refine down to it. Closed objects passing through a planar receiver are cut
+      out of it (their cross-section is a hole, as the foot of an object standing on it);
+      open geometry crossing a planar receiver (a single wall through the floor) makes a value
+      jump along a line: that patch's elements stop at `PIERCED_MIN_EDGE` (1e-3) of its size.
+      Both are reported in `stats["pierced"]`, elements left over tol in `stats["unconverged"]`.
     - `max_rounds`: refinement rounds of a curved patch (each halves the split edges).
     - `progress`: `None` or `callable(n, total)`: `n` more of the `total` chunks are done
       (first call: the chunks read from `work_dir`, possibly 0; then 1 per chunk computed).
@@ -894,7 +1197,18 @@ def bake(scene: Scene, receivers: Any = None, tol: float = 1e-3, *, lights: Sequ
     parts = [{k: np.array(v) for k, v in r.items()} for r in parts]  # writable copies
     stitch = _stitch(parts, pos, scenes)
     V, N, T, E, surface, patch = _assemble(parts, patches)
-    stats = {"chunks": len(patches), "chunks_computed": computed,
+    unconverged: list[dict[str, Any]] = [{"surface": names[p.surface], "patch": i, "kind": p.kind, "elements": int(r["unrefined"]),
+                    "stopped_by_budget": bool(r["stopped"]), "error": float(r["error"])}
+                   for i, (p, r) in enumerate(zip(patches, parts, strict=True)) if int(r["unrefined"]) or int(r["stopped"])]
+    pierced = [{"surface": names[p.surface], "patch": i, "sections": int(r["pierced"][0]), "open": int(r["pierced"][1])}
+               for i, (p, r) in enumerate(zip(patches, parts, strict=True)) if "pierced" in r and r["pierced"].any()]
+    stopped = [u for u in unconverged if u["stopped_by_budget"]]
+    if stopped:
+        warnings.warn(f"bake: {len(stopped)} patches stopped at max_vertices={max_vertices:,} with elements over tol "
+                      f"(largest error {max(float(u['error']) for u in stopped):.3g} of scale, tol {tol:g}; surfaces "
+                      f"{sorted({str(u['surface']) for u in stopped})}); see BakedScene.stats['unconverged'].",
+                      RuntimeWarning, stacklevel=2)
+    stats = {"chunks": len(patches), "chunks_computed": computed, "unconverged": unconverged, "pierced": pierced,
              "patches_planar": sum(p.kind == "planar" for p in patches),
              "patches_curved": sum(p.kind == "curved" for p in patches), **stitch,
              "seconds": time.perf_counter() - t0}
