@@ -37,9 +37,9 @@ from ._linear import check_profile_exponent
 from ._mesh import (
     Mesh,
     OccluderTopology,
-    build_occluders,
     max_face_vertices,
     mesh_dicts,
+    stack_occluders,
     weld_polygons,
 )
 
@@ -270,9 +270,7 @@ def _stack_occluders(occluders: Any) -> tuple[Array | None, OccluderTopology | N
         items = weld_polygons(items)  # triangle soups become meshes (NumPy inputs only)
     if not any(isinstance(x, Mesh) for x in items):
         return pad_polygons_jax(items), None
-    ko = max_face_vertices(items)
-    polys, topo = build_occluders(items, ko)
-    return pad_polygons_jax(polys, ko), topo
+    return stack_occluders(items, max_face_vertices(items))
 
 
 class Scene(eqx.Module):
