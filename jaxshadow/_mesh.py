@@ -26,7 +26,7 @@ edges with their two faces) a static `OccluderTopology`.
 
 from __future__ import annotations
 
-import itertools
+import functools
 import math
 import operator
 from dataclasses import dataclass
@@ -65,24 +65,76 @@ def _newell_many(p: np.ndarray) -> np.ndarray:
                      (p[:, :, 0] * w[:, :, 1] - p[:, :, 1] * w[:, :, 0]).sum(axis=1)], axis=1)
 
 
-def _groups(loops: list[list[int]]) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The faces grouped by vertex count: (face indices (G,), vertex indices (G, k)) per count."""
-    lens = np.fromiter((len(x) for x in loops), dtype=np.intp, count=len(loops))
-    out = []
-    for k in np.unique(lens):
-        idx = np.flatnonzero(lens == k)
-        if len(idx) == len(loops):
-            arr = np.asarray(loops, dtype=np.intp).reshape(-1, int(k))
-        else:
-            arr = np.asarray([loops[i] for i in idx], dtype=np.intp).reshape(-1, int(k))
-        out.append((idx, arr))
-    return out
+@dataclass(frozen=True)
+class _Faces:
+    """Face loops as arrays: `pad (F, K)` vertex indices, each face's loop padded with its first
+    vertex (which changes no maximum over a face's vertices), and `lens (F,)` its vertex count."""
+
+    pad: np.ndarray
+    lens: np.ndarray
+
+    @staticmethod
+    def of(loops: list[list[int]]) -> _Faces:
+        lens = np.fromiter((len(x) for x in loops), dtype=np.intp, count=len(loops))
+        k = int(lens.max(initial=3))
+        if len(loops) and int(lens.min()) == k:
+            return _Faces(np.asarray(loops, dtype=np.int64).reshape(-1, k), lens)
+        pad = np.empty((len(loops), k), dtype=np.int64)
+        for j in np.unique(lens).tolist():
+            idx = np.flatnonzero(lens == j)
+            arr = np.asarray([loops[i] for i in idx.tolist()], dtype=np.int64).reshape(-1, j)
+            pad[idx, :j] = arr
+            pad[idx, j:] = arr[:, :1]
+        return _Faces(pad, lens)
+
+    def __len__(self) -> int:
+        return len(self.lens)
+
+    def groups(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The faces grouped by vertex count: (face indices (G,), vertex indices (G, k)) per count."""
+        if len(self.lens) and int(self.lens.min()) == self.pad.shape[1]:
+            return [(np.arange(len(self.lens)), self.pad)]
+        return [(idx, self.pad[idx, :k]) for k in np.unique(self.lens).tolist()
+                for idx in [np.flatnonzero(self.lens == k)]]
+
+    def reversed(self) -> _Faces:
+        """Every loop run backwards."""
+        pad = np.empty_like(self.pad)
+        for idx, arr in self.groups():
+            pad[idx, :arr.shape[1]] = arr[:, ::-1]
+            pad[idx, arr.shape[1]:] = arr[:, -1:]
+        return _Faces(pad, self.lens)
+
+    def edges(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Directed edges in face order: (face, position k in the face, a = loop[k], b = loop[k+1])."""
+        f, kmax = self.pad.shape
+        col = np.arange(kmax)
+        if len(self.lens) and int(self.lens.min()) == kmax:
+            face = np.repeat(np.arange(f), kmax)
+            k = np.tile(col, f)
+            return face, k, self.pad.reshape(-1), np.roll(self.pad, -1, axis=1).reshape(-1)
+        mask = col[None, :] < self.lens[:, None]
+        face = np.repeat(np.arange(f), self.lens)
+        k = np.broadcast_to(col, self.pad.shape)[mask]
+        return face, k, self.pad[mask], self.pad[face, (k + 1) % self.lens[face]]
+
+    def loops(self) -> list[list[int]]:
+        rows = self.pad.tolist()
+        if len(self.lens) and int(self.lens.min()) == self.pad.shape[1]:
+            return rows
+        return [r[:n] for r, n in zip(rows, self.lens.tolist(), strict=True)]
+
+    def padded_to(self, k: int) -> np.ndarray:
+        """`(F, k)` vertex indices, padded with each face's first vertex (k >= K)."""
+        if k == self.pad.shape[1]:
+            return self.pad
+        return np.concatenate([self.pad, np.repeat(self.pad[:, :1], k - self.pad.shape[1], axis=1)], axis=1)
 
 
-def _normals(loops: list[list[int]], v: np.ndarray) -> np.ndarray:
+def _normals(faces: _Faces, v: np.ndarray) -> np.ndarray:
     """Newell normals `(F, 3)` (not normalised) of all faces."""
-    out = np.zeros((len(loops), 3))
-    for idx, arr in _groups(loops):
+    out = np.zeros((len(faces), 3))
+    for idx, arr in faces.groups():
         out[idx] = _newell_many(v[arr])
     return out
 
@@ -92,21 +144,10 @@ def _unit(n: np.ndarray) -> np.ndarray:
         return n / np.sqrt((n * n).sum(axis=1))[:, None]
 
 
-def _padded(loops: list[list[int]]) -> np.ndarray:
-    """`(F, K)` vertex indices, short faces padded with their first vertex (which changes no
-    maximum over a face's vertices)."""
-    k = max((len(x) for x in loops), default=3)
-    out = np.empty((len(loops), k), dtype=np.intp)
-    for idx, arr in _groups(loops):
-        out[idx, :arr.shape[1]] = arr
-        out[idx, arr.shape[1]:] = arr[:, :1]
-    return out
-
-
-def _check_faces(loops: list[list[int]], v: np.ndarray, size: float) -> None:
+def _check_faces(faces: _Faces, v: np.ndarray, size: float) -> None:
     """Zero-area and non-planar faces (the first offending face is reported)."""
-    bad = np.zeros(len(loops), dtype=np.int8)  # 1: zero area, 2: not planar
-    for idx, arr in _groups(loops):
+    bad = np.zeros(len(faces), dtype=np.int8)  # 1: zero area, 2: not planar
+    for idx, arr in faces.groups():
         pts = v[arr]
         n = _newell_many(pts)
         area = np.sqrt((n * n).sum(axis=1))
@@ -120,26 +161,6 @@ def _check_faces(loops: list[list[int]], v: np.ndarray, size: float) -> None:
         raise ValueError(f"Mesh: face {i} has zero area." if bad[i] == 1 else f"Mesh: face {i} is not planar.")
 
 
-def _gather(v: np.ndarray, loops: list[list[int]]) -> list[np.ndarray]:
-    """`[v[loop] for loop in loops]`, one gather per vertex count."""
-    out: list[Any] = [None] * len(loops)
-    for idx, arr in _groups(loops):
-        for i, p in zip(idx.tolist(), v[arr], strict=True):
-            out[i] = p
-    return out
-
-
-def _edge_arrays(loops: list[list[int]]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Directed edges in face order: (face, position k in the face, a = loop[k], b = loop[k+1])."""
-    lens = np.fromiter((len(x) for x in loops), dtype=np.intp, count=len(loops))
-    flat = np.fromiter(itertools.chain.from_iterable(loops), dtype=np.intp, count=int(lens.sum()))
-    start = np.concatenate([[0], np.cumsum(lens)[:-1]]).astype(np.intp)
-    face = np.repeat(np.arange(len(loops)), lens)
-    k = np.arange(len(flat)) - start[face]
-    nxt = start[face] + (k + 1) % lens[face]
-    return face, k, flat, flat[nxt]
-
-
 class Mesh:
     """A mesh occluder (m): vertices and faces, prepared once for the shadow engine.
 
@@ -151,8 +172,8 @@ class Mesh:
       flipped; an open mesh may have any orientation: it blocks light from both sides).
     - `merge`: merge coplanar neighbouring faces into convex polygons (default True).
 
-    **Attributes:** `polygons` (list of `(k, 3)` arrays, the faces the kernels see), `closed`,
-    `convex`, `n_input_faces`.
+    **Attributes:** `polygons` (list of `(k, 3)` arrays, the faces the kernels see), `loops`
+    (their vertex indices), `closed`, `convex`, `n_input_faces`.
 
     Raises `ValueError` for non-finite vertices, indices out of range, faces with fewer than three
     distinct vertices or zero area, and non-planar polygon faces.
@@ -164,22 +185,42 @@ class Mesh:
             raise ValueError(f"Mesh: vertices must have shape (V, 3), got {v.shape}.")
         if not np.all(np.isfinite(v)):
             raise ValueError("Mesh: vertices must be finite.")
-        loops = _face_loops(faces, v.shape[0])
+        table = _face_table(faces, v.shape[0])
         size = float(np.max(np.ptp(v, axis=0))) if v.size else 0.0
         if not size > 0:
             raise ValueError("Mesh: all vertices coincide.")
         self.vertices = v
-        self.n_input_faces = len(loops)
-        _check_faces(loops, v, size)
-        self.closed, flip = _closed(loops, v)
+        self.n_input_faces = len(table)
+        _check_faces(table, v, size)
+        self.closed, flip = _closed(table, v)
         if flip:
-            loops = [loop[::-1] for loop in loops]
-        self.loops = _merge(loops, v, size) if merge else [list(x) for x in loops]
-        self.polygons = _gather(v, self.loops)
-        self.convex = self.closed and _convex(self.loops, v, size)
-        self.edges = _solid_edges(self.loops) if self.convex else None
+            table = table.reversed()
+        if merge:
+            table = _merge(table, v, size)
+        self._faces = table
+        self.convex = self.closed and _convex(table, v, size)
+        self.edges = _solid_edges(table) if self.convex else None
         if self.edges is None:
             self.convex = False
+
+    @functools.cached_property
+    def loops(self) -> list[list[int]]:
+        """Each face's vertex indices (`list` of `list[int]`), in the order of `polygons`."""
+        return self._faces.loops()
+
+    @functools.cached_property
+    def polygons(self) -> list[Any]:
+        """The faces the kernels see: `(k, 3)` vertex positions (m) per face."""
+        out: list[Any] = [None] * len(self._faces)
+        for idx, arr in self._faces.groups():
+            for i, p in zip(idx.tolist(), self.vertices[arr], strict=True):
+                out[i] = p
+        return out
+
+    def _padded_faces(self, k: int) -> np.ndarray:
+        """`(F, k, 3)` face vertices (m) of a mesh with NumPy vertices, each face padded with its
+        first vertex (`k` at least the largest face's vertex count)."""
+        return self.vertices[self._faces.padded_to(k)]
 
     def with_vertices(self, vertices: Any) -> Mesh:
         """The same mesh (faces, merging, closedness, convexity) with new vertex positions,
@@ -218,7 +259,8 @@ class Mesh:
     def __repr__(self) -> str:
         kind = "convex solid" if self.convex else ("closed" if self.closed else "open")
         return (f"Mesh({self.vertices.shape[0]} vertices, {self.n_input_faces} faces -> "
-                f"{len(self.polygons)} polygons, {kind})")
+                f"{len(self._faces)} polygons, {kind})")
+
 
     n_welded: int = 0  # vertices merged away by `welded`
 
@@ -309,17 +351,24 @@ def _face_loops_generic(faces: Any, n_vertices: int) -> list[list[int]]:
     return out
 
 
-def _directed_edges(loops: list[list[int]]):
-    for fi, loop in enumerate(loops):
-        for k in range(len(loop)):
-            yield fi, loop[k], loop[(k + 1) % len(loop)]
+
+def _face_table(faces: Any, n_vertices: int) -> _Faces:
+    """`_face_loops` as a `_Faces` table (an `(F, 3)` array of triangles without a Python list)."""
+    if isinstance(faces, np.ndarray) and faces.ndim == 2 and faces.shape[1] == 3 and faces.dtype.kind in "iu" \
+            and not (faces.dtype.kind == "u" and faces.size and faces.max() > np.iinfo(np.int64).max):
+        a = faces.astype(np.int64)
+        out_of_range = np.any((a < 0) | (a >= n_vertices), axis=1)
+        repeated = (a[:, 0] == a[:, 1]) | (a[:, 1] == a[:, 2]) | (a[:, 2] == a[:, 0])
+        if not np.any(out_of_range | repeated):
+            return _Faces(a, np.full(len(a), 3, dtype=np.intp))
+    return _Faces.of(_face_loops(faces, n_vertices))
 
 
-def _closed(loops: list[list[int]], v: np.ndarray) -> tuple[bool, bool]:
+def _closed(faces: _Faces, v: np.ndarray) -> tuple[bool, bool]:
     """(closed, flip): every edge used once in each direction; flip when the volume is negative."""
-    if not loops:
+    if not len(faces):
         return True, False
-    _, _, a, b = _edge_arrays(loops)
+    _, _, a, b = faces.edges()
     n = np.int64(v.shape[0])
     keys = np.sort(a.astype(np.int64) * n + b)
     if np.any(keys[1:] == keys[:-1]):
@@ -329,15 +378,16 @@ def _closed(loops: list[list[int]], v: np.ndarray) -> tuple[bool, bool]:
     if not np.all(keys[pos] == rev):
         return False, False
     c = v.mean(axis=0)
-    vol = np.zeros(len(loops))
-    for idx, arr in _groups(loops):
+    vol = np.zeros(len(faces))
+    for idx, arr in faces.groups():
         pts = v[arr] - c
         nrm = _newell_many(pts)
         vol[idx] = _plane_values(pts[:, 0], 0.0, nrm)
     return True, bool(np.cumsum(vol)[-1] < 0)  # summed in face order, as a Python sum would
 
 
-def _convex(loops: list[list[int]], v: np.ndarray, size: float) -> bool:
+
+def _convex(faces: _Faces, v: np.ndarray, size: float) -> bool:
     """Every vertex on or behind every face plane: max over vertices of (v - p0) . n <= 1e-9 size
     for every face (p0 its first vertex, n its unit Newell normal).
 
@@ -353,12 +403,12 @@ def _convex(loops: list[list[int]], v: np.ndarray, size: float) -> bool:
     the tolerance for a convex mesh, whose faces' maxima are their own vertices, ~0) are checked
     against every vertex directly, so round-off in the hull cannot change the answer."""
     tol = 1e-9 * size
-    f_all = len(loops)
-    nrm = _unit(_normals(loops, v))
-    pad = _padded(loops)
+    f_all = len(faces)
+    nrm = _unit(_normals(faces, v))
+    pad = faces.pad
     p0 = v[pad[:, 0]]
     # (1) neighbours' vertices against each face's plane.
-    face, _, a, b = _edge_arrays(loops)
+    face, _, a, b = faces.edges()
     n = np.int64(v.shape[0])
     keys = a.astype(np.int64) * n + b
     order = np.argsort(keys, kind="stable")
@@ -426,6 +476,8 @@ def _convex_brute(faces: np.ndarray, v: np.ndarray, p0: np.ndarray, nrm: np.ndar
     return True
 
 
+
+
 def _coplanar(ni: np.ndarray, nj: np.ndarray, pts_j: np.ndarray, p0_i: np.ndarray, size: float) -> Any:
     """The merge test of two faces: unit normals `ni`, `nj`, `pts_j` the vertices of face j (last
     two axes), `p0_i` the first vertex of face i. Broadcasts (one or many pairs, same rounding)."""
@@ -434,19 +486,31 @@ def _coplanar(ni: np.ndarray, nj: np.ndarray, pts_j: np.ndarray, p0_i: np.ndarra
     return ~(dot < 1 - 1e-12) & ~(off > COPLANAR_RTOL * size)
 
 
-def _merge(loops: list[list[int]], v: np.ndarray, size: float) -> list[list[int]]:
+def _coplanar1(ni: list[float], nj: list[float], pts_j: list[list[float]], p0: list[float], size: float) -> bool:
+    """`_coplanar` of one pair in Python floats: the same operations in the same order (each
+    NumPy operation above is one IEEE operation per element), so the same answer."""
+    if ni[0] * nj[0] + ni[1] * nj[1] + ni[2] * nj[2] < 1 - 1e-12:
+        return False
+    tol = COPLANAR_RTOL * size
+    for q in pts_j:
+        if abs((q[0] - p0[0]) * ni[0] + (q[1] - p0[1]) * ni[1] + (q[2] - p0[2]) * ni[2]) > tol:
+            return False
+    return True
+
+
+def _merge(faces: _Faces, v: np.ndarray, size: float) -> _Faces:
     """Merge coplanar faces sharing an edge while the union stays a convex polygon (greedy, one
     pass over a queue of shared edges; a merged face's edges are queued again).
 
     Whether two faces are coplanar is first decided for every shared edge at once (vectorised);
     an edge between two faces that no merge has touched yet uses that answer, so a mesh without
-    coplanar neighbours (a smooth surface) costs no Python loop over its edges."""
-    loops = [list(x) for x in loops]
-    if not loops:
-        return loops
-    normals = _unit(_normals(loops, v))
-    pad = _padded(loops)
-    face, _, ea, eb = _edge_arrays(loops)
+    coplanar neighbours (a smooth surface) costs no Python loop over its edges. The loop over
+    the rest works on Python floats (`_coplanar1`, `_union`)."""
+    if not len(faces):
+        return faces
+    normals = _unit(_normals(faces, v))
+    pad = faces.pad
+    face, _, ea, eb = faces.edges()
     n = np.int64(v.shape[0])
     keys = ea.astype(np.int64) * n + eb
     # owner[(a, b)]: the last face running a -> b (as a dict filled in face order would hold).
@@ -461,14 +525,15 @@ def _merge(loops: list[list[int]], v: np.ndarray, size: float) -> list[list[int]
     fj = uface[pos[shared]]
     ok = _coplanar(normals[fi], normals[fj], v[pad[fj]], v[pad[fi, 0]], size) & (fi != fj)
     if not ok.any():
-        return loops
+        return faces
     candidates = set(zip(ea[shared][ok].tolist(), eb[shared][ok].tolist(), strict=True))
+    loops = faces.loops()
+    vl = v.tolist()
+    nl = normals.tolist()
     touched = [False] * len(loops)
     alive = [True] * len(loops)
-    owner: dict[tuple[int, int], int] = {}
-    for f_, a_, b_ in _directed_edges(loops):
-        owner[(a_, b_)] = f_
-    queue = [e for e in owner if (e[1], e[0]) in owner and e[0] < e[1]]
+    owner: dict[tuple[int, int], int] = dict(zip(zip(ea.tolist(), eb.tolist(), strict=True), face.tolist(), strict=True))
+    queue = [e for e in owner if e[0] < e[1] and (e[1], e[0]) in owner]
     while queue:
         a, b = queue.pop()
         i, j = owner.get((a, b)), owner.get((b, a))
@@ -477,15 +542,16 @@ def _merge(loops: list[list[int]], v: np.ndarray, size: float) -> list[list[int]
         if not (touched[i] or touched[j]):
             if (a, b) not in candidates:
                 continue
-        elif not _coplanar(normals[i], normals[j], v[loops[j]], v[loops[i][0]], size):
+        elif not _coplanar1(nl[i], nl[j], [vl[x] for x in loops[j]], vl[loops[i][0]], size):
             continue
-        m = _union(loops[i], loops[j], a, b, v, normals[i], size)
+        m = _union(loops[i], loops[j], a, b, vl, v, nl[i], normals[i])
         if m is None:
             continue
-        for k in range(len(loops[j])):
-            owner.pop((loops[j][k], loops[j][(k + 1) % len(loops[j])]), None)
-        for k in range(len(loops[i])):
-            owner.pop((loops[i][k], loops[i][(k + 1) % len(loops[i])]), None)
+        lj, li = loops[j], loops[i]
+        for k in range(len(lj)):
+            owner.pop((lj[k], lj[(k + 1) % len(lj)]), None)
+        for k in range(len(li)):
+            owner.pop((li[k], li[(k + 1) % len(li)]), None)
         loops[i] = m
         alive[j] = False
         touched[i] = touched[j] = True
@@ -494,57 +560,81 @@ def _merge(loops: list[list[int]], v: np.ndarray, size: float) -> list[list[int]
             owner[e] = i
             if (e[1], e[0]) in owner:
                 queue.append(e)
-    return [lp for lp, keep in zip(loops, alive, strict=True) if keep]
+    return _Faces.of([lp for lp, keep in zip(loops, alive, strict=True) if keep])
 
 
-def _union(la: list[int], lb: list[int], a: int, b: int, v: np.ndarray, nrm: np.ndarray, size: float) -> list[int] | None:
-    """`la` (containing a -> b) and `lb` (containing b -> a) glued along that edge, if convex."""
+def _straight(p0: list[float], p1: list[float], p2: list[float], nrm: list[float], v: np.ndarray, idx: tuple[int, int, int],
+              nrm_np: np.ndarray) -> bool:
+    """Whether the boundary goes straight at p1: |((p1 - p0) x (p2 - p1)) . n| <= 1e-12 |p1 - p0| |p2 - p1|.
+    Decided in Python floats when the two sides differ by more than a factor of two; otherwise
+    (a near tie) by the NumPy expression (whose dot products may round differently)."""
+    d1 = (p1[0] - p0[0], p1[1] - p0[1], p1[2] - p0[2])
+    d2 = (p2[0] - p1[0], p2[1] - p1[1], p2[2] - p1[2])
+    turn = abs((d1[1] * d2[2] - d1[2] * d2[1]) * nrm[0] + (d1[2] * d2[0] - d1[0] * d2[2]) * nrm[1]
+               + (d1[0] * d2[1] - d1[1] * d2[0]) * nrm[2])
+    bound = 1e-12 * math.sqrt(d1[0] * d1[0] + d1[1] * d1[1] + d1[2] * d1[2]) * math.sqrt(
+        d2[0] * d2[0] + d2[1] * d2[1] + d2[2] * d2[2])
+    if turn > 2 * bound:
+        return False
+    if turn < 0.5 * bound:
+        return True
+    q0, q1, q2 = v[idx[0]], v[idx[1]], v[idx[2]]
+    t = np.dot(_cross3(q1 - q0, q2 - q1), nrm_np)
+    return bool(abs(t) <= 1e-12 * np.linalg.norm(q1 - q0) * np.linalg.norm(q2 - q1))
+
+
+def _union(la: list[int], lb: list[int], a: int, b: int, vl: list[list[float]], v: np.ndarray, nrm: list[float],
+           nrm_np: np.ndarray) -> list[int] | None:
+    """`la` (containing a -> b) and `lb` (containing b -> a) glued along that edge, if convex
+    (`vl`: the vertices as Python lists, `v` as an array; `nrm` the unit normal of `la`)."""
     ia = la.index(a)
     ra = la[ia + 1:] + la[:ia + 1]  # starts after a, ends at a; la's a -> b edge is last-to-first
     # ra runs b ... a (b first). Glue lb from a to b (excluding the shared ends).
     ib = lb.index(b)
     rb = lb[ib + 1:] + lb[:ib + 1]  # starts after b, so runs a ... b
-    merged = ra + rb[1:-1]
+    out = ra + rb[1:-1]
     # Drop vertices where the boundary goes straight (the merge removes the shared edge only).
-    out = merged
     done = False
     while not done and len(out) > 3:
         done = True
         for k in range(len(out)):
-            p0, p1, p2 = v[out[k - 1]], v[out[k]], v[out[(k + 1) % len(out)]]
-            turn = np.dot(_cross3(p1 - p0, p2 - p1), nrm)
-            if abs(turn) <= 1e-12 * np.linalg.norm(p1 - p0) * np.linalg.norm(p2 - p1):
+            i0, i1, i2 = out[k - 1], out[k], out[(k + 1) % len(out)]
+            if _straight(vl[i0], vl[i1], vl[i2], nrm, v, (i0, i1, i2), nrm_np):
                 out = out[:k] + out[k + 1:]
                 done = False
                 break
     if len(out) > MAX_MERGED_VERTICES or len(set(out)) != len(out):
         return None
-    pts = v[out]
-    e = np.concatenate([pts[1:], pts[:1]]) - pts
-    e2 = np.concatenate([e[1:], e[:1]])
-    turn = (e[:, 1] * e2[:, 2] - e[:, 2] * e2[:, 1]) * nrm[0] + (e[:, 2] * e2[:, 0] - e[:, 0] * e2[:, 2]) * nrm[1] + (
-        e[:, 0] * e2[:, 1] - e[:, 1] * e2[:, 0]) * nrm[2]
-    if np.any(turn <= 0):
-        return None
+    # Strictly convex: every turn ((p[k+1] - p[k]) x (p[k+2] - p[k+1])) . n > 0, in the order
+    # of operations of the vectorised form (e = roll(p, -1) - p, e2 = roll(e, -1)).
+    pts = [vl[x] for x in out]
+    m = len(pts)
+    e = [(pts[(k + 1) % m][0] - pts[k][0], pts[(k + 1) % m][1] - pts[k][1], pts[(k + 1) % m][2] - pts[k][2]) for k in range(m)]
+    for k in range(m):
+        x, y = e[k], e[(k + 1) % m]
+        turn = (x[1] * y[2] - x[2] * y[1]) * nrm[0] + (x[2] * y[0] - x[0] * y[2]) * nrm[1] + (x[0] * y[1] - x[1] * y[0]) * nrm[2]
+        if turn <= 0:
+            return None
     return out
 
 
-def _solid_edges(loops: list[list[int]]) -> list[tuple[int, int, int, int, int, int]] | None:
+
+def _solid_edges(faces: _Faces) -> list[tuple[int, int, int, int, int, int]] | None:
     """Per undirected edge of a closed polygon mesh: (f_left, k_a, k_b, f_right) with the edge
     running loop[f_left][k_a] -> loop[f_left][k_b] in f_left; None when some edge does not have
     exactly one opposite (a merge left a vertex on an edge of a neighbour)."""
-    face, ka, a, b = _edge_arrays(loops)
+    face, ka, a, b = faces.edges()
     n = np.int64(max(int(a.max(initial=0)), int(b.max(initial=0))) + 1)
     keys = a.astype(np.int64) * n + b
     order = np.argsort(keys, kind="stable")
     ks = keys[order]
     if np.any(ks[1:] == ks[:-1]):
-        return _solid_edges_dict(loops)
+        return _solid_edges_dict(faces.loops())
     rev = b.astype(np.int64) * n + a
     pos = np.minimum(np.searchsorted(ks, rev), len(ks) - 1)
     if len(ks) == 0 or not np.all(ks[pos] == rev):
         return None if len(ks) else []
-    lens = np.fromiter((len(x) for x in loops), dtype=np.intp, count=len(loops))
+    lens = faces.lens
     kb = (ka + 1) % lens[face]
     sel = a < b
     cols = (face[sel], ka[sel], kb[sel], face[order[pos[sel]]], a[sel], b[sel])
@@ -611,57 +701,86 @@ class OccluderTopology:
                                 np.zeros(m, np.int32))
 
 
+def _occluder_blocks(items: list[Any], ko: int) -> tuple[list[tuple[bool, Any]], OccluderTopology]:
+    """The entries in order as (is a mesh, entry), and their topology (see `build_occluders`)."""
+    blocks: list[tuple[bool, Any]] = []
+    counts: list[int] = []
+    solid: list[int] = []
+    closed: list[int] = []
+    solid_faces: list[tuple[int, int]] = []
+    edges: list[np.ndarray] = []
+    edge_off = [0]
+    n_closed = 0
+    f0 = 0
+    for item in items:
+        if isinstance(item, Mesh):
+            nf = len(item._faces)
+            blocks.append((True, item))
+            solid.append(len(solid_faces) if item.convex else -1)
+            cid = -1
+            if item.closed:
+                cid, n_closed = n_closed, n_closed + 1
+            closed.append(cid)
+            if item.convex:
+                solid_faces.append((f0, f0 + nf))
+                e = np.asarray(item.edges or [], dtype=np.int64).reshape(-1, 6)
+                fl, fr = f0 + e[:, 0], f0 + e[:, 3]
+                edges.append(np.stack([fl * ko + e[:, 1], fl * ko + e[:, 2], fl, fr], axis=1))
+                edge_off.append(edge_off[-1] + len(e))
+        else:
+            nf = 1
+            blocks.append((False, item))
+            solid.append(-1)
+            closed.append(-1)
+        counts.append(nf)
+        f0 += nf
+    rep = np.asarray(counts, dtype=np.intp)
+    topo = OccluderTopology(
+        np.repeat(np.asarray(solid, np.int32), rep), np.repeat(np.asarray(closed, np.int32), rep),
+        np.asarray(solid_faces, np.int32).reshape(-1, 2), np.asarray(edge_off, np.int32),
+        (np.concatenate(edges) if edges else np.zeros((0, 4), np.int64)).astype(np.int32).reshape(-1, 4),
+        np.repeat(np.arange(len(items), dtype=np.int32), rep),
+        np.repeat(np.asarray([1 if m else 0 for m, _ in blocks], np.int32), rep))
+    return blocks, topo
+
+
 def build_occluders(items: list[Any], ko: int) -> tuple[list[Any], OccluderTopology]:
     """Polygons (in order) and their topology from `Scene(occluders=[...])` entries: plain
     `(k, 3)` polygons and `Mesh` objects (their polygons kept contiguous). `ko` is the padded
     vertex count the caller will use (slots of the solid edges refer to it). A polygon is a
     NumPy array, or a JAX array (a tracer when the scene is built under `jax.grad`)."""
+    blocks, topo = _occluder_blocks(items, ko)
     polys: list[Any] = []
-    face_solid: list[int] = []
-    face_closed: list[int] = []
-    face_object: list[int] = []
-    from_mesh: list[int] = []
-    solid_faces: list[tuple[int, int]] = []
-    edges: list[tuple[int, int, int, int]] = []
-    edge_off = [0]
-    n_closed = 0
-    for obj_i, item in enumerate(items):
-        if isinstance(item, Mesh):
-            f0 = len(polys)
-            sid = len(solid_faces) if item.convex else -1
-            cid = -1
-            if item.closed:
-                cid, n_closed = n_closed, n_closed + 1
-            for poly in item.polygons:
-                polys.append(poly)
-                face_solid.append(sid)
-                face_closed.append(cid)
-                face_object.append(obj_i)
-                from_mesh.append(1)
-            if item.convex:
-                solid_faces.append((f0, len(polys)))
-                for fl, ka, kb, fr, _, _ in item.edges or []:
-                    edges.append(((f0 + fl) * ko + ka, (f0 + fl) * ko + kb, f0 + fl, f0 + fr))
-                edge_off.append(len(edges))
+    for is_mesh, item in blocks:
+        if is_mesh:
+            polys.extend(item.polygons)
         else:
             polys.append(item)
-            face_solid.append(-1)
-            face_closed.append(-1)
-            face_object.append(obj_i)
-            from_mesh.append(0)
-    topo = OccluderTopology(
-        np.asarray(face_solid, np.int32), np.asarray(face_closed, np.int32),
-        np.asarray(solid_faces, np.int32).reshape(-1, 2), np.asarray(edge_off, np.int32),
-        np.asarray(edges, np.int32).reshape(-1, 4), np.asarray(face_object, np.int32),
-        np.asarray(from_mesh, np.int32))
     return polys, topo
+
+
+def stack_occluders(items: list[Any], ko: int) -> tuple[Any, OccluderTopology]:
+    """`build_occluders` with the polygons padded to `ko` vertices (first-vertex padding) and
+    stacked: `(M, ko, 3)`. Meshes with NumPy vertices are gathered in one step each; traced
+    entries go through `pad_polygons_jax`."""
+    import jax.numpy as jnp
+
+    from ._geometry import is_concrete, pad_polygon, pad_polygons_jax
+
+    blocks, topo = _occluder_blocks(items, ko)
+    if not all(isinstance(item.vertices, np.ndarray) if is_mesh else (is_concrete(item) and not isinstance(item, jnp.ndarray))
+               for is_mesh, item in blocks):
+        polys, _ = build_occluders(items, ko)
+        return pad_polygons_jax(polys, ko), topo
+    parts = [item._padded_faces(ko) if is_mesh else pad_polygon(np.asarray(item), ko)[None] for is_mesh, item in blocks]
+    return jnp.asarray(np.concatenate(parts)), topo
 
 
 def max_face_vertices(items: list[Any]) -> int:
     k = 3
     for item in items:
         if isinstance(item, Mesh):
-            k = max([k] + [len(loop) for loop in item.loops])
+            k = max(k, item._faces.pad.shape[1])
         else:
             k = max(k, int(np.asarray(item).shape[0]))
     return k

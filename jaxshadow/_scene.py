@@ -37,9 +37,9 @@ from ._linear import check_profile_exponent
 from ._mesh import (
     Mesh,
     OccluderTopology,
-    build_occluders,
     max_face_vertices,
     mesh_dicts,
+    stack_occluders,
     weld_polygons,
 )
 
@@ -270,28 +270,7 @@ def _stack_occluders(occluders: Any) -> tuple[Array | None, OccluderTopology | N
         items = weld_polygons(items)  # triangle soups become meshes (NumPy inputs only)
     if not any(isinstance(x, Mesh) for x in items):
         return pad_polygons_jax(items), None
-    ko = max_face_vertices(items)
-    polys, topo = build_occluders(items, ko)
-    if all(isinstance(x, np.ndarray) if not isinstance(x, Mesh) else isinstance(x.vertices, np.ndarray) for x in items):
-        return jnp.asarray(_padded_numpy(items, ko)), topo
-    return pad_polygons_jax(polys, ko), topo
-
-
-def _padded_numpy(items: list[Any], ko: int) -> np.ndarray:
-    """`(m, ko, 3)` faces of concrete polygons and `Mesh` entries in `build_occluders`' order,
-    padded with each face's first vertex (`pad_polygons_jax`'s result, one gather per mesh)."""
-    from ._mesh import _padded
-
-    blocks = []
-    for x in items:
-        if isinstance(x, Mesh):
-            idx = _padded(x.loops)
-            idx = np.concatenate([idx, np.repeat(idx[:, :1], ko - idx.shape[1], axis=1)], axis=1)
-            blocks.append(x.vertices[idx])
-        else:
-            p = np.asarray(x)
-            blocks.append(np.concatenate([p, np.repeat(p[:1], ko - p.shape[0], axis=0)])[None])
-    return np.concatenate(blocks)
+    return stack_occluders(items, max_face_vertices(items))
 
 
 class Scene(eqx.Module):
