@@ -16,6 +16,25 @@ The rules (thresholds are the module's constants):
   fit is not `trusted`, its standard errors are not (they assume the residual is noise), a
   `FitQualityWarning` names the lights, and the report lists the multistart's other distinct
   placements whose loss is within `COMPETING_FACTOR` (x 2) of the best.
+- **Collapsed light.** A fitted polygon whose narrowest width (twice its centred vertices'
+  second singular value over $\sqrt{V}$: a rectangle's shorter side) or a segment whose length
+  is below `COLLAPSED_FRACTION` (1 %) of the scene size: it shines like a segment or a point,
+  its size and power trade off (a quad of 0.1 mm by 6 cm at 6e4 times its power came back from
+  a start 30 % of the scene away): a wrong minimum, or a light of another kind. Flagged, not
+  trusted.
+- **Undetermined position or power.** A light (not escaped, collapsed or unused) with a
+  position parameter or its power not determined, exactly or nearly (above): the answer is
+  one of many that paint the targets alike (a quad seen by a few targets only came back 40 %
+  of the scene off with an exact fit; a quad 58 % off at a wrong minimum had its power's
+  standard error above the power): flagged, not trusted; a `FitQualityWarning` when its whole
+  position is undetermined (the report lists the parameters and where to paint either way).
+  Not at a wrong minimum (its standard errors mean nothing) nor with targets painted as ranges
+  or relations (any pose inside them is an answer).
+- **Unused light.** A light of a several-light fit whose part of the model at the targets
+  (the weighted norm of its power times its unit contribution) is below `UNUSED_FRACTION`
+  (1e-6) of the largest light's: the fit explains the targets without it, so its
+  pose is not determined; either the targets need fewer lights, or it was left where it lights
+  nothing (behind an occluder, a wrong minimum): flagged, not trusted.
 - **Outliers.** Per target and channel $u = r/\sigma$; a target is an outlier when some channel's
   robust z-score $|u - \operatorname{med} u| / \max(1.4826 \operatorname{MAD} u, 1)$ exceeds
   `OUTLIER_Z` (5; the floor 1 is the noise itself, so an exact fit has none). They are left
@@ -58,6 +77,8 @@ NEAR_POSITION_FRACTION = 0.25
 NEAR_ORIENTATION = math.radians(30.0)
 NEAR_LOG_SIZE = math.log(2.0)
 DARK_FRACTION = 1e-6
+UNUSED_FRACTION = 1e-6
+COLLAPSED_FRACTION = 0.01
 
 _POSITION = ("x", "y", "z", "a", "b")
 _ORIENTATION = ("rx", "ry", "rz", "ru", "rv")
@@ -85,7 +106,11 @@ class FitQuality:
     - `conflicting`: `((i, j), ...)` targets at one point, normal and eye with conflicting colours.
     - `escaped`: `{light name: reason}`; `nearly_undetermined`: names marked not determined for
       a standard error above the limits; `emitted`: the messages the fit warns with
-      (`FitQualityWarning`).
+      (`FitQualityWarning`); `reason`: the first of them ("" when trusted).
+    - `unused`: light names whose part of the colours went to ~0 in a several-light fit
+      (`unused_lights`); `collapsed`: `{light name: reason}` (`collapse_reason`);
+      `undetermined`: `{light name: its position parameters and power not determined
+      (exactly or nearly)}`.
     """
 
     trusted: bool
@@ -101,6 +126,14 @@ class FitQuality:
     escaped: dict
     nearly_undetermined: tuple
     emitted: tuple = ()
+    unused: tuple = ()
+    collapsed: dict = dataclasses.field(default_factory=dict)
+    undetermined: dict = dataclasses.field(default_factory=dict)
+
+    @property
+    def reason(self) -> str:
+        """Why the answer is not trusted, in words (the first of the warnings); "" when trusted."""
+        return "" if self.trusted else (self.emitted[0] if self.emitted else ", ".join(self.flags))
 
     def lines(self) -> list[str]:
         """The report's lines for these checks."""
@@ -229,6 +262,23 @@ def escape_reason(light: Any, targets: Any) -> str | None:
     return None
 
 
+def collapse_reason(light: Any, scale: float) -> str | None:
+    """Why `light` (a polygon or segment) has collapsed (module docstring), or None."""
+    if isinstance(light, js.PolygonLight):
+        v = np.asarray(light.vertices, np.float64)
+        s = np.linalg.svd(v - v.mean(axis=0), compute_uv=False)
+        width, what = 2.0 * float(s[1]) / math.sqrt(v.shape[0]), "narrowest width"
+    elif isinstance(light, js.LinearLight):
+        width, what = float(np.linalg.norm(np.asarray(light.end, np.float64) - np.asarray(light.start, np.float64))), \
+            "length"
+    else:
+        return None
+    if width < COLLAPSED_FRACTION * scale:
+        return (f"its {what} is {width:.3g} m, below {100 * COLLAPSED_FRACTION:g} % of the scene size ({scale:.3g} m): "
+                "it shines like a point (or a segment), its size and power trade off")
+    return None
+
+
 def nearly_undetermined(names: tuple, std_errors: dict, values: dict, scale: float,
                         determined: dict) -> tuple:
     """The names of determined parameters whose standard error is above the module's limits."""
@@ -251,6 +301,15 @@ def nearly_undetermined(names: tuple, std_errors: dict, values: dict, scale: flo
         if se > limit and (base != "power" or values[nm] > 0):
             out.append(nm)
     return tuple(out)
+
+
+def unused_lights(contributions: dict) -> tuple:
+    """The names in `contributions` ({light name: the weighted norm of its part of the model at
+    the targets}, two or more lights) at most `UNUSED_FRACTION` of the largest."""
+    if len(contributions) < 2:
+        return ()
+    top = max(abs(float(v)) for v in contributions.values())
+    return tuple(nm for nm, v in contributions.items() if top > 0 and abs(float(v)) <= UNUSED_FRACTION * top)
 
 
 def dark_answer(light_part: np.ndarray, colours: np.ndarray, weights: np.ndarray, margin: np.ndarray) -> bool:
@@ -277,7 +336,8 @@ def _limit_text(nm: str, scale: float) -> str:
 
 def assess(*, targets: Any, residual: np.ndarray, noise: Any, n_params: int, names: tuple, std_errors: dict,
            values: dict, determined: dict, scale: float, lights: dict, light_params: dict,
-           candidates: tuple = (), messages: list, all_dark: bool = False) -> tuple[FitQuality, dict]:
+           candidates: tuple = (), messages: list, all_dark: bool = False,
+           contributions: dict | None = None, determinacy: bool = True) -> tuple[FitQuality, dict]:
     """Run the checks on a fit's solution.
 
     **Arguments:** `targets`; `residual (N, 3)` = model - colours (unweighted); `noise` (module
@@ -285,7 +345,11 @@ def assess(*, targets: Any, residual: np.ndarray, noise: Any, n_params: int, nam
     the report; `scale`: the scene size (m); `lights`: {light name: fitted light} to check for
     escape; `light_params`: {light name: its parameter names}; `candidates`: the competing
     placements (`competing_placements`); `messages`: the report's warnings, extended here;
-    `all_dark`: the fitted lights leave every target dark (`dark_answer`) under relations.
+    `all_dark`: the fitted lights leave every target dark (`dark_answer`) under relations;
+    `contributions`: {light name: weighted norm of its part of the model} of a several-light
+    fit (`unused_lights`), or None; `determinacy`: whether an undetermined position or power
+    makes the answer untrusted (False for targets painted as ranges or relations, whose answer
+    is any pose inside them).
 
     **Returns:** `(quality, determined (updated))`; `quality.emitted`: the warnings to emit.
     """
@@ -326,11 +390,47 @@ def assess(*, targets: Any, residual: np.ndarray, noise: Any, n_params: int, nam
             emit.append(msg)
     if escaped:
         flags.append("escaped")
+    collapsed = {}
+    for nm, light in lights.items():
+        why = collapse_reason(light, scale)
+        if why is not None and nm not in escaped:
+            collapsed[nm] = why
+            msg = f"{nm} collapsed: {why}: a wrong minimum, or a light of another kind."
+            messages.append(msg)
+            emit.append(msg)
+    if collapsed:
+        flags.append("collapsed")
+    unused = unused_lights(contributions or {})
+    for nm in unused:
+        for p in light_params.get(nm, ()):
+            determined[p] = False
+        msg = (f"{nm} lights nothing (its part of the colours is below {UNUSED_FRACTION:g} of the largest "
+               "light's): its pose is not "
+               "determined; the targets need fewer lights, or it stopped where it cannot light them.")
+        messages.append(msg)
+        emit.append(msg)
+    if unused:
+        flags.append("unused_light")
     near = nearly_undetermined(names, std_errors, values, scale, determined)
     for nm in near:
         determined[nm] = False
         messages.append(f"{nm} is nearly undetermined by these targets: standard error {std_errors[nm]:.3g} > "
                         f"{_limit_text(nm, scale)}.")
+    undetermined = {}
+    for nm, params in light_params.items() if determinacy and not wrong else ():
+        if nm in escaped or nm in collapsed or nm in unused:
+            continue
+        pos = [p for p in params if p.rsplit(".", 1)[-1] in _POSITION]
+        bad = tuple(p for p in params if (p in pos or p.endswith("power")) and not determined.get(p, True))
+        if bad:
+            undetermined[nm] = bad
+            if pos and all(p in bad for p in pos):
+                msg = (f"{nm}'s position is not determined by these targets (standard errors infinite or above "
+                       f"{_limit_text(pos[0], scale)}): it is one of many placements that paint them alike.")
+                messages.append(msg)
+                emit.append(msg)
+    if undetermined:
+        flags.append("undetermined")
     if out_idx.size:
         flags.append("outliers")
         messages.append(f"target(s) {out_idx.tolist()} are outliers (robust z > {OUTLIER_Z:g} at the solution).")
@@ -348,8 +448,8 @@ def assess(*, targets: Any, residual: np.ndarray, noise: Any, n_params: int, nam
         messages.append(msg)
         emit.append(msg)
     quality = FitQuality(
-        trusted=not (wrong or escaped or all_dark), flags=tuple(flags), chi2=chi2, dof=dof, noise=how,
+        trusted=not (wrong or escaped or collapsed or all_dark or unused or undetermined), flags=tuple(flags), chi2=chi2, dof=dof, noise=how,
         std_errors_trusted=not wrong, competing=tuple(candidates),
         outliers=tuple(int(i) for i in out_idx), outlier_z=z, conflicting=conflicting, escaped=escaped,
-        nearly_undetermined=near, emitted=tuple(emit))
+        collapsed=collapsed, undetermined=undetermined,        nearly_undetermined=near, emitted=tuple(emit), unused=unused)
     return quality, determined

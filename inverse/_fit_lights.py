@@ -42,7 +42,12 @@ import numpy as np
 import jaxshadow as js
 from jaxshadow import traced
 
-from ._diagnostics import FitQualityWarning, assess, competing_placements, dark_answer
+from ._diagnostics import (
+    FitQualityWarning,
+    assess,
+    competing_placements,
+    dark_answer,
+)
 from ._forward import SpecularFn
 from ._global_placement import place, region_of, template_light
 from ._identifiability import identifiability
@@ -263,8 +268,11 @@ def fit_lights(
       the RMS weighted colour); what the checks of the answer compare the residual with
       (`inverse._diagnostics`: a wrong minimum, outliers, conflicting targets).
     - `warn`: emit a `FitQualityWarning` when the answer is flagged (a wrong minimum, an
-      escaped light, conflicting targets, an all-dark answer to "brighter than" relations);
-      the report's `quality` says so either way.
+      escaped light, a polygon or segment collapsed to a point, a light left with no part in
+      the colours, conflicting targets, an all-dark answer to "brighter than" relations);
+      the report's `quality` says so either way (`fit.report.trusted`,
+      `fit.report.quality.reason`). To stop on it: `warnings.simplefilter("error",
+      inverse.FitQualityWarning)`.
     - `kinds`: lights given by kind only, e.g. `kinds=["polygon", "point"]` (one of
       `"polygon"`, `"point"`, `"segment"`, `"directional"` each): they are added to `scene`
       (which may have no lights; its lights are then held as given) and fitted, with `lights`
@@ -733,7 +741,9 @@ def _result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, c
     quality, determined = assess(
         targets=t, residual=residual, noise=noise, n_params=len(names), names=names, std_errors=se, values=values_d,
         determined=determined, scale=size, lights=moved, light_params=light_params, candidates=competing,
-        messages=warnings, all_dark=dark)
+        messages=warnings, all_dark=dark,
+        contributions={f"light{idx[j]}": float(np.sqrt(np.sum(w * (powers[j] * per_light[j]) ** 2)))
+                       for j in range(J)} if problem.fit_power else None, determinacy=paint is None)
     fixed = [x for n, x in enumerate(problem.scene.lights) if n not in idx]
     suggestions, sugg_n = _suggest(problem, th, powers, mat, names, jac, ident.determined, candidates, free_p, k,
                                    fixed, project)

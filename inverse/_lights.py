@@ -80,7 +80,8 @@ def fit_light(
       the RMS weighted colour); what the checks of the answer compare the residual with
       (`inverse._diagnostics`: a wrong minimum, outliers, conflicting targets).
     - `warn`: emit a `FitQualityWarning` when the answer is flagged (a wrong minimum, an
-      escaped light, conflicting targets); the report's `quality` says so either way.
+      escaped light, a polygon or segment collapsed to a point, conflicting targets); the
+      report's `quality` says so either way (`report.trusted`, `report.quality.reason`).
 
     The keywords `refine`, `prune`, `receiver_groups` (ignored), `combinatorics`, `rtol`, `atol`,
     `max_steps` and string solvers (`"lm"`, ...) are deprecated: they are the solver's options.

@@ -5,6 +5,7 @@ targets with a square occluder between them (hard shadows: the loss has steps, s
 from the truth stops in a wrong minimum).
 """
 
+import math
 import re
 import warnings
 
@@ -222,3 +223,94 @@ def test_relations_met_by_an_all_dark_answer_are_flagged():
                                  brighter=inverse.Brighter([[0, 1]]))
     assert fit.powers[0] == pytest.approx(0.0, abs=1e-9)
     assert "all_dark" in fit.report.quality.flags and not fit.report.trusted
+
+
+def test_collapse_rules():
+    """A polygon narrower than 1 % of the scene size, or a segment shorter, is collapsed; a point
+    light never is."""
+    thin = np.array([[-0.3, -0.004, 1.0], [-0.3, 0.004, 1.0], [0.3, 0.004, 1.0], [0.3, -0.004, 1.0]])
+    assert "narrowest width is 0.008 m" in diag.collapse_reason(js.PolygonLight(thin, 1.0), 1.0)
+    assert diag.collapse_reason(js.PolygonLight(thin, 1.0), 0.5) is None
+    wide = thin * np.array([1.0, 10.0, 1.0])
+    assert diag.collapse_reason(js.PolygonLight(wide, 1.0), 5.0) is None
+    assert "length is 0.005 m" in diag.collapse_reason(js.LinearLight([0, 0, 1.0], [0.005, 0, 1.0], 1.0), 1.0)
+    assert diag.collapse_reason(js.PointLight([0, 0, 1.0], 1.0), 1.0) is None
+
+
+def test_unused_light_is_flagged():
+    """Targets painted by one of two point lights, both powers fitted: the other's power is 0,
+    its pose undetermined: flagged, not trusted."""
+    pts, nrm = _floor()
+    true = js.Scene([js.PointLight(TRUE, 3.0)], ambient=0.05)
+    targets = inverse.PaintedTargets(pts, nrm, js.shade(true, MATERIAL, pts, nrm, EYE), EYE)
+    scene = js.Scene([js.PointLight(TRUE, 1.0), js.PointLight([-0.8, 0.6, 1.2], 1.0)], ambient=0.05)
+    with pytest.warns(inverse.FitQualityWarning, match="light1 lights nothing"):
+        fit = inverse.fit_lights(scene, targets, MATERIAL, fit=("power",))
+    np.testing.assert_allclose(fit.powers, [3.0, 0.0], atol=1e-9)
+    q = fit.report.quality
+    assert q.unused == ("light1",) and "unused_light" in q.flags and not fit.report.trusted
+    assert q.reason.startswith("light1 lights nothing")
+    assert diag.unused_lights({"light0": 1.0, "light1": 2e-6}) == ()
+    assert diag.unused_lights({"light0": 1.0, "light1": 1e-7}) == ("light1",)
+    assert diag.unused_lights({"light0": 0.0}) == ()
+
+
+def test_wrong_minimum_from_far_with_a_collapsed_quad_is_flagged():
+    """A quad and a point light (`inverse._random_scenes`, seed 1) from starts 30 % of the scene
+    away, the local search alone: the quad collapses to a sliver (0.1 mm) at 6e4 times its
+    power and both lights end ~30 % of the scene off, with a residual within the default
+    noise; the collapse flags it. The default (global placement) recovers the same case
+    unflagged (`test_fit_lights_global.test_quad_and_point_light_found_from_far`)."""
+    from inverse._random_scenes import light_errors, random_case, shifted_start
+
+    case = random_case(1)
+    col = js.shade(case.true, case.material, case.points, case.normals, case.eye)
+    targets = inverse.PaintedTargets(case.points, case.normals, col, case.eye)
+    size = inverse.scene_size(case.true, targets)
+    start = shifted_start(case.true, 0.3 * size, 1)
+    with pytest.warns(inverse.FitQualityWarning, match="light0 collapsed"):
+        fit = inverse.fit_lights(start, targets, case.material, placement="local")
+    assert max(light_errors(a, b)[0] for a, b in zip(fit.lights, case.true.lights, strict=True)) > 0.1 * size
+    q = fit.report.quality
+    assert "collapsed" in q.flags and set(q.collapsed) == {"light0"} and not fit.report.trusted
+    assert "wrong_minimum" not in q.flags  # the residual alone would not have said so
+    assert re.search(r"NOT TRUSTED \(.*collapsed", str(fit.report))
+
+
+def test_undetermined_height_and_power_are_flagged_without_a_warning():
+    """Floor targets on a circle around a point light's foot: its height trades off exactly with
+    its power. The answer is one of many: not trusted; x and y are determined, so no
+    `FitQualityWarning` (the report lists the undetermined parameters)."""
+    material = js.Material(ka=0.2, kd=0.6, ks=0.0, exponent=1.0)
+    true = js.Scene([js.PointLight([0.2, -0.1, 1.5], 3.0)], ambient=0.1)
+    a = np.linspace(0.0, 2 * np.pi, 24, endpoint=False)
+    pts = np.c_[0.2 + np.cos(a), -0.1 + np.sin(a), np.zeros(24)]
+    nrm = np.tile([0.0, 0.0, 1.0], (24, 1))
+    targets = inverse.PaintedTargets(pts, nrm, js.shade(true, material, pts, nrm, EYE), EYE)
+    start = js.Scene([js.PointLight([0.35, 0.05, 1.5], 2.0)], ambient=0.1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fit = inverse.fit_lights(start, targets, material, fit=("position", "power"), starts=1)
+    q = fit.report.quality
+    assert q.flags == ("undetermined",) and not fit.report.trusted
+    assert set(q.undetermined["light0"]) == {"light0.z", "light0.power"}
+
+
+def test_whole_position_undetermined_rule():
+    """`assess` on a light whose x, y, z are all undetermined (standard errors inf): flagged and
+    warned; one with only its power nearly undetermined (error above the value): flagged only."""
+    targets = _targets(occluders=None)
+    names = ("light0.x", "light0.y", "light0.z", "light0.power", "light1.x", "light1.y", "light1.z", "light1.power")
+    se = dict.fromkeys(names[:4], math.inf) | {"light1.x": 0.01, "light1.y": 0.01, "light1.z": 0.01,
+                                                "light1.power": 5.0}
+    values = dict.fromkeys(names, 0.1) | {"light0.power": 1.0, "light1.power": 2.0}
+    determined = {nm: not math.isinf(se[nm]) for nm in names}
+    lights = {"light0": js.PointLight([0.0, 0.0, 1.5], 1.0), "light1": js.PointLight([0.5, 0.0, 1.5], 1.0)}
+    quality, det = diag.assess(
+        targets=targets, residual=np.zeros((len(targets), 3)), noise=None, n_params=len(names), names=names,
+        std_errors=se, values=values, determined=determined, scale=2.0, lights=lights,
+        light_params={"light0": names[:4], "light1": names[4:]}, messages=[])
+    assert "undetermined" in quality.flags and not quality.trusted
+    assert quality.undetermined == {"light0": names[:4], "light1": ("light1.power",)}
+    assert len(quality.emitted) == 1 and quality.emitted[0].startswith("light0's position is not determined")
+    assert not det["light1.power"] and det["light1.x"]
