@@ -14,8 +14,9 @@ Receivers read from a mesh are its vertices or its face centres. One convention 
   edge cross products), computed from the welded geometry. Normals stored in a file are not
   used (pass `vertex_normals=` to `ReceiverMesh` to give others).
 - **Welding.** Vertices at exactly equal positions (or within `weld` metres) are merged when a
-  mesh is read, so a surface split along UV seams or per-face normals is one connected surface
-  (one normal per point, closed meshes found closed); `ReceiverMesh.n_welded` counts them.
+  mesh is read, unless their normals differ by more than a crease angle (45 degrees: a hard
+  edge's copies stay apart), so a surface split along UV seams is one connected surface (one
+  normal per point); `ReceiverMesh.n_welded` counts them. Occluders are welded by position.
 - **Transforms.** `ReceiverMesh.transformed(matrix)` moves the vertices by an affine map and
   carries normals as normals (by the inverse transpose), reversing the faces of a mirroring map
   so that every normal stays on its side of the surface.
@@ -33,6 +34,7 @@ Every file is written through `jaxshadow._files` (a temporary file renamed into 
 from __future__ import annotations
 
 import csv
+import math
 import os
 import re
 import warnings
@@ -47,6 +49,9 @@ TABLE_EXTS = (".csv", ".npy", ".npz")
 POINT_COLUMNS = ("px", "py", "pz", "nx", "ny", "nz")
 # The PLY float properties of irradiance, `irradiance_r/g/b`, in every PLY the project writes.
 IRRADIANCE_PROPERTY = "irradiance"
+# Welding merges the copies of a vertex whose normals (before welding) are within this angle
+# (degrees): UV-seam copies on a smooth surface merge, a hard edge's copies stay apart.
+CREASE_ANGLE = 45.0
 LEGACY_PROPERTY = "value"  # what `write_ply` named them before: still read by `read_ply_values`
 
 
@@ -153,20 +158,30 @@ class ReceiverMesh:
         return a + u[:, None] * (b - a) + w[:, None] * (c - a), self.face_normals[tri].copy()
 
     def occluder(self, merge: bool = True) -> Any:
-        """The surface as a `jaxshadow.Mesh` occluder (its vertices as they are: a mesh read by
-        `read_mesh` or `from_mitsuba` is welded, so a closed surface is found closed)."""
+        """The surface as a `jaxshadow.Mesh` occluder, its vertices at equal positions welded
+        (hard edges too: the same points block), so a closed surface is found closed."""
         from ._mesh import Mesh
 
-        return Mesh(self.vertices, self.faces, merge=merge)
+        index, first = weld_vertices(self.vertices)
+        return Mesh(self.vertices[first], index[self.faces], merge=merge)
 
-    def welded(self, tol: float = 0.0) -> ReceiverMesh:
+    def welded(self, tol: float = 0.0, crease: float | None = CREASE_ANGLE) -> ReceiverMesh:
         """The same surface with duplicate vertices merged.
 
-        **Arguments:** `tol`: vertices at exactly equal positions (`0`, default) or within `tol`
-        (m, transitively) become one, at the position of the first of them (lowest index).
-        Vertices with given normals (`vertex_normals=`) are merged only when their normals are
-        equal too, so a hard edge stays split; computed normals are recomputed (area-weighted)
-        on the welded surface.
+        **Arguments:**
+
+        - `tol`: vertices at exactly equal positions (`0`, default) or within `tol` (m,
+          transitively) are candidates, merged at the position of the first of them (lowest
+          index).
+        - `crease`: an angle (degrees, default `CREASE_ANGLE` = 45): candidates are merged only
+          when their area-weighted normals before welding (those of the faces each copy belongs
+          to) are within it, so a hard edge stored as split vertices (a cube's corners, a mesh
+          exported with per-face normals) stays split, while the copies along a UV seam of a
+          smooth surface become one vertex; `None` merges every candidate. Vertices with given
+          normals (`vertex_normals=`) are merged only when those are equal.
+
+        Computed normals are recomputed (area-weighted) on the welded surface. The occluder
+        (`occluder()`) is welded by position whatever the crease: it blocks the same points.
 
         **Returns:** a `ReceiverMesh` whose `n_welded` is the number of vertices merged away
         (`len(self.vertices) - len(result.vertices)`, plus `self.n_welded`). Faces that a
@@ -174,6 +189,8 @@ class ReceiverMesh:
         """
         keys = self.vertex_normals if self._normals_given else None
         index, first = weld_vertices(self.vertices, tol, keys=keys)
+        if crease is not None and not self._normals_given and len(first) < len(self.vertices):
+            index, first = _split_creases(index, self.vertex_normals, math.cos(math.radians(float(crease))))
         f = index[self.faces]
         keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])
         if not keep.any():
@@ -244,6 +261,31 @@ def affine_parts(matrix: Any = None, *, rotation: Any = None, translation: Any =
     return a.copy(), t.copy()
 
 
+def _split_creases(index: np.ndarray, normals: np.ndarray, cos_min: float) -> tuple[np.ndarray, np.ndarray]:
+    """`weld_vertices`' `(index, first)` with each group of merged vertices split where their
+    `normals` differ by more than the crease (`cos_min`, the cosine of the angle): a member joins
+    the first sub-group whose first member's normal is within it. Groups in order of first use."""
+    order = np.argsort(index, kind="stable")
+    sizes = np.bincount(index)
+    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    sub = np.zeros(len(index), dtype=np.int64)
+    for g in np.flatnonzero(sizes > 1).tolist():
+        seeds: list[int] = []
+        for m in order[starts[g]:starts[g] + sizes[g]].tolist():
+            for k, s in enumerate(seeds):
+                if float(normals[m] @ normals[s]) >= cos_min:
+                    sub[m] = k
+                    break
+            else:
+                sub[m] = len(seeds)
+                seeds.append(m)
+    _, first, inv = np.unique(np.stack([index, sub], axis=1), axis=0, return_index=True, return_inverse=True)
+    rank_order = np.argsort(first, kind="stable")
+    rank = np.empty(len(first), dtype=np.int64)
+    rank[rank_order] = np.arange(len(first))
+    return rank[inv.reshape(-1)], first[rank_order]
+
+
 def weld_vertices(vertices: Any, tol: float = 0.0, keys: Any = None) -> tuple[np.ndarray, np.ndarray]:
     """Which vertices are one: `(index (V,), first (W,))`, vertex i becoming welded vertex
     `index[i]`, welded vertex j being original vertex `first[j]` (the lowest index of its group;
@@ -275,7 +317,7 @@ def weld_vertices(vertices: Any, tol: float = 0.0, keys: Any = None) -> tuple[np
     return rank[inv.reshape(-1)], first[order]
 
 
-def read_mesh(path: str | os.PathLike, *, weld: float | None = 0.0) -> ReceiverMesh:
+def read_mesh(path: str | os.PathLike, *, weld: float | None = 0.0, crease: float | None = CREASE_ANGLE) -> ReceiverMesh:
     """Read a triangle mesh (OBJ, PLY, glTF/GLB, STL, OFF; polygons are triangulated, glTF
     scenes flattened with their transforms) with trimesh.
 
@@ -285,6 +327,8 @@ def read_mesh(path: str | os.PathLike, *, weld: float | None = 0.0) -> ReceiverM
     - `weld`: vertices at exactly equal positions (`0.0`, default) or within `weld` (m) are
       merged (`ReceiverMesh.welded`): a surface split at UV seams, or stored as a triangle soup
       (STL), is read as one connected surface; `None` keeps the file's vertices as they are.
+    - `crease`: copies whose normals differ by more than this angle (degrees) stay apart (a hard
+      edge); `None` merges all (`ReceiverMesh.welded`).
 
     **Returns:** a `ReceiverMesh` (use `.occluder()` for a `jaxshadow.Mesh` occluder,
     `.receivers(at)` for receiver points and normals), with `n_welded` the number of vertices
@@ -317,7 +361,7 @@ def read_mesh(path: str | os.PathLike, *, weld: float | None = 0.0) -> ReceiverM
     if not isinstance(m, trimesh.Trimesh) or len(m.faces) == 0:
         raise ValueError(f"{path}: the file holds no triangles.")
     mesh = ReceiverMesh(np.asarray(m.vertices), np.asarray(m.faces), name=os.path.basename(path))
-    return mesh if weld is None else mesh.welded(weld)
+    return mesh if weld is None else mesh.welded(weld, crease)
 
 
 def tonemap(values: Any, exposure: float | None = None) -> np.ndarray:
