@@ -142,7 +142,7 @@ def mesh_command(args: argparse.Namespace) -> int:
     cleaned = ""
     if written and (written["welded"] or written["dropped"]):
         cleaned = (f" (glTF, y-up from {up}: {written['welded']} vertices welded and {written['dropped']} "
-                   "slivers dropped at float32 resolution)")
+                   "triangles removed at float32 resolution)")
     print(f"{mesh.vertices.shape[0]} vertices, {mesh.triangles.shape[0]} triangles, checked error "
           f"{mesh.max_error_estimate:.3g} of the maximum {mesh.scale:.4g} W/m^2 (tol {args.tol:g}), "
           f"{mesh.stats['seconds']:.1f} s -> {out}{cleaned}")

@@ -14,8 +14,9 @@ Receivers read from a mesh are its vertices or its face centres. One convention 
   edge cross products), computed from the welded geometry. Normals stored in a file are not
   used (pass `vertex_normals=` to `ReceiverMesh` to give others).
 - **Welding.** Vertices at exactly equal positions (or within `weld` metres) are merged when a
-  mesh is read, so a surface split along UV seams or per-face normals is one connected surface
-  (one normal per point, closed meshes found closed); `ReceiverMesh.n_welded` counts them.
+  mesh is read, unless their normals differ by more than a crease angle (45 degrees: a hard
+  edge's copies stay apart), so a surface split along UV seams is one connected surface (one
+  normal per point); `ReceiverMesh.n_welded` counts them. Occluders are welded by position.
 - **Transforms.** `ReceiverMesh.transformed(matrix)` moves the vertices by an affine map and
   carries normals as normals (by the inverse transpose), reversing the faces of a mirroring map
   so that every normal stays on its side of the surface.
@@ -33,6 +34,7 @@ Every file is written through `jaxshadow._files` (a temporary file renamed into 
 from __future__ import annotations
 
 import csv
+import math
 import os
 import re
 import warnings
@@ -47,6 +49,9 @@ TABLE_EXTS = (".csv", ".npy", ".npz")
 POINT_COLUMNS = ("px", "py", "pz", "nx", "ny", "nz")
 # The PLY float properties of irradiance, `irradiance_r/g/b`, in every PLY the project writes.
 IRRADIANCE_PROPERTY = "irradiance"
+# Welding merges the copies of a vertex whose normals (before welding) are within this angle
+# (degrees): UV-seam copies on a smooth surface merge, a hard edge's copies stay apart.
+CREASE_ANGLE = 45.0
 LEGACY_PROPERTY = "value"  # what `write_ply` named them before: still read by `read_ply_values`
 
 
@@ -153,20 +158,30 @@ class ReceiverMesh:
         return a + u[:, None] * (b - a) + w[:, None] * (c - a), self.face_normals[tri].copy()
 
     def occluder(self, merge: bool = True) -> Any:
-        """The surface as a `jaxshadow.Mesh` occluder (its vertices as they are: a mesh read by
-        `read_mesh` or `from_mitsuba` is welded, so a closed surface is found closed)."""
+        """The surface as a `jaxshadow.Mesh` occluder, its vertices at equal positions welded
+        (hard edges too: the same points block), so a closed surface is found closed."""
         from ._mesh import Mesh
 
-        return Mesh(self.vertices, self.faces, merge=merge)
+        index, first = weld_vertices(self.vertices)
+        return Mesh(self.vertices[first], index[self.faces], merge=merge)
 
-    def welded(self, tol: float = 0.0) -> ReceiverMesh:
+    def welded(self, tol: float = 0.0, crease: float | None = CREASE_ANGLE) -> ReceiverMesh:
         """The same surface with duplicate vertices merged.
 
-        **Arguments:** `tol`: vertices at exactly equal positions (`0`, default) or within `tol`
-        (m, transitively) become one, at the position of the first of them (lowest index).
-        Vertices with given normals (`vertex_normals=`) are merged only when their normals are
-        equal too, so a hard edge stays split; computed normals are recomputed (area-weighted)
-        on the welded surface.
+        **Arguments:**
+
+        - `tol`: vertices at exactly equal positions (`0`, default) or within `tol` (m,
+          transitively) are candidates, merged at the position of the first of them (lowest
+          index).
+        - `crease`: an angle (degrees, default `CREASE_ANGLE` = 45): candidates are merged only
+          when their area-weighted normals before welding (those of the faces each copy belongs
+          to) are within it, so a hard edge stored as split vertices (a cube's corners, a mesh
+          exported with per-face normals) stays split, while the copies along a UV seam of a
+          smooth surface become one vertex; `None` merges every candidate. Vertices with given
+          normals (`vertex_normals=`) are merged only when those are equal.
+
+        Computed normals are recomputed (area-weighted) on the welded surface. The occluder
+        (`occluder()`) is welded by position whatever the crease: it blocks the same points.
 
         **Returns:** a `ReceiverMesh` whose `n_welded` is the number of vertices merged away
         (`len(self.vertices) - len(result.vertices)`, plus `self.n_welded`). Faces that a
@@ -174,6 +189,8 @@ class ReceiverMesh:
         """
         keys = self.vertex_normals if self._normals_given else None
         index, first = weld_vertices(self.vertices, tol, keys=keys)
+        if crease is not None and not self._normals_given and len(first) < len(self.vertices):
+            index, first = _split_creases(index, self.vertex_normals, math.cos(math.radians(float(crease))))
         f = index[self.faces]
         keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])
         if not keep.any():
@@ -244,6 +261,31 @@ def affine_parts(matrix: Any = None, *, rotation: Any = None, translation: Any =
     return a.copy(), t.copy()
 
 
+def _split_creases(index: np.ndarray, normals: np.ndarray, cos_min: float) -> tuple[np.ndarray, np.ndarray]:
+    """`weld_vertices`' `(index, first)` with each group of merged vertices split where their
+    `normals` differ by more than the crease (`cos_min`, the cosine of the angle): a member joins
+    the first sub-group whose first member's normal is within it. Groups in order of first use."""
+    order = np.argsort(index, kind="stable")
+    sizes = np.bincount(index)
+    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    sub = np.zeros(len(index), dtype=np.int64)
+    for g in np.flatnonzero(sizes > 1).tolist():
+        seeds: list[int] = []
+        for m in order[starts[g]:starts[g] + sizes[g]].tolist():
+            for k, s in enumerate(seeds):
+                if float(normals[m] @ normals[s]) >= cos_min:
+                    sub[m] = k
+                    break
+            else:
+                sub[m] = len(seeds)
+                seeds.append(m)
+    _, first, inv = np.unique(np.stack([index, sub], axis=1), axis=0, return_index=True, return_inverse=True)
+    rank_order = np.argsort(first, kind="stable")
+    rank = np.empty(len(first), dtype=np.int64)
+    rank[rank_order] = np.arange(len(first))
+    return rank[inv.reshape(-1)], first[rank_order]
+
+
 def weld_vertices(vertices: Any, tol: float = 0.0, keys: Any = None) -> tuple[np.ndarray, np.ndarray]:
     """Which vertices are one: `(index (V,), first (W,))`, vertex i becoming welded vertex
     `index[i]`, welded vertex j being original vertex `first[j]` (the lowest index of its group;
@@ -275,7 +317,7 @@ def weld_vertices(vertices: Any, tol: float = 0.0, keys: Any = None) -> tuple[np
     return rank[inv.reshape(-1)], first[order]
 
 
-def read_mesh(path: str | os.PathLike, *, weld: float | None = 0.0) -> ReceiverMesh:
+def read_mesh(path: str | os.PathLike, *, weld: float | None = 0.0, crease: float | None = CREASE_ANGLE) -> ReceiverMesh:
     """Read a triangle mesh (OBJ, PLY, glTF/GLB, STL, OFF; polygons are triangulated, glTF
     scenes flattened with their transforms) with trimesh.
 
@@ -285,6 +327,8 @@ def read_mesh(path: str | os.PathLike, *, weld: float | None = 0.0) -> ReceiverM
     - `weld`: vertices at exactly equal positions (`0.0`, default) or within `weld` (m) are
       merged (`ReceiverMesh.welded`): a surface split at UV seams, or stored as a triangle soup
       (STL), is read as one connected surface; `None` keeps the file's vertices as they are.
+    - `crease`: copies whose normals differ by more than this angle (degrees) stay apart (a hard
+      edge); `None` merges all (`ReceiverMesh.welded`).
 
     **Returns:** a `ReceiverMesh` (use `.occluder()` for a `jaxshadow.Mesh` occluder,
     `.receivers(at)` for receiver points and normals), with `n_welded` the number of vertices
@@ -317,7 +361,7 @@ def read_mesh(path: str | os.PathLike, *, weld: float | None = 0.0) -> ReceiverM
     if not isinstance(m, trimesh.Trimesh) or len(m.faces) == 0:
         raise ValueError(f"{path}: the file holds no triangles.")
     mesh = ReceiverMesh(np.asarray(m.vertices), np.asarray(m.faces), name=os.path.basename(path))
-    return mesh if weld is None else mesh.welded(weld)
+    return mesh if weld is None else mesh.welded(weld, crease)
 
 
 def tonemap(values: Any, exposure: float | None = None) -> np.ndarray:
@@ -624,6 +668,7 @@ AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0),
         "-x": (-1.0, 0.0, 0.0), "-y": (0.0, -1.0, 0.0), "-z": (0.0, 0.0, -1.0)}
 # Triangles thinner than this many float32 spacings of the largest coordinate are repaired.
 GLTF_SLIVER_ULPS = 1.0
+GLTF_COLLAPSE = 1e-3  # a bad triangle's shortest edge up to this fraction of the mesh's size is collapsed
 
 
 def y_up_rotation(up: Any) -> np.ndarray:
@@ -660,8 +705,12 @@ def write_gltf(path: str | os.PathLike, vertices: Any, faces: Any, *, normals: A
     vertex dropped (an edge collapse). A triangle thinner than `GLTF_SLIVER_ULPS` float32
     spacings of the largest coordinate, or turned over by the rounding (its normal against the
     given one), has its longest edge flipped with the neighbour across it when that makes two
-    sound triangles, and is dropped otherwise (on the boundary, or if a flip does not help).
-    The file thus has no duplicate vertex, no zero-area and no inverted triangle.
+    sound triangles, else its shortest edge collapsed when that is at most `GLTF_COLLAPSE` (1e-3)
+    of the mesh's size (else the triangle is dropped); a vertex that rounding moved across an
+    edge not its own (its triangles turn around it more than once) is collapsed into its nearest
+    neighbour. The file thus has no duplicate vertex, no zero-area, inverted or overlapping
+    triangle; where a needle is collapsed the surface moves by at most its short edge. Every
+    written vertex keeps its own exact attributes.
 
     **Returns:** `{"vertices", "faces", "welded", "dropped"}`: what was written and removed.
     """
@@ -685,7 +734,8 @@ def write_gltf(path: str | os.PathLike, vertices: Any, faces: Any, *, normals: A
         n0 = np.asarray(normals, dtype=np.float64) @ rot.T
         ref = n0[f0].sum(axis=1)
     keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])
-    f, ref = _flip_slivers(v32[first], f[keep], ref[keep], spacing)
+    extent = float(np.max(np.ptp(v32, axis=0))) if len(v32) else 0.0
+    f, ref = _flip_slivers(v32[first], f[keep], ref[keep], spacing, GLTF_COLLAPSE * extent)
     used = np.unique(f)
     local = np.full(len(first), -1, dtype=np.int64)
     local[used] = np.arange(len(used))
@@ -709,49 +759,97 @@ def write_gltf(path: str | os.PathLike, vertices: Any, faces: Any, *, normals: A
     return {"vertices": len(used), "faces": len(f), "welded": nv - len(first), "dropped": len(f0) - len(f)}
 
 
-def _flip_slivers(p: np.ndarray, f: np.ndarray, ref: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+def _flip_slivers(p: np.ndarray, f: np.ndarray, ref: np.ndarray, spacing: float, collapse_length: float,
+                  passes: int = 8) -> tuple[np.ndarray, np.ndarray]:
     """`(faces, reference normals)` with the bad triangles of `f` on positions `p` repaired: a
     triangle is bad when its normal is not along `ref` or its height over its longest edge is at
-    most `spacing`; its longest edge is flipped with the neighbouring triangle across it when both
-    new triangles are good, else it is dropped. Only the few bad triangles are visited."""
+    most `spacing`. Its longest edge is flipped with the neighbouring triangle across it when both
+    new triangles are good; else its shortest edge is collapsed (the second end merged into the
+    first, the triangles on that edge removed) when it is at most `collapse_length` long, and the
+    triangle is dropped when it is longer. Then a vertex whose triangles turn around it by
+    more than a full turn (a fold: rounding moved it across an edge not its own) is collapsed
+    into its nearest neighbour. Repeated while anything is left to repair (at most `passes`
+    times; bad triangles left then are dropped). Only the neighbourhoods repaired are visited."""
 
-    def good(tri: Any, r: np.ndarray) -> bool:
-        a, b, c = p[tri[0]], p[tri[1]], p[tri[2]]
-        cr = np.cross(b - a, c - a)
-        longest = max(np.linalg.norm(b - a), np.linalg.norm(c - b), np.linalg.norm(a - c))
-        return bool(cr @ r > 0) and bool(float(np.linalg.norm(cr)) > spacing * longest)
+    def is_bad(ff: np.ndarray, rr: np.ndarray) -> np.ndarray:
+        cr = np.cross(p[ff[:, 1]] - p[ff[:, 0]], p[ff[:, 2]] - p[ff[:, 0]])
+        edge = np.max(np.linalg.norm(p[ff] - p[np.roll(ff, 1, axis=1)], axis=2), axis=1)
+        return ~((np.einsum("ij,ij->i", cr, rr) > 0) & (np.linalg.norm(cr, axis=1) > spacing * edge))
 
-    cr = np.cross(p[f[:, 1]] - p[f[:, 0]], p[f[:, 2]] - p[f[:, 0]])
-    edge = np.max(np.linalg.norm(p[f] - p[np.roll(f, 1, axis=1)], axis=2), axis=1)
-    bad = np.flatnonzero(~((np.einsum("ij,ij->i", cr, ref) > 0) & (np.linalg.norm(cr, axis=1) > spacing * edge)))
-    if not len(bad):
-        return f, ref
+    def folded(ff: np.ndarray, rr: np.ndarray) -> np.ndarray:
+        unit = rr / np.maximum(np.linalg.norm(rr, axis=1), 1e-300)[:, None]
+        turn = np.zeros(len(p))
+        for k in range(3):
+            x, y = p[ff[:, (k + 1) % 3]] - p[ff[:, k]], p[ff[:, (k + 2) % 3]] - p[ff[:, k]]
+            np.add.at(turn, ff[:, k], np.arctan2(np.einsum("ij,ij->i", np.cross(x, y), unit),
+                                                 np.einsum("ij,ij->i", x, y)))
+        return np.flatnonzero(turn > 2 * np.pi + 1e-9)
+
     f, ref = f.copy(), ref.copy()
     alive = np.ones(len(f), dtype=bool)
-    near = np.flatnonzero(np.isin(f, np.unique(f[bad])).any(axis=1))
-    owner = {(int(f[i, k]), int(f[i, (k + 1) % 3])): int(i) for i in near for k in range(3)}
-    for i in bad.tolist():
-        if not alive[i] or good(f[i], ref[i]):
-            continue
-        tri = [int(x) for x in f[i]]
-        k = max(range(3), key=lambda k: float(np.linalg.norm(p[tri[(k + 1) % 3]] - p[tri[k]])))
-        b, c, a = tri[k], tri[(k + 1) % 3], tri[(k + 2) % 3]  # longest edge b -> c, apex a
-        j = owner.get((c, b))
-        d = -1
-        if j is not None and alive[j]:
-            d = next(int(x) for x in f[j] if x != b and x != c)
-        t1, t2 = [a, b, d], [a, d, c]
-        r = ref[i] + (ref[j] if j is not None else 0.0)
-        for e in ((a, b), (b, c), (c, a)):
-            owner.pop(e, None)
-        if d >= 0 and j is not None and good(t1, r) and good(t2, r):
-            for e in ((c, b), (b, d), (d, c)):
-                owner.pop(e, None)
-            f[i], f[j] = t1, t2
-            ref[i] = ref[j] = r
-            for t, fi in ((t1, i), (t2, j)):
-                for m in range(3):
-                    owner[(t[m], t[(m + 1) % 3])] = fi
-        else:
-            alive[i] = False
-    return f[alive], ref[alive]
+    owner: dict[tuple[int, int], int] = {}  # directed edge -> its triangle, near the repairs
+    faces_of: dict[int, set[int]] = {}  # vertex -> its triangles, near the repairs
+
+    def put(i: int, t: list[int]) -> None:
+        alive[i] = True
+        f[i] = t
+        for k in range(3):
+            owner[(t[k], t[(k + 1) % 3])] = i
+            faces_of.setdefault(t[k], set()).add(i)
+
+    def drop(i: int) -> None:
+        alive[i] = False
+        t = [int(x) for x in f[i]]
+        for k in range(3):
+            if owner.get((t[k], t[(k + 1) % 3])) == i:
+                del owner[(t[k], t[(k + 1) % 3])]
+            faces_of.get(t[k], set()).discard(i)
+
+    def collapse(w: int, u: int) -> None:
+        for fi in sorted(faces_of.get(w, set())):
+            t = [u if x == w else int(x) for x in f[fi]]
+            drop(fi)
+            if len(set(t)) == 3:
+                put(fi, t)
+
+    for _ in range(passes):
+        bad = np.flatnonzero(alive & is_bad(f, ref))
+        folds = folded(f[alive], ref[alive]) if not len(bad) else np.zeros(0, np.int64)
+        if not len(bad) and not len(folds):
+            break
+        touched = np.unique(np.concatenate([f[bad].ravel(), folds]))
+        near = np.flatnonzero(alive & np.isin(f, touched).any(axis=1))
+        owner.clear()
+        faces_of.clear()
+        for i in near.tolist():
+            put(i, [int(x) for x in f[i]])
+        for i in bad.tolist():
+            if not alive[i] or not is_bad(f[i:i + 1], ref[i:i + 1])[0]:
+                continue
+            tri = [int(x) for x in f[i]]
+            lengths = [float(np.linalg.norm(p[tri[(k + 1) % 3]] - p[tri[k]])) for k in range(3)]
+            k = int(np.argmax(lengths))
+            b, c, a = tri[k], tri[(k + 1) % 3], tri[(k + 2) % 3]  # longest edge b -> c, apex a
+            j = owner.get((c, b))
+            if j is not None and alive[j] and j != i:
+                d = next(int(x) for x in f[j] if x != b and x != c)
+                t1, t2 = [a, b, d], [a, d, c]
+                r = ref[i] + ref[j]
+                if d not in (a, b, c) and not is_bad(np.array([t1, t2]), np.array([r, r])).any():
+                    drop(i)
+                    drop(j)
+                    put(i, t1)
+                    put(j, t2)
+                    ref[i] = ref[j] = r
+                    continue
+            k = int(np.argmin(lengths))
+            if lengths[k] <= collapse_length:  # a needle: its short edge goes
+                collapse(tri[(k + 1) % 3], tri[k])
+            else:  # a cap on the boundary, or no sound flip: the triangle goes
+                drop(i)
+        for w in folds.tolist():
+            around = {int(x) for fi in faces_of.get(w, set()) for x in f[fi]} - {w}
+            if around:
+                collapse(w, min(around, key=lambda u: float(np.linalg.norm(p[u] - p[w]))))
+    keep = alive & ~is_bad(f, ref)
+    return f[keep], ref[keep]

@@ -402,8 +402,10 @@ def from_mitsuba(path_or_dict: Any, *, disc_segments: int = DISC_SEGMENTS, spher
     - `disc_segments`: vertices of the regular polygon (of equal area) standing in for a `disk`.
     - `sphere_segments`: segments around a tessellated `sphere` or `cylinder` (inscribed).
     - `weld`: each shape's vertices at equal positions (`0.0`, default) or within `weld` (m)
-      are merged (`ReceiverMesh.welded`; `n_welded` counts them), so a mesh split at UV seams
-      is one closed surface for the shadow engine; `None` keeps Mitsuba's vertex buffers.
+      are merged unless their normals differ by more than 45 degrees (`ReceiverMesh.welded`;
+      `n_welded` counts them), so a mesh split at UV seams is one surface while a cube keeps
+      its hard edges; `None` keeps Mitsuba's vertex buffers. The occluders are welded by
+      position (closed meshes are found closed).
 
     Shapes and emitters are taken in id order (those without an id after, in Mitsuba's order):
     area lights first, then point and directional lights. A file is loaded without Mitsuba's

@@ -83,12 +83,17 @@ def test_from_mitsuba_receivers_follow_the_same_convention(tmp_path):
 def test_weld_on_read_counts_and_closes_the_surface(tmp_path):
     box = trimesh.creation.box(extents=(1.0, 2.0, 0.5))
     js.write_mesh(tmp_path / "soup.stl", box.vertices, box.faces)  # STL: 36 corners, 8 distinct
-    got = js.read_mesh(tmp_path / "soup.stl")
-    assert len(got.vertices) == 8 and got.n_welded == 28
-    occ = got.occluder()
+    # The crease (45 degrees) keeps a cube's hard edges: each corner one vertex per face (24),
+    # the copies within a face (its two triangles) merged; the occluder is welded by position.
+    hard = js.read_mesh(tmp_path / "soup.stl")
+    assert len(hard.vertices) == 24 and hard.n_welded == 12
+    np.testing.assert_allclose(np.abs(hard.vertex_normals).max(axis=1), 1.0)  # each along an axis
+    occ = hard.occluder()
     assert occ.closed and occ.convex and len(occ.polygons) == 6
+    got = js.read_mesh(tmp_path / "soup.stl", crease=None)  # every copy merged
+    assert len(got.vertices) == 8 and got.n_welded == 28
     raw = js.read_mesh(tmp_path / "soup.stl", weld=None)
-    assert len(raw.vertices) == 36 and raw.n_welded == 0 and not raw.occluder().closed
+    assert len(raw.vertices) == 36 and raw.n_welded == 0
     # The (+, +, +) corner's normal: the normalised sum of the cross products of its triangles.
     p, n = got.receivers("vertices")
     corner = np.flatnonzero(np.all(p > 0, axis=1))
@@ -111,12 +116,13 @@ def test_weld_within_a_tolerance(tmp_path):
     f[1, 0] = 5
     r = js.ReceiverMesh(v, f)
     assert r.welded().n_welded == 0  # not exactly equal
-    w = r.welded(1e-6)
+    assert r.welded(1e-6).n_welded == 0  # A and B meet at 90 degrees: the crease keeps them apart
+    w = r.welded(1e-6, crease=None)
     assert w.n_welded == 1 and len(w.vertices) == 5
     np.testing.assert_array_equal(w.vertices[0], [0, 0, 0])  # the first (lowest index) position kept
     np.testing.assert_allclose(w.vertex_normals[0], CORNER_N0, atol=1e-9)
     with pytest.raises(ValueError, match="collapses every face"):
-        js.ReceiverMesh(CORNER_V, CORNER_F).welded(10.0)
+        js.ReceiverMesh(CORNER_V, CORNER_F).welded(10.0, crease=None)
     with pytest.raises(ValueError, match="tolerance must be a finite number"):
         r.welded(-1.0)
 
@@ -127,6 +133,10 @@ def test_weld_keeps_given_normals_apart():
     f = np.array([[0, 1, 2], [3, 5, 4]])
     n = np.array([[0, 0, 1], [0, 0, 1], [0, 0, 1], [1, 0, 0], [1, 0, 0], [1, 0, 0.0]])
     assert js.ReceiverMesh(v, f, n).welded().n_welded == 0
+    # Without given normals the crease decides: the two faces meet at 90 degrees.
+    assert js.ReceiverMesh(v, f).welded().n_welded == 0
+    assert js.ReceiverMesh(v, f).welded(crease=None).n_welded == 2
+    assert js.ReceiverMesh(v, f).welded(crease=91.0).n_welded == 2
     n2 = n.copy()
     n2[3:5] = n2[0]  # equal normals on the shared vertices: merged
     w = js.ReceiverMesh(v, f, n2).welded()
