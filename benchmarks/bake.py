@@ -5,7 +5,10 @@ Scenes: (1) `room`: a Cornell-box-like Mitsuba scene built here (`room_dict`, re
 `jaxshadow.mitsuba.from_mitsuba`): a 2 m room of six rectangles, a 0.5 m square light under the
 ceiling, two floating cubes, a table top and a sphere (10 receiving surfaces, the sphere curved);
 (2) `torus_floor`: the example scene's tilted torus (768 triangles, smooth vertex normals: a
-curved patch) over a 4 m floor (`jaxshadow.mitsuba.write_example_scene`). Each bake runs in a
+curved patch) over a 4 m floor (`jaxshadow.mitsuba.write_example_scene`); (3) `box_floor` (full
+run only, tol 1e-3): `benchmarks.illumination_mesh.box_scene` (180 boxes standing on an 8 m
+floor), baked with that benchmark's tile size and vertex budget, no grid comparison (its patch
+has a hole per box). Each bake runs in a
 fresh process: its wall time (including compilation) and its peak resident memory
 (`ru_maxrss`) are recorded, per output vertex too.
 
@@ -34,6 +37,9 @@ import sys
 
 import numpy as np
 
+# `box_floor`: illumination_mesh's box scene and settings (tile 1/32 of the floor, its vertex budget)
+BAKE_OPTIONS = {"box_floor": {"tile_size": 0.25, "max_vertices": 8_000_000}}
+GRID_SCENES = ("room", "torus_floor")  # the box floor's patch is not a parallelogram with no holes
 DESCRIPTION = "whole-scene bakes: vertices, time and memory per vertex, vertices vs uniform grids on planar surfaces"
 SAMPLES = 8  # random points per triangle for the interpolation error
 GRID_MAX = 128
@@ -76,6 +82,11 @@ def scene_of(name: str):
 
     if name == "room":
         return from_mitsuba(room_dict())[:2]
+    if name == "box_floor":
+        from benchmarks.illumination_mesh import box_scene
+
+        scene, floor = box_scene()
+        return scene, [floor]
     import tempfile
 
     return from_mitsuba(write_example_scene(tempfile.mkdtemp()))[:2]
@@ -134,7 +145,7 @@ def bake_case(name: str, tol: float) -> dict:
     scene, receivers = scene_of(name)
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     t0 = time.perf_counter()
-    b = js.bake(scene, receivers, tol)
+    b = js.bake(scene, receivers, tol, **BAKE_OPTIONS.get(name, {}))
     seconds = time.perf_counter() - t0
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     nv = int(b.vertices.shape[0])
@@ -145,7 +156,7 @@ def bake_case(name: str, tol: float) -> dict:
                                                                          if k != "seconds"}}
     # planar patches: the bake's error and the uniform grid of the same error
     planar_v, grid_v, unmatched, errs, above_free = 0, 0, 0, [], 0
-    for p in np.unique(b.patch):
+    for p in (np.unique(b.patch) if name in GRID_SCENES else []):
         tris = b.triangles[b.patch == p]
         used = np.unique(tris)
         nrm = b.normals[used[0]]
@@ -193,7 +204,7 @@ def bake_case(name: str, tol: float) -> dict:
 
 def run(quick: bool) -> dict:
     cases = [("room", 1e-2), ("torus_floor", 1e-2)] if quick else [
-        ("room", 1e-2), ("torus_floor", 1e-2), ("room", 1e-3), ("torus_floor", 1e-3)]
+        ("room", 1e-2), ("torus_floor", 1e-2), ("room", 1e-3), ("torus_floor", 1e-3), ("box_floor", 1e-3)]
     res = []
     for name, tol in cases:
         # a fresh process per bake: its peak memory is its own
@@ -222,10 +233,12 @@ def markdown(results: dict) -> str:
             continue
         grid = f"{r['grid_vertices']:,}" + (f" ({r['grid_unmatched_patches']} patches > {GRID_MAX}^2)"
                                              if r["grid_unmatched_patches"] else "")
+        ratio = f"{r['grid_ratio']:.1f}x" if r["grid_ratio"] is not None else "–"
+        if r["grid_ratio"] is None:
+            grid = "–"
         rows.append(f"| {r['scene']} | {r['tol']:g} | {r['surfaces']} | {r['vertices']:,} | {r['seconds']:.1f} | "
                     f"{1e3 * r['seconds_per_vertex']:.2f} | {r['peak_rss_bytes'] / 1e6:.0f} | "
-                    f"{r['peak_rss_per_vertex_bytes'] / 1024:.1f} | {r['planar_vertices']:,} | {grid} | "
-                    f"{r['grid_ratio']:.1f}x |")
+                    f"{r['peak_rss_per_vertex_bytes'] / 1024:.1f} | {r['planar_vertices']:,} | {grid} | {ratio} |")
     return "\n".join(rows) + "\n"
 
 

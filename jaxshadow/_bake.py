@@ -457,13 +457,14 @@ def _chunk_inputs(scene: Scene, occ: np.ndarray | None, patch: _Patch) -> tuple[
     return np.nonzero(keep & ~own)[0].astype(np.int64), mask
 
 
-def _cross_sections(faces: np.ndarray, p0: np.ndarray, normal: np.ndarray, size: float
+def _cross_sections(faces: np.ndarray, poly: np.ndarray, normal: np.ndarray, size: float
                     ) -> tuple[list[np.ndarray], int]:
     """Where occluders pass through a planar receiver: the regions of its plane inside them.
 
-    `faces (m, K, 3)` (padded) that cross the plane through `p0` (vertices strictly on both
-    sides, beyond the on-surface distance) cut it along segments; the segments' closed loops
-    bound the cross-sections of closed objects. Each region is returned as convex polygons
+    `faces (m, K, 3)` (padded) that cross the plane of the convex polygon `poly` (vertices
+    strictly on both sides, beyond the on-surface distance) cut it along segments; the
+    segments' closed loops bound the cross-sections of closed objects. Only what overlaps the
+    polygon counts (a wall crosses the plane of a cube's side far from the cube). Each region is returned as convex polygons
     lying on the plane and facing away from `normal` (as the bottom of a box standing on the
     floor does: the mesher takes faces lying on its plane for the foot of an object, a hole
     bounded by mesh edges, and by the on-surface rule they block nothing on the plane). Open
@@ -474,6 +475,7 @@ def _cross_sections(faces: np.ndarray, p0: np.ndarray, normal: np.ndarray, size:
     import shapely
     from shapely.ops import polygonize
 
+    p0 = poly[0]
     eps = ON_SURFACE * size
     h = (faces - p0) @ normal  # (m, K)
     crossing = np.nonzero(np.any(h > eps, axis=1) & np.any(h < -eps, axis=1))[0]
@@ -502,9 +504,12 @@ def _cross_sections(faces: np.ndarray, p0: np.ndarray, normal: np.ndarray, size:
                 uv.append(key)
         if len(uv) == 2:
             lines.append(shapely.LineString(uv))
-    polys = list(polygonize(lines))
-    covered = shapely.unary_union([pg.boundary for pg in polys]) if polys else None
-    n_open = sum(1 for ln in lines if covered is None or not ln.within(covered.buffer(1e-9 * size)))
+    patch = shapely.Polygon(np.stack([(poly - p0) @ e1, (poly - p0) @ e2], axis=1))
+    overlap = 1e-9 * size
+    polys = [pg for pg in polygonize(lines) if pg.intersection(patch).area > overlap * overlap]
+    covered = shapely.unary_union([pg.boundary for pg in polys]).buffer(overlap) if polys else None
+    n_open = sum(1 for ln in lines if ln.intersection(patch).length > overlap
+                 and (covered is None or not ln.within(covered)))
     out = []
     for pg in polys:
         parts = [pg] if _convex_2d(np.asarray(pg.exterior.coords)[:-1]) and not pg.interiors else \
@@ -605,6 +610,7 @@ def _planar_chunk(scene: Scene, mask: np.ndarray, patch: _Patch, pos: np.ndarray
         unrefined = int(m.stats.get("unrefined_min_edge", 0))
         stopped = int(m.stats.get("tiles_stopped_by_budget", 0))
         error = float(m.max_error_estimate)
+        del m  # its builders (every evaluated point, kept for `update`) before the vertex values
     else:  # no light reaches it: zero everywhere, its corners suffice
         v = poly.copy()
         tris = np.array([[0, k, k + 1] for k in range(1, poly.shape[0] - 1)], np.int64)
@@ -799,7 +805,7 @@ def _chunk(scene: Scene, patch: _Patch, pos: np.ndarray, settings: dict[str, Any
         sections, n_open = [], 0
         if scene.occluders is not None and occ_idx.size and mask.any():
             occ = np.asarray(scene.occluders, np.float64)[occ_idx]
-            sections, n_open = _cross_sections(occ, poly[0], normal, max(float(np.abs(occ).max()),
+            sections, n_open = _cross_sections(occ, poly, normal, max(float(np.abs(occ).max()),
                                                                          float(np.abs(poly).max())))
         options = dict(settings["planar"])
         if n_open:  # a value jump along a line, no hole to cut: elements stop at PIERCED_MIN_EDGE
