@@ -35,7 +35,7 @@ void build_silhouette_tree(const Occluders<T>& occ, const std::vector<int32_t>& 
   st = SilhouetteTree();
   const int64_t M = occ.M, Ko = occ.Ko;
   if (M < kSilhouetteMinFaces || Ko > 64 || twin.size() != size_t(M * Ko)) return;
-  st.fn.assign(size_t(9 * M), 0.0);
+  st.fn.assign(kFnStride * size_t(M), 0.0);
   for (int64_t f = 0; f < M; f++) {
     V3<T> o = occ.vert(f, 0), n{0, 0, 0};
     for (int64_t i = 0; i < Ko; i++) {
@@ -46,9 +46,10 @@ void build_silhouette_tree(const Occluders<T>& occ, const std::vector<int32_t>& 
     }
     const double nn = double(norm(n));
     if (!(nn > 0)) return;  // a degenerate face: the face path
-    double* q = st.fn.data() + 9 * f;
+    double* q = st.fn.data() + kFnStride * size_t(f);
     q[0] = n.x, q[1] = n.y, q[2] = n.z, q[3] = o.x, q[4] = o.y, q[5] = o.z;
     q[6] = n.x / nn, q[7] = n.y / nn, q[8] = n.z / nn;
+    q[9] = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2]);  // as sil_side would compute it
   }
   for (int64_t f = 0; f < M; f++)
     for (int64_t i = 0; i < Ko; i++) {
@@ -89,7 +90,7 @@ void build_silhouette_tree(const Occluders<T>& occ, const std::vector<int32_t>& 
           nd.box[3 + d] = std::max(nd.box[3 + d], c[d]);
         }
       }
-      for (int d = 0; d < 3; d++) ax[d] += st.fn[9 * size_t(f) + 6 + d];
+      for (int d = 0; d < 3; d++) ax[d] += st.fn[kFnStride * size_t(f) + 6 + d];
     };
     for (int32_t k = nd.start; k < nd.start + nd.count; k++) {
       const SEdge& e = st.edges[order[k]];
@@ -104,7 +105,7 @@ void build_silhouette_tree(const Occluders<T>& occ, const std::vector<int32_t>& 
     for (int d = 0; d < 3; d++) nd.axis[d] = ax[d] / an;
     double cmin = 1;
     auto cone = [&](int32_t f) {
-      const double* u = st.fn.data() + 9 * size_t(f) + 6;
+      const double* u = st.fn.data() + kFnStride * size_t(f) + 6;
       cmin = std::min(cmin, u[0] * nd.axis[0] + u[1] * nd.axis[1] + u[2] * nd.axis[2]);
     };
     for (int32_t k = nd.start; k < nd.start + nd.count; k++) {
@@ -185,10 +186,10 @@ void silhouette_heights(PolyCall<T>& call) {
 // scene's largest coordinate, at least face_side's own bound) it is 0 too: the face path then
 // applies the on-surface rule.
 inline int sil_side(const SilhouetteTree& st, int32_t f, const double* p) {
-  const double* q = st.fn.data() + 9 * size_t(f);
+  const double* q = st.fn.data() + kFnStride * size_t(f);
   const double r0 = q[3] - p[0], r1 = q[4] - p[1], r2 = q[5] - p[2];
   const double h = q[0] * r0 + q[1] * r1 + q[2] * r2;
-  const double nn = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2]);
+  const double nn = q[9];
   const double S = std::max(st.scale, std::max(std::fabs(p[0]), std::max(std::fabs(p[1]), std::fabs(p[2]))));
   const double m = std::max(1e4 * 2.220446049250313e-16 * (std::fabs(r0) + std::fabs(r1) + std::fabs(r2) + S),
                             st.f32[size_t(f)] ? 2 * kOnSurface * S : 0.0) * nn;
@@ -198,15 +199,18 @@ inline int sil_side(const SilhouetteTree& st, int32_t f, const double* p) {
 // +1 (-1): every face of the node faces p with side +1 (-1) by a clear margin; 0: not known.
 inline int node_side(const SNode& nd, const double* p, double margin) {
   if (!(nd.cosa > 0)) return 0;
-  double amin = std::numeric_limits<double>::infinity(), amax = -amin, perp = 0;
+  double amin = std::numeric_limits<double>::infinity(), amax = -amin, perp2 = 0;
   for (int c = 0; c < 8; c++) {
     const double d[3] = {p[0] - nd.box[(c & 1) ? 3 : 0], p[1] - nd.box[(c & 2) ? 4 : 1], p[2] - nd.box[(c & 4) ? 5 : 2]};
     const double a = d[0] * nd.axis[0] + d[1] * nd.axis[1] + d[2] * nd.axis[2];
     const double e[3] = {d[0] - a * nd.axis[0], d[1] - a * nd.axis[1], d[2] - a * nd.axis[2]};
     amin = std::min(amin, a);
     amax = std::max(amax, a);
-    perp = std::max(perp, std::sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2]));
+    perp2 = std::max(perp2, e[0] * e[0] + e[1] * e[1] + e[2] * e[2]);
   }
+  // The largest |e|: sqrt is correctly rounded, hence monotone, so the root of the largest
+  // square is the largest root.
+  const double perp = std::sqrt(perp2);
   // n . d with n within the cone and d = p - v over the box: n . d >= a cos - |d_perp| sin.
   // side +1 <=> N . (v - p) < 0 <=> n . d > 0.
   if (amin * nd.cosa - perp * nd.sina > margin) return 1;
@@ -230,7 +234,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   for (int i = 0; i < neh; i++) {
     SSeg<T> s;
     s.a = eh[i].a, s.b = eh[i].b, s.own = eh[i].own, s.own_ref = eh[i].own_ref, s.ca = eh[i].ca, s.cb = eh[i].cb;
-    s.w = 0, s.va = s.vb = -1, s.on_a = s.on_b = -1;
+    s.w = 0, s.va = s.vb = -1, s.on_a = s.on_b = -1, s.own_n = norm(s.own), s.q0s = 0;
     segs.push_back(s);
   }
   // Contour edges in the pyramid: the hierarchy walked with the pyramid's half-spaces and the
@@ -260,6 +264,8 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     return false;
   };
   const double smargin = 4 * kOnSurface * scale;  // beyond the on-surface distance (sil_side)
+  T cone_n[66];
+  for (int k = 0; k < np0 && k < 66; k++) cone_n[k] = norm(cone[k]);
   int32_t stack[128];
   int sp = 0;
   stack[sp++] = 0;
@@ -292,7 +298,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       if (!cyrus_beck(p, a3, b3, cone, np0, own, t0, t1, i0, i1)) continue;
       const PlaneRef oref = through(e.ra, e.rb);
       SSeg<T> s;
-      s.own = own, s.own_ref = oref, s.w = W, s.va = e.ra, s.vb = e.rb, s.x3a = a3, s.x3b = b3;
+      s.own = own, s.own_n = norm(own), s.q0s = 0, s.own_ref = oref, s.w = W, s.va = e.ra, s.vb = e.rb, s.x3a = a3, s.x3b = b3;
       if (t0 > 0) {
         s.a = crossing_point(p, cross(cone[i0], own), ne, hp);
         s.ca = code_planes(prefs[i0], oref);
@@ -315,7 +321,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       for (int k = 0; k < np0; k++) {  // an unclipped end on E_h's boundary: too close to call
         if (!nonzero(cone[k])) continue;
         const V3<T> ra = s.a - p, rb = s.b - p;
-        const T cn1 = norm(cone[k]);
+        const T cn1 = cone_n[k];
         if ((s.on_a < 0 && !(std::fabs(dot(ra, cone[k])) > tol * cn1 * (std::fabs(ra.x) + std::fabs(ra.y) + std::fabs(ra.z)))) ||
             (s.on_b < 0 && !(std::fabs(dot(rb, cone[k])) > tol * cn1 * (std::fabs(rb.x) + std::fabs(rb.y) + std::fabs(rb.z)))))
           return kFallback;
@@ -337,9 +343,9 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   const int ns = int(segs.size());
   // A clear sign of `x` against the bound `m` (0: too close to call).
   auto sgn = [](double x, double m) { return x > m ? 1 : (x < -m ? -1 : 0); };
-  auto side_of = [&](V3<T> x, const V3<T>& pl) {  // of a point in the emitter plane
+  auto side_of = [&](V3<T> x, const SSeg<T>& s) {  // of a point in the emitter plane, against s.own
     const V3<T> r = x - p;
-    return sgn(dot(r, pl), tol * norm(pl) * (std::fabs(r.x) + std::fabs(r.y) + std::fabs(r.z)));
+    return sgn(dot(r, s.own), tol * s.own_n * (std::fabs(r.x) + std::fabs(r.y) + std::fabs(r.z)));
   };
   // Reference points inside E_h: its centroid, then points towards its corners.
   V3<T> centre{0, 0, 0};
@@ -405,16 +411,17 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   for (int attempt = 0; attempt <= neh && c0 < 0; attempt++) {
     q0 = attempt == 0 ? centre : centre + 0.37 * (eh[attempt - 1].a - centre);
     bool clear = true;
-    for (int i = neh; i < ns && clear; i++) clear = side_of(q0, segs[i].own) != 0;
+    for (int i = neh; i < ns && clear; i++) clear = side_of(q0, segs[i]) != 0;
     if (clear) c0 = layers(q0);
   }
   if (c0 < 0) return kFallback;
+  for (int i = 0; i < ns; i++) segs[size_t(i)].q0s = side_of(q0, segs[size_t(i)]);
   const int kNone = std::numeric_limits<int>::min();
   // The jump of C along the path from -> m (pqm = cross(from - p, m - p), pn its norm) across
   // piece s: 0 when they do not cross, +-W when they do, kNone when a crossing is too close to
   // call.
   auto jump = [&](const SSeg<T>& s, V3<T> from, V3<T> m, V3<T> pqm, double pn) -> int {
-    const int sq = side_of(from, s.own), sm = side_of(m, s.own);
+    const int sq = side_of(from, s), sm = side_of(m, s);
     if (sq == 0) return kNone;
     if (sm == sq) return 0;
     if (sm == 0) return kNone;
@@ -638,7 +645,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         if (w.gcov[size_t(cell)] != kNone) {
           const SSeg<T>& s = segs[size_t(skip)];
           const V3<T> r = w.gref[size_t(cell)];
-          const int rs = side_of(r, s.own), qs = side_of(q0, s.own);
+          const int rs = side_of(r, s), qs = s.q0s;
           if (rs != 0 && qs != 0) {
             const int c = cross_cells(r, w.gcov[size_t(cell)], m, skip, cell, -1);
             if (c != kNone) return rs == qs ? c : (qs > 0 ? c + s.w : c - s.w);
@@ -647,6 +654,38 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       }
     }
     return coverage(m, skip);
+  };
+  // C at a point m of E_h's boundary (inside E_h's side of every contour piece's plane test):
+  // from the reference point of m's cell when the cell holds pieces, else of the nearest cell of
+  // its row that does (the cells between hold none, and the path lies in E_h, convex, and in the
+  // row); the pieces that can cross that path are the ones registered in that cell.
+  auto coverage_eh = [&](V3<T> m) -> int {
+    if (G) {
+      double um, vm;
+      uv(m, um, vm);
+      if (um > umin - gpad && um < umin + G * du + gpad && vm > vmin - gpad && vm < vmin + G * dv + gpad) {
+        const int iy = cell_of(vm, vmin, dv), ix = cell_of(um, umin, du);
+        auto holds = [&](int cell) { return gs[size_t(cell + 1)] > gs[size_t(cell)]; };
+        int from = -1;
+        if (holds(iy * G + ix)) {
+          from = iy * G + ix;
+        } else {
+          int best = G + 1;
+          for (int dir = -1; dir <= 1; dir += 2) {
+            int k = ix + dir;
+            while (k >= 0 && k < G && !holds(iy * G + k)) k += dir;
+            if (k < 0 || k >= G || w.gcov[size_t(iy * G + k)] == kNone || std::abs(k - ix) >= best) continue;
+            best = std::abs(k - ix);
+            from = iy * G + k;
+          }
+        }
+        if (from >= 0 && w.gcov[size_t(from)] != kNone) {
+          const int c = cross_cells(w.gref[size_t(from)], w.gcov[size_t(from)], m, -1, from, -1);
+          if (c != kNone) return c;
+        }
+      }
+    }
+    return coverage(m, -1);
   };
   // Pieces: every segment cut where another crosses it.
   w.runs.clear();
@@ -707,7 +746,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         const bool at_b = o.on_b >= 0 && o.on_b == pi;
         if (!at_a && !at_b) continue;
         const double g0 = dot(ap, o.own), g1 = dot(d, o.own);
-        if (!(std::fabs(g1) > tol * norm(o.own) * apn)) return kFallback;
+        if (!(std::fabs(g1) > tol * o.own_n * apn)) return kFallback;
         const double t = -g0 / g1;
         if (!(t >= -1e-9 && t <= 1 + 1e-9)) return kFallback;
         ts.push_back(std::min(1.0, std::max(0.0, t)));
@@ -721,12 +760,12 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         const T* bj = bx.data() + 6 * j;
         if (bi[3] < bj[0] || bj[3] < bi[0] || bi[4] < bj[1] || bj[4] < bi[1] || bi[5] < bj[2] || bj[5] < bi[2]) continue;
       }
-      const double on = norm(o.own) * apn;
+      const double on = o.own_n * apn;
       const double g0 = dot(ap, o.own), g1 = dot(d, o.own);
       const int s0 = sgn(g0, tol * on), s1 = sgn(g0 + g1, tol * on);
       if (s0 == s1 && s0 != 0) continue;
       if (s0 == 0 || s1 == 0) return kFallback;
-      const int ca = side_of(o.a, s.own), cb = side_of(o.b, s.own);
+      const int ca = side_of(o.a, s), cb = side_of(o.b, s);
       if (ca == cb && ca != 0) continue;
       if (ca == 0 || cb == 0) return kFallback;
       ts.push_back(-g0 / g1);
@@ -757,7 +796,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       if (!(tb > ta)) continue;
       const V3<T> m = s.a + (0.5 * (ta + tb)) * d;
       if (c == kNone || k == last) {
-        const int full = i < neh ? coverage(m, -1) : coverage_at(m, i);
+        const int full = i < neh ? coverage_eh(m) : coverage_at(m, i);
         if (full == kNone || (c != kNone && full != c)) return kFallback;
         c = full;
       }
@@ -768,7 +807,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         eh_all = eh_all && c == 0;
         dir = c == 0 ? 1 : 0;
       } else {
-        const int q0side = side_of(q0, s.own);
+        const int q0side = s.q0s;
         if (q0side == 0) return kFallback;
         const int cpos = q0side > 0 ? c : c + s.w, cneg = q0side > 0 ? c - s.w : c;
         if (cpos < 0 || cneg < 0) return kFallback;

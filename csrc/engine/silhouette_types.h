@@ -13,6 +13,7 @@ constexpr int32_t kFallback = -2;
 // and every path from q0 is as fast), and the grid's largest side in cells.
 constexpr int kSilGridMin = 32;
 constexpr int kSilGridMax = 128;
+constexpr size_t kFnStride = 10;  // doubles per face in SilhouetteTree::fn
 
 struct SEdge {
   int32_t ra, rb;  // vertex refs (K + f * Ko + i), the edge running ra -> rb in face f
@@ -30,7 +31,7 @@ struct SNode {
 struct SilhouetteTree {
   std::vector<SEdge> edges;
   std::vector<SNode> nodes;
-  std::vector<double> fn;  // per face: Newell normal (3), first vertex (3), unit normal (3)
+  std::vector<double> fn;  // per face (kFnStride): Newell normal (3), first vertex (3), unit normal (3), |Newell normal|
   double scale = 0;           // largest coordinate magnitude
   std::vector<uint8_t> f32;   // per face: every coordinate a float32 value (the on-surface rule)
   bool ok = false;
@@ -40,6 +41,8 @@ template <class T>
 struct SSeg {
   V3<T> a, b;  // in the emitter plane (clipped to E_h)
   V3<T> own;   // edge_plane(p, ., .) of the edge, canonical direction
+  T own_n;     // norm(own)
+  int q0s;     // side_of(q0, own) once q0 is chosen
   PlaneRef own_ref;
   Code ca, cb;
   int32_t w;            // coverage jump across it (positive side minus negative side); 0: an E_h edge
