@@ -79,6 +79,78 @@ def _process_first_calls(n_occ):
     return {"cold_process_first_call_s": out[0], "warm_cache_process_first_call_s": out[1]}
 
 
+def _joint_child(cache_dir: str = "") -> None:
+    """In a fresh process: `inverse.fit_light_and_material` (the demo's quad light 30 % of the
+    scene away, 40 painted targets, one box occluder) on two target sets of the same shapes
+    (scene seeds 0 and 1): per call its wall time, the seconds JAX spent compiling (XLA backend
+    compile and lowering, `jax.monitoring`) and the seconds inside `joint_std_errors`; printed
+    as JSON. The second call shows what the first one's compiled programs save. `cache_dir`:
+    JAX's persistent compilation cache there (`jaxshadow.cli.enable_compile_cache`; "" none)."""
+    from benchmarks.fit_lights import _timing
+    from inverse import _joint
+
+    if cache_dir:
+        from jaxshadow.cli import enable_compile_cache
+
+        enable_compile_cache(cache_dir, min_compile_s=0.0)
+
+    timing = _timing()
+    inside = {"s": 0.0}
+    plain = _joint.joint_std_errors
+
+    def timed(*args, **kwargs):
+        t0 = time.perf_counter()
+        out = plain(*args, **kwargs)
+        inside["s"] += time.perf_counter() - t0
+        return out
+
+    _joint.joint_std_errors = timed
+    calls = []
+    for seed in (0, 1):
+        cfg = demo_configuration(occluders=True, n_points=40, seed=seed)
+        col = shade(cfg.scene, cfg.material, jnp.asarray(cfg.points), jnp.asarray(cfg.normals),
+                    jnp.asarray(np.broadcast_to(cfg.eye, cfg.points.shape)))
+        tg = inverse.PaintedTargets(cfg.points, cfg.normals, np.asarray(col), cfg.eye)
+        guess = _material_guess(cfg.material)
+        c0, s0 = timing["compile_s"], inside["s"]
+        t0 = time.perf_counter()
+        fit = inverse.fit_light_and_material(cfg.start_scene, tg, guess)
+        wall = time.perf_counter() - t0
+        err = pose_errors(np.asarray(fit.scene.lights[0].vertices), np.asarray(cfg.scene.lights[0].vertices))
+        calls.append({"fit_s": wall, "compile_s": timing["compile_s"] - c0, "std_errors_s": inside["s"] - s0,
+                      "position_err_m": err["position"]})
+    print(json.dumps({"calls": calls, "load": os.getloadavg()[0]}))
+
+
+def _material_guess(material):
+    """The starting material of the joint fit: the true exponent, other coefficients off."""
+    import jaxshadow as js
+
+    return js.Material(ka=0.2, kd=0.5, ks=0.2, exponent=float(material.exponent))
+
+
+def _joint_process(cache_dir: str = "") -> dict:
+    """`_joint_child` in a fresh process (`cache_dir`: the persistent compilation cache)."""
+    import subprocess
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    r = subprocess.run([sys.executable, "-m", "benchmarks.inverse_speed", "joint", cache_dir], capture_output=True,
+                       text=True, check=True, cwd=root)
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def joint_study() -> dict:
+    """`_joint_child` in fresh processes: without the persistent compilation cache, then twice
+    with one (filled by the first, reused by the second)."""
+    import tempfile
+
+    out = {"no cache": _joint_process()}
+    with tempfile.TemporaryDirectory() as d:
+        out["cache filled"] = _joint_process(d)
+        out["cache reused"] = _joint_process(d)
+    return out
+
+
 def run(quick: bool) -> dict:
     jax.config.update("jax_enable_x64", True)
     from inverse._lm import FIT_COMPILER_OPTIONS
@@ -128,6 +200,7 @@ def run(quick: bool) -> dict:
         first, med, runs = _timed(lambda kw=kw: inverse.fit_material(mcfg.scene, mt, **kw).material.kd, repeats)
         results[key] = {"first_call_s": first, "compile_s": first - med, "solve_s": med, "runs_s": runs}
     results["targets_s"] = {"compile": 5.0, "solve": 0.2, "starts_64": 2.0}
+    results["joint"] = joint_study()
     return results
 
 
@@ -171,6 +244,14 @@ def _markdown(results):
         if key in results:
             r = results[key]
             lines.append(f"| {label} | | | {r['compile_s']:.1f} | {1e3 * r['solve_s']:.0f} | | | |")
+    if "joint" in results:
+        lines += ["", "`inverse.fit_light_and_material` (demo quad light 30 % away, 40 targets, one occluder) in a fresh "
+                  "process, two target sets of the same shapes; seconds:", "",
+                  "| process | call | fit | of which compiling | of which `joint_std_errors` |", "|---|---:|---:|---:|---:|"]
+        for label, r in results["joint"].items():
+            for n, c in enumerate(r["calls"], 1):
+                lines.append(f"| {label} (load {r['load']:.1f}) | {n} | {c['fit_s']:.1f} | {c['compile_s']:.1f} | "
+                             f"{c['std_errors_s']:.2f} |")
     lines.append("")
     for key, r in results["light"].items():
         if "cold_process_first_call_s" in r:
@@ -182,6 +263,10 @@ def _markdown(results):
 
 
 if __name__ == "__main__":
-    # A fresh process's first call, for `_process_first_calls`: N_OCCLUDERS CACHE_DIR.
+    # A fresh process's first call, for `_process_first_calls`: N_OCCLUDERS CACHE_DIR; or
+    # `joint` for `_joint_process`.
     jax.config.update("jax_enable_x64", True)
-    _child(int(sys.argv[1]), sys.argv[2])
+    if sys.argv[1] == "joint":
+        _joint_child(sys.argv[2] if len(sys.argv) > 2 else "")
+    else:
+        _child(int(sys.argv[1]), sys.argv[2])

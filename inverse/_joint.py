@@ -5,6 +5,7 @@ standard errors of both halves.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from typing import Any
 
@@ -15,12 +16,15 @@ from jaxtyping import Array
 
 import jaxshadow as js
 
-from ._forward import SpecularFn, shade
+from ._forward import SpecularFn, shade_culled
 from ._identifiability import identifiability
 from ._lights import fit_light
+from ._lm import fit_jit
 from ._material import fit_material
+from ._multistart import culling_capacity_for_starts
 from ._parametrisation import LightParametrisation, with_light
 from ._reports import JointFit
+from ._residuals import LightProblem, pinned
 from ._targets import PaintedTargets
 
 
@@ -34,6 +38,11 @@ def joint_std_errors(param: LightParametrisation, theta: Any, scene: js.Scene, m
     $\hat\sigma^2 (J^\top J)^{-1}$ with $\hat\sigma^2 = |r|^2 / (m - p)$ (Gauss-Markov; a
     linearisation at the optimum). Coefficients outside `free_k` (a `(3, 3)` bool array, rows
     `ka, kd, ks`: False at an active bound, or for $k_s$ of a diffuse fit) are held fixed.
+    `theta`: `(P,)` the light's parameters (`param.size` first entries used); `targets`: N of
+    them. The Jacobian is one compiled program per problem structure (light kind, N, the
+    occluders' count, the shadow capacity rounded up to a multiple of 8), reused by later
+    calls with other values (scene, targets, material); the shadow engine at a capacity, every
+    receiver against every occluder when some receiver needs more.
 
     **Returns:** name -> standard error: `"x", "y", "z"` (or `"a", "b"` on a plane) in m,
     rotations in rad, log sizes, `"ka[r]"` ... `"ks[b]"` and `"n"` (the exponent itself,
@@ -64,24 +73,22 @@ def joint_std_errors(param: LightParametrisation, theta: Any, scene: js.Scene, m
     free = np.ones((3, 3), bool) if free_k is None else np.asarray(free_k, bool)
     if not with_spec:
         free[2] = False
-    k0 = np.stack([np.asarray(material.ka, np.float64), np.asarray(material.kd, np.float64),
-                   np.asarray(material.ks, np.float64)])
+    k0 = np.stack([np.broadcast_to(np.asarray(getattr(material, f), np.float64), (3,)) for f in ("ka", "kd", "ks")])
     idx = np.flatnonzero(free.reshape(-1))
     fit_n = bool(fit_exponent and with_spec)
     n0 = float(material.exponent)
-    phi0 = np.concatenate([np.asarray(theta, np.float64)[:P], k0.reshape(-1)[idx], [np.log(n0)] if fit_n else []])
-
-    def resid(phi: Array) -> Array:
-        k = jnp.asarray(k0, dt).reshape(-1).at[jnp.asarray(idx)].set(phi[P:P + len(idx)]).reshape(3, 3)
-        n = jnp.exp(phi[-1]) if fit_n else jnp.asarray(n0, dt)
-        sc = with_light(scene, param.light_index, param.build(phi[:P]))
-        m = js.Material(ka=k[0], kd=k[1], ks=k[2], exponent=n)
-        model = shade(sc, m, t.points, t.normals, t.eye, specular, with_spec)
-        return (jnp.sqrt(t.weights) * (model - t.colours)).reshape(-1)
-
-    phi = jnp.asarray(phi0, dt)
-    r, J = jax.jit(lambda f: (resid(f), jax.jacfwd(resid)(f)))(phi)
-    r, J = np.asarray(r, np.float64), np.asarray(J, np.float64)
+    theta = np.asarray(theta, np.float64)[:P]
+    # Every coefficient and log n in the program (one shape for every `free_k` and `fit_exponent`);
+    # the held ones' columns are dropped below.
+    phi = jnp.asarray(np.concatenate([theta, k0.reshape(-1), [np.log(n0)]]), dt)
+    cap = culling_capacity_for_starts(param, scene, t, jnp.asarray(theta[None], dt))
+    problem = LightProblem(param, scene, material, t, specular, with_spec,
+                           capacity=None if cap is None else 8 * -(-cap // 8))  # shared by nearby scenes
+    r, J, over = _joint_jacobian(problem, phi)
+    if bool(over):  # some receiver needs more boundary edges: every receiver against every occluder
+        r, J, _ = _joint_jacobian(dataclasses.replace(problem, capacity=None), phi)
+    keep = np.r_[np.arange(P), P + idx, [P + 9] if fit_n else []].astype(int)
+    r, J = np.asarray(r, np.float64), np.asarray(J, np.float64)[:, keep]
     m_eff = int(np.count_nonzero(np.asarray(t.weights) > 0))
     se_all = identifiability(J, float(r @ r), m_eff, cut=1e-10).std_errors
     names = [*param.names, *[f"{'ka kd ks'.split()[i // 3]}[{'rgb'[i % 3]}]" for i in idx]] + (["log_n"] if fit_n else [])
@@ -94,6 +101,28 @@ def joint_std_errors(param: LightParametrisation, theta: Any, scene: js.Scene, m
         else:
             out[nm] = float(se)
     return out
+
+
+def _joint_residuals(phi: Array, problem: LightProblem) -> tuple[Array, Array]:
+    r"""`(r (3N,), overflow)`: the weighted residual at `phi` = the light's parameters, the nine
+    coefficients $k_a, k_d, k_s$ (rows, RGB) and $\log n$, at the problem's shadow capacity."""
+    P = problem.param.size
+    t = problem.targets
+    k = phi[P:P + 9].reshape(3, 3)
+    scene = with_light(problem.scene, problem.param.light_index, pinned(problem.param.build(phi[:P])))
+    m = js.Material(ka=k[0], kd=k[1], ks=k[2], exponent=jnp.exp(phi[P + 9]))
+    model, over = shade_culled(scene, m, t.points, t.normals, t.eye, problem.specular, problem.with_specular,
+                               problem.capacity)
+    return (jnp.sqrt(t.weights) * (model - t.colours)).reshape(-1), over
+
+
+@fit_jit
+def _joint_jacobian(problem: LightProblem, phi: Array) -> tuple[Array, Array, Array]:
+    """`(r, dr/dphi, overflow)` of `_joint_residuals`: one program per problem structure (the
+    parametrisation's kind, the number of targets, occluders and capacity), whatever the scene's,
+    targets' and material's values: a module-level function, so later fits reuse it."""
+    r, over = _joint_residuals(phi, problem)
+    return r, jax.jacfwd(lambda x: _joint_residuals(x, problem)[0])(phi), over
 
 
 def fit_light_and_material(
