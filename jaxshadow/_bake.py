@@ -408,6 +408,30 @@ def _dark(light: Any, poly: np.ndarray, normal: np.ndarray, size: float) -> bool
     return False
 
 
+def _own_faces(occ: np.ndarray, poly: np.ndarray, normal: np.ndarray, size: float) -> np.ndarray:
+    """`(m,)` mask of the padded faces `occ` lying on the plane of `poly` (within `ON_SURFACE`
+    of `size`) and facing the way of `normal`: the receiver's own surface."""
+    on = np.all(np.abs((occ - poly[0]) @ normal) <= ON_SURFACE * size, axis=1)
+    nf = np.sum(np.cross(occ, np.roll(occ, -1, axis=1)), axis=1)
+    return on & (nf @ normal > 0)
+
+
+def _without_own_faces(scene: Scene, poly: np.ndarray, normal: np.ndarray) -> Scene:
+    """`scene` without the occluder faces lying on the planar receiver `poly` and facing its way
+    (`_own_faces`): by the on-surface rule they block nothing on it, but the mesher would take
+    them for the foot of an object standing on it (a hole). Faces on it facing the other way
+    (the bottom of a box on the floor) stay: they are such feet."""
+    if scene.occluders is None:
+        return scene
+    occ = np.asarray(scene.occluders, np.float64)
+    size = max(float(np.abs(poly).max()), float(np.abs(occ).max())) + 1.0
+    own = _own_faces(occ, np.asarray(poly, np.float64), normal, size)
+    if not own.any():
+        return scene
+    keep = [_unpad(o) for o in occ[~own]]
+    return Scene(scene.lights, occluders=keep or None, ambient=scene.ambient)
+
+
 def _chunk_inputs(scene: Scene, occ: np.ndarray | None, patch: _Patch) -> tuple[np.ndarray, np.ndarray]:
     """What a patch's chunk sees of the scene: `(occluder indices (k,), light mask (L,))`.
 
@@ -436,10 +460,7 @@ def _chunk_inputs(scene: Scene, occ: np.ndarray | None, patch: _Patch) -> tuple[
         return np.zeros(0, np.int64), mask
     keep = np.zeros(occ.shape[0], bool)
     if planar:
-        normal = patch.data["normal"]
-        on = np.all(np.abs((occ - pts[0]) @ normal) <= ON_SURFACE * size, axis=1)
-        nf = np.sum(np.cross(occ, np.roll(occ, -1, axis=1)), axis=1)
-        own = on & (nf @ normal > 0)
+        own = _own_faces(occ, pts, patch.data["normal"], size)
     else:
         own = np.zeros(occ.shape[0], bool)
     reach = 4.0 * size
