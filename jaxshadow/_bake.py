@@ -99,12 +99,13 @@ class BakedScene:
         return (f"BakedScene({self.vertices.shape[0]} vertices, {self.triangles.shape[0]} triangles, "
                 f"{len(self.surface_names)} surfaces, {self.irradiance_per_light.shape[1]} lights, tol={self.tol:g})")
 
-    def save(self, path: str | os.PathLike) -> None:
-        """Write the bake to `path` (atomically): `.glb` (binary glTF: vertex colours `COLOR_0`,
+    def save(self, path: str | os.PathLike, up: Any = "z") -> None:
+        """Write the bake to `path` (atomically): `.glb` (binary glTF, y-up: the scene's `up`
+        axis, `"z"` for jaxshadow scenes, turned to +y; vertex colours `COLOR_0`,
         `NORMAL`, float32 irradiance as the custom attributes `_IRRADIANCE` and `_IRRADIANCE_<l>`
         per light) or `.ply` (binary: vertex colours, float64 `irradiance_r/g/b` and
         `irradiance_<l>_r/g/b` per light)."""
-        write_bake(path, self)
+        write_bake(path, self, up)
 
 
 # --------------------------------------------------------------------------------------
@@ -1249,11 +1250,14 @@ def bake(scene: Scene, receivers: Any = None, tol: float = 1e-3, *, lights: Sequ
 BAKE_FORMATS = (".glb", ".ply")
 
 
-def write_bake(path: str | os.PathLike, baked: BakedScene) -> None:
-    """Write a `BakedScene` as `.glb` or `.ply` (see `BakedScene.save`), atomically."""
+def write_bake(path: str | os.PathLike, baked: BakedScene, up: Any = "z") -> None:
+    """Write a `BakedScene` as `.glb` or `.ply` (see `BakedScene.save`), atomically; `.glb`
+    y-up (the scene's `up` axis turned to +y, `jaxshadow.write_gltf`'s rotation). Vertices are
+    written as they are: copies of a point on two surfaces (a crease) keep their own normals
+    and values, so no welding."""
     from ._files import atomic_write, atomic_write_path
     from ._illumination_io import vertex_colours
-    from ._meshio import IRRADIANCE_PROPERTY, _trimesh
+    from ._meshio import IRRADIANCE_PROPERTY, _trimesh, y_up_rotation
 
     trimesh = _trimesh()
     path = os.fspath(path)
@@ -1273,6 +1277,9 @@ def write_bake(path: str | os.PathLike, baked: BakedScene) -> None:
         with atomic_write(path, "wb") as fh:
             fh.write(data)
         return
+    rot = y_up_rotation(up)
+    tm = trimesh.Trimesh(baked.vertices @ rot.T, baked.triangles, vertex_normals=baked.normals @ rot.T,
+                         vertex_colors=vertex_colours(baked.irradiance, baked.scale), process=False)
     tm.vertex_attributes["_IRRADIANCE"] = np.ascontiguousarray(baked.irradiance, np.float32)
     for li in range(per.shape[1]):
         tm.vertex_attributes[f"_IRRADIANCE_{li}"] = np.ascontiguousarray(per[:, li], np.float32)

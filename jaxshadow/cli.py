@@ -580,7 +580,7 @@ def cmd_bake(args: argparse.Namespace) -> int:
                     progress=progress)
     if bar is not None:
         bar.close()
-    baked.save(args.output)
+    baked.save(args.output, up=scene_up(args.scene) if args.output.lower().endswith(".glb") else "z")
     if not args.keep_work:
         shutil.rmtree(work, ignore_errors=True)
     st = baked.stats

@@ -191,7 +191,10 @@ def test_glb_and_ply_carry_values_per_light(baked, tmp_path):
     b.save(tmp_path / "s.glb")
     b.save(tmp_path / "s.ply")
     g = trimesh.load(tmp_path / "s.glb", force="mesh", process=False)
-    assert g.vertices.shape == b.vertices.shape
+    # glTF is y-up: the scene's (x, y, z) is written as (x, z, -y), every vertex in its order
+    # (copies on a crease keep their own values)
+    yup = b.vertices[:, [0, 2, 1]] * np.array([1.0, 1.0, -1.0])
+    np.testing.assert_allclose(g.vertices, yup, rtol=0, atol=1e-6 * np.abs(yup).max())
     np.testing.assert_allclose(g.vertex_attributes["_IRRADIANCE_1"], b.irradiance_per_light[:, 1], rtol=1e-6)
     np.testing.assert_allclose(g.vertex_attributes["_IRRADIANCE"], b.irradiance, rtol=1e-6)
     from jaxshadow._meshio import read_ply_values
