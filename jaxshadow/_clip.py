@@ -71,7 +71,7 @@ from jaxtyping import Array, Bool, Float, Int
 from ._geometry import check_finite_leaves, horizon_clip_edges, newell_normal
 from ._linear import linear_irradiance_kernel
 from ._misc import safe_div, safe_normalize
-from ._polygon import edge_term
+from ._polygon import edge_term, form_factor_kernel
 
 # Planes through p whose unit normals are parallel within COLLINEAR_EPS * machine epsilon
 # are the same plane: their traces on the emitter plane are one line (coincident edges).
@@ -84,6 +84,10 @@ COLLINEAR_EPS = 64.0
 # Mitsuba) is planar, and a point computed on it lies in its plane, only to a few float32
 # roundings of S (`_occluder_sides`; the engine's `kOnSurface`).
 ON_SURFACE = 2.0**-18
+# The same rule for faces of other doubles: 256 double epsilons of S (points computed on such a
+# face lie in its plane to a few roundings of S, not of the face's size; the engine's
+# `kOnSurface64`).
+ON_SURFACE_64 = 2.0**-44
 # An occluder within this elevation (radians) of a receiver's horizon blocks nothing
 # (`_hugs_horizon`; geometry.h kHorizonBand).
 HORIZON_BAND = 1e-7
@@ -177,7 +181,9 @@ def _occluder_sides(p, occluders):
     its plane. Faces made of float32-rounded vertices (meshes from files, Mitsuba) are planar,
     and points computed on them lie in their planes, only to that order; a receiver on such a
     face taken as behind it by 1e-8 is shadowed by the whole face (0, or a negative contour sum
-    from its nearly degenerate projection)."""
+    from its nearly degenerate projection). For faces of other doubles the distance is
+    `ON_SURFACE_64` $S$ ($2^{-44} S$): a point computed on them lies in their plane to a few
+    double roundings of $S$ (not of the face's size, which the rounding bound above follows)."""
     rel = occluders - p[None, None, :]  # (M, Ko, 3)
     sigma = _pow2_scale(jnp.max(jnp.abs(rel), axis=(1, 2)))  # (M,)
     rel = rel * sigma[:, None, None]
@@ -194,10 +200,11 @@ def _occluder_sides(p, occluders):
     big = jnp.maximum(jnp.max(jnp.abs(occluders), axis=(1, 2)), jnp.max(jnp.abs(p)))
     no_c = jax.lax.stop_gradient(no)
     dtol = ON_SURFACE * jax.lax.stop_gradient(big) * sigma * jnp.sqrt(jnp.sum(no_c * no_c, axis=-1))
-    # Only for faces of float32 values (files, Mitsuba): others are planar to their own rounding.
+    # ON_SURFACE for faces of float32 values (files, Mitsuba); others are planar to their own
+    # rounding, and take ON_SURFACE_64.
     occ_c = jax.lax.stop_gradient(occluders)
     f32 = jnp.all(occ_c.astype(jnp.float32).astype(occ_c.dtype) == occ_c, axis=(1, 2))
-    dtol = jnp.where(f32, dtol, 0.0)
+    dtol = jnp.where(f32, dtol, dtol * (ON_SURFACE_64 / ON_SURFACE))
     active = jnp.all((-s[:, None] * h > bound) & (-s[:, None] * h > dtol[:, None]), axis=1)
     # Planes through p and the edges, from the same scaled differences (a power of two times
     # `_edge_planes(p, occluders)`); zero for padded (repeated) vertices.
@@ -605,8 +612,44 @@ def masked_contour_form_factor(p: Array, n: Array, verts: Array, starts: Array, 
     # multiply-add can leave cross(A, A) at 1e-18 instead of 0).
     used = jnp.any(starts != ends, axis=1)
     terms = jax.vmap(edge_term, in_axes=(None, None, 0, 0))(p, n, starts, ends)
-    f = -jnp.sum(jnp.where(used, terms, 0.0)) / (2 * jnp.pi)
+    s = jnp.sum(jnp.where(used, terms, 0.0))
+    # A visible region's form factor is never negative. An all-but-empty region (nearly
+    # zero-length runs: a receiver at an umbra's vertex) sums to +-1e-16 of rounding, large
+    # against its tiny terms: a negative value within the terms' rounding bound (each end
+    # within COLLINEAR_EPS eps S of its exact point, over its distance from p) is that region's
+    # 0; a larger one stays visible (the engine's `lambert_rounded`). Zero derivative there.
+    bound = jax.lax.stop_gradient(_contour_bound(p, starts, ends, used))
+    f = jnp.where((s > 0) & (s <= bound), 0.0, -s / (2 * jnp.pi))
     return jnp.where(in_front, f, 0.0)
+
+
+def lit_form_factor(p: Array, n: Array, verts: Array) -> Array:
+    """`form_factor_kernel` of the whole (unoccluded) light for a receiver the shadow engine
+    found lit, never negative: a light whose horizon-clipped part is all but empty (an edge in
+    the receiver's horizon plane: a receiver on a box's side face in the plane of a light edge)
+    sums to -1e-17 (float64) or -4e-8 (float32) of rounding. A negative value within the edge
+    terms' rounding bound (8 eps S per end, over the light plane's distance from p, for each of
+    the clipped polygon's at most K + 1 edges) is 0; a larger one stays visible."""
+    f = form_factor_kernel(p, n, verts)
+    ne = newell_normal(verts)
+    nn = jnp.linalg.norm(ne)
+    d = jnp.abs(jnp.dot(ne, p - verts[0])) / jnp.where(nn > 0, nn, 1.0)
+    big = jnp.maximum(jnp.max(jnp.abs(verts)), jnp.max(jnp.abs(p)))
+    ok = (nn > 0) & (d > 0)
+    bound = jnp.where(ok, 8 * _eps(p) * big * 2 * (verts.shape[0] + 1) / jnp.where(ok, d, 1.0), 0.0) / (2 * jnp.pi)
+    bound = jax.lax.stop_gradient(bound)
+    return jnp.where((f < 0) & (f >= -bound), 0.0, f)
+
+
+def _contour_bound(p: Array, starts: Array, ends: Array, used: Array) -> Array:
+    """The rounding bound of Lambert's sum over the edges `starts -> ends` (`used` ones) from
+    their ends' rounding (`masked_contour_form_factor`; the engine's `lambert_edge_bound`)."""
+    da = jnp.linalg.norm(starts - p[None, :], axis=1)
+    db = jnp.linalg.norm(ends - p[None, :], axis=1)
+    big = jnp.maximum(jnp.maximum(jnp.max(jnp.abs(starts), axis=1), jnp.max(jnp.abs(ends), axis=1)), jnp.max(jnp.abs(p)))
+    ok = used & (da > 0) & (db > 0)
+    inv = jnp.where(ok, 1.0 / jnp.where(ok, da, 1.0) + 1.0 / jnp.where(ok, db, 1.0), 0.0)
+    return COLLINEAR_EPS * _eps(p) * jnp.sum(big * inv)
 
 
 @eqx.filter_jit

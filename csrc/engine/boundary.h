@@ -6,10 +6,46 @@
 
 namespace jaxshadow_engine {
 
+// Occluder edges on one line in space. Two planes through p and two occluder edges, each
+// through two vertices (PlaneRef kThrough, refs >= K), are the same plane when the four vertices
+// lie on one line: a T-junction of a mesh (a vertex of one face inside an edge of its neighbour,
+// as `Mesh`'s coplanar merging leaves where it drops a collinear vertex), or faces overlapping
+// along an edge. The planes through p are then computed from different pairs of points and
+// differ by their rounding, which grows as the edges' angular length seen from p shrinks (a short
+// edge far away: 1.6e-14 rad for a 3 cm edge 1.5 m away, beyond the angle test's kCollinearEps
+// eps), and the piece's membership in the other region was decided by that rounding. The test in
+// space does not depend on p: each vertex within kCollinearEps eps S of the other edge's line
+// (S the largest coordinate magnitude of the four vertices and p).
+template <class T>
+inline bool collinear_in_space(V3<T> a, V3<T> b, V3<T> c, V3<T> d, V3<T> p) {
+  const T S = std::max(std::max(std::max(absmax(a), absmax(b)), std::max(absmax(c), absmax(d))), absmax(p));
+  const T tau = T(kCollinearEps) * eps_of<T>() * S;
+  auto near_line = [tau](V3<T> o, V3<T> q, V3<T> x, V3<T> y) {
+    const V3<T> u = q - o;
+    const T l2 = dot(u, u);
+    if (!(l2 > 0)) return false;
+    const V3<T> cx = cross(x - o, u), cy = cross(y - o, u);
+    return dot(cx, cx) <= tau * tau * l2 && dot(cy, cy) <= tau * tau * l2;
+  };
+  return near_line(a, b, c, d) && near_line(c, d, a, b);
+}
+
+// The conditioning of the plane through p and the occluder edge `r` (kThrough, both refs
+// occluder vertices): |a - p| |b - p| / |(b - p) x (a - p)|, 1 / sin of the angle the edge subtends
+// at p (its normal's rounding is about that many epsilons of angle); 0 for other planes.
+template <class T>
+inline T through_condition(const Occluders<T>& occ, PlaneRef r, V3<T> p) {
+  if (r.t != kThrough || r.a < occ.K || r.b < occ.K) return 0;
+  const V3<T> a = occ.vref(r.a) - p, b = occ.vref(r.b) - p;
+  const T cn = norm(cross(b, a));
+  const T c = norm(a) * norm(b) / cn;
+  return c == c ? c : std::numeric_limits<T>::infinity();
+}
+
 // Split every candidate edge of a penumbra receiver at the regions it enters and leaves and keep
 // the free pieces as runs (`_clip._boundary_runs` / `edge_breakpoints`), appended to w.runs.
 template <class T>
-void boundary_runs(V3<T> p, T tol, const V3<T>* ehv, int nehv, Work<T>& w) {
+void boundary_runs(const Occluders<T>& occ, V3<T> p, T tol, const V3<T>* ehv, int nehv, Work<T>& w) {
   std::vector<V3<T>>& planes = w.planes;
   const int32_t n_regions = int32_t(w.regions.size());
   // Unit normals and norms of all planes; regions' boxes (their candidate edges' ends and the
@@ -17,6 +53,8 @@ void boundary_runs(V3<T> p, T tol, const V3<T>* ehv, int nehv, Work<T>& w) {
   const size_t npl = planes.size();
   w.pnorm.resize(npl);
   for (size_t k = 0; k < npl; k++) w.pnorm[k] = norm(planes[k]);
+  w.pcond.resize(npl);
+  for (size_t k = 0; k < npl; k++) w.pcond[k] = through_condition(occ, w.prefs[k], p);
   // normalize_safe of plane k from its norm (one square root), where a collinearity test needs it.
   auto unit = [&](int32_t k) -> V3<T> { return w.pnorm[k] > 0 ? (T(1) / w.pnorm[k]) * planes[k] : V3<T>{0, 0, 0}; };
   for (int32_t r = 1; r < n_regions; r++)
@@ -64,6 +102,7 @@ void boundary_runs(V3<T> p, T tol, const V3<T>* ehv, int nehv, Work<T>& w) {
     T ext = 0;
     for (int dd = 0; dd < 3; dd++) ext = std::max(ext, std::max(std::fabs(e.lo[dd]), std::fabs(e.hi[dd])));
     T bmargin = T(1e3) * eps_of<T>() * (ext + absmax(p)) + w.eh_margin;  // off_plane_margin
+    const T econd = through_condition(occ, e.own_ref, p);  // > 0: an occluder edge (collinear_in_space)
     w.live.clear();
     for (int32_t j = 0; j < n_regions; j++) {
       if (j == e.region) continue;
@@ -108,6 +147,14 @@ void boundary_runs(V3<T> p, T tol, const V3<T>* ehv, int nehv, Work<T>& w) {
           if (!(std::fabs(g0) > T(4) * tol * w.pnorm[pk] * apn) && !(std::fabs(g0 + g1) > T(4) * tol * w.pnorm[pk] * apn)) {
             V3<T> cr = cross(normalize_safe(e.own), unit(pk));
             collinear = dot(cr, cr) <= tol * tol;
+          }
+          // Two occluder edges on one line in space, their planes apart by rounding only (within
+          // both planes' rounding bounds, tol times their conditioning).
+          if (!collinear && econd > 0 && w.pcond[pk] > 0) {
+            const T band = (T(4) + econd + w.pcond[pk]) * tol * w.pnorm[pk] * apn;
+            if (!(std::fabs(g0) > band) && !(std::fabs(g0 + g1) > band))
+              collinear = collinear_in_space(occ.vref(e.own_ref.a), occ.vref(e.own_ref.b), occ.vref(w.prefs[pk].a),
+                                             occ.vref(w.prefs[pk].b), p);
           }
         }
         bool generic = valid && !collinear;

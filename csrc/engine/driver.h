@@ -155,6 +155,27 @@ inline T lambert_edge(V3<T> p, V3<T> n, V3<T> a, V3<T> b) {
   return std::atan2(sn, dot(A, B)) / sn * dot(n, c);
 }
 
+// The rounding bound of lambert_edge(p, n, a, b) from its ends' rounding: a decoded point is
+// within kCollinearEps eps S of the exact one (S the largest coordinate magnitude of the ends and
+// p), which moves the angle the edge subtends by at most that over its distance from p.
+template <class T>
+inline T lambert_edge_bound(V3<T> p, V3<T> a, V3<T> b) {
+  const T da = norm(a - p), db = norm(b - p);
+  if (!(da > 0) || !(db > 0)) return T(0);
+  const T S = std::max(std::max(absmax(a), absmax(b)), absmax(p));
+  return T(kCollinearEps) * eps_of<T>() * S * (T(1) / da + T(1) / db);
+}
+
+// A visible region's form factor is never negative: Lambert's sum over its boundary (-2 pi F)
+// is not positive. An all-but-empty region (its boundary's runs nearly zero-length: a receiver
+// at an umbra's vertex) sums to +-1e-16 of rounding, relatively large against its tiny terms; a
+// positive sum within the terms' rounding bound is that region's value, 0. A larger one is
+// kept: a genuine error stays visible. (_clip.masked_contour_form_factor does the same.)
+template <class T>
+inline T lambert_rounded(T sum, T bound) {
+  return sum > 0 && sum <= bound ? T(0) : sum;
+}
+
 // `lambert` (N, nullable): per receiver the sum of lambert_edge over its boundary (0 without
 // one), for Lambert's integrand on the host path (the edges are decoded for it, also without
 // `points_out`).
@@ -244,7 +265,7 @@ int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const 
         };
         size_t o = blk.pts.size();
         if (points_out) blk.pts.resize(o + 6 * w.runs.size());
-        T sum = 0;
+        T sum = 0, bound = 0;
         const V3<T> pi = ld(P + 3 * i), ni = ld(Nrm + 3 * i);
         for (const Run& r : w.runs) {
           const V3<T> a = point(r.s), b = point(r.e);
@@ -253,9 +274,12 @@ int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const 
             q[0] = a.x, q[1] = a.y, q[2] = a.z, q[3] = b.x, q[4] = b.y, q[5] = b.z;
             o += 6;
           }
-          if (lambert) sum += lambert_edge(pi, ni, a, b);
+          if (lambert) {
+            sum += lambert_edge(pi, ni, a, b);
+            bound += lambert_edge_bound(pi, a, b);
+          }
         }
-        if (lambert) lambert[i] = sum;
+        if (lambert) lambert[i] = lambert_rounded(sum, bound);
       }
     }
     per_thread[t].push_back(std::move(blk));

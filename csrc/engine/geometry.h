@@ -24,6 +24,13 @@ constexpr double kHorizonBand = 1e-7;  // polygon.h face_status: faces this clos
 // (OBJ, PLY, Mitsuba) far more often than not, and a face built from float32-rounded vertices
 // is planar, and a point computed on it lies in its plane, only to a few float32 roundings.
 constexpr double kOnSurface = 1.0 / 262144.0;
+// The same rule for faces of other doubles: 256 double epsilons (2^-44, about 5.7e-14) of S. A
+// point computed on such a face (barycentric coordinates, a transform applied to the face and
+// the point alike) lies in its plane to a few roundings of S, not of the face's size, which is
+// what face_side's rounding bound follows: a receiver on a small face far from the origin was
+// behind its own face and self-shadowed. The face dropped seen from closer than this blocks a
+// sliver of angular width below 2^-44 S / distance: far below the double results' accuracy.
+constexpr double kOnSurface64 = 1.0 / 17592186044416.0;
 
 enum Class : int32_t { kZero = 0, kLit = 1, kUmbra = 2, kPenumbra = 3 };
 
@@ -183,9 +190,9 @@ struct Occluders {
 // _clip._occluder_sides for face f seen from p: its vertices relative to p, scaled by the power of
 // two `scale` into `rel` (Ko <= 64 slots), their Newell normal `no` and h0 = no . rel[0]; `side`
 // is +1 when p is behind `no` (h0 < 0), -1 in front, 0 when p cannot be told apart from the face's
-// plane within the heights' rounding bounds or lies on the face (for a face of float32 values:
-// closer to its plane than kOnSurface S; the face then blocks a zero solid angle, and so does
-// every face coplanar with it) or a vertex is not finite.
+// plane within the heights' rounding bounds or lies on the face (closer to its plane than
+// kOnSurface S for a face of float32 values, kOnSurface64 S for other faces; the face then blocks
+// a zero solid angle, and so does every face coplanar with it) or a vertex is not finite.
 // Whether every coordinate of face f is a float32 value (data read from files or Mitsuba).
 template <class T>
 inline bool float32_face(const Occluders<T>& occ, int64_t f) {
@@ -228,9 +235,9 @@ FaceSide<T> face_side(const Occluders<T>& occ, int64_t f, V3<T> p, V3<T>* rel) {
   // On the face (kOnSurface): every height must also exceed kOnSurface S |no| (scaled frame).
   T S = absmax(p);
   for (int64_t i = 0; i < Ko; i++) S = std::max(S, absmax(occ.vert(f, i)));
-  // The rule is for faces made of float32 values (meshes from files, Mitsuba): a face of other
-  // doubles is planar to double rounding, and keeps the exact treatment.
-  const T dtol = float32_face(occ, f) ? T(kOnSurface) * S * out.scale * norm(no) : T(0);
+  // kOnSurface for faces made of float32 values (meshes from files, Mitsuba); a face of other
+  // doubles is planar to double rounding, and takes the double rounding of S (kOnSurface64).
+  const T dtol = T(float32_face(occ, f) ? kOnSurface : kOnSurface64) * S * out.scale * norm(no);
   for (int64_t i = 0; i < Ko; i++) {
     T h = dot(no, rel[i]);
     V3<T> ar{std::fabs(rel[i].x), std::fabs(rel[i].y), std::fabs(rel[i].z)};

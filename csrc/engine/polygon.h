@@ -657,7 +657,7 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
     for (size_t i = 0; i < w.edges.size(); i++) w.runs.push_back(Run{w.edges[i].ca, w.edges[i].cb});
     return kLit;
   }
-  boundary_runs(p, tol, ehv, nehv, w);
+  boundary_runs(occ, p, tol, ehv, nehv, w);
   return kPenumbra;
 }
 

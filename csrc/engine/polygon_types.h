@@ -43,6 +43,7 @@ struct Work {  // per-thread scratch
   std::vector<std::pair<Code, V3<T>>> decoded;  // the driver's decoded boundary vertices
   std::vector<V3<T>> planes;
   std::vector<T> pnorm;
+  std::vector<T> pcond;  // per plane: through_condition (boundary.h)
   std::vector<PlaneRef> prefs;
   std::vector<Region<T>> regions;
   std::vector<Edge<T>> edges;

@@ -46,12 +46,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._clip import (
+    lit_form_factor,
     masked_contour_form_factor,
     visible_segments,
 )
 from .._linear import linear_irradiance_kernel
 from .._point import directional_irradiance_kernel, point_irradiance_kernel
-from .._polygon import form_factor_kernel
 from .._scene import LinearLight, PointLight, PolygonLight, Scene
 from .._specular import (
     DEFAULT_DEGREE,
@@ -119,7 +119,7 @@ class Lambert(eqx.Module):
     segments, $E/I$ for point lights, $E/E_0$ for directional lights."""
 
     def polygon(self, p, n, e, verts):
-        return jnp.pi * form_factor_kernel(p, n, verts)
+        return jnp.pi * lit_form_factor(p, n, verts)
 
     def contour(self, p, n, e, verts, starts, ends):
         return jnp.pi * masked_contour_form_factor(p, n, verts, starts, ends)
