@@ -34,6 +34,7 @@ Every file is written through `jaxshadow._files` (a temporary file renamed into 
 from __future__ import annotations
 
 import csv
+import io
 import math
 import os
 import re
@@ -528,9 +529,13 @@ def read_csv(path: str | os.PathLike, columns: tuple[str, ...]) -> np.ndarray:
     """The named `columns` of a CSV file with a header row, as an `(N, len(columns))` float64
     array (other columns are ignored; errors name the file, the row and the column).
 
-    The header is read with the `csv` module, the body with `np.loadtxt` (array speed). A
-    header naming one of `columns` twice is a `ValueError` (which of the two was meant is not
-    known). Blank lines are skipped; rows count from 1 after the header, blank lines not counted.
+    The header is read with the `csv` module. When a vectorised check of the body's bytes finds
+    every row with the header's number of fields (`_uniform_rows`), `np.loadtxt` parses the
+    named columns only (fields of other columns are split off, never converted); otherwise (a
+    quoted field, blank lines, a malformed row) every column is read, and a malformed row is
+    located and named. A header naming one of `columns` twice is a `ValueError` (which of
+    the two was meant is not known). Blank lines are skipped; rows count from 1 after the
+    header, blank lines not counted.
     """
     path = os.fspath(path)
     with open(path, encoding="utf-8-sig", newline="") as fh:
@@ -551,6 +556,15 @@ def read_csv(path: str | os.PathLike, columns: tuple[str, ...]) -> np.ndarray:
                              f"{','.join(header)}; each of {','.join(columns)} must appear once.")
         idx = [header.index(c) for c in columns]
         body_at = fh.tell()
+        body = _body_bytes(path, head)
+        body = None if body is None else _uniform_rows(body, len(header))
+        if body is not None:
+            try:
+                table = _loadtxt(io.BytesIO(body), usecols=idx)
+            except ValueError:
+                pass  # a non-numeric field: the slow route names its row
+            else:
+                return table.reshape(-1, len(columns))
         try:
             # Every column at once: loadtxt itself refuses rows whose field count changes.
             table = _loadtxt(fh)
@@ -574,17 +588,75 @@ def read_csv(path: str | os.PathLike, columns: tuple[str, ...]) -> np.ndarray:
     return table.reshape(-1, len(columns))
 
 
+def _body_bytes(path: str, head: str) -> bytes | None:
+    """The bytes of the CSV file `path` after its header line `head` (as the text reader read
+    it: a byte-order mark and blank lines before it skipped), or `None` when the header is not
+    a `\\n`-terminated line there (the slow route then reads the file)."""
+    with open(path, "rb") as raw:
+        data = raw.read()
+    pos = 3 if data.startswith(b"\xef\xbb\xbf") else 0
+    while True:
+        nl = data.find(b"\n", pos)
+        if nl < 0:
+            return None
+        line = data[pos:nl + 1]
+        pos = nl + 1
+        if line.strip():
+            break
+    try:
+        if line.decode("utf-8") != head:
+            return None
+    except UnicodeDecodeError:
+        return None
+    return data[pos:]
+
+
+CSV_CHECK_BYTES = 1 << 23  # the field-count check looks at this many bytes of rows at a time
+
+
+def _uniform_rows(body: bytes, ncols: int) -> bytes | None:
+    """`body` (CSV rows after the header, bytes; CRLF turned into LF) when every row has exactly
+    `ncols` comma-separated fields and nothing needs the `csv` module (no quote, no blank line,
+    no lone CR), else `None`. Vectorised: the commas between consecutive newlines are counted
+    with `np.searchsorted`, a block of about `CSV_CHECK_BYTES` at a time (small index arrays)."""
+    if b'"' in body:
+        return None
+    if b"\r" in body:
+        body = body.replace(b"\r\n", b"\n")
+        if b"\r" in body:
+            return None
+    if body and not body.endswith(b"\n"):
+        body += b"\n"
+    buf = np.frombuffer(body, np.uint8)
+    start = 0
+    while start < len(buf):
+        stop = body.find(b"\n", min(start + CSV_CHECK_BYTES, len(buf) - 1)) + 1
+        chunk = buf[start:stop]
+        ends = np.flatnonzero(chunk == 10)
+        starts = np.concatenate([[0], ends[:-1] + 1])
+        if np.any(ends == starts):
+            return None  # a blank line: the slow route skips it
+        commas = np.flatnonzero(chunk == 44)
+        if np.any(np.searchsorted(commas, ends) - np.searchsorted(commas, starts) != ncols - 1):
+            return None
+        start = stop
+    return body
+
+
 CSV_BLOCK_ROWS = 1 << 15
 
 
 def write_csv_table(fh: Any, header: list[str], columns: list[Any]) -> None:
     """Write a CSV table to the open text file `fh`: the `header` row, then the rows of the
-    `(N, k_i)` arrays `columns` side by side, formatted a block of rows at a time (one string
-    format per block, array speed; a block in memory, not the whole text).
+    `(N, k_i)` arrays `columns` side by side, a block of rows at a time (a block in memory, not
+    the whole text).
 
     Each value is written so that it reads back exactly in its own precision: a float64 value
-    as its shortest round-trip repr (`repr(float)`), a float32 value (an array whose dtype is
-    float32) with 9 significant digits, which parse back to the same float32.
+    as its shortest round-trip repr (`repr(float)`, one string format per block), a float32
+    value (an array whose dtype is float32) as `"%.9g"` (9 significant digits, which parse back
+    to the same float32). One string format per block of `CSV_BLOCK_ROWS` rows; a column that
+    holds one value throughout a block (bit for bit: a plane's height, a shared normal) is
+    formatted once, as literal text of that block's row format.
     """
     arrays = [np.asarray(c) for c in columns]
     arrays = [a.reshape(a.shape[0], -1) for a in arrays]
@@ -595,10 +667,15 @@ def write_csv_table(fh: Any, header: list[str], columns: list[Any]) -> None:
     if len(fmts) != len(header):
         raise ValueError(f"write_csv_table: {len(header)} header names for {len(fmts)} columns.")
     fh.write(",".join(header) + "\n")
-    row = ",".join(fmts) + "\n"
     for s in range(0, n, CSV_BLOCK_ROWS):
         block = np.concatenate([a[s:s + CSV_BLOCK_ROWS].astype(np.float64) for a in arrays], axis=1)
-        fh.write((row * block.shape[0]) % tuple(block.ravel().tolist()))
+        # A column with one value in the whole block (a plane's height, a shared normal) is
+        # formatted once and written as literal text of the row format.
+        bits = block.view(np.int64)  # bit for bit: -0.0 is not 0.0
+        same = (bits == bits[:1]).all(axis=0)
+        fmt = [(f % float(block[0, j])).replace("%", "%%") if same[j] else f for j, f in enumerate(fmts)]
+        row = ",".join(fmt) + "\n"
+        fh.write((row * block.shape[0]) % tuple(block[:, ~same].ravel().tolist()))
 
 
 def _loadtxt(fh: Any, usecols: list[int] | None = None) -> np.ndarray:
