@@ -1,7 +1,8 @@
 """Files at array speed: receiver tables (CSV vs .npy, read, written, and a whole `jaxshadow irradiance` run) and a 69 888-triangle scene saved and loaded.
 
-- **Tables**, 10^6 receivers (10^5 with `--quick`): `read_points` of a CSV (header check, then
-  NumPy's parser) against the same points as `.npy`; `write_values` of the CSV output against
+- **Tables**, 10^6 receivers (10^5 with `--quick`): `read_points` of a points CSV (the six
+  receiver columns `px..nz`, float64 reprs; header check, field-count check, then NumPy's
+  parser) against the same points as `.npy`; `write_values` of the CSV output against
   the writer it replaced (a `csv.writer` row of `repr` strings per receiver), in the same run;
   a whole `jaxshadow irradiance` run in a fresh process (a quad light, one triangle occluder,
   float32) from `.csv` to `.csv` and from `.npy` to `.npy`, wall time and peak RSS (the
@@ -76,13 +77,14 @@ def _cli(args: list[str]) -> tuple[float, float]:
 
 def tables(n: int, folder: str) -> dict:
     import jaxshadow as js
-    from jaxshadow._meshio import POINT_COLUMNS
+    from jaxshadow._meshio import POINT_COLUMNS, write_csv_table
 
     rng = np.random.default_rng(0)
     p = np.c_[rng.uniform(-1, 1, (n, 2)), np.zeros(n)]
     nrm = np.tile([0.0, 0.0, 1.0], (n, 1))
     csv_in, npy_in = os.path.join(folder, "pts.csv"), os.path.join(folder, "pts.npy")
-    js.write_values(csv_in, np.zeros((n, 3)), points=p, normals=nrm)
+    with open(csv_in, "w", newline="") as fh:  # a points CSV: the six receiver columns, float64
+        write_csv_table(fh, list(POINT_COLUMNS), [p, nrm])
     np.save(npy_in, np.c_[p, nrm])
     out: dict[str, Any] = {"n": n}
     out["read_csv_s"] = _best(lambda: js.read_points(csv_in), 2)

@@ -529,11 +529,11 @@ def read_csv(path: str | os.PathLike, columns: tuple[str, ...]) -> np.ndarray:
     """The named `columns` of a CSV file with a header row, as an `(N, len(columns))` float64
     array (other columns are ignored; errors name the file, the row and the column).
 
-    The header is read with the `csv` module. When a vectorised check of the body's bytes finds
-    every row with the header's number of fields (`_uniform_rows`), `np.loadtxt` parses the
-    named columns only (fields of other columns are split off, never converted); otherwise (a
-    quoted field, blank lines, a malformed row) every column is read, and a malformed row is
-    located and named. A header naming one of `columns` twice is a `ValueError` (which of
+    The header is read with the `csv` module, the body with `np.loadtxt` (array speed). With
+    columns besides `columns`, a vectorised check of the body's bytes that every row has the
+    header's number of fields (`_uniform_rows`) lets `np.loadtxt` convert the named columns only
+    (the others are split off, never parsed); otherwise (no other column, a quoted field, blank
+    lines, a malformed row) every column is read, and a malformed row is located and named. A header naming one of `columns` twice is a `ValueError` (which of
     the two was meant is not known). Blank lines are skipped; rows count from 1 after the
     header, blank lines not counted.
     """
@@ -556,7 +556,8 @@ def read_csv(path: str | os.PathLike, columns: tuple[str, ...]) -> np.ndarray:
                              f"{','.join(header)}; each of {','.join(columns)} must appear once.")
         idx = [header.index(c) for c in columns]
         body_at = fh.tell()
-        body = _body_bytes(path, head)
+        # With every column used, loadtxt of the whole table checks the field counts itself.
+        body = None if len(header) == len(columns) else _body_bytes(path, head)
         body = None if body is None else _uniform_rows(body, len(header))
         if body is not None:
             try:
