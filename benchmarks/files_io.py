@@ -1,4 +1,4 @@
-"""Files at array speed: receiver tables (CSV vs .npy, read, written, and a whole `jaxshadow irradiance` run) and a 69 888-triangle scene saved and loaded.
+"""Files at array speed: receiver tables (CSV vs .npy, read, written, and a whole `jaxshadow irradiance` run) and a 76 152-triangle scene saved and loaded.
 
 - **Tables**, 10^6 receivers (10^5 with `--quick`): `read_points` of a points CSV (the six
   receiver columns `px..nz`, float64 reprs; header check, field-count check, then NumPy's
