@@ -24,8 +24,9 @@ The rules (thresholds are the module's constants):
   trusted.
 - **Degenerate light.** A fitted light that jaxshadow itself rejects (`invalid_reason`: a
   polygon with a zero-length edge, coincident vertices or zero area, a segment of zero length,
-  a non-finite coordinate or power) is collapsed too, whatever else is wrong with it (a zero
-  area polygon "faces" nowhere): its parameters are not determined, and the fit evaluates it
+  a non-finite coordinate or power) is collapsed too, escaped or not (a zero-area polygon
+  "faces" nowhere, so only where it is counts for escaping; a quad that ran off to 1e15 m has
+  its vertices rounded together): its parameters are not determined, and the fit evaluates it
   as no light (zero contribution: `without_invalid_lights`) instead of handing it to
   `js.shade`, which would raise.
 - **Undetermined position or power.** A light (not escaped, collapsed or unused) with a
@@ -69,6 +70,7 @@ import math
 from typing import Any
 
 import equinox as eqx
+import jax
 import numpy as np
 
 import jaxshadow as js
@@ -115,7 +117,8 @@ class FitQuality:
       a standard error above the limits; `emitted`: the messages the fit warns with
       (`FitQualityWarning`); `reason`: the first of them ("" when trusted).
     - `unused`: light names whose part of the colours went to ~0 in a several-light fit
-      (`unused_lights`); `collapsed`: `{light name: reason}` (`collapse_reason`);
+      (`unused_lights`); `collapsed`: `{light name: reason}` (`collapse_reason`, or a light
+      jaxshadow rejects: `invalid_reason`, evaluated as no light);
       `undetermined`: `{light name: its position parameters and power not determined
       (exactly or nearly)}`.
     """
@@ -236,8 +239,10 @@ def competing_placements(values: np.ndarray, losses: np.ndarray, names: tuple, t
     return tuple((loss, {nm: float(v) for nm, v in zip(names, q, strict=False)}) for loss, q in reps)
 
 
-def escape_reason(light: Any, targets: Any) -> str | None:
-    """Why `light` cannot be where the targets' light comes from (module docstring), or None."""
+def escape_reason(light: Any, targets: Any, facing: bool = True) -> str | None:
+    """Why `light` cannot be where the targets' light comes from (module docstring), or None.
+    `facing=False` leaves out the test of the side a polygon faces (a degenerate polygon, whose
+    vertices' normal means nothing)."""
     w = np.asarray(targets.weights, np.float64)
     keep = np.any(w > 0, axis=1)
     p = np.asarray(targets.points, np.float64)[keep]
@@ -261,7 +266,7 @@ def escape_reason(light: Any, targets: Any) -> str | None:
     above = np.einsum("vnk,nk->vn", pts[:, None, :] - p[None], n)  # (V, N): light points over target planes
     if not np.any(above > 0):
         return "it is behind every target's tangent plane"
-    if isinstance(light, js.PolygonLight):
+    if isinstance(light, js.PolygonLight) and facing:
         e1, e2 = pts[1] - pts[0], pts[2] - pts[0]
         m = np.cross(e1, e2)
         if not np.any((p - pts.mean(axis=0)) @ m > 0):
@@ -418,9 +423,10 @@ def assess(*, targets: Any, residual: np.ndarray, noise: Any, n_params: int, nam
     invalid = {nm: why for nm, light in lights.items() if (why := invalid_reason(light)) is not None}
     escaped = {}
     for nm, light in lights.items():
-        if nm in invalid:  # degenerate: where it "faces" or sits means nothing (collapsed below)
-            continue
-        why = escape_reason(light, targets)
+        if nm in invalid and not all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree_util.tree_leaves(light)):
+            continue  # non-finite: it is nowhere (collapsed below)
+        # A degenerate polygon (collapsed below) "faces" nowhere; where it is still counts.
+        why = escape_reason(light, targets, facing=nm not in invalid)
         if why is not None:
             escaped[nm] = why
             for p in light_params.get(nm, ()):

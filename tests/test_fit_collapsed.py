@@ -37,6 +37,9 @@ def _targets(scene, n=30):
     return inverse.PaintedTargets(pts, nrm, js.shade(scene, MATERIAL, pts, nrm, EYE), EYE)
 
 
+QUAD_SCENE = js.Scene([js.PolygonLight(_quad([0.2, 0.1, 1.5], 0.2), 5.0)], ambient=0.05)
+
+
 def _shade(scene, material, targets):
     return np.asarray(js.shade(scene, material, targets.points, targets.normals, targets.eye), np.float64)
 
@@ -84,6 +87,32 @@ def test_without_invalid_lights_is_the_scene_with_them_at_zero_contribution():
     assert diag.without_invalid_lights(valid) is valid
 
 
+def _assess(lights, targets):
+    names = tuple(f"{nm}.x" for nm in lights)
+    return diag.assess(targets=targets, residual=np.zeros(targets.colours.shape), noise=None, n_params=len(names),
+                       names=names, std_errors=dict.fromkeys(names, 0.1), values=dict.fromkeys(names, 0.0),
+                       determined=dict.fromkeys(names, True), scale=2.0, lights=lights,
+                       light_params={nm: (f"{nm}.x",) for nm in lights}, messages=[])
+
+
+def test_assess_degenerate_lights_are_collapsed_and_escaped_only_by_where_they_are():
+    """A quad that ran off to 1e15 m (its vertices rounded onto two points) is escaped and
+    collapsed; one rounded flat near the targets is collapsed only (a zero-area polygon faces
+    nowhere, so "faces away from every target" is no reason); a NaN one is collapsed only."""
+    t = _targets(QUAD_SCENE)
+    quad = js.PolygonLight(_quad([0.0, 0.0, 1.0], 0.3), 2.0)
+    far = eqx.tree_at(lambda x: x.vertices, quad, jnp.asarray(_quad([1e15, 0.0, 1e15], 0.03)))
+    near = eqx.tree_at(lambda x: x.vertices, quad, jnp.asarray(np.repeat(_quad([0.0, 0.0, 1.0], 0.3)[:2], 2, axis=0)))
+    nan = eqx.tree_at(lambda x: x.vertices, quad, jnp.full((4, 3), np.nan))
+    assert diag.invalid_reason(far) is not None
+    assert diag.escape_reason(near, t) == "it faces away from every target"  # what the facing test says
+    quality, determined = _assess({"far": far, "near": near, "nan": nan, "ok": quad}, t)
+    assert set(quality.collapsed) == {"far", "near", "nan"} and set(quality.escaped) == {"far"}
+    assert "more than 10 times" in quality.escaped["far"]
+    assert determined == {"far.x": False, "near.x": False, "nan.x": False, "ok.x": True}
+    assert not quality.trusted and {"collapsed", "escaped"} <= set(quality.flags)
+
+
 # --------------------------------------------------------------------------------------
 # fit_light (and the joint light + material fit) on a collapsed answer
 # --------------------------------------------------------------------------------------
@@ -105,9 +134,6 @@ class _Collapsing(_solvers.AbstractLightSolver):
         return _solvers.Solution(np.asarray(th, np.float64)[None], np.array([0.5 * float(r @ r)]), np.array([True]),
                                  np.array([1]), np.array([False]), 0, r, np.asarray(J, np.float64), light,
                                  0.5 * float(r @ r), 0, True, problem)
-
-
-QUAD_SCENE = js.Scene([js.PolygonLight(_quad([0.2, 0.1, 1.5], 0.2), 5.0)], ambient=0.05)
 
 
 def _assert_collapsed(quality, name, rec=None):
