@@ -22,6 +22,7 @@ import numpy as np
 
 import jaxshadow as js
 
+from ._diagnostics import without_invalid_lights
 from ._forward import shade
 from ._joint import fit_light_and_material
 from ._scenes import LIGHT_H, LIGHT_W, demo_configuration, polygon_pose, pose_errors, quad
@@ -34,7 +35,8 @@ def _floor_image(scene: Any, material: Any, eye: np.ndarray, res: int, extent: f
     X, Y = np.meshgrid(xs, xs)
     pts = np.stack([X.ravel(), Y.ravel(), np.zeros(X.size)], axis=1)
     nrm = np.tile([0.0, 0.0, 1.0], (len(pts), 1))
-    img = np.asarray(shade(scene, material, jnp.asarray(pts), jnp.asarray(nrm),
+    # A fitted light that collapsed to a degenerate one shines as no light (`_diagnostics`).
+    img = np.asarray(shade(without_invalid_lights(scene), material, jnp.asarray(pts), jnp.asarray(nrm),
                            jnp.asarray(np.broadcast_to(eye, pts.shape))))
     return img.reshape(res, res, 3)
 

@@ -22,6 +22,13 @@ The rules (thresholds are the module's constants):
   its size and power trade off (a quad of 0.1 mm by 6 cm at 6e4 times its power came back from
   a start 30 % of the scene away): a wrong minimum, or a light of another kind. Flagged, not
   trusted.
+- **Degenerate light.** A fitted light that jaxshadow itself rejects (`invalid_reason`: a
+  polygon with a zero-length edge, coincident vertices or zero area, a segment of zero length,
+  a non-finite coordinate or power) is collapsed too, escaped or not (a zero-area polygon
+  "faces" nowhere, so only where it is counts for escaping; a quad that ran off to 1e15 m has
+  its vertices rounded together): its parameters are not determined, and the fit evaluates it
+  as no light (zero contribution: `without_invalid_lights`) instead of handing it to
+  `js.shade`, which would raise.
 - **Undetermined position or power.** A light (not escaped, collapsed or unused) with a
   position parameter or its power not determined, exactly or nearly (above): the answer is
   one of many that paint the targets alike (a quad seen by a few targets only came back 40 %
@@ -62,6 +69,8 @@ import dataclasses
 import math
 from typing import Any
 
+import equinox as eqx
+import jax
 import numpy as np
 
 import jaxshadow as js
@@ -108,7 +117,8 @@ class FitQuality:
       a standard error above the limits; `emitted`: the messages the fit warns with
       (`FitQualityWarning`); `reason`: the first of them ("" when trusted).
     - `unused`: light names whose part of the colours went to ~0 in a several-light fit
-      (`unused_lights`); `collapsed`: `{light name: reason}` (`collapse_reason`);
+      (`unused_lights`); `collapsed`: `{light name: reason}` (`collapse_reason`, or a light
+      jaxshadow rejects: `invalid_reason`, evaluated as no light);
       `undetermined`: `{light name: its position parameters and power not determined
       (exactly or nearly)}`.
     """
@@ -229,8 +239,10 @@ def competing_placements(values: np.ndarray, losses: np.ndarray, names: tuple, t
     return tuple((loss, {nm: float(v) for nm, v in zip(names, q, strict=False)}) for loss, q in reps)
 
 
-def escape_reason(light: Any, targets: Any) -> str | None:
-    """Why `light` cannot be where the targets' light comes from (module docstring), or None."""
+def escape_reason(light: Any, targets: Any, facing: bool = True) -> str | None:
+    """Why `light` cannot be where the targets' light comes from (module docstring), or None.
+    `facing=False` leaves out the test of the side a polygon faces (a degenerate polygon, whose
+    vertices' normal means nothing)."""
     w = np.asarray(targets.weights, np.float64)
     keep = np.any(w > 0, axis=1)
     p = np.asarray(targets.points, np.float64)[keep]
@@ -254,12 +266,42 @@ def escape_reason(light: Any, targets: Any) -> str | None:
     above = np.einsum("vnk,nk->vn", pts[:, None, :] - p[None], n)  # (V, N): light points over target planes
     if not np.any(above > 0):
         return "it is behind every target's tangent plane"
-    if isinstance(light, js.PolygonLight):
+    if isinstance(light, js.PolygonLight) and facing:
         e1, e2 = pts[1] - pts[0], pts[2] - pts[0]
         m = np.cross(e1, e2)
         if not np.any((p - pts.mean(axis=0)) @ m > 0):
             return "it faces away from every target"
     return None
+
+
+def invalid_reason(light: Any) -> str | None:
+    """Why jaxshadow's entry points (`js.shade`, `js.irradiance`, a light's constructor) reject
+    `light` as it stands, in their own words, or None when they accept it: the light built again
+    from its concrete values runs the constructor's checks (a polygon's distinct vertices,
+    zero-length edges, area, planarity and convexity; a segment's length; finite values)."""
+    try:
+        if isinstance(light, js.PolygonLight):
+            js.PolygonLight(np.asarray(light.vertices, np.float64), np.asarray(light.radiance, np.float64))
+        elif isinstance(light, js.LinearLight):
+            js.LinearLight(np.asarray(light.start, np.float64), np.asarray(light.end, np.float64),
+                           np.asarray(light.power, np.float64), light.profile, light.exponent)
+        elif isinstance(light, js.PointLight):
+            js.PointLight(np.asarray(light.position, np.float64), np.asarray(light.intensity, np.float64))
+        elif isinstance(light, js.DirectionalLight):
+            js.DirectionalLight(np.asarray(light.direction, np.float64), np.asarray(light.irradiance, np.float64))
+    except ValueError as err:
+        return str(err)
+    return None
+
+
+def without_invalid_lights(scene: js.Scene) -> js.Scene:
+    """`scene` with every light that jaxshadow rejects (`invalid_reason`) taken out: the same
+    colours as the scene with those lights at zero contribution, and a scene `js.shade` accepts.
+    `scene` itself when every light is valid."""
+    keep = tuple(light for light in scene.lights if invalid_reason(light) is None)
+    if len(keep) == len(scene.lights):
+        return scene
+    return eqx.tree_at(lambda s: s.lights, scene, keep)
 
 
 def collapse_reason(light: Any, scale: float) -> str | None:
@@ -378,9 +420,13 @@ def assess(*, targets: Any, residual: np.ndarray, noise: Any, n_params: int, nam
             msg += f"; {len(candidates)} competing placements within a factor {COMPETING_FACTOR:g} of the best loss"
         messages.append(msg + ".")
         emit.append(msg + ".")
+    invalid = {nm: why for nm, light in lights.items() if (why := invalid_reason(light)) is not None}
     escaped = {}
     for nm, light in lights.items():
-        why = escape_reason(light, targets)
+        if nm in invalid and not all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree_util.tree_leaves(light)):
+            continue  # non-finite: it is nowhere (collapsed below)
+        # A degenerate polygon (collapsed below) "faces" nowhere; where it is still counts.
+        why = escape_reason(light, targets, facing=nm not in invalid)
         if why is not None:
             escaped[nm] = why
             for p in light_params.get(nm, ()):
@@ -391,8 +437,15 @@ def assess(*, targets: Any, residual: np.ndarray, noise: Any, n_params: int, nam
     if escaped:
         flags.append("escaped")
     collapsed = {}
+    for nm, why in invalid.items():
+        for p in light_params.get(nm, ()):
+            determined[p] = False
+        collapsed[nm] = f"it is no valid light ({why.rstrip('.')}); it was evaluated as no light (zero contribution)"
+        msg = f"{nm} collapsed: {collapsed[nm]}: a wrong minimum, or a light of another kind."
+        messages.append(msg)
+        emit.append(msg)
     for nm, light in lights.items():
-        why = collapse_reason(light, scale)
+        why = None if nm in invalid else collapse_reason(light, scale)
         if why is not None and nm not in escaped:
             collapsed[nm] = why
             msg = f"{nm} collapsed: {why}: a wrong minimum, or a light of another kind."

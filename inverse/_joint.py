@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+import warnings
 from typing import Any
 
 import jax
@@ -16,6 +17,7 @@ from jaxtyping import Array
 
 import jaxshadow as js
 
+from ._diagnostics import FitQualityWarning, invalid_reason, without_invalid_lights
 from ._forward import SpecularFn, shade_culled
 from ._identifiability import identifiability
 from ._lights import fit_light
@@ -192,7 +194,8 @@ def fit_light_and_material(
         t0 = time.perf_counter()
         if "exponent" not in mk and not bool(np.any(np.asarray(material.ks) != 0)):
             mk["exponent"] = float(material.exponent)
-        mf = fit_material(lf.scene, targets, specular=specular, **mk)
+        # A light that collapsed to a degenerate one shines as no light (`_diagnostics`).
+        mf = fit_material(without_invalid_lights(lf.scene), targets, specular=specular, **mk)
         history.append(0.5 * float(np.sum(mf.report.weights * mf.residual**2)))
         if progress is not None:
             progress(f"  exact bounded material at that light: loss {history[-1]:.4e}  [{time.perf_counter() - t0:.1f} s]")
@@ -224,11 +227,17 @@ def fit_light_and_material(
             progress(f"  round {r + 1}/{rounds}: light  ({kw.get('starts', 64)} start(s)) loss {lf.report.loss:.4e}"
                      f"  [{time.perf_counter() - t0:.1f} s]")
         t0 = time.perf_counter()
-        mf = fit_material(scene, targets, specular=specular, **mk)
+        collapsed = invalid_reason(lf.light) is not None
+        mf = fit_material(without_invalid_lights(scene), targets, specular=specular, **mk)
         material = mf.material
         history.append(0.5 * float(np.sum(mf.report.weights * mf.residual**2)))
         if progress is not None:
             progress(f"  round {r + 1}/{rounds}: material loss {history[-1]:.4e}  [{time.perf_counter() - t0:.1f} s]")
+        if collapsed:  # no light to place again from: this round's checks speak (its report says it collapsed)
+            if not kw.get("warn", True) and lk.get("warn", True):
+                for msg in lf.report.quality.emitted:
+                    warnings.warn(msg, FitQualityWarning, stacklevel=2)
+            break
     assert lf is not None and mf is not None
     return JointFit(scene=scene, material=material, residual=mf.residual, report=(lf.report, mf.report),
                     history=tuple(history))

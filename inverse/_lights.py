@@ -16,7 +16,13 @@ import numpy as np
 
 import jaxshadow as js
 
-from ._diagnostics import FitQualityWarning, assess, competing_placements
+from ._diagnostics import (
+    FitQualityWarning,
+    assess,
+    competing_placements,
+    invalid_reason,
+    without_invalid_lights,
+)
 from ._forward import SpecularFn, shade
 from ._identifiability import identifiability
 from ._multistart import distinct_minima, make_starts
@@ -174,10 +180,12 @@ def _light_fit(problem: LightProblem, sol: Solution, solver_name: str, n_screene
         material = js.Material(ka=jnp.asarray(kc[0], dt), kd=jnp.asarray(kc[1], dt), ks=jnp.asarray(kc[2], dt),
                                exponent=jnp.asarray(float(n_fit), dt))
     w = np.asarray(t.weights, np.float64)
-    if sol.exact_residual and not problem.project and np.all(w > 0):
+    if sol.exact_residual and not problem.project and np.all(w > 0) and invalid_reason(sol.light) is None:
         residual = sol.residual.reshape(-1, 3) / np.sqrt(w)  # r = sqrt(w) (model - colours)
     else:
-        model = shade(new_scene, material, t.points, t.normals, t.eye, problem.specular, problem.with_specular)
+        # A light that collapsed to a degenerate one (`_diagnostics`) shines as no light: `js.shade`
+        # would reject it.
+        model = shade(without_invalid_lights(new_scene), material, t.points, t.normals, t.eye, problem.specular, problem.with_specular)
         residual = np.asarray(model, np.float64) - np.asarray(t.colours, np.float64)
     theta64 = np.asarray(theta, np.float64)
     values = {nm: float(v) for nm, v in zip(names, theta64, strict=True)}
