@@ -660,7 +660,7 @@ def write_csv_table(fh: Any, header: list[str], columns: list[Any]) -> None:
     formatted once, as literal text of that block's row format.
     """
     arrays = [np.asarray(c) for c in columns]
-    arrays = [a.reshape(a.shape[0], -1) for a in arrays]
+    arrays = [a.reshape(a.shape[0], int(np.prod(a.shape[1:], dtype=np.int64))) for a in arrays]  # (0, k) too
     n = arrays[0].shape[0] if arrays else 0
     if any(a.shape[0] != n for a in arrays):
         raise ValueError(f"write_csv_table: columns have different row counts {[a.shape[0] for a in arrays]}.")

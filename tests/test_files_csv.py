@@ -119,3 +119,10 @@ def test_written_receivers_round_trip_through_the_reader(tmp_path):
     np.testing.assert_array_equal(got_p.astype(np.float32), p)
     np.testing.assert_array_equal(got_n.astype(np.float32), nrm)
     np.testing.assert_array_equal(read_csv(tmp_path / "v.csv", ("r", "g", "b")).astype(np.float32), v)
+
+
+def test_a_table_without_rows_is_its_header(tmp_path):
+    """No receivers: the file is the header line alone."""
+    buf = io.StringIO()
+    write_csv_table(buf, ["px", "py", "pz", "r"], [np.zeros((0, 3)), np.zeros((0,), np.float32)])
+    assert buf.getvalue() == "px,py,pz,r\n"
