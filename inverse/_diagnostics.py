@@ -420,6 +420,13 @@ def assess(*, targets: Any, residual: np.ndarray, noise: Any, n_params: int, nam
             msg += f"; {len(candidates)} competing placements within a factor {COMPETING_FACTOR:g} of the best loss"
         messages.append(msg + ".")
         emit.append(msg + ".")
+    def say(msg: str, undetermined_light: str | None = None) -> None:
+        """A message for the user (and the warning); the light's parameters no longer determined."""
+        for p in light_params.get(undetermined_light, ()) if undetermined_light is not None else ():
+            determined[p] = False
+        messages.append(msg)
+        emit.append(msg)
+
     invalid = {nm: why for nm, light in lights.items() if (why := invalid_reason(light)) is not None}
     escaped = {}
     for nm, light in lights.items():
@@ -429,39 +436,24 @@ def assess(*, targets: Any, residual: np.ndarray, noise: Any, n_params: int, nam
         why = escape_reason(light, targets, facing=nm not in invalid)
         if why is not None:
             escaped[nm] = why
-            for p in light_params.get(nm, ()):
-                determined[p] = False
-            msg = f"{nm} escaped the region it can light the targets from: {why}."
-            messages.append(msg)
-            emit.append(msg)
+            say(f"{nm} escaped the region it can light the targets from: {why}.", nm)
     if escaped:
         flags.append("escaped")
     collapsed = {}
     for nm, why in invalid.items():
-        for p in light_params.get(nm, ()):
-            determined[p] = False
         collapsed[nm] = f"it is no valid light ({why.rstrip('.')}); it was evaluated as no light (zero contribution)"
-        msg = f"{nm} collapsed: {collapsed[nm]}: a wrong minimum, or a light of another kind."
-        messages.append(msg)
-        emit.append(msg)
+        say(f"{nm} collapsed: {collapsed[nm]}: a wrong minimum, or a light of another kind.", nm)
     for nm, light in lights.items():
         why = None if nm in invalid else collapse_reason(light, scale)
         if why is not None and nm not in escaped:
             collapsed[nm] = why
-            msg = f"{nm} collapsed: {why}: a wrong minimum, or a light of another kind."
-            messages.append(msg)
-            emit.append(msg)
+            say(f"{nm} collapsed: {why}: a wrong minimum, or a light of another kind.")
     if collapsed:
         flags.append("collapsed")
     unused = unused_lights(contributions or {})
     for nm in unused:
-        for p in light_params.get(nm, ()):
-            determined[p] = False
-        msg = (f"{nm} lights nothing (its part of the colours is below {UNUSED_FRACTION:g} of the largest "
-               "light's): its pose is not "
-               "determined; the targets need fewer lights, or it stopped where it cannot light them.")
-        messages.append(msg)
-        emit.append(msg)
+        say(f"{nm} lights nothing (its part of the colours is below {UNUSED_FRACTION:g} of the largest light's): "
+            "its pose is not determined; the targets need fewer lights, or it stopped where it cannot light them.", nm)
     if unused:
         flags.append("unused_light")
     near = nearly_undetermined(names, std_errors, values, scale, determined)
