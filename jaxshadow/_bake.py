@@ -558,7 +558,7 @@ def _chunk_scene(scene: Scene, occ_idx: np.ndarray, mask: np.ndarray, sentinel: 
     kernels compile per batch shape, ~1 s each, and run slower than the engine here). `extra`:
     polygons added as they are, after the welding (`_cross_sections`)."""
     from ._geometry import pad_polygons_jax
-    from ._mesh import Mesh, build_occluders, max_face_vertices, weld_polygons
+    from ._mesh import Mesh, max_face_vertices, stack_occluders, weld_polygons
 
     sub = Scene(tuple(light for light, m in zip(scene.lights, mask, strict=True) if m), ambient=scene.ambient)
     if scene.occluders is None or occ_idx.size == 0:
@@ -569,9 +569,7 @@ def _chunk_scene(scene: Scene, occ_idx: np.ndarray, mask: np.ndarray, sentinel: 
     occ = np.asarray(scene.occluders, np.float64)
     items = weld_polygons([_unpad(o) for o in occ[occ_idx]]) + list(extra)
     if any(isinstance(x, Mesh) for x in items):
-        ko = max_face_vertices(items)
-        polys, topo = build_occluders(items, ko)
-        arr = pad_polygons_jax(polys, ko)
+        arr, topo = stack_occluders(items, max_face_vertices(items))
     else:
         arr, topo = pad_polygons_jax(items), None
     object.__setattr__(sub, "occluders", arr)
@@ -1264,7 +1262,8 @@ def write_bake(path: str | os.PathLike, baked: BakedScene, up: Any = "z") -> Non
     ext = os.path.splitext(path)[1].lower()
     if ext not in BAKE_FORMATS:
         raise ValueError(f"bake: unknown output format {ext!r} (expected one of {', '.join(BAKE_FORMATS)}).")
-    tm = trimesh.Trimesh(baked.vertices, baked.triangles, vertex_normals=baked.normals,
+    rot = np.eye(3) if ext == ".ply" else y_up_rotation(up)  # PLY in the scene's own axes
+    tm = trimesh.Trimesh(baked.vertices @ rot.T, baked.triangles, vertex_normals=baked.normals @ rot.T,
                          vertex_colors=vertex_colours(baked.irradiance, baked.scale), process=False)
     per = baked.irradiance_per_light
     if ext == ".ply":
@@ -1277,9 +1276,6 @@ def write_bake(path: str | os.PathLike, baked: BakedScene, up: Any = "z") -> Non
         with atomic_write(path, "wb") as fh:
             fh.write(data)
         return
-    rot = y_up_rotation(up)
-    tm = trimesh.Trimesh(baked.vertices @ rot.T, baked.triangles, vertex_normals=baked.normals @ rot.T,
-                         vertex_colors=vertex_colours(baked.irradiance, baked.scale), process=False)
     tm.vertex_attributes["_IRRADIANCE"] = np.ascontiguousarray(baked.irradiance, np.float32)
     for li in range(per.shape[1]):
         tm.vertex_attributes[f"_IRRADIANCE_{li}"] = np.ascontiguousarray(per[:, li], np.float32)

@@ -172,9 +172,14 @@ def add_mesh_parser(sub: Any) -> None:
     p.add_argument("--tile-size", type=float, default=None,
                    help="side of the tiles the receiver is meshed in (m; default 1/16 of its extent)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output (one line per refinement round)")
-    p.set_defaults(func=mesh_command, requires=(("trimesh", "mesh", "mesh (writing the mesh)"),
-                                                ("pythoncdt", "mesh", "mesh (triangulation)"),
-                                                ("shapely", "mesh", "mesh (polygon clipping)")))
+    p.set_defaults(func=mesh_command, requires=mesher_requires("mesh"))
+
+
+def mesher_requires(command: str) -> tuple[tuple[str, str, str], ...]:
+    """What a command that runs the illumination mesher needs: `(module, extra, what for)`."""
+    return (("trimesh", "mesh", f"{command} (writing the mesh)"),
+            ("pythoncdt", "mesh", f"{command} (triangulation)"),
+            ("shapely", "mesh", f"{command} (polygon clipping)"))
 
 
 if __name__ == "__main__":  # pragma: no cover

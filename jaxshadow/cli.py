@@ -519,9 +519,9 @@ def _add_bake(sub: Any) -> None:
     p.add_argument("--min-edge", type=float, default=None,
                    help="elements shorter than this (m) are not split (default: see jaxshadow.bake)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
-    p.set_defaults(func=cmd_bake, requires=(("trimesh", "mesh", "bake (writing the mesh)"),
-                                            ("pythoncdt", "mesh", "bake (triangulation)"),
-                                            ("shapely", "mesh", "bake (polygon clipping)")))
+    from ._illumination_io import mesher_requires
+
+    p.set_defaults(func=cmd_bake, requires=mesher_requires("bake"))
 
 
 def parse_lights(text: str | None) -> list[int] | None:
