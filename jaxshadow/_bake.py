@@ -114,28 +114,15 @@ class BakedScene:
 
 
 def _weld(points: np.ndarray, tol: float) -> np.ndarray:
-    """`(n,)` welded id of each point: points within `tol` are one (transitively); the id is
-    the lowest index of its group."""
-    from scipy.spatial import cKDTree
+    """`(n,)` welded id of each point: points within `tol > 0` are one (transitively,
+    `jaxshadow._meshio.weld_vertices`); the id is the lowest index of its group. `tol <= 0`:
+    every point its own."""
+    from ._meshio import weld_vertices
 
-    n = points.shape[0]
-    parent = np.arange(n)
-    if n and tol > 0:
-        pairs = cKDTree(points).query_pairs(tol, output_type="ndarray")
-
-        def find(i: int) -> int:
-            while parent[i] != i:
-                parent[i] = parent[parent[i]]
-                i = parent[i]
-            return i
-
-        for a, b in pairs:
-            ra, rb = find(int(a)), find(int(b))
-            if ra != rb:
-                parent[max(ra, rb)] = min(ra, rb)
-        for i in range(n):
-            parent[i] = find(i)
-    return parent
+    if points.shape[0] == 0 or tol <= 0:
+        return np.arange(points.shape[0])
+    index, first = weld_vertices(points, tol)
+    return first[index]
 
 
 def _surfaces(scene: Scene, receivers: Any) -> list[tuple[str, np.ndarray, Any, np.ndarray | None]]:
