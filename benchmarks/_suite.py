@@ -144,7 +144,7 @@ def _json_default(x: Any) -> Any:
 
 def write_json(path: Path, data: Any) -> None:
     """`data` as indented JSON at `path` (atomically; NumPy scalars and arrays as lists)."""
-    from jaxshadow._files import atomic_write
+    from jaxshadow._core.files import atomic_write
 
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_write(path) as fh:
@@ -153,7 +153,7 @@ def write_json(path: Path, data: Any) -> None:
 
 
 def write_text(path: Path, text: str) -> None:
-    from jaxshadow._files import atomic_write
+    from jaxshadow._core.files import atomic_write
 
     with atomic_write(path) as fh:
         fh.write(text)
@@ -161,7 +161,7 @@ def write_text(path: Path, text: str) -> None:
 
 def save_figure(fig: Any, path: Path, dpi: int = 110) -> None:
     """`fig.savefig(path)` through a temporary file (a benchmark's `plot`)."""
-    from jaxshadow._files import atomic_write_path
+    from jaxshadow._core.files import atomic_write_path
 
     atomic_write_path(path, lambda tmp: fig.savefig(tmp, dpi=dpi))
 

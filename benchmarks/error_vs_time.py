@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxshadow as js
-from jaxshadow._polygon import form_factor_kernel
+from jaxshadow._kernels.polygon import form_factor_kernel
 
 from ._common import QUAD, fmt, occluder_grid, receivers, time_side_by_side
 from .numpy_reference import form_factor_numpy
@@ -42,7 +42,7 @@ def _spline_vs_clipping(n, reps) -> list[dict]:
     """Stark's shadow equation (js.spline_shadow) against exact clipping, receivers on z = 0."""
     if not hasattr(js, "spline_shadow"):
         raise NotImplementedError("js.spline_shadow is not exported")
-    from jaxshadow._clip import visible_form_factor_kernel
+    from jaxshadow._kernels.clip import visible_form_factor_kernel
 
     rows = []
     occ = occluder_grid(1)[0]
@@ -88,7 +88,7 @@ def bench_error_vs_time(n_time, n_err, reps, quick) -> list[dict]:
             rows.append(dict(quantity="form factor (quad)", method=name, knob=f"dtype={dn}", seconds_per_point=t[name]["best_s"] / n_time, max_err=float(err.max()), rms_err=float(np.sqrt(np.mean(err**2))), reference=f"mpmath 60 digits, {n_err} points; error / max|F|"))
     # -- specular: Chebyshev degree ---------------------------------------------------
     try:
-        from jaxshadow import _specular
+        from jaxshadow._kernels import specular as _specular
 
         pt, nt = receivers(n_time // 10, np.float64)
         eye = jnp.asarray([0.3, -0.4, 2.0])

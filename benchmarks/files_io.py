@@ -77,7 +77,7 @@ def _cli(args: list[str]) -> tuple[float, float]:
 
 def tables(n: int, folder: str) -> dict:
     import jaxshadow as js
-    from jaxshadow._meshio import POINT_COLUMNS, write_csv_table
+    from jaxshadow._io.meshio import POINT_COLUMNS, write_csv_table
 
     rng = np.random.default_rng(0)
     p = np.c_[rng.uniform(-1, 1, (n, 2)), np.zeros(n)]
@@ -115,7 +115,7 @@ def tables(n: int, folder: str) -> dict:
 def scene_files(folder: str, subdivisions: int) -> dict:
     import jaxshadow as js
     from benchmarks.real_meshes import scan_like
-    from jaxshadow._scene import arrays_file_name
+    from jaxshadow._scene.model import arrays_file_name
 
     v, f = scan_like(subdivisions)
     v = v.astype(np.float32).astype(np.float64)

@@ -232,7 +232,7 @@ def run(quick: bool = False) -> dict:
 def _plot(out: dict, path: str) -> None:
     import matplotlib
 
-    from jaxshadow._files import atomic_write_path
+    from jaxshadow._core.files import atomic_write_path
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -319,7 +319,7 @@ def markdown(out: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    from jaxshadow._files import atomic_write
+    from jaxshadow._core.files import atomic_write
 
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true", help="smoke test: two scenes, few samples")

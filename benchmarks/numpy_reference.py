@@ -3,7 +3,7 @@
 Each function works on whole arrays of receivers at once (no Python loop over points): the
 polygon is clipped exactly to every receiver's horizon and Lambert's contour sum (Campbell &
 Fussell eq. 11) is evaluated over the clipped edge soup; the segment light uses the same closed
-form as `jaxshadow._linear` (Poulin eq. 3.10) with horizon clipping of the parameter interval.
+form as `jaxshadow._kernels.linear` (Poulin eq. 3.10) with horizon clipping of the parameter interval.
 Written independently of the JAX code so that the comparison is formula-for-formula.
 """
 

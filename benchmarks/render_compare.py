@@ -4,7 +4,7 @@
 1. jaxshadow's image (exact shading, 2 x 2 sub-pixels per pixel, box filter), timed as a second
    render in the process (the first compiles; both times are recorded).
 2. Mitsuba `direct` at equal wall time: the spp at which Mitsuba takes as long as our (warm)
-   render (`jaxshadow._render.equal_time_spp`), and its image.
+   render (`jaxshadow.cli.render.equal_time_spp`), and its image.
 3. A high-spp Mitsuba reference (32 independent renders of 64 spp, for per-pixel standard
    errors): on the floor pixels, z = (ours - reference) / stderr and the same for the equal-time
    render; the RMS relative error of both against the reference.
@@ -38,7 +38,7 @@ def main() -> None:
     jax.config.update("jax_enable_x64", True)
     import jaxshadow as js
     from jaxshadow import mitsuba as jm
-    from jaxshadow._render import equal_time_spp, render, render_mitsuba, write_comparison
+    from jaxshadow.cli.render import equal_time_spp, render, render_mitsuba, write_comparison
 
     with tempfile.TemporaryDirectory() as d:
         scene = jm.write_example_scene(d, resolution=args.resolution)

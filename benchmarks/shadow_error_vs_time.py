@@ -7,7 +7,7 @@ Scene: one quad emitter (z = 2, [0, 1]^2, facing down, radiance 1), one square o
 Methods, each in float32 and float64 where it has a dtype:
 
 - clipping, public: `js.irradiance(scene, points, normals) / pi` (exact clipping, `_clip.py`);
-- clipping, kernel: `jaxshadow._clip.visible_form_factor` (jitted, no input checks);
+- clipping, kernel: `jaxshadow._kernels.clip.visible_form_factor` (jitted, no input checks);
 - spline: `js.spline_shadow(emitter, occluder, points)` (Stark eq. 24);
 - Mitsuba Monte Carlo: `jaxshadow.mitsuba.reference_irradiance` / pi at an spp sweep (time
   includes the scene conversion done in every call; Dr.Jit's kernel cache is warm).
@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxshadow as js
-from jaxshadow._clip import visible_form_factor
+from jaxshadow._kernels.clip import visible_form_factor
 
 DESCRIPTION = "exact soft shadows (clipping, spline equation) against Mitsuba Monte Carlo: error vs run time"
 EMITTER = np.array([[0.0, 0.0, 2.0], [0.0, 1.0, 2.0], [1.0, 1.0, 2.0], [1.0, 0.0, 2.0]])  # faces -z

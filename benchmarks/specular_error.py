@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxshadow._specular import (
+from jaxshadow._kernels.specular import (
     DEFAULT_DEGREE,
     DEFAULT_TOL,
     polygon_specular_kernel,

@@ -15,8 +15,8 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxshadow as js
-from jaxshadow._linear import linear_irradiance_kernel
-from jaxshadow._polygon import form_factor_kernel
+from jaxshadow._kernels.linear import linear_irradiance_kernel
+from jaxshadow._kernels.polygon import form_factor_kernel
 
 from ._common import (
     QUAD,

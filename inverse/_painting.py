@@ -210,7 +210,7 @@ def _bound_list(a: np.ndarray) -> list:
 
 def save_painted(path: Any, targets: Any, ranges: ColourRange | None = None, brighter: Brighter | None = None) -> None:
     """Write painted targets with their colour ranges and "brighter than" relations to `.json`
-    or `.csv` (by the extension), atomically (`jaxshadow._files.atomic_write`).
+    or `.csv` (by the extension), atomically (`jaxshadow._core.files.atomic_write`).
 
     JSON: the targets' object (`PaintedTargets.to_dict`) with `"ranges": {"index", "lower",
     "upper"}` (an absent bound as `null`) and `"brighter": {"pairs", "weight", "margin"}`. CSV:
@@ -235,7 +235,7 @@ def save_painted(path: Any, targets: Any, ranges: ColourRange | None = None, bri
     import json
     import os
 
-    from jaxshadow._files import atomic_write
+    from jaxshadow._core.files import atomic_write
 
     from ._targets import _CSV_REQUIRED, _CSV_TOL, _CSV_WEIGHTS
 
@@ -306,7 +306,7 @@ def load_painted(path: Any) -> tuple[Any, ColourRange | None, Brighter | None]:
     import os
     import tempfile
 
-    from jaxshadow._files import atomic_write
+    from jaxshadow._core.files import atomic_write
 
     from ._targets import PaintedTargets
 

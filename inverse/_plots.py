@@ -1,7 +1,7 @@
 """A picture of a light fit: the targets coloured by their residual, and where to paint more.
 
 Matplotlib (the `plot` extra) with its Agg canvas (no display, no pyplot state); the file is
-written through `jaxshadow._files.atomic_write_path`.
+written through `jaxshadow._core.files.atomic_write_path`.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from jaxshadow._files import atomic_write_path
+from jaxshadow._core.files import atomic_write_path
 
 from ._painting import LUMINANCE
 from ._targets import PaintedTargets

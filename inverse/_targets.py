@@ -17,8 +17,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from jaxshadow._files import atomic_write
-from jaxshadow._misc import safe_normalize
+from jaxshadow._core.files import atomic_write
+from jaxshadow._core.misc import safe_normalize
 
 TARGETS_FORMAT = "inverse.targets"
 TARGETS_VERSION = 1
@@ -56,7 +56,7 @@ def _check_rows(name: str, a: np.ndarray, *, nonneg: bool = False, positive: boo
 def _unit_rows(v: Array) -> Array:
     """Rows divided by their length. A plain norm where the sum of squares is a normal number
     (so that unit rows come back bit for bit and files round-trip exactly), else scale-free
-    (`jaxshadow._misc.safe_normalize`): a normal of length 1e-160 or 1e160 (valid input)
+    (`jaxshadow._core.misc.safe_normalize`): a normal of length 1e-160 or 1e160 (valid input)
     gave 0/0 = NaN or inf/inf."""
     sq = jnp.sum(v * v, axis=-1, keepdims=True)
     fi = jnp.finfo(v.dtype)
@@ -215,7 +215,7 @@ class PaintedTargets(eqx.Module):
 
     def save(self, path: str | os.PathLike) -> None:
         """Write to `.json` or `.csv` (chosen by the extension), through
-        `jaxshadow._files.atomic_write`: a failure (serialiser, full disk) leaves an existing
+        `jaxshadow._core.files.atomic_write`: a failure (serialiser, full disk) leaves an existing
         file as it was."""
         path = os.fspath(path)
         if path.lower().endswith(".csv"):

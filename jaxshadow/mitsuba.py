@@ -1,7 +1,7 @@
 r"""Mitsuba 3 bridge: scenes in and out, and Monte Carlo reference estimators (optional extra).
 
 - In: `from_mitsuba(path_or_dict) -> (Scene, receivers, materials)` reads any Mitsuba scene
-  through Mitsuba's own loader (`jaxshadow._mitsuba_io`: what maps to what, and what is lost);
+  through Mitsuba's own loader (`jaxshadow._io.mitsuba_io`: what maps to what, and what is lost);
   `read_sensor` its camera.
 - Out: `to_mitsuba` / `to_mitsuba_dict` (an in-memory Mitsuba scene, with receiver surfaces and
   their materials as BSDFs, and a camera) and `write_mitsuba_xml` (a scene file).
@@ -60,14 +60,14 @@ from typing import Any
 
 import numpy as np
 
-from ._mitsuba_io import UnsupportedMitsubaElementWarning as UnsupportedMitsubaElementWarning
-from ._mitsuba_io import from_mitsuba as from_mitsuba
-from ._mitsuba_io import material_from_bsdf as material_from_bsdf
-from ._mitsuba_io import material_to_bsdf as material_to_bsdf
-from ._mitsuba_io import read_sensor as read_sensor
-from ._mitsuba_io import write_example_scene as write_example_scene
-from ._mitsuba_io import write_mitsuba_xml as write_mitsuba_xml
-from ._scene import DirectionalLight, LinearLight, Material, PointLight, PolygonLight, Scene
+from ._io.mitsuba_io import UnsupportedMitsubaElementWarning as UnsupportedMitsubaElementWarning
+from ._io.mitsuba_io import from_mitsuba as from_mitsuba
+from ._io.mitsuba_io import material_from_bsdf as material_from_bsdf
+from ._io.mitsuba_io import material_to_bsdf as material_to_bsdf
+from ._io.mitsuba_io import read_sensor as read_sensor
+from ._io.mitsuba_io import write_example_scene as write_example_scene
+from ._io.mitsuba_io import write_mitsuba_xml as write_mitsuba_xml
+from ._scene.model import DirectionalLight, LinearLight, Material, PointLight, PolygonLight, Scene
 
 _VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
 _CHUNK_LANES = 1 << 20
@@ -212,7 +212,7 @@ def scene_items(scene: Scene, receivers: Any = (), materials: Any = (), *, segme
         else:  # pragma: no cover - Scene validates its lights
             raise ValueError(f"to_mitsuba: unsupported light {type(light).__name__}.")
     if receivers:
-        from ._mitsuba_io import material_to_bsdf
+        from ._io.mitsuba_io import material_to_bsdf
 
         names = _surface_ids([r.name for r in receivers])
         for k, (name, r) in enumerate(zip(names, receivers, strict=True)):
@@ -299,7 +299,7 @@ class _Twin:
             raise ValueError(f"expected a jaxshadow.Scene, got {type(scene).__name__}.")
         self.occluders = None
         if native is not None:  # the user's own Mitsuba scene, with Mitsuba's visibility test
-            from ._mitsuba_io import _load
+            from ._io.mitsuba_io import _load
 
             self.full, self.lights_occlude, self.max_light_hits = _load(mi, native), True, 1
             return
@@ -604,7 +604,7 @@ def quick_report(scene: Scene, points: Any, normals: Any, spp: int = 4096, seed:
     """
     import jax.numpy as jnp
 
-    from ._shade import irradiance
+    from ._shading.shade import irradiance
 
     p, n = _points_normals(points, normals)
     t0 = time.perf_counter()

@@ -24,13 +24,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from ._misc import unit_rows as _unit_rows
-from ._scene import LinearLight, PolygonLight, Scene
-from ._shade import _irradiance_traced, _specular_traced
+from ._core.misc import unit_rows as _unit_rows
+from ._kernels.specular import DEFAULT_DEGREE
+from ._scene.model import LinearLight, PolygonLight, Scene
+from ._shading.shade import _irradiance_traced, _specular_traced
 from ._shadows import compiled as _shadows_compiled
 from ._shadows import plan as _shadows
 from ._shadows.plan import DEFAULT_OPTIONS, Lambert, Phong, ShadowOptions
-from ._specular import DEFAULT_DEGREE
 
 __all__ = ["DEFAULT_SPECULAR_DEGREE", "irradiance", "specular", "pin", "shadow_capacity"]
 

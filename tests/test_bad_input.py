@@ -228,8 +228,8 @@ def test_cli_deeply_nested_json_is_a_usage_error(tmp_path, capsys):
 
 def test_render_refuses_a_film_too_large_before_allocating(tmp_path, capsys, monkeypatch):
     pytest.importorskip("mitsuba")
-    from jaxshadow import _render
     from jaxshadow import mitsuba as jm
+    from jaxshadow.cli import render as _render
 
     def forbidden(*a, **k):
         raise AssertionError("allocated the camera rays")

@@ -197,7 +197,7 @@ def test_glb_and_ply_carry_values_per_light(baked, tmp_path):
     np.testing.assert_allclose(g.vertices, yup, rtol=0, atol=1e-6 * np.abs(yup).max())
     np.testing.assert_allclose(g.vertex_attributes["_IRRADIANCE_1"], b.irradiance_per_light[:, 1], rtol=1e-6)
     np.testing.assert_allclose(g.vertex_attributes["_IRRADIANCE"], b.irradiance, rtol=1e-6)
-    from jaxshadow._meshio import read_ply_values
+    from jaxshadow._io.meshio import read_ply_values
 
     np.testing.assert_array_equal(read_ply_values(tmp_path / "s.ply"), b.irradiance)
     np.testing.assert_array_equal(read_ply_values(tmp_path / "s.ply", "irradiance_0"), b.irradiance_per_light[:, 0])

@@ -277,7 +277,7 @@ def test_mesh_receivers_in_ply_out(tmp_path):
     mesh = js.read_mesh(tmp_path / "box.obj")
     p, n = mesh.receivers("vertices")
     ref = np.asarray(js.irradiance(js.load_scene(ROOM), p, n))
-    from jaxshadow._meshio import read_ply_values
+    from jaxshadow._io.meshio import read_ply_values
 
     np.testing.assert_allclose(read_ply_values(tmp_path / "e.ply", "irradiance"), ref, rtol=1e-12)
     back = trimesh.load(tmp_path / "e.ply", process=False)
@@ -465,7 +465,7 @@ def test_missing_optional_dependency_is_found_before_computing(tmp_path, capsys,
     import importlib.util
 
     import inverse.cli as icli
-    from jaxshadow import _render
+    from jaxshadow.cli import render as _render
 
     def forbidden(*a, **k):
         raise AssertionError("computed before the optional dependencies were checked")

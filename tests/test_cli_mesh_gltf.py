@@ -13,7 +13,7 @@ from jaxshadow.cli import main
 trimesh = pytest.importorskip("trimesh")
 pytest.importorskip("pythoncdt")
 pytest.importorskip("shapely")
-from jaxshadow._meshio import write_gltf  # noqa: E402
+from jaxshadow._io.meshio import write_gltf  # noqa: E402
 
 NC = "--no-compile-cache"
 

@@ -1,4 +1,4 @@
-"""Exact soft shadows by occluder clipping (`jaxshadow._clip`).
+"""Exact soft shadows by occluder clipping (`jaxshadow._kernels.clip`).
 
 The reference shares no code with the kernels: Sutherland-Hodgman clipping in NumPy (emitter to
 the receiver's horizon; each occluder to the lit side of the emitter plane and to the pyramid
@@ -24,7 +24,7 @@ from shapely.geometry.polygon import orient  # noqa: E402
 from shapely.ops import unary_union  # noqa: E402
 from shapes import clip_halfspace  # noqa: E402
 
-from jaxshadow._clip import (  # noqa: E402
+from jaxshadow._kernels.clip import (  # noqa: E402
     directional_visibility,
     point_visibility,
     visible_edges,
@@ -454,7 +454,7 @@ def test_visible_edges_shapes_and_orientation():
 
 
 def test_against_spline_shadow():
-    spline = pytest.importorskip("jaxshadow._spline")
+    spline = pytest.importorskip("jaxshadow._kernels.spline")
     worst = 0.0
     for seed in range(6):
         rng = np.random.default_rng(500 + seed)

@@ -37,7 +37,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 import jaxshadow as js
-from jaxshadow._mesh import OccluderTopology
+from jaxshadow._core.mesh import OccluderTopology
 from jaxshadow._shadows import binding as vis
 
 pytest.importorskip("trimesh")

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 import jaxshadow as js
-from jaxshadow import _meshio
-from jaxshadow._meshio import POINT_COLUMNS, read_csv, write_csv_table
+from jaxshadow._io import meshio as _meshio
+from jaxshadow._io.meshio import POINT_COLUMNS, read_csv, write_csv_table
 
 
 def _reference_columns(text: str, columns) -> np.ndarray:

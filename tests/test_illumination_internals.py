@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 import jaxshadow as js
-from jaxshadow import _illumination_evaluator as evaluator
-from jaxshadow import _illumination_events as ev
-from jaxshadow import _illumination_pslg as pslg
+from jaxshadow._illumination import evaluator as evaluator
+from jaxshadow._illumination import events as ev
+from jaxshadow._illumination import pslg as pslg
 from jaxshadow._shadows import cache as _cache
 
 QUAD = np.array([[-0.3, -0.3, 2.0], [-0.3, 0.3, 2.0], [0.3, 0.3, 2.0], [0.3, -0.3, 2.0]])
@@ -255,7 +255,7 @@ def test_occluder_features_reused_equal_fresh():
 def test_key_table_matches_a_dict():
     """Random puts (with repeated keys in a batch), deletes and look-ups against a `dict`, with
     keys from a coarse lattice so that batches collide often, through several resizes."""
-    from jaxshadow._keytable import KeyTable, as_keys, first_occurrence
+    from jaxshadow._core.keytable import KeyTable, as_keys, first_occurrence
 
     rng = np.random.default_rng(5)
     t, d = KeyTable(16), {}
@@ -286,7 +286,7 @@ def test_key_table_matches_a_dict():
 def test_cut_by_polygons_hand_computed():
     # A segment along the x axis through a square (cut out, grown by g), from inside a square
     # at its start (its own object's foot: kept) and short of a square past its end.
-    from jaxshadow._illumination_events import _cut_by_polygons
+    from jaxshadow._illumination.events import _cut_by_polygons
 
     sq = lambda x0, x1: np.array([[x0, -1.0], [x1, -1.0], [x1, 1.0], [x0, 1.0]])  # noqa: E731
     polys = [sq(2.0, 3.0), sq(-1.0, 0.0), sq(11.0, 12.0)]
@@ -306,7 +306,7 @@ def test_corner_lines_run_their_whole_length_outside_other_feet():
     # kept an interpolation error of 1.07e-3 that its seven check points did not see. The line
     # now runs as far as both boxes can shadow, but not through box C's foot (a hole), which it
     # resumes beyond.
-    from jaxshadow._illumination_builder import _Builder
+    from jaxshadow._illumination.builder import _Builder
 
     A = ((-0.270, -1.951, 0.0), (-0.048, -1.606, 0.998))
     B = ((-0.108, -1.211, 0.0), (0.093, -0.906, 1.106))

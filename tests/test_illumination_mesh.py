@@ -233,7 +233,7 @@ def test_object_standing_on_the_receiver_is_a_hole(standing):
 def test_object_standing_on_the_receiver_error_estimate(standing):
     # The estimate leaves out only the elements within CORNER_SIZE of the footprint's corners
     # (no limit there), reported apart; everything else meets tol, the wall feet included.
-    from jaxshadow._illumination_builder import CORNER_SIZE
+    from jaxshadow._illumination.builder import CORNER_SIZE
 
     scene, m = standing
     assert m.max_error_estimate <= 5e-2
@@ -265,7 +265,7 @@ def test_corner_just_outside_a_tile_is_a_corner():
     # there are at a corner (refined to CORNER_SIZE, error reported apart). Before, only tiles
     # meeting a footprint looked for its corners: those elements were split down to min_edge
     # and left far over tol (`unrefined_min_edge`, and in `max_error_estimate`).
-    from jaxshadow._illumination_pslg import _grid
+    from jaxshadow._illumination.pslg import _grid
 
     xs, ys = _grid(FLOOR[:, :2], TILE)
     hi = np.array([xs[2] - 5e-6, ys[2] - 5e-6, 0.5])  # on the third interior grid lines, less 5 um
@@ -280,7 +280,7 @@ def test_corner_just_outside_a_tile_is_a_corner():
 def test_footprint_corners_include_crossings():
     # Two overlapping standing boxes: the union of their footprints has corners where their
     # edges cross, (2, 1) and (1, 2) here (hand-computed), besides the squares' own vertices.
-    from jaxshadow._illumination_pslg import _contact_corners
+    from jaxshadow._illumination.pslg import _contact_corners
 
     a = np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 2.0], [0.0, 2.0]])
     got = _contact_corners([a, a + 1.0])
@@ -405,7 +405,7 @@ def test_lines_leaving_a_standing_corner(case):
     # unless the line is a mesh edge. The receiver: a strip 3 cm wide across the corners and
     # 8 m long (the box scene's floor size, so that CORNER_SIZE is); min_edge / tol as there
     # (8e-6 / 1e-3).
-    from jaxshadow._illumination_builder import CORNER_SIZE, ESTIMATE_MARGIN
+    from jaxshadow._illumination.builder import CORNER_SIZE, ESTIMATE_MARGIN
 
     boxes, x0, tol, min_edge = CORNER_CASES[case]
     scene = js.Scene([js.PolygonLight(LIGHT, 10.0)], [js.Mesh.box(lo, hi) for lo, hi in boxes])
@@ -440,8 +440,8 @@ def test_penumbra_wedge_beyond_the_corner_disc(monkeypatch):
     # be smaller than min_edge in proportion to their distance: before CORNER_GRADE, 477
     # elements here stopped at min_edge over the threshold (the whole floor: 16 761, checked
     # error up to 5.97e-4, around 102 corners).
-    import jaxshadow._illumination_builder as B
-    import jaxshadow._illumination_refine as R
+    import jaxshadow._illumination.builder as B
+    import jaxshadow._illumination.refine as R
 
     half = 0.01
     monkeypatch.setattr(R, "CORNER_SIZE", 0.8e-3 / (2 * half))

@@ -11,8 +11,8 @@ from jax.test_util import check_grads
 from scipy.integrate import quad
 
 import jaxshadow as js
-from jaxshadow._linear import linear_irradiance_kernel
-from jaxshadow._point import directional_irradiance_kernel, point_irradiance_kernel
+from jaxshadow._kernels.linear import linear_irradiance_kernel
+from jaxshadow._kernels.point import directional_irradiance_kernel, point_irradiance_kernel
 
 # --------------------------------------------------------------------------------------
 # Closed forms
@@ -187,7 +187,7 @@ def test_gradients_finite_at_singular_configurations(p, n, m):
 def test_cosine_profile_emits_the_same_power():
     # Total power per unit length: integral of I(beta) over the sphere = Phi for every m.
     for m in (0, 1, 4):
-        from jaxshadow._linear import cosine_profile_constant
+        from jaxshadow._kernels.linear import cosine_profile_constant
 
         c = cosine_profile_constant(m)
         total = 2 * np.pi * quad(lambda beta, c=c, m=m: c * np.cos(beta) ** (m + 1), -np.pi / 2, np.pi / 2)[0]

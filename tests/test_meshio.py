@@ -1,4 +1,4 @@
-"""Meshes and point tables in and out (`jaxshadow._meshio`, through trimesh), and per-receiver
+"""Meshes and point tables in and out (`jaxshadow._io.meshio`, through trimesh), and per-receiver
 materials (`Material` fields of shape (N, 3))."""
 
 import os
@@ -9,7 +9,7 @@ import pytest
 import jaxshadow as js
 
 trimesh = pytest.importorskip("trimesh")
-from jaxshadow._meshio import read_csv, read_ply_values, tonemap  # noqa: E402
+from jaxshadow._io.meshio import read_csv, read_ply_values, tonemap  # noqa: E402
 
 
 def _box():
@@ -243,7 +243,7 @@ def test_one_ply_property_naming_for_irradiance(tmp_path):
     # write_ply's default, the `irradiance` command and the illumination meshes: irradiance_r/g/b.
     from types import SimpleNamespace
 
-    from jaxshadow._illumination_io import save_mesh
+    from jaxshadow._illumination.io import save_mesh
 
     m = _box()
     r = js.ReceiverMesh(m.vertices, m.faces)
@@ -267,7 +267,7 @@ def test_one_ply_property_naming_for_irradiance(tmp_path):
 def test_csv_values_round_trip_exactly_in_their_own_precision(tmp_path):
     # float64 columns come back bit for bit as float64, float32 columns bit for bit as float32
     # (parsed by NumPy's own reader, not by the code under test), across several write blocks.
-    from jaxshadow import _meshio
+    from jaxshadow._io import meshio as _meshio
 
     rng = np.random.default_rng(3)
     n = 2 * _meshio.CSV_BLOCK_ROWS + 17

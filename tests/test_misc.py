@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxshadow._misc import angle_over_sin, arctan2, fusible
+from jaxshadow._core.misc import angle_over_sin, arctan2, fusible
 
 
 @pytest.mark.parametrize("dt,tol", [(np.float32, 3e-7), (np.float64, 5e-16)])
@@ -48,7 +48,7 @@ def test_angle_over_sin_singular_case_is_zero():
 def test_map_chunks_blocks_and_joins_pytrees():
     """Several blocks (the last padded): array leaves joined in order, scalar leaves stacked
     per block; the padding never leaks into the result."""
-    from jaxshadow._misc import map_chunks
+    from jaxshadow._core.misc import map_chunks
 
     x = jnp.arange(2 * 10 + 7, dtype=jnp.float32)[:, None] * jnp.ones((1, 3), jnp.float32)
     calls = []
@@ -69,7 +69,7 @@ def test_map_chunks_blocks_and_joins_pytrees():
 def test_blocked_public_path_finds_a_bad_row_in_a_late_block():
     """The input check is fused into each block's compiled call; the error still names the row."""
     import jaxshadow as js
-    from jaxshadow._misc import CHUNK
+    from jaxshadow._core.misc import CHUNK
 
     n = 2 * CHUNK + 3
     p = np.zeros((n, 3), np.float32)
@@ -109,7 +109,7 @@ def test_fusible_is_the_identity_to_the_bit(dt, bits):
 def test_pow2_scale_matches_numpy_frexp(dt):
     """`_clip._pow2_scale` reads frexp's exponent from the bits: compare with NumPy's frexp on
     zeros, non-finite values, subnormals, the extremes and random magnitudes over the whole range."""
-    from jaxshadow._clip import _pow2_scale
+    from jaxshadow._kernels.clip import _pow2_scale
 
     fi = np.finfo(dt)
     rng = np.random.default_rng(0)

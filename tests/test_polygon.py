@@ -9,7 +9,7 @@ from scipy.integrate import dblquad
 from shapes import clip_halfspace, random_convex
 
 import jaxshadow as js
-from jaxshadow._polygon import form_factor_kernel
+from jaxshadow._kernels.polygon import form_factor_kernel
 
 
 def rect(x0, x1, y0, y1, z, facing_down=True):
@@ -247,7 +247,7 @@ def test_grouped_unrolled_kernel_agrees_with_compact(k):
     """Polygons longer than 1.5 EDGE_GROUP edges are evaluated in groups by a scan (the
     crossing points of the horizon carried between groups); same values as the
     edge-vectorised kernel, with receivers whose tangent plane cuts the polygon."""
-    from jaxshadow._polygon import EDGE_GROUP, _form_factor_compact, _form_factor_unrolled
+    from jaxshadow._kernels.polygon import EDGE_GROUP, _form_factor_compact, _form_factor_unrolled
 
     assert (k > 1.5 * EDGE_GROUP) == (k != 24)  # one unrolled case, three grouped ones
     ang = -2 * np.pi * np.arange(k) / k  # clockwise seen from above: emits downwards
@@ -264,7 +264,7 @@ def test_grouped_unrolled_kernel_agrees_with_compact(k):
 
 def test_fast_and_compact_evaluations_agree():
     # Values come from the unrolled kernel, derivatives from the edge-vectorised one.
-    from jaxshadow._polygon import _form_factor_compact, _form_factor_unrolled
+    from jaxshadow._kernels.polygon import _form_factor_compact, _form_factor_unrolled
 
     for p, n, verts in CASES:
         args = (jnp.asarray(p), jnp.asarray(n), jnp.asarray(verts))

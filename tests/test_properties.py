@@ -51,8 +51,8 @@ from test_clip import reference_ff
 from test_stability import mp_form_factor, mp_linear
 
 import jaxshadow as js
-from jaxshadow._linear import linear_irradiance_kernel
-from jaxshadow._polygon import form_factor_kernel
+from jaxshadow._kernels.linear import linear_irradiance_kernel
+from jaxshadow._kernels.polygon import form_factor_kernel
 
 CI_EXAMPLES = 30
 LONG_EXAMPLES = 400

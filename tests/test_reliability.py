@@ -27,9 +27,9 @@ from test_stability import mp_form_factor, mp_linear
 
 import inverse
 import jaxshadow as js
-from jaxshadow._linear import MAX_COSINE_EXPONENT, linear_irradiance_kernel
-from jaxshadow._polygon import form_factor_kernel
-from jaxshadow._specular import MAX_DEGREE
+from jaxshadow._kernels.linear import MAX_COSINE_EXPONENT, linear_irradiance_kernel
+from jaxshadow._kernels.polygon import form_factor_kernel
+from jaxshadow._kernels.specular import MAX_DEGREE
 
 F32 = np.float32
 UP = np.array([[0.0, 0.0, 1.0]])
@@ -157,7 +157,7 @@ def test_row5_failing_save_scene_keeps_the_old_file(tmp_path, monkeypatch):
     def broken(*args, **kwargs):
         raise RuntimeError("serialiser failed")
 
-    import jaxshadow._scene as scene_module
+    import jaxshadow._scene.model as scene_module
 
     monkeypatch.setattr(scene_module, "scene_to_dict", broken)
     with pytest.raises(RuntimeError, match="serialiser failed"):

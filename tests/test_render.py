@@ -11,8 +11,8 @@ import pytest
 pytest.importorskip("mitsuba")
 pytest.importorskip("trimesh")
 from jaxshadow import mitsuba as jm  # noqa: E402
-from jaxshadow._render import Rendering, render, render_mitsuba  # noqa: E402
 from jaxshadow.cli import main  # noqa: E402
+from jaxshadow.cli.render import Rendering, render, render_mitsuba  # noqa: E402
 
 pytestmark = pytest.mark.mitsuba
 

@@ -274,7 +274,7 @@ def test_inline_json_face_index_must_be_an_integer(tmp_path):
 def test_vectorised_mesh_entries_match_the_per_vertex_recovery():
     # scene_to_dict / save_scene recover each mesh's vertices and faces from the padded faces in
     # one vectorised pass; mesh_dicts does it vertex by vertex with a dict: the same entries.
-    from jaxshadow._mesh import OccluderTopology, mesh_dicts
+    from jaxshadow._core.mesh import OccluderTopology, mesh_dicts
 
     trimesh = pytest.importorskip("trimesh")
     ball = trimesh.creation.icosphere(subdivisions=1)

@@ -24,7 +24,7 @@ from shapes import unit as _unit  # noqa: E402
 from shapes import uv_sphere  # noqa: E402
 
 import jaxshadow as js
-from jaxshadow._clip import directional_visibility, point_visibility
+from jaxshadow._kernels.clip import directional_visibility, point_visibility
 
 pytest.importorskip("mitsuba")
 from jaxshadow import mitsuba as jm  # noqa: E402

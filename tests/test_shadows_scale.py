@@ -134,7 +134,7 @@ def test_three_paths_agree_in_values_and_gradients():
     g_traced = np.asarray(jax.jit(jax.grad(total(SCENE)))(p))
     np.testing.assert_allclose(g_traced, g_planned, rtol=1e-11, atol=1e-12)
     # The device kernel, receiver by receiver (no batch culling).
-    from jaxshadow._clip import visible_form_factor_kernel
+    from jaxshadow._kernels.clip import visible_form_factor_kernel
 
     def dev_one(q, m):
         return 6 * jnp.pi * visible_form_factor_kernel(q, m / jnp.linalg.norm(m), jnp.asarray(LIGHT), jnp.asarray(TRIS))
@@ -403,7 +403,7 @@ def test_engine_lambert_sums_equal_the_jax_edge_terms():
     # it decodes the boundary (lambert_edge, in double): the same sum as `edge_term` over the
     # decoded edges in JAX, for float64 and float32 receivers, grazing ones included (float32:
     # the engine sums its double points, the returned points are rounded to float32).
-    from jaxshadow._polygon import edge_term
+    from jaxshadow._kernels.polygon import edge_term
     from jaxshadow._shadows.plan import host_occluders
 
     for dt, tol in ((np.float64, 1e-12), (np.float32, 2e-6)):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import jaxshadow as js
-from jaxshadow._sharding import batch_mesh, sharded_irradiance
+from jaxshadow._shading.sharding import batch_mesh, sharded_irradiance
 
 pytestmark = pytest.mark.skipif(len(jax.devices()) < 2, reason="needs >= 2 devices")
 

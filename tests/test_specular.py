@@ -1,4 +1,4 @@
-"""Phong-lobe integrals (jaxshadow._specular, jaxshadow._chebyshev).
+"""Phong-lobe integrals (jaxshadow._kernels.specular, jaxshadow._kernels.chebyshev).
 
 The exact method is checked against independent float64 quadrature written here (scipy over
 the light itself: the segment's length, the clipped polygon's plane), the Chebyshev default
@@ -17,8 +17,8 @@ from jax.test_util import check_grads
 from scipy import integrate
 from shapes import clip_halfspace, random_convex
 
-from jaxshadow._chebyshev import cutoff_angle, poulin_cos_power_integral
-from jaxshadow._specular import (
+from jaxshadow._kernels.chebyshev import cutoff_angle, poulin_cos_power_integral
+from jaxshadow._kernels.specular import (
     contour_specular_kernel,
     directional_specular,
     directional_specular_kernel,

@@ -1,4 +1,4 @@
-"""Stark et al. shadow equation (jaxshadow._spline) against an independent float64 reference.
+"""Stark et al. shadow equation (jaxshadow._kernels.spline) against an independent float64 reference.
 
 The reference shares no code with the kernel: the hidden part of the emitter is cut out in 3-D
 on the emitter's own plane (Sutherland-Hodgman against the planes of the occluder's cone from
@@ -14,8 +14,8 @@ import pytest
 from jax.test_util import check_grads
 from shapes import clip_halfspace, random_convex
 
-from jaxshadow._polygon import form_factor
-from jaxshadow._spline import (
+from jaxshadow._kernels.polygon import form_factor
+from jaxshadow._kernels.spline import (
     shadow_nodes,
     spline_shadow,
     spline_shadow_faces,

@@ -33,9 +33,9 @@ import numpy as np
 import pytest
 from shapes import clip_halfspace
 
-from jaxshadow._linear import linear_irradiance_kernel
-from jaxshadow._point import point_irradiance_kernel
-from jaxshadow._polygon import form_factor_kernel
+from jaxshadow._kernels.linear import linear_irradiance_kernel
+from jaxshadow._kernels.point import point_irradiance_kernel
+from jaxshadow._kernels.polygon import form_factor_kernel
 
 DPS = 60
 
@@ -460,15 +460,15 @@ if __name__ == "__main__":
 
 PENDING = []
 try:
-    from jaxshadow._specular import polygon_specular_kernel
+    from jaxshadow._kernels.specular import polygon_specular_kernel
 except ImportError:  # pragma: no cover - depends on the other engineers' progress
     polygon_specular_kernel = None
-    PENDING.append("specular exponent n = 1 .. 1e6 (jaxshadow/_specular.py absent)")
+    PENDING.append("specular exponent n = 1 .. 1e6 (jaxshadow/_kernels/specular.py absent)")
 try:
-    from jaxshadow._clip import visible_form_factor_kernel
+    from jaxshadow._kernels.clip import visible_form_factor_kernel
 except ImportError:  # pragma: no cover
     visible_form_factor_kernel = None
-    PENDING.append("occluders almost / exactly touching the receiver (jaxshadow/_clip.py absent)")
+    PENDING.append("occluders almost / exactly touching the receiver (jaxshadow/_kernels/clip.py absent)")
 
 
 def mp_polygon_specular(p, n, eye, verts, expo):
@@ -541,7 +541,7 @@ SPECULAR_TOL = {("chebyshev", "float64"): 1e-5, ("exact", "float64"): 1e-9, ("ch
 
 
 @pytest.mark.slow  # ~40-70 s each on the shared 2-core machine (compilation + mpmath)
-@pytest.mark.skipif(polygon_specular_kernel is None, reason="jaxshadow/_specular.py absent")
+@pytest.mark.skipif(polygon_specular_kernel is None, reason="jaxshadow/_kernels/specular.py absent")
 @pytest.mark.parametrize("method", ["chebyshev", "exact"])
 def test_specular_exponent_1_to_1e6(method, dtype):
     rows = specular_rows(method, dtype)
@@ -577,7 +577,7 @@ def _touching_cases():
 
 
 @pytest.mark.slow  # ~45 s per dtype (compilation of the clipping kernel)
-@pytest.mark.skipif(visible_form_factor_kernel is None, reason="jaxshadow/_clip.py absent")
+@pytest.mark.skipif(visible_form_factor_kernel is None, reason="jaxshadow/_kernels/clip.py absent")
 def test_occluders_touching_the_receiver(dtype):
     failures = []
     for cid, val, ref, unocc, finite in touching_rows(dtype):

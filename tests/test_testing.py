@@ -334,7 +334,7 @@ def test_exact_specular_derivative_at_the_grazing_receiver():
     the light: differentiated by Leibniz's rule); forward mode equals central differences."""
     import jax
 
-    from jaxshadow._specular import polygon_specular_kernel
+    from jaxshadow._kernels.specular import polygon_specular_kernel
 
     ref = catalogue["grazing"]
     v = jnp.asarray(ref.scene.lights[0].vertices)

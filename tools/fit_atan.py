@@ -1,4 +1,4 @@
-"""Fit the polynomial of `jaxshadow._misc.arctan2`: atan(t) = t P(t^2) on |t| <= tan(pi/8).
+"""Fit the polynomial of `jaxshadow._core.misc.arctan2`: atan(t) = t P(t^2) on |t| <= tan(pi/8).
 
 Interpolation at Chebyshev nodes in z = t^2, solved in 40-digit arithmetic (mpmath); prints
 the max error on a fine grid and the coefficients for degree 4 (float32) and 10 (float64).

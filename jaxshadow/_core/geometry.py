@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._misc import divide_by_scale, map_chunks
+from .misc import divide_by_scale, map_chunks
 
 # A JAX array or tracer, or a NumPy array: what the entry points' checks pass on (`as_input`).
 AnyArray = Array | np.ndarray

@@ -269,7 +269,7 @@ class Mesh:
         (`jaxshadow.ReceiverMesh.welded`'s rule): a mesh split at UV seams becomes one closed
         surface. **Returns:** a new `Mesh` (of this one's faces); `n_welded` counts the vertices
         merged away. Faces a tolerance collapses are dropped."""
-        from ._meshio import weld_vertices
+        from .._io.meshio import weld_vertices
 
         index, first = weld_vertices(self.vertices, tol)
         loops = [[int(i) for i in index[loop]] for loop in self.loops]
@@ -283,7 +283,7 @@ class Mesh:
         """The mesh moved by an affine map $x \\mapsto A x + t$ (arguments as
         `jaxshadow.ReceiverMesh.transformed`); a mirroring map reverses the faces, so a closed
         mesh stays outward-oriented. **Returns:** a new `Mesh`."""
-        from ._meshio import affine_parts
+        from .._io.meshio import affine_parts
 
         a, t = affine_parts(matrix, rotation=rotation, translation=translation, scale=scale)
         flip = np.linalg.det(a) < 0
@@ -765,7 +765,7 @@ def stack_occluders(items: list[Any], ko: int) -> tuple[Any, OccluderTopology]:
     entries go through `pad_polygons_jax`."""
     import jax.numpy as jnp
 
-    from ._geometry import is_concrete, pad_polygon, pad_polygons_jax
+    from .geometry import is_concrete, pad_polygon, pad_polygons_jax
 
     blocks, topo = _occluder_blocks(items, ko)
     if not all(isinstance(item.vertices, np.ndarray) if is_mesh else (is_concrete(item) and not isinstance(item, jnp.ndarray))

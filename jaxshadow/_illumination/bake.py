@@ -44,7 +44,7 @@ from typing import Any
 
 import numpy as np
 
-from ._scene import Scene
+from .._scene.model import Scene
 
 BAKE_FORMAT = 2  # bumped when a chunk file's content changes meaning (part of its hash)
 EDGE_EPS = 1e-9  # points on a shared edge closer than this (in its parameter) are one point
@@ -115,9 +115,9 @@ class BakedScene:
 
 def _weld(points: np.ndarray, tol: float) -> np.ndarray:
     """`(n,)` welded id of each point: points within `tol > 0` are one (transitively,
-    `jaxshadow._meshio.weld_vertices`); the id is the lowest index of its group. `tol <= 0`:
+    `jaxshadow._io.meshio.weld_vertices`); the id is the lowest index of its group. `tol <= 0`:
     every point its own."""
-    from ._meshio import weld_vertices
+    from .._io.meshio import weld_vertices
 
     if points.shape[0] == 0 or tol <= 0:
         return np.arange(points.shape[0])
@@ -127,7 +127,7 @@ def _weld(points: np.ndarray, tol: float) -> np.ndarray:
 
 def _surfaces(scene: Scene, receivers: Any) -> list[tuple[str, np.ndarray, Any, np.ndarray | None]]:
     """`(name, vertices, triangles or polygon rows, vertex normals or None)` per surface."""
-    from ._meshio import ReceiverMesh
+    from .._io.meshio import ReceiverMesh
 
     if receivers is None:
         if scene.occluders is None:
@@ -141,7 +141,7 @@ def _surfaces(scene: Scene, receivers: Any) -> list[tuple[str, np.ndarray, Any, 
         if isinstance(r, ReceiverMesh):
             out.append((r.name or f"surface{i}", r.vertices, r.faces, r.vertex_normals))
             continue
-        from ._mesh import Mesh
+        from .._core.mesh import Mesh
 
         if isinstance(r, Mesh):
             polys = [_unpad(np.asarray(p, np.float64)) for p in r.polygons]
@@ -326,7 +326,7 @@ def _values(scenes: list[Scene], points: np.ndarray, normals: np.ndarray, chunk:
     """`(n, L, 3)` exact irradiance per light (W/m^2). Batches are padded to a power of two
     (at least `MIN_BATCH`): the engine compiles per batch shape, and a bake calls this with
     every count of points."""
-    from ._shade import irradiance
+    from .._shading.shade import irradiance
 
     n = points.shape[0]
     out = np.zeros((n, len(scenes), 3))
@@ -364,7 +364,7 @@ ON_SURFACE = 2.0**-18  # `js.irradiance`'s on-surface distance, relative to the 
 def _light_points(light: Any, pts: np.ndarray, reach: float) -> np.ndarray:
     """Points whose convex hull with the receiver points `pts` holds every segment from a
     receiver point to the light (for a directional light: up to `reach` towards it)."""
-    from ._scene import DirectionalLight, LinearLight, PointLight, PolygonLight
+    from .._scene.model import DirectionalLight, LinearLight, PointLight, PolygonLight
 
     if isinstance(light, PolygonLight):
         return np.asarray(light.vertices, np.float64)
@@ -381,7 +381,7 @@ def _dark(light: Any, poly: np.ndarray, normal: np.ndarray, size: float) -> bool
     """The light gives exactly zero on the planar convex polygon `poly` (its corners): every
     point of the light strictly behind the polygon's plane, or (a one-sided polygon light)
     every corner strictly behind the light's emitting side."""
-    from ._scene import DirectionalLight, PolygonLight
+    from .._scene.model import DirectionalLight, PolygonLight
 
     eps = 1e-9 * size
     if isinstance(light, DirectionalLight):
@@ -544,8 +544,8 @@ def _chunk_scene(scene: Scene, occ_idx: np.ndarray, mask: np.ndarray, sentinel: 
     occluder, so that the chunk runs on the host shadow engine like the others (the unoccluded
     kernels compile per batch shape, ~1 s each, and run slower than the engine here). `extra`:
     polygons added as they are, after the welding (`_cross_sections`)."""
-    from ._geometry import pad_polygons_jax
-    from ._mesh import Mesh, max_face_vertices, stack_occluders, weld_polygons
+    from .._core.geometry import pad_polygons_jax
+    from .._core.mesh import Mesh, max_face_vertices, stack_occluders, weld_polygons
 
     sub = Scene(tuple(light for light, m in zip(scene.lights, mask, strict=True) if m), ambient=scene.ambient)
     if scene.occluders is None or occ_idx.size == 0:
@@ -570,7 +570,7 @@ def _off_contact(v: np.ndarray, scene: Scene, poly: np.ndarray, normal: np.ndarr
     cross-section of one passing through it: a hole, along whose edges the irradiance jumps)
     `CONTACT_STEP` of the patch's size outside it, as `illumination_mesh` evaluates them (the
     limit on the open side); the others where they are."""
-    from ._illumination_builder import CONTACT_STEP
+    from .builder import CONTACT_STEP
 
     if scene.occluders is None:
         return v
@@ -605,7 +605,7 @@ def _off_contact(v: np.ndarray, scene: Scene, poly: np.ndarray, normal: np.ndarr
 
 def _planar_chunk(scene: Scene, mask: np.ndarray, patch: _Patch, pos: np.ndarray, tol: float, scale: float,
                   options: dict[str, Any], options_weld: float) -> dict[str, np.ndarray]:
-    from ._illumination import illumination_mesh
+    from .mesh import illumination_mesh
 
     ids, poly, normal = patch.data["ids"], patch.data["poly"], patch.data["normal"]
     unrefined, stopped, error = 0, 0, 0.0
@@ -862,7 +862,7 @@ def _chunk_name(inputs_digest: bytes, patch: _Patch, pos: np.ndarray, settings: 
 
 
 def _save_chunk(path: str, result: dict[str, np.ndarray]) -> None:
-    from ._files import atomic_write
+    from .._core.files import atomic_write
 
     with atomic_write(path, "wb") as fh:
         np.savez(fh, **result)
@@ -1112,7 +1112,7 @@ def bake(scene: Scene, receivers: Any = None, tol: float = 1e-3, *, lights: Sequ
          progress: Callable[[int, int], None] | None = None,
          _before_chunk: Callable[[int], None] | None = None) -> BakedScene:
     r"""Bake every receiving surface of `scene`: an illumination mesh with exact irradiance per
-    light at its vertices, conforming across shared edges (see the module `jaxshadow._bake`).
+    light at its vertices, conforming across shared edges (see the module `jaxshadow._illumination.bake`).
 
     **Arguments:**
 
@@ -1240,9 +1240,9 @@ def write_bake(path: str | os.PathLike, baked: BakedScene, up: Any = "z") -> Non
     y-up (the scene's `up` axis turned to +y, `jaxshadow.write_gltf`'s rotation). Vertices are
     written as they are: copies of a point on two surfaces (a crease) keep their own normals
     and values, so no welding."""
-    from ._files import atomic_write, atomic_write_path
-    from ._illumination_io import vertex_colours
-    from ._meshio import IRRADIANCE_PROPERTY, _trimesh, y_up_rotation
+    from .._core.files import atomic_write, atomic_write_path
+    from .._io.meshio import IRRADIANCE_PROPERTY, _trimesh, y_up_rotation
+    from .io import vertex_colours
 
     trimesh = _trimesh()
     path = os.fspath(path)

@@ -9,10 +9,12 @@ from typing import Any
 
 import numpy as np
 
-from . import _illumination_events as ev
-from . import _illumination_extrema as ex
-from ._illumination_evaluator import _Evaluator
-from ._illumination_pslg import (
+from .._scene.model import Scene
+from .._shading.shade import irradiance
+from . import events as ev
+from . import extrema as ex
+from .evaluator import _Evaluator
+from .pslg import (
     _contact_corners,
     _Edge,
     _grid,
@@ -21,9 +23,7 @@ from ._illumination_pslg import (
     _Tile,
     _tiles,
 )
-from ._illumination_refine import CORNER_SIZE, refine_tiles
-from ._scene import Scene
-from ._shade import irradiance
+from .refine import CORNER_SIZE, refine_tiles
 
 ESTIMATE_MARGIN = 0.5  # elements pass when their checked error is below this fraction of tol
 DEFAULT_TILES = 16  # tiles along the receiver's longer side

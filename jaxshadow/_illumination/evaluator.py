@@ -10,10 +10,10 @@ from typing import Any
 
 import numpy as np
 
-from . import _illumination_events as ev
-from ._keytable import MAX_LOAD, KeyTable, as_keys, first_occurrence
-from ._scene import DirectionalLight, LinearLight, PointLight, PolygonLight, Scene
-from ._shade import irradiance
+from .._core.keytable import MAX_LOAD, KeyTable, as_keys, first_occurrence
+from .._scene.model import DirectionalLight, LinearLight, PointLight, PolygonLight, Scene
+from .._shading.shade import irradiance
+from . import events as ev
 
 ON_LINE_STEP = 1e-9
 MIN_BATCH = 256  # smallest batch handed to the engine

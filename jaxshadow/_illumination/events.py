@@ -42,8 +42,8 @@ from typing import Any
 
 import numpy as np
 
-from ._mesh import _strip_padding
-from ._scene import LinearLight, PointLight, PolygonLight, Scene
+from .._core.mesh import _strip_padding
+from .._scene.model import LinearLight, PointLight, PolygonLight, Scene
 
 SUPPORT_RTOL = 1e-9  # relative tolerance of the side tests (of the occluder's size squared)
 NUDGE_RTOL = 1e-7  # visibility rays start this far (of the receiver's size) on the free side

@@ -15,8 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from ._files import atomic_write_path
-from ._meshio import IRRADIANCE_PROPERTY
+from .._core.files import atomic_write_path
+from .._io.meshio import IRRADIANCE_PROPERTY
 
 FORMATS = {".ply": "ply", ".glb": "glb", ".gltf": "gltf"}
 
@@ -34,11 +34,11 @@ def save_mesh(mesh: Any, path: str | os.PathLike, up: Any = "z") -> dict[str, in
     """Write an `IlluminationMesh` to `path`: `.ply` (binary, vertex colours and the float
     irradiance as vertex properties, in the scene's frame), `.glb` or `.gltf` (buffers embedded;
     vertex colours as `COLOR_0`, the float irradiance as `_IRRADIANCE`, y-up: the scene's `up`
-    axis turned to +y, and a clean float32 triangulation: `jaxshadow._meshio.write_gltf`, whose
+    axis turned to +y, and a clean float32 triangulation: `jaxshadow._io.meshio.write_gltf`, whose
     counts it returns). The file is replaced atomically."""
     import trimesh
 
-    from ._meshio import write_gltf
+    from .._io.meshio import write_gltf
 
     path = os.fspath(path)
     ext = os.path.splitext(path)[1].lower()
@@ -116,7 +116,7 @@ def mesh_command(args: argparse.Namespace) -> int:
     directory = os.path.dirname(os.path.abspath(out))
     if not os.path.isdir(directory):
         raise FileNotFoundError(f"-o {out}: directory {directory} does not exist.")
-    from .cli import default_receiver_polygon, read_scene, scene_up
+    from ..cli import default_receiver_polygon, read_scene, scene_up
 
     scene, receivers, _ = read_scene(args.scene)
     if args.receiver:
@@ -128,7 +128,7 @@ def mesh_command(args: argparse.Namespace) -> int:
     up = args.up or scene_up(args.scene)
     # The receiver's own surface (faces on its plane facing its way) blocks nothing on it (the
     # on-surface rule); the mesher is given the scene without it, as `bake` does.
-    from ._bake import _without_own_faces
+    from .bake import _without_own_faces
 
     normal = np.cross(receiver, np.roll(receiver, -1, axis=0)).sum(axis=0)
     scene = _without_own_faces(scene, receiver, normal / np.linalg.norm(normal))

@@ -42,13 +42,13 @@ from typing import Any
 
 import numpy as np
 
-from . import _illumination_events as ev
-from ._geometry import check_convex_polygon
-from ._illumination_builder import ESTIMATE_MARGIN as ESTIMATE_MARGIN  # noqa: F401 (documented)
-from ._illumination_builder import _Builder
-from ._illumination_pslg import _Edge, _interpolate, _Tile
-from ._illumination_refine import CORNER_GRADE, CORNER_SIZE
-from ._scene import Scene
+from .._core.geometry import check_convex_polygon
+from .._scene.model import Scene
+from . import events as ev
+from .builder import ESTIMATE_MARGIN as ESTIMATE_MARGIN  # noqa: F401 (documented)
+from .builder import _Builder
+from .pslg import _Edge, _interpolate, _Tile
+from .refine import CORNER_GRADE, CORNER_SIZE
 
 # --------------------------------------------------------------------------------------
 # Public API
@@ -148,13 +148,13 @@ class IlluminationMesh:
     def save(self, path: Any) -> None:
         """Write the mesh as PLY (vertex colours and the float irradiance as vertex properties) or
         glTF (`.gltf`/`.glb`, vertex colours), by the file's extension (`_illumination_io`)."""
-        from ._illumination_io import save_mesh
+        from .io import save_mesh
 
         save_mesh(self, path)
 
 
 def _same_lights(a: Scene, b: Scene) -> bool:
-    from ._scene import light_to_dict
+    from .._scene.model import light_to_dict
 
     la = [light_to_dict(x) for x in a.lights]
     lb = [light_to_dict(x) for x in b.lights]
@@ -217,7 +217,7 @@ def _affected(scene: Scene, frame: Any, step: float, xy: np.ndarray, faces: list
     decide the tiles an update re-meshes) and outside the faces' own outlines are not affected;
     for the others the test of `ShadowCache.update` (`_cache.affected`: the bounding box of each
     group, grown by `step`, against the point's illumination region of every light)."""
-    from ._shadows.cache import affected
+    from .._shadows.cache import affected
 
     out = np.zeros(xy.shape[0], bool)
     groups = [f.reshape(-1, 3) for f in faces if f.shape[0]]
@@ -338,7 +338,7 @@ def illumination_mesh(scene: Any, receiver: Any, tol: float = 1e-3, *, max_verti
         import pythoncdt  # noqa: F401
     except ImportError:
         raise ImportError("illumination_mesh needs the 'pythoncdt' package: pip install 'jaxshadow[mesh]'") from None
-    from ._mesh import Mesh
+    from .._core.mesh import Mesh
 
     if isinstance(receiver, Mesh):
         polys = list(receiver.polygons)

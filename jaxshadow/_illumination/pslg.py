@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import _illumination_events as ev
+from . import events as ev
 
 GRID_SHIFT = (np.sqrt(2.0) - 1) / 10
 _RADIX = 1 << 21  # vertex indices per tile that `_Checked` can encode

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ._illumination_pslg import (
+from .pslg import (
     _RADIX,
     _Checked,
     _edge_kinds,
@@ -19,7 +19,7 @@ from ._illumination_pslg import (
 )
 
 if TYPE_CHECKING:
-    from ._illumination_builder import _Builder
+    from .builder import _Builder
 
 CORNER_SIZE = 1e-4  # elements at a contact polygon's corner are not split below this (of the receiver's size)
 CORNER_GRADE = 1e-3  # elements at distance r from such a corner may be split down to CORNER_GRADE * r

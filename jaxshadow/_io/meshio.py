@@ -28,7 +28,7 @@ Point tables follow one convention for every command:
 - `.npy`: an `(N, 6)` array (points, then normals); `.npz`: arrays `points` and `normals`.
 - `.ply` / `.obj` / `.glb` / `.gltf` / `.stl` / `.off`: a mesh, receivers at its vertices or faces.
 
-Every file is written through `jaxshadow._files` (a temporary file renamed into place).
+Every file is written through `jaxshadow._core.files` (a temporary file renamed into place).
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from ._files import atomic_write, atomic_write_path
+from .._core.files import atomic_write, atomic_write_path
 
 MESH_EXTS = (".obj", ".ply", ".glb", ".gltf", ".stl", ".off")
 TABLE_EXTS = (".csv", ".npy", ".npz")
@@ -161,7 +161,7 @@ class ReceiverMesh:
     def occluder(self, merge: bool = True) -> Any:
         """The surface as a `jaxshadow.Mesh` occluder, its vertices at equal positions welded
         (hard edges too: the same points block), so a closed surface is found closed."""
-        from ._mesh import Mesh
+        from .._core.mesh import Mesh
 
         index, first = weld_vertices(self.vertices)
         return Mesh(self.vertices[first], index[self.faces], merge=merge)

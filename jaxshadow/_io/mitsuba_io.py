@@ -52,9 +52,9 @@ from typing import Any
 
 import numpy as np
 
-from ._files import atomic_write
-from ._meshio import ReceiverMesh, write_mesh
-from ._scene import DirectionalLight, Material, PointLight, PolygonLight, Scene
+from .._core.files import atomic_write
+from .._scene.model import DirectionalLight, Material, PointLight, PolygonLight, Scene
+from .meshio import ReceiverMesh, write_mesh
 
 DISC_SEGMENTS = 64
 SPHERE_SEGMENTS = 24
@@ -70,7 +70,7 @@ def _warn(msg: str) -> None:
 
 
 def _mi() -> Any:
-    from .mitsuba import _mi as select_variant
+    from ..mitsuba import _mi as select_variant
 
     return select_variant()
 
@@ -228,7 +228,7 @@ def emitter_polygons(v: np.ndarray, f: np.ndarray) -> list[np.ndarray]:
     """The convex polygons of an emitting triangle mesh: triangles grouped by plane; a group
     whose union is convex (its hull's area equals the triangles' total) becomes that hull,
     oriented like its triangles; other groups are split by `jaxshadow.Mesh`'s coplanar merge."""
-    from ._mesh import Mesh
+    from .._core.mesh import Mesh
 
     a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
     cr = np.cross(b - a, c - a)
@@ -583,7 +583,7 @@ def write_mitsuba_xml(path: str | os.PathLike, scene: Scene, receivers: Any = ()
     - `integrator`: the integrator plugin (default `direct`).
     - `segment_points`, `segment_radius`: the stand-ins of linear lights (`to_mitsuba_dict`).
     """
-    from .mitsuba import scene_items
+    from ..mitsuba import scene_items
 
     path = os.fspath(path)
     if not path.lower().endswith(".xml"):
@@ -661,7 +661,7 @@ def write_example_scene(directory: str | os.PathLike, resolution: int = 256, spp
 
     **Returns:** the path of `scene.xml`.
     """
-    from ._meshio import _trimesh, write_mesh
+    from .meshio import _trimesh, write_mesh
 
     trimesh = _trimesh()
     directory = os.fspath(directory)

@@ -8,7 +8,7 @@ $$R = E_h \setminus \bigcup_j Q_j,\qquad E_h = E \cap \{n\cdot(x-p) \ge 0\},$$
 with $Q_j$ the central projection from $p$ onto the emitter plane of the *effective blocker*
 of occluder $j$: the part of it on the lit side of the emitter plane (C&F §4.2.2; the part
 behind $p$ never reaches the emitter). The form factor is Lambert's contour sum over
-$\partial R$ (C&F eq. 11), evaluated by `jaxshadow._polygon.contour_form_factor`.
+$\partial R$ (C&F eq. 11), evaluated by `jaxshadow._kernels.polygon.contour_form_factor`.
 
 **Everything is a plane through p.** A direction $r$ from $p$ (towards the emitter plane) is in
 $E_h$ iff $r\cdot N \ge 0$ for the $K$ planes through $p$ and the emitter edges, and for the
@@ -68,10 +68,10 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from ._geometry import check_finite_leaves, horizon_clip_edges, newell_normal
-from ._linear import linear_irradiance_kernel
-from ._misc import safe_div, safe_normalize
-from ._polygon import edge_term, form_factor_kernel
+from .._core.geometry import check_finite_leaves, horizon_clip_edges, newell_normal
+from .._core.misc import safe_div, safe_normalize
+from .linear import linear_irradiance_kernel
+from .polygon import edge_term, form_factor_kernel
 
 # Planes through p whose unit normals are parallel within COLLINEAR_EPS * machine epsilon
 # are the same plane: their traces on the emitter plane are one line (coincident edges).

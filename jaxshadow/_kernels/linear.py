@@ -54,7 +54,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ._geometry import (
+from .._core.geometry import (
     check_finite_leaves,
     check_points_normals,
     check_vector3,
@@ -62,7 +62,7 @@ from ._geometry import (
     inputs_ok,
     is_concrete,
 )
-from ._misc import arctan2, fusible, safe_norm, unit_rows
+from .._core.misc import arctan2, fusible, safe_norm, unit_rows
 
 #: Largest exponent of the cosine profile. The kernel's cost grows linearly with m (two
 #: recurrences of about m/2 and m steps per receiver); a cos^m beam has its half-power
@@ -223,7 +223,7 @@ def linear_irradiance_kernel(
     t1 = jnp.where(ok, t1, 2.0)
     d2 = jnp.where(ok, d2, 1.0)
     hn = jnp.where(ok, hn, 0.0)
-    # `fusible`: each square root is read several times (jaxshadow._misc.fusible).
+    # `fusible`: each square root is read several times (jaxshadow._core.misc.fusible).
     ra = fusible(jnp.sqrt(t0 * t0 + d2))
     rb = fusible(jnp.sqrt(t1 * t1 + d2))
     if m == 0:

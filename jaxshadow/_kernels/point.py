@@ -5,7 +5,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._misc import safe_normalize
+from .._core.misc import safe_normalize
 
 
 def point_irradiance_kernel(

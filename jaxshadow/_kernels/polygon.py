@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from ._geometry import (
+from .._core.geometry import (
     AnyArray,
     as_input,
     check_convex_polygon_cached,
@@ -32,7 +32,7 @@ from ._geometry import (
     is_concrete,
     on_lit_side,
 )
-from ._misc import angle_over_sin, arctan2, divide_by_scale, fusible, max_abs3, unit_rows
+from .._core.misc import angle_over_sin, arctan2, divide_by_scale, fusible, max_abs3, unit_rows
 
 
 def _unit3(x: Array, y: Array, z: Array) -> tuple[Array, Array, Array]:

@@ -72,9 +72,9 @@ from jax import lax
 from jax.scipy.special import gammaln
 from jaxtyping import Array, ArrayLike, Float
 
-from ._chebyshev import cutoff_angle, even_fit_integral, interval_fit_integral
-from ._geometry import horizon_clip_edges, on_lit_side
-from ._misc import safe_norm, safe_normalize
+from .._core.geometry import horizon_clip_edges, on_lit_side
+from .._core.misc import safe_norm, safe_normalize
+from .chebyshev import cutoff_angle, even_fit_integral, interval_fit_integral
 
 Method = Literal["chebyshev", "exact"]
 

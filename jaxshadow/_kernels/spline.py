@@ -104,7 +104,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from ._geometry import (
+from .._core.geometry import (
     check_convex_polygon,
     check_finite,
     check_finite_leaves,

@@ -1,0 +1,1 @@
+"""The scene model: lights, materials, occluders (`model`) and its JSON format."""

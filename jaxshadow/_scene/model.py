@@ -21,8 +21,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._files import atomic_write
-from ._geometry import (
+from .._core.files import atomic_write
+from .._core.geometry import (
     check_convex_polygon,
     check_convex_polygon_cached,
     check_finite,
@@ -33,8 +33,7 @@ from ._geometry import (
     is_concrete,
     pad_polygons_jax,
 )
-from ._linear import check_profile_exponent
-from ._mesh import (
+from .._core.mesh import (
     Mesh,
     OccluderTopology,
     max_face_vertices,
@@ -42,6 +41,7 @@ from ._mesh import (
     stack_occluders,
     weld_polygons,
 )
+from .._kernels.linear import check_profile_exponent
 
 SCENE_FORMAT = "jaxshadow.scene"
 # 1: everything inline in the JSON. 2: meshes may live in a binary `.npz` beside it ("arrays").
@@ -283,7 +283,7 @@ class Scene(eqx.Module):
       or `None`. Built from a list of `(k_i, 3)` arrays and `Mesh` objects, or an `(m, k, 3)`
       array. A `Mesh` contributes its (merged) faces, kept together; its structure (closed,
       convex) goes to `occluder_topology` and lets the shadow engine treat a closed convex mesh
-      as one blocker (`jaxshadow._mesh`).
+      as one blocker (`jaxshadow._core.mesh`).
     - `occluder_topology`: static `OccluderTopology` of the occluders, or `None` (independent
       polygons).
     - `ambient`: `(3,)` RGB ambient radiance $L_a$ (W m^-2 sr^-1).
@@ -510,7 +510,7 @@ def _mesh_arrays(block: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """`(vertices (V, 3), faces (G, K))` of one mesh's padded faces `block (G, Ko, 3)`: trailing
     copies of a face's first vertex are padding (a face keeps at least three vertices), equal
     coordinates are one vertex (in order of first use), faces padded with -1."""
-    from ._meshio import weld_vertices
+    from .._io.meshio import weld_vertices
 
     eq = np.all(block == block[:, :1], axis=2)[:, 1:]  # (G, Ko - 1)
     pad = np.flip(np.cumprod(np.flip(eq, axis=1), axis=1), axis=1).astype(bool)

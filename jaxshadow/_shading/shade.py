@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ._geometry import (
+from .._core.geometry import (
     _check_values_eagerly,
     check_points_normals,
     evaluate_checked,
@@ -23,11 +23,18 @@ from ._geometry import (
     pad_polygons_jax,
     raise_if_bad,
 )
-from ._linear import linear_irradiance_kernel
-from ._misc import map_chunks, safe_normalize, unit_rows, unit_rows_host
-from ._point import directional_irradiance_kernel, point_irradiance_kernel
-from ._polygon import form_factor_kernel
-from ._scene import (
+from .._core.misc import map_chunks, safe_normalize, unit_rows, unit_rows_host
+from .._kernels.linear import linear_irradiance_kernel
+from .._kernels.point import directional_irradiance_kernel, point_irradiance_kernel
+from .._kernels.polygon import form_factor_kernel
+from .._kernels.specular import (
+    DEFAULT_DEGREE,
+    directional_specular_kernel,
+    point_specular_kernel,
+    polygon_specular_kernel,
+    segment_specular_kernel,
+)
+from .._scene.model import (
     DirectionalLight,
     LinearLight,
     Material,
@@ -37,16 +44,9 @@ from ._scene import (
     checked_material,
     checked_scene,
 )
-from ._shadows import compiled as _shadows_compiled
-from ._shadows import plan as _shadows
-from ._shadows.plan import DEFAULT_OPTIONS, Lambert, Phong, ShadowOptions
-from ._specular import (
-    DEFAULT_DEGREE,
-    directional_specular_kernel,
-    point_specular_kernel,
-    polygon_specular_kernel,
-    segment_specular_kernel,
-)
+from .._shadows import compiled as _shadows_compiled
+from .._shadows import plan as _shadows
+from .._shadows.plan import DEFAULT_OPTIONS, Lambert, Phong, ShadowOptions
 
 
 def _stack(lights: list, field: str, dt: Any) -> Array:

@@ -16,9 +16,9 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, Float
 
-from ._geometry import check_points_normals
-from ._scene import Scene
-from ._shade import irradiance
+from .._core.geometry import check_points_normals
+from .._scene.model import Scene
+from .shade import irradiance
 
 
 def batch_mesh(devices: Any = None) -> Mesh:

@@ -1,7 +1,7 @@
 r"""Exact visibility at mesh scale: the host shadow engine and the JAX geometry it drives.
 
 The visible part of a polygon light seen from a receiver is a region $R$ of the light's plane
-(`jaxshadow._clip` module docstring); its boundary is a set of edges whose endpoints are a light
+(`jaxshadow._kernels.clip` module docstring); its boundary is a set of edges whose endpoints are a light
 vertex, a light edge's crossing with the receiver's horizon, a projected occluder vertex, an
 occluder edge's crossing with the light's plane, or the line common to two planes through the
 receiver. Which pieces of which edges bound $R$ is combinatorics: piecewise constant in the
@@ -41,9 +41,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .._clip import _crossing_point, _pow2_scale, _project, _rescale_rows
-from .._geometry import newell_normal
-from .._mesh import OccluderTopology
+from .._core.geometry import newell_normal
+from .._core.mesh import OccluderTopology
+from .._kernels.clip import _crossing_point, _pow2_scale, _project, _rescale_rows
 from . import abi as _abi
 
 ZERO, LIT, UMBRA, PENUMBRA = 0, 1, 2, 3
@@ -279,7 +279,7 @@ def decode_endpoints(
     face_0: Float[Array, "m 3"],
     codes: Int[Array, "e 7"],
 ) -> Float[Array, "e 3"]:
-    r"""The points named by endpoint codes (`csrc/shadowc.cc`), as `jaxshadow._clip` computes them.
+    r"""The points named by endpoint codes (`csrc/shadowc.cc`), as `jaxshadow._kernels.clip` computes them.
 
     `V = [verts; faces.reshape(-1, 3)]` is the table the global vertex refs index; `face_n`,
     `face_0` from `face_frames`. Codes: `[kind, ...]` with kind 0 a light vertex, 1 a light edge's

@@ -30,8 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from .._misc import unit_rows_host
-from .._scene import LinearLight, PointLight, PolygonLight, Scene
+from .._core.misc import unit_rows_host
+from .._scene.model import LinearLight, PointLight, PolygonLight, Scene
 from . import plan as sh
 
 
@@ -201,7 +201,7 @@ class ShadowCache:
             raise ValueError("ShadowCache: needs a jaxshadow.Scene with occluders.")
         if not sh.DEFAULT_OPTIONS.use_engine():
             raise RuntimeError("ShadowCache: the shadow engine (jaxshadow._shadows._shadowc) is not built.")
-        from .._geometry import check_points_normals
+        from .._core.geometry import check_points_normals
 
         p, n = check_points_normals(points, normals, "ShadowCache")
         self._p = np.ascontiguousarray(np.asarray(p))

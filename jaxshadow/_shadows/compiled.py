@@ -16,8 +16,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._clip import directional_visibility, point_visibility, visible_edges
-from .._scene import LinearLight, PointLight, PolygonLight, Scene
+from .._kernels.clip import directional_visibility, point_visibility, visible_edges
+from .._scene.model import LinearLight, PointLight, PolygonLight, Scene
 from . import binding as vis
 from .plan import EDGE_BLOCK, MIN_BLOCK, _occluders, _profile, _segment_visible, emission
 

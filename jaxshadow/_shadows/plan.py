@@ -45,15 +45,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._clip import (
+from .._kernels.clip import (
     lit_form_factor,
     masked_contour_form_factor,
     visible_segments,
 )
-from .._linear import linear_irradiance_kernel
-from .._point import directional_irradiance_kernel, point_irradiance_kernel
-from .._scene import LinearLight, PointLight, PolygonLight, Scene
-from .._specular import (
+from .._kernels.linear import linear_irradiance_kernel
+from .._kernels.point import directional_irradiance_kernel, point_irradiance_kernel
+from .._kernels.specular import (
     DEFAULT_DEGREE,
     contour_specular_kernel,
     directional_specular_kernel,
@@ -61,6 +60,7 @@ from .._specular import (
     polygon_specular_kernel,
     segment_specular_kernel,
 )
+from .._scene.model import LinearLight, PointLight, PolygonLight, Scene
 from . import binding as vis
 
 # Receivers per engine call (bounds the host memory of codes and edges) and edge (or occluder)
@@ -633,7 +633,7 @@ def shadow_plan(scene: Scene, points: Any, normals: Any) -> ShadowPlan:
         print(plan.summary())   # receivers per class (lit / umbra / penumbra), candidates, boundary sizes
         ```
     """
-    from .._geometry import check_points_normals
+    from .._core.geometry import check_points_normals
 
     if not isinstance(scene, Scene):
         raise ValueError(f"shadow_plan: expected a jaxshadow.Scene, got {type(scene).__name__}.")

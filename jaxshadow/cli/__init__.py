@@ -167,7 +167,7 @@ def check_outputs_are_not_inputs(outputs: Sequence[str], inputs: Sequence[str]) 
     """`ValueError` when an output path is an input file (or the arrays file of an input scene
     JSON, `<stem>.meshes.npz`) or two outputs are one file: writing it would destroy the input
     or the other output."""
-    from ._scene import arrays_file_name
+    from .._scene.model import arrays_file_name
 
     files = list(inputs)
     files += [os.path.join(os.path.dirname(p), arrays_file_name(p)) for p in inputs if p.lower().endswith(".json")]
@@ -194,12 +194,12 @@ def read_scene(path: str) -> tuple[Any, list, list]:
     file's `material` entry if any) or a Mitsuba XML file (`jaxshadow.mitsuba.from_mitsuba`)."""
     check_input(path, SCENE_EXTS, "scene")
     if path.lower().endswith(".xml"):
-        from .mitsuba import from_mitsuba
+        from ..mitsuba import from_mitsuba
 
         return from_mitsuba(path)
     import jaxshadow as js
 
-    from ._scene import _read_json
+    from .._scene.model import _read_json
 
     scene = js.load_scene(path)
     has_material = "material" in _read_json(path)
@@ -212,7 +212,7 @@ def scene_up(path: str) -> str:
     camera's up direction (`to_world` applied to +y), `"y"` when it has no camera."""
     if not path.lower().endswith(".xml"):
         return "z"
-    from ._mitsuba_io import _load, _mi
+    from .._io.mitsuba_io import _load, _mi
 
     sensors = _load(_mi(), path).sensors()
     if not sensors:
@@ -322,7 +322,7 @@ def cmd_report(args: argparse.Namespace) -> int:
     import jaxshadow as js
     from jaxshadow import mitsuba as jm
 
-    from ._files import atomic_write, atomic_write_path
+    from .._core.files import atomic_write, atomic_write_path
 
     scene = js.load_scene(scene_path)
     if scene.occluders is not None and not args.with_occluders:
@@ -408,7 +408,7 @@ def cmd_irradiance(args: argparse.Namespace) -> int:
     check_input(args.scene, SCENE_EXTS, "scene")
     check_input(args.points, POINT_EXTS, "points")
     check_output(args.output, VALUE_EXTS)
-    from ._meshio import IRRADIANCE_PROPERTY, MESH_EXTS, extension, read_points, write_values
+    from .._io.meshio import IRRADIANCE_PROPERTY, MESH_EXTS, extension, read_points, write_values
 
     if extension(args.output) == ".ply" and extension(args.points) not in MESH_EXTS:
         raise ValueError(f"output {args.output!r}: a .ply output needs mesh receivers (points from a mesh file).")
@@ -472,7 +472,7 @@ def _add_irradiance(sub: Any) -> None:
 
 
 def _add_render(sub: Any) -> None:
-    from ._render import add_render_command
+    from .render import add_render_command
 
     add_render_command(sub)
 
@@ -483,7 +483,7 @@ def _add_render(sub: Any) -> None:
 
 # The forward model's commands; each adds its sub-parser (the `mesh` command registers here).
 def _add_mesh(sub: Any) -> None:
-    from ._illumination_io import add_mesh_parser
+    from .._illumination.io import add_mesh_parser
 
     add_mesh_parser(sub)
 
@@ -519,7 +519,7 @@ def _add_bake(sub: Any) -> None:
     p.add_argument("--min-edge", type=float, default=None,
                    help="elements shorter than this (m) are not split (default: see jaxshadow.bake)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
-    from ._illumination_io import mesher_requires
+    from .._illumination.io import mesher_requires
 
     p.set_defaults(func=cmd_bake, requires=mesher_requires("bake"))
 
@@ -540,8 +540,8 @@ def parse_lights(text: str | None) -> list[int] | None:
 def cmd_bake(args: argparse.Namespace) -> int:
     import shutil
 
-    from ._bake import BAKE_FORMATS
-    from ._meshio import MESH_EXTS
+    from .._illumination.bake import BAKE_FORMATS
+    from .._io.meshio import MESH_EXTS
 
     check_input(args.scene, SCENE_EXTS, "scene")
     check_output(args.output, BAKE_FORMATS)

@@ -30,9 +30,9 @@ from typing import Any
 
 import numpy as np
 
-from ._files import atomic_write_path
-from ._meshio import tonemap
-from .cli import (
+from .._core.files import atomic_write_path
+from .._io.meshio import tonemap
+from . import (
     Progress,
     _say,
     check_input,
@@ -77,8 +77,8 @@ class Rendering:
 
 
 def _load(source: Any) -> tuple[Any, Any]:
-    from ._mitsuba_io import _load as load_scene
-    from .mitsuba import _mi
+    from .._io.mitsuba_io import _load as load_scene
+    from ..mitsuba import _mi
 
     mi = _mi()
     return mi, load_scene(mi, source)
@@ -120,8 +120,8 @@ def render(source: Any, *, supersample: int = 1, progress: Any = None, chunk: in
     """
     import jax.numpy as jnp
 
-    from ._mitsuba_io import convert_scene, textured_diffuse
-    from ._shade import irradiance, specular
+    from .._io.mitsuba_io import convert_scene, textured_diffuse
+    from .._shading.shade import irradiance, specular
 
     t0 = time.perf_counter()
     mi, ms = _load(source)
@@ -206,8 +206,8 @@ def render_mitsuba(source: Any, spp: int, seed: int = 0) -> tuple[np.ndarray, fl
 
 def write_image(path: str | os.PathLike, image: Any, exposure: float | None = None) -> None:
     """Write `(H, W, 3)` linear radiance: `.exr` as float32 linear RGB (Mitsuba's `Bitmap`),
-    `.png` tone-mapped to 8-bit sRGB (`jaxshadow._meshio.tonemap`, `exposure`); atomically."""
-    from .mitsuba import _mi
+    `.png` tone-mapped to 8-bit sRGB (`jaxshadow._io.meshio.tonemap`, `exposure`); atomically."""
+    from ..mitsuba import _mi
 
     mi = _mi()
     path = os.fspath(path)

@@ -35,8 +35,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._files import atomic_write
-from .._scene import (
+from .._core.files import atomic_write
+from .._scene.model import (
     LinearLight,
     Material,
     Scene,
@@ -44,7 +44,7 @@ from .._scene import (
     scene_from_dict,
     scene_to_dict,
 )
-from .._shade import irradiance, shade
+from .._shading.shade import irradiance, shade
 from ._scenes import (
     BUILDERS,
     GRID,

@@ -17,8 +17,8 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from .._mesh import Mesh
-from .._scene import LinearLight, Material, PolygonLight, Scene
+from .._core.mesh import Mesh
+from .._scene.model import LinearLight, Material, PolygonLight, Scene
 
 #: Parameter names and what a unit of each is. Derivatives are d(quantity)/d(parameter) at 0.
 PARAMETERS: dict[str, str] = {
