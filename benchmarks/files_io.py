@@ -55,7 +55,7 @@ def _old_csv_writer(path: str, table: np.ndarray, header: list[str]) -> None:
 _CHILD = """import runpy, sys
 sys.argv = ["jaxshadow", *sys.argv[1:]]
 try:
-    runpy.run_module("jaxshadow.cli", run_name="__main__")
+    runpy.run_module("jaxshadow.cli.__main__", run_name="__main__")
 finally:
     hwm = [line.split()[1] for line in open("/proc/self/status") if line.startswith("VmHWM")]
     print("maxrss_kb", hwm[0] if hwm else -1, file=sys.stderr)

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 import jaxshadow as js
-from jaxshadow.cli import (
+from jaxshadow.cli.common import (
     SCENE_EXTS,
     add_io_arguments,
     check_directory,

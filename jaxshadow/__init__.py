@@ -9,11 +9,11 @@ from importlib.metadata import PackageNotFoundError, version
 from ._core.files import atomic_write as atomic_write
 from ._core.files import atomic_write_path as atomic_write_path
 from ._core.mesh import Mesh as Mesh
+from ._core.receivers import ReceiverMesh as ReceiverMesh
 from ._illumination.bake import BakedScene as BakedScene
 from ._illumination.bake import bake as bake
 from ._illumination.mesh import IlluminationMesh as IlluminationMesh
 from ._illumination.mesh import illumination_mesh as illumination_mesh
-from ._io.meshio import ReceiverMesh as ReceiverMesh
 from ._io.meshio import read_mesh as read_mesh
 from ._io.meshio import read_points as read_points
 from ._io.meshio import write_mesh as write_mesh

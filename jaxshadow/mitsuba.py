@@ -54,237 +54,26 @@ already active.
 from __future__ import annotations
 
 import math
-import re
 import time
 from typing import Any
 
 import numpy as np
 
 from ._io.mitsuba_io import UnsupportedMitsubaElementWarning as UnsupportedMitsubaElementWarning
+from ._io.mitsuba_io import _mi
 from ._io.mitsuba_io import from_mitsuba as from_mitsuba
 from ._io.mitsuba_io import material_from_bsdf as material_from_bsdf
-from ._io.mitsuba_io import material_to_bsdf as material_to_bsdf
 from ._io.mitsuba_io import read_sensor as read_sensor
-from ._io.mitsuba_io import write_example_scene as write_example_scene
-from ._io.mitsuba_io import write_mitsuba_xml as write_mitsuba_xml
-from ._scene.model import DirectionalLight, LinearLight, Material, PointLight, PolygonLight, Scene
+from ._io.mitsuba_out import _fan_mesh, _rgb, _strip_padding
+from ._io.mitsuba_out import material_to_bsdf as material_to_bsdf
+from ._io.mitsuba_out import scene_items as scene_items
+from ._io.mitsuba_out import to_mitsuba as to_mitsuba
+from ._io.mitsuba_out import to_mitsuba_dict as to_mitsuba_dict
+from ._io.mitsuba_out import write_example_scene as write_example_scene
+from ._io.mitsuba_out import write_mitsuba_xml as write_mitsuba_xml
+from ._scene.model import LinearLight, Material, PolygonLight, Scene
 
-_VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
 _CHUNK_LANES = 1 << 20
-
-
-def _mi() -> Any:
-    """Import Mitsuba and select an RGB JIT variant; a clear ImportError when it is missing."""
-    try:
-        import mitsuba as mi
-    except ImportError as err:
-        raise ImportError(
-            "jaxshadow.mitsuba needs the optional dependency 'mitsuba' (Mitsuba 3): "
-            "install it with `pip install 'jaxshadow[mitsuba]'`."
-        ) from err
-    if mi.variant() not in _VARIANTS:
-        if "llvm_ad_rgb" in mi.variants():
-            mi.set_variant("llvm_ad_rgb")
-        else:  # pragma: no cover - depends on the Mitsuba build
-            raise ImportError(
-                "jaxshadow.mitsuba needs Mitsuba's 'llvm_ad_rgb' variant (vectorised estimators); "
-                f"this build offers {mi.variants()}."
-            )
-    return mi
-
-
-def _rgb(mi: Any, x: Any) -> dict:
-    v = np.broadcast_to(np.asarray(x, dtype=np.float64), (3,))
-    return {"type": "rgb", "value": [float(c) for c in v]}
-
-
-def _strip_padding(poly: np.ndarray) -> np.ndarray:
-    k = poly.shape[0]
-    while k > 3 and np.array_equal(poly[k - 1], poly[0]):
-        k -= 1
-    return poly[:k]
-
-
-def _mi_mesh(mi: Any, name: str, vertices: np.ndarray, faces: np.ndarray, props: Any) -> Any:
-    """An `mi.Mesh` from vertex and triangle arrays (face normals only)."""
-    import drjit as dr
-
-    v = np.asarray(vertices, np.float32)
-    f = np.asarray(faces, np.uint32)
-    mesh = mi.Mesh(name, v.shape[0], f.shape[0], props=props)
-    params = mi.traverse(mesh)
-    params["vertex_positions"] = dr.ravel(mi.Point3f(v.T))
-    params["faces"] = dr.ravel(mi.Vector3u(f.T))
-    params.update()
-    return mesh
-
-
-def _fan_arrays(polygons: list) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices and fan triangles of convex polygons."""
-    verts: list[np.ndarray] = []
-    faces: list[tuple[int, int, int]] = []
-    base = 0
-    for poly in polygons:
-        poly = np.asarray(poly, dtype=np.float64)
-        k = poly.shape[0]
-        verts.append(poly)
-        faces.extend((base, base + i, base + i + 1) for i in range(1, k - 1))
-        base += k
-    return np.concatenate(verts), np.asarray(faces, dtype=np.int64)
-
-
-def _fan_mesh(mi: Any, name: str, polygons: list, props: Any) -> Any:
-    """One `mi.Mesh` holding the fan triangulations of convex polygons (face normals only)."""
-    return _mi_mesh(mi, name, *_fan_arrays(polygons), props)
-
-
-def _surface_ids(names: list[str]) -> list[str]:
-    """Ids `s000_<name>` (characters other than letters, digits, `_.-` replaced): sorted, they
-    keep the receivers' order (`from_mitsuba` reads shapes in id order)."""
-    return [f"s{i:03d}_" + re.sub(r"[^A-Za-z0-9_.-]", "_", re.sub(r"^s\d{3}_", "", n)) for i, n in enumerate(names)]
-
-
-def scene_items(scene: Scene, receivers: Any = (), materials: Any = (), *, segment_points: int = 64,
-                segment_radius: float = 1e-4) -> list[tuple[str, dict]]:
-    """`(name, plugin dict)` of every Mitsuba object of a scene, meshes as `{"type": "_mesh",
-    "vertices", "faces", "emitter" | "bsdf"}` (`to_mitsuba_dict` makes them `mi.Mesh` objects,
-    `write_mitsuba_xml` PLY files). Arguments as `to_mitsuba_dict`."""
-    if not isinstance(scene, Scene):
-        raise ValueError(f"to_mitsuba: expected a jaxshadow.Scene, got {type(scene).__name__}.")
-    if int(segment_points) < 1:
-        raise ValueError(f"to_mitsuba: segment_points must be >= 1, got {segment_points!r}.")
-    if not segment_radius > 0:
-        raise ValueError(f"to_mitsuba: segment_radius must be > 0, got {segment_radius!r}.")
-    receivers, materials = list(receivers), list(materials)
-    if len(materials) > len(receivers):
-        raise ValueError(f"to_mitsuba: {len(materials)} materials for {len(receivers)} receivers.")
-    rgb = lambda x: _rgb(None, x)  # noqa: E731
-    out: list[tuple[str, dict]] = []
-    for i, light in enumerate(scene.lights):
-        if isinstance(light, PolygonLight):
-            v, f = _fan_arrays([np.asarray(light.vertices)])
-            out.append((f"light_{i:03d}", {"type": "_mesh", "vertices": v, "faces": f,
-                                       "emitter": {"type": "area", "radiance": rgb(light.radiance)}}))
-        elif isinstance(light, PointLight):
-            out.append((f"light_{i:03d}", {
-                "type": "point",
-                "position": [float(c) for c in np.asarray(light.position, dtype=np.float64)],
-                "intensity": rgb(light.intensity),
-            }))
-        elif isinstance(light, DirectionalLight):
-            d = np.asarray(light.direction, dtype=np.float64)
-            out.append((f"light_{i:03d}", {
-                "type": "directional",
-                "direction": [float(c) for c in d / np.linalg.norm(d)],
-                "irradiance": rgb(light.irradiance),
-            }))
-        elif isinstance(light, LinearLight):
-            a = np.asarray(light.start, dtype=np.float64)
-            b = np.asarray(light.end, dtype=np.float64)
-            phi = np.asarray(light.power, dtype=np.float64)
-            length = float(np.linalg.norm(b - a))
-            if light.profile == "isotropic":
-                m = int(segment_points)
-                for j in range(m):
-                    x = a + (j + 0.5) / m * (b - a)
-                    out.append((f"light_{i:03d}_{j:03d}", {
-                        "type": "point",
-                        "position": [float(c) for c in x],
-                        "intensity": rgb(phi * length / (4.0 * math.pi * m)),
-                        "sampling_weight": 1.0 / m,
-                    }))
-            elif light.exponent == 1:
-                r = float(segment_radius) * length
-                out.append((f"light_{i:03d}", {
-                    "type": "cylinder",
-                    "p0": [float(c) for c in a],
-                    "p1": [float(c) for c in b],
-                    "radius": r,
-                    "emitter": {"type": "area", "radiance": rgb(phi / (2.0 * math.pi**2 * r))},
-                }))
-            else:
-                raise NotImplementedError(
-                    f"to_mitsuba: scene.lights[{i}] is a cosine LinearLight with exponent "
-                    f"{light.exponent}; Mitsuba has a stand-in only for m = 1 (a Lambertian "
-                    "cylinder) "
-                    "and the isotropic profile (a chain of point lights)."
-                )
-        else:  # pragma: no cover - Scene validates its lights
-            raise ValueError(f"to_mitsuba: unsupported light {type(light).__name__}.")
-    if receivers:
-        from ._io.mitsuba_io import material_to_bsdf
-
-        names = _surface_ids([r.name for r in receivers])
-        for k, (name, r) in enumerate(zip(names, receivers, strict=True)):
-            mat = materials[k] if k < len(materials) else Material()
-            out.append((name, {"type": "_mesh", "vertices": r.vertices, "faces": r.faces,
-                               "bsdf": material_to_bsdf(mat)}))
-    elif scene.occluders is not None:
-        v, f = _fan_arrays([_strip_padding(p) for p in np.asarray(scene.occluders, dtype=np.float64)])
-        out.append(("occluders", {"type": "_mesh", "vertices": v, "faces": f,
-                                  "bsdf": {"type": "diffuse", "reflectance": rgb(0.0)}}))
-    return out
-
-
-def to_mitsuba_dict(
-    scene: Scene, *, receivers: Any = (), materials: Any = (), sensor: dict | None = None,
-    segment_points: int = 64, segment_radius: float = 1e-4
-) -> dict:
-    r"""The `mi.load_dict` dictionary of a jaxshadow scene (see the module docstring).
-
-    **Arguments:**
-
-    - `scene`: a jaxshadow `Scene`. Ambient radiance is not part of it (it is not light that
-      Mitsuba transports; `reference_shade` adds $k_a L_a$ itself).
-    - `receivers`, `materials`: receiver surfaces (`ReceiverMesh`, e.g. from `from_mitsuba`) and
-      their `Material`s, written as meshes with the nearest BSDF (`material_to_bsdf`); when any
-      are given they are the occluders (as in `from_mitsuba`), else `scene.occluders` are
-      written as one black mesh.
-    - `sensor`: a camera as `read_sensor` returns it, or `None`.
-    - `segment_points`: number $M$ of point emitters standing in for an isotropic `LinearLight`.
-    - `segment_radius`: radius of the Lambertian cylinder standing in for a cosine ($m = 1$)
-      `LinearLight`, as a fraction of its length.
-
-    **Returns:** a dict with `"type": "scene"`; meshes are `mi.Mesh` objects, so build a fresh
-    dict for every `mi.load_dict`.
-    """
-    mi = _mi()
-    out: dict[str, Any] = {"type": "scene"}
-    for name, d in scene_items(scene, receivers, materials, segment_points=segment_points,
-                               segment_radius=segment_radius):
-        if d["type"] == "_mesh":
-            props = mi.Properties()
-            for k in ("emitter", "bsdf"):
-                if k in d:
-                    props[k] = mi.load_dict(d[k])
-            out[name] = _mi_mesh(mi, name, d["vertices"], d["faces"], props)
-        else:
-            out[name] = d
-    if sensor is not None:
-        out["sensor"] = {
-            "type": "perspective", "fov": float(sensor["fov"]), "fov_axis": "x",
-            "to_world": mi.ScalarTransform4f(np.asarray(sensor["to_world"], np.float64).tolist()),
-            "film": {"type": "hdrfilm", "width": int(sensor["width"]), "height": int(sensor["height"]),
-                     "rfilter": {"type": "box"}},
-            "sampler": {"type": "independent", "sample_count": int(sensor.get("spp", 16))},
-        }
-    return out
-
-
-def to_mitsuba(scene: Scene, *, receivers: Any = (), materials: Any = (), sensor: dict | None = None,
-               segment_points: int = 64, segment_radius: float = 1e-4) -> Any:
-    """The Mitsuba twin of a jaxshadow scene: `mi.load_dict(to_mitsuba_dict(scene, ...))`.
-
-    **Arguments:** as `to_mitsuba_dict`.
-
-    **Returns:** an `mi.Scene` (variant `llvm_ad_rgb`).
-    """
-    mi = _mi()
-    return mi.load_dict(
-        to_mitsuba_dict(scene, receivers=receivers, materials=materials, sensor=sensor,
-                        segment_points=segment_points, segment_radius=segment_radius)
-    )
-
 
 # --------------------------------------------------------------------------------------
 # Monte Carlo estimators

@@ -269,7 +269,7 @@ class Mesh:
         (`jaxshadow.ReceiverMesh.welded`'s rule): a mesh split at UV seams becomes one closed
         surface. **Returns:** a new `Mesh` (of this one's faces); `n_welded` counts the vertices
         merged away. Faces a tolerance collapses are dropped."""
-        from .._io.meshio import weld_vertices
+        from .welding import weld_vertices
 
         index, first = weld_vertices(self.vertices, tol)
         loops = [[int(i) for i in index[loop]] for loop in self.loops]
@@ -283,7 +283,7 @@ class Mesh:
         """The mesh moved by an affine map $x \\mapsto A x + t$ (arguments as
         `jaxshadow.ReceiverMesh.transformed`); a mirroring map reverses the faces, so a closed
         mesh stays outward-oriented. **Returns:** a new `Mesh`."""
-        from .._io.meshio import affine_parts
+        from .welding import affine_parts
 
         a, t = affine_parts(matrix, rotation=rotation, translation=translation, scale=scale)
         flip = np.linalg.det(a) < 0

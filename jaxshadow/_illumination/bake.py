@@ -115,9 +115,9 @@ class BakedScene:
 
 def _weld(points: np.ndarray, tol: float) -> np.ndarray:
     """`(n,)` welded id of each point: points within `tol > 0` are one (transitively,
-    `jaxshadow._io.meshio.weld_vertices`); the id is the lowest index of its group. `tol <= 0`:
+    `jaxshadow._core.welding.weld_vertices`); the id is the lowest index of its group. `tol <= 0`:
     every point its own."""
-    from .._io.meshio import weld_vertices
+    from .._core.welding import weld_vertices
 
     if points.shape[0] == 0 or tol <= 0:
         return np.arange(points.shape[0])
@@ -404,7 +404,7 @@ def _own_faces(occ: np.ndarray, poly: np.ndarray, normal: np.ndarray, size: floa
     return on & (nf @ normal > 0)
 
 
-def _without_own_faces(scene: Scene, poly: np.ndarray, normal: np.ndarray) -> Scene:
+def without_own_faces(scene: Scene, poly: np.ndarray, normal: np.ndarray) -> Scene:
     """`scene` without the occluder faces lying on the planar receiver `poly` and facing its way
     (`_own_faces`): by the on-surface rule they block nothing on it, but the mesher would take
     them for the foot of an object standing on it (a hole). Faces on it facing the other way

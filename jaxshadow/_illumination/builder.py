@@ -94,7 +94,7 @@ class _Builder:
             return np.zeros(0, int)
         return np.nonzero(ev.boxes_overlap(self.contact_box, lo, hi, margin=1e-9 * self.diam))[0]
 
-    def _in_contact(self, q: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    def in_contact(self, q: np.ndarray, ids: np.ndarray) -> np.ndarray:
         """Whether points `q (n, 2)` lie strictly inside one of the contact polygons `ids` (the
         receiver there is covered by an occluder face lying on it: a hole of the mesh)."""
         out = np.zeros(q.shape[0], bool)
@@ -106,7 +106,7 @@ class _Builder:
             out |= np.all(d > eps * np.linalg.norm(e, axis=1)[None, :], axis=1)
         return out
 
-    def _at_contact_corner(self, c: np.ndarray) -> np.ndarray:
+    def at_contact_corner(self, c: np.ndarray) -> np.ndarray:
         """Whether triangles `c (T, 3, 2)` have a vertex within `CORNER_SIZE` (of the receiver's
         size) of a corner of the contact polygons (a vertex, or a crossing of two polygons'
         edges where standing objects overlap), whether or not the polygon reaches the
@@ -116,11 +116,11 @@ class _Builder:
         every ring of elements around it sees the same variation, at any size: no refinement
         meets `tol` there."""
         r = CORNER_SIZE * self.diam
-        return self._corner_distance(c, r) <= r
+        return self.corner_distance(c, r) <= r
 
-    def _corner_distance(self, c: np.ndarray, reach: float) -> np.ndarray:
+    def corner_distance(self, c: np.ndarray, reach: float) -> np.ndarray:
         """`(T,)`: the distance from triangles `c (T, 3, 2)` (their nearest vertex) to the
-        nearest corner of the contact polygons (`_at_contact_corner`), `inf` beyond `reach`."""
+        nearest corner of the contact polygons (`at_contact_corner`), `inf` beyond `reach`."""
         out = np.full(c.shape[0], np.inf)
         k = self.contact_corners
         if k.shape[0] == 0 or c.shape[0] == 0:
@@ -153,7 +153,7 @@ class _Builder:
         ok = (den != 0) & (s > 1e-12) & (s < 1 - 1e-12) & (t >= 0) & (t <= 1)
         return sorted({float(x) for x in s[ok]})
 
-    def _move_off_contact(self, xy: np.ndarray, ids: np.ndarray) -> None:
+    def move_off_contact(self, xy: np.ndarray, ids: np.ndarray) -> None:
         """Points `xy (n, 2)` on (within round-off of) the edges of contact polygons `ids` are
         evaluated `CONTACT_STEP` (of the receiver's size) outside them: along such an edge the
         irradiance jumps, and the mesh takes the value on the open receiver's side."""
@@ -202,7 +202,7 @@ class _Builder:
             for j, sj in enumerate(self._contact_crossings(lo, hi, e.a, e.b)):
                 e.cross[-1 - j] = (sj, e.point(sj), True)
             if len(e.cross):
-                self._move_off_contact(np.array([x for _, x, _ in e.cross.values()]), self._contact_ids(lo, hi))
+                self.move_off_contact(np.array([x for _, x, _ in e.cross.values()]), self._contact_ids(lo, hi))
             if self.seg is None or len(self.seg) == 0:
                 continue
             cand = np.nonzero(ev.boxes_overlap(self.seg_box, lo, hi, margin=1e-9 * self.diam))[0]
@@ -414,11 +414,11 @@ class _Builder:
         return out, float(v.max())
 
     # ------------------------------------------------------------------ refinement
-    def _threshold(self) -> float:
+    def threshold(self) -> float:
         return ESTIMATE_MARGIN * self.tol * float(self.scale)
 
     def _refine_edges(self, keys: list[tuple[int, int]]) -> None:
-        thr = self._threshold()
+        thr = self.threshold()
         params: dict[tuple[int, int], np.ndarray] = {}
         for key in keys:
             e = self.edges[key]
@@ -446,7 +446,7 @@ class _Builder:
                 interp = (1 - w) * ve[:-1, None, :] + w * ve[1:, None, :]
                 err = np.abs(vp - interp).max(axis=2)  # (intervals, 3)
                 length = np.diff(s) * np.linalg.norm(e.b - e.a)
-                hole = self._in_contact(e.point(s[:-1] + 0.5 * np.diff(s)),
+                hole = self.in_contact(e.point(s[:-1] + 0.5 * np.diff(s)),
                                         self._contact_ids(np.minimum(e.a, e.b), np.maximum(e.a, e.b)))
                 bad = (err.max(axis=1) > thr) & (length > self.min_edge) & ~hole
                 if np.any(bad):
@@ -458,7 +458,7 @@ class _Builder:
         for key in keys:
             self.edges[key].s = params[key]
 
-    def _tile_pslg(self, t: _Tile) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def tile_pslg(self, t: _Tile) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         verts: list[np.ndarray] = []
         for ga, gb, rev in t.edge_keys():
             e = self.edges[(ga, gb)]

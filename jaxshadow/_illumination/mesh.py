@@ -187,7 +187,7 @@ def _updated(old: _Builder, scene: Scene) -> _Builder:
     step = float(np.linalg.norm(nb.eval.step)) * (1 + 1e-6)
     fin = boxes[np.all(np.isfinite(boxes), axis=1)]
     # Tiles within reach of a changed contact polygon's corners are re-meshed too: which of
-    # their elements count as at a corner (`_Builder._at_contact_corner`), and how far the
+    # their elements count as at a corner (`_Builder.at_contact_corner`), and how far the
     # failing ones may be split near it (`CORNER_GRADE`), depend on them.
     margin = max(1e-6 * old.diam, CORNER_SIZE * old.diam, old.min_edge / CORNER_GRADE)
     tile_ids = [ti for ti, t in enumerate(nb.tiles) if fin.size and np.any(ev.boxes_overlap(fin, t.lo, t.hi, margin))]

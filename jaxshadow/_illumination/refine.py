@@ -5,7 +5,7 @@ exact values, insertion of each failing element's worst point."""
 from __future__ import annotations
 
 import time
-from typing import TYPE_CHECKING
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -18,8 +18,26 @@ from .pslg import (
     _triangulate,
 )
 
-if TYPE_CHECKING:
-    from .builder import _Builder
+
+@runtime_checkable
+class Refinable(Protocol):
+    """What refinement needs of a mesh under construction (`builder._Builder` is one): its tiles,
+    its exact evaluator, sizes and limits, and the contact-polygon queries."""
+
+    tiles: list[Any]
+    eval: Any
+    diam: float
+    min_edge: float
+    max_vertices: int
+    stats: dict[str, Any]
+    progress: Any
+
+    def threshold(self) -> float: ...
+    def tile_pslg(self, t: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
+    def in_contact(self, q: np.ndarray, ids: np.ndarray) -> np.ndarray: ...
+    def at_contact_corner(self, c: np.ndarray) -> np.ndarray: ...
+    def corner_distance(self, c: np.ndarray, reach: float) -> np.ndarray: ...
+    def move_off_contact(self, xy: np.ndarray, ids: np.ndarray) -> None: ...
 
 CORNER_SIZE = 1e-4  # elements at a contact polygon's corner are not split below this (of the receiver's size)
 CORNER_GRADE = 1e-3  # elements at distance r from such a corner may be split down to CORNER_GRADE * r
@@ -27,14 +45,14 @@ MAX_ROUNDS = 200  # refinement rounds per tile (each halves the worst elements; 
 _INNER = np.array([[0.5, 0.0, 0.0], [0.0, 0.5, 0.0], [0.0, 0.0, 0.5]]) + 0.5 / 3  # between centroid and corners
 
 
-def refine_tiles(b: _Builder, tile_ids: list[int]) -> None:
+def refine_tiles(b: Refinable, tile_ids: list[int]) -> None:
     """Refine the tiles `tile_ids` of `b` until no element fails its check (`_illumination`,
     step 4); the result goes to each tile's `verts`, `tris`, `values`, `error`."""
-    thr = b._threshold()
+    thr = b.threshold()
     state = {}
     on_tol = 1e-11 * b.diam
     for ti in tile_ids:
-        v, s, m = b._tile_pslg(b.tiles[ti])
+        v, s, m = b.tile_pslg(b.tiles[ti])
         s, m = _split_at(v, s, m, np.arange(v.shape[0]), on_tol)
         state[ti] = (v, s, m)
     active = list(tile_ids)
@@ -64,7 +82,7 @@ def refine_tiles(b: _Builder, tile_ids: list[int]) -> None:
                 # Vertices and edge midpoints on a contact polygon's edge, found by position: a
                 # discontinuity line along the edge (an occluder's edge on the receiver makes
                 # one) can take the place of the contact segment in the triangulation.
-                b._move_off_contact(np.concatenate([tv[n_old:], mids.reshape(-1, 2)]), b.tiles[ti].contact)
+                b.move_off_contact(np.concatenate([tv[n_old:], mids.reshape(-1, 2)]), b.tiles[ti].contact)
             inner_seg = out["segments"][out["segment_markers"].ravel() == 0]
             ends = np.sort(inner_seg, axis=1).astype(np.int64)
             codes = ends[:, 0] * _RADIX + ends[:, 1]
@@ -125,11 +143,11 @@ def refine_tiles(b: _Builder, tile_ids: list[int]) -> None:
             err[~kn] = np.abs(got - interp).max(axis=2)
             irow = np.full((tt.shape[0], 4), -1, np.int64)  # rows of the new elements' inner points
             irow[~kn] = in_rows[at[k_tile]:at[k_tile + 1]].reshape(-1, 4)
-            hole[~kn] = b._in_contact(c[~kn].mean(axis=1), b.tiles[ti].contact)
+            hole[~kn] = b.in_contact(c[~kn].mean(axis=1), b.tiles[ti].contact)
             # At a contact polygon's corner the irradiance has no limit (it depends on the
             # direction of approach): the elements within CORNER_SIZE of it are refined down
             # to CORNER_SIZE only, and their error is reported apart (`stats["corner_error"]`).
-            corner[~kn] = b._at_contact_corner(c[~kn])
+            corner[~kn] = b.at_contact_corner(c[~kn])
             last[ti] = _Checked(tv, tt, err.copy(), hole, corner)
             err[hole] = 0.0  # covered by an occluder face lying on the receiver: not meshed
             longest = np.linalg.norm(c - np.roll(c, -1, axis=1), axis=2).max(axis=1)
@@ -146,7 +164,7 @@ def refine_tiles(b: _Builder, tile_ids: list[int]) -> None:
             # elements must shrink in proportion to their distance r from it: down to
             # CORNER_GRADE * r there, below min_edge (looked at for the failing elements only).
             near = np.nonzero(over & ~corner)[0]
-            floor[near] = np.minimum(b.min_edge, CORNER_GRADE * b._corner_distance(c[near], b.min_edge / CORNER_GRADE))
+            floor[near] = np.minimum(b.min_edge, CORNER_GRADE * b.corner_distance(c[near], b.min_edge / CORNER_GRADE))
             # The elements to split (the few that fail; the next lines look at those only).
             cand = np.nonzero(over & (longest > floor))[0]
             edge_ij = np.stack([tt[cand], np.roll(tt[cand], -1, axis=1)], axis=-1)  # (C, 3, 2)

@@ -47,15 +47,15 @@ from __future__ import annotations
 import math
 import os
 import warnings
-import xml.etree.ElementTree as ET
 from typing import Any
 
 import numpy as np
 
-from .._core.files import atomic_write
 from .._scene.model import DirectionalLight, Material, PointLight, PolygonLight, Scene
-from .meshio import ReceiverMesh, write_mesh
+from .meshio import ReceiverMesh
 
+_VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
+_CHUNK_LANES = 1 << 20
 DISC_SEGMENTS = 64
 SPHERE_SEGMENTS = 24
 SMOOTH_EXPONENT = 1000.0
@@ -70,9 +70,23 @@ def _warn(msg: str) -> None:
 
 
 def _mi() -> Any:
-    from ..mitsuba import _mi as select_variant
-
-    return select_variant()
+    """Import Mitsuba and select an RGB JIT variant; a clear ImportError when it is missing."""
+    try:
+        import mitsuba as mi
+    except ImportError as err:
+        raise ImportError(
+            "jaxshadow.mitsuba needs the optional dependency 'mitsuba' (Mitsuba 3): "
+            "install it with `pip install 'jaxshadow[mitsuba]'`."
+        ) from err
+    if mi.variant() not in _VARIANTS:
+        if "llvm_ad_rgb" in mi.variants():
+            mi.set_variant("llvm_ad_rgb")
+        else:  # pragma: no cover - depends on the Mitsuba build
+            raise ImportError(
+                "jaxshadow.mitsuba needs Mitsuba's 'llvm_ad_rgb' variant (vectorised estimators); "
+                f"this build offers {mi.variants()}."
+            )
+    return mi
 
 
 def _load(mi: Any, source: Any) -> Any:
@@ -277,10 +291,6 @@ def _exponent_from_alpha(alpha: float) -> float:
     return max(2.0 / max(alpha, 1e-12) ** 2 - 2.0, 0.0)
 
 
-def _alpha_from_exponent(n: float) -> float:
-    return math.sqrt(2.0 / (n + 2.0))
-
-
 def material_from_bsdf(mi: Any, bsdf: Any, name: str = "bsdf") -> Material:
     """The nearest Phong `Material` of a Mitsuba BSDF (mapping in the module docstring); an
     `UnsupportedMitsubaElementWarning` and `Material()` when there is none."""
@@ -361,35 +371,6 @@ def _child(bsdf: Any, i: int) -> Any:
     return found[i]
 
 
-def material_to_bsdf(material: Material) -> dict:
-    """A Mitsuba BSDF dict for a `Material` (module docstring): `diffuse` when $k_s = 0$, else a
-    `blendbsdf` of a diffuse and a Fresnel-free Beckmann `roughconductor`. $k_a$ has no
-    counterpart (Mitsuba does not transport ambient light)."""
-    kd = np.broadcast_to(np.asarray(material.kd, np.float64), (3,))
-    ks = np.broadcast_to(np.asarray(material.ks, np.float64), (3,))
-    rgb = lambda x: {"type": "rgb", "value": [float(c) for c in x]}  # noqa: E731
-    if not np.any(ks > 0):
-        return {"type": "diffuse", "reflectance": rgb(kd)}
-    n = float(np.asarray(material.exponent))
-    # Mitsuba's RGB reflectances must lie in [0, 1]: weight w with k_d/(1-w), k_s/w <= 1 when
-    # max k_d + max k_s <= 1; beyond that the material reflects more than it receives.
-    a, b = float(kd.max()), float(ks.max())
-    if a + b > 1:
-        _warn(f"Material with max k_d + max k_s = {a + b:.4g} > 1 has no Mitsuba BSDF; scaled down to 1.")
-        kd, ks, a, b = kd / (a + b), ks / (a + b), a / (a + b), b / (a + b)
-    w = b / (a + b)
-    return {
-        "type": "blendbsdf",
-        "weight": w,
-        "bsdf_0": {"type": "diffuse", "reflectance": rgb(kd / (1 - w) if w < 1 else np.zeros(3))},
-        "bsdf_1": {"type": "roughconductor", "material": "none", "distribution": "beckmann",
-                   "alpha": _alpha_from_exponent(n), "specular_reflectance": rgb(ks / w)},
-    }
-
-
-# --------------------------------------------------------------------------------------
-# from_mitsuba
-# --------------------------------------------------------------------------------------
 
 
 def from_mitsuba(path_or_dict: Any, *, disc_segments: int = DISC_SEGMENTS, sphere_segments: int = SPHERE_SEGMENTS,
@@ -513,163 +494,3 @@ def read_sensor(path_or_dict: Any) -> dict | None:
     return {"fov": float(np.asarray(p["x_fov"]).ravel()[0]), "to_world": _matrix(p["to_world"]),
             "width": size[0], "height": size[1], "near_clip": float(p["near_clip"]),
             "far_clip": float(p["far_clip"]), "spp": int(s.sampler().sample_count())}
-
-
-# --------------------------------------------------------------------------------------
-# XML out
-# --------------------------------------------------------------------------------------
-
-_TAGS = {"diffuse": "bsdf", "blendbsdf": "bsdf", "roughconductor": "bsdf", "area": "emitter", "point": "emitter",
-         "directional": "emitter", "ply": "shape", "cylinder": "shape", "perspective": "sensor",
-         "hdrfilm": "film", "independent": "sampler", "box": "rfilter", "direct": "integrator"}
-_POINTS = {"position", "p0", "p1"}
-_VECTORS = {"direction"}
-
-
-def _xml_value(parent: ET.Element, name: str, value: Any) -> None:
-    def nums(x: Any) -> str:
-        return ", ".join(repr(float(c)) for c in np.ravel(x))
-
-    if isinstance(value, dict) and value.get("type") == "rgb":
-        ET.SubElement(parent, "rgb", name=name, value=nums(value["value"]))
-    elif isinstance(value, dict):
-        _xml_plugin(parent, value)  # nested plugins are read in order (blendbsdf: bsdf_0, bsdf_1)
-    elif name == "to_world":
-        t = ET.SubElement(parent, "transform", name=name)
-        ET.SubElement(t, "matrix", value=" ".join(repr(float(c)) for c in np.ravel(value)))
-    elif name in _POINTS or name in _VECTORS:
-        x, y, z = (repr(float(c)) for c in value)
-        ET.SubElement(parent, "point" if name in _POINTS else "vector", name=name, x=x, y=y, z=z)
-    elif isinstance(value, bool):
-        ET.SubElement(parent, "boolean", name=name, value=str(value).lower())
-    elif isinstance(value, (int, np.integer)):
-        ET.SubElement(parent, "integer", name=name, value=str(int(value)))
-    elif isinstance(value, (float, np.floating)):
-        ET.SubElement(parent, "float", name=name, value=repr(float(value)))
-    elif isinstance(value, str):
-        ET.SubElement(parent, "string", name=name, value=value)
-    else:
-        raise ValueError(f"write_mitsuba_xml: cannot write {name!r} = {value!r}.")
-
-
-def _xml_plugin(parent: ET.Element, d: dict, ident: str | None = None) -> ET.Element:
-    tag = _TAGS.get(d["type"])
-    if tag is None:
-        raise ValueError(f"write_mitsuba_xml: no XML tag known for plugin type {d['type']!r}.")
-    el = ET.SubElement(parent, tag, type=d["type"])
-    if ident is not None:
-        el.set("id", ident)
-    for k, v in d.items():
-        if k != "type":
-            _xml_value(el, k, v)
-    return el
-
-
-def write_mitsuba_xml(path: str | os.PathLike, scene: Scene, receivers: Any = (), materials: Any = (), *,
-                      sensor: dict | None = None, integrator: str = "direct", segment_points: int = 64,
-                      segment_radius: float = 1e-4) -> None:
-    """Write a jaxshadow scene as a Mitsuba 3 XML file (`mi.load_file` reads it back).
-
-    **Arguments:**
-
-    - `path`: the `.xml` file. Meshes go to PLY files in the directory `<stem>_meshes` beside it
-      (created); every file is written atomically.
-    - `scene`: lights as in `to_mitsuba_dict`. Occluders: the `receivers` when any are given
-      (`from_mitsuba` makes every receiver surface an occluder), else `scene.occluders` (one
-      black mesh).
-    - `receivers`, `materials`: `ReceiverMesh` surfaces and their `Material` (as a BSDF,
-      `material_to_bsdf`; a missing material is `Material()`).
-    - `sensor`: a `read_sensor` dict, or `None` for no camera.
-    - `integrator`: the integrator plugin (default `direct`).
-    - `segment_points`, `segment_radius`: the stand-ins of linear lights (`to_mitsuba_dict`).
-    """
-    from ..mitsuba import scene_items
-
-    path = os.fspath(path)
-    if not path.lower().endswith(".xml"):
-        raise ValueError(f"{path}: write_mitsuba_xml writes .xml files.")
-    directory = os.path.dirname(os.path.abspath(path))
-    stem = os.path.splitext(os.path.basename(path))[0]
-    mesh_dir = os.path.join(directory, f"{stem}_meshes")
-    receivers, materials = list(receivers), list(materials)
-    items = scene_items(scene, receivers, materials, segment_points=segment_points, segment_radius=segment_radius)
-    root = ET.Element("scene", version="3.0.0")
-    if integrator:
-        ET.SubElement(root, "integrator", type=integrator)
-    if sensor is not None:
-        sd = {"type": "perspective", "fov": float(sensor["fov"]), "fov_axis": "x",
-              "near_clip": float(sensor.get("near_clip", 0.01)), "far_clip": float(sensor.get("far_clip", 1e4)),
-              "to_world": np.asarray(sensor["to_world"], np.float64),
-              "sampler": {"type": "independent", "sample_count": int(sensor.get("spp", 16))},
-              "film": {"type": "hdrfilm", "width": int(sensor["width"]), "height": int(sensor["height"]),
-                       "rfilter": {"type": "box"}}}
-        _xml_plugin(root, sd)
-    os.makedirs(mesh_dir, exist_ok=True)
-    for name, d in items:
-        if d["type"] == "_mesh":
-            ply = os.path.join(mesh_dir, f"{name}.ply")
-            write_mesh(ply, d["vertices"], d["faces"])
-            shape = {"type": "ply", "filename": os.path.relpath(ply, directory).replace(os.sep, "/"),
-                     "face_normals": d.get("vertex_normals") is None}
-            for k in ("bsdf", "emitter"):
-                if k in d:
-                    shape[k] = d[k]
-            _xml_plugin(root, shape, name)
-        else:
-            _xml_plugin(root, d, name)
-    ET.indent(root)
-    text = ET.tostring(root, encoding="unicode")
-    with atomic_write(path) as fh:
-        fh.write('<?xml version="1.0" encoding="utf-8"?>\n<!-- written by jaxshadow -->\n' + text + "\n")
-
-
-
-_EXAMPLE = """<?xml version="1.0" encoding="utf-8"?>
-<!-- jaxshadow's example scene: a rectangle light, a torus (OBJ, {faces} triangles) and a floor -->
-<scene version="3.0.0">
-  <integrator type="direct"/>
-  <sensor type="perspective">
-    <float name="fov" value="40"/>
-    <transform name="to_world"><lookat origin="0, -3.4, 2.6" target="0, 0, 0.3" up="0, 0, 1"/></transform>
-    <sampler type="independent"><integer name="sample_count" value="{spp}"/></sampler>
-    <film type="hdrfilm">
-      <integer name="width" value="{res}"/><integer name="height" value="{res}"/><rfilter type="box"/>
-    </film>
-  </sensor>
-  <shape type="rectangle" id="lamp">
-    <transform name="to_world">
-      <scale x="0.3" y="0.3"/><rotate x="1" angle="180"/><translate x="0.15" y="0.1" z="1.6"/>
-    </transform>
-    <emitter type="area"><rgb name="radiance" value="8, 8, 8"/></emitter>
-  </shape>
-  <shape type="obj" id="torus">
-    <string name="filename" value="torus.obj"/>
-    <bsdf type="diffuse"><rgb name="reflectance" value="0.7, 0.3, 0.2"/></bsdf>
-  </shape>
-  <shape type="rectangle" id="floor">
-    <transform name="to_world"><scale x="2" y="2"/></transform>
-    <bsdf type="diffuse"><rgb name="reflectance" value="0.6, 0.6, 0.6"/></bsdf>
-  </shape>
-</scene>
-"""
-
-
-def write_example_scene(directory: str | os.PathLike, resolution: int = 256, spp: int = 16) -> str:
-    """Write jaxshadow's example Mitsuba scene into `directory`: `scene.xml` (a 0.6 m square
-    light 1.6 m above a 4 m floor, a tilted torus of 768 triangles, `torus.obj`, between them; a
-    camera of `resolution` x `resolution` pixels with a box filter, `spp` samples per pixel).
-
-    **Returns:** the path of `scene.xml`.
-    """
-    from .meshio import _trimesh, write_mesh
-
-    trimesh = _trimesh()
-    directory = os.fspath(directory)
-    torus = trimesh.creation.torus(0.35, 0.12, major_sections=32, minor_sections=12)
-    torus.apply_transform(trimesh.transformations.rotation_matrix(np.radians(20), [1, 0, 0]))
-    torus.apply_translation([0.1, 0.0, 0.6])
-    write_mesh(os.path.join(directory, "torus.obj"), torus.vertices, torus.faces)
-    path = os.path.join(directory, "scene.xml")
-    with atomic_write(path) as fh:
-        fh.write(_EXAMPLE.format(faces=len(torus.faces), res=int(resolution), spp=int(spp)))
-    return path

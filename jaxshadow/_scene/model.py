@@ -510,7 +510,7 @@ def _mesh_arrays(block: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """`(vertices (V, 3), faces (G, K))` of one mesh's padded faces `block (G, Ko, 3)`: trailing
     copies of a face's first vertex are padding (a face keeps at least three vertices), equal
     coordinates are one vertex (in order of first use), faces padded with -1."""
-    from .._io.meshio import weld_vertices
+    from .._core.welding import weld_vertices
 
     eq = np.all(block == block[:, :1], axis=2)[:, 1:]  # (G, Ko - 1)
     pad = np.flip(np.cumprod(np.flip(eq, axis=1), axis=1), axis=1).astype(bool)

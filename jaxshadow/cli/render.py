@@ -32,7 +32,7 @@ import numpy as np
 
 from .._core.files import atomic_write_path
 from .._io.meshio import tonemap
-from . import (
+from .common import (
     Progress,
     _say,
     check_input,
@@ -78,7 +78,7 @@ class Rendering:
 
 def _load(source: Any) -> tuple[Any, Any]:
     from .._io.mitsuba_io import _load as load_scene
-    from ..mitsuba import _mi
+    from .._io.mitsuba_io import _mi
 
     mi = _mi()
     return mi, load_scene(mi, source)
@@ -207,7 +207,7 @@ def render_mitsuba(source: Any, spp: int, seed: int = 0) -> tuple[np.ndarray, fl
 def write_image(path: str | os.PathLike, image: Any, exposure: float | None = None) -> None:
     """Write `(H, W, 3)` linear radiance: `.exr` as float32 linear RGB (Mitsuba's `Bitmap`),
     `.png` tone-mapped to 8-bit sRGB (`jaxshadow._io.meshio.tonemap`, `exposure`); atomically."""
-    from ..mitsuba import _mi
+    from .._io.mitsuba_io import _mi
 
     mi = _mi()
     path = os.fspath(path)
