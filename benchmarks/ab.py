@@ -6,7 +6,7 @@ case in every variant, each in a fresh process (nothing cached but the OS's file
 ratios are taken within a round. A child process times the first `fit_light` call
 (`jax.monitoring` splits out tracing, lowering and XLA compilation of every program it
 compiled) and the median of three more calls (the solve alone), on
-`inverse._scenes.occluded_light_problem` (48 targets, 8 light parameters, float64).
+`benchmarks.inverse_scenes.occluded_light_problem` (48 targets, 8 light parameters, float64).
 
     python -m benchmarks.ab NAME --variant LABEL[@TREE][=SOLVER] ... [--prelude LABEL=CODE]
         [--occluders 8] [--starts 1 64] [--rounds 3]
@@ -56,7 +56,8 @@ def _child(spec: dict) -> dict:
     if spec.get("prelude"):
         exec(spec["prelude"], {})
     import inverse
-    from inverse._scenes import occluded_light_problem
+
+    from .inverse_scenes import occluded_light_problem
 
     _, start, material, targets = occluded_light_problem(spec["occluders"], n_points=48, seed=0)[:4]
     kw: dict[str, Any] = {"starts": spec["starts"]}

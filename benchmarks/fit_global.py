@@ -2,7 +2,7 @@
 scenes, per start distance (10 %, 30 %, 60 % of the scene, or no start: lights given by kind
 only), with the median fit time and the compile time reported apart.
 
-Each scene is `inverse._random_scenes.random_case(seed, kinds)`: grey lights of the given kinds
+Each scene is `benchmarks.inverse_random_scenes.random_case(seed, kinds)`: grey lights of the given kinds
 (quad, point, segment) 1-2 m over a floor, a floating box occluder, 60 floor targets painted by
 `js.shade` (noise-free); the start is the truth moved the given fraction of the scene size in a
 random direction at 0.5-2x its power (`shifted_start`), or no light at all
@@ -60,7 +60,8 @@ def _setting(kinds: str, start: str, seeds: list[int], placement: str = "global"
     import inverse
     import jaxshadow as js
     from benchmarks.fit_lights import _timing
-    from inverse._random_scenes import light_errors, random_case, shifted_start
+
+    from .inverse_random_scenes import light_errors, random_case, shifted_start
 
     timing = _timing()
     runs = []

@@ -3,7 +3,7 @@ powers (and, in one case, the material) from 80 painted targets; pose, power and
 against the hidden truth, the report's standard errors, and the whole fit's time (a fresh process
 per case: compile included, the time JAX spent compiling and tracing reported beside it).
 
-The truth is `inverse._scenes.three_lights_scene` (targets painted by `js.shade`, or rendered by
+The truth is `benchmarks.inverse_scenes.three_lights_scene` (targets painted by `js.shade`, or rendered by
 Mitsuba 3 (`jaxshadow.mitsuba.reference_shade`, the "mitsuba/" cases), optionally with 1 %
 multiplicative noise); the starts are the true lights moved a fraction of the scene size in
 three directions at wrong powers (`three_lights_start`); the solver sees only the starts and the
@@ -67,7 +67,7 @@ CASES = {
         targets="designed", sweeps=1, design_at="designed(1)/greedy/shift=30%/noise=1%"),
     "floor/shift=8%/projected/position+power": dict(shift=0.08, noise=0.0, mode="projected", fit="position,power"),
 }
-# One light from the shadow of an occluder (`inverse._scenes.one_light_shadow_case`): a
+# One light from the shadow of an occluder (`benchmarks.inverse_scenes.one_light_shadow_case`): a
 # directional light's direction, a segment light's ends, and a power budget below the truth's.
 KIND_CASES = {
     "directional/shadow targets/noise=0": dict(kind="directional", noise=0.0),
@@ -180,7 +180,8 @@ def _design(estimate, material, eye):
     import numpy as np
 
     import inverse
-    from inverse._scenes import floor_receivers, near_light_candidates
+
+    from .inverse_scenes import floor_receivers, near_light_candidates
 
     fp, fn = floor_receivers()
     cp, cn = near_light_candidates([_light_centre(light) for light in estimate.lights])
@@ -210,7 +211,8 @@ def _case(shift: float, noise: float, mode: str, fit: str, starts: int = 8, swee
 
     import inverse
     import jaxshadow as js
-    from inverse._scenes import (
+
+    from .inverse_scenes import (
         THREE_LIGHTS_EYE,
         floor_receivers,
         three_lights_scene,
@@ -286,7 +288,8 @@ def _kind_case(kind: str, noise: float) -> dict:
 
     import inverse
     import jaxshadow as js
-    from inverse._scenes import THREE_LIGHTS_EYE, one_light_shadow_case
+
+    from .inverse_scenes import THREE_LIGHTS_EYE, one_light_shadow_case
 
     t0 = time.perf_counter()
     material = js.Material(ka=0.2, kd=[0.6, 0.5, 0.4], ks=0.0, exponent=1.0)

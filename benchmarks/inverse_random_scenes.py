@@ -12,7 +12,7 @@ import numpy as np
 
 import jaxshadow as js
 
-from ._scenes import quad
+from .inverse_scenes import quad
 
 EYE = np.array([0.0, -3.0, 2.5])
 

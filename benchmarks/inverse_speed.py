@@ -24,8 +24,10 @@ import jax.numpy as jnp
 import numpy as np
 
 import inverse
+from inverse import demo_configuration, pose_errors
 from inverse._forward import shade
-from inverse._scenes import demo_configuration, occluded_light_problem, pose_errors
+
+from .inverse_scenes import occluded_light_problem
 
 DESCRIPTION = "inverse solvers: light-placement compile / solve times (1, 64 -> 8, 64 starts), material fit"
 

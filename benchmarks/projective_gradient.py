@@ -2,7 +2,7 @@ r"""Gradient through soft shadows: jaxshadow (exact, float64) vs Mitsuba 3's `di
 
 Issue 5, acceptance item "gradient accuracy through soft shadows":
 
-1. **Scene.** The demo / acceptance light of `inverse._scenes.demo_configuration` (a tilted
+1. **Scene.** The demo / acceptance light of `inverse.demo_configuration` (a tilted
    1.0 x 0.15 m strip light of radiance (20, 18, 16) at 1.6 m) over a Lambertian floor z = 0
    (albedo k_d of the demo material), one 0.5 m square occluder at 0.6 m: the floor image holds
    umbra, penumbra and lit regions. A perspective camera at z = `--cam-height` (below the
@@ -110,8 +110,8 @@ def _study(a):  # noqa: C901 - one linear study
 
     mi.set_variant("llvm_ad_rgb")
     import jaxshadow as js
-    from inverse import PaintedTargets, fit_light
-    from inverse._scenes import demo_configuration, polygon_pose
+    from inverse import PaintedTargets, demo_configuration, fit_light
+    from inverse._demo_scene import polygon_pose
     from jaxshadow.mitsuba import to_mitsuba_dict
 
     out: dict = {

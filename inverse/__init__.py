@@ -14,6 +14,8 @@ from ._closed_forms import light_from_highlight as light_from_highlight
 from ._closed_forms import light_from_shadow as light_from_shadow
 from ._closed_forms import mirror_direction as mirror_direction
 from ._closed_forms import point_from_shadows as point_from_shadows
+from ._demo_scene import demo_configuration as demo_configuration
+from ._demo_scene import pose_errors as pose_errors
 from ._design import TargetDesign as TargetDesign
 from ._design import design_targets as design_targets
 from ._diagnostics import FitQuality as FitQuality
@@ -47,8 +49,6 @@ from ._reports import MaterialFit as MaterialFit
 from ._reports import MaterialReport as MaterialReport
 from ._reports import UndeterminedParameterWarning as UndeterminedParameterWarning
 from ._residuals import light_loss as light_loss
-from ._scenes import demo_configuration as demo_configuration
-from ._scenes import pose_errors as pose_errors
 from ._solvers import LBFGSB as LBFGSB
 from ._solvers import LM as LM
 from ._solvers import AbstractLightSolver as AbstractLightSolver

@@ -22,10 +22,10 @@ import numpy as np
 
 import jaxshadow as js
 
+from ._demo_scene import LIGHT_H, LIGHT_W, demo_configuration, polygon_pose, pose_errors, quad
 from ._diagnostics import without_invalid_lights
 from ._forward import shade
 from ._joint import fit_light_and_material
-from ._scenes import LIGHT_H, LIGHT_W, demo_configuration, polygon_pose, pose_errors, quad
 from ._solvers import LM
 from ._targets import PaintedTargets
 

@@ -1,7 +1,7 @@
 """A picture of a light fit: the targets coloured by their residual, and where to paint more.
 
 Matplotlib (the `plot` extra) with its Agg canvas (no display, no pyplot state); the file is
-written through `jaxshadow._core.files.atomic_write_path`.
+written through `jaxshadow.atomic_write_path`.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from jaxshadow._core.files import atomic_write_path
+import jaxshadow as js
 
 from ._painting import LUMINANCE
 from ._targets import PaintedTargets
@@ -100,4 +100,4 @@ def plot_residuals(fit: Any, targets: PaintedTargets, path: str | os.PathLike, *
     ax.set_title("targets by residual" + ("" if loss is None else f" (loss {loss:.3g})"))
     ax.legend(loc="best", fontsize=7)
     fig.tight_layout()
-    atomic_write_path(path, lambda tmp: fig.savefig(tmp, format=ext, dpi=dpi))
+    js.atomic_write_path(path, lambda tmp: fig.savefig(tmp, format=ext, dpi=dpi))

@@ -17,8 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from jaxshadow._core.files import atomic_write
-from jaxshadow._core.misc import safe_normalize
+import jaxshadow as js
 
 TARGETS_FORMAT = "inverse.targets"
 TARGETS_VERSION = 1
@@ -56,13 +55,13 @@ def _check_rows(name: str, a: np.ndarray, *, nonneg: bool = False, positive: boo
 def _unit_rows(v: Array) -> Array:
     """Rows divided by their length. A plain norm where the sum of squares is a normal number
     (so that unit rows come back bit for bit and files round-trip exactly), else scale-free
-    (`jaxshadow._core.misc.safe_normalize`): a normal of length 1e-160 or 1e160 (valid input)
+    (`jaxshadow.safe_normalize`): a normal of length 1e-160 or 1e160 (valid input)
     gave 0/0 = NaN or inf/inf."""
     sq = jnp.sum(v * v, axis=-1, keepdims=True)
     fi = jnp.finfo(v.dtype)
     plain = (sq > fi.tiny) & (sq < fi.max)
     norm = jnp.linalg.norm(jnp.where(plain, v, 1.0), axis=-1, keepdims=True)
-    return jnp.where(plain, v / norm, safe_normalize(v))
+    return jnp.where(plain, v / norm, js.safe_normalize(v))
 
 
 def _per_target_rgb(x: Any, n: int, name: str) -> Array:
@@ -215,7 +214,7 @@ class PaintedTargets(eqx.Module):
 
     def save(self, path: str | os.PathLike) -> None:
         """Write to `.json` or `.csv` (chosen by the extension), through
-        `jaxshadow._core.files.atomic_write`: a failure (serialiser, full disk) leaves an existing
+        `jaxshadow.atomic_write`: a failure (serialiser, full disk) leaves an existing
         file as it was."""
         path = os.fspath(path)
         if path.lower().endswith(".csv"):
@@ -225,14 +224,14 @@ class PaintedTargets(eqx.Module):
                 cols.append(self.tolerance)
                 header += list(_CSV_TOL)
             table = np.concatenate([np.asarray(c, dtype=np.float64) for c in cols], axis=1)
-            with atomic_write(path, newline="") as fh:
+            with js.atomic_write(path, newline="") as fh:
                 w = csv.writer(fh)
                 w.writerow(header)
                 for row in table:
                     w.writerow([repr(float(x)) for x in row])
         else:
             text = json.dumps(self.to_dict(), indent=1)
-            with atomic_write(path) as fh:
+            with js.atomic_write(path) as fh:
                 fh.write(text)
 
     @classmethod

@@ -256,12 +256,12 @@ def test_unused_light_is_flagged():
 
 
 def test_wrong_minimum_from_far_with_a_collapsed_quad_is_flagged():
-    """A quad and a point light (`inverse._random_scenes`, seed 1) from starts 30 % of the scene
+    """A quad and a point light (`benchmarks.inverse_random_scenes`, seed 1) from starts 30 % of the scene
     away, the local search alone: the quad collapses to a sliver (0.1 mm) at 6e4 times its
     power and both lights end ~30 % of the scene off, with a residual within the default
     noise; the collapse flags it. The default (global placement) recovers the same case
     unflagged (`test_fit_lights_global.test_quad_and_point_light_found_from_far`)."""
-    from inverse._random_scenes import light_errors, random_case, shifted_start
+    from benchmarks.inverse_random_scenes import light_errors, random_case, shifted_start
 
     case = random_case(1)
     col = js.shade(case.true, case.material, case.points, case.normals, case.eye)

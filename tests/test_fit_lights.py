@@ -11,12 +11,12 @@ import pytest
 
 import inverse
 import jaxshadow as js
+from benchmarks.inverse_scenes import THREE_LIGHTS_EYE as EYE
+from benchmarks.inverse_scenes import floor_receivers as _receivers
+from benchmarks.inverse_scenes import one_light_shadow_case, quad, shadow_outline
+from benchmarks.inverse_scenes import three_lights_scene as _true_scene
+from benchmarks.inverse_scenes import three_lights_start as _start
 from inverse._multilight import projected_residual
-from inverse._scenes import THREE_LIGHTS_EYE as EYE
-from inverse._scenes import floor_receivers as _receivers
-from inverse._scenes import one_light_shadow_case, quad, shadow_outline
-from inverse._scenes import three_lights_scene as _true_scene
-from inverse._scenes import three_lights_start as _start
 
 
 def _targets(true, material):

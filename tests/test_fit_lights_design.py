@@ -12,9 +12,9 @@ import pytest
 
 import inverse
 import jaxshadow as js
+from benchmarks.inverse_scenes import THREE_LIGHTS_EYE as EYE
+from benchmarks.inverse_scenes import floor_receivers, near_light_candidates, quad
 from inverse._design import candidate_jacobian, predicted_std_errors
-from inverse._scenes import THREE_LIGHTS_EYE as EYE
-from inverse._scenes import floor_receivers, near_light_candidates, quad
 
 MATERIAL = js.Material(ka=[0.3, 0.25, 0.2], kd=[0.6, 0.5, 0.4], ks=0.0, exponent=1.0)
 QUAD = js.PolygonLight(quad([-0.4, 0.3, 1.6], 0.5, 0.3, (np.pi + 0.1, 0.05, 0.4)), [5.0, 4.5, 4.0])

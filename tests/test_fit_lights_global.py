@@ -1,5 +1,5 @@
 """`fit_lights`' global placement (the default): lights found from starts far from the truth and
-from no start at all (`kinds=`), on random held-out-style scenes (`inverse._random_scenes`: a
+from no start at all (`kinds=`), on random held-out-style scenes (`benchmarks.inverse_random_scenes`: a
 quad and a point light over a floor, a floating box occluder, 60 floor targets painted by
 `js.shade` from the hidden truth, noise-free). Success: every light within 0.5 % of the scene
 size (a quad's vertices, a point's position) and every power within 1 %.
@@ -12,9 +12,9 @@ from scipy.optimize import nnls
 
 import inverse
 import jaxshadow as js
+from benchmarks.inverse_random_scenes import light_errors, random_case, shifted_start
 from inverse._global_placement import candidate_rows, nnls_rss, region_of
 from inverse._parametrisation import LightParametrisation
-from inverse._random_scenes import light_errors, random_case, shifted_start
 
 POSITION_TOL, POWER_TOL = 0.005, 0.01
 

@@ -7,8 +7,8 @@ import numpy as np
 
 import inverse
 import jaxshadow as js
-from inverse._scenes import THREE_LIGHTS_EYE as EYE
-from inverse._scenes import floor_receivers
+from benchmarks.inverse_scenes import THREE_LIGHTS_EYE as EYE
+from benchmarks.inverse_scenes import floor_receivers
 
 MATERIAL = js.Material(ka=0.2, kd=[0.6, 0.5, 0.4], ks=0.0, exponent=1.0)
 WARM, COLD = np.array([4.0, 3.0, 2.0]), np.array([1.0, 1.5, 2.5])

@@ -7,8 +7,8 @@ import pytest
 
 import inverse
 import jaxshadow as js
-from inverse._scenes import THREE_LIGHTS_EYE as EYE
-from inverse._scenes import floor_receivers, quad
+from benchmarks.inverse_scenes import THREE_LIGHTS_EYE as EYE
+from benchmarks.inverse_scenes import floor_receivers, quad
 
 MATERIAL = js.Material(ka=0.2, kd=[0.6, 0.5, 0.4], ks=0.0, exponent=1.0)
 # Two plates facing +-x at x = -+0.05, y in [-0.3, 0.3], z in [1.0, 1.6]: their hull is that box.

@@ -11,8 +11,8 @@ from scipy.optimize import lsq_linear
 
 import inverse
 import jaxshadow as js
-from inverse._scenes import THREE_LIGHTS_EYE as EYE
-from inverse._scenes import floor_receivers
+from benchmarks.inverse_scenes import THREE_LIGHTS_EYE as EYE
+from benchmarks.inverse_scenes import floor_receivers
 
 MATERIAL = js.Material(ka=0.2, kd=[0.6, 0.5, 0.4], ks=0.0, exponent=1.0)
 TRUE = js.Scene([js.PointLight([-0.6, 0.2, 1.5], 4.0), js.PointLight([0.7, -0.3, 1.2], 2.0)], ambient=0.1)

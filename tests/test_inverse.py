@@ -24,8 +24,8 @@ import inverse
 import jaxshadow as js
 from inverse import _parametrisation as P
 from inverse import _residuals as R
+from inverse import demo_configuration, pose_errors
 from inverse._forward import shade
-from inverse._scenes import demo_configuration, pose_errors
 
 DATA = os.path.join(os.path.dirname(__file__), "data")
 NOISE = 0.01  # relative Gaussian noise on the Mitsuba colours

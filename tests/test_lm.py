@@ -17,12 +17,13 @@ import pytest
 import scipy.optimize
 
 import inverse
+from benchmarks.inverse_scenes import occluded_light_problem
 from inverse import _multistart as M
 from inverse import _parametrisation as P
 from inverse import _residuals as R
 from inverse import _solvers as S
+from inverse import pose_errors
 from inverse._lm import batched_levenberg_marquardt
-from inverse._scenes import occluded_light_problem, pose_errors
 
 # Osborne / Meyer-style exponential fit: y = a exp(-b t) + c, with 3 parameters and 20 data.
 T = np.linspace(0.0, 4.0, 20)

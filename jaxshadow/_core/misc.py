@@ -68,7 +68,17 @@ def safe_norm(x: Float[Array, "... 3"], axis: int = -1) -> Float[Array, "..."]:
 
 
 def safe_normalize(x: Float[Array, "... 3"], axis: int = -1) -> Float[Array, "... 3"]:
-    """`x / |x|`, scale-free (`_scaled`), zero (with zero gradient) where `x = 0`."""
+    """`x / |x|` along `axis` (same shape as `x`), scale-free (`_scaled`: any length from the
+    smallest normal number to the largest float), zero (with zero gradient) where `x = 0`.
+
+    Example:
+        ```python
+        import jax.numpy as jnp
+        import jaxshadow as js
+
+        js.safe_normalize(jnp.array([[3e30, 4e30, 0.0], [0.0, 0.0, 0.0]]))   # [[0.6, 0.8, 0], [0, 0, 0]] (float32: |x|^2 overflows)
+        ```
+    """
     xs, _, _ = _scaled(x, axis)
     sq = jnp.sum(xs * xs, axis=axis, keepdims=True)
     ok = sq > 0
