@@ -26,8 +26,8 @@ from ._joint import joint_std_errors as joint_std_errors
 from ._lights import fit_light as fit_light
 from ._material import bounded_lstsq as bounded_lstsq
 from ._material import fit_material as fit_material
-from ._multilight_report import LightsFit as LightsFit
 from ._multilight_report import LightsReport as LightsReport
+from ._options import Search as Search
 from ._painting import Brighter as Brighter
 from ._painting import ColourRange as ColourRange
 from ._painting import load_painted as load_painted
@@ -45,6 +45,7 @@ from ._reports import FitReport as FitReport
 from ._reports import JointFit as JointFit
 from ._reports import LightFit as LightFit
 from ._reports import LightReport as LightReport
+from ._reports import LightsFit as LightsFit
 from ._reports import MaterialFit as MaterialFit
 from ._reports import MaterialReport as MaterialReport
 from ._reports import UndeterminedParameterWarning as UndeterminedParameterWarning

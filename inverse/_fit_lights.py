@@ -44,36 +44,28 @@ from jaxshadow import traced
 
 from ._diagnostics import (
     FitQualityWarning,
-    assess,
-    competing_placements,
-    dark_answer,
 )
 from ._forward import SpecularFn
 from ._global_placement import place, region_of, template_light
-from ._identifiability import identifiability
 from ._multilight import (
     LightsProblem,
-    build_lights,
     fixed_contribution,
     report_parts,
-    scaled_light,
     screen,
     solve,
 )
 from ._multilight_placement import greedy, pad, stage_mask, swaps
 from ._multilight_report import (
-    LightsFit,
-    LightsReport,
-    correlated_pairs,
     material_of,
-    null_directions,
     structured_coefficients,
 )
+from ._multilight_result import result
 from ._multistart import best_starts, make_starts, prune_schedule, start_lights
-from ._painting import Brighter, ColourRange, as_numpy, painted_rows, painting
-from ._parametrisation import Box, LightParametrisation, Outside, Plane, outside_planes, scene_size
-from ._powers import constrained_powers, emitted_power, painted_jacobian
-from ._solvers import LM
+from ._options import Search, checked_constraints, search_options
+from ._painting import Brighter, ColourRange, painting
+from ._parametrisation import LightParametrisation, Outside, outside_planes, scene_size
+from ._reports import LightsFit
+from ._solvers import AbstractLightSolver, checked_solver
 from ._targets import PaintedTargets
 
 FIT_LIGHTS_GROUPS = ("position", "orientation", "size", "power")
@@ -95,7 +87,7 @@ def _groups_for(light: Any, fit: tuple) -> tuple:
     return tuple(g for g in fit if g == "orientation")  # a DirectionalLight: its direction
 
 
-def _checked(scene: Any, targets: Any, material: Any, lights: Any, fit: Any, starts: int, material_mode: str,
+def _checked(scene: Any, targets: Any, material: Any, lights: Any, fit: Any, material_mode: str,
              constraints: Any) -> tuple[list[int], tuple, dict]:
     if not isinstance(scene, js.Scene):
         raise ValueError(f"fit_lights: expected a jaxshadow.Scene, got {type(scene).__name__}.")
@@ -113,8 +105,6 @@ def _checked(scene: Any, targets: Any, material: Any, lights: Any, fit: Any, sta
     unknown = [g for g in fit if g not in FIT_LIGHTS_GROUPS]
     if unknown or not fit:
         raise ValueError(f"fit_lights: fit must be a non-empty subset of {FIT_LIGHTS_GROUPS}, got {fit}.")
-    if int(starts) < 1:
-        raise ValueError(f"fit_lights: starts must be >= 1, got {starts}.")
     if material_mode not in ("fixed", "projected"):
         raise ValueError(f"fit_lights: material_mode must be 'fixed' or 'projected', got {material_mode!r}.")
     cons = {} if constraints is None else dict(constraints)
@@ -133,15 +123,7 @@ def _checked(scene: Any, targets: Any, material: Any, lights: Any, fit: Any, sta
             raise ValueError("fit_lights: a power budget cannot include a DirectionalLight (no finite power); "
                              "leave it out of `lights`.")
         cons["budget"] = float(b)
-    for k, c in cons.items():
-        if k == "budget":
-            continue
-        if int(k) not in idx:
-            raise ValueError(f"fit_lights: a constraint for light {k}, which is not fitted.")
-        if not isinstance(c, (Plane, Box, Outside)):
-            raise ValueError("fit_lights: constraints must be inverse.Plane, inverse.Box or inverse.Outside, got "
-                             f"{type(c).__name__}.")
-    return idx, fit, {(k if k == "budget" else int(k)): c for k, c in cons.items()}
+    return idx, fit, checked_constraints(cons, idx, "fit_lights", several=True)
 
 
 # Validates its own inputs (ValueError): no runtime annotation check before it.
@@ -153,25 +135,18 @@ def fit_lights(
     lights: Any = None,
     fit: tuple = FIT_LIGHTS_GROUPS,
     *,
+    search: Search | None = None,
     constraints: dict | None = None,
-    starts: int = 16,
-    search_radius: float = 0.5,
-    orientation_spread: float = 0.5,
-    size_spread: float = 0.5,
-    seed: int = 0,
-    sweeps: int = 2,
-    grid: int = 0,
+    solver: AbstractLightSolver | None = None,
     material_mode: str = "fixed",
     ranges: ColourRange | None = None,
     brighter: Brighter | None = None,
-    solver: LM | None = None,
     candidates: Any = None,
     specular: SpecularFn | None = None,
-    search_targets: Any = None,
     noise: Any = None,
     warn: bool = True,
     kinds: Any = None,
-    placement: str = "global",
+    **options: Any,
 ) -> LightsFit:
     """Place several lights of `scene` at once, with their powers, so the shading matches
     painted colours (Poulin ch. 5: lights from diffuse shading, highlights and shadows).
@@ -230,16 +205,14 @@ def fit_lights(
       $4\\pi \\bar I$ for a point light; not with a fitted `DirectionalLight`). It holds in the
       variable projection (the least-squares powers on the plane $c \\cdot p = B$ when the free
       ones exceed it) and exactly in the final solve of the powers (`_powers.constrained_powers`).
-    - `starts`: starts per light (the given pose first, then a Sobol stratification within
-      `search_radius` scene sizes, `orientation_spread` rad, `size_spread` relative; `seed`);
-      each light's starts are screened to the solver's `refine` best.
-    - `sweeps`: how many times each light's own multistart runs (in turn, the others at their
-      current best) before the joint refinement.
-    - `grid`: positions per light screened in a greedy placement around the given poses
-      within `search_radius` (with two or more lights to place; the same grid at a third of
-      its size around each placed light in the sweeps; kept only if it explains the targets
-      better than the given poses) instead of the global placement; 0 (default): the global
-      placement (`placement`).
+    - `search`: an `inverse.Search` (where and how the poses are searched: `starts` per light,
+      default 16, screened to the solver's `refine` best; `search_radius`, `orientation_spread`,
+      `size_spread`, `seed`; `sweeps`; `grid`; `placement`; `search_targets`), or its fields as
+      keywords (`starts=8, placement="local"`, which replace those of `search`). `grid > 0`:
+      positions per light screened in a greedy placement around the given poses (with two or
+      more lights to place; the same grid at a third of its size around each placed light in the
+      sweeps; kept only if it explains the targets better than the given poses) instead of the
+      global placement.
     - `material_mode`: `"fixed"` (as given) or `"projected"` (fitted jointly, $k \\ge 0$; the
       product $k_d p$ does not separate, so the first fitted light's power is held at 1 unless
       some light of the scene is not fitted, which then sets the scale).
@@ -250,16 +223,16 @@ def fit_lights(
       the budget) on the piecewise-linear residual; `material_mode="fixed"` only. The targets'
       weights weight every row (ranges included).
     - `solver`: an `inverse.LM` for its options (`refine`, `prune`, `rtol`, `atol`,
-      `max_steps`); default `LM()`. The placement stages (greedy, deals, each light's sweeps)
+      `max_steps`); default `LM()` (the solver object of `fit_light`; its other solvers search
+      one light only). The placement stages (greedy, deals, each light's sweeps)
       run at most `STAGE_STEPS` of the `max_steps` iterations: the joint refinement that
       follows converges from wherever they stop.
     - `candidates`: `(points (K, 3), normals (K, 3))` where new targets could be painted (default:
       a 9 x 9 grid over the targets' bounding box, with their mean normal): the report ranks them
       for each undetermined parameter.
     - `specular`: a callable like `js.specular` (default `js.specular`).
-    - `search_targets`: indices (or an `(N,)` bool mask) of the targets the search uses (the
-      greedy placement and each light's sweeps); the joint refinement then uses every target.
-      For targets painted close to the lights (where the report's standard errors are small,
+    - `search_targets` (a `Search` field): the targets the search uses (the greedy placement
+      and each light's sweeps); the joint refinement then uses every target. For targets painted close to the lights (where the report's standard errors are small,
       `inverse.design_targets`), whose loss from far starts is spiky: search on the far-field
       ones. The others' weights are zero during the search (the same compiled program; the
       report's `initial_loss` and the search's `stage_losses` are over the search targets).
@@ -280,8 +253,8 @@ def fit_lights(
       irradiance `[1, 1, 1]`): a polygon a square of a tenth of the targets' and occluders'
       extent, a segment 0.15 of it long, a directional light pointing down. Their colour stays
       white (the fitted power is one grey scale per light): for coloured lights give starts.
-    - `placement`: `"global"` (default: the global placement above) or `"local"` (from the
-      given poses only: the previous behaviour, for starts known to be close).
+    - `placement` (a `Search` field): `"global"` (default: the global placement above) or
+      `"local"` (from the given poses only, for starts known to be close).
 
     **Returns:** `LightsFit(scene, lights, powers, material, residual, report, theta,
     parametrisations)`; `print(fit.report)` lists every parameter with its standard error,
@@ -305,22 +278,18 @@ def fit_lights(
         print(fit.report)
         ```
     """
+    opts = search_options(search, options, "fit_lights", several=True)
+    starts, search_radius, orientation_spread, size_spread = (opts.starts, opts.search_radius,
+                                                              opts.orientation_spread, opts.size_spread)
+    seed, sweeps, grid, placement, search_targets = opts.seed, opts.sweeps, opts.grid, opts.placement, opts.search_targets
     if kinds is not None:
         scene, lights = _with_new_lights(scene, targets, kinds, lights)
-    if placement not in ("global", "local"):
-        raise ValueError(f"fit_lights: placement must be 'global' or 'local', got {placement!r}.")
-    idx, fit, cons = _checked(scene, targets, material, lights, fit, starts, material_mode, constraints)
+    idx, fit, cons = _checked(scene, targets, material, lights, fit, material_mode, constraints)
     budget = cons.pop("budget", None)
     paint = painting(len(targets), ranges, brighter, targets.points.dtype)
     if paint is not None and material_mode == "projected":
         raise ValueError("fit_lights: ranges and brighter-than relations need material_mode='fixed'.")
-    if int(sweeps) < 1:
-        raise ValueError(f"fit_lights: sweeps must be >= 1, got {sweeps}.")
-    if int(grid) < 0:
-        raise ValueError(f"fit_lights: grid must be >= 0, got {grid}.")
-    solver = LM() if solver is None else solver
-    if not isinstance(solver, LM):
-        raise ValueError(f"fit_lights: solver must be an inverse.LM, got {type(solver).__name__}.")
+    solver = checked_solver(solver, "fit_lights", several=True)
     t = targets
     dt = t.points.dtype
     size = scene_size(scene, t)
@@ -508,7 +477,7 @@ def fit_lights(
     _, theta, final, problem = best_attempt
     problem = _reweighted(problem, full_w)
     theta = _moved_outside(problem, np.asarray(theta, np.float64))
-    out = _result(problem, np.asarray(theta, np.float64), idx, size, candidates, stage_losses, n_solved,
+    out = result(problem, np.asarray(theta, np.float64), idx, size, candidates, stage_losses, n_solved,
                   retries, initial, project, noise, final if P else None)
     if warn:
         for msg in out.report.quality.emitted:
@@ -643,184 +612,3 @@ def _alternate(problem: LightsProblem, theta: np.ndarray, joint: np.ndarray, bas
         joint = np.asarray(res.values)[np.argsort(f)]
         theta = joint[0]
     return problem, theta, n_solved, retries
-
-
-def _result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, candidates: Any,
-            stage_losses: list, n_solved: int, retries: int, initial: float | None, project: bool,
-            noise: Any = None, final: tuple | None = None) -> LightsFit:
-    t, m = problem.targets, problem.material
-    dt = t.points.dtype
-    q = np.asarray(theta[problem.n_pose:], np.float64)  # the searched powers' roots, if any
-    theta = theta[:problem.n_pose]
-    th = jnp.asarray(theta, dt)
-    J = len(idx)
-    ones = jnp.ones(J, dt)
-    E, S, _ = (np.asarray(x, np.float64) for x in report_parts(problem, th, ones, m))
-    colours, w = np.asarray(t.colours, np.float64), np.asarray(t.weights, np.float64)
-    La = np.asarray(problem.scene.ambient, np.float64)
-    e0, s0 = np.asarray(problem.e_fixed, np.float64), np.asarray(problem.s_fixed, np.float64)
-    spec = problem.with_specular
-    gauge = 0 if (project and problem.fit_power and not problem.has_fixed) else None
-    coef = lambda EE, SS: structured_coefficients(  # noqa: E731
-        EE, SS if spec else None, e0, s0 if spec else None, La, colours, w, m, fit_power=problem.fit_power,
-        project=project, gauge=gauge)
-    powers, k = coef(E, S)
-    sw = np.sqrt(w)
-    paint = as_numpy(problem.paint)
-    per_light = k[1] / np.pi * E + (k[2] * S if spec else 0.0)  # (J, N, 3): the model's power columns
-    budget_active = False
-    if problem.fit_power and (paint is not None or problem.budget is not None):
-        bud = None
-        if problem.budget is not None:
-            c = np.array([float(emitted_power(x)) for x in build_lights(problem, th)])
-            bud = (c, float(problem.budget))
-        fixed_part = _model(E, S, e0, s0, La, np.zeros(J), k, spec)
-        powers = constrained_powers(fixed_part, per_light, colours, sw, paint, bud, q * q if q.size else powers)
-        budget_active = bud is not None and bud[0] @ powers >= bud[1] * (1 - 1e-9)
-    mat = material_of(k, m.exponent, dt) if project else m
-    _, _, Jth = (np.asarray(x, np.float64) for x in report_parts(problem, th, jnp.asarray(powers, dt), mat))
-    model = _model(E, S, e0, s0, La, powers, k, spec)
-    residual = model - colours
-    rows = painted_rows(model, colours, sw, paint)
-    if paint is not None:  # a ranged target's residual: its distance outside the range
-        residual = np.where(paint.ranged, np.minimum(model - paint.lower, 0.0) + np.maximum(model - paint.upper, 0.0),
-                            residual)
-    power_cols = painted_jacobian(model, per_light, sw, paint)
-    # The report's parameters: poses, then powers, then the material.
-    names, cols, scale_of = [], [], []
-    for j, p in enumerate(problem.params):
-        if p is not None:
-            names += [f"light{idx[j]}.{nm}" for nm in p.names]
-            scale_of += [size if nm in _POSITION_NAMES else 1.0 for nm in p.names]
-    cols.append(Jth)
-    free_p = [j for j in range(J) if problem.fit_power and j != gauge]
-    for j in free_p:
-        names.append(f"light{idx[j]}.power")
-        scale_of.append(1.0)
-        cols.append(power_cols[:, j:j + 1])
-    if project:
-        e_tot = e0 + np.tensordot(powers, E, axes=1)
-        s_tot = s0 + np.tensordot(powers, S, axes=1)
-        terms = [("ka", np.broadcast_to(La, e_tot.shape)), ("kd", e_tot / np.pi)] + ([("ks", s_tot)] if spec else [])
-        for nm, basis_ in terms:
-            for c, ch in enumerate("rgb"):
-                col = np.zeros_like(e_tot)
-                col[:, c] = basis_[:, c]
-                names.append(f"{nm}[{ch}]")
-                scale_of.append(1.0)
-                cols.append((sw * col).reshape(-1, 1))
-    jac = np.concatenate(cols, axis=1)
-    rss = float(rows @ rows)
-    n_pos = int(np.count_nonzero(w > 0))
-    ident = identifiability(jac, rss, n_pos)
-    names = tuple(names)
-    values = list(theta) + [powers[j] for j in free_p]
-    if project:
-        values += list(k[0]) + list(k[1]) + (list(k[2]) if spec else [])
-    se = {nm: math.inf if not ok else float(s) * sc
-          for nm, s, ok, sc in zip(names, ident.std_errors, ident.determined, scale_of, strict=True)}
-    determined = {nm: bool(ok) for nm, ok in zip(names, ident.determined, strict=True)}
-    warnings = [f"{nm} is not determined by these targets." for nm in names if not determined[nm]]
-    warnings += [f"the power of light {idx[j]} is at its bound 0 (the targets ask for less than none)."
-                 for j in free_p if powers[j] == 0.0]
-    if budget_active:
-        warnings.append(f"the power budget {float(problem.budget):.6g} W is used up (the powers' standard errors "
-                        "ignore it).")
-    if retries:
-        warnings.append(f"solved again {retries} time(s) with a larger shadow capacity (the result is exact).")
-    fitted = build_lights(problem, th)
-    out_lights = tuple(scaled_light(light, jnp.asarray(pw, dt)) for light, pw in zip(fitted, powers, strict=True))
-    pose_names = names[:problem.n_pose]
-    light_params = {f"light{i}": tuple(nm for nm in names if nm.startswith(f"light{i}.")) for i in idx}
-    moved = {f"light{idx[j]}": out_lights[j] for j, p in enumerate(problem.params) if p is not None}
-    competing = () if final is None else competing_placements(np.asarray(final[0], np.float64)[:, :problem.n_pose],
-                                                              np.asarray(final[1], np.float64), pose_names)
-    dark = paint is not None and len(paint.pairs) > 0 and dark_answer(
-        np.tensordot(powers, per_light, axes=1), colours, w, paint.margin)
-    values_d = {nm: float(v) for nm, v in zip(names, values, strict=True)}
-    quality, determined = assess(
-        targets=t, residual=residual, noise=noise, n_params=len(names), names=names, std_errors=se, values=values_d,
-        determined=determined, scale=size, lights=moved, light_params=light_params, candidates=competing,
-        messages=warnings, all_dark=dark,
-        contributions={f"light{idx[j]}": float(np.sqrt(np.sum(w * (powers[j] * per_light[j]) ** 2)))
-                       for j in range(J)} if problem.fit_power else None, determinacy=paint is None)
-    fixed = [x for n, x in enumerate(problem.scene.lights) if n not in idx]
-    suggestions, sugg_n = _suggest(problem, th, powers, mat, names, jac, ident.determined, candidates, free_p, k,
-                                   fixed, project)
-    report = LightsReport(
-        names=names, values=values_d, std_errors=se,
-        determined=determined, singular_values=ident.singular_values,
-        targets_met=None if t.tolerance is None else np.all(np.abs(residual) <= np.asarray(t.tolerance), axis=1),
-        warnings=tuple(warnings), correlated=correlated_pairs(jac, names, ident.determined),
-        suggestions=suggestions, suggestion_normals=sugg_n, loss=0.5 * rss,
-        initial_loss=math.nan if initial is None else float(initial), stage_losses=tuple(stage_losses),
-        starts_solved=n_solved, retries=retries, scale=size, quality=quality,
-    )
-    all_lights = list(problem.scene.lights)
-    for j, i in enumerate(idx):
-        all_lights[i] = out_lights[j]
-    new_scene = eqx.tree_at(lambda s: s.lights, problem.scene, tuple(all_lights))
-    return LightsFit(scene=new_scene, lights=out_lights, powers=np.asarray(powers), material=mat, residual=residual,
-                     report=report, theta=theta, parametrisations=problem.params)
-
-
-def _model(E: np.ndarray, S: np.ndarray, e0: np.ndarray, s0: np.ndarray, La: np.ndarray, p: np.ndarray,
-           k: np.ndarray, spec: bool) -> np.ndarray:
-    e = e0 + np.tensordot(p, E, axes=1)
-    out = k[0] * La + k[1] / np.pi * e
-    if spec:
-        out = out + k[2] * (s0 + np.tensordot(p, S, axes=1))
-    return out
-
-
-def _suggest(problem: LightsProblem, th: Any, powers: np.ndarray, mat: Any, names: tuple, jac: np.ndarray,
-             determined: np.ndarray, candidates: Any, free_p: list, k: np.ndarray,
-             fixed: list, project: bool) -> tuple[dict, dict]:
-    """For each undetermined parameter: the candidate receivers, best first, where the model
-    changes most along the null direction(s) that involve it."""
-    if np.all(determined):
-        return {}, {}
-    t = problem.targets
-    dt = t.points.dtype
-    if candidates is None:
-        pts = np.asarray(t.points, np.float64)
-        nrm = np.asarray(t.normals, np.float64).mean(axis=0)
-        lo, hi = pts.min(axis=0), pts.max(axis=0)
-        ax = np.argsort(hi - lo)[::-1][:2]
-        g = np.linspace(0.0, 1.0, 9)
-        cp = np.tile(pts.mean(axis=0), (81, 1))
-        cp[:, ax[0]] = lo[ax[0]] + (hi - lo)[ax[0]] * np.repeat(g, 9)
-        cp[:, ax[1]] = lo[ax[1]] + (hi - lo)[ax[1]] * np.tile(g, 9)
-        cn = np.tile(nrm / np.linalg.norm(nrm), (81, 1))
-    else:
-        cp, cn = (np.asarray(x, np.float64) for x in candidates)
-    eye = np.asarray(t.eye, np.float64)[0]
-    ct = PaintedTargets(jnp.asarray(cp, dt), jnp.asarray(cn, dt), jnp.zeros(cp.shape, dt), jnp.asarray(eye, dt))
-    e0, s0 = fixed_contribution(problem.scene, ct, problem.material, fixed, problem.specular,
-                                problem.with_specular)
-    cprob = dataclasses.replace(problem, targets=ct, e_fixed=e0, s_fixed=s0, capacity=None, paint=None)
-    E, S, Jth = (np.asarray(x, np.float64) for x in report_parts(cprob, th, jnp.asarray(powers, dt), mat))
-    spec = problem.with_specular
-    cols = [Jth]
-    for j in free_p:
-        cols.append((k[1] / np.pi * E[j] + (k[2] * S[j] if spec else 0.0)).reshape(-1, 1))
-    ncand = cp.shape[0]
-    if project:
-        e_tot = np.asarray(e0, np.float64) + np.tensordot(powers, E, axes=1)
-        s_tot = np.asarray(s0, np.float64) + np.tensordot(powers, S, axes=1)
-        La = np.asarray(problem.scene.ambient, np.float64)
-        terms = [np.broadcast_to(La, e_tot.shape), e_tot / np.pi] + ([s_tot] if spec else [])
-        for b in terms:
-            for c in range(3):
-                col = np.zeros_like(e_tot)
-                col[:, c] = b[:, c]
-                cols.append(col.reshape(-1, 1))
-    jc = np.concatenate(cols, axis=1)  # (3K, P)
-    out, out_n = {}, {}
-    for v in null_directions(jac):
-        change = np.linalg.norm((jc @ v).reshape(ncand, 3), axis=1)
-        order = np.argsort(change)[::-1][:5]
-        for nm, comp in zip(names, v * np.linalg.norm(jac, axis=0), strict=True):
-            if abs(comp) > 1e-6 and nm not in out:
-                out[nm], out_n[nm] = cp[order], cn[order]
-    return out, out_n

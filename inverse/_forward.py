@@ -13,8 +13,9 @@ model of `jaxshadow.traced` rather than the jitted entry points.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
-from typing import Any
+from typing import Any, TypeVar
 
 import jax.numpy as jnp
 from jaxtyping import Array
@@ -23,6 +24,33 @@ import jaxshadow as js
 from jaxshadow import ShadowOptions, traced
 
 SpecularFn = Callable[[Any, Array, Array, Array, Array], Array]
+
+# The most boundary edges per receiver a solve retries with (`at_capacity`) before it gives up.
+MAX_CAPACITY = 4096
+
+_P = TypeVar("_P")
+_T = TypeVar("_T")
+
+
+def at_capacity(run: Callable[[_P], tuple[_T, Any]], problem: _P, who: str, stage: str,
+                hint: str = "") -> tuple[_T, _P, int]:
+    """`run(problem) -> (out, overflowed)`, run again with twice the problem's shadow capacity
+    (`problem.capacity`, a static field) while some receiver overflowed it, so that `out` is
+    exact: the one retry of every solver, screening and placement program. `MAX_CAPACITY` edges
+    at most: beyond, a `RuntimeError` names `who` (the entry point), the `stage` and `hint`.
+    A problem with no capacity (every receiver against every occluder) runs once.
+    Returns `(out, problem used, retries)`."""
+    retries = 0
+    while True:
+        out, over = run(problem)
+        cap = getattr(problem, "capacity")  # noqa: B009  (both problem types have it)
+        if cap is None or not bool(over):
+            return out, problem, retries
+        if cap >= MAX_CAPACITY:
+            raise RuntimeError(f"{who}: some receiver's visible region needs more than {MAX_CAPACITY} boundary "
+                               f"edges during the {stage}{hint}.")
+        problem = dataclasses.replace(problem, capacity=min(2 * cap, MAX_CAPACITY))  # type: ignore[type-var]
+        retries += 1
 
 
 def resolve_specular(specular: SpecularFn | None, what: str) -> SpecularFn:

@@ -45,8 +45,9 @@ import numpy as np
 import jaxshadow as js
 
 from ._closed_forms import light_from_diffuse_maximum
+from ._forward import at_capacity
 from ._lm import fit_jit
-from ._multilight import MAX_CAPACITY, LightsProblem, _parts
+from ._multilight import LightsProblem, _parts
 from ._parametrisation import LightParametrisation
 
 POSITIONS = 512
@@ -256,8 +257,9 @@ def unit_columns(problem: LightsProblem, j: int, rows: np.ndarray) -> tuple[np.n
     with twice the shadow capacity while some receiver overflowed it."""
     dt = problem.targets.points.dtype
     sw = np.sqrt(np.asarray(problem.targets.weights, np.float64))
-    while True:
-        one = _single(problem, j)
+
+    def run(pr: LightsProblem) -> tuple[np.ndarray, bool]:
+        one = _single(pr, j)
         out, over = [], False
         for a in range(0, rows.shape[0], CHUNK):
             part = rows[a:a + CHUNK]
@@ -265,14 +267,10 @@ def unit_columns(problem: LightsProblem, j: int, rows: np.ndarray) -> tuple[np.n
             per, o = _columns(one, jnp.asarray(part, dt))
             out.append(np.asarray(per, np.float64))
             over = over or bool(o)
-        cap = problem.capacity
-        if cap is None or not over:
-            per = np.concatenate(out)[: rows.shape[0]]
-            return (sw[None] * per).reshape(per.shape[0], -1), problem
-        if cap >= MAX_CAPACITY:
-            raise RuntimeError(f"fit_lights: some receiver's visible region needs more than {MAX_CAPACITY} "
-                               "boundary edges during the global placement.")
-        problem = dataclasses.replace(problem, capacity=min(2 * cap, MAX_CAPACITY))
+        return np.concatenate(out)[: rows.shape[0]], over
+
+    per, problem, _ = at_capacity(run, problem, "fit_lights", "global placement")
+    return (sw[None] * per).reshape(per.shape[0], -1), problem
 
 
 def nnls_rss(fixed: np.ndarray, cand: np.ndarray, y: np.ndarray, fit_power: bool) -> np.ndarray:

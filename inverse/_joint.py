@@ -24,6 +24,7 @@ from ._lights import fit_light
 from ._lm import fit_jit
 from ._material import fit_material
 from ._multistart import culling_capacity_for_starts
+from ._options import SEARCH_FIELDS, search_options
 from ._parametrisation import LightParametrisation, with_light
 from ._reports import JointFit
 from ._residuals import LightProblem, pinned
@@ -208,15 +209,18 @@ def fit_light_and_material(
         return JointFit(scene=lf.scene, material=mf.material, residual=mf.residual, report=(lf.report, mf.report),
                         history=tuple(history), std_errors=se)
     lf = mf = None
+    # The light's search options (`inverse.Search`, or its fields in `light_kwargs`), resolved once.
+    search = search_options(lk.pop("search", None), {k: lk.pop(k) for k in SEARCH_FIELDS if k in lk},
+                            "fit_light_and_material", several=False)
     for r in range(int(rounds)):
-        kw = dict(lk)
+        kw = dict(lk, search=search)
         if r > 0:
             if kw.get("refine", getattr(kw.get("solver"), "refine", None)):
                 # Same array shapes as round 1 (no recompilation); a tighter start region.
-                kw["search_radius"] = 0.25 * kw.get("search_radius", 0.5)
-                kw["orientation_spread"] = 0.25 * kw.get("orientation_spread", 0.5)
+                kw["search"] = dataclasses.replace(search, search_radius=0.25 * search.search_radius,
+                                                   orientation_spread=0.25 * search.orientation_spread)
             else:
-                kw["starts"] = 1
+                kw["search"] = dataclasses.replace(search, starts=1)
         if r < int(rounds) - 1:  # the material is still being fitted: only the last round's checks speak
             kw["warn"] = False
         t0 = time.perf_counter()
@@ -224,7 +228,7 @@ def fit_light_and_material(
         scene = lf.scene
         history.append(lf.report.loss)
         if progress is not None:
-            progress(f"  round {r + 1}/{rounds}: light  ({kw.get('starts', 64)} start(s)) loss {lf.report.loss:.4e}"
+            progress(f"  round {r + 1}/{rounds}: light  ({kw['search'].starts} start(s)) loss {lf.report.loss:.4e}"
                      f"  [{time.perf_counter() - t0:.1f} s]")
         t0 = time.perf_counter()
         collapsed = invalid_reason(lf.light) is not None

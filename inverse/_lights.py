@@ -1,8 +1,9 @@
 """Light placement from painted colours: nonlinear least squares with a vectorised multistart.
 
 `fit_light` puts the pieces together: the light's parametrisation (`_parametrisation`), the
-residual (`_residuals`), the starts (`_multistart`), a solver object (`_solvers`: `LM`,
-`OptimistixLM`, `LBFGSB`), and the report (`_identifiability`, `_reports`).
+residual (`_residuals`), the starts (`_multistart`, from the `Search` options that `fit_lights`
+takes too, `_options`), a solver object (`_solvers`: `LM`, `OptimistixLM`, `LBFGSB`), and the
+report (`_identifiability`, `_reports`: a `LightFit` is a `LightsFit` of one light).
 """
 
 from __future__ import annotations
@@ -26,10 +27,11 @@ from ._diagnostics import (
 from ._forward import SpecularFn, shade
 from ._identifiability import identifiability
 from ._multistart import distinct_minima, make_starts
-from ._parametrisation import FIT_GROUPS, Box, LightParametrisation, Plane, scene_size, with_light
+from ._options import Search, checked_constraints, search_options
+from ._parametrisation import FIT_GROUPS, LightParametrisation, scene_size, with_light
 from ._reports import LightFit, LightReport
 from ._residuals import LightProblem, projected_jit
-from ._solvers import AbstractLightSolver, Solution, solver_from_arguments
+from ._solvers import LEGACY_SOLVER_KEYWORDS, AbstractLightSolver, Solution, checked_solver
 from ._targets import PaintedTargets
 
 _POSITION_NAMES = ("x", "y", "z", "a", "b")
@@ -44,19 +46,15 @@ def fit_light(
     light_index: int = 0,
     *,
     fit: tuple = FIT_GROUPS,
-    constraint: Plane | Box | None = None,
-    starts: int = 64,
+    search: Search | None = None,
+    constraints: dict | None = None,
     solver: AbstractLightSolver | str | None = None,
-    search_radius: float = 0.5,
-    orientation_spread: float = 0.5,
-    size_spread: float = 0.5,
-    seed: int = 0,
     material_mode: str = "fixed",
     fit_exponent: bool = False,
     specular: SpecularFn | None = None,
     noise: Any = None,
     warn: bool = True,
-    **deprecated: Any,
+    **options: Any,
 ) -> LightFit:
     """Place light `light_index` of `scene` so the shading matches painted colours.
 
@@ -69,10 +67,13 @@ def fit_light(
 
     - `scene` (occluders cast soft shadows), `targets`, `material` (fixed); `light_index`: the
       light to place (PolygonLight, LinearLight or PointLight); `fit`: a subset of
-      `("position", "orientation", "size")`; `constraint`: `None`, `Plane` or `Box`.
-    - `starts`: multistart points (a scrambled Sobol stratification of the search region, the
-      reference first; 1 = local solve); `search_radius` (scene sizes), `orientation_spread`
-      (rad), `size_spread` (relative): the region's half-widths; `seed`: its stratification.
+      `("position", "orientation", "size")`; `constraints`: `{light_index: inverse.Plane |
+      inverse.Box}` for the light's centre (the dictionary of `fit_lights`).
+    - `search`: an `inverse.Search` (the options `fit_lights` takes too), or its fields as
+      keywords: `starts` (default 64: the reference first, then a scrambled Sobol stratification
+      of the search region; 1 = local solve), `search_radius` (scene sizes),
+      `orientation_spread` (rad), `size_spread` (relative): the region's half-widths; `seed`:
+      its stratification.
     - `solver`: `LM()` (default: screening to the 8 best starts, successive halving, occluder
       culling; exact), `OptimistixLM()` or `LBFGSB()`, with their options.
     - `material_mode`: `"fixed"` (the material as given) or `"projected"` (joint light and
@@ -90,9 +91,12 @@ def fit_light(
       report's `quality` says so either way (`report.trusted`, `report.quality.reason`).
 
     The keywords `refine`, `prune`, `receiver_groups` (ignored), `combinatorics`, `rtol`, `atol`,
-    `max_steps` and string solvers (`"lm"`, ...) are deprecated: they are the solver's options.
+    `max_steps` and string solvers (`"lm"`, ...) are deprecated: they are the solver's options;
+    so is `constraint=c` (now `constraints={light_index: c}`).
 
-    **Returns:** `LightFit(scene, light, residual, report, parametrisation, material)`.
+    **Returns:** a `LightFit`: a `LightsFit` of one light (`scene`, `lights`, `powers` (ones),
+    `material`, `residual`, `report` (a `LightReport`), `theta`, `parametrisations`), with
+    `light` and `parametrisation` its one entry's.
 
     Example:
         ```python
@@ -110,8 +114,19 @@ def fit_light(
         fit.light.position   # ~ [0.2, 0.3, 2.0]; print(fit.report): the parameters, their errors, warnings
         ```
     """
-    solver = solver_from_arguments(solver, deprecated)
-    fit = _checked_groups(scene, targets, light_index, fit, starts, material_mode)
+    legacy = {k: options.pop(k) for k in list(options) if k in LEGACY_SOLVER_KEYWORDS}
+    if "constraint" in options:
+        warnings.warn("fit_light(constraint=c) is deprecated: pass constraints={light_index: c} (as fit_lights).",
+                      DeprecationWarning, stacklevel=2)
+        if constraints is not None:
+            raise ValueError("fit_light: give constraints or the deprecated constraint, not both.")
+        c = options.pop("constraint")
+        constraints = None if c is None else {light_index: c}
+    opts = search_options(search, options, "fit_light", several=False)
+    starts = int(opts.starts)
+    solver = checked_solver(solver, "fit_light", several=False, legacy=legacy)
+    fit = _checked_groups(scene, targets, light_index, fit, material_mode)
+    constraint = checked_constraints(constraints, [int(light_index)], "fit_light", several=False).get(int(light_index))
     dt = targets.points.dtype
     param = LightParametrisation(scene.lights[light_index], light_index, fit, constraint,
                                  scene_size(scene, targets), solver.box_map)
@@ -119,8 +134,9 @@ def fit_light(
     project = material_mode == "projected"
     fit_n = project and fit_exponent and with_spec
     problem = LightProblem(param, scene, material, targets, specular, with_spec, project, fit_n)
-    y0 = make_starts(param, int(starts), search_radius=search_radius, orientation_spread=orientation_spread,
-                     size_spread=size_spread, seed=seed, dtype=dt)
+    seed = opts.seed
+    y0 = make_starts(param, starts, search_radius=opts.search_radius, orientation_spread=opts.orientation_spread,
+                     size_spread=opts.size_spread, seed=seed, dtype=dt)
     if fit_n:  # log n, last: the material's at the reference, spread over a factor 3 elsewhere
         logn = np.full((y0.shape[0], 1), np.log(float(material.exponent)))
         logn[1:, 0] += np.random.default_rng(seed).uniform(-np.log(3.0), np.log(3.0), y0.shape[0] - 1)
@@ -132,7 +148,7 @@ def fit_light(
     return fitted
 
 
-def _checked_groups(scene: Any, targets: Any, light_index: Any, fit: Any, starts: int, material_mode: str) -> tuple:
+def _checked_groups(scene: Any, targets: Any, light_index: Any, fit: Any, material_mode: str) -> tuple:
     """`fit` as a tuple, after the argument checks of `fit_light` (ValueError)."""
     if not isinstance(scene, js.Scene):
         raise ValueError(f"fit_light: expected a jaxshadow.Scene, got {type(scene).__name__}.")
@@ -146,8 +162,6 @@ def _checked_groups(scene: Any, targets: Any, light_index: Any, fit: Any, starts
     unknown = [g for g in fit if g not in FIT_GROUPS]
     if unknown:
         raise ValueError(f"fit_light: unknown fit group(s) {unknown}; choose from {FIT_GROUPS}.")
-    if int(starts) < 1:
-        raise ValueError(f"fit_light: starts must be >= 1, got {starts}.")
     if material_mode not in ("fixed", "projected"):
         raise ValueError(f"fit_light: material_mode must be 'fixed' or 'projected', got {material_mode!r}.")
     return fit
@@ -203,5 +217,5 @@ def _light_fit(problem: LightProblem, sol: Solution, solver_name: str, n_screene
         n_distinct_minima=distinct_minima(sol.values, losses, sol.converged, sol.best), n_screened=n_screened,
         solver=solver_name, scale=scale, abandoned=sol.abandoned, quality=quality,
     )
-    return LightFit(scene=new_scene, light=sol.light, residual=residual, report=report, parametrisation=param,
-                    material=material)
+    return LightFit(scene=new_scene, lights=(sol.light,), powers=np.ones(1), material=material, residual=residual,
+                    report=report, theta=theta64[:param.size], parametrisations=(param,))

@@ -21,7 +21,6 @@ Only the poses are searched. The shadow engine runs inside the compiled program 
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Any
 
 import equinox as eqx
@@ -32,14 +31,11 @@ from jaxtyping import Array
 
 import jaxshadow as js
 
-from ._forward import SpecularFn, irradiance_culled, specular_culled
+from ._forward import SpecularFn, at_capacity, irradiance_culled, specular_culled
 from ._lm import LMResult, batched_levenberg_marquardt, duplicate_sources, fit_jit
 from ._painting import painted_rows
 from ._residuals import pinned
 from ._targets import PaintedTargets
-
-# The most boundary edges per receiver the solve retries with before it gives up.
-MAX_CAPACITY = 4096
 
 
 def scaled_light(light: Any, p: Any) -> Any:
@@ -351,20 +347,15 @@ def solve(problem: LightsProblem, starts: np.ndarray, base: np.ndarray, mask: np
     """`_lm` from `starts (S, P)` (one start a chunk; repeated starts, e.g. padding, solved once:
     the same result), solved again with twice the shadow capacity while some receiver overflowed
     it (exact). Returns `(result, problem used, retries)`."""
-    retries = 0
     dt = problem.targets.points.dtype
     mirror = jnp.asarray(duplicate_sources(np.asarray(starts, dt)))
-    while True:
-        res = _lm(problem, jnp.asarray(starts, dt), jnp.asarray(base, dt), jnp.asarray(mask), rtol, atol,
+
+    def run(pr: LightsProblem) -> tuple[LMResult, Any]:
+        res = _lm(pr, jnp.asarray(starts, dt), jnp.asarray(base, dt), jnp.asarray(mask), rtol, atol,
                   np.asarray(max_steps, np.int32), prune, 1, mirror)
-        cap = problem.capacity
-        if cap is None or not bool(res.flag):
-            return res, problem, retries
-        if cap >= MAX_CAPACITY:
-            raise RuntimeError(f"fit_lights: some receiver's visible region needs more than {MAX_CAPACITY} "
-                               "boundary edges during the solve.")
-        problem = dataclasses.replace(problem, capacity=min(2 * cap, MAX_CAPACITY))
-        retries += 1
+        return res, res.flag
+
+    return at_capacity(run, problem, "fit_lights", "solve")
 
 
 def _screen_impl(problem: LightsProblem, rows: Array, base: Array, mask: Array) -> tuple[Array, Array]:
@@ -388,23 +379,18 @@ def screen(problem: LightsProblem, rows: np.ndarray, base: np.ndarray, mask: np.
     `chunk` rows a call (one compiled program for any S), again with twice the shadow capacity
     while some receiver overflowed it. Returns `(losses (S,), problem used, retries)`."""
     dt = problem.targets.points.dtype
-    retries = 0
-    while True:
+
+    def run(pr: LightsProblem) -> tuple[np.ndarray, bool]:
         out, over = [], False
         for a in range(0, rows.shape[0], chunk):
             part = rows[a:a + chunk]
             part = np.concatenate([part, np.repeat(part[:1], chunk - part.shape[0], axis=0)])
-            f, o = _screen(problem, jnp.asarray(part, dt), jnp.asarray(base, dt), jnp.asarray(mask))
+            f, o = _screen(pr, jnp.asarray(part, dt), jnp.asarray(base, dt), jnp.asarray(mask))
             out.append(np.asarray(f))
             over = over or bool(o)
-        cap = problem.capacity
-        if cap is None or not over:
-            return np.concatenate(out)[: rows.shape[0]], problem, retries
-        if cap >= MAX_CAPACITY:
-            raise RuntimeError(f"fit_lights: some receiver's visible region needs more than {MAX_CAPACITY} "
-                               "boundary edges during the screening.")
-        problem = dataclasses.replace(problem, capacity=min(2 * cap, MAX_CAPACITY))
-        retries += 1
+        return np.concatenate(out)[: rows.shape[0]], over
+
+    return at_capacity(run, problem, "fit_lights", "screening")
 
 
 def fixed_contribution(scene: js.Scene, targets: PaintedTargets, material: js.Material, fixed: list[Any],

@@ -213,20 +213,3 @@ class LightsReport(FitReport):
         return lines
 
 
-@dataclasses.dataclass(frozen=True)
-class LightsFit:
-    """`scene` (fitted poses and powers), `lights` (the fitted lights, in the order of
-    `fit_lights(lights=...)`), `powers (J,)` (factors of the given radiance), `material`
-    (as given, or projected), `residual (N, 3)` = model - colours (unweighted; for a target
-    painted as a `ColourRange`, the distance outside its range, 0 inside), `report`
-    (`LightsReport`), `theta (P,)` the pose parameters, `parametrisations` (per fitted light,
-    None for a power-only light)."""
-
-    scene: js.Scene
-    lights: tuple
-    powers: np.ndarray
-    material: js.Material
-    residual: np.ndarray
-    report: LightsReport
-    theta: np.ndarray
-    parametrisations: tuple

@@ -43,7 +43,7 @@ class Plane(eqx.Module):
         import inverse
 
         ceiling = inverse.Plane([0.0, 0.0, 2.5], [0.0, 0.0, 1.0])
-        # inverse.fit_light(scene, targets, material, constraint=ceiling)
+        # inverse.fit_light(scene, targets, material, constraints={0: ceiling})
         ```
     """
 
@@ -66,7 +66,7 @@ class Box(eqx.Module):
         import inverse
 
         room = inverse.Box([-2.0, -2.0, 1.5], [2.0, 2.0, 3.0])
-        # inverse.fit_light(scene, targets, material, constraint=room, solver=inverse.LBFGSB())
+        # inverse.fit_light(scene, targets, material, constraints={0: room}, solver=inverse.LBFGSB())
         ```
     """
 

@@ -161,17 +161,40 @@ class MaterialFit:
 
 
 @dataclasses.dataclass(frozen=True)
-class LightFit:
-    """`scene` (with the fitted light), `light`, `residual (N, 3)` = model - colours
-    (unweighted), `report` (`LightReport`), `parametrisation`, `material` (the material used:
-    as given, or the projected one with `material_mode="projected"`)."""
+class LightsFit:
+    """A light fit (`fit_lights`, and `fit_light`'s one light): `scene` (fitted poses and
+    powers), `lights` (the fitted lights, in the order of `fit_lights(lights=...)`), `powers (J,)`
+    (factors of the given radiance; 1 where the power is not fitted), `material` (as given, or
+    projected), `residual (N, 3)` = model - colours (unweighted; for a target painted as a
+    `ColourRange`, the distance outside its range, 0 inside), `report` (a `FitReport`:
+    `LightsReport` from `fit_lights`, `LightReport` from `fit_light`), `theta (P,)` the pose
+    parameters, `parametrisations` (per fitted light, None for a power-only light)."""
 
     scene: js.Scene
-    light: Any
-    residual: np.ndarray
-    report: LightReport
-    parametrisation: LightParametrisation
+    lights: tuple
+    powers: np.ndarray
     material: js.Material
+    residual: np.ndarray
+    report: FitReport
+    theta: np.ndarray
+    parametrisations: tuple
+
+
+@dataclasses.dataclass(frozen=True)
+class LightFit(LightsFit):
+    """`fit_light`'s answer: a `LightsFit` of one light, with `light` (= `lights[0]`) and
+    `parametrisation` (= `parametrisations[0]`); `report` is a `LightReport` (the solver's
+    starts, steps and screening as well)."""
+
+    @property
+    def light(self) -> Any:
+        """The fitted light (`lights[0]`)."""
+        return self.lights[0]
+
+    @property
+    def parametrisation(self) -> LightParametrisation:
+        """The light's parametrisation (`parametrisations[0]`)."""
+        return self.parametrisations[0]
 
 
 @dataclasses.dataclass(frozen=True)

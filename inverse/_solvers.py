@@ -35,6 +35,7 @@ from jaxtyping import Array
 
 from jaxshadow import ShadowOptions
 
+from ._forward import at_capacity
 from ._lm import LMResult, batched_levenberg_marquardt, fit_jit
 from ._multistart import (
     best_starts,
@@ -53,8 +54,6 @@ from ._residuals import (
 )
 
 COMBINATORICS = ("auto", "device", "host")
-# The most boundary edges per receiver `solve_lm` retries with before it gives up.
-MAX_CAPACITY = 4096
 
 
 @dataclasses.dataclass(frozen=True)
@@ -221,7 +220,7 @@ class LBFGSB(AbstractLightSolver):
         import inverse
 
         solver = inverse.LBFGSB(tol=1e-12)
-        # inverse.fit_light(scene, targets, material, constraint=inverse.Box(lo, hi), solver=solver)
+        # inverse.fit_light(scene, targets, material, constraints={0: inverse.Box(lo, hi)}, solver=solver)
         ```
     """
 
@@ -293,19 +292,15 @@ def run_lm(problem: LightProblem, starts: Any, rtol: float, atol: float, max_ste
 def solve_lm(problem: LightProblem, starts: Array, rtol: float, atol: float, max_steps: int,
              prune: tuple[int, ...] = ()) -> tuple[LMResult, Any, LightProblem, int]:
     """`run_lm`, retried with twice the shadow capacity while some receiver overflowed it, so
-    the result is exact (`MAX_CAPACITY` edges at most: beyond that a `RuntimeError` says so).
+    the result is exact (`_forward.at_capacity`).
     Returns `(result, lights at the solutions, problem used, retries)`."""
-    retries = 0
-    while True:
-        res, lights = run_lm(problem, starts, rtol, atol, max_steps, prune)
-        cap = problem.capacity
-        if cap is None or not bool(res.flag):
-            return res, lights, problem, retries
-        if cap >= MAX_CAPACITY:
-            raise RuntimeError(f"fit_light: some receiver's visible region needs more than {MAX_CAPACITY} boundary "
-                               "edges during the solve; use inverse.LM(combinatorics='device').")
-        problem = dataclasses.replace(problem, capacity=min(2 * cap, MAX_CAPACITY))
-        retries += 1
+    def run(pr: LightProblem) -> tuple[tuple[LMResult, Any], Any]:
+        res, lights = run_lm(pr, starts, rtol, atol, max_steps, prune)
+        return (res, lights), res.flag
+
+    (res, lights), problem, retries = at_capacity(run, problem, "fit_light", "solve",
+                                                  "; use inverse.LM(combinatorics='device')")
+    return res, lights, problem, retries
 
 
 def screen_with_lm(problem: LightProblem, starts: Array, k: int, rtol: float, atol: float,
@@ -375,7 +370,7 @@ def _multistart_lbfgsb(problem: LightProblem, starts: Array, lower: Array, upper
 # --------------------------------------------------------------------------------------
 
 _SOLVERS: dict[str, Callable[[], AbstractLightSolver]] = {"lm": LM, "optimistix": OptimistixLM, "lbfgsb": LBFGSB}
-_LEGACY = ("refine", "prune", "receiver_groups", "combinatorics", "rtol", "atol", "max_steps")
+LEGACY_SOLVER_KEYWORDS = ("refine", "prune", "receiver_groups", "combinatorics", "rtol", "atol", "max_steps")
 
 
 def solver_from_arguments(solver: AbstractLightSolver | str | None, legacy: dict[str, Any]) -> AbstractLightSolver:
@@ -383,7 +378,7 @@ def solver_from_arguments(solver: AbstractLightSolver | str | None, legacy: dict
     `"lbfgsb"`) and the keywords `refine`, `prune`, `receiver_groups` (no longer used), `combinatorics`, `rtol`,
     `atol`, `max_steps` still work, with a `DeprecationWarning` (options a solver does not have
     are ignored, as they were)."""
-    unknown = sorted(set(legacy) - set(_LEGACY))
+    unknown = sorted(set(legacy) - set(LEGACY_SOLVER_KEYWORDS))
     if unknown:
         raise TypeError(f"fit_light() got unexpected keyword argument(s) {unknown}.")
     if isinstance(solver, str) and solver not in _SOLVERS:
@@ -401,3 +396,17 @@ def solver_from_arguments(solver: AbstractLightSolver | str | None, legacy: dict
         kw["tol"] = kw["atol"]  # L-BFGS-B used atol as its tolerance
     fields = {f.name for f in dataclasses.fields(base)}
     return dataclasses.replace(base, **{k: v for k, v in kw.items() if k in fields})
+
+
+def checked_solver(solver: AbstractLightSolver | str | None, who: str, *, several: bool,
+                   legacy: dict[str, Any] | None = None) -> AbstractLightSolver:
+    """The solver object of a light fit, `LM()` for None (ValueError for anything else than a
+    solver object). One light (`fit_light`): any `AbstractLightSolver`, and the deprecated
+    names and keywords of `solver_from_arguments`. Several lights (`fit_lights`): `LM`, whose
+    compiled program (`_multilight._lm`) searches one light or all of them."""
+    if not several:
+        return solver_from_arguments(solver, legacy or {})
+    solver = LM() if solver is None else solver
+    if not isinstance(solver, LM):
+        raise ValueError(f"{who}: solver must be an inverse.LM, got {type(solver).__name__}.")
+    return solver

@@ -332,11 +332,11 @@ def test_fit_light_point_on_plane_lbfgsb(light_config):
     tt = t.with_colours(col)
     start = js.Scene([js.PointLight([-0.4, 0.6, 1.5], 3.0)], ambient=cfg.scene.ambient)
     plane = inverse.Plane([0.0, 0.0, 1.5], [0.0, 0.0, 1.0])
-    f = inverse.fit_light(start, tt, material, fit=("position",), constraint=plane, starts=4, specular=SPEC)
+    f = inverse.fit_light(start, tt, material, fit=("position",), constraints={0: plane}, starts=4, specular=SPEC)
     np.testing.assert_allclose(np.asarray(f.light.position), true_pos, atol=1e-6)
     assert f.report.names == ("a", "b")
     box = inverse.Box([-1.0, -1.0, 1.0], [1.0, 1.0, 2.0])
-    f = inverse.fit_light(start, tt, material, fit=("position",), constraint=box, starts=4, solver=inverse.LBFGSB(),
+    f = inverse.fit_light(start, tt, material, fit=("position",), constraints={0: box}, starts=4, solver=inverse.LBFGSB(),
                           specular=SPEC)
     np.testing.assert_allclose(np.asarray(f.light.position), true_pos, atol=1e-5)
     assert f.report.solver == "lbfgsb" and f.report.names == ("x", "y", "z")

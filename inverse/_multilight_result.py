@@ -1,0 +1,213 @@
+"""The answer of `fit_lights` at the poses its search found: the powers (bounded least squares,
+with a budget or painted ranges and relations where given), the material (as given or the
+structured least squares), the residual, the identifiability report of every fitted parameter
+and, for each undetermined one, where to paint targets that would determine it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from ._diagnostics import assess, competing_placements, dark_answer
+from ._identifiability import identifiability
+from ._multilight import LightsProblem, build_lights, fixed_contribution, report_parts, scaled_light
+from ._multilight_report import (
+    LightsReport,
+    correlated_pairs,
+    material_of,
+    null_directions,
+    structured_coefficients,
+)
+from ._painting import as_numpy, painted_rows
+from ._powers import constrained_powers, emitted_power, painted_jacobian
+from ._reports import LightsFit
+from ._targets import PaintedTargets
+
+_POSITION_NAMES = ("x", "y", "z", "a", "b")
+
+
+def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, candidates: Any,
+            stage_losses: list, n_solved: int, retries: int, initial: float | None, project: bool,
+            noise: Any = None, final: tuple | None = None) -> LightsFit:
+    t, m = problem.targets, problem.material
+    dt = t.points.dtype
+    q = np.asarray(theta[problem.n_pose:], np.float64)  # the searched powers' roots, if any
+    theta = theta[:problem.n_pose]
+    th = jnp.asarray(theta, dt)
+    J = len(idx)
+    ones = jnp.ones(J, dt)
+    E, S, _ = (np.asarray(x, np.float64) for x in report_parts(problem, th, ones, m))
+    colours, w = np.asarray(t.colours, np.float64), np.asarray(t.weights, np.float64)
+    La = np.asarray(problem.scene.ambient, np.float64)
+    e0, s0 = np.asarray(problem.e_fixed, np.float64), np.asarray(problem.s_fixed, np.float64)
+    spec = problem.with_specular
+    gauge = 0 if (project and problem.fit_power and not problem.has_fixed) else None
+    coef = lambda EE, SS: structured_coefficients(  # noqa: E731
+        EE, SS if spec else None, e0, s0 if spec else None, La, colours, w, m, fit_power=problem.fit_power,
+        project=project, gauge=gauge)
+    powers, k = coef(E, S)
+    sw = np.sqrt(w)
+    paint = as_numpy(problem.paint)
+    per_light = k[1] / np.pi * E + (k[2] * S if spec else 0.0)  # (J, N, 3): the model's power columns
+    budget_active = False
+    if problem.fit_power and (paint is not None or problem.budget is not None):
+        bud = None
+        if problem.budget is not None:
+            c = np.array([float(emitted_power(x)) for x in build_lights(problem, th)])
+            bud = (c, float(problem.budget))
+        fixed_part = _model(E, S, e0, s0, La, np.zeros(J), k, spec)
+        powers = constrained_powers(fixed_part, per_light, colours, sw, paint, bud, q * q if q.size else powers)
+        budget_active = bud is not None and bud[0] @ powers >= bud[1] * (1 - 1e-9)
+    mat = material_of(k, m.exponent, dt) if project else m
+    _, _, Jth = (np.asarray(x, np.float64) for x in report_parts(problem, th, jnp.asarray(powers, dt), mat))
+    model = _model(E, S, e0, s0, La, powers, k, spec)
+    residual = model - colours
+    rows = painted_rows(model, colours, sw, paint)
+    if paint is not None:  # a ranged target's residual: its distance outside the range
+        residual = np.where(paint.ranged, np.minimum(model - paint.lower, 0.0) + np.maximum(model - paint.upper, 0.0),
+                            residual)
+    power_cols = painted_jacobian(model, per_light, sw, paint)
+    # The report's parameters: poses, then powers, then the material.
+    names, cols, scale_of = [], [], []
+    for j, p in enumerate(problem.params):
+        if p is not None:
+            names += [f"light{idx[j]}.{nm}" for nm in p.names]
+            scale_of += [size if nm in _POSITION_NAMES else 1.0 for nm in p.names]
+    cols.append(Jth)
+    free_p = [j for j in range(J) if problem.fit_power and j != gauge]
+    for j in free_p:
+        names.append(f"light{idx[j]}.power")
+        scale_of.append(1.0)
+        cols.append(power_cols[:, j:j + 1])
+    if project:
+        e_tot = e0 + np.tensordot(powers, E, axes=1)
+        s_tot = s0 + np.tensordot(powers, S, axes=1)
+        terms = [("ka", np.broadcast_to(La, e_tot.shape)), ("kd", e_tot / np.pi)] + ([("ks", s_tot)] if spec else [])
+        for nm, basis_ in terms:
+            for c, ch in enumerate("rgb"):
+                col = np.zeros_like(e_tot)
+                col[:, c] = basis_[:, c]
+                names.append(f"{nm}[{ch}]")
+                scale_of.append(1.0)
+                cols.append((sw * col).reshape(-1, 1))
+    jac = np.concatenate(cols, axis=1)
+    rss = float(rows @ rows)
+    n_pos = int(np.count_nonzero(w > 0))
+    ident = identifiability(jac, rss, n_pos)
+    names = tuple(names)
+    values = list(theta) + [powers[j] for j in free_p]
+    if project:
+        values += list(k[0]) + list(k[1]) + (list(k[2]) if spec else [])
+    se = {nm: math.inf if not ok else float(s) * sc
+          for nm, s, ok, sc in zip(names, ident.std_errors, ident.determined, scale_of, strict=True)}
+    determined = {nm: bool(ok) for nm, ok in zip(names, ident.determined, strict=True)}
+    warnings = [f"{nm} is not determined by these targets." for nm in names if not determined[nm]]
+    warnings += [f"the power of light {idx[j]} is at its bound 0 (the targets ask for less than none)."
+                 for j in free_p if powers[j] == 0.0]
+    if budget_active:
+        warnings.append(f"the power budget {float(problem.budget):.6g} W is used up (the powers' standard errors "
+                        "ignore it).")
+    if retries:
+        warnings.append(f"solved again {retries} time(s) with a larger shadow capacity (the result is exact).")
+    fitted = build_lights(problem, th)
+    out_lights = tuple(scaled_light(light, jnp.asarray(pw, dt)) for light, pw in zip(fitted, powers, strict=True))
+    pose_names = names[:problem.n_pose]
+    light_params = {f"light{i}": tuple(nm for nm in names if nm.startswith(f"light{i}.")) for i in idx}
+    moved = {f"light{idx[j]}": out_lights[j] for j, p in enumerate(problem.params) if p is not None}
+    competing = () if final is None else competing_placements(np.asarray(final[0], np.float64)[:, :problem.n_pose],
+                                                              np.asarray(final[1], np.float64), pose_names)
+    dark = paint is not None and len(paint.pairs) > 0 and dark_answer(
+        np.tensordot(powers, per_light, axes=1), colours, w, paint.margin)
+    values_d = {nm: float(v) for nm, v in zip(names, values, strict=True)}
+    quality, determined = assess(
+        targets=t, residual=residual, noise=noise, n_params=len(names), names=names, std_errors=se, values=values_d,
+        determined=determined, scale=size, lights=moved, light_params=light_params, candidates=competing,
+        messages=warnings, all_dark=dark,
+        contributions={f"light{idx[j]}": float(np.sqrt(np.sum(w * (powers[j] * per_light[j]) ** 2)))
+                       for j in range(J)} if problem.fit_power else None, determinacy=paint is None)
+    fixed = [x for n, x in enumerate(problem.scene.lights) if n not in idx]
+    suggestions, sugg_n = _suggest(problem, th, powers, mat, names, jac, ident.determined, candidates, free_p, k,
+                                   fixed, project)
+    report = LightsReport(
+        names=names, values=values_d, std_errors=se,
+        determined=determined, singular_values=ident.singular_values,
+        targets_met=None if t.tolerance is None else np.all(np.abs(residual) <= np.asarray(t.tolerance), axis=1),
+        warnings=tuple(warnings), correlated=correlated_pairs(jac, names, ident.determined),
+        suggestions=suggestions, suggestion_normals=sugg_n, loss=0.5 * rss,
+        initial_loss=math.nan if initial is None else float(initial), stage_losses=tuple(stage_losses),
+        starts_solved=n_solved, retries=retries, scale=size, quality=quality,
+    )
+    all_lights = list(problem.scene.lights)
+    for j, i in enumerate(idx):
+        all_lights[i] = out_lights[j]
+    new_scene = eqx.tree_at(lambda s: s.lights, problem.scene, tuple(all_lights))
+    return LightsFit(scene=new_scene, lights=out_lights, powers=np.asarray(powers), material=mat, residual=residual,
+                     report=report, theta=theta, parametrisations=problem.params)
+
+
+def _model(E: np.ndarray, S: np.ndarray, e0: np.ndarray, s0: np.ndarray, La: np.ndarray, p: np.ndarray,
+           k: np.ndarray, spec: bool) -> np.ndarray:
+    e = e0 + np.tensordot(p, E, axes=1)
+    out = k[0] * La + k[1] / np.pi * e
+    if spec:
+        out = out + k[2] * (s0 + np.tensordot(p, S, axes=1))
+    return out
+
+
+def _suggest(problem: LightsProblem, th: Any, powers: np.ndarray, mat: Any, names: tuple, jac: np.ndarray,
+             determined: np.ndarray, candidates: Any, free_p: list, k: np.ndarray,
+             fixed: list, project: bool) -> tuple[dict, dict]:
+    """For each undetermined parameter: the candidate receivers, best first, where the model
+    changes most along the null direction(s) that involve it."""
+    if np.all(determined):
+        return {}, {}
+    t = problem.targets
+    dt = t.points.dtype
+    if candidates is None:
+        pts = np.asarray(t.points, np.float64)
+        nrm = np.asarray(t.normals, np.float64).mean(axis=0)
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        ax = np.argsort(hi - lo)[::-1][:2]
+        g = np.linspace(0.0, 1.0, 9)
+        cp = np.tile(pts.mean(axis=0), (81, 1))
+        cp[:, ax[0]] = lo[ax[0]] + (hi - lo)[ax[0]] * np.repeat(g, 9)
+        cp[:, ax[1]] = lo[ax[1]] + (hi - lo)[ax[1]] * np.tile(g, 9)
+        cn = np.tile(nrm / np.linalg.norm(nrm), (81, 1))
+    else:
+        cp, cn = (np.asarray(x, np.float64) for x in candidates)
+    eye = np.asarray(t.eye, np.float64)[0]
+    ct = PaintedTargets(jnp.asarray(cp, dt), jnp.asarray(cn, dt), jnp.zeros(cp.shape, dt), jnp.asarray(eye, dt))
+    e0, s0 = fixed_contribution(problem.scene, ct, problem.material, fixed, problem.specular,
+                                problem.with_specular)
+    cprob = dataclasses.replace(problem, targets=ct, e_fixed=e0, s_fixed=s0, capacity=None, paint=None)
+    E, S, Jth = (np.asarray(x, np.float64) for x in report_parts(cprob, th, jnp.asarray(powers, dt), mat))
+    spec = problem.with_specular
+    cols = [Jth]
+    for j in free_p:
+        cols.append((k[1] / np.pi * E[j] + (k[2] * S[j] if spec else 0.0)).reshape(-1, 1))
+    ncand = cp.shape[0]
+    if project:
+        e_tot = np.asarray(e0, np.float64) + np.tensordot(powers, E, axes=1)
+        s_tot = np.asarray(s0, np.float64) + np.tensordot(powers, S, axes=1)
+        La = np.asarray(problem.scene.ambient, np.float64)
+        terms = [np.broadcast_to(La, e_tot.shape), e_tot / np.pi] + ([s_tot] if spec else [])
+        for b in terms:
+            for c in range(3):
+                col = np.zeros_like(e_tot)
+                col[:, c] = b[:, c]
+                cols.append(col.reshape(-1, 1))
+    jc = np.concatenate(cols, axis=1)  # (3K, P)
+    out, out_n = {}, {}
+    for v in null_directions(jac):
+        change = np.linalg.norm((jc @ v).reshape(ncand, 3), axis=1)
+        order = np.argsort(change)[::-1][:5]
+        for nm, comp in zip(names, v * np.linalg.norm(jac, axis=0), strict=True):
+            if abs(comp) > 1e-6 and nm not in out:
+                out[nm], out_n[nm] = cp[order], cn[order]
+    return out, out_n
