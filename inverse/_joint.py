@@ -1,5 +1,5 @@
 """Light and material together: one projected multistart then the exact bounded material
-(`method="projected"`), or block coordinate descent (`method="alternate"`); and the joint
+(`method="projected"`), or block coordinate descent (`method="alternate"`, deprecated); and the joint
 standard errors of both halves.
 """
 
@@ -143,13 +143,17 @@ def fit_light_and_material(
 ) -> JointFit:
     """Joint light placement and material.
 
-    `method="projected"` (default, "stack"): one multistart nonlinear least squares over the
-    light pose and $\\log n$ with $k_a, k_d, k_s$ projected out (`fit_light(...,
-    material_mode="projected", fit_exponent=True)`), then the exact bounded `fit_material` at the
-    fitted light (the coefficients then respect `bounds`). `material` gives the starting
-    exponent and whether there is a specular term ($k_s \\ne 0$).
+    A light and a material are fitted together one way: the light fit with the material
+    projected out (`material_mode="projected"`, the keyword of `fit_light` and `fit_lights`);
+    this function is that fit for one light, finished. `method="projected"` (the default): one
+    multistart nonlinear least squares over the light pose and $\\log n$ with $k_a, k_d, k_s$
+    projected out (`fit_light(..., material_mode="projected", fit_exponent=True)`), then the
+    exact bounded `fit_material` at the fitted light (the coefficients then respect `bounds`),
+    and the joint standard errors. `material` gives the starting exponent and whether there is
+    a specular term ($k_s \\ne 0$).
 
-    `method="alternate"` (block coordinate descent, `rounds` rounds): each round places the
+    `method="alternate"` (deprecated: a second route to the same answer, kept working for now;
+    block coordinate descent, `rounds` rounds): each round places the
     light with the material fixed (`fit_light`, the full multistart in the first round;
     afterwards a local solve from the previous light, or, when the light solver screens its
     starts (`light_kwargs={"solver": inverse.LM(refine=k)}`), a multistart in a 4x tighter
@@ -184,6 +188,10 @@ def fit_light_and_material(
     mk.setdefault("warn", False)
     if method not in ("projected", "alternate"):
         raise ValueError(f"fit_light_and_material: method must be 'projected' or 'alternate', got {method!r}.")
+    if method == "alternate":
+        warnings.warn("fit_light_and_material(method='alternate') is deprecated: a light and a material are fitted "
+                      "together by the light fit with the material projected out (method='projected', the default; "
+                      "material_mode='projected' of fit_light and fit_lights).", DeprecationWarning, stacklevel=2)
     history = []
     if method == "projected":
         t0 = time.perf_counter()
