@@ -9,7 +9,6 @@ from importlib.metadata import PackageNotFoundError, version
 from ._core.files import atomic_write as atomic_write
 from ._core.files import atomic_write_path as atomic_write_path
 from ._core.mesh import Mesh as Mesh
-# Public for `inverse` (painted targets' normals, scale-free): the second package uses jaxshadow's public names only.
 from ._core.misc import safe_normalize as safe_normalize
 from ._core.receivers import ReceiverMesh as ReceiverMesh
 from ._illumination.bake import BakedScene as BakedScene

@@ -70,6 +70,8 @@ def safe_norm(x: Float[Array, "... 3"], axis: int = -1) -> Float[Array, "..."]:
 def safe_normalize(x: Float[Array, "... 3"], axis: int = -1) -> Float[Array, "... 3"]:
     """`x / |x|` along `axis` (same shape as `x`), scale-free (`_scaled`: any length from the
     smallest normal number to the largest float), zero (with zero gradient) where `x = 0`.
+    Public (`jaxshadow.safe_normalize`) for `inverse`, which uses jaxshadow's public names only
+    (`PaintedTargets` normalises painted normals of any length with it).
 
     Example:
         ```python
