@@ -389,7 +389,7 @@ def solver_from_arguments(solver: AbstractLightSolver | str | None, legacy: dict
         return LM() if solver is None else solver
     warnings.warn("fit_light(solver='lm', refine=..., prune=..., ...) is deprecated: pass a solver object, "
                   "e.g. solver=inverse.LM(refine=8, prune=True), inverse.OptimistixLM() or inverse.LBFGSB().",
-                  DeprecationWarning, stacklevel=3)
+                  DeprecationWarning, stacklevel=4)
     base = _SOLVERS[solver]() if isinstance(solver, str) else (LM() if solver is None else solver)
     kw = dict(legacy)
     if isinstance(base, LBFGSB) and "atol" in kw:
