@@ -45,12 +45,13 @@
 //   poly_plan, hard_plan, segment_plan   the host entry points: C-contiguous buffers in (NumPy
 //                                        arrays), results as `Owned` buffers (the engine's own
 //                                        allocations, freed with the last array that views them);
-//   ffi_handlers()                       the XLA FFI handlers as PyCapsules, for traced programs;
+//   ffi_handlers()                       the XLA FFI handlers (`ffi.h`) as PyCapsules, for traced
+//                                        programs;
 //   ABI_VERSION, CODE_WIDTH              from `abi.h`, the one definition of the interface;
 //   HAS_FFI, JAXLIB_VERSION              whether the FFI handlers were compiled, and the jaxlib
 //                                        whose headers they were compiled against.
-// Both bindings read the occluders through one struct (`OccluderInputs`) and dispatch on the
-// float type once (`by_float`). Plain C++17 and Python's headers; IEEE arithmetic without
+// Both bindings read the occluders through one struct and dispatch on the float type once
+// (`inputs.h`); only this file includes Python's headers. Plain C++17; IEEE arithmetic without
 // contraction into fused multiply-adds (setup.py passes -ffp-contract=off), so that the decisions
 // round as NumPy's do. With JAXSHADOW_FFI (setup.py defines it, and JAXSHADOW_JAXLIB_VERSION,
 // when jaxlib's XLA FFI headers are found) the handlers are compiled; otherwise `ffi_handlers()`
@@ -60,58 +61,19 @@
 #include <Python.h>
 
 #include <initializer_list>
-#include <string>
 #include <type_traits>
 
 #include "abi.h"
-#include "engine/driver.h"
+#include "inputs.h"
+#ifdef JAXSHADOW_FFI
+#include "ffi.h"
+#endif
 
-using namespace jaxshadow_engine;  // NOLINT: this file only binds the engine to Python and XLA
+using namespace jaxshadow_binding;  // NOLINT: this file only binds the engine to Python
 using jaxshadow_abi::kAbiVersion;
 
 namespace {
 
-// Every decision is made in double precision, whatever the inputs' dtype: float32 inputs are
-// exact in double, and the combinatorics (which occluders, which pieces of which edges) are then
-// those of the exact float32 geometry, resolved far below float32's rounding (a receiver 1e-6
-// under a light, an occluder 5e-7 under it: float32 planes through the receiver differ by less
-// than its own collinearity tolerance). Only the points the JAX side integrates are float32.
-template <class T>
-const double* as_double(const void* x, size_t n, std::vector<double>& store) {
-  if (std::is_same<T, double>::value) return static_cast<const double*>(x);
-  const T* t = static_cast<const T*>(x);
-  store.assign(t, t + n);
-  return store.data();
-}
-
-// The float32 / float64 dispatch of every entry point (host and FFI): `fn(T{})`, T the inputs' type.
-template <class F>
-auto by_float(bool f64, F&& fn) {
-  return f64 ? fn(double{}) : fn(float{});
-}
-
-// The occluder inputs of every entry point: padded convex faces (M, Ko, 3) in the call's float
-// type, and the topology (`jaxshadow._core.mesh.OccluderTopology`, int32).
-struct OccluderInputs {
-  int64_t M = 0, Ko = 0, S = 0;
-  const void* faces = nullptr;
-  const int32_t* face_solid = nullptr;      // (M,)
-  const int32_t* face_closed = nullptr;     // (M,)
-  const int32_t* solid_faces = nullptr;     // (S, 2)
-  const int32_t* solid_edge_off = nullptr;  // (S + 1,)
-  const int32_t* solid_edges = nullptr;     // (E, 4)
-};
-
-// The engine's occluders in double (faces of type T converted into `store`); K light vertices
-// come before the face refs.
-template <class T>
-Occluders<double> occ_double(int64_t K, const OccluderInputs& o, std::vector<double>& store) {
-  return make_occ<double>(K, o.M, o.Ko, as_double<T>(o.faces, size_t(o.M * o.Ko * 3), store), o.face_solid,
-                          o.face_closed, o.S, o.solid_faces, o.solid_edge_off, o.solid_edges);
-}
-
-// The polygon plan on inputs of type T (the function `benchmarks/engine_profile.py` counts the
-// instructions of: not inlined). Points decoded for float32 inputs are returned as float32.
 template <class T>
 __attribute__((noinline)) int poly_plan_any(int64_t N, const void* P, const void* Nrm, int64_t K, const void* E,
                                             const OccluderInputs& o, int threads, int32_t* cls, int32_t* stats,
@@ -464,205 +426,6 @@ PyObject* py_segment_plan(PyObject*, PyObject* args) {
 }
 
 }  // namespace
-
-// ----------------------------------------------------------------------------------------------
-// XLA FFI handlers: the engine inside a compiled computation
-// ----------------------------------------------------------------------------------------------
-#ifdef JAXSHADOW_FFI
-#include "xla/ffi/api/ffi.h"
-
-namespace ffi = xla::ffi;
-
-namespace {
-
-using S32 = ffi::Buffer<ffi::S32>;
-
-// A handler's occluder inputs, batched like its points: faces (..., M, Ko, 3), converted to double
-// once, and the topology arrays (batched alike); `at(b)` is batch b's OccluderInputs.
-struct FfiOccluders {
-  OccluderInputs first;
-  int64_t NE = 0;
-  std::vector<double> store;
-  template <class T>
-  FfiOccluders(T, int64_t B, size_t nb, ffi::AnyBuffer faces, S32 fsolid, S32 fclosed, S32 sfaces, S32 soff,
-               S32 sedges) {
-    auto fd = faces.dimensions();
-    first.M = fd[nb];
-    first.Ko = fd[nb + 1];
-    auto sd = sfaces.dimensions();
-    first.S = sd[sd.size() - 2];
-    auto ed = sedges.dimensions();
-    NE = ed[ed.size() - 2];
-    first.faces = as_double<T>(faces.untyped_data(), size_t(B * first.M * first.Ko * 3), store);
-    first.face_solid = fsolid.typed_data();
-    first.face_closed = fclosed.typed_data();
-    first.solid_faces = sfaces.typed_data();
-    first.solid_edge_off = soff.typed_data();
-    first.solid_edges = sedges.typed_data();
-  }
-  OccluderInputs at(int64_t b) const {
-    OccluderInputs o = first;
-    o.faces = static_cast<const double*>(first.faces) + b * o.M * o.Ko * 3;
-    o.face_solid += b * o.M;
-    o.face_closed += b * o.M;
-    o.solid_faces += b * 2 * o.S;
-    o.solid_edge_off += b * (o.S + 1);
-    o.solid_edges += b * 4 * NE;
-    return o;
-  }
-};
-
-// The batch of a handler's inputs (vmap_method="broadcast_all": a common leading batch shape):
-// points (..., N, 3) and faces (..., M, Ko, 3); B batches of N points.
-struct Batch {
-  size_t nb = 0;
-  int64_t B = 1, N = 0;
-};
-
-bool batch_of(ffi::AnyBuffer points, ffi::AnyBuffer faces, Batch* out) {
-  auto pd = points.dimensions();
-  auto fd = faces.dimensions();
-  if (pd.size() < 2 || fd.size() < 3 || fd.size() != pd.size() + 1) return false;
-  out->nb = pd.size() - 2;
-  for (size_t i = 0; i < out->nb; i++) out->B *= pd[i];
-  out->N = pd[out->nb];
-  return true;
-}
-
-// The float dispatch of a handler, on its points' element type.
-template <class F>
-ffi::Error ffi_by_float(ffi::AnyBuffer points, const char* name, F&& fn) {
-  const auto t = points.element_type();
-  if (t != ffi::F64 && t != ffi::F32) return ffi::Error::InvalidArgument(std::string(name) + ": float32 or float64 only");
-  return by_float(t == ffi::F64, fn);
-}
-
-// Polygon codes: points (..., N, 3), normals (..., N, 3), light (..., K, 3), faces (..., M, Ko, 3)
-// and the occluder topology. Outputs: classes (..., N), counts (..., N), runs (..., N, cap, 2, 7).
-ffi::Error poly_ffi(ffi::AnyBuffer points, ffi::AnyBuffer normals, ffi::AnyBuffer light, ffi::AnyBuffer faces,
-                    S32 face_solid, S32 face_closed, S32 solid_faces, S32 solid_edge_off, S32 solid_edges, int64_t cap,
-                    int64_t threads, ffi::Result<S32> cls, ffi::Result<S32> counts, ffi::Result<S32> runs) {
-  const char* name = "jaxshadow_poly_codes";
-  Batch bt;
-  auto ld_ = light.dimensions();
-  if (!batch_of(points, faces, &bt) || ld_.size() != bt.nb + 2)
-    return ffi::Error::InvalidArgument(std::string(name) + ": bad ranks");
-  return ffi_by_float(points, name, [&](auto zero) {
-    using T = decltype(zero);
-    const int64_t B = bt.B, N = bt.N, K = ld_[bt.nb];
-    const FfiOccluders fo(zero, B, bt.nb, faces, face_solid, face_closed, solid_faces, solid_edge_off, solid_edges);
-    std::vector<double> sp, sn, se, unused;
-    const double* P = as_double<T>(points.untyped_data(), size_t(B * N * 3), sp);
-    const double* Nr = as_double<T>(normals.untyped_data(), size_t(B * N * 3), sn);
-    const double* E = as_double<T>(light.untyped_data(), size_t(B * K * 3), se);
-    for (int64_t b = 0; b < B; b++) {
-      const Occluders<double> occ = occ_double<double>(K, fo.at(b), unused);
-      int rc = poly_fixed<double>(N, P + b * N * 3, Nr + b * N * 3, K, E + b * K * 3, occ, int(threads), cap,
-                                  cls->typed_data() + b * N, counts->typed_data() + b * N,
-                                  runs->typed_data() + b * N * cap * jaxshadow_abi::kRunWidth);
-      if (rc) return ffi::Error::InvalidArgument(std::string(name) + ": light with more than 64 vertices");
-    }
-    return ffi::Error::Success();
-  });
-}
-
-// Hard shadows: visible (..., N) int32 (1 visible, 0 blocked) of point lights (is_point = 1: x a
-// position) or directional lights (x the direction of travel).
-ffi::Error hard_ffi(ffi::AnyBuffer points, ffi::AnyBuffer x, ffi::AnyBuffer faces, S32 face_solid, S32 face_closed,
-                    S32 solid_faces, S32 solid_edge_off, S32 solid_edges, int64_t is_point, int64_t threads,
-                    ffi::Result<S32> visible) {
-  const char* name = "jaxshadow_hard_visibility";
-  Batch bt;
-  if (!batch_of(points, faces, &bt)) return ffi::Error::InvalidArgument(std::string(name) + ": bad ranks");
-  return ffi_by_float(points, name, [&](auto zero) {
-    using T = decltype(zero);
-    const int64_t B = bt.B, N = bt.N;
-    const FfiOccluders fo(zero, B, bt.nb, faces, face_solid, face_closed, solid_faces, solid_edge_off, solid_edges);
-    std::vector<double> sp, sx, unused;
-    const double* P = as_double<T>(points.untyped_data(), size_t(B * N * 3), sp);
-    const double* X = as_double<T>(x.untyped_data(), size_t(B * 3), sx);
-    std::vector<uint8_t> vis(N);
-    for (int64_t b = 0; b < B; b++) {
-      const Occluders<double> occ = occ_double<double>(0, fo.at(b), unused);
-      hard_plan<double>(N, P + b * N * 3, X + b * 3, int(is_point), occ, int(threads), vis.data());
-      int32_t* out = visible->typed_data() + b * N;
-      for (int64_t i = 0; i < N; i++) out[i] = vis[i];
-    }
-    return ffi::Error::Success();
-  });
-}
-
-// Segment-light candidates: counts (..., N) and the first `cap` candidate faces of each receiver
-// (..., N, cap), -1 in unused slots.
-ffi::Error segment_ffi(ffi::AnyBuffer points, ffi::AnyBuffer ends, ffi::AnyBuffer faces, S32 face_solid,
-                       S32 face_closed, S32 solid_faces, S32 solid_edge_off, S32 solid_edges, int64_t cap,
-                       int64_t threads, ffi::Result<S32> counts, ffi::Result<S32> cand) {
-  const char* name = "jaxshadow_segment_candidates";
-  Batch bt;
-  if (!batch_of(points, faces, &bt)) return ffi::Error::InvalidArgument(std::string(name) + ": bad ranks");
-  return ffi_by_float(points, name, [&](auto zero) {
-    using T = decltype(zero);
-    const int64_t B = bt.B, N = bt.N;
-    const FfiOccluders fo(zero, B, bt.nb, faces, face_solid, face_closed, solid_faces, solid_edge_off, solid_edges);
-    std::vector<double> sp, sab, unused;
-    const double* P = as_double<T>(points.untyped_data(), size_t(B * N * 3), sp);
-    const double* AB = as_double<T>(ends.untyped_data(), size_t(B * 6), sab);
-    for (int64_t b = 0; b < B; b++) {
-      const Occluders<double> occ = occ_double<double>(0, fo.at(b), unused);
-      BVH bvh = build_bvh(occ);
-      V3<double> a = ld(AB + b * 6), bb = ld(AB + b * 6 + 3);
-      const double* Pb = P + b * N * 3;
-      int32_t* cnt = counts->typed_data() + b * N;
-      int32_t* out = cand->typed_data() + b * N * cap;
-      parallel_for(N, default_threads(int(threads)), [&](int, int64_t s, int64_t e) {
-        std::vector<std::pair<int32_t, int32_t>> scratch;
-        std::vector<int32_t> list;
-        for (int64_t i = s; i < e; i++) {
-          list.clear();
-          segment_candidates(occ, bvh, ld(Pb + 3 * i), a, bb, list, scratch);
-          cnt[i] = int32_t(list.size());
-          for (int64_t k = 0; k < cap; k++) out[i * cap + k] = k < int64_t(list.size()) ? list[k] : -1;
-        }
-      });
-    }
-    return ffi::Error::Success();
-  });
-}
-
-}  // namespace
-
-// The occluder arguments of every handler, in `OccluderInputs`' order.
-#define JAXSHADOW_FFI_OCCLUDERS(binding)                                                                   \
-  binding.Arg<ffi::AnyBuffer>().Arg<S32>().Arg<S32>().Arg<S32>().Arg<S32>().Arg<S32>()
-
-XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxshadowPolyCodes, poly_ffi,
-                              JAXSHADOW_FFI_OCCLUDERS(ffi::Ffi::Bind()
-                                                          .Arg<ffi::AnyBuffer>()   // points
-                                                          .Arg<ffi::AnyBuffer>()   // normals
-                                                          .Arg<ffi::AnyBuffer>())  // light
-                                  .Attr<int64_t>("cap")
-                                  .Attr<int64_t>("threads")
-                                  .Ret<S32>()
-                                  .Ret<S32>()
-                                  .Ret<S32>());
-
-XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxshadowHardVisibility, hard_ffi,
-                              JAXSHADOW_FFI_OCCLUDERS(ffi::Ffi::Bind()
-                                                          .Arg<ffi::AnyBuffer>()   // points
-                                                          .Arg<ffi::AnyBuffer>())  // x
-                                  .Attr<int64_t>("is_point")
-                                  .Attr<int64_t>("threads")
-                                  .Ret<S32>());
-
-XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxshadowSegmentCandidates, segment_ffi,
-                              JAXSHADOW_FFI_OCCLUDERS(ffi::Ffi::Bind()
-                                                          .Arg<ffi::AnyBuffer>()   // points
-                                                          .Arg<ffi::AnyBuffer>())  // ends (2, 3)
-                                  .Attr<int64_t>("cap")
-                                  .Attr<int64_t>("threads")
-                                  .Ret<S32>()
-                                  .Ret<S32>());
-#endif  // JAXSHADOW_FFI
 
 namespace {
 
