@@ -49,7 +49,7 @@ from . import abi as _abi
 ZERO, LIT, UMBRA, PENUMBRA = 0, 1, 2, 3
 CLASS_NAMES = ("zero", "lit", "umbra", "penumbra")
 CODE_WIDTH = _abi.CODE_WIDTH
-# Endpoint kinds (`csrc/shadowc.cc`).
+# Endpoint kinds (`csrc/engine/geometry.h`); FFI target names (`csrc/shadowc.cc`, `ffi_handlers`).
 K_UNUSED, K_LIGHT, K_HORIZON, K_PROJECTED, K_EMITTER_CROSS, K_PLANES = -1, 0, 1, 2, 3, 4
 FFI_TARGET = "jaxshadow_poly_codes"
 FFI_HARD = "jaxshadow_hard_visibility"
@@ -159,7 +159,7 @@ class HostOccluders:
 
     def __post_init__(self) -> None:
         t = self.topology
-        # Contiguous int32 copies, alive as long as this object (the engine reads their pointers).
+        # Contiguous int32 copies, made once for every call that reads these occluders.
         self._ints = [np.ascontiguousarray(a, np.int32) for a in (t.face_solid, t.face_closed, t.solid_faces,
                                                                  t.solid_edge_off, t.solid_edges)]
 
