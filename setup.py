@@ -1,9 +1,13 @@
 """Build jaxshadow's compiled parts; everything else is in pyproject.toml.
 
-- `jaxshadow._shadows._shadowc` (C++17, `csrc/shadowc.cc` and `csrc/engine/*.h`): the host shadow engine (occluder
-  hierarchy, receiver classification, the combinatorics of the visible region's boundary), loaded
-  with ctypes and, where jaxlib's XLA FFI headers are found at build time (`jax.ffi.include_dir()`;
-  jaxlib is a build requirement), also registered as an XLA FFI target.
+- `jaxshadow._shadows._shadowc` (C++17, `csrc/shadowc.cc`, `csrc/abi.h` and `csrc/engine/*.h`): the
+  host shadow engine (occluder hierarchy, receiver classification, the combinatorics of the
+  visible region's boundary) as one CPython extension module, with its host entry points and,
+  where jaxlib's XLA FFI headers are found at build time, its XLA FFI handlers. The jaxlib whose
+  headers were used is recorded in the module (`JAXLIB_VERSION`); at run time the handlers are
+  used only under that same jaxlib (`jaxshadow/_shadows/binding.py`). `tools/setup.sh` builds
+  against the environment's own jaxlib (`--no-build-isolation`) when pip's isolated build picked
+  another.
 
 It is optional: without a compiler the package installs without it and uses its JAX (device)
 kernels, which are exact but slower and need memory that grows with the square of the occluder
@@ -17,27 +21,30 @@ import os
 from setuptools import Extension, setup
 
 
-def _ffi_include() -> list[str]:
+def _jaxlib() -> tuple[list[str], list[tuple[str, str]]]:
+    """The XLA FFI include directory and macros (the FFI switch, jaxlib's version), if jaxlib has them."""
     try:
         import jaxlib
+        from jaxlib import version
     except ImportError:
-        return []
+        return [], []
     inc = os.path.join(os.path.dirname(jaxlib.__file__), "include")
-    return [inc] if os.path.exists(os.path.join(inc, "xla", "ffi", "api", "ffi.h")) else []
+    if not os.path.exists(os.path.join(inc, "xla", "ffi", "api", "ffi.h")):
+        return [], []
+    return [inc], [("JAXSHADOW_FFI", "1"), ("JAXSHADOW_JAXLIB_VERSION", f'"{version.__version__}"')]
 
 
-_FLAGS = ["-O2", "-ffp-contract=off", "-fno-fast-math"]
-_INC = _ffi_include()
+_INC, _MACROS = _jaxlib()
 
 setup(
     ext_modules=[
         Extension(
             "jaxshadow._shadows._shadowc",
             sources=["csrc/shadowc.cc"],
-            depends=sorted(glob.glob("csrc/engine/*.h")),
+            depends=sorted(glob.glob("csrc/*.h") + glob.glob("csrc/engine/*.h")),
             include_dirs=_INC,
-            define_macros=[("JAXSHADOW_FFI", "1")] if _INC else [],
-            extra_compile_args=["-std=c++17", *_FLAGS, "-O3"],
+            define_macros=_MACROS,
+            extra_compile_args=["-std=c++17", "-O3", "-ffp-contract=off", "-fno-fast-math"],
             language="c++",
             optional=True,
         ),

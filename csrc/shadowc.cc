@@ -40,64 +40,50 @@
 // Point and directional lights: hard-shadow ray tests against the hierarchy. Segment lights: the
 // occluders that meet the light triangle (p, a, b) (Poulin §4.2), for the device kernel to clip.
 //
-// Build: plain C++17, no dependencies; IEEE arithmetic without contraction into fused
-// multiply-adds (setup.py passes -ffp-contract=off), so that the decisions round as NumPy's do.
-// With JAXSHADOW_FFI (setup.py defines it when jaxlib's XLA FFI headers are found) the polygon
-// combinatorics are also exported as an XLA FFI handler, for programs that compute them inside a
-// compiled computation (traced receivers, light fits); otherwise only the C entry points exist
+// The binding: one CPython extension module, `jaxshadow._shadows._shadowc` (setup.py), which
+// `jaxshadow/_shadows/abi.py` loads and `binding.py` wraps:
+//   poly_plan, hard_plan, segment_plan   the host entry points: C-contiguous buffers in (NumPy
+//                                        arrays), results as `Owned` buffers (the engine's own
+//                                        allocations, freed with the last array that views them);
+//   ffi_handlers()                       the XLA FFI handlers (`ffi.h`) as PyCapsules, for traced
+//                                        programs;
+//   ABI_VERSION, CODE_WIDTH              from `abi.h`, the one definition of the interface;
+//   HAS_FFI, JAXLIB_VERSION              whether the FFI handlers were compiled, and the jaxlib
+//                                        whose headers they were compiled against.
+// Both bindings read the occluders through one struct and dispatch on the float type once
+// (`inputs.h`); only this file includes Python's headers. Plain C++17; IEEE arithmetic without
+// contraction into fused multiply-adds (setup.py passes -ffp-contract=off), so that the decisions
+// round as NumPy's do. With JAXSHADOW_FFI (setup.py defines it, and JAXSHADOW_JAXLIB_VERSION,
+// when jaxlib's XLA FFI headers are found) the handlers are compiled; otherwise `ffi_handlers()`
+// is empty.
 
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 
+#include <initializer_list>
 #include <type_traits>
 
-#include "engine/driver.h"
+#include "abi.h"
+#include "inputs.h"
+#ifdef JAXSHADOW_FFI
+#include "ffi.h"
+#endif
 
-using namespace jaxshadow_engine;  // NOLINT: this file only binds the engine to C and XLA
-
-// ----------------------------------------------------------------------------------------------
-// C entry points (ctypes)
-// ----------------------------------------------------------------------------------------------
-
-#define JS_OCC_ARGS                                                                                           \
-  int64_t M, int64_t Ko, const void *faces, const int32_t *face_solid, const int32_t *face_closed, int64_t S, \
-      const int32_t *solid_faces, const int32_t *solid_edge_off, const int32_t *solid_edges
-#define JS_OCC_PARAMS JS_OCC_ARGS
+using namespace jaxshadow_binding;  // NOLINT: this file only binds the engine to Python
+using jaxshadow_abi::kAbiVersion;
 
 namespace {
 
-// Every decision is made in double precision, whatever the inputs' dtype: float32 inputs are
-// exact in double, and the combinatorics (which occluders, which pieces of which edges) are then
-// those of the exact float32 geometry, resolved far below float32's rounding (a receiver 1e-6
-// under a light, an occluder 5e-7 under it: float32 planes through the receiver differ by less
-// than its own collinearity tolerance). Only the points the JAX side integrates are float32.
 template <class T>
-const double* as_double(const void* x, size_t n, std::vector<double>& store) {
-  if (std::is_same<T, double>::value) return static_cast<const double*>(x);
-  const T* t = static_cast<const T*>(x);
-  store.assign(t, t + n);
-  return store.data();
-}
-
-struct Inputs {
-  std::vector<double> p, n, e, f;
-};
-
-template <class T>
-Occluders<double> occ_double(int64_t K, JS_OCC_PARAMS, Inputs& in) {
-  return make_occ<double>(K, M, Ko, as_double<T>(faces, size_t(M * Ko * 3), in.f), face_solid, face_closed, S,
-                          solid_faces, solid_edge_off, solid_edges);
-}
-
-template <class T>
-int poly_plan_any(int64_t N, const void* P, const void* Nrm, int64_t K, const void* E, JS_OCC_PARAMS, int threads,
-                  int32_t* cls, int32_t* stats, int64_t* offsets, int32_t** runs, void** points, int64_t* nruns,
-                  double* lambert) {
-  Inputs in;
-  auto occ = occ_double<T>(K, M, Ko, faces, face_solid, face_closed, S, solid_faces, solid_edge_off, solid_edges, in);
+__attribute__((noinline)) int poly_plan_any(int64_t N, const void* P, const void* Nrm, int64_t K, const void* E,
+                                            const OccluderInputs& o, int threads, int32_t* cls, int32_t* stats,
+                                            int64_t* offsets, int32_t** runs, void** points, int64_t* nruns,
+                                            double* lambert) {
+  std::vector<double> sf, sp, sn, se;
+  const Occluders<double> occ = occ_double<T>(K, o, sf);
   double* pts = nullptr;
-  int rc = poly_plan<double>(N, as_double<T>(P, size_t(3 * N), in.p), as_double<T>(Nrm, size_t(3 * N), in.n), K,
-                             as_double<T>(E, size_t(3 * K), in.e), occ, threads, cls, stats, offsets, runs,
+  int rc = poly_plan<double>(N, as_double<T>(P, size_t(3 * N), sp), as_double<T>(Nrm, size_t(3 * N), sn), K,
+                             as_double<T>(E, size_t(3 * K), se), occ, threads, cls, stats, offsets, runs,
                              points ? &pts : nullptr, nruns, lambert);
   if (points && pts) {
     if (std::is_same<T, double>::value) {
@@ -117,304 +103,401 @@ int poly_plan_any(int64_t N, const void* P, const void* Nrm, int64_t K, const vo
   return rc;
 }
 
+// ----------------------------------------------------------------------------------------------
+// Python: results that own their memory, inputs read through the buffer protocol
+// ----------------------------------------------------------------------------------------------
+
+// A C-contiguous array the engine allocated (malloc): exposed with the buffer protocol (format,
+// shape), freed when the last view of it goes (`np.asarray(owned)` views it without a copy).
+struct Owned {
+  PyObject_HEAD
+  void* data;
+  int ndim;
+  Py_ssize_t itemsize;
+  Py_ssize_t shape[3];
+  Py_ssize_t strides[3];
+  char format[2];
+};
+
+PyTypeObject OwnedType = {PyVarObject_HEAD_INIT(nullptr, 0)};
+
+int owned_getbuffer(PyObject* self, Py_buffer* view, int flags) {
+  static double empty[1];  // a valid address for arrays of no elements
+  auto* o = reinterpret_cast<Owned*>(self);
+  Py_ssize_t n = 1;
+  for (int d = 0; d < o->ndim; d++) n *= o->shape[d];
+  view->buf = o->data ? o->data : static_cast<void*>(empty);
+  view->obj = self;
+  Py_INCREF(self);
+  view->len = n * o->itemsize;
+  view->readonly = 0;
+  view->itemsize = o->itemsize;
+  view->format = (flags & PyBUF_FORMAT) ? o->format : nullptr;
+  view->ndim = o->ndim;
+  view->shape = (flags & PyBUF_ND) ? o->shape : nullptr;
+  view->strides = ((flags & PyBUF_STRIDES) == PyBUF_STRIDES) ? o->strides : nullptr;
+  view->suboffsets = nullptr;
+  view->internal = nullptr;
+  return 0;
+}
+
+void owned_dealloc(PyObject* self) {
+  std::free(reinterpret_cast<Owned*>(self)->data);
+  Py_TYPE(self)->tp_free(self);
+}
+
+PyBufferProcs owned_buffer_procs = {owned_getbuffer, nullptr};
+
+// Takes ownership of `data` (freed here if the object cannot be made).
+PyObject* owned(void* data, char format, Py_ssize_t itemsize, std::initializer_list<int64_t> shape) {
+  Owned* o = PyObject_New(Owned, &OwnedType);
+  if (!o) {
+    std::free(data);
+    return nullptr;
+  }
+  o->data = data;
+  o->ndim = int(shape.size());
+  o->itemsize = itemsize;
+  o->format[0] = format;
+  o->format[1] = 0;
+  int d = 0;
+  for (int64_t s : shape) o->shape[d++] = Py_ssize_t(s);
+  Py_ssize_t stride = itemsize;
+  for (d = o->ndim - 1; d >= 0; d--) {
+    o->strides[d] = stride;
+    stride *= o->shape[d];
+  }
+  return reinterpret_cast<PyObject*>(o);
+}
+
+// A zeroed Owned array (the entry points' fixed-size outputs), with its data pointer.
+template <class X>
+PyObject* zeros(char format, std::initializer_list<int64_t> shape, X** data) {
+  int64_t n = 1;
+  for (int64_t s : shape) n *= s;
+  *data = static_cast<X*>(std::calloc(size_t(std::max<int64_t>(n, 1)), sizeof(X)));
+  if (!*data) return PyErr_NoMemory();
+  return owned(*data, format, Py_ssize_t(sizeof(X)), shape);
+}
+
+// An input buffer, held for the duration of a call.
+struct View {
+  Py_buffer b{};
+  bool held = false;
+  View() = default;
+  View(const View&) = delete;
+  View& operator=(const View&) = delete;
+  ~View() {
+    if (held) PyBuffer_Release(&b);
+  }
+  int64_t size() const { return b.itemsize ? int64_t(b.len / b.itemsize) : 0; }
+};
+
+// 'd' float64, 'f' float32, 'i' int32, 0 anything else (native byte order only).
+char kind_of(const Py_buffer& b) {
+  const char* f = b.format ? b.format : "B";
+  if (*f == '<' || *f == '=' || *f == '@') f++;
+  if (f[0] == 0 || f[1] != 0) return 0;
+  if (*f == 'd' && b.itemsize == 8) return 'd';
+  if (*f == 'f' && b.itemsize == 4) return 'f';
+  if ((*f == 'i' || *f == 'l') && b.itemsize == 4) return 'i';
+  return 0;
+}
+
+bool get(PyObject* obj, View& v, const char* what, char kind) {
+  if (PyObject_GetBuffer(obj, &v.b, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) {
+    PyErr_Format(PyExc_TypeError, "jaxshadow engine: %s is not a C-contiguous array", what);
+    return false;
+  }
+  v.held = true;
+  if (kind_of(v.b) != kind) {
+    PyErr_Format(PyExc_TypeError, "jaxshadow engine: %s must be %s", what,
+                 kind == 'i' ? "int32" : kind == 'd' ? "float64 (as the occluders)" : "float32 (as the occluders)");
+    return false;
+  }
+  return true;
+}
+
+// A float array of points (rows of 3) in the call's float type `dt`.
+bool rows3(PyObject* obj, View& v, const char* what, char dt, int64_t* rows) {
+  if (!get(obj, v, what, dt)) return false;
+  if (v.size() % 3) {
+    PyErr_Format(PyExc_ValueError, "jaxshadow engine: %s must have rows of 3 coordinates", what);
+    return false;
+  }
+  *rows = v.size() / 3;
+  return true;
+}
+
+// The occluders argument: (faces (M, Ko, 3), face_solid (M,), face_closed (M,), solid_faces
+// (S, 2), solid_edge_off (S + 1,), solid_edges (E, 4)); faces set the call's float type.
+struct OccluderViews {
+  View faces, ints[5];
+  OccluderInputs in;
+};
+
+bool parse_occluders(PyObject* obj, OccluderViews& ov, char* dt) {
+  if (!PyTuple_Check(obj) || PyTuple_GET_SIZE(obj) != 6) {
+    PyErr_SetString(PyExc_TypeError, "jaxshadow engine: occluders must be a tuple (faces (M, Ko, 3), face_solid (M,), "
+                                     "face_closed (M,), solid_faces (S, 2), solid_edge_off (S + 1,), solid_edges (E, 4))");
+    return false;
+  }
+  if (PyObject_GetBuffer(PyTuple_GET_ITEM(obj, 0), &ov.faces.b, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) return false;
+  ov.faces.held = true;
+  *dt = kind_of(ov.faces.b);
+  if ((*dt != 'd' && *dt != 'f') || ov.faces.b.ndim != 3 || ov.faces.b.shape[2] != 3) {
+    PyErr_SetString(PyExc_TypeError, "jaxshadow engine: faces must be float32 or float64 of shape (M, Ko, 3)");
+    return false;
+  }
+  static const char* names[5] = {"face_solid", "face_closed", "solid_faces", "solid_edge_off", "solid_edges"};
+  for (int k = 0; k < 5; k++)
+    if (!get(PyTuple_GET_ITEM(obj, k + 1), ov.ints[k], names[k], 'i')) return false;
+  OccluderInputs& in = ov.in;
+  in.M = ov.faces.b.shape[0];
+  in.Ko = ov.faces.b.shape[1];
+  in.S = ov.ints[2].size() / 2;
+  if (ov.ints[0].size() != in.M || ov.ints[1].size() != in.M || ov.ints[2].size() != 2 * in.S ||
+      ov.ints[3].size() != in.S + 1 || ov.ints[4].size() % 4) {
+    PyErr_SetString(PyExc_ValueError, "jaxshadow engine: the occluder topology's sizes do not match the faces");
+    return false;
+  }
+  in.faces = ov.faces.b.buf;
+  const int32_t* p[5];
+  for (int k = 0; k < 5; k++) p[k] = static_cast<const int32_t*>(ov.ints[k].b.buf);
+  in.face_solid = p[0];
+  in.face_closed = p[1];
+  in.solid_faces = p[2];
+  in.solid_edge_off = p[3];
+  in.solid_edges = p[4];
+  return true;
+}
+
+Py_ssize_t float_size(char dt) { return dt == 'd' ? 8 : 4; }
+
+const char kPolyPlanDoc[] =
+    "poly_plan(points, normals, light, occluders, threads, codes, decoded, lambert)\n--\n\n"
+    "The polygon plan: points, normals (N, 3), light (K, 3) in the faces' float type. Returns "
+    "(classes (N,) int32, stats (N, 2) int32, offsets (N + 1,) int64, runs (R, 2, CODE_WIDTH) int32 or "
+    "None, points (R, 2, 3) or None, lambert (N,) float64 or None).";
+
+PyObject* py_poly_plan(PyObject*, PyObject* args) {
+  PyObject *po, *no, *lo, *oo;
+  int threads, codes, decoded, lambert;
+  if (!PyArg_ParseTuple(args, "OOOOippp:poly_plan", &po, &no, &lo, &oo, &threads, &codes, &decoded, &lambert))
+    return nullptr;
+  OccluderViews ov;
+  View p, n, l;
+  char dt = 0;
+  int64_t N = 0, Nn = 0, K = 0;
+  if (!parse_occluders(oo, ov, &dt) || !rows3(po, p, "points", dt, &N) || !rows3(no, n, "normals", dt, &Nn) ||
+      !rows3(lo, l, "light", dt, &K))
+    return nullptr;
+  if (Nn != N) {
+    PyErr_SetString(PyExc_ValueError, "jaxshadow engine: points and normals differ in length");
+    return nullptr;
+  }
+  int32_t *cls, *stats;
+  int64_t* off;
+  double* lam = nullptr;
+  PyObject* cls_o = zeros('i', {N}, &cls);
+  PyObject* stats_o = cls_o ? zeros('i', {N, 2}, &stats) : nullptr;
+  PyObject* off_o = stats_o ? zeros('q', {N + 1}, &off) : nullptr;
+  PyObject* lam_o = !off_o ? nullptr : lambert ? zeros('d', {N}, &lam) : (Py_INCREF(Py_None), Py_None);
+  if (!lam_o) {
+    Py_XDECREF(cls_o);
+    Py_XDECREF(stats_o);
+    Py_XDECREF(off_o);
+    return nullptr;
+  }
+  int32_t* runs = nullptr;
+  void* pts = nullptr;
+  int64_t nr = 0;
+  int rc;
+  Py_BEGIN_ALLOW_THREADS
+  rc = by_float(dt == 'd', [&](auto zero) {
+    using T = decltype(zero);
+    return poly_plan_any<T>(N, p.b.buf, n.b.buf, K, l.b.buf, ov.in, threads, cls, stats, off, codes ? &runs : nullptr,
+                            decoded ? &pts : nullptr, &nr, lam);
+  });
+  Py_END_ALLOW_THREADS
+  PyObject* runs_o = nullptr;
+  PyObject* pts_o = nullptr;
+  if (rc) {
+    std::free(runs);
+    std::free(pts);
+    if (rc == 2)
+      PyErr_SetString(PyExc_MemoryError, "jaxshadow shadow engine: out of memory for the boundary codes");
+    else
+      PyErr_SetString(PyExc_ValueError, "jaxshadow shadow engine: a light has more than 64 vertices");
+  } else {
+    runs_o = runs ? owned(runs, 'i', 4, {nr, 2, jaxshadow_abi::kCodeWidth}) : (Py_INCREF(Py_None), Py_None);
+    pts_o = !runs_o ? (std::free(pts), nullptr) : pts ? owned(pts, dt, float_size(dt), {nr, 2, 3}) : (Py_INCREF(Py_None), Py_None);
+  }
+  if (!runs_o || !pts_o) {
+    Py_XDECREF(runs_o);
+    Py_DECREF(cls_o);
+    Py_DECREF(stats_o);
+    Py_DECREF(off_o);
+    Py_DECREF(lam_o);
+    return nullptr;
+  }
+  return Py_BuildValue("(NNNNNN)", cls_o, stats_o, off_o, runs_o, pts_o, lam_o);
+}
+
+const char kHardPlanDoc[] =
+    "hard_plan(points, x, is_point, occluders, threads)\n--\n\n"
+    "Hard-shadow visibility (N,) bool of the point light at x (is_point) or the directional light "
+    "travelling along x; points (N, 3), x (3,) in the faces' float type.";
+
+PyObject* py_hard_plan(PyObject*, PyObject* args) {
+  PyObject *po, *xo, *oo;
+  int is_point, threads;
+  if (!PyArg_ParseTuple(args, "OOpOi:hard_plan", &po, &xo, &is_point, &oo, &threads)) return nullptr;
+  OccluderViews ov;
+  View p, x;
+  char dt = 0;
+  int64_t N = 0, one = 0;
+  if (!parse_occluders(oo, ov, &dt) || !rows3(po, p, "points", dt, &N) || !rows3(xo, x, "x", dt, &one)) return nullptr;
+  if (one != 1) {
+    PyErr_SetString(PyExc_ValueError, "jaxshadow engine: x must have 3 coordinates");
+    return nullptr;
+  }
+  uint8_t* vis;
+  PyObject* vis_o = zeros('?', {N}, &vis);
+  if (!vis_o) return nullptr;
+  Py_BEGIN_ALLOW_THREADS
+  by_float(dt == 'd', [&](auto zero) {
+    using T = decltype(zero);
+    std::vector<double> sf, sp, sx;
+    const Occluders<double> occ = occ_double<T>(0, ov.in, sf);
+    return hard_plan<double>(N, as_double<T>(p.b.buf, size_t(3 * N), sp), as_double<T>(x.b.buf, 3, sx), is_point,
+                             occ, threads, vis);
+  });
+  Py_END_ALLOW_THREADS
+  return vis_o;
+}
+
+const char kSegmentPlanDoc[] =
+    "segment_plan(points, a, b, occluders, threads)\n--\n\n"
+    "The faces that may block part of the segment light a -> b seen from each point: "
+    "(offsets (N + 1,) int64, faces (C,) int32).";
+
+PyObject* py_segment_plan(PyObject*, PyObject* args) {
+  PyObject *po, *ao, *bo, *oo;
+  int threads;
+  if (!PyArg_ParseTuple(args, "OOOOi:segment_plan", &po, &ao, &bo, &oo, &threads)) return nullptr;
+  OccluderViews ov;
+  View p, a, b;
+  char dt = 0;
+  int64_t N = 0, na = 0, nb = 0;
+  if (!parse_occluders(oo, ov, &dt) || !rows3(po, p, "points", dt, &N) || !rows3(ao, a, "a", dt, &na) ||
+      !rows3(bo, b, "b", dt, &nb))
+    return nullptr;
+  if (na != 1 || nb != 1) {
+    PyErr_SetString(PyExc_ValueError, "jaxshadow engine: a and b must have 3 coordinates");
+    return nullptr;
+  }
+  int64_t* off;
+  PyObject* off_o = zeros('q', {N + 1}, &off);
+  if (!off_o) return nullptr;
+  int32_t* faces = nullptr;
+  int rc;
+  Py_BEGIN_ALLOW_THREADS
+  rc = by_float(dt == 'd', [&](auto zero) {
+    using T = decltype(zero);
+    std::vector<double> sf, sp, sa, sb;
+    const Occluders<double> occ = occ_double<T>(0, ov.in, sf);
+    return segment_plan<double>(N, as_double<T>(p.b.buf, size_t(3 * N), sp), as_double<T>(a.b.buf, 3, sa),
+                                as_double<T>(b.b.buf, 3, sb), occ, threads, off, &faces);
+  });
+  Py_END_ALLOW_THREADS
+  if (rc) {
+    std::free(faces);
+    Py_DECREF(off_o);
+    PyErr_SetString(PyExc_MemoryError, "jaxshadow shadow engine: out of memory for the segment candidates");
+    return nullptr;
+  }
+  PyObject* faces_o = owned(faces, 'i', 4, {off[N]});
+  if (!faces_o) {
+    Py_DECREF(off_o);
+    return nullptr;
+  }
+  return Py_BuildValue("(NN)", off_o, faces_o);
+}
+
 }  // namespace
-
-extern "C" {
-
-int jaxshadow_shadowc_abi(void) { return 2; }
-
-void jaxshadow_free(void* p) { std::free(p); }
-
-// `lambert` (N doubles, or null): each receiver's sum of Lambert's edge terms over its boundary
-// (driver.h, lambert_edge).
-int jaxshadow_poly_plan(int is_f64, int64_t N, const void* P, const void* Nrm, int64_t K, const void* E, JS_OCC_ARGS,
-                        int threads, int32_t* cls, int32_t* stats, int64_t* offsets, int32_t** runs, void** points,
-                        int64_t* nruns, double* lambert) {
-  auto fn = is_f64 ? poly_plan_any<double> : poly_plan_any<float>;
-  return fn(N, P, Nrm, K, E, M, Ko, faces, face_solid, face_closed, S, solid_faces, solid_edge_off, solid_edges,
-            threads, cls, stats, offsets, runs, points, nruns, lambert);
-}
-
-int jaxshadow_poly_fixed(int is_f64, int64_t N, const void* P, const void* Nrm, int64_t K, const void* E, JS_OCC_ARGS,
-                         int threads, int64_t cap, int32_t* cls, int32_t* counts, int32_t* runs) {
-  Inputs in;
-  auto occ = is_f64 ? occ_double<double>(K, M, Ko, faces, face_solid, face_closed, S, solid_faces, solid_edge_off,
-                                         solid_edges, in)
-                    : occ_double<float>(K, M, Ko, faces, face_solid, face_closed, S, solid_faces, solid_edge_off,
-                                        solid_edges, in);
-  auto cv = is_f64 ? as_double<double> : as_double<float>;
-  return poly_fixed<double>(N, cv(P, size_t(3 * N), in.p), cv(Nrm, size_t(3 * N), in.n), K, cv(E, size_t(3 * K), in.e),
-                            occ, threads, cap, cls, counts, runs);
-}
-
-int jaxshadow_hard_plan(int is_f64, int64_t N, const void* P, const void* X, int is_point, int64_t K_unused,
-                        JS_OCC_ARGS, int threads, uint8_t* visible) {
-  (void)K_unused;
-  Inputs in;
-  auto occ = is_f64 ? occ_double<double>(0, M, Ko, faces, face_solid, face_closed, S, solid_faces, solid_edge_off,
-                                         solid_edges, in)
-                    : occ_double<float>(0, M, Ko, faces, face_solid, face_closed, S, solid_faces, solid_edge_off,
-                                        solid_edges, in);
-  auto cv = is_f64 ? as_double<double> : as_double<float>;
-  return hard_plan<double>(N, cv(P, size_t(3 * N), in.p), cv(X, 3, in.e), is_point, occ, threads, visible);
-}
-
-int jaxshadow_segment_plan(int is_f64, int64_t N, const void* P, const void* A, const void* B, JS_OCC_ARGS,
-                           int threads, int64_t* offsets, int32_t** faces_out) {
-  Inputs in;
-  auto occ = is_f64 ? occ_double<double>(0, M, Ko, faces, face_solid, face_closed, S, solid_faces, solid_edge_off,
-                                         solid_edges, in)
-                    : occ_double<float>(0, M, Ko, faces, face_solid, face_closed, S, solid_faces, solid_edge_off,
-                                        solid_edges, in);
-  auto cv = is_f64 ? as_double<double> : as_double<float>;
-  std::vector<double> b;
-  return segment_plan<double>(N, cv(P, size_t(3 * N), in.p), cv(A, 3, in.e), cv(B, 3, b), occ, threads, offsets,
-                              faces_out);
-}
-
-}  // extern "C"
-
-// ----------------------------------------------------------------------------------------------
-// XLA FFI handler: the polygon combinatorics inside a compiled computation
-// ----------------------------------------------------------------------------------------------
-#ifdef JAXSHADOW_FFI
-#include "xla/ffi/api/ffi.h"
-
-namespace ffi = xla::ffi;
 
 namespace {
 
-// A handler's occluder inputs, batched like its points: faces (..., M, Ko, 3), converted to double
-// once, and the topology arrays; `at(b)` is batch b's Occluders (light vertices K before the faces).
-template <class T>
-struct FfiOccluders {
-  int64_t K, M, Ko, S, NE;
-  std::vector<double> store;
-  const double* F;
-  const int32_t *face_solid, *face_closed, *solid_faces, *solid_edge_off, *solid_edges;
-  FfiOccluders(int64_t K_, int64_t B, size_t nb, ffi::AnyBuffer faces, ffi::Buffer<ffi::S32> fsolid,
-               ffi::Buffer<ffi::S32> fclosed, ffi::Buffer<ffi::S32> sfaces, ffi::Buffer<ffi::S32> soff,
-               ffi::Buffer<ffi::S32> sedges)
-      : K(K_) {
-    auto fd = faces.dimensions();
-    M = fd[nb];
-    Ko = fd[nb + 1];
-    auto sd = sfaces.dimensions();
-    S = sd[sd.size() - 2];
-    auto ed = sedges.dimensions();
-    NE = ed[ed.size() - 2];
-    F = as_double<T>(faces.untyped_data(), size_t(B * M * Ko * 3), store);
-    face_solid = fsolid.typed_data();
-    face_closed = fclosed.typed_data();
-    solid_faces = sfaces.typed_data();
-    solid_edge_off = soff.typed_data();
-    solid_edges = sedges.typed_data();
+// {target name: PyCapsule} of the XLA FFI handlers (empty without JAXSHADOW_FFI).
+PyObject* py_ffi_handlers(PyObject*, PyObject*) {
+  PyObject* d = PyDict_New();
+  if (!d) return nullptr;
+#ifdef JAXSHADOW_FFI
+  const std::pair<const char*, void*> handlers[] = {
+      {"jaxshadow_poly_codes", reinterpret_cast<void*>(JaxshadowPolyCodes)},
+      {"jaxshadow_hard_visibility", reinterpret_cast<void*>(JaxshadowHardVisibility)},
+      {"jaxshadow_segment_candidates", reinterpret_cast<void*>(JaxshadowSegmentCandidates)},
+  };
+  for (const auto& h : handlers) {
+    PyObject* cap = PyCapsule_New(h.second, nullptr, nullptr);
+    if (!cap || PyDict_SetItemString(d, h.first, cap) < 0) {
+      Py_XDECREF(cap);
+      Py_DECREF(d);
+      return nullptr;
+    }
+    Py_DECREF(cap);
   }
-  Occluders<double> at(int64_t b) const {
-    return make_occ<double>(K, M, Ko, F + b * M * Ko * 3, face_solid + b * M, face_closed + b * M, S,
-                            solid_faces + b * 2 * S, solid_edge_off + b * (S + 1), solid_edges + b * 4 * NE);
-  }
+#endif
+  return d;
+}
+
+PyMethodDef shadowc_methods[] = {
+    {"poly_plan", py_poly_plan, METH_VARARGS, kPolyPlanDoc},
+    {"hard_plan", py_hard_plan, METH_VARARGS, kHardPlanDoc},
+    {"segment_plan", py_segment_plan, METH_VARARGS, kSegmentPlanDoc},
+    {"ffi_handlers", py_ffi_handlers, METH_NOARGS,
+     "ffi_handlers()\n--\n\n{XLA FFI target name: PyCapsule} of the engine's handlers (empty when built without them)."},
+    {nullptr, nullptr, 0, nullptr},
 };
 
-// Inputs with a common leading batch shape (vmap_method="broadcast_all"): points (..., N, 3),
-// normals (..., N, 3), light (..., K, 3), faces (..., M, Ko, 3), and the occluder topology
-// (int32, batched alike). Outputs: classes (..., N), counts (..., N), runs (..., N, cap, 2, 7).
-template <class T>
-ffi::Error poly_ffi_typed(ffi::AnyBuffer points, ffi::AnyBuffer normals, ffi::AnyBuffer light, ffi::AnyBuffer faces,
-                          ffi::Buffer<ffi::S32> face_solid, ffi::Buffer<ffi::S32> face_closed,
-                          ffi::Buffer<ffi::S32> solid_faces, ffi::Buffer<ffi::S32> solid_edge_off,
-                          ffi::Buffer<ffi::S32> solid_edges, int64_t cap, int64_t threads,
-                          ffi::Result<ffi::Buffer<ffi::S32>> cls, ffi::Result<ffi::Buffer<ffi::S32>> counts,
-                          ffi::Result<ffi::Buffer<ffi::S32>> runs) {
-  auto pd = points.dimensions();
-  auto ld_ = light.dimensions();
-  auto fd = faces.dimensions();
-  if (pd.size() < 2 || ld_.size() < 2 || fd.size() < 3) return ffi::Error::InvalidArgument("jaxshadow_poly_codes: bad ranks");
-  const size_t nb = pd.size() - 2;
-  if (ld_.size() != nb + 2 || fd.size() != nb + 3) return ffi::Error::InvalidArgument("jaxshadow_poly_codes: batch ranks differ");
-  int64_t B = 1;
-  for (size_t i = 0; i < nb; i++) B *= pd[i];
-  const int64_t N = pd[nb], K = ld_[nb];
-  const FfiOccluders<T> fo(K, B, nb, faces, face_solid, face_closed, solid_faces, solid_edge_off, solid_edges);
-  std::vector<double> sp, sn, se;
-  const double* P = as_double<T>(points.untyped_data(), size_t(B * N * 3), sp);
-  const double* Nr = as_double<T>(normals.untyped_data(), size_t(B * N * 3), sn);
-  const double* E = as_double<T>(light.untyped_data(), size_t(B * K * 3), se);
-  for (int64_t b = 0; b < B; b++) {
-    auto occ = fo.at(b);
-    int rc = poly_fixed<double>(N, P + b * N * 3, Nr + b * N * 3, K, E + b * K * 3, occ, int(threads), cap,
-                           cls->typed_data() + b * N, counts->typed_data() + b * N, runs->typed_data() + b * N * cap * 14);
-    if (rc) return ffi::Error::InvalidArgument("jaxshadow_poly_codes: light with more than 64 vertices");
-  }
-  return ffi::Error::Success();
-}
-
-ffi::Error poly_ffi(ffi::AnyBuffer points, ffi::AnyBuffer normals, ffi::AnyBuffer light, ffi::AnyBuffer faces,
-                    ffi::Buffer<ffi::S32> face_solid, ffi::Buffer<ffi::S32> face_closed,
-                    ffi::Buffer<ffi::S32> solid_faces, ffi::Buffer<ffi::S32> solid_edge_off,
-                    ffi::Buffer<ffi::S32> solid_edges, int64_t cap, int64_t threads,
-                    ffi::Result<ffi::Buffer<ffi::S32>> cls, ffi::Result<ffi::Buffer<ffi::S32>> counts,
-                    ffi::Result<ffi::Buffer<ffi::S32>> runs) {
-  if (points.element_type() == ffi::F64)
-    return poly_ffi_typed<double>(points, normals, light, faces, face_solid, face_closed, solid_faces, solid_edge_off,
-                                  solid_edges, cap, threads, cls, counts, runs);
-  if (points.element_type() == ffi::F32)
-    return poly_ffi_typed<float>(points, normals, light, faces, face_solid, face_closed, solid_faces, solid_edge_off,
-                                 solid_edges, cap, threads, cls, counts, runs);
-  return ffi::Error::InvalidArgument("jaxshadow_poly_codes: float32 or float64 only");
-}
-
-
-// Hard shadows inside a compiled computation: visible (..., N) int32 (1 visible, 0 blocked) of
-// point lights (is_point = 1: x a position) or directional lights (x the direction of travel).
-template <class T>
-ffi::Error hard_ffi_typed(ffi::AnyBuffer points, ffi::AnyBuffer x, ffi::AnyBuffer faces, ffi::Buffer<ffi::S32> face_solid,
-                          ffi::Buffer<ffi::S32> face_closed, ffi::Buffer<ffi::S32> solid_faces,
-                          ffi::Buffer<ffi::S32> solid_edge_off, ffi::Buffer<ffi::S32> solid_edges, int64_t is_point,
-                          int64_t threads, ffi::Result<ffi::Buffer<ffi::S32>> visible) {
-  auto pd = points.dimensions();
-  auto fd = faces.dimensions();
-  if (pd.size() < 2 || fd.size() < 3) return ffi::Error::InvalidArgument("jaxshadow_hard_visibility: bad ranks");
-  const size_t nb = pd.size() - 2;
-  int64_t B = 1;
-  for (size_t i = 0; i < nb; i++) B *= pd[i];
-  const int64_t N = pd[nb];
-  const FfiOccluders<T> fo(0, B, nb, faces, face_solid, face_closed, solid_faces, solid_edge_off, solid_edges);
-  std::vector<double> sp, sx;
-  const double* P = as_double<T>(points.untyped_data(), size_t(B * N * 3), sp);
-  const double* X = as_double<T>(x.untyped_data(), size_t(B * 3), sx);
-  std::vector<uint8_t> vis(N);
-  for (int64_t b = 0; b < B; b++) {
-    auto occ = fo.at(b);
-    hard_plan<double>(N, P + b * N * 3, X + b * 3, int(is_point), occ, int(threads), vis.data());
-    int32_t* out = visible->typed_data() + b * N;
-    for (int64_t i = 0; i < N; i++) out[i] = vis[i];
-  }
-  return ffi::Error::Success();
-}
-
-ffi::Error hard_ffi(ffi::AnyBuffer points, ffi::AnyBuffer x, ffi::AnyBuffer faces, ffi::Buffer<ffi::S32> face_solid,
-                    ffi::Buffer<ffi::S32> face_closed, ffi::Buffer<ffi::S32> solid_faces,
-                    ffi::Buffer<ffi::S32> solid_edge_off, ffi::Buffer<ffi::S32> solid_edges, int64_t is_point,
-                    int64_t threads, ffi::Result<ffi::Buffer<ffi::S32>> visible) {
-  if (points.element_type() == ffi::F64)
-    return hard_ffi_typed<double>(points, x, faces, face_solid, face_closed, solid_faces, solid_edge_off, solid_edges,
-                                  is_point, threads, visible);
-  if (points.element_type() == ffi::F32)
-    return hard_ffi_typed<float>(points, x, faces, face_solid, face_closed, solid_faces, solid_edge_off, solid_edges,
-                                 is_point, threads, visible);
-  return ffi::Error::InvalidArgument("jaxshadow_hard_visibility: float32 or float64 only");
-}
-
-// Segment-light candidates inside a compiled computation: counts (..., N) and the first `cap`
-// candidate faces of each receiver (..., N, cap), -1 in unused slots.
-template <class T>
-ffi::Error segment_ffi_typed(ffi::AnyBuffer points, ffi::AnyBuffer ends, ffi::AnyBuffer faces,
-                             ffi::Buffer<ffi::S32> face_solid, ffi::Buffer<ffi::S32> face_closed,
-                             ffi::Buffer<ffi::S32> solid_faces, ffi::Buffer<ffi::S32> solid_edge_off,
-                             ffi::Buffer<ffi::S32> solid_edges, int64_t cap, int64_t threads,
-                             ffi::Result<ffi::Buffer<ffi::S32>> counts, ffi::Result<ffi::Buffer<ffi::S32>> cand) {
-  auto pd = points.dimensions();
-  auto fd = faces.dimensions();
-  if (pd.size() < 2 || fd.size() < 3) return ffi::Error::InvalidArgument("jaxshadow_segment_candidates: bad ranks");
-  const size_t nb = pd.size() - 2;
-  int64_t B = 1;
-  for (size_t i = 0; i < nb; i++) B *= pd[i];
-  const int64_t N = pd[nb];
-  const FfiOccluders<T> fo(0, B, nb, faces, face_solid, face_closed, solid_faces, solid_edge_off, solid_edges);
-  std::vector<double> sp, sab;
-  const double* P = as_double<T>(points.untyped_data(), size_t(B * N * 3), sp);
-  const double* AB = as_double<T>(ends.untyped_data(), size_t(B * 6), sab);
-  for (int64_t b = 0; b < B; b++) {
-    auto occ = fo.at(b);
-    BVH bvh = build_bvh(occ);
-    V3<double> a = ld(AB + b * 6), bb = ld(AB + b * 6 + 3);
-    const double* Pb = P + b * N * 3;
-    int32_t* cnt = counts->typed_data() + b * N;
-    int32_t* out = cand->typed_data() + b * N * cap;
-    parallel_for(N, default_threads(int(threads)), [&](int, int64_t s, int64_t e) {
-      std::vector<std::pair<int32_t, int32_t>> scratch;
-      std::vector<int32_t> list;
-      for (int64_t i = s; i < e; i++) {
-        list.clear();
-        segment_candidates(occ, bvh, ld(Pb + 3 * i), a, bb, list, scratch);
-        cnt[i] = int32_t(list.size());
-        for (int64_t k = 0; k < cap; k++) out[i * cap + k] = k < int64_t(list.size()) ? list[k] : -1;
-      }
-    });
-  }
-  return ffi::Error::Success();
-}
-
-ffi::Error segment_ffi(ffi::AnyBuffer points, ffi::AnyBuffer ends, ffi::AnyBuffer faces, ffi::Buffer<ffi::S32> face_solid,
-                       ffi::Buffer<ffi::S32> face_closed, ffi::Buffer<ffi::S32> solid_faces,
-                       ffi::Buffer<ffi::S32> solid_edge_off, ffi::Buffer<ffi::S32> solid_edges, int64_t cap,
-                       int64_t threads, ffi::Result<ffi::Buffer<ffi::S32>> counts,
-                       ffi::Result<ffi::Buffer<ffi::S32>> cand) {
-  if (points.element_type() == ffi::F64)
-    return segment_ffi_typed<double>(points, ends, faces, face_solid, face_closed, solid_faces, solid_edge_off,
-                                     solid_edges, cap, threads, counts, cand);
-  if (points.element_type() == ffi::F32)
-    return segment_ffi_typed<float>(points, ends, faces, face_solid, face_closed, solid_faces, solid_edge_off,
-                                    solid_edges, cap, threads, counts, cand);
-  return ffi::Error::InvalidArgument("jaxshadow_segment_candidates: float32 or float64 only");
-}
+PyModuleDef shadowc_module = {PyModuleDef_HEAD_INIT, "_shadowc",
+                              "jaxshadow's shadow engine: host entry points and XLA FFI handlers (csrc/shadowc.cc).",
+                              -1, shadowc_methods, nullptr, nullptr, nullptr, nullptr};
 
 }  // namespace
 
-XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxshadowPolyCodes, poly_ffi,
-                              ffi::Ffi::Bind()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::Buffer<ffi::S32>>()
-                                  .Arg<ffi::Buffer<ffi::S32>>()
-                                  .Arg<ffi::Buffer<ffi::S32>>()
-                                  .Arg<ffi::Buffer<ffi::S32>>()
-                                  .Arg<ffi::Buffer<ffi::S32>>()
-                                  .Attr<int64_t>("cap")
-                                  .Attr<int64_t>("threads")
-                                  .Ret<ffi::Buffer<ffi::S32>>()
-                                  .Ret<ffi::Buffer<ffi::S32>>()
-                                  .Ret<ffi::Buffer<ffi::S32>>());
-
-XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxshadowHardVisibility, hard_ffi,
-                              ffi::Ffi::Bind()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::Buffer<ffi::S32>>()
-                                  .Arg<ffi::Buffer<ffi::S32>>()
-                                  .Arg<ffi::Buffer<ffi::S32>>()
-                                  .Arg<ffi::Buffer<ffi::S32>>()
-                                  .Arg<ffi::Buffer<ffi::S32>>()
-                                  .Attr<int64_t>("is_point")
-                                  .Attr<int64_t>("threads")
-                                  .Ret<ffi::Buffer<ffi::S32>>());
-
-XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxshadowSegmentCandidates, segment_ffi,
-                              ffi::Ffi::Bind()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::AnyBuffer>()
-                                  .Arg<ffi::Buffer<ffi::S32>>()
-                                  .Arg<ffi::Buffer<ffi::S32>>()
-                                  .Arg<ffi::Buffer<ffi::S32>>()
-                                  .Arg<ffi::Buffer<ffi::S32>>()
-                                  .Arg<ffi::Buffer<ffi::S32>>()
-                                  .Attr<int64_t>("cap")
-                                  .Attr<int64_t>("threads")
-                                  .Ret<ffi::Buffer<ffi::S32>>()
-                                  .Ret<ffi::Buffer<ffi::S32>>());
-
-extern "C" int jaxshadow_has_ffi(void) { return 1; }
+PyMODINIT_FUNC PyInit__shadowc(void) {
+  if (!OwnedType.tp_name) {
+    OwnedType.tp_name = "jaxshadow._shadows._shadowc.Owned";
+    OwnedType.tp_basicsize = sizeof(Owned);
+    OwnedType.tp_flags = Py_TPFLAGS_DEFAULT;
+    OwnedType.tp_dealloc = owned_dealloc;
+    OwnedType.tp_as_buffer = &owned_buffer_procs;
+    OwnedType.tp_doc = "An array the shadow engine allocated, freed with its last view (buffer protocol).";
+  }
+  if (PyType_Ready(&OwnedType) < 0) return nullptr;
+  PyObject* m = PyModule_Create(&shadowc_module);
+  if (!m) return nullptr;
+#ifdef JAXSHADOW_FFI
+  const bool has_ffi = true;
+#ifdef JAXSHADOW_JAXLIB_VERSION
+  PyObject* jaxlib_version = PyUnicode_FromString(JAXSHADOW_JAXLIB_VERSION);
 #else
-extern "C" int jaxshadow_has_ffi(void) { return 0; }
+  PyObject* jaxlib_version = (Py_INCREF(Py_None), Py_None);
 #endif
-
-// An importable (empty) module, so that the package can locate the shared library.
-static struct PyModuleDef shadowc_module = {PyModuleDef_HEAD_INIT, "_shadowc",
-                                            "jaxshadow's shadow engine (ctypes and XLA FFI entry points).", -1,
-                                            nullptr, nullptr, nullptr, nullptr, nullptr};
-PyMODINIT_FUNC PyInit__shadowc(void) { return PyModule_Create(&shadowc_module); }
+#else
+  const bool has_ffi = false;
+  PyObject* jaxlib_version = (Py_INCREF(Py_None), Py_None);
+#endif
+  Py_INCREF(&OwnedType);
+  if (PyModule_AddIntConstant(m, "ABI_VERSION", kAbiVersion) < 0 ||
+      PyModule_AddIntConstant(m, "CODE_WIDTH", jaxshadow_abi::kCodeWidth) < 0 ||
+      PyModule_AddObject(m, "HAS_FFI", PyBool_FromLong(has_ffi)) < 0 || !jaxlib_version ||
+      PyModule_AddObject(m, "JAXLIB_VERSION", jaxlib_version) < 0 ||
+      PyModule_AddObject(m, "Owned", reinterpret_cast<PyObject*>(&OwnedType)) < 0) {
+    Py_DECREF(m);
+    return nullptr;
+  }
+  return m;
+}

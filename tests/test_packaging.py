@@ -44,7 +44,7 @@ def test_optional_solvers_name_their_extra(monkeypatch):
 
 
 _UNBUILT = """
-import json, sys, warnings
+import json, sys, types, warnings
 import numpy as np
 
 class Block:
@@ -52,7 +52,11 @@ class Block:
         if name == "jaxshadow._shadows._shadowc":
             raise ImportError("blocked: the engine is not built")
 
-sys.meta_path.insert(0, Block())
+if sys.argv[1] == "hidden":
+    sys.meta_path.insert(0, Block())
+else:  # a build of an older interface left in place
+    sys.modules["jaxshadow._shadows._shadowc"] = types.SimpleNamespace(
+        ABI_VERSION=2, CODE_WIDTH=7, poly_plan=None, __file__="_shadowc.old.so")
 import jax
 jax.config.update("jax_enable_x64", True)
 import jaxshadow as js
@@ -72,12 +76,13 @@ print(json.dumps({"a": a.tolist(), "b": b.tolist(), "dev": dev.tolist(), "free":
 """
 
 
-def test_unbuilt_engine_falls_back_to_the_device_kernels_with_one_warning():
-    """With the compiled engine hidden, scenes with occluders take the device kernels' values
-    and say so once per process (before, a half-found extension raised AttributeError)."""
+@pytest.mark.parametrize("state", ["hidden", "stale"])
+def test_unbuilt_engine_falls_back_to_the_device_kernels_with_one_warning(state):
+    """With the compiled engine hidden (or a build of another interface version in its place),
+    scenes with occluders take the device kernels' values and say so once per process."""
     import json
 
-    out = subprocess.run([sys.executable, "-c", _UNBUILT], capture_output=True, text=True,
+    out = subprocess.run([sys.executable, "-c", _UNBUILT, state], capture_output=True, text=True,
                          cwd=Path(__file__).resolve().parent.parent)
     assert out.returncode == 0, out.stderr[-3000:]
     r = json.loads(out.stdout.strip().splitlines()[-1])
@@ -86,3 +91,4 @@ def test_unbuilt_engine_falls_back_to_the_device_kernels_with_one_warning():
     assert a[0][0] < 0.9 * free[0][0]  # under the box: shadowed
     assert a[2][0] == free[2][0]  # far away: unoccluded
     assert len(r["warnings"]) == 1 and "not built" in r["warnings"][0]
+    assert ("stale build" in r["warnings"][0]) == (state == "stale")

@@ -22,7 +22,8 @@ LIB="$OUT/_shadowc_asan.so"
 # float-cast-overflow is not part of GCC's "undefined": a NaN or huge double cast to an index.
 PYINC=$("$PY" -c "import sysconfig; print(sysconfig.get_paths()['include'])")
 FFI=$("$PY" -c "import os, jaxlib; d = os.path.join(os.path.dirname(jaxlib.__file__), 'include'); print(d if os.path.exists(os.path.join(d, 'xla/ffi/api/ffi.h')) else '')")
-DEFS=(); [ -n "$FFI" ] && DEFS=(-DJAXSHADOW_FFI=1 -I"$FFI")
+JAXLIB=$("$PY" -c "import jaxlib.version; print(jaxlib.version.__version__)")
+DEFS=(); [ -n "$FFI" ] && DEFS=(-DJAXSHADOW_FFI=1 "-DJAXSHADOW_JAXLIB_VERSION=\"$JAXLIB\"" -I"$FFI")
 # The sanitizer runtimes come with the compiler's libasan / libubsan (Debian: libasan8,
 # libubsan1, installed with g++); install them when the compiler does not find them.
 if [ ! -f "$("$CXX" -print-file-name=libasan.so)" ] && command -v apt-get >/dev/null 2>&1; then
@@ -52,10 +53,13 @@ if "$PY" - >"$OUT/canary.log" 2>&1 <<'EOF'
 import numpy as np
 from jaxshadow._shadows import abi, binding
 lib = binding._lib()
-assert lib._name.endswith("_shadowc_asan.so"), lib._name
+assert lib.__file__.endswith("_shadowc_asan.so"), lib.__file__
 p = np.zeros((1, 3)); n = np.array([[0.0, 0.0, 1.0]]); v = np.array([[0, 0, 1.0], [1, 0, 1], [0, 1, 1]])
-occ = binding.HostOccluders.of(np.array([[[0.1, 0.1, 0.5], [0.3, 0.1, 0.5], [0.1, 0.3, 0.5]]]), None, np.float64)
-abi.poly_plan(lib, p, n, v, [1000, *occ.args()[1:]], 1, True, False)  # 1000 faces claimed, 1 given
+faces = np.array([[[0.1, 0.1, 0.5], [0.3, 0.1, 0.5], [0.1, 0.3, 0.5]]])
+# The sizes agree (the binding checks them), the contents lie: one solid of faces [0, 1000), 1 given.
+i32 = lambda *a: np.array(a, np.int32)
+occ = (faces, i32(0), i32(-1), i32([0, 1000]), i32(0, 0), np.zeros((0, 4), np.int32))
+abi.poly_plan(lib, p, n, v, occ, 1, True, False)
 EOF
 then
   echo "sanitize: the sanitizer did not catch an out-of-bounds read (see $OUT/canary.log)" >&2

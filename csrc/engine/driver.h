@@ -9,6 +9,9 @@
 
 namespace jaxshadow_engine {
 
+using jaxshadow_abi::kCodeWidth;
+using jaxshadow_abi::kRunWidth;
+
 
 // ----------------------------------------------------------------------------------------------
 // Parallel driver
@@ -247,8 +250,8 @@ int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const 
       }
       if (runs_out)
         for (const Run& r : w.runs) {
-          blk.codes.insert(blk.codes.end(), r.s.v, r.s.v + 7);
-          blk.codes.insert(blk.codes.end(), r.e.v, r.e.v + 7);
+          blk.codes.insert(blk.codes.end(), r.s.v, r.s.v + kCodeWidth);
+          blk.codes.insert(blk.codes.end(), r.e.v, r.e.v + kCodeWidth);
         }
       if (lambert) lambert[i] = 0;
       if ((points_out || lambert) && !w.runs.empty()) {
@@ -301,11 +304,11 @@ int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const 
     }
   };
   if (runs_out) {
-    int32_t* runs = static_cast<int32_t*>(std::malloc(sizeof(int32_t) * 14 * std::max<int64_t>(total, 1)));
+    int32_t* runs = static_cast<int32_t*>(std::malloc(sizeof(int32_t) * kRunWidth * std::max<int64_t>(total, 1)));
     if (!runs) return 2;
     for (auto& blocks : per_thread)
       for (auto& blk : blocks)
-        if (!blk.codes.empty()) scatter(blk, runs, blk.codes.data(), 14);
+        if (!blk.codes.empty()) scatter(blk, runs, blk.codes.data(), kRunWidth);
     *runs_out = runs;
   }
   if (points_out) {
@@ -334,14 +337,14 @@ int poly_fixed(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const
       const int32_t c = receiver_class(call, P, Nrm, i, w, err);
       cls[i] = c;
       counts[i] = int32_t(w.runs.size());
-      int32_t* out = runs + i * cap * 14;
+      int32_t* out = runs + i * cap * kRunWidth;
       int64_t m = std::min<int64_t>(cap, int64_t(w.runs.size()));
       for (int64_t k = 0; k < m; k++) {
-        std::memcpy(out + 14 * k, w.runs[k].s.v, 7 * sizeof(int32_t));
-        std::memcpy(out + 14 * k + 7, w.runs[k].e.v, 7 * sizeof(int32_t));
+        std::memcpy(out + kRunWidth * k, w.runs[k].s.v, sizeof(w.runs[k].s.v));
+        std::memcpy(out + kRunWidth * k + kCodeWidth, w.runs[k].e.v, sizeof(w.runs[k].e.v));
       }
       for (int64_t k = m; k < cap; k++)
-        for (int q = 0; q < 14; q++) out[14 * k + q] = (q % 7 == 0) ? kUnused : 0;
+        for (int q = 0; q < kRunWidth; q++) out[kRunWidth * k + q] = (q % kCodeWidth == 0) ? kUnused : 0;
     }
   });
   return err.load();

@@ -2,7 +2,6 @@
 #ifndef JAXSHADOW_SHADOWC_GEOMETRY_H_
 #define JAXSHADOW_SHADOWC_GEOMETRY_H_
 
-#include <Python.h>
 #include <algorithm>
 #include <atomic>
 #include <cmath>
@@ -12,6 +11,8 @@
 #include <limits>
 #include <thread>
 #include <vector>
+
+#include "../abi.h"
 
 namespace jaxshadow_engine {
 
@@ -34,7 +35,7 @@ constexpr double kOnSurface64 = 1.0 / 17592186044416.0;
 
 enum Class : int32_t { kZero = 0, kLit = 1, kUmbra = 2, kPenumbra = 3 };
 
-// Endpoint codes (7 int32 each), decoded by `_shadows.binding.decode_endpoints`.
+// Endpoint codes (kCodeWidth int32 each, `csrc/abi.h`), decoded by `_shadows.binding.decode_endpoints`.
 enum Kind : int32_t {
   kUnused = -1,
   kLightVertex = 0,    // a: light vertex index
@@ -56,7 +57,7 @@ inline bool operator<(const PlaneRef& x, const PlaneRef& y) {
 inline PlaneRef through(int32_t a, int32_t b) { return a < b ? PlaneRef{kThrough, a, b} : PlaneRef{kThrough, b, a}; }
 
 struct Code {
-  int32_t v[7];
+  int32_t v[jaxshadow_abi::kCodeWidth];
 };
 inline Code code_point(int32_t kind, int32_t a, int32_t b = 0) { return Code{{kind, a, b, 0, 0, 0, 0}}; }
 inline Code code_planes(PlaneRef x, PlaneRef y) {

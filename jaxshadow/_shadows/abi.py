@@ -1,88 +1,68 @@
-"""The shadow engine's C ABI (`csrc/shadowc.cc`, ctypes): signatures and the polygon-plan call.
+"""The shadow engine's Python interface (`csrc/shadowc.cc`, one extension module): loading and
+the polygon-plan call.
 
-NumPy and ctypes only (no JAX): `binding` binds the engine through this module, and a
-profiler can drive the compiled library alone, loading this file by path, without importing
-the package (`benchmarks/engine_profile.py` counts the engine's instructions under valgrind,
-where importing JAX alone takes minutes).
+NumPy only (no JAX): `binding` binds the engine through this module, and a profiler can drive
+the compiled module alone, loading this file by path, without importing the package
+(`benchmarks/engine_profile.py` counts the engine's instructions under valgrind, where
+importing JAX alone takes minutes).
+
+The interface is defined once, in `csrc/abi.h`; the module exports it (`ABI_VERSION`,
+`CODE_WIDTH`). `ABI_VERSION` and `CODE_WIDTH` here are the interface this file and `binding`
+speak (`binding.decode_endpoints` reads the code layout of version 3): a module that exports
+others (a stale build) is refused, not misread; `tests/test_binding.py` checks them against the
+header.
 """
 
 from __future__ import annotations
 
-import ctypes
+import importlib.machinery
+import importlib.util
 from typing import Any
 
 import numpy as np
 
-ABI_VERSION = 2
+ABI_VERSION = 3
 CODE_WIDTH = 7
+MODULE = "jaxshadow._shadows._shadowc"
+
+
+def check(mod: Any) -> str | None:
+    """Why the module `mod` cannot be used (None when it can): not an extension module, or another ABI."""
+    version = getattr(mod, "ABI_VERSION", None)
+    if version is None or not hasattr(mod, "poly_plan"):
+        return f"{getattr(mod, '__file__', mod)} is not the engine's extension module"
+    if version != ABI_VERSION or getattr(mod, "CODE_WIDTH", None) != CODE_WIDTH:
+        return (f"{mod.__file__} has ABI version {version} (code width {getattr(mod, 'CODE_WIDTH', None)}), "
+                f"this jaxshadow speaks {ABI_VERSION} ({CODE_WIDTH}): a stale build")
+    return None
 
 
 def load(path: str) -> Any:
-    """The engine library at `path` with its argument types set, or None for another ABI."""
-    lib = ctypes.CDLL(path)
-    if lib.jaxshadow_shadowc_abi() != ABI_VERSION:
-        return None
-    p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
-    occ: list[Any] = [i64, i64, p, p, p, i64, p, p, p]
-    lib.jaxshadow_poly_plan.argtypes = [i32, i64, p, p, i64, p, *occ, i32, p, p, p, p, p, ctypes.POINTER(i64), p]
-    lib.jaxshadow_poly_fixed.argtypes = [i32, i64, p, p, i64, p, *occ, i32, i64, p, p, p]
-    lib.jaxshadow_hard_plan.argtypes = [i32, i64, p, p, i32, i64, *occ, i32, p]
-    lib.jaxshadow_segment_plan.argtypes = [i32, i64, p, p, p, *occ, i32, p, ctypes.POINTER(p)]
-    for f in (lib.jaxshadow_poly_plan, lib.jaxshadow_poly_fixed, lib.jaxshadow_hard_plan, lib.jaxshadow_segment_plan):
-        f.restype = i32
-    lib.jaxshadow_free.argtypes = [p]
-    lib.jaxshadow_free.restype = None
-    return lib
+    """The engine's extension module built at `path` (any file name), or None for another ABI."""
+    loader = importlib.machinery.ExtensionFileLoader(MODULE, path)
+    spec = importlib.util.spec_from_file_location(MODULE, path, loader=loader)
+    assert spec is not None
+    mod = importlib.util.module_from_spec(spec)
+    loader.exec_module(mod)
+    return None if check(mod) else mod
 
 
-def ptr(a: np.ndarray) -> int | None:
-    """The data pointer of a contiguous array (None when it is empty)."""
-    return a.ctypes.data if a.size else None
-
-
-def occluder_args(faces: np.ndarray, ints: list[np.ndarray], n_solids: int) -> list:
-    """The occluder arguments of every entry point: padded faces `(M, Ko, 3)` (contiguous, the
+def occluder_args(faces: np.ndarray, ints: list[np.ndarray], n_solids: int) -> tuple:
+    """The occluders argument of every entry point: padded faces `(M, Ko, 3)` (contiguous, the
     call's float dtype) and the topology's contiguous int32 arrays `face_solid, face_closed,
-    solid_faces, solid_edge_off, solid_edges` (`_mesh.OccluderTopology`)."""
-    m, ko = faces.shape[:2]
-    return [m, ko, ptr(faces), ptr(ints[0]), ptr(ints[1]), n_solids, ptr(ints[2]), ptr(ints[3]), ptr(ints[4])]
+    solid_faces (n_solids, 2), solid_edge_off, solid_edges` (`_core.mesh.OccluderTopology`)."""
+    if ints[2].size != 2 * n_solids:
+        raise ValueError(f"solid_faces has {ints[2].size // 2} solids, not {n_solids}")
+    return (faces, *ints)
 
 
-def take_buffer(lib: Any, buf: ctypes.c_void_p, ctype: Any, shape: tuple) -> np.ndarray | None:
-    """Copy a buffer the engine malloc'd into a NumPy array of `shape` and free it."""
-    if not buf.value:
-        return None
-    n = int(np.prod(shape))
-    arr = np.ctypeslib.as_array(ctypes.cast(buf, ctypes.POINTER(ctype)), shape=(max(n, 1),))[:n].copy()
-    lib.jaxshadow_free(buf)
-    return arr.reshape(shape)
-
-
-def poly_plan(lib: Any, p: np.ndarray, n: np.ndarray, v: np.ndarray, occ_args: list, threads: int, codes: bool,
+def poly_plan(lib: Any, p: np.ndarray, n: np.ndarray, v: np.ndarray, occ_args: tuple, threads: int, codes: bool,
               decoded: bool, lambert: bool = False) -> tuple:
-    """`jaxshadow_poly_plan` on contiguous `p`, `n (N, 3)`, `v (K, 3)` of one float dtype:
-    `(classes (N,), stats (N, 2), offsets (N + 1,), runs (R, 2, 7) or None, points (R, 2, 3) or
-    None, lambert (N,) float64 or None)`; with `lambert`, each receiver's sum of Lambert's edge
-    terms over its boundary (`_polygon.edge_term`, in double; 0 without a boundary). Raises
+    """The engine's polygon plan on contiguous `p`, `n (N, 3)`, `v (K, 3)` of the faces' float
+    dtype: `(classes (N,), stats (N, 2), offsets (N + 1,), runs (R, 2, CODE_WIDTH) or None,
+    points (R, 2, 3) or None, lambert (N,) float64 or None)`, arrays that own the engine's
+    memory (no copy); with `lambert`, each receiver's sum of Lambert's edge terms over its
+    boundary (`_kernels.polygon.edge_term`, in double; 0 without a boundary). Raises
     `MemoryError` / `ValueError` as the engine reports."""
-    dt = p.dtype
-    N, K = p.shape[0], v.shape[0]
-    cls = np.zeros(N, np.int32)
-    stats = np.zeros((N, 2), np.int32)
-    off = np.zeros(N + 1, np.int64)
-    runs, pts = ctypes.c_void_p(), ctypes.c_void_p()
-    nr = ctypes.c_int64()
-    lam = np.zeros(N, np.float64) if lambert else None
-    rc = lib.jaxshadow_poly_plan(int(dt == np.float64), N, ptr(p), ptr(n), K, ptr(v), *occ_args, threads, ptr(cls),
-                                 ptr(stats), ptr(off), ctypes.byref(runs) if codes else None,
-                                 ctypes.byref(pts) if decoded else None, ctypes.byref(nr),
-                                 None if lam is None else ptr(lam))
-    total = nr.value
-    code_arr = take_buffer(lib, runs, ctypes.c_int32, (total, 2, CODE_WIDTH))
-    ctype = ctypes.c_double if dt == np.float64 else ctypes.c_float
-    pt_arr = take_buffer(lib, pts, ctype, (total, 2, 3))
-    if rc == 2:
-        raise MemoryError("jaxshadow shadow engine: out of memory for the boundary codes")
-    if rc:
-        raise ValueError("jaxshadow shadow engine: a light has more than 64 vertices")
-    return cls, stats, off, code_arr, pt_arr, lam
+    out = lib.poly_plan(p, n, v, occ_args, threads, codes, decoded, lambert)
+    return tuple(None if a is None else np.asarray(a) for a in out)

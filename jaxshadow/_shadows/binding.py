@@ -21,8 +21,9 @@ as the device kernel `_clip._boundary_runs` does, with the candidates only. It r
 receiver a list of *runs*, each two endpoint codes of 7 int32 (`decode_endpoints`). Convex solids
 (`_mesh.Mesh`) enter as one region, the cone through their silhouette.
 
-This module binds the engine (ctypes for host-side planning from concrete values; an XLA FFI
-handler for programs that need the codes of traced values, e.g. a light fit) and turns codes into
+This module binds the engine (one extension module, `abi`: host functions for planning from
+concrete values; XLA FFI handlers for programs that need the codes of traced values, e.g. a
+light fit) and turns codes into
 differentiable edges. It never changes a result: a receiver's region, and so its value, is the
 same as the device kernel's with all occluders (tests: 1e-15 agreement), and the hierarchy only
 decides which occluders are looked at.
@@ -30,7 +31,6 @@ decides which occluders are looked at.
 
 from __future__ import annotations
 
-import ctypes
 import functools
 import os
 from dataclasses import dataclass
@@ -49,7 +49,7 @@ from . import abi as _abi
 ZERO, LIT, UMBRA, PENUMBRA = 0, 1, 2, 3
 CLASS_NAMES = ("zero", "lit", "umbra", "penumbra")
 CODE_WIDTH = _abi.CODE_WIDTH
-# Endpoint kinds (`csrc/shadowc.cc`).
+# Endpoint kinds (`csrc/engine/geometry.h`); FFI target names (`csrc/shadowc.cc`, `ffi_handlers`).
 K_UNUSED, K_LIGHT, K_HORIZON, K_PROJECTED, K_EMITTER_CROSS, K_PLANES = -1, 0, 1, 2, 3, 4
 FFI_TARGET = "jaxshadow_poly_codes"
 FFI_HARD = "jaxshadow_hard_visibility"
@@ -62,29 +62,32 @@ FFI_SEGMENT = "jaxshadow_segment_candidates"
 
 
 @functools.cache
-def _lib() -> Any:
-    """The engine's ctypes library, or None where the extension was not built.
+def _loaded() -> tuple[Any, str]:
+    """`(module, "")`, or `(None, why)` where the extension is not built or not loadable.
 
     `JAXSHADOW_ENGINE_LIBRARY`, when set, names another build of the same sources to load instead
     (`tools/sanitize.sh` runs the tests with one built under AddressSanitizer); a path that does
     not load is an error, not a silent fallback to the device kernels."""
     override = os.environ.get("JAXSHADOW_ENGINE_LIBRARY")
     if override:
-        lib = _abi.load(override)
-        if lib is None:
+        try:
+            built = _abi.load(override)
+        except ImportError as e:
+            raise RuntimeError(f"JAXSHADOW_ENGINE_LIBRARY={override}: not loadable ({e})") from e
+        if built is None:
             raise RuntimeError(f"JAXSHADOW_ENGINE_LIBRARY={override}: not the engine's ABI version {_abi.ABI_VERSION}")
-        return lib
+        return built, ""
     try:
         from . import _shadowc as mod  # type: ignore[attr-defined]
-    except ImportError:
-        return None
-    path = getattr(mod, "__file__", None)
-    if not path or not os.path.isfile(path):  # not an extension module (e.g. a namespace package)
-        return None
-    try:
-        return _abi.load(path)
-    except (OSError, AttributeError):  # not loadable, or an older build without the ABI's symbols
-        return None
+    except ImportError as e:
+        return None, f"not built: {e}"
+    why = _abi.check(mod)
+    return (None, why) if why else (mod, "")
+
+
+def _lib() -> Any:
+    """The engine's extension module, or None where it is not built (or is a stale build)."""
+    return _loaded()[0]
 
 
 @functools.cache
@@ -93,8 +96,8 @@ def warn_unbuilt() -> None:
     import warnings
 
     warnings.warn("jaxshadow: the compiled shadow engine (jaxshadow._shadows._shadowc) is not built or "
-                  "not loadable; exact shadows use the device kernels (same values, but time and memory "
-                  "grow with the number of occluders). Reinstall jaxshadow with a C++ compiler.",
+                  f"not loadable ({_loaded()[1]}); exact shadows use the device kernels (same values, but time "
+                  "and memory grow with the number of occluders). Reinstall jaxshadow with a C++ compiler.",
                   RuntimeWarning, stacklevel=4)
 
 
@@ -104,15 +107,39 @@ def engine_available() -> bool:
 
 
 @functools.cache
-def ffi_available() -> bool:
-    """Whether the engine was built with its XLA FFI handler, and the handler is registered."""
+def _ffi_status() -> tuple[bool, str]:
+    """`(True, "")` once the engine's XLA FFI handlers are registered, or `(False, why not)`: the
+    engine is not built, was built without jaxlib's FFI headers, or against another jaxlib than
+    this process runs (the handlers are compiled against one version of XLA's FFI)."""
     lib = _lib()
-    if lib is None or not lib.jaxshadow_has_ffi():
-        return False
-    jax.ffi.register_ffi_target(FFI_TARGET, jax.ffi.pycapsule(lib.JaxshadowPolyCodes), platform="cpu")
-    jax.ffi.register_ffi_target(FFI_HARD, jax.ffi.pycapsule(lib.JaxshadowHardVisibility), platform="cpu")
-    jax.ffi.register_ffi_target(FFI_SEGMENT, jax.ffi.pycapsule(lib.JaxshadowSegmentCandidates), platform="cpu")
-    return True
+    if lib is None:
+        return False, "the engine is not built"
+    if not lib.HAS_FFI:
+        return False, "the engine was built without jaxlib's XLA FFI headers"
+    import jaxlib.version
+
+    if lib.JAXLIB_VERSION != jaxlib.version.__version__:
+        return False, (f"the engine's XLA FFI handlers were compiled against jaxlib {lib.JAXLIB_VERSION}, this "
+                       f"process runs jaxlib {jaxlib.version.__version__}; rebuild jaxshadow in this environment "
+                       "(tools/setup.sh, or pip install --no-build-isolation)")
+    for name, capsule in lib.ffi_handlers().items():
+        jax.ffi.register_ffi_target(name, capsule, platform="cpu")
+    return True, ""
+
+
+def ffi_available() -> bool:
+    """Whether the engine's XLA FFI handlers are usable (built, for this jaxlib) and registered."""
+    return _ffi_status()[0]
+
+
+@functools.cache
+def warn_no_ffi() -> None:
+    """One warning per process that traced programs use the device kernels (engine built, handlers not usable)."""
+    import warnings
+
+    warnings.warn(f"jaxshadow: {_ffi_status()[1]}. Exact shadows inside traced programs use the device kernels "
+                  "(same values, but time and memory grow with the number of occluders).", RuntimeWarning,
+                  stacklevel=4)
 
 
 def threads() -> int:
@@ -132,7 +159,7 @@ class HostOccluders:
 
     def __post_init__(self) -> None:
         t = self.topology
-        # Contiguous int32 copies, alive as long as this object (the engine reads their pointers).
+        # Contiguous int32 copies, made once for every call that reads these occluders.
         self._ints = [np.ascontiguousarray(a, np.int32) for a in (t.face_solid, t.face_closed, t.solid_faces,
                                                                  t.solid_edge_off, t.solid_edges)]
 
@@ -142,11 +169,9 @@ class HostOccluders:
         topo = topology if topology is not None else OccluderTopology.independent(f.shape[0])
         return HostOccluders(f, topo)
 
-    def args(self) -> list:
+    def args(self) -> tuple:
+        """The engine's occluders argument (`abi.occluder_args`)."""
         return _abi.occluder_args(self.faces, self._ints, self.topology.n_solids)
-
-
-_ptr = _abi.ptr
 
 
 def _require() -> Any:
@@ -212,33 +237,19 @@ def hard_visibility(points: np.ndarray, x: np.ndarray, is_point: bool, occ: Host
     dt = occ.faces.dtype
     p = np.ascontiguousarray(points, dt)
     xx = np.ascontiguousarray(x, dt)
-    vis = np.zeros(p.shape[0], np.uint8)
-    lib.jaxshadow_hard_plan(int(dt == np.float64), p.shape[0], _ptr(p), _ptr(xx), int(bool(is_point)), 0,
-                            *occ.args(), threads(), _ptr(vis))
-    return vis.astype(bool)
+    return np.asarray(lib.hard_plan(p, xx, bool(is_point), occ.args(), threads()))
 
 
 def segment_candidates(points: np.ndarray, a: np.ndarray, b: np.ndarray, occ: HostOccluders) -> tuple[np.ndarray, np.ndarray]:
     """Faces that may block part of the segment light `a -> b` seen from each point (they meet
-    the light triangle; back faces of closed meshes dropped): `(offsets (N + 1,), faces (C,))`."""
+    the light triangle; back faces of closed meshes dropped): `(offsets (N + 1,) int64, faces (C,)
+    int32)`."""
     lib = _require()
     dt = occ.faces.dtype
     p = np.ascontiguousarray(points, dt)
     aa, bb = np.ascontiguousarray(a, dt), np.ascontiguousarray(b, dt)
-    off = np.zeros(p.shape[0] + 1, np.int64)
-    out = ctypes.c_void_p()
-    rc = lib.jaxshadow_segment_plan(int(dt == np.float64), p.shape[0], _ptr(p), _ptr(aa), _ptr(bb), *occ.args(),
-                                    threads(), _ptr(off), ctypes.byref(out))
-    try:
-        if rc:
-            raise MemoryError("jaxshadow shadow engine: out of memory for the segment candidates")
-        total = int(off[-1])
-        buf = np.ctypeslib.as_array(ctypes.cast(out, ctypes.POINTER(ctypes.c_int32)), shape=(max(total, 1),))
-        faces = buf[:total].copy()
-    finally:
-        if out.value:
-            lib.jaxshadow_free(out)
-    return off, faces
+    off, faces = lib.segment_plan(p, aa, bb, occ.args(), threads())
+    return np.asarray(off), np.asarray(faces)
 
 
 # --------------------------------------------------------------------------------------
@@ -396,8 +407,9 @@ def traced_polygon_codes(
 
 
 def _require_ffi() -> None:
-    if not ffi_available():
-        raise RuntimeError("jaxshadow's shadow engine was built without its XLA FFI handlers")
+    ok, why = _ffi_status()
+    if not ok:
+        raise RuntimeError(f"jaxshadow's XLA FFI handlers are not usable: {why}")
 
 
 def traced_hard_visibility(

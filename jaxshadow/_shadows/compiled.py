@@ -65,7 +65,12 @@ def traced_values(scene: Scene, integ: Any, points: Any, normals: Any, eyes: Any
     """`((N, 3), overflow)`: every light's contribution with exact shadows, traceable (unit
     `normals`). `overflow` is True when a receiver needed more than `capacity` boundary edges
     (or candidate faces): the values are then not exact. Receivers are processed `chunk` at a
-    time (`lax.map`), which bounds the memory of the decoded boundaries."""
+    time (`lax.map`), which bounds the memory of the decoded boundaries. Without the engine's
+    XLA FFI handlers (built without them, or for another jaxlib) the device kernels' values, with
+    one warning."""
+    if not vis.ffi_available():
+        vis.warn_no_ffi()
+        return device_values(scene, integ, points, normals, eyes), jnp.zeros((), bool)
     dt = points.dtype
     e = points if eyes is None else eyes
     faces = _occluders(scene).astype(dt)
