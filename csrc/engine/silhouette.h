@@ -292,6 +292,23 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       }
       if (W == 0) continue;
       const V3<T> a3 = occ.vref(e.ra), b3 = occ.vref(e.rb);
+      {
+        // Both ends clearly outside one cone plane: cyrus_beck's interval for that plane is empty
+        // (the same g0, g1; beyond its collinear tolerance, as norms are at most 1-norms), so it
+        // would return false. Skips the edge's plane and the clipping for most non-contour edges
+        // that the hierarchy's boxes let through.
+        const V3<T> ap = a3 - p, d = b3 - a3, bp = b3 - p;
+        const T apl = std::fabs(ap.x) + std::fabs(ap.y) + std::fabs(ap.z) + std::fabs(bp.x) + std::fabs(bp.y) + std::fabs(bp.z);
+        bool out = false;
+        for (int k = 0; k < np0 && !out; k++) {
+          const T g0 = dot(ap, cone[k]);
+          if (!(g0 < 0)) continue;
+          const T g1 = dot(d, cone[k]), g01 = g0 + g1;
+          const T m = T(8) * T(kCollinearEps) * eps_of<T>() * (std::fabs(cone[k].x) + std::fabs(cone[k].y) + std::fabs(cone[k].z)) * apl;
+          out = g01 < 0 && -g0 > m && -g01 > m;
+        }
+        if (out) continue;
+      }
       const V3<T> own = edge_plane(p, a3, b3);
       double t0, t1;
       int i0, i1;
