@@ -76,6 +76,7 @@ struct Work {  // per-thread scratch
   std::vector<int32_t> gcov;     // per cell: C at the reference point (INT_MIN: none)
   std::vector<int32_t> gstamp;   // per piece: the last query that tested it
   std::vector<int32_t> gcand;    // one piece's crossing candidates
+  std::vector<int8_t> gside;     // per entry of gitems: its piece's side of its cell's reference point (2: not yet)
   // off_plane_margin of the current receiver's E_h: boundary_runs widens its boxes by it.
   T eh_margin = 0;
   int32_t n_candidates = 0, n_regions = 0;  // items the hierarchy returned; occluder regions kept

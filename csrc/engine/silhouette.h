@@ -292,6 +292,23 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       }
       if (W == 0) continue;
       const V3<T> a3 = occ.vref(e.ra), b3 = occ.vref(e.rb);
+      {
+        // Both ends clearly outside one cone plane: cyrus_beck's interval for that plane is empty
+        // (the same g0, g1; beyond its collinear tolerance, as norms are at most 1-norms), so it
+        // would return false. Skips the edge's plane and the clipping for most non-contour edges
+        // that the hierarchy's boxes let through.
+        const V3<T> ap = a3 - p, d = b3 - a3, bp = b3 - p;
+        const T apl = std::fabs(ap.x) + std::fabs(ap.y) + std::fabs(ap.z) + std::fabs(bp.x) + std::fabs(bp.y) + std::fabs(bp.z);
+        bool out = false;
+        for (int k = 0; k < np0 && !out; k++) {
+          const T g0 = dot(ap, cone[k]);
+          if (!(g0 < 0)) continue;
+          const T g1 = dot(d, cone[k]), g01 = g0 + g1;
+          const T m = T(8) * T(kCollinearEps) * eps_of<T>() * (std::fabs(cone[k].x) + std::fabs(cone[k].y) + std::fabs(cone[k].z)) * apl;
+          out = g01 < 0 && -g0 > m && -g01 > m;
+        }
+        if (out) continue;
+      }
       const V3<T> own = edge_plane(p, a3, b3);
       double t0, t1;
       int i0, i1;
@@ -420,8 +437,8 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   // The jump of C along the path from -> m (pqm = cross(from - p, m - p), pn its norm) across
   // piece s: 0 when they do not cross, +-W when they do, kNone when a crossing is too close to
   // call.
-  auto jump = [&](const SSeg<T>& s, V3<T> from, V3<T> m, V3<T> pqm, double pn) -> int {
-    const int sq = side_of(from, s), sm = side_of(m, s);
+  auto jump_from = [&](const SSeg<T>& s, int sq, V3<T> m, V3<T> pqm, double pn) -> int {
+    const int sm = side_of(m, s);
     if (sq == 0) return kNone;
     if (sm == sq) return 0;
     if (sm == 0) return kNone;
@@ -431,6 +448,9 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     if (ca == 0 || cb == 0) return kNone;
     if (ca == cb) return 0;
     return sm > 0 ? s.w : -s.w;  // from `from`'s side to m's: + W into the positive side
+  };
+  auto jump = [&](const SSeg<T>& s, V3<T> from, V3<T> m, V3<T> pqm, double pn) -> int {
+    return jump_from(s, side_of(from, s), m, pqm, pn);
   };
   // C on the q0 side of point m (in the emitter plane), from the crossings of q0 -> m with every
   // contour edge but `skip`; kNone when a crossing is too close to call.
@@ -516,21 +536,32 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         for (int ix = r[0]; ix <= r[1]; ix++) gi[size_t(cur[size_t(iy * G + ix)]++)] = neh + i;
     }
     stamp_of.assign(size_t(ns), 0);
+    w.gside.assign(gi.size(), int8_t(2));
   }
   // C at m on the `from` side of piece `skip` (-1: none), from C at `from` and the crossings of
-  // from -> m with the pieces registered in cells ca and cb (-1: none).
-  auto cross_cells = [&](V3<T> from, int cfrom, V3<T> m, int skip, int ca, int cb) -> int {
+  // from -> m with the pieces registered in cells ca and cb (-1: none). `at_ref`: `from` is ca's
+  // reference point (its pieces' sides of it are kept in gside, each computed once).
+  auto cross_cells = [&](V3<T> from, int cfrom, V3<T> m, int skip, int ca, int cb, bool at_ref = true) -> int {
     const V3<T> pqm = cross(from - p, m - p);
     const double pn = norm(pqm);
     int c = cfrom;
     stamp++;
     for (int cell : {ca, cb}) {
       if (cell < 0) continue;
+      const bool cached = at_ref && cell == ca;
       for (int32_t k = gs[size_t(cell)]; k < gs[size_t(cell + 1)]; k++) {
         const int32_t i = gi[size_t(k)];
         if (i == skip || stamp_of[size_t(i)] == stamp) continue;
         stamp_of[size_t(i)] = stamp;
-        const int j = jump(segs[size_t(i)], from, m, pqm, pn);
+        int sq;
+        if (cached) {
+          int8_t& g = w.gside[size_t(k)];
+          if (g == 2) g = int8_t(side_of(from, segs[size_t(i)]));
+          sq = g;
+        } else {
+          sq = side_of(from, segs[size_t(i)]);
+        }
+        const int j = jump_from(segs[size_t(i)], sq, m, pqm, pn);
         if (j == kNone) return kNone;
         c += j;
       }
@@ -624,7 +655,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
                 const int from = last_row * G + k;
                 if (w.gcov[size_t(from)] == kNone) continue;
                 const int c1 = cross_cells(w.gref[size_t(from)], w.gcov[size_t(from)], sp, -1, from, below);
-                if (c1 != kNone) c = cross_cells(sp, c1, r, -1, below, cell);
+                if (c1 != kNone) c = cross_cells(sp, c1, r, -1, below, cell, false);
               }
             }
           }
@@ -736,6 +767,11 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       if (j == i) continue;
       const SSeg<T>& o = segs[size_t(j)];
       if (i < neh && j < neh) continue;  // E_h's edges meet at its vertices only
+      if (i >= neh && j >= neh) {  // boxes apart: no crossing (tested first: the cheaper filter)
+        const T* bi = bx.data() + 6 * i;
+        const T* bj = bx.data() + 6 * j;
+        if (bi[3] < bj[0] || bj[3] < bi[0] || bi[4] < bj[1] || bj[4] < bi[1] || bi[5] < bj[2] || bj[5] < bi[2]) continue;
+      }
       if (s.va >= 0 && o.va >= 0 &&
           (same(s.x3a, o.x3a) || same(s.x3a, o.x3b) || same(s.x3b, o.x3a) || same(s.x3b, o.x3b)))
         continue;  // mesh edges with a common end meet there only
@@ -755,11 +791,6 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         continue;
       }
       if (j < neh) continue;  // a contour piece ends on E_h's boundary, inside it otherwise
-      {
-        const T* bi = bx.data() + 6 * i;
-        const T* bj = bx.data() + 6 * j;
-        if (bi[3] < bj[0] || bj[3] < bi[0] || bi[4] < bj[1] || bj[4] < bi[1] || bi[5] < bj[2] || bj[5] < bi[2]) continue;
-      }
       const double on = o.own_n * apn;
       const double g0 = dot(ap, o.own), g1 = dot(d, o.own);
       const int s0 = sgn(g0, tol * on), s1 = sgn(g0 + g1, tol * on);
