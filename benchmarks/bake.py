@@ -140,7 +140,7 @@ def bake_case(name: str, tol: float) -> dict:
 
     jax.config.update("jax_enable_x64", True)
     import jaxshadow as js
-    from jaxshadow._illumination.bake import _newell
+    from jaxshadow._illumination.bake_patches import _newell
 
     scene, receivers = scene_of(name)
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
