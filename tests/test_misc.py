@@ -107,9 +107,10 @@ def test_fusible_is_the_identity_to_the_bit(dt, bits):
 
 @pytest.mark.parametrize("dt", [np.float32, np.float64])
 def test_pow2_scale_matches_numpy_frexp(dt):
-    """`_clip._pow2_scale` reads frexp's exponent from the bits: compare with NumPy's frexp on
-    zeros, non-finite values, subnormals, the extremes and random magnitudes over the whole range."""
-    from jaxshadow._kernels.clip import _pow2_scale
+    """`jaxshadow._kernels.planes.pow2_scale` reads frexp's exponent from the bits: compare with
+    NumPy's frexp on zeros, non-finite values, subnormals, the extremes and random magnitudes over
+    the whole range."""
+    from jaxshadow._kernels.planes import pow2_scale
 
     fi = np.finfo(dt)
     rng = np.random.default_rng(0)
@@ -122,7 +123,7 @@ def test_pow2_scale_matches_numpy_frexp(dt):
     _, e = np.frexp(np.where(ok, vals, 1.0).astype(np.float64) if dt == np.float64 else np.where(ok, vals, 1.0))
     bias = fi.maxexp - 1
     expect = np.ldexp(np.ones_like(vals), np.clip(-e, 2 - bias, bias - 1)).astype(dt)
-    got = np.asarray(_pow2_scale(jnp.asarray(vals)))
+    got = np.asarray(pow2_scale(jnp.asarray(vals)))
     assert got.dtype == dt
     # XLA:CPU reads subnormal inputs as zero (denormals-are-zero): they get what 0 gets (the
     # scale of 1.0, 1/2), as the `jnp.frexp` form this replaced did; elsewhere bit for bit.
