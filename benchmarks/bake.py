@@ -49,9 +49,9 @@ def room_dict() -> dict:
     """The room as a Mitsuba scene dictionary (z up, floor at z = 0, ceiling at z = 2)."""
     import mitsuba as mi
 
-    from jaxshadow.mitsuba import _mi
+    from jaxshadow._io.mitsuba_io import import_mitsuba
 
-    _mi()
+    import_mitsuba()
     T = mi.ScalarTransform4f
 
     def rect(origin, target, up, scale=1.0, **extra):

@@ -74,9 +74,10 @@ def _check(scene, points, normals, engine, rtol=1e-9, above=1e-12):
 
 def _cornell():
     mi = pytest.importorskip("mitsuba")
-    from jaxshadow.mitsuba import _mi, from_mitsuba
+    from jaxshadow._io.mitsuba_io import import_mitsuba
+    from jaxshadow.mitsuba import from_mitsuba
 
-    mi = _mi()
+    mi = import_mitsuba()
     return mi, from_mitsuba(mi.cornell_box())
 
 
@@ -157,9 +158,10 @@ def test_cornell_box_surfaces_match_mitsuba():
 
 def _rotated_boxes(count):
     pytest.importorskip("mitsuba")
-    from jaxshadow.mitsuba import _mi, from_mitsuba
+    from jaxshadow._io.mitsuba_io import import_mitsuba
+    from jaxshadow.mitsuba import from_mitsuba
 
-    mi = _mi()
+    mi = import_mitsuba()
     T = mi.ScalarTransform4f
     rng = np.random.default_rng(0)
     for _ in range(count):

@@ -499,10 +499,10 @@ def write_bake(path: str | os.PathLike, baked: BakedScene, up: Any = "z") -> Non
     written as they are: copies of a point on two surfaces (a crease) keep their own normals
     and values, so no welding."""
     from .._core.files import atomic_write, atomic_write_path
-    from .._io.meshio import IRRADIANCE_PROPERTY, _trimesh, y_up_rotation
+    from .._io.meshio import IRRADIANCE_PROPERTY, import_trimesh, y_up_rotation
     from .io import vertex_colours
 
-    trimesh = _trimesh()
+    trimesh = import_trimesh()
     path = os.fspath(path)
     ext = os.path.splitext(path)[1].lower()
     if ext not in BAKE_FORMATS:
