@@ -10,6 +10,9 @@ Scenes: `box_field(n_boxes)` is the mesh-scale scene of the shadows-at-scale stu
 light at z = 2 facing down over a [-4, 4]^2 floor, and `n_boxes` closed boxes (12 triangles
 each, footprints 0.1-0.35 m, standing on the floor, heights 0.3-1.2 m) clustered over the
 middle of the floor; `floor_receivers` draws points on that floor.
+
+Forward-model benchmark inputs (`throughput`, `error_vs_time`): the unit quad `QUAD`, the segment
+`SEG_A`-`SEG_B`, tilted floor `receivers`, `regular_polygon`, an `occluder_grid` of small quads.
 """
 
 from __future__ import annotations
@@ -171,3 +174,41 @@ def square_light(x0, x1, y0, y1, z):
     """Axis-aligned rectangle in the plane z, counter-clockwise seen from below (it emits
     towards -z, the right-hand-rule normal of its vertex order)."""
     return np.array([[x0, y0, z], [x0, y1, z], [x1, y1, z], [x1, y0, z]], dtype=np.float64)
+
+
+# --------------------------------------------------------------------------------------
+# Forward-model benchmark inputs (throughput, error_vs_time)
+# --------------------------------------------------------------------------------------
+
+QUAD = np.array([[-0.5, -0.5, 1.0], [-0.5, 0.5, 1.0], [0.5, 0.5, 1.0], [0.5, -0.5, 1.0]])
+SEG_A = np.array([-1.0, 0.3, 1.0])
+SEG_B = np.array([1.0, 0.5, 1.2])
+
+
+def receivers(n: int, dtype, seed: int = 0):
+    """Points on the floor z = 0 around the light (some see it cut by their horizon)."""
+    rng = np.random.default_rng(seed)
+    p = np.zeros((n, 3))
+    p[:, :2] = rng.uniform(-2.0, 2.0, (n, 2))
+    nrm = np.zeros((n, 3))
+    nrm[:, :2] = rng.normal(scale=0.5, size=(n, 2))
+    nrm[:, 2] = 1.0
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    return p.astype(dtype), nrm.astype(dtype)
+
+
+def regular_polygon(k: int, radius: float = 0.6, z: float = 1.0) -> np.ndarray:
+    t = -2 * np.pi * np.arange(k) / k
+    return np.stack([radius * np.cos(t), radius * np.sin(t), np.full(k, z)], axis=1)
+
+
+def occluder_grid(m: int) -> np.ndarray:
+    """`m` small quads halfway between the floor and the light, (m, 4, 3)."""
+    side = int(np.ceil(np.sqrt(m)))
+    out = []
+    for i in range(m):
+        cx = -0.4 + 0.8 * ((i % side) + 0.5) / side
+        cy = -0.4 + 0.8 * ((i // side) + 0.5) / side
+        h = 0.3 / side
+        out.append([[cx - h, cy - h, 0.5], [cx - h, cy + h, 0.5], [cx + h, cy + h, 0.5], [cx + h, cy - h, 0.5]])
+    return np.asarray(out)
