@@ -1,4 +1,5 @@
-"""Inputs and timing shared by the forward-model benchmarks (`throughput`, `error_vs_time`).
+"""Timing shared by the forward-model benchmarks (`throughput`, `error_vs_time`); their inputs
+(the quad, the segment, receivers, occluder grids) live in `benchmarks.scenes`, re-exported here.
 
 Method (docs/design.md, "Measuring"): every JAX function is warmed up (its first call, which
 includes tracing and XLA compilation, is reported apart as "compile"); steady-state times are the
@@ -18,28 +19,14 @@ import numpy as np
 
 import jaxshadow as js
 
+from .scenes import QUAD as QUAD
+from .scenes import SEG_A as SEG_A
+from .scenes import SEG_B as SEG_B
+from .scenes import occluder_grid as occluder_grid
+from .scenes import receivers as receivers
+from .scenes import regular_polygon as regular_polygon
+
 CHUNK = 1_000_000
-
-QUAD = np.array([[-0.5, -0.5, 1.0], [-0.5, 0.5, 1.0], [0.5, 0.5, 1.0], [0.5, -0.5, 1.0]])
-SEG_A = np.array([-1.0, 0.3, 1.0])
-SEG_B = np.array([1.0, 0.5, 1.2])
-
-def receivers(n: int, dtype, seed: int = 0):
-    """Points on the floor z = 0 around the light (some see it cut by their horizon)."""
-    rng = np.random.default_rng(seed)
-    p = np.zeros((n, 3))
-    p[:, :2] = rng.uniform(-2.0, 2.0, (n, 2))
-    nrm = np.zeros((n, 3))
-    nrm[:, :2] = rng.normal(scale=0.5, size=(n, 2))
-    nrm[:, 2] = 1.0
-    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-    return p.astype(dtype), nrm.astype(dtype)
-
-
-def regular_polygon(k: int, radius: float = 0.6, z: float = 1.0) -> np.ndarray:
-    t = -2 * np.pi * np.arange(k) / k
-    return np.stack([radius * np.cos(t), radius * np.sin(t), np.full(k, z)], axis=1)
-
 
 def chunked(fn, chunk: int = CHUNK):
     """Apply `fn(points, normals)` in fixed-size chunks (the last one padded)."""
@@ -118,19 +105,6 @@ def numpy_bytes_per_point(fn, *args) -> float:
 # --------------------------------------------------------------------------------------
 # Occluder support (the shadowed scene)
 # --------------------------------------------------------------------------------------
-
-
-def occluder_grid(m: int) -> np.ndarray:
-    """`m` small quads halfway between the floor and the light, (m, 4, 3)."""
-    side = int(np.ceil(np.sqrt(m)))
-    out = []
-    for i in range(m):
-        cx = -0.4 + 0.8 * ((i % side) + 0.5) / side
-        cy = -0.4 + 0.8 * ((i // side) + 0.5) / side
-        h = 0.3 / side
-        out.append([[cx - h, cy - h, 0.5], [cx - h, cy + h, 0.5], [cx + h, cy + h, 0.5], [cx + h, cy - h, 0.5]])
-    return np.asarray(out)
-
 
 
 def shadowed_evaluator():

@@ -49,9 +49,9 @@ def room_dict() -> dict:
     """The room as a Mitsuba scene dictionary (z up, floor at z = 0, ceiling at z = 2)."""
     import mitsuba as mi
 
-    from jaxshadow.mitsuba import _mi
+    from jaxshadow._io.mitsuba_io import import_mitsuba
 
-    _mi()
+    import_mitsuba()
     T = mi.ScalarTransform4f
 
     def rect(origin, target, up, scale=1.0, **extra):
@@ -140,7 +140,7 @@ def bake_case(name: str, tol: float) -> dict:
 
     jax.config.update("jax_enable_x64", True)
     import jaxshadow as js
-    from jaxshadow._illumination.bake import _newell
+    from jaxshadow._illumination.bake_patches import _newell
 
     scene, receivers = scene_of(name)
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024

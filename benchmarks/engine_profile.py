@@ -16,7 +16,7 @@ eager `jax.grad` (the Python side of the host path). A later build must reproduc
 bit for bit. Scenes: the 180-box mesh field of `benchmarks.scenes` (floor receivers, 5 % grazing,
 and receivers on the boxes' faces, edges and corners and inside them), the same boxes as 2 160
 independent triangles, one quad occluder, one box (90 % lit), the six boxes of
-`tests/test_shadows_scale.py` as meshes and as triangles with its mesh cases (shared faces, a
+`tests/test_plan.py` as meshes and as triangles with its mesh cases (shared faces, a
 box touching the light), the special configurations of `tests/test_clip.py` (coplanar,
 identical and shared-edge occluders, occluders straddling the light's or the receiver's plane,
 touching the receiver, lying on the light), random convex occluders of `test_clip.random_scene`
@@ -169,8 +169,9 @@ def cases(quick: bool) -> dict:
     from benchmarks.scenes import box, box_field, floor_receivers
 
     _tests_path()
-    import test_shadows_scale as tss
-    from shapes import uv_sphere
+    import test_plan as tss
+
+    from benchmarks.scenes import uv_sphere
 
     out: dict = {}
     bf = box_field(180)

@@ -83,7 +83,7 @@ def exactness(scene: Any, tris: np.ndarray, p: np.ndarray, nrm: np.ndarray, n: i
     if root not in sys.path:
         sys.path.insert(0, root)
     from test_clip import reference_ff
-    from test_shadows_scale import culled
+    from test_plan import culled
 
     rng = np.random.default_rng(seed)
     cls = js.shadow_plan(scene, p, nrm).lights[0].classes

@@ -59,12 +59,13 @@ from typing import Any
 
 import numpy as np
 
+from ._core.geometry import strip_padding
 from ._io.mitsuba_io import UnsupportedMitsubaElementWarning as UnsupportedMitsubaElementWarning
-from ._io.mitsuba_io import _mi
 from ._io.mitsuba_io import from_mitsuba as from_mitsuba
+from ._io.mitsuba_io import import_mitsuba
 from ._io.mitsuba_io import material_from_bsdf as material_from_bsdf
 from ._io.mitsuba_io import read_sensor as read_sensor
-from ._io.mitsuba_out import _fan_mesh, _rgb, _strip_padding
+from ._io.mitsuba_out import fan_mesh, rgb_dict
 from ._io.mitsuba_out import material_to_bsdf as material_to_bsdf
 from ._io.mitsuba_out import scene_items as scene_items
 from ._io.mitsuba_out import to_mitsuba as to_mitsuba
@@ -72,6 +73,23 @@ from ._io.mitsuba_out import to_mitsuba_dict as to_mitsuba_dict
 from ._io.mitsuba_out import write_example_scene as write_example_scene
 from ._io.mitsuba_out import write_mitsuba_xml as write_mitsuba_xml
 from ._scene.model import LinearLight, Material, PolygonLight, Scene
+
+__all__ = [
+    "UnsupportedMitsubaElementWarning",
+    "from_mitsuba",
+    "material_from_bsdf",
+    "material_to_bsdf",
+    "quick_report",
+    "read_sensor",
+    "reference_irradiance",
+    "reference_shade",
+    "reference_specular",
+    "scene_items",
+    "to_mitsuba",
+    "to_mitsuba_dict",
+    "write_example_scene",
+    "write_mitsuba_xml",
+]
 
 _CHUNK_LANES = 1 << 20
 
@@ -88,18 +106,18 @@ class _Twin:
             raise ValueError(f"expected a jaxshadow.Scene, got {type(scene).__name__}.")
         self.occluders = None
         if native is not None:  # the user's own Mitsuba scene, with Mitsuba's visibility test
-            from ._io.mitsuba_io import _load
+            from ._io.mitsuba_io import load_mitsuba_scene
 
-            self.full, self.lights_occlude, self.max_light_hits = _load(mi, native), True, 1
+            self.full, self.lights_occlude, self.max_light_hits = load_mitsuba_scene(mi, native), True, 1
             return
         self.full = to_mitsuba(scene, **convert)
         self.lights_occlude = bool(lights_occlude)
         if scene.occluders is not None and not self.lights_occlude:
             props = mi.Properties()
-            props["bsdf"] = mi.load_dict({"type": "diffuse", "reflectance": _rgb(mi, 0.0)})
-            polys = [_strip_padding(p) for p in np.asarray(scene.occluders, dtype=np.float64)]
+            props["bsdf"] = mi.load_dict({"type": "diffuse", "reflectance": rgb_dict(mi, 0.0)})
+            polys = [strip_padding(p) for p in np.asarray(scene.occluders, dtype=np.float64)]
             self.occluders = mi.load_dict(
-                {"type": "scene", "occluders": _fan_mesh(mi, "occluders", polys, props)}
+                {"type": "scene", "occluders": fan_mesh(mi, "occluders", polys, props)}
             )
         # A ray crosses a convex polygon light at most once and a cylinder at most twice.
         self.max_light_hits = sum(
@@ -218,7 +236,7 @@ def _estimate(
     convert: dict | None = None,
     native: Any = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    mi = _mi()
+    mi = import_mitsuba()
     twin = _Twin(mi, scene, lights_occlude, convert or {}, native)
     p, n = _points_normals(points, normals)
     spp = int(spp)

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 import jaxshadow as js
+from benchmarks.scenes import QUAD
 
-QUAD = np.array([[-0.5, -0.5, 1.0], [-0.5, 0.5, 1.0], [0.5, 0.5, 1.0], [0.5, -0.5, 1.0]])
 NON_CONVEX = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.2, 0.2, 1.0], [0.0, 1.0, 1.0]])
 NON_PLANAR = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [1.0, 1.0, 1.2], [0.0, 1.0, 1.0]])
 COLLINEAR = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [2.0, 0.0, 1.0]])

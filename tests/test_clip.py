@@ -18,12 +18,12 @@ from jax.test_util import check_grads
 from scipy import integrate
 
 shapely = pytest.importorskip("shapely")
-import shapes  # noqa: E402
 from shapely.geometry import Polygon  # noqa: E402
 from shapely.geometry.polygon import orient  # noqa: E402
 from shapely.ops import unary_union  # noqa: E402
-from shapes import clip_halfspace  # noqa: E402
 
+from benchmarks import scenes  # noqa: E402
+from benchmarks.scenes import clip_halfspace  # noqa: E402
 from jaxshadow._kernels.clip import (  # noqa: E402
     directional_visibility,
     point_visibility,
@@ -145,7 +145,7 @@ def ray_blocked_np(p, x, occluders):
 
 
 def random_convex(rng, k, size, centre, tilt, facing_down=None):
-    v = shapes.random_convex(rng, k, lambda r: size * r.uniform(0.5, 1.0, size=2), centre, tilt, 0.9 * np.pi)
+    v = scenes.random_convex(rng, k, lambda r: size * r.uniform(0.5, 1.0, size=2), centre, tilt, 0.9 * np.pi)
     if facing_down is not None:
         nz = _newell(v)[2]
         if (nz < 0) != facing_down:

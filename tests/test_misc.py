@@ -103,33 +103,3 @@ def test_fusible_is_the_identity_to_the_bit(dt, bits):
     assert y.dtype == dt
     np.testing.assert_array_equal(y.view(bits), x.view(bits))
     np.testing.assert_array_equal(np.asarray(t).view(bits), x[::-1].view(bits))
-
-
-@pytest.mark.parametrize("dt", [np.float32, np.float64])
-def test_pow2_scale_matches_numpy_frexp(dt):
-    """`_clip._pow2_scale` reads frexp's exponent from the bits: compare with NumPy's frexp on
-    zeros, non-finite values, subnormals, the extremes and random magnitudes over the whole range."""
-    from jaxshadow._kernels.clip import _pow2_scale
-
-    fi = np.finfo(dt)
-    rng = np.random.default_rng(0)
-    special = np.array([0.0, -0.0, np.inf, -np.inf, np.nan, fi.tiny, fi.tiny / 2, fi.smallest_subnormal,
-                        fi.max, 1.0, 0.5, 0.75, 2.0, -3.0], dt)
-    lo, hi = (-45, 38) if dt == np.float32 else (-323, 308)
-    vals = np.concatenate([special, (10.0 ** rng.uniform(lo, hi, 20000)).astype(dt)])
-    with np.errstate(invalid="ignore"):
-        ok = (vals > 0) & np.isfinite(vals)
-    _, e = np.frexp(np.where(ok, vals, 1.0).astype(np.float64) if dt == np.float64 else np.where(ok, vals, 1.0))
-    bias = fi.maxexp - 1
-    expect = np.ldexp(np.ones_like(vals), np.clip(-e, 2 - bias, bias - 1)).astype(dt)
-    got = np.asarray(_pow2_scale(jnp.asarray(vals)))
-    assert got.dtype == dt
-    # XLA:CPU reads subnormal inputs as zero (denormals-are-zero): they get what 0 gets (the
-    # scale of 1.0, 1/2), as the `jnp.frexp` form this replaced did; elsewhere bit for bit.
-    sub = ok & (vals < fi.tiny)
-    assert np.all((got[sub] == expect[sub]) | (got[sub] == 0.5))
-    np.testing.assert_array_equal(got[~sub].view(np.uint8), expect[~sub].view(np.uint8))
-    # Exact rescaling: mag * scale in [0.5, 1) for positive finite normal magnitudes.
-    scaled = vals[ok] * got[ok]
-    normal = (vals[ok] >= fi.tiny) & (vals[ok] < 2.0 ** (bias - 2))  # outside, the scale is clipped
-    assert np.all((scaled[normal] >= 0.5) & (scaled[normal] < 1.0))

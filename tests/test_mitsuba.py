@@ -10,10 +10,10 @@ import sys
 
 import numpy as np
 import pytest
-from shapes import rotation as _rot
-from shapes import unit as _unit
 
 import jaxshadow as js
+from benchmarks.scenes import rotation as _rot
+from benchmarks.scenes import unit as _unit
 
 pytest.importorskip("mitsuba")
 from jaxshadow import mitsuba as jm  # noqa: E402

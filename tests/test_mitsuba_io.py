@@ -14,6 +14,7 @@ import jaxshadow as js
 pytest.importorskip("mitsuba")
 pytest.importorskip("trimesh")
 from jaxshadow import mitsuba as jm  # noqa: E402
+from jaxshadow._io.mitsuba_io import import_mitsuba  # noqa: E402
 from jaxshadow.mitsuba import UnsupportedMitsubaElementWarning, from_mitsuba  # noqa: E402
 
 pytestmark = pytest.mark.mitsuba
@@ -168,7 +169,7 @@ def test_diffuse_part_matches_mitsuba_at_normal_incidence(kind):
     in `eval`; the rough one's lobe is subtracted with the Phong part we map it to)."""
     import mitsuba as mi
 
-    jm._mi()
+    import_mitsuba()
     d = {"type": kind, ("reflectance" if kind == "diffuse" else "diffuse_reflectance"): {"type": "rgb", "value": [0.6, 0.4, 0.2]}}
     if kind == "roughplastic":
         d["alpha"] = 0.5
@@ -190,7 +191,7 @@ def test_diffuse_part_matches_mitsuba_at_normal_incidence(kind):
 def test_material_bsdf_round_trip():
     import mitsuba as mi
 
-    jm._mi()
+    import_mitsuba()
     for mat in (js.Material(kd=[0.5, 0.3, 0.1]), js.Material(ka=0.0, kd=[0.4, 0.2, 0.1], ks=0.2, exponent=30.0)):
         back = jm.material_from_bsdf(mi, mi.load_dict(jm.material_to_bsdf(mat)))
         np.testing.assert_allclose(np.asarray(back.kd), np.asarray(mat.kd), rtol=1e-6)
@@ -214,7 +215,7 @@ def test_json_scene_to_xml(tmp_path):
     jm.write_mitsuba_xml(tmp_path / "room.xml", scene)
     import mitsuba as mi
 
-    jm._mi()
+    import_mitsuba()
     ms = mi.load_file(str(tmp_path / "room.xml"))
     assert len(ms.emitters()) >= len(scene.lights)
     back, receivers, _ = from_mitsuba(tmp_path / "room.xml")
@@ -267,7 +268,7 @@ def test_fit_command_reads_and_writes_mitsuba_xml(tmp_path):
     scene, truth, _ = _fit_inputs(tmp_path, False, spp=1 << 11)
     out = tmp_path / "fitted.xml"
     assert main(["--no-compile-cache", "fit", truth, str(tmp_path / "t.csv"), "-o", str(out)]) == 0
-    jm._mi()
+    import_mitsuba()
     assert mi.load_file(str(out)).shapes()
     fitted, receivers, materials = from_mitsuba(out)
     assert _leaves_equal(fitted.lights, scene.lights) and [r.name for r in receivers] == ["s000_floor"]
@@ -289,7 +290,7 @@ def test_fit_loop_through_mitsuba_xml(tmp_path, occluder):
     out = tmp_path / "fitted.xml"
     starts = ["--starts", "64"] if occluder else ["--starts", "8"]
     assert main(["--no-compile-cache", "fit", start, str(tmp_path / "t.csv"), "-o", str(out), "--light", "0", *starts]) == 0
-    jm._mi()
+    import_mitsuba()
     img = np.asarray(mi.render(mi.load_file(str(out)), spp=4))
     assert img.shape[:2] == (16, 16) and img.max() > 0
     fitted, _, fitted_materials = from_mitsuba(out)

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 from scipy.integrate import dblquad
-from shapes import clip_halfspace, random_convex
 
 import jaxshadow as js
+from benchmarks.scenes import clip_halfspace, random_convex
 from jaxshadow._kernels.polygon import form_factor_kernel
 
 

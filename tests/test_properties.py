@@ -46,11 +46,11 @@ from hypothesis import HealthCheck, Phase, assume, given, settings
 from hypothesis import strategies as st
 from jax.test_util import check_grads
 from scipy import integrate
-from shapes import rotation
 from test_clip import reference_ff
 from test_stability import mp_form_factor, mp_linear
 
 import jaxshadow as js
+from benchmarks.scenes import rotation
 from jaxshadow._kernels.linear import linear_irradiance_kernel
 from jaxshadow._kernels.polygon import form_factor_kernel
 

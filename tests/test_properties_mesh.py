@@ -276,7 +276,7 @@ def test_receivers_on_faces_of_touching_boxes(dt):
     coincident face holds them too, and blocks nothing for them), against polygon booleans with
     the on-surface rule; never negative, never above the unoccluded values. (float32: the
     kernels' sums round absolutely, terms of order 1: within 1e-5 of max(U, 1e-2).)"""
-    from test_shadows_scale import LIGHT, box
+    from test_plan import LIGHT, box
 
     boxes = [box((-0.3, -0.2, 0.5), (0.0, 0.2, 1.0)), box((0.0, -0.2, 0.5), (0.3, 0.2, 1.0)),
              box((-0.25, -0.1, 1.0), (-0.05, 0.1, 1.3))]

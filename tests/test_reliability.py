@@ -21,12 +21,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from jax.test_util import check_grads
-from shapes import square_light
 from test_clip import reference_ff
 from test_stability import mp_form_factor, mp_linear
 
 import inverse
 import jaxshadow as js
+from benchmarks.scenes import square_light
 from jaxshadow._kernels.linear import MAX_COSINE_EXPONENT, linear_irradiance_kernel
 from jaxshadow._kernels.polygon import form_factor_kernel
 from jaxshadow._kernels.specular import MAX_DEGREE

@@ -19,11 +19,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from shapes import rotation as _rot  # noqa: E402
-from shapes import unit as _unit  # noqa: E402
-from shapes import uv_sphere  # noqa: E402
 
 import jaxshadow as js
+from benchmarks.scenes import rotation as _rot  # noqa: E402
+from benchmarks.scenes import unit as _unit  # noqa: E402
+from benchmarks.scenes import uv_sphere  # noqa: E402
 from jaxshadow._kernels.clip import directional_visibility, point_visibility
 
 pytest.importorskip("mitsuba")

@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 from scipy import integrate
-from shapes import clip_halfspace, random_convex
 
+from benchmarks.scenes import clip_halfspace, random_convex
 from jaxshadow._kernels.chebyshev import cutoff_angle, poulin_cos_power_integral
 from jaxshadow._kernels.specular import (
     contour_specular_kernel,

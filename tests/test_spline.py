@@ -12,8 +12,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from jax.test_util import check_grads
-from shapes import clip_halfspace, random_convex
 
+from benchmarks.scenes import clip_halfspace, random_convex
 from jaxshadow._kernels.polygon import form_factor
 from jaxshadow._kernels.spline import (
     shadow_nodes,

@@ -31,8 +31,8 @@ import jax.numpy as jnp
 import mpmath as mp
 import numpy as np
 import pytest
-from shapes import clip_halfspace
 
+from benchmarks.scenes import clip_halfspace
 from jaxshadow._kernels.linear import linear_irradiance_kernel
 from jaxshadow._kernels.point import point_irradiance_kernel
 from jaxshadow._kernels.polygon import form_factor_kernel

@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from .._core.mesh import _strip_padding
+from .._core.geometry import strip_padding
 from .._scene.model import LinearLight, PointLight, PolygonLight, Scene
 
 SUPPORT_RTOL = 1e-9  # relative tolerance of the side tests (of the occluder's size squared)
@@ -118,7 +118,7 @@ def _pad_rows(rows: list[list[np.ndarray]], fill: list[np.ndarray]) -> np.ndarra
 def _object_features(faces: np.ndarray) -> tuple:
     """One object's face normals `(F, 3)`, edges (with their faces' vertices) and vertices (with
     theirs), from its faces `(F, K, 3)` (vertices matched by exact equality)."""
-    loops = [_strip_padding(f) for f in faces]
+    loops = [strip_padding(f) for f in faces]
     normals = np.stack([np.sum(np.cross(p, np.roll(p, -1, axis=0)), axis=0) for p in loops])
     index: dict[tuple, int] = {}
     coords: list[np.ndarray] = []
@@ -672,7 +672,7 @@ def contact_polygons(scene: Scene, frame: Frame, tol: float) -> tuple[list[np.nd
     flat = np.all(np.abs(frame.height(faces)) <= tol, axis=1)
     out = []
     for f in faces[flat]:
-        q = frame.to2d(_strip_padding(f))
+        q = frame.to2d(strip_padding(f))
         area = 0.5 * np.sum(q[:, 0] * np.roll(q[:, 1], -1) - np.roll(q[:, 0], -1) * q[:, 1])
         if area != 0:
             out.append(q if area > 0 else q[::-1].copy())

@@ -54,7 +54,8 @@ IRRADIANCE_PROPERTY = "irradiance"
 LEGACY_PROPERTY = "value"  # what `write_ply` named them before: still read by `read_ply_values`
 
 
-def _trimesh() -> Any:
+def import_trimesh() -> Any:
+    """The `trimesh` module; an ImportError that names the `mesh` extra when it is missing."""
     try:
         import trimesh
     except ImportError as err:
@@ -107,7 +108,7 @@ def read_mesh(path: str | os.PathLike, *, weld: float | None = 0.0, crease: floa
         raise ValueError(f"{path}: not a mesh file (expected one of {', '.join(MESH_EXTS)}).")
     if not os.path.isfile(path):
         raise FileNotFoundError(f"{path}: no such file.")
-    trimesh = _trimesh()
+    trimesh = import_trimesh()
     try:
         m = trimesh.load(path, force="mesh", process=False)
     except Exception as err:  # trimesh raises many kinds for malformed files
@@ -162,7 +163,7 @@ def write_ply(path: str | os.PathLike, mesh: ReceiverMesh, values: Any, *, at: s
         js.write_ply(os.path.join(folder, "lit.ply"), mesh, js.irradiance(scene, p, n))   # vertex colours
         ```
     """
-    trimesh = _trimesh()
+    trimesh = import_trimesh()
     if extension(path) != ".ply":
         raise ValueError(f"{os.fspath(path)}: write_ply writes .ply files.")
     if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", str(name)):
@@ -197,7 +198,7 @@ def write_mesh(path: str | os.PathLike, vertices: Any, faces: Any) -> None:
         mesh = js.read_mesh(path)   # read back with trimesh
         ```
     """
-    trimesh = _trimesh()
+    trimesh = import_trimesh()
     ext = extension(path)
     if ext not in MESH_EXTS or ext == ".gltf":
         raise ValueError(f"{os.fspath(path)}: write_mesh writes .ply, .obj, .glb, .stl or .off files.")
@@ -211,7 +212,7 @@ def read_ply_values(path: str | os.PathLike, name: str = IRRADIANCE_PROPERTY, at
     """The `(N, 3)` float properties `{name}_r, _g, _b` (default `irradiance_r/g/b`) of a PLY
     written by `write_ply`, the `irradiance` or the `mesh` command. Irradiance in PLY files of
     earlier versions, whose API wrote it as `value_r/g/b`, is read too."""
-    trimesh = _trimesh()
+    trimesh = import_trimesh()
     m = trimesh.load(os.fspath(path), process=False)
     data = m.metadata["_ply_raw"]["vertex" if at == "vertices" else "face"]["data"]
     names = data.dtype.names or ()
@@ -545,7 +546,7 @@ def write_gltf(path: str | os.PathLike, vertices: Any, faces: Any, *, normals: A
 
     **Returns:** `{"vertices", "faces", "welded", "dropped"}`: what was written and removed.
     """
-    trimesh = _trimesh()
+    trimesh = import_trimesh()
     ext = extension(path)
     if ext not in GLTF_EXTS:
         raise ValueError(f"{os.fspath(path)}: write_gltf writes .glb or .gltf files.")

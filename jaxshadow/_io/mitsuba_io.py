@@ -69,7 +69,7 @@ def _warn(msg: str) -> None:
     warnings.warn(msg, UnsupportedMitsubaElementWarning, stacklevel=3)
 
 
-def _mi() -> Any:
+def import_mitsuba() -> Any:
     """Import Mitsuba and select an RGB JIT variant; a clear ImportError when it is missing."""
     try:
         import mitsuba as mi
@@ -89,7 +89,9 @@ def _mi() -> Any:
     return mi
 
 
-def _load(mi: Any, source: Any) -> Any:
+def load_mitsuba_scene(mi: Any, source: Any) -> Any:
+    """An `mi.Scene` from a file path (every shape kept: no merging by BSDF), a scene dict or an
+    `mi.Scene` (returned as is); a `FileNotFoundError` / `ValueError` that names the source."""
     if isinstance(source, (str, os.PathLike)):
         path = os.fspath(source)
         if not os.path.isfile(path):
@@ -399,8 +401,8 @@ def from_mitsuba(path_or_dict: Any, *, disc_segments: int = DISC_SEGMENTS, spher
     (`materials[i]` is the nearest Phong material of `receivers[i]`'s BSDF). Elements that
     cannot be represented raise an `UnsupportedMitsubaElementWarning` naming them.
     """
-    mi = _mi()
-    scene, receivers, materials, _ = convert_scene(mi, _load(mi, path_or_dict), disc_segments, sphere_segments,
+    mi = import_mitsuba()
+    scene, receivers, materials, _ = convert_scene(mi, load_mitsuba_scene(mi, path_or_dict), disc_segments, sphere_segments,
                                                    weld=weld)
     return scene, receivers, materials
 
@@ -481,8 +483,8 @@ def read_sensor(path_or_dict: Any) -> dict | None:
     """The first sensor of a Mitsuba scene as a plain dict (`perspective` only): `fov` (degrees,
     along x), `to_world` `(4, 4)`, `width`, `height`, `near_clip`, `far_clip`, `spp`; `None`
     (with a warning for another kind) when there is none."""
-    mi = _mi()
-    ms = _load(mi, path_or_dict)
+    mi = import_mitsuba()
+    ms = load_mitsuba_scene(mi, path_or_dict)
     if not ms.sensors():
         return None
     s = ms.sensors()[0]

@@ -1,5 +1,5 @@
 r"""A jaxshadow scene as a Mitsuba 3 scene (`to_mitsuba`, `to_mitsuba_dict`, `scene_items`), and
-the selection of Mitsuba's variant (`_mi`). What maps to what (lights, occluders, the linear
+the selection of Mitsuba's variant (`import_mitsuba`). What maps to what (lights, occluders, the linear
 light's stand-ins and their measured bias) is documented in `jaxshadow.mitsuba`'s docstring."""
 
 from __future__ import annotations
@@ -13,21 +13,16 @@ from typing import Any
 import numpy as np
 
 from .._core.files import atomic_write
+from .._core.geometry import strip_padding
 from .._scene.model import DirectionalLight, LinearLight, Material, PointLight, PolygonLight, Scene
 from .meshio import write_mesh
-from .mitsuba_io import _mi, _warn
+from .mitsuba_io import _warn, import_mitsuba
 
 
-def _rgb(mi: Any, x: Any) -> dict:
+def rgb_dict(mi: Any, x: Any) -> dict:
+    """A Mitsuba `rgb` property of a scalar or `(3,)` colour (float64 components)."""
     v = np.broadcast_to(np.asarray(x, dtype=np.float64), (3,))
     return {"type": "rgb", "value": [float(c) for c in v]}
-
-
-def _strip_padding(poly: np.ndarray) -> np.ndarray:
-    k = poly.shape[0]
-    while k > 3 and np.array_equal(poly[k - 1], poly[0]):
-        k -= 1
-    return poly[:k]
 
 
 def _mi_mesh(mi: Any, name: str, vertices: np.ndarray, faces: np.ndarray, props: Any) -> Any:
@@ -58,7 +53,7 @@ def _fan_arrays(polygons: list) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(verts), np.asarray(faces, dtype=np.int64)
 
 
-def _fan_mesh(mi: Any, name: str, polygons: list, props: Any) -> Any:
+def fan_mesh(mi: Any, name: str, polygons: list, props: Any) -> Any:
     """One `mi.Mesh` holding the fan triangulations of convex polygons (face normals only)."""
     return _mi_mesh(mi, name, *_fan_arrays(polygons), props)
 
@@ -83,7 +78,7 @@ def scene_items(scene: Scene, receivers: Any = (), materials: Any = (), *, segme
     receivers, materials = list(receivers), list(materials)
     if len(materials) > len(receivers):
         raise ValueError(f"to_mitsuba: {len(materials)} materials for {len(receivers)} receivers.")
-    rgb = lambda x: _rgb(None, x)  # noqa: E731
+    rgb = lambda x: rgb_dict(None, x)  # noqa: E731
     out: list[tuple[str, dict]] = []
     for i, light in enumerate(scene.lights):
         if isinstance(light, PolygonLight):
@@ -144,7 +139,7 @@ def scene_items(scene: Scene, receivers: Any = (), materials: Any = (), *, segme
             out.append((name, {"type": "_mesh", "vertices": r.vertices, "faces": r.faces,
                                "bsdf": material_to_bsdf(mat)}))
     elif scene.occluders is not None:
-        v, f = _fan_arrays([_strip_padding(p) for p in np.asarray(scene.occluders, dtype=np.float64)])
+        v, f = _fan_arrays([strip_padding(p) for p in np.asarray(scene.occluders, dtype=np.float64)])
         out.append(("occluders", {"type": "_mesh", "vertices": v, "faces": f,
                                   "bsdf": {"type": "diffuse", "reflectance": rgb(0.0)}}))
     return out
@@ -172,7 +167,7 @@ def to_mitsuba_dict(
     **Returns:** a dict with `"type": "scene"`; meshes are `mi.Mesh` objects, so build a fresh
     dict for every `mi.load_dict`.
     """
-    mi = _mi()
+    mi = import_mitsuba()
     out: dict[str, Any] = {"type": "scene"}
     for name, d in scene_items(scene, receivers, materials, segment_points=segment_points,
                                segment_radius=segment_radius):
@@ -203,7 +198,7 @@ def to_mitsuba(scene: Scene, *, receivers: Any = (), materials: Any = (), sensor
 
     **Returns:** an `mi.Scene` (variant `llvm_ad_rgb`).
     """
-    mi = _mi()
+    mi = import_mitsuba()
     return mi.load_dict(
         to_mitsuba_dict(scene, receivers=receivers, materials=materials, sensor=sensor,
                         segment_points=segment_points, segment_radius=segment_radius)
@@ -389,9 +384,9 @@ def write_example_scene(directory: str | os.PathLike, resolution: int = 256, spp
 
     **Returns:** the path of `scene.xml`.
     """
-    from .meshio import _trimesh, write_mesh
+    from .meshio import import_trimesh, write_mesh
 
-    trimesh = _trimesh()
+    trimesh = import_trimesh()
     directory = os.fspath(directory)
     torus = trimesh.creation.torus(0.35, 0.12, major_sections=32, minor_sections=12)
     torus.apply_transform(trimesh.transformations.rotation_matrix(np.radians(20), [1, 0, 0]))

@@ -69,246 +69,26 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 from .._core.geometry import check_finite_leaves, horizon_clip_edges, newell_normal
-from .._core.misc import safe_div, safe_normalize
+from .._core.misc import safe_div
 from .linear import linear_irradiance_kernel
+from .planes import (
+    COLLINEAR_EPS,
+    _cyrus_beck,
+    _edge_planes,
+    _eps,
+    _interval_on_region,
+    _occluder_regions,
+    _occluder_sides,
+    crossing_point,
+    pow2_scale,
+    project,
+    rescale_rows,
+)
 from .polygon import edge_term, form_factor_kernel
 
-# Planes through p whose unit normals are parallel within COLLINEAR_EPS * machine epsilon
-# are the same plane: their traces on the emitter plane are one line (coincident edges).
-COLLINEAR_EPS = 64.0
-
-# A receiver closer to an occluder face's plane than ON_SURFACE * S (S: the largest coordinate
-# magnitude of the face's vertices and the receiver) lies on that face, which then blocks
-# nothing (nor does any face coplanar with it): 32 float32 epsilons (2^-18 ~ 3.8e-6) of S in
-# float32 and float64 alike, since a face built from float32-rounded vertices (OBJ, PLY,
-# Mitsuba) is planar, and a point computed on it lies in its plane, only to a few float32
-# roundings of S (`_occluder_sides`; the engine's `kOnSurface`).
-ON_SURFACE = 2.0**-18
-# The same rule for faces of other doubles: 256 double epsilons of S (points computed on such a
-# face lie in its plane to a few roundings of S, not of the face's size; the engine's
-# `kOnSurface64`).
-ON_SURFACE_64 = 2.0**-44
 # An occluder within this elevation (radians) of a receiver's horizon blocks nothing
 # (`_hugs_horizon`; geometry.h kHorizonBand).
 HORIZON_BAND = 1e-7
-
-
-def _eps(x: Array) -> float:
-    return float(jnp.finfo(x.dtype).eps)
-
-
-def _edge_planes(p: Array, verts: Array) -> Array:
-    r"""$(v_{i+1}-p) \times (v_i-p)$ for each edge of a padded polygon: the plane through $p$ and
-    edge $i$, oriented so that a polygon that runs counter-clockwise seen from $p$ lies on its
-    positive side. Padded (zero-length) edges give exactly 0."""
-    nxt = jnp.roll(verts, -1, axis=0)
-    real = jnp.any(nxt != verts, axis=1)
-    # Explicit zero: with fused multiply-adds cross(r, r) is not always exactly 0.
-    planes = jnp.cross(nxt - p[None, :], verts - p[None, :])
-    return jnp.where(real[:, None], planes, 0.0)
-
-
-def _pow2_scale(mag: Array) -> Array:
-    """Power of two `2**-e` with `mag * 2**-e` in [0.5, 1) (1/2, the scale of 1, where `mag` is 0
-    or not finite), built from the exponent bits so that multiplying by it is exact. No gradient.
-
-    `e` is `frexp`'s exponent, read straight from the bits (biased exponent - bias + 1; a
-    subnormal `mag` reads as the smallest normal exponent, which the clip below maps to the
-    same `2**-e` as `frexp` would): bit-identical to the `jnp.frexp` form it replaced
-    (`tests/test_misc.py`), at a twentieth of its tracing cost."""
-    mag = jax.lax.stop_gradient(mag)
-    fi = jnp.finfo(mag.dtype)
-    int_t = {2: jnp.int16, 4: jnp.int32, 8: jnp.int64}[mag.dtype.itemsize]
-    # lax primitives only (no nested jits such as jnp.where's: this runs under several
-    # transformations in the solvers, where each nested jit is traced again).
-    lax = jax.lax
-    ok = lax.bitwise_and(lax.gt(mag, jnp.zeros((), mag.dtype)), lax.is_finite(mag))
-    bits = lax.bitcast_convert_type(lax.select(ok, mag, jnp.ones_like(mag)), int_t)
-    bias = fi.maxexp - 1
-
-    def c(v: int) -> Array:
-        return jnp.asarray(v, int_t)
-
-    e = lax.sub(lax.bitwise_and(lax.shift_right_logical(bits, c(fi.nmant)), c((1 << int(fi.nexp)) - 1)),
-                c(bias - 1))
-    k = lax.add(lax.clamp(c(2 - bias), lax.neg(e), c(bias - 1)), c(bias))  # biased exponent of 2**-e
-    return lax.bitcast_convert_type(lax.shift_left(k, c(fi.nmant)), mag.dtype)
-
-
-def _rescale_rows(x: Array) -> Array:
-    """Each row (a plane normal; only its direction matters) times an exact power of two that
-    brings its largest component into [0.5, 1): nothing under- or overflows downstream
-    (cross products of two normals, their squares in gradients), the values are unchanged."""
-    return x * _pow2_scale(jnp.max(jnp.abs(x), axis=-1, keepdims=True))
-
-
-def _abs_cross(a, b):
-    """Componentwise bound on the terms of `cross(a, b)`: `|a_y b_z| + |a_z b_y|`, ..."""
-    a, b = jnp.abs(a), jnp.abs(b)
-    return jnp.stack(
-        [
-            a[..., 1] * b[..., 2] + a[..., 2] * b[..., 1],
-            a[..., 2] * b[..., 0] + a[..., 0] * b[..., 2],
-            a[..., 0] * b[..., 1] + a[..., 1] * b[..., 0],
-        ],
-        axis=-1,
-    )
-
-
-def _occluder_sides(p, occluders):
-    r"""Per occluder, in the frame of p scaled by an exact power of two $\sigma$ (largest
-    coordinate of $o_i - p$ in [0.5, 1), so that tiny or huge occluders neither under- nor
-    overflow): the Newell normal `no` of the $\sigma(o_i - p)$, `d_o = no . sigma (o_0 - p)`,
-    the side sign `s` (+1 when the vertex order runs counter-clockwise seen from p), `active`,
-    the oriented planes through p and the edges `s (v_{i+1}-p) x (v_i-p)` (each rescaled) and
-    $\sigma$ (`no` is $\sigma^2$, `d_o` $\sigma^3$ times their unscaled values).
-
-    `active` is False when p cannot be told apart from the occluder's plane (it then blocks a
-    zero solid angle): the heights $h_j = $ `no` $\cdot\,\sigma(o_j - p)$ of *all* its
-    vertices must share one sign and each exceed its own rounding-error bound,
-    $|h_j| > \tfrac{K_o + 8}{2}\,\epsilon\,A\cdot|r_j|$ with $r_j = \sigma(o_j - p)$ and
-    $A = \sum_i |r_i| \otimes |r_{i+1}|$ the Newell sum of the absolute values of the terms.
-    With $u = \epsilon/2$ that is $(K_o + 8)\,u$ against the first-order bound
-    $(K_o + 7)\,u\,A\cdot|r_j|$ on the error of $h_j$ ($(K_o + 4)\,u$ for `no` and the dot
-    product, $3u$ for the rounding of $o_j - p$). The bound follows the actual terms: an
-    occluder parallel to a coordinate plane 1e-9 above p is resolved in float32, a tilted one
-    only beyond several $\epsilon$ times its size; p within the thickness of a (tolerated)
-    non-planar occluder, or exactly in its plane, or at a vertex ($h_j = 0$) is inactive.
-
-    A receiver *on* an occluder of float32 values is inactive too: every $|h_j|$ must also exceed
-    `ON_SURFACE` $\cdot S\,\sigma\,|$`no`$|$, i.e. p must be farther than `ON_SURFACE` $S$
-    ($2^{-18} S$, $S$ the largest coordinate magnitude of the occluder's vertices and p) from
-    its plane. Faces made of float32-rounded vertices (meshes from files, Mitsuba) are planar,
-    and points computed on them lie in their planes, only to that order; a receiver on such a
-    face taken as behind it by 1e-8 is shadowed by the whole face (0, or a negative contour sum
-    from its nearly degenerate projection). For faces of other doubles the distance is
-    `ON_SURFACE_64` $S$ ($2^{-44} S$): a point computed on them lies in their plane to a few
-    double roundings of $S$ (not of the face's size, which the rounding bound above follows)."""
-    rel = occluders - p[None, None, :]  # (M, Ko, 3)
-    sigma = _pow2_scale(jnp.max(jnp.abs(rel), axis=(1, 2)))  # (M,)
-    rel = rel * sigma[:, None, None]
-    no = jax.vmap(newell_normal)(rel)  # (M, 3)
-    nxt = jnp.roll(rel, -1, axis=1)
-    bound_no = jnp.sum(_abs_cross(rel, nxt), axis=1)  # (M, 3)
-    # Elementwise products and sums, not einsum: a matrix unit may round its inputs (TF32).
-    h = jnp.sum(no[:, None, :] * rel, axis=-1)  # (M, Ko)
-    err = jnp.sum(bound_no[:, None, :] * jnp.abs(rel), axis=-1)
-    bound = (occluders.shape[1] + 8) / 2 * _eps(p) * err
-    d_o = h[:, 0]
-    s = jnp.where(d_o < 0, 1.0, -1.0).astype(p.dtype)
-    # On the face (ON_SURFACE): every height also exceeds ON_SURFACE * S * |no| (scaled frame).
-    big = jnp.maximum(jnp.max(jnp.abs(occluders), axis=(1, 2)), jnp.max(jnp.abs(p)))
-    no_c = jax.lax.stop_gradient(no)
-    dtol = ON_SURFACE * jax.lax.stop_gradient(big) * sigma * jnp.sqrt(jnp.sum(no_c * no_c, axis=-1))
-    # ON_SURFACE for faces of float32 values (files, Mitsuba); others are planar to their own
-    # rounding, and take ON_SURFACE_64.
-    occ_c = jax.lax.stop_gradient(occluders)
-    f32 = jnp.all(occ_c.astype(jnp.float32).astype(occ_c.dtype) == occ_c, axis=(1, 2))
-    dtol = jnp.where(f32, dtol, dtol * (ON_SURFACE_64 / ON_SURFACE))
-    active = jnp.all((-s[:, None] * h > bound) & (-s[:, None] * h > dtol[:, None]), axis=1)
-    # Planes through p and the edges, from the same scaled differences (a power of two times
-    # `_edge_planes(p, occluders)`); zero for padded (repeated) vertices.
-    real = jnp.any(jnp.roll(occluders, -1, axis=1) != occluders, axis=2)
-    planes = jnp.where(real[..., None], jnp.cross(nxt, rel), 0.0)
-    planes = _rescale_rows(s[:, None, None] * planes)
-    return no, d_o, s, active, planes, sigma
-
-
-def _occluder_regions(p, occluders, ne, hp):
-    """Per occluder: interior plane normals `(M, Ko+1, 3)` (edges, then the emitter-plane cut),
-    the side sign `s` (+1 when its vertex order runs counter-clockwise seen from p) and an
-    `active` flag (False when p lies in its plane: it blocks a zero solid angle)."""
-    no, d_o, s, active, planes, sigma = _occluder_sides(p, occluders)
-    # N_L = h_p sgn(d_o) N_o + |d_o| N_e, with no and d_o in the sigma-scaled frame (hp too).
-    n_cut = (hp * sigma * -s)[:, None] * no + jnp.abs(d_o)[:, None] * ne[None, :]
-    normals = jnp.concatenate([planes, _rescale_rows(n_cut)[:, None, :]], axis=1)
-    return normals, s, active
-
-
-def _cyrus_beck(p, a, b, normals, n_own):
-    """Parameter interval `[t0, t1]` of the segment `a -> b` inside `{x : (x-p).N >= 0}` for all N.
-
-    `n_own`: the normal of the plane through p and the segment. A plane that holds the
-    segment's line (parallel to `n_own` within the collinear tolerance of `_interval_on_region`,
-    which decides with the same test) neither cuts nor drops it: its parameter there would be
-    the ratio of two rounding errors, and the crossing point that of two coincident planes (a
-    receiver on a face: its horizon holds the neighbouring faces' shared edges). The
-    tie-break of `_boundary_runs` keeps one of the coincident edges (the engine's
-    `cyrus_beck`)."""
-    tol = COLLINEAR_EPS * _eps(p)
-    g0 = (a - p) @ normals.T
-    g1 = (b - a) @ normals.T
-    sp, sa, sb, sn, so, h0, h1 = jax.lax.stop_gradient((p, a, b, normals, n_own, g0, g1))
-    pn = jnp.sqrt(jnp.sum(sn * sn, axis=-1))
-    apn = jnp.sqrt(jnp.sum((sa - sp) ** 2)) + jnp.sqrt(jnp.sum((sb - sp) ** 2))
-    near = (jnp.any(sn != 0, axis=-1) & ~(jnp.abs(h0) > 4 * tol * pn * apn)
-            & ~(jnp.abs(h0 + h1) > 4 * tol * pn * apn))
-    cr = jnp.cross(safe_normalize(so)[None, :], safe_div(sn, pn[:, None]))
-    on_line = near & (jnp.sum(cr * cr, axis=-1) <= tol * tol)
-    g0 = jnp.where(on_line, 0.0, g0)
-    g1 = jnp.where(on_line, 0.0, g1)
-    pos = g1 > 0
-    neg = g1 < 0
-    tc = safe_div(-g0, g1)
-    t_lo = jnp.where(pos, tc, 0.0)
-    t_hi = jnp.where(neg, tc, 1.0)
-    i0 = jnp.argmax(t_lo)
-    i1 = jnp.argmin(t_hi)
-    t0 = jnp.maximum(t_lo[i0], 0.0)
-    t1 = jnp.minimum(t_hi[i1], 1.0)
-    const_ok = jnp.all((g1 != 0) | (g0 >= 0))
-    return t0, t1, const_ok & (t1 > t0), i0, i1
-
-
-def _project(p, x, ne, hp):
-    """Central projection from p of x onto the emitter plane (x strictly towards it)."""
-    r = x - p
-    w = -(r @ ne)
-    ok = w > 0
-    scale = jnp.where(ok, hp / jnp.where(ok, w, 1.0), 0.0)
-    return p + scale[..., None] * r
-
-
-def _crossing_point(p, c, ne, hp):
-    r"""Where the line through p with direction `c` meets the emitter plane (either sign of c).
-
-    A direction within $\epsilon^2$ (relative) of parallel to that plane meets it farther than
-    $1/\epsilon^2$ times the distance from p to the plane, at infinity for all purposes: it gets
-    `p` (such a point is never the end of a kept piece), so that $1/\mathrm{den}^2$ in the
-    gradient cannot overflow (`c`, `ne` are of order one here)."""
-    c = _rescale_rows(c)  # only its direction matters
-    den = -jnp.dot(c, ne)
-    eps = _eps(c)
-    ok = jnp.abs(den) > eps * eps * jnp.max(jnp.abs(c)) * jnp.max(jnp.abs(ne))
-    return p + c * jnp.where(ok, hp / jnp.where(ok, den, 1.0), 0.0)
-
-
-def _interval_on_region(p, a, d, n_own, sigma, normals, valid, tol):
-    """Where the `sigma`-side of the edge `a + t d` is inside one convex region (planes through p).
-
-    Returns `(lo, hi, i_lo, i_hi, const_ok_noncollinear, const_ok_collinear, any_collinear)`;
-    the region contains the one-sided neighbourhood of `a + t d` iff `lo < t < hi` and both
-    `const_ok`; `i_lo`, `i_hi` are the planes that cut the edge at `lo` and `hi` (the crossing
-    points there are the lines common to the edge's plane and those, `_decode`).
-    """
-    g0 = (a - p) @ normals.T
-    g1 = d @ normals.T
-    un = safe_normalize(normals)
-    uo = safe_normalize(n_own)
-    cr = jnp.cross(uo[None, :], un)
-    collinear = valid & (jnp.sum(cr * cr, axis=-1) <= tol * tol)
-    side_ok = sigma * (un @ uo) > 0
-    generic = valid & ~collinear
-    pos = generic & (g1 > 0)
-    neg = generic & (g1 < 0)
-    tc = safe_div(-g0, g1)
-    t_lo = jnp.where(pos, tc, -jnp.inf)
-    t_hi = jnp.where(neg, tc, jnp.inf)
-    i_lo = jnp.argmax(t_lo)
-    i_hi = jnp.argmin(t_hi)
-    const_noncol = jnp.all(~generic | (g1 != 0) | (g0 >= 0))
-    const_col = jnp.all(~collinear | side_ok)
-    return t_lo[i_lo], t_hi[i_hi], i_lo, i_hi, const_noncol, const_col, jnp.any(collinear)
 
 
 class _Candidates(NamedTuple):
@@ -338,8 +118,8 @@ def _emitter_frame(p: Array, n: Array, verts: Array) -> tuple[Array, Array, Arra
     e0 = verts[0]
     ne = newell_normal(verts)
     hp = jnp.dot(ne, p - e0)
-    e_scale = _pow2_scale(jnp.max(jnp.abs(ne)))
-    e_normals = _rescale_rows(jnp.concatenate([_edge_planes(p, verts), n[None, :]], axis=0))
+    e_scale = pow2_scale(jnp.max(jnp.abs(ne)))
+    e_normals = rescale_rows(jnp.concatenate([_edge_planes(p, verts), n[None, :]], axis=0))
     return e0, ne * e_scale, hp * e_scale, e_normals
 
 
@@ -399,10 +179,10 @@ def _candidates(p: Array, n: Array, verts: Array, occluders: Array) -> _Candidat
         # A clipped end is the crossing of this edge's plane with an E_h plane (E_h's plane ids
         # come first in the canonical order, see `_decode`).
         a2 = jnp.where(
-            t0 > 0, _crossing_point(p, jnp.cross(cone[i0], n_q), ne, hp), _project(p, a, ne, hp)
+            t0 > 0, crossing_point(p, jnp.cross(cone[i0], n_q), ne, hp), project(p, a, ne, hp)
         )
         b2 = jnp.where(
-            t1 < 1, _crossing_point(p, jnp.cross(cone[i1], n_q), ne, hp), _project(p, b, ne, hp)
+            t1 < 1, crossing_point(p, jnp.cross(cone[i1], n_q), ne, hp), project(p, b, ne, hp)
         )
         return jnp.where(ok, a2, e0), jnp.where(ok, b2, e0)
 
@@ -540,7 +320,7 @@ def _decode(p: Array, c: _Candidates, codes: Int[Array, " r"]) -> Float[Array, "
     k = jnp.where(is_tab, 0, codes - n_tab)
     i, j = k // n_pl, k % n_pl
     cr = jnp.cross(planes[i], planes[j])
-    y = jax.vmap(_crossing_point, in_axes=(None, 0, None, None))(p, cr, c.ne, c.hp)
+    y = jax.vmap(crossing_point, in_axes=(None, 0, None, None))(p, cr, c.ne, c.hp)
     table = jnp.concatenate([c.starts, c.ends], axis=0)
     return jnp.where(is_tab[:, None], table[jnp.where(is_tab, codes, 0)], y)
 

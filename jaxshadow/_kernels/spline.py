@@ -110,6 +110,7 @@ from .._core.geometry import (
     check_finite_leaves,
     is_concrete,
     on_lit_side,
+    strip_padding,
 )
 
 # --------------------------------------------------------------------------------------
@@ -417,14 +418,6 @@ def shadow_nodes(
 # --------------------------------------------------------------------------------------
 
 
-def _strip_padding(v: np.ndarray) -> np.ndarray:
-    """Drop trailing copies of the first vertex (jaxshadow's padding convention)."""
-    k = v.shape[0]
-    while k > 3 and np.array_equal(v[k - 1], v[0]):
-        k -= 1
-    return v[:k]
-
-
 def _check_points(points: object, what: str) -> np.ndarray:
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
@@ -538,10 +531,10 @@ def spline_shadow(
             raise ValueError(f"{what}: {name} must have shape (k, 3), got {shape}.")
     if all(is_concrete(x) for x in (emitter, occluder, points)):
         e = check_convex_polygon(
-            _strip_padding(np.asarray(emitter, np.float64)), f"{what}: emitter"
+            strip_padding(np.asarray(emitter, np.float64)), f"{what}: emitter"
         )
         o = check_convex_polygon(
-            _strip_padding(np.asarray(occluder, np.float64)), f"{what}: occluder"
+            strip_padding(np.asarray(occluder, np.float64)), f"{what}: occluder"
         )
         pts = _check_points(points, what)
         _check_validity_region([e], o, pts, what)
@@ -577,7 +570,7 @@ def _stack_polygons(polys: Any, what: str) -> tuple[Array, list[np.ndarray] | No
     checked = None
     if all(is_concrete(x) for x in items):
         checked = [
-            check_convex_polygon(_strip_padding(np.asarray(x, np.float64)), f"{what} {i}")
+            check_convex_polygon(strip_padding(np.asarray(x, np.float64)), f"{what} {i}")
             for i, x in enumerate(items)
         ]
     k = max(int(jnp.shape(x)[0]) for x in items)

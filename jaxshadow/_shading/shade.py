@@ -16,8 +16,8 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._core.geometry import (
-    _check_values_eagerly,
     check_points_normals,
+    check_values_eagerly,
     evaluate_checked,
     inputs_ok,
     pad_polygons_jax,
@@ -173,7 +173,7 @@ def _shadowed(scene: Scene, integ: Any, points: Array, normals: Array, eyes: Arr
     program (`traced_values`, static capacity, overflow an error) when they are abstract."""
     tree = (scene, integ, points, normals, eyes)
     if not options.use_engine():
-        _check_values_eagerly(points, normals, what)
+        check_values_eagerly(points, normals, what)
         out = _device_impl(scene, integ, points, normals, eyes)
         return eqx.error_if(out, ~inputs_ok(points, normals), f"{what}: a point or normal is not finite, or a normal is zero.")
     if not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree)):
@@ -185,7 +185,7 @@ def _shadowed(scene: Scene, integ: Any, points: Array, normals: Array, eyes: Arr
     val = _valued((scene, points, normals))
     if val is not None:
         vscene, p, n = val
-        _check_values_eagerly(p, n, what)
+        check_values_eagerly(p, n, what)
         return _shadows.planned_values(scene, vscene, integ, points, unit_rows(normals), eyes, (p, unit_rows_host(n)))
     total, overflow = _shadows_compiled.traced_values(scene, integ, points, unit_rows(normals), eyes, options.capacity)
     total = eqx.error_if(total, ~inputs_ok(points, normals),

@@ -43,7 +43,10 @@ from jaxtyping import Array, Float, Int
 
 from .._core.geometry import newell_normal
 from .._core.mesh import OccluderTopology
-from .._kernels.clip import _crossing_point, _pow2_scale, _project, _rescale_rows
+from .._kernels.planes import crossing_point as _crossing_point
+from .._kernels.planes import pow2_scale as _pow2_scale
+from .._kernels.planes import project as _project
+from .._kernels.planes import rescale_rows as _rescale_rows
 from . import abi as _abi
 
 ZERO, LIT, UMBRA, PENUMBRA = 0, 1, 2, 3

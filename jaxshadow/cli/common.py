@@ -183,9 +183,9 @@ def scene_up(path: str) -> str:
     camera's up direction (`to_world` applied to +y), `"y"` when it has no camera."""
     if not path.lower().endswith(".xml"):
         return "z"
-    from .._io.mitsuba_io import _load, _mi
+    from .._io.mitsuba_io import import_mitsuba, load_mitsuba_scene
 
-    sensors = _load(_mi(), path).sensors()
+    sensors = load_mitsuba_scene(import_mitsuba(), path).sensors()
     if not sensors:
         return "y"
     m = np.asarray(sensors[0].world_transform().matrix, dtype=np.float64).reshape(4, 4)

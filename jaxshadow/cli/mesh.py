@@ -86,7 +86,7 @@ def mesh_command(args: argparse.Namespace) -> int:
     up = args.up or scene_up(args.scene)
     # The receiver's own surface (faces on its plane facing its way) blocks nothing on it (the
     # on-surface rule); the mesher is given the scene without it, as `bake` does.
-    from .._illumination.bake import without_own_faces
+    from .._illumination.bake_chunks import without_own_faces
 
     normal = np.cross(receiver, np.roll(receiver, -1, axis=0)).sum(axis=0)
     scene = without_own_faces(scene, receiver, normal / np.linalg.norm(normal))

@@ -77,10 +77,10 @@ class Rendering:
 
 
 def _load(source: Any) -> tuple[Any, Any]:
-    from .._io.mitsuba_io import _load as load_scene
-    from .._io.mitsuba_io import _mi
+    from .._io.mitsuba_io import import_mitsuba
+    from .._io.mitsuba_io import load_mitsuba_scene as load_scene
 
-    mi = _mi()
+    mi = import_mitsuba()
     return mi, load_scene(mi, source)
 
 
@@ -207,9 +207,9 @@ def render_mitsuba(source: Any, spp: int, seed: int = 0) -> tuple[np.ndarray, fl
 def write_image(path: str | os.PathLike, image: Any, exposure: float | None = None) -> None:
     """Write `(H, W, 3)` linear radiance: `.exr` as float32 linear RGB (Mitsuba's `Bitmap`),
     `.png` tone-mapped to 8-bit sRGB (`jaxshadow._io.meshio.tonemap`, `exposure`); atomically."""
-    from .._io.mitsuba_io import _mi
+    from .._io.mitsuba_io import import_mitsuba
 
-    mi = _mi()
+    mi = import_mitsuba()
     path = os.fspath(path)
     ext = os.path.splitext(path)[1].lower()
     img = np.asarray(image, np.float64)

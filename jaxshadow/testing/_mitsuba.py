@@ -30,7 +30,7 @@ AXES = {"light.tx": 0, "light.ty": 1, "light.tz": 2}
 
 
 def _mi() -> tuple[Any, Any]:
-    from ..mitsuba import _mi as select_variant
+    from .._io.mitsuba_io import import_mitsuba as select_variant
 
     mi = select_variant()
     import drjit as dr

@@ -1,4 +1,4 @@
-"""Exact shadows at mesh scale: the shadow engine (`jaxshadow._shadows`: `plan`, `binding`, `csrc/shadowc.cc`).
+"""Exact shadows at mesh scale (`jaxshadow._shadows.plan`), through the engine (`binding`, `csrc/shadowc.cc`).
 
 Independent reference: `reference_ff` of `tests/test_clip.py` (Sutherland-Hodgman clipping,
 exact polygon booleans in shapely, Lambert's contour sum: no code shared with the kernels), on

@@ -6,14 +6,18 @@ that face, which then blocks nothing, and nor does any face coplanar with it; ev
 casts its true shadow. The independent reference is `test_clip.reference_ff` (shapely booleans)
 over the occluders minus the faces the receiver lies on by that rule. A light planar only to
 rounding is seen from the receiver as the cone over its own vertices: the reference gets its
-vertices projected centrally from the receiver onto its Newell plane (the same cone)."""
+vertices projected centrally from the receiver onto its Newell plane (the same cone).
 
+The rule is `jaxshadow._kernels.planes` (`ON_SURFACE`, `_occluder_sides`; the engine's
+`kOnSurface`), whose exact power-of-two scaling (`pow2_scale`) is checked here too."""
+
+import jax.numpy as jnp
 import numpy as np
 import pytest
-from shapes import rotation
 from test_clip import reference_ff
 
 import jaxshadow as js
+from benchmarks.scenes import rotation
 from jaxshadow._shadows import binding
 
 ENGINES = ("host", "device")
@@ -74,9 +78,10 @@ def _check(scene, points, normals, engine, rtol=1e-9, above=1e-12):
 
 def _cornell():
     mi = pytest.importorskip("mitsuba")
-    from jaxshadow.mitsuba import _mi, from_mitsuba
+    from jaxshadow._io.mitsuba_io import import_mitsuba
+    from jaxshadow.mitsuba import from_mitsuba
 
-    mi = _mi()
+    mi = import_mitsuba()
     return mi, from_mitsuba(mi.cornell_box())
 
 
@@ -157,9 +162,10 @@ def test_cornell_box_surfaces_match_mitsuba():
 
 def _rotated_boxes(count):
     pytest.importorskip("mitsuba")
-    from jaxshadow.mitsuba import _mi, from_mitsuba
+    from jaxshadow._io.mitsuba_io import import_mitsuba
+    from jaxshadow.mitsuba import from_mitsuba
 
-    mi = _mi()
+    mi = import_mitsuba()
     T = mi.ScalarTransform4f
     rng = np.random.default_rng(0)
     for _ in range(count):
@@ -293,3 +299,34 @@ def test_float32_rounded_tilted_light(seed):
         f32 = np.asarray(js.irradiance(scene, p[sub].astype(np.float32), n[sub].astype(np.float32),
                                        shadows=js.ShadowOptions(engine=engine)))[:, 0]
         assert np.max(np.abs(f32 - ref)) <= 1e-4 * ref.max(), engine
+
+
+@pytest.mark.parametrize("dt", [np.float32, np.float64])
+def test_pow2_scale_matches_numpy_frexp(dt):
+    """`jaxshadow._kernels.planes.pow2_scale` reads frexp's exponent from the bits: compare with
+    NumPy's frexp on zeros, non-finite values, subnormals, the extremes and random magnitudes over
+    the whole range."""
+    from jaxshadow._kernels.planes import pow2_scale
+
+    fi = np.finfo(dt)
+    rng = np.random.default_rng(0)
+    special = np.array([0.0, -0.0, np.inf, -np.inf, np.nan, fi.tiny, fi.tiny / 2, fi.smallest_subnormal,
+                        fi.max, 1.0, 0.5, 0.75, 2.0, -3.0], dt)
+    lo, hi = (-45, 38) if dt == np.float32 else (-323, 308)
+    vals = np.concatenate([special, (10.0 ** rng.uniform(lo, hi, 20000)).astype(dt)])
+    with np.errstate(invalid="ignore"):
+        ok = (vals > 0) & np.isfinite(vals)
+    _, e = np.frexp(np.where(ok, vals, 1.0).astype(np.float64) if dt == np.float64 else np.where(ok, vals, 1.0))
+    bias = fi.maxexp - 1
+    expect = np.ldexp(np.ones_like(vals), np.clip(-e, 2 - bias, bias - 1)).astype(dt)
+    got = np.asarray(pow2_scale(jnp.asarray(vals)))
+    assert got.dtype == dt
+    # XLA:CPU reads subnormal inputs as zero (denormals-are-zero): they get what 0 gets (the
+    # scale of 1.0, 1/2), as the `jnp.frexp` form this replaced did; elsewhere bit for bit.
+    sub = ok & (vals < fi.tiny)
+    assert np.all((got[sub] == expect[sub]) | (got[sub] == 0.5))
+    np.testing.assert_array_equal(got[~sub].view(np.uint8), expect[~sub].view(np.uint8))
+    # Exact rescaling: mag * scale in [0.5, 1) for positive finite normal magnitudes.
+    scaled = vals[ok] * got[ok]
+    normal = (vals[ok] >= fi.tiny) & (vals[ok] < 2.0 ** (bias - 2))  # outside, the scale is clipped
+    assert np.all((scaled[normal] >= 0.5) & (scaled[normal] < 1.0))
