@@ -21,7 +21,6 @@ shapely = pytest.importorskip("shapely")
 import shapes  # noqa: E402
 from shapely.geometry import Polygon  # noqa: E402
 from shapely.geometry.polygon import orient  # noqa: E402
-from shapely.ops import unary_union  # noqa: E402
 from shapes import clip_halfspace  # noqa: E402
 
 from jaxshadow._kernels.clip import (  # noqa: E402
@@ -108,7 +107,11 @@ def reference_ff(p, n, emitter, occluders):
         if q.area > 0:
             shadows.append(q)
     if shadows:
-        region = region.difference(unary_union(shadows))
+        # Snap-rounded overlay (a grid of 2^-46 of the light's size: every coordinate, the big
+        # square's included, stays within 2^53 grid steps): the floating overlay's union of a
+        # mesh's projected faces lost 6.6e-6 of area on one draw (their exact union: Fractions).
+        g = 2.0**-46 * float(np.max(np.abs(em - c)))
+        region = shapely.difference(region, shapely.union_all(shadows, grid_size=g), grid_size=g)
     total = 0.0
     geoms = getattr(region, "geoms", [region])
     for g in geoms:
