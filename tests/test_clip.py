@@ -20,7 +20,6 @@ from scipy import integrate
 shapely = pytest.importorskip("shapely")
 from shapely.geometry import Polygon  # noqa: E402
 from shapely.geometry.polygon import orient  # noqa: E402
-from shapely.ops import unary_union  # noqa: E402
 
 from benchmarks import scenes  # noqa: E402
 from benchmarks.scenes import clip_halfspace  # noqa: E402
@@ -83,9 +82,10 @@ def reference_ff(p, n, emitter, occluders):
     region = Polygon([to2(x) for x in eh])
     if region.area == 0:
         return 0.0
-    # Pyramid over a big square around the emitter: projections stay finite.
+    # Pyramid over a square around the emitter (twice its radius, so that it holds the emitter):
+    # projections stay finite, and small beside the overlay grid's range below.
     c = em.mean(axis=0)
-    big = 50.0 * np.max(np.linalg.norm(em - c, axis=1))
+    big = 2.0 * np.max(np.linalg.norm(em - c, axis=1))
     corners = [c + sx * big * u + sy * big * v for sx, sy in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
     shadows = []
     for occ in occluders:
@@ -108,7 +108,19 @@ def reference_ff(p, n, emitter, occluders):
         if q.area > 0:
             shadows.append(q)
     if shadows:
-        region = region.difference(unary_union(shadows))
+        # Snap-rounded overlay, a grid of 2^-42 of the emitter's radius (every coordinate within
+        # 2^44 grid steps): the floating overlay's union of a mesh's projected faces lost 6.6e-6
+        # of area on one draw (their exact union: Fractions). Snapping moves a vertex by under a
+        # grid step; where GEOS still fails, a 16x coarser grid.
+        rad = float(np.max(np.linalg.norm(em - c, axis=1)))
+        for g in (2.0**-42 * rad, 2.0**-38 * rad):
+            try:
+                region = shapely.difference(region, shapely.union_all(shadows, grid_size=g), grid_size=g)
+                break
+            except shapely.errors.GEOSException:
+                continue
+        else:
+            raise AssertionError("reference_ff: the snap-rounded overlay failed")
     total = 0.0
     geoms = getattr(region, "geoms", [region])
     for g in geoms:

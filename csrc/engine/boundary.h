@@ -74,12 +74,23 @@ void boundary_runs(const Occluders<T>& occ, V3<T> p, T tol, const V3<T>* ehv, in
       }
     }
   }
+  // An E_h vertex on a region's boundary plane (a receiver on an event line or plane: an occluder
+  // vertex or edge projecting onto a light vertex) is a corner of region ∩ E_h, and its side of
+  // that plane is rounding: it counts as inside within the plane's rounding bound ((4 + its
+  // conditioning) tol, as the T-junction band below). Left out, the box missed the corner, and an
+  // edge crossing the region there was not tested against it: a piece inside the region stayed in
+  // the boundary (values up to 1.3x the unoccluded value). A box only filters; a zero plane (a
+  // padded edge) bounds nothing.
   for (int i = 0; i < nehv; i++) {
     V3<T> r = ehv[i] - p;
+    const T rn = norm(r);
     for (int32_t j = 1; j < n_regions; j++) {
       const Region<T>& R = w.regions[j];
       bool in = true;
-      for (int k = 0; k < R.count && in; k++) in = dot(r, planes[R.first + k]) >= 0;
+      for (int k = 0; k < R.count && in; k++) {
+        const int32_t pk = R.first + k;
+        in = !nonzero(planes[pk]) || dot(r, planes[pk]) >= -(T(4) + w.pcond[pk]) * tol * w.pnorm[pk] * rn;
+      }
       if (in) {
         Region<T>& Rw = w.regions[j];
         const T c[3] = {ehv[i].x, ehv[i].y, ehv[i].z};
@@ -148,13 +159,23 @@ void boundary_runs(const Occluders<T>& occ, V3<T> p, T tol, const V3<T>* ehv, in
             V3<T> cr = cross(normalize_safe(e.own), unit(pk));
             collinear = dot(cr, cr) <= tol * tol;
           }
-          // Two occluder edges on one line in space, their planes apart by rounding only (within
-          // both planes' rounding bounds, tol times their conditioning).
+          // Two occluder edges whose planes through p are apart by rounding only (within both
+          // planes' rounding bounds, tol times their conditioning): on one line in space, or
+          // coplanar with p (their projections on one line) with unit normals parallel within
+          // that bound. Taken as crossing, their common line's point would be that of two planes
+          // a rounding apart, anywhere on the line or off it (cross(N1, N2) below its rounding):
+          // a boundary vertex off both edges, and a wrong region.
           if (!collinear && econd > 0 && w.pcond[pk] > 0) {
-            const T band = (T(4) + econd + w.pcond[pk]) * tol * w.pnorm[pk] * apn;
-            if (!(std::fabs(g0) > band) && !(std::fabs(g0 + g1) > band))
+            const T cb = (T(4) + econd + w.pcond[pk]) * tol;
+            const T band = cb * w.pnorm[pk] * apn;
+            if (!(std::fabs(g0) > band) && !(std::fabs(g0 + g1) > band)) {
               collinear = collinear_in_space(occ.vref(e.own_ref.a), occ.vref(e.own_ref.b), occ.vref(w.prefs[pk].a),
                                              occ.vref(w.prefs[pk].b), p);
+              if (!collinear) {
+                const V3<T> cr = cross(normalize_safe(e.own), unit(pk));
+                collinear = dot(cr, cr) <= cb * cb;
+              }
+            }
           }
         }
         bool generic = valid && !collinear;

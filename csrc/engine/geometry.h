@@ -143,15 +143,22 @@ inline bool lex_less(V3<T> a, V3<T> b) {
 }
 
 // The plane through p and the edge a -> b, (b - p) x (a - p) up to a positive factor, computed from the
-// two endpoints in lexicographic order: the same edge gives bit-identical normals (up to an exact
-// sign) whichever face or light it comes from and in which direction it runs, so that coincident
-// boundary lines (two faces of a mesh sharing an edge) are recognised exactly, not within a
-// tolerance that rounding (or a compiler's fused multiply-adds) can defeat.
+// two endpoints in lexicographic order (lo, hi): the same edge gives bit-identical normals (up to an
+// exact sign) whichever face or light it comes from and in which direction it runs, so that
+// coincident boundary lines (two faces of a mesh sharing an edge) are recognised exactly, not
+// within a tolerance that rounding (or a compiler's fused multiply-adds) can defeat. Computed as
+// (hi - lo) x (x - p), x the endpoint nearer p (the same vector): (hi - p) x (lo - p) cancels for an
+// edge short beside its distance (its relative rounding is about eps |a - p| |b - p| / |(b - p) x
+// (a - p)|, through_condition's eps), this form's at most twice that and smaller by |b - a| over the
+// farther endpoint's distance. A far short edge's plane was off by 400 eps on a mesh seen at a
+// grazing angle, and the crossing of two such planes (a boundary vertex) by 1e-10 of its distance.
 template <class T>
 JS_INLINE V3<T> edge_plane(V3<T> p, V3<T> a, V3<T> b) {
-  if (lex_less(a, b)) return rescale(cross(rescale(b - p), rescale(a - p)));
-  V3<T> c = rescale(cross(rescale(a - p), rescale(b - p)));
-  return V3<T>{-c.x, -c.y, -c.z};
+  const bool fwd = lex_less(a, b);
+  const V3<T> lo = fwd ? a : b, hi = fwd ? b : a;
+  const V3<T> rl = lo - p, rh = hi - p;
+  const V3<T> c = rescale(cross(rescale(hi - lo), rescale(dot(rh, rh) < dot(rl, rl) ? rh : rl)));
+  return fwd ? c : V3<T>{-c.x, -c.y, -c.z};
 }
 
 template <class T>

@@ -274,13 +274,16 @@ def _lex_less(a: Array, b: Array) -> Array:
 
 def edge_planes(p: Float[Array, "3"], a: Float[Array, "e 3"], b: Float[Array, "e 3"]) -> Float[Array, "e 3"]:
     """Planes through `p` and the edges `a -> b`, `(b - p) x (a - p)` up to a positive factor (order
-    one), computed from the endpoints in lexicographic order so that one edge gives bit-identical
+    one), as `(hi - lo) x (x - p)` with `x` the endpoint nearer `p` (no cancellation for a short edge
+    far from `p`), from the endpoints in lexicographic order `lo`, `hi` so that one edge gives bit-identical
     normals (up to an exact sign) whatever face it comes from and whichever way it runs (the
     engine's `edge_plane`; coincident boundary lines are then recognised exactly)."""
     swap = _lex_less(b, a)
     lo = jnp.where(swap[..., None], b, a)
     hi = jnp.where(swap[..., None], a, b)
-    c = _rescale_rows(jnp.cross(_rescale_rows(hi - p[None, :]), _rescale_rows(lo - p[None, :])))
+    rl, rh = lo - p[None, :], hi - p[None, :]
+    near = jnp.where((jnp.sum(rh * rh, axis=-1) < jnp.sum(rl * rl, axis=-1))[..., None], rh, rl)
+    c = _rescale_rows(jnp.cross(_rescale_rows(hi - lo), _rescale_rows(near)))
     return jnp.where(swap[..., None], -c, c)
 
 
