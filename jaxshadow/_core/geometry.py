@@ -145,7 +145,7 @@ def check_points_normals(points: Any, normals: Any, what: str = "", values: bool
             f"{pre}points and normals must have the same length, got {points.shape[0]} and {normals.shape[0]}."
         )
     if values:
-        _check_values_eagerly(points, normals, what)
+        check_values_eagerly(points, normals, what)
     if isinstance(points, jax.core.Tracer) or isinstance(normals, jax.core.Tracer):
         # Values that arrive traced (the caller's jit/vmap/grad): checked when the program runs.
         points, normals = eqx.error_if(
@@ -197,7 +197,7 @@ def as_input(x: Any, what: str) -> Any:
     return jnp.asarray(a) if a.dtype != jax.dtypes.canonicalize_dtype(a.dtype) else a
 
 
-def _check_values_eagerly(points: AnyArray, normals: AnyArray, what: str) -> None:
+def check_values_eagerly(points: AnyArray, normals: AnyArray, what: str) -> None:
     if not isinstance(points, jax.core.Tracer) and not isinstance(normals, jax.core.Tracer):
         # One fused pass decides; the slow NumPy search for the culprit runs only on failure.
         # Concrete arrays closed over by a caller's jit are still checked: evaluate eagerly.
@@ -230,7 +230,7 @@ def evaluate_checked(fn: Any, points: AnyArray, normals: AnyArray, what: str) ->
     is traced) concrete inputs are checked eagerly instead, and traced ones not at all."""
     out, ok = map_chunks(fn, (points, normals))
     if isinstance(ok, jax.core.Tracer):
-        _check_values_eagerly(points, normals, what)
+        check_values_eagerly(points, normals, what)
         return out
     raise_if_bad(bool(np.all(np.asarray(ok))), points, normals, what)  # one transfer, no dispatch
     return out

@@ -17,7 +17,15 @@ import numpy as np
 
 from .._core.files import atomic_write
 from .._core.mesh import Mesh, OccluderTopology, mesh_dicts
-from .model import DirectionalLight, LinearLight, Material, PointLight, PolygonLight, Scene
+from .model import (
+    AbstractLight,
+    DirectionalLight,
+    LinearLight,
+    Material,
+    PointLight,
+    PolygonLight,
+    Scene,
+)
 
 SCENE_FORMAT = "jaxshadow.scene"
 # 1: everything inline in the JSON. 2: meshes may live in a binary `.npz` beside it ("arrays").
@@ -33,28 +41,22 @@ def _tolist(x: Any) -> Any:
 
 
 def light_to_dict(light: Any) -> dict:
-    if isinstance(light, PolygonLight):
-        return {"type": "polygon", "vertices": _tolist(light.vertices), "radiance": _tolist(light.radiance)}
-    if isinstance(light, LinearLight):
-        d = {
-            "type": "linear",
-            "start": _tolist(light.start),
-            "end": _tolist(light.end),
-            "power": _tolist(light.power),
-            "profile": light.profile,
-        }
-        if light.profile == "cosine":
-            d["exponent"] = light.exponent
-        return d
-    if isinstance(light, PointLight):
-        return {"type": "point", "position": _tolist(light.position), "intensity": _tolist(light.intensity)}
-    if isinstance(light, DirectionalLight):
-        return {
-            "type": "directional",
-            "direction": _tolist(light.direction),
-            "irradiance": _tolist(light.irradiance),
-        }
-    raise TypeError(f"not a light: {type(light).__name__}")
+    """The JSON-able dict of one light (`{"type": ..., fields}`; `_LIGHT_FIELDS` names them)."""
+    if not isinstance(light, AbstractLight):
+        raise TypeError(f"not a light: {type(light).__name__}")
+    name = _TYPE_OF_KIND[light.kind]
+    _, required, optional = _LIGHT_FIELDS[name]
+    d: dict[str, Any] = {"type": name}
+    fields: Any = light  # a LinearLight's static fields, read when its type names them
+    for key in required + optional:
+        if key == "profile":
+            d[key] = fields.profile
+        elif key == "exponent":
+            if fields.profile == "cosine":
+                d[key] = fields.exponent
+        else:
+            d[key] = _tolist(getattr(light, key))
+    return d
 
 
 _LIGHT_FIELDS = {
@@ -63,6 +65,7 @@ _LIGHT_FIELDS = {
     "point": (PointLight, ("position",), ("intensity",)),
     "directional": (DirectionalLight, ("direction",), ("irradiance",)),
 }
+_TYPE_OF_KIND = {"polygon": "polygon", "segment": "linear", "point": "point", "directional": "directional"}
 
 
 def _has_bool(v: Any) -> bool:

@@ -7,8 +7,9 @@ skipped under `jit`/`grad`/`vmap` (the inverse solvers rebuild lights from trace
 
 from __future__ import annotations
 
+import abc
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
@@ -53,7 +54,36 @@ def _all_concrete(*xs: Any) -> bool:
     return all(is_concrete(x) for x in xs)
 
 
-class PolygonLight(eqx.Module):
+class AbstractLight(eqx.Module):
+    """What every light says about itself, so that no caller asks which class it is.
+
+    - `kind` (class attribute): what the shadow engine computes for it and which integrand
+      method integrates it: `"polygon"` (a visible region), `"segment"` (visible pieces of a
+      segment), `"point"` or `"directional"` (a hard shadow ray).
+    - `emission(dtype)`: `(3,)` RGB emission the integrands are per unit of (radiance, power per
+      length, intensity or irradiance).
+    - `geometry`: the arrays that place it (vertices; start and end; position; direction).
+    - `group`: lights of one group share one stacked kernel (`group` differs from `kind` only
+      for segments, one group per cosine exponent).
+    """
+
+    kind: ClassVar[str]
+
+    @abc.abstractmethod
+    def emission(self, dtype: Any) -> Array:
+        """`(3,)` RGB emission as `dtype`."""
+
+    @property
+    @abc.abstractmethod
+    def geometry(self) -> tuple[Array, ...]:
+        """The arrays that place the light."""
+
+    @property
+    def group(self) -> str:
+        return self.kind
+
+
+class PolygonLight(AbstractLight):
     """A planar convex polygon of uniform radiance (Lambertian emitter).
 
     **Fields:**
@@ -75,6 +105,15 @@ class PolygonLight(eqx.Module):
         self.vertices = _leaf(vertices)
         self.radiance = _rgb_leaf(radiance)
 
+    kind: ClassVar[str] = "polygon"
+
+    def emission(self, dtype: Any) -> Array:
+        return self.radiance.astype(dtype)
+
+    @property
+    def geometry(self) -> tuple[Array, ...]:
+        return (self.vertices,)
+
     @property
     def normal(self) -> Array:
         """Unit normal of the lit side (right-hand rule of the vertex order)."""
@@ -86,7 +125,7 @@ class PolygonLight(eqx.Module):
 PROFILES = ("isotropic", "cosine")
 
 
-class LinearLight(eqx.Module):
+class LinearLight(AbstractLight):
     """A segment light (a thin tube) with power per unit length $\\Phi$.
 
     **Fields:**
@@ -130,8 +169,21 @@ class LinearLight(eqx.Module):
         self.profile = profile
         self.exponent = int(exponent) if profile == "cosine" else 0
 
+    kind: ClassVar[str] = "segment"
 
-class PointLight(eqx.Module):
+    def emission(self, dtype: Any) -> Array:
+        return self.power.astype(dtype)
+
+    @property
+    def geometry(self) -> tuple[Array, ...]:
+        return (self.start, self.end)
+
+    @property
+    def group(self) -> str:
+        return f"linear-{self.exponent}"
+
+
+class PointLight(AbstractLight):
     """An isotropic point light. `position (3,)` (m), `intensity (3,)` RGB (W/sr).
 
     $E = I \\max(0, \\cos\\theta) / r^2$.
@@ -147,8 +199,17 @@ class PointLight(eqx.Module):
         self.position = _leaf(position)
         self.intensity = _rgb_leaf(intensity)
 
+    kind: ClassVar[str] = "point"
 
-class DirectionalLight(eqx.Module):
+    def emission(self, dtype: Any) -> Array:
+        return self.intensity.astype(dtype)
+
+    @property
+    def geometry(self) -> tuple[Array, ...]:
+        return (self.position,)
+
+
+class DirectionalLight(AbstractLight):
     """A distant light. `direction (3,)`: the direction light travels (any non-zero length);
     `irradiance (3,)` RGB (W/m^2) on a surface facing it. $E = E_0 \\max(0, -n\\cdot\\hat d)$."""
 
@@ -161,6 +222,15 @@ class DirectionalLight(eqx.Module):
             check_rgb(irradiance, "DirectionalLight.irradiance")
         self.direction = _leaf(direction)
         self.irradiance = _rgb_leaf(irradiance)
+
+    kind: ClassVar[str] = "directional"
+
+    def emission(self, dtype: Any) -> Array:
+        return self.irradiance.astype(dtype)
+
+    @property
+    def geometry(self) -> tuple[Array, ...]:
+        return (self.direction,)
 
 
 Light = PolygonLight | LinearLight | PointLight | DirectionalLight
@@ -283,7 +353,7 @@ class Scene(eqx.Module):
     def __init__(self, lights: Sequence[Any] = (), occluders: Any = None, ambient: Any = 0.0):
         lights = tuple(lights)
         for i, light in enumerate(lights):
-            if not isinstance(light, (PolygonLight, LinearLight, PointLight, DirectionalLight)):
+            if not isinstance(light, AbstractLight):
                 raise ValueError(
                     f"Scene.lights[{i}]: expected PolygonLight, LinearLight, PointLight or "
                     f"DirectionalLight, got {type(light).__name__}."
@@ -305,7 +375,7 @@ def checked_scene(scene: Any, what: str) -> Scene:
         raise ValueError(f"{what}: expected a jaxshadow.Scene, got {type(scene).__name__}.")
     scene = check_finite_leaves(scene, f"{what}: scene")
     for i, light in enumerate(scene.lights):
-        if isinstance(light, PolygonLight) and is_concrete(light.vertices):
+        if light.kind == "polygon" and is_concrete(light.vertices):
             check_convex_polygon_cached(light.vertices, f"{what}: scene.lights[{i}].vertices")
     return scene
 
