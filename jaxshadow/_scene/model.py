@@ -70,12 +70,12 @@ class AbstractLight(eqx.Module):
     kind: ClassVar[str]
 
     @abc.abstractmethod
-    def emission(self, dtype: Any) -> Array:
+    def emission(self, dtype: Any) -> Any:
         """`(3,)` RGB emission as `dtype`."""
 
     @property
     @abc.abstractmethod
-    def geometry(self) -> tuple[Array, ...]:
+    def geometry(self) -> tuple[Any, ...]:
         """The arrays that place the light."""
 
     @property
@@ -107,11 +107,11 @@ class PolygonLight(AbstractLight):
 
     kind: ClassVar[str] = "polygon"
 
-    def emission(self, dtype: Any) -> Array:
+    def emission(self, dtype: Any) -> Any:
         return self.radiance.astype(dtype)
 
     @property
-    def geometry(self) -> tuple[Array, ...]:
+    def geometry(self) -> tuple[Any, ...]:
         return (self.vertices,)
 
     @property
@@ -171,11 +171,11 @@ class LinearLight(AbstractLight):
 
     kind: ClassVar[str] = "segment"
 
-    def emission(self, dtype: Any) -> Array:
+    def emission(self, dtype: Any) -> Any:
         return self.power.astype(dtype)
 
     @property
-    def geometry(self) -> tuple[Array, ...]:
+    def geometry(self) -> tuple[Any, ...]:
         return (self.start, self.end)
 
     @property
@@ -201,11 +201,11 @@ class PointLight(AbstractLight):
 
     kind: ClassVar[str] = "point"
 
-    def emission(self, dtype: Any) -> Array:
+    def emission(self, dtype: Any) -> Any:
         return self.intensity.astype(dtype)
 
     @property
-    def geometry(self) -> tuple[Array, ...]:
+    def geometry(self) -> tuple[Any, ...]:
         return (self.position,)
 
 
@@ -225,11 +225,11 @@ class DirectionalLight(AbstractLight):
 
     kind: ClassVar[str] = "directional"
 
-    def emission(self, dtype: Any) -> Array:
+    def emission(self, dtype: Any) -> Any:
         return self.irradiance.astype(dtype)
 
     @property
-    def geometry(self) -> tuple[Array, ...]:
+    def geometry(self) -> tuple[Any, ...]:
         return (self.direction,)
 
 
