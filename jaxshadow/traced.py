@@ -44,7 +44,7 @@ def _options(capacity: int | None, shadows: ShadowOptions | None) -> ShadowOptio
 
 def _shadowed(scene: Scene, integ: Any, points: Array, normals: Array, eyes: Array | None,
               opts: ShadowOptions) -> tuple[Array, Array]:
-    evaluator = TracedEngine(opts.capacity) if opts.use_engine() else DeviceKernels()
+    evaluator = TracedEngine(opts.capacity) if opts.use_engine() else DeviceKernels(compiled=False)
     out, overflow = evaluator(scene, integ, traced_receivers(points, normals, eyes))
     return out, jnp.asarray(overflow)
 

@@ -167,10 +167,14 @@ _device_compiled = eqx.filter_jit(device_values)
 
 
 class DeviceKernels(AbstractEvaluator):
-    """No engine: every receiver clipped against every occluder by the JAX kernels."""
+    """No engine: every receiver clipped against every occluder by the JAX kernels; `compiled`:
+    as one compiled call (the public entry points), else traced into the caller's program."""
+
+    compiled: bool = eqx.field(static=True, default=True)
 
     def __call__(self, scene: Scene, integ: Any, rx: Receivers) -> tuple[Any, Any]:
-        return _device_compiled(scene, integ, rx.points, rx.normals, rx.eye_rows), False
+        fn = _device_compiled if self.compiled else device_values
+        return fn(scene, integ, rx.points, rx.normals, rx.eye_rows), False
 
 
 def choose(options: ShadowOptions, scene: Scene, integ: Any, rx: Receivers) -> AbstractEvaluator:
