@@ -115,7 +115,7 @@ def tables(n: int, folder: str) -> dict:
 def scene_files(folder: str, subdivisions: int) -> dict:
     import jaxshadow as js
     from benchmarks.real_meshes import scan_like
-    from jaxshadow._scene.model import arrays_file_name
+    from jaxshadow._scene.format import arrays_file_name
 
     v, f = scan_like(subdivisions)
     v = v.astype(np.float32).astype(np.float64)

@@ -24,13 +24,12 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from ._core.misc import unit_rows as _unit_rows
 from ._kernels.specular import DEFAULT_DEGREE
-from ._scene.model import LinearLight, PolygonLight, Scene
-from ._shading.shade import _irradiance_traced, _specular_traced
-from ._shadows import compiled as _shadows_compiled
-from ._shadows import plan as _shadows
-from ._shadows.plan import DEFAULT_OPTIONS, Lambert, Phong, ShadowOptions
+from ._scene.model import Scene
+from ._shading.shade import unoccluded_irradiance, unoccluded_specular
+from ._shadows.evaluators import DeviceKernels, TracedEngine, traced_receivers
+from ._shadows.integrands import Lambert, Phong
+from ._shadows.plan import DEFAULT_OPTIONS, ShadowOptions, plan
 
 __all__ = ["DEFAULT_SPECULAR_DEGREE", "irradiance", "specular", "pin", "shadow_capacity"]
 
@@ -45,9 +44,9 @@ def _options(capacity: int | None, shadows: ShadowOptions | None) -> ShadowOptio
 
 def _shadowed(scene: Scene, integ: Any, points: Array, normals: Array, eyes: Array | None,
               opts: ShadowOptions) -> tuple[Array, Array]:
-    if opts.use_engine():
-        return _shadows_compiled.traced_values(scene, integ, points, _unit_rows(normals), eyes, opts.capacity)
-    return _shadows_compiled.device_values(scene, integ, points, _unit_rows(normals), eyes), jnp.zeros((), bool)
+    evaluator = TracedEngine(opts.capacity) if opts.use_engine() else DeviceKernels(compiled=False)
+    out, overflow = evaluator(scene, integ, traced_receivers(points, normals, eyes))
+    return out, jnp.asarray(overflow)
 
 
 def irradiance(
@@ -96,7 +95,7 @@ def irradiance(
         ```
     """
     if scene.occluders is None:
-        return _irradiance_traced(scene, points, normals), jnp.zeros((), bool)
+        return unoccluded_irradiance(scene, points, normals), jnp.zeros((), bool)
     return _shadowed(scene, Lambert(), points, normals, None, _options(capacity, shadows))
 
 
@@ -138,7 +137,7 @@ def specular(
         ```
     """
     if scene.occluders is None:
-        return _specular_traced(scene, points, normals, eyes, exponent, method, degree), jnp.zeros((), bool)
+        return unoccluded_specular(scene, points, normals, eyes, exponent, method, degree), jnp.zeros((), bool)
     return _shadowed(scene, Phong(exponent, method, int(degree)), points, normals, eyes, _options(capacity, shadows))
 
 
@@ -189,8 +188,7 @@ def shadow_capacity(scene: Scene, points: Any, normals: Any, lights: Any = None)
     p = np.ascontiguousarray(np.asarray(points, np.float64))
     n = np.asarray(normals, np.float64)
     n = np.ascontiguousarray(n / np.linalg.norm(n, axis=1, keepdims=True))
-    todo = [x for x in (scene.lights if lights is None else lights) if isinstance(x, (PolygonLight, LinearLight))]
+    todo = [x for x in (scene.lights if lights is None else lights) if x.kind in ("polygon", "segment")]
     if not todo or p.shape[0] == 0:
         return 0
-    plan = _shadows.plan(scene, p, n, codes=False, decoded=False, lights=todo)
-    return max(int(lp.counts.max(initial=0)) for lp in plan.lights)
+    return max(int(lp.counts.max(initial=0)) for lp in plan(scene, p, n, produce="classes", lights=todo).lights)

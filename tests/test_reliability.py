@@ -157,7 +157,7 @@ def test_row5_failing_save_scene_keeps_the_old_file(tmp_path, monkeypatch):
     def broken(*args, **kwargs):
         raise RuntimeError("serialiser failed")
 
-    import jaxshadow._scene.model as scene_module
+    import jaxshadow._scene.format as scene_module
 
     monkeypatch.setattr(scene_module, "scene_to_dict", broken)
     with pytest.raises(RuntimeError, match="serialiser failed"):

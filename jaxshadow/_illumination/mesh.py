@@ -154,7 +154,7 @@ class IlluminationMesh:
 
 
 def _same_lights(a: Scene, b: Scene) -> bool:
-    from .._scene.model import light_to_dict
+    from .._scene.format import light_to_dict
 
     la = [light_to_dict(x) for x in a.lights]
     lb = [light_to_dict(x) for x in b.lights]

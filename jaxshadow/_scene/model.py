@@ -1,4 +1,4 @@
-"""Scene model: lights, material, occluders as equinox Modules, plus the JSON scene format.
+"""Scene model: lights, material, occluders as equinox Modules (the JSON format: `format`).
 
 Every float field is a JAX array leaf (differentiable); flags such as a linear light's profile
 are static fields. Validation runs in NumPy when a light is built from concrete values and is
@@ -7,13 +7,9 @@ skipped under `jit`/`grad`/`vmap` (the inverse solvers rebuild lights from trace
 
 from __future__ import annotations
 
-import hashlib
-import io
-import json
-import os
-import zipfile
+import abc
 from collections.abc import Sequence
-from typing import Any, no_type_check
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
@@ -21,7 +17,6 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .._core.files import atomic_write
 from .._core.geometry import (
     check_convex_polygon,
     check_convex_polygon_cached,
@@ -37,18 +32,10 @@ from .._core.mesh import (
     Mesh,
     OccluderTopology,
     max_face_vertices,
-    mesh_dicts,
     stack_occluders,
     weld_polygons,
 )
 from .._kernels.linear import check_profile_exponent
-
-SCENE_FORMAT = "jaxshadow.scene"
-# 1: everything inline in the JSON. 2: meshes may live in a binary `.npz` beside it ("arrays").
-SCENE_VERSION = 1
-SCENE_VERSION_ARRAYS = 2
-READ_VERSIONS = (1, 2)
-MESH_ARRAYS_SUFFIX = ".meshes.npz"
 
 
 def _leaf(x: Any) -> Array:
@@ -67,7 +54,36 @@ def _all_concrete(*xs: Any) -> bool:
     return all(is_concrete(x) for x in xs)
 
 
-class PolygonLight(eqx.Module):
+class AbstractLight(eqx.Module):
+    """What every light says about itself, so that no caller asks which class it is.
+
+    - `kind` (class attribute): what the shadow engine computes for it and which integrand
+      method integrates it: `"polygon"` (a visible region), `"segment"` (visible pieces of a
+      segment), `"point"` or `"directional"` (a hard shadow ray).
+    - `emission(dtype)`: `(3,)` RGB emission the integrands are per unit of (radiance, power per
+      length, intensity or irradiance).
+    - `geometry`: the arrays that place it (vertices; start and end; position; direction).
+    - `group`: lights of one group share one stacked kernel (`group` differs from `kind` only
+      for segments, one group per cosine exponent).
+    """
+
+    kind: ClassVar[str]
+
+    @abc.abstractmethod
+    def emission(self, dtype: Any) -> Any:
+        """`(3,)` RGB emission as `dtype`."""
+
+    @property
+    @abc.abstractmethod
+    def geometry(self) -> tuple[Any, ...]:
+        """The arrays that place the light."""
+
+    @property
+    def group(self) -> str:
+        return self.kind
+
+
+class PolygonLight(AbstractLight):
     """A planar convex polygon of uniform radiance (Lambertian emitter).
 
     **Fields:**
@@ -89,6 +105,15 @@ class PolygonLight(eqx.Module):
         self.vertices = _leaf(vertices)
         self.radiance = _rgb_leaf(radiance)
 
+    kind: ClassVar[str] = "polygon"
+
+    def emission(self, dtype: Any) -> Any:
+        return self.radiance.astype(dtype)
+
+    @property
+    def geometry(self) -> tuple[Any, ...]:
+        return (self.vertices,)
+
     @property
     def normal(self) -> Array:
         """Unit normal of the lit side (right-hand rule of the vertex order)."""
@@ -100,7 +125,7 @@ class PolygonLight(eqx.Module):
 PROFILES = ("isotropic", "cosine")
 
 
-class LinearLight(eqx.Module):
+class LinearLight(AbstractLight):
     """A segment light (a thin tube) with power per unit length $\\Phi$.
 
     **Fields:**
@@ -144,8 +169,21 @@ class LinearLight(eqx.Module):
         self.profile = profile
         self.exponent = int(exponent) if profile == "cosine" else 0
 
+    kind: ClassVar[str] = "segment"
 
-class PointLight(eqx.Module):
+    def emission(self, dtype: Any) -> Any:
+        return self.power.astype(dtype)
+
+    @property
+    def geometry(self) -> tuple[Any, ...]:
+        return (self.start, self.end)
+
+    @property
+    def group(self) -> str:
+        return f"linear-{self.exponent}"
+
+
+class PointLight(AbstractLight):
     """An isotropic point light. `position (3,)` (m), `intensity (3,)` RGB (W/sr).
 
     $E = I \\max(0, \\cos\\theta) / r^2$.
@@ -161,8 +199,17 @@ class PointLight(eqx.Module):
         self.position = _leaf(position)
         self.intensity = _rgb_leaf(intensity)
 
+    kind: ClassVar[str] = "point"
 
-class DirectionalLight(eqx.Module):
+    def emission(self, dtype: Any) -> Any:
+        return self.intensity.astype(dtype)
+
+    @property
+    def geometry(self) -> tuple[Any, ...]:
+        return (self.position,)
+
+
+class DirectionalLight(AbstractLight):
     """A distant light. `direction (3,)`: the direction light travels (any non-zero length);
     `irradiance (3,)` RGB (W/m^2) on a surface facing it. $E = E_0 \\max(0, -n\\cdot\\hat d)$."""
 
@@ -175,6 +222,15 @@ class DirectionalLight(eqx.Module):
             check_rgb(irradiance, "DirectionalLight.irradiance")
         self.direction = _leaf(direction)
         self.irradiance = _rgb_leaf(irradiance)
+
+    kind: ClassVar[str] = "directional"
+
+    def emission(self, dtype: Any) -> Any:
+        return self.irradiance.astype(dtype)
+
+    @property
+    def geometry(self) -> tuple[Any, ...]:
+        return (self.direction,)
 
 
 Light = PolygonLight | LinearLight | PointLight | DirectionalLight
@@ -297,7 +353,7 @@ class Scene(eqx.Module):
     def __init__(self, lights: Sequence[Any] = (), occluders: Any = None, ambient: Any = 0.0):
         lights = tuple(lights)
         for i, light in enumerate(lights):
-            if not isinstance(light, (PolygonLight, LinearLight, PointLight, DirectionalLight)):
+            if not isinstance(light, AbstractLight):
                 raise ValueError(
                     f"Scene.lights[{i}]: expected PolygonLight, LinearLight, PointLight or "
                     f"DirectionalLight, got {type(light).__name__}."
@@ -319,7 +375,7 @@ def checked_scene(scene: Any, what: str) -> Scene:
         raise ValueError(f"{what}: expected a jaxshadow.Scene, got {type(scene).__name__}.")
     scene = check_finite_leaves(scene, f"{what}: scene")
     for i, light in enumerate(scene.lights):
-        if isinstance(light, PolygonLight) and is_concrete(light.vertices):
+        if light.kind == "polygon" and is_concrete(light.vertices):
             check_convex_polygon_cached(light.vertices, f"{what}: scene.lights[{i}].vertices")
     return scene
 
@@ -345,413 +401,3 @@ def checked_material(material: Any, what: str) -> Material:
     for leaf in leaves:
         bad = bad | ~jnp.all(jnp.isfinite(leaf) & (leaf >= 0))
     return eqx.error_if(material, bad, f"{what}: a material value is negative or not finite.")
-
-
-# --------------------------------------------------------------------------------------
-# JSON scene format (versioned)
-# --------------------------------------------------------------------------------------
-
-
-def _tolist(x: Any) -> Any:
-    return np.asarray(x, dtype=np.float64).tolist()
-
-
-def light_to_dict(light: Any) -> dict:
-    if isinstance(light, PolygonLight):
-        return {"type": "polygon", "vertices": _tolist(light.vertices), "radiance": _tolist(light.radiance)}
-    if isinstance(light, LinearLight):
-        d = {
-            "type": "linear",
-            "start": _tolist(light.start),
-            "end": _tolist(light.end),
-            "power": _tolist(light.power),
-            "profile": light.profile,
-        }
-        if light.profile == "cosine":
-            d["exponent"] = light.exponent
-        return d
-    if isinstance(light, PointLight):
-        return {"type": "point", "position": _tolist(light.position), "intensity": _tolist(light.intensity)}
-    if isinstance(light, DirectionalLight):
-        return {
-            "type": "directional",
-            "direction": _tolist(light.direction),
-            "irradiance": _tolist(light.irradiance),
-        }
-    raise TypeError(f"not a light: {type(light).__name__}")
-
-
-_LIGHT_FIELDS = {
-    "polygon": (PolygonLight, ("vertices",), ("radiance",)),
-    "linear": (LinearLight, ("start", "end"), ("power", "profile", "exponent")),
-    "point": (PointLight, ("position",), ("intensity",)),
-    "directional": (DirectionalLight, ("direction",), ("irradiance",)),
-}
-
-
-def _has_bool(v: Any) -> bool:
-    if isinstance(v, bool):
-        return True
-    return isinstance(v, list) and any(_has_bool(x) for x in v)
-
-
-def _numeric(v: Any, where: str) -> np.ndarray:
-    """A JSON value as a float64 array, with an error naming the entry (strings, booleans,
-    ragged lists)."""
-    if _has_bool(v):
-        raise ValueError(f"{where}: expected numbers, got a boolean in {v!r}.")
-    try:
-        a = np.asarray(v, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"{where}: expected numbers (a number or nested lists of equal length), got {v!r}.") from None
-    return a
-
-
-def light_from_dict(d: dict, where: str = "light") -> Any:
-    if not isinstance(d, dict) or "type" not in d:
-        raise ValueError(f"{where}: expected an object with a 'type' field.")
-    kind = d["type"]
-    if kind not in _LIGHT_FIELDS:
-        raise ValueError(f"{where}: unknown light type {kind!r} (expected one of {sorted(_LIGHT_FIELDS)}).")
-    cls, required, optional = _LIGHT_FIELDS[kind]
-    unknown = set(d) - {"type", *required, *optional}
-    if unknown:
-        raise ValueError(f"{where}: unknown field(s) {sorted(unknown)} for a {kind} light.")
-    missing = [k for k in required if k not in d]
-    if missing:
-        raise ValueError(f"{where}: missing field(s) {missing} for a {kind} light.")
-    kwargs = {k: d[k] for k in (*required, *optional) if k in d}
-    for k, v in list(kwargs.items()):
-        if k == "profile" and not isinstance(v, str):
-            raise ValueError(f"{where}: 'profile' must be a string, got {v!r}.")
-        if k == "exponent" and (isinstance(v, bool) or not isinstance(v, (int, float))):
-            raise ValueError(f"{where}: 'exponent' must be a number, got {v!r}.")
-        if k not in ("profile", "exponent"):
-            kwargs[k] = _numeric(v, f"{where}.{k}")
-    try:
-        return cls(**kwargs)
-    except ValueError as err:
-        raise ValueError(f"{where}: {err}") from None
-
-
-def material_to_dict(material: Material) -> dict:
-    return {
-        "ka": _tolist(material.ka),
-        "kd": _tolist(material.kd),
-        "ks": _tolist(material.ks),
-        "exponent": float(np.asarray(material.exponent)),
-    }
-
-
-def material_from_dict(d: dict, where: str = "material") -> Material:
-    unknown = set(d) - {"ka", "kd", "ks", "exponent"}
-    if unknown:
-        raise ValueError(f"{where}: unknown field(s) {sorted(unknown)}.")
-    values = {k: _numeric(v, f"{where}.{k}") for k, v in d.items()}
-    try:
-        return Material(**values)
-    except ValueError as err:
-        raise ValueError(f"{where}: {err}") from None
-
-
-def scene_to_dict(scene: Scene, material: Material | None = None) -> dict:
-    """The JSON-able dict of a scene (and optionally a material), schema version 1.
-
-    Example:
-        ```python
-        import jaxshadow as js
-
-        d = js.scene_to_dict(js.Scene([js.PointLight([0, 0, 2.0], 1.0)], ambient=0.05))   # JSON-ready
-        ```
-    """
-    out: dict[str, Any] = {
-        "format": SCENE_FORMAT,
-        "version": SCENE_VERSION,
-        "lights": [light_to_dict(light) for light in scene.lights],
-        "occluders": [],
-        "ambient": _tolist(scene.ambient),
-    }
-    if scene.occluders is not None:
-        out["occluders"] = _occluder_entries(scene, None)
-    if material is not None:
-        out["material"] = material_to_dict(material)
-    return out
-
-
-def _occluder_entries(scene: Scene, arrays: dict[str, np.ndarray] | None) -> list[Any]:
-    """The JSON `occluders` entries of `scene`, in entry order: `(k, 3)` lists for plain
-    polygons; for each mesh, its vertices and faces recovered (vectorised) from the padded faces
-    by exact equality of coordinates, vertices in order of first use (`mesh_dicts`' result).
-    With `arrays`, each mesh goes there as `meshN_vertices (V, 3)` and `meshN_faces (F, K)`
-    (rows padded with -1) and its entry is `{"mesh": {"arrays": "meshN"}}`; else it is
-    `{"mesh": {"vertices": [...], "faces": [...]}}`."""
-    faces = np.asarray(scene.occluders, dtype=np.float64)
-    topo = scene.occluder_topology or OccluderTopology.independent(faces.shape[0])
-    objs = np.asarray(topo.face_object)
-    starts = np.flatnonzero(np.r_[True, objs[1:] != objs[:-1]]) if len(objs) else np.zeros(0, np.int64)
-    ends = np.r_[starts[1:], len(objs)]
-    out: list[Any] = []
-    for f, g in zip(starts.tolist(), ends.tolist(), strict=True):
-        if not topo.from_mesh[f]:
-            out.extend(mesh_dicts(faces[f:g], OccluderTopology.independent(g - f)))
-            continue
-        v, loops = _mesh_arrays(faces[f:g])
-        if arrays is not None:
-            key = f"mesh{len(arrays) // 2}"
-            arrays[f"{key}_vertices"], arrays[f"{key}_faces"] = v, loops
-            out.append({"mesh": {"arrays": key}})
-        else:
-            out.append({"mesh": {"vertices": v.tolist(),
-                                 "faces": [row[row >= 0].tolist() for row in loops]}})
-    return out
-
-
-def _mesh_arrays(block: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """`(vertices (V, 3), faces (G, K))` of one mesh's padded faces `block (G, Ko, 3)`: trailing
-    copies of a face's first vertex are padding (a face keeps at least three vertices), equal
-    coordinates are one vertex (in order of first use), faces padded with -1."""
-    from .._core.welding import weld_vertices
-
-    eq = np.all(block == block[:, :1], axis=2)[:, 1:]  # (G, Ko - 1)
-    pad = np.flip(np.cumprod(np.flip(eq, axis=1), axis=1), axis=1).astype(bool)
-    pad[:, :2] = False
-    real = np.concatenate([np.ones((block.shape[0], 1), bool), ~pad], axis=1)
-    k = int(real.sum(axis=1).max())
-    pts = block[real]
-    index, first = weld_vertices(pts)
-    loops = np.full(real.shape, -1, dtype=np.int64)
-    loops[real] = index
-    return pts[first], loops[:, :k]
-
-
-def _occluder_from_json(o: Any, where: str, arrays: Any = None) -> Any:
-    if isinstance(o, dict):
-        if set(o) == {"mesh"} and isinstance(o["mesh"], dict) and set(o["mesh"]) == {"arrays"}:
-            return _mesh_from_arrays(o["mesh"]["arrays"], where, arrays)
-        if set(o) != {"mesh"} or not isinstance(o["mesh"], dict) or set(o["mesh"]) != {"vertices", "faces"}:
-            raise ValueError(f"{where}: a mesh is {{'mesh': {{'vertices': [...], 'faces': [...]}}}} "
-                             "or {'mesh': {'arrays': NAME}}.")
-        faces = o["mesh"]["faces"]
-        if not isinstance(faces, list) or not all(isinstance(f, list) and all(isinstance(i, int) and not isinstance(i, bool) for i in f) for f in faces):
-            raise ValueError(f"{where}: mesh faces must be lists of integer vertex indices.")
-        try:
-            return Mesh(_numeric(o["mesh"]["vertices"], f"{where}.vertices"), faces)
-        except ValueError as err:
-            raise ValueError(f"{where}: {err}") from None
-    return _numeric(o, where)
-
-
-def _mesh_from_arrays(key: Any, where: str, arrays: Any) -> Mesh:
-    """A mesh stored in the scene's arrays file: `{key}_vertices` `(V, 3)` float and
-    `{key}_faces` `(F, K)` integer, rows padded at their end with -1."""
-    if arrays is None:
-        raise ValueError(f"{where}: the mesh is stored in the scene's arrays file; read the scene with "
-                         "jaxshadow.load_scene(path), which finds that file beside the JSON.")
-    if not isinstance(key, str) or f"{key}_vertices" not in arrays or f"{key}_faces" not in arrays:
-        raise ValueError(f"{where}: the arrays file has no mesh {key!r}.")
-    v, f = np.asarray(arrays[f"{key}_vertices"]), np.asarray(arrays[f"{key}_faces"])
-    if not np.issubdtype(f.dtype, np.integer) or f.ndim != 2 or f.shape[1] < 3:
-        raise ValueError(f"{where}: mesh faces must be an (F, K >= 3) array of integer vertex indices, "
-                         f"got {f.shape} {f.dtype}.")
-    if not np.issubdtype(v.dtype, np.floating) or v.ndim != 2 or v.shape[1] != 3:
-        raise ValueError(f"{where}: mesh vertices must be a (V, 3) float array, got {v.shape} {v.dtype}.")
-    used = f >= 0
-    if np.any(f < -1) or np.any(used[:, 1:] & ~used[:, :-1]):
-        raise ValueError(f"{where}: mesh faces: a negative index other than the -1 padding at a row's end.")
-    faces: Any = f if used.all() else [row[row >= 0] for row in f]
-    try:
-        return Mesh(v.astype(np.float64), faces)
-    except ValueError as err:
-        raise ValueError(f"{where}: {err}") from None
-
-
-# Validates its own inputs (ValueError, docs/design.md): no runtime annotation check before it.
-@no_type_check
-def scene_from_dict(d: dict, arrays: Any = None) -> Scene:
-    """Build a Scene from its dict form, with errors naming the offending entry.
-
-    **Arguments:** `d`: the dict (schema version 1, or 2 whose meshes may be stored apart);
-    `arrays`: for version 2, the mapping of the scene's arrays file (`load_scene` reads it).
-
-    Example:
-        ```python
-        import jaxshadow as js
-
-        d = js.scene_to_dict(js.Scene([js.PointLight([0, 0, 2.0], 1.0)]))
-        scene = js.scene_from_dict(d)
-        ```
-    """
-    if not isinstance(d, dict):
-        raise ValueError("scene: expected a JSON object.")
-    if d.get("format") != SCENE_FORMAT:
-        raise ValueError(f"scene: 'format' must be {SCENE_FORMAT!r}, got {d.get('format')!r}.")
-    version = d.get("version")
-    if isinstance(version, bool) or not isinstance(version, int) or version not in READ_VERSIONS:
-        raise ValueError(
-            f"scene: unsupported schema version {d.get('version')!r} (this jaxshadow reads "
-            f"{', '.join(map(str, READ_VERSIONS))})."
-        )
-    known = {"format", "version", "lights", "occluders", "ambient", "material"}
-    unknown = set(d) - (known | {"arrays"} if version >= SCENE_VERSION_ARRAYS else known)
-    if unknown:
-        raise ValueError(f"scene: unknown field(s) {sorted(unknown)}.")
-    if "lights" not in d:
-        raise ValueError("scene: missing field 'lights' (a list of lights; [] for none).")
-    raw_lights = d["lights"]
-    if not isinstance(raw_lights, list):
-        raise ValueError(f"scene: 'lights' must be a list, got {type(raw_lights).__name__}.")
-    lights = [light_from_dict(ld, f"scene.lights[{i}]") for i, ld in enumerate(raw_lights)]
-    occl = d.get("occluders") or None
-    if occl is not None:
-        if not isinstance(occl, list):
-            raise ValueError(f"scene: 'occluders' must be a list of polygons, got {type(occl).__name__}.")
-        occl = [_occluder_from_json(o, f"scene.occluders[{i}]", arrays) for i, o in enumerate(occl)]
-    ambient = _numeric(d.get("ambient", 0.0), "scene.ambient")
-    return Scene(lights=lights, occluders=occl, ambient=ambient)
-
-
-def save_scene(scene: Any, path: str | os.PathLike, material: Any = None) -> None:
-    """Write a scene (and optionally a material) to a JSON file.
-
-    A scene without meshes is one JSON file (schema version 1). A scene with `Mesh` occluders
-    gets schema version 2: each mesh's vertices and faces go, as arrays, to a NumPy `.npz`
-    file beside the JSON, `<stem>.meshes.npz` (its name and SHA-256 in the JSON's `arrays`
-    entry), so large meshes are not text; keep the two files together.
-
-    Each file is built first and written through `_files.atomic_write` (a temporary file in
-    the same directory, renamed over the target when complete), the arrays before the JSON: a
-    bad argument, a failing serialiser or a full disk leaves existing files as they were, and
-    a JSON left beside arrays from another save is refused by `load_scene` (the hash differs).
-
-    **Arguments:** `scene` (`Scene`), `path` (file name), `material` (`Material` or `None`).
-
-    Example:
-        ```python
-        import os, tempfile
-        import jaxshadow as js
-
-        scene = js.Scene([js.PointLight([0, 0, 2.0], 1.0)], ambient=0.05)
-        path = os.path.join(tempfile.mkdtemp(), "scene.json")
-        js.save_scene(scene, path, material=js.Material(ka=0.1, kd=0.6, ks=0.3, exponent=20.0))
-        ```
-    """
-    if not isinstance(scene, Scene):
-        raise ValueError(f"save_scene: expected a jaxshadow.Scene, got {type(scene).__name__}.")
-    if material is not None and not isinstance(material, Material):
-        raise ValueError(f"save_scene: material must be a jaxshadow.Material or None, got {type(material).__name__}.")
-    d = scene_to_dict(Scene(scene.lights, None, scene.ambient), material)
-    arrays: dict[str, np.ndarray] = {}
-    if scene.occluders is not None:
-        d["occluders"] = _occluder_entries(scene, arrays)
-    if arrays:
-        name = arrays_file_name(path)
-        buf = io.BytesIO()
-        np.savez(buf, **arrays)
-        data = buf.getvalue()
-        d["version"] = SCENE_VERSION_ARRAYS
-        d["arrays"] = {"file": name, "sha256": hashlib.sha256(data).hexdigest()}
-        with atomic_write(os.path.join(os.path.dirname(os.path.abspath(path)), name), "wb") as fb:
-            fb.write(data)
-    text = json.dumps(d, indent=2)
-    with atomic_write(path) as f:
-        f.write(text)
-
-
-def arrays_file_name(path: str | os.PathLike) -> str:
-    """The name of the arrays file `save_scene` writes beside the scene JSON `path`:
-    `scene.json` -> `scene.meshes.npz`."""
-    return os.path.splitext(os.path.basename(os.fspath(path)))[0] + MESH_ARRAYS_SUFFIX
-
-
-def _read_arrays(path: str | os.PathLike, d: Any) -> dict[str, np.ndarray] | None:
-    """The arrays file a version-2 scene JSON `d` (read from `path`) names, checked against its
-    SHA-256; `None` when `d` names none. `ValueError` naming both files otherwise."""
-    if not isinstance(d, dict) or "arrays" not in d:
-        return None
-    ref = d["arrays"]
-    if not isinstance(ref, dict) or set(ref) != {"file", "sha256"} or not all(isinstance(x, str) for x in ref.values()):
-        raise ValueError(f"{path}: 'arrays' must be {{'file': NAME, 'sha256': HEX}}, got {ref!r}.")
-    name = ref["file"]
-    if not name or os.path.basename(name) != name or name in (".", ".."):
-        raise ValueError(f"{path}: 'arrays.file' must be a file name in the scene's directory, got {name!r}.")
-    full = os.path.join(os.path.dirname(os.path.abspath(path)), name)
-    try:
-        with open(full, "rb") as fh:
-            data = fh.read()
-    except FileNotFoundError:
-        raise ValueError(f"{path}: its mesh arrays file {name!r} is missing (save_scene writes it beside "
-                         "the JSON; copy both files).") from None
-    except OSError as err:
-        raise ValueError(f"{path}: its mesh arrays file {name!r} cannot be read ({err}).") from None
-    if hashlib.sha256(data).hexdigest() != ref["sha256"]:
-        raise ValueError(f"{path}: its mesh arrays file {name!r} does not match the scene (corrupt, or "
-                         "written by another save); save the scene again.")
-    try:
-        with np.load(io.BytesIO(data), allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as err:
-        raise ValueError(f"{path}: its mesh arrays file {name!r} is not a NumPy .npz file ({err}).") from None
-
-
-def _read_json(path: str | os.PathLike) -> Any:
-    """A JSON document from a file, with a `ValueError` naming the path (missing file, a
-    directory, unreadable, not JSON) instead of a traceback."""
-    try:
-        with open(path) as f:
-            return json.load(f)
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{path}: not valid JSON ({err}).") from None
-    except IsADirectoryError:
-        raise ValueError(f"{path}: is a directory, not a scene file.") from None
-    except FileNotFoundError:
-        raise ValueError(f"{path}: no such file.") from None
-    except (PermissionError, UnicodeDecodeError) as err:
-        raise ValueError(f"{path}: cannot be read ({err}).") from None
-    except RecursionError:
-        raise ValueError(f"{path}: JSON nested too deeply to read.") from None
-
-
-def load_scene(path: str | os.PathLike) -> Scene:
-    """Read a scene from a JSON file written by `save_scene` (or by hand, same schema), with
-    its meshes' arrays file when it names one (schema version 2, checked by its SHA-256).
-
-    **Returns:** the `Scene`; `ValueError` naming the path or the offending entry otherwise.
-
-    Example:
-        ```python
-        import os, tempfile
-        import jaxshadow as js
-
-        path = os.path.join(tempfile.mkdtemp(), "scene.json")
-        js.save_scene(js.Scene([js.PointLight([0, 0, 2.0], 1.0)]), path)
-        scene = js.load_scene(path)
-        ```
-    """
-    d = _read_json(path)
-    arrays = _read_arrays(path, d)
-    try:
-        return scene_from_dict(d, arrays=arrays)
-    except RecursionError:
-        raise ValueError(f"{path}: a value is nested too deeply to be a scene entry.") from None
-
-
-def load_material(path: str | os.PathLike) -> Material:
-    """Read the `material` entry of a scene JSON file.
-
-    Example:
-        ```python
-        import os, tempfile
-        import jaxshadow as js
-
-        path = os.path.join(tempfile.mkdtemp(), "scene.json")
-        js.save_scene(js.Scene([js.PointLight([0, 0, 2.0], 1.0)]), path,
-                      material=js.Material(ka=0.1, kd=0.6, ks=0.3, exponent=20.0))
-        material = js.load_material(path)
-        ```
-    """
-    d = _read_json(path)
-    if not isinstance(d, dict) or "material" not in d:
-        raise ValueError(f"{path}: no 'material' entry.")
-    if not isinstance(d["material"], dict):
-        raise ValueError(f"{path}: 'material' must be an object, got {type(d['material']).__name__}.")
-    return material_from_dict(d["material"])

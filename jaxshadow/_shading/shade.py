@@ -7,7 +7,7 @@ scene without linear lights never traces the linear kernel); lights of one kind 
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, no_type_check
 
 import equinox as eqx
 import jax
@@ -15,15 +15,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .._core.geometry import (
-    check_points_normals,
-    check_values_eagerly,
-    evaluate_checked,
-    inputs_ok,
-    pad_polygons_jax,
-    raise_if_bad,
-)
-from .._core.misc import map_chunks, safe_normalize, unit_rows, unit_rows_host
+from .._core.geometry import check_points_normals, evaluate_checked, inputs_ok, pad_polygons_jax
+from .._core.misc import map_chunks, safe_normalize, unit_rows
 from .._kernels.linear import linear_irradiance_kernel
 from .._kernels.point import directional_irradiance_kernel, point_irradiance_kernel
 from .._kernels.polygon import form_factor_kernel
@@ -34,37 +27,26 @@ from .._kernels.specular import (
     polygon_specular_kernel,
     segment_specular_kernel,
 )
-from .._scene.model import (
-    DirectionalLight,
-    LinearLight,
-    Material,
-    PointLight,
-    PolygonLight,
-    Scene,
-    checked_material,
-    checked_scene,
-)
-from .._shadows import compiled as _shadows_compiled
-from .._shadows import plan as _shadows
-from .._shadows.plan import DEFAULT_OPTIONS, Lambert, Phong, ShadowOptions
+from .._scene.model import Material, Scene, checked_material, checked_scene
+from .._shadows.evaluators import Receivers, choose, receivers
+from .._shadows.integrands import Lambert, Phong
+from .._shadows.plan import DEFAULT_OPTIONS, ShadowOptions
 
 
 def _stack(lights: list, field: str, dt: Any) -> Array:
     return jnp.stack([getattr(light, field) for light in lights]).astype(dt)
 
 
+def _emissions(lights: list, dt: Any) -> Array:
+    return jnp.stack([light.emission(dt) for light in lights])
+
+
 def _group(scene: Scene) -> dict[str, list]:
-    """Lights by kernel: polygon, point, directional, and one group per linear-light exponent."""
+    """Lights by kernel (`AbstractLight.group`): polygon, point, directional, and one group per
+    linear-light exponent."""
     groups: dict[str, list] = {"polygon": [], "point": [], "directional": []}
     for light in scene.lights:
-        if isinstance(light, PolygonLight):
-            groups["polygon"].append(light)
-        elif isinstance(light, PointLight):
-            groups["point"].append(light)
-        elif isinstance(light, DirectionalLight):
-            groups["directional"].append(light)
-        elif isinstance(light, LinearLight):
-            groups.setdefault(f"linear-{light.exponent}", []).append(light)
+        groups.setdefault(light.group, []).append(light)
     return groups
 
 
@@ -76,16 +58,12 @@ def _per_light(kernel: Any, points: Array, normals: Array, *light_args: Array) -
     )
 
 
-def _irradiance_traced(scene: Scene, points: Array, normals: Array) -> Array:
-    """Irradiance `(N, 3)` of a scene *without occluders* (scenes with occluders go through the
-    shadow engine, `_shadows`). Traceable, no input checks (`_irradiance_impl` is this function
-    jitted). The solvers call it (`jaxshadow.traced`) inside their own compiled programs: a
-    nested jit there is traced once and then transformed again by each `jvp` / `vmap` around it."""
+def unoccluded_irradiance(scene: Scene, points: Float[Array, "N 3"], normals: Float[Array, "N 3"]) -> Float[Array, "N 3"]:
+    """Irradiance `(N, 3)` (W/m^2) of a scene *without occluders* (scenes with occluders go
+    through the shadow engine, `_shadows`). Traceable, no input checks. The solvers call it
+    (`jaxshadow.traced`) inside their own compiled programs."""
     terms = _irradiance_terms(scene, points, normals)
     return combine_terms(terms, points.shape, points.dtype)
-
-
-_irradiance_impl = eqx.filter_jit(_irradiance_traced)
 
 
 def _irradiance_terms(scene: Scene, points: Array, normals: Array) -> tuple[tuple[Array, Array], ...]:
@@ -95,26 +73,23 @@ def _irradiance_terms(scene: Scene, points: Array, normals: Array) -> tuple[tupl
     dt = points.dtype
     normals = unit_rows(normals)
     terms = []
-    for key, lights in _group(scene).items():
+    for lights in _group(scene).values():
         if not lights:
             continue
-        if key == "polygon":
+        kind = lights[0].kind
+        if kind == "polygon":
             verts = pad_polygons_jax([light.vertices for light in lights]).astype(dt)
             g = jnp.pi * _per_light(form_factor_kernel, points, normals, verts)
-            emission = _stack(lights, "radiance", dt)
-        elif key.startswith("linear-"):
+        elif kind == "segment":
             m = lights[0].exponent
             kern = lambda p, n, a, b: linear_irradiance_kernel(p, n, a, b, m)  # noqa: B023, E731
             g = _per_light(kern, points, normals, _stack(lights, "start", dt), _stack(lights, "end", dt))
-            emission = _stack(lights, "power", dt)
-        elif key == "point":
+        elif kind == "point":
             g = _per_light(point_irradiance_kernel, points, normals, _stack(lights, "position", dt))
-            emission = _stack(lights, "intensity", dt)
         else:  # directional
             d = _stack(lights, "direction", dt)
             g = _per_light(lambda p, n, d: directional_irradiance_kernel(n, d), points, normals, d)
-            emission = _stack(lights, "irradiance", dt)
-        terms.append((g, emission))
+        terms.append((g, _emissions(lights, dt)))
     return tuple(terms)
 
 
@@ -132,69 +107,21 @@ def combine_terms(terms: tuple, shape: tuple, dtype: Any) -> Array:
 # --------------------------------------------------------------------------------------
 
 
-def _value_of(x: Any) -> Any:
-    """`x` as a NumPy array when its value is known (concrete, or a tracer of an eager
-    `jax.grad`/`jax.jacfwd` that carries its primal), else None."""
-    if not isinstance(x, jax.core.Tracer):
-        return np.asarray(x)
-    try:
-        return np.asarray(jax.extend.core.concrete_or_error(None, x))
-    except jax.errors.ConcretizationTypeError:
-        return None
+def _shadowed(scene: Scene, integ: Any, rx: Receivers, options: ShadowOptions, what: str) -> Array:
+    """`(N, 3)` for a scene with occluders through the evaluator `choose` picks; abstract
+    receivers' checks and a capacity overflow become run-time errors naming `what`."""
+    out, overflow = choose(options, scene, integ, rx)(scene, integ, rx)
+    if rx.ok is not None:
+        out = eqx.error_if(out, ~rx.ok, f"{what}: a point or normal is not finite, or a normal is zero.")
+    if isinstance(overflow, jax.Array):
+        out = eqx.error_if(out, overflow, f"{what}: a receiver's visible region has more than {options.capacity} "
+                           "boundary edges (or candidate faces); pass shadows=jaxshadow.ShadowOptions(capacity=...) "
+                           "with a larger capacity.")
+    return out
 
 
-def _valued(tree: Any) -> Any:
-    """`tree` with every array leaf replaced by its NumPy value, or None if one is abstract."""
-    leaves, treedef = jax.tree_util.tree_flatten(tree)
-    vals = []
-    for leaf in leaves:
-        v = _value_of(leaf) if isinstance(leaf, (jax.Array, np.ndarray, jax.core.Tracer)) else leaf
-        if v is None:
-            return None
-        vals.append(v)
-    return jax.tree_util.tree_unflatten(treedef, vals)
-
-
-@eqx.filter_jit
-def _device_impl(scene: Scene, integ: Any, points: Array, normals: Array, eyes: Array | None) -> Array:
-    return _shadows_compiled.device_values(scene, integ, points, unit_rows(normals), eyes)
-
-
-@jax.jit
-def _checked_unit_rows(points: Array, normals: Array) -> tuple[Array, Array]:
-    """`inputs_ok(points, normals)` and `unit_rows(normals)` (as `unit_rows_host` computes them)."""
-    return inputs_ok(points, normals), unit_rows(normals)
-
-
-def _shadowed(scene: Scene, integ: Any, points: Array, normals: Array, eyes: Array | None,
-              options: ShadowOptions, what: str) -> Array:
-    """`(N, 3)` for a scene with occluders through the shadow engine: on the host from concrete
-    values (`host_values`; `planned_values` when the inputs carry derivatives), in the compiled
-    program (`traced_values`, static capacity, overflow an error) when they are abstract."""
-    tree = (scene, integ, points, normals, eyes)
-    if not options.use_engine():
-        check_values_eagerly(points, normals, what)
-        out = _device_impl(scene, integ, points, normals, eyes)
-        return eqx.error_if(out, ~inputs_ok(points, normals), f"{what}: a point or normal is not finite, or a normal is zero.")
-    if not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree)):
-        good, unit = _checked_unit_rows(points, normals)  # one compiled call
-        raise_if_bad(good, points, normals, what)
-        p = np.asarray(points)
-        e = None if eyes is None else np.asarray(eyes)
-        return _shadows.host_values(scene, integ, p, np.asarray(unit), e)
-    val = _valued((scene, points, normals))
-    if val is not None:
-        vscene, p, n = val
-        check_values_eagerly(p, n, what)
-        return _shadows.planned_values(scene, vscene, integ, points, unit_rows(normals), eyes, (p, unit_rows_host(n)))
-    total, overflow = _shadows_compiled.traced_values(scene, integ, points, unit_rows(normals), eyes, options.capacity)
-    total = eqx.error_if(total, ~inputs_ok(points, normals),
-                         f"{what}: a point or normal is not finite, or a normal is zero.")
-    return eqx.error_if(total, overflow, f"{what}: a receiver's visible region has more than {options.capacity} "
-                        "boundary edges (or candidate faces); pass shadows=jaxshadow.ShadowOptions(capacity=...) "
-                        "with a larger capacity.")
-
-
+# Validates its own inputs (ValueError, docs/design.md): no runtime annotation check before it.
+@no_type_check
 def irradiance(
     scene: Scene,
     points: Float[ArrayLike, "N 3"],
@@ -247,7 +174,7 @@ def irradiance(
     points, normals = check_points_normals(points, normals, "irradiance", values=False)
     options = _check_options(shadows, "irradiance")
     if scene.occluders is not None:
-        return _shadowed(scene, Lambert(), points, normals, None, options, "irradiance")
+        return _shadowed(scene, Lambert(), receivers(points, normals, None, "irradiance"), options, "irradiance")
     return evaluate_checked(lambda p, n: _irradiance_checked(scene, p, n), points, normals, "irradiance")
 
 
@@ -274,7 +201,7 @@ def _check_options(shadows: Any, what: str) -> ShadowOptions:
     return shadows
 
 
-def _check_eye(eye: Any, points: Array, what: str) -> Array:
+def _check_eye(eye: Any, points: Array | np.ndarray, what: str) -> Array:
     eye = eye if isinstance(eye, jnp.ndarray) else jnp.asarray(eye)
     if eye.shape != (3,) and eye.shape != points.shape:
         raise ValueError(f"{what}: eye must have shape (3,) or {points.shape}, got {eye.shape}.")
@@ -294,7 +221,7 @@ def _check_exponent(exponent: Any, dt: Any, what: str) -> Array:
     return e.astype(dt)
 
 
-def _specular_traced(
+def unoccluded_specular(
     scene: Scene,
     points: Array,
     normals: Array,
@@ -304,7 +231,8 @@ def _specular_traced(
     degree: int,
 ) -> Array:
     """Specular `(N, 3)` of a scene *without occluders* (traceable, no input checks;
-    `_specular_impl` is this function jitted)."""
+    `_specular_impl` is this function jitted): `points`, `normals`, `eyes` `(N, 3)`, `exponent` a
+    scalar array, `method` and `degree` as `specular`'s."""
     assert scene.occluders is None, "scenes with occluders go through the shadow engine (_shadows)"
     dt = points.dtype
     normals = safe_normalize(normals)
@@ -317,32 +245,31 @@ def _specular_traced(
             points, normals, eyes, *light_args
         )
 
-    for key, lights in _group(scene).items():
+    for lights in _group(scene).values():
         if not lights:
             continue
-        if key == "polygon":
+        kind = lights[0].kind
+        if kind == "polygon":
             verts = pad_polygons_jax([light.vertices for light in lights]).astype(dt)
             g = per_light(lambda p, n, e, v: polygon_specular_kernel(p, n, e, v, exponent, **opts), verts)
-            emission = _stack(lights, "radiance", dt)
-        elif key.startswith("linear-"):
+        elif kind == "segment":
             prof = None if lights[0].profile == "isotropic" else jnp.asarray(float(lights[0].exponent), dt)
             kern = lambda p, n, e, a, b: segment_specular_kernel(p, n, e, a, b, exponent, prof, **opts)  # noqa: B023, E731
             g = per_light(kern, _stack(lights, "start", dt), _stack(lights, "end", dt))
-            emission = _stack(lights, "power", dt)
-        elif key == "point":
+        elif kind == "point":
             g = per_light(lambda p, n, e, x: point_specular_kernel(p, n, e, x, exponent), _stack(lights, "position", dt))
-            emission = _stack(lights, "intensity", dt)
         else:
             d = _stack(lights, "direction", dt)
             g = per_light(lambda p, n, e, d: directional_specular_kernel(p, n, e, d, exponent), d)
-            emission = _stack(lights, "irradiance", dt)
-        total = total + jnp.sum(g[:, :, None] * emission[:, None, :], axis=0)  # fuses; a dot does not
+        total = total + jnp.sum(g[:, :, None] * _emissions(lights, dt)[:, None, :], axis=0)  # fuses; a dot does not
     return total
 
 
-_specular_impl = eqx.filter_jit(_specular_traced)
+_specular_impl = eqx.filter_jit(unoccluded_specular)
 
 
+# Validates its own inputs (ValueError, docs/design.md): no runtime annotation check before it.
+@no_type_check
 def specular(
     scene: Scene,
     points: Float[ArrayLike, "N 3"],
@@ -394,13 +321,16 @@ def specular(
     e = _check_exponent(exponent, points.dtype, "specular")
     options = _check_options(shadows, "specular")
     if scene.occluders is not None:
-        return _shadowed(scene, Phong(e, method, int(degree)), points, normals, eyes, options, "specular")
+        rx = receivers(points, normals, eyes, "specular")
+        return _shadowed(scene, Phong(e, method, int(degree)), rx, options, "specular")
     return map_chunks(
         lambda p, n, v: _specular_impl(scene, p, n, v, e, method, int(degree)),
         (points, normals, eyes),
     )
 
 
+# Validates its own inputs (ValueError, docs/design.md): no runtime annotation check before it.
+@no_type_check
 def shade(
     scene: Scene,
     material: Material,
@@ -449,8 +379,9 @@ def shade(
     if rows is not None and rows != points.shape[0]:
         raise ValueError(f"shade: the material has coefficients for {rows} receivers, got {points.shape[0]} points.")
     if scene.occluders is not None:
-        e = _shadowed(scene, Lambert(), points, normals, None, options, "shade")
-        s = _shadowed(scene, Phong(n, method, int(degree)), points, normals, eyes, options, "shade")
+        rx = receivers(points, normals, eyes, "shade")  # once for both terms
+        e = _shadowed(scene, Lambert(), rx, options, "shade")
+        s = _shadowed(scene, Phong(n, method, int(degree)), rx, options, "shade")
         return material.radiance(scene.ambient, e, s)
     # The same compiled irradiance as `irradiance` (its flag checks the points and normals).
     e = evaluate_checked(lambda p, q: _irradiance_checked(scene, p, q), points, normals, "shade")

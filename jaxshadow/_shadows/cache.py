@@ -31,8 +31,9 @@ from typing import Any
 import numpy as np
 
 from .._core.misc import unit_rows_host
-from .._scene.model import LinearLight, PointLight, PolygonLight, Scene
+from .._scene.model import Scene
 from . import plan as sh
+from .integrands import Lambert
 
 
 def _box_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -119,12 +120,9 @@ def affected(light: Any, points: np.ndarray, normals: np.ndarray, lo: np.ndarray
     picked = []  # per box: (receivers passing the cheap tests, the box's margin scale)
     for lo_g, hi_g in zip(lo_all, hi_all, strict=True):
         box_max = float(np.max(np.abs(np.concatenate([lo_g, hi_g]))))
-        if isinstance(light, (PolygonLight, LinearLight, PointLight)):
-            if isinstance(light, PointLight):
-                verts = np.asarray(light.position, np.float64)[None, :]
-            else:
-                verts = np.asarray(light.vertices if isinstance(light, PolygonLight)
-                                   else np.stack([light.start, light.end]), np.float64)
+        if light.kind != "directional":
+            # The light's points: a polygon's vertices, a segment's ends, a point light's position.
+            verts = np.concatenate([np.asarray(x, np.float64).reshape(-1, 3) for x in light.geometry])
             vlo, vhi = verts.min(axis=0), verts.max(axis=0)
             s_all = float(max(np.max(pmax), box_max, np.max(np.abs(verts)))) + 1.0
             cand = _plane_filter(points, separating_planes(verts, lo_g, hi_g, s_all), s_all)
@@ -137,7 +135,7 @@ def affected(light: Any, points: np.ndarray, normals: np.ndarray, lo: np.ndarray
                 ok &= (np.minimum(q, vlo[d]) <= hi_g[d] + mg) & (np.maximum(q, vhi[d]) >= lo_g[d] - mg)
             idx = cand[ok]
         else:
-            d = np.asarray(light.direction, np.float64)
+            d = np.asarray(light.geometry[0], np.float64)
             d = d / np.linalg.norm(d)
             # The shadow ray p - t d, t >= 0, meets the box only up to the box's far side.
             reach = np.linalg.norm(np.maximum(np.abs(lo_g), np.abs(hi_g))) + np.linalg.norm(points, axis=1)[:, None] + 1.0
@@ -152,7 +150,7 @@ def affected(light: Any, points: np.ndarray, normals: np.ndarray, lo: np.ndarray
     qx, qy, qz = points[union, 0], points[union, 1], points[union, 2]
     mx, my, mz = normals[union, 0], normals[union, 1], normals[union, 2]
     planes = [(mx, my, mz, mx * qx + my * qy + mz * qz, np.ones(union.size))]  # the horizon
-    if isinstance(light, PolygonLight):
+    if light.kind == "polygon":
         v = np.asarray(light.vertices, np.float64)
         centre = v.mean(axis=0)
         for i in range(v.shape[0]):
@@ -217,12 +215,11 @@ class ShadowCache:
         """The contribution per unit emission of light `light_i` at receivers `idx` (fresh)."""
         if idx.size == 0:
             return np.zeros(0, self._p.dtype)
-        pl = sh.plan(scene, self._p[idx], self._n[idx], codes=False, decoded=False, lights=[scene.lights[light_i]],
-                     lambert=True)
+        pl = sh.plan(scene, self._p[idx], self._n[idx], produce=Lambert.host_plan, lights=[scene.lights[light_i]])
         # The faces: segment lights clip their candidate faces (the other kinds do not read them).
         faces = np.asarray(scene.occluders, self._p.dtype)
-        return np.asarray(sh.light_values(pl.lights[0], scene.lights[light_i], sh.Lambert(), self._p[idx],
-                                          self._n[idx], self._p[idx], faces, True))
+        return np.asarray(sh.light_values(pl.lights[0], scene.lights[light_i], Lambert(), self._p[idx],
+                                          self._n[idx], self._p[idx], faces))
 
     def _combine(self) -> None:
         # The same compiled sum as `jaxshadow.irradiance`'s (so the two agree bit for bit).
@@ -269,13 +266,7 @@ class ShadowCache:
 
 
 def _geometry(light: Any) -> tuple:
-    if isinstance(light, PolygonLight):
-        return (np.asarray(light.vertices),)
-    if isinstance(light, LinearLight):
-        return (np.asarray(light.start), np.asarray(light.end))
-    if isinstance(light, PointLight):
-        return (np.asarray(light.position),)
-    return (np.asarray(light.direction),)
+    return tuple(np.asarray(x) for x in light.geometry)
 
 
 def _static(light: Any) -> tuple:

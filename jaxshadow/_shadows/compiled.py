@@ -17,47 +17,53 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._kernels.clip import directional_visibility, point_visibility, visible_edges
-from .._scene.model import LinearLight, PointLight, PolygonLight, Scene
+from .._scene.model import Scene
 from . import binding as vis
-from .plan import EDGE_BLOCK, MIN_BLOCK, _occluders, _profile, _segment_visible, emission
+from .integrands import segment_visible
+from .plan import EDGE_BLOCK, MIN_BLOCK, occluders_of, segment_profile
 
 # --------------------------------------------------------------------------------------
 # Abstract values: the engine inside the compiled program (XLA FFI), static capacities
 # --------------------------------------------------------------------------------------
 
 
-def _traced_light(light: Any, integ: Any, p, n, e, faces, topo, capacity: int) -> tuple[Any, Any]:
-    """`(g (n,), overflow)` of one light for a block of receivers, inside a compiled program."""
+def _traced_polygon(light: Any, integ: Any, p, n, e, faces, topo, capacity: int) -> tuple[Any, Any]:
+    verts = light.vertices.astype(p.dtype)
+    _, cnt, runs = vis.traced_polygon_codes(p, n, verts, faces, topo, capacity)
+    fn, f0 = vis.face_frames(faces)
+    table = vis.vertex_table(verts, faces)
+
+    def one(p_, n_, e_, r_):
+        s, t = vis.edges_from_codes(p_, n_, verts, table, fn, f0, r_)
+        return integ.contour(p_, n_, e_, verts, s, t)
+
+    return jax.vmap(one)(p, n, e, runs), jnp.any(cnt > capacity)
+
+
+def _traced_segment(light: Any, integ: Any, p, n, e, faces, topo, capacity: int) -> tuple[Any, Any]:
     dt = p.dtype
-    if isinstance(light, PolygonLight):
-        verts = light.vertices.astype(dt)
-        _, cnt, runs = vis.traced_polygon_codes(p, n, verts, faces, topo, capacity)
-        fn, f0 = vis.face_frames(faces)
-        table = vis.vertex_table(verts, faces)
+    a, b = light.start.astype(dt), light.end.astype(dt)
+    prof = segment_profile(light)
+    cnt, cand = vis.traced_segment_candidates(p, a, b, faces, topo, capacity)
+    # Unused slots repeat the first candidate (or face 0 where there is none: then the
+    # unoccluded value is taken).
+    first = jnp.where(cand[:, :1] >= 0, cand[:, :1], 0)
+    fidx = jnp.where(cand >= 0, cand, first)
+    occ = jnp.take(faces, fidx.reshape(-1), axis=0).reshape(fidx.shape + faces.shape[1:])
+    shadowed = jax.vmap(segment_visible, in_axes=(None, 0, 0, 0, None, None, None, 0))(integ, p, n, e, a, b, prof, occ)
+    free = jax.vmap(integ.segment, in_axes=(0, 0, 0, None, None, None))(p, n, e, a, b, prof)
+    return jnp.where(cnt > 0, shadowed, free), jnp.any(cnt > capacity)
 
-        def one(p_, n_, e_, r_):
-            s, t = vis.edges_from_codes(p_, n_, verts, table, fn, f0, r_)
-            return integ.contour(p_, n_, e_, verts, s, t)
 
-        return jax.vmap(one)(p, n, e, runs), jnp.any(cnt > capacity)
-    if isinstance(light, LinearLight):
-        a, b = light.start.astype(dt), light.end.astype(dt)
-        prof = _profile(light)
-        cnt, cand = vis.traced_segment_candidates(p, a, b, faces, topo, capacity)
-        # Unused slots repeat the first candidate (or face 0 where there is none: then the
-        # unoccluded value is taken).
-        first = jnp.where(cand[:, :1] >= 0, cand[:, :1], 0)
-        fidx = jnp.where(cand >= 0, cand, first)
-        occ = jnp.take(faces, fidx.reshape(-1), axis=0).reshape(fidx.shape + faces.shape[1:])
-        shadowed = jax.vmap(_segment_visible, in_axes=(None, 0, 0, 0, None, None, None, 0))(integ, p, n, e, a, b, prof, occ)
-        free = jax.vmap(integ.segment, in_axes=(0, 0, 0, None, None, None))(p, n, e, a, b, prof)
-        return jnp.where(cnt > 0, shadowed, free), jnp.any(cnt > capacity)
-    is_point = isinstance(light, PointLight)
-    x = (light.position if is_point else light.direction).astype(dt)
-    visible = vis.traced_hard_visibility(p, x, is_point, faces, topo)
-    kern = integ.point if is_point else integ.directional
-    g = jax.vmap(kern, in_axes=(0, 0, 0, None))(p, n, e, x)
+def _traced_hard(light: Any, integ: Any, p, n, e, faces, topo, capacity: int) -> tuple[Any, Any]:
+    x = light.geometry[0].astype(p.dtype)
+    visible = vis.traced_hard_visibility(p, x, light.kind == "point", faces, topo)
+    g = jax.vmap(getattr(integ, light.kind), in_axes=(0, 0, 0, None))(p, n, e, x)
     return jnp.where(visible > 0, g, 0.0), jnp.zeros((), bool)
+
+
+# `(g (n,), overflow)` of one light for a block of receivers, inside a compiled program, by kind.
+_TRACED = {"polygon": _traced_polygon, "segment": _traced_segment, "point": _traced_hard, "directional": _traced_hard}
 
 
 def traced_values(scene: Scene, integ: Any, points: Any, normals: Any, eyes: Any, capacity: int,
@@ -72,8 +78,8 @@ def traced_values(scene: Scene, integ: Any, points: Any, normals: Any, eyes: Any
         vis.warn_no_ffi()
         return device_values(scene, integ, points, normals, eyes), jnp.zeros((), bool)
     dt = points.dtype
-    e = points if eyes is None else eyes
-    faces = _occluders(scene).astype(dt)
+    e = eyes
+    faces = occluders_of(scene).astype(dt)
     topo = scene.occluder_topology
     chunk = chunk or max(MIN_BLOCK, EDGE_BLOCK // (4 * capacity))
 
@@ -82,8 +88,8 @@ def traced_values(scene: Scene, integ: Any, points: Any, normals: Any, eyes: Any
         total = jnp.zeros(p.shape, dt)
         over = jnp.zeros((), bool)
         for light in scene.lights:
-            g, o = _traced_light(light, integ, p, n, ee, faces, topo, capacity)
-            total = total + g[:, None] * emission(light, dt)[None, :]
+            g, o = _TRACED[light.kind](light, integ, p, n, ee, faces, topo, capacity)
+            total = total + g[:, None] * light.emission(dt)[None, :]
             over = over | o
         return total, over
 
@@ -109,26 +115,31 @@ def lax_chunks(block: Any, arrays: tuple, chunk: int) -> tuple[Any, Any]:
 # --------------------------------------------------------------------------------------
 
 
-def _device_light(light: Any, integ: Any, p, n, e, faces) -> Any:
-    dt = p.dtype
-    if isinstance(light, PolygonLight):
-        verts = light.vertices.astype(dt)
+def _device_polygon(light: Any, integ: Any, p, n, e, faces) -> Any:
+    verts = light.vertices.astype(p.dtype)
 
-        def one(p_, n_, e_):
-            s, t = visible_edges(p_, n_, verts, faces)
-            return integ.contour(p_, n_, e_, verts, s, t)
+    def one(p_, n_, e_):
+        s, t = visible_edges(p_, n_, verts, faces)
+        return integ.contour(p_, n_, e_, verts, s, t)
 
-        return jax.vmap(one)(p, n, e)
-    if isinstance(light, LinearLight):
-        a, b = light.start.astype(dt), light.end.astype(dt)
-        return jax.vmap(_segment_visible, in_axes=(None, 0, 0, 0, None, None, None, None))(
-            integ, p, n, e, a, b, _profile(light), faces)
-    is_point = isinstance(light, PointLight)
-    x = (light.position if is_point else light.direction).astype(dt)
-    vis_fn = point_visibility if is_point else directional_visibility
-    kern = integ.point if is_point else integ.directional
-    g = jax.vmap(kern, in_axes=(0, 0, 0, None))(p, n, e, x)
+    return jax.vmap(one)(p, n, e)
+
+
+def _device_segment(light: Any, integ: Any, p, n, e, faces) -> Any:
+    a, b = light.start.astype(p.dtype), light.end.astype(p.dtype)
+    return jax.vmap(segment_visible, in_axes=(None, 0, 0, 0, None, None, None, None))(
+        integ, p, n, e, a, b, segment_profile(light), faces)
+
+
+def _device_hard(light: Any, integ: Any, p, n, e, faces) -> Any:
+    x = light.geometry[0].astype(p.dtype)
+    vis_fn = point_visibility if light.kind == "point" else directional_visibility
+    g = jax.vmap(getattr(integ, light.kind), in_axes=(0, 0, 0, None))(p, n, e, x)
     return g * jax.vmap(vis_fn, in_axes=(0, None, None))(p, x, faces)
+
+
+_DEVICE = {"polygon": _device_polygon, "segment": _device_segment, "point": _device_hard,
+           "directional": _device_hard}
 
 
 def device_chunk(n_faces: int, ko: int) -> int:
@@ -143,14 +154,14 @@ def device_values(scene: Scene, integ: Any, points: Any, normals: Any, eyes: Any
     """`(N, 3)` with exact shadows from the device kernels: each receiver clipped against every
     occluder (`_clip.visible_edges`), no engine, traceable, chunked (unit `normals`)."""
     dt = points.dtype
-    e = points if eyes is None else eyes
-    faces = _occluders(scene).astype(dt)
+    e = eyes
+    faces = occluders_of(scene).astype(dt)
 
     def block(args):
         p, n, ee = args
         total = jnp.zeros(p.shape, dt)
         for light in scene.lights:
-            total = total + _device_light(light, integ, p, n, ee, faces)[:, None] * emission(light, dt)[None, :]
+            total = total + _DEVICE[light.kind](light, integ, p, n, ee, faces)[:, None] * light.emission(dt)[None, :]
         return total, jnp.zeros((), bool)
 
     return lax_chunks(block, (points, normals, e), device_chunk(faces.shape[0], faces.shape[1]))[0]

@@ -18,7 +18,7 @@ the specular term) consumes it:
 - **Point and directional lights.** Hard shadows from the engine's ray tests against its
   hierarchy, times the unoccluded kernel.
 
-Three ways to run the same plan, chosen by `_shade` from what the inputs are:
+Three ways to run the same plan, chosen once by `evaluators.choose` from what the inputs are:
 
 - `host_values`: every input concrete and nothing differentiated. The engine also decodes the
   boundary's points (in C++, with the formulas of `binding.decode_endpoints`), JAX only
@@ -37,31 +37,17 @@ from __future__ import annotations
 
 import functools
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._kernels.clip import (
-    lit_form_factor,
-    masked_contour_form_factor,
-    visible_segments,
-)
-from .._kernels.linear import linear_irradiance_kernel
-from .._kernels.point import directional_irradiance_kernel, point_irradiance_kernel
-from .._kernels.specular import (
-    DEFAULT_DEGREE,
-    contour_specular_kernel,
-    directional_specular_kernel,
-    point_specular_kernel,
-    polygon_specular_kernel,
-    segment_specular_kernel,
-)
-from .._scene.model import LinearLight, PointLight, PolygonLight, Scene
+from .._scene.model import LinearLight, Scene
 from . import binding as vis
+from .integrands import PRODUCE, segment_visible
 
 # Receivers per engine call (bounds the host memory of codes and edges) and edge (or occluder)
 # slots per compiled block: receivers per block = EDGE_BLOCK // capacity.
@@ -109,75 +95,8 @@ class ShadowOptions:
 DEFAULT_OPTIONS = ShadowOptions()
 
 
-# --------------------------------------------------------------------------------------
-# Integrands: what a light contributes per unit emission, given its visibility
-# --------------------------------------------------------------------------------------
-
-
-class Lambert(eqx.Module):
-    """Irradiance per unit emission: $\\pi F$ for polygons (per unit radiance), $E/\\Phi$ for
-    segments, $E/I$ for point lights, $E/E_0$ for directional lights."""
-
-    def polygon(self, p, n, e, verts):
-        return jnp.pi * lit_form_factor(p, n, verts)
-
-    def contour(self, p, n, e, verts, starts, ends):
-        return jnp.pi * masked_contour_form_factor(p, n, verts, starts, ends)
-
-    def segment(self, p, n, e, a, b, light: LinearLight):
-        return linear_irradiance_kernel(p, n, a, b, light.exponent)
-
-    def point(self, p, n, e, x):
-        return point_irradiance_kernel(p, n, x)
-
-    def directional(self, p, n, e, d):
-        return directional_irradiance_kernel(n, d)
-
-
-class Phong(eqx.Module):
-    """Phong-lobe integral per unit emission (Poulin eqs. 3.11, 3.12): `exponent` differentiable,
-    `method` and `degree` static."""
-
-    exponent: Any
-    method: str = eqx.field(static=True, default="chebyshev")
-    degree: int = eqx.field(static=True, default=DEFAULT_DEGREE)
-
-    def polygon(self, p, n, e, verts):
-        return polygon_specular_kernel(p, n, e, verts, self.exponent, method=self.method, degree=self.degree)
-
-    def contour(self, p, n, e, verts, starts, ends):
-        return contour_specular_kernel(p, n, e, starts, ends, self.exponent, method=self.method, degree=self.degree)
-
-    def segment(self, p, n, e, a, b, light: LinearLight):
-        prof = None if light.profile == "isotropic" else jnp.asarray(float(light.exponent), p.dtype)
-        return segment_specular_kernel(p, n, e, a, b, self.exponent, prof, method=self.method, degree=self.degree)
-
-    def point(self, p, n, e, x):
-        return point_specular_kernel(p, n, e, x, self.exponent)
-
-    def directional(self, p, n, e, d):
-        return directional_specular_kernel(p, n, e, d, self.exponent)
-
-
-def _segment_visible(integ: Any, p, n, e, a, b, light: LinearLight, occ):
-    """The segment integrand summed over the visible pieces of `a -> b` (occluders `occ`)."""
-    sa, sb = visible_segments(p, a, b, occ)
-    return jnp.sum(jax.vmap(lambda u, v: integ.segment(p, n, e, u, v, light))(sa, sb))
-
-
-def emission(light: Any, dt: Any) -> Any:
-    """The light's emission the integrands are per unit of: radiance, power, intensity or
-    irradiance (RGB)."""
-    if isinstance(light, PolygonLight):
-        return light.radiance.astype(dt)
-    if isinstance(light, LinearLight):
-        return light.power.astype(dt)
-    if isinstance(light, PointLight):
-        return light.intensity.astype(dt)
-    return light.irradiance.astype(dt)
-
-
-def _occluders(scene: Scene) -> Any:
+def occluders_of(scene: Scene) -> Any:
+    """The scene's padded occluder faces `(m, K, 3)` (the shadow engine needs a scene with them)."""
     assert scene.occluders is not None, "the shadow engine needs a scene with occluders"
     return scene.occluders
 
@@ -215,6 +134,13 @@ class LightPlan:
     faces: Any = None  # segment lights: candidate faces (CSR with `offsets`), np.ndarray
     lambert: Any = None  # polygon lights with `points`: each receiver's sum of Lambert's edge terms
     seconds: float = 0.0
+    produce: str = "classes"  # what was asked for (`integrands.PRODUCE`)
+
+    @property
+    def on_host(self) -> bool:
+        """The plan was made for concrete values, nothing differentiated (`host_values`): the
+        values it leads to are NumPy arrays and polygon boundaries come decoded (or summed)."""
+        return self.produce != "codes"
 
     @property
     def counts(self) -> np.ndarray:
@@ -266,32 +192,46 @@ def host_occluders(scene: Scene, dtype: Any) -> vis.HostOccluders:
     return vis.HostOccluders.of(np.asarray(scene.occluders), scene.occluder_topology, dtype)
 
 
-def plan(scene: Scene, points: np.ndarray, normals: np.ndarray, *, codes: bool, decoded: bool,
-         lights: list | None = None, lambert: bool = False) -> ShadowPlan:
-    """Run the engine for every light of `scene` (or `lights`) on concrete receivers (unit
-    `normals`); `lambert`: polygon lights' plans carry each receiver's Lambert edge sum."""
+def _plan_polygon(light: Any, points: np.ndarray, normals: np.ndarray, occ: vis.HostOccluders,
+                  produce: str) -> LightPlan:
+    pc = vis.polygon_codes(points, normals, np.asarray(light.vertices, points.dtype), occ, codes=produce == "codes",
+                           decoded=produce == "points", lambert=produce == "lambert")
+    return LightPlan("polygon", pc.classes, pc.stats[:, 0], pc.stats[:, 1], pc.offsets, pc.runs, pc.points,
+                     lambert=pc.lambert, produce=produce)
+
+
+def _plan_segment(light: Any, points: np.ndarray, normals: np.ndarray, occ: vis.HostOccluders,
+                  produce: str) -> LightPlan:
     dt = points.dtype
-    occ = host_occluders(scene, dt)
+    off, faces = vis.segment_candidates(points, np.asarray(light.start, dt), np.asarray(light.end, dt), occ)
+    cnt = np.diff(off).astype(np.int32)
+    cls = np.where(cnt > 0, vis.PENUMBRA, vis.LIT).astype(np.int32)
+    return LightPlan("segment", cls, kept=cnt, offsets=off, faces=faces, produce=produce)
+
+
+def _plan_hard(light: Any, points: np.ndarray, normals: np.ndarray, occ: vis.HostOccluders,
+               produce: str) -> LightPlan:
+    x = np.asarray(light.geometry[0], points.dtype)
+    visible = vis.hard_visibility(points, x, light.kind == "point", occ)
+    return LightPlan(light.kind, np.where(visible, vis.LIT, vis.UMBRA).astype(np.int32), produce=produce)
+
+
+# What the engine computes for each kind of light (`AbstractLight.kind`).
+_PLANNERS = {"polygon": _plan_polygon, "segment": _plan_segment, "point": _plan_hard, "directional": _plan_hard}
+
+
+def plan(scene: Scene, points: np.ndarray, normals: np.ndarray, *, produce: str,
+         lights: Sequence[Any] | None = None) -> ShadowPlan:
+    """Run the engine for every light of `scene` (or `lights`) on concrete receivers (unit
+    `normals`); `produce` (`integrands.PRODUCE`): what polygon lights' plans carry for their
+    penumbra receivers."""
+    assert produce in PRODUCE, produce
+    occ = host_occluders(scene, points.dtype)
     t_all = time.perf_counter()
     out = []
     for light in scene.lights if lights is None else lights:
         t = time.perf_counter()
-        if isinstance(light, PolygonLight):
-            pc = vis.polygon_codes(points, normals, np.asarray(light.vertices, dt), occ, codes=codes, decoded=decoded,
-                                   lambert=lambert)
-            lp = LightPlan("polygon", pc.classes, pc.stats[:, 0], pc.stats[:, 1], pc.offsets, pc.runs, pc.points,
-                           lambert=pc.lambert)
-        elif isinstance(light, LinearLight):
-            off, faces = vis.segment_candidates(points, np.asarray(light.start, dt), np.asarray(light.end, dt), occ)
-            cnt = np.diff(off).astype(np.int32)
-            cls = np.where(cnt > 0, vis.PENUMBRA, vis.LIT).astype(np.int32)
-            lp = LightPlan("segment", cls, kept=cnt, offsets=off, faces=faces)
-        else:
-            is_point = isinstance(light, PointLight)
-            x = np.asarray(light.position if is_point else light.direction, dt)
-            visible = vis.hard_visibility(points, x, is_point, occ)
-            cls = np.where(visible, vis.LIT, vis.UMBRA).astype(np.int32)
-            lp = LightPlan("point" if is_point else "directional", cls)
+        lp = _PLANNERS[light.kind](light, points, normals, occ, produce)
         lp.seconds = time.perf_counter() - t
         out.append(lp)
     return ShadowPlan(out, points.shape[0], occ.faces.shape[0], occ.topology.n_solids, time.perf_counter() - t_all)
@@ -420,12 +360,12 @@ def _segment_free_block(integ, light, p, n, e, a, b):
 
 @functools.partial(jax.jit, static_argnames=("light",))
 def _segment_block(integ, light, p, n, e, a, b, occ):
-    return jax.vmap(_segment_visible, in_axes=(None, 0, 0, 0, None, None, None, 0))(integ, p, n, e, a, b, light, occ)
+    return jax.vmap(segment_visible, in_axes=(None, 0, 0, 0, None, None, None, 0))(integ, p, n, e, a, b, light, occ)
 
 
-@functools.partial(jax.jit, static_argnames=("is_point",))
-def _hard_block(integ, p, n, e, x, visible, is_point):
-    kern = integ.point if is_point else integ.directional
+@functools.partial(jax.jit, static_argnames=("kind",))
+def _hard_block(integ, p, n, e, x, visible, kind):
+    kern = getattr(integ, kind)  # the integrand's method for this kind of light
     g = jax.vmap(kern, in_axes=(0, 0, 0, None))(p, n, e, x)
     return jnp.where(visible, g, 0.0)
 
@@ -433,13 +373,14 @@ def _hard_block(integ, p, n, e, x, visible, is_point):
 # jit with a static `light` needs it hashable: LinearLight is an eqx.Module of arrays, so pass
 # a hashable stand-in carrying what the integrands read (profile and exponent).
 @dataclass(frozen=True)
-class _SegmentProfile:
+class SegmentProfile:
     profile: str
     exponent: int
 
 
-def _profile(light: LinearLight) -> _SegmentProfile:
-    return _SegmentProfile(light.profile, int(light.exponent))
+def segment_profile(light: LinearLight) -> SegmentProfile:
+    """The hashable stand-in of a segment light that jitted blocks take as a static argument."""
+    return SegmentProfile(light.profile, int(light.exponent))
 
 
 # --------------------------------------------------------------------------------------
@@ -464,82 +405,100 @@ def _take(a: Any, idx: np.ndarray) -> Any:
     return np.take(a, idx, axis=0) if isinstance(a, np.ndarray) else jnp.take(a, jnp.asarray(idx), axis=0)
 
 
-def light_values(lp: LightPlan, light: Any, integ: Any, p: Any, n: Any, e: Any, faces: Any, concrete: bool,
+def _polygon_values(lp: LightPlan, light: Any, integ: Any, p: Any, n: Any, e: Any, faces: Any,
+                    unoccluded: Any, parts: list) -> None:
+    N = lp.classes.shape[0]
+    dt = p.dtype
+    concrete = lp.on_host
+    rows = EDGE_BLOCK // 8
+    verts = np.asarray(light.vertices, dt) if concrete else light.vertices.astype(dt)
+    is_lit = lp.classes == vis.LIT
+    lit = np.nonzero(is_lit)[0] if unoccluded is None else None
+    if unoccluded is not None:
+        # Dispatched before the engine ran (they overlap); a receiver that is not lit is
+        # masked (and a penumbra receiver overwritten below).
+        parts.append((slice(None), np.where(is_lit, unoccluded(), 0.0)))
+    elif concrete and 2 * np.count_nonzero(is_lit) > N:
+        # Mostly lit: the unoccluded kernel on every receiver costs less than gathering the
+        # lit ones (a gather moves as many bytes as the kernel reads); the others are masked
+        # (and the penumbra receivers overwritten below). Not with derivatives: a masked
+        # receiver's cotangent is zero, but 0 * a singular kernel derivative is not.
+        every = _map_blocks(lambda a, b, c: _lit_block(integ, a, b, c, verts), (p, n, e), rows)
+        parts.append((np.arange(N), np.where(is_lit, np.asarray(every), 0.0)))
+    elif lit is not None and lit.size:
+        parts.append((lit, _map_blocks(lambda a, b, c: _lit_block(integ, a, b, c, verts),
+                                       (_take(p, lit), _take(n, lit), _take(e, lit)), rows)))
+    pen = np.nonzero(lp.classes == vis.PENUMBRA)[0]
+    if lp.produce == "lambert" and pen.size:
+        # Lambert's contour sum is a sum of edge terms (Lambert.contour = pi * (-sum / 2 pi)):
+        # the engine adds them up, in double, as it decodes the edges (`edge_term`'s formula).
+        assert lp.lambert is not None
+        f = lp.lambert[pen]
+        lit_side = _on_lit_side_host(np.asarray(_take(p, pen)), np.asarray(verts))
+        parts.append((pen, np.where(lit_side, -0.5 * f, 0.0).astype(dt)))
+        pen = pen[:0]
+    for cap, idx in capacity_groups(lp.counts, pen):
+        r, used = _dense_rows(lp.offsets, idx, cap)
+        rb = max(MIN_BLOCK, EDGE_BLOCK // cap)
+        if concrete:
+            pts = np.where(used[:, :, None, None], lp.points[r], np.asarray(verts)[0])
+            fn = lambda a, b, c, s, t: _contour_block(integ, a, b, c, verts, s, t)  # noqa: E731
+            vals = _map_blocks(fn, (p[idx], n[idx], e[idx], np.ascontiguousarray(pts[:, :, 0]),
+                                    np.ascontiguousarray(pts[:, :, 1])), rb)
+        else:
+            runs = np.where(used[:, :, None, None], lp.runs[r], vis.unused_code())
+            fn = lambda a, b, c, rr: _decoded_block(integ, a, b, c, verts, faces, rr)  # noqa: E731
+            vals = _map_blocks(fn, (_take(p, idx), _take(n, idx), _take(e, idx), runs), rb)
+        parts.append((idx, vals))
+
+
+def _segment_values(lp: LightPlan, light: Any, integ: Any, p: Any, n: Any, e: Any, faces: Any,
+                    unoccluded: Any, parts: list) -> None:
+    dt = p.dtype
+    rows = EDGE_BLOCK // 8
+    a, b = light.start.astype(dt), light.end.astype(dt)
+    prof = segment_profile(light)
+    free = np.nonzero(lp.classes == vis.LIT)[0]
+    if free.size:
+        parts.append((free, _map_blocks(lambda x, y, z: _segment_free_block(integ, prof, x, y, z, a, b),
+                                        (_take(p, free), _take(n, free), _take(e, free)), rows)))
+    for cap, idx in capacity_groups(lp.kept, np.nonzero(lp.classes == vis.PENUMBRA)[0]):
+        r, used = _dense_rows(lp.offsets, idx, cap)
+        # Unused slots repeat the receiver's first candidate: the union of the blocked
+        # intervals, and so the value and its derivatives, are unchanged.
+        fidx = lp.faces[np.where(used, r, r[:, :1])]
+        occ = _take(faces, fidx.reshape(-1)).reshape(fidx.shape + faces.shape[1:])
+        rb = max(MIN_BLOCK, (EDGE_BLOCK // 16) // cap)
+        parts.append((idx, _map_blocks(lambda x, y, z, o: _segment_block(integ, prof, x, y, z, a, b, o),
+                                       (_take(p, idx), _take(n, idx), _take(e, idx), occ), rb)))
+
+
+def _hard_values(lp: LightPlan, light: Any, integ: Any, p: Any, n: Any, e: Any, faces: Any,
+                 unoccluded: Any, parts: list) -> None:
+    x = light.geometry[0].astype(p.dtype)
+    visible = lp.classes == vis.LIT
+    vals = _map_blocks(lambda a, b, c, v: _hard_block(integ, a, b, c, x, v, lp.kind), (p, n, e, visible),
+                       EDGE_BLOCK // 8)
+    parts.append((np.arange(lp.classes.shape[0]), vals))
+
+
+_VALUES = {"polygon": _polygon_values, "segment": _segment_values, "point": _hard_values,
+           "directional": _hard_values}
+
+
+def light_values(lp: LightPlan, light: Any, integ: Any, p: Any, n: Any, e: Any, faces: Any,
                  unoccluded: Any = None) -> Any:
     """`(N,)` contribution per unit emission of one light, from its plan.
 
-    `concrete`: every input is a NumPy array and nothing is differentiated (the plan then holds
-    the engine's Lambert edge sums for `Lambert`, decoded `points` for other integrands); otherwise `p`, `n`, `e`, the light and `faces` may carry derivatives and
-    polygon boundaries are decoded from the plan's codes in JAX. `unoccluded` (concrete polygon
-    lights): a function that returns the unoccluded values of every receiver, dispatched before
-    the plan was made (`_dispatch_blocks`)."""
-    N = lp.classes.shape[0]
-    dt = p.dtype
+    A plan made on the host (`lp.on_host`: every input a NumPy array, nothing differentiated)
+    holds the engine's Lambert edge sums (`"lambert"`) or decoded points (`"points"`); the result
+    is a NumPy array. Otherwise (`"codes"`) `p`, `n`, `e`, the light and `faces` may carry
+    derivatives and polygon boundaries are decoded from the plan's codes in JAX. `unoccluded`
+    (host polygon lights): a function that returns the unoccluded values of every receiver,
+    dispatched before the plan was made (`_dispatch_blocks`)."""
     parts: list[tuple[Any, Any]] = []  # (receiver indices, or a slice of all when concrete; values)
-    rows = EDGE_BLOCK // 8
-    if lp.kind == "polygon":
-        verts = np.asarray(light.vertices, dt) if concrete else light.vertices.astype(dt)
-        is_lit = lp.classes == vis.LIT
-        lit = np.nonzero(is_lit)[0] if unoccluded is None else None
-        if unoccluded is not None:
-            # Dispatched before the engine ran (they overlap); a receiver that is not lit is
-            # masked (and a penumbra receiver overwritten below).
-            parts.append((slice(None), np.where(is_lit, unoccluded(), 0.0)))
-        elif concrete and 2 * np.count_nonzero(is_lit) > N:
-            # Mostly lit: the unoccluded kernel on every receiver costs less than gathering the
-            # lit ones (a gather moves as many bytes as the kernel reads); the others are masked
-            # (and the penumbra receivers overwritten below). Not with derivatives: a masked
-            # receiver's cotangent is zero, but 0 * a singular kernel derivative is not.
-            every = _map_blocks(lambda a, b, c: _lit_block(integ, a, b, c, verts), (p, n, e), rows)
-            parts.append((np.arange(N), np.where(is_lit, np.asarray(every), 0.0)))
-        elif lit is not None and lit.size:
-            parts.append((lit, _map_blocks(lambda a, b, c: _lit_block(integ, a, b, c, verts),
-                                           (_take(p, lit), _take(n, lit), _take(e, lit)), rows)))
-        pen = np.nonzero(lp.classes == vis.PENUMBRA)[0]
-        if concrete and isinstance(integ, Lambert) and pen.size:
-            # Lambert's contour sum is a sum of edge terms (Lambert.contour = pi * (-sum / 2 pi)):
-            # the engine adds them up, in double, as it decodes the edges (`edge_term`'s formula).
-            assert lp.lambert is not None
-            f = lp.lambert[pen]
-            lit_side = _on_lit_side_host(np.asarray(_take(p, pen)), np.asarray(verts))
-            parts.append((pen, np.where(lit_side, -0.5 * f, 0.0).astype(dt)))
-            pen = pen[:0]
-        for cap, idx in capacity_groups(lp.counts, pen):
-            r, used = _dense_rows(lp.offsets, idx, cap)
-            rb = max(MIN_BLOCK, EDGE_BLOCK // cap)
-            if concrete:
-                pts = np.where(used[:, :, None, None], lp.points[r], np.asarray(verts)[0])
-                fn = lambda a, b, c, s, t: _contour_block(integ, a, b, c, verts, s, t)  # noqa: E731
-                vals = _map_blocks(fn, (p[idx], n[idx], e[idx], np.ascontiguousarray(pts[:, :, 0]),
-                                        np.ascontiguousarray(pts[:, :, 1])), rb)
-            else:
-                runs = np.where(used[:, :, None, None], lp.runs[r], vis.unused_code())
-                fn = lambda a, b, c, rr: _decoded_block(integ, a, b, c, verts, faces, rr)  # noqa: E731
-                vals = _map_blocks(fn, (_take(p, idx), _take(n, idx), _take(e, idx), runs), rb)
-            parts.append((idx, vals))
-    elif lp.kind == "segment":
-        a, b = light.start.astype(dt), light.end.astype(dt)
-        prof = _profile(light)
-        free = np.nonzero(lp.classes == vis.LIT)[0]
-        if free.size:
-            parts.append((free, _map_blocks(lambda x, y, z: _segment_free_block(integ, prof, x, y, z, a, b),
-                                            (_take(p, free), _take(n, free), _take(e, free)), rows)))
-        for cap, idx in capacity_groups(lp.kept, np.nonzero(lp.classes == vis.PENUMBRA)[0]):
-            r, used = _dense_rows(lp.offsets, idx, cap)
-            # Unused slots repeat the receiver's first candidate: the union of the blocked
-            # intervals, and so the value and its derivatives, are unchanged.
-            fidx = lp.faces[np.where(used, r, r[:, :1])]
-            occ = _take(faces, fidx.reshape(-1)).reshape(fidx.shape + faces.shape[1:])
-            rb = max(MIN_BLOCK, (EDGE_BLOCK // 16) // cap)
-            parts.append((idx, _map_blocks(lambda x, y, z, o: _segment_block(integ, prof, x, y, z, a, b, o),
-                                           (_take(p, idx), _take(n, idx), _take(e, idx), occ), rb)))
-    else:
-        is_point = lp.kind == "point"
-        x = (light.position if is_point else light.direction).astype(dt)
-        visible = lp.classes == vis.LIT
-        vals = _map_blocks(lambda a, b, c, v: _hard_block(integ, a, b, c, x, v, is_point), (p, n, e, visible), rows)
-        parts.append((np.arange(N), vals))
-    return _scatter(N, dt, parts, concrete)
+    _VALUES[lp.kind](lp, light, integ, p, n, e, faces, unoccluded, parts)
+    return _scatter(lp.classes.shape[0], p.dtype, parts, lp.on_host)
 
 
 @jax.jit
@@ -550,18 +509,19 @@ def _weighted_sum(gs: Any, emissions: Any) -> Any:
     return jnp.where(total == 0, jnp.zeros_like(total), total)
 
 
-def sum_lights(gs: np.ndarray, lights: list, dt: Any) -> Any:
+def sum_lights(gs: np.ndarray, lights: Sequence[Any], dt: Any) -> Any:
     """`(N, 3)` JAX array: `sum_l gs[l, :, None] * emission_l` for concrete per-light values
     `gs (L, N)`, accumulated from zero in light order in one compiled call; a zero is +0 (as
     NumPy's `0 + x` gives it)."""
-    emissions = np.asarray([np.asarray(emission(light, dt)) for light in lights], dt).reshape(-1, 3)
+    emissions = np.asarray([np.asarray(light.emission(dt)) for light in lights], dt).reshape(-1, 3)
     return _weighted_sum(gs, emissions)
 
 
-def host_values(scene: Scene, integ: Any, points: np.ndarray, normals: np.ndarray, eyes: np.ndarray | None) -> Any:
-    """`(N, 3)` JAX array for concrete inputs, nothing differentiated (unit `normals`)."""
+def host_values(scene: Scene, integ: Any, points: np.ndarray, normals: np.ndarray, eyes: np.ndarray) -> Any:
+    """`(N, 3)` JAX array for concrete inputs, nothing differentiated (unit `normals`; `eyes`
+    `(N, 3)`, read by the integrands that look from somewhere)."""
     dt = points.dtype
-    e = points if eyes is None else eyes
+    e = eyes
     faces = np.asarray(scene.occluders, dt)
     gs = np.zeros((len(scene.lights), points.shape[0]), dt)
     rows = EDGE_BLOCK // 8
@@ -571,15 +531,13 @@ def host_values(scene: Scene, integ: Any, points: np.ndarray, normals: np.ndarra
         # engine (which releases the GIL) classifies the receivers.
         early = {}
         for j, light in enumerate(scene.lights):
-            if isinstance(light, PolygonLight):
+            if light.kind == "polygon":
                 verts = np.asarray(light.vertices, dt)
                 early[j] = _dispatch_blocks(lambda a, b, c, v=verts: _lit_block(integ, a, b, c, v),
                                             (points[sl], normals[sl], e[sl]), rows)
-        # Lambert's values need only the engine's edge sums; other integrands the decoded edges.
-        lam = isinstance(integ, Lambert)
-        pl = plan(scene, points[sl], normals[sl], codes=False, decoded=not lam, lambert=lam)
+        pl = plan(scene, points[sl], normals[sl], produce=integ.host_plan)
         for j, (lp, light) in enumerate(zip(pl.lights, scene.lights, strict=True)):
-            gs[j, sl] = np.asarray(light_values(lp, light, integ, points[sl], normals[sl], e[sl], faces, True,
+            gs[j, sl] = np.asarray(light_values(lp, light, integ, points[sl], normals[sl], e[sl], faces,
                                                 early.get(j)))
     return sum_lights(gs, scene.lights, dt)
 
@@ -591,16 +549,16 @@ def planned_values(scene: Scene, value_scene: Scene, integ: Any, points: Any, no
     plans from the values, JAX differentiates `scene`, `points`, `normals`, `eyes`."""
     p_val, n_val = values
     dt = points.dtype
-    e = points if eyes is None else eyes
-    faces = _occluders(scene).astype(dt)
+    e = eyes
+    faces = occluders_of(scene).astype(dt)
     total = jnp.zeros(points.shape, dt)
     for s in range(0, points.shape[0], HOST_CHUNK):
         stop = min(points.shape[0], s + HOST_CHUNK)
-        pl = plan(value_scene, p_val[s:stop], n_val[s:stop], codes=True, decoded=False)
+        pl = plan(value_scene, p_val[s:stop], n_val[s:stop], produce="codes")
         part = jnp.zeros((stop - s, 3), dt)
         for lp, light in zip(pl.lights, scene.lights, strict=True):
-            g = light_values(lp, light, integ, points[s:stop], normals[s:stop], e[s:stop], faces, False)
-            part = part + g[:, None] * emission(light, dt)[None, :]
+            g = light_values(lp, light, integ, points[s:stop], normals[s:stop], e[s:stop], faces)
+            part = part + g[:, None] * light.emission(dt)[None, :]
         total = total.at[s:stop].set(part) if points.shape[0] > HOST_CHUNK else part
     return total
 
@@ -646,4 +604,4 @@ def shadow_plan(scene: Scene, points: Any, normals: Any) -> ShadowPlan:
     p = np.asarray(p)
     n = np.asarray(n)
     n = n / np.linalg.norm(n, axis=1, keepdims=True)
-    return plan(scene, p, n, codes=False, decoded=False)
+    return plan(scene, p, n, produce="classes")

@@ -138,7 +138,7 @@ def check_outputs_are_not_inputs(outputs: Sequence[str], inputs: Sequence[str]) 
     """`ValueError` when an output path is an input file (or the arrays file of an input scene
     JSON, `<stem>.meshes.npz`) or two outputs are one file: writing it would destroy the input
     or the other output."""
-    from .._scene.model import arrays_file_name
+    from .._scene.format import arrays_file_name
 
     files = list(inputs)
     files += [os.path.join(os.path.dirname(p), arrays_file_name(p)) for p in inputs if p.lower().endswith(".json")]
@@ -170,10 +170,10 @@ def read_scene(path: str) -> tuple[Any, list, list]:
         return from_mitsuba(path)
     import jaxshadow as js
 
-    from .._scene.model import _read_json
+    from .._scene.format import read_json
 
     scene = js.load_scene(path)
-    has_material = "material" in _read_json(path)
+    has_material = "material" in read_json(path)
     return scene, [], [js.load_material(path)] if has_material else []
 
 

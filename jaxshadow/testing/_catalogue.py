@@ -36,14 +36,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._core.files import atomic_write
-from .._scene.model import (
-    LinearLight,
-    Material,
-    Scene,
-    material_from_dict,
-    scene_from_dict,
-    scene_to_dict,
-)
+from .._scene.format import material_from_dict, scene_from_dict, scene_to_dict
+from .._scene.model import LinearLight, Material, Scene
 from .._shading.shade import irradiance, shade
 from ._scenes import (
     BUILDERS,

@@ -1,0 +1,98 @@
+r"""Integrands: what a light contributes per unit emission at a receiver, given its visibility.
+
+An integrand has one method per light kind (`AbstractLight.kind`): `polygon` (the whole light
+seen), `contour` (a polygon light's visible region, given by its boundary edges), `segment`,
+`point`, `directional`; each takes one receiver `p (3,)`, its unit normal `n (3,)` and the eye
+`e (3,)` (read by `Phong` only). It also declares what it needs: what the shadow engine must hand it on the host
+(`host_plan`: `Lambert`'s contour sum is a sum of edge terms that the engine adds up itself,
+`"lambert"`; other integrands need the boundary's decoded points, `"points"`), and whether it
+reads the eye (`reads_eye`).
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from .._kernels.clip import lit_form_factor, masked_contour_form_factor, visible_segments
+from .._kernels.linear import linear_irradiance_kernel
+from .._kernels.point import directional_irradiance_kernel, point_irradiance_kernel
+from .._kernels.specular import (
+    DEFAULT_DEGREE,
+    contour_specular_kernel,
+    directional_specular_kernel,
+    point_specular_kernel,
+    polygon_specular_kernel,
+    segment_specular_kernel,
+)
+
+# What a plan carries for polygon lights' penumbra receivers (`plan(..., produce=...)`):
+# "classes" nothing but the classes and counts; "codes" the boundary's endpoint codes (decoded
+# in JAX: derivatives flow); "points" the decoded points; "lambert" each receiver's Lambert sum.
+PRODUCE = ("classes", "codes", "points", "lambert")
+
+
+class AbstractIntegrand(eqx.Module):
+    """The integrand interface (see the module docstring)."""
+
+    host_plan: ClassVar[str] = "points"
+    reads_eye: ClassVar[bool] = True
+
+
+class Lambert(AbstractIntegrand):
+    """Irradiance per unit emission: $\\pi F$ for polygons (per unit radiance), $E/\\Phi$ for
+    segments, $E/I$ for point lights, $E/E_0$ for directional lights."""
+
+    host_plan: ClassVar[str] = "lambert"
+    reads_eye: ClassVar[bool] = False
+
+    def polygon(self, p, n, e, verts):
+        return jnp.pi * lit_form_factor(p, n, verts)
+
+    def contour(self, p, n, e, verts, starts, ends):
+        return jnp.pi * masked_contour_form_factor(p, n, verts, starts, ends)
+
+    def segment(self, p, n, e, a, b, light):
+        return linear_irradiance_kernel(p, n, a, b, light.exponent)
+
+    def point(self, p, n, e, x):
+        return point_irradiance_kernel(p, n, x)
+
+    def directional(self, p, n, e, d):
+        return directional_irradiance_kernel(n, d)
+
+
+class Phong(AbstractIntegrand):
+    """Phong-lobe integral per unit emission (Poulin eqs. 3.11, 3.12): `exponent` differentiable,
+    `method` and `degree` static."""
+
+    exponent: Any
+    method: str = eqx.field(static=True, default="chebyshev")
+    degree: int = eqx.field(static=True, default=DEFAULT_DEGREE)
+
+    def polygon(self, p, n, e, verts):
+        return polygon_specular_kernel(p, n, e, verts, self.exponent, method=self.method, degree=self.degree)
+
+    def contour(self, p, n, e, verts, starts, ends):
+        return contour_specular_kernel(p, n, e, starts, ends, self.exponent, method=self.method, degree=self.degree)
+
+    def segment(self, p, n, e, a, b, light):
+        prof = None if light.profile == "isotropic" else jnp.asarray(float(light.exponent), p.dtype)
+        return segment_specular_kernel(p, n, e, a, b, self.exponent, prof, method=self.method, degree=self.degree)
+
+    def point(self, p, n, e, x):
+        return point_specular_kernel(p, n, e, x, self.exponent)
+
+    def directional(self, p, n, e, d):
+        return directional_specular_kernel(p, n, e, d, self.exponent)
+
+
+def segment_visible(integ: Any, p: Float[Array, "3"], n: Float[Array, "3"], e: Float[Array, "3"],
+                    a: Float[Array, "3"], b: Float[Array, "3"], light: Any, occ: Float[Array, "m k 3"]) -> Array:
+    """The segment integrand summed over the visible pieces of `a -> b` (occluders `occ`)."""
+    sa, sb = visible_segments(p, a, b, occ)
+    return jnp.sum(jax.vmap(lambda u, v: integ.segment(p, n, e, u, v, light))(sa, sb))
