@@ -10,13 +10,15 @@ from typing import Any
 
 import numpy as np
 
-from .._core.keytable import MAX_LOAD, KeyTable, as_keys, first_occurrence
+from .._core.keytable import GONE, MAX_LOAD, KeyTable, as_keys, first_occurrence
 from .._scene.model import DirectionalLight, LinearLight, PointLight, PolygonLight, Scene
 from .._shading.shade import irradiance
 from . import events as ev
 
 ON_LINE_STEP = 1e-9
 MIN_BATCH = 256  # smallest batch handed to the engine
+MAX_BATCH = 1 << 18  # largest batch handed to the engine (its working memory grows with the batch)
+SPARE = 0.25  # room added when the value arrays grow, as a fraction of the rows they must hold
 
 
 class _Evaluator:
@@ -223,14 +225,19 @@ class _Evaluator:
         side = pts[line]
         allp = np.concatenate([pts, side + self.step, side - self.step])
         t0 = time.perf_counter()
-        # Padded to a power of two: the engine compiles per batch shape.
         n_all = allp.shape[0]
-        size = max(MIN_BATCH, 1 << (n_all - 1).bit_length())
-        p3 = self.frame.to3d(np.concatenate([allp, np.repeat(allp[:1], size - n_all, axis=0)]))
-        nrm = np.empty_like(p3)
-        nrm[:n_all] = self.frame.normal
-        nrm[n_all:] = self.frame.normal if self.away is None else self.away
-        e = np.asarray(irradiance(self.scene, p3, nrm), np.float64)[:n_all]
+        e = np.empty((n_all, 3))
+        for s in range(0, n_all, MAX_BATCH):
+            part = allp[s:s + MAX_BATCH]
+            # Padded to a power of two: the engine compiles per batch shape.
+            k = part.shape[0]
+            size = max(MIN_BATCH, 1 << (k - 1).bit_length())
+            p3 = self.frame.to3d(np.concatenate([part, np.repeat(part[:1], size - k, axis=0)]))
+            nrm = np.empty_like(p3)
+            nrm[:k] = self.frame.normal
+            nrm[k:] = self.frame.normal if self.away is None else self.away
+            e[s:s + k] = np.asarray(irradiance(self.scene, p3, nrm), np.float64)[:k]
+            del p3, nrm
         self.seconds += time.perf_counter() - t0
         self.evaluations += allp.shape[0]
         n, m = pts.shape[0], side.shape[0]
@@ -272,11 +279,47 @@ class _Evaluator:
         keys = np.ascontiguousarray(np.asarray(xy, np.float64).reshape(-1, 2)).view(np.complex128).ravel()
         return np.isin(keys, np.fromiter(log, np.complex128, len(log)))
 
-    def _grow(self, rows: int, spare: float = 1.0) -> None:
+    def release(self, keep: Any, held: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+        """Drop every row no longer needed and renumber the others, for a mesh that will not be
+        updated: the keys for which `keep(points (n, 2))` is False leave the cache, and the rows
+        that no key, no pending re-evaluation and none of the row arrays `held` (followed to
+        their points' latest evaluations first) refer to go, the elements' inner points among
+        them. Returns `held` renumbered. The marks (`online`, `checked`) and moves stay: a key
+        asked for again is evaluated as before, to the same value."""
+        assert self.prior is None, "release: not on an update's evaluator"
+        table = self.cache
+        slots = np.nonzero(table.vals >= 0)[0]  # the live keys, in place (no re-hashing)
+        ok = keep(table.keys[slots].view(np.float64).reshape(-1, 2)) if slots.size else np.zeros(0, bool)
+        table.vals[slots[~ok]] = GONE  # (probing passes deleted slots; the table drops them when it grows)
+        table.live -= int((~ok).sum())
+        slots = slots[ok]
+        held = {i: self.follow(v) for i, v in held.items()}
+        live = np.zeros(self._rows, bool)
+        live[table.vals[slots]] = True
+        for v in held.values():
+            live[v] = True
+        if self.dropped:
+            live[np.fromiter(self.dropped.values(), np.int64, len(self.dropped))] = True
+        new = np.cumsum(live) - 1
+        n = int(new[-1]) + 1 if new.size else 0
+        for name in ("values", "targets", "lined", "inner"):
+            a = getattr(self, name)
+            b = np.zeros((max(int(n * (1 + SPARE)), 1024),) + a.shape[1:], a.dtype)
+            b[:n] = a[:self._rows][live]
+            setattr(self, name, b)
+            del a
+        self._rows = n
+        table.vals[slots] = new[table.vals[slots]]
+        self.dropped = {key: int(new[row]) for key, row in self.dropped.items()}
+        self.succ, self._succ_sorted = {}, None
+        self._log_version += 1
+        return {i: new[v] for i, v in held.items()}
+
+    def _grow(self, rows: int, spare: float | None = None) -> None:
         """Room for `rows` rows, and `spare` times as many again when the arrays must grow."""
         if rows <= self.values.shape[0]:
             return
-        size = max(int(rows * (1 + spare)), 1024)
+        size = max(int(rows * (1 + (SPARE if spare is None else spare))), 1024)
         for name in ("values", "targets", "lined", "inner"):
             a = getattr(self, name)
             b = np.zeros((size,) + a.shape[1:], a.dtype)

@@ -101,6 +101,10 @@ class IlluminationMesh:
         self.scale = max(float(b.scale) for b in builders)
         self.tol = float(tol)
         self.stats = stats
+        self.updatable = not any(b.lean for b in builders)
+        if not self.updatable:  # (`illumination_mesh(..., updatable=False)`): the arrays above are the mesh
+            for b in builders:
+                b.release_all()
 
     def __repr__(self) -> str:
         return (f"IlluminationMesh({self.vertices.shape[0]} vertices, {self.triangles.shape[0]} triangles, "
@@ -128,8 +132,12 @@ class IlluminationMesh:
         redone (`tiles_meshed`), how many old values the change can affect (`values_affected`)
         or not (`values_kept`), and how many of the latter the new mesh used (`reused`).
 
-        Raises `ValueError` if the lights or ambient changed (re-mesh instead)."""
+        Raises `ValueError` if the lights or ambient changed (re-mesh instead), or if the mesh was
+        built with `updatable=False`."""
         t0 = time.perf_counter()
+        if not self.updatable:
+            raise ValueError("IlluminationMesh.update: this mesh was built with updatable=False; "
+                             "build it with updatable=True (the default) to update it.")
         if not isinstance(scene, Scene):
             raise ValueError(f"IlluminationMesh.update: expected a jaxshadow.Scene, got {type(scene).__name__}.")
         old = self._builders[0].scene
@@ -264,7 +272,7 @@ GRADIENTS = ("differences", "jax")
 
 def illumination_mesh(scene: Any, receiver: Any, tol: float = 1e-3, *, max_vertices: int = 2_000_000,
                       tile_size: float | None = None, min_edge: float | None = None, gradient: str = "differences",
-                      scale: float | None = None, progress: Any = None) -> IlluminationMesh:
+                      scale: float | None = None, progress: Any = None, updatable: bool = True) -> IlluminationMesh:
     r"""An adaptive, discontinuity-aware mesh of `receiver` with exact irradiance at its vertices.
 
     Linear interpolation of the vertex irradiance over each triangle stays within `tol` times the
@@ -304,6 +312,11 @@ def illumination_mesh(scene: Any, receiver: Any, tol: float = 1e-3, *, max_verti
       `tiles_active` (tiles still refining), `tile_vertices` (vertices of all tiles, those on
       shared tile edges counted once per tile), `failing_elements` (elements split this round),
       `seconds` (since refinement began); for a receiver of several polygons, per polygon.
+    - `updatable`: keep what `IlluminationMesh.update` needs (every exact value computed, the
+      tiles' meshes). With False the mesher drops the values it no longer needs as tiles
+      finish (the points strictly inside finished tiles, the elements' check points) and the
+      mesh keeps only its arrays: far less memory on large meshes (the box benchmark's floor
+      at tol 1e-4), the same vertices, triangles and values bit for bit; `update` then raises.
 
     **Returns:** `IlluminationMesh` with `vertices (V, 3)`, `triangles (T, 3)`, `irradiance (V, 3)`,
     `max_error_estimate`, `scale`, `stats`.
@@ -352,6 +365,7 @@ def illumination_mesh(scene: Any, receiver: Any, tol: float = 1e-3, *, max_verti
     for p in polys:
         b = _Builder(scene, p, float(tol), tile_size, min_edge, max_vertices, gradient, scale)
         b.progress = progress
+        b.lean = not updatable
         b.build(list(range(len(b.tiles))), list(b.edges))
         builders.append(b)
     if scale is None and len(builders) > 1:
