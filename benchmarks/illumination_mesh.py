@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import time
 
 import numpy as np
@@ -377,8 +378,14 @@ def memory(tol: float, updatable: bool, part: float | None, out: str | None) -> 
 
     th = threading.Thread(target=sample, daemon=True)
     th.start()
+
+    def progress(d: dict) -> None:
+        print(f"round {d['round']}: {d['tiles_active']} tiles active, {d['tile_vertices']:,} tile vertices, "
+              f"{d['seconds']:.0f} s, resident {_rss() / 1e9:.2f} GB (peak {peak[0] / 1e9:.2f})", file=sys.stderr, flush=True)
+
     t0 = time.perf_counter()
-    m = js.illumination_mesh(scene, floor, tol, max_vertices=BOX_MAX_VERTICES, tile_size=BOX_TILE, updatable=updatable)
+    m = js.illumination_mesh(scene, floor, tol, max_vertices=BOX_MAX_VERTICES, tile_size=BOX_TILE, updatable=updatable,
+                             progress=progress)
     el = time.perf_counter() - t0
     peak[0] = max(peak[0], _rss())
     done.set()

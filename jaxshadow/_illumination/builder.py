@@ -594,12 +594,19 @@ class _Builder:
         err = max(t.error for t in self.tiles) / float(self.scale)
         return self.frame.to3d(uniq[used].view(np.float64).reshape(-1, 2)), tris, values, err
 
-    def release_all(self) -> None:
-        """Drop everything but what the assembled mesh's statistics and `interpolate` read (a
-        mesh without `update`)."""
+    def release_evaluator(self) -> None:
+        """Drop the exact values and the refinement's inputs once the tiles are meshed (a mesh
+        without `update`)."""
         self.eval = None  # type: ignore[assignment]
         self.edges = {}
         self._corner_memo = {}
+        self.seg = None
+        self.occ = None
+
+    def release_all(self) -> None:
+        """Drop everything but what the assembled mesh's statistics and `interpolate` read (a
+        mesh without `update`)."""
+        self.release_evaluator()
         for t in self.tiles:
             t.verts = t.tris = t.values = None
             t.pieces, t.contact_pieces, t.piece_extrema = [], [], {}
