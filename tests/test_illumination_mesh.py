@@ -458,15 +458,16 @@ def test_penumbra_wedge_beyond_the_corner_disc(monkeypatch):
 
 
 def _small_steps(monkeypatch):
-    """Tiny evaluation groups, engine batches and release thresholds, so that a small mesh goes
-    through every path that a large one takes (several groups per round, several batches per
-    evaluation, rows dropped after most rounds)."""
+    """Tiny evaluation groups, engine batches, look-up chunks and release thresholds, so that a
+    small mesh goes through every path that a large one takes (several groups per round,
+    several batches per evaluation and chunks per look-up, rows dropped after most rounds)."""
     import jaxshadow._illumination.builder as builder
     import jaxshadow._illumination.evaluator as evaluator
     import jaxshadow._illumination.refine as refine
 
     monkeypatch.setattr(refine, "GROUP_ELEMENTS", 40)
     monkeypatch.setattr(evaluator, "MAX_BATCH", 512)
+    monkeypatch.setattr(evaluator, "ROW_CHUNK", 300)
     monkeypatch.setattr(builder, "RELEASE_MIN_ROWS", 64)
 
 
@@ -484,7 +485,8 @@ def test_lean_mesh_equals_the_updatable_one(monkeypatch):
         assert a.dtype == b.dtype and a.shape == b.shape
         np.testing.assert_array_equal(a, b, err_msg=name)
     assert lean.max_error_estimate == full.max_error_estimate and lean.scale == full.scale
-    assert lean.stats["evaluations"] == full.stats["evaluations"]  # nothing dropped was asked for again
+    # (a dropped edge midpoint whose edge comes back is evaluated again: a few)
+    assert full.stats["evaluations"] <= lean.stats["evaluations"] <= 1.05 * full.stats["evaluations"]
     assert lean._builders[0].eval is None  # the mesh keeps its arrays only
     with pytest.raises(ValueError, match="updatable=False"):
         lean.update(scene)

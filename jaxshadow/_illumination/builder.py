@@ -30,7 +30,8 @@ DEFAULT_TILES = 16  # tiles along the receiver's longer side
 SAMPLES_PER_TILE = 6  # extremum-search grid per tile side
 SEGMENT_SAMPLES_PER_TILE = 16  # visibility samples per tile length along a discontinuity line
 CONTACT_STEP = 1e-9  # points on a hole's edge take the value this far outside (of the receiver's size)
-RELEASE_MIN_ROWS = 1 << 16  # a lean mesher's evaluator drops rows once it holds twice this many (`release`)
+RELEASE_MIN_ROWS = 1 << 16  # a lean mesher's evaluator drops rows once it holds this many (`release`)
+RELEASE_GROWTH = 1.2  # and this many times the rows it kept the last time
 
 
 class _Builder:
@@ -512,15 +513,22 @@ class _Builder:
             cells[np.searchsorted(xs, c[0]), np.searchsorted(ys, c[1])] = ti
         return cells
 
-    def release(self, finished: list[int], held: dict[int, np.ndarray]) -> dict[int, np.ndarray] | None:
+    def release(self, finished: list[int], held: dict[int, np.ndarray],
+                current: Any = None) -> dict[int, np.ndarray] | None:
         """For a mesh without `update` (`lean`), after a refinement round: tiles `finished` are
-        final; once the evaluator holds twice the rows it kept last time, the values at points
+        final; once the evaluator holds `RELEASE_GROWTH` times the rows it kept last time (each
+        round's inner check points alone pass that: in effect after every round; its cost is a
+        few passes over the rows, small beside a round's evaluations), the values at points
         strictly inside finished tiles (no other tile asks for them: the points a tile shares
         with its neighbours lie on grid lines) and the rows nothing refers to any more (the
         elements' inner points) go (`_Evaluator.release`). `held`: per active tile the rows of
-        its vertices; returns them renumbered, or None when nothing was dropped."""
+        its vertices; `current`: None, or a callable giving the keys (`x + iy`) that the active
+        tiles can still ask for (their vertices, the midpoints of their triangulations' edges):
+        then the other points strictly inside active tiles go too (the midpoints of edges the
+        triangulation no longer has; one that comes back is evaluated again, to the same value).
+        Returns `held` renumbered, or None when nothing was dropped."""
         self._done[finished] = True
-        if not self.lean or self.eval._rows < 2 * max(self._live_rows, RELEASE_MIN_ROWS):
+        if not self.lean or self.eval._rows < max(RELEASE_GROWTH * self._live_rows, RELEASE_MIN_ROWS):
             return None
         xs, ys = self.grid
         cells = self._tile_cells()
@@ -531,7 +539,12 @@ class _Builder:
             on_line = (xs[np.minimum(i, xs.size - 1)] == xy[:, 0]) if xs.size else np.zeros(xy.shape[0], bool)
             if ys.size:
                 on_line |= ys[np.minimum(j, ys.size - 1)] == xy[:, 1]
-            return on_line | ~done[cells[i, j]]  # type: ignore[no-any-return]
+            ok = on_line | ~done[cells[i, j]]
+            if keys is not None:
+                ok &= on_line | np.isin(xy.view(np.complex128).ravel(), keys)
+            return ok  # type: ignore[no-any-return]
+
+        keys = None if current is None else current()
 
         before = self.eval._rows
         out = self.eval.release(keep, held)

@@ -18,6 +18,7 @@ from . import events as ev
 ON_LINE_STEP = 1e-9
 MIN_BATCH = 256  # smallest batch handed to the engine
 MAX_BATCH = 1 << 18  # largest batch handed to the engine (its working memory grows with the batch)
+ROW_CHUNK = 1 << 20  # points looked up per step of `row_of`
 SPARE = 0.25  # room added when the value arrays grow, as a fraction of the rows they must hold
 
 
@@ -179,8 +180,15 @@ class _Evaluator:
         return rows
 
     def row_of(self, xy: np.ndarray) -> np.ndarray:
-        """The value rows `(n,)` of points `xy (n, 2)`, evaluated first where needed."""
+        """The value rows `(n,)` of points `xy (n, 2)`, evaluated first where needed; in chunks
+        of `ROW_CHUNK` points (the look-up tables of one call grow with it; a point of a later
+        chunk finds the rows of an earlier one, as it would within one call)."""
         keys = self._keys(xy)
+        if keys.size <= ROW_CHUNK:
+            return self._row_of(keys)
+        return np.concatenate([self._row_of(keys[s:s + ROW_CHUNK]) for s in range(0, keys.size, ROW_CHUNK)])
+
+    def _row_of(self, keys: np.ndarray) -> np.ndarray:
         rows, need = self._lookup(keys)
         if not need.any():
             return rows

@@ -38,7 +38,8 @@ class Refinable(Protocol):
     def at_contact_corner(self, c: np.ndarray) -> np.ndarray: ...
     def corner_distance(self, c: np.ndarray, reach: float) -> np.ndarray: ...
     def move_off_contact(self, xy: np.ndarray, ids: np.ndarray) -> None: ...
-    def release(self, finished: list[int], held: dict[int, np.ndarray]) -> dict[int, np.ndarray] | None: ...
+    def release(self, finished: list[int], held: dict[int, np.ndarray],
+                current: Any = None) -> dict[int, np.ndarray] | None: ...
 
 CORNER_SIZE = 1e-4  # elements at a contact polygon's corner are not split below this (of the receiver's size)
 CORNER_GRADE = 1e-3  # elements at distance r from such a corner may be split down to CORNER_GRADE * r
@@ -263,7 +264,19 @@ def refine_tiles(b: Refinable, tile_ids: list[int]) -> None:
         if lean:
             # Without `update`, the values only the finished tiles' interiors and the elements'
             # inner points needed go (the evaluator keeps the active tiles' rows, renumbered).
-            kept = b.release(finished, {ti: vrows[ti] for ti in active})
+            def current(active: list[int] = active) -> np.ndarray:
+                """The points the active tiles can still ask for: the vertices of their next
+                triangulation and the midpoints of their last one's edges."""
+                out = []
+                for ti in active:
+                    out.append(state[ti][0])
+                    tv, codes = last[ti].tv, last[ti].codes
+                    s0, s1, s2 = codes // (_RADIX * _RADIX), (codes // _RADIX) % _RADIX, codes % _RADIX
+                    a, c = np.concatenate([s0, s1, s0]), np.concatenate([s1, s2, s2])
+                    out.append(0.5 * (tv[a] + tv[c]))
+                return np.concatenate(out).view(np.complex128).ravel() + 0.0 if out else np.zeros(0, np.complex128)
+
+            kept = b.release(finished, {ti: vrows[ti] for ti in active}, current)
             finished = []
             if kept is not None:
                 vrows.update(kept)
