@@ -540,11 +540,14 @@ class _Builder:
             if ys.size:
                 on_line |= ys[np.minimum(j, ys.size - 1)] == xy[:, 1]
             ok = on_line | ~done[cells[i, j]]
-            if keys is not None:
-                ok &= on_line | np.isin(xy.view(np.complex128).ravel(), keys)
+            if keys is not None and keys.size:  # (membership in the sorted keys: no table, no merge sort)
+                k = xy.view(np.complex128).ravel() + 0.0
+                ok &= on_line | (keys[np.minimum(np.searchsorted(keys, k), keys.size - 1)] == k)
+            elif keys is not None:
+                ok &= on_line
             return ok  # type: ignore[no-any-return]
 
-        keys = None if current is None else current()
+        keys = None if current is None else np.sort(current())
 
         before = self.eval._rows
         out = self.eval.release(keep, held)

@@ -297,7 +297,9 @@ class _Evaluator:
         assert self.prior is None, "release: not on an update's evaluator"
         table = self.cache
         slots = np.nonzero(table.vals >= 0)[0]  # the live keys, in place (no re-hashing)
-        ok = keep(table.keys[slots].view(np.float64).reshape(-1, 2)) if slots.size else np.zeros(0, bool)
+        ok = np.ones(slots.size, bool)
+        for s in range(0, slots.size, ROW_CHUNK):  # (in chunks: `keep` makes several arrays per point)
+            ok[s:s + ROW_CHUNK] = keep(table.keys[slots[s:s + ROW_CHUNK]].view(np.float64).reshape(-1, 2))
         table.vals[slots[~ok]] = GONE  # (probing passes deleted slots; the table drops them when it grows)
         table.live -= int((~ok).sum())
         slots = slots[ok]
