@@ -226,9 +226,41 @@ class _Evaluator:
         """Key the points `xy (n, 2)` to their rows `rows` (`inner_rows`): they become vertices."""
         self.cache.put(self._keys(xy), rows)
 
+    def inner_values(self, xy: np.ndarray) -> np.ndarray:
+        """The values `(n, 3)` at points `xy (n, 2)` inside elements, evaluated without rows (a
+        mesh without `update`: no later call asks for them; `adopt_values` keeps the few that
+        become vertices)."""
+        assert self.prior is None, "inner_values: not on an update's evaluator"
+        keys = self._keys(xy)
+        return self._compute(keys, np.zeros(keys.size, bool))
+
+    def adopt_values(self, xy: np.ndarray, values: np.ndarray) -> None:
+        """Key the points `xy (n, 2)` to new rows holding `values (n, 3)` (`inner_values`): they
+        become vertices."""
+        keys = self._keys(xy)
+        rows = self._store(keys, values, np.zeros(keys.size, bool))
+        self.inner[rows] = True
+        self.cache.put(keys, rows)
+
     def _evaluate(self, tgt: np.ndarray, line: np.ndarray) -> np.ndarray:
         """Evaluate at the points `tgt` (keys, `(n,)`), with the on-line check where `line`, into
         new rows; returns the rows."""
+        return self._store(tgt, self._compute(tgt, line), line)
+
+    def _store(self, tgt: np.ndarray, val: np.ndarray, line: np.ndarray) -> np.ndarray:
+        """New rows for the values `val (n, 3)` at the points `tgt` (keys); returns the rows."""
+        n = tgt.size
+        start = self._rows  # rows are never reused (a key dropped by `move` leaves its row behind)
+        self._grow(start + n)
+        self.values[start:start + n] = val
+        self.targets[start:start + n] = tgt
+        self.lined[start:start + n] = line
+        self._rows = start + n
+        return np.arange(start, start + n)
+
+    def _compute(self, tgt: np.ndarray, line: np.ndarray) -> np.ndarray:
+        """The values `(n, 3)` at the points `tgt` (keys, `(n,)`), with the on-line check where
+        `line`."""
         pts = tgt.view(np.float64).reshape(-1, 2)
         side = pts[line]
         allp = np.concatenate([pts, side + self.step, side - self.step])
@@ -260,13 +292,7 @@ class _Evaluator:
                 fixed[bad] = mid[bad]
                 val[line] = fixed
                 self.repairs += int(bad.sum())
-        start = self._rows  # rows are never reused (a key dropped by `move` leaves its row behind)
-        self._grow(start + n)
-        self.values[start:start + n] = val
-        self.targets[start:start + n] = tgt
-        self.lined[start:start + n] = line
-        self._rows = start + n
-        return np.arange(start, start + n)
+        return val
 
     def _checked(self, keys: np.ndarray) -> None:
         """Keys `keys` were evaluated with the on-line check: they leave `pending`."""

@@ -148,9 +148,13 @@ def refine_tiles(b: Refinable, tile_ids: list[int]) -> None:
                 inner = np.einsum("ij,tjk->tik", _INNER, c)
                 inside.append(np.concatenate([c.mean(axis=1, keepdims=True), inner], axis=1).reshape(-1, 2))
                 del c, inner
-            in_rows = b.eval.inner_rows(np.concatenate(inside))
-            in_val = b.eval.values[in_rows]
             at = np.cumsum([0] + [p.shape[0] for p in inside])
+            if lean:  # no rows: `in_rows` are positions in `in_val`
+                in_val = b.eval.inner_values(np.concatenate(inside))
+                in_rows = np.arange(in_val.shape[0])
+            else:
+                in_rows = b.eval.inner_rows(np.concatenate(inside))
+                in_val = b.eval.values[in_rows]
             del inside
             for k_group, ti in enumerate(group):
                 k_tile = first + k_group
@@ -249,7 +253,10 @@ def refine_tiles(b: Refinable, tile_ids: list[int]) -> None:
                     continue
                 r = irow[bad][np.arange(worst.size), np.maximum(worst - 3, 0)][once]
                 r[worst[once] < 3] = -1
-                b.eval.adopt(newp[once][r >= 0], r[r >= 0])  # inner points that become vertices keep their rows
+                if lean:  # inner points that become vertices keep their values
+                    b.eval.adopt_values(newp[once][r >= 0], in_val[r[r >= 0]])
+                else:  # (and their rows)
+                    b.eval.adopt(newp[once][r >= 0], r[r >= 0])
                 nv = tv.shape[0]
                 new_v = np.concatenate([tv, newp[once]])
                 # Edge midpoints on a line or a hole's edge split that segment.
