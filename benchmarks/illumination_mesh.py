@@ -14,6 +14,10 @@ scene in the same run (both after the engine's first calls; three alternating pa
 medians compared).
 
     python -m benchmarks illumination_mesh [--quick]
+    python -m benchmarks.illumination_mesh --memory TOL [--updatable] [--part M] [--out FILE]
+
+(the second: one mesh of the box scene in its own process, its time and peak resident memory;
+the suite's meshes are built with `updatable=False` but the one the update starts from)
 
 writes `benchmarks/results/illumination_mesh.json` (with the run's metadata, `benchmarks._suite`),
 `illumination_mesh.md` and `illumination_mesh_<scene>.png` (the mesh over the illumination).
@@ -23,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import time
 
 import numpy as np
@@ -176,7 +181,9 @@ def run_scene(name, scene, floor, tols, n_dense, n_max, moved_scene, zoom, updat
     ladder = None
     for tol in tols:
         t0 = time.perf_counter()
-        m = js.illumination_mesh(scene, floor, tol, scale=scale, max_vertices=max_vertices, tile_size=tile_size)
+        # (only the update's mesh keeps what `update` needs)
+        m = js.illumination_mesh(scene, floor, tol, scale=scale, max_vertices=max_vertices, tile_size=tile_size,
+                                 updatable=moved_scene is not None and tol == update_tol)
         el = time.perf_counter() - t0
         lin = m.interpolate(dense)
         ok = np.all(np.isfinite(lin), axis=1)  # outside the holes under standing objects
@@ -337,12 +344,83 @@ def key_numbers(results: dict) -> list[tuple[str, str]]:
     return out
 
 
+def _rss() -> int:
+    """This process's resident memory now (bytes; Linux `/proc`)."""
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+def memory(tol: float, updatable: bool, part: float | None, out: str | None) -> dict:
+    """One mesh of the box scene's floor (or of its middle `part` x `part` m) at `tol` with the
+    benchmark's settings, in this process: time, vertices, and the resident memory before the
+    call (after the engine's first call), its peak during the call (sampled every 20 ms) and
+    the process's peak (`ru_maxrss`), per output vertex too."""
+    import resource
+    import threading
+
+    import jax
+
+    import jaxshadow as js
+
+    jax.config.update("jax_enable_x64", True)
+    scene, floor = box_scene()
+    if part is not None:
+        floor = np.array([[-part / 2, -part / 2, 0.0], [part / 2, -part / 2, 0.0], [part / 2, part / 2, 0.0],
+                          [-part / 2, part / 2, 0.0]])
+    exact(scene, floor)  # the engine's first call (compilation) before the baseline
+    base = _rss()
+    peak = [base]
+    done = threading.Event()
+
+    def sample():
+        while not done.wait(0.02):
+            peak[0] = max(peak[0], _rss())
+
+    th = threading.Thread(target=sample, daemon=True)
+    th.start()
+
+    def progress(d: dict) -> None:
+        print(f"round {d['round']}: {d['tiles_active']} tiles active, {d['tile_vertices']:,} tile vertices, "
+              f"{d['seconds']:.0f} s, resident {_rss() / 1e9:.2f} GB (peak {peak[0] / 1e9:.2f})", file=sys.stderr, flush=True)
+
+    t0 = time.perf_counter()
+    m = js.illumination_mesh(scene, floor, tol, max_vertices=BOX_MAX_VERTICES, tile_size=BOX_TILE, updatable=updatable,
+                             progress=progress)
+    el = time.perf_counter() - t0
+    peak[0] = max(peak[0], _rss())
+    done.set()
+    th.join()
+    v = int(m.vertices.shape[0])
+    res = {"scene": "boxes" if part is None else f"boxes, middle {part:g} m", "tol": tol, "updatable": updatable,
+           "vertices": v, "triangles": int(m.triangles.shape[0]), "seconds": el, "seconds_per_1k_vertices": 1e3 * el / v,
+           "rss_before_bytes": base, "rss_peak_bytes": peak[0],
+           "ru_maxrss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+           "peak_bytes_per_vertex": (peak[0] - base) / v, "max_error_estimate": m.max_error_estimate, "scale": m.scale,
+           "stats": {k: val for k, val in m.stats.items() if isinstance(val, (int, float, str))}}
+    print({k: val for k, val in res.items() if k != "stats"}, flush=True)
+    if out:
+        import json
+
+        with open(out, "w") as f:
+            json.dump(res, f, indent=1)
+    return res
+
+
 def main(argv=None) -> int:
     from benchmarks._suite import main as suite_main
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="the two-occluder scene at tol 1e-2 and 1e-3 only")
+    ap.add_argument("--memory", type=float, metavar="TOL",
+                    help="instead: one mesh of the box scene at TOL, its time and peak resident memory (`memory`)")
+    ap.add_argument("--updatable", action="store_true", help="with --memory: keep what update needs (the default "
+                    "of js.illumination_mesh; without it updatable=False)")
+    ap.add_argument("--part", type=float, help="with --memory: mesh the middle PART x PART m of the floor only")
+    ap.add_argument("--out", help="with --memory: write the result as JSON here")
     args = ap.parse_args(argv)
+    if args.memory is not None:
+        memory(args.memory, args.updatable, args.part, args.out)
+        return 0
     return suite_main(["illumination_mesh"] + (["--quick"] if args.quick else []))
 
 

@@ -191,6 +191,45 @@ def test_evaluator_pending_points_follow_the_definition():
     assert e.evaluations == n0
 
 
+def test_evaluator_release_keeps_what_is_held():
+    # `release` (a mesh without `update`): the keys `keep` rejects leave the cache, the rows
+    # nothing refers to go (inner points, superseded evaluations), the rest is renumbered with
+    # the same values; a dropped key asked for again is evaluated as before, to the same value.
+    scene, frame, e = _evaluator()
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(-1.4, 1.4, (60, 2))
+    e.mark(xy[50:])  # on a line: evaluated with the on-line check
+    rows = e.row_of(xy)
+    want = e.values[rows].copy()
+    inner = rng.uniform(-1.4, 1.4, (30, 2))
+    irows = e.inner_rows(inner)
+    e.adopt(inner[:3], irows[:3])  # three inner points become vertices
+    e.mark(xy[:4])  # pending: evaluated again on the next call, their old rows then lead to new ones
+    e.move(xy[4:6], xy[4:6] + 1e-3)  # moved: dropped from the cache until evaluated again
+    held = {7: rows[:10].copy()}  # a tile's vertex rows from before the marks and moves
+    n_rows = e._rows
+    out = e.release(lambda q: q[:, 0] < 0.0, held)
+    keep = xy[:, 0] < 0.0
+    # Rows left: the kept keys', the held ones (followed), the moved keys' old rows.
+    k, r = e.cache.items()
+    assert e._rows < n_rows
+    assert len(e.cache) == int(keep.sum()) - int(keep[4:6].sum()) + int((inner[:3, 0] < 0).sum())
+    np.testing.assert_array_equal(e.values[out[7]], want[:10])
+    kept_xy = xy[keep & (np.arange(60) >= 6)]
+    n0 = e.evaluations
+    np.testing.assert_array_equal(e(kept_xy), want[keep & (np.arange(60) >= 6)])
+    assert e.evaluations == n0  # no engine call for kept keys
+    # Every point again, the dropped ones too: one evaluation each for the dropped, the
+    # pending and the moved (with the on-line check: three), values as by definition.
+    got = e(xy)
+    dropped = ~keep & (np.arange(60) >= 6)
+    online = dropped & (np.arange(60) >= 50)
+    assert e.evaluations == n0 + 4 * 3 + 2 + int(dropped.sum()) + 2 * int(online.sum())
+    np.testing.assert_array_equal(got[6:], want[6:])
+    np.testing.assert_array_equal(got[4:6], e(xy[4:6] + 1e-3))
+    np.testing.assert_array_equal(e.values[e.follow(out[7])], got[:10])
+
+
 # --------------------------------------------------------------------------------------
 # Several boxes at once
 # --------------------------------------------------------------------------------------

@@ -455,3 +455,51 @@ def test_penumbra_wedge_beyond_the_corner_disc(monkeypatch):
     assert m.stats["unrefined_min_edge"] == 0
     assert m.max_error_estimate <= 1e-4
     assert m.stats["corner_error"] > 1e-4
+
+
+def _small_steps(monkeypatch):
+    """Tiny evaluation groups, engine batches, look-up chunks and release thresholds, so that a
+    small mesh goes through every path that a large one takes (several groups per round,
+    several batches per evaluation and chunks per look-up, rows dropped after most rounds)."""
+    import jaxshadow._illumination.builder as builder
+    import jaxshadow._illumination.evaluator as evaluator
+    import jaxshadow._illumination.refine as refine
+
+    monkeypatch.setattr(refine, "GROUP_ELEMENTS", 40)
+    monkeypatch.setattr(evaluator, "MAX_BATCH", 512)
+    monkeypatch.setattr(evaluator, "ROW_CHUNK", 300)
+    monkeypatch.setattr(builder, "RELEASE_MIN_ROWS", 64)
+
+
+def test_lean_mesh_equals_the_updatable_one(monkeypatch):
+    # A floating occluder and a box standing on the floor (holes, contact corners, points moved
+    # off the holes' edges): without `update` the mesher drops the values of finished tiles and
+    # the elements' check points as it goes; vertices, triangles and values stay bit for bit.
+    scene = js.Scene([js.PolygonLight(LIGHT, 10.0)], [js.Mesh.box(BOX_LO, BOX_HI), OCC_HIGH])
+    full = js.illumination_mesh(scene, FLOOR, 5e-2, tile_size=TILE)
+    _small_steps(monkeypatch)
+    lean = js.illumination_mesh(scene, FLOOR, 5e-2, tile_size=TILE, updatable=False)
+    assert lean.stats["rows_released"] > 0 and "rows_released" not in full.stats
+    for name in ("vertices", "triangles", "irradiance"):
+        a, b = getattr(full, name), getattr(lean, name)
+        assert a.dtype == b.dtype and a.shape == b.shape
+        np.testing.assert_array_equal(a, b, err_msg=name)
+    assert lean.max_error_estimate == full.max_error_estimate and lean.scale == full.scale
+    # (a dropped edge midpoint whose edge comes back is evaluated again: a few)
+    assert full.stats["evaluations"] <= lean.stats["evaluations"] <= 1.05 * full.stats["evaluations"]
+    assert lean._builders[0].eval is None  # the mesh keeps its arrays only
+    with pytest.raises(ValueError, match="updatable=False"):
+        lean.update(scene)
+    pts = floor_grid(40)
+    np.testing.assert_array_equal(lean.interpolate(pts), full.interpolate(pts))
+
+
+def test_grouped_rounds_equal_one_group(mesh, monkeypatch):
+    # The refinement rounds checked in many small groups (and engine batches) give the mesh
+    # checked in one group per round, bit for bit, and so does its update.
+    _small_steps(monkeypatch)
+    m = js.illumination_mesh(two_occluders(), FLOOR, TOL, tile_size=TILE, gradient="differences")
+    _assert_same_mesh(m, mesh)
+    np.testing.assert_array_equal(m.vertices, mesh.vertices)
+    np.testing.assert_array_equal(m.triangles, mesh.triangles)
+    _assert_same_mesh(m.update(two_occluders(SHIFT)), mesh.update(two_occluders(SHIFT)))

@@ -30,6 +30,8 @@ DEFAULT_TILES = 16  # tiles along the receiver's longer side
 SAMPLES_PER_TILE = 6  # extremum-search grid per tile side
 SEGMENT_SAMPLES_PER_TILE = 16  # visibility samples per tile length along a discontinuity line
 CONTACT_STEP = 1e-9  # points on a hole's edge take the value this far outside (of the receiver's size)
+RELEASE_MIN_ROWS = 1 << 16  # a lean mesher's evaluator drops rows once it holds this many (`release`)
+RELEASE_GROWTH = 1.2  # and this many times the rows it kept the last time
 
 
 class _Builder:
@@ -50,6 +52,10 @@ class _Builder:
         self.scale = scale
         xs, ys = _grid(self.poly, self.tile_size)
         self.gp, self.tiles = _tiles(self.poly, xs, ys)
+        self.grid = (xs, ys)
+        self.lean = False  # True: no `update` will follow (`release`)
+        self._done = np.zeros(len(self.tiles), bool)  # tiles whose refinement ended (`release`)
+        self._live_rows = 0  # the evaluator's rows after the last `release` that dropped any
         self.edges: dict[tuple[int, int], _Edge] = {}
         for t in self.tiles:
             for ga, gb, _ in t.edge_keys():
@@ -498,6 +504,57 @@ class _Builder:
             vid(p)
         return np.array(verts), np.array(segs), np.array(marks)
 
+    def _tile_cells(self) -> np.ndarray:
+        """`(len(xs) + 1, len(ys) + 1)`: the tile in each cell of the grid, -1 for none."""
+        xs, ys = self.grid
+        cells = np.full((xs.size + 1, ys.size + 1), -1, np.int64)
+        for ti, t in enumerate(self.tiles):
+            c = t.poly.mean(axis=0)
+            cells[np.searchsorted(xs, c[0]), np.searchsorted(ys, c[1])] = ti
+        return cells
+
+    def release(self, finished: list[int], held: dict[int, np.ndarray],
+                current: Any = None) -> dict[int, np.ndarray] | None:
+        """For a mesh without `update` (`lean`), after a refinement round: tiles `finished` are
+        final; once the evaluator holds `RELEASE_GROWTH` times the rows it kept last time (each
+        round's inner check points alone pass that: in effect after every round; its cost is a
+        few passes over the rows, small beside a round's evaluations), the values at points
+        strictly inside finished tiles (no other tile asks for them: the points a tile shares
+        with its neighbours lie on grid lines) and the rows nothing refers to any more (the
+        elements' inner points) go (`_Evaluator.release`). `held`: per active tile the rows of
+        its vertices; `current`: None, or a callable giving the keys (`x + iy`) that the active
+        tiles can still ask for (their vertices, the midpoints of their triangulations' edges):
+        then the other points strictly inside active tiles go too (the midpoints of edges the
+        triangulation no longer has; one that comes back is evaluated again, to the same value).
+        Returns `held` renumbered, or None when nothing was dropped."""
+        self._done[finished] = True
+        if not self.lean or self.eval._rows < max(RELEASE_GROWTH * self._live_rows, RELEASE_MIN_ROWS):
+            return None
+        xs, ys = self.grid
+        cells = self._tile_cells()
+        done = np.append(self._done, False)  # (index -1: no tile)
+
+        def keep(xy: np.ndarray) -> np.ndarray:
+            i, j = np.searchsorted(xs, xy[:, 0]), np.searchsorted(ys, xy[:, 1])
+            on_line = (xs[np.minimum(i, xs.size - 1)] == xy[:, 0]) if xs.size else np.zeros(xy.shape[0], bool)
+            if ys.size:
+                on_line |= ys[np.minimum(j, ys.size - 1)] == xy[:, 1]
+            ok = on_line | ~done[cells[i, j]]
+            if keys is not None and keys.size:  # (membership in the sorted keys: no table, no merge sort)
+                k = xy.view(np.complex128).ravel() + 0.0
+                ok &= on_line | (keys[np.minimum(np.searchsorted(keys, k), keys.size - 1)] == k)
+            elif keys is not None:
+                ok &= on_line
+            return ok  # type: ignore[no-any-return]
+
+        keys = None if current is None else np.sort(current())
+
+        before = self.eval._rows
+        out = self.eval.release(keep, held)
+        self._live_rows = self.eval._rows
+        self.stats["rows_released"] = self.stats.get("rows_released", 0) + before - self._live_rows
+        return out
+
     def _refine_tiles(self, tile_ids: list[int]) -> None:
         refine_tiles(self, tile_ids)
 
@@ -535,16 +592,40 @@ class _Builder:
     def assemble(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
         vs = [t.verts for t in self.tiles]
         off = np.cumsum([0] + [v.shape[0] for v in vs])  # type: ignore[union-attr]
-        allv = np.concatenate(vs)
-        allval = np.concatenate([t.values for t in self.tiles])
+        # The tiles' vertices merged by position (rows as `x + iy`: a 1-D unique, in the order
+        # of a row-wise one: by x, then y; the first occurrence of each kept).
+        allv = np.concatenate([np.ascontiguousarray(v, np.float64).view(np.complex128).ravel() for v in vs])
+        uniq, first, inv = np.unique(allv, return_index=True, return_inverse=True)
+        del allv
         tris = np.concatenate([t.tris + o for t, o in zip(self.tiles, off[:-1], strict=True)])
-        uniq, first, inv = np.unique(allv, axis=0, return_index=True, return_inverse=True)
         tris = inv.ravel()[tris]
+        del inv
         used = np.zeros(uniq.shape[0], bool)
         used[tris.ravel()] = True  # vertices only inside holes are dropped
         renum = np.cumsum(used) - 1
+        tris = renum[tris]
+        del renum
+        values = np.concatenate([t.values for t in self.tiles])[first[used]]  # type: ignore[misc]
+        del first
         err = max(t.error for t in self.tiles) / float(self.scale)
-        return self.frame.to3d(uniq[used]), renum[tris], allval[first[used]], err
+        return self.frame.to3d(uniq[used].view(np.float64).reshape(-1, 2)), tris, values, err
+
+    def release_evaluator(self) -> None:
+        """Drop the exact values and the refinement's inputs once the tiles are meshed (a mesh
+        without `update`)."""
+        self.eval = None  # type: ignore[assignment]
+        self.edges = {}
+        self._corner_memo = {}
+        self.seg = None
+        self.occ = None
+
+    def release_all(self) -> None:
+        """Drop everything but what the assembled mesh's statistics and `interpolate` read (a
+        mesh without `update`)."""
+        self.release_evaluator()
+        for t in self.tiles:
+            t.verts = t.tris = t.values = None
+            t.pieces, t.contact_pieces, t.piece_extrema = [], [], {}
 
 
 def _jax_gradient(scene: Scene, frame: ev.Frame, evaluator: _Evaluator) -> ex.Gradient:

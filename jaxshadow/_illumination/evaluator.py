@@ -10,13 +10,16 @@ from typing import Any
 
 import numpy as np
 
-from .._core.keytable import MAX_LOAD, KeyTable, as_keys, first_occurrence
+from .._core.keytable import GONE, MAX_LOAD, KeyTable, as_keys, first_occurrence
 from .._scene.model import DirectionalLight, LinearLight, PointLight, PolygonLight, Scene
 from .._shading.shade import irradiance
 from . import events as ev
 
 ON_LINE_STEP = 1e-9
 MIN_BATCH = 256  # smallest batch handed to the engine
+MAX_BATCH = 1 << 18  # largest batch handed to the engine (its working memory grows with the batch)
+ROW_CHUNK = 1 << 20  # points looked up per step of `row_of`
+SPARE = 0.25  # room added when the value arrays grow, as a fraction of the rows they must hold
 
 
 class _Evaluator:
@@ -177,8 +180,15 @@ class _Evaluator:
         return rows
 
     def row_of(self, xy: np.ndarray) -> np.ndarray:
-        """The value rows `(n,)` of points `xy (n, 2)`, evaluated first where needed."""
+        """The value rows `(n,)` of points `xy (n, 2)`, evaluated first where needed; in chunks
+        of `ROW_CHUNK` points (the look-up tables of one call grow with it; a point of a later
+        chunk finds the rows of an earlier one, as it would within one call)."""
         keys = self._keys(xy)
+        if keys.size <= ROW_CHUNK:
+            return self._row_of(keys)
+        return np.concatenate([self._row_of(keys[s:s + ROW_CHUNK]) for s in range(0, keys.size, ROW_CHUNK)])
+
+    def _row_of(self, keys: np.ndarray) -> np.ndarray:
         rows, need = self._lookup(keys)
         if not need.any():
             return rows
@@ -216,21 +226,58 @@ class _Evaluator:
         """Key the points `xy (n, 2)` to their rows `rows` (`inner_rows`): they become vertices."""
         self.cache.put(self._keys(xy), rows)
 
+    def inner_values(self, xy: np.ndarray) -> np.ndarray:
+        """The values `(n, 3)` at points `xy (n, 2)` inside elements, evaluated without rows (a
+        mesh without `update`: no later call asks for them; `adopt_values` keeps the few that
+        become vertices)."""
+        assert self.prior is None, "inner_values: not on an update's evaluator"
+        keys = self._keys(xy)
+        return self._compute(keys, np.zeros(keys.size, bool))
+
+    def adopt_values(self, xy: np.ndarray, values: np.ndarray) -> None:
+        """Key the points `xy (n, 2)` to new rows holding `values (n, 3)` (`inner_values`): they
+        become vertices."""
+        keys = self._keys(xy)
+        rows = self._store(keys, values, np.zeros(keys.size, bool))
+        self.inner[rows] = True
+        self.cache.put(keys, rows)
+
     def _evaluate(self, tgt: np.ndarray, line: np.ndarray) -> np.ndarray:
         """Evaluate at the points `tgt` (keys, `(n,)`), with the on-line check where `line`, into
         new rows; returns the rows."""
+        return self._store(tgt, self._compute(tgt, line), line)
+
+    def _store(self, tgt: np.ndarray, val: np.ndarray, line: np.ndarray) -> np.ndarray:
+        """New rows for the values `val (n, 3)` at the points `tgt` (keys); returns the rows."""
+        n = tgt.size
+        start = self._rows  # rows are never reused (a key dropped by `move` leaves its row behind)
+        self._grow(start + n)
+        self.values[start:start + n] = val
+        self.targets[start:start + n] = tgt
+        self.lined[start:start + n] = line
+        self._rows = start + n
+        return np.arange(start, start + n)
+
+    def _compute(self, tgt: np.ndarray, line: np.ndarray) -> np.ndarray:
+        """The values `(n, 3)` at the points `tgt` (keys, `(n,)`), with the on-line check where
+        `line`."""
         pts = tgt.view(np.float64).reshape(-1, 2)
         side = pts[line]
         allp = np.concatenate([pts, side + self.step, side - self.step])
         t0 = time.perf_counter()
-        # Padded to a power of two: the engine compiles per batch shape.
         n_all = allp.shape[0]
-        size = max(MIN_BATCH, 1 << (n_all - 1).bit_length())
-        p3 = self.frame.to3d(np.concatenate([allp, np.repeat(allp[:1], size - n_all, axis=0)]))
-        nrm = np.empty_like(p3)
-        nrm[:n_all] = self.frame.normal
-        nrm[n_all:] = self.frame.normal if self.away is None else self.away
-        e = np.asarray(irradiance(self.scene, p3, nrm), np.float64)[:n_all]
+        e = np.empty((n_all, 3))
+        for s in range(0, n_all, MAX_BATCH):
+            part = allp[s:s + MAX_BATCH]
+            # Padded to a power of two: the engine compiles per batch shape.
+            k = part.shape[0]
+            size = max(MIN_BATCH, 1 << (k - 1).bit_length())
+            p3 = self.frame.to3d(np.concatenate([part, np.repeat(part[:1], size - k, axis=0)]))
+            nrm = np.empty_like(p3)
+            nrm[:k] = self.frame.normal
+            nrm[k:] = self.frame.normal if self.away is None else self.away
+            e[s:s + k] = np.asarray(irradiance(self.scene, p3, nrm), np.float64)[:k]
+            del p3, nrm
         self.seconds += time.perf_counter() - t0
         self.evaluations += allp.shape[0]
         n, m = pts.shape[0], side.shape[0]
@@ -245,13 +292,7 @@ class _Evaluator:
                 fixed[bad] = mid[bad]
                 val[line] = fixed
                 self.repairs += int(bad.sum())
-        start = self._rows  # rows are never reused (a key dropped by `move` leaves its row behind)
-        self._grow(start + n)
-        self.values[start:start + n] = val
-        self.targets[start:start + n] = tgt
-        self.lined[start:start + n] = line
-        self._rows = start + n
-        return np.arange(start, start + n)
+        return val
 
     def _checked(self, keys: np.ndarray) -> None:
         """Keys `keys` were evaluated with the on-line check: they leave `pending`."""
@@ -272,11 +313,49 @@ class _Evaluator:
         keys = np.ascontiguousarray(np.asarray(xy, np.float64).reshape(-1, 2)).view(np.complex128).ravel()
         return np.isin(keys, np.fromiter(log, np.complex128, len(log)))
 
-    def _grow(self, rows: int, spare: float = 1.0) -> None:
+    def release(self, keep: Any, held: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+        """Drop every row no longer needed and renumber the others, for a mesh that will not be
+        updated: the keys for which `keep(points (n, 2))` is False leave the cache, and the rows
+        that no key, no pending re-evaluation and none of the row arrays `held` (followed to
+        their points' latest evaluations first) refer to go, the elements' inner points among
+        them. Returns `held` renumbered. The marks (`online`, `checked`) and moves stay: a key
+        asked for again is evaluated as before, to the same value."""
+        assert self.prior is None, "release: not on an update's evaluator"
+        table = self.cache
+        slots = np.nonzero(table.vals >= 0)[0]  # the live keys, in place (no re-hashing)
+        ok = np.ones(slots.size, bool)
+        for s in range(0, slots.size, ROW_CHUNK):  # (in chunks: `keep` makes several arrays per point)
+            ok[s:s + ROW_CHUNK] = keep(table.keys[slots[s:s + ROW_CHUNK]].view(np.float64).reshape(-1, 2))
+        table.vals[slots[~ok]] = GONE  # (probing passes deleted slots; the table drops them when it grows)
+        table.live -= int((~ok).sum())
+        slots = slots[ok]
+        held = {i: self.follow(v) for i, v in held.items()}
+        live = np.zeros(self._rows, bool)
+        live[table.vals[slots]] = True
+        for v in held.values():
+            live[v] = True
+        if self.dropped:
+            live[np.fromiter(self.dropped.values(), np.int64, len(self.dropped))] = True
+        new = np.cumsum(live) - 1
+        n = int(new[-1]) + 1 if new.size else 0
+        for name in ("values", "targets", "lined", "inner"):
+            a = getattr(self, name)
+            b = np.zeros((max(int(n * (1 + SPARE)), 1024),) + a.shape[1:], a.dtype)
+            b[:n] = a[:self._rows][live]
+            setattr(self, name, b)
+            del a
+        self._rows = n
+        table.vals[slots] = new[table.vals[slots]]
+        self.dropped = {key: int(new[row]) for key, row in self.dropped.items()}
+        self.succ, self._succ_sorted = {}, None
+        self._log_version += 1
+        return {i: new[v] for i, v in held.items()}
+
+    def _grow(self, rows: int, spare: float | None = None) -> None:
         """Room for `rows` rows, and `spare` times as many again when the arrays must grow."""
         if rows <= self.values.shape[0]:
             return
-        size = max(int(rows * (1 + spare)), 1024)
+        size = max(int(rows * (1 + (SPARE if spare is None else spare))), 1024)
         for name in ("values", "targets", "lined", "inner"):
             a = getattr(self, name)
             b = np.zeros((size,) + a.shape[1:], a.dtype)

@@ -29,7 +29,10 @@ receiver polygon:
    same way in 1-D beforehand. A round's triangulation starts with the previous round's vertices
    in order, so the elements it keeps (same three vertices) keep their checked errors and the
    vertices keep their evaluated values: a round evaluates and looks up only the new vertices
-   and the new elements' check points (`_illumination_refine`).
+   and the new elements' check points (`_illumination_refine`). A round's inner check points
+   (most of the evaluations) are evaluated in groups of tiles, and a mesher that will not be
+   updated (`updatable=False`) drops after each round the values it will not ask for again: the
+   elements' inner check points and everything strictly inside a finished tile.
 
 Values come from `jaxshadow.irradiance` (the host shadow engine for concrete inputs).
 """
@@ -72,7 +75,9 @@ class IlluminationMesh:
     - `scale`: the irradiance `tol` is relative to (W/m^2): the receiver's maximum found by the
       extremum search, unless given.
     - `tol`: the requested relative tolerance.
-    - `stats`: counts and timings (lines, extrema, evaluations, tiles re-meshed by an update),
+    - `updatable`: whether `update` can follow (`illumination_mesh(..., updatable=...)`).
+    - `stats`: counts and timings (lines, extrema, evaluations, tiles re-meshed by an update,
+      exact values dropped by a mesher without update: `rows_released`),
       and the elements that stopped refining at the minimum edge length: `unrefined_min_edge`
       (elements whose checked error is over the threshold but whose longest edge is at most
       `min_edge`, so they are not split), `tiles_unrefined_min_edge` (the tiles holding them)
@@ -87,12 +92,20 @@ class IlluminationMesh:
 
     def __init__(self, builders: list[_Builder], tol: float, stats: dict[str, Any]):
         self._builders = builders
-        parts = [b.assemble() for b in builders]
-        off = np.cumsum([0] + [p[0].shape[0] for p in parts])
-        self.vertices = np.concatenate([p[0] for p in parts])
-        self.triangles = np.concatenate([p[1] + o for p, o in zip(parts, off[:-1], strict=True)])
-        self.irradiance = np.concatenate([p[2] for p in parts])
+        parts = []
+        for b in builders:
+            parts.append(b.assemble())
+            if b.lean:  # (`illumination_mesh(..., updatable=False)`): the assembled arrays are the mesh
+                b.release_all()
+        if len(parts) == 1:
+            self.vertices, self.triangles, self.irradiance = parts[0][:3]
+        else:
+            off = np.cumsum([0] + [p[0].shape[0] for p in parts])
+            self.vertices = np.concatenate([p[0] for p in parts])
+            self.triangles = np.concatenate([p[1] + o for p, o in zip(parts, off[:-1], strict=True)])
+            self.irradiance = np.concatenate([p[2] for p in parts])
         self.max_error_estimate = max(p[3] for p in parts)
+        del parts
         tiles = [(t, float(b.scale)) for b in builders for t in b.tiles]
         stats = {**stats, "corner_error": max(t.corner_error / sc for t, sc in tiles),
                  "unrefined_min_edge": sum(t.unrefined for t, _ in tiles),
@@ -101,6 +114,7 @@ class IlluminationMesh:
         self.scale = max(float(b.scale) for b in builders)
         self.tol = float(tol)
         self.stats = stats
+        self.updatable = not any(b.lean for b in builders)
 
     def __repr__(self) -> str:
         return (f"IlluminationMesh({self.vertices.shape[0]} vertices, {self.triangles.shape[0]} triangles, "
@@ -128,8 +142,12 @@ class IlluminationMesh:
         redone (`tiles_meshed`), how many old values the change can affect (`values_affected`)
         or not (`values_kept`), and how many of the latter the new mesh used (`reused`).
 
-        Raises `ValueError` if the lights or ambient changed (re-mesh instead)."""
+        Raises `ValueError` if the lights or ambient changed (re-mesh instead), or if the mesh was
+        built with `updatable=False`."""
         t0 = time.perf_counter()
+        if not self.updatable:
+            raise ValueError("IlluminationMesh.update: this mesh was built with updatable=False; "
+                             "build it with updatable=True (the default) to update it.")
         if not isinstance(scene, Scene):
             raise ValueError(f"IlluminationMesh.update: expected a jaxshadow.Scene, got {type(scene).__name__}.")
         old = self._builders[0].scene
@@ -264,7 +282,7 @@ GRADIENTS = ("differences", "jax")
 
 def illumination_mesh(scene: Any, receiver: Any, tol: float = 1e-3, *, max_vertices: int = 2_000_000,
                       tile_size: float | None = None, min_edge: float | None = None, gradient: str = "differences",
-                      scale: float | None = None, progress: Any = None) -> IlluminationMesh:
+                      scale: float | None = None, progress: Any = None, updatable: bool = True) -> IlluminationMesh:
     r"""An adaptive, discontinuity-aware mesh of `receiver` with exact irradiance at its vertices.
 
     Linear interpolation of the vertex irradiance over each triangle stays within `tol` times the
@@ -304,6 +322,11 @@ def illumination_mesh(scene: Any, receiver: Any, tol: float = 1e-3, *, max_verti
       `tiles_active` (tiles still refining), `tile_vertices` (vertices of all tiles, those on
       shared tile edges counted once per tile), `failing_elements` (elements split this round),
       `seconds` (since refinement began); for a receiver of several polygons, per polygon.
+    - `updatable`: keep what `IlluminationMesh.update` needs (every exact value computed, the
+      tiles' meshes). With False the mesher drops the values it no longer needs as tiles
+      finish (the points strictly inside finished tiles, the elements' check points) and the
+      mesh keeps only its arrays: far less memory on large meshes (the box benchmark's floor
+      at tol 1e-4), the same vertices, triangles and values bit for bit; `update` then raises.
 
     **Returns:** `IlluminationMesh` with `vertices (V, 3)`, `triangles (T, 3)`, `irradiance (V, 3)`,
     `max_error_estimate`, `scale`, `stats`.
@@ -352,7 +375,10 @@ def illumination_mesh(scene: Any, receiver: Any, tol: float = 1e-3, *, max_verti
     for p in polys:
         b = _Builder(scene, p, float(tol), tile_size, min_edge, max_vertices, gradient, scale)
         b.progress = progress
+        b.lean = not updatable
         b.build(list(range(len(b.tiles))), list(b.edges))
+        if b.lean:  # (the values are in the tiles now)
+            b.release_evaluator()
         builders.append(b)
     if scale is None and len(builders) > 1:
         top = max(float(b.scale) for b in builders)
