@@ -6,7 +6,7 @@ import pytest
 import trimesh
 
 import jaxshadow as js
-from jaxshadow._core.mesh import _face_loops
+from jaxshadow._core.faces import _face_loops
 
 
 def _convex_reference(loops, v, size):

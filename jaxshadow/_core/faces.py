@@ -1,0 +1,504 @@
+"""The face table of an occluder mesh (`mesh.Mesh`, module docstring there): faces as one padded
+index table, their normals and checks, closedness and orientation, convexity, the coplanar
+merge and the edges of a convex solid. NumPy only, before any compiled code runs."""
+
+from __future__ import annotations
+
+import math
+import operator
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+# Relative tolerances (of the mesh's size) for coplanarity and convexity.
+COPLANAR_RTOL = 1e-9
+MAX_MERGED_VERTICES = 8
+
+
+def _newell(v: np.ndarray) -> np.ndarray:
+    w = np.concatenate([v[1:], v[:1]])
+    return np.array([np.sum(v[:, 1] * w[:, 2] - v[:, 2] * w[:, 1]), np.sum(v[:, 2] * w[:, 0] - v[:, 0] * w[:, 2]),
+                     np.sum(v[:, 0] * w[:, 1] - v[:, 1] * w[:, 0])])
+
+
+def _cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+def _plane_values(pts: np.ndarray, p0: Any, nrm: np.ndarray) -> np.ndarray:
+    """(pts - p0) . nrm over the last axis, with one fixed order of operations (broadcasting), so
+    that every test of a vertex against a face plane below rounds the same way."""
+    d = pts - p0
+    return d[..., 0] * nrm[..., 0] + d[..., 1] * nrm[..., 1] + d[..., 2] * nrm[..., 2]
+
+
+def _newell_many(p: np.ndarray) -> np.ndarray:
+    """`_newell` of each polygon of `p (G, k, 3)`: the same products summed along a contiguous
+    axis of length k (the same summation as `np.sum` of one face's terms)."""
+    w = np.concatenate([p[:, 1:], p[:, :1]], axis=1)
+    return np.stack([(p[:, :, 1] * w[:, :, 2] - p[:, :, 2] * w[:, :, 1]).sum(axis=1),
+                     (p[:, :, 2] * w[:, :, 0] - p[:, :, 0] * w[:, :, 2]).sum(axis=1),
+                     (p[:, :, 0] * w[:, :, 1] - p[:, :, 1] * w[:, :, 0]).sum(axis=1)], axis=1)
+
+
+@dataclass(frozen=True)
+class _Faces:
+    """Face loops as arrays: `pad (F, K)` vertex indices, each face's loop padded with its first
+    vertex (which changes no maximum over a face's vertices), and `lens (F,)` its vertex count."""
+
+    pad: np.ndarray
+    lens: np.ndarray
+
+    @staticmethod
+    def of(loops: list[list[int]]) -> _Faces:
+        lens = np.fromiter((len(x) for x in loops), dtype=np.intp, count=len(loops))
+        k = int(lens.max(initial=3))
+        if len(loops) and int(lens.min()) == k:
+            return _Faces(np.asarray(loops, dtype=np.int64).reshape(-1, k), lens)
+        pad = np.empty((len(loops), k), dtype=np.int64)
+        for j in np.unique(lens).tolist():
+            idx = np.flatnonzero(lens == j)
+            arr = np.asarray([loops[i] for i in idx.tolist()], dtype=np.int64).reshape(-1, j)
+            pad[idx, :j] = arr
+            pad[idx, j:] = arr[:, :1]
+        return _Faces(pad, lens)
+
+    def __len__(self) -> int:
+        return len(self.lens)
+
+    def groups(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The faces grouped by vertex count: (face indices (G,), vertex indices (G, k)) per count."""
+        if len(self.lens) and int(self.lens.min()) == self.pad.shape[1]:
+            return [(np.arange(len(self.lens)), self.pad)]
+        return [(idx, self.pad[idx, :k]) for k in np.unique(self.lens).tolist()
+                for idx in [np.flatnonzero(self.lens == k)]]
+
+    def reversed(self) -> _Faces:
+        """Every loop run backwards."""
+        pad = np.empty_like(self.pad)
+        for idx, arr in self.groups():
+            pad[idx, :arr.shape[1]] = arr[:, ::-1]
+            pad[idx, arr.shape[1]:] = arr[:, -1:]
+        return _Faces(pad, self.lens)
+
+    def edges(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Directed edges in face order: (face, position k in the face, a = loop[k], b = loop[k+1])."""
+        f, kmax = self.pad.shape
+        col = np.arange(kmax)
+        if len(self.lens) and int(self.lens.min()) == kmax:
+            face = np.repeat(np.arange(f), kmax)
+            k = np.tile(col, f)
+            return face, k, self.pad.reshape(-1), np.roll(self.pad, -1, axis=1).reshape(-1)
+        mask = col[None, :] < self.lens[:, None]
+        face = np.repeat(np.arange(f), self.lens)
+        k = np.broadcast_to(col, self.pad.shape)[mask]
+        return face, k, self.pad[mask], self.pad[face, (k + 1) % self.lens[face]]
+
+    def loops(self) -> list[list[int]]:
+        rows = self.pad.tolist()
+        if len(self.lens) and int(self.lens.min()) == self.pad.shape[1]:
+            return rows
+        return [r[:n] for r, n in zip(rows, self.lens.tolist(), strict=True)]
+
+    def padded_to(self, k: int) -> np.ndarray:
+        """`(F, k)` vertex indices, padded with each face's first vertex (k >= K)."""
+        if k == self.pad.shape[1]:
+            return self.pad
+        return np.concatenate([self.pad, np.repeat(self.pad[:, :1], k - self.pad.shape[1], axis=1)], axis=1)
+
+
+def _normals(faces: _Faces, v: np.ndarray) -> np.ndarray:
+    """Newell normals `(F, 3)` (not normalised) of all faces."""
+    out = np.zeros((len(faces), 3))
+    for idx, arr in faces.groups():
+        out[idx] = _newell_many(v[arr])
+    return out
+
+
+def _unit(n: np.ndarray) -> np.ndarray:
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return n / np.sqrt((n * n).sum(axis=1))[:, None]
+
+
+def _check_faces(faces: _Faces, v: np.ndarray, size: float) -> None:
+    """Zero-area and non-planar faces (the first offending face is reported)."""
+    bad = np.zeros(len(faces), dtype=np.int8)  # 1: zero area, 2: not planar
+    for idx, arr in faces.groups():
+        pts = v[arr]
+        n = _newell_many(pts)
+        area = np.sqrt((n * n).sum(axis=1))
+        zero = ~(area > COPLANAR_RTOL * size * size)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            off = np.abs(_plane_values(pts, pts[:, :1], (n / area[:, None])[:, None, :])).max(axis=1)
+        bad[idx] = np.where(zero, 1, np.where(off > 1e-6 * size, 2, 0))
+    hit = np.flatnonzero(bad)
+    if len(hit):
+        i = int(hit[0])
+        raise ValueError(f"Mesh: face {i} has zero area." if bad[i] == 1 else f"Mesh: face {i} is not planar.")
+
+
+def _index(x: Any, i: int) -> int:
+    """One vertex index: an integer, or a number with an integral value (2.0); 2.5 is refused
+    rather than truncated."""
+    try:
+        return operator.index(x)
+    except TypeError:
+        pass
+    try:
+        xf = float(x)
+    except (TypeError, ValueError):
+        raise ValueError(f"Mesh: face {i} has a vertex index that is not an integer: {x!r}.") from None
+    if not (math.isfinite(xf) and xf == int(xf)):
+        raise ValueError(f"Mesh: face {i} has a vertex index that is not an integer: {x!r}.")
+    return int(xf)
+
+
+def _face_loops(faces: Any, n_vertices: int) -> list[list[int]]:
+    arr = None
+    if isinstance(faces, np.ndarray) or (isinstance(faces, list | tuple) and faces
+                                         and all(isinstance(f, np.ndarray | list | tuple) for f in faces[:1])):
+        try:
+            arr = np.asarray(faces)
+        except (ValueError, TypeError):
+            arr = None
+    if arr is not None and arr.ndim == 2 and arr.dtype.kind in "biuf":
+        if arr.dtype.kind == "f":
+            nonint = ~np.all(np.isfinite(arr) & (arr == np.round(arr)), axis=1)
+            if nonint.any():
+                i = int(np.flatnonzero(nonint)[0])
+                bad = arr[i][~(np.isfinite(arr[i]) & (arr[i] == np.round(arr[i])))][0]
+                raise ValueError(f"Mesh: face {i} has a vertex index that is not an integer: {bad!r}.")
+        if arr.shape[1] != 3:
+            return _face_loops_generic(arr.astype(np.int64).tolist(), n_vertices)
+        a = arr.astype(np.int64) if arr.dtype.kind != "i" or arr.dtype.itemsize != 8 else arr
+        if arr.dtype.kind == "u" and arr.size and arr.max() > np.iinfo(np.int64).max:
+            return _face_loops_generic(arr.tolist(), n_vertices)
+        out_of_range = np.any((a < 0) | (a >= n_vertices), axis=1)
+        repeated = (a[:, 0] == a[:, 1]) | (a[:, 1] == a[:, 2]) | (a[:, 2] == a[:, 0])
+        hit = np.flatnonzero(out_of_range | repeated)
+        if len(hit):
+            i = int(hit[0])
+            if out_of_range[i]:
+                raise ValueError(f"Mesh: face {i} has a vertex index out of range [0, {n_vertices}).")
+            raise ValueError(f"Mesh: face {i} needs at least three distinct vertices, got {a[i].tolist()}.")
+        return a.tolist()  # a triangle with three distinct vertices is its own deduplicated loop
+    return _face_loops_generic(faces, n_vertices)
+
+
+def _face_loops_generic(faces: Any, n_vertices: int) -> list[list[int]]:
+    out = []
+    for i, f in enumerate(faces):
+        loop = [_index(x, i) for x in f]
+        if any(j < 0 or j >= n_vertices for j in loop):
+            raise ValueError(f"Mesh: face {i} has a vertex index out of range [0, {n_vertices}).")
+        dedup = [a for k, a in enumerate(loop) if a != loop[k - 1]]
+        if len(set(dedup)) < 3 or len(set(dedup)) != len(dedup):
+            raise ValueError(f"Mesh: face {i} needs at least three distinct vertices, got {loop}.")
+        out.append(dedup)
+    return out
+
+
+
+def _face_table(faces: Any, n_vertices: int) -> _Faces:
+    """`_face_loops` as a `_Faces` table (an `(F, 3)` array of triangles without a Python list)."""
+    if isinstance(faces, np.ndarray) and faces.ndim == 2 and faces.shape[1] == 3 and faces.dtype.kind in "iu" \
+            and not (faces.dtype.kind == "u" and faces.size and faces.max() > np.iinfo(np.int64).max):
+        a = faces.astype(np.int64)
+        out_of_range = np.any((a < 0) | (a >= n_vertices), axis=1)
+        repeated = (a[:, 0] == a[:, 1]) | (a[:, 1] == a[:, 2]) | (a[:, 2] == a[:, 0])
+        if not np.any(out_of_range | repeated):
+            return _Faces(a, np.full(len(a), 3, dtype=np.intp))
+    return _Faces.of(_face_loops(faces, n_vertices))
+
+
+def _closed(faces: _Faces, v: np.ndarray) -> tuple[bool, bool]:
+    """(closed, flip): every edge used once in each direction; flip when the volume is negative."""
+    if not len(faces):
+        return True, False
+    _, _, a, b = faces.edges()
+    n = np.int64(v.shape[0])
+    keys = np.sort(a.astype(np.int64) * n + b)
+    if np.any(keys[1:] == keys[:-1]):
+        return False, False
+    rev = b.astype(np.int64) * n + a
+    pos = np.minimum(np.searchsorted(keys, rev), len(keys) - 1)
+    if not np.all(keys[pos] == rev):
+        return False, False
+    c = v.mean(axis=0)
+    vol = np.zeros(len(faces))
+    for idx, arr in faces.groups():
+        pts = v[arr] - c
+        nrm = _newell_many(pts)
+        vol[idx] = _plane_values(pts[:, 0], 0.0, nrm)
+    return True, bool(np.cumsum(vol)[-1] < 0)  # summed in face order, as a Python sum would
+
+
+
+def _convex(faces: _Faces, v: np.ndarray, size: float) -> bool:
+    """Every vertex on or behind every face plane: max over vertices of (v - p0) . n <= 1e-9 size
+    for every face (p0 its first vertex, n its unit Newell normal).
+
+    Three steps, each deciding exactly that test. (1) Local: the vertices of each face's
+    neighbours (across an edge) against its plane; any one in front is a witness, not convex
+    (cheap, and what a non-convex mesh almost always fails). (2) Small meshes: every vertex
+    against every plane, in chunks. (3) Large meshes: the maximum of a linear function over the
+    vertices is attained at a vertex of their convex hull, and on a convex polytope a vertex none
+    of whose hull neighbours has a larger value attains that maximum (the simplex method's
+    argument). So each face's maximum is found by climbing the hull's edge graph from a vertex
+    of the face; a climbed value above the tolerance is a witness (not convex); faces whose
+    climbed value lies within half the tolerance of it (far above Qhull's round-off, far below
+    the tolerance for a convex mesh, whose faces' maxima are their own vertices, ~0) are checked
+    against every vertex directly, so round-off in the hull cannot change the answer."""
+    tol = 1e-9 * size
+    f_all = len(faces)
+    nrm = _unit(_normals(faces, v))
+    pad = faces.pad
+    p0 = v[pad[:, 0]]
+    # (1) neighbours' vertices against each face's plane.
+    face, _, a, b = faces.edges()
+    n = np.int64(v.shape[0])
+    keys = a.astype(np.int64) * n + b
+    order = np.argsort(keys, kind="stable")
+    rev = b.astype(np.int64) * n + a
+    pos = np.minimum(np.searchsorted(keys[order], rev), len(keys) - 1)
+    found = keys[order][pos] == rev
+    f, g = face[found], face[order[pos[found]]]
+    for s in range(0, len(f), 200_000):
+        fs, gs = f[s:s + 200_000], g[s:s + 200_000]
+        if np.max(_plane_values(v[pad[gs]], p0[fs][:, None], nrm[fs][:, None])) > tol:
+            return False
+    # (2) every vertex against every plane.
+    if f_all * v.shape[0] <= 4_000_000:
+        return _convex_brute(np.arange(f_all), v, p0, nrm, tol)
+    # (3) climb the convex hull's edge graph.
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        hull = ConvexHull(v)
+    except (QhullError, ValueError):
+        return _convex_brute(np.arange(f_all), v, p0, nrm, tol)
+    s = hull.simplices
+    src = np.concatenate([s[:, 0], s[:, 1], s[:, 2], s[:, 1], s[:, 2], s[:, 0]])
+    dst = np.concatenate([s[:, 1], s[:, 2], s[:, 0], s[:, 0], s[:, 1], s[:, 2]])
+    pairs = np.unique(src.astype(np.int64) * n + dst)
+    src, dst = (pairs // n).astype(np.intp), (pairs % n).astype(np.intp)
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(src, minlength=v.shape[0]))]).astype(np.intp)
+    on_hull = np.zeros(v.shape[0], dtype=bool)
+    on_hull[hull.vertices] = True
+    cur = np.where(on_hull[pad[:, 0]], pad[:, 0], hull.vertices[0])
+    val = _plane_values(v[cur], p0, nrm)
+    active = np.arange(f_all)
+    while len(active):
+        c = cur[active]
+        deg = indptr[c + 1] - indptr[c]
+        seg = np.repeat(np.arange(len(active)), deg)
+        first = np.concatenate([[0], np.cumsum(deg)[:-1]]).astype(np.intp)
+        nb = dst[indptr[c][seg] + np.arange(len(seg)) - first[seg]]
+        nv = _plane_values(v[nb], p0[active][seg], nrm[active][seg])
+        best = np.full(len(active), -np.inf)
+        np.maximum.at(best, seg, nv)
+        up = best > val[active]
+        if not up.any():
+            break
+        # The first neighbour attaining each face's best value.
+        hit = np.flatnonzero(nv == best[seg])
+        pick = np.full(len(active), -1)
+        pick[seg[hit][::-1]] = nb[hit][::-1]
+        moved = active[up]
+        cur[moved] = pick[up]
+        val[moved] = best[up]
+        active = moved
+    if np.any(val > tol):
+        return False
+    unsure = np.flatnonzero(val > 0.5 * tol)
+    return _convex_brute(unsure, v, p0, nrm, tol) if len(unsure) else True
+
+
+def _convex_brute(faces: np.ndarray, v: np.ndarray, p0: np.ndarray, nrm: np.ndarray, tol: float) -> bool:
+    step = max(1, 2_000_000 // max(1, v.shape[0]))
+    for s in range(0, len(faces), step):
+        fs = faces[s:s + step]
+        if np.max(_plane_values(v[None], p0[fs][:, None], nrm[fs][:, None])) > tol:
+            return False
+    return True
+
+
+
+
+def _coplanar(ni: np.ndarray, nj: np.ndarray, pts_j: np.ndarray, p0_i: np.ndarray, size: float) -> Any:
+    """The merge test of two faces: unit normals `ni`, `nj`, `pts_j` the vertices of face j (last
+    two axes), `p0_i` the first vertex of face i. Broadcasts (one or many pairs, same rounding)."""
+    dot = ni[..., 0] * nj[..., 0] + ni[..., 1] * nj[..., 1] + ni[..., 2] * nj[..., 2]
+    off = np.abs(_plane_values(pts_j, p0_i[..., None, :], ni[..., None, :])).max(axis=-1)
+    return ~(dot < 1 - 1e-12) & ~(off > COPLANAR_RTOL * size)
+
+
+def _coplanar1(ni: list[float], nj: list[float], pts_j: list[list[float]], p0: list[float], size: float) -> bool:
+    """`_coplanar` of one pair in Python floats: the same operations in the same order (each
+    NumPy operation above is one IEEE operation per element), so the same answer."""
+    if ni[0] * nj[0] + ni[1] * nj[1] + ni[2] * nj[2] < 1 - 1e-12:
+        return False
+    tol = COPLANAR_RTOL * size
+    for q in pts_j:
+        if abs((q[0] - p0[0]) * ni[0] + (q[1] - p0[1]) * ni[1] + (q[2] - p0[2]) * ni[2]) > tol:
+            return False
+    return True
+
+
+def _merge(faces: _Faces, v: np.ndarray, size: float) -> _Faces:
+    """Merge coplanar faces sharing an edge while the union stays a convex polygon (greedy, one
+    pass over a queue of shared edges; a merged face's edges are queued again).
+
+    Whether two faces are coplanar is first decided for every shared edge at once (vectorised);
+    an edge between two faces that no merge has touched yet uses that answer, so a mesh without
+    coplanar neighbours (a smooth surface) costs no Python loop over its edges. The loop over
+    the rest works on Python floats (`_coplanar1`, `_union`)."""
+    if not len(faces):
+        return faces
+    normals = _unit(_normals(faces, v))
+    pad = faces.pad
+    face, _, ea, eb = faces.edges()
+    n = np.int64(v.shape[0])
+    keys = ea.astype(np.int64) * n + eb
+    # owner[(a, b)]: the last face running a -> b (as a dict filled in face order would hold).
+    order = np.argsort(keys, kind="stable")
+    ks = keys[order]
+    last = np.concatenate([ks[1:] != ks[:-1], [True]])
+    ukeys, uface = ks[last], face[order[last]]
+    rev = eb.astype(np.int64) * n + ea
+    pos = np.minimum(np.searchsorted(ukeys, rev), len(ukeys) - 1)
+    shared = (ukeys[pos] == rev) & (ea < eb)
+    fi = uface[np.searchsorted(ukeys, keys[shared])]
+    fj = uface[pos[shared]]
+    ok = _coplanar(normals[fi], normals[fj], v[pad[fj]], v[pad[fi, 0]], size) & (fi != fj)
+    if not ok.any():
+        return faces
+    candidates = set(zip(ea[shared][ok].tolist(), eb[shared][ok].tolist(), strict=True))
+    loops = faces.loops()
+    vl = v.tolist()
+    nl = normals.tolist()
+    touched = [False] * len(loops)
+    alive = [True] * len(loops)
+    owner: dict[tuple[int, int], int] = dict(zip(zip(ea.tolist(), eb.tolist(), strict=True), face.tolist(), strict=True))
+    queue = [e for e in owner if e[0] < e[1] and (e[1], e[0]) in owner]
+    while queue:
+        a, b = queue.pop()
+        i, j = owner.get((a, b)), owner.get((b, a))
+        if i is None or j is None or i == j or not (alive[i] and alive[j]):
+            continue
+        if not (touched[i] or touched[j]):
+            if (a, b) not in candidates:
+                continue
+        elif not _coplanar1(nl[i], nl[j], [vl[x] for x in loops[j]], vl[loops[i][0]], size):
+            continue
+        m = _union(loops[i], loops[j], a, b, vl, v, nl[i], normals[i])
+        if m is None:
+            continue
+        lj, li = loops[j], loops[i]
+        for k in range(len(lj)):
+            owner.pop((lj[k], lj[(k + 1) % len(lj)]), None)
+        for k in range(len(li)):
+            owner.pop((li[k], li[(k + 1) % len(li)]), None)
+        loops[i] = m
+        alive[j] = False
+        touched[i] = touched[j] = True
+        for k in range(len(m)):
+            e = (m[k], m[(k + 1) % len(m)])
+            owner[e] = i
+            if (e[1], e[0]) in owner:
+                queue.append(e)
+    return _Faces.of([lp for lp, keep in zip(loops, alive, strict=True) if keep])
+
+
+def _straight(p0: list[float], p1: list[float], p2: list[float], nrm: list[float], v: np.ndarray, idx: tuple[int, int, int],
+              nrm_np: np.ndarray) -> bool:
+    """Whether the boundary goes straight at p1: |((p1 - p0) x (p2 - p1)) . n| <= 1e-12 |p1 - p0| |p2 - p1|.
+    Decided in Python floats when the two sides differ by more than a factor of two; otherwise
+    (a near tie) by the NumPy expression (whose dot products may round differently)."""
+    d1 = (p1[0] - p0[0], p1[1] - p0[1], p1[2] - p0[2])
+    d2 = (p2[0] - p1[0], p2[1] - p1[1], p2[2] - p1[2])
+    turn = abs((d1[1] * d2[2] - d1[2] * d2[1]) * nrm[0] + (d1[2] * d2[0] - d1[0] * d2[2]) * nrm[1]
+               + (d1[0] * d2[1] - d1[1] * d2[0]) * nrm[2])
+    bound = 1e-12 * math.sqrt(d1[0] * d1[0] + d1[1] * d1[1] + d1[2] * d1[2]) * math.sqrt(
+        d2[0] * d2[0] + d2[1] * d2[1] + d2[2] * d2[2])
+    if turn > 2 * bound:
+        return False
+    if turn < 0.5 * bound:
+        return True
+    q0, q1, q2 = v[idx[0]], v[idx[1]], v[idx[2]]
+    t = np.dot(_cross3(q1 - q0, q2 - q1), nrm_np)
+    return bool(abs(t) <= 1e-12 * np.linalg.norm(q1 - q0) * np.linalg.norm(q2 - q1))
+
+
+def _union(la: list[int], lb: list[int], a: int, b: int, vl: list[list[float]], v: np.ndarray, nrm: list[float],
+           nrm_np: np.ndarray) -> list[int] | None:
+    """`la` (containing a -> b) and `lb` (containing b -> a) glued along that edge, if convex
+    (`vl`: the vertices as Python lists, `v` as an array; `nrm` the unit normal of `la`)."""
+    ia = la.index(a)
+    ra = la[ia + 1:] + la[:ia + 1]  # starts after a, ends at a; la's a -> b edge is last-to-first
+    # ra runs b ... a (b first). Glue lb from a to b (excluding the shared ends).
+    ib = lb.index(b)
+    rb = lb[ib + 1:] + lb[:ib + 1]  # starts after b, so runs a ... b
+    out = ra + rb[1:-1]
+    # Drop vertices where the boundary goes straight (the merge removes the shared edge only).
+    done = False
+    while not done and len(out) > 3:
+        done = True
+        for k in range(len(out)):
+            i0, i1, i2 = out[k - 1], out[k], out[(k + 1) % len(out)]
+            if _straight(vl[i0], vl[i1], vl[i2], nrm, v, (i0, i1, i2), nrm_np):
+                out = out[:k] + out[k + 1:]
+                done = False
+                break
+    if len(out) > MAX_MERGED_VERTICES or len(set(out)) != len(out):
+        return None
+    # Strictly convex: every turn ((p[k+1] - p[k]) x (p[k+2] - p[k+1])) . n > 0, in the order
+    # of operations of the vectorised form (e = roll(p, -1) - p, e2 = roll(e, -1)).
+    pts = [vl[x] for x in out]
+    m = len(pts)
+    e = [(pts[(k + 1) % m][0] - pts[k][0], pts[(k + 1) % m][1] - pts[k][1], pts[(k + 1) % m][2] - pts[k][2]) for k in range(m)]
+    for k in range(m):
+        x, y = e[k], e[(k + 1) % m]
+        turn = (x[1] * y[2] - x[2] * y[1]) * nrm[0] + (x[2] * y[0] - x[0] * y[2]) * nrm[1] + (x[0] * y[1] - x[1] * y[0]) * nrm[2]
+        if turn <= 0:
+            return None
+    return out
+
+
+
+def _solid_edges(faces: _Faces) -> list[tuple[int, int, int, int, int, int]] | None:
+    """Per undirected edge of a closed polygon mesh: (f_left, k_a, k_b, f_right) with the edge
+    running loop[f_left][k_a] -> loop[f_left][k_b] in f_left; None when some edge does not have
+    exactly one opposite (a merge left a vertex on an edge of a neighbour)."""
+    face, ka, a, b = faces.edges()
+    n = np.int64(max(int(a.max(initial=0)), int(b.max(initial=0))) + 1)
+    keys = a.astype(np.int64) * n + b
+    order = np.argsort(keys, kind="stable")
+    ks = keys[order]
+    if np.any(ks[1:] == ks[:-1]):
+        return _solid_edges_dict(faces.loops())
+    rev = b.astype(np.int64) * n + a
+    pos = np.minimum(np.searchsorted(ks, rev), len(ks) - 1)
+    if len(ks) == 0 or not np.all(ks[pos] == rev):
+        return None if len(ks) else []
+    lens = faces.lens
+    kb = (ka + 1) % lens[face]
+    sel = a < b
+    cols = (face[sel], ka[sel], kb[sel], face[order[pos[sel]]], a[sel], b[sel])
+    return list(zip(*(c.tolist() for c in cols), strict=True))
+
+
+def _solid_edges_dict(loops: list[list[int]]) -> list[tuple[int, int, int, int, int, int]] | None:
+    where: dict[tuple[int, int], tuple[int, int, int]] = {}
+    for fi, loop in enumerate(loops):
+        for k in range(len(loop)):
+            where[(loop[k], loop[(k + 1) % len(loop)])] = (fi, k, (k + 1) % len(loop))
+    out = []
+    for (a, b), (fi, ka, kb) in where.items():
+        opp = where.get((b, a))
+        if opp is None:
+            return None
+        if a < b:
+            out.append((fi, ka, kb, opp[0], a, b))
+    return out
