@@ -321,12 +321,13 @@ def _planar_chunk(scene: Scene, mask: np.ndarray, patch: _Patch, pos: np.ndarray
     if scene.lights:
         with warnings.catch_warnings():  # reported per patch in `BakedScene.stats["unconverged"]`
             warnings.simplefilter("ignore", RuntimeWarning)
-            m = illumination_mesh(scene, poly, tol, scale=scale, **options)
+            # nothing updates a chunk's mesh (a changed chunk is baked again): the lean mesher
+            m = illumination_mesh(scene, poly, tol, scale=scale, **{"updatable": False, **options})
         v, tris = np.array(m.vertices, np.float64), np.asarray(m.triangles, np.int64)
         unrefined = int(m.stats.get("unrefined_min_edge", 0))
         stopped = int(m.stats.get("tiles_stopped_by_budget", 0))
         error = float(m.max_error_estimate)
-        del m  # its builders (every evaluated point, kept for `update`) before the vertex values
+        del m
     else:  # no light reaches it: zero everywhere, its corners suffice
         v = poly.copy()
         tris = np.array([[0, k, k + 1] for k in range(1, poly.shape[0] - 1)], np.int64)
