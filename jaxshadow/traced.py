@@ -26,10 +26,11 @@ from jaxtyping import Array, Bool, Float
 
 from ._kernels.specular import DEFAULT_DEGREE
 from ._scene.model import Scene
-from ._shading.shade import unoccluded_irradiance, unoccluded_specular
-from ._shadows.evaluators import DeviceKernels, TracedEngine, traced_receivers
+from ._shading import shade as _shade
+from ._shadows import evaluators as _evaluators
+from ._shadows import plan as _plan
 from ._shadows.integrands import Lambert, Phong
-from ._shadows.plan import DEFAULT_OPTIONS, ShadowOptions, plan
+from ._shadows.plan import DEFAULT_OPTIONS, ShadowOptions
 
 __all__ = ["DEFAULT_SPECULAR_DEGREE", "irradiance", "specular", "pin", "shadow_capacity"]
 
@@ -44,8 +45,8 @@ def _options(capacity: int | None, shadows: ShadowOptions | None) -> ShadowOptio
 
 def _shadowed(scene: Scene, integ: Any, points: Array, normals: Array, eyes: Array | None,
               opts: ShadowOptions) -> tuple[Array, Array]:
-    evaluator = TracedEngine(opts.capacity) if opts.use_engine() else DeviceKernels(compiled=False)
-    out, overflow = evaluator(scene, integ, traced_receivers(points, normals, eyes))
+    evaluator = _evaluators.TracedEngine(opts.capacity) if opts.use_engine() else _evaluators.DeviceKernels(compiled=False)
+    out, overflow = evaluator(scene, integ, _evaluators.traced_receivers(points, normals, eyes))
     return out, jnp.asarray(overflow)
 
 
@@ -95,7 +96,7 @@ def irradiance(
         ```
     """
     if scene.occluders is None:
-        return unoccluded_irradiance(scene, points, normals), jnp.zeros((), bool)
+        return _shade.unoccluded_irradiance(scene, points, normals), jnp.zeros((), bool)
     return _shadowed(scene, Lambert(), points, normals, None, _options(capacity, shadows))
 
 
@@ -137,7 +138,7 @@ def specular(
         ```
     """
     if scene.occluders is None:
-        return unoccluded_specular(scene, points, normals, eyes, exponent, method, degree), jnp.zeros((), bool)
+        return _shade.unoccluded_specular(scene, points, normals, eyes, exponent, method, degree), jnp.zeros((), bool)
     return _shadowed(scene, Phong(exponent, method, int(degree)), points, normals, eyes, _options(capacity, shadows))
 
 
@@ -191,4 +192,4 @@ def shadow_capacity(scene: Scene, points: Any, normals: Any, lights: Any = None)
     todo = [x for x in (scene.lights if lights is None else lights) if x.kind in ("polygon", "segment")]
     if not todo or p.shape[0] == 0:
         return 0
-    return max(int(lp.counts.max(initial=0)) for lp in plan(scene, p, n, produce="classes", lights=todo).lights)
+    return max(int(lp.counts.max(initial=0)) for lp in _plan.plan(scene, p, n, produce="classes", lights=todo).lights)
