@@ -343,12 +343,13 @@ def read_csv(path: str | os.PathLike, columns: tuple[str, ...]) -> np.ndarray:
     return table.reshape(-1, len(columns))
 
 
-def _body_bytes(path: str, head: str) -> bytes | None:
+def _body_bytes(path: str, head: str) -> bytearray | None:
     """The bytes of the CSV file `path` after its header line `head` (as the text reader read
     it: a byte-order mark and blank lines before it skipped), or `None` when the header is not
     a `\\n`-terminated line there (the slow route then reads the file)."""
     with open(path, "rb") as raw:
-        data = raw.read()
+        data = bytearray(os.fstat(raw.fileno()).st_size)
+        del data[raw.readinto(data):]  # a file that shrank meanwhile
     pos = 3 if data.startswith(b"\xef\xbb\xbf") else 0
     while True:
         nl = data.find(b"\n", pos)
@@ -363,13 +364,14 @@ def _body_bytes(path: str, head: str) -> bytes | None:
             return None
     except UnicodeDecodeError:
         return None
-    return data[pos:]
+    del data[:pos]  # in place: a bytearray drops its head without copying the rest
+    return data
 
 
 CSV_CHECK_BYTES = 1 << 23  # the field-count check looks at this many bytes of rows at a time
 
 
-def _uniform_rows(body: bytes, ncols: int) -> bytes | None:
+def _uniform_rows(body: bytearray, ncols: int) -> bytearray | None:
     """`body` (CSV rows after the header, bytes; CRLF turned into LF) when every row has exactly
     `ncols` comma-separated fields and nothing needs the `csv` module (no quote, no blank line,
     no lone CR), else `None`. Vectorised: the commas between consecutive newlines are counted
@@ -444,7 +446,7 @@ def _csv_block(arrays: list[np.ndarray], fmts: list[str], s: int) -> str:
     return (row * block.shape[0]) % tuple(block[:, ~same].ravel().tolist())
 
 
-def receiver_rows(path: str | os.PathLike) -> bytes | None:
+def receiver_rows(path: str | os.PathLike) -> bytearray | None:
     """The data rows of the points CSV `path` as its own text (`\\n`-terminated lines, CRLF
     turned into LF), when they can stand for the receiver columns of an output table as they
     are: the header is exactly `px,py,pz,nx,ny,nz` (spaces around the names allowed), every row
@@ -463,14 +465,16 @@ def receiver_rows(path: str | os.PathLike) -> bytes | None:
     return None if body is None else _uniform_rows(body, len(POINT_COLUMNS))
 
 
-def write_values_beside_rows(path: str | os.PathLike, rows: bytes, values: Any) -> None:
+def write_values_beside_rows(path: str | os.PathLike, rows: bytes | bytearray, values: Any) -> None:
     """Write the `.csv` output of `write_values` with the receiver columns taken as text from
     `rows` (`receiver_rows` of the points file: one line per receiver, `px,...,nz`) instead of
     formatted again: the same table (header `px,py,pz,nx,ny,nz,r,g,b`, the receivers exactly as
     the input gave them), about half the time of formatting all nine columns."""
     path = os.fspath(path)
     v = np.asarray(values)
-    ends = np.flatnonzero(np.frombuffer(rows, np.uint8) == 10)
+    view = np.frombuffer(rows, np.uint8)  # newlines found a window at a time: no (len,) temporary
+    ends = np.concatenate([np.flatnonzero(view[a:a + CSV_CHECK_BYTES] == 10) + a
+                           for a in range(0, len(view), CSV_CHECK_BYTES)] or [np.zeros(0, np.intp)])
     if v.ndim != 2 or v.shape[1] != 3 or len(ends) != v.shape[0]:
         raise ValueError(f"{path}: {len(ends)} receiver rows for values of shape {v.shape}.")
     arrays, fmts, n = _csv_columns(["r", "g", "b"], [v])
