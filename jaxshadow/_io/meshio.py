@@ -371,7 +371,7 @@ def _body_bytes(path: str, head: str) -> bytearray | None:
 CSV_CHECK_BYTES = 1 << 23  # the field-count check looks at this many bytes of rows at a time
 
 
-def _uniform_rows(body: bytearray, ncols: int) -> bytearray | None:
+def _uniform_rows(body: bytes | bytearray, ncols: int) -> bytes | bytearray | None:
     """`body` (CSV rows after the header, bytes; CRLF turned into LF) when every row has exactly
     `ncols` comma-separated fields and nothing needs the `csv` module (no quote, no blank line,
     no lone CR), else `None`. Vectorised: the commas between consecutive newlines are counted
@@ -446,7 +446,7 @@ def _csv_block(arrays: list[np.ndarray], fmts: list[str], s: int) -> str:
     return (row * block.shape[0]) % tuple(block[:, ~same].ravel().tolist())
 
 
-def receiver_rows(path: str | os.PathLike) -> bytearray | None:
+def receiver_rows(path: str | os.PathLike) -> bytes | bytearray | None:
     """The data rows of the points CSV `path` as its own text (`\\n`-terminated lines, CRLF
     turned into LF), when they can stand for the receiver columns of an output table as they
     are: the header is exactly `px,py,pz,nx,ny,nz` (spaces around the names allowed), every row
