@@ -8,10 +8,12 @@ receiver surface (`ReceiverMesh`):
   the surface's vertex normals), random points on the faces (by area), and a random point on
   every edge of every face (with that face's normal): the floor's and walls' outer edges are
   where two surfaces meet, the boxes' lower edges stand on the floor.
-- **Scan-like mesh**: `benchmarks.real_meshes.scan_like` (an open, noisy, non-convex shape;
-  4 756 triangles at subdivision 4) written as PLY and loaded by Mitsuba as a
-  `ply` shape on a floor under a rectangle light; receivers: a random subset of its own
-  vertices, with its (area-weighted) vertex normals.
+- **Scan-like meshes**: `benchmarks.real_meshes.scan_like` (an open, noisy, non-convex shape)
+  written as PLY and loaded by Mitsuba as a `ply` shape on a floor under a rectangle light:
+  1 m across with 4 756 triangles (subdivision 4, median edge 34 mm), and 0.15 m across with
+  19 021 triangles (subdivision 5, median edge 2.5 mm: a scan's size, at a resolution a few
+  times coarser than the Stanford bunny's); receivers: a random subset of its own vertices, with
+  its (area-weighted) vertex normals.
 
 Per receiver and channel: `js.irradiance` (the C++ engine, float64 receivers) against
 `jaxshadow.mitsuba.reference_irradiance(..., mitsuba_scene=...)`, Mitsuba's own emitter
@@ -23,6 +25,12 @@ ours is within 1e-12 of it, else infinite. Reported: max |z|, the number of valu
 ours, and the independent polygon-boolean reference (`tests/test_planes.py`: shapely booleans
 of the occluders minus the faces the receiver lies on, Lambert's sum; first channel) as the
 largest relative error max |ours - ref| / max(|ref|, 1e-3 max unoccluded).
+
+The receivers beyond 4 sigma are examined (`compare`): whether they touch another surface
+(`Contacts`); ours with the visibility from where Mitsuba's shadow rays start (Mitsuba moves a
+ray's origin along the receiver's normal by (1 + max |p_i|) RayEpsilon, RayEpsilon = 8.9e-5:
+about 0.1 mm, a few percent of the small scan's edges); and both again with the receivers lifted
+off the surfaces they touch by 10 times that offset.
 
 `--quick`: 2^14 samples per point and fewer receivers (a smoke run).
 """
@@ -186,11 +194,24 @@ def compare(scene: Any, mitsuba_scene: Any, points: np.ndarray, normals: np.ndar
         again = compare(scene, mitsuba_scene, q, normals[bad], spp, seed + 1, contacts, [surfaces[i] for i in bad],
                         diagnose=False)
         moved = np.abs(again["_ours"] - ours[bad]).max() / np.abs(ours[bad]).max()
+        # Mitsuba's estimate: the light sampled from the point, the shadow ray traced from the point
+        # moved along its normal by Mitsuba's offset (of its float32 position). Ours alike, to first
+        # order: ours at that origin times the unoccluded value at the point over that at the origin.
+        origin = points[bad] + normals[bad] * np.array([[mitsuba_offset(q.astype(np.float32))] for q in points[bad]])
+        free_o = np.asarray(js.irradiance(js.Scene(scene.lights), origin, normals[bad]), np.float64)
+        at_origin = np.asarray(js.irradiance(scene, origin, normals[bad]), np.float64) * np.divide(
+            free[bad], free_o, out=np.ones_like(free_o), where=free_o > 0)
+        d0 = at_origin - mit[bad]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            dz = np.where(err[bad] > 0, d0 / err[bad], np.where(np.abs(d0) <= 1e-12, 0.0, np.inf))
         diag = {"receivers": int(len(bad)), "touching_another_surface": int(touch[bad].sum()),
                 "mitsuba_all_samples_blocked": int((err[bad] == 0).all(axis=1).sum()),
                 "lift_m": float(np.max(np.linalg.norm(q - points[bad], axis=1))),
                 "lifted_max_abs_z": again["max_abs_z"], "lifted_beyond_4": again["beyond_4"],
-                "lifted_values": again["values"], "ours_moved_by_lift_rel": float(moved)}
+                "lifted_values": again["values"], "ours_moved_by_lift_rel": float(moved),
+                "at_ray_origin_receivers": int((~touch[bad]).sum()),
+                "at_ray_origin_max_abs_z": float(np.abs(dz[~touch[bad]]).max(initial=0.0)),
+                "at_ray_origin_beyond_4": int((np.abs(dz[~touch[bad]]) > Z_LIMIT).sum())}
     return {
         "receivers": int(len(points)), "values": int(z.size), "spp": int(spp),
         "max_abs_z": float(np.abs(z).max()), "beyond_4": int(beyond.sum()),
@@ -230,8 +251,9 @@ def cornell(spp: int, n_random: int, seed: int) -> dict:
     return out
 
 
-def scan_scene(folder: str, subdivisions: int) -> dict:
-    """A Mitsuba scene dict: the scan-like mesh (PLY) on a floor under a rectangle light."""
+def scan_scene(folder: str, subdivisions: int, size: float = 1.0) -> dict:
+    """A Mitsuba scene dict: the scan-like mesh (PLY, `size` m across) on a floor under a
+    rectangle light (the scene scaled with it)."""
     import trimesh
 
     from benchmarks.real_meshes import scan_like
@@ -239,6 +261,7 @@ def scan_scene(folder: str, subdivisions: int) -> dict:
 
     mi = import_mitsuba()
     v, f = scan_like(subdivisions)
+    v = v * size
     path = os.path.join(folder, "scan.ply")
     m = trimesh.Trimesh(v, f, process=False)
     m.remove_unreferenced_vertices()  # the base's vertices, left by the opening
@@ -246,18 +269,18 @@ def scan_scene(folder: str, subdivisions: int) -> dict:
     T = mi.ScalarTransform4f
     return {
         "type": "scene",
-        "light": {"type": "rectangle", "to_world": T().translate([0.3, 0.2, 2.5]).rotate([1, 0, 0], 180).scale(0.4),
-                  "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [4.0, 3.0, 2.0]}}},
-        "floor": {"type": "rectangle", "to_world": T().scale(3.0)},
+        "light": {"type": "rectangle", "to_world": T().scale(size).translate([0.3, 0.2, 2.5]).rotate([1, 0, 0], 180)
+                  .scale(0.4), "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [4.0, 3.0, 2.0]}}},
+        "floor": {"type": "rectangle", "to_world": T().scale(3.0 * size)},
         "scan": {"type": "ply", "filename": path, "face_normals": True},
     }
 
 
-def scan(spp: int, count: int, subdivisions: int, seed: int) -> dict:
+def scan(spp: int, count: int, subdivisions: int, seed: int, size: float = 1.0) -> dict:
     from jaxshadow.mitsuba import from_mitsuba
 
     with tempfile.TemporaryDirectory() as folder:
-        d = scan_scene(folder, subdivisions)
+        d = scan_scene(folder, subdivisions, size)
         scene, receivers, _ = from_mitsuba(d)
         mesh = next(r for r in receivers if r.name == "scan")
         p, n = mesh.receivers("vertices")
@@ -267,6 +290,9 @@ def scan(spp: int, count: int, subdivisions: int, seed: int) -> dict:
         res["worst"] = _worst(res, ["scan"] * len(pick), p[pick])
         res["triangles"] = int(len(mesh.faces))
         res["mesh_vertices"] = int(len(mesh.vertices))
+        res["size_m"] = size
+        res["median_edge_m"] = float(np.median(np.linalg.norm(
+            mesh.vertices[mesh.faces] - mesh.vertices[np.roll(mesh.faces, 1, axis=1)], axis=2)))
     return res
 
 
@@ -275,7 +301,9 @@ def run(quick: bool) -> dict:
     t = time.perf_counter()
     c = cornell(spp, 4 if quick else 12, seed=1)
     s = scan(spp, 40 if quick else 200, 3 if quick else 4, seed=2)
-    return {"spp": spp, "cornell": c, "scan": s, "seconds": time.perf_counter() - t}
+    # A scan's size (0.15 m, 2.5 mm edges): Mitsuba's ray offset (1e-4 m) is a few percent of an edge.
+    small = scan(spp, 40 if quick else 200, 4 if quick else 5, seed=3, size=0.15)
+    return {"spp": spp, "cornell": c, "scan": s, "scan_small": small, "seconds": time.perf_counter() - t}
 
 
 def _row(what: str, r: dict) -> str:
@@ -283,6 +311,12 @@ def _row(what: str, r: dict) -> str:
             f"{r['beyond_4_off_contacts']} of {r['values'] - 3 * r['contacts']} | {r['max_abs_z']:.2f} | "
             f"{r['beyond_4']} of {r['values']} (noise alone: {r['expected_beyond_4']:.2f}) | {r['negative']} | "
             f"{r['max_rel_err_boolean']:.1e} | {r['lit_fraction']:.2f} |")
+
+
+def _scans(results: dict) -> list[tuple[str, dict]]:
+    return [(f"scan-like mesh, {r['size_m']:g} m, {r['triangles']} triangles (median edge "
+             f"{r['median_edge_m'] * 1e3:.2g} mm), own vertices", r)
+            for r in (results.get("scan"), results.get("scan_small")) if r is not None]
 
 
 def markdown(results: dict) -> str:
@@ -293,21 +327,24 @@ def markdown(results: dict) -> str:
             "| receivers | n | contacts | max \\|z\\| off contacts | beyond 4 sigma off contacts | max \\|z\\| "
             "| beyond 4 sigma, all | negative | max rel. err vs booleans | lit fraction |",
             "|---|---:|---:|---:|---|---:|---|---:|---:|---:|"]
-    for kind, r in results["cornell"].items():
-        rows.append(_row(f"Cornell box, {kind}", r))
-    s = results["scan"]
-    rows.append(_row(f"scan-like mesh ({s['triangles']} triangles), own vertices", s))
+    groups = [*((f"Cornell box, {k}", r) for k, r in results["cornell"].items()), *_scans(results)]
+    rows += [_row(what, r) for what, r in groups]
     rows.append("")
-    for what, r in [*((f"Cornell box, {k}", r) for k, r in results["cornell"].items()), ("scan-like mesh", s)]:
+    for what, r in groups:
         d = r["beyond_4_diagnosis"]
         if d:
             rows.append(f"- {what}: {d['receivers']} receivers beyond 4 sigma, {d['touching_another_surface']} of them "
-                        f"contacts, {d['mitsuba_all_samples_blocked']} with every Mitsuba sample blocked; lifted off "
-                        f"the surfaces they touch by {d['lift_m']:.1e} m (10x Mitsuba's ray offset), max |z| "
+                        f"contacts, {d['mitsuba_all_samples_blocked']} with every Mitsuba sample blocked. Ours with the "
+                        f"visibility from where Mitsuba's shadow rays start (the point moved along its normal by "
+                        f"Mitsuba's offset; `compare`), at the "
+                        f"{d.get('at_ray_origin_receivers', 0)} that are not contacts: max |z| "
+                        f"{d.get('at_ray_origin_max_abs_z', float('nan')):.2f}, "
+                        f"{d.get('at_ray_origin_beyond_4', -1)} values beyond 4 sigma. Both lifted off the surfaces "
+                        f"they touch by {d['lift_m']:.1e} m (10x Mitsuba's ray offset): max |z| "
                         f"{d['lifted_max_abs_z']:.2f}, {d['lifted_beyond_4']} of {d['lifted_values']} values beyond "
                         f"4 sigma (ours moves by {d['ours_moved_by_lift_rel']:.1e} relative).")
     rows.append("")
-    worst = max([*results["cornell"].values(), s], key=lambda r: r["max_abs_z"])["worst"][0]
+    worst = max((r for _, r in groups), key=lambda r: r["max_abs_z"])["worst"][0]
     rows.append(f"Largest |z|: {worst['abs_z']:.2f} on {worst['surface']} at "
                 f"({', '.join(f'{x:.4g}' for x in worst['point'])}): ours {worst['ours'][0]:.6g}, Mitsuba "
                 f"{worst['mitsuba'][0]:.6g} +- {worst['stderr'][0]:.2g} (first channel).")
@@ -315,15 +352,17 @@ def markdown(results: dict) -> str:
 
 
 def key_numbers(results: dict) -> list[tuple[str, str]]:
-    all_ = [*results["cornell"].values(), results["scan"]]
+    all_ = [*results["cornell"].values(), *(r for _, r in _scans(results))]
     n = sum(r["receivers"] for r in all_)
     c = sum(r["contacts"] for r in all_)
     diag = [r["beyond_4_diagnosis"] for r in all_ if r["beyond_4_diagnosis"]]
     return [("receivers on surfaces vs Mitsuba",
-             f"{n} receivers on the Cornell box's and a scan's own surfaces, {results['spp']} spp: off the {c} "
+             f"{n} receivers on the Cornell box's and scans' own surfaces, {results['spp']} spp: off the {c} "
              f"contacts max z {max(r['max_abs_z_off_contacts'] for r in all_):.2f}, "
-             f"{sum(r['beyond_4_off_contacts'] for r in all_)} values beyond 4 sigma; "
-             f"{sum(d['receivers'] for d in diag)} contacts where Mitsuba blocks every ray, within "
+             f"{sum(r['beyond_4_off_contacts'] for r in all_)} values beyond 4 sigma, every one within "
+             f"{max([d.get('at_ray_origin_max_abs_z', 0.0) for d in diag] or [0.0]):.1f}"
+             f" sigma at Mitsuba's ray origin; {sum(d['touching_another_surface'] for d in diag)} "
+             f"contacts where Mitsuba blocks every ray, within "
              f"{max([d['lifted_max_abs_z'] for d in diag], default=0.0):.1f} sigma lifted by 10x its ray offset; "
              f"{sum(r['negative'] for r in all_)} negative; max {max(r['max_rel_err_boolean'] for r in all_):.0e} "
              f"from exact booleans")]
