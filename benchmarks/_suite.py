@@ -62,6 +62,7 @@ SUITE: tuple[str, ...] = (
     "bake",
     "real_meshes",
     "files_io",
+    "surfaces_mitsuba",
 )
 
 

@@ -3,10 +3,11 @@
 - **Tables**, 10^6 receivers (10^5 with `--quick`): `read_points` of a points CSV (the six
   receiver columns `px..nz`, float64 reprs; header check, field-count check, then NumPy's
   parser) against the same points as `.npy`; `write_values` of the CSV output against
-  the writer it replaced (a `csv.writer` row of `repr` strings per receiver), in the same run;
-  a whole `jaxshadow irradiance` run in a fresh process (a quad light, one triangle occluder,
-  float32) from `.csv` to `.csv` and from `.npy` to `.npy`, wall time and peak RSS (the
-  child's `VmHWM`), best of two interleaved runs.
+  the writer it replaced (a `csv.writer` row of `repr` strings per receiver), in the same run,
+  and the command's CSV-to-CSV writer (`write_values_beside_rows`: the receiver columns are the
+  input rows' own text, only `r, g, b` formatted); a whole `jaxshadow irradiance` run in a
+  fresh process (a quad light, one triangle occluder, float32) from `.csv` to `.csv` and from
+  `.npy` to `.npy`, wall time and peak RSS (the child's `VmHWM`), best of two interleaved runs.
 - **Scene**: `benchmarks.real_meshes.scan_like()` (76 152 triangles, open, float32 coordinates)
   as one `js.Mesh` occluder: `save_scene` (JSON and the `.meshes.npz` beside it) and `load_scene`,
   best of three, and the inline JSON of schema 1 (`scene_to_dict` dumped with indent, as files
@@ -77,7 +78,12 @@ def _cli(args: list[str]) -> tuple[float, float]:
 
 def tables(n: int, folder: str) -> dict:
     import jaxshadow as js
-    from jaxshadow._io.meshio import POINT_COLUMNS, write_csv_table
+    from jaxshadow._io.meshio import (
+        POINT_COLUMNS,
+        receiver_rows,
+        write_csv_table,
+        write_values_beside_rows,
+    )
 
     rng = np.random.default_rng(0)
     p = np.c_[rng.uniform(-1, 1, (n, 2)), np.zeros(n)]
@@ -95,6 +101,8 @@ def tables(n: int, folder: str) -> dict:
     table = np.concatenate([p32, n32, vals], axis=1).astype(np.float64)
     out["write_csv_before_s"] = _best(lambda: _old_csv_writer(os.path.join(folder, "w0.csv"), table,
                                                               [*POINT_COLUMNS, "r", "g", "b"]), 2)
+    rows = receiver_rows(csv_in)
+    out["write_csv_rows_s"] = _best(lambda: write_values_beside_rows(os.path.join(folder, "w1.csv"), rows, vals), 2)
     out["write_npy_s"] = _best(lambda: js.write_values(os.path.join(folder, "w.npy"), vals), 2)
     light = js.PolygonLight([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2]], 10.0)
     scene = js.Scene([light], occluders=[np.array([[0.2, 0.2, 1.0], [0.6, 0.2, 1.0], [0.6, 0.6, 1.0]])])
@@ -157,6 +165,8 @@ def markdown(results: dict) -> str:
         f"| read {n} receivers, CSV | {t['read_csv_s']:.2f} | .npy {t['read_npy_s']:.3f} s |",
         f"| write {n} values, CSV (block format) | {t['write_csv_s']:.2f} | per-value repr writer "
         f"{t['write_csv_before_s']:.2f} s; .npy {t['write_npy_s']:.3f} s |",
+        *([f"| write {n} values, CSV beside the input's rows (the command's CSV -> CSV) | "
+           f"{t['write_csv_rows_s']:.2f} | |"] if "write_csv_rows_s" in t else []),
         f"| `jaxshadow irradiance`, {n} receivers, .csv -> .csv | {t['cli_csv_s']:.1f} | .npy -> .npy "
         f"{t['cli_npy_s']:.1f} s ({t['cli_csv_over_npy']:.2f}x); peak RSS {t['cli_csv_rss_mb']:.0f} MB vs "
         f"{t['cli_npy_rss_mb']:.0f} MB |",

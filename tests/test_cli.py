@@ -478,3 +478,39 @@ def test_missing_optional_dependency_is_found_before_computing(tmp_path, capsys,
     rc, err = _run([NC, *[a.replace("{tmp}", str(tmp_path)) for a in argv]], capsys)
     assert rc == 2 and repr(missing) in err and f"jaxshadow[{extra}]" in err, err
     assert sorted(os.listdir(tmp_path)) == ["s.xml"]
+
+
+@pytest.mark.parametrize("newline", ["\n", "\r\n"])
+def test_csv_to_csv_repeats_the_receivers_as_written(tmp_path, newline):
+    """CSV in, CSV out: the receiver columns of the output are the input rows' own text (spaces,
+    integers, exponents and all, CRLF read as LF), the values those of the library to the last
+    bit; a CSV that needs the csv module (a blank line) gets the same table formatted."""
+    rng = np.random.default_rng(4)
+    pts = np.c_[rng.uniform(-1, 1, (23, 2)), np.zeros(23)]
+    rows = [f"{x!r}, {y!r},0,0,0,1" if i % 3 else f"{x:.3e},{y!r},0.0, 0.0,0.0,1e0"
+            for i, (x, y) in enumerate(pts[:, :2].tolist())]
+    pts[::3, 0] = [float(f"{x:.3e}") for x in pts[::3, 0]]
+    nrm = np.tile([0.0, 0.0, 1.0], (len(pts), 1))
+    src = tmp_path / "pts.csv"
+    src.write_bytes((newline.join(["px, py,pz,nx,ny,nz", *rows]) + newline).encode())
+    ref = np.asarray(js.irradiance(js.load_scene(ROOM), pts, nrm))
+    out = tmp_path / "e.csv"
+    assert main([NC, "irradiance", ROOM, str(src), "-o", str(out), "--chunk", "16", "--float64", "-q"]) == 0
+    lines = out.read_text().splitlines()
+    assert lines[0] == "px,py,pz,nx,ny,nz,r,g,b"
+    assert [ln.rsplit(",", 3)[0] for ln in lines[1:]] == rows
+    got = np.loadtxt(out, delimiter=",", skiprows=1)
+    np.testing.assert_array_equal(got[:, :6], np.c_[pts, nrm])
+    np.testing.assert_array_equal(got[:, 6:], ref)
+    # float32: the values are the library's float32 ones, the receivers still the input's text.
+    assert main([NC, "irradiance", ROOM, str(src), "-o", str(out), "--chunk", "16", "-q"]) == 0
+    ref32 = np.asarray(js.irradiance(js.load_scene(ROOM), pts.astype(np.float32), nrm.astype(np.float32)))
+    got = np.loadtxt(out, delimiter=",", skiprows=1)
+    np.testing.assert_array_equal(got[:, 6:].astype(np.float32), ref32)
+    assert [ln.rsplit(",", 3)[0] for ln in out.read_text().splitlines()[1:]] == rows
+    # A blank line: read by the csv route, written formatted; the same numbers.
+    src.write_text("px,py,pz,nx,ny,nz\n" + "\n".join(rows[:5]) + "\n\n" + "\n".join(rows[5:]) + "\n")
+    assert main([NC, "irradiance", ROOM, str(src), "-o", str(out), "--chunk", "16", "--float64", "-q"]) == 0
+    lines = out.read_text().splitlines()
+    assert lines[1] != rows[0]  # formatted again (repr), not echoed
+    np.testing.assert_array_equal(np.loadtxt(out, delimiter=",", skiprows=1), np.c_[pts, nrm, ref])

@@ -430,3 +430,37 @@ def test_a_table_without_rows_is_its_header(tmp_path):
     buf = io.StringIO()
     write_csv_table(buf, ["px", "py", "pz", "r"], [np.zeros((0, 3)), np.zeros((0,), np.float32)])
     assert buf.getvalue() == "px,py,pz,r\n"
+
+
+def test_receiver_rows_only_for_plain_point_tables(tmp_path, monkeypatch):
+    """`receiver_rows` gives a points CSV's rows as text only when they can stand for the output's
+    receiver columns as they are (header exactly px..nz in order, six fields, no quote, no blank
+    line); `write_values_beside_rows` refuses a row count that is not the value count."""
+    from jaxshadow._io.meshio import receiver_rows, write_values_beside_rows
+
+    body = "0.5,0.25,0,0,0,1\n1e-3, 2 ,0,0,0,1\n"
+    cases = {"plain.csv": ("px,py,pz,nx,ny,nz\n" + body, body.encode()),
+             "bom_crlf.csv": ("\ufeffpx,py,pz,nx,ny,nz\r\n" + body.replace("\n", "\r\n"), body.encode()),
+             "order.csv": ("py,px,pz,nx,ny,nz\n" + body, None),
+             "extra.csv": ("px,py,pz,nx,ny,nz,label\n" + body.replace("\n", ",a\n"), None),
+             "blank.csv": ("px,py,pz,nx,ny,nz\n" + body.replace("\n", "\n\n", 1), None),
+             "quoted.csv": ('px,py,pz,nx,ny,nz\n"0.5",0.25,0,0,0,1\n', None)}
+    for name, (text, want) in cases.items():
+        (tmp_path / name).write_text(text, newline="")
+        assert receiver_rows(tmp_path / name) == want, name
+    assert receiver_rows(tmp_path / "x.npy") is None
+    out = tmp_path / "o.csv"
+    write_values_beside_rows(out, body.encode(), np.array([[1.0, 2.0, 3.0], [0.1, 0.2, 0.3]]))
+    assert out.read_text() == "px,py,pz,nx,ny,nz,r,g,b\n0.5,0.25,0,0,0,1,1.0,2.0,3.0\n1e-3, 2 ,0,0,0,1,0.1,0.2,0.3\n"
+    with pytest.raises(ValueError, match="2 receiver rows for values of shape"):
+        write_values_beside_rows(out, body.encode(), np.zeros((3, 3)))
+    # Blocks of 3 rows (the last one short) give the table of one block.
+    rows = "".join(f"{i},{i / 7!r},0,0,0,1\n" for i in range(10)).encode()
+    vals = np.random.default_rng(0).uniform(size=(10, 3)).astype(np.float32)
+    write_values_beside_rows(out, rows, vals)
+    whole = out.read_text()
+    monkeypatch.setattr(_meshio, "CSV_BLOCK_ROWS", 3)
+    write_values_beside_rows(out, rows, vals)
+    assert out.read_text() == whole and whole.count("\n") == 11
+    got = np.loadtxt(out, delimiter=",", skiprows=1)
+    np.testing.assert_array_equal(got[:, 6:].astype(np.float32), vals)

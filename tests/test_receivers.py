@@ -211,3 +211,51 @@ def test_welded_mesh_blocks_what_the_soup_blocks():
     e_weld = np.asarray(js.irradiance(js.Scene([light], occluders=[welded]), p, n))
     np.testing.assert_allclose(e_weld, e_soup, rtol=1e-9, atol=1e-12)
     assert e_weld[len(p) // 2, 0] < 0.5 * e_weld.max()  # the box does shadow the centre
+
+
+def test_mesh_weld_option_counts_and_closes():
+    """`js.Mesh(v, f, weld=...)`: a box split at seams (each face its own four corners: 24
+    vertices, 8 distinct) is open as given, closed and convex welded, 16 vertices merged away;
+    the same mesh with `weld=0.0` as with `.welded()`; without duplicates nothing changes."""
+    box = js.Mesh.box([0, 0, 0.5], [1, 1, 1.5])
+    quads = np.asarray(box.loops)                        # 6 faces x 4 corners
+    v = box.vertices[quads].reshape(-1, 3)               # 24 copies
+    f = np.arange(24).reshape(6, 4)
+    raw = js.Mesh(v, f)
+    assert not raw.closed and raw.n_welded == 0 and len(raw.vertices) == 24
+    got = js.Mesh(v, f, weld=0.0)
+    assert got.closed and got.convex and got.n_welded == 16 and len(got.vertices) == 8
+    assert "16 welded" in repr(got)
+    # The first copy of each position kept, in order of first occurrence.
+    _, first = np.unique(v, axis=0, return_index=True)
+    np.testing.assert_array_equal(got.vertices, v[np.sort(first)])
+    assert got.loops == raw.welded().loops and raw.welded().n_welded == 16
+    # No duplicates: vertices and faces as given.
+    same = js.Mesh(box.vertices, box.loops, weld=0.0)
+    assert same.n_welded == 0 and np.array_equal(same.vertices, box.vertices) and same.loops == box.loops
+    # Within a tolerance: one corner moved by 1e-9 m is merged only with tol > 1e-9.
+    v2 = v.copy()
+    v2[5] += 1e-9
+    assert js.Mesh(v2, f, weld=0.0).n_welded == 15 and not js.Mesh(v2, f, weld=0.0).closed
+    assert js.Mesh(v2, f, weld=1e-6).n_welded == 16 and js.Mesh(v2, f, weld=1e-6).closed
+    # A tolerance that collapses a face drops it; one that collapses every face is an error.
+    tri = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [2, 0, 0], [2 + 1e-7, 0, 0], [2, 1e-7, 0]], float)  # B: tiny
+    assert len(js.Mesh(tri, [[0, 1, 2], [3, 4, 5]], weld=1e-6).polygons) == 1
+    with pytest.raises(ValueError, match="collapses every face"):
+        js.Mesh(tri, [[0, 1, 2], [3, 4, 5]], weld=10.0)
+    with pytest.raises(ValueError, match="tolerance must be a finite number"):
+        js.Mesh(v, f, weld=-1.0)
+
+
+def test_mesh_weld_option_blocks_the_same_light():
+    """Welding changes the structure, never the point set: the same irradiance (1e-9)."""
+    box = js.Mesh.box([-0.3, -0.3, 0.7], [0.3, 0.3, 1.3])
+    v = box.vertices[np.asarray(box.loops)].reshape(-1, 3)
+    f = np.arange(24).reshape(6, 4)
+    light = js.PolygonLight([[-0.5, -0.5, 2], [-0.5, 0.5, 2], [0.5, 0.5, 2], [0.5, -0.5, 2]], radiance=3.0)
+    xs = np.linspace(-0.8, 0.8, 7)
+    p = np.array([[x, y, 0.0] for x in xs for y in xs])
+    n = np.tile([0.0, 0.0, 1.0], (len(p), 1))
+    e = [np.asarray(js.irradiance(js.Scene([light], occluders=[js.Mesh(v, f, weld=w)]), p, n)) for w in (None, 0.0)]
+    np.testing.assert_allclose(e[1], e[0], rtol=1e-9, atol=1e-12)
+    assert e[1][len(p) // 2, 0] < 0.5 * e[1].max()  # the box does shadow the centre

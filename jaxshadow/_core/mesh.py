@@ -46,21 +46,48 @@ class Mesh:
       counter-clockwise seen from outside for closed meshes (a closed mesh with inward faces is
       flipped; an open mesh may have any orientation: it blocks light from both sides).
     - `merge`: merge coplanar neighbouring faces into convex polygons (default True).
+    - `weld`: `None` (default): the vertices as given. `0.0`: vertices at exactly equal
+      positions are merged first (`-0.0` equals `0.0`); `tol > 0`: positions within `tol` (m) of
+      each other, transitively (`jaxshadow.ReceiverMesh.welded`'s rule, by position only). A
+      mesh split at UV seams or stored as a triangle soup then becomes one surface, found closed
+      (and convex) when it is, which the shadow engine culls and traces faster; faces that a
+      tolerance collapses (fewer than three distinct vertices) are dropped. `read_mesh` and
+      `from_mitsuba` weld their occluders by position already. The welded mesh's `vertices` are
+      the first vertex of each group, in the order of their first occurrence (a mesh without
+      duplicates keeps its vertices and indices unchanged).
 
     **Attributes:** `polygons` (list of `(k, 3)` arrays, the faces the kernels see), `loops`
-    (their vertex indices), `closed`, `convex`, `n_input_faces`.
+    (their vertex indices), `closed`, `convex`, `n_input_faces`, `n_welded` (vertices merged
+    away by `weld` or `welded`; 0 otherwise).
 
     Raises `ValueError` for non-finite vertices, indices out of range, faces with fewer than three
-    distinct vertices or zero area, and non-planar polygon faces.
+    distinct vertices or zero area, and non-planar polygon faces (checked after welding).
+
+    Example:
+        ```python
+        import numpy as np
+        import jaxshadow as js
+
+        box = js.Mesh.box([0, 0, 0], [1, 1, 1])
+        soup = box.vertices[np.asarray(box.loops)]          # every face its own copy of its corners
+        v, f = soup.reshape(-1, 3), np.arange(soup.shape[0] * soup.shape[1]).reshape(soup.shape[:2])
+        print(js.Mesh(v, f).closed)                         # False: 24 corners, no shared edge
+        m = js.Mesh(v, f, weld=0.0)
+        print(m.closed, m.convex, m.n_welded)               # True True 16
+        ```
     """
 
-    def __init__(self, vertices: Any, faces: Any, *, merge: bool = True):
+    n_welded: int = 0  # vertices merged away by `weld` or `welded`
+
+    def __init__(self, vertices: Any, faces: Any, *, merge: bool = True, weld: float | None = None):
         v = np.asarray(vertices, dtype=np.float64)
         if v.ndim != 2 or v.shape[1] != 3:
             raise ValueError(f"Mesh: vertices must have shape (V, 3), got {v.shape}.")
         if not np.all(np.isfinite(v)):
             raise ValueError("Mesh: vertices must be finite.")
         table = _face_table(faces, v.shape[0])
+        if weld is not None:
+            v, table, self.n_welded = _welded(v, table, weld)
         size = float(np.max(np.ptp(v, axis=0))) if v.size else 0.0
         if not size > 0:
             raise ValueError("Mesh: all vertices coincide.")
@@ -133,24 +160,17 @@ class Mesh:
 
     def __repr__(self) -> str:
         kind = "convex solid" if self.convex else ("closed" if self.closed else "open")
-        return (f"Mesh({self.vertices.shape[0]} vertices, {self.n_input_faces} faces -> "
+        welded = f", {self.n_welded} welded" if self.n_welded else ""
+        return (f"Mesh({self.vertices.shape[0]} vertices{welded}, {self.n_input_faces} faces -> "
                 f"{len(self._faces)} polygons, {kind})")
-
-
-    n_welded: int = 0  # vertices merged away by `welded`
 
     def welded(self, tol: float = 0.0) -> Mesh:
         """The same surface with vertices at equal positions (`tol=0`) or within `tol` (m) merged
-        (`jaxshadow.ReceiverMesh.welded`'s rule): a mesh split at UV seams becomes one closed
-        surface. **Returns:** a new `Mesh` (of this one's faces); `n_welded` counts the vertices
-        merged away. Faces a tolerance collapses are dropped."""
-        from .welding import weld_vertices
-
-        index, first = weld_vertices(self.vertices, tol)
-        loops = [[int(i) for i in index[loop]] for loop in self.loops]
-        loops = [[a for k, a in enumerate(lp) if a != lp[k - 1]] for lp in loops]
-        out = Mesh(self.vertices[first], [lp for lp in loops if len(set(lp)) >= 3])
-        out.n_welded = len(self.vertices) - len(first)
+        (`Mesh(..., weld=tol)`): a mesh split at UV seams becomes one closed surface.
+        **Returns:** a new `Mesh` (of this one's faces); `n_welded` counts the vertices merged
+        away, here and before. Faces a tolerance collapses are dropped."""
+        out = Mesh(self.vertices, self.loops, weld=tol)
+        out.n_welded += self.n_welded
         return out
 
     def transformed(self, matrix: Any = None, *, rotation: Any = None, translation: Any = None,
@@ -163,6 +183,23 @@ class Mesh:
         a, t = affine_parts(matrix, rotation=rotation, translation=translation, scale=scale)
         flip = np.linalg.det(a) < 0
         return Mesh(self.vertices @ a.T + t, [lp[::-1] if flip else lp for lp in self.loops])
+
+
+def _welded(v: np.ndarray, table: Any, tol: float) -> tuple[np.ndarray, Any, int]:
+    """`Mesh`'s `weld`: the welded vertices, the face table on them (faces left with fewer than
+    three distinct vertices dropped, repeated consecutive corners removed) and the number merged."""
+    from .welding import weld_vertices
+
+    index, first = weld_vertices(v, tol)
+    merged = len(v) - len(first)
+    if merged == 0:
+        return v, table, 0
+    loops = [[int(i) for i in index[loop]] for loop in table.loops()]
+    loops = [[a for k, a in enumerate(lp) if a != lp[k - 1]] for lp in loops]
+    kept = [lp for lp in loops if len(set(lp)) >= 3]
+    if not kept:
+        raise ValueError(f"Mesh: welding within {tol} m collapses every face.")
+    return v[first], _face_table(kept, len(first)), merged
 
 
 @dataclass(frozen=True, eq=False)

@@ -5,7 +5,8 @@
   progress. SCENE: scene JSON or Mitsuba XML. POINTS: `.csv` (header row naming the columns
   `px,py,pz,nx,ny,nz`), `.npy` `(N, 6)`, `.npz` (`points`, `normals`), or a mesh (`.ply`,
   `.obj`, `.glb`/`.gltf`, `.stl`, `.off`: receivers at its vertices or, with `--at faces`, its
-  face centres). OUT: `.npy`, `.npz`, `.csv` (columns `px..nz,r,g,b`) or, for mesh receivers,
+  face centres). OUT: `.npy`, `.npz`, `.csv` (columns `px..nz,r,g,b`; from a `.csv` the
+  receiver columns are the input's own text, not formatted again) or, for mesh receivers,
   `.ply` (vertex colours plus float properties `irradiance_r/g/b`).
 - `jaxshadow render SCENE.xml -o IMAGE.exr -o IMAGE.png [--spp-compare N]`: an image from the
   scene's camera (Mitsuba finds what each pixel sees, jaxshadow shades it exactly).
@@ -178,7 +179,15 @@ def cmd_irradiance(args: argparse.Namespace) -> int:
     check_input(args.scene, SCENE_EXTS, "scene")
     check_input(args.points, POINT_EXTS, "points")
     check_output(args.output, VALUE_EXTS)
-    from .._io.meshio import IRRADIANCE_PROPERTY, MESH_EXTS, extension, read_points, write_values
+    from .._io.meshio import (
+        IRRADIANCE_PROPERTY,
+        MESH_EXTS,
+        extension,
+        read_points,
+        receiver_rows,
+        write_values,
+        write_values_beside_rows,
+    )
 
     if extension(args.output) == ".ply" and extension(args.points) not in MESH_EXTS:
         raise ValueError(f"output {args.output!r}: a .ply output needs mesh receivers (points from a mesh file).")
@@ -210,7 +219,13 @@ def cmd_irradiance(args: argparse.Namespace) -> int:
         out[s:e] = np.asarray(js.irradiance(scene, pp, nn))[: e - s]
         bar.update(e - s)
     bar.close()
-    write_values(args.output, out, points=pts, normals=nrm, mesh=mesh, at=args.at, name=IRRADIANCE_PROPERTY)
+    # CSV to CSV: the receiver columns are the input's rows as written (exact, and half the
+    # formatting); any other input (or a CSV that needs the csv module) gets them formatted.
+    rows = receiver_rows(args.points) if extension(args.output) == ".csv" else None
+    if rows is not None and rows.count(b"\n") == n:
+        write_values_beside_rows(args.output, rows, out)
+    else:
+        write_values(args.output, out, points=pts, normals=nrm, mesh=mesh, at=args.at, name=IRRADIANCE_PROPERTY)
     el = time.perf_counter() - t0
     _say(args)(f"{n} points in {el:.2f} s ({n / el:.3g} points/s, incl. compile) -> {args.output}")
     return EXIT_OK
@@ -222,7 +237,8 @@ def _add_irradiance(sub: Any) -> None:
                                    "evaluated in chunks, with progress after every chunk.")
     add_io_arguments(p, "points", "receivers: .csv with header px,py,pz,nx,ny,nz; .npy (N, 6); .npz with "
                      "'points' and 'normals'; or a mesh (.ply .obj .glb .gltf .stl .off)",
-                     "irradiance: .npy (N, 3), .npz, .csv (px..nz,r,g,b) or .ply (mesh receivers)")
+                     "irradiance: .npy (N, 3), .npz, .csv (px..nz,r,g,b; from a .csv, the receivers as "
+                     "written there) or .ply (mesh receivers)")
     p.add_argument("--at", choices=("vertices", "faces"), default="vertices",
                    help="mesh receivers: at the vertices (default) or at the face centres")
     p.add_argument("--weld", type=non_negative_float, default=0.0, metavar="TOL",
