@@ -76,6 +76,9 @@ STAGE_STEPS = 16
 # A final loss below this fraction of the targets' energy (1/2 sum w c^2) is an exact fit: the
 # global placement is not tried after the given poses' local search reaches it.
 EXACT_LOSS = 1e-12
+# A final joint solve stopped by max_steps whose loss fell by more than this fraction of it is not
+# converged (`report.quality.flags`: "not_converged").
+STILL_FALLING = 1e-3
 
 
 def _groups_for(light: Any, fit: tuple) -> tuple:
@@ -242,7 +245,8 @@ def fit_lights(
       (`inverse._diagnostics`: a wrong minimum, outliers, conflicting targets).
     - `warn`: emit a `FitQualityWarning` when the answer is flagged (a wrong minimum, an
       escaped light, a polygon or segment collapsed to a point, a light left with no part in
-      the colours, conflicting targets, an all-dark answer to "brighter than" relations);
+      the colours, conflicting targets, an all-dark answer to "brighter than" relations, a
+      joint refinement stopped by `max_steps` short of an exact fit: `"not_converged"`);
       the report's `quality` says so either way (`fit.report.trusted`,
       `fit.report.quality.reason`). To stop on it: `warnings.simplefilter("error",
       inverse.FitQualityWarning)`.
@@ -370,6 +374,7 @@ def fit_lights(
     for attempt in attempts:
         problem = _reweighted(problem, search_w)
         base = theta0.copy()
+        converged = True
         runner_up: dict = {}
         final = None  # the last joint solve's rows and losses, best first: the competing placements
         placed = grid_rows is not None
@@ -452,6 +457,12 @@ def fit_lights(
                     joint = np.where(mask[None], np.asarray(res.values), base[None])[np.argsort(f)]
                     final = (joint, np.sort(f))
                     stage_losses.append(float(np.min(f)))
+                    # Not converged: the best row stopped by max_steps (not by the solver's tolerances or at
+                    # round-off) with its loss still falling (by STILL_FALLING of it in this solve); a row
+                    # crawling along a flat valley at its minimum is not flagged.
+                    b = int(np.argmin(f))
+                    f_in = float(np.asarray(res.initial_losses)[b])
+                    converged = bool(np.asarray(res.converged)[b]) or not f_in - f[b] > STILL_FALLING * f[b]
                 if rnd or not placed:
                     break
                 # The refined positions dealt again (two lights of similar shading swapped in the first
@@ -470,15 +481,17 @@ def fit_lights(
         else:
             theta = theta0
         loss = stage_losses[-1] if P else math.nan
+        # an exact fit has converged whatever stopped the solver
+        converged = converged or not loss > EXACT_LOSS * energy
         if best_attempt is None or loss < best_attempt[0]:
-            best_attempt = (loss, theta, final, problem)
+            best_attempt = (loss, theta, final, problem, converged)
         if not loss > EXACT_LOSS * energy:
             break
-    _, theta, final, problem = best_attempt
+    _, theta, final, problem, converged = best_attempt
     problem = _reweighted(problem, full_w)
     theta = _moved_outside(problem, np.asarray(theta, np.float64))
     out = result(problem, np.asarray(theta, np.float64), idx, size, candidates, stage_losses, n_solved,
-                  retries, initial, project, noise, final if P else None)
+                  retries, initial, project, noise, final if P else None, converged=converged)
     if warn:
         for msg in out.report.quality.emitted:
             _warnings.warn(msg, FitQualityWarning, stacklevel=2)

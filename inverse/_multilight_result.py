@@ -34,7 +34,7 @@ _POSITION_NAMES = ("x", "y", "z", "a", "b")
 
 def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, candidates: Any,
             stage_losses: list, n_solved: int, retries: int, initial: float | None, project: bool,
-            noise: Any = None, final: tuple | None = None) -> LightsFit:
+            noise: Any = None, final: tuple | None = None, converged: bool = True) -> LightsFit:
     t, m = problem.targets, problem.material
     dt = t.points.dtype
     q = np.asarray(theta[problem.n_pose:], np.float64)  # the searched powers' roots, if any
@@ -130,7 +130,8 @@ def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, ca
         determined=determined, scale=size, lights=moved, light_params=light_params, candidates=competing,
         messages=warnings, all_dark=dark,
         contributions={f"light{idx[j]}": float(np.sqrt(np.sum(w * (powers[j] * per_light[j]) ** 2)))
-                       for j in range(J)} if problem.fit_power else None, determinacy=paint is None)
+                       for j in range(J)} if problem.fit_power else None, determinacy=paint is None,
+        converged=converged)
     fixed = [x for n, x in enumerate(problem.scene.lights) if n not in idx]
     suggestions, sugg_n = _suggest(problem, th, powers, mat, names, jac, ident.determined, candidates, free_p, k,
                                    fixed, project)
