@@ -57,6 +57,18 @@ index order. Concretely: an occluder edge lying on an edge of $E_h$, or on an ed
 lower-index occluder, is dropped; an emitter edge (or a higher-index occluder edge) under such
 a coincident edge is kept or dropped by the one-sided test alone. Opposite-side coincidences
 (two mesh triangles sharing an edge) drop both, as they should.
+
+**Float64 rules (the engine's `boundary_runs`).** The planes through $p$ and the edges are
+`planes.edge_planes` (no cancellation for a short edge far from $p$; bit-identical for an edge
+shared by two faces). Two occluder edges' planes are each off by their rounding, about
+`64 eps` times their conditioning (`planes.plane_condition`): within that band of each other
+they hold one line (on one line in space, `planes.collinear_in_space`: a T-junction; or unit
+normals parallel within the band: edges of different faces coplanar with $p$), not a crossing
+placed by rounding. An occluder edge whose end is the projection of a vertex that another
+face's edge runs through crosses that face's plane exactly at the end (`_interval_on_region`).
+The engine's third rule (a light corner on an occluder region's edge plane counts as inside
+within that band) filters its regions' bounding boxes, which the device kernels do not have:
+every candidate edge here is split against every region.
 """
 
 from __future__ import annotations
@@ -80,6 +92,7 @@ from .planes import (
     _occluder_regions,
     _occluder_sides,
     crossing_point,
+    plane_condition,
     pow2_scale,
     project,
     rescale_rows,
@@ -107,6 +120,12 @@ class _Candidates(NamedTuple):
     planes: Array  # (M + 1, P, 3) each region's interior plane normals, zero-padded
     reg_valid: Array  # (M + 1, P) real planes of active regions
     reg_active: Array  # (M + 1,) E_h, and the occluders that are not degenerate seen from p
+    cond: Array  # (M + 1, P) plane_condition of each occluder edge's plane, 0 for the other planes
+    plane_ends: Array  # (M + 1, P, 2, 3) the two vertices of each occluder edge (zeros elsewhere)
+    start_pt: Array  # (C, 3) an occluder candidate's start in space (before projection)
+    end_pt: Array  # (C, 3)
+    start_ok: Array  # (C,) the start is that point's projection (not clipped by the pyramid)
+    end_ok: Array  # (C,)
 
 
 def _emitter_frame(p: Array, n: Array, verts: Array) -> tuple[Array, Array, Array, Array]:
@@ -184,16 +203,29 @@ def _candidates(p: Array, n: Array, verts: Array, occluders: Array) -> _Candidat
         b2 = jnp.where(
             t1 < 1, crossing_point(p, jnp.cross(cone[i1], n_q), ne, hp), project(p, b, ne, hp)
         )
-        return jnp.where(ok, a2, e0), jnp.where(ok, b2, e0)
+        return jnp.where(ok, a2, e0), jnp.where(ok, b2, e0), ok & (t0 <= 0), ok & (t1 >= 1)
 
-    a2, b2 = jax.vmap(jax.vmap(clip_one, in_axes=(0, 0, 0, None)))(o_s, o_e, o_normals, active)
+    a2, b2, a_kept, b_kept = jax.vmap(jax.vmap(clip_one, in_axes=(0, 0, 0, None)))(o_s, o_e, o_normals, active)
     # Reverse: R lies outside Q_j, i.e. on the right of its counter-clockwise-from-p boundary.
     ccw = (s > 0)[:, None, None]
     q_starts = jnp.where(ccw, b2, a2)
     q_ends = jnp.where(ccw, a2, b2)
+    # Each end's point in space where the pyramid did not clip it (its projection is the end).
+    sv = jnp.where(ccw, o_e, o_s).reshape(-1, 3)
+    ev = jnp.where(ccw, o_s, o_e).reshape(-1, 3)
+    sv_ok = jnp.where(ccw[..., 0], b_kept, a_kept).reshape(-1)
+    ev_ok = jnp.where(ccw[..., 0], a_kept, b_kept).reshape(-1)
+    no_pt = jnp.zeros((k + 1, 3), dtype)
+    no_ok = jnp.zeros((k + 1,), bool)
 
     planes = _region_planes(e_normals, o_normals)  # (M+1, P, 3)
     n_planes = planes.shape[1]
+    # Occluder edges' conditioning and vertices (the rounding band of `_interval_on_region`).
+    o_nxt = jnp.roll(occluders, -1, axis=1)
+    o_real = jnp.any(o_nxt != occluders, axis=2)
+    o_cond = jnp.where(o_real, plane_condition(p, occluders, o_nxt), 0.0)
+    cond = jnp.zeros((m_occ + 1, n_planes), dtype).at[1:, :ko].set(o_cond)
+    plane_ends = jnp.zeros((m_occ + 1, n_planes, 2, 3), dtype).at[1:, :ko].set(jnp.stack([occluders, o_nxt], axis=2))
     reg_active = jnp.concatenate([jnp.ones((1,), bool), active])
     reg_valid = jnp.any(planes != 0, axis=-1) & reg_active[:, None]
     reg_ids = jnp.arange((m_occ + 1) * n_planes, dtype=jnp.int32).reshape(m_occ + 1, n_planes)
@@ -218,6 +250,12 @@ def _candidates(p: Array, n: Array, verts: Array, occluders: Array) -> _Candidat
         planes=planes,
         reg_valid=reg_valid,
         reg_active=reg_active,
+        cond=jax.lax.stop_gradient(cond),
+        plane_ends=jax.lax.stop_gradient(plane_ends),
+        start_pt=jax.lax.stop_gradient(jnp.concatenate([no_pt, sv], axis=0)),
+        end_pt=jax.lax.stop_gradient(jnp.concatenate([no_pt, ev], axis=0)),
+        start_ok=jnp.concatenate([no_ok, sv_ok]),
+        end_ok=jnp.concatenate([no_ok, ev_ok]),
     )
 
 
@@ -236,9 +274,12 @@ def edge_breakpoints(p, c: _Candidates, m_occ: int, ci, a, b, n_own, i_own, sig,
     n_tab = 2 * n_cand
     region_ids = jnp.arange(m_occ + 1, dtype=jnp.int32)
     reg_ids = jnp.arange(n_pl, dtype=jnp.int32).reshape(c.planes.shape[:2])
+    own_cond = c.cond.reshape(-1)[i_own]
+    own_ends = c.plane_ends.reshape(-1, 2, 3)[i_own]
+    at = (c.start_pt[ci], c.end_pt[ci], c.start_ok[ci], c.end_ok[ci])
     lo, hi, i_lo, i_hi, c_nc, c_c, any_c = jax.vmap(
-        _interval_on_region, in_axes=(None, None, None, None, None, 0, 0, None)
-    )(p, a, b - a, n_own, sig, c.planes, c.reg_valid, tol)
+        _interval_on_region, in_axes=(None, None, None, None, None, 0, 0, None, None, None, 0, 0, None)
+    )(p, a, b - a, n_own, sig, c.planes, c.reg_valid, tol, own_cond, own_ends, c.cond, c.plane_ends, at)
     other = region_ids != reg
     cuts = jnp.concatenate([jnp.where(other, lo, 0.0), jnp.where(other, hi, 0.0)])
     ids = jnp.concatenate([reg_ids[region_ids, i_lo], reg_ids[region_ids, i_hi]])

@@ -37,15 +37,88 @@ def _eps(x: Array) -> float:
     return float(jnp.finfo(x.dtype).eps)
 
 
+def _lex_less(a: Array, b: Array) -> Array:
+    """Whether `a` precedes `b` `(..., 3)` lexicographically (x, then y, then z)."""
+    return (a[..., 0] < b[..., 0]) | ((a[..., 0] == b[..., 0]) & ((a[..., 1] < b[..., 1]) | (
+        (a[..., 1] == b[..., 1]) & (a[..., 2] < b[..., 2]))))
+
+
+def edge_planes(p: Array, a: Array, b: Array) -> Array:
+    r"""Planes through `p (3,)` and the edges `a -> b` `(..., 3)`: $(b - p)\times(a - p)$ up to a
+    positive factor (each brought to order one by a power of two), computed as
+    $(h - l)\times(x - p)$ from the endpoints in lexicographic order $l$, $h$ (the sign restored
+    after), with $x$ the endpoint nearer `p`.
+
+    The same vector, with two properties the plain form lacks: one edge gives bit-identical
+    normals (up to an exact sign) whichever face it comes from and whichever way it runs, so
+    coincident lines (two faces sharing an edge) are recognised exactly; and there is no
+    cancellation for an edge short beside its distance from `p` (the rounding of
+    $(b - p)\times(a - p)$ is about $\epsilon\,|a - p|\,|b - p|$ against a result of
+    $|(b - p)\times(a - p)|$, i.e. $\epsilon$ times the conditioning of `plane_condition`; this
+    form's is at most twice that, smaller by $|b - a|$ over the farther endpoint's distance: a
+    1.5 cm face seen from 5.6 m at a grazing angle lost 400 eps of its plane, and the crossing of
+    two such planes, a boundary vertex, 1e-10 of its distance). The engine's `edge_plane`
+    (`csrc/engine/geometry.h`) and `jaxshadow._shadows.binding.edge_planes` compute the same."""
+    swap = _lex_less(b, a)
+    lo = jnp.where(swap[..., None], b, a)
+    hi = jnp.where(swap[..., None], a, b)
+    p = jnp.broadcast_to(p, lo.shape)
+    rl, rh = lo - p, hi - p
+    near = jnp.where((jnp.sum(rh * rh, axis=-1) < jnp.sum(rl * rl, axis=-1))[..., None], rh, rl)
+    c = rescale_rows(jnp.cross(rescale_rows(hi - lo), rescale_rows(near)))
+    return jnp.where(swap[..., None], -c, c)
+
+
 def _edge_planes(p: Array, verts: Array) -> Array:
-    r"""$(v_{i+1}-p) \times (v_i-p)$ for each edge of a padded polygon: the plane through $p$ and
-    edge $i$, oriented so that a polygon that runs counter-clockwise seen from $p$ lies on its
-    positive side. Padded (zero-length) edges give exactly 0."""
+    r"""The plane through $p$ and edge $i$ (`edge_planes` of $v_i \to v_{i+1}$) for each edge of
+    a padded polygon `verts (K, 3)`, oriented so that a polygon that runs counter-clockwise seen
+    from $p$ lies on its positive side. Padded (zero-length) edges give exactly 0."""
     nxt = jnp.roll(verts, -1, axis=0)
     real = jnp.any(nxt != verts, axis=1)
-    # Explicit zero: with fused multiply-adds cross(r, r) is not always exactly 0.
-    planes = jnp.cross(nxt - p[None, :], verts - p[None, :])
-    return jnp.where(real[:, None], planes, 0.0)
+    return jnp.where(real[:, None], edge_planes(p, verts, nxt), 0.0)
+
+
+def plane_condition(p: Array, a: Array, b: Array) -> Array:
+    r"""The conditioning of the plane through `p (3,)` and the edge `a -> b` `(..., 3)`:
+    $|a - p|\,|b - p| / |(b - p)\times(a - p)|$, one over the sine of the angle the edge
+    subtends at $p$ (its normal's direction is about that many epsilons off); $\infty$ where the
+    edge's line passes through $p$. Scale-free (computed on the differences brought to order one
+    by one power of two); no gradient (the engine's `through_condition`)."""
+    a, b, p = jax.lax.stop_gradient((a, b, p))
+    p = jnp.broadcast_to(p, a.shape)
+    ra, rb = a - p, b - p
+    sc = pow2_scale(jnp.maximum(jnp.max(jnp.abs(ra), axis=-1), jnp.max(jnp.abs(rb), axis=-1)))[..., None]
+    ra, rb = ra * sc, rb * sc
+    cn = jnp.sqrt(jnp.sum(jnp.cross(rb, ra) ** 2, axis=-1))
+    num = jnp.sqrt(jnp.sum(ra * ra, axis=-1)) * jnp.sqrt(jnp.sum(rb * rb, axis=-1))
+    ok = cn > 0
+    return jnp.where(ok, num / jnp.where(ok, cn, 1.0), jnp.inf)
+
+
+def collinear_in_space(a: Array, b: Array, c: Array, d: Array, p: Array) -> Array:
+    r"""Whether the edges `a -> b` and `c -> d` `(..., 3)` lie on one line in space: each vertex
+    within `COLLINEAR_EPS` $\epsilon S$ of the other edge's line ($S$ the largest coordinate
+    magnitude of the four vertices and `p (3,)`). A T-junction of a mesh (a vertex of one face
+    inside its neighbour's edge, as `Mesh`'s coplanar merging leaves where it drops a collinear
+    vertex), or faces overlapping along an edge: the planes through $p$ are then computed from
+    different pairs of points and differ by their rounding, which grows as the edge's angular
+    length seen from $p$ shrinks, while this test does not depend on $p$ (the engine's
+    `collinear_in_space`). No gradient."""
+    a, b, c, d, p = jax.lax.stop_gradient((a, b, c, d, p))
+    def mx(x):
+        return jnp.max(jnp.abs(x), axis=-1)
+
+    big = jnp.maximum(jnp.maximum(jnp.maximum(mx(a), mx(b)), jnp.maximum(mx(c), mx(d))), mx(p))
+    tau = COLLINEAR_EPS * _eps(p) * big
+
+    def near_line(o, q, x, y):
+        u = q - o
+        l2 = jnp.sum(u * u, axis=-1)
+        cx, cy = jnp.cross(x - o, u), jnp.cross(y - o, u)
+        lim = tau * tau * l2
+        return (l2 > 0) & (jnp.sum(cx * cx, axis=-1) <= lim) & (jnp.sum(cy * cy, axis=-1) <= lim)
+
+    return near_line(a, b, c, d) & near_line(c, d, a, b)
 
 
 def pow2_scale(mag: Array) -> Array:
@@ -146,11 +219,10 @@ def _occluder_sides(p, occluders):
     f32 = jnp.all(occ_c.astype(jnp.float32).astype(occ_c.dtype) == occ_c, axis=(1, 2))
     dtol = jnp.where(f32, dtol, dtol * (ON_SURFACE_64 / ON_SURFACE))
     active = jnp.all((-s[:, None] * h > bound) & (-s[:, None] * h > dtol[:, None]), axis=1)
-    # Planes through p and the edges, from the same scaled differences (a power of two times
-    # `_edge_planes(p, occluders)`); zero for padded (repeated) vertices.
-    real = jnp.any(jnp.roll(occluders, -1, axis=1) != occluders, axis=2)
-    planes = jnp.where(real[..., None], jnp.cross(nxt, rel), 0.0)
-    planes = rescale_rows(s[:, None, None] * planes)
+    # Planes through p and the edges (`edge_planes`, no cancellation for a short far edge);
+    # zero for padded (repeated) vertices.
+    planes = jax.vmap(_edge_planes, in_axes=(None, 0))(p, occluders)
+    planes = s[:, None, None] * planes
     return no, d_o, s, active, planes, sigma
 
 
@@ -225,20 +297,57 @@ def crossing_point(p, c, ne, hp):
     return p + c * jnp.where(ok, hp / jnp.where(ok, den, 1.0), 0.0)
 
 
-def _interval_on_region(p, a, d, n_own, sigma, normals, valid, tol):
+def _interval_on_region(p, a, d, n_own, sigma, normals, valid, tol, own_cond=None, own_ends=None, conds=None,
+                        ends=None, at=None):
     """Where the `sigma`-side of the edge `a + t d` is inside one convex region (planes through p).
 
     Returns `(lo, hi, i_lo, i_hi, const_ok_noncollinear, const_ok_collinear, any_collinear)`;
     the region contains the one-sided neighbourhood of `a + t d` iff `lo < t < hi` and both
     `const_ok`; `i_lo`, `i_hi` are the planes that cut the edge at `lo` and `hi` (the crossing
     points there are the lines common to the edge's plane and those, `_decode`).
+
+    A plane holds the edge's line (collinear: it neither cuts the edge nor bounds it, the
+    one-sided rule decides) when the unit normals are parallel within `tol`. Two occluder
+    edges' planes (`own_cond`, `conds` > 0: their `plane_condition`s; `own_ends (2, 3)`,
+    `ends (P, 2, 3)`: their vertices) are computed from different pairs of points, and each is
+    off by about `tol` times its conditioning: where both ends of the edge lie within the
+    rounding band `(4 + own_cond + cond) tol` of the other plane, they are collinear when the
+    two edges lie on one line in space (`collinear_in_space`: a T-junction) or when their unit
+    normals are parallel within that band (edges of different faces coplanar with p). Taken as
+    crossing, their common line's point would be that of two planes a rounding apart, anywhere
+    on the line or off it: a boundary vertex off both edges (the engine's `boundary_runs`).
+
+    Shared vertices: `at = (start, end, start_ok, end_ok)` are the points in space the edge's
+    ends are the projections of (where `*_ok`). An occluder edge's plane through such a point
+    (one of its two vertices equal to it, bit for bit: faces sharing a vertex) holds that end
+    exactly, so the edge crosses the plane there, at t = 0 or 1 exactly, and not at the
+    parameter the two roundings put it at: a sliver of the edge beside the vertex, kept or
+    dropped by rounding, left the contour open by the crossing's 1e-13 (the shared vertex of two
+    faces folding at a silhouette, seen from afar).
     """
     g0 = (a - p) @ normals.T
     g1 = d @ normals.T
+    if at is not None:
+        sv, ev, sv_ok, ev_ok = at
+        edge_pl = conds > 0  # an occluder edge's plane, its vertices `ends`
+        hits_s = edge_pl & sv_ok & jnp.any(jnp.all(ends == sv[None, None, :], axis=-1), axis=-1)
+        hits_e = edge_pl & ev_ok & jnp.any(jnp.all(ends == ev[None, None, :], axis=-1), axis=-1)
+        g0 = jnp.where(hits_s, 0.0, g0)
+        g1 = jnp.where(hits_e, -g0, g1)
     un = safe_normalize(normals)
     uo = safe_normalize(n_own)
     cr = jnp.cross(uo[None, :], un)
-    collinear = valid & (jnp.sum(cr * cr, axis=-1) <= tol * tol)
+    cr2 = jnp.sum(cr * cr, axis=-1)
+    collinear = valid & (cr2 <= tol * tol)
+    if conds is not None:
+        pn = jnp.sqrt(jnp.sum(normals * normals, axis=-1))
+        apn = jnp.sqrt(jnp.sum((a - p) ** 2)) + jnp.sqrt(jnp.sum((a + d - p) ** 2))
+        cb = (4 + own_cond + conds) * tol
+        band = cb * pn * apn
+        near = ~(jnp.abs(g0) > band) & ~(jnp.abs(g0 + g1) > band)
+        in_space = collinear_in_space(own_ends[0][None, :], own_ends[1][None, :], ends[:, 0], ends[:, 1], p)
+        rounding = valid & (own_cond > 0) & (conds > 0) & near & (in_space | (cr2 <= cb * cb))
+        collinear = collinear | rounding
     side_ok = sigma * (un @ uo) > 0
     generic = valid & ~collinear
     pos = generic & (g1 > 0)
