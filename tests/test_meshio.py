@@ -519,6 +519,13 @@ def _field_texts(rng) -> list[str]:
               "4.9406564584124654e-324", "2.4703282292062328e-324", "2.4703282292062327e-324",
               "1.7976931348623157e308", "1.7976931348623158e308", "9007199254740993",
               "0.1000000000000000055511151231257827021181583404541015625", "3" * 60 + "e-40"]
+    # Up to 17 digits, the point anywhere, powers of ten around the exact ones (1e22, 1e-22)
+    for _ in range(600):
+        nd = int(rng.integers(1, 18))
+        digits = "".join(str(d) for d in rng.integers(0, 10, nd))
+        cut = int(rng.integers(0, nd + 1))
+        mant = (digits[:cut] + "." + digits[cut:]) if cut < nd else digits
+        texts.append(mant + (f"e{int(rng.integers(-40, 41))}" if rng.uniform() < 0.7 else ""))
     return texts
 
 
