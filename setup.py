@@ -13,6 +13,11 @@ It is optional: without a compiler the package installs without it and uses its 
 kernels, which are exact but slower and need memory that grows with the square of the occluder
 count. IEEE arithmetic and no fused multiply-adds (`-ffp-contract=off`): the host decisions must
 round as NumPy's and XLA's do.
+
+- `jaxshadow._io._csvc` (C99, `csrc/csvtext.c`): numeric CSV tables read (strtod) and written
+  (Python's own float formatting) at array speed, for `jaxshadow/_io/meshio.py`. Python headers
+  only (buffers through the buffer protocol, no NumPy headers); optional like the engine: without
+  it the same tables go through NumPy's `loadtxt` and Python's string formatting.
 """
 
 import glob
@@ -46,6 +51,12 @@ setup(
             define_macros=_MACROS,
             extra_compile_args=["-std=c++17", "-O3", "-ffp-contract=off", "-fno-fast-math"],
             language="c++",
+            optional=True,
+        ),
+        Extension(
+            "jaxshadow._io._csvc",
+            sources=["csrc/csvtext.c"],
+            extra_compile_args=["-std=c99", "-O2"],
             optional=True,
         ),
     ]

@@ -8,6 +8,9 @@
   input rows' own text, only `r, g, b` formatted); a whole `jaxshadow irradiance` run in a
   fresh process (a quad light, one triangle occluder, float32) from `.csv` to `.csv` and from
   `.npy` to `.npy`, wall time and peak RSS (the child's `VmHWM`), best of two interleaved runs.
+  The CSV reader and writers go through the compiled `jaxshadow._io._csvc` when it is built;
+  each is also timed on the Python route (the module hidden: `np.loadtxt` and Python's string
+  formatting), the whole command too (a third interleaved run, the module blocked in the child).
 - **Scene**: `benchmarks.real_meshes.scan_like()` (76 152 triangles, open, float32 coordinates)
   as one `js.Mesh` occluder: `save_scene` (JSON and the `.meshes.npz` beside it) and `load_scene`,
   best of three, and the inline JSON of schema 1 (`scene_to_dict` dumped with indent, as files
@@ -53,7 +56,13 @@ def _old_csv_writer(path: str, table: np.ndarray, header: list[str]) -> None:
 
 # The child reports its own peak (VmHWM: its address space's high-water mark). Not ru_maxrss:
 # Linux carries a forked child's ru_maxrss over from the parent (this process holds the tables).
-_CHILD = """import runpy, sys
+_CHILD = """import os, runpy, sys
+class Block:
+    def find_spec(self, name, path=None, target=None):
+        if name == "jaxshadow._io._csvc":
+            raise ImportError("hidden: the Python route")
+if os.environ.get("JAXSHADOW_BENCH_HIDE_CSVC"):
+    sys.meta_path.insert(0, Block())
 sys.argv = ["jaxshadow", *sys.argv[1:]]
 try:
     runpy.run_module("jaxshadow.cli.__main__", run_name="__main__")
@@ -63,10 +72,14 @@ finally:
 """
 
 
-def _cli(args: list[str]) -> tuple[float, float]:
-    """Wall time (s) and peak RSS (MB) of `jaxshadow ARGS` in a fresh process."""
+def _cli(args: list[str], hide_csvc: bool = False) -> tuple[float, float]:
+    """Wall time (s) and peak RSS (MB) of `jaxshadow ARGS` in a fresh process (`hide_csvc`: with
+    the compiled CSV module blocked)."""
     t = time.perf_counter()
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env.pop("JAXSHADOW_BENCH_HIDE_CSVC", None)
+    if hide_csvc:
+        env["JAXSHADOW_BENCH_HIDE_CSVC"] = "1"
     r = subprocess.run([sys.executable, "-c", _CHILD, "--no-compile-cache", *args], env=env, capture_output=True,
                        text=True)
     wall = time.perf_counter() - t
@@ -78,6 +91,7 @@ def _cli(args: list[str]) -> tuple[float, float]:
 
 def tables(n: int, folder: str) -> dict:
     import jaxshadow as js
+    from jaxshadow._io import meshio
     from jaxshadow._io.meshio import (
         POINT_COLUMNS,
         receiver_rows,
@@ -92,31 +106,49 @@ def tables(n: int, folder: str) -> dict:
     with open(csv_in, "w", newline="") as fh:  # a points CSV: the six receiver columns, float64
         write_csv_table(fh, list(POINT_COLUMNS), [p, nrm])
     np.save(npy_in, np.c_[p, nrm])
-    out: dict[str, Any] = {"n": n}
+    out: dict[str, Any] = {"n": n, "csvc_built": meshio._csvc() is not None}
     out["read_csv_s"] = _best(lambda: js.read_points(csv_in), 2)
+    compiled = meshio._csvc
+
+    def python_route(fn: Any) -> Any:
+        def run() -> None:
+            meshio._csvc = lambda: None  # type: ignore[assignment]
+            try:
+                fn()
+            finally:
+                meshio._csvc = compiled  # type: ignore[assignment]
+        return run
+
+    out["read_csv_python_s"] = _best(python_route(lambda: js.read_points(csv_in)), 2)
     out["read_npy_s"] = _best(lambda: js.read_points(npy_in), 2)
     vals = rng.uniform(0, 5, (n, 3)).astype(np.float32)
     p32, n32 = p.astype(np.float32), nrm.astype(np.float32)
     out["write_csv_s"] = _best(lambda: js.write_values(os.path.join(folder, "w.csv"), vals, points=p32, normals=n32), 2)
+    out["write_csv_python_s"] = _best(python_route(
+        lambda: js.write_values(os.path.join(folder, "w.csv"), vals, points=p32, normals=n32)), 2)
     table = np.concatenate([p32, n32, vals], axis=1).astype(np.float64)
     out["write_csv_before_s"] = _best(lambda: _old_csv_writer(os.path.join(folder, "w0.csv"), table,
                                                               [*POINT_COLUMNS, "r", "g", "b"]), 2)
     rows = receiver_rows(csv_in)
     out["write_csv_rows_s"] = _best(lambda: write_values_beside_rows(os.path.join(folder, "w1.csv"), rows, vals), 2)
+    out["write_csv_rows_python_s"] = _best(python_route(
+        lambda: write_values_beside_rows(os.path.join(folder, "w1.csv"), rows, vals)), 2)
     out["write_npy_s"] = _best(lambda: js.write_values(os.path.join(folder, "w.npy"), vals), 2)
     light = js.PolygonLight([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2]], 10.0)
     scene = js.Scene([light], occluders=[np.array([[0.2, 0.2, 1.0], [0.6, 0.2, 1.0], [0.6, 0.6, 1.0]])])
     sp = os.path.join(folder, "scene.json")
     js.save_scene(scene, sp)
-    runs: dict[str, list] = {"npy": [], "csv": []}
+    runs: dict[str, list] = {"npy": [], "csv": [], "csv_python": []}
     for _ in range(2):  # interleaved: the shared machine's speed drifts
-        for ext in ("npy", "csv"):
-            runs[ext].append(_cli(["irradiance", sp, os.path.join(folder, f"pts.{ext}"),
-                                   "-o", os.path.join(folder, f"out.{ext}"), "-q"]))
-    for ext in ("npy", "csv"):
-        out[f"cli_{ext}_s"] = min(w for w, _ in runs[ext])
-        out[f"cli_{ext}_rss_mb"] = max(r for _, r in runs[ext])
+        for key in runs:
+            ext = key.split("_")[0]
+            runs[key].append(_cli(["irradiance", sp, os.path.join(folder, f"pts.{ext}"),
+                                   "-o", os.path.join(folder, f"out.{ext}"), "-q"], hide_csvc=key == "csv_python"))
+    for key in runs:
+        out[f"cli_{key}_s"] = min(w for w, _ in runs[key])
+        out[f"cli_{key}_rss_mb"] = max(r for _, r in runs[key])
     out["cli_csv_over_npy"] = out["cli_csv_s"] / out["cli_npy_s"]
+    out["cli_csv_python_over_npy"] = out["cli_csv_python_s"] / out["cli_npy_s"]
     return out
 
 
@@ -159,17 +191,27 @@ def run(quick: bool) -> dict:
 def markdown(results: dict) -> str:
     t, s = results["tables"], results["scene"]
     n = f"{t['n']:.0e}"
+    py = "Python route (module hidden)"
+    route = "compiled `_csvc`" if t.get("csvc_built") else "Python route (`_csvc` not built)"
     rows = [
+        f"CSV rows through the {route}.",
+        "",
         "| what | time (s) | beside it |",
         "|---|---:|---|",
-        f"| read {n} receivers, CSV | {t['read_csv_s']:.2f} | .npy {t['read_npy_s']:.3f} s |",
+        f"| read {n} receivers, CSV | {t['read_csv_s']:.2f} | .npy {t['read_npy_s']:.3f} s"
+        + (f"; {py} {t['read_csv_python_s']:.2f} s" if "read_csv_python_s" in t else "") + " |",
         f"| write {n} values, CSV (block format) | {t['write_csv_s']:.2f} | per-value repr writer "
-        f"{t['write_csv_before_s']:.2f} s; .npy {t['write_npy_s']:.3f} s |",
+        f"{t['write_csv_before_s']:.2f} s; .npy {t['write_npy_s']:.3f} s"
+        + (f"; {py} {t['write_csv_python_s']:.2f} s" if "write_csv_python_s" in t else "") + " |",
         *([f"| write {n} values, CSV beside the input's rows (the command's CSV -> CSV) | "
-           f"{t['write_csv_rows_s']:.2f} | |"] if "write_csv_rows_s" in t else []),
+           f"{t['write_csv_rows_s']:.2f} | "
+           + (f"{py} {t['write_csv_rows_python_s']:.2f} s" if "write_csv_rows_python_s" in t else "") + " |"]
+          if "write_csv_rows_s" in t else []),
         f"| `jaxshadow irradiance`, {n} receivers, .csv -> .csv | {t['cli_csv_s']:.1f} | .npy -> .npy "
         f"{t['cli_npy_s']:.1f} s ({t['cli_csv_over_npy']:.2f}x); peak RSS {t['cli_csv_rss_mb']:.0f} MB vs "
-        f"{t['cli_npy_rss_mb']:.0f} MB |",
+        f"{t['cli_npy_rss_mb']:.0f} MB"
+        + (f"; {py} {t['cli_csv_python_s']:.1f} s ({t['cli_csv_python_over_npy']:.2f}x), "
+           f"{t['cli_csv_python_rss_mb']:.0f} MB" if "cli_csv_python_s" in t else "") + " |",
         f"| `save_scene`, {s['triangles']} triangles | {s['save_s']:.2f} | inline JSON (schema 1) "
         f"{s['inline_save_s']:.2f} s; {s['bytes'] / 1e6:.1f} MB vs {s['inline_bytes'] / 1e6:.1f} MB |",
         f"| `load_scene`, {s['triangles']} triangles | {s['load_s']:.2f} | inline JSON {s['inline_load_s']:.2f} s; "

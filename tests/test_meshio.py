@@ -4,7 +4,9 @@ materials (`Material` fields of shape (N, 3)).
 Receiver tables at array speed (the section at the end): the CSV reader's fast route (a
 vectorised field-count check, then `np.loadtxt` of the named columns) and the block writer's
 constant columns, checked against references that do not go through the code under test (NumPy's
-parser on the whole table, Python's own per-value formatting)."""
+parser on the whole table, Python's own per-value formatting). The compiled reader and writer
+(`jaxshadow._io._csvc`) against the same references, and the CSV tests run on both routes
+(`csv_route`: the compiled one, and the Python one with the module hidden)."""
 
 import io
 import os
@@ -23,6 +25,17 @@ from jaxshadow._io.meshio import (  # noqa: E402
     tonemap,
     write_csv_table,
 )
+
+
+@pytest.fixture(params=["compiled", "python"])
+def csv_route(request, monkeypatch):
+    """Run a CSV test through the compiled reader/writer, then with it hidden (the Python route)."""
+    if request.param == "compiled":
+        if _meshio._csvc() is None:
+            pytest.skip("jaxshadow._io._csvc is not built")
+    else:
+        monkeypatch.setattr(_meshio, "_csvc", lambda: None)
+    return request.param
 
 
 def _box():
@@ -209,6 +222,7 @@ def test_shade_with_per_receiver_material():
     np.testing.assert_allclose(got, np.asarray(m.radiance(scene.ambient, js.irradiance(scene, p, n))), rtol=1e-12)
 
 
+@pytest.mark.usefixtures("csv_route")
 def test_csv_duplicated_column_is_an_error(tmp_path):
     # Two 'px' columns: which one is meant is unknown, so neither is taken silently.
     (tmp_path / "dup.csv").write_text("px,py,pz,nx,ny,nz,px\n0,0,0,0,0,1,5\n")
@@ -219,6 +233,7 @@ def test_csv_duplicated_column_is_an_error(tmp_path):
     np.testing.assert_array_equal(js.read_points(tmp_path / "extra.csv")[0], [[1.0, 2.0, 3.0]])
 
 
+@pytest.mark.usefixtures("csv_route")
 def test_csv_columns_by_name_with_text_and_blank_lines(tmp_path):
     # Columns in any order, an ignored text column with a quoted comma, CRLF and blank lines.
     text = ('label,nz,ny,nx,pz,py,px\r\n"a,b",1,0,0,3,2,1\r\n\r\nc,0,1,0,6,5,4\r\n')
@@ -234,12 +249,14 @@ def test_csv_columns_by_name_with_text_and_blank_lines(tmp_path):
     ("1,2,3,0,0,1\n4,x,6,0,0,1\n", r"row 2 has a non-numeric value"),
     ("1,2,3,0,0,1\n4,,6,0,0,1\n", r"row 2 has a non-numeric value"),
 ])
+@pytest.mark.usefixtures("csv_route")
 def test_csv_bad_rows_are_named(tmp_path, body, message):
     (tmp_path / "bad.csv").write_text("px,py,pz,nx,ny,nz\n" + body)
     with pytest.raises(ValueError, match=message):
         js.read_points(tmp_path / "bad.csv")
 
 
+@pytest.mark.usefixtures("csv_route")
 def test_csv_header_without_rows_has_no_points(tmp_path):
     (tmp_path / "h.csv").write_text("px,py,pz,nx,ny,nz\n")
     with pytest.raises(ValueError, match="no points"):
@@ -332,6 +349,7 @@ def _table_text(rng, n, header, newline="\n"):
 
 
 @pytest.mark.parametrize("newline", ["\n", "\r\n"])
+@pytest.mark.usefixtures("csv_route")
 def test_fast_route_reads_named_columns_exactly(tmp_path, monkeypatch, newline):
     # Columns in another order, two ignored columns, several check blocks, a BOM: exactly what
     # NumPy reads from the whole table, and the fast route is the one taken.
@@ -348,6 +366,7 @@ def test_fast_route_reads_named_columns_exactly(tmp_path, monkeypatch, newline):
     np.testing.assert_array_equal(np.c_[p, n], _reference_columns(text, POINT_COLUMNS))
 
 
+@pytest.mark.usefixtures("csv_route")
 def test_text_in_an_ignored_column_is_read_on_the_fast_route(tmp_path):
     text = "label,px,py,pz,nx,ny,nz\nfloor,1,2,3,0,0,1\nwall,4,5,6,1,0,0\n"
     (tmp_path / "t.csv").write_text(text)
@@ -363,6 +382,7 @@ def test_text_in_an_ignored_column_is_read_on_the_fast_route(tmp_path):
     ("1,2,x,0,0,1,7", r"row 1235 has a non-numeric value"),
     ("1,2,3,0,0,1e,7", r"row 1235 has a non-numeric value"),
 ])
+@pytest.mark.usefixtures("csv_route")
 def test_a_bad_row_deep_in_the_file_is_named(tmp_path, monkeypatch, bad, message):
     monkeypatch.setattr(_meshio, "CSV_CHECK_BYTES", 512)
     rows = ["1,2,3,0,0,1,7"] * 3000
@@ -372,6 +392,7 @@ def test_a_bad_row_deep_in_the_file_is_named(tmp_path, monkeypatch, bad, message
         js.read_points(tmp_path / "bad.csv")
 
 
+@pytest.mark.usefixtures("csv_route")
 def test_no_trailing_newline_and_a_header_only_file(tmp_path):
     (tmp_path / "a.csv").write_text("px,py,pz,nx,ny,nz\n1,2,3,0,0,1\n4,5,6,0,1,0")
     np.testing.assert_array_equal(read_csv(tmp_path / "a.csv", POINT_COLUMNS), [[1, 2, 3, 0, 0, 1], [4, 5, 6, 0, 1, 0]])
@@ -385,6 +406,7 @@ def _per_value_text(header, table, fmts):
     return ",".join(header) + "\n" + "".join(r + "\n" for r in rows)
 
 
+@pytest.mark.usefixtures("csv_route")
 def test_constant_columns_are_written_as_each_value_would_be(monkeypatch):
     # A column constant in one block and varying in the next, -0.0 beside 0.0 (bit for bit
     # different), NaN and infinities in constant columns, float64 and float32 side by side.
@@ -409,6 +431,7 @@ def test_constant_columns_are_written_as_each_value_would_be(monkeypatch):
     assert buf.getvalue().splitlines()[101].split(",")[2] == "-0.0"
 
 
+@pytest.mark.usefixtures("csv_route")
 def test_written_receivers_round_trip_through_the_reader(tmp_path):
     # The CLI's case: float32 points, normals and values, a plane's height and one normal.
     rng = np.random.default_rng(8)
@@ -425,6 +448,7 @@ def test_written_receivers_round_trip_through_the_reader(tmp_path):
     np.testing.assert_array_equal(read_csv(tmp_path / "v.csv", ("r", "g", "b")).astype(np.float32), v)
 
 
+@pytest.mark.usefixtures("csv_route")
 def test_a_table_without_rows_is_its_header(tmp_path):
     """No receivers: the file is the header line alone."""
     buf = io.StringIO()
@@ -432,6 +456,7 @@ def test_a_table_without_rows_is_its_header(tmp_path):
     assert buf.getvalue() == "px,py,pz,r\n"
 
 
+@pytest.mark.usefixtures("csv_route")
 def test_receiver_rows_only_for_plain_point_tables(tmp_path, monkeypatch):
     """`receiver_rows` gives a points CSV's rows as text only when they can stand for the output's
     receiver columns as they are (header exactly px..nz in order, six fields, no quote, no blank
@@ -464,3 +489,193 @@ def test_receiver_rows_only_for_plain_point_tables(tmp_path, monkeypatch):
     assert out.read_text() == whole and whole.count("\n") == 11
     got = np.loadtxt(out, delimiter=",", skiprows=1)
     np.testing.assert_array_equal(got[:, 6:].astype(np.float32), vals)
+
+
+# --------------------------------------------------------------------------------------
+# The compiled reader and writer (jaxshadow._io._csvc) against NumPy's parser and Python's formatting
+# --------------------------------------------------------------------------------------
+
+def _ext():
+    ext = _meshio._csvc()
+    if ext is None:
+        pytest.skip("jaxshadow._io._csvc is not built")
+    return ext
+
+
+def _field_texts(rng) -> list[str]:
+    """Number texts of every kind a table holds: float64 reprs over the whole exponent range
+    (subnormals included), float32 texts ("%.9g"), other precisions and exponent styles,
+    infinities and NaNs in any case and sign, signed zeros, a leading '+', blanks around."""
+    x = rng.normal(size=400) * 10.0 ** rng.integers(-300, 300, 400)
+    sub = rng.uniform(0, 1, 50) * 2.0 ** -1022  # float64 subnormals
+    f32 = (rng.normal(size=200) * 10.0 ** rng.integers(-40, 38, 200)).astype(np.float32)
+    texts = [repr(float(v)) for v in np.r_[x, sub]]
+    texts += [f"{float(v):.9g}" for v in f32]
+    texts += [f"{float(v):.17g}" for v in x[:50]] + [f"{float(v):.3E}" for v in x[50:100]]
+    texts += [f"{float(v):.25f}" for v in rng.normal(size=20)]
+    texts += ["inf", "-inf", "+inf", "Infinity", "-INFINITY", "InF", "nan", "-nan", "+NaN", "NAN",
+              "-0", "+0", "-0.0", "0.0", "0", "+1.5", " 1.5", "2.5 ", " \t-3.25\t ", "1.", ".5", "-.5",
+              "1E5", "1e+05", "1e-05", "1e-400", "-1e-400", "1e400", "-1e400", "00012", "1e0010",
+              "4.9406564584124654e-324", "2.4703282292062328e-324", "2.4703282292062327e-324",
+              "1.7976931348623157e308", "1.7976931348623158e308", "9007199254740993",
+              "0.1000000000000000055511151231257827021181583404541015625", "3" * 60 + "e-40"]
+    # Up to 17 digits, the point anywhere, powers of ten around the exact ones (1e22, 1e-22)
+    for _ in range(600):
+        nd = int(rng.integers(1, 18))
+        digits = "".join(str(d) for d in rng.integers(0, 10, nd))
+        cut = int(rng.integers(0, nd + 1))
+        mant = (digits[:cut] + "." + digits[cut:]) if cut < nd else digits
+        texts.append(mant + (f"e{int(rng.integers(-40, 41))}" if rng.uniform() < 0.7 else ""))
+    return texts
+
+
+@pytest.mark.parametrize("used", ["all", "some"])
+def test_compiled_parser_reads_the_bits_loadtxt_reads(tmp_path, used):
+    ext = _ext()
+    rng = np.random.default_rng(11)
+    fields = _field_texts(rng)
+    k = 6 if used == "all" else 8
+    fields += ["0"] * (-len(fields) % k)
+    rng.shuffle(fields)
+    body = "".join(",".join(fields[i:i + k]) + "\n" for i in range(0, len(fields), k))
+    header = list(POINT_COLUMNS) if k == 6 else ["px", "w", "py", "pz", "nx", "u", "ny", "nz"]
+    (tmp_path / "t.csv").write_text(",".join(header) + "\n" + body)
+    idx = [header.index(c) for c in POINT_COLUMNS]
+    want = np.loadtxt(io.StringIO(body), delimiter=",", ndmin=2)[:, idx]
+    out = np.empty(want.shape)
+    assert ext.parse(body.encode(), k, idx, out)  # the compiled route reads every field
+    got = read_csv(tmp_path / "t.csv", POINT_COLUMNS)
+    for a in (out, got):
+        assert a.shape == want.shape
+        np.testing.assert_array_equal(a.view(np.int64), want.view(np.int64))  # bit for bit, NaN's sign too
+
+
+@pytest.mark.parametrize("field", ["0x1p3", "1_0", "nan(1)", "", " ", "1e", "1e+", "--1", "+-1", "1 2", "1.5f",
+                                   "in", "infinit", "infinityy", "nana", ".", "e5", "1.2.3", "\v1", "١"])
+def test_compiled_parser_declines_what_it_does_not_read(tmp_path, field):
+    # A field the compiled reader does not take: parse says so, and read_csv gives what NumPy's
+    # parser gives (a value, or the row named as non-numeric).
+    ext = _ext()
+    body = "1,2,3,0,0,1\n4," + field + ",6,0,0,1\n"
+    assert not ext.parse(body.encode(), 6, list(range(6)), np.empty((2, 6)))
+    (tmp_path / "t.csv").write_text("px,py,pz,nx,ny,nz\n" + body, encoding="utf-8")
+    try:
+        want = np.loadtxt(io.StringIO(body), delimiter=",", ndmin=2)
+    except ValueError:
+        # (the Python route's row check is float(), which takes '1_0' and Unicode digits: then
+        # NumPy's own message names the field)
+        with pytest.raises(ValueError, match=r"row 2 has a non-numeric value|could not convert string"):
+            read_csv(tmp_path / "t.csv", POINT_COLUMNS)
+    else:
+        np.testing.assert_array_equal(read_csv(tmp_path / "t.csv", POINT_COLUMNS), want)
+
+
+def test_compiled_parser_checks_shapes_and_row_ends():
+    ext = _ext()
+    out = np.empty((2, 3))
+    assert ext.parse(b"1,2,3\n4,5,6\n", 3, [0, 1, 2], out) and out.tolist() == [[1, 2, 3], [4, 5, 6]]
+    assert not ext.parse(b"1,2,3\n4,5,6", 3, [0, 1, 2], out)         # no final newline
+    assert not ext.parse(b"1,2,3\n4,5,6\n", 3, [0, 1, 2], np.empty((3, 3)))   # fewer rows than room
+    assert not ext.parse(b"1,2,3\n4,5,6\n", 3, [0, 1, 2], np.empty((1, 3)))   # more rows than room
+    assert not ext.parse(b"1,2,3\n4,5\n", 3, [0, 1, 2], out)
+    assert not ext.parse(b"1,2,3\n4,5,6,7\n", 3, [0, 1, 2], out)
+    assert not ext.parse(b"1,2,3\r\n4,5,6\n", 3, [0, 1, 2], out)
+    with pytest.raises(ValueError):
+        ext.parse(b"1,2,3\n", 3, [0, 0], np.empty((1, 2)))
+    assert ext.check_rows(b"1,2\n3,4\n", 2) == 2 and ext.check_rows(b"", 2) == 0
+    for bad in (b"1,2\n3\n", b"1,2\n\n", b'1,"2"\n', b"1,2\r\n", b"1,2"):
+        assert ext.check_rows(bad, 2) == -1, bad
+
+
+def _awkward_values(rng, n):
+    """Values with every formatting case: subnormals (float64 and float32), zeros of both signs,
+    1e-5 and 1e20 (where %g changes notation), infinities, NaN, the extremes of both precisions."""
+    special = np.array([0.0, -0.0, 1e-5, 1e20, 1e16, 1e-4, 123456789.0, 0.1, np.inf, -np.inf, np.nan,
+                        5e-324, -5e-324, 2.2250738585072014e-308, 1.7976931348623157e308,
+                        float(np.float32(1e-45)), float(np.finfo(np.float32).max), float(np.finfo(np.float32).tiny)])
+    x = rng.normal(size=(n, 3)) * 10.0 ** rng.integers(-320, 300, (n, 3))
+    x.flat[rng.choice(x.size, len(special) * 4)] = np.tile(special, 4)
+    return x
+
+
+def test_compiled_writer_writes_python_s_text(tmp_path, monkeypatch):
+    # Both kinds of column, every awkward value, blocks that end mid-table: byte for byte the
+    # text of Python's own per-value formatting, and of the Python route.
+    _ext()
+    monkeypatch.setattr(_meshio, "CSV_BLOCK_ROWS", 50)
+    rng = np.random.default_rng(12)
+    a64 = _awkward_values(rng, 173)
+    with np.errstate(over="ignore"):
+        a32 = _awkward_values(rng, 173).astype(np.float32)  # float32 subnormals, overflow to inf, zeros
+    a32[::7, 1] = np.float32(1e-40)
+    header = ["a", "b", "c", "d", "e", "f"]
+    buf = io.StringIO()
+    write_csv_table(buf, header, [a64, a32])
+    want = _per_value_text(header, np.concatenate([a64, a32.astype(np.float64)], axis=1), ["%r"] * 3 + ["%.9g"] * 3)
+    assert buf.getvalue() == want
+    monkeypatch.setattr(_meshio, "_csvc", lambda: None)
+    slow = io.StringIO()
+    write_csv_table(slow, header, [a64, a32])
+    assert slow.getvalue() == want
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_compiled_writer_beside_rows_writes_the_python_route_s_bytes(tmp_path, monkeypatch, dtype):
+    from jaxshadow._io.meshio import write_values_beside_rows
+
+    _ext()
+    monkeypatch.setattr(_meshio, "CSV_BLOCK_ROWS", 40)
+    rng = np.random.default_rng(13)
+    n = 101
+    rows = "".join(f"{rng.normal()!r}, {i} ,0,-0,0,+1e0\n" for i in range(n)).encode()
+    with np.errstate(over="ignore"):
+        vals = _awkward_values(rng, n).astype(dtype)
+    write_values_beside_rows(tmp_path / "c.csv", rows, vals)
+    monkeypatch.setattr(_meshio, "_csvc", lambda: None)
+    write_values_beside_rows(tmp_path / "p.csv", rows, vals)
+    fmt = "%.9g" if dtype == np.float32 else "%r"
+    want = "px,py,pz,nx,ny,nz,r,g,b\n" + "".join(
+        line + "," + ",".join(fmt % float(x) for x in v) + "\n"
+        for line, v in zip(rows.decode().splitlines(), vals, strict=True))
+    assert (tmp_path / "c.csv").read_bytes() == want.encode()
+    assert (tmp_path / "p.csv").read_bytes() == want.encode()
+
+
+_HIDDEN = """
+import sys, numpy as np
+
+class Block:
+    def find_spec(self, name, path=None, target=None):
+        if name == "jaxshadow._io._csvc":
+            raise ImportError("blocked: the CSV module is not built")
+
+sys.meta_path.insert(0, Block())
+import jaxshadow as js
+from jaxshadow._io import meshio
+assert meshio._csvc() is None and "jaxshadow._io._csvc" not in sys.modules
+folder = sys.argv[1]
+p = np.array([[0.5, 0.25, 0.0], [1e-3, 2.0, -0.0]]); n = np.array([[0.0, 0.0, 1.0]] * 2)
+js.write_values(folder + "/v.csv", np.float32([[1, 2, 3], [0.1, 0.2, 0.3]]), points=p, normals=n)
+q, m, _ = js.read_points(folder + "/v.csv")
+assert (q == p).all() and (m == n).all()
+rows = meshio.receiver_rows(folder + "/v.csv")
+assert rows is None  # nine columns: not a points table's rows
+print(open(folder + "/v.csv").read(), end="")
+"""
+
+
+def test_csv_without_the_compiled_module(tmp_path):
+    # The module hidden from the import system (an install without a compiler): the same files
+    # are read and written through NumPy and Python, and the text is the compiled route's.
+    import subprocess
+    import sys
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ, PYTHONPATH=root + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    r = subprocess.run([sys.executable, "-c", _HIDDEN, str(tmp_path)], capture_output=True, text=True, env=env,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    p = np.array([[0.5, 0.25, 0.0], [1e-3, 2.0, -0.0]])
+    n = np.array([[0.0, 0.0, 1.0]] * 2)
+    js.write_values(tmp_path / "w.csv", np.float32([[1, 2, 3], [0.1, 0.2, 0.3]]), points=p, normals=n)
+    assert r.stdout == (tmp_path / "w.csv").read_text()

@@ -283,13 +283,17 @@ def read_csv(path: str | os.PathLike, columns: tuple[str, ...]) -> np.ndarray:
     """The named `columns` of a CSV file with a header row, as an `(N, len(columns))` float64
     array (other columns are ignored; errors name the file, the row and the column).
 
-    The header is read with the `csv` module, the body with `np.loadtxt` (array speed). With
-    columns besides `columns`, a vectorised check of the body's bytes that every row has the
-    header's number of fields (`_uniform_rows`) lets `np.loadtxt` convert the named columns only
-    (the others are split off, never parsed); otherwise (no other column, a quoted field, blank
-    lines, a malformed row) every column is read, and a malformed row is located and named. A header naming one of `columns` twice is a `ValueError` (which of
-    the two was meant is not known). Blank lines are skipped; rows count from 1 after the
-    header, blank lines not counted.
+    The header is read with the `csv` module. The body, when the compiled reader
+    (`jaxshadow._io._csvc`) is built and every row is plain numbers (`_parse_body`: no quote,
+    no blank line, one field count), is parsed by it at array speed (strtod, GIL released; the
+    same float64 values as `np.loadtxt`, bit for bit); else it is read with `np.loadtxt`. There,
+    with columns besides `columns`, a vectorised check of the body's bytes that every row has
+    the header's number of fields (`_uniform_rows`) lets `np.loadtxt` convert the named columns
+    only (the others are split off, never parsed); otherwise (no other column, a quoted field,
+    blank lines, a malformed row) every column is read, and a malformed row is located and
+    named. A header naming one of `columns` twice is a `ValueError` (which of the two was meant
+    is not known). Blank lines are skipped; rows count from 1 after the header, blank lines not
+    counted.
     """
     path = os.fspath(path)
     with open(path, encoding="utf-8-sig", newline="") as fh:
@@ -310,8 +314,14 @@ def read_csv(path: str | os.PathLike, columns: tuple[str, ...]) -> np.ndarray:
                              f"{','.join(header)}; each of {','.join(columns)} must appear once.")
         idx = [header.index(c) for c in columns]
         body_at = fh.tell()
+        ext = _csvc()
         # With every column used, loadtxt of the whole table checks the field counts itself.
-        body = None if len(header) == len(columns) else _body_bytes(path, head)
+        body = None if len(header) == len(columns) and ext is None else _body_bytes(path, head)
+        if body is not None and ext is not None:
+            table = _parse_body(ext, body, len(header), idx)
+            if table is not None:
+                return table
+            body = None if len(header) == len(columns) else body
         body = None if body is None else _uniform_rows(body, len(header))
         if body is not None:
             try:
@@ -368,6 +378,29 @@ def _body_bytes(path: str, head: str) -> bytearray | None:
     return data
 
 
+def _csvc() -> Any:
+    """The compiled CSV reader and writer (`jaxshadow._io._csvc`, `csrc/csvtext.c`), or `None`
+    when it is not built (the Python routes then do the same work)."""
+    try:
+        from . import _csvc as mod  # type: ignore[attr-defined]
+    except ImportError:
+        return None
+    return mod
+
+
+def _parse_body(ext: Any, body: bytearray, ncols: int, idx: list[int]) -> np.ndarray | None:
+    """Columns `idx` of the CSV rows `body` (bytes after the header; `ncols` fields a row) as an
+    `(N, len(idx))` float64 array, parsed by the compiled reader `ext`; `None` when a row is not
+    plain numbers (a quote, a blank line, a lone CR, a field count that changes, a field that
+    is not a decimal number, inf or nan), for the caller's `np.loadtxt` route to read or name."""
+    if b"\r" in body:
+        body = body.replace(b"\r\n", b"\n")  # CRLF rows read as LF rows (a lone CR declines)
+    if body and not body.endswith(b"\n"):
+        body += b"\n"
+    out = np.empty((body.count(b"\n"), len(idx)), np.float64)
+    return out if ext.parse(body, ncols, idx, out) else None
+
+
 CSV_CHECK_BYTES = 1 << 23  # the field-count check looks at this many bytes of rows at a time
 
 
@@ -375,7 +408,8 @@ def _uniform_rows(body: bytes | bytearray, ncols: int) -> bytes | bytearray | No
     """`body` (CSV rows after the header, bytes; CRLF turned into LF) when every row has exactly
     `ncols` comma-separated fields and nothing needs the `csv` module (no quote, no blank line,
     no lone CR), else `None`. Vectorised: the commas between consecutive newlines are counted
-    with `np.searchsorted`, a block of about `CSV_CHECK_BYTES` at a time (small index arrays)."""
+    with `np.searchsorted`, a block of about `CSV_CHECK_BYTES` at a time (small index arrays),
+    or in one pass by the compiled `_csvc.check_rows` when it is built."""
     if b'"' in body:
         return None
     if b"\r" in body:
@@ -384,6 +418,9 @@ def _uniform_rows(body: bytes | bytearray, ncols: int) -> bytes | bytearray | No
             return None
     if body and not body.endswith(b"\n"):
         body += b"\n"
+    ext = _csvc()
+    if ext is not None:
+        return body if ext.check_rows(body, ncols) >= 0 else None
     buf = np.frombuffer(body, np.uint8)
     start = 0
     while start < len(buf):
@@ -413,12 +450,18 @@ def write_csv_table(fh: Any, header: list[str], columns: list[Any]) -> None:
     value (an array whose dtype is float32) as `"%.9g"` (9 significant digits, which parse back
     to the same float32). One string format per block of `CSV_BLOCK_ROWS` rows; a column that
     holds one value throughout a block (bit for bit: a plane's height, a shared normal) is
-    formatted once, as literal text of that block's row format.
+    formatted once, as literal text of that block's row format. With the compiled writer
+    (`jaxshadow._io._csvc`) built, the rows are formatted by it, with Python's own float
+    formatting (`PyOS_double_to_string`): the same text.
     """
     arrays, fmts, n = _csv_columns(header, columns)
     fh.write(",".join(header) + "\n")
+    ext = _csvc()
     for s in range(0, n, CSV_BLOCK_ROWS):
-        fh.write(_csv_block(arrays, fmts, s))
+        if ext is not None:
+            fh.write(ext.format(_block_values(arrays, s), _kinds(fmts), None).decode("ascii"))
+        else:
+            fh.write(_csv_block(arrays, fmts, s))
 
 
 def _csv_columns(header: list[str], columns: list[Any]) -> tuple[list[np.ndarray], list[str], int]:
@@ -432,6 +475,16 @@ def _csv_columns(header: list[str], columns: list[Any]) -> tuple[list[np.ndarray
     if len(fmts) != len(header):
         raise ValueError(f"write_csv_table: {len(header)} header names for {len(fmts)} columns.")
     return arrays, fmts, n
+
+
+def _block_values(arrays: list[np.ndarray], s: int) -> np.ndarray:
+    """Rows `s .. s + CSV_BLOCK_ROWS` of the columns side by side, float64, C order."""
+    return np.ascontiguousarray(np.concatenate([a[s:s + CSV_BLOCK_ROWS].astype(np.float64) for a in arrays], axis=1))
+
+
+def _kinds(fmts: list[str]) -> bytes:
+    """`_csvc.format`'s kinds of the formats `fmts`: `g` for `"%.9g"`, `r` for `"%r"`."""
+    return "".join("g" if f == "%.9g" else "r" for f in fmts).encode("ascii")
 
 
 def _csv_block(arrays: list[np.ndarray], fmts: list[str], s: int) -> str:
@@ -469,7 +522,9 @@ def write_values_beside_rows(path: str | os.PathLike, rows: bytes | bytearray, v
     """Write the `.csv` output of `write_values` with the receiver columns taken as text from
     `rows` (`receiver_rows` of the points file: one line per receiver, `px,...,nz`) instead of
     formatted again: the same table (header `px,py,pz,nx,ny,nz,r,g,b`, the receivers exactly as
-    the input gave them), about half the time of formatting all nine columns."""
+    the input gave them), about half the time of formatting all nine columns. The compiled
+    writer (`jaxshadow._io._csvc`), when built, joins each row's text and its values (the same
+    bytes as the Python route)."""
     path = os.fspath(path)
     v = np.asarray(values)
     view = np.frombuffer(rows, np.uint8)  # newlines found a window at a time: no (len,) temporary
@@ -478,6 +533,14 @@ def write_values_beside_rows(path: str | os.PathLike, rows: bytes | bytearray, v
     if v.ndim != 2 or v.shape[1] != 3 or len(ends) != v.shape[0]:
         raise ValueError(f"{path}: {len(ends)} receiver rows for values of shape {v.shape}.")
     arrays, fmts, n = _csv_columns(["r", "g", "b"], [v])
+    ext = _csvc()
+    if ext is not None:
+        with atomic_write(path, "wb") as fb, memoryview(rows) as mv:
+            fb.write((",".join([*POINT_COLUMNS, "r", "g", "b"]) + "\n").encode("utf-8"))
+            for s in range(0, n, CSV_BLOCK_ROWS):
+                e = min(n, s + CSV_BLOCK_ROWS)
+                fb.write(ext.format(_block_values(arrays, s), _kinds(fmts), mv[0 if s == 0 else ends[s - 1] + 1:ends[e - 1] + 1]))
+        return
     with atomic_write(path, "w", newline="") as fh:
         fh.write(",".join([*POINT_COLUMNS, "r", "g", "b"]) + "\n")
         for s in range(0, n, CSV_BLOCK_ROWS):
