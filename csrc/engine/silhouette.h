@@ -932,9 +932,9 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         if ((ta < -1e-6 && tb < -1e-6) || (ta > 1 + 1e-6 && tb > 1 + 1e-6)) continue;
         return kFallback;
       }
-      if (s0 == 0 || s1 == 0) return kFallback;
       const int ca = side_of(o.a, s), cb = side_of(o.b, s);
-      if (ca == cb && ca != 0) continue;
+      if (ca == cb && ca != 0) continue;  // o on one side of s's line (s's end on o's line or not)
+      if (s0 == 0 || s1 == 0) return kFallback;
       if (ca == 0 || cb == 0) return kFallback;
       ts.push_back(-g0 / g1);
       tc.push_back(code_planes(s.own_ref, o.own_ref));
