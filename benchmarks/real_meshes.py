@@ -15,6 +15,16 @@ subtracted and reported apart.
 Beside them: the mesh given as a list of triangles (welded at `Scene` build) and an open version
 (its lower part removed: no face can be culled). Exactness: the engine against the device kernel
 (which clips every face) on penumbra and umbra receivers of the smallest tessellation.
+
+Mesh files (scans, CAD parts downloaded by the user; never part of the suite's run):
+
+    python -m benchmarks.real_meshes --mesh bunny.obj --mesh fandisk.obj [--quick] [--up y]
+
+reads each with `js.read_mesh` (vertices at equal positions welded), turns its `--up` axis to +z,
+scales it to 1 m (largest extent), centres it over the origin 0.3 m above the floor, and measures
+it as the stand-ins above (same light, receivers, Radiance default, Embree sweep, exactness
+against the polygon-boolean reference on 1000 receivers); rows are labelled by file name.
+Writes `benchmarks/results/real_meshes_files[_quick].json` and `.md`.
 """
 
 from __future__ import annotations
@@ -268,6 +278,131 @@ def run(quick: bool = False) -> dict:
             "peak_rss_gb": peak}
 
 
+def load_file(path: str | os.PathLike, up: str = "y") -> tuple[np.ndarray, np.ndarray]:
+    """A mesh file as `(vertices (V, 3), faces (F, 3))`: read with `js.read_mesh`, vertices at
+    equal positions welded, the `up` axis turned to +z, scaled to 1 m (largest extent), centred
+    over the origin with its lowest point 0.3 m above the floor."""
+    import jaxshadow as js
+    from jaxshadow._core.welding import weld_vertices
+
+    try:
+        rm = js.read_mesh(path, crease=None)
+        v, f = np.asarray(rm.vertices, float), np.asarray(rm.faces, np.int64)
+    except ValueError:
+        v, f = _ply_tristrips(path)  # trimesh reads no triangle strips (the Stanford scans' PLY)
+    index, first = weld_vertices(v)
+    v, f = v[first], index[f]
+    # A right-handed turn taking the `up` axis to +z.
+    turn = {"x": [1, 2, 0], "y": [2, 0, 1], "z": [0, 1, 2]}[up]
+    v = v[:, turn]
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    v = (v - np.r_[(lo[:2] + hi[:2]) / 2, lo[2]]) / (hi - lo).max()
+    v[:, 2] += 0.3
+    return v, f
+
+
+def _ply_tristrips(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """A binary little-endian PLY of `x y z` float vertices and one `tristrips` list (int
+    indices, -1 restarts a strip) as `(vertices, faces)`; strips alternate their winding."""
+    data = Path(path).read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    header = data[:end].decode("ascii").split("\n")
+    if "format binary_little_endian 1.0" not in header or "element tristrips 1" not in header:
+        raise ValueError(f"{path}: not a binary PLY of triangle strips")
+    nv = int(next(h for h in header if h.startswith("element vertex")).split()[-1])
+    nprop = sum(1 for h in header if h.startswith("property float"))
+    v = np.frombuffer(data, "<f4", nv * nprop, end).reshape(nv, nprop)[:, :3].astype(float)
+    off = end + 4 * nv * nprop
+    count = int(np.frombuffer(data, "<i4", 1, off)[0])
+    idx = np.frombuffer(data, "<i4", count, off + 4)
+    faces = []
+    for strip in np.split(idx, np.where(idx < 0)[0]):
+        strip = strip[strip >= 0]
+        for k in range(len(strip) - 2):
+            a, b, c = strip[k], strip[k + 1], strip[k + 2]
+            faces.append((a, b, c) if k % 2 == 0 else (b, a, c))
+    f = np.asarray(faces, np.int64)
+    keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])  # strips' degenerate joins
+    return v, f[keep]
+
+
+def run_files(paths: list[str], quick: bool = False, up: str = "y", n_exact: int = 1000) -> dict:
+    """The stand-ins' measurements on mesh files (`load_file`): one `_case` each (with Radiance
+    default, and fine unless `quick`; the Embree sweep, the face path) and `exactness` on `n_exact`
+    receivers."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jaxshadow as js
+
+    n = 2000 if quick else 20000
+    p, nrm = _receivers(n)
+    light = js.PolygonLight(LIGHT, 1.0)
+    out: dict[str, Any] = {}
+    for path in paths:
+        name = Path(path).name
+        v, f = load_file(path, up)
+        row = _case(lambda v=v, f=f: [js.Mesh(v, f)], v[f], p, nrm, radiance=True, fine=not quick, embree=True)
+        row["exactness"] = exactness(js.Scene([light], occluders=[js.Mesh(v, f)]), v[f], p, nrm, n_exact)
+        row["vertices"] = int(len(v))
+        out[name] = row
+        print(f"{name}: {row['points_per_s']:.3g} points/s, exact to {row['exactness']['max_rel_err']:.1e}", flush=True)
+    return {"receivers": n, "up": up, "others": out,
+            "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20}
+
+
+def markdown_files(r: dict) -> str:
+    """The tables of `run_files`."""
+    rows = ["| mesh | triangles | build | plan per penumbra receiver | penumbra / umbra receivers | contour edges (penumbra mean / max) | jaxshadow points/s | Radiance default points/s (RMS err) | Radiance fine points/s (RMS err) | vs face path |",
+            "|---|---:|---:|---:|---|---|---:|---:|---:|---:|"]
+    for name, x in r["others"].items():
+        rad = x.get("radiance", {})
+        cell = {k: f"{rad[k]['points_per_s']:.3g} ({100 * rad[k]['rms_rel_err']:.2g} %)" if k in rad else "-" for k in ("default", "fine")}
+        rows.append(f"| {name} | {x['triangles']} | {x['build_s']:.2f} s | {x['plan_ms_per_penumbra']:.3g} ms | "
+                    f"{x['classes']['penumbra']} / {x['classes']['umbra']} | {x['candidates_penumbra_mean']:.0f} / {x['candidates_max']} | "
+                    f"{x['points_per_s']:.3g} | {cell['default']} | {cell['fine']} | {x['max_rel_diff_face_path']:.1e} |")
+    rows.append("")
+    for name, x in r["others"].items():
+        ex = x["exactness"]
+        rows.append(f"{name}: against exact polygon booleans (shapely) on {ex['receivers']} receivers "
+                    f"({ex['classes']['penumbra']} penumbra, {ex['classes']['umbra']} umbra, {ex['classes']['lit']} lit, "
+                    f"{ex['grazing']} of them grazing): max error {ex['max_rel_err']:.1e} of the largest value.")
+    for name, x in r["others"].items():
+        runs = ", ".join(f"{y['samples']} rays {y['points_per_s']:.3g}/s ({100 * y['rms_rel_err']:.2g} %)" for y in x["embree"]["runs"])
+        at = x["embree"]["points_per_s_at_1pct"]
+        rows.append(f"{name}: Embree Monte Carlo: {runs}; "
+                    + (f"at 1 % RMS error {at:.3g} points/s (jaxshadow, exact: {x['points_per_s']:.3g})." if at else "1 % not bracketed."))
+    rows.append("")
+    rows.append(f"{r['receivers']} floor receivers; each mesh's `{r['up']}` axis turned up, scaled to 1 m, 0.3 m above the "
+                f"floor. Peak RSS {r['peak_rss_gb']:.2f} GB.")
+    return "\n".join(rows)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m benchmarks.real_meshes --mesh FILE [--mesh FILE ...] [--quick] [--up y]`."""
+    import argparse
+    import sys
+
+    from benchmarks._suite import RESULTS, caption, meta, write_json, write_text
+
+    ap = argparse.ArgumentParser(prog="python -m benchmarks.real_meshes", description=__doc__.split("\n")[0])
+    ap.add_argument("--mesh", action="append", required=True, help="a mesh file (OBJ, PLY, ...); repeatable")
+    ap.add_argument("--quick", action="store_true", help="2000 receivers, no Radiance fine")
+    ap.add_argument("--up", choices=("x", "y", "z"), default="y", help="the files' up axis (default y)")
+    ap.add_argument("--exact", type=int, default=1000, help="receivers checked against the reference (default 1000)")
+    args = ap.parse_args(argv)
+    info = meta(NAME, args.quick)
+    info["command"] = "python -m benchmarks.real_meshes " + " ".join(sys.argv[1:] if argv is None else argv)
+    t0 = time.perf_counter()
+    results = run_files(args.mesh, args.quick, args.up, args.exact)
+    info["wall_s"] = round(time.perf_counter() - t0, 1)
+    record = {"benchmark": NAME + "_files", "meta": info, "results": results}
+    stem = RESULTS / ("real_meshes_files" + ("_quick" if args.quick else ""))
+    write_json(stem.with_suffix(".json"), record)
+    write_text(stem.with_suffix(".md"), caption(record) + "\n\n" + markdown_files(results) + "\n")
+    return 0
+
+
 def markdown(r: dict) -> str:
     rows = ["| triangles | build | engine set-up per call | plan per penumbra receiver: silhouette / face path | penumbra / umbra receivers | contour edges (penumbra mean / max) | jaxshadow points/s | Radiance default points/s (RMS err) | Radiance fine points/s (RMS err) | vs face path |",
             "|---:|---:|---:|---|---|---|---:|---:|---:|---:|"]
@@ -354,3 +489,7 @@ def key_numbers(r: dict) -> list[tuple[str, str]]:
          f"{x['points_per_s']:.2g} vs {x['radiance']['default']['points_per_s']:.2g} ({100 * x['radiance']['default']['rms_rel_err']:.2g} %)"
          + (f" / {x['radiance']['fine']['points_per_s']:.2g} ({100 * x['radiance']['fine']['rms_rel_err']:.2g} %)" if "fine" in x["radiance"] else ""))
         for name, x in r.get("others", {}).items()]
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -26,9 +26,135 @@
 #ifndef JAXSHADOW_SHADOWC_SILHOUETTE_H_
 #define JAXSHADOW_SHADOWC_SILHOUETTE_H_
 
+#include <array>
+#include <map>
+
 #include "polygon_types.h"
 
 namespace jaxshadow_engine {
+
+// T-junctions: edges without a twin that overlap along one line, such as an edge a -> c of one
+// face and c -> b -> a of faces on the other side (coplanar merging leaves them where it drops a
+// straight vertex of the merged face that a neighbour across a crease keeps). Such a group is
+// cut at every end of its edges (each cut point within 1e-9 of the line's length of the line),
+// and where every piece then runs against exactly one piece of another face, the pieces are
+// paired as interior edges, as on a mesh without the junction, instead of boundary edges
+// overlapping each other (collinear contour edges that no receiver can decide). Any other group
+// is left as it is.
+template <class T>
+void resolve_t_junctions(const Occluders<T>& occ, std::vector<SEdge>& edges) {
+  std::vector<int32_t> open;
+  for (size_t k = 0; k < edges.size(); k++)
+    if (edges[k].g < 0) open.push_back(int32_t(k));
+  if (open.size() < 3) return;
+  using Key = std::array<double, 3>;
+  auto key = [&](int32_t r) {
+    const V3<T> x = occ.vref(r);
+    return Key{double(x.x), double(x.y), double(x.z)};
+  };
+  std::map<Key, std::vector<int32_t>> at;  // untwinned edges by the positions of their ends
+  for (const int32_t k : open) {
+    at[key(edges[size_t(k)].ra)].push_back(k);
+    at[key(edges[size_t(k)].rb)].push_back(k);
+  }
+  std::vector<uint8_t> done(edges.size(), 0), used(edges.size(), 0);
+  std::vector<SEdge> added;
+  std::vector<int32_t> group, todo;
+  struct Cut {
+    double t;
+    int32_t ref;
+  };
+  std::vector<Cut> cuts;
+  for (const int32_t x : open) {
+    if (done[size_t(x)]) continue;
+    const V3<T> a = occ.vref(edges[size_t(x)].ra), ac = occ.vref(edges[size_t(x)].rb) - a;
+    const double len2 = double(dot(ac, ac));
+    done[size_t(x)] = 1;
+    if (!(len2 > 0)) continue;
+    auto param = [&](int32_t r, double& t) {  // r's position along a -> c; false: off the line
+      const V3<T> ab = occ.vref(r) - a;
+      t = double(dot(ab, ac)) / len2;
+      const V3<T> off = ab - T(t) * ac;
+      return double(dot(off, off)) < 1e-18 * len2;
+    };
+    // The group: untwinned edges on the line reached through shared end positions.
+    group.assign(1, x);
+    todo.assign(1, x);
+    bool ok = true;
+    while (!todo.empty() && ok) {
+      const SEdge e = edges[size_t(todo.back())];
+      todo.pop_back();
+      for (const int32_t r : {e.ra, e.rb})
+        for (const int32_t y : at[key(r)]) {
+          if (done[size_t(y)]) continue;
+          double ta, tb;
+          if (!param(edges[size_t(y)].ra, ta) || !param(edges[size_t(y)].rb, tb)) continue;  // another line
+          done[size_t(y)] = 1;
+          group.push_back(y);
+          todo.push_back(y);
+          if (group.size() > 256) ok = false;
+        }
+    }
+    if (!ok || group.size() < 3) continue;
+    cuts.clear();
+    for (const int32_t y : group)
+      for (const int32_t r : {edges[size_t(y)].ra, edges[size_t(y)].rb}) {
+        double t;
+        param(r, t);
+        cuts.push_back({t, r});
+      }
+    std::sort(cuts.begin(), cuts.end(), [](const Cut& u, const Cut& v) { return u.t < v.t; });
+    // One cut per position (the first reference of it), all positions apart along the line.
+    std::vector<Cut> pts;
+    for (const Cut& u : cuts) {
+      if (!pts.empty() && key(pts.back().ref) == key(u.ref)) continue;
+      if (!pts.empty() && !(u.t > pts.back().t + 1e-9)) {
+        ok = false;
+        break;
+      }
+      pts.push_back(u);
+    }
+    if (!ok) continue;
+    auto index_of = [&](int32_t r) {
+      const Key kr = key(r);
+      for (size_t i = 0; i < pts.size(); i++)
+        if (key(pts[i].ref) == kr) return int(i);
+      return -1;
+    };
+    // Per interval between consecutive cuts: the edge running along the line, the one against it.
+    const int nI = int(pts.size()) - 1;
+    std::vector<int32_t> fwd(size_t(nI), -1), bwd(size_t(nI), -1);
+    for (const int32_t y : group) {
+      const int ia = index_of(edges[size_t(y)].ra), ib = index_of(edges[size_t(y)].rb);
+      if (ia < 0 || ib < 0 || ia == ib) ok = false;
+      std::vector<int32_t>& side = ia < ib ? fwd : bwd;
+      for (int i = std::min(ia, ib); ok && i < std::max(ia, ib); i++) {
+        if (side[size_t(i)] >= 0) ok = false;
+        side[size_t(i)] = y;
+      }
+      if (!ok) break;
+    }
+    for (int i = 0; ok && i < nI; i++)
+      ok = fwd[size_t(i)] >= 0 && bwd[size_t(i)] >= 0 && edges[size_t(fwd[size_t(i)])].f != edges[size_t(bwd[size_t(i)])].f;
+    if (!ok) continue;
+    // Each interval an interior edge of the face running along the line and the one against it;
+    // a piece's ends are its own edge's references where they are its ends.
+    for (int i = 0; i < nI; i++) {
+      const SEdge& ef = edges[size_t(fwd[size_t(i)])];
+      const int32_t ra = index_of(ef.ra) == i ? ef.ra : pts[size_t(i)].ref;
+      const int32_t rb = index_of(ef.rb) == i + 1 ? ef.rb : pts[size_t(i + 1)].ref;
+      added.push_back(SEdge{ra, rb, ef.f, edges[size_t(bwd[size_t(i)])].f, int8_t(-1)});
+    }
+    for (const int32_t y : group) used[size_t(y)] = 1;
+  }
+  if (added.empty()) return;
+  std::vector<SEdge> kept;
+  kept.reserve(edges.size() + added.size());
+  for (size_t k = 0; k < edges.size(); k++)
+    if (!used[k]) kept.push_back(edges[k]);
+  kept.insert(kept.end(), added.begin(), added.end());
+  edges.swap(kept);
+}
 
 template <class T>
 void build_silhouette_tree(const Occluders<T>& occ, const std::vector<int32_t>& twin, SilhouetteTree& st) {
@@ -63,6 +189,7 @@ void build_silhouette_tree(const Occluders<T>& occ, const std::vector<int32_t>& 
       }
       st.edges.push_back(e);
     }
+  resolve_t_junctions(occ, st.edges);
   // Build: sort by the edge midpoints along the box's longest axis, split at the median.
   const int64_t E = int64_t(st.edges.size());
   std::vector<double> mid(size_t(3 * E));
@@ -437,16 +564,18 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   // The jump of C along the path from -> m (pqm = cross(from - p, m - p), pn its norm) across
   // piece s: 0 when they do not cross, +-W when they do, kNone when a crossing is too close to
   // call.
+  // An end of the path on the piece's line (a point of a collinear piece, as along a straight
+  // crease of a CAD part) is decided by the piece's ends: both clearly on one side of the path's
+  // plane, the piece does not meet the path.
   auto jump_from = [&](const SSeg<T>& s, int sq, V3<T> m, V3<T> pqm, double pn) -> int {
     const int sm = side_of(m, s);
-    if (sq == 0) return kNone;
-    if (sm == sq) return 0;
-    if (sm == 0) return kNone;
+    if (sq != 0 && sm == sq) return 0;
     const V3<T> ra = s.a - p, rb = s.b - p;
     const int ca = sgn(dot(ra, pqm), tol * pn * (std::fabs(ra.x) + std::fabs(ra.y) + std::fabs(ra.z)));
     const int cb = sgn(dot(rb, pqm), tol * pn * (std::fabs(rb.x) + std::fabs(rb.y) + std::fabs(rb.z)));
     if (ca == 0 || cb == 0) return kNone;
     if (ca == cb) return 0;
+    if (sq == 0 || sm == 0) return kNone;
     return sm > 0 ? s.w : -s.w;  // from `from`'s side to m's: + W into the positive side
   };
   auto jump = [&](const SSeg<T>& s, V3<T> from, V3<T> m, V3<T> pqm, double pn) -> int {
@@ -795,9 +924,17 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       const double g0 = dot(ap, o.own), g1 = dot(d, o.own);
       const int s0 = sgn(g0, tol * on), s1 = sgn(g0 + g1, tol * on);
       if (s0 == s1 && s0 != 0) continue;
-      if (s0 == 0 || s1 == 0) return kFallback;
+      if (s0 == 0 && s1 == 0) {
+        // s along o's line (collinear contour edges, as on a straight crease): apart when o's
+        // ends lie clearly beyond one end of s along it.
+        const double dd = double(dot(d, d));
+        const double ta = double(dot(o.a - s.a, d)) / dd, tb = double(dot(o.b - s.a, d)) / dd;
+        if ((ta < -1e-6 && tb < -1e-6) || (ta > 1 + 1e-6 && tb > 1 + 1e-6)) continue;
+        return kFallback;
+      }
       const int ca = side_of(o.a, s), cb = side_of(o.b, s);
-      if (ca == cb && ca != 0) continue;
+      if (ca == cb && ca != 0) continue;  // o on one side of s's line (s's end on o's line or not)
+      if (s0 == 0 || s1 == 0) return kFallback;
       if (ca == 0 || cb == 0) return kFallback;
       ts.push_back(-g0 / g1);
       tc.push_back(code_planes(s.own_ref, o.own_ref));
