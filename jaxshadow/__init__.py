@@ -43,7 +43,7 @@ from ._shading.shade import specular as specular
 from ._shading.sharding import batch_mesh as batch_mesh
 from ._shading.sharding import sharded_irradiance as sharded_irradiance
 from ._shadows.cache import ShadowCache as ShadowCache
-from ._shadows.plan import ShadowOptions as ShadowOptions
+from ._shadows.options import ShadowOptions as ShadowOptions
 from ._shadows.plan import ShadowPlan as ShadowPlan
 from ._shadows.plan import shadow_plan as shadow_plan
 

@@ -19,7 +19,8 @@ from jaxshadow._scene.model import AbstractLight
 from jaxshadow._shading import shade as shade_module
 from jaxshadow._shadows import evaluators as ev
 from jaxshadow._shadows.integrands import PRODUCE, Lambert, Phong
-from jaxshadow._shadows.plan import DEFAULT_OPTIONS, ShadowOptions, plan
+from jaxshadow._shadows.options import DEFAULT_OPTIONS, ShadowOptions
+from jaxshadow._shadows.plan import plan
 
 needs_engine = pytest.mark.skipif(not DEFAULT_OPTIONS.use_engine(), reason="shadow engine not built")
 

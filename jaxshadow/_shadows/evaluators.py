@@ -33,7 +33,8 @@ from .._core.geometry import check_values_eagerly, inputs_ok, raise_if_bad
 from .._core.misc import unit_rows, unit_rows_host
 from .._scene.model import Scene
 from .compiled import device_values, traced_values
-from .plan import ShadowOptions, host_values, planned_values
+from .options import ShadowOptions
+from .plan import host_values, planned_values
 
 
 def _is_traced(tree: Any) -> bool:

@@ -57,44 +57,6 @@ MIN_BLOCK = 64
 MIN_CAPACITY = 8
 
 
-@dataclass(frozen=True)
-class ShadowOptions:
-    """How exact shadows are evaluated (static: part of a compiled program's identity).
-
-    - `engine`: `"auto"` (the compiled host engine when it is built, else the device kernels),
-      `"host"` (the engine; an error if it is not built) or `"device"` (JAX kernels that clip
-      every receiver against every occluder: no build needed, memory and time grow with the
-      square of the occluder count).
-    - `capacity`: boundary edges (polygon lights) or candidate faces (segment lights) per
-      receiver when the values are abstract (inside `jax.jit`/`jax.vmap`) and the engine runs in
-      the compiled program. A receiver that needs more is an error, never a truncation. Eager
-      calls (including eager `jax.grad`) plan from the values and have no capacity.
-    """
-
-    engine: str = "auto"
-    capacity: int = 64
-
-    def __post_init__(self) -> None:
-        if self.engine not in ("auto", "host", "device"):
-            raise ValueError(f"ShadowOptions: engine must be 'auto', 'host' or 'device', got {self.engine!r}.")
-        if not isinstance(self.capacity, int) or isinstance(self.capacity, bool) or not 1 <= self.capacity <= 1 << 16:
-            raise ValueError(f"ShadowOptions: capacity must be an integer in [1, 65536], got {self.capacity!r}.")
-
-    def use_engine(self) -> bool:
-        if self.engine == "device":
-            return False
-        if self.engine == "host" and not vis.engine_available():
-            raise RuntimeError("ShadowOptions(engine='host'): jaxshadow._shadows._shadowc is not built "
-                               "(reinstall jaxshadow with a C++ compiler available).")
-        if not vis.engine_available():
-            vis.warn_unbuilt()
-            return False
-        return True
-
-
-DEFAULT_OPTIONS = ShadowOptions()
-
-
 def occluders_of(scene: Scene) -> Any:
     """The scene's padded occluder faces `(m, K, 3)` (the shadow engine needs a scene with them)."""
     assert scene.occluders is not None, "the shadow engine needs a scene with occluders"
