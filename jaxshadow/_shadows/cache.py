@@ -220,7 +220,7 @@ class ShadowCache:
         # The faces: segment lights clip their candidate faces (the other kinds do not read them).
         faces = np.asarray(scene.occluders, self._p.dtype)
         return np.asarray(sh.light_values(pl.lights[0], scene.lights[light_i], Lambert(), self._p[idx],
-                                          self._n[idx], self._p[idx], faces))
+                                          self._n[idx], None, faces))
 
     def _combine(self) -> None:
         # The same compiled sum as `jaxshadow.irradiance`'s (so the two agree bit for bit).
