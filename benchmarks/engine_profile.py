@@ -422,7 +422,7 @@ def main(argv: list[str] | None = None) -> None:
     import jaxshadow as js
 
     RESULTS.mkdir(exist_ok=True)
-    with js.atomic_write(RESULTS / (f"{NAME}_quick.json" if args.quick else f"{NAME}.json")) as fh:
+    with js.files.atomic_write(RESULTS / (f"{NAME}_quick.json" if args.quick else f"{NAME}.json")) as fh:
         json.dump(res, fh, indent=1)
     if res["identity"]["mismatches"]:
         sys.exit(1)

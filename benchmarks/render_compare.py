@@ -72,7 +72,7 @@ def main() -> None:
     }
     os.makedirs(os.path.join(HERE, "results"), exist_ok=True)
     write_comparison(os.path.join(HERE, "results", "render_compare.png"), ours, equal, t_equal, spp, dpi=64)
-    with js.atomic_write(os.path.join(HERE, "results", "render_compare.json")) as fh:
+    with js.files.atomic_write(os.path.join(HERE, "results", "render_compare.json")) as fh:
         json.dump(out, fh, indent=1)
     print(json.dumps(out, indent=1))
 

@@ -4,8 +4,10 @@
 #ifndef JAXSHADOW_FFI_H_
 #define JAXSHADOW_FFI_H_
 
+#include <deque>
 #include <string>
 #include <utility>
+#include <vector>
 
 #include "inputs.h"
 #include "xla/ffi/api/ffi.h"
@@ -19,64 +21,86 @@ namespace jaxshadow_binding {
 
 using S32 = ffi::Buffer<ffi::S32>;
 
-// A handler's occluder inputs, batched like its points: faces (..., M, Ko, 3), converted to double
-// once, and the topology arrays (batched alike); `at(b)` is batch b's OccluderInputs.
-struct FfiOccluders {
-  OccluderInputs first;
-  int64_t NE = 0;
-  std::vector<double> store;
-  template <class T>
-  FfiOccluders(T, int64_t B, size_t nb, ffi::AnyBuffer faces, S32 fsolid, S32 fclosed, S32 sfaces, S32 soff,
-               S32 sedges) {
+// The occluder topology buffers of a handler (`OccluderInputs`' order), batched like its faces.
+struct Topology {
+  S32 face_solid, face_closed, solid_faces, solid_edge_off, solid_edges;
+};
+
+// A handler's inputs after the prologue every handler shares (`with_inputs`): the batch
+// (vmap_method="broadcast_all": points (..., N, 3) and faces (..., M, Ko, 3) share a leading batch
+// shape of `nb` axes, B batches of N points), the points and the occluder faces converted to
+// double once; T is the inputs' float type. Other batched inputs are converted by `batched`;
+// `occluders(b, K)` is batch b's occluders in the engine's form (K light vertices before the faces).
+template <class T>
+struct Inputs {
+  size_t nb = 0;
+  int64_t B = 1, N = 0;
+  const double* points = nullptr;
+
+  Inputs(ffi::AnyBuffer p, ffi::AnyBuffer faces, const Topology& t) {
+    auto pd = p.dimensions();
     auto fd = faces.dimensions();
-    first.M = fd[nb];
-    first.Ko = fd[nb + 1];
-    auto sd = sfaces.dimensions();
-    first.S = sd[sd.size() - 2];
-    auto ed = sedges.dimensions();
-    NE = ed[ed.size() - 2];
-    first.faces = as_double<T>(faces.untyped_data(), size_t(B * first.M * first.Ko * 3), store);
-    first.face_solid = fsolid.typed_data();
-    first.face_closed = fclosed.typed_data();
-    first.solid_faces = sfaces.typed_data();
-    first.solid_edge_off = soff.typed_data();
-    first.solid_edges = sedges.typed_data();
+    nb = pd.size() - 2;
+    for (size_t i = 0; i < nb; i++) B *= pd[i];
+    N = pd[nb];
+    occ_.M = fd[nb];
+    occ_.Ko = fd[nb + 1];
+    auto sd = t.solid_faces.dimensions();
+    occ_.S = sd[sd.size() - 2];
+    auto ed = t.solid_edges.dimensions();
+    NE_ = ed[ed.size() - 2];
+    points = batched(p, N * 3);
+    occ_.faces = batched(faces, occ_.M * occ_.Ko * 3);
+    occ_.face_solid = t.face_solid.typed_data();
+    occ_.face_closed = t.face_closed.typed_data();
+    occ_.solid_faces = t.solid_faces.typed_data();
+    occ_.solid_edge_off = t.solid_edge_off.typed_data();
+    occ_.solid_edges = t.solid_edges.typed_data();
   }
-  OccluderInputs at(int64_t b) const {
-    OccluderInputs o = first;
-    o.faces = static_cast<const double*>(first.faces) + b * o.M * o.Ko * 3;
+
+  // A batched input of `per_batch` values per batch, as double (held as long as the inputs are).
+  const double* batched(ffi::AnyBuffer x, int64_t per_batch) {
+    store_.emplace_back();
+    return as_double<T>(x.untyped_data(), size_t(B * per_batch), store_.back());
+  }
+
+  // Batch b's occluders (already double), K light vertices before the face refs.
+  Occluders<double> occluders(int64_t b, int64_t K = 0) const {
+    OccluderInputs o = occ_;
+    o.faces = static_cast<const double*>(occ_.faces) + b * o.M * o.Ko * 3;
     o.face_solid += b * o.M;
     o.face_closed += b * o.M;
     o.solid_faces += b * 2 * o.S;
     o.solid_edge_off += b * (o.S + 1);
-    o.solid_edges += b * 4 * NE;
-    return o;
+    o.solid_edges += b * 4 * NE_;
+    std::vector<double> none;  // the faces are double: occ_double copies nothing
+    return occ_double<double>(K, o, none);
   }
+
+ private:
+  OccluderInputs occ_;
+  int64_t NE_ = 0;
+  std::deque<std::vector<double>> store_;  // converted inputs (a deque: earlier ones never move)
 };
 
-// The batch of a handler's inputs (vmap_method="broadcast_all": a common leading batch shape):
-// points (..., N, 3) and faces (..., M, Ko, 3); B batches of N points.
-struct Batch {
-  size_t nb = 0;
-  int64_t B = 1, N = 0;
-};
-
-bool batch_of(ffi::AnyBuffer points, ffi::AnyBuffer faces, Batch* out) {
-  auto pd = points.dimensions();
-  auto fd = faces.dimensions();
-  if (pd.size() < 2 || fd.size() < 3 || fd.size() != pd.size() + 1) return false;
-  out->nb = pd.size() - 2;
-  for (size_t i = 0; i < out->nb; i++) out->B *= pd[i];
-  out->N = pd[out->nb];
-  return true;
+inline ffi::Error invalid(const char* name, const char* what) {
+  return ffi::Error::InvalidArgument(std::string(name) + ": " + what);
 }
 
-// The float dispatch of a handler, on its points' element type.
+// The prologue of every handler: the ranks checked, the float dispatch on the points' element
+// type, the inputs converted (`Inputs<T>`); then `body(inputs)`.
 template <class F>
-ffi::Error ffi_by_float(ffi::AnyBuffer points, const char* name, F&& fn) {
+ffi::Error with_inputs(const char* name, ffi::AnyBuffer points, ffi::AnyBuffer faces, const Topology& topology,
+                       F&& body) {
+  auto pd = points.dimensions();
+  auto fd = faces.dimensions();
+  if (pd.size() < 2 || fd.size() < 3 || fd.size() != pd.size() + 1) return invalid(name, "bad ranks");
   const auto t = points.element_type();
-  if (t != ffi::F64 && t != ffi::F32) return ffi::Error::InvalidArgument(std::string(name) + ": float32 or float64 only");
-  return by_float(t == ffi::F64, fn);
+  if (t != ffi::F64 && t != ffi::F32) return invalid(name, "float32 or float64 only");
+  return by_float(t == ffi::F64, [&](auto zero) {
+    Inputs<decltype(zero)> in(points, faces, topology);
+    return body(in);
+  });
 }
 
 // Polygon codes: points (..., N, 3), normals (..., N, 3), light (..., K, 3), faces (..., M, Ko, 3)
@@ -85,24 +109,18 @@ ffi::Error poly_ffi(ffi::AnyBuffer points, ffi::AnyBuffer normals, ffi::AnyBuffe
                     S32 face_solid, S32 face_closed, S32 solid_faces, S32 solid_edge_off, S32 solid_edges, int64_t cap,
                     int64_t threads, ffi::Result<S32> cls, ffi::Result<S32> counts, ffi::Result<S32> runs) {
   const char* name = "jaxshadow_poly_codes";
-  Batch bt;
-  auto ld_ = light.dimensions();
-  if (!batch_of(points, faces, &bt) || ld_.size() != bt.nb + 2)
-    return ffi::Error::InvalidArgument(std::string(name) + ": bad ranks");
-  return ffi_by_float(points, name, [&](auto zero) {
-    using T = decltype(zero);
-    const int64_t B = bt.B, N = bt.N, K = ld_[bt.nb];
-    const FfiOccluders fo(zero, B, bt.nb, faces, face_solid, face_closed, solid_faces, solid_edge_off, solid_edges);
-    std::vector<double> sp, sn, se, unused;
-    const double* P = as_double<T>(points.untyped_data(), size_t(B * N * 3), sp);
-    const double* Nr = as_double<T>(normals.untyped_data(), size_t(B * N * 3), sn);
-    const double* E = as_double<T>(light.untyped_data(), size_t(B * K * 3), se);
-    for (int64_t b = 0; b < B; b++) {
-      const Occluders<double> occ = occ_double<double>(K, fo.at(b), unused);
-      int rc = poly_fixed<double>(N, P + b * N * 3, Nr + b * N * 3, K, E + b * K * 3, occ, int(threads), cap,
-                                  cls->typed_data() + b * N, counts->typed_data() + b * N,
+  const Topology topology{face_solid, face_closed, solid_faces, solid_edge_off, solid_edges};
+  return with_inputs(name, points, faces, topology, [&](auto& in) {
+    auto ld_ = light.dimensions();
+    if (ld_.size() != in.nb + 2) return invalid(name, "bad ranks");
+    const int64_t N = in.N, K = ld_[in.nb];
+    const double* Nr = in.batched(normals, N * 3);
+    const double* E = in.batched(light, K * 3);
+    for (int64_t b = 0; b < in.B; b++) {
+      int rc = poly_fixed<double>(N, in.points + b * N * 3, Nr + b * N * 3, K, E + b * K * 3, in.occluders(b, K),
+                                  int(threads), cap, cls->typed_data() + b * N, counts->typed_data() + b * N,
                                   runs->typed_data() + b * N * cap * jaxshadow_abi::kRunWidth);
-      if (rc) return ffi::Error::InvalidArgument(std::string(name) + ": light with more than 64 vertices");
+      if (rc) return invalid(name, "light with more than 64 vertices");
     }
     return ffi::Error::Success();
   });
@@ -113,20 +131,13 @@ ffi::Error poly_ffi(ffi::AnyBuffer points, ffi::AnyBuffer normals, ffi::AnyBuffe
 ffi::Error hard_ffi(ffi::AnyBuffer points, ffi::AnyBuffer x, ffi::AnyBuffer faces, S32 face_solid, S32 face_closed,
                     S32 solid_faces, S32 solid_edge_off, S32 solid_edges, int64_t is_point, int64_t threads,
                     ffi::Result<S32> visible) {
-  const char* name = "jaxshadow_hard_visibility";
-  Batch bt;
-  if (!batch_of(points, faces, &bt)) return ffi::Error::InvalidArgument(std::string(name) + ": bad ranks");
-  return ffi_by_float(points, name, [&](auto zero) {
-    using T = decltype(zero);
-    const int64_t B = bt.B, N = bt.N;
-    const FfiOccluders fo(zero, B, bt.nb, faces, face_solid, face_closed, solid_faces, solid_edge_off, solid_edges);
-    std::vector<double> sp, sx, unused;
-    const double* P = as_double<T>(points.untyped_data(), size_t(B * N * 3), sp);
-    const double* X = as_double<T>(x.untyped_data(), size_t(B * 3), sx);
+  const Topology topology{face_solid, face_closed, solid_faces, solid_edge_off, solid_edges};
+  return with_inputs("jaxshadow_hard_visibility", points, faces, topology, [&](auto& in) {
+    const int64_t N = in.N;
+    const double* X = in.batched(x, 3);
     std::vector<uint8_t> vis(N);
-    for (int64_t b = 0; b < B; b++) {
-      const Occluders<double> occ = occ_double<double>(0, fo.at(b), unused);
-      hard_plan<double>(N, P + b * N * 3, X + b * 3, int(is_point), occ, int(threads), vis.data());
+    for (int64_t b = 0; b < in.B; b++) {
+      hard_plan<double>(N, in.points + b * N * 3, X + b * 3, int(is_point), in.occluders(b), int(threads), vis.data());
       int32_t* out = visible->typed_data() + b * N;
       for (int64_t i = 0; i < N; i++) out[i] = vis[i];
     }
@@ -139,21 +150,15 @@ ffi::Error hard_ffi(ffi::AnyBuffer points, ffi::AnyBuffer x, ffi::AnyBuffer face
 ffi::Error segment_ffi(ffi::AnyBuffer points, ffi::AnyBuffer ends, ffi::AnyBuffer faces, S32 face_solid,
                        S32 face_closed, S32 solid_faces, S32 solid_edge_off, S32 solid_edges, int64_t cap,
                        int64_t threads, ffi::Result<S32> counts, ffi::Result<S32> cand) {
-  const char* name = "jaxshadow_segment_candidates";
-  Batch bt;
-  if (!batch_of(points, faces, &bt)) return ffi::Error::InvalidArgument(std::string(name) + ": bad ranks");
-  return ffi_by_float(points, name, [&](auto zero) {
-    using T = decltype(zero);
-    const int64_t B = bt.B, N = bt.N;
-    const FfiOccluders fo(zero, B, bt.nb, faces, face_solid, face_closed, solid_faces, solid_edge_off, solid_edges);
-    std::vector<double> sp, sab, unused;
-    const double* P = as_double<T>(points.untyped_data(), size_t(B * N * 3), sp);
-    const double* AB = as_double<T>(ends.untyped_data(), size_t(B * 6), sab);
-    for (int64_t b = 0; b < B; b++) {
-      const Occluders<double> occ = occ_double<double>(0, fo.at(b), unused);
+  const Topology topology{face_solid, face_closed, solid_faces, solid_edge_off, solid_edges};
+  return with_inputs("jaxshadow_segment_candidates", points, faces, topology, [&](auto& in) {
+    const int64_t N = in.N;
+    const double* AB = in.batched(ends, 6);
+    for (int64_t b = 0; b < in.B; b++) {
+      const Occluders<double> occ = in.occluders(b);
       BVH bvh = build_bvh(occ);
       V3<double> a = ld(AB + b * 6), bb = ld(AB + b * 6 + 3);
-      const double* Pb = P + b * N * 3;
+      const double* Pb = in.points + b * N * 3;
       int32_t* cnt = counts->typed_data() + b * N;
       int32_t* out = cand->typed_data() + b * N * cap;
       parallel_for(N, default_threads(int(threads)), [&](int, int64_t s, int64_t e) {

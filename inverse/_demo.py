@@ -81,7 +81,7 @@ def run_demo(out_dir: str | os.PathLike, progress: bool = True, *, n_points: int
     targets = PaintedTargets(cfg.points, cfg.normals, colours, cfg.eye,
                              weights=1.0 / np.maximum(colours, 1e-6) ** 2)
     targets_path = os.path.join(out_dir, "demo_targets.json")
-    with js.atomic_write(targets_path) as fh:
+    with js.files.atomic_write(targets_path) as fh:
         json.dump(targets.to_dict(), fh, indent=1)
     timings["targets"] = time.perf_counter() - t0
 
@@ -169,7 +169,7 @@ def run_demo(out_dir: str | os.PathLike, progress: bool = True, *, n_points: int
     fig.suptitle(f"floor z=0 seen from above; x: painted points on the floor (targets: {source})")
     fig.tight_layout()
     png = os.path.join(out_dir, "demo_before_after.png")
-    js.atomic_write_path(png, lambda tmp: fig.savefig(tmp, dpi=90))
+    js.files.atomic_write_path(png, lambda tmp: fig.savefig(tmp, dpi=90))
     timings["plot"] = time.perf_counter() - t0
     say(f"wrote {png}")
     return {

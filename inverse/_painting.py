@@ -212,7 +212,7 @@ def _bound_list(a: np.ndarray) -> list:
 
 def save_painted(path: Any, targets: Any, ranges: ColourRange | None = None, brighter: Brighter | None = None) -> None:
     """Write painted targets with their colour ranges and "brighter than" relations to `.json`
-    or `.csv` (by the extension), atomically (`jaxshadow.atomic_write`).
+    or `.csv` (by the extension), atomically (`jaxshadow.files.atomic_write`).
 
     JSON: the targets' object (`PaintedTargets.to_dict`) with `"ranges": {"index", "lower",
     "upper"}` (an absent bound as `null`) and `"brighter": {"pairs", "weight", "margin"}`. CSV:
@@ -251,7 +251,7 @@ def save_painted(path: Any, targets: Any, ranges: ColourRange | None = None, bri
             d["brighter"] = {"pairs": brighter.pairs.tolist(), "weight": brighter.weight.tolist(),
                              "margin": brighter.margin.tolist()}
         text = json.dumps(d, indent=1, allow_nan=False)
-        with js.atomic_write(path) as fh:
+        with js.files.atomic_write(path) as fh:
             fh.write(text)
         return
     cols = [targets.points, targets.normals, targets.colours, targets.eye, targets.weights]
@@ -265,7 +265,7 @@ def save_painted(path: Any, targets: Any, ranges: ColourRange | None = None, bri
         header += list(_CSV_RANGE)
         for i, lo, hi in zip(ranges.index, ranges.lower, ranges.upper, strict=True):
             bounds[int(i)] = [repr(float(x)) for x in (*lo, *hi)]
-    with js.atomic_write(path, newline="") as fh:
+    with js.files.atomic_write(path, newline="") as fh:
         w = csv.writer(fh)
         w.writerow(header)
         for row, b in zip(table, bounds, strict=True):
@@ -330,7 +330,7 @@ def load_painted(path: Any) -> tuple[Any, ColourRange | None, Brighter | None]:
     csv.writer(buf).writerows([[row[k] for k in keep] for row in main])
     with tempfile.TemporaryDirectory() as tmp:  # the targets' own reader, on their columns
         p = os.path.join(tmp, "targets.csv")
-        with js.atomic_write(p, newline="") as fh:
+        with js.files.atomic_write(p, newline="") as fh:
             fh.write(buf.getvalue())
         targets = PaintedTargets.load(p)
     ranges = None

@@ -1,7 +1,7 @@
 """A picture of a light fit: the targets coloured by their residual, and where to paint more.
 
 Matplotlib (the `plot` extra) with its Agg canvas (no display, no pyplot state); the file is
-written through `jaxshadow.atomic_write_path`.
+written through `jaxshadow.files.atomic_write_path`.
 """
 
 from __future__ import annotations
@@ -100,4 +100,4 @@ def plot_residuals(fit: Any, targets: PaintedTargets, path: str | os.PathLike, *
     ax.set_title("targets by residual" + ("" if loss is None else f" (loss {loss:.3g})"))
     ax.legend(loc="best", fontsize=7)
     fig.tight_layout()
-    js.atomic_write_path(path, lambda tmp: fig.savefig(tmp, format=ext, dpi=dpi))
+    js.files.atomic_write_path(path, lambda tmp: fig.savefig(tmp, format=ext, dpi=dpi))

@@ -214,7 +214,7 @@ class PaintedTargets(eqx.Module):
 
     def save(self, path: str | os.PathLike) -> None:
         """Write to `.json` or `.csv` (chosen by the extension), through
-        `jaxshadow.atomic_write`: a failure (serialiser, full disk) leaves an existing
+        `jaxshadow.files.atomic_write`: a failure (serialiser, full disk) leaves an existing
         file as it was."""
         path = os.fspath(path)
         if path.lower().endswith(".csv"):
@@ -224,14 +224,14 @@ class PaintedTargets(eqx.Module):
                 cols.append(self.tolerance)
                 header += list(_CSV_TOL)
             table = np.concatenate([np.asarray(c, dtype=np.float64) for c in cols], axis=1)
-            with js.atomic_write(path, newline="") as fh:
+            with js.files.atomic_write(path, newline="") as fh:
                 w = csv.writer(fh)
                 w.writerow(header)
                 for row in table:
                     w.writerow([repr(float(x)) for x in row])
         else:
             text = json.dumps(self.to_dict(), indent=1)
-            with js.atomic_write(path) as fh:
+            with js.files.atomic_write(path) as fh:
                 fh.write(text)
 
     @classmethod

@@ -110,7 +110,7 @@ def fit_command(scene_path: str, targets_path: str, output: str | os.PathLike, l
         sensor = read_sensor(scene_path) if scene_path.lower().endswith(".xml") else None
         write_mitsuba_xml(output, scene, receivers, [material] * len(receivers), sensor=sensor)
     else:
-        with js.atomic_write(output) as fh:
+        with js.files.atomic_write(output) as fh:
             json.dump(js.scene_to_dict(scene, material), fh, indent=2)
     say(f"wrote {output} ({time.perf_counter() - t0:.1f} s)")
     return 0

@@ -6,8 +6,7 @@ Mitsuba 3 bridge used as independent ground truth. See DESIGN.md for the convent
 
 from importlib.metadata import PackageNotFoundError, version
 
-from ._core.files import atomic_write as atomic_write
-from ._core.files import atomic_write_path as atomic_write_path
+from . import files as files
 from ._core.mesh import Mesh as Mesh
 from ._core.misc import safe_normalize as safe_normalize
 from ._core.receivers import ReceiverMesh as ReceiverMesh
@@ -43,9 +42,22 @@ from ._shading.shade import specular as specular
 from ._shading.sharding import batch_mesh as batch_mesh
 from ._shading.sharding import sharded_irradiance as sharded_irradiance
 from ._shadows.cache import ShadowCache as ShadowCache
-from ._shadows.plan import ShadowOptions as ShadowOptions
+from ._shadows.options import ShadowOptions as ShadowOptions
 from ._shadows.plan import ShadowPlan as ShadowPlan
 from ._shadows.plan import shadow_plan as shadow_plan
+
+# The file writers live in `jaxshadow.files`; their names at the top are kept, deprecated.
+_MOVED = {"atomic_write": "jaxshadow.files", "atomic_write_path": "jaxshadow.files"}
+
+
+def __getattr__(name: str) -> object:
+    if name in _MOVED:
+        import warnings
+
+        warnings.warn(f"jaxshadow.{name} is deprecated: use {_MOVED[name]}.{name}.", DeprecationWarning, stacklevel=2)
+        return getattr(files, name)
+    raise AttributeError(f"module 'jaxshadow' has no attribute {name!r}")
+
 
 try:
     __version__ = version("jaxshadow")

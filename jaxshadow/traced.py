@@ -30,7 +30,7 @@ from ._shading import shade as _shade
 from ._shadows import evaluators as _evaluators
 from ._shadows import plan as _plan
 from ._shadows.integrands import Lambert, Phong
-from ._shadows.plan import DEFAULT_OPTIONS, ShadowOptions
+from ._shadows.options import DEFAULT_OPTIONS, ShadowOptions
 
 __all__ = ["DEFAULT_SPECULAR_DEGREE", "irradiance", "specular", "pin", "shadow_capacity"]
 

@@ -76,6 +76,24 @@ print(json.dumps({"a": a.tolist(), "b": b.tolist(), "dev": dev.tolist(), "free":
 """
 
 
+def test_file_writers_have_a_public_module_and_old_names_warn(tmp_path):
+    """`jaxshadow.files` is the writers' home; the names once exported at the top still work,
+    with a DeprecationWarning; neither is listed at the top any more."""
+    import jaxshadow as js
+    from jaxshadow import files
+
+    assert files.__all__ == ["atomic_write", "atomic_write_path"]
+    assert "atomic_write" not in dir(js) and "atomic_write_path" not in dir(js)
+    for name in files.__all__:
+        with pytest.warns(DeprecationWarning, match=f"jaxshadow.files.{name}"):
+            assert getattr(js, name) is getattr(files, name)
+    with files.atomic_write(tmp_path / "a.txt") as fh:
+        fh.write("x")
+    assert (tmp_path / "a.txt").read_text() == "x"
+    with pytest.raises(AttributeError, match="no attribute 'not_a_name'"):
+        js.not_a_name  # noqa: B018
+
+
 @pytest.mark.parametrize("state", ["hidden", "stale"])
 def test_unbuilt_engine_falls_back_to_the_device_kernels_with_one_warning(state):
     """With the compiled engine hidden (or a build of another interface version in its place),

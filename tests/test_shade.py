@@ -19,7 +19,8 @@ from jaxshadow._scene.model import AbstractLight
 from jaxshadow._shading import shade as shade_module
 from jaxshadow._shadows import evaluators as ev
 from jaxshadow._shadows.integrands import PRODUCE, Lambert, Phong
-from jaxshadow._shadows.plan import DEFAULT_OPTIONS, ShadowOptions, plan
+from jaxshadow._shadows.options import DEFAULT_OPTIONS, ShadowOptions
+from jaxshadow._shadows.plan import plan
 
 needs_engine = pytest.mark.skipif(not DEFAULT_OPTIONS.use_engine(), reason="shadow engine not built")
 
@@ -151,6 +152,52 @@ def test_the_four_evaluators_agree(dtype) -> None:
             t = 1e-7 if isinstance(evaluator, ev.DeviceKernels) and isinstance(integ, Phong) else tol
             np.testing.assert_allclose(np.asarray(out), np.asarray(host), rtol=0, atol=max(t, tol) * scale,
                                        err_msg=type(evaluator).__name__)
+
+
+class _NoEye(Lambert):
+    """Lambert's integrand that fails when it is handed an eye (it reads none)."""
+
+    def polygon(self, p, n, e, verts):
+        assert e is None, "Lambert was handed an eye"
+        return Lambert.polygon(self, p, n, e, verts)
+
+    def contour(self, p, n, e, verts, starts, ends):
+        assert e is None, "Lambert was handed an eye"
+        return Lambert.contour(self, p, n, e, verts, starts, ends)
+
+    def segment(self, p, n, e, a, b, light):
+        assert e is None, "Lambert was handed an eye"
+        return Lambert.segment(self, p, n, e, a, b, light)
+
+    def point(self, p, n, e, x):
+        assert e is None, "Lambert was handed an eye"
+        return Lambert.point(self, p, n, e, x)
+
+    def directional(self, p, n, e, d):
+        assert e is None, "Lambert was handed an eye"
+        return Lambert.directional(self, p, n, e, d)
+
+
+@needs_engine
+def test_an_integrand_that_reads_no_eye_is_given_none() -> None:
+    """Receivers with eyes (as `js.shade` builds them for both terms): Lambert is handed none by
+    every evaluator, Phong its eyes; values as Lambert's own."""
+    scene = _scene()
+    p, n = _receivers()
+    eyes = jnp.broadcast_to(jnp.asarray([0.5, -1.5, 2.0]), p.shape)
+    rx = ev.receivers(jnp.asarray(p), jnp.asarray(n), eyes, "test")
+    assert rx.eyes_for(Lambert()) is None and rx.eye_values_for(Lambert()) is None
+    assert rx.eyes_for(Phong(20.0)) is eyes
+    np.testing.assert_array_equal(rx.eye_values_for(Phong(20.0)), np.asarray(eyes))
+    for evaluator in (ev.HostEngine(), ev.Planned(), ev.TracedEngine(64), ev.DeviceKernels()):
+        got, _ = evaluator(scene, _NoEye(), rx)
+        want, _ = evaluator(scene, Lambert(), rx)
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(want), err_msg=type(evaluator).__name__)
+    without = ev.receivers(p, n, None, "test")
+    with pytest.raises(ValueError, match="Phong reads an eye"):
+        without.eyes_for(Phong(20.0))
+    with pytest.raises(ValueError, match="Phong reads an eye"):
+        ev.HostEngine()(scene, Phong(20.0), without)
 
 
 @needs_engine

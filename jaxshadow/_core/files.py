@@ -32,10 +32,10 @@ def atomic_write(path: str | os.PathLike, mode: str = "w", **open_kwargs: Any) -
         ```python
         import tempfile
         from pathlib import Path
-        import jaxshadow as js
+        from jaxshadow.files import atomic_write
 
         path = Path(tempfile.mkdtemp()) / "values.csv"
-        with js.atomic_write(path, newline="") as f:   # written to a temporary file, then renamed
+        with atomic_write(path, newline="") as f:   # written to a temporary file, then renamed
             print("r,g,b", file=f)
             print("0.1,0.2,0.3", file=f)
         print(path.read_text())
@@ -74,10 +74,10 @@ def atomic_write_path(path: str | os.PathLike, writer: Any) -> None:
         ```python
         import os, tempfile
         import numpy as np
-        import jaxshadow as js
+        from jaxshadow.files import atomic_write_path
 
         path = os.path.join(tempfile.mkdtemp(), "values.npy")
-        js.atomic_write_path(path, lambda tmp: np.save(tmp, np.ones(3)))   # tmp keeps the .npy extension
+        atomic_write_path(path, lambda tmp: np.save(tmp, np.ones(3)))   # tmp keeps the .npy extension
         print(np.load(path))
         ```
     """

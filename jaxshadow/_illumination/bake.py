@@ -39,7 +39,7 @@ import os
 import time
 import warnings
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, no_type_check
 
 import numpy as np
 
@@ -363,6 +363,8 @@ def _default_scale(scenes: list[Scene], patches: list[_Patch], pos: np.ndarray) 
     return float(v.max())
 
 
+# Validates its own inputs (ValueError, docs/design.md): no runtime annotation check before it.
+@no_type_check
 def bake(scene: Scene, receivers: Any = None, tol: float = 1e-3, *, lights: Sequence[int] | None = None,
          scale: float | None = None, work_dir: str | os.PathLike | None = None, scheduler: Any = None,
          workers: int | None = None, weld: float = 1e-6, tile_size: float | None = None,

@@ -30,7 +30,7 @@ from .._kernels.specular import (
 from .._scene.model import Material, Scene, checked_material, checked_scene
 from .._shadows.evaluators import Receivers, choose, receivers
 from .._shadows.integrands import Lambert, Phong
-from .._shadows.plan import DEFAULT_OPTIONS, ShadowOptions
+from .._shadows.options import DEFAULT_OPTIONS, ShadowOptions
 
 
 def _stack(lights: list, field: str, dt: Any) -> Array:

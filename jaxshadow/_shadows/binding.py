@@ -384,10 +384,10 @@ def _topology_arrays(topo: OccluderTopology) -> tuple[Array, ...]:
 
 
 def traced_polygon_codes(
-    points: Float[Array, "N 3"],
-    normals: Float[Array, "N 3"],
-    verts: Float[Array, "k 3"],
-    faces: Float[Array, "m ko 3"],
+    points: Float[Array | np.ndarray, "N 3"],
+    normals: Float[Array | np.ndarray, "N 3"],
+    verts: Float[Array | np.ndarray, "k 3"],
+    faces: Float[Array | np.ndarray, "m ko 3"],
     topology: OccluderTopology | None,
     capacity: int,
 ) -> tuple[Int[Array, " N"], Int[Array, " N"], Int[Array, "N c 2 7"]]:
@@ -419,10 +419,10 @@ def _require_ffi() -> None:
 
 
 def traced_hard_visibility(
-    points: Float[Array, "N 3"],
-    x: Float[Array, "3"],
+    points: Float[Array | np.ndarray, "N 3"],
+    x: Float[Array | np.ndarray, "3"],
     is_point: bool,
-    faces: Float[Array, "m ko 3"],
+    faces: Float[Array | np.ndarray, "m ko 3"],
     topology: OccluderTopology | None,
 ) -> Int[Array, " N"]:
     """`hard_visibility` inside a compiled computation: `(N,)` int32, 1 where the point light at
@@ -438,10 +438,10 @@ def traced_hard_visibility(
 
 
 def traced_segment_candidates(
-    points: Float[Array, "N 3"],
-    a: Float[Array, "3"],
-    b: Float[Array, "3"],
-    faces: Float[Array, "m ko 3"],
+    points: Float[Array | np.ndarray, "N 3"],
+    a: Float[Array | np.ndarray, "3"],
+    b: Float[Array | np.ndarray, "3"],
+    faces: Float[Array | np.ndarray, "m ko 3"],
     topology: OccluderTopology | None,
     capacity: int,
 ) -> tuple[Int[Array, " N"], Int[Array, "N c"]]:

@@ -34,6 +34,7 @@ from .._core.misc import unit_rows_host
 from .._scene.model import Scene
 from . import plan as sh
 from .integrands import Lambert
+from .options import DEFAULT_OPTIONS
 
 
 def _box_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -197,7 +198,7 @@ class ShadowCache:
     def __init__(self, scene: Scene, points: Any, normals: Any):
         if not isinstance(scene, Scene) or scene.occluders is None:
             raise ValueError("ShadowCache: needs a jaxshadow.Scene with occluders.")
-        if not sh.DEFAULT_OPTIONS.use_engine():
+        if not DEFAULT_OPTIONS.use_engine():
             raise RuntimeError("ShadowCache: the shadow engine (jaxshadow._shadows._shadowc) is not built.")
         from .._core.geometry import check_points_normals
 
@@ -219,7 +220,7 @@ class ShadowCache:
         # The faces: segment lights clip their candidate faces (the other kinds do not read them).
         faces = np.asarray(scene.occluders, self._p.dtype)
         return np.asarray(sh.light_values(pl.lights[0], scene.lights[light_i], Lambert(), self._p[idx],
-                                          self._n[idx], self._p[idx], faces))
+                                          self._n[idx], None, faces))
 
     def _combine(self) -> None:
         # The same compiled sum as `jaxshadow.irradiance`'s (so the two agree bit for bit).

@@ -69,7 +69,7 @@ _TRACED = {"polygon": _traced_polygon, "segment": _traced_segment, "point": _tra
 def traced_values(scene: Scene, integ: Any, points: Any, normals: Any, eyes: Any, capacity: int,
                   chunk: int | None = None) -> tuple[Any, Any]:
     """`((N, 3), overflow)`: every light's contribution with exact shadows, traceable (unit
-    `normals`). `overflow` is True when a receiver needed more than `capacity` boundary edges
+    `normals`; `eyes` `(N, 3)`, or None for an integrand that reads none). `overflow` is True when a receiver needed more than `capacity` boundary edges
     (or candidate faces): the values are then not exact. Receivers are processed `chunk` at a
     time (`lax.map`), which bounds the memory of the decoded boundaries. Without the engine's
     XLA FFI handlers (built without them, or for another jaxlib) the device kernels' values, with
@@ -78,7 +78,6 @@ def traced_values(scene: Scene, integ: Any, points: Any, normals: Any, eyes: Any
         vis.warn_no_ffi()
         return device_values(scene, integ, points, normals, eyes), jnp.zeros((), bool)
     dt = points.dtype
-    e = eyes
     faces = occluders_of(scene).astype(dt)
     topo = scene.occluder_topology
     chunk = chunk or max(MIN_BLOCK, EDGE_BLOCK // (4 * capacity))
@@ -93,20 +92,21 @@ def traced_values(scene: Scene, integ: Any, points: Any, normals: Any, eyes: Any
             over = over | o
         return total, over
 
-    return lax_chunks(block, (points, normals, e), chunk)
+    return lax_chunks(block, (points, normals, eyes), chunk)
 
 
 def lax_chunks(block: Any, arrays: tuple, chunk: int) -> tuple[Any, Any]:
     """`block(arrays) -> (out (n, ...), flag)` over the leading axis `chunk` rows at a time
     (`lax.map`, the last chunk padded with copies of the first row): traceable, and the memory
-    of one chunk's intermediates bounds the whole call's."""
+    of one chunk's intermediates bounds the whole call's. A None in `arrays` (no eyes) stays None."""
     n_pts = arrays[0].shape[0]
     if n_pts <= chunk:
         return block(arrays)
     nb = -(-n_pts // chunk)
     pad = nb * chunk - n_pts
-    arrs = tuple(jnp.concatenate([a, jnp.broadcast_to(a[:1], (pad,) + a.shape[1:])]) if pad else a for a in arrays)
-    out, flag = jax.lax.map(block, tuple(a.reshape((nb, chunk) + a.shape[1:]) for a in arrs))
+    arrs = tuple(jnp.concatenate([a, jnp.broadcast_to(a[:1], (pad,) + a.shape[1:])]) if pad and a is not None else a
+                 for a in arrays)
+    out, flag = jax.lax.map(block, tuple(None if a is None else a.reshape((nb, chunk) + a.shape[1:]) for a in arrs))
     return out.reshape((nb * chunk,) + out.shape[2:])[:n_pts], jnp.any(flag)
 
 
@@ -152,9 +152,9 @@ def device_chunk(n_faces: int, ko: int) -> int:
 
 def device_values(scene: Scene, integ: Any, points: Any, normals: Any, eyes: Any) -> Any:
     """`(N, 3)` with exact shadows from the device kernels: each receiver clipped against every
-    occluder (`_clip.visible_edges`), no engine, traceable, chunked (unit `normals`)."""
+    occluder (`_clip.visible_edges`), no engine, traceable, chunked (unit `normals`; `eyes` as
+    for `traced_values`)."""
     dt = points.dtype
-    e = eyes
     faces = occluders_of(scene).astype(dt)
 
     def block(args):
@@ -164,4 +164,4 @@ def device_values(scene: Scene, integ: Any, points: Any, normals: Any, eyes: Any
             total = total + _DEVICE[light.kind](light, integ, p, n, ee, faces)[:, None] * light.emission(dt)[None, :]
         return total, jnp.zeros((), bool)
 
-    return lax_chunks(block, (points, normals, e), device_chunk(faces.shape[0], faces.shape[1]))[0]
+    return lax_chunks(block, (points, normals, eyes), device_chunk(faces.shape[0], faces.shape[1]))[0]

@@ -33,7 +33,8 @@ from .._core.geometry import check_values_eagerly, inputs_ok, raise_if_bad
 from .._core.misc import unit_rows, unit_rows_host
 from .._scene.model import Scene
 from .compiled import device_values, traced_values
-from .plan import ShadowOptions, host_values, planned_values
+from .options import ShadowOptions
+from .plan import host_values, planned_values
 
 
 def _is_traced(tree: Any) -> bool:
@@ -74,9 +75,10 @@ class Receivers:
     """Receivers as the evaluators take them, built once at the entrance (`receivers`).
 
     - `points`: `(N, 3)` as given (NumPy, JAX or traced); `normals`: `(N, 3)` unit (JAX);
-      `eyes`: `(N, 3)` eye per receiver, or None (an integrand that reads no eye).
-    - `values`: `(points, unit normals, eyes or points)` as NumPy arrays when their values are
-      known (concrete, or carried by an eager `jax.grad`'s tracers), else None.
+      `eyes`: `(N, 3)` eye per receiver, or None (the entry point has none: `irradiance`).
+    - `values`: `(points, unit normals, eyes)` as NumPy arrays when their values are known
+      (concrete, or carried by an eager `jax.grad`'s tracers; eyes None when there are none or
+      they are traced), else None.
     - `ok`: for abstract values, the traced flag `inputs_ok` (finite, no zero normal) that the
       caller turns into a run-time error; None when the values were checked on the host.
     - `concrete`: points and normals are plain arrays (no tracer).
@@ -85,7 +87,7 @@ class Receivers:
     points: Any
     normals: Any
     eyes: Any
-    values: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+    values: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None
     ok: Any
     concrete: bool
 
@@ -93,11 +95,22 @@ class Receivers:
     def dtype(self) -> Any:
         return self.points.dtype
 
-    @property
-    def eye_rows(self) -> Any:
-        """`(N, 3)` per-receiver third argument of the integrands: the eyes, or the points when
-        the integrand reads no eye (`Lambert`)."""
-        return self.points if self.eyes is None else self.eyes
+    def eyes_for(self, integ: Any) -> Any:
+        """The eyes `integ` is given: `(N, 3)` when it reads an eye (`integ.reads_eye`), else
+        None (`Lambert`: nothing rides beside the points)."""
+        if not integ.reads_eye:
+            return None
+        if self.eyes is None:
+            raise ValueError(f"{type(integ).__name__} reads an eye per receiver; none was given.")
+        return self.eyes
+
+    def eye_values_for(self, integ: Any) -> np.ndarray | None:
+        """`eyes_for(integ)`'s NumPy values (`values` known)."""
+        assert self.values is not None
+        e = self.values[2]
+        if integ.reads_eye and e is None:
+            raise ValueError(f"{type(integ).__name__} reads an eye per receiver; none is known.")
+        return e if integ.reads_eye else None
 
 
 def receivers(points: Any, normals: Any, eyes: Any, what: str) -> Receivers:
@@ -110,13 +123,13 @@ def receivers(points: Any, normals: Any, eyes: Any, what: str) -> Receivers:
             good, unit = _checked_unit_rows(points, normals)  # one compiled call
         raise_if_bad(good, points, normals, what)
         p = np.asarray(points)
-        e = p if eyes is None or _is_traced(eyes) else np.asarray(eyes)
+        e = None if eyes is None or _is_traced(eyes) else np.asarray(eyes)
         return Receivers(points, unit, eyes, (p, np.asarray(unit), e), None, True)
     val = known_values((points, normals))
     if val is not None:
         p, n = val
         check_values_eagerly(p, n, what)
-        return Receivers(points, unit_rows(normals), eyes, (p, unit_rows_host(n), p), None, False)
+        return Receivers(points, unit_rows(normals), eyes, (p, unit_rows_host(n), None), None, False)
     return Receivers(points, unit_rows(normals), eyes, None, inputs_ok(points, normals), False)
 
 
@@ -138,8 +151,8 @@ class HostEngine(AbstractEvaluator):
 
     def __call__(self, scene: Scene, integ: Any, rx: Receivers) -> tuple[Any, Any]:
         assert rx.values is not None
-        p, n, e = rx.values
-        return host_values(scene, integ, p, n, e), False
+        p, n, _ = rx.values
+        return host_values(scene, integ, p, n, rx.eye_values_for(integ)), False
 
 
 class Planned(AbstractEvaluator):
@@ -150,7 +163,7 @@ class Planned(AbstractEvaluator):
         assert rx.values is not None
         value_scene = known_values(scene)
         p, n, _ = rx.values
-        return planned_values(scene, value_scene, integ, rx.points, rx.normals, rx.eye_rows, (p, n)), False
+        return planned_values(scene, value_scene, integ, rx.points, rx.normals, rx.eyes_for(integ), (p, n)), False
 
 
 class TracedEngine(AbstractEvaluator):
@@ -160,7 +173,7 @@ class TracedEngine(AbstractEvaluator):
     capacity: int = eqx.field(static=True)
 
     def __call__(self, scene: Scene, integ: Any, rx: Receivers) -> tuple[Any, Any]:
-        return traced_values(scene, integ, rx.points, rx.normals, rx.eye_rows, self.capacity)
+        return traced_values(scene, integ, rx.points, rx.normals, rx.eyes_for(integ), self.capacity)
 
 
 _device_compiled = eqx.filter_jit(device_values)
@@ -174,7 +187,7 @@ class DeviceKernels(AbstractEvaluator):
 
     def __call__(self, scene: Scene, integ: Any, rx: Receivers) -> tuple[Any, Any]:
         fn = _device_compiled if self.compiled else device_values
-        return fn(scene, integ, rx.points, rx.normals, rx.eye_rows), False
+        return fn(scene, integ, rx.points, rx.normals, rx.eyes_for(integ)), False
 
 
 def choose(options: ShadowOptions, scene: Scene, integ: Any, rx: Receivers) -> AbstractEvaluator:
@@ -183,7 +196,7 @@ def choose(options: ShadowOptions, scene: Scene, integ: Any, rx: Receivers) -> A
     planned path when the values are known; else the engine in the compiled program."""
     if not options.use_engine():
         return DeviceKernels()
-    if rx.concrete and not _is_traced((scene, integ, rx.eyes if integ.reads_eye else None)):
+    if rx.concrete and not _is_traced((scene, integ, rx.eyes_for(integ))):
         return HostEngine()
     if rx.values is not None and known_values(scene) is not None:
         return Planned()

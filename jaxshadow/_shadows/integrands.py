@@ -3,7 +3,8 @@ r"""Integrands: what a light contributes per unit emission at a receiver, given 
 An integrand has one method per light kind (`AbstractLight.kind`): `polygon` (the whole light
 seen), `contour` (a polygon light's visible region, given by its boundary edges), `segment`,
 `point`, `directional`; each takes one receiver `p (3,)`, its unit normal `n (3,)` and the eye
-`e (3,)` (read by `Phong` only). It also declares what it needs: what the shadow engine must hand it on the host
+`e (3,)`, read by `Phong` only: an integrand that reads none (`reads_eye = False`) is given
+None. It also declares what it needs: what the shadow engine must hand it on the host
 (`host_plan`: `Lambert`'s contour sum is a sum of edge terms that the engine adds up itself,
 `"lambert"`; other integrands need the boundary's decoded points, `"points"`), and whether it
 reads the eye (`reads_eye`).
@@ -91,7 +92,7 @@ class Phong(AbstractIntegrand):
         return directional_specular_kernel(p, n, e, d, self.exponent)
 
 
-def segment_visible(integ: Any, p: Float[Array, "3"], n: Float[Array, "3"], e: Float[Array, "3"],
+def segment_visible(integ: Any, p: Float[Array, "3"], n: Float[Array, "3"], e: Float[Array, "3"] | None,
                     a: Float[Array, "3"], b: Float[Array, "3"], light: Any, occ: Float[Array, "m k 3"]) -> Array:
     """The segment integrand summed over the visible pieces of `a -> b` (occluders `occ`)."""
     sa, sb = visible_segments(p, a, b, occ)

@@ -57,44 +57,6 @@ MIN_BLOCK = 64
 MIN_CAPACITY = 8
 
 
-@dataclass(frozen=True)
-class ShadowOptions:
-    """How exact shadows are evaluated (static: part of a compiled program's identity).
-
-    - `engine`: `"auto"` (the compiled host engine when it is built, else the device kernels),
-      `"host"` (the engine; an error if it is not built) or `"device"` (JAX kernels that clip
-      every receiver against every occluder: no build needed, memory and time grow with the
-      square of the occluder count).
-    - `capacity`: boundary edges (polygon lights) or candidate faces (segment lights) per
-      receiver when the values are abstract (inside `jax.jit`/`jax.vmap`) and the engine runs in
-      the compiled program. A receiver that needs more is an error, never a truncation. Eager
-      calls (including eager `jax.grad`) plan from the values and have no capacity.
-    """
-
-    engine: str = "auto"
-    capacity: int = 64
-
-    def __post_init__(self) -> None:
-        if self.engine not in ("auto", "host", "device"):
-            raise ValueError(f"ShadowOptions: engine must be 'auto', 'host' or 'device', got {self.engine!r}.")
-        if not isinstance(self.capacity, int) or isinstance(self.capacity, bool) or not 1 <= self.capacity <= 1 << 16:
-            raise ValueError(f"ShadowOptions: capacity must be an integer in [1, 65536], got {self.capacity!r}.")
-
-    def use_engine(self) -> bool:
-        if self.engine == "device":
-            return False
-        if self.engine == "host" and not vis.engine_available():
-            raise RuntimeError("ShadowOptions(engine='host'): jaxshadow._shadows._shadowc is not built "
-                               "(reinstall jaxshadow with a C++ compiler available).")
-        if not vis.engine_available():
-            vis.warn_unbuilt()
-            return False
-        return True
-
-
-DEFAULT_OPTIONS = ShadowOptions()
-
-
 def occluders_of(scene: Scene) -> Any:
     """The scene's padded occluder faces `(m, K, 3)` (the shadow engine needs a scene with them)."""
     assert scene.occluders is not None, "the shadow engine needs a scene with occluders"
@@ -269,6 +231,8 @@ def _blocks(n: int, rows: int) -> list[tuple[int, int, int]]:
 
 
 def _pad_rows(a: Any, size: int) -> Any:
+    if a is None:
+        return None
     m = a.shape[0]
     if size == m:
         return a
@@ -281,7 +245,8 @@ def _dispatch_blocks(fn: Any, arrays: tuple, rows: int) -> Any:
     (JAX runs them asynchronously); the returned function waits for them and joins the
     unpadded results as one NumPy array."""
     n = arrays[0].shape[0]
-    pending = [(e - s, fn(*(_pad_rows(a[s:e], size) for a in arrays))) for s, e, size in _blocks(n, rows)]
+    pending = [(e - s, fn(*(_pad_rows(_rows(a, slice(s, e)), size) for a in arrays)))
+               for s, e, size in _blocks(n, rows)]
 
     def result() -> np.ndarray:
         outs = [np.asarray(out)[:m] for m, out in pending]
@@ -296,12 +261,12 @@ def _map_blocks(fn: Any, arrays: tuple, rows: int) -> Any:
     """`fn(*blocks)` over the leading axis in padded blocks; concatenated, unpadded. With NumPy
     inputs (concrete values) the results are cut and joined in NumPy: slicing a JAX array
     compiles a slice for every distinct block length."""
-    if all(isinstance(a, np.ndarray) for a in arrays):
+    if all(isinstance(a, np.ndarray) for a in arrays if a is not None):
         return _dispatch_blocks(fn, arrays, rows)()
     n = arrays[0].shape[0]
     outs = []
     for s, e, size in _blocks(n, rows):
-        outs.append(fn(*(_pad_rows(a[s:e], size) for a in arrays))[: e - s])
+        outs.append(fn(*(_pad_rows(_rows(a, slice(s, e)), size) for a in arrays))[: e - s])
     if not outs:
         return jnp.zeros((0,), arrays[0].dtype)
     return outs[0] if len(outs) == 1 else jnp.concatenate(outs)
@@ -401,8 +366,15 @@ def _scatter(n: int, dt: Any, parts: list[tuple[Any, Any]], concrete: bool) -> A
 
 
 def _take(a: Any, idx: np.ndarray) -> Any:
-    # np.take: rows of an (N, 3) array gathered ~4x faster than a[idx].
+    # np.take: rows of an (N, 3) array gathered ~4x faster than a[idx]. None (no eyes) stays None.
+    if a is None:
+        return None
     return np.take(a, idx, axis=0) if isinstance(a, np.ndarray) else jnp.take(a, jnp.asarray(idx), axis=0)
+
+
+def _rows(a: Any, key: Any) -> Any:
+    """`a[key]`, None for None (the eyes of an integrand that reads none)."""
+    return None if a is None else a[key]
 
 
 def _polygon_values(lp: LightPlan, light: Any, integ: Any, p: Any, n: Any, e: Any, faces: Any,
@@ -443,7 +415,7 @@ def _polygon_values(lp: LightPlan, light: Any, integ: Any, p: Any, n: Any, e: An
         if concrete:
             pts = np.where(used[:, :, None, None], lp.points[r], np.asarray(verts)[0])
             fn = lambda a, b, c, s, t: _contour_block(integ, a, b, c, verts, s, t)  # noqa: E731
-            vals = _map_blocks(fn, (p[idx], n[idx], e[idx], np.ascontiguousarray(pts[:, :, 0]),
+            vals = _map_blocks(fn, (p[idx], n[idx], _rows(e, idx), np.ascontiguousarray(pts[:, :, 0]),
                                     np.ascontiguousarray(pts[:, :, 1])), rb)
         else:
             runs = np.where(used[:, :, None, None], lp.runs[r], vis.unused_code())
@@ -492,7 +464,8 @@ def light_values(lp: LightPlan, light: Any, integ: Any, p: Any, n: Any, e: Any, 
 
     A plan made on the host (`lp.on_host`: every input a NumPy array, nothing differentiated)
     holds the engine's Lambert edge sums (`"lambert"`) or decoded points (`"points"`); the result
-    is a NumPy array. Otherwise (`"codes"`) `p`, `n`, `e`, the light and `faces` may carry
+    is a NumPy array. `e`: `(N, 3)` eyes, or None for an integrand that reads none. Otherwise
+    (`"codes"`) `p`, `n`, `e`, the light and `faces` may carry
     derivatives and polygon boundaries are decoded from the plan's codes in JAX. `unoccluded`
     (host polygon lights): a function that returns the unoccluded values of every receiver,
     dispatched before the plan was made (`_dispatch_blocks`)."""
@@ -517,11 +490,10 @@ def sum_lights(gs: np.ndarray, lights: Sequence[Any], dt: Any) -> Any:
     return _weighted_sum(gs, emissions)
 
 
-def host_values(scene: Scene, integ: Any, points: np.ndarray, normals: np.ndarray, eyes: np.ndarray) -> Any:
+def host_values(scene: Scene, integ: Any, points: np.ndarray, normals: np.ndarray, eyes: np.ndarray | None) -> Any:
     """`(N, 3)` JAX array for concrete inputs, nothing differentiated (unit `normals`; `eyes`
-    `(N, 3)`, read by the integrands that look from somewhere)."""
+    `(N, 3)` for the integrands that read an eye, None for the others)."""
     dt = points.dtype
-    e = eyes
     faces = np.asarray(scene.occluders, dt)
     gs = np.zeros((len(scene.lights), points.shape[0]), dt)
     rows = EDGE_BLOCK // 8
@@ -534,10 +506,10 @@ def host_values(scene: Scene, integ: Any, points: np.ndarray, normals: np.ndarra
             if light.kind == "polygon":
                 verts = np.asarray(light.vertices, dt)
                 early[j] = _dispatch_blocks(lambda a, b, c, v=verts: _lit_block(integ, a, b, c, v),
-                                            (points[sl], normals[sl], e[sl]), rows)
+                                            (points[sl], normals[sl], _rows(eyes, sl)), rows)
         pl = plan(scene, points[sl], normals[sl], produce=integ.host_plan)
         for j, (lp, light) in enumerate(zip(pl.lights, scene.lights, strict=True)):
-            gs[j, sl] = np.asarray(light_values(lp, light, integ, points[sl], normals[sl], e[sl], faces,
+            gs[j, sl] = np.asarray(light_values(lp, light, integ, points[sl], normals[sl], _rows(eyes, sl), faces,
                                                 early.get(j)))
     return sum_lights(gs, scene.lights, dt)
 
@@ -546,10 +518,10 @@ def planned_values(scene: Scene, value_scene: Scene, integ: Any, points: Any, no
                    values: tuple) -> Any:
     """`(N, 3)` for inputs that carry derivatives but have concrete values (`value_scene`: the
     scene with NumPy leaves; `values`: points and unit normals as NumPy arrays): the engine
-    plans from the values, JAX differentiates `scene`, `points`, `normals`, `eyes`."""
+    plans from the values, JAX differentiates `scene`, `points`, `normals`, `eyes` (None for an
+    integrand that reads no eye)."""
     p_val, n_val = values
     dt = points.dtype
-    e = eyes
     faces = occluders_of(scene).astype(dt)
     total = jnp.zeros(points.shape, dt)
     for s in range(0, points.shape[0], HOST_CHUNK):
@@ -557,7 +529,7 @@ def planned_values(scene: Scene, value_scene: Scene, integ: Any, points: Any, no
         pl = plan(value_scene, p_val[s:stop], n_val[s:stop], produce="codes")
         part = jnp.zeros((stop - s, 3), dt)
         for lp, light in zip(pl.lights, scene.lights, strict=True):
-            g = light_values(lp, light, integ, points[s:stop], normals[s:stop], e[s:stop], faces)
+            g = light_values(lp, light, integ, points[s:stop], normals[s:stop], _rows(eyes, slice(s, stop)), faces)
             part = part + g[:, None] * light.emission(dt)[None, :]
         total = total.at[s:stop].set(part) if points.shape[0] > HOST_CHUNK else part
     return total
