@@ -24,7 +24,8 @@ for float64 ones).
 Asserted at every receiver: the value is finite, never below 0 and never above the unoccluded
 value (up to 8 rounding units of pi: two different contour sums, whose error is absolute in
 the form factor), and within float64 `1e-9 U`
-/ float32 `1e-5 U` of the reference, `U = max(unoccluded, 1e-3)`; in umbra exactly 0. Gradients
+/ float32 `1e-5 U + 8 eps 0.1` of the reference, `U = max(unoccluded, 1e-3)` (the float32
+floor: Lambert's sum of edge terms ~0.1 rounds absolutely under a grazing light); in umbra exactly 0. Gradients
 with respect to the receivers against central differences at penumbra receivers (float64; one case in CI, where its compilation takes most of a minute, the others
 under `-m slow`).
 
@@ -145,6 +146,10 @@ def _check(scene, light, tris, p, n, labels, what) -> None:
     l64 = light.astype(F64)
     rtol = 1e-9 if dt == F64 else 1e-5
     eps = np.finfo(dt).eps
+    # Lambert's sum rounds absolutely: under a grazing light its edge terms are ~0.1 while the
+    # sum is below 1e-3 (float32: a few ulps of 0.1, up to 4.2e-8 measured on 24 039 such
+    # receivers, where rtol * 1e-3 allows 1e-8); float64's rtol * 1e-3 = 1e-12 is far above it.
+    atol = 8 * eps * 0.1 if dt == F32 else 0.0
     for i in range(len(p)):
         info = (what, i, labels[i], int(cls[i]), float(e[i]), float(unocc[i]))
         assert np.isfinite(e[i]), info
@@ -155,7 +160,7 @@ def _check(scene, light, tris, p, n, labels, what) -> None:
         p64, n64 = p[i].astype(F64), n[i].astype(F64)
         faces = _off_surface(p64, _culled(p64, l64, tris), 2.0**-18 if dt == F32 else 2.0**-44)
         ref = np.pi * reference_ff(p64, n64 / np.linalg.norm(n64), l64, faces)
-        assert abs(e[i] - ref) <= rtol * max(unocc[i], 1e-3), (*info, ref)
+        assert abs(e[i] - ref) <= rtol * max(unocc[i], 1e-3) + atol, (*info, ref)
 
 
 def _run(draw, monkeypatch) -> None:
