@@ -489,7 +489,7 @@ def _kinds(fmts: list[str]) -> bytes:
 
 def _csv_block(arrays: list[np.ndarray], fmts: list[str], s: int) -> str:
     """The text of rows `s .. s + CSV_BLOCK_ROWS` (each ending in a newline)."""
-    block = np.concatenate([a[s:s + CSV_BLOCK_ROWS].astype(np.float64) for a in arrays], axis=1)
+    block = _block_values(arrays, s)
     # A column with one value in the whole block (a plane's height, a shared normal) is
     # formatted once and written as literal text of the row format.
     bits = block.view(np.int64)  # bit for bit: -0.0 is not 0.0
