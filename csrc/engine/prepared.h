@@ -13,7 +13,7 @@
 #include <memory>
 #include <mutex>
 
-#include "silhouette.h"
+#include "silhouette_tree.h"
 
 namespace jaxshadow_engine {
 
