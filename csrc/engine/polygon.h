@@ -3,7 +3,7 @@
 #define JAXSHADOW_SHADOWC_POLYGON_H_
 
 #include "boundary.h"
-#include "silhouette_tree.h"
+#include "silhouette.h"
 
 namespace jaxshadow_engine {
 

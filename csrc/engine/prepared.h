@@ -13,7 +13,7 @@
 #include <memory>
 #include <mutex>
 
-#include "silhouette_tree.h"
+#include "silhouette.h"
 
 namespace jaxshadow_engine {
 
