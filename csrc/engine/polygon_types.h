@@ -68,7 +68,7 @@ struct Work {  // per-thread scratch
   std::vector<int32_t> sord;
   std::vector<int32_t> std_;
   std::vector<T> sbox;
-  // Its grid of contour pieces in the emitter plane (silhouette.h, ContourGrid).
+  // Its grid of contour pieces in the emitter plane (silhouette_coverage.h, SilCoverage).
   std::vector<int32_t> gcells;   // per piece: the cells its box meets (ix0, ix1, iy0, iy1)
   std::vector<int32_t> gstart;   // per cell: first entry in gitems (CSR; G * G + 1)
   std::vector<int32_t> gitems;   // pieces by cell
@@ -207,7 +207,7 @@ struct PolyCall {
   // faces only: a solid's faces have no side in Work::fstat.)
   const std::vector<int32_t>* twin_ptr = nullptr;
   const std::vector<int32_t>& twin() const { return *twin_ptr; }
-  // The silhouette path's hierarchy of mesh edges (silhouette.h; prepared.h) and the occluders'
+  // The silhouette path's hierarchy of mesh edges (silhouette_tree.h; prepared.h) and the occluders'
   // heights above the emitter plane for this light (silhouette_heights); `sil_ok` false: not used.
   const SilhouetteTree* sil = nullptr;
   double sil_hmin = 0, sil_hmax = 0;
