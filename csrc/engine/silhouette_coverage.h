@@ -96,7 +96,7 @@ struct SilCoverage {
         const int64_t f0 = item >= 0 ? item : occ.solid_faces[2 * (-int64_t(item) - 1)];
         const int64_t f1 = item >= 0 ? item + 1 : occ.solid_faces[2 * (-int64_t(item) - 1) + 1];
         for (int64_t f = f0; f < f1; f++) {
-        const int s = sil_side(st, int32_t(f), pd);
+        const int s = sil_side(st, st.floc[size_t(f)], pd);
         if (s == 0) return -1;
         bool in = true;
         for (int64_t k = 0; k < occ.Ko && in; k++) {

@@ -222,6 +222,14 @@ void build_silhouette_tree(const Occluders<T>& occ, const std::vector<int32_t>& 
     cmin = std::max(-1.0, std::min(1.0, cmin)) - 1e-12;  // rounding of the unit normals
     nd.cosa = cmin;
     nd.sina = std::sqrt(std::max(0.0, 1 - cmin * cmin)) + 1e-12;
+    double h2 = 0;
+    nd.arad = 0;
+    for (int d = 0; d < 3; d++) {
+      const double h = 0.5 * (nd.box[3 + d] - nd.box[d]);
+      nd.arad += std::fabs(nd.axis[d]) * h;
+      h2 += h * h;
+    }
+    nd.hrad = std::sqrt(h2);
   };
   st.nodes.reserve(size_t(2 * E / 4 + 2));
   struct Job {
@@ -258,8 +266,48 @@ void build_silhouette_tree(const Occluders<T>& occ, const std::vector<int32_t>& 
   std::vector<SEdge> sorted(static_cast<size_t>(E));
   for (int64_t k = 0; k < E; k++) sorted[k] = st.edges[order[k]];
   st.edges.swap(sorted);
+  // The nodes in the order the walk visits them (right subtree first, as its stack pops them):
+  // a walk reads them front to back.
+  {
+    std::vector<SNode> walk;
+    walk.reserve(st.nodes.size());
+    std::vector<int32_t> stk{0};
+    std::vector<int32_t> where(st.nodes.size());
+    while (!stk.empty()) {
+      const int32_t k = stk.back();
+      stk.pop_back();
+      where[size_t(k)] = int32_t(walk.size());
+      walk.push_back(st.nodes[size_t(k)]);
+      if (st.nodes[size_t(k)].left >= 0) {
+        stk.push_back(st.nodes[size_t(k)].left);
+        stk.push_back(st.nodes[size_t(k)].right);
+      }
+    }
+    for (SNode& nd : walk)
+      if (nd.left >= 0) nd.left = where[size_t(nd.left)], nd.right = where[size_t(nd.right)];
+    st.nodes.swap(walk);
+  }
+  std::vector<uint8_t> f32(static_cast<size_t>(M));
+  for (int64_t f = 0; f < M; f++) f32[size_t(f)] = float32_face(occ, f);
+  // Local face indices: in the order of the sorted edges, then the faces no edge names.
+  st.floc.assign(size_t(M), -1);
+  int32_t nl = 0;
+  for (SEdge& e : st.edges)
+    for (int32_t* f : {&e.f, &e.g}) {
+      if (*f < 0) continue;
+      if (st.floc[size_t(*f)] < 0) st.floc[size_t(*f)] = nl++;
+      *f = st.floc[size_t(*f)];
+    }
+  for (int64_t f = 0; f < M; f++)
+    if (st.floc[size_t(f)] < 0) st.floc[size_t(f)] = nl++;
+  std::vector<double> fn(st.fn.size());
   st.f32.resize(size_t(M));
-  for (int64_t f = 0; f < M; f++) st.f32[size_t(f)] = float32_face(occ, f);
+  for (int64_t f = 0; f < M; f++) {
+    const size_t l = size_t(st.floc[size_t(f)]);
+    std::copy_n(st.fn.data() + kFnStride * size_t(f), kFnStride, fn.data() + kFnStride * l);
+    st.f32[l] = f32[size_t(f)];
+  }
+  st.fn.swap(fn);
   st.ok = true;
 }
 
@@ -287,7 +335,7 @@ void silhouette_heights(PolyCall<T>& call) {
   call.sil_ok = std::isfinite(lo) && std::isfinite(hi);
 }
 
-// Which way face f faces p: +1 when p is in front of its Newell normal... as face_side decides
+// Which way face f (a local index: SilhouetteTree::floc) faces p: +1 when p is in front of its Newell normal... as face_side decides
 // (+1: h0 = N . (v0 - p) < 0), 0 when p is within the rounding bound of its plane.
 // Within the on-surface distance of the plane of a face of float32 values (kOnSurface of the
 // scene's largest coordinate, at least face_side's own bound) it is 0 too: the face path then
@@ -306,22 +354,18 @@ inline int sil_side(const SilhouetteTree& st, int32_t f, const double* p) {
 // +1 (-1): every face of the node faces p with side +1 (-1) by a clear margin; 0: not known.
 inline int node_side(const SNode& nd, const double* p, double margin) {
   if (!(nd.cosa > 0)) return 0;
-  double amin = std::numeric_limits<double>::infinity(), amax = -amin, perp2 = 0;
-  for (int c = 0; c < 8; c++) {
-    const double d[3] = {p[0] - nd.box[(c & 1) ? 3 : 0], p[1] - nd.box[(c & 2) ? 4 : 1], p[2] - nd.box[(c & 4) ? 5 : 2]};
-    const double a = d[0] * nd.axis[0] + d[1] * nd.axis[1] + d[2] * nd.axis[2];
-    const double e[3] = {d[0] - a * nd.axis[0], d[1] - a * nd.axis[1], d[2] - a * nd.axis[2]};
-    amin = std::min(amin, a);
-    amax = std::max(amax, a);
-    perp2 = std::max(perp2, e[0] * e[0] + e[1] * e[1] + e[2] * e[2]);
-  }
-  // The largest |e|: sqrt is correctly rounded, hence monotone, so the root of the largest
-  // square is the largest root.
-  const double perp = std::sqrt(perp2);
-  // n . d with n within the cone and d = p - v over the box: n . d >= a cos - |d_perp| sin.
+  // d = p - v over the box's points v = c + s (|s_i| <= h_i): a = axis . d lies within
+  // axis . (p - c) -+ arad, and d's part across the axis, e = d - a axis, has |e| <= |e_c| + |h|.
+  const double d[3] = {p[0] - 0.5 * (nd.box[0] + nd.box[3]), p[1] - 0.5 * (nd.box[1] + nd.box[4]),
+                       p[2] - 0.5 * (nd.box[2] + nd.box[5])};
+  const double a = d[0] * nd.axis[0] + d[1] * nd.axis[1] + d[2] * nd.axis[2];
+  const double e[3] = {d[0] - a * nd.axis[0], d[1] - a * nd.axis[1], d[2] - a * nd.axis[2]};
+  const double perp = std::sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2]) + nd.hrad;
+  // n . d with n within the cone: n . d >= a cos - |e| sin. The bounds' rounding is far below
+  // `margin` (beyond the on-surface distance).
   // side +1 <=> N . (v - p) < 0 <=> n . d > 0.
-  if (amin * nd.cosa - perp * nd.sina > margin) return 1;
-  if (amax * nd.cosa + perp * nd.sina < -margin) return -1;
+  if ((a - nd.arad) * nd.cosa - perp * nd.sina > margin) return 1;
+  if ((a + nd.arad) * nd.cosa + perp * nd.sina < -margin) return -1;
   return 0;
 }
 

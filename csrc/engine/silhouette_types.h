@@ -17,21 +17,26 @@ constexpr size_t kFnStride = 10;  // doubles per face in SilhouetteTree::fn
 
 struct SEdge {
   int32_t ra, rb;  // vertex refs (K + f * Ko + i), the edge running ra -> rb in face f
-  int32_t f, g;    // its faces (g = -1: a boundary or non-manifold edge slot)
+  int32_t f, g;    // its faces (g = -1: a boundary or non-manifold edge slot; local indices once built)
   int8_t dg;       // +1: g runs it ra -> rb too (inconsistent orientation), -1: rb -> ra
 };
 
-struct SNode {
-  double box[6];            // the faces' vertices (lo, hi)
+struct alignas(64) SNode {  // two cache lines
+  double box[6];               // the faces' vertices (lo, hi)
   double axis[3], cosa, sina;  // cone of the faces' unit normals (cosa < 0: no cone)
-  int32_t left, right, start, count;
+  double arad, hrad;           // the box's half extents h: sum |axis_i| h_i, and |h|
+  int32_t left, right, start, count;  // nodes in the walk's order: right = this node + 1
   bool special;  // holds an edge with g < 0 or dg > 0
 };
 
 struct SilhouetteTree {
   std::vector<SEdge> edges;
   std::vector<SNode> nodes;
+  // Faces in the order the tree's edges (leaf after leaf) first name them, so that a walk reads
+  // them nearly front to back: SEdge::f and g, fn and f32 use these local indices; floc maps a
+  // face of the occluders to its local index.
   std::vector<double> fn;  // per face (kFnStride): Newell normal (3), first vertex (3), unit normal (3), |Newell normal|
+  std::vector<int32_t> floc;
   double scale = 0;           // largest coordinate magnitude
   std::vector<uint8_t> f32;   // per face: every coordinate a float32 value (the on-surface rule)
   bool ok = false;

@@ -58,7 +58,15 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
       if (sp + 2 > 128) return kFallback;
       stack[sp++] = nd.left;
       stack[sp++] = nd.right;
+      // The walk is bound by memory: the left child (visited after the right subtree, which
+      // follows this node in memory) is fetched while the right one is tested.
+      __builtin_prefetch(&st.nodes[size_t(nd.left)]);
       continue;
+    }
+    for (int32_t k = nd.start; k < nd.start + nd.count; k++) {  // the leaf's faces, fetched at once
+      const SEdge& e = st.edges[size_t(k)];
+      __builtin_prefetch(st.fn.data() + kFnStride * size_t(e.f));
+      if (e.g >= 0) __builtin_prefetch(st.fn.data() + kFnStride * size_t(e.g));
     }
     for (int32_t k = nd.start; k < nd.start + nd.count; k++) {
       const SEdge& e = st.edges[size_t(k)];
