@@ -179,15 +179,8 @@ def cmd_irradiance(args: argparse.Namespace) -> int:
     check_input(args.scene, SCENE_EXTS, "scene")
     check_input(args.points, POINT_EXTS, "points")
     check_output(args.output, VALUE_EXTS)
-    from .._io.meshio import (
-        IRRADIANCE_PROPERTY,
-        MESH_EXTS,
-        extension,
-        read_points,
-        receiver_rows,
-        write_values,
-        write_values_beside_rows,
-    )
+    from .._io.meshio import IRRADIANCE_PROPERTY, MESH_EXTS, extension
+    from .._io.tables import read_points, receiver_rows, write_values, write_values_beside_rows
 
     if extension(args.output) == ".ply" and extension(args.points) not in MESH_EXTS:
         raise ValueError(f"output {args.output!r}: a .ply output needs mesh receivers (points from a mesh file).")
