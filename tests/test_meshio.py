@@ -486,6 +486,42 @@ def test_receiver_rows_only_for_plain_point_tables(tmp_path, monkeypatch):
     np.testing.assert_array_equal(got[:, 6:].astype(np.float32), vals)
 
 
+def test_points_and_their_rows_come_from_one_read(tmp_path, monkeypatch, csv_route):
+    """`read_points_with_rows` (the `irradiance` command's CSV -> CSV input) gives
+    `read_points`' receivers and `receiver_rows`' text, reading the file's rows once; the
+    receivers are NumPy's parse of the file, not the reader's."""
+    from jaxshadow._io.tables import read_points_with_rows, receiver_rows
+
+    rng = np.random.default_rng(21)
+    table = np.c_[rng.normal(size=(7, 3)), np.tile([0.0, 0.0, 1.0], (7, 1))]
+    lines = [",".join(repr(float(x)) for x in row) for row in table]
+    body = "\n".join(lines) + "\n"
+    cases = {"plain.csv": "px,py,pz,nx,ny,nz\n" + body,
+             "spaced_crlf.csv": "\ufeff px, py ,pz,nx,ny,nz\r\n" + body.replace(",", " , ").replace("\n", "\r\n"),
+             "order.csv": "py,px,pz,nx,ny,nz\n" + body,
+             "extra.csv": "px,py,pz,nx,ny,nz,label\n" + body.replace("\n", ",7\n"),
+             "blank.csv": "px,py,pz,nx,ny,nz\n" + body.replace("\n", "\n\n", 1)}
+    for name, text in cases.items():
+        path = tmp_path / name
+        path.write_text(text, newline="")
+        want_rows = receiver_rows(path)
+        calls = []
+        real = _tables._body_bytes
+        monkeypatch.setattr(_tables, "_body_bytes", lambda *a: calls.append(a) or real(*a))
+        p, n, mesh, rows = read_points_with_rows(path)
+        monkeypatch.setattr(_tables, "_body_bytes", real)
+        assert len(calls) <= 1, name  # the rows' bytes are read once, for the table and the text
+        assert rows == want_rows and mesh is None, name
+        ref = np.loadtxt(path, delimiter=",", skiprows=1, encoding="utf-8-sig")
+        if name == "order.csv":
+            ref = ref[:, [1, 0, 2, 3, 4, 5]]
+        np.testing.assert_array_equal(np.c_[p, n], ref[:, :6])
+        q, m, _ = js.read_points(path)
+        np.testing.assert_array_equal(np.c_[q, m], ref[:, :6])
+        assert read_points_with_rows(path, rows=False)[3] is None
+    assert receiver_rows(tmp_path / "plain.csv") is not None and receiver_rows(tmp_path / "order.csv") is None
+
+
 # --------------------------------------------------------------------------------------
 # The compiled reader and writer (jaxshadow._io._csvc) against NumPy's parser and Python's formatting
 # --------------------------------------------------------------------------------------

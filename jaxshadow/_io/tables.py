@@ -52,17 +52,28 @@ def read_points(path: str | os.PathLike, at: str = "vertices", *,
         print(points.shape, mesh)
         ```
     """
+    p, n, mesh, _ = read_points_with_rows(path, at, weld=weld, rows=False)
+    return p, n, mesh
+
+
+def read_points_with_rows(path: str | os.PathLike, at: str = "vertices", *, weld: float | None = 0.0,
+                          rows: bool = True) -> tuple[np.ndarray, np.ndarray, ReceiverMesh | None,
+                                                      bytes | bytearray | None]:
+    """`read_points(path, at, weld=weld)` and, with `rows`, `receiver_rows(path)` from the same
+    read of the file (the `irradiance` command's CSV -> CSV route): `(points, normals, mesh,
+    rows)`, `rows` `None` unless the file is a plain points CSV (see `receiver_rows`)."""
     path = os.fspath(path)
     ext = extension(path)
     if ext in MESH_EXTS:
         mesh = read_mesh(path, weld=weld)
         p, n = mesh.receivers(at)
-        return p, n, mesh
+        return p, n, mesh, None
     if ext not in TABLE_EXTS:
         raise ValueError(f"{path}: unknown points format {ext or '(no extension)'!r} "
                          f"(expected one of {', '.join(TABLE_EXTS + MESH_EXTS)}).")
     if not os.path.isfile(path):
         raise FileNotFoundError(f"{path}: no such file.")
+    text: bytes | bytearray | None = None
     if ext == ".npy":
         a = np.load(path, allow_pickle=False)
         if a.ndim != 2 or a.shape[1] != 6:
@@ -77,14 +88,14 @@ def read_points(path: str | os.PathLike, at: str = "vertices", *,
         if p.ndim != 2 or p.shape[1] != 3 or n.shape != p.shape:
             raise ValueError(f"{path}: 'points' and 'normals' must both be (N, 3), got {p.shape} and {n.shape}.")
     else:
-        table = read_csv(path, POINT_COLUMNS)
+        table, text = _read_csv(path, POINT_COLUMNS, rows)
         p, n = table[:, :3], table[:, 3:]
     p, n = np.asarray(p, np.float64), np.asarray(n, np.float64)
     if p.shape[0] == 0:
         raise ValueError(f"{path}: no points.")
     if not (np.isfinite(p).all() and np.isfinite(n).all()):
         raise ValueError(f"{path}: points and normals must be finite.")
-    return p, n, None
+    return p, n, None, text
 
 
 def read_csv(path: str | os.PathLike, columns: tuple[str, ...]) -> np.ndarray:
@@ -103,6 +114,13 @@ def read_csv(path: str | os.PathLike, columns: tuple[str, ...]) -> np.ndarray:
     is not known). Blank lines are skipped; rows count from 1 after the header, blank lines not
     counted.
     """
+    return _read_csv(path, columns, False)[0]
+
+
+def _read_csv(path: str | os.PathLike, columns: tuple[str, ...],
+              rows: bool) -> tuple[np.ndarray, bytes | bytearray | None]:
+    """`read_csv(path, columns)`, and with `rows` the file's `receiver_rows` from the same read
+    (else `None`)."""
     path = os.fspath(path)
     with open(path, encoding="utf-8-sig", newline="") as fh:
         head = fh.readline()
@@ -123,30 +141,32 @@ def read_csv(path: str | os.PathLike, columns: tuple[str, ...]) -> np.ndarray:
         idx = [header.index(c) for c in columns]
         body_at = fh.tell()
         ext = _csvc()
+        keep = rows and _points_header(head)  # the rows are wanted as text too: the bytes are read
         # With every column used, loadtxt of the whole table checks the field counts itself.
-        body = None if len(header) == len(columns) and ext is None else _body_bytes(path, head)
+        body = None if len(header) == len(columns) and ext is None and not keep else _body_bytes(path, head)
         if body is not None and ext is not None:
             table = _parse_body(ext, body, len(header), idx)
             if table is not None:
-                return table
-            body = None if len(header) == len(columns) else body
+                return table, (_uniform_rows(body, len(header)) if keep else None)
+            body = None if len(header) == len(columns) and not keep else body
         body = None if body is None else _uniform_rows(body, len(header))
+        text = body if keep else None
         if body is not None:
             try:
                 table = _loadtxt(io.BytesIO(body), usecols=idx)
             except ValueError:
                 pass  # a non-numeric field: the slow route names its row
             else:
-                return table.reshape(-1, len(columns))
+                return table.reshape(-1, len(columns)), text
         try:
             # Every column at once: loadtxt itself refuses rows whose field count changes.
             table = _loadtxt(fh)
         except ValueError:
             table = None
         if table is not None and table.size == 0:
-            return np.empty((0, len(columns)))
+            return np.empty((0, len(columns))), text
         if table is not None and table.shape[1] == len(header):
-            return table[:, idx]
+            return table[:, idx], text
         # A text column the caller ignores, or a bad row: find the row, then read the columns used.
         fh.seek(body_at)
         for i, row in enumerate((r for r in csv.reader(fh) if r), 1):
@@ -158,7 +178,7 @@ def read_csv(path: str | os.PathLike, columns: tuple[str, ...]) -> np.ndarray:
                 raise ValueError(f"{path}: row {i} has a non-numeric value in {columns}: {row}.") from None
         fh.seek(body_at)
         table = _loadtxt(fh, usecols=idx)
-    return table.reshape(-1, len(columns))
+    return table.reshape(-1, len(columns)), text
 
 
 def _body_bytes(path: str, head: str) -> bytearray | None:
@@ -320,10 +340,16 @@ def receiver_rows(path: str | os.PathLike) -> bytes | bytearray | None:
         head = fh.readline()
         while head and not head.strip():
             head = fh.readline()
-    if '"' in head or tuple(h.strip() for h in head.split(",")) != POINT_COLUMNS:
+    if not _points_header(head):
         return None
     body = _body_bytes(path, head)
     return None if body is None else _uniform_rows(body, len(POINT_COLUMNS))
+
+
+def _points_header(head: str) -> bool:
+    """Whether the CSV header line `head` is exactly `px,py,pz,nx,ny,nz` (spaces around the names
+    allowed, no quote): the rows under it can stand for an output table's receiver columns."""
+    return '"' not in head and tuple(h.strip() for h in head.split(",")) == POINT_COLUMNS
 
 
 def write_values_beside_rows(path: str | os.PathLike, rows: bytes | bytearray, values: Any) -> None:
