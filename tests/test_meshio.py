@@ -501,13 +501,19 @@ def test_points_and_their_rows_come_from_one_read(tmp_path, monkeypatch, csv_rou
              "order.csv": "py,px,pz,nx,ny,nz\n" + body,
              "extra.csv": "px,py,pz,nx,ny,nz,label\n" + body.replace("\n", ",7\n"),
              "blank.csv": "px,py,pz,nx,ny,nz\n" + body.replace("\n", "\n\n", 1)}
+    real = _tables._body_bytes
+    calls: list = []
+
+    def counted(*a):
+        calls.append(a)
+        return real(*a)
+
     for name, text in cases.items():
         path = tmp_path / name
         path.write_text(text, newline="")
         want_rows = receiver_rows(path)
-        calls = []
-        real = _tables._body_bytes
-        monkeypatch.setattr(_tables, "_body_bytes", lambda *a: calls.append(a) or real(*a))
+        calls.clear()
+        monkeypatch.setattr(_tables, "_body_bytes", counted)
         p, n, mesh, rows = read_points_with_rows(path)
         monkeypatch.setattr(_tables, "_body_bytes", real)
         assert len(calls) <= 1, name  # the rows' bytes are read once, for the table and the text
