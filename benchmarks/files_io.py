@@ -91,8 +91,8 @@ def _cli(args: list[str], hide_csvc: bool = False) -> tuple[float, float]:
 
 def tables(n: int, folder: str) -> dict:
     import jaxshadow as js
-    from jaxshadow._io import meshio
-    from jaxshadow._io.meshio import (
+    from jaxshadow._io import tables as tables_io
+    from jaxshadow._io.tables import (
         POINT_COLUMNS,
         receiver_rows,
         write_csv_table,
@@ -106,17 +106,17 @@ def tables(n: int, folder: str) -> dict:
     with open(csv_in, "w", newline="") as fh:  # a points CSV: the six receiver columns, float64
         write_csv_table(fh, list(POINT_COLUMNS), [p, nrm])
     np.save(npy_in, np.c_[p, nrm])
-    out: dict[str, Any] = {"n": n, "csvc_built": meshio._csvc() is not None}
+    out: dict[str, Any] = {"n": n, "csvc_built": tables_io._csvc() is not None}
     out["read_csv_s"] = _best(lambda: js.read_points(csv_in), 2)
-    compiled = meshio._csvc
+    compiled = tables_io._csvc
 
     def python_route(fn: Any) -> Any:
         def run() -> None:
-            meshio._csvc = lambda: None  # type: ignore[assignment]
+            tables_io._csvc = lambda: None  # type: ignore[assignment]
             try:
                 fn()
             finally:
-                meshio._csvc = compiled  # type: ignore[assignment]
+                tables_io._csvc = compiled  # type: ignore[assignment]
         return run
 
     out["read_csv_python_s"] = _best(python_route(lambda: js.read_points(csv_in)), 2)

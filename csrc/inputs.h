@@ -53,9 +53,6 @@ Occluders<double> occ_double(int64_t K, const OccluderInputs& o, std::vector<dou
                           o.face_closed, o.S, o.solid_faces, o.solid_edge_off, o.solid_edges);
 }
 
-// The polygon plan on inputs of type T (the function `benchmarks/engine_profile.py` counts the
-// instructions of: not inlined). Points decoded for float32 inputs are returned as float32.
-
 }  // namespace jaxshadow_binding
 
 #endif  // JAXSHADOW_INPUTS_H_

@@ -51,7 +51,8 @@
 //   HAS_FFI, JAXLIB_VERSION              whether the FFI handlers were compiled, and the jaxlib
 //                                        whose headers they were compiled against.
 // Both bindings read the occluders through one struct and dispatch on the float type once
-// (`inputs.h`); only this file includes Python's headers. Plain C++17; IEEE arithmetic without
+// (`inputs.h`), and each binding's entry points share one prologue (here `parse_host` and
+// `with_host_inputs`; `with_inputs` in `ffi.h`); only this file includes Python's headers. Plain C++17; IEEE arithmetic without
 // contraction into fused multiply-adds (setup.py passes -ffp-contract=off), so that the decisions
 // round as NumPy's do. With JAXSHADOW_FFI (setup.py defines it, and JAXSHADOW_JAXLIB_VERSION,
 // when jaxlib's XLA FFI headers are found) the handlers are compiled; otherwise `ffi_handlers()`
@@ -60,6 +61,7 @@
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 
+#include <deque>
 #include <initializer_list>
 #include <type_traits>
 
@@ -73,35 +75,6 @@ using namespace jaxshadow_binding;  // NOLINT: this file only binds the engine t
 using jaxshadow_abi::kAbiVersion;
 
 namespace {
-
-template <class T>
-__attribute__((noinline)) int poly_plan_any(int64_t N, const void* P, const void* Nrm, int64_t K, const void* E,
-                                            const OccluderInputs& o, int threads, int32_t* cls, int32_t* stats,
-                                            int64_t* offsets, int32_t** runs, void** points, int64_t* nruns,
-                                            double* lambert) {
-  std::vector<double> sf, sp, sn, se;
-  const Occluders<double> occ = occ_double<T>(K, o, sf);
-  double* pts = nullptr;
-  int rc = poly_plan<double>(N, as_double<T>(P, size_t(3 * N), sp), as_double<T>(Nrm, size_t(3 * N), sn), K,
-                             as_double<T>(E, size_t(3 * K), se), occ, threads, cls, stats, offsets, runs,
-                             points ? &pts : nullptr, nruns, lambert);
-  if (points && pts) {
-    if (std::is_same<T, double>::value) {
-      *points = pts;
-    } else {
-      const int64_t m = 6 * std::max<int64_t>(*nruns, 1);
-      T* out = static_cast<T*>(std::malloc(sizeof(T) * m));
-      if (!out) {
-        std::free(pts);
-        return 2;
-      }
-      for (int64_t i = 0; i < 6 * *nruns; i++) out[i] = T(pts[i]);
-      std::free(pts);
-      *points = out;
-    }
-  }
-  return rc;
-}
 
 // ----------------------------------------------------------------------------------------------
 // Python: results that own their memory, inputs read through the buffer protocol
@@ -274,6 +247,122 @@ bool parse_occluders(PyObject* obj, OccluderViews& ov, char* dt) {
 
 Py_ssize_t float_size(char dt) { return dt == 'd' ? 8 : 4; }
 
+// ----------------------------------------------------------------------------------------------
+// The prologue every host entry point shares (as `with_inputs` is the FFI handlers')
+// ----------------------------------------------------------------------------------------------
+
+constexpr int64_t kOnePerPoint = -1;  // a row array with one row per point
+constexpr int64_t kAnyRows = -2;      // a row array of any length (a light's vertices)
+
+// A further input of a host entry point: rows of 3 coordinates in the call's float type, `rows`
+// of them (a count, `kOnePerPoint` or `kAnyRows`).
+struct RowsSpec {
+  PyObject* obj;
+  const char* what;
+  int64_t rows;
+};
+
+// A host call's arguments, checked and held as buffers for the call (`parse_host`): the occluders
+// (their faces set the call's float type `dt`), the points (N, 3), and up to two further row
+// arrays (`RowsSpec`) in that type.
+struct HostArgs {
+  OccluderViews occ;
+  View points, more[2];
+  int64_t n = 0, nmore[2] = {0, 0};
+  char dt = 0;
+};
+
+bool parse_host(PyObject* occluders, PyObject* points, std::initializer_list<RowsSpec> more, HostArgs& a) {
+  if (more.size() > 2) {
+    PyErr_SetString(PyExc_SystemError, "jaxshadow engine: at most two row arrays besides the points");
+    return false;
+  }
+  if (!parse_occluders(occluders, a.occ, &a.dt) || !rows3(points, a.points, "points", a.dt, &a.n)) return false;
+  int k = 0;
+  for (const RowsSpec& s : more) {
+    if (!rows3(s.obj, a.more[k], s.what, a.dt, &a.nmore[k])) return false;
+    if (s.rows == kOnePerPoint && a.nmore[k] != a.n) {
+      PyErr_Format(PyExc_ValueError, "jaxshadow engine: points and %s differ in length", s.what);
+      return false;
+    }
+    if (s.rows >= 0 && a.nmore[k] != s.rows) {
+      PyErr_Format(PyExc_ValueError, "jaxshadow engine: %s must have %d coordinates", s.what, int(3 * s.rows));
+      return false;
+    }
+    k++;
+  }
+  return true;
+}
+
+// A host call's inputs as the engine reads them, T the call's float type: the points, the further
+// row arrays (in `parse_host`'s order) and the occluders (K light vertices before the face refs),
+// converted to double when asked for (`as_double`: no copy for float64), held as long as this is.
+template <class T>
+class HostInputs {
+ public:
+  using Float = T;
+  explicit HostInputs(const HostArgs& a) : a_(a) {}
+  int64_t N() const { return a_.n; }
+  int64_t count(int k) const { return a_.nmore[k]; }
+  const double* points() { return convert(a_.points); }
+  const double* rows(int k) { return convert(a_.more[k]); }
+  Occluders<double> occluders(int64_t K = 0) {
+    store_.emplace_back();
+    return occ_double<T>(K, a_.occ.in, store_.back());
+  }
+
+ private:
+  const double* convert(const View& v) {
+    store_.emplace_back();
+    return as_double<T>(v.b.buf, size_t(v.size()), store_.back());
+  }
+  const HostArgs& a_;
+  std::deque<std::vector<double>> store_;  // converted inputs (a deque: earlier ones never move)
+};
+
+// The float32 / float64 dispatch of a host call with its inputs: `body(HostInputs<T>&)`. Called
+// with the GIL released (nothing here touches a Python object).
+template <class F>
+auto with_host_inputs(const HostArgs& a, F&& body) {
+  return by_float(a.dt == 'd', [&](auto zero) {
+    HostInputs<decltype(zero)> in(a);
+    return body(in);
+  });
+}
+
+// The polygon plan on inputs of type T (the function `benchmarks/engine_profile.py` counts the
+// instructions of: not inlined; the inputs are converted to double in here). Points decoded for
+// float32 inputs are returned as float32.
+template <class In>
+__attribute__((noinline)) int poly_plan_any(In& in, int threads, int32_t* cls, int32_t* stats,
+                                            int64_t* offsets, int32_t** runs, void** points, int64_t* nruns,
+                                            double* lambert) {
+  using T = typename In::Float;
+  const double* P = in.points();
+  const double* Nrm = in.rows(0);
+  const double* E = in.rows(1);
+  const int64_t K = in.count(1);
+  double* pts = nullptr;
+  int rc = poly_plan<double>(in.N(), P, Nrm, K, E, in.occluders(K), threads, cls, stats, offsets, runs,
+                             points ? &pts : nullptr, nruns, lambert);
+  if (points && pts) {
+    if (std::is_same<T, double>::value) {
+      *points = pts;
+    } else {
+      const int64_t m = 6 * std::max<int64_t>(*nruns, 1);
+      T* out = static_cast<T*>(std::malloc(sizeof(T) * m));
+      if (!out) {
+        std::free(pts);
+        return 2;
+      }
+      for (int64_t i = 0; i < 6 * *nruns; i++) out[i] = T(pts[i]);
+      std::free(pts);
+      *points = out;
+    }
+  }
+  return rc;
+}
+
 const char kPolyPlanDoc[] =
     "poly_plan(points, normals, light, occluders, threads, codes, decoded, lambert)\n--\n\n"
     "The polygon plan: points, normals (N, 3), light (K, 3) in the faces' float type. Returns "
@@ -285,17 +374,10 @@ PyObject* py_poly_plan(PyObject*, PyObject* args) {
   int threads, codes, decoded, lambert;
   if (!PyArg_ParseTuple(args, "OOOOippp:poly_plan", &po, &no, &lo, &oo, &threads, &codes, &decoded, &lambert))
     return nullptr;
-  OccluderViews ov;
-  View p, n, l;
-  char dt = 0;
-  int64_t N = 0, Nn = 0, K = 0;
-  if (!parse_occluders(oo, ov, &dt) || !rows3(po, p, "points", dt, &N) || !rows3(no, n, "normals", dt, &Nn) ||
-      !rows3(lo, l, "light", dt, &K))
-    return nullptr;
-  if (Nn != N) {
-    PyErr_SetString(PyExc_ValueError, "jaxshadow engine: points and normals differ in length");
-    return nullptr;
-  }
+  HostArgs h;
+  if (!parse_host(oo, po, {{no, "normals", kOnePerPoint}, {lo, "light", kAnyRows}}, h)) return nullptr;
+  const int64_t N = h.n;
+  const char dt = h.dt;
   int32_t *cls, *stats;
   int64_t* off;
   double* lam = nullptr;
@@ -314,10 +396,8 @@ PyObject* py_poly_plan(PyObject*, PyObject* args) {
   int64_t nr = 0;
   int rc;
   Py_BEGIN_ALLOW_THREADS
-  rc = by_float(dt == 'd', [&](auto zero) {
-    using T = decltype(zero);
-    return poly_plan_any<T>(N, p.b.buf, n.b.buf, K, l.b.buf, ov.in, threads, cls, stats, off, codes ? &runs : nullptr,
-                            decoded ? &pts : nullptr, &nr, lam);
+  rc = with_host_inputs(h, [&](auto& in) {
+    return poly_plan_any(in, threads, cls, stats, off, codes ? &runs : nullptr, decoded ? &pts : nullptr, &nr, lam);
   });
   Py_END_ALLOW_THREADS
   PyObject* runs_o = nullptr;
@@ -353,25 +433,15 @@ PyObject* py_hard_plan(PyObject*, PyObject* args) {
   PyObject *po, *xo, *oo;
   int is_point, threads;
   if (!PyArg_ParseTuple(args, "OOpOi:hard_plan", &po, &xo, &is_point, &oo, &threads)) return nullptr;
-  OccluderViews ov;
-  View p, x;
-  char dt = 0;
-  int64_t N = 0, one = 0;
-  if (!parse_occluders(oo, ov, &dt) || !rows3(po, p, "points", dt, &N) || !rows3(xo, x, "x", dt, &one)) return nullptr;
-  if (one != 1) {
-    PyErr_SetString(PyExc_ValueError, "jaxshadow engine: x must have 3 coordinates");
-    return nullptr;
-  }
+  HostArgs h;
+  if (!parse_host(oo, po, {{xo, "x", 1}}, h)) return nullptr;
+  const int64_t N = h.n;
   uint8_t* vis;
   PyObject* vis_o = zeros('?', {N}, &vis);
   if (!vis_o) return nullptr;
   Py_BEGIN_ALLOW_THREADS
-  by_float(dt == 'd', [&](auto zero) {
-    using T = decltype(zero);
-    std::vector<double> sf, sp, sx;
-    const Occluders<double> occ = occ_double<T>(0, ov.in, sf);
-    return hard_plan<double>(N, as_double<T>(p.b.buf, size_t(3 * N), sp), as_double<T>(x.b.buf, 3, sx), is_point,
-                             occ, threads, vis);
+  with_host_inputs(h, [&](auto& in) {
+    return hard_plan<double>(N, in.points(), in.rows(0), is_point, in.occluders(), threads, vis);
   });
   Py_END_ALLOW_THREADS
   return vis_o;
@@ -386,29 +456,17 @@ PyObject* py_segment_plan(PyObject*, PyObject* args) {
   PyObject *po, *ao, *bo, *oo;
   int threads;
   if (!PyArg_ParseTuple(args, "OOOOi:segment_plan", &po, &ao, &bo, &oo, &threads)) return nullptr;
-  OccluderViews ov;
-  View p, a, b;
-  char dt = 0;
-  int64_t N = 0, na = 0, nb = 0;
-  if (!parse_occluders(oo, ov, &dt) || !rows3(po, p, "points", dt, &N) || !rows3(ao, a, "a", dt, &na) ||
-      !rows3(bo, b, "b", dt, &nb))
-    return nullptr;
-  if (na != 1 || nb != 1) {
-    PyErr_SetString(PyExc_ValueError, "jaxshadow engine: a and b must have 3 coordinates");
-    return nullptr;
-  }
+  HostArgs h;
+  if (!parse_host(oo, po, {{ao, "a", 1}, {bo, "b", 1}}, h)) return nullptr;
+  const int64_t N = h.n;
   int64_t* off;
   PyObject* off_o = zeros('q', {N + 1}, &off);
   if (!off_o) return nullptr;
   int32_t* faces = nullptr;
   int rc;
   Py_BEGIN_ALLOW_THREADS
-  rc = by_float(dt == 'd', [&](auto zero) {
-    using T = decltype(zero);
-    std::vector<double> sf, sp, sa, sb;
-    const Occluders<double> occ = occ_double<T>(0, ov.in, sf);
-    return segment_plan<double>(N, as_double<T>(p.b.buf, size_t(3 * N), sp), as_double<T>(a.b.buf, 3, sa),
-                                as_double<T>(b.b.buf, 3, sb), occ, threads, off, &faces);
+  rc = with_host_inputs(h, [&](auto& in) {
+    return segment_plan<double>(N, in.points(), in.rows(0), in.rows(1), in.occluders(), threads, off, &faces);
   });
   Py_END_ALLOW_THREADS
   if (rc) {

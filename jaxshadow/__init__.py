@@ -15,10 +15,10 @@ from ._illumination.bake import bake as bake
 from ._illumination.mesh import IlluminationMesh as IlluminationMesh
 from ._illumination.mesh import illumination_mesh as illumination_mesh
 from ._io.meshio import read_mesh as read_mesh
-from ._io.meshio import read_points as read_points
 from ._io.meshio import write_mesh as write_mesh
 from ._io.meshio import write_ply as write_ply
-from ._io.meshio import write_values as write_values
+from ._io.tables import read_points as read_points
+from ._io.tables import write_values as write_values
 from ._kernels.clip import visible_form_factor as visible_form_factor
 from ._kernels.linear import linear_irradiance as linear_irradiance
 from ._kernels.polygon import form_factor as form_factor

@@ -147,6 +147,14 @@ def test_host_inputs_are_checked_before_the_engine_reads_them():
         lib.hard_plan(p, verts[0], True, (args[0], args[1].astype(np.int64), *args[2:]), 1)
     with pytest.raises(TypeError, match="tuple"):
         lib.segment_plan(p, verts[0], verts[2], list(args), 1)
+    with pytest.raises(ValueError, match="x must have 3 coordinates"):
+        lib.hard_plan(p, verts[:2], True, args, 1)
+    with pytest.raises(ValueError, match="b must have 3 coordinates"):
+        lib.segment_plan(p, verts[0], verts[:2], args, 1)
+    with pytest.raises(TypeError, match="light must be float64"):
+        lib.poly_plan(p, n, verts.astype(np.float32), args, 1, True, False, False)
+    with pytest.raises(ValueError, match="rows of 3"):
+        lib.segment_plan(p, verts[0].ravel()[:2].copy(), verts[2], args, 1)
     with pytest.raises(ValueError, match="64 vertices"):
         many = np.c_[np.cos(np.linspace(0, 2 * np.pi, 70, endpoint=False)),
                      np.sin(np.linspace(0, 2 * np.pi, 70, endpoint=False)), np.full(70, 2.0)][::-1].copy()

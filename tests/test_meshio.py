@@ -1,4 +1,4 @@
-"""Meshes and point tables in and out (`jaxshadow._io.meshio`, through trimesh), and per-receiver
+"""Meshes and point tables in and out (`jaxshadow._io.meshio` through trimesh, `jaxshadow._io.tables`), and per-receiver
 materials (`Material` fields of shape (N, 3)).
 
 Receiver tables at array speed (the section at the end): the CSV reader's fast route (a
@@ -17,24 +17,19 @@ import pytest
 import jaxshadow as js
 
 trimesh = pytest.importorskip("trimesh")
-from jaxshadow._io import meshio as _meshio  # noqa: E402
-from jaxshadow._io.meshio import (  # noqa: E402
-    POINT_COLUMNS,
-    read_csv,
-    read_ply_values,
-    tonemap,
-    write_csv_table,
-)
+from jaxshadow._io import tables as _tables  # noqa: E402
+from jaxshadow._io.meshio import read_ply_values, tonemap  # noqa: E402
+from jaxshadow._io.tables import POINT_COLUMNS, read_csv, write_csv_table  # noqa: E402
 
 
 @pytest.fixture(params=["compiled", "python"])
 def csv_route(request, monkeypatch):
     """Run a CSV test through the compiled reader/writer, then with it hidden (the Python route)."""
     if request.param == "compiled":
-        if _meshio._csvc() is None:
+        if _tables._csvc() is None:
             pytest.skip("jaxshadow._io._csvc is not built")
     else:
-        monkeypatch.setattr(_meshio, "_csvc", lambda: None)
+        monkeypatch.setattr(_tables, "_csvc", lambda: None)
     return request.param
 
 
@@ -297,10 +292,10 @@ def test_one_ply_property_naming_for_irradiance(tmp_path):
 def test_csv_values_round_trip_exactly_in_their_own_precision(tmp_path):
     # float64 columns come back bit for bit as float64, float32 columns bit for bit as float32
     # (parsed by NumPy's own reader, not by the code under test), across several write blocks.
-    from jaxshadow._io import meshio as _meshio
+    from jaxshadow._io import tables as _tables
 
     rng = np.random.default_rng(3)
-    n = 2 * _meshio.CSV_BLOCK_ROWS + 17
+    n = 2 * _tables.CSV_BLOCK_ROWS + 17
     p64 = rng.normal(size=(n, 3)) * 10.0 ** rng.integers(-12, 12, (n, 1))
     n64 = rng.normal(size=(n, 3))
     v32 = (rng.normal(size=(n, 3)) * 10.0 ** rng.integers(-30, 30, (n, 1))).astype(np.float32)
@@ -353,14 +348,14 @@ def _table_text(rng, n, header, newline="\n"):
 def test_fast_route_reads_named_columns_exactly(tmp_path, monkeypatch, newline):
     # Columns in another order, two ignored columns, several check blocks, a BOM: exactly what
     # NumPy reads from the whole table, and the fast route is the one taken.
-    monkeypatch.setattr(_meshio, "CSV_CHECK_BYTES", 4096)
+    monkeypatch.setattr(_tables, "CSV_CHECK_BYTES", 4096)
     rng = np.random.default_rng(5)
     header = ["w", "nz", "px", "ny", "pz", "u", "nx", "py"]
     text = _table_text(rng, 3000, header, newline)
     path = tmp_path / "t.csv"
     path.write_bytes(b"\xef\xbb\xbf" + text.encode())
     body = text.encode().split(newline.encode(), 1)[1]
-    assert _meshio._uniform_rows(body, len(header)) is not None
+    assert _tables._uniform_rows(body, len(header)) is not None
     np.testing.assert_array_equal(read_csv(path, POINT_COLUMNS), _reference_columns(text, POINT_COLUMNS))
     p, n, _ = js.read_points(path)
     np.testing.assert_array_equal(np.c_[p, n], _reference_columns(text, POINT_COLUMNS))
@@ -370,7 +365,7 @@ def test_fast_route_reads_named_columns_exactly(tmp_path, monkeypatch, newline):
 def test_text_in_an_ignored_column_is_read_on_the_fast_route(tmp_path):
     text = "label,px,py,pz,nx,ny,nz\nfloor,1,2,3,0,0,1\nwall,4,5,6,1,0,0\n"
     (tmp_path / "t.csv").write_text(text)
-    assert _meshio._uniform_rows(text.encode().split(b"\n", 1)[1], 7) is not None
+    assert _tables._uniform_rows(text.encode().split(b"\n", 1)[1], 7) is not None
     np.testing.assert_array_equal(read_csv(tmp_path / "t.csv", POINT_COLUMNS),
                                   [[1, 2, 3, 0, 0, 1], [4, 5, 6, 1, 0, 0]])
 
@@ -384,7 +379,7 @@ def test_text_in_an_ignored_column_is_read_on_the_fast_route(tmp_path):
 ])
 @pytest.mark.usefixtures("csv_route")
 def test_a_bad_row_deep_in_the_file_is_named(tmp_path, monkeypatch, bad, message):
-    monkeypatch.setattr(_meshio, "CSV_CHECK_BYTES", 512)
+    monkeypatch.setattr(_tables, "CSV_CHECK_BYTES", 512)
     rows = ["1,2,3,0,0,1,7"] * 3000
     rows[1234] = bad
     (tmp_path / "bad.csv").write_text("px,py,pz,nx,ny,nz,w\n" + "\n".join(rows) + "\n")
@@ -410,7 +405,7 @@ def _per_value_text(header, table, fmts):
 def test_constant_columns_are_written_as_each_value_would_be(monkeypatch):
     # A column constant in one block and varying in the next, -0.0 beside 0.0 (bit for bit
     # different), NaN and infinities in constant columns, float64 and float32 side by side.
-    monkeypatch.setattr(_meshio, "CSV_BLOCK_ROWS", 64)
+    monkeypatch.setattr(_tables, "CSV_BLOCK_ROWS", 64)
     rng = np.random.default_rng(7)
     n = 64 * 3 + 5
     a64 = np.zeros((n, 4))
@@ -435,7 +430,7 @@ def test_constant_columns_are_written_as_each_value_would_be(monkeypatch):
 def test_written_receivers_round_trip_through_the_reader(tmp_path):
     # The CLI's case: float32 points, normals and values, a plane's height and one normal.
     rng = np.random.default_rng(8)
-    n = 2 * _meshio.CSV_BLOCK_ROWS + 3
+    n = 2 * _tables.CSV_BLOCK_ROWS + 3
     p = np.c_[rng.uniform(-1, 1, (n, 2)), np.full(n, 0.25)].astype(np.float32)
     nrm = np.tile(np.float32([0, 0, 1]), (n, 1))
     v = (rng.uniform(0, 5, (n, 3)) * 10.0 ** rng.integers(-30, 30, (n, 1))).astype(np.float32)
@@ -461,7 +456,7 @@ def test_receiver_rows_only_for_plain_point_tables(tmp_path, monkeypatch):
     """`receiver_rows` gives a points CSV's rows as text only when they can stand for the output's
     receiver columns as they are (header exactly px..nz in order, six fields, no quote, no blank
     line); `write_values_beside_rows` refuses a row count that is not the value count."""
-    from jaxshadow._io.meshio import receiver_rows, write_values_beside_rows
+    from jaxshadow._io.tables import receiver_rows, write_values_beside_rows
 
     body = "0.5,0.25,0,0,0,1\n1e-3, 2 ,0,0,0,1\n"
     cases = {"plain.csv": ("px,py,pz,nx,ny,nz\n" + body, body.encode()),
@@ -484,11 +479,53 @@ def test_receiver_rows_only_for_plain_point_tables(tmp_path, monkeypatch):
     vals = np.random.default_rng(0).uniform(size=(10, 3)).astype(np.float32)
     write_values_beside_rows(out, rows, vals)
     whole = out.read_text()
-    monkeypatch.setattr(_meshio, "CSV_BLOCK_ROWS", 3)
+    monkeypatch.setattr(_tables, "CSV_BLOCK_ROWS", 3)
     write_values_beside_rows(out, rows, vals)
     assert out.read_text() == whole and whole.count("\n") == 11
     got = np.loadtxt(out, delimiter=",", skiprows=1)
     np.testing.assert_array_equal(got[:, 6:].astype(np.float32), vals)
+
+
+def test_points_and_their_rows_come_from_one_read(tmp_path, monkeypatch, csv_route):
+    """`read_points_with_rows` (the `irradiance` command's CSV -> CSV input) gives
+    `read_points`' receivers and `receiver_rows`' text, reading the file's rows once; the
+    receivers are NumPy's parse of the file, not the reader's."""
+    from jaxshadow._io.tables import read_points_with_rows, receiver_rows
+
+    rng = np.random.default_rng(21)
+    table = np.c_[rng.normal(size=(7, 3)), np.tile([0.0, 0.0, 1.0], (7, 1))]
+    lines = [",".join(repr(float(x)) for x in row) for row in table]
+    body = "\n".join(lines) + "\n"
+    cases = {"plain.csv": "px,py,pz,nx,ny,nz\n" + body,
+             "spaced_crlf.csv": "\ufeff px, py ,pz,nx,ny,nz\r\n" + body.replace(",", " , ").replace("\n", "\r\n"),
+             "order.csv": "py,px,pz,nx,ny,nz\n" + body,
+             "extra.csv": "px,py,pz,nx,ny,nz,label\n" + body.replace("\n", ",7\n"),
+             "blank.csv": "px,py,pz,nx,ny,nz\n" + body.replace("\n", "\n\n", 1)}
+    real = _tables._body_bytes
+    calls: list = []
+
+    def counted(*a):
+        calls.append(a)
+        return real(*a)
+
+    for name, text in cases.items():
+        path = tmp_path / name
+        path.write_text(text, newline="")
+        want_rows = receiver_rows(path)
+        calls.clear()
+        monkeypatch.setattr(_tables, "_body_bytes", counted)
+        p, n, mesh, rows = read_points_with_rows(path)
+        monkeypatch.setattr(_tables, "_body_bytes", real)
+        assert len(calls) <= 1, name  # the rows' bytes are read once, for the table and the text
+        assert rows == want_rows and mesh is None, name
+        ref = np.loadtxt(path, delimiter=",", skiprows=1, encoding="utf-8-sig")
+        if name == "order.csv":
+            ref = ref[:, [1, 0, 2, 3, 4, 5]]
+        np.testing.assert_array_equal(np.c_[p, n], ref[:, :6])
+        q, m, _ = js.read_points(path)
+        np.testing.assert_array_equal(np.c_[q, m], ref[:, :6])
+        assert read_points_with_rows(path, rows=False)[3] is None
+    assert receiver_rows(tmp_path / "plain.csv") is not None and receiver_rows(tmp_path / "order.csv") is None
 
 
 # --------------------------------------------------------------------------------------
@@ -496,7 +533,7 @@ def test_receiver_rows_only_for_plain_point_tables(tmp_path, monkeypatch):
 # --------------------------------------------------------------------------------------
 
 def _ext():
-    ext = _meshio._csvc()
+    ext = _tables._csvc()
     if ext is None:
         pytest.skip("jaxshadow._io._csvc is not built")
     return ext
@@ -602,7 +639,7 @@ def test_compiled_writer_writes_python_s_text(tmp_path, monkeypatch):
     # Both kinds of column, every awkward value, blocks that end mid-table: byte for byte the
     # text of Python's own per-value formatting, and of the Python route.
     _ext()
-    monkeypatch.setattr(_meshio, "CSV_BLOCK_ROWS", 50)
+    monkeypatch.setattr(_tables, "CSV_BLOCK_ROWS", 50)
     rng = np.random.default_rng(12)
     a64 = _awkward_values(rng, 173)
     with np.errstate(over="ignore"):
@@ -613,7 +650,7 @@ def test_compiled_writer_writes_python_s_text(tmp_path, monkeypatch):
     write_csv_table(buf, header, [a64, a32])
     want = _per_value_text(header, np.concatenate([a64, a32.astype(np.float64)], axis=1), ["%r"] * 3 + ["%.9g"] * 3)
     assert buf.getvalue() == want
-    monkeypatch.setattr(_meshio, "_csvc", lambda: None)
+    monkeypatch.setattr(_tables, "_csvc", lambda: None)
     slow = io.StringIO()
     write_csv_table(slow, header, [a64, a32])
     assert slow.getvalue() == want
@@ -621,17 +658,17 @@ def test_compiled_writer_writes_python_s_text(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_compiled_writer_beside_rows_writes_the_python_route_s_bytes(tmp_path, monkeypatch, dtype):
-    from jaxshadow._io.meshio import write_values_beside_rows
+    from jaxshadow._io.tables import write_values_beside_rows
 
     _ext()
-    monkeypatch.setattr(_meshio, "CSV_BLOCK_ROWS", 40)
+    monkeypatch.setattr(_tables, "CSV_BLOCK_ROWS", 40)
     rng = np.random.default_rng(13)
     n = 101
     rows = "".join(f"{rng.normal()!r}, {i} ,0,-0,0,+1e0\n" for i in range(n)).encode()
     with np.errstate(over="ignore"):
         vals = _awkward_values(rng, n).astype(dtype)
     write_values_beside_rows(tmp_path / "c.csv", rows, vals)
-    monkeypatch.setattr(_meshio, "_csvc", lambda: None)
+    monkeypatch.setattr(_tables, "_csvc", lambda: None)
     write_values_beside_rows(tmp_path / "p.csv", rows, vals)
     fmt = "%.9g" if dtype == np.float32 else "%r"
     want = "px,py,pz,nx,ny,nz,r,g,b\n" + "".join(
@@ -651,14 +688,14 @@ class Block:
 
 sys.meta_path.insert(0, Block())
 import jaxshadow as js
-from jaxshadow._io import meshio
-assert meshio._csvc() is None and "jaxshadow._io._csvc" not in sys.modules
+from jaxshadow._io import tables
+assert tables._csvc() is None and "jaxshadow._io._csvc" not in sys.modules
 folder = sys.argv[1]
 p = np.array([[0.5, 0.25, 0.0], [1e-3, 2.0, -0.0]]); n = np.array([[0.0, 0.0, 1.0]] * 2)
 js.write_values(folder + "/v.csv", np.float32([[1, 2, 3], [0.1, 0.2, 0.3]]), points=p, normals=n)
 q, m, _ = js.read_points(folder + "/v.csv")
 assert (q == p).all() and (m == n).all()
-rows = meshio.receiver_rows(folder + "/v.csv")
+rows = tables.receiver_rows(folder + "/v.csv")
 assert rows is None  # nine columns: not a points table's rows
 print(open(folder + "/v.csv").read(), end="")
 """

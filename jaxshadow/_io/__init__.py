@@ -1,2 +1,2 @@
-"""Files in and out: meshes, receiver points and value tables (`meshio`), Mitsuba 3 scenes
+"""Files in and out: meshes (`meshio`), receiver points and value tables (`tables`), Mitsuba 3 scenes
 (`mitsuba_io`)."""

@@ -58,12 +58,16 @@ def edge_planes(p: Array, a: Array, b: Array) -> Array:
     form's is at most twice that, smaller by $|b - a|$ over the farther endpoint's distance: a
     1.5 cm face seen from 5.6 m at a grazing angle lost 400 eps of its plane, and the crossing of
     two such planes, a boundary vertex, 1e-10 of its distance). The engine's `edge_plane`
-    (`csrc/engine/geometry.h`) and `jaxshadow._shadows.binding.edge_planes` compute the same."""
+    (`csrc/engine/geometry.h`) computes the same; the host path's decoder
+    (`jaxshadow._shadows.binding.decode_endpoints`) calls this one."""
     swap = _lex_less(b, a)
     lo = jnp.where(swap[..., None], b, a)
     hi = jnp.where(swap[..., None], a, b)
-    p = jnp.broadcast_to(p, lo.shape)
-    rl, rh = lo - p, hi - p
+    # `p` given unit axes by each difference on its own: in the gradient each difference's
+    # cotangent is reduced over the edges and reaches `p` as a term of its own (one
+    # `broadcast_to` shared by both would add them first: other roundings in float64).
+    lead = (None,) * (lo.ndim - 1)
+    rl, rh = lo - p[lead], hi - p[lead]
     near = jnp.where((jnp.sum(rh * rh, axis=-1) < jnp.sum(rl * rl, axis=-1))[..., None], rh, rl)
     c = rescale_rows(jnp.cross(rescale_rows(hi - lo), rescale_rows(near)))
     return jnp.where(swap[..., None], -c, c)

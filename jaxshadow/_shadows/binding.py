@@ -44,6 +44,7 @@ from jaxtyping import Array, Float, Int
 from .._core.geometry import newell_normal
 from .._core.mesh import OccluderTopology
 from .._kernels.planes import crossing_point as _crossing_point
+from .._kernels.planes import edge_planes as edge_planes
 from .._kernels.planes import pow2_scale as _pow2_scale
 from .._kernels.planes import project as _project
 from .._kernels.planes import rescale_rows as _rescale_rows
@@ -265,26 +266,6 @@ def face_frames(faces: Float[Array, "m ko 3"]) -> tuple[Array, Array]:
     vertex: what the emitter-plane cut planes of `decode_endpoints` need, computed once a call."""
     first = faces[:, 0]
     return jax.vmap(newell_normal)(faces - first[:, None, :]), first
-
-
-def _lex_less(a: Array, b: Array) -> Array:
-    return (a[..., 0] < b[..., 0]) | ((a[..., 0] == b[..., 0]) & ((a[..., 1] < b[..., 1]) | (
-        (a[..., 1] == b[..., 1]) & (a[..., 2] < b[..., 2]))))
-
-
-def edge_planes(p: Float[Array, "3"], a: Float[Array, "e 3"], b: Float[Array, "e 3"]) -> Float[Array, "e 3"]:
-    """Planes through `p` and the edges `a -> b`, `(b - p) x (a - p)` up to a positive factor (order
-    one), as `(hi - lo) x (x - p)` with `x` the endpoint nearer `p` (no cancellation for a short edge
-    far from `p`), from the endpoints in lexicographic order `lo`, `hi` so that one edge gives bit-identical
-    normals (up to an exact sign) whatever face it comes from and whichever way it runs (the
-    engine's `edge_plane`; coincident boundary lines are then recognised exactly)."""
-    swap = _lex_less(b, a)
-    lo = jnp.where(swap[..., None], b, a)
-    hi = jnp.where(swap[..., None], a, b)
-    rl, rh = lo - p[None, :], hi - p[None, :]
-    near = jnp.where((jnp.sum(rh * rh, axis=-1) < jnp.sum(rl * rl, axis=-1))[..., None], rh, rl)
-    c = _rescale_rows(jnp.cross(_rescale_rows(hi - lo), _rescale_rows(near)))
-    return jnp.where(swap[..., None], -c, c)
 
 
 def decode_endpoints(

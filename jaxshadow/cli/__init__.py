@@ -179,15 +179,8 @@ def cmd_irradiance(args: argparse.Namespace) -> int:
     check_input(args.scene, SCENE_EXTS, "scene")
     check_input(args.points, POINT_EXTS, "points")
     check_output(args.output, VALUE_EXTS)
-    from .._io.meshio import (
-        IRRADIANCE_PROPERTY,
-        MESH_EXTS,
-        extension,
-        read_points,
-        receiver_rows,
-        write_values,
-        write_values_beside_rows,
-    )
+    from .._io.meshio import IRRADIANCE_PROPERTY, MESH_EXTS, extension
+    from .._io.tables import read_points_with_rows, write_values, write_values_beside_rows
 
     if extension(args.output) == ".ply" and extension(args.points) not in MESH_EXTS:
         raise ValueError(f"output {args.output!r}: a .ply output needs mesh receivers (points from a mesh file).")
@@ -198,7 +191,11 @@ def cmd_irradiance(args: argparse.Namespace) -> int:
     import jaxshadow as js
 
     scene = read_scene(args.scene)[0]
-    pts, nrm, mesh = read_points(args.points, at=args.at, weld=args.weld)
+    # CSV to CSV: the receiver columns are the input's rows as written (exact, and half the
+    # formatting), taken from the same read of the file; any other input (or a CSV that needs the
+    # csv module) gets them formatted.
+    pts, nrm, mesh, rows = read_points_with_rows(args.points, at=args.at, weld=args.weld,
+                                                 rows=extension(args.output) == ".csv")
     if mesh is not None and mesh.n_welded:
         _say(args)(f"{args.points}: {mesh.n_welded} duplicate vertices welded (--weld {args.weld:g})")
     dt = np.float64 if args.float64 else np.float32
@@ -219,9 +216,6 @@ def cmd_irradiance(args: argparse.Namespace) -> int:
         out[s:e] = np.asarray(js.irradiance(scene, pp, nn))[: e - s]
         bar.update(e - s)
     bar.close()
-    # CSV to CSV: the receiver columns are the input's rows as written (exact, and half the
-    # formatting); any other input (or a CSV that needs the csv module) gets them formatted.
-    rows = receiver_rows(args.points) if extension(args.output) == ".csv" else None
     if rows is not None and rows.count(b"\n") == n:
         write_values_beside_rows(args.output, rows, out)
     else:
