@@ -1,4 +1,4 @@
-"""Speed of the inverse solvers: compile time, time per solve, 64 vectorised starts.
+"""Speed of the inverse solvers: compile time, time per solve, 64 vectorised starts, whole fits.
 
 Targets (issue 5): compile <= 5 s, <= 200 ms per solve after compilation, 64 starts <= 2 s with
 <= 8 occluders. Light placement (position, orientation, size: 8 parameters) on the demo
@@ -9,7 +9,15 @@ every receiver against every occluder (`combinatorics="device"`) instead of the 
 without and with the persistent compilation cache. Then the material fit on 20 points with the
 roughness searched and fixed.
 
-    python -m benchmarks inverse_speed [--quick]     # ~15 min on 2 shared cores
+Whole fits (issue 40: one light + material <= 10 s, three lights <= 30 s, compilation
+included): `fit_speed_study` times `inverse.fit_light_and_material` (the demo's quad light 30 %
+away, one box, 40 targets) and `inverse.fit_lights` (quad + point + segment light 30 % away, a
+box, 60 targets, global placement) in fresh processes: compile time, the first fit's wall and
+CPU time, a second fit in the same process (another scene of the same shapes), and a fresh
+process with JAX's persistent compilation cache warm; the load is recorded with every fit.
+
+    python -m benchmarks inverse_speed [--quick]     # ~15 min on 2 shared cores; quick: whole fits only
+    python -m benchmarks.inverse_speed ab NAME base=/tmp/base this=.   # whole fits, A/B of checkouts
 """
 
 from __future__ import annotations
@@ -153,13 +161,157 @@ def joint_study() -> dict:
     return out
 
 
+# The fit-speed study (issue 40): a case is fitted twice in one process (two scenes of the same
+# shapes), in a fresh process whose persistent compilation cache it fills, then in another fresh
+# process that finds the cache warm.
+FIT_CASES = ("one light + material", "three lights")
+
+
+def _counters() -> dict:
+    """Seconds JAX spent compiling (XLA backend compile + lowering to MLIR) and tracing, the number
+    of XLA backend compilations, and the persistent cache's hits, from `jax.monitoring`."""
+    acc = {"compile_s": 0.0, "trace_s": 0.0, "compiles": 0, "cache_hits": 0}
+
+    def duration(event: str, secs: float, **_: object) -> None:
+        if event == "/jax/core/compile/backend_compile_duration":
+            acc["compile_s"] += secs
+            acc["compiles"] += 1
+        elif event == "/jax/core/compile/jaxpr_to_mlir_module_duration":
+            acc["compile_s"] += secs
+        elif event == "/jax/core/compile/jaxpr_trace_duration":
+            acc["trace_s"] += secs
+
+    def count(event: str, **_: object) -> None:
+        if event == "/jax/compilation_cache/cache_hits":
+            acc["cache_hits"] += 1
+
+    jax.monitoring.register_event_duration_secs_listener(duration)
+    jax.monitoring.register_event_listener(count)
+    return acc
+
+
+def _fit_case(case: str, seed: int):
+    """One fit of `case` on scene `seed`: the problem is built (and its targets painted) before the
+    clock starts. One light + material: the demo's quad light 30 % of the scene away with one box
+    occluder, 40 targets, `inverse.fit_light_and_material` from a wrong material. Three lights: a
+    quad, a point and a segment light over a floor with a box (`inverse_random_scenes.random_case`,
+    60 targets painted by `js.shade`), every light 30 % of the scene away at 0.5-2x its power,
+    `inverse.fit_lights(..., fit=position, orientation, power)` with its defaults (global
+    placement). Returns the fit, a function returning the largest light position error / scene size."""
+    import jaxshadow as js
+
+    from .inverse_random_scenes import light_errors, random_case, shifted_start
+
+    if case == "one light + material":
+        cfg = demo_configuration(occluders=True, n_points=40, seed=seed)
+        col = js.shade(cfg.scene, cfg.material, cfg.points, cfg.normals, cfg.eye)
+        tg = inverse.PaintedTargets(cfg.points, cfg.normals, np.asarray(col), cfg.eye)
+        guess = _material_guess(cfg.material)
+        size = inverse.scene_size(cfg.scene, tg)
+
+        def fit():
+            f = inverse.fit_light_and_material(cfg.start_scene, tg, guess)
+            return pose_errors(np.asarray(f.scene.lights[0].vertices),
+                               np.asarray(cfg.scene.lights[0].vertices))["position"] / size
+    elif case == "three lights":
+        c = random_case(seed, ("polygon", "point", "segment"))
+        col = np.asarray(js.shade(c.true, c.material, c.points, c.normals, c.eye), np.float64)
+        tg = inverse.PaintedTargets(c.points, c.normals, col, c.eye)
+        size = inverse.scene_size(c.true, tg)
+        start = shifted_start(c.true, 0.3 * size, seed)
+        noise = 1e-4 * float(np.sqrt(np.mean(col ** 2)))  # noise-free targets: exact to rounding
+
+        def fit():
+            f = inverse.fit_lights(start, tg, c.material, warn=False, noise=noise)
+            return max(light_errors(a, b)[0] for a, b in zip(f.lights, c.true.lights, strict=True)) / size
+    else:
+        raise ValueError(f"unknown case {case!r}")
+    return fit
+
+
+def _speed_child(case: str, cache_dir: str, calls: int) -> None:
+    """In a fresh process: `calls` fits of `case` (scene seeds 0, 1, ...), each with its wall and
+    CPU time (`time.process_time`, all threads of this process), compile and trace seconds, XLA
+    compilations and persistent-cache hits; printed as JSON. `cache_dir`: JAX's persistent
+    compilation cache there, every program cached ("" none)."""
+    if cache_dir:
+        from jaxshadow.cli import enable_compile_cache
+
+        enable_compile_cache(cache_dir, min_compile_s=0.0)
+    acc = _counters()
+    out = []
+    for seed in range(calls):
+        fit = _fit_case(case, seed)
+        before = dict(acc)
+        w0, c0 = time.perf_counter(), time.process_time()
+        err = fit()
+        out.append({"seed": seed, "wall_s": time.perf_counter() - w0, "cpu_s": time.process_time() - c0,
+                    **{k: acc[k] - before[k] for k in acc}, "position_err_of_scene": float(err),
+                    "load": os.getloadavg()[0]})
+    print(json.dumps({"calls": out}))
+
+
+def _speed_process(case: str, cache_dir: str, calls: int, tree: str = "") -> dict:
+    """`_speed_child` in a fresh process, on the checkout `tree` (default this one)."""
+    import subprocess
+
+    root = tree or os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ, PYTHONPATH=root)
+    r = subprocess.run([sys.executable, "-m", "benchmarks.inverse_speed", "speed", case, cache_dir, str(calls)],
+                       capture_output=True, text=True, check=True, cwd=root, env=env)
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def fit_speed_study(cases: tuple[str, ...] = FIT_CASES, trees: dict[str, str] | None = None) -> dict:
+    """Per case (`FIT_CASES`): a fresh process fitting two scenes (the first fit compiles; the
+    second shows what the first one's programs save) while it fills an empty persistent
+    compilation cache, then a fresh process fitting the first scene with that cache warm. Loads
+    recorded per fit. `trees`: label -> checkout to run the children on (default: this one,
+    labelled "this"), alternated within each case (an A/B on a shared machine)."""
+    import tempfile
+
+    trees = trees or {"this": ""}
+    out: dict = {}
+    for case in cases:
+        for label, tree in trees.items():
+            with tempfile.TemporaryDirectory() as d:
+                cold = _speed_process(case, d, 2, tree)["calls"]
+                warm = _speed_process(case, d, 1, tree)["calls"]
+            key = case if len(trees) == 1 else f"{case} [{label}]"
+            out[key] = {"first": cold[0], "second": cold[1], "warm_cache_process": warm[0]}
+            for k, r in out[key].items():
+                print(f"{key:30s} {k:20s} wall {r['wall_s']:6.1f} s  cpu {r['cpu_s']:6.1f} s  compile "
+                      f"{r['compile_s']:6.1f} s ({r['compiles']} programs, {r['cache_hits']} cache hits)  "
+                      f"error {r['position_err_of_scene']:.1e}  load {r['load']:.1f}", flush=True)
+    return out
+
+
+def fit_speed_markdown(study: dict) -> str:
+    """The table of `fit_speed_study`."""
+    lines = ["| case | fit | wall (s) | CPU (s) | compiling (s) | tracing (s) | XLA compilations | persistent "
+             "cache hits | position error / scene | load |", "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    labels = {"first": "first in a process (cache empty)", "second": "second in that process (another scene)",
+              "warm_cache_process": "first in a fresh process, cache warm"}
+    for case, r in study.items():
+        for k, label in labels.items():
+            c = r[k]
+            lines.append(f"| {case} | {label} | {c['wall_s']:.1f} | {c['cpu_s']:.1f} | {c['compile_s']:.1f} | "
+                         f"{c['trace_s']:.1f} | {c['compiles']} | {c['cache_hits']} | "
+                         f"{c['position_err_of_scene']:.1e} | {c['load']:.1f} |")
+    return "\n".join(lines) + "\n"
+
+
 def run(quick: bool) -> dict:
     jax.config.update("jax_enable_x64", True)
     from inverse._lm import FIT_COMPILER_OPTIONS
 
-    occluders, repeats = ([1], 1) if quick else ([1, 8], 3)
     results = {"fit_compiler_options": dict(FIT_COMPILER_OPTIONS), "backend": jax.default_backend(), "targets": 48,
                "dtype": "float64", "light": {}}
+    results["fit_speed"] = fit_speed_study()
+    results["fit_speed_targets_s"] = {"one light + material": 10.0, "three lights": 30.0}
+    if quick:  # the fit-speed study alone
+        return results
+    occluders, repeats = [1, 8], 3
     # (solver, starts, refine, repeats, every receiver against every occluder)
     cases = [("lm", 1, None, repeats, False), ("lm", 64, 8, repeats, False)]
     if not quick:
@@ -211,7 +363,14 @@ def markdown(results):
 
 
 def key_numbers(results: dict) -> list[tuple[str, str]]:
+    rows = []
+    for case, r in results.get("fit_speed", {}).items():
+        rows.append((f"{case} fit (`inverse_speed`): first in a process / second / fresh process, warm cache",
+                     " / ".join(f"{r[k]['wall_s']:.1f} s ({r[k]['cpu_s']:.1f} s CPU)"
+                                for k in ("first", "second", "warm_cache_process")) + f", load {r['first']['load']:.0f}"))
     light = results["light"]
+    if not light:
+        return rows
     occ = sorted({r["occluders"] for r in light.values() if "solver" in r})
 
     def cell(key: str) -> str:
@@ -223,10 +382,12 @@ def key_numbers(results: dict) -> list[tuple[str, str]]:
     which = " / ".join(str(n) for n in occ)
     return [(f"light placement (8 parameters, 48 targets), `inverse.LM()`, {which} occluders: compile + solve",
              f"1 start {cell('starts=1')}; 64 starts screened to 8 (default) {cell('starts=64/refine=8')}; "
-             f"a fresh process's first call {first}")]
+             f"a fresh process's first call {first}"), *rows]
 
 
 def _markdown(results):
+    if not results["light"]:
+        return _fit_speed_section(results)
     lines = [
         "float64, 48 targets, 8 light parameters; fit programs compiled with "
         f"{results.get('fit_compiler_options') or 'XLA defaults'}.",
@@ -261,7 +422,17 @@ def _markdown(results):
                          f"{r['cold_process_first_call_s']:.1f} s, {r['warm_cache_process_first_call_s']:.1f} s with "
                          "a warm persistent compilation cache (`jaxshadow.cli.enable_compile_cache`, on by default "
                          "in the `jaxshadow` command).")
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines) + "\n" + ("\n" + _fit_speed_section(results) if "fit_speed" in results else "")
+
+
+def _fit_speed_section(results: dict) -> str:
+    if "fit_speed" not in results:
+        return ""
+    t = results.get("fit_speed_targets_s", {})
+    return ("Whole fits (`fit_speed_study`; targets: one light + material <= "
+            f"{t.get('one light + material', 10):.0f} s, three lights <= {t.get('three lights', 30):.0f} s "
+            "including compilation, on 2 quiet cores). CPU: `time.process_time` of the process (all its "
+            "threads); the machine is shared, so the load is recorded.\n\n" + fit_speed_markdown(results["fit_speed"]))
 
 
 if __name__ == "__main__":
@@ -270,5 +441,21 @@ if __name__ == "__main__":
     jax.config.update("jax_enable_x64", True)
     if sys.argv[1] == "joint":
         _joint_child(sys.argv[2] if len(sys.argv) > 2 else "")
+    elif sys.argv[1] == "speed":
+        _speed_child(sys.argv[2], sys.argv[3], int(sys.argv[4]))
+    elif sys.argv[1] == "ab":
+        # ab NAME LABEL=TREE ...: `fit_speed_study` alternating between checkouts ("" or "." this
+        # one), written to results/ab/NAME.json and NAME.md.
+        from ._suite import RESULTS, meta, write_json, write_text
+
+        trees = dict(a.split("=", 1) for a in sys.argv[3:])
+        trees = {k: "" if v in ("", ".") else os.path.abspath(v) for k, v in trees.items()}
+        study = fit_speed_study(FIT_CASES, trees)
+        info = meta("inverse_speed", False)
+        info["command"] = "python -m benchmarks.inverse_speed " + " ".join(sys.argv[1:])
+        write_json(RESULTS / "ab" / f"{sys.argv[2]}.json", {"benchmark": sys.argv[2], "meta": info,
+                                                             "results": study})
+        write_text(RESULTS / "ab" / f"{sys.argv[2]}.md", f"`{info['command']}` (commit {info.get('commit')}, "
+                   f"{info.get('date')}, {info.get('machine')}).\n\n" + fit_speed_markdown(study))
     else:
         _child(int(sys.argv[1]), sys.argv[2])

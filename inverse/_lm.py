@@ -137,7 +137,7 @@ def batched_levenberg_marquardt(
     atol: float,
     max_steps: int | Array,
     lambda0: float = 1e-3,
-    prune: tuple[int, ...] = (),
+    prune: tuple[int, ...] | Int[Array, " K"] = (),
     chunk: int | None = None,
     num_residuals: int | None = None,
     jacobian: str = "linearize",
@@ -155,7 +155,8 @@ def batched_levenberg_marquardt(
       program serves any count: 0 only evaluates the starts, `LMResult.initial_losses`);
       `lambda0`: initial damping relative to the scaling.
     - `prune`: iterations at which the worse half of the running starts is abandoned (module
-      docstring); `chunk`: evaluate the starts this many at a time, skipping finished ones
+      docstring): a tuple (static), or an int32 array padded with -1 (`prune_array`: one
+      compiled program serves every schedule of that length); `chunk`: evaluate the starts this many at a time, skipping finished ones
       (None: all at once).
     - `num_residuals`: the length M of `r`, when the caller knows it (static int). Without
       it the residual is traced once more (`jax.eval_shape`) just to learn M; with the
@@ -236,7 +237,10 @@ def batched_levenberg_marquardt(
         r, J, flag = jax.lax.map(one, (ys_o.reshape(n_chunks, chunk, P), jnp.any(need_o.reshape(n_chunks, chunk), axis=1)))
         return (r.reshape(-1, M)[:S][inv], J.reshape(-1, M, P)[:S][inv], flag.reshape(-1)[:S][inv])
 
-    prune_at = jnp.asarray(sorted(set(int(i) for i in prune)) or [-1], jnp.int32)
+    if isinstance(prune, (tuple, list)):
+        prune_at = jnp.asarray(sorted(set(int(i) for i in prune)) or [-1], jnp.int32)
+    else:  # an int32 array (traced: one program for any schedule), padded with -1
+        prune_at = jnp.asarray(prune, jnp.int32).reshape(-1)
 
     def cond(state: tuple) -> Array:
         it, done = state[0], state[8]
@@ -290,7 +294,7 @@ def batched_levenberg_marquardt(
         done = done | (newly & live)
         flag = flag | jnp.any(flag_t & live)
         # Successive halving: keep the better half (rounded up) of the starts still running.
-        if prune and S > 1:  # static: no sorting in the program otherwise
+        if len(prune) and S > 1:  # static: no sorting in the program otherwise
             running = ~done
             n_run = jnp.sum(running.astype(jnp.int32))
             rank = jnp.argsort(jnp.argsort(jnp.where(running, f, jnp.inf), stable=True), stable=True)
@@ -317,6 +321,22 @@ def batched_levenberg_marquardt(
     )
     _, y, r, J, f, f0, _, _, _, ok, steps, _, flag, gone = jax.lax.while_loop(cond, body, state)
     return LMResult(y, f, ok, steps, r, J, f0, flag, gone)
+
+
+# The length `prune_array` pads a successive-halving schedule to.
+PRUNE_SLOTS = 8
+
+
+def prune_array(prune: tuple[int, ...]) -> Any:
+    """`prune` (iterations, at most `PRUNE_SLOTS`) as `batched_levenberg_marquardt`'s traced
+    schedule: an int32 NumPy array of `PRUNE_SLOTS` entries padded with -1, so that the schedule
+    is an input of the compiled program and not part of its signature."""
+    import numpy as np
+
+    it = sorted(set(int(i) for i in prune))
+    if len(it) > PRUNE_SLOTS:
+        raise ValueError(f"prune_array: at most {PRUNE_SLOTS} pruning iterations, got {len(it)}.")
+    return np.asarray(it + [-1] * (PRUNE_SLOTS - len(it)), np.int32)
 
 
 def duplicate_sources(rows: Any) -> Any:

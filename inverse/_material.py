@@ -19,7 +19,6 @@ import math
 import warnings
 from typing import Any, no_type_check
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -29,6 +28,7 @@ import jaxshadow as js
 
 from ._forward import SpecularFn, traced_specular
 from ._identifiability import identifiability
+from ._lm import fit_jit
 from ._reports import MaterialFit, MaterialReport, UndeterminedParameterWarning
 from ._targets import PaintedTargets
 
@@ -136,17 +136,22 @@ def _np(x: Any) -> np.ndarray:
     return np.asarray(x, dtype=np.float64)
 
 
-@eqx.filter_jit
-def _spec_eval(specular: Any, scene: Any, targets: PaintedTargets, exponents: Array) -> Array:
-    t = targets
-    return jax.vmap(lambda e: specular(scene, t.points, t.normals, t.eye, e))(exponents)
+# Exponents per call of `_spec_eval`: the grid search and the single evaluations of the
+# golden-section search and the standard errors all run one compiled program of this batch.
+SPEC_CHUNK = 8
 
 
-@eqx.filter_jit
-def _spec_dlogn(specular: Any, scene: Any, targets: PaintedTargets, exponent: Array) -> Array:
+@fit_jit
+def _spec_eval(specular: Any, scene: Any, targets: PaintedTargets, exponents: Array) -> tuple[Array, Array]:
+    """`(S(n), n dS/dn)` at each of `exponents (SPEC_CHUNK,)`: one program for values and
+    derivatives (the derivative's program holds the value's)."""
     t = targets
-    f = lambda x: specular(scene, t.points, t.normals, t.eye, x)  # noqa: E731
-    return jax.jvp(f, (exponent,), (exponent,))[1]  # d/dlog n = n d/dn
+
+    def one(e: Array) -> tuple[Array, Array]:
+        f = lambda x: specular(scene, t.points, t.normals, t.eye, x)  # noqa: E731
+        return jax.jvp(f, (e,), (e,))  # d/dlog n = n d/dn
+
+    return jax.vmap(one)(exponents)
 
 
 class _Basis:
@@ -157,24 +162,31 @@ class _Basis:
         n = len(targets)
         self.ambient = np.broadcast_to(_np(scene.ambient), (n, 3)).copy()
         self.diffuse = _np(js.irradiance(scene, targets.points, targets.normals)) / np.pi
-        self._cache: dict[float, np.ndarray] = {}
+        self._cache: dict[float, tuple[np.ndarray, np.ndarray]] = {}
 
     def spec(self, exponent: float) -> np.ndarray:
         key = float(exponent)
         if key not in self._cache:
             self.spec_many(np.array([key]))
-        return self._cache[key]
+        return self._cache[key][0]
 
     def spec_many(self, exponents: np.ndarray) -> np.ndarray:
-        es = jnp.asarray(exponents, dtype=self.targets.points.dtype)
-        out = _np(_spec_eval(self.specular, self.scene, self.targets, es))
-        for e, s in zip(exponents, out, strict=True):
-            self._cache[float(e)] = s
-        return out
+        """`S(n)` at each exponent, `SPEC_CHUNK` at a time (the last chunk padded)."""
+        exponents = np.asarray(exponents, np.float64)
+        k = -(-len(exponents) // SPEC_CHUNK) * SPEC_CHUNK
+        padded = np.concatenate([exponents, np.repeat(exponents[-1:], k - len(exponents))])
+        for i in range(0, k, SPEC_CHUNK):
+            es = jnp.asarray(padded[i: i + SPEC_CHUNK], dtype=self.targets.points.dtype)
+            val, der = _spec_eval(self.specular, self.scene, self.targets, es)
+            for e, v, d in zip(padded[i: i + SPEC_CHUNK], _np(val), _np(der), strict=True):
+                self._cache.setdefault(float(e), (v, d))
+        return np.stack([self._cache[float(e)][0] for e in exponents])
 
     def dspec_dlogn(self, exponent: float) -> np.ndarray:
-        e = jnp.asarray(exponent, dtype=self.targets.points.dtype)
-        return _np(_spec_dlogn(self.specular, self.scene, self.targets, e))
+        key = float(exponent)
+        if key not in self._cache:
+            self.spec_many(np.array([key]))
+        return self._cache[key][1]
 
     def design(self, c: int, s: np.ndarray | None) -> np.ndarray:
         spec = np.zeros(len(self.ambient)) if s is None else s[:, c]

@@ -32,7 +32,7 @@ from jaxtyping import Array
 import jaxshadow as js
 
 from ._forward import SpecularFn, at_capacity, irradiance_culled, specular_culled
-from ._lm import LMResult, batched_levenberg_marquardt, duplicate_sources, fit_jit
+from ._lm import LMResult, batched_levenberg_marquardt, duplicate_sources, fit_jit, prune_array
 from ._painting import painted_rows
 from ._residuals import pinned
 from ._targets import PaintedTargets
@@ -326,7 +326,7 @@ def build_lights(problem: LightsProblem, theta: Array) -> list[Any]:
 
 
 def _lm_impl(problem: LightsProblem, starts: Array, base: Array, mask: Array, rtol: float, atol: float,
-             max_steps: Array, prune: tuple[int, ...], chunk: int | None, mirror: Array) -> LMResult:
+             max_steps: Array, prune: Array, chunk: int | None, mirror: Array) -> LMResult:
     """Batched LM (`_lm`) on the projected residual, searching only where `mask` (the other
     parameters held at `base`): one program serves each light's multistart and the joint
     refinement. `mirror`: `duplicate_sources` of the starts (a repeated start is solved once)."""
@@ -349,10 +349,11 @@ def solve(problem: LightsProblem, starts: np.ndarray, base: np.ndarray, mask: np
     it (exact). Returns `(result, problem used, retries)`."""
     dt = problem.targets.points.dtype
     mirror = jnp.asarray(duplicate_sources(np.asarray(starts, dt)))
+    sched = prune_array(prune)  # traced: every stage's schedule runs the same program
 
     def run(pr: LightsProblem) -> tuple[LMResult, Any]:
         res = _lm(pr, jnp.asarray(starts, dt), jnp.asarray(base, dt), jnp.asarray(mask), rtol, atol,
-                  np.asarray(max_steps, np.int32), prune, 1, mirror)
+                  np.asarray(max_steps, np.int32), sched, 1, mirror)
         return res, res.flag
 
     return at_capacity(run, problem, "fit_lights", "solve")

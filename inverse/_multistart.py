@@ -22,6 +22,19 @@ from ._parametrisation import LightParametrisation
 from ._residuals import LightProblem, residuals_culled
 from ._targets import PaintedTargets
 
+# The smallest shadow capacity a light fit compiles for (`capacity_bucket`).
+MIN_CAPACITY = 8
+
+
+def capacity_bucket(need: int) -> int:
+    """The shadow capacity a light fit's program is compiled for when receivers need `need`
+    boundary edges: the next power of two, at least `MIN_CAPACITY`. The capacity is a static
+    field of the program (`LightProblem.capacity`, `LightsProblem.capacity`); coarse buckets let
+    scenes that need 13, 14 or 16 edges share one compiled program (a second fit in a process,
+    or a fresh process with JAX's persistent compilation cache, compiles nothing) at most twice
+    the engine's work per receiver."""
+    return max(MIN_CAPACITY, 1 << max(int(need) - 1, 0).bit_length())
+
 
 def make_starts(param: LightParametrisation, starts: int, *, search_radius: float, orientation_spread: float,
                 size_spread: float, seed: int, dtype: Any) -> Array:
@@ -98,14 +111,15 @@ def culling_capacity_for_starts(param: LightParametrisation, scene: js.Scene, ta
     """The shadow engine's capacity for a solve from `starts`: the most boundary edges (candidate
     faces for a segment light) any receiver needs with the light at any start or from the other
     lights (`jaxshadow.traced.shadow_capacity`, on the host), with room for the light to move:
-    `max(8, ceil(1.25 * most) + 4)`. None without occluders. A receiver that needs more during
-    the solve raises the overflow flag and the `LM` solves again with twice the capacity."""
+    `ceil(1.25 * most) + 4`, rounded up by `capacity_bucket`. None without occluders. A receiver
+    that needs more during the solve raises the overflow flag and the `LM` solves again with twice
+    the capacity."""
     if scene.occluders is None:
         return None
     others = [light for i, light in enumerate(scene.lights) if i != param.light_index]
     most = traced.shadow_capacity(scene, targets.points, targets.normals,
                                   lights=[*start_lights(param, starts), *others])
-    return max(8, -(-5 * most // 4) + 4)
+    return capacity_bucket(-(-5 * most // 4) + 4)
 
 
 @fit_jit
