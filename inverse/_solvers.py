@@ -5,7 +5,10 @@ first screening them down to the `refine` best when there are more, and returns 
 the solved starts, the best one, the residual and its Jacobian there (for the report), and the
 light it builds.
 
-- `LM` (the default): the Levenberg-Marquardt of `_lm.py`, written for this batch: one
+- `LM` (the default): the Levenberg-Marquardt of `_lm.py`, written for this batch (on
+  `fit_lights`' problem, `_multilight.LightsProblem`, through `fit_lights`' own screening and
+  program, `_multilight.screen` and `solve`; on a `_residuals.LightProblem` through
+  `_multistart_lm` below): one
   forward-mode Jacobian per iteration for all starts, with the shadow engine inside the
   compiled program (`jaxshadow.traced`: each receiver's visible region from its candidate
   occluders only, at a static capacity of boundary edges chosen from the starting lights; if
@@ -37,6 +40,7 @@ from jaxshadow import ShadowOptions
 
 from ._forward import at_capacity
 from ._lm import LMResult, batched_levenberg_marquardt, fit_jit
+from ._multilight import LightsProblem, build_lights, screen, solve
 from ._multistart import (
     best_starts,
     culling_capacity_for_starts,
@@ -77,7 +81,7 @@ class Solution:
     initial_loss: float
     retries: int
     exact_residual: bool
-    problem: LightProblem
+    problem: LightsProblem | LightProblem
 
 
 class AbstractLightSolver(eqx.Module):
@@ -150,7 +154,9 @@ class LM(AbstractLightSolver):
             return self.combinatorics == "host"
         return ShadowOptions().use_engine()
 
-    def minimise(self, problem: LightProblem, starts: Array) -> Solution:
+    def minimise(self, problem: LightsProblem | LightProblem, starts: Array) -> Solution:
+        if isinstance(problem, LightsProblem):
+            return self._minimise_lights(problem, starts)
         p = problem.param
         n_solved = int(self.refine) if self._screens(starts.shape[0]) else int(starts.shape[0])
         sched = prune_schedule(n_solved, self.max_steps) if self.prune else ()
@@ -173,6 +179,36 @@ class LM(AbstractLightSolver):
         # On the host: eager indexing of a device array would compile a gather per leaf.
         light = jax.tree_util.tree_map(lambda x: jnp.asarray(np.asarray(x)[best]), lights)
         return Solution(np.asarray(res.values), losses, np.asarray(res.converged), np.asarray(res.num_steps),
+                        np.asarray(res.abandoned), best, np.asarray(res.residuals, np.float64)[best],
+                        np.asarray(res.jacobians, np.float64)[best], light, initial, retries, True, problem)
+
+    def _minimise_lights(self, problem: LightsProblem, starts: Array) -> Solution:
+        """`minimise` on `fit_lights`' problem (one fitted light, `problem.params[0]`): its
+        screening and its compiled solver program (`_multilight.screen`, `_multilight.solve`, every
+        parameter searched from the starts), each retried at twice the shadow capacity on overflow."""
+        param = problem.params[0]
+        ys = np.asarray(starts)
+        screens = self._screens(ys.shape[0])
+        n_solved = int(self.refine) if screens else int(ys.shape[0])
+        sched = prune_schedule(n_solved, self.max_steps) if self.prune else ()
+        cap = culling_capacity_for_starts(param, problem.scene, problem.targets, starts) if self.uses_engine() else None
+        problem = dataclasses.replace(problem, capacity=cap)
+        base, mask = ys[0], np.ones(ys.shape[1], bool)
+        initial, retries = None, 0
+        if screens:
+            losses, problem, retries = screen(problem, ys, base, mask, n_solved)
+            initial = float(losses[0])
+            ys = ys[best_starts(np.where(np.isfinite(losses), losses, np.inf), n_solved)]
+        res, problem, r = solve(problem, ys, base, mask, rtol=self.rtol, atol=self.atol, max_steps=self.max_steps,
+                                prune=sched)
+        retries += r
+        losses = np.asarray(res.losses, np.float64)
+        best = int(np.argmin(np.where(np.isfinite(losses), losses, np.inf)))
+        if initial is None:
+            initial = float(np.asarray(res.initial_losses)[0])
+        values = np.asarray(res.values)
+        light = build_lights(problem, jnp.asarray(values[best], ys.dtype))[0]
+        return Solution(values, losses, np.asarray(res.converged), np.asarray(res.num_steps),
                         np.asarray(res.abandoned), best, np.asarray(res.residuals, np.float64)[best],
                         np.asarray(res.jacobians, np.float64)[best], light, initial, retries, True, problem)
 
