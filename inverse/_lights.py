@@ -8,10 +8,11 @@ problem, the starts (`_multistart`, from the `Search` options that `fit_lights` 
 The problem is `fit_lights`' (`_multilight.LightsProblem` with one fitted light, its power held,
 the other lights' contribution computed once), and the `LM` searches it with `fit_lights`'
 screening and compiled program (`_multilight.screen`, `_multilight.solve`), so one light and
-several are one search. `_residuals.LightProblem` (every light inside the program) remains for
-what `LightsProblem` does not hold yet: the `OptimistixLM` and `LBFGSB` solvers, a fitted
-exponent (`fit_exponent=True` with $k_s \ne 0$), a per-receiver material, and a projected
-material beside other lights (`_problem`).
+several are one search; `OptimistixLM` and `LBFGSB` minimise its residual too.
+`_residuals.LightProblem` (every light inside the program) remains for what `LightsProblem`
+does not hold yet: a solver of one's own (an `AbstractLightSolver` subclass), a fitted exponent
+(`fit_exponent=True` with $k_s \ne 0$), a per-receiver material, and a projected material
+beside other lights (`_problem`).
 """
 
 from __future__ import annotations
@@ -43,7 +44,15 @@ from ._options import Search, checked_constraints, search_options
 from ._parametrisation import FIT_GROUPS, LightParametrisation, scene_size, with_light
 from ._reports import LightFit, LightReport
 from ._residuals import LightProblem, projected_jit
-from ._solvers import LEGACY_SOLVER_KEYWORDS, LM, AbstractLightSolver, Solution, checked_solver
+from ._solvers import (
+    LBFGSB,
+    LEGACY_SOLVER_KEYWORDS,
+    LM,
+    AbstractLightSolver,
+    OptimistixLM,
+    Solution,
+    checked_solver,
+)
 from ._targets import PaintedTargets
 
 _POSITION_NAMES = ("x", "y", "z", "a", "b")
@@ -198,11 +207,13 @@ def _problem(solver: AbstractLightSolver, param: LightParametrisation, scene: js
              fit_n: bool) -> LightsProblem | LightProblem:
     """The problem the solver runs: `fit_lights`' (`LightsProblem`, one fitted light, its power
     held; the other lights' contribution computed once), searched by the `LM` through the same
-    compiled program as `fit_lights`. `LightProblem` (every light inside the program) for the
-    other solvers, a fitted exponent, a per-receiver material, and a projected material beside
-    other lights (`LightsProblem` would free their coefficients from the fitted light's)."""
+    compiled program as `fit_lights`; by `OptimistixLM` and `LBFGSB` on its residual.
+    `LightProblem` (every light inside the program) for a fitted exponent, a per-receiver
+    material, a projected material beside other lights (`LightsProblem` would free their
+    coefficients from the fitted light's), and a solver of one's own (an `AbstractLightSolver`
+    written for `LightProblem`)."""
     fixed = [light for k, light in enumerate(scene.lights) if k != param.light_index]
-    if (not isinstance(solver, LM) or fit_n or np.ndim(material.kd) != 1 or np.ndim(material.ka) != 1
+    if (not isinstance(solver, (LM, OptimistixLM, LBFGSB)) or fit_n or np.ndim(material.kd) != 1 or np.ndim(material.ka) != 1
             or np.ndim(material.ks) != 1 or (project and fixed)):
         return LightProblem(param, scene, material, targets, specular, with_spec, project, fit_n)
     e0, s0 = fixed_contribution(scene, targets, material, fixed, specular, with_spec)

@@ -40,7 +40,7 @@ from jaxshadow import ShadowOptions
 
 from ._forward import at_capacity
 from ._lm import LMResult, batched_levenberg_marquardt, fit_jit
-from ._multilight import LightsProblem, build_lights, screen, solve
+from ._multilight import LightsProblem, build_lights, projected_residual, screen, solve
 from ._multistart import (
     best_starts,
     culling_capacity_for_starts,
@@ -51,7 +51,6 @@ from ._residuals import (
     LightProblem,
     build_light,
     jacobian,
-    loss,
     loss_jit,
     residuals,
     residuals_culled,
@@ -238,7 +237,7 @@ class OptimistixLM(AbstractLightSolver):
     atol: float = 1e-12
     max_steps: int = 100
 
-    def minimise(self, problem: LightProblem, starts: Array) -> Solution:
+    def minimise(self, problem: LightsProblem | LightProblem, starts: Array) -> Solution:
         return _minimise_vectorised(self, problem, starts, lambda pr, y0: _multistart_optx(
             pr, y0, self.rtol, self.atol, int(self.max_steps)))
 
@@ -267,28 +266,46 @@ class LBFGSB(AbstractLightSolver):
     tol: float = 1e-12
     max_steps: int = 100
 
-    def minimise(self, problem: LightProblem, starts: Array) -> Solution:
-        lo, hi = problem.param.lbfgsb_bounds(starts.dtype)
+    def minimise(self, problem: LightsProblem | LightProblem, starts: Array) -> Solution:
+        lo, hi = _param(problem).lbfgsb_bounds(starts.dtype)
         return _minimise_vectorised(self, problem, starts, lambda pr, y0: _multistart_lbfgsb(
             pr, y0, lo, hi, self.tol, int(self.max_steps)))
 
 
-def _minimise_vectorised(solver: AbstractLightSolver, problem: LightProblem, starts: Array, run: Any) -> Solution:
-    """Screening by one vectorised loss, then `run(problem, starts) -> (values, losses,
-    converged, steps)`; the residual and Jacobian at the best by a program of their own."""
+def _param(problem: LightsProblem | LightProblem) -> Any:
+    """The fitted light's parametrisation of either problem object."""
+    return problem.params[0] if isinstance(problem, LightsProblem) else problem.param
+
+
+def _minimise_vectorised(solver: AbstractLightSolver, problem: LightsProblem | LightProblem, starts: Array,
+                         run: Any) -> Solution:
+    """Screening by one vectorised loss (`fit_lights`' screening, `_multilight.screen`, on a
+    `LightsProblem`), then `run(problem, starts) -> (values, losses, converged, steps)`; the
+    residual and Jacobian at the best by a program of their own."""
     initial = None
     if solver._screens(starts.shape[0]):
-        screen = np.asarray(screen_losses(problem, starts), np.float64)
-        starts = jnp.asarray(np.asarray(starts)[best_starts(screen, int(solver.refine))])
-        initial = float(screen[0])
+        if isinstance(problem, LightsProblem):
+            ys = np.asarray(starts)
+            screen_f = screen(problem, ys, ys[0], np.ones(ys.shape[1], bool), ys.shape[0])[0]
+            screen_f = np.where(np.isfinite(screen_f), screen_f, np.inf).astype(np.float64)
+        else:
+            screen_f = np.asarray(screen_losses(problem, starts), np.float64)
+        starts = jnp.asarray(np.asarray(starts)[best_starts(screen_f, int(solver.refine))])
+        initial = float(screen_f[0])
     values, losses, ok, steps = (np.asarray(x) for x in run(problem, starts))
     losses = losses.astype(np.float64)
     best = int(np.argmin(np.where(np.isfinite(losses), losses, np.inf)))
     theta = jnp.asarray(values[best], starts.dtype)
-    r, J = jacobian(problem, theta)
-    if initial is None:
-        initial = float(loss_jit(problem, jnp.asarray(np.asarray(starts)[0])))
-    light = build_light(problem.param, theta[: problem.param.size])
+    if isinstance(problem, LightsProblem):
+        r, J = _jacobian_lights(problem, theta)
+        if initial is None:
+            initial = float(_loss_lights(problem, jnp.asarray(np.asarray(starts)[0])))
+        light = build_lights(problem, theta)[0]
+    else:
+        r, J = jacobian(problem, theta)
+        if initial is None:
+            initial = float(loss_jit(problem, jnp.asarray(np.asarray(starts)[0])))
+        light = build_light(problem.param, theta[: problem.param.size])
     return Solution(values, losses, ok, steps, np.zeros(len(losses), bool), best, np.asarray(r, np.float64),
                     np.asarray(J, np.float64), light, initial, 0, False, problem)
 
@@ -364,6 +381,29 @@ def screen_with_lm(problem: LightProblem, starts: Array, k: int, rtol: float, at
     return np.where(np.isfinite(losses), losses, np.inf)
 
 
+def _residual(theta: Array, problem: LightsProblem | LightProblem) -> Array:
+    """The weighted residual of either problem object, every receiver against every occluder
+    (the vectorised solvers' model: no capacity)."""
+    if isinstance(problem, LightsProblem):
+        return projected_residual(theta, problem, None)[0]
+    return residuals(theta, problem)
+
+
+def _loss(theta: Array, problem: LightsProblem | LightProblem) -> Array:
+    r = _residual(theta, problem)
+    return 0.5 * jnp.sum(r * r)
+
+
+@fit_jit
+def _jacobian_lights(problem: LightsProblem, theta: Array) -> tuple[Array, Array]:
+    return _residual(theta, problem), jax.jacfwd(_residual)(theta, problem)
+
+
+@fit_jit
+def _loss_lights(problem: LightsProblem, theta: Array) -> Array:
+    return _loss(theta, problem)
+
+
 def _optimistix() -> Any:
     try:
         import optimistix
@@ -374,30 +414,30 @@ def _optimistix() -> Any:
 
 
 @fit_jit
-def _multistart_optx(problem: LightProblem, starts: Array, rtol: float, atol: float, max_steps: int) -> tuple:
+def _multistart_optx(problem: LightsProblem | LightProblem, starts: Array, rtol: float, atol: float, max_steps: int) -> tuple:
     optx = _optimistix()
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
 
     def one(y0: Array) -> tuple:
-        sol = optx.least_squares(residuals, solver, y0, args=problem, throw=False, max_steps=max_steps)
+        sol = optx.least_squares(_residual, solver, y0, args=problem, throw=False, max_steps=max_steps)
         return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
 
     values, ok, steps = jax.vmap(one)(starts)
-    losses = jax.vmap(loss, in_axes=(0, None))(values, problem)
+    losses = jax.vmap(_loss, in_axes=(0, None))(values, problem)
     return values, losses, ok, steps
 
 
 @fit_jit
-def _multistart_lbfgsb(problem: LightProblem, starts: Array, lower: Array, upper: Array, tol: float,
+def _multistart_lbfgsb(problem: LightsProblem | LightProblem, starts: Array, lower: Array, upper: Array, tol: float,
                        max_steps: int) -> tuple:
     from ._jaxopt import lbfgsb_solve
 
     def one(y0: Array) -> tuple:
-        y, _, it = lbfgsb_solve(lambda th: loss(th, problem), y0, lower, upper, max_steps, tol)
+        y, _, it = lbfgsb_solve(lambda th: _loss(th, problem), y0, lower, upper, max_steps, tol)
         return y, it
 
     values, steps = jax.vmap(one)(starts)
-    losses = jax.vmap(loss, in_axes=(0, None))(values, problem)
+    losses = jax.vmap(_loss, in_axes=(0, None))(values, problem)
     return values, losses, steps < max_steps, steps
 
 

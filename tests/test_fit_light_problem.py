@@ -52,18 +52,20 @@ def test_fit_light_runs_the_program_of_fit_lights(monkeypatch, n_lights, mode):
     assert fit.report.loss < 1e-12 * float(np.sum(np.asarray(targets.colours) ** 2))
 
 
-@pytest.mark.parametrize(("n_lights", "mode"), [(1, "fixed"), (2, "fixed"), (1, "projected")])
-def test_one_problem_same_answer(n_lights, mode):
-    """The LM from the same starts on both problem objects: the same solved parameters and losses
-    to rounding (the model's sums are ordered differently, and the fixed light is computed once
-    by the host engine instead of inside the program)."""
+@pytest.mark.parametrize(("n_lights", "mode", "solver"), [
+    (1, "fixed", inverse.LM(refine=None)), (2, "fixed", inverse.LM(refine=None)),
+    (1, "projected", inverse.LM(refine=None)), (2, "fixed", inverse.OptimistixLM(refine=2)),
+    (2, "fixed", inverse.LBFGSB(refine=2))], ids=["lm-1", "lm-2", "lm-projected", "optimistix-2", "lbfgsb-2"])
+def test_one_problem_same_answer(n_lights, mode, solver):
+    """Each solver from the same starts on both problem objects: the same solved parameters and
+    losses to rounding (the model's sums are ordered differently, and the fixed light is
+    computed once by the host engine instead of inside the program)."""
     start, targets, _ = _problem(n_lights)
     material = MATERIAL if mode == "fixed" else GUESS
     project = mode == "projected"
-    param = LightParametrisation(start.lights[0], 0, ("position",), None, scene_size(start, targets), "sigmoid")
+    param = LightParametrisation(start.lights[0], 0, ("position",), None, scene_size(start, targets), solver.box_map)
     y0 = make_starts(param, 3, search_radius=0.5, orientation_spread=0.5, size_spread=0.5, seed=0,
                      dtype=targets.points.dtype)
-    solver = inverse.LM(refine=None)
     lights = _lights._problem(solver, param, start, material, targets, None, False, project, False)
     assert isinstance(lights, _multilight.LightsProblem)
     a = solver.minimise(lights, y0)
