@@ -58,6 +58,7 @@ SUITE: tuple[str, ...] = (
     "projective_gradient",
     "fit_lights",
     "fit_global",
+    "fit_light",
     "illumination_mesh",
     "bake",
     "real_meshes",

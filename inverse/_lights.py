@@ -1,19 +1,30 @@
 """Light placement from painted colours: nonlinear least squares with a vectorised multistart.
 
 `fit_light` puts the pieces together: the light's parametrisation (`_parametrisation`), the
-residual (`_residuals`), the starts (`_multistart`, from the `Search` options that `fit_lights`
-takes too, `_options`), a solver object (`_solvers`: `LM`, `OptimistixLM`, `LBFGSB`), and the
-report (`_identifiability`, `_reports`: a `LightFit` is a `LightsFit` of one light).
+problem, the starts (`_multistart`, from the `Search` options that `fit_lights` takes too,
+`_options`), a solver object (`_solvers`: `LM`, `OptimistixLM`, `LBFGSB`), and the report
+(`_identifiability`, `_reports`: a `LightFit` is a `LightsFit` of one light).
+
+The problem is `fit_lights`' (`_multilight.LightsProblem` with one fitted light, its power held,
+the other lights' contribution computed once), and the `LM` searches it with `fit_lights`'
+screening and compiled program (`_multilight.screen`, `_multilight.solve`), so one light and
+several are one search; `OptimistixLM` and `LBFGSB` minimise its residual too.
+`_residuals.LightProblem` (every light inside the program) remains for what `LightsProblem`
+does not hold yet: a solver of one's own (an `AbstractLightSolver` subclass), a fitted exponent
+(`fit_exponent=True` with $k_s \ne 0$), a per-receiver material, and a projected material
+beside other lights (`_problem`).
 """
 
 from __future__ import annotations
 
 import math
 import warnings
-from typing import Any, no_type_check
+from typing import Any, NamedTuple, no_type_check
 
+import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array
 
 import jaxshadow as js
 
@@ -26,12 +37,22 @@ from ._diagnostics import (
 )
 from ._forward import SpecularFn, shade
 from ._identifiability import identifiability
+from ._lm import fit_jit
+from ._multilight import LightsProblem, basis, fixed_contribution
 from ._multistart import distinct_minima, make_starts
 from ._options import Search, checked_constraints, search_options
 from ._parametrisation import FIT_GROUPS, LightParametrisation, scene_size, with_light
 from ._reports import LightFit, LightReport
 from ._residuals import LightProblem, projected_jit
-from ._solvers import LEGACY_SOLVER_KEYWORDS, AbstractLightSolver, Solution, checked_solver
+from ._solvers import (
+    LBFGSB,
+    LEGACY_SOLVER_KEYWORDS,
+    LM,
+    AbstractLightSolver,
+    OptimistixLM,
+    Solution,
+    checked_solver,
+)
 from ._targets import PaintedTargets
 
 _POSITION_NAMES = ("x", "y", "z", "a", "b")
@@ -133,7 +154,7 @@ def fit_light(
     with_spec = bool(np.any(np.asarray(material.ks) != 0))
     project = material_mode == "projected"
     fit_n = project and fit_exponent and with_spec
-    problem = LightProblem(param, scene, material, targets, specular, with_spec, project, fit_n)
+    problem = _problem(solver, param, scene, material, targets, specular, with_spec, project, fit_n)
     seed = opts.seed
     y0 = make_starts(param, starts, search_radius=opts.search_radius, orientation_spread=opts.orientation_spread,
                      size_spread=opts.size_spread, seed=seed, dtype=dt)
@@ -141,7 +162,8 @@ def fit_light(
         logn = np.full((y0.shape[0], 1), np.log(float(material.exponent)))
         logn[1:, 0] += np.random.default_rng(seed).uniform(-np.log(3.0), np.log(3.0), y0.shape[0] - 1)
         y0 = jnp.concatenate([y0, jnp.asarray(logn, dt)], axis=1)
-    fitted = _light_fit(problem, solver.minimise(problem, y0), solver.name, int(y0.shape[0]), noise)
+    fitted = _light_fit(_OneLight(param, scene, material, targets, specular, with_spec, project, fit_n),
+                        solver.minimise(problem, y0), solver.name, int(y0.shape[0]), noise)
     if warn:
         for msg in fitted.report.quality.emitted:
             warnings.warn(msg, FitQualityWarning, stacklevel=2)
@@ -167,7 +189,39 @@ def _checked_groups(scene: Any, targets: Any, light_index: Any, fit: Any, materi
     return fit
 
 
-def _light_fit(problem: LightProblem, sol: Solution, solver_name: str, n_screened: int,
+class _OneLight(NamedTuple):
+    """What the report of a one-light fit reads, whichever problem object the solver ran."""
+
+    param: LightParametrisation
+    scene: js.Scene
+    material: js.Material
+    targets: PaintedTargets
+    specular: Any
+    with_specular: bool
+    project: bool
+    fit_exponent: bool
+
+
+def _problem(solver: AbstractLightSolver, param: LightParametrisation, scene: js.Scene, material: js.Material,
+             targets: PaintedTargets, specular: Any, with_spec: bool, project: bool,
+             fit_n: bool) -> LightsProblem | LightProblem:
+    """The problem the solver runs: `fit_lights`' (`LightsProblem`, one fitted light, its power
+    held; the other lights' contribution computed once), searched by the `LM` through the same
+    compiled program as `fit_lights`; by `OptimistixLM` and `LBFGSB` on its residual.
+    `LightProblem` (every light inside the program) for a fitted exponent, a per-receiver
+    material, a projected material beside other lights (`LightsProblem` would free their
+    coefficients from the fitted light's), and a solver of one's own (an `AbstractLightSolver`
+    written for `LightProblem`)."""
+    fixed = [light for k, light in enumerate(scene.lights) if k != param.light_index]
+    if (not isinstance(solver, (LM, OptimistixLM, LBFGSB)) or fit_n or np.ndim(material.kd) != 1 or np.ndim(material.ka) != 1
+            or np.ndim(material.ks) != 1 or (project and fixed)):
+        return LightProblem(param, scene, material, targets, specular, with_spec, project, fit_n)
+    e0, s0 = fixed_contribution(scene, targets, material, fixed, specular, with_spec)
+    return LightsProblem((param,), (scene.lights[param.light_index],), scene, material, targets, e0, s0, (0,),
+                         project, with_spec, bool(fixed), specular, colour_free=project)
+
+
+def _light_fit(problem: _OneLight, sol: Solution, solver_name: str, n_screened: int,
                noise: Any = None) -> LightFit:
     """The fitted scene, residual and report from a solver's `Solution`."""
     param, t, material = problem.param, problem.targets, problem.material
@@ -189,8 +243,17 @@ def _light_fit(problem: LightProblem, sol: Solution, solver_name: str, n_screene
                     f"solved again {sol.retries} time(s) with a larger one (the result is exact).")
     new_scene = with_light(problem.scene, param.light_index, sol.light)
     if problem.project:
-        _, kc, n_fit = projected_jit(sol.problem, theta)
-        kc = np.asarray(kc, np.float64)
+        if isinstance(sol.problem, LightsProblem):
+            kc, n_fit = np.asarray(colour_coefficients(sol.problem, theta), np.float64), material.exponent
+        else:
+            _, kc, n_fit = projected_jit(sol.problem, theta)
+            kc = np.asarray(kc, np.float64)
+        if np.any(kc < 0):  # the unconstrained projection: a js.Material holds no negative coefficient
+            bad = [f"{'ka kd ks'.split()[i]}[{'rgb'[c]}]" for i, c in zip(*np.nonzero(kc < 0), strict=True)]
+            msgs.append(f"the projected material has negative coefficients ({', '.join(bad)}), held at 0 in "
+                        f"`material`: these targets are not painted by this light and any material (a wrong "
+                        f"minimum?).")
+            kc = np.maximum(kc, 0.0)
         material = js.Material(ka=jnp.asarray(kc[0], dt), kd=jnp.asarray(kc[1], dt), ks=jnp.asarray(kc[2], dt),
                                exponent=jnp.asarray(float(n_fit), dt))
     w = np.asarray(t.weights, np.float64)
@@ -219,3 +282,26 @@ def _light_fit(problem: LightProblem, sol: Solution, solver_name: str, n_screene
     )
     return LightFit(scene=new_scene, lights=(sol.light,), powers=np.ones(1), material=material, residual=residual,
                     report=report, theta=theta64[:param.size], parametrisations=(param,))
+
+
+@fit_jit
+def colour_coefficients(problem: LightsProblem, theta: Array) -> Array:
+    """`(3, 3)` rows $k_a, k_d, k_s$ (RGB columns; $k_s = 0$ without a specular term): the
+    per-channel weighted least squares of the targets' colours on the ambient, $E/\\pi$ and $S$ of
+    the one fitted light of `problem` at `theta` (its colour-free projection,
+    `_multilight._colour_free_rows`, as `projected` does for a `LightProblem`)."""
+    t = problem.targets
+    dt = theta.dtype
+    E, S, _ = basis(theta, problem, problem.capacity)
+    amb = jnp.broadcast_to(problem.scene.ambient.astype(dt)[None, :], E[0].shape)
+    cols = [amb, E[0] / jnp.pi] + ([S[0]] if S is not None else [])
+    X = jnp.stack(cols, axis=-1)  # (N, C, m)
+    sw = jnp.sqrt(t.weights)
+
+    def channel(Xc: Array, yc: Array, swc: Array) -> Array:
+        return jnp.linalg.pinv(Xc * swc[:, None]) @ (yc * swc)
+
+    k = jax.vmap(channel, in_axes=(1, 1, 1), out_axes=1)(X, t.colours, sw)
+    if S is None:
+        k = jnp.concatenate([k, jnp.zeros((1, 3), dt)], axis=0)
+    return k

@@ -5,7 +5,10 @@ first screening them down to the `refine` best when there are more, and returns 
 the solved starts, the best one, the residual and its Jacobian there (for the report), and the
 light it builds.
 
-- `LM` (the default): the Levenberg-Marquardt of `_lm.py`, written for this batch: one
+- `LM` (the default): the Levenberg-Marquardt of `_lm.py`, written for this batch (on
+  `fit_lights`' problem, `_multilight.LightsProblem`, through `fit_lights`' own screening and
+  program, `_multilight.screen` and `solve`; on a `_residuals.LightProblem` through
+  `_multistart_lm` below): one
   forward-mode Jacobian per iteration for all starts, with the shadow engine inside the
   compiled program (`jaxshadow.traced`: each receiver's visible region from its candidate
   occluders only, at a static capacity of boundary edges chosen from the starting lights; if
@@ -37,6 +40,7 @@ from jaxshadow import ShadowOptions
 
 from ._forward import at_capacity
 from ._lm import LMResult, batched_levenberg_marquardt, fit_jit
+from ._multilight import LightsProblem, build_lights, projected_residual, screen, solve
 from ._multistart import (
     best_starts,
     culling_capacity_for_starts,
@@ -47,7 +51,6 @@ from ._residuals import (
     LightProblem,
     build_light,
     jacobian,
-    loss,
     loss_jit,
     residuals,
     residuals_culled,
@@ -77,7 +80,7 @@ class Solution:
     initial_loss: float
     retries: int
     exact_residual: bool
-    problem: LightProblem
+    problem: LightsProblem | LightProblem
 
 
 class AbstractLightSolver(eqx.Module):
@@ -150,7 +153,9 @@ class LM(AbstractLightSolver):
             return self.combinatorics == "host"
         return ShadowOptions().use_engine()
 
-    def minimise(self, problem: LightProblem, starts: Array) -> Solution:
+    def minimise(self, problem: LightsProblem | LightProblem, starts: Array) -> Solution:
+        if isinstance(problem, LightsProblem):
+            return self._minimise_lights(problem, starts)
         p = problem.param
         n_solved = int(self.refine) if self._screens(starts.shape[0]) else int(starts.shape[0])
         sched = prune_schedule(n_solved, self.max_steps) if self.prune else ()
@@ -173,6 +178,36 @@ class LM(AbstractLightSolver):
         # On the host: eager indexing of a device array would compile a gather per leaf.
         light = jax.tree_util.tree_map(lambda x: jnp.asarray(np.asarray(x)[best]), lights)
         return Solution(np.asarray(res.values), losses, np.asarray(res.converged), np.asarray(res.num_steps),
+                        np.asarray(res.abandoned), best, np.asarray(res.residuals, np.float64)[best],
+                        np.asarray(res.jacobians, np.float64)[best], light, initial, retries, True, problem)
+
+    def _minimise_lights(self, problem: LightsProblem, starts: Array) -> Solution:
+        """`minimise` on `fit_lights`' problem (one fitted light, `problem.params[0]`): its
+        screening and its compiled solver program (`_multilight.screen`, `_multilight.solve`, every
+        parameter searched from the starts), each retried at twice the shadow capacity on overflow."""
+        param = problem.params[0]
+        ys = np.asarray(starts)
+        screens = self._screens(ys.shape[0])
+        n_solved = int(self.refine) if screens else int(ys.shape[0])
+        sched = prune_schedule(n_solved, self.max_steps) if self.prune else ()
+        cap = culling_capacity_for_starts(param, problem.scene, problem.targets, starts) if self.uses_engine() else None
+        problem = dataclasses.replace(problem, capacity=cap)
+        base, mask = ys[0], np.ones(ys.shape[1], bool)
+        initial, retries = None, 0
+        if screens:
+            losses, problem, retries = screen(problem, ys, base, mask, n_solved)
+            initial = float(losses[0])
+            ys = ys[best_starts(np.where(np.isfinite(losses), losses, np.inf), n_solved)]
+        res, problem, r = solve(problem, ys, base, mask, rtol=self.rtol, atol=self.atol, max_steps=self.max_steps,
+                                prune=sched)
+        retries += r
+        losses = np.asarray(res.losses, np.float64)
+        best = int(np.argmin(np.where(np.isfinite(losses), losses, np.inf)))
+        if initial is None:
+            initial = float(np.asarray(res.initial_losses)[0])
+        values = np.asarray(res.values)
+        light = build_lights(problem, jnp.asarray(values[best], ys.dtype))[0]
+        return Solution(values, losses, np.asarray(res.converged), np.asarray(res.num_steps),
                         np.asarray(res.abandoned), best, np.asarray(res.residuals, np.float64)[best],
                         np.asarray(res.jacobians, np.float64)[best], light, initial, retries, True, problem)
 
@@ -202,7 +237,7 @@ class OptimistixLM(AbstractLightSolver):
     atol: float = 1e-12
     max_steps: int = 100
 
-    def minimise(self, problem: LightProblem, starts: Array) -> Solution:
+    def minimise(self, problem: LightsProblem | LightProblem, starts: Array) -> Solution:
         return _minimise_vectorised(self, problem, starts, lambda pr, y0: _multistart_optx(
             pr, y0, self.rtol, self.atol, int(self.max_steps)))
 
@@ -231,28 +266,46 @@ class LBFGSB(AbstractLightSolver):
     tol: float = 1e-12
     max_steps: int = 100
 
-    def minimise(self, problem: LightProblem, starts: Array) -> Solution:
-        lo, hi = problem.param.lbfgsb_bounds(starts.dtype)
+    def minimise(self, problem: LightsProblem | LightProblem, starts: Array) -> Solution:
+        lo, hi = _param(problem).lbfgsb_bounds(starts.dtype)
         return _minimise_vectorised(self, problem, starts, lambda pr, y0: _multistart_lbfgsb(
             pr, y0, lo, hi, self.tol, int(self.max_steps)))
 
 
-def _minimise_vectorised(solver: AbstractLightSolver, problem: LightProblem, starts: Array, run: Any) -> Solution:
-    """Screening by one vectorised loss, then `run(problem, starts) -> (values, losses,
-    converged, steps)`; the residual and Jacobian at the best by a program of their own."""
+def _param(problem: LightsProblem | LightProblem) -> Any:
+    """The fitted light's parametrisation of either problem object."""
+    return problem.params[0] if isinstance(problem, LightsProblem) else problem.param
+
+
+def _minimise_vectorised(solver: AbstractLightSolver, problem: LightsProblem | LightProblem, starts: Array,
+                         run: Any) -> Solution:
+    """Screening by one vectorised loss (`fit_lights`' screening, `_multilight.screen`, on a
+    `LightsProblem`), then `run(problem, starts) -> (values, losses, converged, steps)`; the
+    residual and Jacobian at the best by a program of their own."""
     initial = None
     if solver._screens(starts.shape[0]):
-        screen = np.asarray(screen_losses(problem, starts), np.float64)
-        starts = jnp.asarray(np.asarray(starts)[best_starts(screen, int(solver.refine))])
-        initial = float(screen[0])
+        if isinstance(problem, LightsProblem):
+            ys = np.asarray(starts)
+            screen_f = screen(problem, ys, ys[0], np.ones(ys.shape[1], bool), ys.shape[0])[0]
+            screen_f = np.where(np.isfinite(screen_f), screen_f, np.inf).astype(np.float64)
+        else:
+            screen_f = np.asarray(screen_losses(problem, starts), np.float64)
+        starts = jnp.asarray(np.asarray(starts)[best_starts(screen_f, int(solver.refine))])
+        initial = float(screen_f[0])
     values, losses, ok, steps = (np.asarray(x) for x in run(problem, starts))
     losses = losses.astype(np.float64)
     best = int(np.argmin(np.where(np.isfinite(losses), losses, np.inf)))
     theta = jnp.asarray(values[best], starts.dtype)
-    r, J = jacobian(problem, theta)
-    if initial is None:
-        initial = float(loss_jit(problem, jnp.asarray(np.asarray(starts)[0])))
-    light = build_light(problem.param, theta[: problem.param.size])
+    if isinstance(problem, LightsProblem):
+        r, J = _jacobian_lights(problem, theta)
+        if initial is None:
+            initial = float(_loss_lights(problem, jnp.asarray(np.asarray(starts)[0])))
+        light = build_lights(problem, theta)[0]
+    else:
+        r, J = jacobian(problem, theta)
+        if initial is None:
+            initial = float(loss_jit(problem, jnp.asarray(np.asarray(starts)[0])))
+        light = build_light(problem.param, theta[: problem.param.size])
     return Solution(values, losses, ok, steps, np.zeros(len(losses), bool), best, np.asarray(r, np.float64),
                     np.asarray(J, np.float64), light, initial, 0, False, problem)
 
@@ -328,6 +381,29 @@ def screen_with_lm(problem: LightProblem, starts: Array, k: int, rtol: float, at
     return np.where(np.isfinite(losses), losses, np.inf)
 
 
+def _residual(theta: Array, problem: LightsProblem | LightProblem) -> Array:
+    """The weighted residual of either problem object, every receiver against every occluder
+    (the vectorised solvers' model: no capacity)."""
+    if isinstance(problem, LightsProblem):
+        return projected_residual(theta, problem, None)[0]
+    return residuals(theta, problem)
+
+
+def _loss(theta: Array, problem: LightsProblem | LightProblem) -> Array:
+    r = _residual(theta, problem)
+    return 0.5 * jnp.sum(r * r)
+
+
+@fit_jit
+def _jacobian_lights(problem: LightsProblem, theta: Array) -> tuple[Array, Array]:
+    return _residual(theta, problem), jax.jacfwd(_residual)(theta, problem)
+
+
+@fit_jit
+def _loss_lights(problem: LightsProblem, theta: Array) -> Array:
+    return _loss(theta, problem)
+
+
 def _optimistix() -> Any:
     try:
         import optimistix
@@ -338,30 +414,30 @@ def _optimistix() -> Any:
 
 
 @fit_jit
-def _multistart_optx(problem: LightProblem, starts: Array, rtol: float, atol: float, max_steps: int) -> tuple:
+def _multistart_optx(problem: LightsProblem | LightProblem, starts: Array, rtol: float, atol: float, max_steps: int) -> tuple:
     optx = _optimistix()
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
 
     def one(y0: Array) -> tuple:
-        sol = optx.least_squares(residuals, solver, y0, args=problem, throw=False, max_steps=max_steps)
+        sol = optx.least_squares(_residual, solver, y0, args=problem, throw=False, max_steps=max_steps)
         return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
 
     values, ok, steps = jax.vmap(one)(starts)
-    losses = jax.vmap(loss, in_axes=(0, None))(values, problem)
+    losses = jax.vmap(_loss, in_axes=(0, None))(values, problem)
     return values, losses, ok, steps
 
 
 @fit_jit
-def _multistart_lbfgsb(problem: LightProblem, starts: Array, lower: Array, upper: Array, tol: float,
+def _multistart_lbfgsb(problem: LightsProblem | LightProblem, starts: Array, lower: Array, upper: Array, tol: float,
                        max_steps: int) -> tuple:
     from ._jaxopt import lbfgsb_solve
 
     def one(y0: Array) -> tuple:
-        y, _, it = lbfgsb_solve(lambda th: loss(th, problem), y0, lower, upper, max_steps, tol)
+        y, _, it = lbfgsb_solve(lambda th: _loss(th, problem), y0, lower, upper, max_steps, tol)
         return y, it
 
     values, steps = jax.vmap(one)(starts)
-    losses = jax.vmap(loss, in_axes=(0, None))(values, problem)
+    losses = jax.vmap(_loss, in_axes=(0, None))(values, problem)
     return values, losses, steps < max_steps, steps
 
 
