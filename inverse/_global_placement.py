@@ -22,10 +22,18 @@ column of light $j$ at its reference power, `(3N,)`). So the screen needs no der
    (`_multilight._parts`: soft shadows, the shadow engine at the fit's capacity) at `CHUNK`
    candidates at once (`jax.vmap`).
 4. **Matching pursuit.** Starting from no light, each step tries every candidate of every
-   unplaced light with the placed ones, powers by NNLS, and places the best; then each light
-   in turn is re-chosen with the others held (coordinate descent) until nothing changes, and
-   refined by a local screen around its pose (`REFINE_POINTS` candidates in position,
-   orientation and log size, the radius halved twice).
+   unplaced light with the placed ones, powers by NNLS, and places the best (a beam of `BEAM`
+   partial placements); then each light in turn is re-chosen with the others held (coordinate
+   descent) until nothing changes.
+5. **Pair moves.** Two lights can stand in for each other's shading (a quad where a segment
+   is and the segment beside it): moving either alone makes the fit worse. So every pair of
+   lights is re-chosen together over all pairs of their candidates with the others held
+   (`pair_rss`: one cross Gram matrix, two-column non-negative least squares), then single
+   moves again, until nothing improves.
+6. **Local screen.** Around each light's `LOCAL_SEEDS` best distinct candidates (the others
+   held), `REFINE_POINTS` candidates in position, orientation and log size, `LOCAL_LEVELS`
+   levels with the radius halved at each, around each seed's best so far; then the pair moves
+   again.
 
 The result is a placement (`theta`, the poses) and, per light, its candidates ranked with the
 others at that placement: the starts of `fit_lights`' per-light solves, which then refine all
