@@ -175,8 +175,10 @@ def fit_lights(
     a segment as given or along three horizontal directions (`inverse._global_placement`).
     The powers are non-negative least squares over the lights' unit contributions (no
     derivative needed); the lights are added one at a time on the residual (a beam of 12
-    partial placements), the positions dealt to the lights in every order, and each light
-    screened again locally around its pose. It runs after the search from the given poses
+    partial placements), every pair of lights re-chosen together over all pairs of their
+    candidates (two lights standing in for each other move at once), the positions dealt to
+    the lights in every order, and each light screened again locally around its four best
+    distinct candidates. It runs after the search from the given poses
     unless that fit is exact (a final loss below `EXACT_LOSS` = 1e-12 of $\\tfrac12\\sum w c^2$),
     and the lower final loss of the two wins, so starts 10 % away cost what they did. Then each
     light is searched from its best screened poses and its own starts (the others at

@@ -22,10 +22,18 @@ column of light $j$ at its reference power, `(3N,)`). So the screen needs no der
    (`_multilight._parts`: soft shadows, the shadow engine at the fit's capacity) at `CHUNK`
    candidates at once (`jax.vmap`).
 4. **Matching pursuit.** Starting from no light, each step tries every candidate of every
-   unplaced light with the placed ones, powers by NNLS, and places the best; then each light
-   in turn is re-chosen with the others held (coordinate descent) until nothing changes, and
-   refined by a local screen around its pose (`REFINE_POINTS` candidates in position,
-   orientation and log size, the radius halved twice).
+   unplaced light with the placed ones, powers by NNLS, and places the best (a beam of `BEAM`
+   partial placements); then each light in turn is re-chosen with the others held (coordinate
+   descent) until nothing changes.
+5. **Pair moves.** Two lights can stand in for each other's shading (a quad where a segment
+   is and the segment beside it): moving either alone makes the fit worse. So every pair of
+   lights is re-chosen together over all pairs of their candidates with the others held
+   (`pair_rss`: one cross Gram matrix, two-column non-negative least squares), then single
+   moves again, until nothing improves.
+6. **Local screen.** Around each light's `LOCAL_SEEDS` best distinct candidates (the others
+   held), `REFINE_POINTS` candidates in position, orientation and log size, `LOCAL_LEVELS`
+   levels with the radius halved at each, around each seed's best so far; then the pair moves
+   again.
 
 The result is a placement (`theta`, the poses) and, per light, its candidates ranked with the
 others at that placement: the starts of `fit_lights`' per-light solves, which then refine all
@@ -53,6 +61,8 @@ from ._parametrisation import LightParametrisation
 POSITIONS = 512
 CHUNK = 64
 REFINE_POINTS = 64
+LOCAL_SEEDS, LOCAL_LEVELS = 4, 4
+ORIENTATION_SPREAD = 0.5  # rad: about half the screen's step between segment directions
 BEAM, PER_PARENT, REFINED = 12, 3, 2
 HEIGHT_MIN, HEIGHT_MAX = 0.02, 0.6
 LATERAL_MARGIN = 0.1
@@ -301,6 +311,57 @@ def nnls_rss(fixed: np.ndarray, cand: np.ndarray, y: np.ndarray, fit_power: bool
     return np.maximum(rss, 0.0)
 
 
+def pair_rss(fixed: np.ndarray, ca: np.ndarray, cb: np.ndarray, y: np.ndarray, fit_power: bool,
+             block: int = 512) -> tuple[float, int, int]:
+    """`(rss, s, t)`: the least residual sum of squares over every pair of candidate columns
+    `ca[s] (M,)`, `cb[t] (M,)` with the placed columns `fixed (M, m)`, and the best pair. With
+    `fit_power` the powers of the pair are non-negative least squares on the residual left
+    after projecting out the span of `fixed` (their powers free: the caller checks the best
+    pair with `nnls_rss`); without, every power is 1. Batched over `block` rows of `ca` at a
+    time: the cross Gram `ca cb^T` is one matrix product."""
+    okb = np.all(np.isfinite(cb), axis=1)
+    cb = np.where(okb[:, None], cb, 0.0)
+    if fit_power:
+        if fixed.size:
+            q, _ = np.linalg.qr(fixed)
+            r = y - q @ (q.T @ y)
+            cb = cb - (cb @ q) @ q.T
+        else:
+            q, r = np.zeros((y.shape[0], 0)), y
+        gbb, yb = np.einsum("tm,tm->t", cb, cb), cb @ r
+        one_b = np.where((yb > 0) & (gbb > 0), yb ** 2 / np.where(gbb > 0, gbb, 1.0), 0.0)
+    else:
+        r = y - fixed.sum(axis=1) if fixed.size else y
+        gbb, yb = np.einsum("tm,tm->t", cb, cb), cb @ r
+    rr = float(r @ r)
+    best: tuple[float, int, int] = (np.inf, -1, -1)
+    for a0 in range(0, ca.shape[0], block):
+        a = ca[a0:a0 + block]
+        oka = np.all(np.isfinite(a), axis=1)
+        a = np.where(oka[:, None], a, 0.0)
+        if fit_power and q.shape[1]:
+            a = a - (a @ q) @ q.T
+        gaa, ya, gab = np.einsum("sm,sm->s", a, a), a @ r, a @ cb.T
+        if fit_power:
+            det = gaa[:, None] * gbb[None] - gab ** 2
+            good = det > 1e-12 * gaa[:, None] * gbb[None]
+            det = np.where(good, det, 1.0)
+            p = (gbb[None] * ya[:, None] - gab * yb[None]) / det
+            u = (gaa[:, None] * yb[None] - gab * ya[:, None]) / det
+            both = (gbb[None] * ya[:, None] ** 2 - 2 * gab * ya[:, None] * yb[None] + gaa[:, None] * yb[None] ** 2) / det
+            one_a = np.where((ya > 0) & (gaa > 0), ya ** 2 / np.where(gaa > 0, gaa, 1.0), 0.0)
+            single = np.maximum(one_a[:, None], one_b[None])
+            explained = np.where(good & (p >= 0) & (u >= 0), np.maximum(both, single), single)
+            f = rr - explained
+        else:
+            f = rr - 2 * ya[:, None] - 2 * yb[None] + gaa[:, None] + gbb[None] + 2 * gab
+        f = np.where(oka[:, None] & okb[None], f, np.inf)
+        s, t = np.unravel_index(int(np.argmin(f)), f.shape)
+        if f[s, t] < best[0]:
+            best = (float(f[s, t]), a0 + int(s), int(t))
+    return best
+
+
 @dataclasses.dataclass
 class Placement:
     """What `place` found: `theta (P,)` the poses, `loss` ($\\tfrac12$ rss at NNLS powers),
@@ -367,6 +428,29 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
                 break
         return float(np.min(f)), chosen
 
+    def pairs(chosen: dict, f: float) -> tuple[float, dict]:
+        """Two lights re-chosen together over all pairs of their candidates with the others held
+        (`pair_rss`), then each light alone (`descend`), until nothing improves: two lights that
+        stand in for each other's shading move at once."""
+        chosen = dict(chosen)
+        for _ in range(4):
+            improved = False
+            for a, b in itertools.combinations(todo, 2):
+                others = [cols[i][chosen[i]] for i in chosen if i not in (a, b)]
+                B = np.stack(others, axis=1) if others else np.zeros((y.shape[0], 0))
+                _, s, t = pair_rss(B, cols[a], cols[b], y, problem.fit_power)
+                if s < 0 or (s, t) == (chosen[a], chosen[b]):
+                    continue
+                trial = {**chosen, a: s, b: t}
+                g = float(rss_for(b, trial)[t])  # exact: the NNLS with every placed light
+                if g < f * (1 - 1e-9):
+                    g, trial = descend(trial)
+                    if g < f:
+                        f, chosen, improved = g, trial, True
+            if not improved:
+                break
+        return f, chosen
+
     # Matching pursuit with a beam: every kept partial placement tries every candidate of every
     # unplaced light on its residual; the BEAM best (a few distinct ones per light and parent)
     # are kept for the next light.
@@ -393,7 +477,7 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
                 beams.append((f, ch))
             if len(beams) == BEAM:
                 break
-    finals = sorted((descend(ch) for _, ch in beams), key=lambda x: x[0])
+    finals = sorted((pairs(*descend(ch)[::-1]) for _, ch in beams), key=lambda x: x[0])
     distinct: list = []
     for f, ch in finals:
         if all(ch != c for _, c in distinct):
@@ -417,24 +501,42 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
         distinct.sort(key=lambda x: x[0])
     rng = np.random.default_rng(seed + 11)
     best: tuple = (np.inf, {})
-    for _, chosen in distinct[:REFINED]:  # a local screen around each light, its radius halved twice
+    for _, chosen in distinct[:REFINED]:
+        # A local screen around each light's LOCAL_SEEDS best distinct candidates (the others held),
+        # its radius halved at each level around each seed's best so far: the coarse screen's
+        # nearest candidate to a light can rank below a wrong one until both are refined.
         for j in todo:
             p = params[j]
             sl = p._slices()
             spread = np.zeros(p.size)
             if "position" in sl:
-                spread[sl["position"]] = 0.5 * spacing / float(p.scale)
+                spread[sl["position"]] = spacing / float(p.scale)
             if "orientation" in sl:
-                spread[sl["orientation"]] = 0.2
+                spread[sl["orientation"]] = ORIENTATION_SPREAD
             if "size" in sl:  # log sizes: a given or default size is a guess
                 spread[sl["size"]] = 0.4
-            for level in range(3):
-                trial = rows[j][chosen[j]] + spread / 2 ** level * rng.uniform(-1.0, 1.0, (REFINE_POINTS, p.size))
-                ct, problem = unit_columns(problem, j, trial)
-                rows[j] = np.concatenate([rows[j], trial])
+            f = rss_for(j, chosen)
+            pos = centres(j, rows[j])
+            seeds: list = []
+            for c in np.argsort(f, kind="stable"):
+                if len(seeds) == LOCAL_SEEDS or not np.isfinite(f[c]):
+                    break
+                if all(np.linalg.norm(pos[c] - pos[q]) > spacing for q in seeds):
+                    seeds.append(int(c))
+            others = [cols[i][chosen[i]] for i in chosen if i != j]
+            B = np.stack(others, axis=1) if others else np.zeros((y.shape[0], 0))
+            for level in range(LOCAL_LEVELS):
+                trial = (rows[j][seeds][:, None] + spread / 2 ** level
+                         * rng.uniform(-1.0, 1.0, (len(seeds), REFINE_POINTS, p.size)))
+                ct, problem = unit_columns(problem, j, trial.reshape(-1, p.size))
+                n0 = rows[j].shape[0]
+                rows[j] = np.concatenate([rows[j], trial.reshape(-1, p.size)])
                 cols[j] = np.concatenate([cols[j], ct])
-                chosen[j] = int(np.argmin(rss_for(j, chosen)))
-        f, chosen = descend(chosen)
+                for i, c in enumerate(seeds):
+                    idx_i = np.r_[c, n0 + i * REFINE_POINTS + np.arange(REFINE_POINTS)]
+                    seeds[i] = int(idx_i[int(np.argmin(nnls_rss(B, cols[j][idx_i], y, problem.fit_power)))])
+            chosen[j] = int(np.argmin(rss_for(j, chosen)))
+        f, chosen = pairs(*descend(chosen)[::-1])
         if f < best[0]:
             best = (f, chosen)
     chosen = best[1]
