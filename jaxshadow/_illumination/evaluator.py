@@ -19,6 +19,7 @@ ON_LINE_STEP = 1e-9
 MIN_BATCH = 256  # smallest batch handed to the engine
 MAX_BATCH = 1 << 18  # largest batch handed to the engine (its working memory grows with the batch)
 ROW_CHUNK = 1 << 20  # points looked up per step of `row_of`
+ROW_ARRAYS = ("values", "targets", "lined", "inner")  # per row: its value, and what `inherit` reads
 SPARE = 0.25  # room added when the value arrays grow, as a fraction of the rows they must hold
 
 
@@ -53,6 +54,7 @@ class _Evaluator:
         self.targets = np.zeros(1024, np.complex128)  # per row: the point evaluated (`move`)
         self.lined = np.zeros(1024, bool)  # per row: evaluated with the on-line check
         self.inner = np.zeros(1024, bool)  # per row: an element's inner point, not in the cache (`inner_rows`)
+        self._arrays = ROW_ARRAYS  # the per-row arrays kept (`make_lean`: `values` only)
         self.succ: dict[int, int] = {}  # row -> the row of the point's next evaluation (`follow`)
         self._succ_sorted: tuple[np.ndarray, np.ndarray] | None = None
         self._rows = 0
@@ -79,6 +81,15 @@ class _Evaluator:
     @staticmethod
     def _keys(xy: np.ndarray) -> np.ndarray:
         return as_keys(xy)
+
+    def make_lean(self) -> None:
+        """Keep only the values per row (a mesh without `update`): where each row was evaluated,
+        whether with the on-line check and whether at an inner point are read by `inherit` and
+        `_take_prior` alone (an update's evaluator taking over this one's rows), so those arrays
+        go (18 of the 42 bytes a row holds with them; `release` and growth copy less too)."""
+        assert self.prior is None, "make_lean: not on an update's evaluator"
+        self._arrays = ("values",)
+        self.targets, self.lined, self.inner = self.targets[:0], self.lined[:0], self.inner[:0]
 
     def mark(self, xy: np.ndarray) -> None:
         """Declare points `(n, 2)` to lie on discontinuity lines."""
@@ -239,7 +250,8 @@ class _Evaluator:
         become vertices."""
         keys = self._keys(xy)
         rows = self._store(keys, values, np.zeros(keys.size, bool))
-        self.inner[rows] = True
+        if "inner" in self._arrays:
+            self.inner[rows] = True
         self.cache.put(keys, rows)
 
     def _evaluate(self, tgt: np.ndarray, line: np.ndarray) -> np.ndarray:
@@ -253,8 +265,9 @@ class _Evaluator:
         start = self._rows  # rows are never reused (a key dropped by `move` leaves its row behind)
         self._grow(start + n)
         self.values[start:start + n] = val
-        self.targets[start:start + n] = tgt
-        self.lined[start:start + n] = line
+        if "targets" in self._arrays:
+            self.targets[start:start + n] = tgt
+            self.lined[start:start + n] = line
         self._rows = start + n
         return np.arange(start, start + n)
 
@@ -338,7 +351,7 @@ class _Evaluator:
             live[np.fromiter(self.dropped.values(), np.int64, len(self.dropped))] = True
         new = np.cumsum(live) - 1
         n = int(new[-1]) + 1 if new.size else 0
-        for name in ("values", "targets", "lined", "inner"):
+        for name in self._arrays:
             a = getattr(self, name)
             b = np.zeros((max(int(n * (1 + SPARE)), 1024),) + a.shape[1:], a.dtype)
             b[:n] = a[:self._rows][live]
@@ -356,7 +369,7 @@ class _Evaluator:
         if rows <= self.values.shape[0]:
             return
         size = max(int(rows * (1 + (SPARE if spare is None else spare))), 1024)
-        for name in ("values", "targets", "lined", "inner"):
+        for name in self._arrays:
             a = getattr(self, name)
             b = np.zeros((size,) + a.shape[1:], a.dtype)
             b[:self._rows] = a[:self._rows]

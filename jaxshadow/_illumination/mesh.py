@@ -376,6 +376,8 @@ def illumination_mesh(scene: Any, receiver: Any, tol: float = 1e-3, *, max_verti
         b = _Builder(scene, p, float(tol), tile_size, min_edge, max_vertices, gradient, scale)
         b.progress = progress
         b.lean = not updatable
+        if b.lean:
+            b.eval.make_lean()
         b.build(list(range(len(b.tiles))), list(b.edges))
         if b.lean:  # (the values are in the tiles now)
             b.release_evaluator()
