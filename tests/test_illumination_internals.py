@@ -246,6 +246,25 @@ def test_packed_errors():
     assert _unpack_errors(e0, s0, r0).shape == (0, 7)
 
 
+def test_put_grows_the_table_in_chunks(monkeypatch):
+    # The evaluator's puts grow its cache themselves, moving the live entries over a chunk at a
+    # time: the same capacity as the table's own growth, the same mapping, deleted keys gone.
+    from jaxshadow._core.keytable import KeyTable
+
+    monkeypatch.setattr(evaluator, "ROW_CHUNK", 7)
+    rng = np.random.default_rng(6)
+    keys = rng.uniform(-1, 1, (3000, 2)).view(np.complex128).ravel()
+    ours, theirs = KeyTable(), KeyTable()
+    for t in (ours, theirs):
+        t.put(keys[:500], np.arange(500))
+        t.delete(keys[:100])
+    evaluator._put(ours, keys[500:], np.arange(500, 3000))
+    theirs.put(keys[500:], np.arange(500, 3000))
+    assert ours.keys.size == theirs.keys.size > 1024 and len(ours) == len(theirs) == 2900
+    np.testing.assert_array_equal(ours.get(keys), theirs.get(keys))
+    assert np.all(ours.get(keys[:100]) == -1) and np.array_equal(ours.get(keys[100:]), np.arange(100, 3000))
+
+
 def test_lean_evaluator_keeps_values_only():
     # `make_lean`: rows hold values alone (where, how and whether inner: `update`'s), and release
     # and growth give the same values as the full evaluator's.

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from .._core.keytable import GONE, MAX_LOAD, KeyTable, as_keys, first_occurrence
+from .._core.keytable import EMPTY, GONE, MAX_LOAD, KeyTable, as_keys, first_occurrence
 from .._scene.model import DirectionalLight, LinearLight, PointLight, PolygonLight, Scene
 from .._shading.shade import irradiance
 from . import events as ev
@@ -211,7 +211,7 @@ class _Evaluator:
             line = self.online.contains(todo) if len(self.online) else np.zeros(todo.size, bool)
             new_rows = self._evaluate(self._targets(todo), line)
             self._settle(todo, new_rows)
-            self.cache.put(todo, new_rows)
+            _put(self.cache, todo, new_rows)
             self._checked(todo[line])
         rows[need] = self.cache.get(asked)
         return rows
@@ -235,7 +235,7 @@ class _Evaluator:
 
     def adopt(self, xy: np.ndarray, rows: np.ndarray) -> None:
         """Key the points `xy (n, 2)` to their rows `rows` (`inner_rows`): they become vertices."""
-        self.cache.put(self._keys(xy), rows)
+        _put(self.cache, self._keys(xy), rows)
 
     def inner_values(self, xy: np.ndarray) -> np.ndarray:
         """The values `(n, 3)` at points `xy (n, 2)` inside elements, evaluated without rows (a
@@ -252,7 +252,7 @@ class _Evaluator:
         rows = self._store(keys, values, np.zeros(keys.size, bool))
         if "inner" in self._arrays:
             self.inner[rows] = True
-        self.cache.put(keys, rows)
+        _put(self.cache, keys, rows)
 
     def _evaluate(self, tgt: np.ndarray, line: np.ndarray) -> np.ndarray:
         """Evaluate at the points `tgt` (keys, `(n,)`), with the on-line check where `line`, into
@@ -398,7 +398,7 @@ class _Evaluator:
         keys = cand[same]
         if keyed:
             self._settle(keys, rr[same])
-            self.cache.put(keys, rr[same])
+            _put(self.cache, keys, rr[same])
             self._checked(keys[line[same]])
         self.reused += keys.size
         return take, rr[same]
@@ -457,6 +457,30 @@ class _Evaluator:
 
     def luminance(self, xy: np.ndarray) -> np.ndarray:
         return self(xy).sum(axis=1)
+
+
+def _put(table: KeyTable, keys: np.ndarray, values: np.ndarray) -> None:
+    """`table.put(keys, values)` for distinct `keys`, first growing the table where that put
+    would (to the same capacity: the same table) by moving its live entries over in chunks of
+    `ROW_CHUNK` slots. The table's own growth inserts every live key in one pass, whose working
+    arrays (its keys and values copied out, hashes, probe positions) come on top of the old and
+    the new table: with tens of millions of keys (tol 1e-4 on the box floor) that pass was the
+    mesher's peak."""
+    keys = np.asarray(keys, np.complex128).ravel()
+    if table.used + keys.size > MAX_LOAD * table.keys.size:
+        live = table.live + keys.size
+        cap = 1 << max(4, int(np.ceil(1.5 * live / MAX_LOAD)).bit_length())  # (`KeyTable._resize`'s)
+        old_k, old_v = table.keys, table.vals
+        table.keys = np.zeros(cap, np.complex128)
+        table.vals = np.full(cap, EMPTY, np.int64)
+        table.live = table.used = 0
+        for s in range(0, old_v.size, ROW_CHUNK):
+            v = old_v[s:s + ROW_CHUNK]
+            ok = v >= 0
+            if np.any(ok):
+                table.put(old_k[s:s + ROW_CHUNK][ok], v[ok])
+        del old_k, old_v
+    table.put(keys, values)
 
 
 def _in_boxes(xy: np.ndarray, boxes: np.ndarray) -> np.ndarray:
