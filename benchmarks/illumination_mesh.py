@@ -361,8 +361,12 @@ def memory(tol: float, updatable: bool, part: float | None, out: str | None) -> 
     import jax
 
     import jaxshadow as js
+    from benchmarks._suite import meta
 
     jax.config.update("jax_enable_x64", True)
+    # how the record was made (the commit as the run starts; the load at its start and end)
+    info = {**meta("illumination_mesh", False), "command": " ".join(["python -m benchmarks.illumination_mesh"]
+                                                                     + sys.argv[1:])}
     scene, floor = box_scene()
     if part is not None:
         floor = np.array([[-part / 2, -part / 2, 0.0], [part / 2, -part / 2, 0.0], [part / 2, part / 2, 0.0],
@@ -396,8 +400,9 @@ def memory(tol: float, updatable: bool, part: float | None, out: str | None) -> 
            "rss_before_bytes": base, "rss_peak_bytes": peak[0],
            "ru_maxrss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
            "peak_bytes_per_vertex": (peak[0] - base) / v, "max_error_estimate": m.max_error_estimate, "scale": m.scale,
-           "stats": {k: val for k, val in m.stats.items() if isinstance(val, (int, float, str))}}
-    print({k: val for k, val in res.items() if k != "stats"}, flush=True)
+           "stats": {k: val for k, val in m.stats.items() if isinstance(val, (int, float, str))},
+           "meta": {**info, "load_average_end": list(os.getloadavg())}}
+    print({k: val for k, val in res.items() if k not in ("stats", "meta")}, flush=True)
     if out:
         import json
 

@@ -230,6 +230,61 @@ def test_evaluator_release_keeps_what_is_held():
     np.testing.assert_array_equal(e.values[e.follow(out[7])], got[:10])
 
 
+def test_packed_errors():
+    # Rows over the threshold come back whole; the others as seven copies of their largest error.
+    from jaxshadow._illumination.refine import _pack_errors, _unpack_errors
+
+    err = np.random.default_rng(5).random((50, 7))
+    thr = 0.9
+    emax, slot, rows = _pack_errors(err, thr)
+    over = err.max(axis=1) > thr
+    assert rows.shape == (int(over.sum()), 7) and 0 < over.sum() < 50
+    back = _unpack_errors(emax, slot, rows)
+    np.testing.assert_array_equal(back[over], err[over])
+    np.testing.assert_array_equal(back[~over], np.repeat(err[~over].max(axis=1)[:, None], 7, axis=1))
+    e0, s0, r0 = _pack_errors(np.zeros((0, 7)), thr)
+    assert _unpack_errors(e0, s0, r0).shape == (0, 7)
+
+
+def test_put_grows_the_table_in_chunks(monkeypatch):
+    # The evaluator's puts grow its cache themselves, moving the live entries over a chunk at a
+    # time: the same capacity as the table's own growth, the same mapping, deleted keys gone.
+    from jaxshadow._core.keytable import KeyTable
+
+    monkeypatch.setattr(evaluator, "ROW_CHUNK", 7)
+    rng = np.random.default_rng(6)
+    keys = rng.uniform(-1, 1, (3000, 2)).view(np.complex128).ravel()
+    ours, theirs = KeyTable(), KeyTable()
+    for t in (ours, theirs):
+        t.put(keys[:500], np.arange(500))
+        t.delete(keys[:100])
+    evaluator._put(ours, keys[500:], np.arange(500, 3000))
+    theirs.put(keys[500:], np.arange(500, 3000))
+    assert ours.keys.size == theirs.keys.size > 1024 and len(ours) == len(theirs) == 2900
+    np.testing.assert_array_equal(ours.get(keys), theirs.get(keys))
+    assert np.all(ours.get(keys[:100]) == -1) and np.array_equal(ours.get(keys[100:]), np.arange(100, 3000))
+
+
+def test_lean_evaluator_keeps_values_only():
+    # `make_lean`: rows hold values alone (where, how and whether inner: `update`'s), and release
+    # and growth give the same values as the full evaluator's.
+    scene, frame, full = _evaluator()
+    lean = evaluator._Evaluator(scene, frame, 3.0)
+    lean.make_lean()
+    rng = np.random.default_rng(4)
+    xy = rng.uniform(-1.4, 1.4, (3000, 2))  # (past the first 1024 rows: the arrays grow)
+    for e in (full, lean):
+        e.mark(xy[2900:])
+        e.adopt_values(xy[:5] + 0.25, e.inner_values(xy[:5] + 0.25))
+    np.testing.assert_array_equal(lean(xy), full(xy))
+    assert lean.targets.size == lean.lined.size == lean.inner.size == 0
+    keep = {3: lean.row_of(xy[:10])}
+    out = lean.release(lambda q: q[:, 0] < 0.0, keep)
+    np.testing.assert_array_equal(lean.values[out[3]], full(xy[:10]))
+    np.testing.assert_array_equal(lean(xy), full(xy))
+    assert lean.targets.size == 0
+
+
 # --------------------------------------------------------------------------------------
 # Several boxes at once
 # --------------------------------------------------------------------------------------

@@ -494,6 +494,24 @@ def test_lean_mesh_equals_the_updatable_one(monkeypatch):
     np.testing.assert_array_equal(lean.interpolate(pts), full.interpolate(pts))
 
 
+def test_packed_errors_decide_as_whole_rows(monkeypatch):
+    # Between rounds only the elements over the threshold keep their seven checked errors (the
+    # others their largest): the mesh equals the one whose every element keeps its whole row,
+    # bit for bit (a packed row that decided otherwise would change vertices or the estimate).
+    import jaxshadow._illumination.refine as refine
+
+    scene = js.Scene([js.PolygonLight(LIGHT, 10.0)], [js.Mesh.box(BOX_LO, BOX_HI), OCC_HIGH])
+    packed = js.illumination_mesh(scene, FLOOR, 5e-2, tile_size=TILE, updatable=False)
+    pack = refine._pack_errors
+    monkeypatch.setattr(refine, "_pack_errors", lambda err, thr: pack(err, -np.inf))  # every row whole
+    whole = js.illumination_mesh(scene, FLOOR, 5e-2, tile_size=TILE, updatable=False)
+    assert packed.stats["rounds"] > 2  # rounds that take over earlier elements' errors
+    for name in ("vertices", "triangles", "irradiance"):
+        np.testing.assert_array_equal(getattr(packed, name), getattr(whole, name), err_msg=name)
+    assert packed.max_error_estimate == whole.max_error_estimate
+    assert packed.stats["corner_error"] == whole.stats["corner_error"]
+
+
 def test_grouped_rounds_equal_one_group(mesh, monkeypatch):
     # The refinement rounds checked in many small groups (and engine batches) give the mesh
     # checked in one group per round, bit for bit, and so does its update.

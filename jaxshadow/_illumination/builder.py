@@ -553,6 +553,7 @@ class _Builder:
         out = self.eval.release(keep, held)
         self._live_rows = self.eval._rows
         self.stats["rows_released"] = self.stats.get("rows_released", 0) + before - self._live_rows
+        _return_free_memory()
         return out
 
     def _refine_tiles(self, tile_ids: list[int]) -> None:
@@ -626,6 +627,27 @@ class _Builder:
         for t in self.tiles:
             t.verts = t.tris = t.values = None
             t.pieces, t.contact_pieces, t.piece_extrema = [], [], {}
+
+
+_TRIM: list[Any] = []  # glibc's `malloc_trim`, once looked up ([None] where there is none)
+
+
+def _return_free_memory() -> None:
+    """Hand the C heap's free pages back to the operating system (glibc's `malloc_trim(0)`; a
+    no-op elsewhere). Arrays below glibc's mmap threshold, which rises to 32 MB once a larger one
+    is freed, come from the heap, and what a round frees there stays resident until the heap's
+    top is free; `release` calls this after dropping rows (a lean mesh's resident memory is then
+    what it holds)."""
+    if not _TRIM:
+        import ctypes
+        import ctypes.util
+
+        try:
+            _TRIM.append(ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim)
+        except (OSError, AttributeError):
+            _TRIM.append(None)
+    if _TRIM[0] is not None:
+        _TRIM[0](0)
 
 
 def _jax_gradient(scene: Scene, frame: ev.Frame, evaluator: _Evaluator) -> ex.Gradient:

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from .._core.keytable import GONE, MAX_LOAD, KeyTable, as_keys, first_occurrence
+from .._core.keytable import EMPTY, GONE, MAX_LOAD, KeyTable, as_keys, first_occurrence
 from .._scene.model import DirectionalLight, LinearLight, PointLight, PolygonLight, Scene
 from .._shading.shade import irradiance
 from . import events as ev
@@ -19,6 +19,7 @@ ON_LINE_STEP = 1e-9
 MIN_BATCH = 256  # smallest batch handed to the engine
 MAX_BATCH = 1 << 18  # largest batch handed to the engine (its working memory grows with the batch)
 ROW_CHUNK = 1 << 20  # points looked up per step of `row_of`
+ROW_ARRAYS = ("values", "targets", "lined", "inner")  # per row: its value, and what `inherit` reads
 SPARE = 0.25  # room added when the value arrays grow, as a fraction of the rows they must hold
 
 
@@ -53,6 +54,7 @@ class _Evaluator:
         self.targets = np.zeros(1024, np.complex128)  # per row: the point evaluated (`move`)
         self.lined = np.zeros(1024, bool)  # per row: evaluated with the on-line check
         self.inner = np.zeros(1024, bool)  # per row: an element's inner point, not in the cache (`inner_rows`)
+        self._arrays = ROW_ARRAYS  # the per-row arrays kept (`make_lean`: `values` only)
         self.succ: dict[int, int] = {}  # row -> the row of the point's next evaluation (`follow`)
         self._succ_sorted: tuple[np.ndarray, np.ndarray] | None = None
         self._rows = 0
@@ -79,6 +81,15 @@ class _Evaluator:
     @staticmethod
     def _keys(xy: np.ndarray) -> np.ndarray:
         return as_keys(xy)
+
+    def make_lean(self) -> None:
+        """Keep only the values per row (a mesh without `update`): where each row was evaluated,
+        whether with the on-line check and whether at an inner point are read by `inherit` and
+        `_take_prior` alone (an update's evaluator taking over this one's rows), so those arrays
+        go (18 of the 42 bytes a row holds with them; `release` and growth copy less too)."""
+        assert self.prior is None, "make_lean: not on an update's evaluator"
+        self._arrays = ("values",)
+        self.targets, self.lined, self.inner = self.targets[:0], self.lined[:0], self.inner[:0]
 
     def mark(self, xy: np.ndarray) -> None:
         """Declare points `(n, 2)` to lie on discontinuity lines."""
@@ -200,7 +211,7 @@ class _Evaluator:
             line = self.online.contains(todo) if len(self.online) else np.zeros(todo.size, bool)
             new_rows = self._evaluate(self._targets(todo), line)
             self._settle(todo, new_rows)
-            self.cache.put(todo, new_rows)
+            _put(self.cache, todo, new_rows)
             self._checked(todo[line])
         rows[need] = self.cache.get(asked)
         return rows
@@ -224,7 +235,7 @@ class _Evaluator:
 
     def adopt(self, xy: np.ndarray, rows: np.ndarray) -> None:
         """Key the points `xy (n, 2)` to their rows `rows` (`inner_rows`): they become vertices."""
-        self.cache.put(self._keys(xy), rows)
+        _put(self.cache, self._keys(xy), rows)
 
     def inner_values(self, xy: np.ndarray) -> np.ndarray:
         """The values `(n, 3)` at points `xy (n, 2)` inside elements, evaluated without rows (a
@@ -239,8 +250,9 @@ class _Evaluator:
         become vertices."""
         keys = self._keys(xy)
         rows = self._store(keys, values, np.zeros(keys.size, bool))
-        self.inner[rows] = True
-        self.cache.put(keys, rows)
+        if "inner" in self._arrays:
+            self.inner[rows] = True
+        _put(self.cache, keys, rows)
 
     def _evaluate(self, tgt: np.ndarray, line: np.ndarray) -> np.ndarray:
         """Evaluate at the points `tgt` (keys, `(n,)`), with the on-line check where `line`, into
@@ -253,8 +265,9 @@ class _Evaluator:
         start = self._rows  # rows are never reused (a key dropped by `move` leaves its row behind)
         self._grow(start + n)
         self.values[start:start + n] = val
-        self.targets[start:start + n] = tgt
-        self.lined[start:start + n] = line
+        if "targets" in self._arrays:
+            self.targets[start:start + n] = tgt
+            self.lined[start:start + n] = line
         self._rows = start + n
         return np.arange(start, start + n)
 
@@ -338,7 +351,7 @@ class _Evaluator:
             live[np.fromiter(self.dropped.values(), np.int64, len(self.dropped))] = True
         new = np.cumsum(live) - 1
         n = int(new[-1]) + 1 if new.size else 0
-        for name in ("values", "targets", "lined", "inner"):
+        for name in self._arrays:
             a = getattr(self, name)
             b = np.zeros((max(int(n * (1 + SPARE)), 1024),) + a.shape[1:], a.dtype)
             b[:n] = a[:self._rows][live]
@@ -356,7 +369,7 @@ class _Evaluator:
         if rows <= self.values.shape[0]:
             return
         size = max(int(rows * (1 + (SPARE if spare is None else spare))), 1024)
-        for name in ("values", "targets", "lined", "inner"):
+        for name in self._arrays:
             a = getattr(self, name)
             b = np.zeros((size,) + a.shape[1:], a.dtype)
             b[:self._rows] = a[:self._rows]
@@ -385,7 +398,7 @@ class _Evaluator:
         keys = cand[same]
         if keyed:
             self._settle(keys, rr[same])
-            self.cache.put(keys, rr[same])
+            _put(self.cache, keys, rr[same])
             self._checked(keys[line[same]])
         self.reused += keys.size
         return take, rr[same]
@@ -444,6 +457,30 @@ class _Evaluator:
 
     def luminance(self, xy: np.ndarray) -> np.ndarray:
         return self(xy).sum(axis=1)
+
+
+def _put(table: KeyTable, keys: np.ndarray, values: np.ndarray) -> None:
+    """`table.put(keys, values)` for distinct `keys`, first growing the table where that put
+    would (to the same capacity: the same table) by moving its live entries over in chunks of
+    `ROW_CHUNK` slots. The table's own growth inserts every live key in one pass, whose working
+    arrays (its keys and values copied out, hashes, probe positions) come on top of the old and
+    the new table: with tens of millions of keys (tol 1e-4 on the box floor) that pass was the
+    mesher's peak."""
+    keys = np.asarray(keys, np.complex128).ravel()
+    if table.used + keys.size > MAX_LOAD * table.keys.size:
+        live = table.live + keys.size
+        cap = 1 << max(4, int(np.ceil(1.5 * live / MAX_LOAD)).bit_length())  # (`KeyTable._resize`'s)
+        old_k, old_v = table.keys, table.vals
+        table.keys = np.zeros(cap, np.complex128)
+        table.vals = np.full(cap, EMPTY, np.int64)
+        table.live = table.used = 0
+        for s in range(0, old_v.size, ROW_CHUNK):
+            v = old_v[s:s + ROW_CHUNK]
+            ok = v >= 0
+            if np.any(ok):
+                table.put(old_k[s:s + ROW_CHUNK][ok], v[ok])
+        del old_k, old_v
+    table.put(keys, values)
 
 
 def _in_boxes(xy: np.ndarray, boxes: np.ndarray) -> np.ndarray:

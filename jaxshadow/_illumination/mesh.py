@@ -32,7 +32,9 @@ receiver polygon:
    and the new elements' check points (`_illumination_refine`). A round's inner check points
    (most of the evaluations) are evaluated in groups of tiles, and a mesher that will not be
    updated (`updatable=False`) drops after each round the values it will not ask for again: the
-   elements' inner check points and everything strictly inside a finished tile.
+   elements' inner check points and everything strictly inside a finished tile; it keeps a value
+   per evaluated point and nothing else (where and how it was evaluated are for `update`), and
+   hands the freed heap back to the system after each round.
 
 Values come from `jaxshadow.irradiance` (the host shadow engine for concrete inputs).
 """
@@ -324,8 +326,8 @@ def illumination_mesh(scene: Any, receiver: Any, tol: float = 1e-3, *, max_verti
       `seconds` (since refinement began); for a receiver of several polygons, per polygon.
     - `updatable`: keep what `IlluminationMesh.update` needs (every exact value computed, the
       tiles' meshes). With False the mesher drops the values it no longer needs as tiles
-      finish (the points strictly inside finished tiles, the elements' check points) and the
-      mesh keeps only its arrays: far less memory on large meshes (the box benchmark's floor
+      finish (the points strictly inside finished tiles, the elements' check points), keeps
+      nothing per evaluated point but its value, and the mesh keeps only its arrays: far less memory on large meshes (the box benchmark's floor
       at tol 1e-4), the same vertices, triangles and values bit for bit; `update` then raises.
 
     **Returns:** `IlluminationMesh` with `vertices (V, 3)`, `triangles (T, 3)`, `irradiance (V, 3)`,
@@ -376,6 +378,8 @@ def illumination_mesh(scene: Any, receiver: Any, tol: float = 1e-3, *, max_verti
         b = _Builder(scene, p, float(tol), tile_size, min_edge, max_vertices, gradient, scale)
         b.progress = progress
         b.lean = not updatable
+        if b.lean:
+            b.eval.make_lean()
         b.build(list(range(len(b.tiles))), list(b.edges))
         if b.lean:  # (the values are in the tiles now)
             b.release_evaluator()

@@ -21,10 +21,11 @@ class _Checked:
     round: `match` finds which of the next triangulation's triangles are the same (the next
     round's vertices start with these, in order) and `take` gives their rows."""
 
-    def __init__(self, tv: np.ndarray, tt: np.ndarray, *per: np.ndarray):
+    def __init__(self, tv: np.ndarray, tt: np.ndarray, *per: np.ndarray, side: np.ndarray | None = None):
         codes = _tri_codes(tt)
         order = np.argsort(codes)
         self.tv, self.codes, self.per = tv, codes[order], [a[order] for a in per]
+        self.side = side  # anything else the caller keeps beside them (not reordered)
         self._pos = np.zeros(0, np.int64)
 
     def match(self, tv: np.ndarray, tt: np.ndarray) -> tuple[np.ndarray, int]:
