@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 NOTEBOOKS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "notebooks")
-NAMES = ["paint_material.ipynb", "light_from_shadow.ipynb", "checking_shadow_gradients.ipynb"]
+NAMES = ["paint_material.ipynb", "light_from_shadow.ipynb", "checking_shadow_gradients.ipynb", "bake_a_scene.ipynb"]
 # (notebook, words in a markdown cell, text its stored outputs must then hold)
 CLAIMS = [("paint_material.ipynb", "reported as undetermined", "n determined: False")]
 NUMBER = re.compile(r"(?<![\w.])[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?(?!\w)")
