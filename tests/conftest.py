@@ -17,3 +17,26 @@ def dtype(request):
     import numpy as np
 
     return np.dtype(request.param)
+
+
+# Every compiled XLA CPU program keeps ~6 memory mappings while JAX caches it, and a Linux
+# process may hold `vm.max_map_count` (65 530 by default) of them: a test worker that compiles
+# ~10 000 programs then fails inside the JIT ("Failed to materialize symbols", then a
+# segmentation fault). Between test modules, a worker past MAP_BUDGET mappings drops JAX's
+# caches (the programs a later module needs are compiled again).
+MAP_BUDGET = 30_000
+
+
+def _mappings() -> int:
+    try:
+        with open("/proc/self/maps", "rb") as fh:
+            return sum(1 for _ in fh)
+    except OSError:  # not Linux
+        return 0
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _bounded_mappings():
+    yield
+    if _mappings() > MAP_BUDGET:
+        jax.clear_caches()
