@@ -374,6 +374,18 @@ class Placement:
     problem: LightsProblem
 
 
+def _distinct_best(f: np.ndarray, pos: np.ndarray, k: int, spacing: float) -> list[int]:
+    """Up to `k` candidates in increasing `f` (finite only), each farther than `spacing` from
+    every one picked before it (`pos`: the candidates' centres)."""
+    picked: list[int] = []
+    for c in np.argsort(f, kind="stable"):
+        if len(picked) == k or not np.isfinite(f[c]):
+            break
+        if all(np.linalg.norm(pos[c] - pos[q]) > spacing for q in picked):
+            picked.append(int(c))
+    return picked
+
+
 def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constraints: dict, idx: list,
           seed: int, keep: int) -> Placement:
     """Global placement (module docstring): `theta0 (Pt,)` the given poses, `local_rows[j]` light
@@ -461,12 +473,7 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
             for j in (j for j in todo if j not in ch):
                 f = rss_for(j, ch)
                 pos = centres(j, rows[j])
-                picked: list = []
-                for c in np.argsort(f, kind="stable"):
-                    if len(picked) == PER_PARENT or not np.isfinite(f[c]):
-                        break
-                    if all(np.linalg.norm(pos[c] - pos[q]) > spacing for q in picked):
-                        picked.append(int(c))
+                picked = _distinct_best(f, pos, PER_PARENT, spacing)
                 pool += [(float(f[c]), {**ch, j: c}) for c in picked]
         pool.sort(key=lambda x: x[0])
         beams, seen = [], set()
@@ -517,12 +524,7 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
                 spread[sl["size"]] = 0.4
             f = rss_for(j, chosen)
             pos = centres(j, rows[j])
-            seeds: list = []
-            for c in np.argsort(f, kind="stable"):
-                if len(seeds) == LOCAL_SEEDS or not np.isfinite(f[c]):
-                    break
-                if all(np.linalg.norm(pos[c] - pos[q]) > spacing for q in seeds):
-                    seeds.append(int(c))
+            seeds = _distinct_best(f, pos, LOCAL_SEEDS, spacing)
             others = [cols[i][chosen[i]] for i in chosen if i != j]
             B = np.stack(others, axis=1) if others else np.zeros((y.shape[0], 0))
             for level in range(LOCAL_LEVELS):
