@@ -72,7 +72,11 @@ class BakedScene:
     - `vertices`: `(V, 3)` positions (m).
     - `normals`: `(V, 3)` unit normals the irradiance was evaluated with.
     - `triangles`: `(T, 3)` vertex indices, counter-clockwise seen from the lit side.
-    - `irradiance`: `(V, 3)` exact RGB irradiance from all baked lights (W/m^2).
+    - `irradiance`: `(V, 3)` exact RGB irradiance from all baked lights (W/m^2). A vertex on the
+      edge of an occluder face lying in a planar receiver (the foot of an object standing on
+      it, or a cut where one passes through) carries the limit from the open side, evaluated a
+      small step (`CONTACT_STEP` of the patch's size) outside the face: along such an edge the
+      irradiance jumps, and `js.irradiance` at the point itself sees the face edge-on.
     - `irradiance_per_light`: `(V, L, 3)` the same per light (re-weight lights without baking
       again: `(w[None, :, None] * irradiance_per_light).sum(1)`).
     - `surface`: `(T,)` index of the receiver surface each triangle belongs to.
