@@ -60,7 +60,7 @@ from ._multilight_report import (
     structured_coefficients,
 )
 from ._multilight_result import result
-from ._multistart import best_starts, capacity_bucket, make_starts, prune_schedule, start_lights
+from ._multistart import best_starts, capacity_with_room, make_starts, prune_schedule, start_lights
 from ._options import Search, checked_constraints, search_options
 from ._painting import Brighter, ColourRange, painting
 from ._parametrisation import LightParametrisation, Outside, outside_planes, scene_size
@@ -586,7 +586,7 @@ def _with_capacity(problem: LightsProblem, per_light: list, fixed: list) -> Ligh
         cands += [problem.refs[j]] if y is None else start_lights(p, jnp.asarray(y))
     most = traced.shadow_capacity(scene, t.points, t.normals, lights=cands)
     # Rounded up to a power of two: nearby scenes and starts share one compiled program.
-    return dataclasses.replace(problem, capacity=capacity_bucket(-(-5 * most // 4) + 4))
+    return dataclasses.replace(problem, capacity=capacity_with_room(most))
 
 
 def _material_at(problem: LightsProblem, theta: np.ndarray) -> js.Material:

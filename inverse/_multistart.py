@@ -36,6 +36,12 @@ def capacity_bucket(need: int) -> int:
     return max(MIN_CAPACITY, 1 << max(int(need) - 1, 0).bit_length())
 
 
+def capacity_with_room(most: int) -> int:
+    """The capacity for a solve whose starts need at most `most` boundary edges: room for the
+    lights to move (`ceil(1.25 * most) + 4`), rounded up by `capacity_bucket`."""
+    return capacity_bucket(-(-5 * most // 4) + 4)
+
+
 def make_starts(param: LightParametrisation, starts: int, *, search_radius: float, orientation_spread: float,
                 size_spread: float, seed: int, dtype: Any) -> Array:
     """`(starts, P)` starting parameters: the reference first, then a scrambled Sobol
@@ -119,7 +125,7 @@ def culling_capacity_for_starts(param: LightParametrisation, scene: js.Scene, ta
     others = [light for i, light in enumerate(scene.lights) if i != param.light_index]
     most = traced.shadow_capacity(scene, targets.points, targets.normals,
                                   lights=[*start_lights(param, starts), *others])
-    return capacity_bucket(-(-5 * most // 4) + 4)
+    return capacity_with_room(most)
 
 
 @fit_jit
