@@ -138,13 +138,60 @@ def embree_sweep(tris: np.ndarray, p: np.ndarray, nrm: np.ndarray, exact: np.nda
     return {"build_s": em.build_seconds, "runs": runs, "points_per_s_at_1pct": at}
 
 
-def light_kinds(v: np.ndarray, f: np.ndarray, p: np.ndarray, nrm: np.ndarray, n_exact: int) -> dict:
+def _rms_rel(x: np.ndarray, ref: np.ndarray) -> float:
+    return float(np.sqrt(np.mean((x - ref) ** 2)) / np.sqrt(np.mean(ref**2)))
+
+
+def radiance_kind(light: Any, tris: np.ndarray, p: np.ndarray, nrm: np.ndarray, exact: np.ndarray,
+                  n_check: int) -> dict:
+    """Radiance (`rtrace -I -ab 0`) for one jaxshadow light over `tris (m, 3, 3)` on the receivers
+    `p, nrm (N, 3)`, as a source of equal radiometry (`benchmarks.peers.radiance_source`), at its
+    default setting and the fine one (`RADIANCE_FINE`; `RADIANCE_FINE_THIN` for the segment's thin
+    cylinder): points/s (rtrace's wall time, start-up included) and RMS error relative to
+    `exact (N,)` (jaxshadow's values; for point and directional lights also the receivers lit
+    without occluders on which the lit/shadowed decision differs), and `unoccluded_rms_rel_err`:
+    the same source with no occluder against `js.irradiance` without occluders on the first
+    `n_check` receivers (the radiometric equivalence, up to Radiance's sampling error)."""
+    import jaxshadow as js
+    from benchmarks.peers import (
+        RADIANCE_DEFAULT,
+        RADIANCE_FINE,
+        RADIANCE_FINE_THIN,
+        Radiance,
+        radiance_source,
+    )
+
+    src = radiance_source(light)
+    settings = {"default": RADIANCE_DEFAULT, "fine": RADIANCE_FINE_THIN if light.kind == "segment" else RADIANCE_FINE}
+    hard = light.kind in ("point", "directional")
+    lit = np.asarray(js.irradiance(js.Scene([light]), p, nrm))[:, 0] > 0 if hard else None
+    out: dict[str, Any] = {}
+    with Radiance([src], tris) as r:
+        for label, params in settings.items():
+            er, sec = r.irradiance(p, nrm, params)
+            row: dict[str, Any] = {"params": " ".join(params) or "(defaults)", "points_per_s": len(p) / sec,
+                                   "rms_rel_err": _rms_rel(er[:, 0], exact)}
+            if lit is not None:
+                row["disagree"] = int(np.sum((er[lit, 0] > 0) != (exact[lit] > 0)))
+            out[label] = row
+    q, qn = p[:n_check], nrm[:n_check]
+    ref = np.asarray(js.irradiance(js.Scene([light]), q, qn))[:, 0]
+    with Radiance([src], np.zeros((0, 3, 3))) as r:
+        out["unoccluded_receivers"] = int(len(q))
+        out["unoccluded_rms_rel_err"] = {label: _rms_rel(r.irradiance(q, qn, params)[0][:, 0], ref)
+                                         for label, params in settings.items()}
+    return out
+
+
+def light_kinds(v: np.ndarray, f: np.ndarray, p: np.ndarray, nrm: np.ndarray, n_exact: int,
+                radiance: bool = True) -> dict:
     """Point, directional and segment lights over the mesh: jaxshadow's throughput (second call),
     its values against the engine-free device kernels on `n_exact` receivers (point and
     directional lights; the segment light's device kernel clips every face and is too large
-    here), and Embree: hard-shadow rays for the point and directional lights (agreement of the
-    lit/shadowed decision), Monte Carlo along the segment at 16 and 256 samples (RMS error,
-    points/s)."""
+    here), Radiance at its default and fine settings on the same receivers (`radiance_kind`;
+    unless `radiance` is false), and Embree: hard-shadow rays for the point and directional
+    lights (agreement of the lit/shadowed decision), Monte Carlo along the segment at 16 and 256
+    samples (RMS error, points/s)."""
     import jaxshadow as js
     from benchmarks.peers import Embree
 
@@ -173,9 +220,13 @@ def light_kinds(v: np.ndarray, f: np.ndarray, p: np.ndarray, nrm: np.ndarray, n_
             for spp in (16, 256):
                 x, sec = em.segment_irradiance(p, nrm, np.asarray(light.start, float), np.asarray(light.end, float),
                                                float(np.asarray(light.power).reshape(-1)[0]), spp)
-                runs.append({"samples": spp, "points_per_s": len(p) / sec,
-                             "rms_rel_err": float(np.sqrt(np.mean((x - e) ** 2)) / np.sqrt(np.mean(e**2)))})
+                runs.append({"samples": spp, "points_per_s": len(p) / sec, "rms_rel_err": _rms_rel(x, e)})
             row["embree"] = {"runs": runs}
+        if radiance:
+            rad = radiance_kind(light, v[f], p, nrm, e, n_exact)
+            row["radiance_unoccluded_rel_err"] = rad.pop("unoccluded_rms_rel_err")
+            row["radiance_unoccluded_receivers"] = rad.pop("unoccluded_receivers")
+            row["radiance"] = rad
         out[name] = row
     return out
 
@@ -397,7 +448,9 @@ def markdown_files(r: dict) -> str:
                     + (f"at 1 % RMS error {at:.3g} points/s (jaxshadow, exact: {x['points_per_s']:.3g})." if at else "1 % not bracketed."))
     kinds = [(name, x["kinds"]) for name, x in r["others"].items() if "kinds" in x]
     if kinds:
-        rows += ["", "| mesh | light | jaxshadow points/s | shadowed receivers | exactness | Embree |", "|---|---|---:|---:|---|---|"]
+        rows += ["", "| mesh | light | jaxshadow points/s | shadowed receivers | exactness | Radiance default points/s (RMS err) "
+                 "| Radiance fine points/s (RMS err) | Radiance unoccluded RMS err (default / fine) | Embree |",
+                 "|---|---|---:|---:|---|---:|---:|---|---|"]
         for name, k in kinds:
             for kind, y in k.items():
                 if "max_rel_diff_vs_device" in y:
@@ -409,11 +462,41 @@ def markdown_files(r: dict) -> str:
                 em = y["embree"]
                 emc = (f"{em['points_per_s']:.3g} points/s, {em['disagree']} lit/shadowed disagreements" if "disagree" in em else
                        ", ".join(f"{z['samples']} samples {z['points_per_s']:.3g}/s ({100 * z['rms_rel_err']:.2g} %)" for z in em["runs"]))
-                rows.append(f"| {name} | {kind} | {y['points_per_s']:.3g} | {100 * y['shadowed']:.1f} % | {ex} | {emc} |")
+                rad = " | ".join(_radiance_kind_cells(y))
+                rows.append(f"| {name} | {kind} | {y['points_per_s']:.3g} | {100 * y['shadowed']:.1f} % | {ex} | {rad} | {emc} |")
     rows.append("")
     rows.append(f"{r['receivers']} floor receivers; each mesh's `{r['up']}` axis turned up, scaled to 1 m, 0.3 m above the "
                 f"floor. Peak RSS {r['peak_rss_gb']:.2f} GB.")
+    rows.append(RADIANCE_NOTE)
+    if kinds:
+        rows.append(RADIANCE_KINDS_NOTE)
     return "\n".join(rows)
+
+
+RADIANCE_NOTE = ("Radiance's points/s are rtrace's wall time including its start-up (process, octree load), which "
+                 "dominates at a few thousand receivers: compare throughputs on large receiver sets (>= 5e4).")
+RADIANCE_KINDS_NOTE = ("Other light kinds in Radiance (benchmarks/peers.py): the point light a sphere of radius 1e-4 m, the "
+                       "directional light a `source` of 0.01 degrees, the isotropic segment a cylinder of radius 1e-4 m whose "
+                       "radiance a `brightfunc` scales by 1/sin(angle from the axis); fine = `-dj 1 -ds 0.01 -dt 0 -dc 1` "
+                       "(the segment `-dj 0.8`: full jitter misses the thin tube). 'unoccluded': the same source without "
+                       "occluders against jaxshadow's unoccluded values (the radiometric equivalence). For point and "
+                       "directional lights 'n disagree': receivers whose lit/shadowed decision differs from jaxshadow's.")
+
+
+def _radiance_kind_cells(y: dict) -> list[str]:
+    """The Radiance cells of a light-kind row: default, fine (points/s, RMS error, lit/shadowed
+    disagreements) and the unoccluded check; '-' where the record has no Radiance."""
+    rad = y.get("radiance")
+    if rad is None:
+        return ["-", "-", "-"]
+    cells = []
+    for k in ("default", "fine"):
+        z = rad[k]
+        dis = f", {z['disagree']} disagree" if "disagree" in z else ""
+        cells.append(f"{z['points_per_s']:.3g} ({100 * z['rms_rel_err']:.2g} %{dis})")
+    u = y["radiance_unoccluded_rel_err"]
+    cells.append(f"{u['default']:.1e} / {u['fine']:.1e} ({y['radiance_unoccluded_receivers']} receivers)")
+    return cells
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -475,14 +558,19 @@ def markdown(r: dict) -> str:
                     + (f"at 1 % RMS error {at:.3g} points/s (jaxshadow, exact: {x['points_per_s']:.3g})." if at else "1 % not bracketed."))
     if "light_kinds" in r:
         rows.append("")
-        rows.append("| light on the scan-like mesh | jaxshadow points/s | shadowed receivers | vs device kernel | Embree |")
-        rows.append("|---|---:|---:|---:|---|")
+        # Radiance's columns only where the record has them (records made before they existed render as before).
+        with_rad = any("radiance" in x for x in r["light_kinds"].values())
+        rad_head, rad_rule = (" Radiance default points/s (RMS err) | Radiance fine points/s (RMS err) | Radiance unoccluded RMS err (default / fine) |",
+                              "---:|---:|---|") if with_rad else ("", "")
+        rows.append(f"| light on the scan-like mesh | jaxshadow points/s | shadowed receivers | vs device kernel |{rad_head} Embree |")
+        rows.append(f"|---|---:|---:|---:|{rad_rule}---|")
         for name, x in r["light_kinds"].items():
             dev = f"{x['max_rel_diff_vs_device']:.1e} ({x['exact_receivers']} receivers)" if "max_rel_diff_vs_device" in x else "-"
             em = x["embree"]
             emc = (f"{em['points_per_s']:.3g} points/s, {em['disagree']} lit/shadowed disagreements" if "disagree" in em else
                    ", ".join(f"{y['samples']} samples {y['points_per_s']:.3g}/s ({100 * y['rms_rel_err']:.2g} %)" for y in em["runs"]))
-            rows.append(f"| {name} | {x['points_per_s']:.3g} | {100 * x['shadowed']:.1f} % | {dev} | {emc} |")
+            rad = "".join(f" {c} |" for c in _radiance_kind_cells(x)) if with_rad else ""
+            rows.append(f"| {name} | {x['points_per_s']:.3g} | {100 * x['shadowed']:.1f} % | {dev} |{rad} {emc} |")
     rows.append("")
     if "face_path_note" in r:
         rows.append(r["face_path_note"])
