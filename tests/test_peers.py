@@ -16,6 +16,7 @@ from benchmarks.peers import (  # noqa: E402
     Radiance,
     radiance_source,
 )
+from benchmarks.real_meshes import _radiance_kind_cells, blob, light_kinds  # noqa: E402
 
 # Deterministic (no jitter) and finely subdivided: Radiance's own error is its subdivision's.
 FINE_NO_JITTER = ("-ds", "0.01", "-dt", "0", "-dc", "1")
@@ -120,3 +121,31 @@ def test_radiance_source_rejects_what_a_cylinder_cannot_emit():
         radiance_source(js.LinearLight([0, 0, 1], [1, 0, 1], 1.0, profile="cosine", exponent=2))
     with pytest.raises(ValueError, match="kind"):
         radiance_source(object())
+
+
+def test_light_kinds_reports_radiance_beside_embree():
+    """The benchmark's light-kind rows on a small mesh: Radiance's default and fine runs and the
+    unoccluded check are recorded, within their sampling error of jaxshadow's exact values, and
+    rendered in the table's cells."""
+    pytest.importorskip("embreex")
+    pytest.importorskip("trimesh")
+    v, f = blob(2)
+    rng = np.random.default_rng(4)
+    p = np.c_[rng.uniform(-1.5, 1.5, (300, 2)), np.zeros(300)]
+    nrm = np.tile([0.0, 0.0, 1.0], (300, 1))
+    rows = light_kinds(v, f, p, nrm, 20)
+    assert set(rows) == {"point", "directional", "segment"}
+    for kind, row in rows.items():
+        assert row["shadowed"] > 0.01, kind  # the mesh's shadow is among the receivers
+        rad = row["radiance"]
+        assert rad["default"]["points_per_s"] > 0 and rad["fine"]["points_per_s"] > 0
+        assert row["radiance_unoccluded_receivers"] == 20
+        assert max(row["radiance_unoccluded_rel_err"].values()) < 5e-3, kind
+        if kind == "segment":
+            assert rad["fine"]["params"].startswith("-dj 0.8")
+            assert rad["fine"]["rms_rel_err"] < 0.02
+        else:
+            assert rad["fine"]["rms_rel_err"] < 1e-2 and rad["default"]["disagree"] <= 3, kind
+        cells = _radiance_kind_cells(row)
+        assert len(cells) == 3 and "-" not in cells
+    assert _radiance_kind_cells({}) == ["-", "-", "-"]
