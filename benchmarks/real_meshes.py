@@ -24,7 +24,11 @@ reads each with `js.read_mesh` (vertices at equal positions welded), turns its `
 scales it to 1 m (largest extent), centres it over the origin 0.3 m above the floor, and measures
 it as the stand-ins above (same light, receivers, Radiance default, Embree sweep, exactness
 against the polygon-boolean reference on 1000 receivers); rows are labelled by file name.
-Writes `benchmarks/results/real_meshes_files[_quick].json` and `.md`.
+`--kinds` adds point, directional and segment lights over each file (`light_kinds`): jaxshadow,
+Radiance default and fine (sources of equal radiometry from `benchmarks.peers`, with their
+unoccluded agreement) and Embree on the same receivers. Radiance's start-up (process, octree)
+dominates its figure at a few thousand receivers: compare throughputs with `--receivers 50000`
+or more. Writes `benchmarks/results/real_meshes_files[_quick].json` and `.md`.
 """
 
 from __future__ import annotations
