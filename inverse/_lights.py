@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 import warnings
-from typing import Any, NamedTuple, no_type_check
+from typing import Any, no_type_check
 
 import jax
 import jax.numpy as jnp
@@ -159,8 +159,7 @@ def fit_light(
         logn = np.full((y0.shape[0], 1), np.log(float(material.exponent)))
         logn[1:, 0] += np.random.default_rng(seed).uniform(-np.log(3.0), np.log(3.0), y0.shape[0] - 1)
         y0 = jnp.concatenate([y0, jnp.asarray(logn, dt)], axis=1)
-    fitted = _light_fit(_OneLight(param, scene, material, targets, specular, with_spec, project, fit_n),
-                        solver.minimise(problem, y0), solver.name, int(y0.shape[0]), noise)
+    fitted = _light_fit(problem, solver.minimise(problem, y0), solver.name, int(y0.shape[0]), noise)
     if warn:
         for msg in fitted.report.quality.emitted:
             warnings.warn(msg, FitQualityWarning, stacklevel=2)
@@ -186,19 +185,6 @@ def _checked_groups(scene: Any, targets: Any, light_index: Any, fit: Any, materi
     return fit
 
 
-class _OneLight(NamedTuple):
-    """What the report of a one-light fit reads, whichever problem object the solver ran."""
-
-    param: LightParametrisation
-    scene: js.Scene
-    material: js.Material
-    targets: PaintedTargets
-    specular: Any
-    with_specular: bool
-    project: bool
-    fit_exponent: bool
-
-
 def _problem(param: LightParametrisation, scene: js.Scene, material: js.Material, targets: PaintedTargets,
              specular: Any, with_spec: bool, project: bool, fit_n: bool) -> LightsProblem:
     """The problem every solver runs: `fit_lights`' (`LightsProblem`), one fitted light, its
@@ -221,10 +207,10 @@ def _problem(param: LightParametrisation, scene: js.Scene, material: js.Material
                          bool(others) and not inside, specular, colour_free=project, fit_exponent=fit_n)
 
 
-def _light_fit(problem: _OneLight, sol: Solution, solver_name: str, n_screened: int,
+def _light_fit(problem: LightsProblem, sol: Solution, solver_name: str, n_screened: int,
                noise: Any = None) -> LightFit:
     """The fitted scene, residual and report from a solver's `Solution`."""
-    param, t, material = problem.param, problem.targets, problem.material
+    param, t, material = problem.params[0], problem.targets, problem.material
     names = (*param.names, "log_n") if problem.fit_exponent else param.names
     dt = t.points.dtype
     theta = jnp.asarray(sol.values[sol.best], dt)
@@ -242,7 +228,7 @@ def _light_fit(problem: _OneLight, sol: Solution, solver_name: str, n_screened: 
                     f"shadow capacity (culling capacity); "
                     f"solved again {sol.retries} time(s) with a larger one (the result is exact).")
     new_scene = with_light(problem.scene, param.light_index, sol.light)
-    if problem.project:
+    if problem.colour_free:
         kc, n_fit = (np.asarray(x, np.float64) for x in colour_coefficients(sol.problem, theta))
         if np.any(kc < 0):  # the unconstrained projection: a js.Material holds no negative coefficient
             bad = [f"{'ka kd ks'.split()[i]}[{'rgb'[c]}]" for i, c in zip(*np.nonzero(kc < 0), strict=True)]
@@ -253,7 +239,7 @@ def _light_fit(problem: _OneLight, sol: Solution, solver_name: str, n_screened: 
         material = js.Material(ka=jnp.asarray(kc[0], dt), kd=jnp.asarray(kc[1], dt), ks=jnp.asarray(kc[2], dt),
                                exponent=jnp.asarray(float(n_fit), dt))
     w = np.asarray(t.weights, np.float64)
-    if sol.exact_residual and not problem.project and np.all(w > 0) and invalid_reason(sol.light) is None:
+    if sol.exact_residual and not problem.colour_free and np.all(w > 0) and invalid_reason(sol.light) is None:
         residual = sol.residual.reshape(-1, 3) / np.sqrt(w)  # r = sqrt(w) (model - colours)
     else:
         # A light that collapsed to a degenerate one (`_diagnostics`) shines as no light: `js.shade`

@@ -14,9 +14,11 @@ solution shared by the three channels (the $3N \times J$ design of columns
 $k_d/\pi\,E^j + k_s S^j$) at the problem's material. (A fitted material is a leaf of the
 problem, updated between solves: `_fit_lights`.)
 
-Only the poses are searched. The shadow engine runs inside the compiled program at a capacity
-(`jaxshadow.traced`); the program's `mask` and `base` let one compiled program search one light
-(the others held at `base`) or all of them.
+Only the poses (and, with `fit_exponent`, the Phong exponent as $\log n$) are searched. The
+shadow engine runs inside the compiled program at a capacity (`jaxshadow.traced`); the
+program's `mask` and `base` let one compiled program search one light (the others held at
+`base`) or all of them. `fit_light` is the one-light case (`_lights._problem`): every light
+solver (`_solvers`) runs this problem.
 """
 
 from __future__ import annotations
