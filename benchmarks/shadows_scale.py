@@ -205,7 +205,7 @@ def _fit(n_targets: int, reps: int) -> dict:
     import inverse
     import jaxshadow as js
     from benchmarks.scenes import floor_receivers
-    from inverse import _residuals as R
+    from inverse import _forward as R
     from inverse._parametrisation import LightParametrisation
 
     scene, light, _ = _scene("mesh")

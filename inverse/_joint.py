@@ -18,16 +18,16 @@ from jaxtyping import Array
 import jaxshadow as js
 
 from ._diagnostics import FitQualityWarning, invalid_reason, without_invalid_lights
-from ._forward import SpecularFn, shade_culled
+from ._forward import SpecularFn
 from ._identifiability import identifiability
 from ._lights import fit_light
 from ._lm import fit_jit
 from ._material import fit_material
+from ._multilight import LightsProblem, basis
 from ._multistart import culling_capacity_for_starts
 from ._options import SEARCH_FIELDS, search_options
-from ._parametrisation import LightParametrisation, with_light
+from ._parametrisation import LightParametrisation
 from ._reports import JointFit
-from ._residuals import LightProblem, pinned
 from ._targets import PaintedTargets
 
 
@@ -85,8 +85,14 @@ def joint_std_errors(param: LightParametrisation, theta: Any, scene: js.Scene, m
     # the held ones' columns are dropped below.
     phi = jnp.asarray(np.concatenate([theta, k0.reshape(-1), [np.log(n0)]]), dt)
     cap = culling_capacity_for_starts(param, scene, t, jnp.asarray(theta[None], dt))
-    problem = LightProblem(param, scene, material, t, specular, with_spec,
-                           capacity=None if cap is None else 8 * -(-cap // 8))  # shared by nearby scenes
+    # `fit_lights`' problem with every light in the program (the exponent moves their specular
+    # term): the fitted one, then the others at their given power.
+    others = [light for k, light in enumerate(scene.lights) if k != param.light_index]
+    z = jnp.zeros(t.points.shape, dt)
+    problem = LightsProblem((param, *[None] * len(others)), (scene.lights[param.light_index], *others), scene,
+                            material, t, z, z, (0, *[P] * len(others)), False, with_spec, False, specular,
+                            capacity=None if cap is None else 8 * -(-cap // 8),  # shared by nearby scenes
+                            fit_exponent=True)
     r, J, over = _joint_jacobian(problem, phi)
     if bool(over):  # some receiver needs more boundary edges: every receiver against every occluder
         r, J, _ = _joint_jacobian(dataclasses.replace(problem, capacity=None), phi)
@@ -106,21 +112,23 @@ def joint_std_errors(param: LightParametrisation, theta: Any, scene: js.Scene, m
     return out
 
 
-def _joint_residuals(phi: Array, problem: LightProblem) -> tuple[Array, Array]:
+def _joint_residuals(phi: Array, problem: LightsProblem) -> tuple[Array, Array]:
     r"""`(r (3N,), overflow)`: the weighted residual at `phi` = the light's parameters, the nine
-    coefficients $k_a, k_d, k_s$ (rows, RGB) and $\log n$, at the problem's shadow capacity."""
-    P = problem.param.size
+    coefficients $k_a, k_d, k_s$ (rows, RGB) and $\log n$, at the problem's shadow capacity
+    (Poulin eq. 5.14 with every light of `problem` at its given power)."""
+    P = problem.n_pose
     t = problem.targets
+    dt = phi.dtype
     k = phi[P:P + 9].reshape(3, 3)
-    scene = with_light(problem.scene, problem.param.light_index, pinned(problem.param.build(phi[:P])))
-    m = js.Material(ka=k[0], kd=k[1], ks=k[2], exponent=jnp.exp(phi[P + 9]))
-    model, over = shade_culled(scene, m, t.points, t.normals, t.eye, problem.specular, problem.with_specular,
-                               problem.capacity)
+    E, S, over = basis(jnp.concatenate([phi[:P], phi[P + 9:]]), problem, problem.capacity)
+    model = k[0][None, :] * problem.scene.ambient.astype(dt)[None, :] + k[1][None, :] / jnp.pi * jnp.sum(E, axis=0)
+    if S is not None:
+        model = model + k[2][None, :] * jnp.sum(S, axis=0)
     return (jnp.sqrt(t.weights) * (model - t.colours)).reshape(-1), over
 
 
 @fit_jit
-def _joint_jacobian(problem: LightProblem, phi: Array) -> tuple[Array, Array, Array]:
+def _joint_jacobian(problem: LightsProblem, phi: Array) -> tuple[Array, Array, Array]:
     """`(r, dr/dphi, overflow)` of `_joint_residuals`: one program per problem structure (the
     parametrisation's kind, the number of targets, occluders and capacity), whatever the scene's,
     targets' and material's values: a module-level function, so later fits reuse it."""

@@ -8,18 +8,17 @@ problem, the starts (`_multistart`, from the `Search` options that `fit_lights` 
 The problem is `fit_lights`' (`_multilight.LightsProblem` with one fitted light, its power held,
 the other lights' contribution computed once), and the `LM` searches it with `fit_lights`'
 screening and compiled program (`_multilight.screen`, `_multilight.solve`), so one light and
-several are one search; `OptimistixLM` and `LBFGSB` minimise its residual too.
-`_residuals.LightProblem` (every light inside the program) remains for what `LightsProblem`
-does not hold yet: a solver of one's own (an `AbstractLightSolver` subclass), a fitted exponent
-(`fit_exponent=True` with $k_s \ne 0$), a per-receiver material, and a projected material
-beside other lights (`_problem`).
+several are one search; `OptimistixLM`, `LBFGSB` and a solver of one's own (an
+`AbstractLightSolver` subclass) minimise its residual too. A fitted exponent is the last
+parameter, a per-receiver material and a projected material beside other lights are the
+problem's (`_problem`).
 """
 
 from __future__ import annotations
 
 import math
 import warnings
-from typing import Any, NamedTuple, no_type_check
+from typing import Any, no_type_check
 
 import jax
 import jax.numpy as jnp
@@ -38,18 +37,14 @@ from ._diagnostics import (
 from ._forward import SpecularFn, shade
 from ._identifiability import identifiability
 from ._lm import fit_jit
-from ._multilight import LightsProblem, basis, fixed_contribution
+from ._multilight import LightsProblem, basis, colour_free_columns, exponent_at, fixed_contribution
 from ._multistart import distinct_minima, make_starts
 from ._options import Search, checked_constraints, search_options
 from ._parametrisation import FIT_GROUPS, LightParametrisation, scene_size, with_light
 from ._reports import LightFit, LightReport
-from ._residuals import LightProblem, projected_jit
 from ._solvers import (
-    LBFGSB,
     LEGACY_SOLVER_KEYWORDS,
-    LM,
     AbstractLightSolver,
-    OptimistixLM,
     Solution,
     checked_solver,
 )
@@ -86,7 +81,8 @@ def fit_light(
 
     **Arguments:**
 
-    - `scene` (occluders cast soft shadows), `targets`, `material` (fixed); `light_index`: the
+    - `scene` (occluders cast soft shadows), `targets`, `material` (fixed; its coefficients
+      `(3,)` or per receiver `(N, 3)`); `light_index`: the
       light to place (PolygonLight, LinearLight or PointLight); `fit`: a subset of
       `("position", "orientation", "size")`; `constraints`: `{light_index: inverse.Plane |
       inverse.Box}` for the light's centre (the dictionary of `fit_lights`).
@@ -96,7 +92,8 @@ def fit_light(
       `orientation_spread` (rad), `size_spread` (relative): the region's half-widths; `seed`:
       its stratification.
     - `solver`: `LM()` (default: screening to the 8 best starts, successive halving, occluder
-      culling; exact), `OptimistixLM()` or `LBFGSB()`, with their options.
+      culling; exact), `OptimistixLM()` or `LBFGSB()`, with their options, or a solver of one's
+      own (an `AbstractLightSolver` subclass: it gets `fit_lights`' problem of this one light).
     - `material_mode`: `"fixed"` (the material as given) or `"projected"` (joint light and
       material by variable projection: at every trial light $k_a, k_d, k_s$ are the exact,
       unconstrained weighted least-squares solution, so only the light - and with
@@ -154,7 +151,7 @@ def fit_light(
     with_spec = bool(np.any(np.asarray(material.ks) != 0))
     project = material_mode == "projected"
     fit_n = project and fit_exponent and with_spec
-    problem = _problem(solver, param, scene, material, targets, specular, with_spec, project, fit_n)
+    problem = _problem(param, scene, material, targets, specular, with_spec, project, fit_n)
     seed = opts.seed
     y0 = make_starts(param, starts, search_radius=opts.search_radius, orientation_spread=opts.orientation_spread,
                      size_spread=opts.size_spread, seed=seed, dtype=dt)
@@ -162,8 +159,7 @@ def fit_light(
         logn = np.full((y0.shape[0], 1), np.log(float(material.exponent)))
         logn[1:, 0] += np.random.default_rng(seed).uniform(-np.log(3.0), np.log(3.0), y0.shape[0] - 1)
         y0 = jnp.concatenate([y0, jnp.asarray(logn, dt)], axis=1)
-    fitted = _light_fit(_OneLight(param, scene, material, targets, specular, with_spec, project, fit_n),
-                        solver.minimise(problem, y0), solver.name, int(y0.shape[0]), noise)
+    fitted = _light_fit(problem, solver.minimise(problem, y0), solver.name, int(y0.shape[0]), noise)
     if warn:
         for msg in fitted.report.quality.emitted:
             warnings.warn(msg, FitQualityWarning, stacklevel=2)
@@ -189,42 +185,32 @@ def _checked_groups(scene: Any, targets: Any, light_index: Any, fit: Any, materi
     return fit
 
 
-class _OneLight(NamedTuple):
-    """What the report of a one-light fit reads, whichever problem object the solver ran."""
-
-    param: LightParametrisation
-    scene: js.Scene
-    material: js.Material
-    targets: PaintedTargets
-    specular: Any
-    with_specular: bool
-    project: bool
-    fit_exponent: bool
-
-
-def _problem(solver: AbstractLightSolver, param: LightParametrisation, scene: js.Scene, material: js.Material,
-             targets: PaintedTargets, specular: Any, with_spec: bool, project: bool,
-             fit_n: bool) -> LightsProblem | LightProblem:
-    """The problem the solver runs: `fit_lights`' (`LightsProblem`, one fitted light, its power
-    held; the other lights' contribution computed once), searched by the `LM` through the same
-    compiled program as `fit_lights`; by `OptimistixLM` and `LBFGSB` on its residual.
-    `LightProblem` (every light inside the program) for a fitted exponent, a per-receiver
-    material, a projected material beside other lights (`LightsProblem` would free their
-    coefficients from the fitted light's), and a solver of one's own (an `AbstractLightSolver`
-    written for `LightProblem`)."""
-    fixed = [light for k, light in enumerate(scene.lights) if k != param.light_index]
-    if (not isinstance(solver, (LM, OptimistixLM, LBFGSB)) or fit_n or np.ndim(material.kd) != 1 or np.ndim(material.ka) != 1
-            or np.ndim(material.ks) != 1 or (project and fixed)):
-        return LightProblem(param, scene, material, targets, specular, with_spec, project, fit_n)
-    e0, s0 = fixed_contribution(scene, targets, material, fixed, specular, with_spec)
-    return LightsProblem((param,), (scene.lights[param.light_index],), scene, material, targets, e0, s0, (0,),
-                         project, with_spec, bool(fixed), specular, colour_free=project)
+def _problem(param: LightParametrisation, scene: js.Scene, material: js.Material, targets: PaintedTargets,
+             specular: Any, with_spec: bool, project: bool, fit_n: bool) -> LightsProblem:
+    """The problem every solver runs: `fit_lights`' (`LightsProblem`), one fitted light, its
+    power held (`fit_power=False`), searched by the `LM` through the same compiled program as
+    `fit_lights`; by `OptimistixLM`, `LBFGSB` and one's own solvers on its residual. The other
+    lights' contribution is computed once (`fixed_contribution`), except with a fitted exponent
+    and a specular term, where it depends on $n$: they are then in the program, at their given
+    power (power-only entries). A projected material (`colour_free`) shares one $k_d$ (and $k_s$)
+    between the fitted light and the others, as `js.shade` does."""
+    others = [light for k, light in enumerate(scene.lights) if k != param.light_index]
+    inside = bool(fit_n and with_spec and others)
+    if inside:
+        z = jnp.zeros(targets.points.shape, targets.points.dtype)
+        e0, s0 = z, z
+    else:
+        e0, s0 = fixed_contribution(scene, targets, material, others, specular, with_spec)
+    n_in = len(others) if inside else 0
+    return LightsProblem((param, *[None] * n_in), (scene.lights[param.light_index], *(others if inside else [])),
+                         scene, material, targets, e0, s0, (0, *[param.size] * n_in), False, with_spec,
+                         bool(others) and not inside, specular, colour_free=project, fit_exponent=fit_n)
 
 
-def _light_fit(problem: _OneLight, sol: Solution, solver_name: str, n_screened: int,
+def _light_fit(problem: LightsProblem, sol: Solution, solver_name: str, n_screened: int,
                noise: Any = None) -> LightFit:
     """The fitted scene, residual and report from a solver's `Solution`."""
-    param, t, material = problem.param, problem.targets, problem.material
+    param, t, material = problem.params[0], problem.targets, problem.material
     names = (*param.names, "log_n") if problem.fit_exponent else param.names
     dt = t.points.dtype
     theta = jnp.asarray(sol.values[sol.best], dt)
@@ -242,12 +228,8 @@ def _light_fit(problem: _OneLight, sol: Solution, solver_name: str, n_screened: 
                     f"shadow capacity (culling capacity); "
                     f"solved again {sol.retries} time(s) with a larger one (the result is exact).")
     new_scene = with_light(problem.scene, param.light_index, sol.light)
-    if problem.project:
-        if isinstance(sol.problem, LightsProblem):
-            kc, n_fit = np.asarray(colour_coefficients(sol.problem, theta), np.float64), material.exponent
-        else:
-            _, kc, n_fit = projected_jit(sol.problem, theta)
-            kc = np.asarray(kc, np.float64)
+    if problem.colour_free:
+        kc, n_fit = (np.asarray(x, np.float64) for x in colour_coefficients(sol.problem, theta))
         if np.any(kc < 0):  # the unconstrained projection: a js.Material holds no negative coefficient
             bad = [f"{'ka kd ks'.split()[i]}[{'rgb'[c]}]" for i, c in zip(*np.nonzero(kc < 0), strict=True)]
             msgs.append(f"the projected material has negative coefficients ({', '.join(bad)}), held at 0 in "
@@ -257,7 +239,7 @@ def _light_fit(problem: _OneLight, sol: Solution, solver_name: str, n_screened: 
         material = js.Material(ka=jnp.asarray(kc[0], dt), kd=jnp.asarray(kc[1], dt), ks=jnp.asarray(kc[2], dt),
                                exponent=jnp.asarray(float(n_fit), dt))
     w = np.asarray(t.weights, np.float64)
-    if sol.exact_residual and not problem.project and np.all(w > 0) and invalid_reason(sol.light) is None:
+    if sol.exact_residual and not problem.colour_free and np.all(w > 0) and invalid_reason(sol.light) is None:
         residual = sol.residual.reshape(-1, 3) / np.sqrt(w)  # r = sqrt(w) (model - colours)
     else:
         # A light that collapsed to a degenerate one (`_diagnostics`) shines as no light: `js.shade`
@@ -285,17 +267,15 @@ def _light_fit(problem: _OneLight, sol: Solution, solver_name: str, n_screened: 
 
 
 @fit_jit
-def colour_coefficients(problem: LightsProblem, theta: Array) -> Array:
-    """`(3, 3)` rows $k_a, k_d, k_s$ (RGB columns; $k_s = 0$ without a specular term): the
-    per-channel weighted least squares of the targets' colours on the ambient, $E/\\pi$ and $S$ of
-    the one fitted light of `problem` at `theta` (its colour-free projection,
-    `_multilight._colour_free_rows`, as `projected` does for a `LightProblem`)."""
+def colour_coefficients(problem: LightsProblem, theta: Array) -> tuple[Array, Array]:
+    """`((3, 3), n)`: rows $k_a, k_d, k_s$ (RGB columns; $k_s = 0$ without a specular term), the
+    per-channel weighted least squares of the targets' colours on the ambient, $E/\\pi$ and $S$
+    of every light at `theta` (`_multilight.colour_free_columns` of the one-light problem: the
+    projection its search made), and the exponent $n$ there."""
     t = problem.targets
     dt = theta.dtype
     E, S, _ = basis(theta, problem, problem.capacity)
-    amb = jnp.broadcast_to(problem.scene.ambient.astype(dt)[None, :], E[0].shape)
-    cols = [amb, E[0] / jnp.pi] + ([S[0]] if S is not None else [])
-    X = jnp.stack(cols, axis=-1)  # (N, C, m)
+    X = jnp.stack(colour_free_columns(E, S, problem, dt), axis=-1)  # (N, C, m)
     sw = jnp.sqrt(t.weights)
 
     def channel(Xc: Array, yc: Array, swc: Array) -> Array:
@@ -304,4 +284,4 @@ def colour_coefficients(problem: LightsProblem, theta: Array) -> Array:
     k = jax.vmap(channel, in_axes=(1, 1, 1), out_axes=1)(X, t.colours, sw)
     if S is None:
         k = jnp.concatenate([k, jnp.zeros((1, 3), dt)], axis=0)
-    return k
+    return k, exponent_at(theta, problem)

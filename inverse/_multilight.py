@@ -14,9 +14,11 @@ solution shared by the three channels (the $3N \times J$ design of columns
 $k_d/\pi\,E^j + k_s S^j$) at the problem's material. (A fitted material is a leaf of the
 problem, updated between solves: `_fit_lights`.)
 
-Only the poses are searched. The shadow engine runs inside the compiled program at a capacity
-(`jaxshadow.traced`); the program's `mask` and `base` let one compiled program search one light
-(the others held at `base`) or all of them.
+Only the poses (and, with `fit_exponent`, the Phong exponent as $\log n$) are searched. The
+shadow engine runs inside the compiled program at a capacity (`jaxshadow.traced`); the
+program's `mask` and `base` let one compiled program search one light (the others held at
+`base`) or all of them. `fit_light` is the one-light case (`_lights._problem`): every light
+solver (`_solvers`) runs this problem.
 """
 
 from __future__ import annotations
@@ -79,8 +81,11 @@ class LightsProblem(eqx.Module):
     # `Outside` constraints: ((j, hull normals (F, 3), offsets (F,), margin), ...) for fitted light j.
     outside: tuple = ()
     # A projected material: the search projects out, per channel, k_a and every light's (and the
-    # fixed lights') coefficient k_d p_j / pi independently (`_colour_free_rows`), not the material.
+    # fixed lights') coefficient k_d p_j / pi independently (`_colour_free_rows`), not the material;
+    # without `fit_power` (the powers as given: `fit_light`) one k_d (and k_s) shared by every light.
     colour_free: bool = eqx.field(static=True, default=False)
+    # The Phong exponent is searched: log n is the last entry of theta (`fit_light(fit_exponent=True)`).
+    fit_exponent: bool = eqx.field(static=True, default=False)
 
     @property
     def n_pose(self) -> int:
@@ -89,13 +94,27 @@ class LightsProblem(eqx.Module):
 
     @property
     def n_theta(self) -> int:
-        return self.n_pose + (len(self.params) if self.powers_in_theta else 0)
+        return self.n_pose + (len(self.params) if self.powers_in_theta else 0) + (1 if self.fit_exponent else 0)
 
     @property
     def n_residuals(self) -> int:
         n = 3 * int(self.targets.points.shape[0])
         n += 0 if self.paint is None else int(self.paint.pairs.shape[0])
         return n + (1 if self.powers_in_theta and self.budget is not None else 0) + len(self.outside)
+
+    def residual(self, theta: Array) -> Array:
+        """The weighted residual `(n_residuals,)` at `theta (n_theta,)`, every receiver against
+        every occluder (no capacity: exact, traceable; what `OptimistixLM` and `LBFGSB` minimise)."""
+        return projected_residual(theta, self, None)[0]
+
+    def residual_and_jacobian(self, theta: Array) -> tuple[Array, Array]:
+        """`(residual (M,), Jacobian (M, n_theta))` at `theta`, by one compiled program per
+        problem structure (forward mode, as `residual`)."""
+        return residual_and_jacobian(self, theta)
+
+    def lights(self, theta: Array) -> list[Any]:
+        """The fitted lights at `theta` (at their reference power), compiled once per structure."""
+        return build_lights(self, theta)
 
 
 def lights_at(theta: Array, problem: LightsProblem) -> list[Any]:
@@ -115,15 +134,30 @@ def one_light_scene(scene: js.Scene, light: Any) -> js.Scene:
     return eqx.tree_at(lambda s: s.lights, scene, (light,))
 
 
-def _one_basis(light: Any, problem: LightsProblem, capacity: int | None) -> tuple[Array, Array | None, Array]:
+def exponent_at(theta: Array, problem: LightsProblem) -> Array:
+    """The Phong exponent at `theta`: $e^{\\theta_{-1}}$ when it is searched
+    (`problem.fit_exponent`), else the material's."""
+    if problem.fit_exponent:
+        return jnp.exp(theta[-1])
+    return problem.material.exponent.astype(problem.targets.points.dtype)
+
+
+def coefficient_rows(k: Array, dt: Any) -> Array:
+    """A material coefficient `(3,)` as `(1, 3)`, or per receiver `(N, 3)` as is: rows that
+    broadcast against `(N, 3)` values."""
+    k = k.astype(dt)
+    return k if k.ndim == 2 else k[None, :]
+
+
+def _one_basis(light: Any, problem: LightsProblem, capacity: int | None,
+               exponent: Array) -> tuple[Array, Array | None, Array]:
     """`(E (N, 3), S (N, 3) or None, overflow)` of one light at reference power."""
     t = problem.targets
     sc = one_light_scene(problem.scene, pinned(light))
     e, over = irradiance_culled(sc, t.points, t.normals, capacity)
     if not problem.with_specular:
         return e, None, over
-    s, o = specular_culled(sc, t.points, t.normals, t.eye, problem.material.exponent.astype(t.points.dtype),
-                           problem.specular, capacity)
+    s, o = specular_culled(sc, t.points, t.normals, t.eye, exponent, problem.specular, capacity)
     return e, s, over | o
 
 
@@ -145,16 +179,17 @@ def basis(theta: Array, problem: LightsProblem, capacity: int | None) -> tuple[A
     same kind and shape share one traced copy of the shadow engine (`jax.vmap` over them): the
     compiled program holds one engine per kind, not one per light."""
     lights = lights_at(theta, problem)
+    n = exponent_at(theta, problem)
     es: list = [None] * len(lights)
     ss: list = [None] * len(lights)
     over = jnp.zeros((), bool)
     for group in same_kind_groups(lights):
         if len(group) == 1:
-            e, s, o = _one_basis(lights[group[0]], problem, capacity)
+            e, s, o = _one_basis(lights[group[0]], problem, capacity, n)
             e, s, o = e[None], None if s is None else s[None], o
         else:
             stacked = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *(lights[j] for j in group))
-            e, s, o = jax.vmap(lambda light: _one_basis(light, problem, capacity))(stacked)
+            e, s, o = jax.vmap(lambda light: _one_basis(light, problem, capacity, n))(stacked)
         over = over | jnp.any(o)
         for i, j in enumerate(group):
             es[j] = e[i]
@@ -175,7 +210,7 @@ def _parts(theta: Array, problem: LightsProblem, capacity: int | None) -> tuple[
     E, S, over = basis(theta, problem, capacity)
     m = problem.material
     La = jnp.broadcast_to(problem.scene.ambient.astype(dt)[None, :], t.colours.shape)
-    kd, ks, ka = m.kd.astype(dt)[None, :], m.ks.astype(dt)[None, :], m.ka.astype(dt)[None, :]
+    kd, ks, ka = coefficient_rows(m.kd, dt), coefficient_rows(m.ks, dt), coefficient_rows(m.ka, dt)
     ef, sf = problem.e_fixed.astype(dt), problem.s_fixed.astype(dt)
     fixed = ka * La + kd / jnp.pi * ef + (ks * sf if problem.with_specular else 0.0)
     per_light = kd[None] / jnp.pi * E + (ks[None] * S if S is not None else 0.0)  # (J, N, 3)
@@ -203,7 +238,7 @@ def _data_residual(theta: Array, problem: LightsProblem, capacity: int | None) -
     sw = jnp.sqrt(t.weights)
     fixed, per_light, over = _parts(theta, problem, capacity)
     if problem.powers_in_theta:
-        q = theta[problem.n_pose:]
+        q = theta[problem.n_pose:problem.n_pose + len(problem.params)]
         p = q * q
         r = painted_rows(fixed + jnp.tensordot(p, per_light, axes=1), t.colours, sw, problem.paint)
         if problem.budget is not None:
@@ -246,13 +281,7 @@ def _colour_free_rows(theta: Array, problem: LightsProblem, capacity: int | None
     if problem.active is not None:  # lights left out of the model: zero columns (pinv ignores them)
         E = E * problem.active.astype(dt)[:, None, None]
         S = None if S is None else S * problem.active.astype(dt)[:, None, None]
-    n = t.points.shape[0]
-    La = jnp.broadcast_to(problem.scene.ambient.astype(dt)[None, :], (n, 3))
-    cols = [La, *(E[j] / jnp.pi for j in range(E.shape[0]))]
-    if problem.has_fixed:
-        cols.append(problem.e_fixed.astype(dt) / jnp.pi)
-    if S is not None:
-        cols += [S[j] for j in range(S.shape[0])] + ([problem.s_fixed.astype(dt)] if problem.has_fixed else [])
+    cols = colour_free_columns(E, S, problem, dt)
     sw = jnp.sqrt(t.weights)  # (N, 3)
     A = jnp.stack(cols, axis=-1) * sw[:, :, None]  # (N, 3, m)
     A = jnp.moveaxis(A, 1, 0)  # (3, N, m)
@@ -260,6 +289,29 @@ def _colour_free_rows(theta: Array, problem: LightsProblem, capacity: int | None
     k = jnp.linalg.pinv(A) @ y
     r = (A @ k - y)[:, :, 0].T  # (N, 3)
     return r.reshape(-1), over
+
+
+def colour_free_columns(E: Array, S: Array | None, problem: LightsProblem, dt: Any) -> list[Array]:
+    """The `(N, 3)` columns of `_colour_free_rows`: the ambient, each fitted light's $E^j/\\pi$
+    and the fixed lights' $E^0/\\pi$, then (with a specular term) $S^j$ and $S^0$. Without
+    `fit_power` (the powers as given) the lights share one coefficient: one column
+    $(\\sum_j E^j + E^0)/\\pi$ (and $\\sum_j S^j + S^0$), whose coefficients are $k_a, k_d, k_s$."""
+    n = problem.targets.points.shape[0]
+    La = jnp.broadcast_to(problem.scene.ambient.astype(dt)[None, :], (n, 3))
+    if not problem.fit_power:
+        e = E[0] if E.shape[0] == 1 else jnp.sum(E, axis=0)
+        e = e + problem.e_fixed.astype(dt) if problem.has_fixed else e
+        cols = [La, e / jnp.pi]
+        if S is not None:
+            s = S[0] if S.shape[0] == 1 else jnp.sum(S, axis=0)
+            cols.append(s + problem.s_fixed.astype(dt) if problem.has_fixed else s)
+        return cols
+    cols = [La, *(E[j] / jnp.pi for j in range(E.shape[0]))]
+    if problem.has_fixed:
+        cols.append(problem.e_fixed.astype(dt) / jnp.pi)
+    if S is not None:
+        cols += [S[j] for j in range(S.shape[0])] + ([problem.s_fixed.astype(dt)] if problem.has_fixed else [])
+    return cols
 
 
 def outside_depth(theta: Array, problem: LightsProblem) -> Array:
@@ -302,9 +354,9 @@ def _structured(theta: Array, problem: LightsProblem, powers: Array, material: j
     p = powers.astype(dt)[:, None, None]
     La = problem.scene.ambient.astype(dt)[None, :]
     e = problem.e_fixed.astype(dt) + jnp.sum(p * E, axis=0)
-    model = material.ka.astype(dt)[None, :] * La + material.kd.astype(dt)[None, :] / jnp.pi * e
+    model = coefficient_rows(material.ka, dt) * La + coefficient_rows(material.kd, dt) / jnp.pi * e
     if S is not None:
-        model = model + material.ks.astype(dt)[None, :] * (problem.s_fixed.astype(dt) + jnp.sum(p * S, axis=0))
+        model = model + coefficient_rows(material.ks, dt) * (problem.s_fixed.astype(dt) + jnp.sum(p * S, axis=0))
     rows = painted_rows(model, t.colours, jnp.sqrt(t.weights), problem.paint)
     return rows, (E, jnp.zeros_like(E) if S is None else S)
 
@@ -323,6 +375,23 @@ def report_parts(problem: LightsProblem, theta: Array, powers: Array, material: 
 def build_lights(problem: LightsProblem, theta: Array) -> list[Any]:
     """The fitted lights at reference power, compiled once per problem structure."""
     return lights_at(theta, problem)
+
+
+@fit_jit
+def residual_and_jacobian(problem: LightsProblem, theta: Array) -> tuple[Array, Array]:
+    """`LightsProblem.residual_and_jacobian`: the residual with no capacity and its forward-mode
+    Jacobian."""
+    def fn(th: Array) -> Array:
+        return projected_residual(th, problem, None)[0]
+
+    return fn(theta), jax.jacfwd(fn)(theta)
+
+
+@fit_jit
+def loss_at(problem: LightsProblem, theta: Array) -> Array:
+    """$\\tfrac12|r|^2$ of `LightsProblem.residual` at `theta`."""
+    r = projected_residual(theta, problem, None)[0]
+    return 0.5 * jnp.sum(r * r)
 
 
 def _lm_impl(problem: LightsProblem, starts: Array, base: Array, mask: Array, rtol: float, atol: float,

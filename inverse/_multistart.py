@@ -1,7 +1,7 @@
 """Multistart (Campbell & Fussell §4.4.2): the starting points stratify the search region (a
 scrambled Sobol sequence, one point per cell of a coarse grid in the limit), all solved at once;
 the lowest residual wins. Also what the LM's occluder culling must hold at the starts, the
-screening of many starts down to a few, and the successive-halving schedule.
+choice of the best screened starts, and the successive-halving schedule.
 """
 
 from __future__ import annotations
@@ -19,7 +19,6 @@ from jaxshadow import traced
 
 from ._lm import fit_jit
 from ._parametrisation import LightParametrisation
-from ._residuals import LightProblem, residuals_culled
 from ._targets import PaintedTargets
 
 # The smallest shadow capacity a light fit compiles for (`capacity_bucket`).
@@ -29,7 +28,7 @@ MIN_CAPACITY = 8
 def capacity_bucket(need: int) -> int:
     """The shadow capacity a light fit's program is compiled for when receivers need `need`
     boundary edges: the next power of two, at least `MIN_CAPACITY`. The capacity is a static
-    field of the program (`LightProblem.capacity`, `LightsProblem.capacity`); coarse buckets let
+    field of the program (`LightsProblem.capacity`); coarse buckets let
     scenes that need 13, 14 or 16 edges share one compiled program (a second fit in a process,
     or a fresh process with JAX's persistent compilation cache, compiles nothing) at most twice
     the engine's work per receiver."""
@@ -126,20 +125,6 @@ def culling_capacity_for_starts(param: LightParametrisation, scene: js.Scene, ta
     most = traced.shadow_capacity(scene, targets.points, targets.normals,
                                   lights=[*start_lights(param, starts), *others])
     return capacity_with_room(most)
-
-
-@fit_jit
-def screen_losses(problem: LightProblem, starts: Array) -> Array:
-    """$\\tfrac12|r|^2$ at every start, one vectorised loss (at `problem.capacity`: the caller
-    sizes it for these starts, so nothing overflows): the screening of the Optimistix
-    and L-BFGS-B solvers (the LM screens with its own program, `_solvers.screen_with_lm`)."""
-
-    def loss(theta: Array) -> Array:
-        r = residuals_culled(theta, problem)[0]
-        return 0.5 * jnp.sum(r * r)
-
-    return jax.vmap(loss)(starts)
-
 
 
 def best_starts(losses: np.ndarray, k: int) -> np.ndarray:

@@ -1,14 +1,13 @@
 r"""The light fit's solvers, as objects: `LM`, `OptimistixLM`, `LBFGSB` (`fit_light(solver=...)`).
 
-Each minimises $\tfrac12|r(\theta)|^2$ (`_residuals`) from a batch of starts (`_multistart`),
-first screening them down to the `refine` best when there are more, and returns a `Solution`:
-the solved starts, the best one, the residual and its Jacobian there (for the report), and the
-light it builds.
+Each minimises $\tfrac12|r(\theta)|^2$ of `fit_lights`' problem (`_multilight.LightsProblem`;
+`fit_light`'s is its one-light case) from a batch of starts (`_multistart`), first screening
+them down to the `refine` best when there are more, and returns a `Solution`: the solved
+starts, the best one, the residual and its Jacobian there (for the report), and the light it
+builds.
 
-- `LM` (the default): the Levenberg-Marquardt of `_lm.py`, written for this batch (on
-  `fit_lights`' problem, `_multilight.LightsProblem`, through `fit_lights`' own screening and
-  program, `_multilight.screen` and `solve`; on a `_residuals.LightProblem` through
-  `_multistart_lm` below): one
+- `LM` (the default): the Levenberg-Marquardt of `_lm.py`, written for this batch, through
+  `fit_lights`' own screening and program (`_multilight.screen` and `solve`): one
   forward-mode Jacobian per iteration for all starts, with the shadow engine inside the
   compiled program (`jaxshadow.traced`: each receiver's visible region from its candidate
   occluders only, at a static capacity of boundary edges chosen from the starting lights; if
@@ -38,23 +37,17 @@ from jaxtyping import Array
 
 from jaxshadow import ShadowOptions
 
-from ._forward import at_capacity
-from ._lm import LMResult, batched_levenberg_marquardt, fit_jit
-from ._multilight import LightsProblem, build_lights, projected_residual, screen, solve
-from ._multistart import (
-    best_starts,
-    culling_capacity_for_starts,
-    prune_schedule,
-    screen_losses,
+from ._lm import fit_jit
+from ._multilight import (
+    LightsProblem,
+    build_lights,
+    loss_at,
+    projected_residual,
+    residual_and_jacobian,
+    screen,
+    solve,
 )
-from ._residuals import (
-    LightProblem,
-    build_light,
-    jacobian,
-    loss_jit,
-    residuals,
-    residuals_culled,
-)
+from ._multistart import best_starts, culling_capacity_for_starts, prune_schedule
 
 COMBINATORICS = ("auto", "device", "host")
 
@@ -80,21 +73,31 @@ class Solution:
     initial_loss: float
     retries: int
     exact_residual: bool
-    problem: LightsProblem | LightProblem
+    problem: LightsProblem
 
 
 class AbstractLightSolver(eqx.Module):
     """A multistart solver for `fit_light`: `minimise(problem, starts) -> Solution`.
 
     `refine`: solve only from the `refine` starts of lowest loss (Campbell & Fussell §4.4.2's
-    screening of a coarse grid); `None`: from every start."""
+    screening of a coarse grid); `None`: from every start.
+
+    A solver of one's own subclasses this and writes `minimise`. `problem` is `fit_lights`'
+    problem of one fitted light (`inverse._multilight.LightsProblem`; the same object `LM`,
+    `OptimistixLM` and `LBFGSB` get): `problem.params[0]` is the light's `LightParametrisation`
+    (`names`, `size`), `problem.n_theta` the length of a parameter vector (`size`, then
+    $\\log n$ with a fitted exponent), `problem.residual(theta)` the weighted residual
+    `(M,)` (traceable), `problem.residual_and_jacobian(theta)` it and its Jacobian `(M, n_theta)`,
+    `problem.lights(theta)[0]` the light. `starts`: `(S, n_theta)`, the reference first.
+    Return a `Solution` (its `exact_residual=True` when `residual` is `problem.residual` at the
+    best, so the report uses it)."""
 
     name: ClassVar[str] = ""
     box_map: ClassVar[str] = "sigmoid"  # how a Box constraint maps the position parameters
 
     refine: eqx.AbstractVar[int | None]
 
-    def minimise(self, problem: LightProblem, starts: Array) -> Solution:
+    def minimise(self, problem: LightsProblem, starts: Array) -> Solution:
         raise NotImplementedError
 
     def _screens(self, n_starts: int) -> bool:
@@ -153,38 +156,10 @@ class LM(AbstractLightSolver):
             return self.combinatorics == "host"
         return ShadowOptions().use_engine()
 
-    def minimise(self, problem: LightsProblem | LightProblem, starts: Array) -> Solution:
-        if isinstance(problem, LightsProblem):
-            return self._minimise_lights(problem, starts)
-        p = problem.param
-        n_solved = int(self.refine) if self._screens(starts.shape[0]) else int(starts.shape[0])
-        sched = prune_schedule(n_solved, self.max_steps) if self.prune else ()
-        cap = culling_capacity_for_starts(p, problem.scene, problem.targets, starts) if self.uses_engine() else None
-        initial = None
-        if self._screens(starts.shape[0]):
-            # The capacity holds every receiver's boundary at these very lights.
-            screen = screen_with_lm(dataclasses.replace(problem, capacity=cap), starts, n_solved, self.rtol,
-                                    self.atol, sched)
-            starts = jnp.asarray(np.asarray(starts)[best_starts(screen, n_solved)])  # host: no eager gather
-            initial = float(screen[0])
-        # After screening the capacity stays the one for all the screened starts (enough for the
-        # solved ones too): the solve then runs the very program that screened them.
-        problem = dataclasses.replace(problem, capacity=cap)
-        res, lights, problem, retries = solve_lm(problem, starts, self.rtol, self.atol, self.max_steps, sched)
-        losses = np.asarray(res.losses, np.float64)
-        best = int(np.argmin(np.where(np.isfinite(losses), losses, np.inf)))
-        if initial is None:
-            initial = float(np.asarray(res.initial_losses)[0])
-        # On the host: eager indexing of a device array would compile a gather per leaf.
-        light = jax.tree_util.tree_map(lambda x: jnp.asarray(np.asarray(x)[best]), lights)
-        return Solution(np.asarray(res.values), losses, np.asarray(res.converged), np.asarray(res.num_steps),
-                        np.asarray(res.abandoned), best, np.asarray(res.residuals, np.float64)[best],
-                        np.asarray(res.jacobians, np.float64)[best], light, initial, retries, True, problem)
-
-    def _minimise_lights(self, problem: LightsProblem, starts: Array) -> Solution:
-        """`minimise` on `fit_lights`' problem (one fitted light, `problem.params[0]`): its
-        screening and its compiled solver program (`_multilight.screen`, `_multilight.solve`, every
-        parameter searched from the starts), each retried at twice the shadow capacity on overflow."""
+    def minimise(self, problem: LightsProblem, starts: Array) -> Solution:
+        """`fit_lights`' screening and compiled solver program on the problem (one fitted light,
+        `problem.params[0]`; `_multilight.screen`, `_multilight.solve`, every parameter searched
+        from the starts), each retried at twice the shadow capacity on overflow."""
         param = problem.params[0]
         ys = np.asarray(starts)
         screens = self._screens(ys.shape[0])
@@ -237,7 +212,7 @@ class OptimistixLM(AbstractLightSolver):
     atol: float = 1e-12
     max_steps: int = 100
 
-    def minimise(self, problem: LightsProblem | LightProblem, starts: Array) -> Solution:
+    def minimise(self, problem: LightsProblem, starts: Array) -> Solution:
         return _minimise_vectorised(self, problem, starts, lambda pr, y0: _multistart_optx(
             pr, y0, self.rtol, self.atol, int(self.max_steps)))
 
@@ -266,142 +241,47 @@ class LBFGSB(AbstractLightSolver):
     tol: float = 1e-12
     max_steps: int = 100
 
-    def minimise(self, problem: LightsProblem | LightProblem, starts: Array) -> Solution:
-        lo, hi = _param(problem).lbfgsb_bounds(starts.dtype)
+    def minimise(self, problem: LightsProblem, starts: Array) -> Solution:
+        lo, hi = problem.params[0].lbfgsb_bounds(starts.dtype)
+        extra = starts.shape[1] - lo.shape[0]  # log n with a fitted exponent: bounded as the others' 1e6
+        lo = jnp.concatenate([lo, jnp.full((extra,), -1e6, lo.dtype)])
+        hi = jnp.concatenate([hi, jnp.full((extra,), 1e6, hi.dtype)])
         return _minimise_vectorised(self, problem, starts, lambda pr, y0: _multistart_lbfgsb(
             pr, y0, lo, hi, self.tol, int(self.max_steps)))
 
 
-def _param(problem: LightsProblem | LightProblem) -> Any:
-    """The fitted light's parametrisation of either problem object."""
-    return problem.params[0] if isinstance(problem, LightsProblem) else problem.param
-
-
-def _minimise_vectorised(solver: AbstractLightSolver, problem: LightsProblem | LightProblem, starts: Array,
-                         run: Any) -> Solution:
-    """Screening by one vectorised loss (`fit_lights`' screening, `_multilight.screen`, on a
-    `LightsProblem`), then `run(problem, starts) -> (values, losses, converged, steps)`; the
-    residual and Jacobian at the best by a program of their own."""
+def _minimise_vectorised(solver: AbstractLightSolver, problem: LightsProblem, starts: Array, run: Any) -> Solution:
+    """Screening by one vectorised loss (`fit_lights`' screening, `_multilight.screen`), then
+    `run(problem, starts) -> (values, losses, converged, steps)`; the residual and Jacobian at
+    the best by a program of their own."""
     initial = None
     if solver._screens(starts.shape[0]):
-        if isinstance(problem, LightsProblem):
-            ys = np.asarray(starts)
-            screen_f = screen(problem, ys, ys[0], np.ones(ys.shape[1], bool), ys.shape[0])[0]
-            screen_f = np.where(np.isfinite(screen_f), screen_f, np.inf).astype(np.float64)
-        else:
-            screen_f = np.asarray(screen_losses(problem, starts), np.float64)
+        ys = np.asarray(starts)
+        screen_f = screen(problem, ys, ys[0], np.ones(ys.shape[1], bool), ys.shape[0])[0]
+        screen_f = np.where(np.isfinite(screen_f), screen_f, np.inf).astype(np.float64)
         starts = jnp.asarray(np.asarray(starts)[best_starts(screen_f, int(solver.refine))])
         initial = float(screen_f[0])
     values, losses, ok, steps = (np.asarray(x) for x in run(problem, starts))
     losses = losses.astype(np.float64)
     best = int(np.argmin(np.where(np.isfinite(losses), losses, np.inf)))
     theta = jnp.asarray(values[best], starts.dtype)
-    if isinstance(problem, LightsProblem):
-        r, J = _jacobian_lights(problem, theta)
-        if initial is None:
-            initial = float(_loss_lights(problem, jnp.asarray(np.asarray(starts)[0])))
-        light = build_lights(problem, theta)[0]
-    else:
-        r, J = jacobian(problem, theta)
-        if initial is None:
-            initial = float(loss_jit(problem, jnp.asarray(np.asarray(starts)[0])))
-        light = build_light(problem.param, theta[: problem.param.size])
+    r, J = residual_and_jacobian(problem, theta)
+    if initial is None:
+        initial = float(loss_at(problem, jnp.asarray(np.asarray(starts)[0])))
+    light = build_lights(problem, theta)[0]
     return Solution(values, losses, ok, steps, np.zeros(len(losses), bool), best, np.asarray(r, np.float64),
                     np.asarray(J, np.float64), light, initial, 0, False, problem)
 
 
-# --------------------------------------------------------------------------------------
-# The programs (module-level jitted functions: compiled once per problem structure)
-# --------------------------------------------------------------------------------------
+def _residual(theta: Array, problem: LightsProblem) -> Array:
+    """The weighted residual, every receiver against every occluder (the vectorised solvers'
+    model: no capacity)."""
+    return projected_residual(theta, problem, None)[0]
 
 
-def _multistart_lm_impl(problem: LightProblem, starts: Array, rtol: float, atol: float, max_steps: int | Array,
-                        prune: tuple[int, ...] = (), chunk: int | None = None) -> tuple[LMResult, Any]:
-    """Levenberg-Marquardt from every start at once (`_lm.batched_levenberg_marquardt`) on the
-    culled residual; `LMResult.flag` is the culling overflow (then retry, `solve_lm`). Also
-    returns the light built at every start's solution (a batched light pytree): built here, in
-    the program that is compiled anyway, instead of by a program of its own (`build_light`:
-    ~0.15 s more of a one-start fit's first call)."""
-    res = batched_levenberg_marquardt(residuals_culled, starts, problem, rtol=rtol, atol=atol,
-                                      max_steps=max_steps, prune=prune, chunk=chunk,
-                                      num_residuals=3 * int(problem.targets.points.shape[0]))
-    size = problem.param.size
-    return res, jax.vmap(lambda th: problem.param.build(th[:size]))(res.values)
-
-
-_multistart_lm = fit_jit(_multistart_lm_impl)
-
-
-def run_lm(problem: LightProblem, starts: Any, rtol: float, atol: float, max_steps: int,
-           prune: tuple[int, ...]) -> tuple[LMResult, Any]:
-    """`_multistart_lm` from `starts (S, P)`,
-    several starts one at a time (`chunk=1`: finished and abandoned ones cost nothing),
-    `max_steps` as an array (traced): the one call that the screening (`screen_with_lm`, 0
-    steps) and the solve (`solve_lm`) both make, so that they run one compiled program."""
-    chunk = 1 if starts.shape[0] > 1 else None
-    return _multistart_lm(problem, starts, rtol, atol, np.asarray(max_steps, np.int32), prune, chunk)
-
-
-def solve_lm(problem: LightProblem, starts: Array, rtol: float, atol: float, max_steps: int,
-             prune: tuple[int, ...] = ()) -> tuple[LMResult, Any, LightProblem, int]:
-    """`run_lm`, retried with twice the shadow capacity while some receiver overflowed it, so
-    the result is exact (`_forward.at_capacity`).
-    Returns `(result, lights at the solutions, problem used, retries)`."""
-    def run(pr: LightProblem) -> tuple[tuple[LMResult, Any], Any]:
-        res, lights = run_lm(pr, starts, rtol, atol, max_steps, prune)
-        return (res, lights), res.flag
-
-    (res, lights), problem, retries = at_capacity(run, problem, "fit_light", "solve",
-                                                  "; use inverse.LM(combinatorics='device')")
-    return res, lights, problem, retries
-
-
-def screen_with_lm(problem: LightProblem, starts: Array, k: int, rtol: float, atol: float,
-                   prune: tuple[int, ...]) -> np.ndarray:
-    """$\\tfrac12|r|^2$ at every row of `starts (S, P)` (inf where not finite), evaluated by the
-    program that then solves from the `k` best (`_multistart_lm` with `k` starts and no
-    iterations: its first, evaluation-only iteration), `k` starts a call, the last call padded
-    with the first start. A program of its own (`_multistart.screen_losses`, one vectorised
-    loss) took 25-40% of a 64-start fit's first call; this costs a Jacobian per screened start
-    instead (~1-3 ms). Should the culling overflow at some start (a visible region with more
-    edges than the capacity), the losses are those of a vectorised loss at twice the capacity
-    needed there instead."""
-    ys = np.asarray(starts)
-    S = ys.shape[0]
-    calls = -(-S // k)
-    ys = np.concatenate([ys, np.repeat(ys[:1], calls * k - S, axis=0)])
-    results = [run_lm(problem, ys[i * k: (i + 1) * k], rtol, atol, 0, prune)[0] for i in range(calls)]
-    if problem.capacity is not None and any(bool(r.flag) for r in results):
-        need = culling_capacity_for_starts(problem.param, problem.scene, problem.targets, starts)
-        wider = dataclasses.replace(problem, capacity=max(2 * problem.capacity, need or 0))
-        losses = np.asarray(screen_losses(wider, starts))
-    else:
-        losses = np.concatenate([np.asarray(r.initial_losses) for r in results])[:S]
-    losses = losses.astype(np.float64)
-    return np.where(np.isfinite(losses), losses, np.inf)
-
-
-def _residual(theta: Array, problem: LightsProblem | LightProblem) -> Array:
-    """The weighted residual of either problem object, every receiver against every occluder
-    (the vectorised solvers' model: no capacity)."""
-    if isinstance(problem, LightsProblem):
-        return projected_residual(theta, problem, None)[0]
-    return residuals(theta, problem)
-
-
-def _loss(theta: Array, problem: LightsProblem | LightProblem) -> Array:
+def _loss(theta: Array, problem: LightsProblem) -> Array:
     r = _residual(theta, problem)
     return 0.5 * jnp.sum(r * r)
-
-
-@fit_jit
-def _jacobian_lights(problem: LightsProblem, theta: Array) -> tuple[Array, Array]:
-    return _residual(theta, problem), jax.jacfwd(_residual)(theta, problem)
-
-
-@fit_jit
-def _loss_lights(problem: LightsProblem, theta: Array) -> Array:
-    return _loss(theta, problem)
 
 
 def _optimistix() -> Any:
@@ -414,7 +294,7 @@ def _optimistix() -> Any:
 
 
 @fit_jit
-def _multistart_optx(problem: LightsProblem | LightProblem, starts: Array, rtol: float, atol: float, max_steps: int) -> tuple:
+def _multistart_optx(problem: LightsProblem, starts: Array, rtol: float, atol: float, max_steps: int) -> tuple:
     optx = _optimistix()
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
 
@@ -428,7 +308,7 @@ def _multistart_optx(problem: LightsProblem | LightProblem, starts: Array, rtol:
 
 
 @fit_jit
-def _multistart_lbfgsb(problem: LightsProblem | LightProblem, starts: Array, lower: Array, upper: Array, tol: float,
+def _multistart_lbfgsb(problem: LightsProblem, starts: Array, lower: Array, upper: Array, tol: float,
                        max_steps: int) -> tuple:
     from ._jaxopt import lbfgsb_solve
 

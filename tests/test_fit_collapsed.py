@@ -19,7 +19,6 @@ import inverse
 import jaxshadow as js
 from inverse import _diagnostics as diag
 from inverse import _fit_lights, _solvers
-from inverse._residuals import build_light, jacobian
 
 MATERIAL = js.Material(ka=0.2, kd=0.6, ks=0.0, exponent=1.0)
 EYE = np.array([0.0, -2.0, 2.0])
@@ -126,12 +125,12 @@ class _Collapsing(_solvers.AbstractLightSolver):
     refine: int | None = None
 
     def minimise(self, problem, starts):
-        names = problem.param.names
+        names = problem.params[0].names
         th = np.asarray(starts[0], np.float64).copy()
         th[names.index("log_sx" if "log_sx" in names else "log_length")] = COLLAPSED_LOG_SIZE
         th = jnp.asarray(th, starts.dtype)
-        r, J = jacobian(problem, th)
-        light = build_light(problem.param, th[: problem.param.size])
+        r, J = problem.residual_and_jacobian(th)
+        light = problem.lights(th)[0]
         r = np.asarray(r, np.float64)
         return _solvers.Solution(np.asarray(th, np.float64)[None], np.array([0.5 * float(r @ r)]), np.array([True]),
                                  np.array([1]), np.array([False]), 0, r, np.asarray(J, np.float64), light,

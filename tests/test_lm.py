@@ -18,9 +18,10 @@ import scipy.optimize
 
 import inverse
 from benchmarks.inverse_scenes import occluded_light_problem
+from inverse import _lights as L
+from inverse import _multilight as ML
 from inverse import _multistart as M
 from inverse import _parametrisation as P
-from inverse import _residuals as R
 from inverse import _solvers as S
 from inverse import pose_errors
 from inverse._lm import batched_levenberg_marquardt
@@ -129,9 +130,15 @@ def test_lm_successive_halving():
 # Compiled once per problem shape and shared by the tests below (the full model's Jacobian with
 # 8 occluders is the costliest program of this module to compile); op-by-op evaluation of the
 # culled residual would compile each of its primitives on its own.
-_full_jacobian = eqx.filter_jit(lambda setup, y: jax.jacfwd(R.residuals)(y, setup))
-_culled_jacobian = eqx.filter_jit(lambda setup, y: jax.jacfwd(R.residuals_culled, has_aux=True)(y, setup))
-_overflow = eqx.filter_jit(lambda setup, y: R.residuals_culled(y, setup)[1])
+_full_jacobian = eqx.filter_jit(lambda setup, y: jax.jacfwd(lambda th: ML.projected_residual(th, setup, None)[0])(y))
+_culled_jacobian = eqx.filter_jit(lambda setup, y: jax.jacfwd(
+    lambda th: ML.projected_residual(th, setup, setup.capacity), has_aux=True)(y))
+_overflow = eqx.filter_jit(lambda setup, y: ML.projected_residual(y, setup, setup.capacity)[1])
+
+
+def _setup(param, start, material, t):
+    """`fit_light`'s problem (`fit_lights`' one-light `LightsProblem`), material fixed, no specular."""
+    return L._problem(param, start, material, t, None, False, False, False)
 
 
 @pytest.fixture(scope="module")
@@ -146,7 +153,7 @@ def test_culled_residual_equals_full_model(occluded_config):
     of 1 (too small here) the flag is raised."""
     scene, start, material, t, size = occluded_config
     param = P.LightParametrisation(start.lights[0], 0, ("position", "orientation", "size"), None, size, "sigmoid")
-    setup = R.LightProblem(param, start, material, t, None, False)
+    setup = _setup(param, start, material, t)
     y = jnp.asarray(np.random.default_rng(1).normal(0, 0.05, param.size))
     cap = M.culling_capacity_for_starts(param, start, t, y[None])
     assert cap is not None and cap >= 8
@@ -169,35 +176,36 @@ def test_overflow_retry_gives_the_full_model_solution(occluded_config, monkeypat
 
 
 def test_screening_by_the_lm_program(occluded_config, caplog, monkeypatch):
-    """`fit_light` screens its starts with the LM's own program run for no iterations, k starts
-    a call (the last call padded): the losses are the vectorised loss's (`_multistart.screen_losses`; the
-    full model's where the culling overflows); `fit_light` compiles one LM program for its k best
-    starts."""
+    """`fit_light` screens its starts with `fit_lights`' screening (`_multilight.screen`, k starts
+    a call, the last call padded): the losses are those of the full model at every start (a
+    vectorised loss, every receiver against every occluder), also when the capacity overflows
+    at some start (screened again at twice the capacity, and said); `fit_light` compiles one LM
+    program for its k best starts."""
     import logging
 
     scene, start, material, t, size = occluded_config
     param = P.LightParametrisation(start.lights[0], 0, ("position", "orientation", "size"), None, size, "sigmoid")
-    setup = R.LightProblem(param, start, material, t, None, False)
+    setup = _setup(param, start, material, t)
     y0 = M.make_starts(param, 11, search_radius=0.5, orientation_spread=0.5, size_spread=0.5, seed=3,
                        dtype=jnp.float64)
+    ys = np.asarray(y0)
     s = dataclasses.replace(setup, capacity=M.culling_capacity_for_starts(param, start, t, y0))
-    got = S.screen_with_lm(s, y0, 4, 1e-9, 1e-12, M.prune_schedule(4, 100))
-    ref = np.asarray(M.screen_losses(s, y0))
-    assert got.shape == (11,) and np.all(np.isfinite(got))
+    mask = np.ones(ys.shape[1], bool)
+    got, _, retries = ML.screen(s, ys, ys[0], mask, 4)
+    ref = np.asarray([float(ML.loss_at(setup, y)) for y in y0])
+    assert got.shape == (11,) and np.all(np.isfinite(got)) and retries == 0
     np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-30)
-    # A capacity that overflows at some start: the vectorised loss at a capacity that holds.
-    wide_calls = []
-    with monkeypatch.context() as mp:
-        mp.setattr(S, "screen_losses", lambda st, y: wide_calls.append(st.capacity) or np.full(len(y), 7.0))
-        small = S.screen_with_lm(dataclasses.replace(s, capacity=1), y0, 4, 1e-9, 1e-12, M.prune_schedule(4, 100))
-    assert wide_calls == [s.capacity] and np.all(small == 7.0)
+    # A capacity that overflows at some start: screened again with a larger one, the same losses.
+    small, used, retries = ML.screen(dataclasses.replace(s, capacity=1), ys, ys[0], mask, 4)
+    assert retries > 0 and used.capacity > 1
+    np.testing.assert_allclose(small, ref, rtol=1e-12, atol=1e-30)
     # `fit_light` runs `fit_lights`' one-light problem: its screen, then one LM program for the k
     # best (compiled once; the caches are cleared so that programs of earlier tests do not count).
     jax.clear_caches()
     with jax.log_compiles(True), caplog.at_level(logging.WARNING):
         f = inverse.fit_light(start, t, material, starts=11, solver=inverse.LM(refine=3, combinatorics="host"))
     lm_compiles = [r for r in caplog.records
-                   if any(f"compilation of jit({name})" in r.getMessage() for name in ("_lm_impl", "_multistart_lm_impl"))]
+                   if any(f"compilation of jit({name})" in r.getMessage() for name in ("_lm_impl",))]
     assert len(lm_compiles) == 1, [r.getMessage() for r in lm_compiles]
     assert len(f.report.start_losses) == 3 and f.report.loss <= float(np.min(ref)) + 1e-12
 

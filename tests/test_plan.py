@@ -454,7 +454,7 @@ def test_fit_light_with_mesh_occluders_is_exact_with_exact_gradients():
     off, and d(loss)/d(light) through the solver's residual equals float64 central differences
     of the loss evaluated by `js.shade` (the host engine) to 1e-6."""
     import inverse
-    from inverse import _residuals as R
+    from inverse import _forward as R
     from inverse._multistart import culling_capacity_for_starts
     from inverse._parametrisation import LightParametrisation
 
