@@ -429,3 +429,24 @@ def test_bake_command(tmp_path, capsys):
     assert main([NC, "bake", str(path), "-o", str(path), "-q"]) == 2
     assert not (tmp_path / "c.glb").exists()
     assert "destroy the input" in capsys.readouterr().err
+
+
+def test_discontinuity_segments_per_surface(baked):
+    """`BakedScene.discontinuity_segments`: the planar patches' mesher lines, per surface; each
+    runs along output edges of its surface; curved surfaces have none."""
+    _, b = baked
+    floor = b.discontinuity_segments(0)
+    assert floor.shape[1:] == (2, 3) and floor.shape[0] > 4
+    assert np.all(np.abs(floor[..., 2]) <= 1e-12) and np.all(np.abs(floor[..., :2]) <= 1 + 1e-12)
+    np.testing.assert_array_equal(b.discontinuity_segments("upper"), np.zeros((0, 2, 3)))
+    every = b.discontinuity_segments()
+    assert every.shape[0] == sum(b.discontinuity_segments(i).shape[0] for i in range(len(b.surface_names)))
+    tris = b.triangles[b.surface == 0]
+    a = b.vertices[np.concatenate([tris[:, 0], tris[:, 1], tris[:, 2]])]
+    c = b.vertices[np.concatenate([tris[:, 1], tris[:, 2], tris[:, 0]])]
+    d = c - a
+    for q in 0.5 * (floor[:, 0] + floor[:, 1]):
+        s = np.clip(np.einsum("ek,ek->e", q - a, d) / np.einsum("ek,ek->e", d, d), 0.0, 1.0)
+        assert np.min(np.linalg.norm(a + s[:, None] * d - q, axis=1)) <= 1e-9
+    with pytest.raises(ValueError, match="no surface"):
+        b.discontinuity_segments("nope")

@@ -101,6 +101,29 @@ def test_discontinuity_lines_are_mesh_edges(mesh):
     assert not np.all(_on_an_edge(mesh, q))
 
 
+def test_discontinuity_segments_accessor(mesh, standing):
+    """`discontinuity_segments()` gives the mesher's own lines: on the receiver, each one along
+    mesh edges (its midpoint and quarter points lie on an edge), the hand-computed umbra and
+    penumbra lines x = -0.7 and x = -1.3 among them; with a box standing on the floor its
+    footprint's edges too."""
+    seg = mesh.discontinuity_segments()
+    assert seg.ndim == 3 and seg.shape[1:] == (2, 3) and seg.shape[0] > 10
+    assert np.all(np.abs(seg[..., 2]) <= 1e-12)
+    assert np.all(np.abs(seg[..., :2]) <= np.abs(FLOOR[:, :2]).max() + 1e-12)
+    for f in (0.25, 0.5, 0.75):
+        assert np.all(_on_an_edge(mesh, (1 - f) * seg[:, 0] + f * seg[:, 1]))
+    for x in (-0.7, -1.3):
+        along = np.all(np.abs(seg[..., 0] - x) <= 1e-9, axis=1)
+        assert along.any(), x
+    assert not np.any(np.all(np.abs(seg[..., 0] + 0.4321) <= 1e-9, axis=1))
+    seg[:] = 0.0  # a copy
+    assert np.abs(mesh.discontinuity_segments()).max() > 0
+    _, m = standing
+    s2 = m.discontinuity_segments()
+    on_foot = [np.all(np.abs(s2[..., 0] - BOX_LO[0]) <= 1e-9, axis=1), np.all(np.abs(s2[..., 0] - BOX_HI[0]) <= 1e-9, axis=1)]
+    assert all(o.any() for o in on_foot)
+
+
 def test_brightest_point_is_a_vertex(mesh):
     # Independent search: a grid, then Nelder-Mead on the exact irradiance from its best points
     # (the maximum sits on a kink next to a shadow, so several starts).

@@ -12,7 +12,12 @@ receiving surface of a scene:
    extrema, adaptive refinement). The other faces of a surface form one *curved patch*, refined
    on its own triangles (`_refine_curved`): 1-to-4 splits where an edge midpoint's or the
    centroid's exact value misses linear interpolation by more than `tol`, bisection of the
-   neighbours across a split edge (red-green closure), so the patch stays conforming.
+   neighbours across a split edge (red-green closure), so the patch stays conforming. A curved
+   patch's triangle takes the values of the receiver face it lies in: inside it the exact
+   irradiance with the faces as exact planes, on its edges the limit from inside it. Where the
+   surface shadows itself the faceted surface's irradiance jumps across its edges near the
+   terminator (the faces' planes cut the light differently): such a point is one vertex per
+   face (`_refine_curved`).
 2. **Chunks.** Each patch is one independent chunk: its mesh and its exact irradiance per light
    at the vertices. Chunks run in this process or on `dask.distributed` workers (the scene is
    scattered once per worker). A chunk sees only its own inputs (`_chunk_inputs`): the lights
@@ -93,7 +98,12 @@ class BakedScene:
       shadows of point lights, geometry passing through the receiver) or stopped by
       `max_vertices` (also a `RuntimeWarning`); `pierced`: one dict per planar patch that
       occluders pass through (`surface`, `patch`, `sections`: convex pieces of the cut-out
-      cross-sections of closed objects, `open`: segments where open geometry crosses it).
+      cross-sections of closed objects, `open`: segments where open geometry crosses it);
+      `corners`: one dict per curved patch with concave folds' corners (`surface`, `patch`,
+      `points`: their positions, `error`: the largest checked error over `scale` of the edges
+      within `CORNER_SIZE` of the patch's size of them, which are not split: there the
+      irradiance takes a different limit along each direction of approach, as at the corner
+      of a box standing on a floor, and no mesh meets `tol`).
     """
 
     def __init__(self, vertices: np.ndarray, normals: np.ndarray, triangles: np.ndarray, per_light: np.ndarray,
@@ -104,6 +114,23 @@ class BakedScene:
         self.irradiance = per_light.sum(axis=1)
         self.surface, self.patch, self.surface_names = surface, patch, surface_names
         self.lights, self.scale, self.tol, self.stats = lights, float(scale), float(tol), stats
+        self._segments: list[np.ndarray] = []  # per patch (`discontinuity_segments`)
+        self._patch_surface: list[int] = []
+
+    def discontinuity_segments(self, surface: int | str | None = None) -> np.ndarray:
+        """The discontinuity segments the planar patches' mesher inserted as mesh edges
+        (`IlluminationMesh.discontinuity_segments`: shadow lines and contact lines), `(k, 2, 3)`
+        end points (m), of the surface `surface` (an index into `surface_names` or a name) or of
+        all. Curved patches have none: they are refined on their own triangles, and where their
+        faces' values differ at a shared edge (`stats["corners"]`, the terminator) the edge is
+        one of the surface's own."""
+        if isinstance(surface, str):
+            if surface not in self.surface_names:
+                raise ValueError(f"BakedScene.discontinuity_segments: no surface {surface!r} "
+                                 f"(surfaces: {self.surface_names}).")
+            surface = self.surface_names.index(surface)
+        keep = [s for s, k in zip(self._segments, self._patch_surface, strict=True) if surface is None or k == surface]
+        return np.concatenate(keep) if keep else np.zeros((0, 2, 3))
 
     def __repr__(self) -> str:
         return (f"BakedScene({self.vertices.shape[0]} vertices, {self.triangles.shape[0]} triangles, "
@@ -300,6 +327,8 @@ def _stitch(parts: list[dict[str, np.ndarray]], pos: np.ndarray, scenes: list[Sc
         vals = np.concatenate([r["values"], np.zeros((V.shape[0] - n_old, *r["values"].shape[1:]))])
         vals[fresh] = _values(scenes, V[fresh], N[fresh])
         nmoved += len(moved[pi])
+        if "side" in r:  # the added points are one vertex each
+            r["side"] = np.concatenate([r["side"], np.zeros(V.shape[0] - n_old, np.int64)])
         r["vertices"], r["normals"], r["triangles"], r["values"] = V, N, np.array(out, np.int64), vals
     return {"stitched_points": nstitched, "moved_points": nmoved}
 
@@ -312,7 +341,10 @@ def _assemble(parts: list[dict[str, np.ndarray]], patches: list[_Patch]) -> tupl
     T = np.concatenate([r["triangles"] + o for r, o in zip(parts, off[:-1], strict=True)])
     patch = np.concatenate([np.full(r["triangles"].shape[0], i, np.int64) for i, r in enumerate(parts)])
     surface = np.array([p.surface for p in patches], np.int64)[patch]
-    key = np.ascontiguousarray(np.concatenate([V, N], axis=1)).view(np.dtype((np.void, 48))).ravel()
+    # a curved patch's point on a face edge where the faces' limits differ is one vertex per face (`side`)
+    side = np.concatenate([r["side"] if "side" in r else np.zeros(r["vertices"].shape[0], np.int64) for r in parts])
+    key = np.ascontiguousarray(np.concatenate([V, N, side[:, None].astype(np.float64)], axis=1))
+    key = key.view(np.dtype((np.void, 56))).ravel()
     _, first, inv = np.unique(key, return_index=True, return_inverse=True)
     order = np.argsort(first, kind="stable")  # keep the first-seen order
     rank = np.empty_like(order)
@@ -479,6 +511,8 @@ def bake(scene: Scene, receivers: Any = None, tol: float = 1e-3, *, lights: Sequ
                    for i, (p, r) in enumerate(zip(patches, parts, strict=True)) if int(r["unrefined"]) or int(r["stopped"])]
     pierced = [{"surface": names[p.surface], "patch": i, "sections": int(r["pierced"][0]), "open": int(r["pierced"][1])}
                for i, (p, r) in enumerate(zip(patches, parts, strict=True)) if "pierced" in r and r["pierced"].any()]
+    corners = [{"surface": names[p.surface], "patch": i, "points": r["corners"].tolist(), "error": float(r["corner_error"])}
+               for i, (p, r) in enumerate(zip(patches, parts, strict=True)) if "corners" in r and r["corners"].size]
     stopped = [u for u in unconverged if u["stopped_by_budget"]]
     if stopped:
         warnings.warn(f"bake: {len(stopped)} patches stopped at max_vertices={max_vertices:,} with elements over tol "
@@ -486,10 +520,14 @@ def bake(scene: Scene, receivers: Any = None, tol: float = 1e-3, *, lights: Sequ
                       f"{sorted({str(u['surface']) for u in stopped})}); see BakedScene.stats['unconverged'].",
                       RuntimeWarning, stacklevel=2)
     stats = {"chunks": len(patches), "chunks_computed": computed, "unconverged": unconverged, "pierced": pierced,
+             "corners": corners,
              "patches_planar": sum(p.kind == "planar" for p in patches),
              "patches_curved": sum(p.kind == "curved" for p in patches), **stitch,
              "seconds": time.perf_counter() - t0}
-    return BakedScene(V, N, T, E, surface, patch, names, np.array(sel, np.int64), float(scale), float(tol), stats)
+    baked = BakedScene(V, N, T, E, surface, patch, names, np.array(sel, np.int64), float(scale), float(tol), stats)
+    baked._segments = [np.asarray(r.get("segments", np.zeros((0, 2, 3))), np.float64).reshape(-1, 2, 3) for r in parts]
+    baked._patch_surface = [p.surface for p in patches]
+    return baked
 
 
 # --------------------------------------------------------------------------------------

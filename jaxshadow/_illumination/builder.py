@@ -620,6 +620,16 @@ class _Builder:
         self.seg = None
         self.occ = None
 
+    def segments(self) -> np.ndarray:
+        """`(k, 2, 3)` the discontinuity segments the tiles insert as mesh edges (m): the shadow
+        lines (`pieces`, each tile's share of the event segments that survived the visibility
+        test) and the contact lines (`contact_pieces`)."""
+        ends = [(p0, p1) for t in self.tiles for p0, p1 in (*t.pieces, *t.contact_pieces)]
+        if not ends:
+            return np.zeros((0, 2, 3))
+        xy = np.asarray(ends, np.float64).reshape(-1, 2)
+        return self.frame.to3d(xy).reshape(-1, 2, 3)
+
     def release_all(self) -> None:
         """Drop everything but what the assembled mesh's statistics and `interpolate` read (a
         mesh without `update`)."""

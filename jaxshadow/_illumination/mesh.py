@@ -94,6 +94,7 @@ class IlluminationMesh:
 
     def __init__(self, builders: list[_Builder], tol: float, stats: dict[str, Any]):
         self._builders = builders
+        self._segments = np.concatenate([b.segments() for b in builders]) if builders else np.zeros((0, 2, 3))
         parts = []
         for b in builders:
             parts.append(b.assemble())
@@ -121,6 +122,15 @@ class IlluminationMesh:
     def __repr__(self) -> str:
         return (f"IlluminationMesh({self.vertices.shape[0]} vertices, {self.triangles.shape[0]} triangles, "
                 f"tol={self.tol:g}, max_error_estimate={self.max_error_estimate:.3g}, scale={self.scale:.4g})")
+
+    def discontinuity_segments(self) -> np.ndarray:
+        """The discontinuity segments the mesher inserted as mesh edges: `(k, 2, 3)` end points
+        (m) on the receiver. They are the shadow lines (VE and EV event segments of the
+        occluders, kept where the visibility test along the event is passed, each tile's share
+        of them: a line crossing tiles comes in pieces) and the contact lines (the feet of
+        occluders standing on the receiver and the lines leaving their corners). The mesh's
+        edges run along them; the irradiance, or its derivative, jumps across them."""
+        return self._segments.copy()
 
     def interpolate(self, points: Any) -> np.ndarray:
         """Linear interpolation of the vertex irradiance at `points (N, 3)` on a single-polygon
