@@ -1,5 +1,5 @@
 """pytest plugin of `jaxshadow.testing` (registered as the `pytest11` entry point `jaxshadow`;
-disable with `-p no:jaxshadow`; also importable as `jaxshadow.testing.plugin`).
+disable with `-p no:jaxshadow`).
 
 A top-level module of its own, outside the `jaxshadow` package (as `_hypothesis_pytestplugin`
 is outside `hypothesis`): pytest imports every entry-point plugin before the test run starts, and

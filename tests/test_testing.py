@@ -24,7 +24,7 @@ from jaxshadow.testing import (
 from jaxshadow.testing._catalogue import DATA, build_spec, classify
 from jaxshadow.testing._scenes import BUILDERS, apply_parameters, parameters_of
 from jaxshadow.testing._stats import bonferroni_reject, clopper_pearson, holm_reject
-from jaxshadow.testing.plugin import SCENES
+from _jaxshadow_pytest import SCENES
 
 pytest_plugins = ["pytester"]
 
