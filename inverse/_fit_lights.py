@@ -381,12 +381,13 @@ def fit_lights(
         final = None  # the last joint solve's rows and losses, best first: the competing placements
         placed = grid_rows is not None
         ranked: list = [None] * len(params)
+        alternatives: list = []  # the global placement's other refined placements: finished jointly
         if attempt == "global":
             if initial is None:  # the given poses' loss
                 f0, problem, r = screen(problem, theta0[None], theta0, np.ones(Pt, bool), k)
                 initial, retries = float(f0[0]), retries + r
-            pl = place(problem, theta0, per_light, cons, idx, seed, k)
-            problem, base, ranked = pl.problem, pl.theta, pl.ranked
+            pl = place(problem, theta0, per_light, cons, idx, seed, k, lm)
+            problem, base, ranked, alternatives = pl.problem, pl.theta, pl.ranked, list(pl.alternatives)
             stage_losses.append(pl.loss)
             placed = True
         elif placed:
@@ -440,7 +441,7 @@ def fit_lights(
                         runner_up[j] = vals[order[1]][sl]
                     stage_losses.append(float(f[order[0]]))
                 # the given poses together are a candidate too (the grid's greedy placement replaces them)
-                joint = [base] + ([] if grid_rows is not None else [theta0])
+                joint = [base] + ([] if grid_rows is not None else [theta0]) + (alternatives if not rnd else [])
                 for j, v in runner_up.items():
                     alt = base.copy()
                     alt[offsets[j]:offsets[j] + params[j].size] = v
