@@ -3,7 +3,8 @@
 The given poses are searched first (each light's sweeps, then jointly, below). Unless that
 explains the targets exactly (`EXACT_LOSS`), the lights are then placed globally
 (`_global_placement`): every pose screened over the region above the targets, the powers by
-non-negative least squares, one light at a time on the residual; each light is searched from
+non-negative least squares, one light at a time on the residual; placements in distinct basins
+are ranked by their loss after a short joint refinement; each light is searched from
 its best screened poses and its own starts and all poses are refined jointly, and the lower
 final loss of the two searches wins. So starts far from the truth, or no start at all
 (`kinds=`: the global placement only), are not a local solver's problem, and starts close to
@@ -178,7 +179,11 @@ def fit_lights(
     partial placements), every pair of lights re-chosen together over all pairs of their
     candidates (two lights standing in for each other move at once), the positions dealt to
     the lights in every order, and each light screened again locally around its four best
-    distinct candidates. It runs after the search from the given poses
+    distinct candidates. Screened placements are not ranked by their screened residual (at the
+    screen's resolution a wrong placement, its lights compensating for each other, can look as
+    good as the right one): up to 16 of them in distinct basins are refined jointly for 30
+    iterations in one batched solve and ranked by the refined loss; the runners-up are finished
+    with the best in the joint refinement below. It runs after the search from the given poses
     unless that fit is exact (a final loss below `EXACT_LOSS` = 1e-12 of $\\tfrac12\\sum w c^2$),
     and the lower final loss of the two wins, so starts 10 % away cost what they did. Then each
     light is searched from its best screened poses and its own starts (the others at
