@@ -574,25 +574,25 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
     # The placements whose basins compete (module docstring, step 7): the locally screened ones,
     # each of them with one light moved to another of its best distinct candidates (the others
     # held), the beam's finals and deals; best screened residual first.
-    pool: list = list(screened)
+    contenders: list = list(screened)
     for _, chosen in screened:
         for j in todo:
             f = rss_for(j, chosen)
             for c in _distinct_best(f, centres(j, rows[j]), LOCAL_SEEDS, spacing):
                 if c != chosen[j]:
-                    pool.append((float(f[c]), {**chosen, j: c}))
-    pool += [x for x in distinct if all(x[1] != c for _, c in screened)]
-    pool += [(f, ch) for f, ch in beams if len(ch) == len(todo)]
-    pool = pool[:1] + sorted(pool[1:], key=lambda x: x[0])
+                    contenders.append((float(f[c]), {**chosen, j: c}))
+    contenders += [x for x in distinct if all(x[1] != c for _, c in screened)]
+    contenders += [(f, ch) for f, ch in beams if len(ch) == len(todo)]
+    contenders = contenders[:1] + sorted(contenders[1:], key=lambda x: x[0])
     best_f, best_ch = screened[0]
-    thetas = np.stack([theta_of(ch) for _, ch in pool])
+    thetas = np.stack([theta_of(ch) for _, ch in contenders])
     picked = distinct_basins(params, problem.offsets, thetas, region.extent, BASINS)
     alternatives = np.zeros((0, thetas.shape[1]))
     if lm is not None and len(picked) > 1:
         values, losses, problem = refine_and_rank(problem, thetas[picked], lm, keep)
         win = picked[int(np.argmin(losses))]  # the losses are in `picked`'s order
         order = np.argsort(losses, kind="stable")
-        best_f, best_ch = 2.0 * float(losses[order[0]]), pool[win][1]
+        best_f, best_ch = 2.0 * float(losses[order[0]]), contenders[win][1]
         theta = values[order[0]]
         alternatives = values[order[1:1 + ALTERNATIVES]][np.isfinite(losses[order[1:1 + ALTERNATIVES]])]
     else:
