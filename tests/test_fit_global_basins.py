@@ -75,3 +75,21 @@ def test_distinct_basins_keeps_one_row_per_basin():
                      [2 * step, 0, 0, 0, 0, 0], [np.nan, 0, 0, 0, 0, 0]], np.float64)
     assert distinct_basins(params, (0, 3), rows, size, 16) == [0, 2, 3]
     assert distinct_basins(params, (0, 3), rows, size, 2) == [0, 2]
+
+
+def test_noisy_success_criterion():
+    """`benchmarks.fit_global.noisy_verdict`: within 3 reported standard errors succeeds; beyond,
+    only a fit flagged undetermined that the truth does not beat by more than n + 3 sqrt(2n) in
+    chi-square."""
+    from benchmarks.fit_global import noisy_verdict
+
+    sigma, n = 0.1, 8  # allowed excess: 8 + 3 * 4 = 20
+    fit = np.full((10, 3), 0.1)  # chi2 30
+    truth_close, truth_far = np.full((10, 3), 0.05), np.zeros((10, 3))  # chi2 7.5 (excess 22.5), 0
+    ok = lambda *a: noisy_verdict(*a)["noisy_success"]  # noqa: E731
+    assert ok([0.5, -2.9], [], fit, truth_far, sigma, n)
+    assert not ok([0.5, 3.1], [], fit, truth_far, sigma, n)
+    assert not ok([], [], fit, fit, sigma, n)  # no finite standard error: not "within"
+    assert ok([0.5, 3.1], ["undetermined"], fit, np.full((10, 3), 0.08), sigma, n)  # excess 10.8
+    assert not ok([0.5, 3.1], ["undetermined"], fit, truth_close, sigma, n)
+    assert not ok([0.5, 3.1], ["collapsed"], fit, fit, sigma, n)
