@@ -1,4 +1,4 @@
-"""fit_lights from far: success rate of the default (global placement) over random held-out-style
+r"""fit_lights from far: success rate of the default (global placement) over random held-out-style
 scenes, per start distance (10 %, 30 %, 60 % of the scene, or no start: lights given by kind
 only), with the median fit time and the compile time reported apart.
 
@@ -30,9 +30,24 @@ says which. There the reported standard errors are checked: each light's centre 
 `|z| < 2` over all runs (`calibration_within_2se`; 95 % for Gaussian errors and honest
 standard errors; the issue asks >= 90 %).
 
+A noisy fit succeeds (`noisy_success`) when its answer is as good as the noise allows: every
+light's centre coordinates and power within `NOISY_Z` (3) reported standard errors of the truth
+(`z_scores`; a coordinate with no finite standard error is undetermined and not counted), or
+the fit is flagged undetermined (`"undetermined"` in `report.quality.flags`: the targets do not
+pin some parameter down, so no fit can be held to the truth there) and the truth does not
+explain the targets better than the fit by more than the noise explains: with
+$\chi^2 = \sum (r / \sigma)^2$ over the targets (residual over the told noise),
+$\chi^2_{fit} - \chi^2_{truth} \le n + 3\sqrt{2n}$, $n$ the fitted parameters (the spread
+of a $\chi^2_n$: a fit in a wrong basin, which the truth beats by far more, fails). Within
+0.5 % is out of reach there by construction: 1 % noise moves an undetermined light much farther.
+
     python -m benchmarks fit_global [--quick]
     # quick: the three mixed lights (quad + point + segment), 3 scenes, from 30 %, 60 % and
     # none, and with 1 % noise from 30 %; no flag settings, no compile study
+    python -m benchmarks.fit_global [--quick] [--seeds 0 2] [--starts 30% none] [--noisy | --no-noisy]
+        [--out FILE.json]
+    # a subset (the same settings, chosen seeds and starts), the table printed, the results
+    # written to FILE.json; not recorded in benchmarks/results
 """
 
 from __future__ import annotations
@@ -62,6 +77,7 @@ SEEDS = 10
 QUICK_SEEDS = 3
 POSITION_TOL = 0.005  # of the scene size
 POWER_TOL = 0.01
+NOISY_Z = 3.0  # a noisy fit's errors within this many reported standard errors (module docstring)
 
 
 def _mitsuba_available() -> bool:
@@ -124,6 +140,23 @@ def z_scores(fit, true_lights, idx: list[int]) -> list[float]:
     return out
 
 
+def noisy_verdict(z: list[float], flags: list[str], residual_fit, residual_truth, sigma, n_params: int) -> dict:
+    """The noisy success criterion (module docstring): `z` the fit's z-scores (`z_scores`),
+    `flags` its quality flags, `residual_fit`, `residual_truth` `(N, 3)` (model - colours) at
+    the fit and at the true lights, `sigma` the told noise (a number or `(N, 3)`), `n_params`
+    the fitted parameters."""
+    import numpy as np
+
+    chi_fit = float(np.sum((residual_fit / sigma) ** 2))
+    chi_truth = float(np.sum((residual_truth / sigma) ** 2))
+    allowed = n_params + 3.0 * np.sqrt(2.0 * n_params)
+    within = bool(len(z) and np.all(np.abs(z) <= NOISY_Z))
+    undetermined = "undetermined" in flags
+    ok = within or (undetermined and chi_fit - chi_truth <= allowed)
+    return {"within_3se": within, "undetermined": undetermined, "chi2_sum_fit": chi_fit,
+            "chi2_sum_truth": chi_truth, "chi2_allowed_excess": float(allowed), "noisy_success": bool(ok)}
+
+
 def _setting(kinds: str, start: str, seeds: list[int], placement: str = "global", noise: float = 0.0,
              painter: str = "jaxshadow") -> dict:
     """`fit_lights` on `seeds`' random scenes from `start` ("10%", ... or "none") with
@@ -170,11 +203,19 @@ def _setting(kinds: str, start: str, seeds: list[int], placement: str = "global"
         errs = [light_errors(a, b) for a, b in zip(fit.lights, case.true.lights, strict=True)]
         pos = max(e[0] for e in errs) / size
         pw = max(e[1] for e in errs)
-        runs.append({"seed": seed, "position_err_of_scene": pos, "power_err_rel": pw,
-                     "success": bool(pos < POSITION_TOL and pw < POWER_TOL), "flagged": not fit.report.quality.trusted,
-                     "flags": list(fit.report.quality.flags), "chi2": fit.report.quality.chi2,
-                     "loss": fit.report.loss, "fit_s": fit_s, "compile_s": timing["compile_s"] - c0,
-                     "z": z_scores(fit, case.true.lights, idx) if noise else []})
+        exact = bool(pos < POSITION_TOL and pw < POWER_TOL)
+        run = {"seed": seed, "position_err_of_scene": pos, "power_err_rel": pw, "success": exact,
+               "flagged": not fit.report.quality.trusted, "flags": list(fit.report.quality.flags),
+               "chi2": fit.report.quality.chi2, "loss": fit.report.loss, "fit_s": fit_s,
+               "compile_s": timing["compile_s"] - c0, "z": z_scores(fit, case.true.lights, idx) if noise else []}
+        if noise:
+            truth = np.asarray(js.shade(case.true, case.material, case.points, case.normals, case.eye), np.float64)
+            n_par = len(fit.report.names)
+            run.update(noisy_verdict(run["z"], run["flags"], np.asarray(fit.residual, np.float64), truth - col,
+                                     sigma, n_par))
+            run["success"] = run["noisy_success"]
+            run["within_0.5%"] = exact
+        runs.append(run)
     return {"runs": runs, "load": os.getloadavg()[0], "painter": painter, "noise": noise}
 
 
@@ -263,21 +304,26 @@ def _summary(runs: list[dict]) -> dict:
             "worst_position_err_pct": 100 * max(r["position_err_of_scene"] for r in runs)}
 
 
-def run(quick: bool) -> dict:
-    seeds = list(range(QUICK_SEEDS if quick else SEEDS))
+def run(quick: bool, seeds: list[int] | None = None, starts: tuple | None = None, noisy: bool = True) -> dict:
+    """The benchmark; `seeds`, `starts` (noise-free settings) and `noisy` (the noisy settings)
+    select a subset (`main`), by default everything of the quick or the full run."""
+    seeds = list(range(QUICK_SEEDS if quick else SEEDS)) if seeds is None else list(seeds)
     kind_sets = ("quad+point+segment",) if quick else tuple(KIND_SETS)
-    starts = QUICK_STARTS if quick else STARTS
+    starts = (QUICK_STARTS if quick else STARTS) if starts is None else tuple(starts)
     painter = "mitsuba" if _mitsuba_available() else "jaxshadow"
     out: dict = {"loadavg_before": list(os.getloadavg())}
     settings: dict = {}
     for kinds in kind_sets:
         for start in starts:
+            t0 = time.perf_counter()
             r = _child(kinds, start, seeds)
-            settings[f"{kinds}/start={start}"] = {**_summary(r["runs"]), **r}
-    for kinds, start in NOISY_SETTINGS[-2:-1] if quick else NOISY_SETTINGS:
+            settings[f"{kinds}/start={start}"] = {**_summary(r["runs"]), **r, "wall_s": time.perf_counter() - t0}
+    for kinds, start in (NOISY_SETTINGS[-2:-1] if quick else NOISY_SETTINGS) if noisy else ():
+        t0 = time.perf_counter()
         r = _child(kinds, start, seeds, "global", NOISE, painter)
-        settings[f"{kinds}/start={start}/noise={NOISE:g}/{painter}"] = {**_summary(r["runs"]), **r}
-    for kinds, start, placement, noise in () if quick else FLAG_SETTINGS:
+        settings[f"{kinds}/start={start}/noise={NOISE:g}/{painter}"] = {**_summary(r["runs"]), **r,
+                                                                          "wall_s": time.perf_counter() - t0}
+    for kinds, start, placement, noise in () if quick or not noisy else FLAG_SETTINGS:
         r = _child(kinds, start, seeds, placement, noise)
         settings[f"{kinds}/start={start}/{placement}" + (f"/noise={noise:g}" if noise else "")] = {
             **_summary(r["runs"]), **r}
@@ -292,7 +338,10 @@ def markdown(results: dict) -> str:
     rows = ["Success: every light within 0.5 % of the scene size and every power within 1 % (noise-free targets "
             "painted by `js.shade`). Times: the median over a setting's fits after its first (programs compiled); "
             "the first fit's time and compile time apart. Noisy settings: 1 % relative noise, targets from the named "
-            "painter; errors within 2 reported standard errors (centres' x, y, z and powers, over all runs). "
+            "painter; success there: every light's centre coordinates and power within 3 reported standard errors of "
+            "the truth, or the fit flagged undetermined with the truth's chi-square not below the fit's by more than "
+            "n + 3 sqrt(2n) (n fitted parameters); 'within 2 se': errors within 2 reported standard errors (centres' "
+            "x, y, z and powers, over all runs). "
             f"Machine load (1-minute average) before/after: {results.get('loadavg_before', ['?'])[0]} / "
             f"{results.get('loadavg_after', ['?'])[0]}.", "",
             "| setting | recovered | failures flagged | recovered but flagged | worst position error (% of scene) | "
@@ -310,3 +359,28 @@ def markdown(results: dict) -> str:
     for name, r in results.get("compile", {}).items():
         rows.append(f"| {name} | {r['fit_s']:.1f} | {r['compile_s']:.1f} |")
     return "\n".join(rows) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    """A subset of the benchmark (module docstring): the table printed, the results written to
+    `--out`."""
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m benchmarks.fit_global", description=DESCRIPTION)
+    ap.add_argument("--quick", action="store_true", help="the quick settings (three mixed lights)")
+    ap.add_argument("--seeds", type=int, nargs="+", help="scene seeds (default: the run's)")
+    ap.add_argument("--starts", nargs="+", choices=STARTS, help="noise-free starts (default: the run's)")
+    ap.add_argument("--noisy", action=argparse.BooleanOptionalAction, default=True,
+                    help="also the noisy settings (and, not quick, the flag settings)")
+    ap.add_argument("--out", help="write the results (JSON) here")
+    args = ap.parse_args(argv)
+    res = run(args.quick, args.seeds, args.starts, args.noisy)
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump(res, f, indent=1)
+    print(markdown(res))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -3,7 +3,8 @@
 The given poses are searched first (each light's sweeps, then jointly, below). Unless that
 explains the targets exactly (`EXACT_LOSS`), the lights are then placed globally
 (`_global_placement`): every pose screened over the region above the targets, the powers by
-non-negative least squares, one light at a time on the residual; each light is searched from
+non-negative least squares, one light at a time on the residual; placements in distinct basins
+are ranked by their loss after a short joint refinement; each light is searched from
 its best screened poses and its own starts and all poses are refined jointly, and the lower
 final loss of the two searches wins. So starts far from the truth, or no start at all
 (`kinds=`: the global placement only), are not a local solver's problem, and starts close to
@@ -178,7 +179,11 @@ def fit_lights(
     partial placements), every pair of lights re-chosen together over all pairs of their
     candidates (two lights standing in for each other move at once), the positions dealt to
     the lights in every order, and each light screened again locally around its four best
-    distinct candidates. It runs after the search from the given poses
+    distinct candidates. Screened placements are not ranked by their screened residual (at the
+    screen's resolution a wrong placement, its lights compensating for each other, can look as
+    good as the right one): up to 16 of them in distinct basins are refined jointly for 30
+    iterations in one batched solve and ranked by the refined loss; the runners-up are finished
+    with the best in the joint refinement below. It runs after the search from the given poses
     unless that fit is exact (a final loss below `EXACT_LOSS` = 1e-12 of $\\tfrac12\\sum w c^2$),
     and the lower final loss of the two wins, so starts 10 % away cost what they did. Then each
     light is searched from its best screened poses and its own starts (the others at
@@ -381,12 +386,13 @@ def fit_lights(
         final = None  # the last joint solve's rows and losses, best first: the competing placements
         placed = grid_rows is not None
         ranked: list = [None] * len(params)
+        alternatives: list = []  # the global placement's other refined placements: finished jointly
         if attempt == "global":
             if initial is None:  # the given poses' loss
                 f0, problem, r = screen(problem, theta0[None], theta0, np.ones(Pt, bool), k)
                 initial, retries = float(f0[0]), retries + r
-            pl = place(problem, theta0, per_light, cons, idx, seed, k)
-            problem, base, ranked = pl.problem, pl.theta, pl.ranked
+            pl = place(problem, theta0, per_light, cons, idx, seed, k, lm)
+            problem, base, ranked, alternatives = pl.problem, pl.theta, pl.ranked, list(pl.alternatives)
             stage_losses.append(pl.loss)
             placed = True
         elif placed:
@@ -440,7 +446,7 @@ def fit_lights(
                         runner_up[j] = vals[order[1]][sl]
                     stage_losses.append(float(f[order[0]]))
                 # the given poses together are a candidate too (the grid's greedy placement replaces them)
-                joint = [base] + ([] if grid_rows is not None else [theta0])
+                joint = [base] + ([] if grid_rows is not None else [theta0]) + (alternatives if not rnd else [])
                 for j, v in runner_up.items():
                     alt = base.copy()
                     alt[offsets[j]:offsets[j] + params[j].size] = v

@@ -34,10 +34,23 @@ column of light $j$ at its reference power, `(3N,)`). So the screen needs no der
    held), `REFINE_POINTS` candidates in position, orientation and log size, `LOCAL_LEVELS`
    levels with the radius halved at each, around each seed's best so far; then the pair moves
    again.
+7. **Refine, then rank.** At grid resolution (the Sobol spacing is ~10 % of the scene) the
+   right configuration, each light a few % off, explains the targets no better than a wrong one
+   where the lights compensate for each other. So the placements found above (the beam's, the
+   deals, the locally screened ones, and each of those with one light moved to another of its
+   best distinct candidates) are not ranked by their screened residual: up to `BASINS` of them
+   that lie in distinct basins (`distinct_basins`: some light's centre more than
+   `BASIN_DISTANCE` of the extent away, or its orientation more than `BASIN_TURN`) are refined
+   jointly for `BASIN_STEPS` iterations as the rows of `fit_lights`' batched LM program (the
+   program of its joint refinement: rows padded to its batch, no new compilation), and ranked
+   by the refined loss (`refine_and_rank`).
 
-The result is a placement (`theta`, the poses) and, per light, its candidates ranked with the
-others at that placement: the starts of `fit_lights`' per-light solves, which then refine all
-poses jointly (the given poses compete there as one more start).
+The result is the best refined placement (`theta`, the poses), the other refined placements
+(`alternatives`, best first: `fit_lights` finishes them with its joint refinement, where
+distinct placements of about equal loss are reported as competing) and, per light, its
+candidates ranked with the others at the winning grid placement: the starts of `fit_lights`'
+per-light solves, which then refine all poses jointly (the given poses compete there as one
+more start).
 """
 
 from __future__ import annotations
@@ -55,7 +68,7 @@ import jaxshadow as js
 from ._closed_forms import light_from_diffuse_maximum
 from ._forward import at_capacity
 from ._lm import fit_jit
-from ._multilight import LightsProblem, _parts
+from ._multilight import LightsProblem, _parts, solve
 from ._parametrisation import LightParametrisation
 
 POSITIONS = 512
@@ -67,6 +80,12 @@ BEAM, PER_PARENT, REFINED = 12, 3, 2
 HEIGHT_MIN, HEIGHT_MAX = 0.02, 0.6
 LATERAL_MARGIN = 0.1
 DIFFUSE_MAXIMA = 3
+# Refine, then rank (module docstring, step 7): at most BASINS placements, BASIN_STEPS LM
+# iterations each; distinct when some light's centre is BASIN_DISTANCE of the extent away or its
+# orientation parameters BASIN_TURN (rad) apart; ALTERNATIVES refined runners-up handed on.
+BASINS, BASIN_STEPS = 16, 30
+BASIN_DISTANCE, BASIN_TURN = 0.05, 0.25
+ALTERNATIVES = 3
 
 
 @dataclasses.dataclass(frozen=True)
@@ -372,6 +391,7 @@ class Placement:
     loss: float
     ranked: list
     problem: LightsProblem
+    alternatives: np.ndarray  # (A, P): other refined placements, best first
 
 
 def _distinct_best(f: np.ndarray, pos: np.ndarray, k: int, spacing: float) -> list[int]:
@@ -387,11 +407,13 @@ def _distinct_best(f: np.ndarray, pos: np.ndarray, k: int, spacing: float) -> li
 
 
 def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constraints: dict, idx: list,
-          seed: int, keep: int) -> Placement:
+          seed: int, keep: int, lm: dict | None = None) -> Placement:
     """Global placement (module docstring): `theta0 (Pt,)` the given poses, `local_rows[j]` light
     j's multistart rows around its given pose (None for a light whose pose is not fitted),
     `constraints` by scene light index, `idx` the fitted lights' scene indices; `keep` ranked
-    rows per light."""
+    rows per light and the batch of the LM program; `lm`: the LM's `rtol`, `atol` for the
+    refinement of the competing placements (step 7; None: ranked by the screened residual
+    alone)."""
     t = problem.targets
     params = problem.params
     J = len(params)
@@ -507,11 +529,12 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
                 distinct.append(descend({**ch, **{j: int(first[j][n]) for j in movable}}))
         distinct.sort(key=lambda x: x[0])
     rng = np.random.default_rng(seed + 11)
-    best: tuple = (np.inf, {})
+    screened: list = []  # the locally screened placements
     for _, chosen in distinct[:REFINED]:
         # A local screen around each light's LOCAL_SEEDS best distinct candidates (the others held),
         # its radius halved at each level around each seed's best so far: the coarse screen's
         # nearest candidate to a light can rank below a wrong one until both are refined.
+        chosen = dict(chosen)
         for j in todo:
             p = params[j]
             sl = p._slices()
@@ -538,15 +561,91 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
                     idx_i = np.r_[c, n0 + i * REFINE_POINTS + np.arange(REFINE_POINTS)]
                     seeds[i] = int(idx_i[int(np.argmin(nnls_rss(B, cols[j][idx_i], y, problem.fit_power)))])
             chosen[j] = int(np.argmin(rss_for(j, chosen)))
-        f, chosen = pairs(*descend(chosen)[::-1])
-        if f < best[0]:
-            best = (f, chosen)
-    chosen = best[1]
-    theta = np.asarray(theta0, np.float64).copy()
+        screened.append(pairs(*descend(chosen)[::-1]))
+    screened.sort(key=lambda x: x[0])
+
+    def theta_of(chosen: dict) -> np.ndarray:
+        th = np.asarray(theta0, np.float64).copy()
+        for j in todo:
+            o = problem.offsets[j]
+            th[o:o + params[j].size] = rows[j][chosen[j]]
+        return th
+
+    # The placements whose basins compete (module docstring, step 7): the locally screened ones,
+    # each of them with one light moved to another of its best distinct candidates (the others
+    # held), the beam's finals and deals; best screened residual first.
+    contenders: list = list(screened)
+    for _, chosen in screened:
+        for j in todo:
+            f = rss_for(j, chosen)
+            for c in _distinct_best(f, centres(j, rows[j]), LOCAL_SEEDS, spacing):
+                if c != chosen[j]:
+                    contenders.append((float(f[c]), {**chosen, j: c}))
+    contenders += [x for x in distinct if all(x[1] != c for _, c in screened)]
+    contenders += [(f, ch) for f, ch in beams if len(ch) == len(todo)]
+    contenders = contenders[:1] + sorted(contenders[1:], key=lambda x: x[0])
+    best_f, best_ch = screened[0]
+    thetas = np.stack([theta_of(ch) for _, ch in contenders])
+    picked = distinct_basins(params, problem.offsets, thetas, region.extent, BASINS)
+    alternatives = np.zeros((0, thetas.shape[1]))
+    if lm is not None and len(picked) > 1:
+        values, losses, problem = refine_and_rank(problem, thetas[picked], lm, keep)
+        win = picked[int(np.argmin(losses))]  # the losses are in `picked`'s order
+        order = np.argsort(losses, kind="stable")
+        best_f, best_ch = 2.0 * float(losses[order[0]]), contenders[win][1]
+        theta = values[order[0]]
+        alternatives = values[order[1:1 + ALTERNATIVES]][np.isfinite(losses[order[1:1 + ALTERNATIVES]])]
+    else:
+        theta = theta_of(best_ch)
     ranked: list = [None] * J
     for j in todo:
-        o = problem.offsets[j]
-        theta[o:o + params[j].size] = rows[j][chosen[j]]
-    for j in todo:
-        ranked[j] = rows[j][np.argsort(rss_for(j, chosen), kind="stable")[:keep]]
-    return Placement(theta, 0.5 * best[0], ranked, problem)
+        ranked[j] = rows[j][np.argsort(rss_for(j, best_ch), kind="stable")[:keep]]
+    return Placement(theta, 0.5 * best_f, ranked, problem, alternatives)
+
+
+def _basin_key(param: LightParametrisation, row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`(centre (3,) m, orientation parameters)` of light `param` at its parameters `row`."""
+    sl = param._slices()
+    o = np.asarray(row, np.float64)[sl["orientation"]] if "orientation" in sl else np.zeros(0)
+    return centre_of_row(param, row), o
+
+
+def distinct_basins(params: tuple, offsets: tuple, thetas: np.ndarray, extent: float, k: int) -> list[int]:
+    """Up to `k` indices into `thetas (S, Pt)` (placements, most promising first), in that order,
+    each in a basin distinct from every one picked before it: some light's centre more than
+    `BASIN_DISTANCE * extent` (m) away, or its orientation parameters more than `BASIN_TURN`
+    (rad) apart."""
+    keys = [[_basin_key(p, th[o:o + p.size]) for p, o in zip(params, offsets, strict=True) if p is not None]
+            for th in thetas]
+    picked: list[int] = []
+    for i, ki in enumerate(keys):
+        if len(picked) == k:
+            break
+        if not np.all(np.isfinite(thetas[i])):
+            continue
+        if all(any(np.linalg.norm(a[0] - b[0]) > BASIN_DISTANCE * extent
+                   or (a[1].size and np.max(np.abs(a[1] - b[1])) > BASIN_TURN)
+                   for a, b in zip(ki, keys[q], strict=True)) for q in picked):
+            picked.append(i)
+    return picked
+
+
+def refine_and_rank(problem: LightsProblem, thetas: np.ndarray, lm: dict, batch: int
+                    ) -> tuple[np.ndarray, np.ndarray, LightsProblem]:
+    """`(values (S, Pt), losses (S,), problem)`: every placement of `thetas (S, Pt)` refined
+    jointly (all its parameters) for `BASIN_STEPS` iterations of `fit_lights`' batched LM
+    (`_multilight.solve`, `lm`'s tolerances, no pruning: a basin's loss at grid resolution says
+    little), `batch` rows a call (padded: the program of `fit_lights`' joint refinement, no
+    new compilation); non-finite losses are infinite."""
+    from ._multilight_placement import pad
+
+    mask = np.ones(thetas.shape[1], bool)
+    values, losses = [], []
+    for a in range(0, thetas.shape[0], batch):
+        part = thetas[a:a + batch]
+        res, problem, _ = solve(problem, pad(part, batch), part[0], mask, rtol=lm["rtol"], atol=lm["atol"],
+                                max_steps=BASIN_STEPS, prune=())
+        values.append(np.asarray(res.values, np.float64)[:part.shape[0]])
+        losses.append(np.asarray(res.losses, np.float64)[:part.shape[0]])
+    f = np.concatenate(losses)
+    return np.concatenate(values), np.where(np.isfinite(f), f, np.inf), problem
