@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 import jaxshadow as js
+from _jaxshadow_pytest import SCENES
 from jaxshadow.testing import (
     LIGHT_TRANSLATION,
     PARAMETERS,
@@ -24,7 +25,6 @@ from jaxshadow.testing import (
 from jaxshadow.testing._catalogue import DATA, build_spec, classify
 from jaxshadow.testing._scenes import BUILDERS, apply_parameters, parameters_of
 from jaxshadow.testing._stats import bonferroni_reject, clopper_pearson, holm_reject
-from _jaxshadow_pytest import SCENES
 
 pytest_plugins = ["pytester"]
 
