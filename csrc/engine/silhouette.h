@@ -32,12 +32,29 @@
 #define JAXSHADOW_SHADOWC_SILHOUETTE_H_
 
 #include <algorithm>
+#include <cstring>
 
 #include "silhouette_coverage.h"
 #include "silhouette_tree.h"
 #include "silhouette_walk.h"
 
 namespace jaxshadow_engine {
+
+// A slot of the table of contour segments' unclipped ends by position: the mesh vertex, the
+// first two ends there (2 i + 0: segment i's end a, 2 i + 1: its end b) and how many (to 3; 0: empty slot).
+struct SilEnd {
+  double x, y, z;
+  int32_t e, e2, n;
+};
+// Per-thread scratch of silhouette_receiver's pieces (allocated once per thread).
+struct SilPieces {
+  std::vector<int32_t> boff, kf, kl, sj, cf, link, todo;
+  std::vector<SilEnd> ends;
+};
+inline SilPieces& sil_pieces() {
+  static thread_local SilPieces pieces;
+  return pieces;
+}
 
 // The receiver through the silhouette path: its class with w.runs its boundary, or kFallback.
 // `eh` are E_h's edges (polygon_receiver's first edges), `cone` / `prefs` E_h's planes.
@@ -96,13 +113,19 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       bx[6 * i + 3 + k] = std::max(ca[k], cb[k]) + T(1e-9) * T(scale);
     }
   }
-  bool contour_runs = false;
+  // Every segment's breakpoints (its ends and its crossings, in w.sts / stc / std_ at
+  // [boff[i], boff[i + 1])), in the order of their t in w.sord (indices into those arrays).
+  SilPieces& pc = sil_pieces();
+  std::vector<int32_t>& boff = pc.boff;
+  std::vector<int32_t>& ord = w.sord;
+  boff.assign(size_t(ns) + 1, 0);
+  ts.clear();
+  tc.clear();
+  td.clear();
+  ord.clear();
   for (int i = 0; i < ns; i++) {
     const SSeg<T>& s = segs[size_t(i)];
-    const size_t runs_before = w.runs.size();
-    ts.clear();
-    tc.clear();
-    td.clear();
+    const int32_t b0 = int32_t(ts.size());
     ts.push_back(0), tc.push_back(s.ca), td.push_back(0);
     ts.push_back(1), tc.push_back(s.cb), td.push_back(0);
     const V3<T> ap = s.a - p, d = s.b - s.a;
@@ -134,9 +157,20 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         const T* bj = bx.data() + 6 * j;
         if (bi[3] < bj[0] || bj[3] < bi[0] || bi[4] < bj[1] || bj[4] < bi[1] || bi[5] < bj[2] || bj[5] < bi[2]) continue;
       }
-      if (s.va >= 0 && o.va >= 0 &&
-          (same(s.x3a, o.x3a) || same(s.x3a, o.x3b) || same(s.x3b, o.x3a) || same(s.x3b, o.x3b)))
-        continue;  // mesh edges with a common end meet there only
+      if (s.va >= 0 && o.va >= 0) {
+        const bool at_a = same(s.x3a, o.x3a) || same(s.x3a, o.x3b), at_b = same(s.x3b, o.x3a) || same(s.x3b, o.x3b);
+        if (at_a || at_b) {
+          // Mesh edges with a common end meet there only, unless their projections overlap
+          // along one line (p in the plane of both; or one edge twice, as at a non-manifold
+          // edge): C beside them is then not what the crossings and the carry along chains
+          // below make it. Too close to call.
+          if (at_a && at_b) return kFallback;
+          const V3<T> far = same(o.x3a, at_a ? s.x3a : s.x3b) ? o.b : o.a;
+          const V3<T> at = at_a ? s.a : s.b, other = at_a ? s.b : s.a;
+          if (cov.side_of(far, s) == 0 && dot(far - at, other - at) > 0) return kFallback;
+          continue;
+        }
+      }
       if (i < neh) {
         // An E_h edge: cut where a contour piece was clipped at its plane.
         const int pi = eh_plane[i];
@@ -173,11 +207,138 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       tc.push_back(code_planes(s.own_ref, o.own_ref));
       td.push_back(s1 > 0 ? o.w : -o.w);  // into o's positive side: + W
     }
-    const int nt = int(ts.size());
-    std::vector<int32_t>& ord = w.sord;
-    ord.resize(size_t(nt));
-    for (int k = 0; k < nt; k++) ord[size_t(k)] = k;
-    std::sort(ord.begin(), ord.end(), [&](int32_t x, int32_t y) { return ts[size_t(x)] < ts[size_t(y)]; });
+    const int32_t b1 = int32_t(ts.size());
+    for (int32_t k = b0; k < b1; k++) ord.push_back(k);
+    std::sort(ord.begin() + b0, ord.end(), [&](int32_t x, int32_t y) { return ts[size_t(x)] < ts[size_t(y)]; });
+    boff[size_t(i) + 1] = b1;
+  }
+  // Per contour segment: its first and last pieces of positive length (kf, kl, positions in
+  // ord; kf = -1: none), and the sum of the jumps of C from the first to the last (sj).
+  std::vector<int32_t>& kf = pc.kf;
+  std::vector<int32_t>& kl = pc.kl;
+  std::vector<int32_t>& sj = pc.sj;
+  kf.assign(size_t(ns), -1);
+  kl.assign(size_t(ns), -1);
+  sj.assign(size_t(ns), 0);
+  for (int i = neh; i < ns; i++) {
+    for (int32_t k = boff[size_t(i)]; k + 1 < boff[size_t(i) + 1]; k++) {
+      if (!(ts[size_t(ord[size_t(k + 1)])] > ts[size_t(ord[size_t(k)])])) continue;
+      if (kf[size_t(i)] < 0) kf[size_t(i)] = k;
+      kl[size_t(i)] = k;
+    }
+    for (int32_t k = kf[size_t(i)] + 1; kf[size_t(i)] >= 0 && k <= kl[size_t(i)]; k++) sj[size_t(i)] += td[size_t(ord[size_t(k)])];
+  }
+  // C beside every contour segment's first piece on q0's side (cf), from one coverage query per
+  // chain of contour segments and carried along the chain. Where exactly two contour segments
+  // meet at an unclipped end v (the projection of one mesh vertex; no other piece passes through
+  // v, or a crossing test with it would have been too close to call), C near v is constant in
+  // each of the two sectors the segments' rays r_i, r_j from v bound. With n_i the normal of the
+  // plane through p, v and r_i's far end (n_i = cross(v - p, x_i - p)), the side just beyond r_i
+  // in n_i's direction and the side just before r_j against n_j's are the same sector: seen
+  // along v - p, turning from r_i in the positive sense enters the sector that turning from r_j
+  // in the negative sense enters. own = edge_plane(p, a, b) points along -cross(a - p, b - p), so
+  // n_i is -own_i when v is i's end a and +own_i when v is its end b: C on both sides of j near v
+  // follows from C on both sides of i there without a geometric test. Both far ends clearly off
+  // the other segment's line (the sectors not thin), both jumps consistent, and where a chain
+  // closes the carried value equal to the one it meets; else the receiver falls back.
+  std::vector<int32_t>& cf = pc.cf;
+  cf.assign(size_t(ns), Cov::kNone);
+  std::vector<int32_t>& link = pc.link;  // per segment end (2 i + 0: a, 2 i + 1: b): the other segment end at v, or -1
+  link.assign(2 * size_t(ns), -1);
+  {
+    // The unclipped ends by their mesh vertex's position, in an open-addressing table of
+    // positions (nh slots, a power of two at least twice the ends): per slot the position, the
+    // first end and how many ends are there (to 3).
+    std::vector<SilEnd>& tab = pc.ends;
+    size_t nh = 16;
+    while (nh < 4 * size_t(ns - neh)) nh *= 2;
+    tab.assign(nh, SilEnd{0, 0, 0, -1, -1, 0});
+    auto bits = [](double x) {
+      uint64_t u;
+      x += 0.0;  // -0 as +0 (same() counts them equal)
+      std::memcpy(&u, &x, sizeof(u));
+      return u;
+    };
+    auto add = [&](V3<T> x3, int32_t e) {
+      const double x = double(x3.x), y = double(x3.y), z = double(x3.z);
+      uint64_t h = bits(x) * 0x9E3779B97F4A7C15ull ^ bits(y) * 0xC2B2AE3D27D4EB4Full ^ bits(z) * 0x165667B19E3779F9ull;
+      h ^= h >> 29;
+      for (size_t k = size_t(h) & (nh - 1);; k = (k + 1) & (nh - 1)) {
+        SilEnd& t = tab[k];
+        if (t.n == 0) {
+          t = SilEnd{x, y, z, e, -1, 1};
+          return;
+        }
+        if (t.x == x && t.y == y && t.z == z) {
+          if (t.n == 1) t.e2 = e;
+          if (t.n < 3) t.n++;
+          return;
+        }
+      }
+    };
+    for (int i = neh; i < ns; i++) {
+      const SSeg<T>& s = segs[size_t(i)];
+      if (s.on_a < 0) add(s.x3a, 2 * i);
+      if (s.on_b < 0) add(s.x3b, 2 * i + 1);
+    }
+    for (const SilEnd& t : tab) {
+      if (t.n == 2 && t.e / 2 != t.e2 / 2) {
+        const int32_t ea = t.e, eb = t.e2;
+        const SSeg<T>& sa = segs[size_t(ea / 2)];
+        const SSeg<T>& sb = segs[size_t(eb / 2)];
+        // Each far end clearly off the other's line.
+        if (cov.side_of(ea % 2 ? sa.a : sa.b, sb) != 0 && cov.side_of(eb % 2 ? sb.a : sb.b, sa) != 0)
+          link[size_t(ea)] = eb, link[size_t(eb)] = ea;
+      }
+    }
+  }
+  {
+    std::vector<int32_t>& todo = pc.todo;
+    for (int i0 = neh; i0 < ns; i0++) {
+      if (kf[size_t(i0)] < 0 || cf[size_t(i0)] != Cov::kNone) continue;
+      {
+        const SSeg<T>& s = segs[size_t(i0)];
+        const double ta = ts[size_t(ord[size_t(kf[size_t(i0)])])], tb = ts[size_t(ord[size_t(kf[size_t(i0)] + 1)])];
+        const V3<T> m = s.a + (0.5 * (ta + tb)) * (s.b - s.a);
+        const int full = cov.coverage_at(m, i0);
+        if (full == Cov::kNone) return kFallback;
+        cf[size_t(i0)] = full;
+      }
+      todo.assign(1, i0);
+      while (!todo.empty()) {
+        const int i = todo.back();
+        todo.pop_back();
+        const SSeg<T>& s = segs[size_t(i)];
+        for (int e = 0; e < 2; e++) {
+          const int32_t o = link[size_t(2 * i + e)];
+          if (o < 0) continue;
+          // C on q0's side near v, on the positive and negative sides of i's own plane there.
+          const int c = e == 0 ? cf[size_t(i)] : cf[size_t(i)] + sj[size_t(i)];
+          const int cpos = s.q0s > 0 ? c : c + s.w, cneg = s.q0s > 0 ? c - s.w : c;
+          const int ca = e == 0 ? cneg : cpos, cb = e == 0 ? cpos : cneg;  // C beyond r_i along n_i, and before it
+          const int j = o / 2, ej = o % 2;
+          const SSeg<T>& t = segs[size_t(j)];
+          const int jpos = ej == 0 ? ca : cb, jneg = ej == 0 ? cb : ca;  // n_j = -own_j at j's end a
+          if (jpos - jneg != t.w || t.q0s == 0) return kFallback;
+          const int cv = t.q0s > 0 ? jpos : jneg;
+          const int cj = ej == 0 ? cv : cv - sj[size_t(j)];
+          if (cf[size_t(j)] == Cov::kNone) {
+            cf[size_t(j)] = cj;
+            todo.push_back(j);
+          } else if (cf[size_t(j)] != cj) {
+            return kFallback;
+          }
+        }
+      }
+    }
+  }
+  // The runs: every segment's pieces classified in index order; a kept piece extends the current run.
+  bool contour_runs = false;
+  for (int i = 0; i < ns; i++) {
+    const SSeg<T>& s = segs[size_t(i)];
+    const size_t runs_before = w.runs.size();
+    const int32_t b0 = boff[size_t(i)], b1 = boff[size_t(i) + 1];
+    const V3<T> d = s.b - s.a;
     // Classify the pieces; a kept piece extends the current run.
     int run_dir = 0;  // +1: a run along s, -1: against it, 0: none open
     Code run_s{}, run_e{};
@@ -186,18 +347,22 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       if (run_dir < 0) w.runs.push_back(Run{run_e, run_s});
       run_dir = 0;
     };
-    // C beside s on q0's side (inside E_h for E_h's edges): computed at the first piece, then
-    // carried across the breakpoints, and checked again at the last piece.
+    // C beside s on q0's side (inside E_h for E_h's edges): for a contour segment cf at its
+    // first piece; for an E_h edge computed there, checked again at the last piece; then carried
+    // across the breakpoints.
     int c = Cov::kNone, last = -1;
-    for (int k = 0; k + 1 < nt; k++)
-      if (ts[size_t(ord[k + 1])] > ts[size_t(ord[k])]) last = k;
-    for (int k = 0; k + 1 < nt; k++) {
-      if (k > 0 && c != Cov::kNone) c += td[size_t(ord[k])];
-      const double ta = ts[size_t(ord[k])], tb = ts[size_t(ord[k + 1])];
+    for (int32_t k = b0; k + 1 < b1; k++)
+      if (ts[size_t(ord[size_t(k + 1)])] > ts[size_t(ord[size_t(k)])]) last = k;
+    for (int32_t k = b0; k + 1 < b1; k++) {
+      if (k > b0 && c != Cov::kNone) c += td[size_t(ord[size_t(k)])];
+      const double ta = ts[size_t(ord[size_t(k)])], tb = ts[size_t(ord[size_t(k + 1)])];
       if (!(tb > ta)) continue;
-      const V3<T> m = s.a + (0.5 * (ta + tb)) * d;
-      if (c == Cov::kNone || k == last) {
-        const int full = i < neh ? cov.coverage_eh(m) : cov.coverage_at(m, i);
+      if (c == Cov::kNone && i >= neh) {
+        c = cf[size_t(i)];
+        if (c == Cov::kNone) return kFallback;
+      } else if (c == Cov::kNone || (k == last && i < neh)) {
+        const V3<T> m = s.a + (0.5 * (ta + tb)) * d;
+        const int full = cov.coverage_eh(m);
         if (full == Cov::kNone || (c != Cov::kNone && full != c)) return kFallback;
         c = full;
       }
@@ -218,10 +383,10 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         close_run();
         if (dir != 0) {
           run_dir = dir;
-          run_s = tc[size_t(ord[k])];
+          run_s = tc[size_t(ord[size_t(k)])];
         }
       }
-      if (dir != 0) run_e = tc[size_t(ord[k + 1])];
+      if (dir != 0) run_e = tc[size_t(ord[size_t(k + 1)])];
     }
     close_run();
     if (i >= neh && w.runs.size() > runs_before) contour_runs = true;
