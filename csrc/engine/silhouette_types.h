@@ -42,6 +42,34 @@ struct SilhouetteTree {
   bool ok = false;
 };
 
+// A tile of receivers: the driver hands out consecutive receivers in spatial order in tiles of a
+// few, with their box, so that the contour walk (silhouette_walk.h) walks the hierarchy once per
+// tile. `id` < 0: no tile (each receiver walks the hierarchy).
+struct SilTile {
+  int64_t id = -1;
+  double lo[3] = {0, 0, 0}, hi[3] = {0, 0, 0};  // the box of the tile's receivers
+};
+
+// One entry of a tile's part of the hierarchy: a node that the tile's walk did not prune, in the
+// walk's order (preorder, right subtree first); `skip` is the entry after its subtree; for a
+// leaf, its kept edges [e0, e1) in SilTileCache::edges.
+struct STEntry {
+  int32_t node, skip, e0, e1;
+};
+
+// The hierarchy as seen from a whole tile (silhouette_walk.h, tile_walk): the nodes no receiver
+// of the tile can prune, and the edges of their leaves that can be a contour edge of some
+// receiver of the tile or make it fall back, with the coverage jump W where every receiver of the
+// tile sees both faces on known sides (0: decided per receiver).
+struct SilTileCache {
+  int64_t id = -1;
+  const void* tree = nullptr;
+  bool ok = false;
+  std::vector<STEntry> entries;
+  std::vector<int32_t> edges;
+  std::vector<int8_t> w;
+};
+
 template <class T>
 struct SSeg {
   V3<T> a, b;  // in the emitter plane (clipped to E_h)
