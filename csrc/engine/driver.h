@@ -124,7 +124,7 @@ struct Decoder {
   }
 };
 
-constexpr int kSilTile = 8;  // receivers per tile of the silhouette path's walk
+constexpr int kSilTile = 16;  // receivers per tile of the silhouette path's walk
 
 // Morton order of receivers: codes over a box of the finite receivers (21 bits per axis).
 struct MortonBox {
@@ -311,9 +311,12 @@ int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const 
             w.tile.lo[d] = std::numeric_limits<double>::infinity();
             w.tile.hi[d] = -std::numeric_limits<double>::infinity();
           }
+          w.tile.same_n = true;
+          for (int d = 0; d < 3; d++) w.tile.n[d] = double(Nrm[3 * perm[k] + d]);
           for (int64_t q = k; q < tile_end; q++)
             for (int d = 0; d < 3; d++) {
               const double x = double(P[3 * perm[q] + d]);
+              w.tile.same_n = w.tile.same_n && Nrm[3 * perm[q] + d] == Nrm[3 * perm[k] + d];
               if (!std::isfinite(x)) continue;
               w.tile.lo[d] = std::min(w.tile.lo[d], x);
               w.tile.hi[d] = std::max(w.tile.hi[d], x);

@@ -75,6 +75,32 @@ inline int tile_node_side(const SNode& nd, const TileBox& tb, double margin) {
   return 0;
 }
 
+// Whether node_side(nd, p, margin(p)) is 0 for every p in B (margin(p) >= margin): the node is
+// not pruned by its faces' sides for any receiver of the tile.
+inline bool tile_node_side_none(const SNode& nd, const TileBox& tb, double margin) {
+  if (!(nd.cosa > 0)) return true;
+  const double d[3] = {tb.pc[0] - 0.5 * (nd.box[0] + nd.box[3]), tb.pc[1] - 0.5 * (nd.box[1] + nd.box[4]),
+                       tb.pc[2] - 0.5 * (nd.box[2] + nd.box[5])};
+  const double a = d[0] * nd.axis[0] + d[1] * nd.axis[1] + d[2] * nd.axis[2];
+  const double e[3] = {d[0] - a * nd.axis[0], d[1] - a * nd.axis[1], d[2] - a * nd.axis[2]};
+  const double perp = std::max(0.0, std::sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2]) - tb.hb2) + nd.hrad;
+  const double ab = std::fabs(nd.axis[0]) * tb.hb[0] + std::fabs(nd.axis[1]) * tb.hb[1] + std::fabs(nd.axis[2]) * tb.hb[2];
+  const double m = margin - 1e-12 * tb.d1;
+  return (a + ab - nd.arad) * nd.cosa - perp * nd.sina < m && (a - ab + nd.arad) * nd.cosa + perp * nd.sina > -m;
+}
+
+// A lower bound over p in B of the largest c(p) . (x - p) over the box's corners x (at the corner
+// farthest along c(pc)).
+inline double tile_plane_inf_best(const TilePlane& q, const TileBox& tb, const double* box) {
+  const double x[3] = {box[q.cc[0] > 0 ? 3 : 0], box[q.cc[1] > 0 ? 4 : 1], box[q.cc[2] > 0 ? 5 : 2]};
+  const double* u = q.u;
+  const double w0 = x[1] * u[2] - x[2] * u[1] - q.ba[0];
+  const double w1 = x[2] * u[0] - x[0] * u[2] - q.ba[1];
+  const double w2 = x[0] * u[1] - x[1] * u[0] - q.ba[2];
+  const double g = q.ba[0] * x[0] + q.ba[1] * x[1] + q.ba[2] * x[2] + tb.pc[0] * w0 + tb.pc[1] * w1 + tb.pc[2] * w2;
+  return g - (std::fabs(w0) * tb.hb[0] + std::fabs(w1) * tb.hb[1] + std::fabs(w2) * tb.hb[2]);
+}
+
 // The tile's walk: w.sil_tile gets the hierarchy's nodes and edges that some receiver of the tile
 // w.tile may need (see TileBox). False: not built (every receiver walks the hierarchy itself).
 template <class T>
@@ -85,7 +111,6 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, Work
   tc.ok = false;
   tc.entries.clear();
   tc.edges.clear();
-  tc.w.clear();
   const double eps = 2.220446049250313e-16;
   const double epsT = double(eps_of<T>());
   TileBox tb;
@@ -136,6 +161,35 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, Work
   const V3<T> e0 = call.L.v(0);
   const double en[3] = {double(ne.x), double(ne.y), double(ne.z)}, eq[3] = {double(e0.x), double(e0.y), double(e0.z)};
   const double enn = std::fabs(en[0]) + std::fabs(en[1]) + std::fabs(en[2]);
+  // The horizon's plane where every receiver of the tile has the same normal (the same vector
+  // in every receiver's walk).
+  double hn[3] = {0, 0, 0};
+  const bool horizon = w.tile.same_n;
+  if (horizon) {
+    const V3<T> n = rescale(V3<T>{T(w.tile.n[0]), T(w.tile.n[1]), T(w.tile.n[2])});
+    hn[0] = n.x, hn[1] = n.y, hn[2] = n.z;
+  }
+  const double hnn = std::fabs(hn[0]) + std::fabs(hn[1]) + std::fabs(hn[2]);
+  const double smargin_min = 4 * kOnSurface * (st.scale + 1e-300);
+  // No receiver of the tile prunes the node: inside every plane of every receiver's walk by a
+  // margin, and no side decided by its faces.
+  auto sure = [&](const SNode& nd) {
+    if (!horizon) return false;
+    const double* box = nd.box;
+    {
+      const double x[3] = {box[en[0] > 0 ? 3 : 0], box[en[1] > 0 ? 4 : 1], box[en[2] > 0 ? 5 : 2]};
+      if (!(en[0] * (x[0] - eq[0]) + en[1] * (x[1] - eq[1]) + en[2] * (x[2] - eq[2]) > 1e-12 * enn * tb.d1)) return false;
+    }
+    {
+      const double x[3] = {box[hn[0] > 0 ? 3 : 0], box[hn[1] > 0 ? 4 : 1], box[hn[2] > 0 ? 5 : 2]};
+      const double lo = hn[0] * (x[0] - tb.pc[0]) + hn[1] * (x[1] - tb.pc[1]) + hn[2] * (x[2] - tb.pc[2]) -
+                        (std::fabs(hn[0]) * tb.hb[0] + std::fabs(hn[1]) * tb.hb[1] + std::fabs(hn[2]) * tb.hb[2]);
+      if (!(lo > 1e-12 * hnn * tb.d1)) return false;
+    }
+    for (int k = 0; k < ntp; k++)
+      if (!(tile_plane_inf_best(tp[k], tb, box) > tp[k].safety)) return false;
+    return nd.special || tile_node_side_none(nd, tb, smargin_min);
+  };
   auto outside = [&](const double* box) {
     {  // the emitter plane, as the walk computes it (the same for every receiver)
       const double x[3] = {box[en[0] > 0 ? 3 : 0], box[en[1] > 0 ? 4 : 1], box[en[2] > 0 ? 5 : 2]};
@@ -167,6 +221,7 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, Work
     SilTileCache& tc;
     const decltype(outside)& out;
     const decltype(edge_out)& eout;
+    const decltype(sure)& is_sure;
     const TileBox& tb;
     const Occluders<T>& occ;
     double smargin;
@@ -176,7 +231,7 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, Work
       if (out(nd.box)) return false;
       if (!nd.special && tile_node_side(nd, tb, smargin) != 0) return false;
       const size_t me = tc.entries.size();
-      tc.entries.push_back(STEntry{k, -1, -1, -1});
+      tc.entries.push_back(STEntry{k, -1, -1, -1, is_sure(nd)});
       if (nd.left >= 0) {
         if (depth > 60) deep = true;  // deeper than the walk's stack allows
         const bool r = visit(nd.right, depth + 1);
@@ -191,17 +246,15 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, Work
           const SEdge& e = st.edges[size_t(j)];
           const int sf = tile_side(st, e.f, tb);
           const int sg = e.g >= 0 ? tile_side(st, e.g, tb) : 0;
-          int8_t W = 0;
+          const V3<T> a3 = occ.vref(e.ra), b3 = occ.vref(e.rb);
+          STEdge te{e, 0, {double(a3.x), double(a3.y), double(a3.z)}, {double(b3.x), double(b3.y), double(b3.z)}};
           if (sf != 0 && (e.g < 0 || sg != 0)) {
             const int Wk = sf + (e.g >= 0 ? sg * e.dg : 0);
             if (Wk == 0) continue;  // no receiver's contour edge, none falls back on it
-            const V3<T> a3 = occ.vref(e.ra), b3 = occ.vref(e.rb);
-            const double a[3] = {double(a3.x), double(a3.y), double(a3.z)}, b[3] = {double(b3.x), double(b3.y), double(b3.z)};
-            if (eout(a, b)) continue;
-            W = int8_t(Wk);
+            if (eout(te.a, te.b)) continue;
+            te.w = int8_t(Wk);
           }
-          tc.edges.push_back(j);
-          tc.w.push_back(W);
+          tc.edges.push_back(te);
         }
         if (int32_t(tc.edges.size()) == e0) {
           tc.entries.pop_back();
@@ -214,7 +267,7 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, Work
       return true;
     }
   };
-  Rec rec{st, tc, outside, edge_out, tb, occ, smargin, false};
+  Rec rec{st, tc, outside, edge_out, sure, tb, occ, smargin, false};
   rec.visit(0, 0);
   if (rec.deep) return false;
   tc.ok = true;
@@ -265,7 +318,7 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
   int32_t n_contour = 0;
   // One edge of a leaf the walk reached: appended when it is a contour edge in the pyramid; W
   // nonzero: its coverage jump, known (the faces' sides as sil_side gives them). False: fall back.
-  auto edge = [&](const SEdge& e, int W) -> bool {
+  auto edge = [&](const SEdge& e, int W, V3<T> a3, V3<T> b3) -> bool {
     if (W == 0) {
       const int sf = sil_side(st, e.f, pd);
       if (sf == 0) return false;
@@ -277,7 +330,6 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
       }
       if (W == 0) return true;
     }
-    const V3<T> a3 = occ.vref(e.ra), b3 = occ.vref(e.rb);
     {
       // Both ends clearly outside one cone plane: cyrus_beck's interval for that plane is empty
       // (the same g0, g1; beyond its collinear tolerance, as norms are at most 1-norms), so it
@@ -341,19 +393,25 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
     const int32_t n = int32_t(tc.entries.size());
     for (int32_t i = 0; i < n;) {
       const STEntry& en = tc.entries[size_t(i)];
-      const SNode& nd = st.nodes[size_t(en.node)];
-      if (outside(nd.box) || (!nd.special && node_side(nd, pd, smargin) != 0)) {
-        i = en.skip;
-        continue;
-      }
-      if (nd.left < 0) {
-        for (int32_t k = en.e0; k < en.e1; k++) {
-          const SEdge& e = st.edges[size_t(tc.edges[size_t(k)])];
-          __builtin_prefetch(st.fn.data() + kFnStride * size_t(e.f));
-          if (e.g >= 0) __builtin_prefetch(st.fn.data() + kFnStride * size_t(e.g));
+      if (!en.sure) {
+        const SNode& nd = st.nodes[size_t(en.node)];
+        if (outside(nd.box) || (!nd.special && node_side(nd, pd, smargin) != 0)) {
+          i = en.skip;
+          continue;
         }
-        for (int32_t k = en.e0; k < en.e1; k++)
-          if (!edge(st.edges[size_t(tc.edges[size_t(k)])], tc.w[size_t(k)])) return kFallback;
+      }
+      if (en.e0 >= 0) {  // a leaf
+        for (int32_t k = en.e0; k < en.e1; k++) {
+          const STEdge& te = tc.edges[size_t(k)];
+          if (te.w) continue;
+          __builtin_prefetch(st.fn.data() + kFnStride * size_t(te.e.f));
+          if (te.e.g >= 0) __builtin_prefetch(st.fn.data() + kFnStride * size_t(te.e.g));
+        }
+        for (int32_t k = en.e0; k < en.e1; k++) {
+          const STEdge& te = tc.edges[size_t(k)];
+          const V3<T> a3{T(te.a[0]), T(te.a[1]), T(te.a[2])}, b3{T(te.b[0]), T(te.b[1]), T(te.b[2])};
+          if (!edge(te.e, te.w, a3, b3)) return kFallback;
+        }
       }
       i++;
     }
@@ -380,8 +438,10 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
       __builtin_prefetch(st.fn.data() + kFnStride * size_t(e.f));
       if (e.g >= 0) __builtin_prefetch(st.fn.data() + kFnStride * size_t(e.g));
     }
-    for (int32_t k = nd.start; k < nd.start + nd.count; k++)
-      if (!edge(st.edges[size_t(k)], 0)) return kFallback;
+    for (int32_t k = nd.start; k < nd.start + nd.count; k++) {
+      const SEdge& e = st.edges[size_t(k)];
+      if (!edge(e, 0, occ.vref(e.ra), occ.vref(e.rb))) return kFallback;
+    }
   }
   return n_contour;
 }
