@@ -124,6 +124,54 @@ struct Decoder {
   }
 };
 
+constexpr int kSilTile = 16;  // receivers per tile of the silhouette path's walk
+
+// Morton order of receivers: codes over a box of the finite receivers (21 bits per axis).
+struct MortonBox {
+  double lo[3], hi[3];
+  template <class T>
+  MortonBox(int64_t N, const T* P) {
+    for (int d = 0; d < 3; d++) {
+      lo[d] = std::numeric_limits<double>::infinity();
+      hi[d] = -std::numeric_limits<double>::infinity();
+    }
+    for (int64_t i = 0; i < N; i++)
+      for (int d = 0; d < 3; d++) {
+        const double x = double(P[3 * i + d]);
+        if (!std::isfinite(x)) continue;
+        lo[d] = std::min(lo[d], x);
+        hi[d] = std::max(hi[d], x);
+      }
+  }
+  static uint64_t spread(uint64_t v) {  // 21 bits to every third bit
+    v &= 0x1fffff;
+    v = (v | v << 32) & 0x1f00000000ffffull;
+    v = (v | v << 16) & 0x1f0000ff0000ffull;
+    v = (v | v << 8) & 0x100f00f00f00f00full;
+    v = (v | v << 4) & 0x10c30c30c30c30c3ull;
+    v = (v | v << 2) & 0x1249249249249249ull;
+    return v;
+  }
+  // perm[a, b) in Morton order of the receivers' positions (ties by index).
+  template <class T>
+  void sort(const T* P, int64_t* perm, int64_t a, int64_t b, std::vector<std::pair<uint64_t, int64_t>>& key) const {
+    key.clear();
+    for (int64_t k = a; k < b; k++) {
+      const int64_t i = perm[k];
+      uint64_t code = 0;
+      for (int d = 0; d < 3; d++) {
+        const double x = double(P[3 * i + d]);
+        double t = std::isfinite(x) && hi[d] > lo[d] ? (x - lo[d]) / (hi[d] - lo[d]) : 0.0;
+        t = std::min(1.0, std::max(0.0, t));
+        code |= spread(uint64_t(t * 2097151.0)) << d;
+      }
+      key.push_back({code, i});
+    }
+    std::sort(key.begin(), key.end());
+    for (int64_t k = a; k < b; k++) perm[k] = key[size_t(k - a)].second;
+  }
+};
+
 // Receiver i of a polygon light: its class, with `w.runs` its boundary; a light of more than 64
 // vertices gives kZero and sets `err`.
 template <class T>
@@ -205,6 +253,18 @@ int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const 
   std::vector<int64_t> perm, cell;
   const bool grouped = int64_t(bvh.items.size()) >= kGroupMinItems && N >= 4 * kGroupSize;
   if (grouped) receiver_order(N, P, perm, cell);
+  // The silhouette path's tiles: within each group (all receivers when there are none), receivers
+  // in Morton order of their positions, and runs of at most kSilTile of one group share one walk
+  // of the hierarchy (silhouette_walk.h). The groups keep their receivers.
+  const bool tiled = call.sil_ok && N >= 2 * kSilTile;
+  const bool sorted = grouped || tiled;
+  const MortonBox mbox(tiled ? N : 0, P);
+  if (tiled && !grouped) {
+    perm.resize(size_t(N));
+    for (int64_t i = 0; i < N; i++) perm[size_t(i)] = i;
+    std::vector<std::pair<uint64_t, int64_t>> key;
+    mbox.sort(P, perm.data(), 0, N, key);
+  }
   parallel_for(N, threads, [&](int t, int64_t s, int64_t e) {
     Work<T> w;
     w.lit_runs = false;
@@ -212,9 +272,10 @@ int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const 
     blk.s = s;
     blk.e = e;
     std::vector<int32_t> group;
-    int64_t group_end = s;
+    std::vector<std::pair<uint64_t, int64_t>> mkey;
+    int64_t group_end = s, tile_end = s;
     for (int64_t k = s; k < e; k++) {
-      const int64_t i = grouped ? perm[k] : k;
+      
       if (grouped && k == group_end) {  // the next group: positions [k, group_end) of one cell
         group_end = k + 1;
         while (group_end < e && group_end - k < kGroupSize && cell[group_end] == cell[k]) group_end++;
@@ -234,9 +295,33 @@ int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const 
             hi[d] = std::max(hi[d], c[d]);
           }
         }
+        if (tiled) mbox.sort(P, perm.data(), k, group_end, mkey);
         group.clear();
         if (query) group_items(call, lo, hi, group);
         w.group = &group;
+      }
+      const int64_t i = sorted ? perm[k] : k;
+      if (tiled && k == tile_end) {  // the next tile: positions [k, tile_end) of one group
+        tile_end = k + 1;
+        while (tile_end < (grouped ? group_end : e) && tile_end - k < kSilTile) tile_end++;
+        w.tile.id = -1;
+        if (tile_end - k >= 2) {
+          w.tile.id = k;
+          for (int d = 0; d < 3; d++) {
+            w.tile.lo[d] = std::numeric_limits<double>::infinity();
+            w.tile.hi[d] = -std::numeric_limits<double>::infinity();
+          }
+          w.tile.same_n = true;
+          for (int d = 0; d < 3; d++) w.tile.n[d] = double(Nrm[3 * perm[k] + d]);
+          for (int64_t q = k; q < tile_end; q++)
+            for (int d = 0; d < 3; d++) {
+              const double x = double(P[3 * perm[q] + d]);
+              w.tile.same_n = w.tile.same_n && Nrm[3 * perm[q] + d] == Nrm[3 * perm[k] + d];
+              if (!std::isfinite(x)) continue;
+              w.tile.lo[d] = std::min(w.tile.lo[d], x);
+              w.tile.hi[d] = std::max(w.tile.hi[d], x);
+            }
+        }
       }
       const int32_t c = receiver_class(call, P, Nrm, i, w, err);
       cls[i] = c;
@@ -293,7 +378,7 @@ int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const 
   *nruns_out = total;
   // A block's runs, receiver after receiver in its positions' order, to their CSR rows.
   auto scatter = [&](const Block& blk, auto* dst, const auto* src, int64_t width) {
-    if (!grouped) {
+    if (!sorted) {
       std::memcpy(dst + width * offsets[blk.s], src, sizeof(*src) * width * (offsets[blk.e] - offsets[blk.s]));
       return;
     }

@@ -87,6 +87,10 @@ struct Work {  // per-thread scratch
   // Items (slots, in the hierarchy's depth-first order) that may meet the pyramid of any receiver
   // of the current group (receiver_groups); null: the receiver queries the hierarchy itself.
   const std::vector<int32_t>* group = nullptr;
+  // The current receiver's tile (the driver's) and the contour walk's part of the hierarchy for
+  // the last tile it served (silhouette_walk.h).
+  SilTile tile;
+  SilTileCache sil_tile;
 };
 
 template <class T>

@@ -73,7 +73,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     s.w = 0, s.va = s.vb = -1, s.on_a = s.on_b = -1, s.own_n = norm(s.own), s.q0s = 0;
     segs.push_back(s);
   }
-  const int32_t n_contour = contour_edges(call, st, p, cone, prefs, np0, ne, hp, scale, segs);
+  const int32_t n_contour = contour_edges(call, st, p, cone, prefs, np0, ne, hp, scale, w);
   if (n_contour == kFallback) return kFallback;
   w.n_candidates = n_contour;
   // Each E_h edge's cone plane (its plane vector is a copy of one).

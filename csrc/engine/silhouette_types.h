@@ -42,6 +42,45 @@ struct SilhouetteTree {
   bool ok = false;
 };
 
+// A tile of receivers: the driver hands out consecutive receivers in spatial order in tiles of a
+// few, with their box, so that the contour walk (silhouette_walk.h) walks the hierarchy once per
+// tile. `id` < 0: no tile (each receiver walks the hierarchy).
+struct SilTile {
+  int64_t id = -1;
+  double lo[3] = {0, 0, 0}, hi[3] = {0, 0, 0};  // the box of the tile's receivers
+  bool same_n = false;  // every receiver of the tile has the normal n (bit for bit)
+  double n[3] = {0, 0, 0};
+};
+
+// One entry of a tile's part of the hierarchy: a node that the tile's walk did not prune, in the
+// walk's order (preorder, right subtree first); `skip` is the entry after its subtree; for a
+// leaf, its kept edges [e0, e1) in SilTileCache::edges; `sure`: no receiver of the tile prunes
+// it (its tests are skipped).
+struct STEntry {
+  int32_t node, skip, e0, e1;
+  bool sure;
+};
+
+// A kept edge: its SEdge, its ends (the occluders' values), and its coverage jump W when every
+// receiver of the tile sees both faces on known sides (0: decided per receiver).
+struct STEdge {
+  SEdge e;
+  int8_t w;
+  double a[3], b[3];
+};
+
+// The hierarchy as seen from a whole tile (silhouette_walk.h, tile_walk): the nodes no receiver
+// of the tile can prune, and the edges of their leaves that can be a contour edge of some
+// receiver of the tile or make it fall back, with the coverage jump W where every receiver of the
+// tile sees both faces on known sides (0: decided per receiver).
+struct SilTileCache {
+  int64_t id = -1;
+  const void* tree = nullptr;
+  bool ok = false;
+  std::vector<STEntry> entries;
+  std::vector<STEdge> edges;
+};
+
 template <class T>
 struct SSeg {
   V3<T> a, b;  // in the emitter plane (clipped to E_h)

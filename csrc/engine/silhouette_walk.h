@@ -8,12 +8,281 @@
 
 namespace jaxshadow_engine {
 
+// Receiver coherence: a tile's receivers (the driver's SilTile, its box B = pc +- hb) share one
+// walk of the hierarchy (tile_walk). Each test of that walk bounds the per-receiver test of the
+// contour walk below over every p in B, with a margin above both computations' rounding, so a
+// node or edge it drops is one that the walk of every receiver of the tile drops (or skips without
+// effect); each receiver then runs the unchanged per-receiver tests over what is left, in the same
+// order, and finds the same contour edges in the same order (or falls back where it would).
+struct TileBox {
+  double pc[3], hb[3];
+  double hb1, hb2;  // |hb|_1, |hb|_2
+  double smax;      // max(st.scale, the box's largest coordinate magnitude)
+  double d1;        // a bound of the 1-norm of any difference of two points of the scene and B
+};
+
+// A light edge a -> b's plane through p, c(p) = (b - p) x (a - p) = b x a + (a - b) x p (edge_plane's
+// direction; `cone`'s planes are positive multiples of it), over the tile.
+struct TilePlane {
+  double ba[3], u[3], cc[3];  // b x a, a - b, c(pc)
+  double cn1;                 // a bound of |c(p)|_1 over B
+  double safety;              // above the rounding of c(p) . (x - p) in either computation
+};
+
+// An upper bound over p in B of c(p) . (x - p) for x in the box xc +- hx: with p = pc + s and
+// x = xc + t, c(p) . (x - p) = g(pc, xc) + c(pc) . t + s . (xc x u - b x a) + s . (t x u).
+inline double tile_plane_sup(const TilePlane& q, const TileBox& tb, const double* xc, const double* hx) {
+  const double* u = q.u;
+  const double w0 = xc[1] * u[2] - xc[2] * u[1] - q.ba[0];
+  const double w1 = xc[2] * u[0] - xc[0] * u[2] - q.ba[1];
+  const double w2 = xc[0] * u[1] - xc[1] * u[0] - q.ba[2];
+  const double* hb = tb.hb;
+  double g = q.ba[0] * xc[0] + q.ba[1] * xc[1] + q.ba[2] * xc[2] + tb.pc[0] * w0 + tb.pc[1] * w1 + tb.pc[2] * w2;
+  g += std::fabs(q.cc[0]) * hx[0] + std::fabs(q.cc[1]) * hx[1] + std::fabs(q.cc[2]) * hx[2];
+  g += std::fabs(w0) * hb[0] + std::fabs(w1) * hb[1] + std::fabs(w2) * hb[2];
+  g += hb[0] * (hx[1] * std::fabs(u[2]) + hx[2] * std::fabs(u[1])) + hb[1] * (hx[2] * std::fabs(u[0]) + hx[0] * std::fabs(u[2])) +
+       hb[2] * (hx[0] * std::fabs(u[1]) + hx[1] * std::fabs(u[0]));
+  return g;
+}
+
+// sil_side over the tile: +1 (-1) when sil_side(st, f, p) is +1 (-1) for every p in B, 0 otherwise.
+inline int tile_side(const SilhouetteTree& st, int32_t f, const TileBox& tb) {
+  const double* q = st.fn.data() + kFnStride * size_t(f);
+  const double r0 = q[3] - tb.pc[0], r1 = q[4] - tb.pc[1], r2 = q[5] - tb.pc[2];
+  const double hc = q[0] * r0 + q[1] * r1 + q[2] * r2;
+  const double nn = q[9];
+  const double spread = std::fabs(q[0]) * tb.hb[0] + std::fabs(q[1]) * tb.hb[1] + std::fabs(q[2]) * tb.hb[2];
+  const double S = tb.smax;
+  const double m = std::max(1e4 * 2.220446049250313e-16 * (std::fabs(r0) + std::fabs(r1) + std::fabs(r2) + tb.hb1 + S),
+                            st.f32[size_t(f)] ? 2 * kOnSurface * S : 0.0) * nn;
+  const double slack = spread + m * (1 + 1e-6) + 1e-12 * nn * tb.d1;
+  return hc + slack < 0 ? 1 : (hc - slack > 0 ? -1 : 0);
+}
+
+// node_side over the tile: nonzero when node_side(nd, p, margin(p)) is that for every p in B
+// (margin(p) <= margin): the node's box grown by B's as seen from pc.
+inline int tile_node_side(const SNode& nd, const TileBox& tb, double margin) {
+  if (!(nd.cosa > 0)) return 0;
+  const double d[3] = {tb.pc[0] - 0.5 * (nd.box[0] + nd.box[3]), tb.pc[1] - 0.5 * (nd.box[1] + nd.box[4]),
+                       tb.pc[2] - 0.5 * (nd.box[2] + nd.box[5])};
+  const double a = d[0] * nd.axis[0] + d[1] * nd.axis[1] + d[2] * nd.axis[2];
+  const double e[3] = {d[0] - a * nd.axis[0], d[1] - a * nd.axis[1], d[2] - a * nd.axis[2]};
+  const double perp = std::sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2]) + nd.hrad + tb.hb2;
+  const double arad = nd.arad + std::fabs(nd.axis[0]) * tb.hb[0] + std::fabs(nd.axis[1]) * tb.hb[1] + std::fabs(nd.axis[2]) * tb.hb[2];
+  const double m = margin + 1e-12 * tb.d1;
+  if ((a - arad) * nd.cosa - perp * nd.sina > m) return 1;
+  if ((a + arad) * nd.cosa + perp * nd.sina < -m) return -1;
+  return 0;
+}
+
+// Whether node_side(nd, p, margin(p)) is 0 for every p in B (margin(p) >= margin): the node is
+// not pruned by its faces' sides for any receiver of the tile.
+inline bool tile_node_side_none(const SNode& nd, const TileBox& tb, double margin) {
+  if (!(nd.cosa > 0)) return true;
+  const double d[3] = {tb.pc[0] - 0.5 * (nd.box[0] + nd.box[3]), tb.pc[1] - 0.5 * (nd.box[1] + nd.box[4]),
+                       tb.pc[2] - 0.5 * (nd.box[2] + nd.box[5])};
+  const double a = d[0] * nd.axis[0] + d[1] * nd.axis[1] + d[2] * nd.axis[2];
+  const double e[3] = {d[0] - a * nd.axis[0], d[1] - a * nd.axis[1], d[2] - a * nd.axis[2]};
+  const double perp = std::max(0.0, std::sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2]) - tb.hb2) + nd.hrad;
+  const double ab = std::fabs(nd.axis[0]) * tb.hb[0] + std::fabs(nd.axis[1]) * tb.hb[1] + std::fabs(nd.axis[2]) * tb.hb[2];
+  const double m = margin - 1e-12 * tb.d1;
+  return (a + ab - nd.arad) * nd.cosa - perp * nd.sina < m && (a - ab + nd.arad) * nd.cosa + perp * nd.sina > -m;
+}
+
+// A lower bound over p in B of the largest c(p) . (x - p) over the box's corners x (at the corner
+// farthest along c(pc)).
+inline double tile_plane_inf_best(const TilePlane& q, const TileBox& tb, const double* box) {
+  const double x[3] = {box[q.cc[0] > 0 ? 3 : 0], box[q.cc[1] > 0 ? 4 : 1], box[q.cc[2] > 0 ? 5 : 2]};
+  const double* u = q.u;
+  const double w0 = x[1] * u[2] - x[2] * u[1] - q.ba[0];
+  const double w1 = x[2] * u[0] - x[0] * u[2] - q.ba[1];
+  const double w2 = x[0] * u[1] - x[1] * u[0] - q.ba[2];
+  const double g = q.ba[0] * x[0] + q.ba[1] * x[1] + q.ba[2] * x[2] + tb.pc[0] * w0 + tb.pc[1] * w1 + tb.pc[2] * w2;
+  return g - (std::fabs(w0) * tb.hb[0] + std::fabs(w1) * tb.hb[1] + std::fabs(w2) * tb.hb[2]);
+}
+
+// The tile's walk: w.sil_tile gets the hierarchy's nodes and edges that some receiver of the tile
+// w.tile may need (see TileBox). False: not built (every receiver walks the hierarchy itself).
+template <class T>
+bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, Work<T>& w) {
+  SilTileCache& tc = w.sil_tile;
+  tc.id = w.tile.id;
+  tc.tree = &st;
+  tc.ok = false;
+  tc.entries.clear();
+  tc.edges.clear();
+  const double eps = 2.220446049250313e-16;
+  const double epsT = double(eps_of<T>());
+  TileBox tb;
+  double amax = 0;
+  for (int d = 0; d < 3; d++) {
+    const double lo = w.tile.lo[d], hi = w.tile.hi[d];
+    if (!(lo <= hi) || !std::isfinite(lo) || !std::isfinite(hi)) return false;
+    tb.pc[d] = 0.5 * (lo + hi);
+    tb.hb[d] = std::max(hi - tb.pc[d], tb.pc[d] - lo) * (1 + 1e-12);
+    amax = std::max(amax, std::max(std::fabs(lo), std::fabs(hi)));
+  }
+  tb.hb1 = tb.hb[0] + tb.hb[1] + tb.hb[2];
+  tb.hb2 = std::sqrt(tb.hb[0] * tb.hb[0] + tb.hb[1] * tb.hb[1] + tb.hb[2] * tb.hb[2]);
+  tb.smax = std::max(st.scale, amax);
+  const int64_t K = call.L.K;
+  double lmax = 0;
+  for (int64_t i = 0; i < K; i++) lmax = std::max(lmax, double(absmax(call.L.v(i))));
+  const double S3 = std::max(tb.smax, lmax) + 1e-300;
+  tb.d1 = 6 * S3;
+  // The receivers' margins at their largest (the scale of silhouette_receiver over B).
+  const double scale_max = tb.smax + 1e-300;
+  const double bmargin = 1e3 * eps * scale_max;
+  const double smargin = 4 * kOnSurface * scale_max;
+  // The light's edge planes (`cone`'s first K; the horizon's plane is left out: no receiver's
+  // walk is bounded by it here) and the emitter plane, as the walk tests it.
+  TilePlane tp[64];
+  int ntp = 0;
+  for (int64_t i = 0; i < K; i++) {
+    const V3<T> av = call.L.v(i), bv = call.L.v((i + 1) % K);
+    if (same(av, bv)) continue;  // its plane is zero: no receiver's walk tests it
+    const double a[3] = {double(av.x), double(av.y), double(av.z)}, b[3] = {double(bv.x), double(bv.y), double(bv.z)};
+    TilePlane& q = tp[ntp++];
+    q.ba[0] = b[1] * a[2] - b[2] * a[1], q.ba[1] = b[2] * a[0] - b[0] * a[2], q.ba[2] = b[0] * a[1] - b[1] * a[0];
+    for (int d = 0; d < 3; d++) q.u[d] = a[d] - b[d];
+    const double* u = q.u;
+    const double* pc = tb.pc;
+    q.cc[0] = q.ba[0] + u[1] * pc[2] - u[2] * pc[1];
+    q.cc[1] = q.ba[1] + u[2] * pc[0] - u[0] * pc[2];
+    q.cc[2] = q.ba[2] + u[0] * pc[1] - u[1] * pc[0];
+    const double* hb = tb.hb;
+    q.cn1 = (std::fabs(q.cc[0]) + std::fabs(q.cc[1]) + std::fabs(q.cc[2]) + std::fabs(u[1]) * hb[2] + std::fabs(u[2]) * hb[1] +
+             std::fabs(u[2]) * hb[0] + std::fabs(u[0]) * hb[2] + std::fabs(u[0]) * hb[1] + std::fabs(u[1]) * hb[0]) *
+            (1 + 1e-12);
+    const double u1 = std::fabs(u[0]) + std::fabs(u[1]) + std::fabs(u[2]);
+    const double ba1 = std::fabs(q.ba[0]) + std::fabs(q.ba[1]) + std::fabs(q.ba[2]);
+    q.safety = 256 * epsT * (u1 + ba1 / S3) * tb.d1 * tb.d1;
+  }
+  const V3<T> e0 = call.L.v(0);
+  const double en[3] = {double(ne.x), double(ne.y), double(ne.z)}, eq[3] = {double(e0.x), double(e0.y), double(e0.z)};
+  const double enn = std::fabs(en[0]) + std::fabs(en[1]) + std::fabs(en[2]);
+  // The horizon's plane where every receiver of the tile has the same normal (the same vector
+  // in every receiver's walk).
+  double hn[3] = {0, 0, 0};
+  const bool horizon = w.tile.same_n;
+  if (horizon) {
+    const V3<T> n = rescale(V3<T>{T(w.tile.n[0]), T(w.tile.n[1]), T(w.tile.n[2])});
+    hn[0] = n.x, hn[1] = n.y, hn[2] = n.z;
+  }
+  const double hnn = std::fabs(hn[0]) + std::fabs(hn[1]) + std::fabs(hn[2]);
+  const double smargin_min = 4 * kOnSurface * (st.scale + 1e-300);
+  // No receiver of the tile prunes the node: inside every plane of every receiver's walk by a
+  // margin, and no side decided by its faces.
+  auto sure = [&](const SNode& nd) {
+    if (!horizon) return false;
+    const double* box = nd.box;
+    {
+      const double x[3] = {box[en[0] > 0 ? 3 : 0], box[en[1] > 0 ? 4 : 1], box[en[2] > 0 ? 5 : 2]};
+      if (!(en[0] * (x[0] - eq[0]) + en[1] * (x[1] - eq[1]) + en[2] * (x[2] - eq[2]) > 1e-12 * enn * tb.d1)) return false;
+    }
+    {
+      const double x[3] = {box[hn[0] > 0 ? 3 : 0], box[hn[1] > 0 ? 4 : 1], box[hn[2] > 0 ? 5 : 2]};
+      const double lo = hn[0] * (x[0] - tb.pc[0]) + hn[1] * (x[1] - tb.pc[1]) + hn[2] * (x[2] - tb.pc[2]) -
+                        (std::fabs(hn[0]) * tb.hb[0] + std::fabs(hn[1]) * tb.hb[1] + std::fabs(hn[2]) * tb.hb[2]);
+      if (!(lo > 1e-12 * hnn * tb.d1)) return false;
+    }
+    for (int k = 0; k < ntp; k++)
+      if (!(tile_plane_inf_best(tp[k], tb, box) > tp[k].safety)) return false;
+    return nd.special || tile_node_side_none(nd, tb, smargin_min);
+  };
+  auto outside = [&](const double* box) {
+    {  // the emitter plane, as the walk computes it (the same for every receiver)
+      const double x[3] = {box[en[0] > 0 ? 3 : 0], box[en[1] > 0 ? 4 : 1], box[en[2] > 0 ? 5 : 2]};
+      const double best = en[0] * (x[0] - eq[0]) + en[1] * (x[1] - eq[1]) + en[2] * (x[2] - eq[2]);
+      if (best < -bmargin * enn) return true;
+    }
+    const double xc[3] = {0.5 * (box[0] + box[3]), 0.5 * (box[1] + box[4]), 0.5 * (box[2] + box[5])};
+    const double hx[3] = {(box[3] - box[0]) * (0.5 + 1e-12), (box[4] - box[1]) * (0.5 + 1e-12), (box[5] - box[2]) * (0.5 + 1e-12)};
+    for (int k = 0; k < ntp; k++)
+      if (tile_plane_sup(tp[k], tb, xc, hx) + bmargin * tp[k].cn1 + tp[k].safety < 0) return true;
+    return false;
+  };
+  // An edge whose ends lie beyond one light plane for every receiver (the walk's test before
+  // edge_plane, its margin at its largest over B).
+  auto edge_out = [&](const double* a, const double* b) {
+    const double zero[3] = {0, 0, 0};
+    const double apl = std::fabs(a[0] - tb.pc[0]) + std::fabs(a[1] - tb.pc[1]) + std::fabs(a[2] - tb.pc[2]) + std::fabs(b[0] - tb.pc[0]) +
+                       std::fabs(b[1] - tb.pc[1]) + std::fabs(b[2] - tb.pc[2]) + 2 * tb.hb1;
+    for (int k = 0; k < ntp; k++) {
+      const double m = 8 * kCollinearEps * epsT * tp[k].cn1 * apl * (1 + 1e-6) + tp[k].safety;
+      if (tile_plane_sup(tp[k], tb, a, zero) + m < 0 && tile_plane_sup(tp[k], tb, b, zero) + m < 0) return true;
+    }
+    return false;
+  };
+  const Occluders<T>& occ = call.occ;
+  // Preorder, right subtree first (the walk's stack order); an entry that keeps nothing is dropped.
+  struct Rec {
+    const SilhouetteTree& st;
+    SilTileCache& tc;
+    const decltype(outside)& out;
+    const decltype(edge_out)& eout;
+    const decltype(sure)& is_sure;
+    const TileBox& tb;
+    const Occluders<T>& occ;
+    double smargin;
+    bool deep;
+    bool visit(int32_t k, int depth) {
+      const SNode& nd = st.nodes[size_t(k)];
+      if (out(nd.box)) return false;
+      if (!nd.special && tile_node_side(nd, tb, smargin) != 0) return false;
+      const size_t me = tc.entries.size();
+      tc.entries.push_back(STEntry{k, -1, -1, -1, is_sure(nd)});
+      if (nd.left >= 0) {
+        if (depth > 60) deep = true;  // deeper than the walk's stack allows
+        const bool r = visit(nd.right, depth + 1);
+        const bool l = visit(nd.left, depth + 1);
+        if (!r && !l) {
+          tc.entries.pop_back();
+          return false;
+        }
+      } else {
+        const int32_t e0 = int32_t(tc.edges.size());
+        for (int32_t j = nd.start; j < nd.start + nd.count; j++) {
+          const SEdge& e = st.edges[size_t(j)];
+          const int sf = tile_side(st, e.f, tb);
+          const int sg = e.g >= 0 ? tile_side(st, e.g, tb) : 0;
+          const V3<T> a3 = occ.vref(e.ra), b3 = occ.vref(e.rb);
+          STEdge te{e, 0, {double(a3.x), double(a3.y), double(a3.z)}, {double(b3.x), double(b3.y), double(b3.z)}};
+          if (sf != 0 && (e.g < 0 || sg != 0)) {
+            const int Wk = sf + (e.g >= 0 ? sg * e.dg : 0);
+            if (Wk == 0) continue;  // no receiver's contour edge, none falls back on it
+            if (eout(te.a, te.b)) continue;
+            te.w = int8_t(Wk);
+          }
+          tc.edges.push_back(te);
+        }
+        if (int32_t(tc.edges.size()) == e0) {
+          tc.entries.pop_back();
+          return false;
+        }
+        tc.entries[me].e0 = e0;
+        tc.entries[me].e1 = int32_t(tc.edges.size());
+      }
+      tc.entries[me].skip = int32_t(tc.entries.size());
+      return true;
+    }
+  };
+  Rec rec{st, tc, outside, edge_out, sure, tb, occ, smargin, false};
+  rec.visit(0, 0);
+  if (rec.deep) return false;
+  tc.ok = true;
+  return true;
+}
+
 // Contour edges in the pyramid: the hierarchy walked with the pyramid's half-spaces (`cone`, the
 // np0 planes of E_h through p, and the emitter plane) and the faces' sides. Each is appended to
-// `segs` projected onto the emitter plane and clipped to E_h. Returns how many, or kFallback.
+// `w.ssegs` projected onto the emitter plane and clipped to E_h. Returns how many, or kFallback.
+// A receiver of a tile (w.tile) walks the tile's part of the hierarchy (tile_walk), built by the
+// first receiver of the tile that gets here.
 template <class T>
 int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p, const V3<T>* cone,
-                      const PlaneRef* prefs, int np0, V3<T> ne, double hp, double scale, std::vector<SSeg<T>>& segs) {
+                      const PlaneRef* prefs, int np0, V3<T> ne, double hp, double scale, Work<T>& w) {
+  std::vector<SSeg<T>>& segs = w.ssegs;
   const Occluders<T>& occ = call.occ;
   const double eps = 2.220446049250313e-16;
   const double tol = kCollinearEps * eps;
@@ -46,10 +315,111 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
   const double smargin = 4 * kOnSurface * scale;  // beyond the on-surface distance (sil_side)
   T cone_n[66];
   for (int k = 0; k < np0 && k < 66; k++) cone_n[k] = norm(cone[k]);
+  int32_t n_contour = 0;
+  // One edge of a leaf the walk reached: appended when it is a contour edge in the pyramid; W
+  // nonzero: its coverage jump, known (the faces' sides as sil_side gives them). False: fall back.
+  auto edge = [&](const SEdge& e, int W, V3<T> a3, V3<T> b3) -> bool {
+    if (W == 0) {
+      const int sf = sil_side(st, e.f, pd);
+      if (sf == 0) return false;
+      W = sf;
+      if (e.g >= 0) {
+        const int sg = sil_side(st, e.g, pd);
+        if (sg == 0) return false;
+        W += sg * e.dg;
+      }
+      if (W == 0) return true;
+    }
+    {
+      // Both ends clearly outside one cone plane: cyrus_beck's interval for that plane is empty
+      // (the same g0, g1; beyond its collinear tolerance, as norms are at most 1-norms), so it
+      // would return false. Skips the edge's plane and the clipping for most non-contour edges
+      // that the hierarchy's boxes let through.
+      const V3<T> ap = a3 - p, d = b3 - a3, bp = b3 - p;
+      const T apl = std::fabs(ap.x) + std::fabs(ap.y) + std::fabs(ap.z) + std::fabs(bp.x) + std::fabs(bp.y) + std::fabs(bp.z);
+      bool out = false;
+      for (int k = 0; k < np0 && !out; k++) {
+        const T g0 = dot(ap, cone[k]);
+        if (!(g0 < 0)) continue;
+        const T g1 = dot(d, cone[k]), g01 = g0 + g1;
+        const T m = T(8) * T(kCollinearEps) * eps_of<T>() * (std::fabs(cone[k].x) + std::fabs(cone[k].y) + std::fabs(cone[k].z)) * apl;
+        out = g01 < 0 && -g0 > m && -g01 > m;
+      }
+      if (out) return true;
+    }
+    const V3<T> own = edge_plane(p, a3, b3);
+    double t0, t1;
+    int i0, i1;
+    if (!cyrus_beck(p, a3, b3, cone, np0, own, t0, t1, i0, i1)) return true;
+    const PlaneRef oref = through(e.ra, e.rb);
+    SSeg<T> s;
+    s.own = own, s.own_n = norm(own), s.q0s = 0, s.own_ref = oref, s.w = W, s.va = e.ra, s.vb = e.rb, s.x3a = a3, s.x3b = b3;
+    if (t0 > 0) {
+      s.a = crossing_point(p, cross(cone[i0], own), ne, hp);
+      s.ca = code_planes(prefs[i0], oref);
+      s.on_a = i0;
+    } else {
+      s.a = project(p, a3, ne, hp);
+      s.ca = code_point(kProjected, e.ra);
+      s.on_a = -1;
+    }
+    if (t1 < 1) {
+      s.b = crossing_point(p, cross(cone[i1], own), ne, hp);
+      s.cb = code_planes(prefs[i1], oref);
+      s.on_b = i1;
+    } else {
+      s.b = project(p, b3, ne, hp);
+      s.cb = code_point(kProjected, e.rb);
+      s.on_b = -1;
+    }
+    if (same(s.a, s.b)) return true;
+    for (int k = 0; k < np0; k++) {  // an unclipped end on E_h's boundary: too close to call
+      if (!nonzero(cone[k])) continue;
+      const V3<T> ra = s.a - p, rb = s.b - p;
+      const T cn1 = cone_n[k];
+      if ((s.on_a < 0 && !(std::fabs(dot(ra, cone[k])) > tol * cn1 * (std::fabs(ra.x) + std::fabs(ra.y) + std::fabs(ra.z)))) ||
+          (s.on_b < 0 && !(std::fabs(dot(rb, cone[k])) > tol * cn1 * (std::fabs(rb.x) + std::fabs(rb.y) + std::fabs(rb.z)))))
+        return false;
+    }
+    segs.push_back(s);
+    n_contour++;
+    return true;
+  };
+  bool in_tile = w.tile.id >= 0;
+  for (int d = 0; d < 3 && in_tile; d++) in_tile = pd[d] >= w.tile.lo[d] && pd[d] <= w.tile.hi[d];
+  if (in_tile && (w.sil_tile.id != w.tile.id || w.sil_tile.tree != &st)) tile_walk(call, st, ne, w);
+  if (in_tile && w.sil_tile.ok) {
+    const SilTileCache& tc = w.sil_tile;
+    const int32_t n = int32_t(tc.entries.size());
+    for (int32_t i = 0; i < n;) {
+      const STEntry& en = tc.entries[size_t(i)];
+      if (!en.sure) {
+        const SNode& nd = st.nodes[size_t(en.node)];
+        if (outside(nd.box) || (!nd.special && node_side(nd, pd, smargin) != 0)) {
+          i = en.skip;
+          continue;
+        }
+      }
+      if (en.e0 >= 0) {  // a leaf
+        for (int32_t k = en.e0; k < en.e1; k++) {
+          const STEdge& te = tc.edges[size_t(k)];
+          if (te.w) continue;
+          __builtin_prefetch(st.fn.data() + kFnStride * size_t(te.e.f));
+          if (te.e.g >= 0) __builtin_prefetch(st.fn.data() + kFnStride * size_t(te.e.g));
+        }
+        for (int32_t k = en.e0; k < en.e1; k++) {
+          const STEdge& te = tc.edges[size_t(k)];
+          const V3<T> a3{T(te.a[0]), T(te.a[1]), T(te.a[2])}, b3{T(te.b[0]), T(te.b[1]), T(te.b[2])};
+          if (!edge(te.e, te.w, a3, b3)) return kFallback;
+        }
+      }
+      i++;
+    }
+    return n_contour;
+  }
   int32_t stack[128];
   int sp = 0;
   stack[sp++] = 0;
-  int32_t n_contour = 0;
   while (sp) {
     const SNode& nd = st.nodes[size_t(stack[--sp])];
     if (outside(nd.box)) continue;
@@ -70,69 +440,7 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
     }
     for (int32_t k = nd.start; k < nd.start + nd.count; k++) {
       const SEdge& e = st.edges[size_t(k)];
-      const int sf = sil_side(st, e.f, pd);
-      if (sf == 0) return kFallback;
-      int W = sf;
-      if (e.g >= 0) {
-        const int sg = sil_side(st, e.g, pd);
-        if (sg == 0) return kFallback;
-        W += sg * e.dg;
-      }
-      if (W == 0) continue;
-      const V3<T> a3 = occ.vref(e.ra), b3 = occ.vref(e.rb);
-      {
-        // Both ends clearly outside one cone plane: cyrus_beck's interval for that plane is empty
-        // (the same g0, g1; beyond its collinear tolerance, as norms are at most 1-norms), so it
-        // would return false. Skips the edge's plane and the clipping for most non-contour edges
-        // that the hierarchy's boxes let through.
-        const V3<T> ap = a3 - p, d = b3 - a3, bp = b3 - p;
-        const T apl = std::fabs(ap.x) + std::fabs(ap.y) + std::fabs(ap.z) + std::fabs(bp.x) + std::fabs(bp.y) + std::fabs(bp.z);
-        bool out = false;
-        for (int k = 0; k < np0 && !out; k++) {
-          const T g0 = dot(ap, cone[k]);
-          if (!(g0 < 0)) continue;
-          const T g1 = dot(d, cone[k]), g01 = g0 + g1;
-          const T m = T(8) * T(kCollinearEps) * eps_of<T>() * (std::fabs(cone[k].x) + std::fabs(cone[k].y) + std::fabs(cone[k].z)) * apl;
-          out = g01 < 0 && -g0 > m && -g01 > m;
-        }
-        if (out) continue;
-      }
-      const V3<T> own = edge_plane(p, a3, b3);
-      double t0, t1;
-      int i0, i1;
-      if (!cyrus_beck(p, a3, b3, cone, np0, own, t0, t1, i0, i1)) continue;
-      const PlaneRef oref = through(e.ra, e.rb);
-      SSeg<T> s;
-      s.own = own, s.own_n = norm(own), s.q0s = 0, s.own_ref = oref, s.w = W, s.va = e.ra, s.vb = e.rb, s.x3a = a3, s.x3b = b3;
-      if (t0 > 0) {
-        s.a = crossing_point(p, cross(cone[i0], own), ne, hp);
-        s.ca = code_planes(prefs[i0], oref);
-        s.on_a = i0;
-      } else {
-        s.a = project(p, a3, ne, hp);
-        s.ca = code_point(kProjected, e.ra);
-        s.on_a = -1;
-      }
-      if (t1 < 1) {
-        s.b = crossing_point(p, cross(cone[i1], own), ne, hp);
-        s.cb = code_planes(prefs[i1], oref);
-        s.on_b = i1;
-      } else {
-        s.b = project(p, b3, ne, hp);
-        s.cb = code_point(kProjected, e.rb);
-        s.on_b = -1;
-      }
-      if (same(s.a, s.b)) continue;
-      for (int k = 0; k < np0; k++) {  // an unclipped end on E_h's boundary: too close to call
-        if (!nonzero(cone[k])) continue;
-        const V3<T> ra = s.a - p, rb = s.b - p;
-        const T cn1 = cone_n[k];
-        if ((s.on_a < 0 && !(std::fabs(dot(ra, cone[k])) > tol * cn1 * (std::fabs(ra.x) + std::fabs(ra.y) + std::fabs(ra.z)))) ||
-            (s.on_b < 0 && !(std::fabs(dot(rb, cone[k])) > tol * cn1 * (std::fabs(rb.x) + std::fabs(rb.y) + std::fabs(rb.z)))))
-          return kFallback;
-      }
-      segs.push_back(s);
-      n_contour++;
+      if (!edge(e, 0, occ.vref(e.ra), occ.vref(e.rb))) return kFallback;
     }
   }
   return n_contour;
