@@ -277,7 +277,7 @@ def bake_case(name: str, tol: float) -> dict:
             n *= 2
         grid_v += min(n, GRID_MAX) ** 2
         unmatched += not found
-    out["surfaces"] = surface_errors(scene, b)
+    out["surface_errors"] = surface_errors(scene, b)
     out.update({"planar_vertices": planar_v, "grid_vertices": grid_v, "grid_unmatched_patches": unmatched,
                 "planar_error_max": max(errs) if errs else None, "samples_above_unoccluded": above_free,
                 "grid_ratio": grid_v / compared_v if compared_v else None, "grid_max": GRID_MAX,
@@ -324,12 +324,14 @@ def markdown(results: dict) -> str:
         rows.append(f"| {r['scene']} | {r['tol']:g} | {r['surfaces']} | {r['vertices']:,} | {r['seconds']:.1f} | "
                     f"{1e3 * r['seconds_per_vertex']:.2f} | {r['peak_rss_bytes'] / 1e6:.0f} | "
                     f"{r['peak_rss_per_vertex_bytes'] / 1024:.1f} | {r['planar_vertices']:,} | {grid} | {ratio} |")
+    if not any(r.get("surface_errors") for r in results["cases"]):
+        return "\n".join(rows) + "\n"
     rows += ["", "Per surface: vertices and the dense-grid error (`surface_errors`: 8 random points per triangle "
              "against exact irradiance) over tol; curved surfaces also without the triangles at a concave "
              "fold's corner (`stats['corners']`).", "",
              "| scene | tol | surface | vertices | error / tol | off fold corners / tol |", "|---|---|---|---|---|---|"]
     for r in results["cases"]:
-        for srf in r.get("surfaces", []):
+        for srf in r.get("surface_errors", []):
             rows.append(f"| {r['scene']} | {r['tol']:g} | {srf['surface']} | {srf['vertices']:,} | "
                         f"{srf['error_over_tol']:.2f} | {srf['error_off_corners_over_tol']:.2f} |")
     return "\n".join(rows) + "\n"
