@@ -28,7 +28,9 @@ from jaxshadow._shadows import binding as vis
 
 pytestmark = pytest.mark.skipif(not vis.engine_available(), reason="the shadow engine is not built")
 
-OFFSETS = np.concatenate([[0.0], *[[10.0**-k, -(10.0**-k)] for k in range(9, 2, -1)]])  # m
+# m; 2e-13 and 4e-13: beyond the on-surface distance of faces of doubles (2^-44 S), within the
+# host's rounding bound on a solid's face heights (1e3 eps of the coordinates)
+OFFSETS = np.concatenate([[0.0, 2e-13, -2e-13, 4e-13, -4e-13], *[[10.0**-k, -(10.0**-k)] for k in range(9, 2, -1)]])
 RADIANCE = 10.0
 TOL = 1e-9
 
@@ -113,7 +115,7 @@ def _scenes() -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
 def _sweeps(v: np.ndarray, f: np.ndarray, n_faces: int, rng: np.random.Generator):
     """Per chosen vertical face with an edge on the floor: `(points (len(OFFSETS), 3), unit
     normal of the face)` for receivers 2.57 mm beyond each floor corner along the face's bottom
-    edge, plus one beside the edge's middle, swept across the face's plane by OFFSETS."""
+    edge (and 0.1 mm beyond one), plus one beside the edge's middle, swept across the face's plane by OFFSETS."""
     tri = v[f]
     nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
@@ -126,7 +128,7 @@ def _sweeps(v: np.ndarray, f: np.ndarray, n_faces: int, rng: np.random.Generator
     for k in picks:
         a, b = tri[k, np.flatnonzero(tri[k, :, 2] == 0.0)]
         u = (b - a) / np.linalg.norm(b - a)
-        for base in (b + 2.57e-3 * u, a - 2.57e-3 * u, 0.5 * (a + b)):
+        for base in (b + 2.57e-3 * u, a - 2.57e-3 * u, a - 1e-4 * u, 0.5 * (a + b)):
             yield base[None, :] + OFFSETS[:, None] * nrm[k][None, :]
 
 
