@@ -258,13 +258,8 @@ FaceSide<T> face_side(const Occluders<T>& occ, int64_t f, V3<T> p, V3<T>* rel) {
 }
 
 // The distance from face f's plane below which p lies on the face: face_side's rule (kOnSurface S
-// for a face of float32 values, kOnSurface64 S for other faces). Both must agree: polygon.h's
-// add_solid takes a face within this distance as a back face (its silhouette is that of a point
-// just behind the plane), which leaves out the face's projection, a wedge whose angular width
-// near the face's edge nearest p is about (distance to the plane) / (distance to that edge). The
-// face path (face_side) and the device kernel drop the face only within the rule's distance; a
-// float32 distance (3.8e-6 S) for a face of doubles dropped a wedge of 2e-3 rad seen from 2.6 mm
-// beside a box's corner (6.6e-4 of the irradiance).
+// for a face of float32 values, kOnSurface64 S for other faces). polygon.h's add_solid does not
+// apply it: a convex solid blocks its whole projection from p whichever faces the rule drops.
 template <class T>
 inline double on_surface_tol(const Occluders<T>& occ, int64_t f, const double* p) {
   double S = std::max(std::fabs(p[0]), std::max(std::fabs(p[1]), std::fabs(p[2])));
