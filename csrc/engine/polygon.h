@@ -503,7 +503,15 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
       double h = fp[0] * rx + fp[1] * ry + fp[2] * rz;
       double m = 1e3 * double(eps_of<T>()) * (std::fabs(rx) + std::fabs(ry) + std::fabs(rz) + std::fabs(fp[3]) +
                                               std::fabs(fp[4]) + std::fabs(fp[5]));
-      const bool strict_front = h > std::max(m, on_surface_tol(occ, f, pd));  // on the face: not front
+      const bool strict_front = h > m;
+      // The on-surface rule (face_side) plays no part here: the device kernel drops a face within the
+      // on-surface distance but keeps the solid's back faces, which every ray entering through it
+      // leaves by, so the solid blocks its whole projection from p. Within
+      // the rounding bound m, p in front (0 < h <= m) is too close to call: taken as a back face,
+      // the cone would leave out the face's projection, a wedge of angular width h / d (d: p's
+      // distance from the face's nearest edge; 4e-13 m off a box side, 1 um beside its corner, 7e-6
+      // of the irradiance). The faces decide instead; p exactly in the plane leaves no wedge.
+      if (!strict_front && h > 0) return 3;
       front[f - f0] = strict_front;
       any_front = any_front || strict_front;
       if (strict_front && call.light_side[f] > 0) return 0;  // the face's plane separates solid and pyramid
