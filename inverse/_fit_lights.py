@@ -391,7 +391,9 @@ def fit_lights(
             if initial is None:  # the given poses' loss
                 f0, problem, r = screen(problem, theta0[None], theta0, np.ones(Pt, bool), k)
                 initial, retries = float(f0[0]), retries + r
-            pl = place(problem, theta0, per_light, cons, idx, seed, k, lm)
+            # The short refinement that ranks basins (`refine_and_rank`) runs the LM without the power
+            # budget's projection: under a budget it would rank placements that break the budget first.
+            pl = place(problem, theta0, per_light, cons, idx, seed, k, lm if budget is None else None)
             problem, base, ranked, alternatives = pl.problem, pl.theta, pl.ranked, list(pl.alternatives)
             stage_losses.append(pl.loss)
             placed = True
