@@ -38,6 +38,18 @@ def floor(n: int, seed: int = 0, half: float = 1.2) -> tuple[np.ndarray, np.ndar
     return p, nrm
 
 
+def both_paths(scene, p, nrm, monkeypatch):
+    """`(plan, E)` of the first light through the silhouette path, then through the face path
+    (the switch JAXSHADOW_SILHOUETTE=0)."""
+    on = js.shadow_plan(scene, p, nrm).lights[0]
+    e_on = np.asarray(js.irradiance(scene, p, nrm))[:, 0]
+    monkeypatch.setenv("JAXSHADOW_SILHOUETTE", "0")
+    off = js.shadow_plan(scene, p, nrm).lights[0]
+    e_off = np.asarray(js.irradiance(scene, p, nrm))[:, 0]
+    monkeypatch.delenv("JAXSHADOW_SILHOUETTE")
+    return on, e_on, off, e_off
+
+
 def _scene(occluders) -> js.Scene:
     return js.Scene([js.PolygonLight(LIGHT, 1.0)], occluders=occluders)
 
@@ -131,12 +143,7 @@ def test_silhouette_path_against_the_face_path_and_polygon_booleans(monkeypatch)
     scene, polys = _mixed_scene()
     assert scene.occluders.shape[0] >= 256 and scene.occluder_topology.n_solids == 0
     p, nrm = floor(800, seed=7)
-    on = js.shadow_plan(scene, p, nrm).lights[0]
-    e_on = np.asarray(js.irradiance(scene, p, nrm))[:, 0]
-    monkeypatch.setenv("JAXSHADOW_SILHOUETTE", "0")
-    off = js.shadow_plan(scene, p, nrm).lights[0]
-    e_off = np.asarray(js.irradiance(scene, p, nrm))[:, 0]
-    monkeypatch.delenv("JAXSHADOW_SILHOUETTE")
+    on, e_on, off, e_off = both_paths(scene, p, nrm, monkeypatch)
     # The same classes, except receivers the face path leaves as penumbra with an empty boundary
     # (its regions cover E_h together, none alone), which the depth complexity finds umbra.
     diff = on.classes != off.classes

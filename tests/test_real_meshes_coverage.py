@@ -22,6 +22,7 @@ from jaxshadow._shadows import binding as vis
 pytestmark = pytest.mark.skipif(not vis.engine_available(), reason="the shadow engine is not built")
 shapely = pytest.importorskip("shapely")
 from test_clip import reference_ff  # noqa: E402
+from test_real_meshes import both_paths, floor  # noqa: E402
 
 LIGHT = np.array([[-0.4, -0.4, 2.5], [-0.4, 0.4, 2.5], [0.4, 0.4, 2.5], [0.4, -0.4, 2.5]])
 
@@ -74,14 +75,6 @@ def union(*parts: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray
     return np.concatenate(vs), np.concatenate(fs)
 
 
-def floor(n: int, seed: int, half: float = 1.1) -> tuple[np.ndarray, np.ndarray]:
-    rng = np.random.default_rng(seed)
-    p = np.c_[rng.uniform(-half, half, (n, 2)), np.zeros(n)]
-    nrm = np.tile([0.0, 0.0, 1.0], (n, 1))
-    k = n // 5  # grazing normals
-    t, a = np.radians(rng.uniform(60, 88, k)), rng.uniform(0, 2 * np.pi, k)
-    nrm[:k] = np.stack([np.sin(t) * np.cos(a), np.sin(t) * np.sin(a), np.cos(t)], axis=1)
-    return p, nrm
 
 
 def _check(v: np.ndarray, f: np.ndarray, monkeypatch, seed: int, n: int = 500, n_ref: int = 24) -> np.ndarray:
@@ -89,13 +82,8 @@ def _check(v: np.ndarray, f: np.ndarray, monkeypatch, seed: int, n: int = 500, n
     on `n_ref` penumbra receivers; returns the silhouette path's classes."""
     assert len(f) >= 256, "enough faces for the silhouette path"
     scene = js.Scene([js.PolygonLight(LIGHT, 1.0)], occluders=[js.Mesh(v, f)])
-    p, nrm = floor(n, seed)
-    on = js.shadow_plan(scene, p, nrm).lights[0]
-    e_on = np.asarray(js.irradiance(scene, p, nrm))[:, 0]
-    monkeypatch.setenv("JAXSHADOW_SILHOUETTE", "0")
-    off = js.shadow_plan(scene, p, nrm).lights[0]
-    e_off = np.asarray(js.irradiance(scene, p, nrm))[:, 0]
-    monkeypatch.delenv("JAXSHADOW_SILHOUETTE")
+    p, nrm = floor(n, seed, 1.1)
+    on, e_on, off, e_off = both_paths(scene, p, nrm, monkeypatch)
     pen = on.classes == vis.PENUMBRA
     assert pen.sum() > 40
     # The silhouette path was taken: contour edges, not faces, counted per penumbra receiver. A

@@ -130,19 +130,7 @@ constexpr int kSilTile = 16;  // receivers per tile of the silhouette path's wal
 struct MortonBox {
   double lo[3], hi[3];
   template <class T>
-  MortonBox(int64_t N, const T* P) {
-    for (int d = 0; d < 3; d++) {
-      lo[d] = std::numeric_limits<double>::infinity();
-      hi[d] = -std::numeric_limits<double>::infinity();
-    }
-    for (int64_t i = 0; i < N; i++)
-      for (int d = 0; d < 3; d++) {
-        const double x = double(P[3 * i + d]);
-        if (!std::isfinite(x)) continue;
-        lo[d] = std::min(lo[d], x);
-        hi[d] = std::max(hi[d], x);
-      }
-  }
+  MortonBox(int64_t N, const T* P) { finite_box(N, P, lo, hi); }
   static uint64_t spread(uint64_t v) {  // 21 bits to every third bit
     v &= 0x1fffff;
     v = (v | v << 32) & 0x1f00000000ffffull;

@@ -21,9 +21,9 @@ constexpr int kGroupMinItems = 8;  // fewer items: the hierarchy walk costs abou
 
 // A permutation of the N receivers that puts receivers of one grid cell next to each other (a
 // counting sort; about kGroupSize / 2 receivers per cell on average), and each position's cell.
+// The box of the finite coordinates of N points P (N, 3) (lo > hi on an axis with none).
 template <class T>
-void receiver_order(int64_t N, const T* P, std::vector<int64_t>& perm, std::vector<int64_t>& cell) {
-  double lo[3], hi[3];
+void finite_box(int64_t N, const T* P, double lo[3], double hi[3]) {
   for (int d = 0; d < 3; d++) {
     lo[d] = std::numeric_limits<double>::infinity();
     hi[d] = -std::numeric_limits<double>::infinity();
@@ -35,6 +35,12 @@ void receiver_order(int64_t N, const T* P, std::vector<int64_t>& perm, std::vect
       lo[d] = std::min(lo[d], x);
       hi[d] = std::max(hi[d], x);
     }
+}
+
+template <class T>
+void receiver_order(int64_t N, const T* P, std::vector<int64_t>& perm, std::vector<int64_t>& cell) {
+  double lo[3], hi[3];
+  finite_box(N, P, lo, hi);
   double ext[3], vol = 1, size = 0;
   int dims = 0;
   for (int d = 0; d < 3; d++) {

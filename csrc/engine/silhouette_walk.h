@@ -354,24 +354,20 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
     const PlaneRef oref = through(e.ra, e.rb);
     SSeg<T> s;
     s.own = own, s.own_n = norm(own), s.q0s = 0, s.own_ref = oref, s.w = W, s.va = e.ra, s.vb = e.rb, s.x3a = a3, s.x3b = b3;
-    if (t0 > 0) {
-      s.a = crossing_point(p, cross(cone[i0], own), ne, hp);
-      s.ca = code_planes(prefs[i0], oref);
-      s.on_a = i0;
-    } else {
-      s.a = project(p, a3, ne, hp);
-      s.ca = code_point(kProjected, e.ra);
-      s.on_a = -1;
-    }
-    if (t1 < 1) {
-      s.b = crossing_point(p, cross(cone[i1], own), ne, hp);
-      s.cb = code_planes(prefs[i1], oref);
-      s.on_b = i1;
-    } else {
-      s.b = project(p, b3, ne, hp);
-      s.cb = code_point(kProjected, e.rb);
-      s.on_b = -1;
-    }
+    // An end: where the edge leaves the pyramid through cone plane i (clipped), or its vertex's projection.
+    const auto end = [&](bool clipped, int i, V3<T> x3, int32_t ref, V3<T>& at, decltype(s.ca)& code, decltype(s.on_a)& on) {
+      if (clipped) {
+        at = crossing_point(p, cross(cone[i], own), ne, hp);
+        code = code_planes(prefs[i], oref);
+        on = i;
+      } else {
+        at = project(p, x3, ne, hp);
+        code = code_point(kProjected, ref);
+        on = -1;
+      }
+    };
+    end(t0 > 0, i0, a3, e.ra, s.a, s.ca, s.on_a);
+    end(t1 < 1, i1, b3, e.rb, s.b, s.cb, s.on_b);
     if (same(s.a, s.b)) return true;
     for (int k = 0; k < np0; k++) {  // an unclipped end on E_h's boundary: too close to call
       if (!nonzero(cone[k])) continue;
