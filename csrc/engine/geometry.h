@@ -257,16 +257,6 @@ FaceSide<T> face_side(const Occluders<T>& occ, int64_t f, V3<T> p, V3<T>* rel) {
   return out;
 }
 
-// The distance from face f's plane below which p lies on the face: face_side's rule (kOnSurface S
-// for a face of float32 values, kOnSurface64 S for other faces). polygon.h's add_solid does not
-// apply it: a convex solid blocks its whole projection from p whichever faces the rule drops.
-template <class T>
-inline double on_surface_tol(const Occluders<T>& occ, int64_t f, const double* p) {
-  double S = std::max(std::fabs(p[0]), std::max(std::fabs(p[1]), std::fabs(p[2])));
-  for (int64_t i = 0; i < occ.Ko; i++) S = std::max(S, double(absmax(occ.vert(f, i))));
-  return (float32_face(occ, f) ? kOnSurface : kOnSurface64) * S;
-}
-
 }  // namespace jaxshadow_engine
 
 #endif  // JAXSHADOW_SHADOWC_GEOMETRY_H_
