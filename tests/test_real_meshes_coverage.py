@@ -77,9 +77,11 @@ def union(*parts: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray
 
 
 
-def _check(v: np.ndarray, f: np.ndarray, monkeypatch, seed: int, n: int = 500, n_ref: int = 24) -> np.ndarray:
+def _check(v: np.ndarray, f: np.ndarray, monkeypatch, seed: int, n: int = 500, n_ref: int = 24,
+           fallbacks: float = 0.02) -> np.ndarray:
     """Silhouette path against the face path on `n` floor receivers and against polygon booleans
-    on `n_ref` penumbra receivers; returns the silhouette path's classes."""
+    on `n_ref` penumbra receivers (at most a `fallbacks` fraction of the penumbra receivers
+    handed to the face path); returns the silhouette path's classes."""
     assert len(f) >= 256, "enough faces for the silhouette path"
     scene = js.Scene([js.PolygonLight(LIGHT, 1.0)], occluders=[js.Mesh(v, f)])
     p, nrm = floor(n, seed, 1.1)
@@ -90,7 +92,7 @@ def _check(v: np.ndarray, f: np.ndarray, monkeypatch, seed: int, n: int = 500, n
     # receiver it hands to the face path reports the face path's count; an inconsistent carry
     # (caught where a chain closes) would send most receivers there, exact but slow.
     assert on.candidates[pen].mean() < off.candidates[pen].mean()
-    assert (on.candidates[pen] == off.candidates[pen]).mean() <= 0.02
+    assert (on.candidates[pen] == off.candidates[pen]).mean() <= fallbacks
     np.testing.assert_allclose(e_on, e_off, rtol=0, atol=1e-11 * e_off.max())
     pick = np.where(pen)[0][:n_ref]
     ref = np.pi * np.array([reference_ff(q, m, LIGHT, list(v[f])) for q, m in zip(p[pick], nrm[pick], strict=True)])
