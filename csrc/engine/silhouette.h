@@ -48,8 +48,7 @@ struct SilEnd {
 };
 // Per-thread scratch of silhouette_receiver's pieces (allocated once per thread).
 struct SilPieces {
-  std::vector<int32_t> boff, kf, kl, sj, cf, link, todo, low;
-  std::vector<int8_t> drop;  // per segment: 1 when it certainly bounds nothing (not cut, not classified)
+  std::vector<int32_t> boff, kf, kl, sj, cf, link, todo;
   std::vector<SilEnd> ends;
 };
 inline SilPieces& sil_pieces() {
@@ -93,27 +92,6 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   cov.build_grid();
   cov.grid_references();
   const int G = cov.G;
-  SilPieces& pc = sil_pieces();
-  // The segments' boxes in the emitter plane (crossing tests only between overlapping boxes).
-  std::vector<T>& bx = w.sbox;
-  bx.resize(size_t(6 * ns));
-  for (int i = 0; i < ns; i++) {
-    const T ca[3] = {segs[i].a.x, segs[i].a.y, segs[i].a.z}, cb[3] = {segs[i].b.x, segs[i].b.y, segs[i].b.z};
-    for (int k = 0; k < 3; k++) {
-      bx[6 * i + k] = std::min(ca[k], cb[k]) - T(1e-9) * T(scale);
-      bx[6 * i + 3 + k] = std::max(ca[k], cb[k]) + T(1e-9) * T(scale);
-    }
-  }
-  // The cull: contour segments with C >= 1 near them in every cell they meet (SilCoverage::covered) bound
-  // nothing, so they are neither cut nor classified; they stay crossing candidates of the others,
-  // whose C is carried across them. C is never carried along a chain through a dropped segment
-  // (its jumps are not computed): the next kept segment of the chain takes its own query.
-  std::vector<int8_t>& drop = pc.drop;
-  drop.assign(size_t(ns), 0);
-  if (G) {
-    cov.lower_bounds(pc.low);
-    for (int i = neh; i < ns; i++) drop[size_t(i)] = cov.covered(i, pc.low, bx);
-  }
   const std::vector<int32_t>& gs = w.gstart;
   const std::vector<int32_t>& gi = w.gitems;
   std::vector<int32_t>& stamp_of = w.gstamp;
@@ -125,8 +103,19 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   std::vector<T>& ts = w.sts;
   std::vector<Code>& tc = w.stc;
   std::vector<int32_t>& td = w.std_;  // per breakpoint: the change of C crossing it along s
+  // The segments' boxes in the emitter plane (crossing tests only between overlapping boxes).
+  std::vector<T>& bx = w.sbox;
+  bx.resize(size_t(6 * ns));
+  for (int i = 0; i < ns; i++) {
+    const T ca[3] = {segs[i].a.x, segs[i].a.y, segs[i].a.z}, cb[3] = {segs[i].b.x, segs[i].b.y, segs[i].b.z};
+    for (int k = 0; k < 3; k++) {
+      bx[6 * i + k] = std::min(ca[k], cb[k]) - T(1e-9) * T(scale);
+      bx[6 * i + 3 + k] = std::max(ca[k], cb[k]) + T(1e-9) * T(scale);
+    }
+  }
   // Every segment's breakpoints (its ends and its crossings, in w.sts / stc / std_ at
   // [boff[i], boff[i + 1])), in the order of their t in w.sord (indices into those arrays).
+  SilPieces& pc = sil_pieces();
   std::vector<int32_t>& boff = pc.boff;
   std::vector<int32_t>& ord = w.sord;
   boff.assign(size_t(ns) + 1, 0);
@@ -144,11 +133,6 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     // Crossing candidates: every segment, or for a contour piece on the grid the pieces
     // registered in the cells its box meets (in index order, as the full loop visits them).
     const bool listed = G && i >= neh;
-    if (drop[size_t(i)]) {
-      for (int32_t k = b0; k < b0 + 2; k++) ord.push_back(k);
-      boff[size_t(i) + 1] = b0 + 2;
-      continue;
-    }
     if (listed) {
       std::vector<int32_t>& cand = w.gcand;
       cand.clear();
@@ -237,7 +221,6 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   kl.assign(size_t(ns), -1);
   sj.assign(size_t(ns), 0);
   for (int i = neh; i < ns; i++) {
-    if (drop[size_t(i)]) continue;
     for (int32_t k = boff[size_t(i)]; k + 1 < boff[size_t(i) + 1]; k++) {
       if (!(ts[size_t(ord[size_t(k + 1)])] > ts[size_t(ord[size_t(k)])])) continue;
       if (kf[size_t(i)] < 0) kf[size_t(i)] = k;
@@ -334,7 +317,6 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
           const int cpos = s.q0s > 0 ? c : c + s.w, cneg = s.q0s > 0 ? c - s.w : c;
           const int ca = e == 0 ? cneg : cpos, cb = e == 0 ? cpos : cneg;  // C beyond r_i along n_i, and before it
           const int j = o / 2, ej = o % 2;
-          if (drop[size_t(j)]) continue;
           const SSeg<T>& t = segs[size_t(j)];
           const int jpos = ej == 0 ? ca : cb, jneg = ej == 0 ? cb : ca;  // n_j = -own_j at j's end a
           if (jpos - jneg != t.w || t.q0s == 0) return kFallback;
@@ -353,7 +335,6 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   // The runs: every segment's pieces classified in index order; a kept piece extends the current run.
   bool contour_runs = false;
   for (int i = 0; i < ns; i++) {
-    if (drop[size_t(i)]) continue;
     const SSeg<T>& s = segs[size_t(i)];
     const size_t runs_before = w.runs.size();
     const int32_t b0 = boff[size_t(i)], b1 = boff[size_t(i) + 1];

@@ -359,64 +359,6 @@ struct SilCoverage {
       }
     }
   }
-  // A lower bound of C over every cell that holds pieces (kNone: none known), in `low`. Within a
-  // cell (convex) the straight path from its reference point r to any point x of the cell crosses
-  // only pieces registered there (their padded boxes meet the cell), each at most once, and
-  // crossing piece s changes C by +W into s's positive side and by -W out of it (W signed: +-1,
-  // +-2). So C(x) >= C(r) minus, per piece of the cell, the drop of C leaving r's side of it:
-  // max(W, 0) when r is clearly on its positive side, max(-W, 0) on its negative side, |W| when
-  // r's side is too close to call. The bound holds for every light point of the cell.
-  void lower_bounds(std::vector<int32_t>& low) {
-    low.assign(size_t(G * G), kNone);
-    for (int cell = 0; cell < G * G; cell++) {
-      if (gs[size_t(cell + 1)] == gs[size_t(cell)] || w.gcov[size_t(cell)] == kNone) continue;
-      const V3<T> r = w.gref[size_t(cell)];
-      int c = w.gcov[size_t(cell)];
-      for (int32_t k = gs[size_t(cell)]; k < gs[size_t(cell + 1)]; k++) {
-        int8_t& g = w.gside[size_t(k)];
-        if (g == 2) g = int8_t(side_of(r, segs[size_t(gi[size_t(k)])]));
-        const int wk = segs[size_t(gi[size_t(k)])].w;
-        c -= g > 0 ? std::max(wk, 0) : (g < 0 ? std::max(-wk, 0) : std::abs(wk));
-      }
-      low[size_t(cell)] = c;
-    }
-  }
-  // Whether contour piece i certainly bounds nothing: in every cell its padded box meets (they
-  // hold every point of i and both sides of it near i) C >= 1 near i, so C >= 1 on both sides of
-  // every piece of i and none is kept (the visible region is where C = 0). Per cell: its bound
-  // `low` when that is >= 1; else the same bound over the paths from the cell's reference point r
-  // to points near i only: those paths lie in the box of r and i (`bx`: the pieces' boxes, padded
-  // beyond rounding), so a piece of the cell whose box misses that one is not crossed, nor one
-  // whose line has r and i clearly on one side.
-  bool covered(int i, const std::vector<int32_t>& low, const std::vector<T>& bx) const {
-    const int32_t* r = w.gcells.data() + 4 * (i - neh);
-    const T* bi = bx.data() + 6 * i;
-    const SSeg<T>& si = segs[size_t(i)];
-    for (int iy = r[2]; iy <= r[3]; iy++)
-      for (int ix = r[0]; ix <= r[1]; ix++) {
-        const int cell = iy * G + ix;
-        const int32_t l = low[size_t(cell)];
-        if (l == kNone) return false;
-        if (l >= 1) continue;
-        const V3<T> q = w.gref[size_t(cell)];
-        const T lo[3] = {std::min(bi[0], q.x), std::min(bi[1], q.y), std::min(bi[2], q.z)};
-        const T hi[3] = {std::max(bi[3], q.x), std::max(bi[4], q.y), std::max(bi[5], q.z)};
-        int c = w.gcov[size_t(cell)];
-        for (int32_t k = gs[size_t(cell)]; k < gs[size_t(cell + 1)]; k++) {
-          const int32_t o = gi[size_t(k)];
-          const T* bo = bx.data() + 6 * o;
-          if (o != i && (hi[0] < bo[0] || bo[3] < lo[0] || hi[1] < bo[1] || bo[4] < lo[1] || hi[2] < bo[2] || bo[5] < lo[2]))
-            continue;
-          const int g = w.gside[size_t(k)], wk = segs[size_t(o)].w;
-          // r and both ends of i clearly on one side of o's line: so is every path from r to a
-          // point near i (a half-plane is convex), and o is not crossed.
-          if (o != i && g != 0 && side_of(si.a, segs[size_t(o)]) == g && side_of(si.b, segs[size_t(o)]) == g) continue;
-          c -= g > 0 ? std::max(wk, 0) : (g < 0 ? std::max(-wk, 0) : std::abs(wk));
-        }
-        if (c < 1) return false;
-      }
-    return true;
-  }
   // C on q0's side of contour piece `skip` at point m on it: from m's cell where it can.
   int coverage_at(V3<T> m, int skip) {
     if (G) {
