@@ -407,8 +407,7 @@ def _merge(faces: _Faces, v: np.ndarray, size: float) -> _Faces:
     # The initial queue: each distinct shared edge a -> b (a < b) at its first occurrence.
     first = np.concatenate([[True], ks[1:] != ks[:-1]])
     ufirst = order[first]  # the first occurrence of each key of ukeys
-    upos = np.minimum(np.searchsorted(ukeys, (ukeys % n) * n + ukeys // n), len(ukeys) - 1)
-    uq = (ukeys // n < ukeys % n) & (ukeys[upos] == (ukeys % n) * n + ukeys // n)
+    uq = shared[ufirst]  # a < b and b -> a present: the same for every occurrence of a key
     qkeys = ukeys[uq][np.argsort(ufirst[uq], kind="stable")]  # the queue, bottom first
     qcand = np.isin(qkeys, np.fromiter(candidates, dtype=np.int64, count=len(candidates)))
     qsorted = np.argsort(qkeys, kind="stable")
