@@ -516,10 +516,11 @@ def _straight(p0: list[float], p1: list[float], p2: list[float], nrm: list[float
     return bool(abs(t) <= 1e-12 * np.linalg.norm(q1 - q0) * np.linalg.norm(q2 - q1))
 
 
-def _union(la: list[int], lb: list[int], a: int, b: int, vl: list[list[float]], v: np.ndarray, nrm: list[float],
+def _union(la: list[int], lb: list[int], a: int, b: int, vl: Any, v: np.ndarray, nrm: list[float],
            nrm_np: np.ndarray) -> list[int] | None:
     """`la` (containing a -> b) and `lb` (containing b -> a) glued along that edge, if convex
-    (`vl`: the vertices as Python lists, `v` as an array; `nrm` the unit normal of `la`)."""
+    (`vl`: the vertices as Python lists, indexed by vertex (a list of rows or `_Rows`), `v` as an
+    array; `nrm` the unit normal of `la`)."""
     ia = la.index(a)
     ra = la[ia + 1:] + la[:ia + 1]  # starts after a, ends at a; la's a -> b edge is last-to-first
     # ra runs b ... a (b first). Glue lb from a to b (excluding the shared ends).
