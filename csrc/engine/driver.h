@@ -125,6 +125,7 @@ struct Decoder {
 };
 
 constexpr int kSilTile = 16;  // receivers per tile of the silhouette path's walk
+constexpr int kSilParent = 64;  // receivers per run of tiles whose walk the tiles' walks refine
 
 // Morton order of receivers: codes over a box of the finite receivers (21 bits per axis).
 struct MortonBox {
@@ -261,7 +262,7 @@ int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const 
     blk.e = e;
     std::vector<int32_t> group;
     std::vector<std::pair<uint64_t, int64_t>> mkey;
-    int64_t group_end = s, tile_end = s;
+    int64_t group_end = s, tile_end = s, parent_end = s;
     for (int64_t k = s; k < e; k++) {
       
       if (grouped && k == group_end) {  // the next group: positions [k, group_end) of one cell
@@ -289,9 +290,28 @@ int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const 
         w.group = &group;
       }
       const int64_t i = sorted ? perm[k] : k;
-      if (tiled && k == tile_end) {  // the next tile: positions [k, tile_end) of one group
+      if (tiled && k == parent_end) {  // the next run of tiles: positions [k, parent_end) of one group
+        parent_end = k + 1;
+        while (parent_end < (grouped ? group_end : e) && parent_end - k < kSilParent) parent_end++;
+        w.tile.pid = -1;
+        if (parent_end - k > kSilTile) {  // more than one tile
+          w.tile.pid = k;
+          for (int d = 0; d < 3; d++) {
+            w.tile.plo[d] = std::numeric_limits<double>::infinity();
+            w.tile.phi[d] = -std::numeric_limits<double>::infinity();
+          }
+          for (int64_t q = k; q < parent_end; q++)
+            for (int d = 0; d < 3; d++) {
+              const double x = double(P[3 * perm[q] + d]);
+              if (!std::isfinite(x)) continue;
+              w.tile.plo[d] = std::min(w.tile.plo[d], x);
+              w.tile.phi[d] = std::max(w.tile.phi[d], x);
+            }
+        }
+      }
+      if (tiled && k == tile_end) {  // the next tile: positions [k, tile_end) of one group and run
         tile_end = k + 1;
-        while (tile_end < (grouped ? group_end : e) && tile_end - k < kSilTile) tile_end++;
+        while (tile_end < parent_end && tile_end - k < kSilTile) tile_end++;
         w.tile.id = -1;
         if (tile_end - k >= 2) {
           w.tile.id = k;

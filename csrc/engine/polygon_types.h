@@ -91,6 +91,7 @@ struct Work {  // per-thread scratch
   // the last tile it served (silhouette_walk.h).
   SilTile tile;
   SilTileCache sil_tile;
+  SilTileCache sil_parent;  // the walk of the tile's parent (SilTile::pid)
 };
 
 template <class T>

@@ -181,6 +181,27 @@ void build_silhouette_tree(const Occluders<T>& occ, const std::vector<int32_t>& 
   }
   std::vector<int32_t> order(static_cast<size_t>(E));
   for (int64_t k = 0; k < E; k++) order[k] = int32_t(k);
+  // Per edge: the box of its faces' vertices (a node's box is the min/max over its edges' boxes,
+  // the same values as over their faces' vertices), read once instead of once per tree level.
+  std::vector<double> ebox(size_t(6 * E));
+  for (int64_t k = 0; k < E; k++) {
+    double* b = ebox.data() + 6 * k;
+    for (int d = 0; d < 3; d++) {
+      b[d] = std::numeric_limits<double>::infinity();
+      b[3 + d] = -std::numeric_limits<double>::infinity();
+    }
+    for (const int32_t f : {st.edges[size_t(k)].f, st.edges[size_t(k)].g}) {
+      if (f < 0) continue;
+      for (int64_t i = 0; i < Ko; i++) {
+        const V3<T> x = occ.vert(f, i);
+        const double c[3] = {double(x.x), double(x.y), double(x.z)};
+        for (int d = 0; d < 3; d++) {
+          b[d] = std::min(b[d], c[d]);
+          b[3 + d] = std::max(b[3 + d], c[d]);
+        }
+      }
+    }
+  }
   auto fill = [&](SNode& nd) {  // box, cone and flag from the node's edges' faces
     for (int d = 0; d < 3; d++) {
       nd.box[d] = std::numeric_limits<double>::infinity();
@@ -188,21 +209,16 @@ void build_silhouette_tree(const Occluders<T>& occ, const std::vector<int32_t>& 
     }
     double ax[3] = {0, 0, 0};
     nd.special = false;
-    auto face = [&](int32_t f) {
-      for (int64_t i = 0; i < Ko; i++) {
-        const V3<T> x = occ.vert(f, i);
-        const double c[3] = {double(x.x), double(x.y), double(x.z)};
-        for (int d = 0; d < 3; d++) {
-          nd.box[d] = std::min(nd.box[d], c[d]);
-          nd.box[3 + d] = std::max(nd.box[3 + d], c[d]);
-        }
-      }
-      for (int d = 0; d < 3; d++) ax[d] += st.fn[kFnStride * size_t(f) + 6 + d];
-    };
     for (int32_t k = nd.start; k < nd.start + nd.count; k++) {
       const SEdge& e = st.edges[order[k]];
-      face(e.f);
-      if (e.g >= 0) face(e.g);
+      const double* b = ebox.data() + 6 * size_t(order[k]);
+      for (int d = 0; d < 3; d++) {
+        nd.box[d] = std::min(nd.box[d], b[d]);
+        nd.box[3 + d] = std::max(nd.box[3 + d], b[3 + d]);
+      }
+      for (int d = 0; d < 3; d++) ax[d] += st.fn[kFnStride * size_t(e.f) + 6 + d];
+      if (e.g >= 0)
+        for (int d = 0; d < 3; d++) ax[d] += st.fn[kFnStride * size_t(e.g) + 6 + d];
       nd.special = nd.special || e.g < 0 || e.dg > 0;
     }
     const double an = std::sqrt(ax[0] * ax[0] + ax[1] * ax[1] + ax[2] * ax[2]);

@@ -50,6 +50,10 @@ struct SilTile {
   double lo[3] = {0, 0, 0}, hi[3] = {0, 0, 0};  // the box of the tile's receivers
   bool same_n = false;  // every receiver of the tile has the normal n (bit for bit)
   double n[3] = {0, 0, 0};
+  // The tile's parent: a run of a few consecutive tiles (pid < 0: none) whose walk of the
+  // hierarchy the tile's own walk refines (silhouette_walk.h), with the box of its receivers.
+  int64_t pid = -1;
+  double plo[3] = {0, 0, 0}, phi[3] = {0, 0, 0};
 };
 
 // One entry of a tile's part of the hierarchy: a node that the tile's walk did not prune, in the

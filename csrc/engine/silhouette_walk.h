@@ -101,12 +101,15 @@ inline double tile_plane_inf_best(const TilePlane& q, const TileBox& tb, const d
   return g - (std::fabs(w0) * tb.hb[0] + std::fabs(w1) * tb.hb[1] + std::fabs(w2) * tb.hb[2]);
 }
 
-// The tile's walk: w.sil_tile gets the hierarchy's nodes and edges that some receiver of the tile
-// w.tile may need (see TileBox). False: not built (every receiver walks the hierarchy itself).
+// A tile's walk: `tc` (named `id`) gets the hierarchy's nodes and edges that some receiver in the
+// box [blo, bhi] may need (see TileBox); `same_n`: every such receiver has the normal `bn`. With
+// `parent` (a walk built for a box holding this one), its entries are walked instead of the
+// hierarchy: what it dropped, every receiver of its box drops, so the result serves the same
+// receivers the same way. False: not built (every receiver walks the hierarchy itself).
 template <class T>
-bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, Work<T>& w) {
-  SilTileCache& tc = w.sil_tile;
-  tc.id = w.tile.id;
+bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int64_t id, const double* blo, const double* bhi,
+               bool same_n, const double* bn, const SilTileCache* parent, SilTileCache& tc) {
+  tc.id = id;
   tc.tree = &st;
   tc.ok = false;
   tc.entries.clear();
@@ -116,7 +119,7 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, Work
   TileBox tb;
   double amax = 0;
   for (int d = 0; d < 3; d++) {
-    const double lo = w.tile.lo[d], hi = w.tile.hi[d];
+    const double lo = blo[d], hi = bhi[d];
     if (!(lo <= hi) || !std::isfinite(lo) || !std::isfinite(hi)) return false;
     tb.pc[d] = 0.5 * (lo + hi);
     tb.hb[d] = std::max(hi - tb.pc[d], tb.pc[d] - lo) * (1 + 1e-12);
@@ -164,9 +167,9 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, Work
   // The horizon's plane where every receiver of the tile has the same normal (the same vector
   // in every receiver's walk).
   double hn[3] = {0, 0, 0};
-  const bool horizon = w.tile.same_n;
+  const bool horizon = same_n;
   if (horizon) {
-    const V3<T> n = rescale(V3<T>{T(w.tile.n[0]), T(w.tile.n[1]), T(w.tile.n[2])});
+    const V3<T> n = rescale(V3<T>{T(bn[0]), T(bn[1]), T(bn[2])});
     hn[0] = n.x, hn[1] = n.y, hn[2] = n.z;
   }
   const double hnn = std::fabs(hn[0]) + std::fabs(hn[1]) + std::fabs(hn[2]);
@@ -244,31 +247,68 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, Work
         const int32_t e0 = int32_t(tc.edges.size());
         for (int32_t j = nd.start; j < nd.start + nd.count; j++) {
           const SEdge& e = st.edges[size_t(j)];
-          const int sf = tile_side(st, e.f, tb);
-          const int sg = e.g >= 0 ? tile_side(st, e.g, tb) : 0;
           const V3<T> a3 = occ.vref(e.ra), b3 = occ.vref(e.rb);
-          STEdge te{e, 0, {double(a3.x), double(a3.y), double(a3.z)}, {double(b3.x), double(b3.y), double(b3.z)}};
-          if (sf != 0 && (e.g < 0 || sg != 0)) {
-            const int Wk = sf + (e.g >= 0 ? sg * e.dg : 0);
-            if (Wk == 0) continue;  // no receiver's contour edge, none falls back on it
-            if (eout(te.a, te.b)) continue;
-            te.w = int8_t(Wk);
-          }
-          tc.edges.push_back(te);
+          keep(STEdge{e, 0, {double(a3.x), double(a3.y), double(a3.z)}, {double(b3.x), double(b3.y), double(b3.z)}});
         }
-        if (int32_t(tc.edges.size()) == e0) {
+        if (!leaf_done(me, e0)) return false;
+      }
+      tc.entries[me].skip = int32_t(tc.entries.size());
+      return true;
+    }
+    // A leaf's edge: kept unless every receiver of the box drops it, with its coverage jump
+    // where every receiver sees both faces on known sides.
+    void keep(STEdge te) {
+      const SEdge& e = te.e;
+      const int sf = tile_side(st, e.f, tb);
+      const int sg = e.g >= 0 ? tile_side(st, e.g, tb) : 0;
+      te.w = 0;
+      if (sf != 0 && (e.g < 0 || sg != 0)) {
+        const int Wk = sf + (e.g >= 0 ? sg * e.dg : 0);
+        if (Wk == 0) return;  // no receiver's contour edge, none falls back on it
+        if (eout(te.a, te.b)) return;
+        te.w = int8_t(Wk);
+      }
+      tc.edges.push_back(te);
+    }
+    bool leaf_done(size_t me, int32_t e0) {
+      if (int32_t(tc.edges.size()) == e0) {
+        tc.entries.pop_back();
+        return false;
+      }
+      tc.entries[me].e0 = e0;
+      tc.entries[me].e1 = int32_t(tc.edges.size());
+      return true;
+    }
+    // The parent's entry i and its subtree (its entries up to skip), in the parent's order.
+    bool visit_list(const SilTileCache& par, int32_t i) {
+      const STEntry& pe = par.entries[size_t(i)];
+      const SNode& nd = st.nodes[size_t(pe.node)];
+      if (out(nd.box)) return false;
+      if (!nd.special && tile_node_side(nd, tb, smargin) != 0) return false;
+      const size_t me = tc.entries.size();
+      tc.entries.push_back(STEntry{pe.node, -1, -1, -1, is_sure(nd)});
+      if (pe.e0 >= 0) {
+        const int32_t e0 = int32_t(tc.edges.size());
+        for (int32_t k = pe.e0; k < pe.e1; k++) keep(par.edges[size_t(k)]);
+        if (!leaf_done(me, e0)) return false;
+      } else {
+        bool any = false;
+        for (int32_t j = i + 1; j < pe.skip; j = par.entries[size_t(j)].skip) any = visit_list(par, j) || any;
+        if (!any) {
           tc.entries.pop_back();
           return false;
         }
-        tc.entries[me].e0 = e0;
-        tc.entries[me].e1 = int32_t(tc.edges.size());
       }
       tc.entries[me].skip = int32_t(tc.entries.size());
       return true;
     }
   };
   Rec rec{st, tc, outside, edge_out, sure, tb, occ, smargin, false};
-  rec.visit(0, 0);
+  if (parent && parent->ok && parent->tree == &st) {
+    if (!parent->entries.empty()) rec.visit_list(*parent, 0);
+  } else {
+    rec.visit(0, 0);
+  }
   if (rec.deep) return false;
   tc.ok = true;
   return true;
@@ -383,7 +423,15 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
   };
   bool in_tile = w.tile.id >= 0;
   for (int d = 0; d < 3 && in_tile; d++) in_tile = pd[d] >= w.tile.lo[d] && pd[d] <= w.tile.hi[d];
-  if (in_tile && (w.sil_tile.id != w.tile.id || w.sil_tile.tree != &st)) tile_walk(call, st, ne, w);
+  if (in_tile && (w.sil_tile.id != w.tile.id || w.sil_tile.tree != &st)) {
+    const SilTileCache* parent = nullptr;
+    if (w.tile.pid >= 0) {
+      if (w.sil_parent.id != w.tile.pid || w.sil_parent.tree != &st)
+        tile_walk(call, st, ne, w.tile.pid, w.tile.plo, w.tile.phi, false, w.tile.n, nullptr, w.sil_parent);
+      if (w.sil_parent.ok) parent = &w.sil_parent;
+    }
+    tile_walk(call, st, ne, w.tile.id, w.tile.lo, w.tile.hi, w.tile.same_n, w.tile.n, parent, w.sil_tile);
+  }
   if (in_tile && w.sil_tile.ok) {
     const SilTileCache& tc = w.sil_tile;
     const int32_t n = int32_t(tc.entries.size());

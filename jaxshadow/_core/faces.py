@@ -4,6 +4,8 @@ merge and the edges of a convex solid. NumPy only, before any compiled code runs
 
 from __future__ import annotations
 
+import bisect
+import heapq
 import math
 import operator
 from dataclasses import dataclass
@@ -346,6 +348,23 @@ def _coplanar1(ni: list[float], nj: list[float], pts_j: list[list[float]], p0: l
     return True
 
 
+class _Rows:
+    """Rows of an array as Python lists, converted when first read (`lens`: each row's length),
+    and assignable: the merge reads the few faces it touches, not the whole mesh."""
+
+    def __init__(self, a: np.ndarray, lens: np.ndarray | None = None):
+        self.a, self.lens, self.rows = a, lens, {}
+
+    def __getitem__(self, i: int) -> Any:
+        r = self.rows.get(i)
+        if r is None:
+            r = self.rows[i] = (self.a[i] if self.lens is None else self.a[i, :self.lens[i]]).tolist()
+        return r
+
+    def __setitem__(self, i: int, row: Any) -> None:
+        self.rows[i] = row
+
+
 def _merge(faces: _Faces, v: np.ndarray, size: float) -> _Faces:
     """Merge coplanar faces sharing an edge while the union stays a convex polygon (greedy, one
     pass over a queue of shared edges; a merged face's edges are queued again).
@@ -353,7 +372,16 @@ def _merge(faces: _Faces, v: np.ndarray, size: float) -> _Faces:
     Whether two faces are coplanar is first decided for every shared edge at once (vectorised);
     an edge between two faces that no merge has touched yet uses that answer, so a mesh without
     coplanar neighbours (a smooth surface) costs no Python loop over its edges. The loop over
-    the rest works on Python floats (`_coplanar1`, `_union`)."""
+    the rest works on Python floats (`_coplanar1`, `_union`).
+
+    The queue is the one a dict of directed edges (`(a, b) -> the last face running a -> b`,
+    filled in face order) gives: its shared edges with a < b in first-occurrence order, then the
+    merged faces' edges pushed on top, popped from the top. Only its entries that can merge are
+    visited: an entry whose two directed edges no merge has written or removed yet ("clean")
+    still has its first owners, which no merge has touched, so it merges only where the
+    vectorised test said coplanar; the others (written by a merge, tracked as they are
+    written) run the full test. The owners live in the sorted edge keys plus a dict of what
+    merges changed, so a mesh with a few coplanar pairs pays for those, not for its edges."""
     if not len(faces):
         return faces
     normals = _unit(_normals(faces, v))
@@ -374,21 +402,65 @@ def _merge(faces: _Faces, v: np.ndarray, size: float) -> _Faces:
     ok = _coplanar(normals[fi], normals[fj], v[pad[fj]], v[pad[fi, 0]], size) & (fi != fj)
     if not ok.any():
         return faces
-    candidates = set(zip(ea[shared][ok].tolist(), eb[shared][ok].tolist(), strict=True))
-    loops = faces.loops()
-    vl = v.tolist()
-    nl = normals.tolist()
-    touched = [False] * len(loops)
-    alive = [True] * len(loops)
-    owner: dict[tuple[int, int], int] = dict(zip(zip(ea.tolist(), eb.tolist(), strict=True), face.tolist(), strict=True))
-    queue = [e for e in owner if e[0] < e[1] and (e[1], e[0]) in owner]
-    while queue:
-        a, b = queue.pop()
-        i, j = owner.get((a, b)), owner.get((b, a))
-        if i is None or j is None or i == j or not (alive[i] and alive[j]):
+    ni = int(n)
+    candidates = set((ea[shared][ok] * n + eb[shared][ok]).tolist())
+    # The initial queue: each distinct shared edge a -> b (a < b) at its first occurrence.
+    first = np.concatenate([[True], ks[1:] != ks[:-1]])
+    ufirst = order[first]  # the first occurrence of each key of ukeys
+    uq = shared[ufirst]  # a < b and b -> a present: the same for every occurrence of a key
+    qkeys = ukeys[uq][np.argsort(ufirst[uq], kind="stable")]  # the queue, bottom first
+    qcand = np.isin(qkeys, np.fromiter(candidates, dtype=np.int64, count=len(candidates)))
+    qsorted = np.argsort(qkeys, kind="stable")
+    qs_keys = qkeys[qsorted].tolist()
+    qs_pos = qsorted.tolist()
+    cand_pos = np.flatnonzero(qcand).tolist()  # ascending; visited from the top
+    ukeys_l, uface_l = ukeys.tolist(), uface.tolist()
+    changed: dict[int, int] = {}  # owners a merge wrote (-1: removed)
+
+    def own(k: int) -> int:
+        c = changed.get(k)
+        if c is not None:
+            return c
+        x = bisect.bisect_left(ukeys_l, k)
+        return uface_l[x] if x < len(ukeys_l) and ukeys_l[x] == k else -1
+
+    top = len(qkeys) - 1  # the highest queue entry not yet visited
+    dirty: list[int] = []  # max-heap (negated) of queue entries written by a merge
+
+    def touch(k: int) -> None:  # owner of edge key k written: its queue entry (if any) is visited
+        a, b = divmod(k, ni)
+        u = k if a < b else b * ni + a
+        x = bisect.bisect_left(qs_keys, u)
+        if x < len(qs_keys) and qs_keys[x] == u and qs_pos[x] <= top:
+            heapq.heappush(dirty, -qs_pos[x])
+
+    loops = _Rows(pad, faces.lens)
+    # Rows read on demand where few faces can merge; all at once where many do (cheaper per row).
+    many = 16 * len(candidates) > len(faces)
+    vl: Any = v.tolist() if many else _Rows(v)
+    nl: Any = normals.tolist() if many else _Rows(normals)
+    touched = [False] * len(faces)
+    alive = [True] * len(faces)
+    stack: list[int] = []
+    while True:
+        if stack:
+            key = stack.pop()
+        else:
+            while cand_pos and cand_pos[-1] > top:
+                cand_pos.pop()
+            while dirty and -dirty[0] > top:
+                heapq.heappop(dirty)
+            s = max(cand_pos[-1] if cand_pos else -1, -dirty[0] if dirty else -1)
+            if s < 0:
+                break
+            top = s - 1
+            key = int(qkeys[s])
+        a, b = divmod(key, ni)
+        i, j = own(key), own(b * ni + a)
+        if i < 0 or j < 0 or i == j or not (alive[i] and alive[j]):
             continue
         if not (touched[i] or touched[j]):
-            if (a, b) not in candidates:
+            if key not in candidates:
                 continue
         elif not _coplanar1(nl[i], nl[j], [vl[x] for x in loops[j]], vl[loops[i][0]], size):
             continue
@@ -396,19 +468,32 @@ def _merge(faces: _Faces, v: np.ndarray, size: float) -> _Faces:
         if m is None:
             continue
         lj, li = loops[j], loops[i]
-        for k in range(len(lj)):
-            owner.pop((lj[k], lj[(k + 1) % len(lj)]), None)
-        for k in range(len(li)):
-            owner.pop((li[k], li[(k + 1) % len(li)]), None)
+        for lp in (lj, li):
+            for k in range(len(lp)):
+                e = lp[k] * ni + lp[(k + 1) % len(lp)]
+                if own(e) >= 0:
+                    changed[e] = -1
+                    touch(e)
         loops[i] = m
         alive[j] = False
         touched[i] = touched[j] = True
         for k in range(len(m)):
-            e = (m[k], m[(k + 1) % len(m)])
-            owner[e] = i
-            if (e[1], e[0]) in owner:
-                queue.append(e)
-    return _Faces.of([lp for lp, keep in zip(loops, alive, strict=True) if keep])
+            e = m[k] * ni + m[(k + 1) % len(m)]
+            changed[e] = i
+            touch(e)
+            if own(m[(k + 1) % len(m)] * ni + m[k]) >= 0:
+                stack.append(e)
+    keep = np.flatnonzero(np.asarray(alive))
+    merged = [x for x in keep.tolist() if touched[x]]
+    k_out = max([int(faces.lens[keep].max(initial=3))] + [len(loops[x]) for x in merged])
+    out = faces.padded_to(k_out).copy() if k_out >= pad.shape[1] else pad[:, :k_out].copy()
+    lens = faces.lens.copy()
+    for x in merged:
+        lp = loops[x]
+        out[x, :len(lp)] = lp
+        out[x, len(lp):] = lp[0]
+        lens[x] = len(lp)
+    return _Faces(out[keep], lens[keep])
 
 
 def _straight(p0: list[float], p1: list[float], p2: list[float], nrm: list[float], v: np.ndarray, idx: tuple[int, int, int],
@@ -431,10 +516,11 @@ def _straight(p0: list[float], p1: list[float], p2: list[float], nrm: list[float
     return bool(abs(t) <= 1e-12 * np.linalg.norm(q1 - q0) * np.linalg.norm(q2 - q1))
 
 
-def _union(la: list[int], lb: list[int], a: int, b: int, vl: list[list[float]], v: np.ndarray, nrm: list[float],
+def _union(la: list[int], lb: list[int], a: int, b: int, vl: Any, v: np.ndarray, nrm: list[float],
            nrm_np: np.ndarray) -> list[int] | None:
     """`la` (containing a -> b) and `lb` (containing b -> a) glued along that edge, if convex
-    (`vl`: the vertices as Python lists, `v` as an array; `nrm` the unit normal of `la`)."""
+    (`vl`: the vertices as Python lists, indexed by vertex (a list of rows or `_Rows`), `v` as an
+    array; `nrm` the unit normal of `la`)."""
     ia = la.index(a)
     ra = la[ia + 1:] + la[:ia + 1]  # starts after a, ends at a; la's a -> b edge is last-to-first
     # ra runs b ... a (b first). Glue lb from a to b (excluding the shared ends).
