@@ -255,7 +255,9 @@ def fit_lights(
       (`inverse._diagnostics`: a wrong minimum, outliers, conflicting targets).
     - `warn`: emit a `FitQualityWarning` when the answer is flagged (a wrong minimum, an
       escaped light, a polygon or segment collapsed to a point, a light left with no part in
-      the colours, conflicting targets, an all-dark answer to "brighter than" relations, a
+      the colours, outlier targets (painted wrong or missed by lights in a wrong basin: give
+      them weight 0 and fit again to tell), conflicting targets, an all-dark answer to
+      "brighter than" relations, a
       joint refinement stopped by `max_steps` short of an exact fit: `"not_converged"`);
       the report's `quality` says so either way (`fit.report.trusted`,
       `fit.report.quality.reason`). To stop on it: `warnings.simplefilter("error",
