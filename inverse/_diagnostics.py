@@ -46,7 +46,14 @@ The rules (thresholds are the module's constants):
   robust z-score $|u - \operatorname{med} u| / \max(1.4826 \operatorname{MAD} u, 1)$ exceeds
   `OUTLIER_Z` (5; the floor 1 is the noise itself, so an exact fit has none). They are left
   out of $\chi^2_\nu$ unless they are more than `OUTLIER_SHARE` (10 %) of the targets (then
-  the misfit is systematic, not a few bad targets).
+  the misfit is systematic, not a few bad targets). An answer with outliers is not trusted
+  (flagged, warned): the residual cannot tell a target painted wrong from lights in a wrong
+  basin that miss it. A wrong basin can paint all targets but a few within the noise (the rest
+  cannot tell it from the truth) and miss those by many sigma: three lights 29 % of the scene
+  off, 59 of 60 targets at a reduced chi-square of 0.82 and one dark target 9 sigma too dark,
+  where the truth's chi-square is half the fit's; a target that is painted wrong pulls the
+  least-squares answer off as well. Given weight 0 (not judged), a bad target leaves the fit
+  trusted if the rest then fits; a target that lights can explain brings the fit back to it.
 - **Conflicting targets.** Targets with the same point, normal and eye (to 1e-9 of the targets'
   extent) whose colours differ by more than `CONFLICT_SIGMAS` (3) $\sqrt{\sigma_i^2 +
   \sigma_j^2}$ in some channel: no light paints both; reported with a warning naming them.
@@ -109,8 +116,8 @@ class FitQualityWarning(RuntimeWarning):
 class FitQuality:
     """What the checks of `inverse._diagnostics` found (the rules are in its docstring).
 
-    - `trusted`: False when the answer should not be used as is (a wrong minimum or an escaped
-      light); `flags`: the reasons, from `"wrong_minimum"`, `"escaped"`, `"outliers"`,
+    - `trusted`: False when the answer should not be used as is (a wrong minimum, an escaped
+      light, outlier targets, ...); `flags`: the reasons, from `"wrong_minimum"`, `"escaped"`, `"outliers"`,
       `"conflicting_targets"`, `"all_dark"`, `"not_converged"` (and the others the checks name).
     - `chi2`: the reduced chi-square over the non-outlier targets; `dof`; `noise`: how the
       colours' noise was set (`"given"`, `"weights"`, `"estimated"`).
@@ -486,7 +493,12 @@ def assess(*, targets: Any, residual: np.ndarray, noise: Any, n_params: int, nam
         flags.append("undetermined")
     if out_idx.size:
         flags.append("outliers")
-        messages.append(f"target(s) {out_idx.tolist()} are outliers (robust z > {OUTLIER_Z:g} at the solution).")
+        msg = (f"target(s) {out_idx.tolist()} are outliers (robust z > {OUTLIER_Z:g} at the solution): painted "
+               f"wrong, or the lights ({light_list}) sit in a wrong basin that misses them (the residual cannot "
+               "tell which; either way the answer is off): give them weight 0 and fit again to tell.")
+        messages.append(msg)
+        if not wrong:  # a wrong minimum's warning says it already
+            emit.append(msg)
     conflicting = conflicting_targets(targets, sigma)
     if conflicting:
         flags.append("conflicting_targets")
@@ -508,7 +520,8 @@ def assess(*, targets: Any, residual: np.ndarray, noise: Any, n_params: int, nam
         messages.append(msg)
         emit.append(msg)
     quality = FitQuality(
-        trusted=not (wrong or escaped or collapsed or all_dark or unused or undetermined or not converged), flags=tuple(flags), chi2=chi2, dof=dof, noise=how,
+        trusted=not (wrong or escaped or collapsed or all_dark or unused or undetermined or not converged
+                     or out_idx.size), flags=tuple(flags), chi2=chi2, dof=dof, noise=how,
         std_errors_trusted=not wrong, competing=tuple(candidates),
         outliers=tuple(int(i) for i in out_idx), outlier_z=z, conflicting=conflicting, escaped=escaped,
         collapsed=collapsed, undetermined=undetermined,        nearly_undetermined=near, emitted=tuple(emit), unused=unused)

@@ -47,7 +47,7 @@ from ._diagnostics import (
     FitQualityWarning,
 )
 from ._forward import SpecularFn
-from ._global_placement import place, region_of, template_light
+from ._global_placement import final_losses, place, region_of, template_light
 from ._multilight import (
     LightsProblem,
     fixed_contribution,
@@ -214,7 +214,10 @@ def fit_lights(
       (`_powers.emitted_power`: $\\pi \\bar L A$ for a polygon, $\\bar\\Phi \\ell$ for a segment,
       $4\\pi \\bar I$ for a point light; not with a fitted `DirectionalLight`). It holds in the
       variable projection (the least-squares powers on the plane $c \\cdot p = B$ when the free
-      ones exceed it) and exactly in the final solve of the powers (`_powers.constrained_powers`).
+      ones exceed it) and exactly in the final solve of the powers (`_powers.constrained_powers`);
+      under a budget the solves' rows and the global placement's refined placements are ranked by
+      the loss at those final powers (`_global_placement.final_losses`: the variable projection
+      allows a negative power, which can meet the budget where no answer with powers >= 0 does).
     - `search`: an `inverse.Search` (where and how the poses are searched: `starts` per light,
       default 16, screened to the solver's `refine` best; `search_radius`, `orientation_spread`,
       `size_spread`, `seed`; `sweeps`; `grid`; `placement`; `search_targets`), or its fields as
@@ -252,7 +255,9 @@ def fit_lights(
       (`inverse._diagnostics`: a wrong minimum, outliers, conflicting targets).
     - `warn`: emit a `FitQualityWarning` when the answer is flagged (a wrong minimum, an
       escaped light, a polygon or segment collapsed to a point, a light left with no part in
-      the colours, conflicting targets, an all-dark answer to "brighter than" relations, a
+      the colours, outlier targets (painted wrong or missed by lights in a wrong basin: give
+      them weight 0 and fit again to tell), conflicting targets, an all-dark answer to
+      "brighter than" relations, a
       joint refinement stopped by `max_steps` short of an exact fit: `"not_converged"`);
       the report's `quality` says so either way (`fit.report.trusted`,
       `fit.report.quality.reason`). To stop on it: `warnings.simplefilter("error",
@@ -387,13 +392,12 @@ def fit_lights(
         placed = grid_rows is not None
         ranked: list = [None] * len(params)
         alternatives: list = []  # the global placement's other refined placements: finished jointly
+        best_round: tuple | None = None  # (loss, joint rows, final, converged) of the better round
         if attempt == "global":
             if initial is None:  # the given poses' loss
                 f0, problem, r = screen(problem, theta0[None], theta0, np.ones(Pt, bool), k)
                 initial, retries = float(f0[0]), retries + r
-            # The short refinement that ranks basins (`refine_and_rank`) runs the LM without the power
-            # budget's projection: under a budget it would rank placements that break the budget first.
-            pl = place(problem, theta0, per_light, cons, idx, seed, k, lm if budget is None else None)
+            pl = place(problem, theta0, per_light, cons, idx, seed, k, lm)
             problem, base, ranked, alternatives = pl.problem, pl.theta, pl.ranked, list(pl.alternatives)
             stage_losses.append(pl.loss)
             placed = True
@@ -437,12 +441,12 @@ def fit_lights(
                     res, problem, r = solve(problem, full, base, mask, **staged)
                     retries += r
                     n_solved += full.shape[0]
-                    f = np.where(np.isfinite(np.asarray(res.losses)), np.asarray(res.losses), np.inf)
+                    # The solved rows hold the starts' values where the mask is off: the residual used `base`.
+                    vals = np.where(mask[None], np.asarray(res.values), base[None])
+                    f, problem = _ranking_losses(problem, res, vals)
                     order = np.argsort(f)
                     if initial is None:
                         initial = float(np.asarray(res.initial_losses)[0]) if np.all(full[0] == theta0) else None
-                    # The solved rows hold the starts' values where the mask is off: the residual used `base`.
-                    vals = np.where(mask[None], np.asarray(res.values), base[None])
                     base = vals[order[0]].copy()
                     if len(order) > 1 and np.isfinite(f[order[1]]):
                         runner_up[j] = vals[order[1]][sl]
@@ -463,16 +467,20 @@ def fit_lights(
                     res, problem, r = solve(problem, joint, base, mask, **lm)
                     retries += r
                     n_solved += joint.shape[0]
-                    f = np.where(np.isfinite(np.asarray(res.losses)), np.asarray(res.losses), np.inf)
-                    joint = np.where(mask[None], np.asarray(res.values), base[None])[np.argsort(f)]
+                    vals = np.where(mask[None], np.asarray(res.values), base[None])
+                    f, problem = _ranking_losses(problem, res, vals)
+                    joint = vals[np.argsort(f)]
                     final = (joint, np.sort(f))
                     stage_losses.append(float(np.min(f)))
                     # Not converged: the best row stopped by max_steps (not by the solver's tolerances or at
                     # round-off) with its loss still falling (by STILL_FALLING of it in this solve); a row
                     # crawling along a flat valley at its minimum is not flagged.
                     b = int(np.argmin(f))
+                    f_lm = np.asarray(res.losses, np.float64)
                     f_in = float(np.asarray(res.initial_losses)[b])
-                    converged = bool(np.asarray(res.converged)[b]) or not f_in - f[b] > STILL_FALLING * f[b]
+                    converged = bool(np.asarray(res.converged)[b]) or not f_in - f_lm[b] > STILL_FALLING * f_lm[b]
+                if best_round is None or stage_losses[-1] < best_round[0]:
+                    best_round = (stage_losses[-1], joint, final, converged)
                 if rnd or not placed:
                     break
                 # The refined positions dealt again (two lights of similar shading swapped in the first
@@ -483,6 +491,10 @@ def fit_lights(
                 if not stage_losses[-1] < stage_losses[-2] * (1 - 1e-6) - solver.atol:  # not at round-off
                     break
                 base, n_sweeps = dealt, 1
+            # the better of the two rounds (a deal better in the LM's loss can end worse)
+            if best_round is not None and best_round[1] is not joint:
+                _, joint, final, converged = best_round
+                stage_losses.append(best_round[0])
             theta = joint[0]
             if project and not problem.colour_free:
                 problem, theta, n, r = _alternate(problem, theta, joint, base, lm, stage_losses)
@@ -553,6 +565,17 @@ def _reweighted(problem: LightsProblem, weights: Any) -> LightsProblem:
     if weights is None:
         return problem
     return dataclasses.replace(problem, targets=eqx.tree_at(lambda t: t.weights, problem.targets, weights))
+
+
+def _ranking_losses(problem: LightsProblem, res: Any, values: np.ndarray) -> tuple[np.ndarray, LightsProblem]:
+    """`(losses (S,), problem)` by which the rows `values (S, Pt)` of a solve `res` are ranked:
+    the LM's losses (infinite where not finite) or, under a power budget, the loss at the powers
+    the final fit solves (`_global_placement.final_losses`: the LM's projection allows a
+    negative power, which can meet the budget where no answer with powers >= 0 does)."""
+    if problem.budget is None:
+        f = np.asarray(res.losses)
+        return np.where(np.isfinite(f), f, np.inf), problem
+    return final_losses(problem, np.asarray(values, np.float64))
 
 
 def _moved_outside(problem: LightsProblem, theta: np.ndarray) -> np.ndarray:

@@ -43,7 +43,9 @@ column of light $j$ at its reference power, `(3N,)`). So the screen needs no der
    `BASIN_DISTANCE` of the extent away, or its orientation more than `BASIN_TURN`) are refined
    jointly for `BASIN_STEPS` iterations as the rows of `fit_lights`' batched LM program (the
    program of its joint refinement: rows padded to its batch, no new compilation), and ranked
-   by the refined loss (`refine_and_rank`).
+   by the refined loss (`refine_and_rank`); under a power budget by the loss at the powers the
+   final fit solves there (`final_losses`: $p \ge 0$ and the budget), not the LM's signed
+   projection of the powers.
 
 The result is the best refined placement (`theta`, the poses), the other refined placements
 (`alternatives`, best first: `fit_lights` finishes them with its joint refinement, where
@@ -68,8 +70,9 @@ import jaxshadow as js
 from ._closed_forms import light_from_diffuse_maximum
 from ._forward import at_capacity
 from ._lm import fit_jit
-from ._multilight import LightsProblem, _parts, solve
+from ._multilight import LightsProblem, _parts, build_lights, solve
 from ._parametrisation import LightParametrisation
+from ._powers import constrained_powers, emitted_power
 
 POSITIONS = 512
 CHUNK = 64
@@ -260,6 +263,20 @@ def rows_at(param: LightParametrisation, region: Region, centres: np.ndarray) ->
     return np.concatenate(rows)
 
 
+def weighted_rest(problem: LightsProblem) -> np.ndarray:
+    """`(3N,)` what the fitted lights are to paint: $\\sqrt{w}\\,(C - L_{fixed})$, the targets'
+    colours less the ambient term and the lights that are not fitted, weighted (row-major
+    `(N, 3)`)."""
+    t, m = problem.targets, problem.material
+    sw = np.sqrt(np.asarray(t.weights, np.float64))
+    La = np.broadcast_to(np.asarray(problem.scene.ambient, np.float64), t.colours.shape)
+    base_model = (np.asarray(m.ka, np.float64) * La + np.asarray(m.kd, np.float64) / np.pi
+                  * np.asarray(problem.e_fixed, np.float64))
+    if problem.with_specular:
+        base_model = base_model + np.asarray(m.ks, np.float64) * np.asarray(problem.s_fixed, np.float64)
+    return (sw * (np.asarray(t.colours, np.float64) - base_model)).reshape(-1)
+
+
 def _single(problem: LightsProblem, j: int) -> LightsProblem:
     """The problem restricted to its fitted light `j` (its unit contribution alone)."""
     return dataclasses.replace(problem, params=(problem.params[j],), refs=(problem.refs[j],), offsets=(0,),
@@ -418,14 +435,7 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
     params = problem.params
     J = len(params)
     region = region_of(problem.scene, np.asarray(t.points), np.asarray(t.normals))
-    sw = np.sqrt(np.asarray(t.weights, np.float64))
-    m = problem.material
-    La = np.broadcast_to(np.asarray(problem.scene.ambient, np.float64), t.colours.shape)
-    base_model = (np.asarray(m.ka, np.float64) * La + np.asarray(m.kd, np.float64) / np.pi
-                  * np.asarray(problem.e_fixed, np.float64))
-    if problem.with_specular:
-        base_model = base_model + np.asarray(m.ks, np.float64) * np.asarray(problem.s_fixed, np.float64)
-    y = (sw * (np.asarray(t.colours, np.float64) - base_model)).reshape(-1)
+    y = weighted_rest(problem)
     rows: list = [None] * J
     cols: list = [None] * J
     for j, p in enumerate(params):
@@ -647,5 +657,45 @@ def refine_and_rank(problem: LightsProblem, thetas: np.ndarray, lm: dict, batch:
                                 max_steps=BASIN_STEPS, prune=())
         values.append(np.asarray(res.values, np.float64)[:part.shape[0]])
         losses.append(np.asarray(res.losses, np.float64)[:part.shape[0]])
-    f = np.concatenate(losses)
-    return np.concatenate(values), np.where(np.isfinite(f), f, np.inf), problem
+    v, f = np.concatenate(values), np.concatenate(losses)
+    if problem.budget is not None:  # ranked by the loss the final fit can reach there
+        f, problem = final_losses(problem, v)
+    return v, np.where(np.isfinite(f), f, np.inf), problem
+
+
+def final_losses(problem: LightsProblem, thetas: np.ndarray) -> tuple[np.ndarray, LightsProblem]:
+    """`(losses (S,), problem)`: $\\tfrac12|r|^2$ at every placement of `thetas (S, Pt)` with the
+    powers the final fit solves there (`_powers.constrained_powers`: $p \\ge 0$ and, under a
+    power budget $B$, $c \\cdot p \\le B$ with $c$ the lights' emitted powers at that
+    placement): the loss `fit_lights` reports at those poses; infinite where not finite.
+
+    The LM's own projection of the powers (`_multilight._data_residual`) is the signed least
+    squares, moved onto the budget's plane when it exceeds it: with one light's power negative
+    a placement meets the budget there and explains the targets better than any answer with
+    powers $\\ge 0$ can (a loss 0.031 in the LM at a placement whose final loss is 1.28). The
+    lights' unit contributions come from `unit_columns` (one compiled program per light kind, the
+    placement's own), the powers from the final fit's solve."""
+    S = thetas.shape[0]
+    y = weighted_rest(problem)
+    dt = problem.targets.points.dtype
+    cols = []
+    for j, p in enumerate(problem.params):
+        o, size = problem.offsets[j], 0 if p is None else p.size
+        a, problem = unit_columns(problem, j, np.asarray(thetas[:, o:o + size], np.float64))
+        cols.append(a)
+    A = np.stack(cols, axis=1)  # (S, J, 3N)
+    zero, one = np.zeros((y.shape[0] // 3, 3)), np.ones((y.shape[0] // 3, 3))
+    out = np.full(S, np.inf)
+    for s in range(S):
+        if not (np.all(np.isfinite(thetas[s])) and np.all(np.isfinite(A[s]))):
+            continue
+        bud = None
+        if problem.budget is not None:
+            lights = build_lights(problem, jnp.asarray(thetas[s, :problem.n_pose], dt))
+            bud = (np.array([float(emitted_power(x)) for x in lights]), float(problem.budget))
+        # the weighted problem as it stands: colours y, columns A, unit weights
+        cj = A[s].reshape(A.shape[1], -1, 3)
+        p = constrained_powers(zero, cj, y.reshape(-1, 3), one, None, bud, np.zeros(A.shape[1]))
+        r = np.tensordot(p, A[s], axes=1) - y
+        out[s] = 0.5 * float(r @ r)
+    return out, problem
