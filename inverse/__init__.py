@@ -23,6 +23,7 @@ from ._diagnostics import FitQualityWarning as FitQualityWarning
 from ._fit_lights import fit_lights as fit_lights
 from ._joint import fit_light_and_material as fit_light_and_material
 from ._joint import joint_std_errors as joint_std_errors
+from ._lights import LightReport as LightReport
 from ._lights import fit_light as fit_light
 from ._material import bounded_lstsq as bounded_lstsq
 from ._material import fit_material as fit_material
@@ -44,7 +45,6 @@ from ._regions import fit_material_regions as fit_material_regions
 from ._reports import FitReport as FitReport
 from ._reports import JointFit as JointFit
 from ._reports import LightFit as LightFit
-from ._reports import LightReport as LightReport
 from ._reports import LightsFit as LightsFit
 from ._reports import MaterialFit as MaterialFit
 from ._reports import MaterialReport as MaterialReport

@@ -18,7 +18,7 @@ from jaxtyping import Array
 import jaxshadow as js
 
 from ._diagnostics import FitQualityWarning, invalid_reason, without_invalid_lights
-from ._forward import SpecularFn
+from ._forward import SpecularFn, at_capacity
 from ._identifiability import identifiability
 from ._lights import fit_light
 from ._lm import fit_jit
@@ -44,8 +44,9 @@ def joint_std_errors(param: LightParametrisation, theta: Any, scene: js.Scene, m
     `theta`: `(P,)` the light's parameters (`param.size` first entries used); `targets`: N of
     them. The Jacobian is one compiled program per problem structure (light kind, N, the
     occluders' count, the shadow capacity rounded up to a multiple of 8), reused by later
-    calls with other values (scene, targets, material); the shadow engine at a capacity, every
-    receiver against every occluder when some receiver needs more.
+    calls with other values (scene, targets, material); the shadow engine at a capacity, run
+    again at twice the capacity while some receiver needs more (the retry of every fit; a
+    `RuntimeError` beyond 4096 boundary edges).
 
     **Returns:** name -> standard error: `"x", "y", "z"` (or `"a", "b"` on a plane) in m,
     rotations in rad, log sizes, `"ka[r]"` ... `"ks[b]"` and `"n"` (the exponent itself,
@@ -93,9 +94,9 @@ def joint_std_errors(param: LightParametrisation, theta: Any, scene: js.Scene, m
                             material, t, z, z, (0, *[P] * len(others)), False, with_spec, False, specular,
                             capacity=None if cap is None else 8 * -(-cap // 8),  # shared by nearby scenes
                             fit_exponent=True)
-    r, J, over = _joint_jacobian(problem, phi)
-    if bool(over):  # some receiver needs more boundary edges: every receiver against every occluder
-        r, J, _ = _joint_jacobian(dataclasses.replace(problem, capacity=None), phi)
+    # Twice the capacity while some receiver overflowed it: the one retry of every fit (`at_capacity`).
+    (r, J), _, _ = at_capacity(lambda pr: _unpacked(_joint_jacobian(pr, phi)), problem, "joint_std_errors",
+                               "Jacobian")
     keep = np.r_[np.arange(P), P + idx, [P + 9] if fit_n else []].astype(int)
     r, J = np.asarray(r, np.float64), np.asarray(J, np.float64)[:, keep]
     m_eff = int(np.count_nonzero(np.asarray(t.weights) > 0))
@@ -110,6 +111,11 @@ def joint_std_errors(param: LightParametrisation, theta: Any, scene: js.Scene, m
         else:
             out[nm] = float(se)
     return out
+
+
+def _unpacked(out: tuple[Array, Array, Array]) -> tuple[tuple[Array, Array], Array]:
+    """`((r, J), overflow)` from `_joint_jacobian`'s `(r, J, overflow)` (what `at_capacity` runs)."""
+    return out[:2], out[2]
 
 
 def _joint_residuals(phi: Array, problem: LightsProblem) -> tuple[Array, Array]:

@@ -16,6 +16,7 @@ problem's (`_problem`).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 from typing import Any, no_type_check
@@ -38,10 +39,11 @@ from ._forward import SpecularFn, shade
 from ._identifiability import identifiability
 from ._lm import fit_jit
 from ._multilight import LightsProblem, basis, colour_free_columns, exponent_at, fixed_contribution
+from ._multilight_report import LightsReport, correlated_pairs
 from ._multistart import distinct_minima, make_starts
 from ._options import Search, checked_constraints, search_options
 from ._parametrisation import FIT_GROUPS, LightParametrisation, scene_size, with_light
-from ._reports import LightFit, LightReport
+from ._reports import LightFit
 from ._solvers import (
     LEGACY_SOLVER_KEYWORDS,
     AbstractLightSolver,
@@ -51,6 +53,46 @@ from ._solvers import (
 from ._targets import PaintedTargets
 
 _POSITION_NAMES = ("x", "y", "z", "a", "b")
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class LightReport(LightsReport):
+    """`fit_light`'s report: a `LightsReport` of its one light (names as
+    `LightParametrisation.names`, e.g. `x`, `y`, `z`, `ru`, `rv`, `log_length`, and `log_n` last
+    with a fitted exponent; positions in m in `std_errors`; `correlated` pairs, `loss`,
+    `initial_loss`, `stage_losses` (one stage: the best loss), `starts_solved`, `retries`,
+    `scale` (m), `quality`; `suggestions` is empty: `fit_light` evaluates no candidate
+    receivers, `fit_lights` and `inverse.design_targets` do), and the solver's multistart:
+
+    - `theta`: the parameter vector at the optimum (positions in units of `scale` m;
+      rotations rad; sizes log factors; `log_n` last with a fitted exponent).
+    - `best_start`, `start_losses (S,)`, `converged (S,)`, `num_steps (S,)`: the multistart
+      (the solved starts; `n_screened` starts were generated, see the solver's `refine`).
+    - `n_distinct_minima`: final points more than 1e-3 (parameter units) apart among the
+      converged starts within 1 % of the best loss (a measure of ambiguity).
+    - `solver` (its name: `"lm"`, `"optimistix"`, `"lbfgsb"`); `abandoned (S,)`: starts stopped
+      early by the LM's `prune` (their `converged` is False), or None.
+    - `quality`: the checks of `inverse._diagnostics` (`FitQuality`: a wrong minimum, an escaped
+      light, outliers, conflicting targets, nearly undetermined parameters); `trusted` is
+      `quality.trusted`: False when the answer should not be used as is.
+    """
+
+    theta: np.ndarray
+    best_start: int
+    start_losses: np.ndarray
+    converged: np.ndarray
+    num_steps: np.ndarray
+    n_distinct_minima: int
+    n_screened: int
+    solver: str
+    abandoned: np.ndarray | None = None
+
+    def _headline(self) -> str:
+        ok = int(np.count_nonzero(self.converged))
+        return (f"light fit ({self.solver}): loss {self.initial_loss:.4g} -> {self.loss:.4g}; "
+                f"best start {self.best_start} of {len(self.start_losses)} ({ok} converged, "
+                + (f"{int(np.count_nonzero(self.abandoned))} abandoned, " if self.abandoned is not None else "")
+                + f"{self.n_distinct_minima} distinct minima near the best)")
 
 
 # Validates its own inputs (ValueError, docs/design.md): no runtime annotation check before it.
@@ -113,7 +155,8 @@ def fit_light(
     so is `constraint=c` (now `constraints={light_index: c}`).
 
     **Returns:** a `LightFit`: a `LightsFit` of one light (`scene`, `lights`, `powers` (ones),
-    `material`, `residual`, `report` (a `LightReport`), `theta`, `parametrisations`), with
+    `material`, `residual`, `report` (a `LightReport`: a `LightsReport` with the solver's
+    starts), `theta`, `parametrisations`), with
     `light` and `parametrisation` its one entry's.
 
     Example:
@@ -257,10 +300,13 @@ def _light_fit(problem: LightsProblem, sol: Solution, solver_name: str, n_screen
         names=names, values=values, std_errors=se,
         determined=determined, singular_values=ident.singular_values,
         targets_met=None if t.tolerance is None else np.all(np.abs(residual) <= np.asarray(t.tolerance), axis=1),
-        warnings=tuple(msgs), theta=theta64, loss=float(losses[sol.best]), initial_loss=sol.initial_loss,
-        best_start=sol.best, start_losses=sol.losses, converged=sol.converged, num_steps=sol.num_steps,
+        warnings=tuple(msgs), correlated=correlated_pairs(np.asarray(sol.jacobian, np.float64), names, ident.determined),
+        suggestions={}, suggestion_normals={}, loss=float(losses[sol.best]), initial_loss=sol.initial_loss,
+        stage_losses=(float(losses[sol.best]),), starts_solved=int(len(sol.losses)), retries=int(sol.retries),
+        scale=scale, quality=quality, theta=theta64, best_start=sol.best, start_losses=sol.losses,
+        converged=sol.converged, num_steps=sol.num_steps,
         n_distinct_minima=distinct_minima(sol.values, losses, sol.converged, sol.best), n_screened=n_screened,
-        solver=solver_name, scale=scale, abandoned=sol.abandoned, quality=quality,
+        solver=solver_name, abandoned=sol.abandoned,
     )
     return LightFit(scene=new_scene, lights=(sol.light,), powers=np.ones(1), material=material, residual=residual,
                     report=report, theta=theta64[:param.size], parametrisations=(param,))

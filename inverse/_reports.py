@@ -14,7 +14,6 @@ import numpy as np
 
 import jaxshadow as js
 
-from ._diagnostics import FitQuality
 from ._parametrisation import LightParametrisation
 
 
@@ -110,47 +109,6 @@ class MaterialReport(FitReport):
 
 
 @dataclasses.dataclass(frozen=True)
-class LightReport(FitReport):
-    """A light fit (`FitReport`: names as `LightParametrisation.names`, positions in m in
-    `std_errors`), and:
-
-    - `theta`: the parameter vector at the optimum (positions in units of `scale` m;
-      rotations rad; sizes log factors; `log_n` last with a fitted exponent).
-    - `loss`: $\\tfrac12\\sum w r^2$ at the optimum; `initial_loss` at the reference light.
-    - `best_start`, `start_losses (S,)`, `converged (S,)`, `num_steps (S,)`: the multistart
-      (the solved starts; `n_screened` starts were generated, see the solver's `refine`).
-    - `n_distinct_minima`: final points more than 1e-3 (parameter units) apart among the
-      converged starts within 1 % of the best loss (a measure of ambiguity).
-    - `solver` (its name: `"lm"`, `"optimistix"`, `"lbfgsb"`), `scale` (m);
-      `abandoned (S,)`: starts stopped early by the LM's `prune` (their `converged` is False).
-    - `quality`: the checks of `inverse._diagnostics` (`FitQuality`: a wrong minimum, an escaped
-      light, outliers, conflicting targets, nearly undetermined parameters); `trusted` is
-      `quality.trusted`: False when the answer should not be used as is.
-    """
-
-    theta: np.ndarray
-    loss: float
-    initial_loss: float
-    best_start: int
-    start_losses: np.ndarray
-    converged: np.ndarray
-    num_steps: np.ndarray
-    n_distinct_minima: int
-    n_screened: int
-    solver: str
-    scale: float
-    abandoned: np.ndarray | None = None
-    quality: FitQuality | None = None
-
-    def _headline(self) -> str:
-        ok = int(np.count_nonzero(self.converged))
-        return (f"light fit ({self.solver}): loss {self.initial_loss:.4g} -> {self.loss:.4g}; "
-                f"best start {self.best_start} of {len(self.start_losses)} ({ok} converged, "
-                + (f"{int(np.count_nonzero(self.abandoned))} abandoned, " if self.abandoned is not None else "")
-                + f"{self.n_distinct_minima} distinct minima near the best)")
-
-
-@dataclasses.dataclass(frozen=True)
 class MaterialFit:
     """`material` (a `js.Material`), `residual` `(N, 3)` = model - colours (unweighted),
     `report` (`MaterialReport`)."""
@@ -166,9 +124,9 @@ class LightsFit:
     powers), `lights` (the fitted lights, in the order of `fit_lights(lights=...)`), `powers (J,)`
     (factors of the given radiance; 1 where the power is not fitted), `material` (as given, or
     projected), `residual (N, 3)` = model - colours (unweighted; for a target painted as a
-    `ColourRange`, the distance outside its range, 0 inside), `report` (a `FitReport`:
-    `LightsReport` from `fit_lights`, `LightReport` from `fit_light`), `theta (P,)` the pose
-    parameters, `parametrisations` (per fitted light, None for a power-only light)."""
+    `ColourRange`, the distance outside its range, 0 inside), `report` (a `LightsReport`; from
+    `fit_light` its subclass `LightReport`, with the solver's starts as well), `theta (P,)` the
+    pose parameters, `parametrisations` (per fitted light, None for a power-only light)."""
 
     scene: js.Scene
     lights: tuple
@@ -183,8 +141,8 @@ class LightsFit:
 @dataclasses.dataclass(frozen=True)
 class LightFit(LightsFit):
     """`fit_light`'s answer: a `LightsFit` of one light, with `light` (= `lights[0]`) and
-    `parametrisation` (= `parametrisations[0]`); `report` is a `LightReport` (the solver's
-    starts, steps and screening as well)."""
+    `parametrisation` (= `parametrisations[0]`); `report` is a `LightReport` (a `LightsReport`
+    with the solver's starts, steps and screening as well)."""
 
     @property
     def light(self) -> Any:

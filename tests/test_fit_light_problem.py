@@ -69,6 +69,40 @@ def test_fit_light_runs_the_program_of_fit_lights(monkeypatch, n_lights, mode):
     np.testing.assert_allclose(np.asarray(fit.light.position), np.asarray(true.lights[0].position), atol=1e-6)
     assert fit.report.loss < 1e-12 * float(np.sum(np.asarray(targets.colours) ** 2))
     assert isinstance(fit, inverse.LightsFit)
+    _check_one_report_type(fit.report)
+
+
+def _check_one_report_type(report):
+    """`fit_light`'s report is `fit_lights`' report type (a `LightsReport`), its fields filled
+    from the one light's solve: one stage, the starts it solved, the retries."""
+    assert isinstance(report, inverse.LightsReport) and isinstance(report, inverse.LightReport)
+    assert report.stage_losses == (report.loss,) and report.starts_solved == len(report.start_losses) >= 1
+    assert report.retries >= 0 and report.suggestions == {} and report.suggestion_normals == {}
+    assert all(a in report.names and b in report.names and abs(r) > 0.95 for a, b, r in report.correlated)
+    assert str(report).startswith("light fit (lm)")
+
+
+def test_fit_light_report_trades_off_as_fit_lights_does():
+    """Targets on a short segment of the x axis under a point light: its x and z trade off (the
+    peak's width and height move together). `fit_light` reports the pair in `correlated` as
+    `fit_lights` does for the same light (power held), with the same correlation."""
+    dt = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
+    x = np.linspace(0.25, 0.6, 12)
+    points = np.c_[x, np.zeros_like(x), np.zeros_like(x)].astype(dt)
+    normals = np.tile(np.array([0.0, 0.0, 1.0], dt), (len(x), 1))
+    eye = np.array([0.0, -2.0, 2.0], dt)
+    true = js.Scene([js.PointLight([0.0, 0.0, 2.0], 3.0)], ambient=0.05)
+    targets = inverse.PaintedTargets(points, normals, js.shade(true, MATERIAL, points, normals, eye), eye)
+    one = inverse.fit_light(true, targets, MATERIAL, fit=("position",), starts=1, warn=False)
+    many = inverse.fit_lights(true, targets, MATERIAL, fit=("position",), starts=1, warn=False)
+    _check_one_report_type(one.report)
+    assert isinstance(many.report, inverse.LightsReport)
+    pairs = {(a, b): r for a, b, r in one.report.correlated}
+    assert ("x", "z") in pairs, one.report.correlated
+    want = {(a.removeprefix("light0."), b.removeprefix("light0.")): r for a, b, r in many.report.correlated}
+    assert set(pairs) == set(want)
+    for k, r in pairs.items():
+        assert r == pytest.approx(want[k], abs=1e-6)
 
 
 def test_residual_is_js_shade_with_a_per_receiver_material():

@@ -86,10 +86,11 @@ def test_joint_std_errors_compile_once_for_new_values(monkeypatch):
     assert out[0] != out[1]
 
 
-def test_joint_std_errors_overflow_falls_back_to_every_occluder(monkeypatch):
+def test_joint_std_errors_overflow_retries_at_twice_the_capacity(monkeypatch):
     """When some receiver overflows the capacity (simulated: the flag raised on the first
-    call), the errors come from every receiver against every occluder (capacity None): equal
-    to the capacity's (both exact)."""
+    call), the Jacobian is computed again at twice the capacity (`at_capacity`, the retry of
+    every fit), not with every receiver against every occluder: equal to the first capacity's
+    values (both exact)."""
     cfg, targets, param = _problem(0)
     args = (param, np.zeros(param.size), cfg.scene, cfg.material, targets)
     want = inverse.joint_std_errors(*args, fit_exponent=True)
@@ -103,6 +104,25 @@ def test_joint_std_errors_overflow_falls_back_to_every_occluder(monkeypatch):
 
     monkeypatch.setattr(_joint, "_joint_jacobian", overflowing)
     got = inverse.joint_std_errors(*args, fit_exponent=True)
-    assert calls[0] is not None and calls[0] % 8 == 0 and calls[1:] == [None]
+    assert len(calls) == 2 and calls[0] is not None and calls[0] % 8 == 0 and calls[1] == 2 * calls[0]
     for nm in want:
         assert got[nm] == pytest.approx(want[nm], rel=1e-9)
+
+
+def test_joint_std_errors_overflow_past_the_largest_capacity_raises(monkeypatch):
+    """A receiver that overflows every capacity up to the largest raises the retry's
+    `RuntimeError`, naming the entry point (no silent inexact value)."""
+    cfg, targets, param = _problem(0)
+    jac = _joint._joint_jacobian
+    calls, first = [], []
+
+    def always(problem, phi):  # the first capacity's program only: nothing else compiles
+        calls.append(problem.capacity)
+        if not first:
+            first.append(jac(problem, phi)[:2])
+        return (*first[0], jnp.asarray(True))
+
+    monkeypatch.setattr(_joint, "_joint_jacobian", always)
+    with pytest.raises(RuntimeError, match="joint_std_errors"):
+        inverse.joint_std_errors(param, np.zeros(param.size), cfg.scene, cfg.material, targets, fit_exponent=True)
+    assert calls[-1] == 4096 and all(b == min(2 * a, 4096) for a, b in zip(calls, calls[1:], strict=False))
