@@ -45,6 +45,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
+from jaxshadow._core.compile_cache import ensure_default_compile_cache
+
 # XLA:CPU options for the programs that hold the soft-shadow residual and its Jacobian (the
 # light-placement fits). Their first call is dominated by XLA compiling a few hundred small
 # fused loops; the legacy elemental emitter instead of the MLIR fusion emitters, and LLVM
@@ -77,7 +79,10 @@ def fit_jit(fun: Callable | None = None, *, options: dict | None = None) -> Any:
     The backend is looked up at the first call, not at import. A jaxlib that does not know one
     of the options (the supported `jax` range is wide) gets the defaults instead: the first
     compile that names an option in its error is retried without them. Calls run with the
-    garbage collector paused (`gc_paused`: compiling is ~10% shorter)."""
+    garbage collector paused (`gc_paused`: compiling is ~10% shorter). Before its first
+    compile, JAX's persistent compilation cache is turned on unless the user configured or
+    declined it (`jaxshadow._core.compile_cache.ensure_default_compile_cache`): a later
+    process loads the program instead of compiling it."""
     if fun is None:
         return functools.partial(fit_jit, options=options)
     opts = FIT_COMPILER_OPTIONS if options is None else options
@@ -90,6 +95,7 @@ def fit_jit(fun: Callable | None = None, *, options: dict | None = None) -> Any:
 
     def _call(*args: Any, **kwargs: Any) -> Any:
         if not jitted:
+            ensure_default_compile_cache()
             cpu = jax.default_backend() == "cpu" and "compiler_options" in inspect.signature(jax.jit).parameters
             if cpu:
                 # `filter_jit` forwards its extra keywords to `jax.jit` (its stubs do not list them).
