@@ -146,7 +146,7 @@ def batched_levenberg_marquardt(
     prune: tuple[int, ...] | Int[Array, " K"] = (),
     chunk: int | None = None,
     num_residuals: int | None = None,
-    jacobian: str = "linearize",
+    jacobian: str | Callable[[Array, Any], tuple[Array, Array, Array]] = "linearize",
     mirror: Int[Array, " S"] | None = None,
 ) -> LMResult:
     """Minimise $\\tfrac12|r(y)|^2$ from every row of `y0` at once (traceable; jit the caller).
@@ -170,7 +170,8 @@ def batched_levenberg_marquardt(
     - `jacobian` (static): `"linearize"` (default: `jax.linearize`, then the linear map on the
       basis vectors) or `"jacfwd"` (`jax.jacfwd`, and `jax.vmap` over the starts even for one).
       The same Jacobian to round-off; the first is cheaper to trace and compile
-      (`benchmarks/results/ab/lm_jacobian.md`).
+      (`benchmarks/results/ab/lm_jacobian.md`). Or a callable `(y (P,), args) -> (r (M,),
+      J (M, P), flag)` that knows the residual's structure (`_multilight`'s per-light Jacobian).
     - `mirror`: `(S,)` for each start the index of the first start equal to it (`mirror[i] <= i`;
       `duplicate_sources`), or None. A start with `mirror[i] != i` is not evaluated: it takes
       its source's residual and Jacobian at every iteration. It starts where its source does, so
@@ -183,7 +184,7 @@ def batched_levenberg_marquardt(
     S, P = y0.shape
     dt = y0.dtype
 
-    if jacobian not in ("linearize", "jacfwd"):
+    if not callable(jacobian) and jacobian not in ("linearize", "jacfwd"):
         raise ValueError(f"batched_levenberg_marquardt: jacobian must be 'linearize' or 'jacfwd', got {jacobian!r}.")
 
     def resid_aux(y: Array) -> tuple[Array, tuple[Array, Array]]:
@@ -195,6 +196,8 @@ def batched_levenberg_marquardt(
         # of `jvp` over the basis): the residual is traced once under `jvp` alone and only its
         # tangent equations are batched. With the soft-shadow residual the LM program traces
         # and lowers ~25% faster (`benchmarks/results/ab/lm_jacobian.md`).
+        if callable(jacobian):
+            return jacobian(y, args)
         if jacobian == "jacfwd":
             J, (r, flag) = jax.jacfwd(resid_aux, has_aux=True)(y)
             return r, J, flag
@@ -204,7 +207,7 @@ def batched_levenberg_marquardt(
 
     def rj_all(ys: Array) -> tuple[Array, Array, Array]:
         # One start (or chunks of one): no batching layer in the trace.
-        if ys.shape[0] == 1 and jacobian == "linearize":
+        if ys.shape[0] == 1 and (callable(jacobian) or jacobian == "linearize"):
             r, J, flag = rj_one(ys[0])
             return r[None], J[None], flag[None]
         return jax.vmap(rj_one)(ys)

@@ -220,3 +220,50 @@ def test_default_compile_cache_serves_a_later_process(tmp_path):
                            cwd=root).stdout.split() for _ in range(2)]
     assert outs[0][-2:] == ["0", str(tmp_path / "xla")] and outs[1][-2] == "1", outs
     assert any((tmp_path / "xla").iterdir())
+
+
+@pytest.mark.parametrize("variant", ["powers projected, exponent searched"])
+def test_structured_jacobian_is_the_residuals_jacobian(variant):
+    """`_multilight.structured_jacobian` (each light's engine differentiated along its own
+    parameters only) against `jax.jacfwd` of the whole projected residual: three lights of
+    distinct kinds behind a box, a specular term, one light whose power alone is fitted, the
+    Phong exponent searched (every light's column of log n). And the LM program's columns
+    outside its mask are zero. (The per-channel colour-free model is not served by it: there the
+    two differ at ~1e-5 relative in some columns, the projection's conditioning.)"""
+    from benchmarks.inverse_random_scenes import random_case
+    from inverse import _multilight as ML
+    from inverse._fit_lights import FIT_LIGHTS_GROUPS, _groups_for
+
+    c = random_case(3, ("polygon", "point", "segment"), n_targets=12)
+    material = js.Material(ka=0.2, kd=[0.6, 0.5, 0.4], ks=0.3, exponent=12.0)
+    t = inverse.PaintedTargets(c.points, c.normals, np.asarray(js.shade(c.true, material, c.points, c.normals,
+                                                                         c.eye)), c.eye)
+    size = inverse.scene_size(c.true, t)
+    params, offsets, off = [], [], 0
+    for i, light in enumerate(c.true.lights):
+        p = None if i == 1 else inverse.LightParametrisation(light, i, _groups_for(light, FIT_LIGHTS_GROUPS), None,
+                                                              size, "sigmoid")
+        params.append(p)
+        offsets.append(off)
+        off += 0 if p is None else p.size
+    z = jnp.zeros(t.points.shape, jnp.float64)
+    colour_free = variant.startswith("colour")
+    problem = ML.LightsProblem(tuple(params), tuple(c.true.lights), c.true, material, t, z, z, tuple(offsets),
+                               True, True, False, None, 64, fit_exponent=not colour_free, colour_free=colour_free)
+    theta = jnp.asarray(np.random.default_rng(2).normal(0.0, 0.05, problem.n_theta))
+    r, J, over = jax.jit(lambda th: ML.structured_jacobian(th, problem, problem.capacity))(theta)
+    ref = jax.jit(jax.jacfwd(lambda th: ML.projected_residual(th, problem, problem.capacity)[0]))(theta)
+    r0 = ML.projected_residual(theta, problem, problem.capacity)[0]
+    assert not bool(over) and J.shape == ref.shape == (r0.shape[0], problem.n_theta)
+    assert np.abs(np.asarray(ref)).max() > 0 and np.all(np.abs(np.asarray(ref)).max(axis=0) > 0)  # every column moves
+    np.testing.assert_allclose(np.asarray(r), np.asarray(r0), rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(np.asarray(J), np.asarray(ref), rtol=1e-9, atol=1e-12 * np.abs(np.asarray(ref)).max())
+    # The LM program's Jacobian: held columns zero, the others the same.
+    mask = np.zeros(problem.n_theta, bool)
+    mask[offsets[2]:] = True
+    res = ML._lm(problem, theta[None], theta, jnp.asarray(mask), 1e-8, 1e-12, np.asarray(0, np.int32),
+                 jnp.asarray(ML.prune_array(())), 1, jnp.zeros(1, jnp.int32))
+    Jl = np.asarray(res.jacobians[0])
+    assert np.all(Jl[:, ~mask] == 0)
+    np.testing.assert_allclose(Jl[:, mask], np.asarray(ref)[:, mask], rtol=1e-9,
+                               atol=1e-12 * np.abs(np.asarray(ref)).max())
