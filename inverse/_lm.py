@@ -45,6 +45,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
+from jaxshadow._core.compile_cache import ensure_default_compile_cache
+
 # XLA:CPU options for the programs that hold the soft-shadow residual and its Jacobian (the
 # light-placement fits). Their first call is dominated by XLA compiling a few hundred small
 # fused loops; the legacy elemental emitter instead of the MLIR fusion emitters, and LLVM
@@ -77,7 +79,10 @@ def fit_jit(fun: Callable | None = None, *, options: dict | None = None) -> Any:
     The backend is looked up at the first call, not at import. A jaxlib that does not know one
     of the options (the supported `jax` range is wide) gets the defaults instead: the first
     compile that names an option in its error is retried without them. Calls run with the
-    garbage collector paused (`gc_paused`: compiling is ~10% shorter)."""
+    garbage collector paused (`gc_paused`: compiling is ~10% shorter). Before its first
+    compile, JAX's persistent compilation cache is turned on unless the user configured or
+    declined it (`jaxshadow._core.compile_cache.ensure_default_compile_cache`): a later
+    process loads the program instead of compiling it."""
     if fun is None:
         return functools.partial(fit_jit, options=options)
     opts = FIT_COMPILER_OPTIONS if options is None else options
@@ -90,6 +95,7 @@ def fit_jit(fun: Callable | None = None, *, options: dict | None = None) -> Any:
 
     def _call(*args: Any, **kwargs: Any) -> Any:
         if not jitted:
+            ensure_default_compile_cache()
             cpu = jax.default_backend() == "cpu" and "compiler_options" in inspect.signature(jax.jit).parameters
             if cpu:
                 # `filter_jit` forwards its extra keywords to `jax.jit` (its stubs do not list them).
@@ -140,7 +146,7 @@ def batched_levenberg_marquardt(
     prune: tuple[int, ...] | Int[Array, " K"] = (),
     chunk: int | None = None,
     num_residuals: int | None = None,
-    jacobian: str = "linearize",
+    jacobian: str | Callable[[Array, Any], tuple[Array, Array, Array]] = "linearize",
     mirror: Int[Array, " S"] | None = None,
 ) -> LMResult:
     """Minimise $\\tfrac12|r(y)|^2$ from every row of `y0` at once (traceable; jit the caller).
@@ -164,7 +170,8 @@ def batched_levenberg_marquardt(
     - `jacobian` (static): `"linearize"` (default: `jax.linearize`, then the linear map on the
       basis vectors) or `"jacfwd"` (`jax.jacfwd`, and `jax.vmap` over the starts even for one).
       The same Jacobian to round-off; the first is cheaper to trace and compile
-      (`benchmarks/results/ab/lm_jacobian.md`).
+      (`benchmarks/results/ab/lm_jacobian.md`). Or a callable `(y (P,), args) -> (r (M,),
+      J (M, P), flag)` that knows the residual's structure (`_multilight`'s per-light Jacobian).
     - `mirror`: `(S,)` for each start the index of the first start equal to it (`mirror[i] <= i`;
       `duplicate_sources`), or None. A start with `mirror[i] != i` is not evaluated: it takes
       its source's residual and Jacobian at every iteration. It starts where its source does, so
@@ -177,7 +184,7 @@ def batched_levenberg_marquardt(
     S, P = y0.shape
     dt = y0.dtype
 
-    if jacobian not in ("linearize", "jacfwd"):
+    if not callable(jacobian) and jacobian not in ("linearize", "jacfwd"):
         raise ValueError(f"batched_levenberg_marquardt: jacobian must be 'linearize' or 'jacfwd', got {jacobian!r}.")
 
     def resid_aux(y: Array) -> tuple[Array, tuple[Array, Array]]:
@@ -189,6 +196,8 @@ def batched_levenberg_marquardt(
         # of `jvp` over the basis): the residual is traced once under `jvp` alone and only its
         # tangent equations are batched. With the soft-shadow residual the LM program traces
         # and lowers ~25% faster (`benchmarks/results/ab/lm_jacobian.md`).
+        if callable(jacobian):
+            return jacobian(y, args)
         if jacobian == "jacfwd":
             J, (r, flag) = jax.jacfwd(resid_aux, has_aux=True)(y)
             return r, J, flag
@@ -198,7 +207,7 @@ def batched_levenberg_marquardt(
 
     def rj_all(ys: Array) -> tuple[Array, Array, Array]:
         # One start (or chunks of one): no batching layer in the trace.
-        if ys.shape[0] == 1 and jacobian == "linearize":
+        if ys.shape[0] == 1 and (callable(jacobian) or jacobian == "linearize"):
             r, J, flag = rj_one(ys[0])
             return r[None], J[None], flag[None]
         return jax.vmap(rj_one)(ys)

@@ -25,6 +25,7 @@ import numpy as np
 from jaxtyping import Array
 
 import jaxshadow as js
+from jaxshadow._core.compile_cache import ensure_default_compile_cache
 
 from ._forward import SpecularFn, traced_specular
 from ._identifiability import identifiability
@@ -276,6 +277,7 @@ def fit_material(
         raise ValueError(f"fit_material: expected a jaxshadow.Scene, got {type(scene).__name__}.")
     if not isinstance(targets, PaintedTargets):
         raise ValueError(f"fit_material: targets must be PaintedTargets, got {type(targets).__name__}.")
+    ensure_default_compile_cache()  # before the irradiance's compile, not only the fit programs'
     if exponent is not None:
         try:
             e = np.asarray(exponent, dtype=np.float64)

@@ -173,11 +173,15 @@ def same_kind_groups(lights: list) -> list[list[int]]:
     return list(groups.values())
 
 
-def basis(theta: Array, problem: LightsProblem, capacity: int | None) -> tuple[Array, Array | None, Array]:
+def basis(theta: Array, problem: LightsProblem, capacity: int | None,
+          given: tuple | None = None) -> tuple[Array, Array | None, Array]:
     """`(E (J, N, 3), S (J, N, 3) or None, overflow)`: each fitted light's irradiance and
     specular integral at reference power (`jaxshadow.traced`, at `capacity`). Lights of the
     same kind and shape share one traced copy of the shadow engine (`jax.vmap` over them): the
-    compiled program holds one engine per kind, not one per light."""
+    compiled program holds one engine per kind, not one per light. `given`: that triple, already
+    computed (`structured_jacobian`): returned as is."""
+    if given is not None:
+        return given
     lights = lights_at(theta, problem)
     n = exponent_at(theta, problem)
     es: list = [None] * len(lights)
@@ -203,11 +207,12 @@ def _lstsq(A: Array, y: Array) -> tuple[Array, Array]:
     return A @ k - y, k
 
 
-def _parts(theta: Array, problem: LightsProblem, capacity: int | None) -> tuple[Array, Array, Array]:
+def _parts(theta: Array, problem: LightsProblem, capacity: int | None,
+           given: tuple | None = None) -> tuple[Array, Array, Array]:
     """`(fixed (N, 3), per_light (J, N, 3), overflow)`: the model is `fixed + sum_j p_j per_light[j]`."""
     t = problem.targets
     dt = theta.dtype
-    E, S, over = basis(theta, problem, capacity)
+    E, S, over = basis(theta, problem, capacity, given)
     m = problem.material
     La = jnp.broadcast_to(problem.scene.ambient.astype(dt)[None, :], t.colours.shape)
     kd, ks, ka = coefficient_rows(m.kd, dt), coefficient_rows(m.ks, dt), coefficient_rows(m.ka, dt)
@@ -227,7 +232,8 @@ def budget_coefficients(theta: Array, problem: LightsProblem) -> Array:
     return jnp.stack([emitted_power(light) for light in lights_at(theta, problem)]).astype(theta.dtype)
 
 
-def _data_residual(theta: Array, problem: LightsProblem, capacity: int | None) -> tuple[Array, Array]:
+def _data_residual(theta: Array, problem: LightsProblem, capacity: int | None,
+                   given: tuple | None = None) -> tuple[Array, Array]:
     """`(r, overflow)`: $\\sqrt{w}(L_{model} - C)$ `(3N,)` row-major `(N, 3)` at the problem's
     material with the powers projected out (module docstring); under a budget `B` the projection
     is the least-squares solution on the plane `c . p = B` when the free one exceeds it. With
@@ -236,7 +242,9 @@ def _data_residual(theta: Array, problem: LightsProblem, capacity: int | None) -
     penalty row $\\sqrt{\\sum w}\\max(0, c\\cdot p / B - 1)$: the final solve keeps it exactly)."""
     t = problem.targets
     sw = jnp.sqrt(t.weights)
-    fixed, per_light, over = _parts(theta, problem, capacity)
+    if problem.colour_free and not problem.powers_in_theta:
+        return _colour_free_rows(theta, problem, capacity, given)
+    fixed, per_light, over = _parts(theta, problem, capacity, given)
     if problem.powers_in_theta:
         q = theta[problem.n_pose:problem.n_pose + len(problem.params)]
         p = q * q
@@ -246,8 +254,6 @@ def _data_residual(theta: Array, problem: LightsProblem, capacity: int | None) -
             g = budget_coefficients(theta, problem) @ p / b - 1.0
             r = jnp.concatenate([r, jnp.sqrt(jnp.sum(t.weights))[None] * jnp.where(g > 0, g, 0.0)[None]])
         return r, over
-    if problem.colour_free:
-        return _colour_free_rows(theta, problem, capacity)
     if not problem.fit_power:
         return painted_rows(fixed + jnp.sum(per_light, axis=0), t.colours, sw, problem.paint), over
     y = (sw * (t.colours - fixed)).reshape(-1)
@@ -263,7 +269,8 @@ def _data_residual(theta: Array, problem: LightsProblem, capacity: int | None) -
     return A @ p - y, over
 
 
-def _colour_free_rows(theta: Array, problem: LightsProblem, capacity: int | None) -> tuple[Array, Array]:
+def _colour_free_rows(theta: Array, problem: LightsProblem, capacity: int | None,
+                      given: tuple | None = None) -> tuple[Array, Array]:
     r"""`(r (3N,), overflow)` of the model with every coefficient free per channel $c$:
 
     $$L_c = a_c L_{a,c} + \sum_j b_{j,c} E^j_c / \pi + b_{0,c} E^0_c / \pi
@@ -277,7 +284,7 @@ def _colour_free_rows(theta: Array, problem: LightsProblem, capacity: int | None
     are searched."""
     t = problem.targets
     dt = theta.dtype
-    E, S, over = basis(theta, problem, capacity)
+    E, S, over = basis(theta, problem, capacity, given)
     if problem.active is not None:  # lights left out of the model: zero columns (pinv ignores them)
         E = E * problem.active.astype(dt)[:, None, None]
         S = None if S is None else S * problem.active.astype(dt)[:, None, None]
@@ -326,12 +333,13 @@ def outside_depth(theta: Array, problem: LightsProblem) -> Array:
     return jnp.stack(out)
 
 
-def projected_residual(theta: Array, problem: LightsProblem, capacity: int | None) -> tuple[Array, Array]:
+def projected_residual(theta: Array, problem: LightsProblem, capacity: int | None,
+                       given: tuple | None = None) -> tuple[Array, Array]:
     r"""`_data_residual` (the targets' rows) and, for every `Outside` constraint, a hinge row
     $\sqrt{\sum w}\,10^3 \max(0, \text{depth}) / s$ (depth `outside_depth`, $s$ the scene size):
     a centre 1 % of the scene size inside adds a hundred times the loss of a unit residual at
-    every target."""
-    r, over = _data_residual(theta, problem, capacity)
+    every target. `given`: the basis at `theta`, already computed (`basis`)."""
+    r, over = _data_residual(theta, problem, capacity, given)
     if not problem.outside:
         return r, over
     d = outside_depth(theta, problem)
@@ -394,6 +402,73 @@ def loss_at(problem: LightsProblem, theta: Array) -> Array:
     return 0.5 * jnp.sum(r * r)
 
 
+def _own_columns(problem: LightsProblem, j: int) -> list[int]:
+    """The entries of $\\theta$ light `j`'s basis depends on: its pose's, and $\\log n$ when the
+    exponent is searched and there is a specular term."""
+    p = problem.params[j]
+    cols = [] if p is None else list(range(problem.offsets[j], problem.offsets[j] + p.size))
+    if problem.fit_exponent and problem.with_specular:
+        cols.append(problem.n_theta - 1)
+    return cols
+
+
+def structured_jacobian(theta: Array, problem: LightsProblem, capacity: int | None) -> tuple[Array, Array, Array]:
+    r"""`(r (M,), J (M, P), overflow)` of `projected_residual` at `theta`, by its structure: each
+    light's basis (`_one_basis`: the shadow engine) depends only on its own parameters
+    (`_own_columns`), so its tangents are taken along those alone (`jax.linearize`, the linear
+    map on their basis vectors), and the rest of the residual (the projection of the powers or
+    the material, the painted rows, the constraints' rows), cheap, is linearised in the basis
+    and $\theta$ and applied to every column. `jax.linearize` of the whole residual on the P
+    basis vectors (`_lm`'s default) sends all P tangents through every light's engine: with
+    several lights most of them are zero. The same Jacobian to round-off. Lights of one kind share
+    one traced copy of the engine in `basis` (compile time): when some do, the whole residual is
+    linearised instead."""
+    dt = theta.dtype
+    if any(len(g) > 1 for g in same_kind_groups(lights_at(theta, problem))):
+        r, lin, over = jax.linearize(lambda th: projected_residual(th, problem, capacity), theta, has_aux=True)
+        return r, jax.vmap(lin, out_axes=1)(jnp.eye(theta.shape[0], dtype=dt)), over
+    P = theta.shape[0]
+    J = len(problem.params)
+    N = problem.targets.points.shape[0]
+    spec = problem.with_specular
+    Es, Ss, over = [], [], jnp.zeros((), bool)
+    dE = jnp.zeros((P, J, N, 3), dt)
+    dS = jnp.zeros((P, J, N, 3), dt) if spec else None
+    for j in range(J):
+        cols = _own_columns(problem, j)
+        idx = jnp.asarray(cols, jnp.int32)
+
+        def one(z: Array, j: int = j, idx: Array = idx) -> tuple[tuple[Array, Array], Array]:
+            th = theta.at[idx].set(z) if z.shape[0] else theta
+            e, sp, o = _one_basis(lights_at(th, problem)[j], problem, capacity, exponent_at(th, problem))
+            return (e, jnp.zeros_like(e) if sp is None else sp), o
+
+        if cols:
+            (e, sp), lin, o = jax.linearize(one, theta[idx], has_aux=True)
+            de, ds = jax.vmap(lin)(jnp.eye(len(cols), dtype=dt))
+            dE = dE.at[idx, j].set(de)
+            if dS is not None:
+                dS = dS.at[idx, j].set(ds)
+        else:
+            (e, sp), o = one(theta[:0])
+        Es.append(e)
+        Ss.append(sp)
+        over = over | o
+    E = jnp.stack(Es)
+    S = jnp.stack(Ss) if spec else None
+
+    def rest(E: Array, S: Array | None, th: Array) -> Array:
+        return projected_residual(th, problem, capacity, given=(E, S, over))[0]
+
+    if S is None:
+        r, lin = jax.linearize(lambda E, th: rest(E, None, th), E, theta)
+        Jt = jax.vmap(lin)(dE, jnp.eye(P, dtype=dt))
+    else:
+        r, lin = jax.linearize(rest, E, S, theta)
+        Jt = jax.vmap(lin)(dE, dS, jnp.eye(P, dtype=dt))
+    return r, Jt.T, over
+
+
 def _lm_impl(problem: LightsProblem, starts: Array, base: Array, mask: Array, rtol: float, atol: float,
              max_steps: Array, prune: Array, chunk: int | None, mirror: Array) -> LMResult:
     """Batched LM (`_lm`) on the projected residual, searching only where `mask` (the other
@@ -403,9 +478,21 @@ def _lm_impl(problem: LightsProblem, starts: Array, base: Array, mask: Array, rt
         pr, b, m = args
         return projected_residual(jnp.where(m, th, b), pr, pr.capacity)
 
+    def rj(th: Array, args: tuple) -> tuple[Array, Array, Array]:
+        pr, b, m = args
+        r, J, over = structured_jacobian(jnp.where(m, th, b), pr, pr.capacity)
+        return r, J * m.astype(J.dtype)[None, :], over
+
+    # The per-light Jacobian where it saves work and was checked against the whole residual's:
+    # several lights of distinct kinds, powers projected (not the per-channel colour-free model,
+    # whose projection is ill-conditioned enough that the two differ at ~1e-5 relative).
+    lights = lights_at(starts[0], problem)
+    structured = (len(lights) > 1 and not problem.colour_free
+                  and all(len(g) == 1 for g in same_kind_groups(lights)))
     return batched_levenberg_marquardt(fn, starts, (problem, base, mask), rtol=rtol, atol=atol,
                                        max_steps=max_steps, prune=prune, chunk=chunk,
-                                       num_residuals=problem.n_residuals, mirror=mirror)
+                                       num_residuals=problem.n_residuals, mirror=mirror,
+                                       jacobian=rj if structured else "linearize")
 
 
 _lm = fit_jit(_lm_impl)

@@ -4,6 +4,9 @@ follows the inputs), rank promotion is an error, and a fixed set of dtypes to pa
 import os
 
 os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
+# No persistent compilation cache by default (`jaxshadow._core.compile_cache`): tests that count
+# compilations must see them, and a test run writes nothing to the home directory.
+os.environ.setdefault("JAXSHADOW_COMPILE_CACHE", "off")
 
 import jax  # noqa: E402
 import pytest  # noqa: E402

@@ -130,3 +130,140 @@ def test_material_specular_one_program_values_and_derivative(spec_basis):
           - np.asarray(js.specular(scene, t.points, t.normals, eyes, jnp.asarray(17.3 * np.exp(-h))))) / (2 * h)
     np.testing.assert_allclose(d, fd, rtol=1e-5, atol=1e-9 * np.abs(fd).max())
     np.testing.assert_allclose(one, basis.spec_many(np.array([17.3]))[0], rtol=0, atol=0)
+
+
+@pytest.fixture
+def pristine_cache(monkeypatch):
+    """JAX's persistent cache unconfigured and the library's default undecided; restored after."""
+    from jax.experimental.compilation_cache import compilation_cache
+
+    from jaxshadow._core import compile_cache as CC
+
+    saved = (jax.config.jax_compilation_cache_dir, jax.config.jax_persistent_cache_min_compile_time_secs)
+    jax.config.update("jax_compilation_cache_dir", None)
+    compilation_cache.reset_cache()
+    CC.reset_default_compile_cache()
+    yield CC
+    jax.config.update("jax_compilation_cache_dir", saved[0])
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", saved[1])
+    compilation_cache.reset_cache()
+    CC.reset_default_compile_cache()
+
+
+def _fresh_program():
+    """A fit program that has not run in this process (`fit_jit` decides the cache at its first call)."""
+    from inverse._lm import fit_jit
+
+    return fit_jit(lambda x: jnp.sin(x) * 2.0)
+
+
+def test_default_compile_cache_is_turned_on_by_the_first_fit_program(pristine_cache, monkeypatch, tmp_path):
+    """The library's default: a fit program's first call turns JAX's persistent cache on in
+    `$JAXSHADOW_COMPILE_CACHE` (here a temporary directory), created private to the user."""
+    d = tmp_path / "xla"
+    monkeypatch.setenv("JAXSHADOW_COMPILE_CACHE", str(d))
+    assert jax.config.jax_compilation_cache_dir is None
+    _fresh_program()(jnp.ones(3))
+    assert jax.config.jax_compilation_cache_dir == str(d)
+    assert d.is_dir() and (d.stat().st_mode & 0o777) == 0o700
+    assert pristine_cache.ensure_default_compile_cache() == str(d)
+
+
+@pytest.mark.parametrize("how", ["env off", "user dir", "jax disabled", "declined"])
+def test_default_compile_cache_leaves_a_users_choice_alone(pristine_cache, monkeypatch, tmp_path, how):
+    """Off by `JAXSHADOW_COMPILE_CACHE=off`, by `jax_enable_compilation_cache=False` and by the
+    command's `--no-compile-cache` (`decline_default_compile_cache`); a directory the user gave
+    JAX is kept (the library's default directory is not created)."""
+    mine = tmp_path / "mine"
+    monkeypatch.setenv("JAXSHADOW_COMPILE_CACHE", str(tmp_path / "default"))
+    if how == "env off":
+        monkeypatch.setenv("JAXSHADOW_COMPILE_CACHE", "off")
+    elif how == "user dir":
+        jax.config.update("jax_compilation_cache_dir", str(mine))
+    elif how == "jax disabled":
+        jax.config.update("jax_enable_compilation_cache", False)
+    else:
+        pristine_cache.decline_default_compile_cache()
+    try:
+        _fresh_program()(jnp.ones(3))
+        expect = str(mine) if how == "user dir" else None
+        assert jax.config.jax_compilation_cache_dir == expect
+        assert pristine_cache.ensure_default_compile_cache() == expect
+        assert not (tmp_path / "default").exists()
+    finally:
+        jax.config.update("jax_enable_compilation_cache", True)
+
+
+_CHILD = """
+import jax, jax.numpy as jnp
+hits = []
+jax.monitoring.register_event_listener(lambda e, **k: hits.append(e) if e == "/jax/compilation_cache/cache_hits" else None)
+from inverse._lm import fit_jit
+f = fit_jit(lambda x: jnp.cumsum(jnp.sin(x) ** 2))
+jax.block_until_ready(f(jnp.ones(5)))
+print("HITS", len(hits), jax.config.jax_compilation_cache_dir)
+"""
+
+
+def test_default_compile_cache_serves_a_later_process(tmp_path):
+    """Across processes: the second process finds the first one's fit program in the default
+    cache (a persistent-cache hit), without any configuration by the caller."""
+    import os
+    import subprocess
+    import sys
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ, JAXSHADOW_COMPILE_CACHE=str(tmp_path / "xla"), PYTHONPATH=root,
+               JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")  # a tiny program: cache it anyway
+    env.pop("JAX_COMPILATION_CACHE_DIR", None)
+    outs = [subprocess.run([sys.executable, "-c", _CHILD], env=env, capture_output=True, text=True, check=True,
+                           cwd=root).stdout.split() for _ in range(2)]
+    assert outs[0][-2:] == ["0", str(tmp_path / "xla")] and outs[1][-2] == "1", outs
+    assert any((tmp_path / "xla").iterdir())
+
+
+@pytest.mark.parametrize("variant", ["powers projected, exponent searched"])
+def test_structured_jacobian_is_the_residuals_jacobian(variant):
+    """`_multilight.structured_jacobian` (each light's engine differentiated along its own
+    parameters only) against `jax.jacfwd` of the whole projected residual: three lights of
+    distinct kinds behind a box, a specular term, one light whose power alone is fitted, the
+    Phong exponent searched (every light's column of log n). And the LM program's columns
+    outside its mask are zero. (The per-channel colour-free model is not served by it: there the
+    two differ at ~1e-5 relative in some columns, the projection's conditioning.)"""
+    from benchmarks.inverse_random_scenes import random_case
+    from inverse import _multilight as ML
+    from inverse._fit_lights import FIT_LIGHTS_GROUPS, _groups_for
+
+    c = random_case(3, ("polygon", "point", "segment"), n_targets=12)
+    material = js.Material(ka=0.2, kd=[0.6, 0.5, 0.4], ks=0.3, exponent=12.0)
+    t = inverse.PaintedTargets(c.points, c.normals, np.asarray(js.shade(c.true, material, c.points, c.normals,
+                                                                         c.eye)), c.eye)
+    size = inverse.scene_size(c.true, t)
+    params, offsets, off = [], [], 0
+    for i, light in enumerate(c.true.lights):
+        p = None if i == 1 else inverse.LightParametrisation(light, i, _groups_for(light, FIT_LIGHTS_GROUPS), None,
+                                                              size, "sigmoid")
+        params.append(p)
+        offsets.append(off)
+        off += 0 if p is None else p.size
+    z = jnp.zeros(t.points.shape, jnp.float64)
+    colour_free = variant.startswith("colour")
+    problem = ML.LightsProblem(tuple(params), tuple(c.true.lights), c.true, material, t, z, z, tuple(offsets),
+                               True, True, False, None, 64, fit_exponent=not colour_free, colour_free=colour_free)
+    theta = jnp.asarray(np.random.default_rng(2).normal(0.0, 0.05, problem.n_theta))
+    r, J, over = jax.jit(lambda th: ML.structured_jacobian(th, problem, problem.capacity))(theta)
+    ref = jax.jit(jax.jacfwd(lambda th: ML.projected_residual(th, problem, problem.capacity)[0]))(theta)
+    r0 = ML.projected_residual(theta, problem, problem.capacity)[0]
+    assert not bool(over) and J.shape == ref.shape == (r0.shape[0], problem.n_theta)
+    assert np.abs(np.asarray(ref)).max() > 0 and np.all(np.abs(np.asarray(ref)).max(axis=0) > 0)  # every column moves
+    np.testing.assert_allclose(np.asarray(r), np.asarray(r0), rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(np.asarray(J), np.asarray(ref), rtol=1e-9, atol=1e-12 * np.abs(np.asarray(ref)).max())
+    # The LM program's Jacobian: held columns zero, the others the same.
+    mask = np.zeros(problem.n_theta, bool)
+    mask[offsets[2]:] = True
+    res = ML._lm(problem, theta[None], theta, jnp.asarray(mask), 1e-8, 1e-12, np.asarray(0, np.int32),
+                 jnp.asarray(ML.prune_array(())), 1, jnp.zeros(1, jnp.int32))
+    Jl = np.asarray(res.jacobians[0])
+    assert np.all(Jl[:, ~mask] == 0)
+    np.testing.assert_allclose(Jl[:, mask], np.asarray(ref)[:, mask], rtol=1e-9,
+                               atol=1e-12 * np.abs(np.asarray(ref)).max())

@@ -387,21 +387,14 @@ def enable_compile_cache(directory: str | None = None, min_compile_s: float = 0.
     """Turn on JAX's persistent compilation cache (programs that took >= `min_compile_s` to
     compile are stored on disk and reused by later processes). `directory`: default
     `$JAX_COMPILATION_CACHE_DIR`, else `~/.cache/jaxshadow/xla`. Returns the directory. The
-    cache is trusted code: keep it private to the user (see JAX's documentation)."""
-    import jax
+    cache is trusted code: keep it private to the user (see JAX's documentation). The library's
+    solvers turn the same cache on by default (`jaxshadow._core.compile_cache`)."""
+    from .._core.compile_cache import enable_compile_cache as enable
 
-    d = directory or os.environ.get("JAX_COMPILATION_CACHE_DIR") or os.path.join(
-        os.path.expanduser("~"), ".cache", "jaxshadow", "xla")
     try:
-        os.makedirs(d, mode=0o700, exist_ok=True)
-    except OSError as err:
-        raise PermissionError(f"--compile-cache: cannot create {d!r} ({err.strerror}); "
-                              "pass --compile-cache DIR or --no-compile-cache.") from None
-    if not os.access(d, os.W_OK):
-        raise PermissionError(f"--compile-cache: {d!r} is not writable; pass --compile-cache DIR or --no-compile-cache.")
-    jax.config.update("jax_compilation_cache_dir", d)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", min_compile_s)
-    return d
+        return enable(directory, min_compile_s, who="--compile-cache")
+    except PermissionError as err:
+        raise PermissionError(f"{err}; pass --compile-cache DIR or --no-compile-cache.") from None
 
 
 def _version() -> str:
@@ -451,7 +444,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         check_requirements(tuple(getattr(args, "requires", ())) + PLUGIN_REQUIRES.get(args.cmd, ()))
         check_outputs_are_not_inputs(_paths(args, OUTPUT_ARGUMENTS), _paths(args, INPUT_ARGUMENTS))
-        if not args.no_compile_cache:
+        if args.no_compile_cache:  # nor the library's default (`jaxshadow._core.compile_cache`)
+            from .._core.compile_cache import decline_default_compile_cache
+
+            decline_default_compile_cache()
+        else:
             enable_compile_cache(args.compile_cache)
         return int(args.func(args) or 0)
     except _USER_ERRORS as err:
