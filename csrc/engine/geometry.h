@@ -211,9 +211,15 @@ inline bool float32_face(const Occluders<T>& occ, int64_t f) {
   return true;
 }
 
+// `edge_on`: side is 0 because p lies in the face's plane within the heights' rounding bounds or
+// the on-surface distance (the face's vertices finite), on its front side. Such a face is dropped;
+// where p is in fact (by less than that distance) in front of it, the face's projection, a wedge, is then
+// blocked only by the mesh's other faces behind it, so a closed mesh keeps its back faces
+// (polygon.h, hard.h). The device kernel does the same: it drops the face and keeps the rest.
 template <class T>
 struct FaceSide {
   int side = 0;
+  bool edge_on = false;
   T scale = 0, h0 = 0;
   V3<T> no{0, 0, 0};
 };
@@ -249,12 +255,47 @@ FaceSide<T> face_side(const Occluders<T>& occ, int64_t f, V3<T> p, V3<T>* rel) {
   for (int64_t i = 0; i < Ko; i++) {
     T h = dot(no, rel[i]);
     V3<T> ar{std::fabs(rel[i].x), std::fabs(rel[i].y), std::fabs(rel[i].z)};
-    if (!(-s * h > boundf * dot(bnd, ar)) || !(-s * h > dtol)) return out;
+    if (!(-s * h > boundf * dot(bnd, ar)) || !(-s * h > dtol)) {
+      // Only with p on the face's front side (h0 < 0; exactly in its plane, or behind it, p sees
+      // no wedge), and not for a face whose normal its rounding does not determine (collinear
+      // vertices, a sliver): it blocks a solid angle of the order of that rounding.
+      out.edge_on = h0 < 0 && norm(no) > T(16) * boundf * norm(bnd);
+      return out;
+    }
   }
   out.side = h0 < 0 ? 1 : -1;
   out.h0 = h0;
   out.no = no;
   return out;
+}
+
+// Whether p lies in the plane of face f, on its front side, as face_side decides (edge_on), or
+// within twice the on-surface distance in front of it (in double): a rule applied elsewhere to
+// the same face and point (the JAX kernels' _occluder_sides, with their own roundings) drops the
+// face at most there. Faces whose normal is not determined to 2^-30 of their edges' products
+// (slivers) never are.
+template <class T>
+bool near_face_plane(const Occluders<T>& occ, int64_t f, V3<T> p) {
+  if (occ.Ko > 64) return false;
+  V3<T> rel[64];
+  if (face_side(occ, f, p, rel).edge_on) return true;
+  const V3<T> v0 = occ.vert(f, 0);
+  double N[3] = {0, 0, 0}, B = 0, S = double(absmax(p));
+  for (int64_t i = 0; i < occ.Ko; i++) {
+    const V3<T> vi = occ.vert(f, i), vj = occ.vert(f, (i + 1) % occ.Ko);
+    S = std::max(S, double(absmax(vi)));
+    const double a[3] = {double(vi.x) - v0.x, double(vi.y) - v0.y, double(vi.z) - v0.z};
+    const double b[3] = {double(vj.x) - v0.x, double(vj.y) - v0.y, double(vj.z) - v0.z};
+    N[0] += a[1] * b[2] - a[2] * b[1];
+    N[1] += a[2] * b[0] - a[0] * b[2];
+    N[2] += a[0] * b[1] - a[1] * b[0];
+    B += std::sqrt((a[0] * a[0] + a[1] * a[1] + a[2] * a[2]) * (b[0] * b[0] + b[1] * b[1] + b[2] * b[2]));
+  }
+  const double nn = std::sqrt(N[0] * N[0] + N[1] * N[1] + N[2] * N[2]);
+  if (!(nn > 0x1p-30 * B)) return false;  // a sliver or collinear vertices (as edge_on)
+  const double h = (double(p.x) - v0.x) * N[0] + (double(p.y) - v0.y) * N[1] + (double(p.z) - v0.z) * N[2];
+  const double dtol = 2 * (float32_face(occ, f) ? kOnSurface : kOnSurface64) * S;
+  return h > 0 && h <= dtol * nn;  // in front (as edge_on)
 }
 
 }  // namespace jaxshadow_engine

@@ -97,7 +97,8 @@ bool ray_blocked(const Occluders<T>& occ, const BVH& bvh, V3<T> p, V3<T> r, cons
 
 // Faces that can block part of the segment light a -> b seen from p: the light triangle (p, a, b)
 // meets them. Conservative: a box test, then the face's vertices not all strictly on one side of
-// the triangle's plane or outside one of its edge planes. Back faces of closed meshes are dropped.
+// the triangle's plane or outside one of its edge planes. Back faces of closed meshes are dropped
+// seen from outside the mesh's box, unless p lies in the plane of one of the mesh's listed faces.
 template <class T>
 void segment_candidates(const Occluders<T>& occ, const BVH& bvh, V3<T> p, V3<T> a, V3<T> b,
                         std::vector<int32_t>& out, std::vector<std::pair<int32_t, int32_t>>& cand) {
@@ -126,6 +127,10 @@ void segment_candidates(const Occluders<T>& occ, const BVH& bvh, V3<T> p, V3<T> 
   }
   double scale = std::max(double(absmax(p)), std::max(double(absmax(a)), double(absmax(b)))) + 1.0;
   query(bvh, hs, nh, 1e3 * double(eps_of<T>()) * scale, cand);
+  // Closed meshes that keep their back faces (at most kKeep listed; more: all of them).
+  constexpr int kKeep = 8;
+  int32_t keep[kKeep];
+  int nkeep = 0;
   auto consider = [&](int64_t f) {
     const int64_t Ko = occ.Ko;
     // Drop faces with every vertex strictly on one side of the triangle's plane.
@@ -140,14 +145,26 @@ void segment_candidates(const Occluders<T>& occ, const BVH& bvh, V3<T> p, V3<T> 
     }
     if (nonzero(nt) && (pos || neg)) return;
     const double pd[3] = {double(p.x), double(p.y), double(p.z)};
-    if (occ.face_closed && bvh.outside_mesh(occ.face_closed[f], pd)) {
+    const int32_t mesh = occ.face_closed ? occ.face_closed[f] : -1;
+    if (mesh >= 0 && bvh.outside_mesh(mesh, pd)) {
+      // p in the face's plane (the evaluator drops the face, FaceSide::edge_on): the mesh keeps
+      // its back faces, which alone cover the face's wedge where p is just in front of it.
+      if (nkeep <= kKeep && near_face_plane(occ, f, p)) {
+        bool known = false;
+        for (int k = 0; k < nkeep && !known; k++) known = keep[k] == mesh;
+        if (!known && nkeep < kKeep) keep[nkeep] = mesh;
+        if (!known) nkeep++;
+      }
       V3<T> no{0, 0, 0};
       for (int64_t i = 0; i < Ko; i++) no = no + cross(occ.vert(f, i) - p, occ.vert(f, (i + 1) % Ko) - p);
       T h0 = dot(no, occ.vert(f, 0) - p);
       // p strictly behind an outward face: a front face of the same mesh blocks the same rays.
       T scl = 0;
       for (int64_t i = 0; i < Ko; i++) scl = std::max(scl, norm(occ.vert(f, i) - p));
-      if (h0 > tol * norm(no) * scl) return;
+      if (h0 > tol * norm(no) * scl) {
+        out.push_back(-int32_t(f) - 1);  // a back face, dropped below unless its mesh is kept
+        return;
+      }
     }
     out.push_back(int32_t(f));
   };
@@ -160,6 +177,17 @@ void segment_candidates(const Occluders<T>& occ, const BVH& bvh, V3<T> p, V3<T> 
       for (int64_t f = occ.solid_faces[2 * s]; f < occ.solid_faces[2 * s + 1]; f++) consider(f);
     }
   }
+  size_t m = 0;
+  for (int32_t f : out) {
+    if (f < 0) {
+      f = -f - 1;
+      bool kept = nkeep > kKeep;
+      for (int k = 0; k < nkeep && !kept; k++) kept = keep[k] == occ.face_closed[f];
+      if (!kept) continue;
+    }
+    out[m++] = f;
+  }
+  out.resize(m);
   std::sort(out.begin(), out.end());
 }
 

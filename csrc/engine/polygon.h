@@ -606,11 +606,39 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
   if (w.fstat.size() != size_t(occ.M)) w.fstat.assign(size_t(occ.M), 0);
   std::vector<FaceSide<T>>& pre = w.pre;
   pre.resize(w.cand.size());
+  // Back faces of a closed mesh are dropped seen from outside its box (face_status), except for
+  // a mesh one of whose candidate faces p lies in the plane of (FaceSide::edge_on): that face is
+  // dropped, and where p is in front of it by less than the on-surface distance (2e-6 m for a
+  // mesh of float32 values 0.5 m across) only the back faces cover its wedge of shadow (5e-3 of
+  // the irradiance 1e-6 m in front of an L-shaped prism's side). `keep`: such meshes (all of them
+  // past kKeep).
+  constexpr int kKeep = 8;
+  int32_t keep[kKeep];
+  int nkeep = 0;
   for (size_t c = 0; c < w.cand.size(); c++) {
     const int32_t item = w.cand[c].second;
     if (item < 0) continue;
-    const int st = face_status(item, true, pre[c]);
-    if (st == 0) pre[c].side = 0;
+    pre[c] = FaceSide<T>{};
+    if (face_status(item, false, pre[c]) == 0) pre[c].side = 0;
+    const int32_t mesh = occ.face_closed ? occ.face_closed[item] : -1;
+    if (pre[c].edge_on && mesh >= 0 && nkeep <= kKeep) {
+      bool known = false;
+      for (int k = 0; k < nkeep && !known; k++) known = keep[k] == mesh;
+      if (!known && nkeep < kKeep) keep[nkeep] = mesh;
+      if (!known) nkeep++;  // kKeep + 1: keep every closed mesh's back faces
+    }
+  }
+  auto culled = [&](int32_t mesh) {  // back faces of closed mesh `mesh` (or -1) dropped from outside its box
+    if (mesh < 0 || nkeep > kKeep) return false;
+    for (int k = 0; k < nkeep; k++)
+      if (keep[k] == mesh) return false;
+    return call.bvh->outside_mesh(mesh, pd);
+  };
+  for (size_t c = 0; c < w.cand.size(); c++) {
+    const int32_t item = w.cand[c].second;
+    if (item < 0) continue;
+    if (pre[c].side < 0 && occ.face_closed && culled(occ.face_closed[item])) pre[c].side = 0;  // back face
+    const int st = pre[c].side;
     if (st != 0 && !call.twin().empty()) {
       w.fstat[size_t(item)] = int8_t(st);
       w.fstat_set.push_back(item);
@@ -633,8 +661,16 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
       res = add_solid(sidx);
       if (res == 3) {
         res = 0;
-        for (int64_t f = occ.solid_faces[2 * sidx]; f < occ.solid_faces[2 * sidx + 1]; f++) {
-          int r2 = add_face(f, true, nullptr);
+        const int64_t f0 = occ.solid_faces[2 * sidx], f1 = occ.solid_faces[2 * sidx + 1];
+        // Its back faces dropped only where p lies in none of its faces' planes (as above).
+        bool cull = f1 > f0 && occ.face_closed && culled(occ.face_closed[f0]);
+        for (int64_t f = f0; f < f1 && cull; f++) {
+          FaceSide<T> fs;
+          face_status(f, false, fs);
+          cull = !fs.edge_on;
+        }
+        for (int64_t f = f0; f < f1; f++) {
+          int r2 = add_face(f, cull, nullptr);
           if (r2 == 2) {
             res = 2;
             break;
