@@ -45,7 +45,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from jaxshadow._core.compile_cache import ensure_default_compile_cache
+from jaxshadow.cli import ensure_default_compile_cache
 
 # XLA:CPU options for the programs that hold the soft-shadow residual and its Jacobian (the
 # light-placement fits). Their first call is dominated by XLA compiling a few hundred small
@@ -81,7 +81,7 @@ def fit_jit(fun: Callable | None = None, *, options: dict | None = None) -> Any:
     compile that names an option in its error is retried without them. Calls run with the
     garbage collector paused (`gc_paused`: compiling is ~10% shorter). Before its first
     compile, JAX's persistent compilation cache is turned on unless the user configured or
-    declined it (`jaxshadow._core.compile_cache.ensure_default_compile_cache`): a later
+    declined it (`jaxshadow.cli.ensure_default_compile_cache`): a later
     process loads the program instead of compiling it."""
     if fun is None:
         return functools.partial(fit_jit, options=options)

@@ -25,7 +25,7 @@ import numpy as np
 from jaxtyping import Array
 
 import jaxshadow as js
-from jaxshadow._core.compile_cache import ensure_default_compile_cache
+from jaxshadow.cli import ensure_default_compile_cache
 
 from ._forward import SpecularFn, traced_specular
 from ._identifiability import identifiability

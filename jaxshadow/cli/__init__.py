@@ -388,13 +388,23 @@ def enable_compile_cache(directory: str | None = None, min_compile_s: float = 0.
     compile are stored on disk and reused by later processes). `directory`: default
     `$JAX_COMPILATION_CACHE_DIR`, else `~/.cache/jaxshadow/xla`. Returns the directory. The
     cache is trusted code: keep it private to the user (see JAX's documentation). The library's
-    solvers turn the same cache on by default (`jaxshadow._core.compile_cache`)."""
+    solvers turn the same cache on by default (`ensure_default_compile_cache`)."""
     from .._core.compile_cache import enable_compile_cache as enable
 
     try:
         return enable(directory, min_compile_s, who="--compile-cache")
     except PermissionError as err:
         raise PermissionError(f"{err}; pass --compile-cache DIR or --no-compile-cache.") from None
+
+
+def ensure_default_compile_cache() -> str | None:
+    """The library's default persistent compilation cache, decided once per process: turned on
+    in `~/.cache/jaxshadow/xla` unless JAX's cache is configured or disabled already or
+    `$JAXSHADOW_COMPILE_CACHE` is `off` (or names another directory). Returns the directory in
+    use, or None when there is none. The `inverse` solvers call it before their first compile."""
+    from .._core.compile_cache import ensure_default_compile_cache as ensure
+
+    return ensure()
 
 
 def _version() -> str:
