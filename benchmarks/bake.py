@@ -49,6 +49,7 @@ GRID_SCENES = ("room", "torus_floor")  # the box floor's patch is not a parallel
 DESCRIPTION = "whole-scene bakes: vertices, time and memory per vertex, vertices vs uniform grids on planar surfaces"
 SAMPLES = 8  # random points per triangle for the interpolation error
 GRID_MAX = 1024
+DEGENERATE = 1e-9  # a triangle of area <= this times its longest edge squared covers nothing (`surface_errors`)
 GRID_ALL = 128  # grids up to this many vertices per side are checked on every triangle, finer ones on a sample
 
 
@@ -134,7 +135,18 @@ def surface_errors(scene, b, samples=SAMPLES, max_tris=200_000, seed=2):
     Exact values: `js.irradiance` at the points with the interpolated unit normal; in a curved
     patch's triangles (corners of different normals) with the faces' planes taken exactly
     (`exact_planes`, as the bake defines its values: `_refine_curved`). Points where the exact value exceeds the unoccluded one (an
-    engine error) are left out and counted."""
+    engine error) are left out and counted. Triangles of no area (area <= `DEGENERATE` times
+    their longest edge squared: the slivers a constrained triangulation leaves along a contact
+    edge, all three corners on it within 1e-10 m) are left out and counted
+    (`samples_in_degenerate`): they cover nothing, and a point of one has many barycentric
+    coordinates, so its interpolated value is not defined. `error_off_corners_over_tol` also
+    leaves out the triangles with a corner within `CORNER_SIZE` of its patch's size of a
+    corner where the irradiance takes a different limit along each direction of approach,
+    which the mesher does not split below that size: a concave fold's corner on a curved patch
+    (`stats["corners"]`) and, on a planar patch, a corner of an occluder face lying in its plane
+    (the foot of an object standing on it: `illumination_mesh`'s contact corners)."""
+    from scipy.spatial import cKDTree
+
     import jaxshadow as js
     from jaxshadow._illumination.bake_chunks import exact_planes
     from jaxshadow._illumination.refine import CORNER_SIZE
@@ -146,14 +158,18 @@ def surface_errors(scene, b, samples=SAMPLES, max_tris=200_000, seed=2):
         object.__setattr__(exact_scene, "occluder_topology", scene.occluder_topology)
     free_scene = js.Scene(scene.lights)
     rng = np.random.default_rng(seed)
+    # each patch's size (CORNER_SIZE is relative to it)
+    patch_size = {int(q): float(np.ptp(b.vertices[np.unique(b.triangles[b.patch == q])], axis=0).max())
+                  for q in np.unique(b.patch)}
     out = []
     for si, name in enumerate(b.surface_names):
-        tris = b.triangles[b.surface == si]
-        if tris.shape[0] == 0:
+        rows_t = np.nonzero(b.surface == si)[0]
+        if rows_t.size == 0:
             continue
-        used = np.unique(tris)
-        if max_tris is not None and tris.shape[0] > max_tris:
-            tris = tris[rng.choice(tris.shape[0], max_tris, replace=False)]
+        used = np.unique(b.triangles[rows_t])
+        if max_tris is not None and rows_t.size > max_tris:
+            rows_t = rows_t[rng.choice(rows_t.size, max_tris, replace=False)]
+        tris = b.triangles[rows_t]
         u = rng.random((tris.shape[0], samples, 2))
         flip = u.sum(axis=2) > 1
         u[flip] = 1 - u[flip]
@@ -164,7 +180,8 @@ def surface_errors(scene, b, samples=SAMPLES, max_tris=200_000, seed=2):
         n = np.ascontiguousarray(n / np.linalg.norm(n, axis=1, keepdims=True))
         # a triangle of a curved patch has corners of different normals; a planar patch's do not
         nt = b.normals[tris]
-        curved = np.repeat(~np.all(nt == nt[:, :1], axis=(1, 2)), samples)
+        curved_t = ~np.all(nt == nt[:, :1], axis=(1, 2))
+        curved = np.repeat(curved_t, samples)
         exact = np.zeros_like(p)
         for sc, rows in ((exact_scene, curved), (scene, ~curved)):
             if rows.any():
@@ -172,23 +189,48 @@ def surface_errors(scene, b, samples=SAMPLES, max_tris=200_000, seed=2):
         free = np.asarray(js.irradiance(free_scene, p, n))
         bad = np.any(exact > free * (1 + 1e-9) + 1e-12 * free.max(), axis=1)
         miss = np.abs(e - exact).max(axis=1)
-        err = float(miss[~bad].max()) / b.scale
-        # apart: the points next to a concave fold's corner (`stats["corners"]`)
-        # (the triangles with a corner within CORNER_SIZE of the patch's size of one)
-        folds = [np.array(c["points"]) for c in b.stats.get("corners", []) if c["surface"] == name]
+        tv = b.vertices[tris]
+        longest = np.max([np.linalg.norm(tv[:, k] - tv[:, (k + 1) % 3], axis=1) for k in range(3)], axis=0)
+        area = 0.5 * np.linalg.norm(np.cross(tv[:, 1] - tv[:, 0], tv[:, 2] - tv[:, 0]), axis=1)
+        degenerate = np.repeat(area <= DEGENERATE * longest ** 2, samples)
+        keep = ~bad & ~degenerate
+        err = float(miss[keep].max(initial=0.0)) / b.scale
+        # apart: the points next to a corner with a different limit along each direction (a
+        # concave fold's corner, `stats["corners"]`; a contact corner of a planar patch): the
+        # triangles with a corner within CORNER_SIZE of their patch's size of one
+        folds = [np.array(c["points"], np.float64).reshape(-1, 3) for c in b.stats.get("corners", [])
+                 if c["surface"] == name]
+        if (~curved_t).any():
+            folds.append(_contact_corners(scene, tv[~curved_t], nt[~curved_t, 0]))
+        corners = np.concatenate(folds) if folds else np.zeros((0, 3))
         near = np.zeros(p.shape[0], bool)
-        if folds:
-            from scipy.spatial import cKDTree
-
-            reach = CORNER_SIZE * np.ptp(b.vertices[used], axis=0).max() * (1 + 1e-9)
-            at = np.isfinite(cKDTree(np.concatenate(folds)).query(b.vertices[tris.ravel()], distance_upper_bound=reach)[0])
-            near = np.repeat(at.reshape(-1, 3).any(axis=1), samples)
-        off = float(miss[~bad & ~near].max()) / b.scale
+        if corners.shape[0]:
+            reach = CORNER_SIZE * (1 + 1e-9) * np.array([patch_size[int(q)] for q in b.patch[rows_t]])
+            dist = cKDTree(corners).query(tv.reshape(-1, 3))[0].reshape(-1, 3)
+            near = np.repeat(np.any(dist <= reach[:, None], axis=1), samples)
+        off = float(miss[keep & ~near].max(initial=0.0)) / b.scale
         out.append({"surface": name, "curved": bool(curved.any()), "vertices": int(used.size),
                     "triangles_checked": int(tris.shape[0]), "error": err, "error_over_tol": err / b.tol,
                     "error_off_corners_over_tol": off / b.tol, "samples_near_corners": int(near.sum()),
-                    "samples_above_unoccluded": int(bad.sum())})
+                    "samples_in_degenerate": int(degenerate.sum()), "samples_above_unoccluded": int(bad.sum())})
     return out
+
+
+def _contact_corners(scene, tv, normals):
+    """`(k, 3)` the corners of the occluder faces lying in the plane of one of the planar
+    triangles `tv (t, 3, 3)` (unit normals `(t, 3)`) within 1e-9 of the scene's size: where an
+    object stands on the receiver (`illumination_mesh`'s contact corners)."""
+    if scene.occluders is None or tv.shape[0] == 0:
+        return np.zeros((0, 3))
+    occ = np.asarray(scene.occluders, np.float64)
+    size = max(float(np.abs(occ).max()), float(np.abs(tv).max()))
+    planes = np.unique(np.round(np.c_[normals, np.einsum("td,td->t", normals, tv[:, 0])], 9), axis=0)
+    out = []
+    for pl in planes:
+        flat = np.all(np.abs(occ @ pl[:3] - pl[3]) <= 1e-9 * size, axis=1)
+        if flat.any():
+            out.append(occ[flat].reshape(-1, 3))
+    return np.unique(np.concatenate(out), axis=0) if out else np.zeros((0, 3))
 
 
 def jax_array(x):
@@ -327,9 +369,11 @@ def markdown(results: dict) -> str:
     if not any(r.get("surface_errors") for r in results["cases"]):
         return "\n".join(rows) + "\n"
     rows += ["", "Per surface: vertices and the dense-grid error (`surface_errors`: 8 random points per triangle "
-             "against exact irradiance) over tol; curved surfaces also without the triangles at a concave "
-             "fold's corner (`stats['corners']`).", "",
-             "| scene | tol | surface | vertices | error / tol | off fold corners / tol |", "|---|---|---|---|---|---|"]
+             "against exact irradiance, triangles of no area left out) over tol; also without the triangles at "
+             "a corner where the irradiance has a different limit along each direction of approach, which the "
+             "mesher leaves at `CORNER_SIZE` (1e-4) of the patch's size: a concave fold's corner on a curved "
+             "surface (`stats['corners']`), the corner of an object's foot on a planar one.", "",
+             "| scene | tol | surface | vertices | error / tol | off those corners / tol |", "|---|---|---|---|---|---|"]
     for r in results["cases"]:
         for srf in r.get("surface_errors", []):
             rows.append(f"| {r['scene']} | {r['tol']:g} | {srf['surface']} | {srf['vertices']:,} | "

@@ -273,6 +273,44 @@ def test_resume_reads_chunk_files_and_gives_the_same_result(reference, tmp_path)
     assert other.stats["chunks_computed"] == 4
 
 
+_CLIENT = """
+import os, signal, sys
+import jax
+jax.config.update("jax_enable_x64", True)
+sys.path.insert(0, {tests!r})
+import jaxshadow as js
+from test_bake import _small
+
+def die(index):
+    if index == 2:  # chunks 0 and 1 are on disk: the client process is killed (SIGKILL, no clean-up)
+        os.kill(os.getpid(), signal.SIGKILL)
+
+scene, rec = _small()
+js.bake(scene, rec, 0.1, tile_size=1.0, work_dir={work!r}, _before_chunk=die)
+"""
+
+
+def test_a_killed_client_resumes_without_computing_its_chunks_again(reference, tmp_path):
+    """A client process killed mid-run (SIGKILL while its third chunk starts): the re-run reads
+    the two chunks it finished and computes only the other two, and the result is the one of a
+    bake that was never interrupted."""
+    import signal
+    import subprocess
+
+    work = tmp_path / "w"
+    code = _CLIENT.format(tests=os.path.dirname(os.path.abspath(__file__)), work=str(work))
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([os.path.dirname(os.path.dirname(js.__file__)),
+                                                         os.environ.get("PYTHONPATH", "")])}
+    run = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600)
+    assert run.returncode == -signal.SIGKILL, run.stderr[-2000:]
+    assert len([f for f in os.listdir(work) if f.endswith(".npz")]) == 2
+    calls = []
+    again = js.bake(*_small(), 0.1, tile_size=1.0, work_dir=work, _before_chunk=calls.append)
+    assert calls == [2, 3] and again.stats["chunks_computed"] == 2
+    _same(again, reference)
+    assert len([f for f in os.listdir(work) if f.endswith(".npz")]) == 4
+
+
 def _kill_once(index, marker):
     """Kill this worker process the first time chunk 0 runs (a marker file remembers)."""
     if index == 0 and not os.path.exists(marker):
