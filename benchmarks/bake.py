@@ -148,7 +148,7 @@ def surface_errors(scene, b, samples=SAMPLES, max_tris=200_000, seed=2):
     from scipy.spatial import cKDTree
 
     import jaxshadow as js
-    from jaxshadow._illumination.bake_chunks import exact_planes
+    from jaxshadow._illumination.bake_curved import exact_planes
     from jaxshadow._illumination.refine import CORNER_SIZE
 
     exact_scene = js.Scene(scene.lights, occluders=None)

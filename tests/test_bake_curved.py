@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import jaxshadow as js
-from jaxshadow._illumination.bake_chunks import exact_planes
+from jaxshadow._illumination.bake_curved import exact_planes
 
 trimesh = pytest.importorskip("trimesh")
 TOL = 1e-2

@@ -54,12 +54,9 @@ from .bake_chunks import (
     _chunk_inputs,
     _chunk_name,
     _inputs_digest,
-    _light_points,
-    _light_scenes,
-    _on_point,
-    _values,
 )
 from .bake_patches import _Patch, _patches, _surfaces
+from .bake_values import _light_points, _light_scenes, _on_point, _values
 
 EDGE_EPS = 1e-9  # points on a shared edge closer than this (in its parameter) are one point
 
