@@ -264,9 +264,8 @@ def rows_at(param: LightParametrisation, region: Region, centres: np.ndarray) ->
 
 
 def weighted_rest(problem: LightsProblem) -> np.ndarray:
-    """`(3N,)` what the fitted lights are to paint: $\\sqrt{w}\\,(C - L_{fixed})$, the targets'
-    colours less the ambient term and the lights that are not fitted, weighted (row-major
-    `(N, 3)`)."""
+    """`(3N,)` what the fitted lights are to paint, $\\sqrt{w}\\,(C - L_{fixed})$ (row-major `(N, 3)`):
+    the targets' colours less the ambient term and the lights that are not fitted, weighted."""
     t, m = problem.targets, problem.material
     sw = np.sqrt(np.asarray(t.weights, np.float64))
     La = np.broadcast_to(np.asarray(problem.scene.ambient, np.float64), t.colours.shape)
