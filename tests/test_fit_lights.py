@@ -4,6 +4,8 @@ The targets are painted by `js.shade` from a hidden true scene (never by the sol
 output); the starts are the true lights moved away, at wrong powers.
 """
 
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -266,10 +268,13 @@ def test_directional_light_direction_recovered():
     with pytest.raises(ValueError, match="no position"):
         inverse.fit_lights(start, targets, _MATERIAL, constraints={0: inverse.Box([-1, -1, 0], [1, 1, 1])})
     # Flat targets only: E0 (n . -d) gives E0 cos(elevation), and a hard shadow's edge moves
-    # without changing any value's derivative: the direction is reported as not determined.
+    # without changing any value's derivative: the direction is reported as not determined, and
+    # the targets the misplaced shadow edge misses come back as outliers (answer not trusted).
     up = np.tile([0.0, 0.0, 1.0], (len(targets), 1))
     flat = inverse.PaintedTargets(targets.points, up, js.shade(true, _MATERIAL, targets.points, up, EYE), EYE)
-    rep = inverse.fit_lights(start, flat, _MATERIAL, fit=("orientation", "power"), starts=4, sweeps=1).report
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", inverse.FitQualityWarning)  # what it says is checked below
+        rep = inverse.fit_lights(start, flat, _MATERIAL, fit=("orientation", "power"), starts=4, sweeps=1).report
     assert not (rep.determined["light0.ru"] and rep.determined["light0.rv"])
     assert any("not determined" in w for w in rep.warnings)
 
