@@ -253,7 +253,7 @@ def test_structured_jacobian_is_the_residuals_jacobian(variant):
     theta = jnp.asarray(np.random.default_rng(2).normal(0.0, 0.05, problem.n_theta))
     r, J, over = jax.jit(lambda th: ML.structured_jacobian(th, problem, problem.capacity))(theta)
     ref = jax.jit(jax.jacfwd(lambda th: ML.projected_residual(th, problem, problem.capacity)[0]))(theta)
-    r0 = ML.projected_residual(theta, problem, problem.capacity)[0]
+    r0 = jax.jit(lambda th: ML.projected_residual(th, problem, problem.capacity)[0])(theta)
     assert not bool(over) and J.shape == ref.shape == (r0.shape[0], problem.n_theta)
     assert np.abs(np.asarray(ref)).max() > 0 and np.all(np.abs(np.asarray(ref)).max(axis=0) > 0)  # every column moves
     np.testing.assert_allclose(np.asarray(r), np.asarray(r0), rtol=1e-12, atol=1e-14)
