@@ -269,6 +269,26 @@ FaceSide<T> face_side(const Occluders<T>& occ, int64_t f, V3<T> p, V3<T>* rel) {
   return out;
 }
 
+// The closed meshes that keep their back faces for one receiver (FaceSide::edge_on): at most
+// kMax listed; past that, every mesh keeps them.
+struct KeptMeshes {
+  static constexpr int kMax = 8;
+  int32_t id[kMax];
+  int n = 0;
+  bool all() const { return n > kMax; }
+  bool has(int32_t mesh) const {
+    if (all()) return true;
+    for (int k = 0; k < n; k++)
+      if (id[k] == mesh) return true;
+    return false;
+  }
+  void add(int32_t mesh) {
+    if (has(mesh)) return;
+    if (n < kMax) id[n] = mesh;
+    n++;  // kMax + 1: all of them
+  }
+};
+
 // Whether p lies in the plane of face f, on its front side, as face_side decides (edge_on), or
 // within twice the on-surface distance in front of it (in double): a rule applied elsewhere to
 // the same face and point (the JAX kernels' _occluder_sides, with their own roundings) drops the

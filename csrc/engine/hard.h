@@ -127,10 +127,7 @@ void segment_candidates(const Occluders<T>& occ, const BVH& bvh, V3<T> p, V3<T> 
   }
   double scale = std::max(double(absmax(p)), std::max(double(absmax(a)), double(absmax(b)))) + 1.0;
   query(bvh, hs, nh, 1e3 * double(eps_of<T>()) * scale, cand);
-  // Closed meshes that keep their back faces (at most kKeep listed; more: all of them).
-  constexpr int kKeep = 8;
-  int32_t keep[kKeep];
-  int nkeep = 0;
+  KeptMeshes keep;  // closed meshes that keep their back faces
   auto consider = [&](int64_t f) {
     const int64_t Ko = occ.Ko;
     // Drop faces with every vertex strictly on one side of the triangle's plane.
@@ -149,12 +146,7 @@ void segment_candidates(const Occluders<T>& occ, const BVH& bvh, V3<T> p, V3<T> 
     if (mesh >= 0 && bvh.outside_mesh(mesh, pd)) {
       // p in the face's plane (the evaluator drops the face, FaceSide::edge_on): the mesh keeps
       // its back faces, which alone cover the face's wedge where p is just in front of it.
-      if (nkeep <= kKeep && near_face_plane(occ, f, p)) {
-        bool known = false;
-        for (int k = 0; k < nkeep && !known; k++) known = keep[k] == mesh;
-        if (!known && nkeep < kKeep) keep[nkeep] = mesh;
-        if (!known) nkeep++;
-      }
+      if (!keep.all() && near_face_plane(occ, f, p)) keep.add(mesh);
       V3<T> no{0, 0, 0};
       for (int64_t i = 0; i < Ko; i++) no = no + cross(occ.vert(f, i) - p, occ.vert(f, (i + 1) % Ko) - p);
       T h0 = dot(no, occ.vert(f, 0) - p);
@@ -181,9 +173,7 @@ void segment_candidates(const Occluders<T>& occ, const BVH& bvh, V3<T> p, V3<T> 
   for (int32_t f : out) {
     if (f < 0) {
       f = -f - 1;
-      bool kept = nkeep > kKeep;
-      for (int k = 0; k < nkeep && !kept; k++) kept = keep[k] == occ.face_closed[f];
-      if (!kept) continue;
+      if (!keep.has(occ.face_closed[f])) continue;
     }
     out[m++] = f;
   }

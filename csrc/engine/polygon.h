@@ -610,29 +610,18 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
   // a mesh one of whose candidate faces p lies in the plane of (FaceSide::edge_on): that face is
   // dropped, and where p is in front of it by less than the on-surface distance (2e-6 m for a
   // mesh of float32 values 0.5 m across) only the back faces cover its wedge of shadow (5e-3 of
-  // the irradiance 1e-6 m in front of an L-shaped prism's side). `keep`: such meshes (all of them
-  // past kKeep).
-  constexpr int kKeep = 8;
-  int32_t keep[kKeep];
-  int nkeep = 0;
+  // the irradiance 1e-6 m in front of an L-shaped prism's side). `keep`: such meshes.
+  KeptMeshes keep;
   for (size_t c = 0; c < w.cand.size(); c++) {
     const int32_t item = w.cand[c].second;
     if (item < 0) continue;
     pre[c] = FaceSide<T>{};
     if (face_status(item, false, pre[c]) == 0) pre[c].side = 0;
     const int32_t mesh = occ.face_closed ? occ.face_closed[item] : -1;
-    if (pre[c].edge_on && mesh >= 0 && nkeep <= kKeep) {
-      bool known = false;
-      for (int k = 0; k < nkeep && !known; k++) known = keep[k] == mesh;
-      if (!known && nkeep < kKeep) keep[nkeep] = mesh;
-      if (!known) nkeep++;  // kKeep + 1: keep every closed mesh's back faces
-    }
+    if (pre[c].edge_on && mesh >= 0) keep.add(mesh);
   }
   auto culled = [&](int32_t mesh) {  // back faces of closed mesh `mesh` (or -1) dropped from outside its box
-    if (mesh < 0 || nkeep > kKeep) return false;
-    for (int k = 0; k < nkeep; k++)
-      if (keep[k] == mesh) return false;
-    return call.bvh->outside_mesh(mesh, pd);
+    return mesh >= 0 && !keep.has(mesh) && call.bvh->outside_mesh(mesh, pd);
   };
   for (size_t c = 0; c < w.cand.size(); c++) {
     const int32_t item = w.cand[c].second;
