@@ -47,7 +47,7 @@ from ._diagnostics import (
     FitQualityWarning,
 )
 from ._forward import SpecularFn
-from ._global_placement import final_losses, place, region_of, template_light
+from ._global_placement import place, ranking_losses, region_of, template_light
 from ._multilight import (
     LightsProblem,
     fixed_contribution,
@@ -443,7 +443,7 @@ def fit_lights(
                     n_solved += full.shape[0]
                     # The solved rows hold the starts' values where the mask is off: the residual used `base`.
                     vals = np.where(mask[None], np.asarray(res.values), base[None])
-                    f, problem = _ranking_losses(problem, res, vals)
+                    f, problem = ranking_losses(problem, res.losses, vals)
                     order = np.argsort(f)
                     if initial is None:
                         initial = float(np.asarray(res.initial_losses)[0]) if np.all(full[0] == theta0) else None
@@ -468,7 +468,7 @@ def fit_lights(
                     retries += r
                     n_solved += joint.shape[0]
                     vals = np.where(mask[None], np.asarray(res.values), base[None])
-                    f, problem = _ranking_losses(problem, res, vals)
+                    f, problem = ranking_losses(problem, res.losses, vals)
                     joint = vals[np.argsort(f)]
                     final = (joint, np.sort(f))
                     stage_losses.append(float(np.min(f)))
@@ -565,17 +565,6 @@ def _reweighted(problem: LightsProblem, weights: Any) -> LightsProblem:
     if weights is None:
         return problem
     return dataclasses.replace(problem, targets=eqx.tree_at(lambda t: t.weights, problem.targets, weights))
-
-
-def _ranking_losses(problem: LightsProblem, res: Any, values: np.ndarray) -> tuple[np.ndarray, LightsProblem]:
-    """`(losses (S,), problem)` by which the rows `values (S, Pt)` of a solve `res` are ranked:
-    the LM's losses (infinite where not finite) or, under a power budget, the loss at the powers
-    the final fit solves (`_global_placement.final_losses`: the LM's projection allows a
-    negative power, which can meet the budget where no answer with powers >= 0 does)."""
-    if problem.budget is None:
-        f = np.asarray(res.losses)
-        return np.where(np.isfinite(f), f, np.inf), problem
-    return final_losses(problem, np.asarray(values, np.float64))
 
 
 def _moved_outside(problem: LightsProblem, theta: np.ndarray) -> np.ndarray:

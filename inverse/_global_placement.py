@@ -43,9 +43,8 @@ column of light $j$ at its reference power, `(3N,)`). So the screen needs no der
    `BASIN_DISTANCE` of the extent away, or its orientation more than `BASIN_TURN`) are refined
    jointly for `BASIN_STEPS` iterations as the rows of `fit_lights`' batched LM program (the
    program of its joint refinement: rows padded to its batch, no new compilation), and ranked
-   by the refined loss (`refine_and_rank`); under a power budget by the loss at the powers the
-   final fit solves there (`final_losses`: $p \ge 0$ and the budget), not the LM's signed
-   projection of the powers.
+   by the refined loss (`refine_and_rank`; under a power budget at the powers the final fit
+   solves there, `final_losses`: $p \ge 0$ and the budget, not the LM's signed projection).
 
 The result is the best refined placement (`theta`, the poses), the other refined placements
 (`alternatives`, best first: `fit_lights` finishes them with its joint refinement, where
@@ -656,27 +655,28 @@ def refine_and_rank(problem: LightsProblem, thetas: np.ndarray, lm: dict, batch:
                                 max_steps=BASIN_STEPS, prune=())
         values.append(np.asarray(res.values, np.float64)[:part.shape[0]])
         losses.append(np.asarray(res.losses, np.float64)[:part.shape[0]])
-    v, f = np.concatenate(values), np.concatenate(losses)
-    if problem.budget is not None:  # ranked by the loss the final fit can reach there
-        f, problem = final_losses(problem, v)
-    return v, np.where(np.isfinite(f), f, np.inf), problem
+    v = np.concatenate(values)
+    f, problem = ranking_losses(problem, np.concatenate(losses), v)
+    return v, f, problem
+
+
+def ranking_losses(problem: LightsProblem, losses: Any, thetas: np.ndarray) -> tuple[np.ndarray, LightsProblem]:
+    """`(losses (S,), problem)` ranking the rows `thetas (S, Pt)` of an LM solve: its `losses`
+    (infinite where not finite) or, under a power budget, `final_losses`."""
+    if problem.budget is None:
+        f = np.asarray(losses, np.float64)
+        return np.where(np.isfinite(f), f, np.inf), problem
+    return final_losses(problem, np.asarray(thetas, np.float64))
 
 
 def final_losses(problem: LightsProblem, thetas: np.ndarray) -> tuple[np.ndarray, LightsProblem]:
     """`(losses (S,), problem)`: $\\tfrac12|r|^2$ at every placement of `thetas (S, Pt)` with the
     powers the final fit solves there (`_powers.constrained_powers`: $p \\ge 0$ and, under a
-    power budget $B$, $c \\cdot p \\le B$ with $c$ the lights' emitted powers at that
-    placement): the loss `fit_lights` reports at those poses; infinite where not finite.
-
-    The LM's own projection of the powers (`_multilight._data_residual`) is the signed least
-    squares, moved onto the budget's plane when it exceeds it: with one light's power negative
-    a placement meets the budget there and explains the targets better than any answer with
-    powers $\\ge 0$ can (a loss 0.031 in the LM at a placement whose final loss is 1.28). The
-    lights' unit contributions come from `unit_columns` (one compiled program per light kind, the
-    placement's own), the powers from the final fit's solve."""
-    S = thetas.shape[0]
+    budget $B$, $c \\cdot p \\le B$, $c$ the emitted powers there), the loss `fit_lights` reports;
+    infinite where not finite. The LM's projection (`_multilight._data_residual`: signed least
+    squares moved onto the budget's plane) lets a negative power meet the budget where no answer
+    with $p \\ge 0$ does (0.031 in the LM where the final loss is 1.28). Columns: `unit_columns`."""
     y = weighted_rest(problem)
-    dt = problem.targets.points.dtype
     cols = []
     for j, p in enumerate(problem.params):
         o, size = problem.offsets[j], 0 if p is None else p.size
@@ -684,13 +684,13 @@ def final_losses(problem: LightsProblem, thetas: np.ndarray) -> tuple[np.ndarray
         cols.append(a)
     A = np.stack(cols, axis=1)  # (S, J, 3N)
     zero, one = np.zeros((y.shape[0] // 3, 3)), np.ones((y.shape[0] // 3, 3))
-    out = np.full(S, np.inf)
-    for s in range(S):
+    out = np.full(thetas.shape[0], np.inf)
+    for s in range(out.shape[0]):
         if not (np.all(np.isfinite(thetas[s])) and np.all(np.isfinite(A[s]))):
             continue
         bud = None
         if problem.budget is not None:
-            lights = build_lights(problem, jnp.asarray(thetas[s, :problem.n_pose], dt))
+            lights = build_lights(problem, jnp.asarray(thetas[s, :problem.n_pose], problem.targets.points.dtype))
             bud = (np.array([float(emitted_power(x)) for x in lights]), float(problem.budget))
         # the weighted problem as it stands: colours y, columns A, unit weights
         cj = A[s].reshape(A.shape[1], -1, 3)
