@@ -269,18 +269,19 @@ struct SilCoverage {
     if (G) {
       w.gref.resize(size_t(G * G));
       w.gcov.assign(size_t(G * G), kNone);
-      double cside[130];
+      // Per E_h edge: its direction (eex, eey), the side E_h's centre lies on, and the margin
+      // times its length.
+      double cside[130], eex[130], eey[130], emarg[130];
+      const double margin = 1e-3 * std::min(du, dv);
       for (int k = 0; k < neh; k++) {
         const int k1 = (k + 1) % neh;
-        cside[k] = (ehu[k1] - ehu[k]) * (0 - ehv[k]) - (ehv[k1] - ehv[k]) * (0 - ehu[k]) > 0 ? 1.0 : -1.0;
+        eex[k] = ehu[k1] - ehu[k], eey[k] = ehv[k1] - ehv[k];
+        cside[k] = eex[k] * (0 - ehv[k]) - eey[k] * (0 - ehu[k]) > 0 ? 1.0 : -1.0;
+        emarg[k] = margin * std::sqrt(eex[k] * eex[k] + eey[k] * eey[k]);
       }
-      const double margin = 1e-3 * std::min(du, dv);
       auto inside = [&](double x, double y) {  // clear of every E_h edge by the margin
-        for (int k = 0; k < neh; k++) {
-          const int k1 = (k + 1) % neh;
-          const double ex = ehu[k1] - ehu[k], ey = ehv[k1] - ehv[k];
-          if (!(cside[k] * (ex * (y - ehv[k]) - ey * (x - ehu[k])) > margin * std::sqrt(ex * ex + ey * ey))) return false;
-        }
+        for (int k = 0; k < neh; k++)
+          if (!(cside[k] * (eex[k] * (y - ehv[k]) - eey[k] * (x - ehu[k])) > emarg[k])) return false;
         return true;
       };
       auto cell_point = [&](int ix, int iy, V3<T>& r) -> bool {
