@@ -144,7 +144,9 @@ def surface_errors(scene, b, samples=SAMPLES, max_tris=200_000, seed=2):
     corner where the irradiance takes a different limit along each direction of approach,
     which the mesher does not split below that size: a concave fold's corner on a curved patch
     (`stats["corners"]`) and, on a planar patch, a corner of an occluder face lying in its plane
-    (the foot of an object standing on it: `illumination_mesh`'s contact corners)."""
+    and facing away from it (the foot of an object standing on it: `illumination_mesh`'s contact
+    corners; not the receiver's own corners, nor where two feet's edges cross: the irradiance
+    has one limit there)."""
     from scipy.spatial import cKDTree
 
     import jaxshadow as js
@@ -218,16 +220,19 @@ def surface_errors(scene, b, samples=SAMPLES, max_tris=200_000, seed=2):
 
 def _contact_corners(scene, tv, normals):
     """`(k, 3)` the corners of the occluder faces lying in the plane of one of the planar
-    triangles `tv (t, 3, 3)` (unit normals `(t, 3)`) within 1e-9 of the scene's size: where an
-    object stands on the receiver (`illumination_mesh`'s contact corners)."""
+    triangles `tv (t, 3, 3)` (unit normals `(t, 3)`) within 1e-9 of the scene's size and facing
+    away from it: where an object stands on the receiver (`illumination_mesh`'s contact corners:
+    a box's bottom face). Faces lying there and facing the receiver's way are the receiver's own
+    surface (the room's floor is an occluder too), whose corners are no contact corners."""
     if scene.occluders is None or tv.shape[0] == 0:
         return np.zeros((0, 3))
     occ = np.asarray(scene.occluders, np.float64)
     size = max(float(np.abs(occ).max()), float(np.abs(tv).max()))
+    facing = np.sum(np.cross(occ, np.roll(occ, -1, axis=1)), axis=1)  # (m, 3) Newell normals (padding adds 0)
     planes = np.unique(np.round(np.c_[normals, np.einsum("td,td->t", normals, tv[:, 0])], 9), axis=0)
     out = []
     for pl in planes:
-        flat = np.all(np.abs(occ @ pl[:3] - pl[3]) <= 1e-9 * size, axis=1)
+        flat = np.all(np.abs(occ @ pl[:3] - pl[3]) <= 1e-9 * size, axis=1) & (facing @ pl[:3] < 0)
         if flat.any():
             out.append(occ[flat].reshape(-1, 3))
     return np.unique(np.concatenate(out), axis=0) if out else np.zeros((0, 3))
