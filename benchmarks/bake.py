@@ -30,7 +30,9 @@ left out of the comparison (`grid_skipped_patches`).
 
 writes `benchmarks/results/bake.json` (`--quick`: `results/quick/`, tol 1e-2 only); every case
 also reports per surface its vertices and dense-grid error over tol (`surface_errors`).
-`python -m benchmarks.bake --case room:1e-3 [--out F]` runs one case in this process.
+`python -m benchmarks.bake --case room:1e-3 [--out F]` runs one case in this process;
+`python -m benchmarks.bake --update box_floor:1e-3` runs one case of the full record again and
+replaces it there (with its own commit and load, shown under the table).
 """
 
 from __future__ import annotations
@@ -144,7 +146,9 @@ def surface_errors(scene, b, samples=SAMPLES, max_tris=200_000, seed=2):
     corner where the irradiance takes a different limit along each direction of approach,
     which the mesher does not split below that size: a concave fold's corner on a curved patch
     (`stats["corners"]`) and, on a planar patch, a corner of an occluder face lying in its plane
-    (the foot of an object standing on it: `illumination_mesh`'s contact corners)."""
+    and facing away from it (the foot of an object standing on it: `illumination_mesh`'s contact
+    corners; not the receiver's own corners, nor where two feet's edges cross: the irradiance
+    has one limit there)."""
     from scipy.spatial import cKDTree
 
     import jaxshadow as js
@@ -218,16 +222,19 @@ def surface_errors(scene, b, samples=SAMPLES, max_tris=200_000, seed=2):
 
 def _contact_corners(scene, tv, normals):
     """`(k, 3)` the corners of the occluder faces lying in the plane of one of the planar
-    triangles `tv (t, 3, 3)` (unit normals `(t, 3)`) within 1e-9 of the scene's size: where an
-    object stands on the receiver (`illumination_mesh`'s contact corners)."""
+    triangles `tv (t, 3, 3)` (unit normals `(t, 3)`) within 1e-9 of the scene's size and facing
+    away from it: where an object stands on the receiver (`illumination_mesh`'s contact corners:
+    a box's bottom face). Faces lying there and facing the receiver's way are the receiver's own
+    surface (the room's floor is an occluder too), whose corners are no contact corners."""
     if scene.occluders is None or tv.shape[0] == 0:
         return np.zeros((0, 3))
     occ = np.asarray(scene.occluders, np.float64)
     size = max(float(np.abs(occ).max()), float(np.abs(tv).max()))
+    facing = np.sum(np.cross(occ, np.roll(occ, -1, axis=1)), axis=1)  # (m, 3) Newell normals (padding adds 0)
     planes = np.unique(np.round(np.c_[normals, np.einsum("td,td->t", normals, tv[:, 0])], 9), axis=0)
     out = []
     for pl in planes:
-        flat = np.all(np.abs(occ @ pl[:3] - pl[3]) <= 1e-9 * size, axis=1)
+        flat = np.all(np.abs(occ @ pl[:3] - pl[3]) <= 1e-9 * size, axis=1) & (facing @ pl[:3] < 0)
         if flat.any():
             out.append(occ[flat].reshape(-1, 3))
     return np.unique(np.concatenate(out), axis=0) if out else np.zeros((0, 3))
@@ -327,25 +334,50 @@ def bake_case(name: str, tol: float) -> dict:
     return out
 
 
+def _run_case(name: str, tol: float) -> dict:
+    """One case in a fresh process (its peak memory is its own): its result, or its error."""
+    code = ("import json, sys; from benchmarks.bake import bake_case; "
+            f"print('RESULT ' + json.dumps(bake_case({name!r}, {tol!r})))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    line = [x for x in out.stdout.splitlines() if x.startswith("RESULT ")]
+    if out.returncode != 0 or not line:
+        return {"scene": name, "tol": tol, "error": out.stderr[-2000:]}
+    r = json.loads(line[0][7:])
+    print(f"{name} tol {tol:g}: {r['vertices']} vertices, {r['seconds']:.1f} s, "
+          f"{r['peak_rss_per_vertex_bytes'] / 1024:.1f} KiB/vertex peak", file=sys.stderr, flush=True)
+    return r
+
+
 def run(quick: bool) -> dict:
     cases = [("room", 1e-2), ("torus_floor", 1e-2)] if quick else [
         ("room", 1e-2), ("torus_floor", 1e-2), ("room", 1e-3), ("torus_floor", 1e-3), ("box_floor", 1e-3)]
-    res = []
-    for name, tol in cases:
-        # a fresh process per bake: its peak memory is its own
-        code = ("import json, sys; from benchmarks.bake import bake_case; "
-                f"print('RESULT ' + json.dumps(bake_case({name!r}, {tol!r})))")
-        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                             cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-        line = [x for x in out.stdout.splitlines() if x.startswith("RESULT ")]
-        if out.returncode != 0 or not line:
-            res.append({"scene": name, "tol": tol, "error": out.stderr[-2000:]})
-            continue
-        r = json.loads(line[0][7:])
-        print(f"{name} tol {tol:g}: {r['vertices']} vertices, {r['seconds']:.1f} s, "
-              f"{r['peak_rss_per_vertex_bytes'] / 1024:.1f} KiB/vertex peak", file=sys.stderr, flush=True)
-        res.append(r)
-    return {"cases": res}
+    return {"cases": [_run_case(name, tol) for name, tol in cases]}
+
+
+def update_case(name: str, tol: float) -> dict:
+    """Run one case of the full record again (a fresh process) and put it in place of that case
+    in `results/bake.json`, with its own `measured` metadata (command, commit, date, load: the
+    record's header describes the other cases); then regenerate the tables."""
+    from benchmarks._suite import RESULTS, meta, read, regenerate, write_json
+
+    record = read("bake")
+    if record is None:
+        raise SystemExit("python -m benchmarks.bake --update: no full record yet (run `python -m benchmarks bake`).")
+    info = meta("bake", False)
+    info["command"] = f"python -m benchmarks.bake --update {name}:{tol:g}"
+    r = _run_case(name, tol)
+    info["load_average_end"] = list(os.getloadavg())
+    r["measured"] = info
+    cases = record["results"]["cases"]
+    at = [i for i, c in enumerate(cases) if c["scene"] == name and float(c["tol"]) == tol]
+    if at:
+        cases[at[0]] = r
+    else:
+        cases.append(r)
+    write_json(RESULTS / "bake.json", record)
+    regenerate()
+    return r
 
 
 def markdown(results: dict) -> str:
@@ -366,6 +398,12 @@ def markdown(results: dict) -> str:
         rows.append(f"| {r['scene']} | {r['tol']:g} | {r['surfaces']} | {r['vertices']:,} | {r['seconds']:.1f} | "
                     f"{1e3 * r['seconds_per_vertex']:.2f} | {r['peak_rss_bytes'] / 1e6:.0f} | "
                     f"{r['peak_rss_per_vertex_bytes'] / 1024:.1f} | {r['planar_vertices']:,} | {grid} | {ratio} |")
+    for r in results["cases"]:
+        if "measured" in r:
+            m = r["measured"]
+            rows.append(f"\n{r['scene']} at tol {r['tol']:g} measured apart: `{m['command']}` (commit {m['commit']}, "
+                        f"{m['date']}, load average {', '.join(f'{x:.1f}' for x in m['load_average'])} at its start, "
+                        f"{', '.join(f'{x:.1f}' for x in m.get('load_average_end', []))} at its end).")
     if not any(r.get("surface_errors") for r in results["cases"]):
         return "\n".join(rows) + "\n"
     rows += ["", "Per surface: vertices and the dense-grid error (`surface_errors`: 8 random points per triangle "
@@ -388,7 +426,13 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="tol 1e-2 only")
     ap.add_argument("--case", metavar="SCENE:TOL", help="one bake in this process (e.g. room:1e-3), printed as JSON")
     ap.add_argument("--out", help="with --case: also write the JSON here")
+    ap.add_argument("--update", metavar="SCENE:TOL", help="run that case of the full record again (a fresh "
+                    "process) and replace it in results/bake.json, with its own commit and load, then the tables")
     args = ap.parse_args(argv)
+    if args.update:
+        name, tol = args.update.split(":")
+        update_case(name, float(tol))
+        return 0
     if args.case:
         name, tol = args.case.split(":")
         r = bake_case(name, float(tol))

@@ -239,6 +239,20 @@ def test_mitsuba_room_bakes_without_seams():
     np.testing.assert_array_equal(line(floor), line(wall))
 
 
+def test_benchmark_contact_corners_are_feet_only():
+    """`benchmarks.bake.surface_errors` leaves out the triangles at contact corners: the corners
+    of an object's foot (a face lying on the receiver and facing away from it, the box's bottom),
+    not the receiver's own corners (the floor is an occluder face too, facing its own way)."""
+    from benchmarks.bake import _contact_corners
+
+    floor = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]])
+    light = js.PolygonLight([[-0.3, -0.3, 2], [-0.3, 0.3, 2], [0.3, 0.3, 2], [0.3, -0.3, 2]], 10.0)
+    scene = js.Scene([light], [floor, js.Mesh.box([0.1, 0.2, 0.0], [0.4, 0.6, 0.5])])
+    got = _contact_corners(scene, floor[None, :3], np.array([[0.0, 0.0, 1.0]]))
+    want = np.array([[x, y, 0.0] for x in (0.1, 0.4) for y in (0.2, 0.6)])
+    np.testing.assert_array_equal(got[np.lexsort(got.T)], want[np.lexsort(want.T)])
+
+
 # -- chunks: resume and Dask ---------------------------------------------------------------
 
 

@@ -114,10 +114,10 @@ class _Builder:
 
     def at_contact_corner(self, c: np.ndarray) -> np.ndarray:
         """Whether triangles `c (T, 3, 2)` have a vertex within `CORNER_SIZE` (of the receiver's
-        size) of a corner of the contact polygons (a vertex, or a crossing of two polygons'
-        edges where standing objects overlap), whether or not the polygon reaches the
-        triangle's tile (a corner just outside a tile's edge reaches into it). Around such a
-        corner the irradiance is continuous on every ray from it but takes a different limit
+        size) of a corner of the contact polygons (a vertex; where the edges of two overlapping
+        objects' polygons cross the irradiance has one limit: `_contact_corners`), whether or
+        not the polygon reaches the triangle's tile (a corner just outside a tile's edge reaches
+        into it). Around such a corner the irradiance is continuous on every ray from it but takes a different limit
         along each (the walls standing there hide a direction-dependent part of the light), so
         every ring of elements around it sees the same variation, at any size: no refinement
         meets `tol` there."""

@@ -613,6 +613,7 @@ def ray_visible(p: np.ndarray, q: np.ndarray, occ: Occluders, faces: np.ndarray)
         with np.errstate(divide="ignore", invalid="ignore"):
             t = num / den
         hit = (t > 1e-12) & (t < 1 - 1e-12) & (den != 0)
+        t = np.where(hit, t, 0.0)  # a ray in a face's plane (den 0: t inf or NaN) misses it
         x = pp[:, None, :] + t[:, :, None] * d[:, None, :]  # (n, c, 3)
         e = np.roll(f, -1, axis=1) - f  # (c, K, 3)
         rel = x[:, :, None, :] - f[None]  # (n, c, K, 3)

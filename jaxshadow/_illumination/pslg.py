@@ -378,19 +378,15 @@ def _interpolate(xy: np.ndarray, tris: np.ndarray, values: np.ndarray, q: np.nda
 
 
 def _contact_corners(polys: list[np.ndarray]) -> np.ndarray:
-    """The corners `(n, 2)` of the union of contact polygons `polys`: their vertices and the
-    points where edges of two of them cross."""
+    """The corners `(n, 2)` of the contact polygons `polys` where the irradiance takes a
+    different limit along each direction of approach: their vertices (an object's convex
+    corner: its two walls hide a direction-dependent part of the light). A point where edges of
+    two polygons cross (overlapping objects) is not one: the open floor there is a wedge under
+    two walls that both run on past the point, each hiding, in the limit, every direction on its
+    side whatever the direction of approach, so the irradiance has one limit there (its spread
+    on rays from the point shrinks with their length: `test_footprint_crossings_are_not_corners`),
+    varies on the scale of the distance to the nearest true corner and refines like any other
+    point."""
     if not polys:
         return np.zeros((0, 2))
-    a = np.concatenate(polys)
-    b = np.concatenate([np.roll(q, -1, axis=0) for q in polys])
-    owner = np.repeat(np.arange(len(polys)), [q.shape[0] for q in polys])
-    r = b - a
-    den = r[:, None, 0] * r[None, :, 1] - r[:, None, 1] * r[None, :, 0]  # (E, E)
-    dx = a[None, :, :] - a[:, None, :]  # a_j - a_i
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = (dx[..., 0] * r[None, :, 1] - dx[..., 1] * r[None, :, 0]) / den
-        u = (dx[..., 0] * r[:, None, 1] - dx[..., 1] * r[:, None, 0]) / den
-    hit = (den != 0) & (s >= 0) & (s <= 1) & (u >= 0) & (u <= 1) & (owner[:, None] < owner[None, :])
-    i, _ = np.nonzero(hit)
-    return np.concatenate([a, a[i] + s[hit][:, None] * r[i]])
+    return np.concatenate(polys)
