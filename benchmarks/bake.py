@@ -144,11 +144,11 @@ def surface_errors(scene, b, samples=SAMPLES, max_tris=200_000, seed=2):
     coordinates, so its interpolated value is not defined. `error_off_corners_over_tol` also
     leaves out the triangles with a corner within `CORNER_SIZE` of its patch's size of a
     corner where the irradiance takes a different limit along each direction of approach,
-    which the mesher does not split below that size: a concave fold's corner on a curved patch
-    (`stats["corners"]`) and, on a planar patch, a corner of an occluder face lying in its plane
-    and facing away from it (the foot of an object standing on it: `illumination_mesh`'s contact
-    corners; not the receiver's own corners, nor where two feet's edges cross: the irradiance
-    has one limit there)."""
+    which the mesher does not split below that size: a concave fold's corner or a vertex at the
+    terminator on a curved patch (`stats["corners"]`) and, on a planar patch, a corner of an
+    occluder face lying in its plane and facing away from it (the foot of an object standing on
+    it: `illumination_mesh`'s contact corners; not the receiver's own corners, nor where two
+    feet's edges cross: the irradiance has one limit there)."""
     from scipy.spatial import cKDTree
 
     import jaxshadow as js
@@ -409,8 +409,9 @@ def markdown(results: dict) -> str:
     rows += ["", "Per surface: vertices and the dense-grid error (`surface_errors`: 8 random points per triangle "
              "against exact irradiance, triangles of no area left out) over tol; also without the triangles at "
              "a corner where the irradiance has a different limit along each direction of approach, which the "
-             "mesher leaves at `CORNER_SIZE` (1e-4) of the patch's size: a concave fold's corner on a curved "
-             "surface (`stats['corners']`), the corner of an object's foot on a planar one.", "",
+             "mesher leaves at `CORNER_SIZE` (1e-4) of the patch's size: on a curved surface a concave fold's "
+             "corner or a vertex at the terminator (`stats['corners']`), the corner of an object's foot on a planar "
+             "one.", "",
              "| scene | tol | surface | vertices | error / tol | off those corners / tol |", "|---|---|---|---|---|---|"]
     for r in results["cases"]:
         for srf in r.get("surface_errors", []):

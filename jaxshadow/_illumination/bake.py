@@ -92,11 +92,13 @@ class BakedScene:
       `moved_points`, `seconds`; `unconverged`: one dict per patch left with elements over
       `tol` (`surface`, `patch`, `kind`, `elements` over tol, `stopped_by_budget`, `error`: the
       largest checked error over `scale`), at the minimum edge length (value jumps: hard
-      shadows of point lights, geometry passing through the receiver) or stopped by
-      `max_vertices` (also a `RuntimeWarning`); `pierced`: one dict per planar patch that
+      shadows of point lights, geometry passing through the receiver), after `max_rounds` or
+      stopped by `max_vertices` (each also a `RuntimeWarning`); `converged`: no such patch (the corners
+      below apart: warned when their error is over `tol`); `pierced`: one dict per planar patch that
       occluders pass through (`surface`, `patch`, `sections`: convex pieces of the cut-out
       cross-sections of closed objects, `open`: segments where open geometry crosses it);
-      `corners`: one dict per curved patch with concave folds' corners (`surface`, `patch`,
+      `corners`: one dict per curved patch with corners where its own faces shadow it (concave
+      folds, and vertices at the terminator: `_folded`) (`surface`, `patch`,
       `points`: their positions, `error`: the largest checked error over `scale` of the edges
       within `CORNER_SIZE` of the patch's size of them, which are not split: there the
       irradiance takes a different limit along each direction of approach, as at the corner
@@ -516,8 +518,22 @@ def bake(scene: Scene, receivers: Any = None, tol: float = 1e-3, *, lights: Sequ
                       f"(largest error {max(float(u['error']) for u in stopped):.3g} of scale, tol {tol:g}; surfaces "
                       f"{sorted({str(u['surface']) for u in stopped})}); see BakedScene.stats['unconverged'].",
                       RuntimeWarning, stacklevel=2)
-    stats = {"chunks": len(patches), "chunks_computed": computed, "unconverged": unconverged, "pierced": pierced,
-             "corners": corners,
+    short = [u for u in unconverged if not u["stopped_by_budget"]]
+    if short:
+        warnings.warn(f"bake: {len(short)} patches left elements over tol (largest error "
+                      f"{max(float(u['error']) for u in short):.3g} of scale, tol {tol:g}; surfaces "
+                      f"{sorted({str(u['surface']) for u in short})}) at the minimum edge length (a value jump: a hard "
+                      f"shadow, geometry through the receiver) or after max_rounds={max_rounds}; see "
+                      f"BakedScene.stats['unconverged'].", RuntimeWarning, stacklevel=2)
+    sharp = [c for c in corners if c["error"] > tol]
+    if sharp:
+        warnings.warn(f"bake: {sum(len(c['points']) for c in sharp)} corners of curved patches (surfaces "
+                      f"{sorted({str(c['surface']) for c in sharp})}), where the irradiance takes a different limit "
+                      f"along each direction of approach, left over tol within CORNER_SIZE of them (largest error "
+                      f"{max(float(c['error']) for c in sharp):.3g} of scale, tol {tol:g}); see "
+                      f"BakedScene.stats['corners'].", RuntimeWarning, stacklevel=2)
+    stats = {"chunks": len(patches), "chunks_computed": computed, "converged": not unconverged,
+             "unconverged": unconverged, "pierced": pierced, "corners": corners,
              "patches_planar": sum(p.kind == "planar" for p in patches),
              "patches_curved": sum(p.kind == "curved" for p in patches), **stitch,
              "seconds": time.perf_counter() - t0}

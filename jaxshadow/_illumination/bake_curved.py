@@ -1,13 +1,16 @@
 """A curved bake chunk: conforming refinement of a curved triangle set (`_refine_curved`), faces' own
-limits at their edges where the surface shadows itself, fold corners graded apart (`bake`, step 2)."""
+limits at their edges where the surface shadows itself, corners (concave folds, the terminator's
+vertices) graded apart (`bake`, step 2)."""
 
 from __future__ import annotations
+
+from itertools import combinations
 
 import numpy as np
 
 from .._scene.model import Scene
 from .bake_patches import _Patch
-from .bake_values import _CODE, _light_points, _on_point, _values
+from .bake_values import _CODE, ON_SURFACE, _light_points, _on_point, _values
 from .builder import ESTIMATE_MARGIN
 from .refine import CORNER_GRADE, CORNER_SIZE
 
@@ -65,48 +68,84 @@ def _star_pairs(tri: np.ndarray) -> np.ndarray:
 
 
 def _own_occluders(scenes: list[Scene], tri: np.ndarray, P: np.ndarray, size: float) -> np.ndarray:
-    """`(t,)` whether each face `tri (t, 3)` (vertex positions `P`) is also an occluder face of
-    the scene (a triangle with the same corners within 1e-7 of `size`): only then does the
+    """`(t,)` the occluder face of the scene each face `tri (t, 3)` (vertex positions `P`) lies
+    in (its three corners among that face's corners, within 1e-7 of `size`: a face `Mesh`
+    merged from coplanar triangles holds several), -1 for none: only then does the
     surface shadow itself next to its own edges (the on-surface rule at points of them)."""
     from scipy.spatial import cKDTree
 
     occ = scenes[0].occluders if scenes else None
-    out = np.zeros(tri.shape[0], bool)
+    out = np.full(tri.shape[0], -1, np.int64)
     if occ is None or tri.shape[0] == 0:
         return out
     occ = np.asarray(occ, np.float64)
     dist, idx = cKDTree(P).query(occ.reshape(-1, 3), distance_upper_bound=1e-7 * size)
     idx = np.where(np.isfinite(dist), idx, -1).reshape(occ.shape[:2])
-    faces = {tuple(sorted(t)) for t in tri.tolist()}
-    hit = set()
-    for row in idx.tolist():
+    hit: dict[tuple[int, ...], int] = {}
+    for o, row in enumerate(idx.tolist()):
         ids = sorted(set(row))
-        if len(ids) == 3 and ids[0] >= 0:
-            hit.add(tuple(ids))
+        if len(ids) >= 3 and ids[0] >= 0:  # a merged coplanar face holds several of the receiver's
+            hit.update((c, o) for c in combinations(ids, 3))
     for f, t in enumerate(tri.tolist()):
-        out[f] = tuple(sorted(t)) in hit and tuple(sorted(t)) in faces
+        out[f] = hit.get(tuple(sorted(t)), -1)
     return out
 
 
-def _folded(tri: np.ndarray, corners: np.ndarray, P: np.ndarray, size: float, own: np.ndarray) -> np.ndarray:
-    """The vertex ids where occluder faces of the surface (`own`) meet with one rising above
-    another's plane (by more than 1e-9 of `size`): a concave fold's corner. Seen from a point
-    of a face at distance r from it, the faces around it hide a solid angle that does not
-    shrink with r but turns with the direction of approach, so the irradiance takes a
-    different limit along each direction (as at the corner of a box standing on a floor): no
-    mesh of linear elements meets `tol` there."""
+def _under_plane_lit(scenes: list[Scene], v: np.ndarray, nf: np.ndarray, nv: np.ndarray, eps: float) -> bool:
+    """Whether a light of `scenes` has a part strictly below the plane through `v` of normal
+    `nf` (by more than `eps`, m) that lies strictly above the tangent plane of normal `nv`
+    there: the part the faces below that plane can block for points near `v`."""
+    from .._scene.model import DirectionalLight
+
+    for sc in scenes:
+        light = sc.lights[0]
+        if isinstance(light, DirectionalLight):
+            w = -np.asarray(light.direction, np.float64)
+            w = w / np.linalg.norm(w)
+            if w @ nf < -1e-9 and w @ nv > 1e-9:
+                return True
+            continue
+        q = _light_points(light, v[None, :], 0.0)
+        h = (q - v) @ nf
+        kept = [q[i] for i in range(q.shape[0]) if h[i] < -eps]  # the light clipped to below the plane
+        for i in range(q.shape[0]):
+            j = (i + 1) % q.shape[0]
+            if (h[i] < -eps) != (h[j] < -eps) and h[i] != h[j]:
+                kept.append(q[i] + (-eps - h[i]) / (h[j] - h[i]) * (q[j] - q[i]))
+        if kept and np.max((np.array(kept) - v) @ nv) > eps:
+            return True
+    return False
+
+
+def _folded(scenes: list[Scene], tri: np.ndarray, corners: np.ndarray, P: np.ndarray, N: np.ndarray, size: float,
+            own: np.ndarray) -> np.ndarray:
+    """The vertex ids where faces lying in two or more occluder faces of the surface (`own`:
+    `_own_occluders`) meet and the faces around shadow the light for points of one of them
+    near the vertex: one rises above another's plane (by more than `ON_SURFACE` of the largest
+    coordinate magnitude, float32 rounding of the vertices apart, and faces of one occluder
+    face apart: a concave fold's corner), or a light has a
+    part below one's plane and above the tangent plane of the vertex normal `N` (the
+    terminator: the faces below that plane block some of it, `_under_plane_lit`). Seen from a
+    point of a face at distance r from such a vertex, the faces around it hide a solid angle
+    that does not shrink with r but turns with the direction of approach, so the irradiance
+    takes a different limit along each direction (as at the corner of a box standing on a
+    floor): no mesh of linear elements meets `tol` there."""
     n = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     star: dict[int, list[int]] = {}
     for f, t in enumerate(tri.tolist()):
-        if own[f]:
+        if own[f] >= 0:
             for v in t:
                 star.setdefault(v, []).append(f)
+    rise = ON_SURFACE * float(np.abs(P).max(initial=0.0))
     out = []
     for v, fs in star.items():
         fs_a = np.array(fs)
+        if np.unique(own[fs_a]).size < 2:
+            continue
         h = np.einsum("gkd,fd->fgk", P[tri[fs_a]] - P[v], n[fs_a])  # every corner against every plane
-        if np.any(h > 1e-9 * size):
+        h[own[fs_a][:, None] == own[fs_a][None, :]] = 0.0  # faces of one (planar) occluder face
+        if np.any(h > rise) or any(_under_plane_lit(scenes, P[v], n[f], N[v], 1e-9 * size) for f in fs):
             out.append(v)
     return np.array(sorted(out), np.int64)
 
@@ -137,8 +176,8 @@ def _refine_curved(scenes: list[Scene], patch: _Patch, pos: np.ndarray, tol: flo
     reports `rounds`, `unrefined` (edges whose midpoint still misses `tol`, the short ones
     included), `stopped` (1: stopped by `max_vertices` with edges failing), `error` (the
     largest midpoint miss over `scale`) and `corner_error` (the same for the edges within
-    `CORNER_SIZE` of the patch's size of a concave fold's corner, `_folded`: there the
-    irradiance has a different limit along each direction, as at a standing box's footprint
+    `CORNER_SIZE` of the patch's size of a corner, `_folded`: a concave fold's, or one at the
+    terminator; there the irradiance has a different limit along each direction, as at a standing box's footprint
     corner in `illumination_mesh`; those edges are not split and are left out of the others).
 
     **Values per receiver face.** Each triangle lies in one of the patch's own faces (its
@@ -172,9 +211,10 @@ def _refine_curved(scenes: list[Scene], patch: _Patch, pos: np.ndarray, tol: flo
     pairs = _star_pairs(tri0)
     # where the point's own value is not the face's limit (see the docstring): push those
     push = ~_front(scenes, corners, size) | _concave(tri0, corners, P0, size, pairs)[None, :]
-    own = _own_occluders(scenes, tri0, P0, size)
+    holder = _own_occluders(scenes, tri0, P0, size)
+    folded = P0[_folded(scenes, tri0, corners, P0, patch.data["vnrm"].astype(np.float64), size, holder)]
+    own = holder >= 0
     own[pairs[own[pairs[:, 1]], 0]] = True  # a face next to an occluder face of the surface
-    folded = P0[_folded(tri0, corners, P0, size, _own_occluders(scenes, tri0, P0, size))]
     near_fold = None
     if folded.shape[0]:
         from scipy.spatial import cKDTree
