@@ -135,14 +135,36 @@ inline bool section_bodies(const std::vector<Seg>& segs, double u0, double w0, d
       for (int i = i0; i <= i1; i++) touched[size_t(j) * size_t(gu) + size_t(i)] = 1;
     }
   }
-  // Parity of the untouched cells, row by row (2: unknown).
+  // Parity of the untouched cells, row by row (2: unknown): the segments that reach a row's
+  // centre line (within `tiny`) listed per row first.
+  std::vector<int32_t> roff(size_t(gw) + 1, 0), rseg;
+  auto rows_of = [&](const Seg& s, int& j0, int& j1) {
+    j0 = std::max(0, int(std::ceil((std::min(s.w0, s.w1) - tiny - w0) / h - 0.5)));
+    j1 = std::min(gw - 1, int(std::floor((std::max(s.w0, s.w1) + tiny - w0) / h - 0.5)));
+  };
+  for (const Seg& s : segs) {
+    int j0, j1;
+    rows_of(s, j0, j1);
+    for (int j = j0; j <= j1; j++) roff[size_t(j) + 1]++;
+  }
+  for (int j = 0; j < gw; j++) roff[size_t(j) + 1] += roff[size_t(j)];
+  rseg.resize(size_t(roff[size_t(gw)]));
+  {
+    std::vector<int32_t> fill(roff.begin(), roff.end() - 1);
+    for (size_t k = 0; k < segs.size(); k++) {
+      int j0, j1;
+      rows_of(segs[k], j0, j1);
+      for (int j = j0; j <= j1; j++) rseg[size_t(fill[size_t(j)]++)] = int32_t(k);
+    }
+  }
   std::vector<uint8_t> par(nc, 2);
   std::vector<double> xs;
   for (int j = 0; j < gw; j++) {
     const double line = w0 + (j + 0.5) * h;
     xs.clear();
     bool known = true;
-    for (const Seg& s : segs) {
+    for (int32_t k = roff[size_t(j)]; k < roff[size_t(j) + 1]; k++) {
+      const Seg& s = segs[size_t(rseg[size_t(k)])];
       const double d0 = s.w0 - line, d1 = s.w1 - line;
       if (std::fabs(d0) <= tiny || std::fabs(d1) <= tiny) {
         known = false;
@@ -229,7 +251,6 @@ void build_interior_sections(const Occluders<T>& occ, const SilhouetteTree& st, 
   std::vector<int32_t> faces;
   std::vector<V3<double>> bnd;  // the component's unpaired slots' ends, two per slot
   std::vector<double> xs;
-  std::vector<Seg> segs;
   out.cap_off.push_back(0);
   for (size_t k = 0; k < roots.size(); k++) {
     const int32_t root = roots[k];
@@ -261,61 +282,80 @@ void build_interior_sections(const Occluders<T>& occ, const SilhouetteTree& st, 
     const double pad = 1e-7 * ext + 1e3 * 2.220446049250313e-16 * S, tiny = 1e-10 * ext + 1e3 * 2.220446049250313e-16 * S;
     for (int a = 0; a < 3; a++) {
       const int b = (a + 1) % 3, cc = (a + 2) % 3;
-      xs.clear();
-      for (const int32_t f : faces)
-        for (int64_t i = 0; i < Ko; i++) xs.push_back(coord(pt(f, i), a));
-      if (!bnd.empty()) xs.push_back(coord(c, a));
-      std::sort(xs.begin(), xs.end());
-      xs.erase(std::unique(xs.begin(), xs.end()), xs.end());
       const double hcell = std::max(hi[b] - lo[b], hi[cc] - lo[cc]) / kSectionGrid;
       if (!(hcell > 0)) continue;
       const int gu = std::max(1, int(std::ceil((hi[b] - lo[b]) / hcell))), gw = std::max(1, int(std::ceil((hi[cc] - lo[cc]) / hcell)));
-      double last = -std::numeric_limits<double>::infinity();
-      for (int l = 0; l < kSectionLevels; l++) {
-        const double target = lo[a] + (l + 0.5) / kSectionLevels * (hi[a] - lo[a]);
-        const size_t at = size_t(std::upper_bound(xs.begin(), xs.end(), target) - xs.begin());
-        if (at == 0 || at >= xs.size()) continue;
-        const double z0 = 0.5 * (xs[at - 1] + xs[at]);
-        if (!(xs[at] - z0 > 1e-9 * S && z0 - xs[at - 1] > 1e-9 * S) || z0 == last) continue;
-        last = z0;
-        // The cut: per face (and cap triangle) crossing the plane, its segment, each cut point
-        // computed from the edge's ends in one order (a shared edge cuts at the same point).
-        segs.clear();
-        bool ok = true;
-        auto cut = [&](const V3<double>* v, int n) {
+      // The levels: per target, the largest vertex coordinate (of Z and c) at or below it and the
+      // smallest above it, from one pass that buckets each coordinate by the targets below it;
+      // the level midway, where that gap is clear.
+      constexpr int L = kSectionLevels;
+      double tg[L], bmax[L + 1], bmin[L + 1];
+      for (int l = 0; l < L; l++) tg[l] = lo[a] + (l + 0.5) / L * (hi[a] - lo[a]);
+      for (int l = 0; l <= L; l++) bmax[l] = -std::numeric_limits<double>::infinity(), bmin[l] = std::numeric_limits<double>::infinity();
+      auto note = [&](double x) {
+        const int j = int(std::lower_bound(tg, tg + L, x) - tg);  // targets below x
+        bmax[j] = std::max(bmax[j], x), bmin[j] = std::min(bmin[j], x);
+      };
+      for (const int32_t f : faces)
+        for (int64_t i = 0; i < Ko; i++) note(coord(pt(f, i), a));
+      if (!bnd.empty()) note(coord(c, a));
+      double above[L + 1];
+      above[L] = bmin[L];
+      for (int l = L - 1; l >= 0; l--) above[l] = std::min(above[l + 1], bmin[l]);
+      xs.clear();  // the levels, increasing
+      double below = -std::numeric_limits<double>::infinity();
+      for (int l = 0; l < L; l++) {
+        below = std::max(below, bmax[l]);
+        const double up = above[l + 1];
+        if (!(std::isfinite(below) && std::isfinite(up))) continue;
+        const double z0 = 0.5 * (below + up);
+        if (up - z0 > 1e-9 * S && z0 - below > 1e-9 * S && (xs.empty() || z0 > xs.back())) xs.push_back(z0);
+      }
+      const size_t nl = xs.size();
+      std::vector<std::vector<Seg>> lsegs(nl);
+      std::vector<uint8_t> lok(nl, 1);
+      // The cut of a face (or cap triangle) with every level between its lowest and highest
+      // vertex: one segment per level, each cut point computed from the edge's ends in one order
+      // (a shared edge cuts at the same point); more than two crossings drop the level.
+      auto cut = [&](const V3<double>* v, int n) {
+        double mn = std::numeric_limits<double>::infinity(), mx = -mn;
+        for (int i = 0; i < n; i++) mn = std::min(mn, coord(v[i], a)), mx = std::max(mx, coord(v[i], a));
+        const size_t l0 = size_t(std::upper_bound(xs.begin(), xs.end(), mn) - xs.begin());
+        const size_t l1 = size_t(std::lower_bound(xs.begin(), xs.end(), mx) - xs.begin());
+        for (size_t l = l0; l < l1; l++) {
+          const double z0 = xs[l];
           double cu[2], cw[2];
           int m = 0;
-          for (int i = 0; i < n && ok; i++) {
+          for (int i = 0; i < n; i++) {
             V3<double> x = v[i], y = v[(i + 1) % n];
-            if (same(x, y)) continue;
-            const double hx = coord(x, a) - z0, hy = coord(y, a) - z0;
-            if ((hx > 0) == (hy > 0)) continue;
-            if (hx > 0) std::swap(x, y);
-            const double hx2 = coord(x, a) - z0, hy2 = coord(y, a) - z0;
-            const double t = hx2 / (hx2 - hy2);
+            if (same(x, y) || (coord(x, a) > z0) == (coord(y, a) > z0)) continue;
+            if (coord(x, a) > z0) std::swap(x, y);
             if (m == 2) {
-              ok = false;
-              return;
+              m = 3;
+              break;
             }
+            const double hx = coord(x, a) - z0, hy = coord(y, a) - z0, t = hx / (hx - hy);
             cu[m] = coord(x, b) + t * (coord(y, b) - coord(x, b));
             cw[m] = coord(x, cc) + t * (coord(y, cc) - coord(x, cc));
             m++;
           }
-          if (m == 1) ok = false;
-          if (m == 2) segs.push_back(Seg{cu[0], cw[0], cu[1], cw[1]});
-        };
-        V3<double> poly[64];
-        for (const int32_t f : faces) {
-          for (int64_t i = 0; i < Ko; i++) poly[i] = pt(f, i);
-          cut(poly, int(Ko));
+          if (m == 2)
+            lsegs[l].push_back(Seg{cu[0], cw[0], cu[1], cw[1]});
+          else if (m != 0)
+            lok[l] = 0;
         }
-        for (size_t s = 0; s + 1 < bnd.size() && !bnd.empty(); s += 2) {
-          const V3<double> tri[3] = {c, bnd[s], bnd[s + 1]};
-          cut(tri, 3);
-        }
-        if (!ok) continue;
-        sections_detail::section_bodies(segs, lo[b], lo[cc], hcell, gu, gw, pad, tiny, int32_t(k), a, z0, out);
+      };
+      V3<double> poly[64];
+      for (const int32_t f : faces) {
+        for (int64_t i = 0; i < Ko; i++) poly[i] = pt(f, i);
+        cut(poly, int(Ko));
       }
+      for (size_t s = 0; s + 1 < bnd.size(); s += 2) {
+        const V3<double> tri[3] = {c, bnd[s], bnd[s + 1]};
+        cut(tri, 3);
+      }
+      for (size_t l = 0; l < nl; l++)
+        if (lok[l]) sections_detail::section_bodies(lsegs[l], lo[b], lo[cc], hcell, gu, gw, pad, tiny, int32_t(k), a, xs[l], out);
     }
   }
   out.ok = !out.sections.empty();
