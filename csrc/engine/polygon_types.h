@@ -5,6 +5,7 @@
 #include "bvh.h"
 #include "silhouette_types.h"
 #include "umbra.h"
+#include "umbra_sections.h"
 #include "volume.h"
 
 namespace jaxshadow_engine {
@@ -217,6 +218,8 @@ struct PolyCall {
   const SilhouetteTree* sil = nullptr;
   double sil_hmin = 0, sil_hmax = 0;
   bool sil_ok = false;
+  // The interior sections' bodies usable with this light (umbra_sections.h; prepared.h).
+  SectionCall sections;
 };
 
 // The faces' edge twins (PolyCall::twin, prepared.h): one sort of the edge slots by their endpoints'

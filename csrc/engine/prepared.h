@@ -25,6 +25,7 @@ struct Prepared {
   BVH bvh;
   std::vector<int32_t> twin;
   SilhouetteTree sil;  // without the light's heights (silhouette_heights)
+  InteriorSections sections;  // bodies inside the mesh's components (umbra_sections.h)
 };
 
 template <class T>
@@ -70,6 +71,7 @@ std::shared_ptr<const Prepared> prepared(const Occluders<T>& occ) {
   prepare_solids(occ, out->bvh);
   out->twin = edge_twins(occ);
   build_silhouette_tree(occ, out->twin, out->sil);
+  build_interior_sections(occ, out->sil, out->sections);
   if (cached) {
     out->key.swap(key);
     std::lock_guard<std::mutex> lock(mu);
@@ -86,6 +88,15 @@ void bind_call(PolyCall<T>& call, const Prepared& prep) {
   call.twin_ptr = &prep.twin;
   call.sil = &prep.sil;
   silhouette_heights(call);
+  // JAXSHADOW_UMBRA_SECTIONS=0: no early umbra test (for comparing it with the silhouette path).
+  const char* env = std::getenv("JAXSHADOW_UMBRA_SECTIONS");
+  if (call.sil_ok && !(env && env[0] == '0')) {
+    const int64_t K = call.L.K;
+    std::vector<double> lv(size_t(3 * K));
+    for (int64_t i = 0; i < 3 * K; i++) lv[size_t(i)] = double(call.L.E[i]);
+    const double ne[3] = {double(call.ne_raw.x), double(call.ne_raw.y), double(call.ne_raw.z)};
+    prepare_sections(call.sections, &prep.sections, lv.data(), K, ne);
+  }
 }
 
 }  // namespace jaxshadow_engine

@@ -62,6 +62,10 @@ template <class T>
 int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p, V3<T> n,
                             const Edge<T>* eh, int neh, const V3<T>* cone, const PlaneRef* prefs, int np0,
                             V3<T> ne, double hp, Work<T>& w) {
+  if (section_umbra(call.sections, p, n)) {  // umbra by a body inside the mesh (umbra_sections.h)
+    w.n_candidates = 0;
+    return kUmbra;
+  }
   const double eps = 2.220446049250313e-16;
   const double tol = kCollinearEps * eps;
   const double scale = std::max(st.scale, double(absmax(p))) + 1e-300;

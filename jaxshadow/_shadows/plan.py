@@ -81,8 +81,9 @@ class LightPlan:
     hierarchy returned for the receiver (polygon lights; a convex closed mesh counts once), or,
     for receivers the engine's silhouette path served (large meshes without convex solids, every
     occluder between the receiver and the light), the contour edges in its pyramid; `kept (N,)`:
-    occluder regions kept after the exact tests (1 on the silhouette path) or faces that meet
-    the light triangle (segment lights). Polygon lights: penumbra receiver i's boundary edges
+    occluder regions kept after the exact tests (1 on the silhouette path; 0 for an umbra
+    receiver that a body inside a mesh showed umbra before any region was built) or faces that
+    meet the light triangle (segment lights). Polygon lights: penumbra receiver i's boundary edges
     are rows `offsets[i]:offsets[i + 1]` of `runs (R, 2, 7)` (endpoint codes) and/or `points
     (R, 2, 3)`; receivers of the other classes have none (a lit one takes the unoccluded kernel)."""
 
