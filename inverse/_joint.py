@@ -21,7 +21,7 @@ from ._diagnostics import FitQualityWarning, invalid_reason, without_invalid_lig
 from ._forward import SpecularFn, at_capacity
 from ._identifiability import identifiability
 from ._lights import fit_light
-from ._lm import fit_jit
+from ._lm import ONCE_COMPILER_OPTIONS, fit_jit
 from ._material import fit_material
 from ._multilight import LightsProblem, basis
 from ._multistart import culling_capacity_for_starts
@@ -133,7 +133,7 @@ def _joint_residuals(phi: Array, problem: LightsProblem) -> tuple[Array, Array]:
     return (jnp.sqrt(t.weights) * (model - t.colours)).reshape(-1), over
 
 
-@fit_jit
+@fit_jit(options=ONCE_COMPILER_OPTIONS)
 def _joint_jacobian(problem: LightsProblem, phi: Array) -> tuple[Array, Array, Array]:
     """`(r, dr/dphi, overflow)` of `_joint_residuals`: one program per problem structure (the
     parametrisation's kind, the number of targets, occluders and capacity), whatever the scene's,

@@ -37,7 +37,7 @@ from ._diagnostics import (
 )
 from ._forward import SpecularFn, shade
 from ._identifiability import identifiability
-from ._lm import fit_jit
+from ._lm import ONCE_COMPILER_OPTIONS, fit_jit
 from ._multilight import LightsProblem, basis, colour_free_columns, exponent_at, fixed_contribution
 from ._multilight_report import LightsReport, correlated_pairs
 from ._multistart import distinct_minima, make_starts
@@ -312,7 +312,7 @@ def _light_fit(problem: LightsProblem, sol: Solution, solver_name: str, n_screen
                     report=report, theta=theta64[:param.size], parametrisations=(param,))
 
 
-@fit_jit
+@fit_jit(options=ONCE_COMPILER_OPTIONS)
 def colour_coefficients(problem: LightsProblem, theta: Array) -> tuple[Array, Array]:
     """`((3, 3), n)`: rows $k_a, k_d, k_s$ (RGB columns; $k_s = 0$ without a specular term), the
     per-channel weighted least squares of the targets' colours on the ambient, $E/\\pi$ and $S$

@@ -29,7 +29,7 @@ from jaxshadow.cli import ensure_default_compile_cache
 
 from ._forward import SpecularFn, traced_specular
 from ._identifiability import identifiability
-from ._lm import fit_jit
+from ._lm import ONCE_COMPILER_OPTIONS, fit_jit
 from ._reports import MaterialFit, MaterialReport, UndeterminedParameterWarning
 from ._targets import PaintedTargets
 
@@ -142,7 +142,7 @@ def _np(x: Any) -> np.ndarray:
 SPEC_CHUNK = 8
 
 
-@fit_jit
+@fit_jit(options=ONCE_COMPILER_OPTIONS)
 def _spec_eval(specular: Any, scene: Any, targets: PaintedTargets, exponents: Array) -> tuple[Array, Array]:
     """`(S(n), n dS/dn)` at each of `exponents (SPEC_CHUNK,)`: one program for values and
     derivatives (the derivative's program holds the value's)."""

@@ -210,10 +210,15 @@ def test_screening_by_the_lm_program(occluded_config, caplog, monkeypatch):
     assert len(f.report.start_losses) == 3 and f.report.loss <= float(np.min(ref)) + 1e-12
 
 
-def test_lm_num_residuals_and_fit_compiler_options():
+@pytest.mark.parametrize("which", ["FIT_COMPILER_OPTIONS", "ONCE_COMPILER_OPTIONS"])
+def test_lm_num_residuals_and_fit_compiler_options(which):
     """Passing the residual length (no extra trace) and compiling with `FIT_COMPILER_OPTIONS`
-    (`fit_jit`) change nothing in the solution; a wrong length is an error, not a silent result."""
-    from inverse._lm import FIT_COMPILER_OPTIONS, fit_jit
+    (`fit_jit`) or `ONCE_COMPILER_OPTIONS` (LLVM at -O0) change nothing in the solution; a wrong
+    length is an error, not a silent result."""
+    import inverse._lm as lm
+    from inverse._lm import fit_jit
+
+    options = getattr(lm, which)
 
     starts = jnp.asarray(np.concatenate([TRUE[None] * 1.5, TRUE[None] * 0.7]))
     args = (jnp.asarray(T), jnp.asarray(Y))
@@ -223,14 +228,18 @@ def test_lm_num_residuals_and_fit_compiler_options():
                                            num_residuals=m)
 
     ref = jax.jit(solve, static_argnums=1)(starts, None)
-    fast = fit_jit(solve)
+    fast = fit_jit(solve, options=options)
     got = fast(starts, T.size)
-    np.testing.assert_array_equal(np.asarray(got.num_steps), np.asarray(ref.num_steps))
+    # At -O0 some operations round differently (the values agree to ~1e-15): the last step's
+    # convergence test may fall one iteration apart, the answer is the same to rounding.
+    steps = np.asarray(got.num_steps) - np.asarray(ref.num_steps)
+    assert np.all(steps == 0) if which == "FIT_COMPILER_OPTIONS" else np.all(np.abs(steps) <= 1), steps
+    assert np.all(np.asarray(got.converged))
     np.testing.assert_allclose(np.asarray(got.values), np.asarray(ref.values), rtol=1e-12, atol=1e-14)
-    np.testing.assert_allclose(np.asarray(got.jacobians), np.asarray(ref.jacobians), rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(np.asarray(got.jacobians), np.asarray(ref.jacobians), rtol=1e-10, atol=1e-14)
     # The options are what the compiled program was built with (CPU backend).
     if jax.default_backend() == "cpu":
-        lowered = jax.jit(solve, static_argnums=1, compiler_options=FIT_COMPILER_OPTIONS).lower(starts, T.size)
+        lowered = jax.jit(solve, static_argnums=1, compiler_options=options).lower(starts, T.size)
         assert lowered.compile() is not None
     with pytest.raises((TypeError, ValueError)):
         jax.jit(solve, static_argnums=1)(starts, T.size + 1)
