@@ -251,10 +251,9 @@ def fit_lights(
       `(N, 3)`), `"weights"` (the weights are inverse variances) or None (estimated: 2.5 % of
       the RMS weighted colour); what the checks of the answer compare the residual with
       (`inverse._diagnostics`: a wrong minimum, outliers, conflicting targets). Told standard
-      deviations weight the joint refinement, each target and channel by $w/\\sigma^2$ (the
-      weights multiply in; the search ranks its placements with the given weights), and the
-      standard errors are those of that weighted problem under them (with the noise
-      estimated: scaled by the residual).
+      deviations weight the fit, each target and channel by $w/\\sigma^2$ (the weights
+      multiply in), and the standard errors are those of that weighted problem under them
+      (with the noise estimated: scaled by the residual).
     - `warn`: emit a `FitQualityWarning` when the answer is flagged (a wrong minimum, an
       escaped light, a polygon or segment collapsed to a point, a light left with no part in
       the colours, outlier targets (painted wrong or missed by lights in a wrong basin: give
