@@ -302,7 +302,6 @@ def fit_lights(
     if kinds is not None:
         scene, lights = _with_new_lights(scene, targets, kinds, lights)
     idx, fit, cons = _checked(scene, targets, material, lights, fit, material_mode, constraints)
-    given = targets  # the search ranks placements with the given weights, the joint refinement with fw
     fw = fit_weights(targets, noise)  # told noise: each target and channel weighted by 1/sigma^2
     if fw is not None:
         targets = targets.with_weights(jnp.asarray(fw, targets.weights.dtype))
@@ -369,7 +368,7 @@ def fit_lights(
     problem = _with_capacity(problem, [y if g is None else np.concatenate([y, g]) if y is not None else None
                                        for y, g in zip(per_light, grid_rows or [None] * len(per_light),
                                                        strict=True)], fixed)
-    search_w = _search_weights(given, search_targets) if search_targets is not None or fw is None else given.weights
+    search_w = _search_weights(t, search_targets)
     k = max(1, min(int(solver.refine or starts), int(starts)))
     sched = prune_schedule(k, solver.max_steps) if solver.prune else ()
     lm = dict(rtol=solver.rtol, atol=solver.atol, max_steps=solver.max_steps, prune=sched)
