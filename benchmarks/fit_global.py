@@ -17,7 +17,8 @@ cache (`jaxshadow.cli.enable_compile_cache`), for a one-light + material fit
 
 Every fit is told its targets' noise (`fit_lights(noise=...)`): `NOISE_FREE_SIGMA` (1e-4) of
 the RMS colour for the `js.shade`-painted ones (exact to rounding), the added noise (a fraction
-of each colour) for the noisy ones; the flags (`report.quality.trusted`) compare the residual
+of each colour) for the noisy ones, which the fit weights its targets by ($1/\sigma^2$) and
+takes its standard errors from; the flags (`report.quality.trusted`) compare the residual
 with it. A failure not flagged is a false negative, a recovered fit flagged a false positive.
 The flags are also measured where wrong minima are common (`FLAG_SETTINGS`: the local search
 alone from 30 % and 60 %).

@@ -9,6 +9,14 @@ The rules (thresholds are the module's constants):
   (`noise=None`) it is estimated as $\sigma = s / \sqrt{w}$ with $s$ = `DEFAULT_RELATIVE_NOISE`
   (2.5 %) of the RMS weighted colour $\sqrt{\sum w c^2 / m}$ ($m$ entries of positive weight):
   the weights are relative, and a hand-painted colour is taken to be good to a few per cent.
+- **Weighting by the noise.** Told noise (`noise` given) weights the fit: each target and
+  channel by $w / \sigma^2$ (the user's weights multiply in; `fit_weights`, rescaled to the
+  weights' sum, which leaves the minimiser unchanged), so a bright target's larger noise does
+  not outweigh a dark one's; a told noise that is the same everywhere leaves the weights as
+  given. The standard errors are then those of that weighted problem under the told noise
+  (`row_variance`; `_identifiability`: no residual scale); with `noise="weights"` the weights
+  are the inverse variances already, and with the noise estimated the weights stay as given
+  and the standard errors take the residual's scale.
 - **Wrong minimum.** The reduced chi-square $\chi^2_\nu = \sum (r/\sigma)^2 / \nu$, $\nu = m - p$,
   over the targets that are not outliers (below), above `WRONG_MINIMUM_CHI2` (4: an RMS
   residual twice the noise; by default, above 5 % of the RMS colour) means the solution does
@@ -194,6 +202,33 @@ def noise_sigma(targets: Any, noise: Any) -> tuple[np.ndarray, str]:
     level = math.sqrt(float(np.sum(w * c * c)) / m)
     s = DEFAULT_RELATIVE_NOISE * level if level > 0 else 1.0
     return np.where(pos, s / np.sqrt(np.where(pos, w, 1.0)), np.inf), "estimated"
+
+
+def fit_weights(targets: Any, noise: Any) -> np.ndarray | None:
+    """`(N, 3)` the weights a fit told `noise` minimises with (module docstring): $w/\\sigma^2$
+    rescaled to the sum of $w$; None when they are the targets' own (the noise estimated,
+    `"weights"`, or the same told standard deviation at every target of positive weight)."""
+    if noise is None or isinstance(noise, str):
+        noise_sigma(targets, noise)  # its checks
+        return None
+    sigma, _ = noise_sigma(targets, noise)
+    w = np.asarray(targets.weights, np.float64)
+    pos = w > 0
+    if not pos.any() or np.all(sigma[pos] == sigma[pos].flat[0]):
+        return None
+    out = np.where(pos, w / np.where(pos, sigma, 1.0) ** 2, 0.0)
+    return out * (float(np.sum(w)) / float(np.sum(out)))
+
+
+def row_variance(weights: Any, targets: Any, noise: Any) -> np.ndarray | None:
+    """`(3N,)` the variance of each row $\\sqrt{w_i}\\,r_i$ of a fit's weighted residual (row-major
+    over targets and channels) under the told `noise`, `weights` the fit's (`fit_weights` or the
+    targets'); None when the noise is estimated (the residual sets the scale)."""
+    if noise is None:
+        return None
+    sigma, _ = noise_sigma(targets, noise)
+    w = np.asarray(weights, np.float64)
+    return np.where(w > 0, w * np.where(w > 0, sigma, 0.0) ** 2, 0.0).reshape(-1)
 
 
 def robust_z(residual: np.ndarray, sigma: np.ndarray) -> np.ndarray:

@@ -43,9 +43,7 @@ import numpy as np
 import jaxshadow as js
 from jaxshadow import traced
 
-from ._diagnostics import (
-    FitQualityWarning,
-)
+from ._diagnostics import FitQualityWarning, fit_weights
 from ._forward import SpecularFn
 from ._global_placement import place, ranking_losses, region_of, template_light
 from ._multilight import (
@@ -252,7 +250,10 @@ def fit_lights(
     - `noise`: the painted colours' standard deviation (colour units: a number, `(N,)` or
       `(N, 3)`), `"weights"` (the weights are inverse variances) or None (estimated: 2.5 % of
       the RMS weighted colour); what the checks of the answer compare the residual with
-      (`inverse._diagnostics`: a wrong minimum, outliers, conflicting targets).
+      (`inverse._diagnostics`: a wrong minimum, outliers, conflicting targets). Told standard
+      deviations weight the fit, each target and channel by $w/\\sigma^2$ (the weights
+      multiply in), and the standard errors are those of that weighted problem under them
+      (with the noise estimated: scaled by the residual).
     - `warn`: emit a `FitQualityWarning` when the answer is flagged (a wrong minimum, an
       escaped light, a polygon or segment collapsed to a point, a light left with no part in
       the colours, outlier targets (painted wrong or missed by lights in a wrong basin: give
@@ -301,6 +302,9 @@ def fit_lights(
     if kinds is not None:
         scene, lights = _with_new_lights(scene, targets, kinds, lights)
     idx, fit, cons = _checked(scene, targets, material, lights, fit, material_mode, constraints)
+    fw = fit_weights(targets, noise)  # told noise: each target and channel weighted by 1/sigma^2
+    if fw is not None:
+        targets = targets.with_weights(jnp.asarray(fw, targets.weights.dtype))
     budget = cons.pop("budget", None)
     paint = painting(len(targets), ranges, brighter, targets.points.dtype)
     if paint is not None and material_mode == "projected":

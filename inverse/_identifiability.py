@@ -8,7 +8,12 @@ with unit-norm columns $J_n = J D^{-1}$ (so the test is scale-free):
   most `cut` times the largest);
 - the standard errors of the others are $\sqrt{\operatorname{diag}(\hat\sigma^2 (J_g^\top
   J_g)^{+})} / d$ over the determined columns $J_g$, with $\hat\sigma^2 = |r|^2 / \max(m - p, 1)$
-  for $m$ residuals of positive weight and $p$ free parameters.
+  for $m$ residuals of positive weight and $p$ free parameters, when the noise is estimated
+  from the residual; when it is told (each weighted residual row's variance $v$ known: the
+  painted colours' standard deviations times the square roots of the weights), the linearised
+  covariance of the weighted least-squares estimate,
+  $(J_g^\top J_g)^{+} J_g^\top \operatorname{diag}(v) J_g (J_g^\top J_g)^{+}$ (the sandwich; with
+  weights $1/\sigma^2$, $v = 1$ and it is $(J_g^\top J_g)^{+}$), with no residual scale.
 
 Parameters held fixed (at an active bound) are left out of $J$'s null space and of the degrees
 of freedom; their standard error is 0.
@@ -35,12 +40,14 @@ class Identifiability:
 
 
 def identifiability(jacobian: np.ndarray, rss: float, n_residuals: int, free: np.ndarray | None = None,
-                    cut: float = 1e-8) -> Identifiability:
+                    cut: float = 1e-8, row_variance: np.ndarray | None = None) -> Identifiability:
     """The rule of the module docstring.
 
     **Arguments:** `jacobian (M, P)` of the weighted residual; `rss` = $|r|^2$ at the optimum;
     `n_residuals`: how many residuals have positive weight; `free (P,)` bool (default: all);
-    `cut`: relative singular value below which a direction counts as null.
+    `cut`: relative singular value below which a direction counts as null; `row_variance (M,)`:
+    the variance of each row of the weighted residual when the noise is told (None: estimated
+    from the residual, $\\hat\\sigma^2$); rows past its length (penalty rows) carry no noise.
 
     **Returns:** `Identifiability`.
     """
@@ -65,7 +72,13 @@ def identifiability(jacobian: np.ndarray, rss: float, n_residuals: int, free: np
         good = free_idx[~bad]
         if good.size:
             Jg = Jn[:, good]
-            cov = sigma2 * np.linalg.pinv(Jg.T @ Jg)
+            inv = np.linalg.pinv(Jg.T @ Jg)
+            if row_variance is None:
+                cov = sigma2 * inv
+            else:
+                v = np.asarray(row_variance, np.float64).reshape(-1)
+                v = np.pad(v, (0, Jg.shape[0] - v.size))  # rows past the data (penalties) carry no noise
+                cov = inv @ (Jg.T @ (v[:, None] * Jg)) @ inv
             se[good] = np.sqrt(np.maximum(np.diag(cov), 0.0)) / colnorm[good]
         se[free_idx[bad]] = np.inf
         determined[free_idx[bad]] = False

@@ -32,7 +32,9 @@ from ._diagnostics import (
     FitQualityWarning,
     assess,
     competing_placements,
+    fit_weights,
     invalid_reason,
+    row_variance,
     without_invalid_lights,
 )
 from ._forward import SpecularFn, shade
@@ -145,7 +147,8 @@ def fit_light(
     - `noise`: the painted colours' standard deviation (colour units: a number, `(N,)` or
       `(N, 3)`), `"weights"` (the weights are inverse variances) or None (estimated: 2.5 % of
       the RMS weighted colour); what the checks of the answer compare the residual with
-      (`inverse._diagnostics`: a wrong minimum, outliers, conflicting targets).
+      (`inverse._diagnostics`: a wrong minimum, outliers, conflicting targets). Told standard
+      deviations weight the fit by $w/\\sigma^2$ and set its standard errors (as `fit_lights`).
     - `warn`: emit a `FitQualityWarning` when the answer is flagged (a wrong minimum, an
       escaped light, a polygon or segment collapsed to a point, conflicting targets); the
       report's `quality` says so either way (`report.trusted`, `report.quality.reason`).
@@ -194,6 +197,9 @@ def fit_light(
     with_spec = bool(np.any(np.asarray(material.ks) != 0))
     project = material_mode == "projected"
     fit_n = project and fit_exponent and with_spec
+    fw = fit_weights(targets, noise)  # told noise: each target and channel weighted by 1/sigma^2
+    if fw is not None:
+        targets = targets.with_weights(jnp.asarray(fw, targets.weights.dtype))
     problem = _problem(param, scene, material, targets, specular, with_spec, project, fit_n)
     seed = opts.seed
     y0 = make_starts(param, starts, search_radius=opts.search_radius, orientation_spread=opts.orientation_spread,
@@ -258,7 +264,8 @@ def _light_fit(problem: LightsProblem, sol: Solution, solver_name: str, n_screen
     dt = t.points.dtype
     theta = jnp.asarray(sol.values[sol.best], dt)
     losses = np.where(np.isfinite(sol.losses), sol.losses, np.inf)
-    ident = identifiability(sol.jacobian, float(sol.residual @ sol.residual), int(np.count_nonzero(np.asarray(t.weights) > 0)))
+    ident = identifiability(sol.jacobian, float(sol.residual @ sol.residual), int(np.count_nonzero(np.asarray(t.weights) > 0)),
+                            row_variance=row_variance(t.weights, t, noise))
     scale = scene_size(problem.scene, t)
     se = {nm: math.inf if not ok else float(s) * (scale if nm in _POSITION_NAMES else 1.0)
           for nm, s, ok in zip(names, ident.std_errors, ident.determined, strict=True)}

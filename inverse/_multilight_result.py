@@ -14,7 +14,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ._diagnostics import assess, competing_placements, dark_answer
+from ._diagnostics import assess, competing_placements, dark_answer, row_variance
 from ._identifiability import identifiability
 from ._multilight import LightsProblem, build_lights, fixed_contribution, report_parts, scaled_light
 from ._multilight_report import (
@@ -99,7 +99,8 @@ def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, ca
     jac = np.concatenate(cols, axis=1)
     rss = float(rows @ rows)
     n_pos = int(np.count_nonzero(w > 0))
-    ident = identifiability(jac, rss, n_pos)
+    # told noise: the standard errors of this weighted problem under it (none with ranges or relations)
+    ident = identifiability(jac, rss, n_pos, row_variance=None if paint is not None else row_variance(w, t, noise))
     names = tuple(names)
     values = list(theta) + [powers[j] for j in free_p]
     if project:
