@@ -38,15 +38,16 @@ def floor(n: int, seed: int = 0, half: float = 1.2) -> tuple[np.ndarray, np.ndar
     return p, nrm
 
 
-def both_paths(scene, p, nrm, monkeypatch):
-    """`(plan, E)` of the first light through the silhouette path, then through the face path
-    (the switch JAXSHADOW_SILHOUETTE=0)."""
+def both_paths(scene, p, nrm, monkeypatch, switch="JAXSHADOW_SILHOUETTE"):
+    """`(plan, E)` of the first light with an engine path on, then with it switched off by the
+    environment variable `switch` set to 0 (default: the silhouette path, so the second is the
+    face path)."""
     on = js.shadow_plan(scene, p, nrm).lights[0]
     e_on = np.asarray(js.irradiance(scene, p, nrm))[:, 0]
-    monkeypatch.setenv("JAXSHADOW_SILHOUETTE", "0")
+    monkeypatch.setenv(switch, "0")
     off = js.shadow_plan(scene, p, nrm).lights[0]
     e_off = np.asarray(js.irradiance(scene, p, nrm))[:, 0]
-    monkeypatch.delenv("JAXSHADOW_SILHOUETTE")
+    monkeypatch.delenv(switch)
     return on, e_on, off, e_off
 
 

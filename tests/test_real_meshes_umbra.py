@@ -23,7 +23,7 @@ pytestmark = pytest.mark.skipif(not vis.engine_available(), reason="the shadow e
 pytest.importorskip("trimesh")
 pytest.importorskip("shapely")
 from test_clip import reference_ff  # noqa: E402
-from test_real_meshes import LIGHT, floor  # noqa: E402
+from test_real_meshes import LIGHT, both_paths, floor  # noqa: E402
 
 
 def tube(top: bool, sections: int = 64) -> tuple[np.ndarray, np.ndarray]:
@@ -56,13 +56,7 @@ def noisy_blob(seed: int) -> tuple[np.ndarray, np.ndarray]:
 
 def plans(scene, p, nrm, monkeypatch):
     """`(plan, E)` with the early umbra test, then without it."""
-    on = js.shadow_plan(scene, p, nrm).lights[0]
-    e_on = np.asarray(js.irradiance(scene, p, nrm))[:, 0]
-    monkeypatch.setenv("JAXSHADOW_UMBRA_SECTIONS", "0")
-    off = js.shadow_plan(scene, p, nrm).lights[0]
-    e_off = np.asarray(js.irradiance(scene, p, nrm))[:, 0]
-    monkeypatch.delenv("JAXSHADOW_UMBRA_SECTIONS")
-    return on, e_on, off, e_off
+    return both_paths(scene, p, nrm, monkeypatch, switch="JAXSHADOW_UMBRA_SECTIONS")
 
 
 MESHES = {"closed": lambda: blob(3), "open": lambda: blob(3, 0.45), "noisy": lambda: noisy_blob(5),

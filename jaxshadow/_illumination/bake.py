@@ -515,16 +515,12 @@ def bake(scene: Scene, receivers: Any = None, tol: float = 1e-3, *, lights: Sequ
     stopped = [u for u in unconverged if u["stopped_by_budget"]]
     if stopped:
         warnings.warn(f"bake: {len(stopped)} patches stopped at max_vertices={max_vertices:,} with elements over tol "
-                      f"(largest error {max(float(u['error']) for u in stopped):.3g} of scale, tol {tol:g}; surfaces "
-                      f"{sorted({str(u['surface']) for u in stopped})}); see BakedScene.stats['unconverged'].",
-                      RuntimeWarning, stacklevel=2)
+                      f"({_over_tol(stopped, tol)}); see BakedScene.stats['unconverged'].", RuntimeWarning, stacklevel=2)
     short = [u for u in unconverged if not u["stopped_by_budget"]]
     if short:
-        warnings.warn(f"bake: {len(short)} patches left elements over tol (largest error "
-                      f"{max(float(u['error']) for u in short):.3g} of scale, tol {tol:g}; surfaces "
-                      f"{sorted({str(u['surface']) for u in short})}) at the minimum edge length (a value jump: a hard "
-                      f"shadow, geometry through the receiver) or after max_rounds={max_rounds}; see "
-                      f"BakedScene.stats['unconverged'].", RuntimeWarning, stacklevel=2)
+        warnings.warn(f"bake: {len(short)} patches left elements over tol ({_over_tol(short, tol)}) at the minimum "
+                      f"edge length (a value jump: a hard shadow, geometry through the receiver) or after "
+                      f"max_rounds={max_rounds}; see BakedScene.stats['unconverged'].", RuntimeWarning, stacklevel=2)
     sharp = [c for c in corners if c["error"] > tol]
     if sharp:
         warnings.warn(f"bake: {sum(len(c['points']) for c in sharp)} corners of curved patches (surfaces "
@@ -582,3 +578,9 @@ def write_bake(path: str | os.PathLike, baked: BakedScene, up: Any = "z") -> Non
     for li in range(per.shape[1]):
         tm.vertex_attributes[f"_IRRADIANCE_{li}"] = np.ascontiguousarray(per[:, li], np.float32)
     atomic_write_path(path, lambda tmp: tm.export(tmp, file_type="glb", include_normals=True))
+
+
+def _over_tol(items: list, tol: float) -> str:
+    """The largest error of `items` (dicts with 'error' and 'surface') against tol, and their surfaces."""
+    return (f"largest error {max(float(u['error']) for u in items):.3g} of scale, tol {tol:g}; surfaces "
+            f"{sorted({str(u['surface']) for u in items})}")
