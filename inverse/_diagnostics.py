@@ -220,6 +220,13 @@ def fit_weights(targets: Any, noise: Any) -> np.ndarray | None:
     return out * (float(np.sum(w)) / float(np.sum(out)))
 
 
+def noise_weighted(targets: Any, noise: Any) -> Any:
+    """`targets` with the weights a fit told `noise` minimises with (`fit_weights`), or as they
+    are when those are the targets' own."""
+    fw = fit_weights(targets, noise)
+    return targets if fw is None else targets.with_weights(jax.numpy.asarray(fw, targets.weights.dtype))
+
+
 def row_variance(weights: Any, targets: Any, noise: Any) -> np.ndarray | None:
     """`(3N,)` the variance of each row $\\sqrt{w_i}\\,r_i$ of a fit's weighted residual (row-major
     over targets and channels) under the told `noise`, `weights` the fit's (`fit_weights` or the

@@ -43,7 +43,7 @@ import numpy as np
 import jaxshadow as js
 from jaxshadow import traced
 
-from ._diagnostics import FitQualityWarning, fit_weights
+from ._diagnostics import FitQualityWarning, noise_weighted
 from ._forward import SpecularFn
 from ._global_placement import place, ranking_losses, region_of, template_light
 from ._multilight import (
@@ -302,9 +302,7 @@ def fit_lights(
     if kinds is not None:
         scene, lights = _with_new_lights(scene, targets, kinds, lights)
     idx, fit, cons = _checked(scene, targets, material, lights, fit, material_mode, constraints)
-    fw = fit_weights(targets, noise)  # told noise: each target and channel weighted by 1/sigma^2
-    if fw is not None:
-        targets = targets.with_weights(jnp.asarray(fw, targets.weights.dtype))
+    targets = noise_weighted(targets, noise)  # told noise: each target and channel weighted by 1/sigma^2
     budget = cons.pop("budget", None)
     paint = painting(len(targets), ranges, brighter, targets.points.dtype)
     if paint is not None and material_mode == "projected":

@@ -32,8 +32,8 @@ from ._diagnostics import (
     FitQualityWarning,
     assess,
     competing_placements,
-    fit_weights,
     invalid_reason,
+    noise_weighted,
     row_variance,
     without_invalid_lights,
 )
@@ -197,9 +197,7 @@ def fit_light(
     with_spec = bool(np.any(np.asarray(material.ks) != 0))
     project = material_mode == "projected"
     fit_n = project and fit_exponent and with_spec
-    fw = fit_weights(targets, noise)  # told noise: each target and channel weighted by 1/sigma^2
-    if fw is not None:
-        targets = targets.with_weights(jnp.asarray(fw, targets.weights.dtype))
+    targets = noise_weighted(targets, noise)  # told noise: each target and channel weighted by 1/sigma^2
     problem = _problem(param, scene, material, targets, specular, with_spec, project, fit_n)
     seed = opts.seed
     y0 = make_starts(param, starts, search_radius=opts.search_radius, orientation_spread=opts.orientation_spread,
