@@ -136,33 +136,23 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     const double apn = std::fabs(ap.x) + std::fabs(ap.y) + std::fabs(ap.z) + std::fabs(d.x) + std::fabs(d.y) + std::fabs(d.z);
     // Crossing candidates: every segment, or for a contour piece on the grid the pieces
     // registered in the cells its box meets (in index order, as the full loop visits them).
-    // A piece in one cell takes that cell's list as it is (registered in index order, once each).
     const bool listed = G && i >= neh;
-    const int32_t* cl = nullptr;
-    int nj = ns;
     if (listed) {
+      std::vector<int32_t>& cand = w.gcand;
+      cand.clear();
+      stamp++;
       const int32_t* r = w.gcells.data() + 4 * (i - neh);
-      if (r[0] == r[1] && r[2] == r[3]) {
-        const int32_t cell = r[2] * G + r[0];
-        cl = gi.data() + gs[size_t(cell)];
-        nj = gs[size_t(cell) + 1] - gs[size_t(cell)];
-      } else {
-        std::vector<int32_t>& cand = w.gcand;
-        cand.clear();
-        stamp++;
-        for (int iy = r[2]; iy <= r[3]; iy++)
-          for (int ix = r[0]; ix <= r[1]; ix++)
-            for (int32_t k = gs[size_t(iy * G + ix)]; k < gs[size_t(iy * G + ix + 1)]; k++) {
-              const int32_t j = gi[size_t(k)];
-              if (j != i && stamp_of[size_t(j)] != stamp) stamp_of[size_t(j)] = stamp, cand.push_back(j);
-            }
-        std::sort(cand.begin(), cand.end());
-        cl = cand.data();
-        nj = int(cand.size());
-      }
+      for (int iy = r[2]; iy <= r[3]; iy++)
+        for (int ix = r[0]; ix <= r[1]; ix++)
+          for (int32_t k = gs[size_t(iy * G + ix)]; k < gs[size_t(iy * G + ix + 1)]; k++) {
+            const int32_t j = gi[size_t(k)];
+            if (j != i && stamp_of[size_t(j)] != stamp) stamp_of[size_t(j)] = stamp, cand.push_back(j);
+          }
+      std::sort(cand.begin(), cand.end());
     }
+    const int nj = listed ? int(w.gcand.size()) : ns;
     for (int jj = 0; jj < nj; jj++) {
-      const int j = listed ? cl[jj] : jj;
+      const int j = listed ? w.gcand[size_t(jj)] : jj;
       if (j == i) continue;
       const SSeg<T>& o = segs[size_t(j)];
       if (i < neh && j < neh) continue;  // E_h's edges meet at its vertices only
