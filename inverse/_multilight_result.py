@@ -14,7 +14,14 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ._diagnostics import assess, competing_placements, dark_answer, row_variance
+from ._diagnostics import (
+    assess,
+    competing_placements,
+    dark_answer,
+    noise_sigma,
+    rival_placements,
+    row_variance,
+)
 from ._identifiability import identifiability
 from ._multilight import LightsProblem, build_lights, fixed_contribution, report_parts, scaled_light
 from ._multilight_report import (
@@ -126,13 +133,27 @@ def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, ca
     dark = paint is not None and len(paint.pairs) > 0 and dark_answer(
         np.tensordot(powers, per_light, axes=1), colours, w, paint.margin)
     values_d = {nm: float(v) for nm, v in zip(names, values, strict=True)}
+    rivals: tuple = ()
+    if final is not None and paint is None and problem.fit_power:
+        chi2_of = _chi2(t, noise)
+        poses = lambda th_, p_: {f"light{idx[j]}": _pose(x, problem.params[j], p_[j])  # noqa: E731
+                                 for j, x in enumerate(build_lights(problem, th_)) if problem.params[j] is not None}
+        others = []
+        for row in _rival_rows(np.asarray(final[0], np.float64)[:, :problem.n_pose], np.asarray(final[1], np.float64),
+                               np.asarray(theta, np.float64), chi2_of, w, len(names)):
+            th_r = jnp.asarray(row, dt)
+            E_r, S_r, _ = (np.asarray(x, np.float64) for x in report_parts(problem, th_r, ones, m))
+            p_r, k_r = coef(E_r, S_r)
+            others.append((chi2_of(_model(E_r, S_r, e0, s0, La, p_r, k_r, spec) - colours), poses(th_r, p_r)))
+        rivals = rival_placements(poses(th, powers), others, chi2_of(residual), len(names), size, se,
+                                  {f"light{i}": tuple(nm for nm in names if nm.startswith(f"light{i}.")) for i in idx})
     quality, determined = assess(
         targets=t, residual=residual, noise=noise, n_params=len(names), names=names, std_errors=se, values=values_d,
         determined=determined, scale=size, lights=moved, light_params=light_params, candidates=competing,
         messages=warnings, all_dark=dark,
         contributions={f"light{idx[j]}": float(np.sqrt(np.sum(w * (powers[j] * per_light[j]) ** 2)))
                        for j in range(J)} if problem.fit_power else None, determinacy=paint is None,
-        converged=converged)
+        converged=converged, rivals=rivals)
     fixed = [x for n, x in enumerate(problem.scene.lights) if n not in idx]
     suggestions, sugg_n = _suggest(problem, th, powers, mat, names, jac, ident.determined, candidates, free_p, k,
                                    fixed, project)
@@ -151,6 +172,71 @@ def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, ca
     new_scene = eqx.tree_at(lambda s: s.lights, problem.scene, tuple(all_lights))
     return LightsFit(scene=new_scene, lights=out_lights, powers=np.asarray(powers), material=mat, residual=residual,
                      report=report, theta=theta, parametrisations=problem.params)
+
+
+RIVAL_ROWS = 8  # the final joint solve's rows checked as competing placements at most
+
+
+def _chi2(targets: Any, noise: Any) -> Any:
+    r"""$\chi^2 = \sum (r/\sigma)^2$ of a residual `r (N, 3)` under the fit's noise (`noise_sigma`),
+    over the entries of positive weight."""
+    sigma, _ = noise_sigma(targets, noise)
+    ok = np.isfinite(sigma)
+    return lambda r: float(np.sum(np.where(ok, (np.asarray(r, np.float64) / np.where(ok, sigma, 1.0)) ** 2, 0.0)))
+
+
+def _rival_rows(rows: np.ndarray, losses: np.ndarray, theta: np.ndarray, chi2_of: Any, w: np.ndarray,
+                n_params: int) -> list:
+    r"""The rows of the final joint solve `rows (S, P)` (its `losses`, $\tfrac12\sum w r^2$) that
+    may compete with the answer `theta`: not the answer itself, not a repeat, and a loss whose
+    excess over the lowest, in $\chi^2$ units of a typical weighted row's variance, is within
+    four times the allowance (`rival_allowance`); at most `RIVAL_ROWS`, lowest loss first."""
+    from ._diagnostics import rival_allowance
+
+    pos = w > 0
+    if not pos.any():
+        return []
+    # a weighted row's variance w sigma^2: chi2_of of a residual 1/sqrt(w) at one entry is 1/(w sigma^2)
+    unit = np.zeros(w.shape)
+    i = tuple(np.argwhere(pos)[0])
+    unit[i] = 1.0 / math.sqrt(w[i])
+    v = 1.0 / max(chi2_of(unit), 1e-300)
+    f = np.where(np.isfinite(losses), losses, np.inf)
+    if not np.isfinite(f).any():
+        return []
+    best = float(np.min(f))
+    out: list = []
+    for r in np.argsort(f, kind="stable"):
+        if not 2.0 * (f[r] - best) / v <= 4.0 * rival_allowance(n_params) or len(out) == RIVAL_ROWS:
+            break
+        if not np.all(np.isfinite(rows[r])) or np.max(np.abs(rows[r] - theta)) <= 1e-9 * max(1.0, np.max(np.abs(theta))):
+            continue
+        if any(np.max(np.abs(rows[r] - q)) <= 1e-9 * max(1.0, np.max(np.abs(q))) for q in out):
+            continue
+        out.append(rows[r])
+    return out
+
+
+def _pose(light: Any, param: Any, power: float) -> dict:
+    """A fitted light's pose for `rival_placements`: kind, centre (m), axis, power."""
+    import jaxshadow as js
+
+    axis = None
+    if isinstance(light, js.PolygonLight):
+        v = np.asarray(light.vertices, np.float64)
+        centre = v.mean(axis=0)
+        n = np.cross(v[1] - v[0], v[2] - v[0])
+        axis = n / max(float(np.linalg.norm(n)), 1e-300)
+    elif isinstance(light, js.LinearLight):
+        a, b = np.asarray(light.start, np.float64), np.asarray(light.end, np.float64)
+        centre = 0.5 * (a + b)
+        axis = (b - a) / max(float(np.linalg.norm(b - a)), 1e-300)
+    elif isinstance(light, js.PointLight):
+        centre = np.asarray(light.position, np.float64)
+    else:
+        centre, axis = np.zeros(3), np.asarray(light.direction, np.float64)
+    return {"kind": param.kind, "centre": tuple(float(x) for x in centre),
+            "axis": None if axis is None else tuple(float(x) for x in axis), "power": float(power)}
 
 
 def _model(E: np.ndarray, S: np.ndarray, e0: np.ndarray, s0: np.ndarray, La: np.ndarray, p: np.ndarray,
