@@ -28,7 +28,6 @@ from ._multilight_report import (
     LightsReport,
     correlated_pairs,
     material_of,
-    null_directions,
     structured_coefficients,
 )
 from ._painting import as_numpy, painted_rows
@@ -155,14 +154,16 @@ def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, ca
                        for j in range(J)} if problem.fit_power else None, determinacy=paint is None,
         converged=converged, rivals=rivals)
     fixed = [x for n, x in enumerate(problem.scene.lights) if n not in idx]
-    suggestions, sugg_n = _suggest(problem, th, powers, mat, names, jac, ident.determined, candidates, free_p, k,
-                                   fixed, project)
+    rv = row_variance(w, t, noise) if noise is not None and paint is None else None
+    rv = np.full(w.size, ident.sigma2 if ident.sigma2 > 0 else 1.0) if rv is None else rv
+    suggestions, sugg_n, sugg_se = _suggest(problem, th, powers, mat, names, jac, determined, candidates, free_p, k,
+                                            fixed, project, rv, scale_of)
     report = LightsReport(
         names=names, values=values_d, std_errors=se,
         determined=determined, singular_values=ident.singular_values,
         targets_met=None if t.tolerance is None else np.all(np.abs(residual) <= np.asarray(t.tolerance), axis=1),
         warnings=tuple(warnings), correlated=correlated_pairs(jac, names, ident.determined),
-        suggestions=suggestions, suggestion_normals=sugg_n, loss=0.5 * rss,
+        suggestions=suggestions, suggestion_normals=sugg_n, suggestion_std_errors=sugg_se, loss=0.5 * rss,
         initial_loss=math.nan if initial is None else float(initial), stage_losses=tuple(stage_losses),
         starts_solved=n_solved, retries=retries, scale=size, quality=quality,
     )
@@ -248,27 +249,48 @@ def _model(E: np.ndarray, S: np.ndarray, e0: np.ndarray, s0: np.ndarray, La: np.
     return out
 
 
+def _candidates(t: Any) -> tuple[np.ndarray, np.ndarray]:
+    """`(points (81, 3), normals (81, 3))`: a 9 x 9 grid over the receiver region of targets `t`
+    (the plane through their centroid across their mean normal), spanning their extent along
+    each in-plane axis but never less than half their diagonal: targets on a line still get
+    candidates off it."""
+    pts = np.asarray(t.points, np.float64)
+    nrm = np.asarray(t.normals, np.float64).mean(axis=0)
+    up = nrm / max(float(np.linalg.norm(nrm)), 1e-300)
+    a = np.eye(3)[int(np.argmin(np.abs(up)))]
+    e1 = np.cross(up, a)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(up, e1)
+    centre = pts.mean(axis=0)
+    diag = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
+    g = np.linspace(-0.5, 0.5, 9)
+    axes = []
+    for e in (e1, e2):
+        u = (pts - centre) @ e
+        mid, span = 0.5 * (u.max() + u.min()), max(float(u.max() - u.min()), 0.5 * diag)
+        axes.append(mid + span * g)
+    cp = centre + np.repeat(axes[0], 9)[:, None] * e1 + np.tile(axes[1], 9)[:, None] * e2
+    return cp, np.tile(up, (81, 1))
+
+
 def _suggest(problem: LightsProblem, th: Any, powers: np.ndarray, mat: Any, names: tuple, jac: np.ndarray,
-             determined: np.ndarray, candidates: Any, free_p: list, k: np.ndarray,
-             fixed: list, project: bool) -> tuple[dict, dict]:
-    """For each undetermined parameter: the candidate receivers, best first, where the model
-    changes most along the null direction(s) that involve it."""
-    if np.all(determined):
-        return {}, {}
+             determined: dict, candidates: Any, free_p: list, k: np.ndarray, fixed: list, project: bool,
+             row_var: np.ndarray, scale_of: list) -> tuple[dict, dict, dict]:
+    """For each parameter not determined (exactly or nearly): the candidate receivers (up to 5,
+    best first) that most lower its predicted standard error when painted, kept only where they
+    lower it. Returns `(points, normals, {name: (standard error now, predicted with its first 3
+    candidates painted)})`.
+
+    The prediction is the identifiability rule (`_identifiability`: an exact null direction
+    gives an infinite error) on the report's Jacobian with each row over its noise's standard
+    deviation (`row_var`, `(3N,)`), with a candidate's three rows (its model derivatives, painted
+    with the targets' median noise) appended; positions in m (`scale_of`)."""
+    bad = [i for i, nm in enumerate(names) if not determined[nm]]
+    if not bad:
+        return {}, {}, {}
     t = problem.targets
     dt = t.points.dtype
-    if candidates is None:
-        pts = np.asarray(t.points, np.float64)
-        nrm = np.asarray(t.normals, np.float64).mean(axis=0)
-        lo, hi = pts.min(axis=0), pts.max(axis=0)
-        ax = np.argsort(hi - lo)[::-1][:2]
-        g = np.linspace(0.0, 1.0, 9)
-        cp = np.tile(pts.mean(axis=0), (81, 1))
-        cp[:, ax[0]] = lo[ax[0]] + (hi - lo)[ax[0]] * np.repeat(g, 9)
-        cp[:, ax[1]] = lo[ax[1]] + (hi - lo)[ax[1]] * np.tile(g, 9)
-        cn = np.tile(nrm / np.linalg.norm(nrm), (81, 1))
-    else:
-        cp, cn = (np.asarray(x, np.float64) for x in candidates)
+    cp, cn = _candidates(t) if candidates is None else (np.asarray(x, np.float64) for x in candidates)
     eye = np.asarray(t.eye, np.float64)[0]
     ct = PaintedTargets(jnp.asarray(cp, dt), jnp.asarray(cn, dt), jnp.zeros(cp.shape, dt), jnp.asarray(eye, dt))
     e0, s0 = fixed_contribution(problem.scene, ct, problem.material, fixed, problem.specular,
@@ -290,12 +312,27 @@ def _suggest(problem: LightsProblem, th: Any, powers: np.ndarray, mat: Any, name
                 col = np.zeros_like(e_tot)
                 col[:, c] = b[:, c]
                 cols.append(col.reshape(-1, 1))
-    jc = np.concatenate(cols, axis=1)  # (3K, P)
-    out, out_n = {}, {}
-    for v in null_directions(jac):
-        change = np.linalg.norm((jc @ v).reshape(ncand, 3), axis=1)
-        order = np.argsort(change)[::-1][:5]
-        for nm, comp in zip(names, v * np.linalg.norm(jac, axis=0), strict=True):
-            if abs(comp) > 1e-6 and nm not in out:
-                out[nm], out_n[nm] = cp[order], cn[order]
-    return out, out_n
+    jc = np.concatenate(cols, axis=1).reshape(ncand, 3, -1)  # (K, 3, P): a candidate's rows
+    w = np.asarray(t.weights, np.float64).reshape(-1)
+    pos = (w > 0) & (row_var > 0)
+    base = jac[:w.size][pos] / np.sqrt(row_var[pos])[:, None]  # the data rows (penalty rows past them)
+    s_new = math.sqrt(float(np.median(row_var[pos] / w[pos])))  # a new target's colour noise
+    sc = np.asarray(scale_of, np.float64)
+
+    def se_with(extra: np.ndarray) -> np.ndarray:
+        A = np.concatenate([base, extra.reshape(-1, base.shape[1]) / s_new])
+        ident = identifiability(A, 0.0, A.shape[0], row_variance=np.ones(A.shape[0]))
+        return np.where(ident.determined, ident.std_errors, np.inf) * sc
+
+    now = se_with(np.zeros((0, base.shape[1])))
+    each = np.stack([se_with(jc[c]) for c in range(ncand)])  # (K, P)
+    out, out_n, pred = {}, {}, {}
+    for i in bad:
+        gain = each[:, i] < now[i] * (1.0 - 1e-3)
+        if not gain.any():
+            continue
+        order = [int(c) for c in np.argsort(each[:, i], kind="stable") if gain[c]][:5]
+        nm = names[i]
+        out[nm], out_n[nm] = cp[order], cn[order]
+        pred[nm] = (float(now[i]), float(se_with(jc[order[:3]])[i]))
+    return out, out_n, pred
