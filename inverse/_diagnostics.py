@@ -142,7 +142,8 @@ class FitQuality:
 
     - `trusted`: False when the answer should not be used as is (a wrong minimum, an escaped
       light, outlier targets, ...); `flags`: the reasons, from `"wrong_minimum"`, `"escaped"`, `"outliers"`,
-      `"conflicting_targets"`, `"all_dark"`, `"not_converged"` (and the others the checks name).
+      `"conflicting_targets"`, `"all_dark"`, `"not_converged"`, `"competing_placements"` (and the others
+      the checks name).
     - `chi2`: the reduced chi-square over the non-outlier targets; `dof`; `noise`: how the
       colours' noise was set (`"given"`, `"weights"`, `"estimated"`).
     - `std_errors_trusted`: False at a wrong minimum (the errors assume the residual is noise).
