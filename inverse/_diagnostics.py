@@ -86,6 +86,8 @@ The rules (thresholds are the module's constants):
   polygon) or direction (a segment) turned by more than `RIVAL_TURN` (5 degrees) and 3
   standard errors of its rotation. Flagged (`"competing_placements"`), not trusted, warned with
   the lights that differ and where the competing placement puts them (`FitQuality.rivals`).
+  Checked by `fit_lights` with fitted powers, not under a power budget or painted ranges or
+  relations.
 - **Not converged.** The joint refinement of a several-light fit stopped at its `max_steps`
   with its loss still falling (by more than `STILL_FALLING`, 1e-3, of it in that solve) and
   above an exact fit (`EXACT_LOSS` of `_fit_lights`): the answer is not a minimum yet, however small its residual against the

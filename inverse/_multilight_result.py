@@ -133,7 +133,9 @@ def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, ca
         np.tensordot(powers, per_light, axes=1), colours, w, paint.margin)
     values_d = {nm: float(v) for nm, v in zip(names, values, strict=True)}
     rivals: tuple = ()
-    if final is not None and paint is None and problem.fit_power:
+    # the other rows of the last joint solve, powers (and material) solved there as here; not under a
+    # budget or painted ranges / relations (their powers are another problem's)
+    if final is not None and paint is None and problem.budget is None and problem.fit_power:
         chi2_of = _chi2(t, noise)
         poses = lambda th_, p_: {f"light{idx[j]}": _pose(x, problem.params[j], p_[j])  # noqa: E731
                                  for j, x in enumerate(build_lights(problem, th_)) if problem.params[j] is not None}
@@ -144,8 +146,7 @@ def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, ca
             E_r, S_r, _ = (np.asarray(x, np.float64) for x in report_parts(problem, th_r, ones, m))
             p_r, k_r = coef(E_r, S_r)
             others.append((chi2_of(_model(E_r, S_r, e0, s0, La, p_r, k_r, spec) - colours), poses(th_r, p_r)))
-        rivals = rival_placements(poses(th, powers), others, chi2_of(residual), len(names), size, se,
-                                  {f"light{i}": tuple(nm for nm in names if nm.startswith(f"light{i}.")) for i in idx})
+        rivals = rival_placements(poses(th, powers), others, chi2_of(residual), len(names), size, se, light_params)
     quality, determined = assess(
         targets=t, residual=residual, noise=noise, n_params=len(names), names=names, std_errors=se, values=values_d,
         determined=determined, scale=size, lights=moved, light_params=light_params, candidates=competing,
