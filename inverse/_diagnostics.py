@@ -73,6 +73,21 @@ The rules (thresholds are the module's constants):
   size for a position, `NEAR_ORIENTATION` (30 degrees) for a rotation, `NEAR_LOG_SIZE` (log 2)
   for a log size, or the value itself for a power: the parameter is marked not determined,
   like an exactly undetermined one (`_identifiability`), with its finite error kept.
+- **Competing placements.** Another distinct placement of the lights that the search refined
+  to a minimum of its own (the rows of the final joint solve: the global placement's other
+  basins, each light's runner-up) explains the targets about as well: its
+  $\chi^2 = \sum (r/\sigma)^2$ (powers and material solved there as at the answer) within
+  `rival_allowance(n)` $= n + 3\sqrt{2n}$ of the answer's, $n$ the fitted parameters. Under
+  Gaussian noise the truth's $\chi^2$ exceeds the best fit's by a $\chi^2_n$ variable
+  (mean $n$, standard deviation $\sqrt{2n}$), so a placement within that allowance cannot be
+  told from the answer by these targets. Distinct: some light's centre (matched to the nearest
+  fitted light of its kind) more than `RIVAL_DISTANCE` (1 %) of the scene size and more than
+  `RIVAL_SIGMAS` (3) standard errors of its centre from the answer's, or its normal (a
+  polygon) or direction (a segment) turned by more than `RIVAL_TURN` (5 degrees) and 3
+  standard errors of its rotation. Flagged (`"competing_placements"`), not trusted, warned with
+  the lights that differ and where the competing placement puts them (`FitQuality.rivals`).
+  Checked by `fit_lights` with fitted powers, not under a power budget or painted ranges or
+  relations.
 - **Not converged.** The joint refinement of a several-light fit stopped at its `max_steps`
   with its loss still falling (by more than `STILL_FALLING`, 1e-3, of it in that solve) and
   above an exact fit (`EXACT_LOSS` of `_fit_lights`): the answer is not a minimum yet, however small its residual against the
@@ -109,6 +124,9 @@ NEAR_LOG_SIZE = math.log(2.0)
 DARK_FRACTION = 1e-6
 UNUSED_FRACTION = 1e-6
 COLLAPSED_FRACTION = 0.01
+RIVAL_DISTANCE = 0.01
+RIVAL_SIGMAS = 3.0
+RIVAL_TURN = math.radians(5.0)
 
 _POSITION = ("x", "y", "z", "a", "b")
 _ORIENTATION = ("rx", "ry", "rz", "ru", "rv")
@@ -126,7 +144,8 @@ class FitQuality:
 
     - `trusted`: False when the answer should not be used as is (a wrong minimum, an escaped
       light, outlier targets, ...); `flags`: the reasons, from `"wrong_minimum"`, `"escaped"`, `"outliers"`,
-      `"conflicting_targets"`, `"all_dark"`, `"not_converged"` (and the others the checks name).
+      `"conflicting_targets"`, `"all_dark"`, `"not_converged"`, `"competing_placements"` (and the others
+      the checks name).
     - `chi2`: the reduced chi-square over the non-outlier targets; `dof`; `noise`: how the
       colours' noise was set (`"given"`, `"weights"`, `"estimated"`).
     - `std_errors_trusted`: False at a wrong minimum (the errors assume the residual is noise).
@@ -142,6 +161,8 @@ class FitQuality:
       jaxshadow rejects: `invalid_reason`, evaluated as no light);
       `undetermined`: `{light name: its position parameters and power not determined
       (exactly or nearly)}`.
+    - `rivals`: `((excess chi2, {light name: pose}, differing lights), ...)`, the other distinct
+      placements that explain the targets about as well (`rival_placements`).
     """
 
     trusted: bool
@@ -160,6 +181,7 @@ class FitQuality:
     unused: tuple = ()
     collapsed: dict = dataclasses.field(default_factory=dict)
     undetermined: dict = dataclasses.field(default_factory=dict)
+    rivals: tuple = ()
 
     @property
     def reason(self) -> str:
@@ -173,6 +195,9 @@ class FitQuality:
         for loss, vals in self.competing:
             out.append(f"  competing placement: loss {loss:.4g}: "
                        + ", ".join(f"{k}={v:.4g}" for k, v in vals.items()))
+        for excess, poses, differ in self.rivals:
+            out.append(f"  rival placement (chi2 {excess:+.3g}): "
+                       + "; ".join(f"{nm} {_pose_text(poses[nm])}" for nm in differ))
         return out
 
 
@@ -292,6 +317,68 @@ def competing_placements(values: np.ndarray, losses: np.ndarray, names: tuple, t
     if len(reps) < 2:
         return ()
     return tuple((loss, {nm: float(v) for nm, v in zip(names, q, strict=False)}) for loss, q in reps)
+
+
+def rival_allowance(n_params: int) -> float:
+    r"""How much more $\chi^2$ than the answer's a placement may have and still compete with it
+    (module docstring): $n + 3\sqrt{2n}$ for $n$ fitted parameters."""
+    n = max(int(n_params), 1)
+    return n + 3.0 * math.sqrt(2.0 * n)
+
+
+def _turn(a: np.ndarray, b: np.ndarray, signed: bool) -> float:
+    """The angle (rad) between unit vectors `a`, `b`; `signed=False`: between their lines."""
+    c = float(a @ b)
+    return math.atan2(float(np.linalg.norm(np.cross(a, b))), c if signed else abs(c))
+
+
+def rival_placements(answer: dict, others: list, chi2: float, n_params: int, scale: float,
+                     std_errors: dict, light_params: dict) -> tuple:
+    r"""The competing placements (module docstring) among `others`.
+
+    **Arguments:** `answer`: {light name: pose}, a pose a dict with `kind` (the
+    parametrisation's), `centre (3,)` (m), `axis (3,)` or None (a polygon's unit normal, a
+    segment's unit direction), `power` (a factor of the given emission); `others`: `[(chi2,
+    {light name: pose}), ...]` the other refined placements with their $\chi^2$; `chi2`: the
+    answer's; `n_params`; `scale` (m); `std_errors`, `light_params` as in `assess`.
+
+    **Returns:** `((excess chi2, {light name: pose}, (names of the lights that differ)), ...)`,
+    least excess first."""
+    allowed = rival_allowance(n_params)
+
+    def se_of(nm: str, bases: tuple) -> float:
+        s = [std_errors.get(p, math.inf) for p in light_params.get(nm, ()) if p.rsplit(".", 1)[-1] in bases]
+        return math.sqrt(sum(x * x for x in s)) if s else 0.0
+
+    out = []
+    for c2, poses in others:
+        if not (math.isfinite(c2) and c2 - chi2 <= allowed):
+            continue
+        differ = []
+        for nm, pose in poses.items():
+            mates = [m for m, q in answer.items() if q["kind"] == pose["kind"]]
+            if not mates:
+                continue
+            d = [float(np.linalg.norm(np.asarray(pose["centre"]) - np.asarray(answer[m]["centre"]))) for m in mates]
+            mate = mates[int(np.argmin(d))]
+            se_c = se_of(mate, ("x", "y", "z", "a", "b"))
+            moved = math.isfinite(se_c) and min(d) > max(RIVAL_DISTANCE * scale, RIVAL_SIGMAS * se_c)
+            a, b = pose.get("axis"), answer[mate].get("axis")
+            if a is not None and b is not None:
+                se_r = max([std_errors.get(p, math.inf) for p in light_params.get(mate, ())
+                            if p.rsplit(".", 1)[-1] in _ORIENTATION] or [0.0])
+                turn = _turn(np.asarray(a, np.float64), np.asarray(b, np.float64), pose["kind"] == "polygon")
+                moved |= math.isfinite(se_r) and turn > max(RIVAL_TURN, RIVAL_SIGMAS * se_r)
+            if moved:
+                differ.append(nm)
+        if differ:
+            out.append((float(c2 - chi2), poses, tuple(differ)))
+    return tuple(sorted(out, key=lambda x: x[0]))
+
+
+def _pose_text(pose: dict) -> str:
+    c = ", ".join(f"{x:.3g}" for x in pose["centre"])
+    return f"at ({c}) m, power x{pose['power']:.3g}"
 
 
 def escape_reason(light: Any, targets: Any, facing: bool = True) -> str | None:
@@ -435,7 +522,7 @@ def assess(*, targets: Any, residual: np.ndarray, noise: Any, n_params: int, nam
            values: dict, determined: dict, scale: float, lights: dict, light_params: dict,
            candidates: tuple = (), messages: list, all_dark: bool = False,
            contributions: dict | None = None, determinacy: bool = True,
-           converged: bool = True) -> tuple[FitQuality, dict]:
+           converged: bool = True, rivals: tuple = ()) -> tuple[FitQuality, dict]:
     """Run the checks on a fit's solution.
 
     **Arguments:** `targets`; `residual (N, 3)` = model - colours (unweighted); `noise` (module
@@ -448,7 +535,8 @@ def assess(*, targets: Any, residual: np.ndarray, noise: Any, n_params: int, nam
     fit (`unused_lights`), or None; `determinacy`: whether an undetermined position or power
     makes the answer untrusted (False for targets painted as ranges or relations, whose answer
     is any pose inside them); `converged`: False when the final solve stopped at `max_steps`
-    short of an exact fit (flag `"not_converged"`).
+    short of an exact fit (flag `"not_converged"`); `rivals`: the competing placements
+    (`rival_placements`; flag `"competing_placements"`).
 
     **Returns:** `(quality, determined (updated))`; `quality.emitted`: the warnings to emit.
     """
@@ -555,6 +643,15 @@ def assess(*, targets: Any, residual: np.ndarray, noise: Any, n_params: int, nam
                "continue it with a larger inverse.LM(max_steps=...).")
         messages.append(msg)
         emit.append(msg)
+    if rivals:
+        flags.append("competing_placements")
+        first = rivals[0]
+        where = "; ".join(f"{nm} {_pose_text(first[1][nm])}" for nm in first[2])
+        msg = (f"{', '.join(first[2])}: {len(rivals)} other distinct placement(s) explain the targets about as well "
+               f"(chi-square within {rival_allowance(n_params):.3g} of the answer's, noise {how}): the targets do "
+               f"not tell them apart; the nearest (chi-square {first[0]:+.3g}) puts {where}.")
+        messages.append(msg)
+        emit.append(msg)
     if all_dark:
         flags.append("all_dark")
         msg = (f"{light_list}: the fitted lights leave every target dark: the \"brighter than\" relations are met "
@@ -563,8 +660,9 @@ def assess(*, targets: Any, residual: np.ndarray, noise: Any, n_params: int, nam
         emit.append(msg)
     quality = FitQuality(
         trusted=not (wrong or escaped or collapsed or all_dark or unused or undetermined or not converged
-                     or out_idx.size), flags=tuple(flags), chi2=chi2, dof=dof, noise=how,
+                     or out_idx.size or rivals), flags=tuple(flags), chi2=chi2, dof=dof, noise=how,
         std_errors_trusted=not wrong, competing=tuple(candidates),
         outliers=tuple(int(i) for i in out_idx), outlier_z=z, conflicting=conflicting, escaped=escaped,
-        collapsed=collapsed, undetermined=undetermined,        nearly_undetermined=near, emitted=tuple(emit), unused=unused)
+        collapsed=collapsed, undetermined=undetermined, nearly_undetermined=near, emitted=tuple(emit), unused=unused,
+        rivals=tuple(rivals))
     return quality, determined

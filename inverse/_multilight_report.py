@@ -11,6 +11,7 @@ columns), so standard errors, correlations and null directions are those of the 
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Any
 
 import numpy as np
@@ -160,14 +161,6 @@ def correlated_pairs(jacobian: np.ndarray, names: tuple, determined: np.ndarray,
     return tuple(out)
 
 
-def null_directions(jacobian: np.ndarray, cut: float = 1e-8) -> np.ndarray:
-    """`(K, P)` unit null directions of the unit-column Jacobian (in those scaled units)."""
-    cn = np.linalg.norm(jacobian, axis=0)
-    Jn = jacobian / np.where(cn > 0, cn, 1.0)
-    _, sv, vt = np.linalg.svd(Jn, full_matrices=False)
-    return vt[sv <= cut * max(sv.max(), 1e-300)] / np.where(cn > 0, cn, 1.0)[None, :]
-
-
 @dataclasses.dataclass(frozen=True)
 class LightsReport(FitReport):
     """A joint fit of several lights (`FitReport`; names `light{i}.x`, ..., `light{i}.power`
@@ -179,7 +172,9 @@ class LightsReport(FitReport):
     - `suggestions`: name -> `(K, 3)` candidate receiver points (best first) where the model
       changes most along the undetermined direction that involves that parameter: painting
       targets there determines it (empty when determined or no candidates were evaluated);
-      `suggestion_normals`: their normals.
+      `suggestion_normals`: their normals; `suggestion_std_errors`: name -> `(now, predicted)`, its
+      standard error now and predicted with the first three suggested targets painted (with the
+      targets' median noise): suggestions are kept only where they lower it.
     - `loss`: $\\tfrac12\\sum w r^2$ of the structured model; `initial_loss`: at the given scene
       (powers projected); `stage_losses`: the best loss after each light's multistart, then
       after the joint refinement; `starts_solved`: starts solved in total; `retries`: solves
@@ -199,6 +194,7 @@ class LightsReport(FitReport):
     retries: int
     scale: float
     quality: FitQuality | None = None
+    suggestion_std_errors: dict = dataclasses.field(default_factory=dict)
 
     def _headline(self) -> str:
         return (f"lights fit: loss {self.initial_loss:.4g} -> {self.loss:.4g} "
@@ -209,7 +205,9 @@ class LightsReport(FitReport):
         for nm, pts in self.suggestions.items():
             if len(pts):
                 where = "; ".join(np.array2string(np.asarray(q), precision=3) for q in pts[:3])
-                lines.append(f"  to determine {nm}, add targets at {where}")
+                now, pred = self.suggestion_std_errors.get(nm, (math.nan, math.nan))
+                lines.append(f"  to determine {nm}, add targets at {where} (predicted standard error "
+                             f"{now:.3g} -> {pred:.3g})")
         return lines
 
 

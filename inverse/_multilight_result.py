@@ -14,14 +14,20 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ._diagnostics import assess, competing_placements, dark_answer, row_variance
+from ._diagnostics import (
+    assess,
+    competing_placements,
+    dark_answer,
+    noise_sigma,
+    rival_placements,
+    row_variance,
+)
 from ._identifiability import identifiability
 from ._multilight import LightsProblem, build_lights, fixed_contribution, report_parts, scaled_light
 from ._multilight_report import (
     LightsReport,
     correlated_pairs,
     material_of,
-    null_directions,
     structured_coefficients,
 )
 from ._painting import as_numpy, painted_rows
@@ -126,22 +132,39 @@ def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, ca
     dark = paint is not None and len(paint.pairs) > 0 and dark_answer(
         np.tensordot(powers, per_light, axes=1), colours, w, paint.margin)
     values_d = {nm: float(v) for nm, v in zip(names, values, strict=True)}
+    rivals: tuple = ()
+    # the other rows of the last joint solve, powers (and material) solved there as here; not under a
+    # budget or painted ranges / relations (their powers are another problem's)
+    if final is not None and paint is None and problem.budget is None and problem.fit_power:
+        chi2_of = _chi2(t, noise)
+        poses = lambda th_, p_: {f"light{idx[j]}": _pose(x, problem.params[j], p_[j])  # noqa: E731
+                                 for j, x in enumerate(build_lights(problem, th_)) if problem.params[j] is not None}
+        others = []
+        for row in _rival_rows(np.asarray(final[0], np.float64)[:, :problem.n_pose], np.asarray(final[1], np.float64),
+                               np.asarray(theta, np.float64), chi2_of, w, len(names)):
+            th_r = jnp.asarray(row, dt)
+            E_r, S_r, _ = (np.asarray(x, np.float64) for x in report_parts(problem, th_r, ones, m))
+            p_r, k_r = coef(E_r, S_r)
+            others.append((chi2_of(_model(E_r, S_r, e0, s0, La, p_r, k_r, spec) - colours), poses(th_r, p_r)))
+        rivals = rival_placements(poses(th, powers), others, chi2_of(residual), len(names), size, se, light_params)
     quality, determined = assess(
         targets=t, residual=residual, noise=noise, n_params=len(names), names=names, std_errors=se, values=values_d,
         determined=determined, scale=size, lights=moved, light_params=light_params, candidates=competing,
         messages=warnings, all_dark=dark,
         contributions={f"light{idx[j]}": float(np.sqrt(np.sum(w * (powers[j] * per_light[j]) ** 2)))
                        for j in range(J)} if problem.fit_power else None, determinacy=paint is None,
-        converged=converged)
+        converged=converged, rivals=rivals)
     fixed = [x for n, x in enumerate(problem.scene.lights) if n not in idx]
-    suggestions, sugg_n = _suggest(problem, th, powers, mat, names, jac, ident.determined, candidates, free_p, k,
-                                   fixed, project)
+    rv = row_variance(w, t, noise) if noise is not None and paint is None else None
+    rv = np.full(w.size, ident.sigma2 if ident.sigma2 > 0 else 1.0) if rv is None else rv
+    suggestions, sugg_n, sugg_se = _suggest(problem, th, powers, mat, names, jac, determined, candidates, free_p, k,
+                                            fixed, project, rv, scale_of)
     report = LightsReport(
         names=names, values=values_d, std_errors=se,
         determined=determined, singular_values=ident.singular_values,
         targets_met=None if t.tolerance is None else np.all(np.abs(residual) <= np.asarray(t.tolerance), axis=1),
         warnings=tuple(warnings), correlated=correlated_pairs(jac, names, ident.determined),
-        suggestions=suggestions, suggestion_normals=sugg_n, loss=0.5 * rss,
+        suggestions=suggestions, suggestion_normals=sugg_n, suggestion_std_errors=sugg_se, loss=0.5 * rss,
         initial_loss=math.nan if initial is None else float(initial), stage_losses=tuple(stage_losses),
         starts_solved=n_solved, retries=retries, scale=size, quality=quality,
     )
@@ -153,6 +176,71 @@ def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, ca
                      report=report, theta=theta, parametrisations=problem.params)
 
 
+RIVAL_ROWS = 8  # the final joint solve's rows checked as competing placements at most
+
+
+def _chi2(targets: Any, noise: Any) -> Any:
+    r"""$\chi^2 = \sum (r/\sigma)^2$ of a residual `r (N, 3)` under the fit's noise (`noise_sigma`),
+    over the entries of positive weight."""
+    sigma, _ = noise_sigma(targets, noise)
+    ok = np.isfinite(sigma)
+    return lambda r: float(np.sum(np.where(ok, (np.asarray(r, np.float64) / np.where(ok, sigma, 1.0)) ** 2, 0.0)))
+
+
+def _rival_rows(rows: np.ndarray, losses: np.ndarray, theta: np.ndarray, chi2_of: Any, w: np.ndarray,
+                n_params: int) -> list:
+    r"""The rows of the final joint solve `rows (S, P)` (its `losses`, $\tfrac12\sum w r^2$) that
+    may compete with the answer `theta`: not the answer itself, not a repeat, and a loss whose
+    excess over the lowest, in $\chi^2$ units of a typical weighted row's variance, is within
+    four times the allowance (`rival_allowance`); at most `RIVAL_ROWS`, lowest loss first."""
+    from ._diagnostics import rival_allowance
+
+    pos = w > 0
+    if not pos.any():
+        return []
+    # a weighted row's variance w sigma^2: chi2_of of a residual 1/sqrt(w) at one entry is 1/(w sigma^2)
+    unit = np.zeros(w.shape)
+    i = tuple(np.argwhere(pos)[0])
+    unit[i] = 1.0 / math.sqrt(w[i])
+    v = 1.0 / max(chi2_of(unit), 1e-300)
+    f = np.where(np.isfinite(losses), losses, np.inf)
+    if not np.isfinite(f).any():
+        return []
+    best = float(np.min(f))
+    out: list = []
+    for r in np.argsort(f, kind="stable"):
+        if not 2.0 * (f[r] - best) / v <= 4.0 * rival_allowance(n_params) or len(out) == RIVAL_ROWS:
+            break
+        if not np.all(np.isfinite(rows[r])) or np.max(np.abs(rows[r] - theta)) <= 1e-9 * max(1.0, np.max(np.abs(theta))):
+            continue
+        if any(np.max(np.abs(rows[r] - q)) <= 1e-9 * max(1.0, np.max(np.abs(q))) for q in out):
+            continue
+        out.append(rows[r])
+    return out
+
+
+def _pose(light: Any, param: Any, power: float) -> dict:
+    """A fitted light's pose for `rival_placements`: kind, centre (m), axis, power."""
+    import jaxshadow as js
+
+    axis = None
+    if isinstance(light, js.PolygonLight):
+        v = np.asarray(light.vertices, np.float64)
+        centre = v.mean(axis=0)
+        n = np.cross(v[1] - v[0], v[2] - v[0])
+        axis = n / max(float(np.linalg.norm(n)), 1e-300)
+    elif isinstance(light, js.LinearLight):
+        a, b = np.asarray(light.start, np.float64), np.asarray(light.end, np.float64)
+        centre = 0.5 * (a + b)
+        axis = (b - a) / max(float(np.linalg.norm(b - a)), 1e-300)
+    elif isinstance(light, js.PointLight):
+        centre = np.asarray(light.position, np.float64)
+    else:
+        centre, axis = np.zeros(3), np.asarray(light.direction, np.float64)
+    return {"kind": param.kind, "centre": tuple(float(x) for x in centre),
+            "axis": None if axis is None else tuple(float(x) for x in axis), "power": float(power)}
+
+
 def _model(E: np.ndarray, S: np.ndarray, e0: np.ndarray, s0: np.ndarray, La: np.ndarray, p: np.ndarray,
            k: np.ndarray, spec: bool) -> np.ndarray:
     e = e0 + np.tensordot(p, E, axes=1)
@@ -162,27 +250,48 @@ def _model(E: np.ndarray, S: np.ndarray, e0: np.ndarray, s0: np.ndarray, La: np.
     return out
 
 
+def _candidates(t: Any) -> tuple[np.ndarray, np.ndarray]:
+    """`(points (81, 3), normals (81, 3))`: a 9 x 9 grid over the receiver region of targets `t`
+    (the plane through their centroid across their mean normal), spanning their extent along
+    each in-plane axis but never less than half their diagonal: targets on a line still get
+    candidates off it."""
+    pts = np.asarray(t.points, np.float64)
+    nrm = np.asarray(t.normals, np.float64).mean(axis=0)
+    up = nrm / max(float(np.linalg.norm(nrm)), 1e-300)
+    a = np.eye(3)[int(np.argmin(np.abs(up)))]
+    e1 = np.cross(up, a)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(up, e1)
+    centre = pts.mean(axis=0)
+    diag = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
+    g = np.linspace(-0.5, 0.5, 9)
+    axes = []
+    for e in (e1, e2):
+        u = (pts - centre) @ e
+        mid, span = 0.5 * (u.max() + u.min()), max(float(u.max() - u.min()), 0.5 * diag)
+        axes.append(mid + span * g)
+    cp = centre + np.repeat(axes[0], 9)[:, None] * e1 + np.tile(axes[1], 9)[:, None] * e2
+    return cp, np.tile(up, (81, 1))
+
+
 def _suggest(problem: LightsProblem, th: Any, powers: np.ndarray, mat: Any, names: tuple, jac: np.ndarray,
-             determined: np.ndarray, candidates: Any, free_p: list, k: np.ndarray,
-             fixed: list, project: bool) -> tuple[dict, dict]:
-    """For each undetermined parameter: the candidate receivers, best first, where the model
-    changes most along the null direction(s) that involve it."""
-    if np.all(determined):
-        return {}, {}
+             determined: dict, candidates: Any, free_p: list, k: np.ndarray, fixed: list, project: bool,
+             row_var: np.ndarray, scale_of: list) -> tuple[dict, dict, dict]:
+    """For each parameter not determined (exactly or nearly): the candidate receivers (up to 5,
+    best first) that most lower its predicted standard error when painted, kept only where they
+    lower it. Returns `(points, normals, {name: (standard error now, predicted with its first 3
+    candidates painted)})`.
+
+    The prediction is the identifiability rule (`_identifiability`: an exact null direction
+    gives an infinite error) on the report's Jacobian with each row over its noise's standard
+    deviation (`row_var`, `(3N,)`), with a candidate's three rows (its model derivatives, painted
+    with the targets' median noise) appended; positions in m (`scale_of`)."""
+    bad = [i for i, nm in enumerate(names) if not determined[nm]]
+    if not bad:
+        return {}, {}, {}
     t = problem.targets
     dt = t.points.dtype
-    if candidates is None:
-        pts = np.asarray(t.points, np.float64)
-        nrm = np.asarray(t.normals, np.float64).mean(axis=0)
-        lo, hi = pts.min(axis=0), pts.max(axis=0)
-        ax = np.argsort(hi - lo)[::-1][:2]
-        g = np.linspace(0.0, 1.0, 9)
-        cp = np.tile(pts.mean(axis=0), (81, 1))
-        cp[:, ax[0]] = lo[ax[0]] + (hi - lo)[ax[0]] * np.repeat(g, 9)
-        cp[:, ax[1]] = lo[ax[1]] + (hi - lo)[ax[1]] * np.tile(g, 9)
-        cn = np.tile(nrm / np.linalg.norm(nrm), (81, 1))
-    else:
-        cp, cn = (np.asarray(x, np.float64) for x in candidates)
+    cp, cn = _candidates(t) if candidates is None else (np.asarray(x, np.float64) for x in candidates)
     eye = np.asarray(t.eye, np.float64)[0]
     ct = PaintedTargets(jnp.asarray(cp, dt), jnp.asarray(cn, dt), jnp.zeros(cp.shape, dt), jnp.asarray(eye, dt))
     e0, s0 = fixed_contribution(problem.scene, ct, problem.material, fixed, problem.specular,
@@ -204,12 +313,27 @@ def _suggest(problem: LightsProblem, th: Any, powers: np.ndarray, mat: Any, name
                 col = np.zeros_like(e_tot)
                 col[:, c] = b[:, c]
                 cols.append(col.reshape(-1, 1))
-    jc = np.concatenate(cols, axis=1)  # (3K, P)
-    out, out_n = {}, {}
-    for v in null_directions(jac):
-        change = np.linalg.norm((jc @ v).reshape(ncand, 3), axis=1)
-        order = np.argsort(change)[::-1][:5]
-        for nm, comp in zip(names, v * np.linalg.norm(jac, axis=0), strict=True):
-            if abs(comp) > 1e-6 and nm not in out:
-                out[nm], out_n[nm] = cp[order], cn[order]
-    return out, out_n
+    jc = np.concatenate(cols, axis=1).reshape(ncand, 3, -1)  # (K, 3, P): a candidate's rows
+    w = np.asarray(t.weights, np.float64).reshape(-1)
+    pos = (w > 0) & (row_var > 0)
+    base = jac[:w.size][pos] / np.sqrt(row_var[pos])[:, None]  # the data rows (penalty rows past them)
+    s_new = math.sqrt(float(np.median(row_var[pos] / w[pos])))  # a new target's colour noise
+    sc = np.asarray(scale_of, np.float64)
+
+    def se_with(extra: np.ndarray) -> np.ndarray:
+        A = np.concatenate([base, extra.reshape(-1, base.shape[1]) / s_new])
+        ident = identifiability(A, 0.0, A.shape[0], row_variance=np.ones(A.shape[0]))
+        return np.where(ident.determined, ident.std_errors, np.inf) * sc
+
+    now = se_with(np.zeros((0, base.shape[1])))
+    each = np.stack([se_with(jc[c]) for c in range(ncand)])  # (K, P)
+    out, out_n, pred = {}, {}, {}
+    for i in bad:
+        gain = each[:, i] < now[i] * (1.0 - 1e-3)
+        if not gain.any():
+            continue
+        order = [int(c) for c in np.argsort(each[:, i], kind="stable") if gain[c]][:5]
+        nm = names[i]
+        out[nm], out_n[nm] = cp[order], cn[order]
+        pred[nm] = (float(now[i]), float(se_with(jc[order[:3]])[i]))
+    return out, out_n, pred

@@ -1,0 +1,92 @@
+"""Issue #40: a fit that another distinct placement explains about as well says so
+(`inverse._diagnostics.rival_placements`, flag `"competing_placements"`).
+
+A point light over floor targets on a line (y = 0) whose normals tilt about the y axis only:
+the mirror image of the light in the plane y = 0 paints every target exactly alike, so the
+targets cannot tell the two placements apart; with 1 % noise the global placement refines both.
+"""
+
+import math
+import warnings
+
+import numpy as np
+import pytest
+
+import inverse
+import jaxshadow as js
+from inverse import _diagnostics as diag
+
+MATERIAL = js.Material(ka=0.2, kd=0.6, ks=0.0, exponent=1.0)
+EYE = np.array([0.0, -2.0, 2.0])
+TRUE = np.array([0.3, 0.15, 1.2])
+
+
+def _pose(kind, centre, power=1.0, axis=None):
+    return {"kind": kind, "centre": tuple(centre), "axis": axis, "power": power}
+
+
+def _light_params():
+    return {"light0": ("light0.x", "light0.y", "light0.z", "light0.power"),
+            "light1": ("light1.x", "light1.y", "light1.z", "light1.rx", "light1.ry", "light1.rz", "light1.power")}
+
+
+def test_rival_rule():
+    """Within the chi-square allowance and far enough (1 % of the scene and 3 standard errors, or
+    5 degrees and 3 standard errors of a turn) from the answer: a rival; a swap of two lights of
+    one kind is the same answer."""
+    se = {"light0.x": 0.01, "light0.y": 0.01, "light0.z": 0.01, "light0.power": 0.01,
+          "light1.x": 0.01, "light1.y": 0.01, "light1.z": 0.01, "light1.rx": 0.01, "light1.ry": 0.01,
+          "light1.rz": 0.01, "light1.power": 0.01}
+    down = (0.0, 0.0, -1.0)
+    answer = {"light0": _pose("point", [0, 0, 1]), "light1": _pose("polygon", [1, 0, 1], axis=down)}
+    n = 11
+    allowed = diag.rival_allowance(n)
+    assert allowed == pytest.approx(n + 3 * math.sqrt(2 * n))
+    tilted = (math.sin(0.2), 0.0, -math.cos(0.2))  # 11.5 degrees
+    others = [
+        (10.0 + allowed - 1, {"light0": _pose("point", [0.2, 0, 1]), "light1": answer["light1"]}),  # moved: rival
+        (10.0 + allowed + 1, {"light0": _pose("point", [0.2, 0, 1]), "light1": answer["light1"]}),  # too poor
+        (10.0, {"light0": _pose("point", [0.02, 0, 1]), "light1": answer["light1"]}),  # within 3 se (0.052 m)
+        (10.0, {"light0": _pose("point", [0, 0, 1]), "light1": _pose("polygon", [1, 0, 1], axis=tilted)}),  # turned
+        (10.0, {"light0": _pose("point", [0, 0, 1]), "light1": _pose("polygon", [1, 0, 1], axis=(0, 0.03, -1))}),
+    ]
+    out = diag.rival_placements(answer, others, 10.0, n, 4.0, se, _light_params())
+    assert [(x[0], x[2]) for x in out] == [(0.0, ("light1",)), (pytest.approx(allowed - 1), ("light0",))]
+    # Two point lights swapped are the same placement; an undetermined centre is no rival's reason.
+    two = {"light0": _pose("point", [0, 0, 1]), "light2": _pose("point", [1, 1, 1])}
+    swapped = {"light0": _pose("point", [1, 1, 1]), "light2": _pose("point", [0, 0, 1])}
+    params = {"light0": ("light0.x", "light0.y", "light0.z"), "light2": ("light2.x", "light2.y", "light2.z")}
+    se2 = dict.fromkeys(params["light0"] + params["light2"], 0.01)
+    assert diag.rival_placements(two, [(0.0, swapped)], 0.0, 6, 4.0, se2, params) == ()
+    se2["light0.x"] = math.inf
+    moved = {"light0": _pose("point", [0.5, 0, 1]), "light2": two["light2"]}
+    assert diag.rival_placements(two, [(0.0, moved)], 0.0, 6, 4.0, se2, params) == ()
+
+
+def test_mirror_placement_is_flagged():
+    """The light and its mirror image in y = 0 explain the noisy targets alike: the answer, one
+    of the two, is not trusted, the warning names the light and the other placement."""
+    x = np.linspace(-1.0, 1.0, 16)
+    pts = np.c_[x, np.zeros(16), np.zeros(16)]
+    a = np.linspace(-0.6, 0.6, 16)[np.random.default_rng(0).permutation(16)]
+    nrm = np.c_[np.sin(a), np.zeros(16), np.cos(a)]
+    true = js.Scene([js.PointLight(TRUE, 3.0)], ambient=0.05)
+    col = np.asarray(js.shade(true, MATERIAL, pts, nrm, EYE), np.float64)
+    col = col * (1.0 + 0.01 * np.random.default_rng(3).normal(size=col.shape))
+    targets = inverse.PaintedTargets(pts, nrm, col, EYE)
+    start = js.Scene([js.PointLight([-0.4, 0.1, 1.5], 3.0)], ambient=0.05)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        fit = inverse.fit_lights(start, targets, MATERIAL, fit=("position", "power"), noise=0.01 * col)
+    q = fit.report.quality
+    assert not fit.report.trusted and "competing_placements" in q.flags
+    assert q.chi2 < diag.WRONG_MINIMUM_CHI2  # the answer explains the targets: only the rival says no
+    got = np.asarray(fit.lights[0].position, np.float64)
+    mirror = got * [1.0, -1.0, 1.0]
+    assert min(np.linalg.norm(got - TRUE), np.linalg.norm(mirror - TRUE)) < 0.05  # one of the two is the truth
+    excess, poses, differ = q.rivals[0]
+    assert differ == ("light0",) and abs(excess) <= diag.rival_allowance(len(fit.report.names))
+    np.testing.assert_allclose(poses["light0"]["centre"], mirror, atol=0.02)
+    assert any(issubclass(w.category, inverse.FitQualityWarning) and "light0" in str(w.message)
+               and "other distinct placement" in str(w.message) for w in caught)
+    assert "rival placement" in str(fit.report)
