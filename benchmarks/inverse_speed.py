@@ -171,17 +171,27 @@ FIT_CASES = ("one light + material", "three lights")
 
 def _counters() -> dict:
     """Seconds JAX spent compiling (XLA backend compile + lowering to MLIR) and tracing, the number
-    of XLA backend compilations, and the persistent cache's hits, from `jax.monitoring`."""
-    acc = {"compile_s": 0.0, "trace_s": 0.0, "compiles": 0, "cache_hits": 0}
+    of XLA backend compilations, and the persistent cache's hits, from `jax.monitoring`; under
+    `"programs"`, the same seconds per program (the event's function name, `jit(...)` for the
+    compile and lowering): `{name: {"backend_compile_s", "lowering_s", "trace_s"}}`."""
+    acc: dict = {"compile_s": 0.0, "trace_s": 0.0, "compiles": 0, "cache_hits": 0, "programs": {}}
+    kinds = {"/jax/core/compile/backend_compile_duration": "backend_compile_s",
+             "/jax/core/compile/jaxpr_to_mlir_module_duration": "lowering_s",
+             "/jax/core/compile/jaxpr_trace_duration": "trace_s"}
 
-    def duration(event: str, secs: float, **_: object) -> None:
+    def duration(event: str, secs: float, fun_name: str = "?", **_: object) -> None:
+        if event not in kinds:
+            return
         if event == "/jax/core/compile/backend_compile_duration":
             acc["compile_s"] += secs
             acc["compiles"] += 1
         elif event == "/jax/core/compile/jaxpr_to_mlir_module_duration":
             acc["compile_s"] += secs
-        elif event == "/jax/core/compile/jaxpr_trace_duration":
+        else:
             acc["trace_s"] += secs
+        name = fun_name[4:-1] if fun_name.startswith("jit(") else fun_name
+        prog = acc["programs"].setdefault(name, {"backend_compile_s": 0.0, "lowering_s": 0.0, "trace_s": 0.0})
+        prog[kinds[event]] += secs
 
     def count(event: str, **_: object) -> None:
         if event == "/jax/compilation_cache/cache_hits":
@@ -246,24 +256,32 @@ def _speed_child(case: str, cache_dir: str, calls: int) -> None:
     out = []
     for seed in range(calls):
         fit = _fit_case(case, seed)
-        before = dict(acc)
+        before = {k: v for k, v in acc.items() if k != "programs"}
+        acc["programs"] = {}
         w0, c0 = time.perf_counter(), time.process_time()
         err = fit()
+        progs = sorted(acc["programs"].items(), key=lambda kv: -sum(kv[1].values()))
         out.append({"seed": seed, "wall_s": time.perf_counter() - w0, "cpu_s": time.process_time() - c0,
-                    **{k: acc[k] - before[k] for k in acc}, "position_err_of_scene": float(err),
-                    "load": os.getloadavg()[0]})
+                    **{k: acc[k] - before[k] for k in before}, "programs": dict(progs),
+                    "position_err_of_scene": float(err), "load": os.getloadavg()[0]})
     print(json.dumps({"calls": out}))
 
 
 def _speed_process(case: str, cache_dir: str, calls: int, tree: str = "") -> dict:
     """`_speed_child` in a fresh process, on the checkout `tree` (default this one)."""
+    import resource
     import subprocess
 
     root = tree or os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     env = dict(os.environ, PYTHONPATH=root)
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     r = subprocess.run([sys.executable, "-m", "benchmarks.inverse_speed", "speed", case, cache_dir, str(calls)],
                        capture_output=True, text=True, check=True, cwd=root, env=env)
-    return json.loads(r.stdout.strip().splitlines()[-1])
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    # The whole child's CPU time (imports and every fit included): the stable figure on a loaded machine.
+    out["process_cpu_s"] = r1.ru_utime + r1.ru_stime - r0.ru_utime - r0.ru_stime
+    return out
 
 
 def fit_speed_study(cases: tuple[str, ...] = FIT_CASES, trees: dict[str, str] | None = None) -> dict:
@@ -279,11 +297,14 @@ def fit_speed_study(cases: tuple[str, ...] = FIT_CASES, trees: dict[str, str] | 
     for case in cases:
         for label, tree in trees.items():
             with tempfile.TemporaryDirectory() as d:
-                cold = _speed_process(case, d, 2, tree)["calls"]
-                warm = _speed_process(case, d, 1, tree)["calls"]
+                cold = _speed_process(case, d, 2, tree)
+                warm = _speed_process(case, d, 1, tree)
             key = case if len(trees) == 1 else f"{case} [{label}]"
-            out[key] = {"first": cold[0], "second": cold[1], "warm_cache_process": warm[0]}
-            for k, r in out[key].items():
+            out[key] = {"first": cold["calls"][0], "second": cold["calls"][1], "warm_cache_process": warm["calls"][0],
+                        "process_cpu_s": {"cold (2 fits)": cold["process_cpu_s"],
+                                          "warm cache (1 fit)": warm["process_cpu_s"]}}
+            for k in ("first", "second", "warm_cache_process"):
+                r = out[key][k]
                 print(f"{key:30s} {k:20s} wall {r['wall_s']:6.1f} s  cpu {r['cpu_s']:6.1f} s  compile "
                       f"{r['compile_s']:6.1f} s ({r['compiles']} programs, {r['cache_hits']} cache hits)  "
                       f"error {r['position_err_of_scene']:.1e}  load {r['load']:.1f}", flush=True)
@@ -302,6 +323,14 @@ def fit_speed_markdown(study: dict) -> str:
             lines.append(f"| {case} | {label} | {c['wall_s']:.1f} | {c['cpu_s']:.1f} | {c['compile_s']:.1f} | "
                          f"{c['trace_s']:.1f} | {c['compiles']} | {c['cache_hits']} | "
                          f"{c['position_err_of_scene']:.1e} | {c['load']:.1f} |")
+    for case, r in study.items():
+        if "process_cpu_s" in r:
+            lines.append("")
+            lines.append(f"{case}: CPU of the whole processes (imports included) "
+                         + ", ".join(f"{k} {v:.1f} s" for k, v in r["process_cpu_s"].items())
+                         + "; the first fit's programs (trace + lowering + XLA compile, wall s): "
+                         + ", ".join(f"`{n}` {sum(t.values()):.1f}" for n, t in
+                                     list(r["first"].get("programs", {}).items())[:6]) + ".")
     return "\n".join(lines) + "\n"
 
 
@@ -309,7 +338,7 @@ def run(quick: bool) -> dict:
     jax.config.update("jax_enable_x64", True)
     from inverse._lm import FIT_COMPILER_OPTIONS
 
-    results = {"fit_compiler_options": dict(FIT_COMPILER_OPTIONS), "backend": jax.default_backend(), "targets": 48,
+    results: dict = {"fit_compiler_options": dict(FIT_COMPILER_OPTIONS), "backend": jax.default_backend(), "targets": 48,
                "dtype": "float64", "light": {}}
     results["fit_speed"] = fit_speed_study()
     results["fit_speed_targets_s"] = {"one light + material": 10.0, "three lights": 30.0}

@@ -71,7 +71,6 @@ def joint_std_errors(param: LightParametrisation, theta: Any, scene: js.Scene, m
         ```
     """
     t = targets
-    dt = t.points.dtype
     P = param.size
     with_spec = bool(np.any(np.asarray(material.ks) != 0))
     free = np.ones((3, 3), bool) if free_k is None else np.asarray(free_k, bool)
@@ -81,22 +80,7 @@ def joint_std_errors(param: LightParametrisation, theta: Any, scene: js.Scene, m
     idx = np.flatnonzero(free.reshape(-1))
     fit_n = bool(fit_exponent and with_spec)
     n0 = float(material.exponent)
-    theta = np.asarray(theta, np.float64)[:P]
-    # Every coefficient and log n in the program (one shape for every `free_k` and `fit_exponent`);
-    # the held ones' columns are dropped below.
-    phi = jnp.asarray(np.concatenate([theta, k0.reshape(-1), [np.log(n0)]]), dt)
-    cap = culling_capacity_for_starts(param, scene, t, jnp.asarray(theta[None], dt))
-    # `fit_lights`' problem with every light in the program (the exponent moves their specular
-    # term): the fitted one, then the others at their given power.
-    others = [light for k, light in enumerate(scene.lights) if k != param.light_index]
-    z = jnp.zeros(t.points.shape, dt)
-    problem = LightsProblem((param, *[None] * len(others)), (scene.lights[param.light_index], *others), scene,
-                            material, t, z, z, (0, *[P] * len(others)), False, with_spec, False, specular,
-                            capacity=None if cap is None else 8 * -(-cap // 8),  # shared by nearby scenes
-                            fit_exponent=True)
-    # Twice the capacity while some receiver overflowed it: the one retry of every fit (`at_capacity`).
-    (r, J), _, _ = at_capacity(lambda pr: _unpacked(_joint_jacobian(pr, phi)), problem, "joint_std_errors",
-                               "Jacobian")
+    r, J = _joint_rows(param, np.asarray(theta, np.float64)[:P], scene, k0, n0, t, specular, with_spec)
     keep = np.r_[np.arange(P), P + idx, [P + 9] if fit_n else []].astype(int)
     r, J = np.asarray(r, np.float64), np.asarray(J, np.float64)[:, keep]
     m_eff = int(np.count_nonzero(np.asarray(t.weights) > 0))
@@ -111,6 +95,59 @@ def joint_std_errors(param: LightParametrisation, theta: Any, scene: js.Scene, m
         else:
             out[nm] = float(se)
     return out
+
+
+def _joint_rows(param: LightParametrisation, theta: np.ndarray, scene: js.Scene, k: np.ndarray, n: float,
+                targets: PaintedTargets, specular: SpecularFn | None, with_spec: bool) -> tuple[Array, Array]:
+    """`(r (3N,), J (3N, P + 10))` of `_joint_residuals` at the light's `theta (P,)`, the
+    coefficients `k (3, 3)` (rows `ka, kd, ks`) and the exponent `n`: every coefficient and
+    $\\log n$ in the program (one program for every held set of coefficients and for
+    `projected_coefficients`). The problem's material is a placeholder of fixed shapes (the
+    program reads `phi`), so every material gives the same program."""
+    t = targets
+    dt = t.points.dtype
+    P = param.size
+    phi = jnp.asarray(np.concatenate([theta, np.asarray(k, np.float64).reshape(-1), [np.log(n)]]), dt)
+    cap = culling_capacity_for_starts(param, scene, t, jnp.asarray(theta[None], dt))
+    # `fit_lights`' problem with every light in the program (the exponent moves their specular
+    # term): the fitted one, then the others at their given power.
+    others = [light for j, light in enumerate(scene.lights) if j != param.light_index]
+    z = jnp.zeros(t.points.shape, dt)
+    placeholder = js.Material(ka=np.zeros(3), kd=np.zeros(3), ks=np.ones(3) if with_spec else np.zeros(3),
+                              exponent=1.0)
+    problem = LightsProblem((param, *[None] * len(others)), (scene.lights[param.light_index], *others), scene,
+                            placeholder, t, z, z, (0, *[P] * len(others)), False, with_spec, False, specular,
+                            capacity=None if cap is None else 8 * -(-cap // 8),  # shared by nearby scenes
+                            fit_exponent=True)
+    # Twice the capacity while some receiver overflowed it: the one retry of every fit (`at_capacity`).
+    (r, J), _, _ = at_capacity(lambda pr: _unpacked(_joint_jacobian(pr, phi)), problem, "joint_std_errors",
+                               "Jacobian")
+    return r, J
+
+
+def projected_coefficients(problem: LightsProblem, theta: Array) -> tuple[np.ndarray, float]:
+    """`colour_coefficients` of a one-light projected problem (`fit_light(material_mode=
+    "projected")`) by `_joint_jacobian`'s program, which `joint_std_errors` runs next: the
+    columns $\\partial r / \\partial k$ of the joint residual are $\\sqrt{w}$ times the ambient,
+    $E/\\pi$ and $S$ of every light (the others at their given power) at the light's `theta`
+    and $n$, per channel; the coefficients are their weighted least squares on the targets'
+    colours. The same values as `colour_coefficients` to rounding (the shadow engine at the
+    joint program's capacity, NumPy's least squares); a joint fit traces and compiles one
+    program fewer. Returns `(k (3, 3) rows ka, kd, ks; n)`."""
+    param, t = problem.params[0], problem.targets
+    P = param.size
+    theta = np.asarray(theta, np.float64)
+    n = float(np.exp(theta[P])) if problem.fit_exponent else float(problem.material.exponent)
+    _, J = _joint_rows(param, theta[:P], problem.scene, np.zeros((3, 3)), n, t, problem.specular,
+                       problem.with_specular)
+    J = np.asarray(J, np.float64)
+    y = (np.sqrt(np.asarray(t.weights, np.float64)) * np.asarray(t.colours, np.float64)).reshape(-1)
+    rows = 3 if problem.with_specular else 2
+    k = np.zeros((3, 3))
+    for c in range(3):
+        X = J[c::3, [P + 3 * f + c for f in range(rows)]]
+        k[:rows, c] = np.linalg.pinv(X) @ y[c::3]
+    return k, n
 
 
 def _unpacked(out: tuple[Array, Array, Array]) -> tuple[tuple[Array, Array], Array]:
@@ -213,7 +250,7 @@ def fit_light_and_material(
     if method == "projected":
         t0 = time.perf_counter()
         lf = fit_light(scene, targets, material, light_index, specular=specular, material_mode="projected",
-                       fit_exponent=True, **lk)
+                       fit_exponent=True, _projected_coefficients=projected_coefficients, **lk)
         history.append(lf.report.loss)
         if progress is not None:
             progress(f"  light + projected material: loss {lf.report.loss:.4e}  [{time.perf_counter() - t0:.1f} s]")

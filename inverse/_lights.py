@@ -7,8 +7,8 @@ problem, the starts (`_multistart`, from the `Search` options that `fit_lights` 
 
 The problem is `fit_lights`' (`_multilight.LightsProblem` with one fitted light, its power held,
 the other lights' contribution computed once), and the `LM` searches it with `fit_lights`'
-screening and compiled program (`_multilight.screen`, `_multilight.solve`), so one light and
-several are one search; `OptimistixLM`, `LBFGSB` and a solver of one's own (an
+compiled program (`_multilight.solve`; the starts screened by the same program with no
+iterations, `_solvers.screen_by_solver`), so one light and several are one search; `OptimistixLM`, `LBFGSB` and a solver of one's own (an
 `AbstractLightSolver` subclass) minimise its residual too. A fitted exponent is the last
 parameter, a per-receiver material and a projected material beside other lights are the
 problem's (`_problem`).
@@ -178,6 +178,9 @@ def fit_light(
         fit.light.position   # ~ [0.2, 0.3, 2.0]; print(fit.report): the parameters, their errors, warnings
         ```
     """
+    # Private: how the projected material is computed at the answer (`colour_coefficients`, or
+    # `_joint.projected_coefficients` from `fit_light_and_material`, sharing its next program).
+    coefficients = options.pop("_projected_coefficients", None)
     legacy = {k: options.pop(k) for k in list(options) if k in LEGACY_SOLVER_KEYWORDS}
     if "constraint" in options:
         warnings.warn("fit_light(constraint=c) is deprecated: pass constraints={light_index: c} (as fit_lights).",
@@ -206,7 +209,7 @@ def fit_light(
         logn = np.full((y0.shape[0], 1), np.log(float(material.exponent)))
         logn[1:, 0] += np.random.default_rng(seed).uniform(-np.log(3.0), np.log(3.0), y0.shape[0] - 1)
         y0 = jnp.concatenate([y0, jnp.asarray(logn, dt)], axis=1)
-    fitted = _light_fit(problem, solver.minimise(problem, y0), solver.name, int(y0.shape[0]), noise)
+    fitted = _light_fit(problem, solver.minimise(problem, y0), solver.name, int(y0.shape[0]), noise, coefficients)
     if warn:
         for msg in fitted.report.quality.emitted:
             warnings.warn(msg, FitQualityWarning, stacklevel=2)
@@ -255,8 +258,10 @@ def _problem(param: LightParametrisation, scene: js.Scene, material: js.Material
 
 
 def _light_fit(problem: LightsProblem, sol: Solution, solver_name: str, n_screened: int,
-               noise: Any = None) -> LightFit:
-    """The fitted scene, residual and report from a solver's `Solution`."""
+               noise: Any = None, coefficients: Any = None) -> LightFit:
+    """The fitted scene, residual and report from a solver's `Solution`. `coefficients(problem,
+    theta) -> (k (3, 3), n)`: the projected material at the answer (default
+    `colour_coefficients`)."""
     param, t, material = problem.params[0], problem.targets, problem.material
     names = (*param.names, "log_n") if problem.fit_exponent else param.names
     dt = t.points.dtype
@@ -277,7 +282,7 @@ def _light_fit(problem: LightsProblem, sol: Solution, solver_name: str, n_screen
                     f"solved again {sol.retries} time(s) with a larger one (the result is exact).")
     new_scene = with_light(problem.scene, param.light_index, sol.light)
     if problem.colour_free:
-        kc, n_fit = (np.asarray(x, np.float64) for x in colour_coefficients(sol.problem, theta))
+        kc, n_fit = (np.asarray(x, np.float64) for x in (coefficients or colour_coefficients)(sol.problem, theta))
         if np.any(kc < 0):  # the unconstrained projection: a js.Material holds no negative coefficient
             bad = [f"{'ka kd ks'.split()[i]}[{'rgb'[c]}]" for i, c in zip(*np.nonzero(kc < 0), strict=True)]
             msgs.append(f"the projected material has negative coefficients ({', '.join(bad)}), held at 0 in "

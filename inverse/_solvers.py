@@ -158,7 +158,7 @@ class LM(AbstractLightSolver):
 
     def minimise(self, problem: LightsProblem, starts: Array) -> Solution:
         """`fit_lights`' screening and compiled solver program on the problem (one fitted light,
-        `problem.params[0]`; `_multilight.screen`, `_multilight.solve`, every parameter searched
+        `problem.params[0]`; `screen_by_solver`, `_multilight.solve`, every parameter searched
         from the starts), each retried at twice the shadow capacity on overflow."""
         param = problem.params[0]
         ys = np.asarray(starts)
@@ -170,7 +170,7 @@ class LM(AbstractLightSolver):
         base, mask = ys[0], np.ones(ys.shape[1], bool)
         initial, retries = None, 0
         if screens:
-            losses, problem, retries = screen(problem, ys, base, mask, n_solved)
+            losses, problem, retries = screen_by_solver(problem, ys, base, mask, n_solved, self.rtol, self.atol)
             initial = float(losses[0])
             ys = ys[best_starts(np.where(np.isfinite(losses), losses, np.inf), n_solved)]
         res, problem, r = solve(problem, ys, base, mask, rtol=self.rtol, atol=self.atol, max_steps=self.max_steps,
@@ -185,6 +185,27 @@ class LM(AbstractLightSolver):
         return Solution(values, losses, np.asarray(res.converged), np.asarray(res.num_steps),
                         np.asarray(res.abandoned), best, np.asarray(res.residuals, np.float64)[best],
                         np.asarray(res.jacobians, np.float64)[best], light, initial, retries, True, problem)
+
+
+def screen_by_solver(problem: LightsProblem, rows: np.ndarray, base: np.ndarray, mask: np.ndarray,
+                     chunk: int, rtol: float, atol: float) -> tuple[np.ndarray, LightsProblem, int]:
+    """The loss $\\tfrac12|r|^2$ at every row of `rows (S, P)` (the others held at `base` where
+    `mask` is off) by the solver's own program: `_multilight.solve` with no iterations
+    (`LMResult.initial_losses`), `chunk` rows a call, with the solve's `rtol` and `atol` (static
+    arguments of the program), so that the solve that follows runs the same compiled program.
+    Each chunk is evaluated again with twice the shadow capacity while some receiver overflowed
+    it. The values of `_multilight.screen` (bit-identical on the demo fit), without its program:
+    it evaluates a Jacobian at every row (0.6 s CPU more for 64 starts of the demo fit) but a
+    one-light fit's first call traces and compiles one program fewer.
+    Returns `(losses (S,), problem used, retries)`."""
+    out, retries = [], 0
+    for a in range(0, rows.shape[0], chunk):
+        part = rows[a:a + chunk]
+        part = np.concatenate([part, np.repeat(part[:1], chunk - part.shape[0], axis=0)])
+        res, problem, r = solve(problem, part, base, mask, rtol=rtol, atol=atol, max_steps=0, prune=())
+        out.append(np.asarray(res.initial_losses))
+        retries += r
+    return np.concatenate(out)[: rows.shape[0]], problem, retries
 
 
 class OptimistixLM(AbstractLightSolver):

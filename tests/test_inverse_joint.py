@@ -126,3 +126,29 @@ def test_joint_std_errors_overflow_past_the_largest_capacity_raises(monkeypatch)
     with pytest.raises(RuntimeError, match="joint_std_errors"):
         inverse.joint_std_errors(param, np.zeros(param.size), cfg.scene, cfg.material, targets, fit_exponent=True)
     assert calls[-1] == 4096 and all(b == min(2 * a, 4096) for a, b in zip(calls, calls[1:], strict=False))
+
+
+def test_projected_coefficients_by_the_joint_program_are_the_painting_material():
+    """`fit_light_and_material`'s projected material at the answer, from the joint Jacobian's
+    coefficient columns (`_joint.projected_coefficients`): at the true light and exponent on
+    noise-free targets it is the material the targets were painted with, and it agrees with the
+    projection's own program (`colour_coefficients`)."""
+    from inverse._lights import _problem as light_problem
+    from inverse._lights import colour_coefficients
+
+    cfg = inverse.demo_configuration(occluders=True, n_points=24, seed=0)
+    col = np.asarray(js.shade(cfg.scene, cfg.material, cfg.points, cfg.normals, cfg.eye))
+    targets = inverse.PaintedTargets(cfg.points, cfg.normals, col, cfg.eye)
+    param = LightParametrisation(cfg.scene.lights[0], 0, ("position", "orientation", "size"), None,
+                                 inverse.scene_size(cfg.scene, targets), "sigmoid")
+    problem = light_problem(param, cfg.scene, cfg.material, targets, None, True, True, True)
+    n_true = float(cfg.material.exponent)
+    theta = jnp.asarray(np.r_[np.zeros(param.size), np.log(n_true)])
+    k, n = _joint.projected_coefficients(problem, theta)
+    want = np.stack([np.broadcast_to(np.asarray(getattr(cfg.material, f), np.float64), (3,))
+                     for f in ("ka", "kd", "ks")])
+    assert np.all(want[2] > 0)  # a specular material: every row of the projection is tested
+    np.testing.assert_allclose(k, want, rtol=1e-9)
+    assert n == pytest.approx(n_true, rel=1e-14)
+    k2, _ = colour_coefficients(problem, theta)
+    np.testing.assert_allclose(k, np.asarray(k2), rtol=1e-12)
