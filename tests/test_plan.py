@@ -400,7 +400,7 @@ def test_receiver_groups_give_what_each_receiver_alone_gives():
 
 def test_engine_lambert_sums_equal_the_jax_edge_terms():
     # On the host path Lambert's contour sum of a penumbra receiver is added up by the engine as
-    # it decodes the boundary (lambert_edge, in double): the same sum as `edge_term` over the
+    # it decodes the boundary (lambert_term, in double): the same sum as `edge_term` over the
     # decoded edges in JAX, for float64 and float32 receivers, grazing ones included (float32:
     # the engine sums its double points, the returned points are rounded to float32).
     from jaxshadow._kernels.polygon import edge_term

@@ -2,6 +2,7 @@
 #ifndef JAXSHADOW_SHADOWC_DRIVER_H_
 #define JAXSHADOW_SHADOWC_DRIVER_H_
 
+#include "decode.h"
 #include "groups.h"
 #include "polygon.h"
 #include "prepared.h"
@@ -61,69 +62,6 @@ Occluders<T> make_occ(int64_t K, int64_t M, int64_t Ko, const T* faces, const in
   return occ;
 }
 
-// The points of endpoint codes, as `_shadows.binding.decode_endpoints` computes them (the same formulas
-// in the same order): for evaluations that are not differentiated, the JAX side then only
-// integrates over ready-made edges.
-template <class T>
-struct Decoder {
-  const PolyCall<T>& call;
-  V3<T> p, n, e0, ne;
-  T hp;
-  Decoder(const PolyCall<T>& c, V3<T> p_, V3<T> n_) : call(c), p(p_), n(n_) {
-    e0 = c.L.v(0);
-    ne = pow2_scale(absmax(c.ne_raw)) * c.ne_raw;
-    hp = dot(ne, p - e0);
-  }
-  V3<T> V(int32_t r) const { return r < call.L.K ? call.L.v(r) : call.occ.vref(r); }
-  V3<T> face_normal(int32_t f) const {
-    const Occluders<T>& o = call.occ;
-    V3<T> v0 = o.vert(f, 0), acc{0, 0, 0};
-    for (int64_t i = 0; i < o.Ko; i++) acc = acc + cross(o.vert(f, i) - v0, o.vert(f, (i + 1) % o.Ko) - v0);
-    return acc;
-  }
-  V3<T> plane(int32_t t, int32_t a, int32_t b) const {
-    V3<T> out;
-    if (t == kThrough) {
-      out = edge_plane(p, V(a), V(b));
-    } else if (t == kHorizonPlane) {
-      out = n;
-    } else {
-      V3<T> fn = face_normal(a), f0 = call.occ.vert(a, 0);
-      T d = dot(fn, f0 - p);
-      T sg = d > 0 ? T(1) : (d < 0 ? T(-1) : T(0));
-      out = (hp * sg) * fn + std::fabs(d) * ne;
-    }
-    return rescale(out);
-  }
-  V3<T> point(const Code& c) const {
-    const int32_t kind = c.v[0];
-    switch (kind) {
-      case kLightVertex:
-        return V(c.v[1]);
-      case kHorizon: {
-        V3<T> va = V(c.v[1]), vb = V(int32_t((c.v[1] + 1) % call.L.K));
-        T da = dot(va - p, n), db = dot(vb - p, n);
-        T t = da != db ? da / (da - db) : T(0);
-        return va + t * (vb - va);
-      }
-      case kProjected:
-        return project(p, V(c.v[1]), ne, hp);
-      case kEmitterCross: {
-        V3<T> va = V(c.v[1]), vb = V(c.v[2]);
-        T da = dot(va - e0, ne), db = dot(vb - e0, ne);
-        T t = da != db ? da / (da - db) : T(0);
-        return project(p, va + t * (vb - va), ne, hp);
-      }
-      case kPlanes: {
-        V3<T> n1 = plane(c.v[1], c.v[2], c.v[3]), n2 = plane(c.v[4], c.v[5], c.v[6]);
-        return crossing_point(p, cross(n1, n2), ne, hp);
-      }
-      default:
-        return e0;
-    }
-  }
-};
-
 constexpr int kSilTile = 16;  // receivers per tile of the silhouette path's walk
 constexpr int kSilParent = 64;  // receivers per run of tiles whose walk the tiles' walks refine
 
@@ -164,8 +102,10 @@ struct MortonBox {
 // Receiver i of a polygon light: its class, with `w.runs` its boundary; a light of more than 64
 // vertices gives kZero and sets `err`.
 template <class T>
-int32_t receiver_class(const PolyCall<T>& call, const T* P, const T* Nrm, int64_t i, Work<T>& w, std::atomic<int>& err) {
-  int32_t c = polygon_receiver(call, ld(P + 3 * i), ld(Nrm + 3 * i), w);
+JS_INLINE int32_t receiver_class(const PolyCall<T>& call, const T* P, const T* Nrm, int64_t i, Work<T>& w, std::atomic<int>& err) {
+  const V3<T> p = ld(P + 3 * i), n = ld(Nrm + 3 * i);
+  int32_t c = call.clear_ok ? clear_lit(call, p, n, w) : -1;  // clear.h
+  if (c < 0) c = polygon_receiver(call, p, n, w);
   if (c < 0) {
     err = 1;
     c = kZero;
@@ -176,47 +116,7 @@ int32_t receiver_class(const PolyCall<T>& call, const T* P, const T* Nrm, int64_
 
 // Polygon plan, CSR output: classes (N), offsets (N + 1), runs (R, 2, 7) codes and/or (R, 2, 3) points
 // (malloc'd, freed by the caller).
-// Lambert's term theta (n . Gamma) of the boundary edge a -> b seen from p (`_polygon.edge_term`:
-// the edge's ends as unit vectors from p, theta = atan2(|A x B|, A . B); zero for a zero-length
-// edge and for p on the edge). Its sum over a receiver's boundary is -2 pi times the form factor.
-template <class T>
-inline T lambert_edge(V3<T> p, V3<T> n, V3<T> a, V3<T> b) {
-  auto unit = [](V3<T> v) -> V3<T> {
-    const T s = absmax(v);
-    if (!(s > 0)) return V3<T>{0, 0, 0};
-    v = V3<T>{v.x / s, v.y / s, v.z / s};
-    const T r = std::sqrt(dot(v, v));
-    return V3<T>{v.x / r, v.y / r, v.z / r};
-  };
-  const V3<T> A = unit(a - p), B = unit(b - p), c = cross(A, B);
-  const T s2 = dot(c, c);
-  if (!(s2 > 0)) return T(0);
-  const T sn = std::sqrt(s2);
-  return std::atan2(sn, dot(A, B)) / sn * dot(n, c);
-}
-
-// The rounding bound of lambert_edge(p, n, a, b) from its ends' rounding: a decoded point is
-// within kCollinearEps eps S of the exact one (S the largest coordinate magnitude of the ends and
-// p), which moves the angle the edge subtends by at most that over its distance from p.
-template <class T>
-inline T lambert_edge_bound(V3<T> p, V3<T> a, V3<T> b) {
-  const T da = norm(a - p), db = norm(b - p);
-  if (!(da > 0) || !(db > 0)) return T(0);
-  const T S = std::max(std::max(absmax(a), absmax(b)), absmax(p));
-  return T(kCollinearEps) * eps_of<T>() * S * (T(1) / da + T(1) / db);
-}
-
-// A visible region's form factor is never negative: Lambert's sum over its boundary (-2 pi F)
-// is not positive. An all-but-empty region (its boundary's runs nearly zero-length: a receiver
-// at an umbra's vertex) sums to +-1e-16 of rounding, relatively large against its tiny terms; a
-// positive sum within the terms' rounding bound is that region's value, 0. A larger one is
-// kept: a genuine error stays visible. (_clip.masked_contour_form_factor does the same.)
-template <class T>
-inline T lambert_rounded(T sum, T bound) {
-  return sum > 0 && sum <= bound ? T(0) : sum;
-}
-
-// `lambert` (N, nullable): per receiver the sum of lambert_edge over its boundary (0 without
+// `lambert` (N, nullable): per receiver the sum of lambert_term over its boundary (0 without
 // one), for Lambert's integrand on the host path (the edges are decoded for it, also without
 // `points_out`).
 template <class T>
@@ -228,6 +128,7 @@ int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const 
   PolyCall<T> call{Light<T>{K, E}, occ, &bvh, {}};
   bind_call(call, *prep);
   if (N >= kUmbraMinReceivers) prepare_umbra(call);
+  call.clear_ok = call.sil_ok && clear_switch();
   threads = default_threads(threads);
   struct Block {
     int64_t s, e;
@@ -260,15 +161,17 @@ int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const 
     Block blk;
     blk.s = s;
     blk.e = e;
-    std::vector<int32_t> group;
+    GroupList group;
     std::vector<std::pair<uint64_t, int64_t>> mkey;
+    BoundaryEnds<T> ends;
     int64_t group_end = s, tile_end = s, parent_end = s;
     for (int64_t k = s; k < e; k++) {
       
       if (grouped && k == group_end) {  // the next group: positions [k, group_end) of one cell
         group_end = k + 1;
         while (group_end < e && group_end - k < kGroupSize && cell[group_end] == cell[k]) group_end++;
-        double lo[3], hi[3];
+        double* lo = group.lo;
+        double* hi = group.hi;
         for (int d = 0; d < 3; d++) {
           lo[d] = std::numeric_limits<double>::infinity();
           hi[d] = -std::numeric_limits<double>::infinity();
@@ -285,8 +188,10 @@ int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const 
           }
         }
         if (tiled) mbox.sort(P, perm.data(), k, group_end, mkey);
-        group.clear();
-        if (query) group_items(call, lo, hi, group);
+        // Its items are listed when one of its receivers first queries the hierarchy (none: every
+        // receiver outside the occlusion volume, the list stays empty).
+        group.items.clear();
+        group.listed = !query;
         w.group = &group;
       }
       const int64_t i = sorted ? perm[k] : k;
@@ -348,34 +253,11 @@ int poly_plan(int64_t N, const T* P, const T* Nrm, int64_t K, const T* E, const 
         }
       if (lambert) lambert[i] = 0;
       if ((points_out || lambert) && !w.runs.empty()) {
-        // A boundary vertex ends one run and starts the next under the same code: decoded once
-        // (the same code gives the same point bit for bit).
-        Decoder<T> dec(call, ld(P + 3 * i), ld(Nrm + 3 * i));
-        w.decoded.clear();
-        auto point = [&](const Code& c) -> V3<T> {
-          for (const auto& kv : w.decoded)
-            if (std::memcmp(kv.first.v, c.v, sizeof(c.v)) == 0) return kv.second;
-          const V3<T> x = dec.point(c);
-          w.decoded.push_back({c, x});
-          return x;
-        };
-        size_t o = blk.pts.size();
+        const size_t o = blk.pts.size();
         if (points_out) blk.pts.resize(o + 6 * w.runs.size());
-        T sum = 0, bound = 0;
-        const V3<T> pi = ld(P + 3 * i), ni = ld(Nrm + 3 * i);
-        for (const Run& r : w.runs) {
-          const V3<T> a = point(r.s), b = point(r.e);
-          if (points_out) {
-            T* q = blk.pts.data() + o;
-            q[0] = a.x, q[1] = a.y, q[2] = a.z, q[3] = b.x, q[4] = b.y, q[5] = b.z;
-            o += 6;
-          }
-          if (lambert) {
-            sum += lambert_edge(pi, ni, a, b);
-            bound += lambert_edge_bound(pi, a, b);
-          }
-        }
-        if (lambert) lambert[i] = lambert_rounded(sum, bound);
+        const T sum = decode_runs(call, ld(P + 3 * i), ld(Nrm + 3 * i), w.runs, ends, points_out ? blk.pts.data() + o : nullptr,
+                                  lambert != nullptr);
+        if (lambert) lambert[i] = sum;
       }
     }
     per_thread[t].push_back(std::move(blk));

@@ -141,6 +141,17 @@ void group_items(const PolyCall<T>& call, const double* lo, const double* hi, st
   });
 }
 
+// The items of group `g` (group_items over its box, listed once), or null without a group.
+template <class T>
+const std::vector<int32_t>* group_list(const PolyCall<T>& call, GroupList* g) {
+  if (!g) return nullptr;
+  if (!g->listed) {
+    group_items(call, g->lo, g->hi, g->items);
+    g->listed = true;
+  }
+  return &g->items;
+}
+
 }  // namespace jaxshadow_engine
 
 #endif  // JAXSHADOW_SHADOWC_GROUPS_H_

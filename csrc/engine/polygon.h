@@ -3,6 +3,7 @@
 #define JAXSHADOW_SHADOWC_POLYGON_H_
 
 #include "boundary.h"
+#include "clear.h"
 #include "silhouette.h"
 
 namespace jaxshadow_engine {
@@ -29,8 +30,7 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
   // The silhouette path (silhouette.h) where every occluder vertex lies strictly between the
   // receiver's level and the emitter plane; the hierarchy's face query only if it falls back.
   const SilhouetteTree& sil = *call.sil;
-  const double hmargin = 1e-9 * double(norm(ne)) * (sil.scale + double(absmax(p)) + 1.0);
-  const bool try_sil = call.sil_ok && call.sil_hmin > hmargin && call.sil_hmax < double(hp) - hmargin;
+  const bool try_sil = silhouette_serves(call, p, hp);
   const V3<T> ne_query = ne;
 
   // Candidate items: the hierarchy queried with the pyramid over the light (planes through p
@@ -64,8 +64,8 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
         umbra_hit = call.umbra.any && item < 0 && call.umbra.inside(-int64_t(item) - 1, pd, bv, occ.solid_faces);
         return !umbra_hit;
       };
-      if (w.group)
-        filter_lazy(bv, w.group->data(), w.group->size(), ne_edges + 2, margin, make, visit);
+      if (const std::vector<int32_t>* g = group_list(call, w.group))
+        filter_lazy(bv, g->data(), g->size(), ne_edges + 2, margin, make, visit);
       else
         traverse_lazy(bv, ne_edges + 2, margin, make, visit);
       std::sort(w.cand.begin(), w.cand.end());

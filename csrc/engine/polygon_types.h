@@ -38,10 +38,18 @@ struct Run {
   Code s, e;
 };
 
+// A group of receivers (groups.h): the box of their points and the items (slots, in the
+// hierarchy's depth-first order) that may meet the pyramid of any of them, listed when a receiver
+// of the group first queries the hierarchy (`group_list`; receivers on the silhouette path never do).
+struct GroupList {
+  double lo[3], hi[3];
+  bool listed = false;
+  std::vector<int32_t> items;
+};
+
 template <class T>
 struct Work {  // per-thread scratch
   std::vector<std::pair<int32_t, int32_t>> cand;
-  std::vector<std::pair<Code, V3<T>>> decoded;  // the driver's decoded boundary vertices
   std::vector<V3<T>> planes;
   std::vector<T> pnorm;
   std::vector<T> pcond;  // per plane: through_condition (boundary.h)
@@ -85,9 +93,8 @@ struct Work {  // per-thread scratch
   // (compiled) plan evaluates every receiver from its runs; the CSR plan evaluates lit receivers
   // with the unoccluded kernel, so a receiver that no item can block returns at once.
   bool lit_runs = true;
-  // Items (slots, in the hierarchy's depth-first order) that may meet the pyramid of any receiver
-  // of the current group (receiver_groups); null: the receiver queries the hierarchy itself.
-  const std::vector<int32_t>* group = nullptr;
+  // The current group of receivers (groups.h; null: the receiver queries the hierarchy itself).
+  GroupList* group = nullptr;
   // The current receiver's tile (the driver's) and the contour walk's part of the hierarchy for
   // the last tile it served (silhouette_walk.h).
   SilTile tile;
@@ -220,6 +227,9 @@ struct PolyCall {
   bool sil_ok = false;
   // The interior sections' bodies usable with this light (umbra_sections.h; prepared.h).
   SectionCall sections;
+  // Receivers that see all of the light decided before E_h (clear.h; set by the CSR plan where the
+  // silhouette path may serve).
+  bool clear_ok = false;
 };
 
 // The faces' edge twins (PolyCall::twin, prepared.h): one sort of the edge slots by their endpoints'

@@ -464,7 +464,7 @@ def lit_form_factor(p: Array, n: Array, verts: Array) -> Array:
 
 def _contour_bound(p: Array, starts: Array, ends: Array, used: Array) -> Array:
     """The rounding bound of Lambert's sum over the edges `starts -> ends` (`used` ones) from
-    their ends' rounding (`masked_contour_form_factor`; the engine's `lambert_edge_bound`)."""
+    their ends' rounding (`masked_contour_form_factor`; the engine's `lambert_term_bound`)."""
     da = jnp.linalg.norm(starts - p[None, :], axis=1)
     db = jnp.linalg.norm(ends - p[None, :], axis=1)
     big = jnp.maximum(jnp.maximum(jnp.max(jnp.abs(starts), axis=1), jnp.max(jnp.abs(ends), axis=1)), jnp.max(jnp.abs(p)))
