@@ -13,7 +13,8 @@ from scipy.optimize import nnls
 import inverse
 import jaxshadow as js
 from benchmarks.inverse_random_scenes import light_errors, random_case, shifted_start
-from inverse._global_placement import candidate_rows, nnls_rss, region_of
+from inverse._global_placement import candidate_rows, region_of
+from inverse._nnls_screen import nnls_rss
 from inverse._parametrisation import LightParametrisation
 
 POSITION_TOL, POWER_TOL = 0.005, 0.01
