@@ -45,6 +45,13 @@ column of light $j$ at its reference power, `(3N,)`). So the screen needs no der
    program of its joint refinement: rows padded to its batch, no new compilation), and ranked
    by the refined loss (`refine_and_rank`; under a power budget at the powers the final fit
    solves there, `final_losses`: $p \ge 0$ and the budget, not the LM's signed projection).
+8. **Screen again at the refined placement.** The screens above hold the other lights at grid
+   resolution, where their columns are a few % of the scene off and a light's residual is
+   theirs too. With the best refined placement's columns held instead, each light's candidates
+   are ranked and locally screened again (step 6's screen), and the placement with that light
+   moved to each of its `LOCAL_SEEDS` best is refined and ranked as in step 7 (up to a batch of
+   them, in basins distinct from those refined already): coordinate descent over the lights at
+   refined resolution (`RESCREEN`).
 
 The result is the best refined placement (`theta`, the poses), the other refined placements
 (`alternatives`, best first: `fit_lights` finishes them with its joint refinement, where
@@ -89,6 +96,8 @@ DIFFUSE_MAXIMA = 3
 BASINS, BASIN_STEPS = 16, 30
 BASIN_DISTANCE, BASIN_TURN = 0.05, 0.25
 ALTERNATIVES = 3
+# Step 8 (module docstring): every light screened again at the best refined placement.
+RESCREEN = True
 
 
 @dataclasses.dataclass(frozen=True)
@@ -459,6 +468,36 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
                 distinct.append(descend({**ch, **{j: int(first[j][n]) for j in movable}}))
         distinct.sort(key=lambda x: x[0])
     rng = np.random.default_rng(seed + 11)
+
+    def local_screen(j: int, B: np.ndarray) -> list[int]:
+        """Light j's `LOCAL_SEEDS` best distinct candidates with the other lights' columns `B`
+        held, each screened locally (`LOCAL_LEVELS` levels of `REFINE_POINTS` candidates, the
+        radius halved at each, around the seed's best so far; added to light j's candidates):
+        their indices."""
+        nonlocal problem
+        p = params[j]
+        sl = p._slices()
+        spread = np.zeros(p.size)
+        if "position" in sl:
+            spread[sl["position"]] = spacing / float(p.scale)
+        if "orientation" in sl:
+            spread[sl["orientation"]] = ORIENTATION_SPREAD
+        if "size" in sl:  # log sizes: a given or default size is a guess
+            spread[sl["size"]] = 0.4
+        seeds = _distinct_best(nnls_rss(B, cols[j], y, problem.fit_power), centres(j, rows[j]), LOCAL_SEEDS,
+                               spacing)
+        for level in range(LOCAL_LEVELS):
+            trial = (rows[j][seeds][:, None] + spread / 2 ** level
+                     * rng.uniform(-1.0, 1.0, (len(seeds), REFINE_POINTS, p.size)))
+            ct, problem = unit_columns(problem, j, trial.reshape(-1, p.size))
+            n0 = rows[j].shape[0]
+            rows[j] = np.concatenate([rows[j], trial.reshape(-1, p.size)])
+            cols[j] = np.concatenate([cols[j], ct])
+            for i, c in enumerate(seeds):
+                idx_i = np.r_[c, n0 + i * REFINE_POINTS + np.arange(REFINE_POINTS)]
+                seeds[i] = int(idx_i[int(np.argmin(nnls_rss(B, cols[j][idx_i], y, problem.fit_power)))])
+        return seeds
+
     screened: list = []  # the locally screened placements
     for _, chosen in distinct[:REFINED]:
         # A local screen around each light's LOCAL_SEEDS best distinct candidates (the others held),
@@ -466,30 +505,9 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
         # nearest candidate to a light can rank below a wrong one until both are refined.
         chosen = dict(chosen)
         for j in todo:
-            p = params[j]
-            sl = p._slices()
-            spread = np.zeros(p.size)
-            if "position" in sl:
-                spread[sl["position"]] = spacing / float(p.scale)
-            if "orientation" in sl:
-                spread[sl["orientation"]] = ORIENTATION_SPREAD
-            if "size" in sl:  # log sizes: a given or default size is a guess
-                spread[sl["size"]] = 0.4
-            f = rss_for(j, chosen)
-            pos = centres(j, rows[j])
-            seeds = _distinct_best(f, pos, LOCAL_SEEDS, spacing)
             others = [cols[i][chosen[i]] for i in chosen if i != j]
             B = np.stack(others, axis=1) if others else np.zeros((y.shape[0], 0))
-            for level in range(LOCAL_LEVELS):
-                trial = (rows[j][seeds][:, None] + spread / 2 ** level
-                         * rng.uniform(-1.0, 1.0, (len(seeds), REFINE_POINTS, p.size)))
-                ct, problem = unit_columns(problem, j, trial.reshape(-1, p.size))
-                n0 = rows[j].shape[0]
-                rows[j] = np.concatenate([rows[j], trial.reshape(-1, p.size)])
-                cols[j] = np.concatenate([cols[j], ct])
-                for i, c in enumerate(seeds):
-                    idx_i = np.r_[c, n0 + i * REFINE_POINTS + np.arange(REFINE_POINTS)]
-                    seeds[i] = int(idx_i[int(np.argmin(nnls_rss(B, cols[j][idx_i], y, problem.fit_power)))])
+            local_screen(j, B)
             chosen[j] = int(np.argmin(rss_for(j, chosen)))
         screened.append(pairs(*descend(chosen)[::-1]))
     screened.sort(key=lambda x: x[0])
@@ -521,8 +539,31 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
     if lm is not None and len(picked) > 1:
         values, losses, problem = refine_and_rank(problem, thetas[picked], lm, keep)
         win = picked[int(np.argmin(losses))]  # the losses are in `picked`'s order
+        best_ch = contenders[win][1]
+        if RESCREEN:  # step 8: each light screened again with the others at the best refined placement
+            best = values[int(np.argmin(losses))]
+            at = {}
+            for j in todo:
+                o = problem.offsets[j]
+                a, problem = unit_columns(problem, j, best[o:o + params[j].size][None])
+                at[j] = a[0]
+            moved = []
+            for j in todo:
+                others = [at[i] for i in todo if i != j]
+                B = np.stack(others, axis=1) if others else np.zeros((y.shape[0], 0))
+                o = problem.offsets[j]
+                for c in local_screen(j, B):
+                    th = best.copy()
+                    th[o:o + params[j].size] = rows[j][c]
+                    moved.append(th)
+            both = np.concatenate([values[np.argsort(losses, kind="stable")], np.stack(moved)])
+            new = [i - len(values) for i in distinct_basins(params, problem.offsets, both, region.extent, len(both))
+                   if i >= len(values)][:keep]
+            if new:
+                v2, f2, problem = refine_and_rank(problem, np.stack(moved)[new], lm, keep)
+                values, losses = np.concatenate([values, v2]), np.concatenate([losses, f2])
         order = np.argsort(losses, kind="stable")
-        best_f, best_ch = 2.0 * float(losses[order[0]]), contenders[win][1]
+        best_f = 2.0 * float(losses[order[0]])
         theta = values[order[0]]
         alternatives = values[order[1:1 + ALTERNATIVES]][np.isfinite(losses[order[1:1 + ALTERNATIVES]])]
     else:
