@@ -51,7 +51,7 @@ column of light $j$ at its reference power, `(3N,)`). So the screen needs no der
    are ranked and locally screened again (step 6's screen), and the placement with that light
    moved to each of its `LOCAL_SEEDS` best is refined and ranked as in step 7 (up to a batch of
    them, in basins distinct from those refined already): coordinate descent over the lights at
-   refined resolution (`RESCREEN`).
+   refined resolution (`RESCREEN`, off by default).
 
 The result is the best refined placement (`theta`, the poses), the other refined placements
 (`alternatives`, best first: `fit_lights` finishes them with its joint refinement, where
@@ -96,8 +96,11 @@ DIFFUSE_MAXIMA = 3
 BASINS, BASIN_STEPS = 16, 30
 BASIN_DISTANCE, BASIN_TURN = 0.05, 0.25
 ALTERNATIVES = 3
-# Step 8 (module docstring): every light screened again at the best refined placement.
-RESCREEN = True
+# Step 8 (module docstring): every light screened again at the best refined placement. Off by
+# default: it recovers three-light scenes the steps before leave in a wrong segment basin, but
+# lost the two-light no-start scene of `test_quad_and_point_light_found_from_far` (quad 4.7 %
+# off), not yet understood.
+RESCREEN = False
 
 
 @dataclasses.dataclass(frozen=True)
