@@ -51,10 +51,10 @@ column of light $j$ at its reference power, `(3N,)`). So the screen needs no der
    are ranked and locally screened again (step 6's screen), and the placement with that light
    moved to each of its `LOCAL_SEEDS` best is refined and ranked as in step 7 (up to a batch of
    them, in basins distinct from those refined already): coordinate descent over the lights at
-   refined resolution (`RESCREEN`, off by default).
+   refined resolution (`RESCREEN`).
 
-The result is the best refined placement (`theta`, the poses), the other refined placements
-(`alternatives`, best first: `fit_lights` finishes them with its joint refinement, where
+The result is the best refined placement (`theta`, the poses), the other refined placements in distinct basins
+(`alternatives`, up to `ALTERNATIVES`, best first: `fit_lights` finishes them with its joint refinement, where
 distinct placements of about equal loss are reported as competing) and, per light, its
 candidates ranked with the others at the winning grid placement: the starts of `fit_lights`'
 per-light solves, which then refine all poses jointly (the given poses compete there as one
@@ -96,11 +96,8 @@ DIFFUSE_MAXIMA = 3
 BASINS, BASIN_STEPS = 16, 30
 BASIN_DISTANCE, BASIN_TURN = 0.05, 0.25
 ALTERNATIVES = 3
-# Step 8 (module docstring): every light screened again at the best refined placement. Off by
-# default: it recovers three-light scenes the steps before leave in a wrong segment basin, but
-# lost the two-light no-start scene of `test_quad_and_point_light_found_from_far` (quad 4.7 %
-# off), not yet understood.
-RESCREEN = False
+# Step 8 (module docstring): every light screened again at the best refined placement.
+RESCREEN = True
 
 
 @dataclasses.dataclass(frozen=True)
@@ -568,7 +565,9 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
         order = np.argsort(losses, kind="stable")
         best_f = 2.0 * float(losses[order[0]])
         theta = values[order[0]]
-        alternatives = values[order[1:1 + ALTERNATIVES]][np.isfinite(losses[order[1:1 + ALTERNATIVES]])]
+        fin = order[np.isfinite(losses[order])]  # the runners-up in basins distinct from the best and each other
+        alternatives = values[fin[distinct_basins(params, problem.offsets, values[fin], region.extent,
+                                                  1 + ALTERNATIVES)[1:]]]
     else:
         theta = theta_of(best_ch)
     ranked: list = [None] * J

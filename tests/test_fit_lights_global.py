@@ -79,7 +79,7 @@ def test_quad_point_and_segment_from_no_start_where_the_grid_placement_is_a_wron
     """Scene seed 2 with a quad, a point and a segment light, from no start: every basin refined
     from the grid-resolution placements has the segment 5-15 % of the scene off (the quad and
     point nearly right, loss 1.4e-7 against 4e-32 at the truth); screened again with the other
-    two at the refined placement (`_global_placement`, step 8: `RESCREEN`, off by default), the
+    two at the refined placement (`_global_placement`, step 8: `RESCREEN`), the
     segment's basin is found."""
     from inverse import _global_placement
 
