@@ -28,7 +28,7 @@ column of light $j$ at its reference power, `(3N,)`). So the screen needs no der
 5. **Pair moves.** Two lights can stand in for each other's shading (a quad where a segment
    is and the segment beside it): moving either alone makes the fit worse. So every pair of
    lights is re-chosen together over all pairs of their candidates with the others held
-   (`pair_rss`: one cross Gram matrix, two-column non-negative least squares), then single
+   (`_nnls_screen.pair_rss`: one cross Gram matrix, two-column non-negative least squares), then single
    moves again, until nothing improves.
 6. **Local screen.** Around each light's `LOCAL_SEEDS` best distinct candidates (the others
    held), `REFINE_POINTS` candidates in position, orientation and log size, `LOCAL_LEVELS`
@@ -45,9 +45,16 @@ column of light $j$ at its reference power, `(3N,)`). So the screen needs no der
    program of its joint refinement: rows padded to its batch, no new compilation), and ranked
    by the refined loss (`refine_and_rank`; under a power budget at the powers the final fit
    solves there, `final_losses`: $p \ge 0$ and the budget, not the LM's signed projection).
+8. **Screen again at the refined placement.** The screens above hold the other lights at grid
+   resolution, where their columns are a few % of the scene off and a light's residual is
+   theirs too. With the best refined placement's columns held instead, each light's candidates
+   are ranked and locally screened again (step 6's screen), and the placement with that light
+   moved to each of its `LOCAL_SEEDS` best is refined and ranked as in step 7 (up to a batch of
+   them, in basins distinct from those refined already): coordinate descent over the lights at
+   refined resolution (`RESCREEN`).
 
-The result is the best refined placement (`theta`, the poses), the other refined placements
-(`alternatives`, best first: `fit_lights` finishes them with its joint refinement, where
+The result is the best refined placement (`theta`, the poses), the other refined placements in distinct basins
+(`alternatives`, up to `ALTERNATIVES`, best first: `fit_lights` finishes them with its joint refinement, where
 distinct placements of about equal loss are reported as competing) and, per light, its
 candidates ranked with the others at the winning grid placement: the starts of `fit_lights`'
 per-light solves, which then refine all poses jointly (the given poses compete there as one
@@ -70,6 +77,7 @@ from ._closed_forms import light_from_diffuse_maximum
 from ._forward import at_capacity
 from ._lm import fit_jit
 from ._multilight import LightsProblem, _parts, build_lights, solve
+from ._nnls_screen import nnls_rss, pair_rss
 from ._parametrisation import LightParametrisation
 from ._powers import constrained_powers, emitted_power
 
@@ -88,6 +96,8 @@ DIFFUSE_MAXIMA = 3
 BASINS, BASIN_STEPS = 16, 30
 BASIN_DISTANCE, BASIN_TURN = 0.05, 0.25
 ALTERNATIVES = 3
+# Step 8 (module docstring): every light screened again at the best refined placement.
+RESCREEN = True
 
 
 @dataclasses.dataclass(frozen=True)
@@ -317,85 +327,6 @@ def unit_columns(problem: LightsProblem, j: int, rows: np.ndarray) -> tuple[np.n
     return (sw[None] * per).reshape(per.shape[0], -1), problem
 
 
-def nnls_rss(fixed: np.ndarray, cand: np.ndarray, y: np.ndarray, fit_power: bool) -> np.ndarray:
-    """`(S,)` the least residual sum of squares $|y - B p - a_s q|^2$ over $p, q \\ge 0$ for
-    every candidate column `cand[s] (M,)`, `fixed (M, m)` the placed lights' columns: the
-    normal equations batched over the candidates, `scipy.optimize.nnls` where they give a
-    negative power. Without `fit_power` the powers are 1 (as given)."""
-    if not fit_power:
-        r = y - fixed.sum(axis=1) if fixed.size else y
-        d = r[None] - cand
-        return np.einsum("sm,sm->s", d, d)
-    from scipy.optimize import nnls
-
-    ok = np.all(np.isfinite(cand), axis=1)
-    cand = np.where(ok[:, None], cand, 0.0)
-    S, m = cand.shape[0], fixed.shape[1]
-    A = np.concatenate([np.broadcast_to(fixed[None], (S, *fixed.shape)), cand[:, :, None]], axis=2)  # (S, M, m+1)
-    G = np.einsum("smi,smj->sij", A, A)
-    b = np.einsum("smi,m->si", A, y)
-    d = np.einsum("sii->si", G)
-    scale = np.sqrt(np.where(d > 0, d, 1.0))
-    Gn = G / (scale[:, :, None] * scale[:, None, :]) + 1e-12 * np.eye(m + 1)  # a zero column: its power 0
-    p = np.linalg.solve(Gn, (b / scale)[:, :, None])[:, :, 0] / scale
-    rss = float(y @ y) - 2 * np.einsum("si,si->s", p, b) + np.einsum("si,sij,sj->s", p, G, p)
-    for s in np.flatnonzero(ok & (np.any(p < 0, axis=1) | ~np.isfinite(rss))):
-        rss[s] = nnls(A[s], y)[1] ** 2
-    rss[~ok] = np.inf
-    return np.maximum(rss, 0.0)
-
-
-def pair_rss(fixed: np.ndarray, ca: np.ndarray, cb: np.ndarray, y: np.ndarray, fit_power: bool,
-             block: int = 512) -> tuple[float, int, int]:
-    """`(rss, s, t)`: the least residual sum of squares over every pair of candidate columns
-    `ca[s] (M,)`, `cb[t] (M,)` with the placed columns `fixed (M, m)`, and the best pair. With
-    `fit_power` the powers of the pair are non-negative least squares on the residual left
-    after projecting out the span of `fixed` (their powers free: the caller checks the best
-    pair with `nnls_rss`); without, every power is 1. Batched over `block` rows of `ca` at a
-    time: the cross Gram `ca cb^T` is one matrix product."""
-    okb = np.all(np.isfinite(cb), axis=1)
-    cb = np.where(okb[:, None], cb, 0.0)
-    if fit_power:
-        if fixed.size:
-            q, _ = np.linalg.qr(fixed)
-            r = y - q @ (q.T @ y)
-            cb = cb - (cb @ q) @ q.T
-        else:
-            q, r = np.zeros((y.shape[0], 0)), y
-        gbb, yb = np.einsum("tm,tm->t", cb, cb), cb @ r
-        one_b = np.where((yb > 0) & (gbb > 0), yb ** 2 / np.where(gbb > 0, gbb, 1.0), 0.0)
-    else:
-        r = y - fixed.sum(axis=1) if fixed.size else y
-        gbb, yb = np.einsum("tm,tm->t", cb, cb), cb @ r
-    rr = float(r @ r)
-    best: tuple[float, int, int] = (np.inf, -1, -1)
-    for a0 in range(0, ca.shape[0], block):
-        a = ca[a0:a0 + block]
-        oka = np.all(np.isfinite(a), axis=1)
-        a = np.where(oka[:, None], a, 0.0)
-        if fit_power and q.shape[1]:
-            a = a - (a @ q) @ q.T
-        gaa, ya, gab = np.einsum("sm,sm->s", a, a), a @ r, a @ cb.T
-        if fit_power:
-            det = gaa[:, None] * gbb[None] - gab ** 2
-            good = det > 1e-12 * gaa[:, None] * gbb[None]
-            det = np.where(good, det, 1.0)
-            p = (gbb[None] * ya[:, None] - gab * yb[None]) / det
-            u = (gaa[:, None] * yb[None] - gab * ya[:, None]) / det
-            both = (gbb[None] * ya[:, None] ** 2 - 2 * gab * ya[:, None] * yb[None] + gaa[:, None] * yb[None] ** 2) / det
-            one_a = np.where((ya > 0) & (gaa > 0), ya ** 2 / np.where(gaa > 0, gaa, 1.0), 0.0)
-            single = np.maximum(one_a[:, None], one_b[None])
-            explained = np.where(good & (p >= 0) & (u >= 0), np.maximum(both, single), single)
-            f = rr - explained
-        else:
-            f = rr - 2 * ya[:, None] - 2 * yb[None] + gaa[:, None] + gbb[None] + 2 * gab
-        f = np.where(oka[:, None] & okb[None], f, np.inf)
-        s, t = np.unravel_index(int(np.argmin(f)), f.shape)
-        if f[s, t] < best[0]:
-            best = (float(f[s, t]), a0 + int(s), int(t))
-    return best
-
-
 @dataclasses.dataclass
 class Placement:
     """What `place` found: `theta (P,)` the poses, `loss` ($\\tfrac12$ rss at NNLS powers),
@@ -537,6 +468,36 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
                 distinct.append(descend({**ch, **{j: int(first[j][n]) for j in movable}}))
         distinct.sort(key=lambda x: x[0])
     rng = np.random.default_rng(seed + 11)
+
+    def local_screen(j: int, B: np.ndarray) -> list[int]:
+        """Light j's `LOCAL_SEEDS` best distinct candidates with the other lights' columns `B`
+        held, each screened locally (`LOCAL_LEVELS` levels of `REFINE_POINTS` candidates, the
+        radius halved at each, around the seed's best so far; added to light j's candidates):
+        their indices."""
+        nonlocal problem
+        p = params[j]
+        sl = p._slices()
+        spread = np.zeros(p.size)
+        if "position" in sl:
+            spread[sl["position"]] = spacing / float(p.scale)
+        if "orientation" in sl:
+            spread[sl["orientation"]] = ORIENTATION_SPREAD
+        if "size" in sl:  # log sizes: a given or default size is a guess
+            spread[sl["size"]] = 0.4
+        seeds = _distinct_best(nnls_rss(B, cols[j], y, problem.fit_power), centres(j, rows[j]), LOCAL_SEEDS,
+                               spacing)
+        for level in range(LOCAL_LEVELS):
+            trial = (rows[j][seeds][:, None] + spread / 2 ** level
+                     * rng.uniform(-1.0, 1.0, (len(seeds), REFINE_POINTS, p.size)))
+            ct, problem = unit_columns(problem, j, trial.reshape(-1, p.size))
+            n0 = rows[j].shape[0]
+            rows[j] = np.concatenate([rows[j], trial.reshape(-1, p.size)])
+            cols[j] = np.concatenate([cols[j], ct])
+            for i, c in enumerate(seeds):
+                idx_i = np.r_[c, n0 + i * REFINE_POINTS + np.arange(REFINE_POINTS)]
+                seeds[i] = int(idx_i[int(np.argmin(nnls_rss(B, cols[j][idx_i], y, problem.fit_power)))])
+        return seeds
+
     screened: list = []  # the locally screened placements
     for _, chosen in distinct[:REFINED]:
         # A local screen around each light's LOCAL_SEEDS best distinct candidates (the others held),
@@ -544,30 +505,9 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
         # nearest candidate to a light can rank below a wrong one until both are refined.
         chosen = dict(chosen)
         for j in todo:
-            p = params[j]
-            sl = p._slices()
-            spread = np.zeros(p.size)
-            if "position" in sl:
-                spread[sl["position"]] = spacing / float(p.scale)
-            if "orientation" in sl:
-                spread[sl["orientation"]] = ORIENTATION_SPREAD
-            if "size" in sl:  # log sizes: a given or default size is a guess
-                spread[sl["size"]] = 0.4
-            f = rss_for(j, chosen)
-            pos = centres(j, rows[j])
-            seeds = _distinct_best(f, pos, LOCAL_SEEDS, spacing)
             others = [cols[i][chosen[i]] for i in chosen if i != j]
             B = np.stack(others, axis=1) if others else np.zeros((y.shape[0], 0))
-            for level in range(LOCAL_LEVELS):
-                trial = (rows[j][seeds][:, None] + spread / 2 ** level
-                         * rng.uniform(-1.0, 1.0, (len(seeds), REFINE_POINTS, p.size)))
-                ct, problem = unit_columns(problem, j, trial.reshape(-1, p.size))
-                n0 = rows[j].shape[0]
-                rows[j] = np.concatenate([rows[j], trial.reshape(-1, p.size)])
-                cols[j] = np.concatenate([cols[j], ct])
-                for i, c in enumerate(seeds):
-                    idx_i = np.r_[c, n0 + i * REFINE_POINTS + np.arange(REFINE_POINTS)]
-                    seeds[i] = int(idx_i[int(np.argmin(nnls_rss(B, cols[j][idx_i], y, problem.fit_power)))])
+            local_screen(j, B)
             chosen[j] = int(np.argmin(rss_for(j, chosen)))
         screened.append(pairs(*descend(chosen)[::-1]))
     screened.sort(key=lambda x: x[0])
@@ -599,10 +539,35 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
     if lm is not None and len(picked) > 1:
         values, losses, problem = refine_and_rank(problem, thetas[picked], lm, keep)
         win = picked[int(np.argmin(losses))]  # the losses are in `picked`'s order
+        best_ch = contenders[win][1]
+        if RESCREEN:  # step 8: each light screened again with the others at the best refined placement
+            best = values[int(np.argmin(losses))]
+            at = {}
+            for j in todo:
+                o = problem.offsets[j]
+                a, problem = unit_columns(problem, j, best[o:o + params[j].size][None])
+                at[j] = a[0]
+            moved = []
+            for j in todo:
+                others = [at[i] for i in todo if i != j]
+                B = np.stack(others, axis=1) if others else np.zeros((y.shape[0], 0))
+                o = problem.offsets[j]
+                for c in local_screen(j, B):
+                    th = best.copy()
+                    th[o:o + params[j].size] = rows[j][c]
+                    moved.append(th)
+            both = np.concatenate([values[np.argsort(losses, kind="stable")], np.stack(moved)])
+            new = [i - len(values) for i in distinct_basins(params, problem.offsets, both, region.extent, len(both))
+                   if i >= len(values)][:keep]
+            if new:
+                v2, f2, problem = refine_and_rank(problem, np.stack(moved)[new], lm, keep)
+                values, losses = np.concatenate([values, v2]), np.concatenate([losses, f2])
         order = np.argsort(losses, kind="stable")
-        best_f, best_ch = 2.0 * float(losses[order[0]]), contenders[win][1]
+        best_f = 2.0 * float(losses[order[0]])
         theta = values[order[0]]
-        alternatives = values[order[1:1 + ALTERNATIVES]][np.isfinite(losses[order[1:1 + ALTERNATIVES]])]
+        fin = order[np.isfinite(losses[order])]  # the runners-up in basins distinct from the best and each other
+        alternatives = values[fin[distinct_basins(params, problem.offsets, values[fin], region.extent,
+                                                  1 + ALTERNATIVES)[1:]]]
     else:
         theta = theta_of(best_ch)
     ranked: list = [None] * J

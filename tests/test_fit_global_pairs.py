@@ -1,4 +1,4 @@
-"""The global placement's pair moves (`inverse._global_placement.pair_rss`): two lights re-chosen
+"""The global placement's pair moves (`inverse._nnls_screen.pair_rss`): two lights re-chosen
 together over every pair of their candidates with the others held, against brute-force
 non-negative least squares, and on a placement where moving either light alone makes the fit
 worse (two lights standing in for each other's shading)."""
@@ -12,7 +12,7 @@ from scipy.optimize import nnls
 import inverse
 import jaxshadow as js
 from benchmarks.inverse_random_scenes import light_errors, random_case
-from inverse._global_placement import nnls_rss, pair_rss
+from inverse._nnls_screen import nnls_rss, pair_rss
 
 
 def _brute(fixed, ca, cb, y, fit_power):
