@@ -498,6 +498,13 @@ inline bool section_shows_exact(const SectionCall& sc, const Section& r, const d
   if (!(fu0 >= 0 && fw0 >= 0 && fu1 < r.gu && fw1 < r.gw)) return false;
   const size_t W = size_t(r.gu) + 1;
   const int32_t* t = sc.sec->sat.data() + r.sat;
+  const int32_t* off = sc.sec->cell_off.data() + r.coff;
+  for (int i = 0; i < m; i++) {  // each b_i in a body cell or a touched one (else it is not of parity 1)
+    const size_t ci = size_t((bu[i] - r.u0) / r.h), cj = size_t((bw[i] - r.w0) / r.h);
+    if (ci >= size_t(r.gu) || cj >= size_t(r.gw)) continue;
+    const size_t cl = cj * size_t(r.gu) + ci;
+    if (t[(cj + 1) * W + ci + 1] - t[cj * W + ci + 1] - t[(cj + 1) * W + ci] + t[cj * W + ci] != 0 && off[cl + 1] == off[cl]) return false;
+  }
   {  // the centroid's square in body cells
     const size_t i0 = size_t(std::max(0.0, (cu - mm - r.u0) / r.h)), j0 = size_t(std::max(0.0, (cw - mm - r.w0) / r.h));
     const size_t i1 = std::min(size_t(r.gu), size_t((cu + mm - r.u0) / r.h) + 1), j1 = std::min(size_t(r.gw), size_t((cw + mm - r.w0) / r.h) + 1);
@@ -535,7 +542,6 @@ inline bool section_shows_exact(const SectionCall& sc, const Section& r, const d
     return false;
   };
   const size_t i0 = size_t(fu0), i1 = size_t(fu1) + 1, j0 = size_t(fw0), j1 = size_t(fw1) + 1;
-  const int32_t* off = sc.sec->cell_off.data() + r.coff;
   for (size_t j = j0; j < j1; j++)
     for (size_t i = i0; i < i1; i++) {
       const size_t cl = j * size_t(r.gu) + i;
@@ -602,8 +608,9 @@ bool section_umbra(const SectionCall& sc, V3<T> p, V3<T> n) {
         return true;
       }
     }
+    // A point's square is in body cells (which no segment touches) for both tests alike.
     const size_t fe = last_exact < nu ? last_exact : 0;
-    for (size_t jj = 0; jj < nu && sc.exact; jj++) {
+    for (size_t jj = 0; jj < nu && sc.exact && m >= 2; jj++) {
       const size_t ju = (fe + jj) % nu;
       if (section_shows_exact(sc, sc.sec->sections[size_t(sc.use[ju])], pd, x, m, mm, mh)) {
         last_exact = ju;
@@ -612,8 +619,8 @@ bool section_umbra(const SectionCall& sc, V3<T> p, V3<T> n) {
     }
     return false;
   };
+  if (!shows(lc, 1)) return false;  // the centroid's piece needs a section that shows it (first: lit receivers stop here)
   if (shows(lv, int(K))) return true;
-  if (!shows(lc, 1)) return false;  // the centroid's piece needs a section that shows it
   // A triangle of the fan at `depth`: shown, or each triangle of its fan from its centroid.
   auto fan_shows = [&](const double* tri, int depth, auto&& self) -> bool {
     if (shows(tri, 3)) return true;
