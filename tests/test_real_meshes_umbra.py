@@ -48,6 +48,18 @@ def tube(top: bool, sections: int = 64) -> tuple[np.ndarray, np.ndarray]:
     return v, np.asarray(f)
 
 
+def open_ring(sections: int = 96) -> tuple[np.ndarray, np.ndarray]:
+    """A thick ring (outer radius 0.5 m, inner 0.2 m, z from 0.4 to 0.7 m; sides of long thin
+    triangles) open at the bottom (its lower annulus removed): light passes through its hole."""
+    import trimesh
+
+    m = trimesh.creation.annulus(r_min=0.2, r_max=0.5, height=0.3, sections=sections)
+    v = np.asarray(m.vertices, float)
+    v[:, 2] += 0.4 - v[:, 2].min()
+    f = np.asarray(m.faces)
+    return v, f[~np.all(v[f][:, :, 2] == v[:, 2].min(), axis=1)]
+
+
 def noisy_blob(seed: int) -> tuple[np.ndarray, np.ndarray]:
     """The blob with random vertex noise (a closed, non-convex, non-smooth mesh)."""
     v, f = blob(3)
@@ -60,7 +72,7 @@ def plans(scene, p, nrm, monkeypatch):
 
 
 MESHES = {"closed": lambda: blob(3), "open": lambda: blob(3, 0.45), "noisy": lambda: noisy_blob(5),
-          "capped-tube": lambda: tube(True)}
+          "capped-tube": lambda: tube(True), "open-ring": open_ring}
 
 
 @pytest.mark.parametrize("name", list(MESHES))
@@ -105,7 +117,7 @@ def test_open_tube_certifies_nothing(monkeypatch):
     assert np.all(e_on[np.hypot(p[:, 0], p[:, 1]) < 0.15] > 0)
 
 
-@pytest.mark.parametrize("name", ["closed", "open"])
+@pytest.mark.parametrize("name", ["closed", "open", "open-ring"])
 def test_receivers_by_a_hair_outside_the_umbra_are_not_certified(name, monkeypatch):
     """Along a line from a certified receiver to a lit one, the full path's umbra boundary t*
     (bisected on its value to 1e-13): receivers 1e-8 .. 1e-5 beyond it see the light (positive
@@ -152,3 +164,33 @@ def test_receivers_by_a_hair_outside_the_umbra_are_not_certified(name, monkeypat
         assert np.array_equal(e_on[n:], e_off[n:]) and np.all(e_on[n:] < 1e-15)
         checked += 1
     assert checked == 3
+
+
+@pytest.mark.parametrize("name", ["closed", "open", "noisy", "open-ring"])
+def test_cut_segments_certify_beyond_the_body_cells(name, monkeypatch):
+    """The test against the cut segments themselves (section_shows_exact) certifies every receiver
+    the body cells' test alone (JAXSHADOW_UMBRA_SECTIONS=cells) does, and more (closed, open and
+    noisy blobs); each receiver only it certifies is umbra or zero on the full path and zero for
+    polygon booleans. Under the open ring's hole the light gets through: nothing certified there."""
+    v, f = MESHES[name]()
+    scene = js.Scene([js.PolygonLight(LIGHT, 1.0)], occluders=[js.Mesh(v, f)])
+    p, nrm = floor(1500, seed=3, half=1.0)
+    on, e_on, off, e_off = plans(scene, p, nrm, monkeypatch)
+    monkeypatch.setenv("JAXSHADOW_UMBRA_SECTIONS", "cells")
+    cells = js.shadow_plan(scene, p, nrm).lights[0]
+    monkeypatch.delenv("JAXSHADOW_UMBRA_SECTIONS")
+    cert = (on.classes == vis.UMBRA) & (on.kept == 0)
+    cert_cells = (cells.classes == vis.UMBRA) & (cells.kept == 0)
+    assert np.all(cert[cert_cells])
+    extra = cert & ~cert_cells
+    if name != "open-ring":
+        assert extra.sum() >= 3, (extra.sum(), cert_cells.sum())
+    assert np.all(e_off[extra] == 0) and np.all(e_on[extra] == 0)
+    assert np.all((off.classes[extra] == vis.UMBRA) | ((off.classes[extra] == vis.PENUMBRA) & (off.offsets[1:] - off.offsets[:-1])[extra] == 0))
+    pick = np.where(extra)[0][:: max(1, extra.sum() // 8)]
+    tris = list(v[f])
+    ref = np.array([reference_ff(q, m, LIGHT, tris) for q, m in zip(p[pick], nrm[pick], strict=True)])
+    np.testing.assert_allclose(ref, 0.0, atol=1e-12)
+    if name == "open-ring":
+        hole = np.hypot(p[:, 0], p[:, 1]) < 0.1
+        assert hole.sum() >= 5 and np.all(e_off[hole] > 0) and not np.any(cert[hole])

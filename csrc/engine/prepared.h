@@ -10,6 +10,7 @@
 #ifndef JAXSHADOW_SHADOWC_PREPARED_H_
 #define JAXSHADOW_SHADOWC_PREPARED_H_
 
+#include <cstring>
 #include <memory>
 #include <mutex>
 
@@ -88,7 +89,8 @@ void bind_call(PolyCall<T>& call, const Prepared& prep) {
   call.twin_ptr = &prep.twin;
   call.sil = &prep.sil;
   silhouette_heights(call);
-  // JAXSHADOW_UMBRA_SECTIONS=0: no early umbra test (for comparing it with the silhouette path).
+  // JAXSHADOW_UMBRA_SECTIONS=0: no early umbra test (for comparing it with the silhouette path);
+  // =cells: the body cells' test alone (section_shows, not section_shows_exact).
   const char* env = std::getenv("JAXSHADOW_UMBRA_SECTIONS");
   if (call.sil_ok && !(env && env[0] == '0')) {
     const int64_t K = call.L.K;
@@ -96,6 +98,7 @@ void bind_call(PolyCall<T>& call, const Prepared& prep) {
     for (int64_t i = 0; i < 3 * K; i++) lv[size_t(i)] = double(call.L.E[i]);
     const double ne[3] = {double(call.ne_raw.x), double(call.ne_raw.y), double(call.ne_raw.z)};
     prepare_sections(call.sections, &prep.sections, lv.data(), K, ne);
+    call.sections.exact = !(env && std::strcmp(env, "cells") == 0);
   }
 }
 

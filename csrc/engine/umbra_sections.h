@@ -26,9 +26,11 @@
 // Receiver p, polygon light L (vertices v_i; h(x) = ne . (x - e0) the height above the emitter
 // plane towards the receivers), a convex piece L' of L (L itself, or a triangle of a fan of it):
 // p and every vertex of L' strictly on opposite sides of P's plane, and the box of the crossings
-// b_i of the segments p -> v_i (v_i now L''s vertices) with that plane in P. The central
-// projection from p of the convex L' onto the plane is the convex hull of the b_i, inside their
-// box: every q in L' is p + s (b(q) - p) with b(q) in P. The silhouette path serves p only when
+// b_i of the segments p -> v_i (v_i now L''s vertices) with that plane in P (section_shows), or
+// their convex hull Q clear of every cut segment with a point of Q in P (section_shows_exact: Q
+// is connected and meets no segment, so its points share that point's parity 1; P then stands
+// for Q below). The central projection from p of the convex L' onto the plane is the convex hull
+// of the b_i, inside their box: every q in L' is p + s (b(q) - p) with b(q) in P. The silhouette path serves p only when
 // every mesh vertex lies strictly between the emitter plane and p's level, and P (parity 1:
 // inside the convex hull of Z + D) lies there too, so for q in L 0 = h(q) < h(b(q)) < h(p) and
 // s > 1: b(q) lies on the segment p -> q. The segment b(q) -> q runs from parity 1 to parity 0 (q
@@ -44,7 +46,11 @@
 // back, reports a light covered by several faces and by no single one as penumbra with an empty
 // boundary: the same value, 0), reached without the contour, the coverage or any region. These
 // are C&F §3.1.3's umbra volumes of the bodies P, tested in their dual form (the light seen
-// through P from p) and for non-convex, open meshes through the parity of Z + D.
+// through P from p) and for non-convex, open meshes through the parity of Z + D. The cells'
+// test costs four reads; the segments' test reaches the cross-section's outline itself, where
+// receivers near the umbra's boundary see the light (the cells a segment touches are no body).
+// What neither shows is the gap between a cross-section and the mesh's silhouette from p (rays
+// that graze the mesh between two planes): those receivers take the silhouette path.
 //
 // Rounding: the plane level is at least 1e-9 of the scene's size from every vertex coordinate
 // (sections with a smaller gap are not built); cells are untouched by a margin of 1e-7 of the
@@ -66,24 +72,30 @@ namespace jaxshadow_engine {
 
 constexpr int64_t kSectionMinFaces = 64;  // components with fewer faces get no sections
 constexpr int kSectionComponents = 8;     // at most this many components (the largest) get sections
-constexpr int kSectionLevels = 12;        // planes per axis and component
+constexpr int kSectionLevels = 24;        // planes per axis and component
 constexpr int kSectionGrid = 96;          // cells along a section's longer side
+constexpr int kSectionFanDepth = 2;       // levels of fans of the light tried
 
 // A section: the plane x_axis = level and its grid of cells [u0 + i h, u0 + (i + 1) h] x [w0 + j h,
 // w0 + (j + 1) h] (u = x_b, w = x_c; b = (axis + 1) % 3, c = (axis + 2) % 3), i < gu, j < gw; `sat`
 // indexes InteriorSections::sat, the table of sums of its cells that are not bodies:
 // sat[(j' (gu + 1) + i')] = the count over cells i < i', j < j'.
+// `coff` indexes InteriorSections::cell_off, the cells' lists of the cut segments that touch them
+// (cell i + j gu: cell_seg[cell_off[coff + c] .. cell_off[coff + c + 1]), indices into seg).
 struct Section {
   int32_t comp, axis;
   double level, u0, w0, h;
   int32_t gu, gw;
-  int64_t sat;
+  int64_t sat, coff;
 };
 // The bodies of an occluder set (built once per set, prepared.h) and per component the vertices
 // of its cap D (none: a closed component).
 struct InteriorSections {
   std::vector<Section> sections;
   std::vector<int32_t> sat;
+  std::vector<double> seg;          // (u0, w0, u1, w1) per cut segment of every section
+  std::vector<int32_t> cell_off;    // per section: gu gw + 1 offsets into cell_seg
+  std::vector<int32_t> cell_seg;    // per touched cell: the segments that touch it
   std::vector<double> cap;          // (x, y, z) per cap vertex: the boundary slots' ends and c
   std::vector<int32_t> cap_off;     // per component: its cap vertices [cap_off[k], cap_off[k + 1])
   std::vector<double> box;          // per component: the box of its vertices (lo, hi)
@@ -100,6 +112,7 @@ struct SectionCall {
   double ne[3] = {0, 0, 0}, e0[3] = {0, 0, 0}, nn = 0;
   int64_t K = 0;
   bool any = false;
+  bool exact = true;  // section_shows_exact where section_shows fails
 };
 
 namespace sections_detail {
@@ -114,9 +127,11 @@ inline bool section_bodies(const std::vector<Seg>& segs, double u0, double w0, d
                            double tiny, int32_t comp, int axis, double level, InteriorSections& sec) {
   const size_t nc = size_t(gu) * size_t(gw);
   std::vector<uint8_t> touched(nc, 0);
+  std::vector<std::pair<int32_t, int32_t>> reg;  // (cell, segment) for every cell a segment touches
   auto cell_u = [&](double u) { return std::max(0, std::min(gu - 1, int(std::floor((u - u0) / h)))); };
   auto cell_w = [&](double w) { return std::max(0, std::min(gw - 1, int(std::floor((w - w0) / h)))); };
-  for (const Seg& s : segs) {
+  for (size_t k = 0; k < segs.size(); k++) {
+    const Seg& s = segs[k];
     const double wlo = std::min(s.w0, s.w1) - pad, whi = std::max(s.w0, s.w1) + pad;
     if (whi < w0 || wlo > w0 + gw * h) continue;
     const int j0 = cell_w(wlo), j1 = cell_w(whi);
@@ -132,7 +147,10 @@ inline bool section_bodies(const std::vector<Seg>& segs, double u0, double w0, d
       }
       const double ua = s.u0 + ta * (s.u1 - s.u0), ub = s.u0 + tb * (s.u1 - s.u0);
       const int i0 = cell_u(std::min(ua, ub) - pad), i1 = cell_u(std::max(ua, ub) + pad);
-      for (int i = i0; i <= i1; i++) touched[size_t(j) * size_t(gu) + size_t(i)] = 1;
+      for (int i = i0; i <= i1; i++) {
+        touched[size_t(j) * size_t(gu) + size_t(i)] = 1;
+        reg.push_back({j * gu + i, int32_t(k)});
+      }
     }
   }
   // Parity of the untouched cells, row by row (2: unknown): the segments that reach a row's
@@ -203,10 +221,22 @@ inline bool section_bodies(const std::vector<Seg>& segs, double u0, double w0, d
       any += 1 - out;
       t[(size_t(j) + 1) * W + size_t(i) + 1] = out + t[size_t(j) * W + size_t(i) + 1] + t[(size_t(j) + 1) * W + size_t(i)] - t[size_t(j) * W + size_t(i)];
     }
-  if (any >= 4)
-    sec.sections.push_back(q);
-  else
+  if (any < 4) {
     sec.sat.resize(size_t(q.sat));
+    return true;
+  }
+  // The cut segments by cell (a cell's list in segment order).
+  const int32_t s0 = int32_t(sec.seg.size() / 4);
+  for (const Seg& s : segs) sec.seg.insert(sec.seg.end(), {s.u0, s.w0, s.u1, s.w1});
+  q.coff = int64_t(sec.cell_off.size());
+  std::stable_sort(reg.begin(), reg.end(), [](const auto& x, const auto& y) { return x.first < y.first; });
+  reg.erase(std::unique(reg.begin(), reg.end()), reg.end());
+  size_t r = 0;
+  for (size_t c = 0; c <= nc; c++) {
+    sec.cell_off.push_back(int32_t(sec.cell_seg.size()));
+    for (; c < nc && r < reg.size() && size_t(reg[r].first) == c; r++) sec.cell_seg.push_back(s0 + reg[r].second);
+  }
+  sec.sections.push_back(q);
   return true;
 }
 
@@ -431,6 +461,96 @@ inline bool section_shows(const SectionCall& sc, const Section& r, const double*
   return t[j1 * W + i1] - t[j0 * W + i1] - t[j1 * W + i0] + t[j0 * W + i0] == 0;
 }
 
+// section_shows with the cut segments themselves in place of the touched cells: the hull Q of
+// the crossings b_i meets no cut segment (each one near Q's box is listed in a cell of that box,
+// and a separating axis -- a side of Q, the segment's normal or its direction -- keeps it clear
+// by `mm`), so Q lies in one connected part of the plane off the cross-section, of one parity;
+// the b_i's centroid (a point of Q, within rounding) and the square of side 2 mm around it lie
+// in body cells, so that parity is 1. Then every point of Q is a point of parity 1 below the cap,
+// which is all the certificate asks of the box of body cells.
+inline bool section_shows_exact(const SectionCall& sc, const Section& r, const double* pd, const double* x, int m, double mm,
+                                double mh) {
+  const int a = r.axis, b = (a + 1) % 3, c = (a + 2) % 3;
+  const double dp = pd[a] - r.level;
+  const double dl = x[a] - r.level;
+  if (!(dl > 0 ? dp < -mm : dp > mm)) return false;
+  const double hcap = sc.hcap[size_t(r.comp)];
+  const bool capped = hcap < std::numeric_limits<double>::infinity();
+  double bu[64], bw[64];
+  double ulo = std::numeric_limits<double>::infinity(), uhi = -ulo, wlo = ulo, whi = -ulo, hmax = -ulo, cu = 0, cw = 0;
+  for (int i = 0; i < m; i++) {
+    const double* v = x + 3 * i;
+    const double dv = v[a] - r.level;
+    if (!(dl > 0 ? dv > mm : dv < -mm)) return false;
+    const double t = dp / (dp - dv);
+    const double xb = pd[b] + t * (v[b] - pd[b]), xc = pd[c] + t * (v[c] - pd[c]);
+    bu[i] = xb, bw[i] = xc, cu += xb / m, cw += xc / m;
+    ulo = std::min(ulo, xb), uhi = std::max(uhi, xb), wlo = std::min(wlo, xc), whi = std::max(whi, xc);
+    if (capped) {
+      double y[3];
+      y[a] = r.level, y[b] = xb, y[c] = xc;
+      hmax = std::max(hmax, sc.ne[0] * (y[0] - sc.e0[0]) + sc.ne[1] * (y[1] - sc.e0[1]) + sc.ne[2] * (y[2] - sc.e0[2]));
+    }
+  }
+  if (capped && !(hmax < hcap - mh)) return false;
+  const double fu0 = (ulo - mm - r.u0) / r.h, fu1 = (uhi + mm - r.u0) / r.h;
+  const double fw0 = (wlo - mm - r.w0) / r.h, fw1 = (whi + mm - r.w0) / r.h;
+  if (!(fu0 >= 0 && fw0 >= 0 && fu1 < r.gu && fw1 < r.gw)) return false;
+  const size_t W = size_t(r.gu) + 1;
+  const int32_t* t = sc.sec->sat.data() + r.sat;
+  const int32_t* off = sc.sec->cell_off.data() + r.coff;
+  for (int i = 0; i < m; i++) {  // each b_i in a body cell or a touched one (else it is not of parity 1)
+    const size_t ci = size_t((bu[i] - r.u0) / r.h), cj = size_t((bw[i] - r.w0) / r.h);
+    if (ci >= size_t(r.gu) || cj >= size_t(r.gw)) continue;
+    const size_t cl = cj * size_t(r.gu) + ci;
+    if (t[(cj + 1) * W + ci + 1] - t[cj * W + ci + 1] - t[(cj + 1) * W + ci] + t[cj * W + ci] != 0 && off[cl + 1] == off[cl]) return false;
+  }
+  {  // the centroid's square in body cells
+    const size_t i0 = size_t(std::max(0.0, (cu - mm - r.u0) / r.h)), j0 = size_t(std::max(0.0, (cw - mm - r.w0) / r.h));
+    const size_t i1 = std::min(size_t(r.gu), size_t((cu + mm - r.u0) / r.h) + 1), j1 = std::min(size_t(r.gw), size_t((cw + mm - r.w0) / r.h) + 1);
+    if (!(i0 < i1 && j0 < j1) || t[j1 * W + i1] - t[j0 * W + i1] - t[j1 * W + i0] + t[j0 * W + i0] != 0) return false;
+  }
+  // Q's sides as axes: normals (e_w, -e_u) of b_i -> b_{i+1}, with Q's extent along them.
+  double ax[66][2], alo[66], ahi[66];
+  int na = 0;
+  for (int i = 0; i < m && m >= 2; i++) {
+    const int j = (i + 1) % m;
+    const double nu = bw[j] - bw[i], nw = bu[i] - bu[j];
+    if (nu == 0 && nw == 0) continue;
+    double lo = std::numeric_limits<double>::infinity(), hi = -lo;
+    for (int k = 0; k < m; k++) lo = std::min(lo, nu * bu[k] + nw * bw[k]), hi = std::max(hi, nu * bu[k] + nw * bw[k]);
+    const double g = mm * (std::fabs(nu) + std::fabs(nw));
+    ax[na][0] = nu, ax[na][1] = nw, alo[na] = lo - g, ahi[na] = hi + g;
+    na++;
+  }
+  auto clear_of = [&](const double* sg) {  // the segment (u0, w0, u1, w1) clear of Q by mm
+    for (int k = 0; k < na; k++) {
+      const double s0 = ax[k][0] * sg[0] + ax[k][1] * sg[1], s1 = ax[k][0] * sg[2] + ax[k][1] * sg[3];
+      if (std::min(s0, s1) > ahi[k] || std::max(s0, s1) < alo[k]) return true;
+    }
+    const double du = sg[2] - sg[0], dw = sg[3] - sg[1];
+    const double axes[2][2] = {{-dw, du}, {du, dw}};
+    for (int e = 0; e < 2; e++) {
+      const double nu = axes[e][0], nw = axes[e][1];
+      if (nu == 0 && nw == 0) continue;
+      const double s0 = nu * sg[0] + nw * sg[1], s1 = nu * sg[2] + nw * sg[3];
+      const double g = mm * (std::fabs(nu) + std::fabs(nw));
+      double lo = std::numeric_limits<double>::infinity(), hi = -lo;
+      for (int k = 0; k < m; k++) lo = std::min(lo, nu * bu[k] + nw * bw[k]), hi = std::max(hi, nu * bu[k] + nw * bw[k]);
+      if (std::min(s0, s1) > hi + g || std::max(s0, s1) < lo - g) return true;
+    }
+    return false;
+  };
+  const size_t i0 = size_t(fu0), i1 = size_t(fu1) + 1, j0 = size_t(fw0), j1 = size_t(fw1) + 1;
+  for (size_t j = j0; j < j1; j++)
+    for (size_t i = i0; i < i1; i++) {
+      const size_t cl = j * size_t(r.gu) + i;
+      for (int32_t k = off[cl]; k < off[cl + 1]; k++)
+        if (!clear_of(sc.sec->seg.data() + 4 * size_t(sc.sec->cell_seg[size_t(k)]))) return false;
+    }
+  return true;
+}
+
 // Whether the certificate above shows receiver p (normal n) in umbra: the whole light through one
 // section, else every triangle of the fan of the light from its centroid c, or of the fan of
 // that triangle from its own centroid, through some section. A fan from any point covers its
@@ -478,6 +598,7 @@ bool section_umbra(const SectionCall& sc, V3<T> p, V3<T> n) {
   const double mm = 1e-9 * S, mh = 1e-9 * S * sc.nn;
   static thread_local size_t last = 0;  // the section that showed the previous piece: tried first
   const size_t nu = sc.use.size();
+  static thread_local size_t last_exact = 0;  // the same for the exact test
   auto shows = [&](const double* x, int m) {
     const size_t first = last < nu ? last : 0;
     for (size_t jj = 0; jj < nu; jj++) {
@@ -487,24 +608,39 @@ bool section_umbra(const SectionCall& sc, V3<T> p, V3<T> n) {
         return true;
       }
     }
+    // A point's square is in body cells (which no segment touches) for both tests alike.
+    const size_t fe = last_exact < nu ? last_exact : 0;
+    for (size_t jj = 0; jj < nu && sc.exact && m >= 2; jj++) {
+      const size_t ju = (fe + jj) % nu;
+      if (section_shows_exact(sc, sc.sec->sections[size_t(sc.use[ju])], pd, x, m, mm, mh)) {
+        last_exact = ju;
+        return true;
+      }
+    }
     return false;
   };
+  if (!shows(lc, 1)) return false;  // the centroid's piece needs a section that shows it (first: lit receivers stop here)
   if (shows(lv, int(K))) return true;
-  if (!shows(lc, 1)) return false;  // the centroid's piece needs a section that shows it
-  for (int64_t i = 0; i < K; i++) {
-    const double* va = lv + 3 * i;
-    const double* vb = lv + 3 * ((i + 1) % K);
-    if (va[0] == vb[0] && va[1] == vb[1] && va[2] == vb[2]) continue;
-    const double tri[9] = {lc[0], lc[1], lc[2], va[0], va[1], va[2], vb[0], vb[1], vb[2]};
-    if (shows(tri, 3)) continue;
+  // A triangle of the fan at `depth`: shown, or each triangle of its fan from its centroid.
+  auto fan_shows = [&](const double* tri, int depth, auto&& self) -> bool {
+    if (shows(tri, 3)) return true;
+    if (depth >= kSectionFanDepth) return false;
     double g[3];
     for (int d = 0; d < 3; d++) g[d] = (tri[d] + tri[3 + d] + tri[6 + d]) / 3;
     for (int e = 0; e < 3; e++) {
       const double* x = tri + 3 * e;
       const double* y = tri + 3 * ((e + 1) % 3);
       const double sub[9] = {g[0], g[1], g[2], x[0], x[1], x[2], y[0], y[1], y[2]};
-      if (!shows(sub, 3)) return false;
+      if (!self(sub, depth + 1, self)) return false;
     }
+    return true;
+  };
+  for (int64_t i = 0; i < K; i++) {
+    const double* va = lv + 3 * i;
+    const double* vb = lv + 3 * ((i + 1) % K);
+    if (va[0] == vb[0] && va[1] == vb[1] && va[2] == vb[2]) continue;
+    const double tri[9] = {lc[0], lc[1], lc[2], va[0], va[1], va[2], vb[0], vb[1], vb[2]};
+    if (!fan_shows(tri, 1, fan_shows)) return false;
   }
   return true;
 }
