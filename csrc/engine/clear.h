@@ -7,6 +7,23 @@
 
 namespace jaxshadow_engine {
 
+// Half-space j of receiver p's light pyramid for the hierarchy's query (polygon_receiver, clear_lit):
+// j < call.n_edges the plane through p and light edge call.edge_index[j] (a plain cross product),
+// j == call.n_edges p's horizon (normal n through p), j > call.n_edges the emitter plane (normal
+// `ne` through the light's first vertex `e0`).
+template <class T>
+inline HalfSpace pyramid_halfspace(const PolyCall<T>& call, V3<T> p, V3<T> n, V3<T> ne, V3<T> e0, int j) {
+  V3<T> nn = n, q = p;
+  if (j < call.n_edges) {
+    const int64_t K = call.L.K, i = call.edge_index[j];
+    nn = cross(call.L.v((i + 1) % K) - p, call.L.v(i) - p);
+  } else if (j > call.n_edges) {
+    nn = ne;
+    q = e0;
+  }
+  return HalfSpace{{double(nn.x), double(nn.y), double(nn.z)}, {double(q.x), double(q.y), double(q.z)}};
+}
+
 // Whether the silhouette path serves receiver p (polygon_receiver): every occluder vertex lies
 // strictly between p's level and the emitter plane, by 1e-9 of the scene's size. `hp`: p's height
 // above the emitter plane along the light's unscaled Newell normal (call.ne_raw).
@@ -53,17 +70,7 @@ int32_t clear_lit(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) {
     for (int64_t i = 0; i < K; i++) scale = std::max(scale, double(absmax(call.L.v(i))));
     const double margin = kClearMargin * double(eps_of<T>()) * (scale + double(absmax(p)));
     const int ne_edges = call.n_edges;
-    auto make = [&](int j) -> HalfSpace {
-      V3<T> nn = n, q = p;
-      if (j < ne_edges) {
-        const int64_t i = call.edge_index[j];
-        nn = cross(call.L.v((i + 1) % K) - p, call.L.v(i) - p);
-      } else if (j > ne_edges) {
-        nn = call.ne_raw;
-        q = e0;
-      }
-      return HalfSpace{{double(nn.x), double(nn.y), double(nn.z)}, {double(q.x), double(q.y), double(q.z)}};
-    };
+    auto make = [&](int j) -> HalfSpace { return pyramid_halfspace(call, p, n, call.ne_raw, e0, j); };
     bool any = false;
     traverse_lazy(*call.bvh, ne_edges + 2, margin, make, [&](int32_t) {
       any = true;

@@ -40,17 +40,7 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
   auto query = [&]() {
     const V3<T> ne = ne_query;
     const int ne_edges = call.n_edges;
-    auto make = [&](int j) -> HalfSpace {
-      V3<T> nn = n, q = p;
-      if (j < ne_edges) {
-        const int64_t i = call.edge_index[j];
-        nn = cross(call.L.v((i + 1) % K) - p, call.L.v(i) - p);
-      } else if (j > ne_edges) {
-        nn = ne;
-        q = e0;
-      }
-      return HalfSpace{{double(nn.x), double(nn.y), double(nn.z)}, {double(q.x), double(q.y), double(q.z)}};
-    };
+    auto make = [&](int j) -> HalfSpace { return pyramid_halfspace(call, p, n, ne, e0, j); };
     const double scale = std::max(double(absmax(p)), double(absmax(e0))) + 1.0;
     const double margin = 1e3 * double(eps_of<T>()) * scale + 64 * double(eps_of<T>()) * (call.item_extent + scale);
     w.cand.clear();

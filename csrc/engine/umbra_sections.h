@@ -426,25 +426,29 @@ inline void prepare_sections(SectionCall& sc, const InteriorSections* sec, const
   sc.any = !sc.use.empty();
 }
 
-// Whether section r shows every point q of the convex polygon x (m points) behind its body from p
-// (the certificate above for the piece: q's vertices clearly on the light's side of the plane, p
-// clearly on the other, their projections' box, widened by `mm`, in cells of parity 1, and below
-// the cap's lowest height by `mh`).
-inline bool section_shows(const SectionCall& sc, const Section& r, const double* pd, const double* x, int m, double mm,
-                          double mh) {
+// The crossings b_i of section r's plane with the segments from p (`pd`) to the points of the
+// convex polygon x (m points), for section_shows and section_shows_exact: false unless the
+// polygon's points lie clearly (`mm`) on the far side of the plane from p and the b_i below the
+// cap's lowest height by `mh`; else their box, widened by `mm`, in r's cell units (`f`: u0, u1,
+// w0, w1), inside the grid. With `bu`, `bw` (m each): the b_i's coordinates and their centroid
+// (`cu`, `cw`).
+inline bool section_crossings(const SectionCall& sc, const Section& r, const double* pd, const double* x, int m, double mm,
+                              double mh, double* f, double* bu = nullptr, double* bw = nullptr, double* cu = nullptr,
+                              double* cw = nullptr) {
   const int a = r.axis, b = (a + 1) % 3, c = (a + 2) % 3;
   const double dp = pd[a] - r.level;
   const double dl = x[a] - r.level;
   if (!(dl > 0 ? dp < -mm : dp > mm)) return false;
   const double hcap = sc.hcap[size_t(r.comp)];
   const bool capped = hcap < std::numeric_limits<double>::infinity();
-  double ulo = std::numeric_limits<double>::infinity(), uhi = -ulo, wlo = ulo, whi = -ulo, hmax = -ulo;
+  double ulo = std::numeric_limits<double>::infinity(), uhi = -ulo, wlo = ulo, whi = -ulo, hmax = -ulo, su = 0, sw = 0;
   for (int i = 0; i < m; i++) {
     const double* v = x + 3 * i;
     const double dv = v[a] - r.level;
     if (!(dl > 0 ? dv > mm : dv < -mm)) return false;
     const double t = dp / (dp - dv);
     const double xb = pd[b] + t * (v[b] - pd[b]), xc = pd[c] + t * (v[c] - pd[c]);
+    if (bu) bu[i] = xb, bw[i] = xc, su += xb / m, sw += xc / m;
     ulo = std::min(ulo, xb), uhi = std::max(uhi, xb), wlo = std::min(wlo, xc), whi = std::max(whi, xc);
     if (capped) {
       double y[3];
@@ -453,10 +457,21 @@ inline bool section_shows(const SectionCall& sc, const Section& r, const double*
     }
   }
   if (capped && !(hmax < hcap - mh)) return false;
-  const double fu0 = (ulo - mm - r.u0) / r.h, fu1 = (uhi + mm - r.u0) / r.h;
-  const double fw0 = (wlo - mm - r.w0) / r.h, fw1 = (whi + mm - r.w0) / r.h;
-  if (!(fu0 >= 0 && fw0 >= 0 && fu1 < r.gu && fw1 < r.gw)) return false;
-  const size_t i0 = size_t(fu0), i1 = size_t(fu1) + 1, j0 = size_t(fw0), j1 = size_t(fw1) + 1, W = size_t(r.gu) + 1;
+  f[0] = (ulo - mm - r.u0) / r.h, f[1] = (uhi + mm - r.u0) / r.h;
+  f[2] = (wlo - mm - r.w0) / r.h, f[3] = (whi + mm - r.w0) / r.h;
+  if (cu) *cu = su, *cw = sw;
+  return f[0] >= 0 && f[2] >= 0 && f[1] < r.gu && f[3] < r.gw;
+}
+
+// Whether section r shows every point q of the convex polygon x (m points) behind its body from p
+// (the certificate above for the piece: q's vertices clearly on the light's side of the plane, p
+// clearly on the other, their projections' box, widened by `mm`, in cells of parity 1, and below
+// the cap's lowest height by `mh`).
+inline bool section_shows(const SectionCall& sc, const Section& r, const double* pd, const double* x, int m, double mm,
+                          double mh) {
+  double f[4];
+  if (!section_crossings(sc, r, pd, x, m, mm, mh, f)) return false;
+  const size_t i0 = size_t(f[0]), i1 = size_t(f[1]) + 1, j0 = size_t(f[2]), j1 = size_t(f[3]) + 1, W = size_t(r.gu) + 1;
   const int32_t* t = sc.sec->sat.data() + r.sat;
   return t[j1 * W + i1] - t[j0 * W + i1] - t[j1 * W + i0] + t[j0 * W + i0] == 0;
 }
@@ -470,32 +485,9 @@ inline bool section_shows(const SectionCall& sc, const Section& r, const double*
 // which is all the certificate asks of the box of body cells.
 inline bool section_shows_exact(const SectionCall& sc, const Section& r, const double* pd, const double* x, int m, double mm,
                                 double mh) {
-  const int a = r.axis, b = (a + 1) % 3, c = (a + 2) % 3;
-  const double dp = pd[a] - r.level;
-  const double dl = x[a] - r.level;
-  if (!(dl > 0 ? dp < -mm : dp > mm)) return false;
-  const double hcap = sc.hcap[size_t(r.comp)];
-  const bool capped = hcap < std::numeric_limits<double>::infinity();
-  double bu[64], bw[64];
-  double ulo = std::numeric_limits<double>::infinity(), uhi = -ulo, wlo = ulo, whi = -ulo, hmax = -ulo, cu = 0, cw = 0;
-  for (int i = 0; i < m; i++) {
-    const double* v = x + 3 * i;
-    const double dv = v[a] - r.level;
-    if (!(dl > 0 ? dv > mm : dv < -mm)) return false;
-    const double t = dp / (dp - dv);
-    const double xb = pd[b] + t * (v[b] - pd[b]), xc = pd[c] + t * (v[c] - pd[c]);
-    bu[i] = xb, bw[i] = xc, cu += xb / m, cw += xc / m;
-    ulo = std::min(ulo, xb), uhi = std::max(uhi, xb), wlo = std::min(wlo, xc), whi = std::max(whi, xc);
-    if (capped) {
-      double y[3];
-      y[a] = r.level, y[b] = xb, y[c] = xc;
-      hmax = std::max(hmax, sc.ne[0] * (y[0] - sc.e0[0]) + sc.ne[1] * (y[1] - sc.e0[1]) + sc.ne[2] * (y[2] - sc.e0[2]));
-    }
-  }
-  if (capped && !(hmax < hcap - mh)) return false;
-  const double fu0 = (ulo - mm - r.u0) / r.h, fu1 = (uhi + mm - r.u0) / r.h;
-  const double fw0 = (wlo - mm - r.w0) / r.h, fw1 = (whi + mm - r.w0) / r.h;
-  if (!(fu0 >= 0 && fw0 >= 0 && fu1 < r.gu && fw1 < r.gw)) return false;
+  double f[4], bu[64], bw[64], cu = 0, cw = 0;
+  if (!section_crossings(sc, r, pd, x, m, mm, mh, f, bu, bw, &cu, &cw)) return false;
+  const double fu0 = f[0], fu1 = f[1], fw0 = f[2], fw1 = f[3];
   const size_t W = size_t(r.gu) + 1;
   const int32_t* t = sc.sec->sat.data() + r.sat;
   const int32_t* off = sc.sec->cell_off.data() + r.coff;
