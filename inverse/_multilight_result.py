@@ -19,6 +19,7 @@ from ._diagnostics import (
     competing_placements,
     dark_answer,
     noise_sigma,
+    rival_allowance,
     rival_placements,
     row_variance,
 )
@@ -193,8 +194,6 @@ def _rival_rows(rows: np.ndarray, losses: np.ndarray, theta: np.ndarray, chi2_of
     may compete with the answer `theta`: not the answer itself, not a repeat, and a loss whose
     excess over the lowest, in $\chi^2$ units of a typical weighted row's variance, is within
     four times the allowance (`rival_allowance`); at most `RIVAL_ROWS`, lowest loss first."""
-    from ._diagnostics import rival_allowance
-
     pos = w > 0
     if not pos.any():
         return []
