@@ -62,6 +62,7 @@ SUITE: tuple[str, ...] = (
     "illumination_mesh",
     "bake",
     "real_meshes",
+    "mesh_robustness",
     "files_io",
     "surfaces_mitsuba",
 )
