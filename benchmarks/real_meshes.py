@@ -346,11 +346,8 @@ def load_file(path: str | os.PathLike, up: str = "y") -> tuple[np.ndarray, np.nd
     import jaxshadow as js
     from jaxshadow._core.welding import weld_vertices
 
-    try:
-        rm = js.read_mesh(path, crease=None)
-        v, f = np.asarray(rm.vertices, float), np.asarray(rm.faces, np.int64)
-    except ValueError:
-        v, f = _ply_tristrips(path)  # trimesh reads no triangle strips (the Stanford scans' PLY)
+    rm = js.read_mesh(path, crease=None)  # PLY triangle strips (the Stanford scans) included
+    v, f = np.asarray(rm.vertices, float), np.asarray(rm.faces, np.int64)
     index, first = weld_vertices(v)
     v, f = v[first], index[f]
     # A right-handed turn taking the `up` axis to +z.
@@ -360,31 +357,6 @@ def load_file(path: str | os.PathLike, up: str = "y") -> tuple[np.ndarray, np.nd
     v = (v - np.r_[(lo[:2] + hi[:2]) / 2, lo[2]]) / (hi - lo).max()
     v[:, 2] += 0.3
     return v, f
-
-
-def _ply_tristrips(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """A binary little-endian PLY of `x y z` float vertices and one `tristrips` list (int
-    indices, -1 restarts a strip) as `(vertices, faces)`; strips alternate their winding."""
-    data = Path(path).read_bytes()
-    end = data.index(b"end_header\n") + len(b"end_header\n")
-    header = data[:end].decode("ascii").split("\n")
-    if "format binary_little_endian 1.0" not in header or "element tristrips 1" not in header:
-        raise ValueError(f"{path}: not a binary PLY of triangle strips")
-    nv = int(next(h for h in header if h.startswith("element vertex")).split()[-1])
-    nprop = sum(1 for h in header if h.startswith("property float"))
-    v = np.frombuffer(data, "<f4", nv * nprop, end).reshape(nv, nprop)[:, :3].astype(float)
-    off = end + 4 * nv * nprop
-    count = int(np.frombuffer(data, "<i4", 1, off)[0])
-    idx = np.frombuffer(data, "<i4", count, off + 4)
-    faces = []
-    for strip in np.split(idx, np.where(idx < 0)[0]):
-        strip = strip[strip >= 0]
-        for k in range(len(strip) - 2):
-            a, b, c = strip[k], strip[k + 1], strip[k + 2]
-            faces.append((a, b, c) if k % 2 == 0 else (b, a, c))
-    f = np.asarray(faces, np.int64)
-    keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])  # strips' degenerate joins
-    return v, f[keep]
 
 
 def run_files(paths: list[str], quick: bool = False, up: str = "y", n_exact: int = 1000, receivers: int | None = None,

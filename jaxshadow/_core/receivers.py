@@ -16,6 +16,19 @@ from .welding import affine_parts, weld_vertices
 CREASE_ANGLE = 45.0
 
 
+ZERO_AREA_RTOL = 1e-12  # a face of |(b - a) x (c - a)| <= this times size^2 has zero area
+
+
+def nonzero_area(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """`(F,)` bool: the triangles `faces (F, 3)` of `vertices (V, 3)` that `ReceiverMesh`
+    accepts (twice the area above `ZERO_AREA_RTOL` times the squared largest extent)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    area2 = np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+    size = float(np.max(np.ptp(v, axis=0))) if len(v) else 0.0
+    return area2 > ZERO_AREA_RTOL * size * size
+
+
 class ReceiverMesh:
     """A triangle surface whose vertices or face centres are receivers.
 
@@ -32,7 +45,8 @@ class ReceiverMesh:
 
     **Attributes:** `vertices`, `faces`, `vertex_normals` (unit), `face_normals` `(F, 3)` (unit),
     `face_areas` `(F,)` (m^2), `face_centres` `(F, 3)`, `name`, `n_welded` (vertices merged
-    into others when the mesh was welded: `read_mesh`, `welded`; 0 otherwise).
+    into others when the mesh was welded: `read_mesh`, `welded`; 0 otherwise), `n_dropped`
+    (zero-area faces of the file `read_mesh` left out; 0 otherwise).
 
     A mesh's vertices are used as given: `welded()` merges duplicates (UV seams, triangle soups),
     `transformed(matrix)` moves the mesh with its normals.
@@ -56,10 +70,11 @@ class ReceiverMesh:
         cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
         area2 = np.linalg.norm(cross, axis=1)
         size = float(np.max(np.ptp(v, axis=0)))
-        if not (area2 > 1e-12 * size * size).all():
+        if not (area2 > ZERO_AREA_RTOL * size * size).all():
             raise ValueError(f"ReceiverMesh {name!r}: face {int(np.argmin(area2))} has zero area.")
         self.vertices, self.faces, self.name = v, f, name
         self.n_welded = 0
+        self.n_dropped = 0
         self.face_areas = 0.5 * area2
         self.face_normals = cross / area2[:, None]
         self.face_centres = v[f].mean(axis=1)
@@ -143,6 +158,7 @@ class ReceiverMesh:
         out = ReceiverMesh(self.vertices[first], f[keep], self.vertex_normals[first] if self._normals_given else None,
                            name=self.name)
         out.n_welded = self.n_welded + len(self.vertices) - len(first)
+        out.n_dropped = self.n_dropped
         return out
 
     def transformed(self, matrix: Any = None, *, rotation: Any = None, translation: Any = None,
@@ -169,6 +185,7 @@ class ReceiverMesh:
             n /= np.maximum(np.linalg.norm(n, axis=1), 1e-300)[:, None]
         out = ReceiverMesh(v, f, n, name=self.name)
         out.n_welded = self.n_welded
+        out.n_dropped = self.n_dropped
         return out
 
 

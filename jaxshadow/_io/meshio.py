@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from .._core.files import atomic_write, atomic_write_path
-from .._core.receivers import CREASE_ANGLE, ReceiverMesh
+from .._core.receivers import CREASE_ANGLE, ReceiverMesh, nonzero_area
 from .._core.welding import weld_vertices
 
 MESH_EXTS = (".obj", ".ply", ".glb", ".gltf", ".stl", ".off")
@@ -65,7 +65,8 @@ def extension(path: str | os.PathLike) -> str:
 
 def read_mesh(path: str | os.PathLike, *, weld: float | None = 0.0, crease: float | None = CREASE_ANGLE) -> ReceiverMesh:
     """Read a triangle mesh (OBJ, PLY, glTF/GLB, STL, OFF; polygons are triangulated, glTF
-    scenes flattened with their transforms) with trimesh.
+    scenes flattened with their transforms) with trimesh; PLY files of triangle strips (the
+    Stanford scans) with `ply_triangle_strips`.
 
     **Arguments:**
 
@@ -78,7 +79,9 @@ def read_mesh(path: str | os.PathLike, *, weld: float | None = 0.0, crease: floa
 
     **Returns:** a `ReceiverMesh` (use `.occluder()` for a `jaxshadow.Mesh` occluder,
     `.receivers(at)` for receiver points and normals), with `n_welded` the number of vertices
-    merged. Vertex normals are the area-weighted ones of the (welded) faces, as for
+    merged and `n_dropped` the number of zero-area faces left out (a repeated vertex or
+    collinear corners, as scanners and exporters leave them: they bound no surface and block
+    nothing; `ValueError` when no other face is left). Vertex normals are the area-weighted ones of the (welded) faces, as for
     `ReceiverMesh(vertices, faces)`; normals stored in the file are not used.
 
     Example:
@@ -104,10 +107,94 @@ def read_mesh(path: str | os.PathLike, *, weld: float | None = 0.0, crease: floa
         m = trimesh.load(path, force="mesh", process=False)
     except Exception as err:  # trimesh raises many kinds for malformed files
         raise ValueError(f"{path}: cannot read the mesh ({type(err).__name__}: {err}).") from None
-    if not isinstance(m, trimesh.Trimesh) or len(m.faces) == 0:
+    if isinstance(m, trimesh.Trimesh) and len(m.faces):
+        v, f = np.asarray(m.vertices), np.asarray(m.faces)
+    elif extension(path) == ".ply" and (strips := ply_triangle_strips(path)) is not None:
+        v, f = strips
+    else:
         raise ValueError(f"{path}: the file holds no triangles.")
-    mesh = ReceiverMesh(np.asarray(m.vertices), np.asarray(m.faces), name=os.path.basename(path))
-    return mesh if weld is None else mesh.welded(weld, crease)
+    keep = nonzero_area(v, f) if len(f) else np.zeros(0, bool)
+    if not keep.any():
+        raise ValueError(f"{path}: the file holds no triangles of nonzero area ({len(f)} of zero area).")
+    mesh = ReceiverMesh(v, f[keep], name=os.path.basename(path))
+    out = mesh if weld is None else mesh.welded(weld, crease)
+    out.n_dropped = int(len(f) - keep.sum())
+    return out
+
+
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+
+
+def ply_triangle_strips(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray] | None:
+    """The vertices `(V, 3)` and triangles `(F, 3)` of a PLY file whose faces are triangle
+    strips (an `element tristrips` with one `vertex_indices` list, -1 ending a strip: the format
+    of the Stanford scans, which trimesh does not read), binary or ASCII; `None` for any other
+    PLY. Strips alternate their winding (the odd triangles of a strip are `b a c`); the
+    triangles that repeat a vertex (joins of strips) are left out."""
+    with open(os.fspath(path), "rb") as fh:
+        data = fh.read()
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        return None
+    body = data.index(b"\n", end) + 1
+    header = data[:end].decode("ascii", "replace").splitlines()
+    fmt = next((h.split()[1] for h in header if h.startswith("format ")), "")
+    elements: list[tuple[str, int, list[list[str]]]] = []
+    for line in header:
+        w = line.split()
+        if w[:1] == ["element"] and len(w) == 3:
+            elements.append((w[1], int(w[2]), []))
+        elif w[:1] == ["property"] and elements:
+            elements[-1][2].append(w[1:])
+    names = [e[0] for e in elements]
+    if names != ["vertex", "tristrips"] or fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        return None
+    (_, nv, vprops), (_, ns, sprops) = elements
+    if any(p[0] == "list" or p[0] not in _PLY_TYPES for p in vprops) or len(sprops) != 1 or sprops[0][0] != "list":
+        return None
+    names_v = [p[1] for p in vprops]
+    if not {"x", "y", "z"} <= set(names_v):
+        return None
+    xyz = [names_v.index(c) for c in "xyz"]
+    if fmt == "ascii":
+        words = data[body:].split()
+        v = np.asarray(words[: nv * len(vprops)], dtype=np.float64).reshape(nv, len(vprops))[:, xyz]
+        rest = words[nv * len(vprops):]
+        idx_parts, k = [], 0
+        for _ in range(ns):
+            count = int(rest[k])
+            idx_parts.append(np.asarray(rest[k + 1:k + 1 + count], dtype=np.int64))
+            k += 1 + count
+    else:
+        bo = "<" if fmt == "binary_little_endian" else ">"
+        vt = np.dtype([(f"p{i}", bo + _PLY_TYPES[p[0]]) for i, p in enumerate(vprops)])
+        raw = np.frombuffer(data, vt, nv, body)
+        v = np.stack([raw[f"p{i}"].astype(np.float64) for i in xyz], axis=1)
+        ct, it = np.dtype(bo + _PLY_TYPES[sprops[0][1]]), np.dtype(bo + _PLY_TYPES[sprops[0][2]])
+        off = body + vt.itemsize * nv
+        idx_parts = []
+        for _ in range(ns):
+            count = int(np.frombuffer(data, ct, 1, off)[0])
+            idx_parts.append(np.frombuffer(data, it, count, off + ct.itemsize).astype(np.int64))
+            off += ct.itemsize + it.itemsize * count
+    faces = []
+    for idx in idx_parts:
+        for strip in np.split(idx, np.flatnonzero(idx < 0)):
+            strip = strip[strip >= 0]
+            if len(strip) < 3:
+                continue
+            a, b, c = strip[:-2], strip[1:-1], strip[2:]
+            odd = np.arange(len(a)) % 2 == 1
+            faces.append(np.stack([np.where(odd, b, a), np.where(odd, a, b), c], axis=1))
+    if not faces:
+        return None
+    f = np.concatenate(faces)
+    f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
+    if len(f) and (f.max() >= nv):
+        raise ValueError(f"{os.fspath(path)}: a triangle strip index is out of range [0, {nv}).")
+    return v, f
 
 
 def tonemap(values: Any, exposure: float | None = None) -> np.ndarray:

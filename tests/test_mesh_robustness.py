@@ -1,0 +1,94 @@
+"""What the mesh robustness sweep (`benchmarks/mesh_robustness.py`) found, one fast test each:
+generated meshes and files only.
+
+- A mesh file with a zero-area face (a repeated vertex, collinear corners: scanners and
+  exporters leave them) could not be read at all (`ReceiverMesh ... has zero area`):
+  `read_mesh` now leaves such faces out and counts them (`n_dropped`).
+- A PLY of triangle strips (the Stanford scans' format) read as "no triangles".
+"""
+
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+import pytest
+
+import jaxshadow as js
+
+trimesh = pytest.importorskip("trimesh")
+
+BOX_V = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], float)
+BOX_F = np.array([[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4],
+                  [1, 2, 6], [1, 6, 5], [2, 3, 7], [2, 7, 6], [3, 0, 4], [3, 4, 7]])
+
+
+def _obj(path, v, f) -> None:
+    lines = [f"v {x:.17g} {y:.17g} {z:.17g}" for x, y, z in v] + [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in f]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_read_mesh_drops_zero_area_faces(tmp_path):
+    """A closed box with a repeated-vertex face and a face of three collinear corners (one more
+    vertex, the midpoint of an edge, exactly representable): read, the two faces left out and
+    counted, the occluder closed and the same as the box's."""
+    v = np.concatenate([BOX_V, [[0.5, 0.0, 0.0]]])
+    f = np.concatenate([BOX_F, [[0, 0, 1], [0, 8, 1]]])
+    _obj(tmp_path / "box.obj", v, f)
+    m = js.read_mesh(tmp_path / "box.obj")
+    assert m.n_dropped == 2 and len(m.faces) == 12
+    assert sorted(map(tuple, np.sort(m.faces, axis=1))) == sorted(map(tuple, np.sort(BOX_F, axis=1)))
+    occ = m.occluder()
+    assert occ.closed and occ.convex
+    _obj(tmp_path / "flat.obj", v[[0, 1, 8]], np.array([[0, 2, 1]]))
+    with pytest.raises(ValueError, match="no triangles of nonzero area"):
+        js.read_mesh(tmp_path / "flat.obj")
+    assert js.read_mesh(tmp_path / "box.obj", weld=None).n_dropped == 2  # without welding too
+    assert js.ReceiverMesh(BOX_V, BOX_F).n_dropped == 0
+
+
+def _strips(faces: np.ndarray) -> list[int]:
+    """`faces` as strips: pairs of faces sharing an edge as one 4-index strip where they can
+    be (the second face then read with the alternating winding), every other face alone; -1
+    between strips."""
+    out: list[int] = []
+    k = 0
+    while k < len(faces):
+        paired = False
+        for r in range(3) if k + 1 < len(faces) else ():
+            # Strip a b c d gives (a b c) and, the odd triangle flipped, (c b d).
+            a, b, c = (int(x) for x in np.roll(faces[k], -r))
+            d = [int(x) for x in faces[k + 1] if x not in (b, c)]
+            if len(d) == 1 and any(tuple(np.roll(faces[k + 1], q)) == (c, b, d[0]) for q in range(3)):
+                out += [a, b, c, d[0], -1]
+                paired = True
+                break
+        if paired:
+            k += 2
+            continue
+        out += [int(x) for x in faces[k]] + [-1]
+        k += 1
+    return out
+
+
+@pytest.mark.parametrize("fmt", ["binary_little_endian", "ascii"])
+def test_read_mesh_reads_ply_triangle_strips(tmp_path, fmt):
+    """A PLY of the box's triangles as strips (one with an extra vertex property): the same
+    triangles with their orientation, found closed."""
+    s = _strips(BOX_F)
+    assert len(s) < 4 * len(BOX_F)  # some faces did pair up into 4-index strips
+    head = ["ply", f"format {fmt} 1.0", f"element vertex {len(BOX_V)}", "property float x", "property float y",
+            "property float z", "property uchar confidence", "element tristrips 1",
+            "property list int int vertex_indices", "end_header"]
+    path = tmp_path / "box.ply"
+    if fmt == "ascii":
+        body = "".join(f"{x} {y} {z} 7\n" for x, y, z in BOX_V) + f"{len(s)} " + " ".join(map(str, s)) + "\n"
+        path.write_text("\n".join(head) + "\n" + body)
+    else:
+        body = b"".join(struct.pack("<fffB", *p, 7) for p in BOX_V) + struct.pack(f"<i{len(s)}i", len(s), *s)
+        path.write_bytes(("\n".join(head) + "\n").encode() + body)
+    m = js.read_mesh(path)
+    np.testing.assert_array_equal(m.vertices, BOX_V)
+    canon = sorted(tuple(np.roll(x, -int(np.argmin(x)))) for x in BOX_F)
+    assert sorted(tuple(np.roll(x, -int(np.argmin(x)))) for x in m.faces) == canon
+    assert m.occluder().closed
