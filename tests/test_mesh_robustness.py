@@ -5,6 +5,12 @@ generated meshes and files only.
   exporters leave them) could not be read at all (`ReceiverMesh ... has zero area`):
   `read_mesh` now leaves such faces out and counts them (`n_dropped`).
 - A PLY of triangle strips (the Stanford scans' format) read as "no triangles".
+- Sliver triangles (a face split at a point 1e-8 of its height off an edge): `js.Mesh` refused
+  them as "zero area" (its test was relative to the whole mesh's size, not the face's, unlike a
+  polygon given to `Scene`), and `Scene` refused the same triangles in a soup as "non-planar"
+  (Newell's normal from absolute coordinates cancels for a small face away from the origin).
+
+Independent reference: `test_clip.reference_ff` (exact polygon booleans in shapely).
 """
 
 from __future__ import annotations
@@ -15,8 +21,14 @@ import numpy as np
 import pytest
 
 import jaxshadow as js
+from benchmarks.mesh_robustness import slivers
+from benchmarks.real_meshes import LIGHT, blob
+from jaxshadow._shadows import binding as vis
 
 trimesh = pytest.importorskip("trimesh")
+shapely = pytest.importorskip("shapely")
+from test_clip import reference_ff  # noqa: E402
+from test_plan import culled  # noqa: E402
 
 BOX_V = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], float)
 BOX_F = np.array([[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4],
@@ -92,3 +104,53 @@ def test_read_mesh_reads_ply_triangle_strips(tmp_path, fmt):
     canon = sorted(tuple(np.roll(x, -int(np.argmin(x)))) for x in BOX_F)
     assert sorted(tuple(np.roll(x, -int(np.argmin(x)))) for x in m.faces) == canon
     assert m.occluder().closed
+
+
+def test_sliver_triangles_in_a_mesh_and_a_soup():
+    """Faces split at a point 1e-8 of their height off an edge (a sliver of that relative area):
+    `js.Mesh` builds, closed; the soup of the same triangles is welded into one mesh; both give
+    the exact values (polygon booleans) on penumbra and umbra floor receivers, through the
+    silhouette path (the mesh has more than 256 faces)."""
+    v, f = blob(2)
+    vs, fs = slivers(v, f, every=3, off=1e-8)
+    assert len(fs) >= 256
+    mesh = js.Mesh(vs, fs)
+    assert mesh.closed
+    light = js.PolygonLight(LIGHT, 1.0)
+    s_mesh = js.Scene([light], occluders=[mesh])
+    s_soup = js.Scene([light], occluders=vs[fs])
+    assert s_soup.occluder_topology is not None and s_soup.occluder_topology.from_mesh.all()
+    rng = np.random.default_rng(2)
+    p = np.c_[rng.uniform(-1.0, 1.0, (200, 2)), np.zeros(200)]
+    n = np.tile([0.0, 0.0, 1.0], (200, 1))
+    cls = js.shadow_plan(s_mesh, p, n).lights[0].classes
+    sel = np.r_[np.where(cls == vis.PENUMBRA)[0][:8], np.where(cls == vis.UMBRA)[0][:2]]
+    assert len(sel) == 10
+    tris = vs[fs]
+    ref = np.array([np.pi * reference_ff(x, y, LIGHT, culled(x, y, LIGHT, tris)) for x, y in zip(p[sel], n[sel], strict=True)])
+    for scene in (s_mesh, s_soup):
+        e = np.asarray(js.irradiance(scene, p[sel], n[sel]))[:, 0]
+        np.testing.assert_allclose(e, ref, rtol=0, atol=1e-9 * np.pi)
+
+
+def test_sliver_triangles_are_planar():
+    """A triangle is planar: slivers of relative area 1e-8 (5 cm long, 5e-10 m high) in random
+    orientations about 1.3 m from the origin are accepted as polygons and as mesh faces (7 of
+    these 8 were "non-planar", 3e-8 m off their own plane); a non-planar quad is still refused."""
+    rng = np.random.default_rng(0)
+    light = js.PolygonLight(LIGHT, 1.0)
+    for _ in range(8):
+        a = np.array([0.3, -0.4, 1.2]) + rng.normal(0, 0.1, 3)
+        u = rng.normal(size=3)
+        u /= np.linalg.norm(u)
+        w = np.cross(u, rng.normal(size=3))
+        w /= np.linalg.norm(w)
+        b = a + 0.05 * u
+        tri = np.array([a, b, (a + b) / 2 + 5e-10 * w])
+        js.Scene([light], occluders=[tri])
+        js.Mesh(tri, [[0, 1, 2]])
+    quad = np.array([a, b, b + 0.05 * w, a + 0.05 * w + 1e-4 * np.cross(u, w)])
+    with pytest.raises(ValueError, match="non-planar"):
+        js.Scene([light], occluders=[quad])
+    with pytest.raises(ValueError, match="not planar"):
+        js.Mesh(quad, [[0, 1, 2, 3]])

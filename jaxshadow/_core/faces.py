@@ -124,13 +124,20 @@ def _unit(n: np.ndarray) -> np.ndarray:
 
 
 def _check_faces(faces: _Faces, v: np.ndarray, size: float) -> None:
-    """Zero-area and non-planar faces (the first offending face is reported)."""
+    """Zero-area and non-planar faces (the first offending face is reported). A face has zero
+    area when twice its area is at most `COPLANAR_RTOL` times its own squared size (the largest
+    distance of a vertex from its centroid): the rule of a polygon given to `Scene` (`DEGENERACY_RTOL`
+    of `geometry.check_convex_polygon`), so a sliver that a soup may hold is a face of a `Mesh` too."""
     bad = np.zeros(len(faces), dtype=np.int8)  # 1: zero area, 2: not planar
     for idx, arr in faces.groups():
         pts = v[arr]
-        n = _newell_many(pts)
+        # Newell's normal of the vertices about their centroid: the sum of products of absolute
+        # coordinates cancels for a small face far from the origin (a sliver read as non-planar).
+        rel = pts - pts.mean(axis=1, keepdims=True)
+        n = _newell_many(rel)
         area = np.sqrt((n * n).sum(axis=1))
-        zero = ~(area > COPLANAR_RTOL * size * size)
+        own = np.sqrt((rel * rel).sum(axis=2)).max(axis=1)
+        zero = ~(area > COPLANAR_RTOL * own * own)
         with np.errstate(invalid="ignore", divide="ignore"):
             off = np.abs(_plane_values(pts, pts[:, :1], (n / area[:, None])[:, None, :])).max(axis=1)
         bad[idx] = np.where(zero, 1, np.where(off > 1e-6 * size, 2, 0))

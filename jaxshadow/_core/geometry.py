@@ -323,7 +323,10 @@ def check_convex_polygon(verts: object, what: str) -> np.ndarray:
                 f"{what}: vertices {i} and {(i + 1) % k} coincide (zero-length edge); "
                 "remove the repeated vertex."
             )
-    normal = np.sum(np.cross(v, np.roll(v, -1, axis=0)), axis=0)
+    # Newell's normal about the centroid (absolute coordinates cancel for a sliver far from the
+    # origin, and a triangle was then "non-planar").
+    c = v - v.mean(axis=0)
+    normal = np.sum(np.cross(c, np.roll(c, -1, axis=0)), axis=0)
     area2 = float(np.linalg.norm(normal))
     if area2 <= DEGENERACY_RTOL * size * size:
         raise ValueError(f"{what}: zero area (all vertices are collinear).")
