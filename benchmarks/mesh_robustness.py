@@ -6,12 +6,12 @@ under the 0.8 m quad light at z = 2.5): the mesh as `js.Mesh`; as a triangle sou
 array and a list, vertices duplicated per triangle, faces shuffled); shuffled with a third of the
 faces flipped; non-manifold (fins: three faces on an edge; two shapes sharing one vertex, a
 bow-tie); zero-area and repeated-vertex faces (as a `Mesh`, a soup and in a file); sliver
-triangles (faces split at a point 1e-6 of their height off an edge); duplicate faces (some
+triangles (faces split at a point 1e-6 or 1e-8 of their height off an edge); duplicate faces (some
 reversed); intersecting and nested components; an open cup seen from inside (receivers on its
 inner faces); a mesh crossing the floor (receivers on and under it); a mesh straddling the
 light's plane; the scene scaled to 1e4 m and 1e-4 m and translated by 1e3 m; float32 inputs;
 mesh files trimesh writes (OBJ with normals and texture coordinates, PLY, STL, OFF; OBJ quads
-and n-gons) read with `js.read_mesh`, and an empty file.
+and n-gons; a PLY of triangle strips) read with `js.read_mesh`, and an empty file.
 
 Per case: the scene's build time, `js.irradiance` (first and second call), the sanity counts
 (non-finite, negative, above the unoccluded value, umbra not 0), the largest error against the
@@ -170,6 +170,9 @@ def cases(quick: bool) -> dict[str, dict]:
     out["bow-tie vertex"] = {"make": lambda: [js.Mesh(vb, fb)], "tris": vb[fb]}
     vs, fs = slivers(v, f)
     out["slivers (1e-6)"] = {"make": lambda: [js.Mesh(vs, fs)], "tris": vs[fs]}
+    v8, f8 = slivers(v, f, off=1e-8)
+    out["slivers (1e-8)"] = {"make": lambda: [js.Mesh(v8, f8)], "tris": v8[f8]}
+    out["slivers (1e-8), soup"] = {"make": lambda: v8[f8], "tris": v8[f8], "mesh_of": lambda: [js.Mesh(v8, f8)]}
     dup = np.concatenate([f, f[:40], f[40:80, ::-1]])
     out["duplicate faces"] = {"make": lambda: [js.Mesh(v, dup)], "tris": v[dup]}
     out["duplicate faces, soup"] = {"make": lambda: v[dup], "tris": v[dup]}
@@ -234,6 +237,15 @@ def file_cases(quick: bool, folder: str) -> dict[str, dict]:
     path = os.path.join(folder, "prism.obj")
     Path(path).write_text("\n".join(lines) + "\n")
     out["file .obj quads + n-gons"] = {"path": path}
+    # PLY of triangle strips (the Stanford scans' format): each face a strip of its own.
+    head = ["ply", "format binary_little_endian 1.0", f"element vertex {len(v)}", "property float x",
+            "property float y", "property float z", "element tristrips 1", "property list int int vertex_indices",
+            "end_header", ""]
+    idx = np.c_[f, np.full(len(f), -1)].ravel().astype("<i4")
+    path = os.path.join(folder, "strips.ply")
+    Path(path).write_bytes("\n".join(head).encode() + v.astype("<f4").tobytes()
+                          + np.array([len(idx)], "<i4").tobytes() + idx.tobytes())
+    out["file .ply triangle strips"] = {"path": path}
     vd = np.concatenate([v, [(v[f[0, 0]] + v[f[0, 1]]) / 2]])
     fd = np.concatenate([f, [[f[0, 0], f[0, 1], len(v)]], [[f[1, 0], f[1, 0], f[1, 1]]]])
     path = os.path.join(folder, "degenerate.obj")
