@@ -154,3 +154,24 @@ def test_sliver_triangles_are_planar():
         js.Scene([light], occluders=[quad])
     with pytest.raises(ValueError, match="not planar"):
         js.Mesh(quad, [[0, 1, 2, 3]])
+
+
+@pytest.mark.parametrize("bad", ["repeated", "collinear", "nan"])
+def test_soup_with_one_bad_triangle_names_it(bad):
+    """Scene checks a soup's triangles together (one vectorised pass) and falls back to the
+    one-by-one check, which names the polygon, when any triangle is in doubt."""
+    v, f = blob(2)
+    tris = v[f].copy()
+    if bad == "repeated":
+        tris[200, 2] = tris[200, 0]
+        msg = r"Scene.occluders\[200\]: a polygon needs at least 3 distinct vertices"
+    elif bad == "collinear":
+        tris[200, 2] = 0.25 * tris[200, 0] + 0.75 * tris[200, 1]
+        msg = r"Scene.occluders\[200\]: zero area"
+    else:
+        tris[200, 1, 2] = np.nan
+        msg = r"Scene.occluders\[200\]"
+    with pytest.raises(ValueError, match=msg):
+        js.Scene([js.PolygonLight(LIGHT, 1.0)], occluders=tris)
+    with pytest.raises(ValueError, match=msg):
+        js.Scene([js.PolygonLight(LIGHT, 1.0)], occluders=list(tris))

@@ -295,6 +295,23 @@ def check_convex_polygon_cached(verts: Any, what: str) -> None:
     _VALID_POLYGONS[key] = True
 
 
+def triangles_pass(tris: np.ndarray) -> bool:
+    """True when every triangle of `tris (m, 3, 3)` surely passes `check_convex_polygon`: finite,
+    edges longer and twice the area larger than twice that check's limits (the same formulas,
+    vectorised; a triangle is planar and convex once its area is). False sends the caller to the
+    one-by-one check, which names the offending polygon."""
+    t = np.asarray(tris, dtype=np.float64)
+    if t.ndim != 3 or t.shape[1:] != (3, 3) or not np.all(np.isfinite(t)):
+        return False
+    c = t - t.mean(axis=1, keepdims=True)
+    size = np.sqrt((c * c).sum(axis=2)).max(axis=1)
+    edges = np.roll(t, -1, axis=1) - t
+    elen = np.sqrt((edges * edges).sum(axis=2)).min(axis=1)
+    normal = np.cross(c, np.roll(c, -1, axis=1)).sum(axis=1)
+    area2 = np.sqrt((normal * normal).sum(axis=1))
+    return bool(np.all(elen > 2 * DEGENERACY_RTOL * size) & np.all(area2 > 2 * DEGENERACY_RTOL * size * size))
+
+
 def check_convex_polygon(verts: object, what: str) -> np.ndarray:
     """Validate a convex planar polygon and return it as a float64 `(k, 3)` array.
 

@@ -27,6 +27,7 @@ from .._core.geometry import (
     check_vector3,
     is_concrete,
     pad_polygons_jax,
+    triangles_pass,
 )
 from .._core.mesh import (
     Mesh,
@@ -319,9 +320,11 @@ def _stack_occluders(occluders: Any) -> tuple[Array | None, OccluderTopology | N
     items = list(occluders)
     if len(items) == 0:
         return None, None
-    for i, poly in enumerate(items):
-        if not isinstance(poly, Mesh) and is_concrete(poly):
-            check_convex_polygon(poly, f"Scene.occluders[{i}]")
+    plain = [x for x in items if not isinstance(x, Mesh) and is_concrete(x)]
+    if not (len(plain) > 1 and all(np.shape(x) == (3, 3) for x in plain) and triangles_pass(np.stack(plain))):
+        for i, poly in enumerate(items):
+            if not isinstance(poly, Mesh) and is_concrete(poly):
+                check_convex_polygon(poly, f"Scene.occluders[{i}]")
     if all(isinstance(x, Mesh) or (is_concrete(x) and not isinstance(x, jax.Array)) for x in items):
         items = weld_polygons(items)  # triangle soups become meshes (NumPy inputs only)
     if not any(isinstance(x, Mesh) for x in items):
