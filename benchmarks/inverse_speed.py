@@ -264,7 +264,9 @@ def _speed_child(case: str, cache_dir: str, calls: int) -> None:
         out.append({"seed": seed, "wall_s": time.perf_counter() - w0, "cpu_s": time.process_time() - c0,
                     **{k: acc[k] - before[k] for k in before}, "programs": dict(progs),
                     "position_err_of_scene": float(err), "load": os.getloadavg()[0]})
-    print(json.dumps({"calls": out}))
+    store = os.path.join(cache_dir, "jaxshadow-exported") if cache_dir else ""
+    exported = len(os.listdir(store)) if store and os.path.isdir(store) else 0
+    print(json.dumps({"calls": out, "exported_programs": exported}))
 
 
 def _speed_process(case: str, cache_dir: str, calls: int, tree: str = "") -> dict:
@@ -302,7 +304,9 @@ def fit_speed_study(cases: tuple[str, ...] = FIT_CASES, trees: dict[str, str] | 
             key = case if len(trees) == 1 else f"{case} [{label}]"
             out[key] = {"first": cold["calls"][0], "second": cold["calls"][1], "warm_cache_process": warm["calls"][0],
                         "process_cpu_s": {"cold (2 fits)": cold["process_cpu_s"],
-                                          "warm cache (1 fit)": warm["process_cpu_s"]}}
+                                          "warm cache (1 fit)": warm["process_cpu_s"]},
+                        # programs the warm process loaded traced (`inverse._exported`; 0: no flatbuffers)
+                        "exported_programs": warm.get("exported_programs", 0)}
             for k in ("first", "second", "warm_cache_process"):
                 r = out[key][k]
                 print(f"{key:30s} {k:20s} wall {r['wall_s']:6.1f} s  cpu {r['cpu_s']:6.1f} s  compile "
@@ -326,7 +330,8 @@ def fit_speed_markdown(study: dict) -> str:
     for case, r in study.items():
         if "process_cpu_s" in r:
             lines.append("")
-            lines.append(f"{case}: CPU of the whole processes (imports included) "
+            lines.append(f"{case}: {r.get('exported_programs', 0)} programs stored traced (`inverse._exported`, "
+                         "skips their tracing in the warm process); CPU of the whole processes (imports included) "
                          + ", ".join(f"{k} {v:.1f} s" for k, v in r["process_cpu_s"].items())
                          + "; the first fit's programs (trace + lowering + XLA compile, wall s): "
                          + ", ".join(f"`{n}` {sum(t.values()):.1f}" for n, t in

@@ -37,6 +37,7 @@ import contextlib
 import functools
 import gc
 import inspect
+import os
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -96,6 +97,9 @@ def fit_jit(fun: Callable | None = None, *, options: dict | None = None) -> Any:
         return functools.partial(fit_jit, options=options)
     opts = FIT_COMPILER_OPTIONS if options is None else options
     jitted: list = []
+    # key -> loaded or exported program (`_exported`), None for keys it cannot serve; False: off
+    # for this function (a jaxlib that refused the options).
+    exported: dict | bool = {}
 
     @functools.wraps(fun)
     def call(*args: Any, **kwargs: Any) -> Any:
@@ -103,8 +107,13 @@ def fit_jit(fun: Callable | None = None, *, options: dict | None = None) -> Any:
             return _call(*args, **kwargs)
 
     def _call(*args: Any, **kwargs: Any) -> Any:
+        nonlocal exported
         if not jitted:
             ensure_default_compile_cache()
+        if exported is not False:
+            out = _exported_call(fun, opts, exported, args, kwargs)
+            if out is not _NOT_EXPORTED:
+                return out
             cpu = jax.default_backend() == "cpu" and "compiler_options" in inspect.signature(jax.jit).parameters
             if cpu:
                 # `filter_jit` forwards its extra keywords to `jax.jit` (its stubs do not list them).
@@ -115,6 +124,7 @@ def fit_jit(fun: Callable | None = None, *, options: dict | None = None) -> Any:
                     if not any(key in str(err) for key in opts):
                         raise
                     jitted.append(eqx.filter_jit(fun))
+                    exported = False
                 else:
                     jitted.append(fast)
                     return out
@@ -123,6 +133,47 @@ def fit_jit(fun: Callable | None = None, *, options: dict | None = None) -> Any:
         return jitted[0](*args, **kwargs)
 
     return call
+
+
+_NOT_EXPORTED = object()
+
+
+def _exported_call(fun: Callable, opts: dict, programs: Any, args: tuple, kwargs: dict) -> Any:
+    """`fun(*args, **kwargs)` by its exported program (`_exported`: loaded from the store, or
+    traced, exported and stored), or `_NOT_EXPORTED` when there is no store (the compilation
+    cache is off), the call cannot be keyed exactly, or exporting failed: the caller then uses
+    `equinox.filter_jit`."""
+    from . import _exported as ex
+
+    store = ex.store_dir()
+    if store is None or jax.default_backend() != "cpu":
+        return _NOT_EXPORTED
+    try:
+        key, leaves, treedef, arrays = ex.program_key(fun, opts, args, kwargs)
+    except ex.Unsupported:
+        return _NOT_EXPORTED
+    if key not in programs:
+        path = os.path.join(store, key + ".bin")
+        prog = ex.load(path, opts) if os.path.exists(path) else None
+        if prog is None:
+            try:
+                prog = ex.export_program(fun, opts, leaves, treedef, arrays)
+            except Exception:  # not exportable (e.g. an output that is not an array): filter_jit
+                prog = None
+            else:
+                with contextlib.suppress(OSError):
+                    ex.save(path, prog)
+        programs[key] = prog
+    prog = programs[key]
+    if prog is None:
+        return _NOT_EXPORTED
+    try:
+        return prog([leaves[i] for i in arrays])
+    except Exception as err:  # a jaxlib that does not know one of the options: filter_jit's fallback
+        if not any(k in str(err) for k in opts):
+            raise
+        programs[key] = None
+        return _NOT_EXPORTED
 
 
 class LMResult(NamedTuple):

@@ -8,8 +8,8 @@ so for a fixed roughness $n$ the weighted least-squares fit with box bounds (Pou
 domain constraints; §5.3.5 replaces them by penalties, here they are exact) is a 3-unknown convex
 quadratic programme, solved **exactly** by enumerating active sets (every face of the feasible
 polytope; the optimum is the unconstrained minimiser of its face). The roughness is found by
-variable projection: a 1-D search over $\\log n$ of the projected residual (grid, then golden
-section), the linear coefficients re-solved exactly at every trial $n$.
+variable projection: a 1-D search over $\\log n$ of the projected residual (grid, then a batched
+section search in the best bracket), the linear coefficients re-solved exactly at every trial $n$.
 """
 
 from __future__ import annotations
@@ -34,7 +34,6 @@ from ._reports import MaterialFit, MaterialReport, UndeterminedParameterWarning
 from ._targets import PaintedTargets
 
 PARAM_NAMES = tuple(f"{k}[{c}]" for k in ("ka", "kd", "ks") for c in "rgb")
-_GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
 
 
 # --------------------------------------------------------------------------------------
@@ -137,8 +136,8 @@ def _np(x: Any) -> np.ndarray:
     return np.asarray(x, dtype=np.float64)
 
 
-# Exponents per call of `_spec_eval`: the grid search and the single evaluations of the
-# golden-section search and the standard errors all run one compiled program of this batch.
+# Exponents per call of `_spec_eval`: the grid search, the section search (a batch per step) and
+# the standard errors all run one compiled program of this batch.
 SPEC_CHUNK = 8
 
 
@@ -194,6 +193,32 @@ class _Basis:
         return np.stack([self.ambient[:, c], self.diffuse[:, c], spec], axis=1)
 
 
+def _section_search(f: Any, a: float, b: float, fa: float, fb: float, x0: float, f0: float,
+                    tol: float) -> float:
+    """The minimiser of a unimodal `f` on `[a, b]` to within `tol`: each step evaluates `f` at
+    `SPEC_CHUNK` equally spaced interior points (`f(xs (SPEC_CHUNK,)) -> (SPEC_CHUNK,)` values: one
+    call of `_spec_eval`'s program) and keeps the two intervals beside the lowest value (ends
+    included), so the bracket shrinks by `(SPEC_CHUNK + 1) / 2` per step (golden section: 1.618
+    per evaluation, one evaluation per call). `fa`, `fb`: `f` at the ends; `(x0, f0)`: a point
+    already evaluated (the grid's best). Returns the evaluated point of lowest value (the first
+    of ties)."""
+    best_x, best_f = x0, f0
+    for x, v in ((a, fa), (b, fb)):
+        if v < best_f:
+            best_x, best_f = x, v
+    while b - a > tol:
+        xs = a + (b - a) * np.arange(1, SPEC_CHUNK + 1) / (SPEC_CHUNK + 1)
+        fs = np.asarray(f(xs), np.float64)
+        pts_x = np.concatenate([[a], xs, [b]])
+        pts_f = np.concatenate([[fa], fs, [fb]])
+        j = int(np.argmin(pts_f))
+        if pts_f[j] < best_f:
+            best_x, best_f = float(pts_x[j]), float(pts_f[j])
+        lo_j, hi_j = max(j - 1, 0), min(j + 1, SPEC_CHUNK + 1)
+        a, b, fa, fb = float(pts_x[lo_j]), float(pts_x[hi_j]), float(pts_f[lo_j]), float(pts_f[hi_j])
+    return best_x
+
+
 def _solve_channels(basis: _Basis, s: np.ndarray | None, y: np.ndarray, w: np.ndarray, lo, hi,
                     sum_le_1: bool) -> tuple[np.ndarray, float, list]:
     ks, total, actives = [], 0.0, []
@@ -235,7 +260,7 @@ def fit_material(
 
     Poulin eq. 5.14 per channel; bounded linear least squares solved exactly (active-set
     enumeration) for the coefficients; variable projection over $\\log n$ (a grid of `n_grid`
-    values over `n_bounds`, then golden section in the best bracket down to `n_tol` in
+    values over `n_bounds`, then `_section_search` in the best bracket down to `n_tol` in
     $\\log n$) for the roughness.
 
     **Arguments:**
@@ -312,22 +337,12 @@ def fit_material(
         sgrid = basis.spec_many(grid)
         rss_grid = np.array([_solve_channels(basis, s, y, wts, lo, hi, kd_plus_ks_le_1)[1] for s in sgrid])
         i = int(np.argmin(rss_grid))
-        a = math.log(grid[max(i - 1, 0)])
-        b = math.log(grid[min(i + 1, n_grid - 1)])
-        f = lambda t: _solve_channels(basis, basis.spec(math.exp(t)), y, wts, lo, hi, kd_plus_ks_le_1)[1]  # noqa: E731
-        x1, x2 = b - _GOLDEN * (b - a), a + _GOLDEN * (b - a)
-        f1, f2 = f(x1), f(x2)
-        while b - a > n_tol:
-            if f1 <= f2:
-                b, x2, f2 = x2, x1, f1
-                x1 = b - _GOLDEN * (b - a)
-                f1 = f(x1)
-            else:
-                a, x1, f1 = x1, x2, f2
-                x2 = a + _GOLDEN * (b - a)
-                f2 = f(x2)
-        cands = [(f1, x1), (f2, x2), (rss_grid[i], math.log(grid[i]))]
-        _, t_best = min(cands)
+        t_best = _section_search(
+            lambda ts: [_solve_channels(basis, s, y, wts, lo, hi, kd_plus_ks_le_1)[1]
+                        for s in basis.spec_many(np.array([math.exp(t) for t in ts]))],
+            math.log(grid[max(i - 1, 0)]), math.log(grid[min(i + 1, n_grid - 1)]),
+            float(rss_grid[max(i - 1, 0)]), float(rss_grid[min(i + 1, n_grid - 1)]),
+            math.log(grid[i]), float(rss_grid[i]), n_tol)
         n_best = math.exp(t_best)
         k, rss, act = _solve_channels(basis, basis.spec(n_best), y, wts, lo, hi, kd_plus_ks_le_1)
         return n_best, k, rss, act, grid, rss_grid

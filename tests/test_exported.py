@@ -1,0 +1,104 @@
+"""Fit programs stored traced (`inverse._exported`): keys, export, the store."""
+
+import functools
+import importlib.util
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxshadow as js
+from inverse import _exported as ex
+from inverse._forward import traced_specular
+from inverse._material import _spec_eval
+from inverse._targets import PaintedTargets
+
+RAW_SPEC = _spec_eval.__wrapped__  # the function under fit_jit
+
+
+def _problem(n=6, capacity_shift=0.0):
+    light = js.PolygonLight(np.array([[0.0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2]]), radiance=2.0)
+    occ = np.array([[0.2, 0.2, 1.0 + capacity_shift], [0.7, 0.2, 1.0], [0.7, 0.7, 1.0]])
+    scene = js.Scene([light], occluders=[occ], ambient=0.1)
+    rng = np.random.default_rng(0)
+    points = np.c_[rng.uniform(-0.5, 1.5, (n, 2)), np.zeros(n)]
+    normals = np.tile([0.0, 0.0, 1.0], (n, 1))
+    targets = PaintedTargets(points, normals, np.ones((n, 3)), np.array([0.5, -2.0, 2.0]))
+    return scene, targets
+
+
+def _key(*args, options=None, fun=RAW_SPEC):
+    return ex.program_key(fun, options or {"xla_backend_optimization_level": 0}, args, {})[0]
+
+
+def test_key_follows_shapes_static_values_and_options_not_array_values():
+    jax.config.update("jax_enable_x64", True)
+    scene, t = _problem()
+    e = jnp.asarray([1.0, 2.0, 4.0, 8.0], jnp.float64)
+    k = _key(traced_specular, scene, t, e)
+    assert _key(traced_specular, scene, t, 2 * e) == k  # values are arguments of the program
+    scene2, t2 = _problem(capacity_shift=0.1)
+    assert _key(traced_specular, scene2, t2, e) == k  # so are the scene's arrays
+    assert _key(traced_specular, scene, t, e[:3]) != k  # shapes are not
+    assert _key(traced_specular, *_problem(n=7), e) != k
+    assert _key(traced_specular, scene, t, e.astype(jnp.float32)) != k  # nor dtypes
+    assert _key(traced_specular, scene, t, e, options={"xla_backend_optimization_level": 1}) != k
+    other = functools.partial(traced_specular)
+    assert _key(other, scene, t, e) != k  # static callables are part of the key
+
+
+def test_key_refuses_what_it_cannot_describe():
+    scene, t = _problem()
+    e = jnp.ones(4)
+    with pytest.raises(ex.Unsupported):
+        _key(lambda *a: None, scene, t, e)  # a function of no package of ours: its code is not keyed
+    with pytest.raises(ex.Unsupported):
+        _key(traced_specular, scene, t, e, fun=lambda *a: a)  # a local function as the program
+
+    class Opaque:
+        pass
+
+    with pytest.raises(ex.Unsupported):
+        _key(Opaque(), scene, t, e)
+
+
+def test_exported_program_gives_the_jitted_values():
+    jax.config.update("jax_enable_x64", True)
+    scene, t = _problem()
+    e = jnp.asarray([1.0, 3.0, 10.0, 30.0], jnp.float64)
+    opts = {"xla_backend_optimization_level": 0}
+    key, leaves, treedef, arrays = ex.program_key(RAW_SPEC, opts, (traced_specular, scene, t, e), {})
+    prog = ex.export_program(RAW_SPEC, opts, leaves, treedef, arrays)
+    got = prog([leaves[i] for i in arrays])
+    want = jax.jit(lambda sc, tt, ee: RAW_SPEC(traced_specular, sc, tt, ee), compiler_options=opts)(scene, t, e)
+    for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert float(np.max(np.abs(np.asarray(got[0])))) > 0  # the specular term is not trivially zero
+
+
+def test_outputs_other_than_arrays_in_plain_containers_are_refused():
+    leaves, treedef = jax.tree_util.tree_flatten((1.0, [2.0, {"a": 3.0}]))
+    ex._check_plain(treedef)
+    light = js.PointLight([0.0, 0.0, 1.0], 1.0)
+    with pytest.raises(ex.Unsupported):
+        ex._check_plain(jax.tree_util.tree_structure(light))
+
+
+@pytest.mark.skipif(importlib.util.find_spec("flatbuffers") is None, reason="jax.export serialises with flatbuffers")
+def test_store_round_trip(tmp_path):
+    jax.config.update("jax_enable_x64", True)
+    scene, t = _problem()
+    e = jnp.asarray([1.0, 3.0, 10.0, 30.0], jnp.float64)
+    opts = {"xla_backend_optimization_level": 0}
+    key, leaves, treedef, arrays = ex.program_key(RAW_SPEC, opts, (traced_specular, scene, t, e), {})
+    prog = ex.export_program(RAW_SPEC, opts, leaves, treedef, arrays)
+    path = str(tmp_path / f"{key}.bin")
+    ex.save(path, prog)
+    loaded = ex.load(path, opts)
+    assert loaded is not None
+    a, b = prog([leaves[i] for i in arrays]), loaded([leaves[i] for i in arrays])
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    (tmp_path / "bad.bin").write_bytes(b"not a program")
+    assert ex.load(str(tmp_path / "bad.bin"), opts) is None
