@@ -29,7 +29,8 @@ column of light $j$ at its reference power, `(3N,)`). So the screen needs no der
    is and the segment beside it): moving either alone makes the fit worse. So every pair of
    lights is re-chosen together over all pairs of their candidates with the others held
    (`_nnls_screen.pair_rss`: one cross Gram matrix, two-column non-negative least squares), then single
-   moves again, until nothing improves.
+   moves again, until nothing improves. The screens' scores are kept (`_nnls_screen.ScreenMemo`):
+   a light's candidates with the same lights held are scored once.
 6. **Local screen.** Around each light's `LOCAL_SEEDS` best distinct candidates (the others
    held), `REFINE_POINTS` candidates in position, orientation and log size, `LOCAL_LEVELS`
    levels with the radius halved at each, around each seed's best so far; then the pair moves
@@ -77,7 +78,7 @@ from ._closed_forms import light_from_diffuse_maximum
 from ._forward import at_capacity
 from ._lm import fit_jit
 from ._multilight import LightsProblem, _parts, build_lights, solve
-from ._nnls_screen import nnls_rss, pair_rss
+from ._nnls_screen import ScreenMemo, nnls_rss
 from ._parametrisation import LightParametrisation
 from ._powers import constrained_powers, emitted_power
 
@@ -377,10 +378,10 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
     todo = [j for j in range(J) if rows[j] is not None]
     spacing = (region.hi - region.lo).max() / POSITIONS ** (1 / 3)  # m: between neighbouring candidates
 
+    memo = ScreenMemo(y, problem.fit_power)  # the screens' scores, kept while the columns only grow
+
     def rss_for(j: int, chosen: dict) -> np.ndarray:
-        others = [cols[i][chosen[i]] for i in chosen if i != j]
-        B = np.stack(others, axis=1) if others else np.zeros((y.shape[0], 0))
-        return nnls_rss(B, cols[j], y, problem.fit_power)
+        return memo.rss(cols, j, chosen)
 
     def centres(j: int, r: np.ndarray) -> np.ndarray:
         sl = params[j]._slices().get("position", slice(0, 0))
@@ -409,9 +410,7 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
         for _ in range(4):
             improved = False
             for a, b in itertools.combinations(todo, 2):
-                others = [cols[i][chosen[i]] for i in chosen if i not in (a, b)]
-                B = np.stack(others, axis=1) if others else np.zeros((y.shape[0], 0))
-                _, s, t = pair_rss(B, cols[a], cols[b], y, problem.fit_power)
+                _, s, t = memo.pair(cols, a, b, chosen)
                 if s < 0 or (s, t) == (chosen[a], chosen[b]):
                     continue
                 trial = {**chosen, a: s, b: t}
