@@ -52,7 +52,8 @@ column of light $j$ at its reference power, `(3N,)`). So the screen needs no der
    are ranked and locally screened again (step 6's screen), and the placement with that light
    moved to each of its `LOCAL_SEEDS` best is refined and ranked as in step 7 (up to a batch of
    them, in basins distinct from those refined already): coordinate descent over the lights at
-   refined resolution (`RESCREEN`).
+   refined resolution (`RESCREEN`). A refined placement that explains the targets exactly
+   (`EXACT`) ends steps 7 and 8: the batches after its own are not refined, nothing is re-screened.
 
 The result is the best refined placement (`theta`, the poses), the other refined placements in distinct basins
 (`alternatives`, up to `ALTERNATIVES`, best first: `fit_lights` finishes them with its joint refinement, where
@@ -99,6 +100,9 @@ BASIN_DISTANCE, BASIN_TURN = 0.05, 0.25
 ALTERNATIVES = 3
 # Step 8 (module docstring): every light screened again at the best refined placement.
 RESCREEN = True
+# Steps 7 and 8 stop at a refined placement that explains the targets exactly: its loss at most
+# EXACT of theirs ($\tfrac12|y|^2$); no other placement can explain them better.
+EXACT = 1e-12
 
 
 @dataclasses.dataclass(frozen=True)
@@ -536,10 +540,12 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
     picked = distinct_basins(params, problem.offsets, thetas, region.extent, BASINS)
     alternatives = np.zeros((0, thetas.shape[1]))
     if lm is not None and len(picked) > 1:
-        values, losses, problem = refine_and_rank(problem, thetas[picked], lm, keep)
+        exact = EXACT * 0.5 * float(y @ y)
+        values, losses, problem = refine_and_rank(problem, thetas[picked], lm, keep, exact)
         win = picked[int(np.argmin(losses))]  # the losses are in `picked`'s order
         best_ch = contenders[win][1]
-        if RESCREEN:  # step 8: each light screened again with the others at the best refined placement
+        if RESCREEN and not float(np.min(losses)) <= exact:  # step 8: each light screened again with the
+            # others at the best refined placement
             best = values[int(np.argmin(losses))]
             at = {}
             for j in todo:
@@ -602,13 +608,14 @@ def distinct_basins(params: tuple, offsets: tuple, thetas: np.ndarray, extent: f
     return picked
 
 
-def refine_and_rank(problem: LightsProblem, thetas: np.ndarray, lm: dict, batch: int
+def refine_and_rank(problem: LightsProblem, thetas: np.ndarray, lm: dict, batch: int, stop: float = -np.inf
                     ) -> tuple[np.ndarray, np.ndarray, LightsProblem]:
     """`(values (S, Pt), losses (S,), problem)`: every placement of `thetas (S, Pt)` refined
     jointly (all its parameters) for `BASIN_STEPS` iterations of `fit_lights`' batched LM
     (`_multilight.solve`, `lm`'s tolerances, no pruning: a basin's loss at grid resolution says
     little), `batch` rows a call (padded: the program of `fit_lights`' joint refinement, no
-    new compilation); non-finite losses are infinite."""
+    new compilation), up to the first batch with a loss at most `stop` (no power budget; the
+    rows after it are not returned); non-finite losses are infinite."""
     from ._multilight_placement import pad
 
     mask = np.ones(thetas.shape[1], bool)
@@ -619,6 +626,8 @@ def refine_and_rank(problem: LightsProblem, thetas: np.ndarray, lm: dict, batch:
                                 max_steps=BASIN_STEPS, prune=())
         values.append(np.asarray(res.values, np.float64)[:part.shape[0]])
         losses.append(np.asarray(res.losses, np.float64)[:part.shape[0]])
+        if problem.budget is None and np.any(losses[-1] <= stop):
+            break
     v = np.concatenate(values)
     f, problem = ranking_losses(problem, np.concatenate(losses), v)
     return v, f, problem
