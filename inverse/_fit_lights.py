@@ -416,6 +416,8 @@ def fit_lights(
                 base = theta0.copy()
         if P:
             n_sweeps = int(sweeps)
+            if attempt == "global" and search_w is None and not stage_losses[-1] > EXACT_LOSS * energy:
+                n_sweeps = 0  # the placement explains the targets exactly: the joint refinement alone
             for rnd in range(2 if placed else 1):
                 problem = _reweighted(problem, search_w)
                 for sweep, j in ((s, j) for s in range(n_sweeps) for j in range(len(per_light))):
@@ -485,7 +487,7 @@ def fit_lights(
                     converged = bool(np.asarray(res.converged)[b]) or not f_in - f_lm[b] > STILL_FALLING * f_lm[b]
                 if best_round is None or stage_losses[-1] < best_round[0]:
                     best_round = (stage_losses[-1], joint, final, converged)
-                if rnd or not placed:
+                if rnd or not placed or not stage_losses[-1] > EXACT_LOSS * energy:  # exact: no deal does better
                     break
                 # The refined positions dealt again (two lights of similar shading swapped in the first
                 # deal under noise): from a better deal, one more sweep and joint refinement.

@@ -29,7 +29,8 @@ column of light $j$ at its reference power, `(3N,)`). So the screen needs no der
    is and the segment beside it): moving either alone makes the fit worse. So every pair of
    lights is re-chosen together over all pairs of their candidates with the others held
    (`_nnls_screen.pair_rss`: one cross Gram matrix, two-column non-negative least squares), then single
-   moves again, until nothing improves.
+   moves again, until nothing improves. The screens' scores are kept (`_nnls_screen.ScreenMemo`):
+   a light's candidates with the same lights held are scored once.
 6. **Local screen.** Around each light's `LOCAL_SEEDS` best distinct candidates (the others
    held), `REFINE_POINTS` candidates in position, orientation and log size, `LOCAL_LEVELS`
    levels with the radius halved at each, around each seed's best so far; then the pair moves
@@ -51,7 +52,8 @@ column of light $j$ at its reference power, `(3N,)`). So the screen needs no der
    are ranked and locally screened again (step 6's screen), and the placement with that light
    moved to each of its `LOCAL_SEEDS` best is refined and ranked as in step 7 (up to a batch of
    them, in basins distinct from those refined already): coordinate descent over the lights at
-   refined resolution (`RESCREEN`).
+   refined resolution (`RESCREEN`). A refined placement that explains the targets exactly
+   (`EXACT`) ends steps 7 and 8: the batches after its own are not refined, nothing is re-screened.
 
 The result is the best refined placement (`theta`, the poses), the other refined placements in distinct basins
 (`alternatives`, up to `ALTERNATIVES`, best first: `fit_lights` finishes them with its joint refinement, where
@@ -77,7 +79,7 @@ from ._closed_forms import light_from_diffuse_maximum
 from ._forward import at_capacity
 from ._lm import fit_jit
 from ._multilight import LightsProblem, _parts, build_lights, solve
-from ._nnls_screen import nnls_rss, pair_rss
+from ._nnls_screen import ScreenMemo, nnls_rss
 from ._parametrisation import LightParametrisation
 from ._powers import constrained_powers, emitted_power
 
@@ -98,6 +100,9 @@ BASIN_DISTANCE, BASIN_TURN = 0.05, 0.25
 ALTERNATIVES = 3
 # Step 8 (module docstring): every light screened again at the best refined placement.
 RESCREEN = True
+# Steps 7 and 8 stop at a refined placement that explains the targets exactly: its loss at most
+# EXACT of theirs ($\tfrac12|y|^2$); no other placement can explain them better.
+EXACT = 1e-12
 
 
 @dataclasses.dataclass(frozen=True)
@@ -377,10 +382,10 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
     todo = [j for j in range(J) if rows[j] is not None]
     spacing = (region.hi - region.lo).max() / POSITIONS ** (1 / 3)  # m: between neighbouring candidates
 
+    memo = ScreenMemo(y, problem.fit_power)  # the screens' scores, kept while the columns only grow
+
     def rss_for(j: int, chosen: dict) -> np.ndarray:
-        others = [cols[i][chosen[i]] for i in chosen if i != j]
-        B = np.stack(others, axis=1) if others else np.zeros((y.shape[0], 0))
-        return nnls_rss(B, cols[j], y, problem.fit_power)
+        return memo.rss(cols, j, chosen)
 
     def centres(j: int, r: np.ndarray) -> np.ndarray:
         sl = params[j]._slices().get("position", slice(0, 0))
@@ -409,9 +414,7 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
         for _ in range(4):
             improved = False
             for a, b in itertools.combinations(todo, 2):
-                others = [cols[i][chosen[i]] for i in chosen if i not in (a, b)]
-                B = np.stack(others, axis=1) if others else np.zeros((y.shape[0], 0))
-                _, s, t = pair_rss(B, cols[a], cols[b], y, problem.fit_power)
+                _, s, t = memo.pair(cols, a, b, chosen)
                 if s < 0 or (s, t) == (chosen[a], chosen[b]):
                     continue
                 trial = {**chosen, a: s, b: t}
@@ -537,10 +540,12 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
     picked = distinct_basins(params, problem.offsets, thetas, region.extent, BASINS)
     alternatives = np.zeros((0, thetas.shape[1]))
     if lm is not None and len(picked) > 1:
-        values, losses, problem = refine_and_rank(problem, thetas[picked], lm, keep)
+        exact = EXACT * 0.5 * float(y @ y)
+        values, losses, problem = refine_and_rank(problem, thetas[picked], lm, keep, exact)
         win = picked[int(np.argmin(losses))]  # the losses are in `picked`'s order
         best_ch = contenders[win][1]
-        if RESCREEN:  # step 8: each light screened again with the others at the best refined placement
+        if RESCREEN and not float(np.min(losses)) <= exact:  # step 8: each light screened again with the
+            # others at the best refined placement
             best = values[int(np.argmin(losses))]
             at = {}
             for j in todo:
@@ -603,13 +608,14 @@ def distinct_basins(params: tuple, offsets: tuple, thetas: np.ndarray, extent: f
     return picked
 
 
-def refine_and_rank(problem: LightsProblem, thetas: np.ndarray, lm: dict, batch: int
+def refine_and_rank(problem: LightsProblem, thetas: np.ndarray, lm: dict, batch: int, stop: float = -np.inf
                     ) -> tuple[np.ndarray, np.ndarray, LightsProblem]:
     """`(values (S, Pt), losses (S,), problem)`: every placement of `thetas (S, Pt)` refined
     jointly (all its parameters) for `BASIN_STEPS` iterations of `fit_lights`' batched LM
     (`_multilight.solve`, `lm`'s tolerances, no pruning: a basin's loss at grid resolution says
     little), `batch` rows a call (padded: the program of `fit_lights`' joint refinement, no
-    new compilation); non-finite losses are infinite."""
+    new compilation), up to the first batch with a loss at most `stop` (no power budget; the
+    rows after it are not returned); non-finite losses are infinite."""
     from ._multilight_placement import pad
 
     mask = np.ones(thetas.shape[1], bool)
@@ -620,6 +626,8 @@ def refine_and_rank(problem: LightsProblem, thetas: np.ndarray, lm: dict, batch:
                                 max_steps=BASIN_STEPS, prune=())
         values.append(np.asarray(res.values, np.float64)[:part.shape[0]])
         losses.append(np.asarray(res.losses, np.float64)[:part.shape[0]])
+        if problem.budget is None and np.any(losses[-1] <= stop):
+            break
     v = np.concatenate(values)
     f, problem = ranking_losses(problem, np.concatenate(losses), v)
     return v, f, problem

@@ -3,37 +3,85 @@
 column; for fixed poses the best powers are one non-negative least squares over the columns
 (the powers enter the model linearly), so every candidate of a light, or every pair of
 candidates of two lights, is scored by normal equations batched over the candidates.
+`ScreenMemo` keeps the scores of one placement's screens (its columns only grow), so that a
+screen repeated with the same lights held is not computed again.
 """
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
+
+# Held columns up to which a candidate whose normal equations give a negative power is solved
+# by trying every support (2^(m+1) - 1 of them, batched); beyond, `scipy.optimize.nnls` per candidate.
+SUPPORTS_UP_TO = 5
+
+
+def _solve_scaled(G: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """`(S, k)` the solutions of the normal equations `G (S, k, k)`, `b (S, k)`, Jacobi-scaled,
+    with a `1e-12` ridge on the scaled Gram (a zero column: its power 0)."""
+    d = np.einsum("sii->si", G)
+    scale = np.sqrt(np.where(d > 0, d, 1.0))
+    Gn = G / (scale[:, :, None] * scale[:, None, :]) + 1e-12 * np.eye(G.shape[1])
+    return np.linalg.solve(Gn, (b / scale)[:, :, None])[:, :, 0] / scale
+
+
+def _nnls_by_supports(A: np.ndarray, G: np.ndarray, b: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """`(S,)` the non-negative least squares' residual sum of squares $\\min_{p \\ge 0}|y - A_s p|^2$
+    for `A (S, M, k)` (Gram `G (S, k, k)`, `b = A^T y (S, k)`): the least squares on every
+    support whose solution is non-negative, the best one (the optimum's support is one of them:
+    its KKT conditions), its residual computed directly."""
+    S, _, k = A.shape
+    best = np.full(S, float(y @ y))
+    best_p = np.zeros((S, k))
+    for n in range(1, k + 1):
+        for sup in itertools.combinations(range(k), n):
+            ix = np.asarray(sup)
+            p = _solve_scaled(G[:, ix[:, None], ix[None, :]], b[:, ix])
+            rss = float(y @ y) - 2 * np.einsum("si,si->s", p, b[:, ix]) + np.einsum(
+                "si,sij,sj->s", p, G[:, ix[:, None], ix[None, :]], p)
+            take = np.all(p >= 0, axis=1) & (rss < best)
+            best = np.where(take, rss, best)
+            full = np.zeros((S, k))
+            full[:, ix] = p
+            best_p = np.where(take[:, None], full, best_p)
+    r = y[None] - np.einsum("smi,si->sm", A, best_p)
+    return np.einsum("sm,sm->s", r, r)
 
 
 def nnls_rss(fixed: np.ndarray, cand: np.ndarray, y: np.ndarray, fit_power: bool) -> np.ndarray:
     """`(S,)` the least residual sum of squares $|y - B p - a_s q|^2$ over $p, q \\ge 0$ for
     every candidate column `cand[s] (M,)`, `fixed (M, m)` the placed lights' columns: the
-    normal equations batched over the candidates, `scipy.optimize.nnls` where they give a
-    negative power. Without `fit_power` the powers are 1 (as given)."""
+    normal equations batched over the candidates (the placed columns' Gram once, the
+    candidates' products with them as one matrix product); where they give a negative power,
+    every support's least squares (`_nnls_by_supports`, up to `SUPPORTS_UP_TO` placed
+    columns) or `scipy.optimize.nnls`. Without `fit_power` the powers are 1 (as given)."""
     if not fit_power:
         r = y - fixed.sum(axis=1) if fixed.size else y
         d = r[None] - cand
         return np.einsum("sm,sm->s", d, d)
-    from scipy.optimize import nnls
-
     ok = np.all(np.isfinite(cand), axis=1)
     cand = np.where(ok[:, None], cand, 0.0)
     S, m = cand.shape[0], fixed.shape[1]
-    A = np.concatenate([np.broadcast_to(fixed[None], (S, *fixed.shape)), cand[:, :, None]], axis=2)  # (S, M, m+1)
-    G = np.einsum("smi,smj->sij", A, A)
-    b = np.einsum("smi,m->si", A, y)
-    d = np.einsum("sii->si", G)
-    scale = np.sqrt(np.where(d > 0, d, 1.0))
-    Gn = G / (scale[:, :, None] * scale[:, None, :]) + 1e-12 * np.eye(m + 1)  # a zero column: its power 0
-    p = np.linalg.solve(Gn, (b / scale)[:, :, None])[:, :, 0] / scale
+    G = np.empty((S, m + 1, m + 1))
+    G[:, :m, :m] = fixed.T @ fixed
+    G[:, :m, m] = G[:, m, :m] = cand @ fixed
+    G[:, m, m] = np.einsum("sm,sm->s", cand, cand)
+    b = np.empty((S, m + 1))
+    b[:, :m] = fixed.T @ y
+    b[:, m] = cand @ y
+    p = _solve_scaled(G, b)
     rss = float(y @ y) - 2 * np.einsum("si,si->s", p, b) + np.einsum("si,sij,sj->s", p, G, p)
-    for s in np.flatnonzero(ok & (np.any(p < 0, axis=1) | ~np.isfinite(rss))):
-        rss[s] = nnls(A[s], y)[1] ** 2
+    bad = np.flatnonzero(ok & (np.any(p < 0, axis=1) | ~np.isfinite(rss)))
+    if bad.size:
+        A = np.concatenate([np.broadcast_to(fixed[None], (bad.size, *fixed.shape)), cand[bad, :, None]], axis=2)
+        if m < SUPPORTS_UP_TO:
+            rss[bad] = _nnls_by_supports(A, G[bad], b[bad], y)
+        else:
+            from scipy.optimize import nnls
+
+            rss[bad] = [nnls(a, y)[1] ** 2 for a in A]
     rss[~ok] = np.inf
     return np.maximum(rss, 0.0)
 
@@ -70,20 +118,69 @@ def pair_rss(fixed: np.ndarray, ca: np.ndarray, cb: np.ndarray, y: np.ndarray, f
             a = a - (a @ q) @ q.T
         gaa, ya, gab = np.einsum("sm,sm->s", a, a), a @ r, a @ cb.T
         if fit_power:
-            det = gaa[:, None] * gbb[None] - gab ** 2
-            good = det > 1e-12 * gaa[:, None] * gbb[None]
-            det = np.where(good, det, 1.0)
-            p = (gbb[None] * ya[:, None] - gab * yb[None]) / det
-            u = (gaa[:, None] * yb[None] - gab * ya[:, None]) / det
-            both = (gbb[None] * ya[:, None] ** 2 - 2 * gab * ya[:, None] * yb[None] + gaa[:, None] * yb[None] ** 2) / det
+            # the pair's powers (pn, un) / det where both are non-negative, else the better single column
             one_a = np.where((ya > 0) & (gaa > 0), ya ** 2 / np.where(gaa > 0, gaa, 1.0), 0.0)
-            single = np.maximum(one_a[:, None], one_b[None])
-            explained = np.where(good & (p >= 0) & (u >= 0), np.maximum(both, single), single)
-            f = rr - explained
+            gg = np.multiply.outer(gaa, gbb)
+            det = gg - gab * gab
+            good = det > 1e-12 * gg
+            pn = np.multiply.outer(ya, gbb)
+            pn -= gab * yb[None]
+            un = np.multiply.outer(gaa, yb)
+            un -= gab * ya[:, None]
+            good &= pn >= 0
+            good &= un >= 0
+            both = ya[:, None] * pn
+            both += yb[None] * un
+            both /= np.where(good, det, 1.0)
+            explained = np.maximum.outer(one_a, one_b)
+            np.maximum(explained, both, out=explained, where=good)
         else:
-            f = rr - 2 * ya[:, None] - 2 * yb[None] + gaa[:, None] + gbb[None] + 2 * gab
-        f = np.where(oka[:, None] & okb[None], f, np.inf)
-        s, t = np.unravel_index(int(np.argmin(f)), f.shape)
-        if f[s, t] < best[0]:
-            best = (float(f[s, t]), a0 + int(s), int(t))
+            explained = 2 * ya[:, None] + 2 * yb[None] - gaa[:, None] - gbb[None] - 2 * gab
+        explained[~oka] = -np.inf
+        explained[:, ~okb] = -np.inf
+        s, t = np.unravel_index(int(np.argmax(explained)), explained.shape)
+        f = rr - float(explained[s, t])
+        if f < best[0]:
+            best = (f, a0 + int(s), int(t))
     return best
+
+
+class ScreenMemo:
+    """The screens of one placement (`_global_placement.place`) against `y (M,)`: each light's
+    candidate columns `cols[j] (S_j, M)` only grow (appended), so the scores of light `j`'s
+    candidates with the other lights held at `chosen` (`rss`) and of light pairs (`pair`) are
+    kept by what they depend on (the held candidates' indices, the columns' counts) and a longer
+    column list adds only its new candidates' scores."""
+
+    def __init__(self, y: np.ndarray, fit_power: bool) -> None:
+        self.y, self.fit_power = y, fit_power
+        self._rss: dict = {}
+        self._pairs: dict = {}
+
+    def _held(self, cols: list, chosen: dict, skip: tuple) -> tuple[tuple, np.ndarray]:
+        held = tuple(sorted((i, int(c)) for i, c in chosen.items() if i not in skip))
+        B = np.stack([cols[i][c] for i, c in held], axis=1) if held else np.zeros((self.y.shape[0], 0))
+        return held, B
+
+    def rss(self, cols: list, j: int, chosen: dict) -> np.ndarray:
+        """`(S_j,)` `nnls_rss` of light `j`'s candidates with the others held at `chosen`
+        (light index -> candidate index; light `j`'s own entry ignored). Not to be modified."""
+        held, B = self._held(cols, chosen, (j,))
+        key = (j, held)
+        n = cols[j].shape[0]
+        old = self._rss.get(key)
+        if old is not None and old.shape[0] == n:
+            return old
+        done = 0 if old is None else old.shape[0]
+        new = nnls_rss(B, cols[j][done:], self.y, self.fit_power)
+        out = new if old is None else np.concatenate([old, new])
+        self._rss[key] = out
+        return out
+
+    def pair(self, cols: list, a: int, b: int, chosen: dict) -> tuple[float, int, int]:
+        """`pair_rss` of lights `a` and `b`'s candidates with the others held at `chosen`."""
+        held, B = self._held(cols, chosen, (a, b))
+        key = (a, b, held, cols[a].shape[0], cols[b].shape[0])
+        if key not in self._pairs:
+            self._pairs[key] = pair_rss(B, cols[a], cols[b], self.y, self.fit_power)
+        return self._pairs[key]

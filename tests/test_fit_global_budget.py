@@ -101,8 +101,8 @@ def test_a_budget_fit_runs_refine_then_rank(monkeypatch):
     ranking ended at 25 times that)."""
     calls = []
 
-    def spy(problem, thetas, lm, batch):
-        out = refine_and_rank(problem, thetas, lm, batch)
+    def spy(problem, thetas, lm, batch, *stop):
+        out = refine_and_rank(problem, thetas, lm, batch, *stop)
         calls.append(out[1])
         return out
 
