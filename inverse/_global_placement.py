@@ -45,13 +45,14 @@ column of light $j$ at its reference power, `(3N,)`). So the screen needs no der
    program of its joint refinement: rows padded to its batch, no new compilation), and ranked
    by the refined loss (`refine_and_rank`; under a power budget at the powers the final fit
    solves there, `final_losses`: $p \ge 0$ and the budget, not the LM's signed projection).
-8. **Screen again at the refined placement.** The screens above hold the other lights at grid
-   resolution, where their columns are a few % of the scene off and a light's residual is
-   theirs too. With the best refined placement's columns held instead, each light's candidates
-   are ranked and locally screened again (step 6's screen), and the placement with that light
-   moved to each of its `LOCAL_SEEDS` best is refined and ranked as in step 7 (up to a batch of
-   them, in basins distinct from those refined already): coordinate descent over the lights at
-   refined resolution (`RESCREEN`).
+8. **Screen again at the refined placement** (`_rescreen`). The screens above hold the other
+   lights at grid resolution, where their columns are a few % of the scene off and a light's
+   residual is theirs too. With the best refined placement's columns held instead, each light's
+   candidates are ranked and locally screened again (step 6's screen), every pair of lights is
+   re-chosen together (step 5's pair move), and the placements so moved are refined and ranked
+   as in step 7 (up to a batch of them, in basins distinct from those refined already); in
+   rounds while a round improves the best refined loss (`RESCREEN`: coordinate descent over
+   single lights and pairs at refined resolution).
 
 The result is the best refined placement (`theta`, the poses), the other refined placements in distinct basins
 (`alternatives`, up to `ALTERNATIVES`, best first: `fit_lights` finishes them with its joint refinement, where
@@ -80,6 +81,7 @@ from ._multilight import LightsProblem, _parts, build_lights, solve
 from ._nnls_screen import nnls_rss, pair_rss
 from ._parametrisation import LightParametrisation
 from ._powers import constrained_powers, emitted_power
+from ._rescreen import rescreen
 
 POSITIONS = 512
 CHUNK = 64
@@ -540,28 +542,21 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
         values, losses, problem = refine_and_rank(problem, thetas[picked], lm, keep)
         win = picked[int(np.argmin(losses))]  # the losses are in `picked`'s order
         best_ch = contenders[win][1]
-        if RESCREEN:  # step 8: each light screened again with the others at the best refined placement
-            best = values[int(np.argmin(losses))]
-            at = {}
-            for j in todo:
-                o = problem.offsets[j]
-                a, problem = unit_columns(problem, j, best[o:o + params[j].size][None])
-                at[j] = a[0]
-            moved = []
-            for j in todo:
-                others = [at[i] for i in todo if i != j]
-                B = np.stack(others, axis=1) if others else np.zeros((y.shape[0], 0))
-                o = problem.offsets[j]
-                for c in local_screen(j, B):
-                    th = best.copy()
-                    th[o:o + params[j].size] = rows[j][c]
-                    moved.append(th)
-            both = np.concatenate([values[np.argsort(losses, kind="stable")], np.stack(moved)])
-            new = [i - len(values) for i in distinct_basins(params, problem.offsets, both, region.extent, len(both))
-                   if i >= len(values)][:keep]
-            if new:
-                v2, f2, problem = refine_and_rank(problem, np.stack(moved)[new], lm, keep)
-                values, losses = np.concatenate([values, v2]), np.concatenate([losses, f2])
+        if RESCREEN:  # step 8: the lights screened again at the best refined placement (`_rescreen`)
+            def columns(j: int, r: np.ndarray) -> np.ndarray:
+                nonlocal problem
+                a, problem = unit_columns(problem, j, r)
+                return a
+
+            def refine(th: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                nonlocal problem
+                v, f, problem = refine_and_rank(problem, th, lm, keep)
+                return v, f
+
+            values, losses = rescreen(
+                values, losses, todo, problem.offsets, [0 if p is None else p.size for p in params], rows, cols, y,
+                problem.fit_power, columns, local_screen, refine,
+                lambda th, k: distinct_basins(params, problem.offsets, th, region.extent, k), keep)
         order = np.argsort(losses, kind="stable")
         best_f = 2.0 * float(losses[order[0]])
         theta = values[order[0]]
