@@ -16,7 +16,8 @@ column of light $j$ at its reference power, `(3N,)`). So the screen needs no der
    (`scipy.stats.qmc`), plus points on the rays of `light_from_diffuse_maximum` at the
    brightest targets (Poulin ch. 5's closed form), plus the light's own multistart rows
    around the given pose (`_multistart.make_starts`: the given pose first). A polygon is
-   tried facing the targets' centroid, facing down ($-u$) and as given; a segment as given
+   tried facing the targets' centroid, facing down ($-u$), as given and, with `POLYGON_TILTS`,
+   with its normal tilted from $-u$ on rings of azimuths; a segment as given
    and along three horizontal directions; sizes as given.
 3. **Unit contributions.** One compiled program per light kind evaluates the forward model
    (`_multilight._parts`: soft shadows, the shadow engine at the fit's capacity) at `CHUNK`
@@ -92,6 +93,9 @@ BEAM, PER_PARENT, REFINED = 12, 3, 2
 HEIGHT_MIN, HEIGHT_MAX = 0.02, 0.6
 LATERAL_MARGIN = 0.1
 DIFFUSE_MAXIMA = 3
+# Polygon normals tilted from straight down, as (tilt from -u in rad, number of azimuths) rings:
+# extra orientation variants of every polygon candidate (step 2). Off by default (empty).
+POLYGON_TILTS: tuple = ()
 # Refine, then rank (module docstring, step 7): at most BASINS placements, BASIN_STEPS LM
 # iterations each; distinct when some light's centre is BASIN_DISTANCE of the extent away or its
 # orientation parameters BASIN_TURN (rad) apart; ALTERNATIVES refined runners-up handed on.
@@ -248,6 +252,9 @@ def rows_at(param: LightParametrisation, region: Region, centres: np.ndarray) ->
     if "orientation" in sl and param.kind == "polygon":
         n0 = np.asarray(param.frame0, np.float64)[:, 2]
         orients = [np.zeros(3), -region.axes[2], "centroid"]
+        e1, e2, up = region.axes
+        orients += [-np.cos(t) * up + np.sin(t) * (np.cos(a) * e1 + np.sin(a) * e2)
+                    for t, k in POLYGON_TILTS for a in 2 * np.pi * np.arange(k) / k]
     elif "orientation" in sl and param.kind == "linear":
         F = np.asarray(param.frame0, np.float64)
         e1, e2 = region.axes[0], region.axes[1]
