@@ -182,7 +182,8 @@ def fit_lights(
     good as the right one): up to 16 of them in distinct basins are refined jointly for 30
     iterations in one batched solve and ranked by the refined loss; then each light is screened
     again with the others at the best refined placement (their columns no longer a grid step
-    off) and those placements are refined and ranked too; the runners-up in distinct basins
+    off), every pair of lights re-chosen together there, and those placements are refined and
+    ranked too, in rounds while a round halves the best loss; the runners-up in distinct basins
     are finished with the best in the joint refinement below. It runs after the search from the given poses
     unless that fit is exact (a final loss below `EXACT_LOSS` = 1e-12 of $\\tfrac12\\sum w c^2$),
     and the lower final loss of the two wins, so starts 10 % away cost what they did. Then each

@@ -16,7 +16,8 @@ column of light $j$ at its reference power, `(3N,)`). So the screen needs no der
    (`scipy.stats.qmc`), plus points on the rays of `light_from_diffuse_maximum` at the
    brightest targets (Poulin ch. 5's closed form), plus the light's own multistart rows
    around the given pose (`_multistart.make_starts`: the given pose first). A polygon is
-   tried facing the targets' centroid, facing down ($-u$) and as given; a segment as given
+   tried facing the targets' centroid, facing down ($-u$), as given and, with `POLYGON_TILTS`,
+   with its normal tilted from $-u$ on rings of azimuths; a segment as given
    and along three horizontal directions; sizes as given.
 3. **Unit contributions.** One compiled program per light kind evaluates the forward model
    (`_multilight._parts`: soft shadows, the shadow engine at the fit's capacity) at `CHUNK`
@@ -46,14 +47,16 @@ column of light $j$ at its reference power, `(3N,)`). So the screen needs no der
    program of its joint refinement: rows padded to its batch, no new compilation), and ranked
    by the refined loss (`refine_and_rank`; under a power budget at the powers the final fit
    solves there, `final_losses`: $p \ge 0$ and the budget, not the LM's signed projection).
-8. **Screen again at the refined placement.** The screens above hold the other lights at grid
-   resolution, where their columns are a few % of the scene off and a light's residual is
-   theirs too. With the best refined placement's columns held instead, each light's candidates
-   are ranked and locally screened again (step 6's screen), and the placement with that light
-   moved to each of its `LOCAL_SEEDS` best is refined and ranked as in step 7 (up to a batch of
-   them, in basins distinct from those refined already): coordinate descent over the lights at
-   refined resolution (`RESCREEN`). A refined placement that explains the targets exactly
-   (`EXACT`) ends steps 7 and 8: the batches after its own are not refined, nothing is re-screened.
+8. **Screen again at the refined placement** (`_rescreen`). The screens above hold the other
+   lights at grid resolution, where their columns are a few % of the scene off and a light's
+   residual is theirs too. With the best refined placement's columns held instead, each light's
+   candidates are ranked and locally screened again (step 6's screen), every pair of lights is
+   re-chosen together (step 5's pair move), and the placements so moved are refined and ranked
+   as in step 7 (up to a batch of them, in basins distinct from those refined already); in
+   rounds while a round improves the best refined loss (`RESCREEN`: coordinate descent over
+   single lights and pairs at refined resolution).
+   A refined placement that explains the targets exactly (`EXACT`) ends steps 7 and 8: the batches
+   after its own are not refined, nothing is re-screened.
 
 The result is the best refined placement (`theta`, the poses), the other refined placements in distinct basins
 (`alternatives`, up to `ALTERNATIVES`, best first: `fit_lights` finishes them with its joint refinement, where
@@ -82,6 +85,7 @@ from ._multilight import LightsProblem, _parts, build_lights, solve
 from ._nnls_screen import ScreenMemo, nnls_rss
 from ._parametrisation import LightParametrisation
 from ._powers import constrained_powers, emitted_power
+from ._rescreen import rescreen
 
 POSITIONS = 512
 CHUNK = 64
@@ -92,6 +96,9 @@ BEAM, PER_PARENT, REFINED = 12, 3, 2
 HEIGHT_MIN, HEIGHT_MAX = 0.02, 0.6
 LATERAL_MARGIN = 0.1
 DIFFUSE_MAXIMA = 3
+# Polygon normals tilted from straight down, as (tilt from -u in rad, number of azimuths) rings:
+# extra orientation variants of every polygon candidate (step 2). Off by default (empty).
+POLYGON_TILTS: tuple = ()
 # Refine, then rank (module docstring, step 7): at most BASINS placements, BASIN_STEPS LM
 # iterations each; distinct when some light's centre is BASIN_DISTANCE of the extent away or its
 # orientation parameters BASIN_TURN (rad) apart; ALTERNATIVES refined runners-up handed on.
@@ -251,6 +258,9 @@ def rows_at(param: LightParametrisation, region: Region, centres: np.ndarray) ->
     if "orientation" in sl and param.kind == "polygon":
         n0 = np.asarray(param.frame0, np.float64)[:, 2]
         orients = [np.zeros(3), -region.axes[2], "centroid"]
+        e1, e2, up = region.axes
+        orients += [-np.cos(t) * up + np.sin(t) * (np.cos(a) * e1 + np.sin(a) * e2)
+                    for t, k in POLYGON_TILTS for a in 2 * np.pi * np.arange(k) / k]
     elif "orientation" in sl and param.kind == "linear":
         F = np.asarray(param.frame0, np.float64)
         e1, e2 = region.axes[0], region.axes[1]
@@ -544,29 +554,21 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
         values, losses, problem = refine_and_rank(problem, thetas[picked], lm, keep, exact)
         win = picked[int(np.argmin(losses))]  # the losses are in `picked`'s order
         best_ch = contenders[win][1]
-        if RESCREEN and not float(np.min(losses)) <= exact:  # step 8: each light screened again with the
-            # others at the best refined placement
-            best = values[int(np.argmin(losses))]
-            at = {}
-            for j in todo:
-                o = problem.offsets[j]
-                a, problem = unit_columns(problem, j, best[o:o + params[j].size][None])
-                at[j] = a[0]
-            moved = []
-            for j in todo:
-                others = [at[i] for i in todo if i != j]
-                B = np.stack(others, axis=1) if others else np.zeros((y.shape[0], 0))
-                o = problem.offsets[j]
-                for c in local_screen(j, B):
-                    th = best.copy()
-                    th[o:o + params[j].size] = rows[j][c]
-                    moved.append(th)
-            both = np.concatenate([values[np.argsort(losses, kind="stable")], np.stack(moved)])
-            new = [i - len(values) for i in distinct_basins(params, problem.offsets, both, region.extent, len(both))
-                   if i >= len(values)][:keep]
-            if new:
-                v2, f2, problem = refine_and_rank(problem, np.stack(moved)[new], lm, keep)
-                values, losses = np.concatenate([values, v2]), np.concatenate([losses, f2])
+        if RESCREEN and not float(np.min(losses)) <= exact:  # step 8: the lights screened again at the best refined placement (`_rescreen`)
+            def columns(j: int, r: np.ndarray) -> np.ndarray:
+                nonlocal problem
+                a, problem = unit_columns(problem, j, r)
+                return a
+
+            def refine(th: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                nonlocal problem
+                v, f, problem = refine_and_rank(problem, th, lm, keep, exact)
+                return v, f
+
+            values, losses = rescreen(
+                values, losses, todo, problem.offsets, [0 if p is None else p.size for p in params], rows, cols, y,
+                problem.fit_power, columns, local_screen, refine,
+                lambda th, k: distinct_basins(params, problem.offsets, th, region.extent, k), keep)
         order = np.argsort(losses, kind="stable")
         best_f = 2.0 * float(losses[order[0]])
         theta = values[order[0]]
