@@ -135,8 +135,15 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     const V3<T> ap = s.a - p, d = s.b - s.a;
     const double apn = std::fabs(ap.x) + std::fabs(ap.y) + std::fabs(ap.z) + std::fabs(d.x) + std::fabs(d.y) + std::fabs(d.z);
     // Crossing candidates: every segment, or for a contour piece on the grid the pieces
-    // registered in the cells its box meets (in index order, as the full loop visits them).
+    // registered in the cells its box meets whose boxes meet its box (in index order, as the
+    // full loop visits them, and with the same box test).
     const bool listed = G && i >= neh;
+    const T* bi = bx.data() + 6 * i;
+    // Boxes apart: no crossing (tested first: the cheaper filter).
+    auto apart = [&](int j) {
+      const T* bj = bx.data() + 6 * j;
+      return bi[3] < bj[0] || bj[3] < bi[0] || bi[4] < bj[1] || bj[4] < bi[1] || bi[5] < bj[2] || bj[5] < bi[2];
+    };
     if (listed) {
       std::vector<int32_t>& cand = w.gcand;
       cand.clear();
@@ -146,7 +153,9 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         for (int ix = r[0]; ix <= r[1]; ix++)
           for (int32_t k = gs[size_t(iy * G + ix)]; k < gs[size_t(iy * G + ix + 1)]; k++) {
             const int32_t j = gi[size_t(k)];
-            if (j != i && stamp_of[size_t(j)] != stamp) stamp_of[size_t(j)] = stamp, cand.push_back(j);
+            if (j == i || stamp_of[size_t(j)] == stamp) continue;
+            stamp_of[size_t(j)] = stamp;
+            if (!apart(j)) cand.push_back(j);
           }
       std::sort(cand.begin(), cand.end());
     }
@@ -156,11 +165,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       if (j == i) continue;
       const SSeg<T>& o = segs[size_t(j)];
       if (i < neh && j < neh) continue;  // E_h's edges meet at its vertices only
-      if (i >= neh && j >= neh) {  // boxes apart: no crossing (tested first: the cheaper filter)
-        const T* bi = bx.data() + 6 * i;
-        const T* bj = bx.data() + 6 * j;
-        if (bi[3] < bj[0] || bj[3] < bi[0] || bi[4] < bj[1] || bj[4] < bi[1] || bi[5] < bj[2] || bj[5] < bi[2]) continue;
-      }
+      if (!listed && i >= neh && j >= neh && apart(j)) continue;  // (listed: filtered above)
       if (s.va >= 0 && o.va >= 0) {
         const bool at_a = same(s.x3a, o.x3a) || same(s.x3a, o.x3b), at_b = same(s.x3b, o.x3a) || same(s.x3b, o.x3b);
         if (at_a || at_b) {
