@@ -50,8 +50,14 @@ struct SilEnd {
 struct SilPieces {
   std::vector<int32_t> boff, kf, kl, sj, cf, link, todo;
   std::vector<SilEnd> ends;
+  // The grid's crossing candidates: per cell the first of its pieces not yet gathered from
+  // (gpos); per piece its candidates of lower index (a list through lnext from lhead to ltail,
+  // values lval, in increasing order).
+  std::vector<int32_t> gpos, lhead, ltail, lval, lnext;
 };
-inline SilPieces& sil_pieces() {
+// Not inlined: the caller keeps the address, where an inlined thread-local would be looked up
+// again (__tls_get_addr in a shared library) at every use in its loops.
+__attribute__((noinline)) inline SilPieces& sil_pieces() {
   static thread_local SilPieces pieces;
   return pieces;
 }
@@ -127,6 +133,13 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   tc.clear();
   td.clear();
   ord.clear();
+  if (G) {
+    pc.gpos.assign(gs.begin(), gs.end() - 1);
+    pc.lhead.assign(size_t(ns), -1);
+    pc.ltail.assign(size_t(ns), -1);
+    pc.lval.clear();
+    pc.lnext.clear();
+  }
   for (int i = 0; i < ns; i++) {
     const SSeg<T>& s = segs[size_t(i)];
     const int32_t b0 = int32_t(ts.size());
@@ -135,32 +148,67 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     const V3<T> ap = s.a - p, d = s.b - s.a;
     const double apn = std::fabs(ap.x) + std::fabs(ap.y) + std::fabs(ap.z) + std::fabs(d.x) + std::fabs(d.y) + std::fabs(d.z);
     // Crossing candidates: every segment, or for a contour piece on the grid the pieces
-    // registered in the cells its box meets (in index order, as the full loop visits them).
+    // registered in the cells its box meets whose boxes meet its box (in index order, as the
+    // full loop visits them, and with the same box test).
     const bool listed = G && i >= neh;
+    const T* bi = bx.data() + 6 * i;
+    // Boxes apart: no crossing (tested first: the cheaper filter).
+    auto apart = [&](int j) {
+      const T* bj = bx.data() + 6 * j;
+      return bi[3] < bj[0] || bj[3] < bi[0] || bi[4] < bj[1] || bj[4] < bi[1] || bi[5] < bj[2] || bj[5] < bi[2];
+    };
+    // A pair is a candidate for both pieces (the relation is symmetric: a common cell, boxes
+    // meeting), so each cell's pieces (in increasing order) are gathered from only past the
+    // piece itself, and each candidate of higher index is entered in that piece's list of lower
+    // ones (filled in increasing order, as the pieces come).
+    int32_t lo = -1;  // the first entry of i's list of lower candidates
     if (listed) {
       std::vector<int32_t>& cand = w.gcand;
       cand.clear();
       stamp++;
       const int32_t* r = w.gcells.data() + 4 * (i - neh);
       for (int iy = r[2]; iy <= r[3]; iy++)
-        for (int ix = r[0]; ix <= r[1]; ix++)
-          for (int32_t k = gs[size_t(iy * G + ix)]; k < gs[size_t(iy * G + ix + 1)]; k++) {
+        for (int ix = r[0]; ix <= r[1]; ix++) {
+          const int cell = iy * G + ix;
+          const int32_t e = gs[size_t(cell + 1)];
+          int32_t k = pc.gpos[size_t(cell)];
+          while (k < e && gi[size_t(k)] <= i) k++;
+          pc.gpos[size_t(cell)] = k;
+          for (; k < e; k++) {
             const int32_t j = gi[size_t(k)];
-            if (j != i && stamp_of[size_t(j)] != stamp) stamp_of[size_t(j)] = stamp, cand.push_back(j);
+            if (stamp_of[size_t(j)] == stamp) continue;
+            stamp_of[size_t(j)] = stamp;
+            if (!apart(j)) cand.push_back(j);
           }
+        }
       std::sort(cand.begin(), cand.end());
+      for (const int32_t j : cand) {
+        const int32_t at = int32_t(pc.lval.size());
+        pc.lval.push_back(i);
+        pc.lnext.push_back(-1);
+        if (pc.ltail[size_t(j)] >= 0) {
+          pc.lnext[size_t(pc.ltail[size_t(j)])] = at;
+        } else {
+          pc.lhead[size_t(j)] = at;
+        }
+        pc.ltail[size_t(j)] = at;
+      }
+      lo = pc.lhead[size_t(i)];
     }
     const int nj = listed ? int(w.gcand.size()) : ns;
-    for (int jj = 0; jj < nj; jj++) {
-      const int j = listed ? w.gcand[size_t(jj)] : jj;
+    for (int jj = 0; jj < nj || lo >= 0; jj++) {
+      int j;
+      if (lo >= 0) {  // the lower candidates first, then the higher ones
+        j = pc.lval[size_t(lo)];
+        lo = pc.lnext[size_t(lo)];
+        jj--;
+      } else {
+        j = listed ? w.gcand[size_t(jj)] : jj;
+      }
       if (j == i) continue;
       const SSeg<T>& o = segs[size_t(j)];
       if (i < neh && j < neh) continue;  // E_h's edges meet at its vertices only
-      if (i >= neh && j >= neh) {  // boxes apart: no crossing (tested first: the cheaper filter)
-        const T* bi = bx.data() + 6 * i;
-        const T* bj = bx.data() + 6 * j;
-        if (bi[3] < bj[0] || bj[3] < bi[0] || bi[4] < bj[1] || bj[4] < bi[1] || bi[5] < bj[2] || bj[5] < bi[2]) continue;
-      }
+      if (!listed && i >= neh && j >= neh && apart(j)) continue;  // (listed: filtered above)
       if (s.va >= 0 && o.va >= 0) {
         const bool at_a = same(s.x3a, o.x3a) || same(s.x3a, o.x3b), at_b = same(s.x3b, o.x3a) || same(s.x3b, o.x3b);
         if (at_a || at_b) {

@@ -11,11 +11,33 @@
 
 namespace jaxshadow_engine {
 
+// The lazily computed grid references' scratch (per thread): per cell the previous cell of its
+// row holding pieces, per row the last row below it holding any, and the stack of cells being
+// computed (grid_cov: `state` is how far the cell's recurrence got, `c` its value so far, `dir`
+// and `from` the row below's cell it is reached through, `r` and `sp` its reference point and
+// the point of the cell below).
+template <class T>
+struct SilGridFrame {
+  int32_t cell, state, c, dir, from;
+  V3<T> r, sp;
+};
+template <class T>
+struct SilGridScratch {
+  std::vector<int32_t> prev, below;
+  std::vector<SilGridFrame<T>> frames;
+};
+template <class T>
+inline SilGridScratch<T>& sil_grid_scratch() {
+  static thread_local SilGridScratch<T> s;
+  return s;
+}
+
 // One receiver's coverage: `segs` are E_h's `neh` edges followed by the contour pieces
 // (silhouette_walk.h); the grid's arrays live in `w`.
 template <class T>
 struct SilCoverage {
   static constexpr int kNone = std::numeric_limits<int>::min();  // a decision too close to call
+  static constexpr int kUnset = kNone + 1;                         // a grid cell's C not computed yet
   const PolyCall<T>& call;
   const Occluders<T>& occ;
   const SilhouetteTree& st;
@@ -37,10 +59,12 @@ struct SilCoverage {
   double umin = 0, vmin = 0, du = 0, dv = 0, gpad = 0;
   double O[3] = {0, 0, 0}, U[3] = {0, 0, 0}, Vv[3] = {0, 0, 0};
   double ehu[130], ehv[130];
+  double cside[130], eex[130], eey[130], emarg[130];  // per E_h edge in (u, v): side of its centre, direction, margin
   std::vector<int32_t>& gs;
   std::vector<int32_t>& gi;
   std::vector<int32_t>& stamp_of;
   int32_t stamp = 0;  // the current query (stamp_of: the last query that tested a piece)
+  SilGridScratch<T>* gscratch = nullptr;  // the grid references' scratch (grid_references)
 
   SilCoverage(const PolyCall<T>& call_, const SilhouetteTree& st_, Work<T>& w_, const Edge<T>* eh_, int neh_, V3<T> p_,
               V3<T> ne_, double scale_)
@@ -264,99 +288,170 @@ struct SilCoverage {
   // when it is clear of E_h's edges by a thousandth of a cell. C there from the previous such cell
   // of its row (the cells between hold no piece), else from the row of such cells below: straight
   // up from the cell below when it has a reference, else through a point of that cell reached
-  // along its row from the nearest cell holding pieces; else from q0.
+  // along its row from the nearest cell holding pieces; else from q0. A cell's C is computed when
+  // a query first needs it (grid_cov), with the cells it is computed from first: each value and
+  // each decision is the one the same recurrence gives when every cell is computed in row order,
+  // and most cells are never queried.
   void grid_references() {
-    if (G) {
-      w.gref.resize(size_t(G * G));
-      w.gcov.assign(size_t(G * G), kNone);
-      // Per E_h edge: its direction (eex, eey), the side E_h's centre lies on, and the margin
-      // times its length.
-      double cside[130], eex[130], eey[130], emarg[130];
-      const double margin = 1e-3 * std::min(du, dv);
-      for (int k = 0; k < neh; k++) {
-        const int k1 = (k + 1) % neh;
-        eex[k] = ehu[k1] - ehu[k], eey[k] = ehv[k1] - ehv[k];
-        cside[k] = eex[k] * (0 - ehv[k]) - eey[k] * (0 - ehu[k]) > 0 ? 1.0 : -1.0;
-        emarg[k] = margin * std::sqrt(eex[k] * eex[k] + eey[k] * eey[k]);
+    if (!G) return;
+    w.gref.resize(size_t(G * G));
+    w.gcov.assign(size_t(G * G), kNone);
+    gscratch = &sil_grid_scratch<T>();
+    SilGridScratch<T>& gsc = *gscratch;
+    gsc.prev.resize(size_t(G * G));
+    gsc.below.resize(size_t(G));
+    int last_row = -1;  // the last row with a cell holding pieces
+    for (int iy = 0; iy < G; iy++) {
+      gsc.below[size_t(iy)] = last_row;
+      int prev = -1;  // the previous cell of this row holding pieces
+      for (int ix = 0; ix < G; ix++) {
+        const int cell = iy * G + ix;
+        if (!held(cell)) continue;
+        gsc.prev[size_t(cell)] = prev;
+        w.gcov[size_t(cell)] = kUnset;
+        prev = cell;
       }
-      auto inside = [&](double x, double y) {  // clear of every E_h edge by the margin
-        for (int k = 0; k < neh; k++)
-          if (!(cside[k] * (eex[k] * (y - ehv[k]) - eey[k] * (x - ehu[k])) > emarg[k])) return false;
-        return true;
-      };
-      auto cell_point = [&](int ix, int iy, V3<T>& r) -> bool {
-        double pu[140], pv[140], qu[140], qv[140];
-        pu[0] = umin + ix * du, pv[0] = vmin + iy * dv;
-        pu[1] = pu[0] + du, pv[1] = pv[0];
-        pu[2] = pu[1], pv[2] = pv[0] + dv;
-        pu[3] = pu[0], pv[3] = pv[2];
-        double ru = pu[0] + 0.5 * du, rv = pv[0] + 0.5 * dv;
-        if (!(inside(pu[0], pv[0]) && inside(pu[1], pv[1]) && inside(pu[2], pv[2]) && inside(pu[3], pv[3]))) {
-          int np = 4;
-          for (int k = 0; k < neh && np >= 3; k++) {  // Sutherland-Hodgman, E_h's side of edge k
-            const int k1 = (k + 1) % neh;
-            const double ex = ehu[k1] - ehu[k], ey = ehv[k1] - ehv[k];
-            auto f = [&](double x, double y) { return cside[k] * (ex * (y - ehv[k]) - ey * (x - ehu[k])); };
-            int nq = 0;
-            for (int a = 0; a < np && nq < 136; a++) {
-              const int b = (a + 1) % np;
-              const double fa = f(pu[a], pv[a]), fb = f(pu[b], pv[b]);
-              if (fa >= 0) qu[nq] = pu[a], qv[nq] = pv[a], nq++;
-              if ((fa >= 0) != (fb >= 0)) {
-                const double t = fa / (fa - fb);
-                qu[nq] = pu[a] + t * (pu[b] - pu[a]), qv[nq] = pv[a] + t * (pv[b] - pv[a]), nq++;
-              }
-            }
-            np = nq;
-            for (int a = 0; a < np; a++) pu[a] = qu[a], pv[a] = qv[a];
+      if (prev >= 0) last_row = iy;
+    }
+    // Per E_h edge: its direction (eex, eey), the side E_h's centre lies on, and the margin
+    // times its length.
+    const double margin = 1e-3 * std::min(du, dv);
+    for (int k = 0; k < neh; k++) {
+      const int k1 = (k + 1) % neh;
+      eex[k] = ehu[k1] - ehu[k], eey[k] = ehv[k1] - ehv[k];
+      cside[k] = eex[k] * (0 - ehv[k]) - eey[k] * (0 - ehu[k]) > 0 ? 1.0 : -1.0;
+      emarg[k] = margin * std::sqrt(eex[k] * eex[k] + eey[k] * eey[k]);
+    }
+  }
+  bool held(int cell) const { return gs[size_t(cell + 1)] > gs[size_t(cell)]; }
+  bool inside(double x, double y) const {  // clear of every E_h edge by the margin
+    for (int k = 0; k < neh; k++)
+      if (!(cside[k] * (eex[k] * (y - ehv[k]) - eey[k] * (x - ehu[k])) > emarg[k])) return false;
+    return true;
+  }
+  // The reference point of cell (ix, iy); false: none.
+  bool cell_point(int ix, int iy, V3<T>& r) const {
+    double pu[140], pv[140], qu[140], qv[140];
+    pu[0] = umin + ix * du, pv[0] = vmin + iy * dv;
+    pu[1] = pu[0] + du, pv[1] = pv[0];
+    pu[2] = pu[1], pv[2] = pv[0] + dv;
+    pu[3] = pu[0], pv[3] = pv[2];
+    double ru = pu[0] + 0.5 * du, rv = pv[0] + 0.5 * dv;
+    if (!(inside(pu[0], pv[0]) && inside(pu[1], pv[1]) && inside(pu[2], pv[2]) && inside(pu[3], pv[3]))) {
+      int np = 4;
+      for (int k = 0; k < neh && np >= 3; k++) {  // Sutherland-Hodgman, E_h's side of edge k
+        const int k1 = (k + 1) % neh;
+        const double ex = ehu[k1] - ehu[k], ey = ehv[k1] - ehv[k];
+        auto f = [&](double x, double y) { return cside[k] * (ex * (y - ehv[k]) - ey * (x - ehu[k])); };
+        int nq = 0;
+        for (int a = 0; a < np && nq < 136; a++) {
+          const int b = (a + 1) % np;
+          const double fa = f(pu[a], pv[a]), fb = f(pu[b], pv[b]);
+          if (fa >= 0) qu[nq] = pu[a], qv[nq] = pv[a], nq++;
+          if ((fa >= 0) != (fb >= 0)) {
+            const double t = fa / (fa - fb);
+            qu[nq] = pu[a] + t * (pu[b] - pu[a]), qv[nq] = pv[a] + t * (pv[b] - pv[a]), nq++;
           }
-          if (np < 3) return false;
-          ru = 0, rv = 0;
-          for (int a = 0; a < np; a++) ru += pu[a], rv += pv[a];
-          ru /= np, rv /= np;
-          if (!inside(ru, rv)) return false;
         }
-        r = V3<T>{T(O[0] + ru * U[0] + rv * Vv[0]), T(O[1] + ru * U[1] + rv * Vv[1]), T(O[2] + ru * U[2] + rv * Vv[2])};
-        return true;
-      };
-      auto held = [&](int cell) { return gs[size_t(cell + 1)] > gs[size_t(cell)]; };
-      int last_row = -1;  // the last row with a cell holding pieces
-      for (int iy = 0; iy < G; iy++) {
-        int prev = -1;  // the previous cell of this row holding pieces
-        for (int ix = 0; ix < G; ix++) {
-          const int cell = iy * G + ix;
-          if (!held(cell)) continue;
-          const int before = prev;
-          prev = cell;
-          V3<T> r;
-          if (!cell_point(ix, iy, r)) continue;
-          w.gref[size_t(cell)] = r;
-          int c = kNone;
+        np = nq;
+        for (int a = 0; a < np; a++) pu[a] = qu[a], pv[a] = qv[a];
+      }
+      if (np < 3) return false;
+      ru = 0, rv = 0;
+      for (int a = 0; a < np; a++) ru += pu[a], rv += pv[a];
+      ru /= np, rv /= np;
+      if (!inside(ru, rv)) return false;
+    }
+    r = V3<T>{T(O[0] + ru * U[0] + rv * Vv[0]), T(O[1] + ru * U[1] + rv * Vv[1]), T(O[2] + ru * U[2] + rv * Vv[2])};
+    return true;
+  }
+  // C at cell's reference point (kNone: none, or a cell holding no piece), computed on first use
+  // with the recurrence above; the cells it needs are computed first, through an explicit stack
+  // (a chain of them can be as long as the grid has cells).
+  int grid_cov(int cell) {
+    if (w.gcov[size_t(cell)] != kUnset) return w.gcov[size_t(cell)];
+    std::vector<SilGridFrame<T>>& stk = gscratch->frames;
+    stk.clear();
+    stk.push_back(SilGridFrame<T>{cell, 0, kNone, -1, -1, {}, {}});
+    while (!stk.empty()) {
+      const int dep = grid_step(stk.back());
+      if (dep >= 0) {
+        stk.push_back(SilGridFrame<T>{dep, 0, kNone, -1, -1, {}, {}});
+      } else {
+        stk.pop_back();
+      }
+    }
+    return w.gcov[size_t(cell)];
+  }
+  // One step of cell f's recurrence (grid_references): -1 when its C is stored, else a cell
+  // whose C it needs first (f keeps its state).
+  int grid_step(SilGridFrame<T>& f) {
+    const int ix = f.cell % G, iy = f.cell / G;
+    const SilGridScratch<T>& gsc = *gscratch;
+    const int before = gsc.prev[size_t(f.cell)], lr = gsc.below[size_t(iy)];
+    const int below = lr >= 0 ? lr * G + ix : -1;
+    auto need = [&](int cell) { return w.gcov[size_t(cell)] == kUnset; };
+    for (;;) {
+      switch (f.state) {
+        case 0:  // the reference point, then the cell it is reached from
+          if (!cell_point(ix, iy, f.r)) {
+            w.gcov[size_t(f.cell)] = kNone;
+            return -1;
+          }
+          w.gref[size_t(f.cell)] = f.r;
           if (before >= 0) {
-            if (w.gcov[size_t(before)] != kNone) c = cross_cells(w.gref[size_t(before)], w.gcov[size_t(before)], r, -1, before, cell);
-          } else if (last_row >= 0) {
-            const int below = last_row * G + ix;
-            if (w.gcov[size_t(below)] != kNone) {
-              c = cross_cells(w.gref[size_t(below)], w.gcov[size_t(below)], r, -1, below, cell);
-            } else {
-              V3<T> sp;
-              if (cell_point(ix, last_row, sp)) {
-                for (int dir = -1; dir <= 1 && c == kNone; dir += 2) {
-                  int k = ix + dir;
-                  while (k >= 0 && k < G && !held(last_row * G + k)) k += dir;
-                  if (k < 0 || k >= G) continue;
-                  const int from = last_row * G + k;
-                  if (w.gcov[size_t(from)] == kNone) continue;
-                  const int c1 = cross_cells(w.gref[size_t(from)], w.gcov[size_t(from)], sp, -1, from, below);
-                  if (c1 != kNone) c = cross_cells(sp, c1, r, -1, below, cell, false);
-                }
-              }
-            }
+            f.state = 1;
+            if (need(before)) return before;
+          } else if (lr >= 0) {
+            f.state = 2;
+            if (need(below)) return below;
+          } else {
+            f.state = 5;
           }
-          if (c == kNone) c = coverage(r, -1);
-          w.gcov[size_t(cell)] = c;
+          break;
+        case 1:  // from the previous cell of the row
+          if (w.gcov[size_t(before)] != kNone) f.c = cross_cells(w.gref[size_t(before)], w.gcov[size_t(before)], f.r, -1, before, f.cell);
+          f.state = 5;
+          break;
+        case 2:  // straight up from the cell below, else through it from its row
+          if (w.gcov[size_t(below)] != kNone) {
+            f.c = cross_cells(w.gref[size_t(below)], w.gcov[size_t(below)], f.r, -1, below, f.cell);
+            f.state = 5;
+          } else if (cell_point(ix, lr, f.sp)) {
+            f.dir = -1;
+            f.state = 3;
+          } else {
+            f.state = 5;
+          }
+          break;
+        case 3: {  // the nearest cell holding pieces in the row below, in direction dir
+          if (f.dir > 1 || f.c != kNone) {
+            f.state = 5;
+            break;
+          }
+          int k = ix + f.dir;
+          while (k >= 0 && k < G && !held(lr * G + k)) k += f.dir;
+          if (k < 0 || k >= G) {
+            f.dir += 2;
+            break;
+          }
+          f.from = lr * G + k;
+          f.state = 4;
+          if (need(f.from)) return f.from;
+          break;
         }
-        if (prev >= 0) last_row = iy;
+        case 4:
+          if (w.gcov[size_t(f.from)] != kNone) {
+            const int c1 = cross_cells(w.gref[size_t(f.from)], w.gcov[size_t(f.from)], f.sp, -1, f.from, below);
+            if (c1 != kNone) f.c = cross_cells(f.sp, c1, f.r, -1, below, f.cell, false);
+          }
+          f.dir += 2;
+          f.state = 3;
+          break;
+        default:  // from q0 when no cell gave it
+          if (f.c == kNone) f.c = coverage(f.r, -1);
+          w.gcov[size_t(f.cell)] = f.c;
+          return -1;
       }
     }
   }
@@ -367,12 +462,13 @@ struct SilCoverage {
       uv(m, um, vm);
       if (um > umin - gpad && um < umin + G * du + gpad && vm > vmin - gpad && vm < vmin + G * dv + gpad) {
         const int cell = cell_of(vm, vmin, dv) * G + cell_of(um, umin, du);
-        if (w.gcov[size_t(cell)] != kNone) {
+        const int cc = grid_cov(cell);
+        if (cc != kNone) {
           const SSeg<T>& s = segs[size_t(skip)];
           const V3<T> r = w.gref[size_t(cell)];
           const int rs = side_of(r, s), qs = s.q0s;
           if (rs != 0 && qs != 0) {
-            const int c = cross_cells(r, w.gcov[size_t(cell)], m, skip, cell, -1);
+            const int c = cross_cells(r, cc, m, skip, cell, -1);
             if (c != kNone) return rs == qs ? c : (qs > 0 ? c + s.w : c - s.w);
           }
         }
@@ -390,21 +486,20 @@ struct SilCoverage {
       uv(m, um, vm);
       if (um > umin - gpad && um < umin + G * du + gpad && vm > vmin - gpad && vm < vmin + G * dv + gpad) {
         const int iy = cell_of(vm, vmin, dv), ix = cell_of(um, umin, du);
-        auto holds = [&](int cell) { return gs[size_t(cell + 1)] > gs[size_t(cell)]; };
         int from = -1;
-        if (holds(iy * G + ix)) {
+        if (held(iy * G + ix)) {
           from = iy * G + ix;
         } else {
           int best = G + 1;
           for (int dir = -1; dir <= 1; dir += 2) {
             int k = ix + dir;
-            while (k >= 0 && k < G && !holds(iy * G + k)) k += dir;
-            if (k < 0 || k >= G || w.gcov[size_t(iy * G + k)] == kNone || std::abs(k - ix) >= best) continue;
+            while (k >= 0 && k < G && !held(iy * G + k)) k += dir;
+            if (k < 0 || k >= G || std::abs(k - ix) >= best || grid_cov(iy * G + k) == kNone) continue;
             best = std::abs(k - ix);
             from = iy * G + k;
           }
         }
-        if (from >= 0 && w.gcov[size_t(from)] != kNone) {
+        if (from >= 0 && grid_cov(from) != kNone) {
           const int c = cross_cells(w.gref[size_t(from)], w.gcov[size_t(from)], m, -1, from, -1);
           if (c != kNone) return c;
         }
