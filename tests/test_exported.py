@@ -63,13 +63,18 @@ def test_key_refuses_what_it_cannot_describe():
         _key(Opaque(), scene, t, e)
 
 
-def test_exported_program_gives_the_jitted_values():
+def _exported_spec() -> tuple:
+    """`(key, leaves, arrays, program, opts, (scene, t, e))`: the specular program exported at -O0."""
     jax.config.update("jax_enable_x64", True)
     scene, t = _problem()
     e = jnp.asarray([1.0, 3.0, 10.0, 30.0], jnp.float64)
     opts = {"xla_backend_optimization_level": 0}
     key, leaves, treedef, arrays = ex.program_key(RAW_SPEC, opts, (traced_specular, scene, t, e), {})
-    prog = ex.export_program(RAW_SPEC, opts, leaves, treedef, arrays)
+    return key, leaves, arrays, ex.export_program(RAW_SPEC, opts, leaves, treedef, arrays), opts, (scene, t, e)
+
+
+def test_exported_program_gives_the_jitted_values():
+    key, leaves, arrays, prog, opts, (scene, t, e) = _exported_spec()
     got = prog([leaves[i] for i in arrays])
     want = jax.jit(lambda sc, tt, ee: RAW_SPEC(traced_specular, sc, tt, ee), compiler_options=opts)(scene, t, e)
     for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want), strict=True):
@@ -87,12 +92,7 @@ def test_outputs_other_than_arrays_in_plain_containers_are_refused():
 
 @pytest.mark.skipif(importlib.util.find_spec("flatbuffers") is None, reason="jax.export serialises with flatbuffers")
 def test_store_round_trip(tmp_path):
-    jax.config.update("jax_enable_x64", True)
-    scene, t = _problem()
-    e = jnp.asarray([1.0, 3.0, 10.0, 30.0], jnp.float64)
-    opts = {"xla_backend_optimization_level": 0}
-    key, leaves, treedef, arrays = ex.program_key(RAW_SPEC, opts, (traced_specular, scene, t, e), {})
-    prog = ex.export_program(RAW_SPEC, opts, leaves, treedef, arrays)
+    key, leaves, arrays, prog, opts, _ = _exported_spec()
     path = str(tmp_path / f"{key}.bin")
     ex.save(path, prog)
     loaded = ex.load(path, opts)
