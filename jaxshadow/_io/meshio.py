@@ -122,63 +122,29 @@ def read_mesh(path: str | os.PathLike, *, weld: float | None = 0.0, crease: floa
     return out
 
 
-_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
-              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
-
-
 def ply_triangle_strips(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray] | None:
     """The vertices `(V, 3)` and triangles `(F, 3)` of a PLY file whose faces are triangle
     strips (an `element tristrips` with one `vertex_indices` list, -1 ending a strip: the format
-    of the Stanford scans, which trimesh does not read), binary or ASCII; `None` for any other
-    PLY. Strips alternate their winding (the odd triangles of a strip are `b a c`); the
-    triangles that repeat a vertex (joins of strips) are left out."""
-    with open(os.fspath(path), "rb") as fh:
-        data = fh.read()
-    end = data.find(b"end_header")
-    if not data.startswith(b"ply") or end < 0:
+    of the Stanford scans, which trimesh does not read), read with `plyfile`, binary or ASCII;
+    `None` for any other PLY. Strips alternate their winding (the odd triangles of a strip are
+    `b a c`); the triangles that repeat a vertex (joins of strips) are left out."""
+    try:
+        import plyfile
+    except ImportError:
+        raise ImportError("reading a PLY of triangle strips needs plyfile: pip install 'jaxshadow[mesh]'") from None
+    try:
+        ply = plyfile.PlyData.read(os.fspath(path))
+    except Exception:  # not a PLY plyfile can read: the caller reports no triangles
         return None
-    body = data.index(b"\n", end) + 1
-    header = data[:end].decode("ascii", "replace").splitlines()
-    fmt = next((h.split()[1] for h in header if h.startswith("format ")), "")
-    elements: list[tuple[str, int, list[list[str]]]] = []
-    for line in header:
-        w = line.split()
-        if w[:1] == ["element"] and len(w) == 3:
-            elements.append((w[1], int(w[2]), []))
-        elif w[:1] == ["property"] and elements:
-            elements[-1][2].append(w[1:])
-    names = [e[0] for e in elements]
-    if names != ["vertex", "tristrips"] or fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+    names = [e.name for e in ply.elements]
+    if names != ["vertex", "tristrips"] or [q.name for q in ply["tristrips"].properties] != ["vertex_indices"]:
         return None
-    (_, nv, vprops), (_, ns, sprops) = elements
-    if any(p[0] == "list" or p[0] not in _PLY_TYPES for p in vprops) or len(sprops) != 1 or sprops[0][0] != "list":
+    vert = ply["vertex"]
+    if not {"x", "y", "z"} <= {q.name for q in vert.properties}:
         return None
-    names_v = [p[1] for p in vprops]
-    if not {"x", "y", "z"} <= set(names_v):
-        return None
-    xyz = [names_v.index(c) for c in "xyz"]
-    if fmt == "ascii":
-        words = data[body:].split()
-        v = np.asarray(words[: nv * len(vprops)], dtype=np.float64).reshape(nv, len(vprops))[:, xyz]
-        rest = words[nv * len(vprops):]
-        idx_parts, k = [], 0
-        for _ in range(ns):
-            count = int(rest[k])
-            idx_parts.append(np.asarray(rest[k + 1:k + 1 + count], dtype=np.int64))
-            k += 1 + count
-    else:
-        bo = "<" if fmt == "binary_little_endian" else ">"
-        vt = np.dtype([(f"p{i}", bo + _PLY_TYPES[p[0]]) for i, p in enumerate(vprops)])
-        raw = np.frombuffer(data, vt, nv, body)
-        v = np.stack([raw[f"p{i}"].astype(np.float64) for i in xyz], axis=1)
-        ct, it = np.dtype(bo + _PLY_TYPES[sprops[0][1]]), np.dtype(bo + _PLY_TYPES[sprops[0][2]])
-        off = body + vt.itemsize * nv
-        idx_parts = []
-        for _ in range(ns):
-            count = int(np.frombuffer(data, ct, 1, off)[0])
-            idx_parts.append(np.frombuffer(data, it, count, off + ct.itemsize).astype(np.int64))
-            off += ct.itemsize + it.itemsize * count
+    v = np.stack([np.asarray(vert[c], dtype=np.float64) for c in "xyz"], axis=1)
+    nv = len(v)
+    idx_parts = [np.asarray(x, dtype=np.int64) for x in ply["tristrips"]["vertex_indices"]]
     faces = []
     for idx in idx_parts:
         for strip in np.split(idx, np.flatnonzero(idx < 0)):
