@@ -114,6 +114,7 @@ def fit_jit(fun: Callable | None = None, *, options: dict | None = None) -> Any:
             out = _exported_call(fun, opts, exported, args, kwargs)
             if out is not _NOT_EXPORTED:
                 return out
+        if not jitted:  # the jitted function, made once
             cpu = jax.default_backend() == "cpu" and "compiler_options" in inspect.signature(jax.jit).parameters
             if cpu:
                 # `filter_jit` forwards its extra keywords to `jax.jit` (its stubs do not list them).
