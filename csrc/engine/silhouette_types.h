@@ -65,11 +65,14 @@ struct STEntry {
   bool sure;
 };
 
-// A kept edge: its SEdge, its ends (the occluders' values), and its coverage jump W when every
-// receiver of the tile sees both faces on known sides (0: decided per receiver).
+// A kept edge: its SEdge, its ends (the occluders' values), its coverage jump W when every
+// receiver of the tile sees both faces on known sides (0: decided per receiver), and `in`: both
+// ends lie inside every plane of every receiver's pyramid by a margin far above rounding (the
+// receiver's clipping keeps the whole edge and its ends are clear of E_h's boundary).
 struct STEdge {
   SEdge e;
   int8_t w;
+  bool in;
   double a[3], b[3];
 };
 

@@ -217,6 +217,27 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
     }
     return false;
   };
+  // Both ends of an edge inside every plane of every receiver's pyramid (the light's edge planes
+  // and, where the tile's receivers share their normal, the horizon's), by a margin of 1e-9 (or
+  // 1024 epsT) of the plane's scale times tb.d1, far above both the rounding of the walk's
+  // g = cone . (x - p) (tp's safety) and its test of an unclipped end against E_h's boundary
+  // (tol times the end's 1-norm from p, plus the rounding of its projection: a few eps of S3).
+  // Then every receiver of the box computes g >= 0 at both ends for every cone plane, so
+  // cyrus_beck keeps the whole edge (t0 = 0, t1 = 1) and neither end is too close to E_h's
+  // boundary: contour_edges skips those tests for it.
+  const double inmarg = (1e-9 + 1024 * epsT) * tb.d1;
+  auto edge_in = [&](const double* a, const double* b) {
+    if (!horizon) return false;
+    for (const double* x : {a, b}) {
+      const double lo = hn[0] * (x[0] - tb.pc[0]) + hn[1] * (x[1] - tb.pc[1]) + hn[2] * (x[2] - tb.pc[2]) -
+                        (std::fabs(hn[0]) * tb.hb[0] + std::fabs(hn[1]) * tb.hb[1] + std::fabs(hn[2]) * tb.hb[2]);
+      if (!(lo > inmarg * hnn)) return false;
+      const double box[6] = {x[0], x[1], x[2], x[0], x[1], x[2]};
+      for (int k = 0; k < ntp; k++)
+        if (!(tile_plane_inf_best(tp[k], tb, box) > tp[k].safety + inmarg * tp[k].cn1)) return false;
+    }
+    return true;
+  };
   const Occluders<T>& occ = call.occ;
   // Preorder, right subtree first (the walk's stack order); an entry that keeps nothing is dropped.
   struct Rec {
@@ -225,6 +246,7 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
     const decltype(outside)& out;
     const decltype(edge_out)& eout;
     const decltype(sure)& is_sure;
+    const decltype(edge_in)& ein;
     const TileBox& tb;
     const Occluders<T>& occ;
     double smargin;
@@ -248,7 +270,7 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
         for (int32_t j = nd.start; j < nd.start + nd.count; j++) {
           const SEdge& e = st.edges[size_t(j)];
           const V3<T> a3 = occ.vref(e.ra), b3 = occ.vref(e.rb);
-          keep(STEdge{e, 0, {double(a3.x), double(a3.y), double(a3.z)}, {double(b3.x), double(b3.y), double(b3.z)}});
+          keep(STEdge{e, 0, false, {double(a3.x), double(a3.y), double(a3.z)}, {double(b3.x), double(b3.y), double(b3.z)}});
         }
         if (!leaf_done(me, e0)) return false;
       }
@@ -268,6 +290,7 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
         if (eout(te.a, te.b)) return;
         te.w = int8_t(Wk);
       }
+      te.in = ein(te.a, te.b);
       tc.edges.push_back(te);
     }
     bool leaf_done(size_t me, int32_t e0) {
@@ -303,7 +326,7 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
       return true;
     }
   };
-  Rec rec{st, tc, outside, edge_out, sure, tb, occ, smargin, false};
+  Rec rec{st, tc, outside, edge_out, sure, edge_in, tb, occ, smargin, false};
   if (parent && parent->ok && parent->tree == &st) {
     if (!parent->entries.empty()) rec.visit_list(*parent, 0);
   } else {
@@ -358,7 +381,9 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
   int32_t n_contour = 0;
   // One edge of a leaf the walk reached: appended when it is a contour edge in the pyramid; W
   // nonzero: its coverage jump, known (the faces' sides as sil_side gives them). False: fall back.
-  auto edge = [&](const SEdge& e, int W, V3<T> a3, V3<T> b3) -> bool {
+  // `in`: the tile proved both ends inside every cone plane with a margin (STEdge::in): the
+  // clipping keeps the whole edge and the end tests below pass, so they are skipped.
+  auto edge = [&](const SEdge& e, int W, V3<T> a3, V3<T> b3, bool in) -> bool {
     if (W == 0) {
       const int sf = sil_side(st, e.f, pd);
       if (sf == 0) return false;
@@ -370,7 +395,7 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
       }
       if (W == 0) return true;
     }
-    {
+    if (!in) {
       // Both ends clearly outside one cone plane: cyrus_beck's interval for that plane is empty
       // (the same g0, g1; beyond its collinear tolerance, as norms are at most 1-norms), so it
       // would return false. Skips the edge's plane and the clipping for most non-contour edges
@@ -388,9 +413,9 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
       if (out) return true;
     }
     const V3<T> own = edge_plane(p, a3, b3);
-    double t0, t1;
-    int i0, i1;
-    if (!cyrus_beck(p, a3, b3, cone, np0, own, t0, t1, i0, i1)) return true;
+    T t0 = 0, t1 = 1;
+    int i0 = 0, i1 = 0;
+    if (!in && !cyrus_beck(p, a3, b3, cone, np0, own, t0, t1, i0, i1)) return true;
     const PlaneRef oref = through(e.ra, e.rb);
     SSeg<T> s;
     s.own = own, s.own_n = norm(own), s.q0s = 0, s.own_ref = oref, s.w = W, s.va = e.ra, s.vb = e.rb, s.x3a = a3, s.x3b = b3;
@@ -409,7 +434,7 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
     end(t0 > 0, i0, a3, e.ra, s.a, s.ca, s.on_a);
     end(t1 < 1, i1, b3, e.rb, s.b, s.cb, s.on_b);
     if (same(s.a, s.b)) return true;
-    for (int k = 0; k < np0; k++) {  // an unclipped end on E_h's boundary: too close to call
+    for (int k = 0; k < np0 && !in; k++) {  // an unclipped end on E_h's boundary: too close to call
       if (!nonzero(cone[k])) continue;
       const V3<T> ra = s.a - p, rb = s.b - p;
       const T cn1 = cone_n[k];
@@ -454,7 +479,7 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
         for (int32_t k = en.e0; k < en.e1; k++) {
           const STEdge& te = tc.edges[size_t(k)];
           const V3<T> a3{T(te.a[0]), T(te.a[1]), T(te.a[2])}, b3{T(te.b[0]), T(te.b[1]), T(te.b[2])};
-          if (!edge(te.e, te.w, a3, b3)) return kFallback;
+          if (!edge(te.e, te.w, a3, b3, te.in)) return kFallback;
         }
       }
       i++;
@@ -484,7 +509,7 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
     }
     for (int32_t k = nd.start; k < nd.start + nd.count; k++) {
       const SEdge& e = st.edges[size_t(k)];
-      if (!edge(e, 0, occ.vref(e.ra), occ.vref(e.rb))) return kFallback;
+      if (!edge(e, 0, occ.vref(e.ra), occ.vref(e.rb), false)) return kFallback;
     }
   }
   return n_contour;
