@@ -49,7 +49,8 @@ struct SilEnd {
 // Per-thread scratch of silhouette_receiver's pieces (allocated once per thread).
 struct SilPieces {
   std::vector<int32_t> boff, kf, kl, sj, cf, link, todo;
-  std::vector<SilEnd> ends;
+  std::vector<SilEnd> ends;     // all slots empty between receivers (the used ones are emptied after use)
+  std::vector<int32_t> ends_used;  // the slots filled for this receiver
   // The grid's crossing candidates: per cell the first of its pieces not yet gathered from
   // (gpos); per piece its candidates of lower index (a list through lnext from lhead to ltail,
   // values lval, in increasing order).
@@ -304,7 +305,9 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     std::vector<SilEnd>& tab = pc.ends;
     size_t nh = 16;
     while (nh < 4 * size_t(ns - neh)) nh *= 2;
-    tab.assign(nh, SilEnd{0, 0, 0, -1, -1, 0});
+    std::vector<int32_t>& used = pc.ends_used;
+    if (tab.size() < nh) tab.resize(nh, SilEnd{0, 0, 0, -1, -1, 0});  // the first nh slots are used
+    used.clear();
     auto bits = [](double x) {
       uint64_t u;
       x += 0.0;  // -0 as +0 (same() counts them equal)
@@ -319,6 +322,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         SilEnd& t = tab[k];
         if (t.n == 0) {
           t = SilEnd{x, y, z, e, -1, 1};
+          used.push_back(int32_t(k));
           return;
         }
         if (t.x == x && t.y == y && t.z == z) {
@@ -333,7 +337,10 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       if (s.on_a < 0) add(s.x3a, 2 * i);
       if (s.on_b < 0) add(s.x3b, 2 * i + 1);
     }
-    for (const SilEnd& t : tab) {
+    // The filled slots only (each slot's links are its own: the order does not matter), each
+    // emptied after.
+    for (const int32_t k : used) {
+      SilEnd& t = tab[size_t(k)];
       if (t.n == 2 && t.e / 2 != t.e2 / 2) {
         const int32_t ea = t.e, eb = t.e2;
         const SSeg<T>& sa = segs[size_t(ea / 2)];
@@ -342,6 +349,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         if (cov.side_of(ea % 2 ? sa.a : sa.b, sb) != 0 && cov.side_of(eb % 2 ? sb.a : sb.b, sa) != 0)
           link[size_t(ea)] = eb, link[size_t(eb)] = ea;
       }
+      t.n = 0;
     }
   }
   {
