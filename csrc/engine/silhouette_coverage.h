@@ -219,7 +219,7 @@ struct SilCoverage {
           umin = std::min(umin, ehu[k]), umax = std::max(umax, ehu[k]);
           vmin = std::min(vmin, ehv[k]), vmax = std::max(vmax, ehv[k]);
         }
-        G = std::max(2, std::min(kSilGridMax, int(std::ceil(std::sqrt(8.0 * nsc)))));
+        G = std::max(2, std::min(kSilGridMax, int(std::ceil(std::sqrt(2.0 * nsc)))));
         du = (umax - umin) / G, dv = (vmax - vmin) / G;
         gpad = 1e-9 * (umax - umin + vmax - vmin) + 64 * eps * scale;
         if (!(du > gpad && dv > gpad)) G = 0;
