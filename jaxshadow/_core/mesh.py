@@ -377,14 +377,15 @@ def weld_polygons(items: list[Any]) -> list[Any]:
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
+    from .welding import unique_rows
+
     idx = [i for i, x in enumerate(items) if not isinstance(x, Mesh)]
     if len(idx) < 2:
         return items
     polys = [np.asarray(items[i], dtype=np.float64) for i in idx]
-    sizes = np.array([len(q) for q in polys])
+    sizes = np.fromiter((len(q) for q in polys), dtype=np.intp, count=len(polys))
     start = np.concatenate([[0], np.cumsum(sizes)])
-    verts, inv = np.unique(np.concatenate(polys), axis=0, return_inverse=True)
-    inv = inv.reshape(-1)
+    verts, _, inv = unique_rows(np.concatenate(polys))
     # Undirected edges (a, b) of every polygon, and the polygons that share one.
     a = inv
     nxt = np.arange(len(inv)) + 1
@@ -399,22 +400,26 @@ def weld_polygons(items: list[Any]) -> list[Any]:
     n_comp, label = connected_components(g, directed=False)
     if n_comp == len(polys):
         return items
-    members: dict[int, list[int]] = {}
-    for f, c in enumerate(label):
-        members.setdefault(int(c), []).append(f)
+    # Each component's polygons in ascending order (a stable sort by component).
+    by_comp = np.argsort(label, kind="stable")
+    bounds = np.concatenate([[0], np.cumsum(np.bincount(label, minlength=n_comp))]).tolist()
+    k = int(sizes[0])
+    table = inv.reshape(-1, k) if bool(np.all(sizes == k)) else None  # equal vertex counts: one index table
     replace: dict[int, Any] = {}
     drop: set[int] = set()
-    for faces in members.values():
-        if len(faces) < 2:
+    for c in range(n_comp):
+        if bounds[c + 1] - bounds[c] < 2:
             continue
-        loops = [inv[start[f]:start[f + 1]] for f in faces]
-        used = np.unique(np.concatenate(loops))
+        faces = by_comp[bounds[c]:bounds[c + 1]]
+        loops: Any = table[faces] if table is not None else [inv[start[f]:start[f + 1]] for f in faces.tolist()]
+        used = np.unique(loops if table is not None else np.concatenate(loops))
         local = np.full(len(verts), -1)
         local[used] = np.arange(len(used))
         try:
-            mesh = Mesh(verts[used], [local[loop] for loop in loops])
+            mesh = Mesh(verts[used], local[loops] if table is not None else [local[loop] for loop in loops])
         except ValueError:
             continue
-        replace[idx[faces[0]]] = mesh
-        drop.update(idx[f] for f in faces[1:])
+        first = faces.tolist()
+        replace[idx[first[0]]] = mesh
+        drop.update(idx[f] for f in first[1:])
     return [replace.get(i, x) for i, x in enumerate(items) if i not in drop]
