@@ -317,7 +317,7 @@ def _stack_occluders(occluders: Any) -> tuple[Array | None, OccluderTopology | N
                 f"Scene.occluders: expected an array (m, k, 3) or a list of (k, 3) polygons, got shape {arr.shape}."
             )
         else:
-            occluders = [occluders[i] for i in range(arr.shape[0])]
+            occluders = list(occluders) if isinstance(occluders, np.ndarray) else [occluders[i] for i in range(arr.shape[0])]
     # A NumPy (m, k, 3) array: every entry a concrete NumPy polygon (no per-entry type checks).
     stacked = arr_in if isinstance(arr_in, np.ndarray) and arr_in.ndim == 3 else None
     items = list(occluders)
@@ -333,7 +333,7 @@ def _stack_occluders(occluders: Any) -> tuple[Array | None, OccluderTopology | N
             if not isinstance(poly, Mesh) and is_concrete(poly):
                 check_convex_polygon(poly, f"Scene.occluders[{i}]")
     if stacked is not None or all(isinstance(x, Mesh) or (is_concrete(x) and not isinstance(x, jax.Array)) for x in items):
-        items = weld_polygons(items)  # triangle soups become meshes (NumPy inputs only)
+        items = weld_polygons(items, stacked)  # triangle soups become meshes (NumPy inputs only)
     if not any(isinstance(x, Mesh) for x in items):
         return pad_polygons_jax(items), None
     return stack_occluders(items, max_face_vertices(items))
