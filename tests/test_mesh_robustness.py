@@ -175,3 +175,19 @@ def test_soup_with_one_bad_triangle_names_it(bad):
         js.Scene([js.PolygonLight(LIGHT, 1.0)], occluders=tris)
     with pytest.raises(ValueError, match=msg):
         js.Scene([js.PolygonLight(LIGHT, 1.0)], occluders=list(tris))
+
+
+def test_ply_triangle_strips_runs_and_lists(tmp_path):
+    """Strips end at -1 and at the end of each list (no triangle joins two lists); a strip of two
+    indices gives none; odd triangles of a strip run `b a c`; triangles repeating a vertex go."""
+    from jaxshadow._io.meshio import ply_triangle_strips
+
+    lists = [[0, 1, 2, 3, -1, 4, 5], [6, 7, 8, 9, -1, 1, 1, 2, 0]]
+    v = np.random.default_rng(0).uniform(0, 1, (10, 3))
+    head = ["ply", "format ascii 1.0", "element vertex 10", "property float x", "property float y", "property float z",
+            "element tristrips 2", "property list int int vertex_indices", "end_header"]
+    body = "".join(f"{x} {y} {z}\n" for x, y, z in v) + "".join(f"{len(x)} " + " ".join(map(str, x)) + "\n" for x in lists)
+    path = tmp_path / "strips.ply"
+    path.write_text("\n".join(head) + "\n" + body)
+    _, f = ply_triangle_strips(path)
+    assert f.tolist() == [[0, 1, 2], [2, 1, 3], [6, 7, 8], [8, 7, 9], [2, 1, 0]]

@@ -248,7 +248,7 @@ def _convex(faces: _Faces, v: np.ndarray, size: float) -> bool:
     """Every vertex on or behind every face plane: max over vertices of (v - p0) . n <= 1e-9 size
     for every face (p0 its first vertex, n its unit Newell normal).
 
-    Three steps, each deciding exactly that test. (1) Local: the vertices of each face's
+    Four steps, each deciding exactly that test. (0) A few faces against every vertex. (1) Local: the vertices of each face's
     neighbours (across an edge) against its plane; any one in front is a witness, not convex
     (cheap, and what a non-convex mesh almost always fails). (2) Small meshes: every vertex
     against every plane, in chunks. (3) Large meshes: the maximum of a linear function over the
@@ -264,6 +264,10 @@ def _convex(faces: _Faces, v: np.ndarray, size: float) -> bool:
     nrm = _unit(_normals(faces, v))
     pad = faces.pad
     p0 = v[pad[:, 0]]
+    # (0) Sixteen faces spread over the mesh against every vertex: a non-convex mesh almost
+    # always has a witness among them, found before step (1)'s sort of the edges.
+    if not _convex_brute(np.unique(np.linspace(0, f_all - 1, min(f_all, 16)).astype(np.intp)), v, p0, nrm, tol):
+        return False
     # (1) neighbours' vertices against each face's plane.
     face, _, a, b = faces.edges()
     n = np.int64(v.shape[0])
@@ -406,44 +410,72 @@ def _merge(faces: _Faces, v: np.ndarray, size: float) -> _Faces:
     shared = (ukeys[pos] == rev) & (ea < eb)
     fi = uface[np.searchsorted(ukeys, keys[shared])]
     fj = uface[pos[shared]]
-    ok = _coplanar(normals[fi], normals[fj], v[pad[fj]], v[pad[fi, 0]], size) & (fi != fj)
+    # The merge test (`_coplanar`) on the pairs whose normals pass its first half only: the
+    # others fail it whatever their vertices (the same operations on fewer rows).
+    ni_, nj_ = normals[fi], normals[fj]
+    near = ~((ni_[:, 0] * nj_[:, 0] + ni_[:, 1] * nj_[:, 1] + ni_[:, 2] * nj_[:, 2]) < 1 - 1e-12) & (fi != fj)
+    sel = np.flatnonzero(near)
+    ok = np.zeros(len(fi), dtype=bool)
+    ok[sel] = _coplanar(ni_[sel], nj_[sel], v[pad[fj[sel]]], v[pad[fi[sel], 0]], size)
     if not ok.any():
         return faces
     ni = int(n)
     candidates = set((ea[shared][ok] * n + eb[shared][ok]).tolist())
-    # The initial queue: each distinct shared edge a -> b (a < b) at its first occurrence.
-    first = np.concatenate([[True], ks[1:] != ks[:-1]])
-    ufirst = order[first]  # the first occurrence of each key of ukeys
-    uq = shared[ufirst]  # a < b and b -> a present: the same for every occurrence of a key
-    qkeys = ukeys[uq][np.argsort(ufirst[uq], kind="stable")]  # the queue, bottom first
-    qcand = np.isin(qkeys, np.fromiter(candidates, dtype=np.int64, count=len(candidates)))
+    # The initial queue: each distinct shared edge a -> b (a < b) at its first occurrence, in
+    # edge order (whether an edge is shared, and the merge test, depend on its key alone).
+    is_first = np.zeros(len(keys), dtype=bool)
+    is_first[order[np.concatenate([[True], ks[1:] != ks[:-1]])]] = True
+    in_queue = is_first & shared
+    qat = np.flatnonzero(in_queue)
+    qkeys = keys[qat]  # the queue, bottom first
+    ok_edge = np.zeros(len(keys), dtype=bool)
+    ok_edge[np.flatnonzero(shared)[ok]] = True
+    cand_pos = np.flatnonzero(ok_edge[qat]).tolist()  # ascending; visited from the top
+    # Queue entries by key (for `touch`): the sorted keys with their queue positions.
     qsorted = np.argsort(qkeys, kind="stable")
-    qs_keys = qkeys[qsorted].tolist()
-    qs_pos = qsorted.tolist()
-    cand_pos = np.flatnonzero(qcand).tolist()  # ascending; visited from the top
-    ukeys_l, uface_l = ukeys.tolist(), uface.tolist()
+    qs_keys_a, qs_pos_a = qkeys[qsorted], qsorted
+    # Python lists where the loop looks up many keys; NumPy searches where it looks up few.
+    many = 16 * len(candidates) > len(faces)
     changed: dict[int, int] = {}  # owners a merge wrote (-1: removed)
+    if many:
+        ukeys_l, uface_l = ukeys.tolist(), uface.tolist()
+        qs_keys, qs_pos = qs_keys_a.tolist(), qs_pos_a.tolist()
+
+        def find_owner(k: int) -> int:
+            x = bisect.bisect_left(ukeys_l, k)
+            return uface_l[x] if x < len(ukeys_l) and ukeys_l[x] == k else -1
+
+        def find_queue(u: int) -> int:
+            x = bisect.bisect_left(qs_keys, u)
+            return qs_pos[x] if x < len(qs_keys) and qs_keys[x] == u else -1
+    else:
+        nk, nq = len(ukeys), len(qs_keys_a)
+
+        def find_owner(k: int) -> int:
+            x = int(np.searchsorted(ukeys, k))
+            return int(uface[x]) if x < nk and int(ukeys[x]) == k else -1
+
+        def find_queue(u: int) -> int:
+            x = int(np.searchsorted(qs_keys_a, u))
+            return int(qs_pos_a[x]) if x < nq and int(qs_keys_a[x]) == u else -1
 
     def own(k: int) -> int:
         c = changed.get(k)
         if c is not None:
             return c
-        x = bisect.bisect_left(ukeys_l, k)
-        return uface_l[x] if x < len(ukeys_l) and ukeys_l[x] == k else -1
+        return find_owner(k)
 
     top = len(qkeys) - 1  # the highest queue entry not yet visited
     dirty: list[int] = []  # max-heap (negated) of queue entries written by a merge
 
     def touch(k: int) -> None:  # owner of edge key k written: its queue entry (if any) is visited
         a, b = divmod(k, ni)
-        u = k if a < b else b * ni + a
-        x = bisect.bisect_left(qs_keys, u)
-        if x < len(qs_keys) and qs_keys[x] == u and qs_pos[x] <= top:
-            heapq.heappush(dirty, -qs_pos[x])
+        x = find_queue(k if a < b else b * ni + a)
+        if 0 <= x <= top:
+            heapq.heappush(dirty, -x)
 
     loops = _Rows(pad, faces.lens)
     # Rows read on demand where few faces can merge; all at once where many do (cheaper per row).
-    many = 16 * len(candidates) > len(faces)
     vl: Any = v.tolist() if many else _Rows(v)
     nl: Any = normals.tolist() if many else _Rows(normals)
     touched = [False] * len(faces)

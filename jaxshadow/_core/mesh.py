@@ -365,7 +365,7 @@ def mesh_dicts(faces: np.ndarray, topology: OccluderTopology) -> list[Any]:
     return out
 
 
-def weld_polygons(items: list[Any]) -> list[Any]:
+def weld_polygons(items: list[Any], stacked: np.ndarray | None = None) -> list[Any]:
     """`Scene(occluders=[...])` entries with triangle soups turned into meshes: the plain polygons
     (concrete `(k, 3)` arrays) are welded by exactly equal vertex coordinates and split into
     connected components (polygons sharing an edge); each component of two or more polygons
@@ -373,48 +373,61 @@ def weld_polygons(items: list[Any]) -> list[Any]:
     polygon. It blocks exactly what its polygons block (the same point set), and the shadow
     engine then treats it as the same `Mesh` given directly would be treated (a convex solid's
     cone, interior edges left out). `Mesh` entries, lone polygons and components a `Mesh`
-    refuses (e.g. faces that reuse a vertex) are kept as they are."""
+    refuses (e.g. faces that reuse a vertex) are kept as they are. `stacked`: the items as one
+    `(m, k, 3)` array when they are its rows (read at once instead of polygon by polygon)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
+
+    from .welding import unique_rows
 
     idx = [i for i, x in enumerate(items) if not isinstance(x, Mesh)]
     if len(idx) < 2:
         return items
-    polys = [np.asarray(items[i], dtype=np.float64) for i in idx]
-    sizes = np.array([len(q) for q in polys])
+    if stacked is not None and len(idx) == len(items) == len(stacked):
+        n_polys, k = stacked.shape[0], stacked.shape[1]
+        sizes = np.full(n_polys, k, dtype=np.intp)
+        corners = np.asarray(stacked, dtype=np.float64).reshape(-1, 3)
+    else:
+        polys = [np.asarray(items[i], dtype=np.float64) for i in idx]
+        n_polys = len(polys)
+        sizes = np.fromiter((len(q) for q in polys), dtype=np.intp, count=n_polys)
+        corners = np.concatenate(polys)
     start = np.concatenate([[0], np.cumsum(sizes)])
-    verts, inv = np.unique(np.concatenate(polys), axis=0, return_inverse=True)
-    inv = inv.reshape(-1)
+    verts, _, inv = unique_rows(corners)
     # Undirected edges (a, b) of every polygon, and the polygons that share one.
     a = inv
     nxt = np.arange(len(inv)) + 1
     nxt[start[1:] - 1] = start[:-1]
     b = inv[nxt]
-    face = np.repeat(np.arange(len(polys)), sizes)
+    face = np.repeat(np.arange(n_polys), sizes)
     key = np.minimum(a, b) * len(verts) + np.maximum(a, b)
     order = np.argsort(key, kind="stable")
     ks, fs = key[order], face[order]
     same = ks[1:] == ks[:-1]
-    g = coo_matrix((np.ones(int(same.sum())), (fs[:-1][same], fs[1:][same])), shape=(len(polys), len(polys)))
+    g = coo_matrix((np.ones(int(same.sum())), (fs[:-1][same], fs[1:][same])), shape=(n_polys, n_polys))
     n_comp, label = connected_components(g, directed=False)
-    if n_comp == len(polys):
+    if n_comp == n_polys:
         return items
-    members: dict[int, list[int]] = {}
-    for f, c in enumerate(label):
-        members.setdefault(int(c), []).append(f)
+    # Each component's polygons in ascending order (a stable sort by component).
+    by_comp = np.argsort(label, kind="stable")
+    bounds = np.concatenate([[0], np.cumsum(np.bincount(label, minlength=n_comp))]).tolist()
+    k = int(sizes[0])
+    table = inv.reshape(-1, k) if bool(np.all(sizes == k)) else None  # equal vertex counts: one index table
     replace: dict[int, Any] = {}
     drop: set[int] = set()
-    for faces in members.values():
-        if len(faces) < 2:
+    for c in range(n_comp):
+        if bounds[c + 1] - bounds[c] < 2:
             continue
-        loops = [inv[start[f]:start[f + 1]] for f in faces]
-        used = np.unique(np.concatenate(loops))
+        faces = by_comp[bounds[c]:bounds[c + 1]]
+        loops: Any = table[faces] if table is not None else [inv[start[f]:start[f + 1]] for f in faces.tolist()]
+        used = np.unique(loops if table is not None else np.concatenate(loops))
         local = np.full(len(verts), -1)
         local[used] = np.arange(len(used))
         try:
-            mesh = Mesh(verts[used], [local[loop] for loop in loops])
+            mesh = Mesh(verts[used], local[loops] if table is not None else [local[loop] for loop in loops])
         except ValueError:
             continue
-        replace[idx[faces[0]]] = mesh
-        drop.update(idx[f] for f in faces[1:])
+        first = faces.tolist()
+        replace[idx[first[0]]] = mesh
+        drop.update(idx[f] for f in first[1:])
     return [replace.get(i, x) for i, x in enumerate(items) if i not in drop]

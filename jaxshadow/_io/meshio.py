@@ -144,19 +144,22 @@ def ply_triangle_strips(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray
         return None
     v = np.stack([np.asarray(vert[c], dtype=np.float64) for c in "xyz"], axis=1)
     nv = len(v)
-    idx_parts = [np.asarray(x, dtype=np.int64) for x in ply["tristrips"]["vertex_indices"]]
-    faces = []
-    for idx in idx_parts:
-        for strip in np.split(idx, np.flatnonzero(idx < 0)):
-            strip = strip[strip >= 0]
-            if len(strip) < 3:
-                continue
-            a, b, c = strip[:-2], strip[1:-1], strip[2:]
-            odd = np.arange(len(a)) % 2 == 1
-            faces.append(np.stack([np.where(odd, b, a), np.where(odd, a, b), c], axis=1))
-    if not faces:
+    # Every list ended by -1, so a strip never runs from one list into the next; strips are the
+    # runs of non-negative indices, and a triangle starts at each position whose next two are in
+    # its run, odd or even by its place in the run.
+    parts = [np.asarray(x, dtype=np.int64) for x in ply["tristrips"]["vertex_indices"]]
+    lens = np.fromiter((len(x) for x in parts), dtype=np.int64, count=len(parts))
+    flat = np.concatenate(parts) if parts else np.zeros(0, np.int64)
+    idx = np.full(len(flat) + len(parts), -1, dtype=np.int64)
+    idx[np.arange(len(flat)) + np.repeat(np.arange(len(parts)), lens)] = flat  # part k moved by its k ends before it
+    pos = np.arange(len(idx))
+    run_start = np.maximum.accumulate(np.where(idx < 0, pos + 1, 0)) if len(idx) else pos
+    j = np.flatnonzero((idx[:-2] >= 0) & (idx[1:-1] >= 0) & (idx[2:] >= 0)) if len(idx) >= 3 else pos[:0]
+    if not len(j):
         return None
-    f = np.concatenate(faces)
+    a, b, c = idx[j], idx[j + 1], idx[j + 2]
+    odd = (j - run_start[j]) % 2 == 1
+    f = np.stack([np.where(odd, b, a), np.where(odd, a, b), c], axis=1)
     f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
     if len(f) and (f.max() >= nv):
         raise ValueError(f"{os.fspath(path)}: a triangle strip index is out of range [0, {nv}).")

@@ -307,6 +307,7 @@ def _stack_occluders(occluders: Any) -> tuple[Array | None, OccluderTopology | N
         occluders = [occluders]
     if isinstance(occluders, (np.ndarray, jnp.ndarray)) and not is_concrete(occluders):
         return jnp.asarray(occluders), None  # traced (m, K, 3), already padded
+    arr_in = occluders
     if isinstance(occluders, (np.ndarray, jnp.ndarray)):
         arr = np.asarray(occluders)
         if arr.ndim == 2:
@@ -316,17 +317,23 @@ def _stack_occluders(occluders: Any) -> tuple[Array | None, OccluderTopology | N
                 f"Scene.occluders: expected an array (m, k, 3) or a list of (k, 3) polygons, got shape {arr.shape}."
             )
         else:
-            occluders = [occluders[i] for i in range(arr.shape[0])]
+            occluders = list(occluders) if isinstance(occluders, np.ndarray) else [occluders[i] for i in range(arr.shape[0])]
+    # A NumPy (m, k, 3) array: every entry a concrete NumPy polygon (no per-entry type checks).
+    stacked = arr_in if isinstance(arr_in, np.ndarray) and arr_in.ndim == 3 else None
     items = list(occluders)
     if len(items) == 0:
         return None, None
-    plain = [x for x in items if not isinstance(x, Mesh) and is_concrete(x)]
-    if not (len(plain) > 1 and all(np.shape(x) == (3, 3) for x in plain) and triangles_pass(np.stack(plain))):
+    if stacked is not None:
+        tris_ok = stacked.shape[1] == 3 and len(items) > 1 and triangles_pass(stacked)
+    else:
+        plain = [x for x in items if not isinstance(x, Mesh) and is_concrete(x)]
+        tris_ok = len(plain) > 1 and all(np.shape(x) == (3, 3) for x in plain) and triangles_pass(np.stack(plain))
+    if not tris_ok:
         for i, poly in enumerate(items):
             if not isinstance(poly, Mesh) and is_concrete(poly):
                 check_convex_polygon(poly, f"Scene.occluders[{i}]")
-    if all(isinstance(x, Mesh) or (is_concrete(x) and not isinstance(x, jax.Array)) for x in items):
-        items = weld_polygons(items)  # triangle soups become meshes (NumPy inputs only)
+    if stacked is not None or all(isinstance(x, Mesh) or (is_concrete(x) and not isinstance(x, jax.Array)) for x in items):
+        items = weld_polygons(items, stacked)  # triangle soups become meshes (NumPy inputs only)
     if not any(isinstance(x, Mesh) for x in items):
         return pad_polygons_jax(items), None
     return stack_occluders(items, max_face_vertices(items))
