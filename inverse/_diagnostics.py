@@ -72,15 +72,7 @@ The rules (thresholds are the module's constants):
 - **Nearly undetermined.** A standard error above `NEAR_POSITION_FRACTION` (1/4) of the scene
   size for a position, `NEAR_ORIENTATION` (30 degrees) for a rotation, `NEAR_LOG_SIZE` (log 2)
   for a log size, or the value itself for a power: the parameter is marked not determined,
-  like an exactly undetermined one (`_identifiability`), with its finite error kept. Where the
-  fit can check it (`fit_lights`: `alternative`), the mark needs an alternative answer: the fit
-  moved along the parameter's linearised profile line (the others as the covariance moves them)
-  until the parameter is its limit away (a power: doubled or halved) paints the targets within
-  `NEAR_CONFIRM_CHI2` (4: two sigma) of the answer's $\chi^2$. A linearised error above the
-  limit that no such placement confirms is the Jacobian misjudging a direction the targets
-  determine at higher order (an exact noise-free fit told a small noise: a segment's length
-  and power per length, linearised errors of 220 % at a told noise of 1e-4 of the colours,
-  recovered to 1 %): not flagged.
+  like an exactly undetermined one (`_identifiability`), with its finite error kept.
 - **Competing placements.** Another distinct placement of the lights that the search refined
   to a minimum of its own (the rows of the final joint solve: the global placement's other
   basins, each light's runner-up) explains the targets about as well: its
@@ -119,15 +111,6 @@ import numpy as np
 
 import jaxshadow as js
 
-from ._rivals import _ORIENTATION
-from ._rivals import (
-    RIVAL_DISTANCE as RIVAL_DISTANCE,  # the rule's constants, named here with the others
-)
-from ._rivals import RIVAL_SIGMAS as RIVAL_SIGMAS
-from ._rivals import RIVAL_TURN as RIVAL_TURN
-from ._rivals import rival_allowance as rival_allowance
-from ._rivals import rival_placements as rival_placements
-
 WRONG_MINIMUM_CHI2 = 4.0
 DEFAULT_RELATIVE_NOISE = 0.025
 COMPETING_FACTOR = 2.0
@@ -138,12 +121,15 @@ ESCAPE_FACTOR = 10.0
 NEAR_POSITION_FRACTION = 0.25
 NEAR_ORIENTATION = math.radians(30.0)
 NEAR_LOG_SIZE = math.log(2.0)
-NEAR_CONFIRM_CHI2 = 4.0
 DARK_FRACTION = 1e-6
 UNUSED_FRACTION = 1e-6
 COLLAPSED_FRACTION = 0.01
+RIVAL_DISTANCE = 0.01
+RIVAL_SIGMAS = 3.0
+RIVAL_TURN = math.radians(5.0)
 
 _POSITION = ("x", "y", "z", "a", "b")
+_ORIENTATION = ("rx", "ry", "rz", "ru", "rv")
 
 
 class FitQualityWarning(RuntimeWarning):
@@ -333,6 +319,63 @@ def competing_placements(values: np.ndarray, losses: np.ndarray, names: tuple, t
     return tuple((loss, {nm: float(v) for nm, v in zip(names, q, strict=False)}) for loss, q in reps)
 
 
+def rival_allowance(n_params: int) -> float:
+    r"""How much more $\chi^2$ than the answer's a placement may have and still compete with it
+    (module docstring): $n + 3\sqrt{2n}$ for $n$ fitted parameters."""
+    n = max(int(n_params), 1)
+    return n + 3.0 * math.sqrt(2.0 * n)
+
+
+def _turn(a: np.ndarray, b: np.ndarray, signed: bool) -> float:
+    """The angle (rad) between unit vectors `a`, `b`; `signed=False`: between their lines."""
+    c = float(a @ b)
+    return math.atan2(float(np.linalg.norm(np.cross(a, b))), c if signed else abs(c))
+
+
+def rival_placements(answer: dict, others: list, chi2: float, n_params: int, scale: float,
+                     std_errors: dict, light_params: dict) -> tuple:
+    r"""The competing placements (module docstring) among `others`.
+
+    **Arguments:** `answer`: {light name: pose}, a pose a dict with `kind` (the
+    parametrisation's), `centre (3,)` (m), `axis (3,)` or None (a polygon's unit normal, a
+    segment's unit direction), `power` (a factor of the given emission); `others`: `[(chi2,
+    {light name: pose}), ...]` the other refined placements with their $\chi^2$; `chi2`: the
+    answer's; `n_params`; `scale` (m); `std_errors`, `light_params` as in `assess`.
+
+    **Returns:** `((excess chi2, {light name: pose}, (names of the lights that differ)), ...)`,
+    least excess first."""
+    allowed = rival_allowance(n_params)
+
+    def se_of(nm: str, bases: tuple) -> float:
+        s = [std_errors.get(p, math.inf) for p in light_params.get(nm, ()) if p.rsplit(".", 1)[-1] in bases]
+        return math.sqrt(sum(x * x for x in s)) if s else 0.0
+
+    out = []
+    for c2, poses in others:
+        if not (math.isfinite(c2) and c2 - chi2 <= allowed):
+            continue
+        differ = []
+        for nm, pose in poses.items():
+            mates = [m for m, q in answer.items() if q["kind"] == pose["kind"]]
+            if not mates:
+                continue
+            d = [float(np.linalg.norm(np.asarray(pose["centre"]) - np.asarray(answer[m]["centre"]))) for m in mates]
+            mate = mates[int(np.argmin(d))]
+            se_c = se_of(mate, ("x", "y", "z", "a", "b"))
+            moved = math.isfinite(se_c) and min(d) > max(RIVAL_DISTANCE * scale, RIVAL_SIGMAS * se_c)
+            a, b = pose.get("axis"), answer[mate].get("axis")
+            if a is not None and b is not None:
+                se_r = max([std_errors.get(p, math.inf) for p in light_params.get(mate, ())
+                            if p.rsplit(".", 1)[-1] in _ORIENTATION] or [0.0])
+                turn = _turn(np.asarray(a, np.float64), np.asarray(b, np.float64), pose["kind"] == "polygon")
+                moved |= math.isfinite(se_r) and turn > max(RIVAL_TURN, RIVAL_SIGMAS * se_r)
+            if moved:
+                differ.append(nm)
+        if differ:
+            out.append((float(c2 - chi2), poses, tuple(differ)))
+    return tuple(sorted(out, key=lambda x: x[0]))
+
+
 def _pose_text(pose: dict) -> str:
     c = ", ".join(f"{x:.3g}" for x in pose["centre"])
     return f"at ({c}) m, power x{pose['power']:.3g}"
@@ -420,28 +463,26 @@ def collapse_reason(light: Any, scale: float) -> str | None:
     return None
 
 
-def near_limit(name: str, scale: float, values: dict) -> float | None:
-    """The standard error above which parameter `name` is nearly undetermined (module docstring),
-    in its report units (m for a position); None for a parameter with no limit."""
-    base = name.rsplit(".", 1)[-1]
-    if base in _POSITION:
-        return NEAR_POSITION_FRACTION * scale
-    if base in _ORIENTATION:
-        return NEAR_ORIENTATION
-    if base.startswith("log_"):
-        return NEAR_LOG_SIZE
-    if base == "power":
-        return abs(values[name]) if values[name] > 0 else None
-    return None
-
-
 def nearly_undetermined(names: tuple, std_errors: dict, values: dict, scale: float,
                         determined: dict) -> tuple:
     """The names of determined parameters whose standard error is above the module's limits."""
     out = []
     for nm in names:
-        se, limit = std_errors[nm], near_limit(nm, scale, values)
-        if determined[nm] and math.isfinite(se) and limit is not None and se > limit:
+        se = std_errors[nm]
+        if not determined[nm] or not math.isfinite(se):
+            continue
+        base = nm.rsplit(".", 1)[-1]
+        if base in _POSITION:
+            limit = NEAR_POSITION_FRACTION * scale
+        elif base in _ORIENTATION:
+            limit = NEAR_ORIENTATION
+        elif base.startswith("log_"):
+            limit = NEAR_LOG_SIZE
+        elif base == "power":
+            limit = abs(values[nm])
+        else:
+            continue
+        if se > limit and (base != "power" or values[nm] > 0):
             out.append(nm)
     return tuple(out)
 
@@ -481,7 +522,7 @@ def assess(*, targets: Any, residual: np.ndarray, noise: Any, n_params: int, nam
            values: dict, determined: dict, scale: float, lights: dict, light_params: dict,
            candidates: tuple = (), messages: list, all_dark: bool = False,
            contributions: dict | None = None, determinacy: bool = True,
-           converged: bool = True, rivals: tuple = (), alternative: Any = None) -> tuple[FitQuality, dict]:
+           converged: bool = True, rivals: tuple = ()) -> tuple[FitQuality, dict]:
     """Run the checks on a fit's solution.
 
     **Arguments:** `targets`; `residual (N, 3)` = model - colours (unweighted); `noise` (module
@@ -495,9 +536,7 @@ def assess(*, targets: Any, residual: np.ndarray, noise: Any, n_params: int, nam
     makes the answer untrusted (False for targets painted as ranges or relations, whose answer
     is any pose inside them); `converged`: False when the final solve stopped at `max_steps`
     short of an exact fit (flag `"not_converged"`); `rivals`: the competing placements
-    (`rival_placements`; flag `"competing_placements"`); `alternative(name)`: the chi-square rise of
-    the fit moved along the parameter's linearised profile line by its limit (`near_limit`), or
-    None (a standard error above the limit is then enough).
+    (`rival_placements`; flag `"competing_placements"`).
 
     **Returns:** `(quality, determined (updated))`; `quality.emitted`: the warnings to emit.
     """
@@ -563,8 +602,6 @@ def assess(*, targets: Any, residual: np.ndarray, noise: Any, n_params: int, nam
     if unused:
         flags.append("unused_light")
     near = nearly_undetermined(names, std_errors, values, scale, determined)
-    if alternative is not None:  # confirmed by a placement that far away painting the targets within the noise
-        near = tuple(nm for nm in near if alternative(nm) <= NEAR_CONFIRM_CHI2)
     for nm in near:
         determined[nm] = False
         messages.append(f"{nm} is nearly undetermined by these targets: standard error {std_errors[nm]:.3g} > "

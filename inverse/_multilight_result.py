@@ -18,7 +18,6 @@ from ._diagnostics import (
     assess,
     competing_placements,
     dark_answer,
-    near_limit,
     noise_sigma,
     rival_allowance,
     rival_placements,
@@ -157,9 +156,7 @@ def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, ca
         messages=warnings, all_dark=dark,
         contributions={f"light{idx[j]}": float(np.sqrt(np.sum(w * (powers[j] * per_light[j]) ** 2)))
                        for j in range(J)} if problem.fit_power else None, determinacy=paint is None,
-        converged=converged, rivals=rivals,
-        alternative=None if paint is not None else _alternative(problem, theta, powers, k, free_p, project, names,
-                                                                values_d, ident, scale_of, size, t, noise))
+        converged=converged, rivals=rivals)
     fixed = [x for n, x in enumerate(problem.scene.lights) if n not in idx]
     rv = row_variance(w, t, noise) if noise is not None and paint is None else None
     rv = np.full(w.size, ident.sigma2 if ident.sigma2 > 0 else 1.0) if rv is None else rv
@@ -219,45 +216,6 @@ def _quantities(problem: LightsProblem, theta: np.ndarray, names: tuple, values:
         se = math.sqrt(max(float(g @ C @ g), 0.0)) * (scale_of[pos[nm]] if nm in pos else 1.0)
         out[nm] = Quantity(val, se, factor * se, True)
     return out
-
-
-def _alternative(problem: LightsProblem, theta: np.ndarray, powers: np.ndarray, k: np.ndarray, free_p: list,
-                 project: bool, names: tuple, values: dict, ident: Any, scale_of: list, size: float, t: Any,
-                 noise: Any) -> Any:
-    r"""`alternative(name)` of `assess`: the least chi-square rise (`_chi2`: under the fit's noise)
-    of the fit moved along parameter `name`'s linearised profile line, $\delta = C e_i / C_{ii}$
-    times its limit (`near_limit`, in the parameter's own units; a power: doubled and halved),
-    the lights re-shaded there, powers and material moved along; inf where it cannot move."""
-    m, dt = problem.material, t.points.dtype
-    e0, s0 = np.asarray(problem.e_fixed, np.float64), np.asarray(problem.s_fixed, np.float64)
-    La, colours = np.asarray(problem.scene.ambient, np.float64), np.asarray(t.colours, np.float64)
-    chi2_of, n_pose, C = _chi2(t, noise), problem.n_pose, ident.covariance
-    ones = jnp.ones(len(powers), dt)
-
-    def chi2_at(d: np.ndarray) -> float:
-        p2 = np.array(powers, np.float64)
-        p2[free_p] += d[n_pose:n_pose + len(free_p)]
-        k2 = np.array(k, np.float64)
-        if project:
-            rest = d[n_pose + len(free_p):]
-            k2[:rest.size // 3] += rest.reshape(-1, 3)
-        E, S, _ = (np.asarray(x, np.float64) for x in report_parts(
-            problem, jnp.asarray(np.asarray(theta, np.float64) + d[:n_pose], dt), ones, m))
-        r = _model(E, S, e0, s0, La, p2, k2, problem.with_specular) - colours
-        return chi2_of(r) if np.all(np.isfinite(r)) else math.inf
-
-    def rise(name: str) -> float:
-        i = names.index(name)
-        limit = near_limit(name, size, values)
-        if limit is None or not C[i, i] > 0:
-            return math.inf
-        step = limit / scale_of[i]
-        line = C[:, i] / C[i, i]
-        base = chi2_at(np.zeros(len(names)))
-        sides = (step, -0.5 * step) if name.endswith(".power") else (step, -step)
-        return min(chi2_at(s * line) for s in sides) - base
-
-    return rise
 
 
 RIVAL_ROWS = 8  # the final joint solve's rows checked as competing placements at most

@@ -387,33 +387,3 @@ def test_fit_lights_stopped_by_max_steps_with_the_loss_falling_is_flagged():
         full = _fit_lights([0.3, 0.0, 1.6], **kw)
     np.testing.assert_allclose(full.lights[0].position, TRUE, atol=1e-6)
     assert full.report.trusted and "not_converged" not in full.report.quality.flags
-
-
-def test_nearly_undetermined_needs_an_alternative_where_one_is_checked():
-    """`assess` with `alternative` (the chi-square rise of the fit moved by a parameter's limit
-    along its linearised profile line): a power whose linearised error (5) is above its value
-    (2) is flagged when moving it that far costs at most 4 (another answer paints the targets
-    within two sigma); when it costs 100 the targets determine it at higher order (an exact
-    noise-free fit whose Jacobian is nearly singular): not flagged, the fit trusted."""
-    targets = _targets(occluders=None)
-    names = ("light0.x", "light0.y", "light0.z", "light0.power")
-    se = {"light0.x": 0.01, "light0.y": 0.01, "light0.z": 0.01, "light0.power": 5.0}
-    values = dict.fromkeys(names, 0.1) | {"light0.power": 2.0}
-    lights = {"light0": js.PointLight([0.5, 0.2, 1.4], 1.0)}
-    asked = []
-
-    def run(rise):
-        def alternative(nm):
-            asked.append(nm)
-            return rise
-        return diag.assess(
-            targets=targets, residual=np.zeros((len(targets), 3)), noise=None, n_params=len(names), names=names,
-            std_errors=se, values=values, determined=dict.fromkeys(names, True), scale=2.0, lights=lights,
-            light_params={"light0": names}, messages=[], alternative=alternative)
-
-    quality, det = run(1.0)
-    assert quality.flags == ("undetermined",) and quality.nearly_undetermined == ("light0.power",)
-    assert not det["light0.power"] and asked == ["light0.power"]  # only the parameter above its limit is checked
-    quality, det = run(100.0)
-    assert quality.flags == () and quality.trusted and det["light0.power"] and quality.nearly_undetermined == ()
-    assert diag.near_limit("light0.power", 2.0, values) == 2.0 and diag.near_limit("light0.x", 2.0, values) == 0.5
