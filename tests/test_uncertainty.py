@@ -73,3 +73,31 @@ def test_light_quantities_flux_and_gradient():
         dn[nm] -= h
         num = (light_quantities(names, up, [0])["light0.flux"][0] - light_quantities(names, dn, [0])["light0.flux"][0])
         assert math.isclose(d, num / (2 * h), rel_tol=1e-6)
+
+
+def test_fit_lights_reports_its_covered_quantities():
+    """A point light over 30 floor targets (1 % noise, told): `report.quantities` holds its centre
+    (the fitted position, m) with the report's standard errors, its flux (its power: no size) and
+    the joint intervals sqrt(chi2_4, 0.95) = 3.08 times them (4 fitted parameters)."""
+    import inverse
+    import jaxshadow as js
+
+    material = js.Material(ka=0.2, kd=0.6, ks=0.0, exponent=1.0)
+    eye = np.array([0.0, -2.0, 2.0])
+    rng = np.random.default_rng(0)
+    pts = np.c_[rng.uniform(-1, 1, (30, 2)), np.zeros(30)]
+    nrm = np.tile([0.0, 0.0, 1.0], (30, 1))
+    true = js.Scene([js.PointLight([0.5, 0.2, 1.4], 3.0)], ambient=0.05)
+    col = np.asarray(js.shade(true, material, pts, nrm, eye), np.float64)
+    col = col * (1.0 + 0.01 * rng.normal(size=col.shape))
+    start = js.Scene([js.PointLight([0.55, 0.25, 1.35], 2.0)], ambient=0.05)
+    fit = inverse.fit_lights(start, inverse.PaintedTargets(pts, nrm, col, eye), material, fit=("position", "power"),
+                             starts=1, noise=0.01 * col, warn=False)
+    q, rep = fit.report.quantities, fit.report
+    assert set(q) == {"light0.x", "light0.y", "light0.z", "light0.flux"}
+    np.testing.assert_allclose([q[f"light0.{a}"].value for a in "xyz"], np.asarray(fit.lights[0].position), rtol=1e-12)
+    for nm in ("light0.x", "light0.y", "light0.z"):
+        assert math.isclose(q[nm].std_error, rep.std_errors[nm], rel_tol=1e-9) and q[nm].determined
+        assert math.isclose(q[nm].interval, math.sqrt(9.488) * q[nm].std_error, rel_tol=1e-3)  # chi2_4(0.95)
+    assert math.isclose(q["light0.flux"].value, fit.powers[0], rel_tol=1e-12)
+    assert math.isclose(q["light0.flux"].std_error, rep.std_errors["light0.power"], rel_tol=1e-9)
