@@ -38,6 +38,14 @@ basin, a competing placement, an undetermined light), and a user acts on that fl
 (`report.determined`) in the runs flagged for nothing but `"undetermined"`: where one light is
 weakly determined, the standard errors of the others are still reported as sound.
 
+The statement the report makes is over its covered quantities (`report.quantities`,
+`inverse._uncertainty`): each light's centre x, y, z and its emitted power (`flux`; a light's
+radiance trades with its size and is not covered). `quantity_z` gives their errors over the
+standard errors (`calibration_zq_within_2se`, over all runs; `calibration_zq_determined_...`,
+over those marked determined) and over half their projected joint 95 % interval
+(`calibration_zq_joint_within_2se`: the fraction inside the interval, the figure the report
+vouches for: the issue's >= 90 %).
+
 A noisy fit succeeds (`noisy_success`) when its answer is as good as the noise allows: every
 light's centre coordinates and power within `NOISY_Z` (3) reported standard errors of the truth
 (`z_scores`; a coordinate with no finite standard error is undetermined and not counted), or
@@ -153,6 +161,33 @@ def z_scores(fit, true_lights, idx: list[int], determined_only: bool = False) ->
     return out
 
 
+def quantity_z(fit, true_lights, idx: list[int], determined_only: bool = False, joint: bool = False) -> list[float]:
+    """Errors of the covered quantities (`fit.report.quantities`: each fitted light's centre x, y,
+    z and its emitted power `flux`, `inverse._uncertainty`) over their standard errors, or with
+    `joint`, over half their projected joint 95 % interval (so that |z| < 2 is inside it).
+    Quantities with no finite, positive error are left out; with `determined_only`, also those
+    the report marks not determined."""
+    import math
+
+    from inverse._powers import emitted_power
+
+    out = []
+    q = fit.report.quantities
+    for j, (a, b) in enumerate(zip(fit.lights, true_lights, strict=True)):
+        name = f"light{idx[j]}"
+        truth = dict(zip("xyz", _centre(b), strict=True))
+        if f"{name}.flux" in q:  # in units of the start's emitted power: the fit's emitted power over its value
+            truth["flux"] = float(emitted_power(b)) * q[f"{name}.flux"].value / float(emitted_power(a))
+        for key, t in truth.items():
+            qv = q.get(f"{name}.{key}")
+            if qv is None or (determined_only and not qv.determined):
+                continue
+            s = 0.5 * qv.interval if joint else qv.std_error
+            if 0 < s < math.inf:
+                out.append(float((qv.value - t) / s))
+    return out
+
+
 def noisy_verdict(z: list[float], flags: list[str], residual_fit, residual_truth, sigma, n_params: int) -> dict:
     """The noisy success criterion (module docstring): `z` the fit's z-scores (`z_scores`),
     `flags` its quality flags, `residual_fit`, `residual_truth` `(N, 3)` (model - colours) at
@@ -221,7 +256,10 @@ def _setting(kinds: str, start: str, seeds: list[int], placement: str = "global"
                "flagged": not fit.report.quality.trusted, "flags": list(fit.report.quality.flags),
                "chi2": fit.report.quality.chi2, "loss": fit.report.loss, "fit_s": fit_s,
                "compile_s": timing["compile_s"] - c0, "z": z_scores(fit, case.true.lights, idx) if noise else [],
-               "z_determined": z_scores(fit, case.true.lights, idx, determined_only=True) if noise else []}
+               "z_determined": z_scores(fit, case.true.lights, idx, determined_only=True) if noise else [],
+               "zq": quantity_z(fit, case.true.lights, idx) if noise else [],
+               "zq_determined": quantity_z(fit, case.true.lights, idx, determined_only=True) if noise else [],
+               "zq_joint": quantity_z(fit, case.true.lights, idx, joint=True) if noise else []}
         if noise:
             truth = np.asarray(js.shade(case.true, case.material, case.points, case.normals, case.eye), np.float64)
             n_par = len(fit.report.names)
@@ -321,6 +359,10 @@ def _summary(runs: list[dict]) -> dict:
                                     if set(r["flags"]) <= {"undetermined"}] + [np.zeros(0)]))
         calib.update({"calibration_determined_within_2se": float(np.mean(zd < 2.0)) if zd.size else float("nan"),
                       "calibration_determined_n": int(zd.size)})
+    for key in ("zq", "zq_determined", "zq_joint"):  # the covered quantities (module docstring)
+        zq = np.abs(np.concatenate([np.asarray(r.get(key, []), np.float64) for r in runs] + [np.zeros(0)]))
+        if zq.size:
+            calib.update({f"calibration_{key}_within_2se": float(np.mean(zq < 2.0)), f"calibration_{key}_n": int(zq.size)})
     return {**calib, "success": sum(r["success"] for r in runs), "n": len(runs),
             "failed_flagged": sum(r["flagged"] for r in runs if not r["success"]),
             "recovered_flagged": sum(r["flagged"] for r in runs if r["success"]),
@@ -368,13 +410,15 @@ def markdown(results: dict) -> str:
             "n + 3 sqrt(2n) (n fitted parameters); 'within 2 se': errors within 2 reported standard errors (centres' "
             "x, y, z and powers, over all runs); 'unflagged: within 2 se': the same over the runs the library does not "
             "flag (report.quality.trusted), the runs whose standard errors it vouches for; 'determined: within 2 se': the "
-            "parameters marked determined in the runs flagged for nothing but 'undetermined'. "
+            "parameters marked determined in the runs flagged for nothing but 'undetermined'; 'covered': the quantities "
+            "the standard errors cover (report.quantities: centres' x, y, z and emitted powers, all runs), within 2 "
+            "standard errors, the same over those marked determined, and within their projected joint 95 % interval. "
             f"Machine load (1-minute average) before/after: {results.get('loadavg_before', ['?'])[0]} / "
             f"{results.get('loadavg_after', ['?'])[0]}.", "",
             "| setting | recovered | failures flagged | recovered but flagged | worst position error (% of scene) | "
-            "within 2 se | unflagged: within 2 se | determined: within 2 se | median fit (s) | first fit (s) | "
-            "of which compiling (s) |",
-            "|---|---|---|---|---|---|---|---|---|---|---|"]
+            "within 2 se | unflagged: within 2 se | determined: within 2 se | covered: within 2 se / determined / "
+            "within joint 95 % | median fit (s) | first fit (s) | of which compiling (s) |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, r in results["settings"].items():
         rows.append(f"| {name} | {r['success']}/{r['n']} | {r['failed_flagged']}/{r['n'] - r['success']} | "
                     f"{r.get('recovered_flagged', 0)}/{r['success']} | "
@@ -386,6 +430,11 @@ def markdown(results: dict) -> str:
                        ("none unflagged | " if "calibration_unflagged_n" in r else "- | "))
                     + (f"{100 * r['calibration_determined_within_2se']:.0f} % of {r['calibration_determined_n']} | "
                        if r.get("calibration_determined_n") else "- | ")
+                    + (f"{100 * r['calibration_zq_within_2se']:.0f} % of {r['calibration_zq_n']} / "
+                       + (f"{100 * r['calibration_zq_determined_within_2se']:.0f} % of "
+                          f"{r['calibration_zq_determined_n']} / " if r.get("calibration_zq_determined_n") else "- / ")
+                       + f"{100 * r['calibration_zq_joint_within_2se']:.0f} % | "
+                       if r.get("calibration_zq_n") else "- | ")
                     + f"{r['median_fit_s']:.1f} | {r['first_fit_s']:.1f} | "
                     f"{r['first_compile_s']:.1f} |")
     rows += ["", "| first fit of a fresh process | fit (s) | of which compiling (s) |", "|---|---|---|"]

@@ -30,13 +30,16 @@ import numpy as np
 class Identifiability:
     """`singular_values`: of the unit-column Jacobian, all columns; `std_errors (P,)`: in the
     parameters' own units (0 where held fixed, inf where undetermined); `determined (P,)`;
-    `sigma2`: the residual variance estimate; `dof`: its degrees of freedom."""
+    `sigma2`: the residual variance estimate; `dof`: its degrees of freedom; `covariance (P, P)`:
+    the linearised covariance in the parameters' own units (0 in the rows and columns of the
+    parameters held fixed or undetermined; `std_errors` is the root of its diagonal elsewhere)."""
 
     singular_values: np.ndarray
     std_errors: np.ndarray
     determined: np.ndarray
     sigma2: float
     dof: int
+    covariance: np.ndarray
 
 
 def identifiability(jacobian: np.ndarray, rss: float, n_residuals: int, free: np.ndarray | None = None,
@@ -59,6 +62,7 @@ def identifiability(jacobian: np.ndarray, rss: float, n_residuals: int, free: np
     colnorm = np.linalg.norm(J, axis=0)
     Jn = J / np.where(colnorm > 0, colnorm, 1.0)
     se = np.zeros(n_par)
+    covariance = np.zeros((n_par, n_par))
     determined = np.ones(n_par, bool)
     free_idx = np.flatnonzero(free)
     sv = None
@@ -80,8 +84,10 @@ def identifiability(jacobian: np.ndarray, rss: float, n_residuals: int, free: np
                 v = np.pad(v, (0, Jg.shape[0] - v.size))  # rows past the data (penalties) carry no noise
                 cov = inv @ (Jg.T @ (v[:, None] * Jg)) @ inv
             se[good] = np.sqrt(np.maximum(np.diag(cov), 0.0)) / colnorm[good]
+            covariance[np.ix_(good, good)] = cov / np.outer(colnorm[good], colnorm[good])
         se[free_idx[bad]] = np.inf
         determined[free_idx[bad]] = False
     if sv is None:
         sv = np.linalg.svd(Jn, compute_uv=False)
-    return Identifiability(singular_values=sv, std_errors=se, determined=determined, sigma2=sigma2, dof=dof)
+    return Identifiability(singular_values=sv, std_errors=se, determined=determined, sigma2=sigma2, dof=dof,
+                           covariance=covariance)

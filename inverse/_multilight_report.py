@@ -182,6 +182,10 @@ class LightsReport(FitReport):
     - `quality`: the checks of `inverse._diagnostics` (`FitQuality`: a wrong minimum with the
       competing placements of the last joint solve, escaped lights, outliers, conflicting
       targets, nearly undetermined parameters, an all-dark answer to relations); `trusted`.
+    - `quantities`: `{name: inverse._uncertainty.Quantity}`, what the standard errors cover
+      (each light's centre `light{i}.x/.y/.z` in m and its emitted power `light{i}.flux`), with
+      their standard errors and the projected joint 95 % intervals that the fit vouches for
+      (`_uncertainty`'s docstring).
     """
 
     correlated: tuple
@@ -195,6 +199,7 @@ class LightsReport(FitReport):
     scale: float
     quality: FitQuality | None = None
     suggestion_std_errors: dict = dataclasses.field(default_factory=dict)
+    quantities: dict = dataclasses.field(default_factory=dict)
 
     def _headline(self) -> str:
         return (f"lights fit: loss {self.initial_loss:.4g} -> {self.loss:.4g} "

@@ -35,6 +35,7 @@ from ._painting import as_numpy, painted_rows
 from ._powers import constrained_powers, emitted_power, painted_jacobian
 from ._reports import LightsFit
 from ._targets import PaintedTargets
+from ._uncertainty import Quantity, joint_factor, light_quantities
 
 _POSITION_NAMES = ("x", "y", "z", "a", "b")
 
@@ -116,6 +117,8 @@ def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, ca
           for nm, s, ok, sc in zip(names, ident.std_errors, ident.determined, scale_of, strict=True)}
     determined = {nm: bool(ok) for nm, ok in zip(names, ident.determined, strict=True)}
     warnings = [f"{nm} is not determined by these targets." for nm in names if not determined[nm]]
+    values_d = {nm: float(v) for nm, v in zip(names, values, strict=True)}
+    quantities = _quantities(problem, theta, names, values_d, ident, scale_of, idx)
     warnings += [f"the power of light {idx[j]} is at its bound 0 (the targets ask for less than none)."
                  for j in free_p if powers[j] == 0.0]
     if budget_active:
@@ -132,7 +135,6 @@ def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, ca
                                                               np.asarray(final[1], np.float64), pose_names)
     dark = paint is not None and len(paint.pairs) > 0 and dark_answer(
         np.tensordot(powers, per_light, axes=1), colours, w, paint.margin)
-    values_d = {nm: float(v) for nm, v in zip(names, values, strict=True)}
     rivals: tuple = ()
     # the other rows of the last joint solve, powers (and material) solved there as here; not under a
     # budget or painted ranges / relations (their powers are another problem's)
@@ -168,6 +170,8 @@ def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, ca
         suggestions=suggestions, suggestion_normals=sugg_n, suggestion_std_errors=sugg_se, loss=0.5 * rss,
         initial_loss=math.nan if initial is None else float(initial), stage_losses=tuple(stage_losses),
         starts_solved=n_solved, retries=retries, scale=size, quality=quality,
+        quantities={nm: dataclasses.replace(qv, determined=_still_determined(nm, qv, determined, quality))
+                    for nm, qv in quantities.items()},
     )
     all_lights = list(problem.scene.lights)
     for j, i in enumerate(idx):
@@ -175,6 +179,43 @@ def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, ca
     new_scene = eqx.tree_at(lambda s: s.lights, problem.scene, tuple(all_lights))
     return LightsFit(scene=new_scene, lights=out_lights, powers=np.asarray(powers), material=mat, residual=residual,
                      report=report, theta=theta, parametrisations=problem.params)
+
+
+def _still_determined(name: str, q: Quantity, determined: dict, quality: Any) -> bool:
+    """Whether a covered quantity stays determined after the checks: a centre coordinate as the
+    report's parameter; a flux when its light was not escaped, collapsed or unused
+    and its standard error is at most its value (the limit of a power in `_diagnostics`)."""
+    if not name.endswith(".flux"):
+        return q.determined and determined.get(name, True)
+    light = name.rsplit(".", 1)[0]
+    gone = light in quality.escaped or light in quality.collapsed or light in quality.unused
+    return q.determined and not gone and q.std_error <= abs(q.value)
+
+
+def _quantities(problem: LightsProblem, theta: np.ndarray, names: tuple, values: dict, ident: Any,
+                scale_of: list, idx: list) -> dict:
+    """The covered quantities of `inverse._uncertainty` (`{name: Quantity}`, `determined` as the
+    identifiability's; the report narrows it): values (centres in m), delta-method standard
+    errors and projected joint intervals (positions in m)."""
+    pos = {nm: i for i, nm in enumerate(names)}
+    C = ident.covariance
+    factor = joint_factor(int(np.count_nonzero(np.diag(C) > 0)))
+    dt = problem.targets.points.dtype
+    centres = {f"light{idx[j]}": _pose(x, problem.params[j], 1.0)["centre"]
+               for j, x in enumerate(build_lights(problem, jnp.asarray(theta, dt))) if problem.params[j] is not None}
+    out = {}
+    for nm, (val, grad) in light_quantities(names, values, idx).items():
+        if nm.rsplit(".", 1)[-1] in ("x", "y", "z"):
+            val = float(centres[nm.rsplit(".", 1)[0]]["xyz".index(nm[-1])])
+        if not all(ident.determined[pos[p]] for p in grad):
+            out[nm] = Quantity(val, math.inf, math.inf, False)
+            continue
+        g = np.zeros(len(names))
+        for p, d in grad.items():
+            g[pos[p]] = d
+        se = math.sqrt(max(float(g @ C @ g), 0.0)) * (scale_of[pos[nm]] if nm in pos else 1.0)
+        out[nm] = Quantity(val, se, factor * se, True)
+    return out
 
 
 RIVAL_ROWS = 8  # the final joint solve's rows checked as competing placements at most

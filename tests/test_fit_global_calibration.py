@@ -24,3 +24,17 @@ def test_calibration_over_unflagged_runs():
     none = _summary([_run(True, [1.0])])
     assert none["calibration_unflagged_n"] == 0 and math.isnan(none["calibration_unflagged_within_2se"])
     assert "none unflagged" in markdown({"settings": {"noisy": {**none, "runs": []}}})
+
+
+def test_calibration_of_covered_quantities():
+    """The covered quantities' fractions: within 2 standard errors over all runs, over those
+    marked determined, and inside the projected joint interval (`zq_joint`: errors over half
+    the interval); each counted over every run, flagged or not."""
+    runs = [{**_run(True, [0.5], ["undetermined"]), "zq": [0.5, 2.5, -3.0], "zq_determined": [0.5],
+             "zq_joint": [0.2, 0.9, -1.1]},
+            {**_run(False, [0.1]), "zq": [1.0, -2.2], "zq_determined": [1.0, -2.2], "zq_joint": [0.4, -2.1]}]
+    s = _summary(runs)
+    assert s["calibration_zq_n"] == 5 and math.isclose(s["calibration_zq_within_2se"], 2 / 5)
+    assert s["calibration_zq_determined_n"] == 3 and math.isclose(s["calibration_zq_determined_within_2se"], 2 / 3)
+    assert s["calibration_zq_joint_n"] == 5 and math.isclose(s["calibration_zq_joint_within_2se"], 4 / 5)
+    assert "| 40 % of 5 / 67 % of 3 / 80 % |" in markdown({"settings": {"noisy": {**s, "runs": runs}}})
