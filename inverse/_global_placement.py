@@ -82,6 +82,7 @@ import numpy as np
 import jaxshadow as js
 
 from ._closed_forms import light_from_diffuse_maximum
+from ._escape import escaped_rows
 from ._forward import at_capacity
 from ._lm import fit_jit
 from ._multilight import LightsProblem, _parts, build_lights, solve
@@ -649,11 +650,15 @@ def refine_and_rank(problem: LightsProblem, thetas: np.ndarray, lm: dict, batch:
 
 def ranking_losses(problem: LightsProblem, losses: Any, thetas: np.ndarray) -> tuple[np.ndarray, LightsProblem]:
     """`(losses (S,), problem)` ranking the rows `thetas (S, Pt)` of an LM solve: its `losses`
-    (infinite where not finite) or, under a power budget, `final_losses`."""
+    (infinite where not finite) or, under a power budget, `final_losses`; infinite for the rows in
+    which a light escaped (`_escape.escaped_rows`) while some row keeps every light in bounds."""
     if problem.budget is None:
         f = np.asarray(losses, np.float64)
-        return np.where(np.isfinite(f), f, np.inf), problem
-    return final_losses(problem, np.asarray(thetas, np.float64))
+        f = np.where(np.isfinite(f), f, np.inf)
+    else:
+        f, problem = final_losses(problem, np.asarray(thetas, np.float64))
+    out = escaped_rows(problem, thetas)  # the escape bound (`_escape`): such rows not ranked, unless all are
+    return (np.where(out, np.inf, f) if out.any() and not out.all() else f), problem
 
 
 def final_losses(problem: LightsProblem, thetas: np.ndarray) -> tuple[np.ndarray, LightsProblem]:
