@@ -100,20 +100,21 @@ def test_screen_picks_the_sideways_quads_normal_with_the_others_held():
 
 
 @pytest.mark.slow
-def test_sideways_quad_found_from_no_start():
+def test_sideways_quad_scene_explained_from_no_start():
     """Seed 9 with a quad (110 degrees from straight down), a point and a segment light, from no
-    start as `benchmarks.fit_global` calls it: every light within 0.5 % of the scene and every
-    power within 1 % (without the orientation screen: the quad 66 % of the scene off)."""
+    start as `benchmarks.fit_global` calls it: the fit explains the targets to round-off (without
+    the orientation screen: a loss 3e-8, the quad 66 % of the scene off, flagged "undetermined"
+    and "outliers"). The quad lights only 7 of the 60 targets (0.6 % of their colour), too few to
+    pin down its position, orientation, size and power: the report says so ("undetermined")."""
     from benchmarks.fit_global import NOISE_FREE_SIGMA
-    from benchmarks.inverse_random_scenes import light_errors
 
     case = random_case(9, KINDS)
     col = np.asarray(js.shade(case.true, case.material, case.points, case.normals, case.eye), np.float64)
+    lit = _column(case, case.true.lights[0]).reshape(-1, 3).sum(axis=1) > 0
+    assert lit.sum() == 7
     targets = inverse.PaintedTargets(case.points, case.normals, col, case.eye)
-    size = inverse.scene_size(case.true, targets)
     empty = js.Scene([], occluders=case.true.occluders, ambient=case.true.ambient)
     fit = inverse.fit_lights(empty, targets, case.material, kinds=list(case.kinds), warn=False,
                              noise=NOISE_FREE_SIGMA * float(np.sqrt(np.mean(col ** 2))))
-    for got, want in zip(fit.lights, case.true.lights, strict=True):
-        pos, power = light_errors(got, want)
-        assert pos < 0.005 * size and power < 0.01, (type(want).__name__, pos / size, power)
+    assert fit.report.loss < 1e-20 * 0.5 * float(np.sum(col ** 2))
+    assert "undetermined" in fit.report.quality.flags
