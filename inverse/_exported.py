@@ -66,21 +66,27 @@ def store_dir() -> str | None:
     return os.path.join(d, _SUBDIR) if d else None
 
 
+def tree_digest(roots: list[pathlib.Path]) -> str:
+    """sha256 of the `.py` sources and built extensions (`.so`, `.pyd`) under each of `roots`
+    (their paths relative to the root, and their contents)."""
+    h = hashlib.sha256()
+    for root in roots:
+        h.update(b"\0root\0")
+        for p in sorted(root.rglob("*")):
+            if p.suffix in (".py", ".so", ".pyd") and p.is_file():
+                h.update(str(p.relative_to(root)).encode() + b"\0")
+                h.update(hashlib.sha256(p.read_bytes()).digest())
+    return h.hexdigest()
+
+
 @functools.cache
 def _sources_digest() -> str:
-    """sha256 of the `.py` sources and built extensions of `inverse` and `jaxshadow` (paths and
-    contents): a program traced from other code is never loaded."""
+    """`tree_digest` of `inverse` and `jaxshadow` (the shadow engine's extension included): a
+    program traced from other code is never loaded."""
     import inverse
     import jaxshadow
 
-    h = hashlib.sha256()
-    for pkg in (inverse, jaxshadow):
-        root = pathlib.Path(pkg.__file__).parent
-        for p in sorted(root.rglob("*")):
-            if p.suffix in (".py", ".so") and p.is_file():
-                h.update(str(p.relative_to(root)).encode())
-                h.update(p.read_bytes())
-    return h.hexdigest()
+    return tree_digest([pathlib.Path(pkg.__file__).parent for pkg in (inverse, jaxshadow)])
 
 
 _OURS = ("inverse", "jaxshadow")

@@ -115,6 +115,22 @@ def specular_culled(scene: Any, points: Array, normals: Array, eye: Array, expon
     return traced.specular(scene, points, normals, eyes, exponent.astype(dt), capacity=capacity)
 
 
+def irradiance_specular_culled(scene: Any, points: Array, normals: Array, eye: Array, exponent: Array,
+                               specular: SpecularFn | None, capacity: int | None) -> tuple[Array, Array, Array]:
+    """`(E, S, overflow)` of `irradiance_culled` and `specular_culled` together: without a
+    custom `specular`, one run of the shadow engine serves both (`traced.irradiance_and_specular`:
+    a program holding both has one copy of the engine)."""
+    if specular is not None:
+        e, over = irradiance_culled(scene, points, normals, capacity)
+        s, o = specular_culled(scene, points, normals, eye, exponent, specular, capacity)
+        return e, s, over | o
+    dt = points.dtype
+    eyes = jnp.broadcast_to(jnp.asarray(eye, dt), points.shape)
+    opts = _EVERY_OCCLUDER if capacity is None else None
+    return traced.irradiance_and_specular(scene, points, normals, eyes, exponent.astype(dt), capacity=capacity,
+                                          shadows=opts)
+
+
 def traced_specular(scene: Any, points: Array, normals: Array, eye: Array, exponent: Array) -> Array:
     """`js.specular` (its default method and degree) without its input checks or its own jit,
     for the solvers' compiled programs (the material fit's exponent search): a module-level
