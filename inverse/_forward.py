@@ -17,7 +17,9 @@ import dataclasses
 from collections.abc import Callable
 from typing import Any, TypeVar
 
+import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array
 
 import jaxshadow as js
@@ -129,6 +131,32 @@ def irradiance_specular_culled(scene: Any, points: Array, normals: Array, eye: A
     opts = _EVERY_OCCLUDER if capacity is None else None
     return traced.irradiance_and_specular(scene, points, normals, eyes, exponent.astype(dt), capacity=capacity,
                                           shadows=opts)
+
+
+class EngineSpecular(eqx.Module):
+    """`js.specular` (its default method and degree) with the shadow engine inside the compiled
+    program, at most `capacity` boundary edges per receiver (`jaxshadow.traced`): the material
+    fit's exponent search, for receivers whose need was counted on the host
+    (`material_specular`); a receiver that needs more is a run-time error (`eqx.error_if`),
+    never a truncated value. Half the program of `traced_specular`'s every-occluder clipping:
+    the engine finds each receiver's visible region, JAX decodes and integrates it. A module
+    with a static capacity: one program per capacity, keyed by value (`fit_jit`, `_exported`)."""
+
+    capacity: int = eqx.field(static=True)
+
+    def __call__(self, scene: Any, points: Array, normals: Array, eye: Array, exponent: Array) -> Array:
+        s, over = specular_culled(scene, points, normals, eye, jnp.asarray(exponent), None, self.capacity)
+        return eqx.error_if(s, over, "EngineSpecular: a receiver's visible region needs more boundary edges than "
+                                     "the capacity counted for it.")
+
+
+def material_specular(scene: Any, points: Any, normals: Any) -> SpecularFn:
+    """The specular function of the material fit for a concrete `scene` and receivers:
+    `EngineSpecular` at the capacity the receivers need (`traced.shadow_capacity`, rounded up to
+    a multiple of 8 so that nearby scenes share the program), or `traced_specular` (no
+    occluders, or no engine)."""
+    cap = traced.shadow_capacity(scene, np.asarray(points), np.asarray(normals))
+    return EngineSpecular(8 * -(-cap // 8)) if cap > 0 else traced_specular
 
 
 def traced_specular(scene: Any, points: Array, normals: Array, eye: Array, exponent: Array) -> Array:

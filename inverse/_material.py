@@ -27,7 +27,7 @@ from jaxtyping import Array
 import jaxshadow as js
 from jaxshadow.cli import ensure_default_compile_cache
 
-from ._forward import SpecularFn, traced_specular
+from ._forward import SpecularFn, material_specular
 from ._identifiability import identifiability
 from ._lm import ONCE_COMPILER_OPTIONS, fit_jit
 from ._reports import MaterialFit, MaterialReport, UndeterminedParameterWarning
@@ -322,7 +322,7 @@ def fit_material(
     if not (0 < n_lo < n_hi and np.isfinite(n_hi)):
         raise ValueError(f"fit_material: n_bounds must satisfy 0 < lower < upper, got {n_bounds}.")
     fit_n = exponent is None
-    spec_fn = traced_specular if specular is None else specular
+    spec_fn = material_specular(scene, targets.points, targets.normals) if specular is None else specular
     basis = _Basis(scene, targets, spec_fn)
     y = _np(targets.colours)
     w = _np(targets.weights)
