@@ -16,8 +16,10 @@ program, so both processes compile the same module).
 Arguments it cannot key exactly (a function from elsewhere, an object without a value-based
 representation) or outputs that are not arrays leave the program to `equinox.filter_jit`, as
 does `JAXSHADOW_EXPORT_CACHE=off`, or the absence of the `flatbuffers` package (which
-`jax.export` serialises with; not a dependency of jaxshadow). The store holds code: private to the user like the
-compilation cache (`jaxshadow.cli.enable_compile_cache`).
+`jax.export` serialises with; a dependency of jaxshadow, so the store is on wherever the
+compilation cache is). The store holds code: private to the user like the compilation cache
+(`jaxshadow.cli.enable_compile_cache`); like it, it is not size-limited (one file per program and
+argument structure, a new one after any change of the sources, the engine or jax).
 """
 
 from __future__ import annotations
