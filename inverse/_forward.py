@@ -137,17 +137,22 @@ class EngineSpecular(eqx.Module):
     """`js.specular` (its default method and degree) with the shadow engine inside the compiled
     program, at most `capacity` boundary edges per receiver (`jaxshadow.traced`): the material
     fit's exponent search, for receivers whose need was counted on the host
-    (`material_specular`); a receiver that needs more is a run-time error (`eqx.error_if`),
-    never a truncated value. Half the program of `traced_specular`'s every-occluder clipping:
-    the engine finds each receiver's visible region, JAX decodes and integrates it. A module
-    with a static capacity: one program per capacity, keyed by value (`fit_jit`, `_exported`)."""
+    (`material_specular`); `with_overflow` also says whether a receiver needed more (its
+    value is then not exact: the caller raises), so the program holds no host callback and
+    stays in the persistent compilation cache. Half the program of `traced_specular`'s
+    every-occluder clipping: the engine finds each receiver's visible region, JAX decodes and
+    integrates it. A module with a static capacity: one program per capacity, keyed by value
+    (`fit_jit`, `_exported`)."""
 
     capacity: int = eqx.field(static=True)
 
+    def with_overflow(self, scene: Any, points: Array, normals: Array, eye: Array,
+                      exponent: Array) -> tuple[Array, Array]:
+        """`(S (N, 3), overflow)`."""
+        return specular_culled(scene, points, normals, eye, jnp.asarray(exponent), None, self.capacity)
+
     def __call__(self, scene: Any, points: Array, normals: Array, eye: Array, exponent: Array) -> Array:
-        s, over = specular_culled(scene, points, normals, eye, jnp.asarray(exponent), None, self.capacity)
-        return eqx.error_if(s, over, "EngineSpecular: a receiver's visible region needs more boundary edges than "
-                                     "the capacity counted for it.")
+        return self.with_overflow(scene, points, normals, eye, exponent)[0]
 
 
 def material_specular(scene: Any, points: Any, normals: Any) -> SpecularFn:

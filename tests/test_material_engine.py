@@ -7,6 +7,7 @@ import pytest
 import inverse
 import jaxshadow as js
 from inverse._forward import EngineSpecular, material_specular, traced_specular
+from inverse._material import SPEC_CHUNK, _Basis, _spec_eval
 
 
 def _scene():
@@ -20,7 +21,7 @@ def _scene():
     return scene, points, normals, np.array([0.3, -2.0, 2.0])
 
 
-def test_engine_specular_is_js_specular_and_refuses_a_short_capacity():
+def test_engine_specular_is_js_specular_and_flags_a_short_capacity():
     scene, points, normals, eye = _scene()
     fn = material_specular(scene, points, normals)
     assert isinstance(fn, EngineSpecular) and fn.capacity % 8 == 0
@@ -29,8 +30,12 @@ def test_engine_specular_is_js_specular_and_refuses_a_short_capacity():
     np.testing.assert_allclose(np.asarray(fn(scene, p, n, jnp.asarray(eye), jnp.asarray(25.0))), want, rtol=1e-12, atol=1e-15)
     shadowed = np.asarray(js.irradiance(scene, points, normals))[:, 0]
     assert np.ptp(shadowed) > 0.1 * shadowed.max() and want.max() > 0  # penumbrae and a highlight
-    with pytest.raises(Exception, match="capacity"):
-        np.asarray(EngineSpecular(1)(scene, p, n, jnp.asarray(eye), jnp.asarray(25.0)))
+    assert not bool(fn.with_overflow(scene, p, n, jnp.asarray(eye), jnp.asarray(25.0))[1])
+    assert bool(EngineSpecular(1).with_overflow(scene, p, n, jnp.asarray(eye), jnp.asarray(25.0))[1])
+    t = inverse.PaintedTargets(points, normals, np.ones((30, 3)), eye)
+    assert bool(_spec_eval(EngineSpecular(1), scene, t, jnp.full((SPEC_CHUNK,), 25.0))[2])
+    with pytest.raises(RuntimeError, match="capacity"):
+        _Basis(scene, t, EngineSpecular(1)).spec(25.0)
     assert material_specular(js.Scene(list(scene.lights)), points, normals) is traced_specular
 
 
