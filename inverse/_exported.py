@@ -16,8 +16,10 @@ program, so both processes compile the same module).
 Arguments it cannot key exactly (a function from elsewhere, an object without a value-based
 representation) or outputs that are not arrays leave the program to `equinox.filter_jit`, as
 does `JAXSHADOW_EXPORT_CACHE=off`, or the absence of the `flatbuffers` package (which
-`jax.export` serialises with; not a dependency of jaxshadow). The store holds code: private to the user like the
-compilation cache (`jaxshadow.cli.enable_compile_cache`).
+`jax.export` serialises with; a dependency of jaxshadow, so the store is on wherever the
+compilation cache is). The store holds code: private to the user like the compilation cache
+(`jaxshadow.cli.enable_compile_cache`); like it, it is not size-limited (one file per program and
+argument structure, a new one after any change of the sources, the engine or jax).
 """
 
 from __future__ import annotations
@@ -66,21 +68,27 @@ def store_dir() -> str | None:
     return os.path.join(d, _SUBDIR) if d else None
 
 
+def tree_digest(roots: list[pathlib.Path]) -> str:
+    """sha256 of the `.py` sources and built extensions (`.so`, `.pyd`) under each of `roots`
+    (their paths relative to the root, and their contents)."""
+    h = hashlib.sha256()
+    for root in roots:
+        h.update(b"\0root\0")
+        for p in sorted(root.rglob("*")):
+            if p.suffix in (".py", ".so", ".pyd") and p.is_file():
+                h.update(str(p.relative_to(root)).encode() + b"\0")
+                h.update(hashlib.sha256(p.read_bytes()).digest())
+    return h.hexdigest()
+
+
 @functools.cache
 def _sources_digest() -> str:
-    """sha256 of the `.py` sources and built extensions of `inverse` and `jaxshadow` (paths and
-    contents): a program traced from other code is never loaded."""
+    """`tree_digest` of `inverse` and `jaxshadow` (the shadow engine's extension included): a
+    program traced from other code is never loaded."""
     import inverse
     import jaxshadow
 
-    h = hashlib.sha256()
-    for pkg in (inverse, jaxshadow):
-        root = pathlib.Path(pkg.__file__).parent
-        for p in sorted(root.rglob("*")):
-            if p.suffix in (".py", ".so") and p.is_file():
-                h.update(str(p.relative_to(root)).encode())
-                h.update(p.read_bytes())
-    return h.hexdigest()
+    return tree_digest([pathlib.Path(pkg.__file__).parent for pkg in (inverse, jaxshadow)])
 
 
 _OURS = ("inverse", "jaxshadow")

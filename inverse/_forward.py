@@ -17,7 +17,9 @@ import dataclasses
 from collections.abc import Callable
 from typing import Any, TypeVar
 
+import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array
 
 import jaxshadow as js
@@ -113,6 +115,53 @@ def specular_culled(scene: Any, points: Array, normals: Array, eye: Array, expon
     if capacity is None:
         return traced.specular(scene, points, normals, eyes, exponent.astype(dt), shadows=_EVERY_OCCLUDER)
     return traced.specular(scene, points, normals, eyes, exponent.astype(dt), capacity=capacity)
+
+
+def irradiance_specular_culled(scene: Any, points: Array, normals: Array, eye: Array, exponent: Array,
+                               specular: SpecularFn | None, capacity: int | None) -> tuple[Array, Array, Array]:
+    """`(E, S, overflow)` of `irradiance_culled` and `specular_culled` together: without a
+    custom `specular`, one run of the shadow engine serves both (`traced.irradiance_and_specular`:
+    a program holding both has one copy of the engine)."""
+    if specular is not None:
+        e, over = irradiance_culled(scene, points, normals, capacity)
+        s, o = specular_culled(scene, points, normals, eye, exponent, specular, capacity)
+        return e, s, over | o
+    dt = points.dtype
+    eyes = jnp.broadcast_to(jnp.asarray(eye, dt), points.shape)
+    opts = _EVERY_OCCLUDER if capacity is None else None
+    return traced.irradiance_and_specular(scene, points, normals, eyes, exponent.astype(dt), capacity=capacity,
+                                          shadows=opts)
+
+
+class EngineSpecular(eqx.Module):
+    """`js.specular` (its default method and degree) with the shadow engine inside the compiled
+    program, at most `capacity` boundary edges per receiver (`jaxshadow.traced`): the material
+    fit's exponent search, for receivers whose need was counted on the host
+    (`material_specular`); `with_overflow` also says whether a receiver needed more (its
+    value is then not exact: the caller raises), so the program holds no host callback and
+    stays in the persistent compilation cache. Half the program of `traced_specular`'s
+    every-occluder clipping: the engine finds each receiver's visible region, JAX decodes and
+    integrates it. A module with a static capacity: one program per capacity, keyed by value
+    (`fit_jit`, `_exported`)."""
+
+    capacity: int = eqx.field(static=True)
+
+    def with_overflow(self, scene: Any, points: Array, normals: Array, eye: Array,
+                      exponent: Array) -> tuple[Array, Array]:
+        """`(S (N, 3), overflow)`."""
+        return specular_culled(scene, points, normals, eye, jnp.asarray(exponent), None, self.capacity)
+
+    def __call__(self, scene: Any, points: Array, normals: Array, eye: Array, exponent: Array) -> Array:
+        return self.with_overflow(scene, points, normals, eye, exponent)[0]
+
+
+def material_specular(scene: Any, points: Any, normals: Any) -> SpecularFn:
+    """The specular function of the material fit for a concrete `scene` and receivers:
+    `EngineSpecular` at the capacity the receivers need (`traced.shadow_capacity`, rounded up to
+    a multiple of 8 so that nearby scenes share the program), or `traced_specular` (no
+    occluders, or no engine)."""
+    cap = traced.shadow_capacity(scene, np.asarray(points), np.asarray(normals))
+    return EngineSpecular(8 * -(-cap // 8)) if cap > 0 else traced_specular
 
 
 def traced_specular(scene: Any, points: Array, normals: Array, eye: Array, exponent: Array) -> Array:

@@ -27,7 +27,7 @@ from jaxtyping import Array
 import jaxshadow as js
 from jaxshadow.cli import ensure_default_compile_cache
 
-from ._forward import SpecularFn, traced_specular
+from ._forward import EngineSpecular, SpecularFn, material_specular
 from ._identifiability import identifiability
 from ._lm import ONCE_COMPILER_OPTIONS, fit_jit
 from ._reports import MaterialFit, MaterialReport, UndeterminedParameterWarning
@@ -142,16 +142,22 @@ SPEC_CHUNK = 8
 
 
 @fit_jit(options=ONCE_COMPILER_OPTIONS)
-def _spec_eval(specular: Any, scene: Any, targets: PaintedTargets, exponents: Array) -> tuple[Array, Array]:
-    """`(S(n), n dS/dn)` at each of `exponents (SPEC_CHUNK,)`: one program for values and
-    derivatives (the derivative's program holds the value's)."""
+def _spec_eval(specular: Any, scene: Any, targets: PaintedTargets, exponents: Array) -> tuple[Array, Array, Array]:
+    """`(S(n), n dS/dn, overflow)` at each of `exponents (SPEC_CHUNK,)`: one program for values
+    and derivatives (the derivative's program holds the value's); `overflow` (bool scalar): an
+    `EngineSpecular` receiver needed more than its capacity (always False for other functions)."""
     t = targets
 
-    def one(e: Array) -> tuple[Array, Array]:
-        f = lambda x: specular(scene, t.points, t.normals, t.eye, x)  # noqa: E731
-        return jax.jvp(f, (e,), (e,))  # d/dlog n = n d/dn
+    def one(e: Array) -> tuple[Array, Array, Array]:
+        if isinstance(specular, EngineSpecular):
+            (s, over), (ds, _) = jax.jvp(lambda x: specular.with_overflow(scene, t.points, t.normals, t.eye, x),
+                                         (e,), (e,))  # d/dlog n = n d/dn
+            return s, ds, over
+        s, ds = jax.jvp(lambda x: specular(scene, t.points, t.normals, t.eye, x), (e,), (e,))
+        return s, ds, jnp.zeros((), bool)
 
-    return jax.vmap(one)(exponents)
+    val, der, over = jax.vmap(one)(exponents)
+    return val, der, jnp.any(over)
 
 
 class _Basis:
@@ -177,7 +183,10 @@ class _Basis:
         padded = np.concatenate([exponents, np.repeat(exponents[-1:], k - len(exponents))])
         for i in range(0, k, SPEC_CHUNK):
             es = jnp.asarray(padded[i: i + SPEC_CHUNK], dtype=self.targets.points.dtype)
-            val, der = _spec_eval(self.specular, self.scene, self.targets, es)
+            val, der, over = _spec_eval(self.specular, self.scene, self.targets, es)
+            if bool(over):  # the capacity was counted for these receivers: not expected
+                raise RuntimeError("fit_material: a receiver's visible region needs more boundary edges than the "
+                                   "shadow capacity counted for it.")
             for e, v, d in zip(padded[i: i + SPEC_CHUNK], _np(val), _np(der), strict=True):
                 self._cache.setdefault(float(e), (v, d))
         return np.stack([self._cache[float(e)][0] for e in exponents])
@@ -322,7 +331,7 @@ def fit_material(
     if not (0 < n_lo < n_hi and np.isfinite(n_hi)):
         raise ValueError(f"fit_material: n_bounds must satisfy 0 < lower < upper, got {n_bounds}.")
     fit_n = exponent is None
-    spec_fn = traced_specular if specular is None else specular
+    spec_fn = material_specular(scene, targets.points, targets.normals) if specular is None else specular
     basis = _Basis(scene, targets, spec_fn)
     y = _np(targets.colours)
     w = _np(targets.weights)

@@ -33,7 +33,7 @@ from jaxtyping import Array
 
 import jaxshadow as js
 
-from ._forward import SpecularFn, at_capacity, irradiance_culled, specular_culled
+from ._forward import SpecularFn, at_capacity, irradiance_culled, irradiance_specular_culled
 from ._lm import LMResult, batched_levenberg_marquardt, duplicate_sources, fit_jit, prune_array
 from ._painting import painted_rows
 from ._residuals import pinned
@@ -154,11 +154,10 @@ def _one_basis(light: Any, problem: LightsProblem, capacity: int | None,
     """`(E (N, 3), S (N, 3) or None, overflow)` of one light at reference power."""
     t = problem.targets
     sc = one_light_scene(problem.scene, pinned(light))
-    e, over = irradiance_culled(sc, t.points, t.normals, capacity)
     if not problem.with_specular:
+        e, over = irradiance_culled(sc, t.points, t.normals, capacity)
         return e, None, over
-    s, o = specular_culled(sc, t.points, t.normals, t.eye, exponent, problem.specular, capacity)
-    return e, s, over | o
+    return irradiance_specular_culled(sc, t.points, t.normals, t.eye, exponent, problem.specular, capacity)
 
 
 def same_kind_groups(lights: list) -> list[list[int]]:

@@ -29,10 +29,10 @@ from ._scene.model import Scene
 from ._shading import shade as _shade
 from ._shadows import evaluators as _evaluators
 from ._shadows import plan as _plan
-from ._shadows.integrands import Lambert, Phong
+from ._shadows.integrands import Both, Lambert, Phong
 from ._shadows.options import DEFAULT_OPTIONS, ShadowOptions
 
-__all__ = ["DEFAULT_SPECULAR_DEGREE", "irradiance", "specular", "pin", "shadow_capacity"]
+__all__ = ["DEFAULT_SPECULAR_DEGREE", "irradiance", "specular", "irradiance_and_specular", "pin", "shadow_capacity"]
 
 DEFAULT_SPECULAR_DEGREE = DEFAULT_DEGREE
 """The Chebyshev degree of `jaxshadow.specular`'s default method."""
@@ -140,6 +140,30 @@ def specular(
     if scene.occluders is None:
         return _shade.unoccluded_specular(scene, points, normals, eyes, exponent, method, degree), jnp.zeros((), bool)
     return _shadowed(scene, Phong(exponent, method, int(degree)), points, normals, eyes, _options(capacity, shadows))
+
+
+def irradiance_and_specular(
+    scene: Scene,
+    points: Float[Array, "n 3"],
+    normals: Float[Array, "n 3"],
+    eyes: Float[Array, "n 3"],
+    exponent: Float[Array, ""],
+    *,
+    capacity: int | None = None,
+    shadows: ShadowOptions | None = None,
+) -> tuple[Float[Array, "n 3"], Float[Array, "n 3"], Bool[Array, ""]]:
+    r"""`(E (N, 3), S (N, 3), overflow)`: `irradiance` and `specular` (its default method and
+    degree) of the same receivers, with the shadow engine run once per light and receiver block
+    for both (one visible region, decoded once, integrated twice): a compiled program that needs
+    both holds one copy of the engine's wrappers instead of two. The values are those of the two
+    functions (the same kernels on the same visible region); arguments as `specular`."""
+    opts = _options(capacity, shadows)
+    if scene.occluders is None or not opts.use_engine():
+        e, o1 = irradiance(scene, points, normals, capacity=capacity, shadows=shadows)
+        s, o2 = specular(scene, points, normals, eyes, exponent, capacity=capacity, shadows=shadows)
+        return e, s, o1 | o2
+    out, overflow = _shadowed(scene, Both(Phong(exponent)), points, normals, eyes, opts)
+    return out[:, 0], out[:, 1], overflow
 
 
 def pin(x: Float[Array, "k ..."]) -> Float[Array, "k ..."]:

@@ -102,3 +102,58 @@ def test_store_round_trip(tmp_path):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     (tmp_path / "bad.bin").write_bytes(b"not a program")
     assert ex.load(str(tmp_path / "bad.bin"), opts) is None
+
+
+def test_key_follows_the_code_the_engine_and_jax(monkeypatch):
+    scene, t = _problem()
+    e = jnp.ones(4)
+    k = _key(traced_specular, scene, t, e)
+    assert _key(traced_specular, scene, t, e) == k
+    with monkeypatch.context() as m:
+        m.setattr(ex, "_sources_digest", lambda: "0" * 64)  # another inverse/jaxshadow source or engine build
+        assert _key(traced_specular, scene, t, e) != k
+    with monkeypatch.context() as m:
+        m.setattr(jax, "__version__", "0.0.1")
+        assert _key(traced_specular, scene, t, e) != k
+    with monkeypatch.context() as m:
+        m.setattr(ex, "_jaxlib_version", lambda: "0.0.1")
+        assert _key(traced_specular, scene, t, e) != k
+
+
+def test_tree_digest_follows_sources_and_extensions(tmp_path):
+    root = tmp_path / "pkg"
+    (root / "sub").mkdir(parents=True)
+    (root / "a.py").write_text("x = 1\n")
+    (root / "sub" / "_engine.so").write_bytes(b"\x7fELF one")
+    (root / "notes.txt").write_text("not code")
+    d0 = ex.tree_digest([root])
+    (root / "notes.txt").write_text("still not code")
+    assert ex.tree_digest([root]) == d0
+    (root / "sub" / "_engine.so").write_bytes(b"\x7fELF two")  # a rebuilt engine
+    d1 = ex.tree_digest([root])
+    assert d1 != d0
+    (root / "a.py").write_text("x = 2\n")  # an edited source
+    d2 = ex.tree_digest([root])
+    assert d2 not in (d0, d1)
+    (root / "a.py").rename(root / "b.py")  # the same contents under another name
+    assert ex.tree_digest([root]) != d2
+
+
+@pytest.mark.skipif(importlib.util.find_spec("flatbuffers") is None, reason="jax.export serialises with flatbuffers")
+def test_fit_jit_gives_the_same_values_with_the_store_on_and_off(tmp_path, monkeypatch):
+    """A `fit_jit` program through the store (exported in one call, loaded in a later one) and
+    without it (`JAXSHADOW_EXPORT_CACHE=off`): bit-identical outputs."""
+    from inverse._lm import ONCE_COMPILER_OPTIONS, fit_jit
+
+    scene, t = _problem()
+    e = jnp.asarray([1.0, 3.0, 10.0, 30.0], jnp.float64)
+    monkeypatch.setenv(ex.ENV, "off")
+    off = fit_jit(RAW_SPEC, options=ONCE_COMPILER_OPTIONS)(traced_specular, scene, t, e)
+    monkeypatch.delenv(ex.ENV)
+    monkeypatch.setattr(ex, "store_dir", lambda: str(tmp_path))
+    first = fit_jit(RAW_SPEC, options=ONCE_COMPILER_OPTIONS)(traced_specular, scene, t, e)  # exported, stored
+    assert len(list(tmp_path.glob("*.bin"))) == 1
+    again = fit_jit(RAW_SPEC, options=ONCE_COMPILER_OPTIONS)(traced_specular, scene, t, e)  # loaded
+    for out in (first, again):
+        for a, b in zip(jax.tree_util.tree_leaves(out), jax.tree_util.tree_leaves(off), strict=True):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

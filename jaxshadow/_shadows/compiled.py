@@ -52,14 +52,19 @@ def _traced_segment(light: Any, integ: Any, p, n, e, faces, topo, capacity: int)
     occ = jnp.take(faces, fidx.reshape(-1), axis=0).reshape(fidx.shape + faces.shape[1:])
     shadowed = jax.vmap(segment_visible, in_axes=(None, 0, 0, 0, None, None, None, 0))(integ, p, n, e, a, b, prof, occ)
     free = jax.vmap(integ.segment, in_axes=(0, 0, 0, None, None, None))(p, n, e, a, b, prof)
-    return jnp.where(cnt > 0, shadowed, free), jnp.any(cnt > capacity)
+    return jnp.where(_per_value(cnt > 0, integ), shadowed, free), jnp.any(cnt > capacity)
 
 
 def _traced_hard(light: Any, integ: Any, p, n, e, faces, topo, capacity: int) -> tuple[Any, Any]:
     x = light.geometry[0].astype(p.dtype)
     visible = vis.traced_hard_visibility(p, x, light.kind == "point", faces, topo)
     g = jax.vmap(getattr(integ, light.kind), in_axes=(0, 0, 0, None))(p, n, e, x)
-    return jnp.where(visible > 0, g, 0.0), jnp.zeros((), bool)
+    return jnp.where(_per_value(visible > 0, integ), g, 0.0), jnp.zeros((), bool)
+
+
+def _per_value(mask: Any, integ: Any) -> Any:
+    """A per-receiver `(n,)` mask broadcast over each receiver's value (`integ.shape`)."""
+    return mask.reshape(mask.shape + (1,) * len(integ.shape))
 
 
 # `(g (n,), overflow)` of one light for a block of receivers, inside a compiled program, by kind.
@@ -68,7 +73,7 @@ _TRACED = {"polygon": _traced_polygon, "segment": _traced_segment, "point": _tra
 
 def traced_values(scene: Scene, integ: Any, points: Any, normals: Any, eyes: Any, capacity: int,
                   chunk: int | None = None) -> tuple[Any, Any]:
-    """`((N, 3), overflow)`: every light's contribution with exact shadows, traceable (unit
+    """`((N, *integ.shape, 3), overflow)`: every light's contribution with exact shadows, traceable (unit
     `normals`; `eyes` `(N, 3)`, or None for an integrand that reads none). `overflow` is True when a receiver needed more than `capacity` boundary edges
     (or candidate faces): the values are then not exact. Receivers are processed `chunk` at a
     time (`lax.map`), which bounds the memory of the decoded boundaries. Without the engine's
@@ -84,11 +89,11 @@ def traced_values(scene: Scene, integ: Any, points: Any, normals: Any, eyes: Any
 
     def block(args):
         p, n, ee = args
-        total = jnp.zeros(p.shape, dt)
+        total = jnp.zeros((p.shape[0], *integ.shape, 3), dt)
         over = jnp.zeros((), bool)
         for light in scene.lights:
             g, o = _TRACED[light.kind](light, integ, p, n, ee, faces, topo, capacity)
-            total = total + g[:, None] * light.emission(dt)[None, :]
+            total = total + g[..., None] * light.emission(dt).reshape((1,) * g.ndim + (3,))
             over = over | o
         return total, over
 

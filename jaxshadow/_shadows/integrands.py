@@ -38,10 +38,12 @@ PRODUCE = ("classes", "codes", "points", "lambert")
 
 
 class AbstractIntegrand(eqx.Module):
-    """The integrand interface (see the module docstring)."""
+    """The integrand interface (see the module docstring). `shape`: the shape of one receiver's
+    value per light (`()`: a scalar; `Both`: `(2,)`)."""
 
     host_plan: ClassVar[str] = "points"
     reads_eye: ClassVar[bool] = True
+    shape: ClassVar[tuple[int, ...]] = ()
 
 
 class Lambert(AbstractIntegrand):
@@ -92,8 +94,36 @@ class Phong(AbstractIntegrand):
         return directional_specular_kernel(p, n, e, d, self.exponent)
 
 
+class Both(AbstractIntegrand):
+    """`Lambert` and `Phong` at once: each method returns `(2,)`, the irradiance integrand then
+    the specular one, from one visibility (one engine call and one decoding of the visible
+    region's boundary per receiver instead of two). Inside compiled programs only
+    (`compiled.traced_values`)."""
+
+    phong: Phong
+    shape: ClassVar[tuple[int, ...]] = (2,)
+
+    def _two(self, name: str, *args: Any) -> Array:
+        return jnp.stack([getattr(Lambert(), name)(*args), getattr(self.phong, name)(*args)])
+
+    def polygon(self, p, n, e, verts):
+        return self._two("polygon", p, n, e, verts)
+
+    def contour(self, p, n, e, verts, starts, ends):
+        return self._two("contour", p, n, e, verts, starts, ends)
+
+    def segment(self, p, n, e, a, b, light):
+        return self._two("segment", p, n, e, a, b, light)
+
+    def point(self, p, n, e, x):
+        return self._two("point", p, n, e, x)
+
+    def directional(self, p, n, e, d):
+        return self._two("directional", p, n, e, d)
+
+
 def segment_visible(integ: Any, p: Float[Array, "3"], n: Float[Array, "3"], e: Float[Array, "3"] | None,
                     a: Float[Array, "3"], b: Float[Array, "3"], light: Any, occ: Float[Array, "m k 3"]) -> Array:
     """The segment integrand summed over the visible pieces of `a -> b` (occluders `occ`)."""
     sa, sb = visible_segments(p, a, b, occ)
-    return jnp.sum(jax.vmap(lambda u, v: integ.segment(p, n, e, u, v, light))(sa, sb))
+    return jnp.sum(jax.vmap(lambda u, v: integ.segment(p, n, e, u, v, light))(sa, sb), axis=0)
