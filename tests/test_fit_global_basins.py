@@ -7,16 +7,13 @@ so its screened loss is the lower one; placement B has each light 8 % of the sce
 truth. Ranked by the screened loss (the placement before refine-then-rank) A wins, and from A
 the refinement stays in A's basin; refined first, B reaches the truth and wins."""
 
-import jax.numpy as jnp
 import numpy as np
 import pytest
+from position_problems import position_problem
 
-import inverse
 import jaxshadow as js
-from benchmarks.inverse_scenes import THREE_LIGHTS_EYE as EYE
-from benchmarks.inverse_scenes import floor_receivers
 from inverse._global_placement import BASIN_DISTANCE, distinct_basins, refine_and_rank
-from inverse._multilight import LightsProblem, screen
+from inverse._multilight import screen
 from inverse._parametrisation import LightParametrisation
 
 MATERIAL = js.Material(ka=0.2, kd=0.6, ks=0.0, exponent=1.0)
@@ -27,14 +24,8 @@ LM = {"rtol": 1e-8, "atol": 1e-12}
 
 @pytest.fixture(scope="module")
 def two_basins():
-    pts, nrm = floor_receivers(40, seed=2)
-    t = inverse.PaintedTargets(pts, nrm, js.shade(TRUE, MATERIAL, pts, nrm, EYE), EYE)
-    size = inverse.scene_size(TRUE, t)
     # the parameters are the centre's offset from the true light over the scene size: 0 is the truth
-    params = tuple(LightParametrisation(light, i, ("position",), None, size, "sigmoid")
-                   for i, light in enumerate(TRUE.lights))
-    z = jnp.zeros((len(pts), 3))
-    problem = LightsProblem(params, tuple(TRUE.lights), TRUE, MATERIAL, t, z, z, (0, 3), True, False, False, None)
+    problem, params, _, size = position_problem(TRUE, MATERIAL, "sigmoid")
     p0, p1 = (np.asarray(light.position, np.float64) for light in TRUE.lights)
     u = np.random.default_rng(0).normal(size=(2, 3))
     u /= np.linalg.norm(u, axis=1, keepdims=True)

@@ -4,30 +4,19 @@ targets from (farther than 10 extents from every target, or below the floor the 
 is not ranked while another keeps every light in bounds; when every placement escaped, the
 ranking is left as it is (the report flags the answer)."""
 
-import jax.numpy as jnp
 import numpy as np
+from position_problems import position_problem
 
-import inverse
 import jaxshadow as js
-from benchmarks.inverse_scenes import THREE_LIGHTS_EYE as EYE
-from benchmarks.inverse_scenes import floor_receivers
 from inverse._escape import escaped_rows
 from inverse._global_placement import ranking_losses
-from inverse._multilight import LightsProblem
-from inverse._parametrisation import LightParametrisation
 
 MATERIAL = js.Material(ka=0.2, kd=[0.6, 0.5, 0.4], ks=0.0, exponent=1.0)
 TRUE = js.Scene([js.PointLight([-0.6, 0.2, 1.5], 4.0), js.PointLight([0.7, -0.3, 1.2], 2.0)], ambient=0.1)
 
 
 def _problem():
-    pts, nrm = floor_receivers(40, seed=2)
-    t = inverse.PaintedTargets(pts, nrm, js.shade(TRUE, MATERIAL, pts, nrm, EYE), EYE)
-    size = inverse.scene_size(TRUE, t)
-    params = tuple(LightParametrisation(light, i, ("position",), None, size, "none")
-                   for i, light in enumerate(TRUE.lights))
-    z = jnp.zeros((len(t), 3))
-    problem = LightsProblem(params, tuple(TRUE.lights), TRUE, MATERIAL, t, z, z, (0, 3), True, False, False, None)
+    problem, _, t, size = position_problem(TRUE, MATERIAL, "none")
     return problem, t, size
 
 
