@@ -156,7 +156,21 @@ def irradiance_and_specular(
     degree) of the same receivers, with the shadow engine run once per light and receiver block
     for both (one visible region, decoded once, integrated twice): a compiled program that needs
     both holds one copy of the engine's wrappers instead of two. The values are those of the two
-    functions (the same kernels on the same visible region); arguments as `specular`."""
+    functions (the same kernels on the same visible region); arguments as `specular`.
+
+    Example:
+        ```python
+        import jax.numpy as jnp
+        import jaxshadow as js
+        from jaxshadow import traced
+
+        light = js.PolygonLight([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2]], radiance=1.0)
+        box = js.Mesh.box([0.3, 0.3, 0.5], [0.6, 0.6, 0.8])
+        p = jnp.array([[0.5, 0.5, 0.0]]); n = jnp.array([[0.0, 0.0, 1.0]])
+        e, s, overflow = traced.irradiance_and_specular(js.Scene([light], occluders=[box]), p, n,
+                                                        jnp.array([[0.5, -1.0, 2.0]]), jnp.asarray(20.0))
+        ```
+    """
     opts = _options(capacity, shadows)
     if scene.occluders is None or not opts.use_engine():
         e, o1 = irradiance(scene, points, normals, capacity=capacity, shadows=shadows)
