@@ -381,14 +381,22 @@ def _pose_text(pose: dict) -> str:
     return f"at ({c}) m, power x{pose['power']:.3g}"
 
 
+def weighted_targets(targets: Any) -> tuple[np.ndarray, np.ndarray, float]:
+    """`(points (N, 3), normals (N, 3), extent)` of the targets of positive weight, the extent
+    their bounding box's diagonal (m; 0.0 when there are none): what the escape bound measures
+    a light against (`escape_reason`, `_escape.escaped_rows`)."""
+    keep = np.any(np.asarray(targets.weights, np.float64) > 0, axis=1)
+    p = np.asarray(targets.points, np.float64)[keep]
+    n = np.asarray(targets.normals, np.float64)[keep]
+    diag = float(np.linalg.norm(p.max(axis=0) - p.min(axis=0))) if len(p) else 0.0
+    return p, n, diag
+
+
 def escape_reason(light: Any, targets: Any, facing: bool = True) -> str | None:
     """Why `light` cannot be where the targets' light comes from (module docstring), or None.
     `facing=False` leaves out the test of the side a polygon faces (a degenerate polygon, whose
     vertices' normal means nothing)."""
-    w = np.asarray(targets.weights, np.float64)
-    keep = np.any(w > 0, axis=1)
-    p = np.asarray(targets.points, np.float64)[keep]
-    n = np.asarray(targets.normals, np.float64)[keep]
+    p, n, diag = weighted_targets(targets)
     if isinstance(light, js.DirectionalLight):
         d = np.asarray(light.direction, np.float64)
         return None if np.any(n @ -d > 0) else "it shines on no target's front side"
@@ -400,7 +408,6 @@ def escape_reason(light: Any, targets: Any, facing: bool = True) -> str | None:
         pts = np.asarray(light.position, np.float64)[None]
     else:
         return None
-    diag = float(np.linalg.norm(p.max(axis=0) - p.min(axis=0)))
     dist = float(np.min(np.linalg.norm(pts.mean(axis=0)[None] - p, axis=1)))
     if diag > 0 and dist > ESCAPE_FACTOR * diag:
         return (f"it is {dist:.3g} m from the nearest target, more than {ESCAPE_FACTOR:g} times the targets' "

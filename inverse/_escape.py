@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from ._diagnostics import ESCAPE_FACTOR
+from ._diagnostics import ESCAPE_FACTOR, weighted_targets
 
 
 def escaped_rows(problem: Any, thetas: np.ndarray) -> np.ndarray:
@@ -29,15 +29,11 @@ def escaped_rows(problem: Any, thetas: np.ndarray) -> np.ndarray:
     every such target's tangent plane (module docstring); non-finite centres count as escaped."""
     from ._global_placement import centre_of_row
 
-    t = problem.targets
-    keep = np.any(np.asarray(t.weights, np.float64) > 0, axis=1)
-    p = np.asarray(t.points, np.float64)[keep]
-    n = np.asarray(t.normals, np.float64)[keep]
+    p, n, diag = weighted_targets(problem.targets)
     thetas = np.asarray(thetas, np.float64)
     out = np.zeros(thetas.shape[0], bool)
     if p.shape[0] == 0:
         return out
-    diag = float(np.linalg.norm(p.max(axis=0) - p.min(axis=0)))
     for j, param in enumerate(problem.params):
         if param is None or "position" not in param._slices() or param.kind == "directional":
             continue
