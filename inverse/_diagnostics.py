@@ -37,14 +37,8 @@ The rules (thresholds are the module's constants):
   its vertices rounded together): its parameters are not determined, and the fit evaluates it
   as no light (zero contribution: `without_invalid_lights`) instead of handing it to
   `js.shade`, which would raise.
-- **Undetermined position or power.** A light (not escaped, collapsed or unused) with a
-  position parameter or its power not determined, exactly or nearly (above): the answer is
-  one of many that paint the targets alike (a quad seen by a few targets only came back 40 %
-  of the scene off with an exact fit; a quad 58 % off at a wrong minimum had its power's
-  standard error above the power): flagged, not trusted; a `FitQualityWarning` when its whole
-  position is undetermined (the report lists the parameters and where to paint either way).
-  Not at a wrong minimum (its standard errors mean nothing) nor with targets painted as ranges
-  or relations (any pose inside them is an answer).
+- **Undetermined position or power**, **nearly undetermined** parameters: the rules of
+  `inverse._determinacy` (flag `"undetermined"`).
 - **Unused light.** A light of a several-light fit whose part of the model at the targets
   (the weighted norm of its power times its unit contribution) is below `UNUSED_FRACTION`
   (1e-6) of the largest light's: the fit explains the targets without it, so its
@@ -69,10 +63,6 @@ The rules (thresholds are the module's constants):
   (10) times the targets' bounding-box diagonal from every target, or behind the tangent plane
   of every target (no target sees it; a directional light shining on no target's front), or a
   polygon facing away from every target: flagged, warned, its parameters not determined.
-- **Nearly undetermined.** A standard error above `NEAR_POSITION_FRACTION` (1/4) of the scene
-  size for a position, `NEAR_ORIENTATION` (30 degrees) for a rotation, `NEAR_LOG_SIZE` (log 2)
-  for a log size, or the value itself for a power: the parameter is marked not determined,
-  like an exactly undetermined one (`_identifiability`), with its finite error kept.
 - **Competing placements.** Another distinct placement of the lights that the search refined
   to a minimum of its own (the rows of the final joint solve: the global placement's other
   basins, each light's runner-up) explains the targets about as well: its
@@ -111,6 +101,15 @@ import numpy as np
 
 import jaxshadow as js
 
+from ._determinacy import NEAR_LOG_SIZE as NEAR_LOG_SIZE
+from ._determinacy import NEAR_ORIENTATION as NEAR_ORIENTATION
+from ._determinacy import NEAR_POSITION_FRACTION as NEAR_POSITION_FRACTION
+from ._determinacy import ORIENTATION as _ORIENTATION
+from ._determinacy import limit_text as _limit_text
+from ._determinacy import nearly_undetermined as nearly_undetermined
+from ._determinacy import quantity_determined as quantity_determined
+from ._determinacy import undetermined_lights
+
 WRONG_MINIMUM_CHI2 = 4.0
 DEFAULT_RELATIVE_NOISE = 0.025
 COMPETING_FACTOR = 2.0
@@ -118,9 +117,6 @@ OUTLIER_Z = 5.0
 OUTLIER_SHARE = 0.1
 CONFLICT_SIGMAS = 3.0
 ESCAPE_FACTOR = 10.0
-NEAR_POSITION_FRACTION = 0.25
-NEAR_ORIENTATION = math.radians(30.0)
-NEAR_LOG_SIZE = math.log(2.0)
 DARK_FRACTION = 1e-6
 UNUSED_FRACTION = 1e-6
 COLLAPSED_FRACTION = 0.01
@@ -128,8 +124,6 @@ RIVAL_DISTANCE = 0.01
 RIVAL_SIGMAS = 3.0
 RIVAL_TURN = math.radians(5.0)
 
-_POSITION = ("x", "y", "z", "a", "b")
-_ORIENTATION = ("rx", "ry", "rz", "ru", "rv")
 
 
 class FitQualityWarning(RuntimeWarning):
@@ -159,8 +153,10 @@ class FitQuality:
     - `unused`: light names whose part of the colours went to ~0 in a several-light fit
       (`unused_lights`); `collapsed`: `{light name: reason}` (`collapse_reason`, or a light
       jaxshadow rejects: `invalid_reason`, evaluated as no light);
-      `undetermined`: `{light name: its position parameters and power not determined
-      (exactly or nearly)}`.
+      `undetermined`: `{light name: what of its position and emitted power is not determined
+      (exactly or nearly)}`: the covered quantities' names (`light{i}.x`, ..., `light{i}.flux`;
+      a flux that is its light's power factor itself, no size fitted, as `light{i}.power`) where
+      the fit reports quantities, else its position parameters and power.
     - `rivals`: `((excess chi2, {light name: pose}, differing lights), ...)`, the other distinct
       placements that explain the targets about as well (`rival_placements`).
     """
@@ -470,30 +466,6 @@ def collapse_reason(light: Any, scale: float) -> str | None:
     return None
 
 
-def nearly_undetermined(names: tuple, std_errors: dict, values: dict, scale: float,
-                        determined: dict) -> tuple:
-    """The names of determined parameters whose standard error is above the module's limits."""
-    out = []
-    for nm in names:
-        se = std_errors[nm]
-        if not determined[nm] or not math.isfinite(se):
-            continue
-        base = nm.rsplit(".", 1)[-1]
-        if base in _POSITION:
-            limit = NEAR_POSITION_FRACTION * scale
-        elif base in _ORIENTATION:
-            limit = NEAR_ORIENTATION
-        elif base.startswith("log_"):
-            limit = NEAR_LOG_SIZE
-        elif base == "power":
-            limit = abs(values[nm])
-        else:
-            continue
-        if se > limit and (base != "power" or values[nm] > 0):
-            out.append(nm)
-    return tuple(out)
-
-
 def unused_lights(contributions: dict) -> tuple:
     """The names in `contributions` ({light name: the weighted norm of its part of the model at
     the targets}, two or more lights) at most `UNUSED_FRACTION` of the largest."""
@@ -514,22 +486,11 @@ def dark_answer(light_part: np.ndarray, colours: np.ndarray, weights: np.ndarray
     return bool(ref > 0 and np.max(lum) <= DARK_FRACTION * ref)
 
 
-def _limit_text(nm: str, scale: float) -> str:
-    base = nm.rsplit(".", 1)[-1]
-    if base in _POSITION:
-        return f"{NEAR_POSITION_FRACTION:g} of the scene size ({NEAR_POSITION_FRACTION * scale:.3g} m)"
-    if base in _ORIENTATION:
-        return f"{math.degrees(NEAR_ORIENTATION):g} degrees"
-    if base.startswith("log_"):
-        return "a factor 2"
-    return "its value"
-
-
 def assess(*, targets: Any, residual: np.ndarray, noise: Any, n_params: int, names: tuple, std_errors: dict,
            values: dict, determined: dict, scale: float, lights: dict, light_params: dict,
            candidates: tuple = (), messages: list, all_dark: bool = False,
            contributions: dict | None = None, determinacy: bool = True,
-           converged: bool = True, rivals: tuple = ()) -> tuple[FitQuality, dict]:
+           converged: bool = True, rivals: tuple = (), quantities: dict | None = None) -> tuple[FitQuality, dict]:
     """Run the checks on a fit's solution.
 
     **Arguments:** `targets`; `residual (N, 3)` = model - colours (unweighted); `noise` (module
@@ -543,7 +504,10 @@ def assess(*, targets: Any, residual: np.ndarray, noise: Any, n_params: int, nam
     makes the answer untrusted (False for targets painted as ranges or relations, whose answer
     is any pose inside them); `converged`: False when the final solve stopped at `max_steps`
     short of an exact fit (flag `"not_converged"`); `rivals`: the competing placements
-    (`rival_placements`; flag `"competing_placements"`).
+    (`rival_placements`; flag `"competing_placements"`); `quantities`: {name:
+    `inverse._uncertainty.Quantity`}, what the report vouches for (a several-light fit's
+    centres and emitted powers): the undetermined rule judges a light by them (module
+    docstring), None: by its parameters.
 
     **Returns:** `(quality, determined (updated))`; `quality.emitted`: the warnings to emit.
     """
@@ -613,19 +577,9 @@ def assess(*, targets: Any, residual: np.ndarray, noise: Any, n_params: int, nam
         determined[nm] = False
         messages.append(f"{nm} is nearly undetermined by these targets: standard error {std_errors[nm]:.3g} > "
                         f"{_limit_text(nm, scale)}.")
-    undetermined = {}
-    for nm, params in light_params.items() if determinacy and not wrong else ():
-        if nm in escaped or nm in collapsed or nm in unused:
-            continue
-        pos = [p for p in params if p.rsplit(".", 1)[-1] in _POSITION]
-        bad = tuple(p for p in params if (p in pos or p.endswith("power")) and not determined.get(p, True))
-        if bad:
-            undetermined[nm] = bad
-            if pos and all(p in bad for p in pos):
-                msg = (f"{nm}'s position is not determined by these targets (standard errors infinite or above "
-                       f"{_limit_text(pos[0], scale)}): it is one of many placements that paint them alike.")
-                messages.append(msg)
-                emit.append(msg)
+    undetermined = {} if not determinacy or wrong else undetermined_lights(
+        light_params, determined, near, scale, quantities, set(escaped) | set(collapsed) | set(unused), messages,
+        emit)
     if undetermined:
         flags.append("undetermined")
     if out_idx.size:

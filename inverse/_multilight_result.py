@@ -19,11 +19,12 @@ from ._diagnostics import (
     competing_placements,
     dark_answer,
     noise_sigma,
+    quantity_determined,
     rival_allowance,
     rival_placements,
     row_variance,
 )
-from ._identifiability import identifiability
+from ._identifiability import identifiability, quantity_error
 from ._multilight import LightsProblem, build_lights, fixed_contribution, report_parts, scaled_light
 from ._multilight_report import (
     LightsReport,
@@ -156,7 +157,7 @@ def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, ca
         messages=warnings, all_dark=dark,
         contributions={f"light{idx[j]}": float(np.sqrt(np.sum(w * (powers[j] * per_light[j]) ** 2)))
                        for j in range(J)} if problem.fit_power else None, determinacy=paint is None,
-        converged=converged, rivals=rivals)
+        converged=converged, rivals=rivals, quantities=quantities)
     fixed = [x for n, x in enumerate(problem.scene.lights) if n not in idx]
     rv = row_variance(w, t, noise) if noise is not None and paint is None else None
     rv = np.full(w.size, ident.sigma2 if ident.sigma2 > 0 else 1.0) if rv is None else rv
@@ -170,7 +171,7 @@ def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, ca
         suggestions=suggestions, suggestion_normals=sugg_n, suggestion_std_errors=sugg_se, loss=0.5 * rss,
         initial_loss=math.nan if initial is None else float(initial), stage_losses=tuple(stage_losses),
         starts_solved=n_solved, retries=retries, scale=size, quality=quality,
-        quantities={nm: dataclasses.replace(qv, determined=_still_determined(nm, qv, determined, quality))
+        quantities={nm: dataclasses.replace(qv, determined=_still_determined(nm, qv, determined, quality, size))
                     for nm, qv in quantities.items()},
     )
     all_lights = list(problem.scene.lights)
@@ -181,25 +182,24 @@ def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, ca
                      report=report, theta=theta, parametrisations=problem.params)
 
 
-def _still_determined(name: str, q: Quantity, determined: dict, quality: Any) -> bool:
-    """Whether a covered quantity stays determined after the checks: a centre coordinate as the
-    report's parameter; a flux when its light was not escaped, collapsed or unused
-    and its standard error is at most its value (the limit of a power in `_diagnostics`)."""
-    if not name.endswith(".flux"):
-        return q.determined and determined.get(name, True)
+def _still_determined(name: str, q: Quantity, determined: dict, quality: Any, scale: float) -> bool:
+    """Whether a covered quantity stays determined after the checks: its light not escaped,
+    collapsed or unused, and the quantity determined exactly and nearly
+    (`_diagnostics.quantity_determined`: estimable, a centre coordinate's standard error at most
+    a quarter of the scene size `scale`, a flux's at most its value)."""
     light = name.rsplit(".", 1)[0]
     gone = light in quality.escaped or light in quality.collapsed or light in quality.unused
-    return q.determined and not gone and q.std_error <= abs(q.value)
+    return not gone and quantity_determined(name, q, scale)
 
 
 def _quantities(problem: LightsProblem, theta: np.ndarray, names: tuple, values: dict, ident: Any,
                 scale_of: list, idx: list) -> dict:
-    """The covered quantities of `inverse._uncertainty` (`{name: Quantity}`, `determined` as the
-    identifiability's; the report narrows it): values (centres in m), delta-method standard
-    errors and projected joint intervals (positions in m)."""
+    """The covered quantities of `inverse._uncertainty` (`{name: Quantity}`, `determined` by the
+    identifiability's rule for quantities, `_identifiability.quantity_error`: orthogonal to every
+    null direction; the report narrows it): values (centres in m), delta-method standard errors
+    and projected joint intervals (positions in m)."""
     pos = {nm: i for i, nm in enumerate(names)}
-    C = ident.covariance
-    factor = joint_factor(int(np.count_nonzero(np.diag(C) > 0)))
+    factor = joint_factor(int(np.count_nonzero(ident.free)) - len(ident.null_space))
     dt = problem.targets.points.dtype
     centres = {f"light{idx[j]}": _pose(x, problem.params[j], 1.0)["centre"]
                for j, x in enumerate(build_lights(problem, jnp.asarray(theta, dt))) if problem.params[j] is not None}
@@ -207,13 +207,14 @@ def _quantities(problem: LightsProblem, theta: np.ndarray, names: tuple, values:
     for nm, (val, grad) in light_quantities(names, values, idx).items():
         if nm.rsplit(".", 1)[-1] in ("x", "y", "z"):
             val = float(centres[nm.rsplit(".", 1)[0]]["xyz".index(nm[-1])])
-        if not all(ident.determined[pos[p]] for p in grad):
-            out[nm] = Quantity(val, math.inf, math.inf, False)
-            continue
         g = np.zeros(len(names))
         for p, d in grad.items():
             g[pos[p]] = d
-        se = math.sqrt(max(float(g @ C @ g), 0.0)) * (scale_of[pos[nm]] if nm in pos else 1.0)
+        ok, se = quantity_error(ident, g)
+        if not ok:
+            out[nm] = Quantity(val, math.inf, math.inf, False)
+            continue
+        se *= scale_of[pos[nm]] if nm in pos else 1.0
         out[nm] = Quantity(val, se, factor * se, True)
     return out
 

@@ -15,8 +15,10 @@ far targets alike), a segment's power per length with its length. Per fitted lig
   noise, its emitted power within one).
 
 **Standard error** (`std_error`): the delta method on the fit's linearised covariance $C$
-(`_identifiability`), $s_q = \sqrt{g^\top C g}$, $g$ the quantity's gradient in the fitted
-parameters; infinite when $g$ involves an undetermined parameter. It is the marginal
+(`_identifiability`, over the estimable directions), $s_q = \sqrt{g^\top C g}$, $g$ the quantity's gradient in the fitted
+parameters; infinite when $g$ is not orthogonal to the null directions (not estimable:
+`_identifiability.quantity_error`; a flux stays determined where radiance and size trade
+exactly, the trade leaving it unchanged). It is the marginal
 linearised error: $\hat q \pm 2 s_q$ covers the truth 95 % of the time only where the model is
 close to linear over that interval.
 
@@ -30,7 +32,8 @@ the fit lies within its interval at once. Where the residual is curved along a n
 direction (the size/radiance trade; an undetermined direction of a segment) the marginal
 $\pm 2 s_q$ is too short, while the joint region, $\sqrt{\chi^2_{p,0.95}} / 2$ times wider
 (2.9 for $p = 20$), still covers the truth: this is the interval a fit of several lights
-vouches for. $p$ counts the free parameters with a positive linearised variance.
+vouches for. $p$ counts the directions the targets determine: the free parameters less the null
+directions (`_identifiability`).
 """
 
 from __future__ import annotations
