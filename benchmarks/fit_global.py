@@ -47,8 +47,10 @@ over those marked determined) and over half their projected joint 95 % interval
 vouches for: the issue's >= 90 %).
 
 A noisy fit succeeds (`noisy_success`) when its answer is as good as the noise allows: every
-light's centre coordinates and power within `NOISY_Z` (3) reported standard errors of the truth
-(`z_scores`; a coordinate with no finite standard error is undetermined and not counted), or
+covered quantity (each light's centre coordinates and emitted power, what the report vouches
+for) within `NOISY_Z` (3) reported standard errors of the truth (`quantity_z`; one with no
+finite standard error is undetermined and not counted; a quad's radiance or a segment's power
+per length trades with its size and is not held to its own standard error), or
 the fit is flagged undetermined (`"undetermined"` in `report.quality.flags`: the targets do not
 pin some parameter down, so no fit can be held to the truth there) and the truth does not
 explain the targets better than the fit by more than the noise explains: with
@@ -189,7 +191,7 @@ def quantity_z(fit, true_lights, idx: list[int], determined_only: bool = False, 
 
 
 def noisy_verdict(z: list[float], flags: list[str], residual_fit, residual_truth, sigma, n_params: int) -> dict:
-    """The noisy success criterion (module docstring): `z` the fit's z-scores (`z_scores`),
+    """The noisy success criterion (module docstring): `z` the fit's z-scores (`quantity_z`),
     `flags` its quality flags, `residual_fit`, `residual_truth` `(N, 3)` (model - colours) at
     the fit and at the true lights, `sigma` the told noise (a number or `(N, 3)`), `n_params`
     the fitted parameters."""
@@ -263,7 +265,7 @@ def _setting(kinds: str, start: str, seeds: list[int], placement: str = "global"
         if noise:
             truth = np.asarray(js.shade(case.true, case.material, case.points, case.normals, case.eye), np.float64)
             n_par = len(fit.report.names)
-            run.update(noisy_verdict(run["z"], run["flags"], np.asarray(fit.residual, np.float64), truth - col,
+            run.update(noisy_verdict(run["zq"], run["flags"], np.asarray(fit.residual, np.float64), truth - col,
                                      sigma, n_par))
             run["success"] = run["noisy_success"]
             run["within_0.5%"] = exact
@@ -405,7 +407,7 @@ def markdown(results: dict) -> str:
     rows = ["Success: every light within 0.5 % of the scene size and every power within 1 % (noise-free targets "
             "painted by `js.shade`). Times: the median over a setting's fits after its first (programs compiled); "
             "the first fit's time and compile time apart. Noisy settings: 1 % relative noise, targets from the named "
-            "painter; success there: every light's centre coordinates and power within 3 reported standard errors of "
+            "painter; success there: every light's centre coordinates and emitted power within 3 reported standard errors of "
             "the truth, or the fit flagged undetermined with the truth's chi-square not below the fit's by more than "
             "n + 3 sqrt(2n) (n fitted parameters); 'within 2 se': errors within 2 reported standard errors (centres' "
             "x, y, z and powers, over all runs); 'unflagged: within 2 se': the same over the runs the library does not "
