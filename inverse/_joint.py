@@ -153,7 +153,9 @@ class _AtAnswer:
         out = []
         for e, aux in zip(exponents, self.sol.rows(rows), strict=True):
             self.aux[float(e)] = aux
-            out.append((_projected_lm.totals(self.sol.rows.problem, aux)[1], aux[3][-1].sum(axis=0)))
+            S = _projected_lm.totals(self.sol.rows.problem, aux)[1]
+            assert S is not None  # a fitted exponent: the problem has a specular term
+            out.append((S, aux[3][-1].sum(axis=0)))
         return out
 
     def material_basis(self, scene: js.Scene, targets: PaintedTargets) -> RowsBasis:
@@ -172,6 +174,7 @@ class _AtAnswer:
         P = self.theta.size - 1
         k = np.stack([np.broadcast_to(np.asarray(getattr(material, f), np.float64), (3,)) for f in ("ka", "kd", "ks")])
         E, S = _projected_lm.totals(problem, aux)
+        assert S is not None  # a fitted exponent: the problem has a specular term
         La = np.broadcast_to(np.asarray(problem.scene.ambient, np.float64)[None, :], E.shape)
         sw = np.sqrt(np.asarray(targets.weights, np.float64))
         model = k[0] * La + k[1] / np.pi * E + k[2] * S
