@@ -8,7 +8,9 @@ problem, the starts (`_multistart`, from the `Search` options that `fit_lights` 
 The problem is `fit_lights`' (`_multilight.LightsProblem` with one fitted light, its power held,
 the other lights' contribution computed once), and the `LM` searches it with `fit_lights`'
 compiled program (`_multilight.solve`; the starts screened by the same program with no
-iterations, `_solvers.screen_by_solver`), so one light and several are one search; `OptimistixLM`, `LBFGSB` and a solver of one's own (an
+iterations, `_solvers.screen_by_solver`), so one light and several are one search (with a
+projected material: the same residual in a program that also keeps its basis at the answer,
+`_projected_lm`); `OptimistixLM`, `LBFGSB` and a solver of one's own (an
 `AbstractLightSolver` subclass) minimise its residual too. A fitted exponent is the last
 parameter, a per-receiver material and a projected material beside other lights are the
 problem's (`_problem`).
