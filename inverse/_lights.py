@@ -293,7 +293,7 @@ def _light_fit(problem: LightsProblem, sol: Solution, solver_name: str, n_screen
     new_scene = with_light(problem.scene, param.light_index, sol.light)
     if problem.colour_free and sol.basis is not None:
         kc = _projected_lm.coefficients(sol.problem, sol.basis)
-        n_fit = np.exp(np.float64(theta[-1])) if problem.fit_exponent else np.float64(material.exponent)
+        n_fit = np.exp(np.asarray(theta, np.float64)[-1]) if problem.fit_exponent else np.float64(material.exponent)
     elif problem.colour_free:
         kc, n_fit = (np.asarray(x, np.float64) for x in (coefficients or colour_coefficients)(sol.problem, theta))
     if problem.colour_free:
