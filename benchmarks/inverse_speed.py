@@ -93,8 +93,9 @@ def _joint_child(cache_dir: str = "") -> None:
     """In a fresh process: `inverse.fit_light_and_material` (the demo's quad light 30 % of the
     scene away, 40 painted targets, one box occluder) on two target sets of the same shapes
     (scene seeds 0 and 1): per call its wall time, the seconds JAX spent compiling (XLA backend
-    compile and lowering, `jax.monitoring`) and the seconds inside `joint_std_errors`; printed
-    as JSON. The second call shows what the first one's compiled programs save. `cache_dir`:
+    compile and lowering, `jax.monitoring`) and the seconds spent on the joint Jacobian (inside
+    `joint_std_errors`, or in the rows made of the light fit's kept basis,
+    `_joint._AtAnswer.joint_rows`); printed as JSON. The second call shows what the first one's compiled programs save. `cache_dir`:
     JAX's persistent compilation cache there (`jaxshadow.cli.enable_compile_cache`; "" none)."""
     from benchmarks.fit_lights import _timing
     from inverse import _joint
@@ -117,6 +118,15 @@ def _joint_child(cache_dir: str = "") -> None:
         return out
 
     _joint.joint_std_errors = timed
+    rows = _joint._AtAnswer.joint_rows
+
+    def timed_rows(self, *args, **kwargs):
+        t0 = time.perf_counter()
+        out = rows(self, *args, **kwargs)
+        inside["s"] += time.perf_counter() - t0
+        return out
+
+    _joint._AtAnswer.joint_rows = timed_rows  # type: ignore[method-assign]
     calls = []
     for seed in (0, 1):
         cfg = demo_configuration(occluders=True, n_points=40, seed=seed)

@@ -35,7 +35,6 @@ from collections.abc import Callable
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 ENV = "JAXSHADOW_EXPORT_CACHE"
@@ -243,16 +242,10 @@ def load(path: str, options: dict) -> ExportedProgram | None:
         return None
 
 
-@functools.cache
 def register_engine() -> None:
     """Register the shadow engine's XLA FFI handlers before a loaded program calls them: they
     are registered when a program holding the engine is first traced, and a loaded program is
-    not traced. Traces (`jax.eval_shape`, nothing compiled) a one-receiver irradiance under an
-    occluder through `jaxshadow.traced`."""
-    import jaxshadow as js
+    not traced (`jaxshadow.traced.register_engine`: nothing traced or compiled)."""
     from jaxshadow import traced
 
-    light = js.PolygonLight(np.array([[0.0, 0, 2], [1, 0, 2], [1, 1, 2], [0, 1, 2]]), radiance=1.0)
-    scene = js.Scene([light], occluders=[np.array([[0.2, 0.2, 1.0], [0.6, 0.2, 1.0], [0.6, 0.6, 1.0]])])
-    p, n = jnp.array([[0.5, 0.5, 0.0]]), jnp.array([[0.0, 0.0, 1.0]])
-    jax.eval_shape(lambda: traced.irradiance(scene, p, n, capacity=8))
+    traced.register_engine()

@@ -17,12 +17,13 @@ from jaxtyping import Array
 
 import jaxshadow as js
 
+from . import _projected_lm
 from ._diagnostics import FitQualityWarning, invalid_reason, without_invalid_lights
 from ._forward import SpecularFn, at_capacity
 from ._identifiability import identifiability
 from ._lights import fit_light
 from ._lm import ONCE_COMPILER_OPTIONS, fit_jit
-from ._material import fit_material
+from ._material import RowsBasis, fit_material
 from ._multilight import LightsProblem, basis
 from ._multistart import culling_capacity_for_starts
 from ._options import SEARCH_FIELDS, search_options
@@ -77,12 +78,22 @@ def joint_std_errors(param: LightParametrisation, theta: Any, scene: js.Scene, m
     if not with_spec:
         free[2] = False
     k0 = np.stack([np.broadcast_to(np.asarray(getattr(material, f), np.float64), (3,)) for f in ("ka", "kd", "ks")])
-    idx = np.flatnonzero(free.reshape(-1))
     fit_n = bool(fit_exponent and with_spec)
     n0 = float(material.exponent)
     r, J = _joint_rows(param, np.asarray(theta, np.float64)[:P], scene, k0, n0, t, specular, with_spec)
+    return _std_errors(param, np.asarray(r, np.float64), np.asarray(J, np.float64), t, free, fit_n, n0)
+
+
+def _std_errors(param: LightParametrisation, r: np.ndarray, J: np.ndarray, targets: PaintedTargets,
+                free: np.ndarray, fit_n: bool, n0: float) -> dict:
+    """`joint_std_errors`' answer from the joint residual `r (3N,)` and its Jacobian `J (3N, P + 10)`
+    (columns: the light's P parameters, $k_a, k_d, k_s$ RGB, $\\log n$); `free (3, 3)`: the
+    coefficients not held, `fit_n`: whether $\\log n$ is, `n0`: the exponent."""
+    t = targets
+    P = param.size
+    idx = np.flatnonzero(free.reshape(-1))
     keep = np.r_[np.arange(P), P + idx, [P + 9] if fit_n else []].astype(int)
-    r, J = np.asarray(r, np.float64), np.asarray(J, np.float64)[:, keep]
+    J = J[:, keep]
     m_eff = int(np.count_nonzero(np.asarray(t.weights) > 0))
     se_all = identifiability(J, float(r @ r), m_eff, cut=1e-10).std_errors
     names = [*param.names, *[f"{'ka kd ks'.split()[i // 3]}[{'rgb'[i % 3]}]" for i in idx]] + (["log_n"] if fit_n else [])
@@ -123,6 +134,60 @@ def _joint_rows(param: LightParametrisation, theta: np.ndarray, scene: js.Scene,
     (r, J), _, _ = at_capacity(lambda pr: _unpacked(_joint_jacobian(pr, phi)), problem, "joint_std_errors",
                                "Jacobian")
     return r, J
+
+
+class _AtAnswer:
+    r"""A projected one-light fit's LM program (`Solution.rows`, `_projected_lm`) at its answer
+    `theta (P + 1,)` (the pose, $\log n$ last) with other exponents: the material fit's
+    specular column and the joint Jacobian, with no program of their own. Rows are cached by
+    exponent."""
+
+    def __init__(self, sol: Any, theta: np.ndarray):
+        self.sol, self.theta = sol, np.asarray(theta, np.float64)
+        self.aux: dict[float, tuple] = {}
+
+    def spec_rows(self, exponents: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        """`[(S (N, 3), dS/dlog n (N, 3)), ...]` at the answer's pose, per exponent (`RowsBasis`)."""
+        rows = np.repeat(self.theta[None], len(exponents), axis=0)
+        rows[:, -1] = np.log(np.asarray(exponents, np.float64))
+        out = []
+        for e, aux in zip(exponents, self.sol.rows(rows), strict=True):
+            self.aux[float(e)] = aux
+            S = _projected_lm.totals(self.sol.rows.problem, aux)[1]
+            assert S is not None  # a fitted exponent: the problem has a specular term
+            out.append((S, aux[3][-1].sum(axis=0)))
+        return out
+
+    def material_basis(self, scene: js.Scene, targets: PaintedTargets) -> RowsBasis:
+        """The material fit's columns at the answer (`fit_material`'s private `_basis`)."""
+        E = _projected_lm.totals(self.sol.problem, self.sol.basis)[0]
+        return RowsBasis(scene, targets, E / np.pi, self.spec_rows, self.sol.rows.n_starts)
+
+    def joint_rows(self, material: js.Material, targets: PaintedTargets) -> tuple[np.ndarray, np.ndarray]:
+        """`_joint_rows`' `(r (3N,), J (3N, P + 10))` at the answer's pose and `material` (its
+        exponent evaluated once more where the material fit did not), from the basis."""
+        n = float(material.exponent)
+        if n not in self.aux:
+            self.spec_rows(np.array([n]))
+        aux = self.aux[n]
+        problem = self.sol.rows.problem
+        P = self.theta.size - 1
+        k = np.stack([np.broadcast_to(np.asarray(getattr(material, f), np.float64), (3,)) for f in ("ka", "kd", "ks")])
+        E, S = _projected_lm.totals(problem, aux)
+        assert S is not None  # a fitted exponent: the problem has a specular term
+        La = np.broadcast_to(np.asarray(problem.scene.ambient, np.float64)[None, :], E.shape)
+        sw = np.sqrt(np.asarray(targets.weights, np.float64))
+        model = k[0] * La + k[1] / np.pi * E + k[2] * S
+        dE, dS = aux[2].sum(axis=1), aux[3].sum(axis=1)  # (P + 1, N, 3): the pose, then log n
+        cols = [(sw * (k[1] / np.pi * dE[p] + k[2] * dS[p])).reshape(-1) for p in range(P)]
+        for X in (La, E / np.pi, S):
+            for c in range(3):
+                col = np.zeros_like(E)
+                col[:, c] = sw[:, c] * X[:, c]
+                cols.append(col.reshape(-1))
+        cols.append((sw * k[2] * dS[P]).reshape(-1))
+        r = (sw * (model - np.asarray(targets.colours, np.float64))).reshape(-1)
+        return r, np.stack(cols, axis=1)
 
 
 def projected_coefficients(problem: LightsProblem, theta: Array) -> tuple[np.ndarray, float]:
@@ -249,8 +314,14 @@ def fit_light_and_material(
     history = []
     if method == "projected":
         t0 = time.perf_counter()
+        kept: list = []
         lf = fit_light(scene, targets, material, light_index, specular=specular, material_mode="projected",
-                       fit_exponent=True, _projected_coefficients=projected_coefficients, **lk)
+                       fit_exponent=True, _projected_coefficients=projected_coefficients, _solution=kept, **lk)
+        sol = kept[0] if kept else None
+        # The LM's program at the answer (`_projected_lm`): the material fit's specular column and the
+        # joint Jacobian from the one program that holds the shadow engine.
+        at = (_AtAnswer(sol, lf.report.theta) if sol is not None and sol.rows is not None
+              and sol.problem.fit_exponent and invalid_reason(lf.light) is None else None)
         history.append(lf.report.loss)
         if progress is not None:
             progress(f"  light + projected material: loss {lf.report.loss:.4e}  [{time.perf_counter() - t0:.1f} s]")
@@ -258,7 +329,9 @@ def fit_light_and_material(
         if "exponent" not in mk and not bool(np.any(np.asarray(material.ks) != 0)):
             mk["exponent"] = float(material.exponent)
         # A light that collapsed to a degenerate one shines as no light (`_diagnostics`).
-        mf = fit_material(without_invalid_lights(lf.scene), targets, specular=specular, **mk)
+        fitted_scene = without_invalid_lights(lf.scene)
+        mf = fit_material(fitted_scene, targets, specular=specular, **mk,
+                          _basis=None if at is None else at.material_basis(fitted_scene, targets))
         history.append(0.5 * float(np.sum(mf.report.weights * mf.residual**2)))
         if progress is not None:
             progress(f"  exact bounded material at that light: loss {history[-1]:.4e}  [{time.perf_counter() - t0:.1f} s]")
@@ -266,8 +339,15 @@ def fit_light_and_material(
         for a in mf.report.active_bounds:  # e.g. "ks[g]>=lower": held at the bound
             if a.endswith(("lower", "upper")):
                 free["ka kd ks".split().index(a[:2]), "rgb".index(a[3])] = False
-        se = joint_std_errors(lf.parametrisation, lf.report.theta, scene, mf.material, targets,
-                              fit_exponent="exponent" not in mk, specular=specular, free_k=free)
+        if at is None:
+            se = joint_std_errors(lf.parametrisation, lf.report.theta, scene, mf.material, targets,
+                                  fit_exponent="exponent" not in mk, specular=specular, free_k=free)
+        else:
+            with_spec = bool(np.any(np.asarray(mf.material.ks) != 0))
+            free[2] &= with_spec  # as joint_std_errors: no k_s column without a specular term
+            r, J = at.joint_rows(mf.material, targets)
+            se = _std_errors(lf.parametrisation, r, J, targets, free, "exponent" not in mk and with_spec,
+                             float(mf.material.exponent))
         return JointFit(scene=lf.scene, material=mf.material, residual=mf.residual, report=(lf.report, mf.report),
                         history=tuple(history), std_errors=se)
     lf = mf = None

@@ -8,7 +8,9 @@ problem, the starts (`_multistart`, from the `Search` options that `fit_lights` 
 The problem is `fit_lights`' (`_multilight.LightsProblem` with one fitted light, its power held,
 the other lights' contribution computed once), and the `LM` searches it with `fit_lights`'
 compiled program (`_multilight.solve`; the starts screened by the same program with no
-iterations, `_solvers.screen_by_solver`), so one light and several are one search; `OptimistixLM`, `LBFGSB` and a solver of one's own (an
+iterations, `_solvers.screen_by_solver`), so one light and several are one search (with a
+projected material: the same residual in a program that also keeps its basis at the answer,
+`_projected_lm`); `OptimistixLM`, `LBFGSB` and a solver of one's own (an
 `AbstractLightSolver` subclass) minimise its residual too. A fitted exponent is the last
 parameter, a per-receiver material and a projected material beside other lights are the
 problem's (`_problem`).
@@ -28,6 +30,7 @@ from jaxtyping import Array
 
 import jaxshadow as js
 
+from . import _projected_lm
 from ._diagnostics import (
     FitQualityWarning,
     assess,
@@ -181,6 +184,9 @@ def fit_light(
     # Private: how the projected material is computed at the answer (`colour_coefficients`, or
     # `_joint.projected_coefficients` from `fit_light_and_material`, sharing its next program).
     coefficients = options.pop("_projected_coefficients", None)
+    # Private: a list the solver's `Solution` is appended to (`fit_light_and_material` runs the
+    # LM's program again at the answer, `Solution.rows`).
+    kept = options.pop("_solution", None)
     legacy = {k: options.pop(k) for k in list(options) if k in LEGACY_SOLVER_KEYWORDS}
     if "constraint" in options:
         warnings.warn("fit_light(constraint=c) is deprecated: pass constraints={light_index: c} (as fit_lights).",
@@ -209,7 +215,10 @@ def fit_light(
         logn = np.full((y0.shape[0], 1), np.log(float(material.exponent)))
         logn[1:, 0] += np.random.default_rng(seed).uniform(-np.log(3.0), np.log(3.0), y0.shape[0] - 1)
         y0 = jnp.concatenate([y0, jnp.asarray(logn, dt)], axis=1)
-    fitted = _light_fit(problem, solver.minimise(problem, y0), solver.name, int(y0.shape[0]), noise, coefficients)
+    sol = solver.minimise(problem, y0)
+    if kept is not None:
+        kept.append(sol)
+    fitted = _light_fit(problem, sol, solver.name, int(y0.shape[0]), noise, coefficients)
     if warn:
         for msg in fitted.report.quality.emitted:
             warnings.warn(msg, FitQualityWarning, stacklevel=2)
@@ -261,7 +270,8 @@ def _light_fit(problem: LightsProblem, sol: Solution, solver_name: str, n_screen
                noise: Any = None, coefficients: Any = None) -> LightFit:
     """The fitted scene, residual and report from a solver's `Solution`. `coefficients(problem,
     theta) -> (k (3, 3), n)`: the projected material at the answer (default
-    `colour_coefficients`)."""
+    `colour_coefficients`; neither where the solution kept the basis, `Solution.basis`: the
+    material and the model's colours are then made of it, `_projected_lm`)."""
     param, t, material = problem.params[0], problem.targets, problem.material
     names = (*param.names, "log_n") if problem.fit_exponent else param.names
     dt = t.points.dtype
@@ -281,8 +291,12 @@ def _light_fit(problem: LightsProblem, sol: Solution, solver_name: str, n_screen
                     f"shadow capacity (culling capacity); "
                     f"solved again {sol.retries} time(s) with a larger one (the result is exact).")
     new_scene = with_light(problem.scene, param.light_index, sol.light)
-    if problem.colour_free:
+    if problem.colour_free and sol.basis is not None:
+        kc = _projected_lm.coefficients(sol.problem, sol.basis)
+        n_fit = np.exp(np.asarray(theta, np.float64)[-1]) if problem.fit_exponent else np.float64(material.exponent)
+    elif problem.colour_free:
         kc, n_fit = (np.asarray(x, np.float64) for x in (coefficients or colour_coefficients)(sol.problem, theta))
+    if problem.colour_free:
         if np.any(kc < 0):  # the unconstrained projection: a js.Material holds no negative coefficient
             bad = [f"{'ka kd ks'.split()[i]}[{'rgb'[c]}]" for i, c in zip(*np.nonzero(kc < 0), strict=True)]
             msgs.append(f"the projected material has negative coefficients ({', '.join(bad)}), held at 0 in "
@@ -292,8 +306,12 @@ def _light_fit(problem: LightsProblem, sol: Solution, solver_name: str, n_screen
         material = js.Material(ka=jnp.asarray(kc[0], dt), kd=jnp.asarray(kc[1], dt), ks=jnp.asarray(kc[2], dt),
                                exponent=jnp.asarray(float(n_fit), dt))
     w = np.asarray(t.weights, np.float64)
-    if sol.exact_residual and not problem.colour_free and np.all(w > 0) and invalid_reason(sol.light) is None:
+    valid = invalid_reason(sol.light) is None
+    if sol.exact_residual and not problem.colour_free and np.all(w > 0) and valid:
         residual = sol.residual.reshape(-1, 3) / np.sqrt(w)  # r = sqrt(w) (model - colours)
+    elif problem.colour_free and sol.basis is not None and valid:
+        kk = np.stack([np.asarray(getattr(material, f), np.float64) for f in ("ka", "kd", "ks")])
+        residual = _projected_lm.model(sol.problem, sol.basis, kk) - np.asarray(t.colours, np.float64)
     else:
         # A light that collapsed to a degenerate one (`_diagnostics`) shines as no light: `js.shade`
         # would reject it.

@@ -182,7 +182,9 @@ class LMResult(NamedTuple):
     `num_steps (S,)`; `residuals (S, M)` and `jacobians (S, M, P)` at `values`;
     `initial_losses (S,)` at the starts; `flag` (bool
     scalar): the residual function's auxiliary flag was raised at some evaluated point (the
-    light-placement fit uses it for a culling overflow); `abandoned (S,)`: stopped by `prune`."""
+    light-placement fit uses it for a culling overflow); `abandoned (S,)`: stopped by `prune`;
+    `aux`: what a `jacobian` callable returned beside the Jacobian, per start `(S, ...)` at
+    `values` (None without one)."""
 
     values: Float[Array, "S P"]
     losses: Float[Array, " S"]
@@ -193,6 +195,7 @@ class LMResult(NamedTuple):
     initial_losses: Float[Array, " S"]
     flag: Bool[Array, ""]
     abandoned: Bool[Array, " S"]
+    aux: Any = None
 
 
 def batched_levenberg_marquardt(
@@ -209,6 +212,7 @@ def batched_levenberg_marquardt(
     num_residuals: int | None = None,
     jacobian: str | Callable[[Array, Any], tuple[Array, Array, Array]] = "linearize",
     mirror: Int[Array, " S"] | None = None,
+    aux: Any = None,
 ) -> LMResult:
     """Minimise $\\tfrac12|r(y)|^2$ from every row of `y0` at once (traceable; jit the caller).
 
@@ -239,6 +243,11 @@ def batched_levenberg_marquardt(
       it follows the same iterates and stops at the same iteration (successive halving ranks ties
       by index: the source first), and the result is the one of evaluating it; padding rows cost
       nothing. Only with `chunk` (chunks with no evaluated start are skipped).
+    - `aux`: with a `jacobian` callable that returns a fourth value `(r, J, flag, aux)`, the
+      shapes and dtypes of that value for one start (a pytree of `jax.ShapeDtypeStruct`): it is
+      kept for every start at its accepted point (`LMResult.aux`), e.g. quantities the
+      residual was made of, for a caller that needs them at the answer without a program of its
+      own. None: the callable returns three values.
 
     **Returns:** `LMResult`.
     """
@@ -252,13 +261,17 @@ def batched_levenberg_marquardt(
         r, flag = fn(y, args)
         return r, (r, flag)
 
-    def rj_one(y: Array) -> tuple[Array, Array, Array]:
+    with_aux = aux is not None
+    if with_aux and not callable(jacobian):
+        raise ValueError("batched_levenberg_marquardt: aux needs a jacobian callable that returns it.")
+
+    def rj_one(y: Array) -> tuple:
         # `jax.linearize` and the linear map on the P basis vectors, not `jax.jacfwd` (a `vmap`
         # of `jvp` over the basis): the residual is traced once under `jvp` alone and only its
         # tangent equations are batched. With the soft-shadow residual the LM program traces
         # and lowers ~25% faster (`benchmarks/results/ab/lm_jacobian.md`).
         if callable(jacobian):
-            return jacobian(y, args)
+            return tuple(jacobian(y, args))
         if jacobian == "jacfwd":
             J, (r, flag) = jax.jacfwd(resid_aux, has_aux=True)(y)
             return r, J, flag
@@ -266,27 +279,33 @@ def batched_levenberg_marquardt(
         J = jax.vmap(lin, out_axes=1)(jnp.eye(P, dtype=dt))
         return r, J, flag
 
-    def rj_all(ys: Array) -> tuple[Array, Array, Array]:
+    def rj_all(ys: Array) -> tuple:
         # One start (or chunks of one): no batching layer in the trace.
         if ys.shape[0] == 1 and (callable(jacobian) or jacobian == "linearize"):
-            r, J, flag = rj_one(ys[0])
-            return r[None], J[None], flag[None]
+            return jax.tree_util.tree_map(lambda x: x[None], rj_one(ys[0]))
         return jax.vmap(rj_one)(ys)
+
+    def zeros(n: int) -> tuple:
+        """What `rj_all` returns for `n` starts, as zeros (chunks with no start to evaluate)."""
+        out = (jnp.zeros((n, M), dt), jnp.zeros((n, M, P), dt), jnp.zeros((n,), bool))
+        if with_aux:
+            out += (jax.tree_util.tree_map(lambda a: jnp.zeros((n, *a.shape), a.dtype), aux),)
+        return out
 
     M = num_residuals if num_residuals is not None else jax.eval_shape(lambda y: fn(y, args)[0], y0[0]).shape[0]
     eps = jnp.finfo(dt).eps
 
-    def rj(ys: Array, need: Array) -> tuple[Array, Array, Array]:
-        """Residuals, Jacobians and flags at `ys`; rows where `need` is False may be zeros."""
+    def rj(ys: Array, need: Array) -> tuple:
+        """Residuals, Jacobians, flags (and `aux`) at `ys`; rows where `need` is False may be zeros."""
         if chunk is None or chunk >= S:
             return rj_all(ys)
         if mirror is not None:
             src = jnp.asarray(mirror, jnp.int32)
-            r, J, flag = rj_chunked(ys, need & (src == jnp.arange(S)))
-            return r[src], J[src], flag[src]
+            out = rj_chunked(ys, need & (src == jnp.arange(S)))
+            return jax.tree_util.tree_map(lambda x: x[src], out)
         return rj_chunked(ys, need)
 
-    def rj_chunked(ys: Array, need: Array) -> tuple[Array, Array, Array]:
+    def rj_chunked(ys: Array, need: Array) -> tuple:
         assert chunk is not None
         n_chunks = -(-S // chunk)
         pad = n_chunks * chunk - S
@@ -295,17 +314,12 @@ def batched_levenberg_marquardt(
         ys_o = jnp.concatenate([ys[order], jnp.broadcast_to(ys[:1], (pad, P))])
         need_o = jnp.concatenate([need[order], jnp.zeros((pad,), bool)])
 
-        def one(a: tuple[Array, Array]) -> tuple[Array, Array, Array]:
+        def one(a: tuple[Array, Array]) -> tuple:
             yc, go = a
-            return jax.lax.cond(
-                go,
-                rj_all,
-                lambda y: (jnp.zeros((chunk, M), dt), jnp.zeros((chunk, M, P), dt), jnp.zeros((chunk,), bool)),
-                yc,
-            )
+            return jax.lax.cond(go, rj_all, lambda y: zeros(chunk), yc)
 
-        r, J, flag = jax.lax.map(one, (ys_o.reshape(n_chunks, chunk, P), jnp.any(need_o.reshape(n_chunks, chunk), axis=1)))
-        return (r.reshape(-1, M)[:S][inv], J.reshape(-1, M, P)[:S][inv], flag.reshape(-1)[:S][inv])
+        out = jax.lax.map(one, (ys_o.reshape(n_chunks, chunk, P), jnp.any(need_o.reshape(n_chunks, chunk), axis=1)))
+        return jax.tree_util.tree_map(lambda x: x.reshape(-1, *x.shape[2:])[:S][inv], out)
 
     if isinstance(prune, (tuple, list)):
         prune_at = jnp.asarray(sorted(set(int(i) for i in prune)) or [-1], jnp.int32)
@@ -317,7 +331,7 @@ def batched_levenberg_marquardt(
         return (it <= max_steps) & ~jnp.all(done)
 
     def body(state: tuple) -> tuple:
-        it, y, r, J, f, f0, lam, nu, done, ok, steps, dmax, flag, gone = state
+        it, y, r, J, f, f0, lam, nu, done, ok, steps, dmax, flag, gone, ax = state
         init = it == 0
         g = jnp.einsum("smp,sm->sp", J, r)
         A = jnp.einsum("smp,smq->spq", J, J)
@@ -334,7 +348,7 @@ def batched_levenberg_marquardt(
         step_ok = jnp.all(jnp.isfinite(delta), axis=1)
         delta = jnp.where(step_ok[:, None] & ~init, delta, 0.0)
         y_try = y + delta
-        r_t, J_t, flag_t = rj(y_try, ~done)
+        r_t, J_t, flag_t, *ax_t = rj(y_try, ~done)
         f_t = 0.5 * jnp.sum(r_t * r_t, axis=1)
         pred = -jnp.sum(g * delta, axis=1) - 0.5 * jnp.einsum("sp,spq,sq->s", delta, A, delta)
         rho = (f - f_t) / jnp.where(pred > 0, pred, 1.0)
@@ -352,6 +366,9 @@ def batched_levenberg_marquardt(
         y = jnp.where(a, y_try, y)
         r = jnp.where(a, r_t, r)
         J = jnp.where(a[:, :, None], J_t, J)
+        if with_aux:
+            ax = jax.tree_util.tree_map(lambda new, old: jnp.where(accept.reshape(-1, *[1] * (new.ndim - 1)), new, old),
+                                        ax_t[0], ax)
         f = jnp.where(accept, f_t, f)
         dmax = jnp.where(a, jnp.maximum(dmax, jnp.sum(J_t * J_t, axis=1)), dmax)
         factor = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
@@ -371,7 +388,7 @@ def batched_levenberg_marquardt(
             drop = running & (rank >= (n_run + 1) // 2) & jnp.any(it == prune_at)
             done = done | drop
             gone = gone | drop
-        return it + 1, y, r, J, f, f0, lam, nu, done, ok, steps, dmax, flag, gone
+        return it + 1, y, r, J, f, f0, lam, nu, done, ok, steps, dmax, flag, gone, ax
 
     state = (
         jnp.zeros((), jnp.int32),
@@ -388,9 +405,10 @@ def batched_levenberg_marquardt(
         jnp.zeros((S, P), dt),
         jnp.zeros((), bool),
         jnp.zeros((S,), bool),
+        zeros(S)[3] if with_aux else None,
     )
-    _, y, r, J, f, f0, _, _, _, ok, steps, _, flag, gone = jax.lax.while_loop(cond, body, state)
-    return LMResult(y, f, ok, steps, r, J, f0, flag, gone)
+    _, y, r, J, f, f0, _, _, _, ok, steps, _, flag, gone, ax = jax.lax.while_loop(cond, body, state)
+    return LMResult(y, f, ok, steps, r, J, f0, flag, gone, ax)
 
 
 # The length `prune_array` pads a successive-halving schedule to.

@@ -202,6 +202,29 @@ class _Basis:
         return np.stack([self.ambient[:, c], self.diffuse[:, c], spec], axis=1)
 
 
+class RowsBasis(_Basis):
+    r"""`_Basis` from values computed elsewhere: the ambient and $E/\pi$ columns given, $S(n)$ and
+    $\partial S/\partial\log n$ from `spec_rows(exponents (k,)) -> [(S (N, 3), dS (N, 3)), ...]`,
+    called with at most `chunk` exponents not evaluated yet (`fit_light_and_material`: the light
+    fit's own program at the fitted light, `_projected_lm.BasisRows`)."""
+
+    def __init__(self, scene: Any, targets: PaintedTargets, diffuse: np.ndarray, spec_rows: Any, chunk: int):
+        self.scene, self.targets, self.specular = scene, targets, None
+        self.ambient = np.broadcast_to(_np(scene.ambient), (len(targets), 3)).copy()
+        self.diffuse = _np(diffuse)
+        self._cache = {}
+        self._rows, self._chunk = spec_rows, int(chunk)
+
+    def spec_many(self, exponents: np.ndarray) -> np.ndarray:
+        exponents = np.asarray(exponents, np.float64)
+        todo = list(dict.fromkeys(float(e) for e in exponents if float(e) not in self._cache))
+        for i in range(0, len(todo), self._chunk):
+            part = todo[i:i + self._chunk]
+            for e, (v, d) in zip(part, self._rows(np.asarray(part)), strict=True):
+                self._cache[e] = (_np(v), _np(d))
+        return np.stack([self._cache[float(e)][0] for e in exponents])
+
+
 def _section_search(f: Any, a: float, b: float, fa: float, fb: float, x0: float, f0: float,
                     tol: float) -> float:
     """The minimiser of a unimodal `f` on `[a, b]` to within `tol`: each step evaluates `f` at
@@ -264,6 +287,7 @@ def fit_material(
     n_tol: float = 1e-6,
     specular: SpecularFn | None = None,
     warn: bool = True,
+    _basis: _Basis | None = None,
 ) -> MaterialFit:
     """Fit $k_a, k_d, k_s$ (RGB) and optionally the Phong exponent $n$ to painted colours.
 
@@ -331,8 +355,12 @@ def fit_material(
     if not (0 < n_lo < n_hi and np.isfinite(n_hi)):
         raise ValueError(f"fit_material: n_bounds must satisfy 0 < lower < upper, got {n_bounds}.")
     fit_n = exponent is None
-    spec_fn = material_specular(scene, targets.points, targets.normals) if specular is None else specular
-    basis = _Basis(scene, targets, spec_fn)
+    # Private `_basis`: the columns at `scene` computed already (`RowsBasis`, `fit_light_and_material`).
+    if _basis is not None:
+        spec_fn, basis = js.specular if specular is None else specular, _basis
+    else:
+        spec_fn = material_specular(scene, targets.points, targets.normals) if specular is None else specular
+        basis = _Basis(scene, targets, spec_fn)
     y = _np(targets.colours)
     w = _np(targets.weights)
     npts = len(targets)

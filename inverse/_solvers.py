@@ -37,6 +37,7 @@ from jaxtyping import Array
 
 from jaxshadow import ShadowOptions
 
+from . import _projected_lm
 from ._lm import fit_jit
 from ._multilight import (
     LightsProblem,
@@ -59,7 +60,9 @@ class Solution:
     `best`: the index of the lowest finite loss; `residual (M,)`, `jacobian (M, P)` and `light`
     at the best; `initial_loss`: at the reference start (the first); `retries`: solves repeated
     with a larger shadow capacity; `exact_residual`: `residual` is the full model's, usable
-    as the fit's residual; `problem`: as last solved."""
+    as the fit's residual; `problem`: as last solved. A projected one-light problem solved by
+    `LM` (`_projected_lm`) also has `basis`: `(E, S, dE, dS)` at the best (`_projected_lm.aux_row`),
+    and `rows`: its program at other rows (`_projected_lm.BasisRows`); otherwise None."""
 
     values: np.ndarray
     losses: np.ndarray
@@ -74,6 +77,8 @@ class Solution:
     retries: int
     exact_residual: bool
     problem: LightsProblem
+    basis: tuple | None = None
+    rows: Any = None
 
 
 class AbstractLightSolver(eqx.Module):
@@ -169,12 +174,15 @@ class LM(AbstractLightSolver):
         problem = dataclasses.replace(problem, capacity=cap)
         base, mask = ys[0], np.ones(ys.shape[1], bool)
         initial, retries = None, 0
+        # A projected one-light problem: the program that also keeps the basis (`_projected_lm`).
+        run = _projected_lm.solve if _projected_lm.keeps_basis(problem) else solve
         if screens:
-            losses, problem, retries = screen_by_solver(problem, ys, base, mask, n_solved, self.rtol, self.atol)
+            losses, problem, retries = screen_by_solver(problem, ys, base, mask, n_solved, self.rtol, self.atol,
+                                                        run)
             initial = float(losses[0])
             ys = ys[best_starts(np.where(np.isfinite(losses), losses, np.inf), n_solved)]
-        res, problem, r = solve(problem, ys, base, mask, rtol=self.rtol, atol=self.atol, max_steps=self.max_steps,
-                                prune=sched)
+        res, problem, r = run(problem, ys, base, mask, rtol=self.rtol, atol=self.atol, max_steps=self.max_steps,
+                              prune=sched)
         retries += r
         losses = np.asarray(res.losses, np.float64)
         best = int(np.argmin(np.where(np.isfinite(losses), losses, np.inf)))
@@ -182,13 +190,16 @@ class LM(AbstractLightSolver):
             initial = float(np.asarray(res.initial_losses)[0])
         values = np.asarray(res.values)
         light = build_lights(problem, jnp.asarray(values[best], ys.dtype))[0]
+        kept = res.aux is not None
         return Solution(values, losses, np.asarray(res.converged), np.asarray(res.num_steps),
                         np.asarray(res.abandoned), best, np.asarray(res.residuals, np.float64)[best],
-                        np.asarray(res.jacobians, np.float64)[best], light, initial, retries, True, problem)
+                        np.asarray(res.jacobians, np.float64)[best], light, initial, retries, True, problem,
+                        _projected_lm.aux_row(res.aux, best) if kept else None,
+                        _projected_lm.BasisRows(problem, ys.shape[0], (self.rtol, self.atol)) if kept else None)
 
 
 def screen_by_solver(problem: LightsProblem, rows: np.ndarray, base: np.ndarray, mask: np.ndarray,
-                     chunk: int, rtol: float, atol: float) -> tuple[np.ndarray, LightsProblem, int]:
+                     chunk: int, rtol: float, atol: float, run: Callable = solve) -> tuple[np.ndarray, LightsProblem, int]:
     """The loss $\\tfrac12|r|^2$ at every row of `rows (S, P)` (the others held at `base` where
     `mask` is off) by the solver's own program: `_multilight.solve` with no iterations
     (`LMResult.initial_losses`), `chunk` rows a call, with the solve's `rtol` and `atol` (static
@@ -196,13 +207,14 @@ def screen_by_solver(problem: LightsProblem, rows: np.ndarray, base: np.ndarray,
     Each chunk is evaluated again with twice the shadow capacity while some receiver overflowed
     it. The values of `_multilight.screen` (bit-identical on the demo fit), without its program:
     it evaluates a Jacobian at every row (0.6 s CPU more for 64 starts of the demo fit) but a
-    one-light fit's first call traces and compiles one program fewer.
+    one-light fit's first call traces and compiles one program fewer. `run`: the solve
+    (`_multilight.solve`, or `_projected_lm.solve` with the program the solve then runs).
     Returns `(losses (S,), problem used, retries)`."""
     out, retries = [], 0
     for a in range(0, rows.shape[0], chunk):
         part = rows[a:a + chunk]
         part = np.concatenate([part, np.repeat(part[:1], chunk - part.shape[0], axis=0)])
-        res, problem, r = solve(problem, part, base, mask, rtol=rtol, atol=atol, max_steps=0, prune=())
+        res, problem, r = run(problem, part, base, mask, rtol=rtol, atol=atol, max_steps=0, prune=())
         out.append(np.asarray(res.initial_losses))
         retries += r
     return np.concatenate(out)[: rows.shape[0]], problem, retries

@@ -27,12 +27,14 @@ from jaxtyping import Array, Bool, Float
 from ._kernels.specular import DEFAULT_DEGREE
 from ._scene.model import Scene
 from ._shading import shade as _shade
+from ._shadows import binding as _binding
 from ._shadows import evaluators as _evaluators
 from ._shadows import plan as _plan
 from ._shadows.integrands import Both, Lambert, Phong
 from ._shadows.options import DEFAULT_OPTIONS, ShadowOptions
 
-__all__ = ["DEFAULT_SPECULAR_DEGREE", "irradiance", "specular", "irradiance_and_specular", "pin", "shadow_capacity"]
+__all__ = ["DEFAULT_SPECULAR_DEGREE", "irradiance", "specular", "irradiance_and_specular", "pin", "shadow_capacity",
+           "register_engine"]
 
 DEFAULT_SPECULAR_DEGREE = DEFAULT_DEGREE
 """The Chebyshev degree of `jaxshadow.specular`'s default method."""
@@ -231,3 +233,20 @@ def shadow_capacity(scene: Scene, points: Any, normals: Any, lights: Any = None)
     if not todo or p.shape[0] == 0:
         return 0
     return max(int(lp.counts.max(initial=0)) for lp in _plan.plan(scene, p, n, produce="classes", lights=todo).lights)
+
+
+def register_engine() -> bool:
+    """Register the shadow engine's XLA FFI handlers with JAX, once per process; nothing is
+    traced or compiled. Tracing a program that holds the engine registers them too; a program
+    that was not traced in this process (deserialised by `jax.export`) needs this before it
+    runs. Returns whether the handlers are usable (False: the engine is not built, was built
+    without jaxlib's FFI headers or for another jaxlib; programs then hold the device kernels).
+
+    Example:
+        ```python
+        from jaxshadow import traced
+
+        traced.register_engine()   # True where the engine is built with its XLA FFI handlers
+        ```
+    """
+    return _binding.ffi_available()

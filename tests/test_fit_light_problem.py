@@ -1,7 +1,8 @@
 """`fit_light` is `fit_lights` with one light: every solver (the `LM`, `OptimistixLM`, `LBFGSB`
 and a solver of one's own) runs `fit_lights`' problem (`_multilight.LightsProblem`, one fitted
 light, its power held), the `LM` through `fit_lights`' screening and compiled program
-(`_multilight.screen`, `_multilight.solve`). The problem holds what a one-light fit can ask
+(`_multilight.screen`, `_multilight.solve`; with a projected material the same residual in
+`_projected_lm.solve`, which keeps the basis). The problem holds what a one-light fit can ask
 for: a fitted Phong exponent, a per-receiver material, a projected material beside other
 lights. Its residual is checked against `js.shade` and a NumPy least squares on `js.irradiance`
 and `js.specular` (independent of the solvers' programs); the fits against targets painted by
@@ -16,7 +17,7 @@ import pytest
 
 import inverse
 import jaxshadow as js
-from inverse import _lights, _multilight, _solvers
+from inverse import _lights, _multilight, _projected_lm, _solvers
 from inverse._multistart import make_starts
 from inverse._parametrisation import LightParametrisation, scene_size, with_light
 
@@ -59,8 +60,10 @@ def _eps(targets):
 def test_fit_light_runs_the_program_of_fit_lights(monkeypatch, n_lights, mode):
     start, targets, true = _problem(n_lights, occluders=BOX_TOP if mode == "fixed" else None)
     calls = []
-    solve = _multilight.solve
-    monkeypatch.setattr("inverse._solvers.solve", lambda pr, *a, **k: calls.append(pr) or solve(pr, *a, **k))
+    # A projected fit runs the same residual in the program that also keeps its basis (`_projected_lm`).
+    solve = _projected_lm.solve if mode == "projected" else _multilight.solve
+    where = "inverse._projected_lm.solve" if mode == "projected" else "inverse._solvers.solve"
+    monkeypatch.setattr(where, lambda pr, *a, **k: calls.append(pr) or solve(pr, *a, **k))
     fit = inverse.fit_light(start, targets, MATERIAL if mode == "fixed" else GUESS, fit=("position",), starts=4,
                             solver=inverse.LM(refine=2), material_mode=mode, warn=False)
     assert calls and all(isinstance(pr, _multilight.LightsProblem) for pr in calls)

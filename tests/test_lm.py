@@ -108,6 +108,35 @@ def test_lm_chunked_evaluation_matches_batched():
         assert not np.any(np.asarray(got.abandoned))
 
 
+@pytest.mark.parametrize("chunk", [None, 1, 3])
+def test_lm_aux_is_kept_at_every_starts_answer(chunk):
+    """A Jacobian callable returning a fourth value (`aux`): the iterates are those of the same
+    callable without it, and `LMResult.aux` is that value at each start's final point (here the
+    model's terms `exp(-b t)` and its derivative in b, checked in NumPy at `values`)."""
+    rng = np.random.default_rng(2)
+    starts = jnp.asarray(np.concatenate([TRUE[None] * 1.5, TRUE[None] + rng.normal(0, 0.5, (6, 3))]))
+    args = (jnp.asarray(T), jnp.asarray(Y))
+
+    def rj(y, a, with_aux):
+        (r, e), lin = jax.linearize(lambda z: (z[0] * jnp.exp(-z[1] * a[0]) + z[2] - a[1], jnp.exp(-z[1] * a[0])), y)
+        J, de = jax.vmap(lin, out_axes=(1, 0))(jnp.eye(3, dtype=y.dtype))
+        flag = y[0] < 0
+        return (r, J, flag, (e, de[1])) if with_aux else (r, J, flag)
+
+    spec = (jax.ShapeDtypeStruct((T.size,), starts.dtype), jax.ShapeDtypeStruct((T.size,), starts.dtype))
+    run = jax.jit(lambda y0, aux: batched_levenberg_marquardt(
+        _exp_resid, y0, args, rtol=1e-10, atol=1e-12, max_steps=200, chunk=chunk,
+        jacobian=lambda y, a: rj(y, a, aux), aux=spec if aux else None), static_argnums=1)
+    plain, kept = run(starts, False), run(starts, True)
+    assert plain.aux is None
+    np.testing.assert_array_equal(np.asarray(kept.values), np.asarray(plain.values))
+    np.testing.assert_array_equal(np.asarray(kept.num_steps), np.asarray(plain.num_steps))
+    y = np.asarray(kept.values)
+    np.testing.assert_allclose(np.asarray(kept.aux[0]), np.exp(-y[:, 1:2] * T[None]), rtol=1e-13)
+    np.testing.assert_allclose(np.asarray(kept.aux[1]), -T[None] * np.exp(-y[:, 1:2] * T[None]), rtol=1e-12,
+                               atol=1e-15)
+
+
 def test_lm_successive_halving():
     """`prune`: at each listed iteration the worse half of the running starts stops (abandoned,
     not converged); the best survives and converges; fewer iterations than without."""
