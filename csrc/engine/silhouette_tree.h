@@ -179,8 +179,43 @@ void build_silhouette_tree(const Occluders<T>& occ, const std::vector<int32_t>& 
     mid[3 * k + 1] = 0.5 * (double(a.y) + double(b.y));
     mid[3 * k + 2] = 0.5 * (double(a.z) + double(b.z));
   }
+  // The edges grouped by connected component (faces joined through paired edges), components in
+  // the order of their first edge, each keeping its edges' order: each component gets a subtree
+  // of its own, built from its edges alone, and the components are joined above them by index
+  // (not by position). A component's subtree, and the walk's order of its edges, then do not
+  // depend on where the other components lie, so moving one object leaves every other object's
+  // contour edges in the same order (ShadowCache.update equals a rebuild bit for bit).
   std::vector<int32_t> order(static_cast<size_t>(E));
-  for (int64_t k = 0; k < E; k++) order[k] = int32_t(k);
+  std::vector<int32_t> cstart;  // component c's edges: order[cstart[c] .. cstart[c + 1])
+  {
+    std::vector<int32_t> up(static_cast<size_t>(M));
+    for (int64_t f = 0; f < M; f++) up[size_t(f)] = int32_t(f);
+    auto find = [&](int32_t x) {
+      while (up[size_t(x)] != x) x = up[size_t(x)] = up[size_t(up[size_t(x)])];
+      return x;
+    };
+    for (const SEdge& e : st.edges)
+      if (e.g >= 0) {
+        const int32_t a = find(e.f), b = find(e.g);
+        if (a != b) up[size_t(std::max(a, b))] = std::min(a, b);
+      }
+    std::vector<int32_t> rank(static_cast<size_t>(M), -1), ecomp(static_cast<size_t>(E));
+    for (int64_t k = 0; k < E; k++) {
+      const int32_t r = find(st.edges[size_t(k)].f);
+      if (rank[size_t(r)] < 0) rank[size_t(r)] = int32_t(cstart.size()), cstart.push_back(0);
+      ecomp[size_t(k)] = rank[size_t(r)];
+      cstart[size_t(ecomp[size_t(k)])]++;
+    }
+    int32_t at = 0;
+    for (int32_t& c : cstart) {
+      const int32_t n = c;
+      c = at;
+      at += n;
+    }
+    cstart.push_back(at);
+    std::vector<int32_t> fill_at(cstart.begin(), cstart.end() - 1);
+    for (int64_t k = 0; k < E; k++) order[size_t(fill_at[size_t(ecomp[size_t(k)])]++)] = int32_t(k);
+  }
   // Per edge: the box of its faces' vertices (a node's box is the min/max over its edges' boxes,
   // the same values as over their faces' vertices), read once instead of once per tree level.
   std::vector<double> ebox(size_t(6 * E));
@@ -249,11 +284,11 @@ void build_silhouette_tree(const Occluders<T>& occ, const std::vector<int32_t>& 
   };
   st.nodes.reserve(size_t(2 * E / 4 + 2));
   struct Job {
-    int32_t node, start, count;
+    int32_t node, start, count, c0, c1;  // components [c0, c1) (one: split inside it)
   };
   std::vector<Job> jobs;
   st.nodes.push_back(SNode{});
-  jobs.push_back({0, 0, int32_t(E)});
+  jobs.push_back({0, 0, int32_t(E), 0, int32_t(cstart.size()) - 1});
   while (!jobs.empty()) {
     const Job jb = jobs.back();
     jobs.pop_back();
@@ -262,7 +297,15 @@ void build_silhouette_tree(const Occluders<T>& occ, const std::vector<int32_t>& 
     nd.count = jb.count;
     nd.left = nd.right = -1;
     fill(nd);
-    if (jb.count > 4) {
+    if (jb.c1 - jb.c0 > 1) {  // several components: split the list of them in the middle
+      const int32_t cm = jb.c0 + (jb.c1 - jb.c0) / 2;
+      nd.left = int32_t(st.nodes.size());
+      st.nodes.push_back(SNode{});
+      nd.right = int32_t(st.nodes.size());
+      st.nodes.push_back(SNode{});
+      jobs.push_back({nd.left, jb.start, cstart[size_t(cm)] - jb.start, jb.c0, cm});
+      jobs.push_back({nd.right, cstart[size_t(cm)], jb.start + jb.count - cstart[size_t(cm)], cm, jb.c1});
+    } else if (jb.count > 4) {
       int ax = 0;
       double ext = -1;
       for (int d = 0; d < 3; d++)
@@ -274,8 +317,8 @@ void build_silhouette_tree(const Occluders<T>& occ, const std::vector<int32_t>& 
       st.nodes.push_back(SNode{});
       nd.right = int32_t(st.nodes.size());
       st.nodes.push_back(SNode{});
-      jobs.push_back({nd.left, jb.start, half});
-      jobs.push_back({nd.right, jb.start + half, jb.count - half});
+      jobs.push_back({nd.left, jb.start, half, jb.c0, jb.c1});
+      jobs.push_back({nd.right, jb.start + half, jb.count - half, jb.c0, jb.c1});
     }
     st.nodes[size_t(jb.node)] = nd;
   }

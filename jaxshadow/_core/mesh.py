@@ -88,12 +88,26 @@ class Mesh:
         table = _face_table(faces, v.shape[0])
         if weld is not None:
             v, table, self.n_welded = _welded(v, table, weld)
+        self._prepare(v, table, merge, check=True)
+
+    @classmethod
+    def _of_checked_triangles(cls, vertices: np.ndarray, faces: np.ndarray) -> Mesh:
+        """A `Mesh` of float64 `vertices (V, 3)` and triangles `faces (F, 3)` whose corners
+        passed `geometry.triangles_pass` (finite, distinct corners, twice `_check_faces`' area
+        limit: each such triangle passes it, and a triangle is planar), without checking them
+        again: `weld_polygons`' meshes of triangle soups."""
+        out = cls.__new__(cls)
+        out._prepare(vertices, _face_table(faces, vertices.shape[0]), True, check=False)
+        return out
+
+    def _prepare(self, v: np.ndarray, table: Any, merge: bool, check: bool) -> None:
         size = float(np.max(np.ptp(v, axis=0))) if v.size else 0.0
         if not size > 0:
             raise ValueError("Mesh: all vertices coincide.")
         self.vertices = v
         self.n_input_faces = len(table)
-        _check_faces(table, v, size)
+        if check:
+            _check_faces(table, v, size)
         self.closed, flip = _closed(table, v)
         if flip:
             table = table.reversed()
@@ -365,7 +379,7 @@ def mesh_dicts(faces: np.ndarray, topology: OccluderTopology) -> list[Any]:
     return out
 
 
-def weld_polygons(items: list[Any], stacked: np.ndarray | None = None) -> list[Any]:
+def weld_polygons(items: list[Any], stacked: np.ndarray | None = None, triangles_checked: bool = False) -> list[Any]:
     """`Scene(occluders=[...])` entries with triangle soups turned into meshes: the plain polygons
     (concrete `(k, 3)` arrays) are welded by exactly equal vertex coordinates and split into
     connected components (polygons sharing an edge); each component of two or more polygons
@@ -374,7 +388,9 @@ def weld_polygons(items: list[Any], stacked: np.ndarray | None = None) -> list[A
     engine then treats it as the same `Mesh` given directly would be treated (a convex solid's
     cone, interior edges left out). `Mesh` entries, lone polygons and components a `Mesh`
     refuses (e.g. faces that reuse a vertex) are kept as they are. `stacked`: the items as one
-    `(m, k, 3)` array when they are its rows (read at once instead of polygon by polygon)."""
+    `(m, k, 3)` array when they are its rows (read at once instead of polygon by polygon).
+    `triangles_checked`: every plain item is a triangle that passed `geometry.triangles_pass`
+    (its meshes are not checked again)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -420,11 +436,16 @@ def weld_polygons(items: list[Any], stacked: np.ndarray | None = None) -> list[A
             continue
         faces = by_comp[bounds[c]:bounds[c + 1]]
         loops: Any = table[faces] if table is not None else [inv[start[f]:start[f + 1]] for f in faces.tolist()]
-        used = np.unique(loops if table is not None else np.concatenate(loops))
-        local = np.full(len(verts), -1)
-        local[used] = np.arange(len(used))
+        if n_comp == 1:  # one component of every polygon: every welded vertex is used, in order
+            mverts, mloops = verts, loops if table is not None else list(loops)
+        else:
+            used = np.unique(loops if table is not None else np.concatenate(loops))
+            local = np.full(len(verts), -1)
+            local[used] = np.arange(len(used))
+            mverts, mloops = verts[used], local[loops] if table is not None else [local[loop] for loop in loops]
         try:
-            mesh = Mesh(verts[used], local[loops] if table is not None else [local[loop] for loop in loops])
+            mesh = (Mesh._of_checked_triangles(mverts, mloops) if triangles_checked and table is not None and k == 3
+                    else Mesh(mverts, mloops))
         except ValueError:
             continue
         first = faces.tolist()

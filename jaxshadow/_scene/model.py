@@ -333,7 +333,7 @@ def _stack_occluders(occluders: Any) -> tuple[Array | None, OccluderTopology | N
             if not isinstance(poly, Mesh) and is_concrete(poly):
                 check_convex_polygon(poly, f"Scene.occluders[{i}]")
     if stacked is not None or all(isinstance(x, Mesh) or (is_concrete(x) and not isinstance(x, jax.Array)) for x in items):
-        items = weld_polygons(items, stacked)  # triangle soups become meshes (NumPy inputs only)
+        items = weld_polygons(items, stacked, tris_ok)  # triangle soups become meshes (NumPy inputs only)
     if not any(isinstance(x, Mesh) for x in items):
         return pad_polygons_jax(items), None
     return stack_occluders(items, max_face_vertices(items))
