@@ -57,7 +57,9 @@ column of light $j$ at its reference power, `(3N,)`). So the screen needs no der
    re-chosen together (step 5's pair move), and the placements so moved are refined and ranked
    as in step 7 (up to a batch of them, in basins distinct from those refined already); in
    rounds while a round improves the best refined loss (`RESCREEN`: coordinate descent over
-   single lights and pairs at refined resolution).
+   single lights and pairs at refined resolution). In each round the light that explains least
+   is also re-placed on the residual and the lights' centres dealt in every order (`dealt`): a
+   light that fell where it lights a few targets holds a slot the others need.
    A refined placement that explains the targets exactly (`EXACT`) ends steps 7 and 8: the batches
    after its own are not refined, nothing is re-screened.
 
@@ -121,6 +123,7 @@ BASINS = 16
 ALTERNATIVES = 3
 # Step 8 (module docstring): every light screened again at the best refined placement.
 RESCREEN = True
+SPLIT_RADIUS = 0.15  # of the extent: step 8's least useful light re-placed this near another light (`_rescreen`)
 # Steps 7 and 8 stop at a refined placement that explains the targets exactly: its loss at most
 # EXACT of theirs ($\tfrac12|y|^2$); no other placement can explain them better.
 EXACT = 1e-12
@@ -271,6 +274,31 @@ def rows_at(param: LightParametrisation, region: Region, centres: np.ndarray) ->
                 r[:, sl["orientation"]] = o
         rows.append(r)
     return np.concatenate(rows)
+
+
+def dealt(params: tuple, offsets: tuple, region: Region, movable: list[int], theta: np.ndarray) -> np.ndarray:
+    """`(D, Pt)`: the placement `theta (Pt,)` with the centres of the `movable` lights dealt to
+    them in every other order (up to 4 lights; beyond, each exchange of two); a light given
+    another's centre takes it at its first orientation variant (as given) and its given size
+    (`rows_at`), a light keeping its own centre keeps its row."""
+    if len(movable) < 2:
+        return np.zeros((0, theta.shape[0]))
+    if len(movable) <= 4:
+        deals = [q for q in itertools.permutations(movable) if q != tuple(movable)]
+    else:
+        deals = []
+        for a, b in itertools.combinations(range(len(movable)), 2):
+            q = list(movable)
+            q[a], q[b] = q[b], q[a]
+            deals.append(tuple(q))
+    sl = {j: slice(offsets[j], offsets[j] + params[j].size) for j in movable}
+    where = {j: centre_of_row(params[j], theta[sl[j]]) for j in movable}
+    out = np.tile(np.asarray(theta, np.float64), (len(deals), 1))
+    for r, q in enumerate(deals):
+        for j, src in zip(movable, q, strict=True):
+            if src != j:
+                out[r, sl[j]] = rows_at(params[j], region, where[src][None])[0]
+    return out
 
 
 @dataclasses.dataclass
@@ -513,10 +541,25 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
                 v, f, problem = refine_and_rank(problem, th, lm, keep, exact)
                 return v, f
 
+            def near(j: int, th: np.ndarray, B: np.ndarray) -> list[int]:
+                """Light j's best candidate (columns `B` held) within `SPLIT_RADIUS` extents of each
+                other light's centre in `th`."""
+                f = nnls_rss(B, cols[j], y, problem.fit_power)
+                pos = np.stack([centre_of_row(params[j], r) for r in rows[j]])
+                out = []
+                for i in todo:
+                    if i != j:
+                        c = centre_of_row(params[i], th[problem.offsets[i]:problem.offsets[i] + params[i].size])
+                        g = np.where(np.linalg.norm(pos - c, axis=1) < SPLIT_RADIUS * region.extent, f, np.inf)
+                        if np.isfinite(g).any():
+                            out.append(int(np.argmin(g)))
+                return out
+
             values, losses = rescreen(
                 values, losses, todo, problem.offsets, [0 if p is None else p.size for p in params], rows, cols, y,
                 problem.fit_power, columns, local_screen, refine,
-                lambda th, k: distinct_basins(params, problem.offsets, th, region.extent, k), keep)
+                lambda th, k: distinct_basins(params, problem.offsets, th, region.extent, k), keep,
+                deal=lambda th: dealt(params, problem.offsets, region, movable, th), near=near)
         order = np.argsort(losses, kind="stable")
         best_f = 2.0 * float(losses[order[0]])
         theta = values[order[0]]
