@@ -27,7 +27,7 @@ def escaped_rows(problem: Any, thetas: np.ndarray) -> np.ndarray:
     fitted light with a fitted position has its centre farther than `ESCAPE_FACTOR` times the
     targets' bounding-box diagonal from every target (the targets of positive weight), or behind
     every such target's tangent plane (module docstring); non-finite centres count as escaped."""
-    from ._global_placement import centre_of_row
+    from ._placement_rank import centre_of_row
 
     p, n, diag = weighted_targets(problem.targets)
     thetas = np.asarray(thetas, np.float64)

@@ -23,7 +23,7 @@ column of light $j$ at its reference power, `(3N,)`). So the screen needs no der
    with nothing held and in every local screen (steps 6 and 8) with the other lights held; a segment as given
    and along three horizontal directions; sizes as given.
 3. **Unit contributions.** One compiled program per light kind evaluates the forward model
-   (`_multilight._parts`: soft shadows, the shadow engine at the fit's capacity) at `CHUNK`
+   (`_multilight._parts`: soft shadows, the shadow engine at the fit's capacity; `_placement_rank`) at `CHUNK`
    candidates at once (`jax.vmap`).
 4. **Matching pursuit.** Starting from no light, each step tries every candidate of every
    unplaced light with the placed ones, powers by NNLS, and places the best (a beam of `BEAM`
@@ -57,7 +57,9 @@ column of light $j$ at its reference power, `(3N,)`). So the screen needs no der
    re-chosen together (step 5's pair move), and the placements so moved are refined and ranked
    as in step 7 (up to a batch of them, in basins distinct from those refined already); in
    rounds while a round improves the best refined loss (`RESCREEN`: coordinate descent over
-   single lights and pairs at refined resolution).
+   single lights and pairs at refined resolution). In each round the light that explains least
+   is also re-placed on the residual and the lights' centres dealt in every order (`dealt`): a
+   light that fell where it lights a few targets holds a slot the others need.
    A refined placement that explains the targets exactly (`EXACT`) ends steps 7 and 8: the batches
    after its own are not refined, nothing is re-screened.
 
@@ -75,26 +77,32 @@ import dataclasses
 import itertools
 from typing import Any
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 import jaxshadow as js
 
 from ._closed_forms import light_from_diffuse_maximum
-from ._escape import escaped_rows
-from ._forward import at_capacity
-from ._lm import fit_jit
-from ._multilight import LightsProblem, _parts, build_lights, solve
+from ._multilight import LightsProblem
 from ._nnls_screen import ScreenMemo, nnls_rss
 from ._orientation_screen import oriented_rows
 from ._orientation_screen import rotation_vector as _rotation_vector
 from ._parametrisation import LightParametrisation
-from ._powers import constrained_powers, emitted_power
+from ._placement_rank import (  # noqa: F401  (re-exported: fit_lights, tests)
+    BASIN_DISTANCE,
+    BASIN_STEPS,
+    BASIN_TURN,
+    CHUNK,
+    centre_of_row,
+    distinct_basins,
+    final_losses,
+    ranking_losses,
+    refine_and_rank,
+    unit_columns,
+    weighted_rest,
+)
 from ._rescreen import rescreen
 
 POSITIONS = 512
-CHUNK = 64
 REFINE_POINTS = 64
 LOCAL_SEEDS, LOCAL_LEVELS = 4, 4
 ORIENTATION_SPREAD = 0.5  # rad: about half the screen's step between segment directions
@@ -109,14 +117,13 @@ POLYGON_TILTS: tuple = ()
 # with nothing held before the pursuit and with the others held in every local screen (steps 6, 8).
 # Off by default: from no start it recovered held-out seed 11 but left seed 15 9.6 % off unflagged.
 ORIENTATION_SCREEN = False
-# Refine, then rank (module docstring, step 7): at most BASINS placements, BASIN_STEPS LM
-# iterations each; distinct when some light's centre is BASIN_DISTANCE of the extent away or its
-# orientation parameters BASIN_TURN (rad) apart; ALTERNATIVES refined runners-up handed on.
-BASINS, BASIN_STEPS = 16, 30
-BASIN_DISTANCE, BASIN_TURN = 0.05, 0.25
+# Refine, then rank (module docstring, step 7; `_placement_rank`): at most BASINS placements;
+# ALTERNATIVES refined runners-up handed on.
+BASINS = 16
 ALTERNATIVES = 3
 # Step 8 (module docstring): every light screened again at the best refined placement.
 RESCREEN = True
+SPLIT_RADIUS = 0.15  # of the extent: step 8's least useful light re-placed this near another light (`_rescreen`)
 # Steps 7 and 8 stop at a refined placement that explains the targets exactly: its loss at most
 # EXACT of theirs ($\tfrac12|y|^2$); no other placement can explain them better.
 EXACT = 1e-12
@@ -220,21 +227,6 @@ def candidate_rows(param: LightParametrisation, region: Region, constraint: Any,
     return rows_at(param, region, _centres(region, constraint, n, seed, targets))
 
 
-def centre_of_row(param: LightParametrisation, row: np.ndarray) -> np.ndarray:
-    """The light's centre (m) at parameters `row` (NumPy `LightParametrisation.centre_of`)."""
-    sl = param._slices()
-    c0, s = np.asarray(param.c0, np.float64), float(param.scale)
-    if "position" not in sl:
-        return c0
-    z = np.asarray(row, np.float64)[sl["position"]]
-    if param.constraint == "plane":
-        return c0 + s * (z @ np.asarray(param.plane_e, np.float64))
-    if param.constraint == "box" and param.box_map == "sigmoid":
-        lo, hi = np.asarray(param.box_lo, np.float64), np.asarray(param.box_hi, np.float64)
-        return lo + (hi - lo) / (1.0 + np.exp(-z))
-    return c0 + s * z
-
-
 def rows_at(param: LightParametrisation, region: Region, centres: np.ndarray) -> np.ndarray:
     """`(M, P)` rows of light `param` centred at each of `centres (C, 3)` (m) in each of its
     orientation variants (module docstring, step 2), sizes as given."""
@@ -284,59 +276,29 @@ def rows_at(param: LightParametrisation, region: Region, centres: np.ndarray) ->
     return np.concatenate(rows)
 
 
-def weighted_rest(problem: LightsProblem) -> np.ndarray:
-    """`(3N,)` what the fitted lights are to paint, $\\sqrt{w}\\,(C - L_{fixed})$ (row-major `(N, 3)`):
-    the targets' colours less the ambient term and the lights that are not fitted, weighted."""
-    t, m = problem.targets, problem.material
-    sw = np.sqrt(np.asarray(t.weights, np.float64))
-    La = np.broadcast_to(np.asarray(problem.scene.ambient, np.float64), t.colours.shape)
-    base_model = (np.asarray(m.ka, np.float64) * La + np.asarray(m.kd, np.float64) / np.pi
-                  * np.asarray(problem.e_fixed, np.float64))
-    if problem.with_specular:
-        base_model = base_model + np.asarray(m.ks, np.float64) * np.asarray(problem.s_fixed, np.float64)
-    return (sw * (np.asarray(t.colours, np.float64) - base_model)).reshape(-1)
-
-
-def _single(problem: LightsProblem, j: int) -> LightsProblem:
-    """The problem restricted to its fitted light `j` (its unit contribution alone)."""
-    return dataclasses.replace(problem, params=(problem.params[j],), refs=(problem.refs[j],), offsets=(0,),
-                               active=None, outside=(), paint=None, budget=None, powers_in_theta=False,
-                               colour_free=False)
-
-
-def _columns_impl(problem: LightsProblem, rows: Any) -> tuple[Any, Any]:
-    """`(per_light (S, N, 3), overflow)` of the one-light `problem` at every row `(S, P)`."""
-    def one(th: Any) -> tuple[Any, Any]:
-        _, per, over = _parts(th, problem, problem.capacity)
-        return per[0], over
-
-    per, over = jax.vmap(one)(rows)
-    return per, jnp.any(over)
-
-
-_columns = fit_jit(_columns_impl)
-
-
-def unit_columns(problem: LightsProblem, j: int, rows: np.ndarray) -> tuple[np.ndarray, LightsProblem]:
-    """`(A (S, 3N), problem)`: light `j`'s weighted unit contribution $\\sqrt{w}\\,a_j$ at every
-    row of `rows (S, P_j)`, `CHUNK` rows a call (one compiled program per light kind), again
-    with twice the shadow capacity while some receiver overflowed it."""
-    dt = problem.targets.points.dtype
-    sw = np.sqrt(np.asarray(problem.targets.weights, np.float64))
-
-    def run(pr: LightsProblem) -> tuple[np.ndarray, bool]:
-        one = _single(pr, j)
-        out, over = [], False
-        for a in range(0, rows.shape[0], CHUNK):
-            part = rows[a:a + CHUNK]
-            part = np.concatenate([part, np.repeat(part[:1], CHUNK - part.shape[0], axis=0)])
-            per, o = _columns(one, jnp.asarray(part, dt))
-            out.append(np.asarray(per, np.float64))
-            over = over or bool(o)
-        return np.concatenate(out)[: rows.shape[0]], over
-
-    per, problem, _ = at_capacity(run, problem, "fit_lights", "global placement")
-    return (sw[None] * per).reshape(per.shape[0], -1), problem
+def dealt(params: tuple, offsets: tuple, region: Region, movable: list[int], theta: np.ndarray) -> np.ndarray:
+    """`(D, Pt)`: the placement `theta (Pt,)` with the centres of the `movable` lights dealt to
+    them in every other order (up to 4 lights; beyond, each exchange of two); a light given
+    another's centre takes it at its first orientation variant (as given) and its given size
+    (`rows_at`), a light keeping its own centre keeps its row."""
+    if len(movable) < 2:
+        return np.zeros((0, theta.shape[0]))
+    if len(movable) <= 4:
+        deals = [q for q in itertools.permutations(movable) if q != tuple(movable)]
+    else:
+        deals = []
+        for a, b in itertools.combinations(range(len(movable)), 2):
+            q = list(movable)
+            q[a], q[b] = q[b], q[a]
+            deals.append(tuple(q))
+    sl = {j: slice(offsets[j], offsets[j] + params[j].size) for j in movable}
+    where = {j: centre_of_row(params[j], theta[sl[j]]) for j in movable}
+    out = np.tile(np.asarray(theta, np.float64), (len(deals), 1))
+    for r, q in enumerate(deals):
+        for j, src in zip(movable, q, strict=True):
+            if src != j:
+                out[r, sl[j]] = rows_at(params[j], region, where[src][None])[0]
+    return out
 
 
 @dataclasses.dataclass
@@ -579,10 +541,25 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
                 v, f, problem = refine_and_rank(problem, th, lm, keep, exact)
                 return v, f
 
+            def near(j: int, th: np.ndarray, B: np.ndarray) -> list[int]:
+                """Light j's best candidate (columns `B` held) within `SPLIT_RADIUS` extents of each
+                other light's centre in `th`."""
+                f = nnls_rss(B, cols[j], y, problem.fit_power)
+                pos = np.stack([centre_of_row(params[j], r) for r in rows[j]])
+                out = []
+                for i in todo:
+                    if i != j:
+                        c = centre_of_row(params[i], th[problem.offsets[i]:problem.offsets[i] + params[i].size])
+                        g = np.where(np.linalg.norm(pos - c, axis=1) < SPLIT_RADIUS * region.extent, f, np.inf)
+                        if np.isfinite(g).any():
+                            out.append(int(np.argmin(g)))
+                return out
+
             values, losses = rescreen(
                 values, losses, todo, problem.offsets, [0 if p is None else p.size for p in params], rows, cols, y,
                 problem.fit_power, columns, local_screen, refine,
-                lambda th, k: distinct_basins(params, problem.offsets, th, region.extent, k), keep)
+                lambda th, k: distinct_basins(params, problem.offsets, th, region.extent, k), keep,
+                deal=lambda th: dealt(params, problem.offsets, region, movable, th), near=near)
         order = np.argsort(losses, kind="stable")
         best_f = 2.0 * float(losses[order[0]])
         theta = values[order[0]]
@@ -596,98 +573,3 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
         ranked[j] = rows[j][np.argsort(rss_for(j, best_ch), kind="stable")[:keep]]
     return Placement(theta, 0.5 * best_f, ranked, problem, alternatives)
 
-
-def _basin_key(param: LightParametrisation, row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """`(centre (3,) m, orientation parameters)` of light `param` at its parameters `row`."""
-    sl = param._slices()
-    o = np.asarray(row, np.float64)[sl["orientation"]] if "orientation" in sl else np.zeros(0)
-    return centre_of_row(param, row), o
-
-
-def distinct_basins(params: tuple, offsets: tuple, thetas: np.ndarray, extent: float, k: int) -> list[int]:
-    """Up to `k` indices into `thetas (S, Pt)` (placements, most promising first), in that order,
-    each in a basin distinct from every one picked before it: some light's centre more than
-    `BASIN_DISTANCE * extent` (m) away, or its orientation parameters more than `BASIN_TURN`
-    (rad) apart."""
-    keys = [[_basin_key(p, th[o:o + p.size]) for p, o in zip(params, offsets, strict=True) if p is not None]
-            for th in thetas]
-    picked: list[int] = []
-    for i, ki in enumerate(keys):
-        if len(picked) == k:
-            break
-        if not np.all(np.isfinite(thetas[i])):
-            continue
-        if all(any(np.linalg.norm(a[0] - b[0]) > BASIN_DISTANCE * extent
-                   or (a[1].size and np.max(np.abs(a[1] - b[1])) > BASIN_TURN)
-                   for a, b in zip(ki, keys[q], strict=True)) for q in picked):
-            picked.append(i)
-    return picked
-
-
-def refine_and_rank(problem: LightsProblem, thetas: np.ndarray, lm: dict, batch: int, stop: float = -np.inf
-                    ) -> tuple[np.ndarray, np.ndarray, LightsProblem]:
-    """`(values (S, Pt), losses (S,), problem)`: every placement of `thetas (S, Pt)` refined
-    jointly (all its parameters) for `BASIN_STEPS` iterations of `fit_lights`' batched LM
-    (`_multilight.solve`, `lm`'s tolerances, no pruning: a basin's loss at grid resolution says
-    little), `batch` rows a call (padded: the program of `fit_lights`' joint refinement, no
-    new compilation), up to the first batch with a loss at most `stop` (no power budget; the
-    rows after it are not returned); non-finite losses are infinite."""
-    from ._multilight_placement import pad
-
-    mask = np.ones(thetas.shape[1], bool)
-    values, losses = [], []
-    for a in range(0, thetas.shape[0], batch):
-        part = thetas[a:a + batch]
-        res, problem, _ = solve(problem, pad(part, batch), part[0], mask, rtol=lm["rtol"], atol=lm["atol"],
-                                max_steps=BASIN_STEPS, prune=())
-        values.append(np.asarray(res.values, np.float64)[:part.shape[0]])
-        losses.append(np.asarray(res.losses, np.float64)[:part.shape[0]])
-        if problem.budget is None and np.any(losses[-1] <= stop):
-            break
-    v = np.concatenate(values)
-    f, problem = ranking_losses(problem, np.concatenate(losses), v)
-    return v, f, problem
-
-
-def ranking_losses(problem: LightsProblem, losses: Any, thetas: np.ndarray) -> tuple[np.ndarray, LightsProblem]:
-    """`(losses (S,), problem)` ranking the rows `thetas (S, Pt)` of an LM solve: its `losses`
-    (infinite where not finite) or, under a power budget, `final_losses`; infinite for the rows in
-    which a light escaped (`_escape.escaped_rows`) while some row keeps every light in bounds."""
-    if problem.budget is None:
-        f = np.asarray(losses, np.float64)
-        f = np.where(np.isfinite(f), f, np.inf)
-    else:
-        f, problem = final_losses(problem, np.asarray(thetas, np.float64))
-    out = escaped_rows(problem, thetas)  # the escape bound (`_escape`): such rows not ranked, unless all are
-    return (np.where(out, np.inf, f) if out.any() and not out.all() else f), problem
-
-
-def final_losses(problem: LightsProblem, thetas: np.ndarray) -> tuple[np.ndarray, LightsProblem]:
-    """`(losses (S,), problem)`: $\\tfrac12|r|^2$ at every placement of `thetas (S, Pt)` with the
-    powers the final fit solves there (`_powers.constrained_powers`: $p \\ge 0$ and, under a
-    budget $B$, $c \\cdot p \\le B$, $c$ the emitted powers there), the loss `fit_lights` reports;
-    infinite where not finite. The LM's projection (`_multilight._data_residual`: signed least
-    squares moved onto the budget's plane) lets a negative power meet the budget where no answer
-    with $p \\ge 0$ does (0.031 in the LM where the final loss is 1.28). Columns: `unit_columns`."""
-    y = weighted_rest(problem)
-    cols = []
-    for j, p in enumerate(problem.params):
-        o, size = problem.offsets[j], 0 if p is None else p.size
-        a, problem = unit_columns(problem, j, np.asarray(thetas[:, o:o + size], np.float64))
-        cols.append(a)
-    A = np.stack(cols, axis=1)  # (S, J, 3N)
-    zero, one = np.zeros((y.shape[0] // 3, 3)), np.ones((y.shape[0] // 3, 3))
-    out = np.full(thetas.shape[0], np.inf)
-    for s in range(out.shape[0]):
-        if not (np.all(np.isfinite(thetas[s])) and np.all(np.isfinite(A[s]))):
-            continue
-        bud = None
-        if problem.budget is not None:
-            lights = build_lights(problem, jnp.asarray(thetas[s, :problem.n_pose], problem.targets.points.dtype))
-            bud = (np.array([float(emitted_power(x)) for x in lights]), float(problem.budget))
-        # the weighted problem as it stands: colours y, columns A, unit weights
-        cj = A[s].reshape(A.shape[1], -1, 3)
-        p = constrained_powers(zero, cj, y.reshape(-1, 3), one, None, bud, np.zeros(A.shape[1]))
-        r = np.tensordot(p, A[s], axes=1) - y
-        out[s] = 0.5 * float(r @ r)
-    return out, problem

@@ -16,6 +16,17 @@ refined placement the held columns are those of the refined poses instead. One r
 3. The contenders in basins distinct from every placement refined so far (up to the LM's batch,
    each light's best single move and the pair moves first) are refined jointly and ranked as in
    step 7.
+4. **Split and dealt.** Two lights close together pass for one light of either kind (a segment
+   where a point and a quad are), and a light of one kind stands in for another where it sits
+   (the quad shrunk to a bright spot where the segment is); the light so freed falls where it
+   lights a few targets. No single or pair move fixes all three. The least useful light (the
+   smallest rise of the NNLS residual when its refined column is left out) is re-placed at its
+   best candidate (the others' refined columns held) near each other light's centre (`near`:
+   the split) and at its best single move; those placements, and the `REDEAL` best refined
+   placements (distinct basins), have their centres dealt to the lights in every other order
+   (`deal`: orientations and sizes as given for the lights moved). Up to two more batches of
+   those (the splits first), distinct from every placement refined so far, are refined and
+   ranked as in step 7.
 
 Rounds repeat while the best refined loss falls below `RESCREEN_GAIN` times the previous best,
 at most `RESCREEN_ROUNDS`: coordinate descent over single lights and pairs at refined
@@ -29,10 +40,11 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ._nnls_screen import pair_rss
+from ._nnls_screen import nnls_rss, pair_rss
 
 RESCREEN_ROUNDS = 3
 RESCREEN_GAIN = 0.5
+REDEAL = 3  # the refined placements (best first, distinct basins) whose centres are dealt (step 4)
 
 
 def rescreen(values: np.ndarray, losses: np.ndarray, todo: list[int], offsets: tuple, sizes: list[int],
@@ -41,7 +53,8 @@ def rescreen(values: np.ndarray, losses: np.ndarray, todo: list[int], offsets: t
              local_screen: Callable[[int, np.ndarray], list[int]],
              refine: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
              distinct: Callable[[np.ndarray, int], list[int]], batch: int,
-             rounds: int = RESCREEN_ROUNDS) -> tuple[np.ndarray, np.ndarray]:
+             rounds: int = RESCREEN_ROUNDS, deal: Callable[[np.ndarray], np.ndarray] | None = None,
+             near: Callable[[int, np.ndarray, np.ndarray], list[int]] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """`(values (S', Pt), losses (S',))`: the refined placements `values (S, Pt)` with losses
     `losses (S,)` (step 7's), extended by the rounds of the module docstring.
 
@@ -52,7 +65,10 @@ def rescreen(values: np.ndarray, losses: np.ndarray, todo: list[int], offsets: t
     `rows (S, P_j)`; `local_screen(j, B)` light j's best distinct candidates with the columns
     `B (3N, m)` held, screened locally (indices into `rows[j]`); `refine(thetas)` the refined
     placements and their ranking losses; `distinct(thetas, k)` up to `k` indices of `thetas` in
-    distinct basins, in order; `batch`: contenders refined per round."""
+    distinct basins, in order; `batch`: contenders refined per round; `deal(theta)` the placement
+    `theta (Pt,)` with its lights' centres dealt in every other order `(D, Pt)` (step 4; None:
+    no deals); `near(j, theta, B)` light j's candidates (indices into `rows[j]`) near each other
+    light's centre in `theta`, the best with the columns `B` held (step 4's split)."""
     empty = np.zeros((y.shape[0], 0))
     for _ in range(rounds):
         i0 = int(np.argmin(losses))
@@ -85,6 +101,20 @@ def rescreen(values: np.ndarray, losses: np.ndarray, todo: list[int], offsets: t
         cand = np.stack(contenders)
         both = np.concatenate([values[np.argsort(losses, kind="stable")], cand])
         new = [i - len(values) for i in distinct(both, len(both)) if i >= len(values)][:batch]
+        if deal is not None and len(todo) > 1:  # step 4: the least useful light re-placed, the centres dealt
+            w = least_useful(held, at, todo, y, fit_power)
+            top = np.argsort(losses, kind="stable")
+            top = top[distinct(values[top], REDEAL)]
+            split = [moved({w: c}) for c in (near(w, best, held((w,))) if near is not None else [])]
+            dealt = ([np.concatenate([t[None], deal(t)]) for t in split] + [deal(moved({w: c})) for c in singles[w][:1]]
+                     + [deal(values[i]) for i in top])
+            dealt = [d for d in dealt if d.shape[0]]
+            if dealt:
+                extra = np.concatenate(dealt)
+                both = np.concatenate([values[np.argsort(losses, kind="stable")], cand[new], extra])
+                skip = len(values) + len(new)
+                more = [i - skip for i in distinct(both, len(both)) if i >= skip][:2 * batch]
+                cand, new = np.concatenate([cand, extra[more]]), new + list(range(len(cand), len(cand) + len(more)))
         if not new:
             break
         v2, f2 = refine(cand[new])
@@ -92,3 +122,14 @@ def rescreen(values: np.ndarray, losses: np.ndarray, todo: list[int], offsets: t
         if not float(np.min(losses)) < RESCREEN_GAIN * before:
             break
     return values, losses
+
+
+def least_useful(held: Callable[[tuple], np.ndarray], at: dict, todo: list[int], y: np.ndarray,
+                 fit_power: bool) -> int:
+    """The light (of `todo`) whose column `at[j] (M,)` explains least: the smallest rise of the
+    non-negative least squares' residual sum of squares when it is left out (`held(skip)`: the
+    columns of the lights not in `skip`, `(M, m)`)."""
+    zero = np.zeros((1, y.shape[0]))
+    rise = [float(nnls_rss(held((j,)), zero, y, fit_power)[0] - nnls_rss(held((j,)), at[j][None], y, fit_power)[0])
+            for j in todo]
+    return todo[int(np.argmin(rise))]
