@@ -14,6 +14,44 @@ import pytest  # noqa: E402
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 
+# One persistent compilation cache for the xdist workers of one run (`pytest -n N`): a program
+# that one worker compiled (>= SHARED_CACHE_MIN_S of compile time) is read from disk by the
+# other (or by the same worker, for a program traced again from a new function object) instead
+# of compiled again. A hit is the same XLA executable, so values are unchanged, and JAX reports
+# it as a compilation all the same ("Finished XLA compilation" under `jax.log_compiles`, the
+# `backend_compile_duration` event), so the tests that count compilations count the same. An
+# entry read while the other worker writes it is a warning (ignored in pyproject.toml's
+# filterwarnings) and the program is compiled. The directory is made by the controller, private
+# to the run, and removed at its end. Off unless `JAXSHADOW_TEST_SHARED_CACHE=1`: its gain on the
+# whole suite is not measured yet.
+SHARED_CACHE_ENV = "JAXSHADOW_TEST_XLA_CACHE"
+SHARED_CACHE_MIN_S = 1.0
+
+
+def pytest_configure(config):
+    import tempfile
+
+    if os.environ.get("JAXSHADOW_TEST_SHARED_CACHE", "0") != "1":
+        return
+    if hasattr(config, "workerinput"):  # an xdist worker: use the controller's directory
+        d = os.environ.get(SHARED_CACHE_ENV)
+        if d and os.path.isdir(d):
+            jax.config.update("jax_compilation_cache_dir", d)
+            jax.config.update("jax_persistent_cache_min_compile_time_secs", SHARED_CACHE_MIN_S)
+    elif (getattr(config.option, "numprocesses", None) or 0) and SHARED_CACHE_ENV not in os.environ:
+        # The controller, before it starts the workers (they inherit the environment).
+        os.environ[SHARED_CACHE_ENV] = tempfile.mkdtemp(prefix="jaxshadow-test-xla-")
+        config._jaxshadow_shared_cache = os.environ[SHARED_CACHE_ENV]
+
+
+def pytest_unconfigure(config):
+    import shutil
+
+    d = getattr(config, "_jaxshadow_shared_cache", None)
+    if d:
+        shutil.rmtree(d, ignore_errors=True)
+        os.environ.pop(SHARED_CACHE_ENV, None)
+
 
 @pytest.fixture(params=["float32", "float64"])
 def dtype(request):
