@@ -49,6 +49,7 @@ struct SilEnd {
 // Per-thread scratch of silhouette_receiver's pieces (allocated once per thread).
 struct SilPieces {
   std::vector<int32_t> boff, kf, kl, sj, cf, link, todo;
+  std::vector<int32_t> clipped;  // the contour segments with an end clipped at a cone plane
   std::vector<SilEnd> ends;     // all slots empty between receivers (the used ones are emptied after use)
   std::vector<int32_t> ends_used;  // the slots filled for this receiver
   // The grid's crossing candidates: per cell the first of its pieces not yet gathered from
@@ -134,6 +135,11 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   tc.clear();
   td.clear();
   ord.clear();
+  // An E_h edge is cut only where a contour segment was clipped at its plane: its crossing
+  // candidates are those segments (in index order).
+  pc.clipped.clear();
+  for (int j = neh; j < ns; j++)
+    if (segs[size_t(j)].on_a >= 0 || segs[size_t(j)].on_b >= 0) pc.clipped.push_back(j);
   if (G) {
     pc.gpos.assign(gs.begin(), gs.end() - 1);
     pc.lhead.assign(size_t(ns), -1);
@@ -196,7 +202,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       }
       lo = pc.lhead[size_t(i)];
     }
-    const int nj = listed ? int(w.gcand.size()) : ns;
+    const int nj = listed ? int(w.gcand.size()) : (i < neh ? int(pc.clipped.size()) : ns);
     for (int jj = 0; jj < nj || lo >= 0; jj++) {
       int j;
       if (lo >= 0) {  // the lower candidates first, then the higher ones
@@ -204,7 +210,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         lo = pc.lnext[size_t(lo)];
         jj--;
       } else {
-        j = listed ? w.gcand[size_t(jj)] : jj;
+        j = listed ? w.gcand[size_t(jj)] : (i < neh ? pc.clipped[size_t(jj)] : jj);
       }
       if (j == i) continue;
       const SSeg<T>& o = segs[size_t(j)];
