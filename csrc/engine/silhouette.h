@@ -49,6 +49,7 @@ struct SilEnd {
 // Per-thread scratch of silhouette_receiver's pieces (allocated once per thread).
 struct SilPieces {
   std::vector<int32_t> boff, kf, kl, sj, cf, link, todo;
+  std::vector<int32_t> clipped;  // the contour segments with an end clipped at a cone plane
   std::vector<SilEnd> ends;     // all slots empty between receivers (the used ones are emptied after use)
   std::vector<int32_t> ends_used;  // the slots filled for this receiver
   // The grid's crossing candidates: per cell the first of its pieces not yet gathered from
@@ -81,7 +82,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   for (int i = 0; i < neh; i++) {
     SSeg<T> s;
     s.a = eh[i].a, s.b = eh[i].b, s.own = eh[i].own, s.own_ref = eh[i].own_ref, s.ca = eh[i].ca, s.cb = eh[i].cb;
-    s.w = 0, s.va = s.vb = -1, s.on_a = s.on_b = -1, s.own_n = norm(s.own), s.q0s = 0;
+    s.w = 0, s.va = s.vb = -1, s.ia = s.ib = -1, s.on_a = s.on_b = -1, s.own_n = norm(s.own), s.q0s = 0;
     segs.push_back(s);
   }
   const int32_t n_contour = contour_edges(call, st, p, cone, prefs, np0, ne, hp, scale, w);
@@ -134,6 +135,11 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   tc.clear();
   td.clear();
   ord.clear();
+  // An E_h edge is cut only where a contour segment was clipped at its plane: its crossing
+  // candidates are those segments (in index order).
+  pc.clipped.clear();
+  for (int j = neh; j < ns; j++)
+    if (segs[size_t(j)].on_a >= 0 || segs[size_t(j)].on_b >= 0) pc.clipped.push_back(j);
   if (G) {
     pc.gpos.assign(gs.begin(), gs.end() - 1);
     pc.lhead.assign(size_t(ns), -1);
@@ -196,7 +202,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       }
       lo = pc.lhead[size_t(i)];
     }
-    const int nj = listed ? int(w.gcand.size()) : ns;
+    const int nj = listed ? int(w.gcand.size()) : (i < neh ? int(pc.clipped.size()) : ns);
     for (int jj = 0; jj < nj || lo >= 0; jj++) {
       int j;
       if (lo >= 0) {  // the lower candidates first, then the higher ones
@@ -204,21 +210,25 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         lo = pc.lnext[size_t(lo)];
         jj--;
       } else {
-        j = listed ? w.gcand[size_t(jj)] : jj;
+        j = listed ? w.gcand[size_t(jj)] : (i < neh ? pc.clipped[size_t(jj)] : jj);
       }
       if (j == i) continue;
       const SSeg<T>& o = segs[size_t(j)];
       if (i < neh && j < neh) continue;  // E_h's edges meet at its vertices only
       if (!listed && i >= neh && j >= neh && apart(j)) continue;  // (listed: filtered above)
       if (s.va >= 0 && o.va >= 0) {
-        const bool at_a = same(s.x3a, o.x3a) || same(s.x3a, o.x3b), at_b = same(s.x3b, o.x3a) || same(s.x3b, o.x3b);
+        // Common ends by their position ids where both have them (equal iff same()).
+        const bool ids = s.ia >= 0 && o.ia >= 0;
+        const bool at_a = ids ? (s.ia == o.ia || s.ia == o.ib) : (same(s.x3a, o.x3a) || same(s.x3a, o.x3b));
+        const bool at_b = ids ? (s.ib == o.ia || s.ib == o.ib) : (same(s.x3b, o.x3a) || same(s.x3b, o.x3b));
         if (at_a || at_b) {
           // Mesh edges with a common end meet there only, unless their projections overlap
           // along one line (p in the plane of both; or one edge twice, as at a non-manifold
           // edge): C beside them is then not what the crossings and the carry along chains
           // below make it. Too close to call.
           if (at_a && at_b) return kFallback;
-          const V3<T> far = same(o.x3a, at_a ? s.x3a : s.x3b) ? o.b : o.a;
+          const bool oa_at = ids ? o.ia == (at_a ? s.ia : s.ib) : same(o.x3a, at_a ? s.x3a : s.x3b);
+          const V3<T> far = oa_at ? o.b : o.a;
           const V3<T> at = at_a ? s.a : s.b, other = at_a ? s.b : s.a;
           if (cov.side_of(far, s) == 0 && dot(far - at, other - at) > 0) return kFallback;
           continue;
@@ -303,8 +313,12 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     // positions (nh slots, a power of two at least twice the ends): per slot the position, the
     // first end and how many ends are there (to 3).
     std::vector<SilEnd>& tab = pc.ends;
+    // With every contour segment's position ids (the tile's walk), slot = id instead.
+    bool by_id = true;
+    for (int i = neh; i < ns && by_id; i++) by_id = segs[size_t(i)].ia >= 0 && segs[size_t(i)].ib >= 0;
     size_t nh = 16;
     while (nh < 4 * size_t(ns - neh)) nh *= 2;
+    if (by_id) nh = std::max(nh, size_t(w.sil_tile.nids));
     std::vector<int32_t>& used = pc.ends_used;
     if (tab.size() < nh) tab.resize(nh, SilEnd{0, 0, 0, -1, -1, 0});  // the first nh slots are used
     used.clear();
@@ -314,8 +328,19 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       std::memcpy(&u, &x, sizeof(u));
       return u;
     };
-    auto add = [&](V3<T> x3, int32_t e) {
+    auto add = [&](V3<T> x3, int32_t id, int32_t e) {
       const double x = double(x3.x), y = double(x3.y), z = double(x3.z);
+      if (by_id) {
+        SilEnd& t = tab[size_t(id)];
+        if (t.n == 0) {
+          t = SilEnd{x, y, z, e, -1, 1};
+          used.push_back(id);
+        } else {
+          if (t.n == 1) t.e2 = e;
+          if (t.n < 3) t.n++;
+        }
+        return;
+      }
       uint64_t h = bits(x) * 0x9E3779B97F4A7C15ull ^ bits(y) * 0xC2B2AE3D27D4EB4Full ^ bits(z) * 0x165667B19E3779F9ull;
       h ^= h >> 29;
       for (size_t k = size_t(h) & (nh - 1);; k = (k + 1) & (nh - 1)) {
@@ -334,8 +359,8 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     };
     for (int i = neh; i < ns; i++) {
       const SSeg<T>& s = segs[size_t(i)];
-      if (s.on_a < 0) add(s.x3a, 2 * i);
-      if (s.on_b < 0) add(s.x3b, 2 * i + 1);
+      if (s.on_a < 0) add(s.x3a, s.ia, 2 * i);
+      if (s.on_b < 0) add(s.x3b, s.ib, 2 * i + 1);
     }
     // The filled slots only (each slot's links are its own: the order does not matter), each
     // emptied after.

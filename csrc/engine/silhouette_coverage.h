@@ -144,11 +144,15 @@ struct SilCoverage {
     for (int attempt = 0; attempt <= neh && c0 < 0; attempt++) {
       q0 = attempt == 0 ? centre : centre + 0.37 * (eh[attempt - 1].a - centre);
       bool clear = true;
-      for (int i = neh; i < ns && clear; i++) clear = side_of(q0, segs[i]) != 0;
+      for (int i = neh; i < ns && clear; i++) {
+        segs[size_t(i)].q0s = side_of(q0, segs[size_t(i)]);
+        clear = segs[size_t(i)].q0s != 0;
+      }
       if (clear) c0 = layers(q0);
     }
     if (c0 < 0) return false;
-    for (int i = 0; i < ns; i++) segs[size_t(i)].q0s = side_of(q0, segs[size_t(i)]);
+    // (the contour pieces' sides were set by the last attempt, the one whose q0 this is)
+    for (int i = 0; i < neh; i++) segs[size_t(i)].q0s = side_of(q0, segs[size_t(i)]);
     return true;
   }
 

@@ -59,20 +59,27 @@ struct SilTile {
 // One entry of a tile's part of the hierarchy: a node that the tile's walk did not prune, in the
 // walk's order (preorder, right subtree first); `skip` is the entry after its subtree; for a
 // leaf, its kept edges [e0, e1) in SilTileCache::edges; `sure`: no receiver of the tile prunes
-// it (its tests are skipped).
+// it (its tests are skipped). Otherwise `planes` holds the pyramid's planes that some receiver's
+// test may prune it by (bit k: the receiver's cone plane k, bit K + 1 the emitter plane, K the
+// light's vertex count; the others hold it inside for every receiver) and `side` whether its
+// faces' sides may (node_side).
 struct STEntry {
   int32_t node, skip, e0, e1;
-  bool sure;
+  bool sure, side;
+  uint64_t planes;
 };
 
 // A kept edge: its SEdge, its ends (the occluders' values), its coverage jump W when every
 // receiver of the tile sees both faces on known sides (0: decided per receiver), and `in`: both
 // ends lie inside every plane of every receiver's pyramid by a margin far above rounding (the
 // receiver's clipping keeps the whole edge and its ends are clear of E_h's boundary).
+// `ia`, `ib`: the ends' position ids (equal iff the positions are equal, within one tile walk and
+// the walks refining it: SilTileCache::nids of them).
 struct STEdge {
   SEdge e;
   int8_t w;
   bool in;
+  int32_t ia, ib;
   double a[3], b[3];
 };
 
@@ -86,6 +93,13 @@ struct SilTileCache {
   bool ok = false;
   std::vector<STEntry> entries;
   std::vector<STEdge> edges;
+  int32_t nids = 0;  // the edges' position ids are 0 .. nids - 1
+  // The table of positions by their bits that assigns the ids (tile_walk; open addressing).
+  struct Slot {
+    double x, y, z;
+    int32_t id;
+  };
+  std::vector<Slot> idtab;
 };
 
 template <class T>
@@ -98,6 +112,7 @@ struct SSeg {
   Code ca, cb;
   int32_t w;            // coverage jump across it (positive side minus negative side); 0: an E_h edge
   int32_t va, vb;       // vertex refs of the mesh edge (-1 for E_h edges)
+  int32_t ia, ib;       // position ids of x3a, x3b (STEdge::ia, ib; -1: none, positions compared)
   V3<T> x3a, x3b;       // the mesh edge's ends
   int32_t on_a, on_b;   // the cone plane an end was clipped at (-1: none)
 };

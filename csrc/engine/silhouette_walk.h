@@ -4,6 +4,8 @@
 #ifndef JAXSHADOW_SHADOWC_SILHOUETTE_WALK_H_
 #define JAXSHADOW_SHADOWC_SILHOUETTE_WALK_H_
 
+#include <cstring>
+
 #include "silhouette_tree.h"
 
 namespace jaxshadow_engine {
@@ -27,6 +29,7 @@ struct TilePlane {
   double ba[3], u[3], cc[3];  // b x a, a - b, c(pc)
   double cn1;                 // a bound of |c(p)|_1 over B
   double safety;              // above the rounding of c(p) . (x - p) in either computation
+  int edge;                   // the light's edge (the receivers' cone plane)
 };
 
 // An upper bound over p in B of c(p) . (x - p) for x in the box xc +- hx: with p = pc + s and
@@ -114,6 +117,7 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
   tc.ok = false;
   tc.entries.clear();
   tc.edges.clear();
+  tc.nids = 0;
   const double eps = 2.220446049250313e-16;
   const double epsT = double(eps_of<T>());
   TileBox tb;
@@ -146,6 +150,7 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
     if (same(av, bv)) continue;  // its plane is zero: no receiver's walk tests it
     const double a[3] = {double(av.x), double(av.y), double(av.z)}, b[3] = {double(bv.x), double(bv.y), double(bv.z)};
     TilePlane& q = tp[ntp++];
+    q.edge = int(i);
     q.ba[0] = b[1] * a[2] - b[2] * a[1], q.ba[1] = b[2] * a[0] - b[0] * a[2], q.ba[2] = b[0] * a[1] - b[1] * a[0];
     for (int d = 0; d < 3; d++) q.u[d] = a[d] - b[d];
     const double* u = q.u;
@@ -174,27 +179,44 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
   }
   const double hnn = std::fabs(hn[0]) + std::fabs(hn[1]) + std::fabs(hn[2]);
   const double smargin_min = 4 * kOnSurface * (st.scale + 1e-300);
-  // No receiver of the tile prunes the node: inside every plane of every receiver's walk by a
-  // margin, and no side decided by its faces.
-  auto sure = [&](const SNode& nd) {
-    if (!horizon) return false;
+  // The planes of the receivers' walks that may prune the node (STEntry::planes): all but those
+  // it lies inside of, by a margin, for every receiver of the tile. Bits as the receivers' walk
+  // numbers its planes: cone plane k (the light's edge k for k < K, the horizon's K), the emitter
+  // plane K + 1. A bit clear in `inherit` (the parent's entry: its box holds the tile's) stays
+  // clear: the parent proved the node inside that plane for every receiver of its box.
+  const bool masked = K + 2 <= 64;
+  auto planes_left = [&](const SNode& nd, uint64_t inherit) -> uint64_t {
+    if (!masked) return ~uint64_t(0);
+    uint64_t m = 0;
     const double* box = nd.box;
-    {
+    if ((inherit >> (K + 1)) & 1) {
       const double x[3] = {box[en[0] > 0 ? 3 : 0], box[en[1] > 0 ? 4 : 1], box[en[2] > 0 ? 5 : 2]};
-      if (!(en[0] * (x[0] - eq[0]) + en[1] * (x[1] - eq[1]) + en[2] * (x[2] - eq[2]) > 1e-12 * enn * tb.d1)) return false;
+      if (!(en[0] * (x[0] - eq[0]) + en[1] * (x[1] - eq[1]) + en[2] * (x[2] - eq[2]) > 1e-12 * enn * tb.d1)) m |= uint64_t(1) << (K + 1);
     }
-    {
+    if (horizon) {
       const double x[3] = {box[hn[0] > 0 ? 3 : 0], box[hn[1] > 0 ? 4 : 1], box[hn[2] > 0 ? 5 : 2]};
       const double lo = hn[0] * (x[0] - tb.pc[0]) + hn[1] * (x[1] - tb.pc[1]) + hn[2] * (x[2] - tb.pc[2]) -
                         (std::fabs(hn[0]) * tb.hb[0] + std::fabs(hn[1]) * tb.hb[1] + std::fabs(hn[2]) * tb.hb[2]);
-      if (!(lo > 1e-12 * hnn * tb.d1)) return false;
+      if (!(lo > 1e-12 * hnn * tb.d1)) m |= uint64_t(1) << K;
+    } else {
+      m |= uint64_t(1) << K;
     }
     for (int k = 0; k < ntp; k++)
-      if (!(tile_plane_inf_best(tp[k], tb, box) > tp[k].safety)) return false;
-    return nd.special || tile_node_side_none(nd, tb, smargin_min);
+      if (((inherit >> tp[k].edge) & 1) && !(tile_plane_inf_best(tp[k], tb, box) > tp[k].safety)) m |= uint64_t(1) << tp[k].edge;
+    return m;
   };
-  auto outside = [&](const double* box) {
-    {  // the emitter plane, as the walk computes it (the same for every receiver)
+  // The entry of node nd: its planes left, and its faces' sides unless every receiver's node_side
+  // is 0 (`side_in` false: the parent proved that for its box).
+  auto entry = [&](int32_t node, const SNode& nd, uint64_t inherit, bool side_in) {
+    STEntry en{node, -1, -1, -1, false, !nd.special && side_in, planes_left(nd, inherit)};
+    if (en.side) en.side = !tile_node_side_none(nd, tb, smargin_min);
+    en.sure = horizon && en.planes == 0 && !en.side;
+    return en;
+  };
+  // Whether every receiver of the tile prunes a node of this box by one of the planes in `planes`
+  // (STEntry::planes' bits; a plane the parent proved the node inside of cannot prune it).
+  auto outside = [&](const double* box, uint64_t planes) {
+    if (((planes >> (K + 1)) & 1) || !masked) {  // the emitter plane, as the walk computes it (the same for every receiver)
       const double x[3] = {box[en[0] > 0 ? 3 : 0], box[en[1] > 0 ? 4 : 1], box[en[2] > 0 ? 5 : 2]};
       const double best = en[0] * (x[0] - eq[0]) + en[1] * (x[1] - eq[1]) + en[2] * (x[2] - eq[2]);
       if (best < -bmargin * enn) return true;
@@ -202,7 +224,8 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
     const double xc[3] = {0.5 * (box[0] + box[3]), 0.5 * (box[1] + box[4]), 0.5 * (box[2] + box[5])};
     const double hx[3] = {(box[3] - box[0]) * (0.5 + 1e-12), (box[4] - box[1]) * (0.5 + 1e-12), (box[5] - box[2]) * (0.5 + 1e-12)};
     for (int k = 0; k < ntp; k++)
-      if (tile_plane_sup(tp[k], tb, xc, hx) + bmargin * tp[k].cn1 + tp[k].safety < 0) return true;
+      if ((((planes >> tp[k].edge) & 1) || !masked) && tile_plane_sup(tp[k], tb, xc, hx) + bmargin * tp[k].cn1 + tp[k].safety < 0)
+        return true;
     return false;
   };
   // An edge whose ends lie beyond one light plane for every receiver (the walk's test before
@@ -245,7 +268,7 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
     SilTileCache& tc;
     const decltype(outside)& out;
     const decltype(edge_out)& eout;
-    const decltype(sure)& is_sure;
+    const decltype(entry)& make_entry;
     const decltype(edge_in)& ein;
     const TileBox& tb;
     const Occluders<T>& occ;
@@ -253,10 +276,10 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
     bool deep;
     bool visit(int32_t k, int depth) {
       const SNode& nd = st.nodes[size_t(k)];
-      if (out(nd.box)) return false;
+      if (out(nd.box, ~uint64_t(0))) return false;
       if (!nd.special && tile_node_side(nd, tb, smargin) != 0) return false;
       const size_t me = tc.entries.size();
-      tc.entries.push_back(STEntry{k, -1, -1, -1, is_sure(nd)});
+      tc.entries.push_back(make_entry(k, nd, ~uint64_t(0), true));
       if (nd.left >= 0) {
         if (depth > 60) deep = true;  // deeper than the walk's stack allows
         const bool r = visit(nd.right, depth + 1);
@@ -270,26 +293,62 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
         for (int32_t j = nd.start; j < nd.start + nd.count; j++) {
           const SEdge& e = st.edges[size_t(j)];
           const V3<T> a3 = occ.vref(e.ra), b3 = occ.vref(e.rb);
-          keep(STEdge{e, 0, false, {double(a3.x), double(a3.y), double(a3.z)}, {double(b3.x), double(b3.y), double(b3.z)}});
+          STEdge te{e, 0, false, -1, -1, {double(a3.x), double(a3.y), double(a3.z)}, {double(b3.x), double(b3.y), double(b3.z)}};
+          te.ia = pos_id(te.a);
+          te.ib = pos_id(te.b);
+          keep(te);
         }
         if (!leaf_done(me, e0)) return false;
       }
       tc.entries[me].skip = int32_t(tc.entries.size());
       return true;
     }
+    // The id of position x (equal positions, as same() compares them, get one id).
+    int32_t pos_id(const double* x) {
+      std::vector<SilTileCache::Slot>& tab = tc.idtab;
+      if (size_t(2 * (tc.nids + 1)) > tab.size()) {  // grow (and rehash) at half full
+        std::vector<SilTileCache::Slot> old;
+        old.swap(tab);
+        tab.assign(std::max<size_t>(1024, 2 * old.size()), SilTileCache::Slot{0, 0, 0, -1});
+        for (const SilTileCache::Slot& o : old)
+          if (o.id >= 0) tab[slot(o.x, o.y, o.z)] = o;
+      }
+      const size_t k = slot(x[0], x[1], x[2]);
+      if (tab[k].id < 0) tab[k] = SilTileCache::Slot{x[0], x[1], x[2], tc.nids++};
+      return tab[k].id;
+    }
+    // x's slot in tc.idtab: the one holding x, or the empty one where it goes.
+    size_t slot(double x, double y, double z) const {
+      auto bits = [](double v) {
+        uint64_t u;
+        v += 0.0;  // -0 as +0 (same() counts them equal)
+        std::memcpy(&u, &v, sizeof(u));
+        return u;
+      };
+      const std::vector<SilTileCache::Slot>& tab = tc.idtab;
+      const size_t mask = tab.size() - 1;
+      uint64_t h = bits(x) * 0x9E3779B97F4A7C15ull ^ bits(y) * 0xC2B2AE3D27D4EB4Full ^ bits(z) * 0x165667B19E3779F9ull;
+      h ^= h >> 29;
+      for (size_t k = size_t(h) & mask;; k = (k + 1) & mask) {
+        const SilTileCache::Slot& t = tab[k];
+        if (t.id < 0 || (t.x == x && t.y == y && t.z == z)) return k;
+      }
+    }
     // A leaf's edge: kept unless every receiver of the box drops it, with its coverage jump
     // where every receiver sees both faces on known sides.
+    // A jump W already known (te.w, the parent's: its box holds the tile's) holds here too.
     void keep(STEdge te) {
       const SEdge& e = te.e;
-      const int sf = tile_side(st, e.f, tb);
-      const int sg = e.g >= 0 ? tile_side(st, e.g, tb) : 0;
-      te.w = 0;
-      if (sf != 0 && (e.g < 0 || sg != 0)) {
-        const int Wk = sf + (e.g >= 0 ? sg * e.dg : 0);
-        if (Wk == 0) return;  // no receiver's contour edge, none falls back on it
-        if (eout(te.a, te.b)) return;
-        te.w = int8_t(Wk);
+      if (te.w == 0) {
+        const int sf = tile_side(st, e.f, tb);
+        const int sg = e.g >= 0 ? tile_side(st, e.g, tb) : 0;
+        if (sf != 0 && (e.g < 0 || sg != 0)) {
+          const int Wk = sf + (e.g >= 0 ? sg * e.dg : 0);
+          if (Wk == 0) return;  // no receiver's contour edge, none falls back on it
+          te.w = int8_t(Wk);
+        }
       }
+      if (te.w != 0 && eout(te.a, te.b)) return;
       te.in = ein(te.a, te.b);
       tc.edges.push_back(te);
     }
@@ -306,10 +365,10 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
     bool visit_list(const SilTileCache& par, int32_t i) {
       const STEntry& pe = par.entries[size_t(i)];
       const SNode& nd = st.nodes[size_t(pe.node)];
-      if (out(nd.box)) return false;
-      if (!nd.special && tile_node_side(nd, tb, smargin) != 0) return false;
+      if (out(nd.box, pe.planes)) return false;
+      if (!nd.special && pe.side && tile_node_side(nd, tb, smargin) != 0) return false;
       const size_t me = tc.entries.size();
-      tc.entries.push_back(STEntry{pe.node, -1, -1, -1, is_sure(nd)});
+      tc.entries.push_back(make_entry(pe.node, nd, pe.planes, pe.side));
       if (pe.e0 >= 0) {
         const int32_t e0 = int32_t(tc.edges.size());
         for (int32_t k = pe.e0; k < pe.e1; k++) keep(par.edges[size_t(k)]);
@@ -326,10 +385,12 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
       return true;
     }
   };
-  Rec rec{st, tc, outside, edge_out, sure, edge_in, tb, occ, smargin, false};
+  Rec rec{st, tc, outside, edge_out, entry, edge_in, tb, occ, smargin, false};
   if (parent && parent->ok && parent->tree == &st) {
+    tc.nids = parent->nids;  // the parent's edges keep their ids
     if (!parent->entries.empty()) rec.visit_list(*parent, 0);
   } else {
+    tc.idtab.clear();
     rec.visit(0, 0);
   }
   if (rec.deep) return false;
@@ -351,27 +412,42 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
   const double tol = kCollinearEps * eps;
   const double pd[3] = {p.x, p.y, p.z};
 
+  // The pyramid's planes: cone plane k at k < np0 (cz: zero, never tested), the emitter plane at
+  // np0 (the pyramid on p's side).
   double cn[66][3], cq[66][3];
-  int nc = 0;
-  for (int k = 0; k < np0; k++) {
-    if (!nonzero(cone[k])) continue;
-    cn[nc][0] = cone[k].x, cn[nc][1] = cone[k].y, cn[nc][2] = cone[k].z;
-    cq[nc][0] = p.x, cq[nc][1] = p.y, cq[nc][2] = p.z;
-    nc++;
+  bool cz[66];
+  const int nc = std::min(np0, 65) + 1;
+  for (int k = 0; k + 1 < nc; k++) {
+    cz[k] = !nonzero(cone[k]);
+    cn[k][0] = cone[k].x, cn[k][1] = cone[k].y, cn[k][2] = cone[k].z;
+    cq[k][0] = p.x, cq[k][1] = p.y, cq[k][2] = p.z;
   }
   const V3<T> e0 = call.L.v(0);
-  cn[nc][0] = ne.x, cn[nc][1] = ne.y, cn[nc][2] = ne.z;  // the emitter plane: the pyramid on p's side
-  cq[nc][0] = e0.x, cq[nc][1] = e0.y, cq[nc][2] = e0.z;
-  nc++;
+  cz[nc - 1] = false;
+  cn[nc - 1][0] = ne.x, cn[nc - 1][1] = ne.y, cn[nc - 1][2] = ne.z;
+  cq[nc - 1][0] = e0.x, cq[nc - 1][1] = e0.y, cq[nc - 1][2] = e0.z;
   const double bmargin = 1e3 * eps * scale;
   double cnn[66];
   for (int k = 0; k < nc; k++) cnn[k] = std::fabs(cn[k][0]) + std::fabs(cn[k][1]) + std::fabs(cn[k][2]);
+  auto out_by = [&](const double* box, int k) {
+    // The box's corner farthest along the plane's normal.
+    const double x[3] = {box[cn[k][0] > 0 ? 3 : 0], box[cn[k][1] > 0 ? 4 : 1], box[cn[k][2] > 0 ? 5 : 2]};
+    const double best = cn[k][0] * (x[0] - cq[k][0]) + cn[k][1] * (x[1] - cq[k][1]) + cn[k][2] * (x[2] - cq[k][2]);
+    return best < -bmargin * cnn[k];
+  };
   auto outside = [&](const double* box) {
-    for (int k = 0; k < nc; k++) {
-      // The box's corner farthest along the plane's normal.
-      const double x[3] = {box[cn[k][0] > 0 ? 3 : 0], box[cn[k][1] > 0 ? 4 : 1], box[cn[k][2] > 0 ? 5 : 2]};
-      const double best = cn[k][0] * (x[0] - cq[k][0]) + cn[k][1] * (x[1] - cq[k][1]) + cn[k][2] * (x[2] - cq[k][2]);
-      if (best < -bmargin * cnn[k]) return true;
+    for (int k = 0; k < nc; k++)
+      if (!cz[k] && out_by(box, k)) return true;
+    return false;
+  };
+  // Only the planes a tile's entry names (STEntry::planes; its bits number the planes as here
+  // when np0 is the light's vertex count plus one).
+  const bool by_mask = np0 == call.L.K + 1 && np0 + 1 <= 64;
+  auto outside_of = [&](const double* box, uint64_t planes) {
+    if (!by_mask) return outside(box);
+    for (uint64_t m = planes & ((uint64_t(1) << nc) - 1); m; m &= m - 1) {
+      const int k = __builtin_ctzll(m);
+      if (!cz[k] && out_by(box, k)) return true;
     }
     return false;
   };
@@ -383,7 +459,7 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
   // nonzero: its coverage jump, known (the faces' sides as sil_side gives them). False: fall back.
   // `in`: the tile proved both ends inside every cone plane with a margin (STEdge::in): the
   // clipping keeps the whole edge and the end tests below pass, so they are skipped.
-  auto edge = [&](const SEdge& e, int W, V3<T> a3, V3<T> b3, bool in) -> bool {
+  auto edge = [&](const SEdge& e, int W, V3<T> a3, V3<T> b3, bool in, int32_t ia, int32_t ib) -> bool {
     if (W == 0) {
       const int sf = sil_side(st, e.f, pd);
       if (sf == 0) return false;
@@ -419,6 +495,7 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
     const PlaneRef oref = through(e.ra, e.rb);
     SSeg<T> s;
     s.own = own, s.own_n = norm(own), s.q0s = 0, s.own_ref = oref, s.w = W, s.va = e.ra, s.vb = e.rb, s.x3a = a3, s.x3b = b3;
+    s.ia = ia, s.ib = ib;
     // An end: where the edge leaves the pyramid through cone plane i (clipped), or its vertex's projection.
     const auto end = [&](bool clipped, int i, V3<T> x3, int32_t ref, V3<T>& at, decltype(s.ca)& code, decltype(s.on_a)& on) {
       if (clipped) {
@@ -464,7 +541,7 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
       const STEntry& en = tc.entries[size_t(i)];
       if (!en.sure) {
         const SNode& nd = st.nodes[size_t(en.node)];
-        if (outside(nd.box) || (!nd.special && node_side(nd, pd, smargin) != 0)) {
+        if (outside_of(nd.box, en.planes) || (en.side && node_side(nd, pd, smargin) != 0)) {
           i = en.skip;
           continue;
         }
@@ -479,7 +556,7 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
         for (int32_t k = en.e0; k < en.e1; k++) {
           const STEdge& te = tc.edges[size_t(k)];
           const V3<T> a3{T(te.a[0]), T(te.a[1]), T(te.a[2])}, b3{T(te.b[0]), T(te.b[1]), T(te.b[2])};
-          if (!edge(te.e, te.w, a3, b3, te.in)) return kFallback;
+          if (!edge(te.e, te.w, a3, b3, te.in, te.ia, te.ib)) return kFallback;
         }
       }
       i++;
@@ -509,7 +586,7 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
     }
     for (int32_t k = nd.start; k < nd.start + nd.count; k++) {
       const SEdge& e = st.edges[size_t(k)];
-      if (!edge(e, 0, occ.vref(e.ra), occ.vref(e.rb), false)) return kFallback;
+      if (!edge(e, 0, occ.vref(e.ra), occ.vref(e.rb), false, -1, -1)) return kFallback;
     }
   }
   return n_contour;
