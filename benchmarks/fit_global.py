@@ -310,9 +310,14 @@ def _cached_setting(cache_dir: str, kinds: str, start: str, seeds: list[int]) ->
     return _setting(kinds, start, seeds)
 
 
-def _run_child(call: str) -> dict:
+def _run_child(call: str, cache: bool = True) -> dict:
+    """`call` in a fresh process; with `cache` False the library's default persistent
+    compilation cache (`~/.cache/jaxshadow`, warm from earlier runs) is turned off there."""
     code = f"import json; import benchmarks.fit_global as b; print(json.dumps(b.{call}))"
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=dict(os.environ), check=True)
+    env = dict(os.environ)
+    if not cache:
+        env["JAXSHADOW_COMPILE_CACHE"] = "off"
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
     return json.loads(r.stdout.strip().splitlines()[-1])
 
 
@@ -325,12 +330,12 @@ def compile_study() -> dict:
     out: dict = {}
     with tempfile.TemporaryDirectory() as d:
         for label, cache in (("no cache", ""), ("cache filled", d), ("cache reused", d)):
-            out[f"one light + material/{label}"] = _run_child(f"_one_light_and_material({cache!r})")
+            out[f"one light + material/{label}"] = _run_child(f"_one_light_and_material({cache!r})", bool(cache))
     with tempfile.TemporaryDirectory() as d:
         for label, cache in (("no cache", ""), ("cache filled", d), ("cache reused", d)):
             call = (f"_cached_setting({cache!r}, 'quad+point', 'none', [1])" if cache
                     else "_setting('quad+point', 'none', [1])")
-            r = _run_child(call)["runs"][0]
+            r = _run_child(call, bool(cache))["runs"][0]
             out[f"fit_lights quad+point no start/{label}"] = {"fit_s": r["fit_s"], "compile_s": r["compile_s"],
                                                              "success": r["success"]}
     return out
