@@ -188,20 +188,10 @@ void build_silhouette_tree(const Occluders<T>& occ, const std::vector<int32_t>& 
   std::vector<int32_t> order(static_cast<size_t>(E));
   std::vector<int32_t> cstart;  // component c's edges: order[cstart[c] .. cstart[c + 1])
   {
-    std::vector<int32_t> up(static_cast<size_t>(M));
-    for (int64_t f = 0; f < M; f++) up[size_t(f)] = int32_t(f);
-    auto find = [&](int32_t x) {
-      while (up[size_t(x)] != x) x = up[size_t(x)] = up[size_t(up[size_t(x)])];
-      return x;
-    };
-    for (const SEdge& e : st.edges)
-      if (e.g >= 0) {
-        const int32_t a = find(e.f), b = find(e.g);
-        if (a != b) up[size_t(std::max(a, b))] = std::min(a, b);
-      }
+    const std::vector<int32_t> root = face_components(st.edges, M);
     std::vector<int32_t> rank(static_cast<size_t>(M), -1), ecomp(static_cast<size_t>(E));
     for (int64_t k = 0; k < E; k++) {
-      const int32_t r = find(st.edges[size_t(k)].f);
+      const int32_t r = root[size_t(st.edges[size_t(k)].f)];
       if (rank[size_t(r)] < 0) rank[size_t(r)] = int32_t(cstart.size()), cstart.push_back(0);
       ecomp[size_t(k)] = rank[size_t(r)];
       cstart[size_t(ecomp[size_t(k)])]++;

@@ -21,6 +21,24 @@ struct SEdge {
   int8_t dg;       // +1: g runs it ra -> rb too (inconsistent orientation), -1: rb -> ra
 };
 
+// Each face's component through paired edges (`g >= 0`): a union-find over the `M` local
+// faces; entry f is its component's root, the component's smallest face index.
+inline std::vector<int32_t> face_components(const std::vector<SEdge>& edges, int64_t M) {
+  std::vector<int32_t> up(static_cast<size_t>(M));
+  for (int64_t f = 0; f < M; f++) up[size_t(f)] = int32_t(f);
+  auto find = [&](int32_t x) {
+    while (up[size_t(x)] != x) x = up[size_t(x)] = up[size_t(up[size_t(x)])];
+    return x;
+  };
+  for (const SEdge& e : edges)
+    if (e.g >= 0) {
+      const int32_t a = find(e.f), b = find(e.g);
+      if (a != b) up[size_t(std::max(a, b))] = std::min(a, b);
+    }
+  for (int64_t f = 0; f < M; f++) up[size_t(f)] = find(int32_t(f));
+  return up;
+}
+
 struct alignas(64) SNode {  // two cache lines
   double box[6];               // the faces' vertices (lo, hi)
   double axis[3], cosa, sina;  // cone of the faces' unit normals (cosa < 0: no cone)

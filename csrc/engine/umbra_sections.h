@@ -252,22 +252,13 @@ void build_interior_sections(const Occluders<T>& occ, const SilhouetteTree& st, 
   std::vector<int32_t> glob(size_t(M), -1);  // local face index -> face
   for (int64_t f = 0; f < M; f++) glob[size_t(st.floc[size_t(f)])] = int32_t(f);
   // Components through paired edges (union-find over local faces).
-  std::vector<int32_t> parent(static_cast<size_t>(M));
-  std::iota(parent.begin(), parent.end(), 0);
-  auto find = [&](int32_t x) {
-    while (parent[size_t(x)] != x) x = parent[size_t(x)] = parent[size_t(parent[size_t(x)])];
-    return x;
-  };
-  for (const SEdge& e : st.edges)
-    if (e.g >= 0) {
-      const int32_t a = find(e.f), b = find(e.g);
-      if (a != b) parent[size_t(std::max(a, b))] = std::min(a, b);
-    }
+  const std::vector<int32_t> comp = face_components(st.edges, M);
+  auto find = [&](int32_t x) { return comp[size_t(x)]; };
   std::vector<int32_t> root_size(size_t(M), 0);
   for (int64_t f = 0; f < M; f++) root_size[size_t(find(int32_t(f)))]++;
   std::vector<int32_t> roots;
   for (int64_t f = 0; f < M; f++)
-    if (parent[size_t(f)] == f && root_size[size_t(f)] >= kSectionMinFaces) roots.push_back(int32_t(f));
+    if (comp[size_t(f)] == f && root_size[size_t(f)] >= kSectionMinFaces) roots.push_back(int32_t(f));
   std::stable_sort(roots.begin(), roots.end(), [&](int32_t x, int32_t y) { return root_size[size_t(x)] > root_size[size_t(y)]; });
   if (roots.size() > size_t(kSectionComponents)) roots.resize(size_t(kSectionComponents));
   if (roots.empty()) return;
