@@ -76,10 +76,19 @@ struct SilCoverage {
   }
 
   // A clear sign of `x` against the bound `m` (0: too close to call).
-  static int sgn(double x, double m) { return x > m ? 1 : (x < -m ? -1 : 0); }
-  int side_of(V3<T> x, const SSeg<T>& s) const {  // of a point in the emitter plane, against s.own
+  static int sgn(double x, double m) { return int(x > m) - int(x < -m); }
+  // A point x of the emitter plane as side_of reads it: r = x - p and |r|_1 (summed x, y, z).
+  struct At {
+    V3<T> r;
+    double l1;
+  };
+  At at(V3<T> x) const {
     const V3<T> r = x - p;
-    return sgn(dot(r, s.own), tol * s.own_n * (std::fabs(r.x) + std::fabs(r.y) + std::fabs(r.z)));
+    return At{r, std::fabs(r.x) + std::fabs(r.y) + std::fabs(r.z)};
+  }
+  int side_of(const At& x, const SSeg<T>& s) const { return sgn(dot(x.r, s.own), tol * s.own_n * x.l1); }
+  int side_of(V3<T> x, const SSeg<T>& s) const {  // of a point in the emitter plane, against s.own
+    return side_of(at(x), s);
   }
 
   // C at q0: faces crossed by the segment from p to q0, every face counted.
@@ -143,16 +152,18 @@ struct SilCoverage {
   bool reference() {
     for (int attempt = 0; attempt <= neh && c0 < 0; attempt++) {
       q0 = attempt == 0 ? centre : centre + 0.37 * (eh[attempt - 1].a - centre);
+      const At aq = at(q0);
       bool clear = true;
       for (int i = neh; i < ns && clear; i++) {
-        segs[size_t(i)].q0s = side_of(q0, segs[size_t(i)]);
+        segs[size_t(i)].q0s = side_of(aq, segs[size_t(i)]);
         clear = segs[size_t(i)].q0s != 0;
       }
       if (clear) c0 = layers(q0);
     }
     if (c0 < 0) return false;
     // (the contour pieces' sides were set by the last attempt, the one whose q0 this is)
-    for (int i = 0; i < neh; i++) segs[size_t(i)].q0s = side_of(q0, segs[size_t(i)]);
+    const At aq = at(q0);
+    for (int i = 0; i < neh; i++) segs[size_t(i)].q0s = side_of(aq, segs[size_t(i)]);
     return true;
   }
 
@@ -162,7 +173,7 @@ struct SilCoverage {
   // An end of the path on the piece's line (a point of a collinear piece, as along a straight
   // crease of a CAD part) is decided by the piece's ends: both clearly on one side of the path's
   // plane, the piece does not meet the path.
-  int jump_from(const SSeg<T>& s, int sq, V3<T> m, V3<T> pqm, double pn) const {
+  int jump_from(const SSeg<T>& s, int sq, const At& m, V3<T> pqm, double pn) const {
     const int sm = side_of(m, s);
     if (sq != 0 && sm == sq) return 0;
     const V3<T> ra = s.a - p, rb = s.b - p;
@@ -173,18 +184,17 @@ struct SilCoverage {
     if (sq == 0 || sm == 0) return kNone;
     return sm > 0 ? s.w : -s.w;  // from `from`'s side to m's: + W into the positive side
   }
-  int jump(const SSeg<T>& s, V3<T> from, V3<T> m, V3<T> pqm, double pn) const {
-    return jump_from(s, side_of(from, s), m, pqm, pn);
-  }
   // C on the q0 side of point m (in the emitter plane), from the crossings of q0 -> m with every
-  // contour edge but `skip`; kNone when a crossing is too close to call.
+  // contour edge but `skip` (q0's sides of them are their q0s); kNone when a crossing is too close
+  // to call.
   int coverage(V3<T> m, int skip) const {
     const V3<T> pqm = cross(q0 - p, m - p);
     const double pn = norm(pqm);
+    const At am = at(m);
     int c = c0;
     for (int i = neh; i < ns; i++) {
       if (i == skip) continue;
-      const int j = jump(segs[size_t(i)], q0, m, pqm, pn);
+      const int j = jump_from(segs[size_t(i)], segs[size_t(i)].q0s, am, pqm, pn);
       if (j == kNone) return kNone;
       c += j;
     }
@@ -263,6 +273,7 @@ struct SilCoverage {
   int cross_cells(V3<T> from, int cfrom, V3<T> m, int skip, int ca, int cb, bool at_ref = true) {
     const V3<T> pqm = cross(from - p, m - p);
     const double pn = norm(pqm);
+    const At af = at(from), am = at(m);
     int c = cfrom;
     stamp++;
     for (int cell : {ca, cb}) {
@@ -275,12 +286,12 @@ struct SilCoverage {
         int sq;
         if (cached) {
           int8_t& g = w.gside[size_t(k)];
-          if (g == 2) g = int8_t(side_of(from, segs[size_t(i)]));
+          if (g == 2) g = int8_t(side_of(af, segs[size_t(i)]));
           sq = g;
         } else {
-          sq = side_of(from, segs[size_t(i)]);
+          sq = side_of(af, segs[size_t(i)]);
         }
-        const int j = jump_from(segs[size_t(i)], sq, m, pqm, pn);
+        const int j = jump_from(segs[size_t(i)], sq, am, pqm, pn);
         if (j == kNone) return kNone;
         c += j;
       }
