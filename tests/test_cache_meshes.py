@@ -40,9 +40,9 @@ def turn(v: np.ndarray, degrees: float) -> np.ndarray:
     return (v - c) @ r.T + c
 
 
-def receivers(n: int = 900, seed: int = 6) -> tuple[np.ndarray, np.ndarray]:
+def receivers(n: int = 900, seed: int = 6, half: float = 1.6) -> tuple[np.ndarray, np.ndarray]:
     rng = np.random.default_rng(seed)
-    p = np.c_[rng.uniform(-1.6, 1.6, (n, 2)), np.zeros(n)]
+    p = np.c_[rng.uniform(-half, half, (n, 2)), np.zeros(n)]
     nrm = np.tile([0.0, 0.0, 1.0], (n, 1))
     k = n // 5  # grazing normals
     t, a = np.radians(rng.uniform(60, 85, k)), rng.uniform(0, 2 * np.pi, k)
@@ -87,3 +87,55 @@ def test_moving_each_object_of_a_mesh_scene_equals_a_rebuild():
         assert bad.size == 0, (name, bad[:10], np.abs(cache.irradiance - fresh.irradiance).max())
     # And the rebuild is the scene's values (the cache's sum is irradiance's).
     np.testing.assert_array_equal(fresh.irradiance, np.asarray(js.irradiance(edited, p, nrm)))
+
+
+def _two_blobs(shift_second: np.ndarray = np.zeros(3)) -> tuple[np.ndarray, np.ndarray]:
+    """One vertex array and face table holding two closed blobs (two connected components of
+    one `js.Mesh`): the blob at 320 triangles halved, at (-0.55, -0.1) and (0.5, 0.35), the
+    second shifted by `shift_second`."""
+    v, f = blob(2)
+    v = 0.5 * (v - v.mean(axis=0))
+    a, b = v + [-0.55, -0.1, 0.7], v + [0.5, 0.35, 0.6] + shift_second
+    return np.concatenate([a, b]), np.concatenate([f, f + len(v)])
+
+
+def test_moving_a_mesh_of_several_components_equals_a_rebuild():
+    """Edits that change what the engine computes over all occluders rather than per component:
+    the largest coordinate magnitude (`SilhouetteTree::scale`: the rounding bounds of every
+    face-side test, the umbra sections' and the clear test's margins), the occluders' height
+    window above the emitter plane (which receivers the silhouette path serves) and the
+    item hierarchy's root box. One mesh of two components and a second mesh (the scan) move,
+    up, out, down and back, one component alone as well; each time the updated cache equals a
+    rebuild bit for bit, and receivers far from the edit keep their old values."""
+    sv, sf = scan()
+    sv = 0.6 * (sv - sv.mean(axis=0)) + [0.2, -0.75, 0.65]
+    tv, tf = _two_blobs()
+    light = js.PolygonLight(LIGHT, 1.0)
+
+    def scene(two_v, scan_v):
+        return js.Scene([light], occluders=[js.Mesh(two_v, tf), js.Mesh(scan_v, sf)])
+
+    first = scene(tv, sv)
+    assert first.occluder_topology.n_solids == 0
+    p, nrm = receivers(1200, seed=8, half=2.6)
+    lp = js.shadow_plan(first, p, nrm).lights[0]
+    assert ((lp.classes == vis.PENUMBRA) & (lp.kept == 1)).sum() > 80
+    cache = js.ShadowCache(first, p, nrm)
+    top = float(max(tv[:, 2].max(), sv[:, 2].max()))
+    scale = float(max(np.abs(tv).max(), np.abs(sv).max()))
+    up = tv + [0.0, 0.0, 0.5]                                # the two blobs rise: a new top and scale
+    edits = [(up, sv),
+             (up, sv + [0.9, -0.3, 0.0]),                    # the scan moves out: a new largest |x|, |y|
+             (up, sv + [0.9, -0.3, -0.3]),                   # and down: a new lowest point
+             (_two_blobs([0.0, 0.0, 0.8])[0], sv + [0.9, -0.3, -0.3]),  # one component alone rises
+             (tv, sv)]                                       # back where they started
+    assert float(up[:, 2].max()) > top and float(np.abs(up).max()) > scale
+    for two_v, scan_v in edits:
+        edited = scene(two_v, scan_v)
+        cache.update(edited)
+        n_again = cache.last_update["receivers"][0]
+        assert 0 < n_again < len(p) - 100, n_again
+        fresh = js.ShadowCache(edited, p, nrm)
+        bad = np.flatnonzero(np.any(cache.irradiance != fresh.irradiance, axis=1))
+        assert bad.size == 0, (bad[:10], np.abs(cache.irradiance - fresh.irradiance).max())
+    np.testing.assert_array_equal(cache.irradiance, js.ShadowCache(first, p, nrm).irradiance)

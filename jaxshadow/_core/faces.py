@@ -221,26 +221,52 @@ def _face_table(faces: Any, n_vertices: int) -> _Faces:
     return _Faces.of(_face_loops(faces, n_vertices))
 
 
-def _closed(faces: _Faces, v: np.ndarray) -> tuple[bool, bool]:
-    """(closed, flip): every edge used once in each direction; flip when the volume is negative."""
+@dataclass(frozen=True)
+class _EdgeIndex:
+    """The directed edges of one face table (`_Faces.edges`, keys `a n + b` for `n` vertices)
+    sorted once: `order` the stable argsort of `keys`, `ks = keys[order]`, `pos` where each edge's
+    reverse would sit in `ks` (clipped to the last entry). `_closed` decides with it and `_merge`
+    reuses it for the same table."""
+
+    face: np.ndarray
+    ea: np.ndarray
+    eb: np.ndarray
+    keys: np.ndarray
+    order: np.ndarray
+    ks: np.ndarray
+    rev: np.ndarray
+    pos: np.ndarray
+
+    @staticmethod
+    def of(faces: _Faces, n_vertices: int) -> _EdgeIndex:
+        face, _, a, b = faces.edges()
+        n = np.int64(n_vertices)
+        keys = a.astype(np.int64) * n + b
+        order = np.argsort(keys, kind="stable")
+        ks = keys[order]
+        rev = b.astype(np.int64) * n + a
+        pos = np.minimum(np.searchsorted(ks, rev), len(ks) - 1)
+        return _EdgeIndex(face, a, b, keys, order, ks, rev, pos)
+
+
+def _closed(faces: _Faces, v: np.ndarray) -> tuple[bool, bool, _EdgeIndex | None]:
+    """(closed, flip, index): every edge used once in each direction; flip when the volume is
+    negative; `index` the table's `_EdgeIndex` (None for no faces)."""
     if not len(faces):
-        return True, False
-    _, _, a, b = faces.edges()
-    n = np.int64(v.shape[0])
-    keys = np.sort(a.astype(np.int64) * n + b)
+        return True, False, None
+    ix = _EdgeIndex.of(faces, v.shape[0])
+    keys = ix.ks
     if np.any(keys[1:] == keys[:-1]):
-        return False, False
-    rev = b.astype(np.int64) * n + a
-    pos = np.minimum(np.searchsorted(keys, rev), len(keys) - 1)
-    if not np.all(keys[pos] == rev):
-        return False, False
+        return False, False, ix
+    if not np.all(keys[ix.pos] == ix.rev):
+        return False, False, ix
     c = v.mean(axis=0)
     vol = np.zeros(len(faces))
     for idx, arr in faces.groups():
         pts = v[arr] - c
         nrm = _newell_many(pts)
         vol[idx] = _plane_values(pts[:, 0], 0.0, nrm)
-    return True, bool(np.cumsum(vol)[-1] < 0)  # summed in face order, as a Python sum would
+    return True, bool(np.cumsum(vol)[-1] < 0), ix  # summed in face order, as a Python sum would
 
 
 
@@ -376,7 +402,7 @@ class _Rows:
         self.rows[i] = row
 
 
-def _merge(faces: _Faces, v: np.ndarray, size: float) -> _Faces:
+def _merge(faces: _Faces, v: np.ndarray, size: float, index: _EdgeIndex | None = None) -> _Faces:
     """Merge coplanar faces sharing an edge while the union stays a convex polygon (greedy, one
     pass over a queue of shared edges; a merged face's edges are queued again).
 
@@ -392,23 +418,27 @@ def _merge(faces: _Faces, v: np.ndarray, size: float) -> _Faces:
     still has its first owners, which no merge has touched, so it merges only where the
     vectorised test said coplanar; the others (written by a merge, tracked as they are
     written) run the full test. The owners live in the sorted edge keys plus a dict of what
-    merges changed, so a mesh with a few coplanar pairs pays for those, not for its edges."""
+    merges changed, so a mesh with a few coplanar pairs pays for those, not for its edges.
+    `index`: this table's `_EdgeIndex` when the caller has it (`_closed`'s)."""
     if not len(faces):
         return faces
     normals = _unit(_normals(faces, v))
     pad = faces.pad
-    face, _, ea, eb = faces.edges()
+    ix = index if index is not None else _EdgeIndex.of(faces, v.shape[0])
+    face, ea, eb, keys, order, ks, rev = ix.face, ix.ea, ix.eb, ix.keys, ix.order, ix.ks, ix.rev
     n = np.int64(v.shape[0])
-    keys = ea.astype(np.int64) * n + eb
     # owner[(a, b)]: the last face running a -> b (as a dict filled in face order would hold).
-    order = np.argsort(keys, kind="stable")
-    ks = keys[order]
     last = np.concatenate([ks[1:] != ks[:-1], [True]])
-    ukeys, uface = ks[last], face[order[last]]
-    rev = eb.astype(np.int64) * n + ea
-    pos = np.minimum(np.searchsorted(ukeys, rev), len(ukeys) - 1)
-    shared = (ukeys[pos] == rev) & (ea < eb)
-    fi = uface[np.searchsorted(ukeys, keys[shared])]
+    if last.all():  # no directed edge twice: each key's owner is its own face
+        ukeys, uface = ks, face[order]
+        pos = ix.pos
+        shared = (ukeys[pos] == rev) & (ea < eb)
+        fi = face[shared]
+    else:
+        ukeys, uface = ks[last], face[order[last]]
+        pos = np.minimum(np.searchsorted(ukeys, rev), len(ukeys) - 1)
+        shared = (ukeys[pos] == rev) & (ea < eb)
+        fi = uface[np.searchsorted(ukeys, keys[shared])]
     fj = uface[pos[shared]]
     # The merge test (`_coplanar`) on the pairs whose normals pass its first half only: the
     # others fail it whatever their vertices (the same operations on fewer rows).

@@ -108,11 +108,11 @@ class Mesh:
         self.n_input_faces = len(table)
         if check:
             _check_faces(table, v, size)
-        self.closed, flip = _closed(table, v)
+        self.closed, flip, index = _closed(table, v)
         if flip:
-            table = table.reversed()
+            table, index = table.reversed(), None
         if merge:
-            table = _merge(table, v, size)
+            table = _merge(table, v, size, index)
         self._faces = table
         self.convex = self.closed and _convex(table, v, size)
         self.edges = _solid_edges(table) if self.convex else None
