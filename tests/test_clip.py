@@ -174,6 +174,11 @@ def pad(polys, k=None):
 # occluders are replaced by a dummy triangle far behind the emitter (it blocks nothing).
 M_PAD, KO_PAD, K_PAD, N_PAD = 8, 4, 6, 40
 _ff_batch = jax.jit(jax.vmap(visible_form_factor_kernel, in_axes=(0, 0, None, None)))
+# Compiled as the public entry points run them: called eagerly, a kernel dispatches op by op, one
+# small compilation per operation (~100 per kernel and dtype).
+_kernel_jit = jax.jit(visible_form_factor_kernel)
+_point_vis = jax.jit(point_visibility)
+_dir_vis = jax.jit(directional_visibility)
 
 
 def padded_scene(emitter, occluders, dtype=np.float64, m_pad=M_PAD, k_pad=K_PAD):
@@ -296,7 +301,7 @@ def test_umbra_and_lit_exact():
     assert float(ff([0.1, 0.2, 0], n, em, occ_far)) == pytest.approx(
         unoccluded([0.1, 0.2, 0], n, em), rel=1e-13
     )
-    no_occ = visible_form_factor_kernel(
+    no_occ = _kernel_jit(
         jnp.array([0.1, 0.2, 0]), jnp.asarray(n), jnp.asarray(em), jnp.zeros((0, 3, 3))
     )
     assert float(no_occ) == pytest.approx(unoccluded([0.1, 0.2, 0], n, em), rel=1e-13)
@@ -415,8 +420,8 @@ def test_float32_occluder_1e9_above_receiver():
         val, grads = vg(q, jnp.asarray(UP, f32), jnp.asarray(EM, f32), o)
         for g in grads:
             assert np.all(np.isfinite(np.asarray(g)))
-        assert float(point_visibility(q, jnp.array([0.3, -0.2, 2.0], f32), o)) == (not blocks)
-        assert float(directional_visibility(q, jnp.array([0.0, 0.0, -1.0], f32), o)) == (not blocks)
+        assert float(_point_vis(q, jnp.array([0.3, -0.2, 2.0], f32), o)) == (not blocks)
+        assert float(_dir_vis(q, jnp.array([0.0, 0.0, -1.0], f32), o)) == (not blocks)
         e_lin = float(lin(q, jnp.asarray(UP, f32), jnp.asarray(a, f32), jnp.asarray(b, f32), 1, o))
         if blocks:
             assert float(val) == 0.0
@@ -592,12 +597,12 @@ def test_point_and_directional_visibility():
         p = np.array([*rng.uniform(-1.5, 1.5, size=2), 0.0])
         x = np.array([*rng.uniform(-1.5, 1.5, size=2), rng.uniform(0.5, 2.0)])
         want = 0.0 if ray_blocked_np(p, x, occs) else 1.0
-        assert float(point_visibility(jnp.asarray(p), jnp.asarray(x), o)) == want
+        assert float(_point_vis(jnp.asarray(p), jnp.asarray(x), o)) == want
         d = p - x  # light travelling from x's direction
         far = p - 1e6 * d
         want_d = 0.0 if ray_blocked_np(p, far, occs) else 1.0
-        assert float(directional_visibility(jnp.asarray(p), jnp.asarray(d), o)) == want_d
-    g = jax.grad(lambda x: point_visibility(jnp.zeros(3), x, o))(jnp.array([0.1, 0.1, 2.0]))
+        assert float(_dir_vis(jnp.asarray(p), jnp.asarray(d), o)) == want_d
+    g = jax.grad(lambda x: _point_vis(jnp.zeros(3), x, o))(jnp.array([0.1, 0.1, 2.0]))
     assert np.all(np.asarray(g) == 0)
 
 
@@ -609,8 +614,6 @@ GEN_OCC = np.array([[[-0.4, -0.3, 1.0], [0.5, -0.2, 1.1], [0.4, 0.6, 1.2], [-0.3
 GEN_EM = np.array([[-1, -1, 2.0], [-1.1, 1, 2.1], [1, 1.2, 2.0], [1.1, -1, 1.9]])
 PEN = np.array([0.35, 0.55, 0.0])  # penumbra
 
-
-_kernel_jit = jax.jit(visible_form_factor_kernel)
 
 
 def _penumbra_grads(order):

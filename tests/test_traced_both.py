@@ -61,7 +61,11 @@ def test_without_the_engine_or_occluders():
     light = LIGHTS["polygon"]
     for scene, opts in ((js.Scene([light], occluders=OCCLUDERS), ShadowOptions(engine="device")),
                         (js.Scene([light]), None)):
-        e, s, over = traced.irradiance_and_specular(scene, POINTS, NORMALS, EYES, jnp.asarray(20.0), shadows=opts)
+        # Under jit, as the module is meant to run: called eagerly, the device kernels (traced
+        # into the caller's program) dispatch op by op, one small compilation per operation
+        # (1 267 compilations in this test, against 17 under jit).
+        e, s, over = jax.jit(lambda x, sc=scene, o=opts: traced.irradiance_and_specular(
+            sc, POINTS, NORMALS, EYES, x, shadows=o))(jnp.asarray(20.0))
         np.testing.assert_allclose(np.asarray(e), np.asarray(js.irradiance(scene, POINTS, NORMALS)), rtol=1e-12,
                                    atol=1e-14)
         np.testing.assert_allclose(np.asarray(s), np.asarray(js.specular(scene, POINTS, NORMALS, EYES, 20.0)),
