@@ -25,6 +25,7 @@ import os
 import subprocess
 import sys
 import time
+from typing import Any
 
 NAME = "fit_lights"
 DESCRIPTION = ("inverse.fit_lights: 2 quad lights + 1 point light, 3 occluders, floor or designed targets: pose / power / "
@@ -75,7 +76,20 @@ KIND_CASES = {
     "segment/shadow targets/noise=0": dict(kind="segment", noise=0.0),
     "segment/shadow targets/noise=1%": dict(kind="segment", noise=0.01),
 }
-QUICK = ("floor/greedy/shift=30%/noise=1%", "designed(1)/greedy/shift=30%/noise=1%",
+# One light with a mesh occluder of thousands of triangles (issue 40, Deliver 5; `_mesh_case`): an
+# icosphere with its vertices moved by a smooth random field (non-convex), 60 floor targets (30 in
+# penumbra, 6 in umbra) painted by `js.shade`, the light 10 % / 30 % of the scene away or given by
+# kind only (`kinds=`).
+MESH_CASES = {
+    "mesh 5k/fit_light/quad/shift=10%": dict(subdivisions=4, kind="polygon", start=0.1, fitter="fit_light"),
+    "mesh 20k/fit_light/quad/shift=10%": dict(subdivisions=5, kind="polygon", start=0.1, fitter="fit_light"),
+    "mesh 5k/fit_light/point/shift=10%": dict(subdivisions=4, kind="point", start=0.1, fitter="fit_light"),
+    "mesh 5k/fit_lights/quad/shift=30%": dict(subdivisions=4, kind="polygon", start=0.3, fitter="fit_lights"),
+    "mesh 5k/fit_lights/quad/no start": dict(subdivisions=4, kind="polygon", start=None, fitter="fit_lights"),
+    "mesh 5k/fit_light_and_material/quad/shift=10%": dict(subdivisions=4, kind="polygon", start=0.1,
+                                                         fitter="fit_light_and_material"),
+}
+QUICK = ("floor/greedy/shift=30%/noise=1%", "mesh 5k/fit_light/quad/shift=10%", "designed(1)/greedy/shift=30%/noise=1%",
          "designed(2)/greedy/shift=30%/noise=1%", "directional/shadow targets/noise=1%",
          "segment/shadow targets/noise=1%")
 DESIGN_KEEP = 40  # floor targets kept (the search uses them)
@@ -319,13 +333,138 @@ def _kind_case(kind: str, noise: float) -> dict:
     return r
 
 
+def _bumpy_sphere(subdivisions: int, radius: float = 0.3, centre=(0.0, 0.0, 0.6), amplitude: float = 0.3):
+    """`(vertices, faces)`: an icosphere of 20 * 4**subdivisions triangles, each vertex moved along
+    its radius by `amplitude` times a mean of six random plane waves (bumps and dents)."""
+    import numpy as np
+    import trimesh
+
+    m = trimesh.creation.icosphere(subdivisions=subdivisions)
+    v = np.asarray(m.vertices, np.float64)
+    rng = np.random.default_rng(0)
+    k, phase = rng.normal(size=(6, 3)) * 2.5, rng.uniform(0.0, 2 * np.pi, 6)
+    bump = np.sin(v @ k.T + phase).mean(axis=1)
+    return v * (1.0 + amplitude * bump)[:, None] * radius + np.asarray(centre), np.asarray(m.faces)
+
+
+def _contour_edges(vertices, faces, x) -> int:
+    """The mesh edges whose two faces lie on opposite sides of the point `x` (its silhouette
+    seen from `x`; the mesh is closed)."""
+    import numpy as np
+    import trimesh
+
+    tri = vertices[faces]
+    nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    side = np.einsum("fk,fk->f", nrm, np.asarray(x) - tri[:, 0]) > 0
+    a, b = trimesh.Trimesh(vertices, faces, process=False).face_adjacency.T
+    return int(np.count_nonzero(side[a] != side[b]))
+
+
+def _mesh_case(subdivisions: int, kind: str, start: float | None, fitter: str) -> dict:
+    """One light over a floor with a `_bumpy_sphere` occluder: the fit twice in this process (the
+    first compiles; the second is another call on the same shapes), errors against the truth,
+    compile and trace time, peak memory, triangles and contour edges, the shadow capacity."""
+    import resource
+
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import numpy as np
+
+    import inverse
+    import jaxshadow as js
+    from jaxshadow import traced
+
+    t0 = time.perf_counter()
+    v, f = _bumpy_sphere(subdivisions)
+    mesh = js.Mesh(v, f)
+    white = [3.5, 3.5, 3.5]
+    light: Any
+    if kind == "polygon":
+        hx, hy, tilt = 0.25, 0.15, 0.15
+        q = np.array([[-hx, hy, 0.0], [hx, hy, 0.0], [hx, -hy, 0.0], [-hx, -hy, 0.0]])
+        q = q @ np.array([[1, 0, 0], [0, np.cos(tilt), -np.sin(tilt)], [0, np.sin(tilt), np.cos(tilt)]]).T
+        light = js.PolygonLight(q + np.array([0.15, 0.1, 1.6]), radiance=white)
+    else:
+        light = js.PointLight([0.15, 0.1, 1.6], white)
+    true = js.Scene([light], occluders=[mesh], ambient=0.05)
+    rng = np.random.default_rng(1)
+    cand = np.c_[rng.uniform(-1.0, 1.0, (1500, 2)), np.zeros(1500)]
+    up = np.tile([0.0, 0.0, 1.0], (1500, 1))
+    cls = js.shadow_plan(true, cand, up).classes[0]
+    shadow = 3 if kind == "polygon" else 2  # penumbra (polygon) or blocked (point)
+    idx = np.concatenate([rng.choice(np.flatnonzero(cls == c), k, replace=False)
+                          for c, k in ((shadow, 30), (2, 6), (1, 24))]) if kind == "polygon" else \
+        np.concatenate([rng.choice(np.flatnonzero(cls == c), k, replace=False) for c, k in ((2, 12), (1, 48))])
+    pts, nrm = cand[idx], up[idx]
+    material = js.Material(ka=0.2, kd=[0.6, 0.5, 0.4], ks=0.3 if fitter == "fit_light_and_material" else 0.0,
+                           exponent=20.0)
+    eye = np.array([0.0, -2.5, 2.0])
+    targets = inverse.PaintedTargets(pts, nrm, js.shade(true, material, pts, nrm, eye), eye)
+    size = inverse.scene_size(true, targets)
+    centre = _light_centre(light)
+    first = None
+    if start is not None:
+        d = np.array([0.6, -0.64, 0.48]) * start * size
+        if kind == "polygon":
+            t = 0.5 * start
+            R = np.array([[np.cos(t), -np.sin(t), 0], [np.sin(t), np.cos(t), 0], [0, 0, 1.0]])
+            moved = js.PolygonLight((np.asarray(light.vertices) - centre) @ R.T + centre + d, radiance=white)
+        else:
+            moved = js.PointLight(centre + d, white)
+        first = js.Scene([moved], occluders=true.occluders, ambient=true.ambient)
+    groups = ("position", "orientation") if kind == "polygon" else ("position",)
+    guess = js.Material(ka=0.1, kd=0.4, ks=0.2, exponent=15.0) if fitter == "fit_light_and_material" else material
+
+    def fit():
+        if fitter == "fit_light":
+            return inverse.fit_light(first, targets, material, fit=groups)
+        if fitter == "fit_light_and_material":
+            return inverse.fit_light_and_material(first, targets, guess, light_kwargs={"fit": groups})
+        if start is None:
+            empty = js.Scene([], occluders=true.occluders, ambient=true.ambient)
+            return inverse.fit_lights(empty, targets, material, kinds=[kind])
+        return inverse.fit_lights(first, targets, material, fit=(*groups, "power"))
+
+    timing = _timing()
+    times, compile_s, trace_s = [], [], []
+    for _ in range(2):
+        c0, tr0, t1 = timing["compile_s"], timing["trace_s"], time.perf_counter()
+        out = fit()
+        times.append(time.perf_counter() - t1)
+        compile_s.append(timing["compile_s"] - c0)
+        trace_s.append(timing["trace_s"] - tr0)
+    got = out.scene.lights[-1]
+    pos = float(np.linalg.norm(_light_centre(got) - centre))
+    if kind == "polygon":
+        vert = float(np.max(np.linalg.norm(np.asarray(got.vertices) - np.asarray(light.vertices), axis=1)))
+        power = float(np.max(np.abs(np.asarray(got.radiance) / np.asarray(light.radiance) - 1)))
+    else:
+        vert = pos
+        power = float(np.max(np.abs(np.asarray(got.intensity) / np.asarray(light.intensity) - 1)))
+    r = {"triangles": int(len(f)), "contour_edges_from_light": _contour_edges(v, f, centre),
+         "contour_edges_from_targets_max": max(_contour_edges(v, f, p) for p in pts),
+         "capacity_at_truth": int(traced.shadow_capacity(true, pts, nrm)),
+         "capacity": getattr(out.report, "capacity", None), "targets": int(len(pts)), "scene_size_m": size,
+         "position_err_pct_of_scene": 100 * pos / size, "vertex_err_m": vert, "power_err_rel": power,
+         "success": bool(vert < 1e-6 * size and power < 1e-6), "loss": getattr(out.report, "loss", None),
+         "first_fit_s": times[0], "second_fit_s": times[1], "compile_s": compile_s[0], "trace_s": trace_s[0],
+         "second_compile_s": compile_s[1], "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6,
+         "process_s": time.perf_counter() - t0 + _IMPORT_S}
+    if fitter == "fit_light_and_material":
+        r["material_err"] = max(float(np.max(np.abs(np.asarray(getattr(out.material, k)) - np.asarray(getattr(material, k)))))
+                                for k in ("ka", "kd", "ks"))
+    return r
+
+
 _IMPORT_S = 0.0
 
 
 def _child(name: str, design_from: list | None = None) -> dict:
     """Run one case in a fresh process (its first call: tracing and compiling included)."""
     arg = "" if design_from is None else f", design_from=json.loads({json.dumps(design_from)!r})"
-    call = f"b._case(**b.CASES[{name!r}]{arg})" if name in CASES else f"b._kind_case(**b.KIND_CASES[{name!r}])"
+    call = (f"b._case(**b.CASES[{name!r}]{arg})" if name in CASES else f"b._mesh_case(**b.MESH_CASES[{name!r}])"
+            if name in MESH_CASES else f"b._kind_case(**b.KIND_CASES[{name!r}])")
     code = (f"import json, time; t=time.perf_counter(); import benchmarks.fit_lights as b; "
             f"b._IMPORT_S = time.perf_counter() - t; print(json.dumps({call}))")
     env = dict(os.environ)
@@ -334,12 +473,13 @@ def _child(name: str, design_from: list | None = None) -> dict:
 
 
 def run(quick: bool) -> dict:
-    names = QUICK if quick else (*CASES, *KIND_CASES)
+    names = QUICK if quick else (*CASES, *KIND_CASES, *MESH_CASES)
     cases: dict = {}
     for name in (n for n in names if n in CASES):  # a designed case after the case it is designed at
         at = CASES[name].get("design_at")
         cases[name] = _child(name, cases[at]["fitted"] if at else None)
-    return {"cases": cases, "kinds": {name: _child(name) for name in names if name in KIND_CASES}}
+    return {"cases": cases, "kinds": {name: _child(name) for name in names if name in KIND_CASES},
+            "meshes": {name: _child(name) for name in names if name in MESH_CASES}}
 
 
 def markdown(results: dict) -> str:
@@ -371,6 +511,18 @@ def markdown(results: dict) -> str:
         rows.append(f"| {name} | {r['direction_err_deg']:.2g} | | " if "direction_err_deg" in r else
                     f"| {name} | | {r['end_err_pct_of_scene']:.2g} | ")
         rows[-1] += f"{r['power_err_rel']:.2g} | {r['loss']:.2g} | {r['starts_solved']} | {r['fit_s']:.1f} |"
+    if results.get("meshes"):
+        rows += ["", "| one light, a mesh occluder (60 floor targets) | triangles | contour edges (from the light; most "
+                 "from a target) | capacity (at the truth; the fit's) | recovered | position error (% of scene) | "
+                 "power (rel) | first fit (s) [compiling] | second fit (s) | peak memory (GB) |",
+                 "|---|---|---|---|---|---|---|---|---|---|"]
+        for name, r in results["meshes"].items():
+            cap = "" if r["capacity"] is None else f"; {r['capacity']}"
+            rows.append(f"| {name} | {r['triangles']} | {r['contour_edges_from_light']}; "
+                        f"{r['contour_edges_from_targets_max']} | {r['capacity_at_truth']}{cap} | "
+                        f"{'yes' if r['success'] else 'no'} | {r['position_err_pct_of_scene']:.2g} | "
+                        f"{r['power_err_rel']:.2g} | {r['first_fit_s']:.1f} [{r['compile_s']:.1f}] | "
+                        f"{r['second_fit_s']:.1f} | {r['peak_rss_gb']:.2f} |")
     return "\n".join(rows) + "\n"
 
 

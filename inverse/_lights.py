@@ -80,6 +80,10 @@ class LightReport(LightsReport):
     - `quality`: the checks of `inverse._diagnostics` (`FitQuality`: a wrong minimum, an escaped
       light, outliers, conflicting targets, nearly undetermined parameters); `trusted` is
       `quality.trusted`: False when the answer should not be used as is.
+    - `capacity`: the shadow capacity the solve ran at (boundary edges of a receiver's visible
+      region, or candidate faces for a segment light, that the compiled program holds: sized from
+      the starts on the host, doubled while a receiver overflowed it); None without occluders or
+      for a solver that clips every receiver against every occluder.
     """
 
     theta: np.ndarray
@@ -91,6 +95,7 @@ class LightReport(LightsReport):
     n_screened: int
     solver: str
     abandoned: np.ndarray | None = None
+    capacity: int | None = None
 
     def _headline(self) -> str:
         ok = int(np.count_nonzero(self.converged))
@@ -334,7 +339,7 @@ def _light_fit(problem: LightsProblem, sol: Solution, solver_name: str, n_screen
         scale=scale, quality=quality, theta=theta64, best_start=sol.best, start_losses=sol.losses,
         converged=sol.converged, num_steps=sol.num_steps,
         n_distinct_minima=distinct_minima(sol.values, losses, sol.converged, sol.best), n_screened=n_screened,
-        solver=solver_name, abandoned=sol.abandoned,
+        solver=solver_name, abandoned=sol.abandoned, capacity=getattr(sol.problem, "capacity", None),
     )
     return LightFit(scene=new_scene, lights=(sol.light,), powers=np.ones(1), material=material, residual=residual,
                     report=report, theta=theta64[:param.size], parametrisations=(param,))
