@@ -29,13 +29,9 @@ struct Prepared {
   InteriorSections sections;  // bodies inside the mesh's components (umbra_sections.h)
 };
 
-template <class T>
-std::vector<char> occluder_key(const Occluders<T>& occ) {
-  std::vector<char> k;
-  auto put = [&](const void* p, size_t n) {
-    const char* c = static_cast<const char*>(p);
-    k.insert(k.end(), c, c + n);
-  };
+// Calls `put(pointer, bytes)` on each piece of `occ`'s key, in the key's order.
+template <class T, class Put>
+void occluder_key_pieces(const Occluders<T>& occ, Put&& put) {
   const int64_t head[3] = {occ.M, occ.Ko, occ.S};
   put(head, sizeof(head));
   put(occ.faces, sizeof(T) * size_t(occ.M * occ.Ko * 3));
@@ -46,7 +42,31 @@ std::vector<char> occluder_key(const Occluders<T>& occ) {
     put(occ.solid_edge_off, sizeof(int32_t) * size_t(occ.S + 1));
     put(occ.solid_edges, sizeof(int32_t) * size_t(4 * occ.solid_edge_off[occ.S]));
   }
+}
+
+template <class T>
+std::vector<char> occluder_key(const Occluders<T>& occ) {
+  std::vector<char> k;
+  occluder_key_pieces(occ, [&](const void* p, size_t n) {
+    const char* c = static_cast<const char*>(p);
+    k.insert(k.end(), c, c + n);
+  });
   return k;
+}
+
+// Whether `key` is `occ`'s key, compared piece by piece in place: a lookup reads each byte once
+// and allocates nothing (building the key first cost an allocation and a copy of the occluders on
+// every call, which a fit makes per iteration and per batch element).
+template <class T>
+bool key_matches(const std::vector<char>& key, const Occluders<T>& occ) {
+  size_t at = 0;
+  bool same = true;
+  occluder_key_pieces(occ, [&](const void* p, size_t n) {
+    if (!same) return;
+    if (at + n > key.size() || std::memcmp(key.data() + at, p, n) != 0) same = false;
+    at += n;
+  });
+  return same && at == key.size();
 }
 
 // The prepared data of `occ` (built now, or found in the cache).
@@ -55,12 +75,10 @@ std::shared_ptr<const Prepared> prepared(const Occluders<T>& occ) {
   static std::mutex mu;
   static std::vector<std::shared_ptr<const Prepared>> cache;  // most recent last
   const bool cached = occ.M >= kCacheMinFaces;
-  std::vector<char> key;
   if (cached) {
-    key = occluder_key(occ);
     std::lock_guard<std::mutex> lock(mu);
     for (size_t i = 0; i < cache.size(); i++)
-      if (cache[i]->key.size() == key.size() && std::memcmp(cache[i]->key.data(), key.data(), key.size()) == 0) {
+      if (key_matches(cache[i]->key, occ)) {
         auto hit = cache[i];
         cache.erase(cache.begin() + long(i));
         cache.push_back(hit);
@@ -74,7 +92,7 @@ std::shared_ptr<const Prepared> prepared(const Occluders<T>& occ) {
   build_silhouette_tree(occ, out->twin, out->sil);
   build_interior_sections(occ, out->sil, out->sections);
   if (cached) {
-    out->key.swap(key);
+    out->key = occluder_key(occ);
     std::lock_guard<std::mutex> lock(mu);
     cache.push_back(out);
     if (cache.size() > kCacheEntries) cache.erase(cache.begin());
