@@ -43,6 +43,7 @@ import numpy as np
 import jaxshadow as js
 from jaxshadow import traced
 
+from ._basis_rows import BasisRows
 from ._diagnostics import FitQualityWarning, noise_weighted
 from ._forward import SpecularFn
 from ._global_placement import place, ranking_losses, region_of, template_light
@@ -519,8 +520,10 @@ def fit_lights(
     _, theta, final, problem, converged = best_attempt
     problem = _reweighted(problem, full_w)
     theta = _moved_outside(problem, np.asarray(theta, np.float64))
+    # The report's basis and tangents from the search's own LM program (k rows a call: no new compilation).
+    rows_at = BasisRows(problem, k, (solver.rtol, solver.atol)) if P else None
     out = result(problem, np.asarray(theta, np.float64), idx, size, candidates, stage_losses, n_solved,
-                  retries, initial, project, noise, final if P else None, converged=converged)
+                  retries, initial, project, noise, final if P else None, converged=converged, rows_at=rows_at)
     if warn:
         for msg in out.report.quality.emitted:
             _warnings.warn(msg, FitQualityWarning, stacklevel=2)
