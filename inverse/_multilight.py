@@ -372,7 +372,9 @@ def _structured(theta: Array, problem: LightsProblem, powers: Array, material: j
 def report_parts(problem: LightsProblem, theta: Array, powers: Array, material: js.Material) -> tuple:
     """`(E, S, J_theta (3N, P))` at `theta`: the basis and the structured residual's Jacobian,
     from one linearisation (`jax.linearize`, the tangent map on the P basis vectors, as the
-    solver's Jacobian): the shadow engine is traced once, its primal shared by E, S and J."""
+    solver's Jacobian): the shadow engine is traced once, its primal shared by E, S and J. A
+    program of its own, for the projected material's alternation and `design_targets`;
+    `fit_lights`' report takes the same from its LM program (`_basis_rows`)."""
     rows, lin, (E, S) = jax.linearize(lambda th: _structured(th, problem, powers, material), theta, has_aux=True)
     J = jax.vmap(lin, out_axes=1)(jnp.eye(theta.shape[0], dtype=theta.dtype))
     return E, S, J
@@ -411,7 +413,8 @@ def _own_columns(problem: LightsProblem, j: int) -> list[int]:
     return cols
 
 
-def structured_jacobian(theta: Array, problem: LightsProblem, capacity: int | None) -> tuple[Array, Array, Array]:
+def structured_jacobian(theta: Array, problem: LightsProblem, capacity: int | None,
+                        with_basis: bool = False) -> tuple:
     r"""`(r (M,), J (M, P), overflow)` of `projected_residual` at `theta`, by its structure: each
     light's basis (`_one_basis`: the shadow engine) depends only on its own parameters
     (`_own_columns`), so its tangents are taken along those alone (`jax.linearize`, the linear
@@ -421,9 +424,12 @@ def structured_jacobian(theta: Array, problem: LightsProblem, capacity: int | No
     basis vectors (`_lm`'s default) sends all P tangents through every light's engine: with
     several lights most of them are zero. The same Jacobian to round-off. Lights of one kind share
     one traced copy of the engine in `basis` (compile time): when some do, the whole residual is
-    linearised instead."""
+    linearised instead. `with_basis`: also `(E (J, N, 3), S (J, N, 3) or None, dE (P, J, N, 3),
+    dS or None)`, the basis the residual was made of and its tangents (a fourth value)."""
     dt = theta.dtype
     if any(len(g) > 1 for g in same_kind_groups(lights_at(theta, problem))):
+        if with_basis:
+            return linearised_with_basis(theta, problem, capacity)
         r, lin, over = jax.linearize(lambda th: projected_residual(th, problem, capacity), theta, has_aux=True)
         return r, jax.vmap(lin, out_axes=1)(jnp.eye(theta.shape[0], dtype=dt)), over
     P = theta.shape[0]
@@ -465,22 +471,53 @@ def structured_jacobian(theta: Array, problem: LightsProblem, capacity: int | No
     else:
         r, lin = jax.linearize(rest, E, S, theta)
         Jt = jax.vmap(lin)(dE, dS, jnp.eye(P, dtype=dt))
+    if with_basis:
+        return r, Jt.T, over, (E, S, dE, dS)
     return r, Jt.T, over
 
 
+def linearised_with_basis(theta: Array, problem: LightsProblem, capacity: int | None) -> tuple:
+    """`(r (M,), J (M, P), overflow, (E, S or None, dE, dS or None))` of `projected_residual` at
+    `theta` by one linearisation of the whole residual with the basis (`basis`) as further
+    outputs: its tangents `(P, J, N, 3)` on the P basis vectors come from the same linear map."""
+    def parts(z: Array) -> tuple:
+        E, S, over = basis(z, problem, capacity)
+        r, _ = projected_residual(z, problem, capacity, given=(E, S, over))
+        return (r, E, S), over
+
+    (r, E, S), lin, over = jax.linearize(parts, theta, has_aux=True)
+    Jr, dE, dS = jax.vmap(lin, out_axes=(1, 0, 0))(jnp.eye(theta.shape[0], dtype=theta.dtype))
+    return r, Jr, over, (E, S, dE, dS)
+
+
 def _lm_impl(problem: LightsProblem, starts: Array, base: Array, mask: Array, rtol: float, atol: float,
-             max_steps: Array, prune: Array, chunk: int | None, mirror: Array) -> LMResult:
+             max_steps: Array, prune: Array, chunk: int | None, mirror: Array, keep_basis: bool = False) -> LMResult:
     """Batched LM (`_lm`) on the projected residual, searching only where `mask` (the other
     parameters held at `base`): one program serves each light's multistart and the joint
-    refinement. `mirror`: `duplicate_sources` of the starts (a repeated start is solved once)."""
+    refinement. `mirror`: `duplicate_sources` of the starts (a repeated start is solved once).
+    `keep_basis` (static): `LMResult.aux = (E, S or None, dE, dS or None)` at every start's
+    accepted point, the basis `(J, N, 3)` and its tangents `(P, J, N, 3)` (zero where `mask` is
+    off): what `fit_lights`' report needs at the answer, from this program (`_basis_rows`)."""
     def fn(th: Array, args: tuple) -> tuple[Array, Array]:
         pr, b, m = args
         return projected_residual(jnp.where(m, th, b), pr, pr.capacity)
 
-    def rj(th: Array, args: tuple) -> tuple[Array, Array, Array]:
+    def rj(th: Array, args: tuple) -> tuple:
         pr, b, m = args
-        r, J, over = structured_jacobian(jnp.where(m, th, b), pr, pr.capacity)
-        return r, J * m.astype(J.dtype)[None, :], over
+        out = structured_jacobian(jnp.where(m, th, b), pr, pr.capacity, with_basis=keep_basis)
+        mj = m.astype(out[1].dtype)
+        if keep_basis:
+            E, S, dE, dS = out[3]
+            masked = lambda d: None if d is None else d * mj[:, None, None, None]  # noqa: E731
+            return out[0], out[1] * mj[None, :], out[2], (E, S, masked(dE), masked(dS))
+        return out[0], out[1] * mj[None, :], out[2]
+
+    def rj_whole(th: Array, args: tuple) -> tuple:
+        pr, b, m = args
+        r, J, over, (E, S, dE, dS) = linearised_with_basis(jnp.where(m, th, b), pr, pr.capacity)
+        mj = m.astype(J.dtype)
+        masked = lambda d: None if d is None else d * mj[:, None, None, None]  # noqa: E731
+        return r, J * mj[None, :], over, (E, S, masked(dE), masked(dS))
 
     # The per-light Jacobian where it saves work and was checked against the whole residual's:
     # several lights of distinct kinds, powers projected (not the per-channel colour-free model,
@@ -488,27 +525,38 @@ def _lm_impl(problem: LightsProblem, starts: Array, base: Array, mask: Array, rt
     lights = lights_at(starts[0], problem)
     structured = (len(lights) > 1 and not problem.colour_free
                   and all(len(g) == 1 for g in same_kind_groups(lights)))
+    aux = None
+    if keep_basis:
+        dt, P, N, J = starts.dtype, starts.shape[1], problem.targets.points.shape[0], len(problem.params)
+        b = jax.ShapeDtypeStruct((J, N, 3), dt)
+        d = jax.ShapeDtypeStruct((P, J, N, 3), dt)
+        spec = problem.with_specular
+        aux = (b, b if spec else None, d, d if spec else None)
     return batched_levenberg_marquardt(fn, starts, (problem, base, mask), rtol=rtol, atol=atol,
                                        max_steps=max_steps, prune=prune, chunk=chunk,
                                        num_residuals=problem.n_residuals, mirror=mirror,
-                                       jacobian=rj if structured else "linearize")
+                                       jacobian=rj if structured else rj_whole if keep_basis else "linearize",
+                                       aux=aux)
 
 
 _lm = fit_jit(_lm_impl)
 
 
 def solve(problem: LightsProblem, starts: np.ndarray, base: np.ndarray, mask: np.ndarray, *, rtol: float,
-          atol: float, max_steps: int, prune: tuple[int, ...]) -> tuple[LMResult, LightsProblem, int]:
+          atol: float, max_steps: int, prune: tuple[int, ...],
+          keep_basis: bool = True) -> tuple[LMResult, LightsProblem, int]:
     """`_lm` from `starts (S, P)` (one start a chunk; repeated starts, e.g. padding, solved once:
     the same result), solved again with twice the shadow capacity while some receiver overflowed
-    it (exact). Returns `(result, problem used, retries)`."""
+    it (exact). `keep_basis`: the program that also keeps the basis at the answer (`_lm_impl`;
+    `fit_lights`' one program for the search and the report); False: without (`fit_light`'s).
+    Returns `(result, problem used, retries)`."""
     dt = problem.targets.points.dtype
     mirror = jnp.asarray(duplicate_sources(np.asarray(starts, dt)))
     sched = prune_array(prune)  # traced: every stage's schedule runs the same program
 
     def run(pr: LightsProblem) -> tuple[LMResult, Any]:
         res = _lm(pr, jnp.asarray(starts, dt), jnp.asarray(base, dt), jnp.asarray(mask), rtol, atol,
-                  np.asarray(max_steps, np.int32), sched, 1, mirror)
+                  np.asarray(max_steps, np.int32), sched, 1, mirror, keep_basis)
         return res, res.flag
 
     return at_capacity(run, problem, "fit_lights", "solve")
@@ -533,7 +581,9 @@ def screen(problem: LightsProblem, rows: np.ndarray, base: np.ndarray, mask: np.
            chunk: int) -> tuple[np.ndarray, LightsProblem, int]:
     """The losses (`LMResult.initial_losses` of `solve` with no iterations) at `rows (S, P)`,
     `chunk` rows a call (one compiled program for any S), again with twice the shadow capacity
-    while some receiver overflowed it. Returns `(losses (S,), problem used, retries)`."""
+    while some receiver overflowed it: the vectorised solvers' screening (`_solvers`; `fit_lights`
+    and `LM` screen by their LM program, `_solvers.screen_by_solver`). Returns `(losses (S,),
+    problem used, retries)`."""
     dt = problem.targets.points.dtype
 
     def run(pr: LightsProblem) -> tuple[np.ndarray, bool]:

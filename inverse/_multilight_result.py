@@ -14,6 +14,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from ._basis_rows import BasisRows
 from ._diagnostics import (
     assess,
     competing_placements,
@@ -25,7 +26,13 @@ from ._diagnostics import (
     row_variance,
 )
 from ._identifiability import identifiability, quantity_error
-from ._multilight import LightsProblem, build_lights, fixed_contribution, report_parts, scaled_light
+from ._multilight import (
+    LightsProblem,
+    build_lights,
+    fixed_contribution,
+    report_parts,
+    scaled_light,
+)
 from ._multilight_report import (
     LightsReport,
     correlated_pairs,
@@ -43,15 +50,25 @@ _POSITION_NAMES = ("x", "y", "z", "a", "b")
 
 def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, candidates: Any,
             stage_losses: list, n_solved: int, retries: int, initial: float | None, project: bool,
-            noise: Any = None, final: tuple | None = None, converged: bool = True) -> LightsFit:
+            noise: Any = None, final: tuple | None = None, converged: bool = True,
+            rows_at: BasisRows | None = None) -> LightsFit:
+    """The `LightsFit` at the poses `theta (n_theta,)` (module docstring). `rows_at`: the search's
+    LM program at given rows (`_multilight.BasisRows`), which gives the basis and its tangents
+    at the answer and at the competing placements; None: `report_parts` computes them."""
     t, m = problem.targets, problem.material
     dt = t.points.dtype
+    full_theta = np.asarray(theta, np.float64)
     q = np.asarray(theta[problem.n_pose:], np.float64)  # the searched powers' roots, if any
     theta = theta[:problem.n_pose]
     th = jnp.asarray(theta, dt)
     J = len(idx)
     ones = jnp.ones(J, dt)
-    E, S, _ = (np.asarray(x, np.float64) for x in report_parts(problem, th, ones, m))
+    if rows_at is not None:
+        E, S, dE, dS = rows_at(full_theta[None])[0]
+        S = np.zeros_like(E) if S is None else S
+        dE, dS = dE[:problem.n_pose], None if dS is None else dS[:problem.n_pose]
+    else:
+        E, S, _ = (np.asarray(x, np.float64) for x in report_parts(problem, th, ones, m))
     colours, w = np.asarray(t.colours, np.float64), np.asarray(t.weights, np.float64)
     La = np.asarray(problem.scene.ambient, np.float64)
     e0, s0 = np.asarray(problem.e_fixed, np.float64), np.asarray(problem.s_fixed, np.float64)
@@ -74,8 +91,15 @@ def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, ca
         powers = constrained_powers(fixed_part, per_light, colours, sw, paint, bud, q * q if q.size else powers)
         budget_active = bud is not None and bud[0] @ powers >= bud[1] * (1 - 1e-9)
     mat = material_of(k, m.exponent, dt) if project else m
-    _, _, Jth = (np.asarray(x, np.float64) for x in report_parts(problem, th, jnp.asarray(powers, dt), mat))
     model = _model(E, S, e0, s0, La, powers, k, spec)
+    if rows_at is not None:  # the structured residual's Jacobian in theta, by the chain rule through the basis
+        kd, ks = (np.broadcast_to(np.asarray(x, np.float64), colours.shape) for x in (mat.kd, mat.ks))
+        d_model = kd / np.pi * np.einsum("j,pjnc->pnc", powers, dE)
+        if spec and dS is not None:
+            d_model = d_model + ks * np.einsum("j,pjnc->pnc", powers, dS)
+        Jth = painted_jacobian(model, d_model, sw, paint)
+    else:
+        _, _, Jth = (np.asarray(x, np.float64) for x in report_parts(problem, th, jnp.asarray(powers, dt), mat))
     residual = model - colours
     rows = painted_rows(model, colours, sw, paint)
     if paint is not None:  # a ranged target's residual: its distance outside the range
@@ -144,10 +168,15 @@ def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, ca
         poses = lambda th_, p_: {f"light{idx[j]}": _pose(x, problem.params[j], p_[j])  # noqa: E731
                                  for j, x in enumerate(build_lights(problem, th_)) if problem.params[j] is not None}
         others = []
-        for row in _rival_rows(np.asarray(final[0], np.float64)[:, :problem.n_pose], np.asarray(final[1], np.float64),
-                               np.asarray(theta, np.float64), chi2_of, w, len(names)):
+        rows_r = _rival_rows(np.asarray(final[0], np.float64)[:, :problem.n_pose], np.asarray(final[1], np.float64),
+                             np.asarray(theta, np.float64), chi2_of, w, len(names))
+        at_rows = rows_at(np.asarray(rows_r)) if rows_at is not None and rows_r else []
+        for i, row in enumerate(rows_r):
             th_r = jnp.asarray(row, dt)
-            E_r, S_r, _ = (np.asarray(x, np.float64) for x in report_parts(problem, th_r, ones, m))
+            if rows_at is not None:
+                E_r, S_r = at_rows[i][0], (np.zeros_like(at_rows[i][0]) if at_rows[i][1] is None else at_rows[i][1])
+            else:
+                E_r, S_r, _ = (np.asarray(x, np.float64) for x in report_parts(problem, th_r, ones, m))
             p_r, k_r = coef(E_r, S_r)
             others.append((chi2_of(_model(E_r, S_r, e0, s0, La, p_r, k_r, spec) - colours), poses(th_r, p_r)))
         rivals = rival_placements(poses(th, powers), others, chi2_of(residual), len(names), size, se, light_params)
@@ -162,7 +191,7 @@ def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, ca
     rv = row_variance(w, t, noise) if noise is not None and paint is None else None
     rv = np.full(w.size, ident.sigma2 if ident.sigma2 > 0 else 1.0) if rv is None else rv
     suggestions, sugg_n, sugg_se = _suggest(problem, th, powers, mat, names, jac, determined, candidates, free_p, k,
-                                            fixed, project, rv, scale_of)
+                                            fixed, project, rv, scale_of, rows_at, full_theta)
     report = LightsReport(
         names=names, values=values_d, std_errors=se,
         determined=determined, singular_values=ident.singular_values,
@@ -317,7 +346,8 @@ def _candidates(t: Any) -> tuple[np.ndarray, np.ndarray]:
 
 def _suggest(problem: LightsProblem, th: Any, powers: np.ndarray, mat: Any, names: tuple, jac: np.ndarray,
              determined: dict, candidates: Any, free_p: list, k: np.ndarray, fixed: list, project: bool,
-             row_var: np.ndarray, scale_of: list) -> tuple[dict, dict, dict]:
+             row_var: np.ndarray, scale_of: list, rows_at: BasisRows | None = None,
+             full_theta: np.ndarray | None = None) -> tuple[dict, dict, dict]:
     """For each parameter not determined (exactly or nearly): the candidate receivers (up to 5,
     best first) that most lower its predicted standard error when painted, kept only where they
     lower it. Returns `(points, normals, {name: (standard error now, predicted with its first 3
@@ -326,7 +356,9 @@ def _suggest(problem: LightsProblem, th: Any, powers: np.ndarray, mat: Any, name
     The prediction is the identifiability rule (`_identifiability`: an exact null direction
     gives an infinite error) on the report's Jacobian with each row over its noise's standard
     deviation (`row_var`, `(3N,)`), with a candidate's three rows (its model derivatives, painted
-    with the targets' median noise) appended; positions in m (`scale_of`)."""
+    with the targets' median noise) appended; positions in m (`scale_of`). The candidates'
+    basis and tangents come from the search's LM program (`rows_at.at_receivers` at `full_theta`)
+    where given, else from `report_parts`."""
     bad = [i for i, nm in enumerate(names) if not determined[nm]]
     if not bad:
         return {}, {}, {}
@@ -337,9 +369,18 @@ def _suggest(problem: LightsProblem, th: Any, powers: np.ndarray, mat: Any, name
     ct = PaintedTargets(jnp.asarray(cp, dt), jnp.asarray(cn, dt), jnp.zeros(cp.shape, dt), jnp.asarray(eye, dt))
     e0, s0 = fixed_contribution(problem.scene, ct, problem.material, fixed, problem.specular,
                                 problem.with_specular)
-    cprob = dataclasses.replace(problem, targets=ct, e_fixed=e0, s_fixed=s0, capacity=None, paint=None)
-    E, S, Jth = (np.asarray(x, np.float64) for x in report_parts(cprob, th, jnp.asarray(powers, dt), mat))
     spec = problem.with_specular
+    if rows_at is not None and full_theta is not None:
+        E, S, dE, dS = rows_at.at_receivers(full_theta, cp, np.asarray(ct.normals, np.float64))
+        S = np.zeros_like(E) if S is None else S
+        kd, ks = (np.broadcast_to(np.asarray(x, np.float64), cp.shape) for x in (mat.kd, mat.ks))
+        d_model = kd / np.pi * np.einsum("j,pjnc->pnc", powers, dE[:problem.n_pose])
+        if spec and dS is not None:
+            d_model = d_model + ks * np.einsum("j,pjnc->pnc", powers, dS[:problem.n_pose])
+        Jth = d_model.reshape(d_model.shape[0], -1).T  # (3K, P): the candidates' unit weights
+    else:
+        cprob = dataclasses.replace(problem, targets=ct, e_fixed=e0, s_fixed=s0, capacity=None, paint=None)
+        E, S, Jth = (np.asarray(x, np.float64) for x in report_parts(cprob, th, jnp.asarray(powers, dt), mat))
     cols = [Jth]
     for j in free_p:
         cols.append((k[1] / np.pi * E[j] + (k[2] * S[j] if spec else 0.0)).reshape(-1, 1))
