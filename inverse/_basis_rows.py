@@ -13,10 +13,11 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ._multilight import LightsProblem, solve
+from . import _projected_lm
+from ._multilight import solve
 
 
-class BasisRows:
+class BasisRows(_projected_lm.BasisRows):
     """`fit_lights`' LM program (`solve` with `keep_basis`) evaluated with no iterations at rows
     `(R, n_theta)`, `n_starts` rows a call (its own start count: the compiled program of the
     search, padding solved once), with the search's `(rtol, atol)` (static arguments of the
@@ -24,22 +25,7 @@ class BasisRows:
     NumPy arrays. What the report needs at the answer and at competing placements, without a
     program of its own. `problem`: the latest one used (its shadow capacity may have doubled)."""
 
-    def __init__(self, problem: LightsProblem, n_starts: int, tolerances: tuple[float, float]):
-        self.problem, self.n_starts, self.tolerances = problem, int(n_starts), tolerances
-
-    def __call__(self, rows: np.ndarray) -> list[tuple]:
-        rows = np.asarray(rows, np.float64)
-        k = self.n_starts
-        mask = np.ones(rows.shape[1], bool)
-        out: list[tuple] = []
-        for a in range(0, rows.shape[0], k):
-            part = rows[a:a + k]
-            part = np.concatenate([part, np.repeat(part[:1], k - part.shape[0], axis=0)])
-            res, self.problem, _ = solve(self.problem, part, part[0], mask, rtol=self.tolerances[0],
-                                         atol=self.tolerances[1], max_steps=0, prune=())
-            aux = [None if x is None else np.asarray(x, np.float64) for x in res.aux]
-            out += [tuple(None if x is None else x[i] for x in aux) for i in range(min(k, rows.shape[0] - a))]
-        return out
+    _run = staticmethod(solve)
 
     def at_receivers(self, row: np.ndarray, points: np.ndarray, normals: np.ndarray) -> tuple:
         """`(E (J, K, 3), S or None, dE (n_theta, J, K, 3), dS or None)` at the row `row (n_theta,)`

@@ -106,7 +106,10 @@ def aux_row(aux: Any, i: int) -> tuple:
 class BasisRows:
     """The LM program of a solved projected problem evaluated with no iterations at rows
     `(S, n_theta)` of its own start count `S` (`basis_rows`): the same compiled program as the
-    fit's. `tolerances`: the solve's `(rtol, atol)` (static arguments of the program)."""
+    fit's. `tolerances`: the solve's `(rtol, atol)` (static arguments of the program). `_run`:
+    the program (`solve` here; `fit_lights`' `_multilight.solve` in `_basis_rows.BasisRows`)."""
+
+    _run = staticmethod(solve)
 
     def __init__(self, problem: LightsProblem, n_starts: int, tolerances: tuple[float, float]):
         self.problem, self.n_starts, self.tolerances = problem, int(n_starts), tolerances
@@ -120,8 +123,8 @@ class BasisRows:
         for a in range(0, rows.shape[0], k):
             part = rows[a:a + k]
             part = np.concatenate([part, np.repeat(part[:1], k - part.shape[0], axis=0)])
-            res, self.problem, _ = solve(self.problem, part, part[0], mask, rtol=self.tolerances[0],
-                                         atol=self.tolerances[1], max_steps=0, prune=())
+            res, self.problem, _ = self._run(self.problem, part, part[0], mask, rtol=self.tolerances[0],
+                                             atol=self.tolerances[1], max_steps=0, prune=())
             out += [aux_row(res.aux, i) for i in range(min(k, rows.shape[0] - a))]
         return out
 
