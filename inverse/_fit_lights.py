@@ -51,7 +51,6 @@ from ._multilight import (
     LightsProblem,
     fixed_contribution,
     report_parts,
-    screen,
     solve,
 )
 from ._multilight_placement import greedy, pad, stage_mask, swaps
@@ -65,7 +64,7 @@ from ._options import Search, checked_constraints, search_options
 from ._painting import Brighter, ColourRange, painting
 from ._parametrisation import LightParametrisation, Outside, outside_planes, scene_size
 from ._reports import LightsFit
-from ._solvers import AbstractLightSolver, checked_solver
+from ._solvers import AbstractLightSolver, checked_solver, screen_by_solver
 from ._targets import PaintedTargets
 
 FIT_LIGHTS_GROUPS = ("position", "orientation", "size", "power")
@@ -375,6 +374,7 @@ def fit_lights(
     sched = prune_schedule(k, solver.max_steps) if solver.prune else ()
     lm = dict(rtol=solver.rtol, atol=solver.atol, max_steps=solver.max_steps, prune=sched)
     staged = dict(lm, max_steps=min(int(solver.max_steps), STAGE_STEPS))
+    tol = dict(rtol=solver.rtol, atol=solver.atol)  # static arguments of the LM program: the screens run it too
     if project:  # the material (and powers) that best fit the given poses: where the search starts
         problem = dataclasses.replace(problem, material=_material_at(problem, theta0))
     full_w = problem.targets.weights
@@ -401,7 +401,7 @@ def fit_lights(
         best_round: tuple | None = None  # (loss, joint rows, final, converged) of the better round
         if attempt == "global":
             if initial is None:  # the given poses' loss
-                f0, problem, r = screen(problem, theta0[None], theta0, np.ones(Pt, bool), k)
+                f0, problem, r = screen_by_solver(problem, theta0[None], theta0, np.ones(Pt, bool), k, **tol)
                 initial, retries = float(f0[0]), retries + r
             pl = place(problem, theta0, per_light, cons, idx, seed, k, lm)
             problem, base, ranked, alternatives = pl.problem, pl.theta, pl.ranked, list(pl.alternatives)
@@ -440,8 +440,8 @@ def fit_lights(
                     full[:, sl] = y
                     if sweep or placed:  # again, with the others placed: from the current pose and the same spread
                         full[0, sl] = base[sl]
-                    if full.shape[0] > k:  # screen: the loss alone (no Jacobian), k starts a call
-                        losses, problem, r = screen(problem, full, base, mask, k)
+                    if full.shape[0] > k:  # screen: the loss by the LM program with no iterations, k starts a call
+                        losses, problem, r = screen_by_solver(problem, full, base, mask, k, **tol)
                         retries += r
                         if initial is None and sweep == 0:
                             initial = float(losses[0])  # the given poses (row 0), screened out or not

@@ -581,7 +581,9 @@ def screen(problem: LightsProblem, rows: np.ndarray, base: np.ndarray, mask: np.
            chunk: int) -> tuple[np.ndarray, LightsProblem, int]:
     """The losses (`LMResult.initial_losses` of `solve` with no iterations) at `rows (S, P)`,
     `chunk` rows a call (one compiled program for any S), again with twice the shadow capacity
-    while some receiver overflowed it. Returns `(losses (S,), problem used, retries)`."""
+    while some receiver overflowed it: the vectorised solvers' screening (`_solvers`; `fit_lights`
+    and `LM` screen by their LM program, `_solvers.screen_by_solver`). Returns `(losses (S,),
+    problem used, retries)`."""
     dt = problem.targets.points.dtype
 
     def run(pr: LightsProblem) -> tuple[np.ndarray, bool]:

@@ -11,9 +11,10 @@ import itertools
 import jax.numpy as jnp
 import numpy as np
 
-from ._multilight import LightsProblem, screen, solve
+from ._multilight import LightsProblem, solve
 from ._multistart import best_starts
 from ._parametrisation import LightParametrisation
+from ._solvers import screen_by_solver
 
 
 def greedy(problem: LightsProblem, base: np.ndarray, grid_rows: list, offsets: list, P: int, in_theta: bool,
@@ -28,7 +29,7 @@ def greedy(problem: LightsProblem, base: np.ndarray, grid_rows: list, offsets: l
     dt = problem.targets.points.dtype
     J = len(problem.params)
     Pt = base.shape[0]
-    f0, problem, retries = screen(problem, base[None], base, np.ones(Pt, bool), k)
+    f0, problem, retries = screen_by_solver(problem, base[None], base, np.ones(Pt, bool), k, lm["rtol"], lm["atol"])
     initial = float(f0[0])
     active = np.array([p is None for p in problem.params], np.float64)
     todo = [j for j in range(J) if problem.params[j] is not None]
@@ -46,7 +47,7 @@ def greedy(problem: LightsProblem, base: np.ndarray, grid_rows: list, offsets: l
                 m[P + j] = True
             full = np.tile(base, (grid_rows[j].shape[0], 1))
             full[:, sl] = grid_rows[j]
-            f, this, n = screen(this, full, base, m, k)
+            f, this, n = screen_by_solver(this, full, base, m, k, lm["rtol"], lm["atol"])
             retries += n
             f = np.where(np.isfinite(f), f, np.inf)
             if chosen < 0 or np.min(f) < best_f:

@@ -7,7 +7,7 @@ starts, the best one, the residual and its Jacobian there (for the report), and 
 builds.
 
 - `LM` (the default): the Levenberg-Marquardt of `_lm.py`, written for this batch, through
-  `fit_lights`' own screening and program (`_multilight.screen` and `solve`): one
+  `fit_lights`' own program (`_multilight.solve`, which also screens: `screen_by_solver`): one
   forward-mode Jacobian per iteration for all starts, with the shadow engine inside the
   compiled program (`jaxshadow.traced`: each receiver's visible region from its candidate
   occluders only, at a static capacity of boundary edges chosen from the starting lights; if
@@ -212,10 +212,11 @@ def screen_by_solver(problem: LightsProblem, rows: np.ndarray, base: np.ndarray,
     arguments of the program), so that the solve that follows runs the same compiled program.
     Each chunk is evaluated again with twice the shadow capacity while some receiver overflowed
     it. The values of `_multilight.screen` (bit-identical on the demo fit), without its program:
-    it evaluates a Jacobian at every row (0.6 s CPU more for 64 starts of the demo fit) but a
-    one-light fit's first call traces and compiles one program fewer. `run`: the solve
-    (`_multilight.solve`, `fit_lights`' program that keeps the basis; `_solve_without_basis`,
-    `fit_light`'s; or `_projected_lm.solve`).
+    it evaluates a Jacobian at every row (0.6 s CPU more for 64 starts of the demo fit; for
+    `fit_lights`' three mixed lights 96 rows took 3.5 s against 1.0 s wall at a load of 18) but
+    a fit's first call traces and compiles one program fewer (`_screen_impl`: 15-23 s wall at
+    that load). `run`: the solve (`_multilight.solve`, `fit_lights`' program that keeps the
+    basis; `_solve_without_basis`, `fit_light`'s; or `_projected_lm.solve`).
     Returns `(losses (S,), problem used, retries)`."""
     out, retries = [], 0
     for a in range(0, rows.shape[0], chunk):
