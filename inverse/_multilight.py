@@ -502,22 +502,23 @@ def _lm_impl(problem: LightsProblem, starts: Array, base: Array, mask: Array, rt
         pr, b, m = args
         return projected_residual(jnp.where(m, th, b), pr, pr.capacity)
 
-    def rj(th: Array, args: tuple) -> tuple:
-        pr, b, m = args
-        out = structured_jacobian(jnp.where(m, th, b), pr, pr.capacity, with_basis=keep_basis)
-        mj = m.astype(out[1].dtype)
-        if keep_basis:
+    def searched_only(jac: Any) -> Any:
+        """`jac(theta, problem)` (`(r, J, overflow[, (E, S, dE, dS)])`) at the searched
+        parameters (`mask`; the others at `base`), its Jacobian and tangents zero elsewhere."""
+        def rj(th: Array, args: tuple) -> tuple:
+            pr, b, m = args
+            out = jac(jnp.where(m, th, b), pr)
+            mj = m.astype(out[1].dtype)
+            head = (out[0], out[1] * mj[None, :], out[2])
+            if len(out) == 3:
+                return head
             E, S, dE, dS = out[3]
             masked = lambda d: None if d is None else d * mj[:, None, None, None]  # noqa: E731
-            return out[0], out[1] * mj[None, :], out[2], (E, S, masked(dE), masked(dS))
-        return out[0], out[1] * mj[None, :], out[2]
+            return (*head, (E, S, masked(dE), masked(dS)))
+        return rj
 
-    def rj_whole(th: Array, args: tuple) -> tuple:
-        pr, b, m = args
-        r, J, over, (E, S, dE, dS) = linearised_with_basis(jnp.where(m, th, b), pr, pr.capacity)
-        mj = m.astype(J.dtype)
-        masked = lambda d: None if d is None else d * mj[:, None, None, None]  # noqa: E731
-        return r, J * mj[None, :], over, (E, S, masked(dE), masked(dS))
+    rj = searched_only(lambda th, pr: structured_jacobian(th, pr, pr.capacity, with_basis=keep_basis))
+    rj_whole = searched_only(lambda th, pr: linearised_with_basis(th, pr, pr.capacity))
 
     # The per-light Jacobian where it saves work and was checked against the whole residual's:
     # several lights of distinct kinds, powers projected (not the per-channel colour-free model,

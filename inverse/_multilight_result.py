@@ -53,7 +53,7 @@ def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, ca
             noise: Any = None, final: tuple | None = None, converged: bool = True,
             rows_at: BasisRows | None = None) -> LightsFit:
     """The `LightsFit` at the poses `theta (n_theta,)` (module docstring). `rows_at`: the search's
-    LM program at given rows (`_multilight.BasisRows`), which gives the basis and its tangents
+    LM program at given rows (`_basis_rows.BasisRows`), which gives the basis and its tangents
     at the answer and at the competing placements; None: `report_parts` computes them."""
     t, m = problem.targets, problem.material
     dt = t.points.dtype
@@ -93,11 +93,7 @@ def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, ca
     mat = material_of(k, m.exponent, dt) if project else m
     model = _model(E, S, e0, s0, La, powers, k, spec)
     if rows_at is not None:  # the structured residual's Jacobian in theta, by the chain rule through the basis
-        kd, ks = (np.broadcast_to(np.asarray(x, np.float64), colours.shape) for x in (mat.kd, mat.ks))
-        d_model = kd / np.pi * np.einsum("j,pjnc->pnc", powers, dE)
-        if spec and dS is not None:
-            d_model = d_model + ks * np.einsum("j,pjnc->pnc", powers, dS)
-        Jth = painted_jacobian(model, d_model, sw, paint)
+        Jth = painted_jacobian(model, _model_tangents(mat, powers, dE, dS, spec, colours.shape), sw, paint)
     else:
         _, _, Jth = (np.asarray(x, np.float64) for x in report_parts(problem, th, jnp.asarray(powers, dt), mat))
     residual = model - colours
@@ -344,6 +340,18 @@ def _candidates(t: Any) -> tuple[np.ndarray, np.ndarray]:
     return cp, np.tile(up, (81, 1))
 
 
+def _model_tangents(mat: Any, powers: np.ndarray, dE: np.ndarray, dS: np.ndarray | None, spec: bool,
+                    shape: tuple) -> np.ndarray:
+    r"""`(P, N, 3)`: the model colours' tangents in the poses, from the basis tangents `dE`, `dS`
+    `(P, J, N, 3)` at the lights' `powers (J,)` (Lambert $k_d/\pi$, plus $k_s$ where specular);
+    `shape` the colours' `(N, 3)`."""
+    kd, ks = (np.broadcast_to(np.asarray(x, np.float64), shape) for x in (mat.kd, mat.ks))
+    d_model = kd / np.pi * np.einsum("j,pjnc->pnc", powers, dE)
+    if spec and dS is not None:
+        d_model = d_model + ks * np.einsum("j,pjnc->pnc", powers, dS)
+    return d_model
+
+
 def _suggest(problem: LightsProblem, th: Any, powers: np.ndarray, mat: Any, names: tuple, jac: np.ndarray,
              determined: dict, candidates: Any, free_p: list, k: np.ndarray, fixed: list, project: bool,
              row_var: np.ndarray, scale_of: list, rows_at: BasisRows | None = None,
@@ -373,10 +381,8 @@ def _suggest(problem: LightsProblem, th: Any, powers: np.ndarray, mat: Any, name
     if rows_at is not None and full_theta is not None:
         E, S, dE, dS = rows_at.at_receivers(full_theta, cp, np.asarray(ct.normals, np.float64))
         S = np.zeros_like(E) if S is None else S
-        kd, ks = (np.broadcast_to(np.asarray(x, np.float64), cp.shape) for x in (mat.kd, mat.ks))
-        d_model = kd / np.pi * np.einsum("j,pjnc->pnc", powers, dE[:problem.n_pose])
-        if spec and dS is not None:
-            d_model = d_model + ks * np.einsum("j,pjnc->pnc", powers, dS[:problem.n_pose])
+        d_model = _model_tangents(mat, powers, dE[:problem.n_pose], None if dS is None else dS[:problem.n_pose], spec,
+                                  cp.shape)
         Jth = d_model.reshape(d_model.shape[0], -1).T  # (3K, P): the candidates' unit weights
     else:
         cprob = dataclasses.replace(problem, targets=ct, e_fixed=e0, s_fixed=s0, capacity=None, paint=None)
