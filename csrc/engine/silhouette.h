@@ -51,11 +51,12 @@ struct SilPieces {
   std::vector<int32_t> boff, kf, kl, sj, cf, link, todo;
   std::vector<int32_t> clipped;  // the contour segments with an end clipped at a cone plane
   std::vector<SilEnd> ends;     // all slots empty between receivers (the used ones are emptied after use)
-  std::vector<int32_t> ends_used;  // the slots filled for this receiver
+  std::vector<int32_t> ends_used;  // the slots filled for this receiver (its first entries)
   // The grid's crossing candidates: per cell the first of its pieces not yet gathered from
-  // (gpos); per piece its candidates of lower index (a list through lnext from lhead to ltail,
-  // values lval, in increasing order).
-  std::vector<int32_t> gpos, lhead, ltail, lval, lnext;
+  // (gpos); per piece j its candidates of lower index (a list from lnext[j] through lnext, values
+  // lval, in increasing order; ltail[j] its last link).
+  std::vector<int32_t> gpos, ltail, lval, lnext;
+  std::vector<int32_t> all;  // 0 .. ns - 1 (the candidates of a piece off the grid)
 };
 // Not inlined: the caller keeps the address, where an inlined thread-local would be looked up
 // again (__tls_get_addr in a shared library) at every use in its loops.
@@ -140,12 +141,21 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   pc.clipped.clear();
   for (int j = neh; j < ns; j++)
     if (segs[size_t(j)].on_a >= 0 || segs[size_t(j)].on_b >= 0) pc.clipped.push_back(j);
+  int32_t nlist = ns;  // entries of the lists of lower candidates in use (see below)
   if (G) {
     pc.gpos.assign(gs.begin(), gs.end() - 1);
-    pc.lhead.assign(size_t(ns), -1);
-    pc.ltail.assign(size_t(ns), -1);
-    pc.lval.clear();
-    pc.lnext.clear();
+    // Lists of lower candidates: the head of piece j's list in lnext[j], entries at ns <= x <
+    // nlist (value lval[x], next lnext[x]; -1 ends a list); ltail[j] is where its next entry links in.
+    if (pc.lnext.size() < size_t(ns)) {
+      pc.lnext.resize(2 * size_t(ns));
+      pc.lval.resize(2 * size_t(ns));
+    }
+    pc.ltail.resize(size_t(ns));
+    for (int j = 0; j < ns; j++) pc.lnext[size_t(j)] = -1, pc.ltail[size_t(j)] = j;
+    w.gcand.resize(size_t(ns));
+  } else {
+    pc.all.resize(size_t(ns));
+    for (int j = 0; j < ns; j++) pc.all[size_t(j)] = j;
   }
   for (int i = 0; i < ns; i++) {
     const SSeg<T>& s = segs[size_t(i)];
@@ -159,19 +169,26 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     // full loop visits them, and with the same box test).
     const bool listed = G && i >= neh;
     const T* bi = bx.data() + 6 * i;
-    // Boxes apart: no crossing (tested first: the cheaper filter).
+    // Boxes apart: no crossing (tested first: the cheaper filter). All six comparisons are
+    // made (no branch between them): the outcome is the same.
     auto apart = [&](int j) {
       const T* bj = bx.data() + 6 * j;
-      return bi[3] < bj[0] || bj[3] < bi[0] || bi[4] < bj[1] || bj[4] < bi[1] || bi[5] < bj[2] || bj[5] < bi[2];
+      return bool((bi[3] < bj[0]) | (bj[3] < bi[0]) | (bi[4] < bj[1]) | (bj[4] < bi[1]) | (bi[5] < bj[2]) | (bj[5] < bi[2]));
     };
     // A pair is a candidate for both pieces (the relation is symmetric: a common cell, boxes
     // meeting), so each cell's pieces (in increasing order) are gathered from only past the
     // piece itself, and each candidate of higher index is entered in that piece's list of lower
-    // ones (filled in increasing order, as the pieces come).
-    int32_t lo = -1;  // the first entry of i's list of lower candidates
+    // ones (filled in increasing order, as the pieces come). The candidates are tested in the
+    // order: for a listed piece its list of lower ones, then the higher ones (gathered and
+    // sorted in place after them).
+    const int32_t* js;
+    int nj;
     if (listed) {
-      std::vector<int32_t>& cand = w.gcand;
-      cand.clear();
+      int32_t* cand = w.gcand.data();  // ns entries: each piece at most once
+      int nlow = 0;
+      for (int32_t x = pc.lnext[size_t(i)]; x >= 0; x = pc.lnext[size_t(x)]) cand[nlow++] = pc.lval[size_t(x)];
+      int32_t* up = cand + nlow;
+      int ncand = 0;
       stamp++;
       const int32_t* r = w.gcells.data() + 4 * (i - neh);
       for (int iy = r[2]; iy <= r[3]; iy++)
@@ -181,37 +198,42 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
           int32_t k = pc.gpos[size_t(cell)];
           while (k < e && gi[size_t(k)] <= i) k++;
           pc.gpos[size_t(cell)] = k;
-          for (; k < e; k++) {
+          for (; k < e; k++) {  // kept: seen first here and boxes meeting (written, counted when kept)
             const int32_t j = gi[size_t(k)];
-            if (stamp_of[size_t(j)] == stamp) continue;
+            const bool fresh = stamp_of[size_t(j)] != stamp;
             stamp_of[size_t(j)] = stamp;
-            if (!apart(j)) cand.push_back(j);
+            up[ncand] = j;
+            ncand += int(fresh & !apart(j));
           }
         }
-      std::sort(cand.begin(), cand.end());
-      for (const int32_t j : cand) {
-        const int32_t at = int32_t(pc.lval.size());
-        pc.lval.push_back(i);
-        pc.lnext.push_back(-1);
-        if (pc.ltail[size_t(j)] >= 0) {
-          pc.lnext[size_t(pc.ltail[size_t(j)])] = at;
-        } else {
-          pc.lhead[size_t(j)] = at;
-        }
-        pc.ltail[size_t(j)] = at;
+      std::sort(up, up + ncand);
+      const int32_t at0 = nlist;
+      nlist += ncand;
+      if (size_t(nlist) > pc.lval.size()) {  // grown by doubling (the entries past nlist are not read)
+        pc.lval.resize(2 * size_t(nlist));
+        pc.lnext.resize(2 * size_t(nlist));
       }
-      lo = pc.lhead[size_t(i)];
+      int32_t* lval = pc.lval.data();
+      int32_t* lnext = pc.lnext.data();
+      int32_t* ltail = pc.ltail.data();
+      for (int c = 0; c < ncand; c++) {
+        const int32_t j = up[c], at = at0 + c;
+        lval[at] = i;
+        lnext[at] = -1;
+        lnext[ltail[j]] = at;
+        ltail[j] = at;
+      }
+      js = cand;
+      nj = nlow + ncand;
+    } else if (i < neh) {
+      js = pc.clipped.data();
+      nj = int(pc.clipped.size());
+    } else {
+      js = pc.all.data();
+      nj = ns;
     }
-    const int nj = listed ? int(w.gcand.size()) : (i < neh ? int(pc.clipped.size()) : ns);
-    for (int jj = 0; jj < nj || lo >= 0; jj++) {
-      int j;
-      if (lo >= 0) {  // the lower candidates first, then the higher ones
-        j = pc.lval[size_t(lo)];
-        lo = pc.lnext[size_t(lo)];
-        jj--;
-      } else {
-        j = listed ? w.gcand[size_t(jj)] : (i < neh ? pc.clipped[size_t(jj)] : jj);
-      }
+    for (int jj = 0; jj < nj; jj++) {
+      const int j = js[jj];
       if (j == i) continue;
       const SSeg<T>& o = segs[size_t(j)];
       if (i < neh && j < neh) continue;  // E_h's edges meet at its vertices only
@@ -219,8 +241,8 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       if (s.va >= 0 && o.va >= 0) {
         // Common ends by their position ids where both have them (equal iff same()).
         const bool ids = s.ia >= 0 && o.ia >= 0;
-        const bool at_a = ids ? (s.ia == o.ia || s.ia == o.ib) : (same(s.x3a, o.x3a) || same(s.x3a, o.x3b));
-        const bool at_b = ids ? (s.ib == o.ia || s.ib == o.ib) : (same(s.x3b, o.x3a) || same(s.x3b, o.x3b));
+        const bool at_a = ids ? bool((s.ia == o.ia) | (s.ia == o.ib)) : (same(s.x3a, o.x3a) || same(s.x3a, o.x3b));
+        const bool at_b = ids ? bool((s.ib == o.ia) | (s.ib == o.ib)) : (same(s.x3b, o.x3a) || same(s.x3b, o.x3b));
         if (at_a || at_b) {
           // Mesh edges with a common end meet there only, unless their projections overlap
           // along one line (p in the plane of both; or one edge twice, as at a non-manifold
@@ -228,8 +250,10 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
           // below make it. Too close to call.
           if (at_a && at_b) return kFallback;
           const bool oa_at = ids ? o.ia == (at_a ? s.ia : s.ib) : same(o.x3a, at_a ? s.x3a : s.x3b);
-          const V3<T> far = oa_at ? o.b : o.a;
-          const V3<T> at = at_a ? s.a : s.b, other = at_a ? s.b : s.a;
+          // The ends picked by reference (an address select rather than a branch).
+          const V3<T>& far = oa_at ? o.b : o.a;
+          const V3<T>& at = at_a ? s.a : s.b;
+          const V3<T>& other = at_a ? s.b : s.a;
           if (cov.side_of(far, s) == 0 && dot(far - at, other - at) > 0) return kFallback;
           continue;
         }
@@ -271,7 +295,8 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       td.push_back(s1 > 0 ? o.w : -o.w);  // into o's positive side: + W
     }
     const int32_t b1 = int32_t(ts.size());
-    for (int32_t k = b0; k < b1; k++) ord.push_back(k);
+    ord.resize(size_t(b1));
+    for (int32_t k = b0; k < b1; k++) ord[size_t(k)] = k;
     std::sort(ord.begin() + b0, ord.end(), [&](int32_t x, int32_t y) { return ts[size_t(x)] < ts[size_t(y)]; });
     boff[size_t(i) + 1] = b1;
   }
@@ -321,7 +346,8 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     if (by_id) nh = std::max(nh, size_t(w.sil_tile.nids));
     std::vector<int32_t>& used = pc.ends_used;
     if (tab.size() < nh) tab.resize(nh, SilEnd{0, 0, 0, -1, -1, 0});  // the first nh slots are used
-    used.clear();
+    int32_t nused = 0;  // the filled slots: used[0 .. nused)
+    if (used.size() < 2 * size_t(ns - neh)) used.resize(4 * size_t(ns - neh));
     auto bits = [](double x) {
       uint64_t u;
       x += 0.0;  // -0 as +0 (same() counts them equal)
@@ -330,15 +356,16 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     };
     auto add = [&](V3<T> x3, int32_t id, int32_t e) {
       const double x = double(x3.x), y = double(x3.y), z = double(x3.z);
-      if (by_id) {
+      if (by_id) {  // the slot's update by selects, not branches (the same fields as the hashed path)
         SilEnd& t = tab[size_t(id)];
-        if (t.n == 0) {
-          t = SilEnd{x, y, z, e, -1, 1};
-          used.push_back(id);
-        } else {
-          if (t.n == 1) t.e2 = e;
-          if (t.n < 3) t.n++;
-        }
+        const int32_t n0 = t.n;
+        const bool first = n0 == 0;
+        used[size_t(nused)] = id;
+        nused += int32_t(first);
+        t.x = first ? x : t.x, t.y = first ? y : t.y, t.z = first ? z : t.z;
+        t.e = first ? e : t.e;
+        t.e2 = first ? -1 : (n0 == 1 ? e : t.e2);
+        t.n = n0 < 3 ? n0 + 1 : 3;
         return;
       }
       uint64_t h = bits(x) * 0x9E3779B97F4A7C15ull ^ bits(y) * 0xC2B2AE3D27D4EB4Full ^ bits(z) * 0x165667B19E3779F9ull;
@@ -347,7 +374,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         SilEnd& t = tab[k];
         if (t.n == 0) {
           t = SilEnd{x, y, z, e, -1, 1};
-          used.push_back(int32_t(k));
+          used[size_t(nused++)] = int32_t(k);
           return;
         }
         if (t.x == x && t.y == y && t.z == z) {
@@ -364,8 +391,8 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     }
     // The filled slots only (each slot's links are its own: the order does not matter), each
     // emptied after.
-    for (const int32_t k : used) {
-      SilEnd& t = tab[size_t(k)];
+    for (int32_t q = 0; q < nused; q++) {
+      SilEnd& t = tab[size_t(used[size_t(q)])];
       if (t.n == 2 && t.e / 2 != t.e2 / 2) {
         const int32_t ea = t.e, eb = t.e2;
         const SSeg<T>& sa = segs[size_t(ea / 2)];
@@ -399,14 +426,16 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
           if (o < 0) continue;
           // C on q0's side near v, on the positive and negative sides of i's own plane there.
           const int c = e == 0 ? cf[size_t(i)] : cf[size_t(i)] + sj[size_t(i)];
-          const int cpos = s.q0s > 0 ? c : c + s.w, cneg = s.q0s > 0 ? c - s.w : c;
+          // (The data-dependent choices below as integer arithmetic, not branches.)
+          const int qi = int(s.q0s > 0);
+          const int cpos = c + (1 - qi) * s.w, cneg = c - qi * s.w;  // s.q0s > 0 ? c : c + w, ? c - w : c
           const int ca = e == 0 ? cneg : cpos, cb = e == 0 ? cpos : cneg;  // C beyond r_i along n_i, and before it
           const int j = o / 2, ej = o % 2;
           const SSeg<T>& t = segs[size_t(j)];
-          const int jpos = ej == 0 ? ca : cb, jneg = ej == 0 ? cb : ca;  // n_j = -own_j at j's end a
+          const int jpos = ca + ej * (cb - ca), jneg = cb + ej * (ca - cb);  // n_j = -own_j at j's end a (ej = 0)
           if (jpos - jneg != t.w || t.q0s == 0) return kFallback;
-          const int cv = t.q0s > 0 ? jpos : jneg;
-          const int cj = ej == 0 ? cv : cv - sj[size_t(j)];
+          const int cv = jneg + int(t.q0s > 0) * (jpos - jneg);  // t.q0s > 0 ? jpos : jneg
+          const int cj = cv - ej * sj[size_t(j)];
           if (cf[size_t(j)] == Cov::kNone) {
             cf[size_t(j)] = cj;
             todo.push_back(j);
@@ -460,7 +489,8 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       } else {
         const int q0side = s.q0s;
         if (q0side == 0) return kFallback;
-        const int cpos = q0side > 0 ? c : c + s.w, cneg = q0side > 0 ? c - s.w : c;
+        const int qi = int(q0side > 0);
+        const int cpos = c + (1 - qi) * s.w, cneg = c - qi * s.w;  // q0side > 0 ? c : c + w, ? c - w : c
         if (cpos < 0 || cneg < 0) return kFallback;
         if ((cpos == 0) != (cneg == 0)) dir = cpos == 0 ? 1 : -1;  // R on the positive side: along own's edge
       }

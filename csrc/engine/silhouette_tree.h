@@ -397,7 +397,7 @@ inline int sil_side(const SilhouetteTree& st, int32_t f, const double* p) {
   const double S = std::max(st.scale, std::max(std::fabs(p[0]), std::max(std::fabs(p[1]), std::fabs(p[2]))));
   const double m = std::max(1e4 * 2.220446049250313e-16 * (std::fabs(r0) + std::fabs(r1) + std::fabs(r2) + S),
                             st.f32[size_t(f)] ? 2 * kOnSurface * S : 0.0) * nn;
-  return h < -m ? 1 : (h > m ? -1 : 0);
+  return int(h < -m) - int(h > m);  // both comparisons, no branch
 }
 
 // +1 (-1): every face of the node faces p with side +1 (-1) by a clear margin; 0: not known.

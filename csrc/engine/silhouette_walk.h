@@ -546,13 +546,7 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
           continue;
         }
       }
-      if (en.e0 >= 0) {  // a leaf
-        for (int32_t k = en.e0; k < en.e1; k++) {
-          const STEdge& te = tc.edges[size_t(k)];
-          if (te.w) continue;
-          __builtin_prefetch(st.fn.data() + kFnStride * size_t(te.e.f));
-          if (te.e.g >= 0) __builtin_prefetch(st.fn.data() + kFnStride * size_t(te.e.g));
-        }
+      if (en.e0 >= 0) {  // a leaf (its faces' records were read by the tile's walk: no prefetch)
         for (int32_t k = en.e0; k < en.e1; k++) {
           const STEdge& te = tc.edges[size_t(k)];
           const V3<T> a3{T(te.a[0]), T(te.a[1]), T(te.a[2])}, b3{T(te.b[0]), T(te.b[1]), T(te.b[2])};
