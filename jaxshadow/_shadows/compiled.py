@@ -19,6 +19,7 @@ import numpy as np
 from .._kernels.clip import directional_visibility, point_visibility, visible_edges
 from .._scene.model import Scene
 from . import binding as vis
+from . import segment_pieces
 from .integrands import segment_visible
 from .plan import EDGE_BLOCK, MIN_BLOCK, occluders_of, segment_profile
 
@@ -44,6 +45,15 @@ def _traced_segment(light: Any, integ: Any, p, n, e, faces, topo, capacity: int)
     dt = p.dtype
     a, b = light.start.astype(dt), light.end.astype(dt)
     prof = segment_profile(light)
+    if segment_pieces.enabled(traced=True):
+        # Visible pieces (`segment_pieces`): the capacity holds pieces, not candidate faces.
+        cls, cnt, codes = segment_pieces.traced_pieces(p, a, b, faces, topo, capacity)
+        shadowed = jax.vmap(segment_pieces.pieces_value, in_axes=(None, 0, 0, 0, None, None, None, None, 0))(
+            integ, p, n, e, a, b, prof, faces, codes)
+        free = jax.vmap(integ.segment, in_axes=(0, 0, 0, None, None, None))(p, n, e, a, b, prof)
+        out = jnp.where(_per_value(cls == vis.LIT, integ), free,
+                        jnp.where(_per_value(cls == vis.PENUMBRA, integ), shadowed, 0.0))
+        return out, jnp.any(cnt > capacity)
     cnt, cand = vis.traced_segment_candidates(p, a, b, faces, topo, capacity)
     # Unused slots repeat the first candidate (or face 0 where there is none: then the
     # unoccluded value is taken).
