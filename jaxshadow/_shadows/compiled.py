@@ -1,7 +1,7 @@
 """Exact shadows inside a compiled program: the values are abstract (`jax.jit`, `jax.vmap`).
 
 - `traced_values`: the plan of `_shadows` with the engine inside the program (XLA FFI) and a
-  static number of boundary edges (or candidate faces) per receiver; a receiver over it is
+  static number of boundary edges (or a segment light's visible pieces) per receiver; a receiver over it is
   reported (`overflow`), never silently truncated.
 - `device_values`: without the engine, every receiver clipped against every occluder by the
   JAX kernels of `_clip` (no build needed; memory and time grow with the square of the occluder
@@ -85,7 +85,7 @@ def traced_values(scene: Scene, integ: Any, points: Any, normals: Any, eyes: Any
                   chunk: int | None = None) -> tuple[Any, Any]:
     """`((N, *integ.shape, 3), overflow)`: every light's contribution with exact shadows, traceable (unit
     `normals`; `eyes` `(N, 3)`, or None for an integrand that reads none). `overflow` is True when a receiver needed more than `capacity` boundary edges
-    (or candidate faces): the values are then not exact. Receivers are processed `chunk` at a
+    (or visible pieces of a segment light): the values are then not exact. Receivers are processed `chunk` at a
     time (`lax.map`), which bounds the memory of the decoded boundaries. Without the engine's
     XLA FFI handlers (built without them, or for another jaxlib) the device kernels' values, with
     one warning."""
