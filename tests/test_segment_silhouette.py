@@ -177,6 +177,7 @@ def _penumbra(k=24):
     return P[idx], N[idx]
 
 
+@pytest.mark.slow  # four compiled programs (planned, face path, traced, values): 140 s at load 22 on 2 cores
 def test_gradients_wrt_the_light_ends(monkeypatch):
     p, n = _penumbra()
 
@@ -193,6 +194,7 @@ def test_gradients_wrt_the_light_ends(monkeypatch):
     np.testing.assert_allclose(g_jit, g, rtol=1e-10, atol=1e-12)
 
 
+@pytest.mark.slow  # 110 s at load 22 on 2 cores
 def test_gradients_wrt_the_occluder_vertices(monkeypatch):
     p, n = _penumbra()
 
