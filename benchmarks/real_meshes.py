@@ -373,7 +373,8 @@ def run_files(paths: list[str], quick: bool = False, up: str = "y", n_exact: int
     floor receivers (default 2000 quick, 20000 otherwise; with Radiance default, and fine unless
     `quick`; the Embree sweep; the face path unless `face_path` is false) and `exactness` on
     `n_exact` receivers; with `kinds`, `light_kinds` on the same receivers (the segment light
-    checked against the engine's face path, `JAXSHADOW_SILHOUETTE=0`, on `n_exact` receivers)."""
+    checked against the engine's face path, `JAXSHADOW_SEGMENT_PIECES=0`, on `n_exact` receivers, with
+    both paths' capacities and throughputs)."""
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -400,13 +401,23 @@ def run_files(paths: list[str], quick: bool = False, up: str = "y", n_exact: int
             seg = js.Scene([js.LinearLight([-0.4, 0.0, 2.5], [0.4, 0.0, 2.5], 1.0)], occluders=[js.Mesh(v, f)])
             q, qn = p[:n_exact], nrm[:n_exact]
             e = np.asarray(js.irradiance(seg, q, qn))[:, 0]
-            os.environ["JAXSHADOW_SILHOUETTE"] = "0"
+            lp = js.shadow_plan(seg, p, nrm).lights[0]
+            os.environ["JAXSHADOW_SEGMENT_PIECES"] = "0"  # the face path: candidate faces clipped on the device
             try:
                 e_face = np.asarray(js.irradiance(seg, q, qn))[:, 0]
+                lp_face = js.shadow_plan(seg, p, nrm).lights[0]
+                np.asarray(js.irradiance(seg, p, nrm))
+                t = time.perf_counter()
+                np.asarray(js.irradiance(seg, p, nrm))
+                face_pps = len(p) / (time.perf_counter() - t)
             finally:
-                del os.environ["JAXSHADOW_SILHOUETTE"]
+                del os.environ["JAXSHADOW_SEGMENT_PIECES"]
             row["kinds"]["segment"]["exact_receivers"] = int(len(q))
             row["kinds"]["segment"]["max_rel_diff_vs_face_path"] = float(np.abs(e - e_face).max() / np.abs(e_face).max())
+            # Capacities (per receiver: the pieces path's visible pieces, the face path's candidate
+            # faces) and the face path's throughput, measured after the pieces path's.
+            row["kinds"]["segment"]["capacity"] = {"pieces": int(lp.counts.max()), "faces": int(lp_face.counts.max())}
+            row["kinds"]["segment"]["face_path_points_per_s"] = face_pps
         out[name] = row
         print(f"{name}: {row['points_per_s']:.3g} points/s, exact to {row['exactness']['max_rel_err']:.1e}", flush=True)
     return {"receivers": n, "up": up, "others": out,

@@ -10,6 +10,7 @@
 #include <vector>
 
 #include "inputs.h"
+#include "engine/silhouette_segment.h"
 #include "xla/ffi/api/ffi.h"
 
 namespace ffi = xla::ffi;
@@ -176,6 +177,23 @@ ffi::Error segment_ffi(ffi::AnyBuffer points, ffi::AnyBuffer ends, ffi::AnyBuffe
   });
 }
 
+// Segment-light visible pieces (engine/silhouette_segment.h): classes (..., N), counts (..., N)
+// and the first `cap` pieces of each receiver (..., N, cap, 2) as endpoint codes.
+ffi::Error segment_pieces_ffi(ffi::AnyBuffer points, ffi::AnyBuffer ends, ffi::AnyBuffer faces, S32 face_solid,
+                              S32 face_closed, S32 solid_faces, S32 solid_edge_off, S32 solid_edges, int64_t cap,
+                              int64_t threads, ffi::Result<S32> cls, ffi::Result<S32> counts, ffi::Result<S32> pieces) {
+  const Topology topology{face_solid, face_closed, solid_faces, solid_edge_off, solid_edges};
+  return with_inputs("jaxshadow_segment_pieces", points, faces, topology, [&](auto& in) {
+    const int64_t N = in.N;
+    const double* AB = in.batched(ends, 6);
+    for (int64_t b = 0; b < in.B; b++)
+      segment_pieces_fixed<double>(N, in.points + b * N * 3, AB + b * 6, AB + b * 6 + 3, in.occluders(b),
+                                   int(threads), cap, cls->typed_data() + b * N, counts->typed_data() + b * N,
+                                   pieces->typed_data() + b * N * cap * 2);
+    return ffi::Error::Success();
+  });
+}
+
 // The occluder arguments of every handler, after its own: faces, then the topology arrays in
 // `OccluderInputs`' order.
 template <class Binding>
@@ -218,6 +236,16 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxshadowSegmentCandidates, jaxshadow_binding::seg
                                                                    .Arg<ffi::AnyBuffer>())  // ends (2, 3)
                                   .Attr<int64_t>("cap")
                                   .Attr<int64_t>("threads")
+                                  .Ret<S32>()
+                                  .Ret<S32>());
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxshadowSegmentPieces, jaxshadow_binding::segment_pieces_ffi,
+                              jaxshadow_binding::occluder_args(ffi::Ffi::Bind()
+                                                                   .Arg<ffi::AnyBuffer>()   // points
+                                                                   .Arg<ffi::AnyBuffer>())  // ends (2, 3)
+                                  .Attr<int64_t>("cap")
+                                  .Attr<int64_t>("threads")
+                                  .Ret<S32>()
                                   .Ret<S32>()
                                   .Ret<S32>());
 

@@ -67,6 +67,7 @@
 
 #include "abi.h"
 #include "inputs.h"
+#include "engine/silhouette_segment.h"
 #ifdef JAXSHADOW_FFI
 #include "ffi.h"
 #endif
@@ -483,6 +484,54 @@ PyObject* py_segment_plan(PyObject*, PyObject* args) {
   return Py_BuildValue("(NN)", off_o, faces_o);
 }
 
+const char kSegmentPiecesDoc[] =
+    "segment_pieces(points, a, b, occluders, threads)\n--\n\n"
+    "The visible pieces of the segment light a -> b seen from each point (engine/silhouette_segment.h): "
+    "(classes (N,) int32, candidate faces (N,) int32, offsets (N + 1,) int64, pieces (R, 2) int32 endpoint codes).";
+
+PyObject* py_segment_pieces(PyObject*, PyObject* args) {
+  PyObject *po, *ao, *bo, *oo;
+  int threads;
+  if (!PyArg_ParseTuple(args, "OOOOi:segment_pieces", &po, &ao, &bo, &oo, &threads)) return nullptr;
+  HostArgs h;
+  if (!parse_host(oo, po, {{ao, "a", 1}, {bo, "b", 1}}, h)) return nullptr;
+  const int64_t N = h.n;
+  int32_t *cls, *kept;
+  int64_t* off;
+  PyObject* cls_o = zeros('i', {N}, &cls);
+  PyObject* kept_o = cls_o ? zeros('i', {N}, &kept) : nullptr;
+  PyObject* off_o = kept_o ? zeros('q', {N + 1}, &off) : nullptr;
+  if (!off_o) {
+    Py_XDECREF(cls_o);
+    Py_XDECREF(kept_o);
+    return nullptr;
+  }
+  int32_t* pieces = nullptr;
+  int rc;
+  Py_BEGIN_ALLOW_THREADS
+  rc = with_host_inputs(h, [&](auto& in) {
+    return segment_pieces_plan<double>(N, in.points(), in.rows(0), in.rows(1), in.occluders(), threads, cls, kept,
+                                       off, &pieces);
+  });
+  Py_END_ALLOW_THREADS
+  if (rc) {
+    std::free(pieces);
+    Py_DECREF(cls_o);
+    Py_DECREF(kept_o);
+    Py_DECREF(off_o);
+    PyErr_SetString(PyExc_MemoryError, "jaxshadow shadow engine: out of memory for the segment pieces");
+    return nullptr;
+  }
+  PyObject* pieces_o = owned(pieces, 'i', 4, {off[N], 2});
+  if (!pieces_o) {
+    Py_DECREF(cls_o);
+    Py_DECREF(kept_o);
+    Py_DECREF(off_o);
+    return nullptr;
+  }
+  return Py_BuildValue("(NNNN)", cls_o, kept_o, off_o, pieces_o);
+}
+
 }  // namespace
 
 namespace {
@@ -496,6 +545,7 @@ PyObject* py_ffi_handlers(PyObject*, PyObject*) {
       {"jaxshadow_poly_codes", reinterpret_cast<void*>(JaxshadowPolyCodes)},
       {"jaxshadow_hard_visibility", reinterpret_cast<void*>(JaxshadowHardVisibility)},
       {"jaxshadow_segment_candidates", reinterpret_cast<void*>(JaxshadowSegmentCandidates)},
+      {"jaxshadow_segment_pieces", reinterpret_cast<void*>(JaxshadowSegmentPieces)},
   };
   for (const auto& h : handlers) {
     PyObject* cap = PyCapsule_New(h.second, nullptr, nullptr);
@@ -514,6 +564,7 @@ PyMethodDef shadowc_methods[] = {
     {"poly_plan", py_poly_plan, METH_VARARGS, kPolyPlanDoc},
     {"hard_plan", py_hard_plan, METH_VARARGS, kHardPlanDoc},
     {"segment_plan", py_segment_plan, METH_VARARGS, kSegmentPlanDoc},
+    {"segment_pieces", py_segment_pieces, METH_VARARGS, kSegmentPiecesDoc},
     {"ffi_handlers", py_ffi_handlers, METH_NOARGS,
      "ffi_handlers()\n--\n\n{XLA FFI target name: PyCapsule} of the engine's handlers (empty when built without them)."},
     {nullptr, nullptr, 0, nullptr},

@@ -42,7 +42,8 @@ _SUBDIR = "jaxshadow-exported"
 _OFF = ("0", "off", "no", "false")
 # The XLA FFI targets of jaxshadow's engine (`csrc/ffi.h`): custom calls without jax's
 # compatibility guarantee, which is not needed here (the key holds the engine's build).
-ENGINE_TARGETS = ("jaxshadow_poly_codes", "jaxshadow_hard_visibility", "jaxshadow_segment_candidates")
+ENGINE_TARGETS = ("jaxshadow_poly_codes", "jaxshadow_hard_visibility", "jaxshadow_segment_candidates",
+                  "jaxshadow_segment_pieces")
 
 
 class Unsupported(Exception):

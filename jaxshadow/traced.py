@@ -6,7 +6,7 @@ many starts, with `jax.linearize` and `vmap` around the model) wants the model w
 checks (the light is traced there) and no host-side dispatch. This module is that model, with
 keyword arguments and one extra, the **shadow capacity**: with occluders, the shadow engine runs
 inside the compiled program (XLA FFI, `jaxshadow._shadows.binding`) and holds at most `capacity`
-boundary edges of each receiver's visible region (candidate faces for segment lights). The
+boundary edges of each receiver's visible region (visible pieces for segment lights). The
 result comes with an `overflow` flag (bool scalar) that says some receiver needed more, so that
 the value is not exact there: the caller retries with a larger capacity (a `lax.cond` fallback
 inside a `vmap` over starts would run both branches every time). `shadow_capacity` sizes it from
@@ -70,7 +70,7 @@ def irradiance(
 
     - `scene`: a `jaxshadow.Scene` (its arrays may be traced).
     - `points`, `normals`: `(N, 3)` receivers and their normals (need not be unit).
-    - `capacity`: static int, boundary edges (candidate faces for segment lights) per receiver
+    - `capacity`: static int, boundary edges (visible pieces for segment lights) per receiver
       the shadow engine holds; default `shadows.capacity` (64). `shadow_capacity` sizes it.
     - `shadows`: static `ShadowOptions` (`engine="device"`: every receiver against every
       occluder, no capacity, no overflow).
@@ -202,7 +202,7 @@ def pin(x: Float[Array, "k ..."]) -> Float[Array, "k ..."]:
 
 
 def shadow_capacity(scene: Scene, points: Any, normals: Any, lights: Any = None) -> int:
-    """The most boundary edges (polygon lights) or candidate faces (segment lights) any receiver
+    """The most boundary edges (polygon lights) or visible pieces (segment lights) any receiver
     needs, for the lights of `scene` (or `lights`) at concrete receivers: what `capacity` must
     hold for `irradiance` / `specular` not to overflow there. Runs the shadow engine on the host,
     nothing is compiled; 0 without occluders or without the engine.

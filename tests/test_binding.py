@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 import jaxshadow as js
-from jaxshadow._shadows import abi
+from jaxshadow._shadows import abi, segment_pieces
 from jaxshadow._shadows import binding as vis
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -73,9 +73,9 @@ def test_the_built_module_exports_the_header_interface():
     assert lib.CODE_WIDTH == _header_constant("kCodeWidth")
     names = {n for n in dir(lib) if not n.startswith("__")}
     assert names == {"ABI_VERSION", "CODE_WIDTH", "HAS_FFI", "JAXLIB_VERSION", "Owned", "poly_plan", "hard_plan",
-                     "segment_plan", "ffi_handlers"}
+                     "segment_plan", "segment_pieces", "ffi_handlers"}
     if lib.HAS_FFI:
-        assert set(lib.ffi_handlers()) == {vis.FFI_TARGET, vis.FFI_HARD, vis.FFI_SEGMENT}
+        assert set(lib.ffi_handlers()) == {vis.FFI_TARGET, vis.FFI_HARD, vis.FFI_SEGMENT, segment_pieces.FFI_PIECES}
     else:
         assert lib.ffi_handlers() == {}
 
@@ -250,6 +250,7 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp
 import jaxshadow as js
 from jaxshadow._shadows import binding as vis
+from jaxshadow._shadows import segment_pieces
 
 quad = js.PolygonLight([[0, 0, 2], [0, 1, 2], [1, 1, 2], [1, 0, 2]], radiance=1.0)
 scene = js.Scene([quad], occluders=[js.Mesh.box([0.3, 0.3, 0.8], [0.6, 0.5, 1.0])])

@@ -1,7 +1,7 @@
 """Exact shadows inside a compiled program: the values are abstract (`jax.jit`, `jax.vmap`).
 
 - `traced_values`: the plan of `_shadows` with the engine inside the program (XLA FFI) and a
-  static number of boundary edges (or candidate faces) per receiver; a receiver over it is
+  static number of boundary edges (or a segment light's visible pieces) per receiver; a receiver over it is
   reported (`overflow`), never silently truncated.
 - `device_values`: without the engine, every receiver clipped against every occluder by the
   JAX kernels of `_clip` (no build needed; memory and time grow with the square of the occluder
@@ -19,6 +19,7 @@ import numpy as np
 from .._kernels.clip import directional_visibility, point_visibility, visible_edges
 from .._scene.model import Scene
 from . import binding as vis
+from . import segment_pieces
 from .integrands import segment_visible
 from .plan import EDGE_BLOCK, MIN_BLOCK, occluders_of, segment_profile
 
@@ -44,6 +45,15 @@ def _traced_segment(light: Any, integ: Any, p, n, e, faces, topo, capacity: int)
     dt = p.dtype
     a, b = light.start.astype(dt), light.end.astype(dt)
     prof = segment_profile(light)
+    if segment_pieces.enabled(traced=True):
+        # Visible pieces (`segment_pieces`): the capacity holds pieces, not candidate faces.
+        cls, cnt, codes = segment_pieces.traced_pieces(p, a, b, faces, topo, capacity)
+        shadowed = jax.vmap(segment_pieces.pieces_value, in_axes=(None, 0, 0, 0, None, None, None, None, 0))(
+            integ, p, n, e, a, b, prof, faces, codes)
+        free = jax.vmap(integ.segment, in_axes=(0, 0, 0, None, None, None))(p, n, e, a, b, prof)
+        out = jnp.where(_per_value(cls == vis.LIT, integ), free,
+                        jnp.where(_per_value(cls == vis.PENUMBRA, integ), shadowed, 0.0))
+        return out, jnp.any(cnt > capacity)
     cnt, cand = vis.traced_segment_candidates(p, a, b, faces, topo, capacity)
     # Unused slots repeat the first candidate (or face 0 where there is none: then the
     # unoccluded value is taken).
@@ -75,7 +85,7 @@ def traced_values(scene: Scene, integ: Any, points: Any, normals: Any, eyes: Any
                   chunk: int | None = None) -> tuple[Any, Any]:
     """`((N, *integ.shape, 3), overflow)`: every light's contribution with exact shadows, traceable (unit
     `normals`; `eyes` `(N, 3)`, or None for an integrand that reads none). `overflow` is True when a receiver needed more than `capacity` boundary edges
-    (or candidate faces): the values are then not exact. Receivers are processed `chunk` at a
+    (or visible pieces of a segment light): the values are then not exact. Receivers are processed `chunk` at a
     time (`lax.map`), which bounds the memory of the decoded boundaries. Without the engine's
     XLA FFI handlers (built without them, or for another jaxlib) the device kernels' values, with
     one warning."""

@@ -17,7 +17,7 @@ class ShadowOptions:
       `"host"` (the engine; an error if it is not built) or `"device"` (JAX kernels that clip
       every receiver against every occluder: no build needed, memory and time grow with the
       square of the occluder count).
-    - `capacity`: boundary edges (polygon lights) or candidate faces (segment lights) per
+    - `capacity`: boundary edges (polygon lights) or visible pieces (segment lights) per
       receiver when the values are abstract (inside `jax.jit`/`jax.vmap`) and the engine runs in
       the compiled program. A receiver that needs more is an error, never a truncation. Eager
       calls (including eager `jax.grad`) plan from the values and have no capacity.

@@ -12,9 +12,13 @@ the specular term) consumes it:
   compiled contour integral per capacity and block size). Memory is bounded by the block sizes,
   not by the number of occluders, and no receiver has too many candidates (the engine has no
   capacity).
-- **Segment lights.** The engine lists the faces that meet each receiver's light triangle
-  (Poulin §4.2); receivers are grouped by that count, and the segment is clipped against their
-  own faces only (`_clip.visible_segments`).
+- **Segment lights.** The engine takes the faces that meet each receiver's light triangle
+  (Poulin §4.2), unites the intervals of the segment they hide and returns the visible pieces,
+  each bounded by the crossing of a contour edge's plane through the receiver (or a face plane,
+  or the segment's end): receivers are grouped by their number of pieces, and JAX integrates
+  the segment's kernel over them (`segment_pieces`). With `JAXSHADOW_SEGMENT_PIECES=0` (the
+  reference path) receivers are grouped by their candidate faces and the segment is clipped
+  against those faces (`_clip.visible_segments`).
 - **Point and directional lights.** Hard shadows from the engine's ray tests against its
   hierarchy, times the unoccluded kernel.
 
@@ -47,6 +51,7 @@ import numpy as np
 
 from .._scene.model import LinearLight, Scene
 from . import binding as vis
+from . import segment_pieces
 from .integrands import PRODUCE, segment_visible
 
 # Receivers per engine call (bounds the host memory of codes and edges) and edge (or occluder)
@@ -67,7 +72,7 @@ def occluders_of(scene: Scene) -> Any:
 # The plan (host)
 # --------------------------------------------------------------------------------------
 
-KIND_CLASSES = {"polygon": vis.CLASS_NAMES, "segment": ("zero", "free", "", "candidates"),
+KIND_CLASSES = {"polygon": vis.CLASS_NAMES, "segment": ("zero", "free", "hidden", "candidates"),
                 "point": ("", "visible", "blocked", ""), "directional": ("", "visible", "blocked", "")}
 
 
@@ -76,7 +81,9 @@ class LightPlan:
     """The engine's answer for one light and a batch of receivers.
 
     `classes (N,)`: polygon lights `ZERO` (0: behind the light or below the horizon), `LIT` (1),
-    `UMBRA` (2), `PENUMBRA` (3); segment lights 1 (no face meets the light triangle) or 3;
+    `UMBRA` (2), `PENUMBRA` (3); segment lights 1 (nothing hidden), 2 (all hidden: visible
+    pieces only) or 3 (visible pieces: `runs (R, 2)` endpoint codes, `segment_pieces`; or, on the
+    reference path, some face meets the light triangle: candidate `faces`);
     point and directional lights 1 (visible) or 2 (blocked). `candidates (N,)`: items the
     hierarchy returned for the receiver (polygon lights; a convex closed mesh counts once), or,
     for receivers the engine's silhouette path served (large meshes without convex solids, every
@@ -143,6 +150,10 @@ class ShadowPlan:
             for key, arr in (("candidates", lp.candidates), ("kept", lp.kept)):
                 if arr is not None and arr.size:
                     d[key] = {"mean": float(arr.mean()), "max": int(arr.max())}
+            if lp.kind == "segment" and lp.faces is None and lp.offsets is not None:
+                pen = lp.counts[lp.classes == vis.PENUMBRA]
+                d["penumbra_pieces"] = {"mean": float(pen.mean()) if pen.size else 0.0,
+                                        "max": int(pen.max()) if pen.size else 0}
             if lp.kind == "polygon" and lp.offsets is not None:
                 c = lp.counts
                 pen = c[lp.classes == vis.PENUMBRA]
@@ -166,7 +177,11 @@ def _plan_polygon(light: Any, points: np.ndarray, normals: np.ndarray, occ: vis.
 def _plan_segment(light: Any, points: np.ndarray, normals: np.ndarray, occ: vis.HostOccluders,
                   produce: str) -> LightPlan:
     dt = points.dtype
-    off, faces = vis.segment_candidates(points, np.asarray(light.start, dt), np.asarray(light.end, dt), occ)
+    a, b = np.asarray(light.start, dt), np.asarray(light.end, dt)
+    if segment_pieces.enabled():
+        cls, kept, off, pieces = segment_pieces.host_pieces(points, a, b, occ)
+        return LightPlan("segment", cls, kept=kept, offsets=off, runs=pieces, produce=produce)
+    off, faces = vis.segment_candidates(points, a, b, occ)
     cnt = np.diff(off).astype(np.int32)
     cls = np.where(cnt > 0, vis.PENUMBRA, vis.LIT).astype(np.int32)
     return LightPlan("segment", cls, kept=cnt, offsets=off, faces=faces, produce=produce)
@@ -329,6 +344,12 @@ def _segment_block(integ, light, p, n, e, a, b, occ):
     return jax.vmap(segment_visible, in_axes=(None, 0, 0, 0, None, None, None, 0))(integ, p, n, e, a, b, light, occ)
 
 
+@functools.partial(jax.jit, static_argnames=("light",))
+def _pieces_block(integ, light, p, n, e, a, b, faces, codes):
+    return jax.vmap(segment_pieces.pieces_value, in_axes=(None, 0, 0, 0, None, None, None, None, 0))(
+        integ, p, n, e, a, b, light, faces, codes)
+
+
 @functools.partial(jax.jit, static_argnames=("kind",))
 def _hard_block(integ, p, n, e, x, visible, kind):
     kern = getattr(integ, kind)  # the integrand's method for this kind of light
@@ -435,7 +456,18 @@ def _segment_values(lp: LightPlan, light: Any, integ: Any, p: Any, n: Any, e: An
     if free.size:
         parts.append((free, _map_blocks(lambda x, y, z: _segment_free_block(integ, prof, x, y, z, a, b),
                                         (_take(p, free), _take(n, free), _take(e, free)), rows)))
-    for cap, idx in capacity_groups(lp.kept, np.nonzero(lp.classes == vis.PENUMBRA)[0]):
+    pen = np.nonzero(lp.classes == vis.PENUMBRA)[0]
+    if lp.faces is None:
+        # Visible pieces (`segment_pieces`): umbra receivers keep their 0.
+        fj = jnp.asarray(faces)
+        for cap, idx in capacity_groups(lp.counts, pen):
+            r, used = _dense_rows(lp.offsets, idx, cap)
+            codes = np.where(used[:, :, None], lp.runs[r], segment_pieces.START).astype(np.int32)
+            rb = max(MIN_BLOCK, (EDGE_BLOCK // 8) // cap)
+            parts.append((idx, _map_blocks(lambda x, y, z, c: _pieces_block(integ, prof, x, y, z, a, b, fj, c),
+                                           (_take(p, idx), _take(n, idx), _take(e, idx), codes), rb)))
+        return
+    for cap, idx in capacity_groups(lp.kept, pen):
         r, used = _dense_rows(lp.offsets, idx, cap)
         # Unused slots repeat the receiver's first candidate: the union of the blocked
         # intervals, and so the value and its derivatives, are unchanged.
