@@ -4,7 +4,10 @@
 #ifndef JAXSHADOW_FFI_H_
 #define JAXSHADOW_FFI_H_
 
+#include <algorithm>
 #include <deque>
+#include <initializer_list>
+#include <memory>
 #include <string>
 #include <utility>
 #include <vector>
@@ -27,22 +30,74 @@ struct Topology {
   S32 face_solid, face_closed, solid_faces, solid_edge_off, solid_edges;
 };
 
-// A handler's inputs after the prologue every handler shares (`with_inputs`): the batch
-// (vmap_method="broadcast_all": points (..., N, 3) and faces (..., M, Ko, 3) share a leading batch
-// shape of `nb` axes, B batches of N points), the points and the occluder faces converted to
-// double once; T is the inputs' float type. Other batched inputs are converted by `batched`;
-// `occluders(b, K)` is batch b's occluders in the engine's form (K light vertices before the faces).
+// The batch of a handler's call. Under `vmap` (vmap_method="expand_dims") every input carries the
+// same number `nb` of leading batch axes, each of the batch's size along it, or 1 where the input
+// is not batched along it (the mesh and the receivers of a fit over many light poses): such an
+// input is read by every batch element, not copied B times. `BatchMap` takes the call's flat batch
+// index b (row-major over the batch shape) to an input's own.
+struct BatchMap {
+  std::vector<int64_t> dims, stride;  // the batch shape; per axis the input's stride (0: not batched)
+  bool identity = true;
+
+  BatchMap() = default;
+  BatchMap(const std::vector<int64_t>& batch, ffi::AnyBuffer::Dimensions xd) : dims(batch), stride(batch.size(), 0) {
+    int64_t st = 1;
+    for (size_t a = batch.size(); a-- > 0;) {
+      if (xd[a] != 1 || batch[a] == 1) stride[a] = st;
+      identity = identity && xd[a] == batch[a];
+      st *= xd[a];
+    }
+  }
+  int64_t operator()(int64_t b) const {
+    if (identity) return b;
+    int64_t at = 0;
+    for (size_t a = dims.size(); a-- > 0;) {
+      at += (b % dims[a]) * stride[a];
+      b /= dims[a];
+    }
+    return at;
+  }
+};
+
+// A handler's inputs after the prologue every handler shares (`with_inputs`): the batch (points
+// (..., N, 3), faces (..., M, Ko, 3), the topology and the handler's further inputs share `nb`
+// leading batch axes, broadcast as `BatchMap` says: B batch elements of N points), the points
+// converted to double (one row block per batch element) and the occluder faces converted to double
+// once (per distinct batch index of theirs); T is the inputs' float type. Other batched inputs are
+// converted by `batched`; `occluders(b, K)` is batch element b's occluders in the engine's form
+// (K light vertices before the faces), and `occluder_index(b)` tells elements with the same
+// occluder buffers apart from others (one prepared lookup each: poly_ffi). `error` is set when
+// the batch axes do not broadcast.
 template <class T>
 struct Inputs {
   size_t nb = 0;
   int64_t B = 1, N = 0;
   const double* points = nullptr;
+  const char* error = nullptr;
 
-  Inputs(ffi::AnyBuffer p, ffi::AnyBuffer faces, const Topology& t) {
+  Inputs(ffi::AnyBuffer p, ffi::AnyBuffer faces, const Topology& t, std::initializer_list<ffi::AnyBuffer> more = {}) {
     auto pd = p.dimensions();
     auto fd = faces.dimensions();
     nb = pd.size() - 2;
-    for (size_t i = 0; i < nb; i++) B *= pd[i];
+    const ffi::AnyBuffer::Dimensions tdims[5] = {t.face_solid.dimensions(), t.face_closed.dimensions(),
+                                                 t.solid_faces.dimensions(), t.solid_edge_off.dimensions(),
+                                                 t.solid_edges.dimensions()};
+    std::vector<ffi::AnyBuffer::Dimensions> all = {pd, fd};
+    for (const auto& d : tdims) all.push_back(d);
+    for (const ffi::AnyBuffer& x : more) all.push_back(x.dimensions());
+    batch_.assign(nb, 1);
+    for (const auto& d : all) {
+      if (d.size() < nb) {
+        error = "bad ranks";
+        return;
+      }
+      for (size_t a = 0; a < nb; a++) batch_[a] = std::max(batch_[a], d[a]);
+    }
+    for (const auto& d : all)
+      for (size_t a = 0; a < nb; a++)
+        if (d[a] != 1 && d[a] != batch_[a]) error = "batch axes that do not broadcast";
+    if (error) return;
+    for (size_t a = 0; a < nb; a++) B *= batch_[a];
     N = pd[nb];
     occ_.M = fd[nb];
     occ_.Ko = fd[nb + 1];
@@ -51,7 +106,12 @@ struct Inputs {
     auto ed = t.solid_edges.dimensions();
     NE_ = ed[ed.size() - 2];
     points = batched(p, N * 3);
-    occ_.faces = batched(faces, occ_.M * occ_.Ko * 3);
+    faces_map_ = BatchMap(batch_, fd);
+    store_.emplace_back();
+    int64_t nf = 1;
+    for (size_t a = 0; a < nb; a++) nf *= fd[a];
+    occ_.faces = as_double<T>(faces.untyped_data(), size_t(nf * occ_.M * occ_.Ko * 3), store_.back());
+    for (int k = 0; k < 5; k++) topo_map_[k] = BatchMap(batch_, tdims[k]);
     occ_.face_solid = t.face_solid.typed_data();
     occ_.face_closed = t.face_closed.typed_data();
     occ_.solid_faces = t.solid_faces.typed_data();
@@ -59,28 +119,48 @@ struct Inputs {
     occ_.solid_edges = t.solid_edges.typed_data();
   }
 
-  // A batched input of `per_batch` values per batch, as double (held as long as the inputs are).
+  // A batched input of `per_batch` values per batch element, as double, B blocks (held as long as
+  // the inputs are; copied where it is converted or broadcast).
   const double* batched(ffi::AnyBuffer x, int64_t per_batch) {
+    const BatchMap map(batch_, x.dimensions());
     store_.emplace_back();
-    return as_double<T>(x.untyped_data(), size_t(B * per_batch), store_.back());
+    if (map.identity) return as_double<T>(x.untyped_data(), size_t(B * per_batch), store_.back());
+    std::vector<double>& out = store_.back();
+    out.resize(size_t(B * per_batch));
+    const T* src = static_cast<const T*>(x.untyped_data());
+    for (int64_t b = 0; b < B; b++) {
+      const T* from = src + map(b) * per_batch;
+      std::copy(from, from + per_batch, out.begin() + b * per_batch);
+    }
+    return out.data();
   }
 
-  // Batch b's occluders (already double), K light vertices before the face refs.
+  // Batch element b's occluders (already double), K light vertices before the face refs.
   Occluders<double> occluders(int64_t b, int64_t K = 0) const {
     OccluderInputs o = occ_;
-    o.faces = static_cast<const double*>(occ_.faces) + b * o.M * o.Ko * 3;
-    o.face_solid += b * o.M;
-    o.face_closed += b * o.M;
-    o.solid_faces += b * 2 * o.S;
-    o.solid_edge_off += b * (o.S + 1);
-    o.solid_edges += b * 4 * NE_;
+    o.faces = static_cast<const double*>(occ_.faces) + faces_map_(b) * o.M * o.Ko * 3;
+    o.face_solid += topo_map_[0](b) * o.M;
+    o.face_closed += topo_map_[1](b) * o.M;
+    o.solid_faces += topo_map_[2](b) * 2 * o.S;
+    o.solid_edge_off += topo_map_[3](b) * (o.S + 1);
+    o.solid_edges += topo_map_[4](b) * 4 * NE_;
     std::vector<double> none;  // the faces are double: occ_double copies nothing
     return occ_double<double>(K, o, none);
   }
 
+  // Whether batch elements a and b read the same occluder buffers (then the same occluders).
+  bool same_occluders(int64_t a, int64_t b) const {
+    if (faces_map_(a) != faces_map_(b)) return false;
+    for (const BatchMap& m : topo_map_)
+      if (m(a) != m(b)) return false;
+    return true;
+  }
+
  private:
+  std::vector<int64_t> batch_;
   OccluderInputs occ_;
   int64_t NE_ = 0;
+  BatchMap faces_map_, topo_map_[5];
   std::deque<std::vector<double>> store_;  // converted inputs (a deque: earlier ones never move)
 };
 
@@ -89,19 +169,27 @@ inline ffi::Error invalid(const char* name, const char* what) {
 }
 
 // The prologue of every handler: the ranks checked, the float dispatch on the points' element
-// type, the inputs converted (`Inputs<T>`); then `body(inputs)`.
+// type, the inputs converted (`Inputs<T>`; `more`: the handler's further batched inputs, which
+// take part in the batch shape); then `body(inputs)`.
 template <class F>
 ffi::Error with_inputs(const char* name, ffi::AnyBuffer points, ffi::AnyBuffer faces, const Topology& topology,
-                       F&& body) {
+                       std::initializer_list<ffi::AnyBuffer> more, F&& body) {
   auto pd = points.dimensions();
   auto fd = faces.dimensions();
   if (pd.size() < 2 || fd.size() < 3 || fd.size() != pd.size() + 1) return invalid(name, "bad ranks");
   const auto t = points.element_type();
   if (t != ffi::F64 && t != ffi::F32) return invalid(name, "float32 or float64 only");
   return by_float(t == ffi::F64, [&](auto zero) {
-    Inputs<decltype(zero)> in(points, faces, topology);
+    Inputs<decltype(zero)> in(points, faces, topology, more);
+    if (in.error) return invalid(name, in.error);
     return body(in);
   });
+}
+
+template <class F>
+ffi::Error with_inputs(const char* name, ffi::AnyBuffer points, ffi::AnyBuffer faces, const Topology& topology,
+                       F&& body) {
+  return with_inputs(name, points, faces, topology, {}, std::forward<F>(body));
 }
 
 // Polygon codes: points (..., N, 3), normals (..., N, 3), light (..., K, 3), faces (..., M, Ko, 3)
@@ -111,14 +199,17 @@ ffi::Error poly_ffi(ffi::AnyBuffer points, ffi::AnyBuffer normals, ffi::AnyBuffe
                     int64_t threads, ffi::Result<S32> cls, ffi::Result<S32> counts, ffi::Result<S32> runs) {
   const char* name = "jaxshadow_poly_codes";
   const Topology topology{face_solid, face_closed, solid_faces, solid_edge_off, solid_edges};
-  return with_inputs(name, points, faces, topology, [&](auto& in) {
+  return with_inputs(name, points, faces, topology, {normals, light}, [&](auto& in) {
     auto ld_ = light.dimensions();
-    if (ld_.size() != in.nb + 2) return invalid(name, "bad ranks");
+    if (ld_.size() != in.nb + 2 || normals.dimensions().size() != in.nb + 2) return invalid(name, "bad ranks");
     const int64_t N = in.N, K = ld_[in.nb];
     const double* Nr = in.batched(normals, N * 3);
     const double* E = in.batched(light, K * 3);
+    std::shared_ptr<const Prepared> prep;  // of batch element b - 1's occluders
     for (int64_t b = 0; b < in.B; b++) {
-      int rc = poly_fixed<double>(N, in.points + b * N * 3, Nr + b * N * 3, K, E + b * K * 3, in.occluders(b, K),
+      const Occluders<double> occ = in.occluders(b, K);
+      if (!prep || !in.same_occluders(b, b - 1)) prep = prepared(occ);
+      int rc = poly_fixed<double>(N, in.points + b * N * 3, Nr + b * N * 3, K, E + b * K * 3, occ, *prep,
                                   int(threads), cap, cls->typed_data() + b * N, counts->typed_data() + b * N,
                                   runs->typed_data() + b * N * cap * jaxshadow_abi::kRunWidth);
       if (rc) return invalid(name, "light with more than 64 vertices");
@@ -133,12 +224,15 @@ ffi::Error hard_ffi(ffi::AnyBuffer points, ffi::AnyBuffer x, ffi::AnyBuffer face
                     S32 solid_faces, S32 solid_edge_off, S32 solid_edges, int64_t is_point, int64_t threads,
                     ffi::Result<S32> visible) {
   const Topology topology{face_solid, face_closed, solid_faces, solid_edge_off, solid_edges};
-  return with_inputs("jaxshadow_hard_visibility", points, faces, topology, [&](auto& in) {
+  return with_inputs("jaxshadow_hard_visibility", points, faces, topology, {x}, [&](auto& in) {
     const int64_t N = in.N;
     const double* X = in.batched(x, 3);
     std::vector<uint8_t> vis(N);
+    std::shared_ptr<const Prepared> prep;  // of batch element b - 1's occluders
     for (int64_t b = 0; b < in.B; b++) {
-      hard_plan<double>(N, in.points + b * N * 3, X + b * 3, int(is_point), in.occluders(b), int(threads), vis.data());
+      const Occluders<double> occ = in.occluders(b);
+      if (!prep || !in.same_occluders(b, b - 1)) prep = prepared(occ);
+      hard_plan<double>(N, in.points + b * N * 3, X + b * 3, int(is_point), occ, prep->bvh, int(threads), vis.data());
       int32_t* out = visible->typed_data() + b * N;
       for (int64_t i = 0; i < N; i++) out[i] = vis[i];
     }
@@ -152,12 +246,14 @@ ffi::Error segment_ffi(ffi::AnyBuffer points, ffi::AnyBuffer ends, ffi::AnyBuffe
                        S32 face_closed, S32 solid_faces, S32 solid_edge_off, S32 solid_edges, int64_t cap,
                        int64_t threads, ffi::Result<S32> counts, ffi::Result<S32> cand) {
   const Topology topology{face_solid, face_closed, solid_faces, solid_edge_off, solid_edges};
-  return with_inputs("jaxshadow_segment_candidates", points, faces, topology, [&](auto& in) {
+  return with_inputs("jaxshadow_segment_candidates", points, faces, topology, {ends}, [&](auto& in) {
     const int64_t N = in.N;
     const double* AB = in.batched(ends, 6);
+    std::shared_ptr<const Prepared> prep;  // of batch element b - 1's occluders
     for (int64_t b = 0; b < in.B; b++) {
       const Occluders<double> occ = in.occluders(b);
-      BVH bvh = build_bvh(occ);
+      if (!prep || !in.same_occluders(b, b - 1)) prep = prepared(occ);
+      const BVH& bvh = prep->bvh;
       V3<double> a = ld(AB + b * 6), bb = ld(AB + b * 6 + 3);
       const double* Pb = in.points + b * N * 3;
       int32_t* cnt = counts->typed_data() + b * N;

@@ -47,6 +47,7 @@
 //                                        allocations, freed with the last array that views them);
 //   ffi_handlers()                       the XLA FFI handlers (`ffi.h`) as PyCapsules, for traced
 //                                        programs;
+//   prepared_stats()                     the counts of the prepared-occluder cache (engine/prepared.h);
 //   ABI_VERSION, CODE_WIDTH              from `abi.h`, the one definition of the interface;
 //   HAS_FFI, JAXLIB_VERSION              whether the FFI handlers were compiled, and the jaxlib
 //                                        whose headers they were compiled against.
@@ -442,7 +443,9 @@ PyObject* py_hard_plan(PyObject*, PyObject* args) {
   if (!vis_o) return nullptr;
   Py_BEGIN_ALLOW_THREADS
   with_host_inputs(h, [&](auto& in) {
-    return hard_plan<double>(N, in.points(), in.rows(0), is_point, in.occluders(), threads, vis);
+    const Occluders<double> occ = in.occluders();
+    hard_plan<double>(N, in.points(), in.rows(0), is_point, occ, prepared(occ)->bvh, threads, vis);
+    return 0;
   });
   Py_END_ALLOW_THREADS
   return vis_o;
@@ -532,6 +535,12 @@ PyObject* py_segment_pieces(PyObject*, PyObject* args) {
   return Py_BuildValue("(NNNN)", cls_o, kept_o, off_o, pieces_o);
 }
 
+PyObject* py_prepared_stats(PyObject*, PyObject*) {
+  const PreparedStats& s = prepared_stats();
+  return Py_BuildValue("{s:L,s:L,s:L,s:L}", "lookups", (long long)s.lookups.load(), "hits", (long long)s.hits.load(),
+                       "builds", (long long)s.builds.load(), "polygon_builds", (long long)s.polygon_builds.load());
+}
+
 }  // namespace
 
 namespace {
@@ -565,6 +574,9 @@ PyMethodDef shadowc_methods[] = {
     {"hard_plan", py_hard_plan, METH_VARARGS, kHardPlanDoc},
     {"segment_plan", py_segment_plan, METH_VARARGS, kSegmentPlanDoc},
     {"segment_pieces", py_segment_pieces, METH_VARARGS, kSegmentPiecesDoc},
+    {"prepared_stats", py_prepared_stats, METH_NOARGS,
+     "prepared_stats()\n--\n\nThe prepared-occluder cache's counts since the process started (engine/prepared.h): "
+     "{'lookups', 'hits', 'builds', 'polygon_builds'}."},
     {"ffi_handlers", py_ffi_handlers, METH_NOARGS,
      "ffi_handlers()\n--\n\n{XLA FFI target name: PyCapsule} of the engine's handlers (empty when built without them)."},
     {nullptr, nullptr, 0, nullptr},

@@ -73,7 +73,7 @@ def test_the_built_module_exports_the_header_interface():
     assert lib.CODE_WIDTH == _header_constant("kCodeWidth")
     names = {n for n in dir(lib) if not n.startswith("__")}
     assert names == {"ABI_VERSION", "CODE_WIDTH", "HAS_FFI", "JAXLIB_VERSION", "Owned", "poly_plan", "hard_plan",
-                     "segment_plan", "segment_pieces", "ffi_handlers"}
+                     "segment_plan", "segment_pieces", "prepared_stats", "ffi_handlers"}
     if lib.HAS_FFI:
         assert set(lib.ffi_handlers()) == {vis.FFI_TARGET, vis.FFI_HARD, vis.FFI_SEGMENT, segment_pieces.FFI_PIECES}
     else:
@@ -200,22 +200,68 @@ def test_ffi_handlers_match_the_host_functions(dt):
         np.testing.assert_array_equal(scand[i, :k], cand[off[i]:off[i] + k])
 
 
+def _assert_codes_match_host(cls, cnt, p, n, verts, occ) -> None:
+    host = vis.polygon_codes(p, n, verts, occ, codes=True)
+    np.testing.assert_array_equal(cls, host.classes)
+    pen = host.classes == vis.PENUMBRA
+    assert np.any(pen)
+    np.testing.assert_array_equal(cnt[pen], host.counts[pen])
+
+
 @with_ffi
-def test_ffi_handlers_batch_under_vmap():
-    """`vmap` over the light (broadcast_all): each batch is the host call for its light."""
+@pytest.mark.parametrize("dt", [np.float32, np.float64])
+def test_ffi_handlers_batch_under_vmap(dt):
+    """Under `vmap` (vmap_method="expand_dims": an input not batched along an axis comes with a
+    size-1 axis there) each batch element is the host call for its own inputs: over the light,
+    over the occluders (a moved mesh, the receivers shared), and nested (lights outer, receiver sets
+    inner: each input batched along one axis only); hard shadows and segment candidates over the
+    light."""
     scene = _scene()
-    verts, occ = _host(scene, np.float64)
+    verts, occ = _host(scene, dt)
     p, n = _receivers(40)
-    shifts = np.array([[0.0, 0.0, 0.0], [0.3, -0.2, 0.1]])
-    fn = jax.vmap(lambda v: vis.traced_polygon_codes(jnp.asarray(p), jnp.asarray(n), v, jnp.asarray(occ.faces),
-                                                     scene.occluder_topology, 32))
-    cls, cnt, _ = (np.asarray(x) for x in fn(jnp.asarray(verts[None] + shifts[:, None])))
-    for b, s in enumerate(shifts):
-        host = vis.polygon_codes(p, n, verts + s, occ, codes=True)
-        np.testing.assert_array_equal(cls[b], host.classes)
-        pen = host.classes == vis.PENUMBRA
-        assert np.any(pen)
-        np.testing.assert_array_equal(cnt[b][pen], host.counts[pen])
+    p, n = p.astype(dt), n.astype(dt)
+    topo = scene.occluder_topology
+    faces = jnp.asarray(occ.faces)
+    shifts = np.array([[0.0, 0.0, 0.0], [0.3, -0.2, 0.1], [-0.1, 0.25, -0.2]], dt)
+
+    def codes(pp, v, ff):
+        return vis.traced_polygon_codes(pp, jnp.asarray(n), v, ff, topo, 32)
+
+    over_light = jax.jit(jax.vmap(lambda v: codes(jnp.asarray(p), v, faces)))
+    cls, cnt, _ = (np.asarray(x) for x in over_light(jnp.asarray(verts[None] + shifts[:, None])))
+    for b, sh in enumerate(shifts):
+        _assert_codes_match_host(cls[b], cnt[b], p, n, verts + sh, occ)
+
+    over_faces = jax.jit(jax.vmap(lambda ff: codes(jnp.asarray(p), jnp.asarray(verts), ff)))
+    cls, cnt, _ = (np.asarray(x) for x in over_faces(faces[None] + 0.5 * shifts[:, None, None]))
+    for b, sh in enumerate(shifts):
+        moved = vis.HostOccluders.of(occ.faces + 0.5 * sh, topo, dt)
+        _assert_codes_match_host(cls[b], cnt[b], p, n, verts, moved)
+
+    sets = np.stack([p, p[::-1] + np.array([0.05, -0.05, 0.0], dt)])
+    nested = jax.jit(jax.vmap(lambda v: jax.vmap(lambda pp: codes(pp, v, faces))(jnp.asarray(sets))))
+    cls, cnt, _ = (np.asarray(x) for x in nested(jnp.asarray(verts[None] + shifts[:, None])))
+    assert cls.shape == (len(shifts), len(sets), len(p))
+    for b, sh in enumerate(shifts):
+        for j, q in enumerate(sets):
+            _assert_codes_match_host(cls[b, j], cnt[b, j], q, n, verts + sh, occ)
+
+    lamps = verts.mean(axis=0)[None] + shifts
+    vis_fn = jax.jit(jax.vmap(lambda x: vis.traced_hard_visibility(jnp.asarray(p), x, True, faces, topo)))
+    visible = np.asarray(vis_fn(jnp.asarray(lamps)))
+    for b, x in enumerate(lamps):
+        np.testing.assert_array_equal(visible[b] == 1, vis.hard_visibility(p, x, True, occ))
+    assert np.any(visible == 0) and np.any(visible == 1)
+    seg_fn = jax.jit(jax.vmap(lambda a: vis.traced_segment_candidates(jnp.asarray(p), a, a + verts[2] - verts[0],
+                                                                      faces, topo, 8)))
+    scnt, scand = (np.asarray(x) for x in seg_fn(jnp.asarray(verts[0][None] + shifts)))
+    for b, sh in enumerate(shifts):
+        off, cand = vis.segment_candidates(p, verts[0] + sh, verts[2] + sh, occ)
+        np.testing.assert_array_equal(scnt[b], np.diff(off))
+        assert np.any(scnt[b] > 0)
+        for i in range(len(p)):
+            k = min(int(scnt[b, i]), 8)
+            np.testing.assert_array_equal(scand[b, i, :k], cand[off[i]:off[i] + k])
 
 
 @with_ffi

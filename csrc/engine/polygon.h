@@ -252,7 +252,7 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
   auto face_status = [&](int64_t f, bool closed_ok, FaceSide<T>& fs) -> int {
     const int64_t Ko = occ.Ko;
     if (Ko > 64) return 0;
-    if (call.light_side[f] != 0 && point_side(occ, f, p) == call.light_side[f]) return 0;
+    if (const int ls = call.light_side_of(f); ls != 0 && point_side(occ, f, p) == ls) return 0;
     // Cheap rejections first (_bsp.occluder_relevance): all vertices strictly outside one cone
     // plane, or strictly behind the emitter plane (|r|_1 >= |r|: a looser, still strict, test).
     for (int k = 0; k < np0; k++) {
@@ -504,7 +504,7 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
       if (!strict_front && h > 0) return 3;
       front[f - f0] = strict_front;
       any_front = any_front || strict_front;
-      if (strict_front && call.light_side[f] > 0) return 0;  // the face's plane separates solid and pyramid
+      if (strict_front && call.light_side_of(f) > 0) return 0;  // the face's plane separates solid and pyramid
     }
     if (!any_front) return 3;  // p inside the solid or on its surface
     // Silhouette planes (through p and the edges between a front and a back face).

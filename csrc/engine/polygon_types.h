@@ -198,10 +198,14 @@ struct PolyCall {
   Light<T> L;
   Occluders<T> occ;
   const BVH* bvh;
-  // Per face, from the light alone: +1 all light vertices strictly in front of the face's plane,
-  // -1 all strictly behind, 0 otherwise (a receiver strictly on that same side cannot be shadowed by
-  // it: the plane separates the face from the receiver's pyramid).
+  // Per face, from the light alone (`light_side_of`): +1 all light vertices strictly in front of
+  // the face's plane, -1 all strictly behind, 0 otherwise (a receiver strictly on that same side
+  // cannot be shadowed by it: the plane separates the face from the receiver's pyramid). Computed
+  // for every face by prepare_call for batches that test many faces, else per face when tested;
+  // from the faces' Newell normals (`face_normal`: n (3) and |n| per face, `face_normals`).
   std::vector<int8_t> light_side;
+  const double* face_normal = nullptr;
+  int light_side_of(int64_t f) const;
   // The light's Newell normal (unscaled) and the largest coordinate magnitude of the hierarchy's
   // items (bounds rounding in quick_class).
   V3<T> ne_raw{0, 0, 0};
@@ -290,10 +294,43 @@ std::vector<int32_t> edge_twins(const Occluders<T>& occ) {
   return twin;
 }
 
-// Per-call data of the light and the occluders (`light_side`, `ne_raw`, `edge_index`,
-// `item_extent`).
+// Per face its Newell normal about its first vertex and that normal's length (M, 4): what
+// `light_side_of` reads, from the occluders alone (prepared.h keeps it with the occluder set).
 template <class T>
-void prepare_call(PolyCall<T>& call) {
+std::vector<double> face_normals(const Occluders<T>& occ) {
+  std::vector<double> out(size_t(4 * occ.M));
+  for (int64_t f = 0; f < occ.M; f++) {
+    V3<T> o = occ.vert(f, 0), n{0, 0, 0};
+    for (int64_t i = 0; i < occ.Ko; i++) n = n + cross(occ.vert(f, i) - o, occ.vert(f, (i + 1) % occ.Ko) - o);
+    double* q = out.data() + 4 * f;
+    q[0] = double(n.x), q[1] = double(n.y), q[2] = double(n.z), q[3] = double(norm(n));
+  }
+  return out;
+}
+
+template <class T>
+int PolyCall<T>::light_side_of(int64_t f) const {
+  if (!light_side.empty()) return light_side[size_t(f)];
+  const double* q = face_normal + 4 * f;
+  const V3<T> o = occ.vert(f, 0), n{T(q[0]), T(q[1]), T(q[2])};
+  const T nn = T(q[3]);
+  if (!(nn > 0)) return 0;
+  bool pos = true, neg = true;
+  for (int64_t i = 0; i < L.K; i++) {
+    V3<T> r = L.v(i) - o;
+    T h = dot(r, n), m = T(1e3) * eps_of<T>() * nn * (std::fabs(r.x) + std::fabs(r.y) + std::fabs(r.z) + absmax(o));
+    pos = pos && h > m;
+    neg = neg && h < -m;
+  }
+  return pos ? 1 : (neg ? -1 : 0);
+}
+
+// Per-call data of the light and the occluders (`ne_raw`, `edge_index`, `item_extent`, and
+// `light_side` for every face when `every_side`: a batch whose receivers test more faces than
+// there are; otherwise each face's side is computed when a receiver tests it). `call.face_normal`
+// must be set (`face_normals`).
+template <class T>
+void prepare_call(PolyCall<T>& call, bool every_side) {
   const int64_t K = call.L.K;
   call.ne_raw = V3<T>{0, 0, 0};
   for (int64_t i = 0; i < K; i++) call.ne_raw = call.ne_raw + cross(call.L.v(i), call.L.v((i + 1) % K));
@@ -309,22 +346,11 @@ void prepare_call(PolyCall<T>& call) {
     const double ne[3] = {double(call.ne_raw.x), double(call.ne_raw.y), double(call.ne_raw.z)};
     call.volume = occlusion_volume(lv.data(), K, ne, call.bvh->nodes[0].box, double(eps_of<T>()));
   }
-  const Occluders<T>& occ = call.occ;
-  call.light_side.assign(occ.M, 0);
-  for (int64_t f = 0; f < occ.M; f++) {
-    V3<T> o = occ.vert(f, 0), n{0, 0, 0};
-    for (int64_t i = 0; i < occ.Ko; i++) n = n + cross(occ.vert(f, i) - o, occ.vert(f, (i + 1) % occ.Ko) - o);
-    T nn = norm(n);
-    if (!(nn > 0)) continue;
-    bool pos = true, neg = true;
-    for (int64_t i = 0; i < call.L.K; i++) {
-      V3<T> r = call.L.v(i) - o;
-      T h = dot(r, n), m = T(1e3) * eps_of<T>() * nn * (std::fabs(r.x) + std::fabs(r.y) + std::fabs(r.z) + absmax(o));
-      pos = pos && h > m;
-      neg = neg && h < -m;
-    }
-    call.light_side[f] = pos ? 1 : (neg ? -1 : 0);
-  }
+  call.light_side.clear();
+  if (!every_side) return;
+  std::vector<int8_t> side(size_t(call.occ.M));
+  for (int64_t f = 0; f < call.occ.M; f++) side[size_t(f)] = int8_t(call.light_side_of(f));
+  call.light_side.swap(side);
 }
 
 // The solids' umbra volumes for `call` (after prepare_call), for batches of at least

@@ -7,12 +7,18 @@
 // the occluder arrays' full contents (compared byte for byte, never by a hash alone) keeps the
 // last few sets, so repeated calls on one scene (every light, every chunk of receivers, every
 // `js.irradiance` call) build them once. Small sets are not cached: they build in microseconds.
+// Every light kind reads the hierarchy; what only polygon lights read (`PolygonParts`) is built
+// when the first polygon light needs it, so that point, directional and segment lights share
+// the cache without paying for it.
 #ifndef JAXSHADOW_SHADOWC_PREPARED_H_
 #define JAXSHADOW_SHADOWC_PREPARED_H_
 
+#include <algorithm>
+#include <atomic>
 #include <cstring>
 #include <memory>
 #include <mutex>
+#include <vector>
 
 #include "silhouette.h"
 
@@ -20,13 +26,76 @@ namespace jaxshadow_engine {
 
 constexpr int64_t kCacheMinFaces = 1024;
 constexpr size_t kCacheEntries = 4;
+// Faces a receiver is taken to test (bind_call's choice of computing every face's light side).
+constexpr int64_t kSideTestsPerReceiver = 64;
+
+// What polygon lights read besides the hierarchy: the faces' edge twins, the silhouette path's
+// hierarchy of mesh edges (without the light's heights: silhouette_heights), the bodies inside the
+// mesh components (umbra_sections.h), the faces' Newell normals (`face_normals`) and their
+// distinct vertices (`distinct_vertices`).
+struct PolygonParts {
+  std::vector<int32_t> twin;
+  SilhouetteTree sil;
+  InteriorSections sections;
+  std::vector<double> face_normal;
+  std::vector<int64_t> verts;
+};
+
+// The faces' vertex slots (f * Ko + i) whose coordinates (bit for bit) no earlier slot has, in slot
+// order: a mesh's vertex is in about six faces, so a per-light pass over the vertices (the light's
+// heights) reads a sixth as much; a minimum or maximum over them is that over every slot (a later
+// repeat of a value never changes either).
+template <class T>
+std::vector<int64_t> distinct_vertices(const Occluders<T>& occ) {
+  const int64_t n = occ.M * occ.Ko;
+  std::vector<int64_t> order(static_cast<size_t>(n));
+  for (int64_t k = 0; k < n; k++) order[size_t(k)] = k;
+  auto bits = [&](int64_t k) { return occ.faces + 3 * k; };
+  std::stable_sort(order.begin(), order.end(), [&](int64_t a, int64_t b) {
+    return std::memcmp(bits(a), bits(b), 3 * sizeof(T)) < 0;
+  });
+  std::vector<uint8_t> first(size_t(n), 0);
+  for (size_t j = 0; j < order.size(); j++)
+    if (j == 0 || std::memcmp(bits(order[j - 1]), bits(order[j]), 3 * sizeof(T)) != 0) first[size_t(order[j])] = 1;
+  std::vector<int64_t> out;
+  for (int64_t k = 0; k < n; k++)
+    if (first[size_t(k)]) out.push_back(k);
+  return out;
+}
+
+// Counts of the cache's work since the process started (`prepared_stats`, for tests): lookups of
+// a cached-size set, those found, hierarchies built (any size) and polygon parts built.
+struct PreparedStats {
+  std::atomic<int64_t> lookups{0}, hits{0}, builds{0}, polygon_builds{0};
+};
+
+inline PreparedStats& prepared_stats() {
+  static PreparedStats stats;
+  return stats;
+}
 
 struct Prepared {
   std::vector<char> key;
   BVH bvh;
-  std::vector<int32_t> twin;
-  SilhouetteTree sil;  // without the light's heights (silhouette_heights)
-  InteriorSections sections;  // bodies inside the mesh's components (umbra_sections.h)
+
+  // The polygon lights' parts of `occ` (this set's occluders), built on the first call (once,
+  // whichever thread asks first; the others wait for it).
+  template <class T>
+  const PolygonParts& polygon(const Occluders<T>& occ) const {
+    std::call_once(polygon_once_, [&]() {
+      prepared_stats().polygon_builds++;
+      polygon_.twin = edge_twins(occ);
+      build_silhouette_tree(occ, polygon_.twin, polygon_.sil);
+      build_interior_sections(occ, polygon_.sil, polygon_.sections);
+      polygon_.face_normal = face_normals(occ);
+      polygon_.verts = distinct_vertices(occ);
+    });
+    return polygon_;
+  }
+
+ private:
+  mutable std::once_flag polygon_once_;
+  mutable PolygonParts polygon_;
 };
 
 // Calls `put(pointer, bytes)` on each piece of `occ`'s key, in the key's order.
@@ -76,21 +145,21 @@ std::shared_ptr<const Prepared> prepared(const Occluders<T>& occ) {
   static std::vector<std::shared_ptr<const Prepared>> cache;  // most recent last
   const bool cached = occ.M >= kCacheMinFaces;
   if (cached) {
+    prepared_stats().lookups++;
     std::lock_guard<std::mutex> lock(mu);
     for (size_t i = 0; i < cache.size(); i++)
       if (key_matches(cache[i]->key, occ)) {
         auto hit = cache[i];
         cache.erase(cache.begin() + long(i));
         cache.push_back(hit);
+        prepared_stats().hits++;
         return hit;
       }
   }
+  prepared_stats().builds++;
   auto out = std::make_shared<Prepared>();
   out->bvh = build_bvh(occ);
   prepare_solids(occ, out->bvh);
-  out->twin = edge_twins(occ);
-  build_silhouette_tree(occ, out->twin, out->sil);
-  build_interior_sections(occ, out->sil, out->sections);
   if (cached) {
     out->key = occluder_key(occ);
     std::lock_guard<std::mutex> lock(mu);
@@ -100,13 +169,18 @@ std::shared_ptr<const Prepared> prepared(const Occluders<T>& occ) {
   return out;
 }
 
-// A polygon light's per-call data over prepared occluders (`prep` outlives `call`).
+// A polygon light's per-call data over prepared occluders (`prep` outlives `call`), for a call of
+// N receivers.
 template <class T>
-void bind_call(PolyCall<T>& call, const Prepared& prep) {
-  prepare_call(call);
-  call.twin_ptr = &prep.twin;
-  call.sil = &prep.sil;
-  silhouette_heights(call);
+void bind_call(PolyCall<T>& call, const Prepared& prep, int64_t N) {
+  const PolygonParts& parts = prep.polygon(call.occ);
+  call.face_normal = parts.face_normal.data();
+  // Every face's side of the light when the receivers are likely to test more faces than there
+  // are (a face-path receiver tests tens to hundreds), else each when tested: the same values.
+  prepare_call(call, N * kSideTestsPerReceiver >= call.occ.M);
+  call.twin_ptr = &parts.twin;
+  call.sil = &parts.sil;
+  silhouette_heights(call, &parts.verts);
   // JAXSHADOW_UMBRA_SECTIONS=0: no early umbra test (for comparing it with the silhouette path);
   // =cells: the body cells' test alone (section_shows, not section_shows_exact).
   const char* env = std::getenv("JAXSHADOW_UMBRA_SECTIONS");
@@ -115,7 +189,7 @@ void bind_call(PolyCall<T>& call, const Prepared& prep) {
     std::vector<double> lv(size_t(3 * K));
     for (int64_t i = 0; i < 3 * K; i++) lv[size_t(i)] = double(call.L.E[i]);
     const double ne[3] = {double(call.ne_raw.x), double(call.ne_raw.y), double(call.ne_raw.z)};
-    prepare_sections(call.sections, &prep.sections, lv.data(), K, ne);
+    prepare_sections(call.sections, &parts.sections, lv.data(), K, ne);
     call.sections.exact = !(env && std::strcmp(env, "cells") == 0);
   }
 }

@@ -34,6 +34,7 @@
 #include <cstdlib>
 #include <cstring>
 #include <limits>
+#include <memory>
 #include <vector>
 
 #include "driver.h"
@@ -142,7 +143,8 @@ int32_t segment_pieces(const Occluders<T>& occ, const BVH& bvh, V3<T> p, V3<T> a
 template <class T>
 int segment_pieces_plan(int64_t N, const T* P, const T* A, const T* B, const Occluders<T>& occ, int threads,
                         int32_t* cls, int32_t* kept, int64_t* offsets, int32_t** pieces_out) {
-  BVH bvh = build_bvh(occ);
+  const std::shared_ptr<const Prepared> prep = prepared(occ);  // the cached hierarchy
+  const BVH& bvh = prep->bvh;
   const V3<T> a = ld(A), b = ld(B);
   std::vector<std::vector<int32_t>> lists(size_t(std::max<int64_t>(N, 0)));
   parallel_for(N, default_threads(threads), [&](int, int64_t s, int64_t e) {
@@ -169,7 +171,8 @@ int segment_pieces_plan(int64_t N, const T* P, const T* A, const T* B, const Occ
 template <class T>
 void segment_pieces_fixed(int64_t N, const T* P, const T* A, const T* B, const Occluders<T>& occ, int threads,
                           int64_t cap, int32_t* cls, int32_t* counts, int32_t* pieces) {
-  BVH bvh = build_bvh(occ);
+  const std::shared_ptr<const Prepared> prep = prepared(occ);  // the cached hierarchy
+  const BVH& bvh = prep->bvh;
   const V3<T> a = ld(A), b = ld(B);
   parallel_for(N, default_threads(threads), [&](int, int64_t s, int64_t e) {
     SegmentWork w;

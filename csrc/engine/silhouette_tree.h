@@ -361,9 +361,11 @@ void build_silhouette_tree(const Occluders<T>& occ, const std::vector<int32_t>& 
 }
 
 // The occluders' heights above the emitter plane (ne . (x - e0)) for one light: whether the
-// silhouette path may serve this call (`call.sil_ok`) and its bounds.
+// silhouette path may serve this call (`call.sil_ok`) and its bounds. `verts` (nullable): the
+// distinct vertex slots of the faces, first occurrences in slot order (`distinct_vertices`), which
+// give the same bounds as every slot.
 template <class T>
-void silhouette_heights(PolyCall<T>& call) {
+void silhouette_heights(PolyCall<T>& call, const std::vector<int64_t>* verts = nullptr) {
   call.sil_ok = false;
   if (!call.sil || !call.sil->ok) return;
   // JAXSHADOW_SILHOUETTE=0 switches the path off (every receiver takes the face path): for
@@ -374,7 +376,9 @@ void silhouette_heights(PolyCall<T>& call) {
   const Occluders<T>& occ = call.occ;
   const V3<T> ne = call.ne_raw, e0 = call.L.v(0);
   double lo = std::numeric_limits<double>::infinity(), hi = -lo;
-  for (int64_t k = 0; k < occ.M * occ.Ko; k++) {
+  const int64_t n = verts ? int64_t(verts->size()) : occ.M * occ.Ko;
+  for (int64_t j = 0; j < n; j++) {
+    const int64_t k = verts ? (*verts)[size_t(j)] : j;
     const double h = double(dot(ne, ld(occ.faces + 3 * k) - e0));
     lo = std::min(lo, h);
     hi = std::max(hi, h);

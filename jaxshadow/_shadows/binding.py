@@ -34,7 +34,7 @@ from __future__ import annotations
 import functools
 import os
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -144,6 +144,14 @@ def warn_no_ffi() -> None:
     warnings.warn(f"jaxshadow: {_ffi_status()[1]}. Exact shadows inside traced programs use the device kernels "
                   "(same values, but time and memory grow with the number of occluders).", RuntimeWarning,
                   stacklevel=4)
+
+
+def prepared_stats() -> dict[str, int]:
+    """The counts of the engine's cache of prepared occluder sets (`csrc/engine/prepared.h`) since
+    the process started: `lookups` of sets large enough to be cached, `hits` among them, `builds`
+    of a set's hierarchy (any size), `polygon_builds` of what only polygon lights read (edge twins,
+    the silhouette path's hierarchy, ...). Raises where the engine is not built."""
+    return dict(_require().prepared_stats())
 
 
 def threads() -> int:
@@ -261,6 +269,32 @@ def segment_candidates(points: np.ndarray, a: np.ndarray, b: np.ndarray, occ: Ho
 # --------------------------------------------------------------------------------------
 
 
+class VertexTable(NamedTuple):
+    """The table the codes' global vertex refs index, `[light; faces.reshape(-1, 3)]`, kept as
+    its two parts: under `vmap` over light poses the faces are not copied per pose."""
+
+    light: Array  # (K, 3)
+    faces: Array  # (M * Ko, 3)
+
+
+def vertex_table(verts: Array, faces: Array) -> VertexTable:
+    """The table the codes' global vertex refs index (`VertexTable`: `verts`, then the faces'
+    vertices row by row)."""
+    return VertexTable(verts, faces.reshape(-1, 3))
+
+
+def _vertex(V: Array | VertexTable, idx: Array) -> Array:
+    """Rows `idx` (clipped to the table) of `V`: an array `(v, 3)` or a `VertexTable`."""
+    if not isinstance(V, VertexTable):
+        return jnp.take(V, jnp.clip(idx, 0, V.shape[0] - 1), axis=0)
+    k, nf = V.light.shape[0], V.faces.shape[0]
+    light = jnp.take(V.light, jnp.clip(idx, 0, k - 1), axis=0)
+    if nf == 0:
+        return light
+    face = jnp.take(V.faces, jnp.clip(idx - k, 0, nf - 1), axis=0)
+    return jnp.where((idx < k)[..., None], light, face)
+
+
 def face_frames(faces: Float[Array, "m ko 3"]) -> tuple[Array, Array]:
     """Per face its Newell normal (from coordinates relative to its first vertex) and first
     vertex: what the emitter-plane cut planes of `decode_endpoints` need, computed once a call."""
@@ -272,14 +306,15 @@ def decode_endpoints(
     p: Float[Array, "3"],
     n: Float[Array, "3"],
     verts: Float[Array, "k 3"],
-    V: Float[Array, "v 3"],
+    V: Float[Array, "v 3"] | VertexTable,
     face_n: Float[Array, "m 3"],
     face_0: Float[Array, "m 3"],
     codes: Int[Array, "e 7"],
 ) -> Float[Array, "e 3"]:
     r"""The points named by endpoint codes (`csrc/shadowc.cc`), as `jaxshadow._kernels.clip` computes them.
 
-    `V = [verts; faces.reshape(-1, 3)]` is the table the global vertex refs index; `face_n`,
+    `V = [verts; faces.reshape(-1, 3)]` is the table the global vertex refs index (an array, or
+    the same as a `VertexTable`: `vertex_table`); `face_n`,
     `face_0` from `face_frames`. Codes: `[kind, ...]` with kind 0 a light vertex, 1 a light edge's
     horizon crossing (as `horizon_clip_edges`), 2 a vertex projected from `p` onto the light's
     plane (`_clip._project`), 3 an occluder edge's crossing with that plane, projected, 4 the line
@@ -290,6 +325,7 @@ def decode_endpoints(
     carry no gradient).
     """
     k = verts.shape[0]
+    vert = functools.partial(_vertex, V)
     e0 = verts[0]
     ne = newell_normal(verts)
     scale = _pow2_scale(jnp.max(jnp.abs(ne)))
@@ -297,14 +333,13 @@ def decode_endpoints(
     hp = jnp.dot(ne, p - e0)
     codes = jax.lax.stop_gradient(codes)
     kind = codes[:, 0]
-    nv = V.shape[0]
 
     def take(table: Array, idx: Array) -> Array:
         return jnp.take(table, jnp.clip(idx, 0, table.shape[0] - 1), axis=0)
 
     i1, i2 = codes[:, 1], codes[:, 2]
-    va = take(V, i1)
-    vb = take(V, jnp.where(kind == K_HORIZON, (i1 + 1) % k, i2))
+    va = vert(i1)
+    vb = vert(jnp.where(kind == K_HORIZON, (i1 + 1) % k, i2))
     on_light = (kind == K_HORIZON)[:, None]
     h = jnp.where(on_light, n[None, :], ne[None, :])
     q = jnp.where(on_light, p[None, :], e0[None, :])
@@ -319,7 +354,7 @@ def decode_endpoints(
                   jnp.where((kind == K_LIGHT)[:, None], va, x))
 
     def plane(t_: Array, a: Array, b: Array) -> Array:
-        through = edge_planes(p, take(V, a), take(V, b))
+        through = edge_planes(p, vert(a), vert(b))
         fn, f0 = take(face_n, a), take(face_0, a)
         d = jnp.sum(fn * (f0 - p[None, :]), axis=-1)
         cut = (hp * jnp.sign(d))[:, None] * fn + jnp.abs(d)[:, None] * ne[None, :]
@@ -330,7 +365,6 @@ def decode_endpoints(
     n2 = plane(codes[:, 4], codes[:, 5], codes[:, 6])
     y = jax.vmap(_crossing_point, in_axes=(None, 0, None, None))(p, jnp.cross(n1, n2), ne, hp)
     out = jnp.where((kind == K_PLANES)[:, None], y, x)
-    del nv
     return jnp.where((kind == K_UNUSED)[:, None], e0[None, :], out)
 
 
@@ -338,7 +372,7 @@ def edges_from_codes(
     p: Float[Array, "3"],
     n: Float[Array, "3"],
     verts: Float[Array, "k 3"],
-    V: Float[Array, "v 3"],
+    V: Float[Array, "v 3"] | VertexTable,
     face_n: Float[Array, "m 3"],
     face_0: Float[Array, "m 3"],
     runs: Int[Array, "c 2 7"],
@@ -347,11 +381,6 @@ def edges_from_codes(
     first vertex): the edge soup `masked_contour_form_factor` and `contour_specular_kernel` take."""
     pts = decode_endpoints(p, n, verts, V, face_n, face_0, runs.reshape(-1, CODE_WIDTH)).reshape(runs.shape[0], 2, 3)
     return pts[:, 0], pts[:, 1]
-
-
-def vertex_table(verts: Array, faces: Array) -> Array:
-    """`V = [verts; faces.reshape(-1, 3)]`: the table the codes' global vertex refs index."""
-    return jnp.concatenate([verts, faces.reshape(-1, 3)], axis=0)
 
 
 # --------------------------------------------------------------------------------------
@@ -376,7 +405,8 @@ def traced_polygon_codes(
     that are traced: `(classes (N,), counts (N,), runs (N, capacity, 2, 7))`. Receivers whose
     boundary has more than `capacity` (static) edges have `counts > capacity` and only their first
     `capacity` runs: the caller must detect that (the result is then not exact). Carries no
-    gradient (its inputs are stop-gradient'ed); `vmap` broadcasts all inputs."""
+    gradient (its inputs are stop-gradient'ed). Under `vmap` an input that is not batched is passed
+    once (a batch axis of size 1, `vmap_method="expand_dims"`), not copied per batch element."""
     _require_ffi()
     topo = topology if topology is not None else OccluderTopology.independent(faces.shape[0])
     sg = jax.lax.stop_gradient
@@ -386,7 +416,7 @@ def traced_polygon_codes(
         FFI_TARGET,
         (jax.ShapeDtypeStruct((n_pts,), jnp.int32), jax.ShapeDtypeStruct((n_pts,), jnp.int32),
          jax.ShapeDtypeStruct((n_pts, capacity, 2, CODE_WIDTH), jnp.int32)),
-        vmap_method="broadcast_all",
+        vmap_method="expand_dims",
     )
     out: Any = call(sg(points), sg(normals.astype(dt)), sg(verts.astype(dt)), sg(faces.astype(dt)), *_topology_arrays(topo),
                 cap=np.int64(capacity), threads=np.int64(threads()))
@@ -413,7 +443,7 @@ def traced_hard_visibility(
     sg = jax.lax.stop_gradient
     dt = points.dtype
     call = jax.ffi.ffi_call(FFI_HARD, jax.ShapeDtypeStruct((points.shape[0],), jnp.int32),
-                            vmap_method="broadcast_all")
+                            vmap_method="expand_dims")
     return call(sg(points), sg(x.astype(dt)), sg(faces.astype(dt)), *_topology_arrays(topo),
                 is_point=np.int64(bool(is_point)), threads=np.int64(threads()))
 
@@ -437,7 +467,7 @@ def traced_segment_candidates(
     call = jax.ffi.ffi_call(
         FFI_SEGMENT,
         (jax.ShapeDtypeStruct((n_pts,), jnp.int32), jax.ShapeDtypeStruct((n_pts, capacity), jnp.int32)),
-        vmap_method="broadcast_all",
+        vmap_method="expand_dims",
     )
     ends = jnp.stack([a.astype(dt), b.astype(dt)])
     out: Any = call(sg(points), sg(ends), sg(faces.astype(dt)), *_topology_arrays(topo), cap=np.int64(capacity),
