@@ -129,10 +129,27 @@ def test_evaluator_is_chosen_from_what_the_inputs_are() -> None:
     assert chosen == ["HostEngine", "Planned", "TracedEngine", "DeviceKernels"]
 
 
+SCENE = _scene()
+_TRACED: dict = {}
+
+
+def _traced(integ):
+    """`run(points, normals, eyes) -> (values, overflow)`: `ev.TracedEngine(64)` on SCENE with
+    `integ`, inside one compiled program. An integrand without array leaves (Lambert) gets one
+    wrapper per module, so the tests that evaluate it on the same receivers share its
+    compilation; one with leaves (Phong's exponent) is closed over by a wrapper of its own."""
+    def run(a, b, c, i=integ):
+        return ev.TracedEngine(64)(SCENE, i, ev.receivers(a, b, c, "test"))
+
+    if jax.tree_util.tree_leaves(integ):
+        return jax.jit(run)
+    return _TRACED.setdefault(type(integ), jax.jit(run))
+
+
 @needs_engine
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_the_four_evaluators_agree(dtype) -> None:
-    scene = _scene()
+    scene = SCENE
     p, n = (a.astype(dtype) for a in _receivers())
     eye = np.array([0.5, -1.5, 2.0], dtype)
     rx = ev.receivers(jnp.asarray(p), jnp.asarray(n), jnp.broadcast_to(jnp.asarray(eye), p.shape), "test")
@@ -146,8 +163,7 @@ def test_the_four_evaluators_agree(dtype) -> None:
         assert scale > 0
         for evaluator in (ev.Planned(), ev.TracedEngine(64), ev.DeviceKernels()):
             if isinstance(evaluator, ev.TracedEngine):  # abstract values: inside one compiled program
-                run = jax.jit(lambda a, b, c, e=evaluator, i=integ: e(scene, i, ev.receivers(a, b, c, "test")))
-                out, overflow = run(rx.points, rx.normals, jnp.broadcast_to(jnp.asarray(eye), p.shape))
+                out, overflow = _traced(integ)(rx.points, rx.normals, jnp.broadcast_to(jnp.asarray(eye), p.shape))
             else:
                 out, overflow = evaluator(scene, integ, rx)
             assert not bool(overflow)
@@ -188,7 +204,7 @@ class _NoEye(Lambert):
 def test_an_integrand_that_reads_no_eye_is_given_none() -> None:
     """Receivers with eyes (as `js.shade` builds them for both terms): Lambert is handed none by
     every evaluator, Phong its eyes; values as Lambert's own."""
-    scene = _scene()
+    scene = SCENE
     p, n = _receivers()
     eyes = jnp.broadcast_to(jnp.asarray([0.5, -1.5, 2.0]), p.shape)
     rx = ev.receivers(jnp.asarray(p), jnp.asarray(n), eyes, "test")
@@ -197,9 +213,8 @@ def test_an_integrand_that_reads_no_eye_is_given_none() -> None:
     np.testing.assert_array_equal(rx.eye_values_for(Phong(20.0)), np.asarray(eyes))
     for evaluator in (ev.HostEngine(), ev.Planned(), ev.TracedEngine(64), ev.DeviceKernels()):
         if isinstance(evaluator, ev.TracedEngine):  # abstract values: inside one compiled program
-            def run(integ, e=evaluator):
-                f = jax.jit(lambda a, b, c: e(scene, integ, ev.receivers(a, b, c, "test")))
-                return f(rx.points, rx.normals, eyes)
+            def run(integ):
+                return _traced(integ)(rx.points, rx.normals, eyes)
         else:
             def run(integ, e=evaluator):
                 return e(scene, integ, rx)
