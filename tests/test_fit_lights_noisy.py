@@ -163,21 +163,3 @@ def test_clean_noisy_fit_not_flagged():
     se = np.array([fit.report.std_errors[f"light0.{ax}"] for ax in "xyz"])
     assert np.all(np.abs(got - truth) < 3.0 * se)
 
-
-@pytest.mark.slow
-@pytest.mark.parametrize("seed", [1, 2])
-def test_quad_and_point_noisy_not_flagged(seed):
-    """No false alarm on fit_global's quad + point scenes that its noisy setting recovered
-    (seeds 1, 2; targets here painted by js.shade with 1 % noise, start 30 % of the scene away):
-    no competing placements."""
-    import inverse
-    import jaxshadow as js
-    from benchmarks.inverse_random_scenes import random_case, shifted_start
-
-    case = random_case(seed, ("polygon", "point"))
-    col = np.asarray(js.shade(case.true, case.material, case.points, case.normals, case.eye), np.float64)
-    col = col * (1.0 + 0.01 * np.random.default_rng(1000 + seed).normal(size=col.shape))
-    tg = inverse.PaintedTargets(case.points, case.normals, col, case.eye)
-    scene = shifted_start(case.true, 0.3 * inverse.scene_size(case.true, tg), seed)
-    fit = inverse.fit_lights(scene, tg, case.material, warn=False, noise=0.01 * np.abs(col))
-    assert "competing_placements" not in fit.report.quality.flags
