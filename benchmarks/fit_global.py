@@ -44,7 +44,9 @@ radiance trades with its size and is not covered). `quantity_z` gives their erro
 standard errors (`calibration_zq_within_2se`, over all runs; `calibration_zq_determined_...`,
 over those marked determined) and over half their projected joint 95 % interval
 (`calibration_zq_joint_within_2se`: the fraction inside the interval, the figure the report
-vouches for: the issue's >= 90 %).
+vouches for: the issue's >= 90 %). A fit flagged with competing placements reports standard errors and
+intervals widened over its rivals' spread (`inverse._uncertainty.widened`): those are what it
+reports, and what these figures count.
 
 A noisy fit succeeds (`noisy_success`) when its answer is as good as the noise allows: every
 covered quantity (each light's centre coordinates and emitted power, what the report vouches
@@ -52,7 +54,10 @@ for) within `NOISY_Z` (3) reported standard errors of the truth (`quantity_z`; o
 finite standard error is undetermined and not counted; a quad's radiance or a segment's power
 per length trades with its size and is not held to its own standard error), or
 the fit is flagged undetermined (`"undetermined"` in `report.quality.flags`: the targets do not
-pin some parameter down, so no fit can be held to the truth there) and the truth does not
+pin some parameter down, so no fit can be held to the truth there) or flagged with competing
+placements (`"competing_placements"`: another placement explains the targets within the noise;
+its standard errors are then widened over the rivals, `inverse._uncertainty.widened`, so
+"within 3 of them" is not its test) and the truth does not
 explain the targets better than the fit by more than the noise explains: with
 $\chi^2 = \sum (r / \sigma)^2$ over the targets (residual over the told noise),
 $\chi^2_{fit} - \chi^2_{truth} \le n + 3\sqrt{2n}$, $n$ the fitted parameters (the spread
@@ -202,8 +207,9 @@ def noisy_verdict(z: list[float], flags: list[str], residual_fit, residual_truth
     allowed = n_params + 3.0 * np.sqrt(2.0 * n_params)
     within = bool(len(z) and np.all(np.abs(z) <= NOISY_Z))
     undetermined = "undetermined" in flags
-    ok = within or (undetermined and chi_fit - chi_truth <= allowed)
-    return {"within_3se": within, "undetermined": undetermined, "chi2_sum_fit": chi_fit,
+    competing = "competing_placements" in flags  # its standard errors widened over the rivals: not "within"
+    ok = (within and not competing) or ((undetermined or competing) and chi_fit - chi_truth <= allowed)
+    return {"within_3se": within, "undetermined": undetermined, "competing": competing, "chi2_sum_fit": chi_fit,
             "chi2_sum_truth": chi_truth, "chi2_allowed_excess": float(allowed), "noisy_success": bool(ok)}
 
 

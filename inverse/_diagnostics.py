@@ -72,12 +72,17 @@ The rules (thresholds are the module's constants):
   (mean $n$, standard deviation $\sqrt{2n}$), so a placement within that allowance cannot be
   told from the answer by these targets. Distinct: some light's centre (matched to the nearest
   fitted light of its kind) more than `RIVAL_DISTANCE` (1 %) of the scene size and more than
-  `RIVAL_SIGMAS` (3) standard errors of its centre from the answer's, or its normal (a
-  polygon) or direction (a segment) turned by more than `RIVAL_TURN` (5 degrees) and 3
-  standard errors of its rotation. Flagged (`"competing_placements"`), not trusted, warned with
+  `RIVAL_SIGMAS` (3) standard errors of its centre from the answer's (the root sum of squares
+  of its coordinates' standard errors, or one coordinate beyond 3 of its own: under the
+  linearisation a coordinate $k$ marginal standard errors off costs at least $k^2$ in
+  $\chi^2$, so one within the allowance that far off shows the linearised errors too small),
+  or its normal (a polygon) or direction (a segment) turned by more than `RIVAL_TURN`
+  (5 degrees) and 3 standard errors of its rotation. Flagged (`"competing_placements"`), not trusted, warned with
   the lights that differ and where the competing placement puts them (`FitQuality.rivals`).
   Checked by `fit_lights` with fitted powers, not under a power budget or painted ranges or
-  relations.
+  relations. With told noise the placements checked also include those the global placement
+  refined and those of each light re-screened at the answer (`_rescreen.noise_rivals`); a
+  flagged fit's standard errors are widened over the rivals' spread (`_uncertainty.widened`).
 - **Not converged.** The joint refinement of a several-light fit stopped at its `max_steps`
   with its loss still falling (by more than `STILL_FALLING`, 1e-3, of it in that solve) and
   above an exact fit (`EXACT_LOSS` of `_fit_lights`): the answer is not a minimum yet, however small its residual against the
@@ -359,6 +364,11 @@ def rival_placements(answer: dict, others: list, chi2: float, n_params: int, sca
             mate = mates[int(np.argmin(d))]
             se_c = se_of(mate, ("x", "y", "z", "a", "b"))
             moved = math.isfinite(se_c) and min(d) > max(RIVAL_DISTANCE * scale, RIVAL_SIGMAS * se_c)
+            axes = [std_errors.get(f"{mate}.{ax}", math.nan) for ax in "xyz"]
+            if math.isfinite(se_c) and all(f"{mate}.{ax}" in light_params.get(mate, ()) for ax in "xyz"):
+                # or some centre coordinate beyond RIVAL_SIGMAS of its own (marginal) standard error
+                off = np.abs(np.asarray(pose["centre"], np.float64) - np.asarray(answer[mate]["centre"], np.float64))
+                moved |= min(d) > RIVAL_DISTANCE * scale and bool(np.any(off > RIVAL_SIGMAS * np.asarray(axes)))
             a, b = pose.get("axis"), answer[mate].get("axis")
             if a is not None and b is not None:
                 se_r = max([std_errors.get(p, math.inf) for p in light_params.get(mate, ())

@@ -58,12 +58,13 @@ from ._multilight_report import (
     material_of,
     structured_coefficients,
 )
-from ._multilight_result import result
+from ._multilight_result import RIVAL_ROWS, result
 from ._multistart import best_starts, capacity_with_room, make_starts, prune_schedule, start_lights
 from ._options import Search, checked_constraints, search_options
 from ._painting import Brighter, ColourRange, painting
 from ._parametrisation import LightParametrisation, Outside, outside_planes, scene_size
 from ._reports import LightsFit
+from ._rescreen import noise_rivals
 from ._solvers import AbstractLightSolver, checked_solver, screen_by_solver
 from ._targets import PaintedTargets
 
@@ -387,6 +388,7 @@ def fit_lights(
     # exact already (the lowest final loss wins).
     energy = 0.5 * float(jnp.sum(full_w * problem.targets.colours ** 2))
     best_attempt: tuple | None = None
+    screened, more = None, None  # the global placement's candidates, columns, refined placements (`noise_rivals`)
     # Lights given by kind only: their templates are candidates of the global placement already.
     attempts = ("local", "global") if use_global and kinds is None else ("global",) if use_global else ("local",)
     for attempt in attempts:
@@ -405,6 +407,7 @@ def fit_lights(
                 initial, retries = float(f0[0]), retries + r
             pl = place(problem, theta0, per_light, cons, idx, seed, k, lm)
             problem, base, ranked, alternatives = pl.problem, pl.theta, pl.ranked, list(pl.alternatives)
+            screened = (pl.rows, pl.cols, pl.refined)
             stage_losses.append(pl.loss)
             placed = True
         elif placed:
@@ -519,11 +522,16 @@ def fit_lights(
             break
     _, theta, final, problem, converged = best_attempt
     problem = _reweighted(problem, full_w)
+    if (screened is not None and noise is not None and search_w is None and not project and paint is None
+            and budget is None and fit_power and best_attempt[0] > EXACT_LOSS * energy):
+        # competing placements the final joint solve did not refine (`_rescreen.noise_rivals`)
+        theta, more, problem = noise_rivals(problem, np.asarray(theta, np.float64), *screened, k, lm, noise, RIVAL_ROWS)
     theta = _moved_outside(problem, np.asarray(theta, np.float64))
     # The report's basis and tangents from the search's own LM program (k rows a call: no new compilation).
     rows_at = BasisRows(problem, k, (solver.rtol, solver.atol)) if P else None
     out = result(problem, np.asarray(theta, np.float64), idx, size, candidates, stage_losses, n_solved,
-                  retries, initial, project, noise, final if P else None, converged=converged, rows_at=rows_at)
+                  retries, initial, project, noise, final if P else None, converged=converged, rows_at=rows_at,
+                  more=more)
     if warn:
         for msg in out.report.quality.emitted:
             _warnings.warn(msg, FitQualityWarning, stacklevel=2)

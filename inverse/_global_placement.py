@@ -312,6 +312,9 @@ class Placement:
     ranked: list
     problem: LightsProblem
     alternatives: np.ndarray  # (A, P): other refined placements, best first
+    rows: list | None = None  # rows[j] (M_j, P_j): light j's screened candidates (None: pose not fitted)
+    cols: list | None = None  # cols[j] (M_j, 3N): their weighted unit columns
+    refined: tuple | None = None  # (values (R, P), losses (R,)): every placement refined in steps 7-8
 
 
 def _distinct_best(f: np.ndarray, pos: np.ndarray, k: int, spacing: float) -> list[int]:
@@ -525,6 +528,7 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
     thetas = np.stack([theta_of(ch) for _, ch in contenders])
     picked = distinct_basins(params, problem.offsets, thetas, region.extent, BASINS)
     alternatives = np.zeros((0, thetas.shape[1]))
+    refined = None
     if lm is not None and len(picked) > 1:
         exact = EXACT * 0.5 * float(y @ y)
         values, losses, problem = refine_and_rank(problem, thetas[picked], lm, keep, exact)
@@ -560,6 +564,7 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
                 problem.fit_power, columns, local_screen, refine,
                 lambda th, k: distinct_basins(params, problem.offsets, th, region.extent, k), keep,
                 deal=lambda th: dealt(params, problem.offsets, region, movable, th), near=near)
+        refined = (values, losses)
         order = np.argsort(losses, kind="stable")
         best_f = 2.0 * float(losses[order[0]])
         theta = values[order[0]]
@@ -571,5 +576,5 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
     ranked: list = [None] * J
     for j in todo:
         ranked[j] = rows[j][np.argsort(rss_for(j, best_ch), kind="stable")[:keep]]
-    return Placement(theta, 0.5 * best_f, ranked, problem, alternatives)
+    return Placement(theta, 0.5 * best_f, ranked, problem, alternatives, rows, cols, refined)
 

@@ -185,7 +185,11 @@ class LightsReport(FitReport):
     - `quantities`: `{name: inverse._uncertainty.Quantity}`, what the standard errors cover
       (each light's centre `light{i}.x/.y/.z` in m and its emitted power `light{i}.flux`), with
       their standard errors and the projected joint 95 % intervals that the fit vouches for
-      (`_uncertainty`'s docstring).
+      (`_uncertainty`'s docstring). With competing placements (`quality.rivals`, flag
+      `"competing_placements"`) the centres', powers' and emitted powers' standard errors here and
+      in `std_errors` are widened by the largest distance to a rival along each
+      (`_uncertainty.widened`): they cover the placements the targets cannot tell apart, not
+      the answer's basin alone.
     """
 
     correlated: tuple

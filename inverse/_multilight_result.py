@@ -43,7 +43,7 @@ from ._painting import as_numpy, painted_rows
 from ._powers import constrained_powers, emitted_power, painted_jacobian
 from ._reports import LightsFit
 from ._targets import PaintedTargets
-from ._uncertainty import Quantity, joint_factor, light_quantities
+from ._uncertainty import Quantity, joint_factor, light_quantities, widened
 
 _POSITION_NAMES = ("x", "y", "z", "a", "b")
 
@@ -51,10 +51,12 @@ _POSITION_NAMES = ("x", "y", "z", "a", "b")
 def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, candidates: Any,
             stage_losses: list, n_solved: int, retries: int, initial: float | None, project: bool,
             noise: Any = None, final: tuple | None = None, converged: bool = True,
-            rows_at: BasisRows | None = None) -> LightsFit:
+            rows_at: BasisRows | None = None, more: tuple | None = None) -> LightsFit:
     """The `LightsFit` at the poses `theta (n_theta,)` (module docstring). `rows_at`: the search's
     LM program at given rows (`_basis_rows.BasisRows`), which gives the basis and its tangents
-    at the answer and at the competing placements; None: `report_parts` computes them."""
+    at the answer and at the competing placements; None: `report_parts` computes them. `more`:
+    `(rows (R, n_theta), losses (R,))` more placements for the rival check besides the final
+    joint solve's rows `final` (`_rescreen.noise_rivals`), or None."""
     t, m = problem.targets, problem.material
     dt = t.points.dtype
     full_theta = np.asarray(theta, np.float64)
@@ -166,6 +168,9 @@ def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, ca
         others = []
         rows_r = _rival_rows(np.asarray(final[0], np.float64)[:, :problem.n_pose], np.asarray(final[1], np.float64),
                              np.asarray(theta, np.float64), chi2_of, w, len(names))
+        if more is not None and len(more[1]):  # in distinct basins, lowest loss first; the same rule
+            rows_r += _rival_rows(np.asarray(more[0], np.float64)[:, :problem.n_pose], np.asarray(more[1], np.float64),
+                                  np.asarray(theta, np.float64), chi2_of, w, len(names), best=float(np.min(final[1])))
         at_rows = rows_at(np.asarray(rows_r)) if rows_at is not None and rows_r else []
         for i, row in enumerate(rows_r):
             th_r = jnp.asarray(row, dt)
@@ -175,7 +180,9 @@ def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, ca
                 E_r, S_r, _ = (np.asarray(x, np.float64) for x in report_parts(problem, th_r, ones, m))
             p_r, k_r = coef(E_r, S_r)
             others.append((chi2_of(_model(E_r, S_r, e0, s0, La, p_r, k_r, spec) - colours), poses(th_r, p_r)))
-        rivals = rival_placements(poses(th, powers), others, chi2_of(residual), len(names), size, se, light_params)
+        answer = poses(th, powers)
+        rivals = rival_placements(answer, others, chi2_of(residual), len(names), size, se, light_params)
+        se, quantities = widened(se, quantities, answer, rivals)  # the rivals' spread (`_uncertainty.widened`)
     quality, determined = assess(
         targets=t, residual=residual, noise=noise, n_params=len(names), names=names, std_errors=se, values=values_d,
         determined=determined, scale=size, lights=moved, light_params=light_params, candidates=competing,
@@ -256,11 +263,12 @@ def _chi2(targets: Any, noise: Any) -> Any:
 
 
 def _rival_rows(rows: np.ndarray, losses: np.ndarray, theta: np.ndarray, chi2_of: Any, w: np.ndarray,
-                n_params: int) -> list:
+                n_params: int, best: float | None = None) -> list:
     r"""The rows of the final joint solve `rows (S, P)` (its `losses`, $\tfrac12\sum w r^2$) that
     may compete with the answer `theta`: not the answer itself, not a repeat, and a loss whose
     excess over the lowest, in $\chi^2$ units of a typical weighted row's variance, is within
-    four times the allowance (`rival_allowance`); at most `RIVAL_ROWS`, lowest loss first."""
+    four times the allowance (`rival_allowance`); at most `RIVAL_ROWS`, lowest loss first. `best`:
+    the lowest loss to measure the excess from (None: the lowest of `losses`)."""
     pos = w > 0
     if not pos.any():
         return []
@@ -272,7 +280,7 @@ def _rival_rows(rows: np.ndarray, losses: np.ndarray, theta: np.ndarray, chi2_of
     f = np.where(np.isfinite(losses), losses, np.inf)
     if not np.isfinite(f).any():
         return []
-    best = float(np.min(f))
+    best = min(float(np.min(f)), np.inf if best is None else best)
     out: list = []
     for r in np.argsort(f, kind="stable"):
         if not 2.0 * (f[r] - best) / v <= 4.0 * rival_allowance(n_params) or len(out) == RIVAL_ROWS:
@@ -286,7 +294,8 @@ def _rival_rows(rows: np.ndarray, losses: np.ndarray, theta: np.ndarray, chi2_of
 
 
 def _pose(light: Any, param: Any, power: float) -> dict:
-    """A fitted light's pose for `rival_placements`: kind, centre (m), axis, power."""
+    """A fitted light's pose for `rival_placements`: kind, centre (m), axis, power (a factor of
+    the given emission) and `emitted` (W at that power; 0 for a directional light)."""
     import jaxshadow as js
 
     axis = None
@@ -303,8 +312,10 @@ def _pose(light: Any, param: Any, power: float) -> dict:
         centre = np.asarray(light.position, np.float64)
     else:
         centre, axis = np.zeros(3), np.asarray(light.direction, np.float64)
+    emitted = float(emitted_power(light)) * float(power) if not isinstance(light, js.DirectionalLight) else 0.0
     return {"kind": param.kind, "centre": tuple(float(x) for x in centre),
-            "axis": None if axis is None else tuple(float(x) for x in axis), "power": float(power)}
+            "axis": None if axis is None else tuple(float(x) for x in axis), "power": float(power),
+            "emitted": emitted}
 
 
 def _model(E: np.ndarray, S: np.ndarray, e0: np.ndarray, s0: np.ndarray, La: np.ndarray, p: np.ndarray,

@@ -34,6 +34,19 @@ $\pm 2 s_q$ is too short, while the joint region, $\sqrt{\chi^2_{p,0.95}} / 2$ t
 (2.9 for $p = 20$), still covers the truth: this is the interval a fit of several lights
 vouches for. $p$ counts the directions the targets determine: the free parameters less the null
 directions (`_identifiability`).
+
+**Competing placements** (flag `"competing_placements"`, `_diagnostics.rival_placements`):
+another placement of the lights explains the targets within the noise, and the linearisation
+at the answer knows nothing of it (the truth was 4.9 and 12 standard errors from an answer
+whose $\chi^2$ was below the truth's). Then every light's centre coordinate, power and
+emitted power has its standard error and interval widened by the largest distance, along that
+quantity, from the answer to a rival: $s' = s + \max_r |q_r - \hat q|$, likewise the
+interval's half-width (`widened`). If the truth lies in a rival's basin, its error is about
+$|q_r - \hat q|$ plus that placement's own noise (about $2 s$ at 95 %), at most $2 s'$: the
+stated $\pm 2 s'$ covers the answer's and the rival's intervals together. Chosen over
+profile-likelihood intervals because the rivals are already refined minima (no more solves) and
+a union of basins is not one interval anyway; the flag tells the user the answer is one of
+several.
 """
 
 from __future__ import annotations
@@ -85,3 +98,33 @@ def light_quantities(names: tuple, values: dict, idx: list) -> dict[str, tuple[f
         grad.update({nm: values[pw] * f for nm in sizes})
         out[f"light{i}.flux"] = (values[pw] * f, grad)
     return out
+
+
+def widened(std_errors: dict, quantities: dict, answer: dict, rivals: tuple) -> tuple[dict, dict]:
+    """`(std_errors, quantities)` widened over the competing placements (module docstring).
+
+    `std_errors`: the report's `{name: standard error}` (`light{i}.x`, ..., `light{i}.power`;
+    centres in m); `quantities`: `{name: Quantity}`; `answer`: `{light name: pose}` and each
+    rival `(excess chi2, {light name: pose}, differing lights)` (`_diagnostics.rival_placements`):
+    a pose's `centre (3,)` (m), `power` (a factor of the given emission) and `emitted` (its emitted
+    power, W). Lights are matched by name; unchanged when there are no rivals."""
+    if not rivals:
+        return std_errors, quantities
+    se, q = dict(std_errors), dict(quantities)
+    for nm, pose in answer.items():
+        spread = {ax: max(abs(float(r[1][nm]["centre"][c]) - float(pose["centre"][c])) for r in rivals
+                          if nm in r[1]) if any(nm in r[1] for r in rivals) else 0.0
+                  for c, ax in enumerate("xyz")}
+        spread["power"] = max([abs(float(r[1][nm]["power"]) - float(pose["power"])) for r in rivals if nm in r[1]]
+                              or [0.0])
+        ratio = max([abs(float(r[1][nm]["emitted"]) / float(pose["emitted"]) - 1.0) for r in rivals
+                     if nm in r[1] and float(pose["emitted"]) > 0] or [0.0])
+        for key, d in spread.items():
+            if f"{nm}.{key}" in se:
+                se[f"{nm}.{key}"] = se[f"{nm}.{key}"] + d
+        for key in ("x", "y", "z", "flux"):
+            name = f"{nm}.{key}"
+            if name in q:
+                d = spread[key] if key != "flux" else ratio * abs(q[name].value)
+                q[name] = dataclasses.replace(q[name], std_error=q[name].std_error + d, interval=q[name].interval + d)
+    return se, q
