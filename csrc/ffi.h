@@ -279,13 +279,17 @@ ffi::Error segment_pieces_ffi(ffi::AnyBuffer points, ffi::AnyBuffer ends, ffi::A
                               S32 face_closed, S32 solid_faces, S32 solid_edge_off, S32 solid_edges, int64_t cap,
                               int64_t threads, ffi::Result<S32> cls, ffi::Result<S32> counts, ffi::Result<S32> pieces) {
   const Topology topology{face_solid, face_closed, solid_faces, solid_edge_off, solid_edges};
-  return with_inputs("jaxshadow_segment_pieces", points, faces, topology, [&](auto& in) {
+  return with_inputs("jaxshadow_segment_pieces", points, faces, topology, {ends}, [&](auto& in) {
     const int64_t N = in.N;
     const double* AB = in.batched(ends, 6);
-    for (int64_t b = 0; b < in.B; b++)
-      segment_pieces_fixed<double>(N, in.points + b * N * 3, AB + b * 6, AB + b * 6 + 3, in.occluders(b),
-                                   int(threads), cap, cls->typed_data() + b * N, counts->typed_data() + b * N,
+    std::shared_ptr<const Prepared> prep;  // of batch element b - 1's occluders
+    for (int64_t b = 0; b < in.B; b++) {
+      const Occluders<double> occ = in.occluders(b);
+      if (!prep || !in.same_occluders(b, b - 1)) prep = prepared(occ);
+      segment_pieces_fixed<double>(N, in.points + b * N * 3, AB + b * 6, AB + b * 6 + 3, occ, prep->bvh, int(threads),
+                                   cap, cls->typed_data() + b * N, counts->typed_data() + b * N,
                                    pieces->typed_data() + b * N * cap * 2);
+    }
     return ffi::Error::Success();
   });
 }

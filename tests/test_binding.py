@@ -214,8 +214,8 @@ def test_ffi_handlers_batch_under_vmap(dt):
     """Under `vmap` (vmap_method="expand_dims": an input not batched along an axis comes with a
     size-1 axis there) each batch element is the host call for its own inputs: over the light,
     over the occluders (a moved mesh, the receivers shared), and nested (lights outer, receiver sets
-    inner: each input batched along one axis only); hard shadows and segment candidates over the
-    light."""
+    inner: each input batched along one axis only); hard shadows, segment candidates and segment
+    pieces over the light."""
     scene = _scene()
     verts, occ = _host(scene, dt)
     p, n = _receivers(40)
@@ -262,6 +262,18 @@ def test_ffi_handlers_batch_under_vmap(dt):
         for i in range(len(p)):
             k = min(int(scnt[b, i]), 8)
             np.testing.assert_array_equal(scand[b, i, :k], cand[off[i]:off[i] + k])
+
+    pieces_fn = jax.jit(jax.vmap(lambda a: segment_pieces.traced_pieces(jnp.asarray(p), a, a + verts[2] - verts[0],
+                                                                        faces, topo, 8)))
+    pcls, pcnt, pcodes = (np.asarray(x) for x in pieces_fn(jnp.asarray(verts[0][None] + shifts)))
+    for b, sh in enumerate(shifts):
+        hcls, _, hoff, hcodes = segment_pieces.host_pieces(p, verts[0] + sh, verts[2] + sh, occ)
+        np.testing.assert_array_equal(pcls[b], hcls)
+        np.testing.assert_array_equal(pcnt[b], np.diff(hoff))
+        assert np.any(hcls == 3)
+        for i in range(len(p)):
+            k = min(int(pcnt[b, i]), 8)
+            np.testing.assert_array_equal(pcodes[b, i, :k], hcodes[hoff[i]:hoff[i] + k])
 
 
 @with_ffi

@@ -169,10 +169,8 @@ int segment_pieces_plan(int64_t N, const T* P, const T* A, const T* B, const Occ
 // Fixed capacity (the FFI handler's layout): classes (N,), counts (N,) (pieces of a penumbra
 // receiver, 0 for the others), pieces (N, cap, 2) with unused slots (kSegStart, kSegStart).
 template <class T>
-void segment_pieces_fixed(int64_t N, const T* P, const T* A, const T* B, const Occluders<T>& occ, int threads,
-                          int64_t cap, int32_t* cls, int32_t* counts, int32_t* pieces) {
-  const std::shared_ptr<const Prepared> prep = prepared(occ);  // the cached hierarchy
-  const BVH& bvh = prep->bvh;
+void segment_pieces_fixed(int64_t N, const T* P, const T* A, const T* B, const Occluders<T>& occ, const BVH& bvh,
+                          int threads, int64_t cap, int32_t* cls, int32_t* counts, int32_t* pieces) {
   const V3<T> a = ld(A), b = ld(B);
   parallel_for(N, default_threads(threads), [&](int, int64_t s, int64_t e) {
     SegmentWork w;

@@ -80,7 +80,8 @@ def traced_pieces(
     """`host_pieces` inside a compiled computation (XLA FFI): `(classes (N,), counts (N,),
     pieces (N, capacity, 2))`, unused slots `(-1, -1)` (a zero-length piece at `a`). A receiver
     with `counts > capacity` has only its first `capacity` pieces: the caller reports it. No
-    gradient (the inputs are stop-gradient'ed)."""
+    gradient (the inputs are stop-gradient'ed). Under `vmap` an input that is not batched is passed
+    once (a batch axis of size 1, `vmap_method="expand_dims"`), not copied per batch element."""
     topo = topology if topology is not None else OccluderTopology.independent(faces.shape[0])
     sg = jax.lax.stop_gradient
     dt = points.dtype
@@ -89,7 +90,7 @@ def traced_pieces(
         FFI_PIECES,
         (jax.ShapeDtypeStruct((n_pts,), jnp.int32), jax.ShapeDtypeStruct((n_pts,), jnp.int32),
          jax.ShapeDtypeStruct((n_pts, capacity, 2), jnp.int32)),
-        vmap_method="broadcast_all",
+        vmap_method="expand_dims",
     )
     ends = jnp.stack([a.astype(dt), b.astype(dt)])
     out: Any = call(sg(points), sg(ends), sg(faces.astype(dt)), *vis._topology_arrays(topo),
