@@ -27,6 +27,9 @@ def quad(centre, width: float, height: float, omega=(np.pi, 0.0, 0.0)) -> np.nda
     return np.asarray(centre, np.float64) + loc @ R.T
 
 
+SQUARE_REL = 1e-9  # sides equal to this relative tolerance: a square (`pose_errors`)
+
+
 def polygon_pose(vertices) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Centre, unit normal, unit direction of the longer side, and sorted side lengths
     `(short, long)` of a rectangle (independent of which vertex comes first)."""
@@ -41,7 +44,8 @@ def polygon_pose(vertices) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarr
 
 def pose_errors(fitted, true) -> dict:
     """Position error (m), normal angle (deg), long-axis angle modulo 180 deg (a rectangle is
-    symmetric under a half turn), relative side-length error; `orientation_deg` is the angle
+    symmetric under a half turn; a square, sides equal to `SQUARE_REL`, under a quarter turn),
+    relative side-length error; `orientation_deg` is the angle
     of the rotation taking the true frame to the fitted one (normal and long axis).
 
     Example:
@@ -56,6 +60,12 @@ def pose_errors(fitted, true) -> dict:
     """
     c1, n1, e1, s1 = polygon_pose(fitted)
     c0, n0, e0, s0 = polygon_pose(true)
+    if s0[0] >= (1.0 - SQUARE_REL) * s0[1] and s1[0] >= (1.0 - SQUARE_REL) * s1[1]:
+        # Squares are symmetric under a quarter turn: which side is "longer" is rounding. The
+        # fitted side nearest the true one stands for the axis.
+        v = np.asarray(fitted, np.float64)
+        sides = [(v[1] - v[0]) / np.linalg.norm(v[1] - v[0]), (v[2] - v[1]) / np.linalg.norm(v[2] - v[1])]
+        e1 = max(sides, key=lambda d: abs(float(d @ e0)))
     ang = lambda a, b: float(np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b)), a @ b)))  # noqa: E731
     if e1 @ e0 < 0:
         e1 = -e1

@@ -579,3 +579,18 @@ if __name__ == "__main__":  # regenerate the cached Mitsuba targets
         except Exception as exc:  # noqa: BLE001 - report and go on
             print("skipped:", exc, file=sys.stderr)
     print("wrote", sorted(p for p in os.listdir(DATA) if p.startswith("inverse_")))
+
+
+def test_pose_errors_of_a_square_do_not_depend_on_which_side_rounds_longer():
+    """A square's "longer" side is rounding: the same square listed from another vertex, with one
+    side 1e-15 longer, has no orientation error; a square turned by 10 degrees in its plane has 10."""
+    sq = np.array([[0.0, 0.0, 2.0], [0.4, 0.0, 2.0], [0.4, 0.4, 2.0], [0.0, 0.4, 2.0]])
+    relabelled = np.roll(sq, 1, axis=0)
+    relabelled[2, 0] += 1e-15
+    err = pose_errors(relabelled, sq)
+    assert err["axis_deg"] < 1e-9 and err["orientation_deg"] < 1e-9, err
+    c = sq.mean(axis=0)
+    t = np.radians(10.0)
+    R = np.array([[np.cos(t), -np.sin(t), 0.0], [np.sin(t), np.cos(t), 0.0], [0.0, 0.0, 1.0]])
+    err = pose_errors((sq - c) @ R.T + c, sq)
+    assert abs(err["orientation_deg"] - 10.0) < 1e-9, err
