@@ -66,7 +66,7 @@ struct BatchMap {
 // once (per distinct batch index of theirs); T is the inputs' float type. Other batched inputs are
 // converted by `batched`; `occluders(b, K)` is batch element b's occluders in the engine's form
 // (K light vertices before the faces), and `occluder_index(b)` tells elements with the same
-// occluder buffers apart from others (one prepared lookup each: poly_ffi). `error` is set when
+// occluder buffers apart from others (one prepared lookup each: `prepared_for`). `error` is set when
 // the batch axes do not broadcast.
 template <class T>
 struct Inputs {
@@ -156,11 +156,19 @@ struct Inputs {
     return true;
   }
 
+  // The prepared data of batch element b's occluders `occ` (`occluders(b, K)`), looked up again
+  // only where b reads other occluder buffers than b - 1 (call with b = 0, 1, ... in order).
+  const Prepared& prepared_for(int64_t b, const Occluders<double>& occ) {
+    if (!prep_ || !same_occluders(b, b - 1)) prep_ = prepared(occ);
+    return *prep_;
+  }
+
  private:
   std::vector<int64_t> batch_;
   OccluderInputs occ_;
   int64_t NE_ = 0;
   BatchMap faces_map_, topo_map_[5];
+  std::shared_ptr<const Prepared> prep_;  // of the last batch element `prepared_for` was asked
   std::deque<std::vector<double>> store_;  // converted inputs (a deque: earlier ones never move)
 };
 
@@ -186,12 +194,6 @@ ffi::Error with_inputs(const char* name, ffi::AnyBuffer points, ffi::AnyBuffer f
   });
 }
 
-template <class F>
-ffi::Error with_inputs(const char* name, ffi::AnyBuffer points, ffi::AnyBuffer faces, const Topology& topology,
-                       F&& body) {
-  return with_inputs(name, points, faces, topology, {}, std::forward<F>(body));
-}
-
 // Polygon codes: points (..., N, 3), normals (..., N, 3), light (..., K, 3), faces (..., M, Ko, 3)
 // and the occluder topology. Outputs: classes (..., N), counts (..., N), runs (..., N, cap, 2, 7).
 ffi::Error poly_ffi(ffi::AnyBuffer points, ffi::AnyBuffer normals, ffi::AnyBuffer light, ffi::AnyBuffer faces,
@@ -205,11 +207,10 @@ ffi::Error poly_ffi(ffi::AnyBuffer points, ffi::AnyBuffer normals, ffi::AnyBuffe
     const int64_t N = in.N, K = ld_[in.nb];
     const double* Nr = in.batched(normals, N * 3);
     const double* E = in.batched(light, K * 3);
-    std::shared_ptr<const Prepared> prep;  // of batch element b - 1's occluders
     for (int64_t b = 0; b < in.B; b++) {
       const Occluders<double> occ = in.occluders(b, K);
-      if (!prep || !in.same_occluders(b, b - 1)) prep = prepared(occ);
-      int rc = poly_fixed<double>(N, in.points + b * N * 3, Nr + b * N * 3, K, E + b * K * 3, occ, *prep,
+      const Prepared& prep = in.prepared_for(b, occ);
+      int rc = poly_fixed<double>(N, in.points + b * N * 3, Nr + b * N * 3, K, E + b * K * 3, occ, prep,
                                   int(threads), cap, cls->typed_data() + b * N, counts->typed_data() + b * N,
                                   runs->typed_data() + b * N * cap * jaxshadow_abi::kRunWidth);
       if (rc) return invalid(name, "light with more than 64 vertices");
@@ -228,11 +229,10 @@ ffi::Error hard_ffi(ffi::AnyBuffer points, ffi::AnyBuffer x, ffi::AnyBuffer face
     const int64_t N = in.N;
     const double* X = in.batched(x, 3);
     std::vector<uint8_t> vis(N);
-    std::shared_ptr<const Prepared> prep;  // of batch element b - 1's occluders
     for (int64_t b = 0; b < in.B; b++) {
       const Occluders<double> occ = in.occluders(b);
-      if (!prep || !in.same_occluders(b, b - 1)) prep = prepared(occ);
-      hard_plan<double>(N, in.points + b * N * 3, X + b * 3, int(is_point), occ, prep->bvh, int(threads), vis.data());
+      const Prepared& prep = in.prepared_for(b, occ);
+      hard_plan<double>(N, in.points + b * N * 3, X + b * 3, int(is_point), occ, prep.bvh, int(threads), vis.data());
       int32_t* out = visible->typed_data() + b * N;
       for (int64_t i = 0; i < N; i++) out[i] = vis[i];
     }
@@ -249,11 +249,10 @@ ffi::Error segment_ffi(ffi::AnyBuffer points, ffi::AnyBuffer ends, ffi::AnyBuffe
   return with_inputs("jaxshadow_segment_candidates", points, faces, topology, {ends}, [&](auto& in) {
     const int64_t N = in.N;
     const double* AB = in.batched(ends, 6);
-    std::shared_ptr<const Prepared> prep;  // of batch element b - 1's occluders
     for (int64_t b = 0; b < in.B; b++) {
       const Occluders<double> occ = in.occluders(b);
-      if (!prep || !in.same_occluders(b, b - 1)) prep = prepared(occ);
-      const BVH& bvh = prep->bvh;
+      const Prepared& prep = in.prepared_for(b, occ);
+      const BVH& bvh = prep.bvh;
       V3<double> a = ld(AB + b * 6), bb = ld(AB + b * 6 + 3);
       const double* Pb = in.points + b * N * 3;
       int32_t* cnt = counts->typed_data() + b * N;
@@ -282,11 +281,10 @@ ffi::Error segment_pieces_ffi(ffi::AnyBuffer points, ffi::AnyBuffer ends, ffi::A
   return with_inputs("jaxshadow_segment_pieces", points, faces, topology, {ends}, [&](auto& in) {
     const int64_t N = in.N;
     const double* AB = in.batched(ends, 6);
-    std::shared_ptr<const Prepared> prep;  // of batch element b - 1's occluders
     for (int64_t b = 0; b < in.B; b++) {
       const Occluders<double> occ = in.occluders(b);
-      if (!prep || !in.same_occluders(b, b - 1)) prep = prepared(occ);
-      segment_pieces_fixed<double>(N, in.points + b * N * 3, AB + b * 6, AB + b * 6 + 3, occ, prep->bvh, int(threads),
+      const Prepared& prep = in.prepared_for(b, occ);
+      segment_pieces_fixed<double>(N, in.points + b * N * 3, AB + b * 6, AB + b * 6 + 3, occ, prep.bvh, int(threads),
                                    cap, cls->typed_data() + b * N, counts->typed_data() + b * N,
                                    pieces->typed_data() + b * N * cap * 2);
     }
