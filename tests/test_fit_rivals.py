@@ -90,3 +90,20 @@ def test_mirror_placement_is_flagged():
     assert any(issubclass(w.category, inverse.FitQualityWarning) and "light0" in str(w.message)
                and "other distinct placement" in str(w.message) for w in caught)
     assert "rival placement" in str(fit.report)
+
+
+def test_rival_rule_per_coordinate():
+    """A light whose centre is well determined along x and poorly along y: a placement that moves
+    it 5 cm along x (50 standard errors of x, 0.5 of the centre's combined one) is a rival, the
+    same move along y is not, and a move of 3 cm along x (30 standard errors, under 1 % of the
+    4 m scene) is not either."""
+    se = {"light0.x": 0.001, "light0.y": 0.1, "light0.z": 0.001, "light0.power": 0.01}
+    params = {"light0": ("light0.x", "light0.y", "light0.z", "light0.power")}
+    answer = {"light0": _pose("point", [0, 0, 1])}
+    n = 4
+    assert 0.05 < diag.RIVAL_SIGMAS * math.sqrt(sum(se[f"light0.{ax}"] ** 2 for ax in "xyz"))  # not by the norm
+    along_x = (1.0, {"light0": _pose("point", [0.05, 0, 1])})
+    along_y = (1.0, {"light0": _pose("point", [0, 0.05, 1])})
+    near_x = (1.0, {"light0": _pose("point", [0.03, 0, 1])})
+    out = diag.rival_placements(answer, [along_x, along_y, near_x], 0.0, n, 4.0, se, params)
+    assert [(x[0], x[1]["light0"]["centre"], x[2]) for x in out] == [(1.0, (0.05, 0, 1), ("light0",))]
