@@ -128,6 +128,7 @@ COLLAPSED_FRACTION = 0.01
 RIVAL_DISTANCE = 0.01
 RIVAL_SIGMAS = 3.0
 RIVAL_TURN = math.radians(5.0)
+EXPLAINED_SIGMAS = 1.0  # `explained_loss`: chi^2 standard deviations above its expectation
 
 
 
@@ -325,6 +326,24 @@ def rival_allowance(n_params: int) -> float:
     (module docstring): $n + 3\sqrt{2n}$ for $n$ fitted parameters."""
     n = max(int(n_params), 1)
     return n + 3.0 * math.sqrt(2.0 * n)
+
+
+def explained_loss(weights: Any, targets: Any, noise: Any, n_params: int) -> float:
+    r"""The loss $\tfrac12\sum_i w_i r_i^2$ (`weights (N, 3)` the fit's) at or below which a fit
+    explains the targets within the told `noise` (`noise_sigma`): $\chi^2 = \sum (r/\sigma)^2
+    \le \nu + $ `EXPLAINED_SIGMAS` $\sqrt{2\nu}$, $\nu = m - n$ ($m$ the entries of positive
+    weight, $n$ = `n_params`): about where Gaussian noise leaves the right minimum (a $\chi^2_\nu$
+    variable), 84 % of the time at one standard deviation. A loss below it holds $\chi^2$ below
+    it at every weighting (the smallest row variance $w\sigma^2$ converts). 0.0 when the noise
+    is estimated (None: the residual sets the scale, nothing is told)."""
+    if noise is None:
+        return 0.0
+    v = row_variance(weights, targets, noise)
+    if v is None or not (v > 0).any():
+        return 0.0
+    pos = v > 0
+    nu = max(int(np.count_nonzero(pos)) - int(n_params), 1)
+    return 0.5 * float(np.min(v[pos])) * (nu + EXPLAINED_SIGMAS * math.sqrt(2.0 * nu))
 
 
 def _turn(a: np.ndarray, b: np.ndarray, signed: bool) -> float:

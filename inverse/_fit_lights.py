@@ -44,7 +44,7 @@ import jaxshadow as js
 from jaxshadow import traced
 
 from ._basis_rows import BasisRows
-from ._diagnostics import FitQualityWarning, noise_weighted
+from ._diagnostics import FitQualityWarning, explained_loss, noise_weighted
 from ._forward import SpecularFn
 from ._global_placement import place, ranking_losses, region_of, template_light
 from ._multilight import (
@@ -79,6 +79,11 @@ EXACT_LOSS = 1e-12
 # A final joint solve stopped by max_steps whose loss fell by more than this fraction of it is not
 # converged (`report.quality.flags`: "not_converged").
 STILL_FALLING = 1e-3
+# With told noise and every target searched, a loss that explains the targets within the noise
+# (`_diagnostics.explained_loss`) ends the global placement's refine-and-rank and rescreen, skips
+# the per-light sweeps after it and the second deal, as an exact fit does: a noisy residual never
+# falls to `EXACT_LOSS`. False: those exits at an exact fit only.
+EXPLAINED_EXIT = True
 
 
 def _groups_for(light: Any, fit: tuple) -> tuple:
@@ -257,7 +262,10 @@ def fit_lights(
       (`inverse._diagnostics`: a wrong minimum, outliers, conflicting targets). Told standard
       deviations weight the fit, each target and channel by $w/\\sigma^2$ (the weights
       multiply in), and the standard errors are those of that weighted problem under them
-      (with the noise estimated: scaled by the residual).
+      (with the noise estimated: scaled by the residual). A told noise also ends the global
+      placement's search early where a refined placement explains the targets within it
+      ($\\chi^2 \\le \\nu + \\sqrt{2\\nu}$, `_diagnostics.explained_loss`), as an exact fit does
+      (`EXPLAINED_EXIT`): a noisy residual never falls to `EXACT_LOSS`.
     - `warn`: emit a `FitQualityWarning` when the answer is flagged (a wrong minimum, an
       escaped light, a polygon or segment collapsed to a point, a light left with no part in
       the colours, outlier targets (painted wrong or missed by lights in a wrong basin: give
@@ -387,6 +395,10 @@ def fit_lights(
     # The given poses' local search first; the global placement competes unless that fit is
     # exact already (the lowest final loss wins).
     energy = 0.5 * float(jnp.sum(full_w * problem.targets.colours ** 2))
+    # within the told noise (EXPLAINED_EXIT): over every target, so not with search targets
+    noise_loss = (explained_loss(full_w, t, noise, P + (len(idx) if fit_power else 0))
+                  if EXPLAINED_EXIT and search_w is None else 0.0)
+    within = max(EXACT_LOSS * energy, noise_loss)
     best_attempt: tuple | None = None
     screened, more = None, None  # the global placement's candidates, columns, refined placements (`noise_rivals`)
     # Lights given by kind only: their templates are candidates of the global placement already.
@@ -405,7 +417,7 @@ def fit_lights(
             if initial is None:  # the given poses' loss
                 f0, problem, r = screen_by_solver(problem, theta0[None], theta0, np.ones(Pt, bool), k, **tol)
                 initial, retries = float(f0[0]), retries + r
-            pl = place(problem, theta0, per_light, cons, idx, seed, k, lm)
+            pl = place(problem, theta0, per_light, cons, idx, seed, k, lm, noise_loss)
             problem, base, ranked, alternatives = pl.problem, pl.theta, pl.ranked, list(pl.alternatives)
             screened = (pl.rows, pl.cols, pl.refined)
             stage_losses.append(pl.loss)
@@ -421,8 +433,8 @@ def fit_lights(
                 base = theta0.copy()
         if P:
             n_sweeps = int(sweeps)
-            if attempt == "global" and search_w is None and not stage_losses[-1] > EXACT_LOSS * energy:
-                n_sweeps = 0  # the placement explains the targets exactly: the joint refinement alone
+            if attempt == "global" and search_w is None and not stage_losses[-1] > within:
+                n_sweeps = 0  # the placement explains the targets (exactly or within the noise): the joint refinement alone
             for rnd in range(2 if placed else 1):
                 problem = _reweighted(problem, search_w)
                 for sweep, j in ((s, j) for s in range(n_sweeps) for j in range(len(per_light))):
@@ -492,7 +504,7 @@ def fit_lights(
                     converged = bool(np.asarray(res.converged)[b]) or not f_in - f_lm[b] > STILL_FALLING * f_lm[b]
                 if best_round is None or stage_losses[-1] < best_round[0]:
                     best_round = (stage_losses[-1], joint, final, converged)
-                if rnd or not placed or not stage_losses[-1] > EXACT_LOSS * energy:  # exact: no deal does better
+                if rnd or not placed or not stage_losses[-1] > within:  # explained: no deal does better
                     break
                 # The refined positions dealt again (two lights of similar shading swapped in the first
                 # deal under noise): from a better deal, one more sweep and joint refinement.

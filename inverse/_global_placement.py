@@ -60,8 +60,9 @@ column of light $j$ at its reference power, `(3N,)`). So the screen needs no der
    single lights and pairs at refined resolution). In each round the light that explains least
    is also re-placed on the residual and the lights' centres dealt in every order (`dealt`): a
    light that fell where it lights a few targets holds a slot the others need.
-   A refined placement that explains the targets exactly (`EXACT`) ends steps 7 and 8: the batches
-   after its own are not refined, nothing is re-screened.
+   A refined placement that explains the targets exactly (`EXACT`), or within the told noise
+   (`place`'s `explained`), ends steps 7 and 8: the batches after its own are not refined,
+   nothing is re-screened.
 
 The result is the best refined placement (`theta`, the poses), the other refined placements in distinct basins
 (`alternatives`, up to `ALTERNATIVES`, best first: `fit_lights` finishes them with its joint refinement, where
@@ -330,13 +331,14 @@ def _distinct_best(f: np.ndarray, pos: np.ndarray, k: int, spacing: float) -> li
 
 
 def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constraints: dict, idx: list,
-          seed: int, keep: int, lm: dict | None = None) -> Placement:
+          seed: int, keep: int, lm: dict | None = None, explained: float = 0.0) -> Placement:
     """Global placement (module docstring): `theta0 (Pt,)` the given poses, `local_rows[j]` light
     j's multistart rows around its given pose (None for a light whose pose is not fitted),
     `constraints` by scene light index, `idx` the fitted lights' scene indices; `keep` ranked
     rows per light and the batch of the LM program; `lm`: the LM's `rtol`, `atol` for the
     refinement of the competing placements (step 7; None: ranked by the screened residual
-    alone)."""
+    alone); `explained`: a refined loss at or below it explains the targets within the told
+    noise (`_diagnostics.explained_loss`) and ends steps 7 and 8 as an exact one does."""
     t = problem.targets
     params = problem.params
     J = len(params)
@@ -530,7 +532,7 @@ def place(problem: LightsProblem, theta0: np.ndarray, local_rows: list, constrai
     alternatives = np.zeros((0, thetas.shape[1]))
     refined = None
     if lm is not None and len(picked) > 1:
-        exact = EXACT * 0.5 * float(y @ y)
+        exact = max(EXACT * 0.5 * float(y @ y), float(explained))
         values, losses, problem = refine_and_rank(problem, thetas[picked], lm, keep, exact)
         win = picked[int(np.argmin(losses))]  # the losses are in `picked`'s order
         best_ch = contenders[win][1]

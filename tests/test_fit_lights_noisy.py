@@ -163,3 +163,74 @@ def test_clean_noisy_fit_not_flagged():
     se = np.array([fit.report.std_errors[f"light0.{ax}"] for ax in "xyz"])
     assert np.all(np.abs(got - truth) < 3.0 * se)
 
+
+
+def test_explained_loss_hand_computed():
+    """The loss below which a fit explains its targets within the told noise: with one standard
+    deviation sigma everywhere, $\\tfrac12 w\\sigma^2(\\nu + \\sqrt{2\\nu})$, $\\nu = 3N - n$; none
+    when the noise is estimated; with per-entry noise the fit's weights $\\propto 1/\\sigma^2$
+    turn it into the same chi-square bound. A residual of the told noise's size lies below it,
+    one of twice that size (a wrong minimum's misfit on top of the noise) far above."""
+    import inverse
+
+    rng = np.random.default_rng(2)
+    n, p = 60, 8
+    col = 0.5 + rng.uniform(size=(n, 3))
+    t = inverse.PaintedTargets(np.c_[rng.uniform(size=(n, 2)), np.zeros(n)], np.tile([0.0, 0.0, 1.0], (n, 1)),
+                               col, np.array([0.0, 0.0, 3.0]))
+    nu = 3 * n - p
+    assert diag.explained_loss(t.weights, t, 0.02, p) == pytest.approx(0.5 * 0.02 ** 2 * (nu + math.sqrt(2 * nu)))
+    assert diag.explained_loss(t.weights, t, None, p) == 0.0
+    sigma = 0.01 * col
+    tw = diag.noise_weighted(t, sigma)
+    w = np.asarray(tw.weights, np.float64)
+    bound = diag.explained_loss(tw.weights, tw, sigma, p)
+    assert bound == pytest.approx(0.5 * float(np.mean(w * sigma ** 2)) * (nu + math.sqrt(2 * nu)))
+    r = sigma * rng.normal(size=col.shape) * math.sqrt(nu / (3 * n))  # chi-square nu: a right minimum's
+    assert 0.5 * float(np.sum(w * r ** 2)) < bound
+    assert 0.5 * float(np.sum(w * (2.0 * sigma) ** 2)) > 3.0 * bound
+
+
+def _spread_case(noise: float = 0.01):
+    """A point light over 30 targets spread on the floor (`test_clean_noisy_fit_not_flagged`),
+    `noise` relative Gaussian noise."""
+    import inverse
+    import jaxshadow as js
+
+    rng = np.random.default_rng(5)
+    pts = np.c_[rng.uniform(-1.0, 1.0, (30, 2)), np.zeros(30)]
+    nrm = np.tile([0.0, 0.0, 1.0], (30, 1))
+    material = js.Material(ka=0.2, kd=0.6, ks=0.0, exponent=1.0)
+    eye = np.array([0.0, -2.0, 2.0])
+    col = np.asarray(js.shade(js.Scene([js.PointLight([0.3, 0.15, 1.2], 3.0)], ambient=0.05), material, pts, nrm,
+                              eye))
+    col = col * (1.0 + noise * np.random.default_rng(6).normal(size=col.shape))
+    return inverse.PaintedTargets(pts, nrm, col, eye), material, col
+
+
+def test_noisy_fit_stops_when_explained(monkeypatch):
+    """`fit_lights`' early exit at a fit explained within the told noise (`EXPLAINED_EXIT`): the
+    global placement's refined answer explains the 1 % noisy targets, so the per-light sweeps
+    after it are skipped (fewer starts solved than with the exit off) and the answer is the same
+    minimum. Told a noise ten times smaller than the added one, the same residual is ten
+    standard deviations per entry, what a wrong minimum's misfit looks like to the rule: no early
+    exit, the sweeps run as with the exit off."""
+    import inverse
+    import jaxshadow as js
+    from inverse import _fit_lights
+
+    targets, material, col = _spread_case()
+    empty = js.Scene([], ambient=0.05)
+
+    def fit(exit_on: bool, told: float):
+        monkeypatch.setattr(_fit_lights, "EXPLAINED_EXIT", exit_on)
+        return inverse.fit_lights(empty, targets, material, kinds=["point"], noise=told * col, warn=False)
+
+    on, off = fit(True, 0.01), fit(False, 0.01)
+    assert on.report.starts_solved < off.report.starts_solved
+    se = np.array([on.report.std_errors[f"light0.{ax}"] for ax in "xyz"])
+    a, b = (np.asarray(f.lights[0].position, np.float64) for f in (on, off))
+    assert np.all(np.abs(a - b) < 0.1 * se)
+    tight_on, tight_off = fit(True, 0.001), fit(False, 0.001)
+    assert tight_on.report.starts_solved == tight_off.report.starts_solved
+    assert tight_on.report.quality.chi2 > 10.0  # reduced chi-square: not explained at the told noise
