@@ -1,11 +1,12 @@
 """The silhouette path's depth complexity on meshes whose contours cross and chain: C carried
 along chains of contour segments from one coverage query per chain (silhouette.h).
 
-Where exactly two contour segments meet at the projection of a mesh vertex, C on both sides of
-one follows from C on both sides of the other; a wrong carry (a sign, a side, an end) changes
-which pieces bound the visible region. Generated closed non-convex meshes (a torus knot tube,
-which hides itself in many layers; overlapping closed components; components that touch at one
-vertex, where four contour segments meet and nothing is carried) and an open one (boundary
+Where contour segments meet at the projection of a mesh vertex, C on both sides of one follows
+from C on both sides of the other (two segments), or of its neighbours in their order about the
+vertex (three or more, as where a jittered surface folds); a wrong carry (a sign, a side, an end,
+the order) changes which pieces bound the visible region. Generated closed non-convex meshes (a
+torus knot tube, which hides itself in many layers; overlapping closed components; components
+that touch at one vertex, where four contour segments meet) and an open one (boundary
 edges, weight 1, meeting silhouette edges, weight 2): the values against the face path
 (`JAXSHADOW_SILHOUETTE=0`, which clips faces and shares no coverage code) on every receiver and
 against exact polygon booleans (`reference_ff` of `tests/test_clip.py`) on a subset.
@@ -124,8 +125,8 @@ def test_overlapping_closed_components(monkeypatch):
 
 def test_components_touching_at_a_vertex(monkeypatch):
     """Two tubes sharing one vertex position (a non-manifold vertex: four contour segments can meet
-    there, and nothing is carried across it) and an open tube (its cut ends are boundary edges of
-    weight 1 that meet silhouette edges of weight 2)."""
+    there, C carried across it in their order about it) and an open tube (its cut ends are
+    boundary edges of weight 1 that meet silhouette edges of weight 2)."""
     v1, f1 = torus_knot(2, 3, n=60, sides=6, radius=0.08)
     v2, f2 = v1 * np.array([-1.0, 1.0, 1.0]), f1[:, ::-1]
     # Move the second so that its vertex 0 lands exactly on the first's vertex 0.

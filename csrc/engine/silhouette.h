@@ -41,14 +41,19 @@
 namespace jaxshadow_engine {
 
 // A slot of the table of contour segments' unclipped ends by position: the mesh vertex, the
-// first two ends there (2 i + 0: segment i's end a, 2 i + 1: its end b) and how many (to 3; 0: empty slot).
+// first two ends there (2 i + 0: segment i's end a, 2 i + 1: its end b) and how many (0: empty slot).
 struct SilEnd {
   double x, y, z;
   int32_t e, e2, n;
 };
+// The most ends of contour segments at one vertex whose rays silhouette_receiver sorts about it.
+constexpr int kSilFan = 8;
 // Per-thread scratch of silhouette_receiver's pieces (allocated once per thread).
 struct SilPieces {
-  std::vector<int32_t> boff, kf, kl, sj, cf, link, todo;
+  std::vector<int32_t> boff, kf, kl, sj, cf, link, succ, pred, todo;
+  std::vector<int32_t> eslot;  // per segment end: its slot in `ends` (-1: clipped)
+  std::vector<int32_t> fan;    // the slots where 3 .. kSilFan ends meet
+  std::vector<int32_t> fan_ends, fan_n;  // their ends (kSilFan per slot) and how many
   std::vector<int32_t> clipped;  // the contour segments with an end clipped at a cone plane
   std::vector<SilEnd> ends;     // all slots empty between receivers (the used ones are emptied after use)
   std::vector<int32_t> ends_used;  // the slots filled for this receiver (its first entries)
@@ -329,10 +334,22 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   // follows from C on both sides of i there without a geometric test. Both far ends clearly off
   // the other segment's line (the sectors not thin), both jumps consistent, and where a chain
   // closes the carried value equal to the one it meets; else the receiver falls back.
+  // Where k = 3 .. kSilFan ends meet at v (the contour folding through v, common on scans), the
+  // rays are sorted by angle about v - p (ray y lies less than a half turn on from ray x when y's
+  // far end lies on n_x's positive side): the sector just beyond each ray along its n is the one
+  // just before the next ray against the next one's n, so C on both sides of the next ray follows
+  // from C beyond this one and the next one's own jump (+W across own, -W across n = -own), and
+  // C on both sides of the previous ray from C before this one. Every far end clearly off the
+  // first ray's line and every comparison of the sort clear, else these rays are not linked;
+  // going round v the carried values must close (the jumps sum to 0), else the receiver falls back.
   std::vector<int32_t>& cf = pc.cf;
   cf.assign(size_t(ns), Cov::kNone);
   std::vector<int32_t>& link = pc.link;  // per segment end (2 i + 0: a, 2 i + 1: b): the other segment end at v, or -1
   link.assign(2 * size_t(ns), -1);
+  std::vector<int32_t>& succ = pc.succ;  // per end at a vertex of k >= 3 rays: the next ray's end, or -1
+  std::vector<int32_t>& pred = pc.pred;  // and the previous ray's end
+  succ.assign(2 * size_t(ns), -1);
+  pred.assign(2 * size_t(ns), -1);
   {
     // The unclipped ends by their mesh vertex's position, in an open-addressing table of
     // positions (nh slots, a power of two at least twice the ends): per slot the position, the
@@ -348,6 +365,8 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     if (tab.size() < nh) tab.resize(nh, SilEnd{0, 0, 0, -1, -1, 0});  // the first nh slots are used
     int32_t nused = 0;  // the filled slots: used[0 .. nused)
     if (used.size() < 2 * size_t(ns - neh)) used.resize(4 * size_t(ns - neh));
+    std::vector<int32_t>& eslot = pc.eslot;
+    eslot.assign(2 * size_t(ns), -1);
     auto bits = [](double x) {
       uint64_t u;
       x += 0.0;  // -0 as +0 (same() counts them equal)
@@ -358,6 +377,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       const double x = double(x3.x), y = double(x3.y), z = double(x3.z);
       if (by_id) {  // the slot's update by selects, not branches (the same fields as the hashed path)
         SilEnd& t = tab[size_t(id)];
+        eslot[size_t(e)] = id;
         const int32_t n0 = t.n;
         const bool first = n0 == 0;
         used[size_t(nused)] = id;
@@ -365,7 +385,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         t.x = first ? x : t.x, t.y = first ? y : t.y, t.z = first ? z : t.z;
         t.e = first ? e : t.e;
         t.e2 = first ? -1 : (n0 == 1 ? e : t.e2);
-        t.n = n0 < 3 ? n0 + 1 : 3;
+        t.n = n0 + 1;
         return;
       }
       uint64_t h = bits(x) * 0x9E3779B97F4A7C15ull ^ bits(y) * 0xC2B2AE3D27D4EB4Full ^ bits(z) * 0x165667B19E3779F9ull;
@@ -375,11 +395,13 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         if (t.n == 0) {
           t = SilEnd{x, y, z, e, -1, 1};
           used[size_t(nused++)] = int32_t(k);
+          eslot[size_t(e)] = int32_t(k);
           return;
         }
         if (t.x == x && t.y == y && t.z == z) {
           if (t.n == 1) t.e2 = e;
-          if (t.n < 3) t.n++;
+          t.n++;
+          eslot[size_t(e)] = int32_t(k);
           return;
         }
       }
@@ -390,7 +412,9 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       if (s.on_b < 0) add(s.x3b, s.ib, 2 * i + 1);
     }
     // The filled slots only (each slot's links are its own: the order does not matter), each
-    // emptied after.
+    // emptied after (the slots of 3 .. kSilFan ends once their rays are linked below).
+    std::vector<int32_t>& fan = pc.fan;
+    fan.clear();
     for (int32_t q = 0; q < nused; q++) {
       SilEnd& t = tab[size_t(used[size_t(q)])];
       if (t.n == 2 && t.e / 2 != t.e2 / 2) {
@@ -401,7 +425,73 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         if (cov.side_of(ea % 2 ? sa.a : sa.b, sb) != 0 && cov.side_of(eb % 2 ? sb.a : sb.b, sa) != 0)
           link[size_t(ea)] = eb, link[size_t(eb)] = ea;
       }
-      t.n = 0;
+      if (t.n >= 3 && t.n <= kSilFan) {
+        t.e2 = int32_t(fan.size());  // the slot's number among the fans
+        fan.push_back(used[size_t(q)]);
+      } else {
+        t.n = 0;
+      }
+    }
+    if (!fan.empty()) {
+      std::vector<int32_t>& fe = pc.fan_ends;
+      std::vector<int32_t>& fn = pc.fan_n;
+      fe.resize(fan.size() * kSilFan);
+      fn.assign(fan.size(), 0);
+      for (int32_t x = 2 * neh; x < 2 * ns; x++) {
+        const int32_t sl = eslot[size_t(x)];
+        if (sl < 0 || tab[size_t(sl)].n == 0) continue;
+        const int32_t m = tab[size_t(sl)].e2;
+        fe[size_t(m) * kSilFan + size_t(fn[size_t(m)]++)] = x;
+      }
+      // Whether ray y lies less than a half turn on from ray x about v - p (+1), more (-1), or
+      // too close to call (0): the side of y's far end of n_x = -own_x at x's end a, +own_x at b.
+      auto turn = [&](int32_t x, int32_t y) {
+        const SSeg<T>& sy = segs[size_t(y / 2)];
+        const int sd = cov.side_of(y % 2 ? sy.a : sy.b, segs[size_t(x / 2)]);
+        return x % 2 ? sd : -sd;
+      };
+      for (size_t m = 0; m < fan.size(); m++) {
+        int32_t* r = fe.data() + m * kSilFan;
+        const int k = fn[m];
+        tab[size_t(fan[m])].n = 0;
+        // Ray r[0], then the rays less than a half turn on from it, then the others, each group
+        // sorted by turn (insertion sort); every end a different segment's.
+        int32_t up[kSilFan], lo[kSilFan];
+        int nu = 0, nl = 0;
+        bool ok = true;
+        for (int a = 1; a < k && ok; a++) {
+          for (int b = 0; b < a && ok; b++) ok = r[a] / 2 != r[b] / 2;
+          const int o = turn(r[0], r[a]);
+          ok = ok && o != 0;
+          if (o > 0) up[nu++] = r[a];
+          if (o < 0) lo[nl++] = r[a];
+        }
+        for (int g = 0; g < 2 && ok; g++) {
+          int32_t* v = g == 0 ? up : lo;
+          const int nv = g == 0 ? nu : nl;
+          for (int a = 1; a < nv && ok; a++) {
+            const int32_t x = v[a];
+            int b = a - 1;
+            for (; b >= 0; b--) {
+              const int o = turn(v[b], x);
+              if (o == 0) ok = false;
+              if (o >= 0) break;
+              v[b + 1] = v[b];
+            }
+            v[b + 1] = x;
+          }
+        }
+        if (!ok) continue;
+        int32_t seq[kSilFan];
+        seq[0] = r[0];
+        for (int a = 0; a < nu; a++) seq[1 + a] = up[a];
+        for (int a = 0; a < nl; a++) seq[1 + nu + a] = lo[a];
+        for (int a = 0; a < k; a++) {
+          const int32_t x = seq[a], y = seq[(a + 1) % k];
+          succ[size_t(x)] = y;
+          pred[size_t(y)] = x;
+        }
+      }
     }
   }
   {
@@ -423,13 +513,34 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         const SSeg<T>& s = segs[size_t(i)];
         for (int e = 0; e < 2; e++) {
           const int32_t o = link[size_t(2 * i + e)];
-          if (o < 0) continue;
+          if (o < 0 && succ[size_t(2 * i + e)] < 0) continue;
           // C on q0's side near v, on the positive and negative sides of i's own plane there.
           const int c = e == 0 ? cf[size_t(i)] : cf[size_t(i)] + sj[size_t(i)];
           // (The data-dependent choices below as integer arithmetic, not branches.)
           const int qi = int(s.q0s > 0);
           const int cpos = c + (1 - qi) * s.w, cneg = c - qi * s.w;  // s.q0s > 0 ? c : c + w, ? c - w : c
           const int ca = e == 0 ? cneg : cpos, cb = e == 0 ? cpos : cneg;  // C beyond r_i along n_i, and before it
+          if (o < 0) {
+            // The next ray (C beyond r_i is before it) and the previous one (C before r_i is beyond it).
+            for (int g = 0; g < 2; g++) {
+              const int32_t x = g == 0 ? succ[size_t(2 * i + e)] : pred[size_t(2 * i + e)];
+              const int j = x / 2, ej = x % 2;
+              const SSeg<T>& t = segs[size_t(j)];
+              if (t.q0s == 0) return kFallback;
+              const int jump = ej ? t.w : -t.w;  // C's jump across r_j along n_j
+              const int cplus = g == 0 ? ca + jump : cb, cminus = g == 0 ? ca : cb - jump;  // along n_j, against it
+              const int jpos = ej ? cplus : cminus, jneg = ej ? cminus : cplus;
+              const int cv = t.q0s > 0 ? jpos : jneg;
+              const int cj = cv - ej * sj[size_t(j)];
+              if (cf[size_t(j)] == Cov::kNone) {
+                cf[size_t(j)] = cj;
+                todo.push_back(j);
+              } else if (cf[size_t(j)] != cj) {
+                return kFallback;
+              }
+            }
+            continue;
+          }
           const int j = o / 2, ej = o % 2;
           const SSeg<T>& t = segs[size_t(j)];
           const int jpos = ca + ej * (cb - ca), jneg = cb + ej * (ca - cb);  // n_j = -own_j at j's end a (ej = 0)
