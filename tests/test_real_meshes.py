@@ -194,6 +194,58 @@ def test_silhouette_path_float32_and_gradients():
     np.testing.assert_allclose(g, gd, rtol=1e-7, atol=1e-9 * np.abs(gd).max())
 
 
+def in_face_planes(v: np.ndarray, f: np.ndarray, offsets, n_faces: int, seed: int = 0) -> np.ndarray:
+    """Floor points (z = 0) in the planes of `n_faces` faces of the mesh (v, f), each moved across
+    the plane's trace on the floor by every distance of `offsets` (m, along the floor): for each
+    face, the point nearest where the ray from the light's centre through the face's centroid
+    meets the floor, so that the face lies in the point's view of the light. Faces steeper than
+    17 degrees from the floor's normal whose trace passes within 5 cm of that point."""
+    tri = v[f].astype(np.float64)
+    c = tri.mean(axis=1)
+    nf = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    nf /= np.linalg.norm(nf, axis=1, keepdims=True)
+    top = np.array([0.0, 0.0, 2.5])
+    q = top + (c - top) * (2.5 / (2.5 - c[:, 2]))[:, None]
+    nxy = np.linalg.norm(nf[:, :2], axis=1)
+    step = np.einsum("fk,fk->f", nf, q - tri[:, 0]) / np.maximum(nxy, 1e-300)  # along the floor to the trace
+    u = nf[:, :2] / np.maximum(nxy, 1e-300)[:, None]
+    ok = np.where((nxy > 0.3) & (np.abs(step) < 0.05))[0]
+    idx = np.random.default_rng(seed).permutation(ok)[:n_faces]
+    xy = [q[i, :2] - (step[i] - o / nxy[i]) * u[i] for i in idx for o in offsets]
+    return np.c_[np.array(xy), np.zeros(len(xy))]
+
+
+def test_float32_mesh_takes_the_silhouette_path_in_face_planes(monkeypatch):
+    """A mesh of float32 values: floor receivers in (to float32 rounding) or 8e-6 m beside the
+    planes of faces they see, inside the band where the silhouette path's own side test cannot
+    tell (twice the on-surface distance of the scene's largest coordinate) but where the face path
+    decides the face (its side, or dropped by the on-surface rule): the silhouette path takes the
+    face path's decision and serves every receiver (fewer candidates than the face path's faces),
+    with the face path's classes and values; beside them, floor receivers with grazing normals
+    (lit, umbra, penumbra). A few against exact polygon booleans on the float32 geometry."""
+    v, f = blob(3)
+    v = (v + np.random.default_rng(1).normal(0, 1e-3, v.shape)).astype(np.float32)
+    scene = _scene([js.Mesh(v, f)])
+    planar = in_face_planes(v, f, [0.0, -8e-6, 8e-6], 40)
+    fp, fn = floor(300, seed=4, half=1.6)
+    p = np.concatenate([planar, fp]).astype(np.float32)
+    nrm = np.concatenate([np.tile([0.0, 0.0, 1.0], (len(planar), 1)), fn]).astype(np.float32)
+    on, e_on, off, e_off = both_paths(scene, p, nrm, monkeypatch)
+    assert e_on.dtype == np.float32
+    pen = off.classes == vis.PENUMBRA
+    assert pen[: len(planar)].sum() > 100 and (off.classes == vis.UMBRA).sum() > 0 and (off.classes == vis.LIT).sum() > 0
+    # The face path falls back for none: its candidates (contour edges) stay below the faces.
+    assert np.all(on.candidates[pen] < off.candidates[pen])
+    assert on.candidates[pen].mean() < 0.2 * off.candidates[pen].mean()
+    diff = on.classes != off.classes
+    assert np.all(on.classes[diff] == vis.UMBRA) and np.all(off.classes[diff] == vis.PENUMBRA)
+    np.testing.assert_allclose(e_on.astype(np.float64), e_off, rtol=0, atol=1e-9 * e_off.max())
+    pick = np.where(pen[: len(planar)])[0][::40]
+    polys = [t for t in v[f].astype(np.float64)]
+    ref = np.pi * np.array([reference_ff(q, m, LIGHT, polys) for q, m in zip(p[pick], nrm[pick], strict=True)])
+    np.testing.assert_allclose(e_on[pick], ref, rtol=0, atol=1e-6 * ref.max())
+
+
 def test_silhouette_path_with_convex_solids(monkeypatch):
     """Convex solids (floating boxes) beside a non-convex mesh: their faces join the depth
     complexity as plain faces; the values equal the face path's (which uses the solids' cones)."""

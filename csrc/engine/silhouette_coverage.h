@@ -129,8 +129,9 @@ struct SilCoverage {
         const int64_t f0 = item >= 0 ? item : occ.solid_faces[2 * (-int64_t(item) - 1)];
         const int64_t f1 = item >= 0 ? item + 1 : occ.solid_faces[2 * (-int64_t(item) - 1) + 1];
         for (int64_t f = f0; f < f1; f++) {
-        const int s = sil_side(st, st.floc[size_t(f)], pd);
-        if (s == 0) return -1;
+        int s = sil_side(st, st.floc[size_t(f)], pd);
+        if (s == 0 && !face_path_side(occ, st, st.floc[size_t(f)], p, s)) return -1;
+        if (s == 0) continue;  // dropped by the face path: covers nothing
         bool in = true;
         for (int64_t k = 0; k < occ.Ko && in; k++) {
           const V3<T> a = occ.vert(f, k), b = occ.vert(f, (k + 1) % occ.Ko);

@@ -351,8 +351,10 @@ void build_silhouette_tree(const Occluders<T>& occ, const std::vector<int32_t>& 
     if (st.floc[size_t(f)] < 0) st.floc[size_t(f)] = nl++;
   std::vector<double> fn(st.fn.size());
   st.f32.resize(size_t(M));
+  st.fglob.resize(size_t(M));
   for (int64_t f = 0; f < M; f++) {
     const size_t l = size_t(st.floc[size_t(f)]);
+    st.fglob[l] = int32_t(f);
     std::copy_n(st.fn.data() + kFnStride * size_t(f), kFnStride, fn.data() + kFnStride * l);
     st.f32[l] = f32[size_t(f)];
   }
@@ -402,6 +404,22 @@ inline int sil_side(const SilhouetteTree& st, int32_t f, const double* p) {
   const double m = std::max(1e4 * 2.220446049250313e-16 * (std::fabs(r0) + std::fabs(r1) + std::fabs(r2) + S),
                             st.f32[size_t(f)] ? 2 * kOnSurface * S : 0.0) * nn;
   return int(h < -m) - int(h > m);  // both comparisons, no branch
+}
+
+// Where sil_side cannot tell (0) for face f (a local index) of float32 values: the face path's
+// own decision, face_side's side (the on-surface rule included), in `side`: +1 / -1, or 0 where
+// the face path drops the face (p within the on-surface distance of its plane, a normal its
+// rounding leaves undetermined), which then covers nothing: C counts the faces the face path
+// keeps. sil_side's band (twice the on-surface distance of the scene's largest coordinate, 1e4
+// eps) holds face_side's, so elsewhere the two agree. A float32 mesh has its on-surface band
+// (2^-17 S) across many faces' planes far from p, where the face path still decides every face.
+// False for other faces (the caller falls back).
+template <class T>
+inline bool face_path_side(const Occluders<T>& occ, const SilhouetteTree& st, int32_t f, V3<T> p, int& side) {
+  if (!st.f32[size_t(f)] || occ.Ko > 64) return false;
+  V3<T> rel[64];
+  side = face_side(occ, st.fglob[size_t(f)], p, rel).side;
+  return true;
 }
 
 // +1 (-1): every face of the node faces p with side +1 (-1) by a clear margin; 0: not known.

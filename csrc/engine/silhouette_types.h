@@ -55,6 +55,7 @@ struct SilhouetteTree {
   // face of the occluders to its local index.
   std::vector<double> fn;  // per face (kFnStride): Newell normal (3), first vertex (3), unit normal (3), |Newell normal|
   std::vector<int32_t> floc;
+  std::vector<int32_t> fglob;  // the inverse of floc: per local index, the face of the occluders
   double scale = 0;           // largest coordinate magnitude
   std::vector<uint8_t> f32;   // per face: every coordinate a float32 value (the on-surface rule)
   bool ok = false;

@@ -456,17 +456,18 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
   for (int k = 0; k < np0 && k < 66; k++) cone_n[k] = norm(cone[k]);
   int32_t n_contour = 0;
   // One edge of a leaf the walk reached: appended when it is a contour edge in the pyramid; W
-  // nonzero: its coverage jump, known (the faces' sides as sil_side gives them). False: fall back.
+  // nonzero: its coverage jump, known (the faces' sides as sil_side gives them, or face_path_side
+  // where it cannot tell). False: fall back.
   // `in`: the tile proved both ends inside every cone plane with a margin (STEdge::in): the
   // clipping keeps the whole edge and the end tests below pass, so they are skipped.
   auto edge = [&](const SEdge& e, int W, V3<T> a3, V3<T> b3, bool in, int32_t ia, int32_t ib) -> bool {
     if (W == 0) {
-      const int sf = sil_side(st, e.f, pd);
-      if (sf == 0) return false;
+      int sf = sil_side(st, e.f, pd);
+      if (sf == 0 && !face_path_side(occ, st, e.f, p, sf)) return false;
       W = sf;
       if (e.g >= 0) {
-        const int sg = sil_side(st, e.g, pd);
-        if (sg == 0) return false;
+        int sg = sil_side(st, e.g, pd);
+        if (sg == 0 && !face_path_side(occ, st, e.g, p, sg)) return false;
         W += sg * e.dg;
       }
       if (W == 0) return true;
