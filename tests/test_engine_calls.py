@@ -78,6 +78,29 @@ def test_every_light_kind_reuses_the_prepared_occluders():
     assert _delta(s) == {"lookups": 2, "hits": 2, "builds": 0, "polygon_builds": 1}
 
 
+@built
+def test_lights_of_other_vertex_counts_do_not_share_polygon_parts():
+    """The polygon parts hold vertex references offset by the light's vertex count, so a triangle
+    light on occluders a quad light prepared must give what it gives on freshly prepared ones (the
+    same occluders again once four other sets have pushed them out of the cache)."""
+    scene, occ = _occluders(seed=107)
+    p, n = _floor(400, 1.2, seed=3)
+    tri = QUAD[:3].copy()
+    vis.polygon_codes(p, n, QUAD, occ)
+    s = vis.prepared_stats()
+    after_quad = vis.polygon_codes(p, n, tri, occ, codes=True)
+    assert _delta(s)["builds"] == 0  # the quad's entry
+    for seed in (108, 109, 110, 111):  # evict it
+        vis.hard_visibility(p[:5], np.array([0.0, 0.0, 1.6]), True, _occluders(seed)[1])
+    s = vis.prepared_stats()
+    fresh = vis.polygon_codes(p, n, tri, occ, codes=True)
+    assert _delta(s)["builds"] == 1  # prepared anew, the triangle first
+    assert np.bincount(fresh.classes, minlength=4)[vis.PENUMBRA] > 20
+    np.testing.assert_array_equal(after_quad.classes, fresh.classes)
+    np.testing.assert_array_equal(after_quad.offsets, fresh.offsets)
+    np.testing.assert_array_equal(after_quad.runs, fresh.runs)
+
+
 @with_ffi
 def test_a_batched_call_looks_the_shared_occluders_up_once():
     """`vmap` over 8 light poses with the mesh shared (not batched): one cache lookup per handler

@@ -78,24 +78,43 @@ struct Prepared {
   std::vector<char> key;
   BVH bvh;
 
-  // The polygon lights' parts of `occ` (this set's occluders), built on the first call (once,
-  // whichever thread asks first; the others wait for it).
+  // The polygon lights' parts of `occ` (this set's occluders), built on the first call of a light
+  // with occ.K vertices (once, whichever thread asks first; the others wait for it). One per K:
+  // the parts hold vertex references (Occluders::ref), which are offset by the light's vertex
+  // count, so a triangle light must not read the parts a quad light built.
   template <class T>
   const PolygonParts& polygon(const Occluders<T>& occ) const {
-    std::call_once(polygon_once_, [&]() {
+    PolygonEntry* e = nullptr;
+    {
+      std::lock_guard<std::mutex> lock(polygon_mu_);
+      for (const auto& x : polygon_)
+        if (x->K == occ.K) e = x.get();
+      if (!e) {
+        polygon_.push_back(std::make_unique<PolygonEntry>());
+        e = polygon_.back().get();
+        e->K = occ.K;
+      }
+    }
+    std::call_once(e->once, [&]() {
       prepared_stats().polygon_builds++;
-      polygon_.twin = edge_twins(occ);
-      build_silhouette_tree(occ, polygon_.twin, polygon_.sil);
-      build_interior_sections(occ, polygon_.sil, polygon_.sections);
-      polygon_.face_normal = face_normals(occ);
-      polygon_.verts = distinct_vertices(occ);
+      PolygonParts& parts = e->parts;
+      parts.twin = edge_twins(occ);
+      build_silhouette_tree(occ, parts.twin, parts.sil);
+      build_interior_sections(occ, parts.sil, parts.sections);
+      parts.face_normal = face_normals(occ);
+      parts.verts = distinct_vertices(occ);
     });
-    return polygon_;
+    return e->parts;
   }
 
  private:
-  mutable std::once_flag polygon_once_;
-  mutable PolygonParts polygon_;
+  struct PolygonEntry {
+    int64_t K = 0;
+    std::once_flag once;
+    PolygonParts parts;
+  };
+  mutable std::mutex polygon_mu_;
+  mutable std::vector<std::unique_ptr<PolygonEntry>> polygon_;  // one per light vertex count
 };
 
 // Calls `put(pointer, bytes)` on each piece of `occ`'s key, in the key's order.
