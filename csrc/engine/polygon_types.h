@@ -88,7 +88,12 @@ struct Work {  // per-thread scratch
   std::vector<int8_t> gside;     // per entry of gitems: its piece's side of its cell's reference point (2: not yet)
   // off_plane_margin of the current receiver's E_h: boundary_runs widens its boxes by it.
   T eh_margin = 0;
-  int32_t n_candidates = 0, n_regions = 0;  // items the hierarchy returned; occluder regions kept
+  // Per receiver: the items the hierarchy returned (the silhouette path: contour edges in the
+  // pyramid) and the occluder regions kept. A receiver of a group (groups.h) gets the items of its
+  // group's list that pass its own box tests, so the count depends on the group's box: groups end
+  // where the driver's blocks of receivers end, and blocks depend on the thread count. Classes and
+  // boundaries do not (the exact tests drop the items that only a larger list holds).
+  int32_t n_candidates = 0, n_regions = 0;
   // Whether a lit receiver's boundary (E_h's own edges) is wanted in `runs`: the fixed-capacity
   // (compiled) plan evaluates every receiver from its runs; the CSR plan evaluates lit receivers
   // with the unoccluded kernel, so a receiver that no item can block returns at once.

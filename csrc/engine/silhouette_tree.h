@@ -395,16 +395,20 @@ void silhouette_heights(PolyCall<T>& call, const std::vector<int64_t>* verts = n
 // Within the on-surface distance of the plane of a face of float32 values (kOnSurface of the
 // scene's largest coordinate, at least face_side's own bound) it is 0 too: the face path then
 // applies the on-surface rule.
-inline int sil_side(const SilhouetteTree& st, int32_t f, const double* p) {
+// `S`: sil_scale(st, p), for callers that test many faces from one p.
+inline double sil_scale(const SilhouetteTree& st, const double* p) {
+  return std::max(st.scale, std::max(std::fabs(p[0]), std::max(std::fabs(p[1]), std::fabs(p[2]))));
+}
+inline int sil_side(const SilhouetteTree& st, int32_t f, const double* p, double S) {
   const double* q = st.fn.data() + kFnStride * size_t(f);
   const double r0 = q[3] - p[0], r1 = q[4] - p[1], r2 = q[5] - p[2];
   const double h = q[0] * r0 + q[1] * r1 + q[2] * r2;
   const double nn = q[9];
-  const double S = std::max(st.scale, std::max(std::fabs(p[0]), std::max(std::fabs(p[1]), std::fabs(p[2]))));
   const double m = std::max(1e4 * 2.220446049250313e-16 * (std::fabs(r0) + std::fabs(r1) + std::fabs(r2) + S),
                             st.f32[size_t(f)] ? 2 * kOnSurface * S : 0.0) * nn;
   return int(h < -m) - int(h > m);  // both comparisons, no branch
 }
+inline int sil_side(const SilhouetteTree& st, int32_t f, const double* p) { return sil_side(st, f, p, sil_scale(st, p)); }
 
 // Where sil_side cannot tell (0) for face f (a local index) of float32 values: the face path's
 // own decision, face_side's side (the on-surface rule included), in `side`: +1 / -1, or 0 where

@@ -27,6 +27,7 @@ struct TileBox {
 // direction; `cone`'s planes are positive multiples of it), over the tile.
 struct TilePlane {
   double ba[3], u[3], cc[3];  // b x a, a - b, c(pc)
+  double au[3], acc[3];       // |u|, |cc| (per component)
   double cn1;                 // a bound of |c(p)|_1 over B
   double safety;              // above the rounding of c(p) . (x - p) in either computation
   int edge;                   // the light's edge (the receivers' cone plane)
@@ -41,10 +42,10 @@ inline double tile_plane_sup(const TilePlane& q, const TileBox& tb, const double
   const double w2 = xc[0] * u[1] - xc[1] * u[0] - q.ba[2];
   const double* hb = tb.hb;
   double g = q.ba[0] * xc[0] + q.ba[1] * xc[1] + q.ba[2] * xc[2] + tb.pc[0] * w0 + tb.pc[1] * w1 + tb.pc[2] * w2;
-  g += std::fabs(q.cc[0]) * hx[0] + std::fabs(q.cc[1]) * hx[1] + std::fabs(q.cc[2]) * hx[2];
+  const double* au = q.au;
+  g += q.acc[0] * hx[0] + q.acc[1] * hx[1] + q.acc[2] * hx[2];
   g += std::fabs(w0) * hb[0] + std::fabs(w1) * hb[1] + std::fabs(w2) * hb[2];
-  g += hb[0] * (hx[1] * std::fabs(u[2]) + hx[2] * std::fabs(u[1])) + hb[1] * (hx[2] * std::fabs(u[0]) + hx[0] * std::fabs(u[2])) +
-       hb[2] * (hx[0] * std::fabs(u[1]) + hx[1] * std::fabs(u[0]));
+  g += hb[0] * (hx[1] * au[2] + hx[2] * au[1]) + hb[1] * (hx[2] * au[0] + hx[0] * au[2]) + hb[2] * (hx[0] * au[1] + hx[1] * au[0]);
   return g;
 }
 
@@ -158,6 +159,7 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
     q.cc[0] = q.ba[0] + u[1] * pc[2] - u[2] * pc[1];
     q.cc[1] = q.ba[1] + u[2] * pc[0] - u[0] * pc[2];
     q.cc[2] = q.ba[2] + u[0] * pc[1] - u[1] * pc[0];
+    for (int d = 0; d < 3; d++) q.au[d] = std::fabs(u[d]), q.acc[d] = std::fabs(q.cc[d]);
     const double* hb = tb.hb;
     q.cn1 = (std::fabs(q.cc[0]) + std::fabs(q.cc[1]) + std::fabs(q.cc[2]) + std::fabs(u[1]) * hb[2] + std::fabs(u[2]) * hb[1] +
              std::fabs(u[2]) * hb[0] + std::fabs(u[0]) * hb[2] + std::fabs(u[0]) * hb[1] + std::fabs(u[1]) * hb[0]) *
@@ -411,6 +413,7 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
   const double eps = 2.220446049250313e-16;
   const double tol = kCollinearEps * eps;
   const double pd[3] = {p.x, p.y, p.z};
+  const double side_scale = sil_scale(st, pd);
 
   // The pyramid's planes: cone plane k at k < np0 (cz: zero, never tested), the emitter plane at
   // np0 (the pyramid on p's side).
@@ -462,11 +465,11 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
   // clipping keeps the whole edge and the end tests below pass, so they are skipped.
   auto edge = [&](const SEdge& e, int W, V3<T> a3, V3<T> b3, bool in, int32_t ia, int32_t ib) -> bool {
     if (W == 0) {
-      int sf = sil_side(st, e.f, pd);
+      int sf = sil_side(st, e.f, pd, side_scale);
       if (sf == 0 && !face_path_side(occ, st, e.f, p, sf)) return false;
       W = sf;
       if (e.g >= 0) {
-        int sg = sil_side(st, e.g, pd);
+        int sg = sil_side(st, e.g, pd, side_scale);
         if (sg == 0 && !face_path_side(occ, st, e.g, p, sg)) return false;
         W += sg * e.dg;
       }

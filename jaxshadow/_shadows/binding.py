@@ -203,7 +203,10 @@ def unused_code() -> np.ndarray:
 @dataclass
 class PolygonCodes:
     """The engine's result for one polygon light: `classes (N,)` (`ZERO`, `LIT`, `UMBRA`,
-    `PENUMBRA`), `stats (N, 2)` (occluders the hierarchy returned, occluder regions kept),
+    `PENUMBRA`), `stats (N, 2)` (occluders the hierarchy returned, occluder regions kept;
+    the first counts, on the face path, the items of the receiver's group's list that pass its own
+    tests, and groups end at the engine's blocks of receivers, which depend on `JAXSHADOW_THREADS`:
+    it may differ with the thread count, unlike everything else here),
     `offsets (N + 1,)`; receiver i's boundary edges are rows `offsets[i]:offsets[i + 1]` of
     `runs (R, 2, 7)` (endpoint codes) and/or `points (R, 2, 3)` (their points, decoded on the host);
     for `LIT` receivers, the edges of the horizon-clipped light. `lambert (N,)` float64 (when

@@ -85,7 +85,10 @@ class LightPlan:
     pieces only) or 3 (visible pieces: `runs (R, 2)` endpoint codes, `segment_pieces`; or, on the
     reference path, some face meets the light triangle: candidate `faces`);
     point and directional lights 1 (visible) or 2 (blocked). `candidates (N,)`: items the
-    hierarchy returned for the receiver (polygon lights; a convex closed mesh counts once), or,
+    hierarchy returned for the receiver (polygon lights; a convex closed mesh counts once; on the
+    face path, those of its receiver group's list that pass its own tests: the count, unlike the
+    classes and boundaries, may differ with `JAXSHADOW_THREADS`, as groups end at the engine's
+    blocks of receivers), or,
     for receivers the engine's silhouette path served (large meshes without convex solids, every
     occluder between the receiver and the light), the contour edges in its pyramid; `kept (N,)`:
     occluder regions kept after the exact tests (1 on the silhouette path; 0 for an umbra
