@@ -284,8 +284,8 @@ ffi::Error segment_pieces_ffi(ffi::AnyBuffer points, ffi::AnyBuffer ends, ffi::A
     for (int64_t b = 0; b < in.B; b++) {
       const Occluders<double> occ = in.occluders(b);
       const Prepared& prep = in.prepared_for(b, occ);
-      segment_pieces_fixed<double>(N, in.points + b * N * 3, AB + b * 6, AB + b * 6 + 3, occ, prep.bvh, int(threads),
-                                   cap, cls->typed_data() + b * N, counts->typed_data() + b * N,
+      segment_pieces_fixed<double>(N, in.points + b * N * 3, AB + b * 6, AB + b * 6 + 3, occ, prep, int(threads), cap,
+                                   cls->typed_data() + b * N, counts->typed_data() + b * N,
                                    pieces->typed_data() + b * N * cap * 2);
     }
     return ffi::Error::Success();

@@ -13,10 +13,13 @@ stacked and coincident occluders, meshes touching the floor or the light's plane
 scaled by 1e-30..1e30 (float32) or 1e-150..1e150 (float64) and moved far from the origin;
 receivers on the floor, on event planes and lines (through a light vertex and an occluder vertex
 or edge), inside faces and on edges, on the light's plane and above it. Point, directional and
-segment lights go through their entry points too.
+segment lights go through their entry points too: segment lights' candidate faces and visible
+pieces, also for degenerate segments (zero length, between two occluder vertices, along an
+occluder edge), on the host and through the XLA FFI handler.
 
 Checked: no crash; classes and endpoint codes in range (every vertex, edge and face reference
-inside its table); offsets consistent; decoded boundary points, Lambert sums and the public
+inside its table, the segment pieces' plane codes too); offsets consistent; the FFI handlers'
+segment pieces those of the host plan; decoded boundary points, Lambert sums and the public
 values finite. And the public entry points (`Scene`, `Mesh`, `PolygonLight`, `irradiance`,
 `shadow_plan`, `ShadowCache`) refuse NaN and infinite coordinates with a `ValueError` before any
 C++ runs.
@@ -39,6 +42,7 @@ from hypothesis import strategies as st
 import jaxshadow as js
 from jaxshadow._core.mesh import OccluderTopology
 from jaxshadow._shadows import binding as vis
+from jaxshadow._shadows import segment_pieces
 
 pytest.importorskip("trimesh")
 pytestmark = pytest.mark.skipif(not vis.engine_available(), reason="the shadow engine is not built")
@@ -194,6 +198,42 @@ def _check_engine(light, faces, topo, p, nrm, what) -> None:
     soff, sfaces = vis.segment_candidates(p, light[0], light[2], occ)
     assert soff[0] == 0 and np.all(np.diff(soff) >= 0) and len(sfaces) == soff[-1], what
     assert np.all((sfaces >= 0) & (sfaces < m)), what
+    _check_pieces(p, light[0], light[2], occ, m, ko, what, np.diff(soff))
+    for a, b in _segments(light, faces):
+        _check_pieces(p, a, b, occ, m, ko, what)
+
+
+def _segments(light: np.ndarray, faces: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Degenerate segment lights over the scene: zero length (at a light vertex), from one
+    occluder vertex to another (through or along the meshes: face-plane ends, ends on faces), and
+    along an occluder edge."""
+    v = faces.reshape(-1, 3)
+    return [(light[1], light[1].copy()), (v[0], v[len(v) // 2]), (faces[0, 0], faces[0, 1])]
+
+
+def _check_pieces(p, a, b, occ, m, ko, what, kept_want=None) -> None:
+    """The segment light's visible pieces (`segment_pieces.host_pieces`): the contour path's those
+    of the face path (`JAXSHADOW_SEGMENT_WALK=0`); classes 1..3, offsets consistent, endpoint
+    codes -1, -2 or a plane of an occluder face (f (Ko + 1) + i < m (Ko + 1)), a penumbra receiver
+    with at least one piece and the others with none; `kept_want`: the face path's candidate
+    counts, those of `segment_candidates`."""
+    os.environ["JAXSHADOW_SEGMENT_WALK"] = "0"
+    try:
+        faces_path = segment_pieces.host_pieces(p, a, b, occ)
+    finally:
+        del os.environ["JAXSHADOW_SEGMENT_WALK"]
+    cls, kept, off, pieces = segment_pieces.host_pieces(p, a, b, occ)
+    # The contour path (where it serves) gives the face path's pieces.
+    for x, y in ((cls, faces_path[0]), (off, faces_path[2]), (pieces, faces_path[3])):
+        np.testing.assert_array_equal(x, y, err_msg=str(what))
+    n = len(p)
+    assert cls.shape == (n,) and np.all((cls >= 1) & (cls <= 3)), what
+    assert off.shape == (n + 1,) and off[0] == 0 and np.all(np.diff(off) >= 0) and len(pieces) == off[-1], what
+    assert np.all(((pieces >= 0) & (pieces < m * (ko + 1))) | (pieces == -1) | (pieces == -2)), what
+    np.testing.assert_array_equal(np.diff(off) > 0, cls == 3, err_msg=str(what))
+    assert np.all(kept >= 0), what
+    if kept_want is not None:
+        np.testing.assert_array_equal(faces_path[1], kept_want, err_msg=str(what))
 
 
 def _run_engine(data) -> None:
@@ -256,6 +296,18 @@ def test_ffi_handlers_survive_random_scenes(draw):
     cnt, seg = jax.jit(vis.traced_segment_candidates, static_argnums=(4, 5))(p, light[0], light[2], faces, topo, cap)
     seg = np.asarray(seg)
     assert np.all((seg >= -1) & (seg < faces.shape[0])), what
+    # The segment pieces' handler gives the host plan's pieces (those that fit the capacity).
+    occ = vis.HostOccluders.of(faces, topo, faces.dtype)
+    pieces = jax.jit(segment_pieces.traced_pieces, static_argnums=(4, 5))
+    for a, b in [(light[0], light[2])] + _segments(light, faces):
+        hcls, _, hoff, hpieces = segment_pieces.host_pieces(p, a, b, occ)
+        tcls, tcounts, tpieces = (np.asarray(x) for x in pieces(p, a, b, faces, topo, cap))
+        np.testing.assert_array_equal(tcls, hcls, err_msg=str(what))
+        np.testing.assert_array_equal(tcounts, np.diff(hoff), err_msg=str(what))
+        for i in range(len(p)):
+            k = min(int(tcounts[i]), cap)
+            np.testing.assert_array_equal(tpieces[i, :k], hpieces[hoff[i]:hoff[i] + k], err_msg=str(what))
+            assert np.all(tpieces[i, k:] == -1), what
 
 
 # --------------------------------------------------------------------------------------

@@ -272,3 +272,38 @@ def test_switch_and_summary(monkeypatch):
     assert lp.faces is not None and "penumbra_pieces" not in _face_path(
         monkeypatch, lambda: js.shadow_plan(scene, P, N).summary()["lights"][0])
     assert vis.engine_available()
+
+
+def _host(monkeypatch, walk, *args):
+    with monkeypatch.context() as m:
+        m.setenv("JAXSHADOW_SEGMENT_WALK", "1" if walk else "0")
+        return segment_pieces.host_pieces(*args)
+
+
+@pytest.mark.parametrize("kind", ["icosphere", "bowl", "fine"])
+@pytest.mark.parametrize("dt", [np.float64, np.float32])
+def test_contour_path_gives_the_face_path_pieces(kind, dt, monkeypatch):
+    """The contour path (faces of contour edges in the light triangle and faces the segment meets;
+    the rest by rays to the middles of the runs between their intervals) returns the face path's
+    pieces, codes and order (`JAXSHADOW_SEGMENT_WALK=0`: every face in the light triangle), for
+    segments over, through and along the mesh, receivers on the floor, on the segment's symmetry
+    plane and beside the mesh, and computes fewer faces' intervals."""
+    v, f = {"icosphere": _icosphere, "bowl": _bowl, "fine": lambda: _icosphere(seed=4, sub=3, amp=0.1)}[kind]()
+    scene = js.Scene([_light()], occluders=[js.Mesh(v, f)])
+    assert scene.occluders.shape[0] >= 256  # the contour path serves
+    occ = vis.HostOccluders.of(np.asarray(scene.occluders), scene.occluder_topology, dt)
+    rng = np.random.default_rng(7)
+    on_axis = np.c_[rng.uniform(-1.5, 1.5, 40), np.zeros(40), np.zeros(40)]  # y = 0: symmetric
+    p = np.r_[P, on_axis].astype(dt)
+    tri = np.asarray(scene.occluders)[0]
+    segments = [(A, B), ([-0.4, 0.0, 2.5], [0.4, 0.0, 2.5]), ([-1.0, 0.05, 1.1], [1.0, -0.05, 1.2]),
+                (tri[0], tri[1]), (tri[0], tri[0] + [0.0, 0.0, 1.5])]
+    examined = np.zeros(2, np.int64)
+    for a, b in segments:
+        a, b = np.asarray(a, dt), np.asarray(b, dt)
+        want = _host(monkeypatch, False, p, a, b, occ)
+        got = _host(monkeypatch, True, p, a, b, occ)
+        for x, y in zip(got[:1] + got[2:], want[:1] + want[2:], strict=True):
+            np.testing.assert_array_equal(x, y)
+        examined += [got[1].sum(), want[1].sum()]
+    assert examined[0] < examined[1], examined

@@ -95,19 +95,42 @@ bool ray_blocked(const Occluders<T>& occ, const BVH& bvh, V3<T> p, V3<T> r, cons
   return false;
 }
 
-// Faces that can block part of the segment light a -> b seen from p: the light triangle (p, a, b)
-// meets them. Conservative: a box test, then the face's vertices not all strictly on one side of
-// the triangle's plane or outside one of its edge planes. Back faces of closed meshes are dropped
-// seen from outside the mesh's box, unless p lies in the plane of one of the mesh's listed faces.
+// Whether face f has every vertex strictly on one side of the plane through p with normal nt
+// (the light triangle's; a zero nt drops nothing), beyond the tolerance `tol` of its rounding.
 template <class T>
-void segment_candidates(const Occluders<T>& occ, const BVH& bvh, V3<T> p, V3<T> a, V3<T> b,
-                        std::vector<int32_t>& out, std::vector<std::pair<int32_t, int32_t>>& cand) {
-  out.clear();
-  // Half-spaces bounding the triangle: its two sides (slab of the plane, as two half-spaces), and
-  // the three edge planes (in the triangle's plane, pointing inwards).
-  V3<T> nt = cross(a - p, b - p);
-  T tol = T(kCollinearEps) * eps_of<T>();
-  HalfSpace hs[5];
+bool off_triangle_plane(const Occluders<T>& occ, int64_t f, V3<T> p, V3<T> nt, T tol) {
+  const T nn = norm(nt);
+  bool pos = true, neg = true;
+  for (int64_t i = 0; i < occ.Ko; i++) {
+    const V3<T> r = occ.vert(f, i) - p;
+    const T h = dot(r, nt);
+    const T m = tol * nn * norm(r);
+    if (!(h > m)) pos = false;
+    if (!(h < -m)) neg = false;
+  }
+  return nonzero(nt) && (pos || neg);
+}
+
+// Whether p lies strictly behind face f (its Newell normal about p, beyond the tolerance `tol`):
+// for an outward face of a closed mesh seen from outside its box, a front face of the same mesh
+// blocks the same rays.
+template <class T>
+bool behind_face(const Occluders<T>& occ, int64_t f, V3<T> p, T tol) {
+  const int64_t Ko = occ.Ko;
+  V3<T> no{0, 0, 0};
+  for (int64_t i = 0; i < Ko; i++) no = no + cross(occ.vert(f, i) - p, occ.vert(f, (i + 1) % Ko) - p);
+  const T h0 = dot(no, occ.vert(f, 0) - p);
+  T scl = 0;
+  for (int64_t i = 0; i < Ko; i++) scl = std::max(scl, norm(occ.vert(f, i) - p));
+  return h0 > tol * norm(no) * scl;
+}
+
+// Half-spaces bounding the light triangle (p, a, b): its two sides (the slab of its plane, as two
+// half-spaces) and its three edge planes (in its plane, pointing inwards); none when the triangle
+// is degenerate (nt = 0). Returns how many.
+template <class T>
+int segment_triangle_planes(V3<T> p, V3<T> a, V3<T> b, HalfSpace* hs) {
+  const V3<T> nt = cross(a - p, b - p);
   int nh = 0;
   auto add = [&](V3<T> nrm, V3<T> q) {
     hs[nh].n[0] = double(nrm.x);
@@ -121,39 +144,44 @@ void segment_candidates(const Occluders<T>& occ, const BVH& bvh, V3<T> p, V3<T> 
   if (nonzero(nt)) {
     add(nt, p);
     add(T(-1) * nt, p);
-    add(cross(nt, a - p), p);   // inward of edge p->a
-    add(cross(nt, b - a), a);   // inward of a->b
-    add(cross(nt, p - b), b);   // inward of b->p
+    add(cross(nt, a - p), p);  // inward of edge p->a
+    add(cross(nt, b - a), a);  // inward of a->b
+    add(cross(nt, p - b), b);  // inward of b->p
   }
-  double scale = std::max(double(absmax(p)), std::max(double(absmax(a)), double(absmax(b)))) + 1.0;
-  query(bvh, hs, nh, 1e3 * double(eps_of<T>()) * scale, cand);
+  return nh;
+}
+
+// The box margin of the triangle's half-spaces (a bound on the rounding of the planes and the
+// coordinates, so that touching faces are kept).
+template <class T>
+double segment_box_margin(V3<T> p, V3<T> a, V3<T> b) {
+  const double scale = std::max(double(absmax(p)), std::max(double(absmax(a)), double(absmax(b)))) + 1.0;
+  return 1e3 * double(eps_of<T>()) * scale;
+}
+
+// Faces that can block part of the segment light a -> b seen from p: the light triangle (p, a, b)
+// meets them. Conservative: a box test, then the face's vertices not all strictly on one side of
+// the triangle's plane or outside one of its edge planes. Back faces of closed meshes are dropped
+// seen from outside the mesh's box, unless p lies in the plane of one of the mesh's listed faces.
+template <class T>
+void segment_candidates(const Occluders<T>& occ, const BVH& bvh, V3<T> p, V3<T> a, V3<T> b,
+                        std::vector<int32_t>& out, std::vector<std::pair<int32_t, int32_t>>& cand) {
+  out.clear();
+  const V3<T> nt = cross(a - p, b - p);
+  const T tol = T(kCollinearEps) * eps_of<T>();
+  HalfSpace hs[5];
+  const int nh = segment_triangle_planes(p, a, b, hs);
+  query(bvh, hs, nh, segment_box_margin(p, a, b), cand);
   KeptMeshes keep;  // closed meshes that keep their back faces
   auto consider = [&](int64_t f) {
-    const int64_t Ko = occ.Ko;
-    // Drop faces with every vertex strictly on one side of the triangle's plane.
-    T nn = norm(nt);
-    bool pos = true, neg = true;
-    for (int64_t i = 0; i < Ko; i++) {
-      V3<T> r = occ.vert(f, i) - p;
-      T h = dot(r, nt);
-      T m = tol * nn * norm(r);
-      if (!(h > m)) pos = false;
-      if (!(h < -m)) neg = false;
-    }
-    if (nonzero(nt) && (pos || neg)) return;
+    if (off_triangle_plane(occ, f, p, nt, tol)) return;
     const double pd[3] = {double(p.x), double(p.y), double(p.z)};
     const int32_t mesh = occ.face_closed ? occ.face_closed[f] : -1;
     if (mesh >= 0 && bvh.outside_mesh(mesh, pd)) {
       // p in the face's plane (the evaluator drops the face, FaceSide::edge_on): the mesh keeps
       // its back faces, which alone cover the face's wedge where p is just in front of it.
       if (!keep.all() && near_face_plane(occ, f, p)) keep.add(mesh);
-      V3<T> no{0, 0, 0};
-      for (int64_t i = 0; i < Ko; i++) no = no + cross(occ.vert(f, i) - p, occ.vert(f, (i + 1) % Ko) - p);
-      T h0 = dot(no, occ.vert(f, 0) - p);
-      // p strictly behind an outward face: a front face of the same mesh blocks the same rays.
-      T scl = 0;
-      for (int64_t i = 0; i < Ko; i++) scl = std::max(scl, norm(occ.vert(f, i) - p));
-      if (h0 > tol * norm(no) * scl) {
+      if (behind_face(occ, f, p, tol)) {
         out.push_back(-int32_t(f) - 1);  // a back face, dropped below unless its mesh is kept
         return;
       }

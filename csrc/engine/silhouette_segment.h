@@ -14,7 +14,10 @@
 // bit-identical for the two faces, whichever way the edge runs), and the union closes over it.
 // So a receiver's output is the list of visible pieces, each two endpoint codes, whatever the
 // number of faces in its light triangle; the device computes each endpoint's t from the code (the
-// same plane, differentiably) and integrates the segment's kernel over the pieces.
+// same plane, differentiably) and integrates the segment's kernel over the pieces. The host work
+// follows the contour too where it can (`segment_pieces_contour`, below): the same pieces from
+// the faces of contour edges, the faces the segment passes through, and rays to the middles of the
+// runs between their intervals; `JAXSHADOW_SEGMENT_WALK=0` takes the face path everywhere.
 //
 // The per-face interval is `_clip.blocked_intervals` test for test, in double (float32 inputs are
 // exact in double): the face's side from `face_side` (the on-surface rule included; a face p lies
@@ -50,13 +53,26 @@ struct SegmentBlock {
   int32_t clo, chi;
 };
 
+// The union's order of the intervals: by start, then the longer first, then by codes (a total
+// order, so that the pieces' codes do not depend on the order the faces were found in).
+inline bool block_before(const SegmentBlock& x, const SegmentBlock& y) {
+  if (x.lo != y.lo) return x.lo < y.lo;
+  if (x.hi != y.hi) return x.hi > y.hi;
+  if (x.clo != y.clo) return x.clo < y.clo;
+  return x.chi < y.chi;
+}
+
 // A receiver's scratch and result: its candidate faces, their intervals and the visible pieces
-// (pairs of endpoint codes, in order along the segment).
+// (pairs of endpoint codes, in order along the segment); the contour path's scratch.
 struct SegmentWork {
   std::vector<int32_t> faces;
   std::vector<std::pair<int32_t, int32_t>> cand;
   std::vector<SegmentBlock> blocks;
   std::vector<int32_t> pieces;  // 2 codes per piece
+  std::vector<double> cuts;     // the contour path's interval ends along t
+  std::vector<int32_t> cover;
+  std::vector<int32_t> stack;
+  int64_t examined = 0;  // faces whose interval the contour path computed
 };
 
 // The interval of t that face f hides on a -> b (d = b - a) seen from p, clipped to [0, 1];
@@ -120,8 +136,7 @@ int32_t segment_pieces(const Occluders<T>& occ, const BVH& bvh, V3<T> p, V3<T> a
     if (segment_block(occ, f, p, a, d, blk)) w.blocks.push_back(blk);
   }
   if (w.blocks.empty()) return 1;
-  std::sort(w.blocks.begin(), w.blocks.end(),
-            [](const SegmentBlock& x, const SegmentBlock& y) { return x.lo < y.lo || (x.lo == y.lo && x.hi > y.hi); });
+  std::sort(w.blocks.begin(), w.blocks.end(), block_before);
   double cur = 0;
   int32_t ccur = kSegStart;
   for (const SegmentBlock& blk : w.blocks) {
@@ -138,20 +153,389 @@ int32_t segment_pieces(const Occluders<T>& occ, const BVH& bvh, V3<T> p, V3<T> a
   return w.pieces.empty() ? 2 : 3;
 }
 
-// Host plan: classes (N,), candidate faces per receiver (N,), offsets (N + 1,) into the pieces
+// ----------------------------------------------------------------------------------------------
+// The contour path: the same pieces from the faces of contour edges and pierced faces
+// ----------------------------------------------------------------------------------------------
+//
+// A piece's end is the end of a face's interval that no other interval continues: the crossing
+// with the plane through p and a contour edge of the meshes (both faces on one side of that
+// plane, sil_side's W != 0: at an edge whose faces lie on either side, the two intervals meet at
+// the bit-identical crossing and the union closes over it), or the face's own plane where the
+// segment passes through the face. So the pieces are found from (1) the faces of the contour
+// edges that meet the light triangle (the silhouette hierarchy walked with the triangle's
+// half-spaces, nodes whose faces all face p one way left out: `node_side`), (2) the faces the
+// segment meets (the face hierarchy along a -> b), each kept when `segment_candidates` would list
+// it (the same box, triangle-plane and back-face tests); their intervals cut [0, 1] into runs,
+// and a run that none of them covers is hidden or visible as a ray from p to its middle finds
+// (the face hierarchy along that ray: an interval of a face it meets holding the middle). The
+// ends of the visible runs take the codes the face path's union would give them (`block_before`
+// among the intervals that end or start there).
+//
+// The walk decides every face it reads by sil_side, whose margin is above near_face_plane's: so
+// no listed face of a closed mesh has p in its plane (the face path would then keep the mesh's
+// back faces). Any decision too close to call (a face side 0, an end of a visible run that no
+// interval of (1)-(2) bounds, a face met by a middle's ray whose interval ends inside the run)
+// returns kFallback: the receiver takes the face path, as does a receiver whose light triangle's
+// plane holds an occluder vertex (`plane_holds_vertex`: there an edge may lie in the plane, or
+// the faces around the vertex leave slivers between their intervals, which no contour edge
+// bounds). Scenes with convex solids (their faces are listed as a whole) take the face path.
+
+// The silhouette hierarchy of a call's occluders and its faces' indices (the hierarchy's local
+// face f is occluder face glob[f]); `st` null: every receiver takes the face path.
+// `ang`: the occluders' vertices' angles about the segment's line (mod pi, sorted; the frame
+// e1, e2 across it), so that a receiver whose light triangle's plane holds a vertex, where the
+// faces around it may leave slivers between their intervals or hide along an edge in that plane,
+// is found in log time and takes the face path.
+struct SegmentContour {
+  const SilhouetteTree* st = nullptr;
+  std::vector<int32_t> glob;
+  std::vector<double> ang;
+  double a[3], e1[3], e2[3], rmin;
+  // Per hierarchy node: its subtree holds a pair of faces that do not share the edge (a
+  // T-junction's pieces): their intervals need not meet bit for bit, so node_side, which proves
+  // only that no edge below is a contour edge, does not leave the node out.
+  std::vector<uint8_t> unshared;
+};
+
+// The angle mod pi in [0, pi) of x - a in the frame (e1, e2), and the distance r from the line.
+inline double line_angle(const SegmentContour& sc, const double* x, double& r) {
+  const double y[3] = {x[0] - sc.a[0], x[1] - sc.a[1], x[2] - sc.a[2]};
+  const double u = y[0] * sc.e1[0] + y[1] * sc.e1[1] + y[2] * sc.e1[2];
+  const double v = y[0] * sc.e2[0] + y[1] * sc.e2[1] + y[2] * sc.e2[2];
+  r = std::sqrt(u * u + v * v);
+  double t = std::atan2(v, u);
+  if (t < 0) t += M_PI;
+  if (t >= M_PI) t -= M_PI;
+  return t;
+}
+
+constexpr double kSegmentPlaneAngle = 1e-9;  // a vertex this near the light triangle's plane (rad)
+
+// Whether a vertex of the occluders lies within kSegmentPlaneAngle of the plane through the
+// segment's line and p (or p is too near the line to tell).
+inline bool plane_holds_vertex(const SegmentContour& sc, const double* p) {
+  double r;
+  const double t = line_angle(sc, p, r);
+  if (!(r > sc.rmin)) return true;
+  const std::vector<double>& g = sc.ang;
+  if (g.empty()) return false;
+  const size_t k = size_t(std::lower_bound(g.begin(), g.end(), t) - g.begin());
+  auto near = [&](double x) {
+    const double dx = std::fabs(x - t);
+    return std::min(dx, M_PI - dx) < kSegmentPlaneAngle;
+  };
+  return near(g[k % g.size()]) || near(g[(k + g.size() - 1) % g.size()]);
+}
+
+// The contour path for `occ` unless JAXSHADOW_SEGMENT_WALK=0 (read per call) or the occluders
+// have convex solids, fewer faces than the silhouette path serves, or faces of over 64 vertices.
+// Whether faces f and g have an edge with the same two end positions (`same`), either way.
+template <class T>
+bool share_edge(const Occluders<T>& occ, int64_t f, int64_t g) {
+  for (int64_t i = 0; i < occ.Ko; i++) {
+    const V3<T> u = occ.vert(f, i), v = occ.vert(f, (i + 1) % occ.Ko);
+    if (same(u, v)) continue;
+    for (int64_t j = 0; j < occ.Ko; j++) {
+      const V3<T> x = occ.vert(g, j), y = occ.vert(g, (j + 1) % occ.Ko);
+      if ((same(u, x) && same(v, y)) || (same(u, y) && same(v, x))) return true;
+    }
+  }
+  return false;
+}
+
+// A vertex nearer the segment's line than 1e-6 of the scene's scale lies in every receiver's
+// plane (or its angle is not known to kSegmentPlaneAngle): every receiver takes the face path.
+template <class T>
+SegmentContour segment_contour(const Occluders<T>& occ, const Prepared& prep, V3<T> a, V3<T> b) {
+  SegmentContour sc;
+  const char* env = std::getenv("JAXSHADOW_SEGMENT_WALK");
+  if ((env && env[0] == '0') || occ.S > 0 || occ.M < kSilhouetteMinFaces || occ.Ko > 64) return sc;
+  const PolygonParts& parts = prep.polygon(occ);
+  const SilhouetteTree& st = parts.sil;
+  if (!st.ok || st.floc.size() != size_t(occ.M)) return sc;
+  const double ad[3] = {double(a.x), double(a.y), double(a.z)};
+  double d[3] = {double(b.x) - ad[0], double(b.y) - ad[1], double(b.z) - ad[2]};
+  const double dn = std::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+  if (!(dn > 0) || !std::isfinite(dn)) return sc;
+  for (int k = 0; k < 3; k++) d[k] /= dn, sc.a[k] = ad[k];
+  // e1: the unit vector across d from the axis d is least along; e2 = d x e1.
+  const int m = std::fabs(d[0]) <= std::fabs(d[1]) && std::fabs(d[0]) <= std::fabs(d[2]) ? 0 : (std::fabs(d[1]) <= std::fabs(d[2]) ? 1 : 2);
+  double e[3] = {0, 0, 0};
+  e[m] = 1;
+  const double de = d[m];
+  for (int k = 0; k < 3; k++) e[k] -= de * d[k];
+  const double en = std::sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2]);
+  for (int k = 0; k < 3; k++) sc.e1[k] = e[k] / en;
+  sc.e2[0] = d[1] * sc.e1[2] - d[2] * sc.e1[1];
+  sc.e2[1] = d[2] * sc.e1[0] - d[0] * sc.e1[2];
+  sc.e2[2] = d[0] * sc.e1[1] - d[1] * sc.e1[0];
+  const double scale = std::max(st.scale, std::max(double(absmax(a)), double(absmax(b))));
+  sc.rmin = 1e-6 * scale;
+  sc.ang.reserve(parts.verts.size());
+  for (const int64_t k : parts.verts) {
+    const V3<T> x = ld(occ.faces + 3 * k);
+    const double xd[3] = {double(x.x), double(x.y), double(x.z)};
+    double r;
+    const double t = line_angle(sc, xd, r);
+    if (!(r > sc.rmin)) return SegmentContour();
+    sc.ang.push_back(t);
+  }
+  std::sort(sc.ang.begin(), sc.ang.end());
+  sc.glob.assign(size_t(occ.M), 0);
+  for (int64_t f = 0; f < occ.M; f++) sc.glob[size_t(st.floc[size_t(f)])] = int32_t(f);
+  sc.unshared.assign(st.nodes.size(), 0);
+  for (size_t k = st.nodes.size(); k-- > 0;) {  // children follow their parent
+    const SNode& nd = st.nodes[k];
+    if (nd.left >= 0) {
+      sc.unshared[k] = sc.unshared[size_t(nd.left)] | sc.unshared[size_t(nd.right)];
+      continue;
+    }
+    for (int32_t j = nd.start; j < nd.start + nd.count && !sc.unshared[k]; j++) {
+      const SEdge& e = st.edges[size_t(j)];
+      if (e.g >= 0 && !share_edge(occ, sc.glob[size_t(e.f)], sc.glob[size_t(e.g)])) sc.unshared[k] = 1;
+    }
+  }
+  sc.st = &st;
+  return sc;
+}
+
+// Whether the segment x0 + s (x1 - x0), s in [0, 1], meets the box grown by `pad`.
+inline bool segment_meets_box(const double* box, const double* x0, const double* dx, double pad) {
+  double s0 = 0, s1 = 1;
+  for (int d = 0; d < 3; d++) {
+    const double lo = box[d] - pad, hi = box[3 + d] + pad;
+    if (dx[d] == 0) {
+      if (!(x0[d] >= lo && x0[d] <= hi)) return false;
+      continue;
+    }
+    double ta = (lo - x0[d]) / dx[d], tb = (hi - x0[d]) / dx[d];
+    if (ta > tb) std::swap(ta, tb);
+    s0 = std::max(s0, ta);
+    s1 = std::min(s1, tb);
+    if (!(s0 <= s1)) return false;
+  }
+  return true;
+}
+
+// `visit(face)` for each face of the hierarchy (no solids) whose box, grown by `pad`, meets the
+// segment x0 -> x1; `visit` returns false to stop. False: the stack overflowed.
+template <class F>
+bool faces_along(const BVH& bvh, const double* x0, const double* x1, double pad, std::vector<int32_t>& stack, F visit) {
+  if (bvh.nodes.empty()) return true;
+  const double dx[3] = {x1[0] - x0[0], x1[1] - x0[1], x1[2] - x0[2]};
+  stack.clear();
+  stack.push_back(0);
+  while (!stack.empty()) {
+    const Node& nd = bvh.nodes[size_t(stack.back())];
+    stack.pop_back();
+    if (!segment_meets_box(nd.box, x0, dx, pad)) continue;
+    if (nd.left >= 0) {
+      stack.push_back(nd.left);
+      stack.push_back(nd.right);
+      continue;
+    }
+    for (int32_t i = nd.start; i < nd.start + nd.count; i++) {
+      if (!segment_meets_box(bvh.ibox.data() + 6 * size_t(i), x0, dx, pad)) continue;
+      if (bvh.items[size_t(i)] >= 0 && !visit(bvh.items[size_t(i)])) return true;
+    }
+  }
+  return true;
+}
+
+// The visible pieces of a -> b seen from p by the contour path (above): as segment_pieces, or
+// kFallback.
+template <class T>
+int32_t segment_pieces_contour(const Occluders<T>& occ, const BVH& bvh, const SegmentContour& sc, V3<T> p, V3<T> a,
+                               V3<T> b, SegmentWork& w) {
+  const SilhouetteTree& st = *sc.st;
+  w.pieces.clear();
+  w.blocks.clear();
+  w.faces.clear();
+  w.examined = 0;
+  const V3<T> nt = cross(a - p, b - p);
+  if (!nonzero(nt)) return kFallback;
+  const double pd[3] = {double(p.x), double(p.y), double(p.z)};
+  if (plane_holds_vertex(sc, pd)) return kFallback;
+  const T tol = T(kCollinearEps) * eps_of<T>();
+  HalfSpace hs[5];
+  const int nh = segment_triangle_planes(p, a, b, hs);
+  const double cmargin = segment_box_margin(p, a, b);
+  BoxPlane cand[5], walk[5];
+  prepare_planes(hs, nh, cmargin, cand);
+  prepare_planes(hs, nh, 4 * cmargin, walk);  // a node outside these holds no listed face
+  const double scale = std::max(st.scale, std::max(double(absmax(p)), std::max(double(absmax(a)), double(absmax(b))))) + 1e-300;
+  const double smargin = 4 * kOnSurface * scale;
+  // segment_candidates' tests of face f (no solids: each face is an item of the hierarchy).
+  auto listed = [&](int32_t f) {
+    double box[6];
+    for (int d = 0; d < 3; d++) box[d] = std::numeric_limits<double>::infinity(), box[3 + d] = -box[d];
+    for (int64_t i = 0; i < occ.Ko; i++) {
+      const T* v = occ.faces + 3 * (f * occ.Ko + i);
+      for (int d = 0; d < 3; d++) box[d] = std::min(box[d], double(v[d])), box[3 + d] = std::max(box[3 + d], double(v[d]));
+    }
+    for (int k = 0; k < nh; k++)
+      if (outside6(box, cand[k])) return false;
+    if (off_triangle_plane(occ, f, p, nt, tol)) return false;
+    const int32_t mesh = occ.face_closed ? occ.face_closed[f] : -1;
+    return !(mesh >= 0 && bvh.outside_mesh(mesh, pd) && behind_face(occ, f, p, tol));
+  };
+  // (1) The faces of the contour edges in the leaves the walk reaches.
+  std::vector<int32_t>& stack = w.stack;
+  stack.clear();
+  stack.push_back(0);
+  while (!stack.empty()) {
+    const int32_t stack_node = stack.back();
+    const SNode& nd = st.nodes[size_t(stack_node)];
+    stack.pop_back();
+    bool out = false;
+    for (int k = 0; k < nh && !out; k++) out = outside6(nd.box, walk[k]);
+    if (out) continue;
+    if (!nd.special && !sc.unshared[size_t(stack_node)] && node_side(nd, pd, smargin) != 0) continue;
+    if (nd.left >= 0) {
+      stack.push_back(nd.left);
+      stack.push_back(nd.right);
+      continue;
+    }
+    for (int32_t k = nd.start; k < nd.start + nd.count; k++) {
+      const SEdge& e = st.edges[size_t(k)];
+      const int sf = sil_side(st, e.f, pd);
+      if (sf == 0) return kFallback;
+      int W = sf;
+      if (e.g >= 0) {
+        const int sg = sil_side(st, e.g, pd);
+        if (sg == 0) return kFallback;
+        W += sg * e.dg;
+      }
+      // Faces on either side of the edge's plane meet at its crossing, bit for bit where both
+      // have it as an edge (edge_plane of the same two positions); a T-junction's pair is
+      // treated as a contour edge. (The hierarchy's vertex references are offset by the light
+      // vertex count of the call that built it: the faces' own vertices are read instead.)
+      if (W == 0 && share_edge(occ, sc.glob[size_t(e.f)], sc.glob[size_t(e.g)])) continue;
+      w.faces.push_back(sc.glob[size_t(e.f)]);
+      if (e.g >= 0) w.faces.push_back(sc.glob[size_t(e.g)]);
+    }
+  }
+  // (2) The faces the segment meets (their planes may bound an interval).
+  const double pad = 1e-9 * scale;
+  const double ad[3] = {double(a.x), double(a.y), double(a.z)}, bd[3] = {double(b.x), double(b.y), double(b.z)};
+  faces_along(bvh, ad, bd, pad, stack, [&](int32_t f) {
+    w.faces.push_back(f);
+    return true;
+  });
+  std::sort(w.faces.begin(), w.faces.end());
+  w.faces.erase(std::unique(w.faces.begin(), w.faces.end()), w.faces.end());
+  const V3<T> d = b - a;
+  for (int32_t f : w.faces) {
+    if (!listed(f)) continue;
+    w.examined++;
+    SegmentBlock blk;
+    if (segment_block(occ, f, p, a, d, blk)) w.blocks.push_back(blk);
+  }
+  // The runs between consecutive interval ends, and which the intervals cover.
+  std::vector<double>& cuts = w.cuts;
+  cuts.assign({0.0, 1.0});
+  for (const SegmentBlock& blk : w.blocks) cuts.push_back(blk.lo), cuts.push_back(blk.hi);
+  std::sort(cuts.begin(), cuts.end());
+  cuts.erase(std::unique(cuts.begin(), cuts.end()), cuts.end());
+  const size_t nr = cuts.size() - 1;
+  std::vector<int32_t>& cover = w.cover;
+  cover.assign(nr + 1, 0);
+  for (const SegmentBlock& blk : w.blocks) {
+    const size_t i0 = size_t(std::lower_bound(cuts.begin(), cuts.end(), blk.lo) - cuts.begin());
+    const size_t i1 = size_t(std::lower_bound(cuts.begin(), cuts.end(), blk.hi) - cuts.begin());
+    cover[i0]++, cover[i1]--;
+  }
+  for (size_t i = 1; i <= nr; i++) cover[i] += cover[i - 1];
+  // Runs no interval covers: hidden when a face met by the ray from p to the run's middle hides
+  // part of it (the faces without a contour edge in the triangle cover a run whole or not at
+  // all: where their intervals end, the neighbour's across the edge starts).
+  for (size_t i = 0; i < nr; i++) {
+    if (cover[i] > 0) continue;
+    const double u = cuts[i], v = cuts[i + 1], tm = 0.5 * (u + v);
+    const double xm[3] = {double(a.x) + tm * double(d.x), double(a.y) + tm * double(d.y), double(a.z) + tm * double(d.z)};
+    bool hidden = false;
+    faces_along(bvh, pd, xm, pad, stack, [&](int32_t f) {
+      if (std::binary_search(w.faces.begin(), w.faces.end(), f) || !listed(f)) return true;
+      w.examined++;
+      SegmentBlock blk;
+      if (!segment_block(occ, f, p, a, d, blk) || !(blk.lo < v && blk.hi > u)) return true;
+      hidden = true;
+      return false;
+    });
+    if (hidden) cover[i] = 1;
+  }
+  // The visible runs' ends, coded as the union of the face path codes them.
+  auto start_code = [&](double s, int32_t& code) {  // a piece starting where intervals end
+    if (s == 0) return code = kSegStart, true;
+    const SegmentBlock* best = nullptr;
+    for (const SegmentBlock& blk : w.blocks)
+      if (blk.hi == s && (!best || block_before(blk, *best))) best = &blk;
+    if (!best) return false;
+    code = best->chi;
+    return true;
+  };
+  auto end_code = [&](double e, int32_t& code) {  // a piece ending where intervals start
+    if (e == 1) return code = kSegEnd, true;
+    const SegmentBlock* best = nullptr;
+    for (const SegmentBlock& blk : w.blocks)
+      if (blk.lo == e && (!best || block_before(blk, *best))) best = &blk;
+    if (!best) return false;
+    code = best->clo;
+    return true;
+  };
+  for (size_t i = 0; i < nr;) {
+    if (cover[i] > 0) {
+      i++;
+      continue;
+    }
+    size_t j = i;
+    while (j + 1 < nr && cover[j + 1] == 0) j++;
+    int32_t c0, c1;
+    if (!start_code(cuts[i], c0) || !end_code(cuts[j + 1], c1)) return kFallback;
+    w.pieces.push_back(c0);
+    w.pieces.push_back(c1);
+    i = j + 1;
+  }
+  if (w.pieces.size() == 2 && w.pieces[0] == kSegStart && w.pieces[1] == kSegEnd) {
+    if (!w.blocks.empty()) return kFallback;  // the face path's blocks would cover part
+    w.pieces.clear();
+    return 1;
+  }
+  if (w.blocks.empty() && !w.pieces.empty()) return kFallback;
+  return w.pieces.empty() ? 2 : 3;
+}
+
+// A receiver's pieces: the contour path where it serves, else the face path. `kept`: the faces
+// whose interval was computed (the face path: its candidates).
+template <class T>
+int32_t segment_pieces_any(const Occluders<T>& occ, const BVH& bvh, const SegmentContour& sc, V3<T> p, V3<T> a, V3<T> b,
+                           SegmentWork& w, int32_t& kept) {
+  if (sc.st) {
+    const int32_t c = segment_pieces_contour(occ, bvh, sc, p, a, b, w);
+    if (c != kFallback) {
+      kept = int32_t(w.examined);
+      return c;
+    }
+  }
+  const int32_t c = segment_pieces(occ, bvh, p, a, b, w);
+  kept = int32_t(w.faces.size());
+  return c;
+}
+
+// Host plan: classes (N,), faces whose interval was computed per receiver (N,), offsets (N + 1,) into the pieces
 // (R, 2) int32 (`*pieces_out`, malloc'ed; the caller frees it). Returns 0, or 2 out of memory.
 template <class T>
 int segment_pieces_plan(int64_t N, const T* P, const T* A, const T* B, const Occluders<T>& occ, int threads,
                         int32_t* cls, int32_t* kept, int64_t* offsets, int32_t** pieces_out) {
   const std::shared_ptr<const Prepared> prep = prepared(occ);  // the cached hierarchy
   const BVH& bvh = prep->bvh;
+  const SegmentContour sc = segment_contour(occ, *prep, ld(A), ld(B));
   const V3<T> a = ld(A), b = ld(B);
   std::vector<std::vector<int32_t>> lists(size_t(std::max<int64_t>(N, 0)));
   parallel_for(N, default_threads(threads), [&](int, int64_t s, int64_t e) {
     SegmentWork w;
     for (int64_t i = s; i < e; i++) {
-      cls[i] = segment_pieces(occ, bvh, ld(P + 3 * i), a, b, w);
-      kept[i] = int32_t(w.faces.size());
+      cls[i] = segment_pieces_any(occ, bvh, sc, ld(P + 3 * i), a, b, w, kept[i]);
       lists[size_t(i)] = w.pieces;
     }
   });
@@ -169,13 +553,15 @@ int segment_pieces_plan(int64_t N, const T* P, const T* A, const T* B, const Occ
 // Fixed capacity (the FFI handler's layout): classes (N,), counts (N,) (pieces of a penumbra
 // receiver, 0 for the others), pieces (N, cap, 2) with unused slots (kSegStart, kSegStart).
 template <class T>
-void segment_pieces_fixed(int64_t N, const T* P, const T* A, const T* B, const Occluders<T>& occ, const BVH& bvh,
+void segment_pieces_fixed(int64_t N, const T* P, const T* A, const T* B, const Occluders<T>& occ, const Prepared& prep,
                           int threads, int64_t cap, int32_t* cls, int32_t* counts, int32_t* pieces) {
   const V3<T> a = ld(A), b = ld(B);
+  const SegmentContour sc = segment_contour(occ, prep, a, b);
   parallel_for(N, default_threads(threads), [&](int, int64_t s, int64_t e) {
     SegmentWork w;
+    int32_t kept = 0;
     for (int64_t i = s; i < e; i++) {
-      cls[i] = segment_pieces(occ, bvh, ld(P + 3 * i), a, b, w);
+      cls[i] = segment_pieces_any(occ, prep.bvh, sc, ld(P + 3 * i), a, b, w, kept);
       const int64_t n = int64_t(w.pieces.size() / 2);
       counts[i] = int32_t(n);
       int32_t* out = pieces + i * cap * 2;

@@ -21,6 +21,13 @@ Codes (int32): -1 ($t = 0$), -2 ($t = 1$), or $f\,(K_o + 1) + i$: edge $i \to i 
 $f$ ($i < K_o$) or face $f$'s plane ($i = K_o$). `JAXSHADOW_SEGMENT_PIECES=0` switches the path
 off (segment lights then clip every candidate face on the device: the reference it is tested
 against).
+
+On the host, a receiver's pieces come from the faces of the contour edges in its light triangle
+(the silhouette hierarchy), the faces the segment passes through, and rays from $p$ to the middles
+of the runs between their intervals, so that its work follows the contour rather than the faces
+in the triangle; receivers where a decision is too close to call (and scenes with convex solids)
+take the face path, every face in the light triangle. Both give the same pieces, codes and order;
+`JAXSHADOW_SEGMENT_WALK=0` takes the face path for every receiver.
 """
 
 from __future__ import annotations
@@ -58,8 +65,9 @@ def enabled(traced: bool = False) -> bool:
 def host_pieces(points: np.ndarray, a: np.ndarray, b: np.ndarray,
                 occ: vis.HostOccluders) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The engine's visible pieces at concrete receivers: `(classes (N,) int32` (1 lit: nothing
-    hidden; 2 umbra: all hidden; 3 penumbra), `kept (N,) int32` (candidate faces: those that meet
-    the light triangle), `offsets (N + 1,) int64`, `pieces (R, 2) int32` endpoint codes of the
+    hidden; 2 umbra: all hidden; 3 penumbra), `kept (N,) int32` (faces whose hidden interval was
+    computed: the candidates that meet the light triangle on the face path, the contour path's
+    faces and those its rays met on the contour path), `offsets (N + 1,) int64`, `pieces (R, 2) int32` endpoint codes of the
     penumbra receivers' pieces, in order along the segment)."""
     lib = vis._require()
     dt = occ.faces.dtype
