@@ -213,7 +213,7 @@ def _segments(light: np.ndarray, faces: np.ndarray) -> list[tuple[np.ndarray, np
 
 def _check_pieces(p, a, b, occ, m, ko, what, kept_want=None) -> None:
     """The segment light's visible pieces (`segment_pieces.host_pieces`): the contour path's those
-    of the face path (`JAXSHADOW_SEGMENT_WALK=0`); classes 1..3, offsets consistent, endpoint
+    of the face path (`JAXSHADOW_SEGMENT_WALK=1` against `=0`); classes 1..3, offsets consistent, endpoint
     codes -1, -2 or a plane of an occluder face (f (Ko + 1) + i < m (Ko + 1)), a penumbra receiver
     with at least one piece and the others with none; `kept_want`: the face path's candidate
     counts, those of `segment_candidates`."""
@@ -222,7 +222,11 @@ def _check_pieces(p, a, b, occ, m, ko, what, kept_want=None) -> None:
         faces_path = segment_pieces.host_pieces(p, a, b, occ)
     finally:
         del os.environ["JAXSHADOW_SEGMENT_WALK"]
-    cls, kept, off, pieces = segment_pieces.host_pieces(p, a, b, occ)
+    os.environ["JAXSHADOW_SEGMENT_WALK"] = "1"
+    try:
+        cls, kept, off, pieces = segment_pieces.host_pieces(p, a, b, occ)
+    finally:
+        del os.environ["JAXSHADOW_SEGMENT_WALK"]
     # The contour path (where it serves) gives the face path's pieces.
     for x, y in ((cls, faces_path[0]), (off, faces_path[2]), (pieces, faces_path[3])):
         np.testing.assert_array_equal(x, y, err_msg=str(what))
