@@ -506,6 +506,14 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         if (full == Cov::kNone) return kFallback;
         cf[size_t(i0)] = full;
       }
+      // C carried to segment j's reference point: taken (and j's links followed) the first time,
+      // and equal to it every later time, else the receiver falls back.
+      auto carry = [&](int j, int cj) {
+        if (cf[size_t(j)] != Cov::kNone) return cf[size_t(j)] == cj;
+        cf[size_t(j)] = cj;
+        todo.push_back(j);
+        return true;
+      };
       todo.assign(1, i0);
       while (!todo.empty()) {
         const int i = todo.back();
@@ -532,12 +540,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
               const int jpos = ej ? cplus : cminus, jneg = ej ? cminus : cplus;
               const int cv = t.q0s > 0 ? jpos : jneg;
               const int cj = cv - ej * sj[size_t(j)];
-              if (cf[size_t(j)] == Cov::kNone) {
-                cf[size_t(j)] = cj;
-                todo.push_back(j);
-              } else if (cf[size_t(j)] != cj) {
-                return kFallback;
-              }
+              if (!carry(j, cj)) return kFallback;
             }
             continue;
           }
@@ -547,12 +550,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
           if (jpos - jneg != t.w || t.q0s == 0) return kFallback;
           const int cv = jneg + int(t.q0s > 0) * (jpos - jneg);  // t.q0s > 0 ? jpos : jneg
           const int cj = cv - ej * sj[size_t(j)];
-          if (cf[size_t(j)] == Cov::kNone) {
-            cf[size_t(j)] = cj;
-            todo.push_back(j);
-          } else if (cf[size_t(j)] != cj) {
-            return kFallback;
-          }
+          if (!carry(j, cj)) return kFallback;
         }
       }
     }

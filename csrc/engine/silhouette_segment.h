@@ -182,15 +182,14 @@ int32_t segment_pieces(const Occluders<T>& occ, const BVH& bvh, V3<T> p, V3<T> a
 // the faces around the vertex leave slivers between their intervals, which no contour edge
 // bounds). Scenes with convex solids (their faces are listed as a whole) take the face path.
 
-// The silhouette hierarchy of a call's occluders and its faces' indices (the hierarchy's local
-// face f is occluder face glob[f]); `st` null: every receiver takes the face path.
+// The silhouette hierarchy of a call's occluders (its local face f is occluder face st->fglob[f]);
+// `st` null: every receiver takes the face path.
 // `ang`: the occluders' vertices' angles about the segment's line (mod pi, sorted; the frame
 // e1, e2 across it), so that a receiver whose light triangle's plane holds a vertex, where the
 // faces around it may leave slivers between their intervals or hide along an edge in that plane,
 // is found in log time and takes the face path.
 struct SegmentContour {
   const SilhouetteTree* st = nullptr;
-  std::vector<int32_t> glob;
   std::vector<double> ang;
   double a[3], e1[3], e2[3], rmin;
   // Per hierarchy node: its subtree holds a pair of faces that do not share the edge (a
@@ -283,8 +282,6 @@ SegmentContour segment_contour(const Occluders<T>& occ, const Prepared& prep, V3
     sc.ang.push_back(t);
   }
   std::sort(sc.ang.begin(), sc.ang.end());
-  sc.glob.assign(size_t(occ.M), 0);
-  for (int64_t f = 0; f < occ.M; f++) sc.glob[size_t(st.floc[size_t(f)])] = int32_t(f);
   sc.unshared.assign(st.nodes.size(), 0);
   for (size_t k = st.nodes.size(); k-- > 0;) {  // children follow their parent
     const SNode& nd = st.nodes[k];
@@ -294,7 +291,7 @@ SegmentContour segment_contour(const Occluders<T>& occ, const Prepared& prep, V3
     }
     for (int32_t j = nd.start; j < nd.start + nd.count && !sc.unshared[k]; j++) {
       const SEdge& e = st.edges[size_t(j)];
-      if (e.g >= 0 && !share_edge(occ, sc.glob[size_t(e.f)], sc.glob[size_t(e.g)])) sc.unshared[k] = 1;
+      if (e.g >= 0 && !share_edge(occ, st.fglob[size_t(e.f)], st.fglob[size_t(e.g)])) sc.unshared[k] = 1;
     }
   }
   sc.st = &st;
@@ -410,11 +407,10 @@ int32_t segment_pieces_contour(const Occluders<T>& occ, const BVH& bvh, const Se
       }
       // Faces on either side of the edge's plane meet at its crossing, bit for bit where both
       // have it as an edge (edge_plane of the same two positions); a T-junction's pair is
-      // treated as a contour edge. (The hierarchy's vertex references are offset by the light
-      // vertex count of the call that built it: the faces' own vertices are read instead.)
-      if (W == 0 && share_edge(occ, sc.glob[size_t(e.f)], sc.glob[size_t(e.g)])) continue;
-      w.faces.push_back(sc.glob[size_t(e.f)]);
-      if (e.g >= 0) w.faces.push_back(sc.glob[size_t(e.g)]);
+      // treated as a contour edge.
+      if (W == 0 && share_edge(occ, st.fglob[size_t(e.f)], st.fglob[size_t(e.g)])) continue;
+      w.faces.push_back(st.fglob[size_t(e.f)]);
+      if (e.g >= 0) w.faces.push_back(st.fglob[size_t(e.g)]);
     }
   }
   // (2) The faces the segment meets (their planes may bound an interval).
@@ -467,22 +463,16 @@ int32_t segment_pieces_contour(const Occluders<T>& occ, const BVH& bvh, const Se
     if (hidden) cover[i] = 1;
   }
   // The visible runs' ends, coded as the union of the face path codes them.
-  auto start_code = [&](double s, int32_t& code) {  // a piece starting where intervals end
-    if (s == 0) return code = kSegStart, true;
+  // The code of a run's end at s: the segment's end there, else that of the first (block_before)
+  // of the intervals ending at s (a run's start: hi == s, its chi) or starting there (a run's end:
+  // lo == s, its clo); false where no interval bounds the run.
+  auto run_code = [&](double s, bool start, int32_t& code) {
+    if (s == (start ? 0.0 : 1.0)) return code = start ? kSegStart : kSegEnd, true;
     const SegmentBlock* best = nullptr;
     for (const SegmentBlock& blk : w.blocks)
-      if (blk.hi == s && (!best || block_before(blk, *best))) best = &blk;
+      if ((start ? blk.hi : blk.lo) == s && (!best || block_before(blk, *best))) best = &blk;
     if (!best) return false;
-    code = best->chi;
-    return true;
-  };
-  auto end_code = [&](double e, int32_t& code) {  // a piece ending where intervals start
-    if (e == 1) return code = kSegEnd, true;
-    const SegmentBlock* best = nullptr;
-    for (const SegmentBlock& blk : w.blocks)
-      if (blk.lo == e && (!best || block_before(blk, *best))) best = &blk;
-    if (!best) return false;
-    code = best->clo;
+    code = start ? best->chi : best->clo;
     return true;
   };
   for (size_t i = 0; i < nr;) {
@@ -493,7 +483,7 @@ int32_t segment_pieces_contour(const Occluders<T>& occ, const BVH& bvh, const Se
     size_t j = i;
     while (j + 1 < nr && cover[j + 1] == 0) j++;
     int32_t c0, c1;
-    if (!start_code(cuts[i], c0) || !end_code(cuts[j + 1], c1)) return kFallback;
+    if (!run_code(cuts[i], true, c0) || !run_code(cuts[j + 1], false, c1)) return kFallback;
     w.pieces.push_back(c0);
     w.pieces.push_back(c1);
     i = j + 1;
