@@ -307,3 +307,29 @@ def test_contour_path_gives_the_face_path_pieces(kind, dt, monkeypatch):
             np.testing.assert_array_equal(x, y)
         examined += [got[1].sum(), want[1].sum()]
     assert examined[0] < examined[1], examined
+
+
+@pytest.mark.parametrize("dt", [np.float64, np.float32])
+def test_contour_path_at_t_junctions(dt, monkeypatch):
+    """Faces meeting in T-junctions (a merged cap's edge along several wall faces' edges: their
+    intervals need not meet bit for bit, so the contour path bounds pieces by such a pair as by a
+    contour edge and walks into the nodes above it): the face path's pieces, codes and order, the
+    contour path serving most penumbra receivers."""
+    from test_real_meshes import t_junction_prism
+
+    v, f = t_junction_prism(n_side=20)
+    scene = js.Scene([_light()], occluders=[js.Mesh(v, f)])
+    faces = np.asarray(scene.occluders)
+    assert faces.shape[0] >= 256 and faces.shape[1] <= 64  # the contour path serves
+    occ = vis.HostOccluders.of(faces, scene.occluder_topology, dt)
+    rng = np.random.default_rng(3)
+    p = np.r_[P, np.c_[rng.uniform(-0.8, 0.8, (200, 2)), np.zeros(200)]].astype(dt)
+    for a, b in [(A, B), ([-0.4, 0.0, 2.5], [0.4, 0.0, 2.5]), ([-0.1, -0.5, 1.5], [0.1, 0.5, 1.6])]:
+        a, b = np.asarray(a, dt), np.asarray(b, dt)
+        want = _host(monkeypatch, False, p, a, b, occ)
+        got = _host(monkeypatch, True, p, a, b, occ)
+        for x, y in zip(got[:1] + got[2:], want[:1] + want[2:], strict=True):
+            np.testing.assert_array_equal(x, y)
+        pen = want[0] == 3
+        assert pen.sum() > 20
+        assert np.mean(got[1][pen] != want[1][pen]) > 0.3  # faces examined: the contour path served

@@ -41,6 +41,49 @@ struct PolygonParts {
   std::vector<int64_t> verts;
 };
 
+// Whether faces f and g have an edge with the same two end positions (`same`), either way.
+template <class T>
+bool share_edge(const Occluders<T>& occ, int64_t f, int64_t g) {
+  for (int64_t i = 0; i < occ.Ko; i++) {
+    const V3<T> u = occ.vert(f, i), v = occ.vert(f, (i + 1) % occ.Ko);
+    if (same(u, v)) continue;
+    for (int64_t j = 0; j < occ.Ko; j++) {
+      const V3<T> x = occ.vert(g, j), y = occ.vert(g, (j + 1) % occ.Ko);
+      if ((same(u, x) && same(v, y)) || (same(u, y) && same(v, x))) return true;
+    }
+  }
+  return false;
+}
+
+// What the segment lights' contour path (silhouette_segment.h) reads besides the polygon parts,
+// over their silhouette hierarchy: per edge slot, whether its two faces have the edge in common
+// (`share_edge`; 0 for a slot without a second face), and per node, whether its subtree holds a
+// pair of faces that do not (a T-junction's pair: their intervals need not meet bit for bit).
+struct SegmentParts {
+  std::vector<uint8_t> shared;    // per SilhouetteTree::edges
+  std::vector<uint8_t> unshared;  // per SilhouetteTree::nodes
+};
+
+template <class T>
+void build_segment_parts(const Occluders<T>& occ, const SilhouetteTree& st, SegmentParts& out) {
+  out.shared.assign(st.edges.size(), 0);
+  out.unshared.assign(st.nodes.size(), 0);
+  if (!st.ok || st.fglob.size() != size_t(occ.M)) return;
+  for (size_t j = 0; j < st.edges.size(); j++) {
+    const SEdge& e = st.edges[j];
+    if (e.g >= 0) out.shared[j] = share_edge(occ, st.fglob[size_t(e.f)], st.fglob[size_t(e.g)]) ? 1 : 0;
+  }
+  for (size_t k = st.nodes.size(); k-- > 0;) {  // children follow their parent
+    const SNode& nd = st.nodes[k];
+    if (nd.left >= 0) {
+      out.unshared[k] = out.unshared[size_t(nd.left)] | out.unshared[size_t(nd.right)];
+      continue;
+    }
+    for (int32_t j = nd.start; j < nd.start + nd.count && !out.unshared[k]; j++)
+      if (st.edges[size_t(j)].g >= 0 && !out.shared[size_t(j)]) out.unshared[k] = 1;
+  }
+}
+
 // The faces' vertex slots (f * Ko + i) whose coordinates (bit for bit) no earlier slot has, in slot
 // order: a mesh's vertex is in about six faces, so a per-light pass over the vertices (the light's
 // heights) reads a sixth as much; a minimum or maximum over them is that over every slot (a later
@@ -107,11 +150,27 @@ struct Prepared {
     return e->parts;
   }
 
+  // The segment lights' parts over `polygon(occ)`'s silhouette hierarchy, built on the first
+  // segment light's contour path (once, as the polygon parts; they depend on the occluders alone).
+  template <class T>
+  const SegmentParts& segment(const Occluders<T>& occ) const {
+    const PolygonParts& parts = polygon(occ);  // its entry exists from here on
+    PolygonEntry* e = nullptr;
+    {
+      std::lock_guard<std::mutex> lock(polygon_mu_);
+      for (const auto& x : polygon_)
+        if (x->K == occ.K) e = x.get();
+    }
+    std::call_once(e->segment_once, [&]() { build_segment_parts(occ, parts.sil, e->segment); });
+    return e->segment;
+  }
+
  private:
   struct PolygonEntry {
     int64_t K = 0;
-    std::once_flag once;
+    std::once_flag once, segment_once;
     PolygonParts parts;
+    SegmentParts segment;
   };
   mutable std::mutex polygon_mu_;
   mutable std::vector<std::unique_ptr<PolygonEntry>> polygon_;  // one per light vertex count

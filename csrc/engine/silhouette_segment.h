@@ -192,10 +192,11 @@ struct SegmentContour {
   const SilhouetteTree* st = nullptr;
   std::vector<double> ang;
   double a[3], e1[3], e2[3], rmin;
-  // Per hierarchy node: its subtree holds a pair of faces that do not share the edge (a
-  // T-junction's pieces): their intervals need not meet bit for bit, so node_side, which proves
-  // only that no edge below is a contour edge, does not leave the node out.
-  std::vector<uint8_t> unshared;
+  // The hierarchy's edge flags, prepared once per occluder set (`Prepared::segment`): an edge
+  // whose faces do not share it (a T-junction's pair) bounds pieces as a contour edge does, and a
+  // node above one is not left out by node_side (which proves only that no edge below is a
+  // contour edge).
+  const SegmentParts* seg = nullptr;
 };
 
 // The angle mod pi in [0, pi) of x - a in the frame (e1, e2), and the distance r from the line.
@@ -230,20 +231,6 @@ inline bool plane_holds_vertex(const SegmentContour& sc, const double* p) {
 
 // The contour path for `occ` where JAXSHADOW_SEGMENT_WALK=1 (read per call), unless the occluders
 // have convex solids, fewer faces than the silhouette path serves, or faces of over 64 vertices.
-// Whether faces f and g have an edge with the same two end positions (`same`), either way.
-template <class T>
-bool share_edge(const Occluders<T>& occ, int64_t f, int64_t g) {
-  for (int64_t i = 0; i < occ.Ko; i++) {
-    const V3<T> u = occ.vert(f, i), v = occ.vert(f, (i + 1) % occ.Ko);
-    if (same(u, v)) continue;
-    for (int64_t j = 0; j < occ.Ko; j++) {
-      const V3<T> x = occ.vert(g, j), y = occ.vert(g, (j + 1) % occ.Ko);
-      if ((same(u, x) && same(v, y)) || (same(u, y) && same(v, x))) return true;
-    }
-  }
-  return false;
-}
-
 // A vertex nearer the segment's line than 1e-6 of the scene's scale lies in every receiver's
 // plane (or its angle is not known to kSegmentPlaneAngle): every receiver takes the face path.
 template <class T>
@@ -282,18 +269,7 @@ SegmentContour segment_contour(const Occluders<T>& occ, const Prepared& prep, V3
     sc.ang.push_back(t);
   }
   std::sort(sc.ang.begin(), sc.ang.end());
-  sc.unshared.assign(st.nodes.size(), 0);
-  for (size_t k = st.nodes.size(); k-- > 0;) {  // children follow their parent
-    const SNode& nd = st.nodes[k];
-    if (nd.left >= 0) {
-      sc.unshared[k] = sc.unshared[size_t(nd.left)] | sc.unshared[size_t(nd.right)];
-      continue;
-    }
-    for (int32_t j = nd.start; j < nd.start + nd.count && !sc.unshared[k]; j++) {
-      const SEdge& e = st.edges[size_t(j)];
-      if (e.g >= 0 && !share_edge(occ, st.fglob[size_t(e.f)], st.fglob[size_t(e.g)])) sc.unshared[k] = 1;
-    }
-  }
+  sc.seg = &prep.segment(occ);
   sc.st = &st;
   return sc;
 }
@@ -347,6 +323,8 @@ template <class T>
 int32_t segment_pieces_contour(const Occluders<T>& occ, const BVH& bvh, const SegmentContour& sc, V3<T> p, V3<T> a,
                                V3<T> b, SegmentWork& w) {
   const SilhouetteTree& st = *sc.st;
+  const uint8_t* shared = sc.seg->shared.data();
+  const uint8_t* unshared = sc.seg->unshared.data();
   w.pieces.clear();
   w.blocks.clear();
   w.faces.clear();
@@ -389,7 +367,7 @@ int32_t segment_pieces_contour(const Occluders<T>& occ, const BVH& bvh, const Se
     bool out = false;
     for (int k = 0; k < nh && !out; k++) out = outside6(nd.box, walk[k]);
     if (out) continue;
-    if (!nd.special && !sc.unshared[size_t(stack_node)] && node_side(nd, pd, smargin) != 0) continue;
+    if (!nd.special && !unshared[size_t(stack_node)] && node_side(nd, pd, smargin) != 0) continue;
     if (nd.left >= 0) {
       stack.push_back(nd.left);
       stack.push_back(nd.right);
@@ -408,7 +386,7 @@ int32_t segment_pieces_contour(const Occluders<T>& occ, const BVH& bvh, const Se
       // Faces on either side of the edge's plane meet at its crossing, bit for bit where both
       // have it as an edge (edge_plane of the same two positions); a T-junction's pair is
       // treated as a contour edge.
-      if (W == 0 && share_edge(occ, st.fglob[size_t(e.f)], st.fglob[size_t(e.g)])) continue;
+      if (W == 0 && shared[size_t(k)]) continue;
       w.faces.push_back(st.fglob[size_t(e.f)]);
       if (e.g >= 0) w.faces.push_back(st.fglob[size_t(e.g)]);
     }
