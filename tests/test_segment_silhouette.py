@@ -333,3 +333,32 @@ def test_contour_path_at_t_junctions(dt, monkeypatch):
         pen = want[0] == 3
         assert pen.sum() > 20
         assert np.mean(got[1][pen] != want[1][pen]) > 0.3  # faces examined: the contour path served
+
+
+def _host_env(monkeypatch, walk, *args):
+    with monkeypatch.context() as m:
+        if walk is None:
+            m.delenv("JAXSHADOW_SEGMENT_WALK", raising=False)
+        else:
+            m.setenv("JAXSHADOW_SEGMENT_WALK", walk)
+        return segment_pieces.host_pieces(*args)
+
+
+@pytest.mark.parametrize("sub", [5, 3])
+def test_default_path_by_face_count(sub, monkeypatch):
+    """Without `JAXSHADOW_SEGMENT_WALK` the engine takes the contour path on occluder sets of 16 384
+    faces or more (20 480 here: its faces examined are those of `=1`) and the face path below
+    (1 280: its candidates are those of `=0`); the pieces, codes and order are the face path's
+    either way."""
+    v, f = _icosphere(seed=6, sub=sub, amp=0.05)
+    scene = js.Scene([_light()], occluders=[js.Mesh(v, f)])
+    occ = vis.HostOccluders.of(np.asarray(scene.occluders), scene.occluder_topology, np.float64)
+    p = P.astype(np.float64)
+    face = _host_env(monkeypatch, "0", p, A, B, occ)
+    walk = _host_env(monkeypatch, "1", p, A, B, occ)
+    auto = _host_env(monkeypatch, None, p, A, B, occ)
+    for got in (walk, auto):
+        for x, y in zip(got[:1] + got[2:], face[:1] + face[2:], strict=True):
+            np.testing.assert_array_equal(x, y)
+    assert np.sum(face[0] == 3) > 10 and not np.array_equal(walk[1], face[1])
+    np.testing.assert_array_equal(auto[1], walk[1] if len(f) >= 16384 else face[1])

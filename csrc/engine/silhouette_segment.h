@@ -17,9 +17,9 @@
 // same plane, differentiably) and integrates the segment's kernel over the pieces. The host work
 // can follow the contour too (`segment_pieces_contour`, below): the same pieces from the faces of
 // contour edges, the faces the segment passes through, and rays to the middles of the runs between
-// their intervals. It is off unless `JAXSHADOW_SEGMENT_WALK=1`: on scanned meshes its per-call set-up
-// and walk have not yet measured faster than visiting the light triangle's faces (smooth generated
-// meshes: 1.5-2x faster at 5k-82k faces).
+// their intervals. It is taken for occluder sets of kSegmentContourMinFaces faces or more (where
+// it measured faster than visiting the light triangle's faces on every mesh tried);
+// `JAXSHADOW_SEGMENT_WALK=1` takes it at any size, `=0` never.
 //
 // The per-face interval is `_clip.blocked_intervals` test for test, in double (float32 inputs are
 // exact in double): the face's side from `face_side` (the on-surface rule included; a face p lies
@@ -229,15 +229,24 @@ inline bool plane_holds_vertex(const SegmentContour& sc, const double* p) {
   return near(g[k % g.size()]) || near(g[(k + g.size() - 1) % g.size()]);
 }
 
-// The contour path for `occ` where JAXSHADOW_SEGMENT_WALK=1 (read per call), unless the occluders
-// have convex solids, fewer faces than the silhouette path serves, or faces of over 64 vertices.
+// Occluder faces from which the contour path is taken by default. Engine call, 5e4 floor
+// receivers under a 0.8 m segment, contour path against face visit (CPU time): 1.15x to 2.2x
+// faster on meshes of 20k to 270k faces (rocker-arm, bunny, nefertiti, igea), 0.5x to 1.4x on
+// those of 2k to 13k (beetle 0.51x, homer 0.79x, cow 0.98x, fandisk 1.38x).
+constexpr int64_t kSegmentContourMinFaces = 16384;
+
+// The contour path for `occ` unless the occluders have convex solids, fewer faces than the
+// silhouette path serves, or faces of over 64 vertices; JAXSHADOW_SEGMENT_WALK (read per call)
+// =1 takes it at any size, =0 never, else from kSegmentContourMinFaces faces.
 // A vertex nearer the segment's line than 1e-6 of the scene's scale lies in every receiver's
 // plane (or its angle is not known to kSegmentPlaneAngle): every receiver takes the face path.
 template <class T>
 SegmentContour segment_contour(const Occluders<T>& occ, const Prepared& prep, V3<T> a, V3<T> b) {
   SegmentContour sc;
   const char* env = std::getenv("JAXSHADOW_SEGMENT_WALK");
-  if (!(env && env[0] == '1') || occ.S > 0 || occ.M < kSilhouetteMinFaces || occ.Ko > 64) return sc;
+  const bool forced = env && env[0] == '1', off = env && env[0] == '0';
+  if (off || (!forced && occ.M < kSegmentContourMinFaces)) return sc;
+  if (occ.S > 0 || occ.M < kSilhouetteMinFaces || occ.Ko > 64) return sc;
   const PolygonParts& parts = prep.polygon(occ);
   const SilhouetteTree& st = parts.sil;
   if (!st.ok || st.floc.size() != size_t(occ.M)) return sc;
