@@ -3,7 +3,17 @@ follows the inputs), rank promotion is an error, and a fixed set of dtypes to pa
 
 import os
 
-os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
+# XLA:CPU code-generator options for the test run: the legacy elemental emitter instead of the
+# MLIR fusion emitters, and LLVM without its most expensive passes (the options of the fit
+# programs, `inverse._lm.FIT_COMPILER_OPTIONS`). Most of a test's time is compiling: on 149 tests
+# of test_clip, test_traced_both, test_spline and test_bad_input (`-n 0`, CPU time per test in
+# one sitting) the run takes 155 CPU-s instead of 244 (0.64x). IEEE arithmetic either way; values
+# differ by rounding. Users compile with XLA's defaults: tests/test_xla_flags.py compares
+# representative kernels compiled both ways, and tests whose outcome depends on the options
+# compile with `test_xla_flags.XLA_DEFAULTS` (test_plan's box touching the light, test_lm's
+# reference for the fit options).
+os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=2 --xla_cpu_use_fusion_emitters=false "
+                      "--xla_llvm_disable_expensive_passes=true")
 # No persistent compilation cache by default (`jaxshadow._core.compile_cache`): tests that count
 # compilations must see them, and a test run writes nothing to the home directory.
 os.environ.setdefault("JAXSHADOW_COMPILE_CACHE", "off")

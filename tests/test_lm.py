@@ -244,6 +244,8 @@ def test_lm_num_residuals_and_fit_compiler_options(which):
     """Passing the residual length (no extra trace) and compiling with `FIT_COMPILER_OPTIONS`
     (`fit_jit`) or `ONCE_COMPILER_OPTIONS` (LLVM at -O0) change nothing in the solution; a wrong
     length is an error, not a silent result."""
+    from test_xla_flags import XLA_DEFAULTS
+
     import inverse._lm as lm
     from inverse._lm import fit_jit
 
@@ -256,7 +258,8 @@ def test_lm_num_residuals_and_fit_compiler_options(which):
         return batched_levenberg_marquardt(_exp_resid, y0, args, rtol=1e-10, atol=1e-12, max_steps=200,
                                            num_residuals=m)
 
-    ref = jax.jit(solve, static_argnums=1)(starts, None)
+    # The reference with XLA's default options (the test run compiles with others, tests/conftest.py).
+    ref = jax.jit(solve, static_argnums=1, compiler_options=XLA_DEFAULTS)(starts, None)
     fast = fit_jit(solve, options=options)
     got = fast(starts, T.size)
     # At -O0 some operations round differently (the values agree to ~1e-15): the last step's
