@@ -23,7 +23,9 @@ from ._diagnostics import (
     quantity_determined,
     rival_allowance,
     rival_placements,
+    rival_turns,
     row_variance,
+    turned_widened,
 )
 from ._identifiability import identifiability, quantity_error
 from ._multilight import (
@@ -181,7 +183,10 @@ def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, ca
             p_r, k_r = coef(E_r, S_r)
             others.append((chi2_of(_model(E_r, S_r, e0, s0, La, p_r, k_r, spec) - colours), poses(th_r, p_r)))
         answer = poses(th, powers)
-        rivals = rival_placements(answer, others, chi2_of(residual), len(names), size, se, light_params)
+        chi2 = chi2_of(residual)
+        rivals = rival_placements(answer, others, chi2, len(names), size, se, light_params)
+        # placements that only turn a light: its rotation's standard errors widened (`rival_turns`)
+        se = turned_widened(se, rival_turns(answer, others, chi2, len(names), se, light_params), light_params)
         se, quantities = widened(se, quantities, answer, rivals)  # the rivals' spread (`_uncertainty.widened`)
     quality, determined = assess(
         targets=t, residual=residual, noise=noise, n_params=len(names), names=names, std_errors=se, values=values_d,
