@@ -148,3 +148,21 @@ def test_same_placement_is_no_rival():
     moved = {**answer, "light1": _pose("linear", (1.1, 0, 1), axis=axes["light1"])}
     out = diag.rival_placements(answer, [(0.0, dealt), (2.0, moved)], 0.0, 24, 4.0, se, params)
     assert [(x[0], x[2]) for x in out] == [(2.0, ("light1",))]
+
+
+def test_estimated_noise_distances_at_the_assumed_noise():
+    """With the noise estimated the standard errors take the residual's scale, the chi-square the
+    assumed noise's: the rival rule measures distances at the larger (`at_assumed_noise`). A
+    light 16 cm off an exact fit (residual variance 1e-30, standard errors 1e-14 m) at the
+    assumed noise's row variance 1e-4 is 1.6 of its 0.1 m standard errors away: no rival; at a residual
+    above the assumed noise the errors stand."""
+    se = {"light0.x": 1e-14, "light0.y": 1e-14, "light0.z": 1e-14, "light0.power": 0.0}
+    wide = diag.at_assumed_noise(se, 1e-30, 1e-4)
+    assert wide["light0.z"] == pytest.approx(0.1) and wide["light0.power"] == 0.0
+    assert diag.at_assumed_noise(se, 1e-3, 1e-4) is se
+    assert diag.at_assumed_noise(se, 0.0, 1e-4)["light0.power"] == math.inf
+    params = {"light0": ("light0.x", "light0.y", "light0.z", "light0.power")}
+    answer = {"light0": _pose("point", [0, 0, 1])}
+    higher = [(0.05, {"light0": _pose("point", [0, 0, 1.16])})]
+    assert diag.rival_placements(answer, higher, 0.0, 4, 4.0, se, params)  # at the residual's scale
+    assert diag.rival_placements(answer, higher, 0.0, 4, 4.0, wide, params) == ()
