@@ -81,9 +81,8 @@ The rules (thresholds are the module's constants):
   With the noise estimated (`noise=None`) the $\chi^2$ is taken at the assumed noise while the
   standard errors take the residual's scale, which for an exact fit is nil: there the distance
   is measured in standard errors at the assumed noise where those are larger
-  (`at_assumed_noise`), the scale the allowance is in. An exact noise-free fit of three lights
-  (scene seed 1 from no start) was flagged for its segment 16 cm higher at $\Delta\chi^2$ 0.05
-  under the assumed noise, more than "3 standard errors" of about 1e-13 m from the answer.
+  (`at_assumed_noise`), the scale the allowance is in (else an exact fit, whose standard errors
+  are nil, would count any placement within the allowance as many standard errors away).
   A placement that differs from the answer only in a light's normal (a polygon) or direction (a
   segment), turned by more than `RIVAL_TURN` (5 degrees) and 3 standard errors of its rotation,
   with every light's centre the same by the rule above, is no competing placement: what a
@@ -91,11 +90,9 @@ The rules (thresholds are the module's constants):
   those it leaves inside the answer's own standard errors; what it shows is that the targets
   do not hold the light's orientation, so that light's rotation standard errors are widened by
   the turn (`rival_turns`), and one beyond `NEAR_ORIENTATION` (30 degrees) marks the rotation
-  nearly undetermined. Three lights with 1 % noise from no start (scene seed 0) were flagged
-  only for such placements: the segment turned 24-38 degrees, its centre within 1.6 standard
-  errors, at $\Delta\chi^2$ 3.1-11.6; the answer's direction was 51 degrees from the truth
-  at a linearised rotation standard error of 2.5-6.4 degrees (seed 1's segment, 57 degrees off,
-  had one of 600 degrees and no flag): the widened errors say what seed 1's say.
+  nearly undetermined: the linearised rotation error of a light whose orientation the targets
+  hold only loosely can be far smaller than the turns that fit the targets within the noise,
+  and the widened error says so where the linearisation does not.
   Checked by `fit_lights` with fitted powers, not under a power budget or painted ranges or
   relations. With told noise the placements checked also include those the global placement
   refined and those of each light re-screened at the answer (`_rescreen.noise_rivals`); a
