@@ -75,10 +75,24 @@ The rules (thresholds are the module's constants):
   `RIVAL_SIGMAS` (3) standard errors of its centre from the answer's (the root sum of squares
   of its coordinates' standard errors, or one coordinate beyond 3 of its own: under the
   linearisation a coordinate $k$ marginal standard errors off costs at least $k^2$ in
-  $\chi^2$, so one within the allowance that far off shows the linearised errors too small),
-  or its normal (a polygon) or direction (a segment) turned by more than `RIVAL_TURN`
-  (5 degrees) and 3 standard errors of its rotation. Flagged (`"competing_placements"`), not trusted, warned with
+  $\chi^2$, so one within the allowance that far off shows the linearised errors too small).
+  Flagged (`"competing_placements"`), not trusted, warned with
   the lights that differ and where the competing placement puts them (`FitQuality.rivals`).
+  With the noise estimated (`noise=None`) the $\chi^2$ is taken at the assumed noise while the
+  standard errors take the residual's scale, which for an exact fit is nil: there the distance
+  is measured in standard errors at the assumed noise where those are larger
+  (`at_assumed_noise`), the scale the allowance is in (else an exact fit, whose standard errors
+  are nil, would count any placement within the allowance as many standard errors away).
+  A placement that differs from the answer only in a light's normal (a polygon) or direction (a
+  segment), turned by more than `RIVAL_TURN` (5 degrees) and 3 standard errors of its rotation,
+  with every light's centre the same by the rule above, is no competing placement: what a
+  several-light fit vouches for is each light's centre and emitted power (`_uncertainty`), and
+  those it leaves inside the answer's own standard errors; what it shows is that the targets
+  do not hold the light's orientation, so that light's rotation standard errors are widened by
+  the turn (`rival_turns`), and one beyond `NEAR_ORIENTATION` (30 degrees) marks the rotation
+  nearly undetermined: the linearised rotation error of a light whose orientation the targets
+  hold only loosely can be far smaller than the turns that fit the targets within the noise,
+  and the widened error says so where the linearisation does not.
   Checked by `fit_lights` with fitted powers, not under a power budget or painted ranges or
   relations. With told noise the placements checked also include those the global placement
   refined and those of each light re-screened at the answer (`_rescreen.noise_rivals`); a
@@ -352,6 +366,56 @@ def _turn(a: np.ndarray, b: np.ndarray, signed: bool) -> float:
     return math.atan2(float(np.linalg.norm(np.cross(a, b))), c if signed else abs(c))
 
 
+def _mate(answer: dict, pose: dict) -> tuple[str | None, float]:
+    """The answer's light of `pose`'s kind nearest to it (by centre) and that distance (m);
+    `(None, inf)` when the answer has no light of that kind."""
+    mates = [m for m, q in answer.items() if q["kind"] == pose["kind"]]
+    if not mates:
+        return None, math.inf
+    d = [float(np.linalg.norm(np.asarray(pose["centre"]) - np.asarray(answer[m]["centre"]))) for m in mates]
+    return mates[int(np.argmin(d))], min(d)
+
+
+def _centre_moved(answer: dict, pose: dict, mate: str, dist: float, scale: float, std_errors: dict,
+                  light_params: dict) -> bool:
+    """Whether `pose`'s centre is distinct from its mate's in the answer (module docstring:
+    `RIVAL_DISTANCE` of the scene and `RIVAL_SIGMAS` standard errors of the centre, or of one
+    coordinate)."""
+    s = [std_errors.get(p, math.inf) for p in light_params.get(mate, ())
+         if p.rsplit(".", 1)[-1] in ("x", "y", "z", "a", "b")]
+    se_c = math.sqrt(sum(x * x for x in s)) if s else 0.0
+    moved = math.isfinite(se_c) and dist > max(RIVAL_DISTANCE * scale, RIVAL_SIGMAS * se_c)
+    axes = [std_errors.get(f"{mate}.{ax}", math.nan) for ax in "xyz"]
+    if math.isfinite(se_c) and all(f"{mate}.{ax}" in light_params.get(mate, ()) for ax in "xyz"):
+        # or some centre coordinate beyond RIVAL_SIGMAS of its own (marginal) standard error
+        off = np.abs(np.asarray(pose["centre"], np.float64) - np.asarray(answer[mate]["centre"], np.float64))
+        moved |= dist > RIVAL_DISTANCE * scale and bool(np.any(off > RIVAL_SIGMAS * np.asarray(axes)))
+    return moved
+
+
+def _turned(answer: dict, pose: dict, mate: str, std_errors: dict, light_params: dict) -> float:
+    """The angle (rad) by which `pose`'s normal (a polygon, signed) or direction (a segment, a
+    line) is turned from its mate's in the answer when that is more than `RIVAL_TURN` and
+    `RIVAL_SIGMAS` standard errors of the mate's rotation (module docstring), else 0.0."""
+    a, b = pose.get("axis"), answer[mate].get("axis")
+    if a is None or b is None:
+        return 0.0
+    se_r = max([std_errors.get(p, math.inf) for p in light_params.get(mate, ())
+                if p.rsplit(".", 1)[-1] in _ORIENTATION] or [0.0])
+    turn = _turn(np.asarray(a, np.float64), np.asarray(b, np.float64), pose["kind"] == "polygon")
+    return turn if math.isfinite(se_r) and turn > max(RIVAL_TURN, RIVAL_SIGMAS * se_r) else 0.0
+
+
+def at_assumed_noise(std_errors: dict, sigma2: float, variance: float) -> dict:
+    """`std_errors` taken from the residual's variance `sigma2` (of a weighted row) to the
+    assumed noise's `variance` where that is larger, unchanged otherwise (module docstring,
+    competing placements); an error of a residual that is exactly nil becomes infinite."""
+    if not variance > sigma2:
+        return std_errors
+    f = math.sqrt(variance / sigma2) if sigma2 > 0 else math.inf
+    return {k: v * f if v > 0 else (v if math.isfinite(f) else math.inf) for k, v in std_errors.items()}
+
+
 def rival_placements(answer: dict, others: list, chi2: float, n_params: int, scale: float,
                      std_errors: dict, light_params: dict) -> tuple:
     r"""The competing placements (module docstring) among `others`.
@@ -363,42 +427,54 @@ def rival_placements(answer: dict, others: list, chi2: float, n_params: int, sca
     answer's; `n_params`; `scale` (m); `std_errors`, `light_params` as in `assess`.
 
     **Returns:** `((excess chi2, {light name: pose}, (names of the lights that differ)), ...)`,
-    least excess first."""
+    least excess first: the placements within the allowance with some light's centre distinct
+    from the answer's (a placement that only turns lights is none: `rival_turns`)."""
     allowed = rival_allowance(n_params)
-
-    def se_of(nm: str, bases: tuple) -> float:
-        s = [std_errors.get(p, math.inf) for p in light_params.get(nm, ()) if p.rsplit(".", 1)[-1] in bases]
-        return math.sqrt(sum(x * x for x in s)) if s else 0.0
-
     out = []
     for c2, poses in others:
         if not (math.isfinite(c2) and c2 - chi2 <= allowed):
             continue
         differ = []
         for nm, pose in poses.items():
-            mates = [m for m, q in answer.items() if q["kind"] == pose["kind"]]
-            if not mates:
-                continue
-            d = [float(np.linalg.norm(np.asarray(pose["centre"]) - np.asarray(answer[m]["centre"]))) for m in mates]
-            mate = mates[int(np.argmin(d))]
-            se_c = se_of(mate, ("x", "y", "z", "a", "b"))
-            moved = math.isfinite(se_c) and min(d) > max(RIVAL_DISTANCE * scale, RIVAL_SIGMAS * se_c)
-            axes = [std_errors.get(f"{mate}.{ax}", math.nan) for ax in "xyz"]
-            if math.isfinite(se_c) and all(f"{mate}.{ax}" in light_params.get(mate, ()) for ax in "xyz"):
-                # or some centre coordinate beyond RIVAL_SIGMAS of its own (marginal) standard error
-                off = np.abs(np.asarray(pose["centre"], np.float64) - np.asarray(answer[mate]["centre"], np.float64))
-                moved |= min(d) > RIVAL_DISTANCE * scale and bool(np.any(off > RIVAL_SIGMAS * np.asarray(axes)))
-            a, b = pose.get("axis"), answer[mate].get("axis")
-            if a is not None and b is not None:
-                se_r = max([std_errors.get(p, math.inf) for p in light_params.get(mate, ())
-                            if p.rsplit(".", 1)[-1] in _ORIENTATION] or [0.0])
-                turn = _turn(np.asarray(a, np.float64), np.asarray(b, np.float64), pose["kind"] == "polygon")
-                moved |= math.isfinite(se_r) and turn > max(RIVAL_TURN, RIVAL_SIGMAS * se_r)
-            if moved:
+            mate, dist = _mate(answer, pose)
+            if mate is not None and _centre_moved(answer, pose, mate, dist, scale, std_errors, light_params):
                 differ.append(nm)
         if differ:
             out.append((float(c2 - chi2), poses, tuple(differ)))
     return tuple(sorted(out, key=lambda x: x[0]))
+
+
+def rival_turns(answer: dict, others: list, chi2: float, n_params: int, std_errors: dict,
+                light_params: dict) -> dict:
+    r"""`{light name: angle (rad)}`: for each light of the answer, the largest turn of its normal
+    or direction (`_turned`: beyond `RIVAL_TURN` and `RIVAL_SIGMAS` standard errors of its
+    rotation) among the placements of `others` within the allowance (module docstring); lights
+    never turned so are absent. Arguments as in `rival_placements`."""
+    allowed = rival_allowance(n_params)
+    out: dict = {}
+    for c2, poses in others:
+        if not (math.isfinite(c2) and c2 - chi2 <= allowed):
+            continue
+        for pose in poses.values():
+            mate, _ = _mate(answer, pose)
+            turn = 0.0 if mate is None else _turned(answer, pose, mate, std_errors, light_params)
+            if turn > 0.0:
+                out[mate] = max(out.get(mate, 0.0), turn)
+    return out
+
+
+def turned_widened(std_errors: dict, turns: dict, light_params: dict) -> dict:
+    """`std_errors` with each light's rotation parameters' standard errors (rad) widened by its
+    turn in `turns` (`rival_turns`): a rotation vector's component changes by at most the angle
+    turned, so the widened error covers the turned placements (module docstring)."""
+    if not turns:
+        return std_errors
+    se = dict(std_errors)
+    for nm, turn in turns.items():
+        for p in light_params.get(nm, ()):
+            if p.rsplit(".", 1)[-1] in _ORIENTATION and p in se:
+                se[p] = se[p] + float(turn)
+    return se
 
 
 def _pose_text(pose: dict) -> str:

@@ -17,13 +17,16 @@ import numpy as np
 from ._basis_rows import BasisRows
 from ._diagnostics import (
     assess,
+    at_assumed_noise,
     competing_placements,
     dark_answer,
     noise_sigma,
     quantity_determined,
     rival_allowance,
     rival_placements,
+    rival_turns,
     row_variance,
+    turned_widened,
 )
 from ._identifiability import identifiability, quantity_error
 from ._multilight import (
@@ -181,7 +184,12 @@ def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, ca
             p_r, k_r = coef(E_r, S_r)
             others.append((chi2_of(_model(E_r, S_r, e0, s0, La, p_r, k_r, spec) - colours), poses(th_r, p_r)))
         answer = poses(th, powers)
-        rivals = rival_placements(answer, others, chi2_of(residual), len(names), size, se, light_params)
+        chi2 = chi2_of(residual)
+        # the distances in standard errors at the noise the chi-square is taken at (`at_assumed_noise`)
+        se_r = se if noise is not None else at_assumed_noise(se, ident.sigma2, _row_noise(chi2_of, w))
+        rivals = rival_placements(answer, others, chi2, len(names), size, se_r, light_params)
+        # placements that only turn a light: its rotation's standard errors widened (`rival_turns`)
+        se = turned_widened(se, rival_turns(answer, others, chi2, len(names), se_r, light_params), light_params)
         se, quantities = widened(se, quantities, answer, rivals)  # the rivals' spread (`_uncertainty.widened`)
     quality, determined = assess(
         targets=t, residual=residual, noise=noise, n_params=len(names), names=names, std_errors=se, values=values_d,
@@ -262,6 +270,18 @@ def _chi2(targets: Any, noise: Any) -> Any:
     return lambda r: float(np.sum(np.where(ok, (np.asarray(r, np.float64) / np.where(ok, sigma, 1.0)) ** 2, 0.0)))
 
 
+def _row_noise(chi2_of: Any, w: np.ndarray) -> float:
+    r"""A weighted row's noise variance $w\sigma^2$ under `chi2_of` (`_chi2`): the $\chi^2$ of a
+    residual $1/\sqrt{w}$ at the first entry of positive weight `w (N, 3)` is $1/(w\sigma^2)$
+    (0.0 when no entry has a positive weight)."""
+    if not (w > 0).any():
+        return 0.0
+    unit = np.zeros(w.shape)
+    i = tuple(np.argwhere(w > 0)[0])
+    unit[i] = 1.0 / math.sqrt(w[i])
+    return 1.0 / max(chi2_of(unit), 1e-300)
+
+
 def _rival_rows(rows: np.ndarray, losses: np.ndarray, theta: np.ndarray, chi2_of: Any, w: np.ndarray,
                 n_params: int, best: float | None = None) -> list:
     r"""The rows of the final joint solve `rows (S, P)` (its `losses`, $\tfrac12\sum w r^2$) that
@@ -272,11 +292,7 @@ def _rival_rows(rows: np.ndarray, losses: np.ndarray, theta: np.ndarray, chi2_of
     pos = w > 0
     if not pos.any():
         return []
-    # a weighted row's variance w sigma^2: chi2_of of a residual 1/sqrt(w) at one entry is 1/(w sigma^2)
-    unit = np.zeros(w.shape)
-    i = tuple(np.argwhere(pos)[0])
-    unit[i] = 1.0 / math.sqrt(w[i])
-    v = 1.0 / max(chi2_of(unit), 1e-300)
+    v = _row_noise(chi2_of, w)
     f = np.where(np.isfinite(losses), losses, np.inf)
     if not np.isfinite(f).any():
         return []

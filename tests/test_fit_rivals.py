@@ -15,6 +15,7 @@ import pytest
 import inverse
 import jaxshadow as js
 from inverse import _diagnostics as diag
+from inverse import _multilight_result as _result
 
 MATERIAL = js.Material(ka=0.2, kd=0.6, ks=0.0, exponent=1.0)
 EYE = np.array([0.0, -2.0, 2.0])
@@ -31,9 +32,10 @@ def _light_params():
 
 
 def test_rival_rule():
-    """Within the chi-square allowance and far enough (1 % of the scene and 3 standard errors, or
-    5 degrees and 3 standard errors of a turn) from the answer: a rival; a swap of two lights of
-    one kind is the same answer."""
+    """Within the chi-square allowance and far enough (1 % of the scene and 3 standard errors)
+    from the answer: a rival; a swap of two lights of one kind is the same answer. A placement
+    that only turns a light (by more than 5 degrees and 3 standard errors) is no rival: it
+    widens that light's rotation standard errors instead (`rival_turns`)."""
     se = {"light0.x": 0.01, "light0.y": 0.01, "light0.z": 0.01, "light0.power": 0.01,
           "light1.x": 0.01, "light1.y": 0.01, "light1.z": 0.01, "light1.rx": 0.01, "light1.ry": 0.01,
           "light1.rz": 0.01, "light1.power": 0.01}
@@ -51,7 +53,13 @@ def test_rival_rule():
         (10.0, {"light0": _pose("point", [0, 0, 1]), "light1": _pose("polygon", [1, 0, 1], axis=(0, 0.03, -1))}),
     ]
     out = diag.rival_placements(answer, others, 10.0, n, 4.0, se, _light_params())
-    assert [(x[0], x[2]) for x in out] == [(0.0, ("light1",)), (pytest.approx(allowed - 1), ("light0",))]
+    assert [(x[0], x[2]) for x in out] == [(pytest.approx(allowed - 1), ("light0",))]
+    turns = diag.rival_turns(answer, others, 10.0, n, se, _light_params())
+    assert turns == {"light1": pytest.approx(0.2)}  # the 1.7 degree tilt is within 5 degrees
+    wide = diag.turned_widened(se, turns, _light_params())
+    assert [wide[f"light1.r{a}"] for a in "xyz"] == [pytest.approx(0.21)] * 3
+    assert {k: v for k, v in wide.items() if not k.startswith("light1.r")} == \
+        {k: v for k, v in se.items() if not k.startswith("light1.r")}
     # Two point lights swapped are the same placement; an undetermined centre is no rival's reason.
     two = {"light0": _pose("point", [0, 0, 1]), "light2": _pose("point", [1, 1, 1])}
     swapped = {"light0": _pose("point", [1, 1, 1]), "light2": _pose("point", [0, 0, 1])}
@@ -107,3 +115,54 @@ def test_rival_rule_per_coordinate():
     near_x = (1.0, {"light0": _pose("point", [0.03, 0, 1])})
     out = diag.rival_placements(answer, [along_x, along_y, near_x], 0.0, n, 4.0, se, params)
     assert [(x[0], x[1]["light0"]["centre"], x[2]) for x in out] == [(1.0, (0.05, 0, 1), ("light0",))]
+
+
+def test_same_placement_is_no_rival():
+    """The same placement written otherwise is no rival and turns nothing: two segments and two
+    quads of one kind dealt to each other, a segment's ends swapped (its direction reversed), a
+    quad's vertices listed from another corner (its normal unchanged); a quad facing up instead
+    of down is turned (180 degrees: one-sided, it lights the other side)."""
+    kinds = {"light0": "linear", "light1": "linear", "light2": "polygon", "light3": "polygon"}
+    params = {nm: tuple(f"{nm}.{p}" for p in ("x", "y", "z", "ru", "rv", "power")) for nm in kinds}
+    se = {p: 0.01 for ps in params.values() for p in ps}
+    centres = {"light0": (0, 0, 1), "light1": (1, 0, 1), "light2": (0, 1, 1.5), "light3": (1, 1, 1.5)}
+    axes = {"light0": (1, 0, 0), "light1": (0, 1, 0), "light2": (0, 0, -1), "light3": (0, 0, -1)}
+    answer = {nm: _pose(kinds[nm], centres[nm], axis=axes[nm]) for nm in kinds}
+    dealt = {"light0": answer["light1"], "light1": answer["light0"], "light2": answer["light3"],
+             "light3": answer["light2"]}
+    reversed_ends = {**answer, "light0": _pose("linear", centres["light0"], axis=(-1, 0, 0))}
+    # a quad's pose (`_multilight_result._pose`) from its vertices listed from another corner
+    v = np.array([[-0.1, -0.1, 1.5], [-0.1, 0.1, 1.5], [0.1, 0.1, 1.5], [0.1, -0.1, 1.5]])
+    kind = type("Param", (), {"kind": "polygon"})()
+    quad = _result._pose(js.PolygonLight(v, [1.0, 1.0, 1.0]), kind, 1.0)
+    rolled = _result._pose(js.PolygonLight(np.roll(v, 1, axis=0), [1.0, 1.0, 1.0]), kind, 1.0)
+    np.testing.assert_allclose(rolled["centre"], quad["centre"], atol=1e-12)
+    np.testing.assert_allclose(rolled["axis"], quad["axis"], atol=1e-12)
+    np.testing.assert_allclose(quad["axis"], (0, 0, -1), atol=1e-12)
+    others = [(0.0, dealt), (0.5, reversed_ends), (1.0, dict(answer))]
+    assert diag.rival_placements(answer, others, 0.0, 24, 4.0, se, params) == ()
+    assert diag.rival_turns(answer, others, 0.0, 24, se, params) == {}
+    flipped = {**answer, "light3": _pose("polygon", centres["light3"], axis=(0, 0, 1))}
+    assert diag.rival_turns(answer, [(0.0, flipped)], 0.0, 24, se, params) == {"light3": pytest.approx(math.pi)}
+    # a genuinely distinct placement still competes: a segment moved 10 cm (10 standard errors)
+    moved = {**answer, "light1": _pose("linear", (1.1, 0, 1), axis=axes["light1"])}
+    out = diag.rival_placements(answer, [(0.0, dealt), (2.0, moved)], 0.0, 24, 4.0, se, params)
+    assert [(x[0], x[2]) for x in out] == [(2.0, ("light1",))]
+
+
+def test_estimated_noise_distances_at_the_assumed_noise():
+    """With the noise estimated the standard errors take the residual's scale, the chi-square the
+    assumed noise's: the rival rule measures distances at the larger (`at_assumed_noise`). A
+    light 16 cm off an exact fit (residual variance 1e-30, standard errors 1e-14 m) at the
+    assumed noise's row variance 1e-4 is 1.6 of its 0.1 m standard errors away: no rival; at a residual
+    above the assumed noise the errors stand."""
+    se = {"light0.x": 1e-14, "light0.y": 1e-14, "light0.z": 1e-14, "light0.power": 0.0}
+    wide = diag.at_assumed_noise(se, 1e-30, 1e-4)
+    assert wide["light0.z"] == pytest.approx(0.1) and wide["light0.power"] == 0.0
+    assert diag.at_assumed_noise(se, 1e-3, 1e-4) is se
+    assert diag.at_assumed_noise(se, 0.0, 1e-4)["light0.power"] == math.inf
+    params = {"light0": ("light0.x", "light0.y", "light0.z", "light0.power")}
+    answer = {"light0": _pose("point", [0, 0, 1])}
+    higher = [(0.05, {"light0": _pose("point", [0, 0, 1.16])})]
+    assert diag.rival_placements(answer, higher, 0.0, 4, 4.0, se, params)  # at the residual's scale
+    assert diag.rival_placements(answer, higher, 0.0, 4, 4.0, wide, params) == ()
