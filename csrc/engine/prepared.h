@@ -127,17 +127,7 @@ struct Prepared {
   // count, so a triangle light must not read the parts a quad light built.
   template <class T>
   const PolygonParts& polygon(const Occluders<T>& occ) const {
-    PolygonEntry* e = nullptr;
-    {
-      std::lock_guard<std::mutex> lock(polygon_mu_);
-      for (const auto& x : polygon_)
-        if (x->K == occ.K) e = x.get();
-      if (!e) {
-        polygon_.push_back(std::make_unique<PolygonEntry>());
-        e = polygon_.back().get();
-        e->K = occ.K;
-      }
-    }
+    PolygonEntry* e = entry(occ.K);
     std::call_once(e->once, [&]() {
       prepared_stats().polygon_builds++;
       PolygonParts& parts = e->parts;
@@ -154,13 +144,8 @@ struct Prepared {
   // segment light's contour path (once, as the polygon parts; they depend on the occluders alone).
   template <class T>
   const SegmentParts& segment(const Occluders<T>& occ) const {
-    const PolygonParts& parts = polygon(occ);  // its entry exists from here on
-    PolygonEntry* e = nullptr;
-    {
-      std::lock_guard<std::mutex> lock(polygon_mu_);
-      for (const auto& x : polygon_)
-        if (x->K == occ.K) e = x.get();
-    }
+    const PolygonParts& parts = polygon(occ);
+    PolygonEntry* e = entry(occ.K);
     std::call_once(e->segment_once, [&]() { build_segment_parts(occ, parts.sil, e->segment); });
     return e->segment;
   }
@@ -174,6 +159,17 @@ struct Prepared {
   };
   mutable std::mutex polygon_mu_;
   mutable std::vector<std::unique_ptr<PolygonEntry>> polygon_;  // one per light vertex count
+
+  // The entry for light vertex count K, made on first use (entries are never removed, so the
+  // pointer stays valid after the lock is released).
+  PolygonEntry* entry(int64_t K) const {
+    std::lock_guard<std::mutex> lock(polygon_mu_);
+    for (const auto& x : polygon_)
+      if (x->K == K) return x.get();
+    polygon_.push_back(std::make_unique<PolygonEntry>());
+    polygon_.back()->K = K;
+    return polygon_.back().get();
+  }
 };
 
 // Calls `put(pointer, bytes)` on each piece of `occ`'s key, in the key's order.
