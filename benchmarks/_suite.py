@@ -68,6 +68,14 @@ SUITE: tuple[str, ...] = (
 )
 
 
+# Records that a benchmark module writes outside the suite's run (inputs the suite does not
+# have, such as mesh files a user downloads), committed and shown in the READMEs: record name ->
+# (module, its key-numbers function). Their tables are the committed `results/NAME.md`.
+EXTRA_RECORDS: dict[str, tuple[str, str]] = {
+    "real_meshes_files_acceptance": ("real_meshes", "key_numbers_files"),
+}
+
+
 # --------------------------------------------------------------------------------------
 # The registry
 # --------------------------------------------------------------------------------------
@@ -224,6 +232,11 @@ def key_numbers_table() -> str:
             continue
         for what, figure in mod.key_numbers(record["results"]):
             lines.append(f"| {what} | {figure} | `{name}` ({record['meta'].get('commit', '?')}) |")
+    for name, (module, function) in EXTRA_RECORDS.items():
+        record = read(name)
+        if record is not None:
+            for what, figure in getattr(importlib.import_module(f"benchmarks.{module}"), function)(record["results"]):
+                lines.append(f"| {what} | {figure} | `{name}` ({record['meta'].get('commit', '?')}) |")
     for row in lines:
         if len(row) > MAX_ROW:
             raise ValueError(f"key-numbers row over {MAX_ROW} characters: {row[:120]}...")
@@ -251,6 +264,10 @@ def readme_results() -> str:
         parts.append(f"### `{name}`: {description}\n\n{caption(record)}\n\n{mod.markdown(record['results']).rstrip()}")
         if (RESULTS / f"{name}.png").exists():
             parts[-1] += f"\n\n![{name}](results/{name}.png)"
+    for name in EXTRA_RECORDS:
+        table = RESULTS / f"{name}.md"
+        if table.exists():
+            parts.append(f"### `{name}`: recorded outside the suite's run\n\n{table.read_text().rstrip()}")
     return "\n\n".join(parts)
 
 

@@ -616,6 +616,25 @@ def plot(r: dict, path: Any) -> None:
     save_figure(fig, path)
 
 
+def key_numbers_files(r: dict) -> list[tuple[str, str]]:
+    """Key numbers of a mesh-file record (`run_files`, e.g. the issue's acceptance run): per mesh the
+    quad light against Radiance's default and Embree at 1 % RMS error, the exactness, and the other
+    light kinds' throughput against Radiance's default."""
+    rows = []
+    for name, x in r["others"].items():
+        rad = x["radiance"]["default"]
+        at = x.get("embree", {}).get("points_per_s_at_1pct")
+        rows.append((f"exact shadows of `{name}` ({x['triangles']} triangles), {r['receivers']} floor receivers, quad light: "
+                     "points/s vs Radiance default (its RMS error), Embree at 1 % RMS error; max error vs polygon booleans",
+                     f"{x['points_per_s']:.3g} vs {rad['points_per_s']:.3g} ({100 * rad['rms_rel_err']:.2g} %)"
+                     + (f", Embree {at:.3g}" if at else "") + f"; {x['exactness']['max_rel_err']:.1e}"))
+        if "kinds" in x:
+            cells = [f"{kind} {y['points_per_s']:.3g} vs {y['radiance']['default']['points_per_s']:.3g}"
+                     for kind, y in x["kinds"].items() if "radiance" in y]
+            rows.append((f"`{name}`, other lights, {r['receivers']} floor receivers: points/s vs Radiance default", "; ".join(cells)))
+    return rows
+
+
 def key_numbers(r: dict) -> list[tuple[str, str]]:
     last = r["sizes"][-1]
     rad = last.get("radiance", {}).get("default")
