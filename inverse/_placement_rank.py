@@ -20,9 +20,10 @@ from ._parametrisation import LightParametrisation
 from ._powers import constrained_powers, emitted_power
 
 CHUNK = 64  # candidate rows per call of the columns' program
-# Shadow capacity (boundary edges per receiver) the columns are first evaluated at (`unit_columns`):
-# the polygon candidates of a three-light fit need 4-8 edges at ~85 % of the rows, 16 at ~15 %.
-COLUMN_CAPACITY = 8
+# Shadow capacity the columns are first evaluated at (`unit_columns`), by light kind: a quad's
+# candidates in a noisy three-light fit need 4-8 boundary edges at ~85 % of the rows and 16 at
+# ~15 %; a segment's (its visible pieces) and a point light's 4 at every row.
+COLUMN_CAPACITY = {"polygon": 8, "linear": 4, "point": 4, "directional": 4}
 # Refine, then rank (`_global_placement`, step 7): BASIN_STEPS LM iterations each; distinct when
 # some light's centre is BASIN_DISTANCE of the extent away or its orientation parameters
 # BASIN_TURN (rad) apart.
@@ -82,16 +83,17 @@ def unit_columns(problem: LightsProblem, j: int, rows: np.ndarray) -> tuple[np.n
     row of `rows (S, P_j)`, `CHUNK` rows a call (one compiled program per light kind and
     capacity). The program's cost grows with the shadow capacity (every receiver integrates
     `capacity` boundary edges, most of them padding) while most candidates need a few edges:
-    every row runs first at `COLUMN_CAPACITY` edges (at most the problem's), the rows some
+    every row runs first at `COLUMN_CAPACITY[kind]` edges (at most the problem's), the rows some
     receiver overflowed again at twice that, up to the problem's capacity, then at twice the
     problem's while some row still overflows it (`at_capacity`: the problem returned holds that
     capacity). A row that does not overflow has the same value at any capacity (the padding
-    edges add exact zeros), so the columns are those of one run at the final capacity."""
+    edges add zeros), to rounding where it runs in another chunk: the columns are those of one
+    run at the final capacity to ~1e-16 (absolute; 3 of 1606 rows of a fit differ, by one ulp)."""
     dt = problem.targets.points.dtype
     sw = np.sqrt(np.asarray(problem.targets.weights, np.float64))
     per = np.zeros((rows.shape[0], *problem.targets.colours.shape))
     todo = np.arange(rows.shape[0])
-    level = [COLUMN_CAPACITY]
+    level = [COLUMN_CAPACITY.get(problem.params[j].kind, 8)]
 
     def run(pr: LightsProblem) -> tuple[None, bool]:
         nonlocal todo
