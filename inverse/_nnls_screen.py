@@ -86,6 +86,56 @@ def nnls_rss(fixed: np.ndarray, cand: np.ndarray, y: np.ndarray, fit_power: bool
     return np.maximum(rss, 0.0)
 
 
+# Elements of the cross Gram `pair_rss` scores at a time: its dozen temporaries stay in the cache.
+PAIR_TILE = 1 << 15
+
+
+def _pair_tile(gab: np.ndarray, gaa: np.ndarray, ya: np.ndarray, one_a: np.ndarray | None, oka: np.ndarray,
+               gbb: np.ndarray, yb: np.ndarray, one_b: np.ndarray | None, okb: np.ndarray,
+               buf: list) -> tuple[float, int, int]:
+    """`(explained, s, t)`: the largest residual reduction over the pairs of the rows `s` of a
+    tile of the cross Gram `gab (S, T)` and every column `t`, at its first position in row-major
+    order (`np.argmax`'s), written into the scratch arrays `buf` (each at least `(S, T)`). With
+    `one_a` (`fit_power`), the pair's non-negative least squares (`pair_rss`); without, powers 1."""
+    S = gab.shape[0]
+    if one_a is not None and one_b is not None:
+        gg, det, pn, un, both = (x[:S] for x in buf[:5])
+        good = buf[5][:S]
+        np.multiply.outer(gaa, gbb, out=gg)
+        np.multiply(gab, gab, out=det)
+        np.subtract(gg, det, out=det)
+        gg *= 1e-12
+        np.greater(det, gg, out=good)
+        # the pair's powers (pn, un) / det where both are non-negative, else the better single column
+        np.multiply.outer(ya, gbb, out=pn)
+        np.multiply(gab, yb[None], out=both)
+        pn -= both
+        np.multiply.outer(gaa, yb, out=un)
+        np.multiply(gab, ya[:, None], out=both)
+        un -= both
+        good &= pn >= 0
+        good &= un >= 0
+        np.multiply(ya[:, None], pn, out=both)
+        np.multiply(yb[None], un, out=pn)
+        both += pn
+        np.copyto(det, 1.0, where=~good)
+        both /= det
+        explained = gg
+        np.maximum.outer(one_a, one_b, out=explained)
+        np.maximum(explained, both, out=explained, where=good)
+    else:
+        explained, tmp = buf[0][:S], buf[1][:S]
+        np.add.outer(2 * ya, 2 * yb, out=explained)
+        explained -= gaa[:, None]
+        explained -= gbb[None]
+        np.multiply(gab, 2, out=tmp)
+        explained -= tmp
+    explained[~oka] = -np.inf
+    explained[:, ~okb] = -np.inf
+    s, t = divmod(int(np.argmax(explained)), explained.shape[1])
+    return float(explained[s, t]), s, t
+
+
 def pair_rss(fixed: np.ndarray, ca: np.ndarray, cb: np.ndarray, y: np.ndarray, fit_power: bool,
              block: int = 512) -> tuple[float, int, int]:
     """`(rss, s, t)`: the least residual sum of squares over every pair of candidate columns
@@ -93,9 +143,12 @@ def pair_rss(fixed: np.ndarray, ca: np.ndarray, cb: np.ndarray, y: np.ndarray, f
     `fit_power` the powers of the pair are non-negative least squares on the residual left
     after projecting out the span of `fixed` (their powers free: the caller checks the best
     pair with `nnls_rss`); without, every power is 1. Batched over `block` rows of `ca` at a
-    time: the cross Gram `ca cb^T` is one matrix product."""
+    time: the cross Gram `ca cb^T` is one matrix product, scored in tiles of `PAIR_TILE`
+    elements (`_pair_tile`); the first best pair in row-major order within a block, the first
+    block with the least rss."""
     okb = np.all(np.isfinite(cb), axis=1)
     cb = np.where(okb[:, None], cb, 0.0)
+    one_b = None
     if fit_power:
         if fixed.size:
             q, _ = np.linalg.qr(fixed)
@@ -109,6 +162,8 @@ def pair_rss(fixed: np.ndarray, ca: np.ndarray, cb: np.ndarray, y: np.ndarray, f
         r = y - fixed.sum(axis=1) if fixed.size else y
         gbb, yb = np.einsum("tm,tm->t", cb, cb), cb @ r
     rr = float(r @ r)
+    tile = min(block, max(1, PAIR_TILE // max(cb.shape[0], 1)))
+    buf = [np.empty((tile, cb.shape[0])) for _ in range(5)] + [np.empty((tile, cb.shape[0]), bool)]
     best: tuple[float, int, int] = (np.inf, -1, -1)
     for a0 in range(0, ca.shape[0], block):
         a = ca[a0:a0 + block]
@@ -117,31 +172,18 @@ def pair_rss(fixed: np.ndarray, ca: np.ndarray, cb: np.ndarray, y: np.ndarray, f
         if fit_power and q.shape[1]:
             a = a - (a @ q) @ q.T
         gaa, ya, gab = np.einsum("sm,sm->s", a, a), a @ r, a @ cb.T
-        if fit_power:
-            # the pair's powers (pn, un) / det where both are non-negative, else the better single column
-            one_a = np.where((ya > 0) & (gaa > 0), ya ** 2 / np.where(gaa > 0, gaa, 1.0), 0.0)
-            gg = np.multiply.outer(gaa, gbb)
-            det = gg - gab * gab
-            good = det > 1e-12 * gg
-            pn = np.multiply.outer(ya, gbb)
-            pn -= gab * yb[None]
-            un = np.multiply.outer(gaa, yb)
-            un -= gab * ya[:, None]
-            good &= pn >= 0
-            good &= un >= 0
-            both = ya[:, None] * pn
-            both += yb[None] * un
-            both /= np.where(good, det, 1.0)
-            explained = np.maximum.outer(one_a, one_b)
-            np.maximum(explained, both, out=explained, where=good)
-        else:
-            explained = 2 * ya[:, None] + 2 * yb[None] - gaa[:, None] - gbb[None] - 2 * gab
-        explained[~oka] = -np.inf
-        explained[:, ~okb] = -np.inf
-        s, t = np.unravel_index(int(np.argmax(explained)), explained.shape)
-        f = rr - float(explained[s, t])
+        one_a = np.where((ya > 0) & (gaa > 0), ya ** 2 / np.where(gaa > 0, gaa, 1.0), 0.0) if fit_power else None
+        e, s, t = np.nan, -1, -1
+        for i0 in range(0, a.shape[0], tile):
+            sl = slice(i0, i0 + tile)
+            ei, si, ti = _pair_tile(gab[sl], gaa[sl], ya[sl], None if one_a is None else one_a[sl], oka[sl],
+                                    gbb, yb, one_b, okb, buf)
+            # np.argmax over the block: the first NaN, else the first largest
+            if s < 0 or (np.isnan(ei) and not np.isnan(e)) or (not np.isnan(e) and ei > e):
+                e, s, t = ei, i0 + si, ti
+        f = rr - e
         if f < best[0]:
-            best = (f, a0 + int(s), int(t))
+            best = (f, a0 + s, t)
     return best
 
 

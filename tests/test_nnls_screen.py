@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from scipy.optimize import nnls
 
+import inverse._nnls_screen as nnls_screen
 from inverse._nnls_screen import SUPPORTS_UP_TO, ScreenMemo, nnls_rss, pair_rss
 
 
@@ -67,3 +68,33 @@ def test_screen_memo_matches_fresh_screens_as_columns_grow():
     assert memo.pair(cols, 0, 1, chosen) == pair_rss(cols[2][1][:, None], cols[0], cols[1], y, True)
     cols[1] = np.concatenate([cols[1], cols[1][8][None] * 1.01])
     assert memo.pair(cols, 0, 1, chosen) == pair_rss(cols[2][1][:, None], cols[0], cols[1], y, True)
+
+
+@pytest.mark.parametrize("held", [0, 2])
+def test_pair_rss_is_the_best_pair_by_nnls(held, monkeypatch):
+    """`pair_rss` against every pair's non-negative least squares (`scipy.optimize.nnls` on the
+    pair's columns with the held columns' span projected out), for tiles of the cross Gram from
+    one element to the whole block: the same pair at every tile size, its rss the least."""
+    rng = np.random.default_rng(7 + held)
+    M = 24
+    ca, cb = _columns(rng, 37, M), _columns(rng, 29, M)
+    cb[5] = cb[3]  # duplicate columns: tied scores
+    ca[11] = np.nan  # a candidate whose column is not finite: scored -inf
+    fixed = _columns(rng, held, M).T
+    y = ca[4] * 1.3 + cb[20] * 0.7 + (fixed.sum(axis=1) if held else 0.0) + 0.01 * rng.normal(size=M)
+    q = np.linalg.qr(fixed)[0] if held else np.zeros((M, 0))
+    P = np.eye(M) - q @ q.T
+    ref = np.full((37, 29), np.inf)
+    for s in range(37):
+        for t in range(29):
+            if np.all(np.isfinite(ca[s])):
+                ref[s, t] = nnls(P @ np.stack([ca[s], cb[t]], axis=1), P @ y)[1] ** 2
+    out = []
+    for tile in (1, 7, 1 << 15):
+        monkeypatch.setattr(nnls_screen, "PAIR_TILE", tile)
+        out.append(pair_rss(fixed, ca, cb, y, True, block=16))
+    assert out[0] == out[1] == out[2]
+    f, s, t = out[0]
+    assert (s, t) == (4, 20)
+    np.testing.assert_allclose(f, ref.min(), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(ref[s, t], ref.min(), rtol=1e-9, atol=1e-12)
