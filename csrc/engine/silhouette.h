@@ -137,10 +137,9 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   std::vector<int32_t>& boff = pc.boff;
   std::vector<int32_t>& ord = w.sord;
   boff.assign(size_t(ns) + 1, 0);
-  ts.clear();
-  tc.clear();
-  td.clear();
-  ord.clear();
+  // The breakpoints in use are [0, nb) of ts, tc, td and ord, which are grown (never shrunk)
+  // before each segment to hold its ends and one crossing per candidate.
+  int32_t nb = 0;
   // An E_h edge is cut only where a contour segment was clipped at its plane: its crossing
   // candidates are those segments (in index order).
   pc.clipped.clear();
@@ -164,9 +163,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   }
   for (int i = 0; i < ns; i++) {
     const SSeg<T>& s = segs[size_t(i)];
-    const int32_t b0 = int32_t(ts.size());
-    ts.push_back(0), tc.push_back(s.ca), td.push_back(0);
-    ts.push_back(1), tc.push_back(s.cb), td.push_back(0);
+    const int32_t b0 = nb;
     const V3<T> ap = s.a - p, d = s.b - s.a;
     const double apn = std::fabs(ap.x) + std::fabs(ap.y) + std::fabs(ap.z) + std::fabs(d.x) + std::fabs(d.y) + std::fabs(d.z);
     // Crossing candidates: every segment, or for a contour piece on the grid the pieces
@@ -211,7 +208,17 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
             ncand += int(fresh & !apart(j));
           }
         }
-      std::sort(up, up + ncand);
+      // (distinct values: any sort gives this order; insertion sort for the few there nearly always are)
+      if (ncand <= 16) {
+        for (int x = 1; x < ncand; x++) {
+          const int32_t v = up[x];
+          int y = x;
+          for (; y > 0 && up[y - 1] > v; y--) up[y] = up[y - 1];
+          up[y] = v;
+        }
+      } else {
+        std::sort(up, up + ncand);
+      }
       const int32_t at0 = nlist;
       nlist += ncand;
       if (size_t(nlist) > pc.lval.size()) {  // grown by doubling (the entries past nlist are not read)
@@ -237,6 +244,15 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       js = pc.all.data();
       nj = ns;
     }
+    if (ts.size() < size_t(nb) + 2 + size_t(nj)) {
+      const size_t m = std::max(size_t(nb) + 2 + size_t(nj), 2 * ts.size());
+      ts.resize(m), tc.resize(m), td.resize(m), ord.resize(m);
+    }
+    T* const tsp = ts.data();
+    Code* const tcp = tc.data();
+    int32_t* const tdp = td.data();
+    tsp[nb] = 0, tcp[nb] = s.ca, tdp[nb] = 0, nb++;
+    tsp[nb] = 1, tcp[nb] = s.cb, tdp[nb] = 0, nb++;
     for (int jj = 0; jj < nj; jj++) {
       const int j = js[jj];
       if (j == i) continue;
@@ -273,9 +289,10 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         if (!(std::fabs(g1) > tol * o.own_n * apn)) return kFallback;
         const double t = -g0 / g1;
         if (!(t >= -1e-9 && t <= 1 + 1e-9)) return kFallback;
-        ts.push_back(std::min(1.0, std::max(0.0, t)));
-        tc.push_back(at_a ? o.ca : o.cb);
-        td.push_back(g1 > 0 ? o.w : -o.w);
+        tsp[nb] = T(std::min(1.0, std::max(0.0, t)));
+        tcp[nb] = at_a ? o.ca : o.cb;
+        tdp[nb] = g1 > 0 ? o.w : -o.w;
+        nb++;
         continue;
       }
       if (j < neh) continue;  // a contour piece ends on E_h's boundary, inside it otherwise
@@ -295,14 +312,32 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       if (ca == cb && ca != 0) continue;  // o on one side of s's line (s's end on o's line or not)
       if (s0 == 0 || s1 == 0) return kFallback;
       if (ca == 0 || cb == 0) return kFallback;
-      ts.push_back(-g0 / g1);
-      tc.push_back(code_planes(s.own_ref, o.own_ref));
-      td.push_back(s1 > 0 ? o.w : -o.w);  // into o's positive side: + W
+      tsp[nb] = T(-g0 / g1);
+      tcp[nb] = code_planes(s.own_ref, o.own_ref);
+      tdp[nb] = s1 > 0 ? o.w : -o.w;  // into o's positive side: + W
+      nb++;
     }
-    const int32_t b1 = int32_t(ts.size());
-    ord.resize(size_t(b1));
-    for (int32_t k = b0; k < b1; k++) ord[size_t(k)] = k;
-    std::sort(ord.begin() + b0, ord.end(), [&](int32_t x, int32_t y) { return ts[size_t(x)] < ts[size_t(y)]; });
+    const int32_t b1 = nb;
+    int32_t* const op = ord.data();
+    for (int32_t k = b0; k < b1; k++) op[k] = k;
+    // By t: up to 16 breakpoints (nearly always) the insertion sort that std::sort runs on so
+    // few (the same comparisons, so the same order for equal t), else std::sort.
+    if (b1 - b0 <= 16) {
+      for (int32_t k = b0 + 1; k < b1; k++) {
+        const int32_t v = op[k];
+        const T tv = tsp[v];
+        if (tv < tsp[op[b0]]) {
+          for (int32_t x = k; x > b0; x--) op[x] = op[x - 1];
+          op[b0] = v;
+        } else {
+          int32_t x = k;
+          for (; tv < tsp[op[x - 1]]; x--) op[x] = op[x - 1];
+          op[x] = v;
+        }
+      }
+    } else {
+      std::sort(op + b0, op + b1, [&](int32_t x, int32_t y) { return tsp[x] < tsp[y]; });
+    }
     boff[size_t(i) + 1] = b1;
   }
   // Per contour segment: its first and last pieces of positive length (kf, kl, positions in

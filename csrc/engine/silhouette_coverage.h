@@ -207,7 +207,11 @@ struct SilCoverage {
     v = r[0] * Vv[0] + r[1] * Vv[1] + r[2] * Vv[2];
   }
   int cell_of(double x, double mn, double d) const {
-    return std::max(0, std::min(G - 1, int(std::floor(std::min(std::max((x - mn) / d, -1.0), double(G))))));
+    // floor of y in [-1, G] as truncation corrected downwards for negative non-integers (exact).
+    const double y = std::min(std::max((x - mn) / d, -1.0), double(G));
+    int k = int(y);
+    k -= int(y < double(k));
+    return std::max(0, std::min(G - 1, k));
   }
 
   // The contour pieces on a grid of the emitter plane: a piece's crossing candidates are the
