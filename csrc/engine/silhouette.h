@@ -46,6 +46,28 @@ struct SilEnd {
   double x, y, z;
   int32_t e, e2, n;
 };
+// What the crossing tests read of a segment, packed: its plane (own, |own|), its ends as
+// SilCoverage::side_of reads them (a - p, b - p and their |.|_1), its mesh vertex (va, -1 for
+// E_h's edges) and its ends' position ids.
+template <class T>
+struct SilHot {
+  V3<T> own, ra, rb;
+  T own_n;
+  double la, lb;
+  int32_t va, ia, ib;
+};
+// A segment's box in the emitter plane (lo, hi), in double (the exact values of T) as two-lane
+// vectors for the box test: lxy = (lo.x, lo.y), hxy = (hi.x, hi.y), zh = (hi.z, -lo.z),
+// zl = (lo.z, -hi.z). Boxes i and j are apart iff a lane of hxy_i < lxy_j, hxy_j < lxy_i or
+// zh_i < zl_j holds (-lo_i.z < -hi_j.z is hi_j.z < lo_i.z; the negations are exact).
+typedef double SilV2 __attribute__((vector_size(16)));
+struct SilBox {
+  SilV2 lxy, hxy, zh, zl;
+};
+inline bool sil_apart(const SilBox& a, const SilBox& b) {
+  const auto m = (a.hxy < b.lxy) | (b.hxy < a.lxy) | (a.zh < b.zl);
+  return (m[0] | m[1]) != 0;
+}
 // The most ends of contour segments at one vertex whose rays silhouette_receiver sorts about it.
 constexpr int kSilFan = 8;
 // Per-thread scratch of silhouette_receiver's pieces (allocated once per thread).
@@ -63,6 +85,15 @@ struct SilPieces {
   std::vector<int32_t> gpos, ltail, lval, lnext;
   std::vector<int32_t> all;  // 0 .. ns - 1 (the candidates of a piece off the grid)
 };
+inline std::vector<SilBox>& sil_boxes() {
+  static thread_local std::vector<SilBox> boxes;
+  return boxes;
+}
+template <class T>
+inline std::vector<SilHot<T>>& sil_hot() {
+  static thread_local std::vector<SilHot<T>> hot;
+  return hot;
+}
 // Not inlined: the caller keeps the address, where an inlined thread-local would be looked up
 // again (__tls_get_addr in a shared library) at every use in its loops.
 __attribute__((noinline)) inline SilPieces& sil_pieces() {
@@ -122,14 +153,23 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   std::vector<Code>& tc = w.stc;
   std::vector<int32_t>& td = w.std_;  // per breakpoint: the change of C crossing it along s
   // The segments' boxes in the emitter plane (crossing tests only between overlapping boxes).
-  std::vector<T>& bx = w.sbox;
-  bx.resize(size_t(6 * ns));
+  std::vector<SilBox>& boxv = sil_boxes();
+  if (boxv.size() < size_t(ns)) boxv.resize(2 * size_t(ns));
+  SilBox* const bx = boxv.data();
+  std::vector<SilHot<T>>& hotv = sil_hot<T>();
+  if (hotv.size() < size_t(ns)) hotv.resize(2 * size_t(ns));
+  SilHot<T>* const hot = hotv.data();
   for (int i = 0; i < ns; i++) {
+    const SSeg<T>& s = segs[size_t(i)];
+    const typename Cov::At xa = cov.at(s.a), xb = cov.at(s.b);
+    hot[i] = SilHot<T>{s.own, xa.r, xb.r, s.own_n, xa.l1, xb.l1, s.va, s.ia, s.ib};
     const T ca[3] = {segs[i].a.x, segs[i].a.y, segs[i].a.z}, cb[3] = {segs[i].b.x, segs[i].b.y, segs[i].b.z};
+    double lo[3], hi[3];
     for (int k = 0; k < 3; k++) {
-      bx[6 * i + k] = std::min(ca[k], cb[k]) - T(1e-9) * T(scale);
-      bx[6 * i + 3 + k] = std::max(ca[k], cb[k]) + T(1e-9) * T(scale);
+      lo[k] = double(std::min(ca[k], cb[k]) - T(1e-9) * T(scale));
+      hi[k] = double(std::max(ca[k], cb[k]) + T(1e-9) * T(scale));
     }
+    bx[i] = SilBox{SilV2{lo[0], lo[1]}, SilV2{hi[0], hi[1]}, SilV2{hi[2], -lo[2]}, SilV2{lo[2], -hi[2]}};
   }
   // Every segment's breakpoints (its ends and its crossings, in w.sts / stc / std_ at
   // [boff[i], boff[i + 1])), in the order of their t in w.sord (indices into those arrays).
@@ -170,13 +210,9 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     // registered in the cells its box meets whose boxes meet its box (in index order, as the
     // full loop visits them, and with the same box test).
     const bool listed = G && i >= neh;
-    const T* bi = bx.data() + 6 * i;
-    // Boxes apart: no crossing (tested first: the cheaper filter). All six comparisons are
-    // made (no branch between them): the outcome is the same.
-    auto apart = [&](int j) {
-      const T* bj = bx.data() + 6 * j;
-      return bool((bi[3] < bj[0]) | (bj[3] < bi[0]) | (bi[4] < bj[1]) | (bj[4] < bi[1]) | (bi[5] < bj[2]) | (bj[5] < bi[2]));
-    };
+    // Boxes apart: no crossing (tested first: the cheaper filter).
+    const SilBox bi = bx[i];
+    auto apart = [&](int j) { return sil_apart(bi, bx[j]); };
     // A pair is a candidate for both pieces (the relation is symmetric: a common cell, boxes
     // meeting), so each cell's pieces (in increasing order) are gathered from only past the
     // piece itself, and each candidate of higher index is entered in that piece's list of lower
@@ -202,10 +238,10 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
           pc.gpos[size_t(cell)] = k;
           for (; k < e; k++) {  // kept: seen first here and boxes meeting (written, counted when kept)
             const int32_t j = gi[size_t(k)];
-            const bool fresh = stamp_of[size_t(j)] != stamp;
+            if (stamp_of[size_t(j)] == stamp) continue;
             stamp_of[size_t(j)] = stamp;
             up[ncand] = j;
-            ncand += int(fresh & !apart(j));
+            ncand += int(!apart(j));
           }
         }
       // (distinct values: any sort gives this order; insertion sort for the few there nearly always are)
@@ -253,30 +289,30 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     int32_t* const tdp = td.data();
     tsp[nb] = 0, tcp[nb] = s.ca, tdp[nb] = 0, nb++;
     tsp[nb] = 1, tcp[nb] = s.cb, tdp[nb] = 0, nb++;
-    for (int jj = 0; jj < nj; jj++) {
-      const int j = js[jj];
-      if (j == i) continue;
+    // The test of candidate j: false when the receiver falls back.
+    const SilHot<T>& hs = hot[i];
+    auto pair = [&](const int j) __attribute__((always_inline)) {
       const SSeg<T>& o = segs[size_t(j)];
-      if (i < neh && j < neh) continue;  // E_h's edges meet at its vertices only
-      if (!listed && i >= neh && j >= neh && apart(j)) continue;  // (listed: filtered above)
-      if (s.va >= 0 && o.va >= 0) {
+      const SilHot<T>& ho = hot[j];
+      if (hs.va >= 0 && ho.va >= 0) {
         // Common ends by their position ids where both have them (equal iff same()).
-        const bool ids = s.ia >= 0 && o.ia >= 0;
-        const bool at_a = ids ? bool((s.ia == o.ia) | (s.ia == o.ib)) : (same(s.x3a, o.x3a) || same(s.x3a, o.x3b));
-        const bool at_b = ids ? bool((s.ib == o.ia) | (s.ib == o.ib)) : (same(s.x3b, o.x3a) || same(s.x3b, o.x3b));
+        const bool ids = hs.ia >= 0 && ho.ia >= 0;
+        const bool at_a = ids ? bool((hs.ia == ho.ia) | (hs.ia == ho.ib)) : (same(s.x3a, o.x3a) || same(s.x3a, o.x3b));
+        const bool at_b = ids ? bool((hs.ib == ho.ia) | (hs.ib == ho.ib)) : (same(s.x3b, o.x3a) || same(s.x3b, o.x3b));
         if (at_a || at_b) {
           // Mesh edges with a common end meet there only, unless their projections overlap
           // along one line (p in the plane of both; or one edge twice, as at a non-manifold
           // edge): C beside them is then not what the crossings and the carry along chains
           // below make it. Too close to call.
-          if (at_a && at_b) return kFallback;
-          const bool oa_at = ids ? o.ia == (at_a ? s.ia : s.ib) : same(o.x3a, at_a ? s.x3a : s.x3b);
+          if (at_a && at_b) return false;
+          const bool oa_at = ids ? ho.ia == (at_a ? hs.ia : hs.ib) : same(o.x3a, at_a ? s.x3a : s.x3b);
           // The ends picked by reference (an address select rather than a branch).
           const V3<T>& far = oa_at ? o.b : o.a;
           const V3<T>& at = at_a ? s.a : s.b;
           const V3<T>& other = at_a ? s.b : s.a;
-          if (cov.side_of(far, s) == 0 && dot(far - at, other - at) > 0) return kFallback;
-          continue;
+          const typename Cov::At xf{oa_at ? ho.rb : ho.ra, oa_at ? ho.lb : ho.la};  // cov.at(far)
+          if (cov.side_of(xf, s) == 0 && dot(far - at, other - at) > 0) return false;
+          return true;
         }
       }
       if (i < neh) {
@@ -284,38 +320,50 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         const int pi = eh_plane[i];
         const bool at_a = o.on_a >= 0 && o.on_a == pi;
         const bool at_b = o.on_b >= 0 && o.on_b == pi;
-        if (!at_a && !at_b) continue;
-        const double g0 = dot(ap, o.own), g1 = dot(d, o.own);
-        if (!(std::fabs(g1) > tol * o.own_n * apn)) return kFallback;
+        if (!at_a && !at_b) return true;
+        const double g0 = dot(ap, ho.own), g1 = dot(d, ho.own);
+        if (!(std::fabs(g1) > tol * ho.own_n * apn)) return false;
         const double t = -g0 / g1;
-        if (!(t >= -1e-9 && t <= 1 + 1e-9)) return kFallback;
+        if (!(t >= -1e-9 && t <= 1 + 1e-9)) return false;
         tsp[nb] = T(std::min(1.0, std::max(0.0, t)));
         tcp[nb] = at_a ? o.ca : o.cb;
         tdp[nb] = g1 > 0 ? o.w : -o.w;
         nb++;
-        continue;
+        return true;
       }
-      if (j < neh) continue;  // a contour piece ends on E_h's boundary, inside it otherwise
-      const double on = o.own_n * apn;
-      const double g0 = dot(ap, o.own), g1 = dot(d, o.own);
+      if (j < neh) return true;  // a contour piece ends on E_h's boundary, inside it otherwise
+      const double on = ho.own_n * apn;
+      const double g0 = dot(ap, ho.own), g1 = dot(d, ho.own);
       const int s0 = Cov::sgn(g0, tol * on), s1 = Cov::sgn(g0 + g1, tol * on);
-      if (s0 == s1 && s0 != 0) continue;
+      if (s0 == s1 && s0 != 0) return true;
       if (s0 == 0 && s1 == 0) {
         // s along o's line (collinear contour edges, as on a straight crease): apart when o's
         // ends lie clearly beyond one end of s along it.
         const double dd = double(dot(d, d));
         const double ta = double(dot(o.a - s.a, d)) / dd, tb = double(dot(o.b - s.a, d)) / dd;
-        if ((ta < -1e-6 && tb < -1e-6) || (ta > 1 + 1e-6 && tb > 1 + 1e-6)) continue;
-        return kFallback;
+        return (ta < -1e-6 && tb < -1e-6) || (ta > 1 + 1e-6 && tb > 1 + 1e-6);
       }
-      const int ca = cov.side_of(o.a, s), cb = cov.side_of(o.b, s);
-      if (ca == cb && ca != 0) continue;  // o on one side of s's line (s's end on o's line or not)
-      if (s0 == 0 || s1 == 0) return kFallback;
-      if (ca == 0 || cb == 0) return kFallback;
+      const int ca = cov.side_of(typename Cov::At{ho.ra, ho.la}, s), cb = cov.side_of(typename Cov::At{ho.rb, ho.lb}, s);
+      if (ca == cb && ca != 0) return true;  // o on one side of s's line (s's end on o's line or not)
+      if (s0 == 0 || s1 == 0) return false;
+      if (ca == 0 || cb == 0) return false;
       tsp[nb] = T(-g0 / g1);
       tcp[nb] = code_planes(s.own_ref, o.own_ref);
       tdp[nb] = s1 > 0 ? o.w : -o.w;  // into o's positive side: + W
       nb++;
+      return true;
+    };
+    if (listed) {  // contour pieces other than s, boxes meeting (filtered above)
+      for (int jj = 0; jj < nj; jj++)
+        if (!pair(js[jj])) return kFallback;
+    } else {
+      for (int jj = 0; jj < nj; jj++) {
+        const int j = js[jj];
+        if (j == i) continue;
+        if (i < neh && j < neh) continue;  // E_h's edges meet at its vertices only
+        if (i >= neh && j >= neh && apart(j)) continue;
+        if (!pair(j)) return kFallback;
+      }
     }
     const int32_t b1 = nb;
     int32_t* const op = ord.data();
@@ -608,8 +656,8 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     // C beside s on q0's side (inside E_h for E_h's edges): for a contour segment cf at its
     // first piece; for an E_h edge computed there, checked again at the last piece; then carried
     // across the breakpoints.
-    int c = Cov::kNone, last = -1;
-    for (int32_t k = b0; k + 1 < b1; k++)
+    int c = Cov::kNone, last = -1;  // last: an E_h edge's last piece of positive length
+    for (int32_t k = b0; k + 1 < b1 && i < neh; k++)
       if (ts[size_t(ord[size_t(k + 1)])] > ts[size_t(ord[size_t(k)])]) last = k;
     for (int32_t k = b0; k + 1 < b1; k++) {
       if (k > b0 && c != Cov::kNone) c += td[size_t(ord[size_t(k)])];

@@ -175,7 +175,10 @@ struct SilCoverage {
   // crease of a CAD part) is decided by the piece's ends: both clearly on one side of the path's
   // plane, the piece does not meet the path.
   int jump_from(const SSeg<T>& s, int sq, const At& m, V3<T> pqm, double pn) const {
-    const int sm = side_of(m, s);
+    return jump_from(s, sq, side_of(m, s), pqm, pn);
+  }
+  // The same with m's side of the piece given (sm = side_of(m, s)).
+  int jump_from(const SSeg<T>& s, int sq, int sm, V3<T> pqm, double pn) const {
     if (sq != 0 && sm == sq) return 0;
     const V3<T> ra = s.a - p, rb = s.b - p;
     const int ca = sgn(dot(ra, pqm), tol * pn * (std::fabs(ra.x) + std::fabs(ra.y) + std::fabs(ra.z)));
@@ -274,8 +277,9 @@ struct SilCoverage {
   }
   // C at m on the `from` side of piece `skip` (-1: none), from C at `from` and the crossings of
   // from -> m with the pieces registered in cells ca and cb (-1: none). `at_ref`: `from` is ca's
-  // reference point (its pieces' sides of it are kept in gside, each computed once).
-  int cross_cells(V3<T> from, int cfrom, V3<T> m, int skip, int ca, int cb, bool at_ref = true) {
+  // reference point, `to_ref`: m is cb's (their pieces' sides of it are kept in gside, each
+  // computed once).
+  int cross_cells(V3<T> from, int cfrom, V3<T> m, int skip, int ca, int cb, bool at_ref = true, bool to_ref = false) {
     const V3<T> pqm = cross(from - p, m - p);
     const double pn = norm(pqm);
     const At af = at(from), am = at(m);
@@ -296,7 +300,15 @@ struct SilCoverage {
         } else {
           sq = side_of(af, segs[size_t(i)]);
         }
-        const int j = jump_from(segs[size_t(i)], sq, am, pqm, pn);
+        int sm;
+        if (to_ref && cell == cb) {
+          int8_t& g = w.gside[size_t(k)];
+          if (g == 2) g = int8_t(side_of(am, segs[size_t(i)]));
+          sm = g;
+        } else {
+          sm = side_of(am, segs[size_t(i)]);
+        }
+        const int j = jump_from(segs[size_t(i)], sq, sm, pqm, pn);
         if (j == kNone) return kNone;
         c += j;
       }
@@ -430,12 +442,12 @@ struct SilCoverage {
           }
           break;
         case 1:  // from the previous cell of the row
-          if (w.gcov[size_t(before)] != kNone) f.c = cross_cells(w.gref[size_t(before)], w.gcov[size_t(before)], f.r, -1, before, f.cell);
+          if (w.gcov[size_t(before)] != kNone) f.c = cross_cells(w.gref[size_t(before)], w.gcov[size_t(before)], f.r, -1, before, f.cell, true, true);
           f.state = 5;
           break;
         case 2:  // straight up from the cell below, else through it from its row
           if (w.gcov[size_t(below)] != kNone) {
-            f.c = cross_cells(w.gref[size_t(below)], w.gcov[size_t(below)], f.r, -1, below, f.cell);
+            f.c = cross_cells(w.gref[size_t(below)], w.gcov[size_t(below)], f.r, -1, below, f.cell, true, true);
             f.state = 5;
           } else if (cell_point(ix, lr, f.sp)) {
             f.dir = -1;
@@ -463,7 +475,7 @@ struct SilCoverage {
         case 4:
           if (w.gcov[size_t(f.from)] != kNone) {
             const int c1 = cross_cells(w.gref[size_t(f.from)], w.gcov[size_t(f.from)], f.sp, -1, f.from, below);
-            if (c1 != kNone) f.c = cross_cells(f.sp, c1, f.r, -1, below, f.cell, false);
+            if (c1 != kNone) f.c = cross_cells(f.sp, c1, f.r, -1, below, f.cell, false, true);
           }
           f.dir += 2;
           f.state = 3;
