@@ -33,6 +33,7 @@
 
 #include <algorithm>
 #include <cstring>
+#include <type_traits>
 
 #include "silhouette_coverage.h"
 #include "silhouette_tree.h"
@@ -153,6 +154,13 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   std::vector<Code>& tc = w.stc;
   std::vector<int32_t>& td = w.std_;  // per breakpoint: the change of C crossing it along s
   // The segments' boxes in the emitter plane (crossing tests only between overlapping boxes).
+  // Whether every contour piece has its mesh vertex and both ends' position ids (the tile's walk).
+  bool all_ids = true, by_id = true;  // by_id: every contour piece has both ends' position ids
+  for (int i = neh; i < ns; i++) {
+    const bool ids = segs[size_t(i)].ia >= 0 && segs[size_t(i)].ib >= 0;
+    by_id &= ids;
+    all_ids &= ids && segs[size_t(i)].va >= 0;
+  }
   std::vector<SilBox>& boxv = sil_boxes();
   if (boxv.size() < size_t(ns)) boxv.resize(2 * size_t(ns));
   SilBox* const bx = boxv.data();
@@ -171,9 +179,17 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     }
     bx[i] = SilBox{SilV2{lo[0], lo[1]}, SilV2{hi[0], hi[1]}, SilV2{hi[2], -lo[2]}, SilV2{lo[2], -hi[2]}};
   }
+  SilPieces& pc = sil_pieces();
+  // Per contour segment: its first and last pieces of positive length (kf, kl, positions in
+  // ord; kf = -1: none), and the sum of the jumps of C from the first to the last (sj).
+  std::vector<int32_t>& kf = pc.kf;
+  std::vector<int32_t>& kl = pc.kl;
+  std::vector<int32_t>& sj = pc.sj;
+  kf.assign(size_t(ns), -1);
+  kl.assign(size_t(ns), -1);
+  sj.assign(size_t(ns), 0);
   // Every segment's breakpoints (its ends and its crossings, in w.sts / stc / std_ at
   // [boff[i], boff[i + 1])), in the order of their t in w.sord (indices into those arrays).
-  SilPieces& pc = sil_pieces();
   std::vector<int32_t>& boff = pc.boff;
   std::vector<int32_t>& ord = w.sord;
   boff.assign(size_t(ns) + 1, 0);
@@ -289,14 +305,16 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     int32_t* const tdp = td.data();
     tsp[nb] = 0, tcp[nb] = s.ca, tdp[nb] = 0, nb++;
     tsp[nb] = 1, tcp[nb] = s.cb, tdp[nb] = 0, nb++;
-    // The test of candidate j: false when the receiver falls back.
+    // The test of candidate j: false when the receiver falls back. `by_ids` (a std::true_type
+    // or false_type): s and j are contour pieces and every contour piece has its mesh vertex and
+    // its ends' position ids (the tests of va and ia below are known to pass).
     const SilHot<T>& hs = hot[i];
-    auto pair = [&](const int j) __attribute__((always_inline)) {
+    auto pair = [&](const int j, auto by_ids) __attribute__((always_inline)) {
       const SSeg<T>& o = segs[size_t(j)];
       const SilHot<T>& ho = hot[j];
-      if (hs.va >= 0 && ho.va >= 0) {
+      if (decltype(by_ids)::value || (hs.va >= 0 && ho.va >= 0)) {
         // Common ends by their position ids where both have them (equal iff same()).
-        const bool ids = hs.ia >= 0 && ho.ia >= 0;
+        const bool ids = decltype(by_ids)::value || (hs.ia >= 0 && ho.ia >= 0);
         const bool at_a = ids ? bool((hs.ia == ho.ia) | (hs.ia == ho.ib)) : (same(s.x3a, o.x3a) || same(s.x3a, o.x3b));
         const bool at_b = ids ? bool((hs.ib == ho.ia) | (hs.ib == ho.ib)) : (same(s.x3b, o.x3a) || same(s.x3b, o.x3b));
         if (at_a || at_b) {
@@ -353,16 +371,19 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       nb++;
       return true;
     };
-    if (listed) {  // contour pieces other than s, boxes meeting (filtered above)
+    if (listed && all_ids) {  // contour pieces other than s, boxes meeting (filtered above)
       for (int jj = 0; jj < nj; jj++)
-        if (!pair(js[jj])) return kFallback;
+        if (!pair(js[jj], std::true_type())) return kFallback;
+    } else if (listed) {
+      for (int jj = 0; jj < nj; jj++)
+        if (!pair(js[jj], std::false_type())) return kFallback;
     } else {
       for (int jj = 0; jj < nj; jj++) {
         const int j = js[jj];
         if (j == i) continue;
         if (i < neh && j < neh) continue;  // E_h's edges meet at its vertices only
         if (i >= neh && j >= neh && apart(j)) continue;
-        if (!pair(j)) return kFallback;
+        if (!pair(j, std::false_type())) return kFallback;
       }
     }
     const int32_t b1 = nb;
@@ -387,23 +408,21 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       std::sort(op + b0, op + b1, [&](int32_t x, int32_t y) { return tsp[x] < tsp[y]; });
     }
     boff[size_t(i) + 1] = b1;
+    if (i >= neh) {
+      int32_t f = -1, l = -1;
+      for (int32_t k = b0; k + 1 < b1; k++) {
+        if (!(tsp[op[k + 1]] > tsp[op[k]])) continue;
+        if (f < 0) f = k;
+        l = k;
+      }
+      int32_t sum = 0;
+      for (int32_t k = f + 1; f >= 0 && k <= l; k++) sum += tdp[op[k]];
+      kf[size_t(i)] = f, kl[size_t(i)] = l, sj[size_t(i)] = sum;
+    }
   }
   // Per contour segment: its first and last pieces of positive length (kf, kl, positions in
   // ord; kf = -1: none), and the sum of the jumps of C from the first to the last (sj).
-  std::vector<int32_t>& kf = pc.kf;
-  std::vector<int32_t>& kl = pc.kl;
-  std::vector<int32_t>& sj = pc.sj;
-  kf.assign(size_t(ns), -1);
-  kl.assign(size_t(ns), -1);
-  sj.assign(size_t(ns), 0);
-  for (int i = neh; i < ns; i++) {
-    for (int32_t k = boff[size_t(i)]; k + 1 < boff[size_t(i) + 1]; k++) {
-      if (!(ts[size_t(ord[size_t(k + 1)])] > ts[size_t(ord[size_t(k)])])) continue;
-      if (kf[size_t(i)] < 0) kf[size_t(i)] = k;
-      kl[size_t(i)] = k;
-    }
-    for (int32_t k = kf[size_t(i)] + 1; kf[size_t(i)] >= 0 && k <= kl[size_t(i)]; k++) sj[size_t(i)] += td[size_t(ord[size_t(k)])];
-  }
+  // (computed with each segment's breakpoints above)
   // C beside every contour segment's first piece on q0's side (cf), from one coverage query per
   // chain of contour segments and carried along the chain. Where exactly two contour segments
   // meet at an unclipped end v (the projection of one mesh vertex; no other piece passes through
@@ -438,9 +457,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     // positions (nh slots, a power of two at least twice the ends): per slot the position, the
     // first end and how many ends are there (to 3).
     std::vector<SilEnd>& tab = pc.ends;
-    // With every contour segment's position ids (the tile's walk), slot = id instead.
-    bool by_id = true;
-    for (int i = neh; i < ns && by_id; i++) by_id = segs[size_t(i)].ia >= 0 && segs[size_t(i)].ib >= 0;
+    // With every contour segment's position ids (the tile's walk, by_id), slot = id instead.
     size_t nh = 16;
     while (nh < 4 * size_t(ns - neh)) nh *= 2;
     if (by_id) nh = std::max(nh, size_t(w.sil_tile.nids));
@@ -458,14 +475,13 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     };
     auto add = [&](V3<T> x3, int32_t id, int32_t e) {
       const double x = double(x3.x), y = double(x3.y), z = double(x3.z);
-      if (by_id) {  // the slot's update by selects, not branches (the same fields as the hashed path)
+      if (by_id) {  // the slot's update by selects, not branches (the position is not read by id)
         SilEnd& t = tab[size_t(id)];
         eslot[size_t(e)] = id;
         const int32_t n0 = t.n;
         const bool first = n0 == 0;
         used[size_t(nused)] = id;
         nused += int32_t(first);
-        t.x = first ? x : t.x, t.y = first ? y : t.y, t.z = first ? z : t.z;
         t.e = first ? e : t.e;
         t.e2 = first ? -1 : (n0 == 1 ? e : t.e2);
         t.n = n0 + 1;
@@ -505,7 +521,11 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         const SSeg<T>& sa = segs[size_t(ea / 2)];
         const SSeg<T>& sb = segs[size_t(eb / 2)];
         // Each far end clearly off the other's line.
-        if (cov.side_of(ea % 2 ? sa.a : sa.b, sb) != 0 && cov.side_of(eb % 2 ? sb.a : sb.b, sa) != 0)
+        const SilHot<T>& ha = hot[ea / 2];
+        const SilHot<T>& hb = hot[eb / 2];
+        const typename Cov::At fa{ea % 2 ? ha.ra : ha.rb, ea % 2 ? ha.la : ha.lb};  // cov.at(sa's far end)
+        const typename Cov::At fb{eb % 2 ? hb.ra : hb.rb, eb % 2 ? hb.la : hb.lb};
+        if (cov.side_of(fa, sb) != 0 && cov.side_of(fb, sa) != 0)
           link[size_t(ea)] = eb, link[size_t(eb)] = ea;
       }
       if (t.n >= 3 && t.n <= kSilFan) {
