@@ -85,6 +85,7 @@ struct SilPieces {
   // lval, in increasing order; ltail[j] its last link).
   std::vector<int32_t> gpos, ltail, lval, lnext;
   std::vector<int32_t> all;  // 0 .. ns - 1 (the candidates of a piece off the grid)
+  std::vector<int32_t> tsrc;  // per breakpoint: where its code comes from (silhouette_receiver)
 };
 inline std::vector<SilBox>& sil_boxes() {
   static thread_local std::vector<SilBox> boxes;
@@ -151,7 +152,21 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   w.runs.clear();
   bool eh_all = true, eh_any = false;
   std::vector<T>& ts = w.sts;
-  std::vector<Code>& tc = w.stc;
+  // Per breakpoint: where its code comes from (tc_code below), the code made only for the ends of runs.
+  std::vector<int32_t>& tc = sil_pieces().tsrc;
+  // A breakpoint's code source: j >= 0 the crossing with contour piece j (code_planes of the two
+  // planes), kSrcA / kSrcB the segment's end a / b (its ca / cb), kSrcClipped - 2 j - e contour
+  // piece j's end e (0: a, 1: b) clipped at the plane of the E_h edge it is a breakpoint of.
+  constexpr int32_t kSrcA = -1, kSrcB = -2, kSrcClipped = -3;
+  auto tc_code = [&](const SSeg<T>& s, int32_t x) -> Code {
+    const int32_t v = tc[size_t(x)];
+    if (v >= 0) return code_planes(s.own_ref, segs[size_t(v)].own_ref);
+    if (v == kSrcA) return s.ca;
+    if (v == kSrcB) return s.cb;
+    const int32_t q = kSrcClipped - v;
+    const SSeg<T>& o = segs[size_t(q / 2)];
+    return q % 2 ? o.cb : o.ca;
+  };
   std::vector<int32_t>& td = w.std_;  // per breakpoint: the change of C crossing it along s
   // The segments' boxes in the emitter plane (crossing tests only between overlapping boxes).
   // Whether every contour piece has its mesh vertex and both ends' position ids (the tile's walk).
@@ -301,10 +316,10 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       ts.resize(m), tc.resize(m), td.resize(m), ord.resize(m);
     }
     T* const tsp = ts.data();
-    Code* const tcp = tc.data();
+    int32_t* const tcp = tc.data();
     int32_t* const tdp = td.data();
-    tsp[nb] = 0, tcp[nb] = s.ca, tdp[nb] = 0, nb++;
-    tsp[nb] = 1, tcp[nb] = s.cb, tdp[nb] = 0, nb++;
+    tsp[nb] = 0, tcp[nb] = kSrcA, tdp[nb] = 0, nb++;
+    tsp[nb] = 1, tcp[nb] = kSrcB, tdp[nb] = 0, nb++;
     // The test of candidate j: false when the receiver falls back. `by_ids` (a std::true_type
     // or false_type): s and j are contour pieces and every contour piece has its mesh vertex and
     // its ends' position ids (the tests of va and ia below are known to pass).
@@ -344,7 +359,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         const double t = -g0 / g1;
         if (!(t >= -1e-9 && t <= 1 + 1e-9)) return false;
         tsp[nb] = T(std::min(1.0, std::max(0.0, t)));
-        tcp[nb] = at_a ? o.ca : o.cb;
+        tcp[nb] = kSrcClipped - 2 * j - (at_a ? 0 : 1);
         tdp[nb] = g1 > 0 ? o.w : -o.w;
         nb++;
         return true;
@@ -366,7 +381,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       if (s0 == 0 || s1 == 0) return false;
       if (ca == 0 || cb == 0) return false;
       tsp[nb] = T(-g0 / g1);
-      tcp[nb] = code_planes(s.own_ref, o.own_ref);
+      tcp[nb] = j;
       tdp[nb] = s1 > 0 ? o.w : -o.w;  // into o's positive side: + W
       nb++;
       return true;
@@ -662,7 +677,38 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   bool contour_runs = false;
   for (int i = 0; i < ns; i++) {
     const SSeg<T>& s = segs[size_t(i)];
-    const size_t runs_before = w.runs.size();
+    if (i >= neh) {
+      // A contour segment: its pieces from the first to the last of positive length (those
+      // before and after have none), C from cf there; the open run's ends by breakpoint.
+      const int32_t f = kf[size_t(i)], l = kl[size_t(i)];
+      if (f < 0) continue;
+      int c = cf[size_t(i)];
+      if (c == Cov::kNone || s.q0s == 0) return kFallback;
+      const int qi = int(s.q0s > 0);
+      int run_dir = 0;
+      int32_t rs = 0, re = 0;
+      for (int32_t k = f; k <= l; k++) {
+        if (k > f) c += td[size_t(ord[size_t(k)])];
+        if (!(ts[size_t(ord[size_t(k + 1)])] > ts[size_t(ord[size_t(k)])])) continue;
+        const int cpos = c + (1 - qi) * s.w, cneg = c - qi * s.w;  // s.q0s > 0 ? c : c + w, ? c - w : c
+        if (cpos < 0 || cneg < 0) return kFallback;
+        int dir = 0;
+        if ((cpos == 0) != (cneg == 0)) dir = cpos == 0 ? 1 : -1;  // R on the positive side: along own's edge
+        if (dir != run_dir) {
+          if (run_dir > 0) w.runs.push_back(Run{tc_code(s, rs), tc_code(s, re)});
+          if (run_dir < 0) w.runs.push_back(Run{tc_code(s, re), tc_code(s, rs)});
+          contour_runs = contour_runs || run_dir != 0;
+          run_dir = dir;
+          rs = ord[size_t(k)];
+        }
+        if (dir != 0) re = ord[size_t(k + 1)];
+      }
+      if (run_dir > 0) w.runs.push_back(Run{tc_code(s, rs), tc_code(s, re)});
+      if (run_dir < 0) w.runs.push_back(Run{tc_code(s, re), tc_code(s, rs)});
+      contour_runs = contour_runs || run_dir != 0;
+      continue;
+    }
+    // An E_h edge.
     const int32_t b0 = boff[size_t(i)], b1 = boff[size_t(i) + 1];
     const V3<T> d = s.b - s.a;
     // Classify the pieces; a kept piece extends the current run.
@@ -673,50 +719,35 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       if (run_dir < 0) w.runs.push_back(Run{run_e, run_s});
       run_dir = 0;
     };
-    // C beside s on q0's side (inside E_h for E_h's edges): for a contour segment cf at its
-    // first piece; for an E_h edge computed there, checked again at the last piece; then carried
-    // across the breakpoints.
-    int c = Cov::kNone, last = -1;  // last: an E_h edge's last piece of positive length
-    for (int32_t k = b0; k + 1 < b1 && i < neh; k++)
+    // C beside s inside E_h: computed at the first piece, checked again at the last piece, and
+    // carried across the breakpoints between.
+    int c = Cov::kNone, last = -1;  // last: the last piece of positive length
+    for (int32_t k = b0; k + 1 < b1; k++)
       if (ts[size_t(ord[size_t(k + 1)])] > ts[size_t(ord[size_t(k)])]) last = k;
     for (int32_t k = b0; k + 1 < b1; k++) {
       if (k > b0 && c != Cov::kNone) c += td[size_t(ord[size_t(k)])];
       const double ta = ts[size_t(ord[size_t(k)])], tb = ts[size_t(ord[size_t(k + 1)])];
       if (!(tb > ta)) continue;
-      if (c == Cov::kNone && i >= neh) {
-        c = cf[size_t(i)];
-        if (c == Cov::kNone) return kFallback;
-      } else if (c == Cov::kNone || (k == last && i < neh)) {
+      if (c == Cov::kNone || k == last) {
         const V3<T> m = s.a + (0.5 * (ta + tb)) * d;
         const int full = cov.coverage_eh(m);
         if (full == Cov::kNone || (c != Cov::kNone && full != c)) return kFallback;
         c = full;
       }
-      int dir = 0;
-      if (i < neh) {
-        if (c < 0) return kFallback;
-        eh_any = eh_any || c == 0;
-        eh_all = eh_all && c == 0;
-        dir = c == 0 ? 1 : 0;
-      } else {
-        const int q0side = s.q0s;
-        if (q0side == 0) return kFallback;
-        const int qi = int(q0side > 0);
-        const int cpos = c + (1 - qi) * s.w, cneg = c - qi * s.w;  // q0side > 0 ? c : c + w, ? c - w : c
-        if (cpos < 0 || cneg < 0) return kFallback;
-        if ((cpos == 0) != (cneg == 0)) dir = cpos == 0 ? 1 : -1;  // R on the positive side: along own's edge
-      }
+      if (c < 0) return kFallback;
+      eh_any = eh_any || c == 0;
+      eh_all = eh_all && c == 0;
+      const int dir = c == 0 ? 1 : 0;
       if (dir != run_dir) {
         close_run();
         if (dir != 0) {
           run_dir = dir;
-          run_s = tc[size_t(ord[size_t(k)])];
+          run_s = tc_code(s, ord[size_t(k)]);
         }
       }
-      if (dir != 0) run_e = tc[size_t(ord[size_t(k + 1)])];
+      if (dir != 0) run_e = tc_code(s, ord[size_t(k + 1)]);
     }
     close_run();
-    if (i >= neh && w.runs.size() > runs_before) contour_runs = true;
   }
   if (!contour_runs) {
     if (eh_all) return kLit;
