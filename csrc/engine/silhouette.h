@@ -48,13 +48,13 @@ struct SilEnd {
   int32_t e, e2, n;
 };
 // What the crossing tests read of a segment, packed: its plane (own, |own|), its ends as
-// SilCoverage::side_of reads them (a - p, b - p and their |.|_1), its mesh vertex (va, -1 for
-// E_h's edges) and its ends' position ids.
+// SilCoverage::side_of reads them (a - p, b - p and their |.|_1), its direction and scale (d,
+// apn), its mesh vertex (va, -1 for E_h's edges) and its ends' position ids.
 template <class T>
 struct SilHot {
-  V3<T> own, ra, rb;
+  V3<T> own, ra, rb, d;  // d = b - a
   T own_n;
-  double la, lb;
+  double la, lb, apn;    // apn = |a - p|_1 + |d|_1 (summed in T)
   int32_t va, ia, ib;
 };
 // A segment's box in the emitter plane (lo, hi), in double (the exact values of T) as two-lane
@@ -81,9 +81,11 @@ struct SilPieces {
   std::vector<SilEnd> ends;     // all slots empty between receivers (the used ones are emptied after use)
   std::vector<int32_t> ends_used;  // the slots filled for this receiver (its first entries)
   // The grid's crossing candidates: per cell the first of its pieces not yet gathered from
-  // (gpos); per piece j its candidates of lower index (a list from lnext[j] through lnext, values
-  // lval, in increasing order; ltail[j] its last link).
-  std::vector<int32_t> gpos, ltail, lval, lnext;
+  // (gpos). Per piece j the crossings found with pieces of lower index before j's turn, in
+  // increasing order of those (a list from phead[j] through pnext, ptail[j] its last entry,
+  // pnum[j] entries; an entry's t, code source and jump in pt, psrc, ptd).
+  std::vector<int32_t> gpos, phead, ptail, pnum, psrc, ptd, pnext;
+  std::vector<double> pt;
   std::vector<int32_t> all;  // 0 .. ns - 1 (the candidates of a piece off the grid)
   std::vector<int32_t> tsrc;  // per breakpoint: where its code comes from (silhouette_receiver)
 };
@@ -185,7 +187,9 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   for (int i = 0; i < ns; i++) {
     const SSeg<T>& s = segs[size_t(i)];
     const typename Cov::At xa = cov.at(s.a), xb = cov.at(s.b);
-    hot[i] = SilHot<T>{s.own, xa.r, xb.r, s.own_n, xa.l1, xb.l1, s.va, s.ia, s.ib};
+    const V3<T> ap = xa.r, d = s.b - s.a;
+    const double apn = std::fabs(ap.x) + std::fabs(ap.y) + std::fabs(ap.z) + std::fabs(d.x) + std::fabs(d.y) + std::fabs(d.z);
+    hot[i] = SilHot<T>{s.own, xa.r, xb.r, d, s.own_n, xa.l1, xb.l1, apn, s.va, s.ia, s.ib};
     const T ca[3] = {segs[i].a.x, segs[i].a.y, segs[i].a.z}, cb[3] = {segs[i].b.x, segs[i].b.y, segs[i].b.z};
     double lo[3], hi[3];
     for (int k = 0; k < 3; k++) {
@@ -216,27 +220,84 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   pc.clipped.clear();
   for (int j = neh; j < ns; j++)
     if (segs[size_t(j)].on_a >= 0 || segs[size_t(j)].on_b >= 0) pc.clipped.push_back(j);
-  int32_t nlist = ns;  // entries of the lists of lower candidates in use (see below)
+  int32_t npend = 0;  // pending crossings' entries in use
   if (G) {
     pc.gpos.assign(gs.begin(), gs.end() - 1);
-    // Lists of lower candidates: the head of piece j's list in lnext[j], entries at ns <= x <
-    // nlist (value lval[x], next lnext[x]; -1 ends a list); ltail[j] is where its next entry links in.
-    if (pc.lnext.size() < size_t(ns)) {
-      pc.lnext.resize(2 * size_t(ns));
-      pc.lval.resize(2 * size_t(ns));
-    }
-    pc.ltail.resize(size_t(ns));
-    for (int j = 0; j < ns; j++) pc.lnext[size_t(j)] = -1, pc.ltail[size_t(j)] = j;
+    pc.phead.assign(size_t(ns), -1);
+    pc.pnum.assign(size_t(ns), 0);
+    pc.ptail.resize(size_t(ns));
     w.gcand.resize(size_t(ns));
   } else {
     pc.all.resize(size_t(ns));
     for (int j = 0; j < ns; j++) pc.all[size_t(j)] = j;
   }
+  // The test of segment si against candidate j: false when the receiver falls back; a crossing
+  // (a breakpoint of si) is handed to emit(t, code source, jump). `by_ids` (a std::true_type
+  // or false_type): si and j are contour pieces and every contour piece has its mesh vertex
+  // and its ends' position ids (the tests of va and ia below are known to pass).
+  auto pair = [&](const int si, const int j, auto by_ids, auto emit) __attribute__((always_inline)) {
+    const SSeg<T>& s = segs[size_t(si)];
+    const SilHot<T>& hs = hot[si];
+    const V3<T>& ap = hs.ra;  // s.a - p
+    const V3<T>& d = hs.d;
+    const double apn = hs.apn;
+    const SSeg<T>& o = segs[size_t(j)];
+    const SilHot<T>& ho = hot[j];
+    if (decltype(by_ids)::value || (hs.va >= 0 && ho.va >= 0)) {
+      // Common ends by their position ids where both have them (equal iff same()).
+      const bool ids = decltype(by_ids)::value || (hs.ia >= 0 && ho.ia >= 0);
+      const bool at_a = ids ? bool((hs.ia == ho.ia) | (hs.ia == ho.ib)) : (same(s.x3a, o.x3a) || same(s.x3a, o.x3b));
+      const bool at_b = ids ? bool((hs.ib == ho.ia) | (hs.ib == ho.ib)) : (same(s.x3b, o.x3a) || same(s.x3b, o.x3b));
+      if (at_a || at_b) {
+        // Mesh edges with a common end meet there only, unless their projections overlap
+        // along one line (p in the plane of both; or one edge twice, as at a non-manifold
+        // edge): C beside them is then not what the crossings and the carry along chains
+        // below make it. Too close to call.
+        if (at_a && at_b) return false;
+        const bool oa_at = ids ? ho.ia == (at_a ? hs.ia : hs.ib) : same(o.x3a, at_a ? s.x3a : s.x3b);
+        // The ends picked by reference (an address select rather than a branch).
+        const V3<T>& far = oa_at ? o.b : o.a;
+        const V3<T>& at = at_a ? s.a : s.b;
+        const V3<T>& other = at_a ? s.b : s.a;
+        const typename Cov::At xf{oa_at ? ho.rb : ho.ra, oa_at ? ho.lb : ho.la};  // cov.at(far)
+        if (cov.side_of(xf, s) == 0 && dot(far - at, other - at) > 0) return false;
+        return true;
+      }
+    }
+    if (si < neh) {
+      // An E_h edge: cut where a contour piece was clipped at its plane.
+      const int pi = eh_plane[si];
+      const bool at_a = o.on_a >= 0 && o.on_a == pi;
+      const bool at_b = o.on_b >= 0 && o.on_b == pi;
+      if (!at_a && !at_b) return true;
+      const double g0 = dot(ap, ho.own), g1 = dot(d, ho.own);
+      if (!(std::fabs(g1) > tol * ho.own_n * apn)) return false;
+      const double t = -g0 / g1;
+      if (!(t >= -1e-9 && t <= 1 + 1e-9)) return false;
+      emit(T(std::min(1.0, std::max(0.0, t))), kSrcClipped - 2 * j - (at_a ? 0 : 1), g1 > 0 ? o.w : -o.w);
+      return true;
+    }
+    if (j < neh) return true;  // a contour piece ends on E_h's boundary, inside it otherwise
+    const double on = ho.own_n * apn;
+    const double g0 = dot(ap, ho.own), g1 = dot(d, ho.own);
+    const int s0 = Cov::sgn(g0, tol * on), s1 = Cov::sgn(g0 + g1, tol * on);
+    if (s0 == s1 && s0 != 0) return true;
+    if (s0 == 0 && s1 == 0) {
+      // s along o's line (collinear contour edges, as on a straight crease): apart when o's
+      // ends lie clearly beyond one end of s along it.
+      const double dd = double(dot(d, d));
+      const double ta = double(dot(o.a - s.a, d)) / dd, tb = double(dot(o.b - s.a, d)) / dd;
+      return (ta < -1e-6 && tb < -1e-6) || (ta > 1 + 1e-6 && tb > 1 + 1e-6);
+    }
+    const int ca = cov.side_of(typename Cov::At{ho.ra, ho.la}, s), cb = cov.side_of(typename Cov::At{ho.rb, ho.lb}, s);
+    if (ca == cb && ca != 0) return true;  // o on one side of s's line (s's end on o's line or not)
+    if (s0 == 0 || s1 == 0) return false;
+    if (ca == 0 || cb == 0) return false;
+    emit(T(-g0 / g1), int32_t(j), s1 > 0 ? o.w : -o.w);  // into o's positive side: + W
+    return true;
+  };
   for (int i = 0; i < ns; i++) {
-    const SSeg<T>& s = segs[size_t(i)];
     const int32_t b0 = nb;
-    const V3<T> ap = s.a - p, d = s.b - s.a;
-    const double apn = std::fabs(ap.x) + std::fabs(ap.y) + std::fabs(ap.z) + std::fabs(d.x) + std::fabs(d.y) + std::fabs(d.z);
     // Crossing candidates: every segment, or for a contour piece on the grid the pieces
     // registered in the cells its box meets whose boxes meet its box (in index order, as the
     // full loop visits them, and with the same box test).
@@ -244,19 +305,14 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     // Boxes apart: no crossing (tested first: the cheaper filter).
     const SilBox bi = bx[i];
     auto apart = [&](int j) { return sil_apart(bi, bx[j]); };
-    // A pair is a candidate for both pieces (the relation is symmetric: a common cell, boxes
-    // meeting), so each cell's pieces (in increasing order) are gathered from only past the
-    // piece itself, and each candidate of higher index is entered in that piece's list of lower
-    // ones (filled in increasing order, as the pieces come). The candidates are tested in the
-    // order: for a listed piece its list of lower ones, then the higher ones (gathered and
-    // sorted in place after them).
-    const int32_t* js;
-    int nj;
     if (listed) {
-      int32_t* cand = w.gcand.data();  // ns entries: each piece at most once
-      int nlow = 0;
-      for (int32_t x = pc.lnext[size_t(i)]; x >= 0; x = pc.lnext[size_t(x)]) cand[nlow++] = pc.lval[size_t(x)];
-      int32_t* up = cand + nlow;
+      // A pair is a candidate for both pieces (the relation is symmetric: a common cell, boxes
+      // meeting), so each cell's pieces (in increasing order) are gathered from only past the
+      // piece itself, and both tests of a pair are made at the turn of its lower piece i: i's
+      // crossing is its breakpoint now, the higher piece j's waits in j's pending list (filled
+      // in increasing order of i, as the pieces come). A piece's breakpoints are in the order
+      // of its candidates (its ends, the pending ones, then the higher ones, gathered and sorted).
+      int32_t* up = w.gcand.data();  // ns entries: each piece at most once
       int ncand = 0;
       stamp++;
       const int32_t* r = w.gcells.data() + 4 * (i - neh);
@@ -286,121 +342,69 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       } else {
         std::sort(up, up + ncand);
       }
-      const int32_t at0 = nlist;
-      nlist += ncand;
-      if (size_t(nlist) > pc.lval.size()) {  // grown by doubling (the entries past nlist are not read)
-        pc.lval.resize(2 * size_t(nlist));
-        pc.lnext.resize(2 * size_t(nlist));
+      const size_t need = size_t(nb) + 2 + size_t(pc.pnum[size_t(i)]) + size_t(ncand);
+      if (ts.size() < need) {
+        const size_t m = std::max(need, 2 * ts.size());
+        ts.resize(m), tc.resize(m), td.resize(m), ord.resize(m);
       }
-      int32_t* lval = pc.lval.data();
-      int32_t* lnext = pc.lnext.data();
-      int32_t* ltail = pc.ltail.data();
-      for (int c = 0; c < ncand; c++) {
-        const int32_t j = up[c], at = at0 + c;
-        lval[at] = i;
-        lnext[at] = -1;
-        lnext[ltail[j]] = at;
-        ltail[j] = at;
+      if (pc.pt.size() < size_t(npend) + size_t(ncand)) {  // (grown by doubling)
+        const size_t m = 2 * (size_t(npend) + size_t(ncand));
+        pc.pt.resize(m), pc.psrc.resize(m), pc.ptd.resize(m), pc.pnext.resize(m);
       }
-      js = cand;
-      nj = nlow + ncand;
-    } else if (i < neh) {
-      js = pc.clipped.data();
-      nj = int(pc.clipped.size());
-    } else {
-      js = pc.all.data();
-      nj = ns;
-    }
-    if (ts.size() < size_t(nb) + 2 + size_t(nj)) {
-      const size_t m = std::max(size_t(nb) + 2 + size_t(nj), 2 * ts.size());
-      ts.resize(m), tc.resize(m), td.resize(m), ord.resize(m);
-    }
-    T* const tsp = ts.data();
-    int32_t* const tcp = tc.data();
-    int32_t* const tdp = td.data();
-    tsp[nb] = 0, tcp[nb] = kSrcA, tdp[nb] = 0, nb++;
-    tsp[nb] = 1, tcp[nb] = kSrcB, tdp[nb] = 0, nb++;
-    // The test of candidate j: false when the receiver falls back. `by_ids` (a std::true_type
-    // or false_type): s and j are contour pieces and every contour piece has its mesh vertex and
-    // its ends' position ids (the tests of va and ia below are known to pass).
-    const SilHot<T>& hs = hot[i];
-    auto pair = [&](const int j, auto by_ids) __attribute__((always_inline)) {
-      const SSeg<T>& o = segs[size_t(j)];
-      const SilHot<T>& ho = hot[j];
-      if (decltype(by_ids)::value || (hs.va >= 0 && ho.va >= 0)) {
-        // Common ends by their position ids where both have them (equal iff same()).
-        const bool ids = decltype(by_ids)::value || (hs.ia >= 0 && ho.ia >= 0);
-        const bool at_a = ids ? bool((hs.ia == ho.ia) | (hs.ia == ho.ib)) : (same(s.x3a, o.x3a) || same(s.x3a, o.x3b));
-        const bool at_b = ids ? bool((hs.ib == ho.ia) | (hs.ib == ho.ib)) : (same(s.x3b, o.x3a) || same(s.x3b, o.x3b));
-        if (at_a || at_b) {
-          // Mesh edges with a common end meet there only, unless their projections overlap
-          // along one line (p in the plane of both; or one edge twice, as at a non-manifold
-          // edge): C beside them is then not what the crossings and the carry along chains
-          // below make it. Too close to call.
-          if (at_a && at_b) return false;
-          const bool oa_at = ids ? ho.ia == (at_a ? hs.ia : hs.ib) : same(o.x3a, at_a ? s.x3a : s.x3b);
-          // The ends picked by reference (an address select rather than a branch).
-          const V3<T>& far = oa_at ? o.b : o.a;
-          const V3<T>& at = at_a ? s.a : s.b;
-          const V3<T>& other = at_a ? s.b : s.a;
-          const typename Cov::At xf{oa_at ? ho.rb : ho.ra, oa_at ? ho.lb : ho.la};  // cov.at(far)
-          if (cov.side_of(xf, s) == 0 && dot(far - at, other - at) > 0) return false;
-          return true;
+      T* const tsp = ts.data();
+      int32_t* const tcp = tc.data();
+      int32_t* const tdp = td.data();
+      tsp[nb] = 0, tcp[nb] = kSrcA, tdp[nb] = 0, nb++;
+      tsp[nb] = 1, tcp[nb] = kSrcB, tdp[nb] = 0, nb++;
+      for (int32_t x = pc.phead[size_t(i)]; x >= 0; x = pc.pnext[size_t(x)])
+        tsp[nb] = T(pc.pt[size_t(x)]), tcp[nb] = pc.psrc[size_t(x)], tdp[nb] = pc.ptd[size_t(x)], nb++;
+      auto own = [&](T t, int32_t src, int32_t jump) { tsp[nb] = t, tcp[nb] = src, tdp[nb] = jump, nb++; };
+      int32_t j = -1;
+      auto pend = [&](T t, int32_t src, int32_t jump) {
+        const int32_t x = npend++;
+        pc.pt[size_t(x)] = double(t), pc.psrc[size_t(x)] = src, pc.ptd[size_t(x)] = jump, pc.pnext[size_t(x)] = -1;
+        if (pc.phead[size_t(j)] < 0) {
+          pc.phead[size_t(j)] = x;
+        } else {
+          pc.pnext[size_t(pc.ptail[size_t(j)])] = x;
+        }
+        pc.ptail[size_t(j)] = x;
+        pc.pnum[size_t(j)]++;
+      };
+      if (all_ids) {
+        for (int c = 0; c < ncand; c++) {
+          j = up[c];
+          if (!pair(i, j, std::true_type(), own) || !pair(j, i, std::true_type(), pend)) return kFallback;
+        }
+      } else {
+        for (int c = 0; c < ncand; c++) {
+          j = up[c];
+          if (!pair(i, j, std::false_type(), own) || !pair(j, i, std::false_type(), pend)) return kFallback;
         }
       }
-      if (i < neh) {
-        // An E_h edge: cut where a contour piece was clipped at its plane.
-        const int pi = eh_plane[i];
-        const bool at_a = o.on_a >= 0 && o.on_a == pi;
-        const bool at_b = o.on_b >= 0 && o.on_b == pi;
-        if (!at_a && !at_b) return true;
-        const double g0 = dot(ap, ho.own), g1 = dot(d, ho.own);
-        if (!(std::fabs(g1) > tol * ho.own_n * apn)) return false;
-        const double t = -g0 / g1;
-        if (!(t >= -1e-9 && t <= 1 + 1e-9)) return false;
-        tsp[nb] = T(std::min(1.0, std::max(0.0, t)));
-        tcp[nb] = kSrcClipped - 2 * j - (at_a ? 0 : 1);
-        tdp[nb] = g1 > 0 ? o.w : -o.w;
-        nb++;
-        return true;
-      }
-      if (j < neh) return true;  // a contour piece ends on E_h's boundary, inside it otherwise
-      const double on = ho.own_n * apn;
-      const double g0 = dot(ap, ho.own), g1 = dot(d, ho.own);
-      const int s0 = Cov::sgn(g0, tol * on), s1 = Cov::sgn(g0 + g1, tol * on);
-      if (s0 == s1 && s0 != 0) return true;
-      if (s0 == 0 && s1 == 0) {
-        // s along o's line (collinear contour edges, as on a straight crease): apart when o's
-        // ends lie clearly beyond one end of s along it.
-        const double dd = double(dot(d, d));
-        const double ta = double(dot(o.a - s.a, d)) / dd, tb = double(dot(o.b - s.a, d)) / dd;
-        return (ta < -1e-6 && tb < -1e-6) || (ta > 1 + 1e-6 && tb > 1 + 1e-6);
-      }
-      const int ca = cov.side_of(typename Cov::At{ho.ra, ho.la}, s), cb = cov.side_of(typename Cov::At{ho.rb, ho.lb}, s);
-      if (ca == cb && ca != 0) return true;  // o on one side of s's line (s's end on o's line or not)
-      if (s0 == 0 || s1 == 0) return false;
-      if (ca == 0 || cb == 0) return false;
-      tsp[nb] = T(-g0 / g1);
-      tcp[nb] = j;
-      tdp[nb] = s1 > 0 ? o.w : -o.w;  // into o's positive side: + W
-      nb++;
-      return true;
-    };
-    if (listed && all_ids) {  // contour pieces other than s, boxes meeting (filtered above)
-      for (int jj = 0; jj < nj; jj++)
-        if (!pair(js[jj], std::true_type())) return kFallback;
-    } else if (listed) {
-      for (int jj = 0; jj < nj; jj++)
-        if (!pair(js[jj], std::false_type())) return kFallback;
     } else {
+      const int32_t* js = i < neh ? pc.clipped.data() : pc.all.data();
+      const int nj = i < neh ? int(pc.clipped.size()) : ns;
+      if (ts.size() < size_t(nb) + 2 + size_t(nj)) {
+        const size_t m = std::max(size_t(nb) + 2 + size_t(nj), 2 * ts.size());
+        ts.resize(m), tc.resize(m), td.resize(m), ord.resize(m);
+      }
+      T* const tsp = ts.data();
+      int32_t* const tcp = tc.data();
+      int32_t* const tdp = td.data();
+      tsp[nb] = 0, tcp[nb] = kSrcA, tdp[nb] = 0, nb++;
+      tsp[nb] = 1, tcp[nb] = kSrcB, tdp[nb] = 0, nb++;
+      auto own = [&](T t, int32_t src, int32_t jump) { tsp[nb] = t, tcp[nb] = src, tdp[nb] = jump, nb++; };
       for (int jj = 0; jj < nj; jj++) {
         const int j = js[jj];
         if (j == i) continue;
         if (i < neh && j < neh) continue;  // E_h's edges meet at its vertices only
         if (i >= neh && j >= neh && apart(j)) continue;
-        if (!pair(j, std::false_type())) return kFallback;
+        if (!pair(i, j, std::false_type(), own)) return kFallback;
       }
     }
+    T* const tsp = ts.data();
+    int32_t* const tdp = td.data();
     const int32_t b1 = nb;
     int32_t* const op = ord.data();
     for (int32_t k = b0; k < b1; k++) op[k] = k;
