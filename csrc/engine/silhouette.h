@@ -47,16 +47,6 @@ struct SilEnd {
   double x, y, z;
   int32_t e, e2, n;
 };
-// What the crossing tests read of a segment, packed: its plane (own, |own|), its ends as
-// SilCoverage::side_of reads them (a - p, b - p and their |.|_1), its direction and scale (d,
-// apn), its mesh vertex (va, -1 for E_h's edges) and its ends' position ids.
-template <class T>
-struct SilHot {
-  V3<T> own, ra, rb, d;  // d = b - a
-  T own_n;
-  double la, lb, apn;    // apn = |a - p|_1 + |d|_1 (summed in T)
-  int32_t va, ia, ib;
-};
 // A segment's box in the emitter plane (lo, hi), in double (the exact values of T) as two-lane
 // vectors for the box test: lxy = (lo.x, lo.y), hxy = (hi.x, hi.y), zh = (hi.z, -lo.z),
 // zl = (lo.z, -hi.z). Boxes i and j are apart iff a lane of hxy_i < lxy_j, hxy_j < lxy_i or
@@ -184,6 +174,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   std::vector<SilHot<T>>& hotv = sil_hot<T>();
   if (hotv.size() < size_t(ns)) hotv.resize(2 * size_t(ns));
   SilHot<T>* const hot = hotv.data();
+  cov.hot = hot;  // (filled below, before any coverage query)
   for (int i = 0; i < ns; i++) {
     const SSeg<T>& s = segs[size_t(i)];
     const typename Cov::At xa = cov.at(s.a), xb = cov.at(s.b);
@@ -320,9 +311,11 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         for (int ix = r[0]; ix <= r[1]; ix++) {
           const int cell = iy * G + ix;
           const int32_t e = gs[size_t(cell + 1)];
-          int32_t k = pc.gpos[size_t(cell)];
-          while (k < e && gi[size_t(k)] <= i) k++;
-          pc.gpos[size_t(cell)] = k;
+          // Every piece registered here visits this cell in increasing order, each moving gpos
+          // past itself: gpos is at i.
+          const int32_t k0 = pc.gpos[size_t(cell)] + 1;
+          pc.gpos[size_t(cell)] = k0;
+          int32_t k = k0;
           for (; k < e; k++) {  // kept: seen first here and boxes meeting (written, counted when kept)
             const int32_t j = gi[size_t(k)];
             if (stamp_of[size_t(j)] == stamp) continue;
@@ -407,6 +400,12 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     int32_t* const tdp = td.data();
     const int32_t b1 = nb;
     int32_t* const op = ord.data();
+    boff[size_t(i) + 1] = b1;
+    if (b1 - b0 == 2) {  // its ends only (t = 0, then 1): one piece, no jump
+      op[b0] = b0, op[b0 + 1] = b0 + 1;
+      if (i >= neh) kf[size_t(i)] = kl[size_t(i)] = b0, sj[size_t(i)] = 0;
+      continue;
+    }
     for (int32_t k = b0; k < b1; k++) op[k] = k;
     // By t: up to 16 breakpoints (nearly always) the insertion sort that std::sort runs on so
     // few (the same comparisons, so the same order for equal t), else std::sort.
@@ -426,7 +425,6 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     } else {
       std::sort(op + b0, op + b1, [&](int32_t x, int32_t y) { return tsp[x] < tsp[y]; });
     }
-    boff[size_t(i) + 1] = b1;
     if (i >= neh) {
       int32_t f = -1, l = -1;
       for (int32_t k = b0; k + 1 < b1; k++) {
@@ -617,7 +615,10 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     }
   }
   {
-    std::vector<int32_t>& todo = pc.todo;
+    // The segments whose links are still to follow (each enters once: when its cf is set).
+    if (pc.todo.size() < size_t(ns)) pc.todo.resize(2 * size_t(ns));
+    int32_t* const todo = pc.todo.data();
+    int ntodo = 0;
     for (int i0 = neh; i0 < ns; i0++) {
       if (kf[size_t(i0)] < 0 || cf[size_t(i0)] != Cov::kNone) continue;
       {
@@ -633,13 +634,12 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       auto carry = [&](int j, int cj) {
         if (cf[size_t(j)] != Cov::kNone) return cf[size_t(j)] == cj;
         cf[size_t(j)] = cj;
-        todo.push_back(j);
+        todo[ntodo++] = j;
         return true;
       };
-      todo.assign(1, i0);
-      while (!todo.empty()) {
-        const int i = todo.back();
-        todo.pop_back();
+      todo[ntodo++] = i0;
+      while (ntodo) {
+        const int i = todo[--ntodo];
         const SSeg<T>& s = segs[size_t(i)];
         for (int e = 0; e < 2; e++) {
           const int32_t o = link[size_t(2 * i + e)];

@@ -32,6 +32,17 @@ inline SilGridScratch<T>& sil_grid_scratch() {
   return s;
 }
 
+// What the crossing tests (silhouette.h) and jump_from read of a segment, packed: its plane (own, |own|), its ends as
+// SilCoverage::side_of reads them (a - p, b - p and their |.|_1), its direction and scale (d,
+// apn), its mesh vertex (va, -1 for E_h's edges) and its ends' position ids.
+template <class T>
+struct SilHot {
+  V3<T> own, ra, rb, d;  // d = b - a
+  T own_n;
+  double la, lb, apn;    // apn = |a - p|_1 + |d|_1 (summed in T)
+  int32_t va, ia, ib;
+};
+
 // One receiver's coverage: `segs` are E_h's `neh` edges followed by the contour pieces
 // (silhouette_walk.h); the grid's arrays live in `w`.
 template <class T>
@@ -65,6 +76,7 @@ struct SilCoverage {
   std::vector<int32_t>& stamp_of;
   int32_t stamp = 0;  // the current query (stamp_of: the last query that tested a piece)
   SilGridScratch<T>* gscratch = nullptr;  // the grid references' scratch (grid_references)
+  const SilHot<T>* hot = nullptr;  // the pieces' packed copies, where silhouette_receiver made them
 
   SilCoverage(const PolyCall<T>& call_, const SilhouetteTree& st_, Work<T>& w_, const Edge<T>* eh_, int neh_, V3<T> p_,
               V3<T> ne_, double scale_)
@@ -180,9 +192,16 @@ struct SilCoverage {
   // The same with m's side of the piece given (sm = side_of(m, s)).
   int jump_from(const SSeg<T>& s, int sq, int sm, V3<T> pqm, double pn) const {
     if (sq != 0 && sm == sq) return 0;
-    const V3<T> ra = s.a - p, rb = s.b - p;
-    const int ca = sgn(dot(ra, pqm), tol * pn * (std::fabs(ra.x) + std::fabs(ra.y) + std::fabs(ra.z)));
-    const int cb = sgn(dot(rb, pqm), tol * pn * (std::fabs(rb.x) + std::fabs(rb.y) + std::fabs(rb.z)));
+    int ca, cb;
+    if (hot) {  // the same ends and |.|_1, made once
+      const SilHot<T>& h = hot[&s - segs.data()];
+      ca = sgn(dot(h.ra, pqm), tol * pn * h.la);
+      cb = sgn(dot(h.rb, pqm), tol * pn * h.lb);
+    } else {
+      const V3<T> ra = s.a - p, rb = s.b - p;
+      ca = sgn(dot(ra, pqm), tol * pn * (std::fabs(ra.x) + std::fabs(ra.y) + std::fabs(ra.z)));
+      cb = sgn(dot(rb, pqm), tol * pn * (std::fabs(rb.x) + std::fabs(rb.y) + std::fabs(rb.z)));
+    }
     if (ca == 0 || cb == 0) return kNone;
     if (ca == cb) return 0;
     if (sq == 0 || sm == 0) return kNone;
