@@ -73,10 +73,8 @@ struct Work {  // per-thread scratch
   // The silhouette path's scratch (silhouette.h).
   std::vector<SSeg<T>> ssegs;
   std::vector<T> sts;
-  std::vector<Code> stc;
   std::vector<int32_t> sord;
   std::vector<int32_t> std_;
-  std::vector<T> sbox;
   // Its grid of contour pieces in the emitter plane (silhouette_coverage.h, SilCoverage).
   std::vector<int32_t> gcells;   // per piece: the cells its box meets (ix0, ix1, iy0, iy1)
   std::vector<int32_t> gstart;   // per cell: first entry in gitems (CSR; G * G + 1)

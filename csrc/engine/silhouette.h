@@ -33,6 +33,7 @@
 
 #include <algorithm>
 #include <cstring>
+#include <type_traits>
 
 #include "silhouette_coverage.h"
 #include "silhouette_tree.h"
@@ -46,6 +47,18 @@ struct SilEnd {
   double x, y, z;
   int32_t e, e2, n;
 };
+// A segment's box in the emitter plane (lo, hi), in double (the exact values of T) as two-lane
+// vectors for the box test: lxy = (lo.x, lo.y), hxy = (hi.x, hi.y), zh = (hi.z, -lo.z),
+// zl = (lo.z, -hi.z). Boxes i and j are apart iff a lane of hxy_i < lxy_j, hxy_j < lxy_i or
+// zh_i < zl_j holds (-lo_i.z < -hi_j.z is hi_j.z < lo_i.z; the negations are exact).
+typedef double SilV2 __attribute__((vector_size(16)));
+struct SilBox {
+  SilV2 lxy, hxy, zh, zl;
+};
+inline bool sil_apart(const SilBox& a, const SilBox& b) {
+  const auto m = (a.hxy < b.lxy) | (b.hxy < a.lxy) | (a.zh < b.zl);
+  return (m[0] | m[1]) != 0;
+}
 // The most ends of contour segments at one vertex whose rays silhouette_receiver sorts about it.
 constexpr int kSilFan = 8;
 // Per-thread scratch of silhouette_receiver's pieces (allocated once per thread).
@@ -58,11 +71,23 @@ struct SilPieces {
   std::vector<SilEnd> ends;     // all slots empty between receivers (the used ones are emptied after use)
   std::vector<int32_t> ends_used;  // the slots filled for this receiver (its first entries)
   // The grid's crossing candidates: per cell the first of its pieces not yet gathered from
-  // (gpos); per piece j its candidates of lower index (a list from lnext[j] through lnext, values
-  // lval, in increasing order; ltail[j] its last link).
-  std::vector<int32_t> gpos, ltail, lval, lnext;
+  // (gpos). Per piece j the crossings found with pieces of lower index before j's turn, in
+  // increasing order of those (a list from phead[j] through pnext, ptail[j] its last entry,
+  // pnum[j] entries; an entry's t, code source and jump in pt, psrc, ptd).
+  std::vector<int32_t> gpos, phead, ptail, pnum, psrc, ptd, pnext;
+  std::vector<double> pt;
   std::vector<int32_t> all;  // 0 .. ns - 1 (the candidates of a piece off the grid)
+  std::vector<int32_t> tsrc;  // per breakpoint: where its code comes from (silhouette_receiver)
 };
+inline std::vector<SilBox>& sil_boxes() {
+  static thread_local std::vector<SilBox> boxes;
+  return boxes;
+}
+template <class T>
+inline std::vector<SilHot<T>>& sil_hot() {
+  static thread_local std::vector<SilHot<T>> hot;
+  return hot;
+}
 // Not inlined: the caller keeps the address, where an inlined thread-local would be looked up
 // again (__tls_get_addr in a shared library) at every use in its loops.
 __attribute__((noinline)) inline SilPieces& sil_pieces() {
@@ -119,192 +144,52 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   w.runs.clear();
   bool eh_all = true, eh_any = false;
   std::vector<T>& ts = w.sts;
-  std::vector<Code>& tc = w.stc;
+  // Per breakpoint: where its code comes from (tc_code below), the code made only for the ends of runs.
+  std::vector<int32_t>& tc = sil_pieces().tsrc;
+  // A breakpoint's code source: j >= 0 the crossing with contour piece j (code_planes of the two
+  // planes), kSrcA / kSrcB the segment's end a / b (its ca / cb), kSrcClipped - 2 j - e contour
+  // piece j's end e (0: a, 1: b) clipped at the plane of the E_h edge it is a breakpoint of.
+  constexpr int32_t kSrcA = -1, kSrcB = -2, kSrcClipped = -3;
+  auto tc_code = [&](const SSeg<T>& s, int32_t x) -> Code {
+    const int32_t v = tc[size_t(x)];
+    if (v >= 0) return code_planes(s.own_ref, segs[size_t(v)].own_ref);
+    if (v == kSrcA) return s.ca;
+    if (v == kSrcB) return s.cb;
+    const int32_t q = kSrcClipped - v;
+    const SSeg<T>& o = segs[size_t(q / 2)];
+    return q % 2 ? o.cb : o.ca;
+  };
   std::vector<int32_t>& td = w.std_;  // per breakpoint: the change of C crossing it along s
   // The segments' boxes in the emitter plane (crossing tests only between overlapping boxes).
-  std::vector<T>& bx = w.sbox;
-  bx.resize(size_t(6 * ns));
-  for (int i = 0; i < ns; i++) {
-    const T ca[3] = {segs[i].a.x, segs[i].a.y, segs[i].a.z}, cb[3] = {segs[i].b.x, segs[i].b.y, segs[i].b.z};
-    for (int k = 0; k < 3; k++) {
-      bx[6 * i + k] = std::min(ca[k], cb[k]) - T(1e-9) * T(scale);
-      bx[6 * i + 3 + k] = std::max(ca[k], cb[k]) + T(1e-9) * T(scale);
-    }
+  // Whether every contour piece has its mesh vertex and both ends' position ids (the tile's walk).
+  bool all_ids = true, by_id = true;  // by_id: every contour piece has both ends' position ids
+  for (int i = neh; i < ns; i++) {
+    const bool ids = segs[size_t(i)].ia >= 0 && segs[size_t(i)].ib >= 0;
+    by_id &= ids;
+    all_ids &= ids && segs[size_t(i)].va >= 0;
   }
-  // Every segment's breakpoints (its ends and its crossings, in w.sts / stc / std_ at
-  // [boff[i], boff[i + 1])), in the order of their t in w.sord (indices into those arrays).
-  SilPieces& pc = sil_pieces();
-  std::vector<int32_t>& boff = pc.boff;
-  std::vector<int32_t>& ord = w.sord;
-  boff.assign(size_t(ns) + 1, 0);
-  ts.clear();
-  tc.clear();
-  td.clear();
-  ord.clear();
-  // An E_h edge is cut only where a contour segment was clipped at its plane: its crossing
-  // candidates are those segments (in index order).
-  pc.clipped.clear();
-  for (int j = neh; j < ns; j++)
-    if (segs[size_t(j)].on_a >= 0 || segs[size_t(j)].on_b >= 0) pc.clipped.push_back(j);
-  int32_t nlist = ns;  // entries of the lists of lower candidates in use (see below)
-  if (G) {
-    pc.gpos.assign(gs.begin(), gs.end() - 1);
-    // Lists of lower candidates: the head of piece j's list in lnext[j], entries at ns <= x <
-    // nlist (value lval[x], next lnext[x]; -1 ends a list); ltail[j] is where its next entry links in.
-    if (pc.lnext.size() < size_t(ns)) {
-      pc.lnext.resize(2 * size_t(ns));
-      pc.lval.resize(2 * size_t(ns));
-    }
-    pc.ltail.resize(size_t(ns));
-    for (int j = 0; j < ns; j++) pc.lnext[size_t(j)] = -1, pc.ltail[size_t(j)] = j;
-    w.gcand.resize(size_t(ns));
-  } else {
-    pc.all.resize(size_t(ns));
-    for (int j = 0; j < ns; j++) pc.all[size_t(j)] = j;
-  }
+  std::vector<SilBox>& boxv = sil_boxes();
+  if (boxv.size() < size_t(ns)) boxv.resize(2 * size_t(ns));
+  SilBox* const bx = boxv.data();
+  std::vector<SilHot<T>>& hotv = sil_hot<T>();
+  if (hotv.size() < size_t(ns)) hotv.resize(2 * size_t(ns));
+  SilHot<T>* const hot = hotv.data();
+  cov.hot = hot;  // (filled below, before any coverage query)
   for (int i = 0; i < ns; i++) {
     const SSeg<T>& s = segs[size_t(i)];
-    const int32_t b0 = int32_t(ts.size());
-    ts.push_back(0), tc.push_back(s.ca), td.push_back(0);
-    ts.push_back(1), tc.push_back(s.cb), td.push_back(0);
-    const V3<T> ap = s.a - p, d = s.b - s.a;
+    const typename Cov::At xa = cov.at(s.a), xb = cov.at(s.b);
+    const V3<T> ap = xa.r, d = s.b - s.a;
     const double apn = std::fabs(ap.x) + std::fabs(ap.y) + std::fabs(ap.z) + std::fabs(d.x) + std::fabs(d.y) + std::fabs(d.z);
-    // Crossing candidates: every segment, or for a contour piece on the grid the pieces
-    // registered in the cells its box meets whose boxes meet its box (in index order, as the
-    // full loop visits them, and with the same box test).
-    const bool listed = G && i >= neh;
-    const T* bi = bx.data() + 6 * i;
-    // Boxes apart: no crossing (tested first: the cheaper filter). All six comparisons are
-    // made (no branch between them): the outcome is the same.
-    auto apart = [&](int j) {
-      const T* bj = bx.data() + 6 * j;
-      return bool((bi[3] < bj[0]) | (bj[3] < bi[0]) | (bi[4] < bj[1]) | (bj[4] < bi[1]) | (bi[5] < bj[2]) | (bj[5] < bi[2]));
-    };
-    // A pair is a candidate for both pieces (the relation is symmetric: a common cell, boxes
-    // meeting), so each cell's pieces (in increasing order) are gathered from only past the
-    // piece itself, and each candidate of higher index is entered in that piece's list of lower
-    // ones (filled in increasing order, as the pieces come). The candidates are tested in the
-    // order: for a listed piece its list of lower ones, then the higher ones (gathered and
-    // sorted in place after them).
-    const int32_t* js;
-    int nj;
-    if (listed) {
-      int32_t* cand = w.gcand.data();  // ns entries: each piece at most once
-      int nlow = 0;
-      for (int32_t x = pc.lnext[size_t(i)]; x >= 0; x = pc.lnext[size_t(x)]) cand[nlow++] = pc.lval[size_t(x)];
-      int32_t* up = cand + nlow;
-      int ncand = 0;
-      stamp++;
-      const int32_t* r = w.gcells.data() + 4 * (i - neh);
-      for (int iy = r[2]; iy <= r[3]; iy++)
-        for (int ix = r[0]; ix <= r[1]; ix++) {
-          const int cell = iy * G + ix;
-          const int32_t e = gs[size_t(cell + 1)];
-          int32_t k = pc.gpos[size_t(cell)];
-          while (k < e && gi[size_t(k)] <= i) k++;
-          pc.gpos[size_t(cell)] = k;
-          for (; k < e; k++) {  // kept: seen first here and boxes meeting (written, counted when kept)
-            const int32_t j = gi[size_t(k)];
-            const bool fresh = stamp_of[size_t(j)] != stamp;
-            stamp_of[size_t(j)] = stamp;
-            up[ncand] = j;
-            ncand += int(fresh & !apart(j));
-          }
-        }
-      std::sort(up, up + ncand);
-      const int32_t at0 = nlist;
-      nlist += ncand;
-      if (size_t(nlist) > pc.lval.size()) {  // grown by doubling (the entries past nlist are not read)
-        pc.lval.resize(2 * size_t(nlist));
-        pc.lnext.resize(2 * size_t(nlist));
-      }
-      int32_t* lval = pc.lval.data();
-      int32_t* lnext = pc.lnext.data();
-      int32_t* ltail = pc.ltail.data();
-      for (int c = 0; c < ncand; c++) {
-        const int32_t j = up[c], at = at0 + c;
-        lval[at] = i;
-        lnext[at] = -1;
-        lnext[ltail[j]] = at;
-        ltail[j] = at;
-      }
-      js = cand;
-      nj = nlow + ncand;
-    } else if (i < neh) {
-      js = pc.clipped.data();
-      nj = int(pc.clipped.size());
-    } else {
-      js = pc.all.data();
-      nj = ns;
+    hot[i] = SilHot<T>{s.own, xa.r, xb.r, d, s.own_n, xa.l1, xb.l1, apn, s.va, s.ia, s.ib};
+    const T ca[3] = {segs[i].a.x, segs[i].a.y, segs[i].a.z}, cb[3] = {segs[i].b.x, segs[i].b.y, segs[i].b.z};
+    double lo[3], hi[3];
+    for (int k = 0; k < 3; k++) {
+      lo[k] = double(std::min(ca[k], cb[k]) - T(1e-9) * T(scale));
+      hi[k] = double(std::max(ca[k], cb[k]) + T(1e-9) * T(scale));
     }
-    for (int jj = 0; jj < nj; jj++) {
-      const int j = js[jj];
-      if (j == i) continue;
-      const SSeg<T>& o = segs[size_t(j)];
-      if (i < neh && j < neh) continue;  // E_h's edges meet at its vertices only
-      if (!listed && i >= neh && j >= neh && apart(j)) continue;  // (listed: filtered above)
-      if (s.va >= 0 && o.va >= 0) {
-        // Common ends by their position ids where both have them (equal iff same()).
-        const bool ids = s.ia >= 0 && o.ia >= 0;
-        const bool at_a = ids ? bool((s.ia == o.ia) | (s.ia == o.ib)) : (same(s.x3a, o.x3a) || same(s.x3a, o.x3b));
-        const bool at_b = ids ? bool((s.ib == o.ia) | (s.ib == o.ib)) : (same(s.x3b, o.x3a) || same(s.x3b, o.x3b));
-        if (at_a || at_b) {
-          // Mesh edges with a common end meet there only, unless their projections overlap
-          // along one line (p in the plane of both; or one edge twice, as at a non-manifold
-          // edge): C beside them is then not what the crossings and the carry along chains
-          // below make it. Too close to call.
-          if (at_a && at_b) return kFallback;
-          const bool oa_at = ids ? o.ia == (at_a ? s.ia : s.ib) : same(o.x3a, at_a ? s.x3a : s.x3b);
-          // The ends picked by reference (an address select rather than a branch).
-          const V3<T>& far = oa_at ? o.b : o.a;
-          const V3<T>& at = at_a ? s.a : s.b;
-          const V3<T>& other = at_a ? s.b : s.a;
-          if (cov.side_of(far, s) == 0 && dot(far - at, other - at) > 0) return kFallback;
-          continue;
-        }
-      }
-      if (i < neh) {
-        // An E_h edge: cut where a contour piece was clipped at its plane.
-        const int pi = eh_plane[i];
-        const bool at_a = o.on_a >= 0 && o.on_a == pi;
-        const bool at_b = o.on_b >= 0 && o.on_b == pi;
-        if (!at_a && !at_b) continue;
-        const double g0 = dot(ap, o.own), g1 = dot(d, o.own);
-        if (!(std::fabs(g1) > tol * o.own_n * apn)) return kFallback;
-        const double t = -g0 / g1;
-        if (!(t >= -1e-9 && t <= 1 + 1e-9)) return kFallback;
-        ts.push_back(std::min(1.0, std::max(0.0, t)));
-        tc.push_back(at_a ? o.ca : o.cb);
-        td.push_back(g1 > 0 ? o.w : -o.w);
-        continue;
-      }
-      if (j < neh) continue;  // a contour piece ends on E_h's boundary, inside it otherwise
-      const double on = o.own_n * apn;
-      const double g0 = dot(ap, o.own), g1 = dot(d, o.own);
-      const int s0 = Cov::sgn(g0, tol * on), s1 = Cov::sgn(g0 + g1, tol * on);
-      if (s0 == s1 && s0 != 0) continue;
-      if (s0 == 0 && s1 == 0) {
-        // s along o's line (collinear contour edges, as on a straight crease): apart when o's
-        // ends lie clearly beyond one end of s along it.
-        const double dd = double(dot(d, d));
-        const double ta = double(dot(o.a - s.a, d)) / dd, tb = double(dot(o.b - s.a, d)) / dd;
-        if ((ta < -1e-6 && tb < -1e-6) || (ta > 1 + 1e-6 && tb > 1 + 1e-6)) continue;
-        return kFallback;
-      }
-      const int ca = cov.side_of(o.a, s), cb = cov.side_of(o.b, s);
-      if (ca == cb && ca != 0) continue;  // o on one side of s's line (s's end on o's line or not)
-      if (s0 == 0 || s1 == 0) return kFallback;
-      if (ca == 0 || cb == 0) return kFallback;
-      ts.push_back(-g0 / g1);
-      tc.push_back(code_planes(s.own_ref, o.own_ref));
-      td.push_back(s1 > 0 ? o.w : -o.w);  // into o's positive side: + W
-    }
-    const int32_t b1 = int32_t(ts.size());
-    ord.resize(size_t(b1));
-    for (int32_t k = b0; k < b1; k++) ord[size_t(k)] = k;
-    std::sort(ord.begin() + b0, ord.end(), [&](int32_t x, int32_t y) { return ts[size_t(x)] < ts[size_t(y)]; });
-    boff[size_t(i) + 1] = b1;
+    bx[i] = SilBox{SilV2{lo[0], lo[1]}, SilV2{hi[0], hi[1]}, SilV2{hi[2], -lo[2]}, SilV2{lo[2], -hi[2]}};
   }
+  SilPieces& pc = sil_pieces();
   // Per contour segment: its first and last pieces of positive length (kf, kl, positions in
   // ord; kf = -1: none), and the sum of the jumps of C from the first to the last (sj).
   std::vector<int32_t>& kf = pc.kf;
@@ -313,14 +198,248 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   kf.assign(size_t(ns), -1);
   kl.assign(size_t(ns), -1);
   sj.assign(size_t(ns), 0);
-  for (int i = neh; i < ns; i++) {
-    for (int32_t k = boff[size_t(i)]; k + 1 < boff[size_t(i) + 1]; k++) {
-      if (!(ts[size_t(ord[size_t(k + 1)])] > ts[size_t(ord[size_t(k)])])) continue;
-      if (kf[size_t(i)] < 0) kf[size_t(i)] = k;
-      kl[size_t(i)] = k;
-    }
-    for (int32_t k = kf[size_t(i)] + 1; kf[size_t(i)] >= 0 && k <= kl[size_t(i)]; k++) sj[size_t(i)] += td[size_t(ord[size_t(k)])];
+  // Every segment's breakpoints (its ends and its crossings, in w.sts / stc / std_ at
+  // [boff[i], boff[i + 1])), in the order of their t in w.sord (indices into those arrays).
+  std::vector<int32_t>& boff = pc.boff;
+  std::vector<int32_t>& ord = w.sord;
+  boff.assign(size_t(ns) + 1, 0);
+  // The breakpoints in use are [0, nb) of ts, tc, td and ord, which are grown (never shrunk)
+  // before each segment to hold its ends and one crossing per candidate.
+  int32_t nb = 0;
+  // An E_h edge is cut only where a contour segment was clipped at its plane: its crossing
+  // candidates are those segments (in index order).
+  pc.clipped.clear();
+  for (int j = neh; j < ns; j++)
+    if (segs[size_t(j)].on_a >= 0 || segs[size_t(j)].on_b >= 0) pc.clipped.push_back(j);
+  int32_t npend = 0;  // pending crossings' entries in use
+  if (G) {
+    pc.gpos.assign(gs.begin(), gs.end() - 1);
+    pc.phead.assign(size_t(ns), -1);
+    pc.pnum.assign(size_t(ns), 0);
+    pc.ptail.resize(size_t(ns));
+    w.gcand.resize(size_t(ns));
+  } else {
+    pc.all.resize(size_t(ns));
+    for (int j = 0; j < ns; j++) pc.all[size_t(j)] = j;
   }
+  // The test of segment si against candidate j: false when the receiver falls back; a crossing
+  // (a breakpoint of si) is handed to emit(t, code source, jump). `by_ids` (a std::true_type
+  // or false_type): si and j are contour pieces and every contour piece has its mesh vertex
+  // and its ends' position ids (the tests of va and ia below are known to pass).
+  auto pair = [&](const int si, const int j, auto by_ids, auto emit) __attribute__((always_inline)) {
+    const SSeg<T>& s = segs[size_t(si)];
+    const SilHot<T>& hs = hot[si];
+    const V3<T>& ap = hs.ra;  // s.a - p
+    const V3<T>& d = hs.d;
+    const double apn = hs.apn;
+    const SSeg<T>& o = segs[size_t(j)];
+    const SilHot<T>& ho = hot[j];
+    if (decltype(by_ids)::value || (hs.va >= 0 && ho.va >= 0)) {
+      // Common ends by their position ids where both have them (equal iff same()).
+      const bool ids = decltype(by_ids)::value || (hs.ia >= 0 && ho.ia >= 0);
+      const bool at_a = ids ? bool((hs.ia == ho.ia) | (hs.ia == ho.ib)) : (same(s.x3a, o.x3a) || same(s.x3a, o.x3b));
+      const bool at_b = ids ? bool((hs.ib == ho.ia) | (hs.ib == ho.ib)) : (same(s.x3b, o.x3a) || same(s.x3b, o.x3b));
+      if (at_a || at_b) {
+        // Mesh edges with a common end meet there only, unless their projections overlap
+        // along one line (p in the plane of both; or one edge twice, as at a non-manifold
+        // edge): C beside them is then not what the crossings and the carry along chains
+        // below make it. Too close to call.
+        if (at_a && at_b) return false;
+        const bool oa_at = ids ? ho.ia == (at_a ? hs.ia : hs.ib) : same(o.x3a, at_a ? s.x3a : s.x3b);
+        // The ends picked by reference (an address select rather than a branch).
+        const V3<T>& far = oa_at ? o.b : o.a;
+        const V3<T>& at = at_a ? s.a : s.b;
+        const V3<T>& other = at_a ? s.b : s.a;
+        const typename Cov::At xf{oa_at ? ho.rb : ho.ra, oa_at ? ho.lb : ho.la};  // cov.at(far)
+        if (cov.side_of(xf, s) == 0 && dot(far - at, other - at) > 0) return false;
+        return true;
+      }
+    }
+    if (si < neh) {
+      // An E_h edge: cut where a contour piece was clipped at its plane.
+      const int pi = eh_plane[si];
+      const bool at_a = o.on_a >= 0 && o.on_a == pi;
+      const bool at_b = o.on_b >= 0 && o.on_b == pi;
+      if (!at_a && !at_b) return true;
+      const double g0 = dot(ap, ho.own), g1 = dot(d, ho.own);
+      if (!(std::fabs(g1) > tol * ho.own_n * apn)) return false;
+      const double t = -g0 / g1;
+      if (!(t >= -1e-9 && t <= 1 + 1e-9)) return false;
+      emit(T(std::min(1.0, std::max(0.0, t))), kSrcClipped - 2 * j - (at_a ? 0 : 1), g1 > 0 ? o.w : -o.w);
+      return true;
+    }
+    if (j < neh) return true;  // a contour piece ends on E_h's boundary, inside it otherwise
+    const double on = ho.own_n * apn;
+    const double g0 = dot(ap, ho.own), g1 = dot(d, ho.own);
+    const int s0 = Cov::sgn(g0, tol * on), s1 = Cov::sgn(g0 + g1, tol * on);
+    if (s0 == s1 && s0 != 0) return true;
+    if (s0 == 0 && s1 == 0) {
+      // s along o's line (collinear contour edges, as on a straight crease): apart when o's
+      // ends lie clearly beyond one end of s along it.
+      const double dd = double(dot(d, d));
+      const double ta = double(dot(o.a - s.a, d)) / dd, tb = double(dot(o.b - s.a, d)) / dd;
+      return (ta < -1e-6 && tb < -1e-6) || (ta > 1 + 1e-6 && tb > 1 + 1e-6);
+    }
+    const int ca = cov.side_of(typename Cov::At{ho.ra, ho.la}, s), cb = cov.side_of(typename Cov::At{ho.rb, ho.lb}, s);
+    if (ca == cb && ca != 0) return true;  // o on one side of s's line (s's end on o's line or not)
+    if (s0 == 0 || s1 == 0) return false;
+    if (ca == 0 || cb == 0) return false;
+    emit(T(-g0 / g1), int32_t(j), s1 > 0 ? o.w : -o.w);  // into o's positive side: + W
+    return true;
+  };
+  for (int i = 0; i < ns; i++) {
+    const int32_t b0 = nb;
+    // Crossing candidates: every segment, or for a contour piece on the grid the pieces
+    // registered in the cells its box meets whose boxes meet its box (in index order, as the
+    // full loop visits them, and with the same box test).
+    const bool listed = G && i >= neh;
+    // Boxes apart: no crossing (tested first: the cheaper filter).
+    const SilBox bi = bx[i];
+    auto apart = [&](int j) { return sil_apart(bi, bx[j]); };
+    if (listed) {
+      // A pair is a candidate for both pieces (the relation is symmetric: a common cell, boxes
+      // meeting), so each cell's pieces (in increasing order) are gathered from only past the
+      // piece itself, and both tests of a pair are made at the turn of its lower piece i: i's
+      // crossing is its breakpoint now, the higher piece j's waits in j's pending list (filled
+      // in increasing order of i, as the pieces come). A piece's breakpoints are in the order
+      // of its candidates (its ends, the pending ones, then the higher ones, gathered and sorted).
+      int32_t* up = w.gcand.data();  // ns entries: each piece at most once
+      int ncand = 0;
+      stamp++;
+      const int32_t* r = w.gcells.data() + 4 * (i - neh);
+      for (int iy = r[2]; iy <= r[3]; iy++)
+        for (int ix = r[0]; ix <= r[1]; ix++) {
+          const int cell = iy * G + ix;
+          const int32_t e = gs[size_t(cell + 1)];
+          // Every piece registered here visits this cell in increasing order, each moving gpos
+          // past itself: gpos is at i.
+          const int32_t k0 = pc.gpos[size_t(cell)] + 1;
+          pc.gpos[size_t(cell)] = k0;
+          int32_t k = k0;
+          for (; k < e; k++) {  // kept: seen first here and boxes meeting (written, counted when kept)
+            const int32_t j = gi[size_t(k)];
+            if (stamp_of[size_t(j)] == stamp) continue;
+            stamp_of[size_t(j)] = stamp;
+            up[ncand] = j;
+            ncand += int(!apart(j));
+          }
+        }
+      // (distinct values: any sort gives this order; insertion sort for the few there nearly always are)
+      if (ncand <= 16) {
+        for (int x = 1; x < ncand; x++) {
+          const int32_t v = up[x];
+          int y = x;
+          for (; y > 0 && up[y - 1] > v; y--) up[y] = up[y - 1];
+          up[y] = v;
+        }
+      } else {
+        std::sort(up, up + ncand);
+      }
+      const size_t need = size_t(nb) + 2 + size_t(pc.pnum[size_t(i)]) + size_t(ncand);
+      if (ts.size() < need) {
+        const size_t m = std::max(need, 2 * ts.size());
+        ts.resize(m), tc.resize(m), td.resize(m), ord.resize(m);
+      }
+      if (pc.pt.size() < size_t(npend) + size_t(ncand)) {  // (grown by doubling)
+        const size_t m = 2 * (size_t(npend) + size_t(ncand));
+        pc.pt.resize(m), pc.psrc.resize(m), pc.ptd.resize(m), pc.pnext.resize(m);
+      }
+      T* const tsp = ts.data();
+      int32_t* const tcp = tc.data();
+      int32_t* const tdp = td.data();
+      tsp[nb] = 0, tcp[nb] = kSrcA, tdp[nb] = 0, nb++;
+      tsp[nb] = 1, tcp[nb] = kSrcB, tdp[nb] = 0, nb++;
+      for (int32_t x = pc.phead[size_t(i)]; x >= 0; x = pc.pnext[size_t(x)])
+        tsp[nb] = T(pc.pt[size_t(x)]), tcp[nb] = pc.psrc[size_t(x)], tdp[nb] = pc.ptd[size_t(x)], nb++;
+      auto own = [&](T t, int32_t src, int32_t jump) { tsp[nb] = t, tcp[nb] = src, tdp[nb] = jump, nb++; };
+      int32_t j = -1;
+      auto pend = [&](T t, int32_t src, int32_t jump) {
+        const int32_t x = npend++;
+        pc.pt[size_t(x)] = double(t), pc.psrc[size_t(x)] = src, pc.ptd[size_t(x)] = jump, pc.pnext[size_t(x)] = -1;
+        if (pc.phead[size_t(j)] < 0) {
+          pc.phead[size_t(j)] = x;
+        } else {
+          pc.pnext[size_t(pc.ptail[size_t(j)])] = x;
+        }
+        pc.ptail[size_t(j)] = x;
+        pc.pnum[size_t(j)]++;
+      };
+      if (all_ids) {
+        for (int c = 0; c < ncand; c++) {
+          j = up[c];
+          if (!pair(i, j, std::true_type(), own) || !pair(j, i, std::true_type(), pend)) return kFallback;
+        }
+      } else {
+        for (int c = 0; c < ncand; c++) {
+          j = up[c];
+          if (!pair(i, j, std::false_type(), own) || !pair(j, i, std::false_type(), pend)) return kFallback;
+        }
+      }
+    } else {
+      const int32_t* js = i < neh ? pc.clipped.data() : pc.all.data();
+      const int nj = i < neh ? int(pc.clipped.size()) : ns;
+      if (ts.size() < size_t(nb) + 2 + size_t(nj)) {
+        const size_t m = std::max(size_t(nb) + 2 + size_t(nj), 2 * ts.size());
+        ts.resize(m), tc.resize(m), td.resize(m), ord.resize(m);
+      }
+      T* const tsp = ts.data();
+      int32_t* const tcp = tc.data();
+      int32_t* const tdp = td.data();
+      tsp[nb] = 0, tcp[nb] = kSrcA, tdp[nb] = 0, nb++;
+      tsp[nb] = 1, tcp[nb] = kSrcB, tdp[nb] = 0, nb++;
+      auto own = [&](T t, int32_t src, int32_t jump) { tsp[nb] = t, tcp[nb] = src, tdp[nb] = jump, nb++; };
+      for (int jj = 0; jj < nj; jj++) {
+        const int j = js[jj];
+        if (j == i) continue;
+        if (i < neh && j < neh) continue;  // E_h's edges meet at its vertices only
+        if (i >= neh && j >= neh && apart(j)) continue;
+        if (!pair(i, j, std::false_type(), own)) return kFallback;
+      }
+    }
+    T* const tsp = ts.data();
+    int32_t* const tdp = td.data();
+    const int32_t b1 = nb;
+    int32_t* const op = ord.data();
+    boff[size_t(i) + 1] = b1;
+    if (b1 - b0 == 2) {  // its ends only (t = 0, then 1): one piece, no jump
+      op[b0] = b0, op[b0 + 1] = b0 + 1;
+      if (i >= neh) kf[size_t(i)] = kl[size_t(i)] = b0, sj[size_t(i)] = 0;
+      continue;
+    }
+    for (int32_t k = b0; k < b1; k++) op[k] = k;
+    // By t: up to 16 breakpoints (nearly always) the insertion sort that std::sort runs on so
+    // few (the same comparisons, so the same order for equal t), else std::sort.
+    if (b1 - b0 <= 16) {
+      for (int32_t k = b0 + 1; k < b1; k++) {
+        const int32_t v = op[k];
+        const T tv = tsp[v];
+        if (tv < tsp[op[b0]]) {
+          for (int32_t x = k; x > b0; x--) op[x] = op[x - 1];
+          op[b0] = v;
+        } else {
+          int32_t x = k;
+          for (; tv < tsp[op[x - 1]]; x--) op[x] = op[x - 1];
+          op[x] = v;
+        }
+      }
+    } else {
+      std::sort(op + b0, op + b1, [&](int32_t x, int32_t y) { return tsp[x] < tsp[y]; });
+    }
+    if (i >= neh) {
+      int32_t f = -1, l = -1;
+      for (int32_t k = b0; k + 1 < b1; k++) {
+        if (!(tsp[op[k + 1]] > tsp[op[k]])) continue;
+        if (f < 0) f = k;
+        l = k;
+      }
+      int32_t sum = 0;
+      for (int32_t k = f + 1; f >= 0 && k <= l; k++) sum += tdp[op[k]];
+      kf[size_t(i)] = f, kl[size_t(i)] = l, sj[size_t(i)] = sum;
+    }
+  }
+  // Per contour segment: its first and last pieces of positive length (kf, kl, positions in
+  // ord; kf = -1: none), and the sum of the jumps of C from the first to the last (sj).
+  // (computed with each segment's breakpoints above)
   // C beside every contour segment's first piece on q0's side (cf), from one coverage query per
   // chain of contour segments and carried along the chain. Where exactly two contour segments
   // meet at an unclipped end v (the projection of one mesh vertex; no other piece passes through
@@ -355,9 +474,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     // positions (nh slots, a power of two at least twice the ends): per slot the position, the
     // first end and how many ends are there (to 3).
     std::vector<SilEnd>& tab = pc.ends;
-    // With every contour segment's position ids (the tile's walk), slot = id instead.
-    bool by_id = true;
-    for (int i = neh; i < ns && by_id; i++) by_id = segs[size_t(i)].ia >= 0 && segs[size_t(i)].ib >= 0;
+    // With every contour segment's position ids (the tile's walk, by_id), slot = id instead.
     size_t nh = 16;
     while (nh < 4 * size_t(ns - neh)) nh *= 2;
     if (by_id) nh = std::max(nh, size_t(w.sil_tile.nids));
@@ -375,14 +492,13 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     };
     auto add = [&](V3<T> x3, int32_t id, int32_t e) {
       const double x = double(x3.x), y = double(x3.y), z = double(x3.z);
-      if (by_id) {  // the slot's update by selects, not branches (the same fields as the hashed path)
+      if (by_id) {  // the slot's update by selects, not branches (the position is not read by id)
         SilEnd& t = tab[size_t(id)];
         eslot[size_t(e)] = id;
         const int32_t n0 = t.n;
         const bool first = n0 == 0;
         used[size_t(nused)] = id;
         nused += int32_t(first);
-        t.x = first ? x : t.x, t.y = first ? y : t.y, t.z = first ? z : t.z;
         t.e = first ? e : t.e;
         t.e2 = first ? -1 : (n0 == 1 ? e : t.e2);
         t.n = n0 + 1;
@@ -422,7 +538,11 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         const SSeg<T>& sa = segs[size_t(ea / 2)];
         const SSeg<T>& sb = segs[size_t(eb / 2)];
         // Each far end clearly off the other's line.
-        if (cov.side_of(ea % 2 ? sa.a : sa.b, sb) != 0 && cov.side_of(eb % 2 ? sb.a : sb.b, sa) != 0)
+        const SilHot<T>& ha = hot[ea / 2];
+        const SilHot<T>& hb = hot[eb / 2];
+        const typename Cov::At fa{ea % 2 ? ha.ra : ha.rb, ea % 2 ? ha.la : ha.lb};  // cov.at(sa's far end)
+        const typename Cov::At fb{eb % 2 ? hb.ra : hb.rb, eb % 2 ? hb.la : hb.lb};
+        if (cov.side_of(fa, sb) != 0 && cov.side_of(fb, sa) != 0)
           link[size_t(ea)] = eb, link[size_t(eb)] = ea;
       }
       if (t.n >= 3 && t.n <= kSilFan) {
@@ -495,7 +615,10 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     }
   }
   {
-    std::vector<int32_t>& todo = pc.todo;
+    // The segments whose links are still to follow (each enters once: when its cf is set).
+    if (pc.todo.size() < size_t(ns)) pc.todo.resize(2 * size_t(ns));
+    int32_t* const todo = pc.todo.data();
+    int ntodo = 0;
     for (int i0 = neh; i0 < ns; i0++) {
       if (kf[size_t(i0)] < 0 || cf[size_t(i0)] != Cov::kNone) continue;
       {
@@ -511,13 +634,12 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       auto carry = [&](int j, int cj) {
         if (cf[size_t(j)] != Cov::kNone) return cf[size_t(j)] == cj;
         cf[size_t(j)] = cj;
-        todo.push_back(j);
+        todo[ntodo++] = j;
         return true;
       };
-      todo.assign(1, i0);
-      while (!todo.empty()) {
-        const int i = todo.back();
-        todo.pop_back();
+      todo[ntodo++] = i0;
+      while (ntodo) {
+        const int i = todo[--ntodo];
         const SSeg<T>& s = segs[size_t(i)];
         for (int e = 0; e < 2; e++) {
           const int32_t o = link[size_t(2 * i + e)];
@@ -559,7 +681,38 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   bool contour_runs = false;
   for (int i = 0; i < ns; i++) {
     const SSeg<T>& s = segs[size_t(i)];
-    const size_t runs_before = w.runs.size();
+    if (i >= neh) {
+      // A contour segment: its pieces from the first to the last of positive length (those
+      // before and after have none), C from cf there; the open run's ends by breakpoint.
+      const int32_t f = kf[size_t(i)], l = kl[size_t(i)];
+      if (f < 0) continue;
+      int c = cf[size_t(i)];
+      if (c == Cov::kNone || s.q0s == 0) return kFallback;
+      const int qi = int(s.q0s > 0);
+      int run_dir = 0;
+      int32_t rs = 0, re = 0;
+      for (int32_t k = f; k <= l; k++) {
+        if (k > f) c += td[size_t(ord[size_t(k)])];
+        if (!(ts[size_t(ord[size_t(k + 1)])] > ts[size_t(ord[size_t(k)])])) continue;
+        const int cpos = c + (1 - qi) * s.w, cneg = c - qi * s.w;  // s.q0s > 0 ? c : c + w, ? c - w : c
+        if (cpos < 0 || cneg < 0) return kFallback;
+        int dir = 0;
+        if ((cpos == 0) != (cneg == 0)) dir = cpos == 0 ? 1 : -1;  // R on the positive side: along own's edge
+        if (dir != run_dir) {
+          if (run_dir > 0) w.runs.push_back(Run{tc_code(s, rs), tc_code(s, re)});
+          if (run_dir < 0) w.runs.push_back(Run{tc_code(s, re), tc_code(s, rs)});
+          contour_runs = contour_runs || run_dir != 0;
+          run_dir = dir;
+          rs = ord[size_t(k)];
+        }
+        if (dir != 0) re = ord[size_t(k + 1)];
+      }
+      if (run_dir > 0) w.runs.push_back(Run{tc_code(s, rs), tc_code(s, re)});
+      if (run_dir < 0) w.runs.push_back(Run{tc_code(s, re), tc_code(s, rs)});
+      contour_runs = contour_runs || run_dir != 0;
+      continue;
+    }
+    // An E_h edge.
     const int32_t b0 = boff[size_t(i)], b1 = boff[size_t(i) + 1];
     const V3<T> d = s.b - s.a;
     // Classify the pieces; a kept piece extends the current run.
@@ -570,50 +723,35 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       if (run_dir < 0) w.runs.push_back(Run{run_e, run_s});
       run_dir = 0;
     };
-    // C beside s on q0's side (inside E_h for E_h's edges): for a contour segment cf at its
-    // first piece; for an E_h edge computed there, checked again at the last piece; then carried
-    // across the breakpoints.
-    int c = Cov::kNone, last = -1;
+    // C beside s inside E_h: computed at the first piece, checked again at the last piece, and
+    // carried across the breakpoints between.
+    int c = Cov::kNone, last = -1;  // last: the last piece of positive length
     for (int32_t k = b0; k + 1 < b1; k++)
       if (ts[size_t(ord[size_t(k + 1)])] > ts[size_t(ord[size_t(k)])]) last = k;
     for (int32_t k = b0; k + 1 < b1; k++) {
       if (k > b0 && c != Cov::kNone) c += td[size_t(ord[size_t(k)])];
       const double ta = ts[size_t(ord[size_t(k)])], tb = ts[size_t(ord[size_t(k + 1)])];
       if (!(tb > ta)) continue;
-      if (c == Cov::kNone && i >= neh) {
-        c = cf[size_t(i)];
-        if (c == Cov::kNone) return kFallback;
-      } else if (c == Cov::kNone || (k == last && i < neh)) {
+      if (c == Cov::kNone || k == last) {
         const V3<T> m = s.a + (0.5 * (ta + tb)) * d;
         const int full = cov.coverage_eh(m);
         if (full == Cov::kNone || (c != Cov::kNone && full != c)) return kFallback;
         c = full;
       }
-      int dir = 0;
-      if (i < neh) {
-        if (c < 0) return kFallback;
-        eh_any = eh_any || c == 0;
-        eh_all = eh_all && c == 0;
-        dir = c == 0 ? 1 : 0;
-      } else {
-        const int q0side = s.q0s;
-        if (q0side == 0) return kFallback;
-        const int qi = int(q0side > 0);
-        const int cpos = c + (1 - qi) * s.w, cneg = c - qi * s.w;  // q0side > 0 ? c : c + w, ? c - w : c
-        if (cpos < 0 || cneg < 0) return kFallback;
-        if ((cpos == 0) != (cneg == 0)) dir = cpos == 0 ? 1 : -1;  // R on the positive side: along own's edge
-      }
+      if (c < 0) return kFallback;
+      eh_any = eh_any || c == 0;
+      eh_all = eh_all && c == 0;
+      const int dir = c == 0 ? 1 : 0;
       if (dir != run_dir) {
         close_run();
         if (dir != 0) {
           run_dir = dir;
-          run_s = tc[size_t(ord[size_t(k)])];
+          run_s = tc_code(s, ord[size_t(k)]);
         }
       }
-      if (dir != 0) run_e = tc[size_t(ord[size_t(k + 1)])];
+      if (dir != 0) run_e = tc_code(s, ord[size_t(k + 1)]);
     }
     close_run();
-    if (i >= neh && w.runs.size() > runs_before) contour_runs = true;
   }
   if (!contour_runs) {
     if (eh_all) return kLit;

@@ -32,6 +32,17 @@ inline SilGridScratch<T>& sil_grid_scratch() {
   return s;
 }
 
+// What the crossing tests (silhouette.h) and jump_from read of a segment, packed: its plane (own, |own|), its ends as
+// SilCoverage::side_of reads them (a - p, b - p and their |.|_1), its direction and scale (d,
+// apn), its mesh vertex (va, -1 for E_h's edges) and its ends' position ids.
+template <class T>
+struct SilHot {
+  V3<T> own, ra, rb, d;  // d = b - a
+  T own_n;
+  double la, lb, apn;    // apn = |a - p|_1 + |d|_1 (summed in T)
+  int32_t va, ia, ib;
+};
+
 // One receiver's coverage: `segs` are E_h's `neh` edges followed by the contour pieces
 // (silhouette_walk.h); the grid's arrays live in `w`.
 template <class T>
@@ -65,6 +76,7 @@ struct SilCoverage {
   std::vector<int32_t>& stamp_of;
   int32_t stamp = 0;  // the current query (stamp_of: the last query that tested a piece)
   SilGridScratch<T>* gscratch = nullptr;  // the grid references' scratch (grid_references)
+  const SilHot<T>* hot = nullptr;  // the pieces' packed copies, where silhouette_receiver made them
 
   SilCoverage(const PolyCall<T>& call_, const SilhouetteTree& st_, Work<T>& w_, const Edge<T>* eh_, int neh_, V3<T> p_,
               V3<T> ne_, double scale_)
@@ -175,11 +187,21 @@ struct SilCoverage {
   // crease of a CAD part) is decided by the piece's ends: both clearly on one side of the path's
   // plane, the piece does not meet the path.
   int jump_from(const SSeg<T>& s, int sq, const At& m, V3<T> pqm, double pn) const {
-    const int sm = side_of(m, s);
+    return jump_from(s, sq, side_of(m, s), pqm, pn);
+  }
+  // The same with m's side of the piece given (sm = side_of(m, s)).
+  int jump_from(const SSeg<T>& s, int sq, int sm, V3<T> pqm, double pn) const {
     if (sq != 0 && sm == sq) return 0;
-    const V3<T> ra = s.a - p, rb = s.b - p;
-    const int ca = sgn(dot(ra, pqm), tol * pn * (std::fabs(ra.x) + std::fabs(ra.y) + std::fabs(ra.z)));
-    const int cb = sgn(dot(rb, pqm), tol * pn * (std::fabs(rb.x) + std::fabs(rb.y) + std::fabs(rb.z)));
+    int ca, cb;
+    if (hot) {  // the same ends and |.|_1, made once
+      const SilHot<T>& h = hot[&s - segs.data()];
+      ca = sgn(dot(h.ra, pqm), tol * pn * h.la);
+      cb = sgn(dot(h.rb, pqm), tol * pn * h.lb);
+    } else {
+      const V3<T> ra = s.a - p, rb = s.b - p;
+      ca = sgn(dot(ra, pqm), tol * pn * (std::fabs(ra.x) + std::fabs(ra.y) + std::fabs(ra.z)));
+      cb = sgn(dot(rb, pqm), tol * pn * (std::fabs(rb.x) + std::fabs(rb.y) + std::fabs(rb.z)));
+    }
     if (ca == 0 || cb == 0) return kNone;
     if (ca == cb) return 0;
     if (sq == 0 || sm == 0) return kNone;
@@ -207,7 +229,11 @@ struct SilCoverage {
     v = r[0] * Vv[0] + r[1] * Vv[1] + r[2] * Vv[2];
   }
   int cell_of(double x, double mn, double d) const {
-    return std::max(0, std::min(G - 1, int(std::floor(std::min(std::max((x - mn) / d, -1.0), double(G))))));
+    // floor of y in [-1, G] as truncation corrected downwards for negative non-integers (exact).
+    const double y = std::min(std::max((x - mn) / d, -1.0), double(G));
+    int k = int(y);
+    k -= int(y < double(k));
+    return std::max(0, std::min(G - 1, k));
   }
 
   // The contour pieces on a grid of the emitter plane: a piece's crossing candidates are the
@@ -270,8 +296,9 @@ struct SilCoverage {
   }
   // C at m on the `from` side of piece `skip` (-1: none), from C at `from` and the crossings of
   // from -> m with the pieces registered in cells ca and cb (-1: none). `at_ref`: `from` is ca's
-  // reference point (its pieces' sides of it are kept in gside, each computed once).
-  int cross_cells(V3<T> from, int cfrom, V3<T> m, int skip, int ca, int cb, bool at_ref = true) {
+  // reference point, `to_ref`: m is cb's (their pieces' sides of it are kept in gside, each
+  // computed once).
+  int cross_cells(V3<T> from, int cfrom, V3<T> m, int skip, int ca, int cb, bool at_ref = true, bool to_ref = false) {
     const V3<T> pqm = cross(from - p, m - p);
     const double pn = norm(pqm);
     const At af = at(from), am = at(m);
@@ -292,7 +319,15 @@ struct SilCoverage {
         } else {
           sq = side_of(af, segs[size_t(i)]);
         }
-        const int j = jump_from(segs[size_t(i)], sq, am, pqm, pn);
+        int sm;
+        if (to_ref && cell == cb) {
+          int8_t& g = w.gside[size_t(k)];
+          if (g == 2) g = int8_t(side_of(am, segs[size_t(i)]));
+          sm = g;
+        } else {
+          sm = side_of(am, segs[size_t(i)]);
+        }
+        const int j = jump_from(segs[size_t(i)], sq, sm, pqm, pn);
         if (j == kNone) return kNone;
         c += j;
       }
@@ -426,12 +461,12 @@ struct SilCoverage {
           }
           break;
         case 1:  // from the previous cell of the row
-          if (w.gcov[size_t(before)] != kNone) f.c = cross_cells(w.gref[size_t(before)], w.gcov[size_t(before)], f.r, -1, before, f.cell);
+          if (w.gcov[size_t(before)] != kNone) f.c = cross_cells(w.gref[size_t(before)], w.gcov[size_t(before)], f.r, -1, before, f.cell, true, true);
           f.state = 5;
           break;
         case 2:  // straight up from the cell below, else through it from its row
           if (w.gcov[size_t(below)] != kNone) {
-            f.c = cross_cells(w.gref[size_t(below)], w.gcov[size_t(below)], f.r, -1, below, f.cell);
+            f.c = cross_cells(w.gref[size_t(below)], w.gcov[size_t(below)], f.r, -1, below, f.cell, true, true);
             f.state = 5;
           } else if (cell_point(ix, lr, f.sp)) {
             f.dir = -1;
@@ -459,7 +494,7 @@ struct SilCoverage {
         case 4:
           if (w.gcov[size_t(f.from)] != kNone) {
             const int c1 = cross_cells(w.gref[size_t(f.from)], w.gcov[size_t(f.from)], f.sp, -1, f.from, below);
-            if (c1 != kNone) f.c = cross_cells(f.sp, c1, f.r, -1, below, f.cell, false);
+            if (c1 != kNone) f.c = cross_cells(f.sp, c1, f.r, -1, below, f.cell, false, true);
           }
           f.dir += 2;
           f.state = 3;
