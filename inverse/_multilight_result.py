@@ -17,7 +17,6 @@ import numpy as np
 from ._basis_rows import BasisRows
 from ._diagnostics import (
     assess,
-    at_assumed_noise,
     competing_placements,
     dark_answer,
     noise_sigma,
@@ -165,7 +164,8 @@ def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, ca
     # the other rows of the last joint solve, powers (and material) solved there as here; not under a
     # budget or painted ranges / relations (their powers are another problem's)
     if final is not None and paint is None and problem.budget is None and problem.fit_power:
-        chi2_of = _chi2(t, noise)
+        # told noise: chi-square under it; estimated: at the residual's scale, as the standard errors
+        chi2_of = _chi2(t, noise) if noise is not None else _chi2_at_residual(w, ident.sigma2, colours, len(names))
         poses = lambda th_, p_: {f"light{idx[j]}": _pose(x, problem.params[j], p_[j])  # noqa: E731
                                  for j, x in enumerate(build_lights(problem, th_)) if problem.params[j] is not None}
         others = []
@@ -185,11 +185,9 @@ def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, ca
             others.append((chi2_of(_model(E_r, S_r, e0, s0, La, p_r, k_r, spec) - colours), poses(th_r, p_r)))
         answer = poses(th, powers)
         chi2 = chi2_of(residual)
-        # the distances in standard errors at the noise the chi-square is taken at (`at_assumed_noise`)
-        se_r = se if noise is not None else at_assumed_noise(se, ident.sigma2, _row_noise(chi2_of, w))
-        rivals = rival_placements(answer, others, chi2, len(names), size, se_r, light_params)
+        rivals = rival_placements(answer, others, chi2, len(names), size, se, light_params)
         # placements that only turn a light: its rotation's standard errors widened (`rival_turns`)
-        se = turned_widened(se, rival_turns(answer, others, chi2, len(names), se_r, light_params), light_params)
+        se = turned_widened(se, rival_turns(answer, others, chi2, len(names), se, light_params), light_params)
         se, quantities = widened(se, quantities, answer, rivals)  # the rivals' spread (`_uncertainty.widened`)
     quality, determined = assess(
         targets=t, residual=residual, noise=noise, n_params=len(names), names=names, std_errors=se, values=values_d,
@@ -268,6 +266,28 @@ def _chi2(targets: Any, noise: Any) -> Any:
     sigma, _ = noise_sigma(targets, noise)
     ok = np.isfinite(sigma)
     return lambda r: float(np.sum(np.where(ok, (np.asarray(r, np.float64) / np.where(ok, sigma, 1.0)) ** 2, 0.0)))
+
+
+def _chi2_at_residual(w: np.ndarray, sigma2: float, colours: np.ndarray, n_params: int) -> Any:
+    r"""$\chi^2 = \sum w r^2 / s^2$ of a residual `r (N, 3)` with the weights `w (N, 3)` as
+    given: the rival check's scale when the noise is estimated (`_diagnostics`, competing
+    placements). $s^2$ is the residual's variance estimate of a weighted row, `sigma2`
+    (`Identifiability.sigma2`), floored at an exact fit's: $S_0 / a$, $S_0 = 2\,$`EXACT_LOSS`
+    $\cdot \tfrac12 \sum w c^2$ (`_fit_lights`: a loss below it is an exact fit) and $a$ the
+    allowance (`rival_allowance(n_params)`), so that a placement whose residual sum of squares
+    exceeds an exact answer's by at most $S_0$ (exact itself: two placements that paint the
+    targets alike, each converged to its own rounding) still competes, and one that misses the
+    targets beyond rounding does not."""
+    from ._fit_lights import EXACT_LOSS
+
+    exact_rss = EXACT_LOSS * float(np.sum(w * np.asarray(colours, np.float64) ** 2))
+    s2 = np.float64(max(float(sigma2), exact_rss / rival_allowance(n_params), 1e-300))
+
+    def chi2(r: Any) -> float:
+        with np.errstate(over="ignore"):
+            return float(np.sum(w * np.asarray(r, np.float64) ** 2) / s2)
+
+    return chi2
 
 
 def _row_noise(chi2_of: Any, w: np.ndarray) -> float:

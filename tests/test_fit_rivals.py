@@ -150,19 +150,36 @@ def test_same_placement_is_no_rival():
     assert [(x[0], x[2]) for x in out] == [(2.0, ("light1",))]
 
 
-def test_estimated_noise_distances_at_the_assumed_noise():
-    """With the noise estimated the standard errors take the residual's scale, the chi-square the
-    assumed noise's: the rival rule measures distances at the larger (`at_assumed_noise`). A
-    light 16 cm off an exact fit (residual variance 1e-30, standard errors 1e-14 m) at the
-    assumed noise's row variance 1e-4 is 1.6 of its 0.1 m standard errors away: no rival; at a residual
-    above the assumed noise the errors stand."""
-    se = {"light0.x": 1e-14, "light0.y": 1e-14, "light0.z": 1e-14, "light0.power": 0.0}
-    wide = diag.at_assumed_noise(se, 1e-30, 1e-4)
-    assert wide["light0.z"] == pytest.approx(0.1) and wide["light0.power"] == 0.0
-    assert diag.at_assumed_noise(se, 1e-3, 1e-4) is se
-    assert diag.at_assumed_noise(se, 0.0, 1e-4)["light0.power"] == math.inf
+def test_estimated_noise_rivals_at_the_residual_scale():
+    """With the noise estimated the rival chi-square takes the residual's scale, the one the
+    standard errors take (`_multilight_result._chi2_at_residual`): the answer's chi-square is its
+    degrees of freedom; a placement whose weighted residual sum of squares exceeds the answer's
+    by less than the allowance times the residual's variance competes, one just beyond does not.
+    After an exact fit (a residual of rounding size) a placement 0.14 % RMS off the targets is
+    no rival (at the assumed 2.5 % noise it would be one), while another exact placement is."""
+    rng = np.random.default_rng(0)
+    colours, w = rng.uniform(0.2, 1.0, (60, 3)), np.ones((60, 3))
+    m, n = colours.size, 20
+    allowed = diag.rival_allowance(n)
     params = {"light0": ("light0.x", "light0.y", "light0.z", "light0.power")}
     answer = {"light0": _pose("point", [0, 0, 1])}
-    higher = [(0.05, {"light0": _pose("point", [0, 0, 1.16])})]
-    assert diag.rival_placements(answer, higher, 0.0, 4, 4.0, se, params)  # at the residual's scale
-    assert diag.rival_placements(answer, higher, 0.0, 4, 4.0, wide, params) == ()
+    far = {"light0": _pose("point", [0.5, 0, 1.5])}
+
+    def rivals(r_answer, r_rival, sigma2):
+        chi2_of = _result._chi2_at_residual(w, sigma2, colours, n)
+        se = {"light0.x": 0.01, "light0.y": 0.01, "light0.z": 0.01, "light0.power": 0.01}
+        return diag.rival_placements(answer, [(chi2_of(r_rival), far)], chi2_of(r_answer), n, 4.0, se, params)
+
+    noisy = 0.01 * rng.normal(size=colours.shape)
+    s2 = float(np.sum(noisy ** 2)) / (m - n)
+    assert _result._chi2_at_residual(w, s2, colours, n)(noisy) == pytest.approx(m - n)
+    for excess, competes in ((allowed - 1.0, True), (allowed + 1.0, False)):
+        rival = noisy * math.sqrt(1.0 + excess * s2 / float(np.sum(noisy ** 2)))
+        assert bool(rivals(noisy, rival, s2)) is competes
+    exact = 1e-15 * rng.normal(size=colours.shape)
+    s2 = float(np.sum(exact ** 2)) / (m - n)
+    near = 0.0014 * math.sqrt(float(np.mean(colours ** 2))) * rng.choice([-1.0, 1.0], colours.shape)
+    assert not rivals(exact, near, s2)
+    assert rivals(exact, 30.0 * exact, s2)  # both exact (at the fit's exact level), each at its own rounding
+    assumed = (0.025 * math.sqrt(float(np.mean(colours ** 2)))) ** 2
+    assert float(np.sum(near ** 2)) / assumed < allowed  # within the allowance at the assumed noise
