@@ -110,15 +110,27 @@ inline double tile_plane_inf_best(const TilePlane& q, const TileBox& tb, const d
 // `parent` (a walk built for a box holding this one), its entries are walked instead of the
 // hierarchy: what it dropped, every receiver of its box drops, so the result serves the same
 // receivers the same way. False: not built (every receiver walks the hierarchy itself).
+// `serves`: receivers walk the result (false: a parent, which only tiles' walks refine; what
+// only receivers read is left out of it).
 template <class T>
 bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int64_t id, const double* blo, const double* bhi,
-               bool same_n, const double* bn, const SilTileCache* parent, SilTileCache& tc) {
+               bool same_n, const double* bn, const SilTileCache* parent, SilTileCache& tc, bool serves) {
   tc.id = id;
   tc.tree = &st;
   tc.ok = false;
   tc.entries.clear();
   tc.edges.clear();
   tc.nids = 0;
+  const size_t nfaces = st.fn.size() / kFnStride;
+  if (tc.slot.size() != nfaces) {
+    tc.slot.assign(nfaces, -1);
+  } else {
+    for (const int32_t f : tc.faces) tc.slot[size_t(f)] = -1;
+  }
+  tc.faces.clear();
+  for (std::vector<double>& v : tc.fq) v.clear();
+  tc.fnn.clear();
+  tc.f32.clear();
   const double eps = 2.220446049250313e-16;
   const double epsT = double(eps_of<T>());
   TileBox tb;
@@ -251,15 +263,27 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
   // cyrus_beck keeps the whole edge (t0 = 0, t1 = 1) and neither end is too close to E_h's
   // boundary: contour_edges skips those tests for it.
   const double inmarg = (1e-9 + 1024 * epsT) * tb.d1;
-  auto edge_in = [&](const double* a, const double* b) {
-    if (!horizon) return false;
-    for (const double* x : {a, b}) {
-      const double lo = hn[0] * (x[0] - tb.pc[0]) + hn[1] * (x[1] - tb.pc[1]) + hn[2] * (x[2] - tb.pc[2]) -
-                        (std::fabs(hn[0]) * tb.hb[0] + std::fabs(hn[1]) * tb.hb[1] + std::fabs(hn[2]) * tb.hb[2]);
-      if (!(lo > inmarg * hnn)) return false;
-      const double box[6] = {x[0], x[1], x[2], x[0], x[1], x[2]};
-      for (int k = 0; k < ntp; k++)
-        if (!(tile_plane_inf_best(tp[k], tb, box) > tp[k].safety + inmarg * tp[k].cn1)) return false;
+  // Per end (its position's test, kept by position id in tc.pos_in: 1 inside, 0 not, -1 not
+  // yet tested).
+  // Per end, kept by position id in tc.pos_in (-1: not yet tested).
+  auto end_in = [&](const double* x) {
+    const double lo = hn[0] * (x[0] - tb.pc[0]) + hn[1] * (x[1] - tb.pc[1]) + hn[2] * (x[2] - tb.pc[2]) -
+                      (std::fabs(hn[0]) * tb.hb[0] + std::fabs(hn[1]) * tb.hb[1] + std::fabs(hn[2]) * tb.hb[2]);
+    if (!(lo > inmarg * hnn)) return false;
+    const double box[6] = {x[0], x[1], x[2], x[0], x[1], x[2]};
+    for (int k = 0; k < ntp; k++)
+      if (!(tile_plane_inf_best(tp[k], tb, box) > tp[k].safety + inmarg * tp[k].cn1)) return false;
+    return true;
+  };
+  tc.pos_in.assign(size_t(parent && parent->ok && parent->tree == &st ? parent->nids : 0), int8_t(-1));
+  auto edge_in = [&](const double* a, const double* b, int32_t ia, int32_t ib) {
+    if (!horizon || !serves) return false;
+    for (int j = 0; j < 2; j++) {
+      const int32_t id = j ? ib : ia;
+      if (size_t(id) >= tc.pos_in.size()) tc.pos_in.resize(std::max(2 * tc.pos_in.size(), size_t(id) + 1), int8_t(-1));
+      int8_t& in = tc.pos_in[size_t(id)];
+      if (in < 0) in = int8_t(end_in(j ? b : a));
+      if (!in) return false;
     }
     return true;
   };
@@ -275,6 +299,7 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
     const TileBox& tb;
     const Occluders<T>& occ;
     double smargin;
+    bool serves;
     bool deep;
     bool visit(int32_t k, int depth) {
       const SNode& nd = st.nodes[size_t(k)];
@@ -295,10 +320,13 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
         for (int32_t j = nd.start; j < nd.start + nd.count; j++) {
           const SEdge& e = st.edges[size_t(j)];
           const V3<T> a3 = occ.vref(e.ra), b3 = occ.vref(e.rb);
-          STEdge te{e, 0, false, -1, -1, {double(a3.x), double(a3.y), double(a3.z)}, {double(b3.x), double(b3.y), double(b3.z)}};
-          te.ia = pos_id(te.a);
-          te.ib = pos_id(te.b);
-          keep(te);
+          STEdge te;
+          te.e = e;
+          te.w = 0;
+          te.in = false;
+          te.a[0] = double(a3.x), te.a[1] = double(a3.y), te.a[2] = double(a3.z);
+          te.b[0] = double(b3.x), te.b[1] = double(b3.y), te.b[2] = double(b3.z);
+          keep(te, true);
         }
         if (!leaf_done(me, e0)) return false;
       }
@@ -339,7 +367,9 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
     // A leaf's edge: kept unless every receiver of the box drops it, with its coverage jump
     // where every receiver sees both faces on known sides.
     // A jump W already known (te.w, the parent's: its box holds the tile's) holds here too.
-    void keep(STEdge te) {
+    // `fresh`: te comes from the hierarchy (its position ids, fwd and dir are set here where it
+    // is kept).
+    void keep(STEdge te, bool fresh) {
       const SEdge& e = te.e;
       if (te.w == 0) {
         const int sf = tile_side(st, e.f, tb);
@@ -351,8 +381,36 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
         }
       }
       if (te.w != 0 && eout(te.a, te.b)) return;
-      te.in = ein(te.a, te.b);
+      if (fresh) {
+        te.ia = pos_id(te.a);
+        te.ib = pos_id(te.b);
+      }
+      te.in = ein(te.a, te.b, te.ia, te.ib);
+      if (fresh) {
+        const V3<T> a3{T(te.a[0]), T(te.a[1]), T(te.a[2])}, b3{T(te.b[0]), T(te.b[1]), T(te.b[2])};
+        te.fwd = lex_less(a3, b3);
+        const V3<T> d = rescale(te.fwd ? b3 - a3 : a3 - b3);
+        te.dir[0] = double(d.x), te.dir[1] = double(d.y), te.dir[2] = double(d.z);
+      }
+      te.lf = te.lg = -1;
+      if (te.w == 0 && serves) {
+        te.lf = face_slot(e.f);
+        if (e.g >= 0) te.lg = face_slot(e.g);
+      }
       tc.edges.push_back(te);
+    }
+    // Face f's slot in tc.faces (added with its record on first use).
+    int32_t face_slot(int32_t f) {
+      int32_t& k = tc.slot[size_t(f)];
+      if (k < 0) {
+        k = int32_t(tc.faces.size());
+        tc.faces.push_back(f);
+        const double* q = st.fn.data() + kFnStride * size_t(f);
+        for (int d = 0; d < 6; d++) tc.fq[d].push_back(q[d]);
+        tc.fnn.push_back(q[9]);
+        tc.f32.push_back(st.f32[size_t(f)] ? 1.0 : 0.0);
+      }
+      return k;
     }
     bool leaf_done(size_t me, int32_t e0) {
       if (int32_t(tc.edges.size()) == e0) {
@@ -373,7 +431,7 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
       tc.entries.push_back(make_entry(pe.node, nd, pe.planes, pe.side));
       if (pe.e0 >= 0) {
         const int32_t e0 = int32_t(tc.edges.size());
-        for (int32_t k = pe.e0; k < pe.e1; k++) keep(par.edges[size_t(k)]);
+        for (int32_t k = pe.e0; k < pe.e1; k++) keep(par.edges[size_t(k)], false);
         if (!leaf_done(me, e0)) return false;
       } else {
         bool any = false;
@@ -387,7 +445,7 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
       return true;
     }
   };
-  Rec rec{st, tc, outside, edge_out, entry, edge_in, tb, occ, smargin, false};
+  Rec rec{st, tc, outside, edge_out, entry, edge_in, tb, occ, smargin, serves, false};
   if (parent && parent->ok && parent->tree == &st) {
     tc.nids = parent->nids;  // the parent's edges keep their ids
     if (!parent->entries.empty()) rec.visit_list(*parent, 0);
@@ -396,8 +454,29 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
     rec.visit(0, 0);
   }
   if (rec.deep) return false;
+  tc.side.resize(tc.faces.size());
   tc.ok = true;
   return true;
+}
+
+// The sides of the faces a tile left to its receivers (SilTileCache::faces), from pd with
+// S = sil_scale(st, pd), into tc.side: sil_side's operations on the faces' records, in arrays
+// (vectorized; the comparisons as selects of +-1 and 0).
+inline void tile_side_values(size_t nf, const double* __restrict q0, const double* __restrict q1, const double* __restrict q2,
+                             const double* __restrict q3, const double* __restrict q4, const double* __restrict q5,
+                             const double* __restrict nn, const double* __restrict f32, double* __restrict side, double p0, double p1,
+                             double p2, double S) {
+  const double k32 = 2 * kOnSurface * S;
+  for (size_t i = 0; i < nf; i++) {
+    const double r0 = q3[i] - p0, r1 = q4[i] - p1, r2 = q5[i] - p2;
+    const double h = q0[i] * r0 + q1[i] * r1 + q2[i] * r2;
+    const double m = std::max(1e4 * 2.220446049250313e-16 * (std::fabs(r0) + std::fabs(r1) + std::fabs(r2) + S), f32[i] != 0 ? k32 : 0.0) * nn[i];
+    side[i] = (h < -m ? 1.0 : 0.0) - (h > m ? 1.0 : 0.0);
+  }
+}
+__attribute__((noinline)) inline void tile_sides(SilTileCache& tc, const double* pd, double S) {
+  tile_side_values(tc.faces.size(), tc.fq[0].data(), tc.fq[1].data(), tc.fq[2].data(), tc.fq[3].data(), tc.fq[4].data(),
+                   tc.fq[5].data(), tc.fnn.data(), tc.f32.data(), tc.side.data(), pd[0], pd[1], pd[2], S);
 }
 
 // Contour edges in the pyramid: the hierarchy walked with the pyramid's half-spaces (`cone`, the
@@ -463,13 +542,15 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
   // where it cannot tell). False: fall back.
   // `in`: the tile proved both ends inside every cone plane with a margin (STEdge::in): the
   // clipping keeps the whole edge and the end tests below pass, so they are skipped.
-  auto edge = [&](const SEdge& e, int W, V3<T> a3, V3<T> b3, bool in, int32_t ia, int32_t ib) -> bool {
+  // `side_f`, `side_g`: sil_side of e.f and e.g (called where W is 0); `own_of`: edge_plane(p, a3, b3).
+  auto edge = [&](const SEdge& e, int W, V3<T> a3, V3<T> b3, bool in, int32_t ia, int32_t ib, auto side_f, auto side_g,
+                  auto own_of) __attribute__((always_inline)) -> bool {
     if (W == 0) {
-      int sf = sil_side(st, e.f, pd, side_scale);
+      int sf = side_f();
       if (sf == 0 && !face_path_side(occ, st, e.f, p, sf)) return false;
       W = sf;
       if (e.g >= 0) {
-        int sg = sil_side(st, e.g, pd, side_scale);
+        int sg = side_g();
         if (sg == 0 && !face_path_side(occ, st, e.g, p, sg)) return false;
         W += sg * e.dg;
       }
@@ -492,7 +573,7 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
       }
       if (out) return true;
     }
-    const V3<T> own = edge_plane(p, a3, b3);
+    const V3<T> own = own_of();
     T t0 = 0, t1 = 1;
     int i0 = 0, i1 = 0;
     if (!in && !cyrus_beck(p, a3, b3, cone, np0, own, t0, t1, i0, i1)) return true;
@@ -533,13 +614,15 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
     const SilTileCache* parent = nullptr;
     if (w.tile.pid >= 0) {
       if (w.sil_parent.id != w.tile.pid || w.sil_parent.tree != &st)
-        tile_walk(call, st, ne, w.tile.pid, w.tile.plo, w.tile.phi, false, w.tile.n, nullptr, w.sil_parent);
+        tile_walk(call, st, ne, w.tile.pid, w.tile.plo, w.tile.phi, false, w.tile.n, nullptr, w.sil_parent, false);
       if (w.sil_parent.ok) parent = &w.sil_parent;
     }
-    tile_walk(call, st, ne, w.tile.id, w.tile.lo, w.tile.hi, w.tile.same_n, w.tile.n, parent, w.sil_tile);
+    tile_walk(call, st, ne, w.tile.id, w.tile.lo, w.tile.hi, w.tile.same_n, w.tile.n, parent, w.sil_tile, true);
   }
   if (in_tile && w.sil_tile.ok) {
-    const SilTileCache& tc = w.sil_tile;
+    SilTileCache& tc = w.sil_tile;
+    tile_sides(tc, pd, side_scale);
+    const double* side = tc.side.data();
     const int32_t n = int32_t(tc.entries.size());
     for (int32_t i = 0; i < n;) {
       const STEntry& en = tc.entries[size_t(i)];
@@ -554,7 +637,15 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
         for (int32_t k = en.e0; k < en.e1; k++) {
           const STEdge& te = tc.edges[size_t(k)];
           const V3<T> a3{T(te.a[0]), T(te.a[1]), T(te.a[2])}, b3{T(te.b[0]), T(te.b[1]), T(te.b[2])};
-          if (!edge(te.e, te.w, a3, b3, te.in, te.ia, te.ib)) return kFallback;
+          const auto own_of = [&]() __attribute__((always_inline)) {
+            const V3<T> lo = te.fwd ? a3 : b3, hi = te.fwd ? b3 : a3;
+            const V3<T> rl = lo - p, rh = hi - p;
+            const V3<T> dir{T(te.dir[0]), T(te.dir[1]), T(te.dir[2])};
+            const V3<T> c = rescale(cross(dir, rescale(dot(rh, rh) < dot(rl, rl) ? rh : rl)));  // edge_plane
+            return te.fwd ? c : V3<T>{-c.x, -c.y, -c.z};
+          };
+          if (!edge(te.e, te.w, a3, b3, te.in, te.ia, te.ib, [&]() { return int(side[te.lf]); }, [&]() { return int(side[te.lg]); }, own_of))
+            return kFallback;
         }
       }
       i++;
@@ -584,7 +675,10 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
     }
     for (int32_t k = nd.start; k < nd.start + nd.count; k++) {
       const SEdge& e = st.edges[size_t(k)];
-      if (!edge(e, 0, occ.vref(e.ra), occ.vref(e.rb), false, -1, -1)) return kFallback;
+      const V3<T> a3 = occ.vref(e.ra), b3 = occ.vref(e.rb);
+      if (!edge(e, 0, a3, b3, false, -1, -1, [&]() { return sil_side(st, e.f, pd, side_scale); },
+                [&]() { return sil_side(st, e.g, pd, side_scale); }, [&]() { return edge_plane(p, a3, b3); }))
+        return kFallback;
     }
   }
   return n_contour;
