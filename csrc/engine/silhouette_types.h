@@ -76,7 +76,8 @@ struct SilTile {
 };
 
 // One entry of a tile's part of the hierarchy: a node that the tile's walk did not prune, in the
-// walk's order (preorder, right subtree first); `skip` is the entry after its subtree; for a
+// walk's order (preorder, right subtree first; in the walk of a tile its receivers read, inner
+// nodes with `sure` are left out); `skip` is the first entry after its subtree; for a
 // leaf, its kept edges [e0, e1) in SilTileCache::edges; `sure`: no receiver of the tile prunes
 // it (its tests are skipped). Otherwise `planes` holds the pyramid's planes that some receiver's
 // test may prune it by (bit k: the receiver's cone plane k, bit K + 1 the emitter plane, K the
@@ -136,6 +137,11 @@ struct SilTileCache {
   std::vector<double> side;
   std::vector<int32_t> slot;
   std::vector<int8_t> pos_in;  // tile_walk's scratch: per position id, its end test (edge_in)
+  std::vector<int32_t> remap;  // tile_walk's scratch: entries' new indices
+  // tile_walk's scratch: per face of the tree, its side over the tile (tile_side; 2: not yet
+  // computed), and the faces set.
+  std::vector<int8_t> fside;
+  std::vector<int32_t> fside_set;
 };
 
 template <class T>
