@@ -76,7 +76,8 @@ struct SilTile {
 };
 
 // One entry of a tile's part of the hierarchy: a node that the tile's walk did not prune, in the
-// walk's order (preorder, right subtree first); `skip` is the entry after its subtree; for a
+// walk's order (preorder, right subtree first; in the walk of a tile its receivers read, inner
+// nodes with `sure` are left out); `skip` is the first entry after its subtree; for a
 // leaf, its kept edges [e0, e1) in SilTileCache::edges; `sure`: no receiver of the tile prunes
 // it (its tests are skipped). Otherwise `planes` holds the pyramid's planes that some receiver's
 // test may prune it by (bit k: the receiver's cone plane k, bit K + 1 the emitter plane, K the
@@ -94,12 +95,18 @@ struct STEntry {
 // receiver's clipping keeps the whole edge and its ends are clear of E_h's boundary).
 // `ia`, `ib`: the ends' position ids (equal iff the positions are equal, within one tile walk and
 // the walks refining it: SilTileCache::nids of them).
+// `fwd`, `dir`: whether a precedes b lexicographically and rescale(hi - lo) of the ends in that
+// order (lo, hi), in the call's float type: the part of edge_plane that does not depend on the
+// receiver. `lf`, `lg`: where W is 0, the faces' slots in SilTileCache::faces (lg -1 without g).
 struct STEdge {
   SEdge e;
   int8_t w;
   bool in;
+  bool fwd;
   int32_t ia, ib;
+  int32_t lf, lg;
   double a[3], b[3];
+  double dir[3];
 };
 
 // The hierarchy as seen from a whole tile (silhouette_walk.h, tile_walk): the nodes no receiver
@@ -119,6 +126,22 @@ struct SilTileCache {
     int32_t id;
   };
   std::vector<Slot> idtab;
+  // The faces whose side some receiver of the tile decides itself (the edges' lf, lg), as
+  // structure of arrays of their SilhouetteTree::fn records for the per-receiver side test:
+  // Newell normal (fq[0..2]), first vertex (fq[3..5]), |Newell normal| (fnn), and whether the
+  // face is of float32 values (f32: 1, else 0; the on-surface rule). `side`: their sides from the current
+  // receiver (sil_side's +1, -1, 0). `slot`: per face of the tree its slot (-1: none; reset by
+  // the next walk).
+  std::vector<int32_t> faces;
+  std::vector<double> fq[6], fnn, f32;
+  std::vector<double> side;
+  std::vector<int32_t> slot;
+  std::vector<int8_t> pos_in;  // tile_walk's scratch: per position id, its end test (edge_in)
+  std::vector<int32_t> remap;  // tile_walk's scratch: entries' new indices
+  // tile_walk's scratch: per face of the tree, its side over the tile (tile_side; 2: not yet
+  // computed), and the faces set.
+  std::vector<int8_t> fside;
+  std::vector<int32_t> fside_set;
 };
 
 template <class T>

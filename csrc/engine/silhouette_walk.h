@@ -63,34 +63,31 @@ inline int tile_side(const SilhouetteTree& st, int32_t f, const TileBox& tb) {
   return hc + slack < 0 ? 1 : (hc - slack > 0 ? -1 : 0);
 }
 
-// node_side over the tile: nonzero when node_side(nd, p, margin(p)) is that for every p in B
-// (margin(p) <= margin): the node's box grown by B's as seen from pc.
-inline int tile_node_side(const SNode& nd, const TileBox& tb, double margin) {
+// node_side over the tile, for the prune test and for the entry: returns nonzero when
+// node_side(nd, p, margin(p)) is that for every p in B (margin(p) <= margin: the node's box grown
+// by B's as seen from pc), and sets `none` to whether node_side(nd, p, margin(p)) is 0 for every
+// p in B (margin(p) >= margin_none: the node is not pruned by its faces' sides for any receiver
+// of the tile).
+inline int tile_node_sides(const SNode& nd, const TileBox& tb, double margin, double margin_none, bool& none) {
+  none = true;
   if (!(nd.cosa > 0)) return 0;
   const double d[3] = {tb.pc[0] - 0.5 * (nd.box[0] + nd.box[3]), tb.pc[1] - 0.5 * (nd.box[1] + nd.box[4]),
                        tb.pc[2] - 0.5 * (nd.box[2] + nd.box[5])};
   const double a = d[0] * nd.axis[0] + d[1] * nd.axis[1] + d[2] * nd.axis[2];
   const double e[3] = {d[0] - a * nd.axis[0], d[1] - a * nd.axis[1], d[2] - a * nd.axis[2]};
-  const double perp = std::sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2]) + nd.hrad + tb.hb2;
+  const double en = std::sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2]);
+  {  // none
+    const double perp = std::max(0.0, en - tb.hb2) + nd.hrad;
+    const double ab = std::fabs(nd.axis[0]) * tb.hb[0] + std::fabs(nd.axis[1]) * tb.hb[1] + std::fabs(nd.axis[2]) * tb.hb[2];
+    const double m = margin_none - 1e-12 * tb.d1;
+    none = (a + ab - nd.arad) * nd.cosa - perp * nd.sina < m && (a - ab + nd.arad) * nd.cosa + perp * nd.sina > -m;
+  }
+  const double perp = en + nd.hrad + tb.hb2;
   const double arad = nd.arad + std::fabs(nd.axis[0]) * tb.hb[0] + std::fabs(nd.axis[1]) * tb.hb[1] + std::fabs(nd.axis[2]) * tb.hb[2];
   const double m = margin + 1e-12 * tb.d1;
   if ((a - arad) * nd.cosa - perp * nd.sina > m) return 1;
   if ((a + arad) * nd.cosa + perp * nd.sina < -m) return -1;
   return 0;
-}
-
-// Whether node_side(nd, p, margin(p)) is 0 for every p in B (margin(p) >= margin): the node is
-// not pruned by its faces' sides for any receiver of the tile.
-inline bool tile_node_side_none(const SNode& nd, const TileBox& tb, double margin) {
-  if (!(nd.cosa > 0)) return true;
-  const double d[3] = {tb.pc[0] - 0.5 * (nd.box[0] + nd.box[3]), tb.pc[1] - 0.5 * (nd.box[1] + nd.box[4]),
-                       tb.pc[2] - 0.5 * (nd.box[2] + nd.box[5])};
-  const double a = d[0] * nd.axis[0] + d[1] * nd.axis[1] + d[2] * nd.axis[2];
-  const double e[3] = {d[0] - a * nd.axis[0], d[1] - a * nd.axis[1], d[2] - a * nd.axis[2]};
-  const double perp = std::max(0.0, std::sqrt(e[0] * e[0] + e[1] * e[1] + e[2] * e[2]) - tb.hb2) + nd.hrad;
-  const double ab = std::fabs(nd.axis[0]) * tb.hb[0] + std::fabs(nd.axis[1]) * tb.hb[1] + std::fabs(nd.axis[2]) * tb.hb[2];
-  const double m = margin - 1e-12 * tb.d1;
-  return (a + ab - nd.arad) * nd.cosa - perp * nd.sina < m && (a - ab + nd.arad) * nd.cosa + perp * nd.sina > -m;
 }
 
 // A lower bound over p in B of the largest c(p) . (x - p) over the box's corners x (at the corner
@@ -110,15 +107,33 @@ inline double tile_plane_inf_best(const TilePlane& q, const TileBox& tb, const d
 // `parent` (a walk built for a box holding this one), its entries are walked instead of the
 // hierarchy: what it dropped, every receiver of its box drops, so the result serves the same
 // receivers the same way. False: not built (every receiver walks the hierarchy itself).
+// `serves`: receivers walk the result (false: a parent, which only tiles' walks refine; what
+// only receivers read is left out of it).
 template <class T>
 bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int64_t id, const double* blo, const double* bhi,
-               bool same_n, const double* bn, const SilTileCache* parent, SilTileCache& tc) {
+               bool same_n, const double* bn, const SilTileCache* parent, SilTileCache& tc, bool serves) {
   tc.id = id;
   tc.tree = &st;
   tc.ok = false;
   tc.entries.clear();
   tc.edges.clear();
   tc.nids = 0;
+  const size_t nfaces = st.fn.size() / kFnStride;
+  if (tc.slot.size() != nfaces) {
+    tc.slot.assign(nfaces, -1);
+  } else {
+    for (const int32_t f : tc.faces) tc.slot[size_t(f)] = -1;
+  }
+  tc.faces.clear();
+  if (tc.fside.size() != nfaces) {
+    tc.fside.assign(nfaces, int8_t(2));
+  } else {
+    for (const int32_t f : tc.fside_set) tc.fside[size_t(f)] = 2;
+  }
+  tc.fside_set.clear();
+  for (std::vector<double>& v : tc.fq) v.clear();
+  tc.fnn.clear();
+  tc.f32.clear();
   const double eps = 2.220446049250313e-16;
   const double epsT = double(eps_of<T>());
   TileBox tb;
@@ -208,10 +223,11 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
     return m;
   };
   // The entry of node nd: its planes left, and its faces' sides unless every receiver's node_side
-  // is 0 (`side_in` false: the parent proved that for its box).
-  auto entry = [&](int32_t node, const SNode& nd, uint64_t inherit, bool side_in) {
+  // is 0 (`side_in` false: the parent proved that for its box). `none`: the no-prune test's
+  // value (tile_node_sides) where nd is not special and side_in.
+  auto entry = [&](int32_t node, const SNode& nd, uint64_t inherit, bool side_in, bool none) {
     STEntry en{node, -1, -1, -1, false, !nd.special && side_in, planes_left(nd, inherit)};
-    if (en.side) en.side = !tile_node_side_none(nd, tb, smargin_min);
+    if (en.side) en.side = !none;
     en.sure = horizon && en.planes == 0 && !en.side;
     return en;
   };
@@ -251,15 +267,27 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
   // cyrus_beck keeps the whole edge (t0 = 0, t1 = 1) and neither end is too close to E_h's
   // boundary: contour_edges skips those tests for it.
   const double inmarg = (1e-9 + 1024 * epsT) * tb.d1;
-  auto edge_in = [&](const double* a, const double* b) {
-    if (!horizon) return false;
-    for (const double* x : {a, b}) {
-      const double lo = hn[0] * (x[0] - tb.pc[0]) + hn[1] * (x[1] - tb.pc[1]) + hn[2] * (x[2] - tb.pc[2]) -
-                        (std::fabs(hn[0]) * tb.hb[0] + std::fabs(hn[1]) * tb.hb[1] + std::fabs(hn[2]) * tb.hb[2]);
-      if (!(lo > inmarg * hnn)) return false;
-      const double box[6] = {x[0], x[1], x[2], x[0], x[1], x[2]};
-      for (int k = 0; k < ntp; k++)
-        if (!(tile_plane_inf_best(tp[k], tb, box) > tp[k].safety + inmarg * tp[k].cn1)) return false;
+  // Per end (its position's test, kept by position id in tc.pos_in: 1 inside, 0 not, -1 not
+  // yet tested).
+  // Per end, kept by position id in tc.pos_in (-1: not yet tested).
+  auto end_in = [&](const double* x) {
+    const double lo = hn[0] * (x[0] - tb.pc[0]) + hn[1] * (x[1] - tb.pc[1]) + hn[2] * (x[2] - tb.pc[2]) -
+                      (std::fabs(hn[0]) * tb.hb[0] + std::fabs(hn[1]) * tb.hb[1] + std::fabs(hn[2]) * tb.hb[2]);
+    if (!(lo > inmarg * hnn)) return false;
+    const double box[6] = {x[0], x[1], x[2], x[0], x[1], x[2]};
+    for (int k = 0; k < ntp; k++)
+      if (!(tile_plane_inf_best(tp[k], tb, box) > tp[k].safety + inmarg * tp[k].cn1)) return false;
+    return true;
+  };
+  tc.pos_in.assign(size_t(parent && parent->ok && parent->tree == &st ? parent->nids : 0), int8_t(-1));
+  auto edge_in = [&](const double* a, const double* b, int32_t ia, int32_t ib) {
+    if (!horizon || !serves) return false;
+    for (int j = 0; j < 2; j++) {
+      const int32_t id = j ? ib : ia;
+      if (size_t(id) >= tc.pos_in.size()) tc.pos_in.resize(std::max(2 * tc.pos_in.size(), size_t(id) + 1), int8_t(-1));
+      int8_t& in = tc.pos_in[size_t(id)];
+      if (in < 0) in = int8_t(end_in(j ? b : a));
+      if (!in) return false;
     }
     return true;
   };
@@ -274,14 +302,16 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
     const decltype(edge_in)& ein;
     const TileBox& tb;
     const Occluders<T>& occ;
-    double smargin;
+    double smargin, smargin_min;
+    bool serves;
     bool deep;
     bool visit(int32_t k, int depth) {
       const SNode& nd = st.nodes[size_t(k)];
       if (out(nd.box, ~uint64_t(0))) return false;
-      if (!nd.special && tile_node_side(nd, tb, smargin) != 0) return false;
+      bool none = true;
+      if (!nd.special && tile_node_sides(nd, tb, smargin, smargin_min, none) != 0) return false;
       const size_t me = tc.entries.size();
-      tc.entries.push_back(make_entry(k, nd, ~uint64_t(0), true));
+      tc.entries.push_back(make_entry(k, nd, ~uint64_t(0), true, none));
       if (nd.left >= 0) {
         if (depth > 60) deep = true;  // deeper than the walk's stack allows
         const bool r = visit(nd.right, depth + 1);
@@ -292,14 +322,7 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
         }
       } else {
         const int32_t e0 = int32_t(tc.edges.size());
-        for (int32_t j = nd.start; j < nd.start + nd.count; j++) {
-          const SEdge& e = st.edges[size_t(j)];
-          const V3<T> a3 = occ.vref(e.ra), b3 = occ.vref(e.rb);
-          STEdge te{e, 0, false, -1, -1, {double(a3.x), double(a3.y), double(a3.z)}, {double(b3.x), double(b3.y), double(b3.z)}};
-          te.ia = pos_id(te.a);
-          te.ib = pos_id(te.b);
-          keep(te);
-        }
+        for (int32_t j = nd.start; j < nd.start + nd.count; j++) keep(st.edges[size_t(j)], nullptr);
         if (!leaf_done(me, e0)) return false;
       }
       tc.entries[me].skip = int32_t(tc.entries.size());
@@ -336,23 +359,75 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
         if (t.id < 0 || (t.x == x && t.y == y && t.z == z)) return k;
       }
     }
-    // A leaf's edge: kept unless every receiver of the box drops it, with its coverage jump
-    // where every receiver sees both faces on known sides.
-    // A jump W already known (te.w, the parent's: its box holds the tile's) holds here too.
-    void keep(STEdge te) {
-      const SEdge& e = te.e;
-      if (te.w == 0) {
-        const int sf = tile_side(st, e.f, tb);
-        const int sg = e.g >= 0 ? tile_side(st, e.g, tb) : 0;
+    // tile_side of face f, once per walk (tc.fside: 2 where not yet computed).
+    int face_side(int32_t f) {
+      int8_t& s = tc.fside[size_t(f)];
+      if (s == 2) {
+        s = int8_t(tile_side(st, f, tb));
+        tc.fside_set.push_back(f);
+      }
+      return s;
+    }
+    // A leaf's edge e: kept unless every receiver of the box drops it, with its coverage jump
+    // where every receiver sees both faces on known sides. `from`: the parent's kept edge (its
+    // box holds the tile's: a jump W it knows holds here too), or null for an edge of the
+    // hierarchy (its ends, position ids, fwd and dir are set here where it is kept).
+    void keep(const SEdge& e, const STEdge* from) {
+      int W = from ? from->w : 0;
+      if (W == 0) {
+        const int sf = face_side(e.f);
+        const int sg = e.g >= 0 ? face_side(e.g) : 0;
         if (sf != 0 && (e.g < 0 || sg != 0)) {
-          const int Wk = sf + (e.g >= 0 ? sg * e.dg : 0);
-          if (Wk == 0) return;  // no receiver's contour edge, none falls back on it
-          te.w = int8_t(Wk);
+          W = sf + (e.g >= 0 ? sg * e.dg : 0);
+          if (W == 0) return;  // no receiver's contour edge, none falls back on it
         }
       }
-      if (te.w != 0 && eout(te.a, te.b)) return;
-      te.in = ein(te.a, te.b);
-      tc.edges.push_back(te);
+      double a[3], b[3];
+      if (from) {
+        std::copy_n(from->a, 3, a);
+        std::copy_n(from->b, 3, b);
+      } else {
+        const V3<T> a3 = occ.vref(e.ra), b3 = occ.vref(e.rb);
+        a[0] = double(a3.x), a[1] = double(a3.y), a[2] = double(a3.z);
+        b[0] = double(b3.x), b[1] = double(b3.y), b[2] = double(b3.z);
+      }
+      if (W != 0 && eout(a, b)) return;
+      if (from) {
+        tc.edges.push_back(*from);
+      } else {
+        tc.edges.emplace_back();
+        STEdge& te = tc.edges.back();
+        te.e = e;
+        std::copy_n(a, 3, te.a);
+        std::copy_n(b, 3, te.b);
+        te.ia = pos_id(a);
+        te.ib = pos_id(b);
+        const V3<T> a3{T(a[0]), T(a[1]), T(a[2])}, b3{T(b[0]), T(b[1]), T(b[2])};
+        te.fwd = lex_less(a3, b3);
+        const V3<T> d = rescale(te.fwd ? b3 - a3 : a3 - b3);
+        te.dir[0] = double(d.x), te.dir[1] = double(d.y), te.dir[2] = double(d.z);
+      }
+      STEdge& te = tc.edges.back();
+      te.w = int8_t(W);
+      te.in = ein(a, b, te.ia, te.ib);
+      te.lf = te.lg = -1;
+      if (W == 0 && serves) {
+        te.lf = face_slot(e.f);
+        if (e.g >= 0) te.lg = face_slot(e.g);
+      }
+    }
+    // Face f's slot in tc.faces (added with its record on first use).
+    int32_t face_slot(int32_t f) {
+      int32_t& k = tc.slot[size_t(f)];
+      if (k < 0) {
+        k = int32_t(tc.faces.size());
+        tc.faces.push_back(f);
+        const double* q = st.fn.data() + kFnStride * size_t(f);
+        for (int d = 0; d < 6; d++) tc.fq[d].push_back(q[d]);
+        tc.fnn.push_back(q[9]);
+        tc.f32.push_back(st.f32[size_t(f)] ? 1.0 : 0.0);
+      }
+      return k;
     }
     bool leaf_done(size_t me, int32_t e0) {
       if (int32_t(tc.edges.size()) == e0) {
@@ -368,12 +443,13 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
       const STEntry& pe = par.entries[size_t(i)];
       const SNode& nd = st.nodes[size_t(pe.node)];
       if (out(nd.box, pe.planes)) return false;
-      if (!nd.special && pe.side && tile_node_side(nd, tb, smargin) != 0) return false;
+      bool none = true;
+      if (!nd.special && pe.side && tile_node_sides(nd, tb, smargin, smargin_min, none) != 0) return false;
       const size_t me = tc.entries.size();
-      tc.entries.push_back(make_entry(pe.node, nd, pe.planes, pe.side));
+      tc.entries.push_back(make_entry(pe.node, nd, pe.planes, pe.side, none));
       if (pe.e0 >= 0) {
         const int32_t e0 = int32_t(tc.edges.size());
-        for (int32_t k = pe.e0; k < pe.e1; k++) keep(par.edges[size_t(k)]);
+        for (int32_t k = pe.e0; k < pe.e1; k++) keep(par.edges[size_t(k)].e, &par.edges[size_t(k)]);
         if (!leaf_done(me, e0)) return false;
       } else {
         bool any = false;
@@ -387,7 +463,7 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
       return true;
     }
   };
-  Rec rec{st, tc, outside, edge_out, entry, edge_in, tb, occ, smargin, false};
+  Rec rec{st, tc, outside, edge_out, entry, edge_in, tb, occ, smargin, smargin_min, serves, false};
   if (parent && parent->ok && parent->tree == &st) {
     tc.nids = parent->nids;  // the parent's edges keep their ids
     if (!parent->entries.empty()) rec.visit_list(*parent, 0);
@@ -396,8 +472,50 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
     rec.visit(0, 0);
   }
   if (rec.deep) return false;
+  tc.side.resize(tc.faces.size());
+  if (serves) {
+    // Inner entries no receiver prunes (sure) are left out: a receiver's walk only steps over
+    // them. An entry's skip then names the first entry kept at or after it.
+    std::vector<STEntry>& en = tc.entries;
+    const size_t n = en.size();
+    std::vector<int32_t>& at = tc.remap;
+    at.resize(n + 1);
+    int32_t m = 0;
+    for (size_t i = 0; i < n; i++) {
+      at[i] = m;
+      m += int32_t(!en[i].sure || en[i].e0 >= 0);
+    }
+    at[n] = m;
+    for (size_t i = 0; i < n; i++)
+      if (!en[i].sure || en[i].e0 >= 0) {
+        STEntry x = en[i];
+        x.skip = at[size_t(x.skip)];
+        en[size_t(at[i])] = x;
+      }
+    en.resize(size_t(m));
+  }
   tc.ok = true;
   return true;
+}
+
+// The sides of the faces a tile left to its receivers (SilTileCache::faces), from pd with
+// S = sil_scale(st, pd), into tc.side: sil_side's operations on the faces' records, in arrays
+// (vectorized; the comparisons as selects of +-1 and 0).
+inline void tile_side_values(size_t nf, const double* __restrict q0, const double* __restrict q1, const double* __restrict q2,
+                             const double* __restrict q3, const double* __restrict q4, const double* __restrict q5,
+                             const double* __restrict nn, const double* __restrict f32, double* __restrict side, double p0, double p1,
+                             double p2, double S) {
+  const double k32 = 2 * kOnSurface * S;
+  for (size_t i = 0; i < nf; i++) {
+    const double r0 = q3[i] - p0, r1 = q4[i] - p1, r2 = q5[i] - p2;
+    const double h = q0[i] * r0 + q1[i] * r1 + q2[i] * r2;
+    const double m = std::max(1e4 * 2.220446049250313e-16 * (std::fabs(r0) + std::fabs(r1) + std::fabs(r2) + S), f32[i] != 0 ? k32 : 0.0) * nn[i];
+    side[i] = (h < -m ? 1.0 : 0.0) - (h > m ? 1.0 : 0.0);
+  }
+}
+__attribute__((noinline)) inline void tile_sides(SilTileCache& tc, const double* pd, double S) {
+  tile_side_values(tc.faces.size(), tc.fq[0].data(), tc.fq[1].data(), tc.fq[2].data(), tc.fq[3].data(), tc.fq[4].data(),
+                   tc.fq[5].data(), tc.fnn.data(), tc.f32.data(), tc.side.data(), pd[0], pd[1], pd[2], S);
 }
 
 // Contour edges in the pyramid: the hierarchy walked with the pyramid's half-spaces (`cone`, the
@@ -463,18 +581,23 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
   // where it cannot tell). False: fall back.
   // `in`: the tile proved both ends inside every cone plane with a margin (STEdge::in): the
   // clipping keeps the whole edge and the end tests below pass, so they are skipped.
-  auto edge = [&](const SEdge& e, int W, V3<T> a3, V3<T> b3, bool in, int32_t ia, int32_t ib) -> bool {
+  // `side_f`, `side_g`: sil_side of e.f and e.g (called where W is 0); `own_of`: edge_plane(p, a3, b3).
+  // `ends(a3, b3)` sets the edge's ends (read once W is known nonzero).
+  auto edge = [&](const SEdge& e, int W, bool in, int32_t ia, int32_t ib, auto side_f, auto side_g, auto ends,
+                  auto own_of) __attribute__((always_inline)) -> bool {
     if (W == 0) {
-      int sf = sil_side(st, e.f, pd, side_scale);
+      int sf = side_f();
       if (sf == 0 && !face_path_side(occ, st, e.f, p, sf)) return false;
       W = sf;
       if (e.g >= 0) {
-        int sg = sil_side(st, e.g, pd, side_scale);
+        int sg = side_g();
         if (sg == 0 && !face_path_side(occ, st, e.g, p, sg)) return false;
         W += sg * e.dg;
       }
       if (W == 0) return true;
     }
+    V3<T> a3, b3;
+    ends(a3, b3);
     if (!in) {
       // Both ends clearly outside one cone plane: cyrus_beck's interval for that plane is empty
       // (the same g0, g1; beyond its collinear tolerance, as norms are at most 1-norms), so it
@@ -492,7 +615,7 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
       }
       if (out) return true;
     }
-    const V3<T> own = edge_plane(p, a3, b3);
+    const V3<T> own = own_of(a3, b3);
     T t0 = 0, t1 = 1;
     int i0 = 0, i1 = 0;
     if (!in && !cyrus_beck(p, a3, b3, cone, np0, own, t0, t1, i0, i1)) return true;
@@ -516,7 +639,7 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
     end(t1 < 1, i1, b3, e.rb, s.b, s.cb, s.on_b);
     if (same(s.a, s.b)) return true;
     for (int k = 0; k < np0 && !in; k++) {  // an unclipped end on E_h's boundary: too close to call
-      if (!nonzero(cone[k])) continue;
+      if (cz[k]) continue;
       const V3<T> ra = s.a - p, rb = s.b - p;
       const T cn1 = cone_n[k];
       if ((s.on_a < 0 && !(std::fabs(dot(ra, cone[k])) > tol * cn1 * (std::fabs(ra.x) + std::fabs(ra.y) + std::fabs(ra.z)))) ||
@@ -533,16 +656,20 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
     const SilTileCache* parent = nullptr;
     if (w.tile.pid >= 0) {
       if (w.sil_parent.id != w.tile.pid || w.sil_parent.tree != &st)
-        tile_walk(call, st, ne, w.tile.pid, w.tile.plo, w.tile.phi, false, w.tile.n, nullptr, w.sil_parent);
+        tile_walk(call, st, ne, w.tile.pid, w.tile.plo, w.tile.phi, false, w.tile.n, nullptr, w.sil_parent, false);
       if (w.sil_parent.ok) parent = &w.sil_parent;
     }
-    tile_walk(call, st, ne, w.tile.id, w.tile.lo, w.tile.hi, w.tile.same_n, w.tile.n, parent, w.sil_tile);
+    tile_walk(call, st, ne, w.tile.id, w.tile.lo, w.tile.hi, w.tile.same_n, w.tile.n, parent, w.sil_tile, true);
   }
   if (in_tile && w.sil_tile.ok) {
-    const SilTileCache& tc = w.sil_tile;
+    SilTileCache& tc = w.sil_tile;
+    tile_sides(tc, pd, side_scale);
+    const double* side = tc.side.data();
+    const STEntry* entries = tc.entries.data();
+    const STEdge* edges = tc.edges.data();
     const int32_t n = int32_t(tc.entries.size());
     for (int32_t i = 0; i < n;) {
-      const STEntry& en = tc.entries[size_t(i)];
+      const STEntry& en = entries[i];
       if (!en.sure) {
         const SNode& nd = st.nodes[size_t(en.node)];
         if (outside_of(nd.box, en.planes) || (en.side && node_side(nd, pd, smargin) != 0)) {
@@ -550,12 +677,21 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
           continue;
         }
       }
-      if (en.e0 >= 0) {  // a leaf (its faces' records were read by the tile's walk: no prefetch)
-        for (int32_t k = en.e0; k < en.e1; k++) {
-          const STEdge& te = tc.edges[size_t(k)];
-          const V3<T> a3{T(te.a[0]), T(te.a[1]), T(te.a[2])}, b3{T(te.b[0]), T(te.b[1]), T(te.b[2])};
-          if (!edge(te.e, te.w, a3, b3, te.in, te.ia, te.ib)) return kFallback;
-        }
+      const int32_t e1 = en.e1;
+      for (int32_t k = en.e0; k < e1; k++) {  // a leaf's edges (an inner node has none)
+        const STEdge& te = edges[k];
+        const auto ends = [&](V3<T>& a3, V3<T>& b3) __attribute__((always_inline)) {
+          a3 = V3<T>{T(te.a[0]), T(te.a[1]), T(te.a[2])}, b3 = V3<T>{T(te.b[0]), T(te.b[1]), T(te.b[2])};
+        };
+        const auto own_of = [&](V3<T> a3, V3<T> b3) __attribute__((always_inline)) {
+          const V3<T> lo = te.fwd ? a3 : b3, hi = te.fwd ? b3 : a3;
+          const V3<T> rl = lo - p, rh = hi - p;
+          const V3<T> dir{T(te.dir[0]), T(te.dir[1]), T(te.dir[2])};
+          const V3<T> c = rescale(cross(dir, rescale(dot(rh, rh) < dot(rl, rl) ? rh : rl)));  // edge_plane
+          return te.fwd ? c : V3<T>{-c.x, -c.y, -c.z};
+        };
+        if (!edge(te.e, te.w, te.in, te.ia, te.ib, [&]() { return int(side[te.lf]); }, [&]() { return int(side[te.lg]); }, ends, own_of))
+          return kFallback;
       }
       i++;
     }
@@ -584,7 +720,10 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
     }
     for (int32_t k = nd.start; k < nd.start + nd.count; k++) {
       const SEdge& e = st.edges[size_t(k)];
-      if (!edge(e, 0, occ.vref(e.ra), occ.vref(e.rb), false, -1, -1)) return kFallback;
+      if (!edge(e, 0, false, -1, -1, [&]() { return sil_side(st, e.f, pd, side_scale); },
+                [&]() { return sil_side(st, e.g, pd, side_scale); }, [&](V3<T>& a3, V3<T>& b3) { a3 = occ.vref(e.ra), b3 = occ.vref(e.rb); },
+                [&](V3<T> a3, V3<T> b3) { return edge_plane(p, a3, b3); }))
+        return kFallback;
     }
   }
   return n_contour;
