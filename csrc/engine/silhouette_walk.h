@@ -267,9 +267,7 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
   // cyrus_beck keeps the whole edge (t0 = 0, t1 = 1) and neither end is too close to E_h's
   // boundary: contour_edges skips those tests for it.
   const double inmarg = (1e-9 + 1024 * epsT) * tb.d1;
-  // Per end (its position's test, kept by position id in tc.pos_in: 1 inside, 0 not, -1 not
-  // yet tested).
-  // Per end, kept by position id in tc.pos_in (-1: not yet tested).
+  // One end's test: inside every cone plane (and the horizon) for every receiver of the box.
   auto end_in = [&](const double* x) {
     const double lo = hn[0] * (x[0] - tb.pc[0]) + hn[1] * (x[1] - tb.pc[1]) + hn[2] * (x[2] - tb.pc[2]) -
                       (std::fabs(hn[0]) * tb.hb[0] + std::fabs(hn[1]) * tb.hb[1] + std::fabs(hn[2]) * tb.hb[2]);
@@ -279,6 +277,8 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
       if (!(tile_plane_inf_best(tp[k], tb, box) > tp[k].safety + inmarg * tp[k].cn1)) return false;
     return true;
   };
+  // Both ends' tests, each made once per position: kept by position id in tc.pos_in (1 inside,
+  // 0 not, -1 not yet tested).
   tc.pos_in.assign(size_t(parent && parent->ok && parent->tree == &st ? parent->nids : 0), int8_t(-1));
   auto edge_in = [&](const double* a, const double* b, int32_t ia, int32_t ib) {
     if (!horizon || !serves) return false;
