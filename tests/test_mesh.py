@@ -211,3 +211,36 @@ def test_merge_matches_the_greedy_definition(name):
     raw = js.Mesh(v, f, merge=False)
     size = float(np.max(np.ptp(v, axis=0)))
     assert m.loops == _merge_reference(raw.loops, v, size)
+
+
+def test_repeated_faces_are_dropped_and_shadow_the_same():
+    """A face repeated from another vertex or in the other direction (double-sided geometry, a
+    soup with copies) is dropped: the same point set, so the same shadows, and the mesh keeps
+    its closedness (four faces on an edge would make it non-manifold)."""
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.3)
+    v = np.asarray(sphere.vertices) + [0.0, 0.0, 1.0]
+    f = np.asarray(sphere.faces)
+    rng = np.random.default_rng(3)
+    pick = rng.choice(len(f), 12, replace=False)
+    rolled = np.roll(f[pick[:6]], 1, axis=1)            # same loop, another start
+    flipped = f[pick[6:]][:, ::-1]                      # same triangle, other direction
+    f2 = np.concatenate([f, rolled, flipped, f[:1]])    # and one exact copy
+    plain, doubled = js.Mesh(v, f), js.Mesh(v, f2)
+    assert (plain.n_repeated, doubled.n_repeated) == (0, 13)
+    assert doubled.closed and doubled.convex == plain.convex
+    assert doubled.loops == plain.loops
+    # a face sharing all but one vertex with another is not a repeat
+    other = np.array([[f[0][0], f[0][1], f[1][2]]])
+    assert js.Mesh(v, np.concatenate([f, other])).n_repeated == 0
+
+    light = js.PolygonLight(np.array([[-0.4, -0.4, 2.0], [-0.4, 0.4, 2.0], [0.4, 0.4, 2.0], [0.4, -0.4, 2.0]]), 1.0)
+    g = np.linspace(-1.0, 1.0, 9)
+    p = np.stack([*np.meshgrid(g, g, indexing="ij"), np.zeros((9, 9))], axis=-1).reshape(-1, 3)
+    n = np.tile([0.0, 0.0, 1.0], (len(p), 1))
+    e0 = np.asarray(js.irradiance(js.Scene([light], occluders=[plain]), p, n))
+    e1 = np.asarray(js.irradiance(js.Scene([light], occluders=[doubled]), p, n))
+    soup = v[f2][rng.permutation(len(f2))]
+    e2 = np.asarray(js.irradiance(js.Scene([light], occluders=soup), p, n))
+    assert np.ptp(e0) > 0.1 * np.max(e0)  # some receivers in shadow
+    np.testing.assert_array_equal(e1, e0)
+    np.testing.assert_allclose(e2, e0, rtol=1e-12, atol=1e-15)

@@ -103,6 +103,30 @@ class _Faces:
             return rows
         return [r[:n] for r, n in zip(rows, self.lens.tolist(), strict=True)]
 
+    def distinct(self) -> tuple[_Faces, int]:
+        """The faces without repeats: a face whose loop is an earlier face's, up to the starting
+        vertex and the direction, is dropped (it covers the same point set, so it blocks nothing
+        more; a repeated face would make each of its edges shared by four faces, which the shadow
+        engine treats as a non-manifold edge, ~100x slower on a scan with 1 % of its faces
+        repeated). **Returns:** (the faces left, in their order; the number dropped)."""
+        keep = np.ones(len(self.lens), dtype=bool)
+        for idx, arr in self.groups():
+            if len(idx) < 2:
+                continue
+            k = arr.shape[1]
+            start = np.argmin(arr, axis=1)  # each loop from its smallest index ...
+            rot = arr[np.arange(len(arr))[:, None], (start[:, None] + np.arange(k)) % k]
+            back = rot[:, 1] > rot[:, -1]  # ... in the direction of its smaller neighbour
+            rot[back, 1:] = rot[back, :0:-1]
+            _, first = np.unique(rot, axis=0, return_index=True)
+            kept = np.zeros(len(idx), dtype=bool)
+            kept[first] = True
+            keep[idx[~kept]] = False
+        dropped = int(len(keep) - keep.sum())
+        if not dropped:
+            return self, 0
+        return _Faces(self.pad[keep], self.lens[keep]), dropped
+
     def padded_to(self, k: int) -> np.ndarray:
         """`(F, k)` vertex indices, padded with each face's first vertex (k >= K)."""
         if k == self.pad.shape[1]:

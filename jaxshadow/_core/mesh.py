@@ -58,7 +58,9 @@ class Mesh:
 
     **Attributes:** `polygons` (list of `(k, 3)` arrays, the faces the kernels see), `loops`
     (their vertex indices), `closed`, `convex`, `n_input_faces`, `n_welded` (vertices merged
-    away by `weld` or `welded`; 0 otherwise).
+    away by `weld` or `welded`; 0 otherwise), `n_repeated` (faces dropped because they repeat an
+    earlier face's loop, from any vertex and in either direction: the same point set, so the
+    shadows are unchanged; double-sided geometry stores each face twice).
 
     Raises `ValueError` for non-finite vertices, indices out of range, faces with fewer than three
     distinct vertices or zero area, and non-planar polygon faces (checked after welding).
@@ -78,6 +80,7 @@ class Mesh:
     """
 
     n_welded: int = 0  # vertices merged away by `weld` or `welded`
+    n_repeated: int = 0  # faces dropped as repeats of an earlier face (same loop up to start and direction)
 
     def __init__(self, vertices: Any, faces: Any, *, merge: bool = True, weld: float | None = None):
         v = np.asarray(vertices, dtype=np.float64)
@@ -106,6 +109,7 @@ class Mesh:
             raise ValueError("Mesh: all vertices coincide.")
         self.vertices = v
         self.n_input_faces = len(table)
+        table, self.n_repeated = table.distinct()
         if check:
             _check_faces(table, v, size)
         self.closed, flip, index = _closed(table, v)
