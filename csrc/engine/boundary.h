@@ -165,13 +165,18 @@ void boundary_runs(const Occluders<T>& occ, V3<T> p, T tol, const V3<T>* ehv, in
           // that bound. Taken as crossing, their common line's point would be that of two planes
           // a rounding apart, anywhere on the line or off it (cross(N1, N2) below its rounding):
           // a boundary vertex off both edges, and a wrong region.
+          // One end within the band and the other off it: an end clipped where the edge's plane
+          // meets a nearly parallel one (p on a face, its neighbour's edge along the horizon) is
+          // off that plane by the crossing's rounding, up to eps over the planes' angle; the
+          // edges on one line in space are then still one plane (a twin's shared edge).
           if (!collinear && econd > 0 && w.pcond[pk] > 0) {
             const T cb = (T(4) + econd + w.pcond[pk]) * tol;
             const T band = cb * w.pnorm[pk] * apn;
-            if (!(std::fabs(g0) > band) && !(std::fabs(g0 + g1) > band)) {
+            const bool near0 = !(std::fabs(g0) > band), near1 = !(std::fabs(g0 + g1) > band);
+            if (near0 || near1) {
               collinear = collinear_in_space(occ.vref(e.own_ref.a), occ.vref(e.own_ref.b), occ.vref(w.prefs[pk].a),
                                              occ.vref(w.prefs[pk].b), p);
-              if (!collinear) {
+              if (!collinear && near0 && near1) {
                 const V3<T> cr = cross(normalize_safe(e.own), unit(pk));
                 collinear = dot(cr, cr) <= cb * cb;
               }
