@@ -28,6 +28,7 @@ from ._diagnostics import (
     turned_widened,
 )
 from ._identifiability import identifiability, quantity_error
+from ._mirror import mirrored_rows
 from ._multilight import (
     LightsProblem,
     build_lights,
@@ -174,6 +175,9 @@ def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, ca
         if more is not None and len(more[1]):  # in distinct basins, lowest loss first; the same rule
             rows_r += _rival_rows(np.asarray(more[0], np.float64)[:, :problem.n_pose], np.asarray(more[1], np.float64),
                                   np.asarray(theta, np.float64), chi2_of, w, len(names), best=float(np.min(final[1])))
+        # the lights mirrored across the targets' symmetry plane (`_mirror`): as good as the answer
+        # where the targets cannot tell them apart, a placement the search never visits after an exact fit
+        rows_r += list(mirrored_rows(problem, np.asarray(theta, np.float64), build_lights(problem, th), spec))
         at_rows = rows_at(np.asarray(rows_r)) if rows_at is not None and rows_r else []
         for i, row in enumerate(rows_r):
             th_r = jnp.asarray(row, dt)
