@@ -252,3 +252,30 @@ def test_mirrored_parameters():
         else:
             np.testing.assert_allclose(np.asarray(back.position), _mirror.reflect(np.asarray(fitted.position), plane),
                                        atol=1e-12)
+
+
+def test_mirror_placement_shadowed_is_no_rival(monkeypatch):
+    """The same line of targets with a box that shadows four of them from the light: its mirror
+    image is evaluated (the targets still have their symmetry plane) but the box does not shadow
+    it alike, so it misses the shadowed targets and does not compete: the exact answer stays
+    trusted."""
+    from benchmarks.inverse_random_scenes import box_faces
+
+    x = np.linspace(-1.0, 1.0, 16)
+    pts = np.c_[x, np.zeros(16), np.zeros(16)]
+    a = np.linspace(-0.6, 0.6, 16)[np.random.default_rng(0).permutation(16)]
+    nrm = np.c_[np.sin(a), np.zeros(16), np.cos(a)]
+    box = box_faces(np.array([0.0, 0.02, 0.5]), np.array([0.3, 0.12, 0.6]))
+    true = js.Scene([js.PointLight(TRUE, 3.0)], occluders=box, ambient=0.05)
+    col = np.asarray(js.shade(true, MATERIAL, pts, nrm, EYE), np.float64)
+    unshadowed = np.asarray(js.shade(js.Scene([js.PointLight(TRUE, 3.0)], ambient=0.05), MATERIAL, pts, nrm, EYE))
+    assert np.sum(np.abs(col - unshadowed).max(axis=1) > 1e-6) == 4
+    rows = []
+    mirrored = _result.mirrored_rows
+    monkeypatch.setattr(_result, "mirrored_rows", lambda *a: rows.append(mirrored(*a)) or rows[-1])
+    start = js.Scene([js.PointLight([-0.4, 0.1, 1.5], 3.0)], occluders=box, ambient=0.05)
+    fit = inverse.fit_lights(start, inverse.PaintedTargets(pts, nrm, col, EYE), MATERIAL, fit=("position", "power"),
+                             warn=False)
+    np.testing.assert_allclose(np.asarray(fit.lights[0].position, np.float64), TRUE, atol=1e-6)
+    assert len(rows) == 1 and rows[0].shape[0] == 1  # the mirror image was checked
+    assert fit.report.trusted and not fit.report.quality.rivals
