@@ -29,7 +29,27 @@ The rules (thresholds are the module's constants):
   is below `COLLAPSED_FRACTION` (1 %) of the scene size: it shines like a segment or a point,
   its size and power trade off (a quad of 0.1 mm by 6 cm at 6e4 times its power came back from
   a start 30 % of the scene away): a wrong minimum, or a light of another kind. Flagged, not
-  trusted.
+  trusted, unless the targets' noise allows the light at an ordinary width
+  (`_multilight_result.collapse_within_noise`): the same light widened to
+  `COLLAPSE_WIDTH_FRACTION` (10 %) of the scene, the size of the lights of a room (at 1 % the
+  test has no power: from 1-2 m a 5 cm light and a 0.1 mm one both look like points; its
+  narrow log size, or a segment's log length, raised; every other pose
+  parameter as fitted, the powers and material solved again) has a $\chi^2$ within
+  `COLLAPSE_CHI2` (9) of the answer's, and one Gauss-Newton step from that widened pose (its
+  size held) moves none of the light's centre coordinates by more than `RIVAL_SIGMAS` (3) of
+  its standard errors (at the collapse the size's column vanishes, so the centre's linearised
+  errors know nothing of the size; the step estimates where a fit at that width puts
+  the light). "At least that wide" is one constraint: where it holds,
+  the best constrained fit's $\chi^2$ excess under Gaussian noise is at most a $\chi^2_1$
+  variable, and the widened light, not refitted, has an excess no smaller than that fit's; an
+  excess within 9 (3 standard deviations of one parameter) says the targets cannot tell the
+  collapse from a light of that width, so it is no sign of a wrong minimum. The light's
+  size is then reported not determined (`FitQuality.loose_size`, its log sizes not determined,
+  a message on how to measure it), and its centre and emitted power are judged by their own
+  standard errors (`_determinacy`). With noise-free targets (a told noise of 1e-4) a widened
+  light's penumbrae move the colours far beyond that, and a collapse in a wrong basin comes
+  with a residual above the noise: both stay flagged. Checked where the rivals are
+  (`fit_lights` with fitted powers, no budget, ranges or relations).
 - **Degenerate light.** A fitted light that jaxshadow itself rejects (`invalid_reason`: a
   polygon with a zero-length edge, coincident vertices or zero area, a segment of zero length,
   a non-finite coordinate or power) is collapsed too, escaped or not (a zero-area polygon
@@ -149,6 +169,8 @@ ESCAPE_FACTOR = 10.0
 DARK_FRACTION = 1e-6
 UNUSED_FRACTION = 1e-6
 COLLAPSED_FRACTION = 0.01
+COLLAPSE_CHI2 = 9.0  # `collapse_within_noise`: a chi2 excess of 3 standard deviations of one constraint
+COLLAPSE_WIDTH_FRACTION = 0.1  # `collapse_within_noise`: the width a collapsed light is widened to, of the scene
 RIVAL_DISTANCE = 0.01
 RIVAL_SIGMAS = 3.0
 RIVAL_TURN = math.radians(5.0)
@@ -189,6 +211,8 @@ class FitQuality:
       the fit reports quantities, else its position parameters and power.
     - `rivals`: `((excess chi2, {light name: pose}, differing lights), ...)`, the other distinct
       placements that explain the targets about as well (`rival_placements`).
+    - `loose_size`: `{light name: chi2 excess}`, lights below the collapse limit that explain the
+      targets as well at it (`collapse_within_noise`): their size is not determined, no flag.
     """
 
     trusted: bool
@@ -208,6 +232,7 @@ class FitQuality:
     collapsed: dict = dataclasses.field(default_factory=dict)
     undetermined: dict = dataclasses.field(default_factory=dict)
     rivals: tuple = ()
+    loose_size: dict = dataclasses.field(default_factory=dict)
 
     @property
     def reason(self) -> str:
@@ -554,17 +579,24 @@ def without_invalid_lights(scene: js.Scene) -> js.Scene:
     return eqx.tree_at(lambda s: s.lights, scene, keep)
 
 
-def collapse_reason(light: Any, scale: float) -> str | None:
-    """Why `light` (a polygon or segment) has collapsed (module docstring), or None."""
+def light_width(light: Any) -> tuple[float, str] | None:
+    """`(width (m), what)` the collapse rule measures (module docstring): a polygon's narrowest
+    width, a segment's length; None for other lights."""
     if isinstance(light, js.PolygonLight):
         v = np.asarray(light.vertices, np.float64)
         s = np.linalg.svd(v - v.mean(axis=0), compute_uv=False)
-        width, what = 2.0 * float(s[1]) / math.sqrt(v.shape[0]), "narrowest width"
-    elif isinstance(light, js.LinearLight):
-        width, what = float(np.linalg.norm(np.asarray(light.end, np.float64) - np.asarray(light.start, np.float64))), \
-            "length"
-    else:
+        return 2.0 * float(s[1]) / math.sqrt(v.shape[0]), "narrowest width"
+    if isinstance(light, js.LinearLight):
+        return float(np.linalg.norm(np.asarray(light.end, np.float64) - np.asarray(light.start, np.float64))), "length"
+    return None
+
+
+def collapse_reason(light: Any, scale: float) -> str | None:
+    """Why `light` (a polygon or segment) has collapsed (module docstring), or None."""
+    measured = light_width(light)
+    if measured is None:
         return None
+    width, what = measured
     if width < COLLAPSED_FRACTION * scale:
         return (f"its {what} is {width:.3g} m, below {100 * COLLAPSED_FRACTION:g} % of the scene size ({scale:.3g} m): "
                 "it shines like a point (or a segment), its size and power trade off")
@@ -595,8 +627,9 @@ def assess(*, targets: Any, residual: np.ndarray, noise: Any, n_params: int, nam
            values: dict, determined: dict, scale: float, lights: dict, light_params: dict,
            candidates: tuple = (), messages: list, all_dark: bool = False,
            contributions: dict | None = None, determinacy: bool = True,
-           converged: bool = True, rivals: tuple = (), quantities: dict | None = None) -> tuple[FitQuality, dict]:
-    """Run the checks on a fit's solution.
+           converged: bool = True, rivals: tuple = (), quantities: dict | None = None,
+           size_free: dict | None = None) -> tuple[FitQuality, dict]:
+    r"""Run the checks on a fit's solution.
 
     **Arguments:** `targets`; `residual (N, 3)` = model - colours (unweighted); `noise` (module
     docstring); `n_params`: free parameters; `names`, `std_errors`, `values`, `determined` as in
@@ -612,7 +645,9 @@ def assess(*, targets: Any, residual: np.ndarray, noise: Any, n_params: int, nam
     (`rival_placements`; flag `"competing_placements"`); `quantities`: {name:
     `inverse._uncertainty.Quantity`}, what the report vouches for (a several-light fit's
     centres and emitted powers): the undetermined rule judges a light by them (module
-    docstring), None: by its parameters.
+    docstring), None: by its parameters; `size_free`: {light name: the $\chi^2$ excess of that
+    light at the collapse limit} for the collapsed lights that are within the noise there
+    (`collapse_within_noise`): their size is reported undetermined, not collapsed.
 
     **Returns:** `(quality, determined (updated))`; `quality.emitted`: the warnings to emit.
     """
@@ -664,8 +699,22 @@ def assess(*, targets: Any, residual: np.ndarray, noise: Any, n_params: int, nam
     for nm, why in invalid.items():
         collapsed[nm] = f"it is no valid light ({why.rstrip('.')}); it was evaluated as no light (zero contribution)"
         say(f"{nm} collapsed: {collapsed[nm]}: a wrong minimum, or a light of another kind.", nm)
+    loose_size = {}
     for nm, light in lights.items():
         why = None if nm in invalid else collapse_reason(light, scale)
+        if why is not None and nm not in escaped and nm in (size_free or {}):
+            loose_size[nm] = float(size_free[nm])  # type: ignore[index]
+            width, what = light_width(light)  # type: ignore[misc]
+            sizes = [p for p in light_params.get(nm, ()) if p.rsplit(".", 1)[-1].startswith("log_")]
+            for p in sizes:
+                determined[p] = False
+            messages.append(
+                f"{nm}'s size is not determined by these targets: its {what} came out {width:.3g} m, but at "
+                f"{100 * COLLAPSE_WIDTH_FRACTION:g} % of the scene size ({COLLAPSE_WIDTH_FRACTION * scale:.3g} m) it explains them "
+                f"as well (chi-square {loose_size[nm]:+.3g}, within {COLLAPSE_CHI2:g}): a larger light that these "
+                "targets see as a point (or a segment); its centre and emitted power are what the fit reports. Targets "
+                "in the penumbrae of its shadows measure its size.")
+            continue
         if why is not None and nm not in escaped:
             collapsed[nm] = why
             say(f"{nm} collapsed: {why}: a wrong minimum, or a light of another kind.")
@@ -677,7 +726,8 @@ def assess(*, targets: Any, residual: np.ndarray, noise: Any, n_params: int, nam
             "its pose is not determined; the targets need fewer lights, or it stopped where it cannot light them.", nm)
     if unused:
         flags.append("unused_light")
-    near = nearly_undetermined(names, std_errors, values, scale, determined)
+    near = nearly_undetermined(names, std_errors, values, scale, determined) + tuple(
+        p for nm in loose_size for p in light_params.get(nm, ()) if p.rsplit(".", 1)[-1].startswith("log_"))
     for nm in near:
         determined[nm] = False
         messages.append(f"{nm} is nearly undetermined by these targets: standard error {std_errors[nm]:.3g} > "
@@ -730,5 +780,5 @@ def assess(*, targets: Any, residual: np.ndarray, noise: Any, n_params: int, nam
         std_errors_trusted=not wrong, competing=tuple(candidates),
         outliers=tuple(int(i) for i in out_idx), outlier_z=z, conflicting=conflicting, escaped=escaped,
         collapsed=collapsed, undetermined=undetermined, nearly_undetermined=near, emitted=tuple(emit), unused=unused,
-        rivals=tuple(rivals))
+        rivals=tuple(rivals), loose_size=loose_size)
     return quality, determined

@@ -16,9 +16,14 @@ import numpy as np
 
 from ._basis_rows import BasisRows
 from ._diagnostics import (
+    COLLAPSE_CHI2,
+    COLLAPSE_WIDTH_FRACTION,
+    RIVAL_SIGMAS,
     assess,
+    collapse_reason,
     competing_placements,
     dark_answer,
+    light_width,
     noise_sigma,
     quantity_determined,
     rival_allowance,
@@ -28,6 +33,7 @@ from ._diagnostics import (
     turned_widened,
 )
 from ._identifiability import identifiability, quantity_error
+from ._mirror import mirrored_rows
 from ._multilight import (
     LightsProblem,
     build_lights,
@@ -174,6 +180,9 @@ def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, ca
         if more is not None and len(more[1]):  # in distinct basins, lowest loss first; the same rule
             rows_r += _rival_rows(np.asarray(more[0], np.float64)[:, :problem.n_pose], np.asarray(more[1], np.float64),
                                   np.asarray(theta, np.float64), chi2_of, w, len(names), best=float(np.min(final[1])))
+        # the lights mirrored across the targets' symmetry plane (`_mirror`): as good as the answer
+        # where the targets cannot tell them apart, a placement the search never visits after an exact fit
+        rows_r += list(mirrored_rows(problem, np.asarray(theta, np.float64), build_lights(problem, th), spec))
         at_rows = rows_at(np.asarray(rows_r)) if rows_at is not None and rows_r else []
         for i, row in enumerate(rows_r):
             th_r = jnp.asarray(row, dt)
@@ -189,13 +198,38 @@ def result(problem: LightsProblem, theta: np.ndarray, idx: list, size: float, ca
         # placements that only turn a light: its rotation's standard errors widened (`rival_turns`)
         se = turned_widened(se, rival_turns(answer, others, chi2, len(names), se, light_params), light_params)
         se, quantities = widened(se, quantities, answer, rivals)  # the rivals' spread (`_uncertainty.widened`)
+    size_free = None
+    if paint is None and problem.budget is None and problem.fit_power:
+        chi2_c = _chi2(t, noise) if noise is not None else _chi2_at_residual(w, ident.sigma2, colours, len(names))
+
+        def step_at(E_r: np.ndarray, S_r: np.ndarray | None, dE_r: np.ndarray, dS_r: np.ndarray | None,
+                    hold: list) -> np.ndarray:
+            # one Gauss-Newton step in the poses (less `hold`) and the free powers from a basis and its tangents
+            S_r = np.zeros_like(E_r) if S_r is None else S_r
+            p_r, k_r = coef(E_r, S_r)
+            model_r = _model(E_r, S_r, e0, s0, La, p_r, k_r, spec)
+            mat_r = material_of(k_r, m.exponent, dt) if project else m
+            tang = _model_tangents(mat_r, p_r, dE_r[:problem.n_pose], None if dS_r is None else dS_r[:problem.n_pose],
+                                   spec, colours.shape)
+            keep = [i for i in range(problem.n_pose) if i not in hold]
+            A = np.concatenate([painted_jacobian(model_r, tang, sw, None)[:, keep],
+                                painted_jacobian(model_r, k_r[1] / np.pi * E_r + (k_r[2] * S_r if spec else 0.0), sw,
+                                                 None)[:, free_p]], axis=1)
+            d = np.linalg.lstsq(A, -(sw * (model_r - colours)).reshape(-1), rcond=None)[0]
+            out = np.zeros(problem.n_pose)
+            out[keep] = d[:len(keep)]
+            return out
+
+        size_free = collapse_within_noise(
+            problem, np.asarray(theta, np.float64), pose_names, idx, size, chi2_c, chi2_c(residual),
+            lambda EE, SS: _model(EE, SS, e0, s0, La, *coef(EE, SS), spec) - colours, rows_at, step_at, se)
     quality, determined = assess(
         targets=t, residual=residual, noise=noise, n_params=len(names), names=names, std_errors=se, values=values_d,
         determined=determined, scale=size, lights=moved, light_params=light_params, candidates=competing,
         messages=warnings, all_dark=dark,
         contributions={f"light{idx[j]}": float(np.sqrt(np.sum(w * (powers[j] * per_light[j]) ** 2)))
                        for j in range(J)} if problem.fit_power else None, determinacy=paint is None,
-        converged=converged, rivals=rivals, quantities=quantities)
+        converged=converged, rivals=rivals, quantities=quantities, size_free=size_free)
     fixed = [x for n, x in enumerate(problem.scene.lights) if n not in idx]
     rv = row_variance(w, t, noise) if noise is not None and paint is None else None
     rv = np.full(w.size, ident.sigma2 if ident.sigma2 > 0 else 1.0) if rv is None else rv
@@ -266,6 +300,61 @@ def _chi2(targets: Any, noise: Any) -> Any:
     sigma, _ = noise_sigma(targets, noise)
     ok = np.isfinite(sigma)
     return lambda r: float(np.sum(np.where(ok, (np.asarray(r, np.float64) / np.where(ok, sigma, 1.0)) ** 2, 0.0)))
+
+
+def collapse_within_noise(problem: LightsProblem, theta: np.ndarray, pose_names: tuple, idx: list, size: float,
+                          chi2_of: Any, chi2: float, residual_at: Any, rows_at: BasisRows | None,
+                          step_at: Any, std_errors: dict) -> dict:
+    r"""`{light name: chi2 excess}` for the collapsed lights (`_diagnostics.collapse_reason`) that
+    explain the targets within `COLLAPSE_CHI2` of the answer's $\chi^2$ at the collapse limit
+    (`_diagnostics`, collapsed light): each such light widened to `COLLAPSE_WIDTH_FRACTION` of the
+    scene size `size` (m), by raising one of its log sizes (a polygon's two tried, the lower
+    excess kept; a segment's log length), every other pose parameter of `theta (n_pose,)` as
+    fitted; `residual_at(E, S)`: the residual with the powers and material solved at that basis
+    (as at the answer); `chi2_of`: the fit's $\chi^2$ of a residual; `chi2`: the answer's.
+
+    A widened light that fits as well may still sit elsewhere: at the collapse the centre's
+    linearised standard errors ignore the size (its column vanishes), so one Gauss-Newton step
+    from the widened pose with the size held (`step_at(E, S, dE, dS, held indices)`: the pose
+    change) estimates where a fit at that size puts the light; a centre coordinate moved by more
+    than `RIVAL_SIGMAS` of its standard error (`std_errors`) keeps the collapse flagged. Without
+    the search's rows (`rows_at` None) none is within the noise."""
+    dt = problem.targets.points.dtype
+    fitted = build_lights(problem, jnp.asarray(theta, dt))
+    limit = COLLAPSE_WIDTH_FRACTION * size
+    rows, owners = [], []
+    for j, light in enumerate(fitted):
+        nm = f"light{idx[j]}"
+        if problem.params[j] is None or collapse_reason(light, size) is None:
+            continue
+        width = max(light_width(light)[0], 1e-12 * size)  # type: ignore[index]
+        for k, p in enumerate(pose_names):
+            if p.startswith(nm + ".") and p.rsplit(".", 1)[-1].startswith("log_"):
+                row = np.array(theta, np.float64)
+                row[k] += math.log(1.05 * limit / width)
+                rows.append(row)
+                owners.append((j, nm))
+    if not rows or rows_at is None:
+        return {}
+    at = rows_at(np.asarray(rows))
+    out: dict = {}
+    for i, (row, (j, nm)) in enumerate(zip(rows, owners, strict=True)):
+        if collapse_reason(build_lights(problem, jnp.asarray(row, dt))[j], size) is not None:
+            continue  # this size does not widen its narrow side
+        E_r, S_r = at[i][0], (np.zeros_like(at[i][0]) if at[i][1] is None else at[i][1])
+        excess = chi2_of(residual_at(E_r, S_r)) - chi2
+        if not (math.isfinite(excess) and excess <= COLLAPSE_CHI2):
+            continue
+        held = [k for k, p in enumerate(pose_names) if p.startswith(nm + ".") and p.rsplit(".", 1)[-1].startswith("log_")]
+        step = step_at(E_r, at[i][1], at[i][2], at[i][3], held)
+        moved = False
+        for ax in "xyz":
+            k = pose_names.index(f"{nm}.{ax}") if f"{nm}.{ax}" in pose_names else None
+            se = std_errors.get(f"{nm}.{ax}", math.inf)
+            moved |= k is not None and not abs(float(step[k])) * size <= RIVAL_SIGMAS * se  # theta: scene sizes
+        if not moved:
+            out[nm] = min(out.get(nm, math.inf), float(excess))
+    return out
 
 
 def _chi2_at_residual(w: np.ndarray, sigma2: float, colours: np.ndarray, n_params: int) -> Any:

@@ -9,6 +9,7 @@ targets cannot tell the two placements apart; with 1 % noise the global placemen
 import math
 import warnings
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -183,3 +184,98 @@ def test_estimated_noise_rivals_at_the_residual_scale():
     assert rivals(exact, 30.0 * exact, s2)  # both exact (at the fit's exact level), each at its own rounding
     assumed = (0.025 * math.sqrt(float(np.mean(colours ** 2)))) ** 2
     assert float(np.sum(near ** 2)) / assumed < allowed  # within the allowance at the assumed noise
+
+
+def test_mirror_placement_noise_free_is_flagged():
+    """Noise-free targets on the line: the given pose's local search fits them exactly, so the
+    search never places the light again, yet its mirror image in y = 0 fits them exactly too:
+    the report adds that placement (`inverse._mirror`) and flags the answer."""
+    x = np.linspace(-1.0, 1.0, 16)
+    pts = np.c_[x, np.zeros(16), np.zeros(16)]
+    a = np.linspace(-0.6, 0.6, 16)[np.random.default_rng(0).permutation(16)]
+    nrm = np.c_[np.sin(a), np.zeros(16), np.cos(a)]
+    true = js.Scene([js.PointLight(TRUE, 3.0)], ambient=0.05)
+    col = np.asarray(js.shade(true, MATERIAL, pts, nrm, EYE), np.float64)
+    targets = inverse.PaintedTargets(pts, nrm, col, EYE)
+    start = js.Scene([js.PointLight([-0.4, 0.1, 1.5], 3.0)], ambient=0.05)
+    fit = inverse.fit_lights(start, targets, MATERIAL, fit=("position", "power"), warn=False)
+    q = fit.report.quality
+    got = np.asarray(fit.lights[0].position, np.float64)
+    np.testing.assert_allclose(got, TRUE, atol=1e-6)  # exact, in the truth's basin
+    assert not fit.report.trusted and "competing_placements" in q.flags
+    excess, poses, differ = q.rivals[0]
+    assert differ == ("light0",) and abs(excess) <= diag.rival_allowance(len(fit.report.names))
+    np.testing.assert_allclose(poses["light0"]["centre"], TRUE * [1.0, -1.0, 1.0], atol=1e-6)
+    assert fit.report.std_errors["light0.y"] >= 0.3 - 1e-6  # widened over the mirror (2 x 0.15 m)
+
+
+def test_mirrored_parameters():
+    """`inverse._mirror`: the symmetry plane of targets on a line (normals in the plane through
+    it), none for targets spread over a floor; the parameters of a segment, a quad and a point
+    light mirrored across it build the reflected lights (a quad's winding kept facing its
+    reflected normal)."""
+    from inverse import _mirror
+    from inverse._parametrisation import LightParametrisation
+
+    x = np.linspace(-1.0, 1.0, 7)
+    line = np.c_[x, 0.5 * x, np.zeros(7)]
+    tilt = np.c_[0.2 * np.sin(x), 0.1 * np.sin(x), np.ones(7)]
+    plane = _mirror.symmetry_plane(line, tilt)
+    assert plane is not None
+    np.testing.assert_allclose(abs(plane[1] @ np.array([1.0, -2.0, 0.0]) / math.sqrt(5.0)), 1.0, atol=1e-12)
+    rng = np.random.default_rng(1)
+    assert _mirror.symmetry_plane(np.c_[rng.uniform(-1, 1, (7, 2)), np.zeros(7)], tilt) is None
+    assert _mirror.symmetry_plane(line, tilt, eye=np.array([0.0, -2.0, 2.0])) is None  # the eye off the plane
+    seg = js.LinearLight(np.array([0.1, 0.4, 1.2]), np.array([0.5, 0.6, 1.3]), 2.0)
+    u, v = np.array([0.4, 0.1, 0.05]), np.array([-0.1, 0.4, 0.0])
+    quad = js.PolygonLight(np.array([0.0 * u, v, 1.5 * u + v, 1.5 * u]) + [0.0, 0.0, 1.5], 1.0)  # a rectangle, facing down
+    kite = js.PolygonLight(np.array([[0.0, 0.0, 1.5], [0.4, 0.1, 1.55], [0.35, 0.5, 1.5], [-0.05, 0.4, 1.45]]), 1.0)
+    p = LightParametrisation(kite, 0, ("position", "orientation"), None, 4.0, "sigmoid")
+    assert _mirror.mirrored_theta(p, np.zeros(p.size), kite, plane) is None  # its mirror image is no rotation of it
+    point = js.PointLight(np.array([0.2, 0.7, 1.1]), 1.0)
+    groups = ("position", "orientation", "size")
+    for light, fit in ((seg, groups), (quad, groups), (point, ("position",))):
+        p = LightParametrisation(light, 0, fit, None, 4.0, "sigmoid")
+        th = 0.05 * rng.normal(size=p.size)  # a fitted pose off the template
+        fitted = p.build(jnp.asarray(th))
+        new = _mirror.mirrored_theta(p, th, fitted, plane)
+        assert new is not None
+        back = p.build(jnp.asarray(new))
+        if isinstance(light, js.LinearLight):
+            ends = [np.asarray(fitted.start), np.asarray(fitted.end)]
+            np.testing.assert_allclose(np.asarray(back.start), _mirror.reflect(ends[0], plane), atol=1e-9)
+            np.testing.assert_allclose(np.asarray(back.end), _mirror.reflect(ends[1], plane), atol=1e-9)
+        elif isinstance(light, js.PolygonLight):
+            v, b = np.asarray(fitted.vertices), np.asarray(back.vertices)
+            ref = _mirror.reflect(v, plane)[::-1]
+            assert min(np.max(np.abs(np.roll(ref, s, axis=0) - b)) for s in range(4)) < 1e-9
+        else:
+            np.testing.assert_allclose(np.asarray(back.position), _mirror.reflect(np.asarray(fitted.position), plane),
+                                       atol=1e-12)
+
+
+def test_mirror_placement_shadowed_is_no_rival(monkeypatch):
+    """The same line of targets with a box that shadows four of them from the light: its mirror
+    image is evaluated (the targets still have their symmetry plane) but the box does not shadow
+    it alike, so it misses the shadowed targets and does not compete: the exact answer stays
+    trusted."""
+    from benchmarks.inverse_random_scenes import box_faces
+
+    x = np.linspace(-1.0, 1.0, 16)
+    pts = np.c_[x, np.zeros(16), np.zeros(16)]
+    a = np.linspace(-0.6, 0.6, 16)[np.random.default_rng(0).permutation(16)]
+    nrm = np.c_[np.sin(a), np.zeros(16), np.cos(a)]
+    box = box_faces(np.array([0.0, 0.02, 0.5]), np.array([0.3, 0.12, 0.6]))
+    true = js.Scene([js.PointLight(TRUE, 3.0)], occluders=box, ambient=0.05)
+    col = np.asarray(js.shade(true, MATERIAL, pts, nrm, EYE), np.float64)
+    unshadowed = np.asarray(js.shade(js.Scene([js.PointLight(TRUE, 3.0)], ambient=0.05), MATERIAL, pts, nrm, EYE))
+    assert np.sum(np.abs(col - unshadowed).max(axis=1) > 1e-6) == 4
+    rows = []
+    mirrored = _result.mirrored_rows
+    monkeypatch.setattr(_result, "mirrored_rows", lambda *a: rows.append(mirrored(*a)) or rows[-1])
+    start = js.Scene([js.PointLight([-0.4, 0.1, 1.5], 3.0)], occluders=box, ambient=0.05)
+    fit = inverse.fit_lights(start, inverse.PaintedTargets(pts, nrm, col, EYE), MATERIAL, fit=("position", "power"),
+                             warn=False)
+    np.testing.assert_allclose(np.asarray(fit.lights[0].position, np.float64), TRUE, atol=1e-6)
+    assert len(rows) == 1 and rows[0].shape[0] == 1  # the mirror image was checked
+    assert fit.report.trusted and not fit.report.quality.rivals
