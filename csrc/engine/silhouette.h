@@ -59,6 +59,9 @@ inline bool sil_apart(const SilBox& a, const SilBox& b) {
   const auto m = (a.hxy < b.lxy) | (b.hxy < a.lxy) | (a.zh < b.zl);
   return (m[0] | m[1]) != 0;
 }
+// How many contour pieces of known C a coverage query tries (near, in silhouette_receiver) before
+// the grid's references.
+constexpr int kSilNearTries = 4;
 // The most ends of contour segments at one vertex whose rays silhouette_receiver sorts about it.
 constexpr int kSilFan = 8;
 // Per-thread scratch of silhouette_receiver's pieces (allocated once per thread).
@@ -614,6 +617,45 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       }
     }
   }
+  // C at point m of contour piece `skip` on q0's side of it (skip = -1: a point of E_h's boundary),
+  // from a contour piece whose C is known already, registered in m's cell or in the nearest cells
+  // of its row holding pieces (SilCoverage::coverage_from): from the midpoint of
+  // its first or last piece, where C on its q0 side is cf or cf + sj (each a sum of all the jumps
+  // before it, whatever the order of close breakpoints). kNone when none serves; the caller then
+  // asks the grid's references.
+  auto near = [&](V3<T> m, int skip) -> int {
+    if (!G) return Cov::kNone;
+    double um, vm;
+    cov.uv(m, um, vm);
+    if (!cov.on_grid(um, vm)) return Cov::kNone;
+    const int iy = cov.cell_of(vm, cov.vmin, cov.dv), ix = cov.cell_of(um, cov.umin, cov.du);
+    int tries = 0;
+    // The pieces of m's cell, then of the nearest cells of its row holding pieces.
+    for (int dir = 0; dir < 3 && tries < kSilNearTries; dir++) {
+      int kx = ix;
+      if (dir > 0) {
+        const int step = dir == 1 ? -1 : 1;
+        for (kx = ix + step; kx >= 0 && kx < G && !cov.held(iy * G + kx); kx += step) {
+        }
+        if (kx < 0 || kx >= G) continue;
+      }
+      const int cell = iy * G + kx;
+      for (int32_t x = gs[size_t(cell)]; x < gs[size_t(cell) + 1] && tries < kSilNearTries; x++) {
+        const int k = gi[size_t(x)];
+        if (k == skip || cf[size_t(k)] == Cov::kNone) continue;
+        tries++;
+        const SSeg<T>& sk = segs[size_t(k)];
+        for (int e = 0; e < 2; e++) {
+          const int32_t q = e ? kl[size_t(k)] : kf[size_t(k)];
+          const double ua = ts[size_t(ord[size_t(q)])], ub = ts[size_t(ord[size_t(q + 1)])];
+          const V3<T> mk = sk.a + (0.5 * (ua + ub)) * (sk.b - sk.a);
+          const int c = cov.coverage_from(m, skip, mk, k, e ? cf[size_t(k)] + sj[size_t(k)] : cf[size_t(k)]);
+          if (c != Cov::kNone) return c;
+        }
+      }
+    }
+    return Cov::kNone;
+  };
   {
     // The segments whose links are still to follow (each enters once: when its cf is set).
     if (pc.todo.size() < size_t(ns)) pc.todo.resize(2 * size_t(ns));
@@ -622,10 +664,12 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     for (int i0 = neh; i0 < ns; i0++) {
       if (kf[size_t(i0)] < 0 || cf[size_t(i0)] != Cov::kNone) continue;
       {
+        // C at the midpoint of i0's first piece: from a known piece near it, else through the grid.
         const SSeg<T>& s = segs[size_t(i0)];
         const double ta = ts[size_t(ord[size_t(kf[size_t(i0)])])], tb = ts[size_t(ord[size_t(kf[size_t(i0)] + 1)])];
         const V3<T> m = s.a + (0.5 * (ta + tb)) * (s.b - s.a);
-        const int full = cov.coverage_at(m, i0);
+        int full = near(m, i0);
+        if (full == Cov::kNone) full = cov.coverage_at(m, i0);
         if (full == Cov::kNone) return kFallback;
         cf[size_t(i0)] = full;
       }
@@ -734,7 +778,8 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       if (!(tb > ta)) continue;
       if (c == Cov::kNone || k == last) {
         const V3<T> m = s.a + (0.5 * (ta + tb)) * d;
-        const int full = cov.coverage_eh(m);
+        int full = near(m, -1);
+        if (full == Cov::kNone) full = cov.coverage_eh(m);
         if (full == Cov::kNone || (c != Cov::kNone && full != c)) return kFallback;
         c = full;
       }

@@ -5,6 +5,7 @@
 #ifndef JAXSHADOW_SHADOWC_SILHOUETTE_COVERAGE_H_
 #define JAXSHADOW_SHADOWC_SILHOUETTE_COVERAGE_H_
 
+#include <cstdlib>
 #include <limits>
 
 #include "silhouette_tree.h"
@@ -260,7 +261,7 @@ struct SilCoverage {
           umin = std::min(umin, ehu[k]), umax = std::max(umax, ehu[k]);
           vmin = std::min(vmin, ehv[k]), vmax = std::max(vmax, ehv[k]);
         }
-        G = std::max(2, std::min(kSilGridMax, int(std::ceil(std::sqrt(2.0 * nsc)))));
+        G = std::max(2, std::min(kSilGridMax, int(std::ceil(std::sqrt(double(nsc))))));
         du = (umax - umin) / G, dv = (vmax - vmin) / G;
         gpad = 1e-9 * (umax - umin + vmax - vmin) + 64 * eps * scale;
         if (!(du > gpad && dv > gpad)) G = 0;
@@ -295,10 +296,12 @@ struct SilCoverage {
     }
   }
   // C at m on the `from` side of piece `skip` (-1: none), from C at `from` and the crossings of
-  // from -> m with the pieces registered in cells ca and cb (-1: none). `at_ref`: `from` is ca's
+  // from -> m with the pieces registered in cells ca and cb (-1: none) but `skip2` (-1: none; a
+  // piece `from` lies on, C at `from` taken on m's side of it). `at_ref`: `from` is ca's
   // reference point, `to_ref`: m is cb's (their pieces' sides of it are kept in gside, each
   // computed once).
-  int cross_cells(V3<T> from, int cfrom, V3<T> m, int skip, int ca, int cb, bool at_ref = true, bool to_ref = false) {
+  int cross_cells(V3<T> from, int cfrom, V3<T> m, int skip, int ca, int cb, bool at_ref = true, bool to_ref = false,
+                  int skip2 = -1) {
     const V3<T> pqm = cross(from - p, m - p);
     const double pn = norm(pqm);
     const At af = at(from), am = at(m);
@@ -309,7 +312,7 @@ struct SilCoverage {
       const bool cached = at_ref && cell == ca;
       for (int32_t k = gs[size_t(cell)]; k < gs[size_t(cell + 1)]; k++) {
         const int32_t i = gi[size_t(k)];
-        if (i == skip || stamp_of[size_t(i)] == stamp) continue;
+        if (i == skip || i == skip2 || stamp_of[size_t(i)] == stamp) continue;
         stamp_of[size_t(i)] = stamp;
         int sq;
         if (cached) {
@@ -526,6 +529,46 @@ struct SilCoverage {
       }
     }
     return coverage(m, skip);
+  }
+  // Whether (u, v) lies on the grid (its cell's pieces are the ones that can cross a path in it).
+  bool on_grid(double u, double v) const {
+    return u > umin - gpad && u < umin + G * du + gpad && v > vmin - gpad && v < vmin + G * dv + gpad;
+  }
+  // C on q0's side of contour piece `skip` at point m on it (skip = -1: C at a point m of E_h's
+  // boundary, as coverage_eh), from a point `from` of another contour piece k (inside one of k's
+  // pieces between breakpoints) where C on q0's side of k is ck: the crossings of from -> m with
+  // the pieces registered in m's cell and from's cell when those are one cell, share a side, or
+  // lie in one row with no piece registered in the cells between (the path stays in that row and
+  // in E_h, convex, and no piece's padded box meets the cells between). kNone when the cells are
+  // otherwise, a side is too close to call (m on k's line, `from` on skip's), or a crossing is;
+  // the caller then asks the grid's references (coverage_at, coverage_eh).
+  int coverage_from(V3<T> m, int skip, V3<T> from, int k, int ck) {
+    if (!G) return kNone;
+    double um, vm, uf, vf;
+    uv(m, um, vm);
+    uv(from, uf, vf);
+    if (!on_grid(um, vm) || !on_grid(uf, vf)) return kNone;
+    const int bx = cell_of(um, umin, du), by = cell_of(vm, vmin, dv);
+    const int ax = cell_of(uf, umin, du), ay = cell_of(vf, vmin, dv);
+    if (std::abs(ax - bx) + std::abs(ay - by) > 1) {  // else one row, the cells between holding none
+      if (ay != by) return kNone;
+      for (int x = std::min(ax, bx) + 1; x < std::max(ax, bx); x++)
+        if (held(ay * G + x)) return kNone;
+    }
+    const SSeg<T>& sk = segs[size_t(k)];
+    const int mk = side_of(m, sk);
+    if (mk == 0 || sk.q0s == 0) return kNone;
+    int rs = 0, qs = 0;
+    if (skip >= 0) {
+      rs = side_of(from, segs[size_t(skip)]), qs = segs[size_t(skip)].q0s;
+      if (rs == 0 || qs == 0) return kNone;
+    }
+    const int cfrom = mk == sk.q0s ? ck : (mk > 0 ? ck + sk.w : ck - sk.w);  // C at `from` on m's side of k
+    const int ca = ay * G + ax, cb = by * G + bx;
+    const int c = cross_cells(from, cfrom, m, skip, ca, cb == ca ? -1 : cb, false, false, k);
+    if (c == kNone || skip < 0) return c;
+    const int w = segs[size_t(skip)].w;
+    return rs == qs ? c : (qs > 0 ? c + w : c - w);
   }
   // C at a point m of E_h's boundary (inside E_h's side of every contour piece's plane test):
   // from the reference point of m's cell when the cell holds pieces, else of the nearest cell of
