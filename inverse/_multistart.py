@@ -106,7 +106,7 @@ def start_lights(param: LightParametrisation, starts: Array) -> list[Any]:
         # Equal to build(0) up to rounding; the lights only size the capacity, and an overflow
         # is caught and retried (`LM`).
         return [param.template]
-    batched = jax.tree_util.tree_map(np.asarray, _start_lights(param, jnp.asarray(starts)))
+    batched = jax.tree_util.tree_map(np.asarray, _start_lights(param, jax.device_put(np.asarray(starts))))
     return [jax.tree_util.tree_map(lambda x, i=i: x[i] if isinstance(x, np.ndarray) else x, batched)
             for i in range(th.shape[0])]
 

@@ -105,7 +105,7 @@ def unit_columns(problem: LightsProblem, j: int, rows: np.ndarray) -> tuple[np.n
             for a in range(0, todo.size, CHUNK):
                 part = rows[todo[a:a + CHUNK]]
                 part = np.concatenate([part, np.repeat(part[:1], CHUNK - part.shape[0], axis=0)])
-                p, o = _columns(one, jnp.asarray(part, dt))
+                p, o = _columns(one, jax.device_put(np.asarray(part, dt)))
                 n = min(CHUNK, todo.size - a)
                 per[todo[a:a + n]] = np.asarray(p, np.float64)[:n]
                 over[a:a + n] = np.asarray(o)[:n]
