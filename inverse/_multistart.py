@@ -98,7 +98,7 @@ def _start_lights(param: LightParametrisation, thetas: Array) -> Any:
     return jax.vmap(lambda th: param.build(th[: param.size]))(thetas)
 
 
-def start_lights(param: LightParametrisation, starts: Array) -> list[Any]:
+def start_lights(param: LightParametrisation, starts: Array | np.ndarray) -> list[Any]:
     """The moving light at every start, as a list of lights with NumPy arrays."""
     th = np.asarray(starts)[:, : param.size]
     if th.shape[0] == 1 and param.constraint != "box" and not np.any(th):
