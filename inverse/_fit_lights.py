@@ -37,6 +37,7 @@ import warnings as _warnings
 from typing import Any, no_type_check
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -353,7 +354,7 @@ def fit_lights(
     problem = LightsProblem(tuple(params), tuple(scene.lights[i] for i in idx), scene, material, t, e0, s0,
                             tuple(offsets), fit_power, with_spec, bool(fixed), specular, paint=paint,
                             budget=None if budget is None else jnp.asarray(budget, dt), powers_in_theta=in_theta,
-                            active=jnp.ones(len(idx), dt),
+                            active=jax.device_put(np.ones(len(idx), dt)),
                             outside=tuple((j, *(jnp.asarray(x, dt) for x in outside_planes(scene, cons[i])),
                                            cons[i].margin) for j, i in enumerate(idx)
                                           if isinstance(cons.get(i), Outside)),
@@ -394,7 +395,7 @@ def fit_lights(
                   and any(p is not None and "position" in p._slices() for p in params))
     # The given poses' local search first; the global placement competes unless that fit is
     # exact already (the lowest final loss wins).
-    energy = 0.5 * float(jnp.sum(full_w * problem.targets.colours ** 2))
+    energy = 0.5 * float(np.sum(np.asarray(full_w) * np.asarray(problem.targets.colours) ** 2))
     # within the told noise (EXPLAINED_EXIT): over every target, so not with search targets
     noise_loss = (explained_loss(full_w, t, noise, P + (len(idx) if fit_power else 0))
                   if EXPLAINED_EXIT and search_w is None else 0.0)
@@ -565,7 +566,8 @@ def _with_new_lights(scene: Any, targets: Any, kinds: Any, lights: Any) -> tuple
     region = region_of(scene, np.asarray(targets.points), np.asarray(targets.normals))
     new = [template_light(str(k), region) for k in kinds]
     n = len(scene.lights)
-    out = js.Scene([*scene.lights, *new], occluders=scene.occluders, ambient=scene.ambient)
+    # the same occluders (and topology) with the new lights: no new Scene built from its arrays
+    out = eqx.tree_at(lambda s: s.lights, scene, (*scene.lights, *new))
     return out, list(range(n, n + len(new)))
 
 
@@ -587,7 +589,8 @@ def _search_weights(targets: PaintedTargets, search: Any) -> Any:
         keep[s] = True
     if not keep.any():
         raise ValueError("fit_lights: search_targets selects no target.")
-    return targets.weights * jnp.asarray(keep, targets.weights.dtype)[:, None]
+    w = np.asarray(targets.weights)
+    return jax.device_put(w * keep.astype(w.dtype)[:, None])
 
 
 def _reweighted(problem: LightsProblem, weights: Any) -> LightsProblem:
@@ -633,7 +636,7 @@ def _with_capacity(problem: LightsProblem, per_light: list, fixed: list) -> Ligh
     cands = list(fixed)
     for j, y in enumerate(per_light):
         p = problem.params[j]
-        cands += [problem.refs[j]] if y is None else start_lights(p, jnp.asarray(y))
+        cands += [problem.refs[j]] if y is None else start_lights(p, y)
     most = traced.shadow_capacity(scene, t.points, t.normals, lights=cands)
     # Rounded up to a power of two: nearby scenes and starts share one compiled program.
     return dataclasses.replace(problem, capacity=capacity_with_room(most))

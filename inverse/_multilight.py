@@ -552,11 +552,12 @@ def solve(problem: LightsProblem, starts: np.ndarray, base: np.ndarray, mask: np
     `fit_lights`' one program for the search and the report); False: without (`fit_light`'s).
     Returns `(result, problem used, retries)`."""
     dt = problem.targets.points.dtype
-    mirror = jnp.asarray(duplicate_sources(np.asarray(starts, dt)))
+    mirror = jax.device_put(duplicate_sources(np.asarray(starts, dt)))
     sched = prune_array(prune)  # traced: every stage's schedule runs the same program
 
     def run(pr: LightsProblem) -> tuple[LMResult, Any]:
-        res = _lm(pr, jnp.asarray(starts, dt), jnp.asarray(base, dt), jnp.asarray(mask), rtol, atol,
+        res = _lm(pr, jax.device_put(np.asarray(starts, dt)), jax.device_put(np.asarray(base, dt)),
+                  jax.device_put(np.asarray(mask)), rtol, atol,
                   np.asarray(max_steps, np.int32), sched, 1, mirror, keep_basis)
         return res, res.flag
 
@@ -592,7 +593,8 @@ def screen(problem: LightsProblem, rows: np.ndarray, base: np.ndarray, mask: np.
         for a in range(0, rows.shape[0], chunk):
             part = rows[a:a + chunk]
             part = np.concatenate([part, np.repeat(part[:1], chunk - part.shape[0], axis=0)])
-            f, o = _screen(pr, jnp.asarray(part, dt), jnp.asarray(base, dt), jnp.asarray(mask))
+            f, o = _screen(pr, jax.device_put(np.asarray(part, dt)), jax.device_put(np.asarray(base, dt)),
+                           jax.device_put(np.asarray(mask)))
             out.append(np.asarray(f))
             over = over or bool(o)
         return np.concatenate(out)[: rows.shape[0]], over

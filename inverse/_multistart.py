@@ -98,7 +98,7 @@ def _start_lights(param: LightParametrisation, thetas: Array) -> Any:
     return jax.vmap(lambda th: param.build(th[: param.size]))(thetas)
 
 
-def start_lights(param: LightParametrisation, starts: Array) -> list[Any]:
+def start_lights(param: LightParametrisation, starts: Array | np.ndarray) -> list[Any]:
     """The moving light at every start, as a list of lights with NumPy arrays."""
     th = np.asarray(starts)[:, : param.size]
     if th.shape[0] == 1 and param.constraint != "box" and not np.any(th):
@@ -106,7 +106,7 @@ def start_lights(param: LightParametrisation, starts: Array) -> list[Any]:
         # Equal to build(0) up to rounding; the lights only size the capacity, and an overflow
         # is caught and retried (`LM`).
         return [param.template]
-    batched = jax.tree_util.tree_map(np.asarray, _start_lights(param, jnp.asarray(starts)))
+    batched = jax.tree_util.tree_map(np.asarray, _start_lights(param, jax.device_put(np.asarray(starts))))
     return [jax.tree_util.tree_map(lambda x, i=i: x[i] if isinstance(x, np.ndarray) else x, batched)
             for i in range(th.shape[0])]
 

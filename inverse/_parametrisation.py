@@ -175,24 +175,24 @@ class LightParametrisation(eqx.Module):
         self.fit = tuple(g for g in FIT_GROUPS if g in fit)
         self.box_map = box_map
         self.template = light
-        self.scale = jnp.asarray(scale)
+        self.scale = jax.device_put(scale)
         if isinstance(light, js.PolygonLight):
             self.kind = "polygon"
             c, R = _frame(light)
-            self.local = jnp.asarray((np.asarray(light.vertices, np.float64) - c) @ R)
-            self.frame0 = jnp.asarray(R)
+            self.local = jax.device_put((np.asarray(light.vertices, np.float64) - c) @ R)
+            self.frame0 = jax.device_put(R)
         elif isinstance(light, js.LinearLight):
             self.kind = "linear"
             a, b = np.asarray(light.start, np.float64), np.asarray(light.end, np.float64)
             c = 0.5 * (a + b)
             d = (b - a) / np.linalg.norm(b - a)
-            self.frame0 = jnp.asarray(np.concatenate([_perp_basis(d), d[None]], axis=0))  # rows u, v, d
-            self.local = jnp.asarray(np.linalg.norm(b - a))
+            self.frame0 = jax.device_put(np.concatenate([_perp_basis(d), d[None]], axis=0))  # rows u, v, d
+            self.local = jax.device_put(np.linalg.norm(b - a))
         elif isinstance(light, js.PointLight):
             self.kind = "point"
             c = np.asarray(light.position, np.float64)
-            self.frame0 = jnp.asarray(np.eye(3))
-            self.local = jnp.asarray(np.zeros(()))
+            self.frame0 = jax.device_put(np.eye(3))
+            self.local = jax.device_put(np.zeros(()))
             bad = [g for g in self.fit if g != "position"]
             if bad:
                 raise ValueError(f"fit_light: a point light has only a position; cannot fit {bad}.")
@@ -201,8 +201,8 @@ class LightParametrisation(eqx.Module):
             d = np.asarray(light.direction, np.float64)
             d = d / np.linalg.norm(d)
             c = np.zeros(3)
-            self.frame0 = jnp.asarray(np.concatenate([_perp_basis(d), d[None]], axis=0))  # rows u, v, d
-            self.local = jnp.asarray(np.zeros(()))
+            self.frame0 = jax.device_put(np.concatenate([_perp_basis(d), d[None]], axis=0))  # rows u, v, d
+            self.local = jax.device_put(np.zeros(()))
             bad = [g for g in self.fit if g != "orientation"]
             if bad:
                 raise ValueError(f"fit_light: a directional light has only a direction; cannot fit {bad}.")
@@ -215,9 +215,9 @@ class LightParametrisation(eqx.Module):
                 "LinearLight, PointLight and DirectionalLight can be placed."
             )
         # Host arrays put on the device (eager jnp.zeros/ones would compile one op each).
-        self.box_lo = jnp.asarray(np.zeros(3))
-        self.box_hi = jnp.asarray(np.ones(3))
-        self.plane_e = jnp.asarray(np.zeros((2, 3)))
+        self.box_lo = jax.device_put(np.zeros(3))
+        self.box_hi = jax.device_put(np.ones(3))
+        self.plane_e = jax.device_put(np.zeros((2, 3)))
         if constraint is None:
             self.constraint = "none"
         elif isinstance(constraint, Plane):
@@ -233,7 +233,7 @@ class LightParametrisation(eqx.Module):
             c = np.clip(c, np.asarray(constraint.lower), np.asarray(constraint.upper))
         else:
             raise ValueError(f"fit_light: constraint must be None, Plane or Box, got {type(constraint).__name__}.")
-        self.c0 = jnp.asarray(c)
+        self.c0 = jax.device_put(np.asarray(c))
         names = []
         if "position" in self.fit:
             names += ["a", "b"] if self.constraint == "plane" else ["x", "y", "z"]
@@ -329,7 +329,7 @@ class LightParametrisation(eqx.Module):
         if "size" in sl:
             lo[sl["size"]], hi[sl["size"]] = np.log(1e-3), np.log(1e3)
         big = 1e6
-        return jnp.asarray(np.clip(lo, -big, big), dtype), jnp.asarray(np.clip(hi, -big, big), dtype)
+        return jax.device_put(np.asarray(np.clip(lo, -big, big), dtype)), jax.device_put(np.asarray(np.clip(hi, -big, big), dtype))
 
 
 def with_light(scene: js.Scene, index: int, light: Any) -> js.Scene:

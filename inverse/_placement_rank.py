@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._escape import escaped_rows
-from ._forward import at_capacity
+from ._forward import MAX_CAPACITY
 from ._lm import fit_jit
 from ._multilight import LightsProblem, _parts, build_lights, solve
 from ._parametrisation import LightParametrisation
@@ -84,40 +84,38 @@ def unit_columns(problem: LightsProblem, j: int, rows: np.ndarray) -> tuple[np.n
     capacity). The program's cost grows with the shadow capacity (every receiver integrates
     `capacity` boundary edges, most of them padding) while most candidates need a few edges:
     every row runs first at `COLUMN_CAPACITY[kind]` edges (at most the problem's), the rows some
-    receiver overflowed again at twice that, up to the problem's capacity, then at twice the
-    problem's while some row still overflows it (`at_capacity`: the problem returned holds that
-    capacity). A row that does not overflow has the same value at any capacity (the padding
-    edges add zeros), to rounding where it runs in another chunk: the columns are those of one
-    run at the final capacity to ~1e-16 (absolute; 3 of 1606 rows of a fit differ, by one ulp)."""
+    receiver overflowed again at twice that, up to `MAX_CAPACITY` (a `RuntimeError` beyond, as
+    `at_capacity`). The problem's own capacity (the LM's, a static field of its program) is not
+    raised for the few candidates that need more: the LM doubles it only where a solve
+    overflows (`_multilight.solve`), so a candidate far from any answer does not recompile the
+    LM at twice the capacity mid-fit. The problem is returned as given. A row that does not
+    overflow has the same value at any capacity (the padding edges add zeros), to rounding
+    where it runs in another chunk: the columns are those of one run at the final capacity to
+    ~1e-16 (absolute; 3 of 1606 rows of a fit differ, by one ulp)."""
     dt = problem.targets.points.dtype
     sw = np.sqrt(np.asarray(problem.targets.weights, np.float64))
     per = np.zeros((rows.shape[0], *problem.targets.colours.shape))
     todo = np.arange(rows.shape[0])
-    level = [COLUMN_CAPACITY.get(problem.params[j].kind, 8)]
+    first = COLUMN_CAPACITY.get(problem.params[j].kind, 8)
+    cap = None if problem.capacity is None else min(first, problem.capacity)
 
-    def run(pr: LightsProblem) -> tuple[None, bool]:
-        nonlocal todo
-        top = pr.capacity
-        while True:
-            cap = None if top is None else min(level[0], top)
-            one = _single(dataclasses.replace(pr, capacity=cap), j)
-            over = np.zeros(todo.size, bool)
-            for a in range(0, todo.size, CHUNK):
-                part = rows[todo[a:a + CHUNK]]
-                part = np.concatenate([part, np.repeat(part[:1], CHUNK - part.shape[0], axis=0)])
-                p, o = _columns(one, jnp.asarray(part, dt))
-                n = min(CHUNK, todo.size - a)
-                per[todo[a:a + n]] = np.asarray(p, np.float64)[:n]
-                over[a:a + n] = np.asarray(o)[:n]
-            todo = todo[over]
-            if not todo.size or cap is None or top is None:
-                return None, False
-            level[0] = 2 * cap
-            if cap >= top:  # the problem's capacity overflowed: `at_capacity` doubles it
-                return None, True
-
-    _, problem, _ = at_capacity(run, problem, "fit_lights", "global placement")
-    return (sw[None] * per).reshape(rows.shape[0], sw.size), problem
+    while True:
+        one = _single(dataclasses.replace(problem, capacity=cap), j)
+        over = np.zeros(todo.size, bool)
+        for a in range(0, todo.size, CHUNK):
+            part = rows[todo[a:a + CHUNK]]
+            part = np.concatenate([part, np.repeat(part[:1], CHUNK - part.shape[0], axis=0)])
+            p, o = _columns(one, jax.device_put(np.asarray(part, dt)))
+            n = min(CHUNK, todo.size - a)
+            per[todo[a:a + n]] = np.asarray(p, np.float64)[:n]
+            over[a:a + n] = np.asarray(o)[:n]
+        todo = todo[over]
+        if not todo.size or cap is None:
+            return (sw[None] * per).reshape(rows.shape[0], sw.size), problem
+        if cap >= MAX_CAPACITY:
+            raise RuntimeError(f"fit_lights: some receiver's visible region needs more than {MAX_CAPACITY} boundary "
+                               "edges during the global placement.")
+        cap = min(2 * cap, MAX_CAPACITY)
 
 
 def _basin_key(param: LightParametrisation, row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

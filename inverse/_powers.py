@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array
@@ -25,11 +26,17 @@ import jaxshadow as js
 from ._painting import LUMINANCE, Painting, painted_rows
 
 
-def emitted_power(light: Any) -> Array:
+def emitted_power(light: Any) -> Array | np.ndarray:
     """The power (W) a light emits at its given radiance, averaged over the RGB channels
     (traceable): a polygon $\\pi \\bar L A$ (one-sided Lambertian emitter of area $A$), a
     segment $\\bar\\Phi \\ell$ (power per unit length times length), a point light
-    $4\\pi \\bar I$. A directional light has no finite power (ValueError)."""
+    $4\\pi \\bar I$. A directional light has no finite power (ValueError). A light with
+    concrete arrays is summed in NumPy (same formula): eager `jnp` operations on the host
+    compile one small XLA program each in a fresh process."""
+    if isinstance(light, js.DirectionalLight):
+        raise ValueError("a power budget: a DirectionalLight has no finite emitted power.")
+    if not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(light)):
+        return _emitted_power_host(light)
     if isinstance(light, js.PolygonLight):
         v = light.vertices
         w = jnp.roll(v, -1, axis=0)
@@ -42,6 +49,21 @@ def emitted_power(light: Any) -> Array:
     if isinstance(light, js.PointLight):
         return 4.0 * jnp.pi * jnp.mean(light.intensity)
     raise ValueError("a power budget: a DirectionalLight has no finite emitted power.")
+
+
+def _emitted_power_host(light: Any) -> np.ndarray:
+    """`emitted_power` of a light with concrete arrays, in NumPy (a 0-d array of its dtype)."""
+    if isinstance(light, js.PolygonLight):
+        v = np.asarray(light.vertices)
+        w = np.roll(v, -1, axis=0)
+        n = np.sum(np.stack([v[:, 1] * w[:, 2] - v[:, 2] * w[:, 1], v[:, 2] * w[:, 0] - v[:, 0] * w[:, 2],
+                             v[:, 0] * w[:, 1] - v[:, 1] * w[:, 0]], axis=-1), axis=0)
+        return np.asarray(np.pi * np.mean(np.asarray(light.radiance)) * 0.5 * np.sqrt(np.sum(n * n)), v.dtype)
+    if isinstance(light, js.LinearLight):
+        d = np.asarray(light.end) - np.asarray(light.start)
+        return np.asarray(np.mean(np.asarray(light.power)) * np.sqrt(np.sum(d * d)), d.dtype)
+    i = np.asarray(light.intensity)
+    return np.asarray(4.0 * np.pi * np.mean(i), i.dtype)
 
 
 def painted_jacobian(model: np.ndarray, cols: np.ndarray, sw: np.ndarray, paint: Painting | None) -> np.ndarray:

@@ -107,8 +107,11 @@ def rescreen(values: np.ndarray, losses: np.ndarray, todo: list[int], offsets: t
             top = np.argsort(losses, kind="stable")
             top = top[distinct(values[top], REDEAL)]
             split = [moved({w: c}) for c in (near(w, best, held((w,))) if near is not None else [])]
-            dealt = ([np.concatenate([t[None], deal(t)]) for t in split] + [deal(moved({w: c})) for c in singles[w][:1]]
-                     + [deal(values[i]) for i in top])
+            # the best refined placement's deals first: they alone undo two lights swapped there, and the
+            # extras are cut at 2 * batch (the splits and the single move's deals fill that otherwise)
+            dealt = ([deal(values[top[0]])] if len(top) else []) + (
+                [np.concatenate([t[None], deal(t)]) for t in split] + [deal(moved({w: c})) for c in singles[w][:1]]
+                + [deal(values[i]) for i in top[1:]])
             dealt = [d for d in dealt if d.shape[0]]
             if dealt:
                 extra = np.concatenate(dealt)

@@ -116,6 +116,43 @@ def test_idle_light_replaced_and_positions_dealt():
     assert np.min(losses) < 1e-20 < np.min(losses1)
 
 
+def test_best_placement_dealt_first_when_the_extras_are_cut():
+    """The lights of the best refined placement dealt in a cycle (each at the next one's spot,
+    every light's candidates perturbations of the same spots): single and pair moves in one round
+    do not undo a cycle of three, the deals of that placement do. With a batch of 2 the dealt
+    extras are cut at 4 rows: the best placement's deals come first (the least useful light's
+    split, here to a spot no light is at, with its 5 deals, and its single move's deals after
+    them), so the truth is refined in that round."""
+    rng = np.random.default_rng(5)
+    spot = rng.uniform(0.0, 1.0, (N_CAND, M))
+    cols = [spot * (1.0 + 0.1 * rng.uniform(-1.0, 1.0, (N_CAND, M))) for _ in range(3)]
+    truth = {0: 3, 1: 7, 2: 11}
+    y = sum(cols[j][c] for j, c in truth.items())
+    rows = [np.arange(N_CAND, dtype=np.float64)[:, None] for _ in range(3)]
+    start = np.array([truth[1], truth[2], truth[0]], np.float64)
+
+    def refine(th):
+        return th.copy(), np.asarray([_loss(cols, y, t) for t in th])
+
+    def local_screen(j, B):
+        return [int(c) for c in np.argsort(nnls_rss(B, cols[j], y, True), kind="stable")[:4]]
+
+    def distinct(th, k):
+        picked = []
+        for i, t in enumerate(th):
+            if len(picked) < k and all(np.any(t != th[q]) for q in picked):
+                picked.append(i)
+        return picked
+
+    values, losses = rescreen(np.asarray([start]), np.asarray([_loss(cols, y, start)]), [0, 1, 2], (0, 1, 2),
+                              [1, 1, 1], rows, cols, y, True, lambda j, r: cols[j][r[:, 0].astype(int)],
+                              local_screen, refine, distinct, 2, rounds=1, deal=_deal,
+                              near=lambda j, th, B: [N_CAND - 1])  # a split to a spot no light is at
+    best = values[int(np.argmin(losses))]
+    assert [int(x) for x in best] == [truth[0], truth[1], truth[2]]
+    assert np.min(losses) < 1e-20
+
+
 def test_least_useful_light_is_the_idle_one():
     """`least_useful`: of three columns, the one whose removal raises the NNLS residual least
     (a column of 1e-3 of the others' scale, where the targets need all three)."""

@@ -269,3 +269,45 @@ def test_structured_jacobian_is_the_residuals_jacobian(variant):
     assert np.all(Jl[:, ~mask] == 0)
     np.testing.assert_allclose(Jl[:, mask], np.asarray(ref)[:, mask], rtol=1e-9,
                                atol=1e-12 * np.abs(np.asarray(ref)).max())
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_emitted_power_of_concrete_lights_compiles_nothing(dtype):
+    """`_powers.emitted_power` of lights with concrete arrays (the report and the budget's
+    ranking, on the host) compiles no XLA program, and equals the traced formula under `jit`
+    (to one rounding of the dtype) and the closed forms ($\\pi \\bar L A$, $\\bar\\Phi \\ell$,
+    $4 \\pi \\bar I$) computed here."""
+    from inverse._powers import emitted_power
+
+    eps = float(np.finfo(dtype).eps)
+    quad = js.PolygonLight(np.array([[0, 0, 2], [0.3, 0, 2], [0.3, 0.2, 2.1], [0, 0.2, 2.1]], dtype),
+                           np.array([1.0, 2.0, 3.0], dtype))
+    seg = js.LinearLight(np.array([0, 0, 1], dtype), np.array([0.3, 0.4, 1], dtype), np.array([2.0, 2.0, 5.0], dtype))
+    point = js.PointLight(np.array([0, 0, 1], dtype), np.array([1.0, 1.0, 4.0], dtype))
+    area = 0.3 * float(np.hypot(0.2, 0.1))  # the quad: a 0.3 x |(0.2, 0.1)| rectangle
+    expected = [np.pi * 2.0 * area, 3.0 * 0.5, 4.0 * np.pi * 2.0]
+    for light, want in zip((quad, seg, point), expected, strict=True):
+        got, n = _compiles(lambda light=light: emitted_power(light))
+        assert n == 0
+        assert isinstance(got, np.ndarray) and got.dtype == dtype
+        traced = float(jax.jit(emitted_power)(light))
+        assert abs(float(got) - traced) <= 4 * eps * abs(traced)
+        assert abs(float(got) - want) <= 8 * eps * want
+
+
+def test_parametrisations_are_built_without_compiling():
+    """`LightParametrisation` puts its host arrays on the device as they are (`jax.device_put`):
+    building one for each light kind compiles no XLA program (eager `jnp.asarray` of a NumPy
+    array compiles a copy program per new shape), and its fields hold the host values exactly."""
+    from inverse._parametrisation import LightParametrisation
+
+    quad = js.PolygonLight(np.array([[0, 0, 2], [0.3, 0, 2], [0.3, 0.2, 2.1], [0, 0.2, 2.1]]), np.ones(3))
+    seg = js.LinearLight(np.array([0.0, 0.0, 1.0]), np.array([0.3, 0.4, 1.0]), np.ones(3))
+    point = js.PointLight(np.array([0.1, 0.2, 1.0]), np.ones(3))
+    fits = (("position", "orientation", "size"), ("position", "orientation", "size"), ("position",))
+    for k, (light, fit) in enumerate(zip((quad, seg, point), fits, strict=True)):
+        p, n = _compiles(lambda light=light, fit=fit, k=k: LightParametrisation(light, k, fit, None, 1.7, "sigmoid"))
+        assert n == 0
+        assert np.asarray(p.c0).dtype == np.float64
+    assert np.array_equal(np.asarray(p.c0), [0.1, 0.2, 1.0])
+    assert np.array_equal(np.asarray(p.frame0), np.eye(3))

@@ -1,7 +1,7 @@
 """The global placement's candidate columns (`inverse._placement_rank.unit_columns`): evaluated
 at a small shadow capacity first and again at twice it only where a receiver overflowed, they
 equal the columns of one run at a capacity every receiver fits in (to rounding), and the
-problem's capacity is raised as one run's retry would raise it.
+problem's capacity (the LM program's) is left as it is.
 
 A quad light over a box occluder on 24 floor targets; its candidate centres spread over and
 beside the box, so that some candidates' receivers need more boundary edges than others."""
@@ -68,8 +68,9 @@ def test_columns_at_rising_capacity_equal_one_run(dtype, monkeypatch):
 def test_rows_rerun_until_they_fit(monkeypatch):
     """The loop alone, with a stand-in program whose row `s` needs `need[s]` edges (its value is
     `s` where it fits, NaN where it overflows): every row ends with its value, each row runs at
-    every level from `COLUMN_CAPACITY[kind]` up to its need and no further, and rows that overflow the
-    problem's capacity raise it (the problem returned holds it) as `at_capacity` raises it."""
+    every level from `COLUMN_CAPACITY[kind]` up to its need and no further, past the problem's
+    capacity (8), which is returned unchanged (the LM's program is not recompiled for a few
+    candidates); a row beyond `MAX_CAPACITY` is a `RuntimeError`."""
     problem, _ = _problem(8, jnp.float64)
     need = np.array([1, 3, 8, 9, 16, 2, 30, 5] * 9 + [4])  # 73 rows: two chunks at the first level
     rows = np.arange(need.size, dtype=np.float64)[:, None] * np.ones(problem.params[0].size)
@@ -85,9 +86,12 @@ def test_rows_rerun_until_they_fit(monkeypatch):
     monkeypatch.setattr(placement_rank, "_columns", program)
     monkeypatch.setattr(placement_rank, "COLUMN_CAPACITY", {"polygon": 2})
     out, p_out = placement_rank.unit_columns(problem, 0, rows)
-    assert p_out.capacity == 32  # 8 -> 16 -> 32: row need 30
+    assert p_out.capacity == 8  # the columns ran up to 32 (row need 30), the problem's is not raised
     sw = np.sqrt(np.asarray(problem.targets.weights, np.float64)).reshape(-1)
     np.testing.assert_array_equal(out, np.arange(need.size)[:, None] * sw[None])
     for s in range(need.size):
         caps = sorted({c for c, part in runs if s in part})
         assert caps == [c for c in (2, 4, 8, 16, 32) if c == 2 or c < 2 * need[s]], (s, caps)
+    monkeypatch.setattr(placement_rank, "MAX_CAPACITY", 16)
+    with pytest.raises(RuntimeError, match="more than 16 boundary edges"):
+        placement_rank.unit_columns(problem, 0, rows)
