@@ -598,27 +598,32 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
     }
     V3<T> a3, b3;
     ends(a3, b3);
+    bool whole = in;
     if (!in) {
       // Both ends clearly outside one cone plane: cyrus_beck's interval for that plane is empty
       // (the same g0, g1; beyond its collinear tolerance, as norms are at most 1-norms), so it
       // would return false. Skips the edge's plane and the clipping for most non-contour edges
       // that the hierarchy's boxes let through.
+      // `whole`: g0 > 0 and g0 + g1 > 0 for every nonzero plane (cyrus_beck's own g0, g1): each
+      // plane's t_lo is at most 0 and its t_hi at least 1 (the sum's sign is exact, so g0 > -g1),
+      // or 0 and 1 where the collinear test zeroes them, so cyrus_beck would return true with
+      // t0 <= 0 and t1 = 1: both ends unclipped. It is skipped.
       const V3<T> ap = a3 - p, d = b3 - a3, bp = b3 - p;
       const T apl = std::fabs(ap.x) + std::fabs(ap.y) + std::fabs(ap.z) + std::fabs(bp.x) + std::fabs(bp.y) + std::fabs(bp.z);
-      bool out = false;
-      for (int k = 0; k < np0 && !out; k++) {
-        const T g0 = dot(ap, cone[k]);
-        if (!(g0 < 0)) continue;
-        const T g1 = dot(d, cone[k]), g01 = g0 + g1;
-        const T m = T(8) * T(kCollinearEps) * eps_of<T>() * (std::fabs(cone[k].x) + std::fabs(cone[k].y) + std::fabs(cone[k].z)) * apl;
-        out = g01 < 0 && -g0 > m && -g01 > m;
+      whole = true;
+      for (int k = 0; k < np0; k++) {
+        const T g0 = dot(ap, cone[k]), g1 = dot(d, cone[k]), g01 = g0 + g1;
+        if (g0 < 0) {
+          const T m = T(8) * T(kCollinearEps) * eps_of<T>() * (std::fabs(cone[k].x) + std::fabs(cone[k].y) + std::fabs(cone[k].z)) * apl;
+          if (g01 < 0 && -g0 > m && -g01 > m) return true;
+        }
+        whole = whole && ((g0 > 0 && g01 > 0) || cz[k]);
       }
-      if (out) return true;
     }
     const V3<T> own = own_of(a3, b3);
     T t0 = 0, t1 = 1;
     int i0 = 0, i1 = 0;
-    if (!in && !cyrus_beck(p, a3, b3, cone, np0, own, t0, t1, i0, i1)) return true;
+    if (!whole && !cyrus_beck(p, a3, b3, cone, np0, own, t0, t1, i0, i1)) return true;
     const PlaneRef oref = through(e.ra, e.rb);
     SSeg<T> s;
     s.own = own, s.own_n = norm(own), s.q0s = 0, s.own_ref = oref, s.w = W, s.va = e.ra, s.vb = e.rb, s.x3a = a3, s.x3b = b3;
