@@ -146,6 +146,7 @@ struct SilTileCache {
 
 template <class T>
 struct SSeg {
+  SSeg() {}  // members unset: contour_edges builds each segment in place in Work::ssegs
   V3<T> a, b;  // in the emitter plane (clipped to E_h)
   V3<T> own;   // edge_plane(p, ., .) of the edge, canonical direction
   T own_n;     // norm(own)

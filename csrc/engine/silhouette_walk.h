@@ -625,7 +625,7 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
     int i0 = 0, i1 = 0;
     if (!whole && !cyrus_beck(p, a3, b3, cone, np0, own, t0, t1, i0, i1)) return true;
     const PlaneRef oref = through(e.ra, e.rb);
-    SSeg<T> s;
+    SSeg<T>& s = segs.emplace_back();  // built in place (SSeg's constructor leaves it unset)
     s.own = own, s.own_n = norm(own), s.q0s = 0, s.own_ref = oref, s.w = W, s.va = e.ra, s.vb = e.rb, s.x3a = a3, s.x3b = b3;
     s.ia = ia, s.ib = ib;
     // An end: where the edge leaves the pyramid through cone plane i (clipped), or its vertex's projection.
@@ -642,7 +642,10 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
     };
     end(t0 > 0, i0, a3, e.ra, s.a, s.ca, s.on_a);
     end(t1 < 1, i1, b3, e.rb, s.b, s.cb, s.on_b);
-    if (same(s.a, s.b)) return true;
+    if (same(s.a, s.b)) {
+      segs.pop_back();
+      return true;
+    }
     for (int k = 0; k < np0 && !in; k++) {  // an unclipped end on E_h's boundary: too close to call
       if (cz[k]) continue;
       const V3<T> ra = s.a - p, rb = s.b - p;
@@ -651,7 +654,6 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
           (s.on_b < 0 && !(std::fabs(dot(rb, cone[k])) > tol * cn1 * (std::fabs(rb.x) + std::fabs(rb.y) + std::fabs(rb.z)))))
         return false;
     }
-    segs.push_back(s);
     n_contour++;
     return true;
   };
@@ -692,8 +694,10 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
           const V3<T> lo = te.fwd ? a3 : b3, hi = te.fwd ? b3 : a3;
           const V3<T> rl = lo - p, rh = hi - p;
           const V3<T> dir{T(te.dir[0]), T(te.dir[1]), T(te.dir[2])};
-          const V3<T> c = rescale(cross(dir, rescale(dot(rh, rh) < dot(rl, rl) ? rh : rl)));  // edge_plane
-          return te.fwd ? c : V3<T>{-c.x, -c.y, -c.z};
+          // edge_plane: rescale(c) negated where !fwd, as one product by the signed power of 2
+          const V3<T> c = cross(dir, rescale(dot(rh, rh) < dot(rl, rl) ? rh : rl));
+          const T sc = pow2_scale(absmax(c));
+          return (te.fwd ? sc : -sc) * c;
         };
         if (!edge(te.e, te.w, te.in, te.ia, te.ib, [&]() { return int(side[te.lf]); }, [&]() { return int(side[te.lg]); }, ends, own_of))
           return kFallback;
