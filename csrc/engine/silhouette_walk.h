@@ -258,38 +258,55 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
     }
     return false;
   };
-  // Both ends of an edge inside every plane of every receiver's pyramid (the light's edge planes
-  // and, where the tile's receivers share their normal, the horizon's), by a margin of 1e-9 (or
-  // 1024 epsT) of the plane's scale times tb.d1, far above both the rounding of the walk's
-  // g = cone . (x - p) (tp's safety) and its test of an unclipped end against E_h's boundary
-  // (tol times the end's 1-norm from p, plus the rounding of its projection: a few eps of S3).
-  // Then every receiver of the box computes g >= 0 at both ends for every cone plane, so
-  // cyrus_beck keeps the whole edge (t0 = 0, t1 = 1) and neither end is too close to E_h's
-  // boundary: contour_edges skips those tests for it.
+  // An end inside a plane of every receiver's pyramid (a light's edge plane or, where the tile's
+  // receivers share their normal, the horizon's), by a margin of 1e-9 (or 1024 epsT) of the
+  // plane's scale times tb.d1, far above both the rounding of the walk's g = cone . (x - p) (tp's
+  // safety) and its test of an unclipped end against E_h's boundary (tol times the end's 1-norm
+  // from p, plus the rounding of its projection: a few eps of S3). Where both ends of an edge are
+  // inside plane k so, every receiver of the box computes g >= 0 at both ends for it: cyrus_beck's
+  // interval for that plane is [0, 1], the out test cannot drop the edge by it, and neither end
+  // is too close to E_h's boundary along it: contour_edges skips those tests for plane k
+  // (STEdge::inm), and all of them where that holds for every plane (STEdge::in).
   const double inmarg = (1e-9 + 1024 * epsT) * tb.d1;
-  // One end's test: inside every cone plane (and the horizon) for every receiver of the box.
-  auto end_in = [&](const double* x) {
+  // The planes an end is inside of, as bits of STEntry::planes (cone plane k: the light's edge k
+  // for k < K, the horizon's K); without `masked`, ~0 where it is inside every plane, else 0.
+  uint64_t all_in = masked && horizon ? uint64_t(1) << K : 0;
+  for (int k = 0; k < ntp && masked; k++) all_in |= uint64_t(1) << tp[k].edge;
+  if (!masked) all_in = ~uint64_t(0);
+  auto end_planes = [&](const double* x) -> uint64_t {
     const double lo = hn[0] * (x[0] - tb.pc[0]) + hn[1] * (x[1] - tb.pc[1]) + hn[2] * (x[2] - tb.pc[2]) -
                       (std::fabs(hn[0]) * tb.hb[0] + std::fabs(hn[1]) * tb.hb[1] + std::fabs(hn[2]) * tb.hb[2]);
-    if (!(lo > inmarg * hnn)) return false;
+    const bool hz = lo > inmarg * hnn;
+    if (!masked && !hz) return 0;
+    uint64_t m = masked && hz ? uint64_t(1) << K : 0;
     const double box[6] = {x[0], x[1], x[2], x[0], x[1], x[2]};
-    for (int k = 0; k < ntp; k++)
-      if (!(tile_plane_inf_best(tp[k], tb, box) > tp[k].safety + inmarg * tp[k].cn1)) return false;
-    return true;
+    for (int k = 0; k < ntp; k++) {
+      const bool in = tile_plane_inf_best(tp[k], tb, box) > tp[k].safety + inmarg * tp[k].cn1;
+      if (masked && in) m |= uint64_t(1) << tp[k].edge;
+      if (!masked && !in) return 0;
+    }
+    return masked ? m : ~uint64_t(0);
   };
-  // Both ends' tests, each made once per position: kept by position id in tc.pos_in (1 inside,
-  // 0 not, -1 not yet tested).
+  // An edge's planes (both ends'), each end's made once per position: kept by position id in
+  // tc.pos_in (1 tested, -1 not yet) and tc.pos_m.
   tc.pos_in.assign(size_t(parent && parent->ok && parent->tree == &st ? parent->nids : 0), int8_t(-1));
-  auto edge_in = [&](const double* a, const double* b, int32_t ia, int32_t ib) {
-    if (!horizon || !serves) return false;
+  tc.pos_m.resize(tc.pos_in.size());
+  auto edge_in = [&](const double* a, const double* b, int32_t ia, int32_t ib) -> uint64_t {
+    if (!serves) return 0;
+    uint64_t m = ~uint64_t(0);
     for (int j = 0; j < 2; j++) {
       const int32_t id = j ? ib : ia;
-      if (size_t(id) >= tc.pos_in.size()) tc.pos_in.resize(std::max(2 * tc.pos_in.size(), size_t(id) + 1), int8_t(-1));
-      int8_t& in = tc.pos_in[size_t(id)];
-      if (in < 0) in = int8_t(end_in(j ? b : a));
-      if (!in) return false;
+      if (size_t(id) >= tc.pos_in.size()) {
+        tc.pos_in.resize(std::max(2 * tc.pos_in.size(), size_t(id) + 1), int8_t(-1));
+        tc.pos_m.resize(tc.pos_in.size());
+      }
+      if (tc.pos_in[size_t(id)] < 0) {
+        tc.pos_in[size_t(id)] = 1;
+        tc.pos_m[size_t(id)] = end_planes(j ? b : a);
+      }
+      m &= tc.pos_m[size_t(id)];
     }
-    return true;
+    return m;
   };
   const Occluders<T>& occ = call.occ;
   // Preorder, right subtree first (the walk's stack order); an entry that keeps nothing is dropped.
@@ -305,6 +322,8 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
     double smargin, smargin_min;
     bool serves;
     bool deep;
+    uint64_t all_in;  // end_planes' bits of every plane tested
+    bool masked, horizon;
     bool visit(int32_t k, int depth) {
       const SNode& nd = st.nodes[size_t(k)];
       if (out(nd.box, ~uint64_t(0))) return false;
@@ -409,7 +428,9 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
       }
       STEdge& te = tc.edges.back();
       te.w = int8_t(W);
-      te.in = ein(a, b, te.ia, te.ib);
+      const uint64_t m = ein(a, b, te.ia, te.ib);
+      te.in = m == all_in && horizon;
+      te.inm = masked ? m : 0;
       te.lf = te.lg = -1;
       if (W == 0 && serves) {
         te.lf = face_slot(e.f);
@@ -463,7 +484,7 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
       return true;
     }
   };
-  Rec rec{st, tc, outside, edge_out, entry, edge_in, tb, occ, smargin, smargin_min, serves, false};
+  Rec rec{st, tc, outside, edge_out, entry, edge_in, tb, occ, smargin, smargin_min, serves, false, all_in, masked, horizon};
   if (parent && parent->ok && parent->tree == &st) {
     tc.nids = parent->nids;  // the parent's edges keep their ids
     if (!parent->entries.empty()) rec.visit_list(*parent, 0);
@@ -580,10 +601,11 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
   // nonzero: its coverage jump, known (the faces' sides as sil_side gives them, or face_path_side
   // where it cannot tell). False: fall back.
   // `in`: the tile proved both ends inside every cone plane with a margin (STEdge::in): the
-  // clipping keeps the whole edge and the end tests below pass, so they are skipped.
+  // clipping keeps the whole edge and the end tests below pass, so they are skipped. `inm`: the
+  // cone planes it proved that for (STEdge::inm; bit k: plane k): their tests are skipped.
   // `side_f`, `side_g`: sil_side of e.f and e.g (called where W is 0); `own_of`: edge_plane(p, a3, b3).
   // `ends(a3, b3)` sets the edge's ends (read once W is known nonzero).
-  auto edge = [&](const SEdge& e, int W, bool in, int32_t ia, int32_t ib, auto side_f, auto side_g, auto ends,
+  auto edge = [&](const SEdge& e, int W, bool in, uint64_t inm, int32_t ia, int32_t ib, auto side_f, auto side_g, auto ends,
                   auto own_of) __attribute__((always_inline)) -> bool {
     if (W == 0) {
       int sf = side_f();
@@ -612,6 +634,7 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
       const T apl = std::fabs(ap.x) + std::fabs(ap.y) + std::fabs(ap.z) + std::fabs(bp.x) + std::fabs(bp.y) + std::fabs(bp.z);
       whole = true;
       for (int k = 0; k < np0; k++) {
+        if (k < 64 && ((inm >> k) & 1)) continue;  // inside it for every receiver of the tile (STEdge::inm)
         const T g0 = dot(ap, cone[k]), g1 = dot(d, cone[k]), g01 = g0 + g1;
         if (g0 < 0) {
           const T m = T(8) * T(kCollinearEps) * eps_of<T>() * (std::fabs(cone[k].x) + std::fabs(cone[k].y) + std::fabs(cone[k].z)) * apl;
@@ -647,7 +670,7 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
       return true;
     }
     for (int k = 0; k < np0 && !in; k++) {  // an unclipped end on E_h's boundary: too close to call
-      if (cz[k]) continue;
+      if (cz[k] || (k < 64 && ((inm >> k) & 1))) continue;
       const V3<T> ra = s.a - p, rb = s.b - p;
       const T cn1 = cone_n[k];
       if ((s.on_a < 0 && !(std::fabs(dot(ra, cone[k])) > tol * cn1 * (std::fabs(ra.x) + std::fabs(ra.y) + std::fabs(ra.z)))) ||
@@ -699,7 +722,7 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
           const T sc = pow2_scale(absmax(c));
           return (te.fwd ? sc : -sc) * c;
         };
-        if (!edge(te.e, te.w, te.in, te.ia, te.ib, [&]() { return int(side[te.lf]); }, [&]() { return int(side[te.lg]); }, ends, own_of))
+        if (!edge(te.e, te.w, te.in, te.inm, te.ia, te.ib, [&]() { return int(side[te.lf]); }, [&]() { return int(side[te.lg]); }, ends, own_of))
           return kFallback;
       }
       i++;
@@ -729,7 +752,7 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
     }
     for (int32_t k = nd.start; k < nd.start + nd.count; k++) {
       const SEdge& e = st.edges[size_t(k)];
-      if (!edge(e, 0, false, -1, -1, [&]() { return sil_side(st, e.f, pd, side_scale); },
+      if (!edge(e, 0, false, 0, -1, -1, [&]() { return sil_side(st, e.f, pd, side_scale); },
                 [&]() { return sil_side(st, e.g, pd, side_scale); }, [&](V3<T>& a3, V3<T>& b3) { a3 = occ.vref(e.ra), b3 = occ.vref(e.rb); },
                 [&](V3<T> a3, V3<T> b3) { return edge_plane(p, a3, b3); }))
         return kFallback;
