@@ -90,9 +90,10 @@ struct STEntry {
 };
 
 // A kept edge: its SEdge, its ends (the occluders' values), its coverage jump W when every
-// receiver of the tile sees both faces on known sides (0: decided per receiver), and `in`: both
-// ends lie inside every plane of every receiver's pyramid by a margin far above rounding (the
-// receiver's clipping keeps the whole edge and its ends are clear of E_h's boundary).
+// receiver of the tile sees both faces on known sides (0: decided per receiver), `inm`: the
+// pyramid's planes (STEntry::planes' bits) that both ends lie inside of for every receiver by a
+// margin far above rounding (the receiver's clipping keeps the whole edge by those planes and its
+// ends are clear of E_h's boundary along them), and `in`: every plane is such.
 // `ia`, `ib`: the ends' position ids (equal iff the positions are equal, within one tile walk and
 // the walks refining it: SilTileCache::nids of them).
 // `fwd`, `dir`: whether a precedes b lexicographically and rescale(hi - lo) of the ends in that
@@ -105,6 +106,7 @@ struct STEdge {
   bool fwd;
   int32_t ia, ib;
   int32_t lf, lg;
+  uint64_t inm;
   double a[3], b[3];
   double dir[3];
 };
@@ -136,7 +138,8 @@ struct SilTileCache {
   std::vector<double> fq[6], fnn, f32;
   std::vector<double> side;
   std::vector<int32_t> slot;
-  std::vector<int8_t> pos_in;  // tile_walk's scratch: per position id, its end test (edge_in)
+  std::vector<int8_t> pos_in;    // tile_walk's scratch: per position id, whether pos_m is set
+  std::vector<uint64_t> pos_m;   // and its end test (end_planes)
   std::vector<int32_t> remap;  // tile_walk's scratch: entries' new indices
   // tile_walk's scratch: per face of the tree, its side over the tile (tile_side; 2: not yet
   // computed), and the faces set.
@@ -146,6 +149,7 @@ struct SilTileCache {
 
 template <class T>
 struct SSeg {
+  SSeg() {}  // members unset: contour_edges builds each segment in place in Work::ssegs
   V3<T> a, b;  // in the emitter plane (clipped to E_h)
   V3<T> own;   // edge_plane(p, ., .) of the edge, canonical direction
   T own_n;     // norm(own)

@@ -258,38 +258,55 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
     }
     return false;
   };
-  // Both ends of an edge inside every plane of every receiver's pyramid (the light's edge planes
-  // and, where the tile's receivers share their normal, the horizon's), by a margin of 1e-9 (or
-  // 1024 epsT) of the plane's scale times tb.d1, far above both the rounding of the walk's
-  // g = cone . (x - p) (tp's safety) and its test of an unclipped end against E_h's boundary
-  // (tol times the end's 1-norm from p, plus the rounding of its projection: a few eps of S3).
-  // Then every receiver of the box computes g >= 0 at both ends for every cone plane, so
-  // cyrus_beck keeps the whole edge (t0 = 0, t1 = 1) and neither end is too close to E_h's
-  // boundary: contour_edges skips those tests for it.
+  // An end inside a plane of every receiver's pyramid (a light's edge plane or, where the tile's
+  // receivers share their normal, the horizon's), by a margin of 1e-9 (or 1024 epsT) of the
+  // plane's scale times tb.d1, far above both the rounding of the walk's g = cone . (x - p) (tp's
+  // safety) and its test of an unclipped end against E_h's boundary (tol times the end's 1-norm
+  // from p, plus the rounding of its projection: a few eps of S3). Where both ends of an edge are
+  // inside plane k so, every receiver of the box computes g >= 0 at both ends for it: cyrus_beck's
+  // interval for that plane is [0, 1], the out test cannot drop the edge by it, and neither end
+  // is too close to E_h's boundary along it: contour_edges skips those tests for plane k
+  // (STEdge::inm), and all of them where that holds for every plane (STEdge::in).
   const double inmarg = (1e-9 + 1024 * epsT) * tb.d1;
-  // One end's test: inside every cone plane (and the horizon) for every receiver of the box.
-  auto end_in = [&](const double* x) {
+  // The planes an end is inside of, as bits of STEntry::planes (cone plane k: the light's edge k
+  // for k < K, the horizon's K); without `masked`, ~0 where it is inside every plane, else 0.
+  uint64_t all_in = masked && horizon ? uint64_t(1) << K : 0;
+  for (int k = 0; k < ntp && masked; k++) all_in |= uint64_t(1) << tp[k].edge;
+  if (!masked) all_in = ~uint64_t(0);
+  auto end_planes = [&](const double* x) -> uint64_t {
     const double lo = hn[0] * (x[0] - tb.pc[0]) + hn[1] * (x[1] - tb.pc[1]) + hn[2] * (x[2] - tb.pc[2]) -
                       (std::fabs(hn[0]) * tb.hb[0] + std::fabs(hn[1]) * tb.hb[1] + std::fabs(hn[2]) * tb.hb[2]);
-    if (!(lo > inmarg * hnn)) return false;
+    const bool hz = lo > inmarg * hnn;
+    if (!masked && !hz) return 0;
+    uint64_t m = masked && hz ? uint64_t(1) << K : 0;
     const double box[6] = {x[0], x[1], x[2], x[0], x[1], x[2]};
-    for (int k = 0; k < ntp; k++)
-      if (!(tile_plane_inf_best(tp[k], tb, box) > tp[k].safety + inmarg * tp[k].cn1)) return false;
-    return true;
+    for (int k = 0; k < ntp; k++) {
+      const bool in = tile_plane_inf_best(tp[k], tb, box) > tp[k].safety + inmarg * tp[k].cn1;
+      if (masked && in) m |= uint64_t(1) << tp[k].edge;
+      if (!masked && !in) return 0;
+    }
+    return masked ? m : ~uint64_t(0);
   };
-  // Both ends' tests, each made once per position: kept by position id in tc.pos_in (1 inside,
-  // 0 not, -1 not yet tested).
+  // An edge's planes (both ends'), each end's made once per position: kept by position id in
+  // tc.pos_in (1 tested, -1 not yet) and tc.pos_m.
   tc.pos_in.assign(size_t(parent && parent->ok && parent->tree == &st ? parent->nids : 0), int8_t(-1));
-  auto edge_in = [&](const double* a, const double* b, int32_t ia, int32_t ib) {
-    if (!horizon || !serves) return false;
+  tc.pos_m.resize(tc.pos_in.size());
+  auto edge_in = [&](const double* a, const double* b, int32_t ia, int32_t ib) -> uint64_t {
+    if (!serves) return 0;
+    uint64_t m = ~uint64_t(0);
     for (int j = 0; j < 2; j++) {
       const int32_t id = j ? ib : ia;
-      if (size_t(id) >= tc.pos_in.size()) tc.pos_in.resize(std::max(2 * tc.pos_in.size(), size_t(id) + 1), int8_t(-1));
-      int8_t& in = tc.pos_in[size_t(id)];
-      if (in < 0) in = int8_t(end_in(j ? b : a));
-      if (!in) return false;
+      if (size_t(id) >= tc.pos_in.size()) {
+        tc.pos_in.resize(std::max(2 * tc.pos_in.size(), size_t(id) + 1), int8_t(-1));
+        tc.pos_m.resize(tc.pos_in.size());
+      }
+      if (tc.pos_in[size_t(id)] < 0) {
+        tc.pos_in[size_t(id)] = 1;
+        tc.pos_m[size_t(id)] = end_planes(j ? b : a);
+      }
+      m &= tc.pos_m[size_t(id)];
     }
-    return true;
+    return m;
   };
   const Occluders<T>& occ = call.occ;
   // Preorder, right subtree first (the walk's stack order); an entry that keeps nothing is dropped.
@@ -305,6 +322,8 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
     double smargin, smargin_min;
     bool serves;
     bool deep;
+    uint64_t all_in;  // end_planes' bits of every plane tested
+    bool masked, horizon;
     bool visit(int32_t k, int depth) {
       const SNode& nd = st.nodes[size_t(k)];
       if (out(nd.box, ~uint64_t(0))) return false;
@@ -409,7 +428,9 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
       }
       STEdge& te = tc.edges.back();
       te.w = int8_t(W);
-      te.in = ein(a, b, te.ia, te.ib);
+      const uint64_t m = ein(a, b, te.ia, te.ib);
+      te.in = m == all_in && horizon;
+      te.inm = masked ? m : 0;
       te.lf = te.lg = -1;
       if (W == 0 && serves) {
         te.lf = face_slot(e.f);
@@ -463,7 +484,7 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
       return true;
     }
   };
-  Rec rec{st, tc, outside, edge_out, entry, edge_in, tb, occ, smargin, smargin_min, serves, false};
+  Rec rec{st, tc, outside, edge_out, entry, edge_in, tb, occ, smargin, smargin_min, serves, false, all_in, masked, horizon};
   if (parent && parent->ok && parent->tree == &st) {
     tc.nids = parent->nids;  // the parent's edges keep their ids
     if (!parent->entries.empty()) rec.visit_list(*parent, 0);
@@ -580,10 +601,11 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
   // nonzero: its coverage jump, known (the faces' sides as sil_side gives them, or face_path_side
   // where it cannot tell). False: fall back.
   // `in`: the tile proved both ends inside every cone plane with a margin (STEdge::in): the
-  // clipping keeps the whole edge and the end tests below pass, so they are skipped.
+  // clipping keeps the whole edge and the end tests below pass, so they are skipped. `inm`: the
+  // cone planes it proved that for (STEdge::inm; bit k: plane k): their tests are skipped.
   // `side_f`, `side_g`: sil_side of e.f and e.g (called where W is 0); `own_of`: edge_plane(p, a3, b3).
   // `ends(a3, b3)` sets the edge's ends (read once W is known nonzero).
-  auto edge = [&](const SEdge& e, int W, bool in, int32_t ia, int32_t ib, auto side_f, auto side_g, auto ends,
+  auto edge = [&](const SEdge& e, int W, bool in, uint64_t inm, int32_t ia, int32_t ib, auto side_f, auto side_g, auto ends,
                   auto own_of) __attribute__((always_inline)) -> bool {
     if (W == 0) {
       int sf = side_f();
@@ -598,29 +620,35 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
     }
     V3<T> a3, b3;
     ends(a3, b3);
+    bool whole = in;
     if (!in) {
       // Both ends clearly outside one cone plane: cyrus_beck's interval for that plane is empty
       // (the same g0, g1; beyond its collinear tolerance, as norms are at most 1-norms), so it
       // would return false. Skips the edge's plane and the clipping for most non-contour edges
       // that the hierarchy's boxes let through.
+      // `whole`: g0 > 0 and g0 + g1 > 0 for every nonzero plane (cyrus_beck's own g0, g1): each
+      // plane's t_lo is at most 0 and its t_hi at least 1 (the sum's sign is exact, so g0 > -g1),
+      // or 0 and 1 where the collinear test zeroes them, so cyrus_beck would return true with
+      // t0 <= 0 and t1 = 1: both ends unclipped. It is skipped.
       const V3<T> ap = a3 - p, d = b3 - a3, bp = b3 - p;
       const T apl = std::fabs(ap.x) + std::fabs(ap.y) + std::fabs(ap.z) + std::fabs(bp.x) + std::fabs(bp.y) + std::fabs(bp.z);
-      bool out = false;
-      for (int k = 0; k < np0 && !out; k++) {
-        const T g0 = dot(ap, cone[k]);
-        if (!(g0 < 0)) continue;
-        const T g1 = dot(d, cone[k]), g01 = g0 + g1;
-        const T m = T(8) * T(kCollinearEps) * eps_of<T>() * (std::fabs(cone[k].x) + std::fabs(cone[k].y) + std::fabs(cone[k].z)) * apl;
-        out = g01 < 0 && -g0 > m && -g01 > m;
+      whole = true;
+      for (int k = 0; k < np0; k++) {
+        if (k < 64 && ((inm >> k) & 1)) continue;  // inside it for every receiver of the tile (STEdge::inm)
+        const T g0 = dot(ap, cone[k]), g1 = dot(d, cone[k]), g01 = g0 + g1;
+        if (g0 < 0) {
+          const T m = T(8) * T(kCollinearEps) * eps_of<T>() * (std::fabs(cone[k].x) + std::fabs(cone[k].y) + std::fabs(cone[k].z)) * apl;
+          if (g01 < 0 && -g0 > m && -g01 > m) return true;
+        }
+        whole = whole && ((g0 > 0 && g01 > 0) || cz[k]);
       }
-      if (out) return true;
     }
     const V3<T> own = own_of(a3, b3);
     T t0 = 0, t1 = 1;
     int i0 = 0, i1 = 0;
-    if (!in && !cyrus_beck(p, a3, b3, cone, np0, own, t0, t1, i0, i1)) return true;
+    if (!whole && !cyrus_beck(p, a3, b3, cone, np0, own, t0, t1, i0, i1)) return true;
     const PlaneRef oref = through(e.ra, e.rb);
-    SSeg<T> s;
+    SSeg<T>& s = segs.emplace_back();  // built in place (SSeg's constructor leaves it unset)
     s.own = own, s.own_n = norm(own), s.q0s = 0, s.own_ref = oref, s.w = W, s.va = e.ra, s.vb = e.rb, s.x3a = a3, s.x3b = b3;
     s.ia = ia, s.ib = ib;
     // An end: where the edge leaves the pyramid through cone plane i (clipped), or its vertex's projection.
@@ -637,16 +665,18 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
     };
     end(t0 > 0, i0, a3, e.ra, s.a, s.ca, s.on_a);
     end(t1 < 1, i1, b3, e.rb, s.b, s.cb, s.on_b);
-    if (same(s.a, s.b)) return true;
+    if (same(s.a, s.b)) {
+      segs.pop_back();
+      return true;
+    }
     for (int k = 0; k < np0 && !in; k++) {  // an unclipped end on E_h's boundary: too close to call
-      if (cz[k]) continue;
+      if (cz[k] || (k < 64 && ((inm >> k) & 1))) continue;
       const V3<T> ra = s.a - p, rb = s.b - p;
       const T cn1 = cone_n[k];
       if ((s.on_a < 0 && !(std::fabs(dot(ra, cone[k])) > tol * cn1 * (std::fabs(ra.x) + std::fabs(ra.y) + std::fabs(ra.z)))) ||
           (s.on_b < 0 && !(std::fabs(dot(rb, cone[k])) > tol * cn1 * (std::fabs(rb.x) + std::fabs(rb.y) + std::fabs(rb.z)))))
         return false;
     }
-    segs.push_back(s);
     n_contour++;
     return true;
   };
@@ -687,10 +717,12 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
           const V3<T> lo = te.fwd ? a3 : b3, hi = te.fwd ? b3 : a3;
           const V3<T> rl = lo - p, rh = hi - p;
           const V3<T> dir{T(te.dir[0]), T(te.dir[1]), T(te.dir[2])};
-          const V3<T> c = rescale(cross(dir, rescale(dot(rh, rh) < dot(rl, rl) ? rh : rl)));  // edge_plane
-          return te.fwd ? c : V3<T>{-c.x, -c.y, -c.z};
+          // edge_plane: rescale(c) negated where !fwd, as one product by the signed power of 2
+          const V3<T> c = cross(dir, rescale(dot(rh, rh) < dot(rl, rl) ? rh : rl));
+          const T sc = pow2_scale(absmax(c));
+          return (te.fwd ? sc : -sc) * c;
         };
-        if (!edge(te.e, te.w, te.in, te.ia, te.ib, [&]() { return int(side[te.lf]); }, [&]() { return int(side[te.lg]); }, ends, own_of))
+        if (!edge(te.e, te.w, te.in, te.inm, te.ia, te.ib, [&]() { return int(side[te.lf]); }, [&]() { return int(side[te.lg]); }, ends, own_of))
           return kFallback;
       }
       i++;
@@ -720,7 +752,7 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
     }
     for (int32_t k = nd.start; k < nd.start + nd.count; k++) {
       const SEdge& e = st.edges[size_t(k)];
-      if (!edge(e, 0, false, -1, -1, [&]() { return sil_side(st, e.f, pd, side_scale); },
+      if (!edge(e, 0, false, 0, -1, -1, [&]() { return sil_side(st, e.f, pd, side_scale); },
                 [&]() { return sil_side(st, e.g, pd, side_scale); }, [&](V3<T>& a3, V3<T>& b3) { a3 = occ.vref(e.ra), b3 = occ.vref(e.rb); },
                 [&](V3<T> a3, V3<T> b3) { return edge_plane(p, a3, b3); }))
         return kFallback;
