@@ -31,6 +31,28 @@ def _loss(cols, y, theta):
     return 0.5 * r ** 2
 
 
+def _screen_and_refine(cols, y):
+    """The stand-in's local screen (the 4 best candidates of light j by NNLS residual with the
+    others' columns `B`) and a refinement that leaves every placement where it is."""
+
+    def local_screen(j, B):
+        return [int(c) for c in np.argsort(nnls_rss(B, cols[j], y, True), kind="stable")[:4]]
+
+    def refine(th):
+        return th.copy(), np.asarray([_loss(cols, y, t) for t in th])
+
+    return local_screen, refine
+
+
+def _distinct(th, k):
+    """The first `k` rows of `th` that differ from every row picked before."""
+    picked = []
+    for i, t in enumerate(th):
+        if len(picked) < k and all(np.any(t != th[q]) for q in picked):
+            picked.append(i)
+    return picked
+
+
 def _run(cols, rows, y, start, rounds=3, deal=None):
     values = np.asarray([start], np.float64)
     losses = np.asarray([_loss(cols, y, start)])
@@ -38,21 +60,9 @@ def _run(cols, rows, y, start, rounds=3, deal=None):
     def columns(j, r):
         return cols[j][r[:, 0].astype(int)]
 
-    def local_screen(j, B):
-        return [int(c) for c in np.argsort(nnls_rss(B, cols[j], y, True), kind="stable")[:4]]
-
-    def refine(th):  # a refinement that leaves every placement where it is
-        return th.copy(), np.asarray([_loss(cols, y, t) for t in th])
-
-    def distinct(th, k):
-        picked = []
-        for i, t in enumerate(th):
-            if len(picked) < k and all(np.any(t != th[q]) for q in picked):
-                picked.append(i)
-        return picked
-
+    local_screen, refine = _screen_and_refine(cols, y)
     return rescreen(values, losses, [0, 1, 2], (0, 1, 2), [1, 1, 1], rows, cols, y, True, columns, local_screen,
-                    refine, distinct, 8, rounds=rounds, deal=deal)
+                    refine, _distinct, 8, rounds=rounds, deal=deal)
 
 
 def test_two_lights_standing_in_for_each_other_move_together():
@@ -131,22 +141,10 @@ def test_best_placement_dealt_first_when_the_extras_are_cut():
     rows = [np.arange(N_CAND, dtype=np.float64)[:, None] for _ in range(3)]
     start = np.array([truth[1], truth[2], truth[0]], np.float64)
 
-    def refine(th):
-        return th.copy(), np.asarray([_loss(cols, y, t) for t in th])
-
-    def local_screen(j, B):
-        return [int(c) for c in np.argsort(nnls_rss(B, cols[j], y, True), kind="stable")[:4]]
-
-    def distinct(th, k):
-        picked = []
-        for i, t in enumerate(th):
-            if len(picked) < k and all(np.any(t != th[q]) for q in picked):
-                picked.append(i)
-        return picked
-
+    local_screen, refine = _screen_and_refine(cols, y)
     values, losses = rescreen(np.asarray([start]), np.asarray([_loss(cols, y, start)]), [0, 1, 2], (0, 1, 2),
                               [1, 1, 1], rows, cols, y, True, lambda j, r: cols[j][r[:, 0].astype(int)],
-                              local_screen, refine, distinct, 2, rounds=1, deal=_deal,
+                              local_screen, refine, _distinct, 2, rounds=1, deal=_deal,
                               near=lambda j, th, B: [N_CAND - 1])  # a split to a spot no light is at
     best = values[int(np.argmin(losses))]
     assert [int(x) for x in best] == [truth[0], truth[1], truth[2]]

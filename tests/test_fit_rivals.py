@@ -72,21 +72,30 @@ def test_rival_rule():
     assert diag.rival_placements(two, [(0.0, moved)], 0.0, 6, 4.0, se2, params) == ()
 
 
-def test_mirror_placement_is_flagged():
-    """The light and its mirror image in y = 0 explain the noisy targets alike: the answer, one
-    of the two, is not trusted, the warning names the light and the other placement."""
+def _line_targets(noise: float) -> inverse.PaintedTargets:
+    """16 targets on the x axis (y = z = 0) with normals in the xz plane, painted by a point
+    light at TRUE, with relative Gaussian noise `noise`: a light and its mirror image in y = 0
+    explain them alike."""
     x = np.linspace(-1.0, 1.0, 16)
     pts = np.c_[x, np.zeros(16), np.zeros(16)]
     a = np.linspace(-0.6, 0.6, 16)[np.random.default_rng(0).permutation(16)]
     nrm = np.c_[np.sin(a), np.zeros(16), np.cos(a)]
     true = js.Scene([js.PointLight(TRUE, 3.0)], ambient=0.05)
     col = np.asarray(js.shade(true, MATERIAL, pts, nrm, EYE), np.float64)
-    col = col * (1.0 + 0.01 * np.random.default_rng(3).normal(size=col.shape))
-    targets = inverse.PaintedTargets(pts, nrm, col, EYE)
+    if noise:
+        col = col * (1.0 + noise * np.random.default_rng(3).normal(size=col.shape))
+    return inverse.PaintedTargets(pts, nrm, col, EYE)
+
+
+def test_mirror_placement_is_flagged():
+    """The light and its mirror image in y = 0 explain the noisy targets alike: the answer, one
+    of the two, is not trusted, the warning names the light and the other placement."""
+    targets = _line_targets(noise=0.01)
     start = js.Scene([js.PointLight([-0.4, 0.1, 1.5], 3.0)], ambient=0.05)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        fit = inverse.fit_lights(start, targets, MATERIAL, fit=("position", "power"), noise=0.01 * col)
+        fit = inverse.fit_lights(start, targets, MATERIAL, fit=("position", "power"),
+                                 noise=0.01 * np.asarray(targets.colours))
     q = fit.report.quality
     assert not fit.report.trusted and "competing_placements" in q.flags
     assert q.chi2 < diag.WRONG_MINIMUM_CHI2  # the answer explains the targets: only the rival says no
@@ -190,13 +199,7 @@ def test_mirror_placement_noise_free_is_flagged():
     """Noise-free targets on the line: the given pose's local search fits them exactly, so the
     search never places the light again, yet its mirror image in y = 0 fits them exactly too:
     the report adds that placement (`inverse._mirror`) and flags the answer."""
-    x = np.linspace(-1.0, 1.0, 16)
-    pts = np.c_[x, np.zeros(16), np.zeros(16)]
-    a = np.linspace(-0.6, 0.6, 16)[np.random.default_rng(0).permutation(16)]
-    nrm = np.c_[np.sin(a), np.zeros(16), np.cos(a)]
-    true = js.Scene([js.PointLight(TRUE, 3.0)], ambient=0.05)
-    col = np.asarray(js.shade(true, MATERIAL, pts, nrm, EYE), np.float64)
-    targets = inverse.PaintedTargets(pts, nrm, col, EYE)
+    targets = _line_targets(noise=0.0)
     start = js.Scene([js.PointLight([-0.4, 0.1, 1.5], 3.0)], ambient=0.05)
     fit = inverse.fit_lights(start, targets, MATERIAL, fit=("position", "power"), warn=False)
     q = fit.report.quality
