@@ -35,35 +35,23 @@ def emitted_power(light: Any) -> Array | np.ndarray:
     compile one small XLA program each in a fresh process."""
     if isinstance(light, js.DirectionalLight):
         raise ValueError("a power budget: a DirectionalLight has no finite emitted power.")
-    if not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(light)):
-        return _emitted_power_host(light)
+    traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(light))
+    xp: Any = jnp if traced else np
     if isinstance(light, js.PolygonLight):
-        v = light.vertices
-        w = jnp.roll(v, -1, axis=0)
-        n = jnp.sum(jnp.stack([v[:, 1] * w[:, 2] - v[:, 2] * w[:, 1], v[:, 2] * w[:, 0] - v[:, 0] * w[:, 2],
-                               v[:, 0] * w[:, 1] - v[:, 1] * w[:, 0]], axis=-1), axis=0)
-        return jnp.pi * jnp.mean(light.radiance) * 0.5 * jnp.sqrt(jnp.sum(n * n))
-    if isinstance(light, js.LinearLight):
-        d = light.end - light.start
-        return jnp.mean(light.power) * jnp.sqrt(jnp.sum(d * d))
-    if isinstance(light, js.PointLight):
-        return 4.0 * jnp.pi * jnp.mean(light.intensity)
-    raise ValueError("a power budget: a DirectionalLight has no finite emitted power.")
-
-
-def _emitted_power_host(light: Any) -> np.ndarray:
-    """`emitted_power` of a light with concrete arrays, in NumPy (a 0-d array of its dtype)."""
-    if isinstance(light, js.PolygonLight):
-        v = np.asarray(light.vertices)
-        w = np.roll(v, -1, axis=0)
-        n = np.sum(np.stack([v[:, 1] * w[:, 2] - v[:, 2] * w[:, 1], v[:, 2] * w[:, 0] - v[:, 0] * w[:, 2],
+        v = xp.asarray(light.vertices)
+        w = xp.roll(v, -1, axis=0)
+        n = xp.sum(xp.stack([v[:, 1] * w[:, 2] - v[:, 2] * w[:, 1], v[:, 2] * w[:, 0] - v[:, 0] * w[:, 2],
                              v[:, 0] * w[:, 1] - v[:, 1] * w[:, 0]], axis=-1), axis=0)
-        return np.asarray(np.pi * np.mean(np.asarray(light.radiance)) * 0.5 * np.sqrt(np.sum(n * n)), v.dtype)
-    if isinstance(light, js.LinearLight):
-        d = np.asarray(light.end) - np.asarray(light.start)
-        return np.asarray(np.mean(np.asarray(light.power)) * np.sqrt(np.sum(d * d)), d.dtype)
-    i = np.asarray(light.intensity)
-    return np.asarray(4.0 * np.pi * np.mean(i), i.dtype)
+        out, dtype = xp.pi * xp.mean(xp.asarray(light.radiance)) * 0.5 * xp.sqrt(xp.sum(n * n)), v.dtype
+    elif isinstance(light, js.LinearLight):
+        d = xp.asarray(light.end) - xp.asarray(light.start)
+        out, dtype = xp.mean(xp.asarray(light.power)) * xp.sqrt(xp.sum(d * d)), d.dtype
+    elif isinstance(light, js.PointLight):
+        i = xp.asarray(light.intensity)
+        out, dtype = 4.0 * xp.pi * xp.mean(i), i.dtype
+    else:
+        raise ValueError("a power budget: a DirectionalLight has no finite emitted power.")
+    return out if traced else np.asarray(out, dtype)
 
 
 def painted_jacobian(model: np.ndarray, cols: np.ndarray, sw: np.ndarray, paint: Painting | None) -> np.ndarray:
