@@ -230,11 +230,11 @@ struct SilCoverage {
     v = r[0] * Vv[0] + r[1] * Vv[1] + r[2] * Vv[2];
   }
   int cell_of(double x, double mn, double d) const {
-    // floor of y in [-1, G] as truncation corrected downwards for negative non-integers (exact).
-    const double y = std::min(std::max((x - mn) / d, -1.0), double(G));
-    int k = int(y);
-    k -= int(y < double(k));
-    return std::max(0, std::min(G - 1, k));
+    // floor((x - mn) / d) clamped to [0, G - 1]: below 1 the first cell, from G - 1 the last,
+    // truncation (floor for the positive values between) otherwise.
+    const double y = (x - mn) / d;
+    if (!(y >= 1)) return 0;
+    return y >= double(G - 1) ? G - 1 : int(y);
   }
 
   // The contour pieces on a grid of the emitter plane: a piece's crossing candidates are the
