@@ -136,7 +136,6 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   Cov cov(call, st, w, eh, neh, p, ne, scale);
   if (!cov.reference()) return kFallback;
   cov.build_grid();
-  cov.grid_references();
   const int G = cov.G;
   const std::vector<int32_t>& gs = w.gstart;
   const std::vector<int32_t>& gi = w.gitems;

@@ -224,6 +224,46 @@ struct SilCoverage {
     }
     return c;
   }
+  // coverage(m, skip) through the grid: the same sum over only the pieces registered in the cells
+  // the segment q0 -> m passes, widened by a cell on every side (every piece that crosses the
+  // segment meets it at a point of its padded box, so it is registered in that point's cell; the
+  // widening covers the rounding of the cells' bounds, far below a cell). kNone as coverage().
+  int coverage_path(V3<T> m, int skip) {
+    double u0, v0, u1, v1;
+    uv(q0, u0, v0);
+    uv(m, u1, v1);
+    const V3<T> pqm = cross(q0 - p, m - p);
+    const double pn = norm(pqm);
+    const At am = at(m);
+    int c = c0;
+    stamp++;
+    const int iy0 = std::max(0, cell_of(std::min(v0, v1), vmin, dv) - 1);
+    const int iy1 = std::min(G - 1, cell_of(std::max(v0, v1), vmin, dv) + 1);
+    const double dvp = v1 - v0;
+    for (int iy = iy0; iy <= iy1; iy++) {
+      // The segment's u over the row's v range (all of it where the segment runs along the rows).
+      double ua = std::min(u0, u1), ub = std::max(u0, u1);
+      if (std::fabs(dvp) > 1e-3 * dv) {
+        const double ta = std::min(1.0, std::max(0.0, (vmin + iy * dv - v0) / dvp));
+        const double tb = std::min(1.0, std::max(0.0, (vmin + (iy + 1) * dv - v0) / dvp));
+        const double xa = u0 + ta * (u1 - u0), xb = u0 + tb * (u1 - u0);
+        ua = std::min(xa, xb), ub = std::max(xa, xb);
+      }
+      const int ix0 = std::max(0, cell_of(ua, umin, du) - 1), ix1 = std::min(G - 1, cell_of(ub, umin, du) + 1);
+      for (int ix = ix0; ix <= ix1; ix++) {
+        const int cell = iy * G + ix;
+        for (int32_t k = gs[size_t(cell)]; k < gs[size_t(cell + 1)]; k++) {
+          const int32_t i = gi[size_t(k)];
+          if (i == skip || stamp_of[size_t(i)] == stamp) continue;
+          stamp_of[size_t(i)] = stamp;
+          const int j = jump_from(segs[size_t(i)], segs[size_t(i)].q0s, am, pqm, pn);
+          if (j == kNone) return kNone;
+          c += j;
+        }
+      }
+    }
+    return c;
+  }
   void uv(V3<T> x, double& u, double& v) const {
     const double r[3] = {double(x.x) - O[0], double(x.y) - O[1], double(x.z) - O[2]};
     u = r[0] * U[0] + r[1] * U[1] + r[2] * U[2];
@@ -423,6 +463,7 @@ struct SilCoverage {
   // with the recurrence above; the cells it needs are computed first, through an explicit stack
   // (a chain of them can be as long as the grid has cells).
   int grid_cov(int cell) {
+    if (!gscratch) grid_references();  // (made on the first use: most receivers never need them)
     if (w.gcov[size_t(cell)] != kUnset) return w.gcov[size_t(cell)];
     std::vector<SilGridFrame<T>>& stk = gscratch->frames;
     stk.clear();
@@ -512,6 +553,8 @@ struct SilCoverage {
   // C on q0's side of contour piece `skip` at point m on it: from m's cell where it can.
   int coverage_at(V3<T> m, int skip) {
     if (G) {
+      const int cp = coverage_path(m, skip);
+      if (cp != kNone) return cp;
       double um, vm;
       uv(m, um, vm);
       if (um > umin - gpad && um < umin + G * du + gpad && vm > vmin - gpad && vm < vmin + G * dv + gpad) {
@@ -576,6 +619,8 @@ struct SilCoverage {
   // row); the pieces that can cross that path are the ones registered in that cell.
   int coverage_eh(V3<T> m) {
     if (G) {
+      const int cp = coverage_path(m, -1);
+      if (cp != kNone) return cp;
       double um, vm;
       uv(m, um, vm);
       if (um > umin - gpad && um < umin + G * du + gpad && vm > vmin - gpad && vm < vmin + G * dv + gpad) {
