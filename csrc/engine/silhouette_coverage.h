@@ -225,9 +225,9 @@ struct SilCoverage {
     return c;
   }
   // coverage(m, skip) through the grid: the same sum over only the pieces registered in the cells
-  // the segment q0 -> m passes, widened by a cell on every side (every piece that crosses the
-  // segment meets it at a point of its padded box, so it is registered in that point's cell; the
-  // widening covers the rounding of the cells' bounds, far below a cell). kNone as coverage().
+  // the segment q0 -> m passes, widened by gpad on every side (a piece that crosses the segment
+  // is registered in every cell its box padded by gpad meets; the rounding of the segment's
+  // (u, v) and of the cells' bounds is far below gpad). kNone as coverage().
   int coverage_path(V3<T> m, int skip) {
     double u0, v0, u1, v1;
     uv(q0, u0, v0);
@@ -237,19 +237,18 @@ struct SilCoverage {
     const At am = at(m);
     int c = c0;
     stamp++;
-    const int iy0 = std::max(0, cell_of(std::min(v0, v1), vmin, dv) - 1);
-    const int iy1 = std::min(G - 1, cell_of(std::max(v0, v1), vmin, dv) + 1);
+    const int iy0 = cell_of(std::min(v0, v1) - gpad, vmin, dv), iy1 = cell_of(std::max(v0, v1) + gpad, vmin, dv);
     const double dvp = v1 - v0;
     for (int iy = iy0; iy <= iy1; iy++) {
       // The segment's u over the row's v range (all of it where the segment runs along the rows).
       double ua = std::min(u0, u1), ub = std::max(u0, u1);
       if (std::fabs(dvp) > 1e-3 * dv) {
-        const double ta = std::min(1.0, std::max(0.0, (vmin + iy * dv - v0) / dvp));
-        const double tb = std::min(1.0, std::max(0.0, (vmin + (iy + 1) * dv - v0) / dvp));
+        const double ta = std::min(1.0, std::max(0.0, (vmin + iy * dv - gpad - v0) / dvp));
+        const double tb = std::min(1.0, std::max(0.0, (vmin + (iy + 1) * dv + gpad - v0) / dvp));
         const double xa = u0 + ta * (u1 - u0), xb = u0 + tb * (u1 - u0);
         ua = std::min(xa, xb), ub = std::max(xa, xb);
       }
-      const int ix0 = std::max(0, cell_of(ua, umin, du) - 1), ix1 = std::min(G - 1, cell_of(ub, umin, du) + 1);
+      const int ix0 = cell_of(ua - gpad, umin, du), ix1 = cell_of(ub + gpad, umin, du);
       for (int ix = ix0; ix <= ix1; ix++) {
         const int cell = iy * G + ix;
         for (int32_t k = gs[size_t(cell)]; k < gs[size_t(cell + 1)]; k++) {
