@@ -277,13 +277,14 @@ struct SilCoverage {
   }
 
   // The contour pieces on a grid of the emitter plane: a piece's crossing candidates are the
-  // pieces registered in the cells its box meets, and C at a point is C at its cell's reference
-  // point plus the crossings of the path between them with the cell's pieces (not the path from
-  // q0 with every piece): the arrangement costs about O(S sqrt S) for S contour pieces instead of
-  // O(S^2). A path between two points of one cell, or of two cells sharing a side (their union is
-  // a rectangle), stays in those cells and inside E_h (convex), so only pieces registered there
-  // (by their boxes, padded far beyond rounding) can cross it. Any decision too close to call, and
-  // any point without a usable cell, takes the path from q0 as above.
+  // pieces registered in the cells its box meets, and C at a point is C at q0 plus the crossings
+  // of the path from q0 with the pieces of the cells along it (coverage_path), or C at its cell's
+  // reference point plus the crossings of the path between them with the cell's pieces (not the
+  // path from q0 with every piece): the arrangement costs about O(S sqrt S) for S contour pieces
+  // instead of O(S^2). A path between two points of one cell, or of two cells sharing a side
+  // (their union is a rectangle), stays in those cells and inside E_h (convex), so only pieces
+  // registered there (by their boxes, padded far beyond rounding) can cross it. Any decision too
+  // close to call, and any point without a usable cell, takes the path from q0 with every piece.
   void build_grid() {
     const int nsc = ns - neh;
     if (nsc >= kSilGridMin) {
@@ -549,7 +550,8 @@ struct SilCoverage {
       }
     }
   }
-  // C on q0's side of contour piece `skip` at point m on it: from m's cell where it can.
+  // C on q0's side of contour piece `skip` at point m on it: along q0 -> m through the grid, else
+  // from m's cell's reference point, else from q0 with every piece.
   int coverage_at(V3<T> m, int skip) {
     if (G) {
       const int cp = coverage_path(m, skip);
@@ -583,7 +585,7 @@ struct SilCoverage {
   // lie in one row with no piece registered in the cells between (the path stays in that row and
   // in E_h, convex, and no piece's padded box meets the cells between). kNone when the cells are
   // otherwise, a side is too close to call (m on k's line, `from` on skip's), or a crossing is;
-  // the caller then asks the grid's references (coverage_at, coverage_eh).
+  // the caller then asks coverage_at or coverage_eh.
   int coverage_from(V3<T> m, int skip, V3<T> from, int k, int ck) {
     if (!G) return kNone;
     double um, vm, uf, vf;
@@ -613,6 +615,7 @@ struct SilCoverage {
     return rs == qs ? c : (qs > 0 ? c + w : c - w);
   }
   // C at a point m of E_h's boundary (inside E_h's side of every contour piece's plane test):
+  // along q0 -> m through the grid (coverage_path), else
   // from the reference point of m's cell when the cell holds pieces, else of the nearest cell of
   // its row that does (the cells between hold none, and the path lies in E_h, convex, and in the
   // row); the pieces that can cross that path are the ones registered in that cell.
