@@ -60,7 +60,7 @@ inline bool sil_apart(const SilBox& a, const SilBox& b) {
   return (m[0] | m[1]) != 0;
 }
 // How many contour pieces of known C a coverage query tries (near, in silhouette_receiver) before
-// the grid's references.
+// the path from q0 through the grid (SilCoverage::coverage_at, coverage_eh).
 constexpr int kSilNearTries = 4;
 // The most ends of contour segments at one vertex whose rays silhouette_receiver sorts about it.
 constexpr int kSilFan = 8;
@@ -136,7 +136,6 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   Cov cov(call, st, w, eh, neh, p, ne, scale);
   if (!cov.reference()) return kFallback;
   cov.build_grid();
-  cov.grid_references();
   const int G = cov.G;
   const std::vector<int32_t>& gs = w.gstart;
   const std::vector<int32_t>& gi = w.gitems;
@@ -622,7 +621,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   // of its row holding pieces (SilCoverage::coverage_from): from the midpoint of
   // its first or last piece, where C on its q0 side is cf or cf + sj (each a sum of all the jumps
   // before it, whatever the order of close breakpoints). kNone when none serves; the caller then
-  // asks the grid's references.
+  // takes the path from q0 through the grid (SilCoverage::coverage_at, coverage_eh).
   auto near = [&](V3<T> m, int skip) -> int {
     if (!G) return Cov::kNone;
     double um, vm;

@@ -224,27 +224,67 @@ struct SilCoverage {
     }
     return c;
   }
+  // coverage(m, skip) through the grid: the same sum over only the pieces registered in the cells
+  // the segment q0 -> m passes, widened by gpad on every side (a piece that crosses the segment
+  // is registered in every cell its box padded by gpad meets; the rounding of the segment's
+  // (u, v) and of the cells' bounds is far below gpad). kNone as coverage().
+  int coverage_path(V3<T> m, int skip) {
+    double u0, v0, u1, v1;
+    uv(q0, u0, v0);
+    uv(m, u1, v1);
+    const V3<T> pqm = cross(q0 - p, m - p);
+    const double pn = norm(pqm);
+    const At am = at(m);
+    int c = c0;
+    stamp++;
+    const int iy0 = cell_of(std::min(v0, v1) - gpad, vmin, dv), iy1 = cell_of(std::max(v0, v1) + gpad, vmin, dv);
+    const double dvp = v1 - v0;
+    for (int iy = iy0; iy <= iy1; iy++) {
+      // The segment's u over the row's v range (all of it where the segment runs along the rows).
+      double ua = std::min(u0, u1), ub = std::max(u0, u1);
+      if (std::fabs(dvp) > 1e-3 * dv) {
+        const double ta = std::min(1.0, std::max(0.0, (vmin + iy * dv - gpad - v0) / dvp));
+        const double tb = std::min(1.0, std::max(0.0, (vmin + (iy + 1) * dv + gpad - v0) / dvp));
+        const double xa = u0 + ta * (u1 - u0), xb = u0 + tb * (u1 - u0);
+        ua = std::min(xa, xb), ub = std::max(xa, xb);
+      }
+      const int ix0 = cell_of(ua - gpad, umin, du), ix1 = cell_of(ub + gpad, umin, du);
+      for (int ix = ix0; ix <= ix1; ix++) {
+        const int cell = iy * G + ix;
+        for (int32_t k = gs[size_t(cell)]; k < gs[size_t(cell + 1)]; k++) {
+          const int32_t i = gi[size_t(k)];
+          if (i == skip || stamp_of[size_t(i)] == stamp) continue;
+          stamp_of[size_t(i)] = stamp;
+          const int j = jump_from(segs[size_t(i)], segs[size_t(i)].q0s, am, pqm, pn);
+          if (j == kNone) return kNone;
+          c += j;
+        }
+      }
+    }
+    return c;
+  }
   void uv(V3<T> x, double& u, double& v) const {
     const double r[3] = {double(x.x) - O[0], double(x.y) - O[1], double(x.z) - O[2]};
     u = r[0] * U[0] + r[1] * U[1] + r[2] * U[2];
     v = r[0] * Vv[0] + r[1] * Vv[1] + r[2] * Vv[2];
   }
   int cell_of(double x, double mn, double d) const {
-    // floor of y in [-1, G] as truncation corrected downwards for negative non-integers (exact).
-    const double y = std::min(std::max((x - mn) / d, -1.0), double(G));
-    int k = int(y);
-    k -= int(y < double(k));
-    return std::max(0, std::min(G - 1, k));
+    // floor((x - mn) / d) clamped to [0, G - 1]: below 1 the first cell, from G - 1 the last,
+    // truncation (floor for the positive values between) otherwise.
+    const double y = (x - mn) / d;
+    if (!(y >= 1)) return 0;
+    return y >= double(G - 1) ? G - 1 : int(y);
   }
 
   // The contour pieces on a grid of the emitter plane: a piece's crossing candidates are the
-  // pieces registered in the cells its box meets, and C at a point is C at its cell's reference
-  // point plus the crossings of the path between them with the cell's pieces (not the path from
-  // q0 with every piece): the arrangement costs about O(S sqrt S) for S contour pieces instead of
-  // O(S^2). A path between two points of one cell, or of two cells sharing a side (their union is
-  // a rectangle), stays in those cells and inside E_h (convex), so only pieces registered there
-  // (by their boxes, padded far beyond rounding) can cross it. Any decision too close to call, and
-  // any point without a usable cell, takes the path from q0 as above.
+  // pieces registered in the cells its box meets, and C at a point is C at q0 plus the crossings
+  // of the path from q0 with the pieces of the cells along it (coverage_path), or C at its cell's
+  // reference point plus the crossings of the path between them with the cell's pieces (not the
+  // path from q0 with every piece): the arrangement costs about O(S sqrt S) for S contour pieces
+  // instead of O(S^2). A path between two points of one cell, or of two cells sharing a side
+  // (their union is a rectangle), stays in those cells and inside E_h (convex), so only pieces
+  // registered there (by their boxes, padded far beyond rounding) can cross it. Any decision too
+  // close to call, and any point without a usable cell, takes the path from q0 with every piece.
   void build_grid() {
     const int nsc = ns - neh;
     if (nsc >= kSilGridMin) {
@@ -423,6 +463,7 @@ struct SilCoverage {
   // with the recurrence above; the cells it needs are computed first, through an explicit stack
   // (a chain of them can be as long as the grid has cells).
   int grid_cov(int cell) {
+    if (!gscratch) grid_references();  // (made on the first use: most receivers never need them)
     if (w.gcov[size_t(cell)] != kUnset) return w.gcov[size_t(cell)];
     std::vector<SilGridFrame<T>>& stk = gscratch->frames;
     stk.clear();
@@ -509,9 +550,12 @@ struct SilCoverage {
       }
     }
   }
-  // C on q0's side of contour piece `skip` at point m on it: from m's cell where it can.
+  // C on q0's side of contour piece `skip` at point m on it: along q0 -> m through the grid, else
+  // from m's cell's reference point, else from q0 with every piece.
   int coverage_at(V3<T> m, int skip) {
     if (G) {
+      const int cp = coverage_path(m, skip);
+      if (cp != kNone) return cp;
       double um, vm;
       uv(m, um, vm);
       if (um > umin - gpad && um < umin + G * du + gpad && vm > vmin - gpad && vm < vmin + G * dv + gpad) {
@@ -541,7 +585,7 @@ struct SilCoverage {
   // lie in one row with no piece registered in the cells between (the path stays in that row and
   // in E_h, convex, and no piece's padded box meets the cells between). kNone when the cells are
   // otherwise, a side is too close to call (m on k's line, `from` on skip's), or a crossing is;
-  // the caller then asks the grid's references (coverage_at, coverage_eh).
+  // the caller then asks coverage_at or coverage_eh.
   int coverage_from(V3<T> m, int skip, V3<T> from, int k, int ck) {
     if (!G) return kNone;
     double um, vm, uf, vf;
@@ -571,11 +615,14 @@ struct SilCoverage {
     return rs == qs ? c : (qs > 0 ? c + w : c - w);
   }
   // C at a point m of E_h's boundary (inside E_h's side of every contour piece's plane test):
+  // along q0 -> m through the grid (coverage_path), else
   // from the reference point of m's cell when the cell holds pieces, else of the nearest cell of
   // its row that does (the cells between hold none, and the path lies in E_h, convex, and in the
   // row); the pieces that can cross that path are the ones registered in that cell.
   int coverage_eh(V3<T> m) {
     if (G) {
+      const int cp = coverage_path(m, -1);
+      if (cp != kNone) return cp;
       double um, vm;
       uv(m, um, vm);
       if (um > umin - gpad && um < umin + G * du + gpad && vm > vmin - gpad && vm < vmin + G * dv + gpad) {
