@@ -77,6 +77,11 @@ def _near_segment(p: np.ndarray, a: np.ndarray, b: np.ndarray, tris: np.ndarray)
     return list(tris[keep])
 
 
+def _array(faces: list[np.ndarray]) -> np.ndarray:
+    """Triangles as one `(m, 3, 3)` array (`ray_blocked_np` narrows those per ray)."""
+    return np.asarray(faces, np.float64).reshape(-1, 3, 3)
+
+
 def kind_reference(kind: str, light: Any, tris: np.ndarray, p: np.ndarray, n: np.ndarray) -> np.ndarray:
     """E per unit emission at each receiver for a point, directional or segment light."""
     tc, _, tm = refs()
@@ -88,20 +93,18 @@ def kind_reference(kind: str, light: Any, tris: np.ndarray, p: np.ndarray, n: np
             w = q - x
             r = float(np.linalg.norm(w))
             cos = max(0.0, float(w @ y) / r)
-            lo, hi = np.minimum(x, q), np.maximum(x, q)
-            near = np.all(tris.max(axis=1) >= lo, axis=1) & np.all(tris.min(axis=1) <= hi, axis=1)
-            faces = tm._off_surface(x, list(tris[near]), ON_SURFACE_64)
+            faces = _array(tm._off_surface(x, tris[tc._may_meet(x, q, tris)], ON_SURFACE_64))
             out[i] = 0.0 if cos == 0 or tc.ray_blocked_np(x, q, faces) else cos / r**2
         elif kind == "directional":
             d = np.asarray(light.direction, float)
             d = d / np.linalg.norm(d)
             far = x - d * 1e3 * (1 + np.abs(tris).max())
             cos = max(0.0, float(-d @ y))
-            faces = tm._off_surface(x, list(tris), ON_SURFACE_64)
+            faces = _array(tm._off_surface(x, tris[tc._may_meet(x, far, tris)], ON_SURFACE_64))
             out[i] = 0.0 if cos == 0 or tc.ray_blocked_np(x, far, faces) else cos
         else:
             a, b = np.asarray(light.start, float), np.asarray(light.end, float)
-            faces = tm._off_surface(x, _near_segment(x, a, b, tris), ON_SURFACE_64)
+            faces = _array(tm._off_surface(x, _near_segment(x, a, b, tris), ON_SURFACE_64))
             m = 0 if light.profile == "isotropic" else int(light.exponent)
             out[i] = tc.reference_linear(x, y, a, b, m, faces)
     return out

@@ -134,8 +134,33 @@ def reference_ff(p, n, emitter, occluders):
     return total
 
 
+def _may_meet(p, x, tris):
+    """Triangles `(m, 3, 3)` not entirely on one side (beyond 1e-12 of the coordinates' size) of
+    either of two orthogonal planes through the segment p x, nor entirely beyond one of its ends:
+    the others cannot meet it."""
+    r = x - p
+    length = np.linalg.norm(r)
+    r = r / length
+    u = np.cross(r, np.eye(3)[int(np.argmin(np.abs(r)))])
+    u /= np.linalg.norm(u)
+    d = tris - p
+    tol = 1e-12 * max(float(np.abs(d).max()), length)
+    keep = np.ones(len(tris), bool)
+    for a in (u, np.cross(r, u)):
+        s = d @ a
+        keep &= ~(np.all(s > tol, axis=1) | np.all(s < -tol, axis=1))
+    s = d @ r
+    return keep & ~(np.all(s < -tol, axis=1) | np.all(s > length + tol, axis=1))
+
+
 def ray_blocked_np(p, x, occluders):
-    """NumPy: does the open segment p -> x cross the interior of an occluder?"""
+    """NumPy: does the open segment p -> x cross the interior of an occluder? (Triangles given as
+    one `(m, 3, 3)` array are first narrowed to those that can meet the segment.)"""
+    if isinstance(occluders, np.ndarray) and occluders.ndim == 3 and occluders.shape[1] == 3 and len(occluders):
+        occluders = occluders[_may_meet(np.asarray(p, np.float64), np.asarray(x, np.float64), occluders)]
+    # Orientations only (no intersection point): the signs of det(v_i - p, v_i+1 - p, x - p) decide
+    # on which side of each edge the segment passes; well conditioned for a receiver near a face.
+    d = np.asarray(x, np.float64) - np.asarray(p, np.float64)
     for occ in occluders:
         occ = np.asarray(occ, np.float64)
         no = _newell(occ)
@@ -143,10 +168,9 @@ def ray_blocked_np(p, x, occluders):
         dx = np.dot(no, x - occ[0])
         if dp == 0 or dp * dx >= 0:
             continue
-        y = p + (x - p) * dp / (dp - dx)
-        k = len(occ)
-        signs = [np.dot(no, np.cross(occ[(i + 1) % k] - occ[i], y - occ[i])) for i in range(k)]
-        if all(s > 0 for s in signs) or all(s < 0 for s in signs):
+        r = occ - p
+        signs = np.dot(np.cross(r, np.roll(r, -1, axis=0)), d)
+        if np.all(signs > 0) or np.all(signs < 0):
             return True
     return False
 
