@@ -134,8 +134,8 @@ def _exact_blocked(p: np.ndarray, x: np.ndarray, tris: np.ndarray) -> bool:
 def test_ray_test_near_a_face_is_exact() -> None:
     """A receiver 1e-9 m off a vertex of the fins input (blob of 1 280 triangles) under its segment
     light: across the segment's parameter where the fins' shadow ends, the NumPy ray test agrees
-    with exact arithmetic. Computing the crossing point first (as before) moved that end by 2.3e-9
-    of the segment and the Gauss-Legendre reference off the engine by 1.9e-9 relative."""
+    with exact arithmetic. A test that computes the crossing point first moves that end by 2.3e-9
+    of the segment, and the Gauss-Legendre reference off the engine by 1.9e-9 relative."""
     g = ms.generated(("fins",))["fins"]
     tris = g["v"][g["f"]]
     x = np.array([-0.35785452506158366, -0.22116625945339735, 0.9074972832647468])
