@@ -78,7 +78,8 @@ def _near_segment(p: np.ndarray, a: np.ndarray, b: np.ndarray, tris: np.ndarray)
 
 
 def _array(faces: list[np.ndarray]) -> np.ndarray:
-    """Triangles as one `(m, 3, 3)` array (`ray_blocked_np` narrows those per ray)."""
+    """Triangles as one `(m, 3, 3)` array (`ray_blocked_np` narrows those per ray: for the many rays
+    to a segment light; a list is taken as given)."""
     return np.asarray(faces, np.float64).reshape(-1, 3, 3)
 
 
@@ -93,14 +94,14 @@ def kind_reference(kind: str, light: Any, tris: np.ndarray, p: np.ndarray, n: np
             w = q - x
             r = float(np.linalg.norm(w))
             cos = max(0.0, float(w @ y) / r)
-            faces = _array(tm._off_surface(x, tris[tc._may_meet(x, q, tris)], ON_SURFACE_64))
+            faces = tm._off_surface(x, tris[tc._may_meet(x, q, tris)], ON_SURFACE_64)  # narrowed for this ray already
             out[i] = 0.0 if cos == 0 or tc.ray_blocked_np(x, q, faces) else cos / r**2
         elif kind == "directional":
             d = np.asarray(light.direction, float)
             d = d / np.linalg.norm(d)
             far = x - d * 1e3 * (1 + np.abs(tris).max())
             cos = max(0.0, float(-d @ y))
-            faces = _array(tm._off_surface(x, tris[tc._may_meet(x, far, tris)], ON_SURFACE_64))
+            faces = tm._off_surface(x, tris[tc._may_meet(x, far, tris)], ON_SURFACE_64)  # narrowed for this ray already
             out[i] = 0.0 if cos == 0 or tc.ray_blocked_np(x, far, faces) else cos
         else:
             a, b = np.asarray(light.start, float), np.asarray(light.end, float)
