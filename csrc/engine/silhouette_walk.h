@@ -254,9 +254,16 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
     }
     const double xc[3] = {0.5 * (box[0] + box[3]), 0.5 * (box[1] + box[4]), 0.5 * (box[2] + box[5])};
     const double hx[3] = {(box[3] - box[0]) * (0.5 + 1e-12), (box[4] - box[1]) * (0.5 + 1e-12), (box[5] - box[2]) * (0.5 + 1e-12)};
-    for (int k = 0; k < ntp; k++)
-      if ((((planes >> tp[k].edge) & 1) || !masked) && tile_plane_sup(tp[k], tb, xc, hx) + bmargin * tp[k].cn1 + tp[k].safety < 0)
-        return true;
+    for (int k = 0; k < ntp; k++) {
+      if (!(((planes >> tp[k].edge) & 1) || !masked)) continue;
+      // c(pc) . (xc - pc) is a term of tile_plane_sup's value and the rest add up nonnegative, so
+      // where it is above -safety / 2 (both computations' rounding is some 100 eps of the
+      // plane's scale, the safety term ~1e4) the test below cannot prune: it is skipped (most
+      // nodes the walk keeps have their centre inside every plane).
+      const double* cc = tp[k].cc;
+      if (cc[0] * (xc[0] - tb.pc[0]) + cc[1] * (xc[1] - tb.pc[1]) + cc[2] * (xc[2] - tb.pc[2]) >= -0.5 * tp[k].safety) continue;
+      if (tile_plane_sup(tp[k], tb, xc, hx) + bmargin * tp[k].cn1 + tp[k].safety < 0) return true;
+    }
     return false;
   };
   // An edge whose ends lie beyond one light plane for every receiver (the walk's test before
