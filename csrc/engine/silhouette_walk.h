@@ -30,6 +30,7 @@ struct TilePlane {
   double au[3], acc[3];       // |u|, |cc| (per component)
   double cn1;                 // a bound of |c(p)|_1 over B
   double safety;              // above the rounding of c(p) . (x - p) in either computation
+  double spread;              // a bound of tile_plane_inf_best's spread term for any x of the scene
   int edge;                   // the light's edge (the receivers' cone plane)
 };
 
@@ -195,6 +196,11 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
     const double u1 = std::fabs(u[0]) + std::fabs(u[1]) + std::fabs(u[2]);
     const double ba1 = std::fabs(q.ba[0]) + std::fabs(q.ba[1]) + std::fabs(q.ba[2]);
     q.safety = 256 * epsT * (u1 + ba1 / S3) * tb.d1 * tb.d1;
+    // |x x u - b x a|_i <= X (|u_i+1| + |u_i+2|) + |(b x a)_i| for |x|_inf <= X = tb.smax.
+    const double X = tb.smax;
+    q.spread = (hb[0] * (X * (q.au[1] + q.au[2]) + std::fabs(q.ba[0])) + hb[1] * (X * (q.au[2] + q.au[0]) + std::fabs(q.ba[1])) +
+                hb[2] * (X * (q.au[0] + q.au[1]) + std::fabs(q.ba[2]))) *
+               (1 + 1e-9);
   }
   const V3<T> e0 = call.L.v(0);
   const double en[3] = {double(ne.x), double(ne.y), double(ne.z)}, eq[3] = {double(e0.x), double(e0.y), double(e0.z)};
@@ -231,8 +237,22 @@ bool tile_walk(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> ne, int6
     } else {
       m |= uint64_t(1) << K;
     }
-    for (int k = 0; k < ntp; k++)
-      if (((inherit >> tp[k].edge) & 1) && !(tile_plane_inf_best(tp[k], tb, box) > tp[k].safety)) m |= uint64_t(1) << tp[k].edge;
+    for (int k = 0; k < ntp; k++) {
+      if (!((inherit >> tp[k].edge) & 1)) continue;
+      // c(pc) . (x - pc) at the corner tile_plane_inf_best takes: its value is that (up to both
+      // computations' rounding, some 100 eps of the plane's scale, far below safety / 2) less its
+      // spread term (nonnegative, at most tp's spread), so it is decided without it where this is
+      // at most safety / 2 (not above safety) or above the spread bound plus 1.5 safety (above).
+      const TilePlane& q = tp[k];
+      const double* cc = q.cc;
+      const double g = cc[0] * (box[cc[0] > 0 ? 3 : 0] - tb.pc[0]) + cc[1] * (box[cc[1] > 0 ? 4 : 1] - tb.pc[1]) +
+                       cc[2] * (box[cc[2] > 0 ? 5 : 2] - tb.pc[2]);
+      if (g <= 0.5 * q.safety) {
+        m |= uint64_t(1) << q.edge;
+      } else if (!(g > q.spread + 1.5 * q.safety) && !(tile_plane_inf_best(q, tb, box) > q.safety)) {
+        m |= uint64_t(1) << q.edge;
+      }
+    }
     return m;
   };
   // The entry of node nd: its planes left, and its faces' sides unless every receiver's node_side
