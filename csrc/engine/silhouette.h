@@ -192,6 +192,160 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     bx[i] = SilBox{SilV2{lo[0], lo[1]}, SilV2{hi[0], hi[1]}, SilV2{hi[2], -lo[2]}, SilV2{lo[2], -hi[2]}};
   }
   SilPieces& pc = sil_pieces();
+  // The links between contour segments' ends at one vertex (C is carried along them below, after
+  // the pieces; they are made first so that the crossing tests skip the pairs linked at their
+  // common end).
+  std::vector<int32_t>& link = pc.link;  // per segment end (2 i + 0: a, 2 i + 1: b): the other segment end at v, or -1
+  link.assign(2 * size_t(ns), -1);
+  std::vector<int32_t>& succ = pc.succ;  // per end at a vertex of k >= 3 rays: the next ray's end, or -1
+  std::vector<int32_t>& pred = pc.pred;  // and the previous ray's end
+  succ.assign(2 * size_t(ns), -1);
+  pred.assign(2 * size_t(ns), -1);
+  {
+    // The unclipped ends by their mesh vertex's position, in an open-addressing table of
+    // positions (nh slots, a power of two at least twice the ends): per slot the position, the
+    // first end and how many ends are there (to 3).
+    std::vector<SilEnd>& tab = pc.ends;
+    // With every contour segment's position ids (the tile's walk, by_id), slot = id instead.
+    size_t nh = 16;
+    while (nh < 4 * size_t(ns - neh)) nh *= 2;
+    if (by_id) nh = std::max(nh, size_t(w.sil_tile.nids));
+    std::vector<int32_t>& used = pc.ends_used;
+    if (tab.size() < nh) tab.resize(nh, SilEnd{0, 0, 0, -1, -1, 0});  // the first nh slots are used
+    int32_t nused = 0;  // the filled slots: used[0 .. nused)
+    if (used.size() < 2 * size_t(ns - neh)) used.resize(4 * size_t(ns - neh));
+    std::vector<int32_t>& eslot = pc.eslot;
+    eslot.assign(2 * size_t(ns), -1);
+    auto bits = [](double x) {
+      uint64_t u;
+      x += 0.0;  // -0 as +0 (same() counts them equal)
+      std::memcpy(&u, &x, sizeof(u));
+      return u;
+    };
+    auto add = [&](V3<T> x3, int32_t id, int32_t e) {
+      const double x = double(x3.x), y = double(x3.y), z = double(x3.z);
+      if (by_id) {  // the slot's update by selects, not branches (the position is not read by id)
+        SilEnd& t = tab[size_t(id)];
+        eslot[size_t(e)] = id;
+        const int32_t n0 = t.n;
+        const bool first = n0 == 0;
+        used[size_t(nused)] = id;
+        nused += int32_t(first);
+        t.e = first ? e : t.e;
+        t.e2 = first ? -1 : (n0 == 1 ? e : t.e2);
+        t.n = n0 + 1;
+        return;
+      }
+      uint64_t h = bits(x) * 0x9E3779B97F4A7C15ull ^ bits(y) * 0xC2B2AE3D27D4EB4Full ^ bits(z) * 0x165667B19E3779F9ull;
+      h ^= h >> 29;
+      for (size_t k = size_t(h) & (nh - 1);; k = (k + 1) & (nh - 1)) {
+        SilEnd& t = tab[k];
+        if (t.n == 0) {
+          t = SilEnd{x, y, z, e, -1, 1};
+          used[size_t(nused++)] = int32_t(k);
+          eslot[size_t(e)] = int32_t(k);
+          return;
+        }
+        if (t.x == x && t.y == y && t.z == z) {
+          if (t.n == 1) t.e2 = e;
+          t.n++;
+          eslot[size_t(e)] = int32_t(k);
+          return;
+        }
+      }
+    };
+    for (int i = neh; i < ns; i++) {
+      const SSeg<T>& s = segs[size_t(i)];
+      if (s.on_a < 0) add(s.x3a, s.ia, 2 * i);
+      if (s.on_b < 0) add(s.x3b, s.ib, 2 * i + 1);
+    }
+    // The filled slots only (each slot's links are its own: the order does not matter), each
+    // emptied after (the slots of 3 .. kSilFan ends once their rays are linked below).
+    std::vector<int32_t>& fan = pc.fan;
+    fan.clear();
+    for (int32_t q = 0; q < nused; q++) {
+      SilEnd& t = tab[size_t(used[size_t(q)])];
+      if (t.n == 2 && t.e / 2 != t.e2 / 2) {
+        const int32_t ea = t.e, eb = t.e2;
+        const SSeg<T>& sa = segs[size_t(ea / 2)];
+        const SSeg<T>& sb = segs[size_t(eb / 2)];
+        // Each far end clearly off the other's line.
+        const SilHot<T>& ha = hot[ea / 2];
+        const SilHot<T>& hb = hot[eb / 2];
+        const typename Cov::At fa{ea % 2 ? ha.ra : ha.rb, ea % 2 ? ha.la : ha.lb};  // cov.at(sa's far end)
+        const typename Cov::At fb{eb % 2 ? hb.ra : hb.rb, eb % 2 ? hb.la : hb.lb};
+        if (cov.side_of(fa, sb) != 0 && cov.side_of(fb, sa) != 0)
+          link[size_t(ea)] = eb, link[size_t(eb)] = ea;
+      }
+      if (t.n >= 3 && t.n <= kSilFan) {
+        t.e2 = int32_t(fan.size());  // the slot's number among the fans
+        fan.push_back(used[size_t(q)]);
+      } else {
+        t.n = 0;
+      }
+    }
+    if (!fan.empty()) {
+      std::vector<int32_t>& fe = pc.fan_ends;
+      std::vector<int32_t>& fn = pc.fan_n;
+      fe.resize(fan.size() * kSilFan);
+      fn.assign(fan.size(), 0);
+      for (int32_t x = 2 * neh; x < 2 * ns; x++) {
+        const int32_t sl = eslot[size_t(x)];
+        if (sl < 0 || tab[size_t(sl)].n == 0) continue;
+        const int32_t m = tab[size_t(sl)].e2;
+        fe[size_t(m) * kSilFan + size_t(fn[size_t(m)]++)] = x;
+      }
+      // Whether ray y lies less than a half turn on from ray x about v - p (+1), more (-1), or
+      // too close to call (0): the side of y's far end of n_x = -own_x at x's end a, +own_x at b.
+      auto turn = [&](int32_t x, int32_t y) {
+        const SSeg<T>& sy = segs[size_t(y / 2)];
+        const int sd = cov.side_of(y % 2 ? sy.a : sy.b, segs[size_t(x / 2)]);
+        return x % 2 ? sd : -sd;
+      };
+      for (size_t m = 0; m < fan.size(); m++) {
+        int32_t* r = fe.data() + m * kSilFan;
+        const int k = fn[m];
+        tab[size_t(fan[m])].n = 0;
+        // Ray r[0], then the rays less than a half turn on from it, then the others, each group
+        // sorted by turn (insertion sort); every end a different segment's.
+        int32_t up[kSilFan], lo[kSilFan];
+        int nu = 0, nl = 0;
+        bool ok = true;
+        for (int a = 1; a < k && ok; a++) {
+          for (int b = 0; b < a && ok; b++) ok = r[a] / 2 != r[b] / 2;
+          const int o = turn(r[0], r[a]);
+          ok = ok && o != 0;
+          if (o > 0) up[nu++] = r[a];
+          if (o < 0) lo[nl++] = r[a];
+        }
+        for (int g = 0; g < 2 && ok; g++) {
+          int32_t* v = g == 0 ? up : lo;
+          const int nv = g == 0 ? nu : nl;
+          for (int a = 1; a < nv && ok; a++) {
+            const int32_t x = v[a];
+            int b = a - 1;
+            for (; b >= 0; b--) {
+              const int o = turn(v[b], x);
+              if (o == 0) ok = false;
+              if (o >= 0) break;
+              v[b + 1] = v[b];
+            }
+            v[b + 1] = x;
+          }
+        }
+        if (!ok) continue;
+        int32_t seq[kSilFan];
+        seq[0] = r[0];
+        for (int a = 0; a < nu; a++) seq[1 + a] = up[a];
+        for (int a = 0; a < nl; a++) seq[1 + nu + a] = lo[a];
+        for (int a = 0; a < k; a++) {
+          const int32_t x = seq[a], y = seq[(a + 1) % k];
+          succ[size_t(x)] = y;
+          pred[size_t(y)] = x;
+        }
+      }
+    }
+  }
   // Per contour segment: its first and last pieces of positive length (kf, kl, positions in
   // ord; kf = -1: none), and the sum of the jumps of C from the first to the last (sj).
   std::vector<int32_t>& kf = pc.kf;
@@ -308,6 +462,20 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       int32_t* up = w.gcand.data();  // ns entries: each piece at most once
       int ncand = 0;
       stamp++;
+      if (all_ids) {
+        // The pieces linked to i at a common end (above): their boxes meet there, and both far
+        // ends lie clearly off the other's line, so where they share no other end both crossing
+        // tests of the pair return true without a breakpoint. They are not gathered.
+        const SilHot<T>& hi = hot[i];
+        for (int e = 0; e < 2; e++) {
+          const int32_t o = link[size_t(2 * i + e)];
+          if (o < 0) continue;
+          const SilHot<T>& hj = hot[o / 2];
+          const bool i_in_j = (hi.ia == hj.ia || hi.ia == hj.ib) && (hi.ib == hj.ia || hi.ib == hj.ib);
+          const bool j_in_i = (hj.ia == hi.ia || hj.ia == hi.ib) && (hj.ib == hi.ia || hj.ib == hi.ib);
+          if (!i_in_j && !j_in_i) stamp_of[size_t(o / 2)] = stamp;
+        }
+      }
       const int32_t* r = w.gcells.data() + 4 * (i - neh);
       for (int iy = r[2]; iy <= r[3]; iy++)
         for (int ix = r[0]; ix <= r[1]; ix++) {
@@ -465,157 +633,6 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   // going round v the carried values must close (the jumps sum to 0), else the receiver falls back.
   std::vector<int32_t>& cf = pc.cf;
   cf.assign(size_t(ns), Cov::kNone);
-  std::vector<int32_t>& link = pc.link;  // per segment end (2 i + 0: a, 2 i + 1: b): the other segment end at v, or -1
-  link.assign(2 * size_t(ns), -1);
-  std::vector<int32_t>& succ = pc.succ;  // per end at a vertex of k >= 3 rays: the next ray's end, or -1
-  std::vector<int32_t>& pred = pc.pred;  // and the previous ray's end
-  succ.assign(2 * size_t(ns), -1);
-  pred.assign(2 * size_t(ns), -1);
-  {
-    // The unclipped ends by their mesh vertex's position, in an open-addressing table of
-    // positions (nh slots, a power of two at least twice the ends): per slot the position, the
-    // first end and how many ends are there (to 3).
-    std::vector<SilEnd>& tab = pc.ends;
-    // With every contour segment's position ids (the tile's walk, by_id), slot = id instead.
-    size_t nh = 16;
-    while (nh < 4 * size_t(ns - neh)) nh *= 2;
-    if (by_id) nh = std::max(nh, size_t(w.sil_tile.nids));
-    std::vector<int32_t>& used = pc.ends_used;
-    if (tab.size() < nh) tab.resize(nh, SilEnd{0, 0, 0, -1, -1, 0});  // the first nh slots are used
-    int32_t nused = 0;  // the filled slots: used[0 .. nused)
-    if (used.size() < 2 * size_t(ns - neh)) used.resize(4 * size_t(ns - neh));
-    std::vector<int32_t>& eslot = pc.eslot;
-    eslot.assign(2 * size_t(ns), -1);
-    auto bits = [](double x) {
-      uint64_t u;
-      x += 0.0;  // -0 as +0 (same() counts them equal)
-      std::memcpy(&u, &x, sizeof(u));
-      return u;
-    };
-    auto add = [&](V3<T> x3, int32_t id, int32_t e) {
-      const double x = double(x3.x), y = double(x3.y), z = double(x3.z);
-      if (by_id) {  // the slot's update by selects, not branches (the position is not read by id)
-        SilEnd& t = tab[size_t(id)];
-        eslot[size_t(e)] = id;
-        const int32_t n0 = t.n;
-        const bool first = n0 == 0;
-        used[size_t(nused)] = id;
-        nused += int32_t(first);
-        t.e = first ? e : t.e;
-        t.e2 = first ? -1 : (n0 == 1 ? e : t.e2);
-        t.n = n0 + 1;
-        return;
-      }
-      uint64_t h = bits(x) * 0x9E3779B97F4A7C15ull ^ bits(y) * 0xC2B2AE3D27D4EB4Full ^ bits(z) * 0x165667B19E3779F9ull;
-      h ^= h >> 29;
-      for (size_t k = size_t(h) & (nh - 1);; k = (k + 1) & (nh - 1)) {
-        SilEnd& t = tab[k];
-        if (t.n == 0) {
-          t = SilEnd{x, y, z, e, -1, 1};
-          used[size_t(nused++)] = int32_t(k);
-          eslot[size_t(e)] = int32_t(k);
-          return;
-        }
-        if (t.x == x && t.y == y && t.z == z) {
-          if (t.n == 1) t.e2 = e;
-          t.n++;
-          eslot[size_t(e)] = int32_t(k);
-          return;
-        }
-      }
-    };
-    for (int i = neh; i < ns; i++) {
-      const SSeg<T>& s = segs[size_t(i)];
-      if (s.on_a < 0) add(s.x3a, s.ia, 2 * i);
-      if (s.on_b < 0) add(s.x3b, s.ib, 2 * i + 1);
-    }
-    // The filled slots only (each slot's links are its own: the order does not matter), each
-    // emptied after (the slots of 3 .. kSilFan ends once their rays are linked below).
-    std::vector<int32_t>& fan = pc.fan;
-    fan.clear();
-    for (int32_t q = 0; q < nused; q++) {
-      SilEnd& t = tab[size_t(used[size_t(q)])];
-      if (t.n == 2 && t.e / 2 != t.e2 / 2) {
-        const int32_t ea = t.e, eb = t.e2;
-        const SSeg<T>& sa = segs[size_t(ea / 2)];
-        const SSeg<T>& sb = segs[size_t(eb / 2)];
-        // Each far end clearly off the other's line.
-        const SilHot<T>& ha = hot[ea / 2];
-        const SilHot<T>& hb = hot[eb / 2];
-        const typename Cov::At fa{ea % 2 ? ha.ra : ha.rb, ea % 2 ? ha.la : ha.lb};  // cov.at(sa's far end)
-        const typename Cov::At fb{eb % 2 ? hb.ra : hb.rb, eb % 2 ? hb.la : hb.lb};
-        if (cov.side_of(fa, sb) != 0 && cov.side_of(fb, sa) != 0)
-          link[size_t(ea)] = eb, link[size_t(eb)] = ea;
-      }
-      if (t.n >= 3 && t.n <= kSilFan) {
-        t.e2 = int32_t(fan.size());  // the slot's number among the fans
-        fan.push_back(used[size_t(q)]);
-      } else {
-        t.n = 0;
-      }
-    }
-    if (!fan.empty()) {
-      std::vector<int32_t>& fe = pc.fan_ends;
-      std::vector<int32_t>& fn = pc.fan_n;
-      fe.resize(fan.size() * kSilFan);
-      fn.assign(fan.size(), 0);
-      for (int32_t x = 2 * neh; x < 2 * ns; x++) {
-        const int32_t sl = eslot[size_t(x)];
-        if (sl < 0 || tab[size_t(sl)].n == 0) continue;
-        const int32_t m = tab[size_t(sl)].e2;
-        fe[size_t(m) * kSilFan + size_t(fn[size_t(m)]++)] = x;
-      }
-      // Whether ray y lies less than a half turn on from ray x about v - p (+1), more (-1), or
-      // too close to call (0): the side of y's far end of n_x = -own_x at x's end a, +own_x at b.
-      auto turn = [&](int32_t x, int32_t y) {
-        const SSeg<T>& sy = segs[size_t(y / 2)];
-        const int sd = cov.side_of(y % 2 ? sy.a : sy.b, segs[size_t(x / 2)]);
-        return x % 2 ? sd : -sd;
-      };
-      for (size_t m = 0; m < fan.size(); m++) {
-        int32_t* r = fe.data() + m * kSilFan;
-        const int k = fn[m];
-        tab[size_t(fan[m])].n = 0;
-        // Ray r[0], then the rays less than a half turn on from it, then the others, each group
-        // sorted by turn (insertion sort); every end a different segment's.
-        int32_t up[kSilFan], lo[kSilFan];
-        int nu = 0, nl = 0;
-        bool ok = true;
-        for (int a = 1; a < k && ok; a++) {
-          for (int b = 0; b < a && ok; b++) ok = r[a] / 2 != r[b] / 2;
-          const int o = turn(r[0], r[a]);
-          ok = ok && o != 0;
-          if (o > 0) up[nu++] = r[a];
-          if (o < 0) lo[nl++] = r[a];
-        }
-        for (int g = 0; g < 2 && ok; g++) {
-          int32_t* v = g == 0 ? up : lo;
-          const int nv = g == 0 ? nu : nl;
-          for (int a = 1; a < nv && ok; a++) {
-            const int32_t x = v[a];
-            int b = a - 1;
-            for (; b >= 0; b--) {
-              const int o = turn(v[b], x);
-              if (o == 0) ok = false;
-              if (o >= 0) break;
-              v[b + 1] = v[b];
-            }
-            v[b + 1] = x;
-          }
-        }
-        if (!ok) continue;
-        int32_t seq[kSilFan];
-        seq[0] = r[0];
-        for (int a = 0; a < nu; a++) seq[1 + a] = up[a];
-        for (int a = 0; a < nl; a++) seq[1 + nu + a] = lo[a];
-        for (int a = 0; a < k; a++) {
-          const int32_t x = seq[a], y = seq[(a + 1) % k];
-          succ[size_t(x)] = y;
-          pred[size_t(y)] = x;
-        }
-      }
-    }
-  }
   // C at point m of contour piece `skip` on q0's side of it (skip = -1: a point of E_h's boundary),
   // from a contour piece whose C is known already, registered in m's cell or in the nearest cells
   // of its row holding pieces (SilCoverage::coverage_from): from the midpoint of
