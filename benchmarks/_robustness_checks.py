@@ -55,15 +55,118 @@ def _err(e: np.ndarray, ref: np.ndarray, unocc: np.ndarray) -> float:
     return float(np.max(np.abs(e - ref) / np.maximum(np.abs(unocc), floor)))
 
 
-def polygon_reference(light_v: np.ndarray, tris: np.ndarray, p: np.ndarray, n: np.ndarray) -> np.ndarray:
-    """E / L (pi F) of the visible part of the polygon light at each receiver."""
+def polygon_reference(light_v: np.ndarray, tris: np.ndarray, p: np.ndarray, n: np.ndarray,
+                      batched: bool = True) -> np.ndarray:
+    """E / L (pi F) of the visible part of the polygon light at each receiver: `reference_ff` on
+    the faces `culled` keeps and `_off_surface` leaves, or (`batched`) `reference_ff_batched`, the
+    same computation with the faces clipped and projected as arrays."""
     tc, tp, tm = refs()
     out = np.zeros(len(p))
     for i, (x, y) in enumerate(zip(p, n, strict=True)):
         y = y / np.linalg.norm(y)
         faces = tm._off_surface(x, tp.culled(x, y, light_v, tris), ON_SURFACE_64) if len(tris) else []
-        out[i] = np.pi * tc.reference_ff(x, y, light_v, faces)
+        if batched:
+            out[i] = np.pi * reference_ff_batched(x, y, light_v, np.asarray(faces, np.float64).reshape(-1, 3, 3))
+        else:
+            out[i] = np.pi * tc.reference_ff(x, y, light_v, faces)
     return out
+
+
+def _clip_many(poly: np.ndarray, cnt: np.ndarray, q: np.ndarray, nrm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`scenes.clip_halfspace` (the part with `nrm . (x - q) >= 0`, the same arithmetic in the same
+    order) on many polygons at once: `poly (m, k, 3)` holding `cnt (m,)` vertices each. Returns the
+    clipped polygons, padded, and their vertex counts."""
+    m, k, _ = poly.shape
+    d = nrm[0] * (poly[..., 0] - q[0]) + nrm[1] * (poly[..., 1] - q[1]) + nrm[2] * (poly[..., 2] - q[2])
+    i = np.arange(k)[None, :]
+    valid = i < cnt[:, None]
+    nxt = np.where(i + 1 < cnt[:, None], i + 1, 0)
+    db = np.take_along_axis(d, nxt, axis=1)
+    b = np.take_along_axis(poly, nxt[..., None], axis=1)
+    keep_a = (d >= 0) & valid
+    cut = ((d >= 0) != (db >= 0)) & valid
+    with np.errstate(divide="ignore", invalid="ignore"):  # edges not cut: their t is not used
+        t = d / (d - db)
+        x = poly + t[..., None] * (b - poly)
+    per = keep_a.astype(np.int64) + cut
+    start = np.cumsum(per, axis=1) - per
+    new = per.sum(axis=1)
+    out = np.zeros((m, max(int(new.max(initial=0)), 1), 3))
+    r, c = np.nonzero(keep_a)
+    out[r, start[r, c]] = poly[r, c]
+    r, c = np.nonzero(cut)
+    out[r, start[r, c] + keep_a[r, c]] = x[r, c]
+    return out, new
+
+
+def reference_ff_batched(p: np.ndarray, n: np.ndarray, emitter: np.ndarray, tris: np.ndarray) -> float:
+    """`test_clip.reference_ff` (form factor of the visible part of `emitter`, float64, exact
+    polygon booleans in shapely) with the occluders `tris (m, 3, 3)` clipped to the emitter's lit
+    side and the pyramid over the square around it, and projected, as arrays (`_clip_many`) rather
+    than one by one: the same polygons up to the rounding of the projection's dot products, then
+    the same snap-rounded overlay and Lambert's sum."""
+    import shapely
+    from shapely.geometry import Polygon
+    from shapely.geometry.polygon import orient
+
+    from benchmarks.scenes import clip_halfspace
+
+    tc, _, _ = refs()
+    p = np.asarray(p, np.float64)
+    n = np.asarray(n, np.float64)
+    em = np.asarray(emitter, np.float64)
+    ne = tc._newell(em)
+    ne = ne / np.linalg.norm(ne)
+    e0 = em[0]
+    hp = np.dot(ne, p - e0)
+    if hp <= 0:
+        return 0.0
+    u = em[1] - em[0]
+    u /= np.linalg.norm(u)
+    v = np.cross(ne, u)
+    eh = [np.asarray(x) for x in clip_halfspace(list(em), p, n)]
+    if len(eh) < 3:
+        return 0.0
+    region = Polygon([((x - e0) @ u, (x - e0) @ v) for x in eh])
+    if region.area == 0:
+        return 0.0
+    c = em.mean(axis=0)
+    big = 2.0 * np.max(np.linalg.norm(em - c, axis=1))
+    corners = [c + sx * big * u + sy * big * v for sx, sy in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+    poly, cnt = _clip_many(np.asarray(tris, np.float64).reshape(-1, 3, 3), np.full(len(tris), 3), e0, ne)
+    for i in range(4):
+        # Clipped to fewer than three vertices by one of these planes: dropped, as by `reference_ff`.
+        a, b = corners[i], corners[(i + 1) % 4]
+        poly, cnt = _clip_many(poly, cnt, p, np.cross(b - p, a - p))
+        live = cnt >= 3
+        poly, cnt = poly[live], cnt[live]
+    shadows: list[Any] = []
+    if len(poly):
+        r = poly[np.arange(poly.shape[1])[None, :] < cnt[:, None]] - p
+        proj = p + r * hp / -(r @ ne)[:, None]
+        xy = np.stack([(proj - e0) @ u, (proj - e0) @ v], axis=-1)
+        q = shapely.polygons(shapely.linearrings(xy, indices=np.repeat(np.arange(len(poly)), cnt)))
+        bad = ~shapely.is_valid(q)
+        q[bad] = shapely.buffer(q[bad], 0)
+        shadows = list(q[shapely.area(q) > 0])
+    if shadows:
+        rad = float(np.max(np.linalg.norm(em - c, axis=1)))
+        for g in (2.0**-42 * rad, 2.0**-38 * rad):
+            try:
+                region = shapely.difference(region, shapely.union_all(shadows, grid_size=g), grid_size=g)
+                break
+            except shapely.errors.GEOSException:
+                continue
+        else:
+            raise AssertionError("reference_ff_batched: the snap-rounded overlay failed")
+    total = 0.0
+    for g in getattr(region, "geoms", [region]):
+        if g.geom_type != "Polygon" or g.area == 0:
+            continue
+        g = orient(g, 1.0)
+        for ring in (g.exterior, *g.interiors):
+            total += tc._lambert(p, n, [e0 + xy[0] * u + xy[1] * v for xy in list(ring.coords)[:-1]])
+    return total
 
 
 def _near_segment(p: np.ndarray, a: np.ndarray, b: np.ndarray, tris: np.ndarray) -> list[np.ndarray]:
@@ -83,26 +186,43 @@ def _array(faces: list[np.ndarray]) -> np.ndarray:
     return np.asarray(faces, np.float64).reshape(-1, 3, 3)
 
 
-def kind_reference(kind: str, light: Any, tris: np.ndarray, p: np.ndarray, n: np.ndarray) -> np.ndarray:
-    """E per unit emission at each receiver for a point, directional or segment light."""
+def _near_ray(x: np.ndarray, q: np.ndarray, lo: np.ndarray, hi: np.ndarray, margin: float) -> np.ndarray:
+    """The triangles whose bounding box (`lo`, `hi`: `(m, 3)`) meets the box of the segment x q
+    grown by `margin`: a triangle the segment crosses holds the crossing point, which lies in both
+    boxes; the others cannot block it."""
+    a, b = np.minimum(x, q) - margin, np.maximum(x, q) + margin
+    return np.flatnonzero(np.all(hi >= a, axis=1) & np.all(lo <= b, axis=1))
+
+
+def kind_reference(kind: str, light: Any, tris: np.ndarray, p: np.ndarray, n: np.ndarray,
+                   boxes: bool = True) -> np.ndarray:
+    """E per unit emission at each receiver for a point, directional or segment light. Point and
+    directional rays: `_may_meet` on the triangles whose boxes meet the ray's (`_near_ray`,
+    `boxes`: the others cannot block it, so the answer is the same) or on all of them."""
     tc, _, tm = refs()
     out = np.zeros(len(p))
+    size = float(np.abs(tris).max()) if len(tris) else 0.0
+    lo, hi = (tris.min(axis=1), tris.max(axis=1)) if len(tris) else (np.zeros((0, 3)), np.zeros((0, 3)))
+    margin = 1e-9 * (1.0 + size)
     for i, (x, y) in enumerate(zip(p, n, strict=True)):
         y = y / np.linalg.norm(y)
-        if kind == "point":
-            q = np.asarray(light.position, float)
-            w = q - x
-            r = float(np.linalg.norm(w))
-            cos = max(0.0, float(w @ y) / r)
-            faces = tm._off_surface(x, tris[tc._may_meet(x, q, tris)], ON_SURFACE_64)  # narrowed for this ray already
-            out[i] = 0.0 if cos == 0 or tc.ray_blocked_np(x, q, faces) else cos / r**2
-        elif kind == "directional":
-            d = np.asarray(light.direction, float)
-            d = d / np.linalg.norm(d)
-            far = x - d * 1e3 * (1 + np.abs(tris).max())
-            cos = max(0.0, float(-d @ y))
-            faces = tm._off_surface(x, tris[tc._may_meet(x, far, tris)], ON_SURFACE_64)  # narrowed for this ray already
-            out[i] = 0.0 if cos == 0 or tc.ray_blocked_np(x, far, faces) else cos
+        if kind in ("point", "directional"):
+            if kind == "point":
+                q = np.asarray(light.position, float)
+                w = q - x
+                r = float(np.linalg.norm(w))
+                cos = max(0.0, float(w @ y) / r)
+                value = cos / r**2
+            else:
+                d = np.asarray(light.direction, float)
+                d = d / np.linalg.norm(d)
+                q = x - d * 1e3 * (1 + size)
+                cos = max(0.0, float(-d @ y))
+                value = cos
+            near = tris[_near_ray(x, q, lo, hi, margin)] if boxes else tris
+            # Narrowed for this ray already (`_may_meet` needs at least one triangle).
+            faces = tm._off_surface(x, near[tc._may_meet(x, q, near)], ON_SURFACE_64) if len(near) else []
+            out[i] = 0.0 if cos == 0 or tc.ray_blocked_np(x, q, faces) else value
         else:
             a, b = np.asarray(light.start, float), np.asarray(light.end, float)
             faces = _array(tm._off_surface(x, _near_segment(x, a, b, tris), ON_SURFACE_64))

@@ -28,9 +28,12 @@ The engine runs on every receiver; the brute-force path on `reference_subset`: e
 receiver, every on-surface one on a face with a fold, boundary or non-manifold edge or at one of
 its vertices (`fold_faces`), every penumbra one, and an eighth of the rest. References: quad
 lights: the engine's face path (`JAXSHADOW_SILHOUETTE=0`: every candidate face clipped) on the
-subset, and exact polygon booleans in shapely (`_robustness_checks`: `test_clip.reference_ff` on
-the faces `test_plan.culled` keeps and the on-surface rule leaves) on the receivers where the two
-disagree most plus a few penumbra ones; segment lights: the face path (`JAXSHADOW_SEGMENT_PIECES=0`)
+subset, and exact polygon booleans in shapely (`_robustness_checks.reference_ff_batched`:
+`test_clip.reference_ff` with the occluders clipped as arrays, on the faces `test_plan.culled` keeps
+and the on-surface rule leaves) on the receivers where the two disagree most, one of each group
+with checked receivers (contact, on-surface near a fold, the input's own) and a few penumbra ones,
+at most `FACE_CAP` faces per case in all (`--full`: no cap; the record says how many receivers of
+each kind were checked and how many the cap left out); segment lights: the face path (`JAXSHADOW_SEGMENT_PIECES=0`)
 on the subset and the Gauss-Legendre reference (`test_clip.reference_linear`) on the worst and one
 more; point and directional lights: the device kernel (no engine) on up to `DEVICE_MAX` receivers
 of the subset (checked ones first) and the ray test of the tests (`test_clip.ray_blocked_np`, on
@@ -44,7 +47,10 @@ as its share times 1e-5: passes at <= 1e-5).
     python -m benchmarks.mesh_sweep --dir /work/meshes [--receivers 400] [--ref 8] [--full] [--record]
     python -m benchmarks.mesh_sweep --generated 240   # the generated inputs only
 
-Prints one row per case; with `--record` writes `benchmarks/results/mesh_sweep.{json,md}`.
+Prints one row per case (seconds of CPU, all threads, per step, and the case's wall time) and the
+whole run's CPU seconds, wall time and load; with `--record` writes
+`benchmarks/results/mesh_sweep.{json,md}`. On a shared machine the CPU seconds are the measure:
+the references run on one thread, the engine on up to its thread count (2 here).
 """
 
 from __future__ import annotations
@@ -275,7 +281,13 @@ def fold_faces(tris: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     rises above this face's plane or lies in it, so it can hide light from a point of this face),
     a boundary or a non-manifold edge (not exactly two faces). Also the welded vertices (exactly
     equal positions) and the faces' indices into them."""
-    pts, inv = np.unique(tris.reshape(-1, 3), axis=0, return_inverse=True)
+    x = tris.reshape(-1, 3)
+    # Welded by exact equality: the rows sorted (lexicographically, as `np.unique(axis=0)`, faster).
+    srt = np.lexsort((x[:, 2], x[:, 1], x[:, 0]))
+    new = np.r_[True, np.any(x[srt][1:] != x[srt][:-1], axis=1)]
+    pts = x[srt][new]
+    inv = np.empty(len(x), np.int64)
+    inv[srt] = np.cumsum(new) - 1
     f = inv.reshape(-1, 3)
     m = len(f)
     e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
@@ -334,6 +346,9 @@ def receivers(tris: np.ndarray, n: int, seed: int = 0) -> dict[str, tuple[np.nda
 
     fn = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
     area = np.linalg.norm(fn, axis=1)
+    vertex_normals = np.zeros((len(wpts), 3))
+    for j in range(3):
+        np.add.at(vertex_normals, wf[:, j], fn)
     good = np.where(area > 0)[0]
     k_face = max(8, n // 10)
     for push, label in ((0.0, "surface 0"), (1e-9, "surface 1e-9")):
@@ -344,13 +359,8 @@ def receivers(tris: np.ndarray, n: int, seed: int = 0) -> dict[str, tuple[np.nda
         vf = rng.choice(good, min(k_face, len(good)), replace=False)
         vi = tris[vf]
         vn = np.cross(vi[:, 1] - vi[:, 0], vi[:, 2] - vi[:, 0])
-        # The area-weighted normal of the faces around each picked vertex.
-        key = {tuple(x): i for i, x in enumerate(vi[:, 0])}
-        acc = np.zeros((len(vi), 3))
-        for j in range(3):
-            hit = np.array([key.get(tuple(x), -1) for x in tris[:, j]])
-            m = hit >= 0
-            np.add.at(acc, hit[m], fn[m])
+        # The area-weighted normal of the faces around each picked vertex (welded: equal positions).
+        acc = vertex_normals[wf[vf, 0]]
         acc = np.where(np.linalg.norm(acc, axis=1, keepdims=True) > 0, acc, vn)
         vnrm = acc / np.linalg.norm(acc, axis=1, keepdims=True)
         p = np.concatenate([c + push * nrm, vi[:, 0] + push * vnrm])
@@ -397,6 +407,40 @@ def _independent(kind: str, light: Any, tris: np.ndarray, p: np.ndarray, n: np.n
                               light, tris, p, n)
 
 
+# The polygon booleans' cost grows with the faces a receiver's light pyramid holds (the overlay of
+# their projections: about 8 CPU-s for 50 000): per case at most this many faces in all
+# (`--full`: no cap), the first receiver (the worst disagreement) always checked.
+FACE_CAP = 60_000
+
+
+def _polygon_checked(light: Any, tris: np.ndarray, p: np.ndarray, n: np.ndarray, order: list[tuple[str, int]],
+                     cap: int | None) -> tuple[np.ndarray, np.ndarray, dict[str, list[int]]]:
+    """Polygon booleans (`chk.reference_ff_batched` on the faces `culled` keeps and the on-surface
+    rule leaves) on the receivers `order` names, in its order: `(category, index)` pairs; a
+    receiver whose faces would take the case's total over `cap` is left out (not the first).
+    Returns the indices checked, their values (E / L) and per category `[checked, left out]`."""
+    tc, tp, tm = chk.refs()
+    lv = np.asarray(light.vertices, float)
+    done: list[int] = []
+    vals: list[float] = []
+    count: dict[str, list[int]] = {}
+    total = 0
+    for what, i in order:
+        if i in done:
+            continue
+        c = count.setdefault(what, [0, 0])
+        y = n[i] / np.linalg.norm(n[i])
+        faces = np.asarray(tm._off_surface(p[i], tp.culled(p[i], y, lv, tris), chk.ON_SURFACE_64), np.float64).reshape(-1, 3, 3)
+        if cap is not None and done and total + len(faces) > cap:
+            c[1] += 1
+            continue
+        total += len(faces)
+        done.append(i)
+        vals.append(np.pi * chk.reference_ff_batched(p[i], y, lv, faces))
+        c[0] += 1
+    return np.asarray(done, int), np.asarray(vals), count
+
+
 # Receivers the brute-force reference sees besides the checked and penumbra ones: this share of
 # the rest (at least REST_MIN); the device kernel (point, directional) on at most DEVICE_MAX of them.
 REST_SHARE, REST_MIN, DEVICE_MAX = 0.125, 16, 32
@@ -413,11 +457,16 @@ def reference_subset(checked: np.ndarray, e: np.ndarray, unocc: np.ndarray, rng:
 
 
 def case(tris: np.ndarray, occluders: Any, kind: str, light: Any, groups: dict, dtype: Any,
-         n_ref: int, seed: int = 0, scene64: Any = None) -> dict:
+         n_ref: int, seed: int = 0, scene64: Any = None, face_cap: int | None = FACE_CAP,
+         second_call: bool = False) -> dict:
     """One mesh, placement and light kind: the engine on every receiver, against the brute-force
-    path (face path / device kernel) on `reference_subset` and the independent reference (quad and
-    segment lights: on `n_ref` receivers, the worst disagreements first, then random penumbra
-    ones; point and directional: ray tests on the whole subset)."""
+    path (face path / device kernel) on `reference_subset` and the independent reference (quad
+    lights: the `n_ref // 2` worst disagreements, one receiver of each group with checked ones
+    (contact, on-surface near a fold, the input's own), `n_ref - n_ref // 2` random penumbra ones,
+    at most `face_cap` faces in all (`_polygon_checked`); segment lights: the worst disagreement
+    and `n_ref - 1` penumbra ones; point and directional: ray tests on the whole subset). Seconds
+    of wall (`*_s`) and of CPU, all threads (`*_cpu_s`), per step; the engine's wall seconds of its
+    only call, or with `second_call` of a second one (compilation and caches warm)."""
     import jaxshadow as js
 
     names = list(groups)
@@ -431,9 +480,10 @@ def case(tris: np.ndarray, occluders: Any, kind: str, light: Any, groups: dict, 
     row["build_s"] = time.perf_counter() - t
     if dtype == np.float32:
         p32, n32 = p.astype(np.float32), nrm.astype(np.float32)
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         e32 = np.asarray(js.irradiance(scene, p32, n32))[:, 0]
         row["engine_s"] = time.perf_counter() - t
+        row["engine_cpu_s"] = time.process_time() - c
         row["nonfinite"] = int((~np.isfinite(e32)).sum())
         # The same rounded inputs in float64: the light's and occluders' values are float32 values
         # (the scene was built from them), so a float64 scene of the same numbers.
@@ -449,9 +499,11 @@ def case(tris: np.ndarray, occluders: Any, kind: str, light: Any, groups: dict, 
         row["reference_receivers"] = int(len(p))
         row["by_group"] = {k: float(np.nanmax(err[label == i])) for i, k in enumerate(names)}
         return row
-    e, row["engine_s"] = _engine(scene, p, nrm)
+    c = time.process_time()
+    e, row["engine_s"] = _engine(scene, p, nrm, second=second_call)
     row["nonfinite"] = int((~np.isfinite(e)).sum())
     unocc = np.asarray(js.irradiance(js.Scene([light]), p, nrm))[:, 0]
+    row["engine_cpu_s"] = time.process_time() - c
     floor = 1e-3 * max(float(np.abs(unocc).max()), 1e-300)
     scale = np.maximum(np.abs(unocc), floor)
     rng = np.random.default_rng(seed)
@@ -470,12 +522,14 @@ def case(tris: np.ndarray, occluders: Any, kind: str, light: Any, groups: dict, 
     low = np.array([0.0, 0.0, float(p[:, 2].min()) - 1e3])
     pp = np.concatenate([p[dsel], np.tile(low, (size - len(dsel), 1))])
     pn = np.concatenate([nrm[dsel], np.tile([0.0, 0.0, -1.0], (size - len(dsel), 1))])
+    c = time.process_time()
     if kind in FACE_PATH:
         ref, row["reference_s"] = _engine(scene, pp, pn, env=FACE_PATH[kind], second=False)
         row["reference"] = "face path"
     else:
         ref, row["reference_s"] = _engine(scene, pp, pn, device=True, second=False)
         row["reference"] = "device kernel"
+    row["reference_cpu_s"] = time.process_time() - c
     ref = ref[: len(dsel)]
     err = np.abs(e[dsel] - ref) / scale[dsel]
     err[~np.isfinite(err)] = np.inf
@@ -488,16 +542,29 @@ def case(tris: np.ndarray, occluders: Any, kind: str, light: Any, groups: dict, 
     # The independent reference: hard shadows on the whole subset (ray tests are cheap); area
     # lights where the engine and the brute-force path disagree most, and on a few receivers of
     # the shadow's edge (neither 0 nor unoccluded).
+    t, c = time.perf_counter(), time.process_time()
     if hard:
         isel = sel
+        ind = _independent(kind, light, tris, p[isel], nrm[isel])
     else:
         worst = dsel[np.argsort(-err)[: max(1, n_ref // 2)]]
         edge = np.where((e > 0) & (e < 0.999 * unocc))[0]
         more = rng.choice(edge, min(len(edge), n_ref - len(worst)), replace=False) if len(edge) else np.zeros(0, int)
-        isel = np.unique(np.concatenate([worst, more]).astype(int))
-    t = time.perf_counter()
-    ind = _independent(kind, light, tris, p[isel], nrm[isel])
+        if kind == "quad":
+            picks = [("worst", int(i)) for i in worst]
+            for gi, k in enumerate(names):
+                own = np.flatnonzero(checked & (label == gi))
+                if len(own):
+                    picks.append((k, int(rng.choice(own))))
+            picks += [("penumbra", int(i)) for i in more]
+            isel, ind, row["independent_by_kind"] = _polygon_checked(light, tris, p, nrm, picks, face_cap)
+            srt = np.argsort(isel)
+            isel, ind = isel[srt], ind[srt]
+        else:
+            isel = np.unique(np.concatenate([worst, more]).astype(int))
+            ind = _independent(kind, light, tris, p[isel], nrm[isel])
     row["independent_s"] = time.perf_counter() - t
+    row["independent_cpu_s"] = time.process_time() - c
     row["independent_receivers"] = int(len(isel))
     ie = np.abs(e[isel] - ind) / scale[isel]
     pos = np.searchsorted(dsel, isel)
@@ -529,6 +596,7 @@ def run(paths: list[str], n: int, n_ref: int, kinds: tuple[str, ...], which: tup
     import jaxshadow as js
 
     jax.config.update("jax_enable_x64", True)
+    cap = None if full else FACE_CAP
     rows = []
     for path in paths:
         try:
@@ -541,9 +609,18 @@ def run(paths: list[str], n: int, n_ref: int, kinds: tuple[str, ...], which: tup
                 print(_line(row), flush=True)
             continue
         for pname, pl in placements(v, f, which).items():
+            if not full and not any(pname in DEFAULT[k] for k in kinds):
+                continue
             tris = pl["tris"] if pl["f"] is None else pl["v"][pl["f"]]
             centre = (tris.reshape(-1, 3).max(axis=0) + tris.reshape(-1, 3).min(axis=0)) / 2
-            groups = receivers(tris, n)
+            groups = _receivers_cached(tris, n)
+            meshes: dict[Any, Any] = {}  # one `js.Mesh` per placement and dtype, for every light kind
+
+            def mesh(dt: Any, pl: dict = pl, meshes: dict = meshes) -> Any:
+                if dt not in meshes:
+                    meshes[dt] = js.Mesh(pl["v"].astype(dt), pl["f"])
+                return meshes[dt]
+
             for kind in kinds:
                 dt = pl["dtype"]
                 quad = pl["quad"].astype(dt).astype(np.float64) if dt == np.float32 else pl["quad"]
@@ -553,11 +630,11 @@ def run(paths: list[str], n: int, n_ref: int, kinds: tuple[str, ...], which: tup
                 if pl["f"] is None:
                     occ: Any = pl["tris"]
                 else:
-                    occ = [js.Mesh(pl["v"].astype(dt), pl["f"])]
+                    occ = lambda dt=dt, mesh=mesh: [mesh(dt)]  # noqa: E731
                 # float32: the float64 engine on the same rounded numbers is the reference.
-                s64 = js.Scene([light_of(kind, quad, centre)], occluders=[js.Mesh(pl["v"], pl["f"])]) if dt == np.float32 else None
+                s64 = js.Scene([light_of(kind, quad, centre)], occluders=[mesh(np.float64)]) if dt == np.float32 else None
                 head = {"mesh": Path(path).name, "triangles": int(len(tris)), "placement": pname, "light": kind}
-                rows.append(_row(head, tris, occ, kind, light, groups, dt, n_ref, s64, pl.get("expect", "ok"), verbose))
+                rows.append(_row(head, tris, occ, kind, light, groups, dt, n_ref, s64, pl.get("expect", "ok"), verbose, cap, full))
     if n_generated:
         for name, g in generated().items():
             tris = g["tris"] if "tris" in g else g["v"][g["f"]]
@@ -572,21 +649,40 @@ def run(paths: list[str], n: int, n_ref: int, kinds: tuple[str, ...], which: tup
                     occ = lambda g=g: [js.Mesh(g["v"], g["f"])]  # noqa: E731
                 head = {"mesh": "generated", "triangles": int(len(tris)), "placement": name, "light": kind}
                 rows.append(_row(head, tris, occ, kind, light_of(kind, g["quad"], centre), groups, np.float64, n_ref,
-                                 None, g.get("expect", "ok"), verbose))
+                                 None, g.get("expect", "ok"), verbose, cap, full))
     return rows
 
 
+_RECEIVERS: dict[tuple, dict] = {}
+
+
+def _receivers_cached(tris: np.ndarray, n: int) -> dict:
+    """`receivers(tris, n)`, computed once per distinct triangle array (placements that only move
+    the light share their mesh's)."""
+    import hashlib
+
+    key = (tris.shape, n, hashlib.blake2b(np.ascontiguousarray(tris).tobytes(), digest_size=16).hexdigest())
+    if key not in _RECEIVERS:
+        if len(_RECEIVERS) >= 4:
+            _RECEIVERS.pop(next(iter(_RECEIVERS)))
+        _RECEIVERS[key] = receivers(tris, n)
+    return _RECEIVERS[key]
+
+
 def _row(head: dict, tris: np.ndarray, occ: Any, kind: str, light: Any, groups: dict, dt: Any, n_ref: int,
-         s64: Any, expect: str, verbose: bool) -> dict:
-    t = time.perf_counter()
+         s64: Any, expect: str, verbose: bool, cap: int | None = FACE_CAP, second_call: bool = False) -> dict:
+    t, c = time.perf_counter(), time.process_time()
     try:
         if callable(occ):  # a Mesh refusing its input is a result too
             occ = occ()
-        row = head | case(tris, occ, kind, light, groups, dt, n_ref if kind != "segment" else min(n_ref, 2), scene64=s64)
+        row = head | case(tris, occ, kind, light, groups, dt, n_ref if kind != "segment" else min(n_ref, 2), scene64=s64,
+                          face_cap=cap, second_call=second_call)
     except Exception as ex:  # a crash is a result of the sweep
         row = head | {"error": f"{type(ex).__name__}: {str(ex)[:200]}"}
     row["expect"] = expect
     row["wall_s"] = time.perf_counter() - t
+    row["cpu_s"] = time.process_time() - c
+    row["load_1min"] = os.getloadavg()[0]
     if verbose:
         print(_line(row), flush=True)
     return row
@@ -608,17 +704,28 @@ def _line(r: dict) -> str:
     else:
         ind = r.get("max_rel_err_independent")
         cells += [f"{r['receivers']}", f"{r['max_rel_err']:.1e} ({r['reference']})",
-                  f"{ind:.1e} ({r['independent_receivers']})" if ind is not None else "-",
+                  f"{ind:.1e} ({_checked(r)})" if ind is not None else "-",
                   str(r["nonfinite"]), str(r.get("hard_disagree", "-")), f"{r['engine_s']:.3f}",
-                  f"{r.get('reference_s', 0.0):.1f} ({r['reference_receivers']})", f"{r.get('independent_s', 0.0):.1f}",
-                  f"{r['wall_s']:.1f}"]
+                  f"{r.get('reference_cpu_s', 0.0):.1f} ({r['reference_receivers']})", f"{r.get('independent_cpu_s', 0.0):.1f}",
+                  f"{r['cpu_s']:.1f}", f"{r['wall_s']:.1f}"]
     return "| " + " | ".join(cells) + " |"
 
 
+def _checked(r: dict) -> str:
+    """The independent reference's receivers: how many, and for polygon booleans per category
+    (and how many the face cap left out)."""
+    by = r.get("independent_by_kind")
+    if not by:
+        return str(r["independent_receivers"])
+    parts = [f"{k} {c[0]}" for k, c in by.items() if c[0]]
+    out = sum(c[1] for c in by.values())
+    return f"{r['independent_receivers']}: " + ", ".join(parts) + (f"; {out} over the face cap" if out else "")
+
+
 HEADER = ("| mesh | triangles | placement | light | result | receivers | max rel. err vs brute force | "
-          "max rel. err vs independent (receivers) | non-finite | hard-shadow flips | engine s | "
-          "brute force s (receivers) | independent s | case s |\n"
-          "|---|---:|---|---|---|---:|---|---|---:|---:|---:|---:|---:|---:|")
+          "max rel. err vs independent (receivers) | non-finite | hard-shadow flips | engine s (wall) | "
+          "brute force CPU s (receivers) | independent CPU s | case CPU s | case wall s |\n"
+          "|---|---:|---|---|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -634,7 +741,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="area-light receivers per case checked by the independent reference (default 4)")
     ap.add_argument("--kinds", default=",".join(KINDS), help="light kinds, comma-separated")
     ap.add_argument("--placements", default=",".join(PLACEMENTS), help="placements, comma-separated")
-    ap.add_argument("--full", action="store_true", help="every light kind on every placement")
+    ap.add_argument("--full", action="store_true",
+                    help="every light kind on every placement, no face cap, the engine timed on a second call")
     ap.add_argument("--generated", type=int, default=240,
                     help="receivers per generated input (`generated`; default 240, 0: none)")
     ap.add_argument("--up", choices=("x", "y", "z"), default="y")
@@ -646,21 +754,30 @@ def main(argv: list[str] | None = None) -> int:
     if not paths and not args.generated:
         ap.error("nothing to sweep: give --mesh or --dir, or --generated N")
     print(HEADER, flush=True)
-    t0 = time.perf_counter()
+    load0 = os.getloadavg()[0]
+    t0, c0 = time.perf_counter(), time.process_time()
     rows = run(paths, args.receivers, args.ref, tuple(args.kinds.split(",")), tuple(args.placements.split(",")), args.up,
                full=args.full, n_generated=args.generated)
     failed = [r for r in rows if not _ok(r)]
-    print(f"{len(rows)} cases, {len(failed)} failed, {time.perf_counter() - t0:.0f} s", flush=True)
+    # CPU seconds of the whole process (all threads; the references are single-threaded, the
+    # engine uses up to its thread count): a shared machine's load stretches the wall time, not these.
+    cpu, wall = time.process_time() - c0, time.perf_counter() - t0
+    loads = [load0] + [r["load_1min"] for r in rows if "load_1min" in r] + [os.getloadavg()[0]]
+    timing = (f"{cpu:.0f} CPU-s, {wall:.0f} s wall, 1-minute load {min(loads):.1f}-{max(loads):.1f} "
+              f"(mean {np.mean(loads):.1f})")
+    print(f"{len(rows)} cases, {len(failed)} failed, {timing}", flush=True)
     if args.record:
         from benchmarks._suite import RESULTS, caption, meta, write_json, write_text
 
         info = meta(NAME, False)
         info["command"] = "python -m benchmarks.mesh_sweep " + " ".join(sys.argv[1:] if argv is None else argv)
-        info["wall_s"] = round(time.perf_counter() - t0, 1)
+        info["wall_s"] = round(wall, 1)
+        info["cpu_s"] = round(cpu, 1)
+        info["load_1min_during"] = [round(min(loads), 2), round(float(np.mean(loads)), 2), round(max(loads), 2)]
         record = {"benchmark": NAME, "meta": info, "results": rows}
         write_json(RESULTS / "mesh_sweep.json", record)
-        write_text(RESULTS / "mesh_sweep.md", caption(record) + "\n\n" + HEADER + "\n" + "\n".join(_line(r) for r in rows)
-                   + f"\n\n{len(rows)} cases, {len(failed)} failed. " + NOTE + "\n")
+        write_text(RESULTS / "mesh_sweep.md", caption(record) + f"\n\nWhole run: {timing}.\n\n" + HEADER + "\n"
+                   + "\n".join(_line(r) for r in rows) + f"\n\n{len(rows)} cases, {len(failed)} failed. " + NOTE + "\n")
     return 1 if failed else 0
 
 
@@ -668,9 +785,13 @@ NOTE = ("Errors: |E - ref| / max(U, 1e-3 max U), U the unoccluded value; bound 1
         "the same rounded inputs, the share of the bound 1e-5 U + 8 eps32 0.1 pi, times 1e-5). Brute force: the face path (quad, segment) or the device kernel (point, "
         "directional; at most 32 receivers) on the reference subset (contact receivers, on-surface ones near folds, "
         "boundaries and non-manifold edges, penumbra ones, an eighth of the rest); independent: polygon booleans in "
-        "shapely (quad) and Gauss-Legendre (segment) on the worst receivers and a few in the shadow's edge, ray tests "
+        "shapely (quad: the worst receivers, one of each group with checked ones, a few penumbra ones, at most "
+        f"{FACE_CAP} faces per case in all, the first always; --full: no cap) and Gauss-Legendre (segment: the worst and one in the "
+        "shadow's edge), ray tests "
         "(point, directional) on the whole subset. Hard-shadow flips: receivers whose lit/shadowed decision differs from the device "
-        "kernel's (on a shadow boundary: rounding), left out of the errors.")
+        "kernel's (on a shadow boundary: rounding), left out of the errors. Times: CPU seconds of the process (all "
+        "threads) per step and case, the case's wall seconds, and the engine's wall seconds (its only call; --full: a "
+        "second call).")
 
 
 if __name__ == "__main__":
