@@ -24,6 +24,7 @@ from benchmarks import mesh_sweep as ms
 
 jax.config.update("jax_enable_x64", True)
 pytest.importorskip("trimesh")
+import exact_reference as er  # noqa: E402
 from test_clip import _may_meet, ray_blocked_np  # noqa: E402
 
 CASES = ("fins", "T-junctions", "half flipped", "two copies, offset 0", "two copies, offset 1e-9",
@@ -67,9 +68,11 @@ def _scene(g: dict, kind: str):
 @pytest.mark.parametrize("name", CASES)
 def test_quad_light_matches_polygon_booleans(inputs, name) -> None:
     """Up to eight penumbra receivers off the mesh's surface and six of the input's own (shadow edges,
-    slab top) against exact polygon booleans in shapely. (Receivers 1e-9 m off a vertex with a fin
-    nearly edge-on: the floating-point reference itself moves by 2e-8 relative between pushes of
-    1e-9 and 3e-9 m; `benchmarks.mesh_sweep` checks those against the face path.)"""
+    slab top) against exact polygon booleans in shapely; up to four penumbra receivers within
+    1e-6 m of a face's plane (on the surface, 1e-9 m off it) against the exact rational reference
+    (`exact_reference`): shapely's clipped points within that distance of the receiver round by
+    the coordinates' size, which its projection magnifies (2e-8 U off at 1e-9 m off a fin's vertex,
+    `test_exact_reference`)."""
     tris, light, _, p, n, extra, e, unocc, scale = _scene(inputs[name], "quad")
     rng = np.random.default_rng(1)
     off = np.min(np.abs(np.einsum("kd,md->km", p, _unit_normals(tris)) - np.einsum("md,md->m", tris[:, 0], _unit_normals(tris))),
@@ -81,6 +84,10 @@ def test_quad_light_matches_polygon_booleans(inputs, name) -> None:
     assert np.sum((e[sel] > 0) & (e[sel] < 0.999 * unocc[sel])) >= 4  # the check has teeth
     ref = chk.polygon_reference(np.asarray(light.vertices, float), tris, p[sel], n[sel])
     assert np.max(np.abs(e[sel] - ref) / scale[sel]) <= 1e-9
+    near = np.flatnonzero((e > 0) & (e < 0.999 * unocc) & ~off & ~extra)
+    near = rng.choice(near, min(4, len(near)), replace=False)
+    exact = er.irradiance_many(np.asarray(light.vertices, float), tris, p[near], n[near])
+    assert np.all(np.abs(e[near] - exact) / scale[near] <= 1e-9)
 
 
 @pytest.mark.parametrize("name", CASES)

@@ -63,6 +63,14 @@ struct Decoder {
         return project(p, va + t * (vb - va), ne, hp);
       }
       case kPlanes: {
+        // Two planes through p and occluder edges with one common end: they cross on the line
+        // from p through it, which their normals' cross product finds only to eps over their angle.
+        if (c.v[1] == kThrough && c.v[4] == kThrough) {
+          const V3<T> a1 = V(c.v[2]), b1 = V(c.v[3]), a2 = V(c.v[5]), b2 = V(c.v[6]);
+          auto eq = [](V3<T> u, V3<T> v) { return u.x == v.x && u.y == v.y && u.z == v.z; };
+          const bool aa = eq(a1, a2), ab = eq(a1, b2), ba = eq(b1, a2), bb = eq(b1, b2);
+          if (int(aa) + int(ab) + int(ba) + int(bb) == 1) return crossing_point(p, (aa || ab ? a1 : b1) - p, ne, hp);
+        }
         V3<T> n1 = plane(c.v[1], c.v[2], c.v[3]), n2 = plane(c.v[4], c.v[5], c.v[6]);
         return crossing_point(p, cross(n1, n2), ne, hp);
       }

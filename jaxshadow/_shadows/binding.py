@@ -321,7 +321,8 @@ def decode_endpoints(
     `face_0` from `face_frames`. Codes: `[kind, ...]` with kind 0 a light vertex, 1 a light edge's
     horizon crossing (as `horizon_clip_edges`), 2 a vertex projected from `p` onto the light's
     plane (`_clip._project`), 3 an occluder edge's crossing with that plane, projected, 4 the line
-    common to two planes through `p` met with the light's plane (`_clip._crossing_point`); a
+    common to two planes through `p` met with the light's plane (`_clip._crossing_point`; for two
+    planes through occluder edges with one common end, the line from `p` through that end); a
     plane is `(0, a, b)` through `V[a]`, `V[b]`, `(1, ., .)` the horizon, `(2, f, .)` face `f`'s
     cut $N_L = h_p\,\mathrm{sgn}(d_o) N_o + |d_o| N_e$ (`_clip._occluder_regions`). Unused slots
     (kind -1) give the light's first vertex. Differentiable in `p`, `n`, `verts`, `V` (the codes
@@ -366,7 +367,13 @@ def decode_endpoints(
 
     n1 = plane(codes[:, 1], codes[:, 2], codes[:, 3])
     n2 = plane(codes[:, 4], codes[:, 5], codes[:, 6])
-    y = jax.vmap(_crossing_point, in_axes=(None, 0, None, None))(p, jnp.cross(n1, n2), ne, hp)
+    # Two planes through p and occluder edges with one common end cross on the line from p through
+    # it, which their normals' cross product finds only to eps over their angle (`decode.h`).
+    a1, b1, a2, b2 = (vert(codes[:, i]) for i in (2, 3, 5, 6))
+    same = [jnp.all(u == w, axis=-1).astype(jnp.int32) for u, w in ((a1, a2), (a1, b2), (b1, a2), (b1, b2))]
+    common = (codes[:, 1] == 0) & (codes[:, 4] == 0) & (same[0] + same[1] + same[2] + same[3] == 1)
+    line = jnp.where(common[:, None], jnp.where((same[0] + same[1] > 0)[:, None], a1, b1) - p[None, :], jnp.cross(n1, n2))
+    y = jax.vmap(_crossing_point, in_axes=(None, 0, None, None))(p, line, ne, hp)
     out = jnp.where((kind == K_PLANES)[:, None], y, x)
     return jnp.where((kind == K_UNUSED)[:, None], e0[None, :], out)
 
