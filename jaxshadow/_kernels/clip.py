@@ -50,6 +50,13 @@ differentiates is the few kept edges, not the splitting machinery). The shadow e
 (`csrc/shadowc.cc`, `_shadows.binding`) produces the same codes on the host from each receiver's
 candidates only; `_decode`'s twin there recomputes the points the same way.
 
+**Memory.** The edge soup has $M + 1$ slots per candidate edge, $O(M^2)$ per receiver, and
+each candidate is split against $M + 1$ regions of $P$ planes. Candidates are split a batch at
+a time (`split_batch`, about `SPLIT_PAIRS` (edge, region plane) pairs), a piece's membership
+is an interval-stabbing count beyond `STAB_DENSE` regions (`_stabbed`, $O(M \log M)$ per
+edge instead of pieces x regions), and `visible_edge_sums` adds a contour's sums batch by batch without forming the
+soup (reverse mode recomputes each batch), so a receiver's memory does not grow with $M^2$.
+
 **Tie-break (coincident edges).** Two candidate pieces on the same line (normals of their planes
 through $p$ parallel within `64 eps`) that both bound $R$ on the same side describe the same
 boundary piece; exactly one is kept, by priority: the emitter's edges first, then occluders in
@@ -73,7 +80,8 @@ every candidate edge here is split against every region.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -314,6 +322,23 @@ def _boundary_runs(
 
     **Returns:** `(start_codes, end_codes, valid)`, each `(C (M + 1),)` (`C` candidate edges).
     """
+    n_cand = c.starts.shape[0]
+    batch = split_batch(m_occ, c.planes.shape[1], n_cand)
+    if batch >= n_cand:
+        sc, ec, valid = _split_candidates(p, c, m_occ, jnp.arange(n_cand, dtype=jnp.int32))
+    else:
+        # `batch` candidates at a time (`lax.map`; the last batch padded with candidate 0):
+        # each candidate's runs depend on it alone, so the codes are those of one batch of all
+        # of them, and the intermediates are one batch's.
+        idx = _batches(n_cand, batch)[0]
+        out = jax.lax.map(lambda i: _split_candidates(p, c, m_occ, i), idx)
+        sc, ec, valid = (o.reshape((-1,) + o.shape[2:])[:n_cand] for o in out)
+    return sc.reshape(-1), ec.reshape(-1), valid.reshape(-1) & c.in_front
+
+
+def _split_candidates(p: Array, c: _Candidates, m_occ: int, idx: Int[Array, " b"]) -> tuple[Array, Array, Array]:
+    """`_boundary_runs` for the candidate edges `idx`: `(start_codes, end_codes, valid)`, each
+    `(b, M + 1)` (`c.in_front` not applied)."""
     p, c = jax.lax.stop_gradient((p, c))
     region_ids = jnp.arange(m_occ + 1, dtype=jnp.int32)
 
@@ -326,18 +351,18 @@ def _boundary_runs(
         codes = codes_all[order]
         t0 = ts[:-1]
         tm = 0.5 * (t0 + ts[1:])
-        inside = (lo[None, :] < tm[:, None]) & (tm[:, None] < hi[None, :])  # (pieces, M+1)
-        member = inside & (c_nc & c_c & c.reg_active)[None, :]
-        # Tie-break: a coincident edge of a higher-priority (lower-index) region wins.
-        tie = inside & (c_nc & any_c)[None, :] & (region_ids < reg)[None, :]
-        # The emitter's edges are kept outside every occluder; an occluder's edges already lie
-        # inside E_h (clipped), so only the other occluders and the tie-break remove them.
-        blocked = jnp.any(((member & (region_ids > 0)[None, :]) | tie) & other[None, :], axis=1)
-        free = ~blocked
+        # A piece is blocked when its midpoint is inside (lo < tm < hi) a region that removes
+        # it: an occluder the edge's side is inside of, or (tie-break) a coincident edge of a
+        # higher-priority (lower-index) region. The emitter's edges are kept outside every
+        # occluder; an occluder's edges already lie inside E_h (clipped), so only the other
+        # occluders and the tie-break remove them.
+        member = c_nc & c_c & c.reg_active & (region_ids > 0)
+        tie = c_nc & any_c & (region_ids < reg)
+        free = ~_stabbed(lo, hi, (member | tie) & other, tm)
         n_pieces = free.shape[0]
-        idx = jnp.arange(n_pieces)
+        pieces = jnp.arange(n_pieces)
         last = jnp.concatenate([~free[1:], jnp.ones((1,), bool)])  # piece ends its run
-        run_end = jax.lax.cummin(jnp.where(last, idx, n_pieces - 1), reverse=True)
+        run_end = jax.lax.cummin(jnp.where(last, pieces, n_pieces - 1), reverse=True)
         begins = free & jnp.concatenate([jnp.ones((1,), bool), ~free[:-1]])
         keep = begins & (ts[run_end + 1] > t0)
         end_codes = codes[run_end + 1]
@@ -345,10 +370,48 @@ def _boundary_runs(
         valid = jnp.arange(m_occ + 1) < jnp.sum(keep)
         return codes[sel], end_codes[sel], valid
 
-    sc, ec, valid = jax.vmap(split_edge)(
-        jnp.arange(c.starts.shape[0], dtype=jnp.int32), c.starts, c.ends, c.own, c.own_id, c.sigma, c.region
-    )
-    return sc.reshape(-1), ec.reshape(-1), valid.reshape(-1) & c.in_front
+    return jax.vmap(split_edge)(idx, c.starts[idx], c.ends[idx], c.own[idx], c.own_id[idx], c.sigma[idx], c.region[idx])
+
+
+# Up to this many intervals `_stabbed` compares every point with every interval (on CPU faster
+# than sorting them for 80 occluders, slower for 320).
+STAB_DENSE = 160
+
+
+def _stabbed(lo: Array, hi: Array, use: Array, t: Array) -> Array:
+    """For each of the `T` points `t`: whether some open interval `(lo[j], hi[j])` with `use[j]`
+    contains it, `any_j use[j] & (lo[j] < t) & (t < hi[j])`. Beyond `STAB_DENSE` intervals in
+    O((M + T) log M) time and O(M + T) memory instead of O(M T): `#{lo < t} - #{hi <= t}` over
+    the used non-empty intervals (an interval with `hi <= t` also has `lo < t`), exact counts
+    of the same comparisons. `t` finite."""
+    if lo.shape[0] <= STAB_DENSE:
+        return jnp.any((lo[None, :] < t[:, None]) & (t[:, None] < hi[None, :]) & use[None, :], axis=1)
+    use = use & (lo < hi)  # empty (and NaN) intervals contain nothing
+    los = jnp.sort(jnp.where(use, lo, jnp.inf))
+    his = jnp.sort(jnp.where(use, hi, jnp.inf))
+    return jnp.searchsorted(los, t, side="left") > jnp.searchsorted(his, t, side="right")
+
+
+def _batches(n: int, batch: int) -> tuple[Int[Array, "nb b"], Bool[Array, "nb b"]]:
+    """`0 .. n - 1` in rows of `batch` (the last row padded with 0) and which entries are real."""
+    n_b = -(-n // batch)
+    flat = jnp.arange(n_b * batch, dtype=jnp.int32)
+    real = flat < n
+    return jnp.where(real, flat, 0).reshape(n_b, batch), real.reshape(n_b, batch)
+
+
+# (candidate edge, region plane) pairs that `_boundary_runs` and `visible_edge_sums` split at once:
+# each pair holds about 100 bytes of intermediates (its crossing parameters, collinearity and
+# shared-vertex tests), so a batch holds about 1.6 MiB per receiver (2^14 pairs: on CPU as fast
+# as splitting every candidate edge at once for 80 occluders, faster for 160).
+SPLIT_PAIRS = 1 << 14
+
+
+def split_batch(m_occ: int, n_planes: int, n_cand: int, pairs: int | None = None) -> int:
+    """Candidate edges `_boundary_runs` splits at once for `m_occ` occluders, `n_planes` planes
+    per region and `n_cand` candidate edges: about `pairs` (default `SPLIT_PAIRS`) (edge, region
+    plane) pairs, at least one edge, all of them when they fit."""
+    return max(1, min(n_cand, (pairs or SPLIT_PAIRS) // ((m_occ + 1) * n_planes)))
 
 
 def _decode(p: Array, c: _Candidates, codes: Int[Array, " r"]) -> Float[Array, "r 3"]:
@@ -399,6 +462,55 @@ def visible_edges(
         return _no_occluder_edges(p, n, verts)
     c = _candidates(p, n, verts, occluders)
     sc, ec, valid = _boundary_runs(p, c, occluders.shape[0])
+    return _kept_edges(p, c, sc, ec, valid)
+
+
+def visible_edge_sums(
+    p: Float[Array, "3"],
+    n: Float[Array, "3"],
+    verts: Float[Array, "k 3"],
+    occluders: Float[Array, "m ko 3"],
+    sums: Callable[[Array, Array], Any],
+    pairs: int | None = None,
+) -> Any:
+    r"""`sums(starts, ends)` over the edge soup of `visible_edges`, without that soup.
+
+    `sums` maps an edge soup `(e, 3), (e, 3)` to a pytree of sums over its edges (zero-length
+    edges adding 0: `contour_form_factor_sums`, `specular.contour_specular_sums`), so the
+    soup's sums are its parts' sums added up. The soup holds `(M + 1)` slots for each of the
+    `C ~ M (K_o + 1)` candidate edges, `O(M^2)` per receiver; here the candidate edges are split
+    and decoded `split_batch` at a time (`lax.scan`), so a receiver's memory is one batch's
+    (about `SPLIT_PAIRS` (edge, region plane) pairs) however many occluders there are, in
+    reverse mode too: each batch is recomputed in the backward pass (`jax.checkpoint`) instead
+    of its intermediates being kept. The values are those of `sums(*visible_edges(...))` up to
+    the order of the additions (the same when one batch holds every candidate edge). `pairs`:
+    the batch's size in (edge, region plane) pairs (`split_batch`; static).
+    """
+    if occluders.shape[0] == 0:
+        return sums(*_no_occluder_edges(p, n, verts))
+    m_occ = occluders.shape[0]
+    c = _candidates(p, n, verts, occluders)
+    n_cand = c.starts.shape[0]
+    batch = split_batch(m_occ, c.planes.shape[1], n_cand, pairs)
+    if batch >= n_cand:
+        sc, ec, valid = _split_candidates(p, c, m_occ, jnp.arange(n_cand, dtype=jnp.int32))
+        valid = valid & c.in_front
+        return sums(*_kept_edges(p, c, sc.reshape(-1), ec.reshape(-1), valid.reshape(-1)))
+
+    def step(total, xs):
+        idx, real = xs
+        sc, ec, valid = _split_candidates(p, c, m_occ, idx)
+        valid = valid & real[:, None] & c.in_front
+        part = sums(*_kept_edges(p, c, sc.reshape(-1), ec.reshape(-1), valid.reshape(-1)))
+        return jax.tree_util.tree_map(jnp.add, total, part), None
+
+    none = jnp.zeros((0, 3), p.dtype)
+    total, _ = jax.lax.scan(jax.checkpoint(step), sums(none, none), _batches(n_cand, batch))
+    return total
+
+
+def _kept_edges(p: Array, c: _Candidates, sc: Array, ec: Array, valid: Array) -> tuple[Array, Array]:
+    """The edges of endpoint codes `sc -> ec` (`_decode`), zero-length at `c.e0` where not `valid`."""
     s = _decode(p, c, sc)
     e = _decode(p, c, ec)
     return jnp.where(valid[:, None], s, c.e0[None, :]), jnp.where(valid[:, None], e, c.e0[None, :])
@@ -427,19 +539,29 @@ def visible_form_factor_kernel(
 def masked_contour_form_factor(p: Array, n: Array, verts: Array, starts: Array, ends: Array) -> Array:
     """Lambert's contour sum over an edge soup of `visible_edges` (or `visible_edges_compact`):
     zero-length (unused) slots masked, 0 when `p` is not in front of the light `verts`."""
-    ne = newell_normal(verts)
-    in_front = jnp.dot(ne, p - verts[0]) > 0
-    # Dropped pieces are zero-length; mask them so that they add an exact 0 (a fused
-    # multiply-add can leave cross(A, A) at 1e-18 instead of 0).
+    return contour_form_factor_total(p, verts, contour_form_factor_sums(p, n, starts, ends))
+
+
+def contour_form_factor_sums(p: Array, n: Array, starts: Array, ends: Array) -> tuple[Array, Array]:
+    """The two sums over an edge soup that `masked_contour_form_factor` takes: Lambert's sum of
+    edge terms (zero-length slots masked: a fused multiply-add can leave cross(A, A) at 1e-18
+    instead of 0) and its rounding bound (`_contour_bound`, no gradient). Sums over parts of a
+    soup add up to the whole soup's (`contour_form_factor_total`)."""
     used = jnp.any(starts != ends, axis=1)
     terms = jax.vmap(edge_term, in_axes=(None, None, 0, 0))(p, n, starts, ends)
-    s = jnp.sum(jnp.where(used, terms, 0.0))
+    return jnp.sum(jnp.where(used, terms, 0.0)), jax.lax.stop_gradient(_contour_bound(p, starts, ends, used))
+
+
+def contour_form_factor_total(p: Array, verts: Array, sums: tuple[Array, Array]) -> Array:
+    """`masked_contour_form_factor` from its soup's `contour_form_factor_sums`."""
+    s, bound = sums
+    ne = newell_normal(verts)
+    in_front = jnp.dot(ne, p - verts[0]) > 0
     # A visible region's form factor is never negative. An all-but-empty region (nearly
     # zero-length runs: a receiver at an umbra's vertex) sums to +-1e-16 of rounding, large
     # against its tiny terms: a negative value within the terms' rounding bound (each end
     # within COLLINEAR_EPS eps S of its exact point, over its distance from p) is that region's
     # 0; a larger one stays visible (the engine's `lambert_rounded`). Zero derivative there.
-    bound = jax.lax.stop_gradient(_contour_bound(p, starts, ends, used))
     f = jnp.where((s > 0) & (s <= bound), 0.0, -s / (2 * jnp.pi))
     return jnp.where(in_front, f, 0.0)
 

@@ -358,8 +358,27 @@ def contour_specular_kernel(
     `horizon_clip_edges` or of the shadow code's `visible_edges`). Zero-length edges
     (`start == end`) contribute exactly 0. Arguments and result as `polygon_specular_kernel`.
     """
+    sums = contour_specular_sums(p, n, eye, starts, ends, exponent, method=method, degree=degree, tol=tol)
+    return contour_specular_total(p, n, eye, sums)
+
+
+def contour_specular_sums(
+    p: Float[Array, "3"],
+    n: Float[Array, "3"],
+    eye: Float[Array, "3"],
+    starts: Float[Array, "e 3"],
+    ends: Float[Array, "e 3"],
+    exponent: Float[Array, ""],
+    *,
+    method: Method = "chebyshev",
+    degree: int = DEFAULT_DEGREE,
+    tol: float = DEFAULT_TOL,
+) -> tuple[Array, Array]:
+    """The two sums over an edge soup that `contour_specular_kernel` takes: the edge terms of
+    the polar sweep about the reflected direction and the edges' changes of azimuth about it (no
+    gradient). Sums over parts of a soup add up to the whole soup's (`contour_specular_total`)."""
     _check_method(method, degree)
-    nn, R = reflected_direction(p, n, eye)
+    _, R = reflected_direction(p, n, eye)
     k = exponent + 1.0
     if method == "chebyshev":
         x_cut = cutoff_angle(k, tol)
@@ -383,13 +402,22 @@ def contour_specular_kernel(
         return jnp.where(ok, outer + inner, 0.0), jnp.where(ok, turn, 0.0)
 
     terms, turns = jax.vmap(edge)(starts - p[None, :], ends - p[None, :])
+    return jnp.sum(terms), lax.stop_gradient(jnp.sum(turns))
+
+
+def contour_specular_total(
+    p: Float[Array, "3"], n: Float[Array, "3"], eye: Float[Array, "3"], sums: tuple[Array, Array]
+) -> Float[Array, ""]:
+    """`contour_specular_kernel` from its soup's `contour_specular_sums`."""
+    terms, turns = sums
+    nn, R = reflected_direction(p, n, eye)
     # The polar sweep about R counts a region winding once about the R axis as containing R. A
     # region above the horizon can contain R only when R is (R . N = N . V > 0); when the eye
     # is behind the tangent plane a winding region contains -R instead, where the lobe is 0:
     # the sweep then gives (true value - 1), so add the winding back (piecewise constant).
-    winding = jnp.round(lax.stop_gradient(jnp.sum(turns)) / (2.0 * np.pi))
+    winding = jnp.round(turns / (2.0 * np.pi))
     minus_r_inside = jnp.where(jnp.dot(nn, R) < 0, winding, 0.0)
-    return -jnp.sum(terms) / (2.0 * np.pi) + minus_r_inside
+    return -terms / (2.0 * np.pi) + minus_r_inside
 
 
 def polygon_specular_kernel(

@@ -4,8 +4,8 @@
   static number of boundary edges (or a segment light's visible pieces) per receiver; a receiver over it is
   reported (`overflow`), never silently truncated.
 - `device_values`: without the engine, every receiver clipped against every occluder by the
-  JAX kernels of `_clip` (no build needed; memory and time grow with the square of the occluder
-  count).
+  JAX kernels of `_clip` (no build needed; time grows with the square of the occluder count,
+  memory is bounded: a chunk of receivers, each a batch of candidate edges at a time).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._kernels.clip import directional_visibility, point_visibility, visible_edges
+from .._kernels.clip import directional_visibility, point_visibility, split_batch, visible_edge_sums
 from .._scene.model import Scene
 from . import binding as vis
 from . import segment_pieces
@@ -134,8 +134,9 @@ def _device_polygon(light: Any, integ: Any, p, n, e, faces) -> Any:
     verts = light.vertices.astype(p.dtype)
 
     def one(p_, n_, e_):
-        s, t = visible_edges(p_, n_, verts, faces)
-        return integ.contour(p_, n_, e_, verts, s, t)
+        # The boundary's sums batch by batch of candidate edges: its O(M^2) edge soup never whole.
+        sums = visible_edge_sums(p_, n_, verts, faces, lambda s, t: integ.contour_sums(p_, n_, e_, verts, s, t))
+        return integ.contour_total(p_, n_, e_, verts, sums)
 
     return jax.vmap(one)(p, n, e)
 
@@ -157,18 +158,29 @@ _DEVICE = {"polygon": _device_polygon, "segment": _device_segment, "point": _dev
            "directional": _device_hard}
 
 
-def device_chunk(n_faces: int, ko: int) -> int:
-    """Receivers per chunk of the device kernels: their intermediates grow like the square of
-    the occluder count (every candidate edge against every region); about 2^26 values a chunk."""
+def device_chunk(n_faces: int, ko: int, k: int) -> int:
+    """Receivers per chunk of the device kernels for `n_faces` occluders of `ko` vertices and
+    polygon lights of up to `k` vertices: a receiver's intermediates are one batch of its
+    candidate edges split against every region (`_clip.visible_edge_sums`: about `SPLIT_PAIRS`
+    (edge, region plane) pairs, ~100 bytes each; fewer when all its candidate edges fit in one
+    batch); about `DEVICE_PAIRS` pairs a chunk."""
     m = max(1, n_faces)
-    per = (ko + 1) * m * (m + 1) * (ko + 1)
-    return int(min(4096, max(1, 2 ** int(np.log2(max(1, (1 << 26) // per))))))
+    n_planes = max(k, ko) + 1  # `_clip._region_planes`
+    n_cand = k + 1 + m * (ko + 1)
+    per = split_batch(m, n_planes, n_cand) * (m + 1) * n_planes
+    return int(min(4096, max(1, 2 ** int(np.log2(max(1, DEVICE_PAIRS // per))))))
+
+
+# (candidate edge, region plane) pairs of one chunk of receivers of the device kernels: ~25 MiB.
+DEVICE_PAIRS = 1 << 18
 
 
 def device_values(scene: Scene, integ: Any, points: Any, normals: Any, eyes: Any) -> Any:
     """`(N, 3)` with exact shadows from the device kernels: each receiver clipped against every
-    occluder (`_clip.visible_edges`), no engine, traceable, chunked (unit `normals`; `eyes` as
-    for `traced_values`)."""
+    occluder (`_clip.visible_edge_sums`), no engine, traceable, chunked: receivers
+    `device_chunk` at a time, each a batch of its candidate edges at a time, so that memory
+    stays about `DEVICE_PAIRS` (edge, region plane) pairs however many occluders there are
+    (unit `normals`; `eyes` as for `traced_values`)."""
     dt = points.dtype
     faces = occluders_of(scene).astype(dt)
 
@@ -179,4 +191,9 @@ def device_values(scene: Scene, integ: Any, points: Any, normals: Any, eyes: Any
             total = total + _DEVICE[light.kind](light, integ, p, n, ee, faces)[:, None] * light.emission(dt)[None, :]
         return total, jnp.zeros((), bool)
 
-    return lax_chunks(block, (points, normals, eyes), device_chunk(faces.shape[0], faces.shape[1]))[0]
+    k = max([light.vertices.shape[0] for light in scene.lights if light.kind == "polygon"], default=0)
+    chunk = device_chunk(faces.shape[0], faces.shape[1], k)
+    # Several chunks: each recomputed in reverse mode (`jax.checkpoint`). Under the chunks'
+    # `lax.map`, reverse mode otherwise keeps the residuals of every batch of candidate edges of
+    # a chunk (`visible_edge_sums`'s own checkpoint notwithstanding), O(M^2) per receiver again.
+    return lax_chunks(jax.checkpoint(block) if points.shape[0] > chunk else block, (points, normals, eyes), chunk)[0]

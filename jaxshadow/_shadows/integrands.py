@@ -1,7 +1,9 @@
 r"""Integrands: what a light contributes per unit emission at a receiver, given its visibility.
 
 An integrand has one method per light kind (`AbstractLight.kind`): `polygon` (the whole light
-seen), `contour` (a polygon light's visible region, given by its boundary edges), `segment`,
+seen), `contour` (a polygon light's visible region, given by its boundary edges; also as
+`contour_total(..., contour_sums(..., starts, ends))`, where `contour_sums` is a pytree of sums
+over the edges, so a boundary can be given in parts and their sums added), `segment`,
 `point`, `directional`; each takes one receiver `p (3,)`, its unit normal `n (3,)` and the eye
 `e (3,)`, read by `Phong` only: an integrand that reads none (`reads_eye = False`) is given
 None. It also declares what it needs: what the shadow engine must hand it on the host
@@ -19,12 +21,20 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .._kernels.clip import lit_form_factor, masked_contour_form_factor, visible_segments
+from .._kernels.clip import (
+    contour_form_factor_sums,
+    contour_form_factor_total,
+    lit_form_factor,
+    masked_contour_form_factor,
+    visible_segments,
+)
 from .._kernels.linear import linear_irradiance_kernel
 from .._kernels.point import directional_irradiance_kernel, point_irradiance_kernel
 from .._kernels.specular import (
     DEFAULT_DEGREE,
     contour_specular_kernel,
+    contour_specular_sums,
+    contour_specular_total,
     directional_specular_kernel,
     point_specular_kernel,
     polygon_specular_kernel,
@@ -59,6 +69,12 @@ class Lambert(AbstractIntegrand):
     def contour(self, p, n, e, verts, starts, ends):
         return jnp.pi * masked_contour_form_factor(p, n, verts, starts, ends)
 
+    def contour_sums(self, p, n, e, verts, starts, ends):
+        return contour_form_factor_sums(p, n, starts, ends)
+
+    def contour_total(self, p, n, e, verts, sums):
+        return jnp.pi * contour_form_factor_total(p, verts, sums)
+
     def segment(self, p, n, e, a, b, light):
         return linear_irradiance_kernel(p, n, a, b, light.exponent)
 
@@ -82,6 +98,12 @@ class Phong(AbstractIntegrand):
 
     def contour(self, p, n, e, verts, starts, ends):
         return contour_specular_kernel(p, n, e, starts, ends, self.exponent, method=self.method, degree=self.degree)
+
+    def contour_sums(self, p, n, e, verts, starts, ends):
+        return contour_specular_sums(p, n, e, starts, ends, self.exponent, method=self.method, degree=self.degree)
+
+    def contour_total(self, p, n, e, verts, sums):
+        return contour_specular_total(p, n, e, sums)
 
     def segment(self, p, n, e, a, b, light):
         prof = None if light.profile == "isotropic" else jnp.asarray(float(light.exponent), p.dtype)
@@ -111,6 +133,12 @@ class Both(AbstractIntegrand):
 
     def contour(self, p, n, e, verts, starts, ends):
         return self._two("contour", p, n, e, verts, starts, ends)
+
+    def contour_sums(self, p, n, e, verts, starts, ends):
+        return Lambert().contour_sums(p, n, e, verts, starts, ends), self.phong.contour_sums(p, n, e, verts, starts, ends)
+
+    def contour_total(self, p, n, e, verts, sums):
+        return jnp.stack([Lambert().contour_total(p, n, e, verts, sums[0]), self.phong.contour_total(p, n, e, verts, sums[1])])
 
     def segment(self, p, n, e, a, b, light):
         return self._two("segment", p, n, e, a, b, light)

@@ -15,8 +15,9 @@ class ShadowOptions:
 
     - `engine`: `"auto"` (the compiled host engine when it is built, else the device kernels),
       `"host"` (the engine; an error if it is not built) or `"device"` (JAX kernels that clip
-      every receiver against every occluder: no build needed, memory and time grow with the
-      square of the occluder count).
+      every receiver against every occluder: no build needed, time grows with the square of
+      the occluder count, memory stays bounded: receivers and their candidate edges are
+      processed a batch at a time, `compiled.device_values`).
     - `capacity`: boundary edges (polygon lights) or visible pieces (segment lights) per
       receiver when the values are abstract (inside `jax.jit`/`jax.vmap`) and the engine runs in
       the compiled program. A receiver that needs more is an error, never a truncation. Eager

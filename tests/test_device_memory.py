@@ -1,0 +1,219 @@
+"""The device kernels' memory (`ShadowOptions(engine="device")`): a polygon light's visible
+boundary is split, decoded and summed a batch of candidate edges at a time
+(`_clip.visible_edge_sums`, a `lax.scan` whose steps are recomputed in reverse mode), so no
+array of the program grows with the square of the occluder count, and the values are those of
+the whole edge soup (`visible_edges`) up to the order of the additions.
+
+References: the largest array of the traced program (its shapes: nothing is run), exact polygon
+booleans (`test_clip.reference_ff`), the whole soup's contour sums, and finite differences.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxshadow as js
+from jaxshadow._kernels.clip import _stabbed, visible_edge_sums, visible_edges
+from jaxshadow._shadows import compiled
+from jaxshadow._shadows.integrands import Lambert, Phong
+
+pytest.importorskip("shapely")
+from test_clip import reference_ff  # noqa: E402
+
+LIGHT = np.array([[-0.4, -0.4, 2.5], [-0.4, 0.4, 2.5], [0.4, 0.4, 2.5], [0.4, -0.4, 2.5]])
+DEVICE = js.ShadowOptions(engine="device")
+
+
+def _largest(jaxpr: Any) -> int:
+    """The element count of the largest array any equation of `jaxpr` (and of the programs
+    inside it: jit, scan, checkpoint, cond bodies) produces."""
+    big = 0
+    for eqn in jaxpr.eqns:
+        for v in eqn.outvars:
+            big = max(big, math.prod(getattr(v.aval, "shape", ())))
+        for param in eqn.params.values():
+            for sub in param if isinstance(param, (tuple, list)) else (param,):
+                inner = getattr(sub, "jaxpr", sub)
+                if hasattr(inner, "eqns"):
+                    big = max(big, _largest(inner))
+    return big
+
+
+def _grid(n: int, z: float = 1.0, half: float = 1.0) -> js.Mesh:
+    """An n x n grid of squares (2 n^2 triangles) over [-half, half]^2, its height z bent (faces
+    that are coplanar would be merged into one occluder)."""
+    x = np.linspace(-half, half, n + 1)
+    v = np.stack(np.meshgrid(x, x, indexing="ij"), -1).reshape(-1, 2)
+    v = np.c_[v, z + 0.05 * np.random.default_rng(5).uniform(size=len(v))]  # no two faces coplanar
+    i = np.arange(n)[:, None] * (n + 1) + np.arange(n)[None, :]
+    a, b, c, d = i.ravel(), i.ravel() + n + 1, i.ravel() + n + 2, i.ravel() + 1
+    return js.Mesh(v, np.r_[np.c_[a, b, c], np.c_[a, c, d]])
+
+
+def test_device_program_has_no_quadratic_intermediate():
+    """2048 occluding triangles, 64 receivers: every array of the device program's gradient with
+    respect to the receivers (its values included) stays within 8 x `DEVICE_PAIRS` elements (2^21).
+    Splitting every candidate edge against every region at once made an array of one
+    receiver's (8197 candidate edges) x (2049 regions) x (5 planes) x 2 x 3 shared-vertex tests,
+    5e8 elements."""
+    scene = js.Scene([js.PolygonLight(LIGHT, 1.0)], occluders=[_grid(32)])
+    rng = np.random.default_rng(0)
+    p = jnp.asarray(np.c_[rng.uniform(-2, 2, (64, 2)), np.zeros(64)])
+    nrm = jnp.asarray(np.tile([0.0, 0.0, 1.0], (64, 1)))
+
+    def e(q):
+        return js.irradiance(scene, q, nrm, shadows=DEVICE)
+
+    assert _largest(jax.make_jaxpr(jax.grad(lambda q: jnp.sum(e(q))))(p).jaxpr) <= 8 * compiled.DEVICE_PAIRS
+
+
+def _scene_arrays(dtype):
+    """A polygon light, 6 overlapping occluders (one reaching past the light's edge, one sharing
+    a vertex with another) and receivers in their penumbrae, one lit and one behind the light."""
+    occ = np.array(
+        [
+            [[-0.3, -0.2, 1.2], [0.2, -0.25, 1.1], [0.0, 0.3, 1.3]],
+            [[-0.1, -0.4, 1.5], [0.35, 0.0, 1.6], [-0.2, 0.2, 1.4]],
+            [[0.1, 0.1, 0.9], [0.5, 0.2, 0.95], [0.2, 0.6, 1.0]],
+            [[-0.6, -0.1, 1.8], [-0.2, -0.5, 1.8], [-0.3, 0.1, 1.9]],
+            [[0.2, -0.25, 1.1], [0.5, -0.3, 1.0], [0.4, 0.1, 1.2]],
+            [[-0.5, 0.3, 0.7], [-0.1, 0.5, 0.8], [-0.4, 0.7, 0.75]],
+        ]
+    )
+    p = np.array([[0.0, 0.0, 0.0], [0.3, -0.2, 0.05], [-0.35, 0.4, 0.0], [0.1, 0.5, 0.1], [3.0, 3.0, 0.0],
+                  [0.0, 0.0, 3.0]])
+    n = np.array([[0.0, 0.0, 1.0], [0.2, 0.1, 1.0], [-0.3, 0.0, 1.0], [0.0, 0.4, 1.0], [0.0, 0.0, 1.0],
+                  [0.0, 0.0, 1.0]])
+    n = n / np.linalg.norm(n, axis=1, keepdims=True)
+    eye = np.array([0.4, -0.3, 1.5])
+    return (jnp.asarray(x, dtype) for x in (LIGHT, occ, p, n, eye))
+
+
+def _value_and_grads(name: str, dtype: Any, pairs: int | None) -> Any:
+    """`(light, occluders, receivers, normals, eye) -> (values (N,), gradients)`, compiled: the
+    `name` integrand's contour value per receiver from `visible_edge_sums` in batches of `pairs`
+    (edge, region plane) pairs (None: the whole soup of `visible_edges`), and its gradients with
+    respect to the receiver, the light and the occluders."""
+    integ = Lambert() if name == "lambert" else Phong(jnp.asarray(20.0, dtype))
+
+    def one(q, m, e, lv, o):
+        e = e if name == "phong" else None
+        if pairs is None:
+            s, t = visible_edges(q, m, lv, o)
+            return integ.contour(q, m, e, lv, s, t)
+        sums = visible_edge_sums(q, m, lv, o, lambda s, t: integ.contour_sums(q, m, e, lv, s, t), pairs)
+        return integ.contour_total(q, m, e, lv, sums)
+
+    fn = jax.vmap(jax.value_and_grad(one, argnums=(0, 3, 4)), in_axes=(0, 0, None, None, None))
+    return jax.jit(lambda lv, o, q, m, e: fn(q, m, e, lv, o))
+
+
+def _values(pairs: int) -> Any:
+    """`(light, occluders, receivers, normals) -> (N,)`: Lambert's contour value per receiver
+    from `visible_edge_sums` in batches of `pairs` (edge, region plane) pairs, compiled."""
+
+    def one(q, m, lv, o):
+        sums = visible_edge_sums(q, m, lv, o, lambda s, t: Lambert().contour_sums(q, m, None, lv, s, t), pairs)
+        return Lambert().contour_total(q, m, None, lv, sums)
+
+    return jax.jit(jax.vmap(one, in_axes=(0, 0, None, None)))
+
+
+def _check_batched(name: str, dtype: Any, pairs: int) -> None:
+    verts, occ, p, n, eye = _scene_arrays(dtype)
+    tol = 1e-12 if dtype == np.float64 else 1e-5
+    whole, gw = _value_and_grads(name, dtype, None)(verts, occ, p, n, eye)
+    assert float(jnp.max(whole)) > 0
+    if name == "lambert":
+        assert float(jnp.min(whole[:4])) > 0, "penumbra receivers"
+    batched = _value_and_grads(name, dtype, pairs)
+    got, g = batched(verts, occ, p, n, eye)
+    np.testing.assert_allclose(got, whole, rtol=0, atol=tol * float(jnp.max(whole)))
+    for a, b in zip(g, gw, strict=True):
+        assert np.all(np.isfinite(a))
+        np.testing.assert_allclose(a, b, rtol=0, atol=tol * float(jnp.max(jnp.abs(b))))
+    if dtype != np.float64:
+        return
+    # Directional derivatives against central differences (the batched program at moved inputs).
+    rng = np.random.default_rng(3)
+    dv, do = (jnp.asarray(rng.normal(size=x.shape)) for x in (verts, occ))
+    h = 1e-6
+    fd = (batched(verts + h * dv, occ + h * do, p, n, eye)[0] - batched(verts - h * dv, occ - h * do, p, n, eye)[0]) / (2 * h)
+    ad = jnp.sum(g[1] * dv[None], axis=(1, 2)) + jnp.sum(g[2] * do[None], axis=(1, 2, 3))
+    np.testing.assert_allclose(ad, fd, rtol=0, atol=1e-6 * float(jnp.max(jnp.abs(ad))))
+    if name == "lambert":
+        ref = [math.pi * reference_ff(q, m, LIGHT, list(np.asarray(occ)))
+               for q, m in zip(np.asarray(p), np.asarray(n), strict=True)]
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9)
+
+
+# (edge, region plane) pairs per batch: 35 candidate edges split against 7 regions of 5 planes,
+# 1 or 3 (the last batch padded) at a time.
+PAIRS = (35, 105)
+
+
+def test_batched_sums_against_polygon_booleans():
+    """Lambert (float64) from `visible_edge_sums` in batches of 3 candidate edges (the last one
+    padded), at penumbra, lit and back-facing receivers: within 1e-9 of exact polygon booleans.
+    Gradients, Phong and float32: `test_batched_sums_match_the_whole_soup` (slow)."""
+    verts, occ, p, n, _ = _scene_arrays(np.float64)
+    got = _values(PAIRS[1])(p, n, verts, occ)
+    ref = [math.pi * reference_ff(q, m, LIGHT, list(np.asarray(occ))) for q, m in zip(np.asarray(p), np.asarray(n),
+                                                                                          strict=True)]
+    free = [math.pi * reference_ff(q, m, LIGHT, []) for q, m in zip(np.asarray(p), np.asarray(n), strict=True)]
+    assert all(0 < a < 0.9 * b for a, b in zip(ref[:4], free[:4], strict=True)), "penumbra receivers"
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("pairs", PAIRS)
+@pytest.mark.parametrize("dtype", [np.float32, np.float64], ids=["f32", "f64"])
+@pytest.mark.parametrize("name", ["lambert", "phong"])
+def test_batched_sums_match_the_whole_soup(name, dtype, pairs):
+    """Lambert and Phong from `visible_edge_sums` in batches of 1 and 3 candidate edges (the
+    last one padded): the whole soup's values and gradients (receiver, light, occluders) within
+    1e-12 (float64; 1e-5 float32) of the largest, none NaN; in float64 directional derivatives
+    within 1e-6 of central differences and Lambert within 1e-9 of exact polygon booleans."""
+    _check_batched(name, dtype, pairs)
+
+
+@pytest.mark.slow
+def test_device_engine_batches_many_occluders():
+    """`js.irradiance(..., engine="device")` with 128 occluding triangles (several batches of
+    candidate edges, several chunks of receivers) against the host engine."""
+    from jaxshadow._shadows import binding as vis
+
+    if not vis.engine_available():
+        pytest.skip("the shadow engine is not built")
+    scene = js.Scene([js.PolygonLight(LIGHT, 1.0)], occluders=[_grid(8, z=1.2, half=0.3)])
+    rng = np.random.default_rng(1)
+    p = np.c_[rng.uniform(-1.5, 1.5, (40, 2)), np.zeros(40)]
+    nrm = np.tile([0.0, 0.0, 1.0], (40, 1))
+    assert compiled.device_chunk(128, 3, 4) < 40
+    got = np.asarray(js.irradiance(scene, p, nrm, shadows=DEVICE))
+    ref = np.asarray(js.irradiance(scene, p, nrm))
+    assert ref.max() > 0 and np.any((ref[:, 0] > 0) & (ref[:, 0] < 0.9 * ref.max()))
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12 * ref.max())
+
+
+@pytest.mark.parametrize("m", [40, 400], ids=["dense", "sorted"])
+def test_stabbed_counts_match_every_comparison(m):
+    """`_clip._stabbed` (every point against every interval up to `STAB_DENSE` intervals, sorted
+    endpoint counts beyond) against the comparisons written out: intervals with shared and
+    infinite ends, empty, reversed and NaN ones, points on interval ends."""
+    rng = np.random.default_rng(2)
+    grid = np.linspace(0.0, 1.0, 11)
+    lo = rng.choice(np.r_[grid, -np.inf, np.nan], m)
+    hi = np.where(rng.uniform(size=m) < 0.1, np.inf, rng.choice(np.r_[grid, np.nan], m))
+    use = rng.uniform(size=m) < 6 / m
+    t = np.r_[grid, rng.uniform(size=40), 0.5 * (grid[1:] + grid[:-1]), -0.5, 1.5]
+    want = np.any((lo[None, :] < t[:, None]) & (t[:, None] < hi[None, :]) & use[None, :], axis=1)
+    assert 0 < want.sum() < len(t)
+    got = jax.jit(_stabbed)(jnp.asarray(lo), jnp.asarray(hi), jnp.asarray(use), jnp.asarray(t))
+    np.testing.assert_array_equal(got, want)
