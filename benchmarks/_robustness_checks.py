@@ -107,7 +107,6 @@ def reference_ff_batched(p: np.ndarray, n: np.ndarray, emitter: np.ndarray, tris
     the same snap-rounded overlay and Lambert's sum."""
     import shapely
     from shapely.geometry import Polygon
-    from shapely.geometry.polygon import orient
 
     from benchmarks.scenes import clip_halfspace
 
@@ -149,24 +148,8 @@ def reference_ff_batched(p: np.ndarray, n: np.ndarray, emitter: np.ndarray, tris
         bad = ~shapely.is_valid(q)
         q[bad] = shapely.buffer(q[bad], 0)
         shadows = list(q[shapely.area(q) > 0])
-    if shadows:
-        rad = float(np.max(np.linalg.norm(em - c, axis=1)))
-        for g in (2.0**-42 * rad, 2.0**-38 * rad):
-            try:
-                region = shapely.difference(region, shapely.union_all(shadows, grid_size=g), grid_size=g)
-                break
-            except shapely.errors.GEOSException:
-                continue
-        else:
-            raise AssertionError("reference_ff_batched: the snap-rounded overlay failed")
-    total = 0.0
-    for g in getattr(region, "geoms", [region]):
-        if g.geom_type != "Polygon" or g.area == 0:
-            continue
-        g = orient(g, 1.0)
-        for ring in (g.exterior, *g.interiors):
-            total += tc._lambert(p, n, [e0 + xy[0] * u + xy[1] * v for xy in list(ring.coords)[:-1]])
-    return total
+    return tc._visible_lambert(p, n, em, region, shadows, lambda xy: e0 + xy[0] * u + xy[1] * v,
+                               "reference_ff_batched")
 
 
 def _near_segment(p: np.ndarray, a: np.ndarray, b: np.ndarray, tris: np.ndarray) -> list[np.ndarray]:

@@ -107,11 +107,18 @@ def reference_ff(p, n, emitter, occluders):
             q = q.buffer(0)
         if q.area > 0:
             shadows.append(q)
+    return _visible_lambert(p, n, em, region, shadows, to3)
+
+
+def _visible_lambert(p, n, em, region, shadows, to3, name="reference_ff"):
+    """Lambert's sum (`_lambert`) over `region` (a shapely polygon in the emitter plane's 2D frame
+    of `to3`) minus the union of the `shadows` polygons, by a snap-rounded overlay."""
     if shadows:
         # Snap-rounded overlay, a grid of 2^-42 of the emitter's radius (every coordinate within
         # 2^44 grid steps): the floating overlay's union of a mesh's projected faces lost 6.6e-6
         # of area on one draw (their exact union: Fractions). Snapping moves a vertex by under a
         # grid step; where GEOS still fails, a 16x coarser grid.
+        c = em.mean(axis=0)
         rad = float(np.max(np.linalg.norm(em - c, axis=1)))
         for g in (2.0**-42 * rad, 2.0**-38 * rad):
             try:
@@ -120,17 +127,14 @@ def reference_ff(p, n, emitter, occluders):
             except shapely.errors.GEOSException:
                 continue
         else:
-            raise AssertionError("reference_ff: the snap-rounded overlay failed")
+            raise AssertionError(f"{name}: the snap-rounded overlay failed")
     total = 0.0
-    geoms = getattr(region, "geoms", [region])
-    for g in geoms:
+    for g in getattr(region, "geoms", [region]):
         if g.geom_type != "Polygon" or g.area == 0:
             continue
         g = orient(g, 1.0)
-        rings = [g.exterior, *g.interiors]
-        for ring in rings:
-            pts = [to3(xy) for xy in list(ring.coords)[:-1]]
-            total += _lambert(p, n, pts)
+        for ring in (g.exterior, *g.interiors):
+            total += _lambert(p, n, [to3(xy) for xy in list(ring.coords)[:-1]])
     return total
 
 
