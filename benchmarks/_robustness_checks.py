@@ -106,32 +106,16 @@ def reference_ff_batched(p: np.ndarray, n: np.ndarray, emitter: np.ndarray, tris
     than one by one: the same polygons up to the rounding of the projection's dot products, then
     the same snap-rounded overlay and Lambert's sum."""
     import shapely
-    from shapely.geometry import Polygon
 
-    from benchmarks.scenes import clip_halfspace
 
     tc, _, _ = refs()
     p = np.asarray(p, np.float64)
     n = np.asarray(n, np.float64)
     em = np.asarray(emitter, np.float64)
-    ne = tc._newell(em)
-    ne = ne / np.linalg.norm(ne)
-    e0 = em[0]
-    hp = np.dot(ne, p - e0)
-    if hp <= 0:
+    fr = tc.emitter_frame(p, n, em)
+    if fr is None:
         return 0.0
-    u = em[1] - em[0]
-    u /= np.linalg.norm(u)
-    v = np.cross(ne, u)
-    eh = [np.asarray(x) for x in clip_halfspace(list(em), p, n)]
-    if len(eh) < 3:
-        return 0.0
-    region = Polygon([((x - e0) @ u, (x - e0) @ v) for x in eh])
-    if region.area == 0:
-        return 0.0
-    c = em.mean(axis=0)
-    big = 2.0 * np.max(np.linalg.norm(em - c, axis=1))
-    corners = [c + sx * big * u + sy * big * v for sx, sy in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+    ne, e0, hp, u, v, corners = fr.ne, fr.e0, fr.hp, fr.u, fr.v, fr.corners
     poly, cnt = _clip_many(np.asarray(tris, np.float64).reshape(-1, 3, 3), np.full(len(tris), 3), e0, ne)
     for i in range(4):
         # Clipped to fewer than three vertices by one of these planes: dropped, as by `reference_ff`.
@@ -148,8 +132,7 @@ def reference_ff_batched(p: np.ndarray, n: np.ndarray, emitter: np.ndarray, tris
         bad = ~shapely.is_valid(q)
         q[bad] = shapely.buffer(q[bad], 0)
         shadows = list(q[shapely.area(q) > 0])
-    return tc._visible_lambert(p, n, em, region, shadows, lambda xy: e0 + xy[0] * u + xy[1] * v,
-                               "reference_ff_batched")
+    return tc._visible_lambert(p, n, em, fr.region, shadows, fr.to3, "reference_ff_batched")
 
 
 def _near_segment(p: np.ndarray, a: np.ndarray, b: np.ndarray, tris: np.ndarray) -> list[np.ndarray]:

@@ -9,6 +9,7 @@ emitter plane with `shapely`, and Lambert's contour sum written out here.
 from __future__ import annotations
 
 import math
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -55,38 +56,61 @@ def _lambert(p, n, ring3d):
     return total / (2 * math.pi)
 
 
+class EmitterFrame(NamedTuple):
+    """The polygon-boolean references' frame of the emitter plane: its unit normal `ne` (Newell),
+    origin `e0` (the first vertex), the receiver's height `hp` above it, in-plane axes `u`, `v`,
+    `region` (the emitter clipped to the receiver's upper half-space, a shapely polygon in (u, v))
+    and `corners`, a square twice the emitter's radius about its centre (the pyramid from p over it
+    holds the emitter: projections stay finite, and small beside the overlay grid's range)."""
+
+    ne: np.ndarray
+    e0: np.ndarray
+    hp: float
+    u: np.ndarray
+    v: np.ndarray
+    region: Any
+    corners: list
+
+    def to2(self, x):
+        return ((x - self.e0) @ self.u, (x - self.e0) @ self.v)
+
+    def to3(self, xy):
+        return self.e0 + xy[0] * self.u + xy[1] * self.v
+
+
+def emitter_frame(p, n, em):
+    """`EmitterFrame` of the emitter `em (k, 3)` seen from `p` with normal `n` (float64), or None
+    where nothing of it is visible (p on or behind its plane, or it lies below p's horizon)."""
+    ne = _newell(em)
+    ne = ne / np.linalg.norm(ne)
+    e0 = em[0]
+    hp = float(np.dot(ne, p - e0))
+    if hp <= 0:
+        return None
+    u = em[1] - em[0]
+    u /= np.linalg.norm(u)
+    v = np.cross(ne, u)
+    eh = [np.asarray(x) for x in clip_halfspace(list(em), p, n)]
+    if len(eh) < 3:
+        return None
+    region = Polygon([((x - e0) @ u, (x - e0) @ v) for x in eh])
+    if region.area == 0:
+        return None
+    c = em.mean(axis=0)
+    big = 2.0 * np.max(np.linalg.norm(em - c, axis=1))
+    corners = [c + sx * big * u + sy * big * v for sx, sy in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+    return EmitterFrame(ne, e0, hp, u, v, region, corners)
+
+
 def reference_ff(p, n, emitter, occluders):
     """Form factor of the visible part of `emitter` (float64, exact booleans)."""
     p = np.asarray(p, np.float64)
     n = np.asarray(n, np.float64)
     em = np.asarray(emitter, np.float64)
-    ne = _newell(em)
-    ne = ne / np.linalg.norm(ne)
-    e0 = em[0]
-    hp = np.dot(ne, p - e0)
-    if hp <= 0:
+    fr = emitter_frame(p, n, em)
+    if fr is None:
         return 0.0
-    u = em[1] - em[0]
-    u /= np.linalg.norm(u)
-    v = np.cross(ne, u)
-
-    def to2(x):
-        return ((x - e0) @ u, (x - e0) @ v)
-
-    def to3(xy):
-        return e0 + xy[0] * u + xy[1] * v
-
-    eh = [np.asarray(x) for x in clip_halfspace(list(em), p, n)]
-    if len(eh) < 3:
-        return 0.0
-    region = Polygon([to2(x) for x in eh])
-    if region.area == 0:
-        return 0.0
-    # Pyramid over a square around the emitter (twice its radius, so that it holds the emitter):
-    # projections stay finite, and small beside the overlay grid's range below.
-    c = em.mean(axis=0)
-    big = 2.0 * np.max(np.linalg.norm(em - c, axis=1))
-    corners = [c + sx * big * u + sy * big * v for sx, sy in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+    ne, e0, hp, corners, to2 = fr.ne, fr.e0, fr.hp, fr.corners, fr.to2
     shadows = []
     for occ in occluders:
         poly = [np.asarray(x) for x in clip_halfspace(list(np.asarray(occ, np.float64)), e0, ne)]
@@ -107,7 +131,7 @@ def reference_ff(p, n, emitter, occluders):
             q = q.buffer(0)
         if q.area > 0:
             shadows.append(q)
-    return _visible_lambert(p, n, em, region, shadows, to3)
+    return _visible_lambert(p, n, em, fr.region, shadows, fr.to3)
 
 
 def _visible_lambert(p, n, em, region, shadows, to3, name="reference_ff"):
