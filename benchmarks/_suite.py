@@ -154,8 +154,13 @@ def _json_default(x: Any) -> Any:
 
 
 def write_json(path: Path, data: Any) -> None:
-    """`data` as indented JSON at `path` (atomically; NumPy scalars and arrays as lists)."""
+    """`data` as indented JSON at `path` (atomically; NumPy scalars and arrays as lists). A record's
+    `meta` (`meta()`, taken at its start) gets `load_average_end`: the load at its end, so that a
+    record made while the machine filled up says so."""
     from jaxshadow._core.files import atomic_write
+
+    if isinstance(data, dict) and isinstance(data.get("meta"), dict) and "load_average" in data["meta"]:
+        data = {**data, "meta": {**data["meta"], "load_average_end": list(os.getloadavg())}}
 
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_write(path) as fh:
