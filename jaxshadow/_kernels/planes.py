@@ -304,6 +304,13 @@ def crossing_point(p, c, ne, hp):
 NEAR_PLANES = 1.0 / 1024  # the engine's kNearPlanes (`csrc/engine/polygon_types.h`)
 
 
+def near_planes(c, m):
+    """Whether the planes with normals `c`, `m` `(3,)` are within `NEAR_PLANES` of each other (the
+    sine of their angle; no gradient)."""
+    x = jnp.cross(c, m)
+    return jax.lax.stop_gradient(jnp.sum(x * x) < NEAR_PLANES**2 * jnp.sum(c * c) * jnp.sum(m * m))
+
+
 def light_edge_crossing(p, va, vb, c, m, ne, hp):
     r"""Where the plane through p `(3,)` with normal `m` crosses the plane through p and the light
     edge `va -> vb` (normal `c`), met with the emitter plane (`crossing_point`'s `ne`, `hp`): `(3,)`.
@@ -316,7 +323,7 @@ def light_edge_crossing(p, va, vb, c, m, ne, hp):
     `tests/test_exact_reference.py`). Others: `crossing_point` of the two planes' common line, as
     the engine (`light_edge_crossing` in `polygon_types.h`)."""
     x = jnp.cross(c, m)
-    near = jax.lax.stop_gradient(jnp.sum(x * x) < NEAR_PLANES**2 * jnp.sum(c * c) * jnp.sum(m * m))
+    near = near_planes(c, m)
     da, db = jnp.dot(va - p, m), jnp.dot(vb - p, m)
     apart = da != db
     t = jnp.where(apart, jnp.clip(da / jnp.where(apart, da - db, 1.0), 0.0, 1.0), 0.0)
