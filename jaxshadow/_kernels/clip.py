@@ -101,6 +101,7 @@ from .planes import (
     _occluder_sides,
     crossing_point,
     light_edge_crossing,
+    near_planes,
     plane_condition,
     pow2_scale,
     project,
@@ -189,7 +190,7 @@ def _cone_crossing(p, verts, cone, i, m, ne, hp):
     light edge i's (`light_edge_crossing`), or the horizon's (the planes' common line)."""
     k = verts.shape[0]
     on_edge = light_edge_crossing(p, verts[jnp.minimum(i, k - 1)], verts[(i + 1) % k], cone[i], m, ne, hp)
-    return jnp.where(i < k, on_edge, crossing_point(p, jnp.cross(cone[i], m), ne, hp))
+    return jnp.where((i < k) & near_planes(cone[i], m), on_edge, crossing_point(p, jnp.cross(cone[i], m), ne, hp))
 
 
 def _candidates(p: Array, n: Array, verts: Array, occluders: Array) -> _Candidates:
