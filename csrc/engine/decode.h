@@ -72,6 +72,8 @@ struct Decoder {
           if (int(aa) + int(ab) + int(ba) + int(bb) == 1) return crossing_point(p, (aa || ab ? a1 : b1) - p, ne, hp);
         }
         V3<T> n1 = plane(c.v[1], c.v[2], c.v[3]), n2 = plane(c.v[4], c.v[5], c.v[6]);
+        // A light edge's plane through p (the first of the two: code_planes sorts them) and another.
+        if (c.v[1] == kThrough && c.v[3] < call.L.K) return light_edge_crossing(p, V(c.v[2]), V(c.v[3]), n1, n2, ne, hp);
         return crossing_point(p, cross(n1, n2), ne, hp);
       }
       default:

@@ -196,6 +196,13 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
     cone[k] = planes[k];
     cnorm[k] = norm(cone[k]);
   }
+  // Where the plane through p with normal `own` crosses E_h's plane k (a light edge's:
+  // light_edge_crossing; the horizon's: the line common to the two planes).
+  auto cone_crossing = [&](int k, V3<T> own) -> V3<T> {
+    const PlaneRef& r = w.prefs[size_t(k)];
+    if (r.t == kThrough) return light_edge_crossing(p, call.L.v(r.a), call.L.v(r.b), cone[k], own, ne, hp);
+    return crossing_point(p, cross(cone[k], own), ne, hp);
+  };
   const T nenorm = norm(ne);
 
   // A region none of whose edges crosses E_h either misses E_h or contains all of it (both are
@@ -386,14 +393,14 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
       V3<T> a2, b2;
       Code c2a, c2b;
       if (t0 > 0) {
-        a2 = crossing_point(p, cross(cone[i0], own), ne, hp);
+        a2 = cone_crossing(i0, own);
         c2a = code_planes(w.prefs[i0], oref);
       } else {
         a2 = project(p, a3, ne, hp);
         c2a = ca3;
       }
       if (t1 < 1) {
-        b2 = crossing_point(p, cross(cone[i1], own), ne, hp);
+        b2 = cone_crossing(i1, own);
         c2b = code_planes(w.prefs[i1], oref);
       } else {
         b2 = project(p, b3, ne, hp);
@@ -568,14 +575,14 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
       Edge<T> e;
       // Q's boundary runs a -> b counter-clockwise: R's edge is b -> a.
       if (t1 < 1) {
-        e.a = crossing_point(p, cross(cone[i1], own), ne, hp);
+        e.a = cone_crossing(i1, own);
         e.ca = code_planes(w.prefs[i1], oref);
       } else {
         e.a = project(p, b3, ne, hp);
         e.ca = code_point(kProjected, sil[k].rb);
       }
       if (t0 > 0) {
-        e.b = crossing_point(p, cross(cone[i0], own), ne, hp);
+        e.b = cone_crossing(i0, own);
         e.cb = code_planes(w.prefs[i0], oref);
       } else {
         e.b = project(p, a3, ne, hp);

@@ -196,6 +196,23 @@ inline V3<T> crossing_point(V3<T> p, V3<T> c, V3<T> ne, T hp) {
   return p + (ok ? hp / den : T(0)) * c;
 }
 
+// Where the plane through p with normal m crosses light edge va vb's plane through p (normal c),
+// met with the emitter plane. Planes within kNearPlanes of each other (sine of their angle: an
+// occluder edge grazing the light edge's shadow line) are met along the edge: that point lies on
+// the edge's line to rounding however nearly the planes coincide, where the cross product of
+// their normals is off by eps over their angle (4e-6 U 1e-13 m off coincidence, light edges off
+// the axes; `tests/test_exact_reference.py`). t is clamped to the edge, which a crossing of E_h's
+// boundary leaves by rounding only. Others: the line common to the two planes.
+constexpr double kNearPlanes = 1.0 / 1024;
+template <class T>
+inline V3<T> light_edge_crossing(V3<T> p, V3<T> va, V3<T> vb, V3<T> c, V3<T> m, V3<T> ne, T hp) {
+  const V3<T> x = cross(c, m);
+  if (!(dot(x, x) < T(kNearPlanes * kNearPlanes) * dot(c, c) * dot(m, m))) return crossing_point(p, x, ne, hp);
+  const T da = dot(va - p, m), db = dot(vb - p, m);
+  const T t = da != db ? std::min(std::max(da / (da - db), T(0)), T(1)) : T(0);
+  return va + t * (vb - va);
+}
+
 template <class T>
 struct PolyCall {
   Light<T> L;

@@ -100,6 +100,8 @@ from .planes import (
     _occluder_regions,
     _occluder_sides,
     crossing_point,
+    light_edge_crossing,
+    near_planes,
     plane_condition,
     pow2_scale,
     project,
@@ -134,6 +136,7 @@ class _Candidates(NamedTuple):
     end_pt: Array  # (C, 3)
     start_ok: Array  # (C,) the start is that point's projection (not clipped by the pyramid)
     end_ok: Array  # (C,)
+    light: Array  # (K, 3) the emitter's vertices (E_h's plane i < K runs through light edge i)
 
 
 def _emitter_frame(p: Array, n: Array, verts: Array) -> tuple[Array, Array, Array, Array]:
@@ -182,6 +185,14 @@ def _hugs_horizon(p: Array, n: Array, occluders: Array) -> Array:
     return hmax <= HORIZON_BAND * jnp.where(nn > 0, d, 0.0)
 
 
+def _cone_crossing(p, verts, cone, i, m, ne, hp):
+    """Where the plane through p with normal `m` crosses E_h's plane `i` of `cone (K + 1, 3)`:
+    light edge i's (`light_edge_crossing`), or the horizon's (the planes' common line)."""
+    k = verts.shape[0]
+    on_edge = light_edge_crossing(p, verts[jnp.minimum(i, k - 1)], verts[(i + 1) % k], cone[i], m, ne, hp)
+    return jnp.where((i < k) & near_planes(cone[i], m), on_edge, crossing_point(p, jnp.cross(cone[i], m), ne, hp))
+
+
 def _candidates(p: Array, n: Array, verts: Array, occluders: Array) -> _Candidates:
     """E_h's edges and the effective blockers' edges clipped to the pyramid (p, E_h), projected
     onto the emitter plane and reversed (R lies outside each Q_j), with every region's planes
@@ -205,12 +216,8 @@ def _candidates(p: Array, n: Array, verts: Array, occluders: Array) -> _Candidat
         ok = ok & act
         # A clipped end is the crossing of this edge's plane with an E_h plane (E_h's plane ids
         # come first in the canonical order, see `_decode`).
-        a2 = jnp.where(
-            t0 > 0, crossing_point(p, jnp.cross(cone[i0], n_q), ne, hp), project(p, a, ne, hp)
-        )
-        b2 = jnp.where(
-            t1 < 1, crossing_point(p, jnp.cross(cone[i1], n_q), ne, hp), project(p, b, ne, hp)
-        )
+        a2 = jnp.where(t0 > 0, _cone_crossing(p, verts, cone, i0, n_q, ne, hp), project(p, a, ne, hp))
+        b2 = jnp.where(t1 < 1, _cone_crossing(p, verts, cone, i1, n_q, ne, hp), project(p, b, ne, hp))
         return jnp.where(ok, a2, e0), jnp.where(ok, b2, e0), ok & (t0 <= 0), ok & (t1 >= 1)
 
     a2, b2, a_kept, b_kept = jax.vmap(jax.vmap(clip_one, in_axes=(0, 0, 0, None)))(o_s, o_e, o_normals, active)
@@ -264,6 +271,7 @@ def _candidates(p: Array, n: Array, verts: Array, occluders: Array) -> _Candidat
         end_pt=jax.lax.stop_gradient(jnp.concatenate([no_pt, ev], axis=0)),
         start_ok=jnp.concatenate([no_ok, sv_ok]),
         end_ok=jnp.concatenate([no_ok, ev_ok]),
+        light=verts,
     )
 
 
@@ -423,8 +431,9 @@ def _decode(p: Array, c: _Candidates, codes: Int[Array, " r"]) -> Float[Array, "
     is_tab = codes < n_tab
     k = jnp.where(is_tab, 0, codes - n_tab)
     i, j = k // n_pl, k % n_pl
-    cr = jnp.cross(planes[i], planes[j])
-    y = jax.vmap(crossing_point, in_axes=(None, 0, None, None))(p, cr, c.ne, c.hp)
+    # Region 0's planes come first: ids below K are the light edges' (`_cone_crossing`).
+    lo, hi = jnp.minimum(i, j), jnp.maximum(i, j)
+    y = jax.vmap(lambda a, b: _cone_crossing(p, c.light, planes, a, planes[b], c.ne, c.hp))(lo, hi)
     table = jnp.concatenate([c.starts, c.ends], axis=0)
     return jnp.where(is_tab[:, None], table[jnp.where(is_tab, codes, 0)], y)
 

@@ -301,6 +301,36 @@ def crossing_point(p, c, ne, hp):
     return p + c * jnp.where(ok, hp / jnp.where(ok, den, 1.0), 0.0)
 
 
+NEAR_PLANES = 1.0 / 1024  # the engine's kNearPlanes (`csrc/engine/polygon_types.h`)
+
+
+def near_planes(c, m):
+    """Whether the planes with normals `c`, `m` `(3,)` are within `NEAR_PLANES` of each other (the
+    sine of their angle; no gradient)."""
+    x = jnp.cross(c, m)
+    return jax.lax.stop_gradient(jnp.sum(x * x) < NEAR_PLANES**2 * jnp.sum(c * c) * jnp.sum(m * m))
+
+
+def light_edge_crossing(p, va, vb, c, m, ne, hp):
+    r"""Where the plane through p `(3,)` with normal `m` crosses the plane through p and the light
+    edge `va -> vb` (normal `c`), met with the emitter plane (`crossing_point`'s `ne`, `hp`): `(3,)`.
+
+    Planes within `NEAR_PLANES` of each other (the sine of their angle: an occluder edge grazing
+    the light edge's shadow line) are met along the edge, $v_a + t (v_b - v_a)$ with
+    $t = m\cdot(v_a - p) / m\cdot(v_a - v_b)$ clamped to [0, 1]: that point lies on the edge's
+    line to rounding however nearly the planes coincide, where the cross product of their normals
+    is off by $\epsilon$ over their angle (4e-6 of the value 1e-13 m off coincidence,
+    `tests/test_exact_reference.py`). Others: `crossing_point` of the two planes' common line, as
+    the engine (`light_edge_crossing` in `polygon_types.h`)."""
+    x = jnp.cross(c, m)
+    near = near_planes(c, m)
+    da, db = jnp.dot(va - p, m), jnp.dot(vb - p, m)
+    apart = da != db
+    t = jnp.where(apart, jnp.clip(da / jnp.where(apart, da - db, 1.0), 0.0, 1.0), 0.0)
+    far = crossing_point(p, jnp.where(near, ne, x), ne, hp)
+    return jnp.where(near, va + t * (vb - va), far)
+
+
 def _interval_on_region(p, a, d, n_own, sigma, normals, valid, tol, own_cond=None, own_ends=None, conds=None,
                         ends=None, at=None):
     """Where the `sigma`-side of the edge `a + t d` is inside one convex region (planes through p).

@@ -45,6 +45,8 @@ from .._core.geometry import newell_normal
 from .._core.mesh import OccluderTopology
 from .._kernels.planes import crossing_point as _crossing_point
 from .._kernels.planes import edge_planes as edge_planes
+from .._kernels.planes import light_edge_crossing as _light_edge_crossing
+from .._kernels.planes import near_planes as _near_planes
 from .._kernels.planes import pow2_scale as _pow2_scale
 from .._kernels.planes import project as _project
 from .._kernels.planes import rescale_rows as _rescale_rows
@@ -322,7 +324,8 @@ def decode_endpoints(
     horizon crossing (as `horizon_clip_edges`), 2 a vertex projected from `p` onto the light's
     plane (`_clip._project`), 3 an occluder edge's crossing with that plane, projected, 4 the line
     common to two planes through `p` met with the light's plane (`_clip._crossing_point`; for two
-    planes through occluder edges with one common end, the line from `p` through that end); a
+    planes through occluder edges with one common end, the line from `p` through that end; for a
+    light edge's plane and another, where that plane meets the edge); a
     plane is `(0, a, b)` through `V[a]`, `V[b]`, `(1, ., .)` the horizon, `(2, f, .)` face `f`'s
     cut $N_L = h_p\,\mathrm{sgn}(d_o) N_o + |d_o| N_e$ (`_clip._occluder_regions`). Unused slots
     (kind -1) give the light's first vertex. Differentiable in `p`, `n`, `verts`, `V` (the codes
@@ -374,6 +377,11 @@ def decode_endpoints(
     common = (codes[:, 1] == 0) & (codes[:, 4] == 0) & (same[0] + same[1] + same[2] + same[3] == 1)
     line = jnp.where(common[:, None], jnp.where((same[0] + same[1] > 0)[:, None], a1, b1) - p[None, :], jnp.cross(n1, n2))
     y = jax.vmap(_crossing_point, in_axes=(None, 0, None, None))(p, line, ne, hp)
+    # A light edge's plane through p (the first plane: the engine sorts them) and another nearly
+    # coincident with it cross on the edge (`light_edge_crossing`).
+    light = (codes[:, 1] == 0) & (codes[:, 3] < k) & jax.vmap(_near_planes)(n1, n2)
+    on_edge = jax.vmap(_light_edge_crossing, in_axes=(None, 0, 0, 0, 0, None, None))(p, a1, b1, n1, n2, ne, hp)
+    y = jnp.where(light[:, None], on_edge, y)
     out = jnp.where((kind == K_PLANES)[:, None], y, x)
     return jnp.where((kind == K_UNUSED)[:, None], e0[None, :], out)
 
