@@ -56,6 +56,9 @@ a time (`split_batch`, about `SPLIT_PAIRS` (edge, region plane) pairs), a piece'
 is an interval-stabbing count beyond `STAB_DENSE` regions (`_stabbed`, $O(M \log M)$ per
 edge instead of pieces x regions), and `visible_edge_sums` adds a contour's sums batch by batch without forming the
 soup (reverse mode recomputes each batch), so a receiver's memory does not grow with $M^2$.
+A segment light's $2M + 1$ pieces are classified by the same interval-stabbing counts
+(`visible_pieces`) and integrated `SEGMENT_PIECES` at a time (`visible_segment_sum`), $O(M)$
+per receiver.
 
 **Tie-break (coincident edges).** Two candidate pieces on the same line (normals of their planes
 through $p$ parallel within `64 eps`) that both bound $R$ on the same side describe the same
@@ -660,14 +663,18 @@ def blocked_intervals(
     return jax.vmap(one)(planes, no, occluders[:, 0], s, active)
 
 
-def visible_segments(
+def visible_pieces(
     p: Float[Array, "3"],
     a: Float[Array, "3"],
     b: Float[Array, "3"],
     occluders: Float[Array, "m ko 3"],
-) -> tuple[Float[Array, "s 3"], Float[Array, "s 3"]]:
-    """Visible sub-segments of the segment light `a -> b` seen from `p`: `(2M + 1)` pieces,
-    dropped ones zero-length at `a`. Ordered along the segment."""
+) -> tuple[Float[Array, " s"], Float[Array, " s"], Bool[Array, " s"]]:
+    """The segment light `a -> b` seen from `p` cut at every blocked interval's ends
+    (`blocked_intervals`, clipped to [0, 1]): `(t0, t1, keep)`, each `(2M + 1,)`, the pieces
+    `[t0, t1]` in order along the segment and whether each is visible (non-empty, its midpoint
+    in no open blocked interval). A piece's membership is an interval-stabbing count beyond
+    `STAB_DENSE` occluders (`_stabbed`: the same comparisons, `O(M log M)` time and `O(M)`
+    memory instead of a `(2M + 1) x M` matrix); no gradient flows through `keep`."""
     lo, hi = blocked_intervals(p, a, b, occluders)
     ts = jnp.sort(
         jnp.concatenate(
@@ -681,13 +688,77 @@ def visible_segments(
     )
     t0 = ts[:-1]
     t1 = ts[1:]
-    tm = 0.5 * (t0 + t1)
-    hidden = jnp.any((lo[None, :] < tm[:, None]) & (tm[:, None] < hi[None, :]), axis=1)
-    keep = ~hidden & (t1 > t0)
+    lo, hi, tm = jax.lax.stop_gradient((lo, hi, 0.5 * (t0 + t1)))
+    hidden = _stabbed(lo, hi, jnp.ones(lo.shape, bool), tm)
+    return t0, t1, ~hidden & (t1 > t0)
+
+
+def _piece_ends(a: Array, b: Array, t0: Array, t1: Array, keep: Array) -> tuple[Array, Array]:
+    """The points `a + t (b - a)` of pieces `[t0, t1]`, zero-length at `a` where not `keep`."""
     d = b - a
     starts = jnp.where(keep[:, None], a[None, :] + t0[:, None] * d[None, :], a[None, :])
     ends = jnp.where(keep[:, None], a[None, :] + t1[:, None] * d[None, :], a[None, :])
     return starts, ends
+
+
+def visible_segments(
+    p: Float[Array, "3"],
+    a: Float[Array, "3"],
+    b: Float[Array, "3"],
+    occluders: Float[Array, "m ko 3"],
+) -> tuple[Float[Array, "s 3"], Float[Array, "s 3"]]:
+    """Visible sub-segments of the segment light `a -> b` seen from `p`: `(2M + 1)` pieces,
+    dropped ones zero-length at `a`. Ordered along the segment (`visible_pieces`)."""
+    return _piece_ends(a, b, *visible_pieces(p, a, b, occluders))
+
+
+# Pieces of a segment light that `visible_segment_sum` integrates at once per receiver: a
+# piece's gradient program holds about 1 KiB (Lambert) to 2 KiB (Phong's Chebyshev terms) of
+# intermediates (XLA's temp memory, 16 receivers x 1281 pieces), so a batch holds 1-2 MiB per
+# receiver; up to 511 occluders every piece fits in one batch.
+SEGMENT_PIECES = 1 << 10
+
+
+def visible_segment_sum(
+    p: Float[Array, "3"],
+    a: Float[Array, "3"],
+    b: Float[Array, "3"],
+    occluders: Float[Array, "m ko 3"],
+    piece: Callable[[Array, Array], Any],
+    pieces: int | None = None,
+) -> Any:
+    r"""`piece(start, end)` (one sub-segment `(3,), (3,)` to a pytree of arrays) summed over the
+    visible sub-segments of `visible_segments`, `pieces` (static; default `SEGMENT_PIECES`) of
+    them at a time: a `lax.scan` whose steps are recomputed in reverse mode
+    (`jax.checkpoint`), so a receiver's memory is one batch's intermediates and its `O(M)`
+    piece parameters however many occluders there are. Dropped pieces (zero-length at `a`)
+    are evaluated as in `visible_segments`, so the sum is `sum(vmap(piece)(*visible_segments(...)))`
+    up to the order of the additions (the same when one batch holds every piece)."""
+    t0, t1, keep = visible_pieces(p, a, b, occluders)
+    n_pieces = t0.shape[0]
+    # As few batches as `pieces` allows, of equal size (the last one padded by less than one
+    # piece per batch).
+    n_batches = -(-n_pieces // max(1, pieces or SEGMENT_PIECES))
+    batch = -(-n_pieces // n_batches)
+
+    def part(u0, u1, k, real):
+        vals = jax.vmap(piece)(*_piece_ends(a, b, u0, u1, k))
+        if real is None:
+            return jax.tree_util.tree_map(lambda v: jnp.sum(v, axis=0), vals)
+        return jax.tree_util.tree_map(
+            lambda v: jnp.sum(jnp.where(real.reshape(real.shape + (1,) * (v.ndim - 1)), v, 0), axis=0), vals
+        )
+
+    if batch >= n_pieces:
+        return part(t0, t1, keep, None)
+
+    def step(total, xs):
+        idx, real = xs
+        return jax.tree_util.tree_map(jnp.add, total, part(t0[idx], t1[idx], keep[idx] & real, real)), None
+
+    zero = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(piece, a, b))
+    total, _ = jax.lax.scan(jax.checkpoint(step), zero, _batches(n_pieces, batch))
+    return total
 
 
 def visible_linear_kernel(
