@@ -23,8 +23,8 @@ import numpy as np
 import pytest
 
 import jaxshadow as js
+from jaxshadow._kernels import clip
 from jaxshadow._kernels.clip import (
-    STAB_DENSE,
     _stabbed,
     blocked_intervals,
     visible_edge_sums,
@@ -307,6 +307,32 @@ def test_segment_batches_match_one_sum(name, dtype):
         np.testing.assert_allclose(x, y, rtol=0, atol=tol * float(jnp.max(jnp.abs(y))))
 
 
+def test_device_segment_budgets_agree(monkeypatch):
+    """Lambert over a segment light from the device engine (values and gradients with respect to
+    the light's ends and the occluders, float64): the dense comparisons and one batch of pieces
+    that the default budgets choose for 6 occluders, against sorted interval counts and batches
+    of 8 pieces (`SEGMENT_DENSE` 0, `SEGMENT_PIECES` 48 shared by the 6 receivers: 13 pieces in
+    2 batches), within 1e-14 of the largest, none NaN."""
+    a, b, occ, p, n, _ = _segment_scene(np.float64)
+
+    def e(a, b, o):
+        vals = js.irradiance(js.Scene([js.LinearLight(a, b, 1.0)], occluders=o), p, n, shadows=DEVICE)[:, 0]
+        return jnp.sum(vals * jnp.arange(1.0, 7.0)), vals
+
+    def run():
+        return jax.jit(jax.value_and_grad(e, argnums=(0, 1, 2), has_aux=True))(a, b, occ)
+
+    (_, want), gw = run()
+    monkeypatch.setattr(clip, "SEGMENT_DENSE", 0)
+    monkeypatch.setattr(clip, "SEGMENT_PIECES", 48)
+    (_, got), g = run()
+    assert np.all(want[:5] > 0)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-14 * float(jnp.max(want)))
+    for x, y in zip(g, gw, strict=True):
+        assert np.all(np.isfinite(x))
+        np.testing.assert_allclose(x, y, rtol=0, atol=1e-14 * float(jnp.max(jnp.abs(y))))
+
+
 def _crowd(m: int) -> np.ndarray:
     """`m` small random triangles between the segment light and the floor, some crossing the
     light's line, two sharing a vertex."""
@@ -317,12 +343,23 @@ def _crowd(m: int) -> np.ndarray:
     return tri
 
 
+def test_segment_budgets_choose_the_forms():
+    """The device engine's choice for a segment light (static, from the shapes): a chunk of 16
+    receivers compares every piece with every blocked interval up to 127 occluders and counts
+    sorted intervals beyond (`SEGMENT_DENSE`), and integrates every piece in one batch up to
+    511 occluders (`SEGMENT_PIECES`)."""
+    assert compiled.device_chunk(127, 3, 0) == compiled.device_chunk(2048, 3, 0) == 16
+    assert 16 * (2 * 127 + 1) * 127 <= clip.SEGMENT_DENSE < 16 * (2 * 128 + 1) * 128
+    assert 2 * 511 + 1 <= clip.SEGMENT_PIECES // 16 < 2 * 512 + 1
+
+
 @pytest.mark.parametrize("dtype", [np.float32, np.float64], ids=["f32", "f64"])
-def test_segment_pieces_match_every_comparison(dtype):
-    """`visible_pieces` beyond `STAB_DENSE` occluders (sorted interval counts): the same pieces
-    as each piece's midpoint tested against every blocked interval, `(2M + 1) x M`
+def test_segment_pieces_match_every_comparison(dtype, monkeypatch):
+    """`visible_pieces` beyond its `SEGMENT_DENSE` budget (set to 0: sorted interval counts): the
+    same pieces as each piece's midpoint tested against every blocked interval, `(2M + 1) x M`
     comparisons, bit for bit."""
-    occ = jnp.asarray(_crowd(STAB_DENSE + 40), dtype)
+    monkeypatch.setattr(clip, "SEGMENT_DENSE", 0)
+    occ = jnp.asarray(_crowd(48), dtype)
     rng = np.random.default_rng(8)
     pts = jnp.asarray(np.c_[rng.uniform(-1.5, 1.5, (12, 2)), np.zeros(12)], dtype)
     a, b = jnp.asarray(SEG_A, dtype), jnp.asarray(SEG_B, dtype)
@@ -340,19 +377,23 @@ def test_segment_pieces_match_every_comparison(dtype):
     assert np.any(kept > 3) and np.all(kept < 2 * occ.shape[0] + 1), "many visible and hidden pieces"
 
 
-def test_segment_many_occluders_against_quadrature():
-    """Lambert over a segment light behind `STAB_DENSE + 40` occluders (sorted interval counts)
-    from `visible_segment_sum`, at most 100 pieces at a time (401 pieces: 5 batches of 81, the
-    last one padded): within 1e-9 of Gauss-Legendre quadrature on the visible intervals found by a NumPy
-    ray test (2001 samples: the narrowest interval here is 1.2e-3 of the segment)."""
-    tri = _crowd(STAB_DENSE + 40)
-    pts = np.array([[0.1, 0.05, 0.0], [-0.4, 0.3, 0.0], [0.5, -0.2, 0.0]])
+@pytest.mark.parametrize("budget", [None, 0], ids=["dense", "sorted"])
+def test_segment_many_occluders_against_quadrature(budget, monkeypatch):
+    """Lambert over a segment light behind 48 occluders from `visible_segment_sum`, at most 20
+    pieces at a time (97 pieces: 5 batches of 20, the last one padded), each piece's membership
+    from every comparison (`SEGMENT_DENSE` as set) or from sorted interval counts (budget 0):
+    within 1e-9 of Gauss-Legendre quadrature on the visible intervals found by a NumPy ray test
+    (2001 samples: finds every interval wider than 5e-4 of the segment)."""
+    if budget is not None:
+        monkeypatch.setattr(clip, "SEGMENT_DENSE", budget)
+    tri = _crowd(48)
+    pts = np.array([[-0.4, 0.0, 0.0], [0.2, 0.3, 0.0], [0.4, -0.3, 0.0]])
     nrm = np.tile([0.0, 0.0, 1.0], (3, 1))
     light = js.LinearLight(SEG_A, SEG_B, 1.0)
     a, b = jnp.asarray(SEG_A), jnp.asarray(SEG_B)
 
     def one(q, m):
-        return visible_segment_sum(q, a, b, jnp.asarray(tri), lambda u, v: Lambert().segment(q, m, None, u, v, light), 100)
+        return visible_segment_sum(q, a, b, jnp.asarray(tri), lambda u, v: Lambert().segment(q, m, None, u, v, light), 20)
 
     got = np.asarray(jax.jit(jax.vmap(one))(jnp.asarray(pts), jnp.asarray(nrm)))
     ref = np.array([reference_linear(q, m, SEG_A, SEG_B, 0, tri, samples=2001) for q, m in zip(pts, nrm, strict=True)])

@@ -151,7 +151,8 @@ class Both(AbstractIntegrand):
 
 def segment_visible(integ: Any, p: Float[Array, "3"], n: Float[Array, "3"], e: Float[Array, "3"] | None,
                     a: Float[Array, "3"], b: Float[Array, "3"], light: Any, occ: Float[Array, "m k 3"],
-                    pieces: int | None = None) -> Array:
+                    pieces: int | None = None, receivers: int = 1) -> Array:
     """The segment integrand summed over the visible pieces of `a -> b` (occluders `occ`), a batch
-    of `pieces` (static; default `_clip.SEGMENT_PIECES`) at a time (`visible_segment_sum`)."""
-    return visible_segment_sum(p, a, b, occ, lambda u, v: integ.segment(p, n, e, u, v, light), pieces)
+    of `pieces` at a time (`visible_segment_sum`; static, by default sized for `receivers`, the
+    receivers the caller evaluates at once)."""
+    return visible_segment_sum(p, a, b, occ, lambda u, v: integ.segment(p, n, e, u, v, light), pieces, receivers)
