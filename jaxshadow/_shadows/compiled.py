@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import jax
@@ -143,7 +144,9 @@ def _device_polygon(light: Any, integ: Any, p, n, e, faces) -> Any:
 
 def _device_segment(light: Any, integ: Any, p, n, e, faces) -> Any:
     a, b = light.start.astype(p.dtype), light.end.astype(p.dtype)
-    return jax.vmap(segment_visible, in_axes=(None, 0, 0, 0, None, None, None, None))(
+    # The chunk's receivers share the budgets of `visible_segment_sum` (static: `p`'s shape).
+    one = functools.partial(segment_visible, receivers=p.shape[0])
+    return jax.vmap(one, in_axes=(None, 0, 0, 0, None, None, None, None))(
         integ, p, n, e, a, b, segment_profile(light), faces)
 
 
@@ -163,7 +166,9 @@ def device_chunk(n_faces: int, ko: int, k: int) -> int:
     polygon lights of up to `k` vertices: a receiver's intermediates are one batch of its
     candidate edges split against every region (`_clip.visible_edge_sums`: about `SPLIT_PAIRS`
     (edge, region plane) pairs, ~100 bytes each; fewer when all its candidate edges fit in one
-    batch); about `DEVICE_PAIRS` pairs a chunk."""
+    batch); about `DEVICE_PAIRS` pairs a chunk. A segment light's receiver holds its `O(M)`
+    blocked intervals and one batch of its `2M + 1` pieces (`_clip.visible_segment_sum`, whose
+    budgets the chunk's receivers share)."""
     m = max(1, n_faces)
     n_planes = max(k, ko) + 1  # `_clip._region_planes`
     n_cand = k + 1 + m * (ko + 1)
@@ -177,10 +182,11 @@ DEVICE_PAIRS = 1 << 18
 
 def device_values(scene: Scene, integ: Any, points: Any, normals: Any, eyes: Any) -> Any:
     """`(N, 3)` with exact shadows from the device kernels: each receiver clipped against every
-    occluder (`_clip.visible_edge_sums`), no engine, traceable, chunked: receivers
-    `device_chunk` at a time, each a batch of its candidate edges at a time, so that memory
-    stays about `DEVICE_PAIRS` (edge, region plane) pairs however many occluders there are
-    (unit `normals`; `eyes` as for `traced_values`)."""
+    occluder (`_clip.visible_edge_sums`; segment lights `_clip.visible_segment_sum`), no
+    engine, traceable, chunked: receivers `device_chunk` at a time, each a batch of its
+    candidate edges (or of a segment's pieces) at a time, so that memory stays about
+    `DEVICE_PAIRS` (edge, region plane) pairs however many occluders there are (unit
+    `normals`; `eyes` as for `traced_values`)."""
     dt = points.dtype
     faces = occluders_of(scene).astype(dt)
 

@@ -17,7 +17,6 @@ from __future__ import annotations
 from typing import Any, ClassVar
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
@@ -26,7 +25,7 @@ from .._kernels.clip import (
     contour_form_factor_total,
     lit_form_factor,
     masked_contour_form_factor,
-    visible_segments,
+    visible_segment_sum,
 )
 from .._kernels.linear import linear_irradiance_kernel
 from .._kernels.point import directional_irradiance_kernel, point_irradiance_kernel
@@ -151,7 +150,9 @@ class Both(AbstractIntegrand):
 
 
 def segment_visible(integ: Any, p: Float[Array, "3"], n: Float[Array, "3"], e: Float[Array, "3"] | None,
-                    a: Float[Array, "3"], b: Float[Array, "3"], light: Any, occ: Float[Array, "m k 3"]) -> Array:
-    """The segment integrand summed over the visible pieces of `a -> b` (occluders `occ`)."""
-    sa, sb = visible_segments(p, a, b, occ)
-    return jnp.sum(jax.vmap(lambda u, v: integ.segment(p, n, e, u, v, light))(sa, sb), axis=0)
+                    a: Float[Array, "3"], b: Float[Array, "3"], light: Any, occ: Float[Array, "m k 3"],
+                    pieces: int | None = None, receivers: int = 1) -> Array:
+    """The segment integrand summed over the visible pieces of `a -> b` (occluders `occ`), a batch
+    of `pieces` at a time (`visible_segment_sum`; static, by default sized for `receivers`, the
+    receivers the caller evaluates at once)."""
+    return visible_segment_sum(p, a, b, occ, lambda u, v: integ.segment(p, n, e, u, v, light), pieces, receivers)
