@@ -103,7 +103,7 @@ from .planes import (
     _occluder_regions,
     _occluder_sides,
     crossing_point,
-    light_edge_crossing,
+    light_edge_point,
     near_planes,
     plane_condition,
     pow2_scale,
@@ -190,9 +190,10 @@ def _hugs_horizon(p: Array, n: Array, occluders: Array) -> Array:
 
 def _cone_crossing(p, verts, cone, i, m, ne, hp):
     """Where the plane through p with normal `m` crosses E_h's plane `i` of `cone (K + 1, 3)`:
-    light edge i's (`light_edge_crossing`), or the horizon's (the planes' common line)."""
+    light edge i's where the planes nearly coincide (`light_edge_point`), else the planes'
+    common line."""
     k = verts.shape[0]
-    on_edge = light_edge_crossing(p, verts[jnp.minimum(i, k - 1)], verts[(i + 1) % k], cone[i], m, ne, hp)
+    on_edge = light_edge_point(p, verts[jnp.minimum(i, k - 1)], verts[(i + 1) % k], m)
     return jnp.where((i < k) & near_planes(cone[i], m), on_edge, crossing_point(p, jnp.cross(cone[i], m), ne, hp))
 
 
@@ -311,7 +312,7 @@ def edge_breakpoints(p, c: _Candidates, m_occ: int, ci, a, b, n_own, i_own, sig,
 
 
 def _boundary_runs(
-    p: Array, c: _Candidates, m_occ: int
+    p: Array, c: _Candidates, m_occ: int, pairs: int | None = None
 ) -> tuple[Int[Array, " r"], Int[Array, " r"], Bool[Array, " r"]]:
     r"""The combinatorial part of `visible_edges`: which pieces of which candidate edges bound R,
     and what their endpoints are, as integer *endpoint codes* (`_decode` turns them into points).
@@ -329,12 +330,13 @@ def _boundary_runs(
 
     Piecewise constant in the inputs (no gradient flows through it): the derivatives come from
     the geometry `_decode` turns the codes into. `c` is `_candidates(p, n, verts, occluders)`
-    for `m_occ` occluders (computed once and shared with `_decode`).
+    for `m_occ` occluders (computed once and shared with `_decode`). The candidate edges are
+    split `split_batch` at a time (`pairs`: its size in (edge, region plane) pairs; static).
 
     **Returns:** `(start_codes, end_codes, valid)`, each `(C (M + 1),)` (`C` candidate edges).
     """
     n_cand = c.starts.shape[0]
-    batch = split_batch(m_occ, c.planes.shape[1], n_cand)
+    batch = split_batch(m_occ, c.planes.shape[1], n_cand, pairs)
     if batch >= n_cand:
         sc, ec, valid = _split_candidates(p, c, m_occ, jnp.arange(n_cand, dtype=jnp.int32))
     else:
@@ -505,9 +507,7 @@ def visible_edge_sums(
     n_cand = c.starts.shape[0]
     batch = split_batch(m_occ, c.planes.shape[1], n_cand, pairs)
     if batch >= n_cand:
-        sc, ec, valid = _split_candidates(p, c, m_occ, jnp.arange(n_cand, dtype=jnp.int32))
-        valid = valid & c.in_front
-        return sums(*_kept_edges(p, c, sc.reshape(-1), ec.reshape(-1), valid.reshape(-1)))
+        return sums(*_kept_edges(p, c, *_boundary_runs(p, c, m_occ, pairs)))
 
     def step(total, xs):
         idx, real = xs

@@ -311,24 +311,21 @@ def near_planes(c, m):
     return jax.lax.stop_gradient(jnp.sum(x * x) < NEAR_PLANES**2 * jnp.sum(c * c) * jnp.sum(m * m))
 
 
-def light_edge_crossing(p, va, vb, c, m, ne, hp):
-    r"""Where the plane through p `(3,)` with normal `m` crosses the plane through p and the light
-    edge `va -> vb` (normal `c`), met with the emitter plane (`crossing_point`'s `ne`, `hp`): `(3,)`.
+def light_edge_point(p, va, vb, m):
+    r"""Where the plane through p `(3,)` with normal `m` meets the light edge `va -> vb`:
+    $v_a + t (v_b - v_a)$, $t = m\cdot(v_a - p) / m\cdot(v_a - v_b)$ clamped to [0, 1], `(3,)`.
 
-    Planes within `NEAR_PLANES` of each other (the sine of their angle: an occluder edge grazing
-    the light edge's shadow line) are met along the edge, $v_a + t (v_b - v_a)$ with
-    $t = m\cdot(v_a - p) / m\cdot(v_a - v_b)$ clamped to [0, 1]: that point lies on the edge's
-    line to rounding however nearly the planes coincide, where the cross product of their normals
-    is off by $\epsilon$ over their angle (4e-6 of the value 1e-13 m off coincidence,
-    `tests/test_exact_reference.py`). Others: `crossing_point` of the two planes' common line, as
-    the engine (`light_edge_crossing` in `polygon_types.h`)."""
-    x = jnp.cross(c, m)
-    near = near_planes(c, m)
+    The boundary vertex where that plane crosses the light edge's plane through p, met with the
+    emitter plane, for planes within `NEAR_PLANES` of each other (`near_planes`: an occluder edge
+    grazing the light edge's shadow line; the callers select it there and `crossing_point` of
+    the planes' common line elsewhere, as the engine's `light_edge_crossing` in
+    `polygon_types.h`): this point lies on the edge's line to rounding however nearly the planes
+    coincide, where the cross product of their normals is off by $\epsilon$ over their angle
+    (4e-6 of the value 1e-13 m off coincidence, `tests/test_exact_reference.py`)."""
     da, db = jnp.dot(va - p, m), jnp.dot(vb - p, m)
     apart = da != db
     t = jnp.where(apart, jnp.clip(da / jnp.where(apart, da - db, 1.0), 0.0, 1.0), 0.0)
-    far = crossing_point(p, jnp.where(near, ne, x), ne, hp)
-    return jnp.where(near, va + t * (vb - va), far)
+    return va + t * (vb - va)
 
 
 def _interval_on_region(p, a, d, n_own, sigma, normals, valid, tol, own_cond=None, own_ends=None, conds=None,

@@ -45,7 +45,7 @@ from .._core.geometry import newell_normal
 from .._core.mesh import OccluderTopology
 from .._kernels.planes import crossing_point as _crossing_point
 from .._kernels.planes import edge_planes as edge_planes
-from .._kernels.planes import light_edge_crossing as _light_edge_crossing
+from .._kernels.planes import light_edge_point as _light_edge_point
 from .._kernels.planes import near_planes as _near_planes
 from .._kernels.planes import pow2_scale as _pow2_scale
 from .._kernels.planes import project as _project
@@ -378,9 +378,9 @@ def decode_endpoints(
     line = jnp.where(common[:, None], jnp.where((same[0] + same[1] > 0)[:, None], a1, b1) - p[None, :], jnp.cross(n1, n2))
     y = jax.vmap(_crossing_point, in_axes=(None, 0, None, None))(p, line, ne, hp)
     # A light edge's plane through p (the first plane: the engine sorts them) and another nearly
-    # coincident with it cross on the edge (`light_edge_crossing`).
+    # coincident with it cross on the edge (`light_edge_point`).
     light = (codes[:, 1] == 0) & (codes[:, 3] < k) & jax.vmap(_near_planes)(n1, n2)
-    on_edge = jax.vmap(_light_edge_crossing, in_axes=(None, 0, 0, 0, 0, None, None))(p, a1, b1, n1, n2, ne, hp)
+    on_edge = jax.vmap(_light_edge_point, in_axes=(None, 0, 0, 0))(p, a1, b1, n2)
     y = jnp.where(light[:, None], on_edge, y)
     out = jnp.where((kind == K_PLANES)[:, None], y, x)
     return jnp.where((kind == K_UNUSED)[:, None], e0[None, :], out)
