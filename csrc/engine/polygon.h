@@ -196,13 +196,8 @@ int32_t polygon_receiver(const PolyCall<T>& call, V3<T> p, V3<T> n, Work<T>& w) 
     cone[k] = planes[k];
     cnorm[k] = norm(cone[k]);
   }
-  // Where the plane through p with normal `own` crosses E_h's plane k (a light edge's:
-  // light_edge_crossing; the horizon's: the line common to the two planes).
-  auto cone_crossing = [&](int k, V3<T> own) -> V3<T> {
-    const PlaneRef& r = w.prefs[size_t(k)];
-    if (r.t == kThrough) return light_edge_crossing(p, call.L.v(r.a), call.L.v(r.b), cone[k], own, ne, hp);
-    return crossing_point(p, cross(cone[k], own), ne, hp);
-  };
+  // Where the plane through p with normal `own` crosses E_h's plane k.
+  auto cone_crossing = [&](int k, V3<T> own) { return eh_crossing(call.L, w.prefs[size_t(k)], p, cone[k], own, ne, hp); };
   const T nenorm = norm(ne);
 
   // A region none of whose edges crosses E_h either misses E_h or contains all of it (both are

@@ -213,6 +213,15 @@ inline V3<T> light_edge_crossing(V3<T> p, V3<T> va, V3<T> vb, V3<T> c, V3<T> m, 
   return va + t * (vb - va);
 }
 
+// Where the plane through p with normal `own` crosses E_h's plane `r` (normal c), met with the
+// emitter plane: a light edge's plane (light_edge_crossing) or the horizon's (the line common to
+// the two planes). The clipped ends of occluder edges (polygon.h, silhouette_walk.h).
+template <class T>
+inline V3<T> eh_crossing(const Light<T>& L, const PlaneRef& r, V3<T> p, V3<T> c, V3<T> own, V3<T> ne, T hp) {
+  if (r.t == kThrough) return light_edge_crossing(p, L.v(r.a), L.v(r.b), c, own, ne, hp);
+  return crossing_point(p, cross(c, own), ne, hp);
+}
+
 template <class T>
 struct PolyCall {
   Light<T> L;

@@ -694,8 +694,7 @@ int32_t contour_edges(const PolyCall<T>& call, const SilhouetteTree& st, V3<T> p
     // An end: where the edge leaves the pyramid through cone plane i (clipped), or its vertex's projection.
     const auto end = [&](bool clipped, int i, V3<T> x3, int32_t ref, V3<T>& at, decltype(s.ca)& code, decltype(s.on_a)& on) {
       if (clipped) {
-        at = prefs[i].t == kThrough ? light_edge_crossing(p, call.L.v(prefs[i].a), call.L.v(prefs[i].b), cone[i], own, ne, hp)
-                                    : crossing_point(p, cross(cone[i], own), ne, hp);
+        at = eh_crossing(call.L, prefs[i], p, cone[i], own, ne, hp);
         code = code_planes(prefs[i], oref);
         on = i;
       } else {
