@@ -14,9 +14,11 @@ best of its calls. Radiance (`rtrace -I -ab 0 -n 2`, pyradiance) runs in the sam
 same receivers, at its defaults in `reps` rounds alternating with ours (each side the best of its
 calls: a drift of the shared machine's load then moves both) and with fine source subdivision
 (one run); its error is the RMS of its difference to jaxshadow's exact values relative to their RMS. jaxshadow's own error is measured
-against the independent float64 reference of the tests (Sutherland-Hodgman clipping, exact
-polygon booleans in shapely, Lambert's contour sum; `tests/test_clip.py`), on receivers drawn
-from every class (lit, umbra, penumbra, grazing).
+against the exact reference of the tests (the visible region clipped and subtracted in rational
+arithmetic, its Lambert contour sum at 60 digits, correctly rounded; `tests/exact_reference.py`),
+on receivers drawn from every class (lit, umbra, penumbra, grazing). (The float64 shapely
+reference of `tests/test_clip.py` snap-rounds its overlay; its own error, up to ~1e-11 relative
+on these scenes, would hide the engine's.)
 
 Also `inverse.fit_light` with the mesh scene (48 targets): a solve's time and the gradient of
 the loss against central differences. Writes `benchmarks/results/shadows_scale.json`.
@@ -287,12 +289,18 @@ def _run_worker(kind: str, n: int, reps: int, tmp: Path) -> tuple[dict, np.ndarr
 
 
 def _oracle():
+    """`tests/exact_reference.irradiance(light, tris (m, 3, 3), p, n)`: pi F, exact to rounding."""
     sys.path.insert(0, str(ROOT / "tests"))
-    try:
-        from reference import reference_ff  # type: ignore[import-not-found]
-    except ImportError:
-        from test_clip import reference_ff  # type: ignore[import-not-found,no-redef]
-    return reference_ff
+    from exact_reference import irradiance  # type: ignore[import-not-found]
+
+    return irradiance
+
+
+def _triangles(polys: np.ndarray) -> np.ndarray:
+    """Convex polygons `(m, k, 3)` as `(m (k - 2), 3, 3)` triangles (fans)."""
+    polys = np.asarray(polys, np.float64).reshape(-1, np.shape(polys)[-2] if np.size(polys) else 3, 3)
+    k = polys.shape[1]
+    return np.concatenate([polys[:, [0, j, j + 1]] for j in range(1, k - 1)]) if len(polys) else np.zeros((0, 3, 3))
 
 
 def _culled(p: np.ndarray, n: np.ndarray, em: np.ndarray, tris: np.ndarray) -> np.ndarray:
@@ -320,7 +328,7 @@ def _culled(p: np.ndarray, n: np.ndarray, em: np.ndarray, tris: np.ndarray) -> n
 def _exactness(kind: str, e: np.ndarray, plan_classes: np.ndarray, n_check: int, seed: int = 7) -> dict:
     from benchmarks.scenes import floor_receivers
 
-    reference_ff = _oracle()
+    exact = _oracle()
     _, light, tris = _scene(kind)
     p, nrm = floor_receivers(e.shape[0], grazing=0.05)
     rng = np.random.default_rng(seed)
@@ -336,7 +344,7 @@ def _exactness(kind: str, e: np.ndarray, plan_classes: np.ndarray, n_check: int,
     worst = 0.0
     scale = float(np.max(e[:, 0]))
     for name, idx in picks:
-        ref = np.array([reference_ff(p[i], nrm[i], light, list(_culled(p[i], nrm[i], light, tris))) for i in idx]) * np.pi
+        ref = np.array([exact(light, _triangles(_culled(p[i], nrm[i], light, tris)), p[i], nrm[i]) for i in idx])
         err = np.abs(e[idx, 0] - ref) / np.maximum(np.abs(ref), 1e-3 * scale)
         errs[name] = {"count": int(idx.size), "max_rel_err": float(err.max())}
         worst = max(worst, float(err.max()))
@@ -393,7 +401,7 @@ def markdown(results: dict) -> str:
              "timed in rounds alternating with ours (default / fine source subdivision), its error the RMS difference to jaxshadow's exact values relative to their RMS.",
              "",
              "| scene | receivers | jaxshadow points/s | first call (s) | peak memory (GB) | max rel. error vs "
-             "shapely (checked) | Radiance default points/s (RMS err) | Radiance fine points/s (RMS err) | "
+             "the exact reference (checked) | Radiance default points/s (RMS err) | Radiance fine points/s (RMS err) | "
              "speedup vs default / fine |",
              "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for c in results["cases"]:
