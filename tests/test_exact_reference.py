@@ -333,6 +333,85 @@ def test_occluder_edge_grazing_a_light_edges_shadow_line(d) -> None:
                 assert np.abs(np.asarray(gp) - fd_p).max() <= 1e-6 * scale
 
 
+def _nearly_in_line(light: np.ndarray, p: np.ndarray, d: float) -> np.ndarray:
+    """Two triangles 35 % and 50 % of the way from `p` to the light's centre c, each with an edge
+    a -> b in the plane through `p`, c and the horizontal direction w at 0.3 rad (the edges
+    turned by +-0.2 rad within it, 0.105 m and 0.15 m long, centred on the line p c), a `d` m to
+    one side of that plane and b `d` m to the other, oppositely for the two: seen from `p` the
+    edges have no common end and cross near c at an angle of about d / 0.1 m rad; the third
+    vertices lie on the same side of the plane, apart in projection (the triangles overlap in
+    projection and the boundary switches from one edge to the other at the crossing)."""
+    c = light.mean(axis=0)
+    w = np.array([np.cos(0.3), np.sin(0.3), 0.0])
+    dc = (c - p) / np.linalg.norm(c - p)
+    m = np.cross(dc, w)
+    m /= np.linalg.norm(m)
+
+    def tri(s: float, tilt: float, dd: float, side: float) -> np.ndarray:
+        ctr = p + s * (c - p)
+        e = np.cos(tilt) * w + np.sin(tilt) * 0.3 * dc
+        return np.array([ctr - 0.15 * s * e + dd * m, ctr + 0.15 * s * e - dd * m, ctr + side * s * m + 0.02 * s * dc])
+
+    return np.array([tri(0.35, 0.2, d, 0.2), tri(0.5, -0.2, -d, 0.27)])
+
+
+@pytest.mark.parametrize("d", [1e-9, 1e-12, 1e-13, 0.0])
+def test_two_occluder_edges_nearly_in_line(d) -> None:
+    """Two occluder edges of different triangles whose planes through the receiver are about
+    `d` / 0.1 m rad apart (`_nearly_in_line`, two receivers): the boundary vertex where their
+    projections cross lies on one edge's line (`occluder_edges_crossing`); the cross product of
+    the planes' normals was off by eps over their angle (1e-9: 4.9e-11 U, 1e-12: 1.1e-7 U,
+    1e-13: 2.4e-6 U). The host engine (soup and mesh), the differentiated path and the device
+    kernel within 1e-13 U of the exact reference, gradients finite; at 1e-9 m (one receiver) the
+    gradient in the triangles' vertices and the receiver, along two random directions, within
+    1e-6 of central differences of the exact reference (measured 2e-8; the cross product's
+    vertex: 8e-4)."""
+    light = _turned_light()
+    lt = js.PolygonLight(light, 1.0)
+    n = np.array([0.0, 0.0, 1.0])
+    for j, p in enumerate((np.array([-0.55, 0.2, 0.0]), np.array([0.3, -0.7, 0.1]))):
+        u = float(np.asarray(js.irradiance(js.Scene([lt]), p[None], n[None]))[0, 0])
+        tris = _nearly_in_line(light, p, d)
+        ref = er.irradiance(light, tris, p, n)
+        assert 0.9 * u < ref < 0.99 * u
+        for occ in (tris, [js.Mesh(tris.reshape(-1, 3), np.arange(6).reshape(2, 3))]):
+            e = float(np.asarray(js.irradiance(js.Scene([lt], occluders=occ), p[None], n[None]))[0, 0])
+            assert abs(e - ref) <= 1e-13 * u, (p, e, ref)
+        dev = js.irradiance(js.Scene([lt], occluders=tris), p[None], n[None], shadows=js.ShadowOptions(engine="device"))
+        assert abs(float(np.asarray(dev)[0, 0]) - ref) <= 1e-13 * u
+
+        def f(t, q):
+            return js.irradiance(js.Scene([lt], occluders=t), q[None], jnp.asarray(n)[None])[0, 0]
+
+        val, (gt, gp) = jax.value_and_grad(f, argnums=(0, 1))(jnp.asarray(tris), jnp.asarray(p))
+        assert abs(float(val) - ref) <= 1e-13 * u
+        assert np.all(np.isfinite(np.asarray(gt))) and np.all(np.isfinite(np.asarray(gp)))
+        if d == 1e-9 and j == 1:
+            g = np.concatenate([np.asarray(gt).ravel(), np.asarray(gp)])
+            for v in np.random.default_rng(1).normal(size=(2, g.size)):
+                fd, vt, vp = _exact_directional(light, tris, p, n, v[:-3].reshape(tris.shape), v[-3:], d / 1000)
+                va = np.concatenate([vt.ravel(), vp])
+                assert abs(g @ va - fd) <= 1e-6 * np.linalg.norm(g) * np.linalg.norm(va)
+
+
+def _exact_directional(light: np.ndarray, tris: np.ndarray, p: np.ndarray, n: np.ndarray, vt: np.ndarray,
+                       vp: np.ndarray, h: float) -> tuple[float, np.ndarray, np.ndarray]:
+    """The central difference of the exact reference (`DIGITS` digits, not rounded to float64)
+    along the direction `(vt, vp)` in `(tris, p)`, step `h`, and the direction actually taken
+    (the float64 points `x +- h v` are rounded, by up to eps |x|, which is not small against
+    `h`; their difference is exact): `(difference, vt', vp')`."""
+
+    def value(t: np.ndarray, q: np.ndarray) -> mpmath.mpf:
+        pieces, P = er.visible_region(light, t, q, n)
+        N = er._q(n)
+        return sum((er.lambert(P, N, pc) for pc in pieces), mpmath.mpf(0)) / (2 * mpmath.sqrt(er._mp(er._dot(N, N))))
+
+    tp, tm, pp, pm = tris + h * vt, tris - h * vt, p + h * vp, p - h * vp
+    with mpmath.workdps(er.DIGITS):
+        fd = float((value(tp, pp) - value(tm, pm)) / (2 * h))
+    return fd, (tp - tm) / (2 * h), (pp - pm) / (2 * h)
+
+
 def _exact_gradients(light: np.ndarray, tris: np.ndarray, p: np.ndarray, n: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
     """Central differences of the exact reference (`DIGITS` digits, not rounded to float64) in
     each coordinate of `tris` and `p`, over the float64 steps actually taken."""

@@ -74,7 +74,14 @@ struct Decoder {
         V3<T> n1 = plane(c.v[1], c.v[2], c.v[3]), n2 = plane(c.v[4], c.v[5], c.v[6]);
         // A light edge's plane through p (the first of the two: code_planes sorts them) and another.
         if (c.v[1] == kThrough && c.v[3] < call.L.K) return light_edge_crossing(p, V(c.v[2]), V(c.v[3]), n1, n2, ne, hp);
-        return crossing_point(p, cross(n1, n2), ne, hp);
+        const V3<T> x = cross(n1, n2);
+        // Two occluder edges' planes through p, nearly coincident: on one edge's line
+        // (occluder_edges_crossing).
+        const int32_t K = call.L.K;
+        if (c.v[1] == kThrough && c.v[4] == kThrough && c.v[2] >= K && c.v[3] >= K && c.v[5] >= K && c.v[6] >= K &&
+            near_planes(x, n1, n2))
+          return occluder_edges_crossing(p, V(c.v[2]), V(c.v[3]), n1, V(c.v[5]), V(c.v[6]), n2, ne, hp);
+        return crossing_point(p, x, ne, hp);
       }
       default:
         return e0;

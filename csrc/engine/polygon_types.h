@@ -204,13 +204,51 @@ inline V3<T> crossing_point(V3<T> p, V3<T> c, V3<T> ne, T hp) {
 // the axes; `tests/test_exact_reference.py`). t is clamped to the edge, which a crossing of E_h's
 // boundary leaves by rounding only. Others: the line common to the two planes.
 constexpr double kNearPlanes = 1.0 / 1024;
+// Whether the planes with normals c, m (x = c x m) are within kNearPlanes of each other.
 template <class T>
-inline V3<T> light_edge_crossing(V3<T> p, V3<T> va, V3<T> vb, V3<T> c, V3<T> m, V3<T> ne, T hp) {
-  const V3<T> x = cross(c, m);
-  if (!(dot(x, x) < T(kNearPlanes * kNearPlanes) * dot(c, c) * dot(m, m))) return crossing_point(p, x, ne, hp);
+inline bool near_planes(V3<T> x, V3<T> c, V3<T> m) {
+  return dot(x, x) < T(kNearPlanes * kNearPlanes) * dot(c, c) * dot(m, m);
+}
+// Where the plane through p with normal m meets the segment va vb: va + t (vb - va),
+// t = m.(va - p) / m.(va - vb) clamped to [0, 1].
+template <class T>
+inline V3<T> plane_meets_edge(V3<T> p, V3<T> va, V3<T> vb, V3<T> m) {
   const T da = dot(va - p, m), db = dot(vb - p, m);
   const T t = da != db ? std::min(std::max(da / (da - db), T(0)), T(1)) : T(0);
   return va + t * (vb - va);
+}
+template <class T>
+inline V3<T> light_edge_crossing(V3<T> p, V3<T> va, V3<T> vb, V3<T> c, V3<T> m, V3<T> ne, T hp) {
+  const V3<T> x = cross(c, m);
+  if (!near_planes(x, c, m)) return crossing_point(p, x, ne, hp);
+  return plane_meets_edge(p, va, vb, m);
+}
+
+// The sine of the angle the segment a b subtends at p (each difference brought to order one
+// first, so that float32 neither under- nor overflows); NaN where an end is p.
+template <class T>
+inline T subtended_sine(V3<T> p, V3<T> a, V3<T> b) {
+  V3<T> ra = a - p, rb = b - p;
+  ra = (T(1) / absmax(ra)) * ra;
+  rb = (T(1) / absmax(rb)) * rb;
+  return norm(cross(ra, rb)) / (norm(ra) * norm(rb));
+}
+
+// Where the planes through p and two occluder edges a1 b1 (normal n1) and a2 b2 (normal n2)
+// cross, met with the emitter plane, for planes within kNearPlanes of each other (two edges of
+// different faces nearly in line as seen from p, their projections crossing at a small angle).
+// The cross product of the normals is off by eps over the planes' angle, in a direction off
+// both edges; here the vertex is where one edge's plane meets the other edge, projected from p:
+// on that edge's line to rounding, and off the first edge's plane by that plane's own rounding
+// only, eps times its conditioning (1 / the sine of the angle its edge subtends at p). So the
+// plane is taken from the edge subtending the larger angle (the first on a tie) and the line
+// from the other. The point is within the segment, as the crossing of two boundary pieces is.
+template <class T>
+inline V3<T> occluder_edges_crossing(V3<T> p, V3<T> a1, V3<T> b1, V3<T> n1, V3<T> a2, V3<T> b2, V3<T> n2, V3<T> ne,
+                                     T hp) {
+  const bool first_plane = !(subtended_sine(p, a1, b1) < subtended_sine(p, a2, b2));
+  const V3<T> x = first_plane ? plane_meets_edge(p, a2, b2, n1) : plane_meets_edge(p, a1, b1, n2);
+  return project(p, x, ne, hp);
 }
 
 // Where the plane through p with normal `own` crosses E_h's plane `r` (normal c), met with the

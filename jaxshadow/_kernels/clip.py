@@ -105,6 +105,7 @@ from .planes import (
     crossing_point,
     light_edge_point,
     near_planes,
+    occluder_edges_point,
     plane_condition,
     pow2_scale,
     project,
@@ -134,7 +135,8 @@ class _Candidates(NamedTuple):
     reg_valid: Array  # (M + 1, P) real planes of active regions
     reg_active: Array  # (M + 1,) E_h, and the occluders that are not degenerate seen from p
     cond: Array  # (M + 1, P) plane_condition of each occluder edge's plane, 0 for the other planes
-    plane_ends: Array  # (M + 1, P, 2, 3) the two vertices of each occluder edge (zeros elsewhere)
+    plane_ends: Array  # (M + 1, P, 2, 3) the two vertices of each occluder edge (zeros elsewhere; `_decode`
+    # differentiates them, the splitting does not)
     start_pt: Array  # (C, 3) an occluder candidate's start in space (before projection)
     end_pt: Array  # (C, 3)
     start_ok: Array  # (C,) the start is that point's projection (not clipped by the pyramid)
@@ -270,7 +272,7 @@ def _candidates(p: Array, n: Array, verts: Array, occluders: Array) -> _Candidat
         reg_valid=reg_valid,
         reg_active=reg_active,
         cond=jax.lax.stop_gradient(cond),
-        plane_ends=jax.lax.stop_gradient(plane_ends),
+        plane_ends=plane_ends,
         start_pt=jax.lax.stop_gradient(jnp.concatenate([no_pt, sv], axis=0)),
         end_pt=jax.lax.stop_gradient(jnp.concatenate([no_pt, ev], axis=0)),
         start_ok=jnp.concatenate([no_ok, sv_ok]),
@@ -438,7 +440,19 @@ def _decode(p: Array, c: _Candidates, codes: Int[Array, " r"]) -> Float[Array, "
     i, j = k // n_pl, k % n_pl
     # Region 0's planes come first: ids below K are the light edges' (`_cone_crossing`).
     lo, hi = jnp.minimum(i, j), jnp.maximum(i, j)
-    y = jax.vmap(lambda a, b: _cone_crossing(p, c.light, planes, a, planes[b], c.ne, c.hp))(lo, hi)
+    cond = c.cond.reshape(-1)
+    ends = c.plane_ends.reshape(-1, 2, 3)
+
+    def crossing(a, b):
+        # Two occluder edges' planes (conditioning > 0) nearly coincident: on one edge's line
+        # (`occluder_edges_point`); else `_cone_crossing` (and the edges given are the light's
+        # first vertex, in the emitter plane: a finite gradient).
+        occ = (cond[a] > 0) & (cond[b] > 0) & near_planes(planes[a], planes[b])
+        ea, eb = (jnp.where(occ, ends[r], c.e0[None, :]) for r in (a, b))
+        on_line = occluder_edges_point(p, ea[0], ea[1], planes[a], eb[0], eb[1], planes[b], c.ne, c.hp)
+        return jnp.where(occ, on_line, _cone_crossing(p, c.light, planes, a, planes[b], c.ne, c.hp))
+
+    y = jax.vmap(crossing)(lo, hi)
     table = jnp.concatenate([c.starts, c.ends], axis=0)
     return jnp.where(is_tab[:, None], table[jnp.where(is_tab, codes, 0)], y)
 

@@ -328,6 +328,33 @@ def light_edge_point(p, va, vb, m):
     return va + t * (vb - va)
 
 
+def _subtended_sine(p, a, b):
+    """The sine of the angle the segment `a b` `(3,)` subtends at `p` (no gradient; the engine's
+    `subtended_sine`)."""
+    ra, rb = jax.lax.stop_gradient((a - p, b - p))
+    ra = ra * (1.0 / jnp.max(jnp.abs(ra)))
+    rb = rb * (1.0 / jnp.max(jnp.abs(rb)))
+    return jnp.sqrt(jnp.sum(jnp.cross(ra, rb) ** 2)) / (jnp.sqrt(jnp.sum(ra * ra)) * jnp.sqrt(jnp.sum(rb * rb)))
+
+
+def occluder_edges_point(p, a1, b1, n1, a2, b2, n2, ne, hp):
+    r"""Where the planes through p `(3,)` and two occluder edges `a1 -> b1` (normal `n1`) and
+    `a2 -> b2` (normal `n2`) cross, met with the emitter plane (`ne`, `hp` as in `project`), for
+    planes within `NEAR_PLANES` of each other (`near_planes`: two edges nearly in line as seen
+    from p; the callers select it there): `(3,)`.
+
+    The cross product of the normals is off by $\epsilon$ over the planes' angle, in a direction
+    off both edges. Here the vertex is where one edge's plane meets the other edge
+    (`light_edge_point`'s formula), projected from p: on that edge's line to rounding, and off
+    the plane by the plane's own rounding only, $\epsilon$ times its conditioning (one over the
+    sine of the angle its edge subtends at p). The plane is the edge's subtending the larger
+    angle (the first on a tie), the line the other's (the engine's `occluder_edges_crossing` in
+    `polygon_types.h`). Differentiable in every point and normal (the choice carries none)."""
+    first = ~(_subtended_sine(p, a1, b1) < _subtended_sine(p, a2, b2))
+    x = jnp.where(first, light_edge_point(p, a2, b2, n1), light_edge_point(p, a1, b1, n2))
+    return project(p, x, ne, hp)
+
+
 def _interval_on_region(p, a, d, n_own, sigma, normals, valid, tol, own_cond=None, own_ends=None, conds=None,
                         ends=None, at=None):
     """Where the `sigma`-side of the edge `a + t d` is inside one convex region (planes through p).

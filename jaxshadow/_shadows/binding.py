@@ -47,6 +47,7 @@ from .._kernels.planes import crossing_point as _crossing_point
 from .._kernels.planes import edge_planes as edge_planes
 from .._kernels.planes import light_edge_point as _light_edge_point
 from .._kernels.planes import near_planes as _near_planes
+from .._kernels.planes import occluder_edges_point as _occluder_edges_point
 from .._kernels.planes import pow2_scale as _pow2_scale
 from .._kernels.planes import project as _project
 from .._kernels.planes import rescale_rows as _rescale_rows
@@ -325,7 +326,9 @@ def decode_endpoints(
     plane (`_clip._project`), 3 an occluder edge's crossing with that plane, projected, 4 the line
     common to two planes through `p` met with the light's plane (`_clip._crossing_point`; for two
     planes through occluder edges with one common end, the line from `p` through that end; for a
-    light edge's plane and another, where that plane meets the edge); a
+    light edge's plane and another nearly coincident, where that plane meets the edge; for two
+    nearly coincident planes through occluder edges, where one meets the other's edge,
+    projected: `_kernels.planes.occluder_edges_point`); a
     plane is `(0, a, b)` through `V[a]`, `V[b]`, `(1, ., .)` the horizon, `(2, f, .)` face `f`'s
     cut $N_L = h_p\,\mathrm{sgn}(d_o) N_o + |d_o| N_e$ (`_clip._occluder_regions`). Unused slots
     (kind -1) give the light's first vertex. Differentiable in `p`, `n`, `verts`, `V` (the codes
@@ -382,6 +385,16 @@ def decode_endpoints(
     light = (codes[:, 1] == 0) & (codes[:, 3] < k) & jax.vmap(_near_planes)(n1, n2)
     on_edge = jax.vmap(_light_edge_point, in_axes=(None, 0, 0, 0))(p, a1, b1, n2)
     y = jnp.where(light[:, None], on_edge, y)
+    # Two occluder edges' planes through p, nearly coincident: on one edge's line
+    # (`occluder_edges_point`).
+    occ_refs = jnp.all(codes[:, jnp.array([2, 3, 5, 6])] >= k, axis=-1)
+    occ = (codes[:, 1] == 0) & (codes[:, 4] == 0) & occ_refs & ~common & jax.vmap(_near_planes)(n1, n2)
+    # Other rows meet at the light's first vertex (in the emitter plane: a finite gradient).
+    a1o, b1o, a2o, b2o = (jnp.where(occ[:, None], x_, e0[None, :]) for x_ in (a1, b1, a2, b2))
+    on_line = jax.vmap(_occluder_edges_point, in_axes=(None, 0, 0, 0, 0, 0, 0, None, None))(
+        p, a1o, b1o, n1, a2o, b2o, n2, ne, hp
+    )
+    y = jnp.where(occ[:, None], on_line, y)
     out = jnp.where((kind == K_PLANES)[:, None], y, x)
     return jnp.where((kind == K_UNUSED)[:, None], e0[None, :], out)
 
