@@ -66,7 +66,8 @@ constexpr int kSilNearTries = 4;
 constexpr int kSilFan = 8;
 // Per-thread scratch of silhouette_receiver's pieces (allocated once per thread).
 struct SilPieces {
-  std::vector<int32_t> boff, kf, kl, sj, cf, link, succ, pred, todo;
+  std::vector<int32_t> boff, kf, kl, sj, sneg, cf, link, unpaired, succ, pred, todo;
+  std::vector<double> pends;  // per contour segment: its first and last pieces' ends in t (4 values)
   std::vector<int32_t> eslot;  // per segment end: its slot in `ends` (-1: clipped)
   std::vector<int32_t> fan;    // the slots where 3 .. kSilFan ends meet
   std::vector<int32_t> fan_ends, fan_n;  // their ends (kSilFan per slot) and how many
@@ -197,6 +198,10 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
   // common end).
   std::vector<int32_t>& link = pc.link;  // per segment end (2 i + 0: a, 2 i + 1: b): the other segment end at v, or -1
   link.assign(2 * size_t(ns), -1);
+  // Per segment end, with every contour piece's ids (all_ids): the segment linked there when
+  // the two share no other end (their crossing tests need not be made, below), else -1.
+  std::vector<int32_t>& unpaired = pc.unpaired;
+  if (all_ids) unpaired.assign(2 * size_t(ns), -1);
   std::vector<int32_t>& succ = pc.succ;  // per end at a vertex of k >= 3 rays: the next ray's end, or -1
   std::vector<int32_t>& pred = pc.pred;  // and the previous ray's end
   succ.assign(2 * size_t(ns), -1);
@@ -274,8 +279,14 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         const SilHot<T>& hb = hot[eb / 2];
         const typename Cov::At fa{ea % 2 ? ha.ra : ha.rb, ea % 2 ? ha.la : ha.lb};  // cov.at(sa's far end)
         const typename Cov::At fb{eb % 2 ? hb.ra : hb.rb, eb % 2 ? hb.la : hb.lb};
-        if (cov.side_of(fa, sb) != 0 && cov.side_of(fb, sa) != 0)
+        if (cov.side_of(fa, sb) != 0 && cov.side_of(fb, sa) != 0) {
           link[size_t(ea)] = eb, link[size_t(eb)] = ea;
+          if (all_ids) {
+            const bool a_in_b = (ha.ia == hb.ia || ha.ia == hb.ib) && (ha.ib == hb.ia || ha.ib == hb.ib);
+            const bool b_in_a = (hb.ia == ha.ia || hb.ia == ha.ib) && (hb.ib == ha.ia || hb.ib == ha.ib);
+            if (!a_in_b && !b_in_a) unpaired[size_t(ea)] = eb / 2, unpaired[size_t(eb)] = ea / 2;
+          }
+        }
       }
       if (t.n >= 3 && t.n <= kSilFan) {
         t.e2 = int32_t(fan.size());  // the slot's number among the fans
@@ -347,13 +358,20 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     }
   }
   // Per contour segment: its first and last pieces of positive length (kf, kl, positions in
-  // ord; kf = -1: none), and the sum of the jumps of C from the first to the last (sj).
+  // ord once its breakpoints are sorted; kf = -1: none, kUnsorted: not sorted yet), their ends
+  // in t (pends: first piece's, then last piece's), the sum of the jumps of C from the first
+  // to the last (sj) and of the negative ones among them (sneg).
+  constexpr int32_t kUnsorted = -2;
   std::vector<int32_t>& kf = pc.kf;
   std::vector<int32_t>& kl = pc.kl;
   std::vector<int32_t>& sj = pc.sj;
+  std::vector<int32_t>& sneg = pc.sneg;
   kf.assign(size_t(ns), -1);
   kl.assign(size_t(ns), -1);
   sj.assign(size_t(ns), 0);
+  sneg.assign(size_t(ns), 0);
+  if (pc.pends.size() < 4 * size_t(ns)) pc.pends.resize(8 * size_t(ns));
+  double* const pends = pc.pends.data();
   // Every segment's breakpoints (its ends and its crossings, in w.sts / stc / std_ at
   // [boff[i], boff[i + 1])), in the order of their t in w.sord (indices into those arrays).
   std::vector<int32_t>& boff = pc.boff;
@@ -411,7 +429,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         return true;
       }
     }
-    if (si < neh) {
+    if (!decltype(by_ids)::value && si < neh) {
       // An E_h edge: cut where a contour piece was clipped at its plane.
       const int pi = eh_plane[si];
       const bool at_a = o.on_a >= 0 && o.on_a == pi;
@@ -424,11 +442,12 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
       emit(T(std::min(1.0, std::max(0.0, t))), kSrcClipped - 2 * j - (at_a ? 0 : 1), g1 > 0 ? o.w : -o.w);
       return true;
     }
-    if (j < neh) return true;  // a contour piece ends on E_h's boundary, inside it otherwise
+    if (!decltype(by_ids)::value && j < neh) return true;  // a contour piece ends on E_h's boundary, inside it otherwise
     const double on = ho.own_n * apn;
     const double g0 = dot(ap, ho.own), g1 = dot(d, ho.own);
-    const int s0 = Cov::sgn(g0, tol * on), s1 = Cov::sgn(g0 + g1, tol * on);
-    if (s0 == s1 && s0 != 0) return true;
+    const double m = tol * on, g01 = g0 + g1;
+    if ((g0 > m && g01 > m) || (g0 < -m && g01 < -m)) return true;  // s clearly on one side of o's plane
+    const int s0 = Cov::sgn(g0, m), s1 = Cov::sgn(g01, m);
     if (s0 == 0 && s1 == 0) {
       // s along o's line (collinear contour edges, as on a straight crease): apart when o's
       // ends lie clearly beyond one end of s along it.
@@ -442,6 +461,49 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     if (ca == 0 || cb == 0) return false;
     emit(T(-g0 / g1), int32_t(j), s1 > 0 ? o.w : -o.w);  // into o's positive side: + W
     return true;
+  };
+  // Segment i's breakpoints [b0, b1) in the order of their t in ord. Up to 16 breakpoints
+  // (nearly always) the insertion sort that std::sort runs on so few (the same comparisons, so
+  // the same order for equal t), else std::sort.
+  auto sort_breaks = [&](int32_t b0, int32_t b1) {
+    const T* const tsp = ts.data();
+    int32_t* const op = ord.data();
+    for (int32_t k = b0; k < b1; k++) op[k] = k;
+    if (b1 - b0 <= 16) {
+      for (int32_t k = b0 + 1; k < b1; k++) {
+        const int32_t v = op[k];
+        const T tv = tsp[v];
+        if (tv < tsp[op[b0]]) {
+          for (int32_t x = k; x > b0; x--) op[x] = op[x - 1];
+          op[b0] = v;
+        } else {
+          int32_t x = k;
+          for (; tv < tsp[op[x - 1]]; x--) op[x] = op[x - 1];
+          op[x] = v;
+        }
+      }
+    } else {
+      std::sort(op + b0, op + b1, [&](int32_t x, int32_t y) { return tsp[x] < tsp[y]; });
+    }
+  };
+  // Contour segment i's first and last pieces of positive length from its sorted breakpoints.
+  auto first_last = [&](int i, int32_t b0, int32_t b1) {
+    const T* const tsp = ts.data();
+    const int32_t* const tdp = td.data();
+    const int32_t* const op = ord.data();
+    int32_t f = -1, l = -1;
+    for (int32_t k = b0; k + 1 < b1; k++) {
+      if (!(tsp[op[k + 1]] > tsp[op[k]])) continue;
+      if (f < 0) f = k;
+      l = k;
+    }
+    int32_t sum = 0, neg = 0;
+    for (int32_t k = f + 1; f >= 0 && k <= l; k++) sum += tdp[op[k]], neg += std::min(tdp[op[k]], 0);
+    kf[size_t(i)] = f, kl[size_t(i)] = l, sj[size_t(i)] = sum, sneg[size_t(i)] = neg;
+    if (f >= 0) {
+      double* const pe = pends + 4 * i;
+      pe[0] = double(tsp[op[f]]), pe[1] = double(tsp[op[f + 1]]), pe[2] = double(tsp[op[l]]), pe[3] = double(tsp[op[l + 1]]);
+    }
   };
   for (int i = 0; i < ns; i++) {
     const int32_t b0 = nb;
@@ -466,14 +528,9 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         // The pieces linked to i at a common end (above): their boxes meet there, and both far
         // ends lie clearly off the other's line, so where they share no other end both crossing
         // tests of the pair return true without a breakpoint. They are not gathered.
-        const SilHot<T>& hi = hot[i];
         for (int e = 0; e < 2; e++) {
-          const int32_t o = link[size_t(2 * i + e)];
-          if (o < 0) continue;
-          const SilHot<T>& hj = hot[o / 2];
-          const bool i_in_j = (hi.ia == hj.ia || hi.ia == hj.ib) && (hi.ib == hj.ia || hi.ib == hj.ib);
-          const bool j_in_i = (hj.ia == hi.ia || hj.ia == hi.ib) && (hj.ib == hi.ia || hj.ib == hi.ib);
-          if (!i_in_j && !j_in_i) stamp_of[size_t(o / 2)] = stamp;
+          const int32_t o = unpaired[size_t(2 * i + e)];
+          if (o >= 0) stamp_of[size_t(o)] = stamp;
         }
       }
       const int32_t* r = w.gcells.data() + 4 * (i - neh);
@@ -566,50 +623,50 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         if (!pair(i, j, std::false_type(), own)) return kFallback;
       }
     }
-    T* const tsp = ts.data();
-    int32_t* const tdp = td.data();
+    const T* const tsp = ts.data();
+    const int32_t* const tdp = td.data();
     const int32_t b1 = nb;
     int32_t* const op = ord.data();
     boff[size_t(i) + 1] = b1;
     if (b1 - b0 == 2) {  // its ends only (t = 0, then 1): one piece, no jump
       op[b0] = b0, op[b0 + 1] = b0 + 1;
-      if (i >= neh) kf[size_t(i)] = kl[size_t(i)] = b0, sj[size_t(i)] = 0;
+      if (i >= neh) {
+        kf[size_t(i)] = kl[size_t(i)] = b0;
+        double* const pe = pends + 4 * i;
+        pe[0] = pe[2] = double(tsp[b0]), pe[1] = pe[3] = double(tsp[b0 + 1]);
+      }
       continue;
     }
-    for (int32_t k = b0; k < b1; k++) op[k] = k;
-    // By t: up to 16 breakpoints (nearly always) the insertion sort that std::sort runs on so
-    // few (the same comparisons, so the same order for equal t), else std::sort.
-    if (b1 - b0 <= 16) {
-      for (int32_t k = b0 + 1; k < b1; k++) {
-        const int32_t v = op[k];
-        const T tv = tsp[v];
-        if (tv < tsp[op[b0]]) {
-          for (int32_t x = k; x > b0; x--) op[x] = op[x - 1];
-          op[b0] = v;
-        } else {
-          int32_t x = k;
-          for (; tv < tsp[op[x - 1]]; x--) op[x] = op[x - 1];
-          op[x] = v;
-        }
-      }
-    } else {
-      std::sort(op + b0, op + b1, [&](int32_t x, int32_t y) { return tsp[x] < tsp[y]; });
+    if (i < neh) {
+      sort_breaks(b0, b1);
+      continue;
     }
-    if (i >= neh) {
-      int32_t f = -1, l = -1;
-      for (int32_t k = b0; k + 1 < b1; k++) {
-        if (!(tsp[op[k + 1]] > tsp[op[k]])) continue;
-        if (f < 0) f = k;
-        l = k;
-      }
-      int32_t sum = 0;
-      for (int32_t k = f + 1; f >= 0 && k <= l; k++) sum += tdp[op[k]];
-      kf[size_t(i)] = f, kl[size_t(i)] = l, sj[size_t(i)] = sum;
+    // A contour segment's crossings lie in [0, 1] (t = -g0 / g1 with g0 and g0 + g1 of opposite
+    // signs), after its ends (t = 0, then 1): its first piece ends at the least t > 0, its last
+    // starts at the greatest t < 1, and the jumps between them are those at 0 < t < 1, whatever
+    // their order. The breakpoints are sorted only where the runs need them (below).
+    T t2 = 1, tl = 0;
+    int32_t sum = 0, neg = 0;
+    bool in01 = true;
+    for (int32_t k = b0 + 2; k < b1; k++) {
+      const T t = tsp[k];
+      in01 = in01 && t >= 0 && t <= 1;
+      const bool inner = t > 0 && t < 1;
+      const int32_t jump = inner ? tdp[k] : 0;
+      sum += jump, neg += std::min(jump, 0);
+      t2 = inner && t < t2 ? t : t2;
+      tl = inner && t > tl ? t : tl;
+    }
+    if (in01) {
+      kf[size_t(i)] = kl[size_t(i)] = kUnsorted;
+      double* const pe = pends + 4 * i;
+      pe[0] = 0, pe[1] = double(t2), pe[2] = double(tl), pe[3] = 1;
+      sj[size_t(i)] = sum, sneg[size_t(i)] = neg;
+    } else {  // (not met: every crossing's t is in [0, 1]) sorted now
+      sort_breaks(b0, b1);
+      first_last(i, b0, b1);
     }
   }
-  // Per contour segment: its first and last pieces of positive length (kf, kl, positions in
-  // ord; kf = -1: none), and the sum of the jumps of C from the first to the last (sj).
-  // (computed with each segment's breakpoints above)
   // C beside every contour segment's first piece on q0's side (cf), from one coverage query per
   // chain of contour segments and carried along the chain. Where exactly two contour segments
   // meet at an unclipped end v (the projection of one mesh vertex; no other piece passes through
@@ -662,8 +719,7 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
         tries++;
         const SSeg<T>& sk = segs[size_t(k)];
         for (int e = 0; e < 2; e++) {
-          const int32_t q = e ? kl[size_t(k)] : kf[size_t(k)];
-          const double ua = ts[size_t(ord[size_t(q)])], ub = ts[size_t(ord[size_t(q + 1)])];
+          const double ua = pends[4 * k + 2 * e], ub = pends[4 * k + 2 * e + 1];
           const V3<T> mk = sk.a + (0.5 * (ua + ub)) * (sk.b - sk.a);
           const int c = cov.coverage_from(m, skip, mk, k, e ? cf[size_t(k)] + sj[size_t(k)] : cf[size_t(k)]);
           if (c != Cov::kNone) return c;
@@ -678,11 +734,11 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     int32_t* const todo = pc.todo.data();
     int ntodo = 0;
     for (int i0 = neh; i0 < ns; i0++) {
-      if (kf[size_t(i0)] < 0 || cf[size_t(i0)] != Cov::kNone) continue;
+      if (kf[size_t(i0)] == -1 || cf[size_t(i0)] != Cov::kNone) continue;
       {
         // C at the midpoint of i0's first piece: from a known piece near it, else through the grid.
         const SSeg<T>& s = segs[size_t(i0)];
-        const double ta = ts[size_t(ord[size_t(kf[size_t(i0)])])], tb = ts[size_t(ord[size_t(kf[size_t(i0)] + 1)])];
+        const double ta = pends[4 * i0], tb = pends[4 * i0 + 1];
         const V3<T> m = s.a + (0.5 * (ta + tb)) * (s.b - s.a);
         int full = near(m, i0);
         if (full == Cov::kNone) full = cov.coverage_at(m, i0);
@@ -744,11 +800,21 @@ int32_t silhouette_receiver(const PolyCall<T>& call, const SilhouetteTree& st, V
     if (i >= neh) {
       // A contour segment: its pieces from the first to the last of positive length (those
       // before and after have none), C from cf there; the open run's ends by breakpoint.
-      const int32_t f = kf[size_t(i)], l = kl[size_t(i)];
-      if (f < 0) continue;
+      if (kf[size_t(i)] == -1) continue;
       int c = cf[size_t(i)];
       if (c == Cov::kNone || s.q0s == 0) return kFallback;
       const int qi = int(s.q0s > 0);
+      // C on s's lower side is c - lo at its first piece and never less than c + sneg - lo
+      // after it: at least 1 there, every piece is covered on both sides (no run, and none
+      // of the checks below can fail), and its breakpoints need no order.
+      const int lo = qi ? std::max(0, s.w) : std::max(0, -s.w);
+      if (c + sneg[size_t(i)] - lo >= 1) continue;
+      if (kf[size_t(i)] == kUnsorted) {
+        sort_breaks(boff[size_t(i)], boff[size_t(i) + 1]);
+        first_last(i, boff[size_t(i)], boff[size_t(i) + 1]);
+      }
+      const int32_t f = kf[size_t(i)], l = kl[size_t(i)];
+      if (f < 0) continue;
       int run_dir = 0;
       int32_t rs = 0, re = 0;
       for (int32_t k = f; k <= l; k++) {
