@@ -360,7 +360,7 @@ def test_two_occluder_edges_nearly_in_line(d) -> None:
     """Two occluder edges of different triangles whose planes through the receiver are about
     `d` / 0.1 m rad apart (`_nearly_in_line`, two receivers): the boundary vertex where their
     projections cross lies on one edge's line (`occluder_edges_crossing`); the cross product of
-    the planes' normals was off by eps over their angle (1e-9: 4.9e-11 U, 1e-12: 1.1e-7 U,
+    the planes' normals is off by eps over their angle (1e-9: 4.9e-11 U, 1e-12: 1.1e-7 U,
     1e-13: 2.4e-6 U). The host engine (soup and mesh), the differentiated path and the device
     kernel within 1e-13 U of the exact reference, gradients finite; at 1e-9 m (one receiver) the
     gradient in the triangles' vertices and the receiver, along two random directions, within
