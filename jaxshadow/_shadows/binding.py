@@ -382,13 +382,14 @@ def decode_endpoints(
     y = jax.vmap(_crossing_point, in_axes=(None, 0, None, None))(p, line, ne, hp)
     # A light edge's plane through p (the first plane: the engine sorts them) and another nearly
     # coincident with it cross on the edge (`light_edge_point`).
-    light = (codes[:, 1] == 0) & (codes[:, 3] < k) & jax.vmap(_near_planes)(n1, n2)
+    near = jax.vmap(_near_planes)(n1, n2)
+    light = (codes[:, 1] == 0) & (codes[:, 3] < k) & near
     on_edge = jax.vmap(_light_edge_point, in_axes=(None, 0, 0, 0))(p, a1, b1, n2)
     y = jnp.where(light[:, None], on_edge, y)
     # Two occluder edges' planes through p, nearly coincident: on one edge's line
     # (`occluder_edges_point`).
     occ_refs = jnp.all(codes[:, jnp.array([2, 3, 5, 6])] >= k, axis=-1)
-    occ = (codes[:, 1] == 0) & (codes[:, 4] == 0) & occ_refs & ~common & jax.vmap(_near_planes)(n1, n2)
+    occ = (codes[:, 1] == 0) & (codes[:, 4] == 0) & occ_refs & ~common & near
     # Other rows meet at the light's first vertex (in the emitter plane: a finite gradient).
     a1o, b1o, a2o, b2o = (jnp.where(occ[:, None], x_, e0[None, :]) for x_ in (a1, b1, a2, b2))
     on_line = jax.vmap(_occluder_edges_point, in_axes=(None, 0, 0, 0, 0, 0, 0, None, None))(
